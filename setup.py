@@ -1,0 +1,39 @@
+"""ament_python package setup for rcbf_ros (also installable with pip)."""
+from glob import glob
+import os
+
+from setuptools import find_packages, setup
+
+package_name = 'rcbf_ros'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*', 'benchmarks']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        (os.path.join('share', package_name, 'config'), glob('config/*.yaml')),
+        (os.path.join('share', package_name, 'launch'), glob('launch/*.py')),
+    ],
+    install_requires=['setuptools'],
+    extras_require={
+        # Everything the package needs where rosdep does not provide it (pip installs).
+        'standalone': [
+            'numpy', 'torch', 'osqp', 'pyyaml', 'cyclonedds', 'rosbags', 'mcap',
+            'mcap-ros2-support', 'gpytorch', 'gymnasium', 'tqdm', 'matplotlib',
+        ],
+        'test': ['pytest', 'pytest-timeout', 'qpth', 'cvxpylayers', 'proxsuite',
+                 'pymcap-cli', 'ruff'],
+        'ray': ['ray'],
+    },
+    zip_safe=True,
+    maintainer='rcbf_ros developers',
+    maintainer_email='rcbf-ros@example.org',
+    description='Safe RL with robust control barrier functions for ROS 2',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+        ],
+    },
+)

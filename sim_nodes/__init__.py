@@ -1,0 +1,1 @@
+"""Simulator nodes (ROS-facing wrappers of rcbf_ros.envs)."""
