@@ -1,0 +1,250 @@
+"""Barrier functions h(x) >= 0 and the cascaded form for higher relative degree.
+
+A *barrier family* holds k barriers of one kind (e.g. k circular obstacles) and evaluates them
+row-wise: ``value(x, index)`` takes states ``x: (R, n_x)`` and barrier indices
+``index: (R,)`` and returns ``(R,)`` with row r = h_{index[r]}(x[r]). Row r depends on x[r] only,
+so one autograd pass over ``sum(value)`` yields every row's own gradient; this is what lets the
+cascade (which needs the gradient *inside* the barrier) run batched without nested Jacobians.
+
+Families here (all differentiable in torch):
+
+- :class:`CircleObstacles`  h_o = ||p(x) - p_o||^2 - delta_o^2 (paper, Unicycle and PVTOL), with an
+  optional look-ahead point p = (x, y) + l_p (cos th, sin th) so that both unicycle inputs appear
+  in L_g h (relative degree 1).
+- :class:`BandBarrier`      h = delta^2 - (x_i - c)^2 where c is a constant or another state entry
+  (the PVTOL safety operator: delta^2 - (x1 - x_h)^2).
+- :class:`PairGap`          h = 1/2 ((x_a - x_b)^2 - delta^2) (Car Following, h_3 and h_5).
+- :class:`HalfPlane`        h = n^T x_S - b (stay on one side of a line/plane; arena walls).
+- :class:`Cascaded`         h* = L_f h + gamma h (paper, Car Following), applied recursively by
+  :func:`cascade` for relative degree r >= 2: r - 1 applications.
+
+The disturbance is accounted for only at the top level (the RCBF row): in the cascade the lower
+levels use the nominal drift f. This matches the paper's cascaded RCBFs, whose lower-level
+derivatives carry neither the input nor (for the systems here) the learned disturbance.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable, Sequence
+
+import torch
+from torch import Tensor
+
+from rcbf_ros.core.dynamics import ControlAffineSystem
+
+
+@runtime_checkable
+class BarrierFamily(Protocol):
+    """k barriers of one kind, evaluated row-wise (see module docstring)."""
+
+    @property
+    def count(self) -> int:
+        """Number of barriers k in the family."""
+
+    @property
+    def names(self) -> list[str]:
+        """One name per barrier, for diagnostics (e.g. ``obstacle_3``)."""
+
+    def value(self, x: Tensor, index: Tensor) -> Tensor:
+        """x: (R, n_x), index: (R,) long in [0, k) -> (R,) with h_{index[r]}(x[r])."""
+
+
+def _as_tensor(values: Sequence, like: Tensor) -> Tensor:
+    return torch.as_tensor(values, dtype=like.dtype, device=like.device)
+
+
+@dataclass(frozen=True)
+class CircleObstacles:
+    """Circular keep-out zones: h_o(x) = ||p(x) - p_o||^2 - delta_o^2, delta_o = r_o + margin."""
+
+    centers: tuple[tuple[float, float], ...]
+    """Obstacle centres p_o in the plane, one (x, y) per obstacle."""
+    radii: tuple[float, ...]
+    """Obstacle radii r_o (same length as centers)."""
+    margin: float = 0.0
+    """Added to every radius (robot size and a safety buffer): delta_o = r_o + margin."""
+    position_indices: tuple[int, int] = (0, 1)
+    """State entries holding the planar position."""
+    heading_index: int | None = None
+    """State entry of the heading, for the look-ahead point (None: no look-ahead)."""
+    lookahead: float = 0.0
+    """l_p: the barrier uses p = position + l_p (cos th, sin th) (ref: 0.03 on the unicycle)."""
+    name: str = 'obstacle'
+    """Prefix of the barrier names in diagnostics."""
+
+    def __post_init__(self) -> None:
+        if len(self.centers) != len(self.radii):
+            raise ValueError(f'obstacles: {len(self.centers)} centers but {len(self.radii)} radii')
+        if any(len(c) != 2 for c in self.centers):
+            raise ValueError('obstacles.centers: every center needs exactly 2 coordinates')
+        if any(r < 0 for r in self.radii):
+            raise ValueError('obstacles.radii: radii must be >= 0')
+        if self.lookahead != 0.0 and self.heading_index is None:
+            raise ValueError('obstacles.lookahead: a look-ahead point needs heading_index')
+
+    @property
+    def count(self) -> int:
+        return len(self.centers)
+
+    @property
+    def names(self) -> list[str]:
+        return [f'{self.name}_{i}' for i in range(self.count)]
+
+    def point(self, x: Tensor) -> Tensor:
+        """The point kept out of the obstacles. x: (R, n_x) -> (R, 2)."""
+        i, j = self.position_indices
+        p = torch.stack([x[:, i], x[:, j]], dim=-1)
+        if self.heading_index is not None and self.lookahead != 0.0:
+            th = x[:, self.heading_index]
+            p = p + self.lookahead * torch.stack([torch.cos(th), torch.sin(th)], dim=-1)
+        return p
+
+    def value(self, x: Tensor, index: Tensor) -> Tensor:
+        centers = _as_tensor(self.centers, x)[index]
+        delta = _as_tensor(self.radii, x)[index] + self.margin
+        return ((self.point(x) - centers) ** 2).sum(-1) - delta ** 2
+
+
+@dataclass(frozen=True)
+class BandBarrier:
+    """Stay within a band: h(x) = delta^2 - (x_i - c)^2, c a constant or the state entry x_j."""
+
+    index: int
+    """State entry x_i constrained to the band."""
+    half_width: float
+    """delta: the allowed distance |x_i - c|."""
+    center: float = 0.0
+    """Constant centre c (ignored when center_index is given)."""
+    center_index: int | None = None
+    """State entry holding a moving centre (e.g. the safety operator x_h)."""
+    name: str = 'band'
+    """Barrier name in diagnostics."""
+
+    def __post_init__(self) -> None:
+        if self.half_width <= 0:
+            raise ValueError('half_width: must be > 0')
+
+    @property
+    def count(self) -> int:
+        return 1
+
+    @property
+    def names(self) -> list[str]:
+        return [self.name]
+
+    def value(self, x: Tensor, index: Tensor) -> Tensor:
+        c = x[:, self.center_index] if self.center_index is not None else self.center
+        return self.half_width ** 2 - (x[:, self.index] - c) ** 2
+
+
+@dataclass(frozen=True)
+class PairGap:
+    """Keep two 1-D positions apart: h = 1/2 ((x_a - x_b)^2 - delta^2), one barrier per pair."""
+
+    pairs: tuple[tuple[int, int], ...]
+    """(a, b) state indices per barrier (Car Following: (p_3, p_4) and (p_5, p_4))."""
+    delta: float
+    """Minimum distance (paper: 3.5 m)."""
+    name: str = 'gap'
+    """Prefix of the barrier names in diagnostics."""
+
+    @property
+    def count(self) -> int:
+        return len(self.pairs)
+
+    @property
+    def names(self) -> list[str]:
+        return [f'{self.name}_{a}_{b}' for a, b in self.pairs]
+
+    def value(self, x: Tensor, index: Tensor) -> Tensor:
+        pairs = torch.as_tensor(self.pairs, device=x.device)[index]
+        xa = x.gather(1, pairs[:, :1]).squeeze(1)
+        xb = x.gather(1, pairs[:, 1:]).squeeze(1)
+        return 0.5 * ((xa - xb) ** 2 - self.delta ** 2)
+
+
+@dataclass(frozen=True)
+class HalfPlane:
+    """Half-spaces h_j = n_j^T x_S - b_j >= 0 over the state entries S (e.g. arena walls)."""
+
+    normals: tuple[tuple[float, ...], ...]
+    """One normal n_j per barrier, each of length len(indices)."""
+    offsets: tuple[float, ...]
+    """b_j per barrier."""
+    indices: tuple[int, ...] = (0, 1)
+    """State entries S the normals act on."""
+    name: str = 'wall'
+    """Prefix of the barrier names in diagnostics."""
+
+    def __post_init__(self) -> None:
+        if len(self.normals) != len(self.offsets):
+            raise ValueError('half_planes: normals and offsets differ in length')
+        if any(len(n) != len(self.indices) for n in self.normals):
+            raise ValueError('half_planes.normals: each normal needs len(indices) entries')
+
+    @property
+    def count(self) -> int:
+        return len(self.normals)
+
+    @property
+    def names(self) -> list[str]:
+        return [f'{self.name}_{i}' for i in range(self.count)]
+
+    def value(self, x: Tensor, index: Tensor) -> Tensor:
+        normals = _as_tensor(self.normals, x)[index]
+        offsets = _as_tensor(self.offsets, x)[index]
+        return (normals * x[:, list(self.indices)]).sum(-1) - offsets
+
+
+@dataclass(frozen=True)
+class Cascaded:
+    """h*(x) = L_f h(x) + gamma h(x) = grad h(x)^T f(x) + gamma h(x) (cascaded RCBF).
+
+    Valid where the input does not appear in h_dot (relative degree >= 2: L_g h = 0 for the
+    base); the tests check that for every cascaded barrier of the built-in systems.
+    """
+
+    base: BarrierFamily
+    """The barrier of one lower order."""
+    system: ControlAffineSystem
+    """Supplies the nominal drift f."""
+    gamma: float
+    """gamma_k > 0 of this cascade level."""
+
+    @property
+    def count(self) -> int:
+        return self.base.count
+
+    @property
+    def names(self) -> list[str]:
+        return self.base.names
+
+    def value(self, x: Tensor, index: Tensor) -> Tensor:
+        with torch.enable_grad():
+            if not x.requires_grad:
+                x = x.detach().requires_grad_(True)
+            h = self.base.value(x, index)
+            (grad_h,) = torch.autograd.grad(h.sum(), x, create_graph=True)
+        return (grad_h * self.system.f(x)).sum(-1) + self.gamma * h
+
+
+def cascade(base: BarrierFamily, system: ControlAffineSystem,
+            gammas: Sequence[float]) -> BarrierFamily:
+    """Apply the cascade once per gamma: relative degree r needs r - 1 gammas.
+
+    ``cascade(h, sys, [g1, g2])`` = (L_f + g2)(L_f + g1) h, as used for PVTOL (r = 3).
+    """
+    family = base
+    for gamma in gammas:
+        if gamma <= 0:
+            raise ValueError(f'gammas: every cascade gain must be > 0, got {gamma}')
+        family = Cascaded(family, system, float(gamma))
+    return family
+
+
+def evaluate(family: BarrierFamily, x: Tensor) -> Tensor:
+    """Every barrier of the family at every state. x: (B, n_x) -> (B, k)."""
+    k = family.count
+    rows = x.repeat_interleave(k, dim=0)
+    index = torch.arange(k, device=x.device).repeat(x.shape[0])
+    return family.value(rows, index).reshape(x.shape[0], k)

@@ -1,0 +1,204 @@
+"""Safety-filter configuration: ROS parameters (flat, dotted) -> frozen dataclass -> RCBFProblem.
+
+ROS 2 parameters are scalars or flat homogeneous arrays, so the layout is flat too; a YAML file
+may nest mappings (``obstacles: {x: [...]}``), which ROS (and :func:`flatten`) turn into dotted
+names (``obstacles.x``). The same keys feed the safety_filter node, the learner and offline
+scripts (one source of truth: ``config/<system>.yaml``). Every error names the bad key.
+
+Keys (all optional except ``system``)::
+
+    system: unicycle | car_following | pvtol | package.module.ClassName
+    system_params.<name>: constructor argument of the system (e.g. with_operator)
+    input_limits.min / input_limits.max: [m floats] (override the system's; [] = unbounded)
+    alpha, k_c, slack_weight
+    obstacles.x / .y / .radius: [k floats];  obstacles.margin, obstacles.lookahead,
+        obstacles.heading_index (-1: none), obstacles.position_indices: [2 ints],
+        obstacles.gammas: [r - 1 cascade gains]
+    bands.<name>.index, .half_width, .center, .center_index (-1: constant centre), .gammas:
+        one band barrier per <name> (e.g. bands.operator.*, bands.tilt.*)
+    gaps.a / gaps.b: [ints], gaps.delta, gaps.gammas
+    walls.nx / walls.ny / walls.offset: [floats], walls.gammas  (h = nx x + ny y - offset)
+    disturbance.mean / disturbance.std: [n_x floats]: a static box (empty: zero / learned)
+    fail_safe_action: [m floats]
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import Any, Mapping
+
+from rcbf_ros.core.barriers import (
+    BandBarrier,
+    BarrierFamily,
+    cascade,
+    CircleObstacles,
+    HalfPlane,
+    PairGap,
+)
+from rcbf_ros.core.dynamics import ControlAffineSystem, load_system
+from rcbf_ros.core.rcbf import RCBFProblem
+
+
+def flatten(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
+    """Nested mappings -> dotted keys, as ROS 2 does for parameter YAML."""
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, Mapping):
+            flat.update(flatten(value, name + '.'))
+        else:
+            flat[name] = value
+    return flat
+
+
+def _floats(params: Mapping[str, Any], key: str, length: int | None = None) -> tuple[float, ...]:
+    value = params.get(key, ())
+    if value is None:
+        return ()
+    if isinstance(value, (int, float)):
+        value = [value]
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'{key}: expected a list of numbers, got {value!r}') from exc
+    if any(not math.isfinite(v) for v in out):
+        raise ValueError(f'{key}: contains NaN or inf')
+    if length is not None and out and len(out) != length:
+        raise ValueError(f'{key}: expected {length} values, got {len(out)}')
+    return out
+
+
+def _number(params: Mapping[str, Any], key: str, default: float) -> float:
+    value = params.get(key, default)
+    try:
+        out = float(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'{key}: expected a number, got {value!r}') from exc
+    if not math.isfinite(out):
+        raise ValueError(f'{key}: must be finite')
+    return out
+
+
+def _index(params: Mapping[str, Any], key: str, default: int, n_x: int,
+           allow_none: bool = False) -> int | None:
+    value = params.get(key, default)
+    try:
+        out = int(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'{key}: expected an integer, got {value!r}') from exc
+    if allow_none and out < 0:
+        return None
+    if not 0 <= out < n_x:
+        raise ValueError(f'{key}: state index {out} out of range for n_x = {n_x}')
+    return out
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Everything the safety filter is configured with, validated."""
+
+    problem: RCBFProblem
+    """System, barriers and gains."""
+    static_mean: tuple[float, ...]
+    """Static disturbance mean (n_x values, or empty: zero / learned on a topic)."""
+    static_std: tuple[float, ...]
+    """Static disturbance std (n_x values, or empty)."""
+    fail_safe_action: tuple[float, ...] | None
+    """Action applied when filtering is impossible (None: zeros clipped to the limits)."""
+
+
+def build_system(params: Mapping[str, Any]) -> ControlAffineSystem:
+    """The system named by ``system`` with ``system_params.*`` and ``input_limits.*``."""
+    name = params.get('system')
+    if not isinstance(name, str) or not name:
+        raise ValueError('system: required (unicycle, car_following, pvtol or a dotted path)')
+    sys_params = {k[len('system_params.'):]: v for k, v in params.items()
+                  if k.startswith('system_params.')}
+    if 'input_limits.min' in params or 'input_limits.max' in params:
+        lo = _floats(params, 'input_limits.min')
+        hi = _floats(params, 'input_limits.max')
+        if len(lo) != len(hi):
+            raise ValueError('input_limits.min/max: lengths differ')
+        if any(a > b for a, b in zip(lo, hi)):
+            raise ValueError('input_limits.min: must not exceed input_limits.max')
+        sys_params['u_min'] = lo or None
+        sys_params['u_max'] = hi or None
+    system = load_system(name, sys_params)
+    if system.u_min is not None and len(system.u_min) != system.n_u:
+        raise ValueError(f'input_limits.min: expected {system.n_u} values')
+    return system
+
+
+def build_families(params: Mapping[str, Any],
+                   system: ControlAffineSystem) -> tuple[BarrierFamily, ...]:
+    """Barrier families (cascaded as configured) from the flat parameters."""
+    n_x = system.n_x
+    families: list[BarrierFamily] = []
+    xs = _floats(params, 'obstacles.x')
+    if xs:
+        ys = _floats(params, 'obstacles.y', len(xs))
+        radius = _floats(params, 'obstacles.radius', len(xs))
+        if len(ys) != len(xs) or len(radius) != len(xs):
+            raise ValueError('obstacles.y/obstacles.radius: need one value per obstacles.x')
+        pos = params.get('obstacles.position_indices', [0, 1])
+        if len(pos) != 2:
+            raise ValueError('obstacles.position_indices: expected 2 indices')
+        pos_idx = (_index({'p': pos[0]}, 'p', 0, n_x), _index({'p': pos[1]}, 'p', 1, n_x))
+        base = CircleObstacles(
+            centers=tuple(zip(xs, ys)), radii=radius,
+            margin=_number(params, 'obstacles.margin', 0.0),
+            position_indices=pos_idx,  # type: ignore[arg-type]
+            heading_index=_index(params, 'obstacles.heading_index', -1, n_x, allow_none=True),
+            lookahead=_number(params, 'obstacles.lookahead', 0.0))
+        families.append(cascade(base, system, _floats(params, 'obstacles.gammas')))
+    band_names = sorted({k.split('.')[1] for k in params
+                         if k.startswith('bands.') and k.count('.') == 2})
+    for band in band_names:
+        key = f'bands.{band}.'
+        sub = {k[len(key):]: v for k, v in params.items() if k.startswith(key)}
+        try:
+            base = BandBarrier(
+                index=_index(sub, 'index', 0, n_x),  # type: ignore[arg-type]
+                half_width=_number(sub, 'half_width', 0.0),
+                center=_number(sub, 'center', 0.0),
+                center_index=_index(sub, 'center_index', -1, n_x, allow_none=True),
+                name=band)
+            families.append(cascade(base, system, _floats(sub, 'gammas')))
+        except ValueError as exc:
+            raise ValueError(f'{key}{exc}') from exc
+    gap_a = params.get('gaps.a') or []
+    if gap_a:
+        gap_b = params.get('gaps.b') or []
+        if len(gap_b) != len(gap_a):
+            raise ValueError('gaps.b: need one index per gaps.a')
+        pairs = tuple((_index({'i': a}, 'i', 0, n_x), _index({'i': b}, 'i', 0, n_x))
+                      for a, b in zip(gap_a, gap_b))
+        base = PairGap(pairs=pairs, delta=_number(params, 'gaps.delta', 0.0))  # type: ignore
+        families.append(cascade(base, system, _floats(params, 'gaps.gammas')))
+    nxs = _floats(params, 'walls.nx')
+    if nxs:
+        nys = _floats(params, 'walls.ny', len(nxs))
+        offsets = _floats(params, 'walls.offset', len(nxs))
+        base = HalfPlane(normals=tuple(zip(nxs, nys)), offsets=offsets)
+        families.append(cascade(base, system, _floats(params, 'walls.gammas')))
+    if not families:
+        raise ValueError('barriers: configure at least one of obstacles.*, bands.*, gaps.*, '
+                         'walls.*')
+    return tuple(families)
+
+
+def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
+    """Validate flat (or nested) parameters into a :class:`FilterConfig`."""
+    params = flatten(params)
+    system = build_system(params)
+    problem = RCBFProblem(
+        system=system, families=build_families(params, system),
+        alpha=_number(params, 'alpha', 1.0), k_c=_number(params, 'k_c', 2.0),
+        slack_weight=_number(params, 'slack_weight', 1.0e6))
+    mean = _floats(params, 'disturbance.mean', system.n_x)
+    std = _floats(params, 'disturbance.std', system.n_x)
+    if any(s < 0 for s in std):
+        raise ValueError('disturbance.std: must be >= 0')
+    fail_safe = _floats(params, 'fail_safe_action', system.n_u) or None
+    return FilterConfig(problem=problem, static_mean=mean, static_std=std,
+                        fail_safe_action=fail_safe)

@@ -1,0 +1,181 @@
+"""Per-step RCBF safety filter: OSQP set up once, ``update()`` + warm-started solve per call.
+
+Given a state x, a proposal u_RL and (optionally) a disturbance box mean +/- k_c std, returns
+u* = u_RL + u_S with u_S from the RCBF-QP built by :meth:`RCBFProblem.qp` (the same builder the
+learner's differentiable layer uses). The sparsity pattern of the constraint matrix is fixed at
+construction (dense RCBF rows, one entry per actuator-limit row) so that every call is
+``OSQP.update(Ax=, u=)`` + ``solve()``.
+
+Failure policy (never raises on a solve): when OSQP does not report ``solved`` (or
+``solved inaccurate``), or its answer is not finite, the filter returns the *fail-safe action*
+(configurable; default all zeros, clipped to the actuator limits) with ``fail_safe=True`` and the
+solver status in ``status``. Bad *inputs* (wrong length, NaN/inf, negative std) are the caller's
+bug and raise ``ValueError`` naming the field; the ROS node turns those into the fail-safe too.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import time
+from typing import Sequence
+
+import numpy as np
+import osqp
+import scipy.sparse as sp
+import torch
+
+from rcbf_ros.core.rcbf import RCBFProblem
+
+_OK_STATUS = {1: 'solved', 2: 'solved_inaccurate'}
+
+
+@dataclass(frozen=True)
+class FilterResult:
+    """Outcome of one :meth:`SafetyFilter.filter` call (all arrays float64 numpy)."""
+
+    u_safe: np.ndarray
+    """(n_u,) the action to apply: u_RL + u_S, or the fail-safe action."""
+    u_s: np.ndarray
+    """(n_u,) the correction u_S (u_safe - u_RL)."""
+    slack: float
+    """eps of the QP (> 0: a barrier row could not be met within the limits)."""
+    h: np.ndarray
+    """(K,) barrier values h_i(x) (top level of each cascade)."""
+    constraint_values: np.ndarray
+    """(K,) L_f h + L_g h u_safe + alpha h + rho per barrier: >= 0 means the RCBF row holds
+    without slack at the returned action."""
+    status: str
+    """'solved', 'solved_inaccurate', or the OSQP status that triggered the fail-safe."""
+    solve_time_s: float
+    """Wall time of OSQP update + solve."""
+    total_time_s: float
+    """Wall time of the whole call (constraint assembly included)."""
+    fail_safe: bool
+    """True when u_safe is the fail-safe action."""
+    barrier_names: list[str] = field(default_factory=list)
+    """K names in row order."""
+
+    @property
+    def active(self) -> bool:
+        """Whether the filter changed the proposal."""
+        return bool(np.any(self.u_s != 0.0)) or self.fail_safe
+
+
+def _vector(name: str, value: object, size: int) -> np.ndarray:
+    """Validate a 1-D float input; raise ValueError naming the field."""
+    try:
+        array = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'{name}: not a numeric vector ({exc})') from exc
+    if array.shape != (size,):
+        raise ValueError(f'{name}: expected {size} values, got {array.size}')
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f'{name}: contains NaN or inf')
+    return array
+
+
+class SafetyFilter:
+    """RCBF-QP safety filter for one :class:`RCBFProblem` (see module docstring)."""
+
+    def __init__(self, problem: RCBFProblem, *, fail_safe_action: Sequence[float] | None = None,
+                 eps_abs: float = 1e-8, eps_rel: float = 1e-8, max_iter: int = 4000) -> None:
+        """Set OSQP up once with the fixed sparsity pattern.
+
+        Args:
+            problem: system, barriers and gains.
+            fail_safe_action: n_u values applied when the solve fails (default zeros), clipped
+                to the actuator limits.
+            eps_abs: OSQP absolute tolerance (solution polishing is on).
+            eps_rel: OSQP relative tolerance.
+            max_iter: OSQP iteration cap.
+        """
+        self.problem = problem
+        system = problem.system
+        self.n_x, self.n_u = system.n_x, system.n_u
+        self.n_barriers = problem.n_barriers
+        self.barrier_names = problem.barrier_names
+        nz, nc = self.n_u + 1, problem.n_constraints
+        if problem.has_limits:
+            self._u_min = np.asarray(system.u_min, dtype=np.float64)
+            self._u_max = np.asarray(system.u_max, dtype=np.float64)
+        else:
+            self._u_min = np.full(self.n_u, -np.inf)
+            self._u_max = np.full(self.n_u, np.inf)
+        action = np.zeros(self.n_u) if fail_safe_action is None else _vector(
+            'fail_safe_action', fail_safe_action, self.n_u)
+        self.fail_safe_action = np.clip(action, self._u_min, self._u_max)
+
+        # Fixed pattern: RCBF rows are dense in (u_S, eps); limit rows hold one entry each.
+        pattern = np.zeros((nc, nz), dtype=bool)
+        pattern[:self.n_barriers, :] = True
+        for j in range(self.n_u if problem.has_limits else 0):
+            pattern[self.n_barriers + j, j] = True
+            pattern[self.n_barriers + self.n_u + j, j] = True
+        cols, rows = np.nonzero(pattern.T)  # column-major = CSC order
+        self._rows, self._cols = rows, cols
+        a_matrix = sp.csc_matrix((np.ones(rows.size), (rows, cols)), shape=(nc, nz))
+        a_matrix.sort_indices()
+        diag = np.full(nz, 2.0)
+        diag[-1] = 2.0 * problem.slack_weight
+        self._solver = osqp.OSQP()
+        self._solver.setup(P=sp.csc_matrix(np.diag(diag)), q=np.zeros(nz), A=a_matrix,
+                           l=np.full(nc, -np.inf), u=np.ones(nc), verbose=False, polish=True,
+                           eps_abs=eps_abs, eps_rel=eps_rel, max_iter=max_iter,
+                           warm_starting=True)
+        self._nc = nc
+
+    def filter(self, state: Sequence[float], u_rl: Sequence[float],
+               mean: Sequence[float] | None = None,
+               std: Sequence[float] | None = None) -> FilterResult:
+        """Make u_rl safe at state under the disturbance box mean +/- k_c std.
+
+        Args:
+            state: n_x values.
+            u_rl: n_u proposed values.
+            mean: n_x disturbance mean (None: zero).
+            std: n_x disturbance std >= 0 (None: zero).
+
+        Raises:
+            ValueError: naming the field, for a wrong length, NaN/inf, or negative std.
+        """
+        start = time.perf_counter()
+        x = _vector('state', state, self.n_x)
+        u = _vector('u_rl', u_rl, self.n_u)
+        mu = None if mean is None else _vector('disturbance_mean', mean, self.n_x)
+        sd = None if std is None else _vector('disturbance_std', std, self.n_x)
+        if sd is not None and np.any(sd < 0):
+            raise ValueError('disturbance_std: must be >= 0')
+
+        def as_batch(a: np.ndarray | None) -> torch.Tensor | None:
+            return None if a is None else torch.from_numpy(a).unsqueeze(0)
+
+        xt, ut = as_batch(x), as_batch(u)
+        terms = self.problem.terms(xt)
+        qp = self.problem.qp(xt, ut, as_batch(mu), as_batch(sd), terms=terms)
+        g_matrix = qp.G[0].numpy()
+        upper = qp.h[0].numpy()
+        h_values = terms.h[0].numpy()
+
+        solve_start = time.perf_counter()
+        self._solver.update(Ax=g_matrix[self._rows, self._cols], u=upper)
+        result = self._solver.solve()
+        solve_time = time.perf_counter() - solve_start
+
+        status_val = int(result.info.status_val)
+        z = None if result.x is None else np.asarray(result.x, dtype=np.float64)
+        ok = status_val in _OK_STATUS and z is not None and bool(np.all(np.isfinite(z)))
+        if ok:
+            u_safe = np.clip(u + z[:self.n_u], self._u_min, self._u_max)
+            slack = float(z[-1])
+            status = _OK_STATUS[status_val]
+        else:
+            u_safe = self.fail_safe_action.copy()
+            slack = float('nan')
+            status = str(result.info.status)
+        # RCBF row at the applied action without slack: rhs + L_g h (u_safe - u_rl) >= 0.
+        lg_h = -g_matrix[:self.n_barriers, :self.n_u]
+        residual = upper[:self.n_barriers] + lg_h @ (u_safe - u)
+        return FilterResult(
+            u_safe=u_safe, u_s=u_safe - u, slack=slack, h=h_values,
+            constraint_values=residual, status=status, solve_time_s=solve_time,
+            total_time_s=time.perf_counter() - start, fail_safe=not ok,
+            barrier_names=list(self.barrier_names))

@@ -1,0 +1,109 @@
+"""ONE builder of the RCBF-QP data, used by the OSQP filter (B = 1) and the differentiable layer.
+
+The paper's RCBF-QP (eq. QP), with z = [u_S, eps]:
+
+    minimize    ||u_S||^2 + l eps^2
+    subject to  grad h_i^T (f + g (u_RL + u_S)) >= -alpha h_i - min_{psi in D} grad h_i^T psi + eps
+                u_min <= u_RL + u_S <= u_max                          (actuator limits, optional)
+
+in the standard form used throughout the package,
+
+    minimize_z  1/2 z^T P z + q^T z   subject to   G z <= h
+
+    P = 2 diag(1, ..., 1, l)                                    (B, m + 1, m + 1)
+    q = 0                                                       (B, m + 1)
+    RCBF row i:  [-L_g h_i, -1] z <= L_f h_i + L_g h_i u_RL + alpha h_i + rho_i
+    limit rows:  [ e_j, 0] z <= u_max_j - u_RL_j,   [-e_j, 0] z <= u_RL_j - u_min_j
+
+where rho_i = min over the disturbance hull of grad h_i^T psi (:func:`robust_margin`). The slack
+eps is free (paper: eps in R); with l large it is ~0 whenever the barrier rows can be met, and it
+makes the QP always feasible and strictly convex. G and h are differentiable in u_RL, so the
+learner's losses see the safe action (paper eqs. q_update_diff, pi_update_diff).
+"""
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import torch
+from torch import Tensor
+
+
+class QPData(NamedTuple):
+    """A batch of QPs  min 1/2 z^T P z + q^T z  s.t.  G z <= h."""
+
+    P: Tensor
+    """(B, nz, nz), nz = n_u + 1."""
+    q: Tensor
+    """(B, nz)."""
+    G: Tensor
+    """(B, nc, nz), nc = n_barriers + 2 n_limited_inputs."""
+    h: Tensor
+    """(B, nc)."""
+
+
+def robust_margin(grad_h: Tensor, mean: Tensor, std: Tensor, k_c: float) -> Tensor:
+    """min over the box D = mean +/- k_c std of grad_h^T psi, in closed form.
+
+    The minimum of a linear function over a box is attained at a vertex, coordinate-wise at
+    psi_d = mean_d - k_c std_d sign(grad_d), so
+
+        rho = grad_h^T mean - k_c |grad_h|^T std.
+
+    This equals the paper's min over the 2^n permutation vertices Psi (tested against them).
+
+    Args:
+        grad_h: (B, K, n_x) barrier gradients.
+        mean: (B, n_x) disturbance mean mu(x).
+        std: (B, n_x) disturbance standard deviation sigma(x) >= 0.
+        k_c: confidence multiplier.
+
+    Returns:
+        (B, K) margins rho_i.
+    """
+    return (torch.einsum('bkn,bn->bk', grad_h, mean)
+            - k_c * torch.einsum('bkn,bn->bk', grad_h.abs(), std))
+
+
+def build_rcbf_qp(*, h: Tensor, lf_h: Tensor, lg_h: Tensor, rho: Tensor, u_rl: Tensor,
+                  alpha: float | Tensor, slack_weight: float,
+                  u_min: Sequence[float] | None = None,
+                  u_max: Sequence[float] | None = None) -> QPData:
+    """Assemble the RCBF-QP in standard form (see module docstring).
+
+    Args:
+        h: (B, K) barrier values h_i(x) (the top level of a cascade).
+        lf_h: (B, K) L_f h_i.
+        lg_h: (B, K, m) L_g h_i.
+        rho: (B, K) robust margins (zeros for a non-robust CBF).
+        u_rl: (B, m) proposed actions; G and h are differentiable in it.
+        alpha: linear class-K gain alpha(h) = alpha h, scalar or (K,).
+        slack_weight: l > 0.
+        u_min: m lower limits on u_RL + u_S, or None.
+        u_max: m upper limits, or None (both or neither).
+
+    Returns:
+        QPData with nz = m + 1 and nc = K (+ 2 m with limits).
+    """
+    batch, _, m = lg_h.shape
+    dtype, device = lg_h.dtype, lg_h.device
+    if slack_weight <= 0:
+        raise ValueError('slack_weight: must be > 0')
+    if (u_min is None) != (u_max is None):
+        raise ValueError('u_min/u_max: give both actuator limits or neither')
+    alpha_t = torch.as_tensor(alpha, dtype=dtype, device=device)
+    # RCBF rows: -L_g h u_S - eps <= L_f h + L_g h u_RL + alpha h + rho
+    g_rows = torch.cat([-lg_h, -torch.ones_like(lg_h[..., :1])], dim=-1)
+    h_rows = lf_h + torch.einsum('bkm,bm->bk', lg_h, u_rl) + alpha_t * h + rho
+    if u_min is not None:
+        eye = torch.eye(m, dtype=dtype, device=device)
+        limit_g = torch.cat([torch.cat([eye, -eye], dim=0),
+                             torch.zeros(2 * m, 1, dtype=dtype, device=device)], dim=-1)
+        lo = torch.as_tensor(u_min, dtype=dtype, device=device)
+        hi = torch.as_tensor(u_max, dtype=dtype, device=device)
+        g_rows = torch.cat([g_rows, limit_g.expand(batch, -1, -1)], dim=1)
+        h_rows = torch.cat([h_rows, hi - u_rl, u_rl - lo], dim=1)
+    diag = torch.ones(m + 1, dtype=dtype, device=device)
+    diag[-1] = slack_weight
+    P = torch.diag_embed(2.0 * diag).expand(batch, -1, -1)
+    q = torch.zeros(batch, m + 1, dtype=dtype, device=device)
+    return QPData(P, q, g_rows, h_rows)

@@ -1,0 +1,133 @@
+"""The RCBF constraint set of one system: barriers -> Lie derivatives -> QP data.
+
+:class:`RCBFProblem` is the single place where a system (f, g), its barrier families, the
+class-K gain, the disturbance confidence k_c and the slack weight meet. Both the per-step
+:class:`~rcbf_ros.core.filter.SafetyFilter` and the learner's differentiable layer call
+:meth:`RCBFProblem.qp`; nothing else assembles constraints.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple, Sequence
+
+import torch
+from torch import Tensor
+
+from rcbf_ros.core.barriers import BarrierFamily
+from rcbf_ros.core.dynamics import ControlAffineSystem
+from rcbf_ros.core.qp import build_rcbf_qp, QPData, robust_margin
+
+
+class BarrierTerms(NamedTuple):
+    """Barrier values and Lie derivatives at a batch of states (K barriers in total)."""
+
+    h: Tensor
+    """(B, K) h_i(x)."""
+    grad_h: Tensor
+    """(B, K, n_x) grad h_i(x)."""
+    lf_h: Tensor
+    """(B, K) L_f h_i(x) = grad h_i^T f(x)."""
+    lg_h: Tensor
+    """(B, K, n_u) L_g h_i(x) = grad h_i^T g(x)."""
+
+
+def barrier_terms(system: ControlAffineSystem, families: Sequence[BarrierFamily],
+                  x: Tensor) -> BarrierTerms:
+    """h, grad h, L_f h, L_g h for every barrier of every family at states x: (B, n_x).
+
+    Gradients come from one autograd pass per family over row-replicated states (row r of the
+    replica carries barrier index[r], see :mod:`rcbf_ros.core.barriers`). The results are
+    detached: they are constants for the QP (the learner differentiates through u_RL only).
+    """
+    batch = x.shape[0]
+    hs, grads = [], []
+    with torch.enable_grad():
+        for family in families:
+            k = family.count
+            rows = x.detach().repeat_interleave(k, dim=0).requires_grad_(True)
+            index = torch.arange(k, device=x.device).repeat(batch)
+            values = family.value(rows, index)
+            (grad,) = torch.autograd.grad(values.sum(), rows)
+            hs.append(values.detach().reshape(batch, k))
+            grads.append(grad.reshape(batch, k, -1))
+    h = torch.cat(hs, dim=1)
+    grad_h = torch.cat(grads, dim=1)
+    x = x.detach()
+    lf_h = torch.einsum('bkn,bn->bk', grad_h, system.f(x))
+    lg_h = torch.einsum('bkn,bnm->bkm', grad_h, system.g(x))
+    return BarrierTerms(h, grad_h, lf_h, lg_h)
+
+
+@dataclass(frozen=True)
+class RCBFProblem:
+    """Everything the RCBF-QP needs besides the state, the proposal and the disturbance box."""
+
+    system: ControlAffineSystem
+    """Nominal control-affine model (f, g, input limits)."""
+    families: tuple[BarrierFamily, ...]
+    """Barrier families, already cascaded to relative degree 1 where needed."""
+    alpha: float = 1.0
+    """Linear class-K gain: alpha(h) = alpha * h."""
+    k_c: float = 2.0
+    """k_c of the disturbance box mean +/- k_c std (paper eq. disturb_estimate)."""
+    slack_weight: float = 1.0e6
+    """l: weight of the squared slack (large: violations only when unavoidable)."""
+    use_input_limits: bool = True
+    """Add the actuator-limit rows u_min <= u_RL + u_S <= u_max when the system has limits."""
+
+    def __post_init__(self) -> None:
+        if not self.families:
+            raise ValueError('barriers: at least one barrier is needed')
+        if self.alpha <= 0:
+            raise ValueError('alpha: must be > 0')
+        if self.k_c < 0:
+            raise ValueError('k_c: must be >= 0')
+        if self.slack_weight <= 0:
+            raise ValueError('slack_weight: must be > 0')
+
+    @property
+    def n_barriers(self) -> int:
+        """K, the number of RCBF rows."""
+        return sum(f.count for f in self.families)
+
+    @property
+    def barrier_names(self) -> list[str]:
+        """K names, in row order."""
+        return [name for f in self.families for name in f.names]
+
+    @property
+    def has_limits(self) -> bool:
+        """Whether the QP carries actuator-limit rows."""
+        return self.use_input_limits and self.system.u_min is not None
+
+    @property
+    def n_constraints(self) -> int:
+        """nc = K (+ 2 n_u with limits)."""
+        return self.n_barriers + (2 * self.system.n_u if self.has_limits else 0)
+
+    def terms(self, x: Tensor) -> BarrierTerms:
+        """Barrier values and Lie derivatives. x: (B, n_x)."""
+        return barrier_terms(self.system, self.families, x)
+
+    def qp(self, x: Tensor, u_rl: Tensor, mean: Tensor | None = None,
+           std: Tensor | None = None, terms: BarrierTerms | None = None) -> QPData:
+        """QP data for states x: (B, n_x), proposals u_rl: (B, n_u) and a disturbance box.
+
+        Args:
+            mean: (B, n_x) disturbance mean (None: zero).
+            std: (B, n_x) disturbance std (None: zero, i.e. a plain CBF with a known mean).
+            terms: precomputed :meth:`terms` at x (saves the autograd pass when reused).
+        """
+        terms = self.terms(x) if terms is None else terms
+        if mean is None and std is None:
+            rho = torch.zeros_like(terms.h)
+        else:
+            mean = torch.zeros_like(x) if mean is None else mean
+            std = torch.zeros_like(x) if std is None else std
+            rho = robust_margin(terms.grad_h, mean, std, self.k_c)
+        limits = self.has_limits
+        return build_rcbf_qp(
+            h=terms.h, lf_h=terms.lf_h, lg_h=terms.lg_h, rho=rho, u_rl=u_rl,
+            alpha=self.alpha, slack_weight=self.slack_weight,
+            u_min=self.system.u_min if limits else None,
+            u_max=self.system.u_max if limits else None)
