@@ -1,0 +1,146 @@
+"""The QP builder, systems and configuration parsing."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from rcbf_ros.core.barriers import CircleObstacles
+from rcbf_ros.core.config import filter_config_from_params, flatten
+from rcbf_ros.core.dynamics import CarFollowing, load_system, PVTOL, step_euler, Unicycle
+from rcbf_ros.core.qp import build_rcbf_qp
+from rcbf_ros.core.rcbf import RCBFProblem
+from rcbf_ros.params import find_config, load_params
+
+
+def test_qp_rows_encode_the_rcbf_inequality():
+    """For any z, G z <= h  <=>  the paper's RCBF row and the actuator limits hold."""
+    gen = torch.Generator().manual_seed(0)
+    b, k, m = 4, 3, 2
+    h = torch.randn(b, k, generator=gen, dtype=torch.float64)
+    lf = torch.randn(b, k, generator=gen, dtype=torch.float64)
+    lg = torch.randn(b, k, m, generator=gen, dtype=torch.float64)
+    rho = torch.randn(b, k, generator=gen, dtype=torch.float64)
+    u_rl = torch.randn(b, m, generator=gen, dtype=torch.float64)
+    alpha, lo, hi = 1.5, (-1.0, -2.0), (1.0, 2.0)
+    qp = build_rcbf_qp(h=h, lf_h=lf, lg_h=lg, rho=rho, u_rl=u_rl, alpha=alpha,
+                       slack_weight=1e3, u_min=lo, u_max=hi)
+    assert qp.G.shape == (b, k + 2 * m, m + 1) and qp.h.shape == (b, k + 2 * m)
+    z = torch.randn(b, m + 1, generator=gen, dtype=torch.float64)
+    u_s, eps = z[:, :m], z[:, m]
+    slack_lhs = (qp.G @ z.unsqueeze(-1)).squeeze(-1) - qp.h
+    # Paper eq. QP: L_f h + L_g h (u_RL + u_S) >= -alpha h - rho + eps ... (written as <= 0)
+    rcbf = -(lf + torch.einsum('bkm,bm->bk', lg, u_rl + u_s) + alpha * h + rho) - eps[:, None]
+    torch.testing.assert_close(slack_lhs[:, :k], rcbf)
+    u = u_rl + u_s
+    torch.testing.assert_close(slack_lhs[:, k:k + m], u - torch.tensor(hi, dtype=torch.float64))
+    torch.testing.assert_close(slack_lhs[:, k + m:], torch.tensor(lo, dtype=torch.float64) - u)
+    # Objective ||u_S||^2 + l eps^2 = 1/2 z^T P z.
+    obj = 0.5 * torch.einsum('bi,bij,bj->b', z, qp.P, z)
+    torch.testing.assert_close(obj, (u_s ** 2).sum(-1) + 1e3 * eps ** 2)
+
+
+def test_qp_is_differentiable_in_the_proposal():
+    lg = torch.tensor([[[2.0, -1.0]]], dtype=torch.float64)
+    u_rl = torch.tensor([[0.3, 0.4]], dtype=torch.float64, requires_grad=True)
+    qp = build_rcbf_qp(h=torch.ones(1, 1, dtype=torch.float64),
+                       lf_h=torch.zeros(1, 1, dtype=torch.float64), lg_h=lg,
+                       rho=torch.zeros(1, 1, dtype=torch.float64), u_rl=u_rl, alpha=1.0,
+                       slack_weight=10.0)
+    (grad,) = torch.autograd.grad(qp.h.sum(), u_rl)
+    torch.testing.assert_close(grad, lg[0])
+
+
+def test_euler_step_of_the_unicycle():
+    x = torch.tensor([[0.0, 0.0, math.pi / 2]], dtype=torch.float64)
+    u = torch.tensor([[1.0, 0.5]], dtype=torch.float64)
+    nxt = step_euler(Unicycle(), x, u, 0.1)
+    torch.testing.assert_close(nxt, torch.tensor([[0.0, 0.1, math.pi / 2 + 0.05]],
+                                                 dtype=torch.float64), atol=1e-12, rtol=0)
+
+
+def test_car_following_nominal_accelerations():
+    sys = CarFollowing()
+    x = torch.tensor([[34.0, 30.0, 30.0, 29.0, 22.0, 30.0, 16.0, 30.0, 10.0, 31.0]])
+    a = sys.nominal_accelerations(x)[0]
+    # car 2 is 4 m behind car 1 (< 6): tracks and brakes; car 3 is 8 m behind car 2: tracks only.
+    assert a[1].item() == pytest.approx(4.0 * (30 - 29) - 20.0 * 4.0)
+    assert a[2].item() == pytest.approx(0.0)
+    # car 5 is 12 m behind car 3: not < 12, so only tracking.
+    assert a[4].item() == pytest.approx(4.0 * (30 - 31))
+    assert sys.g(x)[0, 7, 0] == 1.0 and sys.g(x).abs().sum() == 1.0
+
+
+def test_pvtol_drift_and_operator():
+    sys = PVTOL(operator_gain=0.5)
+    x = torch.tensor([[1.0, 2.0, 0.3, -0.2, 0.1, 1.2, 0.4]])
+    f = sys.f(x)[0]
+    expected = [0.3, -0.2, -math.sin(0.1) * 1.2, math.cos(0.1) * 1.2 - 1.0, 0.0, 0.0, 0.5 * 0.6]
+    np.testing.assert_allclose(f.numpy(), expected, rtol=1e-6)
+    assert PVTOL(with_operator=False).n_x == 6
+
+
+def test_load_system_by_dotted_path_and_errors():
+    assert isinstance(load_system('rcbf_ros.core.dynamics.Unicycle'), Unicycle)
+    with pytest.raises(ValueError, match='system:'):
+        load_system('no_such_system')
+    with pytest.raises(ValueError, match='system:'):
+        load_system('rcbf_ros.core.dynamics.NoSuchClass')
+    with pytest.raises(ValueError, match='system_params'):
+        load_system('unicycle', {'bogus': 1})
+
+
+@pytest.mark.parametrize('name', ['unicycle', 'car_following', 'pvtol'])
+def test_shipped_configs_build(name):
+    config = filter_config_from_params(load_params(find_config(name), 'safety_filter'))
+    assert config.problem.n_barriers >= 2
+    assert config.fail_safe_action is not None
+
+
+@pytest.mark.parametrize('params,key', [
+    ({}, 'system'),
+    ({'system': 'unicycle'}, 'barriers'),
+    ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0, 1.0], 'radius': [1.0]}},
+     'obstacles.y'),
+    ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [float('nan')]}},
+     'obstacles.radius'),
+    ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0]},
+      'alpha': 'fast'}, 'alpha'),
+    ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0]},
+      'disturbance': {'std': [0.1, 0.1]}}, 'disturbance.std'),
+    ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0],
+                                          'heading_index': 7}}, 'obstacles.heading_index'),
+    ({'system': 'pvtol', 'bands': {'operator': {'index': 0, 'half_width': -1.0}}},
+     'bands.operator.'),
+    ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0]},
+      'input_limits': {'min': [1.0, 1.0], 'max': [0.0, 2.0]}}, 'input_limits.min'),
+])
+def test_config_errors_name_the_key(params, key):
+    with pytest.raises(ValueError, match=key.replace('.', r'\.')):
+        filter_config_from_params(params)
+
+
+def test_flatten_matches_ros_dotted_names():
+    assert flatten({'a': {'b': 1, 'c': {'d': [1, 2]}}, 'e': 'x'}) == {
+        'a.b': 1, 'a.c.d': [1, 2], 'e': 'x'}
+
+
+def test_params_file_node_section_overrides_wildcard(tmp_path):
+    path = tmp_path / 'p.yaml'
+    path.write_text('/**:\n  ros__parameters:\n    alpha: 1.0\n    k_c: 3.0\n'
+                    '/safety_filter:\n  ros__parameters:\n    alpha: 2.0\n'
+                    '/other:\n  ros__parameters:\n    alpha: 9.0\n')
+    assert load_params(path, 'safety_filter') == {'alpha': 2.0, 'k_c': 3.0}
+    with pytest.raises(FileNotFoundError):
+        load_params(tmp_path / 'missing.yaml', 'x')
+
+
+def test_problem_counts_rows():
+    problem = RCBFProblem(PVTOL(), (CircleObstacles(centers=((0.0, 0.0),) * 3,
+                                                    radii=(1.0,) * 3),))
+    assert problem.n_barriers == 3 and problem.n_constraints == 3 + 4
+    no_limits = RCBFProblem(CarFollowing(), (CircleObstacles(centers=((0.0, 0.0),),
+                                                             radii=(1.0,)),))
+    assert no_limits.n_constraints == 1
