@@ -1,0 +1,451 @@
+"""Gaussian-process model of the unknown disturbance (paper: "Disturbance Estimation").
+
+Labels are residuals of the nominal model, computed by the caller,
+
+    y_i = x_dot_hat_i - f(x_i) - g(x_i) u_i,      y_i in R^{n_out},
+
+and one independent exact GP with a zero prior mean and an ARD RBF kernel is kept per output
+dimension d:
+
+    k_d(x, x') = s_d * exp(-1/2 sum_j (x_j - x'_j)^2 / l_{d,j}^2),   y_d = f_d(x) + eps,
+    eps ~ N(0, n_d).
+
+Hyperparameters (l, s, n) are fitted with GPyTorch by maximising the exact marginal likelihood
+for a bounded number of Adam steps, on inputs standardised per column and outputs scaled by
+their root mean square (optimisation only: the fitted values are mapped back to raw units, see
+``_fit_hyperparameters``). Weak Gamma priors keep lengthscales near the data's scale, so the
+fit cannot collapse to the nearly constant GP that a huge initial lengthscale gives.
+
+Prediction does not go through GPyTorch: after a fit we cache, per output dimension,
+``L`` with ``L L^T = K + n I`` and ``alpha = K^-1 y``, and evaluate in closed form
+
+    mean_d(x*) = k_d(x*, X)^T alpha_d,
+    var_d(x*)  = s_d - |L_d^-1 k_d(x*, X)|^2   (+ n_d if ``include_noise_in_std``),
+
+batched over query points and output dimensions. The disturbance box of eq.
+(disturb_estimate) is ``mean +/- k_c std`` (``bounds``); ``k_c`` is the caller's.
+
+Data management: ``add`` appends to the full data set; ``fit`` trains on at most
+``max_train_points`` of it, chosen by greedy farthest-point sampling in standardised input
+space (or a seeded uniform random subsample), so fit and predict cost stay bounded as data grows.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import Any, Literal
+
+import gpytorch
+import numpy as np
+import torch
+
+ArrayLike = torch.Tensor | np.ndarray
+
+
+@dataclass(frozen=True)
+class GPConfig:
+    """Configuration of ``DisturbanceGP``."""
+
+    prior_std: float = 1.0
+    """Predictive std of every output before any data was fitted (the prior mean is 0)."""
+    max_train_points: int = 512
+    """Cap on the training set the posterior conditions on (exact GP cost is cubic in it)."""
+    hyperparameter_points: int = 256
+    """Cap on the points the marginal likelihood is optimised on: the first ones of the
+    training subset in selection order (itself a farthest-point / random subset), so the
+    Adam loop stays cheap while the posterior uses ``max_train_points``."""
+    subset_rule: Literal['farthest_point', 'random'] = 'farthest_point'
+    """How the capped training set is chosen when more data exist: greedy farthest-point
+    sampling in standardised input space (covers the visited region evenly; first point picked
+    with ``seed``), or a uniform random subsample drawn with ``seed``."""
+    seed: int = 0
+    """Seed of the subset selection."""
+    training_iterations: int = 60
+    """Adam steps on the negative marginal log likelihood per ``fit``."""
+    learning_rate: float = 0.1
+    """Adam learning rate (on GPyTorch's raw, softplus-constrained hyperparameters)."""
+    initial_lengthscale: float = 1.0
+    """Initial lengthscale in standardised input units (1 = one standard deviation of data)."""
+    lengthscale_prior: tuple[float, float] = (2.0, 2.0)
+    """Gamma(concentration, rate) prior on lengthscales in standardised units (mean 1)."""
+    outputscale_prior: tuple[float, float] = (2.0, 0.15)
+    """Gamma prior on the signal variance in RMS-scaled output units (mean 1)."""
+    noise_prior: tuple[float, float] = (1.1, 0.05)
+    """Gamma prior on the noise variance in RMS-scaled output units (mean 0.11)."""
+    min_noise: float = 1e-6
+    """Lower bound of the noise variance in RMS-scaled output units (keeps K + nI well
+    conditioned)."""
+    include_noise_in_std: bool = False
+    """If True ``predict`` returns the std of a noisy observation, else of the latent
+    disturbance (the default: the RCBF bounds the disturbance itself)."""
+    dtype: torch.dtype = torch.float64
+    """Floating point type of data, hyperparameters and predictions."""
+
+    def __post_init__(self) -> None:
+        if not self.prior_std > 0:
+            raise ValueError(f'prior_std must be > 0, got {self.prior_std}')
+        if self.max_train_points < 1:
+            raise ValueError(f'max_train_points must be >= 1, got {self.max_train_points}')
+        if self.hyperparameter_points < 1:
+            raise ValueError(
+                f'hyperparameter_points must be >= 1, got {self.hyperparameter_points}')
+        if self.subset_rule not in ('farthest_point', 'random'):
+            raise ValueError(
+                f"subset_rule must be 'farthest_point' or 'random', got {self.subset_rule!r}")
+        if self.training_iterations < 0:
+            raise ValueError(
+                f'training_iterations must be >= 0, got {self.training_iterations}')
+        if not self.min_noise > 0:
+            raise ValueError(f'min_noise must be > 0, got {self.min_noise}')
+
+
+class _BatchIndependentExactGP(gpytorch.models.ExactGP):
+    """``n_out`` independent exact GPs as one GPyTorch batch (zero mean, scaled ARD RBF)."""
+
+    def __init__(self, train_x: torch.Tensor, train_y: torch.Tensor,
+                 likelihood: gpytorch.likelihoods.GaussianLikelihood,
+                 config: GPConfig) -> None:
+        super().__init__(train_x, train_y, likelihood)
+        n_out, _, n_in = train_x.shape
+        batch = torch.Size([n_out])
+        self.mean_module = gpytorch.means.ZeroMean(batch_shape=batch)
+        self.covar_module = gpytorch.kernels.ScaleKernel(
+            gpytorch.kernels.RBFKernel(
+                ard_num_dims=n_in, batch_shape=batch,
+                lengthscale_prior=gpytorch.priors.GammaPrior(*config.lengthscale_prior)),
+            batch_shape=batch,
+            outputscale_prior=gpytorch.priors.GammaPrior(*config.outputscale_prior))
+
+    def forward(self, x: torch.Tensor) -> gpytorch.distributions.MultivariateNormal:
+        return gpytorch.distributions.MultivariateNormal(self.mean_module(x),
+                                                         self.covar_module(x))
+
+
+def _as_tensor(value: ArrayLike, name: str, dtype: torch.dtype) -> torch.Tensor:
+    if isinstance(value, np.ndarray):
+        value = torch.from_numpy(value)
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f'{name} must be a torch.Tensor or numpy array, got {type(value)}')
+    return value.detach().to(dtype)
+
+
+def farthest_point_subset(points: torch.Tensor, count: int, first: int) -> torch.Tensor:
+    """Greedy farthest-point sampling.
+
+    Starting from ``points[first]``, repeatedly add the point whose distance to the chosen set
+    is largest.
+
+    Args:
+        points: (N, n_in).
+        count: number of points to choose, <= N.
+        first: index of the first chosen point.
+
+    Returns:
+        (count,) int64 indices into ``points``, in the order chosen.
+    """
+    n_points = points.shape[0]
+    chosen = torch.empty(count, dtype=torch.long)
+    chosen[0] = first
+    min_sq_dist = ((points - points[first]) ** 2).sum(dim=1)
+    for i in range(1, count):
+        nxt = int(torch.argmax(min_sq_dist))
+        chosen[i] = nxt
+        min_sq_dist = torch.minimum(min_sq_dist, ((points - points[nxt]) ** 2).sum(dim=1))
+    if count > n_points:  # pragma: no cover - guarded by the caller
+        raise ValueError('count exceeds the number of points')
+    return chosen
+
+
+class DisturbanceGP:
+    """One exact GP per disturbance dimension, with cached closed-form prediction.
+
+    Args:
+        n_in: input (state) dimension.
+        n_out: output (disturbance) dimension.
+        config: see ``GPConfig``.
+    """
+
+    def __init__(self, n_in: int, n_out: int, config: GPConfig | None = None) -> None:
+        if n_in < 1:
+            raise ValueError(f'n_in must be >= 1, got {n_in}')
+        if n_out < 1:
+            raise ValueError(f'n_out must be >= 1, got {n_out}')
+        self.n_in = n_in
+        self.n_out = n_out
+        self.config = config if config is not None else GPConfig()
+        dtype = self.config.dtype
+        self._x = torch.empty(0, n_in, dtype=dtype)
+        self._y = torch.empty(0, n_out, dtype=dtype)
+        # Raw-unit hyperparameters: lengthscales (n_out, n_in), outputscale (n_out,),
+        # noise variance (n_out,). None until the first fit.
+        self.lengthscales: torch.Tensor | None = None
+        self.outputscale: torch.Tensor | None = None
+        self.noise: torch.Tensor | None = None
+        self.train_indices: torch.Tensor | None = None
+        self._cache: dict[str, torch.Tensor] | None = None
+
+    # ------------------------------------------------------------------ data
+    @property
+    def num_data(self) -> int:
+        """Number of stored (x, y) pairs."""
+        return int(self._x.shape[0])
+
+    @property
+    def is_fitted(self) -> bool:
+        """Whether predictions come from a posterior (True) or the prior (False)."""
+        return self._cache is not None
+
+    @property
+    def train_x(self) -> torch.Tensor:
+        """Inputs the current posterior conditions on: (M, n_in)."""
+        if self.train_indices is None:
+            return self._x[:0]
+        return self._x[self.train_indices]
+
+    @property
+    def train_y(self) -> torch.Tensor:
+        """Targets the current posterior conditions on: (M, n_out)."""
+        if self.train_indices is None:
+            return self._y[:0]
+        return self._y[self.train_indices]
+
+    def add(self, x: ArrayLike, y: ArrayLike) -> None:
+        """Append data; ``fit`` must be called for it to affect predictions.
+
+        Args:
+            x: (N, n_in) states.
+            y: (N, n_out) residuals ``x_dot_hat - f(x) - g(x) u``.
+        """
+        x_t = _as_tensor(x, 'X', self.config.dtype)
+        y_t = _as_tensor(y, 'Y', self.config.dtype)
+        if x_t.ndim != 2 or x_t.shape[1] != self.n_in:
+            raise ValueError(f'X must have shape (N, {self.n_in}), got {tuple(x_t.shape)}')
+        if y_t.ndim != 2 or y_t.shape[1] != self.n_out:
+            raise ValueError(f'Y must have shape (N, {self.n_out}), got {tuple(y_t.shape)}')
+        if x_t.shape[0] != y_t.shape[0]:
+            raise ValueError(f'X and Y must have the same number of rows, got '
+                             f'{x_t.shape[0]} and {y_t.shape[0]}')
+        if not torch.isfinite(x_t).all():
+            raise ValueError('X contains non-finite values')
+        if not torch.isfinite(y_t).all():
+            raise ValueError('Y contains non-finite values')
+        self._x = torch.cat([self._x, x_t])
+        self._y = torch.cat([self._y, y_t])
+
+    def select_training_subset(self) -> torch.Tensor:
+        """Indices of the data ``fit`` trains on: all if N <= cap, else the subset rule.
+
+        Returns:
+            (M,) int64 indices, M = min(N, max_train_points), in selection order (any
+            prefix is itself a farthest-point / random subset).
+        """
+        n_data, cap = self.num_data, self.config.max_train_points
+        if n_data <= cap:
+            return torch.arange(n_data)
+        generator = torch.Generator().manual_seed(self.config.seed)
+        if self.config.subset_rule == 'random':
+            return torch.randperm(n_data, generator=generator)[:cap]
+        scale = self._x.std(dim=0).clamp_min(1e-12)
+        first = int(torch.randint(n_data, (1,), generator=generator))
+        return farthest_point_subset(self._x / scale, cap, first)
+
+    # ------------------------------------------------------------------- fit
+    def fit(self) -> None:
+        """Fit hyperparameters on the (capped) data set and cache the posterior.
+
+        A no-op before any data was added (predictions stay at the prior).
+        """
+        if self.num_data == 0:
+            return
+        self.train_indices = self.select_training_subset()
+        n_hyper = self.config.hyperparameter_points
+        self._fit_hyperparameters(self.train_x[:n_hyper], self.train_y[:n_hyper])
+        self._refresh_cache()
+
+    def _fit_hyperparameters(self, x: torch.Tensor, y: torch.Tensor) -> None:
+        """Maximise the marginal likelihood in normalised units, store raw-unit values.
+
+        With ``x_n = (x - m) / c`` and ``y_n = y / r`` (c: column std, r: column RMS), an RBF
+        kernel with lengthscale ``l_n`` on ``x_n`` is the kernel with ``l = l_n c`` on ``x``
+        (stationary: the shift drops out), and a zero-mean GP on ``y_n`` with signal and noise
+        variances ``s_n, n_n`` is the GP on ``y`` with ``s = r^2 s_n, n = r^2 n_n``.
+        """
+        cfg = self.config
+        n_data = x.shape[0]
+        x_scale = x.std(dim=0) if n_data > 1 else torch.ones(self.n_in, dtype=x.dtype)
+        x_scale = torch.where(x_scale > 1e-12, x_scale, torch.ones_like(x_scale))
+        y_scale = y.pow(2).mean(dim=0).sqrt()
+        y_scale = torch.where(y_scale > 1e-12, y_scale, torch.ones_like(y_scale))
+        x_n = ((x - x.mean(dim=0)) / x_scale).unsqueeze(0).expand(self.n_out, -1, -1)
+        y_n = (y / y_scale).T.contiguous()
+
+        batch = torch.Size([self.n_out])
+        likelihood = gpytorch.likelihoods.GaussianLikelihood(
+            batch_shape=batch,
+            noise_prior=gpytorch.priors.GammaPrior(*cfg.noise_prior),
+            noise_constraint=gpytorch.constraints.GreaterThan(cfg.min_noise))
+        model = _BatchIndependentExactGP(x_n, y_n, likelihood, cfg).to(cfg.dtype)
+        likelihood = likelihood.to(cfg.dtype)
+        model.covar_module.base_kernel.lengthscale = torch.full(
+            (self.n_out, 1, self.n_in), cfg.initial_lengthscale, dtype=cfg.dtype)
+        model.covar_module.outputscale = torch.ones(self.n_out, dtype=cfg.dtype)
+        likelihood.noise = torch.full((self.n_out, 1), 0.1, dtype=cfg.dtype)
+
+        model.train()
+        likelihood.train()
+        mll = gpytorch.mlls.ExactMarginalLogLikelihood(likelihood, model)
+        optimizer = torch.optim.Adam(model.parameters(), lr=cfg.learning_rate)
+        with gpytorch.settings.max_cholesky_size(max(cfg.max_train_points, n_data) + 1):
+            for _ in range(cfg.training_iterations):
+                optimizer.zero_grad()
+                loss = -mll(model(x_n), y_n).sum()
+                loss.backward()
+                optimizer.step()
+
+        with torch.no_grad():
+            lengthscale_n = model.covar_module.base_kernel.lengthscale.reshape(
+                self.n_out, self.n_in)
+            self.lengthscales = (lengthscale_n * x_scale).clone()
+            self.outputscale = (model.covar_module.outputscale.reshape(self.n_out)
+                                * y_scale ** 2).clone()
+            self.noise = (likelihood.noise.reshape(self.n_out) * y_scale ** 2).clone()
+
+    def set_hyperparameters(self, lengthscales: ArrayLike, outputscale: ArrayLike,
+                            noise: ArrayLike) -> None:
+        """Set raw-unit hyperparameters and condition on all stored data (capped).
+
+        Args:
+            lengthscales: (n_out, n_in), > 0.
+            outputscale: (n_out,) signal variances, > 0.
+            noise: (n_out,) observation noise variances, > 0.
+        """
+        dtype = self.config.dtype
+        values = {'lengthscales': (_as_tensor(lengthscales, 'lengthscales', dtype),
+                                   (self.n_out, self.n_in)),
+                  'outputscale': (_as_tensor(outputscale, 'outputscale', dtype),
+                                  (self.n_out,)),
+                  'noise': (_as_tensor(noise, 'noise', dtype), (self.n_out,))}
+        for name, (value, shape) in values.items():
+            if tuple(value.shape) != shape:
+                raise ValueError(f'{name} must have shape {shape}, got {tuple(value.shape)}')
+            if not (value > 0).all():
+                raise ValueError(f'{name} must be > 0')
+        self.lengthscales = values['lengthscales'][0].clone()
+        self.outputscale = values['outputscale'][0].clone()
+        self.noise = values['noise'][0].clone()
+        if self.num_data == 0:
+            self.train_indices = None
+            self._cache = None
+            return
+        self.train_indices = self.select_training_subset()
+        self._refresh_cache()
+
+    def _refresh_cache(self) -> None:
+        """Cache per output dim: scaled inputs, ``L^-1`` and ``alpha = (K + nI)^-1 y``."""
+        assert self.lengthscales is not None and self.outputscale is not None
+        assert self.noise is not None
+        x, y = self.train_x, self.train_y
+        x_scaled = x.unsqueeze(0) / self.lengthscales.unsqueeze(1)  # (n_out, M, n_in)
+        k_train = self._rbf(x_scaled, x_scaled)
+        eye = torch.eye(x.shape[0], dtype=x.dtype)
+        k_noisy = k_train + self.noise[:, None, None] * eye
+        chol = torch.linalg.cholesky(k_noisy)  # (n_out, M, M)
+        chol_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
+        alpha = torch.cholesky_solve(y.T.unsqueeze(-1), chol).squeeze(-1)  # (n_out, M)
+        # Row-vector layout: k^T L^-T is one batched (B, M) x (M, M) product, which is several
+        # times faster on CPU than L^-1 k with a (M, 1) right-hand side.
+        self._cache = {'x_scaled': x_scaled, 'chol': chol,
+                       'chol_inv_t': chol_inv.transpose(-1, -2).contiguous(), 'alpha': alpha}
+
+    def _rbf(self, a_scaled: torch.Tensor, b_scaled: torch.Tensor) -> torch.Tensor:
+        """s_d exp(-|a - b|^2 / 2) on lengthscale-scaled inputs.
+
+        Args:
+            a_scaled: (n_out, A, n_in); b_scaled: (n_out, B, n_in).
+
+        Returns:
+            (n_out, A, B).
+        """
+        assert self.outputscale is not None
+        sq_dist = ((a_scaled ** 2).sum(-1, keepdim=True)
+                   + (b_scaled ** 2).sum(-1).unsqueeze(-2)
+                   - 2.0 * a_scaled @ b_scaled.transpose(-1, -2)).clamp_min(0.0)
+        return self.outputscale[:, None, None] * torch.exp(-0.5 * sq_dist)
+
+    # --------------------------------------------------------------- predict
+    def predict(self, x: ArrayLike) -> tuple[torch.Tensor, torch.Tensor]:
+        """Posterior mean and std of the disturbance.
+
+        Args:
+            x: (B, n_in) query states (or (n_in,) for one state).
+
+        Returns:
+            mean: (B, n_out); std: (B, n_out). Before any fit: zeros and ``prior_std``.
+        """
+        x_t = _as_tensor(x, 'x', self.config.dtype)
+        if x_t.ndim == 1:
+            x_t = x_t.unsqueeze(0)
+        if x_t.ndim != 2 or x_t.shape[1] != self.n_in:
+            raise ValueError(f'x must have shape (B, {self.n_in}), got {tuple(x_t.shape)}')
+        n_query = x_t.shape[0]
+        if self._cache is None:
+            mean = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
+            return mean, torch.full_like(mean, self.config.prior_std)
+        assert self.lengthscales is not None and self.outputscale is not None
+        assert self.noise is not None
+        with torch.no_grad():
+            q_scaled = x_t.unsqueeze(0) / self.lengthscales.unsqueeze(1)  # (n_out, B, n_in)
+            k_cross = self._rbf(q_scaled, self._cache['x_scaled'])  # (n_out, B, M)
+            mean = (k_cross * self._cache['alpha'].unsqueeze(1)).sum(-1)  # (n_out, B)
+            v = k_cross @ self._cache['chol_inv_t']  # (n_out, B, M): rows of (L^-1 k)^T
+            var = self.outputscale.unsqueeze(-1) - (v ** 2).sum(-1)
+            if self.config.include_noise_in_std:
+                var = var + self.noise.unsqueeze(-1)
+            std = var.clamp_min(0.0).sqrt()
+        return mean.T.contiguous(), std.T.contiguous()
+
+    def bounds(self, x: ArrayLike, k_c: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Disturbance box of eq. (disturb_estimate): ``mean -/+ k_c std``.
+
+        Args:
+            x: (B, n_in) query states.
+            k_c: confidence multiplier, >= 0 (2 gives ~95 % per dimension).
+
+        Returns:
+            lower: (B, n_out); upper: (B, n_out).
+        """
+        if not (k_c >= 0 and math.isfinite(k_c)):
+            raise ValueError(f'k_c must be finite and >= 0, got {k_c}')
+        mean, std = self.predict(x)
+        return mean - k_c * std, mean + k_c * std
+
+    # ------------------------------------------------------------ checkpoint
+    def state_dict(self) -> dict[str, Any]:
+        """Data, chosen training subset and raw-unit hyperparameters (tensors only)."""
+        return {
+            'n_in': self.n_in, 'n_out': self.n_out,
+            'x': self._x.clone(), 'y': self._y.clone(),
+            'train_indices': None if self.train_indices is None else self.train_indices.clone(),
+            'lengthscales': None if self.lengthscales is None else self.lengthscales.clone(),
+            'outputscale': None if self.outputscale is None else self.outputscale.clone(),
+            'noise': None if self.noise is None else self.noise.clone(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a ``state_dict``; the posterior is rebuilt without refitting."""
+        if state['n_in'] != self.n_in or state['n_out'] != self.n_out:
+            raise ValueError(f"state_dict is for n_in={state['n_in']}, n_out={state['n_out']}"
+                             f', this model has n_in={self.n_in}, n_out={self.n_out}')
+        dtype = self.config.dtype
+        self._x = state['x'].to(dtype).clone()
+        self._y = state['y'].to(dtype).clone()
+        self._cache = None
+        self.train_indices = None
+        self.lengthscales = self.outputscale = self.noise = None
+        if state['lengthscales'] is not None:
+            self.lengthscales = state['lengthscales'].to(dtype).clone()
+            self.outputscale = state['outputscale'].to(dtype).clone()
+            self.noise = state['noise'].to(dtype).clone()
+            if state['train_indices'] is not None:
+                self.train_indices = state['train_indices'].clone()
+                self._refresh_cache()

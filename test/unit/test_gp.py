@@ -1,0 +1,192 @@
+"""DisturbanceGP: equal to GPyTorch's exact posterior, recovers a known disturbance."""
+from __future__ import annotations
+
+import math
+
+import gpytorch
+import pytest
+import torch
+
+from rcbf_ros.learning.gp import DisturbanceGP, farthest_point_subset, GPConfig
+
+DTYPE = torch.float64
+HALF_WIDTH = torch.tensor([3.0, 3.0, math.pi], dtype=DTYPE)  # unicycle arena and heading
+
+
+def unicycle_slope_disturbance(states: torch.Tensor) -> torch.Tensor:
+    """d(x) = g(x) u_d, u_d = -0.1 cos(theta) [1, 0] (ENVIRONMENTS.md, Unicycle): (N, 3)."""
+    theta = states[:, 2]
+    return torch.stack([-0.1 * torch.cos(theta) ** 2,
+                        -0.1 * torch.cos(theta) * torch.sin(theta),
+                        torch.zeros_like(theta)], dim=1)
+
+
+def uniform_states(count: int, generator: torch.Generator) -> torch.Tensor:
+    return (2.0 * torch.rand(count, 3, generator=generator, dtype=DTYPE) - 1.0) * HALF_WIDTH
+
+
+class _ReferenceExactGP(gpytorch.models.ExactGP):
+    """A plain single-output GPyTorch model: zero mean, scaled ARD RBF (the reference)."""
+
+    def __init__(self, x, y, likelihood):
+        super().__init__(x, y, likelihood)
+        self.mean_module = gpytorch.means.ZeroMean()
+        self.covar_module = gpytorch.kernels.ScaleKernel(
+            gpytorch.kernels.RBFKernel(ard_num_dims=x.shape[1]))
+
+    def forward(self, x):
+        return gpytorch.distributions.MultivariateNormal(self.mean_module(x),
+                                                         self.covar_module(x))
+
+
+def gpytorch_posterior(gp: DisturbanceGP, queries: torch.Tensor, dim: int, with_noise: bool):
+    likelihood = gpytorch.likelihoods.GaussianLikelihood(
+        noise_constraint=gpytorch.constraints.GreaterThan(1e-12)).to(DTYPE)
+    model = _ReferenceExactGP(gp.train_x, gp.train_y[:, dim], likelihood).to(DTYPE)
+    model.covar_module.base_kernel.lengthscale = gp.lengthscales[dim].reshape(1, -1)
+    model.covar_module.outputscale = gp.outputscale[dim]
+    likelihood.noise = gp.noise[dim].reshape(1)
+    model.eval()
+    likelihood.eval()
+    with torch.no_grad(), gpytorch.settings.fast_pred_var(False), \
+            gpytorch.settings.max_cholesky_size(10_000):
+        latent = model(queries)
+        dist = likelihood(latent) if with_noise else latent
+        return dist.mean, dist.variance.sqrt()
+
+
+@pytest.fixture(scope='module')
+def fitted_slope_gp() -> DisturbanceGP:
+    generator = torch.Generator().manual_seed(0)
+    states = uniform_states(600, generator)
+    residuals = unicycle_slope_disturbance(states) + 0.01 * torch.randn(
+        600, 3, generator=generator, dtype=DTYPE)
+    gp = DisturbanceGP(3, 3, GPConfig(max_train_points=400))
+    gp.add(states, residuals)
+    gp.fit()
+    return gp
+
+
+@pytest.mark.parametrize('with_noise', [False, True])
+def test_predictions_equal_gpytorch_exact_posterior(fitted_slope_gp, with_noise):
+    base = fitted_slope_gp
+    gp = DisturbanceGP(3, 3, GPConfig(max_train_points=400, include_noise_in_std=with_noise))
+    gp.load_state_dict(base.state_dict())
+    queries = uniform_states(50, torch.Generator().manual_seed(1))
+    mean, std = gp.predict(queries)
+    assert gp.train_x.shape == (400, 3)
+    for dim in range(3):
+        ref_mean, ref_std = gpytorch_posterior(gp, queries, dim, with_noise)
+        torch.testing.assert_close(mean[:, dim], ref_mean, atol=1e-6, rtol=0)
+        torch.testing.assert_close(std[:, dim], ref_std, atol=1e-6, rtol=0)
+
+
+def test_recovers_unicycle_slope_with_calibrated_bounds(fitted_slope_gp):
+    gp = fitted_slope_gp
+    held_out = uniform_states(1000, torch.Generator().manual_seed(2))
+    truth = unicycle_slope_disturbance(held_out)
+    lower, upper = gp.bounds(held_out, k_c=2.0)
+    # Each GP's +/- 2 sigma claim is marginal, per dimension (eq. disturb_estimate), so
+    # coverage is checked per dimension (the joint box over 3 dims is a union bound away).
+    inside = ((truth >= lower) & (truth <= upper)).double().mean(dim=0)
+    assert (inside >= 0.95).all(), inside
+    mean, std = gp.predict(held_out)
+    rmse = (mean - truth).pow(2).mean().sqrt()
+    assert rmse < 0.01  # the disturbance amplitude is 0.1, observation noise std 0.01
+    # The bounds are informative, not a trivially wide box: well below the amplitude.
+    assert std.max() < 0.02
+    # Not the near-constant GP of a huge lengthscale: heading matters.
+    assert gp.lengthscales[0, 2] < 3.0
+
+
+def test_prior_before_data():
+    gp = DisturbanceGP(3, 2, GPConfig(prior_std=0.7))
+    gp.fit()  # no data: stays at the prior
+    mean, std = gp.predict(torch.zeros(4, 3, dtype=DTYPE))
+    assert torch.equal(mean, torch.zeros(4, 2, dtype=DTYPE))
+    assert torch.equal(std, torch.full((4, 2), 0.7, dtype=DTYPE))
+    lower, upper = gp.bounds(torch.zeros(4, 3, dtype=DTYPE), 2.0)
+    assert torch.equal(upper, torch.full((4, 2), 1.4, dtype=DTYPE))
+    assert torch.equal(lower, -upper)
+
+
+def test_training_set_is_capped_by_farthest_point_rule():
+    generator = torch.Generator().manual_seed(3)
+    states = uniform_states(900, generator)
+    gp = DisturbanceGP(3, 3, GPConfig(max_train_points=64, hyperparameter_points=32,
+                                      training_iterations=5, seed=4))
+    gp.add(states[:500], unicycle_slope_disturbance(states[:500]))
+    gp.add(states[500:], unicycle_slope_disturbance(states[500:]))
+    assert gp.num_data == 900
+    gp.fit()
+    assert gp.train_x.shape == (64, 3)
+    assert len(set(gp.train_indices.tolist())) == 64
+    # Farthest-point property: each chosen point is the farthest from those chosen before it.
+    scaled = states / states.std(dim=0)
+    chosen = gp.train_indices
+    for i in (1, 10, 63):
+        dist_to_chosen = torch.cdist(scaled, scaled[chosen[:i]]).min(dim=1).values
+        assert dist_to_chosen[chosen[i]] == pytest.approx(float(dist_to_chosen.max()))
+    # Same seed => same subset.
+    assert torch.equal(chosen, gp.select_training_subset())
+
+
+def test_random_subset_rule_is_seeded():
+    states = uniform_states(300, torch.Generator().manual_seed(5))
+    picks = []
+    for seed in (7, 7, 8):
+        gp = DisturbanceGP(3, 3, GPConfig(max_train_points=50, subset_rule='random', seed=seed))
+        gp.add(states, unicycle_slope_disturbance(states))
+        picks.append(gp.select_training_subset())
+    assert torch.equal(picks[0], picks[1])
+    assert not torch.equal(picks[0], picks[2])
+
+
+def test_farthest_point_subset_small_example():
+    points = torch.tensor([[0.0], [1.0], [10.0], [4.0]])
+    assert farthest_point_subset(points, 3, first=0).tolist() == [0, 2, 3]
+
+
+def test_state_dict_round_trip_restores_posterior_without_refit(fitted_slope_gp):
+    restored = DisturbanceGP(3, 3, GPConfig(max_train_points=400, training_iterations=0))
+    restored.load_state_dict(fitted_slope_gp.state_dict())
+    queries = uniform_states(20, torch.Generator().manual_seed(6))
+    for a, b in zip(restored.predict(queries), fitted_slope_gp.predict(queries)):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match='n_in'):
+        DisturbanceGP(2, 3).load_state_dict(fitted_slope_gp.state_dict())
+
+
+def test_set_hyperparameters_conditions_on_data():
+    states = uniform_states(30, torch.Generator().manual_seed(7))
+    gp = DisturbanceGP(3, 1)
+    gp.add(states, unicycle_slope_disturbance(states)[:, :1])
+    gp.set_hyperparameters(torch.ones(1, 3), torch.tensor([0.01]), torch.tensor([1e-6]))
+    # Almost noise-free: the posterior mean interpolates the data.
+    mean, std = gp.predict(states)
+    torch.testing.assert_close(mean, unicycle_slope_disturbance(states)[:, :1],
+                               atol=1e-4, rtol=0)
+    with pytest.raises(ValueError, match='noise'):
+        gp.set_hyperparameters(torch.ones(1, 3), torch.tensor([0.01]), torch.tensor([0.0]))
+
+
+@pytest.mark.parametrize(('x', 'y', 'field'), [
+    (torch.zeros(5, 2), torch.zeros(5, 3), 'X'),
+    (torch.zeros(5, 3), torch.zeros(5, 1), 'Y'),
+    (torch.zeros(5, 3), torch.zeros(4, 3), 'same number of rows'),
+    (torch.full((5, 3), float('nan')), torch.zeros(5, 3), 'X'),
+])
+def test_bad_data_is_rejected_naming_the_field(x, y, field):
+    with pytest.raises(ValueError, match=field):
+        DisturbanceGP(3, 3).add(x, y)
+
+
+def test_bad_query_and_config_are_rejected():
+    with pytest.raises(ValueError, match='x must have shape'):
+        DisturbanceGP(3, 3).predict(torch.zeros(2, 4))
+    with pytest.raises(ValueError, match='k_c'):
+        DisturbanceGP(3, 3).bounds(torch.zeros(2, 3), -1.0)
+    with pytest.raises(ValueError, match='max_train_points'):
+        GPConfig(max_train_points=0)
+    with pytest.raises(ValueError, match='subset_rule'):
+        GPConfig(subset_rule='nearest')
