@@ -1,0 +1,213 @@
+"""Process context of the Cyclone runtime: init/shutdown, signals, and the executor.
+
+One DDS participant per context (as rmw does since ROS 2 Foxy), created by :func:`init` with
+USER_DATA ``enclave=/;`` in domain ``ROS_DOMAIN_ID`` (default 0) unless ``domain_id`` is given.
+
+The executor runs subscription callbacks and timers in the thread that calls :func:`spin` or
+:func:`spin_once`, one work item at a time, so callbacks never run concurrently. It waits on a
+Cyclone ``WaitSet`` (one read condition per subscription, one guard condition to wake it) in
+slices of at most :data:`WAIT_SLICE_S`, because Python runs signal handlers only between
+bytecodes of the main thread.
+
+Signals: :func:`init` (from the main thread) installs SIGINT and SIGTERM handlers that shut the
+context down. A node spinning in the main thread then sees ``KeyboardInterrupt`` (SIGINT) or
+:class:`ExternalShutdownException` (SIGTERM) raised from ``spin`` between callbacks, never in the
+middle of one, so ``main()``'s ``finally`` runs and can flush files. A signal arriving outside
+``spin`` raises at once, like Python's default SIGINT handler.
+"""
+from __future__ import annotations
+
+import collections
+import os
+import signal
+import threading
+import time
+from typing import Any, Callable, Sequence
+
+from cyclonedds.core import GuardCondition, Policy, Qos, WaitSet
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.util import duration
+
+from rcbf_ros.ros.dds.arguments import parse_ros_arguments, RosArguments
+from rcbf_ros.ros.loopback import ensure_loopback
+
+WAIT_SLICE_S = 0.05
+"""Longest single DDS wait; bounds how late a signal is noticed while idle."""
+
+
+class ExternalShutdownException(Exception):
+    """The context was shut down from outside (SIGTERM), like rclpy.executors'."""
+
+
+def delete_entity(entity: Any) -> None:
+    """Delete a Cyclone entity now instead of at garbage collection (idempotent)."""
+    if entity is not None:
+        entity.__del__()
+
+
+class Context:
+    """A ROS-like context: DDS participant, global ``--ros-args``, nodes, shutdown state."""
+
+    def __init__(self) -> None:
+        self.participant: DomainParticipant | None = None
+        self.domain_id: int = 0
+        self.arguments: RosArguments = RosArguments()
+        self._ok = False
+        self._nodes: list[Any] = []
+        self._lock = threading.RLock()
+        self._pending_signal: int | None = None
+        self._previous_handlers: dict[int, Any] = {}
+        self.spinning_threads: set[int] = set()
+
+    def init(self, args: Sequence[str] | None = None, domain_id: int | None = None) -> None:
+        with self._lock:
+            if self._ok:
+                raise RuntimeError('rclpy.init() has already been called for this context')
+            self.arguments = parse_ros_arguments(args)
+            if domain_id is None:
+                text = os.environ.get('ROS_DOMAIN_ID', '').strip() or '0'
+                try:
+                    domain_id = int(text)
+                except ValueError as exc:
+                    raise ValueError(f'ROS_DOMAIN_ID must be an integer, got {text!r}') from exc
+            if not 0 <= domain_id <= 232:
+                raise ValueError(f'domain_id must be in 0..232, got {domain_id}')
+            self.domain_id = domain_id
+            ensure_loopback()
+            self.participant = DomainParticipant(
+                domain_id, qos=Qos(Policy.Userdata(b'enclave=/;')))
+            self._pending_signal = None
+            self._ok = True
+            if threading.current_thread() is threading.main_thread():
+                for signum in (signal.SIGINT, signal.SIGTERM):
+                    self._previous_handlers[signum] = signal.signal(signum, self._on_signal)
+
+    def ok(self) -> bool:
+        return self._ok
+
+    def add_node(self, node: Any) -> None:
+        with self._lock:
+            self._nodes.append(node)
+
+    def remove_node(self, node: Any) -> None:
+        with self._lock:
+            if node in self._nodes:
+                self._nodes.remove(node)
+
+    def _wake_all(self) -> None:
+        for node in list(self._nodes):
+            node._wake()
+
+    def _mark_shutdown(self) -> None:
+        self._ok = False
+        self._wake_all()
+
+    def shutdown(self) -> None:
+        with self._lock:
+            if not self._ok and self.participant is None:
+                raise RuntimeError('rclpy.shutdown() called on a context that is not initialized')
+            self._mark_shutdown()
+            for signum, handler in self._previous_handlers.items():
+                try:
+                    signal.signal(signum, handler)
+                except ValueError:  # not the main thread; leave ours, it only sets flags
+                    pass
+            self._previous_handlers.clear()
+            for node in list(self._nodes):
+                node.destroy_node()
+            delete_entity(self.participant)
+            self.participant = None
+
+    def try_shutdown(self) -> None:
+        if self._ok or self.participant is not None:
+            self.shutdown()
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        self._pending_signal = signum
+        self._mark_shutdown()
+        if threading.get_ident() not in self.spinning_threads:
+            self.raise_pending_signal()
+
+    def raise_pending_signal(self) -> None:
+        """Raise the exception of a signal received since the last call, if any."""
+        signum, self._pending_signal = self._pending_signal, None
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        if signum is not None:
+            raise ExternalShutdownException(f'received signal {signal.Signals(signum).name}')
+
+
+default_context = Context()
+
+
+def _work_available(node: Any) -> bool:
+    """Move due timers and received samples of ``node`` into its ready queue."""
+    now = time.monotonic_ns()
+    for timer in node._timers:
+        if timer._due(now):
+            node._ready.append(timer._fire)
+    for subscription in node._subscriptions:
+        node._ready.extend(subscription._take_ready())
+    return bool(node._ready)
+
+
+def _next_timer_ns(node: Any) -> int | None:
+    deadlines = [t._next_ns for t in node._timers if not t._canceled]
+    return min(deadlines) if deadlines else None
+
+
+def spin_once(node: Any, *, timeout_sec: float | None = None) -> None:
+    """Run at most one callback of ``node``, waiting up to ``timeout_sec`` (None: forever)."""
+    context = node.context
+    ident = threading.get_ident()
+    if not node._spin_lock.acquire(blocking=False):
+        raise RuntimeError(f'node {node.get_name()!r} is already spinning in another thread')
+    context.spinning_threads.add(ident)
+    try:
+        context.raise_pending_signal()
+        if not context.ok() or node._waitset is None:
+            return
+        deadline = None if timeout_sec is None else time.monotonic_ns() + int(timeout_sec * 1e9)
+        while not node._ready and not _work_available(node):
+            now = time.monotonic_ns()
+            limit = now + int(WAIT_SLICE_S * 1e9)
+            for candidate in (deadline, _next_timer_ns(node)):
+                if candidate is not None:
+                    limit = min(limit, candidate)
+            if limit > now:
+                node._waitset.wait(duration(nanoseconds=limit - now))
+                node._guard.take()
+            context.raise_pending_signal()
+            if not context.ok() or node._waitset is None:
+                return
+            if deadline is not None and time.monotonic_ns() >= deadline:
+                _work_available(node)
+                break
+        if node._ready:
+            work: Callable[[], None] = node._ready.popleft()
+            work()
+        context.raise_pending_signal()
+    finally:
+        context.spinning_threads.discard(ident)
+        node._spin_lock.release()
+
+
+def spin(node: Any) -> None:
+    """Run ``node``'s callbacks until the context shuts down (returns) or a signal (raises)."""
+    context = node.context
+    while context.ok() and node._waitset is not None:
+        spin_once(node, timeout_sec=None)
+    context.raise_pending_signal()
+
+
+def new_ready_queue() -> collections.deque:
+    """The per-node queue of work items (callables) taken from DDS but not yet run."""
+    return collections.deque()
+
+
+def new_wait_objects(participant: DomainParticipant) -> tuple[WaitSet, GuardCondition]:
+    """A node's WaitSet with its wake-up guard condition attached."""
+    waitset = WaitSet(participant)
+    guard = GuardCondition(participant)
+    waitset.attach(guard)
+    return waitset, guard

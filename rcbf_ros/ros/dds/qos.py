@@ -1,0 +1,94 @@
+"""rclpy-compatible QoS profiles and their Cyclone DDS equivalents (as rmw_cyclonedds does)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import enum
+
+from cyclonedds.core import Policy, Qos
+from cyclonedds.util import duration
+
+# A reliable writer whose KEEP_ALL history is full blocks at most this long in write().
+_RELIABLE_MAX_BLOCKING_S = 1
+
+
+class ReliabilityPolicy(enum.IntEnum):
+    """rclpy.qos.ReliabilityPolicy."""
+
+    SYSTEM_DEFAULT = 0
+    RELIABLE = 1
+    BEST_EFFORT = 2
+
+
+class DurabilityPolicy(enum.IntEnum):
+    """rclpy.qos.DurabilityPolicy."""
+
+    SYSTEM_DEFAULT = 0
+    TRANSIENT_LOCAL = 1
+    VOLATILE = 2
+
+
+class HistoryPolicy(enum.IntEnum):
+    """rclpy.qos.HistoryPolicy."""
+
+    SYSTEM_DEFAULT = 0
+    KEEP_LAST = 1
+    KEEP_ALL = 2
+
+
+@dataclass
+class QoSProfile:
+    """The QoS subset our runtime honours (rclpy.qos.QoSProfile's keywords).
+
+    ROS 2 defaults: reliable, volatile, keep-last 10.
+    """
+
+    history: HistoryPolicy = HistoryPolicy.KEEP_LAST
+    """Keep the last ``depth`` samples or all of them."""
+    depth: int = 10
+    """History depth for KEEP_LAST (ignored for KEEP_ALL)."""
+    reliability: ReliabilityPolicy = ReliabilityPolicy.RELIABLE
+    """Retransmit lost samples (RELIABLE) or not (BEST_EFFORT)."""
+    durability: DurabilityPolicy = DurabilityPolicy.VOLATILE
+    """Late joiners get old samples (TRANSIENT_LOCAL) or not (VOLATILE)."""
+
+    def __post_init__(self) -> None:
+        self.history = HistoryPolicy(self.history)
+        self.reliability = ReliabilityPolicy(self.reliability)
+        self.durability = DurabilityPolicy(self.durability)
+        if not isinstance(self.depth, int) or self.depth < 0:
+            raise ValueError(f'QoSProfile.depth must be a non-negative int, got {self.depth!r}')
+        if self.history == HistoryPolicy.KEEP_LAST and self.depth == 0:
+            raise ValueError('QoSProfile.depth must be >= 1 with HistoryPolicy.KEEP_LAST')
+
+
+qos_profile_sensor_data = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
+"""rclpy's sensor-data profile: best effort, volatile, keep-last 5."""
+
+qos_profile_system_default = QoSProfile()
+"""Our system default (ROS 2's default profile)."""
+
+
+def as_profile(qos: QoSProfile | int) -> QoSProfile:
+    """``create_publisher(..., 10)`` means keep-last 10 with the other defaults, as in rclpy."""
+    if isinstance(qos, QoSProfile):
+        return qos
+    if isinstance(qos, int) and not isinstance(qos, bool):
+        return QoSProfile(depth=qos)
+    if hasattr(qos, 'reliability') and hasattr(qos, 'depth'):
+        return QoSProfile(history=int(qos.history), depth=int(qos.depth),
+                          reliability=int(qos.reliability), durability=int(qos.durability))
+    raise TypeError(f'qos_profile must be a QoSProfile or a history depth, got {qos!r}')
+
+
+def to_cyclone_qos(profile: QoSProfile, user_data: bytes) -> Qos:
+    """The Cyclone QoS of an endpoint with this profile and USER_DATA (``typehash=...;``)."""
+    if profile.reliability == ReliabilityPolicy.BEST_EFFORT:
+        reliability = Policy.Reliability.BestEffort
+    else:
+        reliability = Policy.Reliability.Reliable(duration(seconds=_RELIABLE_MAX_BLOCKING_S))
+    durability = (Policy.Durability.TransientLocal
+                  if profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                  else Policy.Durability.Volatile)
+    history = (Policy.History.KeepAll if profile.history == HistoryPolicy.KEEP_ALL
+               else Policy.History.KeepLast(profile.depth))
+    return Qos(reliability, durability, history, Policy.Userdata(user_data))
