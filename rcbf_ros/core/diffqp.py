@@ -1,0 +1,396 @@
+"""Batched differentiable QP layer specialised to the small RCBF-QP (paper eq. QP, issue 2 item 6).
+
+Solves, for every sample b of a minibatch, the strictly convex QP in the package's standard form
+(:mod:`rcbf_ros.core.qp`)
+
+    minimize_z  1/2 z^T P z + q^T z   subject to   G z <= h
+
+    P: (B, nz, nz) symmetric positive definite,  q: (B, nz),  G: (B, nc, nz),  h: (B, nc)
+
+and differentiates the solution z*(P, q, G, h) (and the multipliers lam*) by implicit
+differentiation of the KKT conditions at the solution (OptNet, Amos & Kolter 2017), as the
+paper's differentiable safety layer requires (eqs. q_update_diff, pi_update_diff).
+
+Why it is fast: nz is tiny (n_u + 1 = 3) and nc is small (4-25), so
+
+1. Forward, a batched primal-dual interior point method (Mehrotra predictor-corrector) on
+
+       P z + q + G^T lam = 0,   G z + s = h,   s o lam = 0,   s, lam >= 0,
+
+   whose Newton step is reduced to the nz x nz Schur complement
+
+       (P + G^T diag(lam / s) G) dz = r,
+
+   one batched Cholesky per iteration and two triangular solves (predictor, corrector). Samples
+   that have converged are frozen (step length 0); the loop ends when all have converged.
+2. Polish: the active set A = {i : lam_i > s_i} is read off the interior point and the
+   equality-constrained KKT system
+
+       [P   A^T] [z ]   [-q ]
+       [A    0 ] [nu] = [h_A]
+
+   is solved to ~1e-12 by the proximal method of multipliers, i.e. iterative refinement of the
+   regularised system whose z-block is again an nz x nz Cholesky (P + A^T A / delta). The
+   polished point is accepted per sample when it is primal feasible and nu >= 0 (else the
+   active set is corrected: violated rows added, negative multipliers dropped, up to a few
+   rounds), otherwise the interior point iterate is kept.
+3. Backward: the same regularised-and-refined solve with the adjoint right-hand side, exact
+   active set, so the backward costs one nz x nz Cholesky.
+
+Before solving, variables are scaled to unit Hessian diagonal (the slack weight l ~ 1e3-1e6
+otherwise dominates the conditioning) and constraint rows to unit norm. Both scalings are
+detached: the solution and the multipliers are invariant under them, so the chain rule through
+constant scalings gives the exact gradient.
+
+Degenerate points. At a weakly active constraint (lam_i = 0 = s_i) the solution map is not
+differentiable; we classify the row as active iff lam_i > s_i at the interior point, i.e. by
+which side of the central path dominates, and return the derivative of that active set's
+equality-constrained QP (a one-sided derivative). Where more rows are active than independent
+(LICQ fails, e.g. duplicated barriers), the regularisation delta picks a bounded multiplier and z
+and its gradient remain well defined. Non-convergence is reported per sample in
+:class:`QPSolution.converged`, never as NaN, on feasible problems.
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor
+
+__all__ = ['QPSolution', 'solve_qp_batch', 'solve_qp_batch_full']
+
+_REGULARISATION = 1e-9
+"""delta of the regularised KKT system in scaled units (unit Hessian diagonal, unit rows)."""
+_REFINEMENT_STEPS = 3
+"""Iterative refinement steps against the unregularised KKT system (each shrinks the error by
+about delta / lambda_min(A P^-1 A^T))."""
+_ACTIVE_SET_ROUNDS = 3
+"""Polishing rounds: re-solve after adding violated rows and dropping negative multipliers."""
+
+
+class QPSolution(NamedTuple):
+    """Solution of a batch of QPs  min 1/2 z^T P z + q^T z  s.t.  G z <= h."""
+
+    z: Tensor
+    """(B, nz) primal solution; differentiable in P, q, G, h."""
+    lam: Tensor
+    """(B, nc) inequality multipliers (>= 0, zero on inactive rows); differentiable."""
+    iterations: Tensor
+    """(B,) int64 interior point iterations each sample needed."""
+    converged: Tensor
+    """(B,) bool: the sample met the tolerance (after polishing or by the interior point)."""
+
+
+def _check_inputs(P: Tensor, q: Tensor, G: Tensor, h: Tensor
+                  ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Validate shapes and broadcast shared P, G (2-D) or q, h (1-D) to the batch."""
+    named = {'P': P, 'q': q, 'G': G, 'h': h}
+    for name, value in named.items():
+        if not isinstance(value, Tensor):
+            raise TypeError(f'{name}: expected a torch.Tensor, got {type(value).__name__}')
+        if not value.is_floating_point():
+            raise TypeError(f'{name}: expected a floating point tensor, got {value.dtype}')
+    expected_dims = {'P': 3, 'q': 2, 'G': 3, 'h': 2}
+    for name, value in named.items():
+        if value.dim() not in (expected_dims[name], expected_dims[name] - 1):
+            raise ValueError(f'{name}: expected {expected_dims[name]} dims (batched) or '
+                             f'{expected_dims[name] - 1} (shared), got shape {tuple(value.shape)}')
+    batched = [v.shape[0] for n, v in named.items() if v.dim() == expected_dims[n]]
+    if not batched:
+        raise ValueError('P, q, G, h: at least one must carry the batch dimension')
+    batch = max(batched)
+    for name, value in named.items():
+        if value.dim() == expected_dims[name] and value.shape[0] != batch:
+            raise ValueError(f'{name}: batch size {value.shape[0]} != {batch}')
+    P = P.expand(batch, *P.shape[-2:]) if P.dim() == 2 else P
+    q = q.expand(batch, q.shape[-1]) if q.dim() == 1 else q
+    G = G.expand(batch, *G.shape[-2:]) if G.dim() == 2 else G
+    h = h.expand(batch, h.shape[-1]) if h.dim() == 1 else h
+    nz, nc = q.shape[-1], h.shape[-1]
+    if P.shape[-2:] != (nz, nz):
+        raise ValueError(f'P: expected (B, {nz}, {nz}) to match q: (B, {nz}), got '
+                         f'{tuple(P.shape)}')
+    if G.shape[-2:] != (nc, nz):
+        raise ValueError(f'G: expected (B, {nc}, {nz}) to match h: (B, {nc}) and q, got '
+                         f'{tuple(G.shape)}')
+    if nc == 0:
+        raise ValueError('G, h: need at least one inequality constraint')
+    for name, value in (('P', P), ('q', q), ('G', G), ('h', h)):
+        if not bool(torch.isfinite(value.detach()).all()):
+            raise ValueError(f'{name}: contains NaN or inf')
+    diag = torch.diagonal(P.detach(), dim1=-2, dim2=-1)
+    if not bool((diag > 0).all()):
+        raise ValueError('P: must be positive definite (found a diagonal entry <= 0)')
+    return P, q, G, h
+
+
+def _schur(P: Tensor, G: Tensor, weights: Tensor) -> Tensor:
+    """P + G^T diag(weights) G.  P: (B, n, n), G: (B, m, n), weights: (B, m) -> (B, n, n)."""
+    return P + torch.matmul(G.mT, weights.unsqueeze(-1) * G)
+
+
+def _cholesky(M: Tensor) -> Tensor:
+    """Batched Cholesky factor of SPD M: (B, n, n), with diagonal jitter where it fails."""
+    factor, info = torch.linalg.cholesky_ex(M)
+    if bool((info > 0).any()):
+        failed = info > 0
+        scale = torch.diagonal(M, dim1=-2, dim2=-1).abs().amax(-1).clamp_min(1.0)
+        eye = torch.eye(M.shape[-1], dtype=M.dtype, device=M.device)
+        jitter = (1e-12 * scale)[:, None, None] * eye
+        for _ in range(6):
+            retry, info_retry = torch.linalg.cholesky_ex(M + jitter)
+            factor = torch.where(failed[:, None, None], retry, factor)
+            failed = failed & (info_retry > 0)
+            if not bool(failed.any()):
+                break
+            jitter = jitter * 1e3
+    return factor
+
+
+def _chol_solve(factor: Tensor, rhs: Tensor) -> Tensor:
+    """Solve (L L^T) x = rhs.  factor: (B, n, n), rhs: (B, n) -> (B, n)."""
+    return torch.cholesky_solve(rhs.unsqueeze(-1), factor).squeeze(-1)
+
+
+def _matvec(A: Tensor, x: Tensor) -> Tensor:
+    """A x for A: (B, m, n), x: (B, n) -> (B, m)."""
+    return torch.matmul(A, x.unsqueeze(-1)).squeeze(-1)
+
+
+def _rmatvec(A: Tensor, y: Tensor) -> Tensor:
+    """A^T y for A: (B, m, n), y: (B, m) -> (B, n)."""
+    return torch.matmul(y.unsqueeze(-2), A).squeeze(-2)
+
+
+def _max_step(value: Tensor, step: Tensor) -> Tensor:
+    """Largest a in [0, 1] with value + a step >= 0 (value > 0).  (B, m) -> (B,)."""
+    ratio = torch.where(step < 0, -value / step.clamp_max(-1e-300), torch.ones_like(value))
+    return ratio.amin(-1).clamp(max=1.0)
+
+
+def _interior_point(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_iter: int
+                    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Batched Mehrotra predictor-corrector on the scaled problem.
+
+    Returns z: (B, n), s: (B, m), lam: (B, m), iterations: (B,), converged: (B,).
+    """
+    batch, m, _ = G.shape
+    # Start (CVXOPT's rule): z0 = argmin 1/2 z'Pz + q'z + 1/2 ||G z - h||^2, then shift the
+    # slack s0 = h - G z0 and the multiplier estimate lam0 = G z0 - h into the positive orthant.
+    ones = torch.ones_like(h)
+    z = _chol_solve(_cholesky(_schur(P, G, ones)), -q + _rmatvec(G, h))
+    s = h - _matvec(G, z)
+    lam = -s
+    s_low = -s.amin(-1, keepdim=True)
+    s = torch.where(s_low >= 0, s + 1.0 + s_low, s)
+    lam_low = -lam.amin(-1, keepdim=True)
+    lam = torch.where(lam_low >= 0, lam + 1.0 + lam_low, lam)
+    s = s.clamp_min(1e-8)
+    lam = lam.clamp_min(1e-8)
+
+    scale_dual = 1.0 + q.abs().amax(-1)
+    scale_primal = 1.0 + h.abs().amax(-1)
+    z_out, s_out, lam_out = torch.empty_like(z), torch.empty_like(s), torch.empty_like(lam)
+    iterations = torch.full((batch,), max_iter, dtype=torch.int64, device=q.device)
+    converged = torch.zeros(batch, dtype=torch.bool, device=q.device)
+    # Working set: only samples still iterating; finished ones are written out and dropped, so
+    # the tail of slow samples costs what a small batch costs.
+    index = torch.arange(batch, device=q.device)
+    work = [P, q, G, h, z, s, lam, scale_dual, scale_primal]
+    for iteration in range(max_iter + 1):
+        P_w, q_w, G_w, h_w, z, s, lam, scale_dual_w, scale_primal_w = work
+        r_dual = torch.matmul(P_w, z.unsqueeze(-1)).squeeze(-1) + q_w + _rmatvec(G_w, lam)
+        r_primal = _matvec(G_w, z) + s - h_w
+        mu = (s * lam).mean(-1)
+        done = ((r_dual.abs().amax(-1) <= tol * scale_dual_w)
+                & (r_primal.abs().amax(-1) <= tol * scale_primal_w)
+                & (mu <= tol))
+        if iteration == max_iter:
+            done = torch.ones_like(done)
+        if bool(done.any()):
+            finished = index[done]
+            z_out[finished], s_out[finished], lam_out[finished] = z[done], s[done], lam[done]
+            if iteration < max_iter:
+                iterations[finished] = iteration
+                converged[finished] = True
+            keep = ~done
+            if not bool(keep.any()):
+                break
+            index = index[keep]
+            work = [x[keep] for x in work]
+            P_w, q_w, G_w, h_w, z, s, lam, scale_dual_w, scale_primal_w = work
+            r_dual, r_primal, mu = r_dual[keep], r_primal[keep], mu[keep]
+        weights = lam / s
+        factor = _cholesky(_schur(P_w, G_w, weights))
+        # Newton step on the reduced system; ds, dlam recovered from the eliminated rows:
+        #   ds = -r_primal - G dz,   dlam = (-r_comp - lam o ds) / s.
+        lam_minus = lam - weights * r_primal
+        dz = _chol_solve(factor, -r_dual + _rmatvec(G_w, lam_minus))
+        ds = -r_primal - _matvec(G_w, dz)
+        dlam = -lam - weights * ds
+        alpha_aff = torch.minimum(_max_step(s, ds), _max_step(lam, dlam)).unsqueeze(-1)
+        mu_aff = ((s + alpha_aff * ds) * (lam + alpha_aff * dlam)).mean(-1)
+        sigma = (mu_aff / mu.clamp_min(1e-300)).clamp(0.0, 1.0) ** 3
+        # Corrector with the second order term ds_aff o dlam_aff and centring sigma mu.
+        r_comp = s * lam + ds * dlam - (sigma * mu).unsqueeze(-1)
+        dz = _chol_solve(factor, -r_dual + _rmatvec(G_w, (r_comp - lam * r_primal) / s))
+        ds = -r_primal - _matvec(G_w, dz)
+        dlam = (-r_comp - lam * ds) / s
+        alpha = (0.99 * torch.minimum(_max_step(s, ds), _max_step(lam, dlam))).unsqueeze(-1)
+        work[4] = z + alpha * dz
+        work[5] = (s + alpha * ds).clamp_min(1e-300)
+        work[6] = (lam + alpha * dlam).clamp_min(1e-300)
+    z, s, lam = z_out, s_out, lam_out
+    return z, s, lam, iterations, converged
+
+
+def _kkt_solve(P: Tensor, G: Tensor, active: Tensor, rhs_z: Tensor, rhs_nu: Tensor,
+               nu_guess: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Solve the active-set KKT system, iteratively refined, via nz x nz Cholesky.
+
+        [P        G^T D_a] [x ]   [rhs_z ]        D_a = diag(active),
+        [D_a G   -(I-D_a)] [nu] = [rhs_nu]        (inactive rows: nu_i = -rhs_nu_i = 0)
+
+    Each refinement step solves the system with -delta I added on the active block, whose
+    elimination nu = (G_a x - rhs_nu) / delta leaves (P + G_a^T G_a / delta) x = ...
+
+    P: (B, n, n), G: (B, m, n), active: (B, m) bool, rhs_z: (B, n), rhs_nu: (B, m) (zero on
+    inactive rows). Returns x: (B, n), nu: (B, m) (zero on inactive rows).
+    """
+    delta = _REGULARISATION
+    mask = active.to(P.dtype)
+    Ga = mask.unsqueeze(-1) * G
+    factor = _cholesky(P + torch.matmul(Ga.mT, Ga) / delta)
+
+    def regularised_solve(res_z: Tensor, res_nu: Tensor) -> tuple[Tensor, Tensor]:
+        x = _chol_solve(factor, res_z + _rmatvec(Ga, res_nu) / delta)
+        return x, (_matvec(Ga, x) - res_nu) / delta
+
+    if nu_guess is None:
+        x, nu = regularised_solve(rhs_z, rhs_nu)
+    else:
+        # Warm start nu from the interior point: x = argmin of the Lagrangian at nu_guess.
+        nu = nu_guess * mask
+        x = _chol_solve(factor, rhs_z - _rmatvec(Ga, nu) + _rmatvec(Ga, rhs_nu) / delta)
+        nu = nu + (_matvec(Ga, x) - rhs_nu) / delta
+    for _ in range(_REFINEMENT_STEPS):
+        res_z = rhs_z - torch.matmul(P, x.unsqueeze(-1)).squeeze(-1) - _rmatvec(Ga, nu)
+        res_nu = rhs_nu - _matvec(Ga, x)
+        dx, dnu = regularised_solve(res_z, res_nu)
+        x, nu = x + dx, nu + dnu
+    return x, nu * mask
+
+
+def _polish(P: Tensor, q: Tensor, G: Tensor, h: Tensor, s: Tensor, lam: Tensor, tol: float
+            ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Active-set polish of the interior point result (scaled problem).
+
+    Returns z, lam, active (B, m) bool, ok (B,) bool for the polished samples.
+    """
+    active = lam > s
+    feas_tol = tol * (1.0 + h.abs().amax(-1, keepdim=True))
+    dual_tol = tol * (1.0 + lam.abs().amax(-1, keepdim=True))
+    z_pol = lam_pol = None
+    ok = torch.zeros(h.shape[0], dtype=torch.bool, device=h.device)
+    for _ in range(_ACTIVE_SET_ROUNDS):
+        z_pol, lam_pol = _kkt_solve(P, G, active, -q, h * active, nu_guess=lam)
+        violation = _matvec(G, z_pol) - h
+        violated = violation > feas_tol
+        negative = lam_pol < -dual_tol
+        ok = ~(violated.any(-1) | negative.any(-1))
+        if bool(ok.all()):
+            break
+        active = (active & ~negative) | violated
+    lam_pol = lam_pol.clamp_min(0.0)
+    return z_pol, lam_pol, active, ok
+
+
+class _QPLayer(torch.autograd.Function):
+    """autograd.Function on the scaled problem; see the module docstring."""
+
+    @staticmethod
+    def forward(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_iter: int,
+                polish: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        z, s, lam, iterations, converged = _interior_point(P, q, G, h, tol, max_iter)
+        active = lam > s
+        if polish:
+            z_pol, lam_pol, active_pol, ok = _polish(P, q, G, h, s, lam, tol)
+            z = torch.where(ok.unsqueeze(-1), z_pol, z)
+            lam = torch.where(ok.unsqueeze(-1), lam_pol, lam)
+            active = torch.where(ok.unsqueeze(-1), active_pol, active)
+            converged = converged | ok
+        return z, lam, iterations, converged, active
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: tuple[Any, ...]) -> None:
+        P, q, G, h, *_ = inputs
+        z, lam, iterations, converged, active = output
+        ctx.mark_non_differentiable(iterations, converged, active)
+        ctx.save_for_backward(P, G, z, lam, active)
+
+    @staticmethod
+    def backward(ctx: Any, grad_z: Tensor | None, grad_lam: Tensor | None, *_: Any
+                 ) -> tuple[Tensor | None, ...]:
+        P, G, z, lam, active = ctx.saved_tensors
+        if grad_z is None:
+            grad_z = torch.zeros_like(z)
+        mask = active.to(z.dtype)
+        grad_lam = torch.zeros_like(lam) if grad_lam is None else grad_lam * mask
+        lam = lam * mask
+        # Adjoint of the active-set KKT system K [dz; dnu] = -[dP z + dq + dG^T lam; dG_A z - dh_A]
+        # (K is symmetric): K [b_z; b_nu] = [grad_z; grad_lam_A].
+        b_z, b_nu = _kkt_solve(P, G, active, grad_z, grad_lam)
+        grad_q = -b_z
+        grad_P = -b_z.unsqueeze(-1) * z.unsqueeze(-2)
+        grad_G = -(lam.unsqueeze(-1) * b_z.unsqueeze(-2) + b_nu.unsqueeze(-1) * z.unsqueeze(-2))
+        grad_h = b_nu
+        return grad_P, grad_q, grad_G, grad_h, None, None, None
+
+
+def solve_qp_batch_full(P: Tensor, q: Tensor, G: Tensor, h: Tensor, *, tol: float = 1e-9,
+                        max_iter: int = 50, polish: bool = True) -> QPSolution:
+    """Solve and differentiate  min 1/2 z^T P z + q^T z  s.t.  G z <= h  for a whole batch.
+
+    Args:
+        P: (B, nz, nz) symmetric positive definite (or (nz, nz) shared). Only its symmetric part
+            (P + P^T) / 2 is used, so dL/dP is symmetric.
+        q: (B, nz) (or (nz,) shared).
+        G: (B, nc, nz) (or (nc, nz) shared); for the RCBF-QP nz = n_u + 1.
+        h: (B, nc) (or (nc,) shared).
+        tol: relative tolerance on the KKT residuals (and on the polished point's feasibility).
+        max_iter: interior point iteration cap.
+        polish: identify the active set and re-solve its equality KKT system exactly.
+
+    Returns:
+        QPSolution(z (B, nz), lam (B, nc), iterations (B,), converged (B,)) in the dtype of q;
+        z and lam are differentiable w.r.t. P, q, G, h. Internally float64.
+    """
+    if tol <= 0:
+        raise ValueError(f'tol: must be > 0, got {tol}')
+    if max_iter < 1:
+        raise ValueError(f'max_iter: must be >= 1, got {max_iter}')
+    P, q, G, h = _check_inputs(P, q, G, h)
+    out_dtype = q.dtype
+    P, q, G, h = (x.to(torch.float64) for x in (P, q, G, h))
+    P = 0.5 * (P + P.mT)
+    # Detached equilibration (exact for gradients, see module docstring):
+    # z = E y with E = diag(P)^-1/2, rows of G E scaled by R = 1 / ||(G E)_i||.
+    col = torch.diagonal(P.detach(), dim1=-2, dim2=-1).rsqrt()
+    P_s = col.unsqueeze(-1) * P * col.unsqueeze(-2)
+    q_s = col * q
+    G_cols = G * col.unsqueeze(-2)
+    row_norm = torch.linalg.vector_norm(G_cols.detach(), dim=-1)
+    row = torch.where(row_norm > 0, 1.0 / row_norm.clamp_min(1e-300), torch.ones_like(row_norm))
+    G_s = row.unsqueeze(-1) * G_cols
+    h_s = row * h
+    y, lam_s, iterations, converged, _ = _QPLayer.apply(P_s, q_s, G_s, h_s, tol, max_iter,
+                                                        polish)
+    z = col * y
+    lam = row * lam_s
+    return QPSolution(z.to(out_dtype), lam.to(out_dtype), iterations, converged)
+
+
+def solve_qp_batch(P: Tensor, q: Tensor, G: Tensor, h: Tensor, *, tol: float = 1e-9,
+                   max_iter: int = 50) -> Tensor:
+    """z* (B, nz) of  min 1/2 z^T P z + q^T z  s.t.  G z <= h; see :func:`solve_qp_batch_full`."""
+    return solve_qp_batch_full(P, q, G, h, tol=tol, max_iter=max_iter).z
