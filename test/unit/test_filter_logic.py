@@ -1,0 +1,287 @@
+"""Decision logic of the safety_filter node (rcbf_ros.ros.filter_logic), without any middleware.
+
+A real SafetyFilter (real OSQP) built from config/unicycle.yaml stands behind every decision.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.params import find_config, load_params
+from rcbf_ros.ros import filter_logic as fl
+
+SECOND = 1_000_000_000
+
+
+@pytest.fixture(scope='module')
+def unicycle_params() -> dict:
+    return load_params(find_config('unicycle'), 'safety_filter')
+
+
+@pytest.fixture(scope='module')
+def config(unicycle_params):
+    return filter_config_from_params(unicycle_params)
+
+
+@pytest.fixture
+def safety_filter(config) -> SafetyFilter:
+    return SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action)
+
+
+FREE_STATE = np.array([-2.5, -2.5, 0.0])          # far from every obstacle
+FACING_OBSTACLE = np.array([-0.85, 0.0, 0.0])     # 0.25 m from the centre obstacle's edge
+
+
+def fresh(state: np.ndarray, now_ns: int = 10 * SECOND) -> fl.StateSample:
+    return fl.StateSample(received_ns=now_ns, state=state)
+
+
+# --- parameters --------------------------------------------------------------------------------
+
+def test_declarations_cover_config_keys_and_open_families_from_overrides():
+    names = dict(fl.parameter_declarations(['bands.operator.index', 'system_params.with_operator',
+                                            'alpha', 'unrelated.key']))
+    for key in fl.FILTER_PARAMETER_KEYS + tuple(fl.NODE_PARAMETER_DEFAULTS):
+        assert key in names
+    assert 'bands.operator.index' in names and 'system_params.with_operator' in names
+    assert 'unrelated.key' not in names
+    assert names['alpha'] is None and names['qos.depth'] == 10
+
+
+def test_collect_parameters_drops_unset_so_config_defaults_apply(unicycle_params):
+    declared = {key: None for key, _ in fl.parameter_declarations()}
+    declared.update(unicycle_params)
+    declared['obstacles.radius'] = tuple(declared['obstacles.radius'])
+    flat = fl.collect_parameters(declared)
+    assert 'input_limits.min' in flat and 'gaps.a' not in flat
+    assert flat['obstacles.radius'] == [0.6] * 5
+    # Dropping unset keys matters: an explicit input_limits.min of None would mean 'unbounded'.
+    problem = filter_config_from_params(flat).problem
+    assert problem.has_limits and problem.n_barriers == 5
+
+
+@pytest.mark.parametrize('key, value', [
+    ('command_type', 'pose'),
+    ('twist_fields', ['linear.x', 'angular.w']),
+    ('twist_fields', ['linear.x', 'linear.x']),
+    ('twist_fields', 'linear.x'),
+    ('max_state_age_s', 0.0),
+    ('max_state_age_s', float('nan')),
+    ('max_state_age_s', 'soon'),
+    ('qos.reliable', 'yes'),
+    ('qos.depth', 0),
+    ('qos.depth', 2.5),
+    ('osqp.max_iter', True),
+    ('osqp.eps_abs', -1.0),
+    ('diagnostics.name', 3),
+])
+def test_bad_node_parameter_names_the_key(key, value):
+    with pytest.raises(ValueError, match=f'^{key}:'):
+        fl.node_settings_from_params({key: value})
+
+
+def test_node_settings_defaults_and_values():
+    settings = fl.node_settings_from_params({'command_type': 'twist', 'qos.depth': 1,
+                                             'twist_fields': ['linear.x', 'angular.z']})
+    assert settings.command_type == 'twist' and settings.qos_depth == 1
+    assert settings.twist_fields == ('linear.x', 'angular.z')
+    assert settings.max_state_age_s == fl.NODE_PARAMETER_DEFAULTS['max_state_age_s']
+
+
+@pytest.mark.parametrize('key, value', [
+    ('alpha', -1.0), ('k_c', 'big'), ('obstacles.y', [0.0]), ('system', 'submarine'),
+    ('input_limits.max', [1.0]), ('fail_safe_action', [0.0, 0.0, 0.0]),
+])
+def test_bad_filter_parameter_names_the_key(unicycle_params, key, value):
+    params = fl.collect_parameters({**unicycle_params, key: value})
+    with pytest.raises(ValueError, match=key.split('.')[0]):
+        filter_config_from_params(params)
+
+
+# --- message sections ---------------------------------------------------------------------------
+
+def test_state_prefers_state_section_else_first():
+    x = np.array([1.0, 2.0, 3.0])
+    assert np.array_equal(fl.state_from_sections(sections={'h_true': np.ones(5), 'state': x},
+                                                 n_x=3), x)
+    assert np.array_equal(fl.state_from_sections(sections={'data': x}, n_x=3), x)
+
+
+@pytest.mark.parametrize('sections, match', [
+    ({}, 'state: empty'),
+    ({'state': np.ones(2)}, 'state: expected 3'),
+    ({'state': np.array([0.0, np.nan, 0.0])}, 'state: contains NaN'),
+])
+def test_bad_state_is_rejected_naming_state(sections, match):
+    with pytest.raises(ValueError, match=match):
+        fl.state_from_sections(sections=sections, n_x=3)
+
+
+def test_proposal_sections_parsed():
+    proposal = fl.proposal_from_sections(
+        sections={'u': [1.0, 0.5], 'disturbance_mean': [0.1, 0.0, 0.0],
+                  'disturbance_std': [0.0, 0.2, 0.0], 'state': [0.0, 1.0, 2.0]}, n_u=2, n_x=3)
+    assert np.array_equal(proposal.u, [1.0, 0.5])
+    assert np.array_equal(proposal.state, [0.0, 1.0, 2.0])
+    assert np.array_equal(proposal.disturbance_std, [0.0, 0.2, 0.0])
+
+
+@pytest.mark.parametrize('sections, field', [
+    ({'u': [np.nan, 0.0]}, 'u'),
+    ({'u': [1.0]}, 'u'),
+    ({'disturbance_mean': [0.0] * 3}, 'u'),
+    ({'u': [0.0, 0.0], 'state': [0.0, np.inf, 0.0]}, 'state'),
+    ({'u': [0.0, 0.0], 'disturbance_std': [0.0, -1.0, 0.0]}, 'disturbance_std'),
+    ({'u': [0.0, 0.0], 'disturbance_mean': [0.0]}, 'disturbance_mean'),
+    ({'u': [0.0, 0.0], 'gain': [1.0]}, 'gain'),
+])
+def test_bad_proposal_names_the_section(sections, field):
+    with pytest.raises(ValueError, match=f'^{field}:'):
+        fl.proposal_from_sections(sections=sections, n_u=2, n_x=3)
+
+
+# --- decisions ---------------------------------------------------------------------------------
+
+def test_pass_through_far_from_obstacles(safety_filter):
+    u = np.array([1.0, 0.3])
+    decision = fl.decide(safety_filter=safety_filter, proposal=fl.Proposal(u=u),
+                         latest_state=fresh(FREE_STATE), now_ns=10 * SECOND,
+                         max_state_age_s=0.5)
+    assert decision.level == fl.OK and not decision.fail_safe
+    assert np.array_equal(decision.u_safe, u) and decision.state_source == 'topic'
+    level, message, values = fl.diagnostic_values(decision=decision,
+                                                  barrier_names=safety_filter.barrier_names)
+    assert (level, message) == (fl.OK, 'pass-through') and values['active'] is False
+
+
+def test_unsafe_proposal_is_corrected_with_ok(safety_filter):
+    u = np.array([2.5, 0.0])  # full speed into the centre obstacle
+    decision = fl.decide(safety_filter=safety_filter, proposal=fl.Proposal(u=u),
+                         latest_state=fresh(FACING_OBSTACLE), now_ns=10 * SECOND,
+                         max_state_age_s=0.5)
+    assert decision.level == fl.OK and decision.u_safe[0] < u[0]
+    level, message, values = fl.diagnostic_values(decision=decision,
+                                                  barrier_names=safety_filter.barrier_names)
+    assert message == 'filtering' and values['active'] is True
+    # Every barrier by name, with the filter's own values.
+    for name, h, c in zip(safety_filter.barrier_names, decision.result.h,
+                          decision.result.constraint_values):
+        assert values[f'h.{name}'] == pytest.approx(h)
+        assert values[f'constraint.{name}'] == pytest.approx(c)
+        assert c >= -1e-5  # -eps: the soft slack of an active row
+    assert values['min_h'] == pytest.approx(min(decision.result.h))
+    assert values['status'] == 'solved' and values['fail_safe'] is False
+    assert values['solve_time_s'] > 0 and values['total_time_s'] >= values['solve_time_s']
+
+
+def test_proposal_state_wins_over_topic_state(safety_filter):
+    u = np.array([2.5, 0.0])
+    # The topic says "free space", the proposal says "facing the obstacle": the proposal's wins.
+    decision = fl.decide(safety_filter=safety_filter,
+                         proposal=fl.Proposal(u=u, state=FACING_OBSTACLE),
+                         latest_state=fresh(FREE_STATE), now_ns=10 * SECOND,
+                         max_state_age_s=0.5)
+    assert decision.state_source == 'proposal' and decision.u_safe[0] < u[0]
+    # ...and needs no topic state at all (no staleness check either).
+    alone = fl.decide(safety_filter=safety_filter, proposal=fl.Proposal(u=u, state=FREE_STATE),
+                      latest_state=None, now_ns=10 * SECOND, max_state_age_s=0.5)
+    assert alone.level == fl.OK and np.array_equal(alone.u_safe, u)
+
+
+def test_learned_disturbance_wins_over_static_box(safety_filter):
+    u = np.array([1.0, 0.0])
+    state = np.array([-1.2, 0.0, 0.0])
+    static = fl.decide(safety_filter=safety_filter, proposal=fl.Proposal(u=u),
+                       latest_state=fresh(state), now_ns=10 * SECOND, max_state_age_s=0.5,
+                       static_mean=[0.0, 0.0, 0.0], static_std=[0.0, 0.0, 0.0])
+    learned = fl.decide(safety_filter=safety_filter,
+                        proposal=fl.Proposal(u=u, disturbance_mean=np.array([0.5, 0.0, 0.0]),
+                                             disturbance_std=np.array([0.3, 0.3, 0.0])),
+                        latest_state=fresh(state), now_ns=10 * SECOND, max_state_age_s=0.5,
+                        static_mean=[0.0, 0.0, 0.0], static_std=[0.0, 0.0, 0.0])
+    expected = safety_filter.filter(state, u, [0.5, 0.0, 0.0], [0.3, 0.3, 0.0])
+    assert np.allclose(learned.u_safe, expected.u_safe, atol=1e-9)
+    assert not np.allclose(learned.u_safe, static.u_safe, atol=1e-3)
+    # Static box alone is used when the proposal carries none.
+    static_box = fl.decide(safety_filter=safety_filter, proposal=fl.Proposal(u=u),
+                           latest_state=fresh(state), now_ns=10 * SECOND, max_state_age_s=0.5,
+                           static_mean=[0.5, 0.0, 0.0], static_std=[0.3, 0.3, 0.0])
+    assert np.allclose(static_box.u_safe, expected.u_safe, atol=1e-9)
+
+
+@pytest.mark.parametrize('latest, now_ns, reason', [
+    (None, 10 * SECOND, 'no state received yet'),
+    (fl.StateSample(received_ns=10 * SECOND, state=None, error='state: contains NaN or inf'),
+     10 * SECOND, 'bad state: state: contains NaN'),
+    (fresh(FREE_STATE, now_ns=10 * SECOND), 10 * SECOND + SECOND // 2 + 1, 'stale state'),
+])
+def test_missing_bad_or_stale_state_gives_fail_safe(safety_filter, latest, now_ns, reason):
+    u = np.array([2.5, 1.0])
+    decision = fl.decide(safety_filter=safety_filter, proposal=fl.Proposal(u=u),
+                         latest_state=latest, now_ns=now_ns, max_state_age_s=0.5)
+    assert decision.fail_safe and decision.level == fl.ERROR
+    assert np.array_equal(decision.u_safe, safety_filter.fail_safe_action)
+    assert decision.reason.startswith(reason)
+    assert np.array_equal(decision.u_rl, u)
+    level, message, values = fl.diagnostic_values(decision=decision,
+                                                  barrier_names=safety_filter.barrier_names)
+    assert level == fl.ERROR and message == decision.reason
+    assert values['status'] == 'not solved' and values['fail_safe'] is True
+    assert all(math.isnan(values[f'h.{n}']) for n in safety_filter.barrier_names)
+
+
+def test_state_exactly_at_max_age_is_still_used(safety_filter):
+    decision = fl.decide(safety_filter=safety_filter, proposal=fl.Proposal(u=np.ones(2)),
+                         latest_state=fresh(FREE_STATE, now_ns=0), now_ns=SECOND // 2,
+                         max_state_age_s=0.5)
+    assert decision.level == fl.OK
+
+
+def test_rejected_proposal_gives_fail_safe_with_nan_proposal(safety_filter):
+    decision = fl.decide(safety_filter=safety_filter, proposal=None,
+                         proposal_error='u: contains NaN or inf',
+                         latest_state=fresh(FREE_STATE), now_ns=10 * SECOND,
+                         max_state_age_s=0.5)
+    assert decision.fail_safe and decision.level == fl.ERROR
+    assert decision.reason == 'bad proposal: u: contains NaN or inf'
+    assert np.all(np.isnan(decision.u_rl)) and np.all(np.isnan(decision.u_s))
+    assert np.array_equal(decision.u_safe, safety_filter.fail_safe_action)
+
+
+def test_failed_solve_gives_fail_safe_with_status(config):
+    starved = SafetyFilter(config.problem, fail_safe_action=[0.1, -0.2], max_iter=1)
+    decision = fl.decide(safety_filter=starved, proposal=fl.Proposal(u=np.array([2.5, 0.0])),
+                         latest_state=fresh(FACING_OBSTACLE), now_ns=10 * SECOND,
+                         max_state_age_s=0.5)
+    assert decision.fail_safe and decision.level == fl.ERROR
+    assert np.array_equal(decision.u_safe, [0.1, -0.2])
+    assert decision.reason.startswith('solver failed: ') and 'solved' not in decision.reason[15:]
+    _, _, values = fl.diagnostic_values(decision=decision, barrier_names=starved.barrier_names)
+    assert values['status'] == decision.result.status and values['fail_safe'] is True
+
+
+def test_infeasible_rows_warn_with_slack(config):
+    # Deep inside the centre obstacle: the row asks for v <= -2.7 but the limit is -2.5, so the
+    # QP needs real slack and the node warns (an active feasible row only needs eps ~ 1e-6,
+    # the price of the soft penalty l eps^2 with l = 1e6).
+    filt = SafetyFilter(config.problem)
+    state = np.array([-0.2, 0.0, 0.0])
+    decision = fl.decide(safety_filter=filt, proposal=fl.Proposal(u=np.array([2.5, 0.0])),
+                         latest_state=fresh(state), now_ns=10 * SECOND, max_state_age_s=0.5)
+    assert decision.result.slack > 1e-2
+    assert decision.u_safe[0] == pytest.approx(-2.5)
+    assert decision.level == fl.WARN and 'slack' in decision.reason and not decision.fail_safe
+
+
+def test_log_throttle():
+    throttle = fl.LogThrottle(1.0)
+    assert throttle.should_log(key='stale state', now_ns=0)
+    assert not throttle.should_log(key='stale state', now_ns=SECOND // 2)
+    assert throttle.should_log(key='bad proposal', now_ns=SECOND // 2)
+    assert throttle.should_log(key='stale state', now_ns=SECOND)
+    assert throttle.pop_suppressed('stale state') == 1
+    assert fl.reason_key('bad proposal: u: contains NaN') == 'bad proposal'
