@@ -154,6 +154,8 @@ def _scalar_coercer(type_name: str, field: str, base: str, bound: int) -> Callab
     low, high = _INT_RANGES[base]
 
     def coerce_int(value: Any) -> int:
+        if base == 'byte' and isinstance(value, bytes) and len(value) == 1:
+            return value[0]  # rclpy represents ``byte`` fields as 1-byte bytes
         if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
             raise TypeError(f'{where} must be int, got {type(value).__name__}')
         if not low <= value <= high:
@@ -227,14 +229,19 @@ def _describe(desc: tuple) -> str:
     return f'sequence<{inner}, {length}>' if length else f'sequence<{inner}>'
 
 
-@functools.cache
 def get_message(type_name: str) -> type[Message]:
     """The message class of a ROS type, e.g. ``get_message('geometry_msgs/msg/Twist')``.
+
+    ``'pkg/Type'`` and ``'pkg/msg/Type'`` give the same class.
 
     Raises:
         ValueError: the type is not in rosbags' ROS 2 Jazzy type store.
     """
-    type_name = normalize_type_name(type_name)
+    return _message_class(normalize_type_name(type_name))
+
+
+@functools.cache
+def _message_class(type_name: str) -> type[Message]:
     store = typestore()
     if type_name not in store.fielddefs:
         raise ValueError(f'unknown message type {type_name!r} (not in the ROS 2 Jazzy type '
