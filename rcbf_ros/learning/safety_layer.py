@@ -1,0 +1,50 @@
+"""The differentiable RCBF safety layer of SAC-RCBF (paper, "Differentiable Safety Layer").
+
+u*(x, u_RL) = u_RL + u_S(x, u_RL), with u_S from the RCBF-QP assembled by the same
+:meth:`RCBFProblem.qp` the per-step filter uses, solved for a whole minibatch in one call of
+:func:`rcbf_ros.core.diffqp.solve_qp_batch` and differentiated through its KKT conditions, so the
+actor and critic losses see the safe action (eqs. q_update_diff, pi_update_diff).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from rcbf_ros.core.diffqp import solve_qp_batch
+from rcbf_ros.core.rcbf import RCBFProblem
+
+DisturbanceModel = Callable[[Tensor], tuple[Tensor, Tensor]]
+"""state (B, n_x) -> (mean (B, n_x), std (B, n_x)) of the disturbance estimate."""
+
+
+class DifferentiableSafetyLayer:
+    """Callable ``(state: (B, n_x), u_rl: (B, n_u)) -> u_safe: (B, n_u)``, differentiable in u_rl.
+
+    The QP runs in float64 (accuracy of the KKT solve); the output is cast back to u_rl's dtype.
+    """
+
+    def __init__(self, problem: RCBFProblem, disturbance: DisturbanceModel | None = None) -> None:
+        """Args:
+            problem: system, barriers, gains (the same object the filter uses).
+            disturbance: the learned estimate at a batch of states (None: no disturbance).
+        """
+        self.problem = problem
+        self.disturbance = disturbance
+
+    def correction(self, state: Tensor, u_rl: Tensor) -> Tensor:
+        """u_S: (B, n_u)."""
+        x = state.detach().to(torch.float64)
+        u = u_rl.to(torch.float64)
+        mean = std = None
+        if self.disturbance is not None:
+            with torch.no_grad():
+                mean, std = self.disturbance(x)
+            mean, std = mean.to(torch.float64), std.to(torch.float64)
+        qp = self.problem.qp(x, u, mean, std)
+        z = solve_qp_batch(*qp)
+        return z[:, :self.problem.system.n_u].to(u_rl.dtype)
+
+    def __call__(self, state: Tensor, u_rl: Tensor) -> Tensor:
+        return u_rl + self.correction(state, u_rl)
