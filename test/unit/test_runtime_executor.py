@@ -1,0 +1,71 @@
+"""The Cyclone runtime's executor in one process: timers, one callback per spin_once,
+shutdown from a callback ends spin, graph queries."""
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from rcbf_ros.ros.dds import rclpy_compat as rclpy
+from rcbf_ros.ros.dds.messages import get_message
+from rcbf_ros.ros.dds.node import Node
+
+Float64 = get_message('std_msgs/msg/Float64')
+
+
+@pytest.fixture
+def node(ros_domain_id):
+    rclpy.init(args=[], domain_id=ros_domain_id)
+    node = Node('executor_test')
+    yield node
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def test_spin_returns_after_shutdown_from_a_timer(node):
+    ticks = []
+
+    def tick():
+        ticks.append(threading.get_ident())
+        if len(ticks) == 3:
+            rclpy.shutdown()
+    node.create_timer(0.001, tick)
+    rclpy.spin(node)
+    assert ticks == [threading.get_ident()] * 3  # in the spinning thread, stopped at shutdown
+    assert not rclpy.ok()
+
+
+def test_spin_once_runs_one_callback_at_a_time_in_order(node):
+    received = []
+    publisher = node.create_publisher(Float64, 'numbers', 10)
+    node.create_subscription(Float64, 'numbers', lambda m: received.append(m.data), 10)
+    while publisher.get_subscription_count() == 0:
+        rclpy.spin_once(node, timeout_sec=0.01)
+    for value in (1.0, 2.0, 3.0):
+        publisher.publish(Float64(data=value))
+    while not received:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    assert received == [1.0]
+    rclpy.spin_once(node, timeout_sec=0.1)
+    rclpy.spin_once(node, timeout_sec=0.1)
+    assert received == [1.0, 2.0, 3.0]
+
+
+def test_spin_once_returns_on_timeout_without_work(node):
+    rclpy.spin_once(node, timeout_sec=0.01)  # must come back without any entity
+    assert rclpy.ok()
+
+
+def test_publish_checks_the_message_type(node):
+    publisher = node.create_publisher(Float64, 'numbers', 10)
+    with pytest.raises(TypeError, match='std_msgs/msg/Float64'):
+        publisher.publish(get_message('std_msgs/msg/Bool')(data=True))
+
+
+def test_graph_lists_ros_topics_with_ros_type_names(node):
+    node.create_publisher(get_message('geometry_msgs/msg/Twist'), 'cmd_vel', 10)
+    node.create_subscription(Float64, '/gain', lambda m: None, 10)
+    topics = dict(node.get_topic_names_and_types())
+    assert topics['/cmd_vel'] == ['geometry_msgs/msg/Twist']
+    assert topics['/gain'] == ['std_msgs/msg/Float64']
+    assert node.count_publishers('cmd_vel') == 1 and node.count_subscribers('gain') == 1
