@@ -32,8 +32,8 @@ def safety_filter(config) -> SafetyFilter:
     return SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action)
 
 
-FREE_STATE = np.array([-2.5, -2.5, 0.0])          # far from every obstacle
-FACING_OBSTACLE = np.array([-0.85, 0.0, 0.0])     # 0.25 m from the centre obstacle's edge
+FREE_STATE = np.array([-2.5, -2.5, -0.75 * np.pi])  # in a corner, heading away from obstacles
+FACING_OBSTACLE = np.array([-0.85, 0.0, 0.0])       # 0.25 m from the centre obstacle, facing it
 
 
 def fresh(state: np.ndarray, now_ns: int = 10 * SECOND) -> fl.StateSample:
