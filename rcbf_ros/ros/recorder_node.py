@@ -1,0 +1,265 @@
+"""recorder: record topics into an MCAP bag in rosbag2's layout (``ros2 run rcbf_ros recorder``).
+
+Parameters (``--ros-args -p name:=value``):
+
+- ``topics`` (string list, default empty): topic names to record; empty records every topic
+  that discovery finds. Discovery is re-checked every ``discovery_period_s``, so topics that
+  appear later (or listed topics whose publisher starts later) are picked up.
+- ``output`` (string, default ``bags/run_<UTC time>``): the bag directory.
+- ``best_effort_topics`` (string list): topics to subscribe best effort (sensor-data
+  publishers). Where the runtime reports the publishers' offered QoS
+  (``get_publishers_info_by_topic``, as rclpy does), a topic is subscribed reliable only if every
+  publisher offers reliable, as ``ros2 bag record`` does.
+- ``flush_period_s`` (float, 0.5): how often the open chunk is written out; a SIGKILLed recorder
+  loses at most this much data (see :mod:`rcbf_ros.bag.writer`).
+- ``discovery_period_s`` (float, 1.0), ``chunk_size`` (int, bytes, 262144),
+  ``compression`` (``auto``/``zstd``/``lz4``/``none``).
+
+Subscriptions are raw (CDR bytes are written as received, never deserialised) with keep-all
+history, so nothing is dropped while the recorder keeps up. Ctrl-C or SIGTERM close the bag
+(summary, ``metadata.yaml``) and log the message counts.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime, timezone
+import sys
+from typing import Any, Callable, Sequence
+
+from rcbf_ros.bag import BagWriter, BagWriterConfig, RecordedQos
+from rcbf_ros.ros import runtime
+from rcbf_ros.ros.runtime import (
+    DurabilityPolicy,
+    ExternalShutdownException,
+    get_message,
+    HistoryPolicy,
+    Node,
+    QoSProfile,
+    rclpy,
+    ReliabilityPolicy,
+)
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    """What the recorder records, where, and how often it flushes."""
+
+    topics: tuple[str, ...] = ()
+    """Topic names to record; empty: every discovered topic."""
+    output: str = ''
+    """Bag directory; empty: ``bags/run_<UTC time>``."""
+    best_effort_topics: tuple[str, ...] = ()
+    """Topics subscribed best effort (sensor-data publishers)."""
+    flush_period_s: float = 0.5
+    """Seconds between flushes of the open chunk (upper bound on data lost to SIGKILL)."""
+    discovery_period_s: float = 1.0
+    """Seconds between discovery checks for new topics."""
+    chunk_size: int = 256 * 1024
+    """Uncompressed MCAP chunk size in bytes."""
+    compression: str = 'auto'
+    """Chunk compression: ``auto``, ``zstd``, ``lz4`` or ``none``."""
+
+    def __post_init__(self) -> None:
+        for name in (*self.topics, *self.best_effort_topics):
+            if not name.startswith('/'):
+                raise ValueError(f'topics / best_effort_topics: {name!r} must start with /')
+        if self.flush_period_s <= 0:
+            raise ValueError(f'flush_period_s must be > 0, got {self.flush_period_s}')
+        if self.discovery_period_s <= 0:
+            raise ValueError(f'discovery_period_s must be > 0, got {self.discovery_period_s}')
+        # chunk_size and compression are checked by BagWriterConfig.
+
+    def resolved_output(self, now: datetime | None = None) -> str:
+        """The bag directory: :attr:`output`, or ``bags/run_YYYY_MM_DD-HH_MM_SS`` (UTC)."""
+        if self.output:
+            return self.output
+        stamp = (now or datetime.now(timezone.utc)).strftime('%Y_%m_%d-%H_%M_%S')
+        return f'bags/run_{stamp}'
+
+
+def topics_to_subscribe(discovered: Sequence[tuple[str, Sequence[str]]],
+                        wanted: Sequence[str], already: Sequence[str]) -> list[tuple[str, str]]:
+    """New ``(topic, type)`` pairs to record from a discovery snapshot.
+
+    Args:
+        discovered: ``get_topic_names_and_types()`` output.
+        wanted: topic names to record (empty: all).
+        already: topics already recorded.
+
+    Topics with several types take the first one listed (a warning is the caller's business).
+    """
+    wanted_set = set(wanted)
+    done = set(already)
+    new = []
+    for name, types in discovered:
+        if name in done or not types or (wanted_set and name not in wanted_set):
+            continue
+        new.append((name, types[0]))
+    return new
+
+
+def request_reliability(offered: Sequence[RecordedQos] | None, force_best_effort: bool) -> str:
+    """``reliable`` or ``best_effort`` for a recording subscription.
+
+    As ``ros2 bag record`` adapts its request: reliable only if every publisher offers reliable
+    (a reliable reader never matches a best-effort writer). Without offer information, reliable
+    unless the topic is configured best effort.
+    """
+    if force_best_effort:
+        return 'best_effort'
+    if offered:
+        return 'reliable' if all(q.reliability == 'reliable' for q in offered) else 'best_effort'
+    return 'reliable'
+
+
+class Recorder:
+    """Topic bookkeeping and the bag, independent of how messages arrive.
+
+    Args:
+        writer: the open bag.
+        clock_ns: receive-time source (nanoseconds since the epoch).
+    """
+
+    def __init__(self, writer: BagWriter, clock_ns: Callable[[], int]) -> None:
+        self.writer = writer
+        self.clock_ns = clock_ns
+        self.dropped_unknown_type: set[str] = set()
+
+    def add(self, topic: str, type_name: str, offered: Sequence[RecordedQos]) -> bool:
+        """Register ``topic`` in the bag; False if its type has no definition available."""
+        try:
+            self.writer.add_topic(topic, type_name, qos=list(offered) or None)
+        except ValueError:
+            self.dropped_unknown_type.add(topic)
+            return False
+        return True
+
+    def on_message(self, topic: str, cdr: bytes) -> None:
+        """Write one received message stamped with the receive time."""
+        self.writer.write(topic, cdr, self.clock_ns())
+
+    def counts(self) -> dict[str, int]:
+        """Messages written per topic."""
+        return {name: t.message_count for name, t in self.writer.topics.items()}
+
+
+class RecorderNode(Node):
+    """The ROS face of :class:`Recorder`: parameters, discovery, raw subscriptions, timers."""
+
+    def __init__(self) -> None:
+        super().__init__('recorder')
+        self.config = self._read_config()
+        self.bag_directory = self.config.resolved_output()
+        writer = BagWriter(self.bag_directory, config=BagWriterConfig(
+            chunk_size=self.config.chunk_size, compression=self.config.compression,
+            flush_period_s=self.config.flush_period_s))
+        self.recorder = Recorder(writer, lambda: self.get_clock().now().nanoseconds)
+        self._subscriptions_by_topic: dict[str, Any] = {}
+        self._warned: set[str] = set()
+        self.get_logger().info(
+            f'recording {list(self.config.topics) or "all topics"} into {self.bag_directory}')
+        self.discover()
+        self.create_timer(self.config.discovery_period_s, self.discover)
+        self.create_timer(self.config.flush_period_s, self.flush)
+
+    def _read_config(self) -> RecorderConfig:
+        string_array = getattr(getattr(runtime, 'Parameter', None), 'Type', None)
+        list_default: Any = string_array.STRING_ARRAY if string_array is not None else []
+        self.declare_parameter('topics', list_default)
+        self.declare_parameter('best_effort_topics', list_default)
+        self.declare_parameter('output', RecorderConfig.output)
+        self.declare_parameter('flush_period_s', RecorderConfig.flush_period_s)
+        self.declare_parameter('discovery_period_s', RecorderConfig.discovery_period_s)
+        self.declare_parameter('chunk_size', RecorderConfig.chunk_size)
+        self.declare_parameter('compression', RecorderConfig.compression)
+
+        def strings(name: str) -> tuple[str, ...]:
+            value = self.get_parameter(name).value
+            return tuple(str(v) for v in (value or ()) if str(v))
+
+        return RecorderConfig(
+            topics=strings('topics'),
+            output=str(self.get_parameter('output').value or ''),
+            best_effort_topics=strings('best_effort_topics'),
+            flush_period_s=float(self.get_parameter('flush_period_s').value),
+            discovery_period_s=float(self.get_parameter('discovery_period_s').value),
+            chunk_size=int(self.get_parameter('chunk_size').value),
+            compression=str(self.get_parameter('compression').value))
+
+    def _offered_qos(self, topic: str) -> list[RecordedQos]:
+        """Publishers' offered QoS where the runtime reports it (rclpy does), else []."""
+        info = getattr(self, 'get_publishers_info_by_topic', None)
+        if info is None:
+            return []
+        try:
+            return [RecordedQos.from_profile(e.qos_profile) for e in info(topic)]
+        except (AttributeError, TypeError, ValueError):
+            return []
+
+    def discover(self) -> None:
+        """Subscribe to topics that discovery shows and that are not recorded yet."""
+        discovered = [(name, list(types)) for name, types in self.get_topic_names_and_types()]
+        for name, types in discovered:
+            if len(types) > 1 and name not in self._warned:
+                self._warned.add(name)
+                self.get_logger().warning(f'topic {name} has several types {types}; '
+                                          f'recording {types[0]}')
+        already = [*self._subscriptions_by_topic, *self.recorder.dropped_unknown_type]
+        for topic, type_name in topics_to_subscribe(discovered, self.config.topics, already):
+            self._subscribe(topic, type_name)
+
+    def _subscribe(self, topic: str, type_name: str) -> None:
+        offered = self._offered_qos(topic)
+        reliability = request_reliability(offered, topic in self.config.best_effort_topics)
+        recorded_offer = offered or [RecordedQos(reliability=reliability)]
+        if not self.recorder.add(topic, type_name, recorded_offer):
+            self.get_logger().warning(f'not recording {topic}: type {type_name} unknown')
+            return
+        try:
+            msg_type = get_message(type_name)
+        except (ValueError, AttributeError, ModuleNotFoundError) as exc:
+            self.get_logger().warning(f'not recording {topic}: {exc}')
+            self.recorder.dropped_unknown_type.add(topic)
+            return
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_ALL, depth=1000,
+            reliability=(ReliabilityPolicy.RELIABLE if reliability == 'reliable'
+                         else ReliabilityPolicy.BEST_EFFORT),
+            durability=DurabilityPolicy.VOLATILE)
+        self._subscriptions_by_topic[topic] = self.create_subscription(
+            msg_type, topic, lambda data, name=topic: self.recorder.on_message(name, data),
+            qos, raw=True)
+        self.get_logger().info(f'recording {topic} [{type_name}] ({reliability})')
+
+    def flush(self) -> None:
+        """Write the open chunk out (bounds what a SIGKILL can lose)."""
+        self.recorder.writer.flush()
+
+    def close(self) -> dict[str, int]:
+        """Close the bag (summary and metadata.yaml); return per-topic counts."""
+        counts = self.recorder.counts()
+        self.recorder.writer.close()
+        return counts
+
+
+def main(args: Sequence[str] | None = None) -> None:
+    """Console script ``recorder``."""
+    # rclpy reads sys.argv when args is None; pass it explicitly so every runtime does.
+    rclpy.init(args=list(sys.argv if args is None else args))
+    node = RecorderNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        counts = node.close()
+        total = sum(counts.values())
+        per_topic = ', '.join(f'{name}: {n}' for name, n in counts.items()) or 'no topics'
+        node.get_logger().info(
+            f'bag {node.bag_directory} closed: {total} messages ({per_topic})')
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
