@@ -1,0 +1,111 @@
+"""Neural networks of SAC: squashed-Gaussian actor, Q critic, compensator (all MLPs)."""
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import torch
+from torch import nn
+
+LOG_STD_MIN = -5.0
+LOG_STD_MAX = 2.0
+
+
+def mlp(n_in: int, n_out: int, hidden_sizes: Sequence[int]) -> nn.Sequential:
+    """Fully connected ReLU network ``n_in -> hidden_sizes... -> n_out`` (linear output)."""
+    layers: list[nn.Module] = []
+    width = n_in
+    for hidden in hidden_sizes:
+        layers += [nn.Linear(width, hidden), nn.ReLU()]
+        width = hidden
+    layers.append(nn.Linear(width, n_out))
+    return nn.Sequential(*layers)
+
+
+class PolicySample(NamedTuple):
+    """One reparameterised draw from the actor."""
+
+    action: torch.Tensor
+    """(B, n_u) action in the box [u_low, u_high]."""
+    log_prob: torch.Tensor
+    """(B,) log density of ``action`` under the squashed Gaussian."""
+    mean_action: torch.Tensor
+    """(B, n_u) deterministic action (squashed mean), for evaluation."""
+
+
+class SquashedGaussianActor(nn.Module):
+    """pi(u | obs): u = c + s * tanh(z), z ~ N(mu(obs), sigma(obs)^2) per action dimension.
+
+    ``c = (u_high + u_low) / 2`` and ``s = (u_high - u_low) / 2`` map tanh's (-1, 1) to the action
+    box. The log density follows from the change of variables,
+
+        log pi(u | obs) = sum_j [log N(z_j; mu_j, sigma_j) - log(s_j (1 - tanh(z_j)^2))].
+
+    Args:
+        obs_dim: observation size.
+        u_low, u_high: (n_u,) action box.
+        hidden_sizes: hidden layer widths.
+    """
+
+    def __init__(self, obs_dim: int, u_low: torch.Tensor, u_high: torch.Tensor,
+                 hidden_sizes: Sequence[int] = (256, 256)) -> None:
+        super().__init__()
+        n_u = u_low.shape[0]
+        if len(hidden_sizes) < 1:
+            raise ValueError('hidden_sizes must name at least one layer')
+        # obs -> hidden_sizes (ReLU after each) -> two linear heads.
+        self.trunk = nn.Sequential(mlp(obs_dim, hidden_sizes[-1], hidden_sizes[:-1]), nn.ReLU())
+        self.mean_head = nn.Linear(hidden_sizes[-1], n_u)
+        self.log_std_head = nn.Linear(hidden_sizes[-1], n_u)
+        self.register_buffer('action_center', (u_high + u_low) / 2.0)
+        self.register_buffer('action_half_range', (u_high - u_low) / 2.0)
+
+    def forward(self, obs: torch.Tensor, noise: torch.Tensor | None = None,
+                generator: torch.Generator | None = None) -> PolicySample:
+        """Reparameterised sample.
+
+        Args:
+            obs: (B, obs_dim).
+            noise: optional (B, n_u) standard-normal draw (fixes the sample, e.g. for
+                finite-difference tests); drawn with ``generator`` when None.
+            generator: random source for ``noise``.
+        """
+        features = self.trunk(obs)
+        mean = self.mean_head(features)
+        log_std = torch.clamp(self.log_std_head(features), LOG_STD_MIN, LOG_STD_MAX)
+        std = log_std.exp()
+        if noise is None:
+            noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype,
+                                device=mean.device)
+        pre_tanh = mean + std * noise
+        squashed = torch.tanh(pre_tanh)
+        action = self.action_center + self.action_half_range * squashed
+        gaussian_log_prob = (-0.5 * noise ** 2 - log_std - 0.5 * torch.log(
+            torch.tensor(2.0 * torch.pi, dtype=mean.dtype))).sum(-1)
+        # log |d action / d z| = log(s (1 - tanh^2)); 1e-6 guards tanh saturation.
+        log_jacobian = torch.log(self.action_half_range * (1.0 - squashed ** 2) + 1e-6).sum(-1)
+        mean_action = self.action_center + self.action_half_range * torch.tanh(mean)
+        return PolicySample(action, gaussian_log_prob - log_jacobian, mean_action)
+
+
+class QNetwork(nn.Module):
+    """Q(obs, u): an MLP on the concatenation, output (B,)."""
+
+    def __init__(self, obs_dim: int, n_u: int, hidden_sizes: Sequence[int] = (256, 256)) -> None:
+        super().__init__()
+        self.net = mlp(obs_dim + n_u, 1, hidden_sizes)
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """obs: (B, obs_dim), action: (B, n_u) -> (B,)."""
+        return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)
+
+
+class Compensator(nn.Module):
+    """c(obs) -> (B, n_u): regression of the safety filter's correction (Cheng et al. 2019)."""
+
+    def __init__(self, obs_dim: int, n_u: int, hidden_sizes: Sequence[int] = (256, 256)) -> None:
+        super().__init__()
+        self.net = mlp(obs_dim, n_u, hidden_sizes)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """obs: (B, obs_dim) -> (B, n_u)."""
+        return self.net(obs)

@@ -1,0 +1,354 @@
+"""Soft Actor-Critic with the training modes of SAC-RCBF (paper: "Soft Actor-Critic",
+"Differentiable Safety Layer", "Modular Task Learning").
+
+One code path, one flag (``SACConfig.mode``); what each mode trains on what:
+
+=====================  ======================================  ===============================
+mode                   critic Q(x_t, .) and its target          actor loss
+=====================  ======================================  ===============================
+unconstrained          Q(x_t, u^RL_t); Q_bar(x_{t+1}, a')       a log pi(a|x) - Q(x, a)
+baseline               same as unconstrained (the filter acts only in the environment loop)
+baseline_compensator   same as baseline; plus c(obs) regressed on u^S_t (see below)
+diff                   Q(x_t, u*_t); Q_bar(x_{t+1}, a' + u^S)   a log pi(a|x) - Q(x, a + u^S(x, a))
+modular                Q(x_t, u*_t); Q_bar(x_{t+1}, a')         a log pi(a|x) - Q(x, a)
+=====================  ======================================  ===============================
+
+with a' ~ pi(.|x_{t+1}) and a ~ pi(.|x_t) reparameterised, u^S(x, a) = safety_layer(x, a) - a.
+Networks see ``obs``; the safety layer sees ``state`` (they may differ).
+
+Compensator (Cheng et al. 2019, ``baseline_compensator``): ``act()`` proposes
+u^RL + c(obs) (clipped to the box) to the filter, which returns u*. The buffer stores the policy's
+own sample ``u_rl`` and ``u_s = u* - u_rl`` (the whole correction on top of the policy, i.e.
+compensator part plus filter part). c is trained by least squares, c(obs_t) -> u_s_t, so it
+learns the correction the filter would otherwise have to make; SAC is trained on
+(obs, u_rl) exactly as in ``baseline``.
+
+The safety layer is injected: any callable ``safety_layer(state: (B, n_x), u_rl: (B, n_u)) ->
+u_safe: (B, n_u)`` that is differentiable in ``u_rl`` (the RCBF-QP layer); only ``diff``
+needs it.
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Literal, NamedTuple
+
+import numpy as np
+import torch
+from torch import nn
+
+from rcbf_ros.learning.buffers import TransitionBatch
+from rcbf_ros.learning.networks import Compensator, QNetwork, SquashedGaussianActor
+
+SafetyLayer = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+Mode = Literal['unconstrained', 'baseline', 'baseline_compensator', 'diff', 'modular']
+MODES: tuple[str, ...] = ('unconstrained', 'baseline', 'baseline_compensator', 'diff',
+                          'modular')
+
+
+@dataclass(frozen=True)
+class SACConfig:
+    """Hyperparameters of ``SAC``."""
+
+    mode: Mode = 'baseline'
+    """Training mode, one of ``MODES`` (see the module docstring)."""
+    gamma: float = 0.99
+    """Discount factor."""
+    tau: float = 0.005
+    """Polyak coefficient of the target critics: theta_bar <- tau theta + (1 - tau) theta_bar."""
+    actor_lr: float = 3e-4
+    """Adam learning rate of the actor."""
+    critic_lr: float = 3e-4
+    """Adam learning rate of the twin critics."""
+    alpha_lr: float = 3e-4
+    """Adam learning rate of log(alpha) (automatic entropy tuning)."""
+    initial_alpha: float = 0.2
+    """Initial entropy temperature alpha_e."""
+    autotune_alpha: bool = True
+    """Tune alpha to keep the policy entropy near ``target_entropy``."""
+    target_entropy: float | None = None
+    """Entropy target of the tuning; None means -n_u."""
+    hidden_sizes: tuple[int, ...] = (256, 256)
+    """Hidden widths of actor, critics and compensator."""
+    target_update_interval: int = 1
+    """Update the target critics every this many ``update`` calls."""
+    compensator_lr: float = 3e-4
+    """Adam learning rate of the compensator (``baseline_compensator`` only)."""
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f'mode must be one of {MODES}, got {self.mode!r}')
+        if not 0.0 <= self.gamma <= 1.0:
+            raise ValueError(f'gamma must be in [0, 1], got {self.gamma}')
+        if not 0.0 < self.tau <= 1.0:
+            raise ValueError(f'tau must be in (0, 1], got {self.tau}')
+        if not self.initial_alpha > 0:
+            raise ValueError(f'initial_alpha must be > 0, got {self.initial_alpha}')
+        if self.target_update_interval < 1:
+            raise ValueError(
+                f'target_update_interval must be >= 1, got {self.target_update_interval}')
+        if not self.hidden_sizes or min(self.hidden_sizes) < 1:
+            raise ValueError(f'hidden_sizes must be positive widths, got {self.hidden_sizes}')
+
+
+class ActionProposal(NamedTuple):
+    """What ``act_detailed`` returns (numpy, shape (n_u,) or (B, n_u))."""
+
+    u_proposed: np.ndarray
+    """Action to send to the safety filter (u^RL, or u^RL + c(obs) clipped with a
+    compensator)."""
+    u_rl: np.ndarray
+    """The policy's own sample u^RL (store this as ``u_rl``)."""
+
+
+def polyak_update(params: Iterable[nn.Parameter], target_params: Iterable[nn.Parameter],
+                  tau: float) -> None:
+    """In place: target <- tau * param + (1 - tau) * target, pairwise."""
+    with torch.no_grad():
+        for param, target in zip(params, target_params, strict=True):
+            target.mul_(1.0 - tau).add_(param, alpha=tau)
+
+
+class SAC:
+    """SAC agent with SAC-RCBF's training modes.
+
+    Args:
+        obs_dim: observation size (the networks' input).
+        n_u: action size.
+        u_low, u_high: (n_u,) action box of the policy.
+        config: see ``SACConfig``.
+        safety_layer: differentiable ``(state, u_rl) -> u_safe``; required in ``diff`` mode.
+        seed: seeds network initialisation (without touching the global RNG) and the policy
+            noise generator, so equal seeds give bit-identical training.
+        dtype: parameter type (float32; float64 for gradient checks).
+    """
+
+    def __init__(self, obs_dim: int, n_u: int, u_low: np.ndarray | torch.Tensor,
+                 u_high: np.ndarray | torch.Tensor, config: SACConfig | None = None, *,
+                 safety_layer: SafetyLayer | None = None, seed: int = 0,
+                 dtype: torch.dtype = torch.float32) -> None:
+        self.config = config if config is not None else SACConfig()
+        cfg = self.config
+        if obs_dim < 1:
+            raise ValueError(f'obs_dim must be >= 1, got {obs_dim}')
+        if n_u < 1:
+            raise ValueError(f'n_u must be >= 1, got {n_u}')
+        low = torch.as_tensor(u_low, dtype=dtype).reshape(-1)
+        high = torch.as_tensor(u_high, dtype=dtype).reshape(-1)
+        if low.shape != (n_u,):
+            raise ValueError(f'u_low must have shape ({n_u},), got {tuple(low.shape)}')
+        if high.shape != (n_u,):
+            raise ValueError(f'u_high must have shape ({n_u},), got {tuple(high.shape)}')
+        if not (high > low).all():
+            raise ValueError('u_high must be > u_low elementwise')
+        if cfg.mode == 'diff' and safety_layer is None:
+            raise ValueError("safety_layer is required in mode 'diff'")
+        self.obs_dim, self.n_u, self.dtype = obs_dim, n_u, dtype
+        self.u_low, self.u_high = low, high
+        self.safety_layer = safety_layer
+        hidden = cfg.hidden_sizes
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.actor = SquashedGaussianActor(obs_dim, low, high, hidden).to(dtype)
+            self.q1 = QNetwork(obs_dim, n_u, hidden).to(dtype)
+            self.q2 = QNetwork(obs_dim, n_u, hidden).to(dtype)
+            self.compensator = (Compensator(obs_dim, n_u, hidden).to(dtype)
+                                if cfg.mode == 'baseline_compensator' else None)
+        self.q1_target = QNetwork(obs_dim, n_u, hidden).to(dtype)
+        self.q2_target = QNetwork(obs_dim, n_u, hidden).to(dtype)
+        self.q1_target.load_state_dict(self.q1.state_dict())
+        self.q2_target.load_state_dict(self.q2.state_dict())
+        for param in [*self.q1_target.parameters(), *self.q2_target.parameters()]:
+            param.requires_grad_(False)
+        self.log_alpha = torch.tensor(float(np.log(cfg.initial_alpha)), dtype=dtype,
+                                      requires_grad=True)
+        self.target_entropy = (cfg.target_entropy if cfg.target_entropy is not None
+                               else -float(n_u))
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
+        self.critic_optimizer = torch.optim.Adam(
+            [*self.q1.parameters(), *self.q2.parameters()], lr=cfg.critic_lr)
+        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr)
+        self.compensator_optimizer = (
+            torch.optim.Adam(self.compensator.parameters(), lr=cfg.compensator_lr)
+            if self.compensator is not None else None)
+        self.generator = torch.Generator().manual_seed(seed + 1)
+        self.num_updates = 0
+
+    # ----------------------------------------------------------------- acting
+    @property
+    def alpha(self) -> torch.Tensor:
+        """Entropy temperature alpha_e = exp(log_alpha) (detached)."""
+        return self.log_alpha.detach().exp()
+
+    def policy_action(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
+        """u^RL for a batch, without gradients: obs (B, obs_dim) -> (B, n_u)."""
+        with torch.no_grad():
+            sample = self.actor(obs.to(self.dtype), generator=self.generator)
+        return sample.mean_action if deterministic else sample.action
+
+    def act_detailed(self, obs: np.ndarray | torch.Tensor,
+                     deterministic: bool = False) -> ActionProposal:
+        """Proposal for the safety filter and the policy's own sample, as numpy.
+
+        Args:
+            obs: (obs_dim,) or (B, obs_dim).
+        """
+        obs_t = torch.as_tensor(np.asarray(obs) if not isinstance(obs, torch.Tensor) else obs,
+                                dtype=self.dtype)
+        single = obs_t.ndim == 1
+        if single:
+            obs_t = obs_t.unsqueeze(0)
+        if obs_t.ndim != 2 or obs_t.shape[1] != self.obs_dim:
+            raise ValueError(f'obs must have shape ({self.obs_dim},) or (B, {self.obs_dim}), '
+                             f'got {tuple(obs_t.shape)}')
+        u_rl = self.policy_action(obs_t, deterministic)
+        u_proposed = u_rl
+        if self.compensator is not None:
+            with torch.no_grad():
+                u_proposed = torch.clamp(u_rl + self.compensator(obs_t), self.u_low,
+                                         self.u_high)
+        if single:
+            u_rl, u_proposed = u_rl[0], u_proposed[0]
+        return ActionProposal(u_proposed.numpy().copy(), u_rl.numpy().copy())
+
+    def act(self, obs: np.ndarray | torch.Tensor, deterministic: bool = False) -> np.ndarray:
+        """Action to hand to the safety filter: u^RL (plus the compensator, if any)."""
+        return self.act_detailed(obs, deterministic).u_proposed
+
+    # ----------------------------------------------------------------- losses
+    def _safe_action(self, state: torch.Tensor, u_rl: torch.Tensor) -> torch.Tensor:
+        """u^RL + u^S(x, u^RL) = safety_layer(x, u^RL), cast to the networks' dtype."""
+        assert self.safety_layer is not None
+        return self.safety_layer(state, u_rl).to(self.dtype)
+
+    def critic_action(self, batch: TransitionBatch) -> torch.Tensor:
+        """The action the critic is trained at: u^RL_t (eq. q_update) or u*_t (eqs.
+        q_update_diff, q_update_mod)."""
+        return batch.u_safe if self.config.mode in ('diff', 'modular') else batch.u_rl
+
+    def critic_target(self, batch: TransitionBatch,
+                      noise: torch.Tensor | None = None) -> torch.Tensor:
+        """Soft Bellman target y = r + gamma (1 - done) V_bar(x_{t+1}): (B,).
+
+        Args:
+            noise: optional (B, n_u) standard normal draw for a' ~ pi(.|x_{t+1}).
+        """
+        with torch.no_grad():
+            next_sample = self.actor(batch.next_obs, noise=noise, generator=self.generator)
+            next_action = next_sample.action
+            if self.config.mode == 'diff':
+                # eq. q_update_diff: V_bar(x') = Q_bar(x', a' + u^S(x', a')) - alpha log pi.
+                next_action = self._safe_action(batch.next_state, next_action)
+            # eq. q_update (plain) and eq. q_update_mod (modular): u^S_{t+1} = 0, so
+            # V_bar(x') = Q_bar(x', a') - alpha log pi(a'|x').
+            next_q = torch.minimum(self.q1_target(batch.next_obs, next_action),
+                                   self.q2_target(batch.next_obs, next_action))
+            next_value = next_q - self.alpha * next_sample.log_prob
+            return batch.reward + self.config.gamma * (1.0 - batch.done) * next_value
+
+    def critic_loss(self, batch: TransitionBatch,
+                    noise: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+        """J_Q = E[1/2 (Q_i(x_t, action_t) - y)^2], summed over the twin critics."""
+        target = self.critic_target(batch, noise)
+        action = self.critic_action(batch)
+        q1 = self.q1(batch.obs, action)
+        q2 = self.q2(batch.obs, action)
+        loss = 0.5 * ((q1 - target) ** 2).mean() + 0.5 * ((q2 - target) ** 2).mean()
+        return loss, {'q1_mean': float(q1.detach().mean()), 'q2_mean': float(q2.detach().mean()),
+                      'target_mean': float(target.mean())}
+
+    def actor_loss(self, batch: TransitionBatch,
+                   noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """J_pi = E[alpha log pi(a|x) - min_i Q_i(x, action(a))], and log pi(a|x): (B,).
+
+        Args:
+            noise: optional (B, n_u) standard normal draw for a ~ pi(.|x_t).
+        """
+        sample = self.actor(batch.obs, noise=noise, generator=self.generator)
+        action = sample.action
+        if self.config.mode == 'diff':
+            # eq. pi_update_diff: Q(x, a + u^S(x, a)); gradients flow through the layer.
+            action = self._safe_action(batch.state, action)
+        # eq. pi_update (unconstrained, baselines, modular): Q(x, a).
+        q = torch.minimum(self.q1(batch.obs, action), self.q2(batch.obs, action))
+        loss = (self.alpha * sample.log_prob - q).mean()
+        return loss, sample.log_prob
+
+    def compensator_loss(self, batch: TransitionBatch) -> torch.Tensor:
+        """E[1/2 |c(obs_t) - u^S_t|^2] (Cheng et al. 2019: learn the filter's correction)."""
+        assert self.compensator is not None
+        return 0.5 * ((self.compensator(batch.obs) - batch.u_s) ** 2).sum(-1).mean()
+
+    # ----------------------------------------------------------------- update
+    def update(self, batch: TransitionBatch) -> dict[str, float]:
+        """One gradient step of critics, actor, alpha (and compensator); returns metrics."""
+        batch = TransitionBatch(*(t.to(self.dtype) for t in batch))
+        cfg = self.config
+        critic_loss, metrics = self.critic_loss(batch)
+        self.critic_optimizer.zero_grad()
+        critic_loss.backward()
+        self.critic_optimizer.step()
+
+        actor_loss, log_prob = self.actor_loss(batch)
+        self.actor_optimizer.zero_grad()
+        actor_loss.backward()
+        self.actor_optimizer.step()
+
+        alpha_loss = torch.zeros(())
+        if cfg.autotune_alpha:
+            # Haarnoja et al. 2018b: J(alpha) = E[-alpha (log pi + target_entropy)].
+            alpha_loss = -(self.log_alpha * (log_prob.detach() + self.target_entropy)).mean()
+            self.alpha_optimizer.zero_grad()
+            alpha_loss.backward()
+            self.alpha_optimizer.step()
+
+        self.num_updates += 1
+        if self.num_updates % cfg.target_update_interval == 0:
+            polyak_update(self.q1.parameters(), self.q1_target.parameters(), cfg.tau)
+            polyak_update(self.q2.parameters(), self.q2_target.parameters(), cfg.tau)
+
+        metrics.update({'critic_loss': float(critic_loss.detach()),
+                        'actor_loss': float(actor_loss.detach()),
+                        'alpha': float(self.alpha), 'alpha_loss': float(alpha_loss.detach()),
+                        'entropy': float(-log_prob.detach().mean())})
+        if self.compensator is not None:
+            assert self.compensator_optimizer is not None
+            compensator_loss = self.compensator_loss(batch)
+            self.compensator_optimizer.zero_grad()
+            compensator_loss.backward()
+            self.compensator_optimizer.step()
+            metrics['compensator_loss'] = float(compensator_loss.detach())
+        return metrics
+
+    # ------------------------------------------------------------- checkpoint
+    def _modules(self) -> dict[str, Any]:
+        modules: dict[str, Any] = {
+            'actor': self.actor, 'q1': self.q1, 'q2': self.q2, 'q1_target': self.q1_target,
+            'q2_target': self.q2_target, 'actor_optimizer': self.actor_optimizer,
+            'critic_optimizer': self.critic_optimizer, 'alpha_optimizer': self.alpha_optimizer}
+        if self.compensator is not None:
+            modules['compensator'] = self.compensator
+            modules['compensator_optimizer'] = self.compensator_optimizer
+        return modules
+
+    def state_dict(self) -> dict[str, Any]:
+        """A snapshot (deep copy) of networks, optimisers, log(alpha), generator state and
+        update count."""
+        state = {name: copy.deepcopy(module.state_dict())
+                 for name, module in self._modules().items()}
+        state.update({'log_alpha': self.log_alpha.detach().clone(),
+                      'generator': self.generator.get_state(),
+                      'num_updates': self.num_updates, 'mode': self.config.mode})
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a ``state_dict`` taken from an agent with the same sizes and mode."""
+        if state['mode'] != self.config.mode:
+            raise ValueError(f"mode mismatch: state_dict has {state['mode']!r}, agent has "
+                             f'{self.config.mode!r}')
+        for name, module in self._modules().items():
+            module.load_state_dict(state[name])
+        with torch.no_grad():
+            self.log_alpha.copy_(state['log_alpha'])
+        self.generator.set_state(state['generator'])
+        self.num_updates = state['num_updates']

@@ -1,0 +1,90 @@
+"""ReplayBuffer: circular storage, seeded sampling, checkpoints, clear errors."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from rcbf_ros.learning.buffers import ReplayBuffer, TransitionBatch
+
+
+def add_numbered(buffer: ReplayBuffer, start: int, count: int) -> None:
+    """Transitions whose every field encodes their index i (reward = i)."""
+    index = torch.arange(start, start + count, dtype=torch.float32)
+    buffer.add(obs=index[:, None].repeat(1, 3), state=-index[:, None].repeat(1, 2),
+               u_rl=index[:, None], u_safe=index[:, None] + 0.5, u_s=torch.full((count, 1), 0.5),
+               reward=index, next_obs=index[:, None].repeat(1, 3) + 1,
+               next_state=-index[:, None].repeat(1, 2) - 1, done=(index % 2 == 0))
+
+
+def test_single_and_batched_add_and_field_alignment():
+    buffer = ReplayBuffer(10, 3, 2, 1)
+    buffer.add(obs=np.zeros(3), state=np.zeros(2), u_rl=[0.1], u_safe=[0.3], u_s=[0.2],
+               reward=1.5, next_obs=np.ones(3), next_state=np.ones(2), done=True)
+    add_numbered(buffer, 1, 4)
+    assert len(buffer) == 5
+    batch = buffer.gather(torch.arange(5))
+    assert isinstance(batch, TransitionBatch)
+    assert batch.obs.shape == (5, 3) and batch.state.shape == (5, 2)
+    assert batch.reward.shape == (5,) and batch.done.shape == (5,)
+    assert batch.reward.tolist() == [1.5, 1.0, 2.0, 3.0, 4.0]
+    assert batch.done.tolist() == [1.0, 0.0, 1.0, 0.0, 1.0]
+    torch.testing.assert_close(batch.u_s[0], torch.tensor([0.2]))
+    # Every field of a sampled row belongs to the same transition.
+    sample = buffer.sample(64)
+    rows = sample.reward != 1.5  # the numbered ones
+    torch.testing.assert_close(sample.obs[rows, 0], sample.reward[rows])
+    torch.testing.assert_close(sample.next_state[rows, 1], -sample.reward[rows] - 1)
+
+
+def test_circular_overwrite_keeps_the_newest():
+    buffer = ReplayBuffer(4, 3, 2, 1)
+    add_numbered(buffer, 0, 3)
+    add_numbered(buffer, 3, 3)
+    assert len(buffer) == 4
+    assert sorted(buffer.gather(torch.arange(4)).reward.tolist()) == [2.0, 3.0, 4.0, 5.0]
+    add_numbered(buffer, 10, 9)  # more than the capacity at once: the last 4 survive
+    assert sorted(buffer.gather(torch.arange(4)).reward.tolist()) == [15.0, 16.0, 17.0, 18.0]
+
+
+def test_sampling_is_seeded():
+    def draws(seed: int) -> torch.Tensor:
+        buffer = ReplayBuffer(100, 3, 2, 1, seed=seed)
+        add_numbered(buffer, 0, 50)
+        return torch.cat([buffer.sample(16).reward for _ in range(3)])
+
+    assert torch.equal(draws(3), draws(3))
+    assert not torch.equal(draws(3), draws(4))
+
+
+def test_state_dict_round_trip_continues_the_same_stream():
+    buffer = ReplayBuffer(20, 3, 2, 1, seed=1)
+    add_numbered(buffer, 0, 25)
+    buffer.sample(5)
+    restored = ReplayBuffer(20, 3, 2, 1, seed=99)
+    restored.load_state_dict(buffer.state_dict())
+    assert len(restored) == 20
+    for a, b in zip(buffer.sample(8), restored.sample(8)):
+        assert torch.equal(a, b)
+    add_numbered(buffer, 100, 1)
+    add_numbered(restored, 100, 1)
+    for a, b in zip(buffer.gather(torch.arange(20)), restored.gather(torch.arange(20))):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match='capacity'):
+        ReplayBuffer(10, 3, 2, 1).load_state_dict(buffer.state_dict())
+    with pytest.raises(ValueError, match='obs width'):
+        ReplayBuffer(20, 4, 2, 1).load_state_dict(buffer.state_dict())
+
+
+def test_bad_input_names_the_field():
+    buffer = ReplayBuffer(10, 3, 2, 1)
+    good = dict(obs=np.zeros(3), state=np.zeros(2), u_rl=[0.1], u_safe=[0.3], u_s=[0.2],
+                reward=1.0, next_obs=np.ones(3), next_state=np.ones(2), done=False)
+    with pytest.raises(ValueError, match='next_state'):
+        buffer.add(**{**good, 'next_state': np.zeros(3)})
+    with pytest.raises(ValueError, match='reward'):
+        buffer.add(**{**good, 'reward': float('nan')})
+    with pytest.raises(ValueError, match='empty'):
+        buffer.sample(1)
+    with pytest.raises(ValueError, match='capacity'):
+        ReplayBuffer(0, 3, 2, 1)
