@@ -191,8 +191,15 @@ def node_settings_from_params(params: Mapping[str, Any]) -> NodeSettings:
 
 
 def checked_vector(name: str, values: Any, size: int) -> np.ndarray:
-    """A finite float64 vector of exactly ``size`` values; else ValueError naming ``name``."""
-    array = np.asarray(values, dtype=np.float64).reshape(-1)
+    """A finite float64 vector (a writable copy) of exactly ``size`` values.
+
+    Raises:
+        ValueError: naming ``name`` (wrong length, NaN/inf, not numeric).
+    """
+    try:
+        array = np.array(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'{name}: not a numeric vector ({exc})') from exc
     if array.size != size:
         raise ValueError(f'{name}: expected {size} values, got {array.size}')
     if not np.all(np.isfinite(array)):

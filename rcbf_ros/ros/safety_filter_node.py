@@ -1,0 +1,213 @@
+"""safety_filter: the RCBF-QP in front of any controller (``ros2 run rcbf_ros safety_filter``).
+
+Topics (all relative, so remappable: ``-r cmd_proposed:=/my_controller/cmd``):
+
+- ``state`` (sub, std_msgs/Float64MultiArray): the system state; its ``state`` section, else its
+  first section.
+- ``cmd_proposed`` (sub): the proposal. With ``command_type: array`` a Float64MultiArray with
+  sections ``u`` (unlabelled data counts as ``u``) and optionally ``disturbance_mean``,
+  ``disturbance_std`` (the learner's GP estimate, which wins over the static box
+  ``disturbance.mean/std``) and ``state`` (the proposal is then filtered against that state).
+  With ``command_type: twist`` a geometry_msgs/Twist whose ``twist_fields`` hold u.
+- ``cmd_safe`` (pub, the proposal's type): u* = u_RL + u_S; for arrays also the sections
+  ``u_rl`` and ``u_s``.
+- ``diagnostics`` (pub, diagnostic_msgs/DiagnosticArray): one status per proposal with the
+  level (OK / WARN: slack / ERROR: fail-safe), every h_i by barrier name, the constraint values,
+  slack, solver status, solve and total time and the reason.
+
+Bad or stale input never yields an unfiltered command: a NaN or wrong-length state or proposal,
+no state yet, a state older than ``max_state_age_s`` (from its arrival) or a failed solve all
+publish the fail-safe action, with the reason in diagnostics and (throttled) in the log. The
+decisions live in :mod:`rcbf_ros.ros.filter_logic`; this module only moves messages.
+
+Parameters: the filter keys of :mod:`rcbf_ros.core.config` (``config/<system>.yaml``) and the
+node's own (:data:`rcbf_ros.ros.filter_logic.NODE_PARAMETER_DEFAULTS`): ``command_type``,
+``twist_fields``, ``max_state_age_s``, ``slack_tolerance``, ``log_throttle_s``,
+``qos.reliable``, ``qos.depth``, ``osqp.eps_abs``, ``osqp.eps_rel``, ``osqp.max_iter``,
+``diagnostics.name``, ``diagnostics.hardware_id``.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any, Sequence
+
+import numpy as np
+
+from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.ros import conversions
+from rcbf_ros.ros import filter_logic as logic
+from rcbf_ros.ros.runtime import (
+    ExternalShutdownException,
+    get_message,
+    HistoryPolicy,
+    Node,
+    QoSProfile,
+    rclpy,
+    ReliabilityPolicy,
+    USING_RCLPY,
+)
+
+NODE_NAME = 'safety_filter'
+
+
+class SafetyFilterNode(Node):
+    """Parameters -> FilterConfig -> SafetyFilter; proposal in, safe command + diagnostics out."""
+
+    def __init__(self, node_name: str = NODE_NAME) -> None:
+        """Declare and validate every parameter, build the filter, create the endpoints.
+
+        Raises:
+            ValueError: a parameter is invalid (the message names the key).
+        """
+        super().__init__(node_name, automatically_declare_parameters_from_overrides=True)
+        params = self._declared_parameters()
+        try:
+            self.settings = logic.node_settings_from_params(params)
+            self.config = filter_config_from_params(params)
+            self.filter = SafetyFilter(
+                self.config.problem, fail_safe_action=self.config.fail_safe_action,
+                eps_abs=self.settings.osqp_eps_abs, eps_rel=self.settings.osqp_eps_rel,
+                max_iter=self.settings.osqp_max_iter)
+            if (self.settings.command_type == 'twist'
+                    and len(self.settings.twist_fields) != self.filter.n_u):
+                fields = list(self.settings.twist_fields)
+                raise ValueError(f'twist_fields: expected {self.filter.n_u} fields (n_u of '
+                                 f'{params.get("system")}), got {fields}')
+        except ValueError as exc:
+            self.get_logger().error(f'invalid parameters: {exc}')
+            raise
+        self._latest_state: logic.StateSample | None = None
+        self._throttle = logic.LogThrottle(self.settings.log_throttle_s)
+        self.proposals_received = 0
+
+        qos = QoSProfile(
+            depth=self.settings.qos_depth, history=HistoryPolicy.KEEP_LAST,
+            reliability=(ReliabilityPolicy.RELIABLE if self.settings.qos_reliable
+                         else ReliabilityPolicy.BEST_EFFORT))
+        array_type = get_message(conversions.FLOAT64_MULTIARRAY)
+        command_type = (get_message(conversions.TWIST) if self.settings.command_type == 'twist'
+                        else array_type)
+        self._cmd_pub = self.create_publisher(command_type, 'cmd_safe', qos)
+        self._diag_pub = self.create_publisher(
+            get_message('diagnostic_msgs/msg/DiagnosticArray'), 'diagnostics', qos)
+        self.create_subscription(array_type, 'state', self._on_state, qos)
+        self.create_subscription(command_type, 'cmd_proposed', self._on_proposal, qos)
+        problem = self.config.problem
+        self.get_logger().info(
+            f'{problem.n_barriers} barriers on {params.get("system")} (n_x = '
+            f'{self.filter.n_x}, n_u = {self.filter.n_u}); command_type '
+            f'{self.settings.command_type}; fail-safe action {self.filter.fail_safe_action}')
+
+    def _declared_parameters(self) -> dict[str, Any]:
+        """Declare every known parameter (overrides are declared already); read all back."""
+        descriptor = None
+        if USING_RCLPY:  # untyped declarations, so that any YAML type is accepted
+            descriptor = get_message('rcl_interfaces/msg/ParameterDescriptor')(
+                dynamic_typing=True)
+        for name, default in logic.parameter_declarations():
+            if self.has_parameter(name):
+                continue
+            if descriptor is None:
+                self.declare_parameter(name, default)
+            else:
+                self.declare_parameter(name, default, descriptor)
+        values = {name: parameter.value
+                  for name, parameter in self.get_parameters_by_prefix('').items()}
+        return logic.collect_parameters(values)
+
+    # callbacks ---------------------------------------------------------------------------------
+    def _on_state(self, msg: Any) -> None:
+        now_ns = time.monotonic_ns()
+        try:
+            sections = conversions.msg_to_sections(msg, default_label='state')
+            state = logic.state_from_sections(sections=sections, n_x=self.filter.n_x)
+        except ValueError as exc:
+            self._latest_state = logic.StateSample(received_ns=now_ns, state=None,
+                                                   error=str(exc))
+            self._log(logic.ERROR, f'bad state: {exc}', now_ns)
+            return
+        self._latest_state = logic.StateSample(received_ns=now_ns, state=state)
+
+    def _on_proposal(self, msg: Any) -> None:
+        now_ns = time.monotonic_ns()
+        self.proposals_received += 1
+        proposal, error = None, ''
+        try:
+            if self.settings.command_type == 'twist':
+                sections = {'u': conversions.twist_to_array(msg, self.settings.twist_fields)}
+            else:
+                sections = conversions.msg_to_sections(msg, default_label='u')
+            proposal = logic.proposal_from_sections(sections=sections, n_u=self.filter.n_u,
+                                                    n_x=self.filter.n_x)
+        except (ValueError, TypeError) as exc:
+            error = str(exc)
+        decision = logic.decide(
+            safety_filter=self.filter, proposal=proposal, proposal_error=error,
+            latest_state=self._latest_state, now_ns=now_ns,
+            max_state_age_s=self.settings.max_state_age_s,
+            static_mean=self.config.static_mean, static_std=self.config.static_std,
+            slack_tolerance=self.settings.slack_tolerance)
+        self._publish(decision)
+        if decision.level != logic.OK:
+            self._log(decision.level, decision.reason, now_ns)
+
+    # output ------------------------------------------------------------------------------------
+    def _publish(self, decision: logic.Decision) -> None:
+        if self.settings.command_type == 'twist':
+            command = conversions.array_to_twist(decision.u_safe, self.settings.twist_fields)
+        else:
+            command = conversions.sections_to_msg(
+                {'u': decision.u_safe, 'u_rl': decision.u_rl, 'u_s': decision.u_s})
+        self._cmd_pub.publish(command)
+        level, message, values = logic.diagnostic_values(
+            decision=decision, barrier_names=self.filter.barrier_names)
+        diagnostics = get_message('diagnostic_msgs/msg/DiagnosticArray')()
+        diagnostics.header.stamp = self.get_clock().now().to_msg()
+        diagnostics.status = [conversions.diagnostic_status(
+            name=self.settings.diagnostics_name, level=level, message=message, values=values,
+            hardware_id=self.settings.diagnostics_hardware_id)]
+        self._diag_pub.publish(diagnostics)
+
+    def _log(self, level: int, reason: str, now_ns: int) -> None:
+        key = logic.reason_key(reason)
+        if not self._throttle.should_log(key=key, now_ns=now_ns):
+            return
+        suppressed = self._throttle.pop_suppressed(key)
+        text = reason + (f' ({suppressed} more since the last report)' if suppressed else '')
+        if level == logic.ERROR:
+            self.get_logger().error(f'fail-safe: {text}')
+        else:
+            self.get_logger().warning(text)
+
+    @property
+    def fail_safe_action(self) -> np.ndarray:
+        """(n_u,) what the node publishes when it cannot filter."""
+        return self.filter.fail_safe_action
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Run the node until Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
+    # rclpy reads sys.argv when args is None; say so explicitly for runtimes that do not.
+    rclpy.init(args=sys.argv if args is None else args)
+    node = None
+    try:
+        node = SafetyFilterNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as exc:
+        if node is None:  # constructor: parameters (already logged with the node's name)
+            print(f'{NODE_NAME}: invalid parameters: {exc}', file=sys.stderr)
+            return 2
+        raise
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
