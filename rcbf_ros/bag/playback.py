@@ -1,0 +1,88 @@
+"""Replay logic without middleware: which messages, when, and with what QoS.
+
+The replay node (:mod:`rcbf_ros.ros.replay_node`) publishes what :func:`playback_schedule`
+yields; an offline consumer (e.g. re-filtering recorded proposals through the safety filter)
+iterates :func:`iter_bag_messages` instead and never touches DDS.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import os
+from typing import Iterable, Iterator, Sequence
+
+from rcbf_ros.bag.qos import RecordedQos
+from rcbf_ros.bag.reader import BagMessage, read_bag
+
+
+def iter_bag_messages(path: str | os.PathLike[str], *,
+                      topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
+    """The bag's messages in log-time order, CDR undecoded (the offline-processing entry point).
+
+    Args:
+        path: bag directory or ``.mcap`` file (a cut-short bag is read up to its last chunk).
+        topics: only these topic names (default: all).
+    """
+    yield from read_bag(path, topics=topics)
+
+
+@dataclass(frozen=True)
+class ScheduledMessage:
+    """A message and when to send it."""
+
+    send_offset_s: float
+    """Seconds after playback start (``(log_time - first log_time) / rate``, plus loops)."""
+    message: BagMessage
+    """The recorded message."""
+
+
+def playback_schedule(messages: Sequence[BagMessage], *, rate: float = 1.0,
+                      loops: int = 1) -> Iterator[ScheduledMessage]:
+    """Send times that reproduce the recorded spacing scaled by ``1 / rate``.
+
+    .. math:: t_k^{(j)} = j \\, T + (\\tau_k - \\tau_0) / r,
+              \\qquad T = (\\tau_{n-1} - \\tau_0) / r + \\Delta
+
+    for loop ``j``, recorded log times :math:`\\tau_k` (sorted) and rate :math:`r`; a loop
+    restarts one mean inter-message gap :math:`\\Delta` after the previous one ended.
+
+    Args:
+        messages: recorded messages, sorted by log time.
+        rate: speed factor (> 0; 2.0 plays twice as fast).
+        loops: number of passes (>= 1); ``0`` repeats forever.
+    """
+    if not rate > 0:
+        raise ValueError(f'rate must be > 0, got {rate}')
+    if loops < 0:
+        raise ValueError(f'loops must be >= 0 (0: forever), got {loops}')
+    if not messages:
+        return
+    t0 = messages[0].log_time_ns
+    span_s = (messages[-1].log_time_ns - t0) / 1e9 / rate
+    gap_s = span_s / (len(messages) - 1) if len(messages) > 1 else 0.0
+    period_s = span_s + gap_s
+    j = 0
+    while loops == 0 or j < loops:
+        for message in messages:
+            yield ScheduledMessage(j * period_s + (message.log_time_ns - t0) / 1e9 / rate,
+                                   message)
+        j += 1
+
+
+def replay_qos(offered: Sequence[RecordedQos]) -> RecordedQos:
+    """The profile to publish a recorded topic with.
+
+    As ``ros2 bag play``: the recorded publishers' profile if they all agree on the policies
+    that matter for matching (reliability, durability, deadline, liveliness), else the default.
+    History is keep-all (so a fast replay to a reliable subscriber drops nothing).
+    """
+    if not offered:
+        return RecordedQos(history='keep_all', depth=0)
+    first = offered[0]
+    same = all((q.reliability, q.durability, q.deadline_ns, q.liveliness,
+                q.liveliness_lease_duration_ns)
+               == (first.reliability, first.durability, first.deadline_ns, first.liveliness,
+                   first.liveliness_lease_duration_ns) for q in offered)
+    if not same:
+        return RecordedQos(history='keep_all', depth=0)
+    return RecordedQos(history='keep_all', depth=0, reliability=first.reliability,
+                       durability=first.durability)

@@ -1,0 +1,160 @@
+"""replay: play a bag onto its topics (``ros2 run rcbf_ros replay``).
+
+Parameters (``--ros-args -p name:=value``):
+
+- ``bag`` (string, required): bag directory or ``.mcap`` file.
+- ``rate`` (float, 1.0): speed factor; ``2.0`` plays twice as fast.
+- ``loop`` (bool, false): start over after the last message, until stopped.
+- ``topics`` (string list, empty: all): topics to play.
+- ``wait_for_subscribers_s`` (float, 0.0): before playing, wait up to this long until every
+  played topic has at least one matched subscriber (so a just-started recorder misses nothing).
+- ``linger_s`` (float, 0.5): after the last message, keep the node alive this long so reliable
+  retransmissions can finish.
+
+Messages are published as the recorded CDR bytes, with the QoS of the recorded publishers
+(:func:`rcbf_ros.bag.playback.replay_qos`). Offline processing of a bag (e.g. re-filtering) does
+not go through this node: use :func:`rcbf_ros.bag.playback.iter_bag_messages`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import sys
+import time
+from typing import Any, Sequence
+
+from rcbf_ros.bag import bag_info
+from rcbf_ros.bag.playback import iter_bag_messages, playback_schedule, replay_qos
+from rcbf_ros.ros import runtime
+from rcbf_ros.ros.runtime import (
+    DurabilityPolicy,
+    ExternalShutdownException,
+    get_message,
+    HistoryPolicy,
+    Node,
+    QoSProfile,
+    rclpy,
+    ReliabilityPolicy,
+)
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    """What to play and how fast."""
+
+    bag: str
+    """Bag directory or ``.mcap`` file."""
+    rate: float = 1.0
+    """Speed factor (> 0)."""
+    loop: bool = False
+    """Repeat until stopped."""
+    topics: tuple[str, ...] = ()
+    """Topics to play; empty: all."""
+    wait_for_subscribers_s: float = 0.0
+    """Longest wait for a subscriber on every topic before playing."""
+    linger_s: float = 0.5
+    """Seconds to stay alive after the last message."""
+
+    def __post_init__(self) -> None:
+        if not self.bag:
+            raise ValueError('bag: required (a bag directory or .mcap file)')
+        if not self.rate > 0:
+            raise ValueError(f'rate must be > 0, got {self.rate}')
+        if self.wait_for_subscribers_s < 0 or self.linger_s < 0:
+            raise ValueError('wait_for_subscribers_s and linger_s must be >= 0')
+
+
+class ReplayNode(Node):
+    """Publishers for a bag's topics and the playback loop."""
+
+    def __init__(self) -> None:
+        super().__init__('replay')
+        self.config = self._read_config()
+        info = bag_info(self.config.bag)
+        wanted = set(self.config.topics) or set(info.topics)
+        missing = wanted - set(info.topics)
+        if missing:
+            raise ValueError(f'topics {sorted(missing)} are not in bag {self.config.bag!r}')
+        self.publishers_by_topic: dict[str, Any] = {}
+        for name in sorted(wanted):
+            topic = info.topics[name]
+            qos = replay_qos(topic.offered_qos)
+            profile = QoSProfile(
+                history=HistoryPolicy.KEEP_ALL, depth=1000,
+                reliability=(ReliabilityPolicy.BEST_EFFORT if qos.reliability == 'best_effort'
+                             else ReliabilityPolicy.RELIABLE),
+                durability=(DurabilityPolicy.TRANSIENT_LOCAL
+                            if qos.durability == 'transient_local'
+                            else DurabilityPolicy.VOLATILE))
+            self.publishers_by_topic[name] = self.create_publisher(
+                get_message(topic.type_name), name, profile)
+        self.messages = list(iter_bag_messages(self.config.bag, topics=wanted))
+        self.published = 0
+        self.get_logger().info(
+            f'replaying {len(self.messages)} messages on {sorted(wanted)} from '
+            f'{self.config.bag} at rate {self.config.rate}{" (loop)" if self.config.loop else ""}')
+
+    def _read_config(self) -> ReplayConfig:
+        string_array = getattr(getattr(runtime, 'Parameter', None), 'Type', None)
+        self.declare_parameter('bag', '')
+        self.declare_parameter('rate', 1.0)
+        self.declare_parameter('loop', False)
+        self.declare_parameter('topics', string_array.STRING_ARRAY if string_array else [])
+        self.declare_parameter('wait_for_subscribers_s', 0.0)
+        self.declare_parameter('linger_s', 0.5)
+        topics = self.get_parameter('topics').value or ()
+        return ReplayConfig(
+            bag=str(self.get_parameter('bag').value or ''),
+            rate=float(self.get_parameter('rate').value),
+            loop=bool(self.get_parameter('loop').value),
+            topics=tuple(str(t) for t in topics if str(t)),
+            wait_for_subscribers_s=float(self.get_parameter('wait_for_subscribers_s').value),
+            linger_s=float(self.get_parameter('linger_s').value))
+
+    def _sleep_until(self, deadline: float) -> None:
+        """Serve the executor (so signals are seen) until ``time.monotonic() >= deadline``."""
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return
+            rclpy.spin_once(self, timeout_sec=min(remaining, 0.05))
+
+    def wait_for_subscribers(self) -> bool:
+        """True once every publisher has a matched subscriber (False on timeout)."""
+        deadline = time.monotonic() + self.config.wait_for_subscribers_s
+        while True:
+            if all(p.get_subscription_count() > 0 for p in self.publishers_by_topic.values()):
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            self._sleep_until(min(deadline, time.monotonic() + 0.05))
+
+    def play(self) -> None:
+        """Publish the bag on schedule (until the end, or forever with ``loop``)."""
+        if self.config.wait_for_subscribers_s > 0 and not self.wait_for_subscribers():
+            self.get_logger().warning('not every topic has a subscriber; playing anyway')
+        start = time.monotonic()
+        for item in playback_schedule(self.messages, rate=self.config.rate,
+                                      loops=0 if self.config.loop else 1):
+            self._sleep_until(start + item.send_offset_s)
+            self.publishers_by_topic[item.message.topic].publish(item.message.data)
+            self.published += 1
+        self._sleep_until(time.monotonic() + self.config.linger_s)
+
+
+def main(args: Sequence[str] | None = None) -> None:
+    """Console script ``replay``."""
+    # rclpy reads sys.argv when args is None; pass it explicitly so every runtime does.
+    rclpy.init(args=list(sys.argv if args is None else args))
+    node = ReplayNode()
+    try:
+        node.play()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.get_logger().info(f'replay finished: {node.published} messages published')
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
