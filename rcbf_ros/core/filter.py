@@ -77,16 +77,21 @@ class SafetyFilter:
     """RCBF-QP safety filter for one :class:`RCBFProblem` (see module docstring)."""
 
     def __init__(self, problem: RCBFProblem, *, fail_safe_action: Sequence[float] | None = None,
-                 eps_abs: float = 1e-8, eps_rel: float = 1e-8, max_iter: int = 4000) -> None:
+                 eps_abs: float = 1e-9, eps_rel: float = 1e-9, max_iter: int = 4000,
+                 polish: bool = False) -> None:
         """Set OSQP up once with the fixed sparsity pattern.
 
         Args:
             problem: system, barriers and gains.
             fail_safe_action: n_u values applied when the solve fails (default zeros), clipped
                 to the actuator limits.
-            eps_abs: OSQP absolute tolerance (solution polishing is on).
+            eps_abs: OSQP absolute tolerance.
             eps_rel: OSQP relative tolerance.
             max_iter: OSQP iteration cap.
+            polish: OSQP solution polishing (off by default: at these tolerances the answer
+                already matches an interior-point reference to < 1e-6, see
+                benchmarks/bench_filter_step.py, and OSQP prints a notice on every call whose
+                active set is empty).
         """
         self.problem = problem
         system = problem.system
@@ -118,7 +123,7 @@ class SafetyFilter:
         diag[-1] = 2.0 * problem.slack_weight
         self._solver = osqp.OSQP()
         self._solver.setup(P=sp.csc_matrix(np.diag(diag)), q=np.zeros(nz), A=a_matrix,
-                           l=np.full(nc, -np.inf), u=np.ones(nc), verbose=False, polish=True,
+                           l=np.full(nc, -np.inf), u=np.ones(nc), verbose=False, polish=polish,
                            eps_abs=eps_abs, eps_rel=eps_rel, max_iter=max_iter,
                            warm_starting=True)
         self._nc = nc

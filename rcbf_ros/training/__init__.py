@@ -1,0 +1,1 @@
+"""ROS-free training: the learner core shared by the node and the in-process trainer."""

@@ -1,0 +1,256 @@
+"""The learner's core: SAC + GP disturbance model + safety layer, with Algorithm 1's schedule.
+
+:class:`SafeLearner` is what both the ``learner`` node and the in-process trainer drive; neither
+holds any learning logic of its own, so for the same seed and the same first steps they produce
+the same transitions. Per environment step the driver calls
+
+1. :meth:`SafeLearner.propose` -> u_RL (plus the compensator, if any) and the GP estimate
+   (mean, std) at the current state, which go to the safety filter;
+2. the filter (a separate node, or :class:`~rcbf_ros.core.filter.SafetyFilter` in-process)
+   returns u* = u_RL + u_S; the plant steps;
+3. :meth:`SafeLearner.observe` stores (o, x, u_RL, u*, u_S, r, o', x', done) and the GP's
+   training pair (x, y = (x' - x)/dt - f(x) - g(x) u*);
+4. :meth:`SafeLearner.after_step` runs the schedule: SAC updates, the GP refit every
+   ``gp_refit_interval`` steps (Algorithm 1 line 2), model rollouts in model-based mode.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+import time
+from typing import Any, Callable, Literal, NamedTuple
+
+import numpy as np
+import torch
+
+from rcbf_ros.core.rcbf import RCBFProblem
+from rcbf_ros.learning.buffers import ReplayBuffer
+from rcbf_ros.learning.gp import DisturbanceGP, GPConfig
+from rcbf_ros.learning.model_based import ModelRollout, RolloutConfig
+from rcbf_ros.learning.sac import SAC, SACConfig
+from rcbf_ros.learning.safety_layer import DifferentiableSafetyLayer
+
+Mode = Literal['unconstrained', 'baseline', 'baseline_compensator', 'diff', 'modular']
+MODES: tuple[str, ...] = ('unconstrained', 'baseline', 'baseline_compensator', 'diff',
+                          'modular')
+
+
+@dataclass(frozen=True)
+class LearnerConfig:
+    """Training schedule and model settings (one per run; the same for node and in-process)."""
+
+    mode: Mode = 'modular'
+    """Which SAC losses: see rcbf_ros.learning.sac (and MODES)."""
+    model_based: bool = False
+    """Add k-step synthetic rollouts from prior + GP mean (MB SAC-RCBF, needs mode 'diff')."""
+    seed: int = 0
+    """Seeds networks, buffers, exploration and the GP subsample."""
+    batch_size: int = 256
+    """SAC minibatch size."""
+    buffer_size: int = 200_000
+    """Replay capacity (environment buffer; the model buffer has the same)."""
+    start_steps: int = 1000
+    """Uniformly random proposals before the policy acts (exploration warm-up)."""
+    update_after: int = 500
+    """Environment steps before the first SAC update."""
+    updates_per_step: int = 1
+    """SAC updates per environment step."""
+    gp_refit_interval: int = 1000
+    """Environment steps between GP refits (Algorithm 1: once per iteration)."""
+    gp_prior_std: float = 0.1
+    """Disturbance std assumed before the GP has data (the filter stays robust from step 0)."""
+    gp_max_points: int = 512
+    """Training-set cap of each GP refit (keeps refit < 2 s and prediction < 1 ms)."""
+    k_c: float = 2.0
+    """Disturbance box mean +/- k_c std (paper eq. disturb_estimate)."""
+    rollout_interval: int = 250
+    """Environment steps between model-rollout rounds (model-based only)."""
+    rollouts: int = 256
+    """M: start states per round."""
+    rollout_horizon: int = 3
+    """k: model steps per rollout."""
+    model_ratio: float = 0.5
+    """Fraction of each minibatch drawn from the model buffer (model-based only)."""
+    sac: SACConfig = field(default_factory=SACConfig)
+    """SAC hyperparameters (its mode is overwritten by ``mode``)."""
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f'mode: expected one of {MODES}, got {self.mode!r}')
+        if self.model_based and self.mode != 'diff':
+            raise ValueError("model_based: the model-based variant is MB SAC-RCBF (mode 'diff')")
+        for name in ('batch_size', 'buffer_size', 'updates_per_step', 'gp_refit_interval',
+                     'rollout_interval', 'rollouts', 'rollout_horizon', 'gp_max_points'):
+            if getattr(self, name) < 1:
+                raise ValueError(f'{name}: must be >= 1')
+        if not 0.0 <= self.model_ratio <= 1.0:
+            raise ValueError('model_ratio: must be in [0, 1]')
+
+
+class Proposal(NamedTuple):
+    """What the learner sends to the safety filter for one state."""
+
+    u_proposed: np.ndarray
+    """(n_u,) the action to filter (u_RL, plus the compensator's correction if any)."""
+    u_rl: np.ndarray
+    """(n_u,) the policy's own sample (stored for the losses)."""
+    disturbance_mean: np.ndarray
+    """(n_x,) GP mean at the state."""
+    disturbance_std: np.ndarray
+    """(n_x,) GP std at the state."""
+
+
+RewardFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor],
+                    tuple[torch.Tensor, torch.Tensor]]
+ObsFn = Callable[[torch.Tensor], torch.Tensor]
+
+
+class SafeLearner:
+    """SAC-RCBF learner for one system (see module docstring).
+
+    Args:
+        problem: the RCBF problem of the training layout (the one the filter uses).
+        obs_dim: observation size.
+        dt: the plant's step, for the GP residuals.
+        config: schedule and settings.
+        model_fns: (reward_fn, obs_fn) in torch for model-based rollouts.
+    """
+
+    def __init__(self, problem: RCBFProblem, obs_dim: int, dt: float,
+                 config: LearnerConfig | None = None,
+                 model_fns: tuple[RewardFn, ObsFn] | None = None) -> None:
+        self.config = cfg = config or LearnerConfig()
+        self.problem = problem
+        self.system = problem.system
+        self.dt = float(dt)
+        n_x, n_u = self.system.n_x, self.system.n_u
+        if self.system.u_min is None:
+            raise ValueError('input_limits: SAC needs a bounded action box')
+        self.u_low = np.asarray(self.system.u_min, dtype=np.float64)
+        self.u_high = np.asarray(self.system.u_max, dtype=np.float64)
+        self.gp = DisturbanceGP(n_x, n_x, GPConfig(max_train_points=cfg.gp_max_points,
+                                                   prior_std=cfg.gp_prior_std, seed=cfg.seed))
+        self.safety_layer = DifferentiableSafetyLayer(problem, self.disturbance)
+        sac_config = SACConfig(**{**asdict(cfg.sac), 'mode': cfg.mode})
+        self.sac = SAC(obs_dim, n_u, self.u_low, self.u_high, sac_config,
+                       safety_layer=self.safety_layer if cfg.mode == 'diff' else None,
+                       seed=cfg.seed)
+        self.buffer = ReplayBuffer(cfg.buffer_size, obs_dim, n_x, n_u, seed=cfg.seed)
+        self.model_buffer: ReplayBuffer | None = None
+        self.rollout: ModelRollout | None = None
+        if cfg.model_based:
+            if model_fns is None:
+                raise ValueError('model_based: this system provides no reward/obs model')
+            self.model_buffer = ReplayBuffer(cfg.buffer_size, obs_dim, n_x, n_u,
+                                             seed=cfg.seed + 7)
+            self.rollout = ModelRollout(
+                predict_next_state=self.predict_next_state, reward_fn=model_fns[0],
+                obs_fn=model_fns[1], policy=self.sac.policy_action,
+                safety_layer=self.safety_layer,
+                config=RolloutConfig(num_rollouts=cfg.rollouts, horizon=cfg.rollout_horizon))
+        self.rng = np.random.default_rng(cfg.seed)
+        self.env_steps = 0
+        self.timings: dict[str, float] = {'update_s': 0.0, 'gp_fit_s': 0.0, 'rollout_s': 0.0}
+        self.last_metrics: dict[str, float] = {}
+
+    # ------------------------------------------------------------------ models
+    def disturbance(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """GP mean and std at states x: (B, n_x)."""
+        mean, std = self.gp.predict(x)
+        return mean.to(x.dtype), std.to(x.dtype)
+
+    def predict_next_state(self, state: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Euler step of the prior plus the GP mean (model-based rollouts)."""
+        x = state.to(torch.float64)
+        mean, _ = self.disturbance(x)
+        x_dot = (self.system.f(x) + (self.system.g(x) @ u.to(x.dtype).unsqueeze(-1)).squeeze(-1)
+                 + mean)
+        return (x + self.dt * x_dot).to(state.dtype)
+
+    # ------------------------------------------------------------------ acting
+    def propose(self, obs: np.ndarray, state: np.ndarray,
+                deterministic: bool = False) -> Proposal:
+        """u_RL (random during warm-up) and the GP estimate at ``state``."""
+        if self.env_steps < self.config.start_steps and not deterministic:
+            u_rl = self.rng.uniform(self.u_low, self.u_high)
+            u_proposed = u_rl
+        else:
+            detailed = self.sac.act_detailed(np.asarray(obs, dtype=np.float64), deterministic)
+            u_rl = detailed.u_rl.astype(np.float64)
+            u_proposed = detailed.u_proposed.astype(np.float64)
+        x = torch.as_tensor(np.asarray(state, dtype=np.float64)).unsqueeze(0)
+        mean, std = self.disturbance(x)
+        return Proposal(u_proposed, u_rl, mean[0].numpy().copy(), std[0].numpy().copy())
+
+    # ------------------------------------------------------------------ learning
+    def observe(self, *, obs: np.ndarray, state: np.ndarray, u_rl: np.ndarray,
+                u_safe: np.ndarray, reward: float, next_obs: np.ndarray,
+                next_state: np.ndarray, terminated: bool) -> None:
+        """Store one transition and the GP's residual pair.
+
+        ``terminated`` is a true terminal (goal reached); a time-limit truncation is not, so the
+        critic keeps bootstrapping through it.
+        """
+        u_rl = np.asarray(u_rl, dtype=np.float64)
+        u_safe = np.asarray(u_safe, dtype=np.float64)
+        self.buffer.add(obs=obs, state=state, u_rl=u_rl, u_safe=u_safe, u_s=u_safe - u_rl,
+                        reward=reward, next_obs=next_obs, next_state=next_state,
+                        done=float(terminated))
+        x = torch.as_tensor(np.asarray(state, dtype=np.float64)).unsqueeze(0)
+        x_next = torch.as_tensor(np.asarray(next_state, dtype=np.float64)).unsqueeze(0)
+        u = torch.as_tensor(u_safe).unsqueeze(0)
+        nominal = self.system.f(x) + (self.system.g(x) @ u.unsqueeze(-1)).squeeze(-1)
+        residual = (x_next - x) / self.dt - nominal
+        self.gp.add(x, residual)
+        self.env_steps += 1
+
+    def after_step(self) -> dict[str, float]:
+        """Run the schedule once per environment step; returns the last update's metrics."""
+        cfg = self.config
+        if self.env_steps % cfg.gp_refit_interval == 0 and self.gp.num_data >= 16:
+            start = time.perf_counter()
+            self.gp.fit()
+            self.timings['gp_fit_s'] += time.perf_counter() - start
+        if (self.rollout is not None and self.env_steps >= cfg.update_after
+                and self.env_steps % cfg.rollout_interval == 0):
+            start = time.perf_counter()
+            self.rollout.run(self.buffer, self.model_buffer)
+            self.timings['rollout_s'] += time.perf_counter() - start
+        if self.env_steps < cfg.update_after or len(self.buffer) < cfg.batch_size:
+            return {}
+        start = time.perf_counter()
+        for _ in range(cfg.updates_per_step):
+            self.last_metrics = self.sac.update(self.sample_batch())
+        self.timings['update_s'] += time.perf_counter() - start
+        return self.last_metrics
+
+    def sample_batch(self):
+        """A minibatch; in model-based mode a ``model_ratio`` share comes from the model."""
+        cfg = self.config
+        if self.model_buffer is None or len(self.model_buffer) == 0:
+            return self.buffer.sample(cfg.batch_size)
+        n_model = int(round(cfg.model_ratio * cfg.batch_size))
+        real = self.buffer.sample(cfg.batch_size - n_model)
+        model = self.model_buffer.sample(n_model)
+        return type(real)(*(torch.cat([a, b]) for a, b in zip(real, model)))
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume: networks, optimizers, GP data, buffers, RNG states."""
+        return {
+            'config': asdict(self.config), 'sac': self.sac.state_dict(),
+            'gp': self.gp.state_dict(), 'buffer': self.buffer.state_dict(),
+            'model_buffer': None if self.model_buffer is None else self.model_buffer.state_dict(),
+            'rng': self.rng.bit_generator.state, 'env_steps': self.env_steps,
+            'timings': dict(self.timings),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`."""
+        self.sac.load_state_dict(state['sac'])
+        self.gp.load_state_dict(state['gp'])
+        self.buffer.load_state_dict(state['buffer'])
+        if self.model_buffer is not None and state.get('model_buffer') is not None:
+            self.model_buffer.load_state_dict(state['model_buffer'])
+        self.rng.bit_generator.state = state['rng']
+        self.env_steps = int(state['env_steps'])
+        self.timings.update(state.get('timings', {}))

@@ -1,0 +1,296 @@
+"""In-process training (no middleware): env + SafetyFilter + SafeLearner, Algorithm 1.
+
+One run writes into its output directory::
+
+    metrics.jsonl      one JSON object per episode (return, violations, max slack, steps/s, ...)
+    checkpoint.pt      learner + episode counter, every ``checkpoint_every`` episodes and on exit
+    policy.pt          the final actor alone (for the ``policy`` node / evaluation)
+    bag/               MCAP (rosbag2 layout) of the run's topics, as the node path records them
+    reward_curve.png   return per episode
+
+Ctrl-C (KeyboardInterrupt) or an exception ends the run after writing the checkpoint, closing
+the bag and the metrics file, so nothing already computed is lost; ``resume=True`` continues
+from ``checkpoint.pt``.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+import importlib
+import json
+import math
+from pathlib import Path
+import time
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.params import find_config, load_params
+from rcbf_ros.training.agent import LearnerConfig, SafeLearner
+
+ENV_CLASSES = {
+    'unicycle': 'rcbf_ros.envs.unicycle.UnicycleEnv',
+    'car_following': 'rcbf_ros.envs.car_following.CarFollowingEnv',
+    'pvtol': 'rcbf_ros.envs.pvtol.PVTOLEnv',
+}
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """One training run."""
+
+    system: str = 'unicycle'
+    """unicycle | car_following | pvtol."""
+    episodes: int = 20
+    """Training episodes."""
+    out_dir: str = 'runs/unicycle'
+    """Where metrics, checkpoints, the bag and the plot go."""
+    config_file: str | None = None
+    """ROS params file (default: the packaged config/<system>.yaml)."""
+    max_steps: int | None = None
+    """Override the env's episode length."""
+    no_obstacles: bool = False
+    """Train without obstacles and without a filter (the transfer upper bound)."""
+    checkpoint_every: int = 5
+    """Episodes between checkpoints."""
+    record_bag: bool = True
+    """Record the run's topics to MCAP."""
+    resume: bool = False
+    """Continue from out_dir/checkpoint.pt if it exists."""
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
+    """Learner settings (mode, seed, schedule)."""
+
+
+def make_env(system: str, params: dict[str, Any]) -> Any:
+    """The Gymnasium env of ``system`` built from flat parameters."""
+    if system not in ENV_CLASSES:
+        raise ValueError(f'system: expected one of {sorted(ENV_CLASSES)}, got {system!r}')
+    module_name, _, cls_name = ENV_CLASSES[system].rpartition('.')
+    return getattr(importlib.import_module(module_name), cls_name)(params)
+
+
+def build_run(run: RunConfig) -> tuple[Any, SafetyFilter | None, SafeLearner, dict[str, Any]]:
+    """Env, per-step filter (None when unconstrained) and learner from the run's config file."""
+    path = find_config(run.config_file or run.system)
+    sim_params = load_params(path, 'simulator')
+    filter_section = load_params(path, 'safety_filter')
+    if run.no_obstacles:
+        sim_params.update({'obstacles.x': [], 'obstacles.y': [], 'obstacles.radius': []})
+    if run.max_steps is not None:
+        sim_params['max_steps'] = int(run.max_steps)
+    env = make_env(run.system, sim_params)
+    filter_params = env.filter_params(filter_section)
+    config = filter_config_from_params(
+        filter_params if not run.no_obstacles else _any_barrier(filter_params))
+    learner_cfg = run.learner
+    constrained = learner_cfg.mode != 'unconstrained' and not run.no_obstacles
+    if not constrained and learner_cfg.mode != 'unconstrained':
+        learner_cfg = replace(learner_cfg, mode='unconstrained')
+    obs, _ = env.reset(seed=learner_cfg.seed)
+    learner = SafeLearner(config.problem, obs_dim=int(np.asarray(obs).size), dt=env.dt,
+                          config=learner_cfg, model_fns=model_functions(run.system, env))
+    filt = SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action) \
+        if constrained else None
+    return env, filt, learner, filter_params
+
+
+def _any_barrier(params: dict[str, Any]) -> dict[str, Any]:
+    """Without obstacles the learner still needs a problem for its system and limits: a
+    far-away wall that never binds (the filter is not used in that case)."""
+    out = {k: v for k, v in params.items() if not k.startswith(('obstacles.', 'bands.'))}
+    out.update({'walls.nx': [1.0], 'walls.ny': [0.0], 'walls.offset': [-1e6]})
+    return out
+
+
+def model_functions(system: str, env: Any) -> tuple[Callable, Callable] | None:
+    """(reward_fn, obs_fn) in torch for model-based rollouts, when the env provides them."""
+    fns = getattr(env, 'model_functions', None)
+    return fns() if callable(fns) else None
+
+
+# --------------------------------------------------------------------------- recording
+class RunRecorder:
+    """MCAP of an in-process run with the topics the node path uses (so tools read both)."""
+
+    TOPICS = {
+        '/state': 'std_msgs/msg/Float64MultiArray',
+        '/cmd_proposed': 'std_msgs/msg/Float64MultiArray',
+        '/cmd_safe': 'std_msgs/msg/Float64MultiArray',
+        '/reward': 'std_msgs/msg/Float64',
+        '/episode': 'std_msgs/msg/String',
+        '/learner/metrics': 'std_msgs/msg/String',
+    }
+
+    def __init__(self, directory: Path) -> None:
+        from rcbf_ros.bag.writer import BagWriter
+        self.writer = BagWriter(directory)
+        for name, type_name in self.TOPICS.items():
+            self.writer.add_topic(name, type_name)
+        self.t_ns = 0
+
+    @staticmethod
+    def _array(sections: dict[str, np.ndarray]) -> dict[str, Any]:
+        dims = [{'label': k, 'size': int(np.size(v)), 'stride': int(np.size(v))}
+                for k, v in sections.items()]
+        data = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1)
+                               for v in sections.values()])
+        return {'layout': {'dim': dims, 'data_offset': 0}, 'data': data}
+
+    def step(self, t_ns: int, *, state: np.ndarray, proposal: Any, u_safe: np.ndarray,
+             reward: float) -> None:
+        self.t_ns = t_ns
+        self.writer.write_message('/state', self._array({'state': state}), t_ns)
+        self.writer.write_message('/cmd_proposed', self._array({
+            'u': proposal.u_proposed, 'disturbance_mean': proposal.disturbance_mean,
+            'disturbance_std': proposal.disturbance_std, 'state': state}), t_ns)
+        self.writer.write_message('/cmd_safe', self._array({
+            'u': u_safe, 'u_rl': proposal.u_proposed, 'u_s': u_safe - proposal.u_proposed}),
+            t_ns)
+        self.writer.write_message('/reward', {'data': float(reward)}, t_ns)
+
+    def event(self, topic: str, payload: dict[str, Any]) -> None:
+        self.writer.write_message(topic, {'data': json.dumps(payload)}, self.t_ns)
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+# --------------------------------------------------------------------------- the loop
+@dataclass
+class EpisodeStats:
+    """Per-episode numbers that go to metrics.jsonl and the progress line."""
+
+    episode: int
+    ret: float = 0.0
+    steps: int = 0
+    violations: int = 0
+    min_h_true: float = math.inf
+    max_slack: float = 0.0
+    filter_active: int = 0
+    fail_safe: int = 0
+    goal_reached: bool = False
+    wall_s: float = 0.0
+    extra: dict[str, float] = field(default_factory=dict)
+
+    def as_json(self) -> dict[str, Any]:
+        out = asdict(self)
+        out.update(out.pop('extra'))
+        out['steps_per_s'] = self.steps / self.wall_s if self.wall_s > 0 else 0.0
+        out['min_h_true'] = None if math.isinf(self.min_h_true) else self.min_h_true
+        return out
+
+
+def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, episode: int,
+                seed: int, recorder: RunRecorder | None = None, train: bool = True,
+                deterministic: bool = False, t0_ns: int = 0) -> EpisodeStats:
+    """One episode of Algorithm 1's inner loop (lines 3-7), plus the learner's schedule."""
+    stats = EpisodeStats(episode=episode)
+    start = time.perf_counter()
+    obs, info = env.reset(seed=seed)
+    state = info['state']
+    done = False
+    while not done:
+        proposal = learner.propose(obs, state, deterministic=deterministic)
+        if filt is None:
+            u_safe, slack, result = proposal.u_proposed, 0.0, None
+        else:
+            result = filt.filter(state, proposal.u_proposed, proposal.disturbance_mean,
+                                 proposal.disturbance_std)
+            u_safe, slack = result.u_safe, result.slack
+            stats.filter_active += int(result.active)
+            stats.fail_safe += int(result.fail_safe)
+        next_obs, reward, terminated, truncated, info = env.step(u_safe)
+        next_state = info['state']
+        if train:
+            learner.observe(obs=obs, state=state, u_rl=proposal.u_proposed, u_safe=u_safe,
+                            reward=reward, next_obs=next_obs, next_state=next_state,
+                            terminated=terminated)
+            learner.after_step()
+        if recorder is not None:
+            recorder.step(t0_ns + int(1e9 * env.t), state=state, proposal=proposal,
+                          u_safe=u_safe, reward=reward)
+        stats.ret += reward
+        stats.steps += 1
+        stats.violations += int(info['violation'])
+        if len(info['h_true']):
+            stats.min_h_true = min(stats.min_h_true, float(np.min(info['h_true'])))
+        if not math.isnan(slack):
+            stats.max_slack = max(stats.max_slack, slack)
+        stats.goal_reached = stats.goal_reached or bool(info['goal_reached'])
+        obs, state = next_obs, next_state
+        done = terminated or truncated
+    stats.wall_s = time.perf_counter() - start
+    stats.extra = {k: float(v) for k, v in learner.last_metrics.items()}
+    return stats
+
+
+def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """Train for ``run.episodes`` episodes; returns the per-episode metrics."""
+    torch.set_num_threads(1)
+    out = Path(run.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    env, filt, learner, _ = build_run(run)
+    metrics_path = out / 'metrics.jsonl'
+    checkpoint_path = out / 'checkpoint.pt'
+    history: list[dict[str, Any]] = []
+    first_episode = 0
+    if run.resume and checkpoint_path.exists():
+        checkpoint = torch.load(checkpoint_path, weights_only=False)
+        learner.load_state_dict(checkpoint['learner'])
+        first_episode = int(checkpoint['episode'])
+        history = list(checkpoint['history'])
+        log(f'resumed from {checkpoint_path} at episode {first_episode}')
+    else:
+        metrics_path.write_text('')
+    (out / 'run_config.json').write_text(json.dumps(asdict(run), indent=2, default=str))
+    recorder = None
+    if run.record_bag:
+        bag_dir = out / f'bag_{first_episode:04d}'
+        recorder = RunRecorder(bag_dir)
+    episode = first_episode
+
+    def save_checkpoint() -> None:
+        torch.save({'learner': learner.state_dict(), 'episode': episode,
+                    'history': history, 'run': asdict(run)}, checkpoint_path.with_suffix('.tmp'))
+        checkpoint_path.with_suffix('.tmp').replace(checkpoint_path)
+
+    try:
+        while episode < run.episodes:
+            stats = run_episode(env, filt, learner, episode=episode,
+                                seed=run.learner.seed * 100_003 + episode, recorder=recorder,
+                                t0_ns=int(1e9 * 1e4 * episode))
+            episode += 1
+            row = stats.as_json()
+            row['env_steps'] = learner.env_steps
+            history.append(row)
+            with metrics_path.open('a') as stream:
+                stream.write(json.dumps(row) + '\n')
+            if recorder is not None:
+                recorder.event('/episode', {'event': 'end', **{k: row[k] for k in (
+                    'episode', 'ret', 'steps', 'violations', 'goal_reached')}})
+            log(format_progress(row, run.episodes))
+            if episode % run.checkpoint_every == 0:
+                save_checkpoint()
+    finally:
+        save_checkpoint()
+        torch.save({'actor': learner.sac.actor.state_dict(), 'obs_dim': learner.sac.obs_dim,
+                    'n_u': learner.sac.n_u, 'u_low': learner.u_low, 'u_high': learner.u_high,
+                    'hidden_sizes': learner.sac.config.hidden_sizes, 'system': run.system},
+                   out / 'policy.pt')
+        if recorder is not None:
+            recorder.close()
+        if history:
+            from rcbf_ros.plots import plot_reward_curve
+            plot_reward_curve([row['ret'] for row in history], out / 'reward_curve.png',
+                              title=f'{run.system} / {run.learner.mode}')
+    return history
+
+
+def format_progress(row: dict[str, Any], total: int) -> str:
+    """One progress line per episode."""
+    return (f"episode {row['episode'] + 1:4d}/{total}  return {row['ret']:9.3f}  "
+            f"steps {row['steps']:5d}  violations {row['violations']}  "
+            f"max slack {row['max_slack']:.2e}  goal {'yes' if row['goal_reached'] else 'no '}  "
+            f"{row['steps_per_s']:6.1f} steps/s")
