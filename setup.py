@@ -34,6 +34,14 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
+            'safety_filter = rcbf_ros.ros.safety_filter_node:main',
+            'simulator = sim_nodes.simulator_node:main',
+            'nominal_controller = sim_nodes.nominal_controller_node:main',
+            'recorder = rcbf_ros.ros.recorder_node:main',
+            'replay = rcbf_ros.ros.replay_node:main',
+            'learner = rcbf_ros.ros.learner_node:main',
+            'rcbf_ros = rcbf_ros.cli:main',
+            'rcbf_ros_launch = rcbf_ros.launch_local:main',
         ],
     },
 )

@@ -1,6 +1,7 @@
 """Module-level rclpy functions of the Cyclone runtime (what ``runtime.rclpy`` is without ROS)."""
 from __future__ import annotations
 
+import sys
 from types import SimpleNamespace
 from typing import Any, Sequence
 
@@ -12,8 +13,11 @@ from rcbf_ros.ros.dds.context import spin_once as _spin_once
 
 def init(*, args: Sequence[str] | None = None, context: Context | None = None,
          domain_id: int | None = None, **_ignored: Any) -> None:
-    """Parse global ``--ros-args``, join the DDS domain, install SIGINT/SIGTERM handlers."""
-    (context or default_context).init(args, domain_id)
+    """Parse global ``--ros-args``, join the DDS domain, install SIGINT/SIGTERM handlers.
+
+    Like rclpy, ``args=None`` means the process's own command line (``sys.argv``).
+    """
+    (context or default_context).init(sys.argv if args is None else args, domain_id)
 
 
 def shutdown(*, context: Context | None = None) -> None:

@@ -1,0 +1,101 @@
+"""``rcbf_ros`` command line: in-process training (no middleware) and run inspection.
+
+    rcbf_ros train --system unicycle --mode modular --seed 0 --episodes 50
+    rcbf_ros train --system unicycle --mode diff --model-based --episodes 50
+    rcbf_ros train --system unicycle --mode unconstrained --no-obstacles
+    rcbf_ros train ... --resume            # continue a killed run from its checkpoint
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import fields
+import json
+from pathlib import Path
+import sys
+
+from rcbf_ros.training.agent import LearnerConfig, MODES
+
+
+def _learner_overrides(args: argparse.Namespace) -> dict:
+    names = {f.name for f in fields(LearnerConfig)}
+    return {k: v for k, v in vars(args).items() if k in names and v is not None}
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``rcbf_ros train`` (shared with the experiment runner)."""
+    parser.add_argument('--system', default='unicycle',
+                        choices=['unicycle', 'car_following', 'pvtol'])
+    parser.add_argument('--mode', default='modular', choices=MODES)
+    parser.add_argument('--model-based', dest='model_based', action='store_true', default=None,
+                        help='MB SAC-RCBF: synthetic k-step rollouts (mode diff)')
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--episodes', type=int, default=20)
+    parser.add_argument('--max-steps', type=int, default=None, help='episode length override')
+    parser.add_argument('--config', default=None, help='ROS params file (default: packaged)')
+    parser.add_argument('--out', default=None, help='output directory (default: runs/<name>)')
+    parser.add_argument('--no-obstacles', action='store_true',
+                        help='train without obstacles and filter (transfer upper bound)')
+    parser.add_argument('--no-bag', action='store_true', help='do not record MCAP')
+    parser.add_argument('--resume', action='store_true', help='continue from the checkpoint')
+    parser.add_argument('--start-steps', dest='start_steps', type=int, default=None)
+    parser.add_argument('--update-after', dest='update_after', type=int, default=None)
+    parser.add_argument('--batch-size', dest='batch_size', type=int, default=None)
+    parser.add_argument('--gp-refit-interval', dest='gp_refit_interval', type=int,
+                        default=None)
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from rcbf_ros.training.loop import RunConfig, train
+    try:
+        learner = LearnerConfig(**_learner_overrides(args))
+    except (TypeError, ValueError) as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 2
+    name = f"{args.system}_{args.mode}{'_mb' if args.model_based else ''}_s{args.seed}"
+    run = RunConfig(system=args.system, episodes=args.episodes,
+                    out_dir=args.out or str(Path('runs') / name), config_file=args.config,
+                    max_steps=args.max_steps, no_obstacles=args.no_obstacles,
+                    record_bag=not args.no_bag, resume=args.resume, learner=learner)
+    print(f'training {name}: {args.episodes} episodes -> {run.out_dir}', flush=True)
+    try:
+        history = train(run, log=lambda line: print(line, flush=True))
+    except KeyboardInterrupt:
+        print(f'interrupted: checkpoint and partial results are in {run.out_dir}',
+              file=sys.stderr)
+        return 130
+    summary = summarize(history)
+    summary['out_dir'] = run.out_dir
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def summarize(history: list[dict]) -> dict:
+    """Totals over a run's episodes."""
+    if not history:
+        return {'episodes': 0}
+    steps = sum(r['steps'] for r in history)
+    wall = sum(r['wall_s'] for r in history)
+    return {
+        'episodes': len(history),
+        'env_steps': steps,
+        'final_return': history[-1]['ret'],
+        'best_return': max(r['ret'] for r in history),
+        'goals_reached': sum(bool(r['goal_reached']) for r in history),
+        'safety_violations': sum(r['violations'] for r in history),
+        'max_slack': max(r['max_slack'] for r in history),
+        'steps_per_s': steps / wall if wall > 0 else 0.0,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog='rcbf_ros', description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest='command', required=True)
+    add_train_arguments(sub.add_parser('train', help='train in-process (no middleware)'))
+    args = parser.parse_args(argv)
+    if args.command == 'train':
+        return run_train(args)
+    return 2
+
+
+if __name__ == '__main__':
+    sys.exit(main())
