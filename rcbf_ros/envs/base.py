@@ -1,0 +1,255 @@
+"""Shared machinery of the simulated systems: parameters, the Gymnasium loop, the step info.
+
+Every env is built from the *flat* ROS parameters of ``config/<system>.yaml`` (``/**`` merged
+with ``/simulator``, e.g. ``rcbf_ros.params.load_params(find_config('unicycle'), 'simulator')``)
+plus keyword overrides, where a double underscore stands for the dot of a nested key
+(``obstacles__x=[...]`` overrides ``obstacles.x``). The layout therefore comes from the same
+``obstacles.*`` keys the safety filter reads; :meth:`SafetyEnv.filter_params` hands back those
+keys for the env's *current* layout, so that ``filter_config_from_params(env.filter_params())``
+builds the safety problem the env is actually running.
+
+``step(u)`` applies u as given (the env never filters); it saturates u at the actuator limits of
+the nominal model (physical saturation) when the model has limits. ``info`` of every step (and of
+``reset``) holds:
+
+- ``state``: (n_x,) the QP state (what the filter and the learner see);
+- ``h_true``: (K_true,) signed clearances on the TRUE geometry, > 0 safe (names in
+  ``env.h_true_names``); ``violation``: any ``h_true < 0``;
+- ``goal_reached``: the episode ended at the goal; ``t``: time since reset [s].
+"""
+from __future__ import annotations
+
+from typing import Any, ClassVar, Mapping, Sequence
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from rcbf_ros.core.config import flatten
+from rcbf_ros.core.dynamics import ControlAffineSystem
+
+FILTER_KEYS = ('system', 'alpha', 'k_c', 'slack_weight', 'fail_safe_action')
+"""Flat keys (exact) that :func:`rcbf_ros.core.config.filter_config_from_params` reads."""
+FILTER_PREFIXES = ('system_params.', 'input_limits.', 'obstacles.', 'bands.', 'gaps.', 'walls.',
+                   'disturbance.')
+"""Key prefixes that :func:`rcbf_ros.core.config.filter_config_from_params` reads."""
+
+
+def merge_params(params: Mapping[str, Any] | None, overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """Flatten ``params`` and apply keyword overrides (``a__b`` -> ``a.b``)."""
+    merged = flatten(dict(params or {}))
+    for key, value in overrides.items():
+        merged[key.replace('__', '.')] = value
+    return merged
+
+
+class ParamReader:
+    """Typed access to flat parameters; every error names the key."""
+
+    def __init__(self, params: Mapping[str, Any]) -> None:
+        self.params = params
+
+    def number(self, key: str, default: float, *, positive: bool = False) -> float:
+        value = self.params.get(key, default)
+        try:
+            out = float(value)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f'{key}: expected a number, got {value!r}') from exc
+        if not np.isfinite(out):
+            raise ValueError(f'{key}: must be finite, got {out}')
+        if positive and out <= 0:
+            raise ValueError(f'{key}: must be > 0, got {out}')
+        return out
+
+    def integer(self, key: str, default: int, *, minimum: int | None = None) -> int:
+        value = self.params.get(key, default)
+        if isinstance(value, bool) or not float(value).is_integer():
+            raise ValueError(f'{key}: expected an integer, got {value!r}')
+        out = int(value)
+        if minimum is not None and out < minimum:
+            raise ValueError(f'{key}: must be >= {minimum}, got {out}')
+        return out
+
+    def flag(self, key: str, default: bool) -> bool:
+        value = self.params.get(key, default)
+        if isinstance(value, str) and value.lower() in ('true', 'false'):
+            return value.lower() == 'true'
+        if not isinstance(value, (bool, np.bool_)):
+            raise ValueError(f'{key}: expected true or false, got {value!r}')
+        return bool(value)
+
+    def numbers(self, key: str, default: Sequence[float], length: int | None = None
+                ) -> tuple[float, ...]:
+        value = self.params.get(key, default)
+        if value is None:
+            value = ()
+        if isinstance(value, (int, float)):
+            value = [value]
+        try:
+            out = tuple(float(v) for v in value)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f'{key}: expected a list of numbers, got {value!r}') from exc
+        if not all(np.isfinite(out)):
+            raise ValueError(f'{key}: contains NaN or inf')
+        if length is not None and len(out) != length:
+            raise ValueError(f'{key}: expected {length} values, got {len(out)}')
+        return out
+
+    def choice(self, key: str, default: str, options: Sequence[str]) -> str:
+        value = str(self.params.get(key, default))
+        if value not in options:
+            raise ValueError(f'{key}: expected one of {list(options)}, got {value!r}')
+        return value
+
+
+class SafetyEnv(gym.Env):
+    """Base of the three simulated systems (see module docstring).
+
+    Subclasses set ``system_name`` and implement ``_reset_state``, ``_true_derivative``,
+    ``_observation``, ``_reward_and_goal``, ``_h_true`` and ``_set_layout_filter_params``.
+    """
+
+    system_name: ClassVar[str] = ''
+    metadata: ClassVar[dict[str, Any]] = {'render_modes': []}
+
+    nominal_system: ControlAffineSystem
+    """The agent's prior f, g (rcbf_ros.core.dynamics) for the current layout."""
+    dt: float
+    """Euler step [s]."""
+    max_steps: int
+    """Steps before truncation."""
+    h_true_names: list[str]
+    """Names of the ``info['h_true']`` entries."""
+
+    def __init__(self, params: Mapping[str, Any] | None, overrides: Mapping[str, Any]) -> None:
+        self.params = merge_params(params, overrides)
+        system = self.params.get('system', self.system_name)
+        if system != self.system_name:
+            raise ValueError(f'system: this env simulates {self.system_name!r}, '
+                             f'the parameters name {system!r}')
+        self.reader = ParamReader(self.params)
+        self.dt = self.reader.number('dt', 0.02, positive=True)
+        self._state = np.zeros(0)
+        self._steps = 0
+        self._has_reset = False
+
+    # -- public API -------------------------------------------------------------------------
+
+    @property
+    def state(self) -> np.ndarray:
+        """(n_x,) the current QP state (a copy)."""
+        return self._state.copy()
+
+    @property
+    def t(self) -> float:
+        """Time since reset [s]."""
+        return self._steps * self.dt
+
+    @property
+    def steps(self) -> int:
+        """Steps since reset."""
+        return self._steps
+
+    def filter_params(self, base: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """Flat safety-filter parameters for the env's CURRENT layout.
+
+        Args:
+            base: optional extra parameters (e.g. the ``/safety_filter`` section) merged over
+                the env's own before the layout keys are set.
+
+        Returns:
+            Only the keys :func:`rcbf_ros.core.config.filter_config_from_params` reads, with
+            ``system`` and the layout keys (``obstacles.x/y/radius``, operator band, ...) of the
+            current episode.
+        """
+        source = dict(self.params)
+        source.update(flatten(dict(base or {})))
+        out = {k: v for k, v in source.items()
+               if k in FILTER_KEYS or k.startswith(FILTER_PREFIXES)}
+        out.pop('obstacles.shape', None)
+        out['system'] = self.system_name
+        self._set_layout_filter_params(out)
+        return out
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start an episode; ``seed`` seeds the env's generator (layouts, starts, noise)."""
+        super().reset(seed=seed)
+        self._steps = 0
+        self._state = np.asarray(self._reset_state(options or {}), dtype=np.float64)
+        self._has_reset = True
+        return self._observation(), self._info(goal_reached=False)
+
+    def step(self, action: Sequence[float] | np.ndarray
+             ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Apply u for one Euler step of the TRUE dynamics (the env never filters).
+
+        Raises:
+            RuntimeError: before the first ``reset``.
+            ValueError: naming ``action`` for a wrong length or NaN/inf.
+        """
+        if not self._has_reset:
+            raise RuntimeError('step() before reset()')
+        u = np.asarray(action, dtype=np.float64).reshape(-1)
+        n_u = self.nominal_system.n_u
+        if u.shape != (n_u,):
+            raise ValueError(f'action: expected {n_u} values, got {u.size}')
+        if not np.all(np.isfinite(u)):
+            raise ValueError('action: contains NaN or inf')
+        u = self.saturate(u)
+        previous = self._state
+        self._state = previous + self.dt * self._true_derivative(previous, u)
+        self._state = self._post_step(self._state)
+        self._steps += 1
+        reward, goal_reached = self._reward_and_goal(previous, u)
+        terminated = goal_reached
+        truncated = (not terminated) and self._steps >= self.max_steps
+        return (self._observation(), float(reward), terminated, truncated,
+                self._info(goal_reached=goal_reached))
+
+    def saturate(self, u: np.ndarray) -> np.ndarray:
+        """Clip u to the nominal model's actuator limits (unchanged when it has none)."""
+        system = self.nominal_system
+        if system.u_min is None or system.u_max is None:
+            return u
+        return np.clip(u, system.u_min, system.u_max)
+
+    def nominal_terms(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """f(x): (n_x,) and g(x): (n_x, n_u) of the nominal model at one state."""
+        x = torch.as_tensor(state, dtype=torch.float64).unsqueeze(0)
+        return (self.nominal_system.f(x)[0].numpy(), self.nominal_system.g(x)[0].numpy())
+
+    def h_true(self, state: np.ndarray | None = None) -> np.ndarray:
+        """(K_true,) true signed clearances at ``state`` (default: the current state)."""
+        return np.asarray(self._h_true(self._state if state is None else state),
+                          dtype=np.float64)
+
+    # -- subclass hooks -----------------------------------------------------------------------
+
+    def _reset_state(self, options: dict[str, Any]) -> np.ndarray:
+        raise NotImplementedError
+
+    def _true_derivative(self, state: np.ndarray, u: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _post_step(self, state: np.ndarray) -> np.ndarray:
+        return state
+
+    def _observation(self) -> np.ndarray:
+        raise NotImplementedError
+
+    def _reward_and_goal(self, previous: np.ndarray, u: np.ndarray) -> tuple[float, bool]:
+        raise NotImplementedError
+
+    def _h_true(self, state: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _set_layout_filter_params(self, params: dict[str, Any]) -> None:
+        """Write the current layout's keys into the flat filter parameters (in place)."""
+
+    # -- helpers --------------------------------------------------------------------------------
+
+    def _info(self, *, goal_reached: bool) -> dict[str, Any]:
+        h = self.h_true()
+        return {'state': self.state, 'h_true': h, 'violation': bool(np.any(h < 0.0)),
+                'goal_reached': bool(goal_reached), 't': self.t}

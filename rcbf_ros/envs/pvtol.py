@@ -1,0 +1,169 @@
+"""Modified planar VTOL among obstacles, optionally shadowed by a safety operator (paper, "PVTOL").
+
+QP state [x1, x2, v1, v2, theta, f] (+ [x_h] with the operator), input [omega, u_f], nominal
+model :class:`rcbf_ros.core.dynamics.PVTOL`. TRUE dynamics (unknown to the agent): the nominal
+ones plus
+
+- attitude-tracking error d_omega(x) = 0.1 (f - 1) - 0.1 sin(theta) on theta_dot (smooth,
+  bounded for bounded thrust, zero in level hover: the inner attitude loop lags more at high
+  thrust and leans back toward level), scaled by ``attitude_error_gain`` (0.1);
+- the operator: a noisy single integrator x_h' = x_h + dt k_h (x1 - x_h) + sqrt(dt) sigma_h n,
+  n ~ N(0, 1) from the env's generator, k_h = ``system_params.operator_gain`` (0.5),
+  sigma_h = ``operator_noise`` (0.02).
+
+Parameters: ``dt`` 0.02, ``max_steps`` 2000, ``goal`` [5, -1.5], ``goal_radius`` 0.3,
+``goal_reward`` 3.0, ``start`` [-4.5, 2.0] (level hover: v = 0, theta = 0, f = 1; the operator
+starts under the drone, x_h = x1), ``random_start`` (among
+:data:`~rcbf_ros.envs.layouts.PVTOL_STARTS`), ``layout`` ``fixed`` | ``random``
+(:func:`~rcbf_ros.envs.layouts.pvtol_random_layout`, operator present with probability 0.5),
+``layout_seed``, ``operator_band`` 0.6 (the TRUE band |x1 - x_h| <= 0.6; the filter's
+``bands.operator.half_width`` is smaller by its margin), ``system_params.with_operator``.
+
+Reward: progress toward the goal + ``goal_reward`` on reaching it (terminates). Observation
+(10,): [x1, x2, cos th, sin th, v1, v2, f, e_goal (2), exp(-distance)], e_goal the unit vector
+to the goal in the body frame. The arena [-6, 6] x [-3, 3] is not a barrier here.
+
+``h_true``: signed clearance of (x1, x2) to every obstacle circle (no margin), then
+``operator_band - |x1 - x_h|`` when the operator is present.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+import gymnasium as gym
+import numpy as np
+
+from rcbf_ros.core.dynamics import PVTOL
+from rcbf_ros.envs.base import SafetyEnv
+from rcbf_ros.envs.layouts import (
+    layout_from_params,
+    layout_to_params,
+    Obstacle,
+    pvtol_random_layout,
+    PVTOL_STARTS,
+    signed_clearance,
+)
+
+
+def pvtol_attitude_error(state: np.ndarray, gain: float = 0.1) -> float:
+    """d_omega(x) = gain ((f - 1) - sin(theta)). state: (n_x,) -> scalar."""
+    return gain * ((state[5] - 1.0) - math.sin(state[4]))
+
+
+class PVTOLEnv(SafetyEnv):
+    """PVTOL go-to-goal (see module docstring)."""
+
+    system_name = 'pvtol'
+
+    def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
+        super().__init__(params, overrides)
+        r = self.reader
+        self.configured_operator = r.flag('system_params.with_operator', True)
+        self.operator_gain = r.number('system_params.operator_gain', 0.5, positive=True)
+        limits = {}
+        if 'input_limits.min' in self.params:
+            limits = {'u_min': r.numbers('input_limits.min', (), 2),
+                      'u_max': r.numbers('input_limits.max', (), 2)}
+        self._limits = limits
+        self.max_steps = r.integer('max_steps', 2000, minimum=1)
+        self.goal = np.asarray(r.numbers('goal', (5.0, -1.5), 2))
+        self.goal_radius = r.number('goal_radius', 0.3, positive=True)
+        self.goal_reward = r.number('goal_reward', 3.0)
+        self.start = np.asarray(r.numbers('start', (-4.5, 2.0), 2))
+        self.random_start = r.flag('random_start', False)
+        self.attitude_error_gain = r.number('attitude_error_gain', 0.1)
+        self.operator_noise = r.number('operator_noise', 0.02)
+        if self.operator_noise < 0:
+            raise ValueError('operator_noise: must be >= 0')
+        self.operator_band = r.number('operator_band', 0.6, positive=True)
+        self.layout_mode = r.choice('layout', 'fixed', ('fixed', 'random'))
+        self.layout_seed = r.integer('layout_seed', -1)
+        self.obstacles: tuple[Obstacle, ...] = layout_from_params(
+            r.numbers('obstacles.x', ()), r.numbers('obstacles.y', ()),
+            r.numbers('obstacles.radius', ()), self.params.get('obstacles.shape'))
+        self.with_operator = self.configured_operator
+        self.current_layout_seed: int | None = None
+        if self.layout_mode == 'random' and self.layout_seed >= 0:
+            self._use_random_layout(self.layout_seed)
+        self._build_system()
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(10,), dtype=np.float64)
+        lo = self.nominal_system.u_min or (-np.inf, -np.inf)
+        hi = self.nominal_system.u_max or (np.inf, np.inf)
+        self.action_space = gym.spaces.Box(np.asarray(lo), np.asarray(hi), dtype=np.float64)
+        self._last_distance = 0.0
+
+    def _build_system(self) -> None:
+        self.nominal_system = PVTOL(with_operator=self.with_operator,
+                                    operator_gain=self.operator_gain, **self._limits)
+
+    def _use_random_layout(self, seed: int) -> None:
+        self.current_layout_seed = seed
+        self.obstacles, self.with_operator = pvtol_random_layout(seed)
+
+    @property
+    def h_true_names(self) -> list[str]:  # type: ignore[override]
+        names = [f'obstacle_{i}' for i in range(len(self.obstacles))]
+        return names + (['operator'] if self.with_operator else [])
+
+    def _reset_state(self, options: dict[str, Any]) -> np.ndarray:
+        if self.layout_mode == 'random' and self.layout_seed < 0:
+            self._use_random_layout(int(self.np_random.integers(2 ** 31 - 1)))
+            self._build_system()
+        if self.random_start:
+            xy = PVTOL_STARTS[int(self.np_random.integers(len(PVTOL_STARTS)))]
+        else:
+            xy = self.start
+        state = [xy[0], xy[1], 0.0, 0.0, 0.0, 1.0] + ([xy[0]] if self.with_operator else [])
+        self._last_distance = float(np.hypot(xy[0] - self.goal[0], xy[1] - self.goal[1]))
+        return np.asarray(state, dtype=np.float64)
+
+    def _true_derivative(self, state: np.ndarray, u: np.ndarray) -> np.ndarray:
+        f, g = self.nominal_terms(state)
+        derivative = f + g @ u
+        derivative[4] += pvtol_attitude_error(state, self.attitude_error_gain)
+        return derivative
+
+    def _post_step(self, state: np.ndarray) -> np.ndarray:
+        if self.with_operator and self.operator_noise > 0:
+            state = state.copy()
+            state[6] += math.sqrt(self.dt) * self.operator_noise * self.np_random.normal()
+        return state
+
+    def _observation(self) -> np.ndarray:
+        s = self._state
+        to_goal = self.goal - s[:2]
+        distance = float(np.linalg.norm(to_goal))
+        c, sn = math.cos(s[4]), math.sin(s[4])
+        body = np.array([c * to_goal[0] + sn * to_goal[1], -sn * to_goal[0] + c * to_goal[1]])
+        body = body / (np.linalg.norm(body) + 1e-3)
+        return np.array([s[0], s[1], c, sn, s[2], s[3], s[5], body[0], body[1],
+                         math.exp(-distance)])
+
+    def _reward_and_goal(self, previous: np.ndarray, u: np.ndarray) -> tuple[float, bool]:
+        distance = float(np.linalg.norm(self._state[:2] - self.goal))
+        reward = self._last_distance - distance
+        self._last_distance = distance
+        reached = distance <= self.goal_radius
+        return reward + (self.goal_reward if reached else 0.0), reached
+
+    def _h_true(self, state: np.ndarray) -> np.ndarray:
+        values = [signed_clearance(o, state[:2]) for o in self.obstacles]
+        if self.with_operator:
+            values.append(self.operator_band - abs(state[0] - state[6]))
+        return np.asarray(values)
+
+    def _set_layout_filter_params(self, params: dict[str, Any]) -> None:
+        layout = layout_to_params(self.obstacles)
+        layout.pop('obstacles.shape')
+        params.update(layout)
+        params['system_params.with_operator'] = self.with_operator
+        params['system_params.operator_gain'] = self.operator_gain
+        if not self.with_operator:
+            for key in [k for k in params if k.startswith('bands.operator.')]:
+                del params[key]
+
+    def _info(self, *, goal_reached: bool) -> dict[str, Any]:
+        info = super()._info(goal_reached=goal_reached)
+        info['layout_seed'] = self.current_layout_seed
+        return info
