@@ -1,0 +1,293 @@
+"""The per-step OSQP safety filter (rcbf_ros.core.filter) against independent references.
+
+References, none of them the code under test:
+- cvxpy + Clarabel (an interior-point solver) on the RCBF-QP written out here from the paper
+  (min ||u_S||^2 + l eps^2 s.t. L_f h + L_g h (u_RL + u_S) + alpha h + rho + eps >= 0, limits),
+  with rho = grad h^T mean - k_c |grad h|^T std computed here, and, on the unicycle, h and its
+  Lie derivatives written out by hand (on PVTOL and cars: checked by finite differences);
+- the closed form of the soft QP with a single active row and no limits:
+  u_S = -r a / (|a|^2 + 1/l), eps = -r / (l |a|^2 + 1) with a = L_g h, r = row value at u_RL;
+- a minimal-slack LP (cvxpy): eps_min = min eps s.t. the rows and the limits; every feasible
+  point of the filter's QP has eps >= eps_min, and eps_min <= 0 means the rows are satisfiable.
+"""
+from __future__ import annotations
+
+import cvxpy as cp
+import numpy as np
+import pytest
+from scipy.optimize import linprog
+import torch
+
+from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.params import find_config, load_params
+
+SYSTEMS = ('unicycle', 'pvtol', 'car_following')
+# OSQP's default cap (4000) is too small for some PVTOL states and for infeasible rows (slack
+# weight 1e6 makes the QP ill-conditioned): see test_default_iteration_cap_*. Accuracy tests
+# therefore give OSQP room; the cap itself is tested separately.
+ROOMY_MAX_ITER = 40000
+
+
+def config_for(system: str, **overrides):
+    params = load_params(find_config(system), 'safety_filter')
+    params.update(overrides)
+    return filter_config_from_params(params)
+
+
+def random_state(system: str, rng: np.random.Generator) -> np.ndarray:
+    if system == 'unicycle':
+        return np.array([*rng.uniform(-3.0, 3.0, 2), rng.uniform(-np.pi, np.pi)])
+    if system == 'pvtol':
+        x1 = rng.uniform(-6.0, 6.0)
+        return np.array([x1, rng.uniform(-3.0, 3.0), *rng.uniform(-1.0, 1.0, 2),
+                         rng.uniform(-0.5, 0.5), rng.uniform(0.5, 1.5),
+                         x1 + rng.uniform(-0.7, 0.7)])
+    positions = np.array([34.0, 28.0, 22.0, 16.0, 10.0]) + rng.normal(0.0, 1.0, 5)
+    velocities = 30.0 + rng.normal(0.0, 2.0, 5)
+    return np.stack([positions, velocities], axis=1).reshape(-1)
+
+
+def lie_terms(problem, x: np.ndarray):
+    """h, grad h, L_f h, L_g h at one state (numpy), via the problem's barrier families."""
+    terms = problem.terms(torch.from_numpy(x).unsqueeze(0))
+    return (terms.h[0].numpy(), terms.grad_h[0].numpy(), terms.lf_h[0].numpy(),
+            terms.lg_h[0].numpy())
+
+
+def reference_solution(problem, x, u_rl, mean, std, limits=True):
+    """u_safe and eps of the RCBF-QP solved by Clarabel, from the paper's formulation."""
+    h, grad, _, _ = lie_terms(problem, x)
+    system = problem.system
+    xt = torch.from_numpy(x).unsqueeze(0)
+    f = system.f(xt)[0].numpy()
+    g = system.g(xt)[0].numpy()
+    lf_h, lg_h = grad @ f, grad @ g
+    rho = grad @ mean - problem.k_c * np.abs(grad) @ std
+    u_s = cp.Variable(system.n_u)
+    eps = cp.Variable()
+    rows = lf_h + lg_h @ (u_rl + u_s) + problem.alpha * h + rho + eps >= 0
+    constraints = [rows]
+    if limits and problem.has_limits:
+        constraints += [u_rl + u_s <= np.array(system.u_max),
+                        u_rl + u_s >= np.array(system.u_min)]
+    objective = cp.Minimize(cp.sum_squares(u_s) + problem.slack_weight * cp.square(eps))
+    cp.Problem(objective, constraints).solve(solver=cp.CLARABEL, tol_gap_abs=1e-12,
+                                             tol_gap_rel=1e-12, tol_feas=1e-12)
+    return u_rl + u_s.value, float(eps.value)
+
+
+def minimal_slack(problem, x, mean, std) -> float:
+    """min eps such that every RCBF row holds within the input limits (an LP, HiGHS)."""
+    h, grad, lf_h, lg_h = lie_terms(problem, x)
+    rho = grad @ mean - problem.k_c * np.abs(grad) @ std
+    system = problem.system
+    # Variables [u, eps]: -(L_g h u) - eps <= L_f h + alpha h + rho.
+    a_ub = np.hstack([-lg_h, -np.ones((h.size, 1))])
+    b_ub = lf_h + problem.alpha * h + rho
+    limits = (list(zip(system.u_min, system.u_max)) if problem.has_limits
+              else [(None, None)] * system.n_u)
+    lp = linprog(np.r_[np.zeros(system.n_u), 1.0], A_ub=a_ub, b_ub=b_ub,
+                 bounds=[*limits, (None, None)])
+    if lp.status == 3:  # unbounded below: the rows hold with any margin
+        return -np.inf
+    assert lp.status == 0, lp.message
+    return float(lp.x[-1])
+
+
+@pytest.mark.parametrize('system', SYSTEMS)
+def test_matches_clarabel_on_random_states(system):
+    rng = np.random.default_rng(7)
+    config = config_for(system)
+    problem = config.problem
+    safety_filter = SafetyFilter(problem, max_iter=ROOMY_MAX_ITER)
+    n_x, n_u = problem.system.n_x, problem.system.n_u
+    active = 0
+    for _ in range(40):
+        x = random_state(system, rng)
+        u_rl = rng.uniform(-3.0, 3.0, n_u)
+        mean = rng.normal(0.0, 0.05, n_x)
+        std = np.abs(rng.normal(0.0, 0.05, n_x))
+        result = safety_filter.filter(x, u_rl, mean, std)
+        assert not result.fail_safe, result.status
+        expected, expected_eps = reference_solution(problem, x, u_rl, mean, std)
+        np.testing.assert_allclose(result.u_safe, expected, rtol=0, atol=1e-6)
+        assert result.slack == pytest.approx(expected_eps, abs=1e-6)
+        active += bool(np.any(np.abs(result.u_s) > 1e-6))
+    assert active >= 5  # the comparison exercised active rows, not only pass-through
+
+
+def test_unicycle_lie_derivatives_match_hand_written_barrier():
+    config = config_for('unicycle')
+    obstacles = load_params(find_config('unicycle'), 'safety_filter')
+    centers = np.stack([obstacles['obstacles.x'], obstacles['obstacles.y']], axis=1)
+    delta = np.array(obstacles['obstacles.radius']) + obstacles['obstacles.margin']
+    lp = obstacles['obstacles.lookahead']
+    rng = np.random.default_rng(3)
+    for _ in range(10):
+        x, y, th = rng.uniform(-3.0, 3.0), rng.uniform(-3.0, 3.0), rng.uniform(-np.pi, np.pi)
+        p = np.array([x + lp * np.cos(th), y + lp * np.sin(th)])
+        d = p - centers
+        h_hand = (d ** 2).sum(1) - delta ** 2
+        # x_dot = [v cos th, v sin th, omega]: dp/dt = v (cos, sin) + omega l_p (-sin, cos)
+        lg_hand = np.stack([2 * d @ [np.cos(th), np.sin(th)],
+                            2 * lp * d @ [-np.sin(th), np.cos(th)]], axis=1)
+        h, _, lf_h, lg_h = lie_terms(config.problem, np.array([x, y, th]))
+        np.testing.assert_allclose(h, h_hand, atol=1e-12)
+        np.testing.assert_allclose(lf_h, 0.0, atol=1e-12)
+        np.testing.assert_allclose(lg_h, lg_hand, atol=1e-12)
+
+
+@pytest.mark.parametrize('system', ('pvtol', 'car_following'))
+def test_barrier_gradients_match_finite_differences(system):
+    problem = config_for(system).problem
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        x = random_state(system, rng)
+        _, grad, _, _ = lie_terms(problem, x)
+        step = 1e-6
+        for i in range(x.size):
+            dx = np.zeros_like(x)
+            dx[i] = step
+            fd = (lie_terms(problem, x + dx)[0] - lie_terms(problem, x - dx)[0]) / (2 * step)
+            np.testing.assert_allclose(grad[:, i], fd, rtol=1e-5, atol=1e-5)
+
+
+def test_single_active_row_is_the_soft_projection():
+    # One obstacle, no input limits: the QP has one row, solved in closed form.
+    config = config_for('unicycle', **{'obstacles.x': [0.0], 'obstacles.y': [0.0],
+                                       'obstacles.radius': [0.6], 'input_limits.min': [],
+                                       'input_limits.max': []})
+    problem = config.problem
+    assert problem.n_barriers == 1 and not problem.has_limits
+    safety_filter = SafetyFilter(problem)
+    rng = np.random.default_rng(5)
+    checked = 0
+    for _ in range(30):
+        x = np.array([*rng.uniform(-2.0, 2.0, 2), rng.uniform(-np.pi, np.pi)])
+        u_rl = rng.uniform(-3.0, 3.0, 2)
+        h, _, lf_h, lg_h = lie_terms(problem, x)
+        a = lg_h[0]
+        r = lf_h[0] + a @ u_rl + problem.alpha * h[0]
+        result = safety_filter.filter(x, u_rl)
+        if r >= 0:
+            continue
+        l = problem.slack_weight  # noqa: E741 - the paper's name
+        u_s = -r * a / (a @ a + 1.0 / l)
+        eps = -r / (l * (a @ a) + 1.0)
+        np.testing.assert_allclose(result.u_s, u_s, rtol=0, atol=1e-6)
+        assert result.slack == pytest.approx(eps, abs=1e-9)
+        checked += 1
+    assert checked >= 5
+
+
+def test_pass_through_is_exact_on_a_fresh_filter():
+    config = config_for('unicycle')
+    safety_filter = SafetyFilter(config.problem)
+    x = np.array([-2.5, -2.5, -0.75 * np.pi])  # corner, heading away from every obstacle
+    u_rl = np.array([1.0, 0.3])
+    result = safety_filter.filter(x, u_rl)
+    assert np.all(result.constraint_values > 0)
+    assert np.array_equal(result.u_safe, u_rl) and not result.active
+
+
+@pytest.mark.xfail(strict=True, reason='core filter: after an active solve the warm-started OSQP '
+                   'returns u_S ~ 1e-14 instead of 0 when no row is active (reported)')
+def test_pass_through_is_exact_after_an_active_solve():
+    config = config_for('unicycle')
+    safety_filter = SafetyFilter(config.problem)
+    safety_filter.filter([-0.85, 0.0, 0.0], [2.5, 0.0])  # active: leaves a warm start behind
+    x = np.array([-2.5, -2.5, -0.75 * np.pi])
+    u_rl = np.array([1.0, 0.3])
+    result = safety_filter.filter(x, u_rl)
+    assert np.array_equal(result.u_safe, u_rl)
+
+
+def test_pass_through_within_round_off_whenever_no_row_is_active():
+    rng = np.random.default_rng(13)
+    config = config_for('unicycle')
+    safety_filter = SafetyFilter(config.problem)
+    inactive = 0
+    for _ in range(60):
+        x = random_state('unicycle', rng)
+        u_rl = rng.uniform(-2.4, 2.4, 2)
+        h, _, lf_h, lg_h = lie_terms(config.problem, x)
+        rows = lf_h + lg_h @ u_rl + config.problem.alpha * h
+        result = safety_filter.filter(x, u_rl)
+        if np.all(rows > 1e-9):
+            # Warm-start round-off only (exactness: see the xfail above).
+            np.testing.assert_allclose(result.u_safe, u_rl, rtol=0, atol=1e-9)
+            inactive += 1
+        else:
+            assert np.any(np.abs(result.u_s) > 0)
+    assert inactive >= 10
+
+
+@pytest.mark.parametrize('system', SYSTEMS)
+def test_slack_is_positive_only_when_rows_are_infeasible_within_limits(system):
+    rng = np.random.default_rng(17)
+    problem = config_for(system).problem
+    safety_filter = SafetyFilter(problem, max_iter=ROOMY_MAX_ITER)
+    n_x, n_u = problem.system.n_x, problem.system.n_u
+    feasible = infeasible = 0
+    for _ in range(60):
+        x = random_state(system, rng)
+        if system == 'unicycle' and rng.uniform() < 0.5:
+            x[:2] = rng.uniform(-0.5, 0.5, 2)  # inside the centre obstacle: often infeasible
+        u_rl = rng.uniform(-3.0, 3.0, n_u)
+        mean, std = np.zeros(n_x), np.abs(rng.normal(0.0, 0.05, n_x))
+        eps_min = minimal_slack(problem, x, mean, std)
+        result = safety_filter.filter(x, u_rl, mean, std)
+        assert not result.fail_safe, result.status
+        if eps_min <= -1e-6:
+            # Satisfiable rows: only the soft penalty's eps ~ |u_S| / (l |L_g h|) remains.
+            assert result.slack < 1e-4
+            feasible += 1
+        elif eps_min > 1e-3:
+            assert result.slack >= eps_min - 1e-6
+            infeasible += 1
+    assert feasible >= 5
+    assert infeasible >= (3 if system == 'unicycle' else 0)
+
+
+@pytest.mark.xfail(strict=True, reason='core filter: the default OSQP max_iter = 4000 runs out '
+                   'on some PVTOL states, feasible ones included, and the filter falls back to '
+                   'the fail-safe (reported; 40000 iterations solve all 200 sampled states)')
+def test_default_iteration_cap_solves_random_pvtol_states():
+    rng = np.random.default_rng(7)
+    problem = config_for('pvtol').problem
+    safety_filter = SafetyFilter(problem)
+    statuses = set()
+    for _ in range(200):
+        x = random_state('pvtol', rng)
+        result = safety_filter.filter(x, rng.uniform(-3.0, 3.0, problem.system.n_u))
+        statuses.add(result.status)
+    assert statuses <= {'solved', 'solved_inaccurate'}
+
+
+def test_starved_solver_returns_fail_safe_with_status():
+    config = config_for('unicycle')
+    safety_filter = SafetyFilter(config.problem, fail_safe_action=[0.5, -3.0], max_iter=1)
+    result = safety_filter.filter([-0.85, 0.0, 0.0], [2.5, 0.0])
+    assert result.fail_safe and result.active
+    assert result.status not in ('solved', 'solved_inaccurate')
+    assert 'max_iter' in result.status or 'iter' in result.status
+    np.testing.assert_array_equal(result.u_safe, [0.5, -2.5])  # clipped to the limits
+    assert np.isnan(result.slack)
+
+
+@pytest.mark.parametrize('kwargs, field', [
+    ({'state': [0.0, 0.0]}, 'state'),
+    ({'state': [0.0, np.nan, 0.0]}, 'state'),
+    ({'u_rl': [np.inf, 0.0]}, 'u_rl'),
+    ({'u_rl': [1.0, 2.0, 3.0]}, 'u_rl'),
+    ({'std': [0.0, -0.1, 0.0]}, 'disturbance_std'),
+    ({'std': [0.0, 0.1]}, 'disturbance_std'),
+    ({'mean': [np.nan, 0.0, 0.0]}, 'disturbance_mean'),
+])
+def test_bad_input_raises_naming_the_field(kwargs, field):
+    safety_filter = SafetyFilter(config_for('unicycle').problem)
+    args = {'state': [0.0, 2.0, 0.0], 'u_rl': [0.0, 0.0], 'mean': None, 'std': None}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=f'^{field}:'):
+        safety_filter.filter(args['state'], args['u_rl'], args['mean'], args['std'])
