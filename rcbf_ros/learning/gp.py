@@ -60,12 +60,15 @@ class GPConfig:
     with ``seed``), or a uniform random subsample drawn with ``seed``."""
     seed: int = 0
     """Seed of the subset selection."""
-    training_iterations: int = 60
+    training_iterations: int = 30
     """Adam steps on the negative marginal log likelihood per ``fit``."""
-    learning_rate: float = 0.1
+    learning_rate: float = 0.15
     """Adam learning rate (on GPyTorch's raw, softplus-constrained hyperparameters)."""
     initial_lengthscale: float = 1.0
     """Initial lengthscale in standardised input units (1 = one standard deviation of data)."""
+    warm_start: bool = True
+    """Start each ``fit`` after the first from the previous hyperparameters (re-expressed in
+    the new normalisation) instead of the initial values."""
     lengthscale_prior: tuple[float, float] = (2.0, 2.0)
     """Gamma(concentration, rate) prior on lengthscales in standardised units (mean 1)."""
     outputscale_prior: tuple[float, float] = (2.0, 0.15)
@@ -286,10 +289,19 @@ class DisturbanceGP:
             noise_constraint=gpytorch.constraints.GreaterThan(cfg.min_noise))
         model = _BatchIndependentExactGP(x_n, y_n, likelihood, cfg).to(cfg.dtype)
         likelihood = likelihood.to(cfg.dtype)
-        model.covar_module.base_kernel.lengthscale = torch.full(
-            (self.n_out, 1, self.n_in), cfg.initial_lengthscale, dtype=cfg.dtype)
-        model.covar_module.outputscale = torch.ones(self.n_out, dtype=cfg.dtype)
-        likelihood.noise = torch.full((self.n_out, 1), 0.1, dtype=cfg.dtype)
+        if cfg.warm_start and self.lengthscales is not None:
+            assert self.outputscale is not None and self.noise is not None
+            lengthscale_n = self.lengthscales / x_scale
+            outputscale_n = self.outputscale / y_scale ** 2
+            noise_n = (self.noise / y_scale ** 2).clamp_min(2.0 * cfg.min_noise)
+        else:
+            lengthscale_n = torch.full((self.n_out, self.n_in), cfg.initial_lengthscale,
+                                       dtype=cfg.dtype)
+            outputscale_n = torch.ones(self.n_out, dtype=cfg.dtype)
+            noise_n = torch.full((self.n_out,), 0.1, dtype=cfg.dtype)
+        model.covar_module.base_kernel.lengthscale = lengthscale_n.unsqueeze(1)
+        model.covar_module.outputscale = outputscale_n
+        likelihood.noise = noise_n.unsqueeze(1)
 
         model.train()
         likelihood.train()

@@ -190,3 +190,22 @@ def test_bad_query_and_config_are_rejected():
         GPConfig(max_train_points=0)
     with pytest.raises(ValueError, match='subset_rule'):
         GPConfig(subset_rule='nearest')
+
+
+def test_warm_start_resumes_from_previous_hyperparameters():
+    states = uniform_states(400, torch.Generator().manual_seed(8))
+    residuals = unicycle_slope_disturbance(states)
+    gp = DisturbanceGP(3, 3, GPConfig(training_iterations=10))
+    gp.add(states[:200], residuals[:200])
+    gp.fit()
+    previous = (gp.lengthscales, gp.outputscale, gp.noise)
+    # Zero optimisation steps on more data: the warm start alone must reproduce the previous
+    # raw-unit hyperparameters although the normalisation changed with the data.
+    resumed = DisturbanceGP(3, 3, GPConfig(training_iterations=0))
+    resumed.load_state_dict(gp.state_dict())
+    resumed.add(states[200:], residuals[200:])
+    resumed.fit()
+    for before, after in zip(previous, (resumed.lengthscales, resumed.outputscale,
+                                        resumed.noise)):
+        torch.testing.assert_close(after, before, rtol=1e-10, atol=0)
+    assert resumed.train_x.shape[0] == 400

@@ -1,0 +1,157 @@
+"""GP disturbance model: fit time as data grow, and per-state prediction vs GPyTorch's own.
+
+    python benchmarks/bench_gp.py [--repeats 300] [--no-write]
+
+Data: the Unicycle slope disturbance d(x) = g(x) u_d, u_d = -0.1 cos(theta) [1, 0], at
+uniform states in the arena with noise std 0.01 (3 inputs, 3 outputs). One run measures:
+- ``DisturbanceGP.fit()`` (default ``GPConfig``: posterior on <= 512 farthest-point
+  points, marginal likelihood on the first 256 of them, 30 Adam steps, cold start) at 2000
+  and 5000 points, median of 3 fits;
+- ``predict`` for one state (B = 1) and for a minibatch (B = 256) with our cached closed
+  form, next to GPyTorch's exact predictive (eval mode, same training points and
+  hyperparameters, ``fast_pred_var`` off, caches warm) at the same query points; the ratio
+  is GPyTorch's time / ours.
+Writes the ``## GP disturbance model`` section of benchmarks/RESULTS.md.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+import statistics
+import sys
+import time
+
+import gpytorch
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks._results import machine_line, write_section  # noqa: E402
+from rcbf_ros.learning.gp import DisturbanceGP  # noqa: E402
+
+torch.set_num_threads(1)
+DTYPE = torch.float64
+HALF_WIDTH = torch.tensor([3.0, 3.0, math.pi], dtype=DTYPE)
+
+
+def slope_data(count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    generator = torch.Generator().manual_seed(seed)
+    states = (2 * torch.rand(count, 3, generator=generator, dtype=DTYPE) - 1) * HALF_WIDTH
+    theta = states[:, 2]
+    truth = torch.stack([-0.1 * torch.cos(theta) ** 2, -0.1 * torch.cos(theta) * torch.sin(theta),
+                         torch.zeros_like(theta)], dim=1)
+    return states, truth + 0.01 * torch.randn(count, 3, generator=generator, dtype=DTYPE)
+
+
+class _GPyTorchBatchGP(gpytorch.models.ExactGP):
+    def __init__(self, x, y, likelihood):
+        super().__init__(x, y, likelihood)
+        batch = torch.Size([y.shape[0]])
+        self.mean_module = gpytorch.means.ZeroMean(batch_shape=batch)
+        self.covar_module = gpytorch.kernels.ScaleKernel(
+            gpytorch.kernels.RBFKernel(ard_num_dims=x.shape[-1], batch_shape=batch),
+            batch_shape=batch)
+
+    def forward(self, x):
+        return gpytorch.distributions.MultivariateNormal(self.mean_module(x),
+                                                         self.covar_module(x))
+
+
+def gpytorch_twin(gp: DisturbanceGP):
+    """GPyTorch's exact GP with our training points and hyperparameters, in eval mode."""
+    n_out = gp.n_out
+    x = gp.train_x.unsqueeze(0).expand(n_out, -1, -1)
+    y = gp.train_y.T.contiguous()
+    likelihood = gpytorch.likelihoods.GaussianLikelihood(
+        batch_shape=torch.Size([n_out]),
+        noise_constraint=gpytorch.constraints.GreaterThan(1e-12)).to(DTYPE)
+    model = _GPyTorchBatchGP(x, y, likelihood).to(DTYPE)
+    model.covar_module.base_kernel.lengthscale = gp.lengthscales.unsqueeze(1)
+    model.covar_module.outputscale = gp.outputscale
+    likelihood.noise = gp.noise.unsqueeze(1)
+    model.eval()
+    likelihood.eval()
+
+    def predict(query: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        with torch.no_grad(), gpytorch.settings.fast_pred_var(False), \
+                gpytorch.settings.max_cholesky_size(10_000):
+            latent = model(query.unsqueeze(0).expand(n_out, -1, -1))
+            return latent.mean.T, latent.variance.sqrt().T
+
+    return predict
+
+
+def per_call_us(fn, queries: list[torch.Tensor]) -> float:
+    for q in queries[:20]:
+        fn(q)
+    times = []
+    for q in queries:
+        start = time.perf_counter()
+        fn(q)
+        times.append(time.perf_counter() - start)
+    return 1e6 * statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--repeats', type=int, default=300, help='predict calls per case')
+    parser.add_argument('--no-write', action='store_true', help='do not touch RESULTS.md')
+    args = parser.parse_args()
+
+    rows = ['| data points | fit (s) | training points | RMSE vs truth |', '|---|---|---|---|']
+    fitted = None
+    for count in (2000, 5000):
+        states, residuals = slope_data(count, seed=count)
+        fit_times = []
+        for _ in range(3):
+            gp = DisturbanceGP(3, 3)
+            gp.add(states, residuals)
+            start = time.perf_counter()
+            gp.fit()
+            fit_times.append(time.perf_counter() - start)
+        held_out, _ = slope_data(1000, seed=1)
+        theta = held_out[:, 2]
+        truth = torch.stack([-0.1 * torch.cos(theta) ** 2,
+                             -0.1 * torch.cos(theta) * torch.sin(theta),
+                             torch.zeros_like(theta)], dim=1)
+        rmse = float((gp.predict(held_out)[0] - truth).pow(2).mean().sqrt())
+        rows.append(f'| {count} | {statistics.median(fit_times):.2f} | {gp.train_x.shape[0]} '
+                    f'| {rmse:.4f} |')
+        fitted = gp
+        print(rows[-1], flush=True)
+
+    assert fitted is not None
+    reference = gpytorch_twin(fitted)
+    predict_rows = ['| query batch | ours (us) | GPyTorch exact (us) | ratio GPyTorch / ours | '
+                    'max abs diff (mean, std) |', '|---|---|---|---|---|']
+    for batch in (1, 256):
+        repeats = args.repeats if batch == 1 else max(args.repeats // 10, 20)
+        queries = [slope_data(batch, seed=10_000 + i)[0] for i in range(repeats)]
+        ours = per_call_us(fitted.predict, queries)
+        theirs = per_call_us(reference, queries)
+        ours_mean, ours_std = fitted.predict(queries[0])
+        ref_mean, ref_std = reference(queries[0])
+        diff = max(float((ours_mean - ref_mean).abs().max()),
+                   float((ours_std - ref_std).abs().max()))
+        predict_rows.append(f'| {batch} | {ours:.0f} | {theirs:.0f} | {theirs / ours:.1f} '
+                            f'| {diff:.1e} |')
+        print(predict_rows[-1], flush=True)
+
+    body = '\n'.join([
+        '`python benchmarks/bench_gp.py` (one run; ' + machine_line() + ').',
+        '',
+        'Unicycle slope disturbance, 3 inputs / 3 outputs, noise std 0.01. Default `GPConfig`: '
+        'posterior on <= 512 farthest-point points, marginal likelihood on the first 256, '
+        '30 Adam steps, cold start. Fit: median of 3.',
+        '', *rows, '',
+        'Prediction with the 5000-point model (512 training points), median per call; '
+        'GPyTorch: same points and hyperparameters, eval mode, exact variances, warm caches.',
+        '', *predict_rows])
+    if not args.no_write:
+        write_section('GP disturbance model', body)
+    print(body)
+
+
+if __name__ == '__main__':
+    main()
