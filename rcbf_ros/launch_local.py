@@ -1,0 +1,304 @@
+"""rcbf_ros_launch: start a launch's nodes as separate processes, without ROS 2 installed.
+
+The local counterpart of ``ros2 launch rcbf_ros <name>.launch.py``; both read
+:mod:`rcbf_ros.launch_table`. Every node runs as ``python -m <module> --ros-args
+-r __node:=<name> --params-file config/<system>.yaml -r ...`` in its own process group, with the
+loopback ``CYCLONEDDS_URI`` (no traffic off the machine) and one ``ROS_DOMAIN_ID`` in its
+environment. Each output line is prefixed with ``[<node>]``.
+
+Stopping: on Ctrl-C / SIGTERM, when a node marked ``ends_launch`` exits, or when a required node
+fails, every node still running gets SIGINT, then SIGTERM after ``--sigint-timeout``, then
+SIGKILL after ``--sigterm-timeout``. The exit code is 1 if a required node failed (a non-zero
+exit of its own, or it had to be killed), else 0.
+
+Example::
+
+    rcbf_ros_launch unicycle_filter --domain-id 7 -p simulator:max_episodes:=1
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, field
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import threading
+import time
+from typing import Any, IO, Mapping, Sequence
+
+import yaml
+
+from rcbf_ros.launch_table import launch_setup, LAUNCHES, LaunchSetup, ros_arguments
+from rcbf_ros.params import find_config
+from rcbf_ros.ros.loopback import ensure_loopback
+
+_REPO_ROOT = Path(__file__).resolve().parent.parent
+# Exit statuses of a process that stopped because we asked it to.
+_STOPPED_OK = {0, -signal.SIGINT, -signal.SIGTERM, 128 + signal.SIGINT, 128 + signal.SIGTERM}
+
+
+@dataclass(frozen=True)
+class ChildSpec:
+    """One process to start."""
+
+    name: str
+    """Output prefix and node name."""
+    command: tuple[str, ...]
+    """argv."""
+    required: bool = True
+    """A failure of this process fails the launch."""
+    ends_launch: bool = False
+    """Its exit stops every other process."""
+
+
+@dataclass
+class LaunchOutcome:
+    """How a launch ended."""
+
+    exit_code: int
+    """0, or 1 when a required process failed."""
+    returncodes: dict[str, int | None] = field(default_factory=dict)
+    """Final return code per process (negative: killed by that signal)."""
+    failed: list[str] = field(default_factory=list)
+    """Required processes that failed."""
+    escalations: dict[str, str] = field(default_factory=dict)
+    """The strongest signal each stopped process needed ('SIGINT', 'SIGTERM', 'SIGKILL')."""
+    reason: str = ''
+    """Why the launch stopped."""
+
+
+def child_commands(setup: LaunchSetup, *, params_file: str | Path,
+                   overrides: Mapping[str, Mapping[str, Any]] | None = None,
+                   without: Sequence[str] = (), python: str = sys.executable) -> list[ChildSpec]:
+    """The processes of a launch, in start order.
+
+    Args:
+        params_file: the params file every node reads.
+        overrides: node name -> {parameter: value} (``-p``), winning over the file.
+        without: node names not to start.
+
+    Raises:
+        ValueError: an override or ``without`` names a node the launch does not have.
+    """
+    names = {entry.name for entry in setup.nodes}
+    for node in (*(overrides or {}), *without):
+        if node not in names:
+            raise ValueError(f'{setup.name}: no node {node!r} (nodes: {sorted(names)})')
+    children = []
+    for entry in setup.nodes:
+        if entry.name in without:
+            continue
+        args = ros_arguments(entry, params_file=str(params_file),
+                             overrides=(overrides or {}).get(entry.name))
+        children.append(ChildSpec(name=entry.name,
+                                  command=(python, '-m', entry.module, *args),
+                                  required=entry.required, ends_launch=entry.ends_launch))
+    return children
+
+
+def child_environment(base: Mapping[str, str], *, domain_id: int) -> dict[str, str]:
+    """The environment of every child: loopback Cyclone, the domain id, unbuffered output.
+
+    The loopback URI is forced (no traffic off the machine); the package's source root is put
+    on ``PYTHONPATH`` so that ``python -m`` finds it without an install.
+    """
+    if not 0 <= domain_id <= 232:
+        raise ValueError(f'domain_id: must be in 0..232, got {domain_id}')
+    env = dict(base)
+    ensure_loopback(env, force=True)
+    env['ROS_DOMAIN_ID'] = str(domain_id)
+    env['PYTHONUNBUFFERED'] = '1'
+    paths = [p for p in env.get('PYTHONPATH', '').split(os.pathsep) if p]
+    if str(_REPO_ROOT) not in paths:
+        env['PYTHONPATH'] = os.pathsep.join([str(_REPO_ROOT), *paths])
+    return env
+
+
+def _pump(name: str, stream: IO[bytes], sink: IO[str], lock: threading.Lock) -> None:
+    """Copy a child's output to ``sink`` line by line, prefixed with its name."""
+    for raw in iter(stream.readline, b''):
+        line = raw.decode('utf-8', errors='replace').rstrip('\n')
+        with lock:
+            sink.write(f'[{name}] {line}\n')
+            sink.flush()
+    stream.close()
+
+
+def _signal_group(process: subprocess.Popen, signum: int) -> None:
+    try:
+        os.killpg(process.pid, signum)
+    except ProcessLookupError:
+        pass
+
+
+def run_processes(children: Sequence[ChildSpec], *, env: Mapping[str, str],
+                  sink: IO[str] | None = None, sigint_timeout_s: float = 5.0,
+                  sigterm_timeout_s: float = 3.0, poll_s: float = 0.05,
+                  stop_event: threading.Event | None = None) -> LaunchOutcome:
+    """Start ``children``, supervise them, stop them all, report.
+
+    Args:
+        env: environment of every child.
+        sink: where prefixed output goes (default stdout).
+        stop_event: set from elsewhere to stop the launch (as Ctrl-C does).
+    """
+    sink = sys.stdout if sink is None else sink
+    lock = threading.Lock()
+    processes: dict[str, subprocess.Popen] = {}
+    pumps: list[threading.Thread] = []
+    outcome = LaunchOutcome(exit_code=0)
+
+    def note_failure(name: str, why: str) -> None:
+        outcome.failed.append(name)
+        with lock:
+            sink.write(f'[launch] {name} failed: {why}\n')
+            sink.flush()
+
+    try:
+        for child in children:
+            process = subprocess.Popen(child.command, env=dict(env), stdout=subprocess.PIPE,
+                                       stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                       start_new_session=True)
+            processes[child.name] = process
+            pump = threading.Thread(target=_pump, args=(child.name, process.stdout, sink, lock),
+                                    daemon=True)
+            pump.start()
+            pumps.append(pump)
+        specs = {child.name: child for child in children}
+        while not outcome.reason:
+            if stop_event is not None and stop_event.is_set():
+                outcome.reason = 'stop requested'
+                break
+            for name, process in processes.items():
+                if name in outcome.returncodes or process.poll() is None:
+                    continue
+                code = process.returncode
+                outcome.returncodes[name] = code
+                child = specs[name]
+                if code != 0 and child.required:
+                    note_failure(name, f'exited with {code}')
+                    outcome.reason = f'{name} failed'
+                elif child.ends_launch:
+                    outcome.reason = f'{name} exited ({code})'
+            if not outcome.reason and len(outcome.returncodes) == len(processes):
+                outcome.reason = 'every process exited'
+            if not outcome.reason:
+                time.sleep(poll_s)
+    except KeyboardInterrupt:
+        outcome.reason = 'interrupted'
+    finally:
+        _stop_all(processes, outcome, sigint_timeout_s, sigterm_timeout_s, poll_s)
+        for pump in pumps:
+            pump.join(timeout=2.0)
+    for name, process in processes.items():
+        code = process.returncode
+        if name in outcome.failed or not specs[name].required:
+            continue
+        stopped_by_us = name in outcome.escalations
+        if outcome.escalations.get(name) == 'SIGKILL':
+            note_failure(name, 'did not stop on SIGINT or SIGTERM (killed)')
+        elif stopped_by_us and code not in _STOPPED_OK:
+            note_failure(name, f'exited with {code} when asked to stop')
+    outcome.exit_code = 1 if outcome.failed else 0
+    with lock:
+        sink.write(f'[launch] stopped ({outcome.reason}); return codes '
+                   f'{outcome.returncodes}; exit code {outcome.exit_code}\n')
+        sink.flush()
+    return outcome
+
+
+def _stop_all(processes: Mapping[str, subprocess.Popen], outcome: LaunchOutcome,
+              sigint_timeout_s: float, sigterm_timeout_s: float, poll_s: float) -> None:
+    """SIGINT, then SIGTERM, then SIGKILL to every process still running."""
+    for signum, timeout in ((signal.SIGINT, sigint_timeout_s),
+                            (signal.SIGTERM, sigterm_timeout_s), (signal.SIGKILL, 5.0)):
+        alive = {name: p for name, p in processes.items() if p.poll() is None}
+        for name, process in processes.items():
+            if name not in outcome.returncodes and name not in alive:
+                outcome.returncodes[name] = process.returncode
+        if not alive:
+            return
+        for name, process in alive.items():
+            outcome.escalations[name] = signal.Signals(signum).name
+            _signal_group(process, signum)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and any(p.poll() is None for p in alive.values()):
+            time.sleep(poll_s)
+        for name, process in alive.items():
+            if process.poll() is not None:
+                outcome.returncodes[name] = process.returncode
+
+
+def _parse_override(text: str) -> tuple[str, str, Any]:
+    """``node:name:=value`` -> (node, name, YAML value)."""
+    target, sep, value = text.partition(':=')
+    node, colon, name = target.partition(':')
+    if not sep or not colon or not node or not name:
+        raise argparse.ArgumentTypeError(f'-p {text!r}: expected node:parameter:=value')
+    try:
+        parsed = yaml.safe_load(value) if value else ''
+    except yaml.YAMLError as exc:
+        raise argparse.ArgumentTypeError(f'-p {text!r}: value is not YAML ({exc})') from exc
+    return node, name, parsed
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='rcbf_ros_launch', description=__doc__.split('\n\n')[0],
+        epilog='launches: ' + '; '.join(f'{s.name}: {s.description}'
+                                        for s in LAUNCHES.values()))
+    parser.add_argument('launch', choices=sorted(LAUNCHES), help='which launch to run')
+    parser.add_argument('--params-file', help='params file (default: config/<system>.yaml)')
+    parser.add_argument('--domain-id', type=int, default=None,
+                        help='ROS_DOMAIN_ID of every node (default: $ROS_DOMAIN_ID or 0)')
+    parser.add_argument('-p', '--param', action='append', default=[], type=_parse_override,
+                        metavar='NODE:NAME:=VALUE', help='parameter override for one node')
+    parser.add_argument('--without', action='append', default=[], metavar='NODE',
+                        help='do not start this node (repeatable)')
+    parser.add_argument('--sigint-timeout', type=float, default=5.0)
+    parser.add_argument('--sigterm-timeout', type=float, default=3.0)
+    parser.add_argument('--print', action='store_true', dest='print_only',
+                        help='print the commands instead of running them')
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script ``rcbf_ros_launch``; returns the launch's exit code."""
+    args = build_parser().parse_args(argv)
+    setup = launch_setup(args.launch)
+    params_file = args.params_file or str(find_config(setup.config))
+    overrides: dict[str, dict[str, Any]] = {}
+    for node, name, value in args.param:
+        overrides.setdefault(node, {})[name] = value
+    domain_id = args.domain_id
+    if domain_id is None:
+        domain_id = int(os.environ.get('ROS_DOMAIN_ID', '0') or 0)
+    try:
+        children = child_commands(setup, params_file=params_file, overrides=overrides,
+                                  without=args.without)
+        env = child_environment(os.environ, domain_id=domain_id)
+    except ValueError as exc:
+        print(f'rcbf_ros_launch: {exc}', file=sys.stderr)
+        return 2
+    if args.print_only:
+        for child in children:
+            print(f'{child.name}: ' + ' '.join(child.command))
+        return 0
+    stop = threading.Event()
+
+    def on_sigterm(signum: int, frame: Any) -> None:
+        stop.set()
+
+    previous = signal.signal(signal.SIGTERM, on_sigterm)
+    try:
+        outcome = run_processes(children, env=env, sigint_timeout_s=args.sigint_timeout,
+                                sigterm_timeout_s=args.sigterm_timeout, stop_event=stop)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    return outcome.exit_code
+
+
+if __name__ == '__main__':
+    sys.exit(main())

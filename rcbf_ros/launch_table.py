@@ -1,0 +1,123 @@
+"""Which nodes a launch starts, with which remaps: ONE table for ``ros2 launch`` and our launcher.
+
+``launch/<name>.launch.py`` (launch_ros ``Node`` actions, for a ROS 2 install) and
+``rcbf_ros_launch <name>`` (:mod:`rcbf_ros.launch_local`, separate ``python -m`` processes, for
+machines without ROS) both read :data:`LAUNCHES`, so the two cannot drift. Pure data and string
+building: no ROS, no processes.
+
+Wiring of ``unicycle_filter`` (every name relative, so a namespace moves the whole graph)::
+
+    simulator --state--> nominal_controller --cmd_proposed--> safety_filter --cmd_safe--> simulator
+              --state-----------------------------------------> safety_filter
+    recorder: every topic -> MCAP
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+PACKAGE = 'rcbf_ros'
+
+
+@dataclass(frozen=True)
+class NodeEntry:
+    """One node of a launch."""
+
+    name: str
+    """Node name; also its section in the params file (``/<name>: ros__parameters``)."""
+    executable: str
+    """console_scripts name (``ros2 run rcbf_ros <executable>``)."""
+    module: str
+    """Python module with ``main()`` run by the local launcher (``python -m <module>``)."""
+    remappings: tuple[tuple[str, str], ...] = ()
+    """Topic remaps (from, to) applied on top of the node's own names."""
+    parameters: tuple[tuple[str, Any], ...] = ()
+    """Parameter overrides on top of the params file (``-p name:=value``)."""
+    required: bool = True
+    """A failure of this node (non-zero exit, or not stopping when asked) fails the launch."""
+    ends_launch: bool = False
+    """When this node exits, every other node is stopped (launch's ``on_exit=Shutdown()``)."""
+
+
+@dataclass(frozen=True)
+class LaunchSetup:
+    """A set of nodes sharing one params file."""
+
+    name: str
+    """Launch name: ``launch/<name>.launch.py`` and ``rcbf_ros_launch <name>``."""
+    config: str
+    """Params file name in ``config/`` (``ros__parameters`` per node, ``/**`` shared)."""
+    nodes: tuple[NodeEntry, ...]
+    """Nodes in start order."""
+    description: str = ''
+    """One line for ``--help``."""
+
+    def node(self, name: str) -> NodeEntry:
+        """The entry named ``name`` (KeyError naming the known ones otherwise)."""
+        for entry in self.nodes:
+            if entry.name == name:
+                return entry
+        raise KeyError(f'{self.name}: no node {name!r} (nodes: {[n.name for n in self.nodes]})')
+
+
+def _filter_loop(system: str) -> LaunchSetup:
+    return LaunchSetup(
+        name=f'{system}_filter',
+        config=f'{system}.yaml',
+        description=(f'{system} simulator driven by the deliberately unsafe nominal controller '
+                     'through the safety filter, recorded to MCAP'),
+        nodes=(
+            NodeEntry(name='simulator', executable='simulator',
+                      module='sim_nodes.simulator_node',
+                      remappings=(('action', 'cmd_safe'),), ends_launch=True),
+            NodeEntry(name='safety_filter', executable='safety_filter',
+                      module='rcbf_ros.ros.safety_filter_node'),
+            NodeEntry(name='nominal_controller', executable='nominal_controller',
+                      module='sim_nodes.nominal_controller_node',
+                      remappings=(('cmd', 'cmd_proposed'),)),
+            NodeEntry(name='recorder', executable='recorder',
+                      module='rcbf_ros.ros.recorder_node', required=False),
+        ))
+
+
+LAUNCHES: dict[str, LaunchSetup] = {
+    setup.name: setup for setup in (_filter_loop('unicycle'), _filter_loop('pvtol'),
+                                    _filter_loop('car_following'))
+}
+
+
+def launch_setup(name: str) -> LaunchSetup:
+    """The launch called ``name``.
+
+    Raises:
+        ValueError: naming the unknown launch and listing the known ones.
+    """
+    if name not in LAUNCHES:
+        raise ValueError(f'launch: unknown launch {name!r}; known: {sorted(LAUNCHES)}')
+    return LAUNCHES[name]
+
+
+def format_parameter(value: Any) -> str:
+    """A parameter value as ``-p name:=<text>`` takes it (YAML scalar or flow list)."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(format_parameter(v) for v in value) + ']'
+    if isinstance(value, str):
+        return "'" + value.replace("'", "''") + "'"
+    return repr(value)
+
+
+def ros_arguments(entry: NodeEntry, *, params_file: str,
+                  overrides: Mapping[str, Any] | None = None) -> list[str]:
+    """The ``--ros-args`` part of a node's command line (local launcher).
+
+    ``-r __node:=<name>`` names the node so that its params-file section applies; then the
+    params file, the entry's remaps, its parameters and finally ``overrides`` (which win).
+    """
+    args = ['--ros-args', '-r', f'__node:={entry.name}', '--params-file', params_file]
+    for source, target in entry.remappings:
+        args += ['-r', f'{source}:={target}']
+    for key, value in (*entry.parameters, *(overrides or {}).items()):
+        args += ['-p', f'{key}:={format_parameter(value)}']
+    return args

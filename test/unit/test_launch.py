@@ -1,0 +1,257 @@
+"""The launch table, the ros2 launch file and the local launcher (real child processes, no DDS)."""
+from __future__ import annotations
+
+import ast
+import io
+from pathlib import Path
+import signal
+import sys
+import textwrap
+import threading
+import types
+
+import pytest
+
+from rcbf_ros import launch_local
+from rcbf_ros.launch_table import (
+    format_parameter,
+    launch_setup,
+    LAUNCHES,
+    NodeEntry,
+    ros_arguments,
+)
+from rcbf_ros.ros.dds.arguments import parameter_overrides, parse_ros_arguments
+from rcbf_ros.ros.loopback import LOOPBACK_CYCLONEDDS_URI
+
+REPO = Path(__file__).resolve().parents[2]
+LAUNCH_FILE = REPO / 'launch' / 'unicycle_filter.launch.py'
+
+
+# --- table -------------------------------------------------------------------------------------
+
+def test_unicycle_filter_table_wires_the_filter_between_controller_and_simulator():
+    setup = launch_setup('unicycle_filter')
+    assert [n.name for n in setup.nodes] == ['simulator', 'safety_filter', 'nominal_controller',
+                                             'recorder']
+    assert (REPO / 'config' / setup.config).is_file()
+    assert setup.node('simulator').ends_launch and not setup.node('recorder').required
+    with pytest.raises(KeyError, match='simulator'):
+        setup.node('planner')
+    with pytest.raises(ValueError, match='unknown launch'):
+        launch_setup('mars_rover')
+
+
+def test_every_table_module_has_a_console_script_of_the_same_name():
+    setup_py = (REPO / 'setup.py').read_text()
+    for setup in LAUNCHES.values():
+        for entry in setup.nodes:
+            assert f"'{entry.executable} = {entry.module}:main'" in setup_py
+
+
+@pytest.mark.parametrize('value, text', [
+    (True, 'true'), (3, '3'), (0.5, '0.5'), ('a b', "'a b'"), ([1.0, 2], '[1.0, 2]'),
+    (["it's"], "['it''s']"),
+])
+def test_parameter_text_round_trips_through_the_ros_argument_parser(value, text):
+    assert format_parameter(value) == text
+    parsed = parse_ros_arguments(['--ros-args', '-p', f'k:={text}'])
+    assert parsed.parameters['k'] == value
+
+
+def test_ros_arguments_are_understood_by_the_ros_argument_parser():
+    entry = NodeEntry(name='sim', executable='simulator', module='m',
+                      remappings=(('action', 'cmd_safe'),), parameters=(('dt', 0.01),))
+    params_file = str(REPO / 'config' / 'unicycle.yaml')
+    args = ros_arguments(entry, params_file=params_file, overrides={'dt': 0.05, 'seed': 3})
+    parsed = parse_ros_arguments(args)
+    assert parsed.node_name == 'sim' and parsed.params_files == (params_file,)
+    assert [(r.match, r.replacement) for r in parsed.remaps] == [('action', 'cmd_safe')]
+    # The command-line override wins over the entry's, and both over the file.
+    params = parameter_overrides([parsed], 'sim', '/sim')
+    assert params['dt'] == 0.05 and params['seed'] == 3 and params['system'] == 'unicycle'
+
+
+def test_child_commands_and_environment():
+    setup = launch_setup('unicycle_filter')
+    children = launch_local.child_commands(
+        setup, params_file='p.yaml', overrides={'simulator': {'max_episodes': 1}},
+        without=['recorder'], python='py')
+    assert [c.name for c in children] == ['simulator', 'safety_filter', 'nominal_controller']
+    sim = children[0]
+    assert sim.command[:3] == ('py', '-m', 'sim_nodes.simulator_node')
+    assert parse_ros_arguments(sim.command).parameters == {'max_episodes': 1}
+    with pytest.raises(ValueError, match="no node 'planner'"):
+        launch_local.child_commands(setup, params_file='p.yaml', without=['planner'])
+    env = launch_local.child_environment({'CYCLONEDDS_URI': '<remote/>', 'PATH': '/bin'},
+                                         domain_id=42)
+    assert env['CYCLONEDDS_URI'] == LOOPBACK_CYCLONEDDS_URI and env['ROS_DOMAIN_ID'] == '42'
+    assert env['PATH'] == '/bin' and str(REPO) in env['PYTHONPATH'].split(':')
+    with pytest.raises(ValueError, match='domain_id'):
+        launch_local.child_environment({}, domain_id=300)
+
+
+# --- ros2 launch file --------------------------------------------------------------------------
+
+def test_launch_file_parses_and_reads_the_table():
+    tree = ast.parse(LAUNCH_FILE.read_text(), filename=str(LAUNCH_FILE))
+    functions = {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
+    assert 'generate_launch_description' in functions
+    imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    assert {'launch', 'launch_ros.actions', 'rcbf_ros.launch_table'} <= imported
+    names = [n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)]
+    assert 'unicycle_filter' in names and 'unicycle_filter' in LAUNCHES
+
+
+class _Recorded:
+    """Stands in for a launch action class: records its constructor arguments."""
+
+    def __init__(self, *args, **kwargs):
+        self.args, self.kwargs = args, kwargs
+
+
+def test_launch_description_has_one_node_per_table_entry(monkeypatch):
+    # ROS 2's launch packages are not installable here; give the file recording stand-ins for
+    # them and check what it builds against the table.
+    kinds = {}
+    for name in ('LaunchDescription', 'DeclareLaunchArgument', 'Shutdown', 'LaunchConfiguration',
+                 'Node'):
+        kinds[name] = type(name, (_Recorded,), {})
+    modules = {
+        'launch': {'LaunchDescription': kinds['LaunchDescription']},
+        'launch.actions': {'DeclareLaunchArgument': kinds['DeclareLaunchArgument'],
+                           'Shutdown': kinds['Shutdown']},
+        'launch.substitutions': {'LaunchConfiguration': kinds['LaunchConfiguration']},
+        'launch_ros': {}, 'launch_ros.actions': {'Node': kinds['Node']},
+        'ament_index_python': {},
+        'ament_index_python.packages': {'get_package_share_directory': lambda p: f'/share/{p}'},
+    }
+    for module_name, attributes in modules.items():
+        module = types.ModuleType(module_name)
+        module.__dict__.update(attributes)
+        monkeypatch.setitem(sys.modules, module_name, module)
+    namespace: dict = {'__name__': 'launch_file'}
+    exec(compile(LAUNCH_FILE.read_text(), str(LAUNCH_FILE), 'exec'), namespace)
+    description = namespace['generate_launch_description']()
+    actions = description.args[0]
+    argument = actions[0]
+    assert argument.args[0] == 'params_file'
+    assert argument.kwargs['default_value'] == '/share/rcbf_ros/config/unicycle.yaml'
+    nodes = [a for a in actions if isinstance(a, kinds['Node'])]
+    setup = launch_setup('unicycle_filter')
+    assert len(nodes) == len(setup.nodes)
+    for node, entry in zip(nodes, setup.nodes):
+        assert node.kwargs['package'] == 'rcbf_ros'
+        assert node.kwargs['executable'] == entry.executable
+        assert node.kwargs['name'] == entry.name
+        assert node.kwargs['remappings'] == list(entry.remappings)
+        assert isinstance(node.kwargs['parameters'][0], kinds['LaunchConfiguration'])
+        assert isinstance(node.kwargs['on_exit'], kinds['Shutdown']) == entry.ends_launch
+
+
+# --- local launcher: real processes ------------------------------------------------------------
+
+def _python(code: str) -> tuple[str, ...]:
+    return (sys.executable, '-c', textwrap.dedent(code))
+
+
+def _ready_then(tmp_path: Path, name: str, body: str) -> tuple[str, ...]:
+    """A child that installs its signal handling, says so with a file, then runs ``body``."""
+    return _python(f"""
+        import pathlib, signal, sys, time
+        {body.split('#handlers:')[0].strip()}
+        pathlib.Path({str(tmp_path / name)!r}).touch()
+        {body.split('#handlers:')[1].strip() if '#handlers:' in body else ''}
+    """)
+
+
+def _wait_for(tmp_path: Path, names: list[str], then: str) -> tuple[str, ...]:
+    paths = [str(tmp_path / n) for n in names]
+    return _python(f"""
+        import os, sys, time
+        while not all(os.path.exists(p) for p in {paths!r}):
+            time.sleep(0.01)
+        print('done waiting', flush=True)
+        {then}
+    """)
+
+
+def _run(children, **kwargs):
+    sink = io.StringIO()
+    env = launch_local.child_environment(dict(__import__('os').environ), domain_id=0)
+    outcome = launch_local.run_processes(children, env=env, sink=sink, sigint_timeout_s=1.0,
+                                         sigterm_timeout_s=1.0, **kwargs)
+    return outcome, sink.getvalue()
+
+
+SLEEPER = 'pass\n#handlers:\ntime.sleep(60)'
+IGNORES_SIGINT = 'signal.signal(signal.SIGINT, signal.SIG_IGN)\n#handlers:\ntime.sleep(60)'
+IGNORES_BOTH = ('signal.signal(signal.SIGINT, signal.SIG_IGN); '
+                'signal.signal(signal.SIGTERM, signal.SIG_IGN)\n#handlers:\ntime.sleep(60)')
+EXITS_ON_SIGINT = ('signal.signal(signal.SIGINT, lambda *a: sys.exit(0))\n#handlers:\n'
+                   'time.sleep(60)')
+
+
+def test_designated_exit_stops_everyone_with_escalation_and_prefixed_output(tmp_path):
+    children = [
+        launch_local.ChildSpec('polite', _ready_then(tmp_path, 'polite', EXITS_ON_SIGINT)),
+        launch_local.ChildSpec('stubborn', _ready_then(tmp_path, 'stubborn', IGNORES_SIGINT)),
+        launch_local.ChildSpec('sim', _wait_for(tmp_path, ['polite', 'stubborn'], 'sys.exit(0)'),
+                               ends_launch=True),
+    ]
+    outcome, output = _run(children)
+    assert outcome.reason == 'sim exited (0)'
+    assert outcome.escalations == {'polite': 'SIGINT', 'stubborn': 'SIGTERM'}
+    assert outcome.returncodes == {'sim': 0, 'polite': 0, 'stubborn': -signal.SIGTERM}
+    assert outcome.exit_code == 0 and not outcome.failed
+    assert '[sim] done waiting' in output
+
+
+def test_required_failure_fails_the_launch(tmp_path):
+    children = [
+        launch_local.ChildSpec('filter', _ready_then(tmp_path, 'filter', SLEEPER)),
+        launch_local.ChildSpec('broken', _wait_for(tmp_path, ['filter'], 'sys.exit(3)')),
+    ]
+    outcome, output = _run(children)
+    assert outcome.exit_code == 1 and outcome.failed == ['broken']
+    assert outcome.returncodes['broken'] == 3 and outcome.escalations == {'filter': 'SIGINT'}
+    assert '[launch] broken failed: exited with 3' in output
+
+
+def test_optional_failure_does_not_fail_the_launch_and_a_kill_does(tmp_path):
+    children = [
+        launch_local.ChildSpec('recorder', _python('import sys; sys.exit(4)'), required=False),
+        launch_local.ChildSpec('deaf', _ready_then(tmp_path, 'deaf', IGNORES_BOTH)),
+        launch_local.ChildSpec('sim', _wait_for(tmp_path, ['deaf'], 'time.sleep(0.2)'),
+                               ends_launch=True),
+    ]
+    outcome, output = _run(children)
+    assert outcome.returncodes['recorder'] == 4
+    assert outcome.escalations['deaf'] == 'SIGKILL' and outcome.failed == ['deaf']
+    assert outcome.exit_code == 1 and 'did not stop' in output
+
+
+def test_stop_event_stops_the_launch(tmp_path):
+    stop = threading.Event()
+    children = [launch_local.ChildSpec('node', _ready_then(tmp_path, 'node', SLEEPER))]
+    timer = threading.Thread(target=lambda: (_wait_file(tmp_path / 'node'), stop.set()))
+    timer.start()
+    outcome, _ = _run(children, stop_event=stop)
+    timer.join()
+    assert outcome.reason == 'stop requested' and outcome.exit_code == 0
+    assert outcome.returncodes['node'] == -signal.SIGINT  # Python's default: KeyboardInterrupt
+
+
+def _wait_file(path: Path) -> None:
+    import time
+    while not path.exists():
+        time.sleep(0.01)
+
+
+def test_main_prints_commands_and_rejects_unknown_nodes(capsys):
+    assert launch_local.main(['unicycle_filter', '--print', '-p', 'simulator:seed:=4',
+                              '--domain-id', '5']) == 0
+    out = capsys.readouterr().out
+    assert 'simulator: ' in out and '-p seed:=4' in out and '-r action:=cmd_safe' in out
+    assert launch_local.main(['unicycle_filter', '--print', '-p', 'planner:x:=1']) == 2
+    with pytest.raises(SystemExit):
+        launch_local.main(['unicycle_filter', '-p', 'no_equals_sign'])
