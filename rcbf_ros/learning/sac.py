@@ -25,7 +25,8 @@ learns the correction the filter would otherwise have to make; SAC is trained on
 
 The safety layer is injected: any callable ``safety_layer(state: (B, n_x), u_rl: (B, n_u)) ->
 u_safe: (B, n_u)`` that is differentiable in ``u_rl`` (the RCBF-QP layer); only ``diff``
-needs it.
+needs it. It receives tensors in the agent's dtype (float32 by default) and may compute in
+float64 internally; its output is cast back to the agent's dtype.
 """
 from __future__ import annotations
 
