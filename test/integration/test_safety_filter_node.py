@@ -1,0 +1,336 @@
+"""The safety_filter node as a separate process over real Cyclone DDS (loopback).
+
+- bad input: NaN / wrong-length proposals, no state yet, a stale state -> the fail-safe command
+  and an ERROR diagnostic naming the reason; a good proposal then passes through the QP;
+- the node behind a remapped proposal topic, and in Twist mode;
+- invalid parameters: the process exits with status 2 and names the key;
+- closed loop (slow): simulator + deliberately unsafe nominal controller + safety_filter
+  (+ recorder) started by rcbf_ros_launch, >= 2000 lock-step steps into the obstacles: zero
+  violations of any true clearance h_i, and u_safe == u_RL wherever no row is active.
+"""
+from __future__ import annotations
+
+import collections
+import json
+import os
+from pathlib import Path
+import subprocess
+import sys
+import threading
+import time
+from typing import Any, Callable
+
+import numpy as np
+import pytest
+
+from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.params import find_config, load_params
+from rcbf_ros.ros.loopback import ensure_loopback
+
+REPO = Path(__file__).resolve().parents[2]
+UNICYCLE = str(REPO / 'config' / 'unicycle.yaml')
+WAIT_S = 60.0
+
+pytestmark = pytest.mark.integration
+
+
+def _env(domain_id: int) -> dict[str, str]:
+    env = dict(os.environ)
+    ensure_loopback(env, force=True)
+    env['ROS_DOMAIN_ID'] = str(domain_id)
+    env['RCBF_ROS_RUNTIME'] = 'cyclone'
+    env['PYTHONUNBUFFERED'] = '1'
+    env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(REPO), env.get('PYTHONPATH')]))
+    return env
+
+
+def _start_filter(domain_id: int, *ros_args: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, '-m', 'rcbf_ros.ros.safety_filter_node', '--ros-args',
+         '--params-file', UNICYCLE, *ros_args],
+        env=_env(domain_id), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+
+
+def _stop(process: subprocess.Popen) -> str:
+    if process.poll() is None:
+        process.send_signal(2)
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+    return process.stdout.read().decode(errors='replace')
+
+
+def _level(status: Any) -> int:
+    level = status.level
+    return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
+
+
+class Probe:
+    """An in-process node of the test: publishes, and collects what arrives, in a spin thread."""
+
+    def __init__(self, domain_id: int) -> None:
+        from rcbf_ros.ros.runtime import Node, rclpy
+        rclpy.init(args=[], domain_id=domain_id)
+        self.rclpy = rclpy
+        self.node = Node('probe')
+        self.received: dict[str, list] = collections.defaultdict(list)
+        self.lock = threading.Lock()
+        self._running = True
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+
+    def qos(self, depth: int = 1000):
+        from rcbf_ros.ros.runtime import QoSProfile
+        return QoSProfile(depth=depth)
+
+    def subscribe(self, type_name: str, topic: str,
+                  convert: Callable[[Any], Any] = lambda m: m) -> None:
+        from rcbf_ros.ros.runtime import get_message
+
+        def store(msg: Any) -> None:
+            item = (time.monotonic(), convert(msg))
+            with self.lock:
+                self.received[topic].append(item)
+        self.node.create_subscription(get_message(type_name), topic, store, self.qos())
+
+    def publisher(self, type_name: str, topic: str):
+        from rcbf_ros.ros.runtime import get_message
+        return self.node.create_publisher(get_message(type_name), topic, self.qos(10))
+
+    def start(self) -> Probe:
+        self._thread.start()
+        return self
+
+    def _spin(self) -> None:
+        while self._running and self.rclpy.ok():
+            self.rclpy.spin_once(self.node, timeout_sec=0.05)
+
+    def count(self, topic: str) -> int:
+        with self.lock:
+            return len(self.received[topic])
+
+    def wait_for(self, topic: str, count: int, timeout_s: float = WAIT_S) -> list:
+        deadline = time.monotonic() + timeout_s
+        while self.count(topic) < count:
+            if time.monotonic() > deadline:
+                raise AssertionError(f'{topic}: {self.count(topic)} of {count} messages '
+                                     f'within {timeout_s} s')
+            time.sleep(0.01)
+        with self.lock:
+            return [item for _, item in self.received[topic]]
+
+    def close(self) -> None:
+        self._running = False
+        self._thread.join(timeout=5)
+        self.node.destroy_node()
+        self.rclpy.try_shutdown()
+
+
+def _wait_matched(publisher: Any, process: subprocess.Popen) -> None:
+    deadline = time.monotonic() + WAIT_S
+    while publisher.get_subscription_count() == 0:
+        assert process.poll() is None, _stop(process)
+        assert time.monotonic() < deadline, 'the safety_filter never subscribed'
+        time.sleep(0.02)
+
+
+def _sections(msg: Any) -> dict[str, np.ndarray]:
+    from rcbf_ros.ros.conversions import msg_to_sections
+    return {k: v.copy() for k, v in msg_to_sections(msg).items()}
+
+
+def _diagnostic(msg: Any) -> tuple[int, str, dict[str, str]]:
+    status = msg.status[0]
+    return _level(status), status.message, {kv.key: kv.value for kv in status.values}
+
+
+@pytest.fixture
+def probe(ros_domain_id):
+    instance = Probe(ros_domain_id)
+    yield instance
+    instance.close()
+
+
+def test_bad_input_yields_fail_safe_and_error_diagnostics(ros_domain_id, probe):
+    from rcbf_ros.ros.conversions import sections_to_msg
+    process = _start_filter(ros_domain_id, '-r', 'cmd_proposed:=/my_controller/cmd',
+                            '-p', 'max_state_age_s:=0.3', '-p', 'fail_safe_action:=[0.0, 0.5]')
+    try:
+        probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
+        probe.subscribe('diagnostic_msgs/msg/DiagnosticArray', '/diagnostics', _diagnostic)
+        state_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/state')
+        proposal_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/my_controller/cmd')
+        probe.start()
+        _wait_matched(proposal_pub, process)
+        _wait_matched(state_pub, process)
+        unsafe = {'u': [2.5, 0.0]}  # full speed at the centre obstacle from 0.25 m
+        sent = []
+
+        def propose(sections: dict, expect: int) -> None:
+            proposal_pub.publish(sections_to_msg(sections))
+            sent.append(sections)
+            probe.wait_for('/cmd_safe', expect)
+            probe.wait_for('/diagnostics', expect)
+
+        propose(unsafe, 1)                                            # 1: no state yet
+        state_pub.publish(sections_to_msg({'state': [-0.85, 0.0, 0.0]}))
+        time.sleep(0.05)
+        propose(unsafe, 2)                                            # 2: filtered
+        propose({'u': [float('nan'), 0.0]}, 3)                        # 3: NaN
+        propose({'u': [1.0, 0.0, 0.0]}, 4)                            # 4: wrong length
+        propose({'u': [0.1, 0.0], 'state': [0.0, 0.0]}, 5)            # 5: short state
+        state_pub.publish(sections_to_msg({'state': [np.inf, 0.0, 0.0]}))
+        time.sleep(0.05)
+        propose(unsafe, 6)                                            # 6: bad state
+        state_pub.publish(sections_to_msg({'state': [-0.85, 0.0, 0.0]}))
+        time.sleep(0.6)
+        propose(unsafe, 7)                                            # 7: stale (> 0.3 s)
+        commands = probe.wait_for('/cmd_safe', 7)
+        diagnostics = probe.wait_for('/diagnostics', 7)
+    finally:
+        output = _stop(process)
+
+    fail_safe = [0.0, 0.5]
+    expected_reasons = {0: 'no state received yet', 2: 'bad proposal: u: contains NaN',
+                        3: 'bad proposal: u: expected 2 values',
+                        4: 'bad proposal: state: expected 3 values',
+                        5: 'bad state: state: contains NaN', 6: 'stale state'}
+    for index, reason in expected_reasons.items():
+        level, message, values = diagnostics[index]
+        assert level == 2 and message.startswith(reason), (index, message)
+        assert values['fail_safe'] == 'True' and values['reason'].startswith(reason)
+        assert values['status'] == 'not solved'
+        np.testing.assert_array_equal(commands[index]['u'], fail_safe)
+    # The good proposal went through the QP: slowed down, and diagnosed by barrier name.
+    level, message, values = diagnostics[1]
+    assert level == 0 and message == 'filtering' and values['fail_safe'] == 'False'
+    assert 0.0 < commands[1]['u'][0] < 2.5
+    np.testing.assert_array_equal(commands[1]['u_rl'], [2.5, 0.0])
+    np.testing.assert_allclose(commands[1]['u_s'], commands[1]['u'] - [2.5, 0.0])
+    names = load_params(find_config('unicycle'), 'safety_filter')
+    config = filter_config_from_params(names)
+    for name in config.problem.barrier_names:
+        assert float(values[f'h.{name}']) == float(values[f'h.{name}'])  # a number, not nan
+    assert float(values['h.obstacle_0']) == pytest.approx(0.82 ** 2 - 0.7 ** 2)
+    assert float(values['solve_time_s']) > 0
+    # The log says why, throttled per reason.
+    assert 'fail-safe: no state received yet' in output
+    assert 'fail-safe: bad proposal: u: contains NaN' in output
+    assert 'fail-safe: stale state' in output
+
+
+def test_twist_mode(ros_domain_id, probe):
+    from rcbf_ros.ros.conversions import array_to_twist, sections_to_msg, twist_to_array
+    fields = ['linear.x', 'angular.z']
+    process = _start_filter(ros_domain_id, '-p', 'command_type:=twist')
+    try:
+        probe.subscribe('geometry_msgs/msg/Twist', '/cmd_safe',
+                        lambda m: twist_to_array(m, fields))
+        state_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/state')
+        proposal_pub = probe.publisher('geometry_msgs/msg/Twist', '/cmd_proposed')
+        probe.start()
+        _wait_matched(proposal_pub, process)
+        _wait_matched(state_pub, process)
+        state_pub.publish(sections_to_msg({'state': [-2.5, -2.5, -0.75 * np.pi]}))
+        time.sleep(0.05)
+        proposal_pub.publish(array_to_twist([1.0, 0.3], fields))      # free: passes through
+        probe.wait_for('/cmd_safe', 1)
+        state_pub.publish(sections_to_msg({'state': [-0.85, 0.0, 0.0]}))
+        time.sleep(0.05)
+        proposal_pub.publish(array_to_twist([2.5, 0.0], fields))      # slowed down
+        commands = probe.wait_for('/cmd_safe', 2)
+    finally:
+        _stop(process)
+    np.testing.assert_array_equal(commands[0], [1.0, 0.3])
+    assert 0.0 < commands[1][0] < 2.5
+
+
+@pytest.mark.parametrize('args, key', [
+    (('-p', 'max_state_age_s:=-1.0'), 'max_state_age_s'),
+    (('-p', 'alpha:=-2.0'), 'alpha'),
+    (('-p', 'command_type:=twist', '-p', "twist_fields:=['linear.x']"), 'twist_fields'),
+])
+def test_invalid_parameters_exit_2_naming_the_key(ros_domain_id, args, key):
+    process = _start_filter(ros_domain_id, *args)
+    try:
+        code = process.wait(timeout=WAIT_S)
+    finally:
+        output = _stop(process)
+    assert code == 2, output
+    assert f'invalid parameters: {key}' in output
+
+
+# --- closed loop --------------------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_unsafe_controller_behind_the_filter_never_violates(ros_domain_id, probe, tmp_path):
+    from rcbf_ros.ros.conversions import msg_to_sections
+    episodes, max_steps = 3, 800
+    bag = tmp_path / 'bag'
+    nodes = ['simulator', 'safety_filter', 'nominal_controller']
+    recorder = (REPO / 'rcbf_ros' / 'ros' / 'recorder_node.py').exists()
+    command = [sys.executable, '-m', 'rcbf_ros.launch_local', 'unicycle_filter',
+               '--domain-id', str(ros_domain_id),
+               '-p', f'simulator:max_episodes:={episodes}',
+               '-p', f'simulator:max_steps:={max_steps}',
+               '-p', 'simulator:random_start:=true']
+    if recorder:
+        command += ['-p', f'recorder:output:={bag}']
+    else:
+        command += ['--without', 'recorder']
+    probe.subscribe('std_msgs/msg/Float64MultiArray', '/state',
+                    lambda m: msg_to_sections(m)['state'].copy())
+    probe.subscribe('std_msgs/msg/Float64MultiArray', '/h_true',
+                    lambda m: msg_to_sections(m)['h_true'].copy())
+    probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
+    probe.subscribe('std_msgs/msg/String', '/episode', lambda m: json.loads(m.data))
+    probe.start()
+    launch = subprocess.run(command, env=_env(ros_domain_id), cwd=REPO, capture_output=True,
+                            text=True, timeout=1200)
+    output = launch.stdout + launch.stderr
+    assert launch.returncode == 0, output[-4000:]
+    for node in nodes:
+        assert f'[{node}]' in output
+
+    events = [e for _, e in probe.received['/episode']]
+    ends = [e for e in events if e['event'] == 'end']
+    assert len(ends) == episodes, events
+    steps = sum(e['steps'] for e in ends)
+    assert steps >= 2000
+    assert all(e['violations'] == 0 for e in ends), ends
+    h_true = np.array([h for _, h in probe.received['/h_true']])
+    assert len(h_true) >= steps and h_true.min() >= 0.0
+
+    # u_safe == u_RL wherever no row is active at u_RL (rows from the state the filter saw).
+    params = load_params(find_config('unicycle'), 'safety_filter')
+    problem = filter_config_from_params(params).problem
+    import torch
+    states = probe.received['/state']
+    commands = probe.received['/cmd_safe']
+    assert len(commands) >= steps
+    passive = active = 0
+    state_index = 0
+    lo, hi = np.array(problem.system.u_min), np.array(problem.system.u_max)
+    for arrival, command_sections in commands:
+        while state_index + 1 < len(states) and states[state_index + 1][0] <= arrival:
+            state_index += 1
+        x = states[state_index][1]
+        u_rl, u_safe = command_sections['u_rl'], command_sections['u']
+        terms = problem.terms(torch.from_numpy(x).unsqueeze(0))
+        rows = (terms.lf_h[0].numpy() + terms.lg_h[0].numpy() @ u_rl
+                + problem.alpha * terms.h[0].numpy())
+        if np.all(rows > 1e-6) and np.all(u_rl < hi) and np.all(u_rl > lo):
+            np.testing.assert_allclose(u_safe, u_rl, rtol=0, atol=1e-9)
+            passive += 1
+        else:
+            active += 1
+    assert passive > 100 and active > 100, (passive, active)
+
+    if recorder:
+        from rosbags.highlevel import AnyReader
+        with AnyReader([bag]) as reader:
+            connections = [c for c in reader.connections if c.topic == '/h_true']
+            bag_h = [reader.deserialize(raw, c.msgtype).data
+                     for c, _, raw in reader.messages(connections=connections)]
+        assert len(bag_h) >= steps and min(float(np.min(h)) for h in bag_h) >= 0.0
