@@ -110,8 +110,8 @@ def bench(system_name: str, params: dict, calls: int):
         t0 = time.perf_counter()
         solver = osqp.OSQP()
         solver.setup(P=P, q=qp.q[0].numpy(), A=A, l=np.full(A.shape[0], -np.inf),
-                     u=qp.h[0].numpy(), verbose=False, polish=False, eps_abs=1e-9, eps_rel=1e-9)
-        out = solver.solve()
+                     u=qp.h[0].numpy(), verbose=False, polishing=False, eps_abs=1e-9, eps_rel=1e-9)
+        out = solver.solve(raise_error=False)
         setup_every.append(time.perf_counter() - t0)
         z_setup.append(out.x[:-1])
     layer = QPFunction(verbose=-1, eps=1e-10, maxIter=50)

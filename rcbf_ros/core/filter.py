@@ -26,6 +26,8 @@ import torch
 from rcbf_ros.core.rcbf import RCBFProblem
 
 _OK_STATUS = {1: 'solved', 2: 'solved_inaccurate'}
+ACTIVE_TOLERANCE = 1e-7
+"""|u_S| above this counts as the filter acting."""
 
 
 @dataclass(frozen=True)
@@ -56,8 +58,9 @@ class FilterResult:
 
     @property
     def active(self) -> bool:
-        """Whether the filter changed the proposal."""
-        return bool(np.any(self.u_s != 0.0)) or self.fail_safe
+        """Whether the filter changed the proposal by more than the solver's tolerance (1e-7;
+        an inactive QP can return |u_S| ~ 1e-12 depending on the warm start)."""
+        return bool(np.any(np.abs(self.u_s) > ACTIVE_TOLERANCE)) or self.fail_safe
 
 
 def _vector(name: str, value: object, size: int) -> np.ndarray:
@@ -123,7 +126,7 @@ class SafetyFilter:
         diag[-1] = 2.0 * problem.slack_weight
         self._solver = osqp.OSQP()
         self._solver.setup(P=sp.csc_matrix(np.diag(diag)), q=np.zeros(nz), A=a_matrix,
-                           l=np.full(nc, -np.inf), u=np.ones(nc), verbose=False, polish=polish,
+                           l=np.full(nc, -np.inf), u=np.ones(nc), verbose=False, polishing=polish,
                            eps_abs=eps_abs, eps_rel=eps_rel, max_iter=max_iter,
                            warm_starting=True)
         self._nc = nc
@@ -162,7 +165,7 @@ class SafetyFilter:
 
         solve_start = time.perf_counter()
         self._solver.update(Ax=g_matrix[self._rows, self._cols], u=upper)
-        result = self._solver.solve()
+        result = self._solver.solve(raise_error=False)
         solve_time = time.perf_counter() - solve_start
 
         status_val = int(result.info.status_val)

@@ -70,6 +70,9 @@ class LearnerConfig:
     """k: model steps per rollout."""
     model_ratio: float = 0.5
     """Fraction of each minibatch drawn from the model buffer (model-based only)."""
+    policy_bound: float = 10.0
+    """|u_RL| <= policy_bound for systems without actuator limits (SAC needs a box; the
+    filter's correction is not limited by it)."""
     sac: SACConfig = field(default_factory=SACConfig)
     """SAC hyperparameters (its mode is overwritten by ``mode``)."""
 
@@ -82,6 +85,8 @@ class LearnerConfig:
                      'rollout_interval', 'rollouts', 'rollout_horizon', 'gp_max_points'):
             if getattr(self, name) < 1:
                 raise ValueError(f'{name}: must be >= 1')
+        if not self.policy_bound > 0:
+            raise ValueError('policy_bound: must be > 0')
         if not 0.0 <= self.model_ratio <= 1.0:
             raise ValueError('model_ratio: must be in [0, 1]')
 
@@ -123,10 +128,12 @@ class SafeLearner:
         self.system = problem.system
         self.dt = float(dt)
         n_x, n_u = self.system.n_x, self.system.n_u
-        if self.system.u_min is None:
-            raise ValueError('input_limits: SAC needs a bounded action box')
-        self.u_low = np.asarray(self.system.u_min, dtype=np.float64)
-        self.u_high = np.asarray(self.system.u_max, dtype=np.float64)
+        if self.system.u_min is None or self.system.u_max is None:
+            self.u_low = np.full(n_u, -cfg.policy_bound)
+            self.u_high = np.full(n_u, cfg.policy_bound)
+        else:
+            self.u_low = np.asarray(self.system.u_min, dtype=np.float64)
+            self.u_high = np.asarray(self.system.u_max, dtype=np.float64)
         self.gp = DisturbanceGP(n_x, n_x, GPConfig(max_train_points=cfg.gp_max_points,
                                                    prior_std=cfg.gp_prior_std, seed=cfg.seed))
         self.safety_layer = DifferentiableSafetyLayer(problem, self.disturbance)

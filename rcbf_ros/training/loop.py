@@ -105,9 +105,9 @@ def _any_barrier(params: dict[str, Any]) -> dict[str, Any]:
 
 
 def model_functions(system: str, env: Any) -> tuple[Callable, Callable] | None:
-    """(reward_fn, obs_fn) in torch for model-based rollouts, when the env provides them."""
-    fns = getattr(env, 'model_functions', None)
-    return fns() if callable(fns) else None
+    """(reward_fn, obs_fn) in torch for model-based rollouts (None: not available)."""
+    from rcbf_ros.training.models import MODELS
+    return MODELS[system](env) if system in MODELS else None
 
 
 # --------------------------------------------------------------------------- recording
@@ -204,7 +204,7 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
         next_obs, reward, terminated, truncated, info = env.step(u_safe)
         next_state = info['state']
         if train:
-            learner.observe(obs=obs, state=state, u_rl=proposal.u_proposed, u_safe=u_safe,
+            learner.observe(obs=obs, state=state, u_rl=proposal.u_rl, u_safe=u_safe,
                             reward=reward, next_obs=next_obs, next_state=next_state,
                             terminated=terminated)
             learner.after_step()
@@ -276,7 +276,8 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
     finally:
         save_checkpoint()
         torch.save({'actor': learner.sac.actor.state_dict(), 'obs_dim': learner.sac.obs_dim,
-                    'n_u': learner.sac.n_u, 'u_low': learner.u_low, 'u_high': learner.u_high,
+                    'n_u': learner.sac.n_u, 'u_low': learner.u_low.tolist(),
+                    'u_high': learner.u_high.tolist(),
                     'hidden_sizes': learner.sac.config.hidden_sizes, 'system': run.system},
                    out / 'policy.pt')
         if recorder is not None:

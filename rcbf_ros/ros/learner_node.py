@@ -1,0 +1,241 @@
+"""``learner`` node: SAC-RCBF training against the simulator and safety_filter nodes.
+
+Thin wrapper around :class:`rcbf_ros.training.agent.SafeLearner` (the same class the in-process
+trainer drives). Lock-step protocol with the simulator:
+
+- ``sim/step`` (Float64MultiArray, sections ``state``, ``observation``, ``reward``,
+  ``terminated``, ``truncated``, ``violation``, ``goal_reached``, ``episode``, ``step``): one
+  message per plant step; ``reward`` is the reward of the transition INTO this state.
+- the learner answers a non-terminal step with ``cmd_proposed`` (sections ``u``,
+  ``disturbance_mean``, ``disturbance_std``, ``state``) for the safety_filter;
+- ``cmd_safe`` (from the filter: ``u`` = u*) is what the plant applies; the learner keeps it
+  for the transition it completes when the next ``sim/step`` arrives.
+
+Per episode it logs a progress line, appends to ``<out_dir>/metrics.jsonl`` and publishes the
+line as JSON on ``learner/metrics`` (so the run's MCAP holds it); checkpoints every
+``checkpoint_every`` episodes and on exit (Ctrl-C/SIGTERM included); after ``episodes`` it
+writes policy.pt, the reward curve and a summary, and shuts down.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import json
+from pathlib import Path
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
+from rcbf_ros.ros.runtime import ExternalShutdownException, get_message, Node, QoSProfile, rclpy
+from rcbf_ros.training.agent import LearnerConfig, SafeLearner
+
+PARAMETERS: dict[str, Any] = {
+    'system': 'unicycle', 'mode': 'modular', 'model_based': False, 'seed': 0,
+    'episodes': 10, 'out_dir': 'bags/learner_run', 'dt': 0.02, 'start_steps': 1000,
+    'update_after': 500, 'batch_size': 256, 'gp_refit_interval': 1000,
+    'checkpoint_every': 5, 'resume': False, 'k_c': 2.0,
+}
+
+
+@dataclass
+class EpisodeTally:
+    """Running numbers of the current episode."""
+
+    episode: int = 0
+    ret: float = 0.0
+    steps: int = 0
+    violations: int = 0
+    max_slack: float = 0.0
+    goal_reached: bool = False
+    started: float = field(default_factory=time.perf_counter)
+
+
+class LearnerNode(Node):
+    """See module docstring."""
+
+    def __init__(self) -> None:
+        super().__init__('learner', automatically_declare_parameters_from_overrides=True)
+        for name, default in PARAMETERS.items():
+            if not self.has_parameter(name):
+                self.declare_parameter(name, default)
+        self.settings = {name: self.get_parameter(name).value for name in PARAMETERS}
+        # The safety problem's keys (system, obstacles.*, gains) come from the params file.
+        self.filter_params = self._declared_filter_params()
+        self.out_dir = Path(str(self.settings['out_dir']))
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.learner: SafeLearner | None = None
+        self.pending: dict[str, np.ndarray] | None = None
+        self.safe_action: np.ndarray | None = None
+        self.tally = EpisodeTally()
+        self.history: list[dict[str, Any]] = []
+        self.episodes_done = 0
+        qos = QoSProfile(depth=10)
+        self.proposal_pub = self.create_publisher(
+            get_message('std_msgs/msg/Float64MultiArray'), 'cmd_proposed', qos)
+        self.metrics_pub = self.create_publisher(
+            get_message('std_msgs/msg/String'), 'learner/metrics', qos)
+        self.create_subscription(get_message('std_msgs/msg/Float64MultiArray'), 'sim/step',
+                                 self.on_step, qos)
+        self.create_subscription(get_message('std_msgs/msg/Float64MultiArray'), 'cmd_safe',
+                                 self.on_safe, qos)
+        self.get_logger().info(
+            f"learner: {self.settings['mode']} on {self.settings['system']}, "
+            f"{self.settings['episodes']} episodes -> {self.out_dir}")
+
+    def _declared_filter_params(self) -> dict[str, Any]:
+        """Every parameter given to this node (params file / -p), flat, for the RCBF problem."""
+        params = {name: p.value for name, p in self.get_parameters_by_prefix('').items()}
+        params['system'] = self.settings['system']
+        return params
+
+    # ----------------------------------------------------------------- callbacks
+    def on_safe(self, msg: Any) -> None:
+        try:
+            self.safe_action = msg_to_sections(msg, default_label='u')['u']
+        except (KeyError, ValueError) as exc:
+            self.get_logger().error(f'cmd_safe: {exc}')
+
+    def on_step(self, msg: Any) -> None:
+        try:
+            sections = msg_to_sections(msg)
+            state, obs = sections['state'], sections['observation']
+        except (KeyError, ValueError) as exc:
+            self.get_logger().error(f'sim/step: {exc}')
+            return
+        if self.learner is None:
+            self.learner = self._build_learner(obs_dim=obs.size)
+        flag = lambda key: bool(sections.get(key, np.zeros(1))[0] > 0.5)  # noqa: E731
+        terminated, truncated = flag('terminated'), flag('truncated')
+        if int(sections.get('step', np.zeros(1))[0]) == 0:
+            self.pending = None
+            self.tally = EpisodeTally(episode=self.episodes_done)
+        if self.pending is not None:
+            if self.safe_action is None:
+                self.get_logger().warning('sim/step arrived before cmd_safe; transition dropped')
+            else:
+                reward = float(sections.get('reward', np.zeros(1))[0])
+                self.learner.observe(obs=self.pending['obs'], state=self.pending['state'],
+                                     u_rl=self.pending['u_rl'], u_safe=self.safe_action,
+                                     reward=reward, next_obs=obs, next_state=state,
+                                     terminated=terminated)
+                self.learner.after_step()
+                self.tally.ret += reward
+                self.tally.steps += 1
+                self.tally.violations += int(flag('violation'))
+                self.tally.goal_reached |= flag('goal_reached')
+        self.pending = None
+        self.safe_action = None
+        if terminated or truncated:
+            self._end_episode()
+            return
+        proposal = self.learner.propose(obs, state)
+        self.pending = {'obs': obs, 'state': state, 'u_rl': proposal.u_rl}
+        self.proposal_pub.publish(sections_to_msg({
+            'u': proposal.u_proposed, 'disturbance_mean': proposal.disturbance_mean,
+            'disturbance_std': proposal.disturbance_std, 'state': state}))
+
+    # ----------------------------------------------------------------- bookkeeping
+    def _build_learner(self, obs_dim: int) -> SafeLearner:
+        s = self.settings
+        config = filter_config_from_params({**self.filter_params, 'k_c': s['k_c']})
+        learner_cfg = LearnerConfig(
+            mode=str(s['mode']), model_based=bool(s['model_based']), seed=int(s['seed']),
+            start_steps=int(s['start_steps']), update_after=int(s['update_after']),
+            batch_size=int(s['batch_size']), gp_refit_interval=int(s['gp_refit_interval']),
+            k_c=float(s['k_c']))
+        learner = SafeLearner(config.problem, obs_dim=obs_dim, dt=float(s['dt']),
+                              config=learner_cfg)
+        checkpoint = self.out_dir / 'checkpoint.pt'
+        if bool(s['resume']) and checkpoint.exists():
+            state = torch.load(checkpoint, weights_only=False)
+            learner.load_state_dict(state['learner'])
+            self.history = list(state['history'])
+            self.episodes_done = int(state['episode'])
+            self.get_logger().info(f'resumed at episode {self.episodes_done}')
+        return learner
+
+    def _end_episode(self) -> None:
+        t = self.tally
+        wall = time.perf_counter() - t.started
+        row = {'episode': t.episode, 'ret': t.ret, 'steps': t.steps,
+               'violations': t.violations, 'goal_reached': t.goal_reached,
+               'max_slack': t.max_slack, 'wall_s': wall,
+               'steps_per_s': t.steps / wall if wall > 0 else 0.0,
+               'env_steps': self.learner.env_steps if self.learner else 0}
+        self.history.append(row)
+        self.episodes_done += 1
+        with (self.out_dir / 'metrics.jsonl').open('a') as stream:
+            stream.write(json.dumps(row) + '\n')
+        msg = get_message('std_msgs/msg/String')()
+        msg.data = json.dumps(row)
+        self.metrics_pub.publish(msg)
+        self.get_logger().info(
+            f"episode {self.episodes_done:4d}/{self.settings['episodes']}  return "
+            f"{t.ret:9.3f}  steps {t.steps:5d}  violations {t.violations}  goal "
+            f"{'yes' if t.goal_reached else 'no '}  {row['steps_per_s']:6.1f} steps/s")
+        if self.episodes_done % int(self.settings['checkpoint_every']) == 0:
+            self.save_checkpoint()
+        if self.episodes_done >= int(self.settings['episodes']):
+            self.finish()
+            rclpy.shutdown()
+
+    def save_checkpoint(self) -> None:
+        if self.learner is None:
+            return
+        path = self.out_dir / 'checkpoint.pt'
+        torch.save({'learner': self.learner.state_dict(), 'episode': self.episodes_done,
+                    'history': self.history}, path.with_suffix('.tmp'))
+        path.with_suffix('.tmp').replace(path)
+
+    def finish(self) -> dict[str, Any]:
+        """Checkpoint, policy export, reward curve and summary.json; returns the summary."""
+        self.save_checkpoint()
+        summary: dict[str, Any] = {'episodes': len(self.history)}
+        if self.learner is not None:
+            sac = self.learner.sac
+            torch.save({'actor': sac.actor.state_dict(), 'obs_dim': sac.obs_dim, 'n_u': sac.n_u,
+                        'u_low': self.learner.u_low.tolist(),
+                        'u_high': self.learner.u_high.tolist(),
+                        'hidden_sizes': sac.config.hidden_sizes,
+                        'system': self.settings['system']}, self.out_dir / 'policy.pt')
+        if self.history:
+            from rcbf_ros.plots import plot_reward_curve
+            plot_reward_curve([r['ret'] for r in self.history],
+                              self.out_dir / 'reward_curve.png',
+                              title=f"{self.settings['system']} / {self.settings['mode']} "
+                                    '(nodes over DDS)')
+            steps = sum(r['steps'] for r in self.history)
+            wall = sum(r['wall_s'] for r in self.history)
+            summary.update({
+                'env_steps': steps, 'final_return': self.history[-1]['ret'],
+                'best_return': max(r['ret'] for r in self.history),
+                'goals_reached': sum(bool(r['goal_reached']) for r in self.history),
+                'safety_violations': sum(r['violations'] for r in self.history),
+                'steps_per_s': steps / wall if wall > 0 else 0.0,
+                'reward_curve': str(self.out_dir / 'reward_curve.png')})
+        (self.out_dir / 'summary.json').write_text(json.dumps(summary, indent=2))
+        return summary
+
+
+def main(args: list[str] | None = None) -> None:
+    torch.set_num_threads(1)
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = LearnerNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            if node.episodes_done < int(node.settings['episodes']):
+                node.finish()  # Ctrl-C / SIGTERM: keep what was learned
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
