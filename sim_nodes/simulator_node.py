@@ -1,0 +1,302 @@
+"""The ``simulator`` node: one of :mod:`rcbf_ros.envs` on topics, lock-step or real-time.
+
+Topics (names relative, remappable with ``-r``):
+
+- publishes ``state`` (std_msgs/Float64MultiArray, section ``state``: the QP state, n_x),
+  ``observation`` (section ``observation``), ``reward`` (std_msgs/Float64, after every step),
+  ``h_true`` (section ``h_true``: true signed clearances, names in the episode start event),
+  ``episode`` (std_msgs/String, one JSON object per event:
+  ``{"event": "start", "episode", "system", "seed", "layout_seed", "h_true_names", "n_x",
+  "n_u"}`` and ``{"event": "end", "episode", "return", "steps", "violations", "goal_reached",
+  "terminated", "truncated"}``);
+- subscribes ``cmd_safe`` (Float64MultiArray; its FIRST section is u, length n_u; an optional
+  section labelled ``state`` names the state the action answers, see lock-step below).
+
+Modes (parameter ``mode``):
+
+- ``lockstep``: publish the state, wait for one action, step, publish, ... The first state goes
+  out once something subscribes to ``state``; if no action arrives within
+  ``action_timeout_s`` the state is published again with a warning, so a late subscriber (or a
+  lost sample) cannot deadlock the loop. An action is consumed by the step it answers; actions
+  arriving while no state is pending are dropped. A re-published state can be answered twice;
+  when the action carries a ``state`` section (as the nominal controller's does) an answer to
+  any other state than the pending one is dropped as stale, which keeps lock-step runs exactly
+  reproducible. Without that section a late duplicate would be applied to the next step.
+- ``realtime``: step at ``rate_hz`` with a zero-order hold on the last action (zeros until the
+  first one), publishing after every step.
+
+Parameters: ``system`` (unicycle | car_following | pvtol), every key of ``/simulator`` and
+``/**`` in ``config/<system>.yaml`` (env settings and the layout: ``obstacles.*``, ...; the
+packaged file gives the defaults, ``--params-file`` / ``-p`` override them), plus ``mode``,
+``rate_hz``, ``seed`` (the first reset's seed; later episodes continue its generator),
+``max_episodes`` (0 = forever; the node exits after the last one) and ``action_timeout_s``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from typing import Any, Sequence
+
+import numpy as np
+
+from rcbf_ros.envs import ENVS, make_env
+from rcbf_ros.params import find_config, load_params
+from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
+from rcbf_ros.ros.runtime import ExternalShutdownException, get_message, Node, QoSProfile, rclpy
+
+NODE_DEFAULTS: dict[str, Any] = {
+    'mode': 'lockstep',
+    'rate_hz': 50.0,
+    'seed': 0,
+    'max_episodes': 0,
+    'action_timeout_s': 1.0,
+}
+"""Node-level parameters and their defaults (the packaged config may override them)."""
+
+
+def declare_with_packaged_defaults(node: Any, section: str, system_default: str = 'unicycle'
+                                   ) -> dict[str, Any]:
+    """Declare ``system`` and every key of the packaged ``config/<system>.yaml`` for ``section``.
+
+    Overrides given on the command line or in ``--params-file`` were already declared by the
+    node (``automatically_declare_parameters_from_overrides``) and win; the packaged file
+    supplies the rest. Returns every declared parameter as a flat dict.
+    """
+    if not node.has_parameter('system'):
+        node.declare_parameter('system', system_default)
+    system = str(node.get_parameter('system').value)
+    if system not in ENVS:
+        raise ValueError(f'system: expected one of {sorted(ENVS)}, got {system!r}')
+    defaults = load_params(find_config(system), section)
+    defaults.pop('system', None)
+    for name, value in defaults.items():
+        if not node.has_parameter(name) and value is not None and value != []:
+            node.declare_parameter(name, value)
+    return {name: _plain(p.value)
+            for name, p in node.get_parameters_by_prefix('').items()}
+
+
+def _plain(value: Any) -> Any:
+    """rclpy may hand arrays back as ``array.array``; the envs take lists."""
+    if isinstance(value, (str, bytes, bool, int, float)) or value is None:
+        return value
+    try:
+        return list(value)
+    except TypeError:
+        return value
+
+
+def action_from_msg(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """(u, answered state or None) from a Float64MultiArray.
+
+    u is the first section (the whole data when unlabelled); the answered state is the section
+    labelled ``state`` when present (and not the first).
+    """
+    sections = msg_to_sections(msg, default_label='u')
+    if not sections:
+        raise ValueError('cmd_safe: empty message')
+    labels = list(sections)
+    answered = sections['state'] if 'state' in labels[1:] else None
+    return sections[labels[0]], answered
+
+
+def episode_event(event: str, **fields: Any) -> str:
+    """One ``episode`` JSON object (numpy scalars converted, NaN as null)."""
+    def plain(value: Any) -> Any:
+        if isinstance(value, (np.floating, float)):
+            return None if not math.isfinite(float(value)) else float(value)
+        if isinstance(value, (np.integer,)):
+            return int(value)
+        if isinstance(value, (np.bool_,)):
+            return bool(value)
+        if isinstance(value, (list, tuple)):
+            return [plain(v) for v in value]
+        return value
+    return json.dumps({'event': event, **{k: plain(v) for k, v in fields.items()}})
+
+
+class SimulatorNode(Node):
+    """Wraps one env; see the module docstring."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('simulator', automatically_declare_parameters_from_overrides=True,
+                         **kwargs)
+        for name, value in NODE_DEFAULTS.items():
+            if not self.has_parameter(name):
+                self.declare_parameter(name, value)
+        params = declare_with_packaged_defaults(self, 'simulator')
+        self.system = str(params['system'])
+        self.mode = str(params['mode'])
+        if self.mode not in ('lockstep', 'realtime'):
+            raise ValueError(f"mode: expected 'lockstep' or 'realtime', got {self.mode!r}")
+        self.rate_hz = float(params['rate_hz'])
+        if not self.rate_hz > 0:
+            raise ValueError(f'rate_hz: must be > 0, got {self.rate_hz}')
+        self.seed = int(params['seed'])
+        self.max_episodes = int(params['max_episodes'])
+        if self.max_episodes < 0:
+            raise ValueError('max_episodes: must be >= 0 (0 = forever)')
+        self.action_timeout_s = float(params['action_timeout_s'])
+        if not self.action_timeout_s > 0:
+            raise ValueError('action_timeout_s: must be > 0')
+        self.env = make_env(self.system, params)
+        self.n_u = self.env.nominal_system.n_u
+
+        array = get_message('std_msgs/msg/Float64MultiArray')
+        qos = QoSProfile(depth=10)
+        self.state_pub = self.create_publisher(array, 'state', qos)
+        self.observation_pub = self.create_publisher(array, 'observation', qos)
+        self.h_true_pub = self.create_publisher(array, 'h_true', qos)
+        self.reward_pub = self.create_publisher(get_message('std_msgs/msg/Float64'), 'reward', qos)
+        self.episode_pub = self.create_publisher(get_message('std_msgs/msg/String'), 'episode',
+                                                 qos)
+        self.create_subscription(array, 'cmd_safe', self.on_action, qos)
+
+        self.done = False
+        self.episode = 0
+        self.episode_return = 0.0
+        self.violations = 0
+        self.observation = np.zeros(0)
+        self.info: dict[str, Any] = {}
+        self.last_action = np.zeros(self.n_u)
+        self.awaiting_action = False
+        self.last_state_time = 0.0
+        self.started = False
+        if self.mode == 'lockstep':
+            self.create_timer(min(0.05, self.action_timeout_s / 4.0), self.on_watchdog)
+        else:
+            self.create_timer(1.0 / self.rate_hz, self.on_tick)
+        self.get_logger().info(
+            f'{self.system} simulator, {self.mode} mode, dt = {self.env.dt} s, '
+            f'n_x = {self.env.nominal_system.n_x}, n_u = {self.n_u}, seed = {self.seed}')
+
+    # -- episodes --------------------------------------------------------------------------
+
+    def start_episode(self) -> None:
+        self.observation, self.info = self.env.reset(seed=self.seed if self.episode == 0
+                                                     else None)
+        self.episode += 1
+        self.episode_return = 0.0
+        self.violations = int(self.info['violation'])
+        self.started = True
+        self.publish_string(episode_event(
+            'start', episode=self.episode, system=self.system, seed=self.seed,
+            layout_seed=self.info.get('layout_seed'), h_true_names=self.env.h_true_names,
+            n_x=int(self.info['state'].size), n_u=self.n_u))
+        self.publish_state()
+
+    def end_episode(self, terminated: bool, truncated: bool) -> None:
+        self.publish_string(episode_event(
+            'end', episode=self.episode, **{'return': self.episode_return},
+            steps=self.env.steps, violations=self.violations,
+            goal_reached=bool(self.info['goal_reached']), terminated=terminated,
+            truncated=truncated))
+        self.get_logger().info(
+            f'episode {self.episode}: return {self.episode_return:.3f}, {self.env.steps} '
+            f'steps, {self.violations} violations, goal {self.info["goal_reached"]}')
+        if self.max_episodes and self.episode >= self.max_episodes:
+            self.done = True
+            self.awaiting_action = False
+        else:
+            self.start_episode()
+
+    # -- stepping --------------------------------------------------------------------------
+
+    def apply(self, u: np.ndarray) -> None:
+        self.observation, reward, terminated, truncated, self.info = self.env.step(u)
+        self.episode_return += reward
+        self.violations += int(self.info['violation'])
+        msg = get_message('std_msgs/msg/Float64')()
+        msg.data = float(reward)
+        self.reward_pub.publish(msg)
+        if terminated or truncated:
+            self.publish_state()
+            self.end_episode(terminated, truncated)
+        else:
+            self.publish_state()
+
+    def publish_state(self) -> None:
+        self.state_pub.publish(sections_to_msg({'state': self.info['state']}))
+        self.observation_pub.publish(sections_to_msg({'observation': self.observation}))
+        self.h_true_pub.publish(sections_to_msg({'h_true': self.info['h_true']}))
+        self.last_state_time = time.monotonic()
+        self.awaiting_action = self.mode == 'lockstep' and not self.done
+
+    def publish_string(self, text: str) -> None:
+        msg = get_message('std_msgs/msg/String')()
+        msg.data = text
+        self.episode_pub.publish(msg)
+
+    # -- callbacks ---------------------------------------------------------------------------
+
+    def on_action(self, msg: Any) -> None:
+        try:
+            u, answered = action_from_msg(msg)
+            if u.size != self.n_u:
+                raise ValueError(f'cmd_safe: expected {self.n_u} values in the first section, '
+                                 f'got {u.size}')
+            if not np.all(np.isfinite(u)):
+                raise ValueError('cmd_safe: contains NaN or inf')
+        except ValueError as exc:
+            self.get_logger().error(f'{exc}; action ignored')
+            return
+        if (self.mode == 'lockstep' and answered is not None
+                and not np.array_equal(answered, self.info.get('state'))):
+            self.get_logger().debug('cmd_safe answers another state than the pending one; '
+                                    'dropped as stale')
+            return
+        self.last_action = u
+        if self.mode == 'lockstep' and self.awaiting_action and not self.done:
+            self.awaiting_action = False
+            self.apply(u)
+
+    def on_watchdog(self) -> None:
+        if self.done:
+            return
+        if not self.started:
+            if self.state_pub.get_subscription_count() > 0:
+                self.start_episode()
+            return
+        if self.awaiting_action and (time.monotonic() - self.last_state_time
+                                     > self.action_timeout_s):
+            self.get_logger().warning(
+                f'no cmd_safe within {self.action_timeout_s} s of the state of step '
+                f'{self.env.steps}; publishing it again')
+            self.publish_state()
+
+    def on_tick(self) -> None:
+        if self.done:
+            return
+        if not self.started:
+            self.start_episode()
+            return
+        self.apply(self.last_action)
+
+
+def spin_until_done(node: Any, linger_s: float = 0.5) -> None:
+    """Spin until the node is done (or shutdown), then briefly more so last samples go out."""
+    while rclpy.ok() and not node.done:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    deadline = time.monotonic() + linger_s
+    while rclpy.ok() and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.05)
+
+
+def main(args: Sequence[str] | None = None) -> None:
+    """Console script ``simulator``."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SimulatorNode()
+        spin_until_done(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
