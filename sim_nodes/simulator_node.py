@@ -23,7 +23,8 @@ Modes (parameter ``mode``):
   any other state than the pending one is dropped as stale, which keeps lock-step runs exactly
   reproducible. Without that section a late duplicate would be applied to the next step.
 - ``realtime``: step at ``rate_hz`` with a zero-order hold on the last action (zeros until the
-  first one), publishing after every step.
+  first one), publishing after every step. Like lock-step, the first episode starts once
+  something subscribes to ``state`` (nobody listening: nothing to simulate for).
 
 Parameters: ``system`` (unicycle | car_following | pvtol), every key of ``/simulator`` and
 ``/**`` in ``config/<system>.yaml`` (env settings and the layout: ``obstacles.*``, ...; the
@@ -269,7 +270,8 @@ class SimulatorNode(Node):
         if self.done:
             return
         if not self.started:
-            self.start_episode()
+            if self.state_pub.get_subscription_count() > 0:
+                self.start_episode()
             return
         self.apply(self.last_action)
 

@@ -25,8 +25,8 @@ EPISODES = 2
 SEED = 3
 
 
-def role_listener(out_path: str) -> None:
-    """Record every state section and episode event until the second episode ends."""
+def role_listener(out_path: str, episodes: int) -> None:
+    """Record every state section and episode event until ``episodes`` episodes ended."""
     from rcbf_ros.ros.conversions import msg_to_sections
     from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
     rclpy.init(args=[])
@@ -44,7 +44,7 @@ def role_listener(out_path: str) -> None:
         while time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.05)
             ends = [e for e in record['events'] if e['event'] == 'end']
-            if len(ends) >= EPISODES:
+            if len(ends) >= episodes:
                 break
         for _ in range(10):  # trailing samples
             rclpy.spin_once(node, timeout_sec=0.02)
@@ -96,7 +96,7 @@ def _offline_rollout() -> tuple[list[np.ndarray], list[float], list[int]]:
 @pytest.mark.integration
 def test_lockstep_simulator_and_nominal_controller(ros_domain_id, tmp_path):
     out = tmp_path / 'record.json'
-    listener = _spawn(ros_domain_id, __file__, 'listener', str(out))
+    listener = _spawn(ros_domain_id, __file__, 'listener', str(out), str(EPISODES))
     simulator = _spawn(
         ros_domain_id, '-m', 'sim_nodes.simulator_node', '--ros-args',
         '-p', 'system:=unicycle', '-p', f'max_steps:={MAX_STEPS}', '-p', 'random_start:=true',
@@ -140,6 +140,47 @@ def test_lockstep_simulator_and_nominal_controller(ros_domain_id, tmp_path):
     np.testing.assert_array_equal(np.stack(deduplicated), np.stack(expected_states))
 
 
+@pytest.mark.integration
+def test_realtime_simulator_holds_the_last_action(ros_domain_id, tmp_path):
+    from rcbf_ros.envs import UnicycleEnv
+    from rcbf_ros.params import find_config, load_params
+    out = tmp_path / 'record.json'
+    steps = 100
+    listener = _spawn(ros_domain_id, __file__, 'listener', str(out), '1')
+    simulator = _spawn(
+        ros_domain_id, '-m', 'sim_nodes.simulator_node', '--ros-args',
+        '-p', 'system:=unicycle', '-p', f'max_steps:={steps}', '-p', 'max_episodes:=1',
+        '-p', 'mode:=realtime', '-p', 'rate_hz:=50.0')
+    controller = _spawn(
+        ros_domain_id, '-m', 'sim_nodes.nominal_controller_node', '--ros-args',
+        '-p', 'system:=unicycle', '-r', 'cmd_proposed:=cmd_safe')
+    try:
+        sim_out, sim_err = simulator.communicate(timeout=TIMEOUT_S)
+        assert simulator.returncode == 0, f'simulator failed:\n{sim_err}{sim_out}'
+        listener.communicate(timeout=TIMEOUT_S)
+        assert listener.returncode == 0
+    finally:
+        for process in (controller, simulator, listener):
+            if process.poll() is None:
+                process.terminate()
+                process.communicate(timeout=30)
+    record = json.loads(out.read_text())
+    events = record['events']
+    assert [(e['event'], e['episode']) for e in events] == [('start', 1), ('end', 1)]
+    assert events[1]['steps'] == steps and events[1]['truncated']
+    states = np.asarray(record['states'])
+    assert len(states) == steps + 1  # reliable: the reset state and one per step
+    # Zero-order hold of zeros alone (no controller) would only slide back down the slope.
+    env = UnicycleEnv(load_params(find_config('unicycle'), 'simulator'), max_steps=steps)
+    _, info = env.reset(seed=0)
+    np.testing.assert_array_equal(states[0], info['state'])
+    for _ in range(steps):
+        _, _, _, _, info = env.step([0.0, 0.0])
+    assert np.linalg.norm(states[-1][:2] - info['state'][:2]) > 0.5
+    # The goal-seeking actions were applied: the robot got closer to the goal (2.5, 2.5).
+    assert np.linalg.norm(states[-1][:2] - 2.5) < np.linalg.norm(states[0][:2] - 2.5) - 0.5
+
+
 if __name__ == '__main__':
     if sys.argv[1] == 'listener':
-        role_listener(sys.argv[2])
+        role_listener(sys.argv[2], int(sys.argv[3]))
