@@ -5,10 +5,12 @@
 machines without ROS) both read :data:`LAUNCHES`, so the two cannot drift. Pure data and string
 building: no ROS, no processes.
 
-Wiring of ``unicycle_filter`` (every name relative, so a namespace moves the whole graph)::
+Wiring of ``<system>_filter`` (the nodes' own relative names meet without remaps; a namespace
+moves the whole graph)::
 
-    simulator --state--> nominal_controller --cmd_proposed--> safety_filter --cmd_safe--> simulator
-              --state-----------------------------------------> safety_filter
+    simulator --state--> nominal_controller --cmd_proposed (u, state)--> safety_filter
+        ^                                                                      |
+        +---------------------------------- cmd_safe (u, u_rl, u_s) ----------+
     recorder: every topic -> MCAP
 """
 from __future__ import annotations
@@ -68,13 +70,11 @@ def _filter_loop(system: str) -> LaunchSetup:
                      'through the safety filter, recorded to MCAP'),
         nodes=(
             NodeEntry(name='simulator', executable='simulator',
-                      module='sim_nodes.simulator_node',
-                      remappings=(('action', 'cmd_safe'),), ends_launch=True),
+                      module='sim_nodes.simulator_node', ends_launch=True),
             NodeEntry(name='safety_filter', executable='safety_filter',
                       module='rcbf_ros.ros.safety_filter_node'),
             NodeEntry(name='nominal_controller', executable='nominal_controller',
-                      module='sim_nodes.nominal_controller_node',
-                      remappings=(('cmd', 'cmd_proposed'),)),
+                      module='sim_nodes.nominal_controller_node'),
             NodeEntry(name='recorder', executable='recorder',
                       module='rcbf_ros.ros.recorder_node', required=False),
         ))

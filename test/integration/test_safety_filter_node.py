@@ -279,11 +279,10 @@ def test_unsafe_controller_behind_the_filter_never_violates(ros_domain_id, probe
         command += ['-p', f'recorder:output:={bag}']
     else:
         command += ['--without', 'recorder']
-    probe.subscribe('std_msgs/msg/Float64MultiArray', '/state',
-                    lambda m: msg_to_sections(m)['state'].copy())
     probe.subscribe('std_msgs/msg/Float64MultiArray', '/h_true',
                     lambda m: msg_to_sections(m)['h_true'].copy())
     probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
+    probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_proposed', _sections)
     probe.subscribe('std_msgs/msg/String', '/episode', lambda m: json.loads(m.data))
     probe.start()
     launch = subprocess.run(command, env=_env(ros_domain_id), cwd=REPO, capture_output=True,
@@ -302,30 +301,33 @@ def test_unsafe_controller_behind_the_filter_never_violates(ros_domain_id, probe
     h_true = np.array([h for _, h in probe.received['/h_true']])
     assert len(h_true) >= steps and h_true.min() >= 0.0
 
-    # u_safe == u_RL wherever no row is active at u_RL (rows from the state the filter saw).
+    # u_safe == u_RL wherever no row is active at u_RL. The i-th safe command answers the i-th
+    # proposal (reliable, deep queues; checked through u_rl), whose state the filter used.
     params = load_params(find_config('unicycle'), 'safety_filter')
     problem = filter_config_from_params(params).problem
     import torch
-    states = probe.received['/state']
-    commands = probe.received['/cmd_safe']
-    assert len(commands) >= steps
+    proposals = [p for _, p in probe.received['/cmd_proposed']]
+    commands = [c for _, c in probe.received['/cmd_safe']]
+    # The last proposal may answer the final state while the launch is already stopping.
+    assert len(proposals) - 1 <= len(commands) <= len(proposals) and len(commands) >= steps
     passive = active = 0
-    state_index = 0
     lo, hi = np.array(problem.system.u_min), np.array(problem.system.u_max)
-    for arrival, command_sections in commands:
-        while state_index + 1 < len(states) and states[state_index + 1][0] <= arrival:
-            state_index += 1
-        x = states[state_index][1]
-        u_rl, u_safe = command_sections['u_rl'], command_sections['u']
+    for proposal, command in zip(proposals, commands):
+        np.testing.assert_array_equal(command['u_rl'], proposal['u'])
+        x, u_rl, u_safe = proposal['state'], proposal['u'], command['u']
         terms = problem.terms(torch.from_numpy(x).unsqueeze(0))
         rows = (terms.lf_h[0].numpy() + terms.lg_h[0].numpy() @ u_rl
                 + problem.alpha * terms.h[0].numpy())
         if np.all(rows > 1e-6) and np.all(u_rl < hi) and np.all(u_rl > lo):
+            # Equal up to OSQP warm-start round-off (see test_safety_filter_core's xfail).
             np.testing.assert_allclose(u_safe, u_rl, rtol=0, atol=1e-9)
             passive += 1
         else:
+            assert np.any(u_safe != u_rl)
             active += 1
-    assert passive > 100 and active > 100, (passive, active)
+    # The unsafe controller mostly asks for |omega| > 2.5 (a limit row) or pushes into an
+    # obstacle, so pass-through steps are the minority; both kinds must be exercised.
+    assert passive >= 10 and active > 100, (passive, active)
 
     if recorder:
         from rosbags.highlevel import AnyReader

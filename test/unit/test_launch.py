@@ -251,7 +251,7 @@ def test_main_prints_commands_and_rejects_unknown_nodes(capsys):
     assert launch_local.main(['unicycle_filter', '--print', '-p', 'simulator:seed:=4',
                               '--domain-id', '5']) == 0
     out = capsys.readouterr().out
-    assert 'simulator: ' in out and '-p seed:=4' in out and '-r action:=cmd_safe' in out
+    assert 'simulator: ' in out and '-p seed:=4' in out and '__node:=safety_filter' in out
     assert launch_local.main(['unicycle_filter', '--print', '-p', 'planner:x:=1']) == 2
     with pytest.raises(SystemExit):
         launch_local.main(['unicycle_filter', '-p', 'no_equals_sign'])
