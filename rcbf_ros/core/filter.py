@@ -23,6 +23,7 @@ import osqp
 import scipy.sparse as sp
 import torch
 
+from rcbf_ros.core.diffqp import solve_qp_batch_full
 from rcbf_ros.core.rcbf import RCBFProblem
 
 _OK_STATUS = {1: 'solved', 2: 'solved_inaccurate'}
@@ -46,7 +47,8 @@ class FilterResult:
     """(K,) L_f h + L_g h u_safe + alpha h + rho per barrier: >= 0 means the RCBF row holds
     without slack at the returned action."""
     status: str
-    """'solved', 'solved_inaccurate', or the OSQP status that triggered the fail-safe."""
+    """'solved', 'solved_inaccurate', 'solved_interior_point' (OSQP stalled, the fallback
+    solved it), or the OSQP status that triggered the fail-safe."""
     solve_time_s: float
     """Wall time of OSQP update + solve."""
     total_time_s: float
@@ -81,7 +83,7 @@ class SafetyFilter:
 
     def __init__(self, problem: RCBFProblem, *, fail_safe_action: Sequence[float] | None = None,
                  eps_abs: float = 1e-9, eps_rel: float = 1e-9, max_iter: int = 4000,
-                 polish: bool = False) -> None:
+                 polish: bool = False, fallback: bool = True) -> None:
         """Set OSQP up once with the fixed sparsity pattern.
 
         Args:
@@ -95,7 +97,11 @@ class SafetyFilter:
                 already matches an interior-point reference to < 1e-6, see
                 benchmarks/bench_filter_step.py, and OSQP prints a notice on every call whose
                 active set is empty).
+            fallback: when OSQP does not converge, solve the same QP with the batched interior
+                point of :mod:`rcbf_ros.core.diffqp` (status ``solved_interior_point``) before
+                resorting to the fail-safe action.
         """
+        self.fallback = fallback
         self.problem = problem
         system = problem.system
         self.n_x, self.n_u = system.n_x, system.n_u
@@ -164,21 +170,33 @@ class SafetyFilter:
         h_values = terms.h[0].numpy()
 
         solve_start = time.perf_counter()
-        self._solver.update(Ax=g_matrix[self._rows, self._cols], u=upper)
-        result = self._solver.solve(raise_error=False)
+        if np.all(upper >= 0.0):
+            # z = 0 is feasible, hence optimal (the objective's minimum): the proposal passes
+            # through exactly, without a solve.
+            ok, z, status = True, np.zeros(self.n_u + 1), 'solved'
+        else:
+            self._solver.update(Ax=g_matrix[self._rows, self._cols], u=upper)
+            result = self._solver.solve(raise_error=False)
+            status_val = int(result.info.status_val)
+            z = None if result.x is None else np.asarray(result.x, dtype=np.float64)
+            ok = status_val in _OK_STATUS and z is not None and bool(np.all(np.isfinite(z)))
+            status = _OK_STATUS.get(status_val, str(result.info.status))
+            if not ok and self.fallback:
+                # ADMM can stall when the slack is far from 0 (the 1 : l diagonal); the
+                # interior point of the differentiable layer solves the same QP robustly.
+                solution = solve_qp_batch_full(*qp)
+                if bool(solution.converged[0]):
+                    z = solution.z[0].detach().numpy()
+                    ok = bool(np.all(np.isfinite(z)))
+                    status = 'solved_interior_point'
         solve_time = time.perf_counter() - solve_start
 
-        status_val = int(result.info.status_val)
-        z = None if result.x is None else np.asarray(result.x, dtype=np.float64)
-        ok = status_val in _OK_STATUS and z is not None and bool(np.all(np.isfinite(z)))
         if ok:
             u_safe = np.clip(u + z[:self.n_u], self._u_min, self._u_max)
             slack = float(z[-1])
-            status = _OK_STATUS[status_val]
         else:
             u_safe = self.fail_safe_action.copy()
             slack = float('nan')
-            status = str(result.info.status)
         # RCBF row at the applied action without slack: rhs + L_g h (u_safe - u_rl) >= 0.
         lg_h = -g_matrix[:self.n_barriers, :self.n_u]
         residual = upper[:self.n_barriers] + lg_h @ (u_safe - u)

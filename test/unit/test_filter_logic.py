@@ -256,7 +256,8 @@ def test_rejected_proposal_gives_fail_safe_with_nan_proposal(safety_filter):
 
 
 def test_failed_solve_gives_fail_safe_with_status(config):
-    starved = SafetyFilter(config.problem, fail_safe_action=[0.1, -0.2], max_iter=1)
+    starved = SafetyFilter(config.problem, fail_safe_action=[0.1, -0.2], max_iter=1,
+                           fallback=False)
     decision = fl.decide(safety_filter=starved, proposal=fl.Proposal(u=np.array([2.5, 0.0])),
                          latest_state=fresh(FACING_OBSTACLE), now_ns=10 * SECOND,
                          max_state_age_s=0.5)
