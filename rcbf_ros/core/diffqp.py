@@ -188,23 +188,27 @@ def _interior_point(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_
     s = s.clamp_min(1e-8)
     lam = lam.clamp_min(1e-8)
 
-    scale_dual = 1.0 + q.abs().amax(-1)
-    scale_primal = 1.0 + h.abs().amax(-1)
     z_out, s_out, lam_out = torch.empty_like(z), torch.empty_like(s), torch.empty_like(lam)
     iterations = torch.full((batch,), max_iter, dtype=torch.int64, device=q.device)
     converged = torch.zeros(batch, dtype=torch.bool, device=q.device)
     # Working set: only samples still iterating; finished ones are written out and dropped, so
     # the tail of slow samples costs what a small batch costs.
     index = torch.arange(batch, device=q.device)
-    work = [P, q, G, h, z, s, lam, scale_dual, scale_primal]
+    work = [P, q, G, h, z, s, lam]
     for iteration in range(max_iter + 1):
-        P_w, q_w, G_w, h_w, z, s, lam, scale_dual_w, scale_primal_w = work
-        r_dual = torch.matmul(P_w, z.unsqueeze(-1)).squeeze(-1) + q_w + _rmatvec(G_w, lam)
-        r_primal = _matvec(G_w, z) + s - h_w
+        P_w, q_w, G_w, h_w, z, s, lam = work
+        # Relative stopping test: residuals against the size of the terms they balance.
+        Pz, Gt_lam, Gz = _matvec(P_w, z), _rmatvec(G_w, lam), _matvec(G_w, z)
+        r_dual = Pz + q_w + Gt_lam
+        r_primal = Gz + s - h_w
         mu = (s * lam).mean(-1)
-        done = ((r_dual.abs().amax(-1) <= tol * scale_dual_w)
-                & (r_primal.abs().amax(-1) <= tol * scale_primal_w)
-                & (mu <= tol))
+        scale_dual = 1.0 + torch.maximum(torch.maximum(Pz.abs().amax(-1), q_w.abs().amax(-1)),
+                                         Gt_lam.abs().amax(-1))
+        scale_primal = 1.0 + torch.maximum(Gz.abs().amax(-1), h_w.abs().amax(-1))
+        scale_gap = 1.0 + (z * Pz).sum(-1).abs() + (q_w * z).sum(-1).abs()
+        done = ((r_dual.abs().amax(-1) <= tol * scale_dual)
+                & (r_primal.abs().amax(-1) <= tol * scale_primal)
+                & (mu * lam.shape[-1] <= tol * scale_gap))
         if iteration == max_iter:
             done = torch.ones_like(done)
         if bool(done.any()):
@@ -218,7 +222,7 @@ def _interior_point(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_
                 break
             index = index[keep]
             work = [x[keep] for x in work]
-            P_w, q_w, G_w, h_w, z, s, lam, scale_dual_w, scale_primal_w = work
+            P_w, q_w, G_w, h_w, z, s, lam = work
             r_dual, r_primal, mu = r_dual[keep], r_primal[keep], mu[keep]
         weights = lam / s
         factor = _cholesky(_schur(P_w, G_w, weights))
