@@ -9,6 +9,10 @@ Topics (names relative, remappable with ``-r``):
   ``{"event": "start", "episode", "system", "seed", "layout_seed", "h_true_names", "n_x",
   "n_u"}`` and ``{"event": "end", "episode", "return", "steps", "violations", "goal_reached",
   "terminated", "truncated"}``);
+- publishes ``sim/step`` (Float64MultiArray), everything about one plant step in one message
+  for the learner: sections ``state``, ``observation``, ``reward`` (of the transition INTO this
+  state; 0 after a reset), ``terminated``, ``truncated``, ``violation``, ``goal_reached``,
+  ``episode``, ``step`` (0 right after a reset);
 - subscribes ``cmd_safe`` (Float64MultiArray; its FIRST section is u, length n_u; an optional
   section labelled ``state`` names the state the action answers, see lock-step below).
 
@@ -152,6 +156,7 @@ class SimulatorNode(Node):
         self.reward_pub = self.create_publisher(get_message('std_msgs/msg/Float64'), 'reward', qos)
         self.episode_pub = self.create_publisher(get_message('std_msgs/msg/String'), 'episode',
                                                  qos)
+        self.step_pub = self.create_publisher(array, 'sim/step', qos)
         self.create_subscription(array, 'cmd_safe', self.on_action, qos)
 
         self.done = False
@@ -211,16 +216,21 @@ class SimulatorNode(Node):
         msg = get_message('std_msgs/msg/Float64')()
         msg.data = float(reward)
         self.reward_pub.publish(msg)
+        self.publish_state(reward=reward, terminated=terminated, truncated=truncated)
         if terminated or truncated:
-            self.publish_state()
             self.end_episode(terminated, truncated)
-        else:
-            self.publish_state()
 
-    def publish_state(self) -> None:
+    def publish_state(self, *, reward: float = 0.0, terminated: bool = False,
+                      truncated: bool = False) -> None:
         self.state_pub.publish(sections_to_msg({'state': self.info['state']}))
         self.observation_pub.publish(sections_to_msg({'observation': self.observation}))
         self.h_true_pub.publish(sections_to_msg({'h_true': self.info['h_true']}))
+        self.step_pub.publish(sections_to_msg({
+            'state': self.info['state'], 'observation': self.observation, 'reward': [reward],
+            'terminated': [float(terminated)], 'truncated': [float(truncated)],
+            'violation': [float(self.info['violation'])],
+            'goal_reached': [float(self.info['goal_reached'])],
+            'episode': [float(self.episode)], 'step': [float(self.env.steps)]}))
         self.last_state_time = time.monotonic()
         self.awaiting_action = self.mode == 'lockstep' and not self.done
 

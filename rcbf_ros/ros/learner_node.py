@@ -72,6 +72,7 @@ class LearnerNode(Node):
         self.tally = EpisodeTally()
         self.history: list[dict[str, Any]] = []
         self.episodes_done = 0
+        self.last_step: tuple[int, int] | None = None
         qos = QoSProfile(depth=10)
         self.proposal_pub = self.create_publisher(
             get_message('std_msgs/msg/Float64MultiArray'), 'cmd_proposed', qos)
@@ -105,6 +106,10 @@ class LearnerNode(Node):
         except (KeyError, ValueError) as exc:
             self.get_logger().error(f'sim/step: {exc}')
             return
+        index = (int(sections.get('episode', [-1])[0]), int(sections.get('step', [-1])[0]))
+        if index == self.last_step:
+            return  # the simulator re-published a state we already answered
+        self.last_step = index
         if self.learner is None:
             self.learner = self._build_learner(obs_dim=obs.size)
         flag = lambda key: bool(sections.get(key, np.zeros(1))[0] > 0.5)  # noqa: E731

@@ -183,9 +183,13 @@ class EpisodeStats:
 
 
 def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, episode: int,
-                seed: int, recorder: RunRecorder | None = None, train: bool = True,
+                seed: int | None, recorder: RunRecorder | None = None, train: bool = True,
                 deterministic: bool = False, t0_ns: int = 0) -> EpisodeStats:
-    """One episode of Algorithm 1's inner loop (lines 3-7), plus the learner's schedule."""
+    """One episode of Algorithm 1's inner loop (lines 3-7), plus the learner's schedule.
+
+    ``seed`` seeds the env's reset (None: continue its generator), as the simulator node does:
+    the first episode with the run's seed, later ones from the same stream.
+    """
     stats = EpisodeStats(episode=episode)
     start = time.perf_counter()
     obs, info = env.reset(seed=seed)
@@ -239,6 +243,7 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
     if run.resume and checkpoint_path.exists():
         checkpoint = torch.load(checkpoint_path, weights_only=False)
         learner.load_state_dict(checkpoint['learner'])
+        env.np_random.bit_generator.state = checkpoint['env_rng']
         first_episode = int(checkpoint['episode'])
         history = list(checkpoint['history'])
         log(f'resumed from {checkpoint_path} at episode {first_episode}')
@@ -253,13 +258,15 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
 
     def save_checkpoint() -> None:
         torch.save({'learner': learner.state_dict(), 'episode': episode,
-                    'history': history, 'run': asdict(run)}, checkpoint_path.with_suffix('.tmp'))
+                    'env_rng': env.np_random.bit_generator.state, 'history': history,
+                    'run': asdict(run)}, checkpoint_path.with_suffix('.tmp'))
         checkpoint_path.with_suffix('.tmp').replace(checkpoint_path)
 
     try:
         while episode < run.episodes:
             stats = run_episode(env, filt, learner, episode=episode,
-                                seed=run.learner.seed * 100_003 + episode, recorder=recorder,
+                                seed=run.learner.seed if episode == 0 else None,
+                                recorder=recorder,
                                 t0_ns=int(1e9 * 1e4 * episode))
             episode += 1
             row = stats.as_json()
