@@ -46,6 +46,7 @@ NODE_PARAMETER_DEFAULTS: dict[str, Any] = {
     'osqp.eps_abs': 1.0e-8,
     'osqp.eps_rel': 1.0e-8,
     'osqp.max_iter': 4000,
+    'diagnostics.min_period_s': 0.0,
     'diagnostics.name': 'safety_filter',
     'diagnostics.hardware_id': '',
 }
@@ -124,6 +125,8 @@ class NodeSettings:
     """OSQP relative tolerance."""
     osqp_max_iter: int
     """OSQP iteration cap (a starved solve yields the fail-safe)."""
+    diagnostics_min_period_s: float
+    """Minimum period of OK diagnostics (0: one per proposal); WARN / ERROR always go out."""
     diagnostics_name: str
     """DiagnosticStatus.name."""
     diagnostics_hardware_id: str
@@ -186,6 +189,7 @@ def node_settings_from_params(params: Mapping[str, Any]) -> NodeSettings:
         osqp_eps_abs=_positive(params, 'osqp.eps_abs'),
         osqp_eps_rel=_positive(params, 'osqp.eps_rel'),
         osqp_max_iter=_count(params, 'osqp.max_iter'),
+        diagnostics_min_period_s=_positive(params, 'diagnostics.min_period_s', allow_zero=True),
         diagnostics_name=texts['diagnostics.name'],
         diagnostics_hardware_id=texts['diagnostics.hardware_id'])
 
@@ -413,6 +417,21 @@ def diagnostic_values(*, decision: Decision,
     else:
         message = decision.reason
     return decision.level, message, values
+
+
+def diagnostics_due(*, level: int, now_ns: int, last_ok_ns: int | None,
+                    min_period_s: float) -> bool:
+    """Whether to publish the diagnostics of a decision now.
+
+    WARN and ERROR always; OK at most once per ``min_period_s`` (0: always), so that a 1 kHz
+    loop need not pay for a DiagnosticArray per command.
+
+    Args:
+        last_ok_ns: when OK diagnostics were last published (None: never).
+    """
+    if level != OK or min_period_s <= 0 or last_ok_ns is None:
+        return True
+    return now_ns - last_ok_ns >= int(min_period_s * 1e9)
 
 
 class LogThrottle:

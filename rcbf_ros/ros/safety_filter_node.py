@@ -11,7 +11,8 @@ Topics (all relative, so remappable: ``-r cmd_proposed:=/my_controller/cmd``):
   With ``command_type: twist`` a geometry_msgs/Twist whose ``twist_fields`` hold u.
 - ``cmd_safe`` (pub, the proposal's type): u* = u_RL + u_S; for arrays also the sections
   ``u_rl`` and ``u_s``.
-- ``diagnostics`` (pub, diagnostic_msgs/DiagnosticArray): one status per proposal with the
+- ``diagnostics`` (pub, diagnostic_msgs/DiagnosticArray): one status per proposal (by default)
+  with the
   level (OK / WARN: slack / ERROR: fail-safe), every h_i by barrier name, the constraint values,
   slack, solver status, solve and total time and the reason.
 
@@ -24,7 +25,8 @@ Parameters: the filter keys of :mod:`rcbf_ros.core.config` (``config/<system>.ya
 node's own (:data:`rcbf_ros.ros.filter_logic.NODE_PARAMETER_DEFAULTS`): ``command_type``,
 ``twist_fields``, ``max_state_age_s``, ``slack_tolerance``, ``log_throttle_s``,
 ``qos.reliable``, ``qos.depth``, ``osqp.eps_abs``, ``osqp.eps_rel``, ``osqp.max_iter``,
-``diagnostics.name``, ``diagnostics.hardware_id``.
+``diagnostics.min_period_s`` (0: a DiagnosticArray per proposal; else OK ones at most that
+often, WARN / ERROR always), ``diagnostics.name``, ``diagnostics.hardware_id``.
 """
 from __future__ import annotations
 
@@ -79,6 +81,7 @@ class SafetyFilterNode(Node):
             self.get_logger().error(f'invalid parameters: {exc}')
             raise
         self._latest_state: logic.StateSample | None = None
+        self._last_ok_diagnostics_ns: int | None = None
         self._throttle = logic.LogThrottle(self.settings.log_throttle_s)
         self.proposals_received = 0
 
@@ -149,18 +152,24 @@ class SafetyFilterNode(Node):
             max_state_age_s=self.settings.max_state_age_s,
             static_mean=self.config.static_mean, static_std=self.config.static_std,
             slack_tolerance=self.settings.slack_tolerance)
-        self._publish(decision)
+        self._publish(decision, now_ns)
         if decision.level != logic.OK:
             self._log(decision.level, decision.reason, now_ns)
 
     # output ------------------------------------------------------------------------------------
-    def _publish(self, decision: logic.Decision) -> None:
+    def _publish(self, decision: logic.Decision, now_ns: int) -> None:
         if self.settings.command_type == 'twist':
             command = conversions.array_to_twist(decision.u_safe, self.settings.twist_fields)
         else:
             command = conversions.sections_to_msg(
                 {'u': decision.u_safe, 'u_rl': decision.u_rl, 'u_s': decision.u_s})
-        self._cmd_pub.publish(command)
+        self._cmd_pub.publish(command)  # first: diagnostics never delay the command
+        if not logic.diagnostics_due(level=decision.level, now_ns=now_ns,
+                                     last_ok_ns=self._last_ok_diagnostics_ns,
+                                     min_period_s=self.settings.diagnostics_min_period_s):
+            return
+        if decision.level == logic.OK:
+            self._last_ok_diagnostics_ns = now_ns
         level, message, values = logic.diagnostic_values(
             decision=decision, barrier_names=self.filter.barrier_names)
         diagnostics = get_message('diagnostic_msgs/msg/DiagnosticArray')()

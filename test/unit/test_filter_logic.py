@@ -78,6 +78,7 @@ def test_collect_parameters_drops_unset_so_config_defaults_apply(unicycle_params
     ('osqp.max_iter', True),
     ('osqp.eps_abs', -1.0),
     ('diagnostics.name', 3),
+    ('diagnostics.min_period_s', -0.1),
 ])
 def test_bad_node_parameter_names_the_key(key, value):
     with pytest.raises(ValueError, match=f'^{key}:'):
@@ -279,6 +280,16 @@ def test_infeasible_rows_warn_with_slack(config):
     assert decision.result.slack > 1e-2
     assert decision.u_safe[0] == pytest.approx(-2.5)
     assert decision.level == fl.WARN and 'slack' in decision.reason and not decision.fail_safe
+
+
+def test_diagnostics_due():
+    due = fl.diagnostics_due
+    assert due(level=fl.OK, now_ns=5, last_ok_ns=4, min_period_s=0.0)
+    assert due(level=fl.OK, now_ns=5, last_ok_ns=None, min_period_s=1.0)
+    assert not due(level=fl.OK, now_ns=SECOND - 1, last_ok_ns=0, min_period_s=1.0)
+    assert due(level=fl.OK, now_ns=SECOND, last_ok_ns=0, min_period_s=1.0)
+    assert due(level=fl.WARN, now_ns=1, last_ok_ns=0, min_period_s=1.0)
+    assert due(level=fl.ERROR, now_ns=1, last_ok_ns=0, min_period_s=1.0)
 
 
 def test_log_throttle():
