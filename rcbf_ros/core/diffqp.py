@@ -241,9 +241,16 @@ def _interior_point(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_
         ds = -r_primal - _matvec(G_w, dz)
         dlam = (-r_comp - lam * ds) / s
         alpha = (0.99 * torch.minimum(_max_step(s, ds), _max_step(lam, dlam))).unsqueeze(-1)
-        work[4] = z + alpha * dz
-        work[5] = (s + alpha * ds).clamp_min(1e-300)
-        work[6] = (lam + alpha * dlam).clamp_min(1e-300)
+        z_new = z + alpha * dz
+        s_new = (s + alpha * ds).clamp_min(1e-300)
+        lam_new = (lam + alpha * dlam).clamp_min(1e-300)
+        # An infeasible sample drives lam to infinity: keep its last finite iterate (it is then
+        # reported as not converged) instead of letting NaN in.
+        finite = (torch.isfinite(z_new).all(-1) & torch.isfinite(s_new).all(-1)
+                  & torch.isfinite(lam_new).all(-1)).unsqueeze(-1)
+        work[4] = torch.where(finite, z_new, z)
+        work[5] = torch.where(finite, s_new, s)
+        work[6] = torch.where(finite, lam_new, lam)
     z, s, lam = z_out, s_out, lam_out
     return z, s, lam, iterations, converged
 
@@ -301,7 +308,7 @@ def _polish(P: Tensor, q: Tensor, G: Tensor, h: Tensor, s: Tensor, lam: Tensor, 
         violation = _matvec(G, z_pol) - h
         violated = violation > feas_tol
         negative = lam_pol < -dual_tol
-        ok = ~(violated.any(-1) | negative.any(-1))
+        ok = ~(violated.any(-1) | negative.any(-1)) & torch.isfinite(z_pol).all(-1)
         if bool(ok.all()):
             break
         active = (active & ~negative) | violated
