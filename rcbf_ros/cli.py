@@ -4,6 +4,7 @@
     rcbf_ros train --system unicycle --mode diff --model-based --episodes 50
     rcbf_ros train --system unicycle --mode unconstrained --no-obstacles
     rcbf_ros train ... --resume            # continue a killed run from its checkpoint
+    rcbf_ros experiment transfer --budget smoke --seeds 2 --out runs/experiments [--ray]
 """
 from __future__ import annotations
 
@@ -91,9 +92,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='rcbf_ros', description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest='command', required=True)
     add_train_arguments(sub.add_parser('train', help='train in-process (no middleware)'))
+    from rcbf_ros.experiments.command import add_experiment_arguments, run_experiment_command
+    add_experiment_arguments(sub.add_parser(
+        'experiment', help="reproduce one of the paper's experiments (train, evaluate, report)"))
     args = parser.parse_args(argv)
     if args.command == 'train':
         return run_train(args)
+    if args.command == 'experiment':
+        return run_experiment_command(args, argv)
     return 2
 
 

@@ -1,0 +1,158 @@
+"""Zero-shot transfer: a trained run's deterministic policy on N seeded random layouts.
+
+Per layout seed s (paper: 200 layouts, "Modular Task Learning"):
+
+1. the env of the run's system with ``layout: random, layout_seed: s``
+   (:func:`rcbf_ros.envs.layouts.unicycle_random_layout` / ``pvtol_random_layout``: the layout
+   depends on s alone), reset with seed s (the start is the training start);
+2. a fresh per-step :class:`~rcbf_ros.core.filter.SafetyFilter` built from THAT layout's
+   barriers (``env.filter_params``), i.e. the new constraints;
+3. each step: u_RL = the policy's mean action (plus the compensator, if the run has one), the
+   disturbance estimate (mean, std) from the run's trained GP (``gp='learned'``) or the prior
+   (zero mean, ``gp_prior_std``; ``gp='prior'``), u* = filter(x, u_RL, mean, std), env step;
+4. the row: return, steps, goal reached (completion), true violations, fail-safe steps.
+
+PVTOL layouts without the operator have a 6-dimensional state while a GP trained with the
+operator has 7 inputs: the GP is queried at [x, x1] (the operator right under the drone) and its
+first 6 outputs are used. Nothing here trains; the learner is only read.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+import time
+from typing import Any, Literal, Sequence
+
+import numpy as np
+import torch
+
+from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.learning.sac import SACConfig
+from rcbf_ros.params import find_config, load_params
+from rcbf_ros.training.agent import LearnerConfig, SafeLearner
+from rcbf_ros.training.loop import build_run, make_env, RunConfig
+
+GPSource = Literal['learned', 'prior']
+
+
+def run_config_from_json(data: dict[str, Any]) -> RunConfig:
+    """Rebuild the RunConfig a run wrote to ``run_config.json`` (nested dataclasses)."""
+    learner = dict(data['learner'])
+    sac = dict(learner.get('sac', {}))
+    if 'hidden_sizes' in sac:
+        sac['hidden_sizes'] = tuple(sac['hidden_sizes'])
+    learner['sac'] = SACConfig(**sac)
+    return RunConfig(**{**data, 'learner': LearnerConfig(**learner), 'resume': False})
+
+
+def load_trained_learner(run_dir: str | Path) -> tuple[RunConfig, SafeLearner]:
+    """The run's config and its learner restored from ``checkpoint.pt``.
+
+    Raises:
+        FileNotFoundError: naming the missing ``run_config.json`` or ``checkpoint.pt``.
+    """
+    run_dir = Path(run_dir)
+    for name in ('run_config.json', 'checkpoint.pt'):
+        if not (run_dir / name).exists():
+            raise FileNotFoundError(f'{name}: not found in {run_dir} (train the run first)')
+    run = run_config_from_json(json.loads((run_dir / 'run_config.json').read_text()))
+    _, _, learner, _ = build_run(run)
+    checkpoint = torch.load(run_dir / 'checkpoint.pt', weights_only=False)
+    learner.load_state_dict(checkpoint['learner'])
+    return run, learner
+
+
+def disturbance_estimate(learner: SafeLearner, state: np.ndarray, gp: GPSource
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, std), each (len(state),), for the filter at ``state`` (see module docstring)."""
+    n = state.size
+    if gp == 'prior':
+        return np.zeros(n), np.full(n, learner.config.gp_prior_std)
+    n_gp = learner.system.n_x
+    query = np.asarray(state, dtype=np.float64)
+    if n < n_gp:  # PVTOL without operator: put the operator under the drone.
+        query = np.concatenate([query, np.full(n_gp - n, query[0])])
+    elif n > n_gp:
+        raise ValueError(f'state: {n} values but the learner models {n_gp}')
+    mean, std = learner.disturbance(torch.as_tensor(query).unsqueeze(0))
+    return mean[0, :n].numpy().copy(), std[0, :n].numpy().copy()
+
+
+def evaluate_layout(learner: SafeLearner, system: str, layout_seed: int, *,
+                    max_steps: int | None = None, gp: GPSource = 'learned',
+                    config_file: str | None = None) -> dict[str, Any]:
+    """One deterministic episode on random layout ``layout_seed`` with the filter of that
+    layout; returns the episode row (see module docstring)."""
+    path = find_config(config_file or system)
+    params = load_params(path, 'simulator')
+    params.update({'layout': 'random', 'layout_seed': int(layout_seed)})
+    if max_steps is not None:
+        params['max_steps'] = int(max_steps)
+    env = make_env(system, params)
+    config = filter_config_from_params(env.filter_params(load_params(path, 'safety_filter')))
+    filt = SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action)
+    obs, info = env.reset(seed=int(layout_seed))
+    state = info['state']
+    row: dict[str, Any] = {'layout_seed': int(layout_seed), 'ret': 0.0, 'steps': 0,
+                           'goal_reached': False, 'violations': 0, 'fail_safe': 0,
+                           'filter_active': 0, 'min_h_true': math.inf,
+                           'n_obstacles': len(env.obstacles)}
+    done = False
+    while not done:
+        u_rl = learner.sac.act(np.asarray(obs, dtype=np.float64), deterministic=True)
+        mean, std = disturbance_estimate(learner, state, gp)
+        result = filt.filter(state, np.asarray(u_rl, dtype=np.float64), mean, std)
+        obs, reward, terminated, truncated, info = env.step(result.u_safe)
+        state = info['state']
+        row['ret'] += float(reward)
+        row['steps'] += 1
+        row['violations'] += int(info['violation'])
+        row['fail_safe'] += int(result.fail_safe)
+        row['filter_active'] += int(result.active)
+        if len(info['h_true']):
+            row['min_h_true'] = min(row['min_h_true'], float(np.min(info['h_true'])))
+        row['goal_reached'] = row['goal_reached'] or bool(info['goal_reached'])
+        done = terminated or truncated
+    if math.isinf(row['min_h_true']):
+        row['min_h_true'] = None
+    if system == 'pvtol':
+        row['operator'] = bool(env.with_operator)
+    return row
+
+
+def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
+                      max_steps: int | None = None, gp: GPSource = 'learned'
+                      ) -> list[dict[str, Any]]:
+    """Every layout of ``layout_seeds`` for the run in ``run_dir``; cached.
+
+    The rows go to ``<run_dir>/transfer_<gp>_L<n>_T<steps>.jsonl`` (one per layout) and are
+    read back instead of recomputed when that file is complete.
+    """
+    run_dir = Path(run_dir)
+    seeds = [int(s) for s in layout_seeds]
+    steps_tag = 'default' if max_steps is None else str(int(max_steps))
+    cache = run_dir / f'transfer_{gp}_L{len(seeds)}_T{steps_tag}.jsonl'
+    if cache.exists():
+        rows = [json.loads(line) for line in cache.read_text().splitlines() if line.strip()]
+        if [r['layout_seed'] for r in rows] == seeds:
+            return rows
+    torch.set_num_threads(1)
+    run, learner = load_trained_learner(run_dir)
+    rows = []
+    start = time.perf_counter()
+    for seed in seeds:
+        rows.append(evaluate_layout(learner, run.system, seed, max_steps=max_steps, gp=gp,
+                                    config_file=run.config_file))
+    wall = time.perf_counter() - start
+    for row in rows:
+        row['eval_wall_s_total'] = wall
+    cache.write_text(''.join(json.dumps(r) + '\n' for r in rows))
+    return rows
+
+
+def evaluate_job(job: tuple[str, tuple[int, ...], int | None, str]) -> list[dict[str, Any]]:
+    """Ray/sequential task wrapper: (run_dir, layout_seeds, max_steps, gp) -> rows."""
+    run_dir, seeds, max_steps, gp = job
+    return evaluate_transfer(run_dir, seeds, max_steps=max_steps, gp=gp)  # type: ignore[arg-type]

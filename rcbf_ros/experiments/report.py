@@ -1,0 +1,227 @@
+"""CSV + PNG + markdown of each experiment, from the run directories (no training here).
+
+Files written into the report directory (``<out>/<budget>/report``):
+
+- sample_efficiency: ``sample_efficiency_<system>.csv`` (method, seed, episode, return,
+  violations, goal), ``sample_efficiency_<system>_band.csv`` (mean and 2-std band per episode),
+  ``sample_efficiency_<system>.png``, ``sample_efficiency.md``;
+- transfer: ``transfer_<system>_episodes.csv`` (one row per policy x layout),
+  ``transfer_<system>.csv`` (mean/std reward, completion per method, ours and the paper's),
+  ``transfer_<system>_completion.png`` (bar chart), ``transfer.md``;
+- value_maps: ``value_maps_unicycle.csv`` (method, x, y, V), ``value_maps_unicycle.png``,
+  ``value_maps.md``;
+- ``report.md``: the markdown of every experiment present.
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from rcbf_ros.experiments.definitions import METHODS, RunSpec
+from rcbf_ros.experiments.metrics import (
+    completion_rate,
+    count_violations,
+    final_window_mean,
+    mean_std,
+    reward_band,
+)
+from rcbf_ros.experiments.runner import metrics_rows
+
+PAPER_TRANSFER: dict[str, dict[str, tuple[float, float, float]]] = {
+    'unicycle': {'sac_no_obstacles': (7.009, 1.745, 0.81), 'baseline': (3.533, 2.685, 0.21),
+                 'sac_rcbf': (3.223, 2.413, 0.17), 'modular': (6.189, 2.317, 0.63)},
+    'pvtol': {'sac_no_obstacles': (11.969, 2.376, 0.87), 'baseline': (7.228, 4.622, 0.34),
+              'sac_rcbf': (9.450, 3.808, 0.52), 'modular': (10.656, 3.411, 0.69)},
+}
+"""The paper's transfer tables: (mean episode reward, std, completion rate) over 200 layouts."""
+
+REPORT_PARTS = ('sample_efficiency', 'transfer', 'value_maps')
+
+
+def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> Path:
+    """A CSV with a header row."""
+    with Path(path).open('w', newline='') as stream:
+        writer = csv.writer(stream)
+        writer.writerow(header)
+        writer.writerows(rows)
+    return Path(path)
+
+
+def _by_system(specs: Sequence[RunSpec]) -> dict[str, dict[str, list[RunSpec]]]:
+    """system -> method -> runs, methods in the order of :data:`METHODS` (the tables')."""
+    out: dict[str, dict[str, list[RunSpec]]] = {}
+    order = list(METHODS)
+    for spec in sorted(specs, key=lambda s: (order.index(s.method), s.seed)):
+        out.setdefault(spec.system, {}).setdefault(spec.method, []).append(spec)
+    return out
+
+
+def _fmt(value: float, digits: int = 3) -> str:
+    return f'{value:.{digits}f}'
+
+
+# --------------------------------------------------------------------------- sample efficiency
+def sample_efficiency_report(specs: Sequence[RunSpec], root: str | Path,
+                             report_dir: Path) -> str:
+    """Curves, bands and the summary table of the sample-efficiency runs; returns markdown."""
+    from rcbf_ros.plots import plot_reward_bands
+    lines = ['## Sample efficiency', '',
+             'Episode return per training episode, mean over seeds with a 2-std band. '
+             '"final" is the mean of the last 10 episodes of each seed (mean +/- std over '
+             'seeds); violations are steps with a true clearance < 0, summed over all '
+             'training episodes of all seeds.', '']
+    for system, methods in _by_system(specs).items():
+        rows, band_rows, table = [], [], []
+        curves: dict[str, list[list[float]]] = {}
+        for method, runs in methods.items():
+            label = METHODS[method].label
+            per_seed, violations, goals, wall = [], 0, 0, 0.0
+            for spec in runs:
+                history = metrics_rows(spec.run_dir(root))
+                if not history:
+                    continue
+                per_seed.append([float(r['ret']) for r in history])
+                violations += count_violations(history)
+                goals += sum(bool(r['goal_reached']) for r in history)
+                wall += sum(float(r['wall_s']) for r in history)
+                rows += [(method, spec.seed, r['episode'] + 1, r['ret'], r['violations'],
+                          int(bool(r['goal_reached']))) for r in history]
+            if not per_seed:
+                continue
+            curves[label] = per_seed
+            band = reward_band(per_seed)
+            band_rows += [(method, int(e), m, lo, hi, band.n_runs)
+                          for e, m, lo, hi in zip(band.episode, band.mean, band.lower,
+                                                  band.upper)]
+            final_mean, final_std = mean_std(final_window_mean(c) for c in per_seed)
+            table.append(f'| {label} | {len(per_seed)} | {min(len(c) for c in per_seed)} | '
+                         f'{_fmt(final_mean)} +/- {_fmt(final_std)} | {goals} | {violations} '
+                         f'| {wall:.0f} |')
+        if not curves:
+            continue
+        write_csv(report_dir / f'sample_efficiency_{system}.csv',
+                  ('method', 'seed', 'episode', 'return', 'violations', 'goal_reached'), rows)
+        write_csv(report_dir / f'sample_efficiency_{system}_band.csv',
+                  ('method', 'episode', 'mean', 'lower_2std', 'upper_2std', 'n_runs'),
+                  band_rows)
+        plot_reward_bands(curves, report_dir / f'sample_efficiency_{system}.png',
+                          title=f'{system}: return vs training episode (mean, 2 std)')
+        lines += [f'### {system}', '', f'![{system}](sample_efficiency_{system}.png)', '',
+                  '| Method | seeds | episodes | final return | goals reached (train) | '
+                  'safety violations | train wall [s] |',
+                  '|---|---|---|---|---|---|---|', *table, '']
+    text = '\n'.join(lines)
+    (report_dir / 'sample_efficiency.md').write_text(text)
+    return text
+
+
+# --------------------------------------------------------------------------- transfer
+def transfer_report(results: dict[RunSpec, list[dict[str, Any]]], report_dir: Path, *,
+                    layouts: int, eval_max_steps: dict[str, int | None]) -> str:
+    """Transfer tables (ours next to the paper's), per-episode CSV and completion bars."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    lines = ['## Zero-shot transfer', '',
+             f"Deterministic policy, per-step RCBF filter with the NEW layout's barriers and "
+             f"the run's trained GP, on random layouts 0..{layouts - 1} (seeded, "
+             'rcbf_ros.envs.layouts). Mean/std of the episode reward pooled over seeds x '
+             'layouts (population std); completion = goal reached before the time limit.', '']
+    for system, methods in _by_system(list(results)).items():
+        episode_rows, summary_rows, table, bars = [], [], [], []
+        for method, runs in methods.items():
+            rows = [dict(r, seed=spec.seed) for spec in runs for r in results[spec]]
+            if not rows:
+                continue
+            mean, std = mean_std(r['ret'] for r in rows)
+            completion = completion_rate(r['goal_reached'] for r in rows)
+            violations = count_violations(rows)
+            fail_safe = sum(int(r['fail_safe']) for r in rows)
+            paper = PAPER_TRANSFER.get(system, {}).get(method)
+            episode_rows += [(method, r['seed'], r['layout_seed'], r['ret'], r['steps'],
+                              int(bool(r['goal_reached'])), r['violations'], r['fail_safe'])
+                             for r in rows]
+            summary_rows.append((method, METHODS[method].label, mean, std, completion,
+                                 len(runs), len(rows), violations,
+                                 *(paper if paper else ('', '', ''))))
+            paper_cells = ' | '.join(_fmt(v, 3 if i < 2 else 2) for i, v in enumerate(paper)) \
+                if paper else '- | - | -'
+            table.append(f'| {METHODS[method].label} | {paper_cells} | {_fmt(mean)} | '
+                         f'{_fmt(std)} | {completion:.2f} | {len(runs)} | {violations} | '
+                         f'{fail_safe} |')
+            bars.append((METHODS[method].label, completion, paper[2] if paper else None))
+        if not summary_rows:
+            continue
+        write_csv(report_dir / f'transfer_{system}_episodes.csv',
+                  ('method', 'seed', 'layout_seed', 'return', 'steps', 'goal_reached',
+                   'violations', 'fail_safe_steps'), episode_rows)
+        write_csv(report_dir / f'transfer_{system}.csv',
+                  ('method', 'label', 'mean_reward', 'std_reward', 'completion', 'seeds',
+                   'episodes', 'violations', 'paper_mean_reward', 'paper_std_reward',
+                   'paper_completion'), summary_rows)
+        fig, ax = plt.subplots(figsize=(6.5, 3.6), dpi=100)
+        positions = np.arange(len(bars))
+        ax.bar(positions - 0.2, [b[1] for b in bars], 0.4, label='ours')
+        ax.bar(positions + 0.2, [b[2] if b[2] is not None else 0.0 for b in bars], 0.4,
+               label='paper', alpha=0.6)
+        ax.set_xticks(positions, [b[0] for b in bars], rotation=15, fontsize=8)
+        ax.set_ylim(0, 1)
+        ax.set_ylabel('completion rate')
+        ax.set_title(f'{system}: zero-shot transfer completion')
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(report_dir / f'transfer_{system}_completion.png')
+        plt.close(fig)
+        steps = eval_max_steps.get(system)
+        lines += [f'### {system} (episode limit: {steps or "env default"} steps)', '',
+                  f'![{system}](transfer_{system}_completion.png)', '',
+                  '| Approach | paper mean | paper std | paper comp. | ours mean | ours std | '
+                  'ours comp. | seeds | violations | fail-safe steps |',
+                  '|---|---|---|---|---|---|---|---|---|---|', *table, '']
+    text = '\n'.join(lines)
+    (report_dir / 'transfer.md').write_text(text)
+    return text
+
+
+# --------------------------------------------------------------------------- value maps
+def value_maps_report(maps: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+                      report_dir: Path, *, seed: int) -> str:
+    """CSV and figure of the Unicycle value maps (keys: method)."""
+    from rcbf_ros.experiments.value_map import plot_value_maps
+    from rcbf_ros.params import find_config, load_params
+    rows = []
+    for method, (xs, ys, values) in maps.items():
+        for iy, y in enumerate(ys):
+            for ix, x in enumerate(xs):
+                rows.append((method, float(x), float(y), float(values[iy, ix])))
+    write_csv(report_dir / 'value_maps_unicycle.csv', ('method', 'x', 'y', 'value'), rows)
+    params = load_params(find_config('unicycle'), 'simulator')
+    obstacles = list(zip(params['obstacles.x'], params['obstacles.y'],
+                         params['obstacles.radius']))
+    from rcbf_ros.envs.layouts import UNICYCLE_STARTS
+    plot_value_maps({METHODS[m].label: v for m, v in maps.items()},
+                    report_dir / 'value_maps_unicycle.png', obstacles=obstacles,
+                    starts=UNICYCLE_STARTS, goal=params.get('goal', (2.5, 2.5)),
+                    goal_radius=float(params.get('goal_radius', 0.3)))
+    text = '\n'.join([
+        '## Value maps (Unicycle)', '',
+        f'V(x, y) = max over 8 headings of min(Q1, Q2)(o(x, y, theta), mean action), seed {seed}; '
+        'training obstacles in red, starts blue, goal green.', '',
+        '![value maps](value_maps_unicycle.png)', ''])
+    (report_dir / 'value_maps.md').write_text(text)
+    return text
+
+
+def write_report_md(report_dir: Path, header: str) -> Path:
+    """``report.md``: the header, then every experiment's markdown present in the directory."""
+    parts = [header]
+    for name in REPORT_PARTS:
+        path = report_dir / f'{name}.md'
+        if path.exists():
+            parts.append(path.read_text())
+    out = report_dir / 'report.md'
+    out.write_text('\n'.join(parts) + '\n')
+    return out

@@ -1,0 +1,152 @@
+"""Run an experiment's training runs: sequentially, or as Ray tasks; finished runs are skipped.
+
+A run is *complete* when its directory holds ``summary.json`` written after training, a
+``metrics.jsonl`` with one row per planned episode, and ``policy.pt``. A run with a checkpoint
+but fewer rows is *resumed* from its checkpoint (``RunConfig.resume``); anything else starts
+fresh. So calling the runner again after a crash or Ctrl-C redoes only what is missing.
+
+Parallelism is Ray's (``pip install ray``, optional): with ``--ray`` (a local instance,
+``--num-cpus`` workers) or ``--address`` (an existing cluster) every run becomes one Ray task of
+one CPU. Without Ray installed, ``--ray`` falls back to the sequential path with a warning;
+``--address`` is an error (the user asked for a cluster we cannot reach).
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+import time
+from typing import Any, Callable, Literal, Sequence, TypeVar
+
+from rcbf_ros.experiments.definitions import RunSpec
+
+Backend = Literal['sequential', 'ray']
+T = TypeVar('T')
+R = TypeVar('R')
+
+
+def ray_available() -> bool:
+    """Whether the optional ``ray`` package can be imported."""
+    return importlib.util.find_spec('ray') is not None
+
+
+def select_backend(*, use_ray: bool, address: str | None,
+                   log: Callable[[str], None] = print) -> Backend:
+    """``ray`` when asked for (``use_ray`` or ``address``) and importable, else ``sequential``.
+
+    Raises:
+        RuntimeError: naming ``--address`` when a cluster address is given but Ray is absent.
+    """
+    if not (use_ray or address):
+        return 'sequential'
+    if ray_available():
+        return 'ray'
+    if address:
+        raise RuntimeError(f'--address: {address!r} needs the optional ray package '
+                           "(pip install 'rcbf_ros[ray]'); it is not installed")
+    log('warning: --ray given but ray is not installed; running sequentially')
+    return 'sequential'
+
+
+def parallel_map(fn: Callable[[T], R], items: Sequence[T], *, backend: Backend,
+                 address: str | None = None, num_cpus: int | None = None) -> list[R]:
+    """``[fn(item) for item in items]``, as one Ray task per item on the ``ray`` backend.
+
+    ``fn`` must be a module-level function (Ray pickles it by reference).
+    """
+    if backend == 'sequential' or len(items) == 0:
+        return [fn(item) for item in items]
+    import ray  # optional dependency, checked by select_backend
+    if not ray.is_initialized():
+        if address:
+            ray.init(address=address)
+        else:
+            ray.init(num_cpus=num_cpus, include_dashboard=False)
+    task = ray.remote(num_cpus=1)(fn)
+    return list(ray.get([task.remote(item) for item in items]))
+
+
+# --------------------------------------------------------------------------- completeness
+def metrics_rows(run_dir: Path) -> list[dict[str, Any]]:
+    """The run's per-episode rows (empty when there is no metrics file)."""
+    path = Path(run_dir) / 'metrics.jsonl'
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def run_status(spec: RunSpec, root: str | Path) -> Literal['complete', 'partial', 'missing']:
+    """``complete`` (skip), ``partial`` (resume from the checkpoint) or ``missing``."""
+    run_dir = spec.run_dir(root)
+    rows = metrics_rows(run_dir)
+    if ((run_dir / 'summary.json').exists() and (run_dir / 'policy.pt').exists()
+            and len(rows) >= spec.episodes):
+        return 'complete'
+    if (run_dir / 'checkpoint.pt').exists() and rows:
+        return 'partial'
+    return 'missing'
+
+
+def summarize_rows(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Totals of a run: episodes, env steps, returns, goals, violations, wall time."""
+    if not rows:
+        return {'episodes': 0}
+    steps = sum(int(r['steps']) for r in rows)
+    wall = sum(float(r['wall_s']) for r in rows)
+    return {
+        'episodes': len(rows), 'env_steps': steps,
+        'final_return': float(rows[-1]['ret']), 'best_return': max(float(r['ret']) for r in rows),
+        'goals_reached': sum(bool(r['goal_reached']) for r in rows),
+        'safety_violations': sum(int(r['violations']) for r in rows),
+        'fail_safe_steps': sum(int(r.get('fail_safe', 0)) for r in rows),
+        'max_slack': max(float(r['max_slack']) for r in rows),
+        'episode_wall_s': wall, 'steps_per_s': steps / wall if wall > 0 else 0.0,
+    }
+
+
+# --------------------------------------------------------------------------- one run
+def train_run(job: tuple[RunSpec, str]) -> dict[str, Any]:
+    """Train one run (resuming a partial one) and write its ``summary.json``.
+
+    Module-level so that Ray can ship it; returns the summary with ``status``.
+    """
+    from rcbf_ros.training.loop import train
+    spec, root = job
+    status = run_status(spec, root)
+    run_dir = spec.run_dir(root)
+    if status == 'complete':
+        summary = json.loads((run_dir / 'summary.json').read_text())
+        return {**summary, 'status': 'skipped'}
+    start = time.perf_counter()
+    config = spec.run_config(root, resume=status == 'partial')
+    train(config, log=lambda line: None)
+    summary = {
+        'system': spec.system, 'method': spec.method, 'seed': spec.seed,
+        'budget': spec.budget.name, 'planned_episodes': spec.episodes,
+        **summarize_rows(metrics_rows(run_dir)),
+        'wall_s': time.perf_counter() - start,
+    }
+    (run_dir / 'summary.json').write_text(json.dumps(summary, indent=2))
+    return {**summary, 'status': 'resumed' if status == 'partial' else 'ran'}
+
+
+def run_all(specs: Sequence[RunSpec], root: str | Path, *, backend: Backend = 'sequential',
+            address: str | None = None, num_cpus: int | None = None,
+            log: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """Train every run that is not complete; returns one summary per spec (same order), each
+    with ``status`` ``ran`` | ``resumed`` | ``skipped``."""
+    root = str(root)
+    pending = [s for s in specs if run_status(s, root) != 'complete']
+    log(f'{len(specs)} runs, {len(specs) - len(pending)} already complete, '
+        f'{len(pending)} to train ({backend})')
+    done = {id(s): r for s, r in zip(pending, parallel_map(
+        train_run, [(s, root) for s in pending], backend=backend, address=address,
+        num_cpus=num_cpus))}
+    out = []
+    for spec in specs:
+        result = done.get(id(spec)) or train_run((spec, root))
+        log(f"  {spec.system}/{spec.method}/seed{spec.seed}: {result['status']}, "
+            f"{result.get('episodes', 0)} episodes, "
+            f"{result.get('safety_violations', 0)} violations")
+        out.append(result)
+    return out

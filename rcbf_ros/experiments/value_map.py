@@ -1,0 +1,82 @@
+"""Learned value maps of the Unicycle (paper: "Modular Task Learning", value-function figure).
+
+For a trained run, over a grid of positions (x, y) in the arena,
+
+    V(x, y) = max_k  min_{i=1,2} Q_i(o(x, y, theta_k), mu_pi(o(x, y, theta_k)))
+
+with o the env's observation of the state (x, y, theta) (rcbf_ros.training.models, checked
+against the env), mu_pi the policy's mean action and theta_k, k < n_headings, evenly spaced
+headings: the value at the best heading, i.e. where the robot could be pointed. Using the mean
+action and dropping the entropy term (-alpha log pi) gives the deterministic policy's value; the
+shape of the map, not its offset, is what the comparison reads (low values around the training
+obstacles for SAC-RCBF; none for the unconstrained and the modular critic).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from rcbf_ros.params import find_config, load_params
+from rcbf_ros.training.agent import SafeLearner
+from rcbf_ros.training.loop import make_env
+from rcbf_ros.training.models import unicycle_models
+
+
+def value_map(learner: SafeLearner, *, grid: int = 61, half_size: float = 3.0,
+              n_headings: int = 8, config_file: str | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(xs: (grid,), ys: (grid,), V: (grid, grid) indexed [iy, ix]) of a Unicycle learner.
+
+    Raises:
+        ValueError: naming ``grid`` or ``n_headings`` when < 2 / < 1.
+    """
+    if grid < 2:
+        raise ValueError(f'grid: must be >= 2, got {grid}')
+    if n_headings < 1:
+        raise ValueError(f'n_headings: must be >= 1, got {n_headings}')
+    env = make_env('unicycle', load_params(find_config(config_file or 'unicycle'), 'simulator'))
+    _, obs_fn = unicycle_models(env)
+    xs = np.linspace(-half_size, half_size, grid)
+    ys = np.linspace(-half_size, half_size, grid)
+    headings = np.linspace(-np.pi, np.pi, n_headings, endpoint=False)
+    gy, gx, gh = np.meshgrid(ys, xs, headings, indexing='ij')  # (grid, grid, n_headings)
+    states = torch.as_tensor(np.stack([gx, gy, gh], axis=-1).reshape(-1, 3))
+    sac = learner.sac
+    with torch.no_grad():
+        obs = obs_fn(states).to(sac.dtype)
+        action = sac.policy_action(obs, deterministic=True)
+        q = torch.minimum(sac.q1(obs, action), sac.q2(obs, action))
+    values = q.reshape(grid, grid, n_headings).max(dim=-1).values.numpy().astype(np.float64)
+    return xs, ys, values
+
+
+def plot_value_maps(maps: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+                    path: str | Path, *, obstacles: Sequence[tuple[float, float, float]],
+                    starts: Sequence[Sequence[float]], goal: Sequence[float],
+                    goal_radius: float) -> Path:
+    """One panel per method (own colour scale), training obstacles red, starts blue, goal
+    green, as the paper's figure."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, len(maps), figsize=(4.2 * len(maps), 3.8), dpi=100,
+                             squeeze=False)
+    for ax, (label, (xs, ys, values)) in zip(axes[0], maps.items()):
+        image = ax.imshow(values, origin='lower', extent=(xs[0], xs[-1], ys[0], ys[-1]),
+                          cmap='viridis')
+        fig.colorbar(image, ax=ax, fraction=0.046)
+        for x, y, r in obstacles:
+            ax.add_patch(plt.Circle((x, y), r, fill=False, color='red', lw=1.5))
+        for start in starts:
+            ax.add_patch(plt.Circle(tuple(start[:2]), 0.15, fill=False, color='blue', lw=1.5))
+        ax.add_patch(plt.Circle(tuple(goal), goal_radius, fill=False, color='lime', lw=2))
+        ax.set_title(label)
+        ax.set_aspect('equal')
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -1,0 +1,160 @@
+"""Experiment metrics, definitions, backend selection and the 200 transfer layouts."""
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from rcbf_ros.experiments.definitions import BUDGETS, experiment_runs, METHODS, PLAN
+from rcbf_ros.experiments.metrics import (
+    completion_rate,
+    count_violations,
+    final_window_mean,
+    mean_std,
+    reward_band,
+)
+from rcbf_ros.experiments.runner import ray_available, select_backend
+
+
+def test_mean_std_is_the_population_std():
+    mean, std = mean_std([1.0, 2.0, 3.0, 4.0])
+    assert mean == 2.5
+    assert std == pytest.approx(math.sqrt(1.25))  # ddof=0: sqrt(mean of squared deviations)
+    assert mean_std([7.0]) == (7.0, 0.0)
+    with pytest.raises(ValueError, match='values'):
+        mean_std([])
+
+
+def test_completion_rate_counts_goals():
+    assert completion_rate([True, False, True, True]) == 0.75
+    assert completion_rate([0, 0]) == 0.0
+    with pytest.raises(ValueError, match='goal_reached'):
+        completion_rate([])
+
+
+def test_count_violations_sums_and_rejects_bad_rows():
+    assert count_violations([{'violations': 0}, {'violations': 3}, {'violations': 2}]) == 5
+    assert count_violations([]) == 0
+    with pytest.raises(ValueError, match='violations: missing in row 1'):
+        count_violations([{'violations': 0}, {'ret': 1.0}])
+    with pytest.raises(ValueError, match='negative'):
+        count_violations([{'violations': -1}])
+
+
+def test_reward_band_truncates_to_the_shortest_run_and_spans_two_std():
+    band = reward_band([[0.0, 2.0, 9.0], [2.0, 6.0]])
+    np.testing.assert_array_equal(band.episode, [1, 2])
+    np.testing.assert_allclose(band.mean, [1.0, 4.0])
+    # population std of {0, 2} is 1 and of {2, 6} is 2; the band is mean +/- 2 std.
+    np.testing.assert_allclose(band.lower, [-1.0, 0.0])
+    np.testing.assert_allclose(band.upper, [3.0, 8.0])
+    assert band.n_runs == 2
+    one = reward_band([[1.0, 5.0]], k=3.0)
+    np.testing.assert_allclose(one.upper, one.mean)  # one seed: no spread
+    with pytest.raises(ValueError, match='curves'):
+        reward_band([])
+    with pytest.raises(ValueError, match='no episodes'):
+        reward_band([[1.0], []])
+
+
+def test_final_window_mean():
+    assert final_window_mean([0.0] * 5 + [1.0, 3.0], window=2) == 2.0
+    assert final_window_mean([4.0, 6.0], window=10) == 5.0
+    with pytest.raises(ValueError, match='window'):
+        final_window_mean([1.0], window=0)
+
+
+def test_experiment_runs_cover_the_plan_without_duplicates():
+    budget = BUDGETS['smoke']
+    sample = experiment_runs('sample_efficiency', budget, 3)
+    assert len(sample) == (4 + 3) * 3
+    assert not any(s.system == 'car_following' and s.method == 'sac_rcbf_mb' for s in sample)
+    transfer = experiment_runs('transfer', budget, 2)
+    assert {(s.system, s.method) for s in transfer} == {
+        (system, m) for system in ('unicycle', 'pvtol') for m in PLAN['transfer'][system]}
+    everything = experiment_runs('all', budget, 2)
+    # value_maps reuses the Unicycle transfer runs; baseline and MF SAC-RCBF on the Unicycle
+    # are shared by sample_efficiency and transfer.
+    assert len(everything) == len(set(everything)) == 2 * (4 + 3 + 4 + 4 - 2)
+    assert METHODS['sac_no_obstacles'].no_obstacles and METHODS['sac_rcbf_mb'].model_based
+    config = transfer[0].run_config('runs')
+    assert config.learner.seed == transfer[0].seed and config.episodes == 2
+    with pytest.raises(ValueError, match='experiment'):
+        experiment_runs('bogus', budget, 1)
+    with pytest.raises(ValueError, match='seeds'):
+        experiment_runs('transfer', budget, 0)
+
+
+def test_overrides_rename_the_budget_so_runs_never_mix():
+    budget = BUDGETS['paper'].with_overrides(episodes=12, max_steps=500, layouts=50)
+    assert budget.name == 'paper-e12-s500'
+    assert budget.episodes['unicycle'] == 12 and budget.max_steps['pvtol'] == 500
+    assert budget.layouts == 50
+    assert BUDGETS['paper'].with_overrides(layouts=10).name == 'paper'  # evaluation only
+    spec = experiment_runs('transfer', budget, 1)[0]
+    assert 'paper-e12-s500' in str(spec.run_dir('root'))
+    with pytest.raises(ValueError, match='layouts'):
+        BUDGETS['smoke'].with_overrides(layouts=0)
+
+
+@pytest.mark.skipif(ray_available(), reason='checks the Ray-absent path')
+def test_without_ray_the_sequential_path_is_used(capsys):
+    from rcbf_ros.cli import main as cli_main
+    messages: list[str] = []
+    assert select_backend(use_ray=False, address=None) == 'sequential'
+    assert select_backend(use_ray=True, address=None, log=messages.append) == 'sequential'
+    assert 'ray is not installed' in messages[0]
+    with pytest.raises(RuntimeError, match='--address'):
+        select_backend(use_ray=False, address='127.0.0.1:6379')
+    assert cli_main(['experiment', 'transfer', '--address', '127.0.0.1:6379']) == 2
+    assert '--address' in capsys.readouterr().err
+
+
+def test_cli_rejects_bad_experiment_arguments(capsys):
+    from rcbf_ros.cli import main as cli_main
+    assert cli_main(['experiment', 'transfer', '--seeds', '0']) == 2
+    assert 'seeds' in capsys.readouterr().err
+    assert cli_main(['experiment', 'transfer', '--layouts', '0']) == 2
+    assert 'layouts' in capsys.readouterr().err
+
+
+def _dist(a, b) -> float:
+    return math.hypot(a[0] - b[0], a[1] - b[1])
+
+
+def test_the_200_transfer_layouts_follow_the_rules_and_reach_the_filter():
+    """The evaluation's env with layout_seed s runs unicycle_random_layout(s) (rules hold for
+    all 200 seeds) and hands exactly those barrier circles to the filter."""
+    from rcbf_ros.envs.layouts import (
+        PVTOL_GOAL,
+        pvtol_random_layout,
+        PVTOL_STARTS,
+        UNICYCLE_GOAL,
+        unicycle_random_layout,
+        UNICYCLE_STARTS,
+    )
+    from rcbf_ros.params import find_config, load_params
+    from rcbf_ros.training.loop import make_env
+    params = load_params(find_config('unicycle'), 'simulator')
+    for seed in range(200):
+        layout = unicycle_random_layout(seed)
+        assert layout == unicycle_random_layout(seed) and len(layout) >= 1
+        for a, b in itertools.combinations(layout, 2):
+            assert _dist((a.x, a.y), (b.x, b.y)) > 2.1
+        for o in layout:
+            assert all(_dist((o.x, o.y), p) > 1.2 for p in (UNICYCLE_GOAL, *UNICYCLE_STARTS))
+        env = make_env('unicycle', {**params, 'layout': 'random', 'layout_seed': seed})
+        env.reset(seed=seed)
+        assert env.obstacles == layout
+        filt = env.filter_params()
+        assert filt['obstacles.x'] == [o.x for o in layout]
+        assert filt['obstacles.radius'] == [o.radius for o in layout]
+        pv_layout, operator = pvtol_random_layout(seed)
+        assert (pv_layout, operator) == pvtol_random_layout(seed)
+        for a, b in itertools.combinations(pv_layout, 2):
+            assert _dist((a.x, a.y), (b.x, b.y)) > 1.4
+        for o in pv_layout:
+            assert all(_dist((o.x, o.y), p) > 1.2 for p in (PVTOL_GOAL, *PVTOL_STARTS))
+    assert len({unicycle_random_layout(s) for s in range(200)}) == 200
