@@ -1,0 +1,150 @@
+"""Every experiment at the smoke budget end to end through the CLI; the runner resumes.
+
+The smoke pipeline takes ~45 s on two loaded cores (measured), so it stays in the unit suite
+unmarked: the pipeline cannot rot unnoticed.
+"""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from rcbf_ros.cli import main as cli_main
+from rcbf_ros.envs.layouts import unicycle_random_layout
+from rcbf_ros.experiments.definitions import Budget, BUDGETS, RunSpec
+from rcbf_ros.experiments.evaluate import load_trained_learner
+from rcbf_ros.experiments.runner import run_all, run_status
+from rcbf_ros.params import find_config, load_params
+from rcbf_ros.training.loop import make_env
+
+PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
+
+
+def _csv(path: Path) -> list[dict[str, str]]:
+    with path.open() as stream:
+        return list(csv.DictReader(stream))
+
+
+def _mtimes(root: Path, pattern: str) -> dict[Path, int]:
+    return {p: p.stat().st_mtime_ns for p in sorted(root.rglob(pattern))}
+
+
+def test_smoke_budget_of_every_experiment_writes_the_report(tmp_path, capsys):
+    out = tmp_path / 'experiments'
+    assert cli_main(['experiment', 'all', '--budget', 'smoke', '--seeds', '1',
+                     '--out', str(out)]) == 0
+    capsys.readouterr()
+    report = out / 'smoke' / 'report'
+    budget = BUDGETS['smoke']
+
+    # Sample efficiency: one row per (method, episode); MB only on the Unicycle; no violations.
+    rows = _csv(report / 'sample_efficiency_unicycle.csv')
+    assert sorted({r['method'] for r in rows}) == [
+        'baseline', 'baseline_compensator', 'sac_rcbf', 'sac_rcbf_mb']
+    assert len(rows) == 4 * budget.episodes['unicycle']
+    cars = _csv(report / 'sample_efficiency_car_following.csv')
+    assert sorted({r['method'] for r in cars}) == ['baseline', 'baseline_compensator',
+                                                   'sac_rcbf']
+    assert all(int(r['violations']) == 0 for r in rows + cars)
+    band = _csv(report / 'sample_efficiency_unicycle_band.csv')
+    assert len(band) == 4 * budget.episodes['unicycle']
+    for b in band:  # one seed: the band collapses onto the mean, which is that seed's return
+        match = next(r for r in rows if r['method'] == b['method']
+                     and r['episode'] == b['episode'])
+        assert float(b['mean']) == pytest.approx(float(match['return']))
+        assert float(b['lower_2std']) == pytest.approx(float(b['upper_2std']))
+
+    # Transfer: four approaches per system, each on every layout; the summary is the episodes'.
+    for system in ('unicycle', 'pvtol'):
+        summary = {r['method']: r for r in _csv(report / f'transfer_{system}.csv')}
+        assert list(summary) == ['sac_no_obstacles', 'baseline', 'sac_rcbf', 'modular']
+        episodes = _csv(report / f'transfer_{system}_episodes.csv')
+        assert len(episodes) == 4 * budget.layouts
+        for method, row in summary.items():
+            returns = [float(e['return']) for e in episodes if e['method'] == method]
+            assert [int(e['layout_seed']) for e in episodes if e['method'] == method] == [0, 1, 2]
+            assert float(row['mean_reward']) == pytest.approx(np.mean(returns))
+            assert float(row['std_reward']) == pytest.approx(np.std(returns))
+            assert int(row['violations']) == 0
+            assert row['paper_completion']  # the paper's value sits next to ours
+    # The evaluation ran each layout with ITS obstacles (the filter got the new barriers).
+    cached = out / 'smoke' / 'unicycle' / 'modular' / 'seed0' / 'transfer_learned_L3_T40.jsonl'
+    for line in cached.read_text().splitlines():
+        row = json.loads(line)
+        assert row['n_obstacles'] == len(unicycle_random_layout(row['layout_seed']))
+
+    # Value maps: 3 methods x grid^2 points; V at one grid point equals the critic at the
+    # env's own observation, maximised over the 8 headings.
+    maps = _csv(report / 'value_maps_unicycle.csv')
+    grid = budget.value_map_grid
+    assert len(maps) == 3 * grid * grid
+    learner = load_trained_learner(out / 'smoke' / 'unicycle' / 'modular' / 'seed0')[1]
+    point = next(r for r in maps if r['method'] == 'modular'
+                 and float(r['x']) == -2.25 and float(r['y']) == 0.75)
+    env = make_env('unicycle', load_params(find_config('unicycle'), 'simulator'))
+    env.reset(seed=0)
+    values = []
+    for theta in np.linspace(-np.pi, np.pi, 8, endpoint=False):
+        env._state = np.array([-2.25, 0.75, theta])
+        obs = torch.as_tensor(env._observation(), dtype=torch.float32)[None]
+        action = learner.sac.policy_action(obs, deterministic=True)
+        with torch.no_grad():
+            values.append(float(torch.minimum(learner.sac.q1(obs, action),
+                                              learner.sac.q2(obs, action))))
+    assert float(point['value']) == pytest.approx(max(values), rel=1e-5, abs=1e-6)
+
+    for name in ('sample_efficiency_unicycle', 'sample_efficiency_car_following',
+                 'transfer_unicycle_completion', 'transfer_pvtol_completion',
+                 'value_maps_unicycle'):
+        data = (report / f'{name}.png').read_bytes()
+        assert data.startswith(PNG_MAGIC) and len(data) > 5000, name
+    text = (report / 'report.md').read_text()
+    for needle in ('## Sample efficiency', '## Zero-shot transfer', '## Value maps',
+                   '| Mod. SAC-RCBF | 6.189 | 2.317 | 0.63 |', 'SAC-RCBF (MB)',
+                   'rcbf_ros experiment all --budget smoke'):
+        assert needle in text, needle
+
+    # Every run is recorded to MCAP as `rcbf_ros train` records it.
+    from rosbags.highlevel import AnyReader
+    run_dir = out / 'smoke' / 'pvtol' / 'sac_rcbf' / 'seed0'
+    history = [json.loads(line) for line in (run_dir / 'metrics.jsonl').read_text().splitlines()]
+    with AnyReader([next(run_dir.glob('bag_*'))]) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+    assert counts['/cmd_safe'] == sum(r['steps'] for r in history)
+
+    # Second call: nothing is retrained or re-evaluated.
+    before = {**_mtimes(out, 'metrics.jsonl'), **_mtimes(out, 'transfer_*.jsonl')}
+    assert cli_main(['experiment', 'all', '--budget', 'smoke', '--seeds', '1',
+                     '--out', str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert '13 runs, 13 already complete, 0 to train' in printed
+    assert {**_mtimes(out, 'metrics.jsonl'), **_mtimes(out, 'transfer_*.jsonl')} == before
+
+
+def test_runner_skips_finished_runs_and_resumes_partial_ones(tmp_path):
+    def budget(episodes: int) -> Budget:
+        return Budget(name='tiny', episodes={'unicycle': episodes},
+                      max_steps={'unicycle': 30}, start_steps=10, update_after=10,
+                      batch_size=8, gp_refit_interval=20, hidden_sizes=(8, 8),
+                      record_bag=False)
+    one = RunSpec('unicycle', 'modular', 0, budget(1))
+    assert run_status(one, tmp_path) == 'missing'
+    assert [r['status'] for r in run_all([one], tmp_path, log=lambda _: None)] == ['ran']
+    assert run_status(one, tmp_path) == 'complete'
+    metrics = one.run_dir(tmp_path) / 'metrics.jsonl'
+    stamp = metrics.stat().st_mtime_ns
+    assert [r['status'] for r in run_all([one], tmp_path, log=lambda _: None)] == ['skipped']
+    assert metrics.stat().st_mtime_ns == stamp
+    # The same run planned for two episodes: resumed from its checkpoint, not restarted.
+    two = RunSpec('unicycle', 'modular', 0, budget(2))
+    assert run_status(two, tmp_path) == 'partial'
+    result = run_all([two], tmp_path, log=lambda _: None)[0]
+    assert result['status'] == 'resumed' and result['episodes'] == 2
+    rows = [json.loads(line) for line in metrics.read_text().splitlines()]
+    assert [r['episode'] for r in rows] == [0, 1]
+    summary = json.loads((one.run_dir(tmp_path) / 'summary.json').read_text())
+    assert summary['episodes'] == 2 and summary['safety_violations'] == 0
