@@ -168,25 +168,36 @@ def _max_step(value: Tensor, step: Tensor) -> Tensor:
     return ratio.amin(-1).clamp(max=1.0)
 
 
-def _interior_point(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_iter: int
+def _interior_point(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_iter: int,
+                    start: tuple[Tensor, Tensor, Tensor] | None = None
                     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Batched Mehrotra predictor-corrector on the scaled problem.
 
+    start: optional (z, s, lam) to continue from (s, lam > 0).
     Returns z: (B, n), s: (B, m), lam: (B, m), iterations: (B,), converged: (B,).
     """
     batch, m, _ = G.shape
-    # Start (CVXOPT's rule): z0 = argmin 1/2 z'Pz + q'z + 1/2 ||G z - h||^2, then shift the
-    # slack s0 = h - G z0 and the multiplier estimate lam0 = G z0 - h into the positive orthant.
-    ones = torch.ones_like(h)
-    z = _chol_solve(_cholesky(_schur(P, G, ones)), -q + _rmatvec(G, h))
-    s = h - _matvec(G, z)
-    lam = -s
-    s_low = -s.amin(-1, keepdim=True)
-    s = torch.where(s_low >= 0, s + 1.0 + s_low, s)
-    lam_low = -lam.amin(-1, keepdim=True)
-    lam = torch.where(lam_low >= 0, lam + 1.0 + lam_low, lam)
-    s = s.clamp_min(1e-8)
-    lam = lam.clamp_min(1e-8)
+    if start is not None:
+        z, s, lam = start
+    else:
+        # Start (CVXOPT's rule): z0 = argmin 1/2 z'Pz + q'z + 1/2 ||G z - h||^2, then shift the
+        # slack s0 = h - G z0 and the multiplier estimate lam0 = G z0 - h into the positive
+        # orthant.
+        ones = torch.ones_like(h)
+        z = _chol_solve(_cholesky(_schur(P, G, ones)), -q + _rmatvec(G, h))
+        s = h - _matvec(G, z)
+        lam = -s
+        s_low = -s.amin(-1, keepdim=True)
+        s = torch.where(s_low >= 0, s + 1.0 + s_low, s)
+        lam_low = -lam.amin(-1, keepdim=True)
+        lam = torch.where(lam_low >= 0, lam + 1.0 + lam_low, lam)
+        s = s.clamp_min(1e-8)
+        lam = lam.clamp_min(1e-8)
+        # Centring shift (Nocedal & Wright, sec. 14.2 start heuristic): balances the products
+        # s_i lam_i; without it Mehrotra's method stalls on a few badly centred samples.
+        gap = (s * lam).sum(-1, keepdim=True)
+        s, lam = (s + 0.5 * gap / lam.sum(-1, keepdim=True),
+                  lam + 0.5 * gap / s.sum(-1, keepdim=True))
 
     z_out, s_out, lam_out = torch.empty_like(z), torch.empty_like(s), torch.empty_like(lam)
     iterations = torch.full((batch,), max_iter, dtype=torch.int64, device=q.device)
@@ -316,21 +327,129 @@ def _polish(P: Tensor, q: Tensor, G: Tensor, h: Tensor, s: Tensor, lam: Tensor, 
     return z_pol, lam_pol, active, ok
 
 
+def _active_set_guess(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, rounds: int
+                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Cheap primal active-set rounds from the empty set, accepted only where KKT holds.
+
+    Each round solves the equality-constrained QP of the current active set, then adds the
+    single most violated row (rows have unit norm in the scaled problem, so violations compare)
+    and drops rows whose multiplier is negative. A sample is accepted once its candidate is
+    primal feasible with nu >= 0: with stationarity exact by construction that is the KKT point,
+    i.e. the unique solution, so no guess can be wrong, only unaccepted. In the RCBF-QP usually
+    one or two rows are active and this finishes most of the batch in a round or two.
+
+    Returns z: (B, n), lam: (B, m), active: (B, m), ok: (B,).
+    """
+    batch = h.shape[0]
+    z_out = _chol_solve(_cholesky(P), -q)
+    lam_out = torch.zeros_like(h)
+    active_out = torch.zeros_like(h, dtype=torch.bool)
+    ok_out = torch.zeros(batch, dtype=torch.bool, device=h.device)
+    # Working set: samples not yet accepted (accepted ones are written out and dropped).
+    index = torch.arange(batch, device=h.device)
+    P_w, q_w, G_w, h_w = P, q, G, h
+    z, lam, active = z_out, lam_out, active_out
+    for _ in range(rounds):
+        feas_tol = tol * (1.0 + h_w.abs().amax(-1, keepdim=True))
+        violation = _matvec(G_w, z) - h_w
+        worst = violation.argmax(-1, keepdim=True)
+        add = torch.zeros_like(active).scatter_(-1, worst, True) & (violation > feas_tol)
+        # A full set (n rows) cannot take another independent row: the row with the least
+        # multiplier makes room for the new one.
+        full = (active.sum(-1, keepdim=True) >= G_w.shape[-1]) & add.any(-1, keepdim=True)
+        weakest = torch.where(active, lam, torch.inf).argmin(-1, keepdim=True)
+        drop = torch.zeros_like(active).scatter_(-1, weakest, True) & full
+        active = (active & (lam >= 0) & ~drop) | add
+        z, lam = _kkt_solve(P_w, G_w, active, -q_w, h_w * active)
+        dual_tol = tol * (1.0 + lam.abs().amax(-1, keepdim=True))
+        ok = (((_matvec(G_w, z) - h_w) <= feas_tol).all(-1) & (lam >= -dual_tol).all(-1)
+              & torch.isfinite(z).all(-1))
+        done = index[ok]
+        z_out[done], lam_out[done], active_out[done] = z[ok], lam[ok].clamp_min(0.0), active[ok]
+        ok_out[done] = True
+        keep = ~ok
+        if not bool(keep.any()):
+            break
+        index = index[keep]
+        P_w, q_w, G_w, h_w = P_w[keep], q_w[keep], G_w[keep], h_w[keep]
+        z, lam, active = z[keep], lam[keep], active[keep]
+    return z_out, lam_out, active_out, ok_out
+
+
+_ACTIVE_SET_GUESS_ROUNDS = 4
+"""Rounds of :func:`_active_set_guess` before the interior point takes over."""
+_LOOSE_TOL = 1e-6
+"""Interior point tolerance before the first polish (the polish makes the result exact)."""
+
+
+def _solve_scaled(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_iter: int,
+                  polish: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Forward pass on the scaled problem: z, lam, iterations, converged, active (see module).
+
+    Phases, each on the samples the previous ones left open:
+    0. the unconstrained minimiser -P^-1 q, exact where it is feasible (no active row; in the
+       RCBF-QP q = 0, so every sample whose proposal is already safe ends here);
+    1. interior point to a loose tolerance, then the active-set polish;
+    2. where the polish failed, the interior point continues to ``tol`` and polishes again;
+       where that fails too, the interior point iterate is returned.
+    """
+    batch, m, _ = G.shape
+    z = _chol_solve(_cholesky(P), -q)
+    lam = torch.zeros_like(h)
+    active = torch.zeros_like(h, dtype=torch.bool)
+    iterations = torch.zeros(batch, dtype=torch.int64, device=q.device)
+    feasible = (_matvec(G, z) - h <= tol * (1.0 + h.abs().amax(-1, keepdim=True))).all(-1)
+    converged = feasible.clone()
+    todo = (~feasible).nonzero().squeeze(-1)
+    if todo.numel() == 0:
+        return z, lam, iterations, converged, active
+    if polish:
+        z_g, lam_g, active_g, ok_g = _active_set_guess(P[todo], q[todo], G[todo], h[todo], tol,
+                                                       _ACTIVE_SET_GUESS_ROUNDS)
+        solved = todo[ok_g]
+        z[solved], lam[solved], active[solved] = z_g[ok_g], lam_g[ok_g], active_g[ok_g]
+        converged[solved] = True
+        todo = todo[~ok_g]
+        if todo.numel() == 0:
+            return z, lam, iterations, converged, active
+    P_t, q_t, G_t, h_t = P[todo], q[todo], G[todo], h[todo]
+    loose = max(tol, _LOOSE_TOL) if polish else tol
+    z_t, s_t, lam_t, it_t, conv_t = _interior_point(P_t, q_t, G_t, h_t, loose, max_iter)
+    active_t = lam_t > s_t
+    ok = torch.zeros_like(conv_t)
+    conv_tight = conv_t if loose <= tol else torch.zeros_like(conv_t)
+    if polish:
+        z_p, lam_p, active_p, ok = _polish(P_t, q_t, G_t, h_t, s_t, lam_t, tol)
+    retry = (~ok).nonzero().squeeze(-1)
+    if retry.numel() and loose > tol:
+        start = (z_t[retry], s_t[retry], lam_t[retry])
+        z_r, s_r, lam_r, it_r, conv_r = _interior_point(
+            P_t[retry], q_t[retry], G_t[retry], h_t[retry], tol, max_iter, start=start)
+        z_t[retry], s_t[retry], lam_t[retry] = z_r, s_r, lam_r
+        it_t[retry] += it_r
+        conv_tight[retry] = conv_r
+        active_t[retry] = lam_r > s_r
+        z_rp, lam_rp, active_rp, ok_r = _polish(
+            P_t[retry], q_t[retry], G_t[retry], h_t[retry], s_r, lam_r, tol)
+        z_p[retry], lam_p[retry], active_p[retry] = z_rp, lam_rp, active_rp
+        ok[retry] = ok_r
+    if polish:
+        keep = ok.unsqueeze(-1)
+        z_t = torch.where(keep, z_p, z_t)
+        lam_t = torch.where(keep, lam_p, lam_t)
+        active_t = torch.where(keep, active_p, active_t)
+    z[todo], lam[todo], active[todo] = z_t, lam_t, active_t
+    iterations[todo], converged[todo] = it_t, ok | conv_tight
+    return z, lam, iterations, converged, active
+
+
 class _QPLayer(torch.autograd.Function):
     """autograd.Function on the scaled problem; see the module docstring."""
 
     @staticmethod
     def forward(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_iter: int,
                 polish: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        z, s, lam, iterations, converged = _interior_point(P, q, G, h, tol, max_iter)
-        active = lam > s
-        if polish:
-            z_pol, lam_pol, active_pol, ok = _polish(P, q, G, h, s, lam, tol)
-            z = torch.where(ok.unsqueeze(-1), z_pol, z)
-            lam = torch.where(ok.unsqueeze(-1), lam_pol, lam)
-            active = torch.where(ok.unsqueeze(-1), active_pol, active)
-            converged = converged | ok
-        return z, lam, iterations, converged, active
+        return _solve_scaled(P, q, G, h, tol, max_iter, polish)
 
     @staticmethod
     def setup_context(ctx: Any, inputs: tuple[Any, ...], output: tuple[Any, ...]) -> None:
