@@ -104,6 +104,9 @@ def run_experiment(request: ExperimentRequest, *, backend: Backend = 'sequential
             report.sample_efficiency_report(_specs_of('sample_efficiency', specs), root,
                                             report_dir)
         if transfer_results:
+            report.sample_efficiency_report(
+                list(transfer_results), root, report_dir, prefix='transfer_training',
+                heading='Training curves of the transfer runs')
             report.transfer_report(transfer_results, report_dir, layouts=request.budget.layouts,
                                    eval_max_steps=request.budget.eval_max_steps)
         if 'value_maps' in experiments:

@@ -8,6 +8,7 @@ Files written into the report directory (``<out>/<budget>/report``):
 - transfer: ``transfer_<system>_episodes.csv`` (one row per policy x layout),
   ``transfer_<system>.csv`` (mean/std reward, completion per method, ours and the paper's),
   ``transfer_<system>_completion.png`` (bar chart), ``transfer.md``;
+  plus the training curves of the transfer runs as ``transfer_training_<system>.*``;
 - value_maps: ``value_maps_unicycle.csv`` (method, x, y, V), ``value_maps_unicycle.png``,
   ``value_maps.md``;
 - ``report.md``: the markdown of every experiment present.
@@ -38,7 +39,8 @@ PAPER_TRANSFER: dict[str, dict[str, tuple[float, float, float]]] = {
 }
 """The paper's transfer tables: (mean episode reward, std, completion rate) over 200 layouts."""
 
-REPORT_PARTS = ('sample_efficiency', 'transfer', 'value_maps')
+REPORT_PARTS = ('sample_efficiency', 'transfer', 'transfer_training', 'value_maps')
+"""Markdown parts of ``report.md``, in order."""
 
 
 def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> Path:
@@ -65,10 +67,15 @@ def _fmt(value: float, digits: int = 3) -> str:
 
 # --------------------------------------------------------------------------- sample efficiency
 def sample_efficiency_report(specs: Sequence[RunSpec], root: str | Path,
-                             report_dir: Path) -> str:
-    """Curves, bands and the summary table of the sample-efficiency runs; returns markdown."""
+                             report_dir: Path, *, prefix: str = 'sample_efficiency',
+                             heading: str = 'Sample efficiency') -> str:
+    """Curves, bands and the summary table of training runs; returns markdown.
+
+    ``prefix`` names the files (``<prefix>_<system>.csv|png``, ``<prefix>.md``): the
+    sample-efficiency experiment, or the training curves of the transfer runs.
+    """
     from rcbf_ros.plots import plot_reward_bands
-    lines = ['## Sample efficiency', '',
+    lines = [f'## {heading}', '',
              'Episode return per training episode, mean over seeds with a 2-std band. '
              '"final" is the mean of the last 10 episodes of each seed (mean +/- std over '
              'seeds); violations are steps with a true clearance < 0, summed over all '
@@ -102,19 +109,19 @@ def sample_efficiency_report(specs: Sequence[RunSpec], root: str | Path,
                          f'| {wall:.0f} |')
         if not curves:
             continue
-        write_csv(report_dir / f'sample_efficiency_{system}.csv',
+        write_csv(report_dir / f'{prefix}_{system}.csv',
                   ('method', 'seed', 'episode', 'return', 'violations', 'goal_reached'), rows)
-        write_csv(report_dir / f'sample_efficiency_{system}_band.csv',
+        write_csv(report_dir / f'{prefix}_{system}_band.csv',
                   ('method', 'episode', 'mean', 'lower_2std', 'upper_2std', 'n_runs'),
                   band_rows)
-        plot_reward_bands(curves, report_dir / f'sample_efficiency_{system}.png',
+        plot_reward_bands(curves, report_dir / f'{prefix}_{system}.png',
                           title=f'{system}: return vs training episode (mean, 2 std)')
-        lines += [f'### {system}', '', f'![{system}](sample_efficiency_{system}.png)', '',
+        lines += [f'### {system}', '', f'![{system}]({prefix}_{system}.png)', '',
                   '| Method | seeds | episodes | final return | goals reached (train) | '
                   'safety violations | train wall [s] |',
                   '|---|---|---|---|---|---|---|', *table, '']
     text = '\n'.join(lines)
-    (report_dir / 'sample_efficiency.md').write_text(text)
+    (report_dir / f'{prefix}.md').write_text(text)
     return text
 
 

@@ -71,6 +71,8 @@ def test_smoke_budget_of_every_experiment_writes_the_report(tmp_path, capsys):
             assert float(row['std_reward']) == pytest.approx(np.std(returns))
             assert int(row['violations']) == 0
             assert row['paper_completion']  # the paper's value sits next to ours
+        training = _csv(report / f'transfer_training_{system}.csv')
+        assert len(training) == 4 * budget.episodes[system]
     # The evaluation ran each layout with ITS obstacles (the filter got the new barriers).
     cached = out / 'smoke' / 'unicycle' / 'modular' / 'seed0' / 'transfer_learned_L3_T40.jsonl'
     for line in cached.read_text().splitlines():
@@ -105,6 +107,7 @@ def test_smoke_budget_of_every_experiment_writes_the_report(tmp_path, capsys):
     text = (report / 'report.md').read_text()
     for needle in ('## Sample efficiency', '## Zero-shot transfer', '## Value maps',
                    '| Mod. SAC-RCBF | 6.189 | 2.317 | 0.63 |', 'SAC-RCBF (MB)',
+                   '## Training curves of the transfer runs',
                    'rcbf_ros experiment all --budget smoke'):
         assert needle in text, needle
 
