@@ -35,6 +35,7 @@ import time
 from typing import Any, Sequence
 
 import numpy as np
+import torch
 
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
@@ -198,6 +199,7 @@ class SafetyFilterNode(Node):
 
 def main(args: Sequence[str] | None = None) -> int:
     """Run the node until Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
+    torch.set_num_threads(1)  # B = 1 constraint assembly: threads only add contention
     # rclpy reads sys.argv when args is None; say so explicitly for runtimes that do not.
     rclpy.init(args=sys.argv if args is None else args)
     node = None
