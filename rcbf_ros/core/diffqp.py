@@ -64,8 +64,6 @@ _REGULARISATION = 1e-9
 _REFINEMENT_STEPS = 3
 """Iterative refinement steps against the unregularised KKT system (each shrinks the error by
 about delta / lambda_min(A P^-1 A^T))."""
-_ACTIVE_SET_ROUNDS = 3
-"""Polishing rounds: re-solve after adding violated rows and dropping negative multipliers."""
 
 
 class QPSolution(NamedTuple):
@@ -266,8 +264,8 @@ def _interior_point(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_
     return z, s, lam, iterations, converged
 
 
-def _kkt_solve(P: Tensor, G: Tensor, active: Tensor, rhs_z: Tensor, rhs_nu: Tensor,
-               nu_guess: Tensor | None = None) -> tuple[Tensor, Tensor]:
+def _kkt_solve(P: Tensor, G: Tensor, active: Tensor, rhs_z: Tensor, rhs_nu: Tensor
+               ) -> tuple[Tensor, Tensor]:
     """Solve the active-set KKT system, iteratively refined, via nz x nz Cholesky.
 
         [P        G^T D_a] [x ]   [rhs_z ]        D_a = diag(active),
@@ -288,13 +286,7 @@ def _kkt_solve(P: Tensor, G: Tensor, active: Tensor, rhs_z: Tensor, rhs_nu: Tens
         x = _chol_solve(factor, res_z + _rmatvec(Ga, res_nu) / delta)
         return x, (_matvec(Ga, x) - res_nu) / delta
 
-    if nu_guess is None:
-        x, nu = regularised_solve(rhs_z, rhs_nu)
-    else:
-        # Warm start nu from the interior point: x = argmin of the Lagrangian at nu_guess.
-        nu = nu_guess * mask
-        x = _chol_solve(factor, rhs_z - _rmatvec(Ga, nu) + _rmatvec(Ga, rhs_nu) / delta)
-        nu = nu + (_matvec(Ga, x) - rhs_nu) / delta
+    x, nu = regularised_solve(rhs_z, rhs_nu)
     for _ in range(_REFINEMENT_STEPS):
         res_z = rhs_z - torch.matmul(P, x.unsqueeze(-1)).squeeze(-1) - _rmatvec(Ga, nu)
         res_nu = rhs_nu - _matvec(Ga, x)
@@ -303,143 +295,119 @@ def _kkt_solve(P: Tensor, G: Tensor, active: Tensor, rhs_z: Tensor, rhs_nu: Tens
     return x, nu * mask
 
 
-def _polish(P: Tensor, q: Tensor, G: Tensor, h: Tensor, s: Tensor, lam: Tensor, tol: float
-            ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Active-set polish of the interior point result (scaled problem).
+def _active_set_rounds(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, rounds: int,
+                       seed: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Primal active-set rounds, each result accepted only where the KKT conditions hold.
 
-    Returns z, lam, active (B, m) bool, ok (B,) bool for the polished samples.
+    Starting from ``seed`` (the interior point's lam > s) or the empty set, a round solves the
+    equality-constrained QP of the current set exactly (:func:`_kkt_solve`) and accepts the
+    samples whose solution is primal feasible with nu >= 0: stationarity holds by construction,
+    so that is the KKT point, i.e. the unique solution, and no guess can be accepted wrongly.
+    For the others the set is corrected: rows with a negative multiplier leave, the single most
+    violated row enters (rows have unit norm in the scaled problem, so violations compare), and
+    a full set (nz rows) first drops its row of least multiplier. In the RCBF-QP usually zero,
+    one or two rows are active, and the empty start settles most of a batch in one to three
+    rounds (the first is the unconstrained minimiser -P^-1 q).
+
+    P: (B, n, n), q: (B, n), G: (B, m, n) (unit rows), h: (B, m), seed: (B, m) bool or None.
+    Returns z: (B, n), lam: (B, m), active: (B, m), ok: (B,) (z, lam, active valid where ok).
     """
-    active = lam > s
-    feas_tol = tol * (1.0 + h.abs().amax(-1, keepdim=True))
-    dual_tol = tol * (1.0 + lam.abs().amax(-1, keepdim=True))
-    z_pol = lam_pol = None
-    ok = torch.zeros(h.shape[0], dtype=torch.bool, device=h.device)
-    for _ in range(_ACTIVE_SET_ROUNDS):
-        z_pol, lam_pol = _kkt_solve(P, G, active, -q, h * active, nu_guess=lam)
-        violation = _matvec(G, z_pol) - h
-        violated = violation > feas_tol
-        negative = lam_pol < -dual_tol
-        ok = ~(violated.any(-1) | negative.any(-1)) & torch.isfinite(z_pol).all(-1)
-        if bool(ok.all()):
-            break
-        active = (active & ~negative) | violated
-    lam_pol = lam_pol.clamp_min(0.0)
-    return z_pol, lam_pol, active, ok
-
-
-def _active_set_guess(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, rounds: int
-                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Cheap primal active-set rounds from the empty set, accepted only where KKT holds.
-
-    Each round solves the equality-constrained QP of the current active set, then adds the
-    single most violated row (rows have unit norm in the scaled problem, so violations compare)
-    and drops rows whose multiplier is negative. A sample is accepted once its candidate is
-    primal feasible with nu >= 0: with stationarity exact by construction that is the KKT point,
-    i.e. the unique solution, so no guess can be wrong, only unaccepted. In the RCBF-QP usually
-    one or two rows are active and this finishes most of the batch in a round or two.
-
-    Returns z: (B, n), lam: (B, m), active: (B, m), ok: (B,).
-    """
-    batch = h.shape[0]
-    z_out = _chol_solve(_cholesky(P), -q)
+    batch, _, n = G.shape
+    z_out = torch.zeros_like(q)
     lam_out = torch.zeros_like(h)
     active_out = torch.zeros_like(h, dtype=torch.bool)
     ok_out = torch.zeros(batch, dtype=torch.bool, device=h.device)
-    # Working set: samples not yet accepted (accepted ones are written out and dropped).
+    # Working set: samples not accepted yet (accepted ones are written out and dropped).
     index = torch.arange(batch, device=h.device)
-    P_w, q_w, G_w, h_w = P, q, G, h
-    z, lam, active = z_out, lam_out, active_out
-    for _ in range(rounds):
-        feas_tol = tol * (1.0 + h_w.abs().amax(-1, keepdim=True))
-        violation = _matvec(G_w, z) - h_w
-        worst = violation.argmax(-1, keepdim=True)
-        add = torch.zeros_like(active).scatter_(-1, worst, True) & (violation > feas_tol)
-        # A full set (n rows) cannot take another independent row: the row with the least
-        # multiplier makes room for the new one.
-        full = (active.sum(-1, keepdim=True) >= G_w.shape[-1]) & add.any(-1, keepdim=True)
-        weakest = torch.where(active, lam, torch.inf).argmin(-1, keepdim=True)
-        drop = torch.zeros_like(active).scatter_(-1, weakest, True) & full
-        active = (active & (lam >= 0) & ~drop) | add
-        z, lam = _kkt_solve(P_w, G_w, active, -q_w, h_w * active)
+    active = torch.zeros_like(active_out) if seed is None else seed.clone()
+    feas_tol = tol * (1.0 + h.abs().amax(-1, keepdim=True))
+    for round_ in range(rounds):
+        if round_ == 0 and seed is None:
+            z, lam = _chol_solve(_cholesky(P), -q), torch.zeros_like(h)
+        else:
+            z, lam = _kkt_solve(P, G, active, -q, h * active)
+        violation = _matvec(G, z) - h
         dual_tol = tol * (1.0 + lam.abs().amax(-1, keepdim=True))
-        ok = (((_matvec(G_w, z) - h_w) <= feas_tol).all(-1) & (lam >= -dual_tol).all(-1)
+        ok = ((violation <= feas_tol).all(-1) & (lam >= -dual_tol).all(-1)
               & torch.isfinite(z).all(-1))
         done = index[ok]
         z_out[done], lam_out[done], active_out[done] = z[ok], lam[ok].clamp_min(0.0), active[ok]
         ok_out[done] = True
         keep = ~ok
-        if not bool(keep.any()):
+        if round_ == rounds - 1 or not bool(keep.any()):
             break
         index = index[keep]
-        P_w, q_w, G_w, h_w = P_w[keep], q_w[keep], G_w[keep], h_w[keep]
-        z, lam, active = z[keep], lam[keep], active[keep]
+        P, q, G, h, feas_tol = P[keep], q[keep], G[keep], h[keep], feas_tol[keep]
+        z, lam, active, violation = z[keep], lam[keep], active[keep], violation[keep]
+        worst = violation.argmax(-1, keepdim=True)
+        add = (torch.zeros_like(active).scatter_(-1, worst, True)
+               & (violation > feas_tol) & ~active)
+        full = (active.sum(-1, keepdim=True) >= n) & add.any(-1, keepdim=True)
+        weakest = torch.where(active, lam, torch.inf).argmin(-1, keepdim=True)
+        drop = torch.zeros_like(active).scatter_(-1, weakest, True) & full
+        active = (active & (lam >= 0) & ~drop) | add
     return z_out, lam_out, active_out, ok_out
 
 
-_ACTIVE_SET_GUESS_ROUNDS = 4
-"""Rounds of :func:`_active_set_guess` before the interior point takes over."""
-_LOOSE_TOL = 1e-6
-"""Interior point tolerance before the first polish (the polish makes the result exact)."""
+_GUESS_ROUNDS = 6
+"""Active-set rounds from the empty set before any interior point iteration."""
+_SEEDED_ROUNDS = 3
+"""Active-set rounds seeded by the interior point's active set, after each interior point
+stage."""
+_STAGE_ITERATIONS = (6,)
+"""Interior point iterations before an intermediate seeded active-set attempt; the last stage
+runs to the tolerance (or max_iter)."""
 
 
 def _solve_scaled(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_iter: int,
                   polish: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Forward pass on the scaled problem: z, lam, iterations, converged, active (see module).
 
-    Phases, each on the samples the previous ones left open:
-    0. the unconstrained minimiser -P^-1 q, exact where it is feasible (no active row; in the
-       RCBF-QP q = 0, so every sample whose proposal is already safe ends here);
-    1. interior point to a loose tolerance, then the active-set polish;
-    2. where the polish failed, the interior point continues to ``tol`` and polishes again;
-       where that fails too, the interior point iterate is returned.
+    Each step works only on the samples the previous ones left open:
+
+    1. active-set rounds from the empty set (:func:`_active_set_rounds`), exact where accepted;
+    2. interior point stages (a few iterations, then to ``tol``), each followed by active-set
+       rounds seeded with the interior point's active set (the polish);
+    3. where the polish never succeeds, the interior point iterate itself.
+
+    With ``polish=False`` only the interior point runs (for testing and comparison).
     """
     batch, m, _ = G.shape
-    z = _chol_solve(_cholesky(P), -q)
+    z = torch.zeros_like(q)
     lam = torch.zeros_like(h)
     active = torch.zeros_like(h, dtype=torch.bool)
     iterations = torch.zeros(batch, dtype=torch.int64, device=q.device)
-    feasible = (_matvec(G, z) - h <= tol * (1.0 + h.abs().amax(-1, keepdim=True))).all(-1)
-    converged = feasible.clone()
-    todo = (~feasible).nonzero().squeeze(-1)
-    if todo.numel() == 0:
-        return z, lam, iterations, converged, active
+    converged = torch.zeros(batch, dtype=torch.bool, device=q.device)
+    todo = torch.arange(batch, device=q.device)
     if polish:
-        z_g, lam_g, active_g, ok_g = _active_set_guess(P[todo], q[todo], G[todo], h[todo], tol,
-                                                       _ACTIVE_SET_GUESS_ROUNDS)
-        solved = todo[ok_g]
-        z[solved], lam[solved], active[solved] = z_g[ok_g], lam_g[ok_g], active_g[ok_g]
-        converged[solved] = True
-        todo = todo[~ok_g]
+        z, lam, active, converged = _active_set_rounds(P, q, G, h, tol, _GUESS_ROUNDS)
+        todo = (~converged).nonzero().squeeze(-1)
+    stages = (*_STAGE_ITERATIONS, max_iter) if polish else (max_iter,)
+    start = None
+    for stage, stage_iterations in enumerate(stages):
         if todo.numel() == 0:
-            return z, lam, iterations, converged, active
-    P_t, q_t, G_t, h_t = P[todo], q[todo], G[todo], h[todo]
-    loose = max(tol, _LOOSE_TOL) if polish else tol
-    z_t, s_t, lam_t, it_t, conv_t = _interior_point(P_t, q_t, G_t, h_t, loose, max_iter)
-    active_t = lam_t > s_t
-    ok = torch.zeros_like(conv_t)
-    conv_tight = conv_t if loose <= tol else torch.zeros_like(conv_t)
-    if polish:
-        z_p, lam_p, active_p, ok = _polish(P_t, q_t, G_t, h_t, s_t, lam_t, tol)
-    retry = (~ok).nonzero().squeeze(-1)
-    if retry.numel() and loose > tol:
-        start = (z_t[retry], s_t[retry], lam_t[retry])
-        z_r, s_r, lam_r, it_r, conv_r = _interior_point(
-            P_t[retry], q_t[retry], G_t[retry], h_t[retry], tol, max_iter, start=start)
-        z_t[retry], s_t[retry], lam_t[retry] = z_r, s_r, lam_r
-        it_t[retry] += it_r
-        conv_tight[retry] = conv_r
-        active_t[retry] = lam_r > s_r
-        z_rp, lam_rp, active_rp, ok_r = _polish(
-            P_t[retry], q_t[retry], G_t[retry], h_t[retry], s_r, lam_r, tol)
-        z_p[retry], lam_p[retry], active_p[retry] = z_rp, lam_rp, active_rp
-        ok[retry] = ok_r
-    if polish:
-        keep = ok.unsqueeze(-1)
-        z_t = torch.where(keep, z_p, z_t)
-        lam_t = torch.where(keep, lam_p, lam_t)
-        active_t = torch.where(keep, active_p, active_t)
-    z[todo], lam[todo], active[todo] = z_t, lam_t, active_t
-    iterations[todo], converged[todo] = it_t, ok | conv_tight
+            break
+        P_t, q_t, G_t, h_t = P[todo], q[todo], G[todo], h[todo]
+        last = stage == len(stages) - 1
+        budget = stage_iterations if not last else max(max_iter - int(iterations.max()), 1)
+        z_i, s_i, lam_i, it_i, conv_i = _interior_point(P_t, q_t, G_t, h_t, tol, budget,
+                                                        start=start)
+        iterations[todo] += it_i
+        ok = torch.zeros_like(conv_i)
+        if polish:
+            z_g, lam_g, active_g, ok = _active_set_rounds(P_t, q_t, G_t, h_t, tol,
+                                                          _SEEDED_ROUNDS, seed=lam_i > s_i)
+            done = todo[ok]
+            z[done], lam[done], active[done] = z_g[ok], lam_g[ok], active_g[ok]
+            converged[done] = True
+        rest = ~ok
+        if last:
+            left = todo[rest]
+            z[left], lam[left], active[left] = z_i[rest], lam_i[rest], (lam_i > s_i)[rest]
+            converged[left] = conv_i[rest]
+            break
+        todo = todo[rest]
+        start = (z_i[rest], s_i[rest], lam_i[rest])
     return z, lam, iterations, converged, active
 
 

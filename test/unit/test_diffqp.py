@@ -8,6 +8,8 @@ several rows active at once.
 """
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -34,6 +36,30 @@ def rcbf_like_batch(batch: int, n_barriers: int, seed: int, *, offset: float,
     P = torch.diag(torch.tensor([2.0, 2.0, 2.0 * slack_weight], dtype=DT)).expand(batch, 3, 3)
     q = torch.zeros(batch, 3, dtype=DT) + 0.05 * torch.randn(batch, 3, generator=gen, dtype=DT)
     return P.contiguous(), q, G, h
+
+
+def enumerate_active_sets(P: np.ndarray, q: np.ndarray, G: np.ndarray, h: np.ndarray
+                          ) -> np.ndarray:
+    """Exact reference: the KKT point among all active sets of at most nz rows (numpy)."""
+    batch, nc, nz = G.shape
+    best_z, best_obj = np.zeros((batch, nz)), np.full(batch, np.inf)
+    for k in range(nz + 1):
+        for rows in itertools.combinations(range(nc), k):
+            A, b = G[:, list(rows)], h[:, list(rows)]
+            kkt = np.zeros((batch, nz + k, nz + k))
+            kkt[:, :nz, :nz], kkt[:, :nz, nz:], kkt[:, nz:, :nz] = P, A.transpose(0, 2, 1), A
+            regular = np.abs(np.linalg.det(kkt)) > 1e-12
+            kkt[~regular] = np.eye(nz + k)
+            sol = np.linalg.solve(kkt, np.concatenate([-q, b], 1)[..., None])[..., 0]
+            z, nu = sol[:, :nz], sol[:, nz:]
+            violation = (np.einsum('bcn,bn->bc', G, z) - h).max(-1)
+            feasible = violation <= 1e-9 * (1 + np.abs(h).max(-1))
+            dual = (nu >= -1e-9 * (1 + np.abs(nu).max(-1, initial=0))[:, None]).all(-1)
+            obj = 0.5 * np.einsum('bi,bij,bj->b', z, P, z) + (q * z).sum(-1)
+            take = regular & feasible & dual & (obj < best_obj)
+            best_z[take], best_obj[take] = z[take], obj[take]
+    assert np.isfinite(best_obj).all()
+    return best_z
 
 
 def pool() -> tuple[torch.Tensor, ...]:
@@ -128,6 +154,32 @@ def test_solutions_match_cvxpy(mixed):
         problem.solve(solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12,
                       tol_feas=1e-12)
         assert np.abs(z.value - sol.z[b].numpy()).max() < 1e-6, b
+
+
+def test_interior_point_alone_matches_qpth(mixed):
+    """polish=False: the bare interior point (the fallback path) to its tolerance."""
+    from qpth.qp import QPFunction
+    P, q, G, h, _ = mixed
+    sol = solve_qp_batch_full(P, q, G, h, polish=False, tol=1e-10)
+    assert bool(sol.converged.all())
+    assert int(sol.iterations.min()) > 0
+    empty = torch.empty(0, dtype=DT)
+    z_ref = QPFunction(verbose=-1, eps=1e-13, maxIter=100)(P, q, G, h, empty, empty)
+    assert float((z_ref - sol.z).abs().max()) < 1e-6
+
+
+def test_hard_samples_take_the_interior_point_route_and_stay_exact():
+    """Conflicting barriers with three active rows defeat the cheap active-set rounds; the
+    interior point + seeded polish must still return the exact KKT point."""
+    P, q, G, h = rcbf_like_batch(256, 10, 21, offset=-20.0, slack_weight=1e6)
+    sol = solve_qp_batch_full(P, q, G, h)
+    assert bool(sol.converged.all())
+    assert int((sol.iterations > 0).sum()) > 0
+    # qpth, proxsuite and Clarabel all stall on these (multipliers ~1e7): compare against
+    # exhaustive active-set enumeration instead.
+    idx = (sol.iterations > 0).nonzero().squeeze(-1)
+    z_ref = enumerate_active_sets(*(x[idx].numpy() for x in (P, q, G, h)))
+    assert np.abs(z_ref - sol.z[idx].numpy()).max() < 1e-6 * (1 + np.abs(z_ref).max())
 
 
 def test_solution_without_active_rows_is_unconstrained_minimiser():
