@@ -192,8 +192,7 @@ def test_proposal_state_wins_over_topic_state(safety_filter):
     alone = fl.decide(safety_filter=safety_filter,
                       proposal=fl.Proposal(u=slow, state=FREE_STATE),
                       latest_state=None, now_ns=10 * SECOND, max_state_age_s=0.5)
-    # Equal up to OSQP's warm-start round-off (exactness is the core's test).
-    assert alone.level == fl.OK and np.allclose(alone.u_safe, slow, rtol=0, atol=1e-12)
+    assert alone.level == fl.OK and np.array_equal(alone.u_safe, slow)
 
 
 def test_learned_disturbance_wins_over_static_box(safety_filter):
