@@ -38,6 +38,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help='train without obstacles and filter (transfer upper bound)')
     parser.add_argument('--no-bag', action='store_true', help='do not record MCAP')
     parser.add_argument('--resume', action='store_true', help='continue from the checkpoint')
+    parser.add_argument('--compile-filter', action='store_true',
+                        help='compile the per-step constraint assembly (faster, slower start)')
     parser.add_argument('--start-steps', dest='start_steps', type=int, default=None)
     parser.add_argument('--update-after', dest='update_after', type=int, default=None)
     parser.add_argument('--batch-size', dest='batch_size', type=int, default=None)
@@ -56,7 +58,8 @@ def run_train(args: argparse.Namespace) -> int:
     run = RunConfig(system=args.system, episodes=args.episodes,
                     out_dir=args.out or str(Path('runs') / name), config_file=args.config,
                     max_steps=args.max_steps, no_obstacles=args.no_obstacles,
-                    record_bag=not args.no_bag, resume=args.resume, learner=learner)
+                    record_bag=not args.no_bag, resume=args.resume,
+                    compile_filter=args.compile_filter, learner=learner)
     print(f'training {name}: {args.episodes} episodes -> {run.out_dir}', flush=True)
     try:
         history = train(run, log=lambda line: print(line, flush=True))

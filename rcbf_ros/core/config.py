@@ -20,6 +20,7 @@ Keys (all optional except ``system``)::
     walls.nx / walls.ny / walls.offset: [floats], walls.gammas  (h = nx x + ny y - offset)
     disturbance.mean / disturbance.std: [n_x floats]: a static box (empty: zero / learned)
     fail_safe_action: [m floats]
+    compile_assembly: bool (compile the per-step constraint assembly, see core/filter.py)
 """
 from __future__ import annotations
 
@@ -105,6 +106,8 @@ class FilterConfig:
     """Static disturbance std (n_x values, or empty)."""
     fail_safe_action: tuple[float, ...] | None
     """Action applied when filtering is impossible (None: zeros clipped to the limits)."""
+    compile_assembly: bool = False
+    """Trace and compile the per-step constraint assembly (faster calls, slower start)."""
 
 
 def build_system(params: Mapping[str, Any]) -> ControlAffineSystem:
@@ -200,5 +203,8 @@ def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
     if any(s < 0 for s in std):
         raise ValueError('disturbance.std: must be >= 0')
     fail_safe = _floats(params, 'fail_safe_action', system.n_u) or None
+    compile_flag = params.get('compile_assembly', False)
+    if not isinstance(compile_flag, bool):
+        raise ValueError(f'compile_assembly: expected true or false, got {compile_flag!r}')
     return FilterConfig(problem=problem, static_mean=mean, static_std=std,
-                        fail_safe_action=fail_safe)
+                        fail_safe_action=fail_safe, compile_assembly=compile_flag)

@@ -59,6 +59,8 @@ class RunConfig:
     """Record the run's topics to MCAP."""
     resume: bool = False
     """Continue from out_dir/checkpoint.pt if it exists."""
+    compile_filter: bool = False
+    """Compile the per-step filter's constraint assembly (worth it for long runs)."""
     learner: LearnerConfig = field(default_factory=LearnerConfig)
     """Learner settings (mode, seed, schedule)."""
 
@@ -91,7 +93,8 @@ def build_run(run: RunConfig) -> tuple[Any, SafetyFilter | None, SafeLearner, di
     obs, _ = env.reset(seed=learner_cfg.seed)
     learner = SafeLearner(config.problem, obs_dim=int(np.asarray(obs).size), dt=env.dt,
                           config=learner_cfg, model_fns=model_functions(run.system, env))
-    filt = SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action) \
+    filt = SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action,
+                        compile_assembly=run.compile_filter or config.compile_assembly) \
         if constrained else None
     return env, filt, learner, filter_params
 
