@@ -44,10 +44,11 @@ def _env(domain_id: int) -> dict[str, str]:
     return env
 
 
-def _start_filter(domain_id: int, *ros_args: str) -> subprocess.Popen:
+def _start_filter(domain_id: int, *ros_args: str, params_file: str = UNICYCLE
+                  ) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, '-m', 'rcbf_ros.ros.safety_filter_node', '--ros-args',
-         '--params-file', UNICYCLE, *ros_args],
+         '--params-file', params_file, *ros_args],
         env=_env(domain_id), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 
@@ -244,6 +245,43 @@ def test_twist_mode(ros_domain_id, probe):
         _stop(process)
     np.testing.assert_array_equal(commands[0], [1.0, 0.3])
     assert 0.0 < commands[1][0] < 2.5
+
+
+def test_pvtol_proposal_with_learned_disturbance(ros_domain_id, probe):
+    """PVTOL's band barrier (bands.operator.*: user-named keys) and the proposal's GP box."""
+    from rcbf_ros.ros.conversions import sections_to_msg
+    process = _start_filter(ros_domain_id, params_file=str(REPO / 'config' / 'pvtol.yaml'))
+    try:
+        probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
+        probe.subscribe('diagnostic_msgs/msg/DiagnosticArray', '/diagnostics', _diagnostic)
+        proposal_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/cmd_proposed')
+        probe.start()
+        _wait_matched(proposal_pub, process)
+        state = [-4.5, -1.0, 0.3, 0.0, -0.2, 1.0, -5.0]  # 0.5 from the operator, moving away
+        proposal = {'u': [1.0, 0.5], 'disturbance_mean': [0.0] * 7,
+                    'disturbance_std': [0.0, 0.0, 0.3, 0.3, 0.3, 0.3, 0.0], 'state': state}
+        proposal_pub.publish(sections_to_msg(proposal))
+        proposal_pub.publish(sections_to_msg({'u': [1.0, 0.5], 'state': state}))
+        commands = probe.wait_for('/cmd_safe', 2)
+        diagnostics = probe.wait_for('/diagnostics', 2)
+    finally:
+        _stop(process)
+    params = load_params(REPO / 'config' / 'pvtol.yaml', 'safety_filter')
+    problem = filter_config_from_params(params).problem
+    assert 'operator' in problem.barrier_names
+    _, _, values = diagnostics[0]
+    assert all(f'h.{name}' in values for name in problem.barrier_names)
+    assert np.isfinite(float(values['h.operator']))
+    # Same state and proposal: the learned std makes the filter more conservative (the band row
+    # is active in both).
+    from rcbf_ros.core.filter import SafetyFilter
+    reference = SafetyFilter(problem, fail_safe_action=params.get('fail_safe_action'))
+    robust = reference.filter(state, [1.0, 0.5], proposal['disturbance_mean'],
+                              proposal['disturbance_std'])
+    nominal = reference.filter(state, [1.0, 0.5])
+    np.testing.assert_allclose(commands[0]['u'], robust.u_safe, atol=1e-6)
+    np.testing.assert_allclose(commands[1]['u'], nominal.u_safe, atol=1e-6)
+    assert not np.allclose(robust.u_safe, nominal.u_safe, atol=1e-3)
 
 
 @pytest.mark.parametrize('args, key', [
