@@ -11,7 +11,8 @@ Topics (names relative, remappable with ``-r``):
   "terminated", "truncated"}``);
 - publishes ``sim/step`` (Float64MultiArray), everything about one plant step in one message
   for the learner: sections ``state``, ``observation``, ``reward`` (of the transition INTO this
-  state; 0 after a reset), ``terminated``, ``truncated``, ``violation``, ``goal_reached``,
+  state; 0 after a reset), ``action`` (the u applied to get here, saturated to the limits;
+  zeros after a reset), ``terminated``, ``truncated``, ``violation``, ``goal_reached``,
   ``episode``, ``step`` (0 right after a reset);
 - subscribes ``cmd_safe`` (Float64MultiArray; its FIRST section is u, length n_u; an optional
   section labelled ``state`` names the state the action answers, see lock-step below).
@@ -166,6 +167,7 @@ class SimulatorNode(Node):
         self.observation = np.zeros(0)
         self.info: dict[str, Any] = {}
         self.last_action = np.zeros(self.n_u)
+        self.applied = np.zeros(self.n_u)
         self.awaiting_action = False
         self.last_state_time = 0.0
         self.started = False
@@ -185,6 +187,7 @@ class SimulatorNode(Node):
         self.episode += 1
         self.episode_return = 0.0
         self.violations = int(self.info['violation'])
+        self.applied = np.zeros(self.n_u)
         self.started = True
         self.publish_string(episode_event(
             'start', episode=self.episode, system=self.system, seed=self.seed,
@@ -210,6 +213,7 @@ class SimulatorNode(Node):
     # -- stepping --------------------------------------------------------------------------
 
     def apply(self, u: np.ndarray) -> None:
+        self.applied = self.env.saturate(np.asarray(u, dtype=np.float64))
         self.observation, reward, terminated, truncated, self.info = self.env.step(u)
         self.episode_return += reward
         self.violations += int(self.info['violation'])
@@ -227,6 +231,7 @@ class SimulatorNode(Node):
         self.h_true_pub.publish(sections_to_msg({'h_true': self.info['h_true']}))
         self.step_pub.publish(sections_to_msg({
             'state': self.info['state'], 'observation': self.observation, 'reward': [reward],
+            'action': self.applied,
             'terminated': [float(terminated)], 'truncated': [float(truncated)],
             'violation': [float(self.info['violation'])],
             'goal_reached': [float(self.info['goal_reached'])],

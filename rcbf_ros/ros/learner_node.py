@@ -7,9 +7,11 @@ trainer drives). Lock-step protocol with the simulator:
   ``terminated``, ``truncated``, ``violation``, ``goal_reached``, ``episode``, ``step``): one
   message per plant step; ``reward`` is the reward of the transition INTO this state.
 - the learner answers a non-terminal step with ``cmd_proposed`` (sections ``u``,
-  ``disturbance_mean``, ``disturbance_std``, ``state``) for the safety_filter;
-- ``cmd_safe`` (from the filter: ``u`` = u*) is what the plant applies; the learner keeps it
-  for the transition it completes when the next ``sim/step`` arrives.
+  ``disturbance_mean``, ``disturbance_std``, ``state``) for the safety_filter, which sends
+  u* on ``cmd_safe`` to the plant;
+- the next ``sim/step`` carries the ``action`` the plant applied (u*), which completes the
+  transition; the learner does not pair topics by arrival order (DDS does not order samples
+  of different writers).
 
 Per episode it logs a progress line, appends to ``<out_dir>/metrics.jsonl`` and publishes the
 line as JSON on ``learner/metrics`` (so the run's MCAP holds it); checkpoints every
@@ -68,7 +70,6 @@ class LearnerNode(Node):
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.learner: SafeLearner | None = None
         self.pending: dict[str, np.ndarray] | None = None
-        self.safe_action: np.ndarray | None = None
         self.tally = EpisodeTally()
         self.history: list[dict[str, Any]] = []
         self.episodes_done = 0
@@ -80,8 +81,6 @@ class LearnerNode(Node):
             get_message('std_msgs/msg/String'), 'learner/metrics', qos)
         self.create_subscription(get_message('std_msgs/msg/Float64MultiArray'), 'sim/step',
                                  self.on_step, qos)
-        self.create_subscription(get_message('std_msgs/msg/Float64MultiArray'), 'cmd_safe',
-                                 self.on_safe, qos)
         self.get_logger().info(
             f"learner: {self.settings['mode']} on {self.settings['system']}, "
             f"{self.settings['episodes']} episodes -> {self.out_dir}")
@@ -93,12 +92,6 @@ class LearnerNode(Node):
         return params
 
     # ----------------------------------------------------------------- callbacks
-    def on_safe(self, msg: Any) -> None:
-        try:
-            self.safe_action = msg_to_sections(msg, default_label='u')['u']
-        except (KeyError, ValueError) as exc:
-            self.get_logger().error(f'cmd_safe: {exc}')
-
     def on_step(self, msg: Any) -> None:
         try:
             sections = msg_to_sections(msg)
@@ -118,12 +111,12 @@ class LearnerNode(Node):
             self.pending = None
             self.tally = EpisodeTally(episode=self.episodes_done)
         if self.pending is not None:
-            if self.safe_action is None:
-                self.get_logger().warning('sim/step arrived before cmd_safe; transition dropped')
+            if 'action' not in sections:
+                self.get_logger().error('sim/step: no action section; transition dropped')
             else:
                 reward = float(sections.get('reward', np.zeros(1))[0])
                 self.learner.observe(obs=self.pending['obs'], state=self.pending['state'],
-                                     u_rl=self.pending['u_rl'], u_safe=self.safe_action,
+                                     u_rl=self.pending['u_rl'], u_safe=sections['action'],
                                      reward=reward, next_obs=obs, next_state=state,
                                      terminated=terminated)
                 self.learner.after_step()
@@ -132,7 +125,6 @@ class LearnerNode(Node):
                 self.tally.violations += int(flag('violation'))
                 self.tally.goal_reached |= flag('goal_reached')
         self.pending = None
-        self.safe_action = None
         if terminated or truncated:
             self._end_episode()
             return

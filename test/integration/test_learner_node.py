@@ -1,0 +1,88 @@
+"""The learner node over real DDS: simulator + safety_filter + learner as separate processes.
+
+The node path must produce the same transitions as the in-process trainer for the same seed:
+both drive the same SafeLearner, the same env code and the same SafetyFilter.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from rcbf_ros.learning.sac import SACConfig
+from rcbf_ros.params import find_config
+from rcbf_ros.ros.loopback import LOOPBACK_CYCLONEDDS_URI
+from rcbf_ros.training.agent import LearnerConfig
+from rcbf_ros.training.loop import RunConfig, train
+
+pytestmark = pytest.mark.integration
+
+STEPS, START, BATCH = 60, 30, 16
+
+
+def start(module: str, name: str, args: list[str], env: dict, log: Path) -> subprocess.Popen:
+    cmd = [sys.executable, '-m', module, '--ros-args', '-r', f'__node:={name}',
+           '--params-file', str(find_config('unicycle')), *args]
+    return subprocess.Popen(cmd, env=env, stdout=log.open('w'), stderr=subprocess.STDOUT)
+
+
+def stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id),
+               CYCLONEDDS_URI=LOOPBACK_CYCLONEDDS_URI, OMP_NUM_THREADS='1')
+    out = tmp_path / 'node'
+    learner_args = ['-p', 'episodes:=2', '-p', f'out_dir:={out}', '-p', 'mode:=diff',
+                    '-p', f'start_steps:={START}', '-p', f'update_after:={START}',
+                    '-p', f'batch_size:={BATCH}', '-p', 'seed:=3']
+    procs = [
+        start('sim_nodes.simulator_node', 'simulator',
+              ['-p', f'max_steps:={STEPS}', '-p', 'action_timeout_s:=5.0', '-p', 'seed:=3'],
+              env, tmp_path / 'sim.log'),
+        start('rcbf_ros.ros.safety_filter_node', 'safety_filter', [], env,
+              tmp_path / 'filter.log'),
+    ]
+    learner = start('rcbf_ros.ros.learner_node', 'learner', learner_args, env,
+                    tmp_path / 'learner.log')
+    try:
+        assert learner.wait(timeout=240) == 0, (tmp_path / 'learner.log').read_text()[-3000:]
+    finally:
+        stop(learner)
+        for proc in procs:
+            stop(proc)
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['episodes'] == 2 and summary['safety_violations'] == 0
+    assert (out / 'reward_curve.png').stat().st_size > 1000
+    assert 'episode    2/2' in (tmp_path / 'learner.log').read_text()
+
+    node_buffer = torch.load(out / 'checkpoint.pt', weights_only=False)['learner']['buffer']
+    history = train(RunConfig(system='unicycle', episodes=2, max_steps=STEPS,
+                              out_dir=str(tmp_path / 'inproc'), record_bag=False,
+                              learner=LearnerConfig(mode='diff', seed=3, start_steps=START,
+                                                    update_after=START, batch_size=BATCH,
+                                                    sac=SACConfig())),
+                    log=lambda _: None)
+    assert sum(r['steps'] for r in history) == 2 * STEPS
+    ours = torch.load(tmp_path / 'inproc' / 'checkpoint.pt', weights_only=False)
+    in_process = ours['learner']['buffer']
+    size = 2 * STEPS
+    assert node_buffer['size'] == in_process['size'] == size
+    for name in ('state', 'obs', 'u_rl', 'u_safe', 'reward', 'next_state', 'done'):
+        np.testing.assert_allclose(node_buffer['data'][name][:size].numpy(),
+                                   in_process['data'][name][:size].numpy(), rtol=0, atol=1e-6,
+                                   err_msg=name)
