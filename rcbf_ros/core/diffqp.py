@@ -71,7 +71,7 @@ __all__ = ['QPSolution', 'solve_qp_batch', 'solve_qp_batch_full']
 
 _REGULARISATION = 1e-9
 """delta of the regularised KKT system in scaled units (unit Hessian diagonal, unit rows)."""
-_REFINEMENT_STEPS = 3
+_REFINEMENT_STEPS = 5
 """Iterative refinement steps against the unregularised KKT system (each shrinks the error by
 about delta / lambda_min(A P^-1 A^T))."""
 
@@ -323,9 +323,9 @@ def _active_set_rounds(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, r
     so that is the KKT point, i.e. the unique solution, and no guess can be accepted wrongly.
     For the others the set is corrected: rows with a negative multiplier leave, the single most
     violated row enters (rows have unit norm in the scaled problem, so violations compare), and
-    a full set (nz rows) first drops its row of least multiplier. In the RCBF-QP usually zero,
-    one or two rows are active, and the empty start settles most of a batch in one to three
-    rounds (the first is the unconstrained minimiser -P^-1 q).
+    a full set (nz rows) first drops the row chosen by Goldfarb-Idnani's ratio test. In the
+    RCBF-QP usually zero, one or two rows are active, and the empty start settles most of a
+    batch in one to three rounds (the first is the unconstrained minimiser -P^-1 q).
 
     P: (B, n, n), q: (B, n), G: (B, m, n) (unit rows), h: (B, m), seed: (B, m) bool or None.
     Returns z: (B, n), lam: (B, m), active: (B, m), ok: (B,) (z, lam, active valid where ok).
@@ -361,13 +361,24 @@ def _active_set_rounds(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, r
         add = (torch.zeros_like(active).scatter_(-1, worst, True)
                & (violation > feas_tol) & ~active)
         full = (active.sum(-1, keepdim=True) >= n) & add.any(-1, keepdim=True)
-        weakest = torch.where(active, lam, torch.inf).argmin(-1, keepdim=True)
-        drop = torch.zeros_like(active).scatter_(-1, weakest, True) & full
+        if bool(full.any()):
+            # Goldfarb-Idnani's ratio test picks the row that leaves: write the new row as
+            # g_p = A^T r (the KKT solve with rhs (g_p, 0) returns r as its multiplier for a
+            # full set), then drop argmin_{r_j > 0} lam_j / r_j.
+            g_new = G.gather(1, worst.unsqueeze(-1).expand(-1, 1, n)).squeeze(1)
+            _, r = _kkt_solve(P, G, active, g_new, torch.zeros_like(h))
+            ratio = torch.where(active & (r > 0), lam / r.clamp_min(1e-300), torch.inf)
+            fallback = torch.where(active, lam, torch.inf)
+            ratio = torch.where(torch.isinf(ratio).all(-1, keepdim=True), fallback, ratio)
+            weakest = ratio.argmin(-1, keepdim=True)
+            drop = torch.zeros_like(active).scatter_(-1, weakest, True) & full
+        else:
+            drop = torch.zeros_like(active)
         active = (active & (lam >= 0) & ~drop) | add
     return z_out, lam_out, active_out, ok_out
 
 
-_GUESS_ROUNDS = 6
+_GUESS_ROUNDS = 10
 """Active-set rounds from the empty set before any interior point iteration."""
 _SEEDED_ROUNDS = 3
 """Active-set rounds seeded by the interior point's active set, after each interior point
