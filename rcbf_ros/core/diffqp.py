@@ -72,8 +72,8 @@ __all__ = ['QPSolution', 'solve_qp_batch', 'solve_qp_batch_full']
 _REGULARISATION = 1e-9
 """delta of the regularised KKT system in scaled units (unit Hessian diagonal, unit rows)."""
 _REFINEMENT_STEPS = 5
-"""Iterative refinement steps against the unregularised KKT system (each shrinks the error by
-about delta / lambda_min(A P^-1 A^T))."""
+"""At most this many iterative refinement steps against the unregularised KKT system (each
+shrinks the error by about delta / lambda_min(A P^-1 A^T)); fewer once at rounding level."""
 
 
 class QPSolution(NamedTuple):
@@ -305,9 +305,16 @@ def _kkt_solve(P: Tensor, G: Tensor, active: Tensor, rhs_z: Tensor, rhs_nu: Tens
         return x, (_matvec(Ga, x) - res_nu) / delta
 
     x, nu = regularised_solve(rhs_z, rhs_nu)
+    rhs_size = torch.maximum(rhs_z.abs().amax(-1), rhs_nu.abs().amax(-1))
     for _ in range(_REFINEMENT_STEPS):
-        res_z = rhs_z - torch.matmul(P, x.unsqueeze(-1)).squeeze(-1) - _rmatvec(Ga, nu)
+        Gt_nu = _rmatvec(Ga, nu)
+        res_z = rhs_z - _matvec(P, x) - Gt_nu
         res_nu = rhs_nu - _matvec(Ga, x)
+        # Stop once the unregularised residual is at rounding level for every sample.
+        size = 1.0 + torch.maximum(rhs_size, Gt_nu.abs().amax(-1))
+        residual = torch.maximum(res_z.abs().amax(-1), res_nu.abs().amax(-1))
+        if bool((residual <= 1e-12 * size).all()):
+            break
         dx, dnu = regularised_solve(res_z, res_nu)
         x, nu = x + dx, nu + dnu
     return x, nu * mask
