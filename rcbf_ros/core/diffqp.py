@@ -313,7 +313,7 @@ def _kkt_solve(P: Tensor, G: Tensor, active: Tensor, rhs_z: Tensor, rhs_nu: Tens
         # Stop once the unregularised residual is at rounding level for every sample.
         size = 1.0 + torch.maximum(rhs_size, Gt_nu.abs().amax(-1))
         residual = torch.maximum(res_z.abs().amax(-1), res_nu.abs().amax(-1))
-        if bool((residual <= 1e-12 * size).all()):
+        if bool((residual <= 1e-14 * size).all()):
             break
         dx, dnu = regularised_solve(res_z, res_nu)
         x, nu = x + dx, nu + dnu
