@@ -128,6 +128,7 @@ def main() -> None:
     parser.add_argument('-n', type=int, default=2000)
     parser.add_argument('--write', action='store_true', help='write the RESULTS.md section')
     options = parser.parse_args()
+    load_before = os.getloadavg()[0]
     rows = []
     variants = {'every': (), 'decimated': ('-p', 'diagnostics.min_period_s:=0.1')}
     for rate in options.rates:
@@ -137,7 +138,7 @@ def main() -> None:
             rows.append(_row(rate, variant, run_filter_latency(rate, options.n, node_args),
                              raw, runtime))
     if options.write:
-        write_results(rows, options)
+        write_results(rows, options, load=(load_before, os.getloadavg()[0]))
 
 
 def _row(rate: float, variant: str, measured: tuple, raw: np.ndarray,
@@ -164,12 +165,14 @@ def _row(rate: float, variant: str, measured: tuple, raw: np.ndarray,
     return row
 
 
-def write_results(rows: list[dict], options: argparse.Namespace) -> None:
+def write_results(rows: list[dict], options: argparse.Namespace,
+                  load: tuple[float, float]) -> None:
     from _results import machine_line, write_section
     lines = [
         f'`python benchmarks/bench_filter_latency.py --rates '
         f'{" ".join(f"{r:g}" for r in options.rates)} -n {options.n} --write` (one run; '
-        f'{machine_line()}).',
+        f'{machine_line()}; 1-minute load average {load[0]:.1f} before, {load[1]:.1f} after, '
+        'on 2 cores shared with other work).',
         '',
         'State published -> safe command received, through a separate `safety_filter` process '
         '(config/unicycle.yaml, 5 obstacles, OSQP; our Cyclone runtime), half the states '

@@ -200,8 +200,7 @@ class SafetyFilterNode(Node):
 def main(args: Sequence[str] | None = None) -> int:
     """Run the node until Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
     torch.set_num_threads(1)  # B = 1 constraint assembly: threads only add contention
-    # rclpy reads sys.argv when args is None; say so explicitly for runtimes that do not.
-    rclpy.init(args=sys.argv if args is None else args)
+    rclpy.init(args=args)  # None: sys.argv, as rclpy does
     node = None
     try:
         node = SafetyFilterNode()
