@@ -59,7 +59,7 @@ FILTER_PARAMETER_KEYS: tuple[str, ...] = (
     'obstacles.heading_index', 'obstacles.position_indices', 'obstacles.gammas',
     'gaps.a', 'gaps.b', 'gaps.delta', 'gaps.gammas',
     'walls.nx', 'walls.ny', 'walls.offset', 'walls.gammas',
-    'disturbance.mean', 'disturbance.std', 'fail_safe_action',
+    'disturbance.mean', 'disturbance.std', 'fail_safe_action', 'compile_assembly',
 )
 # Families of keys whose names are chosen by the user (``bands.operator.index``, ...).
 OPEN_PARAMETER_PREFIXES: tuple[str, ...] = ('system_params.', 'bands.')

@@ -72,7 +72,8 @@ class SafetyFilterNode(Node):
             self.filter = SafetyFilter(
                 self.config.problem, fail_safe_action=self.config.fail_safe_action,
                 eps_abs=self.settings.osqp_eps_abs, eps_rel=self.settings.osqp_eps_rel,
-                max_iter=self.settings.osqp_max_iter)
+                max_iter=self.settings.osqp_max_iter,
+                compile_assembly=self.config.compile_assembly)
             if (self.settings.command_type == 'twist'
                     and len(self.settings.twist_fields) != self.filter.n_u):
                 fields = list(self.settings.twist_fields)
@@ -153,17 +154,23 @@ class SafetyFilterNode(Node):
             max_state_age_s=self.settings.max_state_age_s,
             static_mean=self.config.static_mean, static_std=self.config.static_std,
             slack_tolerance=self.settings.slack_tolerance)
-        self._publish(decision, now_ns)
+        answered = proposal.state if proposal is not None else None
+        self._publish(decision, now_ns, answered_state=answered)
         if decision.level != logic.OK:
             self._log(decision.level, decision.reason, now_ns)
 
     # output ------------------------------------------------------------------------------------
-    def _publish(self, decision: logic.Decision, now_ns: int) -> None:
+    def _publish(self, decision: logic.Decision, now_ns: int,
+                 answered_state: np.ndarray | None = None) -> None:
         if self.settings.command_type == 'twist':
             command = conversions.array_to_twist(decision.u_safe, self.settings.twist_fields)
         else:
-            command = conversions.sections_to_msg(
-                {'u': decision.u_safe, 'u_rl': decision.u_rl, 'u_s': decision.u_s})
+            sections = {'u': decision.u_safe, 'u_rl': decision.u_rl, 'u_s': decision.u_s}
+            if answered_state is not None:
+                # Echo the state a proposal carried, so a lock-step simulator can drop a
+                # late answer to an earlier state instead of applying it to the next one.
+                sections['state'] = answered_state
+            command = conversions.sections_to_msg(sections)
         self._cmd_pub.publish(command)  # first: diagnostics never delay the command
         if not logic.diagnostics_due(level=decision.level, now_ns=now_ns,
                                      last_ok_ns=self._last_ok_diagnostics_ns,
