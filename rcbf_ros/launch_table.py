@@ -80,9 +80,36 @@ def _filter_loop(system: str) -> LaunchSetup:
         ))
 
 
+def _learner_loop(system: str) -> LaunchSetup:
+    """SAC-RCBF training as separate processes (paper Fig. 1 / Algorithm 1)::
+
+        simulator --sim/step--> learner --cmd_proposed (u_RL, GP mean/std, state)--> filter
+            ^                                                                          |
+            +------------------------------- cmd_safe (u*) --------------------------+
+    """
+    return LaunchSetup(
+        name=f'{system}_learner',
+        config=f'{system}.yaml',
+        description=(f'train SAC-RCBF on {system}: simulator + safety_filter + learner + '
+                     'recorder; ends when the learner has run its episodes'),
+        nodes=(
+            NodeEntry(name='simulator', executable='simulator',
+                      module='sim_nodes.simulator_node',
+                      # GP refits and checkpoints pause the learner for a second or two.
+                      parameters=(('action_timeout_s', 10.0),)),
+            NodeEntry(name='safety_filter', executable='safety_filter',
+                      module='rcbf_ros.ros.safety_filter_node'),
+            NodeEntry(name='learner', executable='learner', module='rcbf_ros.ros.learner_node',
+                      parameters=(('system', system),), ends_launch=True),
+            NodeEntry(name='recorder', executable='recorder',
+                      module='rcbf_ros.ros.recorder_node', required=False),
+        ))
+
+
 LAUNCHES: dict[str, LaunchSetup] = {
-    setup.name: setup for setup in (_filter_loop('unicycle'), _filter_loop('pvtol'),
-                                    _filter_loop('car_following'))
+    setup.name: setup for setup in (
+        _filter_loop('unicycle'), _filter_loop('pvtol'), _filter_loop('car_following'),
+        _learner_loop('unicycle'), _learner_loop('pvtol'), _learner_loop('car_following'))
 }
 
 

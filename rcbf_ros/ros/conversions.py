@@ -42,7 +42,7 @@ def sections_to_msg(sections: Mapping[str, Sequence[float] | np.ndarray]) -> Any
 
 def msg_to_sections(msg: Any, default_label: str = 'data') -> dict[str, np.ndarray]:
     """Float64MultiArray -> {label: array}. Raises ValueError when sizes do not add up."""
-    data = np.asarray(msg.data, dtype=np.float64).reshape(-1)
+    data = np.array(msg.data, dtype=np.float64).reshape(-1)  # writable copy
     dims = list(msg.layout.dim)
     if not dims:
         return {default_label: data}
@@ -53,7 +53,7 @@ def msg_to_sections(msg: Any, default_label: str = 'data') -> dict[str, np.ndarr
         if offset + size > data.size:
             raise ValueError(f'layout.dim[{dim.label!r}]: size {size} runs past data '
                              f'({data.size} values)')
-        out[dim.label or default_label] = data[offset:offset + size]
+        out[dim.label or default_label] = data[offset:offset + size].copy()
         offset += size
     if offset != data.size:
         raise ValueError(f'layout: sections cover {offset} of {data.size} values')

@@ -70,6 +70,7 @@ class LearnerNode(Node):
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.learner: SafeLearner | None = None
         self.pending: dict[str, np.ndarray] | None = None
+        self.pending_msg: Any = None
         self.tally = EpisodeTally()
         self.history: list[dict[str, Any]] = []
         self.episodes_done = 0
@@ -101,7 +102,11 @@ class LearnerNode(Node):
             return
         index = (int(sections.get('episode', [-1])[0]), int(sections.get('step', [-1])[0]))
         if index == self.last_step:
-            return  # the simulator re-published a state we already answered
+            # The simulator re-published a step we answered: our proposal was lost (e.g. the
+            # filter was not subscribed yet). Send the same proposal again; never re-sample.
+            if self.pending_msg is not None:
+                self.proposal_pub.publish(self.pending_msg)
+            return
         self.last_step = index
         if self.learner is None:
             self.learner = self._build_learner(obs_dim=obs.size)
@@ -125,14 +130,16 @@ class LearnerNode(Node):
                 self.tally.violations += int(flag('violation'))
                 self.tally.goal_reached |= flag('goal_reached')
         self.pending = None
+        self.pending_msg = None
         if terminated or truncated:
             self._end_episode()
             return
         proposal = self.learner.propose(obs, state)
         self.pending = {'obs': obs, 'state': state, 'u_rl': proposal.u_rl}
-        self.proposal_pub.publish(sections_to_msg({
+        self.pending_msg = sections_to_msg({
             'u': proposal.u_proposed, 'disturbance_mean': proposal.disturbance_mean,
-            'disturbance_std': proposal.disturbance_std, 'state': state}))
+            'disturbance_std': proposal.disturbance_std, 'state': state})
+        self.proposal_pub.publish(self.pending_msg)
 
     # ----------------------------------------------------------------- bookkeeping
     def _build_learner(self, obs_dim: int) -> SafeLearner:

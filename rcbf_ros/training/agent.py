@@ -184,7 +184,7 @@ class SafeLearner:
             detailed = self.sac.act_detailed(np.asarray(obs, dtype=np.float64), deterministic)
             u_rl = detailed.u_rl.astype(np.float64)
             u_proposed = detailed.u_proposed.astype(np.float64)
-        x = torch.as_tensor(np.asarray(state, dtype=np.float64)).unsqueeze(0)
+        x = torch.as_tensor(np.array(state, dtype=np.float64)).unsqueeze(0)
         mean, std = self.disturbance(x)
         return Proposal(u_proposed, u_rl, mean[0].numpy().copy(), std[0].numpy().copy())
 
@@ -202,7 +202,7 @@ class SafeLearner:
         self.buffer.add(obs=obs, state=state, u_rl=u_rl, u_safe=u_safe, u_s=u_safe - u_rl,
                         reward=reward, next_obs=next_obs, next_state=next_state,
                         done=float(terminated))
-        x = torch.as_tensor(np.asarray(state, dtype=np.float64)).unsqueeze(0)
+        x = torch.as_tensor(np.array(state, dtype=np.float64)).unsqueeze(0)
         x_next = torch.as_tensor(np.asarray(next_state, dtype=np.float64)).unsqueeze(0)
         u = torch.as_tensor(u_safe).unsqueeze(0)
         nominal = self.system.f(x) + (self.system.g(x) @ u.unsqueeze(-1)).squeeze(-1)

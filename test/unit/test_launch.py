@@ -24,7 +24,7 @@ from rcbf_ros.ros.dds.arguments import parameter_overrides, parse_ros_arguments
 from rcbf_ros.ros.loopback import LOOPBACK_CYCLONEDDS_URI
 
 REPO = Path(__file__).resolve().parents[2]
-LAUNCH_FILE = REPO / 'launch' / 'unicycle_filter.launch.py'
+LAUNCH_FILES = sorted((REPO / 'launch').glob('*.launch.py'))
 
 
 # --- table -------------------------------------------------------------------------------------
@@ -92,14 +92,21 @@ def test_child_commands_and_environment():
 
 # --- ros2 launch file --------------------------------------------------------------------------
 
-def test_launch_file_parses_and_reads_the_table():
-    tree = ast.parse(LAUNCH_FILE.read_text(), filename=str(LAUNCH_FILE))
+@pytest.mark.parametrize('launch_file', LAUNCH_FILES, ids=lambda p: p.name)
+def test_launch_file_parses_and_reads_the_table(launch_file):
+    tree = ast.parse(launch_file.read_text(), filename=str(launch_file))
     functions = {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
     assert 'generate_launch_description' in functions
     imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
-    assert {'launch', 'launch_ros.actions', 'rcbf_ros.launch_table'} <= imported
+    assert 'rcbf_ros.launch_description' in imported
+    name = launch_file.name.removesuffix('.launch.py')
     names = [n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)]
-    assert 'unicycle_filter' in names and 'unicycle_filter' in LAUNCHES
+    assert name in names and name in LAUNCHES
+
+
+def test_launch_files_cover_the_unicycle_launches():
+    assert {p.name for p in LAUNCH_FILES} >= {'unicycle_filter.launch.py',
+                                              'unicycle_learner.launch.py'}
 
 
 class _Recorded:
@@ -109,7 +116,8 @@ class _Recorded:
         self.args, self.kwargs = args, kwargs
 
 
-def test_launch_description_has_one_node_per_table_entry(monkeypatch):
+@pytest.mark.parametrize('launch_file', LAUNCH_FILES, ids=lambda p: p.name)
+def test_launch_description_has_one_node_per_table_entry(monkeypatch, launch_file):
     # ROS 2's launch packages are not installable here; give the file recording stand-ins for
     # them and check what it builds against the table.
     kinds = {}
@@ -130,14 +138,14 @@ def test_launch_description_has_one_node_per_table_entry(monkeypatch):
         module.__dict__.update(attributes)
         monkeypatch.setitem(sys.modules, module_name, module)
     namespace: dict = {'__name__': 'launch_file'}
-    exec(compile(LAUNCH_FILE.read_text(), str(LAUNCH_FILE), 'exec'), namespace)
+    exec(compile(launch_file.read_text(), str(launch_file), 'exec'), namespace)
     description = namespace['generate_launch_description']()
     actions = description.args[0]
     argument = actions[0]
     assert argument.args[0] == 'params_file'
     assert argument.kwargs['default_value'] == '/share/rcbf_ros/config/unicycle.yaml'
     nodes = [a for a in actions if isinstance(a, kinds['Node'])]
-    setup = launch_setup('unicycle_filter')
+    setup = launch_setup(launch_file.name.removesuffix('.launch.py'))
     assert len(nodes) == len(setup.nodes)
     for node, entry in zip(nodes, setup.nodes):
         assert node.kwargs['package'] == 'rcbf_ros'

@@ -1,0 +1,41 @@
+"""``ros2 launch`` descriptions built from :mod:`rcbf_ros.launch_table` (ROS 2 install only).
+
+Every ``launch/<name>.launch.py`` is three lines calling :func:`describe` with its name, so the
+launch files, the table and ``rcbf_ros_launch`` (which starts the same table without ROS) cannot
+drift. ROS 2's launch packages are imported when a description is built, not at import time.
+"""
+from __future__ import annotations
+
+import os
+from typing import Any
+
+from rcbf_ros.launch_table import launch_setup, PACKAGE
+
+
+def describe(name: str) -> Any:
+    """A ``LaunchDescription`` with one launch_ros ``Node`` per table entry of launch ``name``.
+
+    All nodes read the ``params_file`` launch argument (default: the packaged
+    ``config/<system>.yaml``); a node marked ``ends_launch`` shuts the launch down on exit.
+    """
+    from ament_index_python.packages import get_package_share_directory
+    from launch.actions import DeclareLaunchArgument, Shutdown
+    from launch.substitutions import LaunchConfiguration
+    from launch_ros.actions import Node
+
+    from launch import LaunchDescription
+
+    setup = launch_setup(name)
+    default_params = os.path.join(get_package_share_directory(PACKAGE), 'config', setup.config)
+    params_file = LaunchConfiguration('params_file')
+    actions = [DeclareLaunchArgument('params_file', default_value=default_params,
+                                     description='ROS 2 params file of every node')]
+    for entry in setup.nodes:
+        parameters: list[Any] = [params_file]
+        if entry.parameters:
+            parameters.append(dict(entry.parameters))
+        actions.append(Node(
+            package=PACKAGE, executable=entry.executable, name=entry.name, output='screen',
+            parameters=parameters, remappings=list(entry.remappings),
+            on_exit=Shutdown(reason=f'{entry.name} exited') if entry.ends_launch else None))
+    return LaunchDescription(actions)
