@@ -52,8 +52,11 @@ def flatten(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
     return flat
 
 
-def _floats(params: Mapping[str, Any], key: str, length: int | None = None) -> tuple[float, ...]:
-    value = params.get(key, ())
+def float_list(params: Mapping[str, Any], key: str, length: int | None = None, *,
+               default: Any = ()) -> tuple[float, ...]:
+    """params[key] as floats (a scalar counts as one); errors name ``key``. An empty list is
+    accepted whatever ``length`` (meaning: not set)."""
+    value = params.get(key, default)
     if value is None:
         return ()
     if isinstance(value, (int, float)):
@@ -118,8 +121,8 @@ def build_system(params: Mapping[str, Any]) -> ControlAffineSystem:
     sys_params = {k[len('system_params.'):]: v for k, v in params.items()
                   if k.startswith('system_params.')}
     if 'input_limits.min' in params or 'input_limits.max' in params:
-        lo = _floats(params, 'input_limits.min')
-        hi = _floats(params, 'input_limits.max')
+        lo = float_list(params, 'input_limits.min')
+        hi = float_list(params, 'input_limits.max')
         if len(lo) != len(hi):
             raise ValueError('input_limits.min/max: lengths differ')
         if any(a > b for a, b in zip(lo, hi)):
@@ -137,10 +140,10 @@ def build_families(params: Mapping[str, Any],
     """Barrier families (cascaded as configured) from the flat parameters."""
     n_x = system.n_x
     families: list[BarrierFamily] = []
-    xs = _floats(params, 'obstacles.x')
+    xs = float_list(params, 'obstacles.x')
     if xs:
-        ys = _floats(params, 'obstacles.y', len(xs))
-        radius = _floats(params, 'obstacles.radius', len(xs))
+        ys = float_list(params, 'obstacles.y', len(xs))
+        radius = float_list(params, 'obstacles.radius', len(xs))
         if len(ys) != len(xs) or len(radius) != len(xs):
             raise ValueError('obstacles.y/obstacles.radius: need one value per obstacles.x')
         pos = params.get('obstacles.position_indices', [0, 1])
@@ -153,7 +156,7 @@ def build_families(params: Mapping[str, Any],
             position_indices=pos_idx,  # type: ignore[arg-type]
             heading_index=_index(params, 'obstacles.heading_index', -1, n_x, allow_none=True),
             lookahead=_number(params, 'obstacles.lookahead', 0.0))
-        families.append(cascade(base, system, _floats(params, 'obstacles.gammas')))
+        families.append(cascade(base, system, float_list(params, 'obstacles.gammas')))
     band_names = sorted({k.split('.')[1] for k in params
                          if k.startswith('bands.') and k.count('.') == 2})
     for band in band_names:
@@ -166,7 +169,7 @@ def build_families(params: Mapping[str, Any],
                 center=_number(sub, 'center', 0.0),
                 center_index=_index(sub, 'center_index', -1, n_x, allow_none=True),
                 name=band)
-            families.append(cascade(base, system, _floats(sub, 'gammas')))
+            families.append(cascade(base, system, float_list(sub, 'gammas')))
         except ValueError as exc:
             raise ValueError(f'{key}{exc}') from exc
     gap_a = params.get('gaps.a') or []
@@ -177,13 +180,13 @@ def build_families(params: Mapping[str, Any],
         pairs = tuple((_index({'i': a}, 'i', 0, n_x), _index({'i': b}, 'i', 0, n_x))
                       for a, b in zip(gap_a, gap_b))
         base = PairGap(pairs=pairs, delta=_number(params, 'gaps.delta', 0.0))  # type: ignore
-        families.append(cascade(base, system, _floats(params, 'gaps.gammas')))
-    nxs = _floats(params, 'walls.nx')
+        families.append(cascade(base, system, float_list(params, 'gaps.gammas')))
+    nxs = float_list(params, 'walls.nx')
     if nxs:
-        nys = _floats(params, 'walls.ny', len(nxs))
-        offsets = _floats(params, 'walls.offset', len(nxs))
+        nys = float_list(params, 'walls.ny', len(nxs))
+        offsets = float_list(params, 'walls.offset', len(nxs))
         base = HalfPlane(normals=tuple(zip(nxs, nys)), offsets=offsets)
-        families.append(cascade(base, system, _floats(params, 'walls.gammas')))
+        families.append(cascade(base, system, float_list(params, 'walls.gammas')))
     if not families:
         raise ValueError('barriers: configure at least one of obstacles.*, bands.*, gaps.*, '
                          'walls.*')
@@ -198,11 +201,11 @@ def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
         system=system, families=build_families(params, system),
         alpha=_number(params, 'alpha', 1.0), k_c=_number(params, 'k_c', 2.0),
         slack_weight=_number(params, 'slack_weight', 1.0e6))
-    mean = _floats(params, 'disturbance.mean', system.n_x)
-    std = _floats(params, 'disturbance.std', system.n_x)
+    mean = float_list(params, 'disturbance.mean', system.n_x)
+    std = float_list(params, 'disturbance.std', system.n_x)
     if any(s < 0 for s in std):
         raise ValueError('disturbance.std: must be >= 0')
-    fail_safe = _floats(params, 'fail_safe_action', system.n_u) or None
+    fail_safe = float_list(params, 'fail_safe_action', system.n_u) or None
     compile_flag = params.get('compile_assembly', False)
     if not isinstance(compile_flag, bool):
         raise ValueError(f'compile_assembly: expected true or false, got {compile_flag!r}')

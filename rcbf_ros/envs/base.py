@@ -25,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from rcbf_ros.core.config import flatten
+from rcbf_ros.core.config import flatten, float_list
 from rcbf_ros.core.dynamics import ControlAffineSystem
 
 FILTER_KEYS = ('system', 'alpha', 'k_c', 'slack_weight', 'fail_safe_action')
@@ -80,17 +80,7 @@ class ParamReader:
 
     def numbers(self, key: str, default: Sequence[float], length: int | None = None
                 ) -> tuple[float, ...]:
-        value = self.params.get(key, default)
-        if value is None:
-            value = ()
-        if isinstance(value, (int, float)):
-            value = [value]
-        try:
-            out = tuple(float(v) for v in value)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f'{key}: expected a list of numbers, got {value!r}') from exc
-        if not all(np.isfinite(out)):
-            raise ValueError(f'{key}: contains NaN or inf')
+        out = float_list(self.params, key, default=default)
         if length is not None and len(out) != length:
             raise ValueError(f'{key}: expected {length} values, got {len(out)}')
         return out
@@ -253,3 +243,21 @@ class SafetyEnv(gym.Env):
         h = self.h_true()
         return {'state': self.state, 'h_true': h, 'violation': bool(np.any(h < 0.0)),
                 'goal_reached': bool(goal_reached), 't': self.t}
+
+
+class GoToGoalReward:
+    """Reward of the go-to-goal systems (Unicycle, PVTOL): progress toward ``goal`` plus
+    ``goal_reward`` once on arrival within ``goal_radius``, which ends the episode."""
+
+    goal: np.ndarray
+    goal_radius: float
+    goal_reward: float
+    _last_distance: float
+    _state: np.ndarray
+
+    def _reward_and_goal(self, previous: np.ndarray, u: np.ndarray) -> tuple[float, bool]:
+        distance = float(np.linalg.norm(self._state[:2] - self.goal))
+        reward = self._last_distance - distance
+        self._last_distance = distance
+        reached = distance <= self.goal_radius
+        return reward + (self.goal_reward if reached else 0.0), reached

@@ -35,7 +35,7 @@ import gymnasium as gym
 import numpy as np
 
 from rcbf_ros.core.dynamics import PVTOL
-from rcbf_ros.envs.base import SafetyEnv
+from rcbf_ros.envs.base import GoToGoalReward, SafetyEnv
 from rcbf_ros.envs.layouts import (
     layout_from_params,
     layout_to_params,
@@ -51,7 +51,7 @@ def pvtol_attitude_error(state: np.ndarray, gain: float = 0.1) -> float:
     return gain * ((state[5] - 1.0) - math.sin(state[4]))
 
 
-class PVTOLEnv(SafetyEnv):
+class PVTOLEnv(GoToGoalReward, SafetyEnv):
     """PVTOL go-to-goal (see module docstring)."""
 
     system_name = 'pvtol'
@@ -139,13 +139,6 @@ class PVTOLEnv(SafetyEnv):
         body = body / (np.linalg.norm(body) + 1e-3)
         return np.array([s[0], s[1], c, sn, s[2], s[3], s[5], body[0], body[1],
                          math.exp(-distance)])
-
-    def _reward_and_goal(self, previous: np.ndarray, u: np.ndarray) -> tuple[float, bool]:
-        distance = float(np.linalg.norm(self._state[:2] - self.goal))
-        reward = self._last_distance - distance
-        self._last_distance = distance
-        reached = distance <= self.goal_radius
-        return reward + (self.goal_reward if reached else 0.0), reached
 
     def _h_true(self, state: np.ndarray) -> np.ndarray:
         values = [signed_clearance(o, state[:2]) for o in self.obstacles]

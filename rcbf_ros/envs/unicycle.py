@@ -33,7 +33,7 @@ import gymnasium as gym
 import numpy as np
 
 from rcbf_ros.core.dynamics import Unicycle
-from rcbf_ros.envs.base import SafetyEnv
+from rcbf_ros.envs.base import GoToGoalReward, SafetyEnv
 from rcbf_ros.envs.layouts import (
     layout_from_params,
     layout_to_params,
@@ -49,7 +49,7 @@ def unicycle_slope_disturbance(state: np.ndarray) -> np.ndarray:
     return np.array([-0.1 * math.cos(state[2]), 0.0])
 
 
-class UnicycleEnv(SafetyEnv):
+class UnicycleEnv(GoToGoalReward, SafetyEnv):
     """Unicycle go-to-goal with obstacles (see module docstring)."""
 
     system_name = 'unicycle'
@@ -113,13 +113,6 @@ class UnicycleEnv(SafetyEnv):
         body = np.array([c * to_goal[0] + s * to_goal[1], -s * to_goal[0] + c * to_goal[1]])
         body = body / (np.linalg.norm(body) + 1e-3)
         return np.array([x, y, c, s, body[0], body[1], math.exp(-distance)])
-
-    def _reward_and_goal(self, previous: np.ndarray, u: np.ndarray) -> tuple[float, bool]:
-        distance = float(np.linalg.norm(self._state[:2] - self.goal))
-        reward = self._last_distance - distance
-        self._last_distance = distance
-        reached = distance <= self.goal_radius
-        return reward + (self.goal_reward if reached else 0.0), reached
 
     def _h_true(self, state: np.ndarray) -> np.ndarray:
         return np.array([signed_clearance(o, state[:2]) for o in self.obstacles])

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 import time
-from typing import Any, Callable, Literal, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 import torch
@@ -26,12 +26,8 @@ from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.learning.buffers import ReplayBuffer
 from rcbf_ros.learning.gp import DisturbanceGP, GPConfig
 from rcbf_ros.learning.model_based import ModelRollout, RolloutConfig
-from rcbf_ros.learning.sac import SAC, SACConfig
+from rcbf_ros.learning.sac import Mode, MODES, SAC, SACConfig
 from rcbf_ros.learning.safety_layer import DifferentiableSafetyLayer
-
-Mode = Literal['unconstrained', 'baseline', 'baseline_compensator', 'diff', 'modular']
-MODES: tuple[str, ...] = ('unconstrained', 'baseline', 'baseline_compensator', 'diff',
-                          'modular')
 
 
 @dataclass(frozen=True)
