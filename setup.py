@@ -40,6 +40,7 @@ setup(
             'recorder = rcbf_ros.ros.recorder_node:main',
             'replay = rcbf_ros.ros.replay_node:main',
             'learner = rcbf_ros.ros.learner_node:main',
+            'policy = rcbf_ros.ros.policy_node:main',
             'rcbf_ros = rcbf_ros.cli:main',
             'rcbf_ros_launch = rcbf_ros.launch_local:main',
         ],

@@ -106,10 +106,29 @@ def _learner_loop(system: str) -> LaunchSetup:
         ))
 
 
+def _policy_loop(system: str) -> LaunchSetup:
+    """A trained policy behind the safety filter, no learner (deployment-like)."""
+    return LaunchSetup(
+        name=f'{system}_policy',
+        config=f'{system}.yaml',
+        description=(f'run a trained {system} policy (-p policy:policy_path:=.../policy.pt) '
+                     'behind the safety filter, recorded'),
+        nodes=(
+            NodeEntry(name='simulator', executable='simulator',
+                      module='sim_nodes.simulator_node', ends_launch=True),
+            NodeEntry(name='safety_filter', executable='safety_filter',
+                      module='rcbf_ros.ros.safety_filter_node'),
+            NodeEntry(name='policy', executable='policy', module='rcbf_ros.ros.policy_node'),
+            NodeEntry(name='recorder', executable='recorder',
+                      module='rcbf_ros.ros.recorder_node', required=False),
+        ))
+
+
 LAUNCHES: dict[str, LaunchSetup] = {
     setup.name: setup for setup in (
         _filter_loop('unicycle'), _filter_loop('pvtol'), _filter_loop('car_following'),
-        _learner_loop('unicycle'), _learner_loop('pvtol'), _learner_loop('car_following'))
+        _learner_loop('unicycle'), _learner_loop('pvtol'), _learner_loop('car_following'),
+        _policy_loop('unicycle'), _policy_loop('pvtol'), _policy_loop('car_following'))
 }
 
 

@@ -33,6 +33,7 @@ from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.ros.runtime import ExternalShutdownException, get_message, Node, QoSProfile, rclpy
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
+from rcbf_ros.training.policy_io import save_policy
 
 PARAMETERS: dict[str, Any] = {
     'system': 'unicycle', 'mode': 'modular', 'model_based': False, 'seed': 0,
@@ -199,12 +200,8 @@ class LearnerNode(Node):
         self.save_checkpoint()
         summary: dict[str, Any] = {'episodes': len(self.history)}
         if self.learner is not None:
-            sac = self.learner.sac
-            torch.save({'actor': sac.actor.state_dict(), 'obs_dim': sac.obs_dim, 'n_u': sac.n_u,
-                        'u_low': self.learner.u_low.tolist(),
-                        'u_high': self.learner.u_high.tolist(),
-                        'hidden_sizes': sac.config.hidden_sizes,
-                        'system': self.settings['system']}, self.out_dir / 'policy.pt')
+            save_policy(self.out_dir / 'policy.pt', self.learner.sac, u_low=self.learner.u_low,
+                        u_high=self.learner.u_high, system=str(self.settings['system']))
         if self.history:
             from rcbf_ros.plots import plot_reward_curve
             plot_reward_curve([r['ret'] for r in self.history],

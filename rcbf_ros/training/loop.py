@@ -29,6 +29,7 @@ from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
+from rcbf_ros.training.policy_io import save_policy
 
 ENV_CLASSES = {
     'unicycle': 'rcbf_ros.envs.unicycle.UnicycleEnv',
@@ -285,11 +286,8 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
                 save_checkpoint()
     finally:
         save_checkpoint()
-        torch.save({'actor': learner.sac.actor.state_dict(), 'obs_dim': learner.sac.obs_dim,
-                    'n_u': learner.sac.n_u, 'u_low': learner.u_low.tolist(),
-                    'u_high': learner.u_high.tolist(),
-                    'hidden_sizes': learner.sac.config.hidden_sizes, 'system': run.system},
-                   out / 'policy.pt')
+        save_policy(out / 'policy.pt', learner.sac, u_low=learner.u_low, u_high=learner.u_high,
+                    system=run.system)
         if recorder is not None:
             recorder.close()
         if history:

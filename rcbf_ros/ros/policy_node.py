@@ -1,0 +1,85 @@
+"""``policy`` node: a trained policy alone, proposing actions to the safety filter.
+
+Deployment without the learner: loads ``policy.pt`` (written by the learner node or
+``rcbf_ros train``), takes the mean action of the actor for every observation and publishes it
+on ``cmd_proposed`` for the safety_filter node, which keeps it safe (its disturbance box comes
+from its own parameters). Input: ``sim/step`` (sections ``observation`` and ``state``; the state
+rides along in the proposal so the filter answers exactly the state the action was made for),
+remappable to any Float64MultiArray stream with an ``observation`` section.
+
+Parameters: ``policy_path`` (required), ``input_topic`` (default ``sim/step``).
+"""
+from __future__ import annotations
+
+import sys
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
+from rcbf_ros.ros.runtime import ExternalShutdownException, get_message, Node, QoSProfile, rclpy
+from rcbf_ros.training.policy_io import load_policy
+
+
+class PolicyNode(Node):
+    """See module docstring."""
+
+    def __init__(self) -> None:
+        super().__init__('policy')
+        path = str(self.declare_parameter('policy_path', '').value)
+        topic = str(self.declare_parameter('input_topic', 'sim/step').value)
+        if not path:
+            raise ValueError('policy_path: required (a policy.pt from the learner)')
+        self.policy = load_policy(path)
+        self.last_index: tuple[float, float] | None = None
+        self.last_msg: Any = None
+        array = get_message('std_msgs/msg/Float64MultiArray')
+        qos = QoSProfile(depth=10)
+        self.publisher = self.create_publisher(array, 'cmd_proposed', qos)
+        self.create_subscription(array, topic, self.on_input, qos)
+        self.get_logger().info(f'policy {path} ({self.policy.system}, obs {self.policy.obs_dim}, '
+                               f'u {self.policy.n_u}) on {topic}')
+
+    def on_input(self, msg: Any) -> None:
+        try:
+            sections = msg_to_sections(msg, default_label='observation')
+            done = any(sections.get(k, np.zeros(1))[0] > 0.5 for k in ('terminated', 'truncated'))
+            if done:
+                return  # the episode is over: the simulator resets and sends step 0
+            index = (float(sections.get('episode', [-1])[0]), float(sections.get('step', [-1])[0]))
+            if index == self.last_index and self.last_msg is not None:
+                self.publisher.publish(self.last_msg)  # re-published step: answer it again
+                return
+            u = self.policy(sections['observation'])
+        except (KeyError, ValueError) as exc:
+            self.get_logger().error(f'input: {exc}')
+            return
+        out = {'u': u}
+        if 'state' in sections:
+            out['state'] = sections['state']
+        self.last_index, self.last_msg = index, sections_to_msg(out)
+        self.publisher.publish(self.last_msg)
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    torch.set_num_threads(1)
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = PolicyNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (ValueError, FileNotFoundError) as exc:
+        print(f'policy: {exc}', file=sys.stderr)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
