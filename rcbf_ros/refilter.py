@@ -1,0 +1,568 @@
+"""Offline re-filtering of a recorded run (issue 3): the safety filter with another YAML, no DDS.
+
+    python -m rcbf_ros.refilter SOURCE_BAG OUTPUT_BAG --params-file F [--node N]
+
+Reads ``/cmd_proposed`` and ``/state`` from a bag in log-time order, filters every proposal
+with a :class:`~rcbf_ros.core.filter.SafetyFilter` built from the NEW parameters, and writes a
+new rosbag2-layout bag: every source topic copied unchanged (same CDR bytes, log and publish
+times, schema text, type hash and QoS), plus
+
+- ``/refilter/cmd_safe`` (std_msgs/Float64MultiArray, sections ``u``, ``u_rl``, ``u_s``): the
+  new command u* = u_RL + u_S, at the proposal's log time;
+- ``/refilter/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per filtered
+  proposal with the same level, message and key/values as the safety_filter node's
+  (:func:`rcbf_ros.ros.filter_logic.diagnostic_values`: ``h.<barrier>``,
+  ``constraint.<barrier>``, ``slack``, ``status``, ...), stamped with the proposal's log time.
+
+Decisions are the node's own (:func:`rcbf_ros.ros.filter_logic.decide`): the proposal's
+``state`` section wins, else the latest ``/state`` if it is at most ``max_state_age_s`` older
+than the proposal (log times); the proposal's learned ``disturbance_mean`` / ``disturbance_std``
+win over the static ``disturbance.*`` box. A proposal that cannot be filtered (no state yet,
+a stale or NaN state, a NaN proposal) is skipped: nothing is written for it, and the reason is
+counted. A state or proposal of the wrong LENGTH for the new system is a configuration mismatch
+and stops the run with an error (:class:`RefilterError`).
+
+Comparison. A recorded ``/cmd_safe`` answer is paired with the proposal whose ``u`` equals its
+``u_rl`` section and whose ``state`` (when both carry one) equals its ``state`` section, bit for
+bit, first come first served; |Δu| = ||u_new - u_recorded||_2.
+
+Pure library + command line: reads and writes MCAP with :mod:`rcbf_ros.bag`, never touches
+the middleware.
+"""
+from __future__ import annotations
+
+import argparse
+from collections import defaultdict, deque
+from dataclasses import asdict, dataclass, field
+import json
+import math
+import os
+from pathlib import Path
+import sys
+from typing import Any, Mapping, Sequence
+
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+import numpy as np
+import torch
+
+from rcbf_ros.bag import bag_info, BagWriter, mcap_files, read_bag
+from rcbf_ros.bag.messages import deserialize_message, jazzy_typestore
+from rcbf_ros.core.config import filter_config_from_params, FilterConfig, flatten
+from rcbf_ros.core.filter import ACTIVE_TOLERANCE, SafetyFilter
+from rcbf_ros.params import find_config, load_params
+from rcbf_ros.ros import filter_logic as logic
+from rcbf_ros.ros.conversions import FLOAT64_MULTIARRAY, msg_to_sections
+
+PROPOSAL_TOPIC = '/cmd_proposed'
+STATE_TOPIC = '/state'
+RECORDED_COMMAND_TOPIC = '/cmd_safe'
+OUTPUT_COMMAND_TOPIC = '/refilter/cmd_safe'
+OUTPUT_DIAGNOSTICS_TOPIC = '/refilter/diagnostics'
+DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+DEFAULT_TOLERANCE = 1e-6
+
+
+class RefilterError(ValueError):
+    """The source bag, the parameters or their combination cannot be re-filtered."""
+
+
+@dataclass
+class RefilterSummary:
+    """What re-filtering a bag with new parameters changed (see module docstring)."""
+
+    source: str
+    """The source bag."""
+    output: str
+    """The bag written."""
+    system: str
+    """The new parameters' ``system``."""
+    barrier_names: list[str]
+    """The new barriers, in row order."""
+    proposals: int = 0
+    """``/cmd_proposed`` messages read."""
+    processed: int = 0
+    """Proposals filtered (one ``/refilter/cmd_safe`` each)."""
+    skipped: dict[str, int] = field(default_factory=dict)
+    """Proposals not filtered, by reason ('no state received yet', 'stale state', ...)."""
+    state_from_proposal: int = 0
+    """Processed proposals filtered at their own ``state`` section."""
+    state_from_topic: int = 0
+    """Processed proposals filtered at the latest ``/state``."""
+    recorded_commands: int = 0
+    """``/cmd_safe`` messages in the source bag."""
+    compared: int = 0
+    """Processed proposals paired with a recorded ``/cmd_safe``."""
+    tolerance: float = DEFAULT_TOLERANCE
+    """|Δu| above this counts as changed."""
+    changed: int = 0
+    """Compared commands with |Δu| = ||u_new - u_recorded||_2 > tolerance."""
+    max_abs_du: float = 0.0
+    """max |Δu| over compared commands (0 when none)."""
+    mean_abs_du: float = 0.0
+    """mean |Δu| over compared commands (0 when none)."""
+    recorded_active: int = 0
+    """Compared commands where the recorded filter acted (|u_s| > 1e-7 in some component)."""
+    active: int = 0
+    """Processed proposals where the new filter acted (|u_S| > 1e-7, or fail-safe)."""
+    max_slack: float = 0.0
+    """Largest QP slack of the new filter (solved steps; 0 when none)."""
+    slack_warnings: int = 0
+    """Steps whose slack exceeded ``slack_tolerance`` (WARN: rows infeasible in the limits)."""
+    fail_safe: int = 0
+    """Steps where the new filter's solve failed and the fail-safe action was written."""
+    min_h: dict[str, float] = field(default_factory=dict)
+    """Smallest new h_i per barrier over the evaluated recorded states."""
+    barrier_states: str = ''
+    """Which recorded states the barrier statistics cover: '/state' messages, or the
+    proposals' state sections when the bag has no usable /state."""
+    states_evaluated: int = 0
+    """Recorded states evaluated against the new barriers."""
+    states_violating: int = 0
+    """Evaluated states with some new h_i < 0."""
+    violations_per_barrier: dict[str, int] = field(default_factory=dict)
+    """Evaluated states with h_i < 0, per barrier."""
+
+    @property
+    def skipped_total(self) -> int:
+        """All skipped proposals."""
+        return sum(self.skipped.values())
+
+    def to_json(self) -> str:
+        """The summary as JSON (NaN/inf written as null)."""
+        def clean(value: Any) -> Any:
+            if isinstance(value, float) and not math.isfinite(value):
+                return None
+            if isinstance(value, dict):
+                return {k: clean(v) for k, v in value.items()}
+            return value
+        data = {k: clean(v) for k, v in asdict(self).items()}
+        data['skipped_total'] = self.skipped_total
+        return json.dumps(data, indent=2, sort_keys=False)
+
+    def format(self) -> str:
+        """Human-readable report."""
+        skipped = ', '.join(f'{n} {reason}' for reason, n in sorted(self.skipped.items()))
+        lines = [
+            f're-filtered {self.source} -> {self.output}',
+            f'new filter: {self.system}, {len(self.barrier_names)} barriers',
+            f'proposals: {self.proposals}   processed: {self.processed} '
+            f'(own state {self.state_from_proposal}, /state {self.state_from_topic})   '
+            f'skipped: {self.skipped_total}' + (f' ({skipped})' if skipped else ''),
+            f'recorded /cmd_safe: {self.recorded_commands}   compared: {self.compared}   '
+            f'changed (|du| > {self.tolerance:g}): {self.changed}',
+            f'|du| max {self.max_abs_du:.6g}   mean {self.mean_abs_du:.6g}',
+            f'filter active: new {self.active} of {self.processed}, recorded '
+            f'{self.recorded_active} of {self.compared} compared',
+            f'max slack {self.max_slack:.3g}   slack warnings {self.slack_warnings}   '
+            f'fail-safe {self.fail_safe}',
+            f'states ({self.barrier_states}): {self.states_evaluated} evaluated, '
+            f'{self.states_violating} violate the new barriers (h_i < 0)',
+        ]
+        for name in self.barrier_names:
+            lines.append(f'  {name:24s} min h {self.min_h.get(name, math.nan):10.4f}   '
+                         f'violating states {self.violations_per_barrier.get(name, 0)}')
+        return '\n'.join(lines)
+
+
+# -- parameters ------------------------------------------------------------------------------
+
+def resolve_params(params: str | os.PathLike[str] | Mapping[str, Any], *,
+                   node: str = 'safety_filter') -> dict[str, Any]:
+    """Flat parameters from a params file (path, or a packaged name like ``unicycle``) and its
+    ``node`` section (``/**`` merged in), or from a flat / nested dict.
+
+    Raises:
+        RefilterError: the file does not exist or is not a ROS 2 params file.
+    """
+    if isinstance(params, Mapping):
+        return flatten(params)
+    path = Path(params)
+    try:
+        if not path.is_file():
+            path = find_config(str(params))
+        flat = load_params(path, node)
+    except FileNotFoundError as exc:
+        raise RefilterError(f'params file: {exc}') from exc
+    except ValueError as exc:
+        raise RefilterError(f'params file: {exc}') from exc
+    if not flat:
+        raise RefilterError(f'params file {str(path)!r}: no ros__parameters for node {node!r} '
+                            'or /**')
+    return flat
+
+
+def build_filter(flat: Mapping[str, Any]) -> tuple[FilterConfig, logic.NodeSettings,
+                                                   SafetyFilter]:
+    """The filter exactly as the safety_filter node builds it from the same parameters.
+
+    Raises:
+        RefilterError: ``params: <key>: <problem>``.
+    """
+    try:
+        settings = logic.node_settings_from_params(flat)
+        config = filter_config_from_params(flat)
+        safety_filter = SafetyFilter(
+            config.problem, fail_safe_action=config.fail_safe_action,
+            eps_abs=settings.osqp_eps_abs, eps_rel=settings.osqp_eps_rel,
+            max_iter=settings.osqp_max_iter, compile_assembly=config.compile_assembly)
+    except (ValueError, TypeError, ImportError, AttributeError) as exc:
+        raise RefilterError(f'params: {exc}') from exc
+    return config, settings, safety_filter
+
+
+# -- source bag ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class _SourceTopic:
+    name: str
+    type_name: str
+    definition: str | None
+    type_hash: str | None
+    qos: tuple[Any, ...]
+
+
+def _source_topics(path: str | os.PathLike[str]) -> dict[str, _SourceTopic]:
+    """Topics of the source bag with their schema text and hash (copied as recorded)."""
+    info = bag_info(path)
+    schemas: dict[str, tuple[str, str]] = {}
+    for file in mcap_files(path):
+        try:
+            with open(file, 'rb') as stream:
+                summary = make_reader(stream).get_summary()
+        except (McapError, EOFError, ValueError, OSError):
+            summary = None
+        if summary is None:
+            continue  # cut-short file: definitions come from the type store
+        for channel in summary.channels.values():
+            schema = summary.schemas.get(channel.schema_id)
+            if schema is not None and schema.encoding == 'ros2msg':
+                schemas.setdefault(channel.topic, (
+                    schema.data.decode(), channel.metadata.get('topic_type_hash', '')))
+    store = jazzy_typestore()
+    topics = {}
+    for name, topic in info.topics.items():
+        definition, type_hash = schemas.get(name, (None, None))
+        if definition is None and topic.type_name not in store.fielddefs:
+            raise RefilterError(f'{name}: type {topic.type_name!r} has no stored schema and is '
+                                'not in the ROS 2 Jazzy type store')
+        topics[name] = _SourceTopic(name, topic.type_name, definition, type_hash,
+                                    topic.offered_qos)
+    return topics
+
+
+def _array_sections(topic: str, log_time_ns: int, data: bytes, type_name: str,
+                    default_label: str) -> dict[str, np.ndarray]:
+    if type_name != FLOAT64_MULTIARRAY:
+        raise RefilterError(f'{topic}: type {type_name!r} is not supported (re-filtering reads '
+                            f'{FLOAT64_MULTIARRAY} sections)')
+    try:
+        return msg_to_sections(deserialize_message(data, type_name), default_label=default_label)
+    except ValueError as exc:
+        raise RefilterError(f'{topic} at log time {log_time_ns}: {exc}') from exc
+
+
+def _check_length(topic: str, log_time_ns: int, label: str, values: np.ndarray, size: int,
+                  what: str, system: str) -> None:
+    if values.size != size:
+        raise RefilterError(
+            f'{topic} at log time {log_time_ns}: {label} has {values.size} values but the new '
+            f'system {system!r} has {what} = {size} (parameters for another system?)')
+
+
+def _command_key(u_rl: np.ndarray, state: np.ndarray | None) -> tuple[bytes, bytes | None]:
+    return (np.ascontiguousarray(u_rl, dtype=np.float64).tobytes(),
+            None if state is None else np.ascontiguousarray(state, np.float64).tobytes())
+
+
+def _recorded_commands(path: str | os.PathLike[str],
+                       ) -> tuple[int, dict[tuple[bytes, bytes | None], deque[np.ndarray]]]:
+    """Recorded ``/cmd_safe`` answers keyed by (u_rl, state) bytes, FIFO per key."""
+    by_key: dict[tuple[bytes, bytes | None], deque[np.ndarray]] = defaultdict(deque)
+    count = 0
+    for item in read_bag(path, topics=[RECORDED_COMMAND_TOPIC]):
+        count += 1
+        if item.type_name != FLOAT64_MULTIARRAY:
+            continue
+        sections = _array_sections(item.topic, item.log_time_ns, item.data, item.type_name, 'u')
+        if 'u' not in sections or 'u_rl' not in sections:
+            continue
+        by_key[_command_key(sections['u_rl'], sections.get('state'))].append(sections['u'])
+    return count, by_key
+
+
+def _pop_recorded(by_key: dict[tuple[bytes, bytes | None], deque[np.ndarray]],
+                  u_rl: np.ndarray, state: np.ndarray | None) -> np.ndarray | None:
+    for key in (_command_key(u_rl, state), _command_key(u_rl, None)):
+        queue = by_key.get(key)
+        if queue:
+            return queue.popleft()
+    return None
+
+
+# -- output messages -------------------------------------------------------------------------
+
+def _sections_message(sections: Mapping[str, np.ndarray]) -> dict[str, Any]:
+    dims, data = [], []
+    for label, values in sections.items():
+        array = np.asarray(values, dtype=np.float64).reshape(-1)
+        dims.append({'label': label, 'size': int(array.size), 'stride': int(array.size)})
+        data.append(array)
+    return {'layout': {'dim': dims, 'data_offset': 0}, 'data': np.concatenate(data)}
+
+
+def _value_text(value: Any) -> str:
+    if isinstance(value, float):
+        return 'nan' if math.isnan(value) else repr(value)
+    return str(value)
+
+
+def _diagnostics_message(decision: logic.Decision, barrier_names: Sequence[str],
+                         settings: logic.NodeSettings, stamp_ns: int) -> dict[str, Any]:
+    level, message, values = logic.diagnostic_values(decision=decision,
+                                                     barrier_names=barrier_names)
+    return {
+        'header': {'stamp': {'sec': stamp_ns // 1_000_000_000,
+                             'nanosec': stamp_ns % 1_000_000_000}, 'frame_id': ''},
+        'status': [{'level': level, 'name': settings.diagnostics_name, 'message': message,
+                    'hardware_id': settings.diagnostics_hardware_id,
+                    'values': [{'key': str(k), 'value': _value_text(v)}
+                               for k, v in values.items()]}]}
+
+
+# -- barrier statistics ----------------------------------------------------------------------
+
+def _barrier_statistics(summary: RefilterSummary, safety_filter: SafetyFilter,
+                        states: list[np.ndarray]) -> None:
+    """min h_i and violation counts of the new barriers over ``states`` (batched)."""
+    names = summary.barrier_names
+    summary.states_evaluated = len(states)
+    summary.violations_per_barrier = {name: 0 for name in names}
+    if not states:
+        summary.min_h = {name: math.nan for name in names}
+        return
+    stacked = torch.from_numpy(np.stack(states))
+    h = np.concatenate([safety_filter.problem.terms(chunk).h.numpy()
+                        for chunk in torch.split(stacked, 4096)])  # (N, K)
+    summary.min_h = {name: float(h[:, i].min()) for i, name in enumerate(names)}
+    violated = h < 0
+    summary.violations_per_barrier = {name: int(violated[:, i].sum())
+                                      for i, name in enumerate(names)}
+    summary.states_violating = int(violated.any(axis=1).sum())
+
+
+# -- the job ---------------------------------------------------------------------------------
+
+def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
+                 params: str | os.PathLike[str] | Mapping[str, Any], *,
+                 node: str = 'safety_filter',
+                 tolerance: float = DEFAULT_TOLERANCE) -> RefilterSummary:
+    """Filter the proposals recorded in ``source`` with new parameters; write ``output``.
+
+    Args:
+        source: bag directory or ``.mcap`` file with ``/cmd_proposed`` (and ``/state``).
+        output: new bag directory (must not hold a bag yet).
+        params: a ROS 2 params file (or packaged config name, e.g. ``unicycle``) read for
+            ``node``, or a flat / nested parameter dict.
+        node: the params file section to read (``/**`` merged in).
+        tolerance: |Δu| above this counts as a changed command.
+
+    Returns:
+        The summary of what changed.
+
+    Raises:
+        RefilterError: missing source bag, no ``/cmd_proposed``, bad parameters (the message
+            names the key), a state or proposal of the wrong length for the new system, a
+            source that already holds ``/refilter/*`` topics, or an existing output bag.
+    """
+    if not tolerance >= 0:
+        raise RefilterError(f'tolerance: must be >= 0, got {tolerance}')
+    try:
+        files = mcap_files(source)
+    except FileNotFoundError as exc:
+        raise RefilterError(f'source bag: {exc}') from exc
+    if os.path.abspath(output) == os.path.abspath(source) or any(
+            Path(output).resolve() == f.resolve().parent for f in files):
+        raise RefilterError('output: must not be the source bag')
+    topics = _source_topics(source)
+    if PROPOSAL_TOPIC not in topics:
+        raise RefilterError(f'source bag {str(source)!r} has no {PROPOSAL_TOPIC} topic '
+                            f'(topics: {sorted(topics)})')
+    clashing = sorted(t for t in topics if t in (OUTPUT_COMMAND_TOPIC, OUTPUT_DIAGNOSTICS_TOPIC))
+    if clashing:
+        raise RefilterError(f'source bag already holds {clashing} (re-filter the original run)')
+    flat = resolve_params(params, node=node)
+    config, settings, safety_filter = build_filter(flat)
+    system_name = str(flat.get('system'))
+    n_x, n_u = safety_filter.n_x, safety_filter.n_u
+    summary = RefilterSummary(source=str(source), output=str(output), system=system_name,
+                              barrier_names=list(safety_filter.barrier_names),
+                              tolerance=float(tolerance))
+    summary.recorded_commands, recorded = _recorded_commands(source)
+
+    try:
+        writer = BagWriter(output)
+    except (FileExistsError, ValueError) as exc:
+        raise RefilterError(f'output: {exc}') from exc
+    deltas: list[float] = []
+    topic_states: list[np.ndarray] = []
+    proposal_states: list[np.ndarray] = []
+    latest: logic.StateSample | None = None
+    skipped: dict[str, int] = defaultdict(int)
+    try:
+        with writer:
+            for topic in topics.values():
+                writer.add_topic(topic.name, topic.type_name, topic.qos or None,
+                                 message_definition=topic.definition, type_hash=topic.type_hash)
+            writer.add_topic(OUTPUT_COMMAND_TOPIC, FLOAT64_MULTIARRAY)
+            writer.add_topic(OUTPUT_DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY)
+            for item in read_bag(source):
+                writer.write(item.topic, item.data, item.log_time_ns, item.publish_time_ns)
+                if item.topic == STATE_TOPIC:
+                    sections = _array_sections(item.topic, item.log_time_ns, item.data,
+                                               item.type_name, 'state')
+                    values = sections.get('state', next(iter(sections.values()), None))
+                    if values is None:
+                        latest = logic.StateSample(item.log_time_ns, None, 'state: empty message')
+                        continue
+                    _check_length(item.topic, item.log_time_ns, 'state', values, n_x, 'n_x',
+                                  system_name)
+                    try:
+                        state = logic.state_from_sections(sections=sections, n_x=n_x)
+                    except ValueError as exc:
+                        latest = logic.StateSample(item.log_time_ns, None, str(exc))
+                        continue
+                    latest = logic.StateSample(item.log_time_ns, state)
+                    topic_states.append(state)
+                elif item.topic == PROPOSAL_TOPIC:
+                    summary.proposals += 1
+                    sections = _array_sections(item.topic, item.log_time_ns, item.data,
+                                               item.type_name, 'u')
+                    for label, size, what in (('u', n_u, 'n_u'), ('state', n_x, 'n_x'),
+                                              ('disturbance_mean', n_x, 'n_x'),
+                                              ('disturbance_std', n_x, 'n_x')):
+                        if label in sections:
+                            _check_length(item.topic, item.log_time_ns, label, sections[label],
+                                          size, what, system_name)
+                    proposal, error = None, ''
+                    try:
+                        proposal = logic.proposal_from_sections(sections=sections, n_u=n_u,
+                                                                n_x=n_x)
+                    except ValueError as exc:
+                        error = str(exc)
+                    decision = logic.decide(
+                        safety_filter=safety_filter, proposal=proposal, proposal_error=error,
+                        latest_state=latest, now_ns=item.log_time_ns,
+                        max_state_age_s=settings.max_state_age_s,
+                        static_mean=config.static_mean, static_std=config.static_std,
+                        slack_tolerance=settings.slack_tolerance)
+                    if decision.result is None:
+                        skipped[logic.reason_key(decision.reason)] += 1
+                        continue
+                    assert proposal is not None
+                    _account(summary, decision, proposal, recorded, deltas, tolerance)
+                    if proposal.state is not None:
+                        proposal_states.append(proposal.state)
+                    writer.write_message(OUTPUT_COMMAND_TOPIC, _sections_message(
+                        {'u': decision.u_safe, 'u_rl': decision.u_rl, 'u_s': decision.u_s}),
+                        item.log_time_ns)
+                    writer.write_message(OUTPUT_DIAGNOSTICS_TOPIC, _diagnostics_message(
+                        decision, safety_filter.barrier_names, settings, item.log_time_ns),
+                        item.log_time_ns)
+    except RefilterError:
+        _discard(writer)
+        raise
+    summary.skipped = dict(skipped)
+    if deltas:
+        summary.max_abs_du = float(np.max(deltas))
+        summary.mean_abs_du = float(np.mean(deltas))
+    if topic_states:
+        summary.barrier_states = STATE_TOPIC
+        _barrier_statistics(summary, safety_filter, topic_states)
+    else:
+        summary.barrier_states = f'{PROPOSAL_TOPIC} state sections'
+        _barrier_statistics(summary, safety_filter, proposal_states)
+    return summary
+
+
+def _account(summary: RefilterSummary, decision: logic.Decision, proposal: logic.Proposal,
+             recorded: dict[tuple[bytes, bytes | None], deque[np.ndarray]],
+             deltas: list[float], tolerance: float) -> None:
+    """Add one filtered proposal to the summary (and pair it with its recorded answer)."""
+    result = decision.result
+    assert result is not None
+    summary.processed += 1
+    if decision.state_source == 'proposal':
+        summary.state_from_proposal += 1
+    else:
+        summary.state_from_topic += 1
+    if result.active:
+        summary.active += 1
+    if result.fail_safe:
+        summary.fail_safe += 1
+    elif math.isfinite(result.slack):
+        summary.max_slack = max(summary.max_slack, result.slack)
+    if decision.level == logic.WARN:
+        summary.slack_warnings += 1
+    old = _pop_recorded(recorded, proposal.u, proposal.state)
+    if old is None or old.shape != decision.u_safe.shape:
+        return
+    summary.compared += 1
+    if np.any(np.abs(old - proposal.u) > ACTIVE_TOLERANCE):
+        summary.recorded_active += 1
+    delta = float(np.linalg.norm(decision.u_safe - old))
+    deltas.append(delta)
+    if delta > tolerance:
+        summary.changed += 1
+
+
+def _discard(writer: BagWriter) -> None:
+    """Remove a half-written output bag after an error."""
+    try:
+        writer.close()
+    except Exception:  # noqa: BLE001 - best effort; the error being raised matters more
+        pass
+    for path in (writer.mcap_path, writer.directory / 'metadata.yaml'):
+        if path.exists():
+            path.unlink()
+    try:
+        writer.directory.rmdir()
+    except OSError:
+        pass
+
+
+# -- command line ----------------------------------------------------------------------------
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script ``rcbf_ros_refilter``. Returns 0, or 2 on bad input (message on stderr)."""
+    parser = argparse.ArgumentParser(
+        prog='rcbf_ros_refilter',
+        description='Run the safety filter over the proposals recorded in a bag with other '
+                    'parameters; write a new bag with /refilter/cmd_safe and '
+                    '/refilter/diagnostics and print what changed.')
+    parser.add_argument('source', help='recorded bag directory or .mcap file')
+    parser.add_argument('output', help='new bag directory (must not exist yet)')
+    parser.add_argument('--params-file', required=True,
+                        help='ROS 2 params YAML (or a packaged config name, e.g. unicycle)')
+    parser.add_argument('--node', default='safety_filter',
+                        help='params file section to read (default: safety_filter)')
+    parser.add_argument('--tolerance', type=float, default=DEFAULT_TOLERANCE,
+                        help=f'|du| counted as a change (default {DEFAULT_TOLERANCE:g})')
+    parser.add_argument('--json', dest='json_path', default=None,
+                        help='also write the summary as JSON to this file')
+    args = parser.parse_args(None if argv is None else list(argv))
+    torch.set_num_threads(1)
+    try:
+        summary = refilter_bag(args.source, args.output, args.params_file, node=args.node,
+                               tolerance=args.tolerance)
+    except RefilterError as exc:
+        print(f'rcbf_ros_refilter: error: {exc}', file=sys.stderr)
+        return 2
+    print(summary.format())
+    if args.json_path:
+        Path(args.json_path).write_text(summary.to_json() + '\n')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
