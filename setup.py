@@ -43,6 +43,7 @@ setup(
             'policy = rcbf_ros.ros.policy_node:main',
             'rcbf_ros = rcbf_ros.cli:main',
             'rcbf_ros_launch = rcbf_ros.launch_local:main',
+            'rcbf_ros_refilter = rcbf_ros.refilter:main',
         ],
     },
 )
