@@ -1,0 +1,272 @@
+"""Offline re-filtering (rcbf_ros.refilter): a synthetic recorded run re-filtered with the same and
+with other parameters, the output read back by independent readers and checked by
+``pymcap-cli doctor``; bad inputs give errors naming the problem."""
+from __future__ import annotations
+
+from pathlib import Path
+import shutil
+import subprocess
+import sys
+
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+import torch
+import yaml
+
+from rcbf_ros.bag import BagWriter, read_bag
+from rcbf_ros.bag.messages import jazzy_typestore
+from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.refilter import main, refilter_bag, RefilterError
+
+PYMCAP_CLI = shutil.which('pymcap-cli') or str(Path(sys.executable).parent / 'pymcap-cli')
+T0 = 1_700_000_000_000_000_000
+STEP_NS = 20_000_000
+N_STEPS = 40
+# Synthetic unicycle run: driving along y = 0 at v = 1 from x = -2.4 to x = -1.23.
+STATES = [np.array([-2.4 + 0.03 * k, 0.0, 0.0]) for k in range(N_STEPS)]
+PROPOSALS = [np.array([1.0, 0.05 * np.sin(k)]) for k in range(N_STEPS)]
+# Two recorded states with no proposal after them, inside config B's new obstacle.
+INSIDE_B = [np.array([-0.5, 0.0, 0.0]), np.array([-0.55, 0.05, 0.1])]
+
+COMMON = {'system': 'unicycle', 'alpha': 2.0,
+          'input_limits': {'min': [-2.5, -2.5], 'max': [2.5, 2.5]},
+          'fail_safe_action': [0.0, 0.0]}
+OBSTACLES_A = {'x': [1.5, -1.5], 'y': [1.5, 1.5], 'radius': [0.6, 0.6], 'margin': 0.1,
+               'lookahead': 0.03, 'heading_index': 2}
+# B: A plus an obstacle right in the robot's path.
+OBSTACLES_B = dict(OBSTACLES_A, x=[1.5, -1.5, -0.5], y=[1.5, 1.5, 0.0],
+                   radius=[0.6, 0.6, 0.3])
+PARAMS_A = dict(COMMON, obstacles=OBSTACLES_A)
+PARAMS_B = dict(COMMON, obstacles=OBSTACLES_B)
+
+
+def _sections(**sections: np.ndarray) -> dict:
+    dims, data = [], []
+    for label, values in sections.items():
+        values = np.asarray(values, dtype=np.float64)
+        dims.append({'label': label, 'size': values.size, 'stride': values.size})
+        data.append(values)
+    return {'layout': {'dim': dims, 'data_offset': 0}, 'data': np.concatenate(data)}
+
+
+def _node_filter(params: dict) -> SafetyFilter:
+    """The filter as the safety_filter node builds it by default (OSQP eps 1e-8)."""
+    config = filter_config_from_params(params)
+    return SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action,
+                        eps_abs=1e-8, eps_rel=1e-8, max_iter=4000)
+
+
+def _inputs(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None,
+                             bool]:
+    """(state, u, mean, std, own_state) of proposal k: even ones carry their state and a GP
+    estimate; odd ones rely on the /state topic and no disturbance."""
+    if k % 2 == 0:
+        return STATES[k], PROPOSALS[k], np.array([0.0, 0.01, 0.0]), np.full(3, 0.05), True
+    return STATES[k], PROPOSALS[k], None, None, False
+
+
+def _expected_commands(params: dict) -> list[np.ndarray]:
+    """What a filter with ``params`` answers to the recorded proposals, in order (the
+    proposal before the first state is never filtered)."""
+    safety_filter = _node_filter(params)
+    out = []
+    for k in range(N_STEPS):
+        state, u, mean, std, _ = _inputs(k)
+        out.append(safety_filter.filter(state, u, mean, std).u_safe)
+    return out
+
+
+def _write_source(directory: Path, *, with_proposals: bool = True) -> Path:
+    """/state, /cmd_proposed, /cmd_safe (from a node-like filter with config A), /reward."""
+    recorded = _expected_commands(PARAMS_A)
+    with BagWriter(directory) as bag:
+        bag.add_topic('/state', 'std_msgs/msg/Float64MultiArray')
+        if with_proposals:
+            bag.add_topic('/cmd_proposed', 'std_msgs/msg/Float64MultiArray')
+        bag.add_topic('/cmd_safe', 'std_msgs/msg/Float64MultiArray')
+        bag.add_topic('/reward', 'std_msgs/msg/Float64')
+        if with_proposals:  # before any state: cannot be filtered
+            bag.write_message('/cmd_proposed', _sections(u=np.array([1.0, 0.0])), T0 - 1000)
+        for k in range(N_STEPS):
+            t = T0 + k * STEP_NS
+            state, u, mean, std, own = _inputs(k)
+            bag.write_message('/state', _sections(state=state), t)
+            if not with_proposals:
+                continue
+            if own:
+                proposal = _sections(u=u, disturbance_mean=mean, disturbance_std=std,
+                                     state=state)
+                answer = _sections(u=recorded[k], u_rl=u, u_s=recorded[k] - u, state=state)
+            else:
+                proposal = _sections(u=u)
+                answer = _sections(u=recorded[k], u_rl=u, u_s=recorded[k] - u)
+            bag.write_message('/cmd_proposed', proposal, t + 1_000_000)
+            bag.write_message('/cmd_safe', answer, t + 3_000_000)
+            bag.write_message('/reward', {'data': -0.1 * k}, t + 4_000_000)
+        for j, state in enumerate(INSIDE_B):
+            bag.write_message('/state', _sections(state=state), T0 + (N_STEPS + j) * STEP_NS)
+    return directory
+
+
+@pytest.fixture(scope='module')
+def source_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    torch.set_num_threads(1)
+    return _write_source(tmp_path_factory.mktemp('src') / 'run')
+
+
+def test_same_parameters_change_nothing(source_bag: Path, tmp_path: Path) -> None:
+    summary = refilter_bag(source_bag, tmp_path / 'same', PARAMS_A)
+    assert summary.proposals == N_STEPS + 1
+    assert summary.processed == N_STEPS
+    assert summary.skipped == {'no state received yet': 1}
+    assert (summary.state_from_proposal, summary.state_from_topic) == (N_STEPS // 2,
+                                                                       N_STEPS // 2)
+    assert summary.recorded_commands == summary.compared == N_STEPS
+    # Same filter, same inputs in the same order: bit-identical commands.
+    assert summary.changed == 0 and summary.max_abs_du == 0.0 and summary.mean_abs_du == 0.0
+    assert summary.active == summary.recorded_active
+    assert summary.fail_safe == 0
+    assert summary.states_evaluated == N_STEPS + len(INSIDE_B)
+    assert summary.states_violating == 0
+    assert set(summary.min_h) == {'obstacle_0', 'obstacle_1'}
+
+
+def test_new_obstacle_changes_commands_where_expected(source_bag: Path, tmp_path: Path) -> None:
+    out = tmp_path / 'with_b'
+    summary = refilter_bag(source_bag, out, PARAMS_B)
+    recorded_a = _expected_commands(PARAMS_A)
+    filtered_b = _expected_commands(PARAMS_B)
+    expected_changed = [k for k in range(N_STEPS)
+                        if np.linalg.norm(filtered_b[k] - recorded_a[k]) > summary.tolerance]
+    # The new obstacle acts ahead of the robot only: far away it changes nothing.
+    assert 0 < len(expected_changed) < N_STEPS and 0 not in expected_changed
+    assert summary.changed == len(expected_changed)
+    deltas = [np.linalg.norm(filtered_b[k] - recorded_a[k]) for k in range(N_STEPS)]
+    assert summary.max_abs_du == pytest.approx(max(deltas), rel=1e-6, abs=1e-9)
+    assert summary.mean_abs_du == pytest.approx(np.mean(deltas), rel=1e-6, abs=1e-9)
+    assert summary.active > summary.recorded_active
+    assert summary.fail_safe == 0
+    # Exactly the two recorded states inside the new obstacle violate it.
+    assert summary.states_violating == len(INSIDE_B)
+    assert summary.violations_per_barrier == {'obstacle_0': 0, 'obstacle_1': 0,
+                                              'obstacle_2': len(INSIDE_B)}
+    assert summary.min_h['obstacle_2'] < 0 < summary.min_h['obstacle_1']
+
+    # The new commands, read back with rosbags, satisfy config B's RCBF rows: the QP built
+    # at (x, u_new) needs no correction (G z <= h holds at z = 0 on the barrier rows).
+    problem_b = filter_config_from_params(PARAMS_B).problem
+    store = jazzy_typestore()
+    commands = []
+    with AnyReader([out], default_typestore=store) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        for connection, _, raw in reader.messages(
+                connections=[c for c in reader.connections
+                             if c.topic == '/refilter/cmd_safe']):
+            msg = reader.deserialize(raw, connection.msgtype)
+            assert [d.label for d in msg.layout.dim] == ['u', 'u_rl', 'u_s']
+            commands.append(np.asarray(msg.data).reshape(3, 2))
+    assert counts == {'/state': N_STEPS + len(INSIDE_B), '/cmd_proposed': N_STEPS + 1,
+                      '/cmd_safe': N_STEPS, '/reward': N_STEPS,
+                      '/refilter/cmd_safe': N_STEPS, '/refilter/diagnostics': N_STEPS}
+    for k, (u_new, u_rl, u_s) in enumerate(commands):
+        state, u, mean, std, _ = _inputs(k)
+        np.testing.assert_array_equal(u_rl, u)
+        np.testing.assert_allclose(u_new, filtered_b[k], atol=1e-6)
+        np.testing.assert_allclose(u_s, u_new - u_rl, atol=1e-15)
+        as_tensor = [None if a is None else torch.from_numpy(np.array(a)).unsqueeze(0)
+                     for a in (state, u_new, mean, std)]
+        rows = problem_b.qp(*as_tensor).h[0, :problem_b.n_barriers].numpy()
+        assert np.all(rows >= -1e-6), (k, rows)
+
+
+def test_output_bag_read_by_mcap_ros2_and_doctor(source_bag: Path, tmp_path: Path) -> None:
+    out = tmp_path / 'checked'
+    refilter_bag(source_bag, out, PARAMS_B)
+    mcap_file = out / 'checked_0.mcap'
+    decoded: dict[str, list] = {}
+    with open(mcap_file, 'rb') as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        for _, channel, message, msg in reader.iter_decoded_messages():
+            decoded.setdefault(channel.topic, []).append((message.log_time, msg))
+    assert {k: len(v) for k, v in decoded.items()} == {
+        '/state': N_STEPS + len(INSIDE_B), '/cmd_proposed': N_STEPS + 1, '/cmd_safe': N_STEPS,
+        '/reward': N_STEPS, '/refilter/cmd_safe': N_STEPS, '/refilter/diagnostics': N_STEPS}
+    # Source topics are copied byte for byte with their times.
+    source = [(m.topic, m.data, m.log_time_ns, m.publish_time_ns) for m in read_bag(source_bag)]
+    copied = [(m.topic, m.data, m.log_time_ns, m.publish_time_ns) for m in read_bag(out)
+              if not m.topic.startswith('/refilter/')]
+    assert copied == source
+    # Diagnostics as the node publishes them, stamped at the proposal's log time.
+    proposal_times = [t for t, _ in decoded['/cmd_proposed']][1:]
+    for (log_time, array), t in zip(decoded['/refilter/diagnostics'], proposal_times):
+        assert log_time == t
+        status = array.status[0]
+        assert array.header.stamp.sec * 10**9 + array.header.stamp.nanosec == t
+        values = {kv.key: kv.value for kv in status.values}
+        assert {'h.obstacle_2', 'constraint.obstacle_2', 'slack', 'status'} <= set(values)
+        assert status.level in (0, 1)
+        assert float(values['constraint.obstacle_2']) >= -1e-6
+    result = subprocess.run([PYMCAP_CLI, 'doctor', str(mcap_file)], capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert 'passed' in result.stdout
+
+
+def test_command_line_with_params_file(source_bag: Path, tmp_path: Path,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    params_file = tmp_path / 'b.yaml'
+    params_file.write_text(yaml.safe_dump({
+        '/**': {'ros__parameters': dict(COMMON, obstacles=OBSTACLES_A)},
+        '/other': {'ros__parameters': {'alpha': -1.0}},
+        '/safety_filter': {'ros__parameters': {'obstacles': OBSTACLES_B}}}))
+    json_path = tmp_path / 'summary.json'
+    code = main([str(source_bag), str(tmp_path / 'cli'), '--params-file', str(params_file),
+                 '--json', str(json_path)])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert 'changed (|du| > 1e-06):' in printed and 'obstacle_2' in printed
+    summary = yaml.safe_load(json_path.read_text())  # JSON is YAML
+    assert summary['states_violating'] == len(INSIDE_B) and summary['changed'] > 0
+    assert summary['skipped_total'] == 1
+
+
+@pytest.mark.parametrize(('case', 'needle'), [
+    ('missing_source', 'does not exist'),
+    ('no_proposals', '/cmd_proposed'),
+    ('bad_param', 'obstacles.y'),
+    ('bad_alpha', 'alpha'),
+    ('missing_params_file', 'params file'),
+    ('wrong_state_length', 'n_x'),
+    ('output_exists', 'already holds a bag'),
+])
+def test_bad_inputs_name_the_problem(case: str, needle: str, source_bag: Path, tmp_path: Path,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    source, params = str(source_bag), str(tmp_path / 'params.yaml')
+    body = dict(PARAMS_A)
+    if case == 'missing_source':
+        source = str(tmp_path / 'no_such_bag')
+    elif case == 'no_proposals':
+        source = str(_write_source(tmp_path / 'states_only', with_proposals=False))
+    elif case == 'bad_param':
+        body = dict(COMMON, obstacles=dict(OBSTACLES_A, y=[1.5]))
+    elif case == 'bad_alpha':
+        body = dict(PARAMS_A, alpha=-2.0)
+    elif case == 'missing_params_file':
+        params = str(tmp_path / 'absent.yaml')
+    elif case == 'wrong_state_length':
+        body = {'system': 'pvtol', 'walls': {'nx': [0.0], 'ny': [1.0], 'offset': [-1.0]}}
+    if case != 'missing_params_file':
+        Path(params).write_text(yaml.safe_dump({'/**': {'ros__parameters': body}}))
+    output = tmp_path / 'out'
+    if case == 'output_exists':
+        refilter_bag(source_bag, output, PARAMS_A)
+    with pytest.raises(RefilterError, match=needle):
+        refilter_bag(source, output, params)
+    assert main([source, str(output), '--params-file', params]) == 2
+    assert needle in capsys.readouterr().err
+    if case == 'wrong_state_length':  # no half-written bag is left behind
+        assert not output.exists()
