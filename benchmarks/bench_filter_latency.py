@@ -130,7 +130,9 @@ def main() -> None:
     options = parser.parse_args()
     load_before = os.getloadavg()[0]
     rows = []
-    variants = {'every': (), 'decimated': ('-p', 'diagnostics.min_period_s:=0.1')}
+    variants = {'every': (), 'decimated': ('-p', 'diagnostics.min_period_s:=0.1'),
+                'compiled': ('-p', 'diagnostics.min_period_s:=0.1',
+                             '-p', 'compile_assembly:=true')}
     for rate in options.rates:
         raw = run_pingpong(rate, options.n, 'raw')
         runtime = run_pingpong(rate, options.n, 'runtime')

@@ -12,6 +12,7 @@ import argparse
 from dataclasses import fields
 import json
 from pathlib import Path
+import signal
 import sys
 
 from rcbf_ros.training.agent import LearnerConfig, MODES
@@ -61,12 +62,19 @@ def run_train(args: argparse.Namespace) -> int:
                     record_bag=not args.no_bag, resume=args.resume,
                     compile_filter=args.compile_filter, learner=learner)
     print(f'training {name}: {args.episodes} episodes -> {run.out_dir}', flush=True)
+
+    def on_sigterm(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt  # same path as Ctrl-C: checkpoint, bag and plot are written
+
+    previous = signal.signal(signal.SIGTERM, on_sigterm)
     try:
         history = train(run, log=lambda line: print(line, flush=True))
     except KeyboardInterrupt:
         print(f'interrupted: checkpoint and partial results are in {run.out_dir}',
               file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     summary = summarize(history)
     summary['out_dir'] = run.out_dir
     print(json.dumps(summary, indent=2))

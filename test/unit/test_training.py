@@ -122,3 +122,36 @@ def test_cli_train_writes_metrics_plot_and_bag(tmp_path, capsys):
 def test_cli_rejects_bad_learner_settings(capsys):
     assert cli_main(['train', '--mode', 'modular', '--model-based', '--episodes', '1']) == 2
     assert 'model_based' in capsys.readouterr().err
+
+
+def test_sigterm_mid_run_keeps_checkpoint_metrics_and_bag(tmp_path):
+    """A killed `rcbf_ros train` (SIGTERM) still leaves a resumable run behind."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    out = tmp_path / 'killed'
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'rcbf_ros.cli', 'train', '--system', 'unicycle', '--mode',
+         'baseline', '--episodes', '50', '--max-steps', '40', '--start-steps', '20',
+         '--update-after', '20', '--batch-size', '16', '--out', str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env=dict(os.environ, OMP_NUM_THREADS='1'))
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        metrics = out / 'metrics.jsonl'
+        if metrics.exists() and len(metrics.read_text().splitlines()) >= 2:
+            break
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    output, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 130, output
+    done = len((out / 'metrics.jsonl').read_text().splitlines())
+    assert 2 <= done < 50
+    checkpoint = torch.load(out / 'checkpoint.pt', weights_only=False)
+    assert checkpoint['episode'] == done
+    assert (out / 'policy.pt').exists() and (out / 'reward_curve.png').exists()
+    from rosbags.highlevel import AnyReader
+    with AnyReader([next(out.glob('bag_*'))]) as reader:
+        assert sum(c.msgcount for c in reader.connections if c.topic == '/cmd_safe') >= 80
