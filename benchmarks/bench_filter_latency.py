@@ -42,7 +42,8 @@ FREE_STATE = [-2.5, -2.5, -0.75 * np.pi]
 FACING_OBSTACLE = [-0.85, 0.0, 0.0]
 WARMUP = 50
 INDEX_STEP = 1e-6
-DIAGNOSTICS = {'every': 'every proposal (default)', 'decimated': 'OK ones at 10 Hz'}
+DIAGNOSTICS = {'every': 'every proposal (default)', 'decimated': 'OK ones at 10 Hz',
+               'compiled': 'OK ones at 10 Hz + compile_assembly'}
 
 
 def run_filter_latency(rate_hz: float, n: int, node_args: tuple[str, ...] = ()
