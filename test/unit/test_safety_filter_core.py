@@ -238,8 +238,9 @@ def test_slack_is_positive_only_when_rows_are_infeasible_within_limits(system):
         result = safety_filter.filter(x, u_rl, mean, std)
         assert not result.fail_safe, result.status
         if eps_min <= -1e-6:
-            # Satisfiable rows: only the soft penalty's eps ~ |u_S| / (l |L_g h|) remains.
-            assert result.slack < 1e-4
+            # Satisfiable rows: only the soft penalty's eps ~ |u_S| / (l |L_g h|) remains
+            # (grows with the correction: car states can need |u_S| ~ 200).
+            assert result.slack < 1e-4 * max(1.0, float(np.abs(result.u_s).max()))
             feasible += 1
         elif eps_min > 1e-3:
             assert result.slack >= eps_min - 1e-6
