@@ -15,7 +15,7 @@ moves the whole graph)::
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Mapping
 
 PACKAGE = 'rcbf_ros'
@@ -62,22 +62,34 @@ class LaunchSetup:
         raise KeyError(f'{self.name}: no node {name!r} (nodes: {[n.name for n in self.nodes]})')
 
 
+SIMULATOR = NodeEntry(name='simulator', executable='simulator',
+                      module='sim_nodes.simulator_node', ends_launch=True)
+SAFETY_FILTER = NodeEntry(name='safety_filter', executable='safety_filter',
+                          module='rcbf_ros.ros.safety_filter_node')
+RECORDER = NodeEntry(name='recorder', executable='recorder', module='rcbf_ros.ros.recorder_node',
+                     required=False)
+"""The entries every launch shares; each launch adds the node that proposes actions."""
+
+
+def _closed_loop(system: str, kind: str, description: str, proposer: NodeEntry,
+                 simulator: NodeEntry = SIMULATOR) -> LaunchSetup:
+    """simulator -> <proposer> --cmd_proposed--> safety_filter --cmd_safe--> simulator, recorded.
+
+    Nodes meet on their own relative topic names; no remaps are needed.
+    """
+    return LaunchSetup(name=f'{system}_{kind}', config=f'{system}.yaml',
+                       description=description,
+                       nodes=(simulator, SAFETY_FILTER, proposer, RECORDER))
+
+
 def _filter_loop(system: str) -> LaunchSetup:
-    return LaunchSetup(
-        name=f'{system}_filter',
-        config=f'{system}.yaml',
-        description=(f'{system} simulator driven by the deliberately unsafe nominal controller '
-                     'through the safety filter, recorded to MCAP'),
-        nodes=(
-            NodeEntry(name='simulator', executable='simulator',
-                      module='sim_nodes.simulator_node', ends_launch=True),
-            NodeEntry(name='safety_filter', executable='safety_filter',
-                      module='rcbf_ros.ros.safety_filter_node'),
-            NodeEntry(name='nominal_controller', executable='nominal_controller',
-                      module='sim_nodes.nominal_controller_node'),
-            NodeEntry(name='recorder', executable='recorder',
-                      module='rcbf_ros.ros.recorder_node', required=False),
-        ))
+    """The deliberately unsafe nominal controller behind the filter."""
+    return _closed_loop(
+        system, 'filter',
+        f'{system} simulator driven by the deliberately unsafe nominal controller through the '
+        'safety filter, recorded to MCAP',
+        NodeEntry(name='nominal_controller', executable='nominal_controller',
+                  module='sim_nodes.nominal_controller_node'))
 
 
 def _learner_loop(system: str) -> LaunchSetup:
@@ -86,42 +98,27 @@ def _learner_loop(system: str) -> LaunchSetup:
         simulator --sim/step--> learner --cmd_proposed (u_RL, GP mean/std, state)--> filter
             ^                                                                          |
             +------------------------------- cmd_safe (u*) --------------------------+
+
+    The learner ends the launch; the simulator waits longer for actions, because GP refits
+    and checkpoints pause the learner for a second or two.
     """
-    return LaunchSetup(
-        name=f'{system}_learner',
-        config=f'{system}.yaml',
-        description=(f'train SAC-RCBF on {system}: simulator + safety_filter + learner + '
-                     'recorder; ends when the learner has run its episodes'),
-        nodes=(
-            NodeEntry(name='simulator', executable='simulator',
-                      module='sim_nodes.simulator_node',
-                      # GP refits and checkpoints pause the learner for a second or two.
-                      parameters=(('action_timeout_s', 10.0),)),
-            NodeEntry(name='safety_filter', executable='safety_filter',
-                      module='rcbf_ros.ros.safety_filter_node'),
-            NodeEntry(name='learner', executable='learner', module='rcbf_ros.ros.learner_node',
-                      parameters=(('system', system),), ends_launch=True),
-            NodeEntry(name='recorder', executable='recorder',
-                      module='rcbf_ros.ros.recorder_node', required=False),
-        ))
+    return _closed_loop(
+        system, 'learner',
+        f'train SAC-RCBF on {system}: simulator + safety_filter + learner + recorder; ends '
+        'when the learner has run its episodes',
+        NodeEntry(name='learner', executable='learner', module='rcbf_ros.ros.learner_node',
+                  parameters=(('system', system),), ends_launch=True),
+        simulator=replace(SIMULATOR, ends_launch=False,
+                          parameters=(('action_timeout_s', 10.0),)))
 
 
 def _policy_loop(system: str) -> LaunchSetup:
     """A trained policy behind the safety filter, no learner (deployment-like)."""
-    return LaunchSetup(
-        name=f'{system}_policy',
-        config=f'{system}.yaml',
-        description=(f'run a trained {system} policy (-p policy:policy_path:=.../policy.pt) '
-                     'behind the safety filter, recorded'),
-        nodes=(
-            NodeEntry(name='simulator', executable='simulator',
-                      module='sim_nodes.simulator_node', ends_launch=True),
-            NodeEntry(name='safety_filter', executable='safety_filter',
-                      module='rcbf_ros.ros.safety_filter_node'),
-            NodeEntry(name='policy', executable='policy', module='rcbf_ros.ros.policy_node'),
-            NodeEntry(name='recorder', executable='recorder',
-                      module='rcbf_ros.ros.recorder_node', required=False),
-        ))
+    return _closed_loop(
+        system, 'policy',
+        f'run a trained {system} policy (-p policy:policy_path:=.../policy.pt) behind the '
+        'safety filter, recorded',
+        NodeEntry(name='policy', executable='policy', module='rcbf_ros.ros.policy_node'))
 
 
 LAUNCHES: dict[str, LaunchSetup] = {
