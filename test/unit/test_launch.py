@@ -186,8 +186,11 @@ def _wait_for(tmp_path: Path, names: list[str], then: str) -> tuple[str, ...]:
 def _run(children, **kwargs):
     sink = io.StringIO()
     env = launch_local.child_environment(dict(__import__('os').environ), domain_id=0)
-    outcome = launch_local.run_processes(children, env=env, sink=sink, sigint_timeout_s=1.0,
-                                         sigterm_timeout_s=1.0, **kwargs)
+    # Generous timeouts: a child that handles SIGINT must get to exit even when the machine is
+    # loaded (1 s was too short under a parallel CI load and escalated to SIGTERM); children
+    # that ignore a signal just cost the timeout.
+    outcome = launch_local.run_processes(children, env=env, sink=sink, sigint_timeout_s=6.0,
+                                         sigterm_timeout_s=4.0, **kwargs)
     return outcome, sink.getvalue()
 
 
