@@ -10,7 +10,7 @@ Throughput is messages / (last receive time - first receive time); the recorder'
 the bag's log times, and the bag must hold exactly N messages (nothing dropped). The ratio
 recorder / count is the cost of recording.
 
-Run: ``python benchmarks/bench_recorder.py [--messages 5000] [--sizes 1 100 10000]``.
+Run: ``python benchmarks/bench_recorder.py [--messages 5000] [--sizes 1 100 10000] [--write]``.
 """
 from __future__ import annotations
 
@@ -138,6 +138,7 @@ def main() -> None:
     parser.add_argument('--sizes', type=int, nargs='+', default=[1, 100, 10000],
                         help='doubles per Float64MultiArray')
     parser.add_argument('--domain-id', type=int, default=100 + os.getpid() % 100)
+    parser.add_argument('--write', action='store_true', help='update benchmarks/RESULTS.md')
     args = parser.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -154,6 +155,20 @@ def main() -> None:
         print(f'{size:>8} {counted:>10} {count_rate:>12.0f} {recorded:>9} {rec_rate:>15.0f} '
               f'{rec_rate / count_rate:>6.2f} {args.messages - recorded:>8} '
               f'{nbytes / 1e6:>7.2f}')
+    if args.write:
+        from benchmarks._results import machine_line, write_section
+        table = ['| doubles per message | counting subscriber msg/s | recorder msg/s | '
+                 'recorder / count | messages in bag | dropped | bag MB |',
+                 '|---:|---:|---:|---:|---:|---:|---:|']
+        table += [f'| {size} | {count_rate:.0f} | {rec_rate:.0f} | {rec_rate / count_rate:.2f} '
+                  f'| {recorded} | {args.messages - recorded} | {nbytes / 1e6:.2f} |'
+                  for size, counted, count_rate, recorded, rec_rate, nbytes in rows]
+        write_section('Recorder throughput', (
+            f'Command: `python benchmarks/bench_recorder.py --messages {args.messages} --sizes '
+            f'{" ".join(map(str, args.sizes))} --write` (one run; {machine_line()}). '
+            'Float64MultiArray, keep-all reliable QoS, loopback Cyclone DDS, the recorder node '
+            'writing zstd-chunked MCAP; the bag must hold every published message.\n\n'
+            + '\n'.join(table)))
 
 
 if __name__ == '__main__':
