@@ -49,7 +49,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from rcbf_ros.training.loop import RunConfig, train
+    from rcbf_ros.training.loop import RunConfig, RunSetupError, train
     try:
         learner = LearnerConfig(**_learner_overrides(args))
     except (TypeError, ValueError) as exc:
@@ -69,6 +69,9 @@ def run_train(args: argparse.Namespace) -> int:
     previous = signal.signal(signal.SIGTERM, on_sigterm)
     try:
         history = train(run, log=lambda line: print(line, flush=True))
+    except RunSetupError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f'interrupted: checkpoint and partial results are in {run.out_dir}',
               file=sys.stderr)

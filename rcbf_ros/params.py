@@ -63,6 +63,8 @@ def find_config(name: str) -> Path:
     candidate = Path(name)
     if candidate.suffix in ('.yaml', '.yml') and candidate.is_file():
         return candidate
+    if len(candidate.parts) > 1:  # a path, not a packaged name
+        raise FileNotFoundError(f'config: no such file {name}')
     filename = name if name.endswith(('.yaml', '.yml')) else f'{name}.yaml'
     search = []
     try:  # pragma: no cover - only on a ROS install

@@ -66,6 +66,10 @@ class RunConfig:
     """Learner settings (mode, seed, schedule)."""
 
 
+class RunSetupError(ValueError):
+    """The run cannot start: a bad config file, parameter or setting (the message names it)."""
+
+
 def make_env(system: str, params: dict[str, Any]) -> Any:
     """The Gymnasium env of ``system`` built from flat parameters."""
     if system not in ENV_CLASSES:
@@ -237,9 +241,16 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
 def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
     """Train for ``run.episodes`` episodes; returns the per-episode metrics."""
     torch.set_num_threads(1)
+    if run.episodes < 1:
+        raise RunSetupError(f'episodes: must be >= 1, got {run.episodes}')
+    if run.checkpoint_every < 1:
+        raise RunSetupError(f'checkpoint_every: must be >= 1, got {run.checkpoint_every}')
+    try:
+        env, filt, learner, _ = build_run(run)
+    except (FileNotFoundError, ValueError) as exc:
+        raise RunSetupError(str(exc)) from exc
     out = Path(run.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    env, filt, learner, _ = build_run(run)
     metrics_path = out / 'metrics.jsonl'
     checkpoint_path = out / 'checkpoint.pt'
     history: list[dict[str, Any]] = []

@@ -119,9 +119,21 @@ def test_cli_train_writes_metrics_plot_and_bag(tmp_path, capsys):
     assert counts['/cmd_safe'] == rows[0]['steps'] == counts['/state']
 
 
-def test_cli_rejects_bad_learner_settings(capsys):
+def test_cli_rejects_bad_learner_settings(capsys, tmp_path):
     assert cli_main(['train', '--mode', 'modular', '--model-based', '--episodes', '1']) == 2
     assert 'model_based' in capsys.readouterr().err
+    assert cli_main(['train', '--config', str(tmp_path / 'missing.yaml'), '--episodes', '1',
+                     '--out', str(tmp_path / 'a')]) == 2
+    assert 'no such file' in capsys.readouterr().err
+    assert cli_main(['train', '--episodes', '0', '--out', str(tmp_path / 'b')]) == 2
+    assert 'episodes' in capsys.readouterr().err
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('/**:\n  ros__parameters:\n    system: unicycle\n    obstacles:\n'
+                   '      x: [0.0, 1.0]\n      y: [0.0]\n      radius: [0.5, 0.5]\n')
+    assert cli_main(['train', '--config', str(bad), '--episodes', '1',
+                     '--out', str(tmp_path / 'c')]) == 2
+    assert 'obstacles.y' in capsys.readouterr().err
+    assert not (tmp_path / 'c').exists()  # nothing half-written
 
 
 def test_sigterm_mid_run_keeps_checkpoint_metrics_and_bag(tmp_path):
