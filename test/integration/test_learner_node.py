@@ -86,3 +86,24 @@ def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
         np.testing.assert_allclose(node_buffer['data'][name][:size].numpy(),
                                    in_process['data'][name][:size].numpy(), rtol=0, atol=1e-6,
                                    err_msg=name)
+
+
+def test_killed_learner_resumes_from_its_checkpoint(tmp_path, ros_domain_id):
+    """Two launches of unicycle_learner: the second, with resume:=true, continues the first."""
+    out = tmp_path / 'run'
+    common = ['--domain-id', str(ros_domain_id), '--without', 'recorder',
+              '-p', 'simulator:max_steps:=50', '-p', f'learner:out_dir:={out}',
+              '-p', 'learner:start_steps:=20', '-p', 'learner:update_after:=20',
+              '-p', 'learner:batch_size:=16']
+    env = dict(os.environ, OMP_NUM_THREADS='1')
+    for extra in (['-p', 'learner:episodes:=1'],
+                  ['-p', 'learner:episodes:=2', '-p', 'learner:resume:=true']):
+        done = subprocess.run([sys.executable, '-m', 'rcbf_ros.launch_local', 'unicycle_learner',
+                               *common, *extra], capture_output=True, text=True, timeout=240,
+                              env=env)
+        assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
+    assert 'resumed at episode 1' in done.stdout + done.stderr
+    rows = [json.loads(line) for line in (out / 'metrics.jsonl').read_text().splitlines()]
+    assert [r['episode'] for r in rows] == [0, 1]
+    state = torch.load(out / 'checkpoint.pt', weights_only=False)
+    assert state['episode'] == 2 and state['learner']['buffer']['size'] == 100
