@@ -13,45 +13,83 @@ as ROS does.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import yaml
 
-from rcbf_ros.core.config import flatten
+from rcbf_ros.core.mappings import flatten
 
 _CONFIG_DIR = Path(__file__).resolve().parent.parent / 'config'
 
 
-def _matches(section: str, node_name: str, namespace: str) -> bool:
-    section = section.strip()
-    if section in ('/**', '**'):
-        return True
-    full = f"{namespace.rstrip('/')}/{node_name}" if namespace else f'/{node_name}'
-    return section in (node_name, f'/{node_name}', full, full.lstrip('/'))
+def read_params_file(path: str | Path) -> dict[str, dict[str, Any]]:
+    """Every section of a ROS 2 params file: node key (``/**``, ``/ns/node``) -> flat
+    ``ros__parameters``. Nested sections (``/ns: {node: {ros__parameters: ...}}``) join.
+
+    Raises:
+        OSError (FileNotFoundError): the file cannot be read.
+        ValueError: not YAML, or not a mapping of node keys to ``ros__parameters`` (the message
+            names the file and the section).
+    """
+    path = str(path)
+    with open(path, encoding='utf-8') as stream:
+        try:
+            document = yaml.safe_load(stream)
+        except yaml.YAMLError as exc:
+            raise ValueError(f'{path!r} is not valid YAML: {exc}') from exc
+    if document is None:
+        return {}
+    if not isinstance(document, Mapping):
+        raise ValueError(f'{path!r}: top level must map node names')
+    result: dict[str, dict[str, Any]] = {}
+    _collect_sections(document, '', path, result)
+    return result
+
+
+def _collect_sections(tree: Mapping[str, Any], prefix: str, path: str,
+                      result: dict[str, dict[str, Any]]) -> None:
+    for key, value in tree.items():
+        key = str(key)
+        if key == 'ros__parameters':
+            if not isinstance(value, Mapping):
+                raise ValueError(f'{path!r}: ros__parameters of {prefix or "/"!r} must be a '
+                                 'mapping')
+            node_key = prefix if prefix.startswith('/') else '/' + prefix
+            result.setdefault(node_key, {}).update(flatten(value))
+        elif isinstance(value, Mapping):
+            joined = key if not prefix else f'{prefix.rstrip("/")}/{key.lstrip("/")}'
+            _collect_sections(value, joined, path, result)
+        else:
+            raise ValueError(f'{path!r}: {prefix}/{key} has no ros__parameters')
+
+
+def node_key_level(key: str, node_name: str, fully_qualified: str) -> int:
+    """How a params-file section applies to a node: 0 not at all, 1 wildcard ``/**``,
+    2 this node (``/ns/node`` or ``/**/node``)."""
+    if key == '/**':
+        return 1
+    if key in (fully_qualified, '/**/' + node_name):
+        return 2
+    return 0
 
 
 def load_params(path: str | Path, node_name: str, namespace: str = '') -> dict[str, Any]:
-    """Flat parameters for ``node_name`` from a ROS 2 params file.
+    """Flat parameters for ``node_name`` from a ROS 2 params file: its own section over ``/**``.
 
     Raises:
         FileNotFoundError: the file does not exist.
         ValueError: the file is not a mapping of ``<node>: {ros__parameters: {...}}``.
     """
-    path = Path(path)
-    with path.open() as stream:
-        document = yaml.safe_load(stream) or {}
-    if not isinstance(document, dict):
-        raise ValueError(f'{path}: expected a mapping of node names to ros__parameters')
-    merged: dict[str, Any] = {}
-    # '/**' first so that the node's own section wins.
-    for section in sorted(document, key=lambda s: 0 if s.strip() in ('/**', '**') else 1):
-        body = document[section]
-        if not _matches(section, node_name, namespace):
-            continue
-        if not isinstance(body, dict) or 'ros__parameters' not in body:
-            raise ValueError(f'{path}: section {section!r} has no ros__parameters')
-        merged.update(flatten(body['ros__parameters'] or {}))
-    return merged
+    fully_qualified = f"{namespace.rstrip('/')}/{node_name}" if namespace else f'/{node_name}'
+    wildcard: dict[str, Any] = {}
+    specific: dict[str, Any] = {}
+    for key, params in read_params_file(path).items():
+        level = node_key_level(key, node_name, fully_qualified)
+        if level == 1:
+            wildcard.update(params)
+        elif level == 2:
+            specific.update(params)
+    return {**wildcard, **specific}
 
 
 def find_config(name: str) -> Path:

@@ -37,19 +37,8 @@ from rcbf_ros.core.barriers import (
     PairGap,
 )
 from rcbf_ros.core.dynamics import ControlAffineSystem, load_system
+from rcbf_ros.core.mappings import flatten
 from rcbf_ros.core.rcbf import RCBFProblem
-
-
-def flatten(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
-    """Nested mappings -> dotted keys, as ROS 2 does for parameter YAML."""
-    flat: dict[str, Any] = {}
-    for key, value in tree.items():
-        name = f'{prefix}{key}'
-        if isinstance(value, Mapping):
-            flat.update(flatten(value, name + '.'))
-        else:
-            flat[name] = value
-    return flat
 
 
 def float_list(params: Mapping[str, Any], key: str, length: int | None = None, *,

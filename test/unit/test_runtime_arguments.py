@@ -5,10 +5,10 @@ import textwrap
 
 import pytest
 
+from rcbf_ros.core.mappings import flatten as flatten_parameters
 from rcbf_ros.ros.dds import rclpy_compat
 from rcbf_ros.ros.dds.arguments import (
     expand_topic_name,
-    flatten_parameters,
     parameter_overrides,
     parse_ros_arguments,
     remove_ros_args,

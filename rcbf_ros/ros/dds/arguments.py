@@ -15,9 +15,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import re
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Sequence
 
 import yaml
+
+from rcbf_ros.params import node_key_level, read_params_file
 
 _FLAG_ONLY = {
     '--enable-rosout-logs', '--disable-rosout-logs', '--enable-stdout-logs',
@@ -149,18 +151,6 @@ def remove_ros_args(args: Sequence[str]) -> list[str]:
     return list(parse_ros_arguments(args).unparsed)
 
 
-def flatten_parameters(tree: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
-    """``{'a': {'b': 1}}`` -> ``{'a.b': 1}`` (rclpy's flattening of nested parameter dicts)."""
-    flat: dict[str, Any] = {}
-    for key, value in tree.items():
-        name = f'{prefix}{key}'
-        if isinstance(value, Mapping):
-            flat.update(flatten_parameters(value, name + '.'))
-        else:
-            flat[name] = value
-    return flat
-
-
 def load_params_file(path: str) -> dict[str, dict[str, Any]]:
     """Read a ROS 2 parameter file: node key -> flattened ``ros__parameters``.
 
@@ -168,46 +158,11 @@ def load_params_file(path: str) -> dict[str, dict[str, Any]]:
         RosArgumentError: the file is missing, not YAML, or lacks ``ros__parameters``.
     """
     try:
-        with open(path, encoding='utf-8') as stream:
-            document = yaml.safe_load(stream)
+        return read_params_file(path)
     except OSError as exc:
-        raise RosArgumentError(f'--params-file {path!r}: {exc.strerror}') from exc
-    except yaml.YAMLError as exc:
-        raise RosArgumentError(f'--params-file {path!r} is not valid YAML: {exc}') from exc
-    if document is None:
-        return {}
-    if not isinstance(document, Mapping):
-        raise RosArgumentError(f'--params-file {path!r}: top level must map node names')
-    result: dict[str, dict[str, Any]] = {}
-    _collect_nodes(document, '', path, result)
-    return result
-
-
-def _collect_nodes(tree: Mapping[str, Any], prefix: str, path: str,
-                   result: dict[str, dict[str, Any]]) -> None:
-    for key, value in tree.items():
-        key = str(key)
-        if key == 'ros__parameters':
-            if not isinstance(value, Mapping):
-                raise RosArgumentError(f'--params-file {path!r}: ros__parameters of '
-                                       f'{prefix or "/"!r} must be a mapping')
-            node_key = prefix if prefix.startswith('/') else '/' + prefix
-            result.setdefault(node_key, {}).update(flatten_parameters(value))
-        elif isinstance(value, Mapping):
-            joined = key if not prefix else f'{prefix.rstrip("/")}/{key.lstrip("/")}'
-            _collect_nodes(value, joined, path, result)
-        else:
-            raise RosArgumentError(f'--params-file {path!r}: {prefix}/{key} has no '
-                                   'ros__parameters')
-
-
-def _node_key_matches(key: str, node_name: str, fully_qualified: str) -> int:
-    """0: no match; 1: wildcard ``/**``; 2: this node (``/ns/node`` or ``/**/node``)."""
-    if key == '/**':
-        return 1
-    if key in (fully_qualified, '/**/' + node_name):
-        return 2
-    return 0
+        raise RosArgumentError(f'--params-file {path!r}: {exc.strerror or exc}') from exc
+    except ValueError as exc:
+        raise RosArgumentError(f'--params-file {exc}') from exc
 
 
 def parameter_overrides(arguments: Iterable[RosArguments], node_name: str,
@@ -223,7 +178,7 @@ def parameter_overrides(arguments: Iterable[RosArguments], node_name: str,
     for args in arguments:
         for path in args.params_files:
             for key, params in load_params_file(path).items():
-                level = _node_key_matches(key, node_name, fully_qualified)
+                level = node_key_level(key, node_name, fully_qualified)
                 if level == 1:
                     wildcard.update(params)
                 elif level == 2:
