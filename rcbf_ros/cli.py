@@ -49,7 +49,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from rcbf_ros.training.loop import RunConfig, RunSetupError, train
+    from rcbf_ros.training.loop import RunConfig, RunSetupError, summarize, train
     try:
         learner = LearnerConfig(**_learner_overrides(args))
     except (TypeError, ValueError) as exc:
@@ -82,24 +82,6 @@ def run_train(args: argparse.Namespace) -> int:
     summary['out_dir'] = run.out_dir
     print(json.dumps(summary, indent=2))
     return 0
-
-
-def summarize(history: list[dict]) -> dict:
-    """Totals over a run's episodes."""
-    if not history:
-        return {'episodes': 0}
-    steps = sum(r['steps'] for r in history)
-    wall = sum(r['wall_s'] for r in history)
-    return {
-        'episodes': len(history),
-        'env_steps': steps,
-        'final_return': history[-1]['ret'],
-        'best_return': max(r['ret'] for r in history),
-        'goals_reached': sum(bool(r['goal_reached']) for r in history),
-        'safety_violations': sum(r['violations'] for r in history),
-        'max_slack': max(r['max_slack'] for r in history),
-        'steps_per_s': steps / wall if wall > 0 else 0.0,
-    }
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -33,6 +33,7 @@ from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.ros.runtime import ExternalShutdownException, get_message, Node, QoSProfile, rclpy
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
+from rcbf_ros.training.loop import summarize
 from rcbf_ros.training.policy_io import save_policy
 
 PARAMETERS: dict[str, Any] = {
@@ -51,7 +52,6 @@ class EpisodeTally:
     ret: float = 0.0
     steps: int = 0
     violations: int = 0
-    max_slack: float = 0.0
     goal_reached: bool = False
     started: float = field(default_factory=time.perf_counter)
 
@@ -167,7 +167,7 @@ class LearnerNode(Node):
         wall = time.perf_counter() - t.started
         row = {'episode': t.episode, 'ret': t.ret, 'steps': t.steps,
                'violations': t.violations, 'goal_reached': t.goal_reached,
-               'max_slack': t.max_slack, 'wall_s': wall,
+               'wall_s': wall,
                'steps_per_s': t.steps / wall if wall > 0 else 0.0,
                'env_steps': self.learner.env_steps if self.learner else 0}
         self.history.append(row)
@@ -198,7 +198,7 @@ class LearnerNode(Node):
     def finish(self) -> dict[str, Any]:
         """Checkpoint, policy export, reward curve and summary.json; returns the summary."""
         self.save_checkpoint()
-        summary: dict[str, Any] = {'episodes': len(self.history)}
+        summary = summarize(self.history)
         if self.learner is not None:
             save_policy(self.out_dir / 'policy.pt', self.learner.sac, u_low=self.learner.u_low,
                         u_high=self.learner.u_high, system=str(self.settings['system']))
@@ -208,15 +208,7 @@ class LearnerNode(Node):
                               self.out_dir / 'reward_curve.png',
                               title=f"{self.settings['system']} / {self.settings['mode']} "
                                     '(nodes over DDS)')
-            steps = sum(r['steps'] for r in self.history)
-            wall = sum(r['wall_s'] for r in self.history)
-            summary.update({
-                'env_steps': steps, 'final_return': self.history[-1]['ret'],
-                'best_return': max(r['ret'] for r in self.history),
-                'goals_reached': sum(bool(r['goal_reached']) for r in self.history),
-                'safety_violations': sum(r['violations'] for r in self.history),
-                'steps_per_s': steps / wall if wall > 0 else 0.0,
-                'reward_curve': str(self.out_dir / 'reward_curve.png')})
+            summary['reward_curve'] = str(self.out_dir / 'reward_curve.png')
         (self.out_dir / 'summary.json').write_text(json.dumps(summary, indent=2))
         return summary
 
