@@ -130,14 +130,19 @@ def _scan_streaming(stream: Any) -> _FileScan:
     return _FileScan(schemas, channels, messages, complete)
 
 
+def _read_summary(stream: Any) -> Any:
+    """The file's summary section, or None for a cut-short file; rewinds ``stream``."""
+    try:
+        summary = make_reader(stream).get_summary()
+    except (McapError, EOFError, ValueError, OSError):
+        summary = None
+    stream.seek(0)
+    return summary
+
+
 def _iter_file(path: Path, topics: frozenset[str] | None) -> Iterator[BagMessage]:
     with open(path, 'rb') as stream:
-        summary = None
-        try:
-            summary = make_reader(stream).get_summary()
-        except (McapError, EOFError, ValueError, OSError):
-            summary = None
-        stream.seek(0)
+        summary = _read_summary(stream)
         if summary is not None:
             reader = make_reader(stream)
             for schema, channel, message in reader.iter_messages(
@@ -190,12 +195,7 @@ def bag_info(path: str | os.PathLike[str]) -> BagInfo:
     complete = True
     for file in files:
         with open(file, 'rb') as stream:
-            summary = None
-            try:
-                summary = make_reader(stream).get_summary()
-            except (McapError, EOFError, ValueError, OSError):
-                summary = None
-            stream.seek(0)
+            summary = _read_summary(stream)
             if summary is None or summary.statistics is None:
                 complete = False
                 scan = _scan_streaming(stream)
