@@ -16,7 +16,6 @@ the same transitions. Per environment step the driver calls
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-import time
 from typing import Any, Callable, NamedTuple
 
 import numpy as np
@@ -152,7 +151,6 @@ class SafeLearner:
                 config=RolloutConfig(num_rollouts=cfg.rollouts, horizon=cfg.rollout_horizon))
         self.rng = np.random.default_rng(cfg.seed)
         self.env_steps = 0
-        self.timings: dict[str, float] = {'update_s': 0.0, 'gp_fit_s': 0.0, 'rollout_s': 0.0}
         self.last_metrics: dict[str, float] = {}
 
     # ------------------------------------------------------------------ models
@@ -210,20 +208,14 @@ class SafeLearner:
         """Run the schedule once per environment step; returns the last update's metrics."""
         cfg = self.config
         if self.env_steps % cfg.gp_refit_interval == 0 and self.gp.num_data >= 16:
-            start = time.perf_counter()
             self.gp.fit()
-            self.timings['gp_fit_s'] += time.perf_counter() - start
         if (self.rollout is not None and self.env_steps >= cfg.update_after
                 and self.env_steps % cfg.rollout_interval == 0):
-            start = time.perf_counter()
             self.rollout.run(self.buffer, self.model_buffer)
-            self.timings['rollout_s'] += time.perf_counter() - start
         if self.env_steps < cfg.update_after or len(self.buffer) < cfg.batch_size:
             return {}
-        start = time.perf_counter()
         for _ in range(cfg.updates_per_step):
             self.last_metrics = self.sac.update(self.sample_batch())
-        self.timings['update_s'] += time.perf_counter() - start
         return self.last_metrics
 
     def sample_batch(self):
@@ -244,7 +236,6 @@ class SafeLearner:
             'gp': self.gp.state_dict(), 'buffer': self.buffer.state_dict(),
             'model_buffer': None if self.model_buffer is None else self.model_buffer.state_dict(),
             'rng': self.rng.bit_generator.state, 'env_steps': self.env_steps,
-            'timings': dict(self.timings),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -256,4 +247,3 @@ class SafeLearner:
             self.model_buffer.load_state_dict(state['model_buffer'])
         self.rng.bit_generator.state = state['rng']
         self.env_steps = int(state['env_steps'])
-        self.timings.update(state.get('timings', {}))
