@@ -33,7 +33,7 @@ from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.ros.runtime import ExternalShutdownException, get_message, Node, QoSProfile, rclpy
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
-from rcbf_ros.training.loop import summarize
+from rcbf_ros.training.loop import format_progress, summarize
 from rcbf_ros.training.policy_io import save_policy
 
 PARAMETERS: dict[str, Any] = {
@@ -177,10 +177,7 @@ class LearnerNode(Node):
         msg = get_message('std_msgs/msg/String')()
         msg.data = json.dumps(row)
         self.metrics_pub.publish(msg)
-        self.get_logger().info(
-            f"episode {self.episodes_done:4d}/{self.settings['episodes']}  return "
-            f"{t.ret:9.3f}  steps {t.steps:5d}  violations {t.violations}  goal "
-            f"{'yes' if t.goal_reached else 'no '}  {row['steps_per_s']:6.1f} steps/s")
+        self.get_logger().info(format_progress(row, int(self.settings['episodes'])))
         if self.episodes_done % int(self.settings['checkpoint_every']) == 0:
             self.save_checkpoint()
         if self.episodes_done >= int(self.settings['episodes']):

@@ -333,8 +333,8 @@ def summarize(history: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def format_progress(row: dict[str, Any], total: int) -> str:
-    """One progress line per episode."""
+    """One progress line per episode (``max slack`` only when the row carries it)."""
+    slack = f"max slack {row['max_slack']:.2e}  " if 'max_slack' in row else ''
     return (f"episode {row['episode'] + 1:4d}/{total}  return {row['ret']:9.3f}  "
-            f"steps {row['steps']:5d}  violations {row['violations']}  "
-            f"max slack {row['max_slack']:.2e}  goal {'yes' if row['goal_reached'] else 'no '}  "
-            f"{row['steps_per_s']:6.1f} steps/s")
+            f"steps {row['steps']:5d}  violations {row['violations']}  {slack}"
+            f"goal {'yes' if row['goal_reached'] else 'no '}  {row['steps_per_s']:6.1f} steps/s")
