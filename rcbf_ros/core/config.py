@@ -138,7 +138,8 @@ def build_families(params: Mapping[str, Any],
         pos = params.get('obstacles.position_indices', [0, 1])
         if len(pos) != 2:
             raise ValueError('obstacles.position_indices: expected 2 indices')
-        pos_idx = (_index({'p': pos[0]}, 'p', 0, n_x), _index({'p': pos[1]}, 'p', 1, n_x))
+        key = 'obstacles.position_indices'
+        pos_idx = (_index({key: pos[0]}, key, 0, n_x), _index({key: pos[1]}, key, 1, n_x))
         base = CircleObstacles(
             centers=tuple(zip(xs, ys)), radii=radius,
             margin=_number(params, 'obstacles.margin', 0.0),
@@ -166,8 +167,8 @@ def build_families(params: Mapping[str, Any],
         gap_b = params.get('gaps.b') or []
         if len(gap_b) != len(gap_a):
             raise ValueError('gaps.b: need one index per gaps.a')
-        pairs = tuple((_index({'i': a}, 'i', 0, n_x), _index({'i': b}, 'i', 0, n_x))
-                      for a, b in zip(gap_a, gap_b))
+        pairs = tuple((_index({'gaps.a': a}, 'gaps.a', 0, n_x),
+                       _index({'gaps.b': b}, 'gaps.b', 0, n_x)) for a, b in zip(gap_a, gap_b))
         base = PairGap(pairs=pairs, delta=_number(params, 'gaps.delta', 0.0))  # type: ignore
         families.append(cascade(base, system, float_list(params, 'gaps.gammas')))
     nxs = float_list(params, 'walls.nx')

@@ -114,6 +114,11 @@ def test_shipped_configs_build(name):
                                           'heading_index': 7}}, 'obstacles.heading_index'),
     ({'system': 'pvtol', 'bands': {'operator': {'index': 0, 'half_width': -1.0}}},
      'bands.operator.'),
+    ({'system': 'car_following', 'gaps': {'a': [4, 12], 'b': [6, 6], 'delta': 3.5}},
+     'gaps.a'),
+    ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0],
+                                          'position_indices': [0, 5]}},
+     'obstacles.position_indices'),
     ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0]},
       'input_limits': {'min': [1.0, 1.0], 'max': [0.0, 2.0]}}, 'input_limits.min'),
 ])
