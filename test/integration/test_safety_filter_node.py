@@ -136,6 +136,58 @@ def _wait_matched(publisher: Any, process: subprocess.Popen) -> None:
         time.sleep(0.02)
 
 
+def _exchange(probe: Probe, proposal_pub: Any, proposal: Any,
+              command_topic: str = '/cmd_safe') -> tuple[Any, tuple[int, str, dict[str, str]]]:
+    """Publish one proposal; return the command and the diagnostic it was answered with."""
+    commands, diagnostics = probe.count(command_topic), probe.count('/diagnostics')
+    proposal_pub.publish(proposal)
+    command = probe.wait_for(command_topic, commands + 1)[commands]
+    return command, probe.wait_for('/diagnostics', diagnostics + 1)[diagnostics]
+
+
+def _handshake(probe: Probe, proposal_pub: Any, proposal: Any,
+               command_topic: str = '/cmd_safe') -> Any:
+    """Re-publish ``proposal`` until it is answered; return the first answer.
+
+    The first samples of a new writer can be lost until the filter's reader has matched it (see
+    ``_exchange_with_state``); one answered sample proves the match, so later exchanges are
+    reliable. Late answers to the repeats are awaited before the counts are used again.
+    """
+    before = probe.count(command_topic)
+    for _ in range(100):
+        proposal_pub.publish(proposal)
+        deadline = time.monotonic() + 0.5
+        while probe.count(command_topic) == before and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if probe.count(command_topic) > before:
+            settled = -1
+            while settled != probe.count(command_topic):   # quiet for 0.3 s: no answer in flight
+                settled = probe.count(command_topic)
+                time.sleep(0.3)
+            probe.wait_for('/diagnostics', probe.count(command_topic))
+            return probe.wait_for(command_topic, before + 1)[before]
+    raise AssertionError('the safety_filter never answered a proposal')
+
+
+def _exchange_with_state(probe: Probe, state_pub: Any, state: list[float], proposal_pub: Any,
+                         proposal: Any, command_topic: str = '/cmd_safe'
+                         ) -> tuple[Any, tuple[int, str, dict[str, str]]]:
+    """Publish a state, then a proposal; repeat while the answer says the filter had no state.
+
+    ``_wait_matched`` sees the match from the writer's side only: until the filter's reader has
+    matched the new /state writer too, a volatile sample on it can be dropped. Once one got
+    through, the reliable writer delivers every later one, in order.
+    """
+    from rcbf_ros.ros.conversions import sections_to_msg
+    for _ in range(100):
+        state_pub.publish(sections_to_msg({'state': state}))
+        time.sleep(0.05)
+        command, diagnostic = _exchange(probe, proposal_pub, proposal, command_topic)
+        if not diagnostic[1].startswith('no state received yet'):
+            return command, diagnostic
+    raise AssertionError('the safety_filter never received a /state sample')
+
+
 def _sections(msg: Any) -> dict[str, np.ndarray]:
     from rcbf_ros.ros.conversions import msg_to_sections
     return {k: v.copy() for k, v in msg_to_sections(msg).items()}
@@ -166,31 +218,30 @@ def test_bad_input_yields_fail_safe_and_error_diagnostics(ros_domain_id, probe):
         _wait_matched(proposal_pub, process)
         _wait_matched(state_pub, process)
         unsafe = {'u': [2.5, 0.0]}  # full speed at the centre obstacle from 0.25 m
-        sent = []
+        good_state = [-0.85, 0.0, 0.0]
 
-        def propose(sections: dict, expect: int) -> None:
-            proposal_pub.publish(sections_to_msg(sections))
-            sent.append(sections)
-            probe.wait_for('/cmd_safe', expect)
-            probe.wait_for('/diagnostics', expect)
+        def propose(sections: dict) -> tuple[Any, tuple[int, str, dict[str, str]]]:
+            return _exchange(probe, proposal_pub, sections_to_msg(sections))
 
-        propose(unsafe, 1)                                            # 1: no state yet
-        state_pub.publish(sections_to_msg({'state': [-0.85, 0.0, 0.0]}))
-        time.sleep(0.05)
-        propose(unsafe, 2)                                            # 2: filtered
-        propose({'u': [float('nan'), 0.0]}, 3)                        # 3: NaN
-        propose({'u': [1.0, 0.0, 0.0]}, 4)                            # 4: wrong length
-        propose({'u': [0.1, 0.0], 'state': [0.0, 0.0]}, 5)            # 5: short state
-        state_pub.publish(sections_to_msg({'state': [np.inf, 0.0, 0.0]}))
-        time.sleep(0.05)
-        propose(unsafe, 6)                                            # 6: bad state
-        state_pub.publish(sections_to_msg({'state': [-0.85, 0.0, 0.0]}))
-        time.sleep(0.6)
-        propose(unsafe, 7)                                            # 7: stale (> 0.3 s)
-        commands = probe.wait_for('/cmd_safe', 7)
-        diagnostics = probe.wait_for('/diagnostics', 7)
+        def after_state(state: list[float], wait_s: float) -> tuple[Any, Any]:
+            state_pub.publish(sections_to_msg({'state': state}))
+            time.sleep(wait_s)
+            return propose(unsafe)
+
+        _handshake(probe, proposal_pub, sections_to_msg(unsafe))
+        answers = [(probe.wait_for('/cmd_safe', 1)[0],
+                    probe.wait_for('/diagnostics', 1)[0])]                    # 0: no state yet
+        answers.append(_exchange_with_state(probe, state_pub, good_state, proposal_pub,
+                                            sections_to_msg(unsafe)))         # 1: filtered
+        answers.append(propose({'u': [float('nan'), 0.0]}))                   # 2: NaN
+        answers.append(propose({'u': [1.0, 0.0, 0.0]}))                       # 3: wrong length
+        answers.append(propose({'u': [0.1, 0.0], 'state': [0.0, 0.0]}))       # 4: short state
+        answers.append(after_state([np.inf, 0.0, 0.0], 0.05))                 # 5: bad state
+        answers.append(after_state(good_state, 0.6))                          # 6: stale (> 0.3 s)
     finally:
         output = _stop(process)
+    commands = [command for command, _ in answers]
+    diagnostics = [diagnostic for _, diagnostic in answers]
 
     fail_safe = [0.0, 0.5]
     expected_reasons = {0: 'no state received yet', 2: 'bad proposal: u: contains NaN',
@@ -228,21 +279,21 @@ def test_twist_mode(ros_domain_id, probe):
     try:
         probe.subscribe('geometry_msgs/msg/Twist', '/cmd_safe',
                         lambda m: twist_to_array(m, fields))
+        probe.subscribe('diagnostic_msgs/msg/DiagnosticArray', '/diagnostics', _diagnostic)
         state_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/state')
         proposal_pub = probe.publisher('geometry_msgs/msg/Twist', '/cmd_proposed')
         probe.start()
         _wait_matched(proposal_pub, process)
         _wait_matched(state_pub, process)
-        state_pub.publish(sections_to_msg({'state': [-2.5, -2.5, -0.75 * np.pi]}))
-        time.sleep(0.05)
-        proposal_pub.publish(array_to_twist([1.0, 0.3], fields))      # free: passes through
-        probe.wait_for('/cmd_safe', 1)
+        _handshake(probe, proposal_pub, array_to_twist([1.0, 0.3], fields))   # no state yet
+        free, _ = _exchange_with_state(probe, state_pub, [-2.5, -2.5, -0.75 * np.pi],
+                                       proposal_pub, array_to_twist([1.0, 0.3], fields))
         state_pub.publish(sections_to_msg({'state': [-0.85, 0.0, 0.0]}))
         time.sleep(0.05)
-        proposal_pub.publish(array_to_twist([2.5, 0.0], fields))      # slowed down
-        commands = probe.wait_for('/cmd_safe', 2)
+        slowed, _ = _exchange(probe, proposal_pub, array_to_twist([2.5, 0.0], fields))
     finally:
         _stop(process)
+    commands = [free, slowed]           # passes through where free; slowed down near the obstacle
     np.testing.assert_array_equal(commands[0], [1.0, 0.3])
     assert 0.0 < commands[1][0] < 2.5
 
@@ -260,12 +311,14 @@ def test_pvtol_proposal_with_learned_disturbance(ros_domain_id, probe):
         state = [-4.5, -1.0, 0.3, 0.0, -0.2, 1.0, -5.0]  # 0.5 from the operator, moving away
         proposal = {'u': [1.0, 0.5], 'disturbance_mean': [0.0] * 7,
                     'disturbance_std': [0.0, 0.0, 0.3, 0.3, 0.3, 0.3, 0.0], 'state': state}
-        proposal_pub.publish(sections_to_msg(proposal))
-        proposal_pub.publish(sections_to_msg({'u': [1.0, 0.5], 'state': state}))
-        commands = probe.wait_for('/cmd_safe', 2)
-        diagnostics = probe.wait_for('/diagnostics', 2)
+        _handshake(probe, proposal_pub, sections_to_msg(proposal))
+        answers = [_exchange(probe, proposal_pub, sections_to_msg(proposal)),
+                   _exchange(probe, proposal_pub, sections_to_msg({'u': [1.0, 0.5],
+                                                                   'state': state}))]
     finally:
         _stop(process)
+    commands = [command for command, _ in answers]
+    diagnostics = [diagnostic for _, diagnostic in answers]
     params = load_params(REPO / 'config' / 'pvtol.yaml', 'safety_filter')
     problem = filter_config_from_params(params).problem
     assert 'operator' in problem.barrier_names
