@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from typing import NamedTuple, Sequence
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -19,6 +20,38 @@ def mlp(n_in: int, n_out: int, hidden_sizes: Sequence[int]) -> nn.Sequential:
         width = hidden
     layers.append(nn.Linear(width, n_out))
     return nn.Sequential(*layers)
+
+
+class NumpyMLP:
+    """Single-sample inference of an :func:`mlp` in numpy, on zero-copy views of its weights.
+
+    Acting needs one forward pass per environment step at batch 1, where torch's per-op
+    dispatch (and the cache misses it causes right after a SAC update) costs several times the
+    arithmetic. The views share memory with the parameters, so optimizer steps and
+    ``load_state_dict`` (both in place) are seen without copying; a parameter *replaced* by a
+    new tensor (``.to(dtype)`` after construction) is not, so build the view after any such
+    move.
+    """
+
+    def __init__(self, net: nn.Sequential) -> None:
+        self.layers: list[tuple[np.ndarray, np.ndarray, bool]] = []
+        modules = list(net)
+        for index, module in enumerate(modules):
+            if isinstance(module, nn.Linear):
+                relu = index + 1 < len(modules) and isinstance(modules[index + 1], nn.ReLU)
+                self.layers.append((module.weight.detach().numpy(),
+                                    module.bias.detach().numpy(), relu))
+            elif not isinstance(module, nn.ReLU):
+                raise TypeError(f'NumpyMLP: unsupported layer {type(module).__name__}')
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """x: (n_in,) -> (n_out,)."""
+        for weight, bias, relu in self.layers:
+            x = weight @ x
+            x += bias
+            if relu:
+                np.maximum(x, 0.0, out=x)
+        return x
 
 
 class PolicySample(NamedTuple):
@@ -85,6 +118,43 @@ class SquashedGaussianActor(nn.Module):
         log_jacobian = torch.log(self.action_half_range * (1.0 - squashed ** 2) + 1e-6).sum(-1)
         mean_action = self.action_center + self.action_half_range * torch.tanh(mean)
         return PolicySample(action, gaussian_log_prob - log_jacobian, mean_action)
+
+    def numpy_sampler(self) -> NumpyActor:
+        """A :class:`NumpyActor` on this actor's (live) weights."""
+        return NumpyActor(self)
+
+
+class NumpyActor:
+    """The actor's action for ONE observation in numpy (see :class:`NumpyMLP`).
+
+    Computes what :meth:`SquashedGaussianActor.forward` returns as ``action`` (for the given
+    standard-normal ``noise``) and ``mean_action``, up to floating-point rounding, without the
+    log density, which acting does not need.
+    """
+
+    def __init__(self, actor: SquashedGaussianActor) -> None:
+        self.trunk = NumpyMLP(actor.trunk[0])
+        self.heads = NumpyMLP(nn.Sequential(actor.mean_head))
+        self.log_std = NumpyMLP(nn.Sequential(actor.log_std_head))
+        self.center = actor.action_center.detach().numpy()
+        self.half_range = actor.action_half_range.detach().numpy()
+        self.low, self.high = self.center - self.half_range, self.center + self.half_range
+        self.dtype = self.center.dtype
+
+    def __call__(self, obs: np.ndarray, noise: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """obs: (obs_dim,); noise: (n_u,) standard normal, or None for the mean only.
+
+        Returns:
+            action (the mean action when ``noise`` is None) and mean_action, both (n_u,).
+        """
+        features = np.maximum(self.trunk(np.asarray(obs, dtype=self.dtype)), 0.0)
+        mean = self.heads(features)
+        mean_action = self.center + self.half_range * np.tanh(mean)
+        if noise is None:
+            return mean_action, mean_action
+        log_std = np.clip(self.log_std(features), LOG_STD_MIN, LOG_STD_MAX)
+        action = self.center + self.half_range * np.tanh(mean + np.exp(log_std) * noise)
+        return action, mean_action
 
 
 class QNetwork(nn.Module):

@@ -39,7 +39,7 @@ import torch
 from torch import nn
 
 from rcbf_ros.learning.buffers import TransitionBatch
-from rcbf_ros.learning.networks import Compensator, QNetwork, SquashedGaussianActor
+from rcbf_ros.learning.networks import Compensator, NumpyMLP, QNetwork, SquashedGaussianActor
 
 SafetyLayer = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 Mode = Literal['unconstrained', 'baseline', 'baseline_compensator', 'diff', 'modular']
@@ -174,6 +174,10 @@ class SAC:
             if self.compensator is not None else None)
         self.generator = torch.Generator().manual_seed(seed + 1)
         self.num_updates = 0
+        # Batch-1 acting in numpy on live views of the weights (NumpyMLP's docstring says why).
+        self._numpy_actor = self.actor.numpy_sampler()
+        self._numpy_compensator = (NumpyMLP(self.compensator.net)
+                                   if self.compensator is not None else None)
 
     # ----------------------------------------------------------------- acting
     @property
@@ -194,6 +198,8 @@ class SAC:
         Args:
             obs: (obs_dim,) or (B, obs_dim).
         """
+        if not isinstance(obs, torch.Tensor) and np.ndim(obs) == 1 and len(obs) == self.obs_dim:
+            return self._act_one(np.asarray(obs), deterministic)
         obs_t = torch.as_tensor(np.asarray(obs) if not isinstance(obs, torch.Tensor) else obs,
                                 dtype=self.dtype)
         single = obs_t.ndim == 1
@@ -211,6 +217,19 @@ class SAC:
         if single:
             u_rl, u_proposed = u_rl[0], u_proposed[0]
         return ActionProposal(u_proposed.numpy().copy(), u_rl.numpy().copy())
+
+    def _act_one(self, obs: np.ndarray, deterministic: bool) -> ActionProposal:
+        """:meth:`act_detailed` for one numpy observation, without torch ops but the noise draw
+        (same generator, same draw as the batched path, so the two agree up to rounding)."""
+        noise = None if deterministic else torch.randn(
+            (1, self.n_u), generator=self.generator, dtype=self.dtype)[0].numpy()
+        action, mean_action = self._numpy_actor(obs, noise)
+        u_rl = mean_action if deterministic else action
+        u_proposed = u_rl
+        if self._numpy_compensator is not None:
+            u_proposed = np.clip(u_rl + self._numpy_compensator(obs.astype(u_rl.dtype)),
+                                 self._numpy_actor.low, self._numpy_actor.high)
+        return ActionProposal(u_proposed, u_rl.copy())
 
     def act(self, obs: np.ndarray | torch.Tensor, deterministic: bool = False) -> np.ndarray:
         """Action to hand to the safety filter: u^RL (plus the compensator, if any)."""

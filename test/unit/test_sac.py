@@ -219,6 +219,39 @@ def test_act_returns_numpy_in_the_box_and_plain_modes_propose_u_rl():
         agent.act(np.zeros(OBS_DIM + 1))
 
 
+@pytest.mark.parametrize('mode, dtype', [('diff', torch.float32),
+                                         ('baseline_compensator', torch.float64)])
+def test_numpy_acting_path_matches_the_torch_actor_after_updates_and_a_reload(mode, dtype):
+    """One observation is acted on in numpy, on views of the live weights: it must agree with
+    the batched torch path (same generator draws) after optimizer steps and a load_state_dict,
+    both of which change the weights in place."""
+    agent = make_agent(mode, dtype=dtype)
+    other = make_agent(mode, seed=5, dtype=dtype)
+    for index in range(3):
+        other.update(random_batch(64, seed=20 + index, dtype=dtype))
+    observations = np.random.default_rng(0).uniform(-1, 1, (5, OBS_DIM))
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+
+    def compare() -> None:
+        for deterministic in (True, False):
+            state = agent.generator.get_state()
+            one = [agent.act_detailed(obs, deterministic) for obs in observations]
+            agent.generator.set_state(state)
+            batched = [agent.act_detailed(obs[None], deterministic) for obs in observations]
+            for a, b in zip(one, batched):
+                np.testing.assert_allclose(a.u_rl, b.u_rl[0], rtol=0, atol=tol)
+                np.testing.assert_allclose(a.u_proposed, b.u_proposed[0], rtol=0, atol=tol)
+
+    compare()
+    before = agent.act_detailed(observations[0], deterministic=True).u_rl
+    agent.update(random_batch(64, seed=1, dtype=dtype))
+    compare()
+    agent.load_state_dict(other.state_dict())
+    compare()
+    after = agent.act_detailed(observations[0], deterministic=True).u_rl
+    assert not np.allclose(before, after)       # the views did follow the new weights
+
+
 def test_checkpoint_round_trip_gives_identical_next_update():
     batch = random_batch(64, seed=10)
     agent = make_agent('modular')
