@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import json
 from pathlib import Path
+import sys
 import time
 from typing import Any
 
@@ -40,7 +41,7 @@ PARAMETERS: dict[str, Any] = {
     'system': 'unicycle', 'mode': 'modular', 'model_based': False, 'seed': 0,
     'episodes': 10, 'out_dir': 'bags/learner_run', 'dt': 0.02, 'start_steps': 1000,
     'update_after': 500, 'batch_size': 256, 'gp_refit_interval': 1000,
-    'checkpoint_every': 5, 'resume': False, 'k_c': 2.0,
+    'checkpoint_every': 5, 'resume': False, 'k_c': 2.0, 'threads': 1,
 }
 
 
@@ -65,6 +66,11 @@ class LearnerNode(Node):
             if not self.has_parameter(name):
                 self.declare_parameter(name, default)
         self.settings = {name: self.get_parameter(name).value for name in PARAMETERS}
+        threads = self.settings['threads']
+        if not isinstance(threads, int) or threads < 1:
+            raise ValueError(f'threads: must be an integer >= 1, got {threads!r}')
+        # 1 by default: the simulator, filter and recorder share the cores.
+        torch.set_num_threads(threads)
         # The safety problem's keys (system, obstacles.*, gains) come from the params file.
         self.filter_params = self._declared_filter_params()
         self.out_dir = Path(str(self.settings['out_dir']))
@@ -210,8 +216,8 @@ class LearnerNode(Node):
         return summary
 
 
-def main(args: list[str] | None = None) -> None:
-    torch.set_num_threads(1)
+def main(args: list[str] | None = None) -> int:
+    """Run until the episodes are done or Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
     rclpy.init(args=args)
     node = None
     try:
@@ -219,13 +225,19 @@ def main(args: list[str] | None = None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ValueError as exc:
+        if node is None:
+            print(f'learner: invalid parameters: {exc}', file=sys.stderr)
+            return 2
+        raise
     finally:
         if node is not None:
             if node.episodes_done < int(node.settings['episodes']):
                 node.finish()  # Ctrl-C / SIGTERM: keep what was learned
             node.destroy_node()
         rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -62,6 +62,10 @@ class RunConfig:
     """Continue from out_dir/checkpoint.pt if it exists."""
     compile_filter: bool = False
     """Compile the per-step filter's constraint assembly (worth it for long runs)."""
+    threads: int = 1
+    """torch threads. 1 leaves a core to other work (several runs side by side, or the other
+    nodes); a lone in-process run gets ~1.7x faster SAC updates from 2 on a 2-core machine
+    (benchmarks/bench_training.py)."""
     learner: LearnerConfig = field(default_factory=LearnerConfig)
     """Learner settings (mode, seed, schedule)."""
 
@@ -240,7 +244,9 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
 
 def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
     """Train for ``run.episodes`` episodes; returns the per-episode metrics."""
-    torch.set_num_threads(1)
+    if run.threads < 1:
+        raise RunSetupError(f'threads: must be >= 1, got {run.threads}')
+    torch.set_num_threads(run.threads)
     if run.episodes < 1:
         raise RunSetupError(f'episodes: must be >= 1, got {run.episodes}')
     if run.checkpoint_every < 1:

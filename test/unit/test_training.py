@@ -127,6 +127,9 @@ def test_cli_rejects_bad_learner_settings(capsys, tmp_path):
     assert 'no such file' in capsys.readouterr().err
     assert cli_main(['train', '--episodes', '0', '--out', str(tmp_path / 'b')]) == 2
     assert 'episodes' in capsys.readouterr().err
+    assert cli_main(['train', '--threads', '0', '--episodes', '1',
+                     '--out', str(tmp_path / 'd')]) == 2
+    assert 'threads: must be >= 1' in capsys.readouterr().err
     bad = tmp_path / 'bad.yaml'
     bad.write_text('/**:\n  ros__parameters:\n    system: unicycle\n    obstacles:\n'
                    '      x: [0.0, 1.0]\n      y: [0.0]\n      radius: [0.5, 0.5]\n')
