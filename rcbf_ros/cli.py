@@ -42,7 +42,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--compile-filter', action='store_true',
                         help='compile the per-step constraint assembly (faster, slower start)')
     parser.add_argument('--threads', type=int, default=1,
-                        help='torch threads (2 speeds SAC updates ~1.7x on an idle 2-core '
+                        help='torch threads (2 speeds SAC updates 1.2-1.7x on an idle 2-core '
                              'machine; 1 when runs or nodes share the cores)')
     parser.add_argument('--start-steps', dest='start_steps', type=int, default=None)
     parser.add_argument('--update-after', dest='update_after', type=int, default=None)

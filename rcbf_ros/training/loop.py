@@ -64,7 +64,7 @@ class RunConfig:
     """Compile the per-step filter's constraint assembly (worth it for long runs)."""
     threads: int = 1
     """torch threads. 1 leaves a core to other work (several runs side by side, or the other
-    nodes); a lone in-process run gets ~1.7x faster SAC updates from 2 on a 2-core machine
+    nodes); a lone in-process run gets 1.2-1.7x faster SAC updates from 2 on a 2-core machine
     (benchmarks/bench_training.py)."""
     learner: LearnerConfig = field(default_factory=LearnerConfig)
     """Learner settings (mode, seed, schedule)."""
