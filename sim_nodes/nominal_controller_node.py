@@ -12,13 +12,15 @@ Parameters: ``system`` and the ``/nominal_controller`` section of ``config/<syst
 """
 from __future__ import annotations
 
+import sys
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from rcbf_ros.envs.nominal import cars_accelerate, pvtol_go_to_goal, unicycle_go_to_goal
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.ros.runtime import ExternalShutdownException, get_message, Node, QoSProfile, rclpy
+from rcbf_ros.ros.node_main import run_node
+from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from sim_nodes.simulator_node import declare_with_packaged_defaults
 
 
@@ -72,20 +74,10 @@ class NominalControllerNode(Node):
         self.publisher.publish(sections_to_msg({'u': u, 'state': sections['state']}))
 
 
-def main(args: Sequence[str] | None = None) -> None:
+def main(args: Sequence[str] | None = None) -> int:
     """Console script ``nominal_controller``."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = NominalControllerNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return run_node('nominal_controller', NominalControllerNode, args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from typing import Any, Sequence
 
@@ -49,7 +50,8 @@ import numpy as np
 from rcbf_ros.envs import ENVS, make_env
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.ros.runtime import ExternalShutdownException, get_message, Node, QoSProfile, rclpy
+from rcbf_ros.ros.node_main import run_node
+from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
 
 NODE_DEFAULTS: dict[str, Any] = {
     'mode': 'lockstep',
@@ -300,20 +302,10 @@ def spin_until_done(node: Any, linger_s: float = 0.5) -> None:
         rclpy.spin_once(node, timeout_sec=0.05)
 
 
-def main(args: Sequence[str] | None = None) -> None:
+def main(args: Sequence[str] | None = None) -> int:
     """Console script ``simulator``."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SimulatorNode()
-        spin_until_done(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return run_node('simulator', SimulatorNode, args, run=spin_until_done)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

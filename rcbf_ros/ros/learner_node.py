@@ -32,7 +32,8 @@ import torch
 
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.ros.runtime import ExternalShutdownException, get_message, Node, QoSProfile, rclpy
+from rcbf_ros.ros.node_main import run_node
+from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
 from rcbf_ros.training.loop import format_progress, summarize
 from rcbf_ros.training.policy_io import save_policy
@@ -218,25 +219,13 @@ class LearnerNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Run until the episodes are done or Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = LearnerNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:
-        if node is None:
-            print(f'learner: invalid parameters: {exc}', file=sys.stderr)
-            return 2
-        raise
-    finally:
-        if node is not None:
-            if node.episodes_done < int(node.settings['episodes']):
-                node.finish()  # Ctrl-C / SIGTERM: keep what was learned
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+
+    def keep_what_was_learned(node: LearnerNode) -> None:
+        if node.episodes_done < int(node.settings['episodes']):
+            node.finish()  # Ctrl-C / SIGTERM before the last episode
+
+    return run_node('learner', LearnerNode, args, on_exit=keep_what_was_learned,
+                    setup_errors=(ValueError,))
 
 
 if __name__ == '__main__':

@@ -18,7 +18,8 @@ import numpy as np
 import torch
 
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.ros.runtime import ExternalShutdownException, get_message, Node, QoSProfile, rclpy
+from rcbf_ros.ros.node_main import run_node
+from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.policy_io import load_policy
 
 
@@ -64,21 +65,8 @@ class PolicyNode(Node):
 
 def main(args: Sequence[str] | None = None) -> int:
     torch.set_num_threads(1)
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = PolicyNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, FileNotFoundError) as exc:
-        print(f'policy: {exc}', file=sys.stderr)
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node('policy', PolicyNode, args, setup_errors=(ValueError, FileNotFoundError),
+                    setup_message='')
 
 
 if __name__ == '__main__':

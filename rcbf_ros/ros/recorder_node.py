@@ -28,14 +28,13 @@ from typing import Any, Callable, Sequence
 
 from rcbf_ros.bag import BagWriter, BagWriterConfig, RecordedQos
 from rcbf_ros.ros import runtime
+from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     DurabilityPolicy,
-    ExternalShutdownException,
     get_message,
     HistoryPolicy,
     Node,
     QoSProfile,
-    rclpy,
     ReliabilityPolicy,
 )
 
@@ -242,24 +241,18 @@ class RecorderNode(Node):
         return counts
 
 
-def main(args: Sequence[str] | None = None) -> None:
+def main(args: Sequence[str] | None = None) -> int:
     """Console script ``recorder``."""
-    # rclpy reads sys.argv when args is None; pass it explicitly so every runtime does.
-    rclpy.init(args=list(sys.argv if args is None else args))
-    node = RecorderNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
+
+    def close_bag(node: RecorderNode) -> None:
         counts = node.close()
         total = sum(counts.values())
         per_topic = ', '.join(f'{name}: {n}' for name, n in counts.items()) or 'no topics'
         node.get_logger().info(
             f'bag {node.bag_directory} closed: {total} messages ({per_topic})')
-        node.destroy_node()
-        rclpy.try_shutdown()
+
+    return run_node('recorder', RecorderNode, args, on_exit=close_bag)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

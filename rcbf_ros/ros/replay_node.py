@@ -25,9 +25,9 @@ from typing import Any, Sequence
 from rcbf_ros.bag import bag_info
 from rcbf_ros.bag.playback import iter_bag_messages, playback_schedule, replay_qos
 from rcbf_ros.ros import runtime
+from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     DurabilityPolicy,
-    ExternalShutdownException,
     get_message,
     HistoryPolicy,
     Node,
@@ -141,20 +141,14 @@ class ReplayNode(Node):
         self._sleep_until(time.monotonic() + self.config.linger_s)
 
 
-def main(args: Sequence[str] | None = None) -> None:
+def main(args: Sequence[str] | None = None) -> int:
     """Console script ``replay``."""
-    # rclpy reads sys.argv when args is None; pass it explicitly so every runtime does.
-    rclpy.init(args=list(sys.argv if args is None else args))
-    node = ReplayNode()
-    try:
-        node.play()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
+
+    def report(node: ReplayNode) -> None:
         node.get_logger().info(f'replay finished: {node.published} messages published')
-        node.destroy_node()
-        rclpy.try_shutdown()
+
+    return run_node('replay', ReplayNode, args, run=ReplayNode.play, on_exit=report)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -41,13 +41,12 @@ from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.ros import conversions
 from rcbf_ros.ros import filter_logic as logic
+from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
-    ExternalShutdownException,
     get_message,
     HistoryPolicy,
     Node,
     QoSProfile,
-    rclpy,
     ReliabilityPolicy,
     USING_RCLPY,
 )
@@ -207,23 +206,8 @@ class SafetyFilterNode(Node):
 def main(args: Sequence[str] | None = None) -> int:
     """Run the node until Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
     torch.set_num_threads(1)  # B = 1 constraint assembly: threads only add contention
-    rclpy.init(args=args)  # None: sys.argv, as rclpy does
-    node = None
-    try:
-        node = SafetyFilterNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:
-        if node is None:  # constructor: parameters (already logged with the node's name)
-            print(f'{NODE_NAME}: invalid parameters: {exc}', file=sys.stderr)
-            return 2
-        raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    # Parameter errors are already logged with the node's name by the constructor.
+    return run_node(NODE_NAME, SafetyFilterNode, args, setup_errors=(ValueError,))
 
 
 if __name__ == '__main__':
