@@ -25,6 +25,14 @@ Prediction does not go through GPyTorch: after a fit we cache, per output dimens
 batched over query points and output dimensions. The disturbance box of eq.
 (disturb_estimate) is ``mean +/- k_c std`` (``bounds``); ``k_c`` is the caller's.
 
+Exactly known outputs: a dimension whose residuals are all within ``exact_output_tol`` of zero
+(e.g. a position whose derivative is a velocity in the state, so the nominal model predicts it
+to rounding error) gets no posterior: ``predict`` returns mean 0 and std 0 for it without
+touching a kernel matrix. Such dimensions are common (6 of 10 on Car Following, 5 of 6 on
+PVTOL), and the single-query variance reads an M x M factor per output dimension, so this
+cuts the per-step cost in proportion. A single residual beyond the tolerance makes the
+dimension a normal GP output again at the next fit.
+
 Data management: ``add`` appends to the full data set; ``fit`` trains on at most
 ``max_train_points`` of it, chosen by greedy farthest-point sampling in standardised input
 space (or a seeded uniform random subsample), so fit and predict cost stay bounded as data grows.
@@ -81,6 +89,10 @@ class GPConfig:
     include_noise_in_std: bool = False
     """If True ``predict`` returns the std of a noisy observation, else of the latent
     disturbance (the default: the RCBF bounds the disturbance itself)."""
+    exact_output_tol: float = 1e-9
+    """Output dimensions with every residual ``|y| <= exact_output_tol`` (raw units) are
+    treated as exactly known: mean 0, std 0, no posterior cached. 0 keeps a GP on every
+    output (then an all-zero dimension still gets one, with a tiny fitted signal variance)."""
     dtype: torch.dtype = torch.float64
     """Floating point type of data, hyperparameters and predictions."""
 
@@ -100,6 +112,8 @@ class GPConfig:
                 f'training_iterations must be >= 0, got {self.training_iterations}')
         if not self.min_noise > 0:
             raise ValueError(f'min_noise must be > 0, got {self.min_noise}')
+        if not self.exact_output_tol >= 0:
+            raise ValueError(f'exact_output_tol must be >= 0, got {self.exact_output_tol}')
 
 
 class _BatchIndependentExactGP(gpytorch.models.ExactGP):
@@ -352,37 +366,55 @@ class DisturbanceGP:
         self.train_indices = self.select_training_subset()
         self._refresh_cache()
 
+    @property
+    def active_outputs(self) -> torch.Tensor:
+        """(n_out,) bool: output dimensions with a GP posterior (the others are exactly known,
+        see ``GPConfig.exact_output_tol``). All True before the first fit."""
+        if self._cache is None:
+            return torch.ones(self.n_out, dtype=torch.bool)
+        return self._cache['active'].clone()
+
     def _refresh_cache(self) -> None:
-        """Cache per output dim: scaled inputs, ``L^-1`` and ``alpha = (K + nI)^-1 y``."""
+        """Cache per active output dim: scaled inputs, ``L^-1`` and ``alpha = (K + nI)^-1 y``.
+
+        A dimension is active unless every stored residual (all data, not only the capped
+        training subset) is within ``exact_output_tol`` of zero.
+        """
         assert self.lengthscales is not None and self.outputscale is not None
         assert self.noise is not None
-        x, y = self.train_x, self.train_y
-        x_scaled = x.unsqueeze(0) / self.lengthscales.unsqueeze(1)  # (n_out, M, n_in)
-        k_train = self._rbf(x_scaled, x_scaled)
+        active = (self._y.abs() > self.config.exact_output_tol).any(dim=0)
+        x, y = self.train_x, self.train_y[:, active]
+        lengthscales = self.lengthscales[active]
+        outputscale, noise = self.outputscale[active], self.noise[active]
+        x_scaled = x.unsqueeze(0) / lengthscales.unsqueeze(1)  # (n_active, M, n_in)
+        k_train = self._rbf(x_scaled, x_scaled, outputscale)
         eye = torch.eye(x.shape[0], dtype=x.dtype)
-        k_noisy = k_train + self.noise[:, None, None] * eye
+        k_noisy = k_train + noise[:, None, None] * eye
         chol = torch.linalg.cholesky(k_noisy)  # (n_out, M, M)
         chol_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
         alpha = torch.cholesky_solve(y.T.unsqueeze(-1), chol).squeeze(-1)  # (n_out, M)
         # Row-vector layout: k^T L^-T is one batched (B, M) x (M, M) product, which is several
         # times faster on CPU than L^-1 k with a (M, 1) right-hand side.
-        self._cache = {'x_scaled': x_scaled, 'chol': chol,
+        self._cache = {'active': active, 'lengthscales': lengthscales,
+                       'outputscale': outputscale, 'noise': noise,
+                       'x_scaled': x_scaled, 'chol': chol,
                        'chol_inv_t': chol_inv.transpose(-1, -2).contiguous(), 'alpha': alpha}
 
-    def _rbf(self, a_scaled: torch.Tensor, b_scaled: torch.Tensor) -> torch.Tensor:
+    @staticmethod
+    def _rbf(a_scaled: torch.Tensor, b_scaled: torch.Tensor,
+             outputscale: torch.Tensor) -> torch.Tensor:
         """s_d exp(-|a - b|^2 / 2) on lengthscale-scaled inputs.
 
         Args:
-            a_scaled: (n_out, A, n_in); b_scaled: (n_out, B, n_in).
+            a_scaled: (D, A, n_in); b_scaled: (D, B, n_in); outputscale: (D,) the s_d.
 
         Returns:
-            (n_out, A, B).
+            (D, A, B).
         """
-        assert self.outputscale is not None
         sq_dist = ((a_scaled ** 2).sum(-1, keepdim=True)
                    + (b_scaled ** 2).sum(-1).unsqueeze(-2)
                    - 2.0 * a_scaled @ b_scaled.transpose(-1, -2)).clamp_min(0.0)
-        return self.outputscale[:, None, None] * torch.exp(-0.5 * sq_dist)
+        return outputscale[:, None, None] * torch.exp(-0.5 * sq_dist)
 
     # --------------------------------------------------------------- predict
     def predict(self, x: ArrayLike) -> tuple[torch.Tensor, torch.Tensor]:
@@ -403,18 +435,25 @@ class DisturbanceGP:
         if self._cache is None:
             mean = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
             return mean, torch.full_like(mean, self.config.prior_std)
-        assert self.lengthscales is not None and self.outputscale is not None
-        assert self.noise is not None
+        c = self._cache
+        mean = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
+        std = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
+        if not bool(c['active'].any()):
+            return mean, std
         with torch.no_grad():
-            q_scaled = x_t.unsqueeze(0) / self.lengthscales.unsqueeze(1)  # (n_out, B, n_in)
-            k_cross = self._rbf(q_scaled, self._cache['x_scaled'])  # (n_out, B, M)
-            mean = (k_cross * self._cache['alpha'].unsqueeze(1)).sum(-1)  # (n_out, B)
-            v = k_cross @ self._cache['chol_inv_t']  # (n_out, B, M): rows of (L^-1 k)^T
-            var = self.outputscale.unsqueeze(-1) - (v ** 2).sum(-1)
+            q_scaled = x_t.unsqueeze(0) / c['lengthscales'].unsqueeze(1)  # (D, B, n_in)
+            k_cross = self._rbf(q_scaled, c['x_scaled'], c['outputscale'])  # (D, B, M)
+            mean_a = (k_cross * c['alpha'].unsqueeze(1)).sum(-1)  # (D, B)
+            v = k_cross @ c['chol_inv_t']  # (D, B, M): rows of (L^-1 k)^T
+            var = c['outputscale'].unsqueeze(-1) - (v ** 2).sum(-1)
             if self.config.include_noise_in_std:
-                var = var + self.noise.unsqueeze(-1)
-            std = var.clamp_min(0.0).sqrt()
-        return mean.T.contiguous(), std.T.contiguous()
+                var = var + c['noise'].unsqueeze(-1)
+            active = c['active']
+            if bool(active.all()):
+                return mean_a.T.contiguous(), var.clamp_min(0.0).sqrt().T.contiguous()
+            mean[:, active] = mean_a.T
+            std[:, active] = var.clamp_min(0.0).sqrt().T
+        return mean, std
 
     def bounds(self, x: ArrayLike, k_c: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Disturbance box of eq. (disturb_estimate): ``mean -/+ k_c std``.

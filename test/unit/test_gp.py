@@ -209,3 +209,47 @@ def test_warm_start_resumes_from_previous_hyperparameters():
                                         resumed.noise)):
         torch.testing.assert_close(after, before, rtol=1e-10, atol=0)
     assert resumed.train_x.shape[0] == 400
+
+
+def test_exactly_known_outputs_get_zero_std_and_leave_the_others_unchanged():
+    # Like a position row of Car Following: the nominal model predicts dimension 2 to rounding
+    # error, so its residuals are ~1e-13; the other two carry the slope disturbance.
+    generator = torch.Generator().manual_seed(3)
+    states = uniform_states(300, generator)
+    residuals = unicycle_slope_disturbance(states) + 0.01 * torch.randn(
+        300, 3, generator=generator, dtype=DTYPE)
+    residuals[:, 2] = 1e-13 * torch.randn(300, generator=generator, dtype=DTYPE)
+    hyper = (torch.tensor([[1.0, 1.5, 0.8], [1.2, 0.9, 1.1], [1.0, 1.0, 1.0]], dtype=DTYPE),
+             torch.tensor([0.01, 0.02, 1e-8], dtype=DTYPE),
+             torch.tensor([1e-4, 2e-4, 1e-6], dtype=DTYPE))
+    skipping = DisturbanceGP(3, 3)
+    every = DisturbanceGP(3, 3, GPConfig(exact_output_tol=0.0))
+    for gp in (skipping, every):
+        gp.add(states, residuals)
+        gp.set_hyperparameters(*hyper)
+    assert skipping.active_outputs.tolist() == [True, True, False]
+    assert every.active_outputs.tolist() == [True, True, True]
+    queries = uniform_states(40, torch.Generator().manual_seed(4))
+    mean, std = skipping.predict(queries)
+    ref_mean, ref_std = every.predict(queries)
+    torch.testing.assert_close(mean[:, :2], ref_mean[:, :2], atol=1e-12, rtol=0)
+    torch.testing.assert_close(std[:, :2], ref_std[:, :2], atol=1e-12, rtol=0)
+    assert torch.equal(mean[:, 2], torch.zeros(40, dtype=DTYPE))
+    assert torch.equal(std[:, 2], torch.zeros(40, dtype=DTYPE))
+    # The full GP on that dimension says the same to within its tiny prior std.
+    assert ref_std[:, 2].max() <= 1e-4 and ref_mean[:, 2].abs().max() <= 1e-9
+    # One residual beyond the tolerance, anywhere in the data, makes it a GP output again.
+    skipping.add(states[:1], torch.tensor([[0.0, 0.0, 1e-3]], dtype=DTYPE))
+    skipping.set_hyperparameters(*hyper)
+    assert skipping.active_outputs.tolist() == [True, True, True]
+    assert skipping.predict(queries)[1][:, 2].min() > 0
+
+
+def test_all_outputs_known_and_a_single_query():
+    gp = DisturbanceGP(3, 2)
+    gp.add(uniform_states(20, torch.Generator().manual_seed(5)), torch.zeros(20, 2, dtype=DTYPE))
+    gp.fit()
+    assert gp.is_fitted and not gp.active_outputs.any()
+    mean, std = gp.predict(torch.zeros(3, dtype=DTYPE))
+    assert mean.shape == std.shape == (1, 2)
+    assert not mean.any() and not std.any()
