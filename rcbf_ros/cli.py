@@ -15,6 +15,7 @@ from pathlib import Path
 import signal
 import sys
 
+from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.training.agent import LearnerConfig, MODES
 
 
@@ -44,6 +45,11 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--threads', type=int, default=1,
                         help='torch threads (2 speeds SAC updates 1.2-1.7x on an idle 2-core '
                              'machine; 1 when runs or nodes share the cores)')
+    parser.add_argument('--random-start', dest='random_start', action='store_true',
+                        default=None, help="random episode starts (default: the config's)")
+    parser.add_argument('--initial-alpha', dest='initial_alpha', type=float, default=None,
+                        help="SAC's initial entropy temperature (default: the config's "
+                             'learner initial_alpha, else 0.2)')
     parser.add_argument('--start-steps', dest='start_steps', type=int, default=None)
     parser.add_argument('--update-after', dest='update_after', type=int, default=None)
     parser.add_argument('--batch-size', dest='batch_size', type=int, default=None)
@@ -54,7 +60,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 def run_train(args: argparse.Namespace) -> int:
     from rcbf_ros.training.loop import RunConfig, RunSetupError, summarize, train
     try:
-        learner = LearnerConfig(**_learner_overrides(args))
+        learner = LearnerConfig(**_learner_overrides(args),
+                                sac=SACConfig(initial_alpha=args.initial_alpha))
     except (TypeError, ValueError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 2
@@ -62,6 +69,7 @@ def run_train(args: argparse.Namespace) -> int:
     run = RunConfig(system=args.system, episodes=args.episodes,
                     out_dir=args.out or str(Path('runs') / name), config_file=args.config,
                     max_steps=args.max_steps, no_obstacles=args.no_obstacles,
+                    random_start=args.random_start,
                     record_bag=not args.no_bag, resume=args.resume,
                     compile_filter=args.compile_filter, threads=args.threads, learner=learner)
     print(f'training {name}: {args.episodes} episodes -> {run.out_dir}', flush=True)

@@ -83,6 +83,9 @@ class Budget:
     """Episode length per system (None or absent: the env's default)."""
     eval_max_steps: dict[str, int | None] = field(default_factory=dict)
     """Episode length of transfer evaluation per system (None: the env's default)."""
+    random_start: dict[str, bool] = field(default_factory=dict)
+    """Random episode starts in training, per system (absent: the config file's setting). The
+    Unicycle trains from its corner and edge starts, as the paper's value-map figure shows."""
     layouts: int = 200
     """Random transfer layouts (seeds 0 .. layouts - 1) each policy is evaluated on."""
     start_steps: int | None = None
@@ -165,13 +168,13 @@ BUDGETS: dict[str, Budget] = {
         max_steps={s: 40 for s in _SYSTEMS}, eval_max_steps={s: 40 for s in _SYSTEMS},
         layouts=3, start_steps=20, update_after=20, batch_size=16, gp_refit_interval=30,
         rollout_interval=20, rollouts=8, rollout_horizon=2, hidden_sizes=(16, 16),
-        value_map_grid=9, record_bag=True),
+        value_map_grid=9, record_bag=True, random_start={'unicycle': True}),
     # The paper's scale: full-length episodes (ref lengths), 200 layouts, LearnerConfig's
     # defaults (256 x 256 networks, batch 256). Episode counts are ours (the paper shows its
     # curves over episodes without stating the count in the text).
     'paper': Budget(
         name='paper', episodes={'unicycle': 200, 'car_following': 200, 'pvtol': 200},
-        layouts=200),
+        layouts=200, random_start={'unicycle': True}),
 }
 """Named budgets (``--budget``)."""
 
@@ -207,6 +210,7 @@ class RunSpec:
                          out_dir=str(self.run_dir(root)),
                          max_steps=self.budget.max_steps.get(self.system),
                          no_obstacles=method.no_obstacles, record_bag=self.budget.record_bag,
+                         random_start=self.budget.random_start.get(self.system),
                          resume=resume, learner=learner)
 
 

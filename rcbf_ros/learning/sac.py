@@ -45,6 +45,8 @@ SafetyLayer = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 Mode = Literal['unconstrained', 'baseline', 'baseline_compensator', 'diff', 'modular']
 MODES: tuple[str, ...] = ('unconstrained', 'baseline', 'baseline_compensator', 'diff',
                           'modular')
+DEFAULT_INITIAL_ALPHA = 0.2
+"""alpha_e at the start of training when neither the run nor its config file sets one."""
 
 
 @dataclass(frozen=True)
@@ -63,8 +65,10 @@ class SACConfig:
     """Adam learning rate of the twin critics."""
     alpha_lr: float = 3e-4
     """Adam learning rate of log(alpha) (automatic entropy tuning)."""
-    initial_alpha: float = 0.2
-    """Initial entropy temperature alpha_e."""
+    initial_alpha: float | None = None
+    """Initial entropy temperature alpha_e; None: the system's config file's learner
+    ``initial_alpha`` when trained through ``rcbf_ros.training`` (see config/*.yaml: it is tied
+    to the reward's scale), else ``DEFAULT_INITIAL_ALPHA``."""
     autotune_alpha: bool = True
     """Tune alpha to keep the policy entropy near ``target_entropy``."""
     target_entropy: float | None = None
@@ -83,7 +87,7 @@ class SACConfig:
             raise ValueError(f'gamma must be in [0, 1], got {self.gamma}')
         if not 0.0 < self.tau <= 1.0:
             raise ValueError(f'tau must be in (0, 1], got {self.tau}')
-        if not self.initial_alpha > 0:
+        if self.initial_alpha is not None and not self.initial_alpha > 0:
             raise ValueError(f'initial_alpha must be > 0, got {self.initial_alpha}')
         if self.target_update_interval < 1:
             raise ValueError(
@@ -161,7 +165,8 @@ class SAC:
         self.q2_target.load_state_dict(self.q2.state_dict())
         for param in [*self.q1_target.parameters(), *self.q2_target.parameters()]:
             param.requires_grad_(False)
-        self.log_alpha = torch.tensor(float(np.log(cfg.initial_alpha)), dtype=dtype,
+        alpha0 = DEFAULT_INITIAL_ALPHA if cfg.initial_alpha is None else cfg.initial_alpha
+        self.log_alpha = torch.tensor(float(np.log(alpha0)), dtype=dtype,
                                       requires_grad=True)
         self.target_entropy = (cfg.target_entropy if cfg.target_entropy is not None
                                else -float(n_u))

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA, SACConfig
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
@@ -43,6 +44,7 @@ PARAMETERS: dict[str, Any] = {
     'episodes': 10, 'out_dir': 'bags/learner_run', 'dt': 0.02, 'start_steps': 1000,
     'update_after': 500, 'batch_size': 256, 'gp_refit_interval': 1000,
     'checkpoint_every': 5, 'resume': False, 'k_c': 2.0, 'threads': 1,
+    'initial_alpha': DEFAULT_INITIAL_ALPHA,
 }
 
 
@@ -70,6 +72,9 @@ class LearnerNode(Node):
         threads = self.settings['threads']
         if not isinstance(threads, int) or threads < 1:
             raise ValueError(f'threads: must be an integer >= 1, got {threads!r}')
+        alpha0 = self.settings['initial_alpha']
+        if isinstance(alpha0, bool) or not isinstance(alpha0, (int, float)) or not alpha0 > 0:
+            raise ValueError(f'initial_alpha: must be a number > 0, got {alpha0!r}')
         # 1 by default: the simulator, filter and recorder share the cores.
         torch.set_num_threads(threads)
         # The safety problem's keys (system, obstacles.*, gains) come from the params file.
@@ -157,7 +162,7 @@ class LearnerNode(Node):
             mode=str(s['mode']), model_based=bool(s['model_based']), seed=int(s['seed']),
             start_steps=int(s['start_steps']), update_after=int(s['update_after']),
             batch_size=int(s['batch_size']), gp_refit_interval=int(s['gp_refit_interval']),
-            k_c=float(s['k_c']))
+            k_c=float(s['k_c']), sac=SACConfig(initial_alpha=float(s['initial_alpha'])))
         learner = SafeLearner(config.problem, obs_dim=obs_dim, dt=float(s['dt']),
                               config=learner_cfg)
         checkpoint = self.out_dir / 'checkpoint.pt'

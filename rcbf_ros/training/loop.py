@@ -27,6 +27,7 @@ import torch
 
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
 from rcbf_ros.training.policy_io import save_policy
@@ -54,6 +55,10 @@ class RunConfig:
     """Override the env's episode length."""
     no_obstacles: bool = False
     """Train without obstacles and without a filter (the transfer upper bound)."""
+    random_start: bool | None = None
+    """Start each episode from a random start of the env (Unicycle: corners and edges, random
+    heading; the paper's value-map figure shows these starts); None: the config file's
+    simulator ``random_start``."""
     checkpoint_every: int = 5
     """Episodes between checkpoints."""
     record_bag: bool = True
@@ -82,10 +87,33 @@ def make_env(system: str, params: dict[str, Any]) -> Any:
     return getattr(importlib.import_module(module_name), cls_name)(params)
 
 
+def resolve_run(run: RunConfig) -> RunConfig:
+    """``run`` with the settings it leaves to the config file filled in from it.
+
+    The learner's ``initial_alpha`` comes from the file's ``/learner`` section when the run
+    does not set it (it belongs with the system: it is tied to the scale of its reward).
+
+    Raises:
+        FileNotFoundError: no such config file.
+        ValueError: a bad value in the file (the message names the key).
+    """
+    if run.learner.sac.initial_alpha is not None:
+        return run
+    value = load_params(find_config(run.config_file or run.system), 'learner').get(
+        'initial_alpha', DEFAULT_INITIAL_ALPHA)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise ValueError(f'learner.initial_alpha: must be a number > 0, got {value!r}')
+    sac = replace(run.learner.sac, initial_alpha=float(value))
+    return replace(run, learner=replace(run.learner, sac=sac))
+
+
 def build_run(run: RunConfig) -> tuple[Any, SafetyFilter | None, SafeLearner, dict[str, Any]]:
     """Env, per-step filter (None when unconstrained) and learner from the run's config file."""
+    run = resolve_run(run)
     path = find_config(run.config_file or run.system)
     sim_params = load_params(path, 'simulator')
+    if run.random_start is not None:
+        sim_params['random_start'] = bool(run.random_start)
     filter_section = load_params(path, 'safety_filter')
     if run.no_obstacles:
         sim_params.update({'obstacles.x': [], 'obstacles.y': [], 'obstacles.radius': []})
@@ -252,6 +280,7 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
     if run.checkpoint_every < 1:
         raise RunSetupError(f'checkpoint_every: must be >= 1, got {run.checkpoint_every}')
     try:
+        run = resolve_run(run)
         env, filt, learner, _ = build_run(run)
     except (FileNotFoundError, ValueError) as exc:
         raise RunSetupError(str(exc)) from exc

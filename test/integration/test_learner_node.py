@@ -109,16 +109,17 @@ def test_killed_learner_resumes_from_its_checkpoint(tmp_path, ros_domain_id):
     assert state['episode'] == 2 and state['learner']['buffer']['size'] == 100
 
 
-@pytest.mark.parametrize('value', ['0', "'two'"])
-def test_invalid_threads_exits_2_naming_the_key(tmp_path, ros_domain_id, value):
+@pytest.mark.parametrize('key,value', [('threads', '0'), ('threads', "'two'"),
+                                       ('initial_alpha', '-0.1')])
+def test_invalid_setting_exits_2_naming_the_key(tmp_path, ros_domain_id, key, value):
     env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': 'cyclone',
            'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
     log = tmp_path / 'learner.log'
     proc = start('rcbf_ros.ros.learner_node', 'learner',
-                 ['-p', f'threads:={value}', '-p', f'out_dir:={tmp_path}'], env, log)
+                 ['-p', f'{key}:={value}', '-p', f'out_dir:={tmp_path}'], env, log)
     try:
         code = proc.wait(timeout=60)
     finally:
         stop(proc)
     assert code == 2, log.read_text()
-    assert 'learner: invalid parameters: threads' in log.read_text()
+    assert f'learner: invalid parameters: {key}' in log.read_text()

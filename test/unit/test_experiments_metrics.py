@@ -81,6 +81,9 @@ def test_experiment_runs_cover_the_plan_without_duplicates():
     assert METHODS['sac_no_obstacles'].no_obstacles and METHODS['sac_rcbf_mb'].model_based
     config = transfer[0].run_config('runs')
     assert config.learner.seed == transfer[0].seed and config.episodes == 2
+    by_system = {s.system: s.run_config('runs') for s in transfer}
+    assert by_system['unicycle'].random_start is True  # the paper's starts
+    assert by_system['pvtol'].random_start is None  # the config file decides
     with pytest.raises(ValueError, match='experiment'):
         experiment_runs('bogus', budget, 1)
     with pytest.raises(ValueError, match='seeds'):

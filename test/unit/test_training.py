@@ -137,6 +137,44 @@ def test_cli_rejects_bad_learner_settings(capsys, tmp_path):
                      '--out', str(tmp_path / 'c')]) == 2
     assert 'obstacles.y' in capsys.readouterr().err
     assert not (tmp_path / 'c').exists()  # nothing half-written
+    assert cli_main(['train', '--initial-alpha', '0', '--episodes', '1',
+                     '--out', str(tmp_path / 'e')]) == 2
+    assert 'initial_alpha' in capsys.readouterr().err
+    bad_alpha = tmp_path / 'bad_alpha.yaml'
+    bad_alpha.write_text(find_config('unicycle').read_text().replace(
+        'initial_alpha: 0.01', 'initial_alpha: -1.0'))
+    assert cli_main(['train', '--config', str(bad_alpha), '--episodes', '1',
+                     '--out', str(tmp_path / 'f')]) == 2
+    assert 'learner.initial_alpha' in capsys.readouterr().err
+
+
+def test_initial_alpha_and_random_start_come_from_the_config_unless_the_run_sets_them(tmp_path):
+    from rcbf_ros.training.loop import build_run, resolve_run
+    assert load_params(find_config('unicycle'), 'learner')['initial_alpha'] == 0.01
+    small = dict(episodes=1, max_steps=20, record_bag=False)
+    for alpha, expected in ((None, 0.01), (0.3, 0.3)):
+        run = RunConfig(out_dir=str(tmp_path / f'a{alpha}'), **small,
+                        learner=LearnerConfig(sac=SACConfig(initial_alpha=alpha)))
+        assert resolve_run(run).learner.sac.initial_alpha == expected
+        _, _, learner, _ = build_run(run)
+        assert float(learner.sac.alpha) == pytest.approx(expected)
+        train(run, log=lambda line: None)
+        written = json.loads((tmp_path / f'a{alpha}' / 'run_config.json').read_text())
+        assert written['learner']['sac']['initial_alpha'] == expected  # the value used
+    # No learner section at all: SAC's own default.
+    bare = tmp_path / 'bare.yaml'
+    bare.write_text(find_config('unicycle').read_text().replace('/learner:', '/other:'))
+    run = RunConfig(config_file=str(bare), out_dir=str(tmp_path / 'bare'), **small)
+    assert resolve_run(run).learner.sac.initial_alpha == 0.2
+    starts = set()
+    for seed in range(4):
+        run = RunConfig(out_dir=str(tmp_path / 'rs'), random_start=True, **small,
+                        learner=LearnerConfig(seed=seed))
+        env, _, _, _ = build_run(run)
+        starts.add(tuple(np.round(env.reset(seed=seed)[0][:2], 6)))
+    assert len(starts) > 1  # the packaged file says random_start: false
+    env, _, _, _ = build_run(RunConfig(out_dir=str(tmp_path / 'fs'), **small))
+    assert tuple(env.reset(seed=1)[0][:2]) == (-2.5, -2.5)
 
 
 def test_sigterm_mid_run_keeps_checkpoint_metrics_and_bag(tmp_path):
