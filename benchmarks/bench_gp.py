@@ -10,7 +10,12 @@ uniform states in the arena with noise std 0.01 (3 inputs, 3 outputs). One run m
 - ``predict`` for one state (B = 1) and for a minibatch (B = 256) with our cached closed
   form, next to GPyTorch's exact predictive (eval mode, same training points and
   hyperparameters, ``fast_pred_var`` off, caches warm) at the same query points; the ratio
-  is GPyTorch's time / ours.
+  is GPyTorch's time / ours;
+- one-state ``predict`` with each system's state size and its exactly known dimensions
+  (positions and other rows the nominal model predicts to rounding error: residual 0), with
+  those dimensions skipped (default ``exact_output_tol``) and with a GP on every dimension
+  (``exact_output_tol=0``), caches warm and with the last-level cache flushed before each call
+  (as after a SAC update in the training loop).
 Writes the ``## GP disturbance model`` section of benchmarks/RESULTS.md.
 """
 from __future__ import annotations
@@ -28,7 +33,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._results import machine_line, write_section  # noqa: E402
-from rcbf_ros.learning.gp import DisturbanceGP  # noqa: E402
+from rcbf_ros.learning.gp import DisturbanceGP, GPConfig  # noqa: E402
 
 torch.set_num_threads(1)
 DTYPE = torch.float64
@@ -82,15 +87,57 @@ def gpytorch_twin(gp: DisturbanceGP):
     return predict
 
 
-def per_call_us(fn, queries: list[torch.Tensor]) -> float:
+def per_call_us(fn, queries: list[torch.Tensor], before=None) -> float:
+    """Median time of ``fn(q)`` over ``queries``; ``before()`` runs untimed ahead of each."""
     for q in queries[:20]:
         fn(q)
     times = []
     for q in queries:
+        if before is not None:
+            before()
         start = time.perf_counter()
         fn(q)
         times.append(time.perf_counter() - start)
     return 1e6 * statistics.median(times)
+
+
+SYSTEM_SHAPES = {'unicycle': (3, (2,)), 'pvtol': (6, (0, 1, 2, 3, 5)),
+                 'car_following': (10, (0, 2, 4, 6, 7, 8))}
+"""state size, and the dimensions with residual 0 (as measured in training runs: Unicycle
+theta; PVTOL all but theta; Car Following the five positions and car 4's speed)."""
+
+
+def known_dimension_rows(repeats: int) -> list[str]:
+    """One-state predict: known dimensions skipped vs a GP on every one, warm and cold."""
+    flush = torch.empty(64 * 2 ** 20 // 8, dtype=DTYPE)  # 64 MB > the 32 MB last-level cache
+    rows = ['| system | state dims | known dims | caches | every dim (us) '
+            '| known skipped (us) | ratio every / skipped | max abs diff, active dims |',
+            '|---|---:|---:|---|---:|---:|---:|---:|']
+    for system, (n_x, known) in SYSTEM_SHAPES.items():
+        generator = torch.Generator().manual_seed(n_x)
+        states = torch.randn(2000, n_x, generator=generator, dtype=DTYPE)
+        residuals = 0.1 * torch.sin(states @ torch.randn(n_x, n_x, generator=generator,
+                                                         dtype=DTYPE))
+        residuals[:, list(known)] = 0.0
+        hyper = (torch.full((n_x, n_x), 1.5, dtype=DTYPE), torch.full((n_x,), 0.01, dtype=DTYPE),
+                 torch.full((n_x,), 1e-4, dtype=DTYPE))
+        models = {}
+        for tol, name in ((0.0, 'every'), (1e-9, 'skipped')):
+            gp = DisturbanceGP(n_x, n_x, GPConfig(exact_output_tol=tol))
+            gp.add(states, residuals)
+            gp.set_hyperparameters(*hyper)
+            models[name] = gp
+        queries = [torch.randn(n_x, generator=generator, dtype=DTYPE) for _ in range(repeats)]
+        calls = {'every': models['every'].predict, 'skipped': models['skipped'].predict}
+        active = [d for d in range(n_x) if d not in known]
+        diff = max(float((a - b)[:, active].abs().max()) for a, b in zip(
+            calls['every'](queries[0]), calls['skipped'](queries[0])))
+        for caches, before in (('warm', None), ('cold', lambda: flush.add_(1.0))):
+            t = {name: per_call_us(fn, queries, before=before) for name, fn in calls.items()}
+            rows.append(f"| {system} | {n_x} | {len(known)} | {caches} | {t['every']:.0f} "
+                        f"| {t['skipped']:.0f} | {t['every'] / t['skipped']:.1f}x | {diff:.1e} |")
+            print(rows[-1], flush=True)
+    return rows
 
 
 def main() -> None:
@@ -147,7 +194,13 @@ def main() -> None:
         '', *rows, '',
         'Prediction with the 5000-point model (512 training points), median per call; '
         'GPyTorch: same points and hyperparameters, eval mode, exact variances, warm caches.',
-        '', *predict_rows])
+        '', *predict_rows, '',
+        'One state, 2000 points (512 training points), synthetic residuals with each '
+        "system's exactly known dimensions at 0 (`SYSTEM_SHAPES`); median per call. "
+        "'every dim': `exact_output_tol=0`, a posterior on every output; "
+        "'known skipped': the default, known outputs return 0 / 0 without a kernel matrix. "
+        "'cold': a 64 MB buffer is written (untimed) before each call, as a SAC update evicts "
+        "the GP's factors in the training loop.", '', *known_dimension_rows(args.repeats)])
     if not args.no_write:
         write_section('GP disturbance model', body)
     print(body)
