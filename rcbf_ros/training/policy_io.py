@@ -58,9 +58,9 @@ def load_policy(path: str | Path) -> DeterministicPolicy:
     """Read ``policy.pt``; FileNotFoundError / ValueError name the problem."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f'policy: no file {path}')
+        raise FileNotFoundError(f'policy_path: no file {path}')
     payload = torch.load(path, weights_only=False)
     missing = {'actor', 'obs_dim', 'n_u', 'u_low', 'u_high', 'hidden_sizes'} - set(payload)
     if missing:
-        raise ValueError(f'policy: {path} lacks {sorted(missing)} (not a policy export?)')
+        raise ValueError(f'policy_path: {path} lacks {sorted(missing)} (not a policy export?)')
     return DeterministicPolicy(payload)

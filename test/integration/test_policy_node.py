@@ -40,6 +40,13 @@ def test_policy_export_drives_the_simulator_through_the_filter(tmp_path, ros_dom
     assert 'episode 1: return' in log and ', 150 steps, 0 violations' in log, log[-3000:]
 
 
-def test_missing_policy_file_is_a_clear_error(tmp_path):
-    with pytest.raises(FileNotFoundError, match='policy'):
+def test_missing_policy_file_is_a_clear_error(tmp_path, ros_domain_id):
+    with pytest.raises(FileNotFoundError, match='policy_path: no file'):
         load_policy(tmp_path / 'nope.pt')
+    done = subprocess.run(
+        [sys.executable, '-m', 'rcbf_ros.ros.policy_node', '--ros-args',
+         '-p', f"policy_path:={tmp_path / 'nope.pt'}"], capture_output=True, text=True,
+        timeout=60, env=dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id)))
+    log = done.stdout + done.stderr
+    assert done.returncode == 2, log
+    assert f"policy: policy_path: no file {tmp_path / 'nope.pt'}" in log  # said once
