@@ -36,7 +36,7 @@ from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
-from rcbf_ros.training.loop import format_progress, summarize
+from rcbf_ros.training.loop import format_progress, rewrite_metrics, summarize
 from rcbf_ros.training.policy_io import save_policy
 
 PARAMETERS: dict[str, Any] = {
@@ -170,6 +170,7 @@ class LearnerNode(Node):
             state = torch.load(checkpoint, weights_only=False)
             learner.load_state_dict(state['learner'])
             self.history = list(state['history'])
+            rewrite_metrics(self.out_dir / 'metrics.jsonl', self.history)
             self.episodes_done = int(state['episode'])
             self.get_logger().info(f'resumed at episode {self.episodes_done}')
         return learner

@@ -270,6 +270,13 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
     return stats
 
 
+def rewrite_metrics(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Make ``metrics.jsonl`` hold exactly ``rows``, e.g. a resumed checkpoint's history: the
+    episodes a killed run finished after its last checkpoint are dropped, since the resumed
+    run plays them again."""
+    path.write_text(''.join(json.dumps(row) + '\n' for row in rows))
+
+
 def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
     """Train for ``run.episodes`` episodes; returns the per-episode metrics."""
     if run.threads < 1:
@@ -297,8 +304,7 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
         first_episode = int(checkpoint['episode'])
         history = list(checkpoint['history'])
         log(f'resumed from {checkpoint_path} at episode {first_episode}')
-    else:
-        metrics_path.write_text('')
+    rewrite_metrics(metrics_path, history)
     (out / 'run_config.json').write_text(json.dumps(asdict(run), indent=2, default=str))
     recorder = None
     if run.record_bag:

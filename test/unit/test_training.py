@@ -66,8 +66,14 @@ def test_same_seed_same_result_and_resume_equals_uninterrupted(tmp_path):
     # Kill after one episode (simulated by a 1-episode run), resume to two: same as straight.
     first = small_run(tmp_path / 'r', 'unicycle', 'modular', episodes=1, steps=80)
     train(first, log=lambda _: None)
+    metrics = tmp_path / 'r' / 'unicycle_modular_0' / 'metrics.jsonl'
+    assert metrics.exists()
+    with metrics.open('a') as stream:  # an episode finished after the last checkpoint
+        stream.write(json.dumps({'episode': 1, 'ret': 0.0}) + '\n')
     resumed = train(RunConfig(**{**first.__dict__, 'episodes': 2, 'resume': True}),
                     log=lambda _: None)
+    rows = [json.loads(line) for line in metrics.read_text().splitlines()]
+    assert [r['episode'] for r in rows] == [0, 1] and rows[1]['ret'] != 0.0
     # Equal up to float round-off (the GP's cached factorisation is recomputed on load).
     assert len(resumed) == 2
     for got, want in zip(strip(resumed), strip(a)):
