@@ -115,7 +115,7 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--steps', type=int, default=200)
-    parser.add_argument('--warmup', type=int, default=300)
+    parser.add_argument('--warmup', type=int, default=600)
     parser.add_argument('--systems', nargs='*', default=['unicycle', 'car_following', 'pvtol'])
     parser.add_argument('--threads', type=int, nargs='*', default=[1, 2])
     parser.add_argument('--no-write', action='store_true')
@@ -171,7 +171,8 @@ def main() -> None:
             f'Command: `python benchmarks/bench_training.py --steps {args.steps}` (one run). '
             + machine_line() + '. In-process, 1 SAC update per env step, batch 256, 256x256 '
             'networks, compiled per-step filter assembly, GP estimate every step; each row '
-            f'times {args.steps} steps after {args.warmup} warm-up steps. Reference steps/s: '
+            f'times {args.steps} steps after {args.warmup} warm-up steps (the GP is fitted on '
+            'them, at most 512 points). Reference steps/s: '
             "the authors' code on this machine size as quoted in issue 4 (their `full` runs "
             'are compared with our diff rows).\n\n' + table + '\n\n' + reading))
 
