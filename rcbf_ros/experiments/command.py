@@ -26,6 +26,7 @@ from rcbf_ros.experiments.definitions import (
     BUDGETS,
     experiment_names,
     experiment_runs,
+    METHODS,
     PLAN,
     RunSpec,
 )
@@ -48,6 +49,9 @@ class ExperimentRequest:
     """Seeds are first_seed .. first_seed + seeds - 1."""
     systems: tuple[str, ...] | None = None
     """Restrict to these systems (None: every system of the experiment)."""
+    methods: tuple[str, ...] | None = None
+    """Restrict to these methods (None: every method of the experiment); the report then
+    covers only them."""
     gp: str = 'learned'
     """Transfer filter's disturbance estimate: the run's GP ('learned') or the prior."""
     report: bool = True
@@ -62,6 +66,11 @@ def plan_runs(request: ExperimentRequest) -> list[RunSpec]:
                  for s in specs]
     if request.systems is not None:
         specs = [s for s in specs if s.system in request.systems]
+    if request.methods is not None:
+        unknown = sorted(set(request.methods) - set(METHODS))
+        if unknown:
+            raise ValueError(f'methods: unknown {unknown}, expected some of {sorted(METHODS)}')
+        specs = [s for s in specs if s.method in request.methods]
     return specs
 
 
@@ -144,6 +153,8 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--systems', nargs='+', default=None,
                         choices=['unicycle', 'car_following', 'pvtol'],
                         help='only these systems')
+    parser.add_argument('--methods', nargs='+', default=None, choices=sorted(METHODS),
+                        help='only these methods (e.g. modular)')
     parser.add_argument('--episodes', type=int, default=None, help='override: episodes')
     parser.add_argument('--max-steps', type=int, default=None,
                         help='override: training episode length')
@@ -169,6 +180,7 @@ def run_experiment_command(args: argparse.Namespace, argv: Sequence[str] | None 
         request = ExperimentRequest(
             name=args.name, budget=budget, seeds=args.seeds, out=args.out,
             first_seed=args.first_seed, systems=tuple(args.systems) if args.systems else None,
+            methods=tuple(args.methods) if args.methods else None,
             gp=args.gp, report=not args.no_report)
         if args.first_seed < 0:
             raise ValueError(f'--first-seed: must be >= 0, got {args.first_seed}')

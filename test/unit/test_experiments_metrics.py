@@ -161,3 +161,15 @@ def test_the_200_transfer_layouts_follow_the_rules_and_reach_the_filter():
         for o in pv_layout:
             assert all(_dist((o.x, o.y), p) > 1.2 for p in (PVTOL_GOAL, *PVTOL_STARTS))
     assert len({unicycle_random_layout(s) for s in range(200)}) == 200
+
+
+def test_methods_filter_keeps_only_those_runs_and_names_unknown_ones():
+    from rcbf_ros.experiments.command import ExperimentRequest, plan_runs
+    request = ExperimentRequest(name='transfer', budget=BUDGETS['smoke'], seeds=2, out='o',
+                                first_seed=3, systems=('unicycle',), methods=('modular',))
+    specs = plan_runs(request)
+    assert [(s.system, s.method, s.seed) for s in specs] == [
+        ('unicycle', 'modular', 3), ('unicycle', 'modular', 4)]
+    with pytest.raises(ValueError, match="methods: unknown \\['modualr'\\]"):
+        plan_runs(ExperimentRequest(name='transfer', budget=BUDGETS['smoke'], seeds=1,
+                                    out='o', methods=('modualr',)))
