@@ -61,14 +61,23 @@ def float_list(params: Mapping[str, Any], key: str, length: int | None = None, *
     return out
 
 
-def _number(params: Mapping[str, Any], key: str, default: float) -> float:
+def number(params: Mapping[str, Any], key: str, default: float, *,
+           positive: bool = False) -> float:
+    """params[key] (or ``default``) as a finite float, > 0 if ``positive``; errors name ``key``.
+
+    A numeric string is taken (YAML 1.1 reads ``1.0e6`` as a string); a bool is not a number.
+    """
     value = params.get(key, default)
+    if isinstance(value, bool):
+        raise ValueError(f'{key}: expected a number, got {value!r}')
     try:
         out = float(value)
     except (TypeError, ValueError) as exc:
         raise ValueError(f'{key}: expected a number, got {value!r}') from exc
     if not math.isfinite(out):
-        raise ValueError(f'{key}: must be finite')
+        raise ValueError(f'{key}: must be finite, got {out}')
+    if positive and out <= 0:
+        raise ValueError(f'{key}: must be > 0, got {out}')
     return out
 
 
@@ -142,10 +151,10 @@ def build_families(params: Mapping[str, Any],
         pos_idx = (_index({key: pos[0]}, key, 0, n_x), _index({key: pos[1]}, key, 1, n_x))
         base = CircleObstacles(
             centers=tuple(zip(xs, ys)), radii=radius,
-            margin=_number(params, 'obstacles.margin', 0.0),
+            margin=number(params, 'obstacles.margin', 0.0),
             position_indices=pos_idx,  # type: ignore[arg-type]
             heading_index=_index(params, 'obstacles.heading_index', -1, n_x, allow_none=True),
-            lookahead=_number(params, 'obstacles.lookahead', 0.0))
+            lookahead=number(params, 'obstacles.lookahead', 0.0))
         families.append(cascade(base, system, float_list(params, 'obstacles.gammas')))
     band_names = sorted({k.split('.')[1] for k in params
                          if k.startswith('bands.') and k.count('.') == 2})
@@ -155,8 +164,8 @@ def build_families(params: Mapping[str, Any],
         try:
             base = BandBarrier(
                 index=_index(sub, 'index', 0, n_x),  # type: ignore[arg-type]
-                half_width=_number(sub, 'half_width', 0.0),
-                center=_number(sub, 'center', 0.0),
+                half_width=number(sub, 'half_width', 0.0),
+                center=number(sub, 'center', 0.0),
                 center_index=_index(sub, 'center_index', -1, n_x, allow_none=True),
                 name=band)
             families.append(cascade(base, system, float_list(sub, 'gammas')))
@@ -169,7 +178,7 @@ def build_families(params: Mapping[str, Any],
             raise ValueError('gaps.b: need one index per gaps.a')
         pairs = tuple((_index({'gaps.a': a}, 'gaps.a', 0, n_x),
                        _index({'gaps.b': b}, 'gaps.b', 0, n_x)) for a, b in zip(gap_a, gap_b))
-        base = PairGap(pairs=pairs, delta=_number(params, 'gaps.delta', 0.0))  # type: ignore
+        base = PairGap(pairs=pairs, delta=number(params, 'gaps.delta', 0.0))  # type: ignore
         families.append(cascade(base, system, float_list(params, 'gaps.gammas')))
     nxs = float_list(params, 'walls.nx')
     if nxs:
@@ -189,8 +198,8 @@ def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
     system = build_system(params)
     problem = RCBFProblem(
         system=system, families=build_families(params, system),
-        alpha=_number(params, 'alpha', 1.0), k_c=_number(params, 'k_c', 2.0),
-        slack_weight=_number(params, 'slack_weight', 1.0e6))
+        alpha=number(params, 'alpha', 1.0), k_c=number(params, 'k_c', 2.0),
+        slack_weight=number(params, 'slack_weight', 1.0e6))
     mean = float_list(params, 'disturbance.mean', system.n_x)
     std = float_list(params, 'disturbance.std', system.n_x)
     if any(s < 0 for s in std):

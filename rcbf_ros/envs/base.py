@@ -25,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from rcbf_ros.core.config import flatten, float_list
+from rcbf_ros.core.config import flatten, float_list, number
 from rcbf_ros.core.dynamics import ControlAffineSystem
 
 FILTER_KEYS = ('system', 'alpha', 'k_c', 'slack_weight', 'fail_safe_action')
@@ -50,16 +50,7 @@ class ParamReader:
         self.params = params
 
     def number(self, key: str, default: float, *, positive: bool = False) -> float:
-        value = self.params.get(key, default)
-        try:
-            out = float(value)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f'{key}: expected a number, got {value!r}') from exc
-        if not np.isfinite(out):
-            raise ValueError(f'{key}: must be finite, got {out}')
-        if positive and out <= 0:
-            raise ValueError(f'{key}: must be > 0, got {out}')
-        return out
+        return number(self.params, key, default, positive=positive)
 
     def integer(self, key: str, default: int, *, minimum: int | None = None) -> int:
         value = self.params.get(key, default)

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.config import filter_config_from_params, number
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA, SACConfig
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.ros.node_main import run_node
@@ -72,9 +72,7 @@ class LearnerNode(Node):
         threads = self.settings['threads']
         if not isinstance(threads, int) or threads < 1:
             raise ValueError(f'threads: must be an integer >= 1, got {threads!r}')
-        alpha0 = self.settings['initial_alpha']
-        if isinstance(alpha0, bool) or not isinstance(alpha0, (int, float)) or not alpha0 > 0:
-            raise ValueError(f'initial_alpha: must be a number > 0, got {alpha0!r}')
+        number(self.settings, 'initial_alpha', DEFAULT_INITIAL_ALPHA, positive=True)
         # 1 by default: the simulator, filter and recorder share the cores.
         torch.set_num_threads(threads)
         # The safety problem's keys (system, obstacles.*, gains) come from the params file.

@@ -25,7 +25,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.config import filter_config_from_params, number
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
 from rcbf_ros.params import find_config, load_params
@@ -99,11 +99,12 @@ def resolve_run(run: RunConfig) -> RunConfig:
     """
     if run.learner.sac.initial_alpha is not None:
         return run
-    value = load_params(find_config(run.config_file or run.system), 'learner').get(
-        'initial_alpha', DEFAULT_INITIAL_ALPHA)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-        raise ValueError(f'learner.initial_alpha: must be a number > 0, got {value!r}')
-    sac = replace(run.learner.sac, initial_alpha=float(value))
+    section = load_params(find_config(run.config_file or run.system), 'learner')
+    try:
+        value = number(section, 'initial_alpha', DEFAULT_INITIAL_ALPHA, positive=True)
+    except ValueError as exc:
+        raise ValueError(f'learner.{exc}') from None
+    sac = replace(run.learner.sac, initial_alpha=value)
     return replace(run, learner=replace(run.learner, sac=sac))
 
 

@@ -172,6 +172,17 @@ def test_initial_alpha_and_random_start_come_from_the_config_unless_the_run_sets
     bare.write_text(find_config('unicycle').read_text().replace('/learner:', '/other:'))
     run = RunConfig(config_file=str(bare), out_dir=str(tmp_path / 'bare'), **small)
     assert resolve_run(run).learner.sac.initial_alpha == 0.2
+    # YAML 1.1 reads 1.0e-2 as a string: still the number; a bool is not one.
+    for text, expected in (('1.0e-2', 0.01), ('true', None)):
+        path = tmp_path / f'alpha_{text}.yaml'
+        path.write_text(find_config('unicycle').read_text().replace(
+            'initial_alpha: 0.01', f'initial_alpha: {text}'))
+        run = RunConfig(config_file=str(path), out_dir=str(tmp_path / 'x'), **small)
+        if expected is None:
+            with pytest.raises(ValueError, match='learner.initial_alpha: expected a number'):
+                resolve_run(run)
+        else:
+            assert resolve_run(run).learner.sac.initial_alpha == expected
     starts = set()
     for seed in range(4):
         run = RunConfig(out_dir=str(tmp_path / 'rs'), random_start=True, **small,
