@@ -83,13 +83,21 @@ def load_params(path: str | Path, node_name: str, namespace: str = '') -> dict[s
     fully_qualified = f"{namespace.rstrip('/')}/{node_name}" if namespace else f'/{node_name}'
     wildcard: dict[str, Any] = {}
     specific: dict[str, Any] = {}
-    for key, params in read_params_file(path).items():
+    add_node_sections(read_params_file(path), node_name, fully_qualified, wildcard, specific)
+    return {**wildcard, **specific}
+
+
+def add_node_sections(sections: Mapping[str, Mapping[str, Any]], node_name: str,
+                      fully_qualified: str, wildcard: dict[str, Any],
+                      specific: dict[str, Any]) -> None:
+    """Merge the sections of one params file that apply to the node: ``/**`` entries into
+    ``wildcard``, the node's own into ``specific`` (the caller lets specific win)."""
+    for key, params in sections.items():
         level = node_key_level(key, node_name, fully_qualified)
         if level == 1:
             wildcard.update(params)
         elif level == 2:
             specific.update(params)
-    return {**wildcard, **specific}
 
 
 def find_config(name: str) -> Path:

@@ -269,12 +269,20 @@ class SimulatorNode(Node):
             self.awaiting_action = False
             self.apply(u)
 
-    def on_watchdog(self) -> None:
+    def _running(self) -> bool:
+        """Whether an episode is under way; starts the first one once /state has a reader.
+
+        False after the last episode and until a subscriber appears.
+        """
         if self.done:
-            return
-        if not self.started:
-            if self.state_pub.get_subscription_count() > 0:
-                self.start_episode()
+            return False
+        if not self.started and self.state_pub.get_subscription_count() > 0:
+            self.start_episode()
+            return False
+        return self.started
+
+    def on_watchdog(self) -> None:
+        if not self._running():
             return
         if self.awaiting_action and (time.monotonic() - self.last_state_time
                                      > self.action_timeout_s):
@@ -284,13 +292,8 @@ class SimulatorNode(Node):
             self.publish_state()
 
     def on_tick(self) -> None:
-        if self.done:
-            return
-        if not self.started:
-            if self.state_pub.get_subscription_count() > 0:
-                self.start_episode()
-            return
-        self.apply(self.last_action)
+        if self._running():
+            self.apply(self.last_action)
 
 
 def spin_until_done(node: Any, linger_s: float = 0.5) -> None:

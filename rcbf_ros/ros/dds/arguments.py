@@ -19,7 +19,7 @@ from typing import Any, Iterable, Sequence
 
 import yaml
 
-from rcbf_ros.params import node_key_level, read_params_file
+from rcbf_ros.params import add_node_sections, read_params_file
 
 _FLAG_ONLY = {
     '--enable-rosout-logs', '--disable-rosout-logs', '--enable-stdout-logs',
@@ -177,12 +177,8 @@ def parameter_overrides(arguments: Iterable[RosArguments], node_name: str,
     direct: dict[str, Any] = {}
     for args in arguments:
         for path in args.params_files:
-            for key, params in load_params_file(path).items():
-                level = node_key_level(key, node_name, fully_qualified)
-                if level == 1:
-                    wildcard.update(params)
-                elif level == 2:
-                    specific.update(params)
+            add_node_sections(load_params_file(path), node_name, fully_qualified, wildcard,
+                              specific)
         direct.update(args.parameters)
     return {**wildcard, **specific, **direct}
 
