@@ -18,11 +18,11 @@ Invariant: a proposal is only ever passed through the QP; every path that cannot
 from __future__ import annotations
 
 from dataclasses import dataclass
-import math
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from rcbf_ros.core.config import number
 from rcbf_ros.core.filter import FilterResult, SafetyFilter
 
 # diagnostic_msgs/DiagnosticStatus levels.
@@ -134,16 +134,10 @@ class NodeSettings:
 
 
 def _positive(params: Mapping[str, Any], key: str, *, allow_zero: bool = False) -> float:
-    value = params.get(key, NODE_PARAMETER_DEFAULTS[key])
-    if isinstance(value, bool):
-        raise ValueError(f'{key}: expected a number, got {value!r}')
-    try:
-        out = float(value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f'{key}: expected a number, got {value!r}') from exc
-    if not math.isfinite(out) or out < 0 or (out == 0 and not allow_zero):
+    out = number(params, key, NODE_PARAMETER_DEFAULTS[key])  # a finite number, not a bool
+    if out < 0 or (out == 0 and not allow_zero):
         raise ValueError(f'{key}: must be a finite number {">=" if allow_zero else ">"} 0, '
-                         f'got {value!r}')
+                         f'got {params.get(key)!r}')
     return out
 
 

@@ -69,6 +69,23 @@ def _spawn(domain_id: int, *args: str) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+def _finish(simulator, listener, controller) -> str:
+    """Wait for the simulator (its last episode) and the listener to exit 0; stop them all.
+
+    Returns the simulator's stderr."""
+    try:
+        sim_out, sim_err = simulator.communicate(timeout=TIMEOUT_S)
+        assert simulator.returncode == 0, f'simulator failed:\n{sim_err}{sim_out}'
+        listener.communicate(timeout=TIMEOUT_S)
+        assert listener.returncode == 0
+    finally:
+        for process in (controller, simulator, listener):
+            if process.poll() is None:
+                process.terminate()
+                process.communicate(timeout=30)
+    return sim_err
+
+
 def _offline_rollout() -> tuple[list[np.ndarray], list[float], list[int]]:
     """Same env, seed and controller without middleware: states after reset and every step."""
     from rcbf_ros.envs import UnicycleEnv
@@ -106,16 +123,7 @@ def test_lockstep_simulator_and_nominal_controller(ros_domain_id, tmp_path):
     controller = _spawn(
         ros_domain_id, '-m', 'sim_nodes.nominal_controller_node', '--ros-args',
         '-p', 'system:=unicycle', '-r', 'cmd_proposed:=cmd_safe')
-    try:
-        sim_out, sim_err = simulator.communicate(timeout=TIMEOUT_S)
-        assert simulator.returncode == 0, f'simulator failed:\n{sim_err}{sim_out}'
-        listener.communicate(timeout=TIMEOUT_S)
-        assert listener.returncode == 0
-    finally:
-        for process in (controller, simulator, listener):
-            if process.poll() is None:
-                process.terminate()
-                process.communicate(timeout=30)
+    sim_err = _finish(simulator, listener, controller)
     record = json.loads(out.read_text())
 
     events = record['events']
@@ -154,16 +162,7 @@ def test_realtime_simulator_holds_the_last_action(ros_domain_id, tmp_path):
     controller = _spawn(
         ros_domain_id, '-m', 'sim_nodes.nominal_controller_node', '--ros-args',
         '-p', 'system:=unicycle', '-r', 'cmd_proposed:=cmd_safe')
-    try:
-        sim_out, sim_err = simulator.communicate(timeout=TIMEOUT_S)
-        assert simulator.returncode == 0, f'simulator failed:\n{sim_err}{sim_out}'
-        listener.communicate(timeout=TIMEOUT_S)
-        assert listener.returncode == 0
-    finally:
-        for process in (controller, simulator, listener):
-            if process.poll() is None:
-                process.terminate()
-                process.communicate(timeout=30)
+    _finish(simulator, listener, controller)
     record = json.loads(out.read_text())
     events = record['events']
     assert [(e['event'], e['episode']) for e in events] == [('start', 1), ('end', 1)]
