@@ -8,16 +8,15 @@ spinning node runs its ``finally``.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 import signal
 import subprocess
 import sys
 import time
 
+from dds_harness import spawn  # this directory: on sys.path for pytest and the children
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
 PEER_TIMEOUT_S = 60.0
 
 
@@ -129,19 +128,8 @@ def role_spinner(ready: str, marker: str) -> None:
 
 
 # ----------------------------------------------------------------------------- harness
-def _env(domain_id: int) -> dict[str, str]:
-    from rcbf_ros.ros.loopback import ensure_loopback
-    env = dict(os.environ)
-    ensure_loopback(env, force=True)
-    env['ROS_DOMAIN_ID'] = str(domain_id)
-    env['RCBF_ROS_RUNTIME'] = 'cyclone'
-    env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(REPO), env.get('PYTHONPATH')]))
-    return env
-
-
 def _start(domain_id: int, *args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, __file__, *args], env=_env(domain_id), cwd=REPO,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return spawn(domain_id, __file__, *args)
 
 
 def _finish(process: subprocess.Popen) -> None:

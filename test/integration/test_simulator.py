@@ -9,16 +9,14 @@ controller: lock-step over DDS must reproduce it exactly, step for step.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
-import subprocess
 import sys
 import time
 
+from dds_harness import spawn  # this directory: on sys.path for pytest and the children
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
 TIMEOUT_S = 120.0
 MAX_STEPS = 150
 EPISODES = 2
@@ -54,19 +52,6 @@ def role_listener(out_path: str, episodes: int) -> None:
         rclpy.try_shutdown()
 
 
-def _env(domain_id: int) -> dict[str, str]:
-    from rcbf_ros.ros.loopback import ensure_loopback
-    env = dict(os.environ)
-    ensure_loopback(env, force=True)
-    env['ROS_DOMAIN_ID'] = str(domain_id)
-    env['RCBF_ROS_RUNTIME'] = 'cyclone'
-    env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(REPO), env.get('PYTHONPATH')]))
-    return env
-
-
-def _spawn(domain_id: int, *args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, *args], env=_env(domain_id), cwd=REPO,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def _finish(simulator, listener, controller) -> str:
@@ -113,14 +98,14 @@ def _offline_rollout() -> tuple[list[np.ndarray], list[float], list[int]]:
 @pytest.mark.integration
 def test_lockstep_simulator_and_nominal_controller(ros_domain_id, tmp_path):
     out = tmp_path / 'record.json'
-    listener = _spawn(ros_domain_id, __file__, 'listener', str(out), str(EPISODES))
-    simulator = _spawn(
+    listener = spawn(ros_domain_id, __file__, 'listener', str(out), str(EPISODES))
+    simulator = spawn(
         ros_domain_id, '-m', 'sim_nodes.simulator_node', '--ros-args',
         '-p', 'system:=unicycle', '-p', f'max_steps:={MAX_STEPS}', '-p', 'random_start:=true',
         '-p', f'max_episodes:={EPISODES}', '-p', f'seed:={SEED}', '-p', 'mode:=lockstep',
         '-p', 'action_timeout_s:=1.0')
     time.sleep(3.0)  # let the simulator publish its first state to the listener alone
-    controller = _spawn(
+    controller = spawn(
         ros_domain_id, '-m', 'sim_nodes.nominal_controller_node', '--ros-args',
         '-p', 'system:=unicycle', '-r', 'cmd_proposed:=cmd_safe')
     sim_err = _finish(simulator, listener, controller)
@@ -154,12 +139,12 @@ def test_realtime_simulator_holds_the_last_action(ros_domain_id, tmp_path):
     from rcbf_ros.params import find_config, load_params
     out = tmp_path / 'record.json'
     steps = 100
-    listener = _spawn(ros_domain_id, __file__, 'listener', str(out), '1')
-    simulator = _spawn(
+    listener = spawn(ros_domain_id, __file__, 'listener', str(out), '1')
+    simulator = spawn(
         ros_domain_id, '-m', 'sim_nodes.simulator_node', '--ros-args',
         '-p', 'system:=unicycle', '-p', f'max_steps:={steps}', '-p', 'max_episodes:=1',
         '-p', 'mode:=realtime', '-p', 'rate_hz:=50.0')
-    controller = _spawn(
+    controller = spawn(
         ros_domain_id, '-m', 'sim_nodes.nominal_controller_node', '--ros-args',
         '-p', 'system:=unicycle', '-r', 'cmd_proposed:=cmd_safe')
     _finish(simulator, listener, controller)

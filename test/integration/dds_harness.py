@@ -1,0 +1,26 @@
+"""Child processes for the integration tests: loopback Cyclone DDS, their own domain id."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+import subprocess
+import sys
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def subprocess_env(domain_id: int) -> dict[str, str]:
+    """This environment, pinned to loopback, on ``domain_id``, with the repo importable."""
+    from rcbf_ros.ros.loopback import ensure_loopback
+    env = dict(os.environ)
+    ensure_loopback(env, force=True)
+    env['ROS_DOMAIN_ID'] = str(domain_id)
+    env['RCBF_ROS_RUNTIME'] = 'cyclone'
+    env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(REPO), env.get('PYTHONPATH')]))
+    return env
+
+
+def spawn(domain_id: int, *args: str) -> subprocess.Popen:
+    """``python *args`` in that environment, text pipes for stdout and stderr."""
+    return subprocess.Popen([sys.executable, *args], env=subprocess_env(domain_id), cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
