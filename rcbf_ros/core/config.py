@@ -11,6 +11,7 @@ Keys (all optional except ``system``)::
     system_params.<name>: constructor argument of the system (e.g. with_operator)
     input_limits.min / input_limits.max: [m floats] (override the system's; [] = unbounded)
     alpha, k_c, slack_weight
+    input_weight: [m floats > 0] weights of u_S in the QP cost (default all 1)
     obstacles.x / .y / .radius: [k floats];  obstacles.margin, obstacles.lookahead,
         obstacles.heading_index (-1: none), obstacles.position_indices: [2 ints],
         obstacles.gammas: [r - 1 cascade gains]
@@ -199,7 +200,8 @@ def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
     problem = RCBFProblem(
         system=system, families=build_families(params, system),
         alpha=number(params, 'alpha', 1.0), k_c=number(params, 'k_c', 2.0),
-        slack_weight=number(params, 'slack_weight', 1.0e6))
+        slack_weight=number(params, 'slack_weight', 1.0e6),
+        input_weight=float_list(params, 'input_weight', system.n_u) or None)
     mean = float_list(params, 'disturbance.mean', system.n_x)
     std = float_list(params, 'disturbance.std', system.n_x)
     if any(s < 0 for s in std):

@@ -207,6 +207,8 @@ class SafetyFilter:
         a_matrix = sp.csc_matrix((np.ones(rows.size), (rows, cols)), shape=(nc, nz))
         a_matrix.sort_indices()
         diag = np.full(nz, 2.0)
+        if problem.input_weight is not None:
+            diag[:-1] = 2.0 * np.asarray(problem.input_weight)
         diag[-1] = 2.0 * problem.slack_weight
         self._solver = osqp.OSQP()
         self._solver.setup(P=sp.csc_matrix(np.diag(diag)), q=np.zeros(nz), A=a_matrix,

@@ -2,7 +2,7 @@
 
 The paper's RCBF-QP (eq. QP), with z = [u_S, eps]:
 
-    minimize    ||u_S||^2 + l eps^2
+    minimize    u_S^T W u_S + l eps^2             (W = diag(w); w = 1: the paper's ||u_S||^2)
     subject to  grad h_i^T (f + g (u_RL + u_S)) >= -alpha h_i - min_{psi in D} grad h_i^T psi + eps
                 u_min <= u_RL + u_S <= u_max                          (actuator limits, optional)
 
@@ -10,18 +10,23 @@ in the standard form used throughout the package,
 
     minimize_z  1/2 z^T P z + q^T z   subject to   G z <= h
 
-    P = 2 diag(1, ..., 1, l)                                    (B, m + 1, m + 1)
+    P = 2 diag(w_1, ..., w_m, l)                                (B, m + 1, m + 1)
     q = 0                                                       (B, m + 1)
     RCBF row i:  [-L_g h_i, -1] z <= L_f h_i + L_g h_i u_RL + alpha h_i + rho_i
     limit rows:  [ e_j, 0] z <= u_max_j - u_RL_j,   [-e_j, 0] z <= u_RL_j - u_min_j
 
 where rho_i = min over the disturbance hull of grad h_i^T psi (:func:`robust_margin`). The slack
 eps is free (paper: eps in R); with l large it is ~0 whenever the barrier rows can be met, and it
-makes the QP always feasible and strictly convex. G and h are differentiable in u_RL, so the
-learner's losses see the safe action (paper eqs. q_update_diff, pi_update_diff).
+makes the QP always feasible and strictly convex. The input weights w choose how the correction
+is shared between inputs: the unicycle's omega enters L_g h only through the look-ahead l_p, so
+with w = 1 the smallest correction brakes instead of steering and the robot stops in front of
+an obstacle; a small omega weight makes steering the cheap correction. G and h are
+differentiable in u_RL, so the learner's losses see the safe action (paper eqs. q_update_diff,
+pi_update_diff).
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple, Sequence
 
 import torch
@@ -64,8 +69,19 @@ def robust_margin(grad_h: Tensor, mean: Tensor, std: Tensor, k_c: float) -> Tens
             - k_c * torch.einsum('bkn,bn->bk', grad_h.abs(), std))
 
 
+def check_input_weight(input_weight: Sequence[float], m: int) -> tuple[float, ...]:
+    """The m input weights as floats, each finite and > 0; errors name ``input_weight``."""
+    weights = tuple(float(w) for w in input_weight)
+    if len(weights) != m:
+        raise ValueError(f'input_weight: expected {m} values (one per input), got {len(weights)}')
+    if not all(math.isfinite(w) and w > 0 for w in weights):
+        raise ValueError(f'input_weight: every weight must be finite and > 0, got {weights}')
+    return weights
+
+
 def build_rcbf_qp(*, h: Tensor, lf_h: Tensor, lg_h: Tensor, rho: Tensor, u_rl: Tensor,
                   alpha: float | Tensor, slack_weight: float,
+                  input_weight: Sequence[float] | None = None,
                   u_min: Sequence[float] | None = None,
                   u_max: Sequence[float] | None = None) -> QPData:
     """Assemble the RCBF-QP in standard form (see module docstring).
@@ -78,6 +94,7 @@ def build_rcbf_qp(*, h: Tensor, lf_h: Tensor, lg_h: Tensor, rho: Tensor, u_rl: T
         u_rl: (B, m) proposed actions; G and h are differentiable in it.
         alpha: linear class-K gain alpha(h) = alpha h, scalar or (K,).
         slack_weight: l > 0.
+        input_weight: m weights w_j > 0 of u_S in the cost (None: all 1).
         u_min: m lower limits on u_RL + u_S, or None.
         u_max: m upper limits, or None (both or neither).
 
@@ -103,6 +120,8 @@ def build_rcbf_qp(*, h: Tensor, lf_h: Tensor, lg_h: Tensor, rho: Tensor, u_rl: T
         g_rows = torch.cat([g_rows, limit_g.expand(batch, -1, -1)], dim=1)
         h_rows = torch.cat([h_rows, hi - u_rl, u_rl - lo], dim=1)
     diag = torch.ones(m + 1, dtype=dtype, device=device)
+    if input_weight is not None:
+        diag[:m] = torch.as_tensor(check_input_weight(input_weight, m), dtype=dtype)
     diag[-1] = slack_weight
     P = torch.diag_embed(2.0 * diag).expand(batch, -1, -1)
     q = torch.zeros(batch, m + 1, dtype=dtype, device=device)

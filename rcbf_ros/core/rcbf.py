@@ -15,7 +15,7 @@ from torch import Tensor
 
 from rcbf_ros.core.barriers import BarrierFamily
 from rcbf_ros.core.dynamics import ControlAffineSystem
-from rcbf_ros.core.qp import build_rcbf_qp, QPData, robust_margin
+from rcbf_ros.core.qp import build_rcbf_qp, check_input_weight, QPData, robust_margin
 
 
 class BarrierTerms(NamedTuple):
@@ -72,6 +72,8 @@ class RCBFProblem:
     """k_c of the disturbance box mean +/- k_c std (paper eq. disturb_estimate)."""
     slack_weight: float = 1.0e6
     """l: weight of the squared slack (large: violations only when unavoidable)."""
+    input_weight: tuple[float, ...] | None = None
+    """w: per-input weights of u_S in the cost u_S^T diag(w) u_S (None: all 1, the paper's)."""
     use_input_limits: bool = True
     """Add the actuator-limit rows u_min <= u_RL + u_S <= u_max when the system has limits."""
 
@@ -84,6 +86,9 @@ class RCBFProblem:
             raise ValueError('k_c: must be >= 0')
         if self.slack_weight <= 0:
             raise ValueError('slack_weight: must be > 0')
+        if self.input_weight is not None:
+            object.__setattr__(self, 'input_weight',
+                               check_input_weight(self.input_weight, self.system.n_u))
 
     @property
     def n_barriers(self) -> int:
@@ -128,6 +133,6 @@ class RCBFProblem:
         limits = self.has_limits
         return build_rcbf_qp(
             h=terms.h, lf_h=terms.lf_h, lg_h=terms.lg_h, rho=rho, u_rl=u_rl,
-            alpha=self.alpha, slack_weight=self.slack_weight,
+            alpha=self.alpha, slack_weight=self.slack_weight, input_weight=self.input_weight,
             u_min=self.system.u_min if limits else None,
             u_max=self.system.u_max if limits else None)

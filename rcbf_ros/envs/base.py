@@ -28,7 +28,8 @@ import torch
 from rcbf_ros.core.config import flatten, float_list, number
 from rcbf_ros.core.dynamics import ControlAffineSystem
 
-FILTER_KEYS = ('system', 'alpha', 'k_c', 'slack_weight', 'fail_safe_action')
+FILTER_KEYS = ('system', 'alpha', 'k_c', 'slack_weight', 'input_weight',
+               'fail_safe_action')
 """Flat keys (exact) that :func:`rcbf_ros.core.config.filter_config_from_params` reads."""
 FILTER_PREFIXES = ('system_params.', 'input_limits.', 'obstacles.', 'bands.', 'gaps.', 'walls.',
                    'disturbance.')

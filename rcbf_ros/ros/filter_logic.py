@@ -55,6 +55,7 @@ NODE_PARAMETER_DEFAULTS: dict[str, Any] = {
 # (the config's own default applies); such values are dropped by :func:`collect_parameters`.
 FILTER_PARAMETER_KEYS: tuple[str, ...] = (
     'system', 'input_limits.min', 'input_limits.max', 'alpha', 'k_c', 'slack_weight',
+    'input_weight',
     'obstacles.x', 'obstacles.y', 'obstacles.radius', 'obstacles.margin', 'obstacles.lookahead',
     'obstacles.heading_index', 'obstacles.position_indices', 'obstacles.gammas',
     'gaps.a', 'gaps.b', 'gaps.delta', 'gaps.gammas',

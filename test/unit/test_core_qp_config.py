@@ -121,6 +121,10 @@ def test_shipped_configs_build(name):
      'obstacles.position_indices'),
     ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0]},
       'input_limits': {'min': [1.0, 1.0], 'max': [0.0, 2.0]}}, 'input_limits.min'),
+    ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0]},
+      'input_weight': [1.0]}, 'input_weight'),
+    ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0]},
+      'input_weight': [1.0, 0.0]}, 'input_weight'),
 ])
 def test_config_errors_name_the_key(params, key):
     with pytest.raises(ValueError, match=key.replace('.', r'\.')):

@@ -2,11 +2,13 @@
 
 References, none of them the code under test:
 - cvxpy + Clarabel (an interior-point solver) on the RCBF-QP written out here from the paper
-  (min ||u_S||^2 + l eps^2 s.t. L_f h + L_g h (u_RL + u_S) + alpha h + rho + eps >= 0, limits),
+  (min ||u_S||^2 + l eps^2, or sum_j w_j u_S,j^2 with the config's input weights,
+  s.t. L_f h + L_g h (u_RL + u_S) + alpha h + rho + eps >= 0, limits),
   with rho = grad h^T mean - k_c |grad h|^T std computed here, and, on the unicycle, h and its
   Lie derivatives written out by hand (on PVTOL and cars: checked by finite differences);
 - the closed form of the soft QP with a single active row and no limits:
-  u_S = -r a / (|a|^2 + 1/l), eps = -r / (l |a|^2 + 1) with a = L_g h, r = row value at u_RL;
+  u_S = -r W^-1 a / (a^T W^-1 a + 1/l), eps = -r / (l a^T W^-1 a + 1) with a = L_g h,
+  r = row value at u_RL, W = diag(input weights);
 - a minimal-slack LP (cvxpy): eps_min = min eps s.t. the rows and the limits; every feasible
   point of the filter's QP has eps >= eps_min, and eps_min <= 0 means the rows are satisfiable.
 """
@@ -20,6 +22,8 @@ import torch
 
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.envs.nominal import unicycle_go_to_goal
+from rcbf_ros.learning.safety_layer import DifferentiableSafetyLayer
 from rcbf_ros.params import find_config, load_params
 
 SYSTEMS = ('unicycle', 'pvtol', 'car_following')
@@ -71,7 +75,9 @@ def reference_solution(problem, x, u_rl, mean, std, limits=True):
     if limits and problem.has_limits:
         constraints += [u_rl + u_s <= np.array(system.u_max),
                         u_rl + u_s >= np.array(system.u_min)]
-    objective = cp.Minimize(cp.sum_squares(u_s) + problem.slack_weight * cp.square(eps))
+    weights = np.ones(system.n_u) if problem.input_weight is None else np.array(
+        problem.input_weight)
+    objective = cp.Minimize(weights @ cp.square(u_s) + problem.slack_weight * cp.square(eps))
     cp.Problem(objective, constraints).solve(solver=cp.CLARABEL, tol_gap_abs=1e-12,
                                              tol_gap_rel=1e-12, tol_feas=1e-12)
     return u_rl + u_s.value, float(eps.value)
@@ -95,10 +101,14 @@ def minimal_slack(problem, x, mean, std) -> float:
     return float(lp.x[-1])
 
 
-@pytest.mark.parametrize('system', SYSTEMS)
-def test_matches_clarabel_on_random_states(system):
+@pytest.mark.parametrize('system, overrides', [
+    *((system, {}) for system in SYSTEMS),
+    ('pvtol', {'input_weight': [0.3, 1.5]}),
+    ('unicycle', {'input_weight': [1.0, 1.0]}),
+])
+def test_matches_clarabel_on_random_states(system, overrides):
     rng = np.random.default_rng(7)
-    config = config_for(system)
+    config = config_for(system, **overrides)
     problem = config.problem
     safety_filter = SafetyFilter(problem, max_iter=ROOMY_MAX_ITER)
     n_x, n_u = problem.system.n_x, problem.system.n_u
@@ -153,13 +163,15 @@ def test_barrier_gradients_match_finite_differences(system):
             np.testing.assert_allclose(grad[:, i], fd, rtol=1e-5, atol=1e-5)
 
 
-def test_single_active_row_is_the_soft_projection():
+@pytest.mark.parametrize('input_weight', [[], [1.0, 0.01], [3.0, 0.5]])
+def test_single_active_row_is_the_soft_projection(input_weight):
     # One obstacle, no input limits: the QP has one row, solved in closed form.
     config = config_for('unicycle', **{'obstacles.x': [0.0], 'obstacles.y': [0.0],
                                        'obstacles.radius': [0.6], 'input_limits.min': [],
-                                       'input_limits.max': []})
+                                       'input_limits.max': [], 'input_weight': input_weight})
     problem = config.problem
     assert problem.n_barriers == 1 and not problem.has_limits
+    w_inv = 1.0 / np.array(input_weight or [1.0, 1.0])
     safety_filter = SafetyFilter(problem)
     rng = np.random.default_rng(5)
     checked = 0
@@ -173,8 +185,9 @@ def test_single_active_row_is_the_soft_projection():
         if r >= 0:
             continue
         l = problem.slack_weight  # noqa: E741 - the paper's name
-        u_s = -r * a / (a @ a + 1.0 / l)
-        eps = -r / (l * (a @ a) + 1.0)
+        a_w_a = a @ (w_inv * a)
+        u_s = -r * w_inv * a / (a_w_a + 1.0 / l)
+        eps = -r / (l * a_w_a + 1.0)
         np.testing.assert_allclose(result.u_s, u_s, rtol=0, atol=1e-6)
         assert result.slack == pytest.approx(eps, abs=1e-9)
         checked += 1
@@ -300,3 +313,58 @@ def test_bad_input_raises_naming_the_field(kwargs, field):
     args.update(kwargs)
     with pytest.raises(ValueError, match=f'^{field}:'):
         safety_filter.filter(args['state'], args['u_rl'], args['mean'], args['std'])
+
+
+def _drive_past_one_obstacle(input_weight, y0: float, steps: int = 600):
+    """Go-to-goal from (-2, y0) to (2, 0) through the filter, one obstacle at the origin on the
+    straight line between them. Returns (steps to the goal or None, final state, min h)."""
+    config = config_for('unicycle', **{'obstacles.x': [0.0], 'obstacles.y': [0.0],
+                                       'obstacles.radius': [0.6],
+                                       'input_weight': input_weight})
+    safety_filter = SafetyFilter(config.problem)
+    x, goal, min_h = np.array([-2.0, y0, 0.0]), (2.0, 0.0), np.inf
+    for k in range(steps):
+        u = safety_filter.filter(x, unicycle_go_to_goal(x, goal)).u_safe
+        x = x + 0.02 * np.array([u[0] * np.cos(x[2]), u[0] * np.sin(x[2]), u[1]])
+        min_h = min(min_h, float(lie_terms(config.problem, x)[0][0]))
+        if np.hypot(x[0] - goal[0], x[1] - goal[1]) < 0.3:
+            return k, x, min_h
+    return None, x, min_h
+
+
+@pytest.mark.parametrize('y0', [0.02, 0.2])
+def test_cheap_steering_weight_turns_a_deadlock_into_a_detour(y0):
+    # With the paper's ||u_S||^2, omega reaches L_g h only through the look-ahead l_p = 0.03, so
+    # the smallest correction brakes: the robot stops at the boundary, facing the obstacle,
+    # while the nominal controller keeps pointing at the goal behind it. A small omega weight
+    # makes turning the cheaper correction, and the robot goes around. Both stay safe.
+    steps, x, min_h = _drive_past_one_obstacle([1.0, 1.0], y0)
+    assert steps is None and x[0] < -0.6 and min_h >= -1e-6
+    steps, x, min_h = _drive_past_one_obstacle([1.0, 0.01], y0)
+    assert steps is not None and min_h >= -1e-6
+
+
+@pytest.mark.parametrize('system, overrides', [
+    *((system, {}) for system in SYSTEMS),
+    ('pvtol', {'input_weight': [0.3, 1.5]}),
+])
+def test_differentiable_layer_gives_the_filters_action(system, overrides):
+    # The learner's layer (diffqp) and the per-step filter (OSQP) solve the QP that ONE
+    # RCBFProblem builds, input weights included.
+    rng = np.random.default_rng(11)
+    problem = config_for(system, **overrides).problem
+    safety_filter = SafetyFilter(problem, max_iter=ROOMY_MAX_ITER)
+    n_x, n_u = problem.system.n_x, problem.system.n_u
+    states = np.stack([random_state(system, rng) for _ in range(32)])
+    u_rl = rng.uniform(-3.0, 3.0, (32, n_u))
+    mean = rng.normal(0.0, 0.05, (32, n_x))
+    std = np.abs(rng.normal(0.0, 0.05, (32, n_x)))
+    layer = DifferentiableSafetyLayer(problem, lambda x: (torch.from_numpy(mean),
+                                                          torch.from_numpy(std)))
+    batch = layer(torch.from_numpy(states), torch.from_numpy(u_rl)).numpy()
+    active = 0
+    for b in range(32):
+        result = safety_filter.filter(states[b], u_rl[b], mean[b], std[b])
+        np.testing.assert_allclose(batch[b], result.u_safe, rtol=0, atol=1e-5)
+        active += bool(result.active)
+    assert active >= 3
