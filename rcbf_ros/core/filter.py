@@ -149,11 +149,19 @@ def compiled_assembly(problem: RCBFProblem, *, checks: int = 8, seed: int = 0) -
     return compiled
 
 
+OSQP_EPS = 1e-9
+"""Default OSQP absolute and relative tolerance, of this class and of the safety_filter node
+(one value, so the node and the in-process trainer take the same actions)."""
+OSQP_MAX_ITER = 4000
+"""Default OSQP iteration cap (the node's ``osqp.max_iter``)."""
+
+
 class SafetyFilter:
     """RCBF-QP safety filter for one :class:`RCBFProblem` (see module docstring)."""
 
     def __init__(self, problem: RCBFProblem, *, fail_safe_action: Sequence[float] | None = None,
-                 eps_abs: float = 1e-9, eps_rel: float = 1e-9, max_iter: int = 4000,
+                 eps_abs: float = OSQP_EPS, eps_rel: float = OSQP_EPS,
+                 max_iter: int = OSQP_MAX_ITER,
                  polish: bool = False, fallback: bool = True,
                  compile_assembly: bool = False) -> None:
         """Set OSQP up once with the fixed sparsity pattern.

@@ -23,7 +23,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from rcbf_ros.core.config import number
-from rcbf_ros.core.filter import FilterResult, SafetyFilter
+from rcbf_ros.core.filter import FilterResult, OSQP_EPS, OSQP_MAX_ITER, SafetyFilter
 
 # diagnostic_msgs/DiagnosticStatus levels.
 OK = 0
@@ -43,9 +43,9 @@ NODE_PARAMETER_DEFAULTS: dict[str, Any] = {
     'log_throttle_s': 1.0,
     'qos.reliable': True,
     'qos.depth': 10,
-    'osqp.eps_abs': 1.0e-8,
-    'osqp.eps_rel': 1.0e-8,
-    'osqp.max_iter': 4000,
+    'osqp.eps_abs': OSQP_EPS,
+    'osqp.eps_rel': OSQP_EPS,
+    'osqp.max_iter': OSQP_MAX_ITER,
     'diagnostics.min_period_s': 0.0,
     'diagnostics.name': 'safety_filter',
     'diagnostics.hardware_id': '',
