@@ -357,7 +357,7 @@ def test_invalid_parameters_exit_2_naming_the_key(ros_domain_id, args, key):
 @pytest.mark.slow
 def test_unsafe_controller_behind_the_filter_never_violates(ros_domain_id, probe, tmp_path):
     from rcbf_ros.ros.conversions import msg_to_sections
-    episodes, max_steps = 3, 800
+    episodes, max_steps = 4, 800
     bag = tmp_path / 'bag'
     nodes = ['simulator', 'safety_filter', 'nominal_controller']
     recorder = (REPO / 'rcbf_ros' / 'ros' / 'recorder_node.py').exists()
@@ -387,8 +387,10 @@ def test_unsafe_controller_behind_the_filter_never_violates(ros_domain_id, probe
     ends = [e for e in events if e['event'] == 'end']
     assert len(ends) == episodes, events
     steps = sum(e['steps'] for e in ends)
-    assert steps >= 2000
+    assert steps >= 800
     assert all(e['violations'] == 0 for e in ends), ends
+    # Led around the obstacles, not parked in front of one (config input_weight).
+    assert all(e['goal_reached'] for e in ends), ends
     h_true = np.array([h for _, h in probe.received['/h_true']])
     assert len(h_true) >= steps and h_true.min() >= 0.0
 
