@@ -197,7 +197,7 @@ def transfer_report(results: dict[RunSpec, list[dict[str, Any]]], report_dir: Pa
 def value_maps_report(maps: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
                       report_dir: Path, *, seed: int) -> str:
     """CSV and figure of the Unicycle value maps (keys: method)."""
-    from rcbf_ros.experiments.value_map import plot_value_maps
+    from rcbf_ros.experiments.value_map import map_contrast, plot_value_maps
     from rcbf_ros.params import find_config, load_params
     rows = []
     for method, (xs, ys, values) in maps.items():
@@ -213,11 +213,20 @@ def value_maps_report(maps: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
                     report_dir / 'value_maps_unicycle.png', obstacles=obstacles,
                     starts=UNICYCLE_STARTS, goal=params.get('goal', (2.5, 2.5)),
                     goal_radius=float(params.get('goal_radius', 0.3)))
+    contrast = map_contrast(maps, obstacles)
+    table = [f'| {METHODS[m].label} | {c["corr_reference"]:.3f} | {c["ring_z"]:.3f} |'
+             for m, c in contrast.items()]
     text = '\n'.join([
         '## Value maps (Unicycle)', '',
         f'V(x, y) = max over 8 headings of min(Q1, Q2)(o(x, y, theta), mean action), seed {seed}; '
         'training obstacles in red, starts blue, goal green.', '',
-        '![value maps](value_maps_unicycle.png)', ''])
+        '![value maps](value_maps_unicycle.png)', '',
+        'Outside the obstacles: correlation of each map with the map of SAC without obstacles, '
+        'and the mean standardised value within 0.4 m of an obstacle edge (negative: the '
+        'critic is low next to the training obstacles). `map_contrast` in '
+        'rcbf_ros/experiments/value_map.py.', '',
+        '| Method | correlation with the upper bound | standardised value near obstacles |',
+        '|---|---|---|', *table, ''])
     (report_dir / 'value_maps.md').write_text(text)
     return text
 

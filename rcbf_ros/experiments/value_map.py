@@ -53,6 +53,55 @@ def value_map(learner: SafeLearner, *, grid: int = 61, half_size: float = 3.0,
     return xs, ys, values
 
 
+def map_contrast(maps: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+                 obstacles: Sequence[tuple[float, float, float]], *,
+                 reference: str = 'sac_no_obstacles', ring: float = 0.4
+                 ) -> dict[str, dict[str, float]]:
+    """Two numbers per map for the paper's reading of the figure (no eyeballing).
+
+    Over the grid cells outside every obstacle (distance to its centre > radius):
+
+    - ``corr_reference``: Pearson correlation with the ``reference`` map (the critic trained
+      without obstacles); 1 means the same shape;
+    - ``ring_z``: the mean standardised value, (V - mean V) / std V, on the cells within
+      ``ring`` metres of an obstacle's edge. A critic that learned the filter's corrections
+      near the training obstacles is low there (negative); a task-only critic is not.
+
+    Args:
+        maps: method -> (xs, ys, V[iy, ix]), all on the same grid.
+        obstacles: (x, y, radius) of the training obstacles.
+        reference: key of the reference map (absent: ``corr_reference`` is NaN).
+        ring: width of the band around each obstacle, metres.
+
+    Raises:
+        ValueError: naming ``ring`` when <= 0, or ``maps`` when the grids differ.
+    """
+    if ring <= 0:
+        raise ValueError(f'ring: must be > 0, got {ring}')
+    grids = {(tuple(xs), tuple(ys)) for xs, ys, _ in maps.values()}
+    if len(grids) > 1:
+        raise ValueError('maps: every map must share one grid')
+    out: dict[str, dict[str, float]] = {}
+    if not maps:
+        return out
+    xs, ys, _ = next(iter(maps.values()))
+    gx, gy = np.meshgrid(xs, ys)  # [iy, ix], like V
+    clearance = np.full(gx.shape, np.inf)
+    for x, y, r in obstacles:
+        clearance = np.minimum(clearance, np.hypot(gx - x, gy - y) - r)
+    outside, near = clearance > 0, (clearance > 0) & (clearance <= ring)
+    ref = maps[reference][2][outside] if reference in maps else None
+    for method, (_, _, values) in maps.items():
+        v = values[outside]
+        z = (values - v.mean()) / v.std() if v.std() > 0 else np.zeros_like(values)
+        out[method] = {
+            'corr_reference': (float(np.corrcoef(ref, v)[0, 1])
+                               if ref is not None and v.std() > 0 and ref.std() > 0
+                               else float('nan')),
+            'ring_z': float(z[near].mean()) if near.any() else float('nan')}
+    return out
+
+
 def plot_value_maps(maps: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
                     path: str | Path, *, obstacles: Sequence[tuple[float, float, float]],
                     starts: Sequence[Sequence[float]], goal: Sequence[float],

@@ -173,3 +173,33 @@ def test_methods_filter_keeps_only_those_runs_and_names_unknown_ones():
     with pytest.raises(ValueError, match="methods: unknown \\['modualr'\\]"):
         plan_runs(ExperimentRequest(name='transfer', budget=BUDGETS['smoke'], seeds=1,
                                     out='o', methods=('modualr',)))
+
+
+def test_map_contrast_reads_the_paper_figure_on_constructed_maps():
+    from rcbf_ros.experiments.value_map import map_contrast
+    xs = ys = np.linspace(-3.0, 3.0, 61)
+    gx, gy = np.meshgrid(xs, ys)
+    task = -np.hypot(gx - 2.5, gy - 2.5)  # value rises toward the goal
+    obstacles = [(0.0, 0.0, 0.6), (-1.5, 1.5, 0.6)]
+    clearance = np.minimum(np.hypot(gx, gy) - 0.6, np.hypot(gx + 1.5, gy - 1.5) - 0.6)
+    dips = task - 5.0 * np.exp(-np.clip(clearance, 0, None) / 0.3)  # low next to obstacles
+    maps = {'sac_no_obstacles': (xs, ys, task), 'modular': (xs, ys, 3.0 * task + 1.0),
+            'sac_rcbf': (xs, ys, dips)}
+    out = map_contrast(maps, obstacles)
+    # An affine copy has the reference's shape exactly: correlation 1, same ring value.
+    assert out['modular']['corr_reference'] == pytest.approx(1.0, abs=1e-12)
+    assert out['modular']['ring_z'] == pytest.approx(out['sac_no_obstacles']['ring_z'],
+                                                     abs=1e-12)
+    # Hand check of ring_z for the reference: standardise over the outside cells, average
+    # over the cells whose edge clearance is in (0, 0.4].
+    outside = clearance > 0
+    z = (task - task[outside].mean()) / task[outside].std()
+    assert out['sac_no_obstacles']['ring_z'] == pytest.approx(
+        z[outside & (clearance <= 0.4)].mean(), abs=1e-12)
+    # Dips near the obstacles: lower correlation, clearly negative ring value.
+    assert out['sac_rcbf']['corr_reference'] < 0.95
+    assert out['sac_rcbf']['ring_z'] < out['sac_no_obstacles']['ring_z'] - 0.5
+    with pytest.raises(ValueError, match='ring'):
+        map_contrast(maps, obstacles, ring=0.0)
+    with pytest.raises(ValueError, match='maps'):
+        map_contrast({**maps, 'x': (xs[:10], ys, task)}, obstacles)
