@@ -24,6 +24,7 @@ import scipy.sparse as sp
 import torch
 
 from rcbf_ros.core.diffqp import solve_qp_batch_full
+from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
 
 _OK_STATUS = {1: 'solved', 2: 'solved_inaccurate'}
@@ -214,10 +215,8 @@ class SafetyFilter:
         self._rows, self._cols = rows, cols
         a_matrix = sp.csc_matrix((np.ones(rows.size), (rows, cols)), shape=(nc, nz))
         a_matrix.sort_indices()
-        diag = np.full(nz, 2.0)
-        if problem.input_weight is not None:
-            diag[:-1] = 2.0 * np.asarray(problem.input_weight)
-        diag[-1] = 2.0 * problem.slack_weight
+        diag = 2.0 * np.asarray(cost_weights(self.n_u, problem.slack_weight,
+                                             problem.input_weight))
         self._solver = osqp.OSQP()
         self._solver.setup(P=sp.csc_matrix(np.diag(diag)), q=np.zeros(nz), A=a_matrix,
                            l=np.full(nc, -np.inf), u=np.ones(nc), verbose=False, polishing=polish,

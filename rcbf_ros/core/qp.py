@@ -79,6 +79,16 @@ def check_input_weight(input_weight: Sequence[float], m: int) -> tuple[float, ..
     return weights
 
 
+def cost_weights(m: int, slack_weight: float,
+                 input_weight: Sequence[float] | None = None) -> tuple[float, ...]:
+    """(w_1, ..., w_m, l): the cost's diagonal, P = 2 diag(w, l) (the one definition, shared
+    by :func:`build_rcbf_qp` and the OSQP filter's fixed P)."""
+    if slack_weight <= 0:
+        raise ValueError('slack_weight: must be > 0')
+    weights = (1.0,) * m if input_weight is None else check_input_weight(input_weight, m)
+    return (*weights, float(slack_weight))
+
+
 def build_rcbf_qp(*, h: Tensor, lf_h: Tensor, lg_h: Tensor, rho: Tensor, u_rl: Tensor,
                   alpha: float | Tensor, slack_weight: float,
                   input_weight: Sequence[float] | None = None,
@@ -103,8 +113,6 @@ def build_rcbf_qp(*, h: Tensor, lf_h: Tensor, lg_h: Tensor, rho: Tensor, u_rl: T
     """
     batch, _, m = lg_h.shape
     dtype, device = lg_h.dtype, lg_h.device
-    if slack_weight <= 0:
-        raise ValueError('slack_weight: must be > 0')
     if (u_min is None) != (u_max is None):
         raise ValueError('u_min/u_max: give both actuator limits or neither')
     alpha_t = torch.as_tensor(alpha, dtype=dtype, device=device)
@@ -119,10 +127,7 @@ def build_rcbf_qp(*, h: Tensor, lf_h: Tensor, lg_h: Tensor, rho: Tensor, u_rl: T
         hi = torch.as_tensor(u_max, dtype=dtype, device=device)
         g_rows = torch.cat([g_rows, limit_g.expand(batch, -1, -1)], dim=1)
         h_rows = torch.cat([h_rows, hi - u_rl, u_rl - lo], dim=1)
-    diag = torch.ones(m + 1, dtype=dtype, device=device)
-    if input_weight is not None:
-        diag[:m] = torch.as_tensor(check_input_weight(input_weight, m), dtype=dtype)
-    diag[-1] = slack_weight
+    diag = torch.tensor(cost_weights(m, slack_weight, input_weight), dtype=dtype, device=device)
     P = torch.diag_embed(2.0 * diag).expand(batch, -1, -1)
     q = torch.zeros(batch, m + 1, dtype=dtype, device=device)
     return QPData(P, q, g_rows, h_rows)
