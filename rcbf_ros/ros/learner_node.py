@@ -72,7 +72,8 @@ class LearnerNode(Node):
         threads = self.settings['threads']
         if not isinstance(threads, int) or threads < 1:
             raise ValueError(f'threads: must be an integer >= 1, got {threads!r}')
-        number(self.settings, 'initial_alpha', DEFAULT_INITIAL_ALPHA, positive=True)
+        self.settings['initial_alpha'] = number(self.settings, 'initial_alpha',
+                                                DEFAULT_INITIAL_ALPHA, positive=True)
         # 1 by default: the simulator, filter and recorder share the cores.
         torch.set_num_threads(threads)
         # The safety problem's keys (system, obstacles.*, gains) come from the params file.
@@ -160,7 +161,7 @@ class LearnerNode(Node):
             mode=str(s['mode']), model_based=bool(s['model_based']), seed=int(s['seed']),
             start_steps=int(s['start_steps']), update_after=int(s['update_after']),
             batch_size=int(s['batch_size']), gp_refit_interval=int(s['gp_refit_interval']),
-            k_c=float(s['k_c']), sac=SACConfig(initial_alpha=float(s['initial_alpha'])))
+            k_c=float(s['k_c']), sac=SACConfig(initial_alpha=s['initial_alpha']))
         learner = SafeLearner(config.problem, obs_dim=obs_dim, dt=float(s['dt']),
                               config=learner_cfg)
         checkpoint = self.out_dir / 'checkpoint.pt'

@@ -21,6 +21,7 @@ from scipy.optimize import linprog
 import torch
 
 from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.dynamics import step_euler
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.envs.nominal import unicycle_go_to_goal
 from rcbf_ros.learning.safety_layer import DifferentiableSafetyLayer
@@ -325,7 +326,8 @@ def _drive_past_one_obstacle(input_weight, y0: float, steps: int = 600):
     x, goal, min_h = np.array([-2.0, y0, 0.0]), (2.0, 0.0), np.inf
     for k in range(steps):
         u = safety_filter.filter(x, unicycle_go_to_goal(x, goal)).u_safe
-        x = x + 0.02 * np.array([u[0] * np.cos(x[2]), u[0] * np.sin(x[2]), u[1]])
+        x = step_euler(config.problem.system, torch.from_numpy(x)[None],
+                       torch.from_numpy(u)[None], 0.02)[0].numpy()
         min_h = min(min_h, float(lie_terms(config.problem, x)[0][0]))
         if np.hypot(x[0] - goal[0], x[1] - goal[1]) < 0.3:
             return k, x, min_h
