@@ -375,7 +375,7 @@ class DisturbanceGP:
         return self._cache['active'].clone()
 
     def _refresh_cache(self) -> None:
-        """Cache per active output dim: scaled inputs, ``L^-1`` and ``alpha = (K + nI)^-1 y``.
+        """Cache per active output dim: scaled inputs, ``L^-T`` and ``alpha = (K + nI)^-1 y``.
 
         A dimension is active unless every stored residual (all data, not only the capped
         training subset) is within ``exact_output_tol`` of zero.
@@ -397,7 +397,7 @@ class DisturbanceGP:
         # times faster on CPU than L^-1 k with a (M, 1) right-hand side.
         self._cache = {'active': active, 'lengthscales': lengthscales,
                        'outputscale': outputscale, 'noise': noise,
-                       'x_scaled': x_scaled, 'chol': chol,
+                       'x_scaled': x_scaled,
                        'chol_inv_t': chol_inv.transpose(-1, -2).contiguous(), 'alpha': alpha}
 
     @staticmethod
