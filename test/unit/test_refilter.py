@@ -21,6 +21,7 @@ from rcbf_ros.bag.messages import jazzy_typestore
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.refilter import main, refilter_bag, RefilterError
+from rcbf_ros.ros.filter_logic import NODE_PARAMETER_DEFAULTS
 
 PYMCAP_CLI = shutil.which('pymcap-cli') or str(Path(sys.executable).parent / 'pymcap-cli')
 T0 = 1_700_000_000_000_000_000
@@ -54,10 +55,12 @@ def _sections(**sections: np.ndarray) -> dict:
 
 
 def _node_filter(params: dict) -> SafetyFilter:
-    """The filter as the safety_filter node builds it by default (OSQP eps 1e-8)."""
+    """The filter as the safety_filter node builds it by default (its OSQP settings)."""
     config = filter_config_from_params(params)
+    defaults = NODE_PARAMETER_DEFAULTS
     return SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action,
-                        eps_abs=1e-8, eps_rel=1e-8, max_iter=4000)
+                        eps_abs=defaults['osqp.eps_abs'], eps_rel=defaults['osqp.eps_rel'],
+                        max_iter=defaults['osqp.max_iter'])
 
 
 def _inputs(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None,
