@@ -8,8 +8,10 @@ sample_efficiency  unicycle        baseline, baseline_compensator, sac_rcbf (MF:
                    car_following   baseline, baseline_compensator, sac_rcbf (no MB: Car
                                    Following has no state-only observation model, see
                                    rcbf_ros.training.models)
-transfer           unicycle, pvtol sac_no_obstacles (``unconstrained``, trained without obstacles
-                                   or filter: the upper bound), baseline, sac_rcbf, modular
+transfer           unicycle, pvtol sac_no_obstacles (``unconstrained``, trained without obstacles,
+                                   PVTOL also without its operator: the upper bound; only
+                                   PVTOL's tilt/thrust/arena envelope is filtered), baseline,
+                                   sac_rcbf, modular
 value_maps         unicycle        sac_no_obstacles, sac_rcbf, modular (the transfer runs)
 =================  ==============  ============================================================
 
@@ -41,7 +43,7 @@ class Method:
     model_based: bool = False
     """MB SAC-RCBF (synthetic rollouts)."""
     no_obstacles: bool = False
-    """Train without obstacles and without a filter (transfer upper bound)."""
+    """Train without the layout (transfer upper bound; see RunConfig.no_obstacles)."""
 
 
 METHODS: dict[str, Method] = {

@@ -14,7 +14,9 @@ Per layout seed s (paper: 200 layouts, "Modular Task Learning"):
 
 PVTOL layouts without the operator have a 6-dimensional state while a GP trained with the
 operator has 7 inputs: the GP is queried at [x, x1] (the operator right under the drone) and its
-first 6 outputs are used. Nothing here trains; the learner is only read.
+first 6 outputs are used. The other way round (the upper bound, trained without the operator, on
+a layout with one) the GP is queried at the drone's 6 entries and the operator's entry gets the
+prior (zero mean, ``gp_prior_std``). Nothing here trains; the learner is only read.
 """
 from __future__ import annotations
 
@@ -74,8 +76,10 @@ def disturbance_estimate(learner: SafeLearner, state: np.ndarray, gp: GPSource
     query = np.asarray(state, dtype=np.float64)
     if n < n_gp:  # PVTOL without operator: put the operator under the drone.
         query = np.concatenate([query, np.full(n_gp - n, query[0])])
-    elif n > n_gp:
-        raise ValueError(f'state: {n} values but the learner models {n_gp}')
+    elif n > n_gp:  # a learner trained without the operator: the prior for what it never saw
+        mean, std = learner.disturbance(torch.as_tensor(query[:n_gp]).unsqueeze(0))
+        return (np.concatenate([mean[0].numpy(), np.zeros(n - n_gp)]),
+                np.concatenate([std[0].numpy(), np.full(n - n_gp, learner.config.gp_prior_std)]))
     mean, std = learner.disturbance(torch.as_tensor(query).unsqueeze(0))
     return mean[0, :n].numpy().copy(), std[0, :n].numpy().copy()
 

@@ -54,7 +54,10 @@ class RunConfig:
     max_steps: int | None = None
     """Override the env's episode length."""
     no_obstacles: bool = False
-    """Train without obstacles and without a filter (the transfer upper bound)."""
+    """Train without the layout (the transfer upper bound): no obstacles and, on PVTOL, no safety
+    operator (paper: "no obstacles nor a safety operator"). Barriers that do not belong to the
+    layout (PVTOL's tilt, thrust and arena envelope) stay in a filter; with none left (Unicycle)
+    the run has no filter."""
     random_start: bool | None = None
     """Start each episode from a random start of the env (Unicycle: corners and edges, random
     heading; the paper's value-map figure shows these starts); None: the config file's
@@ -118,14 +121,18 @@ def build_run(run: RunConfig) -> tuple[Any, SafetyFilter | None, SafeLearner, di
     filter_section = load_params(path, 'safety_filter')
     if run.no_obstacles:
         sim_params.update({'obstacles.x': [], 'obstacles.y': [], 'obstacles.radius': []})
+        if 'system_params.with_operator' in sim_params:
+            sim_params['system_params.with_operator'] = False
     if run.max_steps is not None:
         sim_params['max_steps'] = int(run.max_steps)
     env = make_env(run.system, sim_params)
     filter_params = env.filter_params(filter_section)
-    config = filter_config_from_params(
-        filter_params if not run.no_obstacles else _any_barrier(filter_params))
+    has_barrier = _has_barrier(filter_params)
+    config = filter_config_from_params(filter_params if has_barrier
+                                       else _any_barrier(filter_params))
     learner_cfg = run.learner
-    constrained = learner_cfg.mode != 'unconstrained' and not run.no_obstacles
+    # Without the layout only the envelope is filtered, whatever the learner's mode.
+    constrained = has_barrier and (learner_cfg.mode != 'unconstrained' or run.no_obstacles)
     if not constrained and learner_cfg.mode != 'unconstrained':
         learner_cfg = replace(learner_cfg, mode='unconstrained')
     obs, _ = env.reset(seed=learner_cfg.seed)
@@ -135,6 +142,12 @@ def build_run(run: RunConfig) -> tuple[Any, SafetyFilter | None, SafeLearner, di
                         compile_assembly=run.compile_filter or config.compile_assembly) \
         if constrained else None
     return env, filt, learner, filter_params
+
+
+def _has_barrier(params: dict[str, Any]) -> bool:
+    """Whether flat filter parameters configure at least one barrier."""
+    return bool(params.get('obstacles.x') or params.get('gaps.a') or params.get('walls.nx')
+                or any(k.startswith('bands.') for k in params))
 
 
 def _any_barrier(params: dict[str, Any]) -> dict[str, Any]:

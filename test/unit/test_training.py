@@ -1,6 +1,7 @@
 """In-process training: every mode on every system runs safely, seeds reproduce, resume works."""
 from __future__ import annotations
 
+from dataclasses import replace
 import json
 
 import numpy as np
@@ -45,6 +46,33 @@ def test_model_based_diff_adds_synthetic_transitions(tmp_path):
     stats = run_episode(env, filt, learner, episode=0, seed=0)
     assert stats.violations == 0
     assert learner.model_buffer is not None and len(learner.model_buffer) > 0
+
+
+def test_upper_bound_run_drops_the_layout_but_keeps_the_envelope(tmp_path):
+    """``no_obstacles`` (the transfer upper bound): no obstacles, no PVTOL operator, and only the
+    barriers that are not part of the layout stay filtered: PVTOL's tilt/thrust/arena envelope,
+    nothing on the Unicycle. The unconstrained PVTOL learner used to fly away (returns of
+    -3000 in its first 10 episodes) with no filter at all."""
+    from rcbf_ros.training.loop import build_run, run_episode
+    env, filt, learner, _ = build_run(replace(small_run(tmp_path, 'pvtol', 'unconstrained'),
+                                              no_obstacles=True))
+    assert len(env.obstacles) == 0
+    assert not env.with_operator and learner.system.n_x == 6
+    assert filt is not None
+    assert sorted(filt.problem.barrier_names) == ['arena_x', 'arena_y', 'thrust', 'tilt']
+    stats = run_episode(env, filt, learner, episode=0, seed=0)
+    assert stats.violations == 0 and stats.filter_active > 0  # random actions hit the envelope
+    # Its transfer evaluation meets layouts with the operator: the drone's entries from its GP,
+    # the operator's the prior.
+    from rcbf_ros.experiments.evaluate import disturbance_estimate
+    state = np.array([-4.5, 2.0, 0.1, 0.0, 0.05, 1.1, -4.4])
+    mean, std = disturbance_estimate(learner, state, 'learned')
+    gp_mean, gp_std = learner.disturbance(torch.as_tensor(state[:6]).unsqueeze(0))
+    np.testing.assert_allclose(mean, [*gp_mean[0].numpy(), 0.0])
+    np.testing.assert_allclose(std, [*gp_std[0].numpy(), learner.config.gp_prior_std])
+    _, filt, _, _ = build_run(replace(small_run(tmp_path, 'unicycle', 'unconstrained'),
+                                      no_obstacles=True))
+    assert filt is None
 
 
 def test_same_seed_same_result_and_resume_equals_uninterrupted(tmp_path):
