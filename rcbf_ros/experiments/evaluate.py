@@ -22,9 +22,10 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 import time
-from typing import Any, Literal, Sequence
+from typing import Any, Callable, Literal, Sequence
 
 import numpy as np
 import torch
@@ -126,37 +127,74 @@ def evaluate_layout(learner: SafeLearner, system: str, layout_seed: int, *,
     return row
 
 
-def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
-                      max_steps: int | None = None, gp: GPSource = 'learned'
-                      ) -> list[dict[str, Any]]:
-    """Every layout of ``layout_seeds`` for the run in ``run_dir``; cached.
+def _cached_rows(cache: Path, seeds: list[int]) -> list[dict[str, Any]]:
+    """The rows of ``cache`` that evaluated a prefix of ``seeds`` (a run cut short keeps
+    them; a torn last line and anything after it are dropped); [] for another evaluation."""
+    rows: list[dict[str, Any]] = []
+    if not cache.exists():
+        return rows
+    for line in cache.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            break
+        if len(rows) >= len(seeds) or row.get('layout_seed') != seeds[len(rows)]:
+            return []
+        rows.append(row)
+    return rows
 
-    The rows go to ``<run_dir>/transfer_<gp>_L<n>_T<steps>.jsonl`` (one per layout) and are
-    read back instead of recomputed when that file is complete.
+
+def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
+                      max_steps: int | None = None, gp: GPSource = 'learned',
+                      log: Callable[[str], None] | None = None, progress_every: int = 20
+                      ) -> list[dict[str, Any]]:
+    """Every layout of ``layout_seeds`` for the run in ``run_dir``; cached and resumable.
+
+    Each row goes to ``<run_dir>/transfer_<gp>_L<n>_T<steps>.jsonl`` as soon as its episode
+    ends (one line per layout, ``eval_wall_s`` its wall time), so an evaluation that is
+    interrupted (Ctrl-C, a crash) continues after its last finished layout; a complete file is
+    read back instead of recomputed. ``log`` gets a progress line every ``progress_every``
+    layouts.
     """
     run_dir = Path(run_dir)
     seeds = [int(s) for s in layout_seeds]
     steps_tag = 'default' if max_steps is None else str(int(max_steps))
     cache = run_dir / f'transfer_{gp}_L{len(seeds)}_T{steps_tag}.jsonl'
-    if cache.exists():
-        rows = [json.loads(line) for line in cache.read_text().splitlines() if line.strip()]
-        if [r['layout_seed'] for r in rows] == seeds:
-            return rows
+    rows = _cached_rows(cache, seeds)
+    if len(rows) == len(seeds):
+        return rows
     torch.set_num_threads(1)
     run, learner = load_trained_learner(run_dir)
-    rows = []
+    label = '/'.join(run_dir.parts[-3:])
+    if rows and log is not None:
+        log(f'{label}: transfer resumes after {len(rows)}/{len(seeds)} layouts')
     start = time.perf_counter()
-    for seed in seeds:
-        rows.append(evaluate_layout(learner, run.system, seed, max_steps=max_steps, gp=gp,
-                                    config_file=run.config_file))
-    wall = time.perf_counter() - start
-    for row in rows:
-        row['eval_wall_s_total'] = wall
-    cache.write_text(''.join(json.dumps(r) + '\n' for r in rows))
+    done_before = len(rows)
+    kept = ''.join(json.dumps(r) + '\n' for r in rows)
+    if not cache.exists() or cache.read_text() != kept:  # drop a torn line or another evaluation
+        partial = cache.with_suffix('.tmp')
+        partial.write_text(kept)
+        os.replace(partial, cache)
+    with cache.open('a') as stream:
+        for seed in seeds[len(rows):]:
+            t0 = time.perf_counter()
+            row = evaluate_layout(learner, run.system, seed, max_steps=max_steps, gp=gp,
+                                  config_file=run.config_file)
+            row['eval_wall_s'] = time.perf_counter() - t0
+            stream.write(json.dumps(row) + '\n')
+            stream.flush()
+            rows.append(row)
+            if log is not None and (len(rows) % progress_every == 0 or len(rows) == len(seeds)):
+                per = (time.perf_counter() - start) / (len(rows) - done_before)
+                log(f'{label}: transfer {len(rows)}/{len(seeds)} layouts, '
+                    f'{sum(bool(r["goal_reached"]) for r in rows)} goals, '
+                    f'{sum(int(r["violations"]) for r in rows)} violation steps, '
+                    f'{per:.1f} s/layout')
     return rows
 
 
 def evaluate_job(job: tuple[str, tuple[int, ...], int | None, str]) -> list[dict[str, Any]]:
     """Ray/sequential task wrapper: (run_dir, layout_seeds, max_steps, gp) -> rows."""
     run_dir, seeds, max_steps, gp = job
-    return evaluate_transfer(run_dir, seeds, max_steps=max_steps, gp=gp)  # type: ignore[arg-type]
+    return evaluate_transfer(run_dir, seeds, max_steps=max_steps, gp=gp,  # type: ignore[arg-type]
+                             log=lambda line: print(line, flush=True))

@@ -16,7 +16,7 @@ import torch
 from rcbf_ros.cli import main as cli_main
 from rcbf_ros.envs.layouts import unicycle_random_layout
 from rcbf_ros.experiments.definitions import Budget, BUDGETS, RunSpec
-from rcbf_ros.experiments.evaluate import load_trained_learner
+from rcbf_ros.experiments.evaluate import evaluate_transfer, load_trained_learner
 from rcbf_ros.experiments.runner import run_all, run_status
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.training.loop import make_env
@@ -151,3 +151,27 @@ def test_runner_skips_finished_runs_and_resumes_partial_ones(tmp_path):
     assert [r['episode'] for r in rows] == [0, 1]
     summary = json.loads((one.run_dir(tmp_path) / 'summary.json').read_text())
     assert summary['episodes'] == 2 and summary['safety_violations'] == 0
+    # Its transfer evaluation: each layout's row is on disk when its episode ends, so a cut-short
+    # evaluation (a torn last line included) resumes after its last finished layout and gives
+    # the rows an uninterrupted one gives; a complete file is read back, not recomputed.
+    seeds = [0, 1, 2]
+    lines: list[str] = []
+    full = evaluate_transfer(one.run_dir(tmp_path), seeds, max_steps=15, log=lines.append,
+                             progress_every=1)
+    cache = one.run_dir(tmp_path) / 'transfer_learned_L3_T15.jsonl'
+    assert len(lines) == 3 and lines[-1].startswith('unicycle/modular/seed0: transfer 3/3 layouts')
+    text = cache.read_text().splitlines()
+    cache.write_text(text[0] + '\n' + text[1][:25])
+    lines.clear()
+    resumed = evaluate_transfer(one.run_dir(tmp_path), seeds, max_steps=15, log=lines.append,
+                                progress_every=1)
+    assert lines[0] == 'unicycle/modular/seed0: transfer resumes after 1/3 layouts'
+    drop = {'eval_wall_s'}
+    assert [{k: v for k, v in r.items() if k not in drop} for r in resumed] == \
+        [{k: v for k, v in r.items() if k not in drop} for r in full]
+    assert [json.loads(line) for line in cache.read_text().splitlines()] == resumed
+    stamp = cache.stat().st_mtime_ns
+    lines.clear()
+    assert evaluate_transfer(one.run_dir(tmp_path), seeds, max_steps=15, log=lines.append) == \
+        resumed
+    assert lines == [] and cache.stat().st_mtime_ns == stamp
