@@ -116,6 +116,38 @@ class GPConfig:
             raise ValueError(f'exact_output_tol must be >= 0, got {self.exact_output_tol}')
 
 
+def _jittered_cholesky(a: torch.Tensor, tries: int = 6) -> torch.Tensor:
+    """Cholesky factors of a batch (B, M, M) of covariance matrices.
+
+    A batch element that is not numerically positive definite (near-duplicate inputs, a signal
+    variance ~1e7 times the noise: a Car Following checkpoint held one) is refactored with
+    jitter j * mean(diag) added, j = 1e-8 (float64; 1e-6 float32), then 10x per try, as GPyTorch
+    does; the rest keep their exact factor.
+
+    Raises:
+        torch.linalg.LinAlgError: still not positive definite after ``tries`` jitters.
+    """
+    chol, info = torch.linalg.cholesky_ex(a)
+    failed = info > 0
+    if not bool(failed.any()):
+        return chol
+    eye = torch.eye(a.shape[-1], dtype=a.dtype)
+    scale = a.diagonal(dim1=-2, dim2=-1).mean(-1)
+    jitter = 1e-8 if a.dtype == torch.float64 else 1e-6
+    for _ in range(tries):
+        index = failed.nonzero().squeeze(-1)
+        fixed, info_fixed = torch.linalg.cholesky_ex(
+            a[index] + (jitter * scale[index])[:, None, None] * eye)
+        chol[index] = fixed
+        failed[index] = info_fixed > 0
+        if not bool(failed.any()):
+            return chol
+        jitter *= 10.0
+    raise torch.linalg.LinAlgError(
+        f'GP covariance of output(s) {failed.nonzero().squeeze(-1).tolist()} is not positive '
+        f'definite even with jitter {jitter / 10.0:g} x mean(diag)')
+
+
 class _BatchIndependentExactGP(gpytorch.models.ExactGP):
     """``n_out`` independent exact GPs as one GPyTorch batch (zero mean, scaled ARD RBF)."""
 
@@ -390,7 +422,7 @@ class DisturbanceGP:
         k_train = self._rbf(x_scaled, x_scaled, outputscale)
         eye = torch.eye(x.shape[0], dtype=x.dtype)
         k_noisy = k_train + noise[:, None, None] * eye
-        chol = torch.linalg.cholesky(k_noisy)  # (n_out, M, M)
+        chol = _jittered_cholesky(k_noisy)  # (n_out, M, M)
         chol_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
         alpha = torch.cholesky_solve(y.T.unsqueeze(-1), chol).squeeze(-1)  # (n_out, M)
         # Row-vector layout: k^T L^-T is one batched (B, M) x (M, M) product, which is several

@@ -253,3 +253,26 @@ def test_all_outputs_known_and_a_single_query():
     mean, std = gp.predict(torch.zeros(3, dtype=DTYPE))
     assert mean.shape == std.shape == (1, 2)
     assert not mean.any() and not std.any()
+
+
+def test_numerically_singular_covariance_is_factored_with_jitter():
+    """A long lengthscale, a large signal variance and a tiny noise make K + nI numerically
+    singular (a Car Following checkpoint could not be reloaded for that): the factor gets the
+    smallest jitter that works, and the posterior still interpolates its data."""
+    from rcbf_ros.learning.gp import _jittered_cholesky
+    x = torch.linspace(0.0, 1.0, 300, dtype=torch.float64).unsqueeze(1)
+    y = torch.sin(3.0 * x)
+    hyper = (torch.tensor([[0.5]]), torch.tensor([1e3]), torch.tensor([1e-12]))
+    k = 1e3 * torch.exp(-0.5 * (x - x.T) ** 2 / 0.25) + 1e-12 * torch.eye(300,
+                                                                           dtype=torch.float64)
+    assert int(torch.linalg.cholesky_ex(k).info) > 0  # plain Cholesky fails here
+    chol = _jittered_cholesky(k.unsqueeze(0))[0]
+    assert torch.allclose(chol @ chol.T, k, atol=1e-4)
+    gp = DisturbanceGP(1, 1, GPConfig(max_train_points=300))
+    gp.add(x, y)
+    gp.set_hyperparameters(*hyper)
+    mean, std = gp.predict(x[::7])
+    assert torch.isfinite(std).all()
+    assert torch.allclose(mean, y[::7], atol=1e-3)
+    with pytest.raises(torch.linalg.LinAlgError, match='output'):
+        _jittered_cholesky(-torch.eye(3, dtype=torch.float64).unsqueeze(0))
