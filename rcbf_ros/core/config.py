@@ -193,6 +193,14 @@ def build_families(params: Mapping[str, Any],
     return tuple(families)
 
 
+def configures_barriers(params: Mapping[str, Any]) -> bool:
+    """Whether flat parameters configure at least one barrier family: the conditions
+    :func:`build_families` builds a family on (a layout emptied of obstacles may leave none)."""
+    params = flatten(params)
+    return bool(params.get('obstacles.x') or params.get('gaps.a') or params.get('walls.nx')
+                or any(k.startswith('bands.') and k.count('.') == 2 for k in params))
+
+
 def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
     """Validate flat (or nested) parameters into a :class:`FilterConfig`."""
     params = flatten(params)

@@ -25,7 +25,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from rcbf_ros.core.config import filter_config_from_params, number
+from rcbf_ros.core.config import configures_barriers, filter_config_from_params, number
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
 from rcbf_ros.params import find_config, load_params
@@ -127,7 +127,7 @@ def build_run(run: RunConfig) -> tuple[Any, SafetyFilter | None, SafeLearner, di
         sim_params['max_steps'] = int(run.max_steps)
     env = make_env(run.system, sim_params)
     filter_params = env.filter_params(filter_section)
-    has_barrier = _has_barrier(filter_params)
+    has_barrier = configures_barriers(filter_params)
     config = filter_config_from_params(filter_params if has_barrier
                                        else _any_barrier(filter_params))
     learner_cfg = run.learner
@@ -142,12 +142,6 @@ def build_run(run: RunConfig) -> tuple[Any, SafetyFilter | None, SafeLearner, di
                         compile_assembly=run.compile_filter or config.compile_assembly) \
         if constrained else None
     return env, filt, learner, filter_params
-
-
-def _has_barrier(params: dict[str, Any]) -> bool:
-    """Whether flat filter parameters configure at least one barrier."""
-    return bool(params.get('obstacles.x') or params.get('gaps.a') or params.get('walls.nx')
-                or any(k.startswith('bands.') for k in params))
 
 
 def _any_barrier(params: dict[str, Any]) -> dict[str, Any]:
