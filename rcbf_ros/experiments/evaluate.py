@@ -127,21 +127,23 @@ def evaluate_layout(learner: SafeLearner, system: str, layout_seed: int, *,
     return row
 
 
-def _cached_rows(cache: Path, seeds: list[int]) -> list[dict[str, Any]]:
+def _cached_rows(cache: Path, seeds: list[int]) -> tuple[list[dict[str, Any]], bool]:
     """The rows of ``cache`` that evaluated a prefix of ``seeds`` (a run cut short keeps
-    them; a torn last line and anything after it are dropped); [] for another evaluation."""
-    rows: list[dict[str, Any]] = []
+    them; a torn last line and anything after it are dropped; another evaluation's file gives
+    none), and whether the file holds exactly those rows."""
     if not cache.exists():
-        return rows
-    for line in cache.read_text().splitlines():
+        return [], False
+    rows: list[dict[str, Any]] = []
+    lines = cache.read_text().splitlines(keepends=True)
+    for line in lines:
         try:
             row = json.loads(line)
         except json.JSONDecodeError:
             break
         if len(rows) >= len(seeds) or row.get('layout_seed') != seeds[len(rows)]:
-            return []
+            return [], False
         rows.append(row)
-    return rows
+    return rows, len(rows) == len(lines) and all(line.endswith('\n') for line in lines)
 
 
 def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
@@ -160,7 +162,7 @@ def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
     seeds = [int(s) for s in layout_seeds]
     steps_tag = 'default' if max_steps is None else str(int(max_steps))
     cache = run_dir / f'transfer_{gp}_L{len(seeds)}_T{steps_tag}.jsonl'
-    rows = _cached_rows(cache, seeds)
+    rows, clean = _cached_rows(cache, seeds)
     if len(rows) == len(seeds):
         return rows
     torch.set_num_threads(1)
@@ -170,10 +172,9 @@ def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
         log(f'{label}: transfer resumes after {len(rows)}/{len(seeds)} layouts')
     start = time.perf_counter()
     done_before = len(rows)
-    kept = ''.join(json.dumps(r) + '\n' for r in rows)
-    if not cache.exists() or cache.read_text() != kept:  # drop a torn line or another evaluation
+    if not clean:  # drop a torn line or another evaluation's rows
         partial = cache.with_suffix('.tmp')
-        partial.write_text(kept)
+        partial.write_text(''.join(json.dumps(r) + '\n' for r in rows))
         os.replace(partial, cache)
     with cache.open('a') as stream:
         for seed in seeds[len(rows):]:
