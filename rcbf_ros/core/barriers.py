@@ -12,7 +12,7 @@ Families here (all differentiable in torch):
   optional look-ahead point p = (x, y) + l_p (cos th, sin th) so that both unicycle inputs appear
   in L_g h (relative degree 1).
 - :class:`BandBarrier`      h = delta^2 - (x_i - c)^2 where c is a constant or another state entry
-  (the PVTOL safety operator: delta^2 - (x1 - x_h)^2).
+  (the PVTOL safety operator: delta^2 - (x1 - x_h)^2), or the band's two linear sides.
 - :class:`PairGap`          h = 1/2 ((x_a - x_b)^2 - delta^2) (Car Following, h_3 and h_5).
 - :class:`HalfPlane`        h = n^T x_S - b (stay on one side of a line/plane; arena walls).
 - :class:`Cascaded`         h* = L_f h + gamma h (paper, Car Following), applied recursively by
@@ -107,7 +107,20 @@ class CircleObstacles:
 
 @dataclass(frozen=True)
 class BandBarrier:
-    """Stay within a band: h(x) = delta^2 - (x_i - c)^2, c a constant or the state entry x_j."""
+    """Stay within a band |x_i - c| <= delta, c a constant or the state entry x_j.
+
+    Two forms of the same set:
+
+    - ``quadratic`` (the paper's): one barrier h = delta^2 - (x_i - c)^2;
+    - ``sides``: two linear barriers h_upper = delta - (x_i - c), h_lower = delta + (x_i - c).
+
+    They differ once cascaded (relative degree >= 2). The gradient of the quadratic form,
+    -2 (x_i - c), vanishes at the centre, so there its first cascade level, h_dot + gamma h, is
+    delta^2 gamma whatever the velocity, and further out it weighs the velocity by the offset:
+    a drone crossing the PVTOL operator's centre line fast is let through, and at the far edge
+    the braking it then needs exceeds the input limits. The linear sides see the velocity
+    toward each edge everywhere, and h_upper h_lower equals the quadratic form.
+    """
 
     index: int
     """State entry x_i constrained to the band."""
@@ -118,23 +131,33 @@ class BandBarrier:
     center_index: int | None = None
     """State entry holding a moving centre (e.g. the safety operator x_h)."""
     name: str = 'band'
-    """Barrier name in diagnostics."""
+    """Barrier name in diagnostics (``sides``: ``<name>_upper``, ``<name>_lower``)."""
+    form: str = 'quadratic'
+    """``quadratic`` (one barrier) or ``sides`` (two linear barriers), see the class doc."""
 
     def __post_init__(self) -> None:
         if self.half_width <= 0:
             raise ValueError('half_width: must be > 0')
+        if self.form not in ('quadratic', 'sides'):
+            raise ValueError(f"form: expected 'quadratic' or 'sides', got {self.form!r}")
 
     @property
     def count(self) -> int:
-        return 1
+        return 1 if self.form == 'quadratic' else 2
 
     @property
     def names(self) -> list[str]:
-        return [self.name]
+        if self.form == 'quadratic':
+            return [self.name]
+        return [f'{self.name}_upper', f'{self.name}_lower']
 
     def value(self, x: Tensor, index: Tensor) -> Tensor:
         c = x[:, self.center_index] if self.center_index is not None else self.center
-        return self.half_width ** 2 - (x[:, self.index] - c) ** 2
+        offset = x[:, self.index] - c
+        if self.form == 'quadratic':
+            return self.half_width ** 2 - offset ** 2
+        # index 0: the upper side, 1: the lower side
+        return self.half_width - torch.where(index == 0, offset, -offset)
 
 
 @dataclass(frozen=True)

@@ -15,8 +15,9 @@ Keys (all optional except ``system``)::
     obstacles.x / .y / .radius: [k floats];  obstacles.margin, obstacles.lookahead,
         obstacles.heading_index (-1: none), obstacles.position_indices: [2 ints],
         obstacles.gammas: [r - 1 cascade gains]
-    bands.<name>.index, .half_width, .center, .center_index (-1: constant centre), .gammas:
-        one band barrier per <name> (e.g. bands.operator.*, bands.tilt.*)
+    bands.<name>.index, .half_width, .center, .center_index (-1: constant centre), .gammas,
+        .form (quadratic: one barrier, the paper's; sides: two linear ones, see BandBarrier):
+        one band per <name> (e.g. bands.operator.*, bands.tilt.*)
     gaps.a / gaps.b: [ints], gaps.delta, gaps.gammas
     walls.nx / walls.ny / walls.offset: [floats], walls.gammas  (h = nx x + ny y - offset)
     disturbance.mean / disturbance.std: [n_x floats]: a static box (empty: zero / learned)
@@ -168,7 +169,7 @@ def build_families(params: Mapping[str, Any],
                 half_width=number(sub, 'half_width', 0.0),
                 center=number(sub, 'center', 0.0),
                 center_index=_index(sub, 'center_index', -1, n_x, allow_none=True),
-                name=band)
+                name=band, form=str(sub.get('form', 'quadratic')))
             families.append(cascade(base, system, float_list(sub, 'gammas')))
         except ValueError as exc:
             raise ValueError(f'{key}{exc}') from exc

@@ -321,10 +321,10 @@ def test_pvtol_proposal_with_learned_disturbance(ros_domain_id, probe):
     diagnostics = [diagnostic for _, diagnostic in answers]
     params = load_params(REPO / 'config' / 'pvtol.yaml', 'safety_filter')
     problem = filter_config_from_params(params).problem
-    assert 'operator' in problem.barrier_names
+    assert {'operator_upper', 'operator_lower'} <= set(problem.barrier_names)
     _, _, values = diagnostics[0]
     assert all(f'h.{name}' in values for name in problem.barrier_names)
-    assert np.isfinite(float(values['h.operator']))
+    assert np.isfinite(float(values['h.operator_lower']))
     # Same state and proposal: the learned std makes the filter more conservative (the band row
     # is active in both).
     from rcbf_ros.core.filter import SafetyFilter

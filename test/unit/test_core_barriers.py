@@ -53,6 +53,9 @@ CASES = [
                        s, [1.5, 2.5])),
     ('pvtol-operator', PVTOL(),
      lambda s: cascade(BandBarrier(index=0, half_width=0.6, center_index=6), s, [1.0, 3.0])),
+    ('pvtol-operator-sides', PVTOL(),
+     lambda s: cascade(BandBarrier(index=0, half_width=0.6, center_index=6, form='sides'), s,
+                       [1.0, 3.0])),
 ]
 
 
@@ -141,6 +144,40 @@ def test_barrier_values_closed_forms():
     assert evaluate(band, x).item() == pytest.approx(0.36 - 0.25)
     wall = HalfPlane(normals=((0.0, -1.0),), offsets=(-3.0,))
     assert evaluate(wall, x).item() == pytest.approx(1.0)
+
+
+def test_band_sides_are_the_linear_factors_of_the_quadratic_band():
+    x = random_states(PVTOL(), 64, seed=3)
+    quadratic = BandBarrier(index=0, half_width=0.6, center_index=6)
+    sides = BandBarrier(index=0, half_width=0.6, center_index=6, form='sides', name='op')
+    assert sides.count == 2 and sides.names == ['op_upper', 'op_lower']
+    h = evaluate(sides, x)
+    e = x[:, 0] - x[:, 6]
+    torch.testing.assert_close(h, torch.stack([0.6 - e, 0.6 + e], dim=1))
+    torch.testing.assert_close(h[:, 0] * h[:, 1], evaluate(quadratic, x)[:, 0])
+    # The same set: both sides non-negative exactly where the quadratic is.
+    assert torch.equal(h.min(dim=1).values >= 0, evaluate(quadratic, x)[:, 0] >= 0)
+
+
+def test_quadratic_band_cascade_is_blind_to_velocity_on_the_centre_line():
+    """At the operator's centre line, moving fast: the quadratic band's first cascade level
+    is delta^2 gamma for any velocity; the side being approached sees the velocity."""
+    system = PVTOL()
+    states = torch.tensor([[0.0, 0.0, v1, 0.0, 0.0, 1.0, 0.0] for v1 in (0.0, -3.0)],
+                          dtype=torch.float64)
+    quadratic = cascade(BandBarrier(index=0, half_width=0.5, center_index=6), system, [1.0])
+    sides = cascade(BandBarrier(index=0, half_width=0.5, center_index=6, form='sides'), system,
+                    [1.0])
+    torch.testing.assert_close(evaluate(quadratic, states)[:, 0],
+                               torch.tensor([0.25, 0.25], dtype=torch.float64))
+    # lower side: e_dot + (delta + e) with e_dot = v1 - k_h e = v1
+    torch.testing.assert_close(evaluate(sides, states)[:, 1],
+                               torch.tensor([0.5, -2.5], dtype=torch.float64))
+
+
+def test_band_form_must_be_known():
+    with pytest.raises(ValueError, match='form'):
+        BandBarrier(index=0, half_width=1.0, form='cubic')
 
 
 @pytest.mark.parametrize('kwargs,field', [

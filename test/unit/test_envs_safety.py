@@ -106,4 +106,43 @@ def test_pvtol_filtered_random_exploration_stays_in_the_envelope():
     assert np.abs(states[:, 0]).max() <= 6.0 and np.abs(states[:, 1]).max() <= 3.0
     # Exploration is filtered, not frozen: the drone moved and tilted.
     assert np.ptp(states[:, 0]) > 0.5 or np.ptp(states[:, 1]) > 0.5
-    assert np.abs(states[:, 4]).max() > 0.1
+    assert np.abs(states[:, 4]).max() > 0.05
+
+
+
+def bang_bang_run(period: int, thrust_rate: float, **form_overrides: str) -> tuple[int, int]:
+    """1000 steps of proposals that tilt fully one way, then the other, every ``period`` steps
+    (period 0: always the same way), through the PVTOL filter of config/pvtol.yaml with the
+    band forms overridden. Returns (true violations, infeasible steps): a step is infeasible
+    when the QP needed slack (> 1e-4) or the solve failed (fail-safe)."""
+    env = make_env('pvtol', load_params(find_config('pvtol'), 'simulator'))
+    _, info = env.reset(seed=0)
+    params = env.filter_params()
+    params.update({f'bands.{band}.form': form for band, form in form_overrides.items()})
+    config = filter_config_from_params(params)
+    safety = SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action)
+    violations = infeasible = 0
+    for step in range(1000):
+        tilt = 2.5 if period == 0 or (step // period) % 2 else -2.5
+        result = safety.filter(info['state'], [tilt, thrust_rate])
+        infeasible += result.fail_safe or result.slack > 1e-4
+        _, _, terminated, truncated, info = env.step(result.u_safe)
+        violations += info['violation']
+        assert not (terminated or truncated)
+    return violations, infeasible
+
+
+def test_pvtol_filter_stays_feasible_under_bang_bang_proposals():
+    """The relative-degree-3 bands (operator, arena) are written as their two linear sides in
+    config/pvtol.yaml. Proposals that throw the drone from one side to the other keep the QP
+    feasible (slack at solver precision) and never cross the operator's true band. The
+    paper's quadratic form of the same bands does not: its cascade cannot see a fast crossing
+    of the centre line (see BandBarrier)."""
+    for period, thrust_rate in ((0, 0.0), (100, 0.5), (150, 1.0)):
+        assert bang_bang_run(period, thrust_rate) == (0, 0), (period, thrust_rate)
+    # The quadratic operator band: a slow bang-bang outruns it into the true band's edge.
+    violations, infeasible = bang_bang_run(150, 1.0, operator='quadratic')
+    assert violations > 0 and infeasible > 0
+    # The quadratic arena: tilting one way for good drives the drone at the arena's wall
+    # faster than the cascade can brake.
+    assert bang_bang_run(0, 0.0, arena_x='quadratic', arena_y='quadratic')[1] > 0

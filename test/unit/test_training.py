@@ -59,7 +59,8 @@ def test_upper_bound_run_drops_the_layout_but_keeps_the_envelope(tmp_path):
     assert len(env.obstacles) == 0
     assert not env.with_operator and learner.system.n_x == 6
     assert filt is not None
-    assert sorted(filt.problem.barrier_names) == ['arena_x', 'arena_y', 'thrust', 'tilt']
+    assert sorted(filt.problem.barrier_names) == [
+        'arena_x_lower', 'arena_x_upper', 'arena_y_lower', 'arena_y_upper', 'thrust', 'tilt']
     stats = run_episode(env, filt, learner, episode=0, seed=0)
     assert stats.violations == 0 and stats.filter_active > 0  # random actions hit the envelope
     # Its transfer evaluation meets layouts with the operator: the drone's entries from its GP,
