@@ -167,8 +167,8 @@ class PVTOL:
 
     with_operator: bool = True
     """Append the operator's position x_h as the 7th state."""
-    operator_gain: float = 0.5
-    """k_h of the operator's P controller (low gain)."""
+    operator_gain: float = 3.5
+    """k_h of the operator's P controller [1/s] (ref: 0.07 per 0.02 s step)."""
     u_min: tuple[float, ...] | None = (-2.5, -2.5)
     """Lower limits of [omega, u_f] (ref: |u| <= 2.5)."""
     u_max: tuple[float, ...] | None = (2.5, 2.5)

@@ -64,7 +64,7 @@ def test_pvtol_step_matches_hand_euler_with_attitude_error_and_operator():
     d_omega = 0.1 * ((f - 1.0) - math.sin(th))
     expected = [x1 + 0.02 * v1, x2 + 0.02 * v2, v1 + 0.02 * (-math.sin(th) * f),
                 v2 + 0.02 * (math.cos(th) * f - 1.0), th + 0.02 * (0.4 + d_omega),
-                f + 0.02 * -0.6, xh + 0.02 * 0.5 * (x1 - xh)]
+                f + 0.02 * -0.6, xh + 0.02 * 3.5 * (x1 - xh)]
     np.testing.assert_allclose(info['state'], expected, rtol=0, atol=1e-12)
     assert info['h_true'][-1] == pytest.approx(0.6 - abs(expected[0] - expected[6]))
 

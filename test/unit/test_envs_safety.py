@@ -74,11 +74,11 @@ def test_car_following_filtered_acceleration_never_violates():
 
 def test_pvtol_filtered_pd_never_violates_obstacles_or_operator():
     result = run('pvtol', 0, filtered=True)
-    # The operator band caps the speed along x1 (the operator follows at gain 0.5): the goal is
-    # reached, late.
-    assert result['goal'] and result['steps'] > 1500
+    # The operator band caps the speed along x1 (the operator follows at 3.5/s): the goal is
+    # reached within the episode's 2000 steps.
+    assert result['goal']
     assert result['violations'] == 0 and result['fail_safes'] == 0
-    assert result['min_h_true'] < 0.15
+    assert result['min_h_true'] < 0.2  # held near a boundary (the filter's margins are 0.1)
     assert run('pvtol', 0, filtered=False)['violations'] > 0
 
 
@@ -140,9 +140,10 @@ def test_pvtol_filter_stays_feasible_under_bang_bang_proposals():
     of the centre line (see BandBarrier)."""
     for period, thrust_rate in ((0, 0.0), (100, 0.5), (150, 1.0)):
         assert bang_bang_run(period, thrust_rate) == (0, 0), (period, thrust_rate)
-    # The quadratic operator band: a slow bang-bang outruns it into the true band's edge.
-    violations, infeasible = bang_bang_run(150, 1.0, operator='quadratic')
-    assert violations > 0 and infeasible > 0
+    # The quadratic operator band: a slow bang-bang outruns its cascade, which then needs slack
+    # (with the operator at the old gain 0.5/s it also crossed the true band; at the reference's
+    # 3.5/s the operator's own pursuit keeps it inside).
+    assert bang_bang_run(150, 1.0, operator='quadratic')[1] > 0
     # The quadratic arena: tilting one way for good drives the drone at the arena's wall
     # faster than the cascade can brake.
     assert bang_bang_run(0, 0.0, arena_x='quadratic', arena_y='quadratic')[1] > 0
