@@ -110,15 +110,16 @@ def test_pvtol_filtered_random_exploration_stays_in_the_envelope():
 
 
 
-def bang_bang_run(period: int, thrust_rate: float, **form_overrides: str) -> tuple[int, int]:
+def bang_bang_run(period: int, thrust_rate: float,
+                  filter_overrides: dict | None = None) -> tuple[int, int]:
     """1000 steps of proposals that tilt fully one way, then the other, every ``period`` steps
-    (period 0: always the same way), through the PVTOL filter of config/pvtol.yaml with the
-    band forms overridden. Returns (true violations, infeasible steps): a step is infeasible
-    when the QP needed slack (> 1e-4) or the solve failed (fail-safe)."""
+    (period 0: always the same way), through the PVTOL filter of config/pvtol.yaml with
+    ``filter_overrides`` (flat parameter names). Returns (true violations, infeasible steps): a
+    step is infeasible when the QP needed slack (> 1e-4) or the solve failed (fail-safe)."""
     env = make_env('pvtol', load_params(find_config('pvtol'), 'simulator'))
     _, info = env.reset(seed=0)
     params = env.filter_params()
-    params.update({f'bands.{band}.form': form for band, form in form_overrides.items()})
+    params.update(filter_overrides or {})
     config = filter_config_from_params(params)
     safety = SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action)
     violations = infeasible = 0
@@ -140,10 +141,35 @@ def test_pvtol_filter_stays_feasible_under_bang_bang_proposals():
     of the centre line (see BandBarrier)."""
     for period, thrust_rate in ((0, 0.0), (100, 0.5), (150, 1.0)):
         assert bang_bang_run(period, thrust_rate) == (0, 0), (period, thrust_rate)
-    # The quadratic operator band: a slow bang-bang outruns its cascade, which then needs slack
-    # (with the operator at the old gain 0.5/s it also crossed the true band; at the reference's
-    # 3.5/s the operator's own pursuit keeps it inside).
-    assert bang_bang_run(150, 1.0, operator='quadratic')[1] > 0
+    # The quadratic operator band with cascade gains of 1: a slow bang-bang outruns its cascade,
+    # which then needs slack (with the operator at the old 0.5/s it also crossed the true band).
+    quadratic = {'bands.operator.form': 'quadratic', 'bands.operator.gammas': [1.0, 1.0]}
+    assert bang_bang_run(150, 1.0, quadratic)[1] > 0
     # The quadratic arena: tilting one way for good drives the drone at the arena's wall
     # faster than the cascade can brake.
-    assert bang_bang_run(0, 0.0, arena_x='quadratic', arena_y='quadratic')[1] > 0
+    assert bang_bang_run(0, 0.0, {'bands.arena_x.form': 'quadratic',
+                                  'bands.arena_y.form': 'quadratic'})[1] > 0
+
+
+def operator_band_slack(gammas: list[float], std: float) -> float:
+    """Slack of the PVTOL filter in level hover at the operator band's centre, with a GP std of
+    ``std`` on every state and the operator band's cascade gains set to ``gammas``."""
+    env = make_env('pvtol', load_params(find_config('pvtol'), 'simulator'))
+    _, info = env.reset(seed=0)
+    params = {**env.filter_params(), 'bands.operator.gammas': gammas}
+    config = filter_config_from_params(params)
+    safety = SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action)
+    n_x = config.problem.system.n_x
+    result = safety.filter(info['state'], [0.0, 0.0], np.zeros(n_x), np.full(n_x, std))
+    assert not result.fail_safe
+    return float(result.slack)
+
+
+def test_operator_band_gains_match_the_operators_pursuit():
+    """The operator follows at k_h = 3.5/s. Each side's top cascade level weighs x1 - x_h by
+    (k_h - g1)(k_h - g2): with gains of 1 that is 6.25, and the GP prior's std (0.1, k_c 2) on
+    x1 and x_h asks both sides, even in hover at the band's centre, for more margin than they
+    can share: the QP needs slack. With gains equal to k_h (config/pvtol.yaml) the weight is 0."""
+    assert operator_band_slack([3.5, 3.5], 0.1) < 1e-4
+    assert operator_band_slack([1.0, 1.0], 0.1) > 0.1
+    assert operator_band_slack([1.0, 1.0], 0.0) < 1e-4  # the std, not the gains alone
