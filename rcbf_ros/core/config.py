@@ -202,6 +202,28 @@ def configures_barriers(params: Mapping[str, Any]) -> bool:
                 or any(k.startswith('bands.') and k.count('.') == 2 for k in params))
 
 
+def envelope_params(params: Mapping[str, Any]) -> dict[str, Any]:
+    """The parameters of the system's envelope: the bands that are the same in every layout.
+
+    Obstacles, gaps, walls and every band marked ``bands.<name>.layout: true`` (e.g. PVTOL's
+    safety operator, present in some layouts only) are dropped; the rest is kept as is.
+    Modular SAC-RCBF keeps the envelope's correction in its losses (see
+    :mod:`rcbf_ros.learning.sac`).
+    """
+    params = flatten(params)
+    layout = {k.split('.')[1] for k, v in params.items()
+              if k.startswith('bands.') and k.count('.') == 2 and k.endswith('.layout') and v}
+    return {k: v for k, v in params.items()
+            if not k.startswith(('obstacles.', 'gaps.', 'walls.'))
+            and not (k.startswith('bands.') and k.split('.')[1] in layout)}
+
+
+def envelope_problem(params: Mapping[str, Any]) -> RCBFProblem | None:
+    """The RCBF problem of :func:`envelope_params` (None when the envelope has no barrier)."""
+    envelope = envelope_params(params)
+    return filter_config_from_params(envelope).problem if configures_barriers(envelope) else None
+
+
 def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
     """Validate flat (or nested) parameters into a :class:`FilterConfig`."""
     params = flatten(params)

@@ -10,10 +10,14 @@ unconstrained          Q(x_t, u^RL_t); Q_bar(x_{t+1}, a')       a log pi(a|x) - 
 baseline               same as unconstrained (the filter acts only in the environment loop)
 baseline_compensator   same as baseline; plus c(obs) regressed on u^S_t (see below)
 diff                   Q(x_t, u*_t); Q_bar(x_{t+1}, a' + u^S)   a log pi(a|x) - Q(x, a + u^S(x, a))
-modular                Q(x_t, u*_t); Q_bar(x_{t+1}, a')         a log pi(a|x) - Q(x, a)
+modular                Q(x_t, u*_t); Q_bar(x_{t+1}, a' + u^E)   a log pi(a|x) - Q(x, a + u^E(x, a))
 =====================  ======================================  ===============================
 
 with a' ~ pi(.|x_{t+1}) and a ~ pi(.|x_t) reparameterised, u^S(x, a) = safety_layer(x, a) - a.
+In ``modular`` the optional safety layer holds only the system's envelope (barriers that are the
+same in every layout, :func:`rcbf_ros.core.config.envelope_params`), and u^E is its
+correction: the layout's part of u^S is dropped (the paper's eq. q_update_mod), the envelope's
+is kept, as the authors' code does for PVTOL (tilt, thrust, arena). Without a layer u^E = 0.
 Networks see ``obs``; the safety layer sees ``state`` (they may differ).
 
 Compensator (Cheng et al. 2019, ``baseline_compensator``): ``act()`` proposes
@@ -122,7 +126,8 @@ class SAC:
         n_u: action size.
         u_low, u_high: (n_u,) action box of the policy.
         config: see ``SACConfig``.
-        safety_layer: differentiable ``(state, u_rl) -> u_safe``; required in ``diff`` mode.
+        safety_layer: differentiable ``(state, u_rl) -> u_safe``; required in ``diff`` mode;
+            in ``modular`` mode optional, the envelope's layer (see the module docstring).
         seed: seeds network initialisation (without touching the global RNG) and the policy
             noise generator, so equal seeds give bit-identical training.
         dtype: parameter type (float32; float64 for gradient checks).
@@ -241,6 +246,12 @@ class SAC:
         return self.act_detailed(obs, deterministic).u_proposed
 
     # ----------------------------------------------------------------- losses
+    @property
+    def _through_layer(self) -> bool:
+        """Whether the losses see the action through the safety layer (diff; modular with an
+        envelope layer)."""
+        return self.config.mode in ('diff', 'modular') and self.safety_layer is not None
+
     def _safe_action(self, state: torch.Tensor, u_rl: torch.Tensor) -> torch.Tensor:
         """u^RL + u^S(x, u^RL) = safety_layer(x, u^RL), cast to the networks' dtype."""
         assert self.safety_layer is not None
@@ -261,8 +272,9 @@ class SAC:
         with torch.no_grad():
             next_sample = self.actor(batch.next_obs, noise=noise, generator=self.generator)
             next_action = next_sample.action
-            if self.config.mode == 'diff':
-                # eq. q_update_diff: V_bar(x') = Q_bar(x', a' + u^S(x', a')) - alpha log pi.
+            if self._through_layer:
+                # eq. q_update_diff: V_bar(x') = Q_bar(x', a' + u^S(x', a')) - alpha log pi
+                # (modular: the envelope's correction u^E only).
                 next_action = self._safe_action(batch.next_state, next_action)
             # eq. q_update (plain) and eq. q_update_mod (modular): u^S_{t+1} = 0, so
             # V_bar(x') = Q_bar(x', a') - alpha log pi(a'|x').
@@ -291,8 +303,9 @@ class SAC:
         """
         sample = self.actor(batch.obs, noise=noise, generator=self.generator)
         action = sample.action
-        if self.config.mode == 'diff':
-            # eq. pi_update_diff: Q(x, a + u^S(x, a)); gradients flow through the layer.
+        if self._through_layer:
+            # eq. pi_update_diff: Q(x, a + u^S(x, a)); gradients flow through the layer
+            # (modular: the envelope's layer).
             action = self._safe_action(batch.state, action)
         # eq. pi_update (unconstrained, baselines, modular): Q(x, a).
         q = torch.minimum(self.q1(batch.obs, action), self.q2(batch.obs, action))

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from rcbf_ros.core.config import filter_config_from_params, number
+from rcbf_ros.core.config import envelope_problem, filter_config_from_params, number
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA, SACConfig
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.ros.node_main import run_node
@@ -156,14 +156,15 @@ class LearnerNode(Node):
     # ----------------------------------------------------------------- bookkeeping
     def _build_learner(self, obs_dim: int) -> SafeLearner:
         s = self.settings
-        config = filter_config_from_params({**self.filter_params, 'k_c': s['k_c']})
+        params = {**self.filter_params, 'k_c': s['k_c']}
+        config = filter_config_from_params(params)
         learner_cfg = LearnerConfig(
             mode=str(s['mode']), model_based=bool(s['model_based']), seed=int(s['seed']),
             start_steps=int(s['start_steps']), update_after=int(s['update_after']),
             batch_size=int(s['batch_size']), gp_refit_interval=int(s['gp_refit_interval']),
             k_c=float(s['k_c']), sac=SACConfig(initial_alpha=s['initial_alpha']))
         learner = SafeLearner(config.problem, obs_dim=obs_dim, dt=float(s['dt']),
-                              config=learner_cfg)
+                              config=learner_cfg, envelope=envelope_problem(params))
         checkpoint = self.out_dir / 'checkpoint.pt'
         if bool(s['resume']) and checkpoint.exists():
             state = torch.load(checkpoint, weights_only=False)

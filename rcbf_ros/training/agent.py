@@ -57,6 +57,10 @@ class LearnerConfig:
     """Training-set cap of each GP refit (keeps refit < 2 s and prediction < 1 ms)."""
     k_c: float = 2.0
     """Disturbance box mean +/- k_c std (paper eq. disturb_estimate)."""
+    modular_envelope: bool = True
+    """Modular mode: keep the envelope's correction (the barriers that are the same in every
+    layout, given to the learner as ``envelope``) in the critic target and actor loss, as the
+    authors' code does for PVTOL; False drops the whole u_S (the paper's eq. q_update_mod)."""
     rollout_interval: int = 250
     """Environment steps between model-rollout rounds (model-based only)."""
     rollouts: int = 256
@@ -113,11 +117,14 @@ class SafeLearner:
         dt: the plant's step, for the GP residuals.
         config: schedule and settings.
         model_fns: (reward_fn, obs_fn) in torch for model-based rollouts.
+        envelope: the RCBF problem of the system's envelope
+            (:func:`rcbf_ros.core.config.envelope_problem`), used by modular mode only.
     """
 
     def __init__(self, problem: RCBFProblem, obs_dim: int, dt: float,
                  config: LearnerConfig | None = None,
-                 model_fns: tuple[RewardFn, ObsFn] | None = None) -> None:
+                 model_fns: tuple[RewardFn, ObsFn] | None = None,
+                 envelope: RCBFProblem | None = None) -> None:
         self.config = cfg = config or LearnerConfig()
         self.problem = problem
         self.system = problem.system
@@ -132,10 +139,16 @@ class SafeLearner:
         self.gp = DisturbanceGP(n_x, n_x, GPConfig(max_train_points=cfg.gp_max_points,
                                                    prior_std=cfg.gp_prior_std, seed=cfg.seed))
         self.safety_layer = DifferentiableSafetyLayer(problem, self.disturbance)
+        self.envelope_layer: DifferentiableSafetyLayer | None = None
+        if cfg.mode == 'modular' and cfg.modular_envelope and envelope is not None:
+            if envelope.system.n_x != n_x:
+                raise ValueError(f'envelope: its system has {envelope.system.n_x} states, '
+                                 f'the problem {n_x}')
+            self.envelope_layer = DifferentiableSafetyLayer(envelope, self.disturbance)
         sac_config = SACConfig(**{**asdict(cfg.sac), 'mode': cfg.mode})
+        layer = {'diff': self.safety_layer, 'modular': self.envelope_layer}.get(cfg.mode)
         self.sac = SAC(obs_dim, n_u, self.u_low, self.u_high, sac_config,
-                       safety_layer=self.safety_layer if cfg.mode == 'diff' else None,
-                       seed=cfg.seed)
+                       safety_layer=layer, seed=cfg.seed)
         self.buffer = ReplayBuffer(cfg.buffer_size, obs_dim, n_x, n_u, seed=cfg.seed)
         self.model_buffer: ReplayBuffer | None = None
         self.rollout: ModelRollout | None = None

@@ -25,7 +25,12 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from rcbf_ros.core.config import configures_barriers, filter_config_from_params, number
+from rcbf_ros.core.config import (
+    configures_barriers,
+    envelope_problem,
+    filter_config_from_params,
+    number,
+)
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
 from rcbf_ros.params import find_config, load_params
@@ -137,7 +142,8 @@ def build_run(run: RunConfig) -> tuple[Any, SafetyFilter | None, SafeLearner, di
         learner_cfg = replace(learner_cfg, mode='unconstrained')
     obs, _ = env.reset(seed=learner_cfg.seed)
     learner = SafeLearner(config.problem, obs_dim=int(np.asarray(obs).size), dt=env.dt,
-                          config=learner_cfg, model_fns=model_functions(run.system, env))
+                          config=learner_cfg, model_fns=model_functions(run.system, env),
+                          envelope=envelope_problem(filter_params) if constrained else None)
     filt = SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action,
                         compile_assembly=run.compile_filter or config.compile_assembly) \
         if constrained else None

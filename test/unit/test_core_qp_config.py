@@ -153,3 +153,21 @@ def test_problem_counts_rows():
     no_limits = RCBFProblem(CarFollowing(), (CircleObstacles(centers=((0.0, 0.0),),
                                                              radii=(1.0,)),))
     assert no_limits.n_constraints == 1
+
+
+def test_envelope_params_keep_only_the_bands_of_every_layout():
+    from rcbf_ros.core.config import envelope_params, envelope_problem
+    params = {'system': 'pvtol', 'obstacles.x': [1.0], 'obstacles.y': [0.0],
+              'obstacles.radius': [0.4], 'obstacles.gammas': [1.0, 1.0],
+              'bands.operator.layout': True, 'bands.operator.index': 0,
+              'bands.operator.center_index': 6, 'bands.operator.half_width': 0.5,
+              'bands.operator.gammas': [1.0, 1.0], 'bands.tilt.index': 4,
+              'bands.tilt.half_width': 1.0, 'bands.tilt.layout': False, 'alpha': 2.0}
+    envelope = envelope_params(params)
+    assert not any(k.startswith(('obstacles.', 'bands.operator.')) for k in envelope)
+    assert envelope['bands.tilt.half_width'] == 1.0 and envelope['alpha'] == 2.0
+    problem = envelope_problem(params)
+    assert problem is not None and problem.barrier_names == ['tilt'] and problem.alpha == 2.0
+    assert problem.system.n_x == 7  # the same system: the learner's GP serves both
+    assert envelope_problem({k: v for k, v in params.items()
+                             if not k.startswith('bands.tilt.')}) is None

@@ -105,10 +105,10 @@ def test_modular_target_differs_from_diff_target_only_in_the_next_state_term():
     assert torch.equal(diff_id.critic_target(batch, noise),
                        modular_id.critic_target(batch, noise))
 
-    # Projection layer: they differ by
+    # Projection layer, modular without a layer (the paper's: u^S dropped): they differ by
     # gamma (1 - done) (min Q_bar(x', safe(a')) - min Q_bar(x', a')).
     diff = make_agent('diff')
-    modular = make_agent('modular')
+    modular = make_agent('modular', layer=None)
     with torch.no_grad():
         next_action = diff.actor(batch.next_obs, noise=noise).action
         safe_next = halfplane_projection_fixture(batch.next_state, next_action)
@@ -122,6 +122,22 @@ def test_modular_target_differs_from_diff_target_only_in_the_next_state_term():
     difference = diff.critic_target(batch, noise) - modular.critic_target(batch, noise)
     torch.testing.assert_close(difference, expected, atol=1e-6, rtol=1e-5)
     assert (expected.abs() > 1e-5).sum() >= 5
+
+
+def test_modular_with_an_envelope_layer_sees_its_correction_in_target_and_actor_loss():
+    # The envelope's layer (the barriers of every layout) in modular mode: target and actor
+    # loss as in diff with that layer, gradients through it; the critic stays at u*_t.
+    batch = random_batch(32, seed=6)
+    noise = torch.randn(32, N_U, generator=torch.Generator().manual_seed(7))
+    diff, envelope, plain = make_agent('diff'), make_agent('modular'), make_agent('modular',
+                                                                                  layer=None)
+    torch.testing.assert_close(envelope.critic_target(batch, noise),
+                               diff.critic_target(batch, noise))
+    assert (envelope.critic_target(batch, noise)
+            - plain.critic_target(batch, noise)).abs().max() > 1e-5
+    torch.testing.assert_close(actor_grad(envelope, batch, noise), actor_grad(diff, batch, noise))
+    difference = actor_grad(envelope, batch, noise) - actor_grad(plain, batch, noise)
+    assert difference.abs().max() > 1e-6
 
 
 @pytest.mark.parametrize(('mode', 'trained_on'), [

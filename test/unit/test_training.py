@@ -48,6 +48,24 @@ def test_model_based_diff_adds_synthetic_transitions(tmp_path):
     assert learner.model_buffer is not None and len(learner.model_buffer) > 0
 
 
+def test_modular_learner_keeps_the_envelope_layer_of_every_layout(tmp_path):
+    """Modular SAC-RCBF drops the layout's correction from its losses but keeps the envelope's
+    (PVTOL: tilt, thrust, arena; not the operator, ``layout: true`` in config/pvtol.yaml), as
+    the authors' code does. The Unicycle has no envelope: the paper's plain modular."""
+    from rcbf_ros.training.loop import build_run, run_episode
+    env, filt, learner, _ = build_run(small_run(tmp_path, 'pvtol', 'modular'))
+    assert env.with_operator and 'operator_upper' in filt.problem.barrier_names
+    assert learner.envelope_layer is not None
+    assert learner.sac.safety_layer is learner.envelope_layer
+    assert sorted(learner.envelope_layer.problem.barrier_names) == [
+        'arena_x_lower', 'arena_x_upper', 'arena_y_lower', 'arena_y_upper', 'thrust', 'tilt']
+    assert run_episode(env, filt, learner, episode=0, seed=0).violations == 0
+    _, _, plain, _ = build_run(small_run(tmp_path, 'pvtol', 'modular', modular_envelope=False))
+    assert plain.envelope_layer is None and plain.sac.safety_layer is None
+    _, _, unicycle, _ = build_run(small_run(tmp_path, 'unicycle', 'modular'))
+    assert unicycle.envelope_layer is None and unicycle.sac.safety_layer is None
+
+
 def test_upper_bound_run_drops_the_layout_but_keeps_the_envelope(tmp_path):
     """``no_obstacles`` (the transfer upper bound): no obstacles, no PVTOL operator, and only the
     barriers that are not part of the layout stay filtered: PVTOL's tilt/thrust/arena envelope,
