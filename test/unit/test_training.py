@@ -51,18 +51,21 @@ def test_model_based_diff_adds_synthetic_transitions(tmp_path):
 def test_modular_learner_keeps_the_envelope_layer_of_every_layout(tmp_path):
     """Modular SAC-RCBF drops the layout's correction from its losses but keeps the envelope's
     (PVTOL: tilt, thrust, arena; not the operator, ``layout: true`` in config/pvtol.yaml), as
-    the authors' code does. The Unicycle has no envelope: the paper's plain modular."""
+    the authors' code does (``modular_envelope``; off by default, the paper's plain modular).
+    The Unicycle has no envelope: plain modular either way."""
     from rcbf_ros.training.loop import build_run, run_episode
-    env, filt, learner, _ = build_run(small_run(tmp_path, 'pvtol', 'modular'))
+    env, filt, learner, _ = build_run(small_run(tmp_path, 'pvtol', 'modular',
+                                                modular_envelope=True))
     assert env.with_operator and 'operator_upper' in filt.problem.barrier_names
     assert learner.envelope_layer is not None
     assert learner.sac.safety_layer is learner.envelope_layer
     assert sorted(learner.envelope_layer.problem.barrier_names) == [
         'arena_x_lower', 'arena_x_upper', 'arena_y_lower', 'arena_y_upper', 'thrust', 'tilt']
     assert run_episode(env, filt, learner, episode=0, seed=0).violations == 0
-    _, _, plain, _ = build_run(small_run(tmp_path, 'pvtol', 'modular', modular_envelope=False))
+    _, _, plain, _ = build_run(small_run(tmp_path, 'pvtol', 'modular'))
     assert plain.envelope_layer is None and plain.sac.safety_layer is None
-    _, _, unicycle, _ = build_run(small_run(tmp_path, 'unicycle', 'modular'))
+    _, _, unicycle, _ = build_run(small_run(tmp_path, 'unicycle', 'modular',
+                                            modular_envelope=True))
     assert unicycle.envelope_layer is None and unicycle.sac.safety_layer is None
 
 
@@ -272,3 +275,14 @@ def test_sigterm_mid_run_keeps_checkpoint_metrics_and_bag(tmp_path):
     from rosbags.highlevel import AnyReader
     with AnyReader([next(out.glob('bag_*'))]) as reader:
         assert sum(c.msgcount for c in reader.connections if c.topic == '/cmd_safe') >= 80
+
+
+def test_train_cli_modular_envelope_flag_reaches_the_learner_config():
+    import argparse
+
+    from rcbf_ros.cli import _learner_overrides, add_train_arguments
+    parser = argparse.ArgumentParser()
+    add_train_arguments(parser)
+    assert _learner_overrides(parser.parse_args(['--modular-envelope']))['modular_envelope']
+    assert 'modular_envelope' not in _learner_overrides(parser.parse_args([]))
+    assert not LearnerConfig().modular_envelope  # the paper's modular by default
