@@ -44,7 +44,7 @@ PARAMETERS: dict[str, Any] = {
     'episodes': 10, 'out_dir': 'bags/learner_run', 'dt': 0.02, 'start_steps': 1000,
     'update_after': 500, 'batch_size': 256, 'gp_refit_interval': 1000,
     'checkpoint_every': 5, 'resume': False, 'k_c': 2.0, 'threads': 1,
-    'initial_alpha': DEFAULT_INITIAL_ALPHA,
+    'initial_alpha': DEFAULT_INITIAL_ALPHA, 'modular_envelope': False,
 }
 
 
@@ -162,9 +162,12 @@ class LearnerNode(Node):
             mode=str(s['mode']), model_based=bool(s['model_based']), seed=int(s['seed']),
             start_steps=int(s['start_steps']), update_after=int(s['update_after']),
             batch_size=int(s['batch_size']), gp_refit_interval=int(s['gp_refit_interval']),
-            k_c=float(s['k_c']), sac=SACConfig(initial_alpha=s['initial_alpha']))
+            k_c=float(s['k_c']), modular_envelope=bool(s['modular_envelope']),
+            sac=SACConfig(initial_alpha=s['initial_alpha']))
         learner = SafeLearner(config.problem, obs_dim=obs_dim, dt=float(s['dt']),
-                              config=learner_cfg, envelope=envelope_problem(params))
+                              config=learner_cfg,
+                              envelope=envelope_problem(params)
+                              if learner_cfg.uses_envelope else None)
         checkpoint = self.out_dir / 'checkpoint.pt'
         if bool(s['resume']) and checkpoint.exists():
             state = torch.load(checkpoint, weights_only=False)

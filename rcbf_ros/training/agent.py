@@ -77,6 +77,12 @@ class LearnerConfig:
     sac: SACConfig = field(default_factory=SACConfig)
     """SAC hyperparameters (its mode is overwritten by ``mode``)."""
 
+    @property
+    def uses_envelope(self) -> bool:
+        """Whether the learner trains through the envelope's layer (modular with
+        ``modular_envelope``): callers build the envelope problem only then."""
+        return self.mode == 'modular' and self.modular_envelope
+
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f'mode: expected one of {MODES}, got {self.mode!r}')
@@ -142,7 +148,7 @@ class SafeLearner:
                                                    prior_std=cfg.gp_prior_std, seed=cfg.seed))
         self.safety_layer = DifferentiableSafetyLayer(problem, self.disturbance)
         self.envelope_layer: DifferentiableSafetyLayer | None = None
-        if cfg.mode == 'modular' and cfg.modular_envelope and envelope is not None:
+        if cfg.uses_envelope and envelope is not None:
             if envelope.system.n_x != n_x:
                 raise ValueError(f'envelope: its system has {envelope.system.n_x} states, '
                                  f'the problem {n_x}')

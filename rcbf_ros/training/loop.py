@@ -143,7 +143,8 @@ def build_run(run: RunConfig) -> tuple[Any, SafetyFilter | None, SafeLearner, di
     obs, _ = env.reset(seed=learner_cfg.seed)
     learner = SafeLearner(config.problem, obs_dim=int(np.asarray(obs).size), dt=env.dt,
                           config=learner_cfg, model_fns=model_functions(run.system, env),
-                          envelope=envelope_problem(filter_params) if constrained else None)
+                          envelope=envelope_problem(filter_params)
+                          if constrained and learner_cfg.uses_envelope else None)
     filt = SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action,
                         compile_assembly=run.compile_filter or config.compile_assembly) \
         if constrained else None
