@@ -82,15 +82,21 @@ def test_pvtol_filtered_pd_never_violates_obstacles_or_operator():
     assert run('pvtol', 0, filtered=False)['violations'] > 0
 
 
+def pvtol_filtered(filter_overrides: dict | None = None):
+    """(env, reset info, SafetyFilter) of config/pvtol.yaml's training layout, with
+    ``filter_overrides`` (flat parameter names) on the env's filter parameters."""
+    env = make_env('pvtol', load_params(find_config('pvtol'), 'simulator'))
+    _, info = env.reset(seed=0)
+    config = filter_config_from_params({**env.filter_params(), **(filter_overrides or {})})
+    return env, info, SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action)
+
+
 def test_pvtol_filtered_random_exploration_stays_in_the_envelope():
     """SAC's first steps are uniform random actions. Through the filter the drone must neither
     collide nor leave the envelope (tilt, thrust band, arena) that keeps the cascaded
     relative-degree-3 rows feasible under |u| <= 2.5; without that envelope the same actions
     flip it (|theta| > pi) and the obstacle and operator rows are then violated."""
-    env = make_env('pvtol', load_params(find_config('pvtol'), 'simulator'))
-    _, info = env.reset(seed=0)
-    config = filter_config_from_params(env.filter_params())
-    safety = SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action)
+    env, info, safety = pvtol_filtered()
     rng = np.random.default_rng(0)
     states, violations = [], 0
     for _ in range(1500):
@@ -116,12 +122,7 @@ def bang_bang_run(period: int, thrust_rate: float,
     (period 0: always the same way), through the PVTOL filter of config/pvtol.yaml with
     ``filter_overrides`` (flat parameter names). Returns (true violations, infeasible steps): a
     step is infeasible when the QP needed slack (> 1e-4) or the solve failed (fail-safe)."""
-    env = make_env('pvtol', load_params(find_config('pvtol'), 'simulator'))
-    _, info = env.reset(seed=0)
-    params = env.filter_params()
-    params.update(filter_overrides or {})
-    config = filter_config_from_params(params)
-    safety = SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action)
+    env, info, safety = pvtol_filtered(filter_overrides)
     violations = infeasible = 0
     for step in range(1000):
         tilt = 2.5 if period == 0 or (step // period) % 2 else -2.5
@@ -154,12 +155,8 @@ def test_pvtol_filter_stays_feasible_under_bang_bang_proposals():
 def operator_band_slack(gammas: list[float], std: float) -> float:
     """Slack of the PVTOL filter in level hover at the operator band's centre, with a GP std of
     ``std`` on every state and the operator band's cascade gains set to ``gammas``."""
-    env = make_env('pvtol', load_params(find_config('pvtol'), 'simulator'))
-    _, info = env.reset(seed=0)
-    params = {**env.filter_params(), 'bands.operator.gammas': gammas}
-    config = filter_config_from_params(params)
-    safety = SafetyFilter(config.problem, fail_safe_action=config.fail_safe_action)
-    n_x = config.problem.system.n_x
+    _, info, safety = pvtol_filtered({'bands.operator.gammas': gammas})
+    n_x = safety.problem.system.n_x
     result = safety.filter(info['state'], [0.0, 0.0], np.zeros(n_x), np.full(n_x, std))
     assert not result.fail_safe
     return float(result.slack)
