@@ -209,10 +209,17 @@ def envelope_params(params: Mapping[str, Any]) -> dict[str, Any]:
     safety operator, present in some layouts only) are dropped; the rest is kept as is.
     Modular SAC-RCBF keeps the envelope's correction in its losses (see
     :mod:`rcbf_ros.learning.sac`).
+
+    Raises:
+        ValueError: naming ``bands.<name>.layout`` when it is not true or false.
     """
     params = flatten(params)
-    layout = {k.split('.')[1] for k, v in params.items()
-              if k.startswith('bands.') and k.count('.') == 2 and k.endswith('.layout') and v}
+    flags = {k: v for k, v in params.items()
+             if k.startswith('bands.') and k.count('.') == 2 and k.endswith('.layout')}
+    for key, value in flags.items():
+        if not isinstance(value, bool):
+            raise ValueError(f'{key}: expected true or false, got {value!r}')
+    layout = {k.split('.')[1] for k, v in flags.items() if v}
     return {k: v for k, v in params.items()
             if not k.startswith(('obstacles.', 'gaps.', 'walls.'))
             and not (k.startswith('bands.') and k.split('.')[1] in layout)}

@@ -171,3 +171,6 @@ def test_envelope_params_keep_only_the_bands_of_every_layout():
     assert problem.system.n_x == 7  # the same system: the learner's GP serves both
     assert envelope_problem({k: v for k, v in params.items()
                              if not k.startswith('bands.tilt.')}) is None
+    # A string is not a flag ('false' would otherwise count as true).
+    with pytest.raises(ValueError, match=r'bands\.operator\.layout'):
+        envelope_params({**params, 'bands.operator.layout': 'false'})
