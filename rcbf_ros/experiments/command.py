@@ -24,10 +24,10 @@ import torch
 from rcbf_ros.experiments.definitions import (
     Budget,
     BUDGETS,
+    experiment_methods,
     experiment_names,
     experiment_runs,
     METHODS,
-    PLAN,
     RunSpec,
 )
 from rcbf_ros.experiments.runner import Backend, parallel_map, run_all, select_backend
@@ -60,7 +60,8 @@ class ExperimentRequest:
 
 def plan_runs(request: ExperimentRequest) -> list[RunSpec]:
     """The request's training runs (seeds shifted, systems filtered)."""
-    specs = experiment_runs(request.name, request.budget, request.seeds)
+    specs = experiment_runs(request.name, request.budget, request.seeds,
+                            optional=request.methods or ())
     if request.first_seed:
         specs = [RunSpec(s.system, s.method, s.seed + request.first_seed, s.budget)
                  for s in specs]
@@ -75,8 +76,8 @@ def plan_runs(request: ExperimentRequest) -> list[RunSpec]:
 
 
 def _specs_of(experiment: str, specs: Sequence[RunSpec]) -> list[RunSpec]:
-    wanted = PLAN[experiment]
-    return [s for s in specs if s.method in wanted.get(s.system, ())]
+    everything = tuple(METHODS)
+    return [s for s in specs if s.method in experiment_methods(experiment, s.system, everything)]
 
 
 def run_experiment(request: ExperimentRequest, *, backend: Backend = 'sequential',

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.training.agent import LearnerConfig
@@ -44,6 +44,9 @@ class Method:
     """MB SAC-RCBF (synthetic rollouts)."""
     no_obstacles: bool = False
     """Train without the layout (transfer upper bound; see RunConfig.no_obstacles)."""
+    envelope: bool = False
+    """Modular only: keep the layout-independent constraints (PVTOL's tilt/thrust/arena
+    envelope) in the losses (LearnerConfig.modular_envelope)."""
 
 
 METHODS: dict[str, Method] = {
@@ -54,6 +57,7 @@ METHODS: dict[str, Method] = {
     'sac_rcbf': Method('SAC-RCBF (MF)', 'diff'),
     'sac_rcbf_mb': Method('SAC-RCBF (MB)', 'diff', model_based=True),
     'modular': Method('Mod. SAC-RCBF', 'modular'),
+    'modular_envelope': Method('Mod. SAC-RCBF, envelope kept', 'modular', envelope=True),
 }
 """Every method by key (keys name run directories)."""
 
@@ -71,6 +75,13 @@ PLAN: dict[str, dict[str, tuple[str, ...]]] = {
     },
 }
 """experiment -> system -> method keys."""
+
+OPTIONAL: dict[str, dict[str, tuple[str, ...]]] = {
+    'transfer': {'pvtol': ('modular_envelope',)},
+}
+"""experiment -> system -> method keys that run only when named (``--methods``): variants
+that are not in the paper's tables. On the Unicycle the envelope is empty, so
+``modular_envelope`` would equal ``modular``; it is offered for PVTOL only."""
 
 
 @dataclass(frozen=True)
@@ -207,6 +218,7 @@ class RunSpec:
         """The trainer's RunConfig of this run."""
         method = METHODS[self.method]
         learner = LearnerConfig(mode=method.mode, model_based=method.model_based, seed=self.seed,
+                                modular_envelope=method.envelope,
                                 **self.budget.learner_overrides())
         return RunConfig(system=self.system, episodes=self.episodes,
                          out_dir=str(self.run_dir(root)),
@@ -229,9 +241,19 @@ def experiment_names(name: str) -> tuple[str, ...]:
     return (name,)
 
 
-def experiment_runs(name: str, budget: Budget, seeds: int) -> list[RunSpec]:
+def experiment_methods(experiment: str, system: str,
+                       optional: Sequence[str] = ()) -> tuple[str, ...]:
+    """The method keys ``experiment`` runs on ``system``: its PLAN entry, then those of
+    :data:`OPTIONAL` named in ``optional``."""
+    extra = OPTIONAL.get(experiment, {}).get(system, ())
+    return PLAN[experiment].get(system, ()) + tuple(m for m in extra if m in optional)
+
+
+def experiment_runs(name: str, budget: Budget, seeds: int,
+                    optional: Sequence[str] = ()) -> list[RunSpec]:
     """Every training run of experiment ``name`` (or ``all``), seeds 0 .. seeds - 1, without
-    duplicates (order: experiment, system, method, seed).
+    duplicates (order: experiment, system, method, seed). ``optional`` names the
+    :data:`OPTIONAL` methods to add.
 
     Raises:
         ValueError: unknown experiment, ``seeds`` < 1, or a system the budget does not cover.
@@ -241,10 +263,10 @@ def experiment_runs(name: str, budget: Budget, seeds: int) -> list[RunSpec]:
     specs: list[RunSpec] = []
     seen: set[tuple[str, str, int]] = set()
     for experiment in experiment_names(name):
-        for system, methods in PLAN[experiment].items():
+        for system in PLAN[experiment]:
             if system not in budget.episodes:
                 raise ValueError(f'episodes: budget {budget.name!r} has no entry for {system}')
-            for method in methods:
+            for method in experiment_methods(experiment, system, optional):
                 for seed in range(seeds):
                     key = (system, method, seed)
                     if key not in seen:

@@ -7,7 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from rcbf_ros.experiments.definitions import BUDGETS, experiment_runs, METHODS, PLAN
+from rcbf_ros.experiments.command import ExperimentRequest, plan_runs
+from rcbf_ros.experiments.definitions import (
+    BUDGETS,
+    experiment_methods,
+    experiment_runs,
+    METHODS,
+    PLAN,
+)
 from rcbf_ros.experiments.metrics import (
     completion_rate,
     count_violations,
@@ -84,10 +91,27 @@ def test_experiment_runs_cover_the_plan_without_duplicates():
     by_system = {s.system: s.run_config('runs') for s in transfer}
     assert by_system['unicycle'].random_start is True  # the paper's starts
     assert by_system['pvtol'].random_start is None  # the config file decides
+    assert not any(s.method == 'modular_envelope' for s in everything)  # only when named
     with pytest.raises(ValueError, match='experiment'):
         experiment_runs('bogus', budget, 1)
     with pytest.raises(ValueError, match='seeds'):
         experiment_runs('transfer', budget, 0)
+
+
+def test_the_envelope_variant_runs_only_when_named_and_only_on_pvtol():
+    budget = BUDGETS['smoke']
+    request = ExperimentRequest(name='all', budget=budget, seeds=2, out='runs',
+                                methods=('modular', 'modular_envelope'))
+    specs = plan_runs(request)
+    assert {(s.system, s.method) for s in specs} == {
+        ('unicycle', 'modular'), ('pvtol', 'modular'), ('pvtol', 'modular_envelope')}
+    configs = {(s.system, s.method): s.run_config('runs').learner for s in specs}
+    assert configs['pvtol', 'modular_envelope'].uses_envelope
+    assert configs['pvtol', 'modular_envelope'].mode == 'modular'
+    assert not configs['pvtol', 'modular'].uses_envelope
+    assert 'modular_envelope' in str(specs[-1].run_dir('root'))
+    assert experiment_methods('transfer', 'unicycle', ('modular_envelope',)) == \
+        PLAN['transfer']['unicycle']
 
 
 def test_overrides_rename_the_budget_so_runs_never_mix():
