@@ -146,6 +146,34 @@ def _cached_rows(cache: Path, seeds: list[int]) -> tuple[list[dict[str, Any]], b
     return rows, len(rows) == len(lines) and all(line.endswith('\n') for line in lines)
 
 
+def _borrowed_rows(cache: Path, seeds: list[int]) -> tuple[list[dict[str, Any]], Path | None]:
+    """The longest prefix of ``seeds`` that another layout count's evaluation of the same run,
+    disturbance source and episode length already holds (``..._L50_...`` for a request of 200
+    layouts, or ``..._L200_...`` for 50), and the file it comes from. An evaluation is
+    deterministic given the layout seed, so its rows are the rows this one would compute."""
+    gp_part, _, rest = cache.name.partition('_L')
+    steps_part = rest.partition('_')[2]
+    best: list[dict[str, Any]] = []
+    source = None
+    for other in sorted(cache.parent.glob(f'{gp_part}_L*_{steps_part}')):
+        if other == cache or not other.name[len(gp_part) + 2:].split('_')[0].isdigit():
+            continue
+        rows: list[dict[str, Any]] = []
+        for line in other.read_text().splitlines():
+            if len(rows) == len(seeds):
+                break
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                break
+            if row.get('layout_seed') != seeds[len(rows)]:
+                break
+            rows.append(row)
+        if len(rows) > len(best):
+            best, source = rows, other
+    return best, source
+
+
 def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
                       max_steps: int | None = None, gp: GPSource = 'learned',
                       log: Callable[[str], None] | None = None, progress_every: int = 20
@@ -155,27 +183,32 @@ def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
     Each row goes to ``<run_dir>/transfer_<gp>_L<n>_T<steps>.jsonl`` as soon as its episode
     ends (one line per layout, ``eval_wall_s`` its wall time), so an evaluation that is
     interrupted (Ctrl-C, a crash) continues after its last finished layout; a complete file is
-    read back instead of recomputed. ``log`` gets a progress line every ``progress_every``
-    layouts.
+    read back instead of recomputed, and the same run's evaluation with another layout count
+    lends its rows (so ``--layouts 200`` after ``--layouts 50`` computes only layouts 50..199).
+    ``log`` gets a progress line every ``progress_every`` layouts.
     """
     run_dir = Path(run_dir)
     seeds = [int(s) for s in layout_seeds]
     steps_tag = 'default' if max_steps is None else str(int(max_steps))
     cache = run_dir / f'transfer_{gp}_L{len(seeds)}_T{steps_tag}.jsonl'
+    label = '/'.join(run_dir.parts[-3:])
     rows, clean = _cached_rows(cache, seeds)
+    if not rows:
+        rows, source = _borrowed_rows(cache, seeds)
+        if source is not None and log is not None:
+            log(f'{label}: transfer reuses {len(rows)} layouts of {source.name}')
+    if not clean:  # drop a torn line or another evaluation's rows; write borrowed ones
+        partial = cache.with_suffix('.tmp')
+        partial.write_text(''.join(json.dumps(r) + '\n' for r in rows))
+        os.replace(partial, cache)
     if len(rows) == len(seeds):
         return rows
     torch.set_num_threads(1)
     run, learner = load_trained_learner(run_dir)
-    label = '/'.join(run_dir.parts[-3:])
     if rows and log is not None:
         log(f'{label}: transfer resumes after {len(rows)}/{len(seeds)} layouts')
     start = time.perf_counter()
     done_before = len(rows)
-    if not clean:  # drop a torn line or another evaluation's rows
-        partial = cache.with_suffix('.tmp')
-        partial.write_text(''.join(json.dumps(r) + '\n' for r in rows))
-        os.replace(partial, cache)
     with cache.open('a') as stream:
         for seed in seeds[len(rows):]:
             t0 = time.perf_counter()

@@ -175,3 +175,18 @@ def test_runner_skips_finished_runs_and_resumes_partial_ones(tmp_path):
     assert evaluate_transfer(one.run_dir(tmp_path), seeds, max_steps=15, log=lines.append) == \
         resumed
     assert lines == [] and cache.stat().st_mtime_ns == stamp
+    # Another layout count of the same run lends its rows: 3 -> 4 computes only layout 3, and
+    # 4 -> 2 computes nothing.
+    lines.clear()
+    four = evaluate_transfer(one.run_dir(tmp_path), [0, 1, 2, 3], max_steps=15,
+                             log=lines.append, progress_every=1)
+    assert lines[:2] == ['unicycle/modular/seed0: transfer reuses 3 layouts of '
+                         'transfer_learned_L3_T15.jsonl',
+                         'unicycle/modular/seed0: transfer resumes after 3/4 layouts']
+    assert four[:3] == resumed and four[3]['layout_seed'] == 3 and len(lines) == 3
+    lines.clear()
+    assert evaluate_transfer(one.run_dir(tmp_path), [0, 1], max_steps=15,
+                             log=lines.append) == four[:2]
+    assert lines == ['unicycle/modular/seed0: transfer reuses 2 layouts of '
+                     'transfer_learned_L3_T15.jsonl']
+    assert (one.run_dir(tmp_path) / 'transfer_learned_L2_T15.jsonl').exists()
