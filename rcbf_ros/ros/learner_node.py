@@ -48,6 +48,25 @@ PARAMETERS: dict[str, Any] = {
 }
 
 
+def learner_from_settings(settings: dict[str, Any], filter_params: dict[str, Any],
+                          obs_dim: int) -> SafeLearner:
+    """The node's SafeLearner from its parameters (``settings``, keys of :data:`PARAMETERS`)
+    and the shared safety problem's (``filter_params``): the same RCBF problem the
+    safety_filter node solves, and, when ``modular_envelope`` asks for it in ``modular`` mode,
+    the envelope problem of its losses."""
+    s = settings
+    params = {**filter_params, 'k_c': s['k_c']}
+    config = filter_config_from_params(params)
+    learner_cfg = LearnerConfig(
+        mode=str(s['mode']), model_based=bool(s['model_based']), seed=int(s['seed']),
+        start_steps=int(s['start_steps']), update_after=int(s['update_after']),
+        batch_size=int(s['batch_size']), gp_refit_interval=int(s['gp_refit_interval']),
+        k_c=float(s['k_c']), modular_envelope=bool(s['modular_envelope']),
+        sac=SACConfig(initial_alpha=s['initial_alpha']))
+    return SafeLearner(config.problem, obs_dim=obs_dim, dt=float(s['dt']), config=learner_cfg,
+                       envelope=envelope_problem(params) if learner_cfg.uses_envelope else None)
+
+
 @dataclass
 class EpisodeTally:
     """Running numbers of the current episode."""
@@ -156,18 +175,7 @@ class LearnerNode(Node):
     # ----------------------------------------------------------------- bookkeeping
     def _build_learner(self, obs_dim: int) -> SafeLearner:
         s = self.settings
-        params = {**self.filter_params, 'k_c': s['k_c']}
-        config = filter_config_from_params(params)
-        learner_cfg = LearnerConfig(
-            mode=str(s['mode']), model_based=bool(s['model_based']), seed=int(s['seed']),
-            start_steps=int(s['start_steps']), update_after=int(s['update_after']),
-            batch_size=int(s['batch_size']), gp_refit_interval=int(s['gp_refit_interval']),
-            k_c=float(s['k_c']), modular_envelope=bool(s['modular_envelope']),
-            sac=SACConfig(initial_alpha=s['initial_alpha']))
-        learner = SafeLearner(config.problem, obs_dim=obs_dim, dt=float(s['dt']),
-                              config=learner_cfg,
-                              envelope=envelope_problem(params)
-                              if learner_cfg.uses_envelope else None)
+        learner = learner_from_settings(s, self.filter_params, obs_dim)
         checkpoint = self.out_dir / 'checkpoint.pt'
         if bool(s['resume']) and checkpoint.exists():
             state = torch.load(checkpoint, weights_only=False)
