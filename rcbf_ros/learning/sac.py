@@ -260,7 +260,19 @@ class SAC:
     def critic_action(self, batch: TransitionBatch) -> torch.Tensor:
         """The action the critic is trained at: u^RL_t (eq. q_update) or u*_t (eqs.
         q_update_diff, q_update_mod)."""
-        return batch.u_safe if self.config.mode in ('diff', 'modular') else batch.u_rl
+        return self._trained_action(batch.u_rl, batch.u_safe)
+
+    def _trained_action(self, u_rl: torch.Tensor, u_safe: torch.Tensor) -> torch.Tensor:
+        return u_safe if self.config.mode in ('diff', 'modular') else u_rl
+
+    def critic_value(self, obs: torch.Tensor, u_rl: torch.Tensor,
+                     u_safe: torch.Tensor) -> torch.Tensor:
+        """min(Q1, Q2) at the action the critics are trained at (:meth:`critic_action`), no
+        gradient: the soft value the learner believes in, to hold against returns."""
+        action = self._trained_action(u_rl, u_safe).to(self.dtype)
+        with torch.no_grad():
+            obs = obs.to(self.dtype)
+            return torch.minimum(self.q1(obs, action), self.q2(obs, action))
 
     def critic_target(self, batch: TransitionBatch,
                       noise: torch.Tensor | None = None) -> torch.Tensor:

@@ -203,6 +203,13 @@ class SafeLearner:
         mean, std = self.disturbance(x)
         return Proposal(u_proposed, u_rl, mean[0].numpy().copy(), std[0].numpy().copy())
 
+    def critic_value(self, obs: np.ndarray, u_rl: np.ndarray, u_safe: np.ndarray) -> float:
+        """The critics' value (min of the twins) of one step, at the action they are trained
+        at; compare with the discounted return that follows to see over-estimation."""
+        def row(a: np.ndarray) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(a, dtype=np.float64)).unsqueeze(0)
+        return float(self.sac.critic_value(row(obs), row(u_rl), row(u_safe)).reshape(-1)[0])
+
     # ------------------------------------------------------------------ learning
     def observe(self, *, obs: np.ndarray, state: np.ndarray, u_rl: np.ndarray,
                 u_safe: np.ndarray, reward: float, next_obs: np.ndarray,

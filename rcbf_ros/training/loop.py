@@ -250,6 +250,7 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
     obs, info = env.reset(seed=seed)
     state = info['state']
     done = False
+    gamma, discount, disc_return, q_start = learner.sac.config.gamma, 1.0, 0.0, math.nan
     while not done:
         proposal = learner.propose(obs, state, deterministic=deterministic)
         if filt is None:
@@ -260,8 +261,12 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
             u_safe, slack = result.u_safe, result.slack
             stats.filter_active += int(result.active)
             stats.fail_safe += int(result.fail_safe)
+        if train and stats.steps == 0:
+            q_start = learner.critic_value(obs, proposal.u_rl, u_safe)
         next_obs, reward, terminated, truncated, info = env.step(u_safe)
         next_state = info['state']
+        disc_return += discount * reward
+        discount *= gamma
         if train:
             learner.observe(obs=obs, state=state, u_rl=proposal.u_rl, u_safe=u_safe,
                             reward=reward, next_obs=next_obs, next_state=next_state,
@@ -282,6 +287,12 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
         done = terminated or truncated
     stats.wall_s = time.perf_counter() - start
     stats.extra = {k: float(v) for k, v in learner.last_metrics.items()}
+    if train:
+        # The critics' value of the first step against the discounted return that followed
+        # (no bootstrap at a time limit): a persistent q_start >> disc_return is
+        # over-estimation. The soft value also counts the entropy bonus, at most
+        # alpha * entropy / (1 - gamma) more.
+        stats.extra.update(q_start=q_start, disc_return=disc_return)
     return stats
 
 

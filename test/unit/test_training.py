@@ -286,3 +286,29 @@ def test_train_cli_modular_envelope_flag_reaches_the_learner_config():
     assert _learner_overrides(parser.parse_args(['--modular-envelope']))['modular_envelope']
     assert 'modular_envelope' not in _learner_overrides(parser.parse_args([]))
     assert not LearnerConfig().modular_envelope  # the paper's modular by default
+
+
+def test_episode_metrics_hold_the_critics_first_value_and_the_discounted_return(tmp_path):
+    """q_start is min(Q1, Q2) at the first step's trained-at action (u* in modular), and
+    disc_return the discounted sum of the rewards the bag recorded (read back by rosbags)."""
+    from rosbags.highlevel import AnyReader
+
+    from rcbf_ros.experiments.evaluate import load_trained_learner
+    # No update before the episode ends: the checkpoint's critics are the ones of step 0.
+    run = replace(small_run(tmp_path, 'pvtol', 'modular', steps=60, update_after=1000),
+                  record_bag=True)
+    row = train(run, log=lambda _: None)[0]
+    with AnyReader([next((tmp_path / 'pvtol_modular_0').glob('bag_*'))]) as reader:
+        rewards = [reader.deserialize(raw, c.msgtype).data for c, _, raw in
+                   reader.messages([c for c in reader.connections if c.topic == '/reward'])]
+    assert len(rewards) == row['steps'] == 60
+    assert row['disc_return'] == pytest.approx(sum(0.99 ** t * r for t, r in enumerate(rewards)),
+                                               rel=1e-12, abs=1e-15)
+    _, learner = load_trained_learner(tmp_path / 'pvtol_modular_0')
+    first = learner.buffer.state_dict()['data']
+    obs, u_rl, u_safe = (torch.as_tensor(first[k][:1]).double() for k in ('obs', 'u_rl', 'u_safe'))
+    assert not torch.allclose(u_rl, u_safe)  # the filter corrected the first proposal
+    sac = learner.sac
+    at_safe = torch.minimum(sac.q1(obs.to(sac.dtype), u_safe.to(sac.dtype)),
+                            sac.q2(obs.to(sac.dtype), u_safe.to(sac.dtype)))
+    assert row['q_start'] == pytest.approx(float(at_safe), rel=1e-6)
