@@ -63,3 +63,37 @@ def plot_reward_bands(curves: Mapping[str, Sequence[Sequence[float]]], path: str
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def plot_critic_vs_return(runs: Mapping[str, Mapping[int, tuple[Sequence[float],
+                                                                  Sequence[float]]]],
+                          path: str | Path, *, title: str = '') -> Path:
+    """The critics' value of each training episode's first step (solid) against the
+    discounted return that followed (dashed): one panel per method, one colour per seed.
+    A solid line far above its dashed one is over-estimation.
+
+    Args:
+        runs: method -> seed -> (q_start per episode, disc_return per episode).
+    """
+    from matplotlib.ticker import MaxNLocator
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(runs), figsize=(3.2 * len(runs) + 0.8, 3.6), dpi=120,
+                             squeeze=False, sharey=True)
+    for ax, (method, seeds) in zip(axes[0], runs.items()):
+        for index, (seed, (q_start, disc_return)) in enumerate(sorted(seeds.items())):
+            colour = f'C{index % 10}'
+            ax.plot(np.arange(1, len(q_start) + 1), q_start, color=colour, label=f'seed {seed}')
+            ax.plot(np.arange(1, len(disc_return) + 1), disc_return, color=colour,
+                    linestyle='--')
+        ax.set_title(method, fontsize=9)
+        ax.set_xlabel('episode')
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    axes[0][0].set_ylabel('Q(x0, u0) solid, discounted return dashed')
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -4,7 +4,9 @@ Files written into the report directory (``<out>/<budget>/report``):
 
 - sample_efficiency: ``sample_efficiency_<system>.csv`` (method, seed, episode, return,
   violations, goal), ``sample_efficiency_<system>_band.csv`` (mean and 2-std band per episode),
-  ``sample_efficiency_<system>.png``, ``sample_efficiency.md``;
+  ``sample_efficiency_<system>.png``, ``sample_efficiency.md``; where the runs logged them,
+  ``sample_efficiency_<system>_critic.csv|png`` (critic at each episode's first step vs the
+  discounted return, per seed);
 - transfer: ``transfer_<system>_episodes.csv`` (one row per policy x layout),
   ``transfer_<system>.csv`` (mean/std reward, completion per method, ours and the paper's),
   ``transfer_<system>_completion.png`` (bar chart), ``transfer.md``;
@@ -61,6 +63,10 @@ def _by_system(specs: Sequence[RunSpec]) -> dict[str, dict[str, list[RunSpec]]]:
     return out
 
 
+def _finite(value: Any) -> bool:
+    return isinstance(value, (int, float)) and bool(np.isfinite(value))
+
+
 def _fmt(value: float, digits: int = 3) -> str:
     return f'{value:.{digits}f}'
 
@@ -74,15 +80,16 @@ def sample_efficiency_report(specs: Sequence[RunSpec], root: str | Path,
     ``prefix`` names the files (``<prefix>_<system>.csv|png``, ``<prefix>.md``): the
     sample-efficiency experiment, or the training curves of the transfer runs.
     """
-    from rcbf_ros.plots import plot_reward_bands
+    from rcbf_ros.plots import plot_critic_vs_return, plot_reward_bands
     lines = [f'## {heading}', '',
              'Episode return per training episode, mean over seeds with a 2-std band. '
              '"final" is the mean of the last 10 episodes of each seed (mean +/- std over '
              'seeds); violations are steps with a true clearance < 0, summed over all '
              'training episodes of all seeds.', '']
     for system, methods in _by_system(specs).items():
-        rows, band_rows, table = [], [], []
+        rows, band_rows, table, critic_rows = [], [], [], []
         curves: dict[str, list[list[float]]] = {}
+        critic: dict[str, dict[int, tuple[list[float], list[float]]]] = {}
         for method, runs in methods.items():
             label = METHODS[method].label
             per_seed, violations, goals, wall = [], 0, 0, 0.0
@@ -96,6 +103,14 @@ def sample_efficiency_report(specs: Sequence[RunSpec], root: str | Path,
                 wall += sum(float(r['wall_s']) for r in history)
                 rows += [(method, spec.seed, r['episode'] + 1, r['ret'], r['violations'],
                           int(bool(r['goal_reached']))) for r in history]
+                values = [r for r in history if _finite(r.get('q_start'))
+                          and _finite(r.get('disc_return'))]
+                if values:  # runs from before these metrics existed have none
+                    critic.setdefault(label, {})[spec.seed] = (
+                        [float(r['q_start']) for r in values],
+                        [float(r['disc_return']) for r in values])
+                    critic_rows += [(method, spec.seed, r['episode'] + 1, r['q_start'],
+                                     r['disc_return']) for r in values]
             if not per_seed:
                 continue
             curves[label] = per_seed
@@ -116,7 +131,17 @@ def sample_efficiency_report(specs: Sequence[RunSpec], root: str | Path,
                   band_rows)
         plot_reward_bands(curves, report_dir / f'{prefix}_{system}.png',
                           title=f'{system}: return vs training episode (mean, 2 std)')
-        lines += [f'### {system}', '', f'![{system}]({prefix}_{system}.png)', '',
+        lines += [f'### {system}', '', f'![{system}]({prefix}_{system}.png)', '']
+        if critic:
+            write_csv(report_dir / f'{prefix}_{system}_critic.csv',
+                      ('method', 'seed', 'episode', 'q_start', 'disc_return'), critic_rows)
+            plot_critic_vs_return(critic, report_dir / f'{prefix}_{system}_critic.png',
+                                  title=f'{system}: critic at the first step vs return')
+            lines += [f'![{system} critic]({prefix}_{system}_critic.png)', '',
+                      "The critics' value of each episode's first step against the "
+                      'discounted return that followed (soft values also count the entropy '
+                      'bonus): a solid line far above its dashed one is over-estimation.', '']
+        lines += [
                   '| Method | seeds | episodes | final return | goals reached (train) | '
                   'safety violations | train wall [s] |',
                   '|---|---|---|---|---|---|---|', *table, '']

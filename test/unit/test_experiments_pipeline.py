@@ -73,6 +73,15 @@ def test_smoke_budget_of_every_experiment_writes_the_report(tmp_path, capsys):
             assert row['paper_completion']  # the paper's value sits next to ours
         training = _csv(report / f'transfer_training_{system}.csv')
         assert len(training) == 4 * budget.episodes[system]
+        # The critic at each episode's first step vs the return: one row per episode, the
+        # run's own metrics.
+        critic = _csv(report / f'transfer_training_{system}_critic.csv')
+        assert len(critic) == 4 * budget.episodes[system]
+        run_dir = out / 'smoke' / system / 'modular' / 'seed0'
+        logged = [json.loads(line)
+                  for line in (run_dir / 'metrics.jsonl').read_text().splitlines()]
+        assert [float(r['q_start']) for r in critic if r['method'] == 'modular'] == \
+            pytest.approx([r['q_start'] for r in logged])
     # The evaluation ran each layout with ITS obstacles (the filter got the new barriers).
     cached = out / 'smoke' / 'unicycle' / 'modular' / 'seed0' / 'transfer_learned_L3_T40.jsonl'
     for line in cached.read_text().splitlines():
@@ -101,6 +110,7 @@ def test_smoke_budget_of_every_experiment_writes_the_report(tmp_path, capsys):
 
     for name in ('sample_efficiency_unicycle', 'sample_efficiency_car_following',
                  'transfer_unicycle_completion', 'transfer_pvtol_completion',
+                 'transfer_training_pvtol_critic',
                  'value_maps_unicycle'):
         data = (report / f'{name}.png').read_bytes()
         assert data.startswith(PNG_MAGIC) and len(data) > 5000, name
