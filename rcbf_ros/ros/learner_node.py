@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import json
+import math
 from pathlib import Path
 import sys
 import time
@@ -76,6 +77,11 @@ class EpisodeTally:
     steps: int = 0
     violations: int = 0
     goal_reached: bool = False
+    q_start: float = math.nan
+    """The critics' value of the first step, before its update (as the in-process trainer)."""
+    disc_return: float = 0.0
+    """Discounted return of the episode so far."""
+    discount: float = 1.0
     started: float = field(default_factory=time.perf_counter)
 
 
@@ -151,6 +157,11 @@ class LearnerNode(Node):
                 self.get_logger().error('sim/step: no action section; transition dropped')
             else:
                 reward = float(sections.get('reward', np.zeros(1))[0])
+                if self.tally.steps == 0:
+                    self.tally.q_start = self.learner.critic_value(
+                        self.pending['obs'], self.pending['u_rl'], sections['action'])
+                self.tally.disc_return += self.tally.discount * reward
+                self.tally.discount *= self.learner.sac.config.gamma
                 self.learner.observe(obs=self.pending['obs'], state=self.pending['state'],
                                      u_rl=self.pending['u_rl'], u_safe=sections['action'],
                                      reward=reward, next_obs=obs, next_state=state,
@@ -193,6 +204,7 @@ class LearnerNode(Node):
                'violations': t.violations, 'goal_reached': t.goal_reached,
                'wall_s': wall,
                'steps_per_s': t.steps / wall if wall > 0 else 0.0,
+               'q_start': t.q_start, 'disc_return': t.disc_return,
                'env_steps': self.learner.env_steps if self.learner else 0}
         self.history.append(row)
         self.episodes_done += 1

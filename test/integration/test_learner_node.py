@@ -86,6 +86,12 @@ def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
         np.testing.assert_allclose(node_buffer['data'][name][:size].numpy(),
                                    in_process['data'][name][:size].numpy(), rtol=0, atol=1e-6,
                                    err_msg=name)
+    # The critic diagnostics agree too: the first episode's q_start is the seeded critics'
+    # value of the same first step; disc_return sums the same rewards.
+    node_rows = [json.loads(line) for line in (out / 'metrics.jsonl').read_text().splitlines()]
+    assert node_rows[0]['q_start'] == pytest.approx(history[0]['q_start'], rel=1e-4, abs=1e-6)
+    assert [r['disc_return'] for r in node_rows] == \
+        pytest.approx([r['disc_return'] for r in history], rel=1e-5, abs=1e-6)
 
 
 def test_killed_learner_resumes_from_its_checkpoint(tmp_path, ros_domain_id):
