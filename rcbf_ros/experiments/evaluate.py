@@ -127,48 +127,49 @@ def evaluate_layout(learner: SafeLearner, system: str, layout_seed: int, *,
     return row
 
 
+def _leading_rows(lines: Sequence[str], seeds: list[int]) -> tuple[list[dict[str, Any]], bool]:
+    """The rows at the head of ``lines`` that evaluated ``seeds[0]``, ``seeds[1]``, ... in order
+    (a torn line ends them), and whether a further row stood after them (another seed, or
+    more rows than ``seeds``)."""
+    rows: list[dict[str, Any]] = []
+    for line in lines:
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            return rows, False
+        if len(rows) >= len(seeds) or row.get('layout_seed') != seeds[len(rows)]:
+            return rows, True
+        rows.append(row)
+    return rows, False
+
+
 def _cached_rows(cache: Path, seeds: list[int]) -> tuple[list[dict[str, Any]], bool]:
     """The rows of ``cache`` that evaluated a prefix of ``seeds`` (a run cut short keeps
     them; a torn last line and anything after it are dropped; another evaluation's file gives
     none), and whether the file holds exactly those rows."""
     if not cache.exists():
         return [], False
-    rows: list[dict[str, Any]] = []
     lines = cache.read_text().splitlines(keepends=True)
-    for line in lines:
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError:
-            break
-        if len(rows) >= len(seeds) or row.get('layout_seed') != seeds[len(rows)]:
-            return [], False
-        rows.append(row)
+    rows, more = _leading_rows(lines, seeds)
+    if more:
+        return [], False
     return rows, len(rows) == len(lines) and all(line.endswith('\n') for line in lines)
 
 
-def _borrowed_rows(cache: Path, seeds: list[int]) -> tuple[list[dict[str, Any]], Path | None]:
-    """The longest prefix of ``seeds`` that another layout count's evaluation of the same run,
-    disturbance source and episode length already holds (``..._L50_...`` for a request of 200
-    layouts, or ``..._L200_...`` for 50), and the file it comes from. An evaluation is
+def _borrowed_rows(run_dir: Path, gp: str, steps_tag: str, seeds: list[int]
+                   ) -> tuple[list[dict[str, Any]], Path | None]:
+    """The longest prefix of ``seeds`` that an evaluation of the same run, disturbance source
+    and episode length with another layout count already holds (``..._L50_...`` for a request
+    of 200 layouts, or ``..._L200_...`` for 50), and the file it comes from. An evaluation is
     deterministic given the layout seed, so its rows are the rows this one would compute."""
-    gp_part, _, rest = cache.name.partition('_L')
-    steps_part = rest.partition('_')[2]
     best: list[dict[str, Any]] = []
     source = None
-    for other in sorted(cache.parent.glob(f'{gp_part}_L*_{steps_part}')):
-        if other == cache or not other.name[len(gp_part) + 2:].split('_')[0].isdigit():
+    own = f'transfer_{gp}_L{len(seeds)}_T{steps_tag}.jsonl'
+    for other in sorted(run_dir.glob(f'transfer_{gp}_L*_T{steps_tag}.jsonl')):
+        count = other.name[len(f'transfer_{gp}_L'):-len(f'_T{steps_tag}.jsonl')]
+        if other.name == own or not count.isdigit():
             continue
-        rows: list[dict[str, Any]] = []
-        for line in other.read_text().splitlines():
-            if len(rows) == len(seeds):
-                break
-            try:
-                row = json.loads(line)
-            except json.JSONDecodeError:
-                break
-            if row.get('layout_seed') != seeds[len(rows)]:
-                break
-            rows.append(row)
+        rows, _ = _leading_rows(other.read_text().splitlines(), seeds)
         if len(rows) > len(best):
             best, source = rows, other
     return best, source
@@ -194,7 +195,7 @@ def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
     label = '/'.join(run_dir.parts[-3:])
     rows, clean = _cached_rows(cache, seeds)
     if not rows:
-        rows, source = _borrowed_rows(cache, seeds)
+        rows, source = _borrowed_rows(run_dir, gp, steps_tag, seeds)
         if source is not None and log is not None:
             log(f'{label}: transfer reuses {len(rows)} layouts of {source.name}')
     if not clean:  # drop a torn line or another evaluation's rows; write borrowed ones
