@@ -81,7 +81,6 @@ class EpisodeTally:
     """The critics' value of the first step, before its update (as the in-process trainer)."""
     disc_return: float = 0.0
     """Discounted return of the episode so far."""
-    discount: float = 1.0
     started: float = field(default_factory=time.perf_counter)
 
 
@@ -160,8 +159,8 @@ class LearnerNode(Node):
                 if self.tally.steps == 0:
                     self.tally.q_start = self.learner.critic_value(
                         self.pending['obs'], self.pending['u_rl'], sections['action'])
-                self.tally.disc_return += self.tally.discount * reward
-                self.tally.discount *= self.learner.sac.config.gamma
+                gamma = self.learner.sac.config.gamma
+                self.tally.disc_return += gamma ** self.tally.steps * reward
                 self.learner.observe(obs=self.pending['obs'], state=self.pending['state'],
                                      u_rl=self.pending['u_rl'], u_safe=sections['action'],
                                      reward=reward, next_obs=obs, next_state=state,

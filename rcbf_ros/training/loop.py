@@ -250,7 +250,7 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
     obs, info = env.reset(seed=seed)
     state = info['state']
     done = False
-    gamma, discount, disc_return, q_start = learner.sac.config.gamma, 1.0, 0.0, math.nan
+    gamma, disc_return, q_start = learner.sac.config.gamma, 0.0, math.nan
     while not done:
         proposal = learner.propose(obs, state, deterministic=deterministic)
         if filt is None:
@@ -265,9 +265,8 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
             q_start = learner.critic_value(obs, proposal.u_rl, u_safe)
         next_obs, reward, terminated, truncated, info = env.step(u_safe)
         next_state = info['state']
-        disc_return += discount * reward
-        discount *= gamma
         if train:
+            disc_return += gamma ** stats.steps * reward
             learner.observe(obs=obs, state=state, u_rl=proposal.u_rl, u_safe=u_safe,
                             reward=reward, next_obs=next_obs, next_state=next_state,
                             terminated=terminated)
