@@ -59,7 +59,11 @@ class ExperimentRequest:
 
 
 def plan_runs(request: ExperimentRequest) -> list[RunSpec]:
-    """The request's training runs (seeds shifted, systems filtered)."""
+    """The request's training runs (seeds shifted, systems filtered).
+
+    Raises:
+        ValueError: naming ``methods`` when a method is unknown or the filters leave no run.
+    """
     specs = experiment_runs(request.name, request.budget, request.seeds,
                             optional=request.methods or ())
     if request.first_seed:
@@ -72,6 +76,10 @@ def plan_runs(request: ExperimentRequest) -> list[RunSpec]:
         if unknown:
             raise ValueError(f'methods: unknown {unknown}, expected some of {sorted(METHODS)}')
         specs = [s for s in specs if s.method in request.methods]
+    if not specs:
+        raise ValueError(f'methods: {list(request.methods or ())} on systems '
+                         f'{list(request.systems or ())} select no run of {request.name!r} '
+                         '(e.g. modular_envelope is offered on PVTOL transfer only)')
     return specs
 
 

@@ -112,6 +112,10 @@ def test_the_envelope_variant_runs_only_when_named_and_only_on_pvtol():
     assert 'modular_envelope' in str(specs[-1].run_dir('root'))
     assert experiment_methods('transfer', 'unicycle', ('modular_envelope',)) == \
         PLAN['transfer']['unicycle']
+    # A filter that leaves nothing to run is an error naming the field, not an empty report.
+    with pytest.raises(ValueError, match='methods: .* select no run'):
+        plan_runs(ExperimentRequest(name='transfer', budget=budget, seeds=1, out='runs',
+                                    systems=('unicycle',), methods=('modular_envelope',)))
 
 
 def test_overrides_rename_the_budget_so_runs_never_mix():
