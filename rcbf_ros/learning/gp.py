@@ -223,8 +223,11 @@ class DisturbanceGP:
         self.n_out = n_out
         self.config = config if config is not None else GPConfig()
         dtype = self.config.dtype
-        self._x = torch.empty(0, n_in, dtype=dtype)
-        self._y = torch.empty(0, n_out, dtype=dtype)
+        # Storage grows by doubling; rows [:_count] are the data. One row is added per
+        # environment step, so concatenating would copy all data on every step.
+        self._store_x = torch.empty(0, n_in, dtype=dtype)
+        self._store_y = torch.empty(0, n_out, dtype=dtype)
+        self._count = 0
         # Raw-unit hyperparameters: lengthscales (n_out, n_in), outputscale (n_out,),
         # noise variance (n_out,). None until the first fit.
         self.lengthscales: torch.Tensor | None = None
@@ -235,9 +238,17 @@ class DisturbanceGP:
 
     # ------------------------------------------------------------------ data
     @property
+    def _x(self) -> torch.Tensor:
+        return self._store_x[:self._count]
+
+    @property
+    def _y(self) -> torch.Tensor:
+        return self._store_y[:self._count]
+
+    @property
     def num_data(self) -> int:
         """Number of stored (x, y) pairs."""
-        return int(self._x.shape[0])
+        return self._count
 
     @property
     def is_fitted(self) -> bool:
@@ -265,6 +276,18 @@ class DisturbanceGP:
             x: (N, n_in) states.
             y: (N, n_out) residuals ``x_dot_hat - f(x) - g(x) u``.
         """
+        x_t, y_t = self._checked_rows(x, y)
+        end = self._count + x_t.shape[0]
+        if end > self._store_x.shape[0]:
+            capacity = max(end, 2 * self._store_x.shape[0], 1024)
+            self._store_x = self._grown(self._store_x, capacity)
+            self._store_y = self._grown(self._store_y, capacity)
+        self._store_x[self._count:end] = x_t
+        self._store_y[self._count:end] = y_t
+        self._count = end
+
+    def _checked_rows(self, x: ArrayLike, y: ArrayLike) -> tuple[torch.Tensor, torch.Tensor]:
+        """``x``, ``y`` as tensors of this model's dtype; ValueError naming a bad one."""
         x_t = _as_tensor(x, 'X', self.config.dtype)
         y_t = _as_tensor(y, 'Y', self.config.dtype)
         if x_t.ndim != 2 or x_t.shape[1] != self.n_in:
@@ -278,8 +301,12 @@ class DisturbanceGP:
             raise ValueError('X contains non-finite values')
         if not torch.isfinite(y_t).all():
             raise ValueError('Y contains non-finite values')
-        self._x = torch.cat([self._x, x_t])
-        self._y = torch.cat([self._y, y_t])
+        return x_t, y_t
+
+    def _grown(self, store: torch.Tensor, capacity: int) -> torch.Tensor:
+        bigger = torch.empty(capacity, store.shape[1], dtype=store.dtype)
+        bigger[:self._count] = store[:self._count]
+        return bigger
 
     def select_training_subset(self) -> torch.Tensor:
         """Indices of the data ``fit`` trains on: all if N <= cap, else the subset rule.
@@ -520,8 +547,9 @@ class DisturbanceGP:
             raise ValueError(f"state_dict is for n_in={state['n_in']}, n_out={state['n_out']}"
                              f', this model has n_in={self.n_in}, n_out={self.n_out}')
         dtype = self.config.dtype
-        self._x = state['x'].to(dtype).clone()
-        self._y = state['y'].to(dtype).clone()
+        self._store_x = state['x'].to(dtype).clone()
+        self._store_y = state['y'].to(dtype).clone()
+        self._count = int(self._store_x.shape[0])
         self._cache = None
         self.train_indices = None
         self.lengthscales = self.outputscale = self.noise = None

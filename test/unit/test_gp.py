@@ -157,6 +157,34 @@ def test_state_dict_round_trip_restores_posterior_without_refit(fitted_slope_gp)
         DisturbanceGP(2, 3).load_state_dict(fitted_slope_gp.state_dict())
 
 
+def test_rows_added_one_at_a_time_equal_one_batch_across_storage_growth():
+    """The training loop adds one row per step; the stored data (past the storage's first
+    growths) and the fitted posterior must equal adding the same rows at once."""
+    generator = torch.Generator().manual_seed(7)
+    states = uniform_states(2500, generator)
+    residuals = unicycle_slope_disturbance(states)
+    config = GPConfig(max_train_points=200, training_iterations=5)
+    batch, stepwise = DisturbanceGP(3, 3, config), DisturbanceGP(3, 3, config)
+    batch.add(states, residuals)
+    for i in range(len(states)):
+        stepwise.add(states[i:i + 1], residuals[i:i + 1])
+        if i == 1499:  # a state_dict taken mid-way holds exactly the rows so far
+            assert torch.equal(stepwise.state_dict()['x'], states[:1500])
+    assert stepwise.num_data == batch.num_data == 2500
+    for key in ('x', 'y'):
+        assert torch.equal(stepwise.state_dict()[key], batch.state_dict()[key])
+    batch.fit()
+    stepwise.fit()
+    queries = uniform_states(10, torch.Generator().manual_seed(8))
+    for a, b in zip(stepwise.predict(queries), batch.predict(queries)):
+        assert torch.equal(a, b)
+    restored = DisturbanceGP(3, 3, config)
+    restored.load_state_dict(stepwise.state_dict())
+    restored.add(states[:3], residuals[:3])  # adding after a restore grows the storage
+    assert restored.num_data == 2503
+    assert torch.equal(restored.state_dict()['x'][2500:], states[:3])
+
+
 def test_set_hyperparameters_conditions_on_data():
     states = uniform_states(30, torch.Generator().manual_seed(7))
     gp = DisturbanceGP(3, 1)
