@@ -24,7 +24,7 @@ setup(
             'mcap-ros2-support', 'gpytorch', 'gymnasium', 'tqdm', 'matplotlib',
         ],
         'test': ['pytest', 'pytest-timeout', 'qpth', 'cvxpylayers', 'proxsuite',
-                 'pymcap-cli', 'ruff'],
+                 'pymcap-cli', 'ruff', 'ray'],
         'ray': ['ray'],
     },
     zip_safe=True,

@@ -3,11 +3,11 @@
     python benchmarks/bench_gp_append.py [--repeats 200] [--no-write]
 
 The learner adds one (state, residual) row to the disturbance GP on every environment step.
-``DisturbanceGP.add`` writes it into storage that grows by doubling; the alternative is what
-it replaced, the same input checks followed by ``torch.cat`` of all stored rows with the new one (a copy
-of everything, every step). PVTOL's shape (6 inputs, 6 outputs, float64). For each stored count N the median time
-of one add (the doubling is amortised: a run of ``repeats`` adds from N on, so the occasional
-growth copy is in the median only as often as it happens) next to one concatenation; the
+``DisturbanceGP.add`` writes it into storage that grows by doubling; the alternative is what it
+replaced: the same input checks, then ``torch.cat`` of all stored rows with the new one (a copy
+of everything, every step). PVTOL's shape (6 inputs, 6 outputs, float64). For each stored count
+N the median and mean time of one add over ``repeats`` consecutive adds from N on (the mean
+carries the occasional growth copy as often as it happens), next to the concatenation; the
 ratio is concatenation / ours. Writes the ``## GP data storage`` section of
 benchmarks/RESULTS.md.
 """
@@ -79,8 +79,9 @@ def main() -> None:
         '',
         "One environment step's `DisturbanceGP.add` of a (state, residual) row, PVTOL's shape "
         '(6 x 6, float64), after N stored rows, over ' + str(args.repeats) + ' consecutive '
-        'adds, next to the same checks followed by the `torch.cat` of all rows that it replaced. 30 000 rows is a 15-episode '
-        'PVTOL run, 120 000 a 60-episode one, 200 000 the `paper` budget. A training step '
+        'adds, next to the same checks followed by the `torch.cat` of all rows that it '
+        'replaced. 30 000 rows is a 15-episode PVTOL run, 120 000 a 60-episode one, 200 000 '
+        'the `paper` budget. A training step '
         '(SAC update, QP, GP prediction) takes about 24 ms on PVTOL.',
         '', *rows])
     if not args.no_write:

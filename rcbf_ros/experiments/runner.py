@@ -6,21 +6,34 @@ but fewer rows is *resumed* from its checkpoint (``RunConfig.resume``); anything
 fresh. So calling the runner again after a crash or Ctrl-C redoes only what is missing.
 
 Parallelism is Ray's (``pip install ray``, optional): with ``--ray`` (a local instance,
-``--num-cpus`` workers) or ``--address`` (an existing cluster) every run becomes one Ray task of
-one CPU. Without Ray installed, ``--ray`` falls back to the sequential path with a warning;
-``--address`` is an error (the user asked for a cluster we cannot reach).
+``--num-cpus`` workers, listening on loopback only) or ``--address`` (an existing cluster) every
+run becomes one Ray task of one CPU. Without Ray installed, ``--ray`` falls back to the
+sequential path with a warning; ``--address`` is an error (the user asked for a cluster we
+cannot reach).
 """
 from __future__ import annotations
 
 import importlib.util
 import json
+import os
 from pathlib import Path
+import socket
 import time
 from typing import Any, Callable, Literal, Sequence, TypeVar
 
 from rcbf_ros.experiments.definitions import RunSpec
 
 Backend = Literal['sequential', 'ray']
+LOCAL_RAY_SWITCH = 'RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER'
+LOCAL_RAY_ENV = {LOCAL_RAY_SWITCH: '0', 'RAY_worker_niceness': '0'}
+"""Environment of a local Ray instance (a value the user set is kept):
+
+- no cluster, so every server on 127.0.0.1 (Ray's own switch, named for the platforms where
+  it is the default);
+- workers at the caller's priority. Ray starts them at niceness 15, which on a machine shared
+  with other work (the nodes, another run) starves the runs: beside two busy processes on
+  2 cores two short runs took 23 times as long as in the caller (benchmarks/bench_ray.py).
+"""
 T = TypeVar('T')
 R = TypeVar('R')
 
@@ -56,12 +69,22 @@ def parallel_map(fn: Callable[[T], R], items: Sequence[T], *, backend: Backend,
     """
     if backend == 'sequential' or len(items) == 0:
         return [fn(item) for item in items]
+    if not address:
+        # A local instance serves this machine only, so its servers listen on loopback. Ray
+        # binds to the machine's outward address unless told that it is not part of a cluster:
+        # its processes read the variable from the environment they inherit, this one read it
+        # when ray was first imported (perhaps before this call).
+        for name, value in LOCAL_RAY_ENV.items():
+            os.environ.setdefault(name, value)
+        if os.environ[LOCAL_RAY_SWITCH] == '0':
+            importlib.import_module('ray._private.ray_constants').ENABLE_RAY_CLUSTER = False
     import ray  # optional dependency, checked by select_backend
     if not ray.is_initialized():
         if address:
             ray.init(address=address)
         else:
-            ray.init(num_cpus=num_cpus, include_dashboard=False)
+            # 'local': always a new instance of our own, never one found on the machine.
+            ray.init(address='local', num_cpus=num_cpus, include_dashboard=False)
     task = ray.remote(num_cpus=1)(fn)
     return list(ray.get([task.remote(item) for item in items]))
 
@@ -125,6 +148,8 @@ def train_run(job: tuple[RunSpec, str]) -> dict[str, Any]:
         'budget': spec.budget.name, 'planned_episodes': spec.episodes,
         **summarize_rows(metrics_rows(run_dir)),
         'wall_s': time.perf_counter() - start,
+        # Where it ran: the machine and process (a Ray task's worker, or the caller).
+        'host': socket.gethostname(), 'pid': os.getpid(),
     }
     (run_dir / 'summary.json').write_text(json.dumps(summary, indent=2))
     return {**summary, 'status': 'resumed' if status == 'partial' else 'ran'}
