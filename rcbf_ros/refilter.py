@@ -7,8 +7,9 @@ with a :class:`~rcbf_ros.core.filter.SafetyFilter` built from the NEW parameters
 new rosbag2-layout bag: every source topic copied unchanged (same CDR bytes, log and publish
 times, schema text, type hash and QoS), plus
 
-- ``/refilter/cmd_safe`` (std_msgs/Float64MultiArray, sections ``u``, ``u_rl``, ``u_s``): the
-  new command u* = u_RL + u_S, at the proposal's log time;
+- ``/refilter/cmd_safe`` (std_msgs/Float64MultiArray, sections ``u``, ``u_rl``, ``u_s``, and
+  ``state`` when the proposal carried one, as the node's ``cmd_safe``): the new command
+  u* = u_RL + u_S, at the proposal's log time;
 - ``/refilter/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per filtered
   proposal with the same level, message and key/values as the safety_filter node's
   (:func:`rcbf_ros.ros.filter_logic.diagnostic_values`: ``h.<barrier>``,
@@ -463,9 +464,12 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     _account(summary, decision, proposal, recorded, deltas, tolerance)
                     if proposal.state is not None:
                         proposal_states.append(proposal.state)
-                    writer.write_message(OUTPUT_COMMAND_TOPIC, _sections_message(
-                        {'u': decision.u_safe, 'u_rl': decision.u_rl, 'u_s': decision.u_s}),
-                        item.log_time_ns)
+                    command = {'u': decision.u_safe, 'u_rl': decision.u_rl,
+                               'u_s': decision.u_s}
+                    if proposal.state is not None:  # echoed, as the node does
+                        command['state'] = proposal.state
+                    writer.write_message(OUTPUT_COMMAND_TOPIC, _sections_message(command),
+                                         item.log_time_ns)
                     writer.write_message(OUTPUT_DIAGNOSTICS_TOPIC, _diagnostics_message(
                         decision, safety_filter.barrier_names, settings, item.log_time_ns),
                         item.log_time_ns)

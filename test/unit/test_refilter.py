@@ -170,8 +170,14 @@ def test_new_obstacle_changes_commands_where_expected(source_bag: Path, tmp_path
                 connections=[c for c in reader.connections
                              if c.topic == '/refilter/cmd_safe']):
             msg = reader.deserialize(raw, connection.msgtype)
-            assert [d.label for d in msg.layout.dim] == ['u', 'u_rl', 'u_s']
-            commands.append(np.asarray(msg.data).reshape(3, 2))
+            k = len(commands)
+            state, _, _, _, own = _inputs(k)
+            # The proposal's own state is echoed, as the node's cmd_safe does.
+            labels = ['u', 'u_rl', 'u_s'] + (['state'] if own else [])
+            assert [d.label for d in msg.layout.dim] == labels
+            if own:
+                np.testing.assert_array_equal(msg.data[6:], state)
+            commands.append(np.asarray(msg.data[:6]).reshape(3, 2))
     assert counts == {'/state': N_STEPS + len(INSIDE_B), '/cmd_proposed': N_STEPS + 1,
                       '/cmd_safe': N_STEPS, '/reward': N_STEPS,
                       '/refilter/cmd_safe': N_STEPS, '/refilter/diagnostics': N_STEPS}
