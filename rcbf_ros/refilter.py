@@ -464,12 +464,8 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     _account(summary, decision, proposal, recorded, deltas, tolerance)
                     if proposal.state is not None:
                         proposal_states.append(proposal.state)
-                    command = {'u': decision.u_safe, 'u_rl': decision.u_rl,
-                               'u_s': decision.u_s}
-                    if proposal.state is not None:  # echoed, as the node does
-                        command['state'] = proposal.state
-                    writer.write_message(OUTPUT_COMMAND_TOPIC, _sections_message(command),
-                                         item.log_time_ns)
+                    writer.write_message(OUTPUT_COMMAND_TOPIC, _sections_message(
+                        decision.command_sections(proposal.state)), item.log_time_ns)
                     writer.write_message(OUTPUT_DIAGNOSTICS_TOPIC, _diagnostics_message(
                         decision, safety_filter.barrier_names, settings, item.log_time_ns),
                         item.log_time_ns)

@@ -156,6 +156,11 @@ def _cached_rows(cache: Path, seeds: list[int]) -> tuple[list[dict[str, Any]], b
     return rows, len(rows) == len(lines) and all(line.endswith('\n') for line in lines)
 
 
+def _cache_name(gp: str, layouts: int | str, steps_tag: str) -> str:
+    """File name of a run's transfer evaluation (``layouts`` '*' makes it a glob)."""
+    return f'transfer_{gp}_L{layouts}_T{steps_tag}.jsonl'
+
+
 def _borrowed_rows(run_dir: Path, gp: str, steps_tag: str, seeds: list[int]
                    ) -> tuple[list[dict[str, Any]], Path | None]:
     """The longest prefix of ``seeds`` that an evaluation of the same run, disturbance source
@@ -164,9 +169,10 @@ def _borrowed_rows(run_dir: Path, gp: str, steps_tag: str, seeds: list[int]
     deterministic given the layout seed, so its rows are the rows this one would compute."""
     best: list[dict[str, Any]] = []
     source = None
-    own = f'transfer_{gp}_L{len(seeds)}_T{steps_tag}.jsonl'
-    for other in sorted(run_dir.glob(f'transfer_{gp}_L*_T{steps_tag}.jsonl')):
-        count = other.name[len(f'transfer_{gp}_L'):-len(f'_T{steps_tag}.jsonl')]
+    own = _cache_name(gp, len(seeds), steps_tag)
+    prefix, _, suffix = _cache_name(gp, '*', steps_tag).partition('*')
+    for other in sorted(run_dir.glob(prefix + '*' + suffix)):
+        count = other.name[len(prefix):-len(suffix)]
         if other.name == own or not count.isdigit():
             continue
         rows, _ = _leading_rows(other.read_text().splitlines(), seeds)
@@ -191,7 +197,7 @@ def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
     run_dir = Path(run_dir)
     seeds = [int(s) for s in layout_seeds]
     steps_tag = 'default' if max_steps is None else str(int(max_steps))
-    cache = run_dir / f'transfer_{gp}_L{len(seeds)}_T{steps_tag}.jsonl'
+    cache = run_dir / _cache_name(gp, len(seeds), steps_tag)
     label = '/'.join(run_dir.parts[-3:])
     rows, clean = _cached_rows(cache, seeds)
     if not rows:

@@ -300,6 +300,16 @@ class Decision:
         """(n_u,) u_safe - u_rl (NaN where the proposal was unusable)."""
         return self.u_safe - self.u_rl
 
+    def command_sections(self, answered_state: np.ndarray | None = None
+                         ) -> dict[str, np.ndarray]:
+        """The sections of the ``cmd_safe`` array: ``u``, ``u_rl``, ``u_s``, and the state a
+        proposal carried, echoed so that a lock-step simulator can drop a late answer to an
+        earlier state instead of applying it to the next one."""
+        sections = {'u': self.u_safe, 'u_rl': self.u_rl, 'u_s': self.u_s}
+        if answered_state is not None:
+            sections['state'] = answered_state
+        return sections
+
 
 def fail_safe_decision(*, safety_filter: SafetyFilter, reason: str,
                        u_rl: np.ndarray | None = None) -> Decision:

@@ -164,12 +164,7 @@ class SafetyFilterNode(Node):
         if self.settings.command_type == 'twist':
             command = conversions.array_to_twist(decision.u_safe, self.settings.twist_fields)
         else:
-            sections = {'u': decision.u_safe, 'u_rl': decision.u_rl, 'u_s': decision.u_s}
-            if answered_state is not None:
-                # Echo the state a proposal carried, so a lock-step simulator can drop a
-                # late answer to an earlier state instead of applying it to the next one.
-                sections['state'] = answered_state
-            command = conversions.sections_to_msg(sections)
+            command = conversions.sections_to_msg(decision.command_sections(answered_state))
         self._cmd_pub.publish(command)  # first: diagnostics never delay the command
         if not logic.diagnostics_due(level=decision.level, now_ns=now_ns,
                                      last_ok_ns=self._last_ok_diagnostics_ns,

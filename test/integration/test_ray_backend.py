@@ -42,10 +42,15 @@ def _tiny_specs() -> list[RunSpec]:
     return [RunSpec('unicycle', 'modular', seed, budget) for seed in (0, 1)]
 
 
+def _timeless(rows: list[dict]) -> list[dict]:
+    """``rows`` without their wall-clock fields."""
+    return [{k: v for k, v in row.items() if k not in TIMING} for row in rows]
+
+
 def _rows(path: Path) -> list[dict]:
     """A JSON-lines file's rows without the wall-clock fields."""
-    return [{k: v for k, v in json.loads(line).items() if k not in TIMING}
-            for line in path.read_text().splitlines() if line.strip()]
+    return _timeless([json.loads(line) for line in path.read_text().splitlines()
+                      if line.strip()])
 
 
 def test_a_local_instance_trains_and_evaluates_in_workers_on_loopback(tmp_path):
@@ -73,9 +78,7 @@ def test_a_local_instance_trains_and_evaluates_in_workers_on_loopback(tmp_path):
         remote = parallel_map(evaluate_job, jobs, backend='ray')
         local = [evaluate_job((str(spec.run_dir(tmp_path / 'seq')), (0, 1), 15, 'learned'))
                  for spec in specs]
-        strip = lambda rows: [{k: v for k, v in r.items() if k not in TIMING}  # noqa: E731
-                              for r in rows]
-        assert [strip(rows) for rows in remote] == [strip(rows) for rows in local]
+        assert [_timeless(rows) for rows in remote] == [_timeless(rows) for rows in local]
         assert all(len(rows) == 2 for rows in remote)
         again = run_all(specs, tmp_path / 'ray', backend='ray', num_cpus=2, log=lambda _: None)
         assert [r['status'] for r in again] == ['skipped', 'skipped']
