@@ -30,7 +30,13 @@ from rcbf_ros.experiments.definitions import (
     METHODS,
     RunSpec,
 )
-from rcbf_ros.experiments.runner import Backend, parallel_map, run_all, select_backend
+from rcbf_ros.experiments.runner import (
+    Backend,
+    ClusterError,
+    parallel_map,
+    run_all,
+    select_backend,
+)
 
 
 @dataclass(frozen=True)
@@ -207,6 +213,9 @@ def run_experiment_command(args: argparse.Namespace, argv: Sequence[str] | None 
         result = run_experiment(request, backend=backend, address=args.address,
                                 num_cpus=args.num_cpus, command=command,
                                 log=lambda line: print(line, flush=True))
+    except ClusterError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print('interrupted: finished runs are kept; run the same command again to resume',
               file=sys.stderr)

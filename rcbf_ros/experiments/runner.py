@@ -9,7 +9,8 @@ Parallelism is Ray's (``pip install ray``, optional): with ``--ray`` (a local in
 ``--num-cpus`` workers, listening on loopback only) or ``--address`` (an existing cluster) every
 run becomes one Ray task of one CPU. Without Ray installed, ``--ray`` falls back to the
 sequential path with a warning; ``--address`` is an error (the user asked for a cluster we
-cannot reach).
+cannot reach), and so is an address where nothing answers (``check_reachable``) or that Ray
+refuses: both end the command with exit status 2 and a message naming ``--address``.
 """
 from __future__ import annotations
 
@@ -38,6 +39,10 @@ T = TypeVar('T')
 R = TypeVar('R')
 
 
+class ClusterError(RuntimeError):
+    """The cluster named by ``--address`` could not be joined (a usage error, not a crash)."""
+
+
 def ray_available() -> bool:
     """Whether the optional ``ray`` package can be imported."""
     return importlib.util.find_spec('ray') is not None
@@ -48,17 +53,65 @@ def select_backend(*, use_ray: bool, address: str | None,
     """``ray`` when asked for (``use_ray`` or ``address``) and importable, else ``sequential``.
 
     Raises:
-        RuntimeError: naming ``--address`` when a cluster address is given but Ray is absent.
+        RuntimeError: naming ``--address`` when a cluster address is given but Ray is absent
+            or nothing answers at it (``check_reachable``).
+        ValueError: naming ``--address`` when the address does not parse.
     """
     if not (use_ray or address):
         return 'sequential'
     if ray_available():
+        if address:
+            check_reachable(address)
         return 'ray'
     if address:
         raise RuntimeError(f'--address: {address!r} needs the optional ray package '
                            "(pip install 'rcbf_ros[ray]'); it is not installed")
     log('warning: --ray given but ray is not installed; running sequentially')
     return 'sequential'
+
+
+def parse_address(address: str) -> tuple[str, int] | None:
+    """``(host, port)`` of a Ray cluster address: ``host:port``, ``ray://host:port`` (a Ray
+    client server) or ``[v6 address]:port``; ``None`` for Ray's ``auto`` and ``local``, which
+    name no endpoint.
+
+    Raises:
+        ValueError: naming ``--address`` when the address has no host or no port number.
+    """
+    text = address.strip()
+    if text in ('auto', 'local'):
+        return None
+    _, sep, rest = text.partition('://')
+    endpoint = rest if sep else text
+    host, colon, port = endpoint.rpartition(':')
+    host = host.removeprefix('[').removesuffix(']')
+    if not colon or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f'--address: {address!r} is not host:port (e.g. 127.0.0.1:6379 or '
+                         'ray://head:10001)')
+    return host, int(port)
+
+
+def check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Fail fast when nothing accepts a TCP connection at a cluster address.
+
+    Ray's own ``init`` retries an unreachable head without end (measured: still waiting after
+    300 s), which for a mistyped address looks like a hung experiment. Only TCP is checked: a
+    port that accepts connections but is not Ray's is left to Ray.
+
+    Raises:
+        ValueError: naming ``--address`` when it does not parse (``parse_address``).
+        ClusterError: naming ``--address`` when the connection is refused or times out.
+    """
+    endpoint = parse_address(address)
+    if endpoint is None:
+        return
+    try:
+        with socket.create_connection(endpoint, timeout=timeout_s):
+            pass
+    except OSError as exc:
+        raise ClusterError(
+            f'--address: nothing answers at {address!r} ({exc.strerror or exc}); start the '
+            'head there (`ray start --head --port=PORT`) or correct the address') from exc
 
 
 def parallel_map(fn: Callable[[T], R], items: Sequence[T], *, backend: Backend,
@@ -81,7 +134,10 @@ def parallel_map(fn: Callable[[T], R], items: Sequence[T], *, backend: Backend,
     import ray  # optional dependency, checked by select_backend
     if not ray.is_initialized():
         if address:
-            ray.init(address=address)
+            try:
+                ray.init(address=address)
+            except (ConnectionError, ValueError) as exc:  # what Ray raises for a bad address
+                raise ClusterError(f'--address: Ray could not join {address!r}: {exc}') from exc
         else:
             # 'local': always a new instance of our own, never one found on the machine.
             ray.init(address='local', num_cpus=num_cpus, include_dashboard=False)

@@ -141,3 +141,18 @@ def test_the_cli_runs_an_experiment_on_an_existing_cluster_by_address(tmp_path):
         worker = json.loads((run / 'summary.json').read_text())['pid']
         assert worker not in (driver.pid, head.pid, os.getpid())
         assert json.loads((twin / 'summary.json').read_text())['pid'] == os.getpid()
+
+
+def test_an_address_that_is_not_a_ray_cluster_ends_with_exit_2(tmp_path, capsys):
+    """A port that accepts TCP but serves no Ray passes the reach check; Ray's refusal must
+    still end the command as a usage error naming --address, not a traceback."""
+    with socket.socket() as impostor:
+        impostor.bind(('127.0.0.1', 0))
+        impostor.listen()
+        port = impostor.getsockname()[1]
+        status = cli_main(['experiment', 'transfer', '--budget', 'smoke', '--systems',
+                           'unicycle', '--methods', 'modular', '--no-report',
+                           '--address', f'ray://127.0.0.1:{port}', '--out', str(tmp_path)])
+    assert status == 2
+    assert '--address' in capsys.readouterr().err
+    assert not list(tmp_path.rglob('metrics.jsonl'))

@@ -4,10 +4,12 @@ from __future__ import annotations
 import importlib.util
 import itertools
 import math
+import socket
 
 import numpy as np
 import pytest
 
+from rcbf_ros.experiments import runner
 from rcbf_ros.experiments.command import ExperimentRequest, plan_runs
 from rcbf_ros.experiments.definitions import (
     BUDGETS,
@@ -23,7 +25,12 @@ from rcbf_ros.experiments.metrics import (
     mean_std,
     reward_band,
 )
-from rcbf_ros.experiments.runner import ray_available, select_backend
+from rcbf_ros.experiments.runner import (
+    check_reachable,
+    parse_address,
+    ray_available,
+    select_backend,
+)
 
 
 def test_mean_std_is_the_population_std():
@@ -144,6 +151,48 @@ def test_without_ray_the_sequential_path_is_used(capsys, monkeypatch):
     with pytest.raises(RuntimeError, match='--address'):
         select_backend(use_ray=False, address='127.0.0.1:6379')
     assert cli_main(['experiment', 'transfer', '--address', '127.0.0.1:6379']) == 2
+    assert '--address' in capsys.readouterr().err
+
+
+def test_cluster_addresses_parse_in_rays_forms():
+    assert parse_address('127.0.0.1:6379') == ('127.0.0.1', 6379)
+    assert parse_address('ray://head.lan:10001') == ('head.lan', 10001)
+    assert parse_address('[::1]:6379') == ('::1', 6379)
+    assert parse_address('auto') is None and parse_address('local') is None
+    for bad in ('127.0.0.1', 'head:', ':6379', 'head:port', 'head:0', 'head:70000'):
+        with pytest.raises(ValueError, match='--address'):
+            parse_address(bad)
+
+
+def _closed_port() -> int:
+    """A loopback port nobody listens on (just released by us)."""
+    with socket.socket() as probe:
+        probe.bind(('127.0.0.1', 0))
+        return probe.getsockname()[1]
+
+
+def test_an_address_where_nothing_answers_fails_fast_naming_the_flag(capsys, monkeypatch):
+    """Ray retries an unreachable head forever; the CLI must stop with exit 2 instead."""
+    with socket.socket() as server:  # something listening: accepted
+        server.bind(('127.0.0.1', 0))
+        server.listen()
+        check_reachable(f'127.0.0.1:{server.getsockname()[1]}')
+    port = _closed_port()
+    with pytest.raises(RuntimeError, match='--address.*nothing answers'):
+        check_reachable(f'127.0.0.1:{port}')
+    # Through the CLI, as if ray were installed: the check comes before any Ray call.
+    from rcbf_ros.cli import main as cli_main
+    from rcbf_ros.experiments import command
+
+    def no_ray(*_args, **_kwargs):
+        raise AssertionError('reached Ray with an unreachable --address')
+    monkeypatch.setattr(runner, 'ray_available', lambda: True)
+    monkeypatch.setattr(runner, 'parallel_map', no_ray)
+    monkeypatch.setattr(command, 'parallel_map', no_ray)
+    assert cli_main(['experiment', 'transfer', '--budget', 'smoke',
+                     '--address', f'127.0.0.1:{port}']) == 2
+    assert 'nothing answers' in capsys.readouterr().err
+    assert cli_main(['experiment', 'transfer', '--address', 'head']) == 2
     assert '--address' in capsys.readouterr().err
 
 
