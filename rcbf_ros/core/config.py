@@ -12,9 +12,7 @@ Keys (all optional except ``system``)::
     input_limits.min / input_limits.max: [m floats] (override the system's; [] = unbounded)
     alpha, k_c, slack_weight
     input_weight: [m floats > 0] weights of u_S in the QP cost (default all 1)
-    obstacles.x / .y / .radius: [k floats];  obstacles.margin,
-        obstacles.lookahead: l or [l_1, ...] (one barrier per obstacle and point
-        p = position + l (cos th, sin th); [l, -l] guards both ends of a unicycle),
+    obstacles.x / .y / .radius: [k floats];  obstacles.margin, obstacles.lookahead,
         obstacles.heading_index (-1: none), obstacles.position_indices: [2 ints],
         obstacles.gammas: [r - 1 cascade gains]
     bands.<name>.index, .half_width, .center, .center_index (-1: constant centre), .gammas,
@@ -153,19 +151,13 @@ def build_families(params: Mapping[str, Any],
             raise ValueError('obstacles.position_indices: expected 2 indices')
         key = 'obstacles.position_indices'
         pos_idx = (_index({key: pos[0]}, key, 0, n_x), _index({key: pos[1]}, key, 1, n_x))
-        heading = _index(params, 'obstacles.heading_index', -1, n_x, allow_none=True)
-        lookaheads = float_list(params, 'obstacles.lookahead') or (0.0,)
-        if len(set(lookaheads)) != len(lookaheads):
-            raise ValueError(f'obstacles.lookahead: repeated point in {list(lookaheads)}')
-        # One barrier per obstacle and look-ahead point; the first point keeps the plain names.
-        for j, lookahead in enumerate(lookaheads):
-            base = CircleObstacles(
-                centers=tuple(zip(xs, ys)), radii=radius,
-                margin=number(params, 'obstacles.margin', 0.0),
-                position_indices=pos_idx,  # type: ignore[arg-type]
-                heading_index=heading, lookahead=lookahead,
-                name='obstacle' if j == 0 else f'obstacle_point{j}')
-            families.append(cascade(base, system, float_list(params, 'obstacles.gammas')))
+        base = CircleObstacles(
+            centers=tuple(zip(xs, ys)), radii=radius,
+            margin=number(params, 'obstacles.margin', 0.0),
+            position_indices=pos_idx,  # type: ignore[arg-type]
+            heading_index=_index(params, 'obstacles.heading_index', -1, n_x, allow_none=True),
+            lookahead=number(params, 'obstacles.lookahead', 0.0))
+        families.append(cascade(base, system, float_list(params, 'obstacles.gammas')))
     band_names = sorted({k.split('.')[1] for k in params
                          if k.startswith('bands.') and k.count('.') == 2})
     for band in band_names:

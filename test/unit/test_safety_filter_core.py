@@ -136,23 +136,20 @@ def test_unicycle_lie_derivatives_match_hand_written_barrier():
     obstacles = load_params(find_config('unicycle'), 'safety_filter')
     centers = np.stack([obstacles['obstacles.x'], obstacles['obstacles.y']], axis=1)
     delta = np.array(obstacles['obstacles.radius']) + obstacles['obstacles.margin']
-    points = np.atleast_1d(obstacles['obstacles.lookahead'])
-    assert len(points) == 2  # ahead and behind (config/unicycle.yaml)
+    lp = obstacles['obstacles.lookahead']
     rng = np.random.default_rng(3)
     for _ in range(10):
         x, y, th = rng.uniform(-3.0, 3.0), rng.uniform(-3.0, 3.0), rng.uniform(-np.pi, np.pi)
-        h_hand, lg_hand = [], []
-        for lp in points:  # rows: every obstacle for the first point, then for the next
-            p = np.array([x + lp * np.cos(th), y + lp * np.sin(th)])
-            d = p - centers
-            h_hand.append((d ** 2).sum(1) - delta ** 2)
-            # x_dot = [v cos th, v sin th, omega]: dp/dt = v (cos, sin) + omega l_p (-sin, cos)
-            lg_hand.append(np.stack([2 * d @ [np.cos(th), np.sin(th)],
-                                     2 * lp * d @ [-np.sin(th), np.cos(th)]], axis=1))
+        p = np.array([x + lp * np.cos(th), y + lp * np.sin(th)])
+        d = p - centers
+        h_hand = (d ** 2).sum(1) - delta ** 2
+        # x_dot = [v cos th, v sin th, omega]: dp/dt = v (cos, sin) + omega l_p (-sin, cos)
+        lg_hand = np.stack([2 * d @ [np.cos(th), np.sin(th)],
+                            2 * lp * d @ [-np.sin(th), np.cos(th)]], axis=1)
         h, _, lf_h, lg_h = lie_terms(config.problem, np.array([x, y, th]))
-        np.testing.assert_allclose(h, np.concatenate(h_hand), atol=1e-12)
+        np.testing.assert_allclose(h, h_hand, atol=1e-12)
         np.testing.assert_allclose(lf_h, 0.0, atol=1e-12)
-        np.testing.assert_allclose(lg_h, np.concatenate(lg_hand), atol=1e-12)
+        np.testing.assert_allclose(lg_h, lg_hand, atol=1e-12)
 
 
 @pytest.mark.parametrize('system', ('pvtol', 'car_following'))
@@ -172,11 +169,9 @@ def test_barrier_gradients_match_finite_differences(system):
 
 @pytest.mark.parametrize('input_weight', [[], [1.0, 0.01], [3.0, 0.5]])
 def test_single_active_row_is_the_soft_projection(input_weight):
-    # One obstacle, one look-ahead point, no input limits: the QP has one row, solved in
-    # closed form.
+    # One obstacle, no input limits: the QP has one row, solved in closed form.
     config = config_for('unicycle', **{'obstacles.x': [0.0], 'obstacles.y': [0.0],
-                                       'obstacles.radius': [0.6], 'obstacles.lookahead': 0.03,
-                                       'input_limits.min': [],
+                                       'obstacles.radius': [0.6], 'input_limits.min': [],
                                        'input_limits.max': [], 'input_weight': input_weight})
     problem = config.problem
     assert problem.n_barriers == 1 and not problem.has_limits
@@ -298,11 +293,7 @@ def test_starved_solver_returns_fail_safe_with_status():
 
 
 def test_interior_point_fallback_solves_what_a_starved_osqp_cannot():
-    # One point: OSQP itself solves this state then. With the config's two points, head-on
-    # at an obstacle, the two rows are nearly parallel and OSQP at 1e-9 runs out of its
-    # iterations; the fallback solves it (measured over 3000 random states and inputs: 13
-    # fallbacks with two points, 4 with one).
-    config = config_for('unicycle', **{'obstacles.lookahead': 0.03})
+    config = config_for('unicycle')
     state, u_rl = [-0.85, 0.0, 0.0], [2.5, 0.0]
     reference = SafetyFilter(config.problem).filter(state, u_rl)
     fallback = SafetyFilter(config.problem, max_iter=1).filter(state, u_rl)
@@ -328,29 +319,19 @@ def test_bad_input_raises_naming_the_field(kwargs, field):
         safety_filter.filter(args['state'], args['u_rl'], args['mean'], args['std'])
 
 
-def _drive_past_one_obstacle(input_weight, y0: float, steps: int = 600, *,
-                             reverse: bool = False, lookahead=None):
+def _drive_past_one_obstacle(input_weight, y0: float, steps: int = 600):
     """Go-to-goal from (-2, y0) to (2, 0) through the filter, one obstacle at the origin on the
-    straight line between them; ``reverse``: the same controller on the robot turned around,
-    so it drives there backwards. Returns (steps to the goal or None, final state, min h over
-    the barriers)."""
-    overrides = {'obstacles.x': [0.0], 'obstacles.y': [0.0], 'obstacles.radius': [0.6],
-                 'input_weight': input_weight}
-    if lookahead is not None:
-        overrides['obstacles.lookahead'] = lookahead
-    config = config_for('unicycle', **overrides)
+    straight line between them. Returns (steps to the goal or None, final state, min h)."""
+    config = config_for('unicycle', **{'obstacles.x': [0.0], 'obstacles.y': [0.0],
+                                       'obstacles.radius': [0.6],
+                                       'input_weight': input_weight})
     safety_filter = SafetyFilter(config.problem)
-    x, goal, min_h = np.array([-2.0, y0, np.pi if reverse else 0.0]), (2.0, 0.0), np.inf
+    x, goal, min_h = np.array([-2.0, y0, 0.0]), (2.0, 0.0), np.inf
     for k in range(steps):
-        if reverse:
-            v, omega = unicycle_go_to_goal(x + np.array([0.0, 0.0, np.pi]), goal)
-            nominal = np.array([-v, omega])
-        else:
-            nominal = unicycle_go_to_goal(x, goal)
-        u = safety_filter.filter(x, nominal).u_safe
+        u = safety_filter.filter(x, unicycle_go_to_goal(x, goal)).u_safe
         x = step_euler(config.problem.system, torch.from_numpy(x)[None],
                        torch.from_numpy(u)[None], 0.02)[0].numpy()
-        min_h = min(min_h, float(lie_terms(config.problem, x)[0].min()))
+        min_h = min(min_h, float(lie_terms(config.problem, x)[0][0]))
         if np.hypot(x[0] - goal[0], x[1] - goal[1]) < 0.3:
             return k, x, min_h
     return None, x, min_h
@@ -366,38 +347,6 @@ def test_cheap_steering_weight_turns_a_deadlock_into_a_detour(y0):
     assert steps is None and x[0] < -0.6 and min_h >= -1e-6
     steps, x, min_h = _drive_past_one_obstacle([1.0, 0.01], y0)
     assert steps is not None and min_h >= -1e-6
-
-
-@pytest.mark.parametrize('y0', [0.02, 0.2, 0.8])
-def test_a_point_behind_leads_a_reversing_robot_around(y0):
-    # Driving backwards, the point ahead trails: the cheap turn that moves it off the obstacle
-    # turns the direction of travel onto it, and the robot is parked like the forward one with
-    # equal weights. A second point behind (the config's [0.03, -0.03]) makes that turn lead
-    # around; forward driving still passes, and both directions take the same path.
-    steps, x, min_h = _drive_past_one_obstacle([1.0, 0.01], y0, reverse=True, lookahead=0.03)
-    assert steps is None and x[0] < -0.4 and min_h >= -1e-6
-    forward = _drive_past_one_obstacle([1.0, 0.01], y0, lookahead=[0.03, -0.03])
-    backward = _drive_past_one_obstacle([1.0, 0.01], y0, reverse=True,
-                                        lookahead=[0.03, -0.03])
-    for steps, _, min_h in (forward, backward):
-        assert steps is not None and min_h >= -1e-6
-    assert forward[0] == backward[0]
-    np.testing.assert_allclose(forward[1][:2], backward[1][:2], atol=1e-9)
-
-
-def test_lookahead_points_give_one_barrier_each_per_obstacle():
-    config = config_for('unicycle', **{'obstacles.x': [0.0, 1.0], 'obstacles.y': [0.0, 1.0],
-                                       'obstacles.radius': [0.5, 0.5],
-                                       'obstacles.lookahead': [0.03, -0.03]})
-    assert config.problem.barrier_names[:4] == ['obstacle_0', 'obstacle_1',
-                                                'obstacle_point1_0', 'obstacle_point1_1']
-    # Heading pi/2 at (0, -0.7): the point ahead is 0.03 nearer the obstacle at the origin.
-    h = lie_terms(config.problem, np.array([0.0, -0.7, np.pi / 2]))[0]
-    margin = config.problem.families[0].margin
-    np.testing.assert_allclose(h[[0, 2]], [0.67 ** 2 - (0.5 + margin) ** 2,
-                                           0.73 ** 2 - (0.5 + margin) ** 2], atol=1e-12)
-    with pytest.raises(ValueError, match='obstacles.lookahead'):
-        config_for('unicycle', **{'obstacles.lookahead': [0.03, 0.03]})
 
 
 @pytest.mark.parametrize('system, overrides', [
