@@ -47,6 +47,9 @@ def run_config_from_json(data: dict[str, Any]) -> RunConfig:
     if 'hidden_sizes' in sac:
         sac['hidden_sizes'] = tuple(sac['hidden_sizes'])
     learner['sac'] = SACConfig(**sac)
+    for corner in ('policy_min', 'policy_max'):
+        # Runs from before the policy box was configurable drew from the input limits: ().
+        learner[corner] = tuple(learner.get(corner) or ())
     return RunConfig(**{**data, 'learner': LearnerConfig(**learner), 'resume': False})
 
 

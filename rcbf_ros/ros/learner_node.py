@@ -31,7 +31,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from rcbf_ros.core.config import envelope_problem, filter_config_from_params, number
+from rcbf_ros.core.config import (
+    envelope_problem,
+    filter_config_from_params,
+    float_list,
+    number,
+)
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA, SACConfig
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.ros.node_main import run_node
@@ -63,6 +68,9 @@ def learner_from_settings(settings: dict[str, Any], filter_params: dict[str, Any
         start_steps=int(s['start_steps']), update_after=int(s['update_after']),
         batch_size=int(s['batch_size']), gp_refit_interval=int(s['gp_refit_interval']),
         k_c=float(s['k_c']), modular_envelope=bool(s['modular_envelope']),
+        # The params file's /learner section, as for the in-process trainer (resolve_run).
+        policy_min=float_list(filter_params, 'policy_limits.min'),
+        policy_max=float_list(filter_params, 'policy_limits.max'),
         sac=SACConfig(initial_alpha=s['initial_alpha']))
     return SafeLearner(config.problem, obs_dim=obs_dim, dt=float(s['dt']), config=learner_cfg,
                        envelope=envelope_problem(params) if learner_cfg.uses_envelope else None)

@@ -74,6 +74,13 @@ class LearnerConfig:
     policy_bound: float = 10.0
     """|u_RL| <= policy_bound for systems without actuator limits (SAC needs a box; the
     filter's correction is not limited by it)."""
+    policy_min: tuple[float, ...] | None = None
+    """Lower corner of the box the policy (and the warm-up's uniform proposals) draws u_RL
+    from, one value per input; the filter's correction is not limited by it. ``()``: the
+    system's input limits (or +/- policy_bound). ``None``: not resolved yet, the training
+    code fills it from the config file's ``/learner`` ``policy_limits.min`` (else ``()``)."""
+    policy_max: tuple[float, ...] | None = None
+    """Upper corner of that box (``policy_limits.max``); see policy_min."""
     sac: SACConfig = field(default_factory=SACConfig)
     """SAC hyperparameters (its mode is overwritten by ``mode``)."""
 
@@ -94,6 +101,13 @@ class LearnerConfig:
                 raise ValueError(f'{name}: must be >= 1')
         if not self.policy_bound > 0:
             raise ValueError('policy_bound: must be > 0')
+        if (self.policy_min is None) != (self.policy_max is None) or \
+                len(self.policy_min or ()) != len(self.policy_max or ()):
+            raise ValueError('policy_limits: give min and max together, one value per input '
+                             f'each (got min {self.policy_min}, max {self.policy_max})')
+        if any(not lo < hi for lo, hi in zip(self.policy_min or (), self.policy_max or ())):
+            raise ValueError(f'policy_limits: min {self.policy_min} must be < max '
+                             f'{self.policy_max} in every input')
         if not 0.0 <= self.model_ratio <= 1.0:
             raise ValueError('model_ratio: must be in [0, 1]')
 
@@ -144,6 +158,12 @@ class SafeLearner:
         else:
             self.u_low = np.asarray(self.system.u_min, dtype=np.float64)
             self.u_high = np.asarray(self.system.u_max, dtype=np.float64)
+        if cfg.policy_min:
+            if len(cfg.policy_min) != n_u:
+                raise ValueError(f'policy_limits.min: expected {n_u} values (one per input), '
+                                 f'got {len(cfg.policy_min)}')
+            self.u_low = np.asarray(cfg.policy_min, dtype=np.float64)
+            self.u_high = np.asarray(cfg.policy_max, dtype=np.float64)
         self.gp = DisturbanceGP(n_x, n_x, GPConfig(max_train_points=cfg.gp_max_points,
                                                    prior_std=cfg.gp_prior_std, seed=cfg.seed))
         self.safety_layer = DifferentiableSafetyLayer(problem, self.disturbance)

@@ -29,6 +29,7 @@ from rcbf_ros.core.config import (
     configures_barriers,
     envelope_problem,
     filter_config_from_params,
+    float_list,
     number,
 )
 from rcbf_ros.core.filter import SafetyFilter
@@ -98,22 +99,28 @@ def make_env(system: str, params: dict[str, Any]) -> Any:
 def resolve_run(run: RunConfig) -> RunConfig:
     """``run`` with the settings it leaves to the config file filled in from it.
 
-    The learner's ``initial_alpha`` comes from the file's ``/learner`` section when the run
-    does not set it (it belongs with the system: it is tied to the scale of its reward).
+    The learner's ``initial_alpha`` and policy box (``policy_limits.min/max``) come from the
+    file's ``/learner`` section when the run does not set them: they belong with the system
+    (the temperature is tied to the scale of its reward, the box to how it may be driven).
 
     Raises:
         FileNotFoundError: no such config file.
         ValueError: a bad value in the file (the message names the key).
     """
-    if run.learner.sac.initial_alpha is not None:
+    learner = run.learner
+    if learner.sac.initial_alpha is not None and learner.policy_min is not None:
         return run
     section = load_params(find_config(run.config_file or run.system), 'learner')
     try:
-        value = number(section, 'initial_alpha', DEFAULT_INITIAL_ALPHA, positive=True)
+        if learner.sac.initial_alpha is None:
+            value = number(section, 'initial_alpha', DEFAULT_INITIAL_ALPHA, positive=True)
+            learner = replace(learner, sac=replace(learner.sac, initial_alpha=value))
+        if learner.policy_min is None:
+            learner = replace(learner, policy_min=float_list(section, 'policy_limits.min'),
+                              policy_max=float_list(section, 'policy_limits.max'))
     except ValueError as exc:
         raise ValueError(f'learner.{exc}') from None
-    sac = replace(run.learner.sac, initial_alpha=value)
-    return replace(run, learner=replace(run.learner, sac=sac))
+    return replace(run, learner=learner)
 
 
 def build_run(run: RunConfig) -> tuple[Any, SafetyFilter | None, SafeLearner, dict[str, Any]]:

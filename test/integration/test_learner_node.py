@@ -86,6 +86,8 @@ def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
         np.testing.assert_allclose(node_buffer['data'][name][:size].numpy(),
                                    in_process['data'][name][:size].numpy(), rtol=0, atol=1e-6,
                                    err_msg=name)
+    # Both took the policy box of config/unicycle.yaml's /learner section: forward speeds.
+    assert node_buffer['data']['u_rl'][:size, 0].min() >= 0.0
     # The critic diagnostics agree too: the first episode's q_start is the seeded critics'
     # value of the same first step; disc_return sums the same rewards.
     node_rows = [json.loads(line) for line in (out / 'metrics.jsonl').read_text().splitlines()]

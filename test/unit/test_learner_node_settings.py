@@ -32,3 +32,17 @@ def test_modular_envelope_parameter_reaches_the_losses(pvtol, mode, envelope, ex
         assert names and not any('obstacle' in n or 'operator' in n for n in names)
         assert any('operator' in n for n in learner.problem.barrier_names)
         assert learner.envelope_layer.problem.n_barriers < learner.problem.n_barriers
+
+
+def test_the_nodes_learner_takes_the_policy_box_of_the_params_file():
+    """As the in-process trainer (resolve_run): config/unicycle.yaml's /learner
+    policy_limits reach the node's SAC; PVTOL's file has none, so its input limits apply."""
+    path = find_config('unicycle')
+    params = {**load_params(path, 'safety_filter'), **load_params(path, 'learner')}
+    learner = learner_from_settings({**PARAMETERS, 'system': 'unicycle'}, params, obs_dim=7)
+    np.testing.assert_array_equal(learner.u_low, [0.0, -2.5])
+    np.testing.assert_array_equal(learner.u_high, [2.5, 2.5])
+    path = find_config('pvtol')
+    params = {**load_params(path, 'safety_filter'), **load_params(path, 'learner')}
+    learner = learner_from_settings({**PARAMETERS, 'system': 'pvtol'}, params, obs_dim=12)
+    np.testing.assert_array_equal(learner.u_low, learner.system.u_min)

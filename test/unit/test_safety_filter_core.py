@@ -319,16 +319,23 @@ def test_bad_input_raises_naming_the_field(kwargs, field):
         safety_filter.filter(args['state'], args['u_rl'], args['mean'], args['std'])
 
 
-def _drive_past_one_obstacle(input_weight, y0: float, steps: int = 600):
+def _drive_past_one_obstacle(input_weight, y0: float, steps: int = 600, *,
+                             reverse: bool = False):
     """Go-to-goal from (-2, y0) to (2, 0) through the filter, one obstacle at the origin on the
-    straight line between them. Returns (steps to the goal or None, final state, min h)."""
+    straight line between them; ``reverse``: the same controller on the robot turned around,
+    so it drives there backwards. Returns (steps to the goal or None, final state, min h)."""
     config = config_for('unicycle', **{'obstacles.x': [0.0], 'obstacles.y': [0.0],
                                        'obstacles.radius': [0.6],
                                        'input_weight': input_weight})
     safety_filter = SafetyFilter(config.problem)
-    x, goal, min_h = np.array([-2.0, y0, 0.0]), (2.0, 0.0), np.inf
+    x, goal, min_h = np.array([-2.0, y0, np.pi if reverse else 0.0]), (2.0, 0.0), np.inf
     for k in range(steps):
-        u = safety_filter.filter(x, unicycle_go_to_goal(x, goal)).u_safe
+        if reverse:
+            v, omega = unicycle_go_to_goal(x + np.array([0.0, 0.0, np.pi]), goal)
+            nominal = np.array([-v, omega])
+        else:
+            nominal = unicycle_go_to_goal(x, goal)
+        u = safety_filter.filter(x, nominal).u_safe
         x = step_euler(config.problem.system, torch.from_numpy(x)[None],
                        torch.from_numpy(u)[None], 0.02)[0].numpy()
         min_h = min(min_h, float(lie_terms(config.problem, x)[0][0]))
@@ -346,6 +353,18 @@ def test_cheap_steering_weight_turns_a_deadlock_into_a_detour(y0):
     steps, x, min_h = _drive_past_one_obstacle([1.0, 1.0], y0)
     assert steps is None and x[0] < -0.6 and min_h >= -1e-6
     steps, x, min_h = _drive_past_one_obstacle([1.0, 0.01], y0)
+    assert steps is not None and min_h >= -1e-6
+
+
+@pytest.mark.parametrize('y0', [0.02, 0.2, 0.8])
+def test_a_reversing_robot_is_parked_by_the_point_ahead(y0):
+    # Why config/unicycle.yaml lets the policy propose forward speeds only. Driving backwards,
+    # the look-ahead point trails: the cheap turn that moves it off the obstacle turns the
+    # direction of travel onto it, and braking is all that is left, even where the same
+    # controller driving forwards passes (and even well off the obstacle's centre line).
+    steps, x, min_h = _drive_past_one_obstacle([1.0, 0.01], y0, reverse=True)
+    assert steps is None and x[0] < -0.4 and min_h >= -1e-6
+    steps, _, min_h = _drive_past_one_obstacle([1.0, 0.01], y0)
     assert steps is not None and min_h >= -1e-6
 
 

@@ -312,3 +312,54 @@ def test_episode_metrics_hold_the_critics_first_value_and_the_discounted_return(
     at_safe = torch.minimum(sac.q1(obs.to(sac.dtype), u_safe.to(sac.dtype)),
                             sac.q2(obs.to(sac.dtype), u_safe.to(sac.dtype)))
     assert row['q_start'] == pytest.approx(float(at_safe), rel=1e-6)
+
+
+def test_unicycle_policy_proposes_forward_speeds_only(tmp_path):
+    """config/unicycle.yaml's policy box: every proposal (warm-up draws, stochastic and
+    deterministic policy) has v >= 0; the filter may still reverse. The box is written to
+    run_config.json and used again when the policy is evaluated."""
+    from rcbf_ros.experiments.evaluate import load_trained_learner, run_config_from_json
+    from rcbf_ros.training.loop import build_run, resolve_run
+    section = load_params(find_config('unicycle'), 'learner')
+    assert section['policy_limits.min'] == [0.0, -2.5]
+    run = small_run(tmp_path, 'unicycle', 'modular', steps=120)
+    assert resolve_run(run).learner.policy_min == (0.0, -2.5)
+    train(run, log=lambda line: None)
+    written = json.loads((tmp_path / 'unicycle_modular_0' / 'run_config.json').read_text())
+    assert written['learner']['policy_min'] == [0.0, -2.5]
+    assert written['learner']['policy_max'] == [2.5, 2.5]
+    _, learner = load_trained_learner(tmp_path / 'unicycle_modular_0')
+    np.testing.assert_array_equal(learner.u_low, [0.0, -2.5])
+    assert learner.config.policy_min == (0.0, -2.5)
+    rng = np.random.default_rng(0)
+    state = np.array([0.5, -1.0, 0.3])
+    env, _, _, _ = build_run(run)
+    obs, _ = env.reset(seed=0)
+    for deterministic in (False, True):
+        speeds = [learner.sac.act(obs + rng.normal(0, 0.5, obs.shape),
+                                  deterministic=deterministic)[0] for _ in range(200)]
+        assert min(speeds) >= 0.0 and max(speeds) <= 2.5
+    warm = build_run(run)[2]  # a fresh learner: env_steps 0, uniform warm-up draws
+    draws = np.array([warm.propose(obs, state).u_rl for _ in range(300)])
+    assert draws[:, 0].min() >= 0.0 and draws[:, 0].max() > 2.0
+    assert draws[:, 1].min() < -2.0  # the turn rate keeps both signs
+    one_input = replace(run, learner=replace(run.learner, policy_min=(0.0,), policy_max=(1.0,)))
+    with pytest.raises(ValueError, match='policy_limits.min: expected 2 values'):
+        build_run(one_input)
+    # Without the section: the input limits, as before; a run written before the box
+    # existed (no policy_min in its json) is rebuilt with them too.
+    bare = tmp_path / 'bare.yaml'
+    bare.write_text(find_config('unicycle').read_text().replace('/learner:', '/other:'))
+    assert resolve_run(replace(run, config_file=str(bare))).learner.policy_min == ()
+    legacy = dict(written)
+    legacy['learner'] = {k: v for k, v in written['learner'].items()
+                         if k not in ('policy_min', 'policy_max')}
+    assert run_config_from_json(legacy).learner.policy_min == ()
+
+
+@pytest.mark.parametrize('low, high, match', [
+    ((0.0,), (2.5, 2.5), 'policy_limits'), ((0.0, -2.5), None, 'policy_limits'),
+    ((2.5, -2.5), (2.5, 2.5), 'must be < max')])
+def test_bad_policy_limits_name_the_key(low, high, match):
+    with pytest.raises(ValueError, match=match):
+        LearnerConfig(policy_min=low, policy_max=high)
