@@ -32,17 +32,22 @@ import numpy as np
 import torch
 
 from rcbf_ros.core.config import (
+    build_system,
     envelope_problem,
     filter_config_from_params,
-    float_list,
     number,
 )
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA, SACConfig
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
-from rcbf_ros.training.agent import LearnerConfig, SafeLearner
-from rcbf_ros.training.loop import format_progress, rewrite_metrics, summarize
+from rcbf_ros.training.agent import LearnerConfig, policy_box, SafeLearner
+from rcbf_ros.training.loop import (
+    format_progress,
+    policy_limits,
+    rewrite_metrics,
+    summarize,
+)
 from rcbf_ros.training.policy_io import save_policy
 
 PARAMETERS: dict[str, Any] = {
@@ -54,25 +59,35 @@ PARAMETERS: dict[str, Any] = {
 }
 
 
+def learner_config_from_settings(settings: dict[str, Any],
+                                 filter_params: dict[str, Any]) -> LearnerConfig:
+    """The LearnerConfig of the node's parameters (``settings``, keys of :data:`PARAMETERS`)
+    and of the params file's ``/learner`` policy box (in ``filter_params``: every parameter
+    given to the node), as the in-process trainer reads it (``resolve_run``).
+
+    Raises:
+        ValueError: naming the bad setting.
+    """
+    s = settings
+    return LearnerConfig(
+        mode=str(s['mode']), model_based=bool(s['model_based']), seed=int(s['seed']),
+        start_steps=int(s['start_steps']), update_after=int(s['update_after']),
+        batch_size=int(s['batch_size']), gp_refit_interval=int(s['gp_refit_interval']),
+        k_c=float(s['k_c']), modular_envelope=bool(s['modular_envelope']),
+        **policy_limits(filter_params), sac=SACConfig(initial_alpha=s['initial_alpha']))
+
+
 def learner_from_settings(settings: dict[str, Any], filter_params: dict[str, Any],
                           obs_dim: int) -> SafeLearner:
     """The node's SafeLearner from its parameters (``settings``, keys of :data:`PARAMETERS`)
     and the shared safety problem's (``filter_params``): the same RCBF problem the
     safety_filter node solves, and, when ``modular_envelope`` asks for it in ``modular`` mode,
     the envelope problem of its losses."""
-    s = settings
-    params = {**filter_params, 'k_c': s['k_c']}
+    params = {**filter_params, 'k_c': settings['k_c']}
     config = filter_config_from_params(params)
-    learner_cfg = LearnerConfig(
-        mode=str(s['mode']), model_based=bool(s['model_based']), seed=int(s['seed']),
-        start_steps=int(s['start_steps']), update_after=int(s['update_after']),
-        batch_size=int(s['batch_size']), gp_refit_interval=int(s['gp_refit_interval']),
-        k_c=float(s['k_c']), modular_envelope=bool(s['modular_envelope']),
-        # The params file's /learner section, as for the in-process trainer (resolve_run).
-        policy_min=float_list(filter_params, 'policy_limits.min'),
-        policy_max=float_list(filter_params, 'policy_limits.max'),
-        sac=SACConfig(initial_alpha=s['initial_alpha']))
-    return SafeLearner(config.problem, obs_dim=obs_dim, dt=float(s['dt']), config=learner_cfg,
+    learner_cfg = learner_config_from_settings(settings, filter_params)
+    return SafeLearner(config.problem, obs_dim=obs_dim, dt=float(settings['dt']),
+                       config=learner_cfg,
                        envelope=envelope_problem(params) if learner_cfg.uses_envelope else None)
 
 
@@ -110,6 +125,10 @@ class LearnerNode(Node):
         torch.set_num_threads(threads)
         # The safety problem's keys (system, obstacles.*, gains) come from the params file.
         self.filter_params = self._declared_filter_params()
+        # The learner is built at the first step (it needs the observation's size); its
+        # settings and policy box are checked now, so that a bad one exits 2 naming the key.
+        policy_box(build_system(self.filter_params),
+                   learner_config_from_settings(self.settings, self.filter_params))
         self.out_dir = Path(str(self.settings['out_dir']))
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.learner: SafeLearner | None = None

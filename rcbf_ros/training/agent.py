@@ -21,6 +21,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 import torch
 
+from rcbf_ros.core.dynamics import ControlAffineSystem
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.learning.buffers import ReplayBuffer
 from rcbf_ros.learning.gp import DisturbanceGP, GPConfig
@@ -112,6 +113,27 @@ class LearnerConfig:
             raise ValueError('model_ratio: must be in [0, 1]')
 
 
+def policy_box(system: ControlAffineSystem,
+               config: LearnerConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high), each (n_u,): the box u_RL is drawn from. ``config.policy_min/max`` when
+    set, else the system's input limits, else +/- ``config.policy_bound``.
+
+    Raises:
+        ValueError: naming ``policy_limits.min`` when the box has not one value per input.
+    """
+    n_u = system.n_u
+    if config.policy_min:
+        if len(config.policy_min) != n_u:
+            raise ValueError(f'policy_limits.min: expected {n_u} values (one per input), '
+                             f'got {len(config.policy_min)}')
+        return (np.asarray(config.policy_min, dtype=np.float64),
+                np.asarray(config.policy_max, dtype=np.float64))
+    if system.u_min is None or system.u_max is None:
+        return np.full(n_u, -config.policy_bound), np.full(n_u, config.policy_bound)
+    return (np.asarray(system.u_min, dtype=np.float64),
+            np.asarray(system.u_max, dtype=np.float64))
+
+
 class Proposal(NamedTuple):
     """What the learner sends to the safety filter for one state."""
 
@@ -152,18 +174,7 @@ class SafeLearner:
         self.system = problem.system
         self.dt = float(dt)
         n_x, n_u = self.system.n_x, self.system.n_u
-        if self.system.u_min is None or self.system.u_max is None:
-            self.u_low = np.full(n_u, -cfg.policy_bound)
-            self.u_high = np.full(n_u, cfg.policy_bound)
-        else:
-            self.u_low = np.asarray(self.system.u_min, dtype=np.float64)
-            self.u_high = np.asarray(self.system.u_max, dtype=np.float64)
-        if cfg.policy_min:
-            if len(cfg.policy_min) != n_u:
-                raise ValueError(f'policy_limits.min: expected {n_u} values (one per input), '
-                                 f'got {len(cfg.policy_min)}')
-            self.u_low = np.asarray(cfg.policy_min, dtype=np.float64)
-            self.u_high = np.asarray(cfg.policy_max, dtype=np.float64)
+        self.u_low, self.u_high = policy_box(self.system, cfg)
         self.gp = DisturbanceGP(n_x, n_x, GPConfig(max_train_points=cfg.gp_max_points,
                                                    prior_std=cfg.gp_prior_std, seed=cfg.seed))
         self.safety_layer = DifferentiableSafetyLayer(problem, self.disturbance)

@@ -20,7 +20,7 @@ import json
 import math
 from pathlib import Path
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
@@ -96,6 +96,13 @@ def make_env(system: str, params: dict[str, Any]) -> Any:
     return getattr(importlib.import_module(module_name), cls_name)(params)
 
 
+def policy_limits(params: Mapping[str, Any]) -> dict[str, tuple[float, ...]]:
+    """``policy_min`` / ``policy_max`` of a LearnerConfig from a ``/learner`` section's
+    ``policy_limits.min`` / ``.max`` (absent: ``()``, the input limits); errors name the key."""
+    return {'policy_min': float_list(params, 'policy_limits.min'),
+            'policy_max': float_list(params, 'policy_limits.max')}
+
+
 def resolve_run(run: RunConfig) -> RunConfig:
     """``run`` with the settings it leaves to the config file filled in from it.
 
@@ -116,8 +123,7 @@ def resolve_run(run: RunConfig) -> RunConfig:
             value = number(section, 'initial_alpha', DEFAULT_INITIAL_ALPHA, positive=True)
             learner = replace(learner, sac=replace(learner.sac, initial_alpha=value))
         if learner.policy_min is None:
-            learner = replace(learner, policy_min=float_list(section, 'policy_limits.min'),
-                              policy_max=float_list(section, 'policy_limits.max'))
+            learner = replace(learner, **policy_limits(section))
     except ValueError as exc:
         raise ValueError(f'learner.{exc}') from None
     return replace(run, learner=learner)

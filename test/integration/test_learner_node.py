@@ -117,9 +117,13 @@ def test_killed_learner_resumes_from_its_checkpoint(tmp_path, ros_domain_id):
     assert state['episode'] == 2 and state['learner']['buffer']['size'] == 100
 
 
-@pytest.mark.parametrize('key,value', [('threads', '0'), ('threads', "'two'"),
-                                       ('initial_alpha', '-0.1')])
-def test_invalid_setting_exits_2_naming_the_key(tmp_path, ros_domain_id, key, value):
+@pytest.mark.parametrize('key,value,named', [
+    ('threads', '0', 'threads'), ('threads', "'two'", 'threads'),
+    ('initial_alpha', '-0.1', 'initial_alpha'),
+    # The params file's max is [2.5, 2.5]; checked at start-up, not at the first step.
+    ('policy_limits.min', '[0.0]', 'policy_limits'),
+    ('policy_limits.min', '[2.6, 0.0]', 'policy_limits')])
+def test_invalid_setting_exits_2_naming_the_key(tmp_path, ros_domain_id, key, value, named):
     env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': 'cyclone',
            'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
     log = tmp_path / 'learner.log'
@@ -130,4 +134,4 @@ def test_invalid_setting_exits_2_naming_the_key(tmp_path, ros_domain_id, key, va
     finally:
         stop(proc)
     assert code == 2, log.read_text()
-    assert f'learner: invalid parameters: {key}' in log.read_text()
+    assert f'learner: invalid parameters: {named}' in log.read_text()
