@@ -10,7 +10,8 @@ Families here (all differentiable in torch):
 
 - :class:`CircleObstacles`  h_o = ||p(x) - p_o||^2 - delta_o^2 (paper, Unicycle and PVTOL), with an
   optional look-ahead point p = (x, y) + l_p (cos th, sin th) so that both unicycle inputs appear
-  in L_g h (relative degree 1).
+  in L_g h (relative degree 1); with ``speed_input`` set, the point moves behind the robot for
+  proposals that drive backwards (chosen in :func:`rcbf_ros.core.rcbf.barrier_terms`).
 - :class:`BandBarrier`      h = delta^2 - (x_i - c)^2 where c is a constant or another state entry
   (the PVTOL safety operator: delta^2 - (x1 - x_h)^2), or the band's two linear sides.
 - :class:`PairGap`          h = 1/2 ((x_a - x_b)^2 - delta^2) (Car Following, h_3 and h_5).
@@ -24,7 +25,7 @@ derivatives carry neither the input nor (for the systems here) the learned distu
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol, runtime_checkable, Sequence
 
 import torch
@@ -71,6 +72,11 @@ class CircleObstacles:
     """l_p: the barrier uses p = position + l_p (cos th, sin th) (ref: 0.03 on the unicycle)."""
     name: str = 'obstacle'
     """Prefix of the barrier names in diagnostics."""
+    speed_input: int | None = None
+    """Index of the input that drives along the heading (unicycle: v). When set, a proposal
+    with a negative value there uses the point BEHIND the robot, p - l_p (cos th, sin th), as
+    long as that point is outside every obstacle (see :func:`rcbf_ros.core.rcbf.barrier_terms`);
+    None: always the point ahead."""
 
     def __post_init__(self) -> None:
         if len(self.centers) != len(self.radii):
@@ -81,6 +87,13 @@ class CircleObstacles:
             raise ValueError('obstacles.radii: radii must be >= 0')
         if self.lookahead != 0.0 and self.heading_index is None:
             raise ValueError('obstacles.lookahead: a look-ahead point needs heading_index')
+        if self.speed_input is not None and self.lookahead == 0.0:
+            raise ValueError('obstacles.speed_input: needs a look-ahead point '
+                             '(obstacles.lookahead != 0)')
+
+    def behind(self) -> 'CircleObstacles':
+        """The same obstacles guarding the point behind the robot (l_p -> -l_p)."""
+        return replace(self, lookahead=-self.lookahead, speed_input=None)
 
     @property
     def count(self) -> int:

@@ -14,7 +14,9 @@ Keys (all optional except ``system``)::
     input_weight: [m floats > 0] weights of u_S in the QP cost (default all 1)
     obstacles.x / .y / .radius: [k floats];  obstacles.margin, obstacles.lookahead,
         obstacles.heading_index (-1: none), obstacles.position_indices: [2 ints],
-        obstacles.gammas: [r - 1 cascade gains]
+        obstacles.gammas: [r - 1 cascade gains], obstacles.speed_input (-1: none; the input
+        whose negative proposals move the look-ahead point behind the robot, see
+        rcbf_ros.core.rcbf.barrier_terms)
     bands.<name>.index, .half_width, .center, .center_index (-1: constant centre), .gammas,
         .form (quadratic: one barrier, the paper's; sides: two linear ones, see BandBarrier):
         one band per <name> (e.g. bands.operator.*, bands.tilt.*)
@@ -84,7 +86,7 @@ def number(params: Mapping[str, Any], key: str, default: float, *,
 
 
 def _index(params: Mapping[str, Any], key: str, default: int, n_x: int,
-           allow_none: bool = False) -> int | None:
+           allow_none: bool = False, kind: str = 'state') -> int | None:
     value = params.get(key, default)
     try:
         out = int(value)
@@ -93,7 +95,8 @@ def _index(params: Mapping[str, Any], key: str, default: int, n_x: int,
     if allow_none and out < 0:
         return None
     if not 0 <= out < n_x:
-        raise ValueError(f'{key}: state index {out} out of range for n_x = {n_x}')
+        size = 'n_x' if kind == 'state' else 'n_u'
+        raise ValueError(f'{key}: {kind} index {out} out of range for {size} = {n_x}')
     return out
 
 
@@ -156,8 +159,14 @@ def build_families(params: Mapping[str, Any],
             margin=number(params, 'obstacles.margin', 0.0),
             position_indices=pos_idx,  # type: ignore[arg-type]
             heading_index=_index(params, 'obstacles.heading_index', -1, n_x, allow_none=True),
-            lookahead=number(params, 'obstacles.lookahead', 0.0))
-        families.append(cascade(base, system, float_list(params, 'obstacles.gammas')))
+            lookahead=number(params, 'obstacles.lookahead', 0.0),
+            speed_input=_index(params, 'obstacles.speed_input', -1, system.n_u,
+                               allow_none=True, kind='input'))
+        gammas = float_list(params, 'obstacles.gammas')
+        if base.speed_input is not None and gammas:
+            raise ValueError('obstacles.speed_input: the look-ahead point follows the direction '
+                             'of travel only at relative degree 1 (no obstacles.gammas)')
+        families.append(cascade(base, system, gammas))
     band_names = sorted({k.split('.')[1] for k in params
                          if k.startswith('bands.') and k.count('.') == 2})
     for band in band_names:

@@ -89,7 +89,7 @@ def eager_assembly(problem: RCBFProblem) -> Assembly:
 
     def assemble(x: torch.Tensor, u: torch.Tensor, mean: torch.Tensor,
                  std: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        terms = problem.terms(x)
+        terms = problem.terms(x, u)
         qp = problem.qp(x, u, mean, std, terms=terms)
         return terms.h, qp.G, qp.h
 
@@ -130,8 +130,11 @@ def compiled_assembly(problem: RCBFProblem, *, checks: int = 8, seed: int = 0) -
     generator = torch.Generator().manual_seed(seed)
 
     def sample(scale: float = 1.0) -> tuple[torch.Tensor, ...]:
-        return tuple(scale * torch.rand(1, n, generator=generator, dtype=torch.float64) + 0.1
-                     for n in (n_x, n_u, n_x, n_x))
+        x, mean, std = (scale * torch.rand(1, n, generator=generator, dtype=torch.float64)
+                        + 0.1 for n in (n_x, n_x, n_x))
+        # signed proposals: the direction of travel picks a barrier's look-ahead point
+        u = scale * (2.0 * torch.rand(1, n_u, generator=generator, dtype=torch.float64) - 1.0)
+        return x, u, mean, std
 
     example = sample(0.5)
     try:

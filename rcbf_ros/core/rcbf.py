@@ -31,25 +31,48 @@ class BarrierTerms(NamedTuple):
     """(B, K, n_u) L_g h_i(x) = grad h_i^T g(x)."""
 
 
+def _family_values(family: BarrierFamily, x: Tensor) -> tuple[Tensor, Tensor]:
+    """h (B, k) and grad h (B, k, n_x) of one family, by one autograd pass (module doc)."""
+    batch, k = x.shape[0], family.count
+    rows = x.detach().repeat_interleave(k, dim=0).requires_grad_(True)
+    index = torch.arange(k, device=x.device).repeat(batch)
+    values = family.value(rows, index)
+    (grad,) = torch.autograd.grad(values.sum(), rows)
+    return values.detach().reshape(batch, k), grad.reshape(batch, k, -1)
+
+
 def barrier_terms(system: ControlAffineSystem, families: Sequence[BarrierFamily],
-                  x: Tensor) -> BarrierTerms:
+                  x: Tensor, u: Tensor | None = None) -> BarrierTerms:
     """h, grad h, L_f h, L_g h for every barrier of every family at states x: (B, n_x).
 
     Gradients come from one autograd pass per family over row-replicated states (row r of the
     replica carries barrier index[r], see :mod:`rcbf_ros.core.barriers`). The results are
     detached: they are constants for the QP (the learner differentiates through u_RL only).
+
+    Direction of travel: for a :class:`CircleObstacles` with ``speed_input`` and proposals
+    u: (B, n_u) given, row b guards the point behind the robot instead of the one ahead when
+    u[b, speed_input] < 0 and that point is outside every obstacle of the family (h >= 0 for
+    all of them); otherwise, and without u, the point ahead. Driving backwards with the point
+    ahead, the cheap turn that moves that point off an obstacle turns the direction of travel
+    onto it and the filter can only brake; the point behind makes reversing the mirror image of
+    driving forwards. Requiring the point behind to be safe before switching bounds what a
+    switch can cost: the centre is within l_p of either point, so it stays at least
+    delta - 3 l_p from every obstacle centre (the margin covers 3 l_p in the shipped configs).
+    The choice is a ``torch.where`` (no Python branching on values), so the compiled assembly
+    traces it.
     """
-    batch = x.shape[0]
     hs, grads = [], []
     with torch.enable_grad():
         for family in families:
-            k = family.count
-            rows = x.detach().repeat_interleave(k, dim=0).requires_grad_(True)
-            index = torch.arange(k, device=x.device).repeat(batch)
-            values = family.value(rows, index)
-            (grad,) = torch.autograd.grad(values.sum(), rows)
-            hs.append(values.detach().reshape(batch, k))
-            grads.append(grad.reshape(batch, k, -1))
+            h, grad = _family_values(family, x)
+            speed = getattr(family, 'speed_input', None)
+            if speed is not None and u is not None:
+                h_behind, grad_behind = _family_values(family.behind(), x)  # type: ignore
+                use = (u.detach()[:, speed] < 0) & (h_behind >= 0).all(dim=1)
+                h = torch.where(use[:, None], h_behind, h)
+                grad = torch.where(use[:, None, None], grad_behind, grad)
+            hs.append(h)
+            grads.append(grad)
     h = torch.cat(hs, dim=1)
     grad_h = torch.cat(grads, dim=1)
     x = x.detach()
@@ -110,9 +133,11 @@ class RCBFProblem:
         """nc = K (+ 2 n_u with limits)."""
         return self.n_barriers + (2 * self.system.n_u if self.has_limits else 0)
 
-    def terms(self, x: Tensor) -> BarrierTerms:
-        """Barrier values and Lie derivatives. x: (B, n_x)."""
-        return barrier_terms(self.system, self.families, x)
+    def terms(self, x: Tensor, u_rl: Tensor | None = None) -> BarrierTerms:
+        """Barrier values and Lie derivatives. x: (B, n_x); u_rl: (B, n_u) proposals, which
+        choose the look-ahead point of obstacles with a ``speed_input`` (None: the point ahead;
+        see :func:`barrier_terms`)."""
+        return barrier_terms(self.system, self.families, x, u_rl)
 
     def qp(self, x: Tensor, u_rl: Tensor, mean: Tensor | None = None,
            std: Tensor | None = None, terms: BarrierTerms | None = None) -> QPData:
@@ -121,9 +146,9 @@ class RCBFProblem:
         Args:
             mean: (B, n_x) disturbance mean (None: zero).
             std: (B, n_x) disturbance std (None: zero, i.e. a plain CBF with a known mean).
-            terms: precomputed :meth:`terms` at x (saves the autograd pass when reused).
+            terms: precomputed :meth:`terms` at (x, u_rl) (saves the autograd pass when reused).
         """
-        terms = self.terms(x) if terms is None else terms
+        terms = self.terms(x, u_rl) if terms is None else terms
         if mean is None and std is None:
             rho = torch.zeros_like(terms.h)
         else:

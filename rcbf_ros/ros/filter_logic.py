@@ -58,6 +58,7 @@ FILTER_PARAMETER_KEYS: tuple[str, ...] = (
     'input_weight',
     'obstacles.x', 'obstacles.y', 'obstacles.radius', 'obstacles.margin', 'obstacles.lookahead',
     'obstacles.heading_index', 'obstacles.position_indices', 'obstacles.gammas',
+    'obstacles.speed_input',
     'gaps.a', 'gaps.b', 'gaps.delta', 'gaps.gammas',
     'walls.nx', 'walls.ny', 'walls.offset', 'walls.gammas',
     'disturbance.mean', 'disturbance.std', 'fail_safe_action', 'compile_assembly',

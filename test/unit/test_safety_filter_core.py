@@ -53,16 +53,18 @@ def random_state(system: str, rng: np.random.Generator) -> np.ndarray:
     return np.stack([positions, velocities], axis=1).reshape(-1)
 
 
-def lie_terms(problem, x: np.ndarray):
-    """h, grad h, L_f h, L_g h at one state (numpy), via the problem's barrier families."""
-    terms = problem.terms(torch.from_numpy(x).unsqueeze(0))
+def lie_terms(problem, x: np.ndarray, u: np.ndarray | None = None):
+    """h, grad h, L_f h, L_g h at one state (numpy), via the problem's barrier families; the
+    proposal u picks the unicycle's look-ahead point (None: the point ahead)."""
+    terms = problem.terms(torch.from_numpy(x).unsqueeze(0),
+                          None if u is None else torch.from_numpy(u).unsqueeze(0))
     return (terms.h[0].numpy(), terms.grad_h[0].numpy(), terms.lf_h[0].numpy(),
             terms.lg_h[0].numpy())
 
 
 def reference_solution(problem, x, u_rl, mean, std, limits=True):
     """u_safe and eps of the RCBF-QP solved by Clarabel, from the paper's formulation."""
-    h, grad, _, _ = lie_terms(problem, x)
+    h, grad, _, _ = lie_terms(problem, x, u_rl)
     system = problem.system
     xt = torch.from_numpy(x).unsqueeze(0)
     f = system.f(xt)[0].numpy()
@@ -84,9 +86,10 @@ def reference_solution(problem, x, u_rl, mean, std, limits=True):
     return u_rl + u_s.value, float(eps.value)
 
 
-def minimal_slack(problem, x, mean, std) -> float:
-    """min eps such that every RCBF row holds within the input limits (an LP, HiGHS)."""
-    h, grad, lf_h, lg_h = lie_terms(problem, x)
+def minimal_slack(problem, x, u_rl, mean, std) -> float:
+    """min eps such that every RCBF row (as chosen for the proposal u_rl) holds within the
+    input limits (an LP, HiGHS)."""
+    h, grad, lf_h, lg_h = lie_terms(problem, x, u_rl)
     rho = grad @ mean - problem.k_c * np.abs(grad) @ std
     system = problem.system
     # Variables [u, eps]: -(L_g h u) - eps <= L_f h + alpha h + rho.
@@ -152,6 +155,51 @@ def test_unicycle_lie_derivatives_match_hand_written_barrier():
         np.testing.assert_allclose(lg_h, lg_hand, atol=1e-12)
 
 
+def test_a_reversing_proposal_guards_the_point_behind_once_it_is_clear():
+    # Hand-written rows for both points; the point behind is used exactly when the proposal
+    # reverses AND that point is outside every obstacle's delta.
+    config = config_for('unicycle')
+    obstacles = load_params(find_config('unicycle'), 'safety_filter')
+    assert obstacles['obstacles.speed_input'] == 0
+    centers = np.stack([obstacles['obstacles.x'], obstacles['obstacles.y']], axis=1)
+    delta = np.array(obstacles['obstacles.radius']) + obstacles['obstacles.margin']
+    lp = obstacles['obstacles.lookahead']
+
+    def hand(x, y, th, l):
+        d = np.array([x + l * np.cos(th), y + l * np.sin(th)]) - centers
+        lg = np.stack([2 * d @ [np.cos(th), np.sin(th)],
+                       2 * l * d @ [-np.sin(th), np.cos(th)]], axis=1)
+        return (d ** 2).sum(1) - delta ** 2, lg
+
+    rng = np.random.default_rng(4)
+    seen = {'ahead': 0, 'behind': 0, 'behind_blocked': 0}
+    for k in range(400):
+        if k % 2:  # on the rim of an obstacle, where the two points disagree
+            c, angle = centers[rng.integers(len(centers))], rng.uniform(-np.pi, np.pi)
+            x, y = c + (delta[0] + rng.uniform(-0.04, 0.04)) * np.array(
+                [np.cos(angle), np.sin(angle)])
+        else:
+            x, y = rng.uniform(-3.0, 3.0, 2)
+        th = rng.uniform(-np.pi, np.pi)
+        u = np.array([rng.uniform(-2.5, 2.5), rng.uniform(-2.5, 2.5)])
+        h, _, lf_h, lg_h = lie_terms(config.problem, np.array([x, y, th]), u)
+        h_ahead, lg_ahead = hand(x, y, th, lp)
+        h_behind, lg_behind = hand(x, y, th, -lp)
+        if u[0] < 0 and np.all(h_behind >= 0):
+            want_h, want_lg, case = h_behind, lg_behind, 'behind'
+        else:
+            want_h, want_lg = h_ahead, lg_ahead
+            case = 'behind_blocked' if u[0] < 0 else 'ahead'
+        seen[case] += 1
+        np.testing.assert_allclose(h, want_h, atol=1e-12)
+        np.testing.assert_allclose(lf_h, 0.0, atol=1e-12)
+        np.testing.assert_allclose(lg_h, want_lg, atol=1e-12)
+    assert min(seen.values()) >= 10, seen
+    # Without a proposal (e.g. a bag's recorded states): the point ahead.
+    x = np.array([0.5, -0.3, 2.0])
+    np.testing.assert_allclose(lie_terms(config.problem, x)[0], hand(*x, lp)[0], atol=1e-12)
+
+
 @pytest.mark.parametrize('system', ('pvtol', 'car_following'))
 def test_barrier_gradients_match_finite_differences(system):
     problem = config_for(system).problem
@@ -182,7 +230,7 @@ def test_single_active_row_is_the_soft_projection(input_weight):
     for _ in range(30):
         x = np.array([*rng.uniform(-2.0, 2.0, 2), rng.uniform(-np.pi, np.pi)])
         u_rl = rng.uniform(-3.0, 3.0, 2)
-        h, _, lf_h, lg_h = lie_terms(problem, x)
+        h, _, lf_h, lg_h = lie_terms(problem, x, u_rl)
         a = lg_h[0]
         r = lf_h[0] + a @ u_rl + problem.alpha * h[0]
         result = safety_filter.filter(x, u_rl)
@@ -226,7 +274,7 @@ def test_pass_through_within_round_off_whenever_no_row_is_active():
     for _ in range(60):
         x = random_state('unicycle', rng)
         u_rl = rng.uniform(-2.4, 2.4, 2)
-        h, _, lf_h, lg_h = lie_terms(config.problem, x)
+        h, _, lf_h, lg_h = lie_terms(config.problem, x, u_rl)
         rows = lf_h + lg_h @ u_rl + config.problem.alpha * h
         result = safety_filter.filter(x, u_rl)
         if np.all(rows > 1e-9):
@@ -251,7 +299,7 @@ def test_slack_is_positive_only_when_rows_are_infeasible_within_limits(system):
             x[:2] = rng.uniform(-0.5, 0.5, 2)  # inside the centre obstacle: often infeasible
         u_rl = rng.uniform(-3.0, 3.0, n_u)
         mean, std = np.zeros(n_x), np.abs(rng.normal(0.0, 0.05, n_x))
-        eps_min = minimal_slack(problem, x, mean, std)
+        eps_min = minimal_slack(problem, x, u_rl, mean, std)
         result = safety_filter.filter(x, u_rl, mean, std)
         assert not result.fail_safe, result.status
         if eps_min <= -1e-6:
@@ -320,15 +368,18 @@ def test_bad_input_raises_naming_the_field(kwargs, field):
 
 
 def _drive_past_one_obstacle(input_weight, y0: float, steps: int = 600, *,
-                             reverse: bool = False):
-    """Go-to-goal from (-2, y0) to (2, 0) through the filter, one obstacle at the origin on the
-    straight line between them; ``reverse``: the same controller on the robot turned around,
-    so it drives there backwards. Returns (steps to the goal or None, final state, min h)."""
+                             reverse: bool = False, speed_input: int = 0):
+    """Go-to-goal from (-2, y0) to (2, 0) through the filter, one obstacle of radius 0.6 at the
+    origin on the straight line between them; ``reverse``: the same controller on the robot
+    turned around, so it drives there backwards; ``speed_input`` -1: the look-ahead point
+    always ahead. Returns (steps to the goal or None, final state, min clearance of the robot's
+    centre from the obstacle's true circle)."""
     config = config_for('unicycle', **{'obstacles.x': [0.0], 'obstacles.y': [0.0],
                                        'obstacles.radius': [0.6],
+                                       'obstacles.speed_input': speed_input,
                                        'input_weight': input_weight})
     safety_filter = SafetyFilter(config.problem)
-    x, goal, min_h = np.array([-2.0, y0, np.pi if reverse else 0.0]), (2.0, 0.0), np.inf
+    x, goal, clearance = np.array([-2.0, y0, np.pi if reverse else 0.0]), (2.0, 0.0), np.inf
     for k in range(steps):
         if reverse:
             v, omega = unicycle_go_to_goal(x + np.array([0.0, 0.0, np.pi]), goal)
@@ -338,10 +389,10 @@ def _drive_past_one_obstacle(input_weight, y0: float, steps: int = 600, *,
         u = safety_filter.filter(x, nominal).u_safe
         x = step_euler(config.problem.system, torch.from_numpy(x)[None],
                        torch.from_numpy(u)[None], 0.02)[0].numpy()
-        min_h = min(min_h, float(lie_terms(config.problem, x)[0][0]))
+        clearance = min(clearance, float(np.hypot(x[0], x[1])) - 0.6)
         if np.hypot(x[0] - goal[0], x[1] - goal[1]) < 0.3:
-            return k, x, min_h
-    return None, x, min_h
+            return k, x, clearance
+    return None, x, clearance
 
 
 @pytest.mark.parametrize('y0', [0.02, 0.2])
@@ -350,22 +401,67 @@ def test_cheap_steering_weight_turns_a_deadlock_into_a_detour(y0):
     # the smallest correction brakes: the robot stops at the boundary, facing the obstacle,
     # while the nominal controller keeps pointing at the goal behind it. A small omega weight
     # makes turning the cheaper correction, and the robot goes around. Both stay safe.
-    steps, x, min_h = _drive_past_one_obstacle([1.0, 1.0], y0)
-    assert steps is None and x[0] < -0.6 and min_h >= -1e-6
-    steps, x, min_h = _drive_past_one_obstacle([1.0, 0.01], y0)
-    assert steps is not None and min_h >= -1e-6
+    steps, x, clearance = _drive_past_one_obstacle([1.0, 1.0], y0)
+    assert steps is None and x[0] < -0.6 and clearance > 0.0
+    steps, x, clearance = _drive_past_one_obstacle([1.0, 0.01], y0)
+    assert steps is not None and clearance > 0.0
 
 
 @pytest.mark.parametrize('y0', [0.02, 0.2, 0.8])
-def test_a_reversing_robot_is_parked_by_the_point_ahead(y0):
-    # Why config/unicycle.yaml lets the policy propose forward speeds only. Driving backwards,
-    # the look-ahead point trails: the cheap turn that moves it off the obstacle turns the
-    # direction of travel onto it, and braking is all that is left, even where the same
-    # controller driving forwards passes (and even well off the obstacle's centre line).
-    steps, x, min_h = _drive_past_one_obstacle([1.0, 0.01], y0, reverse=True)
-    assert steps is None and x[0] < -0.4 and min_h >= -1e-6
-    steps, _, min_h = _drive_past_one_obstacle([1.0, 0.01], y0)
-    assert steps is not None and min_h >= -1e-6
+def test_a_reversing_robot_passes_with_the_point_behind(y0):
+    # With the look-ahead point always ahead (speed_input -1, the reference's filter), a robot
+    # driving backwards trails it: the cheap turn that moves it off the obstacle turns the
+    # direction of travel onto the obstacle, and braking is all that is left, even well off
+    # the obstacle's centre line, where the same controller driving forwards passes. With the
+    # point following the direction of travel (config/unicycle.yaml), reversing is the mirror
+    # image of driving forwards and the robot passes too. Every run keeps the centre outside
+    # the true circle by more than margin - 3 l_p.
+    steps, x, clearance = _drive_past_one_obstacle([1.0, 0.01], y0, reverse=True,
+                                                   speed_input=-1)
+    assert steps is None and x[0] < -0.4 and clearance > 0.1 - 3 * 0.03
+    steps, _, clearance = _drive_past_one_obstacle([1.0, 0.01], y0, reverse=True)
+    assert steps is not None and clearance > 0.1 - 3 * 0.03
+    steps, _, clearance = _drive_past_one_obstacle([1.0, 0.01], y0)
+    assert steps is not None and clearance > 0.1 - 3 * 0.03
+
+
+def test_chattering_direction_of_travel_keeps_the_centre_clear():
+    # The worst case for a point that switches with the sign of v: starts on the filter's
+    # boundary (the centre 0.07-0.13 outside a true circle), proposals at full speed toward
+    # the obstacle that flip direction at random every other step. The bound of barrier_terms
+    # (the centre at least margin - 3 l_p = 0.01 outside every true circle) must hold at every
+    # step, and the point behind must really have been in use.
+    problem = config_for('unicycle').problem
+    safety_filter = SafetyFilter(problem)
+    params = load_params(find_config('unicycle'), 'safety_filter')
+    centers = np.stack([params['obstacles.x'], params['obstacles.y']], axis=1)
+    radius = np.array(params['obstacles.radius'])
+    rng = np.random.default_rng(21)
+    worst, switches, behind = np.inf, 0, 0
+    for _ in range(24):
+        while True:
+            i, angle = rng.integers(len(centers)), rng.uniform(-np.pi, np.pi)
+            offset = (radius[i] + rng.uniform(0.07, 0.13)) * np.array([np.cos(angle),
+                                                                       np.sin(angle)])
+            x = np.array([*(centers[i] + offset), rng.uniform(-np.pi, np.pi)])
+            if lie_terms(problem, x)[0].min() >= 0:  # inside the filter's safe set
+                break
+        sign = 1.0
+        for _ in range(100):
+            if rng.uniform() < 0.5:
+                sign, switches = -sign, switches + 1
+            to_obstacle = np.arctan2(*(centers[i] - x[:2])[::-1])
+            error = (to_obstacle + (0.0 if sign > 0 else np.pi) - x[2] + np.pi) % (
+                2 * np.pi) - np.pi
+            u_rl = np.array([sign * 2.5, np.clip(3.0 * error + rng.normal(0.0, 1.0), -2.5, 2.5)])
+            result = safety_filter.filter(x, u_rl)
+            assert not result.fail_safe
+            behind += not np.allclose(result.h, lie_terms(problem, x)[0], rtol=0, atol=1e-12)
+            x = step_euler(problem.system, torch.from_numpy(x)[None],
+                           torch.from_numpy(result.u_safe)[None], 0.02)[0].numpy()
+            worst = min(worst, float((np.hypot(*(x[:2] - centers).T) - radius).min()))
+    assert switches > 800 and behind > 500, (switches, behind)
+    assert worst > 0.1 - 3 * 0.03, worst
 
 
 @pytest.mark.parametrize('system, overrides', [
