@@ -343,7 +343,7 @@ def _barrier_statistics(summary: RefilterSummary, safety_filter: SafetyFilter,
         summary.min_h = {name: math.nan for name in names}
         return
     stacked = torch.from_numpy(np.stack(states))
-    h = np.concatenate([safety_filter.problem.terms(chunk).h.numpy()
+    h = np.concatenate([safety_filter.problem.state_h(chunk).numpy()
                         for chunk in torch.split(stacked, 4096)])  # (N, K)
     summary.min_h = {name: float(h[:, i].min()) for i, name in enumerate(names)}
     violated = h < 0

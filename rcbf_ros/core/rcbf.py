@@ -139,6 +139,21 @@ class RCBFProblem:
         see :func:`barrier_terms`)."""
         return barrier_terms(self.system, self.families, x, u_rl)
 
+    def state_h(self, x: Tensor) -> Tensor:
+        """(B, K) barrier values at states without a proposal (e.g. a bag's recorded states):
+        where a look-ahead point follows the direction of travel, each row is the larger of the
+        two choices, so a state is outside a barrier's set only when neither direction of
+        travel has its point clear (see :func:`barrier_terms`)."""
+        h = self.terms(x).h
+        speeds = {s for s in (getattr(f, 'speed_input', None) for f in self.families)
+                  if s is not None}
+        if speeds:
+            backwards = torch.zeros(x.shape[0], self.system.n_u, dtype=x.dtype,
+                                    device=x.device)
+            backwards[:, sorted(speeds)] = -1.0
+            h = torch.maximum(h, self.terms(x, backwards).h)
+        return h
+
     def qp(self, x: Tensor, u_rl: Tensor, mean: Tensor | None = None,
            std: Tensor | None = None, terms: BarrierTerms | None = None) -> QPData:
         """QP data for states x: (B, n_x), proposals u_rl: (B, n_u) and a disturbance box.

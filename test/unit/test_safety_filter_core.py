@@ -195,9 +195,19 @@ def test_a_reversing_proposal_guards_the_point_behind_once_it_is_clear():
         np.testing.assert_allclose(lf_h, 0.0, atol=1e-12)
         np.testing.assert_allclose(lg_h, want_lg, atol=1e-12)
     assert min(seen.values()) >= 10, seen
-    # Without a proposal (e.g. a bag's recorded states): the point ahead.
+    # Without a proposal: the point ahead for the QP's rows; for judging a recorded state
+    # (state_h), the point behind where it is clear, since a reversing robot may be there.
     x = np.array([0.5, -0.3, 2.0])
     np.testing.assert_allclose(lie_terms(config.problem, x)[0], hand(*x, lp)[0], atol=1e-12)
+    # facing the centre obstacle from just outside: the point ahead is in, the point behind out
+    x = np.array([-0.6 - 0.1 - 0.02, 0.0, 0.0])
+    ahead, behind = hand(*x, lp)[0], hand(*x, -lp)[0]
+    assert ahead[0] < 0 < behind[0] and np.all(behind >= 0)
+    state_h = config.problem.state_h(torch.from_numpy(x)[None])[0].numpy()
+    np.testing.assert_allclose(state_h, np.maximum(ahead, behind), atol=1e-12)
+    x = np.array([-0.6 - 0.1 + 0.04, 0.0, 0.0])  # both points in: the state is outside the set
+    assert hand(*x, -lp)[0][0] < 0
+    assert config.problem.state_h(torch.from_numpy(x)[None])[0, 0] < 0
 
 
 @pytest.mark.parametrize('system', ('pvtol', 'car_following'))
