@@ -165,10 +165,10 @@ def test_a_reversing_proposal_guards_the_point_behind_once_it_is_clear():
     delta = np.array(obstacles['obstacles.radius']) + obstacles['obstacles.margin']
     lp = obstacles['obstacles.lookahead']
 
-    def hand(x, y, th, l):
-        d = np.array([x + l * np.cos(th), y + l * np.sin(th)]) - centers
+    def hand(x, y, th, offset):
+        d = np.array([x + offset * np.cos(th), y + offset * np.sin(th)]) - centers
         lg = np.stack([2 * d @ [np.cos(th), np.sin(th)],
-                       2 * l * d @ [-np.sin(th), np.cos(th)]], axis=1)
+                       2 * offset * d @ [-np.sin(th), np.cos(th)]], axis=1)
         return (d ** 2).sum(1) - delta ** 2, lg
 
     rng = np.random.default_rng(4)
