@@ -43,6 +43,7 @@ from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
 from rcbf_ros.training.agent import LearnerConfig, policy_box, SafeLearner
 from rcbf_ros.training.loop import (
+    CriticCheck,
     format_progress,
     policy_limits,
     rewrite_metrics,
@@ -100,10 +101,8 @@ class EpisodeTally:
     steps: int = 0
     violations: int = 0
     goal_reached: bool = False
-    q_start: float = math.nan
-    """The critics' value of the first step, before its update (as the in-process trainer)."""
-    disc_return: float = 0.0
-    """Discounted return of the episode so far."""
+    critic: CriticCheck | None = None
+    """First-step value vs discounted return, as the in-process trainer keeps it."""
     started: float = field(default_factory=time.perf_counter)
 
 
@@ -183,11 +182,10 @@ class LearnerNode(Node):
                 self.get_logger().error('sim/step: no action section; transition dropped')
             else:
                 reward = float(sections.get('reward', np.zeros(1))[0])
-                if self.tally.steps == 0:
-                    self.tally.q_start = self.learner.critic_value(
-                        self.pending['obs'], self.pending['u_rl'], sections['action'])
-                gamma = self.learner.sac.config.gamma
-                self.tally.disc_return += gamma ** self.tally.steps * reward
+                if self.tally.critic is None:
+                    self.tally.critic = CriticCheck(self.learner.sac.config.gamma)
+                self.tally.critic.step(self.learner, self.pending['obs'], self.pending['u_rl'],
+                                       sections['action'], reward)
                 self.learner.observe(obs=self.pending['obs'], state=self.pending['state'],
                                      u_rl=self.pending['u_rl'], u_safe=sections['action'],
                                      reward=reward, next_obs=obs, next_state=state,
@@ -230,7 +228,8 @@ class LearnerNode(Node):
                'violations': t.violations, 'goal_reached': t.goal_reached,
                'wall_s': wall,
                'steps_per_s': t.steps / wall if wall > 0 else 0.0,
-               'q_start': t.q_start, 'disc_return': t.disc_return,
+               **(t.critic.as_dict() if t.critic is not None
+                  else {'q_start': math.nan, 'disc_return': 0.0}),
                'env_steps': self.learner.env_steps if self.learner else 0}
         self.history.append(row)
         self.episodes_done += 1

@@ -250,6 +250,34 @@ class EpisodeStats:
         return out
 
 
+@dataclass
+class CriticCheck:
+    """The critics' value of an episode's first step against the discounted return that
+    followed (no bootstrap at a time limit): a persistent ``q_start >> disc_return`` is
+    over-estimation. The soft value also counts the entropy bonus, at most
+    alpha * entropy / (1 - gamma) more. One per episode, fed in step order by the in-process
+    loop and by the learner node alike."""
+
+    gamma: float
+    """Discount of the learner's SAC."""
+    q_start: float = math.nan
+    """Q of the first step at (obs, u_RL -> u_safe), read before that step's update."""
+    disc_return: float = 0.0
+    """sum_t gamma^t r_t over the steps so far."""
+    steps: int = 0
+
+    def step(self, learner: SafeLearner, obs: np.ndarray, u_rl: np.ndarray,
+             u_safe: np.ndarray, reward: float) -> None:
+        """Account one transition; call before the learner observes it."""
+        if self.steps == 0:
+            self.q_start = learner.critic_value(obs, u_rl, u_safe)
+        self.disc_return += self.gamma ** self.steps * reward
+        self.steps += 1
+
+    def as_dict(self) -> dict[str, float]:
+        return {'q_start': self.q_start, 'disc_return': self.disc_return}
+
+
 def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, episode: int,
                 seed: int | None, recorder: RunRecorder | None = None, train: bool = True,
                 deterministic: bool = False, t0_ns: int = 0) -> EpisodeStats:
@@ -263,7 +291,7 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
     obs, info = env.reset(seed=seed)
     state = info['state']
     done = False
-    gamma, disc_return, q_start = learner.sac.config.gamma, 0.0, math.nan
+    critic = CriticCheck(learner.sac.config.gamma)
     while not done:
         proposal = learner.propose(obs, state, deterministic=deterministic)
         if filt is None:
@@ -274,12 +302,10 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
             u_safe, slack = result.u_safe, result.slack
             stats.filter_active += int(result.active)
             stats.fail_safe += int(result.fail_safe)
-        if train and stats.steps == 0:
-            q_start = learner.critic_value(obs, proposal.u_rl, u_safe)
         next_obs, reward, terminated, truncated, info = env.step(u_safe)
         next_state = info['state']
         if train:
-            disc_return += gamma ** stats.steps * reward
+            critic.step(learner, obs, proposal.u_rl, u_safe, reward)
             learner.observe(obs=obs, state=state, u_rl=proposal.u_rl, u_safe=u_safe,
                             reward=reward, next_obs=next_obs, next_state=next_state,
                             terminated=terminated)
@@ -300,11 +326,7 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
     stats.wall_s = time.perf_counter() - start
     stats.extra = {k: float(v) for k, v in learner.last_metrics.items()}
     if train:
-        # The critics' value of the first step against the discounted return that followed
-        # (no bootstrap at a time limit): a persistent q_start >> disc_return is
-        # over-estimation. The soft value also counts the entropy bonus, at most
-        # alpha * entropy / (1 - gamma) more.
-        stats.extra.update(q_start=q_start, disc_return=disc_return)
+        stats.extra.update(critic.as_dict())
     return stats
 
 
