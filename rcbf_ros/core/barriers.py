@@ -25,7 +25,7 @@ derivatives carry neither the input nor (for the systems here) the learned distu
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable, Sequence
 
 import torch
@@ -91,10 +91,6 @@ class CircleObstacles:
             raise ValueError('obstacles.speed_input: needs a look-ahead point '
                              '(obstacles.lookahead != 0)')
 
-    def behind(self) -> 'CircleObstacles':
-        """The same obstacles guarding the point behind the robot (l_p -> -l_p)."""
-        return replace(self, lookahead=-self.lookahead, speed_input=None)
-
     @property
     def count(self) -> int:
         return len(self.centers)
@@ -103,19 +99,44 @@ class CircleObstacles:
     def names(self) -> list[str]:
         return [f'{self.name}_{i}' for i in range(self.count)]
 
-    def point(self, x: Tensor) -> Tensor:
-        """The point kept out of the obstacles. x: (R, n_x) -> (R, 2)."""
+    def point(self, x: Tensor, side: Tensor | None = None) -> Tensor:
+        """The point kept out of the obstacles. x: (R, n_x) -> (R, 2); side: (R,) +1 for the
+        point ahead, -1 for the point behind (None: ahead)."""
         i, j = self.position_indices
         p = torch.stack([x[:, i], x[:, j]], dim=-1)
         if self.heading_index is not None and self.lookahead != 0.0:
             th = x[:, self.heading_index]
-            p = p + self.lookahead * torch.stack([torch.cos(th), torch.sin(th)], dim=-1)
+            offset = self.lookahead if side is None else self.lookahead * side[:, None]
+            p = p + offset * torch.stack([torch.cos(th), torch.sin(th)], dim=-1)
         return p
 
-    def value(self, x: Tensor, index: Tensor) -> Tensor:
+    def value(self, x: Tensor, index: Tensor, side: Tensor | None = None) -> Tensor:
         centers = _as_tensor(self.centers, x)[index]
         delta = _as_tensor(self.radii, x)[index] + self.margin
-        return ((self.point(x) - centers) ** 2).sum(-1) - delta ** 2
+        return ((self.point(x, side) - centers) ** 2).sum(-1) - delta ** 2
+
+
+@dataclass(frozen=True)
+class BothPoints:
+    """The obstacles of a :class:`CircleObstacles` at both look-ahead points, as one family of
+    2k barriers (indices [0, k): the point ahead, [k, 2k): the point behind), so that
+    :func:`rcbf_ros.core.rcbf.barrier_terms` gets both in one autograd pass."""
+
+    base: CircleObstacles
+
+    @property
+    def count(self) -> int:
+        return 2 * self.base.count
+
+    @property
+    def names(self) -> list[str]:
+        return self.base.names + [f'{name}_behind' for name in self.base.names]
+
+    def value(self, x: Tensor, index: Tensor) -> Tensor:
+        k = self.base.count
+        behind = index >= k
+        side = torch.where(behind, -1.0, 1.0).to(x.dtype)
+        return self.base.value(x, torch.where(behind, index - k, index), side)
 
 
 @dataclass(frozen=True)

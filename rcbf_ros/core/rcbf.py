@@ -13,7 +13,7 @@ from typing import NamedTuple, Sequence
 import torch
 from torch import Tensor
 
-from rcbf_ros.core.barriers import BarrierFamily
+from rcbf_ros.core.barriers import BarrierFamily, BothPoints
 from rcbf_ros.core.dynamics import ControlAffineSystem
 from rcbf_ros.core.qp import build_rcbf_qp, check_input_weight, QPData, robust_margin
 
@@ -64,13 +64,16 @@ def barrier_terms(system: ControlAffineSystem, families: Sequence[BarrierFamily]
     hs, grads = [], []
     with torch.enable_grad():
         for family in families:
-            h, grad = _family_values(family, x)
             speed = getattr(family, 'speed_input', None)
-            if speed is not None and u is not None:
-                h_behind, grad_behind = _family_values(family.behind(), x)  # type: ignore
+            if speed is None or u is None:
+                h, grad = _family_values(family, x)
+            else:
+                k = family.count
+                both_h, both_grad = _family_values(BothPoints(family), x)  # type: ignore
+                h_behind, grad_behind = both_h[:, k:], both_grad[:, k:]
                 use = (u.detach()[:, speed] < 0) & (h_behind >= 0).all(dim=1)
-                h = torch.where(use[:, None], h_behind, h)
-                grad = torch.where(use[:, None, None], grad_behind, grad)
+                h = torch.where(use[:, None], h_behind, both_h[:, :k])
+                grad = torch.where(use[:, None, None], grad_behind, both_grad[:, :k])
             hs.append(h)
             grads.append(grad)
     h = torch.cat(hs, dim=1)
