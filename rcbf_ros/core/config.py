@@ -85,8 +85,9 @@ def number(params: Mapping[str, Any], key: str, default: float, *,
     return out
 
 
-def _index(params: Mapping[str, Any], key: str, default: int, n_x: int,
+def _index(params: Mapping[str, Any], key: str, default: int, size: int,
            allow_none: bool = False, kind: str = 'state') -> int | None:
+    """An index into the state (``kind`` 'state', size n_x) or the input ('input', n_u)."""
     value = params.get(key, default)
     try:
         out = int(value)
@@ -94,9 +95,9 @@ def _index(params: Mapping[str, Any], key: str, default: int, n_x: int,
         raise ValueError(f'{key}: expected an integer, got {value!r}') from exc
     if allow_none and out < 0:
         return None
-    if not 0 <= out < n_x:
-        size = 'n_x' if kind == 'state' else 'n_u'
-        raise ValueError(f'{key}: {kind} index {out} out of range for {size} = {n_x}')
+    if not 0 <= out < size:
+        name = 'n_x' if kind == 'state' else 'n_u'
+        raise ValueError(f'{key}: {kind} index {out} out of range for {name} = {size}')
     return out
 
 
