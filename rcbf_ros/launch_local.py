@@ -126,6 +126,19 @@ def _pump(name: str, stream: IO[bytes], sink: IO[str], lock: threading.Lock) -> 
     stream.close()
 
 
+def _default_sigint() -> None:
+    """Runs in each child between fork and exec: SIGINT back to its default.
+
+    A shell starts a background job (``rcbf_ros_launch ... &``, CI runners, ``nohup``) with
+    SIGINT ignored, and an ignored signal stays ignored across exec; Python then never installs
+    its KeyboardInterrupt handler. Our nodes install their own handlers (rclpy.init), but any
+    other child would sit out our SIGINT and only stop at the SIGTERM escalation, skipping its
+    Ctrl-C clean-up (this made the launch tests fail when CI ran in the background). Only a
+    signal call, nothing that takes a lock, so it is safe with the pump threads running.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _signal_group(process: subprocess.Popen, signum: int) -> None:
     try:
         os.killpg(process.pid, signum)
@@ -160,7 +173,7 @@ def run_processes(children: Sequence[ChildSpec], *, env: Mapping[str, str],
         for child in children:
             process = subprocess.Popen(child.command, env=dict(env), stdout=subprocess.PIPE,
                                        stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                       start_new_session=True)
+                                       start_new_session=True, preexec_fn=_default_sigint)
             processes[child.name] = process
             pump = threading.Thread(target=_pump, args=(child.name, process.stdout, sink, lock),
                                     daemon=True)

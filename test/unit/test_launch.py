@@ -252,6 +252,23 @@ def test_stop_event_stops_the_launch(tmp_path):
     assert outcome.returncodes['node'] == -signal.SIGINT  # Python's default: KeyboardInterrupt
 
 
+def test_children_get_sigint_back_when_the_launcher_was_started_in_the_background(tmp_path):
+    # A shell starts a background job with SIGINT ignored and exec keeps it ignored: a child
+    # that inherited that would sit out the launcher's SIGINT (escalation to SIGTERM, -15).
+    stop = threading.Event()
+    children = [launch_local.ChildSpec('node', _ready_then(tmp_path, 'node', SLEEPER))]
+    timer = threading.Thread(target=lambda: (_wait_file(tmp_path / 'node'), stop.set()))
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        timer.start()
+        outcome, _ = _run(children, stop_event=stop)
+        timer.join()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert outcome.escalations == {'node': 'SIGINT'}
+    assert outcome.returncodes['node'] == -signal.SIGINT
+
+
 def _wait_file(path: Path) -> None:
     import time
     while not path.exists():
