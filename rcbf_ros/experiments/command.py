@@ -28,6 +28,7 @@ from rcbf_ros.experiments.definitions import (
     experiment_names,
     experiment_runs,
     METHODS,
+    POLICY_BOXES,
     RunSpec,
 )
 from rcbf_ros.experiments.runner import (
@@ -178,6 +179,10 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--layouts', type=int, default=None, help='override: transfer layouts')
     parser.add_argument('--gp', default='learned', choices=['learned', 'prior'],
                         help="transfer filter's disturbance estimate")
+    parser.add_argument('--policy-box', default=None, choices=POLICY_BOXES,
+                        help="override: the policy's proposal box; config: the config file's "
+                             "/learner policy_limits (default), inputs: the input limits "
+                             "(the reference's; the Unicycle may then propose reversing)")
     parser.add_argument('--no-bag', action='store_true', help='do not record MCAP')
     parser.add_argument('--no-report', action='store_true', help='train/evaluate only')
     parser.add_argument('--ray', action='store_true', help='run as Ray tasks (optional ray)')
@@ -191,7 +196,8 @@ def run_experiment_command(args: argparse.Namespace, argv: Sequence[str] | None 
     try:
         budget = BUDGETS[args.budget].with_overrides(
             episodes=args.episodes, max_steps=args.max_steps, eval_max_steps=args.eval_max_steps,
-            layouts=args.layouts, record_bag=False if args.no_bag else None)
+            layouts=args.layouts, record_bag=False if args.no_bag else None,
+            policy_box=args.policy_box)
         request = ExperimentRequest(
             name=args.name, budget=budget, seeds=args.seeds, out=args.out,
             first_seed=args.first_seed, systems=tuple(args.systems) if args.systems else None,

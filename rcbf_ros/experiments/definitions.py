@@ -121,6 +121,10 @@ class Budget:
     """Grid points per axis of the value maps."""
     record_bag: bool = True
     """Record every training run to MCAP (as ``rcbf_ros train``)."""
+    policy_box: str = 'config'
+    """Where the policy's proposals are drawn from: ``config``, the config file's
+    ``/learner`` ``policy_limits`` (the Unicycle's: forward speeds only); ``inputs``, the input
+    limits (the reference's box, reversing allowed)."""
 
     def __post_init__(self) -> None:
         for system, count in self.episodes.items():
@@ -134,6 +138,9 @@ class Budget:
             raise ValueError(f'layouts: must be >= 1, got {self.layouts}')
         if self.value_map_grid < 2:
             raise ValueError(f'value_map_grid: must be >= 2, got {self.value_map_grid}')
+        if self.policy_box not in POLICY_BOXES:
+            raise ValueError(f'policy_box: expected one of {POLICY_BOXES}, got '
+                             f'{self.policy_box!r}')
 
     def learner_overrides(self) -> dict[str, Any]:
         """The LearnerConfig fields this budget sets."""
@@ -142,16 +149,19 @@ class Budget:
         out: dict[str, Any] = {n: getattr(self, n) for n in names if getattr(self, n) is not None}
         if self.hidden_sizes is not None:
             out['sac'] = SACConfig(hidden_sizes=tuple(self.hidden_sizes))
+        if self.policy_box == 'inputs':  # () is the input limits; None defers to the file
+            out.update(policy_min=(), policy_max=())
         return out
 
     def with_overrides(self, *, episodes: int | None = None, max_steps: int | None = None,
                        eval_max_steps: int | None = None, layouts: int | None = None,
-                       record_bag: bool | None = None) -> Budget:
+                       record_bag: bool | None = None, policy_box: str | None = None
+                       ) -> Budget:
         """The same budget with command-line overrides applied to every system.
 
-        Overrides that change training (episodes, episode length) are appended to the name
-        (``paper-e12-s500``), so that runs of different schedules never share a directory and
-        the runner never mistakes one for the other as complete.
+        Overrides that change training (episodes, episode length, policy box) are appended to
+        the name (``paper-e12-s500``, ``...-box_inputs``), so that runs of different schedules
+        never share a directory and the runner never mistakes one for the other as complete.
         """
         changes: dict[str, Any] = {}
         suffix = ''
@@ -167,12 +177,17 @@ class Budget:
             changes['layouts'] = layouts
         if record_bag is not None:
             changes['record_bag'] = record_bag
+        if policy_box is not None and policy_box != self.policy_box:
+            changes['policy_box'] = policy_box
+            suffix += f'-box_{policy_box}'
         if suffix:
             changes['name'] = self.name + suffix
         return replace(self, **changes)
 
 
 _SYSTEMS = ('unicycle', 'car_following', 'pvtol')
+POLICY_BOXES = ('config', 'inputs')
+"""Values of Budget.policy_box (``--policy-box``)."""
 
 BUDGETS: dict[str, Budget] = {
     # Minutes on one core: proves the pipeline end to end, says nothing about learning.

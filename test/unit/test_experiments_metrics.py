@@ -138,6 +138,22 @@ def test_overrides_rename_the_budget_so_runs_never_mix():
         BUDGETS['smoke'].with_overrides(layouts=0)
 
 
+def test_the_input_box_is_a_budget_of_its_own_and_reaches_the_learner(tmp_path):
+    from rcbf_ros.training.loop import resolve_run
+    box = BUDGETS['paper'].with_overrides(episodes=12, policy_box='inputs')
+    assert box.name == 'paper-e12-box_inputs'
+    assert BUDGETS['paper'].with_overrides(policy_box='config').name == 'paper'
+    runs = {b.policy_box: experiment_runs('transfer', b, 1)[0]
+            for b in (box, BUDGETS['paper'].with_overrides(episodes=12))}
+    assert runs['inputs'].run_dir('r') != runs['config'].run_dir('r')
+    # Through the trainer's resolution: the config file's forward-only box, or the inputs'.
+    learners = {k: resolve_run(spec.run_config(tmp_path)).learner for k, spec in runs.items()}
+    assert learners['config'].policy_min == (0.0, -2.5)
+    assert learners['inputs'].policy_min == () and learners['inputs'].policy_max == ()
+    with pytest.raises(ValueError, match='policy_box'):
+        BUDGETS['paper'].with_overrides(policy_box='forward')
+
+
 def test_without_ray_the_sequential_path_is_used(capsys, monkeypatch):
     from rcbf_ros.cli import main as cli_main
     find_spec = importlib.util.find_spec  # ray uninstalled, as far as the import system says
