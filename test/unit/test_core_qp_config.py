@@ -141,6 +141,16 @@ def test_config_errors_name_the_key(params, key):
         filter_config_from_params(params)
 
 
+@pytest.mark.parametrize('bad', [1.5, True, float('inf'), float('nan'), 'one'])
+def test_an_index_that_is_not_an_integer_is_refused_not_truncated(bad):
+    base = {'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0],
+                                                'heading_index': 2, 'lookahead': 0.03}}
+    assert filter_config_from_params(
+        {**base, 'obstacles': {**base['obstacles'], 'speed_input': 0.0}}) is not None
+    with pytest.raises(ValueError, match=r'obstacles\.speed_input: expected an integer'):
+        filter_config_from_params({**base, 'obstacles': {**base['obstacles'], 'speed_input': bad}})
+
+
 def test_flatten_matches_ros_dotted_names():
     assert flatten({'a': {'b': 1, 'c': {'d': [1, 2]}}, 'e': 'x'}) == {
         'a.b': 1, 'a.c.d': [1, 2], 'e': 'x'}
