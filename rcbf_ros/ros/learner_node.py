@@ -228,8 +228,8 @@ class LearnerNode(Node):
                'violations': t.violations, 'goal_reached': t.goal_reached,
                'wall_s': wall,
                'steps_per_s': t.steps / wall if wall > 0 else 0.0,
-               **(t.critic.as_dict() if t.critic is not None
-                  else {'q_start': math.nan, 'disc_return': 0.0}),
+               # no transition this episode: an unfed check's values (gamma unused)
+               **(t.critic or CriticCheck(gamma=math.nan)).as_dict(),
                'env_steps': self.learner.env_steps if self.learner else 0}
         self.history.append(row)
         self.episodes_done += 1
