@@ -200,3 +200,22 @@ def test_runner_skips_finished_runs_and_resumes_partial_ones(tmp_path):
     assert lines == ['unicycle/modular/seed0: transfer reuses 2 layouts of '
                      'transfer_learned_L3_T15.jsonl']
     assert (one.run_dir(tmp_path) / 'transfer_learned_L2_T15.jsonl').exists()
+
+
+def test_policy_box_flag_lets_the_trained_policy_reverse(tmp_path, capsys):
+    # The Unicycle config's box is forward-only; --policy-box inputs trains with the input
+    # limits, in its own directory, and the restored policy then proposes v < 0 too.
+    out = tmp_path / 'experiments'
+    proposals = {}
+    for flag in ([], ['--policy-box', 'inputs']):
+        assert cli_main(['experiment', 'transfer', '--budget', 'smoke', '--seeds', '1',
+                         '--systems', 'unicycle', '--methods', 'modular', '--no-report',
+                         '--no-bag', '--out', str(out), *flag]) == 0
+        name = 'smoke-box_inputs' if flag else 'smoke'
+        _, learner = load_trained_learner(out / name / 'unicycle' / 'modular' / 'seed0')
+        obs = np.random.default_rng(0).normal(size=(200, 7))
+        proposals[name] = np.array([learner.sac.act(o, deterministic=False) for o in obs])
+    capsys.readouterr()
+    assert proposals['smoke'][:, 0].min() >= 0.0
+    assert proposals['smoke-box_inputs'][:, 0].min() < -0.1
+    assert np.abs(proposals['smoke-box_inputs']).max() <= 2.5
