@@ -90,11 +90,12 @@ def _index(params: Mapping[str, Any], key: str, default: int, size: int,
     """An index into the state (``kind`` 'state', size n_x) or the input ('input', n_u)."""
     value = params.get(key, default)
     # int() would take True as 1 and truncate 1.5 to 1: a typo must not pick another index.
+    # (Non-finite floats fail is_integer() here too.)
     if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
         raise ValueError(f'{key}: expected an integer, got {value!r}')
     try:
         out = int(value)
-    except (TypeError, ValueError, OverflowError) as exc:
+    except (TypeError, ValueError) as exc:
         raise ValueError(f'{key}: expected an integer, got {value!r}') from exc
     if allow_none and out < 0:
         return None
