@@ -241,13 +241,19 @@ def test_optional_failure_does_not_fail_the_launch_and_a_kill_does(tmp_path):
     assert outcome.exit_code == 1 and 'did not stop' in output
 
 
-def test_stop_event_stops_the_launch(tmp_path):
+def _stop_a_ready_sleeper(tmp_path: Path):
+    """Launch one SLEEPER child and set the stop event once it is ready; the outcome."""
     stop = threading.Event()
     children = [launch_local.ChildSpec('node', _ready_then(tmp_path, 'node', SLEEPER))]
     timer = threading.Thread(target=lambda: (_wait_file(tmp_path / 'node'), stop.set()))
     timer.start()
     outcome, _ = _run(children, stop_event=stop)
     timer.join()
+    return outcome
+
+
+def test_stop_event_stops_the_launch(tmp_path):
+    outcome = _stop_a_ready_sleeper(tmp_path)
     assert outcome.reason == 'stop requested' and outcome.exit_code == 0
     assert outcome.returncodes['node'] == -signal.SIGINT  # Python's default: KeyboardInterrupt
 
@@ -255,14 +261,9 @@ def test_stop_event_stops_the_launch(tmp_path):
 def test_children_get_sigint_back_when_the_launcher_was_started_in_the_background(tmp_path):
     # A shell starts a background job with SIGINT ignored and exec keeps it ignored: a child
     # that inherited that would sit out the launcher's SIGINT (escalation to SIGTERM, -15).
-    stop = threading.Event()
-    children = [launch_local.ChildSpec('node', _ready_then(tmp_path, 'node', SLEEPER))]
-    timer = threading.Thread(target=lambda: (_wait_file(tmp_path / 'node'), stop.set()))
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        timer.start()
-        outcome, _ = _run(children, stop_event=stop)
-        timer.join()
+        outcome = _stop_a_ready_sleeper(tmp_path)
     finally:
         signal.signal(signal.SIGINT, previous)
     assert outcome.escalations == {'node': 'SIGINT'}
