@@ -10,7 +10,14 @@ Per layout seed s (paper: 200 layouts, "Modular Task Learning"):
 3. each step: u_RL = the policy's mean action (plus the compensator, if the run has one), the
    disturbance estimate (mean, std) from the run's trained GP (``gp='learned'``) or the prior
    (zero mean, ``gp_prior_std``; ``gp='prior'``), u* = filter(x, u_RL, mean, std), env step;
-4. the row: return, steps, goal reached (completion), true violations, fail-safe steps.
+4. the row: return, steps, goal reached (completion), true violations, fail-safe steps, and
+   how the episode ended (``ending``, one of :data:`rcbf_ros.experiments.metrics.ENDINGS`:
+   goal / held by the filter / stalled / still moving, from the last 200 steps' motion and
+   filter activity, ``tail_moved`` and ``tail_active``; ``goal_dist`` the final distance).
+
+Rows recorded before endings were (``ending`` absent) get one when their evaluation is next
+read: a row that reached the goal needs nothing, a failed layout is re-run (the evaluation is
+deterministic given the layout seed) and must reproduce its recorded return, steps and counts.
 
 PVTOL layouts without the operator have a 6-dimensional state while a GP trained with the
 operator has 7 inputs: the GP is queried at [x, x1] (the operator right under the drone) and its
@@ -32,6 +39,7 @@ import torch
 
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.experiments.metrics import episode_ending, episode_tail
 from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
@@ -107,6 +115,7 @@ def evaluate_layout(learner: SafeLearner, system: str, layout_seed: int, *,
                            'goal_reached': False, 'violations': 0, 'fail_safe': 0,
                            'filter_active': 0, 'min_h_true': math.inf,
                            'n_obstacles': len(env.obstacles)}
+    positions, active = [np.array(state[:2], dtype=np.float64)], []
     done = False
     while not done:
         u_rl = learner.sac.act(np.asarray(obs, dtype=np.float64), deterministic=True)
@@ -114,6 +123,8 @@ def evaluate_layout(learner: SafeLearner, system: str, layout_seed: int, *,
         result = filt.filter(state, np.asarray(u_rl, dtype=np.float64), mean, std)
         obs, reward, terminated, truncated, info = env.step(result.u_safe)
         state = info['state']
+        positions.append(np.array(state[:2], dtype=np.float64))
+        active.append(bool(result.active))
         row['ret'] += float(reward)
         row['steps'] += 1
         row['violations'] += int(info['violation'])
@@ -125,6 +136,10 @@ def evaluate_layout(learner: SafeLearner, system: str, layout_seed: int, *,
         done = terminated or truncated
     if math.isinf(row['min_h_true']):
         row['min_h_true'] = None
+    tail = episode_tail(positions, active)
+    row.update(goal_dist=float(np.linalg.norm(positions[-1] - env.goal)),
+               tail_moved=tail.moved, tail_active=tail.active,
+               ending=episode_ending(row['goal_reached'], tail))
     if system == 'pvtol':
         row['operator'] = bool(env.with_operator)
     return row
@@ -184,6 +199,53 @@ def _borrowed_rows(run_dir: Path, gp: str, steps_tag: str, seeds: list[int]
     return best, source
 
 
+def _write_rows(cache: Path, rows: Sequence[dict[str, Any]]) -> None:
+    """Replace ``cache`` by ``rows`` at once (a crash leaves the old or the new file)."""
+    partial = cache.with_suffix('.tmp')
+    partial.write_text(''.join(json.dumps(r) + '\n' for r in rows))
+    os.replace(partial, cache)
+
+
+_REPRODUCED = ('steps', 'goal_reached', 'violations', 'fail_safe', 'filter_active')
+"""Fields a re-run must give exactly as recorded, where recorded (the return: to 1e-9)."""
+_ENDING_FIELDS = ('goal_dist', 'tail_moved', 'tail_active', 'ending')
+
+
+def _add_endings(rows: list[dict[str, Any]], indices: Sequence[int], cache: Path,
+                 evaluate: Callable[[int], dict[str, Any]], *, label: str,
+                 log: Callable[[str], None] | None, progress_every: int) -> None:
+    """Give ``rows[i]`` (i in ``indices``, recorded without an ending) their ending, in place
+    and on disk after each: 'goal' for a goal row, a re-run (``evaluate(layout_seed)``) for a
+    failed one.
+
+    Raises:
+        RuntimeError: a re-run did not reproduce its recorded row (naming the layout).
+    """
+    failed = [i for i in indices if not rows[i]['goal_reached']]
+    for i in indices:
+        if rows[i]['goal_reached']:
+            rows[i]['ending'] = 'goal'
+    _write_rows(cache, rows)
+    if log is not None:
+        log(f'{label}: {len(indices)} layouts were recorded without their ending; re-running '
+            f'the {len(failed)} that missed the goal')
+    for count, i in enumerate(failed, 1):
+        row = rows[i]
+        again = evaluate(int(row['layout_seed']))
+        differs = [k for k in _REPRODUCED if k in row and again[k] != row[k]]
+        if not math.isclose(again['ret'], row['ret'], rel_tol=1e-9, abs_tol=1e-9):
+            differs.insert(0, 'ret')
+        if differs:
+            raise RuntimeError(
+                f'{label}: layout {row["layout_seed"]} re-run to classify its ending gave '
+                + ', '.join(f'{k} {again[k]} (recorded {row[k]})' for k in differs)
+                + f'; this code does not reproduce {cache.name} (delete it to re-evaluate)')
+        row.update({k: again[k] for k in _ENDING_FIELDS})
+        _write_rows(cache, rows)
+        if log is not None and (count % progress_every == 0 or count == len(failed)):
+            log(f'{label}: endings {count}/{len(failed)} re-run')
+
+
 def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
                       max_steps: int | None = None, gp: GPSource = 'learned',
                       log: Callable[[str], None] | None = None, progress_every: int = 20
@@ -195,7 +257,11 @@ def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
     interrupted (Ctrl-C, a crash) continues after its last finished layout; a complete file is
     read back instead of recomputed, and the same run's evaluation with another layout count
     lends its rows (so ``--layouts 200`` after ``--layouts 50`` computes only layouts 50..199).
-    ``log`` gets a progress line every ``progress_every`` layouts.
+    ``log`` gets a progress line every ``progress_every`` layouts. Rows recorded without
+    their ending get it first (module docstring).
+
+    Raises:
+        RuntimeError: a failed layout re-run for its ending did not reproduce its row.
     """
     run_dir = Path(run_dir)
     seeds = [int(s) for s in layout_seeds]
@@ -208,13 +274,18 @@ def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
         if source is not None and log is not None:
             log(f'{label}: transfer reuses {len(rows)} layouts of {source.name}')
     if not clean:  # drop a torn line or another evaluation's rows; write borrowed ones
-        partial = cache.with_suffix('.tmp')
-        partial.write_text(''.join(json.dumps(r) + '\n' for r in rows))
-        os.replace(partial, cache)
-    if len(rows) == len(seeds):
+        _write_rows(cache, rows)
+    unclassified = [i for i, r in enumerate(rows) if 'ending' not in r]
+    if len(rows) == len(seeds) and not unclassified:
         return rows
     torch.set_num_threads(1)
     run, learner = load_trained_learner(run_dir)
+    if unclassified:
+        _add_endings(rows, unclassified, cache, lambda seed: evaluate_layout(
+            learner, run.system, seed, max_steps=max_steps, gp=gp, config_file=run.config_file),
+            label=label, log=log, progress_every=progress_every)
+        if len(rows) == len(seeds):
+            return rows
     if rows and log is not None:
         log(f'{label}: transfer resumes after {len(rows)}/{len(seeds)} layouts')
     start = time.perf_counter()

@@ -9,7 +9,8 @@ Files written into the report directory (``<out>/<budget>/report``):
   discounted return, per seed);
 - transfer: ``transfer_<system>_episodes.csv`` (one row per policy x layout),
   ``transfer_<system>.csv`` (mean/std reward, completion per method, ours and the paper's),
-  ``transfer_<system>_completion.png`` (bar chart), ``transfer.md``;
+  ``transfer_<system>_completion.png`` (bar chart), ``transfer_<system>_endings.csv|png``
+  (how the episodes ended per method: goal, held, stalled, moving), ``transfer.md``;
   plus the training curves of the transfer runs as ``transfer_training_<system>.*``;
 - value_maps: ``value_maps_unicycle.csv`` (method, x, y, V), ``value_maps_unicycle.png``,
   ``value_maps.md``;
@@ -27,6 +28,7 @@ from rcbf_ros.experiments.definitions import METHODS, RunSpec
 from rcbf_ros.experiments.metrics import (
     completion_rate,
     count_violations,
+    ENDINGS,
     final_window_mean,
     mean_std,
     reward_band,
@@ -151,6 +153,29 @@ def sample_efficiency_report(specs: Sequence[RunSpec], root: str | Path,
 
 
 # --------------------------------------------------------------------------- transfer
+def _plot_endings(ending_rows: Sequence[tuple[Any, ...]], path: Path, title: str) -> None:
+    """Horizontal stacked bars: per method, the share of episodes of each ending."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6.5, 0.6 * len(ending_rows) + 1.4), dpi=100)
+    left = np.zeros(len(ending_rows))
+    positions = np.arange(len(ending_rows))
+    for k, ending in enumerate(ENDINGS):
+        share = np.array([row[3 + k] / row[2] for row in ending_rows])
+        ax.barh(positions, share, left=left, label=ending)
+        left += share
+    ax.set_yticks(positions, [row[1] for row in ending_rows], fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlim(0, 1)
+    ax.set_xlabel('share of episodes')
+    ax.set_title(title)
+    ax.legend(ncol=len(ENDINGS), fontsize=8, loc='lower center', bbox_to_anchor=(0.5, 1.08))
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 def transfer_report(results: dict[RunSpec, list[dict[str, Any]]], report_dir: Path, *,
                     layouts: int, eval_max_steps: dict[str, int | None]) -> str:
     """Transfer tables (ours next to the paper's), per-episode CSV and completion bars."""
@@ -163,7 +188,7 @@ def transfer_report(results: dict[RunSpec, list[dict[str, Any]]], report_dir: Pa
              'rcbf_ros.envs.layouts). Mean/std of the episode reward pooled over seeds x '
              'layouts (population std); completion = goal reached before the time limit.', '']
     for system, methods in _by_system(list(results)).items():
-        episode_rows, summary_rows, table, bars = [], [], [], []
+        episode_rows, summary_rows, table, bars, ending_rows = [], [], [], [], []
         for method, runs in methods.items():
             rows = [dict(r, seed=spec.seed) for spec in runs for r in results[spec]]
             if not rows:
@@ -174,8 +199,11 @@ def transfer_report(results: dict[RunSpec, list[dict[str, Any]]], report_dir: Pa
             fail_safe = sum(int(r['fail_safe']) for r in rows)
             paper = PAPER_TRANSFER.get(system, {}).get(method)
             episode_rows += [(method, r['seed'], r['layout_seed'], r['ret'], r['steps'],
-                              int(bool(r['goal_reached'])), r['violations'], r['fail_safe'])
+                              int(bool(r['goal_reached'])), r['violations'], r['fail_safe'],
+                              r['ending'], r.get('goal_dist', ''))
                              for r in rows]
+            counts = [sum(r['ending'] == e for r in rows) for e in ENDINGS]
+            ending_rows.append((method, METHODS[method].label, len(rows), *counts))
             summary_rows.append((method, METHODS[method].label, mean, std, completion,
                                  len(runs), len(rows), violations,
                                  *(paper if paper else ('', '', ''))))
@@ -189,7 +217,11 @@ def transfer_report(results: dict[RunSpec, list[dict[str, Any]]], report_dir: Pa
             continue
         write_csv(report_dir / f'transfer_{system}_episodes.csv',
                   ('method', 'seed', 'layout_seed', 'return', 'steps', 'goal_reached',
-                   'violations', 'fail_safe_steps'), episode_rows)
+                   'violations', 'fail_safe_steps', 'ending', 'goal_dist'), episode_rows)
+        write_csv(report_dir / f'transfer_{system}_endings.csv',
+                  ('method', 'label', 'episodes', *ENDINGS), ending_rows)
+        _plot_endings(ending_rows, report_dir / f'transfer_{system}_endings.png',
+                      f'{system}: how the transfer episodes ended')
         write_csv(report_dir / f'transfer_{system}.csv',
                   ('method', 'label', 'mean_reward', 'std_reward', 'completion', 'seeds',
                    'episodes', 'violations', 'paper_mean_reward', 'paper_std_reward',
@@ -212,7 +244,15 @@ def transfer_report(results: dict[RunSpec, list[dict[str, Any]]], report_dir: Pa
                   f'![{system}](transfer_{system}_completion.png)', '',
                   '| Approach | paper mean | paper std | paper comp. | ours mean | ours std | '
                   'ours comp. | seeds | violations | fail-safe steps |',
-                  '|---|---|---|---|---|---|---|---|---|---|', *table, '']
+                  '|---|---|---|---|---|---|---|---|---|---|', *table, '',
+                  'How the episodes ended (rcbf_ros.experiments.metrics: the last 200 steps; '
+                  'held = standing still with the filter correcting, stalled = standing still '
+                  'with the filter idle, moving = not standing still at the time limit):', '',
+                  f'![{system} endings](transfer_{system}_endings.png)', '',
+                  '| Approach | episodes | ' + ' | '.join(ENDINGS) + ' |',
+                  '|---|---|' + '---|' * len(ENDINGS),
+                  *(f'| {r[1]} | {r[2]} | ' + ' | '.join(str(c) for c in r[3:]) + ' |'
+                    for r in ending_rows), '']
     text = '\n'.join(lines)
     (report_dir / 'transfer.md').write_text(text)
     return text

@@ -21,9 +21,12 @@ from rcbf_ros.experiments.definitions import (
 from rcbf_ros.experiments.metrics import (
     completion_rate,
     count_violations,
+    episode_ending,
+    episode_tail,
     final_window_mean,
     mean_std,
     reward_band,
+    Tail,
 )
 from rcbf_ros.experiments.runner import (
     check_reachable,
@@ -79,6 +82,33 @@ def test_final_window_mean():
     assert final_window_mean([4.0, 6.0], window=10) == 5.0
     with pytest.raises(ValueError, match='window'):
         final_window_mean([1.0], window=0)
+
+
+def test_episode_tail_looks_back_window_steps():
+    # 5 steps along x by 1, 2, 3, 4, 5 m: positions 0, 1, 3, 6, 10, 15.
+    xs = np.cumsum([0.0, 1, 2, 3, 4, 5])
+    positions = np.stack([xs, np.zeros(6)], axis=1)
+    active = [True, True, False, True, False]
+    assert episode_tail(positions, active, window=2) == Tail(9.0, 0.5, 2)
+    assert episode_tail(positions, active, window=3) == Tail(12.0, pytest.approx(1 / 3), 3)
+    # A window longer than the episode covers all of it; net displacement, not path length.
+    back = np.array([[0, 0], [3, 4], [0, 0.5]])
+    assert episode_tail(back, [False, False], window=200) == Tail(0.5, 0.0, 2)
+    with pytest.raises(ValueError, match='window'):
+        episode_tail(positions, active, window=0)
+    with pytest.raises(ValueError, match='active'):
+        episode_tail(positions[:1], [], window=3)
+    with pytest.raises(ValueError, match='positions'):
+        episode_tail(positions[:5], active, window=3)
+
+
+def test_episode_ending_classes():
+    assert episode_ending(True, Tail(0.0, 1.0, 200)) == 'goal'
+    assert episode_ending(False, Tail(0.1, 1.0, 200)) == 'moving'  # 0.1 m is not still
+    assert episode_ending(False, Tail(0.099, 0.5, 200)) == 'held'
+    assert episode_ending(False, Tail(0.099, 0.49, 200)) == 'stalled'
+    assert episode_ending(False, Tail(0.3, 0.0, 200), still=0.5) == 'stalled'
+    assert episode_ending(False, Tail(0.0, 0.3, 200), held_share=0.25) == 'held'
 
 
 def test_experiment_runs_cover_the_plan_without_duplicates():

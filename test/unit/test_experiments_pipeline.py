@@ -17,6 +17,7 @@ from rcbf_ros.cli import main as cli_main
 from rcbf_ros.envs.layouts import unicycle_random_layout
 from rcbf_ros.experiments.definitions import Budget, BUDGETS, RunSpec
 from rcbf_ros.experiments.evaluate import evaluate_transfer, load_trained_learner
+from rcbf_ros.experiments.metrics import ENDINGS
 from rcbf_ros.experiments.runner import run_all, run_status
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.training.loop import make_env
@@ -71,6 +72,13 @@ def test_smoke_budget_of_every_experiment_writes_the_report(tmp_path, capsys):
             assert float(row['std_reward']) == pytest.approx(np.std(returns))
             assert int(row['violations']) == 0
             assert row['paper_completion']  # the paper's value sits next to ours
+        # How each episode ended: 'goal' exactly when it reached the goal; the endings table
+        # counts the episodes' endings.
+        assert all((e['ending'] == 'goal') == (e['goal_reached'] == '1') for e in episodes)
+        for row in _csv(report / f'transfer_{system}_endings.csv'):
+            mine = [e['ending'] for e in episodes if e['method'] == row['method']]
+            assert {k: int(row[k]) for k in ENDINGS} == {k: mine.count(k) for k in ENDINGS}
+            assert int(row['episodes']) == len(mine) == budget.layouts
         training = _csv(report / f'transfer_training_{system}.csv')
         assert len(training) == 4 * budget.episodes[system]
         # The critic at each episode's first step vs the return: one row per episode, the
@@ -110,6 +118,7 @@ def test_smoke_budget_of_every_experiment_writes_the_report(tmp_path, capsys):
 
     for name in ('sample_efficiency_unicycle', 'sample_efficiency_car_following',
                  'transfer_unicycle_completion', 'transfer_pvtol_completion',
+                 'transfer_unicycle_endings',
                  'transfer_training_pvtol_critic',
                  'value_maps_unicycle'):
         data = (report / f'{name}.png').read_bytes()
@@ -200,6 +209,42 @@ def test_runner_skips_finished_runs_and_resumes_partial_ones(tmp_path):
     assert lines == ['unicycle/modular/seed0: transfer reuses 2 layouts of '
                      'transfer_learned_L3_T15.jsonl']
     assert (one.run_dir(tmp_path) / 'transfer_learned_L2_T15.jsonl').exists()
+
+
+def test_rows_recorded_without_their_ending_get_it_by_a_checked_re_run(tmp_path):
+    budget = Budget(name='tiny', episodes={'unicycle': 1}, max_steps={'unicycle': 30},
+                    start_steps=10, update_after=10, batch_size=8, gp_refit_interval=20,
+                    hidden_sizes=(8, 8), record_bag=False)
+    run = RunSpec('unicycle', 'modular', 0, budget)
+    run_all([run], tmp_path, log=lambda _: None)
+    run_dir = run.run_dir(tmp_path)
+    seeds = [0, 1, 2]
+    rows = evaluate_transfer(run_dir, seeds, max_steps=15)
+    assert [r['ending'] for r in rows] == ['moving'] * 3  # 15 steps: none arrives, none stops
+    cache = run_dir / 'transfer_learned_L3_T15.jsonl'
+    added = ('goal_dist', 'tail_moved', 'tail_active', 'ending')
+    old = [{k: v for k, v in r.items() if k not in added} for r in rows]
+    old[1].update(goal_reached=True)  # a goal row needs no re-run: its ending is 'goal'
+    cache.write_text(''.join(json.dumps(r) + '\n' for r in old))
+    lines: list[str] = []
+    again = evaluate_transfer(run_dir, seeds, max_steps=15, log=lines.append, progress_every=1)
+    assert lines == ['unicycle/modular/seed0: 3 layouts were recorded without their ending; '
+                     're-running the 2 that missed the goal',
+                     'unicycle/modular/seed0: endings 1/2 re-run',
+                     'unicycle/modular/seed0: endings 2/2 re-run']
+    assert [again[0], again[2]] == [rows[0], rows[2]]  # eval_wall_s too: the recorded one
+    assert again[1] == {**old[1], 'ending': 'goal'}
+    assert [json.loads(line) for line in cache.read_text().splitlines()] == again
+    # An old file cut short: its rows get their endings, then the evaluation goes on.
+    cache.write_text(''.join(json.dumps(r) + '\n' for r in old[:2]))
+    resumed = evaluate_transfer(run_dir, seeds, max_steps=15)
+    assert resumed[:2] == again[:2]
+    assert {**resumed[2], 'eval_wall_s': 0} == {**rows[2], 'eval_wall_s': 0}
+    # A re-run that does not reproduce the recorded row is refused, naming layout and field.
+    old[2]['ret'] += 1e-6
+    cache.write_text(''.join(json.dumps(r) + '\n' for r in old))
+    with pytest.raises(RuntimeError, match=r'layout 2 re-run .* gave ret -?[0-9.]+ \(recorded'):
+        evaluate_transfer(run_dir, seeds, max_steps=15)
 
 
 def test_policy_box_flag_lets_the_trained_policy_reverse(tmp_path, capsys):
