@@ -158,7 +158,8 @@ def _plot_endings(ending_rows: Sequence[tuple[Any, ...]], path: Path, title: str
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(6.5, 0.6 * len(ending_rows) + 1.4), dpi=100)
+    height = 0.6 * len(ending_rows) + 1.8
+    fig, ax = plt.subplots(figsize=(6.5, height), dpi=100)
     left = np.zeros(len(ending_rows))
     positions = np.arange(len(ending_rows))
     for k, ending in enumerate(ENDINGS):
@@ -170,8 +171,9 @@ def _plot_endings(ending_rows: Sequence[tuple[Any, ...]], path: Path, title: str
     ax.set_xlim(0, 1)
     ax.set_xlabel('share of episodes')
     ax.set_title(title)
-    ax.legend(ncol=len(ENDINGS), fontsize=8, loc='lower center', bbox_to_anchor=(0.5, 1.08))
-    fig.tight_layout()
+    fig.legend(*ax.get_legend_handles_labels(), ncol=len(ENDINGS), fontsize=8,
+               loc='lower center')
+    fig.tight_layout(rect=(0.0, 0.35 / height, 1.0, 1.0))  # the legend's strip at the bottom
     fig.savefig(path)
     plt.close(fig)
 
