@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 import time
 from typing import Any, Callable, Literal, Sequence
@@ -43,7 +42,7 @@ from rcbf_ros.experiments.metrics import episode_ending, episode_tail
 from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
-from rcbf_ros.training.loop import build_run, make_env, RunConfig
+from rcbf_ros.training.loop import build_run, make_env, RunConfig, write_jsonl
 
 GPSource = Literal['learned', 'prior']
 
@@ -199,13 +198,6 @@ def _borrowed_rows(run_dir: Path, gp: str, steps_tag: str, seeds: list[int]
     return best, source
 
 
-def _write_rows(cache: Path, rows: Sequence[dict[str, Any]]) -> None:
-    """Replace ``cache`` by ``rows`` at once (a crash leaves the old or the new file)."""
-    partial = cache.with_suffix('.tmp')
-    partial.write_text(''.join(json.dumps(r) + '\n' for r in rows))
-    os.replace(partial, cache)
-
-
 _REPRODUCED = ('steps', 'goal_reached', 'violations', 'fail_safe', 'filter_active')
 """Fields a re-run must give exactly as recorded, where recorded (the return: to 1e-9)."""
 _ENDING_FIELDS = ('goal_dist', 'tail_moved', 'tail_active', 'ending')
@@ -225,7 +217,7 @@ def _add_endings(rows: list[dict[str, Any]], indices: Sequence[int], cache: Path
     for i in indices:
         if rows[i]['goal_reached']:
             rows[i]['ending'] = 'goal'
-    _write_rows(cache, rows)
+    write_jsonl(cache, rows)
     if log is not None:
         log(f'{label}: {len(indices)} layouts were recorded without their ending; re-running '
             f'the {len(failed)} that missed the goal')
@@ -241,7 +233,7 @@ def _add_endings(rows: list[dict[str, Any]], indices: Sequence[int], cache: Path
                 + ', '.join(f'{k} {again[k]} (recorded {row[k]})' for k in differs)
                 + f'; this code does not reproduce {cache.name} (delete it to re-evaluate)')
         row.update({k: again[k] for k in _ENDING_FIELDS})
-        _write_rows(cache, rows)
+        write_jsonl(cache, rows)
         if log is not None and (count % progress_every == 0 or count == len(failed)):
             log(f'{label}: endings {count}/{len(failed)} re-run')
 
@@ -274,7 +266,7 @@ def evaluate_transfer(run_dir: str | Path, layout_seeds: Sequence[int], *,
         if source is not None and log is not None:
             log(f'{label}: transfer reuses {len(rows)} layouts of {source.name}')
     if not clean:  # drop a torn line or another evaluation's rows; write borrowed ones
-        _write_rows(cache, rows)
+        write_jsonl(cache, rows)
     unclassified = [i for i, r in enumerate(rows) if 'ending' not in r]
     if len(rows) == len(seeds) and not unclassified:
         return rows

@@ -18,9 +18,10 @@ from dataclasses import asdict, dataclass, field, replace
 import importlib
 import json
 import math
+import os
 from pathlib import Path
 import time
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -330,11 +331,19 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
     return stats
 
 
+def write_jsonl(path: Path, rows: Sequence[Mapping[str, Any]]) -> None:
+    """Make ``path`` hold exactly ``rows``, one JSON object per line, at once: written beside
+    it and renamed over it, so a crash leaves the old file or the new one."""
+    partial = path.with_suffix('.tmp')
+    partial.write_text(''.join(json.dumps(row) + '\n' for row in rows))
+    os.replace(partial, path)
+
+
 def rewrite_metrics(path: Path, rows: list[dict[str, Any]]) -> None:
     """Make ``metrics.jsonl`` hold exactly ``rows``, e.g. a resumed checkpoint's history: the
     episodes a killed run finished after its last checkpoint are dropped, since the resumed
     run plays them again."""
-    path.write_text(''.join(json.dumps(row) + '\n' for row in rows))
+    write_jsonl(path, rows)
 
 
 def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
