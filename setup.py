@@ -23,7 +23,7 @@ setup(
             'numpy', 'torch', 'osqp', 'pyyaml', 'cyclonedds', 'rosbags', 'mcap',
             'mcap-ros2-support', 'gpytorch', 'gymnasium', 'tqdm', 'matplotlib',
         ],
-        'test': ['pytest', 'pytest-timeout', 'qpth', 'cvxpylayers', 'proxsuite',
+        'test': ['pytest', 'pytest-timeout', 'hypothesis', 'qpth', 'cvxpylayers', 'proxsuite',
                  'pymcap-cli', 'ruff', 'ray'],
         'ray': ['ray'],
     },

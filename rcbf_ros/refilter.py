@@ -108,10 +108,12 @@ class RefilterSummary:
     """Processed proposals where the new filter acted (|u_S| > 1e-7, or fail-safe)."""
     max_slack: float = 0.0
     """Largest QP slack of the new filter (solved steps; 0 when none)."""
-    slack_warnings: int = 0
-    """Steps whose slack exceeded ``slack_tolerance`` (WARN: rows infeasible in the limits)."""
+    slack_exceeded: int = 0
+    """Steps whose rows needed more slack than ``slack_tolerance`` (infeasible within the
+    limits): the fail-safe action was written."""
     fail_safe: int = 0
-    """Steps where the new filter's solve failed and the fail-safe action was written."""
+    """Steps where the new filter wrote the fail-safe action (refused input, failed or
+    unverified solve, slack exceeded)."""
     min_h: dict[str, float] = field(default_factory=dict)
     """Smallest new h_i per barrier over the evaluated recorded states."""
     barrier_states: str = ''
@@ -155,7 +157,7 @@ class RefilterSummary:
             f'|du| max {self.max_abs_du:.6g}   mean {self.mean_abs_du:.6g}',
             f'filter active: new {self.active} of {self.processed}, recorded '
             f'{self.recorded_active} of {self.compared} compared',
-            f'max slack {self.max_slack:.3g}   slack warnings {self.slack_warnings}   '
+            f'max slack {self.max_slack:.3g}   slack exceeded {self.slack_exceeded}   '
             f'fail-safe {self.fail_safe}',
             f'states ({self.barrier_states}): {self.states_evaluated} evaluated, '
             f'{self.states_violating} violate the new barriers (h_i < 0)',
@@ -203,10 +205,7 @@ def build_filter(flat: Mapping[str, Any]) -> tuple[FilterConfig, logic.NodeSetti
     try:
         settings = logic.node_settings_from_params(flat)
         config = filter_config_from_params(flat)
-        safety_filter = SafetyFilter(
-            config.problem, fail_safe_action=config.fail_safe_action,
-            eps_abs=settings.osqp_eps_abs, eps_rel=settings.osqp_eps_rel,
-            max_iter=settings.osqp_max_iter, compile_assembly=config.compile_assembly)
+        safety_filter = logic.build_safety_filter(config=config, settings=settings)
     except (ValueError, TypeError, ImportError, AttributeError) as exc:
         raise RefilterError(f'params: {exc}') from exc
     return config, settings, safety_filter
@@ -498,12 +497,12 @@ def _account(summary: RefilterSummary, decision: logic.Decision, proposal: logic
         summary.state_from_topic += 1
     if result.active:
         summary.active += 1
-    if result.fail_safe:
+    if decision.fail_safe:
         summary.fail_safe += 1
     elif math.isfinite(result.slack):
         summary.max_slack = max(summary.max_slack, result.slack)
-    if decision.level == logic.WARN:
-        summary.slack_warnings += 1
+    if logic.reason_key(decision.reason) == 'slack_exceeded':
+        summary.slack_exceeded += 1
     old = _pop_recorded(recorded, proposal.u, proposal.state)
     if old is None or old.shape != decision.u_safe.shape:
         return

@@ -143,6 +143,14 @@ def build_system(params: Mapping[str, Any]) -> ControlAffineSystem:
     return system
 
 
+def _cascade(base: BarrierFamily, system: ControlAffineSystem, gammas: tuple[float, ...],
+             key: str) -> BarrierFamily:
+    """:func:`cascade`, its errors naming ``key``."""
+    if any(g <= 0 for g in gammas):
+        raise ValueError(f'{key}: every cascade gain must be > 0, got {list(gammas)}')
+    return cascade(base, system, gammas)
+
+
 def build_families(params: Mapping[str, Any],
                    system: ControlAffineSystem) -> tuple[BarrierFamily, ...]:
     """Barrier families (cascaded as configured) from the flat parameters."""
@@ -154,6 +162,18 @@ def build_families(params: Mapping[str, Any],
         radius = float_list(params, 'obstacles.radius', len(xs))
         if len(ys) != len(xs) or len(radius) != len(xs):
             raise ValueError('obstacles.y/obstacles.radius: need one value per obstacles.x')
+        if any(r < 0 for r in radius):
+            raise ValueError(f'obstacles.radius: every radius must be >= 0, got {list(radius)}')
+        margin = number(params, 'obstacles.margin', 0.0)
+        if margin < 0:
+            raise ValueError(f'obstacles.margin: must be >= 0 (it widens every obstacle), '
+                             f'got {margin}')
+        if min(radius) + margin <= 0:
+            raise ValueError('obstacles.radius: radius + obstacles.margin must be > 0 for every '
+                             'obstacle')
+        lookahead = number(params, 'obstacles.lookahead', 0.0)
+        if lookahead < 0:
+            raise ValueError(f'obstacles.lookahead: must be >= 0, got {lookahead}')
         pos = params.get('obstacles.position_indices', [0, 1])
         if len(pos) != 2:
             raise ValueError('obstacles.position_indices: expected 2 indices')
@@ -161,17 +181,17 @@ def build_families(params: Mapping[str, Any],
         pos_idx = (_index({key: pos[0]}, key, 0, n_x), _index({key: pos[1]}, key, 1, n_x))
         base = CircleObstacles(
             centers=tuple(zip(xs, ys)), radii=radius,
-            margin=number(params, 'obstacles.margin', 0.0),
+            margin=margin,
             position_indices=pos_idx,  # type: ignore[arg-type]
             heading_index=_index(params, 'obstacles.heading_index', -1, n_x, allow_none=True),
-            lookahead=number(params, 'obstacles.lookahead', 0.0),
+            lookahead=lookahead,
             speed_input=_index(params, 'obstacles.speed_input', -1, system.n_u,
                                allow_none=True, kind='input'))
         gammas = float_list(params, 'obstacles.gammas')
         if base.speed_input is not None and gammas:
             raise ValueError('obstacles.speed_input: the look-ahead point follows the direction '
                              'of travel only at relative degree 1 (no obstacles.gammas)')
-        families.append(cascade(base, system, gammas))
+        families.append(_cascade(base, system, gammas, 'obstacles.gammas'))
     band_names = sorted({k.split('.')[1] for k in params
                          if k.startswith('bands.') and k.count('.') == 2})
     for band in band_names:
@@ -194,14 +214,21 @@ def build_families(params: Mapping[str, Any],
             raise ValueError('gaps.b: need one index per gaps.a')
         pairs = tuple((_index({'gaps.a': a}, 'gaps.a', 0, n_x),
                        _index({'gaps.b': b}, 'gaps.b', 0, n_x)) for a, b in zip(gap_a, gap_b))
-        base = PairGap(pairs=pairs, delta=number(params, 'gaps.delta', 0.0))  # type: ignore
-        families.append(cascade(base, system, float_list(params, 'gaps.gammas')))
+        delta = number(params, 'gaps.delta', 0.0)
+        if delta < 0:
+            raise ValueError(f'gaps.delta: must be >= 0, got {delta}')
+        base = PairGap(pairs=pairs, delta=delta)  # type: ignore
+        families.append(_cascade(base, system, float_list(params, 'gaps.gammas'),
+                                 'gaps.gammas'))
     nxs = float_list(params, 'walls.nx')
     if nxs:
         nys = float_list(params, 'walls.ny', len(nxs))
         offsets = float_list(params, 'walls.offset', len(nxs))
+        if any(a == 0.0 and b == 0.0 for a, b in zip(nxs, nys)):
+            raise ValueError('walls.nx/walls.ny: every wall needs a non-zero normal')
         base = HalfPlane(normals=tuple(zip(nxs, nys)), offsets=offsets)
-        families.append(cascade(base, system, float_list(params, 'walls.gammas')))
+        families.append(_cascade(base, system, float_list(params, 'walls.gammas'),
+                                 'walls.gammas'))
     if not families:
         raise ValueError('barriers: configure at least one of obstacles.*, bands.*, gaps.*, '
                          'walls.*')
@@ -249,16 +276,23 @@ def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
     """Validate flat (or nested) parameters into a :class:`FilterConfig`."""
     params = flatten(params)
     system = build_system(params)
+    k_c = number(params, 'k_c', 2.0)
+    if k_c < 0:
+        raise ValueError(f'k_c: must be >= 0 (the box is mean +/- k_c std), got {k_c}')
     problem = RCBFProblem(
         system=system, families=build_families(params, system),
-        alpha=number(params, 'alpha', 1.0), k_c=number(params, 'k_c', 2.0),
-        slack_weight=number(params, 'slack_weight', 1.0e6),
+        alpha=number(params, 'alpha', 1.0, positive=True), k_c=k_c,
+        slack_weight=number(params, 'slack_weight', 1.0e6, positive=True),
         input_weight=float_list(params, 'input_weight', system.n_u) or None)
     mean = float_list(params, 'disturbance.mean', system.n_x)
     std = float_list(params, 'disturbance.std', system.n_x)
     if any(s < 0 for s in std):
         raise ValueError('disturbance.std: must be >= 0')
     fail_safe = float_list(params, 'fail_safe_action', system.n_u) or None
+    if fail_safe is not None and system.u_min is not None and any(
+            not lo <= a <= hi for a, lo, hi in zip(fail_safe, system.u_min, system.u_max)):
+        raise ValueError(f'fail_safe_action: {list(fail_safe)} lies outside the input limits '
+                         f'[{list(system.u_min)}, {list(system.u_max)}]')
     compile_flag = params.get('compile_assembly', False)
     if not isinstance(compile_flag, bool):
         raise ValueError(f'compile_assembly: expected true or false, got {compile_flag!r}')

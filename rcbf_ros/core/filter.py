@@ -6,15 +6,36 @@ learner's differentiable layer uses). The sparsity pattern of the constraint mat
 construction (dense RCBF rows, one entry per actuator-limit row) so that every call is
 ``OSQP.update(Ax=, u=)`` + ``solve()``.
 
-Failure policy (never raises on a solve): when OSQP does not report ``solved`` (or
-``solved inaccurate``), or its answer is not finite, the filter returns the *fail-safe action*
-(configurable; default all zeros, clipped to the actuator limits) with ``fail_safe=True`` and the
-solver status in ``status``. Bad *inputs* (wrong length, NaN/inf, negative std) are the caller's
-bug and raise ``ValueError`` naming the field; the ROS node turns those into the fail-safe too.
+The invariant (checked on every call, whatever the solver reports): the returned action is
+either
+
+(a) within the actuator limits, and meets every RCBF row at the proposal's state with a slack
+    of at most ``slack_tolerance``, evaluated from the rows themselves at the returned action
+    (:attr:`FilterResult.needed_slack`), or
+(b) the fail-safe action (``fail_safe=True``), with the reason in :attr:`FilterResult.reason`.
+
+How each input is treated:
+
+- A proposal outside the actuator limits is clipped to them *before* the QP, so the QP's rows
+  are written at the command that can actually be applied (``proposal_clipped``).
+- Values that are not finite, or beyond the magnitude bounds (:class:`InputBounds`), a negative
+  std, or QP data beyond :data:`QP_DATA_LIMIT` (OSQP refuses such data and would silently keep
+  the previous problem) are refused: fail-safe, status ``input_refused``.
+- A solve that OSQP does not report ``solved`` / ``solved inaccurate``, or whose answer fails
+  the row check, goes to the interior-point solver of :mod:`rcbf_ros.core.diffqp` (``fallback``)
+  and is checked again; the warm start is reset so that no later call starts from it. If the
+  check still fails: fail-safe, status ``unverified``.
+- With ``slack_tolerance`` set (the safety_filter node, refilter), rows that need more slack than
+  that within the limits (infeasible) give the fail-safe too, status ``slack_exceeded``. Without
+  it (the in-process trainer) the QP's best effort is returned and the needed slack is reported.
+
+Wrong lengths or non-numeric inputs are the caller's bug and raise ``ValueError`` naming the
+field; the ROS node validates them first and publishes the fail-safe instead.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import math
 import time
 from typing import Callable, Sequence
 
@@ -30,6 +51,36 @@ from rcbf_ros.core.rcbf import RCBFProblem
 _OK_STATUS = {1: 'solved', 2: 'solved_inaccurate'}
 ACTIVE_TOLERANCE = 1e-7
 """|u_S| above this counts as the filter acting."""
+QP_DATA_LIMIT = 1e15
+"""Largest |value| of the assembled QP data (rows and right-hand sides) the filter passes to the
+solver. OSQP refuses data beyond about 1e30 and keeps the previous problem; far below that,
+float64 rows lose the absolute precision the row check needs. Larger data: ``input_refused``."""
+LIMIT_TOLERANCE = 1e-9
+"""How far past an actuator limit the solver's answer may land before it is projected back (a
+solve at tolerance 1e-9 ends there); farther is a failed check."""
+
+
+@dataclass(frozen=True)
+class InputBounds:
+    """Magnitude bounds on the filter's inputs: anything larger is refused (fail-safe).
+
+    Finite but absurd values (a proposal of 1e10, a learned std of 1e300) are not a command or
+    an estimate anyone meant; they also push the QP data past what the solver takes."""
+
+    state: float = 1e6
+    """Largest |x_i| of the state."""
+    command: float = 1e6
+    """Largest |u_i| of the proposal (below it, a proposal outside the limits is clipped)."""
+    disturbance: float = 1e6
+    """Largest |mean_i| and std_i of the disturbance box."""
+
+    def __post_init__(self) -> None:
+        for name in ('state', 'command', 'disturbance'):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, (int, float))
+                                               and math.isfinite(value) and value > 0):
+                raise ValueError(f'input_bounds.{name}: must be a finite number > 0, '
+                                 f'got {value!r}')
 
 
 @dataclass(frozen=True)
@@ -39,17 +90,18 @@ class FilterResult:
     u_safe: np.ndarray
     """(n_u,) the action to apply: u_RL + u_S, or the fail-safe action."""
     u_s: np.ndarray
-    """(n_u,) the correction u_S (u_safe - u_RL)."""
+    """(n_u,) the correction u_S (u_safe - u_RL, u_RL as proposed, before clipping)."""
     slack: float
-    """eps of the QP (> 0: a barrier row could not be met within the limits)."""
+    """eps of the QP (> 0: a barrier row could not be met within the limits); NaN when not
+    solved."""
     h: np.ndarray
-    """(K,) barrier values h_i(x) (top level of each cascade)."""
+    """(K,) barrier values h_i(x) (top level of each cascade); NaN when refused."""
     constraint_values: np.ndarray
-    """(K,) L_f h + L_g h u_safe + alpha h + rho per barrier: >= 0 means the RCBF row holds
-    without slack at the returned action."""
+    """(K,) L_f h + L_g h u_safe + alpha h + rho per barrier, at the proposal's rows: >= 0
+    means the RCBF row holds without slack at the returned action."""
     status: str
-    """'solved', 'solved_inaccurate', 'solved_interior_point' (OSQP stalled, the fallback
-    solved it), or the OSQP status that triggered the fail-safe."""
+    """'solved', 'solved_inaccurate', 'solved_interior_point' (the fallback solved it), or why
+    the fail-safe was returned: 'input_refused', 'unverified', 'slack_exceeded'."""
     solve_time_s: float
     """Wall time of OSQP update + solve."""
     total_time_s: float
@@ -58,6 +110,13 @@ class FilterResult:
     """True when u_safe is the fail-safe action."""
     barrier_names: list[str] = field(default_factory=list)
     """K names in row order."""
+    needed_slack: float = 0.0
+    """max(0, -min constraint_values): the slack the returned action needs in the rows,
+    evaluated from the rows (not the solver's eps); NaN when refused."""
+    reason: str = ''
+    """Why the fail-safe was returned ('' otherwise)."""
+    proposal_clipped: bool = False
+    """Whether the proposal lay outside the actuator limits and was clipped before the QP."""
 
     @property
     def active(self) -> bool:
@@ -66,16 +125,29 @@ class FilterResult:
         return bool(np.any(np.abs(self.u_s) > ACTIVE_TOLERANCE)) or self.fail_safe
 
 
+class _Refused(Exception):
+    """An input the filter refuses (fail-safe, status ``input_refused``)."""
+
+
 def _vector(name: str, value: object, size: int) -> np.ndarray:
-    """Validate a 1-D float input; raise ValueError naming the field."""
+    """A 1-D float64 copy of ``value`` with ``size`` entries; raise ValueError naming the field
+    for a wrong length or non-numeric data (values are checked by :func:`_bounded`)."""
     try:
-        array = np.asarray(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as exc:
+        array = np.array(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError, OverflowError) as exc:
         raise ValueError(f'{name}: not a numeric vector ({exc})') from exc
     if array.shape != (size,):
         raise ValueError(f'{name}: expected {size} values, got {array.size}')
+    return array
+
+
+def _bounded(name: str, array: np.ndarray, bound: float) -> np.ndarray:
+    """``array`` when it is finite and within +/- ``bound``; else :class:`_Refused`."""
     if not np.all(np.isfinite(array)):
-        raise ValueError(f'{name}: contains NaN or inf')
+        raise _Refused(f'{name}: contains NaN or inf')
+    worst = float(np.max(np.abs(array))) if array.size else 0.0
+    if worst > bound:
+        raise _Refused(f'{name}: |value| {worst:.3g} beyond the bound {bound:.3g}')
     return array
 
 
@@ -167,13 +239,14 @@ class SafetyFilter:
                  eps_abs: float = OSQP_EPS, eps_rel: float = OSQP_EPS,
                  max_iter: int = OSQP_MAX_ITER,
                  polish: bool = False, fallback: bool = True,
-                 compile_assembly: bool = False) -> None:
+                 compile_assembly: bool = False, slack_tolerance: float | None = None,
+                 input_bounds: InputBounds | None = None) -> None:
         """Set OSQP up once with the fixed sparsity pattern.
 
         Args:
             problem: system, barriers and gains.
-            fail_safe_action: n_u values applied when the solve fails (default zeros), clipped
-                to the actuator limits.
+            fail_safe_action: n_u values applied when the filter cannot filter (default
+                zeros); must lie within the actuator limits.
             eps_abs: OSQP absolute tolerance.
             eps_rel: OSQP relative tolerance.
             max_iter: OSQP iteration cap.
@@ -181,13 +254,21 @@ class SafetyFilter:
                 already matches an interior-point reference to < 1e-6, see
                 benchmarks/bench_filter_step.py, and OSQP prints a notice on every call whose
                 active set is empty).
-            fallback: when OSQP does not converge, solve the same QP with the batched interior
-                point of :mod:`rcbf_ros.core.diffqp` (status ``solved_interior_point``) before
-                resorting to the fail-safe action.
+            fallback: when OSQP does not converge or its answer fails the row check, solve the
+                same QP with the batched interior point of :mod:`rcbf_ros.core.diffqp` (status
+                ``solved_interior_point``) before resorting to the fail-safe action.
             compile_assembly: trace the constraint assembly (autograd through the cascades
                 included) into one flat graph and compile it (see :func:`compiled_assembly`):
                 several times faster per call for cascaded barriers, at a one-off compile of
                 seconds to tens of seconds at construction.
+            slack_tolerance: the most slack the returned action may need in any RCBF row;
+                beyond it the fail-safe is returned (None: return the QP's best effort and
+                report the slack; the solver's answer is checked either way).
+            input_bounds: magnitude bounds of the inputs (default :class:`InputBounds`).
+
+        Raises:
+            ValueError: naming ``fail_safe_action`` (wrong length, not finite, outside the
+                limits) or ``slack_tolerance`` (negative or not finite).
         """
         self.fallback = fallback
         self._assemble = (compiled_assembly(problem) if compile_assembly
@@ -204,9 +285,23 @@ class SafetyFilter:
         else:
             self._u_min = np.full(self.n_u, -np.inf)
             self._u_max = np.full(self.n_u, np.inf)
+        if slack_tolerance is not None and not (math.isfinite(slack_tolerance)
+                                                and slack_tolerance >= 0):
+            raise ValueError(f'slack_tolerance: must be a finite number >= 0, '
+                             f'got {slack_tolerance!r}')
+        self.slack_tolerance = slack_tolerance
+        self.input_bounds = InputBounds() if input_bounds is None else input_bounds
         action = np.zeros(self.n_u) if fail_safe_action is None else _vector(
             'fail_safe_action', fail_safe_action, self.n_u)
-        self.fail_safe_action = np.clip(action, self._u_min, self._u_max)
+        if not np.all(np.isfinite(action)):
+            raise ValueError('fail_safe_action: contains NaN or inf')
+        outside = (action < self._u_min) | (action > self._u_max)
+        if fail_safe_action is None:
+            action = np.clip(action, self._u_min, self._u_max)  # zeros unless 0 is excluded
+        elif np.any(outside):
+            raise ValueError(f'fail_safe_action: {action.tolist()} lies outside the input '
+                             f'limits [{self._u_min.tolist()}, {self._u_max.tolist()}]')
+        self.fail_safe_action = action
 
         # Fixed pattern: RCBF rows are dense in (u_S, eps); limit rows hold one entry each.
         pattern = np.zeros((nc, nz), dtype=bool)
@@ -232,6 +327,9 @@ class SafetyFilter:
                std: Sequence[float] | None = None) -> FilterResult:
         """Make u_rl safe at state under the disturbance box mean +/- k_c std.
 
+        Never raises on values: NaN, inf, out-of-bound inputs and every failed or unverified
+        solve return the fail-safe action with the reason (see the module docstring).
+
         Args:
             state: n_x values.
             u_rl: n_u proposed values.
@@ -239,58 +337,121 @@ class SafetyFilter:
             std: n_x disturbance std >= 0 (None: zero).
 
         Raises:
-            ValueError: naming the field, for a wrong length, NaN/inf, or negative std.
+            ValueError: naming the field, for a wrong length or non-numeric data.
         """
         start = time.perf_counter()
         x = _vector('state', state, self.n_x)
         u = _vector('u_rl', u_rl, self.n_u)
-        mu = None if mean is None else _vector('disturbance_mean', mean, self.n_x)
-        sd = None if std is None else _vector('disturbance_std', std, self.n_x)
-        if sd is not None and np.any(sd < 0):
-            raise ValueError('disturbance_std: must be >= 0')
+        mu = np.zeros(self.n_x) if mean is None else _vector('disturbance_mean', mean, self.n_x)
+        sd = np.zeros(self.n_x) if std is None else _vector('disturbance_std', std, self.n_x)
+        bounds = self.input_bounds
+        try:
+            _bounded('state', x, bounds.state)
+            _bounded('u_rl', u, bounds.command)
+            _bounded('disturbance_mean', mu, bounds.disturbance)
+            _bounded('disturbance_std', sd, bounds.disturbance)
+            if np.any(sd < 0):
+                raise _Refused('disturbance_std: must be >= 0')
+        except _Refused as refusal:
+            return self._fail_safe(u, start, status='input_refused', reason=str(refusal))
 
-        mu = np.zeros(self.n_x) if mu is None else mu
-        sd = np.zeros(self.n_x) if sd is None else sd
+        # Clip before the QP: its rows are then written at a command the plant can take.
+        u_rl_applied = np.clip(u, self._u_min, self._u_max)
+        clipped = bool(np.any(u_rl_applied != u))
         h_t, g_t, upper_t = self._assemble(*(torch.from_numpy(a).unsqueeze(0)
-                                             for a in (x, u, mu, sd)))
+                                             for a in (x, u_rl_applied, mu, sd)))
         g_matrix = g_t[0].numpy()
         upper = upper_t[0].numpy()
         h_values = h_t[0].numpy()
+        for name, data in (('barrier values', h_values), ('constraint rows', g_matrix),
+                           ('constraint bounds', upper)):
+            if not np.all(np.isfinite(data)) or np.max(np.abs(data), initial=0.0) > QP_DATA_LIMIT:
+                return self._fail_safe(
+                    u, start, status='input_refused', h=h_values, clipped=clipped,
+                    reason=f'{name}: not finite or beyond {QP_DATA_LIMIT:.0e} at this input')
+        lg_h = -g_matrix[:self.n_barriers, :self.n_u]
+        rows_upper = upper[:self.n_barriers]
+
+        def check(z: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float] | None:
+            """The action of solution z and its row values, if z passes the check."""
+            if z is None or z.shape != (self.n_u + 1,) or not np.all(np.isfinite(z)):
+                return None
+            action = u_rl_applied + z[:self.n_u]
+            if np.any(action < self._u_min - LIMIT_TOLERANCE) or np.any(
+                    action > self._u_max + LIMIT_TOLERANCE):
+                return None
+            action = np.clip(action, self._u_min, self._u_max)
+            values = rows_upper + lg_h @ (action - u_rl_applied)
+            needed = max(0.0, -float(np.min(values, initial=0.0)))
+            # The solver's own eps must account for what the rows need: else the answer is
+            # not the solution of this QP (a stale or garbage iterate).
+            claimed = max(0.0, float(z[-1]))
+            scale = 1.0 + float(np.max(np.abs(rows_upper), initial=0.0))
+            if needed > claimed + 1e-6 * scale:
+                return None
+            return action, values, needed
 
         solve_start = time.perf_counter()
+        status = 'solved'
         if np.all(upper >= 0.0):
             # z = 0 is feasible, hence optimal (the objective's minimum): the proposal passes
             # through exactly, without a solve.
-            ok, z, status = True, np.zeros(self.n_u + 1), 'solved'
+            z = np.zeros(self.n_u + 1)
+            checked = check(z)
         else:
             self._solver.update(Ax=g_matrix[self._rows, self._cols], u=upper)
             result = self._solver.solve(raise_error=False)
             status_val = int(result.info.status_val)
-            z = None if result.x is None else np.asarray(result.x, dtype=np.float64)
-            ok = status_val in _OK_STATUS and z is not None and bool(np.all(np.isfinite(z)))
+            z = None if result.x is None else np.array(result.x, dtype=np.float64)
+            checked = check(z) if status_val in _OK_STATUS else None
             status = _OK_STATUS.get(status_val, str(result.info.status))
-            if not ok and self.fallback:
-                # ADMM can stall when the slack is far from 0 (the 1 : l diagonal); the
-                # interior point of the differentiable layer solves the same QP robustly.
-                solution = solve_qp_batch_full(*self.problem.qp(
-                    *(torch.from_numpy(a).unsqueeze(0) for a in (x, u, mu, sd))))
-                if bool(solution.converged[0]):
-                    z = solution.z[0].detach().numpy()
-                    ok = bool(np.all(np.isfinite(z)))
-                    status = 'solved_interior_point'
+            if checked is None:
+                # Never start a later solve from this iterate.
+                self._solver.warm_start(x=np.zeros(self.n_u + 1), y=np.zeros(self._nc))
+                if self.fallback:
+                    # ADMM can stall when the slack is far from 0 (the 1 : l diagonal); the
+                    # interior point of the differentiable layer solves the same QP robustly.
+                    solution = solve_qp_batch_full(*self.problem.qp(
+                        *(torch.from_numpy(a).unsqueeze(0)
+                          for a in (x, u_rl_applied, mu, sd))))
+                    if bool(solution.converged[0]):
+                        z = solution.z[0].detach().numpy().astype(np.float64)
+                        checked = check(z)
+                        status = 'solved_interior_point'
         solve_time = time.perf_counter() - solve_start
-
-        if ok:
-            u_safe = np.clip(u + z[:self.n_u], self._u_min, self._u_max)
-            slack = float(z[-1])
-        else:
-            u_safe = self.fail_safe_action.copy()
-            slack = float('nan')
-        # RCBF row at the applied action without slack: rhs + L_g h (u_safe - u_rl) >= 0.
-        lg_h = -g_matrix[:self.n_barriers, :self.n_u]
-        residual = upper[:self.n_barriers] + lg_h @ (u_safe - u)
+        if checked is None:
+            return self._fail_safe(u, start, status='unverified', h=h_values, clipped=clipped,
+                                   solve_time=solve_time, rows=(rows_upper, lg_h, u_rl_applied),
+                                   reason=f'no solution passed the row check (solver: {status})')
+        u_safe, values, needed = checked
+        if self.slack_tolerance is not None and needed > self.slack_tolerance:
+            return self._fail_safe(
+                u, start, status='slack_exceeded', h=h_values, clipped=clipped,
+                solve_time=solve_time, rows=(rows_upper, lg_h, u_rl_applied),
+                reason=f'barrier rows need slack {needed:.3g} > slack_tolerance '
+                       f'{self.slack_tolerance:.3g} within the input limits')
         return FilterResult(
-            u_safe=u_safe, u_s=u_safe - u, slack=slack, h=h_values,
-            constraint_values=residual, status=status, solve_time_s=solve_time,
-            total_time_s=time.perf_counter() - start, fail_safe=not ok,
-            barrier_names=list(self.barrier_names))
+            u_safe=u_safe, u_s=u_safe - u, slack=float(z[-1]), h=h_values,
+            constraint_values=values, status=status, solve_time_s=solve_time,
+            total_time_s=time.perf_counter() - start, fail_safe=False,
+            barrier_names=list(self.barrier_names), needed_slack=needed,
+            proposal_clipped=clipped)
+
+    def _fail_safe(self, u: np.ndarray, start: float, *, status: str, reason: str,
+                   h: np.ndarray | None = None, clipped: bool = False, solve_time: float = 0.0,
+                   rows: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                   ) -> FilterResult:
+        """The fail-safe result; ``rows`` (upper, L_g h, u at the rows) give its row values."""
+        action = self.fail_safe_action.copy()
+        nan = np.full(self.n_barriers, np.nan)
+        values, needed = nan, float('nan')
+        if rows is not None:
+            rows_upper, lg_h, u_rows = rows
+            values = rows_upper + lg_h @ (action - u_rows)
+            needed = max(0.0, -float(np.min(values, initial=0.0)))
+        return FilterResult(
+            u_safe=action, u_s=action - u, slack=float('nan'),
+            h=nan if h is None else h, constraint_values=values, status=status,
+            solve_time_s=solve_time, total_time_s=time.perf_counter() - start, fail_safe=True,
+            barrier_names=list(self.barrier_names), needed_slack=needed, reason=reason,
+            proposal_clipped=clipped)

@@ -34,9 +34,18 @@ class DifferentiableSafetyLayer:
         self.disturbance = disturbance
 
     def correction(self, state: Tensor, u_rl: Tensor) -> Tensor:
-        """u_S: (B, n_u)."""
+        """u_S: (B, n_u).
+
+        As in the per-step filter, a proposal outside the actuator limits is clipped before the
+        QP (u_S then includes the clipping; its gradient there is zero). SAC's squashed policy
+        proposes within its box, so training never meets the clip."""
         x = state.detach().to(torch.float64)
-        u = u_rl.to(torch.float64)
+        u_in = u_rl.to(torch.float64)
+        system = self.problem.system
+        u = u_in
+        if self.problem.has_limits:
+            u = torch.clamp(u_in, torch.as_tensor(system.u_min, dtype=torch.float64),
+                            torch.as_tensor(system.u_max, dtype=torch.float64))
         mean = std = None
         if self.disturbance is not None:
             with torch.no_grad():
@@ -44,7 +53,7 @@ class DifferentiableSafetyLayer:
             mean, std = mean.to(torch.float64), std.to(torch.float64)
         qp = self.problem.qp(x, u, mean, std)
         z = solve_qp_batch(*qp)
-        return z[:, :self.problem.system.n_u].to(u_rl.dtype)
+        return (u - u_in + z[:, :system.n_u]).to(u_rl.dtype)
 
     def __call__(self, state: Tensor, u_rl: Tensor) -> Tensor:
         return u_rl + self.correction(state, u_rl)

@@ -12,8 +12,11 @@ published lives here and is unit-tested without launching anything (ros2cli's ap
 - the diagnostic level, message and key/values of one decision (:func:`diagnostic_values`);
 - throttling of repeated log lines (:class:`LogThrottle`).
 
-Invariant: a proposal is only ever passed through the QP; every path that cannot filter it
-(bad or stale input, no state yet, a failed solve) yields the filter's fail-safe action.
+Invariant: the published command is either within the actuator limits and meets every RCBF row
+with a slack of at most ``slack_tolerance`` (checked by the filter from the rows themselves at the
+published command, and again here), or the fail-safe action with an ERROR saying why. Every path
+that cannot filter a proposal (bad, stale or out-of-bound input, no state yet, a failed,
+unverified or infeasible solve) yields the fail-safe.
 """
 from __future__ import annotations
 
@@ -22,8 +25,14 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from rcbf_ros.core.config import number
-from rcbf_ros.core.filter import FilterResult, OSQP_EPS, OSQP_MAX_ITER, SafetyFilter
+from rcbf_ros.core.config import FilterConfig, number
+from rcbf_ros.core.filter import (
+    FilterResult,
+    InputBounds,
+    OSQP_EPS,
+    OSQP_MAX_ITER,
+    SafetyFilter,
+)
 
 # diagnostic_msgs/DiagnosticStatus levels.
 OK = 0
@@ -40,6 +49,9 @@ NODE_PARAMETER_DEFAULTS: dict[str, Any] = {
     'twist_fields': ['linear.x', 'angular.z'],
     'max_state_age_s': 0.5,
     'slack_tolerance': 1.0e-4,
+    'input_bounds.state': InputBounds.state,
+    'input_bounds.command': InputBounds.command,
+    'input_bounds.disturbance': InputBounds.disturbance,
     'log_throttle_s': 1.0,
     'qos.reliable': True,
     'qos.depth': 10,
@@ -111,10 +123,13 @@ class NodeSettings:
     max_state_age_s: float
     """A state message older than this (since its arrival) is stale: fail-safe."""
     slack_tolerance: float
-    """Slack above this is reported as WARN (a barrier row was infeasible within the limits).
+    """The most slack the published command may need in any RCBF row; more (the rows are
+    infeasible within the input limits) publishes the fail-safe.
 
     An active but feasible row still carries eps ~ |u_S| / (l |L_g h|) > 0 (the soft penalty
     l eps^2 of the paper's QP), about 1e-6 with l = 1e6, hence the default 1e-4."""
+    input_bounds: InputBounds
+    """Magnitude bounds of state, proposal and disturbance box; beyond them: fail-safe."""
     log_throttle_s: float
     """Minimum period of repeated log lines with the same reason."""
     qos_reliable: bool
@@ -180,6 +195,8 @@ def node_settings_from_params(params: Mapping[str, Any]) -> NodeSettings:
         command_type=command_type, twist_fields=tuple(fields),
         max_state_age_s=_positive(params, 'max_state_age_s'),
         slack_tolerance=_positive(params, 'slack_tolerance', allow_zero=True),
+        input_bounds=InputBounds(**{name: _positive(params, f'input_bounds.{name}')
+                                    for name in ('state', 'command', 'disturbance')}),
         log_throttle_s=_positive(params, 'log_throttle_s', allow_zero=True),
         qos_reliable=reliable, qos_depth=_count(params, 'qos.depth'),
         osqp_eps_abs=_positive(params, 'osqp.eps_abs'),
@@ -188,6 +205,20 @@ def node_settings_from_params(params: Mapping[str, Any]) -> NodeSettings:
         diagnostics_min_period_s=_positive(params, 'diagnostics.min_period_s', allow_zero=True),
         diagnostics_name=texts['diagnostics.name'],
         diagnostics_hardware_id=texts['diagnostics.hardware_id'])
+
+
+def build_safety_filter(*, config: FilterConfig, settings: NodeSettings) -> SafetyFilter:
+    """The node's filter: the configured problem with the node's solver settings, slack
+    tolerance and input bounds (the one construction shared by the node and refilter).
+
+    Raises:
+        ValueError: naming the bad key.
+    """
+    return SafetyFilter(
+        config.problem, fail_safe_action=config.fail_safe_action,
+        eps_abs=settings.osqp_eps_abs, eps_rel=settings.osqp_eps_rel,
+        max_iter=settings.osqp_max_iter, compile_assembly=config.compile_assembly,
+        slack_tolerance=settings.slack_tolerance, input_bounds=settings.input_bounds)
 
 
 def checked_vector(name: str, values: Any, size: int) -> np.ndarray:
@@ -346,8 +377,9 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
         now_ns: monotonic time of the proposal's arrival in nanoseconds.
 
     Returns:
-        ERROR + fail-safe on bad input, no / bad / stale state, or a failed solve; WARN when the
-        QP needed slack above ``slack_tolerance``; OK otherwise.
+        ERROR + fail-safe on bad input, no / bad / stale state, a refused input, a failed or
+        unverified solve, or rows that need more slack than ``slack_tolerance`` (checked here
+        too, whatever tolerance the filter was built with); OK otherwise.
     """
     if proposal is None:
         return fail_safe_decision(safety_filter=safety_filter,
@@ -376,13 +408,14 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
                                   reason=f'bad input: {exc}')
     if result.fail_safe:
         return Decision(u_safe=result.u_safe, u_rl=proposal.u, level=ERROR,
-                        reason=f'solver failed: {result.status}', fail_safe=True, result=result,
-                        state_source=source)
-    if result.slack > slack_tolerance:
-        return Decision(u_safe=result.u_safe, u_rl=proposal.u, level=WARN,
-                        reason=f'barrier rows infeasible within the input limits: '
-                               f'slack {result.slack:.3g}',
-                        fail_safe=False, result=result, state_source=source)
+                        reason=f'{result.status}: {result.reason}', fail_safe=True,
+                        result=result, state_source=source)
+    if not result.needed_slack <= slack_tolerance:  # NaN too
+        return Decision(u_safe=safety_filter.fail_safe_action.copy(), u_rl=proposal.u,
+                        level=ERROR, fail_safe=True, result=result, state_source=source,
+                        reason=f'slack_exceeded: barrier rows need slack '
+                               f'{result.needed_slack:.3g} > slack_tolerance '
+                               f'{slack_tolerance:.3g}')
     return Decision(u_safe=result.u_safe, u_rl=proposal.u, level=OK, reason='',
                     fail_safe=False, result=result, state_source=source)
 
@@ -393,7 +426,8 @@ def diagnostic_values(*, decision: Decision,
 
     Keys: ``status`` (solver status or 'not solved'), ``slack``, ``h.<barrier>`` and
     ``constraint.<barrier>`` for every barrier (NaN when not solved), ``min_h``,
-    ``solve_time_s``, ``total_time_s``, ``fail_safe``, ``active``, ``reason``,
+    ``solve_time_s``, ``total_time_s``, ``needed_slack`` (what the rows need at the published
+    command), ``proposal_clipped``, ``fail_safe``, ``active``, ``reason``,
     ``state_source``, ``u_rl``, ``u_safe``.
     """
     result = decision.result
@@ -412,6 +446,8 @@ def diagnostic_values(*, decision: Decision,
     values['min_h'] = float(np.min(h)) if len(h) else nan
     values['solve_time_s'] = result.solve_time_s if result is not None else nan
     values['total_time_s'] = result.total_time_s if result is not None else nan
+    values['needed_slack'] = result.needed_slack if result is not None else nan
+    values['proposal_clipped'] = bool(result is not None and result.proposal_clipped)
     values['fail_safe'] = decision.fail_safe
     values['active'] = bool(decision.fail_safe or np.any(decision.u_safe != decision.u_rl))
     values['reason'] = decision.reason

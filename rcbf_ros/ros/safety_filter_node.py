@@ -12,18 +12,23 @@ Topics (all relative, so remappable: ``-r cmd_proposed:=/my_controller/cmd``):
 - ``cmd_safe`` (pub, the proposal's type): u* = u_RL + u_S; for arrays also the sections
   ``u_rl`` and ``u_s``.
 - ``diagnostics`` (pub, diagnostic_msgs/DiagnosticArray): one status per proposal (by default)
-  with the
-  level (OK / WARN: slack / ERROR: fail-safe), every h_i by barrier name, the constraint values,
-  slack, solver status, solve and total time and the reason.
+  with the level (OK, or ERROR: fail-safe), every h_i by barrier name, the constraint values,
+  slack and the slack the rows need at the published command, solver status, solve and total
+  time and the reason.
 
-Bad or stale input never yields an unfiltered command: a NaN or wrong-length state or proposal,
-no state yet, a state older than ``max_state_age_s`` (from its arrival) or a failed solve all
-publish the fail-safe action, with the reason in diagnostics and (throttled) in the log. The
-decisions live in :mod:`rcbf_ros.ros.filter_logic`; this module only moves messages.
+The invariant: the published command is either within the actuator limits and meets every RCBF
+row with a slack of at most ``slack_tolerance`` (evaluated from the rows at that command, not
+taken from the solver), or the fail-safe action with an ERROR saying why. A proposal outside the
+limits is clipped before the QP; a NaN, wrong-length or out-of-bound (``input_bounds.*``) state,
+proposal or disturbance box, no state yet, a state older than ``max_state_age_s`` (from its
+arrival), a failed or unverified solve, or rows infeasible within the limits all publish the
+fail-safe, with the reason in diagnostics and (throttled) in the log. The decisions live in
+:mod:`rcbf_ros.ros.filter_logic`; this module only moves messages.
 
 Parameters: the filter keys of :mod:`rcbf_ros.core.config` (``config/<system>.yaml``) and the
 node's own (:data:`rcbf_ros.ros.filter_logic.NODE_PARAMETER_DEFAULTS`): ``command_type``,
-``twist_fields``, ``max_state_age_s``, ``slack_tolerance``, ``log_throttle_s``,
+``twist_fields``, ``max_state_age_s``, ``slack_tolerance``, ``input_bounds.state``,
+``input_bounds.command``, ``input_bounds.disturbance``, ``log_throttle_s``,
 ``qos.reliable``, ``qos.depth``, ``osqp.eps_abs``, ``osqp.eps_rel``, ``osqp.max_iter``,
 ``diagnostics.min_period_s`` (0: a DiagnosticArray per proposal; else OK ones at most that
 often, WARN / ERROR always), ``diagnostics.name``, ``diagnostics.hardware_id``.
@@ -38,7 +43,6 @@ import numpy as np
 import torch
 
 from rcbf_ros.core.config import filter_config_from_params
-from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.ros import conversions
 from rcbf_ros.ros import filter_logic as logic
 from rcbf_ros.ros.node_main import run_node
@@ -68,11 +72,7 @@ class SafetyFilterNode(Node):
         try:
             self.settings = logic.node_settings_from_params(params)
             self.config = filter_config_from_params(params)
-            self.filter = SafetyFilter(
-                self.config.problem, fail_safe_action=self.config.fail_safe_action,
-                eps_abs=self.settings.osqp_eps_abs, eps_rel=self.settings.osqp_eps_rel,
-                max_iter=self.settings.osqp_max_iter,
-                compile_assembly=self.config.compile_assembly)
+            self.filter = logic.build_safety_filter(config=self.config, settings=self.settings)
             if (self.settings.command_type == 'twist'
                     and len(self.settings.twist_fields) != self.filter.n_u):
                 fields = list(self.settings.twist_fields)

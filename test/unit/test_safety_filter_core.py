@@ -22,7 +22,7 @@ import torch
 
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.dynamics import step_euler
-from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.core.filter import InputBounds, SafetyFilter
 from rcbf_ros.envs.nominal import unicycle_go_to_goal
 from rcbf_ros.learning.safety_layer import DifferentiableSafetyLayer
 from rcbf_ros.params import find_config, load_params
@@ -124,10 +124,18 @@ def test_matches_clarabel_on_random_states(system, overrides):
         std = np.abs(rng.normal(0.0, 0.05, n_x))
         result = safety_filter.filter(x, u_rl, mean, std)
         assert not result.fail_safe, result.status
-        expected, expected_eps = reference_solution(problem, x, u_rl, mean, std)
+        # The filter clips the proposal to the limits before the QP: the smallest correction
+        # is measured from the command the plant can take.
+        applied = (np.clip(u_rl, problem.system.u_min, problem.system.u_max)
+                   if problem.has_limits else u_rl)
+        expected, expected_eps = reference_solution(problem, x, applied, mean, std)
         # An infeasible state (slack > 0: PVTOL's envelope rows can conflict) makes the QP
         # badly scaled (slack weight 1e6): the two solvers then agree to 1e-5, not 1e-6.
         atol = 1e-6 if expected_eps < 1e-6 else 1e-5
+        if problem.has_limits and np.any(
+                np.minimum(expected - problem.system.u_min, problem.system.u_max - expected)
+                < 1e-5):
+            atol = 1e-5  # the interior point stops short of an active limit by a few 1e-6
         np.testing.assert_allclose(result.u_safe, expected, rtol=0, atol=atol)
         assert result.slack == pytest.approx(expected_eps, abs=1e-6)
         active += bool(np.any(np.abs(result.u_s) > 1e-6))
@@ -340,14 +348,44 @@ def test_default_iteration_cap_solves_random_pvtol_states():
 
 def test_starved_solver_returns_fail_safe_with_status():
     config = config_for('unicycle')
-    safety_filter = SafetyFilter(config.problem, fail_safe_action=[0.5, -3.0], max_iter=1,
+    safety_filter = SafetyFilter(config.problem, fail_safe_action=[0.5, -2.5], max_iter=1,
                                  fallback=False)
     result = safety_filter.filter([-0.85, 0.0, 0.0], [2.5, 0.0])
     assert result.fail_safe and result.active
-    assert result.status not in ('solved', 'solved_inaccurate')
-    assert 'max_iter' in result.status or 'iter' in result.status
-    np.testing.assert_array_equal(result.u_safe, [0.5, -2.5])  # clipped to the limits
+    assert result.status == 'unverified' and 'iterations' in result.reason
+    np.testing.assert_array_equal(result.u_safe, [0.5, -2.5])
     assert np.isnan(result.slack)
+
+
+class _LyingSolver:
+    """Wraps OSQP and reports 'solved' with an answer of another problem (zero correction)."""
+
+    def __init__(self, solver):
+        self.solver = solver
+
+    def __getattr__(self, name):
+        return getattr(self.solver, name)
+
+    def solve(self, raise_error=False):
+        result = self.solver.solve(raise_error=raise_error)
+        result.x[:] = 0.0
+        return result
+
+
+@pytest.mark.parametrize('fallback', [False, True])
+def test_a_solver_answer_that_breaks_the_rows_is_never_published(fallback):
+    problem = config_for('unicycle').problem
+    state, u_rl = [-0.85, 0.0, 0.0], [2.5, 0.0]
+    honest = SafetyFilter(problem).filter(state, u_rl)
+    safety_filter = SafetyFilter(problem, fallback=fallback)
+    safety_filter._solver = _LyingSolver(safety_filter._solver)
+    result = safety_filter.filter(state, u_rl)
+    if fallback:  # the interior point solves the same QP, and its answer passes the check
+        assert result.status == 'solved_interior_point' and not result.fail_safe
+        np.testing.assert_allclose(result.u_safe, honest.u_safe, atol=1e-6)
+    else:
+        assert result.fail_safe and result.status == 'unverified'
+        np.testing.assert_array_equal(result.u_safe, [0.0, 0.0])
 
 
 def test_interior_point_fallback_solves_what_a_starved_osqp_cannot():
@@ -362,19 +400,70 @@ def test_interior_point_fallback_solves_what_a_starved_osqp_cannot():
 
 @pytest.mark.parametrize('kwargs, field', [
     ({'state': [0.0, 0.0]}, 'state'),
-    ({'state': [0.0, np.nan, 0.0]}, 'state'),
-    ({'u_rl': [np.inf, 0.0]}, 'u_rl'),
     ({'u_rl': [1.0, 2.0, 3.0]}, 'u_rl'),
-    ({'std': [0.0, -0.1, 0.0]}, 'disturbance_std'),
     ({'std': [0.0, 0.1]}, 'disturbance_std'),
-    ({'mean': [np.nan, 0.0, 0.0]}, 'disturbance_mean'),
+    ({'mean': ['a', 0.0, 0.0]}, 'disturbance_mean'),
 ])
-def test_bad_input_raises_naming_the_field(kwargs, field):
+def test_wrong_shape_raises_naming_the_field(kwargs, field):
     safety_filter = SafetyFilter(config_for('unicycle').problem)
     args = {'state': [0.0, 2.0, 0.0], 'u_rl': [0.0, 0.0], 'mean': None, 'std': None}
     args.update(kwargs)
     with pytest.raises(ValueError, match=f'^{field}:'):
         safety_filter.filter(args['state'], args['u_rl'], args['mean'], args['std'])
+
+
+@pytest.mark.parametrize('kwargs, field', [
+    ({'state': [0.0, np.nan, 0.0]}, 'state'),
+    ({'state': [1e300, 0.0, 0.0]}, 'state'),
+    ({'u_rl': [np.inf, 0.0]}, 'u_rl'),
+    ({'u_rl': [1e7, 0.0]}, 'u_rl'),
+    ({'std': [0.0, -0.1, 0.0]}, 'disturbance_std'),
+    ({'std': [0.0, 1e300, 0.0]}, 'disturbance_std'),
+    ({'mean': [np.nan, 0.0, 0.0]}, 'disturbance_mean'),
+])
+def test_bad_values_give_the_fail_safe_naming_the_field(kwargs, field):
+    safety_filter = SafetyFilter(config_for('unicycle').problem, fail_safe_action=[0.0, 0.5])
+    args = {'state': [0.0, 2.0, 0.0], 'u_rl': [0.0, 0.0], 'mean': None, 'std': None}
+    args.update(kwargs)
+    result = safety_filter.filter(args['state'], args['u_rl'], args['mean'], args['std'])
+    assert result.fail_safe and result.status == 'input_refused'
+    assert result.reason.startswith(f'{field}:'), result.reason
+    np.testing.assert_array_equal(result.u_safe, [0.0, 0.5])
+
+
+@pytest.mark.parametrize('u_v', [1e6, 1e3, 2.6])
+def test_proposals_beyond_the_limits_are_clipped_before_the_qp(u_v):
+    # The obstacle at the origin lies 0.25 m ahead of the look-ahead point: at full speed the
+    # rows bind. Clipping after the QP let huge proposals through at full speed.
+    problem = config_for('unicycle').problem
+    safety_filter = SafetyFilter(problem, slack_tolerance=1e-4)
+    x = np.array([-0.85 - 0.03 - 0.25 + 0.7, 0.0, 0.0])
+    at_limit = safety_filter.filter(x, [2.5, 0.0])
+    result = safety_filter.filter(x, [u_v, 0.0])
+    assert not result.fail_safe and result.proposal_clipped
+    np.testing.assert_allclose(result.u_safe, at_limit.u_safe, rtol=0, atol=1e-9)
+    assert at_limit.u_safe[0] < 2.0  # the filter brakes
+    h, _, lf_h, lg_h = lie_terms(problem, x, np.array([2.5, 0.0]))
+    rows = lf_h + lg_h @ result.u_safe + problem.alpha * h
+    assert np.all(rows >= -1e-4)
+
+
+def test_osqp_refusing_huge_data_never_returns_the_previous_answer():
+    # Beyond ~1e30 OSQP keeps the previous problem; such data must be refused, and the next
+    # call must not depend on what came before.
+    problem = config_for('unicycle').problem
+    x, u = [-0.4, 0.0, 0.0], [2.5, 0.0]
+    fresh = SafetyFilter(problem).filter(x, u)
+    used = SafetyFilter(problem, input_bounds=InputBounds(state=1e300, disturbance=1e300))
+    used.filter([-2.5, -2.5, 0.0], [1.0, 0.0])
+    refused = used.filter(x, u, std=[1e200, 1e200, 0.0])
+    assert refused.fail_safe and refused.status == 'input_refused'
+    np.testing.assert_allclose(used.filter(x, u).u_safe, fresh.u_safe, rtol=0, atol=1e-9)
+
+
+def test_fail_safe_action_outside_the_limits_is_refused():
+    with pytest.raises(ValueError, match='^fail_safe_action: .* outside the input limits'):
+        SafetyFilter(config_for('unicycle').problem, fail_safe_action=[99.0, 0.0])
 
 
 def _drive_past_one_obstacle(input_weight, y0: float, steps: int = 600, *,
