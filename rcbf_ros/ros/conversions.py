@@ -41,23 +41,45 @@ def sections_to_msg(sections: Mapping[str, Sequence[float] | np.ndarray]) -> Any
 
 
 def msg_to_sections(msg: Any, default_label: str = 'data') -> dict[str, np.ndarray]:
-    """Float64MultiArray -> {label: array}. Raises ValueError when sizes do not add up."""
+    """Float64MultiArray -> {label: array}.
+
+    Raises:
+        ValueError: naming the dimension, when the sizes do not add up to ``data``, a label is
+            repeated (two sections would claim one name), or a label is not a short printable
+            name (at most :data:`MAX_LABEL_CHARS`; labels reach logs and diagnostics).
+    """
     data = np.array(msg.data, dtype=np.float64).reshape(-1)  # writable copy
     dims = list(msg.layout.dim)
     if not dims:
         return {default_label: data}
     out: dict[str, np.ndarray] = {}
     offset = int(msg.layout.data_offset)
-    for dim in dims:
+    for index, dim in enumerate(dims):
+        label = _checked_label(index, dim.label) or default_label
         size = int(dim.size)
         if offset + size > data.size:
-            raise ValueError(f'layout.dim[{dim.label!r}]: size {size} runs past data '
+            raise ValueError(f'layout.dim[{label!r}]: size {size} runs past data '
                              f'({data.size} values)')
-        out[dim.label or default_label] = data[offset:offset + size].copy()
+        if label in out:
+            raise ValueError(f'layout.dim[{label!r}]: label repeated')
+        out[label] = data[offset:offset + size].copy()
         offset += size
     if offset != data.size:
         raise ValueError(f'layout: sections cover {offset} of {data.size} values')
     return out
+
+
+MAX_LABEL_CHARS = 64
+"""Longest section label :func:`msg_to_sections` accepts."""
+
+
+def _checked_label(index: int, label: str) -> str:
+    if len(label) > MAX_LABEL_CHARS:
+        raise ValueError(f'layout.dim[{index}].label: {len(label)} characters, more than '
+                         f'{MAX_LABEL_CHARS}')
+    if not label.isprintable():
+        raise ValueError(f'layout.dim[{index}].label {label!r}: not printable')
+    return label
 
 
 def twist_to_array(msg: Any, fields: Sequence[str]) -> np.ndarray:

@@ -25,6 +25,26 @@ arrival), a failed or unverified solve, or rows infeasible within the limits all
 fail-safe, with the reason in diagnostics and (throttled) in the log. The decisions live in
 :mod:`rcbf_ros.ros.filter_logic`; this module only moves messages.
 
+No message can kill the node, and none is ignored in silence. Both subscriptions take CDR bytes
+(``raw=True``) and the node decodes them itself, so it sees every sample that does not decode,
+on rclpy as on the Cyclone runtime (where a subscription that decodes for its callback drops
+such samples with a warning, and rclpy may raise in its executor instead):
+
+- an undecodable ``cmd_proposed`` sample is answered with the fail-safe action and an ERROR
+  ``undecodable proposal: ...``. Dropping it would leave the actuator holding the previous
+  command while its controller believes a new one was sent: not fail-closed. Answering keeps
+  one ``cmd_safe`` per proposal, so a lock-step loop does not stall either; a flood of garbage
+  can hold the robot in its fail-safe, which is the safe side of that trade;
+- an undecodable ``state`` sample replaces the latest state as a bad one, exactly as a NaN state
+  does: until a good state arrives, proposals without their own ``state`` section get the
+  fail-safe with ``bad state: undecodable sample: ...``. Keeping the older state instead would
+  filter against a state that the state source has already superseded.
+
+A decodable but unusable sample is refused as before. Every diagnostic status carries the
+cumulative counts ``dropped_samples`` (undecodable, on either topic), ``refused_proposals``
+and ``refused_states``. A callback never raises: should the filtering itself fail unexpectedly
+(a defect, not an input), the proposal gets the fail-safe with ``internal error: <type>: ...``.
+
 Parameters: the filter keys of :mod:`rcbf_ros.core.config` (``config/<system>.yaml``) and the
 node's own (:data:`rcbf_ros.ros.filter_logic.NODE_PARAMETER_DEFAULTS`): ``command_type``,
 ``twist_fields``, ``max_state_age_s``, ``slack_tolerance``, ``input_bounds.state``,
@@ -47,6 +67,7 @@ from rcbf_ros.ros import conversions
 from rcbf_ros.ros import filter_logic as logic
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
+    deserialize_message,
     get_message,
     HistoryPolicy,
     Node,
@@ -56,6 +77,8 @@ from rcbf_ros.ros.runtime import (
 )
 
 NODE_NAME = 'safety_filter'
+INPUT_COUNT_KEYS = ('dropped_samples', 'refused_proposals', 'refused_states')
+"""Diagnostic keys of the node's cumulative input counts (see the module docstring)."""
 
 
 class SafetyFilterNode(Node):
@@ -85,6 +108,8 @@ class SafetyFilterNode(Node):
         self._last_ok_diagnostics_ns: int | None = None
         self._throttle = logic.LogThrottle(self.settings.log_throttle_s)
         self.proposals_received = 0
+        self.input_counts = dict.fromkeys(INPUT_COUNT_KEYS, 0)
+        """Cumulative ``dropped_samples``, ``refused_proposals``, ``refused_states``."""
 
         qos = QoSProfile(
             depth=self.settings.qos_depth, history=HistoryPolicy.KEEP_LAST,
@@ -96,8 +121,9 @@ class SafetyFilterNode(Node):
         self._cmd_pub = self.create_publisher(command_type, 'cmd_safe', qos)
         self._diag_pub = self.create_publisher(
             get_message('diagnostic_msgs/msg/DiagnosticArray'), 'diagnostics', qos)
-        self.create_subscription(array_type, 'state', self._on_state, qos)
-        self.create_subscription(command_type, 'cmd_proposed', self._on_proposal, qos)
+        self._state_type, self._command_type = array_type, command_type
+        self.create_subscription(array_type, 'state', self._on_state, qos, raw=True)
+        self.create_subscription(command_type, 'cmd_proposed', self._on_proposal, qos, raw=True)
         problem = self.config.problem
         self.get_logger().info(
             f'{problem.n_barriers} barriers on {params.get("system")} (n_x = '
@@ -122,22 +148,54 @@ class SafetyFilterNode(Node):
         return logic.collect_parameters(values)
 
     # callbacks ---------------------------------------------------------------------------------
-    def _on_state(self, msg: Any) -> None:
+    def _on_state(self, data: bytes) -> None:
+        """A ``state`` sample (CDR bytes): the latest state, or a bad one that says why."""
         now_ns = time.monotonic_ns()
+        try:
+            sample = self._state_sample(data, now_ns)
+        except Exception as exc:  # a defect, not an input: see the module docstring
+            sample = logic.StateSample(received_ns=now_ns, state=None,
+                                       error=f'internal error: {_one_line(exc)}')
+        self._latest_state = sample
+        if sample.state is None:
+            self._log(logic.ERROR, f'bad state: {sample.error}', now_ns)
+
+    def _state_sample(self, data: bytes, now_ns: int) -> logic.StateSample:
+        """The state sample of one ``state`` message, counted when refused."""
+        msg, error = _decoded(data, self._state_type)
+        if msg is None:
+            self.input_counts['dropped_samples'] += 1
+            return logic.StateSample(received_ns=now_ns, state=None,
+                                     error=f'undecodable sample: {error}')
         try:
             sections = conversions.msg_to_sections(msg, default_label='state')
             state = logic.state_from_sections(sections=sections, n_x=self.filter.n_x)
         except ValueError as exc:
-            self._latest_state = logic.StateSample(received_ns=now_ns, state=None,
-                                                   error=str(exc))
-            self._log(logic.ERROR, f'bad state: {exc}', now_ns)
-            return
-        self._latest_state = logic.StateSample(received_ns=now_ns, state=state)
+            self.input_counts['refused_states'] += 1
+            return logic.StateSample(received_ns=now_ns, state=None, error=str(exc))
+        return logic.StateSample(received_ns=now_ns, state=state)
 
-    def _on_proposal(self, msg: Any) -> None:
+    def _on_proposal(self, data: bytes) -> None:
+        """A ``cmd_proposed`` sample (CDR bytes): answered with one command, always."""
         now_ns = time.monotonic_ns()
         self.proposals_received += 1
-        proposal, error = None, ''
+        try:
+            decision, answered = self._decide(data, now_ns)
+        except Exception as exc:  # a defect, not an input: see the module docstring
+            decision, answered = logic.fail_safe_decision(
+                safety_filter=self.filter, reason=f'internal error: {_one_line(exc)}'), None
+        self._publish(decision, now_ns, answered_state=answered)
+        if decision.level != logic.OK:
+            self._log(decision.level, decision.reason, now_ns)
+
+    def _decide(self, data: bytes, now_ns: int) -> tuple[logic.Decision, np.ndarray | None]:
+        """The decision for one proposal sample, and the state it carried (if any)."""
+        msg, error = _decoded(data, self._command_type)
+        if msg is None:
+            self.input_counts['dropped_samples'] += 1
+            return logic.fail_safe_decision(safety_filter=self.filter,
+                                            reason=f'undecodable proposal: {error}'), None
+        proposal = None
         try:
             if self.settings.command_type == 'twist':
                 sections = {'u': conversions.twist_to_array(msg, self.settings.twist_fields)}
@@ -147,16 +205,14 @@ class SafetyFilterNode(Node):
                                                     n_x=self.filter.n_x)
         except (ValueError, TypeError) as exc:
             error = str(exc)
+            self.input_counts['refused_proposals'] += 1
         decision = logic.decide(
             safety_filter=self.filter, proposal=proposal, proposal_error=error,
             latest_state=self._latest_state, now_ns=now_ns,
             max_state_age_s=self.settings.max_state_age_s,
             static_mean=self.config.static_mean, static_std=self.config.static_std,
             slack_tolerance=self.settings.slack_tolerance)
-        answered = proposal.state if proposal is not None else None
-        self._publish(decision, now_ns, answered_state=answered)
-        if decision.level != logic.OK:
-            self._log(decision.level, decision.reason, now_ns)
+        return decision, proposal.state if proposal is not None else None
 
     # output ------------------------------------------------------------------------------------
     def _publish(self, decision: logic.Decision, now_ns: int,
@@ -174,6 +230,7 @@ class SafetyFilterNode(Node):
             self._last_ok_diagnostics_ns = now_ns
         level, message, values = logic.diagnostic_values(
             decision=decision, barrier_names=self.filter.barrier_names)
+        values.update(self.input_counts)
         diagnostics = get_message('diagnostic_msgs/msg/DiagnosticArray')()
         diagnostics.header.stamp = self.get_clock().now().to_msg()
         diagnostics.status = [conversions.diagnostic_status(
@@ -196,6 +253,24 @@ class SafetyFilterNode(Node):
     def fail_safe_action(self) -> np.ndarray:
         """(n_u,) what the node publishes when it cannot filter."""
         return self.filter.fail_safe_action
+
+
+def _decoded(data: bytes, message_type: Any) -> tuple[Any, str]:
+    """(message, '') or (None, why): CDR bytes of an untrusted sample, decoded.
+
+    Any exception of the decoder means "not a sample of this type": the decoder is rclpy's or
+    ours (:mod:`rcbf_ros.ros.runtime`) and neither promises a closed set of exceptions.
+    """
+    try:
+        return deserialize_message(data, message_type), ''
+    except Exception as exc:
+        return None, _one_line(exc)
+
+
+def _one_line(exc: BaseException) -> str:
+    """``Type: text`` of an exception on one line, at most 200 characters."""
+    text = ' '.join(f'{type(exc).__name__}: {exc}'.split())
+    return text if len(text) <= 200 else text[:197] + '...'
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -2,6 +2,7 @@
 deserialization inverts it, and the classes behave like rclpy's."""
 from __future__ import annotations
 
+import struct
 from typing import Any
 
 import numpy as np
@@ -190,3 +191,117 @@ def test_unknown_field_and_type_are_clear_errors():
         get_message('no_msgs/msg/Nothing')
     with pytest.raises(ValueError, match='pkg/msg/Type'):
         get_message('Twist')
+
+
+# --- malformed CDR: one error type, naming the type ---------------------------------------------
+ARRAY = 'std_msgs/msg/Float64MultiArray'
+
+
+def _valid_array() -> bytes:
+    """``u: [1.0, 0.5]``; body offsets (after the 4-byte header): dim count 0, label length 4,
+    label 8, size 12, stride 16, data_offset 20, data count 24, data 32."""
+    message = get_message(ARRAY)(data=[1.0, 0.5])
+    message.layout.dim = [get_message('std_msgs/msg/MultiArrayDimension')(label='u', size=2,
+                                                                          stride=2)]
+    return serialize_message(message)
+
+
+def _patched(offset: int, value: bytes) -> bytes:
+    data = bytearray(_valid_array())
+    data[4 + offset:4 + offset + len(value)] = value
+    return bytes(data)
+
+
+def test_valid_array_layout_is_as_the_malformed_cases_assume():
+    data = _valid_array()
+    assert struct.unpack_from('<I', data, 4)[0] == 1             # one dimension
+    assert struct.unpack_from('<I', data, 8)[0] == 2             # 'u\0'
+    assert data[12:14] == b'u\x00'
+    assert struct.unpack_from('<I', data, 28)[0] == 2            # two data values
+    assert struct.unpack_from('<2d', data, 36) == (1.0, 0.5) and len(data) == 52
+
+
+MALFORMED = {
+    'empty': b'',
+    'header only': b'\x00\x01\x00\x00',
+    'short header': b'\x00\x01',
+    'unknown encapsulation': b'\x07\x07\x00\x00' + _valid_array()[4:],
+    'XCDR2 encapsulation': b'\x00\x07\x00\x00' + _valid_array()[4:],
+    'huge dimension count': _patched(0, struct.pack('<I', 0xFFFFFFFF)),
+    'dimension count beyond the buffer': _patched(0, struct.pack('<I', 1000)),
+    'string length beyond the buffer': _patched(4, struct.pack('<I', 0x7FFFFFF0)),
+    'string length zero (no terminator room)': _patched(4, struct.pack('<I', 0)),
+    'string without terminator': _patched(9, b'x'),
+    'non-UTF-8 label': _patched(8, b'\xff'),
+    'huge data count': _patched(24, struct.pack('<I', 0xFFFFFFFF)),
+    'data count beyond the buffer': _patched(24, struct.pack('<I', 3)),
+    'a String sample taken as an array': serialize_message(
+        get_message('std_msgs/msg/String')(data='hello world')),
+}
+
+
+@pytest.mark.parametrize('case', sorted(MALFORMED))
+def test_malformed_array_raises_deserialization_error_naming_the_type(case):
+    with pytest.raises(messages.DeserializationError, match=ARRAY) as info:
+        deserialize_message(MALFORMED[case], ARRAY)
+    assert isinstance(info.value, ValueError)
+    assert '\n' not in str(info.value) and len(str(info.value)) < 300
+
+
+@pytest.mark.parametrize('type_name', ['std_msgs/msg/Float64MultiArray',
+                                       'geometry_msgs/msg/Twist',
+                                       'diagnostic_msgs/msg/DiagnosticArray'])
+def test_every_truncation_raises_deserialization_error(type_name):
+    wire = serialize_message(_build(type_name, SAMPLES[type_name], native=False))
+    for length in range(len(wire)):
+        with pytest.raises(messages.DeserializationError, match=type_name):
+            deserialize_message(wire[:length], type_name)
+
+
+def test_trailing_bytes_after_a_complete_sample_are_ignored_as_rmw_does():
+    wire = _valid_array()
+    for extra in (1, 3, 4, 16, 1000):
+        message = deserialize_message(wire + b'\x00' * extra, ARRAY)
+        assert message.data.tolist() == [1.0, 0.5] and message.layout.dim[0].label == 'u'
+
+
+def test_big_endian_sample_decodes():
+    native = _build(ARRAY, SAMPLES[ARRAY], native=True)
+    wire = bytes(STORE.serialize_cdr(native, ARRAY, little_endian=False))
+    assert wire[:2] == b'\x00\x00'
+    assert deserialize_message(wire, ARRAY) == _build(ARRAY, SAMPLES[ARRAY], native=False)
+
+
+def test_very_long_string_decodes():
+    text = 'é' * 100_000
+    wire = serialize_message(get_message('std_msgs/msg/String')(data=text))
+    assert deserialize_message(wire, 'std_msgs/msg/String').data == text
+
+
+def test_random_and_bit_flipped_bytes_decode_or_raise_deserialization_error():
+    rng = np.random.default_rng(7)
+    bases = {name: serialize_message(_build(name, SAMPLES[name], native=False))
+             for name in (ARRAY, 'geometry_msgs/msg/Twist', 'diagnostic_msgs/msg/DiagnosticArray')}
+    outcomes = {'decoded': 0, 'refused': 0}
+    for name, wire in bases.items():
+        for trial in range(300):
+            if trial % 3 == 0:
+                data = rng.integers(0, 256, int(rng.integers(0, 120)), dtype=np.uint8).tobytes()
+            else:
+                flipped = bytearray(wire)
+                for _ in range(int(rng.integers(1, 4))):
+                    position = int(rng.integers(4 if trial % 3 == 1 else 0, len(flipped)))
+                    flipped[position] ^= 1 << int(rng.integers(0, 8))
+                data = bytes(flipped)
+            try:
+                deserialize_message(data, name)
+                outcomes['decoded'] += 1
+            except messages.DeserializationError:
+                outcomes['refused'] += 1
+    assert outcomes['decoded'] > 50 and outcomes['refused'] > 50, outcomes
+
+
+def test_unknown_type_is_not_a_deserialization_error():
+    with pytest.raises(ValueError, match='no_msgs/msg/Nothing') as info:
+        deserialize_message(_valid_array(), 'no_msgs/msg/Nothing')
+    assert not isinstance(info.value, messages.DeserializationError)

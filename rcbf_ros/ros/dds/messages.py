@@ -17,11 +17,13 @@ little-endian XCDR1), exactly what rosbag2 stores.
 from __future__ import annotations
 
 import functools
+import struct
 from typing import Any, Callable
 
 from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.idl import types as idl_types
 import numpy as np
+from rosbags.serde import SerdeError
 from rosbags.typesys import get_typestore, Stores
 from rosbags.typesys.store import Nodetype
 
@@ -339,11 +341,53 @@ def serialize_message(message: Message) -> bytes:
     return bytes(typestore().serialize_cdr(message, type_name, little_endian=True))
 
 
+class DeserializationError(ValueError):
+    """CDR bytes that are not a sample of the message type they were taken as.
+
+    The one error :func:`deserialize_message` raises for bad bytes, whatever the decoder met
+    (truncation, a sequence or string length beyond the buffer, a string that is not UTF-8, an
+    unsupported encapsulation), so that a subscriber can drop exactly the undecodable samples.
+    """
+
+
+_CDR_ENCAPSULATIONS = {b'\x00\x00': False, b'\x00\x01': True}  # plain CDR: big / little endian
+# What rosbags' generated decoders raise on bytes that do not fit the type: its own checks of
+# string and sequence lengths (SerdeError), struct and numpy reads past the end, strict UTF-8.
+_DECODE_ERRORS = (SerdeError, struct.error, ValueError, IndexError, OverflowError)
+
+
 def deserialize_message(data: bytes | memoryview, message_type: type[Message] | str) -> Message:
-    """Inverse of :func:`serialize_message` (``message_type`` is a class or a type name)."""
+    """Inverse of :func:`serialize_message` (``message_type`` is a class or a type name).
+
+    Bytes after a complete message are ignored, as rmw's CDR deserializers do (a writer may
+    pad; DDS has already checked the sample's structure on receipt).
+
+    Raises:
+        DeserializationError: ``data`` is not a plain-CDR sample of the type; the message names
+            the type and what did not fit.
+    """
     type_name = message_type if isinstance(message_type, str) else message_type._type_name
     type_name = normalize_type_name(type_name)
-    return _converter(type_name)(typestore().deserialize_cdr(data, type_name))
+    convert = _converter(type_name)  # an unknown type is the caller's error: ValueError
+    view = memoryview(data).cast('B')
+    little_endian = _CDR_ENCAPSULATIONS.get(bytes(view[:2]))
+    if len(view) < 4 or little_endian is None:
+        raise DeserializationError(f'{type_name}: not a plain CDR sample (encapsulation header '
+                                   f'{bytes(view[:4]).hex() or "missing"}, expected 00000000 '
+                                   'or 00010000 and a body)')
+    msgdef = typestore().get_msgdef(type_name)
+    decode = msgdef.deserialize_cdr_le if little_endian else msgdef.deserialize_cdr_be
+    try:
+        decoded, _end = decode(view[4:], 0, msgdef.cls, typestore())
+    except _DECODE_ERRORS as exc:
+        raise DeserializationError(f'{type_name}: {_one_line(exc)}') from exc
+    return convert(decoded)
+
+
+def _one_line(exc: BaseException) -> str:
+    """The exception's text on one line, at most 200 characters (it goes into logs)."""
+    text = ' '.join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 200 else text[:197] + '...'
 
 
 def message_type_name(message_type: type[Message] | str) -> str:

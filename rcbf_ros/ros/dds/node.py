@@ -44,6 +44,8 @@ from rcbf_ros.ros.dds.qos import as_profile, QoSProfile, to_cyclone_qos
 
 _ANY_SAMPLE = SampleState.Any | ViewState.Any | InstanceState.Any
 _TAKE_BATCH = 256
+UNDECODABLE_WARNING_PERIOD_S = 1.0
+"""Shortest interval between two warnings about undecodable samples on one subscription."""
 
 
 # ----------------------------------------------------------------------------- time, logging
@@ -288,10 +290,22 @@ class Publisher:
 
 
 class Subscription:
-    """rclpy.subscription.Subscription subset; ``raw=True`` delivers CDR ``bytes``."""
+    """rclpy.subscription.Subscription subset; ``raw=True`` delivers CDR ``bytes``.
+
+    A sample that does not decode as the topic's type (DDS has checked its structure, but not,
+    e.g., that its strings are UTF-8) never reaches the callback nor escapes into the executor:
+    it is dropped, counted in :attr:`undecodable_count`, and reported by a one-line warning
+    naming the topic, at most once per :data:`UNDECODABLE_WARNING_PERIOD_S`. A node that must
+    answer such samples subscribes with ``raw=True`` and decodes them itself.
+    """
 
     def __init__(self, node: Node, msg_type: Any, topic_name: str,
                  callback: Callable[[Any], None], qos: QoSProfile, raw: bool) -> None:
+        self.undecodable_count = 0
+        """Samples dropped because they did not decode (since creation)."""
+        self._logger = node.get_logger()
+        self._last_warning_ns: int | None = None
+        self._unreported = 0
         self.msg_type = msg_type
         self.topic_name = topic_name
         self.callback = callback
@@ -320,9 +334,28 @@ class Subscription:
         def deliver() -> None:
             if self.raw:
                 self.callback(bytes(data))
-            else:
-                self.callback(messages.deserialize_message(data, self._type_name))
+                return
+            try:
+                message = messages.deserialize_message(data, self._type_name)
+            except messages.DeserializationError as exc:
+                self._drop_undecodable(exc)
+                return
+            self.callback(message)
         return deliver
+
+    def _drop_undecodable(self, exc: messages.DeserializationError) -> None:
+        """Count an undecodable sample and say so, throttled (the callback never sees it)."""
+        self.undecodable_count += 1
+        self._unreported += 1
+        now = time.monotonic_ns()
+        period_ns = int(UNDECODABLE_WARNING_PERIOD_S * 1e9)
+        if self._last_warning_ns is not None and now - self._last_warning_ns < period_ns:
+            return
+        self._last_warning_ns = now
+        self._logger.warning(
+            f'{self.topic_name}: dropped {self._unreported} undecodable sample(s) '
+            f'({self.undecodable_count} since start); last: {exc}')
+        self._unreported = 0
 
     def get_publisher_count(self) -> int:
         return self._reader.get_subscription_matched_status().current_count
