@@ -5,6 +5,8 @@
     rcbf_ros train --system unicycle --mode unconstrained --no-obstacles
     rcbf_ros train ... --resume            # continue a killed run from its checkpoint
     rcbf_ros experiment transfer --budget smoke --seeds 2 --out runs/experiments [--ray]
+    rcbf_ros bag recover bags/<run>/bag    # a bag whose recorder was killed -> complete MCAP
+    rcbf_ros bag check bags/<run>/bag      # every chunk and CRC checked
 """
 from __future__ import annotations
 
@@ -105,11 +107,16 @@ def main(argv: list[str] | None = None) -> int:
     from rcbf_ros.experiments.command import add_experiment_arguments, run_experiment_command
     add_experiment_arguments(sub.add_parser(
         'experiment', help="reproduce one of the paper's experiments (train, evaluate, report)"))
+    from rcbf_ros.bag.recover import add_bag_arguments, run_bag_command
+    add_bag_arguments(sub.add_parser(
+        'bag', help='check a bag, or recover one whose recorder was killed'))
     args = parser.parse_args(argv)
     if args.command == 'train':
         return run_train(args)
     if args.command == 'experiment':
         return run_experiment_command(args, argv)
+    if args.command == 'bag':
+        return run_bag_command(args)
     return 2
 
 

@@ -42,12 +42,10 @@ from pathlib import Path
 import sys
 from typing import Any, Mapping, Sequence
 
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
 import numpy as np
 import torch
 
-from rcbf_ros.bag import bag_info, BagWriter, mcap_files, read_bag
+from rcbf_ros.bag import bag_info, BagError, BagWriter, mcap_files, read_bag
 from rcbf_ros.bag.messages import deserialize_message, jazzy_typestore
 from rcbf_ros.core.config import filter_config_from_params, FilterConfig, flatten
 from rcbf_ros.core.filter import ACTIVE_TOLERANCE, SafetyFilter
@@ -223,26 +221,18 @@ class _SourceTopic:
 
 
 def _source_topics(path: str | os.PathLike[str]) -> dict[str, _SourceTopic]:
-    """Topics of the source bag with their schema text and hash (copied as recorded)."""
-    info = bag_info(path)
-    schemas: dict[str, tuple[str, str]] = {}
-    for file in mcap_files(path):
-        try:
-            with open(file, 'rb') as stream:
-                summary = make_reader(stream).get_summary()
-        except (McapError, EOFError, ValueError, OSError):
-            summary = None
-        if summary is None:
-            continue  # cut-short file: definitions come from the type store
-        for channel in summary.channels.values():
-            schema = summary.schemas.get(channel.schema_id)
-            if schema is not None and schema.encoding == 'ros2msg':
-                schemas.setdefault(channel.topic, (
-                    schema.data.decode(), channel.metadata.get('topic_type_hash', '')))
+    """Topics of the source bag with their schema text and hash (copied as recorded).
+
+    Every file of the bag is checked in full first (:func:`rcbf_ros.bag.bag_info`): a damaged,
+    empty, foreign or cut-short file raises :class:`rcbf_ros.bag.BagError`.
+    """
+    info = bag_info(path, allow_cut_short=False)
     store = jazzy_typestore()
     topics = {}
     for name, topic in info.topics.items():
-        definition, type_hash = schemas.get(name, (None, None))
+        definition, type_hash = None, None
+        if topic.schema_encoding == 'ros2msg':
+            definition, type_hash = topic.message_definition, topic.type_hash
         if definition is None and topic.type_name not in store.fielddefs:
             raise RefilterError(f'{name}: type {topic.type_name!r} has no stored schema and is '
                                 'not in the ROS 2 Jazzy type store')
@@ -379,7 +369,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
         raise RefilterError(f'tolerance: must be >= 0, got {tolerance}')
     try:
         files = mcap_files(source)
-    except FileNotFoundError as exc:
+    except BagError as exc:
         raise RefilterError(f'source bag: {exc}') from exc
     if os.path.abspath(output) == os.path.abspath(source) or any(
             Path(output).resolve() == f.resolve().parent for f in files):
@@ -468,7 +458,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     writer.write_message(OUTPUT_DIAGNOSTICS_TOPIC, _diagnostics_message(
                         decision, safety_filter.barrier_names, settings, item.log_time_ns),
                         item.log_time_ns)
-    except RefilterError:
+    except (RefilterError, BagError):
         _discard(writer)
         raise
     summary.skipped = dict(skipped)
@@ -554,7 +544,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         summary = refilter_bag(args.source, args.output, args.params_file, node=args.node,
                                tolerance=args.tolerance)
-    except RefilterError as exc:
+    except (RefilterError, BagError, OSError) as exc:
+        # A bag that cannot be read (BagError: the file and what is wrong, e.g. a chunk's CRC
+        # mismatch), bad parameters, an output that cannot be written: one line, exit 2.
         print(f'rcbf_ros_refilter: error: {exc}', file=sys.stderr)
         return 2
     print(summary.format())

@@ -3,8 +3,9 @@
     python -m rcbf_ros.run_summary bags/<run>
 
 Reads ``<run>/learner/summary.json`` and ``metrics.jsonl`` (written by the learner node or
-``rcbf_ros train``) and the MCAP bag under ``<run>/bag`` (with our own reader, which also
-reads a bag whose recorder was killed).
+``rcbf_ros train``) and the MCAP bag under ``<run>/bag``. A bag whose recorder was killed is
+recovered first (``rcbf_ros bag recover``: complete files from its whole chunks, the originals
+kept as ``*.mcap.orig``), so that every bag reader accepts it.
 """
 from __future__ import annotations
 
@@ -36,11 +37,17 @@ def summarize_run(run: Path) -> str:
     lines.append(f'checkpoint: {learner / "checkpoint.pt"}   policy: {learner / "policy.pt"}')
     bag_dir = run / 'bag'
     if bag_dir.exists():
-        from rcbf_ros.bag.reader import bag_info
-        info = bag_info(bag_dir)
+        from rcbf_ros.bag import bag_info, BagError, reindex_bag
+        try:
+            info = bag_info(bag_dir)
+            state = 'closed cleanly'
+            if not info.complete:
+                reindex_bag(bag_dir)
+                info, state = bag_info(bag_dir), 'recorder killed: recovered from whole chunks'
+        except BagError as exc:
+            return '\n'.join(lines + [f'bag: {exc}'])
         seconds = (info.end_time_ns - info.start_time_ns) / 1e9
-        lines.append(f'bag: {bag_dir} ({info.message_count} messages, {seconds:.1f} s, '
-                     f"{'closed cleanly' if info.complete else 'recovered up to last flush'})")
+        lines.append(f'bag: {bag_dir} ({info.message_count} messages, {seconds:.1f} s, {state})')
         for name, topic in sorted(info.topics.items()):
             lines.append(f'  {name:28s} {topic.message_count:7d}')
     return '\n'.join(lines)

@@ -1,4 +1,5 @@
-"""Bags: MCAP in the rosbag2 layout (writer, reader, QoS records). Pure library, no DDS."""
+"""Bags: MCAP in the rosbag2 layout (writer, checked reader, recovery, QoS records). Pure
+library, no DDS."""
 from __future__ import annotations
 
 from rcbf_ros.bag.qos import (
@@ -14,14 +15,16 @@ from rcbf_ros.bag.reader import (
     mcap_files,
     read_bag,
     read_bag_messages,
-    reindex_bag,
     TopicInfo,
 )
+from rcbf_ros.bag.recover import check_bag, FileRecovery, recover_bag, recover_file, reindex_bag
+from rcbf_ros.bag.scan import BagError, BagNotFoundError, McapScan
 from rcbf_ros.bag.writer import BagWriter, BagWriterConfig, TopicRecord, write_metadata_yaml
 
 __all__ = [
-    'BagInfo', 'BagMessage', 'BagWriter', 'BagWriterConfig', 'INFINITE_DURATION_NS',
-    'RecordedQos', 'TopicInfo', 'TopicRecord', 'bag_info', 'dump_offered_qos_profiles',
-    'mcap_files', 'parse_offered_qos_profiles', 'read_bag', 'read_bag_messages',
-    'reindex_bag', 'write_metadata_yaml',
+    'BagError', 'BagInfo', 'BagMessage', 'BagNotFoundError', 'BagWriter', 'BagWriterConfig',
+    'FileRecovery', 'INFINITE_DURATION_NS', 'McapScan', 'RecordedQos', 'TopicInfo',
+    'TopicRecord', 'bag_info', 'check_bag', 'dump_offered_qos_profiles', 'mcap_files',
+    'parse_offered_qos_profiles', 'read_bag', 'read_bag_messages', 'recover_bag',
+    'recover_file', 'reindex_bag', 'write_metadata_yaml',
 ]

@@ -19,8 +19,12 @@ def iter_bag_messages(path: str | os.PathLike[str], *,
     """The bag's messages in log-time order, CDR undecoded (the offline-processing entry point).
 
     Args:
-        path: bag directory or ``.mcap`` file (a cut-short bag is read up to its last chunk).
+        path: bag directory or ``.mcap`` file.
         topics: only these topic names (default: all).
+
+    Raises:
+        rcbf_ros.bag.BagError: a missing, empty, damaged, foreign or cut-short file (checked in
+            full before the first message; see :func:`rcbf_ros.bag.reader.read_bag`).
     """
     yield from read_bag(path, topics=topics)
 

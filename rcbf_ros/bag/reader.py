@@ -1,10 +1,13 @@
 """Read bags written by :class:`rcbf_ros.bag.writer.BagWriter` (or by rosbag2 with MCAP storage).
 
 :func:`read_bag` iterates ``(topic, type_name, cdr bytes, log_time_ns, publish_time_ns)`` in
-log-time order. A file that was cut short (its writer killed) has no summary or footer; it is
-then read front to back with mcap's streaming reader up to the last complete record, so the
-chunks flushed before the kill are all returned (see the writer's crash-safety note).
-:func:`reindex_bag` rebuilds ``metadata.yaml`` for such a bag, like ``ros2 bag reindex``.
+log-time order. Every file is checked in full before the first message is returned
+(:class:`rcbf_ros.bag.scan.McapScan`: framing, chunk CRCs, data and summary CRCs, footer), so
+a damaged, empty or foreign file raises :class:`BagError` (one line: the file and what is wrong)
+instead of yielding wrong or partial data. A file cut short (its writer killed: no summary or
+footer) is refused as well, with the command that recovers it (:mod:`rcbf_ros.bag.recover`);
+``allow_cut_short=True`` reads its whole chunks instead, and :func:`bag_info` does so by default
+(it reports :attr:`BagInfo.complete`).
 """
 from __future__ import annotations
 
@@ -12,16 +15,17 @@ from dataclasses import dataclass
 import heapq
 import os
 from pathlib import Path
+import struct
 from typing import Any, Iterable, Iterator, NamedTuple
 
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
 import yaml
 
 from rcbf_ros.bag.messages import deserialize_message
 from rcbf_ros.bag.qos import parse_offered_qos_profiles, RecordedQos
+from rcbf_ros.bag.scan import BagError, BagNotFoundError, McapScan
 
 
 class BagMessage(NamedTuple):
@@ -53,6 +57,10 @@ class TopicInfo:
     """QoS profiles the recorded publishers offered."""
     type_hash: str
     """``RIHS01_...`` (empty if the bag does not carry one)."""
+    message_definition: str = ''
+    """The schema text as recorded (``ros2msg``: the full definition; empty if none)."""
+    schema_encoding: str = ''
+    """The schema's encoding, e.g. ``ros2msg`` (empty if the channel has no schema)."""
 
 
 @dataclass(frozen=True)
@@ -70,7 +78,8 @@ class BagInfo:
     end_time_ns: int
     """Latest log time (0 if empty)."""
     complete: bool
-    """True if every file has its summary and footer (closed cleanly)."""
+    """True if every file has its summary and footer (closed cleanly); False if some file was
+    cut short (then only its whole chunks are counted)."""
 
 
 def mcap_files(path: str | os.PathLike[str]) -> list[Path]:
@@ -78,201 +87,212 @@ def mcap_files(path: str | os.PathLike[str]) -> list[Path]:
     ``metadata.yaml`` lists, or (no metadata, e.g. after a crash) its ``*.mcap`` files sorted.
 
     Raises:
-        FileNotFoundError: nothing readable at ``path``.
+        BagNotFoundError: nothing at ``path``, no ``.mcap`` file in the directory, or a file
+            that ``metadata.yaml`` lists is missing (also a FileNotFoundError).
+        BagError: ``metadata.yaml`` cannot be read.
     """
     p = Path(path)
     if p.is_file():
         return [p]
     if not p.is_dir():
-        raise FileNotFoundError(f'bag path {str(p)!r} does not exist')
+        raise BagNotFoundError(f'{p}: does not exist (no bag directory or .mcap file there)')
     meta = p / 'metadata.yaml'
     if meta.is_file():
-        info = yaml.safe_load(meta.read_text())['rosbag2_bagfile_information']
-        return [p / rel for rel in info['relative_file_paths']]
-    files = sorted(p.glob('*.mcap'), key=_split_index)
+        try:
+            info = yaml.safe_load(meta.read_text())['rosbag2_bagfile_information']
+            relative = [str(rel) for rel in info['relative_file_paths']]
+        except (yaml.YAMLError, KeyError, TypeError, UnicodeDecodeError) as exc:
+            raise BagError(f'{meta}: not rosbag2 bag information ({type(exc).__name__}: '
+                           f'{exc})') from exc
+        files = [p / rel for rel in relative]
+        for file in files:
+            if not file.is_file():
+                raise BagNotFoundError(f'{meta}: lists {file.name}, which does not exist')
+        if not files:
+            raise BagNotFoundError(f'{meta}: lists no file')
+        return files
+    files = sorted(p.glob('*.mcap'), key=bag_file_order)
     if not files:
-        raise FileNotFoundError(f'bag directory {str(p)!r} holds no .mcap file')
+        raise BagNotFoundError(f'{p}: bag directory holds no .mcap file')
     return files
 
 
-def _split_index(path: Path) -> tuple[int, str]:
+def bag_file_order(path: Path) -> tuple[int, str]:
+    """Sort key of a bag's files: rosbag2's split index (``<name>_<i>.mcap``), then the name."""
     stem = path.stem
     tail = stem.rsplit('_', 1)[-1]
     return (int(tail) if tail.isdigit() else 0, stem)
 
 
+def cut_short_error(scan: McapScan, bag: str | os.PathLike[str]) -> BagError:
+    """The error for a file without its footer: where it ends and how to recover it."""
+    return scan.error(f'cut short at byte {scan.readable_end} of {scan.size} ({scan.cut_short}); '
+                      f'`rcbf_ros bag recover {bag}` rewrites it from its whole chunks')
+
+
+def check_file(path: Path, *, allow_cut_short: bool, bag: str | os.PathLike[str]) -> McapScan:
+    """Verify one MCAP file in full (see :class:`rcbf_ros.bag.scan.McapScan`).
+
+    Raises:
+        BagError: the file is damaged, or (unless ``allow_cut_short``) cut short.
+    """
+    scan = McapScan(path).verify()
+    if not scan.complete and not allow_cut_short:
+        raise cut_short_error(scan, bag)
+    return scan
+
+
 @dataclass
-class _FileScan:
+class _FileContents:
     schemas: dict[int, Schema]
     channels: dict[int, Channel]
     messages: list[Message]
-    complete: bool
 
 
-def _scan_streaming(stream: Any) -> _FileScan:
-    """Read records front to back, stopping quietly at a truncated or corrupt tail."""
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    messages: list[Message] = []
-    complete = False
+def _read_whole_chunks(path: Path) -> _FileContents:
+    """Schemas, channels and messages of a cut-short file, from its whole (checked) chunks."""
+    contents = _FileContents({}, {}, [])
+    for _, record in McapScan(path).records():
+        if isinstance(record, Message):
+            contents.messages.append(record)
+        elif isinstance(record, Schema):
+            contents.schemas[record.id] = record
+        elif isinstance(record, Channel):
+            contents.channels[record.id] = record
+    contents.messages.sort(key=lambda m: m.log_time)
+    return contents
+
+
+def _decode_errors() -> tuple[type[BaseException], ...]:
+    errors: list[type[BaseException]] = [McapError, ValueError, EOFError, struct.error, OSError]
     try:
-        for record in StreamReader(stream, skip_magic=False).records:
-            if isinstance(record, Schema):
-                schemas[record.id] = record
-            elif isinstance(record, Channel):
-                channels[record.id] = record
-            elif isinstance(record, Message):
-                messages.append(record)
-        complete = True
-    except (McapError, EOFError, ValueError, OSError, RuntimeError):
-        # A cut-short file ends inside a record; everything before it is good.
+        import zstandard
+        errors.append(zstandard.ZstdError)
+    except ImportError:
         pass
-    return _FileScan(schemas, channels, messages, complete)
+    return tuple(errors)
 
 
-def _read_summary(stream: Any) -> Any:
-    """The file's summary section, or None for a cut-short file; rewinds ``stream``."""
+def _iter_file(scan: McapScan, topics: frozenset[str] | None) -> Iterator[BagMessage]:
+    path = scan.path
+    if not scan.complete:
+        contents = _read_whole_chunks(path)
+        for message in contents.messages:
+            channel = contents.channels[message.channel_id]  # the scan checked it exists
+            if topics is not None and channel.topic not in topics:
+                continue
+            schema = contents.schemas.get(channel.schema_id)
+            yield BagMessage(channel.topic, schema.name if schema else '', message.data,
+                             message.log_time, message.publish_time)
+        return
     try:
-        summary = make_reader(stream).get_summary()
-    except (McapError, EOFError, ValueError, OSError):
-        summary = None
-    stream.seek(0)
-    return summary
-
-
-def _iter_file(path: Path, topics: frozenset[str] | None) -> Iterator[BagMessage]:
-    with open(path, 'rb') as stream:
-        summary = _read_summary(stream)
-        if summary is not None:
-            reader = make_reader(stream)
+        with open(path, 'rb') as stream:
+            reader = make_reader(stream, validate_crcs=True)
             for schema, channel, message in reader.iter_messages(
                     topics=None if topics is None else list(topics), log_time_order=True):
                 yield BagMessage(channel.topic, schema.name if schema else '', message.data,
                                  message.log_time, message.publish_time)
-            return
-        scan = _scan_streaming(stream)
-    scan.messages.sort(key=lambda m: m.log_time)
-    for message in scan.messages:
-        channel = scan.channels.get(message.channel_id)
-        if channel is None or (topics is not None and channel.topic not in topics):
-            continue
-        schema = scan.schemas.get(channel.schema_id)
-        yield BagMessage(channel.topic, schema.name if schema else '', message.data,
-                         message.log_time, message.publish_time)
+    except _decode_errors() as exc:  # the file changed after it was checked
+        raise scan.error(f'{type(exc).__name__}: {exc}') from exc
 
 
-def read_bag(path: str | os.PathLike[str], *,
-             topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
+def read_bag(path: str | os.PathLike[str], *, topics: Iterable[str] | None = None,
+             allow_cut_short: bool = False) -> Iterator[BagMessage]:
     """Iterate a bag's messages in log-time order (across files too).
+
+    Every file is checked in full before the first message is returned.
 
     Args:
         path: a bag directory or one ``.mcap`` file.
         topics: only these topic names (default: all).
+        allow_cut_short: read the whole chunks of a file cut short (no footer) instead of
+            refusing it.
+
+    Raises:
+        BagError: missing, empty, damaged or foreign files; a file cut short (unless allowed).
     """
     wanted = None if topics is None else frozenset(topics)
-    streams = [_iter_file(f, wanted) for f in mcap_files(path)]
+    scans = [check_file(f, allow_cut_short=allow_cut_short, bag=path) for f in mcap_files(path)]
+    streams = [_iter_file(scan, wanted) for scan in scans]
     if len(streams) == 1:
         yield from streams[0]
     else:
         yield from heapq.merge(*streams, key=lambda m: m.log_time_ns)
 
 
-def read_bag_messages(path: str | os.PathLike[str], *,
-                      topics: Iterable[str] | None = None) -> Iterator[tuple[BagMessage, Any]]:
+def read_bag_messages(path: str | os.PathLike[str], *, topics: Iterable[str] | None = None,
+                      allow_cut_short: bool = False) -> Iterator[tuple[BagMessage, Any]]:
     """Like :func:`read_bag`, with each message also decoded to a rosbags message object."""
-    for item in read_bag(path, topics=topics):
+    for item in read_bag(path, topics=topics, allow_cut_short=allow_cut_short):
         yield item, deserialize_message(item.data, item.type_name)
 
 
-def bag_info(path: str | os.PathLike[str]) -> BagInfo:
-    """Topics, counts and time range of a bag, from its data (works on a cut-short bag)."""
+@dataclass
+class _FileCounts:
+    schemas: dict[int, Schema]
+    channels: dict[int, Channel]
+    per_channel: dict[int, int]
+    start_ns: int | None
+    end_ns: int | None
+
+
+def _count_file(scan: McapScan) -> _FileCounts:
+    """Schemas, channels, messages per channel and time range of one checked file."""
+    if scan.complete:
+        with open(scan.path, 'rb') as stream:
+            summary = make_reader(stream).get_summary()
+        if summary is not None and summary.statistics is not None:
+            stats = summary.statistics
+            return _FileCounts(
+                summary.schemas, summary.channels, dict(stats.channel_message_counts),
+                stats.message_start_time if stats.message_count else None,
+                stats.message_end_time if stats.message_count else None)
+    contents = _read_whole_chunks(scan.path)
+    per_channel: dict[int, int] = {}
+    for m in contents.messages:
+        per_channel[m.channel_id] = per_channel.get(m.channel_id, 0) + 1
+    times = [m.log_time for m in contents.messages]
+    return _FileCounts(contents.schemas, contents.channels, per_channel,
+                       min(times, default=None), max(times, default=None))
+
+
+def bag_info(path: str | os.PathLike[str], *, allow_cut_short: bool = True) -> BagInfo:
+    """Topics, counts and time range of a bag, from its data.
+
+    Every file is checked in full (as for :func:`read_bag`). A file cut short counts with its
+    whole chunks and makes :attr:`BagInfo.complete` False (``allow_cut_short=False``: raise).
+
+    Raises:
+        BagError: missing, empty, damaged or foreign files; a file cut short (if not allowed).
+    """
     files = mcap_files(path)
     counts: dict[str, int] = {}
-    topic_meta: dict[str, tuple[str, tuple[RecordedQos, ...], str]] = {}
+    topic_meta: dict[str, tuple[str, tuple[RecordedQos, ...], str, str, str]] = {}
     start: int | None = None
     end: int | None = None
     total = 0
     complete = True
     for file in files:
-        with open(file, 'rb') as stream:
-            summary = _read_summary(stream)
-            if summary is None or summary.statistics is None:
-                complete = False
-                scan = _scan_streaming(stream)
-                channels, schemas = scan.channels, scan.schemas
-                per_channel: dict[int, int] = {}
-                for m in scan.messages:
-                    per_channel[m.channel_id] = per_channel.get(m.channel_id, 0) + 1
-                    start = m.log_time if start is None else min(start, m.log_time)
-                    end = m.log_time if end is None else max(end, m.log_time)
-            else:
-                channels, schemas = summary.channels, summary.schemas
-                per_channel = dict(summary.statistics.channel_message_counts)
-                if summary.statistics.message_count:
-                    s, e = (summary.statistics.message_start_time,
-                            summary.statistics.message_end_time)
-                    start = s if start is None else min(start, s)
-                    end = e if end is None else max(end, e)
-        for channel_id, channel in channels.items():
-            schema = schemas.get(channel.schema_id)
+        scan = check_file(file, allow_cut_short=allow_cut_short, bag=path)
+        complete = complete and scan.complete
+        one = _count_file(scan)
+        if one.start_ns is not None:
+            start = one.start_ns if start is None else min(start, one.start_ns)
+        if one.end_ns is not None:
+            end = one.end_ns if end is None else max(end, one.end_ns)
+        for channel_id, channel in one.channels.items():
+            schema = one.schemas.get(channel.schema_id)
             topic_meta.setdefault(channel.topic, (
                 schema.name if schema else '',
                 tuple(parse_offered_qos_profiles(
                     channel.metadata.get('offered_qos_profiles', ''))),
-                channel.metadata.get('topic_type_hash', '')))
-            n = per_channel.get(channel_id, 0)
+                channel.metadata.get('topic_type_hash', ''),
+                schema.data.decode(errors='replace') if schema else '',
+                schema.encoding if schema else ''))
+            n = one.per_channel.get(channel_id, 0)
             counts[channel.topic] = counts.get(channel.topic, 0) + n
             total += n
-    topics = {name: TopicInfo(name, meta[0], counts.get(name, 0), meta[1], meta[2])
+    topics = {name: TopicInfo(name, meta[0], counts.get(name, 0), meta[1], meta[2], meta[3],
+                              meta[4])
               for name, meta in topic_meta.items()}
     return BagInfo(tuple(files), topics, total, start or 0, end or 0, complete)
-
-
-def reindex_bag(directory: str | os.PathLike[str]) -> Path:
-    """Write ``metadata.yaml`` for a bag directory from its data (e.g. after a crash).
-
-    Returns:
-        The path of the metadata file written.
-    """
-    from rcbf_ros.bag.qos import dump_offered_qos_profiles
-    from rcbf_ros.bag.writer import BAG_FORMAT_VERSION, ROS_DISTRO, write_metadata_yaml
-
-    directory = Path(directory)
-    if not directory.is_dir():
-        raise NotADirectoryError(f'bag directory {str(directory)!r} does not exist')
-    files = sorted(directory.glob('*.mcap'), key=_split_index)
-    if not files:
-        raise FileNotFoundError(f'bag directory {str(directory)!r} holds no .mcap file')
-    meta = directory / 'metadata.yaml'
-    if meta.exists():
-        meta.unlink()
-    file_entries = []
-    for file in files:
-        one = bag_info(file)
-        file_entries.append({
-            'path': file.name,
-            'starting_time': {'nanoseconds_since_epoch': one.start_time_ns},
-            'duration': {'nanoseconds': one.end_time_ns - one.start_time_ns},
-            'message_count': one.message_count})
-    info = bag_info(directory)
-    data = {
-        'version': BAG_FORMAT_VERSION,
-        'storage_identifier': 'mcap',
-        'duration': {'nanoseconds': info.end_time_ns - info.start_time_ns},
-        'starting_time': {'nanoseconds_since_epoch': info.start_time_ns},
-        'message_count': info.message_count,
-        'topics_with_message_count': [
-            {'topic_metadata': {
-                'name': t.name, 'type': t.type_name, 'serialization_format': 'cdr',
-                'offered_qos_profiles': dump_offered_qos_profiles(t.offered_qos),
-                'type_description_hash': t.type_hash},
-             'message_count': t.message_count}
-            for t in info.topics.values()],
-        'compression_format': '',
-        'compression_mode': '',
-        'relative_file_paths': [f.name for f in files],
-        'files': file_entries,
-        'custom_data': {},
-        'ros_distro': ROS_DISTRO,
-    }
-    return write_metadata_yaml(directory, data)

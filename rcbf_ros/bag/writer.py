@@ -17,16 +17,20 @@ The MCAP file follows what rosbag2_storage_mcap writes:
   YAML) written on close, then the summary: schemas, channels, statistics, chunk / metadata
   indexes and summary offsets.
 
-Crash safety. Messages are grouped into compressed chunks. A chunk, with its message indexes,
-reaches the operating system when it fills (``chunk_size`` bytes), when ``flush()`` is called,
-and at the latest on the first ``write()`` after ``flush_period_s`` has passed since the last
-flush. What has reached the OS survives the writer process being killed (SIGKILL included; not
-a power cut unless ``fsync=True``). So after a kill at most the messages written since the last
-flush are lost: with a periodic ``flush()`` (the recorder calls it every ``flush_period_s``), at
-most the last ``flush_period_s`` of data. The file then lacks its summary and footer;
-:func:`rcbf_ros.bag.reader.read_bag`, mcap's streaming reader and ``pymcap-cli recover`` read the
-complete chunks before the cut, and :func:`rcbf_ros.bag.reader.reindex_bag` writes the missing
-``metadata.yaml``.
+Integrity. Every chunk carries the CRC of its records and the data end record the CRC of the
+data section; the readers (:mod:`rcbf_ros.bag.scan`) check them.
+
+Crash safety. Messages are grouped into compressed chunks. The file is written unbuffered, so a
+chunk, with its message indexes, reaches the operating system as soon as it is finished: when it
+fills (``chunk_size`` bytes), when ``flush()`` is called, and at the latest on the first
+``write()`` after ``flush_period_s`` has passed since the last flush. What has reached the OS
+survives the writer process being killed (SIGKILL included; not a power cut unless
+``fsync=True``). So after a kill at most the messages written since the last flush are lost:
+with a periodic ``flush()`` (the recorder calls it every ``flush_period_s``), at most the last
+``flush_period_s`` of data. The file then lacks its summary and footer, and the readers refuse
+it until :func:`rcbf_ros.bag.recover.recover_bag` (``rcbf_ros bag recover <dir>``) has rewritten
+it as a complete file from its whole chunks. While the writer is open it holds an exclusive
+``flock`` on the file, so recovery never touches a bag that is still being written.
 """
 from __future__ import annotations
 
@@ -35,7 +39,7 @@ from importlib.metadata import PackageNotFoundError, version
 import os
 from pathlib import Path
 import time
-from typing import Any, Sequence
+from typing import Any, Iterable, Protocol, Sequence
 
 from mcap.writer import CompressionType, IndexType, Writer
 import yaml
@@ -65,6 +69,55 @@ def _library_identifier() -> str:
     except PackageNotFoundError:
         theirs = 'unknown'
     return f'rcbf_ros-{ours}; mcap-python-{theirs}'
+
+
+class _UnbufferedFile:
+    """The stream the mcap writer writes to: every ``write`` goes straight to the OS.
+
+    The mcap writer buffers a chunk itself and writes it (then its message indexes) in one
+    call each, so writing unbuffered costs a few system calls per chunk and puts every finished
+    chunk on disk at once. (A raw ``FileIO`` would be wrapped in a ``BufferedWriter`` by the
+    mcap writer, hence this small class.)
+    """
+
+    def __init__(self, path: Path) -> None:
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)  # never clobber
+        self._position = 0
+
+    def fileno(self) -> int:
+        return self._fd
+
+    def write(self, data: bytes | bytearray | memoryview) -> int:
+        view = memoryview(data)
+        while view:
+            written = os.write(self._fd, view)
+            view = view[written:]
+        self._position += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self._position
+
+    def flush(self) -> None:
+        """Nothing is buffered here."""
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __del__(self) -> None:
+        self.close()  # an abandoned writer: release the descriptor and its lock
+
+
+def _lock_exclusive(fd: int) -> None:
+    """Hold an exclusive ``flock`` on the open file (released when it closes or the process
+    dies); recovery asks for a shared one and so never rewrites a file being written."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock
+        return
+    fcntl.flock(fd, fcntl.LOCK_EX)
 
 
 def best_compression() -> CompressionType:
@@ -171,13 +224,9 @@ class BagWriter:
         self._schema_ids: dict[str, int] = {}
         self._typestore = jazzy_typestore()
         self._times = _Times()
-        self._file = open(self.mcap_path, 'wb')  # noqa: SIM115 (closed in close())
-        # No attachment index: we write no attachments, and an empty attachment-index group
-        # would leave a summary offset pointing at nothing (``pymcap-cli doctor`` flags it).
-        self._writer = Writer(self._file, chunk_size=config.chunk_size,
-                              compression=config.compression_type(),
-                              index_types=IndexType.CHUNK | IndexType.MESSAGE
-                              | IndexType.METADATA)
+        self._file = _UnbufferedFile(self.mcap_path)
+        _lock_exclusive(self._file.fileno())
+        self._writer = new_mcap_writer(self._file, config)
         self._writer.start(profile='ros2', library=_library_identifier())
         self._writer.flush()
         self._last_flush = time.monotonic()
@@ -288,7 +337,6 @@ class BagWriter:
         """Close the open chunk and hand everything written so far to the OS (see module doc)."""
         self._check_open()
         self._writer.flush()
-        self._file.flush()
         if self.config.fsync:
             os.fsync(self._file.fileno())
         self._last_flush = time.monotonic()
@@ -302,34 +350,10 @@ class BagWriter:
 
     def bag_metadata(self) -> dict[str, Any]:
         """rosbag2 bag information (``rosbag2_bagfile_information`` contents) as of now."""
-        start = self._times.start_ns or 0
-        duration = (self._times.end_ns - start) if self._times.end_ns is not None else 0
-        relative = self.mcap_path.name
-        return {
-            'version': BAG_FORMAT_VERSION,
-            'storage_identifier': 'mcap',
-            'duration': {'nanoseconds': duration},
-            'starting_time': {'nanoseconds_since_epoch': start},
-            'message_count': self._times.count,
-            'topics_with_message_count': [
-                {'topic_metadata': {
-                    'name': t.name,
-                    'type': t.type_name,
-                    'serialization_format': t.serialization_format,
-                    'offered_qos_profiles': dump_offered_qos_profiles(t.offered_qos),
-                    'type_description_hash': t.type_hash,
-                }, 'message_count': t.message_count}
-                for t in self.topics.values()],
-            'compression_format': '',
-            'compression_mode': '',
-            'relative_file_paths': [relative],
-            'files': [{'path': relative,
-                       'starting_time': {'nanoseconds_since_epoch': start},
-                       'duration': {'nanoseconds': duration},
-                       'message_count': self._times.count}],
-            'custom_data': {},
-            'ros_distro': ROS_DISTRO,
-        }
+        return bag_information(
+            files=[FileSpan(self.mcap_path.name, self._times.start_ns or 0,
+                            self._times.end_ns or 0, self._times.count)],
+            topics=self.topics.values())
 
     def close(self) -> None:
         """Write the ``rosbag2`` metadata record, the summary and footer, then metadata.yaml.
@@ -343,7 +367,6 @@ class BagWriter:
         self._writer.add_metadata('rosbag2', {
             'serialized_metadata': yaml.safe_dump(info, sort_keys=False).rstrip('\n')})
         self._writer.finish()
-        self._file.flush()
         if self.config.fsync:
             os.fsync(self._file.fileno())
         self._file.close()
@@ -359,6 +382,76 @@ class BagWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def new_mcap_writer(stream: Any, config: BagWriterConfig) -> Writer:
+    """An mcap ``Writer`` on ``stream`` laid out as rosbag2 writes (chunk CRCs, data CRC)."""
+    # No attachment index: we write no attachments, and an empty attachment-index group
+    # would leave a summary offset pointing at nothing (``pymcap-cli doctor`` flags it).
+    return Writer(stream, chunk_size=config.chunk_size, compression=config.compression_type(),
+                  index_types=IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA,
+                  enable_crcs=True, enable_data_crcs=True)
+
+
+class TopicCounts(Protocol):
+    """What :func:`bag_information` needs of a topic (a :class:`TopicRecord` or a
+    :class:`rcbf_ros.bag.reader.TopicInfo`)."""
+
+    name: str
+    type_name: str
+    offered_qos: tuple[RecordedQos, ...]
+    type_hash: str
+    message_count: int
+
+
+@dataclass(frozen=True)
+class FileSpan:
+    """One MCAP file of a bag: its name and the messages it holds."""
+
+    path: str
+    """File name relative to the bag directory."""
+    start_ns: int
+    """Earliest log time (0 if empty)."""
+    end_ns: int
+    """Latest log time (0 if empty)."""
+    message_count: int
+    """Messages in the file."""
+
+
+def bag_information(*, files: Sequence[FileSpan],
+                    topics: Iterable[TopicCounts]) -> dict[str, Any]:
+    """rosbag2 bag information (``rosbag2_bagfile_information`` contents, version 9).
+
+    The same dict goes to ``metadata.yaml`` and to the ``rosbag2`` metadata record of each file.
+    """
+    spans = [f for f in files if f.message_count]
+    start = min((f.start_ns for f in spans), default=0)
+    end = max((f.end_ns for f in spans), default=start)
+    return {
+        'version': BAG_FORMAT_VERSION,
+        'storage_identifier': 'mcap',
+        'duration': {'nanoseconds': end - start},
+        'starting_time': {'nanoseconds_since_epoch': start},
+        'message_count': sum(f.message_count for f in files),
+        'topics_with_message_count': [
+            {'topic_metadata': {
+                'name': t.name,
+                'type': t.type_name,
+                'serialization_format': getattr(t, 'serialization_format', 'cdr'),
+                'offered_qos_profiles': dump_offered_qos_profiles(t.offered_qos),
+                'type_description_hash': t.type_hash,
+            }, 'message_count': t.message_count}
+            for t in topics],
+        'compression_format': '',
+        'compression_mode': '',
+        'relative_file_paths': [f.path for f in files],
+        'files': [{'path': f.path,
+                   'starting_time': {'nanoseconds_since_epoch': f.start_ns},
+                   'duration': {'nanoseconds': f.end_ns - f.start_ns},
+                   'message_count': f.message_count} for f in files],
+        'custom_data': {},
+        'ros_distro': ROS_DISTRO,
+    }
 
 
 def write_metadata_yaml(directory: str | os.PathLike[str], info: dict[str, Any]) -> Path:

@@ -17,7 +17,9 @@ Parameters (``--ros-args -p name:=value``):
 
 Subscriptions are raw (CDR bytes are written as received, never deserialised) with keep-all
 history, so nothing is dropped while the recorder keeps up. Ctrl-C or SIGTERM close the bag
-(summary, ``metadata.yaml``) and log the message counts.
+(summary, ``metadata.yaml``) and log the message counts. A SIGKILL leaves the bag without its
+summary, footer and ``metadata.yaml``; the readers refuse it until ``rcbf_ros bag recover
+<output>`` has rewritten it from its whole chunks (``rcbf_ros.run_summary`` does so by itself).
 """
 from __future__ import annotations
 

@@ -12,8 +12,12 @@ Parameters (``--ros-args -p name:=value``):
   retransmissions can finish.
 
 Messages are published as the recorded CDR bytes, with the QoS of the recorded publishers
-(:func:`rcbf_ros.bag.playback.replay_qos`). Offline processing of a bag (e.g. re-filtering) does
-not go through this node: use :func:`rcbf_ros.bag.playback.iter_bag_messages`.
+(:func:`rcbf_ros.bag.playback.replay_qos`). The bag is read and checked in full before anything
+is published: a missing, empty, damaged (chunk or data CRC mismatch), foreign or cut-short file
+ends the node with one line naming the file and what is wrong, exit status 2 (a bag whose
+recorder was killed plays after ``rcbf_ros bag recover <bag>``). Offline processing of a bag
+(e.g. re-filtering) does not go through this node: use
+:func:`rcbf_ros.bag.playback.iter_bag_messages`.
 """
 from __future__ import annotations
 
@@ -69,7 +73,7 @@ class ReplayNode(Node):
     def __init__(self) -> None:
         super().__init__('replay')
         self.config = self._read_config()
-        info = bag_info(self.config.bag)
+        info = bag_info(self.config.bag, allow_cut_short=False)
         wanted = set(self.config.topics) or set(info.topics)
         missing = wanted - set(info.topics)
         if missing:
@@ -147,7 +151,9 @@ def main(args: Sequence[str] | None = None) -> int:
     def report(node: ReplayNode) -> None:
         node.get_logger().info(f'replay finished: {node.published} messages published')
 
-    return run_node('replay', ReplayNode, args, run=ReplayNode.play, on_exit=report)
+    # A bad bag (BagError, a ValueError), a missing file or bad parameters: one line, exit 2.
+    return run_node('replay', ReplayNode, args, run=ReplayNode.play, on_exit=report,
+                    setup_errors=(ValueError, OSError), setup_message='')
 
 
 if __name__ == '__main__':
