@@ -141,6 +141,42 @@ def test_config_errors_name_the_key(params, key):
         filter_config_from_params(params)
 
 
+ONE_OBSTACLE = {'x': [0.0], 'y': [0.0], 'radius': [1.0]}
+
+
+@pytest.mark.parametrize('override, key', [
+    ({'fail_safe_action': [99.0, 0.0]}, r'^fail_safe_action: .* outside the input limits'),
+    ({'fail_safe_action': [0.0, -2.6]}, r'^fail_safe_action: .* outside the input limits'),
+    ({'obstacles': dict(ONE_OBSTACLE, margin=-5.0)}, r'^obstacles\.margin: must be >= 0'),
+    ({'obstacles': dict(ONE_OBSTACLE, radius=[-0.5])}, r'^obstacles\.radius: every radius'),
+    ({'obstacles': dict(ONE_OBSTACLE, radius=[0.0])}, r'^obstacles\.radius: radius \+'),
+    ({'obstacles': dict(ONE_OBSTACLE, lookahead=-0.1, heading_index=2)},
+     r'^obstacles\.lookahead: must be >= 0'),
+    ({'obstacles': dict(ONE_OBSTACLE, gammas=[1.0, -1.0])}, r'^obstacles\.gammas: every'),
+    ({'alpha': 0.0}, r'^alpha: must be > 0'),
+    ({'alpha': -2.0}, r'^alpha: must be > 0'),
+    ({'k_c': -0.1}, r'^k_c: must be >= 0'),
+    ({'slack_weight': 0.0}, r'^slack_weight: must be > 0'),
+    ({'walls': {'nx': [0.0], 'ny': [0.0], 'offset': [1.0]}}, r'^walls\.nx/walls\.ny: '),
+    ({'disturbance': {'std': [0.1, -0.1, 0.0]}}, r'^disturbance\.std: must be >= 0'),
+])
+def test_unsafe_values_are_refused_naming_the_key(override, key):
+    # Silently clipping a fail-safe of [99, 0] gave full speed; a negative margin shrank every
+    # obstacle; a negative radius was reported under a key nobody writes (obstacles.radii).
+    params = {'system': 'unicycle', 'obstacles': ONE_OBSTACLE, **override}
+    with pytest.raises(ValueError, match=key):
+        filter_config_from_params(params)
+
+
+def test_gaps_delta_and_band_gains_are_checked():
+    with pytest.raises(ValueError, match=r'^gaps\.delta: must be >= 0'):
+        filter_config_from_params({'system': 'car_following',
+                                   'gaps': {'a': [4], 'b': [6], 'delta': -1.0}})
+    with pytest.raises(ValueError, match=r'^bands\.tilt\.gammas: every cascade gain'):
+        filter_config_from_params({'system': 'pvtol', 'bands': {'tilt': {
+            'index': 4, 'half_width': 1.0, 'gammas': [0.0]}}})
+
+
 @pytest.mark.parametrize('bad', [1.5, True, float('inf'), float('nan'), 'one'])
 def test_an_index_that_is_not_an_integer_is_refused_not_truncated(bad):
     base = {'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0],
