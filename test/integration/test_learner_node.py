@@ -14,13 +14,13 @@ import sys
 
 import numpy as np
 import pytest
-import torch
 
 from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.params import find_config
 from rcbf_ros.ros.loopback import LOOPBACK_CYCLONEDDS_URI
 from rcbf_ros.training.agent import LearnerConfig
 from rcbf_ros.training.loop import RunConfig, train
+from rcbf_ros.training.run_files import load_payload
 
 pytestmark = pytest.mark.integration
 
@@ -70,7 +70,7 @@ def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
     assert (out / 'reward_curve.png').stat().st_size > 1000
     assert 'episode    2/2' in (tmp_path / 'learner.log').read_text()
 
-    node_buffer = torch.load(out / 'checkpoint.pt', weights_only=False)['learner']['buffer']
+    node_buffer = load_payload(out / 'checkpoint.pt')['learner']['buffer']
     history = train(RunConfig(system='unicycle', episodes=2, max_steps=STEPS,
                               out_dir=str(tmp_path / 'inproc'), record_bag=False,
                               learner=LearnerConfig(mode='diff', seed=3, start_steps=START,
@@ -78,7 +78,7 @@ def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
                                                     sac=SACConfig())),
                     log=lambda _: None)
     assert sum(r['steps'] for r in history) == 2 * STEPS
-    ours = torch.load(tmp_path / 'inproc' / 'checkpoint.pt', weights_only=False)
+    ours = load_payload(tmp_path / 'inproc' / 'checkpoint.pt')
     in_process = ours['learner']['buffer']
     size = 2 * STEPS
     assert node_buffer['size'] == in_process['size'] == size
@@ -113,7 +113,7 @@ def test_killed_learner_resumes_from_its_checkpoint(tmp_path, ros_domain_id):
     assert 'resumed at episode 1' in done.stdout + done.stderr
     rows = [json.loads(line) for line in (out / 'metrics.jsonl').read_text().splitlines()]
     assert [r['episode'] for r in rows] == [0, 1]
-    state = torch.load(out / 'checkpoint.pt', weights_only=False)
+    state = load_payload(out / 'checkpoint.pt')
     assert state['episode'] == 2 and state['learner']['buffer']['size'] == 100
 
 
