@@ -376,8 +376,10 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
     checkpoint_path = out / 'checkpoint.pt'
     history: list[dict[str, Any]] = []
     first_episode = 0
+    saved_at = -1  # env steps the checkpoint on disk holds (-1: none of this start's)
     if run.resume and checkpoint_path.exists():
         first_episode, history = _restore(checkpoint_path, learner, env)
+        saved_at = learner.env_steps
         log(f'resumed from {checkpoint_path} at episode {first_episode}')
     elif run.resume:
         log(f'no checkpoint in {out}: starting at episode 0'
@@ -393,10 +395,12 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
     episode = first_episode
 
     def save_checkpoint() -> None:
+        nonlocal saved_at
         save_payload(checkpoint_path, {
             'learner': learner.state_dict(), 'episode': episode,
             'env_rng': env.np_random.bit_generator.state, 'history': history,
             'run': asdict(run)})
+        saved_at = learner.env_steps
 
     try:
         while episode < run.episodes:
@@ -416,7 +420,8 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
             if episode % run.checkpoint_every == 0:
                 save_checkpoint()
     finally:
-        save_checkpoint()
+        if learner.env_steps != saved_at:  # not already saved with every step taken so far
+            save_checkpoint()
         save_policy(out / 'policy.pt', learner.sac, u_low=learner.u_low, u_high=learner.u_high,
                     system=run.system)
         if recorder is not None:
