@@ -188,9 +188,9 @@ class LearnerNode(Node):
             self.get_logger().info(f'no checkpoint in {self.out_dir}: starting at episode 0'
                                    + (' (the files there are kept)' if existing else ''))
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        cut = reconcile_metrics(self.out_dir / 'metrics.jsonl', self.history)
+        cut = reconcile_metrics(self.out_dir / 'metrics.jsonl', history=self.history)
         if cut:
-            self.get_logger().info(describe_cut(cut, self.history))
+            self.get_logger().info(describe_cut(count=cut, history=self.history))
 
     def _declared_filter_params(self) -> dict[str, Any]:
         """Every parameter given to this node (params file / -p), flat, for the RCBF problem."""

@@ -385,9 +385,9 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
         log(f'no checkpoint in {out}: starting at episode 0'
             + (' (the files there are kept)' if existing else ''))
     out.mkdir(parents=True, exist_ok=True)
-    cut = reconcile_metrics(metrics_path, history)
+    cut = reconcile_metrics(metrics_path, history=history)
     if cut:
-        log(describe_cut(cut, history))
+        log(describe_cut(count=cut, history=history))
     (out / 'run_config.json').write_text(json.dumps(asdict(run), indent=2, default=str))
     recorder = None
     if run.record_bag and first_episode < run.episodes:

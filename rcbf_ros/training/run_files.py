@@ -124,7 +124,7 @@ def write_jsonl(path: str | Path, rows: Sequence[Mapping[str, Any]]) -> None:
     os.replace(partial, path)
 
 
-def reconcile_metrics(path: str | Path, history: Sequence[Mapping[str, Any]]) -> int:
+def reconcile_metrics(path: str | Path, *, history: Sequence[Mapping[str, Any]]) -> int:
     """Make ``metrics.jsonl`` at ``path`` hold the rows of ``history`` (a checkpoint's, or
     none without one) when a run resumes; returns how many rows were cut.
 
@@ -167,7 +167,7 @@ def next_bag_dir(out_dir: str | Path) -> Path:
     return out / f'bag_{max(taken, default=-1) + 1:04d}'
 
 
-def describe_cut(count: int, history: Sequence[Mapping[str, Any]]) -> str:
+def describe_cut(*, count: int, history: Sequence[Mapping[str, Any]]) -> str:
     """One line saying that ``count`` rows past the checkpoint's episodes were moved aside."""
     return (f"metrics.jsonl: cut back to the checkpoint's {len(history)} episode(s); "
             f'{count} later row(s) moved to {SUPERSEDED}')
