@@ -69,7 +69,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from rcbf_ros.training.loop import RunConfig, RunSetupError, summarize, train
+    from rcbf_ros.training.loop import check_out_dir, RunConfig, RunSetupError, summarize, train
     try:
         learner = LearnerConfig(**_learner_overrides(args),
                                 sac=SACConfig(initial_alpha=args.initial_alpha))
@@ -84,6 +84,11 @@ def run_train(args: argparse.Namespace) -> int:
                     record_bag=not args.no_bag, resume=args.resume,
                     checkpoint_every=args.checkpoint_every,
                     compile_filter=args.compile_filter, threads=args.threads, learner=learner)
+    try:
+        check_out_dir(run)
+    except RunSetupError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 2
     print(f'training {name}: {args.episodes} episodes -> {run.out_dir}', flush=True)
 
     def on_sigterm(signum: int, frame: object) -> None:

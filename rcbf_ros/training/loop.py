@@ -363,10 +363,7 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
     if run.checkpoint_every < 1:
         raise RunSetupError(f'checkpoint_every: must be >= 1, got {run.checkpoint_every}')
     out = Path(run.out_dir)
-    existing = run_data(out)
-    if existing and not run.resume:
-        raise RunSetupError(f"out_dir: {out} already holds a run ({', '.join(existing)}); "
-                            'resume it (--resume) or choose another directory')
+    existing = check_out_dir(run)
     try:
         run = resolve_run(run)
         env, filt, learner, _ = build_run(run)
@@ -431,6 +428,20 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
             plot_reward_curve([row['ret'] for row in history], out / 'reward_curve.png',
                               title=f'{run.system} / {run.learner.mode}')
     return history
+
+
+def check_out_dir(run: RunConfig) -> list[str]:
+    """The run data already in ``run.out_dir`` (see ``run_files.run_data``).
+
+    Raises:
+        RunSetupError: there is some and ``run.resume`` is off.
+    """
+    existing = run_data(run.out_dir)
+    if existing and not run.resume:
+        raise RunSetupError(f"out_dir: {run.out_dir} already holds a run "
+                            f"({', '.join(existing)}); resume it (--resume) or choose another "
+                            'directory')
+    return existing
 
 
 def _restore(path: Path, learner: SafeLearner, env: Any) -> tuple[int, list[dict[str, Any]]]:

@@ -127,8 +127,9 @@ def test_out_of_an_existing_run_without_resume_is_refused_and_untouched(tmp_path
     before = snapshot(out)
     capsys.readouterr()
     assert cli_main(['train', *TINY, '--episodes', '2', '--out', str(out)]) == 2
-    err = capsys.readouterr().err
-    assert err.count('\n') == 1 and 'Traceback' not in err
+    printed = capsys.readouterr()
+    err = printed.err
+    assert printed.out == '' and err.count('\n') == 1 and 'Traceback' not in err
     assert err.startswith(f'error: out_dir: {out} already holds a run (checkpoint.pt, ')
     assert 'resume it (--resume) or choose another directory' in err
     assert snapshot(out) == before
