@@ -275,3 +275,22 @@ def _tiny_learner():
     from rcbf_ros.training.agent import LearnerConfig
     return LearnerConfig(mode='baseline', start_steps=20, update_after=20, batch_size=16,
                          sac=SACConfig(hidden_sizes=(32, 32)))
+
+
+def test_experiment_runner_restarts_a_run_killed_before_its_first_checkpoint(tmp_path):
+    """The runner trains what is not complete with resume, so a run directory that a kill
+    left without a checkpoint restarts (keeping its row aside) instead of being refused."""
+    from rcbf_ros.experiments.definitions import Budget, RunSpec
+    from rcbf_ros.experiments.runner import run_all, run_status
+    spec = RunSpec('unicycle', 'modular', 0, Budget(
+        name='tiny', episodes={'unicycle': 1}, max_steps={'unicycle': 30}, start_steps=10,
+        update_after=10, batch_size=8, gp_refit_interval=20, hidden_sizes=(8, 8),
+        record_bag=False))
+    run_dir = spec.run_dir(tmp_path)
+    run_dir.mkdir(parents=True)
+    row = json.dumps({'episode': 0, 'ret': 1.0}) + '\n'
+    (run_dir / 'metrics.jsonl').write_text(row)
+    assert run_status(spec, tmp_path) == 'missing'
+    assert [r['status'] for r in run_all([spec], tmp_path, log=lambda _: None)] == ['ran']
+    assert [r['episode'] for r in rows_of(run_dir / 'metrics.jsonl')] == [0]
+    assert (run_dir / SUPERSEDED).read_text() == row
