@@ -19,6 +19,7 @@ import sys
 
 from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.training.agent import LearnerConfig, MODES
+from rcbf_ros.training.run_files import DEFAULT_CHECKPOINT_EVERY
 
 
 def _learner_overrides(args: argparse.Namespace) -> dict:
@@ -44,7 +45,14 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--no-obstacles', action='store_true',
                         help='train without obstacles and filter (transfer upper bound)')
     parser.add_argument('--no-bag', action='store_true', help='do not record MCAP')
-    parser.add_argument('--resume', action='store_true', help='continue from the checkpoint')
+    parser.add_argument('--resume', action='store_true',
+                        help='continue the run in --out from its checkpoint (none: start at '
+                             'episode 0, keeping its files); without it an existing run is '
+                             'refused')
+    parser.add_argument('--checkpoint-every', dest='checkpoint_every', type=int,
+                        default=DEFAULT_CHECKPOINT_EVERY, metavar='N',
+                        help='episodes between checkpoints (a kill loses at most the episodes '
+                             'since the last one; default %(default)s)')
     parser.add_argument('--compile-filter', action='store_true',
                         help='compile the per-step constraint assembly (faster, slower start)')
     parser.add_argument('--threads', type=int, default=1,
@@ -63,7 +71,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from rcbf_ros.training.loop import RunConfig, RunSetupError, summarize, train
+    from rcbf_ros.training.loop import check_out_dir, RunConfig, RunSetupError, summarize, train
     try:
         learner = LearnerConfig(**_learner_overrides(args),
                                 sac=SACConfig(initial_alpha=args.initial_alpha))
@@ -76,7 +84,13 @@ def run_train(args: argparse.Namespace) -> int:
                     max_steps=args.max_steps, no_obstacles=args.no_obstacles,
                     random_start=args.random_start,
                     record_bag=not args.no_bag, resume=args.resume,
+                    checkpoint_every=args.checkpoint_every,
                     compile_filter=args.compile_filter, threads=args.threads, learner=learner)
+    try:
+        check_out_dir(run)
+    except RunSetupError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 2
     print(f'training {name}: {args.episodes} episodes -> {run.out_dir}', flush=True)
 
     def on_sigterm(signum: int, frame: object) -> None:

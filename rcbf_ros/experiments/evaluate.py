@@ -43,6 +43,7 @@ from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
 from rcbf_ros.training.loop import build_run, make_env, RunConfig, write_jsonl
+from rcbf_ros.training.run_files import load_payload
 
 GPSource = Literal['learned', 'prior']
 
@@ -65,6 +66,8 @@ def load_trained_learner(run_dir: str | Path) -> tuple[RunConfig, SafeLearner]:
 
     Raises:
         FileNotFoundError: naming the missing ``run_config.json`` or ``checkpoint.pt``.
+        ValueError: naming a checkpoint that holds more than tensors and plain data (refused
+            unread) or is damaged.
     """
     run_dir = Path(run_dir)
     for name in ('run_config.json', 'checkpoint.pt'):
@@ -72,8 +75,7 @@ def load_trained_learner(run_dir: str | Path) -> tuple[RunConfig, SafeLearner]:
             raise FileNotFoundError(f'{name}: not found in {run_dir} (train the run first)')
     run = run_config_from_json(json.loads((run_dir / 'run_config.json').read_text()))
     _, _, learner, _ = build_run(run)
-    checkpoint = torch.load(run_dir / 'checkpoint.pt', weights_only=False)
-    learner.load_state_dict(checkpoint['learner'])
+    learner.load_state_dict(load_payload(run_dir / 'checkpoint.pt')['learner'])
     return run, learner
 
 

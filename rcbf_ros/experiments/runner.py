@@ -197,7 +197,9 @@ def train_run(job: tuple[RunSpec, str]) -> dict[str, Any]:
         summary = json.loads((run_dir / 'summary.json').read_text())
         return {**summary, 'status': 'skipped'}
     start = time.perf_counter()
-    config = spec.run_config(root, resume=status == 'partial')
+    # Without a checkpoint, resume starts at episode 0 and keeps what a killed attempt left
+    # (a fresh start would refuse a directory that holds a run).
+    config = spec.run_config(root, resume=True)
     train(config, log=lambda line: None)
     summary = {
         'system': spec.system, 'method': spec.method, 'seed': spec.seed,

@@ -13,10 +13,14 @@ trainer drives). Lock-step protocol with the simulator:
   transition; the learner does not pair topics by arrival order (DDS does not order samples
   of different writers).
 
-Per episode it logs a progress line, appends to ``<out_dir>/metrics.jsonl`` and publishes the
-line as JSON on ``learner/metrics`` (so the run's MCAP holds it); checkpoints every
-``checkpoint_every`` episodes and on exit (Ctrl-C/SIGTERM included); after ``episodes`` it
-writes policy.pt, the reward curve and a summary, and shuts down.
+Per episode it logs a progress line, appends to ``<out_dir>/metrics.jsonl`` (flushed to disk)
+and publishes the line as JSON on ``learner/metrics`` (so the run's MCAP holds it); checkpoints
+every ``checkpoint_every`` episodes (default every one) and on exit (Ctrl-C/SIGTERM included);
+after ``episodes`` it writes policy.pt, the reward curve and a summary, and shuts down.
+``resume:=true`` continues from ``<out_dir>/checkpoint.pt`` (without one it starts at episode 0,
+keeping the files there); without it an ``out_dir`` that already holds a run is refused (exit
+2). The files follow :mod:`rcbf_ros.training.run_files`: checkpoints are read without running
+code from them.
 """
 from __future__ import annotations
 
@@ -46,16 +50,24 @@ from rcbf_ros.training.loop import (
     CriticCheck,
     format_progress,
     policy_limits,
-    rewrite_metrics,
     summarize,
 )
 from rcbf_ros.training.policy_io import save_policy
+from rcbf_ros.training.run_files import (
+    append_row,
+    DEFAULT_CHECKPOINT_EVERY,
+    describe_cut,
+    load_payload,
+    reconcile_metrics,
+    run_data,
+    save_payload,
+)
 
 PARAMETERS: dict[str, Any] = {
     'system': 'unicycle', 'mode': 'modular', 'model_based': False, 'seed': 0,
     'episodes': 10, 'out_dir': 'bags/learner_run', 'dt': 0.02, 'start_steps': 1000,
     'update_after': 500, 'batch_size': 256, 'gp_refit_interval': 1000,
-    'checkpoint_every': 5, 'resume': False, 'k_c': 2.0, 'threads': 1,
+    'checkpoint_every': DEFAULT_CHECKPOINT_EVERY, 'resume': False, 'k_c': 2.0, 'threads': 1,
     'initial_alpha': DEFAULT_INITIAL_ALPHA, 'modular_envelope': False,
 }
 
@@ -115,13 +127,14 @@ class LearnerNode(Node):
             if not self.has_parameter(name):
                 self.declare_parameter(name, default)
         self.settings = {name: self.get_parameter(name).value for name in PARAMETERS}
-        threads = self.settings['threads']
-        if not isinstance(threads, int) or threads < 1:
-            raise ValueError(f'threads: must be an integer >= 1, got {threads!r}')
+        for name in ('threads', 'checkpoint_every'):
+            value = self.settings[name]
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f'{name}: must be an integer >= 1, got {value!r}')
         self.settings['initial_alpha'] = number(self.settings, 'initial_alpha',
                                                 DEFAULT_INITIAL_ALPHA, positive=True)
         # 1 by default: the simulator, filter and recorder share the cores.
-        torch.set_num_threads(threads)
+        torch.set_num_threads(self.settings['threads'])
         # The safety problem's keys (system, obstacles.*, gains) come from the params file.
         self.filter_params = self._declared_filter_params()
         # The learner is built at the first step (it needs the observation's size); its
@@ -129,13 +142,15 @@ class LearnerNode(Node):
         policy_box(build_system(self.filter_params),
                    learner_config_from_settings(self.settings, self.filter_params))
         self.out_dir = Path(str(self.settings['out_dir']))
-        self.out_dir.mkdir(parents=True, exist_ok=True)
         self.learner: SafeLearner | None = None
         self.pending: dict[str, np.ndarray] | None = None
         self.pending_msg: Any = None
         self.tally = EpisodeTally()
         self.history: list[dict[str, Any]] = []
         self.episodes_done = 0
+        # The checkpoint's learner state, loaded into the learner when it is built.
+        self.resume_state: dict[str, Any] | None = None
+        self._open_run()
         self.last_step: tuple[int, int] | None = None
         qos = QoSProfile(depth=10)
         self.proposal_pub = self.create_publisher(
@@ -147,6 +162,35 @@ class LearnerNode(Node):
         self.get_logger().info(
             f"learner: {self.settings['mode']} on {self.settings['system']}, "
             f"{self.settings['episodes']} episodes -> {self.out_dir}")
+
+    def _open_run(self) -> None:
+        """Refuse an out_dir that holds a run unless resuming; read the checkpoint to resume
+        and cut metrics.jsonl back to it. ValueError names the parameter."""
+        existing = run_data(self.out_dir)
+        if existing and not self.settings['resume']:
+            raise ValueError(f"out_dir: {self.out_dir} already holds a run "
+                             f"({', '.join(existing)}); set resume:=true to continue it or "
+                             'choose another out_dir')
+        checkpoint = self.out_dir / 'checkpoint.pt'
+        if self.settings['resume'] and checkpoint.exists():
+            try:
+                state = load_payload(checkpoint)
+                self.resume_state = dict(state['learner'])
+                self.history = list(state['history'])
+                self.episodes_done = int(state['episode'])
+            except KeyError as exc:
+                raise ValueError(f'resume: {checkpoint}: no {exc} entry (not a checkpoint?)'
+                                 ) from None
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f'resume: {exc}') from None
+            self.get_logger().info(f'resumed at episode {self.episodes_done}')
+        elif self.settings['resume']:
+            self.get_logger().info(f'no checkpoint in {self.out_dir}: starting at episode 0'
+                                   + (' (the files there are kept)' if existing else ''))
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        cut = reconcile_metrics(self.out_dir / 'metrics.jsonl', history=self.history)
+        if cut:
+            self.get_logger().info(describe_cut(count=cut, history=self.history))
 
     def _declared_filter_params(self) -> dict[str, Any]:
         """Every parameter given to this node (params file / -p), flat, for the RCBF problem."""
@@ -211,14 +255,9 @@ class LearnerNode(Node):
     def _build_learner(self, obs_dim: int) -> SafeLearner:
         s = self.settings
         learner = learner_from_settings(s, self.filter_params, obs_dim)
-        checkpoint = self.out_dir / 'checkpoint.pt'
-        if bool(s['resume']) and checkpoint.exists():
-            state = torch.load(checkpoint, weights_only=False)
-            learner.load_state_dict(state['learner'])
-            self.history = list(state['history'])
-            rewrite_metrics(self.out_dir / 'metrics.jsonl', self.history)
-            self.episodes_done = int(state['episode'])
-            self.get_logger().info(f'resumed at episode {self.episodes_done}')
+        if self.resume_state is not None:
+            learner.load_state_dict(self.resume_state)
+            self.resume_state = None
         return learner
 
     def _end_episode(self) -> None:
@@ -233,8 +272,7 @@ class LearnerNode(Node):
                'env_steps': self.learner.env_steps if self.learner else 0}
         self.history.append(row)
         self.episodes_done += 1
-        with (self.out_dir / 'metrics.jsonl').open('a') as stream:
-            stream.write(json.dumps(row) + '\n')
+        append_row(self.out_dir / 'metrics.jsonl', row)
         msg = get_message('std_msgs/msg/String')()
         msg.data = json.dumps(row)
         self.metrics_pub.publish(msg)
@@ -248,13 +286,15 @@ class LearnerNode(Node):
     def save_checkpoint(self) -> None:
         if self.learner is None:
             return
-        path = self.out_dir / 'checkpoint.pt'
-        torch.save({'learner': self.learner.state_dict(), 'episode': self.episodes_done,
-                    'history': self.history}, path.with_suffix('.tmp'))
-        path.with_suffix('.tmp').replace(path)
+        save_payload(self.out_dir / 'checkpoint.pt', {
+            'learner': self.learner.state_dict(), 'episode': self.episodes_done,
+            'history': self.history})
 
     def finish(self) -> dict[str, Any]:
-        """Checkpoint, policy export, reward curve and summary.json; returns the summary."""
+        """Checkpoint, policy export, reward curve and summary.json; returns the summary.
+        Before the first step of a new run there is nothing to write."""
+        if self.learner is None and not self.history:
+            return summarize(self.history)
         self.save_checkpoint()
         summary = summarize(self.history)
         if self.learner is not None:

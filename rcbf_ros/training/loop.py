@@ -2,15 +2,21 @@
 
 One run writes into its output directory::
 
-    metrics.jsonl      one JSON object per episode (return, violations, max slack, steps/s, ...)
+    metrics.jsonl      one JSON object per episode (return, violations, max slack, steps/s, ...),
+                       appended and flushed to disk as each episode ends
     checkpoint.pt      learner + episode counter, every ``checkpoint_every`` episodes and on exit
     policy.pt          the final actor alone (for the ``policy`` node / evaluation)
-    bag/               MCAP (rosbag2 layout) of the run's topics, as the node path records them
+    bag_0000/          MCAP (rosbag2 layout) of the run's topics, as the node path records them;
+                       each resume records into the next one (bag_0001, ...)
     reward_curve.png   return per episode
 
 Ctrl-C (KeyboardInterrupt) or an exception ends the run after writing the checkpoint, closing
-the bag and the metrics file, so nothing already computed is lost; ``resume=True`` continues
-from ``checkpoint.pt``.
+the bag and the metrics file, so nothing already computed is lost; a kill loses at most the
+episodes since the last checkpoint (by default, the one under way). ``resume=True`` continues
+from ``checkpoint.pt`` (or, without one, starts again at episode 0 and keeps what is there);
+without ``resume`` a directory that already holds a run is refused. Checkpoints and policies
+hold tensors and plain data only and are read without running code from them
+(:mod:`rcbf_ros.training.run_files`).
 """
 from __future__ import annotations
 
@@ -18,10 +24,9 @@ from dataclasses import asdict, dataclass, field, replace
 import importlib
 import json
 import math
-import os
 from pathlib import Path
 import time
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
@@ -38,6 +43,17 @@ from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
 from rcbf_ros.training.policy_io import save_policy
+from rcbf_ros.training.run_files import (
+    append_row,
+    DEFAULT_CHECKPOINT_EVERY,
+    describe_cut,
+    load_payload,
+    next_bag_dir,
+    reconcile_metrics,
+    run_data,
+    save_payload,
+)
+from rcbf_ros.training.run_files import write_jsonl as write_jsonl  # re-exported
 
 ENV_CLASSES = {
     'unicycle': 'rcbf_ros.envs.unicycle.UnicycleEnv',
@@ -69,12 +85,13 @@ class RunConfig:
     """Start each episode from a random start of the env (Unicycle: corners and edges, random
     heading; the paper's value-map figure shows these starts); None: the config file's
     simulator ``random_start``."""
-    checkpoint_every: int = 5
-    """Episodes between checkpoints."""
+    checkpoint_every: int = DEFAULT_CHECKPOINT_EVERY
+    """Episodes between checkpoints (a kill loses the episodes since the last one)."""
     record_bag: bool = True
     """Record the run's topics to MCAP."""
     resume: bool = False
-    """Continue from out_dir/checkpoint.pt if it exists."""
+    """Continue from out_dir/checkpoint.pt (without one: start at episode 0, keeping the files
+    already there). Without it, an out_dir that already holds a run is refused."""
     compile_filter: bool = False
     """Compile the per-step filter's constraint assembly (worth it for long runs)."""
     threads: int = 1
@@ -331,23 +348,13 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
     return stats
 
 
-def write_jsonl(path: Path, rows: Sequence[Mapping[str, Any]]) -> None:
-    """Make ``path`` hold exactly ``rows``, one JSON object per line, at once: written beside
-    it and renamed over it, so a crash leaves the old file or the new one."""
-    partial = path.with_suffix('.tmp')
-    partial.write_text(''.join(json.dumps(row) + '\n' for row in rows))
-    os.replace(partial, path)
-
-
-def rewrite_metrics(path: Path, rows: list[dict[str, Any]]) -> None:
-    """Make ``metrics.jsonl`` hold exactly ``rows``, e.g. a resumed checkpoint's history: the
-    episodes a killed run finished after its last checkpoint are dropped, since the resumed
-    run plays them again."""
-    write_jsonl(path, rows)
-
-
 def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
-    """Train for ``run.episodes`` episodes; returns the per-episode metrics."""
+    """Train for ``run.episodes`` episodes; returns the per-episode metrics.
+
+    Raises:
+        RunSetupError: a bad setting, an out_dir that already holds a run without ``resume``,
+            or a checkpoint that cannot be resumed (the message names it).
+    """
     if run.threads < 1:
         raise RunSetupError(f'threads: must be >= 1, got {run.threads}')
     torch.set_num_threads(run.threads)
@@ -355,37 +362,42 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
         raise RunSetupError(f'episodes: must be >= 1, got {run.episodes}')
     if run.checkpoint_every < 1:
         raise RunSetupError(f'checkpoint_every: must be >= 1, got {run.checkpoint_every}')
+    out = Path(run.out_dir)
+    existing = check_out_dir(run)
     try:
         run = resolve_run(run)
         env, filt, learner, _ = build_run(run)
     except (FileNotFoundError, ValueError) as exc:
         raise RunSetupError(str(exc)) from exc
-    out = Path(run.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     metrics_path = out / 'metrics.jsonl'
     checkpoint_path = out / 'checkpoint.pt'
     history: list[dict[str, Any]] = []
     first_episode = 0
+    saved_at = -1  # env steps the checkpoint on disk holds (-1: none of this start's)
     if run.resume and checkpoint_path.exists():
-        checkpoint = torch.load(checkpoint_path, weights_only=False)
-        learner.load_state_dict(checkpoint['learner'])
-        env.np_random.bit_generator.state = checkpoint['env_rng']
-        first_episode = int(checkpoint['episode'])
-        history = list(checkpoint['history'])
+        first_episode, history = _restore(checkpoint_path, learner, env)
+        saved_at = learner.env_steps
         log(f'resumed from {checkpoint_path} at episode {first_episode}')
-    rewrite_metrics(metrics_path, history)
+    elif run.resume:
+        log(f'no checkpoint in {out}: starting at episode 0'
+            + (' (the files there are kept)' if existing else ''))
+    out.mkdir(parents=True, exist_ok=True)
+    cut = reconcile_metrics(metrics_path, history=history)
+    if cut:
+        log(describe_cut(count=cut, history=history))
     (out / 'run_config.json').write_text(json.dumps(asdict(run), indent=2, default=str))
     recorder = None
-    if run.record_bag:
-        bag_dir = out / f'bag_{first_episode:04d}'
-        recorder = RunRecorder(bag_dir)
+    if run.record_bag and first_episode < run.episodes:
+        recorder = RunRecorder(next_bag_dir(out))
     episode = first_episode
 
     def save_checkpoint() -> None:
-        torch.save({'learner': learner.state_dict(), 'episode': episode,
-                    'env_rng': env.np_random.bit_generator.state, 'history': history,
-                    'run': asdict(run)}, checkpoint_path.with_suffix('.tmp'))
-        checkpoint_path.with_suffix('.tmp').replace(checkpoint_path)
+        nonlocal saved_at
+        save_payload(checkpoint_path, {
+            'learner': learner.state_dict(), 'episode': episode,
+            'env_rng': env.np_random.bit_generator.state, 'history': history,
+            'run': asdict(run)})
+        saved_at = learner.env_steps
 
     try:
         while episode < run.episodes:
@@ -397,8 +409,7 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
             row = stats.as_json()
             row['env_steps'] = learner.env_steps
             history.append(row)
-            with metrics_path.open('a') as stream:
-                stream.write(json.dumps(row) + '\n')
+            append_row(metrics_path, row)
             if recorder is not None:
                 recorder.event('/episode', {'event': 'end', **{k: row[k] for k in (
                     'episode', 'ret', 'steps', 'violations', 'goal_reached')}})
@@ -406,7 +417,8 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
             if episode % run.checkpoint_every == 0:
                 save_checkpoint()
     finally:
-        save_checkpoint()
+        if learner.env_steps != saved_at:  # not already saved with every step taken so far
+            save_checkpoint()
         save_policy(out / 'policy.pt', learner.sac, u_low=learner.u_low, u_high=learner.u_high,
                     system=run.system)
         if recorder is not None:
@@ -416,6 +428,38 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
             plot_reward_curve([row['ret'] for row in history], out / 'reward_curve.png',
                               title=f'{run.system} / {run.learner.mode}')
     return history
+
+
+def check_out_dir(run: RunConfig) -> list[str]:
+    """The run data already in ``run.out_dir`` (see ``run_files.run_data``).
+
+    Raises:
+        RunSetupError: there is some and ``run.resume`` is off.
+    """
+    existing = run_data(run.out_dir)
+    if existing and not run.resume:
+        raise RunSetupError(f"out_dir: {run.out_dir} already holds a run "
+                            f"({', '.join(existing)}); resume it (--resume) or choose another "
+                            'directory')
+    return existing
+
+
+def _restore(path: Path, learner: SafeLearner, env: Any) -> tuple[int, list[dict[str, Any]]]:
+    """Load ``checkpoint.pt`` into ``learner`` and ``env``; (next episode, metrics rows).
+
+    Raises:
+        RunSetupError: the file is refused, damaged or of another run (naming it).
+    """
+    try:
+        checkpoint = load_payload(path)
+        learner.load_state_dict(checkpoint['learner'])
+        env.np_random.bit_generator.state = checkpoint['env_rng']
+        return int(checkpoint['episode']), list(checkpoint['history'])
+    except KeyError as exc:
+        raise RunSetupError(f'resume: {path}: no {exc} entry (not a checkpoint?)') from None
+    except (TypeError, ValueError) as exc:
+        message = str(exc) if str(exc).startswith(str(path)) else f'{path}: {exc}'
+        raise RunSetupError(f'resume: {message}') from None
 
 
 def summarize(history: list[dict[str, Any]]) -> dict[str, Any]:

@@ -1,7 +1,9 @@
 """Export a trained policy alone, and load it back for deployment behind the safety filter.
 
 ``policy.pt`` holds the actor's weights and what is needed to rebuild it (observation size,
-action box, hidden sizes, system name); it carries no critic, optimizer or replay data.
+action box, hidden sizes, system name); it carries no critic, optimizer or replay data. It holds
+tensors and plain data only and is read without running code from it
+(:mod:`rcbf_ros.training.run_files`).
 """
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import torch
 
 from rcbf_ros.learning.networks import SquashedGaussianActor
 from rcbf_ros.learning.sac import SAC
+from rcbf_ros.training.run_files import load_payload, save_payload
 
 
 def save_policy(path: str | Path, sac: SAC, *, u_low: np.ndarray, u_high: np.ndarray,
@@ -23,10 +26,7 @@ def save_policy(path: str | Path, sac: SAC, *, u_low: np.ndarray, u_high: np.nda
                'u_low': np.asarray(u_low, dtype=float).tolist(),
                'u_high': np.asarray(u_high, dtype=float).tolist(),
                'hidden_sizes': list(sac.config.hidden_sizes), 'system': system}
-    tmp = path.with_suffix('.tmp')
-    torch.save(payload, tmp)
-    tmp.replace(path)
-    return path
+    return save_payload(path, payload)
 
 
 class DeterministicPolicy:
@@ -55,11 +55,15 @@ class DeterministicPolicy:
 
 
 def load_policy(path: str | Path) -> DeterministicPolicy:
-    """Read ``policy.pt``; FileNotFoundError / ValueError name the problem."""
+    """Read ``policy.pt``; FileNotFoundError / ValueError name the problem (a file holding
+    more than tensors and plain data is refused unread)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f'policy_path: no file {path}')
-    payload = torch.load(path, weights_only=False)
+    try:
+        payload = load_payload(path)
+    except ValueError as exc:
+        raise type(exc)(f'policy_path: {exc}') from None
     missing = {'actor', 'obs_dim', 'n_u', 'u_low', 'u_high', 'hidden_sizes'} - set(payload)
     if missing:
         raise ValueError(f'policy_path: {path} lacks {sorted(missing)} (not a policy export?)')

@@ -11,6 +11,7 @@ from pathlib import Path
 import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ from rcbf_ros.params import find_config
 from rcbf_ros.ros.loopback import LOOPBACK_CYCLONEDDS_URI
 from rcbf_ros.training.agent import LearnerConfig
 from rcbf_ros.training.loop import RunConfig, train
+from rcbf_ros.training.run_files import load_payload
 
 pytestmark = pytest.mark.integration
 
@@ -70,7 +72,7 @@ def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
     assert (out / 'reward_curve.png').stat().st_size > 1000
     assert 'episode    2/2' in (tmp_path / 'learner.log').read_text()
 
-    node_buffer = torch.load(out / 'checkpoint.pt', weights_only=False)['learner']['buffer']
+    node_buffer = load_payload(out / 'checkpoint.pt')['learner']['buffer']
     history = train(RunConfig(system='unicycle', episodes=2, max_steps=STEPS,
                               out_dir=str(tmp_path / 'inproc'), record_bag=False,
                               learner=LearnerConfig(mode='diff', seed=3, start_steps=START,
@@ -78,7 +80,7 @@ def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
                                                     sac=SACConfig())),
                     log=lambda _: None)
     assert sum(r['steps'] for r in history) == 2 * STEPS
-    ours = torch.load(tmp_path / 'inproc' / 'checkpoint.pt', weights_only=False)
+    ours = load_payload(tmp_path / 'inproc' / 'checkpoint.pt')
     in_process = ours['learner']['buffer']
     size = 2 * STEPS
     assert node_buffer['size'] == in_process['size'] == size
@@ -113,13 +115,13 @@ def test_killed_learner_resumes_from_its_checkpoint(tmp_path, ros_domain_id):
     assert 'resumed at episode 1' in done.stdout + done.stderr
     rows = [json.loads(line) for line in (out / 'metrics.jsonl').read_text().splitlines()]
     assert [r['episode'] for r in rows] == [0, 1]
-    state = torch.load(out / 'checkpoint.pt', weights_only=False)
+    state = load_payload(out / 'checkpoint.pt')
     assert state['episode'] == 2 and state['learner']['buffer']['size'] == 100
 
 
 @pytest.mark.parametrize('key,value,named', [
     ('threads', '0', 'threads'), ('threads', "'two'", 'threads'),
-    ('initial_alpha', '-0.1', 'initial_alpha'),
+    ('initial_alpha', '-0.1', 'initial_alpha'), ('checkpoint_every', '0', 'checkpoint_every'),
     # The params file's max is [2.5, 2.5]; checked at start-up, not at the first step.
     ('policy_limits.min', '[0.0]', 'policy_limits'),
     ('policy_limits.min', '[2.6, 0.0]', 'policy_limits')])
@@ -135,3 +137,89 @@ def test_invalid_setting_exits_2_naming_the_key(tmp_path, ros_domain_id, key, va
         stop(proc)
     assert code == 2, log.read_text()
     assert f'learner: invalid parameters: {named}' in log.read_text()
+
+
+def _learner_exit(tmp_path: Path, ros_domain_id: int, args: list[str]) -> tuple[int, str]:
+    """Exit status and log of a learner node that is expected to stop at start-up."""
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': 'cyclone',
+           'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
+    log = tmp_path / 'learner.log'
+    proc = start('rcbf_ros.ros.learner_node', 'learner', args, env, log)
+    try:
+        code = proc.wait(timeout=60)
+    finally:
+        stop(proc)
+    return code, log.read_text()
+
+
+def _tiny_run(out: Path) -> None:
+    train(RunConfig(system='unicycle', episodes=1, max_steps=30, out_dir=str(out),
+                    record_bag=False,
+                    learner=LearnerConfig(mode='baseline', start_steps=20, update_after=20,
+                                          batch_size=BATCH, sac=SACConfig(hidden_sizes=(8, 8)))),
+          log=lambda _: None)
+
+
+def test_out_dir_of_an_existing_run_is_refused_without_resume(tmp_path, ros_domain_id):
+    out = tmp_path / 'run'
+    _tiny_run(out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    code, log = _learner_exit(tmp_path, ros_domain_id, ['-p', f'out_dir:={out}'])
+    assert code == 2, log
+    assert f'learner: invalid parameters: out_dir: {out} already holds a run (checkpoint.pt, ' \
+        in log and 'set resume:=true to continue it or choose another out_dir' in log
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+class _Mkdir:
+    """Loading this pickle with a general unpickler creates ``path``."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self):
+        return (os.mkdir, (str(self.path),))
+
+
+def test_resume_refuses_a_crafted_checkpoint_without_running_it(tmp_path, ros_domain_id):
+    out = tmp_path / 'run'
+    out.mkdir()
+    marker = tmp_path / 'ran'
+    torch.save({'learner': _Mkdir(marker), 'episode': 1, 'history': []}, out / 'checkpoint.pt')
+    code, log = _learner_exit(tmp_path, ros_domain_id,
+                              ['-p', f'out_dir:={out}', '-p', 'resume:=true'])
+    assert code == 2, log
+    assert (f"learner: invalid parameters: resume: {out / 'checkpoint.pt'}: refused to load: "
+            'it holds more than tensors and plain data (it asks for posix.mkdir)') in log
+    assert not marker.exists()
+
+
+def test_resume_without_a_checkpoint_starts_at_episode_0_keeping_the_rows(tmp_path,
+                                                                          ros_domain_id):
+    """A node killed before its first checkpoint: resume:=true says so, cuts metrics.jsonl
+    back to no rows (the row moves to metrics_superseded.jsonl) and waits for episode 0."""
+    out = tmp_path / 'run'
+    out.mkdir()
+    row = json.dumps({'episode': 0, 'ret': 1.0}) + '\n'
+    (out / 'metrics.jsonl').write_text(row)
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': 'cyclone',
+           'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
+    log = tmp_path / 'learner.log'
+    proc = start('rcbf_ros.ros.learner_node', 'learner',
+                 ['-p', f'out_dir:={out}', '-p', 'resume:=true'], env, log)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and proc.poll() is None:
+            if 'episodes ->' in log.read_text():
+                break
+            time.sleep(0.1)
+    finally:
+        stop(proc)
+    text = log.read_text()
+    assert proc.returncode == 0, text
+    assert f'no checkpoint in {out}: starting at episode 0 (the files there are kept)' in text
+    assert "metrics.jsonl: cut back to the checkpoint's 0 episode(s); 1 later row(s)" in text
+    assert (out / 'metrics.jsonl').read_text() == ''
+    assert (out / 'metrics_superseded.jsonl').read_text() == row
+    # Nothing ran: no summary, checkpoint or policy is written on the way out.
+    assert sorted(p.name for p in out.iterdir()) == ['metrics.jsonl', 'metrics_superseded.jsonl']

@@ -14,6 +14,7 @@ from rcbf_ros.params import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig
 from rcbf_ros.training.loop import make_env, RunConfig, train
 from rcbf_ros.training.models import MODELS
+from rcbf_ros.training.run_files import load_payload
 
 SMALL = dict(start_steps=40, update_after=40, batch_size=32, gp_refit_interval=60,
              sac=SACConfig(hidden_sizes=(32, 32)))
@@ -106,8 +107,8 @@ def test_same_seed_same_result_and_resume_equals_uninterrupted(tmp_path):
         return [{k: v for k, v in r.items() if 'wall' not in k and 'per_s' not in k}
                               for r in rows]  # noqa: E731
     assert strip(a) == strip(b)
-    policy_a = torch.load(tmp_path / 'a' / 'unicycle_modular_0' / 'policy.pt')['actor']
-    policy_b = torch.load(tmp_path / 'b' / 'unicycle_modular_0' / 'policy.pt')['actor']
+    policy_a = load_payload(tmp_path / 'a' / 'unicycle_modular_0' / 'policy.pt')['actor']
+    policy_b = load_payload(tmp_path / 'b' / 'unicycle_modular_0' / 'policy.pt')['actor']
     assert all(torch.equal(policy_a[k], policy_b[k]) for k in policy_a)
     # A different seed gives a different run (the test above could not fail otherwise).
     c = train(small_run(tmp_path / 'c', 'unicycle', 'modular', episodes=2, steps=80, seed=1),
@@ -269,7 +270,7 @@ def test_sigterm_mid_run_keeps_checkpoint_metrics_and_bag(tmp_path):
     assert proc.returncode == 130, output
     done = len((out / 'metrics.jsonl').read_text().splitlines())
     assert 2 <= done < 50
-    checkpoint = torch.load(out / 'checkpoint.pt', weights_only=False)
+    checkpoint = load_payload(out / 'checkpoint.pt')
     assert checkpoint['episode'] == done
     assert (out / 'policy.pt').exists() and (out / 'reward_curve.png').exists()
     from rosbags.highlevel import AnyReader
