@@ -13,7 +13,8 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
-        (os.path.join('share', package_name, 'config'), glob('config/*.yaml')),
+        (os.path.join('share', package_name, 'config'),
+         glob('config/*.yaml') + glob('config/*.json')),
         (os.path.join('share', package_name, 'launch'), glob('launch/*.py')),
     ],
     install_requires=['setuptools'],
@@ -41,6 +42,7 @@ setup(
             'replay = rcbf_ros.ros.replay_node:main',
             'learner = rcbf_ros.ros.learner_node:main',
             'policy = rcbf_ros.ros.policy_node:main',
+            'scene_markers = rcbf_ros.ros.scene_node:main',
             'rcbf_ros = rcbf_ros.cli:main',
             'rcbf_ros_launch = rcbf_ros.launch_local:main',
             'rcbf_ros_refilter = rcbf_ros.refilter:main',

@@ -11,6 +11,7 @@ moves the whole graph)::
     simulator --state--> nominal_controller --cmd_proposed (u, state)--> safety_filter
         ^                                                                      |
         +---------------------------------- cmd_safe (u, u_rl, u_s) ----------+
+    scene_markers: state + diagnostics -> scene_markers (MarkerArray)
     recorder: every topic -> MCAP
 """
 from __future__ import annotations
@@ -68,6 +69,8 @@ SAFETY_FILTER = NodeEntry(name='safety_filter', executable='safety_filter',
                           module='rcbf_ros.ros.safety_filter_node')
 RECORDER = NodeEntry(name='recorder', executable='recorder', module='rcbf_ros.ros.recorder_node',
                      required=False)
+SCENE = NodeEntry(name='scene_markers', executable='scene_markers',
+                  module='rcbf_ros.ros.scene_node', required=False)
 """The entries every launch shares; each launch adds the node that proposes actions."""
 
 
@@ -79,7 +82,7 @@ def _closed_loop(system: str, kind: str, description: str, proposer: NodeEntry,
     """
     return LaunchSetup(name=f'{system}_{kind}', config=f'{system}.yaml',
                        description=description,
-                       nodes=(simulator, SAFETY_FILTER, proposer, RECORDER))
+                       nodes=(simulator, SAFETY_FILTER, proposer, SCENE, RECORDER))
 
 
 def _filter_loop(system: str) -> LaunchSetup:

@@ -32,7 +32,7 @@ LAUNCH_FILES = sorted((REPO / 'launch').glob('*.launch.py'))
 def test_unicycle_filter_table_wires_the_filter_between_controller_and_simulator():
     setup = launch_setup('unicycle_filter')
     assert [n.name for n in setup.nodes] == ['simulator', 'safety_filter', 'nominal_controller',
-                                             'recorder']
+                                             'scene_markers', 'recorder']
     assert (REPO / 'config' / setup.config).is_file()
     assert setup.node('simulator').ends_launch and not setup.node('recorder').required
     with pytest.raises(KeyError, match='simulator'):
@@ -75,7 +75,7 @@ def test_child_commands_and_environment():
     setup = launch_setup('unicycle_filter')
     children = launch_local.child_commands(
         setup, params_file='p.yaml', overrides={'simulator': {'max_episodes': 1}},
-        without=['recorder'], python='py')
+        without=['recorder', 'scene_markers'], python='py')
     assert [c.name for c in children] == ['simulator', 'safety_filter', 'nominal_controller']
     sim = children[0]
     assert sim.command[:3] == ('py', '-m', 'sim_nodes.simulator_node')

@@ -1,0 +1,347 @@
+"""The scene markers as plain data: state + filter geometry + barrier values -> marker dicts.
+
+What the ``scene_markers`` node publishes (:mod:`rcbf_ros.ros.scene_node`), decided here without
+messages so that it is tested without DDS. Each marker is a dict with the fields of a
+visualization_msgs/Marker that the node sets: ``frame_id``, ``ns``, ``id``, ``type`` (the
+Marker constants below), ``position`` (x, y, z), ``orientation`` (quaternion x, y, z, w),
+``scale`` (x, y, z), ``color`` (r, g, b, a) and, where used, ``points`` and ``text``.
+
+The scene, in metres and radians (REP 103: x forward, y left, z up):
+
+- every obstacle: a grey cylinder at its true radius (ns ``obstacles``) and a ring at radius +
+  margin (ns ``margins``) coloured by its barrier's value;
+- every barrier's value as text (ns ``barriers``): at its obstacle, between the cars of its gap,
+  or in a list beside the robot; coloured green for h >= ``caution``, amber for
+  0 <= h < ``caution``, red for h < 0 and grey while unknown;
+- the robot (ns ``robot``): Unicycle, an arrow at (x, y) along theta, and the look-ahead point
+  the obstacle barriers guard when driving forwards (ns ``lookahead``); PVTOL, in the x-z plane
+  (x1 along x, x2 up along z), its body tilted by theta with the thrust arrow, and the safety
+  operator's band (ns ``bands``); Car following, the five cars on the x axis (car 4, the one
+  the filter drives, in blue) and a line per gap (ns ``gaps``); other systems, a sphere at the
+  obstacles' position coordinates;
+- the filter's last diagnostic message above the robot (ns ``status``).
+
+Ids are stable for a given configuration (one per marker and namespace), so each array
+replaces the previous one's markers.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from rcbf_ros.core.config import number
+from rcbf_ros.core.scene import SceneGeometry
+
+ARROW, CUBE, SPHERE, CYLINDER, LINE_STRIP, TEXT_VIEW_FACING = 0, 1, 2, 3, 4, 9
+"""visualization_msgs/Marker type constants used here."""
+OK, WARN, ERROR = 0, 1, 2
+"""diagnostic_msgs/DiagnosticStatus levels."""
+
+GREEN = (0.18, 0.70, 0.30, 1.0)
+AMBER = (1.00, 0.62, 0.00, 1.0)
+RED = (0.88, 0.10, 0.10, 1.0)
+GREY = (0.55, 0.55, 0.55, 1.0)
+OBSTACLE = (0.35, 0.35, 0.40, 0.9)
+ROBOT = (0.12, 0.40, 0.85, 1.0)
+OTHER_CAR = (0.60, 0.60, 0.62, 1.0)
+
+DEFAULT_CAUTION = 0.1
+"""Barrier values below this (and >= 0) are amber."""
+RING_SEGMENTS = 48
+"""Line segments of a margin ring."""
+IDENTITY = (0.0, 0.0, 0.0, 1.0)
+
+Marker = dict[str, Any]
+Color = tuple[float, float, float, float]
+
+SCENE_PARAMETER_DEFAULTS: dict[str, Any] = {
+    'frame_id': 'map', 'rate_hz': 10.0, 'caution_h': DEFAULT_CAUTION}
+"""The scene_markers node's own parameters and their defaults (see :class:`SceneSettings`)."""
+
+
+@dataclass(frozen=True)
+class SceneSettings:
+    """Settings of the scene_markers node besides the filter geometry."""
+
+    frame_id: str
+    """Frame of every marker."""
+    rate_hz: float
+    """Most MarkerArrays a second (one after each new state or diagnostics, no faster)."""
+    caution_h: float
+    """Barrier values in [0, caution_h) are amber, above green."""
+
+
+def scene_settings(params: Mapping[str, Any]) -> SceneSettings:
+    """The node's settings from its flat parameters (defaults:
+    :data:`SCENE_PARAMETER_DEFAULTS`).
+
+    Raises:
+        ValueError: naming the key: an empty or non-string ``frame_id``, ``rate_hz`` not > 0,
+            ``caution_h`` < 0.
+    """
+    frame_id = params.get('frame_id', SCENE_PARAMETER_DEFAULTS['frame_id'])
+    if not isinstance(frame_id, str) or not frame_id.strip():
+        raise ValueError(f'frame_id: expected a frame name, got {frame_id!r}')
+    rate = number(params, 'rate_hz', SCENE_PARAMETER_DEFAULTS['rate_hz'], positive=True)
+    caution = number(params, 'caution_h', SCENE_PARAMETER_DEFAULTS['caution_h'])
+    if caution < 0:
+        raise ValueError(f'caution_h: must be >= 0, got {caution}')
+    return SceneSettings(frame_id=frame_id.strip(), rate_hz=rate, caution_h=caution)
+
+
+def h_colour(h: float, *, caution: float = DEFAULT_CAUTION) -> Color:
+    """Green for h >= caution, amber for 0 <= h < caution, red for h < 0, grey for NaN."""
+    if h is None or not math.isfinite(h):
+        return GREY
+    if h < 0.0:
+        return RED
+    return AMBER if h < caution else GREEN
+
+
+def h_text(name: str, h: float) -> str:
+    """``<name>  h = +0.123`` (``h = ?`` while the value is unknown)."""
+    value = f'{h:+.3f}' if h is not None and math.isfinite(h) else '?'
+    return f'{name}  h = {value}'
+
+
+def barrier_values(values: Mapping[str, str]) -> dict[str, float]:
+    """{barrier: h} from a filter diagnostic's key/values (``h.<barrier>``; unreadable: NaN)."""
+    out = {}
+    for key, text in values.items():
+        if key.startswith('h.') and len(key) > 2:
+            try:
+                out[key[2:]] = float(text)
+            except (TypeError, ValueError):
+                out[key[2:]] = math.nan
+    return out
+
+
+def _marker(*, frame_id: str, ns: str, id: int, type: int,
+            position: Sequence[float] = (0.0, 0.0, 0.0),
+            orientation: Sequence[float] = IDENTITY, scale: Sequence[float] = (1.0, 1.0, 1.0),
+            color: Sequence[float] = GREY, points: Sequence[Sequence[float]] | None = None,
+            text: str = '') -> Marker:
+    marker: Marker = {
+        'frame_id': frame_id, 'ns': ns, 'id': int(id), 'type': int(type),
+        'position': tuple(float(v) for v in position),
+        'orientation': tuple(float(v) for v in orientation),
+        'scale': tuple(float(v) for v in scale), 'color': tuple(float(v) for v in color),
+    }
+    if points is not None:
+        marker['points'] = [tuple(float(v) for v in p) for p in points]
+    if text:
+        marker['text'] = text
+    return marker
+
+
+def _yaw(theta: float) -> tuple[float, float, float, float]:
+    """Quaternion of a rotation by theta about z."""
+    return 0.0, 0.0, math.sin(theta / 2.0), math.cos(theta / 2.0)
+
+
+def _pitch(angle: float) -> tuple[float, float, float, float]:
+    """Quaternion of a rotation by angle about y."""
+    return 0.0, math.sin(angle / 2.0), 0.0, math.cos(angle / 2.0)
+
+
+_CYLINDER_ALONG_Y = (math.sin(math.pi / 4.0), 0.0, 0.0, math.cos(math.pi / 4.0))
+"""A cylinder's axis (its z) turned onto y: discs drawn in the x-z plane."""
+
+
+class _Frame:
+    """Where the system's plane lies in the scene: x-y, or x-z for the PVTOL (z up)."""
+
+    def __init__(self, geometry: SceneGeometry) -> None:
+        self.vertical = geometry.system == 'pvtol'
+        self.unit = 4.0 if geometry.system == 'car_following' else 1.0
+        """Size of labels and robot parts relative to the Unicycle's arena."""
+
+    def point(self, a: float, b: float, up: float = 0.0) -> tuple[float, float, float]:
+        """The scene point of plane coordinates (a, b), ``up`` out of the plane (toward the
+        viewer: +z for the x-y plane, -y for the x-z plane)."""
+        return (a, -up, b) if self.vertical else (a, b, up)
+
+
+def _h(h: Mapping[str, float], name: str) -> float:
+    value = h.get(name, math.nan)
+    return float(value) if value is not None else math.nan
+
+
+def _obstacle_markers(geometry: SceneGeometry, h: Mapping[str, float], frame: _Frame, *,
+                      frame_id: str, caution: float) -> list[Marker]:
+    out = []
+    height = 0.3
+    orientation = _CYLINDER_ALONG_Y if frame.vertical else IDENTITY
+    angles = np.linspace(0.0, 2.0 * math.pi, RING_SEGMENTS + 1)
+    for i, disc in enumerate(geometry.obstacles):
+        out.append(_marker(frame_id=frame_id, ns='obstacles', id=i, type=CYLINDER,
+                           position=frame.point(disc.x, disc.y, height / 2.0),
+                           orientation=orientation,
+                           scale=(2.0 * disc.radius, 2.0 * disc.radius, height), color=OBSTACLE))
+        value = _h(h, disc.name)
+        ring = disc.radius + disc.margin
+        colour = h_colour(value, caution=caution)
+        out.append(_marker(
+            frame_id=frame_id, ns='margins', id=i, type=LINE_STRIP, scale=(0.02, 0.0, 0.0),
+            color=(*colour[:3], 0.6),
+            points=[frame.point(disc.x + ring * math.cos(a), disc.y + ring * math.sin(a), 0.01)
+                    for a in angles]))
+    return out
+
+
+def _unicycle_markers(geometry: SceneGeometry, state: np.ndarray, h: Mapping[str, float],
+                      frame: _Frame, *, frame_id: str, caution: float) -> list[Marker]:
+    x, y = geometry.position(state)
+    theta = float(state[geometry.heading_index]) if geometry.heading_index is not None else 0.0
+    out = [_marker(frame_id=frame_id, ns='robot', id=0, type=ARROW,
+                   position=frame.point(x, y, 0.05), orientation=_yaw(theta),
+                   scale=(0.35, 0.08, 0.08), color=ROBOT)]
+    point = geometry.guarded_point(state)
+    if point is not None:
+        worst = min((_h(h, d.name) for d in geometry.obstacles), default=math.nan)
+        out.append(_marker(frame_id=frame_id, ns='lookahead', id=0, type=SPHERE,
+                           position=frame.point(point[0], point[1], 0.05),
+                           scale=(0.06, 0.06, 0.06), color=h_colour(worst, caution=caution)))
+    return out
+
+
+def _pvtol_markers(geometry: SceneGeometry, state: np.ndarray, h: Mapping[str, float],
+                   frame: _Frame, *, frame_id: str, caution: float) -> list[Marker]:
+    x1, x2 = geometry.position(state)
+    theta, thrust = float(state[4]), float(state[5])
+    body = frame.point(x1, x2)
+    up = (-math.sin(theta), 0.0, math.cos(theta))  # the thrust direction (x1_ddot ~ -sin)
+    length = 0.3 * thrust
+    out = [
+        _marker(frame_id=frame_id, ns='robot', id=0, type=CUBE, position=body,
+                orientation=_pitch(-theta), scale=(0.5, 0.1, 0.06), color=ROBOT),
+        _marker(frame_id=frame_id, ns='robot', id=1, type=ARROW, scale=(0.03, 0.07, 0.07),
+                color=ROBOT, points=[body, tuple(b + length * u for b, u in zip(body, up))]),
+    ]
+    operator = next((b for b in geometry.bands if b.center_index is not None), None)
+    if operator is not None and operator.center_index < state.size:
+        worst = min((_h(h, name) for name in operator.names), default=math.nan)
+        vertical = geometry.band('arena_y')
+        low, high = ((vertical.center - vertical.half_width, vertical.center + vertical.half_width)
+                     if vertical is not None else (-3.0, 3.0))
+        x_h = float(state[operator.center_index])
+        out.append(_marker(frame_id=frame_id, ns='bands', id=0, type=CUBE,
+                           position=frame.point(x_h, (low + high) / 2.0, -0.05),
+                           scale=(2.0 * operator.half_width, 0.02, high - low),
+                           color=(*h_colour(worst, caution=caution)[:3], 0.2)))
+    return out
+
+
+def _car_markers(geometry: SceneGeometry, state: np.ndarray, h: Mapping[str, float],
+                 frame: _Frame, *, frame_id: str, caution: float) -> list[Marker]:
+    positions = state[0::2]
+    # the car in every gap is the one the filter drives
+    driven = set.intersection(*({gap.a, gap.b} for gap in geometry.gaps)) \
+        if geometry.gaps else set()
+    out = []
+    for i, p in enumerate(positions):
+        colour = ROBOT if 2 * i in driven else OTHER_CAR
+        out.append(_marker(frame_id=frame_id, ns='robot', id=i, type=CUBE,
+                           position=(float(p), 0.0, 0.5), scale=(1.5, 1.0, 1.0), color=colour))
+    for i, gap in enumerate(geometry.gaps):
+        pa, pb = float(state[gap.a]), float(state[gap.b])
+        colour = h_colour(_h(h, gap.name), caution=caution)
+        out.append(_marker(frame_id=frame_id, ns='gaps', id=i, type=LINE_STRIP,
+                           scale=(0.15, 0.0, 0.0), color=colour,
+                           points=[(pa, 0.0, 1.3), (pb, 0.0, 1.3)]))
+    return out
+
+
+def _robot_markers(geometry: SceneGeometry, state: np.ndarray, h: Mapping[str, float],
+                   frame: _Frame, *, frame_id: str, caution: float) -> list[Marker]:
+    draw = {'unicycle': _unicycle_markers, 'pvtol': _pvtol_markers,
+            'car_following': _car_markers}.get(geometry.system)
+    if draw is not None:
+        return draw(geometry, state, h, frame, frame_id=frame_id, caution=caution)
+    if not geometry.obstacles:
+        return []
+    x, y = geometry.position(state)
+    return [_marker(frame_id=frame_id, ns='robot', id=0, type=SPHERE,
+                    position=frame.point(x, y, 0.05), scale=(0.15, 0.15, 0.15), color=ROBOT)]
+
+
+def _anchor(geometry: SceneGeometry, state: np.ndarray | None) -> tuple[float, float]:
+    """Plane coordinates the list of barrier values and the status hang from."""
+    if state is None:
+        return 0.0, 0.0
+    if geometry.system == 'car_following':
+        return float(state[6]) if state.size > 6 else 0.0, 0.0
+    return geometry.position(state)
+
+
+def _text_markers(geometry: SceneGeometry, state: np.ndarray | None, h: Mapping[str, float],
+                  frame: _Frame, *, frame_id: str, caution: float,
+                  status: tuple[int, str] | None) -> list[Marker]:
+    size = 0.12 * frame.unit
+    placed: dict[str, tuple[float, float, float]] = {
+        disc.name: frame.point(disc.x, disc.y, 0.45) for disc in geometry.obstacles}
+    if state is not None:
+        for gap in geometry.gaps:
+            placed[gap.name] = ((float(state[gap.a]) + float(state[gap.b])) / 2.0, 0.0, 2.0)
+    a, b = _anchor(geometry, state)
+    listed = [name for name in geometry.barrier_names if name not in placed]
+    out = []
+    for i, name in enumerate(geometry.barrier_names):
+        value = _h(h, name)
+        if name in placed:
+            position = placed[name]
+        elif frame.vertical:  # beside the drone, one line per barrier going down
+            position = frame.point(a + 0.9, b + 0.5 - 1.4 * size * listed.index(name), 0.1)
+        else:
+            position = frame.point(a + 0.9 * frame.unit,
+                                   b + 0.5 * frame.unit - 1.4 * size * listed.index(name), 0.4)
+        out.append(_marker(frame_id=frame_id, ns='barriers', id=i, type=TEXT_VIEW_FACING,
+                           position=position, scale=(0.0, 0.0, size),
+                           color=h_colour(value, caution=caution), text=h_text(name, value)))
+    if status is not None:
+        level, message = status
+        colour = RED if level >= ERROR else AMBER if level == WARN else GREY
+        position = (frame.point(a, b + 0.45, 0.1) if frame.vertical
+                    else frame.point(a, b, 0.6 * frame.unit + 2.0 * size))
+        out.append(_marker(frame_id=frame_id, ns='status', id=0, type=TEXT_VIEW_FACING,
+                           position=position, scale=(0.0, 0.0, size), color=colour,
+                           text=message[:120]))
+    return out
+
+
+def scene_markers(*, geometry: SceneGeometry, state: Sequence[float] | np.ndarray | None,
+                  h: Mapping[str, float], frame_id: str = 'map',
+                  caution: float = DEFAULT_CAUTION,
+                  status: tuple[int, str] | None = None) -> list[Marker]:
+    """Every marker of the scene (see the module docstring).
+
+    Args:
+        geometry: the filter's geometry (:func:`rcbf_ros.core.scene.scene_geometry`).
+        state: (n_x,) the latest state, or None (obstacles and barrier values only).
+        h: barrier name -> latest value from the filter's diagnostics (absent: unknown).
+        frame_id: the frame every marker is given in.
+        caution: barrier values in [0, caution) are amber.
+        status: (level, message) of the filter's last diagnostic, or None.
+
+    Raises:
+        ValueError: ``state`` has the wrong length or a NaN/inf entry, or ``frame_id`` is empty.
+    """
+    if not frame_id:
+        raise ValueError('frame_id: must not be empty')
+    array = None
+    if state is not None:
+        array = np.asarray(state, dtype=np.float64).reshape(-1)
+        if array.size != geometry.n_x:
+            raise ValueError(f'state: expected {geometry.n_x} values, got {array.size}')
+        if not np.all(np.isfinite(array)):
+            raise ValueError('state: contains NaN or inf')
+    frame = _Frame(geometry)
+    out = _obstacle_markers(geometry, h, frame, frame_id=frame_id, caution=caution)
+    if array is not None:
+        out += _robot_markers(geometry, array, h, frame, frame_id=frame_id, caution=caution)
+    out += _text_markers(geometry, array, h, frame, frame_id=frame_id, caution=caution,
+                         status=status)
+    return out

@@ -1,0 +1,171 @@
+"""scene_markers: the safety problem as a MarkerArray for RViz and Foxglove.
+
+    ros2 run rcbf_ros scene_markers --ros-args --params-file config/unicycle.yaml
+
+Topics (relative, so remappable):
+
+- ``state`` (sub, std_msgs/Float64MultiArray): its ``state`` section, else its first section,
+  as the safety_filter reads it;
+- ``diagnostics`` (sub, diagnostic_msgs/DiagnosticArray): the filter's; the ``h.<barrier>``
+  values and the message of the status that carries them;
+- ``scene_markers`` (pub, visualization_msgs/MarkerArray): obstacles, margins, the robot, the
+  guarded look-ahead point and every barrier's value (:mod:`rcbf_ros.ros.scene_logic`), at most
+  ``rate_hz`` times a second and only after a new state or new diagnostics.
+
+Parameters: the filter keys of the params file (``system``, ``obstacles.*``, ``bands.*``,
+``gaps.*``, ...), read and checked as the filter reads them
+(:func:`rcbf_ros.core.scene.scene_geometry`; the shipped configs keep them under ``/**``), and
+the node's own :data:`rcbf_ros.ros.scene_logic.SCENE_PARAMETER_DEFAULTS`: ``frame_id``
+(``map``), ``rate_hz`` (10.0), ``caution_h`` (0.1: barrier values in [0, caution_h) are amber).
+
+A state sample that does not decode, or has the wrong length or a NaN, is skipped with a
+warning (at most one a second per kind); the scene keeps the last good state. So is a
+diagnostics sample that does not decode.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from rcbf_ros.core.scene import scene_geometry
+from rcbf_ros.ros import conversions
+from rcbf_ros.ros import scene_logic as logic
+from rcbf_ros.ros.filter_logic import collect_parameters, LogThrottle, state_from_sections
+from rcbf_ros.ros.node_main import run_node
+from rcbf_ros.ros.runtime import deserialize_message, get_message, Node, QoSProfile, USING_RCLPY
+
+NODE_NAME = 'scene_markers'
+MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
+DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+
+
+def marker_array(markers: Sequence[Mapping[str, Any]], *, stamp: Any = None) -> Any:
+    """Marker dicts (:func:`rcbf_ros.ros.scene_logic.scene_markers`) -> a MarkerArray."""
+    marker_cls = get_message('visualization_msgs/msg/Marker')
+    point_cls = get_message('geometry_msgs/msg/Point')
+    out = get_message(MARKER_ARRAY)()
+    messages = []
+    for item in markers:
+        msg = marker_cls()
+        msg.header.frame_id = item['frame_id']
+        if stamp is not None:
+            msg.header.stamp = stamp
+        msg.ns, msg.id, msg.type, msg.action = item['ns'], item['id'], item['type'], 0
+        position, orientation = msg.pose.position, msg.pose.orientation
+        position.x, position.y, position.z = item['position']
+        orientation.x, orientation.y, orientation.z, orientation.w = item['orientation']
+        msg.scale.x, msg.scale.y, msg.scale.z = item['scale']
+        msg.color.r, msg.color.g, msg.color.b, msg.color.a = item['color']
+        if 'points' in item:
+            msg.points = [point_cls(x=p[0], y=p[1], z=p[2]) for p in item['points']]
+        msg.text = item.get('text', '')
+        messages.append(msg)
+    out.markers = messages
+    return out
+
+
+def _level(status: Any) -> int:
+    level = status.level
+    return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
+
+
+class SceneNode(Node):
+    """Parameters -> scene geometry; state and diagnostics in, MarkerArray out."""
+
+    def __init__(self, node_name: str = NODE_NAME) -> None:
+        """Declare and check every parameter, then create the endpoints.
+
+        Raises:
+            ValueError: a parameter is invalid (the message names the key).
+        """
+        super().__init__(node_name, automatically_declare_parameters_from_overrides=True)
+        descriptor = None
+        if USING_RCLPY:  # untyped, so that rate_hz:=10 is taken as well as 10.0
+            descriptor = get_message('rcl_interfaces/msg/ParameterDescriptor')(
+                dynamic_typing=True)
+        for name, default in logic.SCENE_PARAMETER_DEFAULTS.items():
+            if not self.has_parameter(name):
+                if descriptor is None:
+                    self.declare_parameter(name, default)
+                else:
+                    self.declare_parameter(name, default, descriptor)
+        params = collect_parameters({name: parameter.value for name, parameter
+                                     in self.get_parameters_by_prefix('').items()})
+        try:
+            self.settings = logic.scene_settings(params)
+            self.geometry = scene_geometry(params)
+        except ValueError as exc:
+            self.get_logger().error(f'invalid parameters: {exc}')
+            raise
+        self.state: np.ndarray | None = None
+        self.h: dict[str, float] = {}
+        self.status: tuple[int, str] | None = None
+        self.published = 0
+        self._changed = False
+        self._throttle = LogThrottle(1.0)
+        qos = QoSProfile(depth=10)
+        self._state_type = get_message(conversions.FLOAT64_MULTIARRAY)
+        self._publisher = self.create_publisher(get_message(MARKER_ARRAY), 'scene_markers', qos)
+        self.create_subscription(self._state_type, 'state', self._on_state, qos, raw=True)
+        self._diagnostics_type = get_message(DIAGNOSTIC_ARRAY)
+        self.create_subscription(self._diagnostics_type, 'diagnostics', self._on_diagnostics,
+                                 qos, raw=True)
+        self.create_timer(1.0 / self.settings.rate_hz, self._on_timer)
+        self.get_logger().info(
+            f'{self.geometry.system}: {len(self.geometry.obstacles)} obstacles, '
+            f'{len(self.geometry.barrier_names)} barriers, frame {self.settings.frame_id!r}')
+
+    def _on_state(self, data: bytes) -> None:
+        try:
+            msg = deserialize_message(data, self._state_type)
+        except Exception as exc:  # any decoder error means "not a state sample"
+            self._warn('state', f'undecodable state sample skipped: {type(exc).__name__}')
+            return
+        try:
+            sections = conversions.msg_to_sections(msg, default_label='state')
+            self.state = state_from_sections(sections=sections, n_x=self.geometry.n_x)
+        except ValueError as exc:
+            self._warn('state', f'state skipped: {exc}')
+            return
+        self._changed = True
+
+    def _on_diagnostics(self, data: bytes) -> None:
+        try:
+            msg = deserialize_message(data, self._diagnostics_type)
+        except Exception as exc:  # any decoder error means "not a diagnostics sample"
+            self._warn('diagnostics', f'undecodable diagnostics sample skipped: '
+                       f'{type(exc).__name__}')
+            return
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            h = logic.barrier_values(values)
+            if h:
+                self.h, self.status = h, (_level(status), str(status.message))
+                self._changed = True
+
+    def _on_timer(self) -> None:
+        if not self._changed:
+            return
+        self._changed = False
+        markers = logic.scene_markers(
+            geometry=self.geometry, state=self.state, h=self.h,
+            frame_id=self.settings.frame_id, caution=self.settings.caution_h,
+            status=self.status)
+        self._publisher.publish(marker_array(markers, stamp=self.get_clock().now().to_msg()))
+        self.published += 1
+
+    def _warn(self, key: str, text: str) -> None:
+        if self._throttle.should_log(key=key, now_ns=time.monotonic_ns()):
+            self.get_logger().warning(text)
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Run the node until Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
+    return run_node(NODE_NAME, SceneNode, args, setup_errors=(ValueError,))
+
+
+if __name__ == '__main__':
+    sys.exit(main())

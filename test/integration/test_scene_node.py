@@ -1,0 +1,148 @@
+"""The scene_markers node as a separate process over real Cyclone DDS (loopback).
+
+- a state and the filter's diagnostics in: a MarkerArray out, in the configured frame, with the
+  robot at that state and the margin rings coloured by the reported barrier values;
+- invalid parameters: the process exits with status 2 and names the key.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import threading
+import time
+from typing import Any
+
+from dds_harness import REPO, spawn  # this directory: on sys.path for pytest
+import pytest
+
+UNICYCLE = str(REPO / 'config' / 'unicycle.yaml')
+WAIT_S = 60.0
+
+pytestmark = pytest.mark.integration
+
+
+@pytest.fixture
+def domain_id(ros_domain_id: int) -> int:
+    """ROS_DOMAIN_ID when the environment sets one (the runner's own domain), else the
+    test's own."""
+    return int(os.environ.get('ROS_DOMAIN_ID') or ros_domain_id)
+
+
+def _stop(process: subprocess.Popen) -> str:
+    if process.poll() is None:
+        process.send_signal(2)
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+    return process.stdout.read() + process.stderr.read()
+
+
+class _Probe:
+    """An in-process node: publishes state and diagnostics, keeps every MarkerArray."""
+
+    def __init__(self, domain_id: int) -> None:
+        from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
+        rclpy.init(args=[], domain_id=domain_id)
+        self.rclpy = rclpy
+        self.node = Node('scene_probe')
+        qos = QoSProfile(depth=100)
+        self.arrays: list[Any] = []
+        self.lock = threading.Lock()
+        self.node.create_subscription(get_message('visualization_msgs/msg/MarkerArray'),
+                                      '/scene_markers', self._store, qos)
+        self.state_pub = self.node.create_publisher(
+            get_message('std_msgs/msg/Float64MultiArray'), '/state', qos)
+        self.diagnostics_pub = self.node.create_publisher(
+            get_message('diagnostic_msgs/msg/DiagnosticArray'), '/diagnostics', qos)
+        self._running = True
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _store(self, msg: Any) -> None:
+        with self.lock:
+            self.arrays.append(msg)
+
+    def _spin(self) -> None:
+        while self._running and self.rclpy.ok():
+            self.rclpy.spin_once(self.node, timeout_sec=0.05)
+
+    def publish_until(self, publish, accept, process: subprocess.Popen) -> Any:
+        """Publish (again every 0.3 s: the first samples may precede the match) until a
+        MarkerArray that ``accept`` takes arrives; return it."""
+        deadline = time.monotonic() + WAIT_S
+        seen = 0
+        while time.monotonic() < deadline:
+            assert process.poll() is None, _stop(process)
+            publish()
+            time.sleep(0.3)
+            with self.lock:
+                fresh, seen = self.arrays[seen:], len(self.arrays)
+            for msg in fresh:
+                if accept(msg):
+                    return msg
+        raise AssertionError(f'no accepted MarkerArray within {WAIT_S} s ({seen} arrived)')
+
+    def close(self) -> None:
+        self._running = False
+        self._thread.join(timeout=5)
+        self.node.destroy_node()
+        self.rclpy.try_shutdown()
+
+
+def _by_ns(msg: Any, ns: str) -> list[Any]:
+    return sorted((m for m in msg.markers if m.ns == ns), key=lambda m: m.id)
+
+
+def test_state_and_diagnostics_in_markers_out(domain_id):
+    from rcbf_ros.ros.conversions import diagnostic_status, sections_to_msg
+    from rcbf_ros.ros.runtime import get_message
+    from rcbf_ros.ros.scene_logic import AMBER, GREEN, RED
+    process = spawn(domain_id, '-m', 'rcbf_ros.ros.scene_node', '--ros-args',
+                    '--params-file', UNICYCLE, '-p', 'frame_id:=odom', '-p', 'rate_hz:=20.0')
+    probe = _Probe(domain_id)
+    try:
+        state = sections_to_msg({'state': [-1.0, 0.5, 0.25]})
+        first = probe.publish_until(
+            lambda: probe.state_pub.publish(state),
+            lambda msg: any(m.ns == 'robot' for m in msg.markers), process)
+        diagnostics = get_message('diagnostic_msgs/msg/DiagnosticArray')()
+        diagnostics.status = [diagnostic_status(
+            name='safety_filter', level=0, message='filtering',
+            values={'h.obstacle_0': -0.5, 'h.obstacle_1': 0.05, 'h.obstacle_2': 2.0,
+                    'h.obstacle_3': 2.0, 'h.obstacle_4': 2.0, 'min_h': -0.5})]
+        coloured = probe.publish_until(
+            lambda: probe.diagnostics_pub.publish(diagnostics),
+            lambda msg: any(m.ns == 'status' for m in msg.markers), process)
+    finally:
+        probe.close()
+        output = _stop(process)
+    assert 'unicycle: 5 obstacles, 5 barriers' in output, output[-2000:]
+    for msg in (first, coloured):
+        assert {m.header.frame_id for m in msg.markers} == {'odom'}
+        assert len(_by_ns(msg, 'obstacles')) == 5 and len(_by_ns(msg, 'margins')) == 5
+        (arrow,) = _by_ns(msg, 'robot')
+        assert (arrow.pose.position.x, arrow.pose.position.y) == (-1.0, 0.5)
+    rings = [m.color for m in _by_ns(coloured, 'margins')]
+    for colour, expected in zip(rings, (RED, AMBER, GREEN)):
+        assert (colour.r, colour.g, colour.b) == pytest.approx(expected[:3], abs=1e-6)
+    texts = _by_ns(coloured, 'barriers')
+    assert texts[0].text == 'obstacle_0  h = -0.500'
+    assert _by_ns(coloured, 'status')[0].text == 'filtering'
+
+
+@pytest.mark.parametrize('args, key', [
+    (['--params-file', UNICYCLE, '-p', 'caution_h:=-1.0'], 'caution_h: must be >= 0'),
+    (['--params-file', UNICYCLE, '-p', 'obstacles.y:=[0.0]'], 'obstacles.y'),
+    ([], 'system: required'),
+])
+def test_invalid_parameters_exit_2_naming_the_key(domain_id, args, key):
+    process = spawn(domain_id, '-m', 'rcbf_ros.ros.scene_node', '--ros-args', *args)
+    try:
+        process.wait(timeout=WAIT_S)
+    finally:
+        output = _stop(process)
+    assert process.returncode == 2, output[-2000:]
+    assert f'scene_markers: invalid parameters: {key}' in output
+    assert 'Traceback' not in output
