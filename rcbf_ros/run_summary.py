@@ -1,21 +1,40 @@
-"""Print what a training run left behind: returns, violations, speed, the bag and the plot.
+"""Print what a training run left behind: returns, violations, speed, the bag and the plots.
 
-    python -m rcbf_ros.run_summary bags/<run>
+    python -m rcbf_ros.run_summary bags/<run> [--params-file my_layout.yaml]
 
 Reads ``<run>/learner/summary.json`` and ``metrics.jsonl`` (written by the learner node or
 ``rcbf_ros train``) and the MCAP bag under ``<run>/bag``. A bag whose recorder was killed is
 recovered first (``rcbf_ros bag recover``: complete files from its whole chunks, the originals
 kept as ``*.mcap.orig``), so that every bag reader accepts it.
+
+From the bag it draws ``<run>/trajectories.png`` (:func:`rcbf_ros.plots.plot_trajectories`):
+the states of ``/sim/step`` (else ``/state``, split at the ``/episode`` events), the steps whose
+``/cmd_safe`` carries a correction |u_S| > 1e-7, over the layout of the params file (default:
+the packaged ``config/<system>.yaml`` of the system the bag's episode events name), and prints
+the closest approach to an obstacle. Episodes on random layouts are not drawn (one picture
+would mix layouts).
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
 import json
+import math
 from pathlib import Path
 import sys
+from typing import Any
+
+import numpy as np
+
+STEP_TOPIC = '/sim/step'
+STATE_TOPIC = '/state'
+COMMAND_TOPIC = '/cmd_safe'
+EPISODE_TOPIC = '/episode'
+ANSWER_SEARCH = 50
+"""How far back (states) a command's ``state`` section is looked up among its episode's."""
 
 
-def summarize_run(run: Path) -> str:
-    """The summary text for the run directory ``run``."""
+def summarize_run(run: Path, *, params_file: str | None = None) -> str:
+    """The summary text for the run directory ``run`` (drawing ``trajectories.png``)."""
     lines = [f'run: {run}']
     learner = run / 'learner'
     summary_path = learner / 'summary.json'
@@ -50,15 +69,186 @@ def summarize_run(run: Path) -> str:
         lines.append(f'bag: {bag_dir} ({info.message_count} messages, {seconds:.1f} s, {state})')
         for name, topic in sorted(info.topics.items()):
             lines.append(f'  {name:28s} {topic.message_count:7d}')
+        lines.append(trajectory_line(bag_dir, run / 'trajectories.png', params_file=params_file))
     return '\n'.join(lines)
 
 
+class _Episodes:
+    """Episodes being collected from a bag, in the order they appear."""
+
+    def __init__(self) -> None:
+        self.states: dict[int, list[np.ndarray]] = {}
+        self.corrected: dict[int, list[bool]] = {}
+        self.current: int | None = None
+
+    def open(self, episode: int) -> None:
+        if episode not in self.states:
+            self.states[episode], self.corrected[episode] = [], []
+        self.current = episode
+
+    def add(self, state: np.ndarray) -> None:
+        assert self.current is not None
+        states = self.states[self.current]
+        if states and np.array_equal(states[-1], state):
+            return  # the simulator published the pending state again
+        states.append(state)
+        self.corrected[self.current].append(False)
+
+    def mark(self, answered: np.ndarray | None) -> None:
+        """The command answering ``answered`` (None: the latest state) was corrected."""
+        if self.current is None or not self.states[self.current]:
+            return
+        states = self.states[self.current]
+        if answered is None:
+            self.corrected[self.current][-1] = True
+            return
+        for index in range(len(states) - 1, max(len(states) - 1 - ANSWER_SEARCH, -1), -1):
+            if np.array_equal(states[index], answered):
+                self.corrected[self.current][index] = True
+                return
+
+    def paths(self) -> list[Any]:
+        from rcbf_ros.plots import EpisodePath
+        return [EpisodePath(episode, np.array(states), np.array(self.corrected[episode]))
+                for episode, states in self.states.items() if len(states) >= 2]
+
+
+def _sections(item: Any) -> dict[str, np.ndarray] | None:
+    """The labelled sections of a recorded Float64MultiArray (None: not one)."""
+    from rcbf_ros.bag.messages import deserialize_message
+    from rcbf_ros.ros.conversions import msg_to_sections
+    try:
+        return msg_to_sections(deserialize_message(item.data, item.type_name),
+                               default_label='state' if item.topic == STATE_TOPIC else 'u')
+    except Exception:  # a sample of another type or layout: not part of a trajectory
+        return None
+
+
+def _vector(values: Any, n_x: int) -> np.ndarray | None:
+    array = np.asarray(values, dtype=np.float64).reshape(-1) if values is not None else None
+    if array is None or array.size != n_x or not np.all(np.isfinite(array)):
+        return None
+    return array
+
+
+def _correction(sections: dict[str, np.ndarray]) -> float:
+    """|u_S| of a recorded command (``u_s``, else ``u - u_rl``; NaN when it carries neither)."""
+    if 'u_s' in sections:
+        return float(np.linalg.norm(sections['u_s']))
+    if 'u' in sections and 'u_rl' in sections and sections['u'].size == sections['u_rl'].size:
+        return float(np.linalg.norm(sections['u'] - sections['u_rl']))
+    return math.nan
+
+
+def episode_events(items: Iterable[Any]) -> list[dict[str, Any]]:
+    """The JSON objects of recorded ``/episode`` messages (others skipped)."""
+    from rcbf_ros.bag.messages import deserialize_message
+    events = []
+    for item in items:
+        try:
+            event = json.loads(deserialize_message(item.data, item.type_name).data)
+        except Exception:  # not a JSON string message
+            continue
+        if isinstance(event, dict):
+            events.append(event)
+    return events
+
+
+def episode_paths(bag: Path, *, n_x: int) -> list[Any]:
+    """The episodes recorded in ``bag`` as :class:`rcbf_ros.plots.EpisodePath`, in order.
+
+    States come from ``/sim/step`` (sections ``state`` and ``episode`` in one message per step,
+    so no cross-topic ordering is needed) when the bag has it, else from ``/state``,
+    starting a new episode at each ``/episode`` start event or the first state after an end
+    event (numbered from 1 where no start event names it). A state equal to the one before
+    (published again while the simulator waited for a command) is kept once. A ``/cmd_safe``
+    with |u_S| > 1e-7 marks the state its ``state`` section names (else the latest one) as
+    corrected. Samples of the wrong length or with NaN are skipped, and so is an episode
+    without a step (a reset the run ended at).
+    """
+    from rcbf_ros.bag import bag_info, read_bag
+    from rcbf_ros.plots import CORRECTION_THRESHOLD
+    by_steps = STEP_TOPIC in bag_info(bag).topics
+    episodes = _Episodes()
+    ended, counter = True, 0
+    topics = [STEP_TOPIC if by_steps else STATE_TOPIC, COMMAND_TOPIC, EPISODE_TOPIC]
+    for item in read_bag(bag, topics=topics):
+        if item.topic == EPISODE_TOPIC:
+            if not by_steps:
+                for event in episode_events([item]):
+                    if event.get('event') == 'start' and isinstance(event.get('episode'), int):
+                        counter = event['episode']
+                        episodes.open(counter)
+                        ended = False
+                    elif event.get('event') == 'end':
+                        ended = True
+            continue
+        sections = _sections(item)
+        if sections is None:
+            continue
+        if item.topic == COMMAND_TOPIC:
+            if _correction(sections) > CORRECTION_THRESHOLD:
+                episodes.mark(_vector(sections.get('state'), n_x) if 'state' in sections
+                              else None)
+            continue
+        state = _vector(sections.get('state', next(iter(sections.values()))), n_x)
+        if state is None:
+            continue
+        if by_steps:
+            try:
+                episodes.open(int(sections['episode'][0]))
+            except (KeyError, IndexError, ValueError):
+                continue
+        elif ended:
+            counter += 1
+            episodes.open(counter)
+            ended = False
+        episodes.add(state)
+    return episodes.paths()
+
+
+def trajectory_line(bag: Path, png: Path, *, params_file: str | None = None) -> str:
+    """Draw the bag's trajectories into ``png``; one line saying where, or why not."""
+    from rcbf_ros.bag import BagError, read_bag
+    from rcbf_ros.core.scene import scene_geometry
+    from rcbf_ros.params import find_config, load_params
+    from rcbf_ros.plots import plot_trajectories
+    try:
+        events = episode_events(read_bag(bag, topics=[EPISODE_TOPIC]))
+        starts = [e for e in events if e.get('event') == 'start']
+        if any(e.get('layout_seed') is not None for e in starts):
+            return 'trajectories: not drawn: the episodes ran on random layouts'
+        system = next((e['system'] for e in starts if isinstance(e.get('system'), str)), None)
+        if params_file is None and system is None:
+            return 'trajectories: not drawn: no /episode start event names the system'
+        config = find_config(params_file or system)
+        geometry = scene_geometry(load_params(config, 'safety_filter'))
+        simulator = load_params(config, 'simulator')
+        paths = episode_paths(bag, n_x=geometry.n_x)
+        if not paths:
+            return f'trajectories: not drawn: no state of {geometry.n_x} values in the bag'
+        goal = simulator.get('goal') if geometry.system in ('unicycle', 'pvtol') else None
+        picture = plot_trajectories(
+            paths, geometry, png, goal=goal, dt=simulator.get('dt'),
+            true_gap=simulator.get('collision_gap'),
+            title=f'{geometry.system}: {len(paths)} episodes, {png.parent.name}')
+    except (BagError, FileNotFoundError, ValueError) as exc:
+        return f'trajectories: not drawn: {exc}'
+    closest = (f'; closest approach {picture.closest.describe()}' if picture.closest
+               else '')
+    return f'trajectories: {picture.path}{closest}'
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    if len(args) != 1:
-        print('usage: python -m rcbf_ros.run_summary <run directory>', file=sys.stderr)
+    args = sys.argv[1:] if argv is None else list(argv)
+    params_file = None
+    if len(args) == 3 and args[1] == '--params-file':
+        params_file = args[2]
+    elif len(args) != 1:
+        print('usage: python -m rcbf_ros.run_summary <run directory> [--params-file <yaml>]',
+              file=sys.stderr)
         return 2
-    print(summarize_run(Path(args[0])))
+    print(summarize_run(Path(args[0]), params_file=params_file))
     return 0
 
 

@@ -9,6 +9,9 @@ One run writes into its output directory::
     bag_0000/          MCAP (rosbag2 layout) of the run's topics, as the node path records them;
                        each resume records into the next one (bag_0001, ...)
     reward_curve.png   return per episode
+    trajectories.png   the paths of this start's episodes (at most the last 200) over the
+                       layout, where the filter corrected, the closest approach
+                       (rcbf_ros.plots.plot_trajectories)
 
 Ctrl-C (KeyboardInterrupt) or an exception ends the run after writing the checkpoint, closing
 the bag and the metrics file, so nothing already computed is lost; a kill loses at most the
@@ -20,6 +23,7 @@ hold tensors and plain data only and are read without running code from them
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import asdict, dataclass, field, replace
 import importlib
 import json
@@ -298,11 +302,14 @@ class CriticCheck:
 
 def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, episode: int,
                 seed: int | None, recorder: RunRecorder | None = None, train: bool = True,
-                deterministic: bool = False, t0_ns: int = 0) -> EpisodeStats:
+                deterministic: bool = False, t0_ns: int = 0,
+                trace: list[tuple[np.ndarray, bool]] | None = None) -> EpisodeStats:
     """One episode of Algorithm 1's inner loop (lines 3-7), plus the learner's schedule.
 
     ``seed`` seeds the env's reset (None: continue its generator), as the simulator node does:
-    the first episode with the run's seed, later ones from the same stream.
+    the first episode with the run's seed, later ones from the same stream. ``trace`` gets
+    (state, the filter corrected the command: |u_S| > 1e-7) for every state of the episode,
+    the last one included.
     """
     stats = EpisodeStats(episode=episode)
     start = time.perf_counter()
@@ -320,6 +327,9 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
             u_safe, slack = result.u_safe, result.slack
             stats.filter_active += int(result.active)
             stats.fail_safe += int(result.fail_safe)
+        if trace is not None:
+            correction = np.linalg.norm(np.asarray(u_safe) - proposal.u_proposed)
+            trace.append((np.array(state, dtype=np.float64), bool(correction > 1e-7)))
         next_obs, reward, terminated, truncated, info = env.step(u_safe)
         next_state = info['state']
         if train:
@@ -341,6 +351,8 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
         stats.goal_reached = stats.goal_reached or bool(info['goal_reached'])
         obs, state = next_obs, next_state
         done = terminated or truncated
+    if trace is not None:
+        trace.append((np.array(state, dtype=np.float64), False))
     stats.wall_s = time.perf_counter() - start
     stats.extra = {k: float(v) for k, v in learner.last_metrics.items()}
     if train:
@@ -366,7 +378,7 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
     existing = check_out_dir(run)
     try:
         run = resolve_run(run)
-        env, filt, learner, _ = build_run(run)
+        env, filt, learner, filter_params = build_run(run)
     except (FileNotFoundError, ValueError) as exc:
         raise RunSetupError(str(exc)) from exc
     metrics_path = out / 'metrics.jsonl'
@@ -390,6 +402,7 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
     if run.record_bag and first_episode < run.episodes:
         recorder = RunRecorder(next_bag_dir(out))
     episode = first_episode
+    paths: deque[Any] = deque(maxlen=TRAJECTORY_EPISODES)
 
     def save_checkpoint() -> None:
         nonlocal saved_at
@@ -401,11 +414,13 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
 
     try:
         while episode < run.episodes:
+            trace: list[tuple[np.ndarray, bool]] = []
             stats = run_episode(env, filt, learner, episode=episode,
                                 seed=run.learner.seed if episode == 0 else None,
                                 recorder=recorder,
-                                t0_ns=int(1e9 * 1e4 * episode))
+                                t0_ns=int(1e9 * 1e4 * episode), trace=trace)
             episode += 1
+            paths.append(episode_path(episode, trace))
             row = stats.as_json()
             row['env_steps'] = learner.env_steps
             history.append(row)
@@ -427,7 +442,43 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
             from rcbf_ros.plots import plot_reward_curve
             plot_reward_curve([row['ret'] for row in history], out / 'reward_curve.png',
                               title=f'{run.system} / {run.learner.mode}')
+        if paths:
+            log(draw_trajectories(list(paths), env=env, filter_params=filter_params,
+                                  png=out / 'trajectories.png',
+                                  title=f'{run.system} / {run.learner.mode}'))
     return history
+
+
+TRAJECTORY_EPISODES = 200
+"""The trajectory picture of an in-process run draws at most this many (the last) episodes."""
+
+
+def episode_path(number: int, trace: list[tuple[np.ndarray, bool]]) -> Any:
+    """The :class:`rcbf_ros.plots.EpisodePath` of a :func:`run_episode` trace."""
+    from rcbf_ros.plots import EpisodePath
+    return EpisodePath(number, np.array([state for state, _ in trace]),
+                       np.array([corrected for _, corrected in trace], dtype=bool))
+
+
+def draw_trajectories(paths: list[Any], *, env: Any, filter_params: Mapping[str, Any],
+                      png: Path, title: str) -> str:
+    """Draw episodes (:class:`rcbf_ros.plots.EpisodePath`) over the env's layout into ``png``;
+    one line saying where and the closest approach, or why not."""
+    from rcbf_ros.core.scene import scene_geometry
+    from rcbf_ros.plots import plot_trajectories
+    if getattr(env, 'layout_mode', 'fixed') == 'random' and getattr(env, 'layout_seed', 0) < 0:
+        return 'trajectories: not drawn: every episode ran on a new random layout'
+    try:
+        params = filter_params if configures_barriers(filter_params) \
+            else _any_barrier(dict(filter_params))
+        picture = plot_trajectories(
+            paths, scene_geometry(params), png, obstacles=getattr(env, 'obstacles', None),
+            goal=getattr(env, 'goal', None), dt=getattr(env, 'dt', None),
+            true_gap=getattr(env, 'min_gap', None), title=f'{title}: {len(paths)} episodes')
+    except ValueError as exc:
+        return f'trajectories: not drawn: {exc}'
+    closest = f'; closest approach {picture.closest.describe()}' if picture.closest else ''
+    return f'trajectories: {picture.path}{closest}'
 
 
 def check_out_dir(run: RunConfig) -> list[str]:

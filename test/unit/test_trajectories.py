@@ -1,0 +1,242 @@
+"""The trajectory picture of a run: from a bag (run summary) and from the in-process trainer.
+
+The closest approach the picture labels is checked against an independent computation from
+the recorded states (read back with rosbags, not with our reader).
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+import re
+
+import numpy as np
+import pytest
+
+from rcbf_ros.bag import BagWriter
+from rcbf_ros.core.scene import scene_geometry
+from rcbf_ros.params import find_config, load_params
+from rcbf_ros.plots import closest_approach, EpisodePath, plot_trajectories
+from rcbf_ros.run_summary import episode_paths, trajectory_line
+
+ARRAY = 'std_msgs/msg/Float64MultiArray'
+MIN_PNG_BYTES = 20_000
+"""A drawn picture (axes, obstacles, paths, legend) is well above this; an empty figure is not."""
+
+
+def _array(**sections) -> dict:
+    dims = [{'label': k, 'size': int(np.size(v)), 'stride': int(np.size(v))}
+            for k, v in sections.items()]
+    data = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1)
+                           for v in sections.values()])
+    return {'layout': {'dim': dims, 'data_offset': 0}, 'data': data}
+
+
+def _unicycle_obstacles() -> list[tuple[float, float, float]]:
+    params = load_params(find_config('unicycle'), 'simulator')
+    return list(zip(params['obstacles.x'], params['obstacles.y'], params['obstacles.radius']))
+
+
+def _independent_closest(states: np.ndarray) -> tuple[float, int]:
+    """(min over states and obstacles of |p - c| - r, that obstacle's index), plain numpy."""
+    best, index = math.inf, -1
+    for i, (x, y, r) in enumerate(_unicycle_obstacles()):
+        value = float(np.min(np.sqrt((states[:, 0] - x) ** 2 + (states[:, 1] - y) ** 2) - r))
+        if value < best:
+            best, index = value, i
+    return best, index
+
+
+def _episodes(seed: int = 0) -> list[np.ndarray]:
+    """Two hand-made Unicycle episodes: a pass close by obstacle 4 and one toward the centre."""
+    rng = np.random.default_rng(seed)
+    first = np.stack([np.linspace(-2.5, 2.3, 40), np.linspace(-2.5, 0.4, 40),
+                      np.full(40, 0.6)], axis=1)
+    second = np.stack([np.linspace(-2.5, -0.9, 25), np.linspace(-2.5, -0.3, 25),
+                       rng.uniform(-1, 1, 25)], axis=1)
+    return [first, second]
+
+
+def _write_node_bag(bag: Path, episodes: list[np.ndarray], corrected: list[set[int]]) -> None:
+    """A bag as the node launches record it: /sim/step, /cmd_safe (with the answered state),
+    /episode events; every state of step k is published twice (lock-step watchdog)."""
+    writer = BagWriter(bag)
+    for topic, type_name in (('/sim/step', ARRAY), ('/state', ARRAY), ('/cmd_safe', ARRAY),
+                             ('/episode', 'std_msgs/msg/String')):
+        writer.add_topic(topic, type_name)
+    t = 1_000
+    for number, states in enumerate(episodes, 1):
+        writer.write_message('/episode', {'data': json.dumps(
+            {'event': 'start', 'episode': number, 'system': 'unicycle', 'layout_seed': None})}, t)
+        for k, state in enumerate(states):
+            for _ in range(2 if k == 3 else 1):
+                t += 10
+                writer.write_message('/sim/step', _array(state=state, episode=[number],
+                                                         step=[k]), t)
+            if k + 1 == len(states):
+                break
+            u_s = [0.0, 0.3] if k in corrected[number - 1] else [0.0, 0.0]
+            t += 10
+            writer.write_message('/cmd_safe', _array(u=[1.0, 0.3], u_rl=[1.0, 0.0], u_s=u_s,
+                                                     state=state), t)
+        t += 10
+        writer.write_message('/episode', {'data': json.dumps({'event': 'end', 'episode': number})},
+                             t)
+    # the run ends right after the simulator reset into a third episode
+    t += 10
+    writer.write_message('/sim/step', _array(state=episodes[0][0], episode=[3], step=[0]), t)
+    writer.close()
+
+
+def _rosbags_states(bag: Path, topic: str) -> np.ndarray:
+    from rosbags.highlevel import AnyReader
+    rows = []
+    with AnyReader([bag]) as reader:
+        connections = [c for c in reader.connections if c.topic == topic]
+        for connection, _, raw in reader.messages(connections=connections):
+            msg = reader.deserialize(raw, connection.msgtype)
+            offset = 0
+            for dim in msg.layout.dim:
+                if dim.label == 'state':
+                    rows.append(np.array(msg.data[offset:offset + dim.size]))
+                offset += dim.size
+    return np.array(rows)
+
+
+def test_run_summary_draws_the_bag_and_labels_the_closest_approach(tmp_path):
+    episodes = _episodes()
+    corrected = [{5, 6, 30}, {0, 24 - 1}]
+    bag = tmp_path / 'run' / 'bag'
+    _write_node_bag(bag, episodes, corrected)
+    paths = episode_paths(bag, n_x=3)
+    assert [p.episode for p in paths] == [1, 2]  # the stepless third one is left out
+    for path, states, marks in zip(paths, episodes, corrected):
+        np.testing.assert_array_equal(path.states, states)  # the repeated state kept once
+        assert set(np.flatnonzero(path.corrected)) == marks
+
+    png = tmp_path / 'run' / 'trajectories.png'
+    line = trajectory_line(bag, png)
+    assert png.is_file() and png.stat().st_size > MIN_PNG_BYTES, line
+    recorded = _rosbags_states(bag, '/sim/step')
+    expected, index = _independent_closest(recorded)
+    episode = 1 + int(_independent_closest(recorded[:len(episodes[0]) + 1])[0] > expected)
+    reported = float(re.search(r'closest approach (-?[0-9.]+) m', line).group(1))
+    assert reported == pytest.approx(expected, abs=5e-4)  # printed to 3 decimals
+    assert f'obstacle_{index} (episode {episode},' in line
+
+
+def test_run_summary_without_sim_step_splits_state_at_episode_events(tmp_path):
+    """An in-process bag: /state and /cmd_safe (no state section), end events only."""
+    episodes = _episodes()
+    bag = tmp_path / 'bag'
+    writer = BagWriter(bag)
+    for topic, type_name in (('/state', ARRAY), ('/cmd_safe', ARRAY),
+                             ('/episode', 'std_msgs/msg/String')):
+        writer.add_topic(topic, type_name)
+    t = 0
+    for number, states in enumerate(episodes):
+        for k, state in enumerate(states):
+            t += 10
+            writer.write_message('/state', _array(state=state), t)
+            writer.write_message('/cmd_safe', _array(
+                u=[1.0, 0.0], u_rl=[1.0, 0.0], u_s=[1e-3 if k == 2 else 1e-8, 0.0]), t)
+        writer.write_message('/episode', {'data': json.dumps({'event': 'end',
+                                                              'episode': number})}, t)
+    writer.close()
+    paths = episode_paths(bag, n_x=3)
+    assert [p.episode for p in paths] == [1, 2]
+    for path, states in zip(paths, episodes):
+        np.testing.assert_array_equal(path.states, states)
+        assert list(np.flatnonzero(path.corrected)) == [2]  # 1e-8 is below the threshold
+    line = trajectory_line(bag, tmp_path / 'trajectories.png', params_file='unicycle')
+    assert line.startswith('trajectories: ') and 'closest approach' in line
+
+
+def test_random_layouts_and_unknown_systems_are_said_not_drawn(tmp_path):
+    bag = tmp_path / 'bag'
+    writer = BagWriter(bag)
+    writer.add_topic('/episode', 'std_msgs/msg/String')
+    writer.add_topic('/state', ARRAY)
+    writer.write_message('/episode', {'data': json.dumps(
+        {'event': 'start', 'episode': 1, 'system': 'unicycle', 'layout_seed': 7})}, 1)
+    writer.close()
+    assert trajectory_line(bag, tmp_path / 't.png') == \
+        'trajectories: not drawn: the episodes ran on random layouts'
+    assert not (tmp_path / 't.png').exists()
+    empty = tmp_path / 'empty'
+    writer = BagWriter(empty)
+    writer.add_topic('/state', ARRAY)
+    writer.close()
+    assert 'no /episode start event names the system' in trajectory_line(empty, tmp_path / 'e')
+    assert 'no state of 3 values' in trajectory_line(empty, tmp_path / 'e',
+                                                    params_file='unicycle')
+
+
+def test_in_process_run_writes_its_picture(tmp_path):
+    from rcbf_ros.training.agent import LearnerConfig
+    from rcbf_ros.training.loop import RunConfig, train
+    lines: list[str] = []
+    out = tmp_path / 'run'
+    history = train(RunConfig(system='unicycle', episodes=2, max_steps=60, out_dir=str(out),
+                              learner=LearnerConfig(mode='modular', seed=3)),
+                    log=lines.append)
+    png = out / 'trajectories.png'
+    assert png.is_file() and png.stat().st_size > MIN_PNG_BYTES, lines
+    (line,) = [entry for entry in lines if entry.startswith('trajectories:')]
+    reported = float(re.search(r'closest approach (-?[0-9.]+) m', line).group(1))
+    # The bag holds each step's state before the step; the env's own true clearance after
+    # each step (min_h_true) covers the last state.
+    recorded = _rosbags_states(out / 'bag_0000', '/state')
+    assert len(recorded) == 120
+    expected = min(_independent_closest(recorded)[0], *(row['min_h_true'] for row in history))
+    assert reported == pytest.approx(expected, abs=5e-4)
+
+
+def test_pvtol_and_car_following_pictures(tmp_path):
+    pvtol = scene_geometry(load_params(find_config('pvtol'), 'safety_filter'))
+    states = np.zeros((50, 7))
+    states[:, 0], states[:, 1] = np.linspace(-4.5, -1.2, 50), np.linspace(2.0, 0.9, 50)
+    corrected = np.zeros(50, dtype=bool)
+    corrected[20:25] = True
+    picture = plot_trajectories([EpisodePath(1, states, corrected)], pvtol,
+                                tmp_path / 'pvtol.png', goal=(5.0, -1.5))
+    assert picture.path.stat().st_size > MIN_PNG_BYTES
+    centres = [(d.x, d.y, d.radius) for d in pvtol.obstacles]
+    expected = min(float(np.min(np.hypot(states[:, 0] - x, states[:, 1] - y) - r))
+                   for x, y, r in centres)
+    assert picture.closest.distance == pytest.approx(expected, rel=1e-12)
+
+    cars = scene_geometry(load_params(find_config('car_following'), 'safety_filter'))
+    t = np.linspace(0.0, 2.0, 101)
+    paths = []
+    for episode, squeeze in ((1, 1.0), (2, 1.6)):
+        state = np.zeros((t.size, 10))
+        state[:, 0::2] = np.array([34.0, 28.0, 22.0, 16.0, 10.0]) + 30.0 * t[:, None]
+        state[:, 6] += squeeze * np.sin(np.pi * t / 2.0)  # car 4 closes on car 3
+        paths.append(EpisodePath(episode, state, np.zeros(t.size, dtype=bool)))
+    picture = plot_trajectories(paths, cars, tmp_path / 'cars.png', dt=0.02, true_gap=3.5)
+    assert picture.path.stat().st_size > MIN_PNG_BYTES
+    assert (picture.closest.barrier, picture.closest.episode) == ('gap_4_6', 2)
+    assert picture.closest.distance == pytest.approx(6.0 - 1.6, abs=1e-9)
+    assert picture.closest.step == 50
+
+
+def test_closest_approach_to_shaped_obstacles_uses_their_true_boundary():
+    from rcbf_ros.envs.layouts import Obstacle
+    geometry = scene_geometry(load_params(find_config('unicycle'), 'safety_filter'))
+    square = Obstacle(0.0, 0.0, math.sqrt(2.0), 'square')  # half-size 1
+    path = EpisodePath(1, np.array([[1.5, 0.0, 0.0], [1.2, 0.5, 0.0]]), np.zeros(2, bool))
+    closest = closest_approach([path], geometry, obstacles=[square])
+    # 0.2 from the square's face, though inside its circumscribed (barrier) circle
+    assert closest.distance == pytest.approx(0.2) and closest.step == 1
+
+
+def test_mismatched_paths_are_refused():
+    geometry = scene_geometry(load_params(find_config('unicycle'), 'safety_filter'))
+    with pytest.raises(ValueError, match='do not match'):
+        EpisodePath(1, np.zeros((3, 3)), np.zeros(2, bool))
+    with pytest.raises(ValueError, match='no episode'):
+        plot_trajectories([], geometry, 'x.png')
+    with pytest.raises(ValueError, match='states of 2 values, the filter 3'):
+        plot_trajectories([EpisodePath(1, np.zeros((3, 2)), np.zeros(3, bool))], geometry,
+                          'x.png')
