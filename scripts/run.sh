@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The main job: set up, then train SAC-RCBF on the Unicycle with the simulator, the safety
-# filter, the learner and the recorder as four separate processes over DDS (loopback only).
+# filter, the learner, the scene markers and the recorder as separate processes over DDS
+# (loopback only); the summary at the end draws the run's trajectories.
 #   EPISODES=8 MODE=modular SYSTEM=unicycle ./scripts/run.sh
 # Ctrl-C stops every process; the learner still writes its checkpoint, policy and plot.
 set -euo pipefail

@@ -222,3 +222,26 @@ def test_every_closed_loop_launch_starts_the_scene_and_records_it():
         recorder.update(dict(setup.node('recorder').parameters))
         topics = recorder.get('topics') or []
         assert not topics or '/scene_markers' in topics, setup.name  # empty: every topic
+
+
+def test_foxglove_layout_shows_the_scene_the_barriers_and_the_command():
+    import json
+    from pathlib import Path
+    layout = json.loads((Path(__file__).resolve().parents[2] / 'config'
+                         / 'foxglove_layout.json').read_text())
+    panels = layout['configById']
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node['first']) + leaves(
+            node['second'])
+    assert sorted(leaves(layout['layout'])) == sorted(panels)  # every panel placed, once
+    (scene,) = [config for name, config in panels.items() if name.startswith('3D!')]
+    assert scene['followTf'] == 'map' and scene['topics']['/scene_markers']['visible']
+    plotted = [p['value'] for name, config in panels.items() if name.startswith('Plot!')
+               for p in config['paths']]
+    names = _geometry('unicycle').barrier_names
+    for name in names:
+        assert any(f'{{key=="h.{name}"}}' in value for value in plotted), name
+    assert all(v.startswith(('/diagnostics.status[:]{name=="safety_filter"}', '/cmd_safe.data['))
+               for v in plotted)
+    assert any(v.startswith('/cmd_safe') for v in plotted)
