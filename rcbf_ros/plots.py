@@ -232,9 +232,15 @@ def _colour_bar(fig: Any, ax: Any, cmap: Any, paths: Sequence[EpisodePath]) -> N
     bar.set_label('episode')
 
 
+def _closest_text(closest: ClosestApproach, labels: Mapping[int, str]) -> str:
+    return (f'closest: {closest.distance:.3f} m\n'
+            f'({labels.get(closest.episode, f"episode {closest.episode}")})')
+
+
 def _planar_picture(plt: Any, paths: Sequence[EpisodePath], geometry: SceneGeometry,
                     closest: ClosestApproach | None, *, obstacles: Sequence[Obstacle] | None,
-                    goal: Sequence[float] | None, title: str) -> Any:
+                    goal: Sequence[float] | None, title: str, labels: Mapping[int, str]
+                    ) -> Any:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
     vertical = geometry.system == 'pvtol'
@@ -266,7 +272,7 @@ def _planar_picture(plt: Any, paths: Sequence[EpisodePath], geometry: SceneGeome
     for path, colour in zip(paths, colours):
         a, b = path.states[:, i], path.states[:, j]
         line, = ax.plot(a, b, color=colour, linewidth=1.3, zorder=3,
-                        label=f'episode {path.episode}' if cmap is None else None)
+                        label=labels.get(path.episode, f'episode {path.episode}'))
         ax.plot(a[:1], b[:1], marker='o', color=colour, markersize=5, zorder=4)
         if cmap is None:
             handles.append(line)
@@ -286,7 +292,7 @@ def _planar_picture(plt: Any, paths: Sequence[EpisodePath], geometry: SceneGeome
         point = path.states[closest.step, [i, j]]
         ax.plot([point[0]], [point[1]], marker='X', markersize=11, color='k', zorder=7,
                 linestyle='')
-        ax.annotate(f'closest: {closest.distance:.3f} m\n(episode {closest.episode})',
+        ax.annotate(_closest_text(closest, labels),
                     xy=point, xytext=(14, 14), textcoords='offset points', fontsize=9,
                     zorder=8, arrowprops={'arrowstyle': '-', 'color': 'k', 'lw': 0.8},
                     bbox={'boxstyle': 'round,pad=0.25', 'facecolor': 'white',
@@ -308,7 +314,7 @@ def _planar_picture(plt: Any, paths: Sequence[EpisodePath], geometry: SceneGeome
 
 def _gap_picture(plt: Any, paths: Sequence[EpisodePath], geometry: SceneGeometry,
                  closest: ClosestApproach | None, *, dt: float | None,
-                 true_gap: float | None, title: str) -> Any:
+                 true_gap: float | None, title: str, labels: Mapping[int, str]) -> Any:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
     fig, axes = plt.subplots(len(geometry.gaps), 1, figsize=(7.5, 2.6 * len(geometry.gaps) + 0.8),
@@ -323,7 +329,7 @@ def _gap_picture(plt: Any, paths: Sequence[EpisodePath], geometry: SceneGeometry
             distance = np.abs(path.states[:, gap.a] - path.states[:, gap.b])
             top = max(top, float(distance.max(initial=0.0)))
             line, = ax.plot(t, distance, color=colour, linewidth=1.3,
-                            label=f'episode {path.episode}')
+                            label=labels.get(path.episode, f'episode {path.episode}'))
             if cmap is None:
                 handles.append(line)
             hits = path.corrected
@@ -342,7 +348,7 @@ def _gap_picture(plt: Any, paths: Sequence[EpisodePath], geometry: SceneGeometry
         if closest is not None and closest.barrier == gap.name:
             ax.plot([closest.step * scale], [closest.distance], marker='X', markersize=11,
                     color='k', linestyle='', zorder=7)
-            ax.annotate(f'closest: {closest.distance:.3f} m\n(episode {closest.episode})',
+            ax.annotate(_closest_text(closest, labels),
                         xy=(closest.step * scale, closest.distance), xytext=(14, 14),
                         textcoords='offset points', fontsize=9, zorder=8,
                         arrowprops={'arrowstyle': '-', 'color': 'k', 'lw': 0.8},
@@ -368,7 +374,8 @@ def plot_trajectories(paths: Sequence[EpisodePath], geometry: SceneGeometry,
                       path: str | Path, *, title: str = '',
                       obstacles: Sequence[Obstacle] | None = None,
                       goal: Sequence[float] | None = None, dt: float | None = None,
-                      true_gap: float | None = None) -> TrajectoryPicture:
+                      true_gap: float | None = None,
+                      labels: Mapping[int, str] | None = None) -> TrajectoryPicture:
     """The robot's paths over the scene as a PNG: one line per episode (coloured by episode),
     the steps where the filter corrected the command ringed, the closest approach labelled.
 
@@ -386,6 +393,8 @@ def plot_trajectories(paths: Sequence[EpisodePath], geometry: SceneGeometry,
         goal: the goal's position, drawn as a star.
         dt: seconds per step (car following: time axis; None: steps).
         true_gap: car following: the distance that is a collision.
+        labels: legend text per episode number, where a path is not an episode of one run
+            (e.g. one method each); default ``episode <n>``.
 
     Raises:
         ValueError: no episode, or a state narrower than the geometry's n_x.
@@ -398,12 +407,13 @@ def plot_trajectories(paths: Sequence[EpisodePath], geometry: SceneGeometry,
                          f'{paths[0].states.shape[1]} values, the filter {geometry.n_x}')
     plt = _pyplot()
     closest = closest_approach(paths, geometry, obstacles=obstacles)
+    labels = dict(labels or {})
     if geometry.gaps:
         fig = _gap_picture(plt, paths, geometry, closest, dt=dt, true_gap=true_gap,
-                           title=title)
+                           title=title, labels=labels)
     else:
         fig = _planar_picture(plt, paths, geometry, closest, obstacles=obstacles, goal=goal,
-                              title=title)
+                              title=title, labels=labels)
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path)

@@ -134,6 +134,10 @@ def run_experiment(request: ExperimentRequest, *, backend: Backend = 'sequential
                 heading='Training curves of the transfer runs')
             report.transfer_report(transfer_results, report_dir, layouts=request.budget.layouts,
                                    eval_max_steps=request.budget.eval_max_steps)
+            report.transfer_paths_report(list(transfer_results), root, report_dir,
+                                         layouts=request.budget.layouts,
+                                         eval_max_steps=request.budget.eval_max_steps,
+                                         gp=request.gp)
         if 'value_maps' in experiments:
             map_specs = _specs_of('value_maps', specs)
             if map_specs:

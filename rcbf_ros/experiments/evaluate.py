@@ -99,9 +99,11 @@ def disturbance_estimate(learner: SafeLearner, state: np.ndarray, gp: GPSource
 
 def evaluate_layout(learner: SafeLearner, system: str, layout_seed: int, *,
                     max_steps: int | None = None, gp: GPSource = 'learned',
-                    config_file: str | None = None) -> dict[str, Any]:
+                    config_file: str | None = None,
+                    trace: list[tuple[np.ndarray, bool]] | None = None) -> dict[str, Any]:
     """One deterministic episode on random layout ``layout_seed`` with the filter of that
-    layout; returns the episode row (see module docstring)."""
+    layout; returns the episode row (see module docstring). ``trace`` gets (state, the filter
+    corrected the command: |u_S| > 1e-7) for every state, the last one included."""
     path = find_config(config_file or system)
     params = load_params(path, 'simulator')
     params.update({'layout': 'random', 'layout_seed': int(layout_seed)})
@@ -122,6 +124,9 @@ def evaluate_layout(learner: SafeLearner, system: str, layout_seed: int, *,
         u_rl = learner.sac.act(np.asarray(obs, dtype=np.float64), deterministic=True)
         mean, std = disturbance_estimate(learner, state, gp)
         result = filt.filter(state, np.asarray(u_rl, dtype=np.float64), mean, std)
+        if trace is not None:
+            correction = np.linalg.norm(result.u_safe - np.asarray(u_rl, dtype=np.float64))
+            trace.append((np.array(state, dtype=np.float64), bool(correction > 1e-7)))
         obs, reward, terminated, truncated, info = env.step(result.u_safe)
         state = info['state']
         positions.append(np.array(state[:2], dtype=np.float64))
@@ -135,6 +140,8 @@ def evaluate_layout(learner: SafeLearner, system: str, layout_seed: int, *,
             row['min_h_true'] = min(row['min_h_true'], float(np.min(info['h_true'])))
         row['goal_reached'] = row['goal_reached'] or bool(info['goal_reached'])
         done = terminated or truncated
+    if trace is not None:
+        trace.append((np.array(state, dtype=np.float64), False))
     if math.isinf(row['min_h_true']):
         row['min_h_true'] = None
     tail = episode_tail(positions, active)

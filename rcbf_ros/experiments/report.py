@@ -11,7 +11,9 @@ Files written into the report directory (``<out>/<budget>/report``):
   ``transfer_<system>.csv`` (mean/std reward, completion per method, ours and the paper's),
   ``transfer_<system>_completion.png`` (bar chart), ``transfer_<system>_endings.csv|png``
   (how the episodes ended per method: goal, held, stalled, moving), ``transfer.md``;
-  plus the training curves of the transfer runs as ``transfer_training_<system>.*``;
+  plus the training curves of the transfer runs as ``transfer_training_<system>.*``, and
+  ``transfer_<system>_paths_layout<k>.png`` (every method's path on the first layouts, from a
+  re-run of its deterministic episode) with ``transfer_paths.md``;
 - value_maps: ``value_maps_unicycle.csv`` (method, x, y, V), ``value_maps_unicycle.png``,
   ``value_maps.md``;
 - ``report.md``: the markdown of every experiment present.
@@ -43,7 +45,8 @@ PAPER_TRANSFER: dict[str, dict[str, tuple[float, float, float]]] = {
 }
 """The paper's transfer tables: (mean episode reward, std, completion rate) over 200 layouts."""
 
-REPORT_PARTS = ('sample_efficiency', 'transfer', 'transfer_training', 'value_maps')
+REPORT_PARTS = ('sample_efficiency', 'transfer', 'transfer_paths', 'transfer_training',
+                'value_maps')
 """Markdown parts of ``report.md``, in order."""
 
 
@@ -257,6 +260,60 @@ def transfer_report(results: dict[RunSpec, list[dict[str, Any]]], report_dir: Pa
                     for r in ending_rows), '']
     text = '\n'.join(lines)
     (report_dir / 'transfer.md').write_text(text)
+    return text
+
+
+# --------------------------------------------------------------------------- transfer paths
+PATH_LAYOUTS = 3
+"""Transfer layouts (seeds 0, 1, ...) drawn with every method's path."""
+
+
+def transfer_paths_report(specs: Sequence[RunSpec], root: str | Path, report_dir: Path, *,
+                          layouts: int, eval_max_steps: dict[str, int | None],
+                          gp: str = 'learned') -> str:
+    """Every method's path (its first seed's deterministic policy, re-run exactly as the
+    transfer evaluation runs it) on the first :data:`PATH_LAYOUTS` transfer layouts, one
+    picture per layout (:func:`rcbf_ros.plots.plot_trajectories`); returns markdown."""
+    from rcbf_ros.core.scene import scene_geometry
+    from rcbf_ros.experiments.evaluate import evaluate_layout, load_trained_learner
+    from rcbf_ros.params import find_config, load_params
+    from rcbf_ros.plots import plot_trajectories
+    from rcbf_ros.training.loop import episode_path, make_env
+    lines = ['## Transfer paths', '',
+             "Each method's deterministic policy (its first seed) on the first transfer "
+             "layouts, with the filter of that layout, as in the table above: the true "
+             'obstacles filled, the radius + margin the filter keeps dashed, the steps where '
+             'the filter corrected the command ringed.', '']
+    for system, methods in _by_system(specs).items():
+        learners = {method: load_trained_learner(runs[0].run_dir(root))
+                    for method, runs in methods.items()}
+        config = find_config(next(iter(learners.values()))[0].config_file or system)
+        for seed in range(min(layouts, PATH_LAYOUTS)):
+            paths, labels = [], {}
+            for number, (method, (run, learner)) in enumerate(learners.items(), 1):
+                trace: list[tuple[np.ndarray, bool]] = []
+                evaluate_layout(learner, system, seed, max_steps=eval_max_steps.get(system),
+                                gp=gp, config_file=run.config_file,  # type: ignore[arg-type]
+                                trace=trace)
+                paths.append(episode_path(number, trace))
+                labels[number] = METHODS[method].label
+            params = load_params(config, 'simulator')
+            params.update({'layout': 'random', 'layout_seed': seed})
+            env = make_env(system, params)
+            env.reset(seed=seed)
+            geometry = scene_geometry(env.filter_params(load_params(config, 'safety_filter')))
+            name = f'transfer_{system}_paths_layout{seed}.png'
+            picture = plot_trajectories(
+                paths, geometry, report_dir / name, obstacles=getattr(env, 'obstacles', None),
+                goal=getattr(env, 'goal', None), labels=labels,
+                title=f'{system}: transfer layout {seed}')
+            closest = picture.closest
+            lines += [f'![{system} layout {seed}]({name})', '']
+            if closest is not None:
+                lines += [f'Closest approach on layout {seed}: {closest.distance:.3f} m '
+                          f'({labels[closest.episode]}).', '']
+    text = '\n'.join(lines)
+    (report_dir / 'transfer_paths.md').write_text(text)
     return text
 
 

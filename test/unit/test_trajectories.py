@@ -240,3 +240,37 @@ def test_mismatched_paths_are_refused():
     with pytest.raises(ValueError, match='states of 2 values, the filter 3'):
         plot_trajectories([EpisodePath(1, np.zeros((3, 2)), np.zeros(3, bool))], geometry,
                           'x.png')
+
+
+def test_experiment_report_draws_every_method_on_the_first_transfer_layouts(tmp_path):
+    from rcbf_ros.experiments.definitions import Budget, METHODS, RunSpec
+    from rcbf_ros.experiments.evaluate import evaluate_transfer
+    from rcbf_ros.experiments.report import transfer_paths_report
+    from rcbf_ros.experiments.runner import run_all
+    from rcbf_ros.training.loop import make_env
+    budget = Budget(name='tiny', episodes={'unicycle': 1}, max_steps={'unicycle': 30},
+                    start_steps=10, update_after=10, batch_size=8, gp_refit_interval=20,
+                    hidden_sizes=(8, 8), record_bag=False)
+    specs = [RunSpec('unicycle', method, 0, budget) for method in ('baseline', 'modular')]
+    run_all(specs, tmp_path, log=lambda _: None)
+    rows = {spec.method: evaluate_transfer(spec.run_dir(tmp_path), [0, 1], max_steps=25)
+            for spec in specs}
+    report = tmp_path / 'report'
+    report.mkdir()
+    text = transfer_paths_report(specs, tmp_path, report, layouts=2,
+                                 eval_max_steps={'unicycle': 25})
+    for seed in (0, 1):
+        png = report / f'transfer_unicycle_paths_layout{seed}.png'
+        assert png.stat().st_size > MIN_PNG_BYTES
+        assert f'![unicycle layout {seed}]({png.name})' in text
+        # independent: the evaluation's own true clearances after each step, and the start's
+        params = load_params(find_config('unicycle'), 'simulator')
+        env = make_env('unicycle', {**params, 'layout': 'random', 'layout_seed': seed})
+        _, info = env.reset(seed=seed)
+        closest = min(float(np.min(info['h_true'])),
+                      *(rows[method][seed]['min_h_true'] for method in rows))
+        line = next(entry for entry in text.splitlines()
+                    if entry.startswith(f'Closest approach on layout {seed}:'))
+        assert float(line.split(': ')[1].split(' m')[0]) == pytest.approx(closest, abs=5e-4)
+        assert any(METHODS[m].label in line for m in rows)
+    assert (report / 'transfer_paths.md').read_text() == text
