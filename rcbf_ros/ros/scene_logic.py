@@ -170,6 +170,12 @@ def _h(h: Mapping[str, float], name: str) -> float:
     return float(value) if value is not None else math.nan
 
 
+def _worst(values: Sequence[float]) -> float:
+    """The smallest known value (NaN when none is known)."""
+    known = [v for v in values if math.isfinite(v)]
+    return min(known) if known else math.nan
+
+
 def _obstacle_markers(geometry: SceneGeometry, h: Mapping[str, float], frame: _Frame, *,
                       frame_id: str, caution: float) -> list[Marker]:
     out = []
@@ -201,7 +207,7 @@ def _unicycle_markers(geometry: SceneGeometry, state: np.ndarray, h: Mapping[str
                    scale=(0.35, 0.08, 0.08), color=ROBOT)]
     point = geometry.guarded_point(state)
     if point is not None:
-        worst = min((_h(h, d.name) for d in geometry.obstacles), default=math.nan)
+        worst = _worst([_h(h, d.name) for d in geometry.obstacles])
         out.append(_marker(frame_id=frame_id, ns='lookahead', id=0, type=SPHERE,
                            position=frame.point(point[0], point[1], 0.05),
                            scale=(0.06, 0.06, 0.06), color=h_colour(worst, caution=caution)))
@@ -223,7 +229,7 @@ def _pvtol_markers(geometry: SceneGeometry, state: np.ndarray, h: Mapping[str, f
     ]
     operator = next((b for b in geometry.bands if b.center_index is not None), None)
     if operator is not None and operator.center_index < state.size:
-        worst = min((_h(h, name) for name in operator.names), default=math.nan)
+        worst = _worst([_h(h, name) for name in operator.names])
         vertical = geometry.band('arena_y')
         low, high = ((vertical.center - vertical.half_width, vertical.center + vertical.half_width)
                      if vertical is not None else (-3.0, 3.0))

@@ -91,7 +91,7 @@ def test_unicycle_markers_count_place_and_colour():
     assert point['type'] == SPHERE
     np.testing.assert_allclose(point['position'][:2],
                                [-0.5 + 0.03 * math.cos(0.7), -1.0 + 0.03 * math.sin(0.7)])
-    assert point['color'] == RED  # the worst obstacle value
+    assert point['color'] == RED  # the worst obstacle value (obstacle_3's NaN: unknown)
     (status,) = _by(markers, 'status')
     assert status['text'] == 'filtering'
 
@@ -132,6 +132,10 @@ def test_pvtol_lies_in_the_x_z_plane_with_its_tilt_and_the_operator_band():
     (band,) = _by(markers, 'bands')
     assert band['position'][0] == -1.8 and band['scale'][0] == pytest.approx(1.0)  # 2 * 0.5
     assert band['color'][:3] == RED[:3]  # the worse of its two sides
+    # one side not reported (yet): the other still colours the band
+    for h in ({'operator_lower': -0.01}, {'operator_upper': float('nan'), 'operator_lower': -1}):
+        (band,) = _by(scene_markers(geometry=geometry, state=state, h=h), 'bands')
+        assert band['color'][:3] == RED[:3], h
     texts = {t['text'].split()[0]: t for t in _by(markers, 'barriers')}
     assert len(texts) == len(geometry.barrier_names) == 17
     assert texts['tilt']['color'] == AMBER and texts['thrust']['color'] == GREY
@@ -245,3 +249,23 @@ def test_foxglove_layout_shows_the_scene_the_barriers_and_the_command():
     assert all(v.startswith(('/diagnostics.status[:]{name=="safety_filter"}', '/cmd_safe.data['))
                for v in plotted)
     assert any(v.startswith('/cmd_safe') for v in plotted)
+
+
+def test_marker_arrays_go_into_a_bag_that_rosbags_reads_back(tmp_path):
+    from rosbags.highlevel import AnyReader
+
+    from rcbf_ros.bag import BagWriter
+    from rcbf_ros.ros.scene_node import MARKER_ARRAY, marker_array
+    markers = scene_markers(geometry=_geometry('pvtol'),
+                            state=[-2.0, 1.0, 0.0, 0.0, 0.3, 1.0, -1.8], h={'tilt': 0.5})
+    writer = BagWriter(tmp_path / 'bag')
+    writer.add_topic('/scene_markers', MARKER_ARRAY)
+    writer.write_message('/scene_markers', marker_array(markers), 1_000)
+    writer.close()
+    with AnyReader([tmp_path / 'bag']) as reader:
+        (connection,) = reader.connections
+        assert connection.msgtype == MARKER_ARRAY
+        ((_, _, raw),) = list(reader.messages(connections=[connection]))
+        back = reader.deserialize(raw, connection.msgtype).markers
+    assert [(m.ns, m.id, m.text) for m in back] == [
+        (m['ns'], m['id'], m.get('text', '')) for m in markers]
