@@ -274,3 +274,19 @@ def test_experiment_report_draws_every_method_on_the_first_transfer_layouts(tmp_
         assert float(line.split(': ')[1].split(' m')[0]) == pytest.approx(closest, abs=5e-4)
         assert any(METHODS[m].label in line for m in rows)
     assert (report / 'transfer_paths.md').read_text() == text
+
+
+def test_summary_of_a_run_directory_ends_with_its_picture(tmp_path, capsys):
+    from rcbf_ros.run_summary import main
+    run = tmp_path / 'run'
+    (run / 'learner').mkdir(parents=True)
+    (run / 'learner' / 'summary.json').write_text(json.dumps(
+        {'episodes': 2, 'env_steps': 63, 'steps_per_s': 50.0, 'best_return': 0.5,
+         'goals_reached': 0, 'safety_violations': 0}))
+    _write_node_bag(run / 'bag', _episodes(), [set(), set()])
+    assert main([str(run)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[-1].startswith(f'trajectories: {run / "trajectories.png"}; closest approach ')
+    assert main([str(run), '--params-file', str(find_config('unicycle'))]) == 0
+    assert main([str(run), '--params']) == 2
+    assert 'usage: python -m rcbf_ros.run_summary' in capsys.readouterr().err
