@@ -6,6 +6,10 @@ The local counterpart of ``ros2 launch rcbf_ros <name>.launch.py``; both read
 loopback ``CYCLONEDDS_URI`` (no traffic off the machine) and one ``ROS_DOMAIN_ID`` in its
 environment. Each output line is prefixed with ``[<node>]``.
 
+Before any node starts, the params file is read with the nodes' own reader: a missing,
+unreadable or malformed file (not YAML, not a mapping of node sections with ``ros__parameters``,
+or no section for any node of the launch) is refused with one line naming it, exit code 2.
+
 Stopping: on Ctrl-C / SIGTERM, when a node marked ``ends_launch`` exits, or when a required node
 fails, every node still running gets SIGINT, then SIGTERM after ``--sigint-timeout``, then
 SIGKILL after ``--sigterm-timeout``. The exit code is 1 if a required node failed (a non-zero
@@ -31,7 +35,8 @@ from typing import Any, IO, Mapping, Sequence
 import yaml
 
 from rcbf_ros.launch_table import launch_setup, LAUNCHES, LaunchSetup, ros_arguments
-from rcbf_ros.params import find_config
+from rcbf_ros.params import find_config, node_key_level
+from rcbf_ros.ros.dds.arguments import load_params_file
 from rcbf_ros.ros.loopback import ensure_loopback
 
 _REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -96,6 +101,21 @@ def child_commands(setup: LaunchSetup, *, params_file: str | Path,
                                   command=(python, '-m', entry.module, *args),
                                   required=entry.required, ends_launch=entry.ends_launch))
     return children
+
+
+def check_params_file(setup: LaunchSetup, params_file: str | Path) -> None:
+    """Refuse a params file before any node starts, as the nodes would each refuse it.
+
+    Raises:
+        ValueError: one line naming the file: missing or unreadable, not YAML, not a mapping of
+            node sections with ``ros__parameters``, or no section for any node of ``setup``.
+    """
+    sections = load_params_file(str(params_file))  # RosArgumentError is a ValueError
+    names = [entry.name for entry in setup.nodes]
+    if not any(node_key_level(key, name, f'/{name}') for key in sections for name in names):
+        raise ValueError(f'--params-file {str(params_file)!r}: no section for any node of '
+                         f'{setup.name} (/**, {", ".join("/" + n for n in names)}); '
+                         f'found {sorted(sections) or "none"}')
 
 
 def child_environment(base: Mapping[str, str], *, domain_id: int) -> dict[str, str]:
@@ -289,6 +309,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if domain_id is None:
         domain_id = int(os.environ.get('ROS_DOMAIN_ID', '0') or 0)
     try:
+        check_params_file(setup, params_file)
         children = child_commands(setup, params_file=params_file, overrides=overrides,
                                   without=args.without)
         env = child_environment(os.environ, domain_id=domain_id)

@@ -31,9 +31,14 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
         setup_message: the middle of that line ('' for none).
 
     Returns:
-        0, or 2 on a setup error. Other exceptions propagate (after the shutdown).
+        0, or 2 on a setup error (including a bad ``--ros-args`` section or params file, which
+        ``rclpy.init`` refuses). Other exceptions propagate (after the shutdown).
     """
-    rclpy.init(args=list(sys.argv if args is None else args))
+    try:
+        rclpy.init(args=list(sys.argv if args is None else args))
+    except ValueError as exc:
+        print(f'{name}: {exc}', file=sys.stderr)
+        return 2
     node = None
     try:
         node = make_node()

@@ -284,3 +284,60 @@ def test_main_prints_commands_and_rejects_unknown_nodes(capsys):
     assert launch_local.main(['unicycle_filter', '--print', '-p', 'planner:x:=1']) == 2
     with pytest.raises(SystemExit):
         launch_local.main(['unicycle_filter', '-p', 'no_equals_sign'])
+
+
+# --- params file: refused before any node starts -----------------------------------------------
+
+BAD_PARAMS = {
+    'missing': (None, 'No such file or directory'),
+    'directory': ('', 'Is a directory'),
+    'not_utf8': (b'\xff\xfe\x00', 'not UTF-8'),
+    'not_yaml': ('a: [1\n', 'not valid YAML at line 2'),
+    'two_documents': ('a: 1\n---\nb: 2\n', 'not valid YAML'),
+    'a_list': ('- 1\n- 2\n', 'top level must map node names'),
+    'no_ros__parameters': ('/simulator:\n  seed: 3\n', 'has no ros__parameters'),
+    'ros__parameters_not_a_mapping': ('/simulator:\n  ros__parameters: 3\n', 'must be a mapping'),
+    'no_section_for_these_nodes': ('/planner:\n  ros__parameters: {a: 1}\n', 'no section'),
+    'empty': ('', 'no section'),
+}
+
+
+def _params_file(tmp_path: Path, kind: str) -> Path:
+    content, _ = BAD_PARAMS[kind]
+    path = tmp_path / f'{kind}.yaml'
+    if kind == 'directory':
+        path.mkdir()
+    elif isinstance(content, bytes):
+        path.write_bytes(content)
+    elif content is not None:
+        path.write_text(content)
+    return path
+
+
+@pytest.mark.parametrize('kind', sorted(BAD_PARAMS))
+def test_a_bad_params_file_is_refused_in_one_line_before_any_node_starts(tmp_path, monkeypatch,
+                                                                        capsys, kind):
+    def no_process(*args, **kwargs):
+        raise AssertionError(f'a process was started: {args[0]}')
+
+    monkeypatch.setattr(launch_local.subprocess, 'Popen', no_process)
+    path = _params_file(tmp_path, kind)
+    for extra in ([], ['--print']):
+        assert launch_local.main(['unicycle_filter', '--params-file', str(path), *extra]) == 2
+        captured = capsys.readouterr()
+        assert captured.out == ''
+        lines = captured.err.splitlines()
+        assert len(lines) == 1, captured.err
+        assert lines[0].startswith('rcbf_ros_launch: --params-file')
+        assert str(path) in lines[0] and BAD_PARAMS[kind][1] in lines[0]
+
+
+def test_params_files_that_configure_a_node_of_the_launch_are_accepted(tmp_path):
+    setup = launch_setup('unicycle_filter')
+    launch_local.check_params_file(setup, REPO / 'config' / 'unicycle.yaml')
+    for text in ('/**:\n  ros__parameters: {seed: 1}\n',
+                 'simulator:\n  ros__parameters: {seed: 1}\n',
+                 '/**/recorder:\n  ros__parameters: {output: b}\n'):
+        path = tmp_path / 'p.yaml'
+        path.write_text(text)
+        launch_local.check_params_file(setup, path)

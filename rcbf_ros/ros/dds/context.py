@@ -32,7 +32,7 @@ from cyclonedds.core import GuardCondition, Policy, Qos, WaitSet
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.util import duration
 
-from rcbf_ros.ros.dds.arguments import parse_ros_arguments, RosArguments
+from rcbf_ros.ros.dds.arguments import load_params_file, parse_ros_arguments, RosArguments
 from rcbf_ros.ros.loopback import (
     ensure_loopback,
     LOOPBACK_CYCLONEDDS_URI,
@@ -73,6 +73,8 @@ class Context:
             if self._ok:
                 raise RuntimeError('rclpy.init() has already been called for this context')
             self.arguments = parse_ros_arguments(args)
+            for path in self.arguments.params_files:  # as rcl does at init
+                load_params_file(path)
             if domain_id is None:
                 text = os.environ.get('ROS_DOMAIN_ID', '').strip() or '0'
                 try:
