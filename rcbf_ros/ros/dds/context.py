@@ -13,7 +13,10 @@ Signals: :func:`init` (from the main thread) installs SIGINT and SIGTERM handler
 context down. A node spinning in the main thread then sees ``KeyboardInterrupt`` (SIGINT) or
 :class:`ExternalShutdownException` (SIGTERM) raised from ``spin`` between callbacks, never in the
 middle of one, so ``main()``'s ``finally`` runs and can flush files. A signal arriving outside
-``spin`` raises at once, like Python's default SIGINT handler.
+``spin`` raises at once, like Python's default SIGINT handler, unless the context is already
+shut down: then the node is already on its way out, and a second signal (a launcher escalating
+SIGINT to SIGTERM, a second Ctrl-C) must not break off its clean-up half way (SIGKILL still
+does).
 
 Loopback: with the loopback configuration in effect (:mod:`rcbf_ros.ros.loopback`), the sockets
 Cyclone binds to 0.0.0.0 when the participant is created are bound to the loopback device.
@@ -132,6 +135,8 @@ class Context:
             self.shutdown()
 
     def _on_signal(self, signum: int, frame: Any) -> None:
+        if not self._ok:  # already stopping: let the clean-up finish
+            return
         self._pending_signal = signum
         self._mark_shutdown()
         if threading.get_ident() not in self.spinning_threads:
