@@ -16,7 +16,8 @@ def describe(name: str) -> Any:
     """A ``LaunchDescription`` with one launch_ros ``Node`` per table entry of launch ``name``.
 
     All nodes read the ``params_file`` launch argument (default: the packaged
-    ``config/<system>.yaml``); a node marked ``ends_launch`` shuts the launch down on exit.
+    ``config/<system>.yaml``); a node marked ``ends_launch`` shuts the launch down on exit; each
+    node gets its table limit from SIGINT to SIGTERM (launch's ``sigterm_timeout``).
     """
     from ament_index_python.packages import get_package_share_directory
     from launch.actions import DeclareLaunchArgument, Shutdown
@@ -37,5 +38,6 @@ def describe(name: str) -> Any:
         actions.append(Node(
             package=PACKAGE, executable=entry.executable, name=entry.name, output='screen',
             parameters=parameters, remappings=list(entry.remappings),
+            sigterm_timeout=str(entry.sigint_timeout_s),
             on_exit=Shutdown(reason=f'{entry.name} exited') if entry.ends_launch else None))
     return LaunchDescription(actions)

@@ -1,15 +1,21 @@
 """rcbf_ros_launch: start a launch's nodes as separate processes, without ROS 2 installed.
 
 The local counterpart of ``ros2 launch rcbf_ros <name>.launch.py``; both read
-:mod:`rcbf_ros.launch_table`. Every node runs as ``python -m <module> --ros-args
--r __node:=<name> --params-file config/<system>.yaml -r ...`` in its own process group, with the
+:mod:`rcbf_ros.launch_table`. Every node runs as ``python -m rcbf_ros.ros.node_main <module>
+--ros-args -r __node:=<name> --params-file config/<system>.yaml -r ...`` (``python -m <module>``,
+but a node stopped while it is still importing exits quietly) in its own process group, with the
 loopback ``CYCLONEDDS_URI`` (no traffic off the machine) and one ``ROS_DOMAIN_ID`` in its
 environment. Each output line is prefixed with ``[<node>]``.
 
-Stopping: on Ctrl-C / SIGTERM, when a node marked ``ends_launch`` exits, or when a required node
-fails, every node still running gets SIGINT, then SIGTERM after ``--sigint-timeout``, then
-SIGKILL after ``--sigterm-timeout``. The exit code is 1 if a required node failed (a non-zero
-exit of its own, or it had to be killed), else 0.
+Before any node starts, the params file is read with the nodes' own reader: a missing,
+unreadable or malformed file (not YAML, not a mapping of node sections with ``ros__parameters``,
+or no section for any node of the launch) is refused with one line naming it, exit code 2.
+
+Stopping: on SIGINT (Ctrl-C, also when the launcher was started in the background) or SIGTERM,
+when a node marked ``ends_launch`` exits, or when a required node fails, every node still running
+gets SIGINT, then SIGTERM after its own limit (the table's ``sigint_timeout_s``, or
+``--sigint-timeout`` for all), then SIGKILL after ``--sigterm-timeout``. The exit code is 1 if a
+required node failed (a non-zero exit of its own, or it had to be killed), else 0.
 
 Example::
 
@@ -18,7 +24,7 @@ Example::
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import os
 from pathlib import Path
 import signal
@@ -26,17 +32,20 @@ import subprocess
 import sys
 import threading
 import time
-from typing import Any, IO, Mapping, Sequence
+from typing import Any, Callable, IO, Mapping, Sequence
 
 import yaml
 
 from rcbf_ros.launch_table import launch_setup, LAUNCHES, LaunchSetup, ros_arguments
-from rcbf_ros.params import find_config
+from rcbf_ros.params import find_config, node_key_level
+from rcbf_ros.ros.dds.arguments import load_params_file
 from rcbf_ros.ros.loopback import ensure_loopback
 
 _REPO_ROOT = Path(__file__).resolve().parent.parent
 # Exit statuses of a process that stopped because we asked it to.
 _STOPPED_OK = {0, -signal.SIGINT, -signal.SIGTERM, 128 + signal.SIGINT, 128 + signal.SIGTERM}
+NODE_RUNNER = 'rcbf_ros.ros.node_main'
+"""Module that runs each node's module (``python -m NODE_RUNNER <module> ...``)."""
 
 
 @dataclass(frozen=True)
@@ -51,6 +60,8 @@ class ChildSpec:
     """A failure of this process fails the launch."""
     ends_launch: bool = False
     """Its exit stops every other process."""
+    sigint_timeout_s: float | None = None
+    """Seconds from SIGINT to SIGTERM when stopping it (None: the launch's default)."""
 
 
 @dataclass
@@ -93,9 +104,25 @@ def child_commands(setup: LaunchSetup, *, params_file: str | Path,
         args = ros_arguments(entry, params_file=str(params_file),
                              overrides=(overrides or {}).get(entry.name))
         children.append(ChildSpec(name=entry.name,
-                                  command=(python, '-m', entry.module, *args),
-                                  required=entry.required, ends_launch=entry.ends_launch))
+                                  command=(python, '-m', NODE_RUNNER, entry.module, *args),
+                                  required=entry.required, ends_launch=entry.ends_launch,
+                                  sigint_timeout_s=entry.sigint_timeout_s))
     return children
+
+
+def check_params_file(setup: LaunchSetup, params_file: str | Path) -> None:
+    """Refuse a params file before any node starts, as the nodes would each refuse it.
+
+    Raises:
+        ValueError: one line naming the file: missing or unreadable, not YAML, not a mapping of
+            node sections with ``ros__parameters``, or no section for any node of ``setup``.
+    """
+    sections = load_params_file(str(params_file))  # RosArgumentError is a ValueError
+    names = [entry.name for entry in setup.nodes]
+    if not any(node_key_level(key, name, f'/{name}') for key in sections for name in names):
+        raise ValueError(f'--params-file {str(params_file)!r}: no section for any node of '
+                         f'{setup.name} (/**, {", ".join("/" + n for n in names)}); '
+                         f'found {sorted(sections) or "none"}')
 
 
 def child_environment(base: Mapping[str, str], *, domain_id: int) -> dict[str, str]:
@@ -155,22 +182,31 @@ def run_processes(children: Sequence[ChildSpec], *, env: Mapping[str, str],
     Args:
         env: environment of every child.
         sink: where prefixed output goes (default stdout).
-        stop_event: set from elsewhere to stop the launch (as Ctrl-C does).
+        sigint_timeout_s: seconds from SIGINT to SIGTERM for a child without its own limit.
+        sigterm_timeout_s: seconds from SIGTERM to SIGKILL.
+        stop_event: set from elsewhere to stop the launch (as Ctrl-C does); children not
+            started yet are not started.
     """
     sink = sys.stdout if sink is None else sink
+    specs = {child.name: child for child in children}
     lock = threading.Lock()
     processes: dict[str, subprocess.Popen] = {}
     pumps: list[threading.Thread] = []
     outcome = LaunchOutcome(exit_code=0)
 
+    def say(text: str) -> None:
+        with lock:
+            sink.write(f'[launch] {text}\n')
+            sink.flush()
+
     def note_failure(name: str, why: str) -> None:
         outcome.failed.append(name)
-        with lock:
-            sink.write(f'[launch] {name} failed: {why}\n')
-            sink.flush()
+        say(f'{name} failed: {why}')
 
     try:
         for child in children:
+            if stop_event is not None and stop_event.is_set():
+                break
             process = subprocess.Popen(child.command, env=dict(env), stdout=subprocess.PIPE,
                                        stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                        start_new_session=True, preexec_fn=_default_sigint)
@@ -179,7 +215,6 @@ def run_processes(children: Sequence[ChildSpec], *, env: Mapping[str, str],
                                     daemon=True)
             pump.start()
             pumps.append(pump)
-        specs = {child.name: child for child in children}
         while not outcome.reason:
             if stop_event is not None and stop_event.is_set():
                 outcome.reason = 'stop requested'
@@ -202,7 +237,8 @@ def run_processes(children: Sequence[ChildSpec], *, env: Mapping[str, str],
     except KeyboardInterrupt:
         outcome.reason = 'interrupted'
     finally:
-        _stop_all(processes, outcome, sigint_timeout_s, sigterm_timeout_s, poll_s)
+        limits = {name: specs[name].sigint_timeout_s or sigint_timeout_s for name in processes}
+        _stop_all(processes, outcome, limits, sigterm_timeout_s, poll_s, say)
         for pump in pumps:
             pump.join(timeout=2.0)
     for name, process in processes.items():
@@ -214,34 +250,58 @@ def run_processes(children: Sequence[ChildSpec], *, env: Mapping[str, str],
             note_failure(name, 'did not stop on SIGINT or SIGTERM (killed)')
         elif stopped_by_us and code not in _STOPPED_OK:
             note_failure(name, f'exited with {code} when asked to stop')
+        elif not stopped_by_us and code not in (0, None):  # ended while the stop began
+            note_failure(name, f'exited with {code}')
     outcome.exit_code = 1 if outcome.failed else 0
-    with lock:
-        sink.write(f'[launch] stopped ({outcome.reason}); return codes '
-                   f'{outcome.returncodes}; exit code {outcome.exit_code}\n')
-        sink.flush()
+    say(f'stopped ({outcome.reason}); return codes {outcome.returncodes}; '
+        f'exit code {outcome.exit_code}')
     return outcome
 
 
+_NEXT_SIGNAL = {signal.SIGINT: signal.SIGTERM, signal.SIGTERM: signal.SIGKILL}
+_SIGKILL_WAIT_S = 5.0
+
+
 def _stop_all(processes: Mapping[str, subprocess.Popen], outcome: LaunchOutcome,
-              sigint_timeout_s: float, sigterm_timeout_s: float, poll_s: float) -> None:
-    """SIGINT, then SIGTERM, then SIGKILL to every process still running."""
-    for signum, timeout in ((signal.SIGINT, sigint_timeout_s),
-                            (signal.SIGTERM, sigterm_timeout_s), (signal.SIGKILL, 5.0)):
-        alive = {name: p for name, p in processes.items() if p.poll() is None}
+              sigint_timeouts_s: Mapping[str, float], sigterm_timeout_s: float,
+              poll_s: float, say: Callable[[str], None]) -> None:
+    """SIGINT to every process still running; SIGTERM to each one still running after its own
+    ``sigint_timeouts_s``, SIGKILL after ``sigterm_timeout_s`` more (each escalation said)."""
+    sent: dict[str, tuple[signal.Signals, float]] = {}  # last signal, when to escalate
+    abandoned: set[str] = set()  # not even reaped after SIGKILL
+
+    def send(name: str, signum: signal.Signals, wait_s: float) -> None:
+        if signum != signal.SIGINT:
+            previous = sent[name][0]
+            limit = sigint_timeouts_s[name] if previous == signal.SIGINT else sigterm_timeout_s
+            say(f'{name} still running {limit:g} s after {previous.name}; sending {signum.name}')
+        outcome.escalations[name] = signum.name
+        _signal_group(processes[name], signum)
+        sent[name] = (signum, time.monotonic() + wait_s)
+
+    for name, process in processes.items():
+        if process.poll() is None:
+            send(name, signal.SIGINT, sigint_timeouts_s[name])
+    while True:
         for name, process in processes.items():
-            if name not in outcome.returncodes and name not in alive:
+            if name not in outcome.returncodes and process.poll() is not None:
                 outcome.returncodes[name] = process.returncode
-        if not alive:
+        running = [name for name in sent
+                   if name not in abandoned and processes[name].poll() is None]
+        if not running:
             return
-        for name, process in alive.items():
-            outcome.escalations[name] = signal.Signals(signum).name
-            _signal_group(process, signum)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and any(p.poll() is None for p in alive.values()):
-            time.sleep(poll_s)
-        for name, process in alive.items():
-            if process.poll() is not None:
-                outcome.returncodes[name] = process.returncode
+        now = time.monotonic()
+        for name in running:
+            signum, deadline = sent[name]
+            if now < deadline:
+                continue
+            if signum == signal.SIGKILL:
+                abandoned.add(name)
+                continue
+            following = _NEXT_SIGNAL[signum]
+            send(name, following, sigterm_timeout_s if following == signal.SIGTERM
+                 else _SIGKILL_WAIT_S)
+        time.sleep(poll_s)
 
 
 def _parse_override(text: str) -> tuple[str, str, Any]:
@@ -257,6 +317,17 @@ def _parse_override(text: str) -> tuple[str, str, Any]:
     return node, name, parsed
 
 
+def _seconds(text: str) -> float:
+    """A timeout option: a number of seconds > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float('nan')
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f'expected seconds > 0, got {text!r}')
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog='rcbf_ros_launch', description=__doc__.split('\n\n')[0],
@@ -270,8 +341,11 @@ def build_parser() -> argparse.ArgumentParser:
                         metavar='NODE:NAME:=VALUE', help='parameter override for one node')
     parser.add_argument('--without', action='append', default=[], metavar='NODE',
                         help='do not start this node (repeatable)')
-    parser.add_argument('--sigint-timeout', type=float, default=5.0)
-    parser.add_argument('--sigterm-timeout', type=float, default=3.0)
+    parser.add_argument('--sigint-timeout', type=_seconds, default=None,
+                        help='seconds from SIGINT to SIGTERM for every node (default: per node, '
+                        'from the launch table)')
+    parser.add_argument('--sigterm-timeout', type=_seconds, default=3.0,
+                        help='seconds from SIGTERM to SIGKILL')
     parser.add_argument('--print', action='store_true', dest='print_only',
                         help='print the commands instead of running them')
     return parser
@@ -289,27 +363,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     if domain_id is None:
         domain_id = int(os.environ.get('ROS_DOMAIN_ID', '0') or 0)
     try:
+        check_params_file(setup, params_file)
         children = child_commands(setup, params_file=params_file, overrides=overrides,
                                   without=args.without)
         env = child_environment(os.environ, domain_id=domain_id)
     except ValueError as exc:
         print(f'rcbf_ros_launch: {exc}', file=sys.stderr)
         return 2
+    if args.sigint_timeout is not None:
+        children = [replace(child, sigint_timeout_s=args.sigint_timeout) for child in children]
     if args.print_only:
         for child in children:
             print(f'{child.name}: ' + ' '.join(child.command))
         return 0
     stop = threading.Event()
 
-    def on_sigterm(signum: int, frame: Any) -> None:
+    def on_signal(signum: int, frame: Any) -> None:
         stop.set()
 
-    previous = signal.signal(signal.SIGTERM, on_sigterm)
+    # SIGINT explicitly, not Python's KeyboardInterrupt: a shell starts a background job
+    # (``rcbf_ros_launch ... &``) with SIGINT ignored, and Python then installs no handler.
+    previous = {signum: signal.signal(signum, on_signal)
+                for signum in (signal.SIGINT, signal.SIGTERM)}
     try:
-        outcome = run_processes(children, env=env, sigint_timeout_s=args.sigint_timeout,
-                                sigterm_timeout_s=args.sigterm_timeout, stop_event=stop)
+        outcome = run_processes(children, env=env, sigterm_timeout_s=args.sigterm_timeout,
+                                stop_event=stop)
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
     return outcome.exit_code
 
 

@@ -40,6 +40,14 @@ class NodeEntry:
     """A failure of this node (non-zero exit, or not stopping when asked) fails the launch."""
     ends_launch: bool = False
     """When this node exits, every other node is stopped (launch's ``on_exit=Shutdown()``)."""
+    sigint_timeout_s: float = 5.0
+    """Seconds the node gets to stop after SIGINT before it is sent SIGTERM (launch's
+    ``sigterm_timeout``): what its exit work needs, with room for a loaded machine."""
+
+    def __post_init__(self) -> None:
+        if not self.sigint_timeout_s > 0:
+            raise ValueError(f'{self.name}: sigint_timeout_s must be > 0, '
+                             f'got {self.sigint_timeout_s}')
 
 
 @dataclass(frozen=True)
@@ -68,10 +76,15 @@ SIMULATOR = NodeEntry(name='simulator', executable='simulator',
 SAFETY_FILTER = NodeEntry(name='safety_filter', executable='safety_filter',
                           module='rcbf_ros.ros.safety_filter_node')
 RECORDER = NodeEntry(name='recorder', executable='recorder', module='rcbf_ros.ros.recorder_node',
-                     required=False)
+                     sigint_timeout_s=10.0)
 SCENE = NodeEntry(name='scene_markers', executable='scene_markers',
                   module='rcbf_ros.ros.scene_node', required=False)
-"""The entries every launch shares; each launch adds the node that proposes actions."""
+"""The entries every launch shares; each launch adds the node that proposes actions.
+
+The recorder is required: a launch asked to record that cannot (the bag directory exists, is
+read-only, ...) stops with a failure instead of running unrecorded (``--without recorder`` runs
+without one). It gets longer to stop than the others because closing writes the bag's summary.
+"""
 
 
 def _closed_loop(system: str, kind: str, description: str, proposer: NodeEntry,
@@ -103,14 +116,16 @@ def _learner_loop(system: str) -> LaunchSetup:
             +------------------------------- cmd_safe (u*) --------------------------+
 
     The learner ends the launch; the simulator waits longer for actions, because GP refits
-    and checkpoints pause the learner for a second or two.
+    and checkpoints pause the learner for a second or two. Stopped early, the learner still
+    writes its checkpoint, policy and reward curve, which grow with the replay buffer: it gets
+    30 s for that.
     """
     return _closed_loop(
         system, 'learner',
         f'train SAC-RCBF on {system}: simulator + safety_filter + learner + recorder; ends '
         'when the learner has run its episodes',
         NodeEntry(name='learner', executable='learner', module='rcbf_ros.ros.learner_node',
-                  parameters=(('system', system),), ends_launch=True),
+                  parameters=(('system', system),), ends_launch=True, sigint_timeout_s=30.0),
         simulator=replace(SIMULATOR, ends_launch=False,
                           parameters=(('action_timeout_s', 10.0),)))
 

@@ -253,7 +253,8 @@ def main(args: Sequence[str] | None = None) -> int:
         node.get_logger().info(
             f'bag {node.bag_directory} closed: {total} messages ({per_topic})')
 
-    return run_node('recorder', RecorderNode, args, on_exit=close_bag)
+    return run_node('recorder', RecorderNode, args, on_exit=close_bag,
+                    setup_errors=(OSError, ValueError), setup_message='cannot record: ')
 
 
 if __name__ == '__main__':

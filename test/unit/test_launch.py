@@ -34,11 +34,31 @@ def test_unicycle_filter_table_wires_the_filter_between_controller_and_simulator
     assert [n.name for n in setup.nodes] == ['simulator', 'safety_filter', 'nominal_controller',
                                              'scene_markers', 'recorder']
     assert (REPO / 'config' / setup.config).is_file()
-    assert setup.node('simulator').ends_launch and not setup.node('recorder').required
+    assert setup.node('simulator').ends_launch
     with pytest.raises(KeyError, match='simulator'):
         setup.node('planner')
     with pytest.raises(ValueError, match='unknown launch'):
         launch_setup('mars_rover')
+
+
+def test_a_launch_asked_to_record_fails_without_its_recorder():
+    # Every node is required: a recorder that cannot record fails the launch, it does not run
+    # on unrecorded (``--without recorder`` is the way to run without one).
+    for setup in LAUNCHES.values():
+        assert all(entry.required for entry in setup.nodes), setup.name
+
+
+def test_stop_limits_fit_what_each_node_does_on_exit():
+    # Measured stop times (SIGINT to exit, a sibling SIGKILLed just before) are under 2 s for
+    # the simulator, filter, controllers and recorder and 2.5 s for a training learner; the
+    # recorder and learner write files on exit that grow with the run.
+    for setup in LAUNCHES.values():
+        limits = {entry.name: entry.sigint_timeout_s for entry in setup.nodes}
+        assert limits['simulator'] == limits['safety_filter'] == 5.0
+        assert limits['recorder'] == 10.0
+        assert limits.get('learner', 30.0) == 30.0
+    with pytest.raises(ValueError, match='sigint_timeout_s'):
+        NodeEntry(name='x', executable='x', module='x', sigint_timeout_s=0.0)
 
 
 def test_every_table_module_has_a_console_script_of_the_same_name():
@@ -78,7 +98,8 @@ def test_child_commands_and_environment():
         without=['recorder', 'scene_markers'], python='py')
     assert [c.name for c in children] == ['simulator', 'safety_filter', 'nominal_controller']
     sim = children[0]
-    assert sim.command[:3] == ('py', '-m', 'sim_nodes.simulator_node')
+    assert sim.command[:4] == ('py', '-m', 'rcbf_ros.ros.node_main', 'sim_nodes.simulator_node')
+    assert sim.sigint_timeout_s == 5.0
     assert parse_ros_arguments(sim.command).parameters == {'max_episodes': 1}
     with pytest.raises(ValueError, match="no node 'planner'"):
         launch_local.child_commands(setup, params_file='p.yaml', without=['planner'])
@@ -154,6 +175,7 @@ def test_launch_description_has_one_node_per_table_entry(monkeypatch, launch_fil
         assert node.kwargs['remappings'] == list(entry.remappings)
         assert isinstance(node.kwargs['parameters'][0], kinds['LaunchConfiguration'])
         assert isinstance(node.kwargs['on_exit'], kinds['Shutdown']) == entry.ends_launch
+        assert node.kwargs['sigterm_timeout'] == str(entry.sigint_timeout_s)
 
 
 # --- local launcher: real processes ------------------------------------------------------------
@@ -284,3 +306,117 @@ def test_main_prints_commands_and_rejects_unknown_nodes(capsys):
     assert launch_local.main(['unicycle_filter', '--print', '-p', 'planner:x:=1']) == 2
     with pytest.raises(SystemExit):
         launch_local.main(['unicycle_filter', '-p', 'no_equals_sign'])
+
+
+def test_each_child_gets_its_own_limit_from_sigint_to_sigterm(tmp_path):
+    # 'deaf' ignores SIGINT and has a short limit: it gets SIGTERM after it, while 'waiter',
+    # which stops only once 'deaf' is gone, still has its own (long) limit. With one limit for
+    # every child both would be sent SIGTERM together.
+    deaf = _python(f"""
+        import os, pathlib, signal, time
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        pathlib.Path({str(tmp_path / 'deaf.pid')!r}).write_text(str(os.getpid()))
+        time.sleep(60)
+    """)
+    waiter = _python(f"""
+        import os, pathlib, signal, sys, time
+        deaf = pathlib.Path({str(tmp_path / 'deaf.pid')!r})
+        def gone(pid):
+            try:
+                return open(f'/proc/{{pid}}/stat').read().split()[2] == 'Z'
+            except OSError:
+                return True
+        def on_sigint(*_):
+            pid = int(deaf.read_text())
+            while not gone(pid):
+                time.sleep(0.02)
+            sys.exit(0)
+        signal.signal(signal.SIGINT, on_sigint)
+        pathlib.Path({str(tmp_path / 'waiter')!r}).touch()
+        time.sleep(60)
+    """)
+    children = [
+        launch_local.ChildSpec('deaf', deaf, sigint_timeout_s=0.3),
+        launch_local.ChildSpec('waiter', waiter),
+        launch_local.ChildSpec('sim', _wait_for(tmp_path, ['deaf.pid', 'waiter'], 'sys.exit(0)'),
+                               ends_launch=True),
+    ]
+    outcome, _ = _run(children)
+    assert outcome.escalations == {'deaf': 'SIGTERM', 'waiter': 'SIGINT'}
+    assert outcome.returncodes['waiter'] == 0 and outcome.exit_code == 0
+
+
+def test_a_required_child_that_dies_as_the_stop_begins_still_fails_the_launch(tmp_path):
+    stop = threading.Event()
+    children = [launch_local.ChildSpec('node', _ready_then(tmp_path, 'node',
+                                                           'pass\n#handlers:\nsys.exit(3)'))]
+
+    def stop_once_it_died():
+        _wait_file(tmp_path / 'node')
+        import time
+        time.sleep(0.5)
+        stop.set()
+
+    thread = threading.Thread(target=stop_once_it_died)
+    thread.start()
+    outcome, _ = _run(children, stop_event=stop, poll_s=2.0)
+    thread.join()
+    assert outcome.returncodes['node'] == 3 and outcome.failed == ['node']
+    assert outcome.exit_code == 1
+
+
+# --- params file: refused before any node starts -----------------------------------------------
+
+BAD_PARAMS = {
+    'missing': (None, 'No such file or directory'),
+    'directory': ('', 'Is a directory'),
+    'not_utf8': (b'\xff\xfe\x00', 'not UTF-8'),
+    'not_yaml': ('a: [1\n', 'not valid YAML at line 2'),
+    'two_documents': ('a: 1\n---\nb: 2\n', 'not valid YAML'),
+    'a_list': ('- 1\n- 2\n', 'top level must map node names'),
+    'no_ros__parameters': ('/simulator:\n  seed: 3\n', 'has no ros__parameters'),
+    'ros__parameters_not_a_mapping': ('/simulator:\n  ros__parameters: 3\n', 'must be a mapping'),
+    'no_section_for_these_nodes': ('/planner:\n  ros__parameters: {a: 1}\n', 'no section'),
+    'empty': ('', 'no section'),
+}
+
+
+def _params_file(tmp_path: Path, kind: str) -> Path:
+    content, _ = BAD_PARAMS[kind]
+    path = tmp_path / f'{kind}.yaml'
+    if kind == 'directory':
+        path.mkdir()
+    elif isinstance(content, bytes):
+        path.write_bytes(content)
+    elif content is not None:
+        path.write_text(content)
+    return path
+
+
+@pytest.mark.parametrize('kind', sorted(BAD_PARAMS))
+def test_a_bad_params_file_is_refused_in_one_line_before_any_node_starts(tmp_path, monkeypatch,
+                                                                        capsys, kind):
+    def no_process(*args, **kwargs):
+        raise AssertionError(f'a process was started: {args[0]}')
+
+    monkeypatch.setattr(launch_local.subprocess, 'Popen', no_process)
+    path = _params_file(tmp_path, kind)
+    for extra in ([], ['--print']):
+        assert launch_local.main(['unicycle_filter', '--params-file', str(path), *extra]) == 2
+        captured = capsys.readouterr()
+        assert captured.out == ''
+        lines = captured.err.splitlines()
+        assert len(lines) == 1, captured.err
+        assert lines[0].startswith('rcbf_ros_launch: --params-file')
+        assert str(path) in lines[0] and BAD_PARAMS[kind][1] in lines[0]
+
+
+def test_params_files_that_configure_a_node_of_the_launch_are_accepted(tmp_path):
+    setup = launch_setup('unicycle_filter')
+    launch_local.check_params_file(setup, REPO / 'config' / 'unicycle.yaml')
+    for text in ('/**:\n  ros__parameters: {seed: 1}\n',
+                 'simulator:\n  ros__parameters: {seed: 1}\n',
+                 '/**/recorder:\n  ros__parameters: {output: b}\n'):
+        path = tmp_path / 'p.yaml'
+        path.write_text(text)
+        launch_local.check_params_file(setup, path)

@@ -155,14 +155,24 @@ def load_params_file(path: str) -> dict[str, dict[str, Any]]:
     """Read a ROS 2 parameter file: node key -> flattened ``ros__parameters``.
 
     Raises:
-        RosArgumentError: the file is missing, not YAML, or lacks ``ros__parameters``.
+        RosArgumentError: the file is missing or unreadable, not UTF-8 YAML, or not a mapping of
+            node sections with ``ros__parameters`` (one line naming the file).
     """
     try:
         return read_params_file(path)
     except OSError as exc:
         raise RosArgumentError(f'--params-file {path!r}: {exc.strerror or exc}') from exc
+    except UnicodeDecodeError as exc:
+        raise RosArgumentError(f'--params-file {path!r}: not UTF-8 text ({exc.reason} at byte '
+                               f'{exc.start})') from exc
     except ValueError as exc:
-        raise RosArgumentError(f'--params-file {exc}') from exc
+        cause = exc.__cause__
+        if isinstance(cause, yaml.MarkedYAMLError) and cause.problem_mark is not None:
+            mark = cause.problem_mark
+            raise RosArgumentError(f'--params-file {path!r}: not valid YAML at line '
+                                   f'{mark.line + 1}, column {mark.column + 1}: '
+                                   f'{cause.problem}') from exc
+        raise RosArgumentError(' '.join(f'--params-file {exc}'.split())) from exc
 
 
 def parameter_overrides(arguments: Iterable[RosArguments], node_name: str,

@@ -13,13 +13,20 @@ Signals: :func:`init` (from the main thread) installs SIGINT and SIGTERM handler
 context down. A node spinning in the main thread then sees ``KeyboardInterrupt`` (SIGINT) or
 :class:`ExternalShutdownException` (SIGTERM) raised from ``spin`` between callbacks, never in the
 middle of one, so ``main()``'s ``finally`` runs and can flush files. A signal arriving outside
-``spin`` raises at once, like Python's default SIGINT handler.
+``spin`` raises at once, like Python's default SIGINT handler, unless the context is already
+shut down: then the node is already on its way out, and a second signal (a launcher escalating
+SIGINT to SIGTERM, a second Ctrl-C) must not break off its clean-up half way (SIGKILL still
+does).
+
+Loopback: with the loopback configuration in effect (:mod:`rcbf_ros.ros.loopback`), the sockets
+Cyclone binds to 0.0.0.0 when the participant is created are bound to the loopback device.
 """
 from __future__ import annotations
 
 import collections
 import os
 import signal
+import sys
 import threading
 import time
 from typing import Any, Callable, Sequence
@@ -28,8 +35,13 @@ from cyclonedds.core import GuardCondition, Policy, Qos, WaitSet
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.util import duration
 
-from rcbf_ros.ros.dds.arguments import parse_ros_arguments, RosArguments
-from rcbf_ros.ros.loopback import ensure_loopback
+from rcbf_ros.ros.dds.arguments import load_params_file, parse_ros_arguments, RosArguments
+from rcbf_ros.ros.loopback import (
+    ensure_loopback,
+    LOOPBACK_CYCLONEDDS_URI,
+    own_socket_fds,
+    pin_wildcard_sockets_to_loopback,
+)
 
 WAIT_SLICE_S = 0.05
 """Longest single DDS wait; bounds how late a signal is noticed while idle."""
@@ -64,6 +76,8 @@ class Context:
             if self._ok:
                 raise RuntimeError('rclpy.init() has already been called for this context')
             self.arguments = parse_ros_arguments(args)
+            for path in self.arguments.params_files:  # as rcl does at init
+                load_params_file(path)
             if domain_id is None:
                 text = os.environ.get('ROS_DOMAIN_ID', '').strip() or '0'
                 try:
@@ -73,9 +87,7 @@ class Context:
             if not 0 <= domain_id <= 232:
                 raise ValueError(f'domain_id must be in 0..232, got {domain_id}')
             self.domain_id = domain_id
-            ensure_loopback()
-            self.participant = DomainParticipant(
-                domain_id, qos=Qos(Policy.Userdata(b'enclave=/;')))
+            self.participant = _create_participant(domain_id)
             self._pending_signal = None
             self._ok = True
             if threading.current_thread() is threading.main_thread():
@@ -123,6 +135,8 @@ class Context:
             self.shutdown()
 
     def _on_signal(self, signum: int, frame: Any) -> None:
+        if not self._ok:  # already stopping: let the clean-up finish
+            return
         self._pending_signal = signum
         self._mark_shutdown()
         if threading.get_ident() not in self.spinning_threads:
@@ -138,6 +152,20 @@ class Context:
 
 
 default_context = Context()
+
+
+def _create_participant(domain_id: int) -> DomainParticipant:
+    """A participant with USER_DATA ``enclave=/;``, its receive sockets kept on loopback."""
+    loopback = ensure_loopback() == LOOPBACK_CYCLONEDDS_URI
+    before = set(own_socket_fds()) if loopback and os.path.isdir('/proc/self/fd') else set()
+    participant = DomainParticipant(domain_id, qos=Qos(Policy.Userdata(b'enclave=/;')))
+    if loopback:
+        unpinned = pin_wildcard_sockets_to_loopback(skip_inodes=before)
+        if unpinned:
+            ports = ', '.join(str(s.port) for s in unpinned)
+            print(f'warning: Cyclone DDS sockets on 0.0.0.0 (ports {ports}) could not be bound '
+                  'to the loopback device', file=sys.stderr)
+    return participant
 
 
 def _work_available(node: Any) -> bool:

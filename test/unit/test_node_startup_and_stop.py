@@ -1,0 +1,121 @@
+"""How a node process starts and stops: params files refused at init in one line, a second
+signal during clean-up, a SIGINT while the node still imports."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from rcbf_ros.ros.dds.context import Context, ExternalShutdownException
+from rcbf_ros.ros.node_main import INTERRUPTED_EXIT, run_module, run_node
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+# --- params file -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize('content, expected', [
+    (None, 'No such file or directory'),
+    ('a: [1\n', 'not valid YAML at line 2, column 1'),
+    ('- 1\n', 'top level must map node names'),
+])
+def test_a_node_refuses_a_bad_params_file_in_one_line_before_joining_dds(tmp_path, capsys,
+                                                                        content, expected):
+    path = tmp_path / 'params.yaml'
+    if content is not None:
+        path.write_text(content)
+    built = []
+    code = run_node('probe', lambda: built.append(1),
+                    ['probe', '--ros-args', '--params-file', str(path)])
+    assert code == 2 and not built
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f'probe: --params-file {str(path)!r}: ')
+    assert expected in lines[0]
+
+
+def test_params_files_are_read_when_the_context_is_initialized(tmp_path, ros_domain_id):
+    context = Context()
+    with pytest.raises(ValueError, match='missing.yaml'):
+        context.init(['--ros-args', '--params-file', str(tmp_path / 'missing.yaml')],
+                     domain_id=ros_domain_id)
+    assert not context.ok() and context.participant is None
+
+
+# --- signals -----------------------------------------------------------------------------------
+
+def test_a_second_signal_does_not_break_off_the_clean_up(ros_domain_id):
+    # A launcher escalates SIGINT to SIGTERM; a node already stopping must finish its clean-up
+    # (close a bag, write a checkpoint) rather than die half way with a traceback.
+    context = Context()
+    context.init([], domain_id=ros_domain_id)
+    absorbed = []
+    try:
+        with pytest.raises(ExternalShutdownException):  # outside spin: raised at once
+            os.kill(os.getpid(), signal.SIGTERM)
+        assert not context.ok()
+        for signum in (signal.SIGINT, signal.SIGTERM):  # during the clean-up
+            try:
+                os.kill(os.getpid(), signum)
+                absorbed.append(signum)
+            except (KeyboardInterrupt, ExternalShutdownException):
+                pass
+    finally:
+        context.try_shutdown()
+    assert absorbed == [signal.SIGINT, signal.SIGTERM]
+    assert signal.getsignal(signal.SIGTERM) != context._on_signal  # handlers given back
+
+
+def test_a_sigint_while_the_node_module_imports_ends_quietly(tmp_path, monkeypatch):
+    (tmp_path / 'slow_import_node.py').write_text('raise KeyboardInterrupt\n')
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(sys, 'argv', list(sys.argv))
+    assert run_module(['slow_import_node', '--ros-args']) == INTERRUPTED_EXIT
+
+
+def test_run_module_calls_the_node_main_with_its_arguments(tmp_path, monkeypatch):
+    (tmp_path / 'echo_node.py').write_text(textwrap.dedent("""
+        import sys
+        def main():
+            return len(sys.argv)
+    """))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(sys, 'argv', list(sys.argv))
+    before = signal.getsignal(signal.SIGINT)
+    assert run_module(['echo_node', 'a', 'b']) == 3
+    assert signal.getsignal(signal.SIGINT) is before  # the node's main runs with it
+
+
+def test_a_sigint_before_the_node_handles_it_ends_quietly(tmp_path, monkeypatch):
+    (tmp_path / 'early_node.py').write_text('def main():\n    raise KeyboardInterrupt\n')
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(sys, 'argv', list(sys.argv))
+    assert run_module(['early_node']) == INTERRUPTED_EXIT
+
+
+def test_a_node_process_interrupted_while_importing_prints_no_traceback(tmp_path):
+    # Inside torch's C++ start-up a KeyboardInterrupt aborts the process (SIGABRT); the
+    # import must not see one at all.
+    (tmp_path / 'importing_node.py').write_text(textwrap.dedent(f"""
+        import pathlib, time
+        pathlib.Path({str(tmp_path / 'importing')!r}).touch()
+        try:
+            time.sleep(30)  # stands in for importing torch
+        except KeyboardInterrupt:
+            raise SystemExit('a KeyboardInterrupt reached the import')
+        def main():
+            return 0
+    """))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(REPO)]))
+    process = subprocess.Popen([sys.executable, '-m', 'rcbf_ros.ros.node_main', 'importing_node'],
+                               env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    while not (tmp_path / 'importing').exists() and process.poll() is None:
+        time.sleep(0.01)
+    process.send_signal(signal.SIGINT)
+    out, err = process.communicate(timeout=30)
+    assert (process.returncode, out, err) == (INTERRUPTED_EXIT, '', '')
