@@ -148,7 +148,7 @@ def test_stopping_after_a_sibling_was_killed_keeps_within_every_limit(tmp_path, 
     assert 'sending SIGTERM' not in output and 'when asked to stop' not in output, output[-3000:]
     codes = _return_codes(output)
     assert codes == {'recorder': -signal.SIGKILL, 'simulator': 0, 'safety_filter': 0,
-                     'nominal_controller': 0}
+                     'nominal_controller': 0, 'scene_markers': 0}
 
 
 def test_a_launcher_started_in_the_background_stops_on_sigint(tmp_path, ros_domain_id):
