@@ -124,7 +124,11 @@ def _wait_for_flushed(bag: Path, recorder: subprocess.Popen) -> None:
     while time.monotonic() < deadline:
         assert recorder.poll() is None, recorder.stdout.read()
         if any(bag.glob('*.mcap')):
-            info = bag_info(bag)
+            try:
+                info = bag_info(bag)
+            except BagError:  # the writer has created the file but not yet written its header
+                time.sleep(0.2)
+                continue
             counts = {name: t.message_count for name, t in info.topics.items()}
             if counts.get('/state') == N and counts.get('/cmd') == N:
                 return
