@@ -276,7 +276,7 @@ class Publisher:
                 raise TypeError(f'publisher on {self.topic_name!r} expects {self._type_name}, '
                                 f'got {type(msg).__name__}')
             data = messages.serialize_message(msg)
-        ret = ddspy_write(self._writer._ref, data)
+        ret = ddspy_write(self._writer._ref, messages.dds_payload(data))
         if isinstance(ret, int) and ret < 0:
             raise RuntimeError(f'DDS write on {self.topic_name!r} failed with code {ret}')
 
