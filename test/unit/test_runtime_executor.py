@@ -69,3 +69,18 @@ def test_graph_lists_ros_topics_with_ros_type_names(node):
     assert topics['/cmd_vel'] == ['geometry_msgs/msg/Twist']
     assert topics['/gain'] == ['std_msgs/msg/Float64']
     assert node.count_publishers('cmd_vel') == 1 and node.count_subscribers('gain') == 1
+
+
+def test_a_late_transient_local_subscriber_gets_the_writers_whole_history(node):
+    from rcbf_ros.ros.dds.qos import DurabilityPolicy, QoSProfile
+    latched = QoSProfile(depth=5, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    publisher = node.create_publisher(Float64, 'latched', latched)
+    for value in range(7):
+        publisher.publish(Float64(data=float(value)))
+    received = []
+    node.create_subscription(Float64, 'latched', lambda m: received.append(m.data), latched)
+    for _ in range(100):
+        if len(received) == 5:
+            break
+        rclpy.spin_once(node, timeout_sec=0.02)
+    assert received == [2.0, 3.0, 4.0, 5.0, 6.0]  # keep-last 5, not Cyclone's default 1

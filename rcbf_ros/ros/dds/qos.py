@@ -91,4 +91,12 @@ def to_cyclone_qos(profile: QoSProfile, user_data: bytes) -> Qos:
                   else Policy.Durability.Volatile)
     history = (Policy.History.KeepAll if profile.history == HistoryPolicy.KEEP_ALL
                else Policy.History.KeepLast(profile.depth))
-    return Qos(reliability, durability, history, Policy.Userdata(user_data))
+    policies = [reliability, durability, history, Policy.Userdata(user_data)]
+    if profile.durability == DurabilityPolicy.TRANSIENT_LOCAL:
+        # What a writer keeps for late joiners is Cyclone's durability-service history (default
+        # keep-last 1), not its history; rmw_cyclonedds sets the one to the other.
+        policies.append(Policy.DurabilityService(
+            cleanup_delay=0, history=history, max_samples=-1, max_instances=-1,
+            max_samples_per_instance=-1))
+    return Qos(*policies)
+
