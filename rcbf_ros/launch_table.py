@@ -91,8 +91,11 @@ def _closed_loop(system: str, kind: str, description: str, proposer: NodeEntry,
                  simulator: NodeEntry = SIMULATOR) -> LaunchSetup:
     """simulator -> <proposer> --cmd_proposed--> safety_filter --cmd_safe--> simulator, recorded.
 
-    Nodes meet on their own relative topic names; no remaps are needed.
+    Nodes meet on their own relative topic names; no remaps are needed. The simulator starts
+    the first episode once the filter and the proposer listen to it.
     """
+    simulator = replace(simulator, parameters=(
+        *simulator.parameters, ('wait_for_publishers', ['cmd_safe', 'cmd_proposed'])))
     return LaunchSetup(name=f'{system}_{kind}', config=f'{system}.yaml',
                        description=description,
                        nodes=(simulator, SAFETY_FILTER, proposer, SCENE, RECORDER))

@@ -8,7 +8,9 @@ Topics (names relative, remappable with ``-r``):
   ``episode`` (std_msgs/String, one JSON object per event:
   ``{"event": "start", "episode", "system", "seed", "layout_seed", "h_true_names", "n_x",
   "n_u"}`` and ``{"event": "end", "episode", "return", "steps", "violations", "goal_reached",
-  "terminated", "truncated"}``);
+  "terminated", "truncated"}``; transient local, keep-last :data:`EPISODE_HISTORY_DEPTH`, so
+  that a subscriber asking for transient local, such as the recorder, gets the run's first
+  start event however late it joins the first episodes);
 - publishes ``sim/step`` (Float64MultiArray), everything about one plant step in one message
   for the learner: sections ``state``, ``observation``, ``reward`` (of the transition INTO this
   state; 0 after a reset), ``action`` (the u applied to get here, saturated to the limits;
@@ -20,7 +22,7 @@ Topics (names relative, remappable with ``-r``):
 Modes (parameter ``mode``):
 
 - ``lockstep``: publish the state, wait for one action, step, publish, ... The first state goes
-  out once something subscribes to ``state``; if no action arrives within
+  out once the loop is up (see ``wait_for_publishers`` below); if no action arrives within
   ``action_timeout_s`` the state is published again with a warning, so a late subscriber (or a
   lost sample) cannot deadlock the loop. An action is consumed by the step it answers; actions
   arriving while no state is pending are dropped. A re-published state can be answered twice;
@@ -28,14 +30,21 @@ Modes (parameter ``mode``):
   any other state than the pending one is dropped as stale, which keeps lock-step runs exactly
   reproducible. Without that section a late duplicate would be applied to the next step.
 - ``realtime``: step at ``rate_hz`` with a zero-order hold on the last action (zeros until the
-  first one), publishing after every step. Like lock-step, the first episode starts once
-  something subscribes to ``state`` (nobody listening: nothing to simulate for).
+  first one), publishing after every step. Like lock-step, the first episode starts once the
+  loop is up (nobody listening: nothing to simulate for).
+
+The loop is up when ``state`` has a subscriber and, for every topic in ``wait_for_publishers``
+(default none; the launches list ``cmd_safe`` and ``cmd_proposed``), a publisher exists and the
+process of each such publisher has subscribed to one of the simulator's topics and been matched
+(:func:`loop_waits_for`). A controller that starts after the simulator thus still gets the
+first state, and nothing is re-published at start-up.
 
 Parameters: ``system`` (unicycle | car_following | pvtol), every key of ``/simulator`` and
 ``/**`` in ``config/<system>.yaml`` (env settings and the layout: ``obstacles.*``, ...; the
 packaged file gives the defaults, ``--params-file`` / ``-p`` override them), plus ``mode``,
 ``rate_hz``, ``seed`` (the first reset's seed; later episodes continue its generator),
-``max_episodes`` (0 = forever; the node exits after the last one) and ``action_timeout_s``.
+``max_episodes`` (0 = forever; the node exits after the last one), ``action_timeout_s`` and
+``wait_for_publishers`` (topic names as the node resolves them, remaps included).
 """
 from __future__ import annotations
 
@@ -43,7 +52,7 @@ import json
 import math
 import sys
 import time
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -51,7 +60,7 @@ from rcbf_ros.envs import ENVS, make_env
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.ros.node_main import run_node
-from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
+from rcbf_ros.ros.runtime import DurabilityPolicy, get_message, Node, QoSProfile, rclpy
 
 NODE_DEFAULTS: dict[str, Any] = {
     'mode': 'lockstep',
@@ -59,8 +68,13 @@ NODE_DEFAULTS: dict[str, Any] = {
     'seed': 0,
     'max_episodes': 0,
     'action_timeout_s': 1.0,
+    'wait_for_publishers': [],
 }
 """Node-level parameters and their defaults (the packaged config may override them)."""
+
+EPISODE_HISTORY_DEPTH = 10
+"""Episode events kept for late subscribers (``episode`` is transient local): the run's first
+start event and those of the next few episodes."""
 
 
 def declare_with_packaged_defaults(node: Any, section: str, system_default: str = 'unicycle'
@@ -124,6 +138,48 @@ def episode_event(event: str, **fields: Any) -> str:
     return json.dumps({'event': event, **{k: plain(v) for k, v in fields.items()}})
 
 
+def loop_waits_for(*, state_topic: str, matched: Mapping[str, int],
+                   readers: Mapping[str, Sequence[bytes]],
+                   loop_publishers: Mapping[str, Sequence[bytes]]) -> str:
+    """What the first episode still waits for, in one line; ``''`` once the loop is up.
+
+    Args:
+        state_topic: the simulator's resolved ``state`` topic.
+        matched: each of the simulator's topics -> subscriptions its publisher has matched.
+        readers: each of the simulator's topics -> the participants (GUID prefixes, one per
+            process) of the subscriptions that discovery shows on it.
+        loop_publishers: each ``wait_for_publishers`` topic -> the participants of its
+            publishers in the graph.
+
+    The loop is up when ``state`` has a matched subscription, every ``wait_for_publishers``
+    topic has a publisher, every such publisher's process subscribes to one of the simulator's
+    topics, and the simulator's publishers have matched at least as many subscriptions on each
+    topic as those processes hold there. Processes outside the loop (a recorder, a
+    ``ros2 topic echo``) neither hold the start back nor count.
+    """
+    if matched.get(state_topic, 0) < 1:
+        return f'a subscriber on {state_topic}'
+    loop = set()
+    for topic, owners in loop_publishers.items():
+        if not owners:
+            return f'a publisher on {topic}'
+        loop.update(owners)
+    listening = {owner for owners in readers.values() for owner in owners}
+    for topic, owners in loop_publishers.items():
+        if not set(owners) <= listening:
+            return f'the publisher on {topic} to subscribe to the simulator'
+    for topic, owners in readers.items():
+        needed = sum(1 for owner in owners if owner in loop)
+        if matched.get(topic, 0) < needed:
+            return f'{needed} subscription(s) on {topic} to match ({matched.get(topic, 0)} so far)'
+    return ''
+
+
+def _participant(endpoint: Any) -> bytes:
+    """The GUID prefix (participant, one per process) of a discovered endpoint."""
+    return bytes(list(endpoint.endpoint_gid)[:12])
+
+
 class SimulatorNode(Node):
     """Wraps one env; see the module docstring."""
 
@@ -148,6 +204,12 @@ class SimulatorNode(Node):
         self.action_timeout_s = float(params['action_timeout_s'])
         if not self.action_timeout_s > 0:
             raise ValueError('action_timeout_s: must be > 0')
+        wait_for = params['wait_for_publishers']
+        if not isinstance(wait_for, list) or not all(
+                isinstance(t, str) and t for t in wait_for):
+            raise ValueError(f'wait_for_publishers: expected a list of topic names, got '
+                             f'{wait_for!r}')
+        self.wait_for_publishers = [self.resolve_topic_name(t) for t in wait_for]
         self.env = make_env(self.system, params)
         self.n_u = self.env.nominal_system.n_u
 
@@ -157,8 +219,9 @@ class SimulatorNode(Node):
         self.observation_pub = self.create_publisher(array, 'observation', qos)
         self.h_true_pub = self.create_publisher(array, 'h_true', qos)
         self.reward_pub = self.create_publisher(get_message('std_msgs/msg/Float64'), 'reward', qos)
-        self.episode_pub = self.create_publisher(get_message('std_msgs/msg/String'), 'episode',
-                                                 qos)
+        self.episode_pub = self.create_publisher(
+            get_message('std_msgs/msg/String'), 'episode',
+            QoSProfile(depth=EPISODE_HISTORY_DEPTH, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.step_pub = self.create_publisher(array, 'sim/step', qos)
         self.create_subscription(array, 'cmd_safe', self.on_action, qos)
 
@@ -173,6 +236,7 @@ class SimulatorNode(Node):
         self.awaiting_action = False
         self.last_state_time = 0.0
         self.started = False
+        self.waiting_for = ''
         if self.mode == 'lockstep':
             self.create_timer(min(0.05, self.action_timeout_s / 4.0), self.on_watchdog)
         else:
@@ -270,16 +334,38 @@ class SimulatorNode(Node):
             self.apply(u)
 
     def _running(self) -> bool:
-        """Whether an episode is under way; starts the first one once /state has a reader.
+        """Whether an episode is under way; starts the first one once the loop is up.
 
-        False after the last episode and until a subscriber appears.
+        False after the last episode and until then.
         """
         if self.done:
             return False
-        if not self.started and self.state_pub.get_subscription_count() > 0:
-            self.start_episode()
+        if not self.started:
+            waiting_for = self._loop_waits_for()
+            if not waiting_for:
+                self.start_episode()
+            elif waiting_for != self.waiting_for:
+                self.get_logger().info(f'first episode waits for {waiting_for}')
+            self.waiting_for = waiting_for
             return False
-        return self.started
+        return True
+
+    def _loop_waits_for(self) -> str:
+        """:func:`loop_waits_for` on what discovery shows now (graph queries only when needed)."""
+        publishers = (self.state_pub, self.observation_pub, self.h_true_pub, self.reward_pub,
+                      self.episode_pub, self.step_pub)
+        matched = {p.topic_name: p.get_subscription_count() for p in publishers}
+        state_topic = self.state_pub.topic_name
+        if matched[state_topic] < 1 or not self.wait_for_publishers:
+            return loop_waits_for(state_topic=state_topic, matched=matched, readers={},
+                                  loop_publishers={})
+        loop_publishers = {topic: [_participant(e)
+                                   for e in self.get_publishers_info_by_topic(topic)]
+                           for topic in self.wait_for_publishers}
+        readers = {topic: [_participant(e) for e in self.get_subscriptions_info_by_topic(topic)]
+                   for topic in matched}
+        return loop_waits_for(state_topic=state_topic, matched=matched, readers=readers,
+                              loop_publishers=loop_publishers)
 
     def on_watchdog(self) -> None:
         if not self._running():
@@ -307,7 +393,8 @@ def spin_until_done(node: Any, linger_s: float = 0.5) -> None:
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console script ``simulator``."""
-    return run_node('simulator', SimulatorNode, args, run=spin_until_done)
+    return run_node('simulator', SimulatorNode, args, run=spin_until_done,
+                    setup_errors=(ValueError,))
 
 
 if __name__ == '__main__':

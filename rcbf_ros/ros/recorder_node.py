@@ -4,22 +4,27 @@ Parameters (``--ros-args -p name:=value``):
 
 - ``topics`` (string list, default empty): topic names to record; empty records every topic
   that discovery finds. Discovery is re-checked every ``discovery_period_s``, so topics that
-  appear later (or listed topics whose publisher starts later) are picked up.
+  appear later (or listed topics whose publisher starts later) are picked up. As with
+  ``ros2 bag record``, a topic is subscribed once it has a publisher, with the QoS its
+  publishers offer (see below), and those offers are what the bag's metadata records.
 - ``output`` (string, default ``bags/run_<UTC time>``): the bag directory.
-- ``best_effort_topics`` (string list): topics to subscribe best effort (sensor-data
-  publishers). Where the runtime reports the publishers' offered QoS
-  (``get_publishers_info_by_topic``, as rclpy does), a topic is subscribed reliable only if every
-  publisher offers reliable, as ``ros2 bag record`` does.
+- ``best_effort_topics`` (string list): topics to subscribe best effort whatever their
+  publishers offer. Otherwise a topic is subscribed reliable only if every publisher offers
+  reliable, and transient local only if every publisher offers transient local (a latched topic
+  such as the simulator's ``/episode``: the recorder then also gets what was published before
+  it subscribed, up to the publishers' history depth).
 - ``flush_period_s`` (float, 0.5): how often the open chunk is written out; a SIGKILLed recorder
   loses at most this much data (see :mod:`rcbf_ros.bag.writer`).
-- ``discovery_period_s`` (float, 1.0), ``chunk_size`` (int, bytes, 262144),
-  ``compression`` (``auto``/``zstd``/``lz4``/``none``).
+- ``discovery_period_s`` (float, 0.1, ``ros2 bag record``'s polling interval),
+  ``chunk_size`` (int, bytes, 262144), ``compression`` (``auto``/``zstd``/``lz4``/``none``).
 
-Subscriptions are raw (CDR bytes are written as received, never deserialised) with keep-all
-history, so nothing is dropped while the recorder keeps up. Ctrl-C or SIGTERM close the bag
-(summary, ``metadata.yaml``) and log the message counts. A SIGKILL leaves the bag without its
-summary, footer and ``metadata.yaml``; the readers refuse it until ``rcbf_ros bag recover
-<output>`` has rewritten it from its whole chunks (``rcbf_ros.run_summary`` does so by itself).
+Subscriptions are raw with keep-all history, so nothing is dropped while the recorder keeps up.
+Each message is written as its CDR stream: the sample as received, less the padding that DDS
+adds to a multiple of 4 bytes where the sample's encapsulation header declares it
+(:func:`cdr_payload`); nothing is deserialised. Ctrl-C or SIGTERM close the bag (summary,
+``metadata.yaml``) and log the message counts. A SIGKILL leaves the bag without its summary,
+footer and ``metadata.yaml``; the readers refuse it until ``rcbf_ros bag recover <output>`` has
+rewritten it from its whole chunks (``rcbf_ros.run_summary`` does so by itself).
 """
 from __future__ import annotations
 
@@ -53,8 +58,8 @@ class RecorderConfig:
     """Topics subscribed best effort (sensor-data publishers)."""
     flush_period_s: float = 0.5
     """Seconds between flushes of the open chunk (upper bound on data lost to SIGKILL)."""
-    discovery_period_s: float = 1.0
-    """Seconds between discovery checks for new topics."""
+    discovery_period_s: float = 0.1
+    """Seconds between discovery checks for new topics (``ros2 bag record``'s default)."""
     chunk_size: int = 256 * 1024
     """Uncompressed MCAP chunk size in bytes."""
     compression: str = 'auto'
@@ -113,6 +118,39 @@ def request_reliability(offered: Sequence[RecordedQos] | None, force_best_effort
     return 'reliable'
 
 
+def request_durability(offered: Sequence[RecordedQos]) -> str:
+    """``transient_local`` or ``volatile`` for a recording subscription.
+
+    As ``ros2 bag record`` adapts its request: transient local only if every publisher offers
+    it (a transient-local reader never matches a volatile writer); then the recorder also gets
+    the samples each publisher keeps for late joiners.
+    """
+    if offered and all(q.durability == 'transient_local' for q in offered):
+        return 'transient_local'
+    return 'volatile'
+
+
+_PADDING_MASK = 0x03  # the low two bits of the encapsulation options (XTypes 1.3, 7.6.3.1.2)
+
+
+def cdr_payload(sample: bytes) -> bytes:
+    """The CDR stream of a received serialized message, as ``serialize_message`` gives it.
+
+    DDS carries a sample zero-padded to a multiple of 4 bytes; a writer that follows XTypes
+    1.3 (7.6.3.1.2; Cyclone's serializer and this package's runtime) states the number of
+    padding bytes in the low two bits of the encapsulation options. That padding is removed
+    and the statement cleared, so the stored bytes are exactly the serialized message. A sample
+    that states no padding (rmw_cyclonedds pads but does not say so; rosbag2 then stores the
+    padding too) or is too short for what it states is returned unchanged.
+    """
+    if len(sample) < 4:
+        return sample
+    pad = sample[3] & _PADDING_MASK
+    if pad == 0 or len(sample) - pad < 4:
+        return sample
+    return sample[:3] + bytes([sample[3] & ~_PADDING_MASK & 0xFF]) + sample[4:len(sample) - pad]
+
+
 class Recorder:
     """Topic bookkeeping and the bag, independent of how messages arrive.
 
@@ -135,9 +173,9 @@ class Recorder:
             return False
         return True
 
-    def on_message(self, topic: str, cdr: bytes) -> None:
-        """Write one received message stamped with the receive time."""
-        self.writer.write(topic, cdr, self.clock_ns())
+    def on_message(self, topic: str, sample: bytes) -> None:
+        """Write one received sample's CDR stream, stamped with the receive time."""
+        self.writer.write(topic, cdr_payload(sample), self.clock_ns())
 
     def counts(self) -> dict[str, int]:
         """Messages written per topic."""
@@ -187,15 +225,16 @@ class RecorderNode(Node):
             chunk_size=int(self.get_parameter('chunk_size').value),
             compression=str(self.get_parameter('compression').value))
 
-    def _offered_qos(self, topic: str) -> list[RecordedQos]:
-        """Publishers' offered QoS where the runtime reports it (rclpy does), else []."""
+    def _offered_qos(self, topic: str) -> list[RecordedQos] | None:
+        """The publishers' offered QoS ([] while there is none); None where the runtime does
+        not report offers."""
         info = getattr(self, 'get_publishers_info_by_topic', None)
         if info is None:
-            return []
+            return None
         try:
             return [RecordedQos.from_profile(e.qos_profile) for e in info(topic)]
         except (AttributeError, TypeError, ValueError):
-            return []
+            return None
 
     def discover(self) -> None:
         """Subscribe to topics that discovery shows and that are not recorded yet."""
@@ -211,7 +250,11 @@ class RecorderNode(Node):
 
     def _subscribe(self, topic: str, type_name: str) -> None:
         offered = self._offered_qos(topic)
+        if offered == []:
+            return  # no publisher yet: the next discovery check subscribes with its offer
+        offered = offered or []
         reliability = request_reliability(offered, topic in self.config.best_effort_topics)
+        durability = request_durability(offered)
         recorded_offer = offered or [RecordedQos(reliability=reliability)]
         if not self.recorder.add(topic, type_name, recorded_offer):
             self.get_logger().warning(f'not recording {topic}: type {type_name} unknown')
@@ -226,11 +269,12 @@ class RecorderNode(Node):
             history=HistoryPolicy.KEEP_ALL, depth=1000,
             reliability=(ReliabilityPolicy.RELIABLE if reliability == 'reliable'
                          else ReliabilityPolicy.BEST_EFFORT),
-            durability=DurabilityPolicy.VOLATILE)
+            durability=(DurabilityPolicy.TRANSIENT_LOCAL if durability == 'transient_local'
+                        else DurabilityPolicy.VOLATILE))
         self._subscriptions_by_topic[topic] = self.create_subscription(
             msg_type, topic, lambda data, name=topic: self.recorder.on_message(name, data),
             qos, raw=True)
-        self.get_logger().info(f'recording {topic} [{type_name}] ({reliability})')
+        self.get_logger().info(f'recording {topic} [{type_name}] ({reliability}, {durability})')
 
     def flush(self) -> None:
         """Write the open chunk out (bounds what a SIGKILL can lose)."""

@@ -165,6 +165,17 @@ def test_realtime_simulator_holds_the_last_action(ros_domain_id, tmp_path):
     assert np.linalg.norm(states[-1][:2] - 2.5) < np.linalg.norm(states[0][:2] - 2.5) - 0.5
 
 
+
+@pytest.mark.integration
+@pytest.mark.parametrize('value, shown', [('cmd_safe', "'cmd_safe'"), ("['', 'x']", "['', 'x']")])
+def test_bad_wait_for_publishers_exits_2_in_one_line(ros_domain_id, value, shown):
+    simulator = spawn(ros_domain_id, '-m', 'sim_nodes.simulator_node', '--ros-args',
+                      '-p', f'wait_for_publishers:={value}')
+    out, err = simulator.communicate(timeout=TIMEOUT_S)
+    assert simulator.returncode == 2, err
+    assert err.strip() == ('simulator: invalid parameters: wait_for_publishers: expected a '
+                           f'list of topic names, got {shown}')
+
 if __name__ == '__main__':
     if sys.argv[1] == 'listener':
         role_listener(sys.argv[2], int(sys.argv[3]))

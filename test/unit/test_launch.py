@@ -103,7 +103,8 @@ def test_child_commands_and_environment():
     sim = children[0]
     assert sim.command[:4] == ('py', '-m', 'rcbf_ros.ros.node_main', 'sim_nodes.simulator_node')
     assert sim.sigint_timeout_s == 5.0
-    assert parse_ros_arguments(sim.command).parameters == {'max_episodes': 1}
+    assert parse_ros_arguments(sim.command).parameters == {
+        'wait_for_publishers': ['cmd_safe', 'cmd_proposed'], 'max_episodes': 1}
     with pytest.raises(ValueError, match="no node 'planner'"):
         launch_local.child_commands(setup, params_file='p.yaml', without=['planner'])
     env = launch_local.child_environment({'CYCLONEDDS_URI': '<remote/>', 'PATH': '/bin'},

@@ -69,3 +69,52 @@ def test_graph_lists_ros_topics_with_ros_type_names(node):
     assert topics['/cmd_vel'] == ['geometry_msgs/msg/Twist']
     assert topics['/gain'] == ['std_msgs/msg/Float64']
     assert node.count_publishers('cmd_vel') == 1 and node.count_subscribers('gain') == 1
+
+
+def test_endpoint_info_reports_the_offered_qos_and_the_participant(node):
+    from rcbf_ros.ros.dds.qos import DurabilityPolicy, HistoryPolicy, QoSProfile
+    latched = QoSProfile(depth=7, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    node.create_publisher(get_message('std_msgs/msg/String'), 'events', latched)
+    node.create_subscription(get_message('std_msgs/msg/String'), '/events', lambda m: None, 3)
+    while node.count_subscribers('events') == 0 or node.count_publishers('events') == 0:
+        rclpy.spin_once(node, timeout_sec=0.01)
+    (publisher,) = node.get_publishers_info_by_topic('events')
+    (subscription,) = node.get_subscriptions_info_by_topic('/events')
+    assert publisher.topic_type == 'std_msgs/msg/String'
+    assert publisher.qos_profile == latched
+    assert subscription.qos_profile.durability == DurabilityPolicy.VOLATILE
+    assert subscription.qos_profile.history == HistoryPolicy.KEEP_LAST
+    assert subscription.qos_profile.depth == 3
+    assert len(publisher.endpoint_gid) == 16
+    # One participant per process: the GUIDs share their 12-byte prefix, not the endpoint id.
+    assert publisher.endpoint_gid[:12] == subscription.endpoint_gid[:12]
+    assert publisher.endpoint_gid != subscription.endpoint_gid
+    assert node.get_publishers_info_by_topic('other') == []
+
+
+def test_graph_queries_see_endpoints_come_and_go(node):
+    publisher = node.create_publisher(Float64, 'transient', 10)
+    while node.count_publishers('transient') == 0:
+        rclpy.spin_once(node, timeout_sec=0.01)
+    assert node.count_publishers('transient') == 1
+    node.destroy_publisher(publisher)
+    for _ in range(200):
+        if node.count_publishers('transient') == 0:
+            break
+        rclpy.spin_once(node, timeout_sec=0.01)
+    assert node.count_publishers('transient') == 0
+
+
+def test_a_late_transient_local_subscriber_gets_the_writers_whole_history(node):
+    from rcbf_ros.ros.dds.qos import DurabilityPolicy, QoSProfile
+    latched = QoSProfile(depth=5, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    publisher = node.create_publisher(Float64, 'latched', latched)
+    for value in range(7):
+        publisher.publish(Float64(data=float(value)))
+    received = []
+    node.create_subscription(Float64, 'latched', lambda m: received.append(m.data), latched)
+    for _ in range(100):
+        if len(received) == 5:
+            break
+        rclpy.spin_once(node, timeout_sec=0.02)
+    assert received == [2.0, 3.0, 4.0, 5.0, 6.0]  # keep-last 5, not Cyclone's default 1

@@ -12,6 +12,7 @@ from rosbags.typesys.store import Nodetype
 
 from rcbf_ros.ros.dds import messages
 from rcbf_ros.ros.dds.messages import (
+    dds_payload,
     dds_type_name,
     deserialize_message,
     get_message,
@@ -263,6 +264,24 @@ def test_trailing_bytes_after_a_complete_sample_are_ignored_as_rmw_does():
     for extra in (1, 3, 4, 16, 1000):
         message = deserialize_message(wire + b'\x00' * extra, ARRAY)
         assert message.data.tolist() == [1.0, 0.5] and message.layout.dim[0].label == 'u'
+
+
+@pytest.mark.parametrize('text', ['', 'a', 'ab', 'abc', 'abcd', '{"event": "start"}'])
+def test_dds_payload_pads_with_zeros_and_states_the_padding(text):
+    cdr = serialize_message(get_message('std_msgs/msg/String')(data=text))
+    payload = dds_payload(cdr)
+    pad = -len(cdr) % 4
+    assert len(payload) % 4 == 0 and len(payload) == len(cdr) + pad
+    # XTypes 1.3 7.6.3.1.2: the low two bits of the options count the padding bytes.
+    assert payload[:3] == cdr[:3] and payload[3] == cdr[3] | pad
+    assert payload[4:len(cdr)] == cdr[4:] and payload[len(cdr):] == bytes(pad)
+    assert deserialize_message(payload, 'std_msgs/msg/String').data == text
+
+
+def test_dds_payload_leaves_aligned_streams_and_pads_stubs():
+    aligned = serialize_message(get_message('std_msgs/msg/Float64')(data=1.5))
+    assert len(aligned) % 4 == 0 and dds_payload(aligned) is aligned
+    assert dds_payload(b'\x00') == b'\x00\x00\x00\x00'
 
 
 def test_big_endian_sample_decodes():

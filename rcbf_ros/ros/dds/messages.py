@@ -11,8 +11,9 @@ CDR serializer, RIHS01 hash). From that description this module generates, cache
   ROS 2's rmw names it; it fixes the DDS topic type, while the bytes themselves come from
   rosbags' serializer (the tests check that both produce identical CDR).
 
-Wire bytes are the CDR stream with its 4-byte encapsulation header (``00 01 00 00`` for
-little-endian XCDR1), exactly what rosbag2 stores.
+Serialized messages are the CDR stream with its 4-byte encapsulation header (``00 01 00 00``
+for little-endian XCDR1), as ``rclpy.serialization.serialize_message`` gives them; a publisher
+sends them zero-padded to a multiple of 4 bytes (:func:`dds_payload`).
 """
 from __future__ import annotations
 
@@ -339,6 +340,24 @@ def serialize_message(message: Message) -> bytes:
     if not type_name:
         raise TypeError(f'cannot serialize {type(message).__name__}: not a message instance')
     return bytes(typestore().serialize_cdr(message, type_name, little_endian=True))
+
+
+def dds_payload(cdr: bytes) -> bytes:
+    """The serialized payload DDS sends for a CDR stream: zero-padded to a multiple of 4.
+
+    DDSI carries payloads in multiples of 4 bytes and reads that many from the sample whatever
+    its length (Cyclone's Python serdata holds exactly the bytes written, so up to 3 bytes
+    beyond them would go out: whatever the heap held). The padding is zeros, as rmw_cyclonedds
+    writes it, and its length goes into the two low bits of the encapsulation options (XTypes
+    1.3, 7.6.3.1.2, as Cyclone's own serializer sets them) so that a receiver can tell where
+    the message ends; ROS 2's deserializers ignore the options.
+    """
+    pad = -len(cdr) % 4
+    if pad == 0:
+        return cdr
+    if len(cdr) < 4:  # not a CDR stream at all: still never send bytes beyond the sample
+        return cdr + bytes(pad)
+    return cdr[:3] + bytes([(cdr[3] & 0xFC) | pad]) + cdr[4:] + bytes(pad)
 
 
 class DeserializationError(ValueError):

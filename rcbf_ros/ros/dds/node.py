@@ -6,6 +6,7 @@ ROS 2 wire conventions (so stock Jazzy nodes interoperate): topic ``/a/b`` is th
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 import enum
 import sys
 import threading
@@ -40,7 +41,7 @@ from rcbf_ros.ros.dds.context import (
     new_ready_queue,
     new_wait_objects,
 )
-from rcbf_ros.ros.dds.qos import as_profile, QoSProfile, to_cyclone_qos
+from rcbf_ros.ros.dds.qos import as_profile, from_cyclone_qos, QoSProfile, to_cyclone_qos
 
 _ANY_SAMPLE = SampleState.Any | ViewState.Any | InstanceState.Any
 _TAKE_BATCH = 256
@@ -276,7 +277,7 @@ class Publisher:
                 raise TypeError(f'publisher on {self.topic_name!r} expects {self._type_name}, '
                                 f'got {type(msg).__name__}')
             data = messages.serialize_message(msg)
-        ret = ddspy_write(self._writer._ref, data)
+        ret = ddspy_write(self._writer._ref, messages.dds_payload(data))
         if isinstance(ret, int) and ret < 0:
             raise RuntimeError(f'DDS write on {self.topic_name!r} failed with code {ret}')
 
@@ -405,6 +406,31 @@ class Timer:
         self._canceled = True
 
 
+class TopicEndpointTypeEnum(enum.IntEnum):
+    """rclpy.topic_endpoint_info.TopicEndpointTypeEnum."""
+
+    INVALID = 0
+    PUBLISHER = 1
+    SUBSCRIPTION = 2
+
+
+@dataclass(frozen=True)
+class TopicEndpointInfo:
+    """rclpy.topic_endpoint_info.TopicEndpointInfo subset: one endpoint as discovery shows it.
+
+    Node names travel in ROS 2's ``ros_discovery_info``, which this runtime does not read, so
+    they are rmw's placeholders for endpoints of unknown nodes; ``endpoint_gid`` is the DDS
+    GUID, whose first 12 bytes name the participant (one per process).
+    """
+
+    node_name: str
+    node_namespace: str
+    topic_type: str
+    endpoint_type: TopicEndpointTypeEnum
+    endpoint_gid: list[int]
+    qos_profile: QoSProfile
+
+
 def _user_data(type_name: str) -> bytes:
     return f'typehash={messages.type_hash(type_name)};'.encode()
 
@@ -460,7 +486,9 @@ class Node:
         self._ready = new_ready_queue()
         self._spin_lock = threading.Lock()
         self._waitset, self._guard = new_wait_objects(self.context.participant)
-        self._builtin_readers: list[tuple[BuiltinDataReader, ReadCondition]] | None = None
+        self._builtin_readers: list[tuple[BuiltinDataReader, ReadCondition, ReadCondition]] \
+            | None = None
+        self._endpoint_cache: dict[Any, list[Any]] = {}
         self.context.add_node(self)
         if automatically_declare_parameters_from_overrides:
             for name_, value in self._overrides.items():
@@ -624,19 +652,31 @@ class Node:
     # graph ----------------------------------------------------------------------------------
     def _alive_endpoints(self, kinds: tuple[Any, ...] = (
             BuiltinTopicDcpsPublication, BuiltinTopicDcpsSubscription)) -> list[Any]:
-        """Discovered (alive) endpoints of the given built-in topic kinds, local ones included."""
+        """Discovered (alive) endpoints of the given built-in topic kinds, local ones included.
+
+        Reading them all converts every endpoint's QoS in Python (about 0.4 ms each), so the
+        list of a kind is kept until discovery reports a change (an unread sample: a new
+        endpoint, or one that went away).
+        """
         if self._builtin_readers is None:
             alive = SampleState.Any | ViewState.Any | InstanceState.Alive
+            unread = SampleState.NotRead | ViewState.Any | InstanceState.Any
             self._builtin_readers = []
             for kind in (BuiltinTopicDcpsPublication, BuiltinTopicDcpsSubscription):
                 reader = BuiltinDataReader(self.context.participant, kind)
-                self._builtin_readers.append((reader, ReadCondition(reader, alive)))
+                self._builtin_readers.append(
+                    (reader, ReadCondition(reader, alive), ReadCondition(reader, unread)))
+            self._endpoint_cache = {}
         endpoints = []
-        for kind, (reader, alive_condition) in zip(
+        for kind, (reader, alive_condition, unread_condition) in zip(
                 (BuiltinTopicDcpsPublication, BuiltinTopicDcpsSubscription),
                 self._builtin_readers):
-            if kind in kinds:
-                endpoints.extend(reader.read(N=100000, condition=alive_condition))
+            if kind not in kinds:
+                continue
+            changed = reader.read(N=64, condition=unread_condition)  # any will do
+            if changed or kind not in self._endpoint_cache:
+                self._endpoint_cache[kind] = reader.read(N=100000, condition=alive_condition)
+            endpoints.extend(self._endpoint_cache[kind])
         return endpoints
 
     def get_topic_names_and_types(self, no_demangle: bool = False) -> list[tuple[str, list[str]]]:
@@ -649,6 +689,29 @@ class Node:
                 topics.setdefault(endpoint.topic_name[2:], set()).add(
                     messages.ros_type_name(endpoint.type_name))
         return sorted((name, sorted(types)) for name, types in topics.items())
+
+    def get_publishers_info_by_topic(self, topic_name: str,
+                                     no_mangle: bool = False) -> list[TopicEndpointInfo]:
+        """Publishers of ``topic_name`` (expanded, not remapped, as rclpy does) in the graph."""
+        return self._endpoints_info(topic_name, no_mangle, TopicEndpointTypeEnum.PUBLISHER)
+
+    def get_subscriptions_info_by_topic(self, topic_name: str,
+                                        no_mangle: bool = False) -> list[TopicEndpointInfo]:
+        """Subscriptions of ``topic_name`` (expanded, not remapped) in the graph."""
+        return self._endpoints_info(topic_name, no_mangle, TopicEndpointTypeEnum.SUBSCRIPTION)
+
+    def _endpoints_info(self, topic_name: str, no_mangle: bool,
+                        kind: TopicEndpointTypeEnum) -> list[TopicEndpointInfo]:
+        dds_name = topic_name if no_mangle else 'rt' + self.resolve_topic_name(
+            topic_name, only_expand=True)
+        builtin = (BuiltinTopicDcpsPublication if kind == TopicEndpointTypeEnum.PUBLISHER
+                   else BuiltinTopicDcpsSubscription)
+        return [TopicEndpointInfo(node_name='_NODE_NAME_UNKNOWN_',
+                                  node_namespace='_NODE_NAMESPACE_UNKNOWN_',
+                                  topic_type=messages.ros_type_name(e.type_name),
+                                  endpoint_type=kind, endpoint_gid=list(e.key.bytes),
+                                  qos_profile=from_cyclone_qos(e.qos))
+                for e in self._alive_endpoints((builtin,)) if e.topic_name == dds_name]
 
     def count_publishers(self, topic_name: str) -> int:
         """Alive publishers of ``topic_name`` (resolved for this node) in the DDS graph."""
@@ -674,14 +737,16 @@ class Node:
             subscription.destroy()
         for publisher in self._publishers:
             publisher.destroy()
-        for reader, alive_condition in self._builtin_readers or ():
+        for reader, alive_condition, unread_condition in self._builtin_readers or ():
             delete_entity(alive_condition)
+            delete_entity(unread_condition)
             delete_entity(reader)
         self._timers, self._subscriptions, self._publishers = [], [], []
         self._ready.clear()
         waitset, guard = self._waitset, self._guard
         self._waitset = self._guard = None
         self._builtin_readers = None
+        self._endpoint_cache = {}
         delete_entity(waitset)
         delete_entity(guard)
         for topic in self._topics.values():

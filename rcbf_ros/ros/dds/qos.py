@@ -91,4 +91,38 @@ def to_cyclone_qos(profile: QoSProfile, user_data: bytes) -> Qos:
                   else Policy.Durability.Volatile)
     history = (Policy.History.KeepAll if profile.history == HistoryPolicy.KEEP_ALL
                else Policy.History.KeepLast(profile.depth))
-    return Qos(reliability, durability, history, Policy.Userdata(user_data))
+    policies = [reliability, durability, history, Policy.Userdata(user_data)]
+    if profile.durability == DurabilityPolicy.TRANSIENT_LOCAL:
+        # What a writer keeps for late joiners is Cyclone's durability-service history (default
+        # keep-last 1), not its history; rmw_cyclonedds sets the one to the other.
+        policies.append(Policy.DurabilityService(
+            cleanup_delay=0, history=history, max_samples=-1, max_instances=-1,
+            max_samples_per_instance=-1))
+    return Qos(*policies)
+
+
+def from_cyclone_qos(qos: Qos | None) -> QoSProfile:
+    """The profile a discovered endpoint's Cyclone QoS stands for (inverse of
+    :func:`to_cyclone_qos` as far as discovery tells: history, reliability, durability).
+
+    Policies discovery did not carry keep the ROS 2 defaults; durabilities beyond transient
+    local, which no ROS 2 profile offers, read as system default.
+    """
+    profile = QoSProfile()
+    if qos is None:
+        return profile
+    reliability, durability, history = (qos[Policy.Reliability], qos[Policy.Durability],
+                                        qos[Policy.History])
+    if reliability is not None:
+        profile.reliability = (ReliabilityPolicy.BEST_EFFORT
+                               if reliability == Policy.Reliability.BestEffort
+                               else ReliabilityPolicy.RELIABLE)
+    if durability is not None:
+        profile.durability = {Policy.Durability.Volatile: DurabilityPolicy.VOLATILE,
+                              Policy.Durability.TransientLocal: DurabilityPolicy.TRANSIENT_LOCAL,
+                              }.get(durability, DurabilityPolicy.SYSTEM_DEFAULT)
+    if isinstance(history, Policy.History.KeepLast) and history.depth >= 1:
+        profile.history, profile.depth = HistoryPolicy.KEEP_LAST, int(history.depth)
+    elif history == Policy.History.KeepAll:
+        profile.history, profile.depth = HistoryPolicy.KEEP_ALL, 0
+    return profile

@@ -1,0 +1,50 @@
+"""When the simulator starts its first episode: once the loop listens (loop_waits_for)."""
+from __future__ import annotations
+
+from sim_nodes.simulator_node import loop_waits_for
+
+FILTER, CONTROLLER, RECORDER, ECHO = b'f' * 12, b'c' * 12, b'r' * 12, b'e' * 12
+TOPICS = ('/state', '/observation', '/h_true', '/reward', '/episode', '/sim/step')
+
+
+def _waits_for(readers: dict, publishers: dict, matched: dict | None = None) -> str:
+    counts = {topic: len(readers.get(topic, ())) for topic in TOPICS}
+    counts.update(matched or {})
+    return loop_waits_for(state_topic='/state', matched=counts,
+                          readers={topic: readers.get(topic, []) for topic in TOPICS},
+                          loop_publishers=publishers)
+
+
+def test_without_loop_publishers_a_state_subscriber_is_enough():
+    assert _waits_for({}, {}) == 'a subscriber on /state'
+    assert _waits_for({'/state': [ECHO]}, {}) == ''
+
+
+def test_waits_for_each_loop_publisher_to_exist_and_listen():
+    loop = {'/cmd_safe': [FILTER], '/cmd_proposed': []}
+    # Something echoes /state: the old rule would have started here, without the controller.
+    assert _waits_for({'/state': [ECHO, FILTER]}, loop) == 'a publisher on /cmd_proposed'
+    loop['/cmd_proposed'] = [CONTROLLER]  # its publisher is up, its subscription not yet
+    assert _waits_for({'/state': [ECHO, FILTER]}, loop) == \
+        'the publisher on /cmd_proposed to subscribe to the simulator'
+    assert _waits_for({'/state': [ECHO, FILTER, CONTROLLER]}, loop) == ''
+
+
+def test_the_loop_may_listen_on_any_of_the_simulators_topics():
+    loop = {'/cmd_safe': [FILTER], '/cmd_proposed': [CONTROLLER]}
+    assert _waits_for({'/state': [FILTER], '/sim/step': [CONTROLLER]}, loop) == ''
+
+
+def test_waits_until_the_loops_subscriptions_are_matched():
+    loop = {'/cmd_safe': [FILTER], '/cmd_proposed': [CONTROLLER]}
+    readers = {'/state': [FILTER, CONTROLLER]}
+    assert _waits_for(readers, loop, {'/state': 1}) == \
+        '2 subscription(s) on /state to match (1 so far)'
+
+
+def test_processes_outside_the_loop_neither_hold_back_nor_count():
+    loop = {'/cmd_safe': [FILTER], '/cmd_proposed': [CONTROLLER]}
+    # A recorder (or anyone) subscribed to every topic but not matched yet does not hold back.
+    readers = {topic: [RECORDER] for topic in TOPICS}
+    readers['/state'] = [RECORDER, FILTER, CONTROLLER]
+    assert _waits_for(readers, loop, {topic: 0 for topic in TOPICS} | {'/state': 2}) == ''
