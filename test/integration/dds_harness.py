@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+import signal
 import subprocess
 import sys
 
@@ -16,6 +17,7 @@ def subprocess_env(domain_id: int) -> dict[str, str]:
     ensure_loopback(env, force=True)
     env['ROS_DOMAIN_ID'] = str(domain_id)
     env['RCBF_ROS_RUNTIME'] = 'cyclone'
+    env['PYTHONUNBUFFERED'] = '1'
     env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(REPO), env.get('PYTHONPATH')]))
     return env
 
@@ -24,3 +26,16 @@ def spawn(domain_id: int, *args: str) -> subprocess.Popen:
     """``python *args`` in that environment, text pipes for stdout and stderr."""
     return subprocess.Popen([sys.executable, *args], env=subprocess_env(domain_id), cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def stop(process: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 30.0) -> str:
+    """Send ``sig`` (if still running), wait up to ``timeout`` s, then kill; all it printed."""
+    if process.poll() is None:
+        process.send_signal(sig)
+    try:
+        out, err = process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        out, err = process.communicate()
+    return ''.join(part.decode(errors='replace') if isinstance(part, bytes) else part
+                   for part in (out, err) if part)

@@ -21,6 +21,7 @@ import sys
 import textwrap
 import time
 
+from dds_harness import stop, subprocess_env  # this directory: on sys.path for pytest
 import pytest
 import yaml
 
@@ -79,25 +80,6 @@ _PUBLISHER = textwrap.dedent("""
 """)
 
 
-def _env(domain_id: int) -> dict[str, str]:
-    env = dict(os.environ)
-    env.update(ROS_DOMAIN_ID=str(domain_id), PYTHONPATH=str(REPO_ROOT),
-               RCBF_ROS_RUNTIME='cyclone', PYTHONUNBUFFERED='1')
-    assert env.get('CYCLONEDDS_URI'), 'conftest pins Cyclone to loopback'
-    return env
-
-
-def _stop(process: subprocess.Popen, sig: int) -> str:
-    if process.poll() is None:
-        process.send_signal(sig)
-    try:
-        out, _ = process.communicate(timeout=30)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        out, _ = process.communicate()
-    return out or ''
-
-
 @pytest.fixture(scope='module')
 def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The recorded bag directory (the recorder closed it with Ctrl-C)."""
@@ -105,7 +87,7 @@ def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     bag = tmp_path_factory.mktemp('payloads') / 'bag'
     publisher = subprocess.Popen(
         [sys.executable, '-c', _PUBLISHER, str(EARLY_EVENTS), str(EVENTS), str(DIAGNOSTICS)],
-        env=_env(domain_id), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        env=subprocess_env(domain_id), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     recorder = None
     try:
         assert publisher.stdout.readline().strip() == 'early events published'
@@ -113,7 +95,8 @@ def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
             [sys.executable, '-m', 'rcbf_ros.ros.recorder_node', '--ros-args',
              '-p', f'output:={bag}', '-p', 'flush_period_s:=0.2',
              '-p', "topics:=['/episode', '/diagnostics']"],
-            env=_env(domain_id), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            env=subprocess_env(domain_id), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            text=True)
         # Everything sent after the match; the early events (the recorder's transient-local
         # history) came before those, and the tests check for them.
         wanted = {'/episode': EVENTS - EARLY_EVENTS, '/diagnostics': DIAGNOSTICS}
@@ -125,12 +108,12 @@ def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
             if any(bag.glob('*.mcap')):
                 counts = {n: t.message_count for n, t in bag_info(bag).topics.items()}
             time.sleep(0.2)
-        log = _stop(recorder, signal.SIGINT)
+        log = stop(recorder, signal.SIGINT)
         assert recorder.returncode == 0, log
     finally:
         if recorder is not None:
-            _stop(recorder, signal.SIGKILL)
-        _stop(publisher, signal.SIGKILL)
+            stop(recorder, signal.SIGKILL)
+        stop(publisher, signal.SIGKILL)
     assert all(counts.get(t, 0) >= n for t, n in wanted.items()), log
     return bag
 

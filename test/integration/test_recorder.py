@@ -2,7 +2,6 @@
 are read by independent readers (rosbags' AnyReader, mcap_ros2's decoder, pymcap-cli)."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 import shutil
 import signal
@@ -12,6 +11,7 @@ import textwrap
 import time
 import warnings
 
+from dds_harness import stop, subprocess_env  # this directory: on sys.path for pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 import pytest
@@ -94,27 +94,20 @@ _STREAMING_PUBLISHER = textwrap.dedent("""
 """)
 
 
-def _env(domain_id: int) -> dict[str, str]:
-    env = dict(os.environ)
-    env.update(ROS_DOMAIN_ID=str(domain_id), PYTHONPATH=str(REPO_ROOT),
-               RCBF_ROS_RUNTIME='cyclone', PYTHONUNBUFFERED='1')
-    assert env.get('CYCLONEDDS_URI'), 'conftest pins Cyclone to loopback'
-    return env
-
-
 def _start_recorder(bag: Path, domain_id: int, topics: str, *extra: str) -> subprocess.Popen:
     args = [sys.executable, '-m', 'rcbf_ros.ros.recorder_node', '--ros-args',
             '-p', f'output:={bag}', '-p', 'flush_period_s:=0.2',
             '-p', 'discovery_period_s:=0.3', *extra]
     if topics:
         args += ['-p', f'topics:={topics}']
-    return subprocess.Popen(args, env=_env(domain_id), stdout=subprocess.PIPE,
+    return subprocess.Popen(args, env=subprocess_env(domain_id), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
 
 
 def _start_publisher(domain_id: int) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, '-c', _PUBLISHER, str(N)], env=_env(domain_id),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return subprocess.Popen([sys.executable, '-c', _PUBLISHER, str(N)],
+                            env=subprocess_env(domain_id), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
 
 
 def _wait_for_flushed(bag: Path, recorder: subprocess.Popen) -> None:
@@ -152,17 +145,6 @@ def _wait_for_whole_chunks(bag: Path, recorder: subprocess.Popen, publisher: sub
     pytest.fail(f'the recorder wrote {count} messages in whole chunks within {WAIT_S} s')
 
 
-def _stop(proc: subprocess.Popen, sig: int) -> str:
-    if proc.poll() is None:
-        proc.send_signal(sig)
-    try:
-        out, _ = proc.communicate(timeout=30)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, _ = proc.communicate()
-    return out or ''
-
-
 def _check_contents(state: list, cmd: list) -> None:
     assert [list(m.data) for m in state] == [[float(i), 2.0 * i] for i in range(N)]
     assert [(m.linear.x, m.angular.z) for m in cmd] == [(float(i), -float(i)) for i in range(N)]
@@ -174,10 +156,10 @@ def test_recorder_sigint_finalises_readable_bag(tmp_path: Path, ros_domain_id: i
     publisher = _start_publisher(ros_domain_id)
     try:
         _wait_for_flushed(bag, recorder)
-        log = _stop(recorder, signal.SIGINT)
+        log = stop(recorder, signal.SIGINT)
     finally:
-        _stop(recorder, signal.SIGKILL)
-        _stop(publisher, signal.SIGTERM)
+        stop(recorder, signal.SIGKILL)
+        stop(publisher, signal.SIGTERM)
     assert recorder.returncode == 0, log
     assert f'{2 * N} messages' in log, log
     assert (bag / 'metadata.yaml').is_file()
@@ -208,7 +190,7 @@ def test_recorder_sigkill_mid_recording_recovers_to_a_complete_bag(
     bag = tmp_path / 'run_killed'
     recorder = _start_recorder(bag, ros_domain_id, "['/state']", '-p', 'chunk_size:=4096')
     publisher = subprocess.Popen([sys.executable, '-c', _STREAMING_PUBLISHER],
-                                 env=_env(ros_domain_id), stdout=subprocess.PIPE,
+                                 env=subprocess_env(ros_domain_id), stdout=subprocess.PIPE,
                                  stderr=subprocess.STDOUT, text=True)
     try:
         on_disk = _wait_for_whole_chunks(bag, recorder, publisher, at_least=300)
@@ -216,8 +198,8 @@ def test_recorder_sigkill_mid_recording_recovers_to_a_complete_bag(
         recorder.wait(timeout=30)
         assert publisher.poll() is None, 'the publisher must still be publishing at the kill'
     finally:
-        _stop(recorder, signal.SIGKILL)
-        _stop(publisher, signal.SIGKILL)
+        stop(recorder, signal.SIGKILL)
+        stop(publisher, signal.SIGKILL)
     assert recorder.returncode == -signal.SIGKILL
     assert not (bag / 'metadata.yaml').exists()
     mcap_file = next(bag.glob('*.mcap'))
@@ -225,7 +207,7 @@ def test_recorder_sigkill_mid_recording_recovers_to_a_complete_bag(
         list(read_bag_messages(bag))
 
     result = subprocess.run([sys.executable, '-m', 'rcbf_ros.cli', 'bag', 'recover', str(bag)],
-                            env=_env(ros_domain_id), capture_output=True, text=True,
+                            env=subprocess_env(ros_domain_id), capture_output=True, text=True,
                             timeout=120)
     assert result.returncode == 0, result.stdout + result.stderr
     assert f'{mcap_file}: recovered' in result.stdout

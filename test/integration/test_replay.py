@@ -7,8 +7,9 @@ import signal
 import subprocess
 import sys
 
+from dds_harness import stop, subprocess_env  # this directory: on sys.path for pytest
 import pytest
-from test_recorder import _env, _start_recorder, _stop, _wait_for_flushed  # noqa: I001
+from test_recorder import _start_recorder, _wait_for_flushed  # noqa: I001
 
 from rcbf_ros.bag import BagWriter, read_bag
 
@@ -32,14 +33,15 @@ def test_replay_into_recorder_reproduces_the_bag(tmp_path: Path, ros_domain_id: 
     replay = subprocess.Popen(
         [sys.executable, '-m', 'rcbf_ros.ros.replay_node', '--ros-args',
          '-p', f'bag:={source}', '-p', 'rate:=4.0', '-p', 'wait_for_subscribers_s:=30.0'],
-        env=_env(ros_domain_id), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        env=subprocess_env(ros_domain_id), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        text=True)
     try:
         _wait_for_flushed(copy, recorder)
         replay_log, _ = replay.communicate(timeout=60)
-        _stop(recorder, signal.SIGINT)
+        stop(recorder, signal.SIGINT)
     finally:
-        _stop(recorder, signal.SIGKILL)
-        _stop(replay, signal.SIGKILL)
+        stop(recorder, signal.SIGKILL)
+        stop(replay, signal.SIGKILL)
     assert replay.returncode == 0, replay_log
     assert f'{2 * N} messages published' in replay_log
     original = [(m.topic, m.data) for m in read_bag(source)]

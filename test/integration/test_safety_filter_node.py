@@ -20,6 +20,7 @@ import threading
 import time
 from typing import Any, Callable
 
+from dds_harness import stop  # this directory: on sys.path for pytest
 import numpy as np
 import pytest
 
@@ -50,17 +51,6 @@ def _start_filter(domain_id: int, *ros_args: str, params_file: str = UNICYCLE
         [sys.executable, '-m', 'rcbf_ros.ros.safety_filter_node', '--ros-args',
          '--params-file', params_file, *ros_args],
         env=_env(domain_id), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-
-
-def _stop(process: subprocess.Popen) -> str:
-    if process.poll() is None:
-        process.send_signal(2)
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-    return process.stdout.read().decode(errors='replace')
 
 
 def _level(status: Any) -> int:
@@ -131,7 +121,7 @@ class Probe:
 def _wait_matched(publisher: Any, process: subprocess.Popen) -> None:
     deadline = time.monotonic() + WAIT_S
     while publisher.get_subscription_count() == 0:
-        assert process.poll() is None, _stop(process)
+        assert process.poll() is None, stop(process, timeout=10)
         assert time.monotonic() < deadline, 'the safety_filter never subscribed'
         time.sleep(0.02)
 
@@ -239,7 +229,7 @@ def test_bad_input_yields_fail_safe_and_error_diagnostics(ros_domain_id, probe):
         answers.append(after_state([np.inf, 0.0, 0.0], 0.05))                 # 5: bad state
         answers.append(after_state(good_state, 0.6))                          # 6: stale (> 0.3 s)
     finally:
-        output = _stop(process)
+        output = stop(process, timeout=10)
     commands = [command for command, _ in answers]
     diagnostics = [diagnostic for _, diagnostic in answers]
 
@@ -292,7 +282,7 @@ def test_twist_mode(ros_domain_id, probe):
         time.sleep(0.05)
         slowed, _ = _exchange(probe, proposal_pub, array_to_twist([2.5, 0.0], fields))
     finally:
-        _stop(process)
+        stop(process, timeout=10)
     commands = [free, slowed]           # passes through where free; slowed down near the obstacle
     np.testing.assert_array_equal(commands[0], [1.0, 0.3])
     assert 0.0 < commands[1][0] < 2.5
@@ -316,7 +306,7 @@ def test_pvtol_proposal_with_learned_disturbance(ros_domain_id, probe):
                    _exchange(probe, proposal_pub, sections_to_msg({'u': [1.0, 0.5],
                                                                    'state': state}))]
     finally:
-        _stop(process)
+        stop(process, timeout=10)
     commands = [command for command, _ in answers]
     diagnostics = [diagnostic for _, diagnostic in answers]
     params = load_params(REPO / 'config' / 'pvtol.yaml', 'safety_filter')
@@ -347,7 +337,7 @@ def test_invalid_parameters_exit_2_naming_the_key(ros_domain_id, args, key):
     try:
         code = process.wait(timeout=WAIT_S)
     finally:
-        output = _stop(process)
+        output = stop(process, timeout=10)
     assert code == 2, output
     assert f'invalid parameters: {key}' in output
 

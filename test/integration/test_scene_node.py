@@ -12,7 +12,7 @@ import threading
 import time
 from typing import Any
 
-from dds_harness import REPO, spawn  # this directory: on sys.path for pytest
+from dds_harness import REPO, spawn, stop  # this directory: on sys.path for pytest
 import pytest
 
 UNICYCLE = str(REPO / 'config' / 'unicycle.yaml')
@@ -26,17 +26,6 @@ def domain_id(ros_domain_id: int) -> int:
     """ROS_DOMAIN_ID when the environment sets one (the runner's own domain), else the
     test's own."""
     return int(os.environ.get('ROS_DOMAIN_ID') or ros_domain_id)
-
-
-def _stop(process: subprocess.Popen) -> str:
-    if process.poll() is None:
-        process.send_signal(2)
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-    return process.stdout.read() + process.stderr.read()
 
 
 class _Probe:
@@ -74,7 +63,7 @@ class _Probe:
         deadline = time.monotonic() + WAIT_S
         seen = 0
         while time.monotonic() < deadline:
-            assert process.poll() is None, _stop(process)
+            assert process.poll() is None, stop(process, timeout=10)
             publish()
             time.sleep(0.3)
             with self.lock:
@@ -117,7 +106,7 @@ def test_state_and_diagnostics_in_markers_out(domain_id):
             lambda msg: any(m.ns == 'status' for m in msg.markers), process)
     finally:
         probe.close()
-        output = _stop(process)
+        output = stop(process, timeout=10)
     assert 'unicycle: 5 obstacles, 5 barriers' in output, output[-2000:]
     for msg in (first, coloured):
         assert {m.header.frame_id for m in msg.markers} == {'odom'}
@@ -142,7 +131,7 @@ def test_invalid_parameters_exit_2_naming_the_key(domain_id, args, key):
     try:
         process.wait(timeout=WAIT_S)
     finally:
-        output = _stop(process)
+        output = stop(process, timeout=10)
     assert process.returncode == 2, output[-2000:]
     assert f'scene_markers: invalid parameters: {key}' in output
     assert 'Traceback' not in output
