@@ -369,3 +369,23 @@ def test_filter_info_of_a_filtered_command(safety_filter):
     np.testing.assert_array_equal(info['state'], FACING_OBSTACLE)
     assert info['status'][0] == STATUS_CODES['solved'] and info['fail_safe'][0] == 0.0
 
+
+def test_the_unicycle_filter_box_is_the_simulated_slope(unicycle_params):
+    """config/unicycle.yaml's /safety_filter box, mean +/- k_c std, is the smallest box holding
+    the slope the simulator applies, g(x) u_d(x), at every heading."""
+    import torch
+
+    from rcbf_ros.core.dynamics import Unicycle
+    from rcbf_ros.envs.unicycle import unicycle_slope_disturbance
+    config = filter_config_from_params(unicycle_params)
+    k_c = config.problem.k_c
+    low = np.array(config.static_mean) - k_c * np.array(config.static_std)
+    high = np.array(config.static_mean) + k_c * np.array(config.static_std)
+    headings = np.linspace(-np.pi, np.pi, 3601)
+    states = np.stack([np.zeros_like(headings), np.zeros_like(headings), headings], axis=1)
+    g = Unicycle().g(torch.from_numpy(states)).numpy()                       # (N, 3, 2)
+    slope = np.stack([unicycle_slope_disturbance(x) for x in states])         # (N, 2)
+    moved = np.einsum('nij,nj->ni', g, slope)                                 # (N, 3)
+    assert np.all(moved >= low - 1e-12) and np.all(moved <= high + 1e-12)
+    np.testing.assert_allclose(moved.min(axis=0), low, atol=1e-6)   # tight: every face reached
+    np.testing.assert_allclose(moved.max(axis=0), high, atol=1e-6)
