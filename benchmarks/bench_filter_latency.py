@@ -2,10 +2,11 @@
 
 Filter: this process publishes a state (``/state``) and then a proposal (``/cmd_proposed``) at a
 fixed rate; a separate ``safety_filter`` process (config/unicycle.yaml, our Cyclone runtime)
-filters it and publishes ``/cmd_safe``; latency = receipt of the safe command - publication of
-the state, on this process's monotonic clock. Half of the states face an obstacle (active QP),
-half are free. The filter's own compute time per call comes from its diagnostics
-(``total_time_s``).
+filters it and publishes ``/cmd_safe`` (the command alone), then ``/filter_info``; latency =
+receipt of the safe command - publication of the state, on this process's monotonic clock (the
+k-th ``/cmd_safe`` pairs with the k-th ``/filter_info``, whose ``u_rl`` names the proposal).
+Half of the states face an obstacle (active QP), half are free. The filter's own compute time
+per call comes from its diagnostics (``total_time_s``).
 
 Floor: a ping-pong of the same message type (one hop out, one back, as here) between two
 processes, raw Cyclone DDS and our runtime (:func:`benchmarks.bench_dds_pingpong.run_pingpong`),
@@ -61,6 +62,8 @@ def run_filter_latency(rate_hz: float, n: int, node_args: tuple[str, ...] = ()
          str(REPO / 'config' / 'unicycle.yaml'), '-p', 'qos.depth:=100', *node_args],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     received: dict[int, int] = {}  # proposal index -> receipt time
+    command_times: list[int] = []   # receipt of each /cmd_safe, in order
+    indices: list[int] = []         # the proposal each /filter_info answers, in order
     totals: list[float] = []
     active = [0]
     try:
@@ -72,10 +75,16 @@ def run_filter_latency(rate_hz: float, n: int, node_args: tuple[str, ...] = ()
         proposal_pub = node.create_publisher(array, '/cmd_proposed', qos)
 
         def on_command(msg) -> None:
-            now = time.monotonic_ns()
+            command_times.append(time.monotonic_ns())
+            if len(indices) >= len(command_times):
+                received[indices[len(command_times) - 1]] = command_times[-1]
+
+        def on_info(msg) -> None:
             sections = msg_to_sections(msg)
             # The proposal's index rides in u_RL[1] (echoed unchanged as the u_rl section).
-            received[int(round((sections['u_rl'][1] - 0.5) / INDEX_STEP))] = now
+            indices.append(int(round((sections['u_rl'][1] - 0.5) / INDEX_STEP)))
+            if len(command_times) >= len(indices):
+                received[indices[-1]] = command_times[len(indices) - 1]
             active[0] += bool(np.any(sections['u_s'] != 0.0))
 
         def on_diagnostics(msg) -> None:
@@ -83,6 +92,7 @@ def run_filter_latency(rate_hz: float, n: int, node_args: tuple[str, ...] = ()
             totals.append(float(values['total_time_s']))
 
         node.create_subscription(array, '/cmd_safe', on_command, qos)
+        node.create_subscription(array, '/filter_info', on_info, qos)
         node.create_subscription(get_message('diagnostic_msgs/msg/DiagnosticArray'),
                                  '/diagnostics', on_diagnostics, qos)
         while (proposal_pub.get_subscription_count() == 0

@@ -5,12 +5,13 @@
 machines without ROS) both read :data:`LAUNCHES`, so the two cannot drift. Pure data and string
 building: no ROS, no processes.
 
-Wiring of ``<system>_filter`` (the nodes' own relative names meet without remaps; a namespace
-moves the whole graph)::
+Wiring of ``<system>_filter`` (the nodes' own relative names meet; a namespace moves the whole
+graph)::
 
     simulator --state--> nominal_controller --cmd_proposed (u, state)--> safety_filter
         ^                                                                      |
-        +---------------------------------- cmd_safe (u, u_rl, u_s) ----------+
+        +------------------- filter_info (u, u_rl, u_s, ..., state) ----------+
+                             (cmd_safe: the command u alone, for a robot)
     scene_markers: state + diagnostics -> scene_markers (MarkerArray)
     recorder: every topic -> MCAP
 """
@@ -72,7 +73,8 @@ class LaunchSetup:
 
 
 SIMULATOR = NodeEntry(name='simulator', executable='simulator',
-                      module='sim_nodes.simulator_node', ends_launch=True)
+                      module='sim_nodes.simulator_node', ends_launch=True,
+                      remappings=(('cmd_safe', 'filter_info'),))
 SAFETY_FILTER = NodeEntry(name='safety_filter', executable='safety_filter',
                           module='rcbf_ros.ros.safety_filter_node')
 RECORDER = NodeEntry(name='recorder', executable='recorder', module='rcbf_ros.ros.recorder_node',
@@ -89,10 +91,14 @@ without one). It gets longer to stop than the others because closing writes the 
 
 def _closed_loop(system: str, kind: str, description: str, proposer: NodeEntry,
                  simulator: NodeEntry = SIMULATOR) -> LaunchSetup:
-    """simulator -> <proposer> --cmd_proposed--> safety_filter --cmd_safe--> simulator, recorded.
+    """simulator -> <proposer> --cmd_proposed--> safety_filter --filter_info--> simulator,
+    recorded.
 
-    Nodes meet on their own relative topic names; no remaps are needed. The simulator starts
-    the first episode once the filter and the proposer listen to it.
+    Nodes meet on their own relative topic names; the one remap gives the simulator the
+    filter's ``filter_info`` as its action: the command ``u`` with the ``state`` it answers, so
+    that lock-step drops a late answer to a state published again (``cmd_safe`` carries the
+    command alone). The simulator starts the first episode once the filter and the proposer
+    listen to it (its ``cmd_safe``, remapped, is the filter's ``filter_info``).
     """
     simulator = replace(simulator, parameters=(
         *simulator.parameters, ('wait_for_publishers', ['cmd_safe', 'cmd_proposed'])))
@@ -116,7 +122,7 @@ def _learner_loop(system: str) -> LaunchSetup:
 
         simulator --sim/step--> learner --cmd_proposed (u_RL, GP mean/std, state)--> filter
             ^                                                                          |
-            +------------------------------- cmd_safe (u*) --------------------------+
+            +------------------------- filter_info (u*, ..., state) -----------------+
 
     The learner ends the launch; the simulator waits longer for actions, because GP refits
     and checkpoints pause the learner for a second or two. Stopped early, the learner still

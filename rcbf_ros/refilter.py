@@ -1,19 +1,26 @@
-"""Offline re-filtering of a recorded run (issue 3): the safety filter with another YAML, no DDS.
+"""Offline re-filtering of a recorded run: the safety filter with another YAML, no DDS.
 
     python -m rcbf_ros.refilter SOURCE_BAG OUTPUT_BAG --params-file F [--node N]
 
 Reads ``/cmd_proposed`` and ``/state`` from a bag in log-time order, filters every proposal
 with a :class:`~rcbf_ros.core.filter.SafetyFilter` built from the NEW parameters, and writes a
 new rosbag2-layout bag: every source topic copied unchanged (same CDR bytes, log and publish
-times, schema text, type hash and QoS), plus
+times, schema text, type hash and QoS), plus, at the proposal's log time,
 
-- ``/refilter/cmd_safe`` (std_msgs/Float64MultiArray, sections ``u``, ``u_rl``, ``u_s``, and
-  ``state`` when the proposal carried one, as the node's ``cmd_safe``): the new command
-  u* = u_RL + u_S, at the proposal's log time;
+- ``/refilter/cmd_safe`` (std_msgs/Float64MultiArray, one section ``u``): the new command
+  u* = u_RL + u_S, as the node's ``cmd_safe`` with ``command_type: array``;
+- ``/refilter/filter_info`` (std_msgs/Float64MultiArray): the node's ``filter_info``
+  (:func:`rcbf_ros.ros.filter_logic.info_sections`: ``u``, ``u_rl``, ``u_s``, ``fail_safe``,
+  ``status``, ``h``, ... and the ``state`` it answers);
 - ``/refilter/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per filtered
   proposal with the same level, message and key/values as the safety_filter node's
   (:func:`rcbf_ros.ros.filter_logic.diagnostic_values`: ``h.<barrier>``,
   ``constraint.<barrier>``, ``slack``, ``status``, ...), stamped with the proposal's log time.
+
+Proposals are read as the node reads them: a Float64MultiArray (sections ``u``, ``state``,
+``disturbance_mean``, ``disturbance_std``), or a geometry_msgs/Twist or TwistStamped (u in the
+new parameters' ``twist_fields``); states as a Float64MultiArray or a nav_msgs/Odometry
+(``state_frame_id`` checked as the node does).
 
 Decisions are the node's own (:func:`rcbf_ros.ros.filter_logic.decide`): the proposal's
 ``state`` section wins, else the latest ``/state`` if it is at most ``max_state_age_s`` older
@@ -23,9 +30,12 @@ a stale or NaN state, a NaN proposal) is skipped: nothing is written for it, and
 counted. A state or proposal of the wrong LENGTH for the new system is a configuration mismatch
 and stops the run with an error (:class:`RefilterError`).
 
-Comparison. A recorded ``/cmd_safe`` answer is paired with the proposal whose ``u`` equals its
-``u_rl`` section and whose ``state`` (when both carry one) equals its ``state`` section, bit for
-bit, first come first served; |Δu| = ||u_new - u_recorded||_2.
+Comparison. The recorded answers come from ``/filter_info`` (sections ``u``, ``u_rl`` and the
+``state`` answered) when the bag has it, else from ``/cmd_safe`` in the form it had before the
+node published ``filter_info`` (sections ``u``, ``u_rl``, ``u_s`` and optionally ``state``); a
+``/cmd_safe`` that holds the command alone cannot be paired. A recorded answer is paired with
+the proposal whose ``u`` equals its ``u_rl``, bit for bit, first come first served, and, when
+both name a state, whose state equals it; |Δu| = ||u_new - u_recorded||_2.
 
 Pure library + command line: reads and writes MCAP with :mod:`rcbf_ros.bag`, never touches
 the middleware.
@@ -51,13 +61,24 @@ from rcbf_ros.core.config import filter_config_from_params, FilterConfig, flatte
 from rcbf_ros.core.filter import ACTIVE_TOLERANCE, SafetyFilter
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.ros import filter_logic as logic
-from rcbf_ros.ros.conversions import FLOAT64_MULTIARRAY, msg_to_sections
+from rcbf_ros.ros.conversions import (
+    FLOAT64_MULTIARRAY,
+    msg_to_sections,
+    ODOMETRY,
+    odometry_to_state,
+    TWIST,
+    TWIST_STAMPED,
+    twist_to_array,
+)
 
 PROPOSAL_TOPIC = '/cmd_proposed'
 STATE_TOPIC = '/state'
 RECORDED_COMMAND_TOPIC = '/cmd_safe'
+RECORDED_INFO_TOPIC = '/filter_info'
 OUTPUT_COMMAND_TOPIC = '/refilter/cmd_safe'
+OUTPUT_INFO_TOPIC = '/refilter/filter_info'
 OUTPUT_DIAGNOSTICS_TOPIC = '/refilter/diagnostics'
+OUTPUT_TOPICS = (OUTPUT_COMMAND_TOPIC, OUTPUT_INFO_TOPIC, OUTPUT_DIAGNOSTICS_TOPIC)
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
 DEFAULT_TOLERANCE = 1e-6
 
@@ -89,9 +110,12 @@ class RefilterSummary:
     state_from_topic: int = 0
     """Processed proposals filtered at the latest ``/state``."""
     recorded_commands: int = 0
-    """``/cmd_safe`` messages in the source bag."""
+    """Recorded answers the comparison reads: ``/filter_info`` messages, or ``/cmd_safe`` ones
+    in a bag without ``/filter_info``."""
+    recorded_topic: str = ''
+    """Where the recorded answers came from: ``/filter_info``, ``/cmd_safe`` or '' (none)."""
     compared: int = 0
-    """Processed proposals paired with a recorded ``/cmd_safe``."""
+    """Processed proposals paired with a recorded answer."""
     tolerance: float = DEFAULT_TOLERANCE
     """|Δu| above this counts as changed."""
     changed: int = 0
@@ -150,7 +174,8 @@ class RefilterSummary:
             f'proposals: {self.proposals}   processed: {self.processed} '
             f'(own state {self.state_from_proposal}, /state {self.state_from_topic})   '
             f'skipped: {self.skipped_total}' + (f' ({skipped})' if skipped else ''),
-            f'recorded /cmd_safe: {self.recorded_commands}   compared: {self.compared}   '
+            f'recorded {self.recorded_topic or "/cmd_safe"}: {self.recorded_commands}   '
+            f'compared: {self.compared}   '
             f'changed (|du| > {self.tolerance:g}): {self.changed}',
             f'|du| max {self.max_abs_du:.6g}   mean {self.mean_abs_du:.6g}',
             f'filter active: new {self.active} of {self.processed}, recorded '
@@ -252,6 +277,33 @@ def _array_sections(topic: str, log_time_ns: int, data: bytes, type_name: str,
         raise RefilterError(f'{topic} at log time {log_time_ns}: {exc}') from exc
 
 
+def _proposal_sections(item: Any, settings: logic.NodeSettings) -> dict[str, np.ndarray]:
+    """The sections of a recorded proposal: a Float64MultiArray's, or ``u`` of a Twist or
+    TwistStamped (the new parameters' ``twist_fields``)."""
+    if item.type_name in (TWIST, TWIST_STAMPED):
+        msg = deserialize_message(item.data, item.type_name)
+        if item.type_name == TWIST_STAMPED:
+            msg = msg.twist
+        return {'u': twist_to_array(msg, settings.twist_fields)}
+    return _array_sections(item.topic, item.log_time_ns, item.data, item.type_name, 'u')
+
+
+def _state_sections(item: Any, settings: logic.NodeSettings,
+                    system: str) -> dict[str, np.ndarray] | str:
+    """The sections of a recorded state (an Odometry's as the node reads it), or why an
+    Odometry is refused (a wrong frame, an orientation without heading)."""
+    if item.type_name == ODOMETRY:
+        try:
+            return {'state': odometry_to_state(deserialize_message(item.data, item.type_name),
+                                               system=system,
+                                               frame_id=settings.state_frame_id)}
+        except ValueError as exc:
+            if str(exc).startswith('state_type:'):
+                raise RefilterError(f'{item.topic}: {exc}') from exc
+            return str(exc)
+    return _array_sections(item.topic, item.log_time_ns, item.data, item.type_name, 'state')
+
+
 def _check_length(topic: str, log_time_ns: int, label: str, values: np.ndarray, size: int,
                   what: str, system: str) -> None:
     if values.size != size:
@@ -260,33 +312,47 @@ def _check_length(topic: str, log_time_ns: int, label: str, values: np.ndarray, 
             f'system {system!r} has {what} = {size} (parameters for another system?)')
 
 
-def _command_key(u_rl: np.ndarray, state: np.ndarray | None) -> tuple[bytes, bytes | None]:
-    return (np.ascontiguousarray(u_rl, dtype=np.float64).tobytes(),
-            None if state is None else np.ascontiguousarray(state, np.float64).tobytes())
+RecordedAnswers = dict[bytes, deque[tuple[bytes | None, np.ndarray]]]
+"""Recorded answers: u_rl bytes -> FIFO of (answered state bytes or None, u)."""
 
 
-def _recorded_commands(path: str | os.PathLike[str],
-                       ) -> tuple[int, dict[tuple[bytes, bytes | None], deque[np.ndarray]]]:
-    """Recorded ``/cmd_safe`` answers keyed by (u_rl, state) bytes, FIFO per key."""
-    by_key: dict[tuple[bytes, bytes | None], deque[np.ndarray]] = defaultdict(deque)
+def _bytes(values: np.ndarray | None) -> bytes | None:
+    return None if values is None else np.ascontiguousarray(values, np.float64).tobytes()
+
+
+def _recorded_commands(path: str | os.PathLike[str], topics: Mapping[str, Any]
+                       ) -> tuple[str, int, RecordedAnswers]:
+    """(topic, count, answers): the recorded answers, from ``/filter_info`` when the bag has
+    it, else from a ``/cmd_safe`` of the earlier form (``u``, ``u_rl``, ``u_s`` sections)."""
+    topic = RECORDED_INFO_TOPIC if RECORDED_INFO_TOPIC in topics else RECORDED_COMMAND_TOPIC
+    if topic not in topics:
+        return '', 0, {}
+    answers: RecordedAnswers = defaultdict(deque)
     count = 0
-    for item in read_bag(path, topics=[RECORDED_COMMAND_TOPIC]):
+    for item in read_bag(path, topics=[topic]):
         count += 1
         if item.type_name != FLOAT64_MULTIARRAY:
             continue
         sections = _array_sections(item.topic, item.log_time_ns, item.data, item.type_name, 'u')
         if 'u' not in sections or 'u_rl' not in sections:
             continue
-        by_key[_command_key(sections['u_rl'], sections.get('state'))].append(sections['u'])
-    return count, by_key
+        answers[_bytes(sections['u_rl'])].append((_bytes(sections.get('state')),
+                                                  sections['u']))
+    return topic, count, answers
 
 
-def _pop_recorded(by_key: dict[tuple[bytes, bytes | None], deque[np.ndarray]],
-                  u_rl: np.ndarray, state: np.ndarray | None) -> np.ndarray | None:
-    for key in (_command_key(u_rl, state), _command_key(u_rl, None)):
-        queue = by_key.get(key)
-        if queue:
-            return queue.popleft()
+def _pop_recorded(answers: RecordedAnswers, u_rl: np.ndarray,
+                  state: np.ndarray | None) -> np.ndarray | None:
+    """The first recorded answer to ``u_rl`` that does not name another state than ``state``
+    (None: no state to compare), removed from ``answers``."""
+    queue = answers.get(_bytes(u_rl))
+    if not queue:
+        return None
+    wanted = _bytes(state)
+    for index, (answered, u) in enumerate(queue):
+        if wanted is None or answered is None or answered == wanted:
+            del queue[index]
+            return u
     return None
 
 
@@ -378,7 +444,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     if PROPOSAL_TOPIC not in topics:
         raise RefilterError(f'source bag {str(source)!r} has no {PROPOSAL_TOPIC} topic '
                             f'(topics: {sorted(topics)})')
-    clashing = sorted(t for t in topics if t in (OUTPUT_COMMAND_TOPIC, OUTPUT_DIAGNOSTICS_TOPIC))
+    clashing = sorted(t for t in topics if t in OUTPUT_TOPICS)
     if clashing:
         raise RefilterError(f'source bag already holds {clashing} (re-filter the original run)')
     flat = resolve_params(params, node=node)
@@ -388,7 +454,8 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     summary = RefilterSummary(source=str(source), output=str(output), system=system_name,
                               barrier_names=list(safety_filter.barrier_names),
                               tolerance=float(tolerance))
-    summary.recorded_commands, recorded = _recorded_commands(source)
+    summary.recorded_topic, summary.recorded_commands, recorded = _recorded_commands(source,
+                                                                                     topics)
 
     try:
         writer = BagWriter(output)
@@ -405,12 +472,15 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                 writer.add_topic(topic.name, topic.type_name, topic.qos or None,
                                  message_definition=topic.definition, type_hash=topic.type_hash)
             writer.add_topic(OUTPUT_COMMAND_TOPIC, FLOAT64_MULTIARRAY)
+            writer.add_topic(OUTPUT_INFO_TOPIC, FLOAT64_MULTIARRAY)
             writer.add_topic(OUTPUT_DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY)
             for item in read_bag(source):
                 writer.write(item.topic, item.data, item.log_time_ns, item.publish_time_ns)
                 if item.topic == STATE_TOPIC:
-                    sections = _array_sections(item.topic, item.log_time_ns, item.data,
-                                               item.type_name, 'state')
+                    sections = _state_sections(item, settings, system_name)
+                    if isinstance(sections, str):  # an Odometry the node would refuse
+                        latest = logic.StateSample(item.log_time_ns, None, sections)
+                        continue
                     values = sections.get('state', next(iter(sections.values()), None))
                     if values is None:
                         latest = logic.StateSample(item.log_time_ns, None, 'state: empty message')
@@ -426,8 +496,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     topic_states.append(state)
                 elif item.topic == PROPOSAL_TOPIC:
                     summary.proposals += 1
-                    sections = _array_sections(item.topic, item.log_time_ns, item.data,
-                                               item.type_name, 'u')
+                    sections = _proposal_sections(item, settings)
                     for label, size, what in (('u', n_u, 'n_u'), ('state', n_x, 'n_x'),
                                               ('disturbance_mean', n_x, 'n_x'),
                                               ('disturbance_std', n_x, 'n_x')):
@@ -454,7 +523,9 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     if proposal.state is not None:
                         proposal_states.append(proposal.state)
                     writer.write_message(OUTPUT_COMMAND_TOPIC, _sections_message(
-                        decision.command_sections(proposal.state)), item.log_time_ns)
+                        {'u': decision.u_safe}), item.log_time_ns)
+                    writer.write_message(OUTPUT_INFO_TOPIC, _sections_message(
+                        logic.info_sections(decision)), item.log_time_ns)
                     writer.write_message(OUTPUT_DIAGNOSTICS_TOPIC, _diagnostics_message(
                         decision, safety_filter.barrier_names, settings, item.log_time_ns),
                         item.log_time_ns)
@@ -475,7 +546,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
 
 
 def _account(summary: RefilterSummary, decision: logic.Decision, proposal: logic.Proposal,
-             recorded: dict[tuple[bytes, bytes | None], deque[np.ndarray]],
+             recorded: RecordedAnswers,
              deltas: list[float], tolerance: float) -> None:
     """Add one filtered proposal to the summary (and pair it with its recorded answer)."""
     result = decision.result

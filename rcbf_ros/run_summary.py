@@ -9,7 +9,9 @@ kept as ``*.mcap.orig``), so that every bag reader accepts it.
 
 From the bag it draws ``<run>/trajectories.png`` (:func:`rcbf_ros.plots.plot_trajectories`):
 the states of ``/sim/step`` (else ``/state``, split at the ``/episode`` events), the steps whose
-``/cmd_safe`` carries a correction |u_S| > 1e-7, over the layout of the params file (default:
+filter answer carries a correction |u_S| > 1e-7 (``/filter_info``; in bags recorded before the
+filter published it, ``/cmd_safe`` with its ``u_s`` section), over the layout of the params file
+(default:
 the packaged ``config/<system>.yaml`` of the system the bag's episode events name), and prints
 the closest approach to an obstacle. Episodes on random layouts are not drawn (one picture
 would mix layouts).
@@ -28,6 +30,7 @@ import numpy as np
 STEP_TOPIC = '/sim/step'
 STATE_TOPIC = '/state'
 COMMAND_TOPIC = '/cmd_safe'
+INFO_TOPIC = '/filter_info'
 EPISODE_TOPIC = '/episode'
 ANSWER_SEARCH = 50
 """How far back (states) a command's ``state`` section is looked up among its episode's."""
@@ -161,17 +164,20 @@ def episode_paths(bag: Path, *, n_x: int) -> list[Any]:
     so no cross-topic ordering is needed) when the bag has it, else from ``/state``,
     starting a new episode at each ``/episode`` start event or the first state after an end
     event (numbered from 1 where no start event names it). A state equal to the one before
-    (published again while the simulator waited for a command) is kept once. A ``/cmd_safe``
-    with |u_S| > 1e-7 marks the state its ``state`` section names (else the latest one) as
-    corrected. Samples of the wrong length or with NaN are skipped, and so is an episode
-    without a step (a reset the run ended at).
+    (published again while the simulator waited for a command) is kept once. A
+    ``/filter_info`` (in a bag without one: a ``/cmd_safe`` of the earlier form, with ``u_s``
+    or ``u_rl``) with |u_S| > 1e-7 marks the state its ``state`` section names (else the
+    latest one) as corrected. Samples of the wrong length or with NaN are skipped, and so is
+    an episode without a step (a reset the run ended at).
     """
     from rcbf_ros.bag import bag_info, read_bag
     from rcbf_ros.plots import CORRECTION_THRESHOLD
-    by_steps = STEP_TOPIC in bag_info(bag).topics
+    recorded = bag_info(bag).topics
+    by_steps = STEP_TOPIC in recorded
+    answers = INFO_TOPIC if INFO_TOPIC in recorded else COMMAND_TOPIC
     episodes = _Episodes()
     ended, counter = True, 0
-    topics = [STEP_TOPIC if by_steps else STATE_TOPIC, COMMAND_TOPIC, EPISODE_TOPIC]
+    topics = [STEP_TOPIC if by_steps else STATE_TOPIC, answers, EPISODE_TOPIC]
     for item in read_bag(bag, topics=topics):
         if item.topic == EPISODE_TOPIC:
             if not by_steps:
@@ -186,7 +192,7 @@ def episode_paths(bag: Path, *, n_x: int) -> list[Any]:
         sections = _sections(item)
         if sections is None:
             continue
-        if item.topic == COMMAND_TOPIC:
+        if item.topic == answers:
             if _correction(sections) > CORRECTION_THRESHOLD:
                 episodes.mark(_vector(sections.get('state'), n_x) if 'state' in sections
                               else None)

@@ -1,14 +1,20 @@
 """The ``nominal_controller`` node: the deliberately unsafe controllers of rcbf_ros.envs.nominal.
 
-Subscribes ``state`` (Float64MultiArray, section ``state``, or the whole data when unlabelled)
-and publishes ``cmd_proposed`` (Float64MultiArray, sections ``u`` and ``state``: the command
-and the state it answers) once per state: Unicycle and
-PVTOL drive straight at ``goal``, the car accelerates into car 3 at ``acceleration``. Put a
-safety_filter between it and the simulator (``cmd_proposed`` -> filter -> ``cmd_safe``), or remap
+Subscribes ``state`` and publishes ``cmd_proposed`` once per state: Unicycle and PVTOL drive
+straight at ``goal``, the car accelerates into car 3 at ``acceleration``. Put a safety_filter
+between it and the simulator (``cmd_proposed`` -> filter -> ``cmd_safe``), or remap
 ``cmd_proposed:=cmd_safe`` to watch it crash.
 
-Parameters: ``system`` and the ``/nominal_controller`` section of ``config/<system>.yaml``
-(``goal`` for unicycle / pvtol, ``acceleration`` for car_following).
+Message types follow the parameters, as the safety filter's do: ``state_type`` ``array``
+(Float64MultiArray, section ``state``, or the whole data when unlabelled) or ``odometry``
+(nav_msgs/Odometry, unicycle); ``command_type`` ``array`` (sections ``u`` and ``state``: the
+command and the state it answers, so that a lock-step simulator can drop a late answer),
+``twist`` or ``twist_stamped`` (u in ``twist_fields``; a TwistStamped carries the header of the
+Odometry it answers, else the node's clock and an empty frame_id).
+
+Parameters: :func:`nominal_controller_interface` (``nominal_controller --help``): the node's
+own, ``system`` and the ``/nominal_controller`` section of ``config/<system>.yaml`` (``goal``
+for unicycle / pvtol, ``acceleration`` for car_following).
 """
 from __future__ import annotations
 
@@ -17,11 +23,55 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from rcbf_ros.core.config import build_system
 from rcbf_ros.envs.nominal import cars_accelerate, pvtol_go_to_goal, unicycle_go_to_goal
+from rcbf_ros.ros import conversions
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
+from rcbf_ros.ros.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
-from sim_nodes.simulator_node import declare_with_packaged_defaults
+from sim_nodes.packaged import (
+    declare_with_packaged_defaults,
+    packaged_parameter_specs,
+    system_from_argv,
+)
+from sim_nodes.simulator_node import message_settings
+
+NODE_PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec('state_type', 'array', 'string',
+                  'type of `state`: array (Float64MultiArray) or odometry (nav_msgs/Odometry, '
+                  'unicycle only)'),
+    ParameterSpec('command_type', 'array', 'string',
+                  'type of `cmd_proposed`: array (sections u and state), twist or '
+                  'twist_stamped'),
+    ParameterSpec('twist_fields', ['linear.x', 'angular.z'], 'string[]',
+                  'for twist and twist_stamped: the n_u Twist fields holding u, in order'),
+)
+"""The controller's own parameters."""
+
+_QOS = 'reliable, keep-last 10'
+TOPICS: tuple[TopicSpec, ...] = (
+    TopicSpec('state', 'sub', 'std_msgs/msg/Float64MultiArray or nav_msgs/msg/Odometry',
+              'state_type array: section `state` (else all data); odometry: pose [x, y, yaw]',
+              _QOS),
+    TopicSpec('cmd_proposed', 'pub', 'std_msgs/msg/Float64MultiArray, geometry_msgs/msg/Twist or '
+              'geometry_msgs/msg/TwistStamped',
+              'array: sections `u` (n_u) and `state` (n_x, the state it answers); '
+              "twist(_stamped): u in twist_fields, the Odometry's header", _QOS),
+)
+
+
+def nominal_controller_interface(argv: Sequence[str] = ()) -> NodeInterface:
+    """Topics and parameters of the nominal controller for the ``system`` of a command line."""
+    system = system_from_argv(argv)
+    return NodeInterface(
+        node='nominal_controller',
+        summary='A deliberately unsafe controller (straight at the goal, or into the car ahead) '
+                f'to put behind the safety filter. Defaults below: system {system}.',
+        topics=TOPICS,
+        parameters=NODE_PARAMETERS + packaged_parameter_specs(system, 'nominal_controller'),
+        notes=('Other systems: nominal_controller --help --ros-args -p system:=pvtol '
+               '(or car_following).',))
 
 
 def controller_from_params(params: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
@@ -53,30 +103,58 @@ class NominalControllerNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('nominal_controller',
                          automatically_declare_parameters_from_overrides=True, **kwargs)
+        for name, value in declarations(NODE_PARAMETERS):
+            if not self.has_parameter(name):
+                self.declare_parameter(name, value)
         params = declare_with_packaged_defaults(self, 'nominal_controller')
+        self.system = str(params['system'])
         self.controller = controller_from_params(params)
-        array = get_message('std_msgs/msg/Float64MultiArray')
-        self.publisher = self.create_publisher(array, 'cmd_proposed', QoSProfile(depth=10))
-        self.create_subscription(array, 'state', self.on_state, QoSProfile(depth=10))
+        messages = message_settings(params, system=self.system, n_u=build_system(params).n_u)
+        self.state_type, self.command_type = messages['state_type'], messages['command_type']
+        self.twist_fields = messages['twist_fields']
+        self.publisher = self.create_publisher(
+            get_message(conversions.COMMAND_MESSAGES[self.command_type]), 'cmd_proposed',
+            QoSProfile(depth=10))
+        self.create_subscription(get_message(conversions.STATE_MESSAGES[self.state_type]),
+                                 'state', self.on_state, QoSProfile(depth=10))
         self.done = False
-        self.get_logger().info(f'nominal controller for {params["system"]}')
+        self.get_logger().info(f'nominal controller for {self.system}, state_type '
+                               f'{self.state_type}, command_type {self.command_type}')
 
     def on_state(self, msg: Any) -> None:
         try:
-            sections = msg_to_sections(msg, default_label='state')
-            if 'state' not in sections:
-                raise ValueError(f'state: no section labelled state in {list(sections)}')
-            u = self.controller(sections['state'])
+            if self.state_type == 'odometry':
+                state = conversions.odometry_to_state(msg, system=self.system)
+            else:
+                sections = msg_to_sections(msg, default_label='state')
+                if 'state' not in sections:
+                    raise ValueError(f'state: no section labelled state in {list(sections)}')
+                state = sections['state']
+            u = np.asarray(self.controller(state), dtype=np.float64)
         except (ValueError, IndexError) as exc:
             self.get_logger().error(f'{exc}; no command')
             return
+        self.publisher.publish(self.command(u, state, msg))
+
+    def command(self, u: np.ndarray, state: np.ndarray, state_msg: Any) -> Any:
+        """The ``cmd_proposed`` message answering ``state`` (received as ``state_msg``)."""
+        if self.command_type == 'twist':
+            return conversions.array_to_twist(u, self.twist_fields)
+        if self.command_type == 'twist_stamped':
+            if self.state_type == 'odometry':
+                header = state_msg.header
+            else:
+                header = get_message('std_msgs/msg/Header')()
+                header.stamp = self.get_clock().now().to_msg()
+            return conversions.array_to_twist_stamped(u, self.twist_fields, header)
         # The answered state rides along so that a lock-step simulator can drop stale answers.
-        self.publisher.publish(sections_to_msg({'u': u, 'state': sections['state']}))
+        return sections_to_msg({'u': u, 'state': state})
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    """Console script ``nominal_controller``."""
-    return run_node('nominal_controller', NominalControllerNode, args)
+    """Console script ``nominal_controller``. Returns 2 on invalid parameters."""
+    return run_node('nominal_controller', NominalControllerNode, args,
+                    setup_errors=(ValueError,), interface=nominal_controller_interface)
 
 
 if __name__ == '__main__':

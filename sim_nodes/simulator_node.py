@@ -1,11 +1,15 @@
 """The ``simulator`` node: one of :mod:`rcbf_ros.envs` on topics, lock-step or real-time.
 
-Topics (names relative, remappable with ``-r``):
+Topics (names relative, remappable with ``-r``; all reliable, keep-last 10):
 
-- publishes ``state`` (std_msgs/Float64MultiArray, section ``state``: the QP state, n_x),
-  ``observation`` (section ``observation``), ``reward`` (std_msgs/Float64, after every step),
-  ``h_true`` (section ``h_true``: true signed clearances, names in the episode start event),
-  ``episode`` (std_msgs/String, one JSON object per event:
+- publishes ``state``: ``state_type: array``: std_msgs/Float64MultiArray, section ``state``
+  (the QP state, n_x); ``state_type: odometry`` (unicycle): nav_msgs/Odometry in ``frame_id``
+  with the pose [x, y, yaw] and the applied [v, omega] as twist, stamped with the simulation
+  clock (each new state ``dt`` after the one before, across episodes; a state published again
+  keeps its stamp);
+- publishes ``observation`` (section ``observation``), ``reward`` (std_msgs/Float64, after
+  every step), ``h_true`` (section ``h_true``: true signed clearances, names in the episode
+  start event), ``episode`` (std_msgs/String, one JSON object per event:
   ``{"event": "start", "episode", "system", "seed", "layout_seed", "h_true_names", "n_x",
   "n_u"}`` and ``{"event": "end", "episode", "return", "steps", "violations", "goal_reached",
   "terminated", "truncated"}``; transient local, keep-last :data:`EPISODE_HISTORY_DEPTH`, so
@@ -16,8 +20,11 @@ Topics (names relative, remappable with ``-r``):
   state; 0 after a reset), ``action`` (the u applied to get here, saturated to the limits;
   zeros after a reset), ``terminated``, ``truncated``, ``violation``, ``goal_reached``,
   ``episode``, ``step`` (0 right after a reset);
-- subscribes ``cmd_safe`` (Float64MultiArray; its FIRST section is u, length n_u; an optional
-  section labelled ``state`` names the state the action answers, see lock-step below).
+- subscribes ``cmd_safe``, the action, of ``command_type``: ``array``: a Float64MultiArray
+  whose FIRST section is u (length n_u) and whose optional section ``state`` names the state
+  the action answers (the safety filter's ``filter_info`` has that form: the launches remap
+  ``cmd_safe`` to it, see lock-step below); ``twist`` / ``twist_stamped``: u in
+  ``twist_fields``; a TwistStamped's stamp names the state it answers.
 
 Modes (parameter ``mode``):
 
@@ -25,10 +32,12 @@ Modes (parameter ``mode``):
   out once the loop is up (see ``wait_for_publishers`` below); if no action arrives within
   ``action_timeout_s`` the state is published again with a warning, so a late subscriber (or a
   lost sample) cannot deadlock the loop. An action is consumed by the step it answers; actions
-  arriving while no state is pending are dropped. A re-published state can be answered twice;
-  when the action carries a ``state`` section (as the nominal controller's does) an answer to
-  any other state than the pending one is dropped as stale, which keeps lock-step runs exactly
-  reproducible. Without that section a late duplicate would be applied to the next step.
+  arriving while no state is pending are dropped. A re-published state can be answered twice,
+  and a late duplicate answer must not be applied to the next step: an array action with a
+  ``state`` section answering any other state than the pending one, and a TwistStamped whose
+  stamp is that of an earlier state, are dropped as stale. That keeps lock-step runs exactly
+  reproducible. A bare array or a Twist names no state; a late duplicate of one would be
+  applied to the next step.
 - ``realtime``: step at ``rate_hz`` with a zero-order hold on the last action (zeros until the
   first one), publishing after every step. Like lock-step, the first episode starts once the
   loop is up (nobody listening: nothing to simulate for).
@@ -39,15 +48,16 @@ process of each such publisher has subscribed to one of the simulator's topics a
 (:func:`loop_waits_for`). A controller that starts after the simulator thus still gets the
 first state, and nothing is re-published at start-up.
 
-Parameters: ``system`` (unicycle | car_following | pvtol), every key of ``/simulator`` and
-``/**`` in ``config/<system>.yaml`` (env settings and the layout: ``obstacles.*``, ...; the
-packaged file gives the defaults, ``--params-file`` / ``-p`` override them), plus ``mode``,
-``rate_hz``, ``seed`` (the first reset's seed; later episodes continue its generator),
-``max_episodes`` (0 = forever; the node exits after the last one), ``action_timeout_s`` and
-``wait_for_publishers`` (topic names as the node resolves them, remaps included).
+Parameters: :func:`simulator_interface` (``simulator --help``; ``--help --ros-args -p
+system:=pvtol`` for another system): the node's own (:data:`NODE_PARAMETERS`), ``system``
+(unicycle | car_following | pvtol) and every key of ``/simulator`` and ``/**`` in
+``config/<system>.yaml`` (env settings and the layout: ``obstacles.*``, ...; the packaged file
+gives the defaults, ``--params-file`` / ``-p`` override them). ``wait_for_publishers`` takes
+topic names as the node resolves them, remaps included.
 """
 from __future__ import annotations
 
+from collections import deque
 import json
 import math
 import sys
@@ -56,57 +66,94 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from rcbf_ros.envs import ENVS, make_env
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.envs import make_env
+from rcbf_ros.ros import conversions
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.ros.node_main import run_node
+from rcbf_ros.ros.filter_logic import COMMAND_TYPES, STATE_TYPES, TWIST_FIELDS
+from rcbf_ros.ros.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.ros.node_main import run_node, spin_once
 from rcbf_ros.ros.runtime import DurabilityPolicy, get_message, Node, QoSProfile, rclpy
+from sim_nodes.packaged import (
+    declare_with_packaged_defaults,
+    packaged_parameter_specs,
+    system_from_argv,
+)
 
-NODE_DEFAULTS: dict[str, Any] = {
-    'mode': 'lockstep',
-    'rate_hz': 50.0,
-    'seed': 0,
-    'max_episodes': 0,
-    'action_timeout_s': 1.0,
-    'wait_for_publishers': [],
-}
-"""Node-level parameters and their defaults (the packaged config may override them)."""
+NODE_PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec('mode', 'lockstep', 'string',
+                  'lockstep (step when the action for the pending state arrives) or realtime '
+                  '(step at rate_hz, holding the last action)'),
+    ParameterSpec('rate_hz', 50.0, 'double', 'steps per second in realtime mode'),
+    ParameterSpec('seed', 0, 'integer',
+                  "the first reset's seed (later episodes continue its generator)"),
+    ParameterSpec('max_episodes', 0, 'integer',
+                  'episodes to run, then the node exits (0: forever)'),
+    ParameterSpec('action_timeout_s', 1.0, 'double',
+                  'lockstep: publish the pending state again after this long without an '
+                  'action (s)'),
+    ParameterSpec('state_type', 'array', 'string',
+                  'type of `state`: array (Float64MultiArray) or odometry (nav_msgs/Odometry, '
+                  'unicycle only)'),
+    ParameterSpec('frame_id', 'map', 'string',
+                  "state_type odometry: the Odometry's header.frame_id (the obstacles' frame)"),
+    ParameterSpec('child_frame_id', 'base_link', 'string',
+                  "state_type odometry: the Odometry's child_frame_id (the robot's frame)"),
+    ParameterSpec('command_type', 'array', 'string',
+                  'type of `cmd_safe`: array (Float64MultiArray, first section u), twist or '
+                  'twist_stamped'),
+    ParameterSpec('twist_fields', ['linear.x', 'angular.z'], 'string[]',
+                  'for twist and twist_stamped: the n_u Twist fields holding u, in order'),
+    ParameterSpec('wait_for_publishers', [], 'string[]',
+                  'the first episode waits until each of these topics has a publisher that '
+                  'listens to the simulator (launches: cmd_safe and cmd_proposed)'),
+)
+"""The simulator's own parameters (declared before the packaged ones, which cannot replace
+them)."""
+
+NODE_DEFAULTS: dict[str, Any] = dict(declarations(NODE_PARAMETERS))
+"""Name -> default of :data:`NODE_PARAMETERS`."""
+
+_QOS = 'reliable, keep-last 10'
+TOPICS: tuple[TopicSpec, ...] = (
+    TopicSpec('state', 'pub', 'std_msgs/msg/Float64MultiArray or nav_msgs/msg/Odometry',
+              'state_type array: section `state`, n_x values in the state layout; odometry: '
+              'pose [x, y, yaw], twist [v, omega], stamped with the simulation clock', _QOS),
+    TopicSpec('cmd_safe', 'sub', 'std_msgs/msg/Float64MultiArray, geometry_msgs/msg/Twist or '
+              'geometry_msgs/msg/TwistStamped',
+              'the action: array: first section u (n_u), optional section `state` it answers '
+              "(the filter's `filter_info`; launches remap cmd_safe to it); twist(_stamped): "
+              'u in twist_fields, the stamp of the state it answers', _QOS),
+    TopicSpec('sim/step', 'pub', 'std_msgs/msg/Float64MultiArray',
+              'per step: sections state, observation, reward, action, terminated, truncated, '
+              'violation, goal_reached, episode, step', _QOS),
+    TopicSpec('observation', 'pub', 'std_msgs/msg/Float64MultiArray',
+              "section `observation`: the policy's input", _QOS),
+    TopicSpec('h_true', 'pub', 'std_msgs/msg/Float64MultiArray',
+              'section `h_true`: true signed clearances (names in the episode start event)',
+              _QOS),
+    TopicSpec('reward', 'pub', 'std_msgs/msg/Float64', 'reward of the last step', _QOS),
+    TopicSpec('episode', 'pub', 'std_msgs/msg/String',
+              'one JSON object per episode start and end',
+              'reliable, transient local, keep-last 10'),
+)
 
 EPISODE_HISTORY_DEPTH = 10
 """Episode events kept for late subscribers (``episode`` is transient local): the run's first
 start event and those of the next few episodes."""
 
 
-def declare_with_packaged_defaults(node: Any, section: str, system_default: str = 'unicycle'
-                                   ) -> dict[str, Any]:
-    """Declare ``system`` and every key of the packaged ``config/<system>.yaml`` for ``section``.
-
-    Overrides given on the command line or in ``--params-file`` were already declared by the
-    node (``automatically_declare_parameters_from_overrides``) and win; the packaged file
-    supplies the rest. Returns every declared parameter as a flat dict.
-    """
-    if not node.has_parameter('system'):
-        node.declare_parameter('system', system_default)
-    system = str(node.get_parameter('system').value)
-    if system not in ENVS:
-        raise ValueError(f'system: expected one of {sorted(ENVS)}, got {system!r}')
-    defaults = load_params(find_config(system), section)
-    defaults.pop('system', None)
-    for name, value in defaults.items():
-        if not node.has_parameter(name) and value is not None and value != []:
-            node.declare_parameter(name, value)
-    return {name: _plain(p.value)
-            for name, p in node.get_parameters_by_prefix('').items()}
-
-
-def _plain(value: Any) -> Any:
-    """rclpy may hand arrays back as ``array.array``; the envs take lists."""
-    if isinstance(value, (str, bytes, bool, int, float)) or value is None:
-        return value
-    try:
-        return list(value)
-    except TypeError:
-        return value
+def simulator_interface(argv: Sequence[str] = ()) -> NodeInterface:
+    """Topics and parameters of the simulator for the ``system`` of a command line."""
+    system = system_from_argv(argv)
+    return NodeInterface(
+        node='simulator',
+        summary='One of the simulated systems (rcbf_ros.envs) on topics, lock-step or '
+                f'real-time. Defaults below: system {system}.',
+        topics=TOPICS,
+        parameters=NODE_PARAMETERS + packaged_parameter_specs(system, 'simulator',
+                                                              skip=tuple(NODE_DEFAULTS)),
+        notes=('Other systems: simulator --help --ros-args -p system:=pvtol '
+               '(or car_following).',))
 
 
 def action_from_msg(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
@@ -121,6 +168,37 @@ def action_from_msg(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
     labels = list(sections)
     answered = sections['state'] if 'state' in labels[1:] else None
     return sections[labels[0]], answered
+
+
+def message_settings(params: dict[str, Any], *, system: str, n_u: int) -> dict[str, Any]:
+    """``state_type``, ``command_type`` and ``twist_fields``, checked.
+
+    Raises:
+        ValueError: naming the key (an unknown type, odometry for a system it cannot hold,
+            twist fields that are not n_u known distinct names).
+    """
+    state_type = params.get('state_type', NODE_DEFAULTS['state_type'])
+    if state_type not in STATE_TYPES:
+        raise ValueError(f'state_type: expected one of {list(STATE_TYPES)}, got {state_type!r}')
+    if state_type == 'odometry':
+        conversions.check_odometry_support(system)
+    command_type = params.get('command_type', NODE_DEFAULTS['command_type'])
+    if command_type not in COMMAND_TYPES:
+        raise ValueError(f'command_type: expected one of {list(COMMAND_TYPES)}, '
+                         f'got {command_type!r}')
+    fields = params.get('twist_fields', NODE_DEFAULTS['twist_fields'])
+    if isinstance(fields, str) or not all(f in TWIST_FIELDS for f in fields) or (
+            len(set(fields)) != len(fields)):
+        raise ValueError(f'twist_fields: expected distinct names of {list(TWIST_FIELDS)}, '
+                         f'got {fields!r}')
+    if command_type != 'array' and len(fields) != n_u:
+        raise ValueError(f'twist_fields: expected {n_u} fields (n_u of {system}), '
+                         f'got {list(fields)}')
+    for key in ('frame_id', 'child_frame_id'):
+        if not isinstance(params.get(key, NODE_DEFAULTS[key]), str):
+            raise ValueError(f'{key}: expected a string, got {params.get(key)!r}')
+    return {'state_type': state_type, 'command_type': command_type,
+            'twist_fields': tuple(fields)}
 
 
 def episode_event(event: str, **fields: Any) -> str:
@@ -212,10 +290,22 @@ class SimulatorNode(Node):
         self.wait_for_publishers = [self.resolve_topic_name(t) for t in wait_for]
         self.env = make_env(self.system, params)
         self.n_u = self.env.nominal_system.n_u
+        messages = message_settings(params, system=self.system, n_u=self.n_u)
+        self.state_type, self.command_type = messages['state_type'], messages['command_type']
+        self.twist_fields = messages['twist_fields']
+        self.frame_id = str(params['frame_id'])
+        self.child_frame_id = str(params['child_frame_id'])
+        self.dt_ns = int(round(float(self.env.dt) * 1e9))
+        self.clock_ns = 0
+        """Simulation clock: the stamp of the latest state (``dt`` per new state)."""
+        self.earlier_stamps: deque[int] = deque(maxlen=1000)
+        """Stamps of recent states before the latest one (a TwistStamped answering one of them
+        is late)."""
 
         array = get_message('std_msgs/msg/Float64MultiArray')
         qos = QoSProfile(depth=10)
-        self.state_pub = self.create_publisher(array, 'state', qos)
+        self.state_pub = self.create_publisher(
+            get_message(conversions.STATE_MESSAGES[self.state_type]), 'state', qos)
         self.observation_pub = self.create_publisher(array, 'observation', qos)
         self.h_true_pub = self.create_publisher(array, 'h_true', qos)
         self.reward_pub = self.create_publisher(get_message('std_msgs/msg/Float64'), 'reward', qos)
@@ -223,7 +313,9 @@ class SimulatorNode(Node):
             get_message('std_msgs/msg/String'), 'episode',
             QoSProfile(depth=EPISODE_HISTORY_DEPTH, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.step_pub = self.create_publisher(array, 'sim/step', qos)
-        self.create_subscription(array, 'cmd_safe', self.on_action, qos)
+        self.create_subscription(
+            get_message(conversions.COMMAND_MESSAGES[self.command_type]), 'cmd_safe',
+            self.on_action, qos)
 
         self.done = False
         self.episode = 0
@@ -243,7 +335,8 @@ class SimulatorNode(Node):
             self.create_timer(1.0 / self.rate_hz, self.on_tick)
         self.get_logger().info(
             f'{self.system} simulator, {self.mode} mode, dt = {self.env.dt} s, '
-            f'n_x = {self.env.nominal_system.n_x}, n_u = {self.n_u}, seed = {self.seed}')
+            f'n_x = {self.env.nominal_system.n_x}, n_u = {self.n_u}, seed = {self.seed}, '
+            f'state_type {self.state_type}, command_type {self.command_type}')
 
     # -- episodes --------------------------------------------------------------------------
 
@@ -255,6 +348,7 @@ class SimulatorNode(Node):
         self.violations = int(self.info['violation'])
         self.applied = np.zeros(self.n_u)
         self.started = True
+        self._advance_clock()
         self.publish_string(episode_event(
             'start', episode=self.episode, system=self.system, seed=self.seed,
             layout_seed=self.info.get('layout_seed'), h_true_names=self.env.h_true_names,
@@ -281,6 +375,7 @@ class SimulatorNode(Node):
     def apply(self, u: np.ndarray) -> None:
         self.applied = self.env.saturate(np.asarray(u, dtype=np.float64))
         self.observation, reward, terminated, truncated, self.info = self.env.step(u)
+        self._advance_clock()
         self.episode_return += reward
         self.violations += int(self.info['violation'])
         msg = get_message('std_msgs/msg/Float64')()
@@ -290,9 +385,24 @@ class SimulatorNode(Node):
         if terminated or truncated:
             self.end_episode(terminated, truncated)
 
+    def _advance_clock(self) -> None:
+        """A new state: the next stamp of the simulation clock."""
+        if self.clock_ns:
+            self.earlier_stamps.append(self.clock_ns)
+        self.clock_ns += self.dt_ns
+
+    def state_message(self) -> Any:
+        """The ``state`` message of the current state (``state_type``)."""
+        if self.state_type == 'odometry':
+            return conversions.state_to_odometry(
+                self.info['state'], system=self.system, stamp_ns=self.clock_ns,
+                frame_id=self.frame_id, child_frame_id=self.child_frame_id,
+                command=self.applied)
+        return sections_to_msg({'state': self.info['state']})
+
     def publish_state(self, *, reward: float = 0.0, terminated: bool = False,
                       truncated: bool = False) -> None:
-        self.state_pub.publish(sections_to_msg({'state': self.info['state']}))
+        self.state_pub.publish(self.state_message())
         self.observation_pub.publish(sections_to_msg({'observation': self.observation}))
         self.h_true_pub.publish(sections_to_msg({'h_true': self.info['h_true']}))
         self.step_pub.publish(sections_to_msg({
@@ -312,19 +422,37 @@ class SimulatorNode(Node):
 
     # -- callbacks ---------------------------------------------------------------------------
 
+    def action(self, msg: Any) -> tuple[np.ndarray, bool]:
+        """(u, whether it answers an earlier state than the pending one) of a ``cmd_safe``.
+
+        Raises:
+            ValueError: naming ``cmd_safe`` (wrong length, NaN or inf, an empty array).
+        """
+        stale = False
+        if self.command_type == 'array':
+            u, answered = action_from_msg(msg)
+            stale = answered is not None and not np.array_equal(answered,
+                                                                self.info.get('state'))
+        elif self.command_type == 'twist_stamped':
+            u = conversions.twist_stamped_to_array(msg, self.twist_fields)
+            stamp = conversions.stamp_ns(msg.header)
+            stale = stamp != self.clock_ns and stamp in self.earlier_stamps
+        else:
+            u = conversions.twist_to_array(msg, self.twist_fields)
+        if u.size != self.n_u:
+            raise ValueError(f'cmd_safe: expected {self.n_u} values in the first section, '
+                             f'got {u.size}')
+        if not np.all(np.isfinite(u)):
+            raise ValueError('cmd_safe: contains NaN or inf')
+        return u, stale
+
     def on_action(self, msg: Any) -> None:
         try:
-            u, answered = action_from_msg(msg)
-            if u.size != self.n_u:
-                raise ValueError(f'cmd_safe: expected {self.n_u} values in the first section, '
-                                 f'got {u.size}')
-            if not np.all(np.isfinite(u)):
-                raise ValueError('cmd_safe: contains NaN or inf')
+            u, stale = self.action(msg)
         except ValueError as exc:
             self.get_logger().error(f'{exc}; action ignored')
             return
-        if (self.mode == 'lockstep' and answered is not None
-                and not np.array_equal(answered, self.info.get('state'))):
+        if self.mode == 'lockstep' and stale:
             self.get_logger().debug('cmd_safe answers another state than the pending one; '
                                     'dropped as stale')
             return
@@ -385,16 +513,16 @@ class SimulatorNode(Node):
 def spin_until_done(node: Any, linger_s: float = 0.5) -> None:
     """Spin until the node is done (or shutdown), then briefly more so last samples go out."""
     while rclpy.ok() and not node.done:
-        rclpy.spin_once(node, timeout_sec=0.1)
+        spin_once(node, timeout_sec=0.1)
     deadline = time.monotonic() + linger_s
     while rclpy.ok() and time.monotonic() < deadline:
-        rclpy.spin_once(node, timeout_sec=0.05)
+        spin_once(node, timeout_sec=0.05)
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    """Console script ``simulator``."""
+    """Console script ``simulator``. Returns 2 on invalid parameters."""
     return run_node('simulator', SimulatorNode, args, run=spin_until_done,
-                    setup_errors=(ValueError,))
+                    setup_errors=(ValueError,), interface=simulator_interface)
 
 
 if __name__ == '__main__':

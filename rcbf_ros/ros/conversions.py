@@ -7,7 +7,13 @@ sections of ``data`` (label, size, stride = size), e.g. a learner's proposal::
     data       = [u_RL..., mean..., std..., x...]
 
 A message without labels is one unlabelled section (``default_label``), so any controller that
-publishes a bare Float64MultiArray (or a ``geometry_msgs/Twist``) works in front of the filter.
+publishes a bare Float64MultiArray (or a ``geometry_msgs/Twist`` or ``TwistStamped``) works in
+front of the filter.
+
+States may also come as ``nav_msgs/Odometry`` where the system's state maps onto one
+(:data:`ODOMETRY_STATES`: the Unicycle's [x, y, theta] is the pose's position and yaw).
+:data:`STATE_LAYOUTS` and :data:`COMMAND_LAYOUTS` name every entry of the shipped systems'
+vectors with its unit.
 """
 from __future__ import annotations
 
@@ -18,6 +24,36 @@ import numpy as np
 
 FLOAT64_MULTIARRAY = 'std_msgs/msg/Float64MultiArray'
 TWIST = 'geometry_msgs/msg/Twist'
+TWIST_STAMPED = 'geometry_msgs/msg/TwistStamped'
+ODOMETRY = 'nav_msgs/msg/Odometry'
+
+STATE_MESSAGES = {'array': FLOAT64_MULTIARRAY, 'odometry': ODOMETRY}
+"""``state_type`` -> message type of a state topic."""
+COMMAND_MESSAGES = {'array': FLOAT64_MULTIARRAY, 'twist': TWIST, 'twist_stamped': TWIST_STAMPED}
+"""``command_type`` -> message type of a command topic."""
+
+STATE_LAYOUTS: dict[str, tuple[tuple[str, str], ...]] = {
+    'unicycle': (('x', 'm'), ('y', 'm'), ('theta', 'rad, heading from the x axis')),
+    'pvtol': (('x1', 'horizontal position'), ('x2', 'vertical position'),
+              ('v1', 'horizontal velocity'), ('v2', 'vertical velocity'),
+              ('theta', 'rad, tilt'), ('f', 'thrust, 1 = hover'),
+              ('x_h', "operator's horizontal position; only with_operator")),
+    'car_following': tuple(item for car in range(1, 6) for item in (
+        (f'p{car}', f'm, car {car} position'), (f'v{car}', f'm/s, car {car} velocity'))),
+}
+"""The state vector of each shipped system, (name, unit) per entry, in order (PVTOL's units
+are the paper's normalized ones: gravity 1)."""
+COMMAND_LAYOUTS: dict[str, tuple[tuple[str, str], ...]] = {
+    'unicycle': (('v', 'm/s, forward speed'), ('omega', 'rad/s, turn rate')),
+    'pvtol': (('omega', 'rad/s, tilt rate'), ('u_f', 'thrust rate')),
+    'car_following': (('a4', 'm/s^2, acceleration of car 4'),),
+}
+"""The command vector u of each shipped system, (name, unit) per entry, in order."""
+ODOMETRY_STATES: dict[str, str] = {
+    'unicycle': '[pose.position.x, pose.position.y, yaw of pose.orientation]',
+}
+"""The systems whose state a nav_msgs/Odometry holds, and how (others: not supported, e.g.
+PVTOL's thrust and operator, or the five cars of car following, are not in one)."""
 
 
 def _message_class(type_name: str) -> Any:
@@ -118,3 +154,103 @@ def diagnostic_status(*, name: str, level: int, message: str,
     status.hardware_id = hardware_id
     status.values = [kv_cls(key=str(k), value=text(v)) for k, v in values.items()]
     return status
+
+
+def twist_stamped_to_array(msg: Any, fields: Sequence[str]) -> np.ndarray:
+    """Pick the ``twist`` fields of a TwistStamped into a vector."""
+    return twist_to_array(msg.twist, fields)
+
+
+def array_to_twist_stamped(values: Sequence[float] | np.ndarray, fields: Sequence[str],
+                           header: Any) -> Any:
+    """Vector -> TwistStamped with ``header`` (stamp and frame_id copied) and the fields set."""
+    msg = _message_class(TWIST_STAMPED)()
+    msg.header.stamp.sec = int(header.stamp.sec)
+    msg.header.stamp.nanosec = int(header.stamp.nanosec)
+    msg.header.frame_id = str(header.frame_id)
+    msg.twist = array_to_twist(values, fields)
+    return msg
+
+
+def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
+    """The heading (rad, in [-pi, pi]) of the rotation (x, y, z, w): the angle of the rotated x
+    axis projected on the ground plane, atan2(R[1, 0], R[0, 0]).
+
+    The quaternion need not be unit length: both arguments of the atan2 scale with its squared
+    norm, so the heading is that of the normalized rotation.
+
+    Raises:
+        ValueError: naming ``pose.orientation`` when it is zero, NaN or inf, or points the
+            x axis straight up or down (no heading).
+    """
+    q = np.array([x, y, z, w], dtype=np.float64)
+    if not np.all(np.isfinite(q)):
+        raise ValueError('pose.orientation: contains NaN or inf')
+    norm2 = float(q @ q)
+    if not norm2 > 1e-12:
+        raise ValueError('pose.orientation: zero quaternion')
+    r10 = 2.0 * (x * y + w * z)
+    r00 = w * w + x * x - y * y - z * z
+    if math.hypot(r10, r00) <= 1e-9 * norm2:
+        raise ValueError('pose.orientation: the x axis points straight up or down (no heading)')
+    return math.atan2(r10, r00)
+
+
+def quaternion_from_yaw(yaw: float) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation by ``yaw`` about z."""
+    return 0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+
+
+def check_odometry_support(system: Any) -> None:
+    """Raise ``ValueError`` naming ``state_type`` unless an Odometry holds ``system``'s state."""
+    if system not in ODOMETRY_STATES:
+        raise ValueError(f'state_type: odometry holds the state of {sorted(ODOMETRY_STATES)} '
+                         f'only, not {system!r} (use state_type array)')
+
+
+def odometry_to_state(msg: Any, *, system: str, frame_id: str = '') -> np.ndarray:
+    """The state vector of ``system`` held by a nav_msgs/Odometry (:data:`ODOMETRY_STATES`).
+
+    Raises:
+        ValueError: naming the field: a frame other than ``frame_id`` (when not ''), an
+            orientation without a heading (see :func:`yaw_from_quaternion`), or a system whose
+            state an Odometry does not hold (naming ``state_type``).
+    """
+    check_odometry_support(system)
+    if frame_id and msg.header.frame_id != frame_id:
+        raise ValueError(f'header.frame_id: {msg.header.frame_id!r} is not state_frame_id '
+                         f'{frame_id!r}')
+    pose = msg.pose.pose
+    q = pose.orientation
+    yaw = yaw_from_quaternion(q.x, q.y, q.z, q.w)
+    return np.array([pose.position.x, pose.position.y, yaw], dtype=np.float64)
+
+
+def state_to_odometry(state: Sequence[float] | np.ndarray, *, system: str, stamp_ns: int,
+                      frame_id: str, child_frame_id: str,
+                      command: Sequence[float] | np.ndarray | None = None) -> Any:
+    """A nav_msgs/Odometry holding ``system``'s state (the inverse of
+    :func:`odometry_to_state`), stamped ``stamp_ns``; for the Unicycle the twist holds the
+    command [v, omega] in the body frame when given.
+
+    Raises:
+        ValueError: naming ``state_type`` when an Odometry does not hold the system's state.
+    """
+    check_odometry_support(system)
+    x, y, theta = (float(v) for v in np.asarray(state, dtype=np.float64).reshape(-1)[:3])
+    msg = _message_class(ODOMETRY)()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    msg.header.frame_id = frame_id
+    msg.child_frame_id = child_frame_id
+    msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
+    orientation = msg.pose.pose.orientation
+    orientation.x, orientation.y, orientation.z, orientation.w = quaternion_from_yaw(theta)
+    if command is not None:
+        v, omega = (float(c) for c in np.asarray(command, dtype=np.float64).reshape(-1)[:2])
+        msg.twist.twist.linear.x, msg.twist.twist.angular.z = v, omega
+    return msg
+
+
+def stamp_ns(header: Any) -> int:
+    """A header's stamp in nanoseconds."""
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)

@@ -9,7 +9,8 @@ published lives here and is unit-tested without launching anything (ros2cli's ap
 - pairing a proposal with a state (its own ``state`` section, else the latest state message if
   it is fresh enough), choosing the disturbance box, and the fail-safe on any problem
   (:func:`decide`);
-- the diagnostic level, message and key/values of one decision (:func:`diagnostic_values`);
+- the sections of ``filter_info`` (:func:`info_sections`) and the diagnostic level, message
+  and key/values (:func:`diagnostic_values`) of one decision: what the command does not carry;
 - throttling of repeated log lines (:class:`LogThrottle`).
 
 Invariant: the published command is either within the actuator limits and meets every RCBF row
@@ -21,10 +22,12 @@ unverified or infeasible solve) yields the fail-safe.
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from rcbf_ros.core import filter_info
 from rcbf_ros.core.config import FilterConfig, number
 from rcbf_ros.core.filter import (
     FilterResult,
@@ -33,6 +36,7 @@ from rcbf_ros.core.filter import (
     OSQP_MAX_ITER,
     SafetyFilter,
 )
+from rcbf_ros.ros.interface import declarations, ParameterSpec
 
 # diagnostic_msgs/DiagnosticStatus levels.
 OK = 0
@@ -40,47 +44,132 @@ WARN = 1
 ERROR = 2
 LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR'}
 
-COMMAND_TYPES = ('array', 'twist')
+STATE_TYPES = ('array', 'odometry')
+COMMAND_TYPES = ('array', 'twist', 'twist_stamped')
 TWIST_FIELDS = tuple(f'{group}.{axis}' for group in ('linear', 'angular') for axis in 'xyz')
 
-# Parameters of the node itself (not of the filter), with their defaults.
-NODE_PARAMETER_DEFAULTS: dict[str, Any] = {
-    'command_type': 'array',
-    'twist_fields': ['linear.x', 'angular.z'],
-    'max_state_age_s': 0.5,
-    'slack_tolerance': 1.0e-4,
-    'input_bounds.state': InputBounds.state,
-    'input_bounds.command': InputBounds.command,
-    'input_bounds.disturbance': InputBounds.disturbance,
-    'log_throttle_s': 1.0,
-    'qos.reliable': True,
-    'qos.depth': 10,
-    'osqp.eps_abs': OSQP_EPS,
-    'osqp.eps_rel': OSQP_EPS,
-    'osqp.max_iter': OSQP_MAX_ITER,
-    'diagnostics.min_period_s': 0.0,
-    'diagnostics.name': 'safety_filter',
-    'diagnostics.hardware_id': '',
-}
-
-# Keys of rcbf_ros.core.config.filter_config_from_params with a fixed name. ``None``: not set
-# (the config's own default applies); such values are dropped by :func:`collect_parameters`.
-FILTER_PARAMETER_KEYS: tuple[str, ...] = (
-    'system', 'input_limits.min', 'input_limits.max', 'alpha', 'k_c', 'slack_weight',
-    'input_weight',
-    'obstacles.x', 'obstacles.y', 'obstacles.radius', 'obstacles.margin', 'obstacles.lookahead',
-    'obstacles.heading_index', 'obstacles.position_indices', 'obstacles.gammas',
-    'obstacles.speed_input',
-    'gaps.a', 'gaps.b', 'gaps.delta', 'gaps.gammas',
-    'walls.nx', 'walls.ny', 'walls.offset', 'walls.gammas',
-    'disturbance.mean', 'disturbance.std', 'fail_safe_action', 'compile_assembly',
+NODE_PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec('state_type', 'array', 'string',
+                  'type of `state`: array (std_msgs/Float64MultiArray) or odometry '
+                  '(nav_msgs/Odometry; unicycle only)'),
+    ParameterSpec('state_frame_id', '', 'string',
+                  "with state_type odometry: the frame an Odometry's header.frame_id must name "
+                  "(the obstacles' frame); '' accepts any"),
+    ParameterSpec('command_type', 'array', 'string',
+                  'type of `cmd_proposed` and `cmd_safe`: array (std_msgs/Float64MultiArray), '
+                  'twist or twist_stamped (geometry_msgs)'),
+    ParameterSpec('twist_fields', ['linear.x', 'angular.z'], 'string[]',
+                  'for twist and twist_stamped: the n_u Twist fields holding u, in order '
+                  '(the others are published as 0)'),
+    ParameterSpec('max_state_age_s', 0.5, 'double',
+                  'a `state` older than this (s, since its arrival) is stale: fail-safe'),
+    ParameterSpec('slack_tolerance', 1.0e-4, 'double',
+                  'most slack the published command may need in any RCBF row; more: fail-safe'),
+    ParameterSpec('input_bounds.state', InputBounds.state, 'double',
+                  'largest |x_i| of a state; beyond: fail-safe'),
+    ParameterSpec('input_bounds.command', InputBounds.command, 'double',
+                  'largest |u_i| of a proposal (below it, a proposal outside the limits is '
+                  'clipped); beyond: fail-safe'),
+    ParameterSpec('input_bounds.disturbance', InputBounds.disturbance, 'double',
+                  'largest |mean_i| and std_i of the disturbance box; beyond: fail-safe'),
+    ParameterSpec('log_throttle_s', 1.0, 'double',
+                  'least time (s) between two log lines with the same reason'),
+    ParameterSpec('qos.reliable', True, 'bool',
+                  'reliable (true) or best-effort (false) QoS on every topic'),
+    ParameterSpec('qos.depth', 10, 'integer', 'keep-last history depth on every topic'),
+    ParameterSpec('osqp.eps_abs', OSQP_EPS, 'double', 'OSQP absolute tolerance'),
+    ParameterSpec('osqp.eps_rel', OSQP_EPS, 'double', 'OSQP relative tolerance'),
+    ParameterSpec('osqp.max_iter', OSQP_MAX_ITER, 'integer',
+                  'OSQP iteration cap (then the interior-point fallback, else fail-safe)'),
+    ParameterSpec('diagnostics.min_period_s', 0.0, 'double',
+                  'least time (s) between two OK diagnostics (0: one per proposal); WARN and '
+                  'ERROR always go out'),
+    ParameterSpec('diagnostics.name', 'safety_filter', 'string', 'DiagnosticStatus.name'),
+    ParameterSpec('diagnostics.hardware_id', '', 'string', 'DiagnosticStatus.hardware_id'),
 )
+"""Parameters of the node itself (not of the filter), in declaration order."""
+
+NODE_PARAMETER_DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in NODE_PARAMETERS}
+"""Name -> default of :data:`NODE_PARAMETERS`."""
+
+FILTER_PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec('system', None, 'string',
+                  'unicycle, car_following, pvtol or package.module.Class (required)'),
+    ParameterSpec('input_limits.min', None, 'double[]',
+                  "lower input limits, n_u values ([]: none; not set: the system's)"),
+    ParameterSpec('input_limits.max', None, 'double[]',
+                  "upper input limits, n_u values ([]: none; not set: the system's)"),
+    ParameterSpec('alpha', None, 'double', 'class-K gain of every RCBF row, > 0 (default 1.0)'),
+    ParameterSpec('k_c', None, 'double',
+                  'the disturbance box is mean +/- k_c std, >= 0 (default 2.0)'),
+    ParameterSpec('slack_weight', None, 'double',
+                  'weight l of the slack in the QP cost, > 0 (default 1e6)'),
+    ParameterSpec('input_weight', None, 'double[]',
+                  'weights of u_S in the QP cost, n_u values > 0 (default all 1)'),
+    ParameterSpec('obstacles.x', None, 'double[]', 'obstacle centres, x (m), one per obstacle'),
+    ParameterSpec('obstacles.y', None, 'double[]', 'obstacle centres, y (m), one per obstacle'),
+    ParameterSpec('obstacles.radius', None, 'double[]', 'obstacle radii (m), one per obstacle'),
+    ParameterSpec('obstacles.margin', None, 'double',
+                  'added to every radius (m, >= 0, default 0)'),
+    ParameterSpec('obstacles.lookahead', None, 'double',
+                  'distance (m) of the guarded point ahead of the position (default 0)'),
+    ParameterSpec('obstacles.heading_index', None, 'integer',
+                  'state index of the heading the look-ahead follows (-1: none, default)'),
+    ParameterSpec('obstacles.position_indices', None, 'integer[]',
+                  'state indices of the position (default [0, 1])'),
+    ParameterSpec('obstacles.gammas', None, 'double[]',
+                  'cascade gains for relative degree r > 1, r - 1 values > 0 (default [])'),
+    ParameterSpec('obstacles.speed_input', None, 'integer',
+                  'input whose negative proposals move the look-ahead point behind '
+                  '(-1: none, default)'),
+    ParameterSpec('gaps.a', None, 'integer[]', 'state index of the first position of each gap'),
+    ParameterSpec('gaps.b', None, 'integer[]', 'state index of the second position of each gap'),
+    ParameterSpec('gaps.delta', None, 'double', 'least distance |x_a - x_b| to keep (m)'),
+    ParameterSpec('gaps.gammas', None, 'double[]', 'cascade gains of the gap barriers'),
+    ParameterSpec('walls.nx', None, 'double[]', 'wall normals, x: h = nx x + ny y - offset'),
+    ParameterSpec('walls.ny', None, 'double[]', 'wall normals, y, one per wall'),
+    ParameterSpec('walls.offset', None, 'double[]', 'wall offsets (m), one per wall'),
+    ParameterSpec('walls.gammas', None, 'double[]', 'cascade gains of the wall barriers'),
+    ParameterSpec('disturbance.mean', None, 'double[]',
+                  'static disturbance box centre, n_x values in state-derivative units '
+                  "(a proposal's disturbance_mean wins)"),
+    ParameterSpec('disturbance.std', None, 'double[]',
+                  'static disturbance box std, n_x values >= 0 (box: mean +/- k_c std; a '
+                  "proposal's disturbance_std wins)"),
+    ParameterSpec('fail_safe_action', None, 'double[]',
+                  'what is published when the filter cannot filter, n_u values within the '
+                  'limits (default zeros clipped to the limits)'),
+    ParameterSpec('compile_assembly', None, 'bool',
+                  'compile the per-step constraint assembly (faster calls, slower start)'),
+    ParameterSpec('system_params.<name>', None, 'any',
+                  'constructor argument <name> of the system (e.g. with_operator)'),
+    ParameterSpec('bands.<name>.index', None, 'integer',
+                  'band barrier <name>: state index it bounds'),
+    ParameterSpec('bands.<name>.center', None, 'double', 'band <name>: constant centre'),
+    ParameterSpec('bands.<name>.center_index', None, 'integer',
+                  'band <name>: state index of a moving centre (-1: the constant centre)'),
+    ParameterSpec('bands.<name>.half_width', None, 'double', 'band <name>: half width'),
+    ParameterSpec('bands.<name>.form', None, 'string',
+                  'band <name>: quadratic (one barrier) or sides (two linear ones)'),
+    ParameterSpec('bands.<name>.gammas', None, 'double[]', 'band <name>: cascade gains'),
+    ParameterSpec('bands.<name>.layout', None, 'bool',
+                  'band <name> belongs to the layout (left out of the envelope)'),
+)
+"""Keys of :func:`rcbf_ros.core.config.filter_config_from_params` (``config/<system>.yaml``).
+Not set (``None``) by default: the config's own default applies. ``<name>`` families are
+declared when the parameter overrides (YAML, ``-p``) name them."""
+
+PARAMETERS: tuple[ParameterSpec, ...] = NODE_PARAMETERS + FILTER_PARAMETERS
+"""Every parameter the safety_filter node declares (one spec per declaration)."""
+
+FILTER_PARAMETER_KEYS: tuple[str, ...] = tuple(
+    spec.name for spec in FILTER_PARAMETERS if not spec.pattern)
 # Families of keys whose names are chosen by the user (``bands.operator.index``, ...).
 OPEN_PARAMETER_PREFIXES: tuple[str, ...] = ('system_params.', 'bands.')
 
 
 def parameter_declarations(override_names: Sequence[str] = ()) -> list[tuple[str, Any]]:
-    """Every (name, default) the node declares.
+    """Every (name, default) the node declares, from :data:`PARAMETERS`.
 
     The fixed filter keys default to ``None`` (not set); keys under the open prefixes
     (``system_params.*``, ``bands.<name>.*``) are declared when the parameter overrides (YAML,
@@ -89,8 +178,7 @@ def parameter_declarations(override_names: Sequence[str] = ()) -> list[tuple[str
     Args:
         override_names: names of the parameter overrides the node was started with.
     """
-    declared: dict[str, Any] = dict(NODE_PARAMETER_DEFAULTS)
-    declared.update({key: None for key in FILTER_PARAMETER_KEYS})
+    declared: dict[str, Any] = dict(declarations(PARAMETERS))
     for name in sorted(override_names):
         if name.startswith(OPEN_PARAMETER_PREFIXES) and name not in declared:
             declared[name] = None
@@ -117,9 +205,11 @@ class NodeSettings:
     """Settings of the safety_filter node besides the filter itself."""
 
     command_type: str
-    """'array' (Float64MultiArray with labelled sections) or 'twist' (geometry_msgs/Twist)."""
+    """'array' (Float64MultiArray with labelled sections), 'twist' (geometry_msgs/Twist) or
+    'twist_stamped' (geometry_msgs/TwistStamped; the proposal's header goes on the answer)."""
     twist_fields: tuple[str, ...]
-    """For 'twist': the Twist fields holding u in order, e.g. (linear.x, angular.z)."""
+    """For 'twist' / 'twist_stamped': the Twist fields holding u in order, e.g.
+    (linear.x, angular.z)."""
     max_state_age_s: float
     """A state message older than this (since its arrival) is stale: fail-safe."""
     slack_tolerance: float
@@ -148,6 +238,10 @@ class NodeSettings:
     """DiagnosticStatus.name."""
     diagnostics_hardware_id: str
     """DiagnosticStatus.hardware_id."""
+    state_type: str = 'array'
+    """'array' (Float64MultiArray, its ``state`` section) or 'odometry' (nav_msgs/Odometry)."""
+    state_frame_id: str = ''
+    """For 'odometry': the frame a state's header.frame_id must name ('' accepts any)."""
 
 
 def _positive(params: Mapping[str, Any], key: str, *, allow_zero: bool = False) -> float:
@@ -175,6 +269,9 @@ def node_settings_from_params(params: Mapping[str, Any]) -> NodeSettings:
     if command_type not in COMMAND_TYPES:
         raise ValueError(f'command_type: expected one of {list(COMMAND_TYPES)}, '
                          f'got {command_type!r}')
+    state_type = params.get('state_type', NODE_PARAMETER_DEFAULTS['state_type'])
+    if state_type not in STATE_TYPES:
+        raise ValueError(f'state_type: expected one of {list(STATE_TYPES)}, got {state_type!r}')
     fields = params.get('twist_fields', NODE_PARAMETER_DEFAULTS['twist_fields'])
     if isinstance(fields, str) or not all(isinstance(f, str) for f in fields):
         raise ValueError(f'twist_fields: expected a list of names like linear.x, got {fields!r}')
@@ -187,7 +284,7 @@ def node_settings_from_params(params: Mapping[str, Any]) -> NodeSettings:
     if not isinstance(reliable, bool):
         raise ValueError(f'qos.reliable: expected true or false, got {reliable!r}')
     texts = {}
-    for key in ('diagnostics.name', 'diagnostics.hardware_id'):
+    for key in ('diagnostics.name', 'diagnostics.hardware_id', 'state_frame_id'):
         texts[key] = params.get(key, NODE_PARAMETER_DEFAULTS[key])
         if not isinstance(texts[key], str):
             raise ValueError(f'{key}: expected a string, got {texts[key]!r}')
@@ -204,7 +301,8 @@ def node_settings_from_params(params: Mapping[str, Any]) -> NodeSettings:
         osqp_max_iter=_count(params, 'osqp.max_iter'),
         diagnostics_min_period_s=_positive(params, 'diagnostics.min_period_s', allow_zero=True),
         diagnostics_name=texts['diagnostics.name'],
-        diagnostics_hardware_id=texts['diagnostics.hardware_id'])
+        diagnostics_hardware_id=texts['diagnostics.hardware_id'],
+        state_type=state_type, state_frame_id=texts['state_frame_id'])
 
 
 def build_safety_filter(*, config: FilterConfig, settings: NodeSettings) -> SafetyFilter:
@@ -314,8 +412,9 @@ class Decision:
 
     u_safe: np.ndarray
     """(n_u,) the command to publish: the filtered proposal or the fail-safe action."""
-    u_rl: np.ndarray
-    """(n_u,) the proposal (NaN where it was unusable)."""
+    u_rl: np.ndarray | None
+    """(n_u,) the proposal as received, or None when it was unusable (undecodable, wrong
+    length, NaN or inf)."""
     level: int
     """OK, WARN or ERROR."""
     reason: str
@@ -326,30 +425,51 @@ class Decision:
     """The filter's result when the QP was solved (even if it failed), else None."""
     state_source: str = ''
     """'proposal', 'topic' or '' (no usable state)."""
+    state: np.ndarray | None = None
+    """(n_x,) the state the command answers (the proposal's own, or the latest ``state``
+    sample), or None when there was no usable one."""
 
     @property
     def u_s(self) -> np.ndarray:
-        """(n_u,) u_safe - u_rl (NaN where the proposal was unusable)."""
+        """(n_u,) the correction u_safe - u_rl; zeros when there was no usable proposal."""
+        if self.u_rl is None:
+            return np.zeros_like(self.u_safe)
         return self.u_safe - self.u_rl
 
-    def command_sections(self, answered_state: np.ndarray | None = None
-                         ) -> dict[str, np.ndarray]:
-        """The sections of the ``cmd_safe`` array: ``u``, ``u_rl``, ``u_s``, and the state a
-        proposal carried, echoed so that a lock-step simulator can drop a late answer to an
-        earlier state instead of applying it to the next one."""
-        sections = {'u': self.u_safe, 'u_rl': self.u_rl, 'u_s': self.u_s}
-        if answered_state is not None:
-            sections['state'] = answered_state
-        return sections
+    @property
+    def active(self) -> bool:
+        """Whether the published command differs from the proposal (the fail-safe counts)."""
+        return bool(self.fail_safe or np.any(self.u_safe != self.u_rl))
+
+
+def status_code(decision: Decision) -> int:
+    """The ``status`` number of a decision (:data:`rcbf_ros.core.filter_info.STATUS_CODES`)."""
+    return int(info_sections(decision)['status'][0])
+
+
+def status_name(decision: Decision) -> str:
+    """The solver status of a filtered command, else the key of the fail-safe's reason."""
+    if not decision.fail_safe and decision.result is not None:
+        return decision.result.status
+    return reason_key(decision.reason)
+
+
+def info_sections(decision: Decision) -> dict[str, np.ndarray]:
+    """The labelled sections of ``filter_info`` for one decision
+    (:data:`rcbf_ros.core.filter_info.INFO_SECTIONS`): never NaN, a value that was not
+    evaluated is left out with its section."""
+    return filter_info.info_sections(
+        u=decision.u_safe, u_rl=decision.u_rl, fail_safe=decision.fail_safe,
+        status=status_name(decision), result=decision.result, state=decision.state)
 
 
 def fail_safe_decision(*, safety_filter: SafetyFilter, reason: str,
-                       u_rl: np.ndarray | None = None) -> Decision:
+                       u_rl: np.ndarray | None = None, state: np.ndarray | None = None,
+                       state_source: str = '') -> Decision:
     """The fail-safe command with an ERROR and its reason."""
-    n_u = safety_filter.n_u
-    proposal = np.full(n_u, np.nan) if u_rl is None else np.asarray(u_rl, dtype=np.float64)
+    proposal = None if u_rl is None else np.asarray(u_rl, dtype=np.float64)
     return Decision(u_safe=safety_filter.fail_safe_action.copy(), u_rl=proposal, level=ERROR,
-                    reason=reason, fail_safe=True)
+                    reason=reason, fail_safe=True, state=state, state_source=state_source)
 
 
 def _disturbance(learned: np.ndarray | None, static: Sequence[float]) -> np.ndarray | None:
@@ -405,19 +525,20 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
         result = safety_filter.filter(state, proposal.u, mean, std)
     except ValueError as exc:  # validated above; kept so that no path skips the fail-safe
         return fail_safe_decision(safety_filter=safety_filter, u_rl=proposal.u,
-                                  reason=f'bad input: {exc}')
+                                  reason=f'bad input: {exc}', state=state, state_source=source)
     if result.fail_safe:
         return Decision(u_safe=result.u_safe, u_rl=proposal.u, level=ERROR,
                         reason=f'{result.status}: {result.reason}', fail_safe=True,
-                        result=result, state_source=source)
+                        result=result, state_source=source, state=state)
     if not result.needed_slack <= slack_tolerance:  # NaN too
         return Decision(u_safe=safety_filter.fail_safe_action.copy(), u_rl=proposal.u,
                         level=ERROR, fail_safe=True, result=result, state_source=source,
+                        state=state,
                         reason=f'slack_exceeded: barrier rows need slack '
                                f'{result.needed_slack:.3g} > slack_tolerance '
                                f'{slack_tolerance:.3g}')
     return Decision(u_safe=result.u_safe, u_rl=proposal.u, level=OK, reason='',
-                    fail_safe=False, result=result, state_source=source)
+                    fail_safe=False, result=result, state_source=source, state=state)
 
 
 def diagnostic_values(*, decision: Decision,
@@ -425,10 +546,11 @@ def diagnostic_values(*, decision: Decision,
     """(level, message, key/values) of the DiagnosticStatus for one decision.
 
     Keys: ``status`` (solver status or 'not solved'), ``slack``, ``h.<barrier>`` and
-    ``constraint.<barrier>`` for every barrier (NaN when not solved), ``min_h``,
-    ``solve_time_s``, ``total_time_s``, ``needed_slack`` (what the rows need at the published
-    command), ``proposal_clipped``, ``fail_safe``, ``active``, ``reason``,
-    ``state_source``, ``u_rl``, ``u_safe``.
+    ``constraint.<barrier>`` for every barrier, ``min_h``, ``solve_time_s``,
+    ``total_time_s``, ``needed_slack`` (what the rows need at the published command),
+    ``proposal_clipped``, ``fail_safe``, ``active``, ``reason``, ``state_source``, ``u_rl``,
+    ``u_safe``. A value that was not evaluated (no QP solved, a refused input, no usable
+    proposal) is ``''``, never NaN.
     """
     result = decision.result
     nan = float('nan')
@@ -449,11 +571,15 @@ def diagnostic_values(*, decision: Decision,
     values['needed_slack'] = result.needed_slack if result is not None else nan
     values['proposal_clipped'] = bool(result is not None and result.proposal_clipped)
     values['fail_safe'] = decision.fail_safe
-    values['active'] = bool(decision.fail_safe or np.any(decision.u_safe != decision.u_rl))
+    values['active'] = decision.active
     values['reason'] = decision.reason
     values['state_source'] = decision.state_source
-    values['u_rl'] = ' '.join(repr(float(v)) for v in decision.u_rl)
+    values['u_rl'] = ('' if decision.u_rl is None
+                      else ' '.join(repr(float(v)) for v in decision.u_rl))
     values['u_safe'] = ' '.join(repr(float(v)) for v in decision.u_safe)
+    for key, value in values.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            values[key] = ''
     if decision.level == OK:
         message = 'filtering' if values['active'] else 'pass-through'
     else:

@@ -7,8 +7,8 @@ trainer drives). Lock-step protocol with the simulator:
   ``terminated``, ``truncated``, ``violation``, ``goal_reached``, ``episode``, ``step``): one
   message per plant step; ``reward`` is the reward of the transition INTO this state.
 - the learner answers a non-terminal step with ``cmd_proposed`` (sections ``u``,
-  ``disturbance_mean``, ``disturbance_std``, ``state``) for the safety_filter, which sends
-  u* on ``cmd_safe`` to the plant;
+  ``disturbance_mean``, ``disturbance_std``, ``state``) for the safety_filter, whose answer
+  u* reaches the plant (the learner reads neither ``cmd_safe`` nor ``filter_info``);
 - the next ``sim/step`` carries the ``action`` the plant applied (u*), which completes the
   transition; the learner does not pair topics by arrival order (DDS does not order samples
   of different writers).
@@ -43,8 +43,9 @@ from rcbf_ros.core.config import (
 )
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA, SACConfig
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.ros.node_main import run_node
-from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
+from rcbf_ros.ros.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.ros.node_main import request_stop, run_node
+from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.agent import LearnerConfig, policy_box, SafeLearner
 from rcbf_ros.training.loop import (
     CriticCheck,
@@ -63,13 +64,65 @@ from rcbf_ros.training.run_files import (
     save_payload,
 )
 
-PARAMETERS: dict[str, Any] = {
-    'system': 'unicycle', 'mode': 'modular', 'model_based': False, 'seed': 0,
-    'episodes': 10, 'out_dir': 'bags/learner_run', 'dt': 0.02, 'start_steps': 1000,
-    'update_after': 500, 'batch_size': 256, 'gp_refit_interval': 1000,
-    'checkpoint_every': DEFAULT_CHECKPOINT_EVERY, 'resume': False, 'k_c': 2.0, 'threads': 1,
-    'initial_alpha': DEFAULT_INITIAL_ALPHA, 'modular_envelope': False,
-}
+LEARNER_PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec('system', 'unicycle', 'string', 'unicycle, car_following or pvtol'),
+    ParameterSpec('mode', 'modular', 'string',
+                  'SAC losses: modular, diff, baseline, baseline_compensator or unconstrained'),
+    ParameterSpec('model_based', False, 'bool',
+                  'add short model rollouts (MB SAC-RCBF; needs mode diff)'),
+    ParameterSpec('seed', 0, 'integer', 'seeds networks, buffers, exploration and the GP'),
+    ParameterSpec('episodes', 10, 'integer', 'episodes to train, then the node exits'),
+    ParameterSpec('out_dir', 'bags/learner_run', 'string',
+                  'where metrics, checkpoint, policy and plots go'),
+    ParameterSpec('dt', 0.02, 'double', "the simulator's step (s), for the GP's derivatives"),
+    ParameterSpec('start_steps', 1000, 'integer',
+                  'uniformly random proposals before the policy acts'),
+    ParameterSpec('update_after', 500, 'integer', 'environment steps before the first update'),
+    ParameterSpec('batch_size', 256, 'integer', 'SAC minibatch size'),
+    ParameterSpec('gp_refit_interval', 1000, 'integer', 'environment steps between GP refits'),
+    ParameterSpec('checkpoint_every', DEFAULT_CHECKPOINT_EVERY, 'integer',
+                  'episodes between checkpoints (also on exit)'),
+    ParameterSpec('resume', False, 'bool',
+                  "continue from out_dir's checkpoint (without: an out_dir holding a run is "
+                  'refused)'),
+    ParameterSpec('k_c', 2.0, 'double', 'the learned disturbance box is mean +/- k_c std'),
+    ParameterSpec('threads', 1, 'integer', 'torch threads'),
+    ParameterSpec('initial_alpha', DEFAULT_INITIAL_ALPHA, 'double',
+                  "SAC's initial entropy temperature (config/<system>.yaml's /learner sets it)"),
+    ParameterSpec('modular_envelope', False, 'bool',
+                  "modular mode: keep the system envelope's correction in the losses"),
+)
+"""The learner's own parameters, in declaration order."""
+PARAMETERS: dict[str, Any] = dict(declarations(LEARNER_PARAMETERS))
+"""Name -> default of :data:`LEARNER_PARAMETERS`."""
+
+FILE_PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec('policy_limits.min', None, 'double[]',
+                  'lower corner of the box the policy draws u_RL from (not set: the input '
+                  'limits)'),
+    ParameterSpec('policy_limits.max', None, 'double[]',
+                  'upper corner of that box (not set: the input limits)'),
+)
+"""Read from the params file when given (``/learner`` section), declared only then."""
+
+_QOS = 'reliable, keep-last 10'
+INTERFACE = NodeInterface(
+    node='learner',
+    summary='SAC-RCBF training against the simulator and safety_filter nodes, in lock-step.',
+    topics=(
+        TopicSpec('sim/step', 'sub', 'std_msgs/msg/Float64MultiArray',
+                  "the simulator's per-step sections: state, observation, reward, action, "
+                  'terminated, truncated, violation, goal_reached, episode, step', _QOS),
+        TopicSpec('cmd_proposed', 'pub', 'std_msgs/msg/Float64MultiArray',
+                  'sections u (n_u), disturbance_mean, disturbance_std, state (n_x each)', _QOS),
+        TopicSpec('learner/metrics', 'pub', 'std_msgs/msg/String',
+                  "one JSON row per episode (as metrics.jsonl's)", _QOS),
+    ),
+    parameters=LEARNER_PARAMETERS + FILE_PARAMETERS,
+    notes=("The safety problem's keys (system, obstacles.*, alpha, ...: see safety_filter "
+           '--help) come from the params file (/** section) and are declared when given.',),
+)
+"""Topics and parameters (``learner --help``, README)."""
 
 
 def learner_config_from_settings(settings: dict[str, Any],
@@ -281,7 +334,7 @@ class LearnerNode(Node):
             self.save_checkpoint()
         if self.episodes_done >= int(self.settings['episodes']):
             self.finish()
-            rclpy.shutdown()
+            request_stop()  # then destroy_node and the shutdown, after this callback
 
     def save_checkpoint(self) -> None:
         if self.learner is None:
@@ -319,7 +372,7 @@ def main(args: list[str] | None = None) -> int:
             node.finish()  # Ctrl-C / SIGTERM before the last episode
 
     return run_node('learner', LearnerNode, args, on_exit=keep_what_was_learned,
-                    setup_errors=(ValueError,))
+                    setup_errors=(ValueError,), interface=INTERFACE)
 
 
 if __name__ == '__main__':

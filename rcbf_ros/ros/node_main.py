@@ -5,6 +5,22 @@ exit work -> ``destroy_node`` -> ``rclpy.try_shutdown``, as in ros2/examples (ST
 node keeps a one-line ``main`` that says what differs: how it runs, what it does on exit and
 which construction errors are the user's (bad parameters, a missing file) rather than bugs.
 
+``-h`` / ``--help`` (outside ``--ros-args``) print the node's topics and parameters
+(:mod:`rcbf_ros.ros.interface`) and exit 0 before anything starts: no ``rclpy.init``, no DDS
+participant.
+
+Stopping. SIGINT and SIGTERM are handled here, not by the middleware: ``rclpy.init`` installs
+no signal handlers (``SignalHandlerOptions.NO``; our runtime's are replaced), because rclpy's
+own handler shuts the context down at once, in the middle of whatever callback runs, and the
+callback's next ``publish`` then raises ``RCLError: publisher's context is invalid``. Here a
+signal only asks the node to stop: a callback under way runs to its end with a valid context
+and its messages go out; no further callback runs (:func:`spin`, :func:`spin_once` raise
+``KeyboardInterrupt`` for SIGINT, ``ExternalShutdownException`` for SIGTERM, between callbacks);
+then the exit work, ``destroy_node`` and only then ``try_shutdown``. Outside a callback (while
+the node is built, or in a ``run`` of its own that publishes without callbacks) the signal
+raises at once, as Python's default handler does. A second signal while the node stops is
+ignored, so that the exit work (a bag's summary, a checkpoint) is never cut short.
+
 ``python -m rcbf_ros.ros.node_main <module> [args]`` imports a node module and calls its
 ``main()``, as its console script does (the local launcher starts every node this way). A SIGINT
 that arrives while the module imports (torch, the middleware: seconds) ends the process at once
@@ -18,45 +34,174 @@ import importlib
 import os
 import signal
 import sys
+import threading
 from typing import Any, Callable, Sequence
+
+from rcbf_ros.ros.interface import help_text, InterfaceSource, resolve, wants_help
 
 INTERRUPTED_EXIT = 130
 """Exit status of a node stopped by SIGINT before it started (128 + SIGINT, as a shell says)."""
+SPIN_SLICE_S = 0.1
+"""Longest wait of :func:`spin` for work: bounds how late a stop request is noticed."""
+_ASKED = -1
+"""The recorded "signal" of :func:`request_stop`: stop without an exception."""
+
+
+class _StopRequest:
+    """SIGINT / SIGTERM as a request to stop between callbacks (see the module docstring)."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        """The signal received (or :data:`_ASKED`), None while running."""
+        self.deferring = False
+        """Inside :func:`spin_once`: a signal is only recorded."""
+        self.ignoring = False
+        """The node is stopping: signals are ignored."""
+        self._previous: dict[int, Any] = {}
+
+    def reset(self) -> None:
+        self.signum, self.deferring, self.ignoring = None, False, False
+
+    def install(self) -> None:
+        """Take SIGINT and SIGTERM (main thread only; elsewhere signals cannot be handled)."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            previous = signal.signal(signum, self.on_signal)
+            self._previous.setdefault(signum, previous)
+
+    def restore(self) -> None:
+        """Give SIGINT and SIGTERM back to the handlers they had before :meth:`install`."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+
+    def on_signal(self, signum: int, frame: Any) -> None:
+        if self.ignoring or self.signum is not None:
+            return  # already stopping: let it finish
+        self.signum = signum
+        if not self.deferring:
+            self.raise_if_signalled()
+
+    @property
+    def requested(self) -> bool:
+        return self.signum is not None
+
+    def raise_if_signalled(self) -> None:
+        """Raise what the received signal asks for (nothing after :func:`request_stop`)."""
+        if self.signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        if self.signum is not None and self.signum != _ASKED:
+            from rcbf_ros.ros.runtime import ExternalShutdownException
+            raise ExternalShutdownException(f'received signal {signal.Signals(self.signum).name}')
+
+
+_STOP = _StopRequest()
+
+
+def request_stop() -> None:
+    """Ask the running node to stop after the current callback (e.g. its work is done): the
+    exit work, ``destroy_node`` and the shutdown follow as after Ctrl-C, with exit status 0."""
+    if _STOP.signum is None:
+        _STOP.signum = _ASKED
+
+
+def stop_requested() -> bool:
+    """Whether a signal or :func:`request_stop` asked the node to stop."""
+    return _STOP.requested
+
+
+def spin_once(node: Any, *, timeout_sec: float | None = SPIN_SLICE_S) -> None:
+    """Run at most one callback of ``node``; a signal received meanwhile lets it finish, then
+    raises (``KeyboardInterrupt`` for SIGINT, ``ExternalShutdownException`` for SIGTERM)."""
+    from rcbf_ros.ros.runtime import rclpy
+    _STOP.raise_if_signalled()
+    _STOP.deferring = True
+    try:
+        rclpy.spin_once(node, timeout_sec=timeout_sec)
+    finally:
+        _STOP.deferring = False
+    _STOP.raise_if_signalled()
+
+
+def spin(node: Any) -> None:
+    """Run ``node``'s callbacks until :func:`request_stop`, a shutdown or a signal (raises)."""
+    from rcbf_ros.ros.runtime import rclpy
+    while rclpy.ok() and not _STOP.requested:
+        spin_once(node)
+    _STOP.raise_if_signalled()
+
+
+def _init_options() -> dict[str, Any]:
+    """``rclpy.init`` keywords that keep the middleware's signal handlers out."""
+    from rcbf_ros.ros.runtime import USING_RCLPY
+    if not USING_RCLPY:
+        return {}
+    from rclpy.signals import SignalHandlerOptions
+    return {'signal_handler_options': SignalHandlerOptions.NO}
 
 
 def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None = None, *,
              run: Callable[[Any], None] | None = None,
              on_exit: Callable[[Any], None] | None = None,
              setup_errors: tuple[type[BaseException], ...] = (),
-             setup_message: str = 'invalid parameters: ') -> int:
+             setup_message: str = 'invalid parameters: ',
+             interface: InterfaceSource | None = None) -> int:
     """Run one node until it finishes or Ctrl-C / SIGTERM; the console script's exit status.
 
     Args:
         name: the node's name, for the error line (the node may not exist yet).
         make_node: builds the node (reads and checks its parameters).
         args: command line (None: ``sys.argv``, passed explicitly so every runtime reads it).
-        run: drives the node (default ``rclpy.spin``).
+        run: drives the node (default :func:`spin`; one of its own uses :func:`spin_once`).
         on_exit: the node's exit work, before ``destroy_node`` (also after Ctrl-C / SIGTERM).
         setup_errors: exceptions of ``make_node`` that are the user's: printed as
             ``<name>: <setup_message><error>`` on stderr, exit status 2.
         setup_message: the middle of that line ('' for none).
+        interface: the node's topics and parameters, printed by ``-h`` / ``--help``.
 
     Returns:
         0, or 2 on a setup error (including a bad ``--ros-args`` section or params file, which
         ``rclpy.init`` refuses). Other exceptions propagate (after the shutdown).
     """
+    argv = list(sys.argv if args is None else args)
+    if interface is not None and wants_help(argv):
+        sys.stdout.write(help_text(resolve(interface, argv)))
+        sys.stdout.flush()
+        return 0
     from rcbf_ros.ros.runtime import ExternalShutdownException, rclpy
 
+    _STOP.reset()
+    _STOP.install()
     try:
-        rclpy.init(args=list(sys.argv if args is None else args))
-    except ValueError as exc:
-        print(f'{name}: {exc}', file=sys.stderr)
-        return 2
+        try:
+            rclpy.init(args=argv, **_init_options())
+        except ValueError as exc:
+            print(f'{name}: {exc}', file=sys.stderr)
+            return 2
+        except (KeyboardInterrupt, ExternalShutdownException):
+            _STOP.ignoring = True
+            rclpy.try_shutdown()
+            return 0
+        _STOP.install()  # our runtime's init installs handlers of its own
+        return _run(name, make_node, run=run, on_exit=on_exit, setup_errors=setup_errors,
+                    setup_message=setup_message, shutdown_errors=(ExternalShutdownException,),
+                    rclpy=rclpy)
+    finally:
+        _STOP.restore()
+
+
+def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] | None,
+         on_exit: Callable[[Any], None] | None, setup_errors: tuple[type[BaseException], ...],
+         setup_message: str, shutdown_errors: tuple[type[BaseException], ...],
+         rclpy: Any) -> int:
     node = None
     try:
         node = make_node()
-        (run or rclpy.spin)(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
+        (run or spin)(node)
+    except (KeyboardInterrupt, *shutdown_errors):
         pass
     except setup_errors as exc:
         if node is not None:
@@ -64,6 +209,7 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
         print(f'{name}: {setup_message}{exc}', file=sys.stderr)
         return 2
     finally:
+        _STOP.ignoring = True  # from here on the node stops: nothing may cut that short
         if node is not None:
             if on_exit is not None:
                 on_exit(node)

@@ -18,9 +18,34 @@ import numpy as np
 import torch
 
 from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
+from rcbf_ros.ros.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.policy_io import load_policy
+
+PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec('policy_path', '', 'string',
+                  'the policy.pt to run (from the learner or rcbf_ros train; required)'),
+    ParameterSpec('input_topic', 'sim/step', 'string',
+                  'Float64MultiArray topic with an `observation` section (and `state`)'),
+)
+"""The policy node's parameters, in declaration order."""
+
+_QOS = 'reliable, keep-last 10'
+INTERFACE = NodeInterface(
+    node='policy',
+    summary='A trained policy alone, proposing actions to the safety filter (deployment).',
+    topics=(
+        TopicSpec('sim/step', 'sub', 'std_msgs/msg/Float64MultiArray',
+                  'input_topic: sections observation (the policy input) and optional state, '
+                  'episode, step, terminated, truncated', _QOS),
+        TopicSpec('cmd_proposed', 'pub', 'std_msgs/msg/Float64MultiArray',
+                  "sections u (n_u: the actor's mean action) and state (n_x, when the input "
+                  'has it)', _QOS),
+    ),
+    parameters=PARAMETERS,
+)
+"""Topics and parameters (``policy --help``, README)."""
 
 
 class PolicyNode(Node):
@@ -28,8 +53,9 @@ class PolicyNode(Node):
 
     def __init__(self) -> None:
         super().__init__('policy')
-        path = str(self.declare_parameter('policy_path', '').value)
-        topic = str(self.declare_parameter('input_topic', 'sim/step').value)
+        values = {name: self.declare_parameter(name, default).value
+                  for name, default in declarations(PARAMETERS)}
+        path, topic = str(values['policy_path']), str(values['input_topic'])
         if not path:
             raise ValueError('policy_path: required (a policy.pt from the learner)')
         self.policy = load_policy(path)
@@ -66,7 +92,7 @@ class PolicyNode(Node):
 def main(args: Sequence[str] | None = None) -> int:
     torch.set_num_threads(1)
     return run_node('policy', PolicyNode, args, setup_errors=(ValueError, FileNotFoundError),
-                    setup_message='')
+                    setup_message='', interface=INTERFACE)
 
 
 if __name__ == '__main__':

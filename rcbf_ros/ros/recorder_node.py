@@ -35,6 +35,7 @@ from typing import Any, Callable, Sequence
 
 from rcbf_ros.bag import BagWriter, BagWriterConfig, RecordedQos
 from rcbf_ros.ros import runtime
+from rcbf_ros.ros.interface import NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     DurabilityPolicy,
@@ -287,6 +288,35 @@ class RecorderNode(Node):
         return counts
 
 
+PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec('topics', [], 'string[]', 'topics to record ([]: every topic discovery finds)'),
+    ParameterSpec('best_effort_topics', [], 'string[]',
+                  'topics to subscribe best effort (sensor-data publishers)'),
+    ParameterSpec('output', RecorderConfig.output, 'string',
+                  "the bag directory ('': bags/run_<UTC time>)"),
+    ParameterSpec('flush_period_s', RecorderConfig.flush_period_s, 'double',
+                  'seconds between flushes of the open chunk (what a SIGKILL can lose)'),
+    ParameterSpec('discovery_period_s', RecorderConfig.discovery_period_s, 'double',
+                  'seconds between discovery checks for new topics'),
+    ParameterSpec('chunk_size', RecorderConfig.chunk_size, 'integer',
+                  'uncompressed MCAP chunk size (bytes)'),
+    ParameterSpec('compression', RecorderConfig.compression, 'string',
+                  'chunk compression: auto, zstd, lz4 or none'),
+)
+"""The recorder's parameters (``recorder --help``, README; a test compares them with what
+the node declares)."""
+
+INTERFACE = NodeInterface(
+    node='recorder',
+    summary="Record topics into an MCAP bag in rosbag2's layout (Ctrl-C closes it).",
+    topics=(TopicSpec('<every topic>', 'sub', 'as discovered (recorded as CDR bytes)',
+                      'all topics, or `topics`; re-checked every discovery_period_s',
+                      'keep-all; reliable unless a publisher offers best effort, or '
+                      'best_effort_topics'),),
+    parameters=PARAMETERS,
+)
+
+
 def main(args: Sequence[str] | None = None) -> int:
     """Console script ``recorder``."""
 
@@ -298,7 +328,8 @@ def main(args: Sequence[str] | None = None) -> int:
             f'bag {node.bag_directory} closed: {total} messages ({per_topic})')
 
     return run_node('recorder', RecorderNode, args, on_exit=close_bag,
-                    setup_errors=(OSError, ValueError), setup_message='cannot record: ')
+                    setup_errors=(OSError, ValueError), setup_message='cannot record: ',
+                    interface=INTERFACE)
 
 
 if __name__ == '__main__':

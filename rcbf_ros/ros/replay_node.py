@@ -29,6 +29,7 @@ from typing import Any, Sequence
 from rcbf_ros.bag import bag_info
 from rcbf_ros.bag.playback import iter_bag_messages, playback_schedule, replay_qos
 from rcbf_ros.ros import runtime
+from rcbf_ros.ros.interface import NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     DurabilityPolicy,
@@ -145,6 +146,29 @@ class ReplayNode(Node):
         self._sleep_until(time.monotonic() + self.config.linger_s)
 
 
+PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec('bag', '', 'string', 'bag directory or .mcap file (required)'),
+    ParameterSpec('rate', 1.0, 'double', 'speed factor (2.0: twice as fast)'),
+    ParameterSpec('loop', False, 'bool', 'start over after the last message, until stopped'),
+    ParameterSpec('topics', [], 'string[]', 'topics to play ([]: all)'),
+    ParameterSpec('wait_for_subscribers_s', 0.0, 'double',
+                  'longest wait (s) for a subscriber on every topic before playing'),
+    ParameterSpec('linger_s', 0.5, 'double',
+                  'seconds to stay alive after the last message (retransmissions)'),
+)
+"""The replay node's parameters (``replay --help``, README; a test compares them with what
+the node declares)."""
+
+INTERFACE = NodeInterface(
+    node='replay',
+    summary='Play a bag onto its topics (the bag is checked in full first).',
+    topics=(TopicSpec('<every recorded topic>', 'pub', 'as recorded (CDR bytes as recorded)',
+                      'all recorded topics, or `topics`, on the recorded schedule / rate',
+                      "the recorded publishers' QoS, keep-all"),),
+    parameters=PARAMETERS,
+)
+
+
 def main(args: Sequence[str] | None = None) -> int:
     """Console script ``replay``."""
 
@@ -153,7 +177,7 @@ def main(args: Sequence[str] | None = None) -> int:
 
     # A bad bag (BagError, a ValueError), a missing file or bad parameters: one line, exit 2.
     return run_node('replay', ReplayNode, args, run=ReplayNode.play, on_exit=report,
-                    setup_errors=(ValueError, OSError), setup_message='')
+                    setup_errors=(ValueError, OSError), setup_message='', interface=INTERFACE)
 
 
 if __name__ == '__main__':

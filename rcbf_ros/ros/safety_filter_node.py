@@ -1,16 +1,25 @@
 """safety_filter: the RCBF-QP in front of any controller (``ros2 run rcbf_ros safety_filter``).
 
-Topics (all relative, so remappable: ``-r cmd_proposed:=/my_controller/cmd``):
+Topics (all relative, so remappable: ``-r cmd_proposed:=/my_controller/cmd``; every one with the
+node's QoS, ``qos.reliable`` / ``qos.depth``, default reliable, volatile, keep-last 10):
 
-- ``state`` (sub, std_msgs/Float64MultiArray): the system state; its ``state`` section, else its
-  first section.
-- ``cmd_proposed`` (sub): the proposal. With ``command_type: array`` a Float64MultiArray with
+- ``state`` (sub): the system state. ``state_type: array``: std_msgs/Float64MultiArray, its
+  ``state`` section, else its first section (n_x values, README: state layout per system).
+  ``state_type: odometry``: nav_msgs/Odometry, for the Unicycle [x, y, yaw] of the pose
+  (``state_frame_id`` names the frame it must be in; '' accepts any).
+- ``cmd_proposed`` (sub): the proposal. ``command_type: array``: a Float64MultiArray with
   sections ``u`` (unlabelled data counts as ``u``) and optionally ``disturbance_mean``,
   ``disturbance_std`` (the learner's GP estimate, which wins over the static box
   ``disturbance.mean/std``) and ``state`` (the proposal is then filtered against that state).
-  With ``command_type: twist`` a geometry_msgs/Twist whose ``twist_fields`` hold u.
-- ``cmd_safe`` (pub, the proposal's type): u* = u_RL + u_S; for arrays also the sections
-  ``u_rl`` and ``u_s``.
+  ``command_type: twist`` / ``twist_stamped``: a geometry_msgs/Twist or TwistStamped whose
+  ``twist_fields`` hold u.
+- ``cmd_safe`` (pub, the proposal's type): the command u* = u_RL + u_S, nothing else: for
+  arrays exactly the n_u values (one section ``u``); for twists the ``twist_fields`` (others
+  0); a TwistStamped carries the proposal's header (stamp and frame_id) unchanged.
+- ``filter_info`` (pub, std_msgs/Float64MultiArray): one per command, right after it, with
+  labelled sections (:data:`rcbf_ros.core.filter_info.INFO_SECTIONS`): ``u``, ``u_rl``,
+  ``u_s``, ``fail_safe``, ``status`` always, then ``h``, ``constraint``, ``slack``,
+  ``needed_slack``, ``solve_time_s`` and ``state`` when known. No NaN anywhere.
 - ``diagnostics`` (pub, diagnostic_msgs/DiagnosticArray): one status per proposal (by default)
   with the level (OK, or ERROR: fail-safe), every h_i by barrier name, the constraint values,
   slack and the slack the rows need at the published command, solver status, solve and total
@@ -22,8 +31,8 @@ taken from the solver), or the fail-safe action with an ERROR saying why. A prop
 limits is clipped before the QP; a NaN, wrong-length or out-of-bound (``input_bounds.*``) state,
 proposal or disturbance box, no state yet, a state older than ``max_state_age_s`` (from its
 arrival), a failed or unverified solve, or rows infeasible within the limits all publish the
-fail-safe, with the reason in diagnostics and (throttled) in the log. The decisions live in
-:mod:`rcbf_ros.ros.filter_logic`; this module only moves messages.
+fail-safe, with the reason in ``filter_info``, in diagnostics and (throttled) in the log. The
+decisions live in :mod:`rcbf_ros.ros.filter_logic`; this module only moves messages.
 
 No message can kill the node, and none is ignored in silence. Both subscriptions take CDR bytes
 (``raw=True``) and the node decodes them itself, so it sees every sample that does not decode,
@@ -34,7 +43,9 @@ such samples with a warning, and rclpy may raise in its executor instead):
   ``undecodable proposal: ...``. Dropping it would leave the actuator holding the previous
   command while its controller believes a new one was sent: not fail-closed. Answering keeps
   one ``cmd_safe`` per proposal, so a lock-step loop does not stall either; a flood of garbage
-  can hold the robot in its fail-safe, which is the safe side of that trade;
+  can hold the robot in its fail-safe, which is the safe side of that trade. (A TwistStamped
+  answer to an undecodable one has no header to copy: it is stamped with the node's clock and
+  an empty frame_id);
 - an undecodable ``state`` sample replaces the latest state as a bad one, exactly as a NaN state
   does: until a good state arrives, proposals without their own ``state`` section get the
   fail-safe with ``bad state: undecodable sample: ...``. Keeping the older state instead would
@@ -45,13 +56,9 @@ cumulative counts ``dropped_samples`` (undecodable, on either topic), ``refused_
 and ``refused_states``. A callback never raises: should the filtering itself fail unexpectedly
 (a defect, not an input), the proposal gets the fail-safe with ``internal error: <type>: ...``.
 
-Parameters: the filter keys of :mod:`rcbf_ros.core.config` (``config/<system>.yaml``) and the
-node's own (:data:`rcbf_ros.ros.filter_logic.NODE_PARAMETER_DEFAULTS`): ``command_type``,
-``twist_fields``, ``max_state_age_s``, ``slack_tolerance``, ``input_bounds.state``,
-``input_bounds.command``, ``input_bounds.disturbance``, ``log_throttle_s``,
-``qos.reliable``, ``qos.depth``, ``osqp.eps_abs``, ``osqp.eps_rel``, ``osqp.max_iter``,
-``diagnostics.min_period_s`` (0: a DiagnosticArray per proposal; else OK ones at most that
-often, WARN / ERROR always), ``diagnostics.name``, ``diagnostics.hardware_id``.
+Parameters: :data:`rcbf_ros.ros.filter_logic.PARAMETERS` (``safety_filter --help`` lists them
+with types, defaults and one line each): the filter keys of :mod:`rcbf_ros.core.config`
+(``config/<system>.yaml``) and the node's own.
 """
 from __future__ import annotations
 
@@ -65,6 +72,7 @@ import torch
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.ros import conversions
 from rcbf_ros.ros import filter_logic as logic
+from rcbf_ros.ros.interface import NodeInterface, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     deserialize_message,
@@ -80,9 +88,43 @@ NODE_NAME = 'safety_filter'
 INPUT_COUNT_KEYS = ('dropped_samples', 'refused_proposals', 'refused_states')
 """Diagnostic keys of the node's cumulative input counts (see the module docstring)."""
 
+_QOS = 'reliable, keep-last 10 (qos.reliable, qos.depth)'
+INTERFACE = NodeInterface(
+    node=NODE_NAME,
+    summary='The RCBF safety filter in front of any controller: a proposed command in, the '
+            'safe command out (every parameter also from --params-file config/<system>.yaml).',
+    topics=(
+        TopicSpec('state', 'sub', 'std_msgs/msg/Float64MultiArray or nav_msgs/msg/Odometry',
+                  'state_type array: section `state` (else the first), n_x values in the '
+                  "system's state layout; odometry: [x, y, yaw] of the pose (unicycle)", _QOS),
+        TopicSpec('cmd_proposed', 'sub',
+                  'std_msgs/msg/Float64MultiArray, geometry_msgs/msg/Twist or '
+                  'geometry_msgs/msg/TwistStamped',
+                  'command_type array: section `u` (n_u; unlabelled data is u) and optional '
+                  '`disturbance_mean`, `disturbance_std`, `state` (n_x each); twist(_stamped): '
+                  'u in twist_fields', _QOS),
+        TopicSpec('cmd_safe', 'pub', 'the type of cmd_proposed (command_type)',
+                  'the safe command only: array: exactly u (n_u values, section `u`); '
+                  "twist(_stamped): u in twist_fields, others 0; TwistStamped: the proposal's "
+                  'header (stamp, frame_id)', _QOS),
+        TopicSpec('filter_info', 'pub', 'std_msgs/msg/Float64MultiArray',
+                  'one per command: sections u, u_rl, u_s (n_u each), fail_safe, status (1 each),'
+                  ' then when known h, constraint (K each), slack, needed_slack, solve_time_s '
+                  '(1 each), state (n_x); never NaN', _QOS),
+        TopicSpec('diagnostics', 'pub', 'diagnostic_msgs/msg/DiagnosticArray',
+                  'one status per proposal (OK ones at most every diagnostics.min_period_s): '
+                  'h.<barrier>, constraint.<barrier>, slack, status, reason, times, counts',
+                  _QOS),
+    ),
+    parameters=logic.PARAMETERS,
+    notes=('Parameters marked <name> are families whose names you choose (bands.operator.index, '
+           'system_params.with_operator): declared when given.',),
+)
+"""Topics and parameters (``safety_filter --help``, README)."""
+
 
 class SafetyFilterNode(Node):
-    """Parameters -> FilterConfig -> SafetyFilter; proposal in, safe command + diagnostics out."""
+    """Parameters -> FilterConfig -> SafetyFilter; proposal in, safe command + details out."""
 
     def __init__(self, node_name: str = NODE_NAME) -> None:
         """Declare and validate every parameter, build the filter, create the endpoints.
@@ -96,14 +138,17 @@ class SafetyFilterNode(Node):
             self.settings = logic.node_settings_from_params(params)
             self.config = filter_config_from_params(params)
             self.filter = logic.build_safety_filter(config=self.config, settings=self.settings)
-            if (self.settings.command_type == 'twist'
+            if (self.settings.command_type != 'array'
                     and len(self.settings.twist_fields) != self.filter.n_u):
                 fields = list(self.settings.twist_fields)
                 raise ValueError(f'twist_fields: expected {self.filter.n_u} fields (n_u of '
                                  f'{params.get("system")}), got {fields}')
+            if self.settings.state_type == 'odometry':
+                conversions.check_odometry_support(params.get('system'))
         except ValueError as exc:
             self.get_logger().error(f'invalid parameters: {exc}')
             raise
+        self.system = str(params.get('system'))
         self._latest_state: logic.StateSample | None = None
         self._last_ok_diagnostics_ns: int | None = None
         self._throttle = logic.LogThrottle(self.settings.log_throttle_s)
@@ -116,18 +161,19 @@ class SafetyFilterNode(Node):
             reliability=(ReliabilityPolicy.RELIABLE if self.settings.qos_reliable
                          else ReliabilityPolicy.BEST_EFFORT))
         array_type = get_message(conversions.FLOAT64_MULTIARRAY)
-        command_type = (get_message(conversions.TWIST) if self.settings.command_type == 'twist'
-                        else array_type)
+        command_type = get_message(conversions.COMMAND_MESSAGES[self.settings.command_type])
+        state_type = get_message(conversions.STATE_MESSAGES[self.settings.state_type])
         self._cmd_pub = self.create_publisher(command_type, 'cmd_safe', qos)
+        self._info_pub = self.create_publisher(array_type, 'filter_info', qos)
         self._diag_pub = self.create_publisher(
             get_message('diagnostic_msgs/msg/DiagnosticArray'), 'diagnostics', qos)
-        self._state_type, self._command_type = array_type, command_type
-        self.create_subscription(array_type, 'state', self._on_state, qos, raw=True)
+        self._state_type, self._command_type = state_type, command_type
+        self.create_subscription(state_type, 'state', self._on_state, qos, raw=True)
         self.create_subscription(command_type, 'cmd_proposed', self._on_proposal, qos, raw=True)
         problem = self.config.problem
         self.get_logger().info(
-            f'{problem.n_barriers} barriers on {params.get("system")} (n_x = '
-            f'{self.filter.n_x}, n_u = {self.filter.n_u}); command_type '
+            f'{problem.n_barriers} barriers on {self.system} (n_x = {self.filter.n_x}, '
+            f'n_u = {self.filter.n_u}); state_type {self.settings.state_type}, command_type '
             f'{self.settings.command_type}; fail-safe action {self.filter.fail_safe_action}')
 
     def _declared_parameters(self) -> dict[str, Any]:
@@ -168,7 +214,12 @@ class SafetyFilterNode(Node):
             return logic.StateSample(received_ns=now_ns, state=None,
                                      error=f'undecodable sample: {error}')
         try:
-            sections = conversions.msg_to_sections(msg, default_label='state')
+            if self.settings.state_type == 'odometry':
+                values = conversions.odometry_to_state(
+                    msg, system=self.system, frame_id=self.settings.state_frame_id)
+                sections = {'state': values}
+            else:
+                sections = conversions.msg_to_sections(msg, default_label='state')
             state = logic.state_from_sections(sections=sections, n_x=self.filter.n_x)
         except ValueError as exc:
             self.input_counts['refused_states'] += 1
@@ -179,26 +230,32 @@ class SafetyFilterNode(Node):
         """A ``cmd_proposed`` sample (CDR bytes): answered with one command, always."""
         now_ns = time.monotonic_ns()
         self.proposals_received += 1
+        header = None
         try:
-            decision, answered = self._decide(data, now_ns)
+            decision, header = self._decide(data, now_ns)
         except Exception as exc:  # a defect, not an input: see the module docstring
-            decision, answered = logic.fail_safe_decision(
-                safety_filter=self.filter, reason=f'internal error: {_one_line(exc)}'), None
-        self._publish(decision, now_ns, answered_state=answered)
+            decision = logic.fail_safe_decision(
+                safety_filter=self.filter, reason=f'internal error: {_one_line(exc)}')
+        self._publish(decision, now_ns, header=header)
         if decision.level != logic.OK:
             self._log(decision.level, decision.reason, now_ns)
 
-    def _decide(self, data: bytes, now_ns: int) -> tuple[logic.Decision, np.ndarray | None]:
-        """The decision for one proposal sample, and the state it carried (if any)."""
+    def _decide(self, data: bytes, now_ns: int) -> tuple[logic.Decision, Any]:
+        """The decision for one proposal sample, and its header (TwistStamped; else None)."""
         msg, error = _decoded(data, self._command_type)
         if msg is None:
             self.input_counts['dropped_samples'] += 1
             return logic.fail_safe_decision(safety_filter=self.filter,
                                             reason=f'undecodable proposal: {error}'), None
+        command_type = self.settings.command_type
+        header = msg.header if command_type == 'twist_stamped' else None
         proposal = None
         try:
-            if self.settings.command_type == 'twist':
+            if command_type == 'twist':
                 sections = {'u': conversions.twist_to_array(msg, self.settings.twist_fields)}
+            elif command_type == 'twist_stamped':
+                sections = {'u': conversions.twist_stamped_to_array(
+                    msg, self.settings.twist_fields)}
             else:
                 sections = conversions.msg_to_sections(msg, default_label='u')
             proposal = logic.proposal_from_sections(sections=sections, n_u=self.filter.n_u,
@@ -212,16 +269,24 @@ class SafetyFilterNode(Node):
             max_state_age_s=self.settings.max_state_age_s,
             static_mean=self.config.static_mean, static_std=self.config.static_std,
             slack_tolerance=self.settings.slack_tolerance)
-        return decision, proposal.state if proposal is not None else None
+        return decision, header
 
     # output ------------------------------------------------------------------------------------
-    def _publish(self, decision: logic.Decision, now_ns: int,
-                 answered_state: np.ndarray | None = None) -> None:
+    def command_message(self, u_safe: np.ndarray, header: Any = None) -> Any:
+        """The ``cmd_safe`` message of a command (``header``: the proposal's, TwistStamped)."""
+        fields = self.settings.twist_fields
         if self.settings.command_type == 'twist':
-            command = conversions.array_to_twist(decision.u_safe, self.settings.twist_fields)
-        else:
-            command = conversions.sections_to_msg(decision.command_sections(answered_state))
-        self._cmd_pub.publish(command)  # first: diagnostics never delay the command
+            return conversions.array_to_twist(u_safe, fields)
+        if self.settings.command_type == 'twist_stamped':
+            if header is None:  # an undecodable proposal: no header to copy
+                header = get_message('std_msgs/msg/Header')()
+                header.stamp = self.get_clock().now().to_msg()
+            return conversions.array_to_twist_stamped(u_safe, fields, header)
+        return conversions.sections_to_msg({'u': u_safe})
+
+    def _publish(self, decision: logic.Decision, now_ns: int, header: Any = None) -> None:
+        self._cmd_pub.publish(self.command_message(decision.u_safe, header))  # first
+        self._info_pub.publish(conversions.sections_to_msg(logic.info_sections(decision)))
         if not logic.diagnostics_due(level=decision.level, now_ns=now_ns,
                                      last_ok_ns=self._last_ok_diagnostics_ns,
                                      min_period_s=self.settings.diagnostics_min_period_s):
@@ -277,7 +342,8 @@ def main(args: Sequence[str] | None = None) -> int:
     """Run the node until Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
     torch.set_num_threads(1)  # B = 1 constraint assembly: threads only add contention
     # Parameter errors are already logged with the node's name by the constructor.
-    return run_node(NODE_NAME, SafetyFilterNode, args, setup_errors=(ValueError,))
+    return run_node(NODE_NAME, SafetyFilterNode, args, setup_errors=(ValueError,),
+                    interface=INTERFACE)
 
 
 if __name__ == '__main__':

@@ -4,8 +4,8 @@
 
 Topics (relative, so remappable):
 
-- ``state`` (sub, std_msgs/Float64MultiArray): its ``state`` section, else its first section,
-  as the safety_filter reads it;
+- ``state`` (sub): as the safety_filter reads it: std_msgs/Float64MultiArray, its ``state``
+  section, else its first section; or nav_msgs/Odometry with ``state_type: odometry``;
 - ``diagnostics`` (sub, diagnostic_msgs/DiagnosticArray): the filter's; the ``h.<barrier>``
   values and the message of the status that carries them;
 - ``scene_markers`` (pub, visualization_msgs/MarkerArray): obstacles, margins, the robot, the
@@ -15,8 +15,8 @@ Topics (relative, so remappable):
 Parameters: the filter keys of the params file (``system``, ``obstacles.*``, ``bands.*``,
 ``gaps.*``, ...), read and checked as the filter reads them
 (:func:`rcbf_ros.core.scene.scene_geometry`; the shipped configs keep them under ``/**``), and
-the node's own :data:`rcbf_ros.ros.scene_logic.SCENE_PARAMETER_DEFAULTS`: ``frame_id``
-(``map``), ``rate_hz`` (10.0), ``caution_h`` (0.1: barrier values in [0, caution_h) are amber).
+the node's own (:data:`PARAMETERS`): ``frame_id`` (``map``), ``rate_hz`` (10.0), ``caution_h``
+(0.1: barrier values in [0, caution_h) are amber), ``state_type`` (``array``).
 
 A state sample that does not decode, or has the wrong length or a NaN, is skipped with a
 warning (at most one a second per kind); the scene keeps the last good state. So is a
@@ -33,13 +33,53 @@ import numpy as np
 from rcbf_ros.core.scene import scene_geometry
 from rcbf_ros.ros import conversions
 from rcbf_ros.ros import scene_logic as logic
-from rcbf_ros.ros.filter_logic import collect_parameters, LogThrottle, state_from_sections
+from rcbf_ros.ros.filter_logic import (
+    collect_parameters,
+    FILTER_PARAMETERS,
+    LogThrottle,
+    state_from_sections,
+    STATE_TYPES,
+)
+from rcbf_ros.ros.interface import NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import deserialize_message, get_message, Node, QoSProfile, USING_RCLPY
 
 NODE_NAME = 'scene_markers'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+
+_DEFAULTS = logic.SCENE_PARAMETER_DEFAULTS
+STATE_TYPE_DEFAULT = 'array'
+PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec('frame_id', _DEFAULTS['frame_id'], 'string',
+                  "frame of every marker (the obstacles' frame)"),
+    ParameterSpec('rate_hz', _DEFAULTS['rate_hz'], 'double',
+                  'most MarkerArrays a second (one after each new state or diagnostics)'),
+    ParameterSpec('caution_h', _DEFAULTS['caution_h'], 'double',
+                  'barrier values in [0, caution_h) are drawn amber, below 0 red'),
+    ParameterSpec('state_type', STATE_TYPE_DEFAULT, 'string',
+                  "type of `state`, as the safety filter's: array or odometry (unicycle)"),
+) + FILTER_PARAMETERS
+"""Every parameter the node declares: its own, then the filter keys of the params file
+(declared when given, as the filter reads them)."""
+
+_QOS = 'reliable, keep-last 10'
+INTERFACE = NodeInterface(
+    node=NODE_NAME,
+    summary='The safety problem as a MarkerArray for RViz and Foxglove: obstacles, margins, the '
+            'robot and every barrier value.',
+    topics=(
+        TopicSpec('state', 'sub', 'std_msgs/msg/Float64MultiArray or nav_msgs/msg/Odometry',
+                  'as the safety filter reads it (state_type)', _QOS),
+        TopicSpec('diagnostics', 'sub', 'diagnostic_msgs/msg/DiagnosticArray',
+                  "the filter's: h.<barrier> values and the status message", _QOS),
+        TopicSpec('scene_markers', 'pub', 'visualization_msgs/msg/MarkerArray',
+                  'obstacles, margins, robot, guarded point, barrier values, in frame_id',
+                  _QOS),
+    ),
+    parameters=PARAMETERS,
+)
+"""Topics and parameters (``scene_markers --help``, README)."""
 
 
 def marker_array(markers: Sequence[Mapping[str, Any]], *, stamp: Any = None) -> Any:
@@ -100,6 +140,7 @@ class SceneNode(Node):
         except ValueError as exc:
             self.get_logger().error(f'invalid parameters: {exc}')
             raise
+        self.state_type = self._state_type_parameter()
         self.state: np.ndarray | None = None
         self.h: dict[str, float] = {}
         self.status: tuple[int, str] | None = None
@@ -107,7 +148,7 @@ class SceneNode(Node):
         self._changed = False
         self._throttle = LogThrottle(1.0)
         qos = QoSProfile(depth=10)
-        self._state_type = get_message(conversions.FLOAT64_MULTIARRAY)
+        self._state_type = get_message(conversions.STATE_MESSAGES[self.state_type])
         self._publisher = self.create_publisher(get_message(MARKER_ARRAY), 'scene_markers', qos)
         self.create_subscription(self._state_type, 'state', self._on_state, qos, raw=True)
         self._diagnostics_type = get_message(DIAGNOSTIC_ARRAY)
@@ -118,6 +159,22 @@ class SceneNode(Node):
             f'{self.geometry.system}: {len(self.geometry.obstacles)} obstacles, '
             f'{len(self.geometry.barrier_names)} barriers, frame {self.settings.frame_id!r}')
 
+    def _state_type_parameter(self) -> str:
+        """The declared ``state_type``, checked against the system (ValueError naming it)."""
+        if not self.has_parameter('state_type'):
+            self.declare_parameter('state_type', STATE_TYPE_DEFAULT)
+        state_type = self.get_parameter('state_type').value
+        try:
+            if state_type not in STATE_TYPES:
+                raise ValueError(f'state_type: expected one of {list(STATE_TYPES)}, got '
+                                 f'{state_type!r}')
+            if state_type == 'odometry':
+                conversions.check_odometry_support(self.geometry.system)
+        except ValueError as exc:
+            self.get_logger().error(f'invalid parameters: {exc}')
+            raise
+        return str(state_type)
+
     def _on_state(self, data: bytes) -> None:
         try:
             msg = deserialize_message(data, self._state_type)
@@ -125,7 +182,11 @@ class SceneNode(Node):
             self._warn('state', f'undecodable state sample skipped: {type(exc).__name__}')
             return
         try:
-            sections = conversions.msg_to_sections(msg, default_label='state')
+            if self.state_type == 'odometry':
+                sections = {'state': conversions.odometry_to_state(msg,
+                                                                   system=self.geometry.system)}
+            else:
+                sections = conversions.msg_to_sections(msg, default_label='state')
             self.state = state_from_sections(sections=sections, n_x=self.geometry.n_x)
         except ValueError as exc:
             self._warn('state', f'state skipped: {exc}')
@@ -164,7 +225,8 @@ class SceneNode(Node):
 
 def main(args: Sequence[str] | None = None) -> int:
     """Run the node until Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
-    return run_node(NODE_NAME, SceneNode, args, setup_errors=(ValueError,))
+    return run_node(NODE_NAME, SceneNode, args, setup_errors=(ValueError,),
+                    interface=INTERFACE)
 
 
 if __name__ == '__main__':

@@ -43,6 +43,7 @@ from rcbf_ros.core.config import (
     number,
 )
 from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.core.filter_info import info_sections
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
@@ -208,6 +209,7 @@ class RunRecorder:
         '/state': 'std_msgs/msg/Float64MultiArray',
         '/cmd_proposed': 'std_msgs/msg/Float64MultiArray',
         '/cmd_safe': 'std_msgs/msg/Float64MultiArray',
+        '/filter_info': 'std_msgs/msg/Float64MultiArray',
         '/reward': 'std_msgs/msg/Float64',
         '/episode': 'std_msgs/msg/String',
         '/learner/metrics': 'std_msgs/msg/String',
@@ -229,15 +231,19 @@ class RunRecorder:
         return {'layout': {'dim': dims, 'data_offset': 0}, 'data': data}
 
     def step(self, t_ns: int, *, state: np.ndarray, proposal: Any, u_safe: np.ndarray,
-             reward: float) -> None:
+             reward: float, result: Any = None) -> None:
+        """One step as the nodes publish it: the command alone on /cmd_safe, the details on
+        /filter_info (``result``: the filter's, None when the run is not filtered)."""
         self.t_ns = t_ns
         self.writer.write_message('/state', self._array({'state': state}), t_ns)
         self.writer.write_message('/cmd_proposed', self._array({
             'u': proposal.u_proposed, 'disturbance_mean': proposal.disturbance_mean,
             'disturbance_std': proposal.disturbance_std, 'state': state}), t_ns)
-        self.writer.write_message('/cmd_safe', self._array({
-            'u': u_safe, 'u_rl': proposal.u_proposed, 'u_s': u_safe - proposal.u_proposed}),
-            t_ns)
+        self.writer.write_message('/cmd_safe', self._array({'u': u_safe}), t_ns)
+        fail_safe = bool(result is not None and result.fail_safe)
+        self.writer.write_message('/filter_info', self._array(info_sections(
+            u=u_safe, u_rl=proposal.u_proposed, fail_safe=fail_safe, result=result,
+            status=result.status if result is not None else 'solved', state=state)), t_ns)
         self.writer.write_message('/reward', {'data': float(reward)}, t_ns)
 
     def event(self, topic: str, payload: dict[str, Any]) -> None:
@@ -340,7 +346,7 @@ def run_episode(env: Any, filt: SafetyFilter | None, learner: SafeLearner, *, ep
             learner.after_step()
         if recorder is not None:
             recorder.step(t0_ns + int(1e9 * env.t), state=state, proposal=proposal,
-                          u_safe=u_safe, reward=reward)
+                          u_safe=u_safe, reward=reward, result=result)
         stats.ret += reward
         stats.steps += 1
         stats.violations += int(info['violation'])

@@ -201,6 +201,7 @@ def test_bad_input_yields_fail_safe_and_error_diagnostics(ros_domain_id, probe):
                             '-p', 'max_state_age_s:=0.3', '-p', 'fail_safe_action:=[0.0, 0.5]')
     try:
         probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
+        probe.subscribe('std_msgs/msg/Float64MultiArray', '/filter_info', _sections)
         probe.subscribe('diagnostic_msgs/msg/DiagnosticArray', '/diagnostics', _diagnostic)
         state_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/state')
         proposal_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/my_controller/cmd')
@@ -244,12 +245,18 @@ def test_bad_input_yields_fail_safe_and_error_diagnostics(ros_domain_id, probe):
         assert values['fail_safe'] == 'True' and values['reason'].startswith(reason)
         assert values['status'] == 'not solved'
         np.testing.assert_array_equal(commands[index]['u'], fail_safe)
+    # cmd_safe is the command alone; the rest, NaN-free even for the fail-safe, on filter_info.
+    assert all(list(command) == ['u'] for command in commands)
+    infos = probe.wait_for('/filter_info', probe.count('/cmd_safe'))
+    assert all(np.all(np.isfinite(np.concatenate(list(info.values())))) for info in infos)
+    info = next(info for info in infos if info['status'][0] == 0)  # the filtered one
     # The good proposal went through the QP: slowed down, and diagnosed by barrier name.
     level, message, values = diagnostics[1]
     assert level == 0 and message == 'filtering' and values['fail_safe'] == 'False'
     assert 0.0 < commands[1]['u'][0] < 2.5
-    np.testing.assert_array_equal(commands[1]['u_rl'], [2.5, 0.0])
-    np.testing.assert_allclose(commands[1]['u_s'], commands[1]['u'] - [2.5, 0.0])
+    np.testing.assert_array_equal(info['u'], commands[1]['u'])
+    np.testing.assert_array_equal(info['u_rl'], [2.5, 0.0])
+    np.testing.assert_allclose(info['u_s'], commands[1]['u'] - [2.5, 0.0])
     names = load_params(find_config('unicycle'), 'safety_filter')
     config = filter_config_from_params(names)
     for name in config.problem.barrier_names:
@@ -342,6 +349,84 @@ def test_invalid_parameters_exit_2_naming_the_key(ros_domain_id, args, key):
     assert f'invalid parameters: {key}' in output
 
 
+def test_sigint_while_proposals_stream_exits_0_without_traceback(ros_domain_id, probe):
+    """Ctrl-C lands while callbacks run and publish: the one under way finishes, none follows,
+    and the node stops cleanly (under rclpy its publish used to find the context invalid)."""
+    from rcbf_ros.ros.conversions import sections_to_msg
+    process = _start_filter(ros_domain_id)
+    try:
+        probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
+        probe.subscribe('diagnostic_msgs/msg/DiagnosticArray', '/diagnostics', _diagnostic)
+        proposal_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/cmd_proposed')
+        probe.start()
+        _wait_matched(proposal_pub, process)
+        proposal = sections_to_msg({'u': [2.5, 0.0], 'state': [-0.85, 0.0, 0.0]})
+        _handshake(probe, proposal_pub, proposal)
+        answered = probe.count('/cmd_safe')
+        deadline = time.monotonic() + WAIT_S
+        while probe.count('/cmd_safe') < answered + 50 and time.monotonic() < deadline:
+            proposal_pub.publish(proposal)
+            time.sleep(0.002)
+        assert probe.count('/cmd_safe') >= answered + 50, 'the filter stopped answering'
+        for _ in range(200):  # proposals keep coming while the signal lands
+            proposal_pub.publish(proposal)
+        process.send_signal(2)
+        for _ in range(200):
+            proposal_pub.publish(proposal)
+            time.sleep(0.001)
+        code = process.wait(timeout=30)
+    finally:
+        output = stop(process, timeout=10)
+    assert code == 0, output
+    assert 'Traceback' not in output and 'Error' not in output, output
+
+
+def test_odometry_and_twist_stamped_from_end_to_end(ros_domain_id, probe, tmp_path):
+    """A robot's standard messages in lock-step: the simulator publishes nav_msgs/Odometry,
+    the nominal controller answers each with a TwistStamped carrying the Odometry's header,
+    the filter passes that header through, and the simulator takes each answer for the state
+    whose stamp it carries. Into the obstacles at full speed, no true clearance goes negative."""
+    from rcbf_ros.ros.conversions import stamp_ns
+    steps = 120
+    common = ['-p', 'system:=unicycle', '-p', 'state_type:=odometry', '-p',
+              'command_type:=twist_stamped']
+    processes = [
+        subprocess.Popen([sys.executable, '-m', 'sim_nodes.simulator_node', '--ros-args',
+                          *common, '-p', f'max_steps:={steps}', '-p', 'max_episodes:=1',
+                          '-p', 'start:=[-2.5, 0.0, 0.0]', '-p', 'goal:=[2.5, 0.0]'],
+                         env=_env(ros_domain_id), cwd=REPO, stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT),
+        _start_filter(ros_domain_id, '-r', '__node:=safety_filter', *common,
+                      '-p', 'state_frame_id:=map'),
+        subprocess.Popen([sys.executable, '-m', 'sim_nodes.nominal_controller_node',
+                          '--ros-args', *common, '-p', 'goal:=[2.5, 0.0]'],
+                         env=_env(ros_domain_id), cwd=REPO, stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT)]
+    header = lambda m: (stamp_ns(m.header), m.header.frame_id)  # noqa: E731
+    probe.subscribe('nav_msgs/msg/Odometry', '/state', header)
+    probe.subscribe('geometry_msgs/msg/TwistStamped', '/cmd_proposed', header)
+    probe.subscribe('geometry_msgs/msg/TwistStamped', '/cmd_safe', header)
+    probe.subscribe('std_msgs/msg/Float64MultiArray', '/h_true', _sections)
+    probe.subscribe('std_msgs/msg/String', '/episode', lambda m: json.loads(m.data))
+    probe.start()
+    try:
+        code = processes[0].wait(timeout=240)
+    finally:
+        outputs = [stop(process, timeout=10) for process in processes]
+    assert code == 0, outputs[0]
+    ends = [e for _, e in probe.received['/episode'] if e['event'] == 'end']
+    assert len(ends) == 1 and ends[0]['violations'] == 0, ends
+    assert ends[0]['steps'] == steps or ends[0]['goal_reached'], ends
+    assert min(float(np.min(h['h_true'])) for _, h in probe.received['/h_true']) >= 0.0
+    states = {stamp for _, (stamp, _) in probe.received['/state']}
+    commands = [item for _, item in probe.received['/cmd_safe']]
+    assert len(commands) >= ends[0]['steps']
+    # Every safe command carries the stamp of a state and the Odometry's frame, as proposed.
+    assert all(stamp in states and frame == 'map' for stamp, frame in commands)
+    assert [item for _, item in probe.received['/cmd_proposed']][:len(commands)] == commands
+    assert 'Traceback' not in ''.join(outputs)
+
+
 # --- closed loop --------------------------------------------------------------------------------
 
 @pytest.mark.slow
@@ -362,7 +447,7 @@ def test_unsafe_controller_behind_the_filter_never_violates(ros_domain_id, probe
         command += ['--without', 'recorder']
     probe.subscribe('std_msgs/msg/Float64MultiArray', '/h_true',
                     lambda m: msg_to_sections(m)['h_true'].copy())
-    probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
+    probe.subscribe('std_msgs/msg/Float64MultiArray', '/filter_info', _sections)
     probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_proposed', _sections)
     probe.subscribe('std_msgs/msg/String', '/episode', lambda m: json.loads(m.data))
     probe.start()
@@ -390,7 +475,7 @@ def test_unsafe_controller_behind_the_filter_never_violates(ros_domain_id, probe
     problem = filter_config_from_params(params).problem
     import torch
     proposals = [p for _, p in probe.received['/cmd_proposed']]
-    commands = [c for _, c in probe.received['/cmd_safe']]
+    commands = [c for _, c in probe.received['/filter_info']]
     pairs, index = [], 0
     for command in commands:
         while index < len(proposals) and not np.array_equal(proposals[index]['u'],
@@ -402,11 +487,15 @@ def test_unsafe_controller_behind_the_filter_never_violates(ros_domain_id, probe
     assert len(pairs) >= steps, (len(pairs), len(commands), len(proposals))
     passive = active = 0
     lo, hi = np.array(problem.system.u_min), np.array(problem.system.u_max)
+    config = filter_config_from_params(params)
+    box = [torch.tensor([values], dtype=torch.float64)
+           for values in (config.static_mean, config.static_std)]
     for proposal, command in pairs:
         x, u_rl, u_safe = proposal['state'], proposal['u'], command['u']
-        terms = problem.terms(torch.from_numpy(x).unsqueeze(0))
-        rows = (terms.lf_h[0].numpy() + terms.lg_h[0].numpy() @ u_rl
-                + problem.alpha * terms.h[0].numpy())
+        # The rows at u_RL under the config's disturbance box (the robust margin included).
+        qp = problem.qp(torch.from_numpy(x).unsqueeze(0), torch.from_numpy(u_rl).unsqueeze(0),
+                        *box)
+        rows = qp.h[0, :problem.n_barriers].numpy()
         if np.all(rows > 1e-6) and np.all(u_rl < hi) and np.all(u_rl > lo):
             np.testing.assert_array_equal(u_safe, u_rl)  # exactly, through DDS and back
             passive += 1

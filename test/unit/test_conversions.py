@@ -45,3 +45,85 @@ def test_bad_labels_are_refused_naming_the_dimension(labels, words):
 
 def test_replacement_characters_are_printable_labels():
     assert list(msg_to_sections(_array([('u\ufffd', 2)]))) == ['u\ufffd']
+
+
+# --- nav_msgs/Odometry and TwistStamped ----------------------------------------------------------
+
+def _quaternion_zyx(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """(x, y, z, w) of R = Rz(yaw) Ry(pitch) Rx(roll), by the product of the three rotations."""
+    def mul(a, b):
+        ax, ay, az, aw = a
+        bx, by, bz, bw = b
+        return np.array([aw * bx + ax * bw + ay * bz - az * by,
+                         aw * by - ax * bz + ay * bw + az * bx,
+                         aw * bz + ax * by - ay * bx + az * bw,
+                         aw * bw - ax * bx - ay * by - az * bz])
+    qz = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+    qy = np.array([0.0, np.sin(pitch / 2), 0.0, np.cos(pitch / 2)])
+    qx = np.array([np.sin(roll / 2), 0.0, 0.0, np.cos(roll / 2)])
+    return mul(mul(qz, qy), qx)
+
+
+def _rotation_matrix(q: np.ndarray) -> np.ndarray:
+    """The rotation matrix of a unit quaternion (x, y, z, w), the textbook closed form."""
+    x, y, z, w = q / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def test_yaw_of_a_quaternion_matches_the_closed_form():
+    from rcbf_ros.ros.conversions import yaw_from_quaternion
+    rng = np.random.default_rng(11)
+    for _ in range(500):
+        yaw = rng.uniform(-np.pi, np.pi)
+        pitch, roll = rng.uniform(-1.4, 1.4), rng.uniform(-np.pi, np.pi)
+        q = _quaternion_zyx(yaw, pitch, roll) * rng.uniform(0.2, 5.0)  # not unit length
+        got = yaw_from_quaternion(*q)
+        # ZYX Euler angles: the yaw is the heading for |pitch| < pi/2 ...
+        assert abs(np.angle(np.exp(1j * (got - yaw)))) < 1e-9
+        # ... and the heading of the rotated x axis, atan2(R10, R00), for any rotation.
+        rotation = _rotation_matrix(q)
+        assert abs(got - np.arctan2(rotation[1, 0], rotation[0, 0])) < 1e-9
+        assert abs(yaw_from_quaternion(*-q) - got) < 1e-12  # q and -q: the same rotation
+    for yaw in (0.0, 0.5, np.pi / 2, -2.0, 3.0):
+        assert yaw_from_quaternion(0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)) == pytest.approx(
+            yaw, abs=1e-15)
+
+
+@pytest.mark.parametrize('quaternion, words', [
+    ((0.0, 0.0, 0.0, 0.0), 'zero quaternion'),
+    ((0.0, 0.0, float('nan'), 1.0), 'NaN or inf'),
+    ((0.0, float('inf'), 0.0, 1.0), 'NaN or inf'),
+    ((0.0, np.sin(-np.pi / 4), 0.0, np.cos(-np.pi / 4)), 'straight up or down'),  # pitch 90 deg
+])
+def test_an_orientation_without_heading_is_refused_naming_the_field(quaternion, words):
+    from rcbf_ros.ros.conversions import yaw_from_quaternion
+    with pytest.raises(ValueError, match=f'^pose.orientation: .*{words}'):
+        yaw_from_quaternion(*quaternion)
+
+
+def test_odometry_holds_the_unicycle_state_and_nothing_else():
+    from rcbf_ros.ros.conversions import odometry_to_state, state_to_odometry
+    msg = state_to_odometry([1.5, -2.0, 2.5], system='unicycle', stamp_ns=3_250_000_000,
+                            frame_id='map', child_frame_id='base_link', command=[1.0, -0.5])
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (3, 250_000_000)
+    assert (msg.twist.twist.linear.x, msg.twist.twist.angular.z) == (1.0, -0.5)
+    np.testing.assert_allclose(odometry_to_state(msg, system='unicycle', frame_id='map'),
+                               [1.5, -2.0, 2.5], rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match="^header.frame_id: 'map' is not state_frame_id 'odom'"):
+        odometry_to_state(msg, system='unicycle', frame_id='odom')
+    for system in ('pvtol', 'car_following', 'my_pkg.Robot'):
+        with pytest.raises(ValueError, match='^state_type: odometry holds the state of'):
+            odometry_to_state(msg, system=system)
+
+
+def test_twist_stamped_keeps_the_header():
+    from rcbf_ros.ros.conversions import array_to_twist_stamped, twist_stamped_to_array
+    header = get_message('std_msgs/msg/Header')()
+    header.stamp.sec, header.stamp.nanosec, header.frame_id = 7, 8, 'base_link'
+    msg = array_to_twist_stamped([0.5, -1.0], ['linear.x', 'angular.z'], header)
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (
+        7, 8, 'base_link')
+    np.testing.assert_array_equal(twist_stamped_to_array(msg, ['linear.x', 'angular.z']),
+                                  [0.5, -1.0])

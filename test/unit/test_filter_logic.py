@@ -11,6 +11,7 @@ import pytest
 
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.core.filter_info import STATUS_CODES
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.ros import filter_logic as fl
 
@@ -234,7 +235,7 @@ def test_missing_bad_or_stale_state_gives_fail_safe(safety_filter, latest, now_n
                                                   barrier_names=safety_filter.barrier_names)
     assert level == fl.ERROR and message == decision.reason
     assert values['status'] == 'not solved' and values['fail_safe'] is True
-    assert all(math.isnan(values[f'h.{n}']) for n in safety_filter.barrier_names)
+    assert all(values[f'h.{n}'] == '' for n in safety_filter.barrier_names)  # not evaluated
 
 
 def test_state_exactly_at_max_age_is_still_used(safety_filter):
@@ -244,14 +245,14 @@ def test_state_exactly_at_max_age_is_still_used(safety_filter):
     assert decision.level == fl.OK
 
 
-def test_rejected_proposal_gives_fail_safe_with_nan_proposal(safety_filter):
+def test_rejected_proposal_gives_fail_safe_without_a_proposal(safety_filter):
     decision = fl.decide(safety_filter=safety_filter, proposal=None,
                          proposal_error='u: contains NaN or inf',
                          latest_state=fresh(FREE_STATE), now_ns=10 * SECOND,
                          max_state_age_s=0.5)
     assert decision.fail_safe and decision.level == fl.ERROR
     assert decision.reason == 'bad proposal: u: contains NaN or inf'
-    assert np.all(np.isnan(decision.u_rl)) and np.all(np.isnan(decision.u_s))
+    assert decision.u_rl is None and np.array_equal(decision.u_s, [0.0, 0.0])
     assert np.array_equal(decision.u_safe, safety_filter.fail_safe_action)
 
 
@@ -303,3 +304,88 @@ def test_log_throttle():
     assert throttle.should_log(key='stale state', now_ns=SECOND)
     assert throttle.pop_suppressed('stale state') == 1
     assert fl.reason_key('bad proposal: u: contains NaN') == 'bad proposal'
+
+
+# --- filter_info and the fail-safe without NaN ----------------------------------------------
+
+def _failure_decisions(config) -> dict[str, fl.Decision]:
+    """One decision per way the node can end up publishing the fail-safe."""
+    fail_safe = [0.1, -0.2]
+    filt = SafetyFilter(config.problem, fail_safe_action=fail_safe)
+    starved = SafetyFilter(config.problem, fail_safe_action=fail_safe, max_iter=1,
+                           fallback=False)
+    u = np.array([2.5, 0.0])
+
+    def decide(proposal, latest, *, safety_filter=filt, now_ns=10 * SECOND, error=''):
+        return fl.decide(safety_filter=safety_filter, proposal=proposal, proposal_error=error,
+                         latest_state=latest, now_ns=now_ns, max_state_age_s=0.5)
+    return {
+        'bad proposal': decide(None, fresh(FACING_OBSTACLE), error='u: expected 2 values, got 3'),
+        'undecodable proposal': fl.fail_safe_decision(safety_filter=filt,
+                                                      reason='undecodable proposal: x'),
+        'internal error': fl.fail_safe_decision(safety_filter=filt,
+                                                reason='internal error: RuntimeError: x'),
+        'no state received yet': decide(fl.Proposal(u=u), None),
+        'bad state': decide(fl.Proposal(u=u), fl.StateSample(10 * SECOND, None, 'state: NaN')),
+        'stale state': decide(fl.Proposal(u=u), fresh(FREE_STATE, now_ns=0)),
+        'input_refused': decide(fl.Proposal(u=np.array([1e7, 0.0])), fresh(FREE_STATE)),
+        'unverified': decide(fl.Proposal(u=u), fresh(FACING_OBSTACLE), safety_filter=starved),
+        'slack_exceeded': decide(fl.Proposal(u=u), fresh(np.array([-0.2, 0.0, 0.0]))),
+    }
+
+
+def test_the_fail_safe_carries_no_nan_for_any_failure_class(config):
+    decisions = _failure_decisions(config)
+    barrier_names = config.problem.barrier_names
+    for reason, decision in decisions.items():
+        assert decision.fail_safe and decision.reason.startswith(reason), (reason, decision)
+        info = fl.info_sections(decision)
+        assert list(info)[:5] == ['u', 'u_rl', 'u_s', 'fail_safe', 'status'], reason
+        for label, values in info.items():
+            assert np.all(np.isfinite(values)), (reason, label, values)
+        np.testing.assert_array_equal(info['u'], [0.1, -0.2])
+        np.testing.assert_array_equal(info['u_s'], info['u'] - info['u_rl'])
+        assert info['fail_safe'][0] == 1.0
+        assert info['status'][0] == STATUS_CODES[reason], reason
+        _, _, values = fl.diagnostic_values(decision=decision, barrier_names=barrier_names)
+        for key, value in values.items():
+            assert not (isinstance(value, float) and math.isnan(value)), (reason, key)
+            if key != 'reason':  # the reason may name NaN in words ("contains NaN or inf")
+                assert 'nan' not in str(value).lower(), (reason, key, value)
+
+
+def test_filter_info_of_a_filtered_command(safety_filter):
+    u = np.array([2.5, 0.0])
+    decision = fl.decide(safety_filter=safety_filter,
+                         proposal=fl.Proposal(u=u, state=FACING_OBSTACLE),
+                         latest_state=None, now_ns=10 * SECOND, max_state_age_s=0.5)
+    info = fl.info_sections(decision)
+    assert list(info) == ['u', 'u_rl', 'u_s', 'fail_safe', 'status', 'h', 'constraint', 'slack',
+                          'needed_slack', 'solve_time_s', 'state']
+    np.testing.assert_array_equal(info['u'], decision.u_safe)
+    np.testing.assert_array_equal(info['u_rl'], u)
+    np.testing.assert_array_equal(info['u_s'], decision.u_safe - u)
+    np.testing.assert_array_equal(info['h'], decision.result.h)
+    np.testing.assert_array_equal(info['state'], FACING_OBSTACLE)
+    assert info['status'][0] == STATUS_CODES['solved'] and info['fail_safe'][0] == 0.0
+
+
+def test_the_unicycle_filter_box_is_the_simulated_slope(unicycle_params):
+    """config/unicycle.yaml's /safety_filter box, mean +/- k_c std, is the smallest box holding
+    the slope the simulator applies, g(x) u_d(x), at every heading."""
+    import torch
+
+    from rcbf_ros.core.dynamics import Unicycle
+    from rcbf_ros.envs.unicycle import unicycle_slope_disturbance
+    config = filter_config_from_params(unicycle_params)
+    k_c = config.problem.k_c
+    low = np.array(config.static_mean) - k_c * np.array(config.static_std)
+    high = np.array(config.static_mean) + k_c * np.array(config.static_std)
+    headings = np.linspace(-np.pi, np.pi, 3601)
+    states = np.stack([np.zeros_like(headings), np.zeros_like(headings), headings], axis=1)
+    g = Unicycle().g(torch.from_numpy(states)).numpy()                       # (N, 3, 2)
+    slope = np.stack([unicycle_slope_disturbance(x) for x in states])         # (N, 2)
+    moved = np.einsum('nij,nj->ni', g, slope)                                 # (N, 3)
+    assert np.all(moved >= low - 1e-12) and np.all(moved <= high + 1e-12)
+    np.testing.assert_allclose(moved.min(axis=0), low, atol=1e-6)   # tight: every face reached
+    np.testing.assert_allclose(moved.max(axis=0), high, atol=1e-6)

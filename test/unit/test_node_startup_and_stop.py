@@ -9,6 +9,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from typing import Any
 
 import pytest
 
@@ -119,3 +120,73 @@ def test_a_node_process_interrupted_while_importing_prints_no_traceback(tmp_path
     process.send_signal(signal.SIGINT)
     out, err = process.communicate(timeout=30)
     assert (process.returncode, out, err) == (INTERRUPTED_EXIT, '', '')
+
+
+# --- stopping between callbacks -----------------------------------------------------------------
+
+def test_a_signal_during_a_callback_lets_it_publish_and_runs_no_other(ros_domain_id):
+    # rclpy's own handler shuts the context down at once; a callback's next publish then fails
+    # with "publisher's context is invalid". Here the callback under way finishes with a valid
+    # context, no other callback runs, and only then does the node shut down.
+    from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
+    calls: list[bool] = []
+    built: list[Any] = []
+
+    class Talker(Node):
+        def __init__(self) -> None:
+            super().__init__('talker')
+            self.publisher = self.create_publisher(get_message('std_msgs/msg/String'),
+                                                   'chatter', QoSProfile(depth=10))
+            self.create_timer(0.01, self.tick)
+            built.append(self)
+
+        def tick(self) -> None:
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the middle of this callback
+            calls.append(rclpy.ok())
+            self.publisher.publish(get_message('std_msgs/msg/String')(data='still valid'))
+
+    before = signal.getsignal(signal.SIGINT)
+    code = run_node('talker', Talker, ['talker'])
+    assert code == 0
+    assert calls == [True]                           # one callback, its context still valid
+    assert built and not rclpy.ok()                  # and the shutdown came after it
+    assert signal.getsignal(signal.SIGINT) is before  # handlers given back
+
+
+def test_sigterm_during_a_callback_ends_the_same_way(ros_domain_id):
+    from rcbf_ros.ros.runtime import Node, rclpy
+    calls: list[bool] = []
+
+    class Worker(Node):
+        def __init__(self) -> None:
+            super().__init__('worker')
+            self.create_timer(0.01, self.tick)
+
+        def tick(self) -> None:
+            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGINT)  # a second signal while stopping: ignored
+            calls.append(rclpy.ok())
+
+    assert run_node('worker', Worker, ['worker']) == 0
+    assert calls == [True]
+
+
+def test_a_node_may_ask_to_stop_after_its_work(ros_domain_id):
+    from rcbf_ros.ros.node_main import request_stop
+    from rcbf_ros.ros.runtime import Node
+    exits: list[str] = []
+
+    class Finisher(Node):
+        def __init__(self) -> None:
+            super().__init__('finisher')
+            self.ticks = 0
+            self.create_timer(0.01, self.tick)
+
+        def tick(self) -> None:
+            self.ticks += 1
+            if self.ticks == 3:
+                request_stop()
+
+    code = run_node('finisher', Finisher, ['finisher'],
+                    on_exit=lambda node: exits.append(f'exit after {node.ticks}'))
+    assert code == 0 and exits == ['exit after 3']

@@ -83,14 +83,21 @@ def _expected_commands(params: dict) -> list[np.ndarray]:
     return out
 
 
-def _write_source(directory: Path, *, with_proposals: bool = True) -> Path:
-    """/state, /cmd_proposed, /cmd_safe (from a node-like filter with config A), /reward."""
+def _write_source(directory: Path, *, with_proposals: bool = True,
+                  form: str = 'earlier') -> Path:
+    """/state, /cmd_proposed, the answers of a node-like filter with config A, /reward.
+
+    ``form`` 'earlier': the answers as /cmd_safe with sections u, u_rl, u_s (and the state the
+    proposal carried), as bags were recorded before the filter published filter_info;
+    'filter_info': /cmd_safe holds the command alone and /filter_info the rest."""
     recorded = _expected_commands(PARAMS_A)
     with BagWriter(directory) as bag:
         bag.add_topic('/state', 'std_msgs/msg/Float64MultiArray')
         if with_proposals:
             bag.add_topic('/cmd_proposed', 'std_msgs/msg/Float64MultiArray')
         bag.add_topic('/cmd_safe', 'std_msgs/msg/Float64MultiArray')
+        if form == 'filter_info':
+            bag.add_topic('/filter_info', 'std_msgs/msg/Float64MultiArray')
         bag.add_topic('/reward', 'std_msgs/msg/Float64')
         if with_proposals:  # before any state: cannot be filtered
             bag.write_message('/cmd_proposed', _sections(u=np.array([1.0, 0.0])), T0 - 1000)
@@ -108,7 +115,13 @@ def _write_source(directory: Path, *, with_proposals: bool = True) -> Path:
                 proposal = _sections(u=u)
                 answer = _sections(u=recorded[k], u_rl=u, u_s=recorded[k] - u)
             bag.write_message('/cmd_proposed', proposal, t + 1_000_000)
-            bag.write_message('/cmd_safe', answer, t + 3_000_000)
+            if form == 'filter_info':  # the state answered rides along, own or topic's
+                bag.write_message('/cmd_safe', _sections(u=recorded[k]), t + 3_000_000)
+                bag.write_message('/filter_info', _sections(
+                    u=recorded[k], u_rl=u, u_s=recorded[k] - u, fail_safe=[0.0],
+                    status=[0.0], state=state), t + 3_000_000)
+            else:
+                bag.write_message('/cmd_safe', answer, t + 3_000_000)
             bag.write_message('/reward', {'data': -0.1 * k}, t + 4_000_000)
         for j, state in enumerate(INSIDE_B):
             bag.write_message('/state', _sections(state=state), T0 + (N_STEPS + j) * STEP_NS)
@@ -121,8 +134,17 @@ def source_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return _write_source(tmp_path_factory.mktemp('src') / 'run')
 
 
-def test_same_parameters_change_nothing(source_bag: Path, tmp_path: Path) -> None:
-    summary = refilter_bag(source_bag, tmp_path / 'same', PARAMS_A)
+@pytest.fixture(scope='module')
+def info_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _write_source(tmp_path_factory.mktemp('src_info') / 'run', form='filter_info')
+
+
+@pytest.mark.parametrize('form', ['earlier', 'filter_info'])
+def test_same_parameters_change_nothing(source_bag: Path, info_bag: Path, tmp_path: Path,
+                                        form: str) -> None:
+    source = source_bag if form == 'earlier' else info_bag
+    summary = refilter_bag(source, tmp_path / 'same', PARAMS_A)
+    assert summary.recorded_topic == ('/cmd_safe' if form == 'earlier' else '/filter_info')
     assert summary.proposals == N_STEPS + 1
     assert summary.processed == N_STEPS
     assert summary.skipped == {'no state received yet': 1}
@@ -170,17 +192,28 @@ def test_new_obstacle_changes_commands_where_expected(source_bag: Path, tmp_path
                 connections=[c for c in reader.connections
                              if c.topic == '/refilter/cmd_safe']):
             msg = reader.deserialize(raw, connection.msgtype)
-            k = len(commands)
-            state, _, _, _, own = _inputs(k)
-            # The proposal's own state is echoed, as the node's cmd_safe does.
-            labels = ['u', 'u_rl', 'u_s'] + (['state'] if own else [])
-            assert [d.label for d in msg.layout.dim] == labels
-            if own:
-                np.testing.assert_array_equal(msg.data[6:], state)
-            commands.append(np.asarray(msg.data[:6]).reshape(3, 2))
+            # The command alone, as the node's cmd_safe.
+            assert [(d.label, d.size) for d in msg.layout.dim] == [('u', 2)]
+            commands.append(np.asarray(msg.data))
+        infos = [reader.deserialize(raw, connection.msgtype) for connection, _, raw in
+                 reader.messages(connections=[c for c in reader.connections
+                                              if c.topic == '/refilter/filter_info'])]
     assert counts == {'/state': N_STEPS + len(INSIDE_B), '/cmd_proposed': N_STEPS + 1,
-                      '/cmd_safe': N_STEPS, '/reward': N_STEPS,
-                      '/refilter/cmd_safe': N_STEPS, '/refilter/diagnostics': N_STEPS}
+                      '/cmd_safe': N_STEPS, '/reward': N_STEPS, '/refilter/cmd_safe': N_STEPS,
+                      '/refilter/filter_info': N_STEPS, '/refilter/diagnostics': N_STEPS}
+    details = []
+    for k, (command, info) in enumerate(zip(commands, infos)):
+        sections, offset = {}, 0
+        for dim in info.layout.dim:
+            sections[dim.label] = np.asarray(info.data[offset:offset + dim.size])
+            offset += dim.size
+        assert list(sections) == ['u', 'u_rl', 'u_s', 'fail_safe', 'status', 'h', 'constraint',
+                                  'slack', 'needed_slack', 'solve_time_s', 'state']
+        assert np.all(np.isfinite(info.data))
+        np.testing.assert_array_equal(sections['u'], command)
+        np.testing.assert_array_equal(sections['state'], _inputs(k)[0])  # the state answered
+        details.append((command, sections['u_rl'], sections['u_s']))
+    commands = details
     for k, (u_new, u_rl, u_s) in enumerate(commands):
         state, u, mean, std, _ = _inputs(k)
         np.testing.assert_array_equal(u_rl, u)
@@ -203,7 +236,8 @@ def test_output_bag_read_by_mcap_ros2_and_doctor(source_bag: Path, tmp_path: Pat
             decoded.setdefault(channel.topic, []).append((message.log_time, msg))
     assert {k: len(v) for k, v in decoded.items()} == {
         '/state': N_STEPS + len(INSIDE_B), '/cmd_proposed': N_STEPS + 1, '/cmd_safe': N_STEPS,
-        '/reward': N_STEPS, '/refilter/cmd_safe': N_STEPS, '/refilter/diagnostics': N_STEPS}
+        '/reward': N_STEPS, '/refilter/cmd_safe': N_STEPS, '/refilter/filter_info': N_STEPS,
+        '/refilter/diagnostics': N_STEPS}
     # Source topics are copied byte for byte with their times.
     source = [(m.topic, m.data, m.log_time_ns, m.publish_time_ns) for m in read_bag(source_bag)]
     copied = [(m.topic, m.data, m.log_time_ns, m.publish_time_ns) for m in read_bag(out)

@@ -44,8 +44,10 @@ class FilterHarness:
         from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
         self.node = SafetyFilterNode()
         self.commands: list[Any] = []
+        self.infos: list[Any] = []
         self.diagnostics: list[tuple[int, str, dict[str, str]]] = []
         self.node._cmd_pub.publish = self.commands.append
+        self.node._info_pub.publish = self.infos.append
 
         def diagnose(msg: Any) -> None:
             status = msg.status[0]
@@ -60,8 +62,11 @@ class FilterHarness:
         command = self.commands[-1]
         if self.node.settings.command_type == 'array':
             u = msg_to_sections(command)['u']
+        elif self.node.settings.command_type == 'twist_stamped':
+            u = np.array([command.twist.linear.x, command.twist.angular.z])
         else:
             u = np.array([command.linear.x, command.angular.z])
+        assert len(self.infos) == len(self.commands)  # one filter_info per command
         return u, self.diagnostics[-1]
 
 
@@ -164,3 +169,109 @@ def test_random_and_mutated_samples_never_raise_and_each_proposal_is_answered(ha
             assert u.tolist() == FAIL_SAFE
     counts = harness.node.input_counts
     assert counts['dropped_samples'] > 0 and counts['refused_proposals'] > 0, counts
+
+
+# --- the message types at the edges -------------------------------------------------------------
+
+@pytest.fixture
+def stamped_harness(ros_domain_id):
+    instance = _harness(ros_domain_id, '-p', 'command_type:=twist_stamped', '-p',
+                        'state_type:=odometry', '-p', 'state_frame_id:=map')
+    yield instance
+    instance.node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def _odometry(x: float, y: float, yaw: float, frame_id: str = 'map') -> bytes:
+    from rcbf_ros.ros.dds.messages import get_message
+    msg = get_message('nav_msgs/msg/Odometry')()
+    msg.header.frame_id = frame_id
+    msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
+    q = msg.pose.pose.orientation
+    q.z, q.w = np.sin(yaw / 2.0), np.cos(yaw / 2.0)
+    return serialize_message(msg)
+
+
+def _twist_stamped(u: list[float], sec: int, nanosec: int, frame_id: str) -> bytes:
+    from rcbf_ros.ros.dds.messages import get_message
+    msg = get_message('geometry_msgs/msg/TwistStamped')()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    msg.header.frame_id = frame_id
+    msg.twist.linear.x, msg.twist.angular.z = u
+    return serialize_message(msg)
+
+
+def test_cmd_safe_array_is_exactly_the_command(harness):
+    harness.node._on_state(_cdr({'state': GOOD_STATE}))
+    for proposal in ({'u': [2.5, 0.0]}, {'u': [2.5, 0.0], 'state': GOOD_STATE},
+                     {'u': [0.3, 0.1], 'disturbance_mean': [0.0] * 3,
+                      'disturbance_std': [0.1] * 3}):
+        u, _ = harness.propose(_cdr(proposal))
+        command = harness.commands[-1]
+        assert list(command.data) == list(u) and len(command.data) == 2  # [v, omega], no more
+        assert [(d.label, d.size) for d in command.layout.dim] == [('u', 2)]
+        info = msg_to_sections(harness.infos[-1])
+        np.testing.assert_array_equal(info['u'], u)
+        np.testing.assert_array_equal(info['u_rl'], proposal['u'])
+        np.testing.assert_array_equal(info['u_s'], u - np.array(proposal['u']))
+        np.testing.assert_array_equal(info['state'], GOOD_STATE)
+
+
+def test_twist_stamped_answers_carry_the_proposals_header(stamped_harness):
+    harness = stamped_harness
+    harness.node._on_state(_odometry(-0.85, 0.0, 0.0))
+    u, (level, _, _) = harness.propose(_twist_stamped([2.5, 0.0], 1234, 567_000_000, 'base_link'))
+    command = harness.commands[-1]
+    assert level == filter_logic.OK and 0.0 < u[0] < 2.5   # slowed down before the obstacle
+    assert (command.header.stamp.sec, command.header.stamp.nanosec) == (1234, 567_000_000)
+    assert command.header.frame_id == 'base_link'
+    assert (command.twist.linear.y, command.twist.angular.x) == (0.0, 0.0)
+    # Even the fail-safe answer to an unusable proposal keeps its header.
+    u, (level, message, _) = harness.propose(
+        _twist_stamped([np.nan, 0.0], 99, 1, 'other_frame'))
+    np.testing.assert_array_equal(u, FAIL_SAFE)
+    assert message.startswith('bad proposal: u: contains NaN')
+    command = harness.commands[-1]
+    assert (command.header.stamp.sec, command.header.stamp.nanosec, command.header.frame_id) == (
+        99, 1, 'other_frame')
+
+
+def test_odometry_state_is_read_as_x_y_yaw(stamped_harness):
+    harness = stamped_harness
+    # Facing the centre obstacle from 0.25 m (yaw 0): full speed is slowed down.
+    harness.node._on_state(_odometry(-0.85, 0.0, 0.0))
+    facing, _ = harness.propose(_twist_stamped([2.5, 0.0], 1, 0, 'base_link'))
+    # Same position, turned away (yaw pi): the same proposal drives away and passes.
+    harness.node._on_state(_odometry(-0.85, 0.0, np.pi))
+    away, _ = harness.propose(_twist_stamped([2.5, 0.0], 2, 0, 'base_link'))
+    assert facing[0] < 2.5 and away[0] == 2.5
+    np.testing.assert_allclose(harness.node._latest_state.state, [-0.85, 0.0, np.pi])
+    # An Odometry in another frame than state_frame_id is refused: the fail-safe, counted.
+    harness.node._on_state(_odometry(-0.85, 0.0, np.pi, frame_id='odom'))
+    u, (_, message, values) = harness.propose(_twist_stamped([2.5, 0.0], 3, 0, 'base_link'))
+    np.testing.assert_array_equal(u, FAIL_SAFE)
+    assert message == "bad state: header.frame_id: 'odom' is not state_frame_id 'map'"
+    assert values['refused_states'] == '1'
+
+
+@pytest.mark.parametrize('proposal, reason', [
+    ({'u': [1.0, 0.0, 0.0]}, 'bad proposal: u: expected 2 values'),
+    ({'u': [np.nan, 0.0]}, 'bad proposal: u: contains NaN'),
+    ({'u': [1e7, 0.0]}, 'input_refused: '),
+    ({'gain': [1.0]}, 'bad proposal: gain: unknown proposal section'),
+    (None, 'undecodable proposal: '),
+])
+def test_no_nan_in_what_is_published_for_a_refused_proposal(harness, proposal, reason):
+    harness.node._on_state(_cdr({'state': GOOD_STATE}))
+    data = _non_utf8_label({'u': [1.0, 0.0]}) if proposal is None else _cdr(proposal)
+    u, (level, message, values) = harness.propose(data)
+    assert level == filter_logic.ERROR and message.startswith(reason)
+    np.testing.assert_array_equal(u, FAIL_SAFE)
+    assert list(harness.commands[-1].data) == FAIL_SAFE
+    info = harness.infos[-1]
+    assert np.all(np.isfinite(info.data)), list(info.data)
+    sections = msg_to_sections(info)
+    assert sections['fail_safe'][0] == 1.0
+    np.testing.assert_array_equal(sections['u_s'], sections['u'] - sections['u_rl'])
+    numeric = {k: v for k, v in values.items() if k != 'reason'}
+    assert not any('nan' in v.lower() for v in numeric.values()), numeric

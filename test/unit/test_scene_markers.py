@@ -246,9 +246,16 @@ def test_foxglove_layout_shows_the_scene_the_barriers_and_the_command():
     names = _geometry('unicycle').barrier_names
     for name in names:
         assert any(f'{{key=="h.{name}"}}' in value for value in plotted), name
-    assert all(v.startswith(('/diagnostics.status[:]{name=="safety_filter"}', '/cmd_safe.data['))
-               for v in plotted)
-    assert any(v.startswith('/cmd_safe') for v in plotted)
+    assert all(v.startswith(('/diagnostics.status[:]{name=="safety_filter"}', '/cmd_safe.data[',
+                             '/filter_info.data[')) for v in plotted)
+    # cmd_safe holds the command alone (n_u = 2 values); the correction u_S is filter_info's
+    # third section, data[4:6] for the Unicycle.
+    from rcbf_ros.core.filter_info import INFO_SECTIONS
+    assert [label for label, _, _ in INFO_SECTIONS[:3]] == ['u', 'u_rl', 'u_s']
+    command = {int(v[len('/cmd_safe.data['):-1]) for v in plotted if v.startswith('/cmd_safe')}
+    correction = {int(v[len('/filter_info.data['):-1]) for v in plotted
+                  if v.startswith('/filter_info')}
+    assert command == {0, 1} and correction == {4, 5}
 
 
 def test_marker_arrays_go_into_a_bag_that_rosbags_reads_back(tmp_path):

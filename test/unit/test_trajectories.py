@@ -57,13 +57,19 @@ def _episodes(seed: int = 0) -> list[np.ndarray]:
     return [first, second]
 
 
-def _write_node_bag(bag: Path, episodes: list[np.ndarray], corrected: list[set[int]]) -> None:
-    """A bag as the node launches record it: /sim/step, /cmd_safe (with the answered state),
-    /episode events; every state of step k is published twice (lock-step watchdog)."""
+def _write_node_bag(bag: Path, episodes: list[np.ndarray], corrected: list[set[int]],
+                    form: str = 'filter_info') -> None:
+    """A bag as the node launches record it: /sim/step, the filter's answers (with the answered
+    state), /episode events; every state of step k is published twice (lock-step watchdog).
+
+    ``form`` 'filter_info': /cmd_safe holds the command alone, /filter_info the correction;
+    'earlier': /cmd_safe with sections u, u_rl, u_s and state, as bags were recorded before the
+    filter published filter_info."""
     writer = BagWriter(bag)
     for topic, type_name in (('/sim/step', ARRAY), ('/state', ARRAY), ('/cmd_safe', ARRAY),
-                             ('/episode', 'std_msgs/msg/String')):
-        writer.add_topic(topic, type_name)
+                             ('/filter_info', ARRAY), ('/episode', 'std_msgs/msg/String')):
+        if topic != '/filter_info' or form == 'filter_info':
+            writer.add_topic(topic, type_name)
     t = 1_000
     for number, states in enumerate(episodes, 1):
         writer.write_message('/episode', {'data': json.dumps(
@@ -77,8 +83,14 @@ def _write_node_bag(bag: Path, episodes: list[np.ndarray], corrected: list[set[i
                 break
             u_s = [0.0, 0.3] if k in corrected[number - 1] else [0.0, 0.0]
             t += 10
-            writer.write_message('/cmd_safe', _array(u=[1.0, 0.3], u_rl=[1.0, 0.0], u_s=u_s,
-                                                     state=state), t)
+            if form == 'earlier':
+                writer.write_message('/cmd_safe', _array(u=[1.0, 0.3], u_rl=[1.0, 0.0],
+                                                         u_s=u_s, state=state), t)
+                continue
+            writer.write_message('/cmd_safe', _array(u=[1.0, 0.3]), t)
+            writer.write_message('/filter_info', _array(
+                u=[1.0, 0.3], u_rl=[1.0, 0.0], u_s=u_s, fail_safe=[0.0], status=[0.0],
+                state=state), t)
         t += 10
         writer.write_message('/episode', {'data': json.dumps({'event': 'end', 'episode': number})},
                              t)
@@ -103,11 +115,12 @@ def _rosbags_states(bag: Path, topic: str) -> np.ndarray:
     return np.array(rows)
 
 
-def test_run_summary_draws_the_bag_and_labels_the_closest_approach(tmp_path):
+@pytest.mark.parametrize('form', ['filter_info', 'earlier'])
+def test_run_summary_draws_the_bag_and_labels_the_closest_approach(tmp_path, form):
     episodes = _episodes()
     corrected = [{5, 6, 30}, {0, 24 - 1}]
     bag = tmp_path / 'run' / 'bag'
-    _write_node_bag(bag, episodes, corrected)
+    _write_node_bag(bag, episodes, corrected, form)
     paths = episode_paths(bag, n_x=3)
     assert [p.episode for p in paths] == [1, 2]  # the stepless third one is left out
     for path, states, marks in zip(paths, episodes, corrected):
@@ -190,6 +203,21 @@ def test_in_process_run_writes_its_picture(tmp_path):
     assert len(recorded) == 120
     expected = min(_independent_closest(recorded)[0], *(row['min_h_true'] for row in history))
     assert reported == pytest.approx(expected, abs=5e-4)
+    # As the nodes publish them: the command alone on /cmd_safe, the details on /filter_info.
+    from rosbags.highlevel import AnyReader
+    with AnyReader([out / 'bag_0000']) as reader:
+        by_topic = {}
+        for connection, _, raw in reader.messages(connections=[
+                c for c in reader.connections if c.topic in ('/cmd_safe', '/filter_info')]):
+            msg = reader.deserialize(raw, connection.msgtype)
+            by_topic.setdefault(connection.topic, []).append(msg)
+    assert len(by_topic['/cmd_safe']) == len(by_topic['/filter_info']) == 120
+    for command, info in zip(by_topic['/cmd_safe'], by_topic['/filter_info']):
+        assert [d.label for d in command.layout.dim] == ['u'] and len(command.data) == 2
+        labels = [d.label for d in info.layout.dim]
+        assert labels[:5] == ['u', 'u_rl', 'u_s', 'fail_safe', 'status'] and labels[-1] == 'state'
+        np.testing.assert_array_equal(info.data[:2], command.data)
+        assert np.all(np.isfinite(info.data))
 
 
 def test_pvtol_and_car_following_pictures(tmp_path):

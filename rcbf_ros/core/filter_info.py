@@ -1,0 +1,82 @@
+"""What a safety filter's answer is reported with, besides the command: ``filter_info``.
+
+The safety_filter node publishes the command alone on ``cmd_safe`` and these numbers on
+``filter_info`` (a ``std_msgs/Float64MultiArray`` whose ``layout.dim`` labels the sections);
+``rcbf_ros_refilter`` and the in-process trainer's bags write the same. Pure data: the sections
+of one answer as numpy arrays, no messages.
+
+Sections, in this order (:data:`INFO_SECTIONS`). The first five are always there, so that their
+indexes into ``data`` are fixed for a system (n_u = 2: ``u`` is data[0:2], ``u_rl`` data[2:4],
+``u_s`` data[4:6], ``fail_safe`` data[6], ``status`` data[7]); the others only when they were
+evaluated. No section ever holds NaN or inf: a value that was not evaluated is left out.
+"""
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+INFO_SECTIONS: tuple[tuple[str, str, str], ...] = (
+    ('u', 'n_u', 'the command published on cmd_safe'),
+    ('u_rl', 'n_u', 'the proposal as received; u itself when it was unusable'),
+    ('u_s', 'n_u', 'the correction u - u_rl'),
+    ('fail_safe', '1', '1: u is the fail-safe action, 0: the filtered proposal'),
+    ('status', '1', 'the solver status, or why the fail-safe was published (status codes)'),
+    ('h', 'K', 'barrier values h_i at the state, in the order of the h.<barrier> keys of '
+     'diagnostics (when evaluated)'),
+    ('constraint', 'K', 'L_f h + L_g h u + alpha h + rho per barrier (when evaluated)'),
+    ('slack', '1', 'the QP slack eps (when solved)'),
+    ('needed_slack', '1', 'slack the rows need at u (when evaluated)'),
+    ('solve_time_s', '1', 'solver wall time in seconds (when solved)'),
+    ('state', 'n_x', 'the state the command answers (when there was a usable one)'),
+)
+"""(label, size, meaning) of every section, in order."""
+
+STATUS_CODES: dict[str, int] = {
+    'solved': 0, 'solved_inaccurate': 1, 'solved_interior_point': 2,
+    'bad proposal': 10, 'undecodable proposal': 11, 'no state received yet': 12,
+    'bad state': 13, 'stale state': 14, 'bad input': 15, 'internal error': 16,
+    'input_refused': 20, 'unverified': 21, 'slack_exceeded': 22,
+}
+"""The ``status`` section: the solver status of a filtered command (0-9), or the reason the
+fail-safe was published (10-19: before the QP; 20-29: the QP's outcome, as the filter's
+``FilterResult.status``)."""
+UNKNOWN_STATUS = 99
+"""``status`` of a status or reason not in :data:`STATUS_CODES`."""
+
+
+def info_sections(*, u: Sequence[float] | np.ndarray, u_rl: Sequence[float] | np.ndarray | None,
+                  fail_safe: bool, status: str, result: Any = None,
+                  state: Sequence[float] | np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The sections of one answer (:data:`INFO_SECTIONS`).
+
+    Args:
+        u: (n_u,) the command published.
+        u_rl: (n_u,) the proposal as received, or None when it was unusable (then, as for
+            one of another length or with NaN or inf, ``u_rl`` is ``u`` and ``u_s`` zero).
+        fail_safe: whether ``u`` is the fail-safe action.
+        status: a key of :data:`STATUS_CODES` (a solver status or a fail-safe reason).
+        result: the filter's ``FilterResult`` when the QP was set up, else None.
+        state: (n_x,) the state the command answers, or None.
+    """
+    command = np.asarray(u, dtype=np.float64).reshape(-1)
+    proposal = command if u_rl is None else np.asarray(u_rl, dtype=np.float64).reshape(-1)
+    if proposal.shape != command.shape or not np.all(np.isfinite(proposal - command)):
+        proposal = command  # not a usable proposal: no correction to report
+    sections: dict[str, np.ndarray] = {
+        'u': command, 'u_rl': proposal, 'u_s': command - proposal,
+        'fail_safe': np.array([1.0 if fail_safe else 0.0]),
+        'status': np.array([float(STATUS_CODES.get(status, UNKNOWN_STATUS))]),
+    }
+    optional: list[tuple[str, Any]] = []
+    if result is not None:
+        optional += [('h', result.h), ('constraint', result.constraint_values),
+                     ('slack', [result.slack]), ('needed_slack', [result.needed_slack]),
+                     ('solve_time_s', [result.solve_time_s])]
+    if state is not None:
+        optional.append(('state', state))
+    for label, values in optional:
+        array = np.asarray(values, dtype=np.float64).reshape(-1)
+        if array.size and np.all(np.isfinite(array)):
+            sections[label] = array
+    return sections

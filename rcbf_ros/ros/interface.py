@@ -1,0 +1,207 @@
+"""Node interfaces as data: the parameters each node declares and the topics it uses.
+
+One :class:`ParameterSpec` per declared parameter (name, default, type, one line) is the single
+source of a node's declarations, of its ``--help`` (:func:`help_text`, printed without starting
+the node: no DDS participant) and of the README's interface tables (:mod:`rcbf_ros.ros.
+interface_doc`), so that the three cannot drift apart. Pure: no middleware, no messages.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import Any, Callable, Sequence, Union
+
+PARAMETER_TYPES = ('string', 'bool', 'integer', 'double', 'string[]', 'integer[]', 'double[]',
+                   'any')
+"""ROS 2 parameter types a spec can name (``any``: whatever the user gives, e.g. a system's
+constructor arguments)."""
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One parameter a node declares."""
+
+    name: str
+    """Dotted name as in the params file (``input_bounds.state``). ``<name>`` marks a part the
+    user chooses (``bands.<name>.index``): such parameters are declared when given."""
+    default: Any
+    """The declared default; None: not set (taken from the params file, else the behaviour the
+    description names)."""
+    type: str
+    """One of :data:`PARAMETER_TYPES`."""
+    description: str
+    """One line: what it is, its unit and its allowed values."""
+
+    def __post_init__(self) -> None:
+        if self.type not in PARAMETER_TYPES:
+            raise ValueError(f'{self.name}: type {self.type!r} not in {list(PARAMETER_TYPES)}')
+        if '\n' in self.description or not self.description.strip():
+            raise ValueError(f'{self.name}: the description must be one non-empty line')
+
+    @property
+    def pattern(self) -> bool:
+        """Whether the name holds a user-chosen part (``<name>``)."""
+        return '<' in self.name
+
+    def matches(self, name: str) -> bool:
+        """Whether a declared parameter ``name`` is this spec (a pattern matches any word)."""
+        if not self.pattern:
+            return name == self.name
+        mine, theirs = self.name.split('.'), name.split('.')
+        if mine[-1] == '<name>' and len(theirs) >= len(mine):  # system_params.<name>
+            theirs = theirs[:len(mine) - 1] + ['.'.join(theirs[len(mine) - 1:])]
+        return len(mine) == len(theirs) and all(
+            a == b or (a.startswith('<') and b) for a, b in zip(mine, theirs))
+
+
+@dataclass(frozen=True)
+class TopicSpec:
+    """One topic a node publishes or subscribes (name relative to the node: remappable)."""
+
+    name: str
+    """Topic name as the node uses it (``cmd_safe``)."""
+    direction: str
+    """``pub`` or ``sub``."""
+    type: str
+    """Message type (``std_msgs/msg/Float64MultiArray``), or the choice a parameter makes."""
+    layout: str
+    """What the message holds (sections, fields, units), one line."""
+    qos: str
+    """``reliable``/``best effort``, history and depth."""
+
+    def __post_init__(self) -> None:
+        if self.direction not in ('pub', 'sub'):
+            raise ValueError(f'{self.name}: direction must be pub or sub, got {self.direction!r}')
+
+
+@dataclass(frozen=True)
+class NodeInterface:
+    """What ``<node> --help`` prints and the README's section on the node shows."""
+
+    node: str
+    """Node (and console script) name."""
+    summary: str
+    """One line: what the node does."""
+    topics: tuple[TopicSpec, ...]
+    """Every topic, publications and subscriptions."""
+    parameters: tuple[ParameterSpec, ...]
+    """Every parameter it declares, in declaration order."""
+    notes: tuple[str, ...] = ()
+    """Lines printed after the parameters (e.g. where system-dependent keys come from)."""
+
+    def __post_init__(self) -> None:
+        names = [p.name for p in self.parameters]
+        repeated = sorted({n for n in names if names.count(n) > 1})
+        if repeated:
+            raise ValueError(f'{self.node}: parameters declared twice: {repeated}')
+
+    def spec(self, name: str) -> ParameterSpec | None:
+        """The spec a declared parameter ``name`` falls under (None: undocumented)."""
+        for spec in self.parameters:
+            if spec.matches(name):
+                return spec
+        return None
+
+
+InterfaceSource = Union[NodeInterface, Callable[[Sequence[str]], NodeInterface]]
+"""A node's interface, or a function of its command line (when ``system`` changes it)."""
+
+
+def declarations(specs: Sequence[ParameterSpec]) -> list[tuple[str, Any]]:
+    """(name, default) of every spec with a fixed name, in order: what a node declares."""
+    return [(spec.name, spec.default) for spec in specs if not spec.pattern]
+
+
+def wants_help(argv: Sequence[str]) -> bool:
+    """Whether ``-h`` or ``--help`` is among the words outside ``--ros-args`` sections
+    (``argv[0]``, the program, is not looked at)."""
+    inside = False
+    for word in list(argv)[1:]:
+        if word == '--ros-args':
+            inside = True
+        elif word == '--' and inside:
+            inside = False
+        elif not inside and word in ('-h', '--help'):
+            return True
+    return False
+
+
+def format_value(value: Any) -> str:
+    """A parameter value as it is written on the command line (``-p name:=<value>``)."""
+    if value is None:
+        return 'not set'
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, float):
+        return repr(value) if math.isfinite(value) else str(value)
+    if isinstance(value, str):
+        return repr(value) if value == '' or value.strip() != value else value
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(format_value(v) for v in value) + ']'
+    return str(value)
+
+
+def help_text(interface: NodeInterface) -> str:
+    """The ``--help`` of a node: usage, topics, parameters (type, default, one line each)."""
+    lines = [f'usage: {interface.node} [-h] [--ros-args [-p name:=value] [-r from:=to] '
+             '[--params-file file.yaml]]', '', interface.summary, '', 'topics:']
+    width = max((len(t.name) for t in interface.topics), default=0)
+    for topic in interface.topics:
+        lines.append(f'  {topic.direction} {topic.name:<{width}}  {topic.type}')
+        lines.append(f'      {topic.layout}; QoS: {topic.qos}')
+    lines += ['', 'parameters (-p name:=value):']
+    for spec in interface.parameters:
+        lines.append(f'  {spec.name}  ({spec.type}, default {format_value(spec.default)})')
+        lines.append(f'      {spec.description}')
+    if interface.notes:
+        lines += [''] + list(interface.notes)
+    return '\n'.join(lines) + '\n'
+
+
+def _cell(text: str) -> str:
+    """Text for a markdown table cell: ``|`` escaped, ``<name>`` shown rather than taken for
+    HTML (code spans, where GitHub shows ``<`` as it is, are left alone)."""
+    parts = text.replace('|', '\\|').split('`')
+    for index in range(0, len(parts), 2):  # outside code spans
+        parts[index] = parts[index].replace('<', '&lt;')
+    return '`'.join(parts)
+
+
+def topic_table(interface: NodeInterface) -> str:
+    """The node's topics as a markdown table."""
+    rows = ['| topic | direction | type | layout | QoS |', '|---|---|---|---|---|']
+    for topic in interface.topics:
+        rows.append(f'| `{topic.name}` | {topic.direction} | {_cell(topic.type)} | '
+                    f'{_cell(topic.layout)} | {topic.qos} |')
+    return '\n'.join(rows)
+
+
+def parameter_table(interface: NodeInterface) -> str:
+    """The node's parameters as a markdown table."""
+    rows = ['| parameter | type | default | description |', '|---|---|---|---|']
+    for spec in interface.parameters:
+        rows.append(f'| `{spec.name}` | {spec.type} | `{format_value(spec.default)}` | '
+                    f'{_cell(spec.description)} |')
+    return '\n'.join(rows)
+
+
+def resolve(source: InterfaceSource, argv: Sequence[str]) -> NodeInterface:
+    """The interface of ``source`` for the command line ``argv``."""
+    return source if isinstance(source, NodeInterface) else source(argv)
+
+
+def type_of(value: Any) -> str:
+    """The parameter type of a (YAML) value: ``double[]`` for a list of numbers, ..."""
+    if isinstance(value, bool):
+        return 'bool'
+    if isinstance(value, int):
+        return 'integer'
+    if isinstance(value, float):
+        return 'double'
+    if isinstance(value, (list, tuple)):
+        if value and all(isinstance(v, str) for v in value):
+            return 'string[]'
+        if value and all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+            return 'integer[]'
+        return 'double[]'
+    return 'string'

@@ -1,0 +1,122 @@
+"""Parameters the simulated-system nodes take from the packaged ``config/<system>.yaml``.
+
+The simulator and the nominal controller declare ``system`` and every key of their section
+(with ``/**``) of the packaged params file of that system, with the file's values as defaults;
+overrides (``--params-file``, ``-p``) win. :func:`packaged_parameter_specs` describes exactly
+those declarations for ``--help`` and the README, one line each from :data:`DESCRIPTIONS` (the
+environments' own keys) or from the safety filter's specs (the shared layout keys).
+"""
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+from rcbf_ros.envs import ENVS
+from rcbf_ros.params import find_config, load_params
+from rcbf_ros.ros.filter_logic import FILTER_PARAMETERS
+from rcbf_ros.ros.interface import ParameterSpec, type_of
+
+DEFAULT_SYSTEM = 'unicycle'
+
+DESCRIPTIONS: dict[str, str] = {
+    'dt': 'integration step (s)',
+    'max_steps': 'steps per episode before it is truncated',
+    'goal': 'goal position [x, y] (m)',
+    'goal_radius': 'the episode ends with the goal reward within this distance (m)',
+    'goal_reward': 'reward for reaching the goal',
+    'start': 'start state (unicycle [x, y, theta]; pvtol [x1, x2], level hover)',
+    'random_start': 'start among the packaged start points with a random heading',
+    'layout': 'fixed (obstacles.* here) or random (a seeded transfer layout per reset)',
+    'layout_seed': '>= 0 pins one random layout (-1: a new one per reset)',
+    'operator_band': 'true band |x1 - x_h| the operator keeps to (the filter adds a margin)',
+    'operator_noise': "std of the operator's motion noise per sqrt(s)",
+    'attitude_error_gain': 'gain of the attitude-tracking error on theta_dot',
+    'initial_positions': 'initial positions of the five cars (m)',
+    'initial_velocity': 'initial velocity of cars 1, 2, 3, 5 (m/s)',
+    'initial_velocity_car4': 'initial velocity of car 4 (m/s)',
+    'collision_gap': 'true least gap between two cars (m)',
+    'velocity_noise': "std of one draw added to every car's initial velocity (m/s)",
+    'disturbance_gain': 'unknown input gain d_i of cars 1, 2, 3, 5',
+    'reward_scale': 'reward = -reward_scale ||u||^2',
+    'acceleration': "the nominal controller's constant acceleration of car 4 (m/s^2)",
+}
+"""One line per key of the environments and nominal controllers in the packaged configs."""
+
+
+def _description(name: str) -> tuple[str, str | None]:
+    """(one line, declared type or None) of a packaged key."""
+    if name in DESCRIPTIONS:
+        return DESCRIPTIONS[name], None
+    for spec in FILTER_PARAMETERS:
+        if spec.matches(name):
+            return spec.description, None if spec.type == 'any' else spec.type
+    raise KeyError(name)
+
+
+def packaged_parameters(system: str, section: str) -> dict[str, Any]:
+    """The keys a node declares from the packaged params file of ``system`` (``/**`` and
+    ``section``; ``system`` itself and empty values left out), with their values.
+
+    Raises:
+        ValueError: naming ``system`` when it is not a packaged system.
+    """
+    if system not in ENVS:
+        raise ValueError(f'system: expected one of {sorted(ENVS)}, got {system!r}')
+    values = load_params(find_config(system), section)
+    values.pop('system', None)
+    return {name: value for name, value in values.items()
+            if value is not None and value != []}
+
+
+def packaged_parameter_specs(system: str, section: str,
+                             skip: Sequence[str] = ()) -> tuple[ParameterSpec, ...]:
+    """One spec per key :func:`declare_with_packaged_defaults` declares for ``system``
+    (besides ``skip``: keys the node declares itself)."""
+    specs = [ParameterSpec('system', DEFAULT_SYSTEM, 'string',
+                           f'the simulated system: {", ".join(sorted(ENVS))} (the other '
+                           'defaults below are those of its config/<system>.yaml)')]
+    for name, value in packaged_parameters(system, section).items():
+        if name in skip:
+            continue
+        description, declared = _description(name)
+        specs.append(ParameterSpec(name, value, declared or type_of(value), description))
+    return tuple(specs)
+
+
+def system_from_argv(argv: Sequence[str]) -> str:
+    """The ``system`` a command line sets with ``-p system:=...`` (else the default)."""
+    from rcbf_ros.ros.dds.arguments import parse_ros_arguments, RosArgumentError
+    try:
+        value = parse_ros_arguments(argv).parameters.get('system', DEFAULT_SYSTEM)
+    except RosArgumentError:
+        return DEFAULT_SYSTEM
+    return str(value) if str(value) in ENVS else DEFAULT_SYSTEM
+
+
+def declare_with_packaged_defaults(node: Any, section: str) -> dict[str, Any]:
+    """Declare ``system`` and every key of the packaged ``config/<system>.yaml`` for ``section``.
+
+    Overrides given on the command line or in ``--params-file`` were already declared by the
+    node (``automatically_declare_parameters_from_overrides``) and win; the packaged file
+    supplies the rest. Returns every declared parameter as a flat dict.
+
+    Raises:
+        ValueError: naming ``system`` when it is not a packaged system.
+    """
+    if not node.has_parameter('system'):
+        node.declare_parameter('system', DEFAULT_SYSTEM)
+    system = str(node.get_parameter('system').value)
+    for name, value in packaged_parameters(system, section).items():
+        if not node.has_parameter(name):
+            node.declare_parameter(name, value)
+    return {name: _plain(p.value)
+            for name, p in node.get_parameters_by_prefix('').items()}
+
+
+def _plain(value: Any) -> Any:
+    """rclpy may hand arrays back as ``array.array``; the envs take lists."""
+    if isinstance(value, (str, bytes, bool, int, float)) or value is None:
+        return value
+    try:
+        return list(value)
+    except TypeError:
+        return value

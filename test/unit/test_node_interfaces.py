@@ -1,0 +1,171 @@
+"""Every node's interface: ``--help`` / ``-h`` without starting anything, the parameter specs
+against what the node really declares, and the README's tables against the generated ones."""
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+import subprocess
+import sys
+from typing import Any, Callable
+
+import pytest
+
+from rcbf_ros.ros import interface_doc
+from rcbf_ros.ros.interface import help_text, NodeInterface, resolve, wants_help
+
+REPO = Path(__file__).resolve().parents[2]
+UNICYCLE = str(REPO / 'config' / 'unicycle.yaml')
+MODULES = [module for module, _ in interface_doc.NODES]
+
+
+def _console_scripts() -> dict[str, str]:
+    """console script -> module of every node in setup.py."""
+    text = (REPO / 'setup.py').read_text()
+    scripts = {}
+    for line in text.splitlines():
+        line = line.strip().strip("',")
+        if ' = ' in line and ':main' in line:
+            name, target = line.split(' = ')
+            scripts[name] = target.split(':')[0]
+    return {name: module for name, module in scripts.items() if module in MODULES}
+
+
+def test_every_node_console_script_has_an_interface():
+    assert sorted(_console_scripts().values()) == sorted(MODULES)
+
+
+def test_help_words_are_found_outside_ros_args_only():
+    assert wants_help(['node', '--help']) and wants_help(['node', '-h'])
+    assert wants_help(['node', '--ros-args', '-p', 'a:=1', '--', '-h'])
+    assert not wants_help(['node', '--ros-args', '-p', 'a:=1'])
+    assert not wants_help(['--help'])                       # argv[0] is the program
+    assert not wants_help(['node', '--ros-args', '-r', '-h:=x'])
+
+
+@pytest.fixture
+def no_participant(monkeypatch):
+    """Any attempt to join DDS fails the test."""
+    from rcbf_ros.ros.dds import context
+
+    def refuse(*_args: Any, **_kwargs: Any) -> None:
+        raise AssertionError('a DDS participant was created')
+    monkeypatch.setattr(context, '_create_participant', refuse)
+    monkeypatch.setattr(context.Context, 'init', refuse)
+
+
+@pytest.mark.parametrize('module', MODULES)
+@pytest.mark.parametrize('flag', ['--help', '-h'])
+def test_help_lists_every_parameter_and_starts_nothing(module, flag, no_participant, capsys):
+    node = importlib.import_module(module)
+    argv = [module.rsplit('.', 1)[-1], flag]
+    assert node.main(argv) == 0
+    out, err = capsys.readouterr()
+    assert err == ''
+    interface = resolve(getattr(node, dict(interface_doc.NODES)[module]), argv)
+    assert out == help_text(interface)
+    for spec in interface.parameters:
+        assert f'\n  {spec.name}  ({spec.type}, default ' in out, spec.name
+    for topic in interface.topics:
+        assert f' {topic.name} ' in out, topic.name
+
+
+def test_help_of_a_console_script_process_exits_0_at_once():
+    result = subprocess.run([sys.executable, '-m', 'rcbf_ros.ros.node_main',
+                             'rcbf_ros.ros.safety_filter_node', '--help'],
+                            cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert (result.returncode, result.stderr) == (0, ''), result.stderr
+    assert result.stdout.startswith('usage: safety_filter ')
+    assert '\n  state_type  (string, default array)\n' in result.stdout
+
+
+# --- the specs are what the nodes declare -------------------------------------------------------
+
+def _declared(monkeypatch, ros_domain_id: int, make: Callable[[], Any],
+              args: list[str]) -> dict[str, Any]:
+    """name -> default of every parameter a node declares while it is built (it may then
+    refuse to start, e.g. without a policy file: the declarations are what counts)."""
+    from rcbf_ros.ros.dds import rclpy_compat as rclpy
+    from rcbf_ros.ros.dds.node import Node
+    declared: dict[str, Any] = {}
+    original = Node.declare_parameter
+
+    def record(self: Any, name: str, value: Any = None, *rest: Any, **kwargs: Any) -> Any:
+        declared[name] = value
+        return original(self, name, value, *rest, **kwargs)
+    monkeypatch.setattr(Node, 'declare_parameter', record)
+    rclpy.init(args=['node', '--ros-args', *args], domain_id=ros_domain_id)
+    node = None
+    try:
+        node = make()
+    except (ValueError, OSError):
+        pass
+    finally:
+        if node is not None:
+            if hasattr(node, 'close'):
+                node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return declared
+
+
+def _cases(tmp_path: Path) -> list[tuple[str, Callable[[], Any], list[str]]]:
+    from rcbf_ros.ros.learner_node import LearnerNode
+    from rcbf_ros.ros.policy_node import PolicyNode
+    from rcbf_ros.ros.recorder_node import RecorderNode
+    from rcbf_ros.ros.replay_node import ReplayNode
+    from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
+    from rcbf_ros.ros.scene_node import SceneNode
+    from sim_nodes.nominal_controller_node import NominalControllerNode
+    from sim_nodes.simulator_node import SimulatorNode
+    return [
+        ('rcbf_ros.ros.safety_filter_node', SafetyFilterNode,
+         ['--params-file', UNICYCLE, '-r', '__node:=safety_filter']),
+        ('sim_nodes.simulator_node', SimulatorNode, []),
+        ('sim_nodes.nominal_controller_node', NominalControllerNode, []),
+        ('rcbf_ros.ros.learner_node', LearnerNode, ['-p', f'out_dir:={tmp_path / "learner"}']),
+        ('rcbf_ros.ros.policy_node', PolicyNode, []),
+        ('rcbf_ros.ros.recorder_node', RecorderNode, ['-p', f'output:={tmp_path / "bag"}']),
+        ('rcbf_ros.ros.replay_node', ReplayNode, []),
+        ('rcbf_ros.ros.scene_node', SceneNode,
+         ['--params-file', UNICYCLE, '-r', '__node:=scene_markers']),
+    ]
+
+
+def test_every_declared_parameter_has_its_spec_and_every_spec_is_declared(
+        monkeypatch, ros_domain_id, tmp_path):
+    for module, make, args in _cases(tmp_path):
+        node = importlib.import_module(module)
+        interface: NodeInterface = resolve(getattr(node, dict(interface_doc.NODES)[module]),
+                                           [module])
+        declared = _declared(monkeypatch, ros_domain_id, make, args)
+        monkeypatch.undo()
+        assert declared, module
+        overridden = {word.split(':=')[0] for word in args if ':=' in word}
+        for name, value in declared.items():
+            spec = interface.spec(name)
+            assert spec is not None, f'{module}: {name} is declared but has no spec'
+            if spec.default is not None and name not in overridden:
+                assert value == spec.default, (module, name, value, spec.default)
+        always = module == 'rcbf_ros.ros.safety_filter_node'  # declares its filter keys unset
+        for spec in interface.parameters:
+            if spec.pattern or (spec.default is None and not always):
+                continue  # declared when given (a params file, -p)
+            assert spec.name in declared, f'{module}: {spec.name} has a spec, is not declared'
+
+
+# --- the README -------------------------------------------------------------------------------
+
+def test_the_readme_interface_section_is_the_generated_one():
+    assert interface_doc.main(['--check', str(REPO / 'README.md')]) == 0, (
+        'run python -m rcbf_ros.ros.interface_doc --write README.md')
+
+
+def test_a_stale_readme_section_is_reported(tmp_path, capsys):
+    readme = tmp_path / 'README.md'
+    readme.write_text(f'intro\n{interface_doc.BEGIN}\nold table\n{interface_doc.END}\nrest\n')
+    assert interface_doc.main(['--check', str(readme)]) == 1
+    assert 'out of date' in capsys.readouterr().err
+    assert interface_doc.main(['--write', str(readme)]) == 0
+    assert interface_doc.main(['--check', str(readme)]) == 0
+    text = readme.read_text()
+    assert text.startswith('intro\n') and text.endswith(f'{interface_doc.END}\nrest\n')
