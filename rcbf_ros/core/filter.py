@@ -1,10 +1,16 @@
 """Per-step RCBF safety filter: OSQP set up once, ``update()`` + warm-started solve per call.
 
 Given a state x, a proposal u_RL and (optionally) a disturbance box mean +/- k_c std, returns
-u* = u_RL + u_S with u_S from the RCBF-QP built by :meth:`RCBFProblem.qp` (the same builder the
-learner's differentiable layer uses). The sparsity pattern of the constraint matrix is fixed at
+u* = u_RL + u_S with u_S from the RCBF-QP of :meth:`RCBFProblem.qp` (the builder the learner's
+differentiable layer uses). The sparsity pattern of the constraint matrix is fixed at
 construction (dense RCBF rows, one entry per actuator-limit row) so that every call is
 ``OSQP.update(Ax=, u=)`` + ``solve()``.
+
+The constraint assembly (barrier terms, then the QP rows) takes one of three paths, chosen at
+construction by :func:`select_assembly`: the closed form in numpy
+(:mod:`rcbf_ros.core.lie_closed_form`, for the built-in systems and barrier families), the
+autograd path through :meth:`RCBFProblem.qp` (any other system or family), or that path traced
+and compiled (``compile_assembly``). All three give the same QP data (tested).
 
 The invariant (checked on every call, whatever the solver reports): the returned action is
 either
@@ -45,6 +51,7 @@ import scipy.sparse as sp
 import torch
 
 from rcbf_ros.core.diffqp import solve_qp_batch_full
+from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, NumpyAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
 
@@ -225,6 +232,48 @@ def compiled_assembly(problem: RCBFProblem, *, checks: int = 8, seed: int = 0) -
     return compiled
 
 
+def _on_numpy(assembly: Assembly) -> NumpyAssembly:
+    """A torch assembly of one state with numpy inputs and outputs."""
+
+    def assemble(x: np.ndarray, u: np.ndarray, mean: np.ndarray, std: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        h, g_matrix, upper = assembly(*(torch.from_numpy(a).unsqueeze(0)
+                                        for a in (x, u, mean, std)))
+        return h[0].numpy(), g_matrix[0].numpy(), upper[0].numpy()
+
+    return assemble
+
+
+QUIET_BOUND = 1e50
+"""Input bounds up to this keep every closed-form product far from float64 overflow; beyond it
+the closed-form assembly runs with numpy's overflow warnings off (inf and NaN are refused
+after the assembly either way, as on the torch paths)."""
+
+
+def _quiet(assembly: NumpyAssembly) -> NumpyAssembly:
+    """``assembly`` with numpy's floating-point warnings off (costs microseconds per call)."""
+
+    def assemble(x: np.ndarray, u: np.ndarray, mean: np.ndarray, std: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        with np.errstate(all='ignore'):
+            return assembly(x, u, mean, std)
+
+    return assemble
+
+
+def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
+                    closed_form: bool = True) -> tuple[str, NumpyAssembly]:
+    """The filter's constraint assembly and its name: ``compiled`` when asked for, else
+    ``closed_form`` where the problem has one (:meth:`ClosedFormAssembly.from_problem` decides)
+    and ``closed_form`` is on, else ``autograd``."""
+    if compile_assembly:
+        return 'compiled', _on_numpy(compiled_assembly(problem))
+    fast = ClosedFormAssembly.from_problem(problem) if closed_form else None
+    if fast is not None:
+        return 'closed_form', fast
+    return 'autograd', _on_numpy(eager_assembly(problem))
+
+
 OSQP_EPS = 1e-9
 """Default OSQP absolute and relative tolerance, of this class and of the safety_filter node
 (one value, so the node and the in-process trainer take the same actions)."""
@@ -240,7 +289,7 @@ class SafetyFilter:
                  max_iter: int = OSQP_MAX_ITER,
                  polish: bool = False, fallback: bool = True,
                  compile_assembly: bool = False, slack_tolerance: float | None = None,
-                 input_bounds: InputBounds | None = None) -> None:
+                 input_bounds: InputBounds | None = None, closed_form: bool = True) -> None:
         """Set OSQP up once with the fixed sparsity pattern.
 
         Args:
@@ -260,19 +309,22 @@ class SafetyFilter:
             compile_assembly: trace the constraint assembly (autograd through the cascades
                 included) into one flat graph and compile it (see :func:`compiled_assembly`):
                 several times faster per call for cascaded barriers, at a one-off compile of
-                seconds to tens of seconds at construction.
+                seconds to tens of seconds at construction. Not needed for the built-in systems
+                and barriers, whose closed form is faster still.
             slack_tolerance: the most slack the returned action may need in any RCBF row;
                 beyond it the fail-safe is returned (None: return the QP's best effort and
                 report the slack; the solver's answer is checked either way).
             input_bounds: magnitude bounds of the inputs (default :class:`InputBounds`).
+            closed_form: assemble in closed form where the problem has one (see
+                :func:`select_assembly`; False: the autograd path, as for any other problem).
 
         Raises:
             ValueError: naming ``fail_safe_action`` (wrong length, not finite, outside the
                 limits) or ``slack_tolerance`` (negative or not finite).
         """
         self.fallback = fallback
-        self._assemble = (compiled_assembly(problem) if compile_assembly
-                          else eager_assembly(problem))
+        self.assembly, self._assemble = select_assembly(
+            problem, compile_assembly=compile_assembly, closed_form=closed_form)
         self.problem = problem
         system = problem.system
         self.n_x, self.n_u = system.n_x, system.n_u
@@ -291,6 +343,10 @@ class SafetyFilter:
                              f'got {slack_tolerance!r}')
         self.slack_tolerance = slack_tolerance
         self.input_bounds = InputBounds() if input_bounds is None else input_bounds
+        bounds = self.input_bounds
+        if self.assembly == 'closed_form' and max(bounds.state, bounds.command,
+                                                  bounds.disturbance) > QUIET_BOUND:
+            self._assemble = _quiet(self._assemble)
         action = np.zeros(self.n_u) if fail_safe_action is None else _vector(
             'fail_safe_action', fail_safe_action, self.n_u)
         if not np.all(np.isfinite(action)):
@@ -358,11 +414,7 @@ class SafetyFilter:
         # Clip before the QP: its rows are then written at a command the plant can take.
         u_rl_applied = np.clip(u, self._u_min, self._u_max)
         clipped = bool(np.any(u_rl_applied != u))
-        h_t, g_t, upper_t = self._assemble(*(torch.from_numpy(a).unsqueeze(0)
-                                             for a in (x, u_rl_applied, mu, sd)))
-        g_matrix = g_t[0].numpy()
-        upper = upper_t[0].numpy()
-        h_values = h_t[0].numpy()
+        h_values, g_matrix, upper = self._assemble(x, u_rl_applied, mu, sd)
         for name, data in (('barrier values', h_values), ('constraint rows', g_matrix),
                            ('constraint bounds', upper)):
             if not np.all(np.isfinite(data)) or np.max(np.abs(data), initial=0.0) > QP_DATA_LIMIT:
