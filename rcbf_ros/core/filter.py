@@ -150,6 +150,9 @@ def _vector(name: str, value: object, size: int) -> np.ndarray:
 
 def _bounded(name: str, array: np.ndarray, bound: float) -> np.ndarray:
     """``array`` when it is finite and within +/- ``bound``; else :class:`_Refused`."""
+    # One reduction when the array passes: max propagates NaN, and NaN and inf fail the <=.
+    if not array.size or np.abs(array).max() <= bound:
+        return array
     if not np.all(np.isfinite(array)):
         raise _Refused(f'{name}: contains NaN or inf')
     worst = float(np.max(np.abs(array))) if array.size else 0.0
@@ -337,6 +340,8 @@ class SafetyFilter:
         else:
             self._u_min = np.full(self.n_u, -np.inf)
             self._u_max = np.full(self.n_u, np.inf)
+        self._u_min_tolerated = self._u_min - LIMIT_TOLERANCE
+        self._u_max_tolerated = self._u_max + LIMIT_TOLERANCE
         if slack_tolerance is not None and not (math.isfinite(slack_tolerance)
                                                 and slack_tolerance >= 0):
             raise ValueError(f'slack_tolerance: must be a finite number >= 0, '
@@ -406,18 +411,18 @@ class SafetyFilter:
             _bounded('u_rl', u, bounds.command)
             _bounded('disturbance_mean', mu, bounds.disturbance)
             _bounded('disturbance_std', sd, bounds.disturbance)
-            if np.any(sd < 0):
+            if (sd < 0).any():
                 raise _Refused('disturbance_std: must be >= 0')
         except _Refused as refusal:
             return self._fail_safe(u, start, status='input_refused', reason=str(refusal))
 
         # Clip before the QP: its rows are then written at a command the plant can take.
-        u_rl_applied = np.clip(u, self._u_min, self._u_max)
-        clipped = bool(np.any(u_rl_applied != u))
+        u_rl_applied = u.clip(self._u_min, self._u_max)
+        clipped = bool((u_rl_applied != u).any())
         h_values, g_matrix, upper = self._assemble(x, u_rl_applied, mu, sd)
         for name, data in (('barrier values', h_values), ('constraint rows', g_matrix),
                            ('constraint bounds', upper)):
-            if not np.all(np.isfinite(data)) or np.max(np.abs(data), initial=0.0) > QP_DATA_LIMIT:
+            if not np.abs(data).max(initial=0.0) <= QP_DATA_LIMIT:  # NaN and inf fail too
                 return self._fail_safe(
                     u, start, status='input_refused', h=h_values, clipped=clipped,
                     reason=f'{name}: not finite or beyond {QP_DATA_LIMIT:.0e} at this input')
@@ -426,26 +431,25 @@ class SafetyFilter:
 
         def check(z: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float] | None:
             """The action of solution z and its row values, if z passes the check."""
-            if z is None or z.shape != (self.n_u + 1,) or not np.all(np.isfinite(z)):
+            if z is None or z.shape != (self.n_u + 1,) or not np.isfinite(z).all():
                 return None
             action = u_rl_applied + z[:self.n_u]
-            if np.any(action < self._u_min - LIMIT_TOLERANCE) or np.any(
-                    action > self._u_max + LIMIT_TOLERANCE):
+            if (action < self._u_min_tolerated).any() or (action > self._u_max_tolerated).any():
                 return None
-            action = np.clip(action, self._u_min, self._u_max)
+            action = action.clip(self._u_min, self._u_max)
             values = rows_upper + lg_h @ (action - u_rl_applied)
-            needed = max(0.0, -float(np.min(values, initial=0.0)))
+            needed = max(0.0, -float(values.min(initial=0.0)))
             # The solver's own eps must account for what the rows need: else the answer is
             # not the solution of this QP (a stale or garbage iterate).
             claimed = max(0.0, float(z[-1]))
-            scale = 1.0 + float(np.max(np.abs(rows_upper), initial=0.0))
+            scale = 1.0 + float(np.abs(rows_upper).max(initial=0.0))
             if needed > claimed + 1e-6 * scale:
                 return None
             return action, values, needed
 
         solve_start = time.perf_counter()
         status = 'solved'
-        if np.all(upper >= 0.0):
+        if (upper >= 0.0).all():
             # z = 0 is feasible, hence optimal (the objective's minimum): the proposal passes
             # through exactly, without a solve.
             z = np.zeros(self.n_u + 1)
