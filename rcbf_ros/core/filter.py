@@ -43,6 +43,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import math
 import time
+from types import SimpleNamespace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -277,6 +278,43 @@ def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
     return 'autograd', _on_numpy(eager_assembly(problem))
 
 
+class _DirectOSQP:
+    """An OSQP problem's per-call data path on the extension object ``osqp.OSQP`` wraps.
+
+    The same C calls with the same arguments as ``OSQP.update(Ax=, u=)``, ``solve()`` and
+    ``warm_start()``, without the wrapper's per-call bookkeeping (a derivative cache and an info
+    namespace built by reflection), which took longer than the update itself. Skipped with it:
+    the clamp of ``u`` to +/- OSQP_INFTY (1e30), a no-op for data within
+    :data:`QP_DATA_LIMIT`, which the filter checks before every update."""
+
+    def __init__(self, solver: osqp.OSQP) -> None:
+        self._ext = solver._solver
+
+    @staticmethod
+    def wrap(solver: osqp.OSQP) -> osqp.OSQP | _DirectOSQP:
+        """The direct path where the installed osqp has it, else ``solver`` itself."""
+        ext = getattr(solver, '_solver', None)
+        needed = ('update_data_vec', 'update_data_mat', 'solve', 'warm_start', 'info',
+                  'solution')
+        return _DirectOSQP(solver) if all(hasattr(ext, n) for n in needed) else solver
+
+    def update(self, *, Ax: np.ndarray, u: np.ndarray) -> None:
+        """New values of A's fixed pattern and of the upper bounds."""
+        self._ext.update_data_vec(q=None, l=None, u=u)
+        self._ext.update_data_mat(P_x=None, P_i=None, A_x=Ax, A_i=None)
+
+    def solve(self, raise_error: bool = False) -> SimpleNamespace:
+        """Solve; ``x`` is a copy of the iterate, ``info`` OSQP's (status_val, status, ...)."""
+        del raise_error  # never raises: the status is checked by the caller
+        self._ext.solve()
+        return SimpleNamespace(x=np.array(self._ext.solution.x, dtype=np.float64),
+                               info=self._ext.info)
+
+    def warm_start(self, x: np.ndarray | None = None, y: np.ndarray | None = None) -> None:
+        """Start the next solve from (x, y)."""
+        self._ext.warm_start(x, y)
+
+
 OSQP_EPS = 1e-9
 """Default OSQP absolute and relative tolerance, of this class and of the safety_filter node
 (one value, so the node and the in-process trainer take the same actions)."""
@@ -381,6 +419,7 @@ class SafetyFilter:
                            l=np.full(nc, -np.inf), u=np.ones(nc), verbose=False, polishing=polish,
                            eps_abs=eps_abs, eps_rel=eps_rel, max_iter=max_iter,
                            warm_starting=True)
+        self._solver = _DirectOSQP.wrap(self._solver)
         self._nc = nc
 
     def filter(self, state: Sequence[float], u_rl: Sequence[float],
