@@ -49,18 +49,17 @@ class ControlAffineSystem(Protocol):
 
 
 class DriftJet(NamedTuple):
-    """The drift, its first derivatives and the input matrix at one state (numpy float64).
+    """The drift, its Jacobian and the input matrix at one state (numpy float64).
 
     Enough for cascades of depth <= 2 over barriers with a constant Hessian (see
-    :mod:`rcbf_ros.core.lie_closed_form`): the gradient of (L_f + gamma_2)(L_f + gamma_1) h
-    needs f, J and the rate of J along f, nothing of higher order."""
+    :mod:`rcbf_ros.core.lie_closed_form`) for drifts whose Jacobian does not change along f:
+    sum_k f_k dJ/dx_k = 0, which holds for the three built-in systems (see each
+    ``closed_form_drift``; tested against autograd)."""
 
     f: np.ndarray
     """(n_x,) f(x)."""
     jacobian: np.ndarray
     """(n_x, n_x) J_ij = d f_i / d x_j."""
-    jacobian_rate: np.ndarray | None
-    """(n_x, n_x) sum_k f_k(x) dJ/dx_k, the rate of J along f (None: identically zero)."""
     g: np.ndarray
     """(n_x, n_u) g(x)."""
 
@@ -125,7 +124,8 @@ class Unicycle:
         ], dim=1)
 
     def closed_form_drift(self) -> DriftJetFunction:
-        """f = 0, J = 0 and g = [[cos th, 0], [sin th, 0], [0, 1]] at one state."""
+        """f = 0, J = 0 (so J does not change along f) and g = [[cos th, 0], [sin th, 0],
+        [0, 1]] at one state."""
         zero_f = _constant(np.zeros(3))
         zero_j = _constant(np.zeros((3, 3)))
 
@@ -135,7 +135,7 @@ class Unicycle:
             g[0, 0] = math.cos(theta)
             g[1, 0] = math.sin(theta)
             g[2, 1] = 1.0
-            return DriftJet(zero_f, zero_j, None, g)
+            return DriftJet(zero_f, zero_j, g)
 
         return jet
 
@@ -205,7 +205,7 @@ class CarFollowing:
     def closed_form_drift(self) -> DriftJetFunction:
         """f, J and g at one state. f is affine wherever no braking switch sits exactly at the
         state, so J is piecewise constant (the branch :meth:`nominal_accelerations` takes, as
-        autograd sees it) and its rate along f is zero."""
+        autograd sees it) and does not change along f."""
         # (car, car ahead, braking gap) of every car with a nominal controller
         followers = ((1, 0, self.brake_gap), (2, 1, self.brake_gap),
                      (4, 2, self.rear_brake_gap))
@@ -235,7 +235,7 @@ class CarFollowing:
                     jacobian[2 * me + 1, 2 * me] = k_b
                 else:
                     f[2 * me + 1] = track
-            return DriftJet(np.array(f), jacobian, None, g)
+            return DriftJet(np.array(f), jacobian, g)
 
         return jet
 
@@ -287,7 +287,7 @@ class PVTOL:
         """f, J and g at one state.
 
         J's only state-dependent entries, d(-sin th f, cos th f - 1)/d(th, f), depend on theta
-        and the thrust, whose drift entries are 0: the rate of J along f is zero."""
+        and the thrust, whose drift entries are 0: J does not change along f."""
         n_x, k_h = self.n_x, self.operator_gain
         base = np.zeros((n_x, n_x))
         base[0, 2] = base[1, 3] = 1.0
@@ -311,7 +311,7 @@ class PVTOL:
             jacobian[2, 5] = -sin
             jacobian[3, 4] = -sin * thrust
             jacobian[3, 5] = cos
-            return DriftJet(np.array(f), jacobian, None, g)
+            return DriftJet(np.array(f), jacobian, g)
 
         return jet
 

@@ -7,14 +7,17 @@ the definition the learner differentiates through; the tests hold the two equal.
 
 Every built-in base barrier except a look-ahead circle is a quadratic of the state,
 h(x) = c + a^T x + 1/2 x^T Q x (:class:`~rcbf_ros.core.barriers.QuadraticRows`). With J the
-Jacobian of f and R = sum_k f_k dJ/dx_k its rate along f (:class:`DriftJet`), the cascades
-h1 = L_f h + gamma_1 h and h2 = L_f h1 + gamma_2 h1 have the gradients
+Jacobian of f (:class:`DriftJet`), the cascades h1 = L_f h + gamma_1 h and
+h2 = L_f h1 + gamma_2 h1 have the gradients
 
     grad h   = a + Q x
     grad h1  = Q f + J^T grad h + gamma_1 grad h
     grad h2  = Q J f + J^T Q f + R^T grad h + gamma_1 Q f + J^T grad h1 + gamma_2 grad h1
 
-(the Hessian of h1 is Q J + J^T Q + sum_m (grad h)_m Hess f_m + gamma_1 Q, applied to f).
+(the Hessian of h1 is Q J + J^T Q + sum_m (grad h)_m Hess f_m + gamma_1 Q, applied to f), where
+R = sum_k f_k dJ/dx_k is the rate of J along f. R = 0 for the built-in systems (the drift jet
+test checks it against autograd), so the closed form leaves that term out; a system with R != 0
+would need it.
 A look-ahead circle, h = ||p - c||^2 - delta^2 with p = (x_i, x_j) + s l_p (cos th, sin th),
 has grad h = 2 (p - c) on (x_i, x_j) and 2 s l_p (p - c)^T (-sin th, cos th) on th; it is used
 uncascaded only, with the direction-of-travel switch of :func:`barrier_terms`.
@@ -94,39 +97,40 @@ class _QuadraticStack:
         self._n_x = n_x
         self._gamma1 = gammas[0]
         self._gamma2 = gammas[1]
-        self._gamma1_col = gammas[0][:, None]
-        self._gamma2_col = gammas[1][:, None]
+        # the gains repeated along each row (an elementwise product without broadcasting)
+        self._gamma1_rows = np.repeat(gammas[0][:, None], n_x, axis=1)
+        self._gamma2_rows = np.repeat(gammas[1][:, None], n_x, axis=1)
         # Row i's top level is level depth[i]: index into the levels stacked row-wise.
         self._select = None if np.all(depth == self.depth) else depth * k + np.arange(k)
 
     def __call__(self, x: np.ndarray, jet: DriftJet | None) -> tuple[np.ndarray, np.ndarray]:
-        """(h (k,), grad h (k, n_x)) at the top level of every row."""
+        """(h (k,), grad h (k, n_x)) at the top level of every row (the formulas of the module
+        docstring; ``.dot`` rather than ``@``: half the call overhead at these sizes)."""
         k, n_x = self.count, self._n_x
+        linear = self._linear
         if self.depth == 0:
-            qx = (x @ self._hessian_t).reshape(k, n_x)
-            grad = qx + self._linear
-            return self._constant + (self._linear + 0.5 * qx) @ x, grad
+            qx = x.dot(self._hessian_t).reshape(k, n_x)
+            return self._constant + (linear + 0.5 * qx).dot(x), qx + linear
         f, jacobian = jet.f, jet.jacobian
         if self.depth == 1:
-            qx, qf = (np.array((x, f)) @ self._hessian_t).reshape(2, k, n_x)
+            qx, qf = np.array((x, f)).dot(self._hessian_t).reshape(2, k, n_x)
         else:
-            qx, qf, qjf = (np.array((x, f, jacobian @ f)) @ self._hessian_t).reshape(3, k, n_x)
-        g0 = qx + self._linear
-        h0 = self._constant + (self._linear + 0.5 * qx) @ x
-        h1 = g0 @ f + self._gamma1 * h0
-        g1 = qf + g0 @ jacobian + self._gamma1_col * g0
+            qx, qf, qjf = np.array((x, f, jacobian.dot(f))).dot(self._hessian_t).reshape(
+                3, k, n_x)
+        g0 = qx + linear
+        h0 = self._constant + (linear + 0.5 * qx).dot(x)
+        h1 = g0.dot(f) + self._gamma1 * h0
+        g1 = qf + g0.dot(jacobian) + self._gamma1_rows * g0
         if self.depth == 1:
             levels_h, levels_g = (h0, h1), (g0, g1)
         else:
-            h2 = g1 @ f + self._gamma2 * h1
-            g2 = qjf + self._gamma1_col * qf + (qf + g1) @ jacobian + self._gamma2_col * g1
-            if jet.jacobian_rate is not None:
-                g2 = g2 + g0 @ jet.jacobian_rate
+            h2 = g1.dot(f) + self._gamma2 * h1
+            g2 = qjf + self._gamma1_rows * qf + (qf + g1).dot(jacobian) + self._gamma2_rows * g1
             levels_h, levels_g = (h0, h1, h2), (g0, g1, g2)
         if self._select is None:
             return levels_h[-1], levels_g[-1]
-        return (np.concatenate(levels_h)[self._select],
-                np.concatenate(levels_g)[self._select])
+        return (np.concatenate(levels_h).take(self._select),
+                np.concatenate(levels_g).take(self._select, axis=0))
 
 
 class _LookaheadCircles:
@@ -152,18 +156,18 @@ class _LookaheadCircles:
         dx = (values[self._i] + offset * cos) - self._cx
         dy = (values[self._j] + offset * sin) - self._cy
         h = dx * dx + dy * dy - self._delta_sq
-        grad = np.zeros((self.count, self._n_x))
-        grad[:, self._i] += 2.0 * dx
-        grad[:, self._j] += 2.0 * dy
-        grad[:, self._heading] += 2.0 * offset * (dy * cos - dx * sin)
-        return h, grad
+        grad_t = np.zeros((self._n_x, self.count))  # filled by state entry, returned as (k, n_x)
+        grad_t[self._i] += 2.0 * dx
+        grad_t[self._j] += 2.0 * dy
+        grad_t[self._heading] += (2.0 * offset) * (dy * cos - dx * sin)
+        return h, grad_t.T
 
     def __call__(self, values: list[float], u: np.ndarray | None
                  ) -> tuple[np.ndarray, np.ndarray]:
         """(h (k,), grad h (k, n_x)) at the point the proposal u chooses."""
         if self._speed is not None and u is not None and u[self._speed] < 0:
             h, grad = self._point(values, -1.0)
-            if np.all(h >= 0):
+            if (h >= 0).all():
                 return h, grad
         return self._point(values, 1.0)
 
@@ -234,14 +238,14 @@ class ClosedFormTerms:
             grad = np.concatenate([p[1] for p in parts])
             if self._order is not None:
                 h, grad = h[self._order], grad[self._order]
-        return NumpyTerms(h, grad, grad @ jet.f, grad @ jet.g)
+        return NumpyTerms(h, grad, grad.dot(jet.f), grad.dot(jet.g))
 
 
 def robust_margin(grad_h: np.ndarray, mean: np.ndarray, std: np.ndarray,
                   k_c: float) -> np.ndarray:
     """:func:`rcbf_ros.core.qp.robust_margin` at one state: grad_h (K, n_x), mean and std (n_x,)
     -> (K,) rho = grad_h mean - k_c |grad_h| std."""
-    return grad_h @ mean - k_c * (np.abs(grad_h) @ std)
+    return grad_h.dot(mean) - k_c * np.abs(grad_h).dot(std)
 
 
 class RCBFRows:
@@ -275,9 +279,9 @@ class RCBFRows:
                  u_rl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """h, lf_h, rho: (K,); lg_h: (K, m); u_rl: (m,) -> (G (nc, m + 1), right-hand side
         (nc,)), nc = K (+ 2 m with limits)."""
-        upper = lf_h + lg_h @ u_rl + self._alpha * h + rho
+        upper = lf_h + lg_h.dot(u_rl) + self._alpha * h + rho
         g_matrix = self._template.copy()
-        g_matrix[:self._k, :self._m] = -lg_h
+        np.negative(lg_h, out=g_matrix[:self._k, :self._m])
         if self._u_min is None:
             return g_matrix, upper
         return g_matrix, np.concatenate((upper, self._u_max - u_rl, u_rl - self._u_min))
