@@ -7,10 +7,10 @@ construction (dense RCBF rows, one entry per actuator-limit row) so that every c
 ``OSQP.update(Ax=, u=)`` + ``solve()``.
 
 The constraint assembly (barrier terms, then the QP rows) takes one of three paths, chosen at
-construction by :func:`select_assembly`: the closed form in numpy
-(:mod:`rcbf_ros.core.lie_closed_form`, for the built-in systems and barrier families), the
-autograd path through :meth:`RCBFProblem.qp` (any other system or family), or that path traced
-and compiled (``compile_assembly``). All three give the same QP data (tested).
+construction by :func:`select_assembly` (:attr:`SafetyFilter.assembly`): the closed form in
+numpy (:mod:`rcbf_ros.core.lie_closed_form`, for the built-in systems and barrier families), or
+the autograd path through :meth:`RCBFProblem.qp` (any other system or family), eager or traced
+and compiled (``compile_assembly``). All three give the same QP data to round-off (tested).
 
 The invariant (checked on every call, whatever the solver reports): the returned action is
 either
@@ -267,14 +267,16 @@ def _quiet(assembly: NumpyAssembly) -> NumpyAssembly:
 
 def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
                     closed_form: bool = True) -> tuple[str, NumpyAssembly]:
-    """The filter's constraint assembly and its name: ``compiled`` when asked for, else
+    """The filter's constraint assembly and its name.
+
     ``closed_form`` where the problem has one (:meth:`ClosedFormAssembly.from_problem` decides)
-    and ``closed_form`` is on, else ``autograd``."""
-    if compile_assembly:
-        return 'compiled', _on_numpy(compiled_assembly(problem))
+    and ``closed_form`` is on: the fastest, with nothing to compile. Otherwise the autograd
+    assembly, ``compiled`` with ``compile_assembly``, else ``autograd``."""
     fast = ClosedFormAssembly.from_problem(problem) if closed_form else None
     if fast is not None:
         return 'closed_form', fast
+    if compile_assembly:
+        return 'compiled', _on_numpy(compiled_assembly(problem))
     return 'autograd', _on_numpy(eager_assembly(problem))
 
 
@@ -347,25 +349,29 @@ class SafetyFilter:
             fallback: when OSQP does not converge or its answer fails the row check, solve the
                 same QP with the batched interior point of :mod:`rcbf_ros.core.diffqp` (status
                 ``solved_interior_point``) before resorting to the fail-safe action.
-            compile_assembly: trace the constraint assembly (autograd through the cascades
-                included) into one flat graph and compile it (see :func:`compiled_assembly`):
-                several times faster per call for cascaded barriers, at a one-off compile of
-                seconds to tens of seconds at construction. Not needed for the built-in systems
-                and barriers, whose closed form is faster still.
+            compile_assembly: where the autograd assembly is used (a system or barrier family
+                without a closed form, or ``closed_form=False``), trace it (autograd through
+                the cascades included) into one flat graph and compile it (see
+                :func:`compiled_assembly`): several times faster per call for cascaded
+                barriers, at a one-off compile of seconds to tens of seconds at construction.
+                No effect where the closed form is used (faster still).
             slack_tolerance: the most slack the returned action may need in any RCBF row;
                 beyond it the fail-safe is returned (None: return the QP's best effort and
                 report the slack; the solver's answer is checked either way).
             input_bounds: magnitude bounds of the inputs (default :class:`InputBounds`).
             closed_form: assemble in closed form where the problem has one (see
                 :func:`select_assembly`; False: the autograd path, as for any other problem).
+                :attr:`assembly` names the path taken.
 
         Raises:
             ValueError: naming ``fail_safe_action`` (wrong length, not finite, outside the
                 limits) or ``slack_tolerance`` (negative or not finite).
         """
         self.fallback = fallback
-        self.assembly, self._assemble = select_assembly(
+        assembly, self._assemble = select_assembly(
             problem, compile_assembly=compile_assembly, closed_form=closed_form)
+        self.assembly = assembly
+        """The constraint assembly's path: 'closed_form', 'autograd' or 'compiled'."""
         self.problem = problem
         system = problem.system
         self.n_x, self.n_u = system.n_x, system.n_u

@@ -358,6 +358,21 @@ def test_both_paths_give_the_same_safe_actions(system):
     assert active >= 5
 
 
+@pytest.mark.slow  # the compile takes seconds
+def test_compiling_is_for_the_autograd_path_only():
+    problem = filter_config_from_params(shipped('unicycle')).problem
+    assert SafetyFilter(problem, compile_assembly=True).assembly == 'closed_form'
+    compiled = SafetyFilter(problem, closed_form=False, compile_assembly=True)
+    assert compiled.assembly == 'compiled'
+    fast = SafetyFilter(problem)
+    rng = np.random.default_rng(10)
+    for _ in range(30):
+        x, u = random_state('unicycle', rng, 3), rng.uniform(-3.0, 3.0, 2)
+        a, b = fast.filter(x, u), compiled.filter(x, u)
+        assert_close(a.h, b.h, 'h')
+        np.testing.assert_allclose(a.u_safe, b.u_safe, atol=1e-6)
+
+
 def test_the_direct_osqp_calls_give_bit_identical_results(monkeypatch):
     problem = filter_config_from_params(shipped('pvtol')).problem
     direct = SafetyFilter(problem)
