@@ -396,6 +396,12 @@ class SafetyFilter:
         if self.assembly == 'closed_form' and max(bounds.state, bounds.command,
                                                   bounds.disturbance) > QUIET_BOUND:
             self._assemble = _quiet(self._assemble)
+        # [state, u_rl, mean, std] bounds elementwise (std also >= 0), for one check per call
+        n_x, n_u = self.n_x, self.n_u
+        self._inputs_high = np.concatenate((
+            np.full(n_x, bounds.state), np.full(n_u, bounds.command),
+            np.full(2 * n_x, bounds.disturbance)))
+        self._inputs_low = np.concatenate((-self._inputs_high[:-n_x], np.zeros(n_x)))
         action = np.zeros(self.n_u) if fail_safe_action is None else _vector(
             'fail_safe_action', fail_safe_action, self.n_u)
         if not np.all(np.isfinite(action)):
@@ -450,27 +456,33 @@ class SafetyFilter:
         u = _vector('u_rl', u_rl, self.n_u)
         mu = np.zeros(self.n_x) if mean is None else _vector('disturbance_mean', mean, self.n_x)
         sd = np.zeros(self.n_x) if std is None else _vector('disturbance_std', std, self.n_x)
-        bounds = self.input_bounds
-        try:
-            _bounded('state', x, bounds.state)
-            _bounded('u_rl', u, bounds.command)
-            _bounded('disturbance_mean', mu, bounds.disturbance)
-            _bounded('disturbance_std', sd, bounds.disturbance)
-            if (sd < 0).any():
-                raise _Refused('disturbance_std: must be >= 0')
-        except _Refused as refusal:
-            return self._fail_safe(u, start, status='input_refused', reason=str(refusal))
+        inputs = np.concatenate((x, u, mu, sd))
+        # Every check below at once (NaN fails both comparisons); only an input that fails it
+        # goes through them one by one, for the reason naming the field.
+        if not ((inputs >= self._inputs_low) & (inputs <= self._inputs_high)).all():
+            bounds = self.input_bounds
+            try:
+                _bounded('state', x, bounds.state)
+                _bounded('u_rl', u, bounds.command)
+                _bounded('disturbance_mean', mu, bounds.disturbance)
+                _bounded('disturbance_std', sd, bounds.disturbance)
+                if (sd < 0).any():
+                    raise _Refused('disturbance_std: must be >= 0')
+            except _Refused as refusal:
+                return self._fail_safe(u, start, status='input_refused', reason=str(refusal))
 
         # Clip before the QP: its rows are then written at a command the plant can take.
         u_rl_applied = u.clip(self._u_min, self._u_max)
         clipped = bool((u_rl_applied != u).any())
         h_values, g_matrix, upper = self._assemble(x, u_rl_applied, mu, sd)
-        for name, data in (('barrier values', h_values), ('constraint rows', g_matrix),
-                           ('constraint bounds', upper)):
-            if not np.abs(data).max(initial=0.0) <= QP_DATA_LIMIT:  # NaN and inf fail too
-                return self._fail_safe(
-                    u, start, status='input_refused', h=h_values, clipped=clipped,
-                    reason=f'{name}: not finite or beyond {QP_DATA_LIMIT:.0e} at this input')
+        everything = np.concatenate((h_values, g_matrix.ravel(), upper))
+        if not np.abs(everything).max(initial=0.0) <= QP_DATA_LIMIT:  # NaN and inf fail too
+            for name, data in (('barrier values', h_values), ('constraint rows', g_matrix),
+                               ('constraint bounds', upper)):
+                if not np.abs(data).max(initial=0.0) <= QP_DATA_LIMIT:
+                    return self._fail_safe(
+                        u, start, status='input_refused', h=h_values, clipped=clipped,
+                        reason=f'{name}: not finite or beyond {QP_DATA_LIMIT:.0e} at this input')
         lg_h = -g_matrix[:self.n_barriers, :self.n_u]
         rows_upper = upper[:self.n_barriers]
 
@@ -482,7 +494,7 @@ class SafetyFilter:
             if (action < self._u_min_tolerated).any() or (action > self._u_max_tolerated).any():
                 return None
             action = action.clip(self._u_min, self._u_max)
-            values = rows_upper + lg_h @ (action - u_rl_applied)
+            values = rows_upper + lg_h.dot(action - u_rl_applied)
             needed = max(0.0, -float(values.min(initial=0.0)))
             # The solver's own eps must account for what the rows need: else the answer is
             # not the solution of this QP (a stale or garbage iterate).
