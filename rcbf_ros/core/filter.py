@@ -422,6 +422,7 @@ class SafetyFilter:
             pattern[self.n_barriers + self.n_u + j, j] = True
         cols, rows = np.nonzero(pattern.T)  # column-major = CSC order
         self._rows, self._cols = rows, cols
+        self._pattern_index = rows * nz + cols  # A's entries in G.ravel(), CSC order
         a_matrix = sp.csc_matrix((np.ones(rows.size), (rows, cols)), shape=(nc, nz))
         a_matrix.sort_indices()
         diag = 2.0 * np.asarray(cost_weights(self.n_u, problem.slack_weight,
@@ -512,7 +513,7 @@ class SafetyFilter:
             z = np.zeros(self.n_u + 1)
             checked = check(z)
         else:
-            self._solver.update(Ax=g_matrix[self._rows, self._cols], u=upper)
+            self._solver.update(Ax=g_matrix.take(self._pattern_index), u=upper)
             result = self._solver.solve(raise_error=False)
             status_val = int(result.info.status_val)
             z = None if result.x is None else np.array(result.x, dtype=np.float64)
