@@ -17,10 +17,11 @@ filters in turn, so that they share the machine's load:
 
 Reported per path: the median and p99 of FilterResult.total_time_s over all calls, and the
 medians over the calls that passed the proposal through (every row holds at z = 0, no solve) and
-over those that ran OSQP. For the closed form, the call split in stages (assembly timed per call
-by wrapping it; solve = FilterResult.solve_time_s, i.e. OSQP update + solve + the row check, or
-the row check alone on a pass-through; the rest = input checks, clipping, the data check and
-the result). Then the solver alone against a new OSQP per call and qpth at batch 1, with the
+over those that ran OSQP (counted by wrapping its solve). For the closed form, the call split in
+stages: the assembly (timed per call by wrapping it); solve = FilterResult.solve_time_s, i.e.
+OSQP update + solve + the row check, or the row check alone on a pass-through, with OSQP's own
+C timers of update and solve; the rest = input checks, clipping, the data check and the result.
+Then the solver alone against a new OSQP per call and qpth at batch 1, with the
 accuracy of each against Clarabel.
 """
 from __future__ import annotations
@@ -47,6 +48,23 @@ PATHS = ('closed form', 'autograd', 'compiled')
 CAR_PROPOSAL = 5.0
 """|u| bound of the Car following proposals (its input is unbounded; the nominal controller
 accelerates at 5 m/s^2)."""
+PATHS_DIFFER = (
+    'What differs between the paths: only the constraint assembly (h, grad h, L_f h, L_g h, '
+    'the robust margin and the QP rows); the input checks, clipping, OSQP and the row check '
+    "are the same code. Closed form: numpy on one state, from each family's quadratic "
+    "coefficients (or the look-ahead circle's formula) and the system's f, J, g, no "
+    'warm-up. Autograd: RCBFProblem.qp in torch, one autograd pass per family (a double one '
+    'through each cascade), no warm-up. Compiled: that autograd graph traced and compiled at '
+    'construction (its seconds per system below). The QP data agree to round-off; OSQP '
+    "answers then agree to its tolerance (differences below), and a call near the row check's "
+    'threshold can go to the interior-point fallback on one path and not the other.')
+"""Printed with the tables."""
+STAGES = {'rest': 'input checks, clip, data check, result',
+          'assembly': 'constraint assembly (closed form)',
+          'solve': 'solve + row check (pass-through: the check at z = 0)',
+          'osqp update': 'of which OSQP update, C timer',
+          'osqp solve': 'of which OSQP solve, C timer'}
+"""The stages of a closed-form call (module docstring)."""
 REFERENCE_QPS = 300
 """QPs solved by the slow references (qpth, Clarabel)."""
 
@@ -138,6 +156,18 @@ class _TimedAssembly:
         return out
 
 
+class _CountedSolve:
+    """Wraps a filter's OSQP solve and counts its calls (a pass-through makes none)."""
+
+    def __init__(self, solver) -> None:
+        self.solve = solver.solve
+        self.calls = 0
+
+    def __call__(self, *args, **kwargs):
+        self.calls += 1
+        return self.solve(*args, **kwargs)
+
+
 def bench_paths(problem, states, proposals, mean, std) -> dict:
     """Every call on the three filters in turn; their times, stages and differences."""
     started = time.perf_counter()
@@ -151,31 +181,40 @@ def bench_paths(problem, states, proposals, mean, std) -> dict:
     assert compiled.assembly == 'compiled'
     timer = _TimedAssembly(filters['closed form']._assemble)
     filters['closed form']._assemble = timer
+    solves = {path: _CountedSolve(filt._solver) for path, filt in filters.items()}
+    for path, filt in filters.items():
+        filt._solver.solve = solves[path]
     totals = {path: [] for path in PATHS}
     passed = {path: [] for path in PATHS}
     solved = {path: [] for path in PATHS}
-    stages = {'assembly': [], 'solve': [], 'rest': []}
-    stages_pass = {'assembly': [], 'solve': [], 'rest': []}
+    # stage -> calls: all, pass-through, OSQP ran; OSQP's own C timers on the calls that ran it
+    stages = {stage: {'all': [], 'pass': [], 'osqp': []} for stage in STAGES}
+    iterations = []
+    osqp_info = filters['closed form']._solver._ext.info
     worst_action, worst_h = 0.0, 0.0
     for x, u in zip(states, proposals):
+        before = {path: counted.calls for path, counted in solves.items()}
         results = {path: filt.filter(x, u, mean, std) for path, filt in filters.items()}
+        ran = {path: solves[path].calls > before[path] for path in PATHS}
         for path, res in results.items():
             totals[path].append(res.total_time_s)
-            (solved if res.active else passed)[path].append(res.total_time_s)
+            (solved if ran[path] else passed)[path].append(res.total_time_s)
         fast = results['closed form']
         split = {'assembly': timer.last, 'solve': fast.solve_time_s,
                  'rest': fast.total_time_s - timer.last - fast.solve_time_s}
+        if ran['closed form']:
+            split.update({'osqp update': osqp_info.update_time,
+                          'osqp solve': osqp_info.solve_time})
+            iterations.append(osqp_info.iter)
         for stage, value in split.items():
-            stages[stage].append(value)
-            if not fast.active:
-                stages_pass[stage].append(value)
+            stages[stage]['all'].append(value)
+            stages[stage]['osqp' if ran['closed form'] else 'pass'].append(value)
         worst_action = max(worst_action, float(np.max(np.abs(
             fast.u_safe - results['autograd'].u_safe))))
         worst_h = max(worst_h, float(np.max(np.abs(fast.h - results['autograd'].h))))
     return {'totals': totals, 'passed': passed, 'solved': solved, 'stages': stages,
-            'stages_pass': stages_pass, 'compile_s': compile_s,
-            'worst_action': worst_action, 'worst_h': worst_h,
-            }
+            'iterations': iterations, 'compile_s': compile_s,
+            'worst_action': worst_action, 'worst_h': worst_h}
 
 
 def clarabel_solution(qp) -> np.ndarray:
@@ -242,8 +281,8 @@ def main() -> None:
     load_before = os.getloadavg()
     summary = ['| system | path | median us (all) | p99 us | median us, pass-through (n) '
                '| median us, OSQP ran (n) |', '|---|---|---:|---:|---:|---:|']
-    breakdown = ['| system | stage | median us, all calls | median us, pass-through |',
-                 '|---|---|---:|---:|']
+    breakdown = ['| system | stage | median us, all calls | pass-through | OSQP ran |',
+                 '|---|---|---:|---:|---:|']
     details = []
     for label, sampler, params in PROBLEMS:
         problem = filter_config_from_params(params()).problem
@@ -259,11 +298,13 @@ def main() -> None:
                 f'| {np.percentile(_us(totals), 99):.1f} '
                 f'| {_median(out["passed"][path])} ({len(out["passed"][path])}) '
                 f'| {_median(out["solved"][path])} ({len(out["solved"][path])}) |')
-        for stage, stage_name in (('rest', 'input checks, clip, data check, result'),
-                             ('assembly', 'constraint assembly (closed form)'),
-                             ('solve', 'solve + row check')):
-            breakdown.append(f'| {label} | {stage_name} | {_median(out["stages"][stage])} '
-                             f'| {_median(out["stages_pass"][stage])} |')
+        iterations = out['iterations']
+        for stage, stage_name in STAGES.items():
+            if stage == 'osqp solve' and iterations:
+                stage_name += f' ({np.median(iterations):.0f} iterations)'
+            times = out['stages'][stage]
+            breakdown.append(f'| {label} | {stage_name} | {_median(times["all"])} '
+                             f'| {_median(times["pass"])} | {_median(times["osqp"])} |')
         rows, accuracy = bench_solvers(problem, states, proposals, mean, std)
         details.append(
             f'\n**{label}** ({args.calls} calls; K = {problem.n_barriers} barrier rows; '
@@ -280,7 +321,8 @@ def main() -> None:
             f'after {", ".join(f"{v:.2f}" for v in load_after)} (2 cores).')
     table = '\n'.join(['Whole SafetyFilter.filter() call (FilterResult.total_time_s), '
                        f'{args.calls} calls per system:', '', *summary, '',
-                       'The closed-form call in stages:', '', *breakdown, '', load, *details])
+                       'The closed-form call in stages:', '', *breakdown, '', load, '',
+                       PATHS_DIFFER, *details])
     print(table)
     if not args.no_write:
         from _results import machine_line, write_section
