@@ -1,12 +1,13 @@
 """Per-step safety filter: the three constraint assemblies, and OSQP against the alternatives.
 
-    python benchmarks/bench_filter_step.py [--calls 2000] [--no-write]
+    python benchmarks/bench_filter_step.py [--calls 2000] [--rounds 4] [--no-write]
 
 The shipped problems (config/unicycle.yaml, car_following.yaml, pvtol.yaml, the safety_filter
 section), then the two problems of this benchmark's earlier runs (see PROBLEMS), at random
 states inside the safe set (every barrier >= 0), proposals uniform in the input box (Car
-following, unbounded: in [-5, 5]) and a disturbance box std 0.02. Every call is made on three
-filters in turn, so that they share the machine's load:
+following, unbounded: in [-5, 5]) and a disturbance box std 0.02. The calls go in --rounds
+blocks, each block through the three filters one after the other (consecutive calls on one
+filter, as when it filters continuously; the rounds spread the machine's load over the paths):
 
 - closed form: SafetyFilter's default for the built-in problems, the constraint assembly in
   numpy (rcbf_ros.core.lie_closed_form), no warm-up;
@@ -15,12 +16,15 @@ filters in turn, so that they share the machine's load:
 - compiled: closed_form=False, compile_assembly=True: the autograd assembly traced and
   compiled at construction.
 
-Reported per path: the median and p99 of FilterResult.total_time_s over all calls, and the
+Reported per path: the median and p99 of FilterResult.total_time_s over all calls, the
 medians over the calls that passed the proposal through (every row holds at z = 0, no solve) and
-over those that ran OSQP (counted by wrapping its solve). For the closed form, the call split in
-stages: the assembly (timed per call by wrapping it); solve = FilterResult.solve_time_s, i.e.
-OSQP update + solve + the row check, or the row check alone on a pass-through, with OSQP's own
-C timers of update and solve; the rest = input checks, clipping, the data check and the result.
+over those that ran OSQP (counted by wrapping its solve), and the median CPU time of the calling
+thread (time.thread_time: what the call itself consumed, less sensitive to the machine's load
+than the wall time, though cores shared with other work still slow it). For the closed form,
+the call split in stages: the assembly (timed per call by wrapping it); solve =
+FilterResult.solve_time_s, i.e. OSQP update + solve + the row check, or the row check alone on
+a pass-through, with OSQP's own C timers of update and solve; the rest = input checks,
+clipping, the data check and the result.
 Then the solver alone against a new OSQP per call and qpth at batch 1, with the
 accuracy of each against Clarabel.
 """
@@ -168,8 +172,9 @@ class _CountedSolve:
         return self.solve(*args, **kwargs)
 
 
-def bench_paths(problem, states, proposals, mean, std) -> dict:
-    """Every call on the three filters in turn; their times, stages and differences."""
+def bench_paths(problem, states, proposals, mean, std, rounds: int) -> dict:
+    """The calls in ``rounds`` blocks; each block on the three filters one after the other
+    (warm caches within a block, the load shared between paths across the rounds)."""
     started = time.perf_counter()
     compiled = SafetyFilter(problem, closed_form=False, compile_assembly=True)
     compile_s = time.perf_counter() - started
@@ -185,36 +190,41 @@ def bench_paths(problem, states, proposals, mean, std) -> dict:
     for path, filt in filters.items():
         filt._solver.solve = solves[path]
     totals = {path: [] for path in PATHS}
+    cpu = {path: [] for path in PATHS}
     passed = {path: [] for path in PATHS}
     solved = {path: [] for path in PATHS}
     # stage -> calls: all, pass-through, OSQP ran; OSQP's own C timers on the calls that ran it
     stages = {stage: {'all': [], 'pass': [], 'osqp': []} for stage in STAGES}
     iterations = []
     osqp_info = filters['closed form']._solver._ext.info
-    worst_action, worst_h = 0.0, 0.0
-    for x, u in zip(states, proposals):
-        before = {path: counted.calls for path, counted in solves.items()}
-        results = {path: filt.filter(x, u, mean, std) for path, filt in filters.items()}
-        ran = {path: solves[path].calls > before[path] for path in PATHS}
-        for path, res in results.items():
-            totals[path].append(res.total_time_s)
-            (solved if ran[path] else passed)[path].append(res.total_time_s)
-        fast = results['closed form']
-        split = {'assembly': timer.last, 'solve': fast.solve_time_s,
-                 'rest': fast.total_time_s - timer.last - fast.solve_time_s}
-        if ran['closed form']:
-            split.update({'osqp update': osqp_info.update_time,
-                          'osqp solve': osqp_info.solve_time})
-            iterations.append(osqp_info.iter)
-        for stage, value in split.items():
-            stages[stage]['all'].append(value)
-            stages[stage]['osqp' if ran['closed form'] else 'pass'].append(value)
-        worst_action = max(worst_action, float(np.max(np.abs(
-            fast.u_safe - results['autograd'].u_safe))))
-        worst_h = max(worst_h, float(np.max(np.abs(fast.h - results['autograd'].h))))
-    return {'totals': totals, 'passed': passed, 'solved': solved, 'stages': stages,
-            'iterations': iterations, 'compile_s': compile_s,
-            'worst_action': worst_action, 'worst_h': worst_h}
+    results = {path: [] for path in PATHS}
+    for block in np.array_split(np.arange(len(states)), rounds):
+        for path, filt in filters.items():
+            for i in block:
+                calls = solves[path].calls
+                cpu_start = time.thread_time()
+                res = filt.filter(states[i], proposals[i], mean, std)
+                cpu[path].append(time.thread_time() - cpu_start)
+                ran = solves[path].calls > calls
+                results[path].append(res)
+                totals[path].append(res.total_time_s)
+                (solved if ran else passed)[path].append(res.total_time_s)
+                if path != 'closed form':
+                    continue
+                split = {'assembly': timer.last, 'solve': res.solve_time_s,
+                         'rest': res.total_time_s - timer.last - res.solve_time_s}
+                if ran:
+                    split.update({'osqp update': osqp_info.update_time,
+                                  'osqp solve': osqp_info.solve_time})
+                    iterations.append(osqp_info.iter)
+                for stage, value in split.items():
+                    stages[stage]['all'].append(value)
+                    stages[stage]['osqp' if ran else 'pass'].append(value)
+    pairs = list(zip(results['closed form'], results['autograd']))
+    return {'totals': totals, 'cpu': cpu, 'passed': passed, 'solved': solved,
+            'stages': stages, 'iterations': iterations, 'compile_s': compile_s,
+            'worst_action': max(float(np.max(np.abs(a.u_safe - b.u_safe))) for a, b in pairs),
+            'worst_h': max(float(np.max(np.abs(a.h - b.h))) for a, b in pairs)}
 
 
 def clarabel_solution(qp) -> np.ndarray:
@@ -276,11 +286,13 @@ def bench_solvers(problem, states, proposals, mean, std) -> tuple[list, str]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--calls', type=int, default=2000)
+    parser.add_argument('--rounds', type=int, default=4,
+                        help='blocks of calls, each on the three filters in turn')
     parser.add_argument('--no-write', action='store_true', help='do not update RESULTS.md')
     args = parser.parse_args()
     load_before = os.getloadavg()
     summary = ['| system | path | median us (all) | p99 us | median us, pass-through (n) '
-               '| median us, OSQP ran (n) |', '|---|---|---:|---:|---:|---:|']
+               '| median us, OSQP ran (n) | median CPU us |', '|---|---|---:|---:|---:|---:|---:|']
     breakdown = ['| system | stage | median us, all calls | pass-through | OSQP ran |',
                  '|---|---|---:|---:|---:|']
     details = []
@@ -290,14 +302,15 @@ def main() -> None:
         states, proposals = random_inputs(sampler, problem, args.calls, rng)
         mean = np.zeros(problem.system.n_x)
         std = np.full(problem.system.n_x, 0.02)
-        out = bench_paths(problem, states, proposals, mean, std)
+        out = bench_paths(problem, states, proposals, mean, std, args.rounds)
         for path in PATHS:
             totals = out['totals'][path]
             summary.append(
                 f'| {label} | {path} | {_median(totals)} '
                 f'| {np.percentile(_us(totals), 99):.1f} '
                 f'| {_median(out["passed"][path])} ({len(out["passed"][path])}) '
-                f'| {_median(out["solved"][path])} ({len(out["solved"][path])}) |')
+                f'| {_median(out["solved"][path])} ({len(out["solved"][path])}) '
+                f'| {_median(out["cpu"][path])} |')
         iterations = out['iterations']
         for stage, stage_name in STAGES.items():
             if stage == 'osqp solve' and iterations:
