@@ -135,32 +135,36 @@ class _QuadraticStack:
 
 class _LookaheadCircles:
     """An uncascaded :class:`CircleObstacles` with a look-ahead point, and its direction-of-travel
-    switch (the point behind for a reversing proposal, when that point is clear)."""
+    switch (the point behind for a reversing proposal, when that point is clear).
+
+    With d = p - c (k, 2), grad h = d M, M = [[2 on x_i, -2 s l_p sin th on th],
+    [2 on x_j, 2 s l_p cos th on th]] (2, n_x): one product for every obstacle."""
 
     def __init__(self, family: CircleObstacles, n_x: int):
-        centers = np.array(family.centers, dtype=np.float64).reshape(-1, 2)
         delta = np.array(family.radii, dtype=np.float64) + family.margin
         self.count = family.count
-        self._cx, self._cy = centers[:, 0].copy(), centers[:, 1].copy()
+        self._centers = np.array(family.centers, dtype=np.float64).reshape(-1, 2)
         self._delta_sq = delta ** 2
         self._i, self._j = family.position_indices
         self._heading = family.heading_index
         self._lookahead = family.lookahead
         self._speed = family.speed_input
-        self._n_x = n_x
+        position = np.zeros((2, n_x))
+        position[0, self._i] += 2.0
+        position[1, self._j] += 2.0
+        position.setflags(write=False)
+        self._position = position  # M without the heading's column
 
     def _point(self, values: list[float], side: float) -> tuple[np.ndarray, np.ndarray]:
         theta = values[self._heading]
         cos, sin = math.cos(theta), math.sin(theta)
         offset = self._lookahead * side
-        dx = (values[self._i] + offset * cos) - self._cx
-        dy = (values[self._j] + offset * sin) - self._cy
-        h = dx * dx + dy * dy - self._delta_sq
-        grad_t = np.zeros((self._n_x, self.count))  # filled by state entry, returned as (k, n_x)
-        grad_t[self._i] += 2.0 * dx
-        grad_t[self._j] += 2.0 * dy
-        grad_t[self._heading] += (2.0 * offset) * (dy * cos - dx * sin)
-        return h, grad_t.T
+        d = (values[self._i] + offset * cos, values[self._j] + offset * sin) - self._centers
+        h = (d * d).sum(axis=1) - self._delta_sq
+        m = self._position.copy()
+        m[0, self._heading] += -2.0 * offset * sin
+        m[1, self._heading] += 2.0 * offset * cos
+        return h, d.dot(m)
 
     def __call__(self, values: list[float], u: np.ndarray | None
                  ) -> tuple[np.ndarray, np.ndarray]:
