@@ -399,14 +399,37 @@ def test_huge_inputs_within_wide_bounds_are_refused_without_numpy_warnings():
     assert result.fail_safe and result.status == 'input_refused'
 
 
-@pytest.mark.parametrize('value, refused', [
-    (1e6, None), (np.nextafter(1e6, np.inf), 'beyond the bound'), (np.nan, 'NaN or inf'),
-    (np.inf, 'NaN or inf'), (-np.inf, 'NaN or inf'), (-1e6, None)])
-def test_input_bounds_hold_exactly_at_the_bound(value, refused):
-    safety_filter = SafetyFilter(filter_config_from_params(shipped('unicycle')).problem)
-    result = safety_filter.filter([2.0, -2.5, 0.0], [0.0, 0.0], mean=[value, 0.0, 0.0])
+BOUND = 1e6
+
+
+def expected_refusal(field: str, value: float) -> str | None:
+    """The field-by-field rules: finite, then |value| <= bound, then (std only) >= 0."""
+    if not np.isfinite(value):
+        return 'NaN or inf'
+    if abs(value) > BOUND:
+        return 'beyond the bound'
+    if field == 'disturbance_std' and value < 0:
+        return 'must be >= 0'
+    return None
+
+
+@pytest.mark.parametrize('field', ['state', 'u_rl', 'disturbance_mean', 'disturbance_std'])
+@pytest.mark.parametrize('value', [BOUND, np.nextafter(BOUND, np.inf), -BOUND,
+                                   -np.nextafter(BOUND, np.inf), np.nan, np.inf, -np.inf,
+                                   -0.0, -1e-300])
+def test_input_checks_hold_exactly_at_their_edges(field, value):
+    # The one-comparison check of every input must accept exactly what the field-by-field
+    # checks accept (they give the reason).
+    safety_filter = SafetyFilter(filter_config_from_params(shipped('unicycle')).problem,
+                                 input_bounds=InputBounds(BOUND, BOUND, BOUND))
+    args = {'state': [2.0, -2.5, 0.0], 'u_rl': [0.0, 0.0], 'disturbance_mean': [0.0] * 3,
+            'disturbance_std': [0.0] * 3}
+    args[field][-1] = value
+    result = safety_filter.filter(args['state'], args['u_rl'], args['disturbance_mean'],
+                                  args['disturbance_std'])
+    refused = expected_refusal(field, value)
     if refused is None:
-        assert result.status != 'input_refused'
+        assert result.status != 'input_refused', result.reason
     else:
         assert result.status == 'input_refused'
-        assert result.reason.startswith('disturbance_mean:') and refused in result.reason
+        assert result.reason.startswith(f'{field}:') and refused in result.reason, result.reason
