@@ -69,6 +69,8 @@ STAGES = {'rest': 'input checks, clip, data check, result',
           'osqp update': 'of which OSQP update, C timer',
           'osqp solve': 'of which OSQP solve, C timer'}
 """The stages of a closed-form call (module docstring)."""
+TARGET_US = 50.0
+"""The per-call budget the closed form is measured against (median of all calls)."""
 REFERENCE_QPS = 300
 """QPs solved by the slow references (qpth, Clarabel)."""
 
@@ -296,6 +298,7 @@ def main() -> None:
     breakdown = ['| system | stage | median us, all calls | pass-through | OSQP ran |',
                  '|---|---|---:|---:|---:|']
     details = []
+    target = []
     for label, sampler, params in PROBLEMS:
         problem = filter_config_from_params(params()).problem
         rng = np.random.default_rng(0)
@@ -311,6 +314,8 @@ def main() -> None:
                 f'| {_median(out["passed"][path])} ({len(out["passed"][path])}) '
                 f'| {_median(out["solved"][path])} ({len(out["solved"][path])}) '
                 f'| {_median(out["cpu"][path])} |')
+        median = float(np.median(_us(out['totals']['closed form'])))
+        target.append(f'{label} {median:.1f} us ({"within" if median <= TARGET_US else "over"})')
         iterations = out['iterations']
         for stage, stage_name in STAGES.items():
             if stage == 'osqp solve' and iterations:
@@ -334,6 +339,8 @@ def main() -> None:
             f'after {", ".join(f"{v:.2f}" for v in load_after)} (2 cores).')
     table = '\n'.join(['Whole SafetyFilter.filter() call (FilterResult.total_time_s), '
                        f'{args.calls} calls per system:', '', *summary, '',
+                       f'Closed form against the {TARGET_US:.0f} us target (median of all '
+                       f'calls): {"; ".join(target)}.', '',
                        'The closed-form call in stages:', '', *breakdown, '', load, '',
                        PATHS_DIFFER, *details])
     print(table)
