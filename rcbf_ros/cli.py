@@ -54,7 +54,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help='episodes between checkpoints (a kill loses at most the episodes '
                              'since the last one; default %(default)s)')
     parser.add_argument('--compile-filter', action='store_true',
-                        help='compile the per-step constraint assembly (faster, slower start)')
+                        help='compile the per-step autograd constraint assembly of a system or '
+                             'barrier without a closed form (faster, slower start)')
     parser.add_argument('--threads', type=int, default=1,
                         help='torch threads (2 speeds SAC updates 1.2-1.7x on an idle 2-core '
                              'machine; 1 when runs or nodes share the cores)')

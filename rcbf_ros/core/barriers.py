@@ -19,6 +19,10 @@ Families here (all differentiable in torch):
 - :class:`Cascaded`         h* = L_f h + gamma h (paper, Car Following), applied recursively by
   :func:`cascade` for relative degree r >= 2: r - 1 applications.
 
+Every built-in family except a look-ahead :class:`CircleObstacles` is a quadratic polynomial of the
+state; ``quadratic_rows`` gives its coefficients (:class:`QuadraticRows`), from which
+:mod:`rcbf_ros.core.lie_closed_form` evaluates h, grad h and the cascades in closed form.
+
 The disturbance is accounted for only at the top level (the RCBF row): in the cascade the lower
 levels use the nominal drift f. This matches the paper's cascaded RCBFs, whose lower-level
 derivatives carry neither the input nor (for the systems here) the learned disturbance.
@@ -26,8 +30,9 @@ derivatives carry neither the input nor (for the systems here) the learned distu
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable, Sequence
+from typing import NamedTuple, Protocol, runtime_checkable, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -52,6 +57,34 @@ class BarrierFamily(Protocol):
 
 def _as_tensor(values: Sequence, like: Tensor) -> Tensor:
     return torch.as_tensor(values, dtype=like.dtype, device=like.device)
+
+
+class QuadraticRows(NamedTuple):
+    """k barriers that are quadratic polynomials of the state, exactly:
+    h_i(x) = c_i + a_i^T x + 1/2 x^T Q_i x, so grad h_i = a_i + Q_i x and the Hessian is Q_i."""
+
+    constant: np.ndarray
+    """(k,) c_i."""
+    linear: np.ndarray
+    """(k, n_x) a_i."""
+    hessian: np.ndarray
+    """(k, n_x, n_x) Q_i, symmetric."""
+
+
+def _zero_rows(k: int, n_x: int) -> QuadraticRows:
+    return QuadraticRows(np.zeros(k), np.zeros((k, n_x)), np.zeros((k, n_x, n_x)))
+
+
+def _add_square(rows: QuadraticRows, row: int, weight: float, i: int, j: int | None,
+                center: float) -> None:
+    """Add weight (x_i - x_j)^2 (j given) or weight (x_i - center)^2 to ``rows[row]``."""
+    if j is None:
+        rows.hessian[row, i, i] += 2.0 * weight
+        rows.linear[row, i] -= 2.0 * weight * center
+        rows.constant[row] += weight * center * center
+        return
+    for a, b, sign in ((i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)):
+        rows.hessian[row, a, b] += 2.0 * weight * sign
 
 
 @dataclass(frozen=True)
@@ -114,6 +147,25 @@ class CircleObstacles:
         centers = _as_tensor(self.centers, x)[index]
         delta = _as_tensor(self.radii, x)[index] + self.margin
         return ((self.point(x, side) - centers) ** 2).sum(-1) - delta ** 2
+
+    @property
+    def has_lookahead(self) -> bool:
+        """Whether the guarded point is offset along the heading (then h is not quadratic)."""
+        return self.heading_index is not None and self.lookahead != 0.0
+
+    def quadratic_rows(self, n_x: int) -> QuadraticRows | None:
+        """Coefficients of h_o = (x_i - c_o,x)^2 + (x_j - c_o,y)^2 - delta_o^2 (None with a
+        look-ahead point: then h involves cos and sin of the heading)."""
+        if self.has_lookahead:
+            return None
+        rows = _zero_rows(self.count, n_x)
+        i, j = self.position_indices
+        for o, ((cx, cy), radius) in enumerate(zip(self.centers, self.radii)):
+            _add_square(rows, o, 1.0, i, None, cx)
+            _add_square(rows, o, 1.0, j, None, cy)
+            delta = radius + self.margin
+            rows.constant[o] -= delta * delta
+        return rows
 
 
 @dataclass(frozen=True)
@@ -193,6 +245,23 @@ class BandBarrier:
         # index 0: the upper side, 1: the lower side
         return self.half_width - torch.where(index == 0, offset, -offset)
 
+    def quadratic_rows(self, n_x: int) -> QuadraticRows:
+        """Coefficients of delta^2 - (x_i - c)^2, or of the sides delta -/+ (x_i - c)."""
+        rows = _zero_rows(self.count, n_x)
+        i, j, delta = self.index, self.center_index, self.half_width
+        if self.form == 'quadratic':
+            rows.constant[0] = delta * delta
+            _add_square(rows, 0, -1.0, i, j, self.center)
+            return rows
+        for row, sign in ((0, -1.0), (1, 1.0)):  # h = delta + sign (x_i - c)
+            rows.linear[row, i] += sign
+            if j is None:
+                rows.constant[row] = delta - sign * self.center
+            else:
+                rows.constant[row] = delta
+                rows.linear[row, j] -= sign
+        return rows
+
 
 @dataclass(frozen=True)
 class PairGap:
@@ -218,6 +287,14 @@ class PairGap:
         xa = x.gather(1, pairs[:, :1]).squeeze(1)
         xb = x.gather(1, pairs[:, 1:]).squeeze(1)
         return 0.5 * ((xa - xb) ** 2 - self.delta ** 2)
+
+    def quadratic_rows(self, n_x: int) -> QuadraticRows:
+        """Coefficients of 1/2 (x_a - x_b)^2 - 1/2 delta^2."""
+        rows = _zero_rows(self.count, n_x)
+        for row, (a, b) in enumerate(self.pairs):
+            _add_square(rows, row, 0.5, a, b, 0.0)
+            rows.constant[row] = -0.5 * self.delta * self.delta
+        return rows
 
 
 @dataclass(frozen=True)
@@ -251,6 +328,15 @@ class HalfPlane:
         normals = _as_tensor(self.normals, x)[index]
         offsets = _as_tensor(self.offsets, x)[index]
         return (normals * x[:, list(self.indices)]).sum(-1) - offsets
+
+    def quadratic_rows(self, n_x: int) -> QuadraticRows:
+        """Coefficients of n_j^T x_S - b_j (linear: Q_j = 0)."""
+        rows = _zero_rows(self.count, n_x)
+        for row, (normal, offset) in enumerate(zip(self.normals, self.offsets)):
+            for index, weight in zip(self.indices, normal):
+                rows.linear[row, index] += weight
+            rows.constant[row] = -offset
+        return rows
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,8 @@ Keys (all optional except ``system``)::
     walls.nx / walls.ny / walls.offset: [floats], walls.gammas  (h = nx x + ny y - offset)
     disturbance.mean / disturbance.std: [n_x floats]: a static box (empty: zero / learned)
     fail_safe_action: [m floats]
-    compile_assembly: bool (compile the per-step constraint assembly, see core/filter.py)
+    compile_assembly: bool (compile the per-step autograd assembly of a system or barrier
+        without a closed form; see core/filter.py)
 """
 from __future__ import annotations
 
@@ -118,7 +119,8 @@ class FilterConfig:
     fail_safe_action: tuple[float, ...] | None
     """Action applied when filtering is impossible (None: zeros clipped to the limits)."""
     compile_assembly: bool = False
-    """Trace and compile the per-step constraint assembly (faster calls, slower start)."""
+    """Trace and compile the per-step autograd constraint assembly (faster calls, slower start);
+    no effect for the built-in systems and barriers, assembled in closed form."""
 
 
 def build_system(params: Mapping[str, Any]) -> ControlAffineSystem:

@@ -7,13 +7,20 @@ at B = 1 for the per-step filter and at B = minibatch for the differentiable lay
 
 A user's own system plugs in by implementing :class:`ControlAffineSystem` (``n_x``, ``n_u``,
 ``u_min``, ``u_max``, ``f``, ``g``) and naming it in YAML by dotted path (:func:`load_system`).
+
+The built-in systems also give f, its Jacobian and g in closed form for one state in numpy
+(:meth:`Unicycle.closed_form_drift` and the same on the others, returning a :class:`DriftJet`):
+the per-step filter's closed-form constraint assembly (:mod:`rcbf_ros.core.lie_closed_form`)
+uses them; the tests check them against autograd through ``f`` and ``g``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 import importlib
-from typing import Any, Mapping, Protocol, runtime_checkable
+import math
+from typing import Any, Callable, Mapping, NamedTuple, Protocol, runtime_checkable
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -39,6 +46,32 @@ class ControlAffineSystem(Protocol):
 
     def g(self, x: Tensor) -> Tensor:
         """Input matrix g(x). x: (B, n_x) -> (B, n_x, n_u)."""
+
+
+class DriftJet(NamedTuple):
+    """The drift, its Jacobian and the input matrix at one state (numpy float64).
+
+    Enough for cascades of depth <= 2 over barriers with a constant Hessian (see
+    :mod:`rcbf_ros.core.lie_closed_form`) for drifts whose Jacobian does not change along f:
+    sum_k f_k dJ/dx_k = 0, which holds for the three built-in systems (see each
+    ``closed_form_drift``; tested against autograd)."""
+
+    f: np.ndarray
+    """(n_x,) f(x)."""
+    jacobian: np.ndarray
+    """(n_x, n_x) J_ij = d f_i / d x_j."""
+    g: np.ndarray
+    """(n_x, n_u) g(x)."""
+
+
+DriftJetFunction = Callable[[np.ndarray], DriftJet]
+"""x: (n_x,) float64 -> :class:`DriftJet` at x."""
+
+
+def _constant(array: np.ndarray) -> np.ndarray:
+    """``array``, read-only (shared between calls)."""
+    array.setflags(write=False)
+    return array
 
 
 def step_euler(system: ControlAffineSystem, x: Tensor, u: Tensor, dt: float,
@@ -89,6 +122,22 @@ class Unicycle:
             torch.stack([torch.sin(theta), zeros], dim=-1),
             torch.stack([zeros, ones], dim=-1),
         ], dim=1)
+
+    def closed_form_drift(self) -> DriftJetFunction:
+        """f = 0, J = 0 (so J does not change along f) and g = [[cos th, 0], [sin th, 0],
+        [0, 1]] at one state."""
+        zero_f = _constant(np.zeros(3))
+        zero_j = _constant(np.zeros((3, 3)))
+
+        def jet(x: np.ndarray) -> DriftJet:
+            theta = float(x[2])
+            g = np.zeros((3, 2))
+            g[0, 0] = math.cos(theta)
+            g[1, 0] = math.sin(theta)
+            g[2, 1] = 1.0
+            return DriftJet(zero_f, zero_j, g)
+
+        return jet
 
 
 @dataclass(frozen=True)
@@ -153,6 +202,43 @@ class CarFollowing:
         out[:, 7, 0] = 1.0
         return out
 
+    def closed_form_drift(self) -> DriftJetFunction:
+        """f, J and g at one state. f is affine wherever no braking switch sits exactly at the
+        state, so J is piecewise constant (the branch :meth:`nominal_accelerations` takes, as
+        autograd sees it) and does not change along f."""
+        # (car, car ahead, braking gap) of every car with a nominal controller
+        followers = ((1, 0, self.brake_gap), (2, 1, self.brake_gap),
+                     (4, 2, self.rear_brake_gap))
+        base = np.zeros((10, 10))
+        for car in range(5):
+            base[2 * car, 2 * car + 1] = 1.0  # p_dot = v
+        for me, _, _ in followers:
+            base[2 * me + 1, 2 * me + 1] = -self.k_v
+        base = _constant(base)
+        g = np.zeros((10, 1))
+        g[7, 0] = 1.0
+        g = _constant(g)
+        v_des, k_v, k_b = self.v_des, self.k_v, self.k_b
+
+        def jet(x: np.ndarray) -> DriftJet:
+            values = x.tolist()
+            p, v = values[0::2], values[1::2]
+            f = [0.0] * 10
+            f[0::2] = v
+            jacobian = base.copy()
+            for me, ahead, gap in followers:
+                track = k_v * (v_des - v[me])
+                dp = p[ahead] - p[me]
+                if abs(dp) < gap:
+                    f[2 * me + 1] = track - k_b * dp
+                    jacobian[2 * me + 1, 2 * ahead] = -k_b
+                    jacobian[2 * me + 1, 2 * me] = k_b
+                else:
+                    f[2 * me + 1] = track
+            return DriftJet(np.array(f), jacobian, g)
+
+        return jet
+
 
 @dataclass(frozen=True)
 class PVTOL:
@@ -197,12 +283,48 @@ class PVTOL:
         out[:, 5, 1] = 1.0
         return out
 
+    def closed_form_drift(self) -> DriftJetFunction:
+        """f, J and g at one state.
+
+        J's only state-dependent entries, d(-sin th f, cos th f - 1)/d(th, f), depend on theta
+        and the thrust, whose drift entries are 0: J does not change along f."""
+        n_x, k_h = self.n_x, self.operator_gain
+        base = np.zeros((n_x, n_x))
+        base[0, 2] = base[1, 3] = 1.0
+        if self.with_operator:
+            base[6, 0], base[6, 6] = k_h, -k_h
+        base = _constant(base)
+        g = np.zeros((n_x, 2))
+        g[4, 0] = g[5, 1] = 1.0
+        g = _constant(g)
+        with_operator = self.with_operator
+
+        def jet(x: np.ndarray) -> DriftJet:
+            values = x.tolist()
+            theta, thrust = values[4], values[5]
+            sin, cos = math.sin(theta), math.cos(theta)
+            f = [values[2], values[3], -sin * thrust, cos * thrust - 1.0, 0.0, 0.0]
+            if with_operator:
+                f.append(k_h * (values[0] - values[6]))
+            jacobian = base.copy()
+            jacobian[2, 4] = -cos * thrust
+            jacobian[2, 5] = -sin
+            jacobian[3, 4] = -sin * thrust
+            jacobian[3, 5] = cos
+            return DriftJet(np.array(f), jacobian, g)
+
+        return jet
+
 
 BUILTIN_SYSTEMS: dict[str, type] = {
     'unicycle': Unicycle,
     'car_following': CarFollowing,
     'pvtol': PVTOL,
 }
+
+CLOSED_FORM_SYSTEMS: tuple[type, ...] = (Unicycle, CarFollowing, PVTOL)
+"""Systems whose ``closed_form_drift`` is exact, by exact type: a subclass may override f or g,
+so it keeps the autograd path."""
 
 
 def load_system(name: str, params: Mapping[str, Any] | None = None) -> ControlAffineSystem:

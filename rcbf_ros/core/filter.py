@@ -1,10 +1,16 @@
 """Per-step RCBF safety filter: OSQP set up once, ``update()`` + warm-started solve per call.
 
 Given a state x, a proposal u_RL and (optionally) a disturbance box mean +/- k_c std, returns
-u* = u_RL + u_S with u_S from the RCBF-QP built by :meth:`RCBFProblem.qp` (the same builder the
-learner's differentiable layer uses). The sparsity pattern of the constraint matrix is fixed at
+u* = u_RL + u_S with u_S from the RCBF-QP of :meth:`RCBFProblem.qp` (the builder the learner's
+differentiable layer uses). The sparsity pattern of the constraint matrix is fixed at
 construction (dense RCBF rows, one entry per actuator-limit row) so that every call is
 ``OSQP.update(Ax=, u=)`` + ``solve()``.
+
+The constraint assembly (barrier terms, then the QP rows) takes one of three paths, chosen at
+construction by :func:`select_assembly` (:attr:`SafetyFilter.assembly`): the closed form in
+numpy (:mod:`rcbf_ros.core.lie_closed_form`, for the built-in systems and barrier families), or
+the autograd path through :meth:`RCBFProblem.qp` (any other system or family), eager or traced
+and compiled (``compile_assembly``). All three give the same QP data to round-off (tested).
 
 The invariant (checked on every call, whatever the solver reports): the returned action is
 either
@@ -37,6 +43,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import math
 import time
+from types import SimpleNamespace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -45,6 +52,7 @@ import scipy.sparse as sp
 import torch
 
 from rcbf_ros.core.diffqp import solve_qp_batch_full
+from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, NumpyAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
 
@@ -143,6 +151,9 @@ def _vector(name: str, value: object, size: int) -> np.ndarray:
 
 def _bounded(name: str, array: np.ndarray, bound: float) -> np.ndarray:
     """``array`` when it is finite and within +/- ``bound``; else :class:`_Refused`."""
+    # One reduction when the array passes: max propagates NaN, and NaN and inf fail the <=.
+    if not array.size or np.abs(array).max() <= bound:
+        return array
     if not np.all(np.isfinite(array)):
         raise _Refused(f'{name}: contains NaN or inf')
     worst = float(np.max(np.abs(array))) if array.size else 0.0
@@ -225,6 +236,87 @@ def compiled_assembly(problem: RCBFProblem, *, checks: int = 8, seed: int = 0) -
     return compiled
 
 
+def _on_numpy(assembly: Assembly) -> NumpyAssembly:
+    """A torch assembly of one state with numpy inputs and outputs."""
+
+    def assemble(x: np.ndarray, u: np.ndarray, mean: np.ndarray, std: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        h, g_matrix, upper = assembly(*(torch.from_numpy(a).unsqueeze(0)
+                                        for a in (x, u, mean, std)))
+        return h[0].numpy(), g_matrix[0].numpy(), upper[0].numpy()
+
+    return assemble
+
+
+QUIET_BOUND = 1e50
+"""Input bounds up to this keep every closed-form product far from float64 overflow; beyond it
+the closed-form assembly runs with numpy's overflow warnings off (inf and NaN are refused
+after the assembly either way, as on the torch paths)."""
+
+
+def _quiet(assembly: NumpyAssembly) -> NumpyAssembly:
+    """``assembly`` with numpy's floating-point warnings off (costs microseconds per call)."""
+
+    def assemble(x: np.ndarray, u: np.ndarray, mean: np.ndarray, std: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        with np.errstate(all='ignore'):
+            return assembly(x, u, mean, std)
+
+    return assemble
+
+
+def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
+                    closed_form: bool = True) -> tuple[str, NumpyAssembly]:
+    """The filter's constraint assembly and its name.
+
+    ``closed_form`` where the problem has one (:meth:`ClosedFormAssembly.from_problem` decides)
+    and ``closed_form`` is on: the fastest, with nothing to compile. Otherwise the autograd
+    assembly, ``compiled`` with ``compile_assembly``, else ``autograd``."""
+    fast = ClosedFormAssembly.from_problem(problem) if closed_form else None
+    if fast is not None:
+        return 'closed_form', fast
+    if compile_assembly:
+        return 'compiled', _on_numpy(compiled_assembly(problem))
+    return 'autograd', _on_numpy(eager_assembly(problem))
+
+
+class _DirectOSQP:
+    """An OSQP problem's per-call data path on the extension object ``osqp.OSQP`` wraps.
+
+    The same C calls with the same arguments as ``OSQP.update(Ax=, u=)``, ``solve()`` and
+    ``warm_start()``, without the wrapper's per-call bookkeeping (a derivative cache and an info
+    namespace built by reflection), which took longer than the update itself. Skipped with it:
+    the clamp of ``u`` to +/- OSQP_INFTY (1e30), a no-op for data within
+    :data:`QP_DATA_LIMIT`, which the filter checks before every update."""
+
+    def __init__(self, solver: osqp.OSQP) -> None:
+        self._ext = solver._solver
+
+    @staticmethod
+    def wrap(solver: osqp.OSQP) -> osqp.OSQP | _DirectOSQP:
+        """The direct path where the installed osqp has it, else ``solver`` itself."""
+        ext = getattr(solver, '_solver', None)
+        needed = ('update_data_vec', 'update_data_mat', 'solve', 'warm_start', 'info',
+                  'solution')
+        return _DirectOSQP(solver) if all(hasattr(ext, n) for n in needed) else solver
+
+    def update(self, *, Ax: np.ndarray, u: np.ndarray) -> None:
+        """New values of A's fixed pattern and of the upper bounds."""
+        self._ext.update_data_vec(q=None, l=None, u=u)
+        self._ext.update_data_mat(P_x=None, P_i=None, A_x=Ax, A_i=None)
+
+    def solve(self, raise_error: bool = False) -> SimpleNamespace:
+        """Solve; ``x`` is a copy of the iterate, ``info`` OSQP's (status_val, status, ...)."""
+        del raise_error  # never raises: the status is checked by the caller
+        self._ext.solve()
+        return SimpleNamespace(x=np.array(self._ext.solution.x, dtype=np.float64),
+                               info=self._ext.info)
+
+    def warm_start(self, x: np.ndarray | None = None, y: np.ndarray | None = None) -> None:
+        """Start the next solve from (x, y)."""
+        self._ext.warm_start(x, y)
+
+
 OSQP_EPS = 1e-9
 """Default OSQP absolute and relative tolerance, of this class and of the safety_filter node
 (one value, so the node and the in-process trainer take the same actions)."""
@@ -240,7 +332,7 @@ class SafetyFilter:
                  max_iter: int = OSQP_MAX_ITER,
                  polish: bool = False, fallback: bool = True,
                  compile_assembly: bool = False, slack_tolerance: float | None = None,
-                 input_bounds: InputBounds | None = None) -> None:
+                 input_bounds: InputBounds | None = None, closed_form: bool = True) -> None:
         """Set OSQP up once with the fixed sparsity pattern.
 
         Args:
@@ -257,22 +349,29 @@ class SafetyFilter:
             fallback: when OSQP does not converge or its answer fails the row check, solve the
                 same QP with the batched interior point of :mod:`rcbf_ros.core.diffqp` (status
                 ``solved_interior_point``) before resorting to the fail-safe action.
-            compile_assembly: trace the constraint assembly (autograd through the cascades
-                included) into one flat graph and compile it (see :func:`compiled_assembly`):
-                several times faster per call for cascaded barriers, at a one-off compile of
-                seconds to tens of seconds at construction.
+            compile_assembly: where the autograd assembly is used (a system or barrier family
+                without a closed form, or ``closed_form=False``), trace it (autograd through
+                the cascades included) into one flat graph and compile it (see
+                :func:`compiled_assembly`): several times faster per call for cascaded
+                barriers, at a one-off compile of seconds to tens of seconds at construction.
+                No effect where the closed form is used (faster still).
             slack_tolerance: the most slack the returned action may need in any RCBF row;
                 beyond it the fail-safe is returned (None: return the QP's best effort and
                 report the slack; the solver's answer is checked either way).
             input_bounds: magnitude bounds of the inputs (default :class:`InputBounds`).
+            closed_form: assemble in closed form where the problem has one (see
+                :func:`select_assembly`; False: the autograd path, as for any other problem).
+                :attr:`assembly` names the path taken.
 
         Raises:
             ValueError: naming ``fail_safe_action`` (wrong length, not finite, outside the
                 limits) or ``slack_tolerance`` (negative or not finite).
         """
         self.fallback = fallback
-        self._assemble = (compiled_assembly(problem) if compile_assembly
-                          else eager_assembly(problem))
+        assembly, self._assemble = select_assembly(
+            problem, compile_assembly=compile_assembly, closed_form=closed_form)
+        self.assembly = assembly
+        """The constraint assembly's path: 'closed_form', 'autograd' or 'compiled'."""
         self.problem = problem
         system = problem.system
         self.n_x, self.n_u = system.n_x, system.n_u
@@ -285,12 +384,24 @@ class SafetyFilter:
         else:
             self._u_min = np.full(self.n_u, -np.inf)
             self._u_max = np.full(self.n_u, np.inf)
+        self._u_min_tolerated = self._u_min - LIMIT_TOLERANCE
+        self._u_max_tolerated = self._u_max + LIMIT_TOLERANCE
         if slack_tolerance is not None and not (math.isfinite(slack_tolerance)
                                                 and slack_tolerance >= 0):
             raise ValueError(f'slack_tolerance: must be a finite number >= 0, '
                              f'got {slack_tolerance!r}')
         self.slack_tolerance = slack_tolerance
         self.input_bounds = InputBounds() if input_bounds is None else input_bounds
+        bounds = self.input_bounds
+        if self.assembly == 'closed_form' and max(bounds.state, bounds.command,
+                                                  bounds.disturbance) > QUIET_BOUND:
+            self._assemble = _quiet(self._assemble)
+        # [state, u_rl, mean, std] bounds elementwise (std also >= 0), for one check per call
+        n_x, n_u = self.n_x, self.n_u
+        self._inputs_high = np.concatenate((
+            np.full(n_x, bounds.state), np.full(n_u, bounds.command),
+            np.full(2 * n_x, bounds.disturbance)))
+        self._inputs_low = np.concatenate((-self._inputs_high[:-n_x], np.zeros(n_x)))
         action = np.zeros(self.n_u) if fail_safe_action is None else _vector(
             'fail_safe_action', fail_safe_action, self.n_u)
         if not np.all(np.isfinite(action)):
@@ -311,6 +422,7 @@ class SafetyFilter:
             pattern[self.n_barriers + self.n_u + j, j] = True
         cols, rows = np.nonzero(pattern.T)  # column-major = CSC order
         self._rows, self._cols = rows, cols
+        self._pattern_index = rows * nz + cols  # A's entries in G.ravel(), CSC order
         a_matrix = sp.csc_matrix((np.ones(rows.size), (rows, cols)), shape=(nc, nz))
         a_matrix.sort_indices()
         diag = 2.0 * np.asarray(cost_weights(self.n_u, problem.slack_weight,
@@ -320,6 +432,7 @@ class SafetyFilter:
                            l=np.full(nc, -np.inf), u=np.ones(nc), verbose=False, polishing=polish,
                            eps_abs=eps_abs, eps_rel=eps_rel, max_iter=max_iter,
                            warm_starting=True)
+        self._solver = _DirectOSQP.wrap(self._solver)
         self._nc = nc
 
     def filter(self, state: Sequence[float], u_rl: Sequence[float],
@@ -344,62 +457,63 @@ class SafetyFilter:
         u = _vector('u_rl', u_rl, self.n_u)
         mu = np.zeros(self.n_x) if mean is None else _vector('disturbance_mean', mean, self.n_x)
         sd = np.zeros(self.n_x) if std is None else _vector('disturbance_std', std, self.n_x)
-        bounds = self.input_bounds
-        try:
-            _bounded('state', x, bounds.state)
-            _bounded('u_rl', u, bounds.command)
-            _bounded('disturbance_mean', mu, bounds.disturbance)
-            _bounded('disturbance_std', sd, bounds.disturbance)
-            if np.any(sd < 0):
-                raise _Refused('disturbance_std: must be >= 0')
-        except _Refused as refusal:
-            return self._fail_safe(u, start, status='input_refused', reason=str(refusal))
+        inputs = np.concatenate((x, u, mu, sd))
+        # Every check below at once (NaN fails both comparisons); only an input that fails it
+        # goes through them one by one, for the reason naming the field.
+        if not ((inputs >= self._inputs_low) & (inputs <= self._inputs_high)).all():
+            bounds = self.input_bounds
+            try:
+                _bounded('state', x, bounds.state)
+                _bounded('u_rl', u, bounds.command)
+                _bounded('disturbance_mean', mu, bounds.disturbance)
+                _bounded('disturbance_std', sd, bounds.disturbance)
+                if (sd < 0).any():
+                    raise _Refused('disturbance_std: must be >= 0')
+            except _Refused as refusal:
+                return self._fail_safe(u, start, status='input_refused', reason=str(refusal))
 
         # Clip before the QP: its rows are then written at a command the plant can take.
-        u_rl_applied = np.clip(u, self._u_min, self._u_max)
-        clipped = bool(np.any(u_rl_applied != u))
-        h_t, g_t, upper_t = self._assemble(*(torch.from_numpy(a).unsqueeze(0)
-                                             for a in (x, u_rl_applied, mu, sd)))
-        g_matrix = g_t[0].numpy()
-        upper = upper_t[0].numpy()
-        h_values = h_t[0].numpy()
-        for name, data in (('barrier values', h_values), ('constraint rows', g_matrix),
-                           ('constraint bounds', upper)):
-            if not np.all(np.isfinite(data)) or np.max(np.abs(data), initial=0.0) > QP_DATA_LIMIT:
-                return self._fail_safe(
-                    u, start, status='input_refused', h=h_values, clipped=clipped,
-                    reason=f'{name}: not finite or beyond {QP_DATA_LIMIT:.0e} at this input')
+        u_rl_applied = u.clip(self._u_min, self._u_max)
+        clipped = bool((u_rl_applied != u).any())
+        h_values, g_matrix, upper = self._assemble(x, u_rl_applied, mu, sd)
+        everything = np.concatenate((h_values, g_matrix.ravel(), upper))
+        if not np.abs(everything).max(initial=0.0) <= QP_DATA_LIMIT:  # NaN and inf fail too
+            for name, data in (('barrier values', h_values), ('constraint rows', g_matrix),
+                               ('constraint bounds', upper)):
+                if not np.abs(data).max(initial=0.0) <= QP_DATA_LIMIT:
+                    return self._fail_safe(
+                        u, start, status='input_refused', h=h_values, clipped=clipped,
+                        reason=f'{name}: not finite or beyond {QP_DATA_LIMIT:.0e} at this input')
         lg_h = -g_matrix[:self.n_barriers, :self.n_u]
         rows_upper = upper[:self.n_barriers]
 
         def check(z: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float] | None:
             """The action of solution z and its row values, if z passes the check."""
-            if z is None or z.shape != (self.n_u + 1,) or not np.all(np.isfinite(z)):
+            if z is None or z.shape != (self.n_u + 1,) or not np.isfinite(z).all():
                 return None
             action = u_rl_applied + z[:self.n_u]
-            if np.any(action < self._u_min - LIMIT_TOLERANCE) or np.any(
-                    action > self._u_max + LIMIT_TOLERANCE):
+            if (action < self._u_min_tolerated).any() or (action > self._u_max_tolerated).any():
                 return None
-            action = np.clip(action, self._u_min, self._u_max)
-            values = rows_upper + lg_h @ (action - u_rl_applied)
-            needed = max(0.0, -float(np.min(values, initial=0.0)))
+            action = action.clip(self._u_min, self._u_max)
+            values = rows_upper + lg_h.dot(action - u_rl_applied)
+            needed = max(0.0, -float(values.min(initial=0.0)))
             # The solver's own eps must account for what the rows need: else the answer is
             # not the solution of this QP (a stale or garbage iterate).
             claimed = max(0.0, float(z[-1]))
-            scale = 1.0 + float(np.max(np.abs(rows_upper), initial=0.0))
+            scale = 1.0 + float(np.abs(rows_upper).max(initial=0.0))
             if needed > claimed + 1e-6 * scale:
                 return None
             return action, values, needed
 
         solve_start = time.perf_counter()
         status = 'solved'
-        if np.all(upper >= 0.0):
+        if (upper >= 0.0).all():
             # z = 0 is feasible, hence optimal (the objective's minimum): the proposal passes
             # through exactly, without a solve.
             z = np.zeros(self.n_u + 1)
             checked = check(z)
         else:
-            self._solver.update(Ax=g_matrix[self._rows, self._cols], u=upper)
+            self._solver.update(Ax=g_matrix.take(self._pattern_index), u=upper)
             result = self._solver.solve(raise_error=False)
             status_val = int(result.info.status_val)
             z = None if result.x is None else np.array(result.x, dtype=np.float64)

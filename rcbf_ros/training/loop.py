@@ -98,7 +98,8 @@ class RunConfig:
     """Continue from out_dir/checkpoint.pt (without one: start at episode 0, keeping the files
     already there). Without it, an out_dir that already holds a run is refused."""
     compile_filter: bool = False
-    """Compile the per-step filter's constraint assembly (worth it for long runs)."""
+    """Compile the per-step filter's autograd constraint assembly (worth it for long runs of a
+    system or barrier without a closed form; the built-in ones need none)."""
     threads: int = 1
     """torch threads. 1 leaves a core to other work (several runs side by side, or the other
     nodes); a lone in-process run gets 1.2-1.7x faster SAC updates from 2 on a 2-core machine
