@@ -30,6 +30,8 @@ STEPS, START, BATCH = 60, 30, 16
 
 
 def start(module: str, name: str, args: list[str], env: dict, log: Path) -> subprocess.Popen:
+    """Run a node with the packaged params file and ``args`` (``-p`` given as ``name:...``,
+    after the file, so that they win over its ``/<name>`` section as rcl orders them)."""
     cmd = [sys.executable, '-m', module, '--ros-args', '-r', f'__node:={name}',
            '--params-file', str(find_config('unicycle')), *args]
     return subprocess.Popen(cmd, env=env, stdout=log.open('w'), stderr=subprocess.STDOUT)
@@ -49,12 +51,14 @@ def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id),
                CYCLONEDDS_URI=LOOPBACK_CYCLONEDDS_URI, OMP_NUM_THREADS='1')
     out = tmp_path / 'node'
-    learner_args = ['-p', 'episodes:=2', '-p', f'out_dir:={out}', '-p', 'mode:=diff',
-                    '-p', f'start_steps:={START}', '-p', f'update_after:={START}',
-                    '-p', f'batch_size:={BATCH}', '-p', 'seed:=3']
+    learner_args = ['-p', 'learner:episodes:=2', '-p', f'learner:out_dir:={out}',
+                    '-p', 'learner:mode:=diff', '-p', f'learner:start_steps:={START}',
+                    '-p', f'learner:update_after:={START}', '-p', f'learner:batch_size:={BATCH}',
+                    '-p', 'learner:seed:=3']
     procs = [
         start('sim_nodes.simulator_node', 'simulator',
-              ['-p', f'max_steps:={STEPS}', '-p', 'action_timeout_s:=5.0', '-p', 'seed:=3'],
+              ['-p', f'simulator:max_steps:={STEPS}', '-p', 'simulator:action_timeout_s:=5.0',
+               '-p', 'simulator:seed:=3'],
               env, tmp_path / 'sim.log'),
         start('rcbf_ros.ros.safety_filter_node', 'safety_filter', [], env,
               tmp_path / 'filter.log'),
