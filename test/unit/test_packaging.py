@@ -4,6 +4,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 import re
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -27,9 +28,16 @@ def _run(command: list[str], **kwargs) -> subprocess.CompletedProcess:
 
 def test_a_wheel_installed_with_pip_finds_its_configs(tmp_path):
     """A real, non-editable pip install into a fresh venv, used from outside the source tree."""
+    source = tmp_path / 'source'  # a clean copy: no build/ left over from another build
+    source.mkdir()
+    for name in ('setup.py', 'setup.cfg', 'package.xml', 'README.md'):
+        shutil.copy2(REPO / name, source / name)
+    for name in ('rcbf_ros', 'sim_nodes', 'config', 'launch', 'resource'):
+        shutil.copytree(REPO / name, source / name,
+                        ignore=shutil.ignore_patterns('__pycache__', '*.egg-info'))
     wheels = tmp_path / 'wheels'
     _run([sys.executable, '-m', 'pip', 'wheel', '-q', '--no-deps', '--no-build-isolation',
-          '-w', str(wheels), str(REPO)])
+          '-w', str(wheels), str(source)])
     venv = tmp_path / 'venv'
     _run([getattr(sys, '_base_executable', sys.executable), '-m', 'venv', '--without-pip',
           str(venv)])
