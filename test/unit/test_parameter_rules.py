@@ -56,18 +56,23 @@ LAUNCH_ROS_NODE_DICT = """
 """
 
 
-def _overrides(tmp_path: Path, words: list[str], fully_qualified: str = SIM,
-               node_words: list[str] | None = None) -> dict:
-    """Write every ``@name=<yaml>`` word to a file and parse the command line."""
+def command_line(tmp_path: Path, words: list[str]) -> list[str]:
+    """``--ros-args`` of ``words``: ``@<yaml>`` a params file holding it, else a ``-p`` rule."""
     argv = ['--ros-args']
     for index, word in enumerate(words):
         if word.startswith('@'):
-            path = tmp_path / f'p{index}.yaml'
+            path = tmp_path / f'p{index}_{abs(hash(word))}.yaml'
             path.write_text(textwrap.dedent(word[1:]))
             argv += ['--params-file', str(path)]
         else:
             argv += ['-p', word]
-    tables = [parse_ros_arguments(argv)]
+    return argv
+
+
+def _overrides(tmp_path: Path, words: list[str], fully_qualified: str = SIM,
+               node_words: list[str] | None = None) -> dict:
+    """What a node ``fully_qualified`` gets from the command line of ``words``."""
+    tables = [parse_ros_arguments(command_line(tmp_path, words))]
     if node_words is not None:
         tables.append(parse_ros_arguments(['--ros-args'] + [
             w for word in node_words for w in ('-p', word)]))
@@ -138,20 +143,24 @@ def test_what_a_node_gets(tmp_path, words, name, expected):
     assert overrides.get(name, 'absent') == expected
 
 
-@pytest.mark.parametrize('key, fully_qualified, applies', [
+WILDCARD_KEYS = [
     # rclpy's regex: /* is one token, /** any number, a missing leading / is added.
     ('/*', '/simulator', True), ('/*', '/ns/simulator', False), ('*', '/simulator', True),
     ('/**', '/ns/simulator', True), ('**', '/a/b/c', True), ('/ns/*', '/ns/simulator', True),
     ('/ns/*', '/simulator', False), ('/**/simulator', '/a/b/simulator', True),
     ('/**/simulator', '/simulator', True), ('ns/simulator', '/ns/simulator', True),
     ('/simulator', '/simulator_2', False),
-])
+]
+REFUSED_KEYS = ['/sim*', 'sim*', '/ns*/simulator', '/a//b', '/1abc']
+
+
+@pytest.mark.parametrize('key, fully_qualified, applies', WILDCARD_KEYS)
 def test_wildcard_keys(tmp_path, key, fully_qualified, applies):
     words = [f'@"{key}":\n  ros__parameters: {{w: 1}}\n']
     assert ('w' in _overrides(tmp_path, words, fully_qualified)) == applies
 
 
-@pytest.mark.parametrize('key', ['/sim*', 'sim*', '/ns*/simulator', '/a//b', '/1abc'])
+@pytest.mark.parametrize('key', REFUSED_KEYS)
 def test_keys_rcl_refuses(tmp_path, key):
     # _validate_name: wildcards only as whole tokens; node and namespace tokens are names.
     path = tmp_path / 'p.yaml'
@@ -166,7 +175,7 @@ def test_the_nodes_own_arguments_come_after_the_global_ones(tmp_path):
     assert overrides == {'x': 2, 'y': 1}
 
 
-@pytest.mark.parametrize('text, slot, value', [
+SCALARS = [
     # get_value: booleans, then strtoll(base 0), then .nan/.inf or strtod, else a string.
     ('true', 'bool', True), ('On', 'bool', True), ('n', 'bool', False), ('3', 'integer', 3),
     ('010', 'integer', 8), ('0x1A', 'integer', 26), ('08', 'double', 8.0),
@@ -174,7 +183,10 @@ def test_the_nodes_own_arguments_come_after_the_global_ones(tmp_path):
     ('inf', 'double', float('inf')), ('1e999', 'string', '1e999'),
     ('99999999999999999999', 'double', 1e20), ('null', 'string', 'null'),
     ('~', 'string', '~'), ('1_000', 'string', '1_000'), ('a b', 'string', 'a b'),
-])
+]
+
+
+@pytest.mark.parametrize('text, slot, value', SCALARS)
 def test_scalars_are_typed_as_rcl_types_them(text, slot, value):
     assert scalar_value(text) == (slot, value)
 
