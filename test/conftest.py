@@ -3,6 +3,7 @@ and the ``ros2`` tier's access to a real ROS 2 Jazzy (skipped, with the reason, 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from dataclasses import dataclass
 import functools
 import itertools
@@ -61,6 +62,8 @@ class Jazzy:
 
     setup: Path | None
     """setup.bash to source; None: Jazzy is sourced in this environment already."""
+    log_dir: Path | None = None
+    """ROS_LOG_DIR of the commands (None: ROS's default, ~/.ros/log)."""
 
     def environment(self, domain_id: int, extra: Mapping[str, str] | None = None
                     ) -> dict[str, str]:
@@ -68,6 +71,8 @@ class Jazzy:
         ensure_loopback(env, force=True)
         env.update(RMW_IMPLEMENTATION='rmw_cyclonedds_cpp', ROS_DOMAIN_ID=str(domain_id),
                    PYTHONUNBUFFERED='1', OMP_NUM_THREADS='1')
+        if self.log_dir is not None:
+            env['ROS_LOG_DIR'] = str(self.log_dir)
         env.update(extra or {})
         return env
 
@@ -130,12 +135,13 @@ def find_jazzy() -> tuple[Jazzy | None, str]:
 
 
 @pytest.fixture(scope='session')
-def jazzy() -> Jazzy:
-    """The Jazzy of the ``ros2`` tier (the tests are skipped without one)."""
+def jazzy(tmp_path_factory) -> Jazzy:
+    """The Jazzy of the ``ros2`` tier (the tests are skipped without one); ROS logs go to a
+    temporary directory."""
     found, reason = find_jazzy()
     if found is None:
         pytest.skip(reason)
-    return found
+    return dataclasses.replace(found, log_dir=tmp_path_factory.mktemp('ros_log'))
 
 
 def pytest_collection_modifyitems(config, items):
