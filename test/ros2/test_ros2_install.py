@@ -73,14 +73,14 @@ def overlay(jazzy: Jazzy, tmp_path_factory) -> Overlay:
 
 
 def _wait_for(check: Callable[[], str | None], timeout: float, what: str) -> str:
+    """Poll ``check`` every second until it returns text."""
     deadline = time.monotonic() + timeout
-    last = ''
     while time.monotonic() < deadline:
         result = check()
         if result is not None:
             return result
         time.sleep(1.0)
-    raise AssertionError(f'{what} did not happen in {timeout} s; last: {last}')
+    raise AssertionError(f'{what} did not happen in {timeout} s')
 
 
 def _param(overlay: Overlay, verb: str, node: str, names: str, domain_id: int
