@@ -134,7 +134,7 @@ def test_invalid_setting_exits_2_naming_the_key(tmp_path, ros_domain_id, key, va
            'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
     log = tmp_path / 'learner.log'
     proc = start('rcbf_ros.ros.learner_node', 'learner',
-                 ['-p', f'{key}:={value}', '-p', f'out_dir:={tmp_path}'], env, log)
+                 ['-p', f'learner:{key}:={value}', '-p', f'learner:out_dir:={tmp_path}'], env, log)
     try:
         code = proc.wait(timeout=60)
     finally:
@@ -168,7 +168,7 @@ def test_out_dir_of_an_existing_run_is_refused_without_resume(tmp_path, ros_doma
     out = tmp_path / 'run'
     _tiny_run(out)
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    code, log = _learner_exit(tmp_path, ros_domain_id, ['-p', f'out_dir:={out}'])
+    code, log = _learner_exit(tmp_path, ros_domain_id, ['-p', f'learner:out_dir:={out}'])
     assert code == 2, log
     assert f'learner: invalid parameters: out_dir: {out} already holds a run (checkpoint.pt, ' \
         in log and 'set resume:=true to continue it or choose another out_dir' in log
@@ -191,7 +191,7 @@ def test_resume_refuses_a_crafted_checkpoint_without_running_it(tmp_path, ros_do
     marker = tmp_path / 'ran'
     torch.save({'learner': _Mkdir(marker), 'episode': 1, 'history': []}, out / 'checkpoint.pt')
     code, log = _learner_exit(tmp_path, ros_domain_id,
-                              ['-p', f'out_dir:={out}', '-p', 'resume:=true'])
+                              ['-p', f'learner:out_dir:={out}', '-p', 'learner:resume:=true'])
     assert code == 2, log
     assert (f"learner: invalid parameters: resume: {out / 'checkpoint.pt'}: refused to load: "
             'it holds more than tensors and plain data (it asks for posix.mkdir)') in log
@@ -210,7 +210,7 @@ def test_resume_without_a_checkpoint_starts_at_episode_0_keeping_the_rows(tmp_pa
            'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
     log = tmp_path / 'learner.log'
     proc = start('rcbf_ros.ros.learner_node', 'learner',
-                 ['-p', f'out_dir:={out}', '-p', 'resume:=true'], env, log)
+                 ['-p', f'learner:out_dir:={out}', '-p', 'learner:resume:=true'], env, log)
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and proc.poll() is None:
