@@ -19,8 +19,11 @@ import pytest
 
 from rcbf_ros.ros.loopback import ensure_loopback
 
-# Before any DDS participant can exist (brief: never send traffic off the machine).
+# Before any DDS participant can exist: no traffic may leave the machine.
 ensure_loopback(force=True)
+# The suite tests our Cyclone runtime, also where a sourced ROS 2 would make runtime.py pick
+# rclpy; the ros2 tier reaches real rclpy through its own commands (Jazzy.environment).
+os.environ.setdefault('RCBF_ROS_RUNTIME', 'cyclone')
 
 _domain_counter = itertools.count()
 
