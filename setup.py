@@ -9,7 +9,12 @@ package_name = 'rcbf_ros'
 setup(
     name=package_name,
     version='0.1.0',
-    packages=find_packages(exclude=['test', 'test.*', 'benchmarks']),
+    # config/*.yaml ship inside the package as rcbf_ros/config (package data), so that
+    # rcbf_ros.params.find_config finds them in a wheel or any pip install; colcon also gets
+    # share/rcbf_ros/config (data_files) for ros2 launch and $(ros2 pkg prefix).
+    packages=find_packages(exclude=['test', 'test.*', 'benchmarks']) + ['rcbf_ros.config'],
+    package_dir={'rcbf_ros.config': 'config'},
+    package_data={'rcbf_ros.config': ['*.yaml', '*.json']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),

@@ -18,6 +18,13 @@ def describe(name: str) -> Any:
     All nodes read the ``params_file`` launch argument (default: the packaged
     ``config/<system>.yaml``); a node marked ``ends_launch`` shuts the launch down on exit; each
     node gets its table limit from SIGINT to SIGTERM (launch's ``sigterm_timeout``).
+
+    A table entry's own parameters follow the params file as a dict, which launch_ros writes to
+    a params file of its own under the node's name only when the name is fully specified, i.e.
+    when the node has a namespace: hence ``namespace=''`` (the root, or the namespace pushed by
+    an enclosing launch). Without it launch_ros writes the dict under ``/**``, which rcl files
+    in the ``/**`` key the params file opened first, so the file's ``/<name>`` section would win
+    (see :mod:`rcbf_ros.params`).
     """
     from ament_index_python.packages import get_package_share_directory
     from launch.actions import DeclareLaunchArgument, Shutdown
@@ -36,7 +43,8 @@ def describe(name: str) -> Any:
         if entry.parameters:
             parameters.append(dict(entry.parameters))
         actions.append(Node(
-            package=PACKAGE, executable=entry.executable, name=entry.name, output='screen',
+            package=PACKAGE, executable=entry.executable, name=entry.name, namespace='',
+            output='screen',
             parameters=parameters, remappings=list(entry.remappings),
             sigterm_timeout=str(entry.sigint_timeout_s),
             on_exit=Shutdown(reason=f'{entry.name} exited') if entry.ends_launch else None))

@@ -36,7 +36,8 @@ class NodeEntry:
     remappings: tuple[tuple[str, str], ...] = ()
     """Topic remaps (from, to) applied on top of the node's own names."""
     parameters: tuple[tuple[str, Any], ...] = ()
-    """Parameter overrides on top of the params file (``-p name:=value``)."""
+    """Parameter overrides that win over the params file (see :func:`ros_arguments` and
+    :func:`rcbf_ros.launch_description.describe` for how each launcher makes them win)."""
     required: bool = True
     """A failure of this node (non-zero exit, or not stopping when asked) fails the launch."""
     ends_launch: bool = False
@@ -184,10 +185,15 @@ def ros_arguments(entry: NodeEntry, *, params_file: str,
 
     ``-r __node:=<name>`` names the node so that its params-file section applies; then the
     params file, the entry's remaps, its parameters and finally ``overrides`` (which win).
+
+    The parameters are written ``-p <name>:<key>:=<value>``, AFTER the params file: rcl files
+    them under the node key ``<name>``, which appears after the file's ``/**`` and
+    ``/<name>`` sections and so wins over both (a bare ``-p key:=value`` goes to ``/**`` and
+    would lose to the file's ``/<name>`` section; see :mod:`rcbf_ros.params`).
     """
     args = ['--ros-args', '-r', f'__node:={entry.name}', '--params-file', params_file]
     for source, target in entry.remappings:
         args += ['-r', f'{source}:={target}']
     for key, value in (*entry.parameters, *(overrides or {}).items()):
-        args += ['-p', f'{key}:={format_parameter(value)}']
+        args += ['-p', f'{entry.name}:{key}:={format_parameter(value)}']
     return args

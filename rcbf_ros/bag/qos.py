@@ -1,9 +1,11 @@
 """Offered QoS profiles as rosbag2 stores them (``offered_qos_profiles``, bag version 9).
 
-rosbag2 keeps, for every topic, the QoS profiles its publishers offered, as a YAML sequence
-dumped to a string (in the MCAP channel metadata and in ``metadata.yaml``). From bag version 9
-(Jazzy) the policies are lower-case names (``keep_last``, ``reliable``, ``volatile``,
-``automatic``) instead of the integer enum values of version 8; durations are
+rosbag2 keeps, for every topic, the QoS profiles its publishers offered: a YAML sequence of
+profile mappings. In the bag information (``metadata.yaml`` and the MCAP ``rosbag2`` record's
+``serialized_metadata``) version 9 (Jazzy) writes the sequence itself; versions 4 to 8 wrote it
+dumped to a string, and the MCAP channel metadata (a string-to-string map) still holds that
+string. From version 9 the policies are lower-case names (``keep_last``, ``reliable``,
+``volatile``, ``automatic``) instead of the integer enum values of version 8; durations are
 ``{sec, nsec}`` maps with RMW's "infinite" ``{9223372036, 854775807}``.
 """
 from __future__ import annotations
@@ -115,6 +117,11 @@ def _duration(nanoseconds: int) -> dict[str, int]:
     return {'sec': nanoseconds // 1_000_000_000, 'nsec': nanoseconds % 1_000_000_000}
 
 
+def offered_qos_sequence(profiles: Sequence[RecordedQos]) -> list[dict[str, Any]]:
+    """``profiles`` as the YAML sequence of the bag information (version 9)."""
+    return [p.to_yaml_dict() for p in profiles]
+
+
 def dump_offered_qos_profiles(profiles: Sequence[RecordedQos]) -> str:
     """YAML text of ``profiles`` in rosbag2's block style (no trailing newline; ``[]`` if empty).
 
@@ -128,17 +135,33 @@ def dump_offered_qos_profiles(profiles: Sequence[RecordedQos]) -> str:
     """
     if not profiles:
         return '[]'
-    text = yaml.safe_dump([p.to_yaml_dict() for p in profiles], sort_keys=False,
+    text = yaml.safe_dump(offered_qos_sequence(profiles), sort_keys=False,
                           default_flow_style=False, indent=2)
     return text.rstrip('\n')
 
 
-def parse_offered_qos_profiles(text: str) -> list[RecordedQos]:
-    """Inverse of :func:`dump_offered_qos_profiles` (also accepts version-8 integer policies)."""
-    if not text.strip():
+def parse_offered_qos_profiles(value: str | Sequence[Any] | None) -> list[RecordedQos]:
+    """Profiles from either form: the sequence (bag information, version 9) or the YAML string
+    (channel metadata; bag information before version 9). Version-8 integer policies too.
+
+    Raises:
+        ValueError: the string is not YAML, or the value is not a sequence of profile mappings
+            (the message names ``offered_qos_profiles``).
+    """
+    if value is None or (isinstance(value, str) and not value.strip()):
         return []
-    items = yaml.safe_load(text) or []
-    return [_profile_from_yaml(item) for item in items]
+    if isinstance(value, str):
+        try:
+            value = yaml.safe_load(value) or []
+        except yaml.YAMLError as exc:
+            raise ValueError(f'offered_qos_profiles: not YAML ({exc})') from exc
+    if not isinstance(value, (list, tuple)):
+        raise ValueError(f'offered_qos_profiles: expected a sequence of profiles, got '
+                         f'{type(value).__name__}')
+    try:
+        return [_profile_from_yaml(item) for item in value]
+    except (KeyError, TypeError, IndexError) as exc:
+        raise ValueError(f'offered_qos_profiles: not a QoS profile ({exc!r})') from exc
 
 
 def _profile_from_yaml(item: dict[str, Any]) -> RecordedQos:

@@ -10,12 +10,15 @@ The MCAP file follows what rosbag2_storage_mcap writes:
 - one schema per message type: name ``pkg/msg/Type``, encoding ``ros2msg``, data the full
   concatenated message definition (root ``.msg`` text, then each dependency after a line of
   80 ``=`` and ``MSG: pkg/Type``);
-- one channel per topic: message encoding ``cdr``, metadata ``offered_qos_profiles`` (YAML, see
-  :mod:`rcbf_ros.bag.qos`) and ``topic_type_hash`` (``RIHS01_...``);
+- one channel per topic: message encoding ``cdr``, metadata ``offered_qos_profiles`` (the
+  profiles dumped to a YAML string, see :mod:`rcbf_ros.bag.qos`) and ``topic_type_hash``
+  (``RIHS01_...``);
 - messages with ``log_time`` = receive time and ``publish_time`` = send time, in nanoseconds;
 - a metadata record named ``rosbag2`` with key ``serialized_metadata`` (the bag information
-  YAML) written on close, then the summary: schemas, channels, statistics, chunk / metadata
-  indexes and summary offsets.
+  YAML, the same as ``metadata.yaml``'s: from version 9 on, each topic's
+  ``offered_qos_profiles`` is a YAML sequence of profiles there, not a string) written on close,
+  then the summary: schemas, channels, statistics, chunk / metadata indexes and summary
+  offsets.
 
 Integrity. Every chunk carries the CRC of its records and the data end record the CRC of the
 data section; the readers (:mod:`rcbf_ros.bag.scan`) check them.
@@ -51,7 +54,7 @@ from rcbf_ros.bag.messages import (
     serialize_message,
     type_hash_rihs01,
 )
-from rcbf_ros.bag.qos import dump_offered_qos_profiles, RecordedQos
+from rcbf_ros.bag.qos import dump_offered_qos_profiles, offered_qos_sequence, RecordedQos
 
 #: rosbag2 bag information format version written (Jazzy: QoS policies as names).
 BAG_FORMAT_VERSION = 9
@@ -423,6 +426,8 @@ def bag_information(*, files: Sequence[FileSpan],
     """rosbag2 bag information (``rosbag2_bagfile_information`` contents, version 9).
 
     The same dict goes to ``metadata.yaml`` and to the ``rosbag2`` metadata record of each file.
+    Its shape is what rosbag2_storage's ``YAML::convert<BagMetadata>`` encodes and decodes for
+    version 9 (``yaml.hpp``, ``qos.cpp``): ``offered_qos_profiles`` a sequence of mappings.
     """
     spans = [f for f in files if f.message_count]
     start = min((f.start_ns for f in spans), default=0)
@@ -438,7 +443,7 @@ def bag_information(*, files: Sequence[FileSpan],
                 'name': t.name,
                 'type': t.type_name,
                 'serialization_format': getattr(t, 'serialization_format', 'cdr'),
-                'offered_qos_profiles': dump_offered_qos_profiles(t.offered_qos),
+                'offered_qos_profiles': offered_qos_sequence(t.offered_qos),
                 'type_description_hash': t.type_hash,
             }, 'message_count': t.message_count}
             for t in topics],

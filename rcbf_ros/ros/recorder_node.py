@@ -34,7 +34,6 @@ import sys
 from typing import Any, Callable, Sequence
 
 from rcbf_ros.bag import BagWriter, BagWriterConfig, RecordedQos
-from rcbf_ros.ros import runtime
 from rcbf_ros.ros.interface import NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
@@ -42,6 +41,8 @@ from rcbf_ros.ros.runtime import (
     get_message,
     HistoryPolicy,
     Node,
+    Parameter,
+    ParameterException,
     QoSProfile,
     ReliabilityPolicy,
 )
@@ -203,19 +204,26 @@ class RecorderNode(Node):
         self.create_timer(self.config.flush_period_s, self.flush)
 
     def _read_config(self) -> RecorderConfig:
-        string_array = getattr(getattr(runtime, 'Parameter', None), 'Type', None)
-        list_default: Any = string_array.STRING_ARRAY if string_array is not None else []
-        self.declare_parameter('topics', list_default)
-        self.declare_parameter('best_effort_topics', list_default)
-        self.declare_parameter('output', RecorderConfig.output)
-        self.declare_parameter('flush_period_s', RecorderConfig.flush_period_s)
-        self.declare_parameter('discovery_period_s', RecorderConfig.discovery_period_s)
-        self.declare_parameter('chunk_size', RecorderConfig.chunk_size)
-        self.declare_parameter('compression', RecorderConfig.compression)
+        """Declare and read every parameter; a bad type is a ValueError naming the parameter.
+
+        The topic lists are declared as STRING_ARRAY by type, without a default: rclpy types an
+        empty list as a BYTE_ARRAY (which refuses ``-p topics:=[/a]``), and a params file
+        cannot hold an empty list (rcl reads ``[]`` as no value). Unset, a list is empty.
+        """
+        try:
+            for name in ('topics', 'best_effort_topics'):
+                self.declare_parameter(name, Parameter.Type.STRING_ARRAY)
+            self.declare_parameter('output', RecorderConfig.output)
+            self.declare_parameter('flush_period_s', RecorderConfig.flush_period_s)
+            self.declare_parameter('discovery_period_s', RecorderConfig.discovery_period_s)
+            self.declare_parameter('chunk_size', RecorderConfig.chunk_size)
+            self.declare_parameter('compression', RecorderConfig.compression)
+        except ParameterException as exc:
+            raise ValueError(str(exc)) from exc
 
         def strings(name: str) -> tuple[str, ...]:
-            value = self.get_parameter(name).value
-            return tuple(str(v) for v in (value or ()) if str(v))
+            unset = Parameter(name, Parameter.Type.STRING_ARRAY, [])
+            return tuple(str(v) for v in self.get_parameter_or(name, unset).value if str(v))
 
         return RecorderConfig(
             topics=strings('topics'),

@@ -28,7 +28,6 @@ from typing import Any, Sequence
 
 from rcbf_ros.bag import bag_info
 from rcbf_ros.bag.playback import iter_bag_messages, playback_schedule, replay_qos
-from rcbf_ros.ros import runtime
 from rcbf_ros.ros.interface import NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
@@ -36,6 +35,8 @@ from rcbf_ros.ros.runtime import (
     get_message,
     HistoryPolicy,
     Node,
+    Parameter,
+    ParameterException,
     QoSProfile,
     rclpy,
     ReliabilityPolicy,
@@ -99,14 +100,23 @@ class ReplayNode(Node):
             f'{self.config.bag} at rate {self.config.rate}{" (loop)" if self.config.loop else ""}')
 
     def _read_config(self) -> ReplayConfig:
-        string_array = getattr(getattr(runtime, 'Parameter', None), 'Type', None)
-        self.declare_parameter('bag', '')
-        self.declare_parameter('rate', 1.0)
-        self.declare_parameter('loop', False)
-        self.declare_parameter('topics', string_array.STRING_ARRAY if string_array else [])
-        self.declare_parameter('wait_for_subscribers_s', 0.0)
-        self.declare_parameter('linger_s', 0.5)
-        topics = self.get_parameter('topics').value or ()
+        """Declare and read every parameter; a bad type is a ValueError naming the parameter.
+
+        ``topics`` is declared as STRING_ARRAY by type, without a default: rclpy types an empty
+        list as a BYTE_ARRAY (which refuses ``-p topics:=[/a]``), and a params file cannot hold
+        an empty list (rcl reads ``[]`` as no value). Unset, it is empty (every topic).
+        """
+        try:
+            self.declare_parameter('bag', '')
+            self.declare_parameter('rate', 1.0)
+            self.declare_parameter('loop', False)
+            self.declare_parameter('topics', Parameter.Type.STRING_ARRAY)
+            self.declare_parameter('wait_for_subscribers_s', 0.0)
+            self.declare_parameter('linger_s', 0.5)
+        except ParameterException as exc:
+            raise ValueError(str(exc)) from exc
+        unset = Parameter('topics', Parameter.Type.STRING_ARRAY, [])
+        topics = self.get_parameter_or('topics', unset).value
         return ReplayConfig(
             bag=str(self.get_parameter('bag').value or ''),
             rate=float(self.get_parameter('rate').value),

@@ -8,6 +8,10 @@ Selection (once, at import):
 - unset / ``auto``: rclpy when ``import rclpy`` works (a sourced ROS 2 install), else Cyclone.
 
 Both expose the same surface (see the names below); ``USING_RCLPY`` tells which one is active.
+Parameters: ``Parameter`` (with ``Parameter.Type``), ``ParameterDescriptor`` (the
+rcl_interfaces message; pass a new one to every declaration, rclpy keeps and modifies it) and
+``ParameterException``, the base of rclpy's parameter errors (an override of the wrong type, an
+uninitialized typed parameter, ...).
 """
 from __future__ import annotations
 
@@ -27,9 +31,12 @@ if _CHOICE != 'cyclone':
             raise
 
 if USING_RCLPY:
+    from rcl_interfaces.msg import ParameterDescriptor
     import rclpy
+    from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException
     from rclpy.node import Node
+    from rclpy.parameter import Parameter
     from rclpy.qos import (
         DurabilityPolicy,
         HistoryPolicy,
@@ -43,7 +50,7 @@ else:
     from rcbf_ros.ros.dds import rclpy_compat as rclpy
     from rcbf_ros.ros.dds.context import ExternalShutdownException
     from rcbf_ros.ros.dds.messages import deserialize_message, get_message, serialize_message
-    from rcbf_ros.ros.dds.node import Node
+    from rcbf_ros.ros.dds.node import Node, Parameter, ParameterException
     from rcbf_ros.ros.dds.qos import (
         DurabilityPolicy,
         HistoryPolicy,
@@ -52,8 +59,11 @@ else:
         ReliabilityPolicy,
     )
 
+    ParameterDescriptor = get_message('rcl_interfaces/msg/ParameterDescriptor')
+
 __all__ = [
-    'DurabilityPolicy', 'ExternalShutdownException', 'HistoryPolicy', 'Node', 'QoSProfile',
-    'ReliabilityPolicy', 'USING_RCLPY', 'deserialize_message', 'get_message',
-    'qos_profile_sensor_data', 'rclpy', 'serialize_message',
+    'DurabilityPolicy', 'ExternalShutdownException', 'HistoryPolicy', 'Node', 'Parameter',
+    'ParameterDescriptor', 'ParameterException', 'QoSProfile', 'ReliabilityPolicy',
+    'USING_RCLPY', 'deserialize_message', 'get_message', 'qos_profile_sensor_data', 'rclpy',
+    'serialize_message',
 ]

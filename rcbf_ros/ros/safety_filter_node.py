@@ -79,9 +79,9 @@ from rcbf_ros.ros.runtime import (
     get_message,
     HistoryPolicy,
     Node,
+    ParameterDescriptor,
     QoSProfile,
     ReliabilityPolicy,
-    USING_RCLPY,
 )
 
 NODE_NAME = 'safety_filter'
@@ -177,18 +177,15 @@ class SafetyFilterNode(Node):
             f'{self.settings.command_type}; fail-safe action {self.filter.fail_safe_action}')
 
     def _declared_parameters(self) -> dict[str, Any]:
-        """Declare every known parameter (overrides are declared already); read all back."""
-        descriptor = None
-        if USING_RCLPY:  # untyped declarations, so that any YAML type is accepted
-            descriptor = get_message('rcl_interfaces/msg/ParameterDescriptor')(
-                dynamic_typing=True)
+        """Declare every known parameter (overrides are declared already); read all back.
+
+        Each declaration gets a descriptor of its own, dynamically typed so that any YAML type
+        is accepted: rclpy keeps the descriptor it is given and writes the parameter's name and
+        type into it, so a shared one would describe every parameter as the last one.
+        """
         for name, default in logic.parameter_declarations():
-            if self.has_parameter(name):
-                continue
-            if descriptor is None:
-                self.declare_parameter(name, default)
-            else:
-                self.declare_parameter(name, default, descriptor)
+            if not self.has_parameter(name):
+                self.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True))
         values = {name: parameter.value
                   for name, parameter in self.get_parameters_by_prefix('').items()}
         return logic.collect_parameters(values)

@@ -42,7 +42,13 @@ from rcbf_ros.ros.filter_logic import (
 )
 from rcbf_ros.ros.interface import NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
-from rcbf_ros.ros.runtime import deserialize_message, get_message, Node, QoSProfile, USING_RCLPY
+from rcbf_ros.ros.runtime import (
+    deserialize_message,
+    get_message,
+    Node,
+    ParameterDescriptor,
+    QoSProfile,
+)
 
 NODE_NAME = 'scene_markers'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
@@ -122,16 +128,11 @@ class SceneNode(Node):
             ValueError: a parameter is invalid (the message names the key).
         """
         super().__init__(node_name, automatically_declare_parameters_from_overrides=True)
-        descriptor = None
-        if USING_RCLPY:  # untyped, so that rate_hz:=10 is taken as well as 10.0
-            descriptor = get_message('rcl_interfaces/msg/ParameterDescriptor')(
-                dynamic_typing=True)
+        # Dynamically typed, so that rate_hz:=10 is taken as well as 10.0; a descriptor per
+        # declaration, as rclpy keeps and modifies the one it is given.
         for name, default in logic.SCENE_PARAMETER_DEFAULTS.items():
             if not self.has_parameter(name):
-                if descriptor is None:
-                    self.declare_parameter(name, default)
-                else:
-                    self.declare_parameter(name, default, descriptor)
+                self.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True))
         params = collect_parameters({name: parameter.value for name, parameter
                                      in self.get_parameters_by_prefix('').items()})
         try:

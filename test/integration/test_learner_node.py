@@ -30,6 +30,8 @@ STEPS, START, BATCH = 60, 30, 16
 
 
 def start(module: str, name: str, args: list[str], env: dict, log: Path) -> subprocess.Popen:
+    """Run a node with the packaged params file and ``args`` (``-p`` given as ``name:...``,
+    after the file, so that they win over its ``/<name>`` section as rcl orders them)."""
     cmd = [sys.executable, '-m', module, '--ros-args', '-r', f'__node:={name}',
            '--params-file', str(find_config('unicycle')), *args]
     return subprocess.Popen(cmd, env=env, stdout=log.open('w'), stderr=subprocess.STDOUT)
@@ -49,12 +51,14 @@ def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id),
                CYCLONEDDS_URI=LOOPBACK_CYCLONEDDS_URI, OMP_NUM_THREADS='1')
     out = tmp_path / 'node'
-    learner_args = ['-p', 'episodes:=2', '-p', f'out_dir:={out}', '-p', 'mode:=diff',
-                    '-p', f'start_steps:={START}', '-p', f'update_after:={START}',
-                    '-p', f'batch_size:={BATCH}', '-p', 'seed:=3']
+    learner_args = ['-p', 'learner:episodes:=2', '-p', f'learner:out_dir:={out}',
+                    '-p', 'learner:mode:=diff', '-p', f'learner:start_steps:={START}',
+                    '-p', f'learner:update_after:={START}', '-p', f'learner:batch_size:={BATCH}',
+                    '-p', 'learner:seed:=3']
     procs = [
         start('sim_nodes.simulator_node', 'simulator',
-              ['-p', f'max_steps:={STEPS}', '-p', 'action_timeout_s:=5.0', '-p', 'seed:=3'],
+              ['-p', f'simulator:max_steps:={STEPS}', '-p', 'simulator:action_timeout_s:=5.0',
+               '-p', 'simulator:seed:=3'],
               env, tmp_path / 'sim.log'),
         start('rcbf_ros.ros.safety_filter_node', 'safety_filter', [], env,
               tmp_path / 'filter.log'),
@@ -130,7 +134,7 @@ def test_invalid_setting_exits_2_naming_the_key(tmp_path, ros_domain_id, key, va
            'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
     log = tmp_path / 'learner.log'
     proc = start('rcbf_ros.ros.learner_node', 'learner',
-                 ['-p', f'{key}:={value}', '-p', f'out_dir:={tmp_path}'], env, log)
+                 ['-p', f'learner:{key}:={value}', '-p', f'learner:out_dir:={tmp_path}'], env, log)
     try:
         code = proc.wait(timeout=60)
     finally:
@@ -164,7 +168,7 @@ def test_out_dir_of_an_existing_run_is_refused_without_resume(tmp_path, ros_doma
     out = tmp_path / 'run'
     _tiny_run(out)
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    code, log = _learner_exit(tmp_path, ros_domain_id, ['-p', f'out_dir:={out}'])
+    code, log = _learner_exit(tmp_path, ros_domain_id, ['-p', f'learner:out_dir:={out}'])
     assert code == 2, log
     assert f'learner: invalid parameters: out_dir: {out} already holds a run (checkpoint.pt, ' \
         in log and 'set resume:=true to continue it or choose another out_dir' in log
@@ -187,7 +191,7 @@ def test_resume_refuses_a_crafted_checkpoint_without_running_it(tmp_path, ros_do
     marker = tmp_path / 'ran'
     torch.save({'learner': _Mkdir(marker), 'episode': 1, 'history': []}, out / 'checkpoint.pt')
     code, log = _learner_exit(tmp_path, ros_domain_id,
-                              ['-p', f'out_dir:={out}', '-p', 'resume:=true'])
+                              ['-p', f'learner:out_dir:={out}', '-p', 'learner:resume:=true'])
     assert code == 2, log
     assert (f"learner: invalid parameters: resume: {out / 'checkpoint.pt'}: refused to load: "
             'it holds more than tensors and plain data (it asks for posix.mkdir)') in log
@@ -206,7 +210,7 @@ def test_resume_without_a_checkpoint_starts_at_episode_0_keeping_the_rows(tmp_pa
            'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
     log = tmp_path / 'learner.log'
     proc = start('rcbf_ros.ros.learner_node', 'learner',
-                 ['-p', f'out_dir:={out}', '-p', 'resume:=true'], env, log)
+                 ['-p', f'learner:out_dir:={out}', '-p', 'learner:resume:=true'], env, log)
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and proc.poll() is None:

@@ -198,7 +198,8 @@ def probe(ros_domain_id):
 def test_bad_input_yields_fail_safe_and_error_diagnostics(ros_domain_id, probe):
     from rcbf_ros.ros.conversions import sections_to_msg
     process = _start_filter(ros_domain_id, '-r', 'cmd_proposed:=/my_controller/cmd',
-                            '-p', 'max_state_age_s:=0.3', '-p', 'fail_safe_action:=[0.0, 0.5]')
+                            '-p', 'safety_filter:max_state_age_s:=0.3',
+                            '-p', 'safety_filter:fail_safe_action:=[0.0, 0.5]')
     try:
         probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
         probe.subscribe('std_msgs/msg/Float64MultiArray', '/filter_info', _sections)
@@ -272,7 +273,7 @@ def test_bad_input_yields_fail_safe_and_error_diagnostics(ros_domain_id, probe):
 def test_twist_mode(ros_domain_id, probe):
     from rcbf_ros.ros.conversions import array_to_twist, sections_to_msg, twist_to_array
     fields = ['linear.x', 'angular.z']
-    process = _start_filter(ros_domain_id, '-p', 'command_type:=twist')
+    process = _start_filter(ros_domain_id, '-p', 'safety_filter:command_type:=twist')
     try:
         probe.subscribe('geometry_msgs/msg/Twist', '/cmd_safe',
                         lambda m: twist_to_array(m, fields))
@@ -335,9 +336,10 @@ def test_pvtol_proposal_with_learned_disturbance(ros_domain_id, probe):
 
 
 @pytest.mark.parametrize('args, key', [
-    (('-p', 'max_state_age_s:=-1.0'), 'max_state_age_s'),
-    (('-p', 'alpha:=-2.0'), 'alpha'),
-    (('-p', 'command_type:=twist', '-p', "twist_fields:=['linear.x']"), 'twist_fields'),
+    (('-p', 'safety_filter:max_state_age_s:=-1.0'), 'max_state_age_s'),
+    (('-p', 'safety_filter:alpha:=-2.0'), 'alpha'),
+    (('-p', 'safety_filter:command_type:=twist', '-p', "safety_filter:twist_fields:=['linear.x']"),
+     'twist_fields'),
 ])
 def test_invalid_parameters_exit_2_naming_the_key(ros_domain_id, args, key):
     process = _start_filter(ros_domain_id, *args)

@@ -72,39 +72,45 @@ def test_every_table_module_has_a_console_script_of_the_same_name():
 
 
 @pytest.mark.parametrize('value, text', [
-    (True, 'true'), (3, '3'), (0.5, '0.5'), ('a b', "'a b'"), ([1.0, 2], '[1.0, 2]'),
-    (["it's"], "['it''s']"),
+    (True, 'true'), (3, '3'), (0.5, '0.5'), ('a b', "'a b'"), ([1.0, 2.5], '[1.0, 2.5]'),
+    (["it's"], "['it''s']"), ('1e3', "'1e3'"), ('yes', "'yes'"),
 ])
 def test_parameter_text_round_trips_through_the_ros_argument_parser(value, text):
     assert format_parameter(value) == text
     parsed = parse_ros_arguments(['--ros-args', '-p', f'k:={text}'])
-    assert parsed.parameters['k'] == value
+    assert parameter_overrides([parsed], '/any')['k'] == value
 
 
 def test_ros_arguments_are_understood_by_the_ros_argument_parser():
-    entry = NodeEntry(name='sim', executable='simulator', module='m',
-                      remappings=(('action', 'cmd_safe'),), parameters=(('dt', 0.01),))
+    entry = NodeEntry(name='simulator', executable='simulator', module='m',
+                      remappings=(('action', 'cmd_safe'),),
+                      parameters=(('dt', 0.01), ('action_timeout_s', 10.0)))
     params_file = str(REPO / 'config' / 'unicycle.yaml')
     args = ros_arguments(entry, params_file=params_file, overrides={'dt': 0.05, 'seed': 3})
     parsed = parse_ros_arguments(args)
-    assert parsed.node_name == 'sim' and parsed.params_files == (params_file,)
+    assert parsed.node_name == 'simulator' and parsed.params_files == (params_file,)
     assert [(r.match, r.replacement) for r in parsed.remaps] == [('action', 'cmd_safe')]
-    # The command-line override wins over the entry's, and both over the file.
-    params = parameter_overrides([parsed], 'sim', '/sim')
-    assert params['dt'] == 0.05 and params['seed'] == 3 and params['system'] == 'unicycle'
+    # The file's /simulator section sets dt, seed and action_timeout_s; the entry's parameters
+    # and the command-line overrides win over it under rcl's rules, the overrides last.
+    params = parameter_overrides([parsed], '/simulator')
+    assert (params['dt'], params['seed'], params['action_timeout_s']) == (0.05, 3, 10.0)
+    assert params['system'] == 'unicycle'
 
 
 def test_child_commands_and_environment():
     setup = launch_setup('unicycle_filter')
+    params_file = str(REPO / 'config' / 'unicycle.yaml')
     children = launch_local.child_commands(
-        setup, params_file='p.yaml', overrides={'simulator': {'max_episodes': 1}},
+        setup, params_file=params_file, overrides={'simulator': {'max_episodes': 1}},
         without=['recorder', 'scene_markers'], python='py')
     assert [c.name for c in children] == ['simulator', 'safety_filter', 'nominal_controller']
     sim = children[0]
     assert sim.command[:4] == ('py', '-m', 'rcbf_ros.ros.node_main', 'sim_nodes.simulator_node')
     assert sim.sigint_timeout_s == 5.0
-    assert parse_ros_arguments(sim.command).parameters == {
+    parsed = parse_ros_arguments(sim.command)
+    assert parsed.parameter_rules.sections()['simulator'] == {
         'wait_for_publishers': ['cmd_safe', 'cmd_proposed'], 'max_episodes': 1}
+    assert parameter_overrides([parsed], '/simulator')['max_episodes'] == 1
     with pytest.raises(ValueError, match="no node 'planner'"):
         launch_local.child_commands(setup, params_file='p.yaml', without=['planner'])
     env = launch_local.child_environment({'CYCLONEDDS_URI': '<remote/>', 'PATH': '/bin'},
@@ -178,6 +184,11 @@ def test_launch_description_has_one_node_per_table_entry(monkeypatch, launch_fil
         assert node.kwargs['name'] == entry.name
         assert node.kwargs['remappings'] == list(entry.remappings)
         assert isinstance(node.kwargs['parameters'][0], kinds['LaunchConfiguration'])
+        # A namespace makes launch_ros write the dict under the node's own name (its
+        # _create_params_file_from_dict), which wins over the params file's section.
+        assert node.kwargs['namespace'] == ''
+        assert node.kwargs['parameters'][1:] == ([dict(entry.parameters)] if entry.parameters
+                                                 else [])
         assert isinstance(node.kwargs['on_exit'], kinds['Shutdown']) == entry.ends_launch
         assert node.kwargs['sigterm_timeout'] == str(entry.sigint_timeout_s)
 
@@ -306,7 +317,8 @@ def test_main_prints_commands_and_rejects_unknown_nodes(capsys):
     assert launch_local.main(['unicycle_filter', '--print', '-p', 'simulator:seed:=4',
                               '--domain-id', '5']) == 0
     out = capsys.readouterr().out
-    assert 'simulator: ' in out and '-p seed:=4' in out and '__node:=safety_filter' in out
+    assert 'simulator: ' in out and '-p simulator:seed:=4' in out
+    assert '__node:=safety_filter' in out
     assert launch_local.main(['unicycle_filter', '--print', '-p', 'planner:x:=1']) == 2
     with pytest.raises(SystemExit):
         launch_local.main(['unicycle_filter', '-p', 'no_equals_sign'])
@@ -376,7 +388,7 @@ BAD_PARAMS = {
     'directory': ('', 'Is a directory'),
     'not_utf8': (b'\xff\xfe\x00', 'not UTF-8'),
     'not_yaml': ('a: [1\n', 'not valid YAML at line 2'),
-    'two_documents': ('a: 1\n---\nb: 2\n', 'not valid YAML'),
+    'two_documents': ('a: 1\n---\nb: 2\n', "'a' has no ros__parameters"),
     'a_list': ('- 1\n- 2\n', 'top level must map node names'),
     'no_ros__parameters': ('/simulator:\n  seed: 3\n', 'has no ros__parameters'),
     'ros__parameters_not_a_mapping': ('/simulator:\n  ros__parameters: 3\n', 'must be a mapping'),

@@ -22,19 +22,24 @@ from rcbf_ros.ros.dds.node import (
 )
 
 
-def test_parse_params_remaps_and_special_names():
+def test_parse_params_remaps_and_special_names(tmp_path):
+    params_file = tmp_path / 'a.yaml'
+    params_file.write_text('/**:\n  ros__parameters: {from_file: 1}\n')
     args = parse_ros_arguments([
         'prog', 'extra', '--ros-args', '-p', 'rate:=50', '-p', 'gain:=0.5', '--param',
         'name:=hello', '-p', 'flag:=true', '-p', 'limits:=[1.0, 2.5]', '-p', 'quoted:="7"',
+        '-p', 'filter:only_here:=3',
         '-r', 'cmd:=/safe_cmd', '--remap', 'talker:chatter:=/x', '-r', '__node:=filter',
-        '-r', '__ns:=/robot', '--params-file', 'a.yaml', '--log-level', 'debug', '--',
+        '-r', '__ns:=/robot', '--params-file', str(params_file), '--log-level', 'debug', '--',
         'tail'])
-    assert args.parameters == {'rate': 50, 'gain': 0.5, 'name': 'hello', 'flag': True,
-                               'limits': [1.0, 2.5], 'quoted': '7'}
+    assert args.parameter_rules.sections() == {
+        '/**': {'rate': 50, 'gain': 0.5, 'name': 'hello', 'flag': True, 'limits': [1.0, 2.5],
+                'quoted': '7', 'from_file': 1},
+        'filter': {'only_here': 3}}
     assert [(r.match, r.replacement, r.node) for r in args.remaps] == [
         ('cmd', '/safe_cmd', None), ('chatter', '/x', 'talker')]
     assert (args.node_name, args.namespace, args.log_level) == ('filter', '/robot', 'debug')
-    assert args.params_files == ('a.yaml',)
+    assert args.params_files == (str(params_file),)
     assert args.unparsed == ('prog', 'extra', 'tail')
     assert remove_ros_args(['p', '--ros-args', '-p', 'a:=1', '--', 'x']) == ['p', 'x']
 
@@ -43,6 +48,11 @@ def test_parse_params_remaps_and_special_names():
     (['--ros-args', '--bogus'], ['--bogus']),
     (['--ros-args', '-p'], ['-p', 'value']),
     (['--ros-args', '-p', 'rate=5'], ['-p', 'NAME:=VALUE']),
+    (['--ros-args', '-p', 'rate:='], ['-p', 'empty']),
+    (['--ros-args', '-p', '*:rate:=1'], ['-p', 'NAME:=VALUE']),
+    (['--ros-args', '-p', 'a:b:c:=1'], ['-p', 'NAME:=VALUE']),
+    (['--ros-args', '-p', 'rate:=[1, 2.5]'], ['-p', 'one type']),
+    (['--ros-args', '-p', 'rate:={a: 1}'], ['-p', 'scalar']),
     (['--ros-args', '-r', '__node:=9bad'], ['9bad']),
     (['--ros-args', '-r', '__ns:=/a b'], ['a b']),
 ])
@@ -81,21 +91,20 @@ def test_params_file_precedence(tmp_path):
     """))
     args = parse_ros_arguments(['--ros-args', '--params-file', str(first), '--params-file',
                                 str(second), '-p', 'late:=2'])
-    overrides = parameter_overrides([args], 'filter', '/robot/filter')
-    # node-specific entries beat wildcards from any file; -p beats every file
+    overrides = parameter_overrides([args], '/robot/filter')
+    # rcl keeps one /** key (opened by the first file, so before /robot/filter): the second
+    # file and -p late:=2 write into it, and the node's own section, after it, wins on rate.
     assert overrides == {'rate': 20, 'shared': 'from_wildcard', 'qp.eps': 0.001, 'late': 2}
-    assert parameter_overrides([args], 'other', '/other')['rate'] == 99
+    assert parameter_overrides([args], '/other')['rate'] == 99
 
 
 def test_params_file_errors_name_the_file(tmp_path):
     bad = tmp_path / 'bad.yaml'
     bad.write_text('/node:\n  rate: 5\n')
     with pytest.raises(RosArgumentError, match='bad.yaml'):
-        parameter_overrides([parse_ros_arguments(['--ros-args', '--params-file', str(bad)])],
-                            'node', '/node')
+        parse_ros_arguments(['--ros-args', '--params-file', str(bad)])
     with pytest.raises(RosArgumentError, match='missing.yaml'):
-        parameter_overrides([parse_ros_arguments(
-            ['--ros-args', '--params-file', str(tmp_path / 'missing.yaml')])], 'node', '/node')
+        parse_ros_arguments(['--ros-args', '--params-file', str(tmp_path / 'missing.yaml')])
 
 
 @pytest.mark.parametrize('name, expected', [

@@ -71,8 +71,10 @@ class FilterHarness:
 
 
 def _harness(ros_domain_id: int, *ros_args: str):
+    # safety_filter:...: after the file, so that it wins over its /safety_filter section.
     rclpy.init(args=['--ros-args', '--params-file', UNICYCLE, '-p',
-                     f'fail_safe_action:={FAIL_SAFE}', *ros_args], domain_id=ros_domain_id)
+                     f'safety_filter:fail_safe_action:={FAIL_SAFE}', *ros_args],
+               domain_id=ros_domain_id)
     return FilterHarness()
 
 
@@ -86,7 +88,7 @@ def harness(ros_domain_id):
 
 @pytest.fixture
 def twist_harness(ros_domain_id):
-    instance = _harness(ros_domain_id, '-p', 'command_type:=twist')
+    instance = _harness(ros_domain_id, '-p', 'safety_filter:command_type:=twist')
     yield instance
     instance.node.destroy_node()
     rclpy.try_shutdown()

@@ -6,10 +6,13 @@ Implements the subset of rcl's argument grammar that our nodes use::
                [--params-file file.yaml] [--log-level [logger:=]level]
                [-e|--enclave e] [--(enable|disable)-(rosout|stdout|external-lib)-logs] [--]
 
-``-p`` values are YAML scalars (or flow lists), as in ROS. Special remaps ``__node``/``__name``
-and ``__ns`` rename the node and set its namespace. Parameter files hold
-``/<node>: ros__parameters: {...}`` or ``/**: ros__parameters: {...}``; nested mappings flatten to
-dotted names, as rclpy does.
+Special remaps ``__node``/``__name`` and ``__ns`` rename the node and set its namespace.
+
+Parameters follow rcl and rclpy exactly (:mod:`rcbf_ros.params` has the rules): every
+``--params-file`` and ``-p [node:]name:=value`` of one command line fills one table in
+command-line order (a bare ``-p`` under the node key ``/**``, ``-p node:...`` under ``node``);
+a node takes every key that matches its fully qualified name in the order the keys first
+appeared, later ones overwriting earlier ones, global arguments before its own ``cli_args``.
 """
 from __future__ import annotations
 
@@ -19,7 +22,7 @@ from typing import Any, Iterable, Sequence
 
 import yaml
 
-from rcbf_ros.params import add_node_sections, read_params_file
+from rcbf_ros.params import node_values, ParamRules, WILDCARD_KEY
 
 _FLAG_ONLY = {
     '--enable-rosout-logs', '--disable-rosout-logs', '--enable-stdout-logs',
@@ -27,6 +30,11 @@ _FLAG_ONLY = {
 }
 _TOKEN = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*$')
 _SUBSTITUTION = re.compile(r'^\{[A-Za-z_][A-Za-z0-9_]*\}$')
+# rcl's _rcl_parse_param_rule: [token ':'] name ':=' value; a name is '.'-separated runs of
+# tokens and '/' (a token does not start with a digit); no wildcards.
+_PARAM_RULE = re.compile(r'(?:(?P<node>[A-Za-z_][A-Za-z0-9_]*):(?!=))?'
+                         r'(?P<name>(?:/|[A-Za-z_][A-Za-z0-9_]*)+'
+                         r'(?:\.(?:/|[A-Za-z_][A-Za-z0-9_]*)+)*):=(?P<value>.*)', re.DOTALL)
 
 
 class RosArgumentError(ValueError):
@@ -49,8 +57,8 @@ class RemapRule:
 class RosArguments:
     """Everything parsed out of the ``--ros-args`` sections of a command line."""
 
-    parameters: dict[str, Any] = field(default_factory=dict)
-    """``-p name:=value`` overrides (values already parsed as YAML)."""
+    parameter_rules: ParamRules = field(default_factory=ParamRules)
+    """Every ``-p`` and ``--params-file`` in command-line order, read as rcl reads them."""
     params_files: tuple[str, ...] = ()
     """``--params-file`` paths in command-line order."""
     remaps: tuple[RemapRule, ...] = ()
@@ -65,15 +73,6 @@ class RosArguments:
     """Arguments outside ``--ros-args`` sections (what ``remove_ros_args`` returns)."""
 
 
-def parse_yaml_value(text: str) -> Any:
-    """A ``-p`` value as ROS reads it: a YAML scalar or flow sequence (``'1'`` -> ``1``)."""
-    try:
-        value = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise RosArgumentError(f'cannot parse parameter value {text!r} as YAML: {exc}') from exc
-    return '' if value is None and text.strip() in ('', "''", '""') else value
-
-
 def _split_assignment(flag: str, text: str) -> tuple[str, str]:
     if ':=' not in text:
         raise RosArgumentError(f'{flag} expects NAME:=VALUE, got {text!r}')
@@ -86,10 +85,13 @@ def _split_assignment(flag: str, text: str) -> tuple[str, str]:
 def parse_ros_arguments(argv: Sequence[str] | None) -> RosArguments:
     """Parse the ``--ros-args`` sections of ``argv`` (``argv[0]`` is treated like any word).
 
+    Parameter files are read here, as rcl reads them when it parses the arguments.
+
     Raises:
-        RosArgumentError: an unknown flag, a flag missing its value, or a malformed rule.
+        RosArgumentError: an unknown flag, a flag missing its value, a malformed rule, or a
+            parameter file that cannot be read or that rcl refuses (one line naming it).
     """
-    parameters: dict[str, Any] = {}
+    rules = ParamRules()
     params_files: list[str] = []
     remaps: list[RemapRule] = []
     unparsed: list[str] = []
@@ -119,8 +121,7 @@ def parse_ros_arguments(argv: Sequence[str] | None) -> RosArguments:
         value = words[index]
         index += 1
         if word in ('-p', '--param'):
-            name, text = _split_assignment(word, value)
-            parameters[name] = parse_yaml_value(text)
+            _add_param_rule(rules, word, value)
         elif word in ('-r', '--remap'):
             lhs, rhs = _split_assignment(word, value)
             node = None
@@ -139,11 +140,26 @@ def parse_ros_arguments(argv: Sequence[str] | None) -> RosArguments:
             else:
                 remaps.append(RemapRule(lhs, rhs, node))
         elif word == '--params-file':
+            _add_params_file(rules, value)
             params_files.append(value)
         elif word == '--log-level':
             log_level = (value.split(':=', 1)[1] if ':=' in value else value).lower()
-    return RosArguments(parameters, tuple(params_files), tuple(remaps), node_name, namespace,
+    return RosArguments(rules, tuple(params_files), tuple(remaps), node_name, namespace,
                         log_level, tuple(unparsed))
+
+
+def _add_param_rule(rules: ParamRules, flag: str, text: str) -> None:
+    """One ``-p [node:]name:=value`` into ``rules`` (``/**`` without a node)."""
+    match = _PARAM_RULE.fullmatch(text)
+    if match is None:
+        raise RosArgumentError(f'{flag} expects [NODE:]NAME:=VALUE (names of letters, digits, '
+                               f'_ and / in .-separated parts), got {text!r}')
+    if not match['value']:
+        raise RosArgumentError(f'{flag} {text!r}: the value must not be empty')
+    try:
+        rules.add_rule(match['node'] or WILDCARD_KEY, match['name'], match['value'])
+    except ValueError as exc:
+        raise RosArgumentError(f'{flag} {text!r}: {exc}') from exc
 
 
 def remove_ros_args(args: Sequence[str]) -> list[str]:
@@ -151,15 +167,15 @@ def remove_ros_args(args: Sequence[str]) -> list[str]:
     return list(parse_ros_arguments(args).unparsed)
 
 
-def load_params_file(path: str) -> dict[str, dict[str, Any]]:
-    """Read a ROS 2 parameter file: node key -> flattened ``ros__parameters``.
+def _add_params_file(rules: ParamRules, path: str) -> None:
+    """Read one ``--params-file`` into ``rules``.
 
     Raises:
-        RosArgumentError: the file is missing or unreadable, not UTF-8 YAML, or not a mapping of
-            node sections with ``ros__parameters`` (one line naming the file).
+        RosArgumentError: the file is missing or unreadable, not UTF-8, not YAML, or refused by
+            rcl's rules (one line naming the file).
     """
     try:
-        return read_params_file(path)
+        rules.add_file(path)
     except OSError as exc:
         raise RosArgumentError(f'--params-file {path!r}: {exc.strerror or exc}') from exc
     except UnicodeDecodeError as exc:
@@ -175,22 +191,23 @@ def load_params_file(path: str) -> dict[str, dict[str, Any]]:
         raise RosArgumentError(' '.join(f'--params-file {exc}'.split())) from exc
 
 
-def parameter_overrides(arguments: Iterable[RosArguments], node_name: str,
-                        fully_qualified: str) -> dict[str, Any]:
-    """The parameter overrides one node sees.
+def load_params_file(path: str) -> dict[str, dict[str, Any]]:
+    """Read a ROS 2 parameter file: node key (as written) -> {name: value} (None: NOT_SET).
 
-    Parameter files (in order) contribute their wildcard entries (``/**``) first and their
-    entries for this node second; ``-p`` assignments override both, as in rcl/rclpy.
+    Raises:
+        RosArgumentError: as :func:`parse_ros_arguments` for a ``--params-file``.
     """
-    wildcard: dict[str, Any] = {}
-    specific: dict[str, Any] = {}
-    direct: dict[str, Any] = {}
-    for args in arguments:
-        for path in args.params_files:
-            add_node_sections(load_params_file(path), node_name, fully_qualified, wildcard,
-                              specific)
-        direct.update(args.parameters)
-    return {**wildcard, **specific, **direct}
+    rules = ParamRules()
+    _add_params_file(rules, path)
+    return rules.sections()
+
+
+def parameter_overrides(arguments: Iterable[RosArguments], fully_qualified: str
+                        ) -> dict[str, Any]:
+    """The parameter overrides a node gets, as rclpy computes them (``Node.get_parameters`` in
+    rclpy's node.cpp): each argument set in order (global, then the node's own), every table
+    key matching ``fully_qualified`` in table order, later ones overwriting. None: NOT_SET."""
+    return node_values((args.parameter_rules for args in arguments), fully_qualified)
 
 
 def _check_node_name(name: str) -> str:

@@ -35,7 +35,7 @@ from cyclonedds.core import GuardCondition, Policy, Qos, WaitSet
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.util import duration
 
-from rcbf_ros.ros.dds.arguments import load_params_file, parse_ros_arguments, RosArguments
+from rcbf_ros.ros.dds.arguments import parse_ros_arguments, RosArguments
 from rcbf_ros.ros.loopback import (
     ensure_loopback,
     LOOPBACK_CYCLONEDDS_URI,
@@ -75,9 +75,7 @@ class Context:
         with self._lock:
             if self._ok:
                 raise RuntimeError('rclpy.init() has already been called for this context')
-            self.arguments = parse_ros_arguments(args)
-            for path in self.arguments.params_files:  # as rcl does at init
-                load_params_file(path)
+            self.arguments = parse_ros_arguments(args)  # reads the params files, as rcl does
             if domain_id is None:
                 text = os.environ.get('ROS_DOMAIN_ID', '').strip() or '0'
                 try:

@@ -6,12 +6,14 @@ ROS 2 wire conventions (so stock Jazzy nodes interoperate): topic ``/a/b`` is th
 """
 from __future__ import annotations
 
+import array
 from dataclasses import dataclass
 import enum
 import sys
 import threading
 import time
 from typing import Any, Callable, Iterable, Sequence
+import warnings
 
 from cyclonedds._clayer import ddspy_take, ddspy_write
 from cyclonedds.builtin import (
@@ -184,22 +186,59 @@ class Logger:
 
 
 # ----------------------------------------------------------------------------- parameters
-class ParameterNotDeclaredException(KeyError):
-    """get_parameter() of a name that was never declared (rclpy.exceptions')."""
+class ParameterException(Exception):
+    """Base of the parameter errors (rclpy.exceptions')."""
+
+    def __init__(self, error_msg: str, parameters: str | list[str]) -> None:
+        super().__init__(f'{error_msg}: {parameters}')
 
 
-class ParameterAlreadyDeclaredException(ValueError):
-    """declare_parameter() twice for one name (rclpy.exceptions')."""
+class ParameterNotDeclaredException(ParameterException):
+    """get_parameter() / set_parameters() of a name that was never declared."""
+
+    def __init__(self, parameters: str | list[str]) -> None:
+        super().__init__('Invalid access to undeclared parameter(s)', parameters)
 
 
-class InvalidParameterTypeException(TypeError):
-    """An override's type differs from the declared default's (rclpy.exceptions')."""
+class ParameterAlreadyDeclaredException(ParameterException):
+    """declare_parameter() twice for one name."""
+
+    def __init__(self, parameters: str | list[str]) -> None:
+        super().__init__('Parameter(s) already declared', parameters)
+
+
+class InvalidParameterTypeException(ParameterException):
+    """A value (an override, or a set) of another type than the parameter's static type."""
+
+    def __init__(self, desired_parameter: Parameter, expected_type: str) -> None:
+        value = desired_parameter.value
+        super().__init__(
+            f"Trying to set parameter '{desired_parameter.name}' to '{value}' of type "
+            f"'{Parameter.Type.from_parameter_value(value).name}', expecting type "
+            f"'{expected_type}'", desired_parameter.name)
+
+
+class InvalidParameterValueException(ParameterException):
+    """A value refused for another reason than its type (e.g. undeclaring a static one)."""
+
+    def __init__(self, parameter: str, value: Any, reason: str) -> None:
+        super().__init__(f'Invalid parameter value ({value}) for parameter. Reason: {reason}',
+                         parameter)
+
+
+class ParameterUninitializedException(ParameterException):
+    """get_parameter() of a statically typed parameter that has no value."""
+
+    def __init__(self, parameter_name: str) -> None:
+        super().__init__(f"The parameter '{parameter_name}' is not initialized", parameter_name)
 
 
 class Parameter:
-    """rclpy.parameter.Parameter subset: ``name``, ``value``, ``type_``."""
+    """rclpy.parameter.Parameter: ``name``, ``type_``, ``value`` (NOT_SET: ``None``)."""
 
-    class Type(enum.IntEnum):
+    class Type(enum.Enum):
+        """rclpy.parameter.Parameter.Type (values: rcl_interfaces/msg/ParameterType)."""
+
         NOT_SET = 0
         BOOL = 1
         INTEGER = 2
@@ -213,7 +252,11 @@ class Parameter:
 
         @classmethod
         def from_parameter_value(cls, value: Any) -> Parameter.Type:
-            """The ROS parameter type of a Python value (``ValueError`` if none fits)."""
+            """The type rclpy infers from a Python value (an empty list is a BYTE_ARRAY).
+
+            Raises:
+                TypeError: no parameter type holds the value.
+            """
             if value is None:
                 return cls.NOT_SET
             if isinstance(value, bool):
@@ -224,33 +267,69 @@ class Parameter:
                 return cls.DOUBLE
             if isinstance(value, str):
                 return cls.STRING
-            if isinstance(value, (bytes, bytearray)):
-                return cls.BYTE_ARRAY
-            if isinstance(value, (list, tuple)):
-                if all(isinstance(v, bool) for v in value):
-                    return cls.BOOL_ARRAY if value else cls.NOT_SET
-                if all(isinstance(v, int) and not isinstance(v, bool) for v in value):
-                    return cls.INTEGER_ARRAY
-                if all(isinstance(v, float) for v in value):
-                    return cls.DOUBLE_ARRAY
-                if all(isinstance(v, str) for v in value):
-                    return cls.STRING_ARRAY
-            raise ValueError(f'{value!r} is not a valid ROS parameter value (scalars or '
-                             'homogeneous lists of bool/int/float/str)')
+            if isinstance(value, (list, tuple, array.array)):
+                for kind, item_types in ((cls.BYTE_ARRAY, bytes), (cls.BOOL_ARRAY, bool),
+                                         (cls.INTEGER_ARRAY, int), (cls.DOUBLE_ARRAY, float),
+                                         (cls.STRING_ARRAY, str)):
+                    if all(isinstance(v, item_types) for v in value):
+                        return kind
+                raise TypeError(f"The given value is not a list of one of the allowed types "
+                                f"'{value}'.")
+            raise TypeError(f"The given value is not one of the allowed types '{value}'.")
+
+        def check(self, value: Any) -> bool:
+            """True if ``value`` is a value of this type."""
+            if self is Parameter.Type.NOT_SET:
+                return value is None
+            scalar = {Parameter.Type.BOOL: bool, Parameter.Type.INTEGER: int,
+                      Parameter.Type.DOUBLE: float, Parameter.Type.STRING: str}.get(self)
+            if scalar is not None:
+                return isinstance(value, scalar)
+            if self is Parameter.Type.BYTE_ARRAY:
+                return isinstance(value, (list, tuple)) and all(
+                    isinstance(v, bytes) and len(v) == 1 for v in value)
+            item = {Parameter.Type.BOOL_ARRAY: bool, Parameter.Type.INTEGER_ARRAY: int,
+                    Parameter.Type.DOUBLE_ARRAY: float, Parameter.Type.STRING_ARRAY: str}[self]
+            containers = ((list, tuple, array.array) if item in (int, float)
+                          else (list, tuple))
+            return isinstance(value, containers) and all(isinstance(v, item) for v in value)
 
     def __init__(self, name: str, type_: Parameter.Type | None = None,
                  value: Any = None) -> None:
-        if type_ is not None and not isinstance(type_, Parameter.Type) and value is None:
-            type_, value = None, type_  # Parameter(name, value) convenience
-        self.name = name
-        self.value = list(value) if isinstance(value, tuple) else value
-        self.type_ = Parameter.Type.from_parameter_value(value) if type_ is None else type_
+        if type_ is None:
+            type_ = Parameter.Type.from_parameter_value(value)
+        if not isinstance(type_, Parameter.Type):
+            raise TypeError(f"type must be an instance of '{Parameter.Type!r}'")
+        if not type_.check(value):
+            raise ValueError(f"Type '{type_}' and value '{value}' do not agree")
+        self._name = name
+        self._type = type_
+        self._value = value
 
-    def get_parameter_value(self) -> Any:
-        return self.value
+    @property
+    def name(self) -> str:
+        return self._name
+
+    @property
+    def type_(self) -> Parameter.Type:
+        return self._type
+
+    @property
+    def value(self) -> Any:
+        return self._value
 
     def __repr__(self) -> str:
         return f'Parameter({self.name!r}, {self.type_.name}, {self.value!r})'
+
+
+def parameter_descriptor(**fields: Any) -> Any:
+    """A new ``rcl_interfaces/msg/ParameterDescriptor`` (rclpy's class of that name)."""
+    return messages.get_message('rcl_interfaces/msg/ParameterDescriptor')(**fields)
+
+
+def _set_parameters_result(successful: bool, reason: str = '') -> Any:
+    return messages.get_message('rcl_interfaces/msg/SetParametersResult')(
+        successful=successful, reason=reason)
 
 
 # ----------------------------------------------------------------------------- endpoints
@@ -472,12 +551,17 @@ class Node:
                                'warn': LoggingSeverity.WARN, 'warning': LoggingSeverity.WARN,
                                'error': LoggingSeverity.ERROR,
                                'fatal': LoggingSeverity.FATAL}[log_level])
-        self._overrides = collect_parameter_overrides(arguments, self._name,
-                                                      self.get_fully_qualified_name())
-        for parameter in parameter_overrides or ():
-            self._overrides[parameter.name] = parameter.value
+        self._parameter_overrides = {
+            name: Parameter(name, value=value) for name, value in
+            collect_parameter_overrides(arguments, self.get_fully_qualified_name()).items()}
+        self._parameter_overrides.update({p.name: p for p in parameter_overrides or ()})
         self._allow_undeclared = allow_undeclared_parameters
         self._parameters: dict[str, Parameter] = {}
+        self._descriptors: dict[str, Any] = {}
+        if automatically_declare_parameters_from_overrides:  # as rclpy: static, typed by value
+            self.declare_parameters('', [(name, parameter.value, parameter_descriptor())
+                                         for name, parameter in self._parameter_overrides.items()],
+                                    ignore_override=True)
         self._clock = Clock()
         self._topics: dict[tuple[str, str], Topic] = {}
         self._publishers: list[Publisher] = []
@@ -490,9 +574,6 @@ class Node:
             | None = None
         self._endpoint_cache: dict[Any, list[Any]] = {}
         self.context.add_node(self)
-        if automatically_declare_parameters_from_overrides:
-            for name_, value in self._overrides.items():
-                self.declare_parameter(name_, value)
 
     # names ----------------------------------------------------------------------------------
     def get_name(self) -> str:
@@ -573,64 +654,139 @@ class Node:
             self._guard.set(True)
 
     # parameters -----------------------------------------------------------------------------
+    # The rules are rclpy's (node.py: declare_parameters, _apply_descriptor, get_parameter,
+    # _set_parameters_atomically_common): a parameter declared with a value is statically typed
+    # by that value unless its descriptor says dynamic_typing; Parameter.Type declares the type
+    # without a value (then get_parameter raises until one is set); overrides must have the
+    # declared type; a NOT_SET value cannot be a static default. The descriptor passed in is
+    # kept and modified (its name and type), as rclpy does.
     def declare_parameter(self, name: str, value: Any = None, descriptor: Any = None,
                           ignore_override: bool = False) -> Parameter:
-        """Declare ``name`` with default ``value``; a command-line/file override wins.
+        """Declare ``name`` with default ``value`` (or a ``Parameter.Type``); an override wins.
 
         Raises:
             ParameterAlreadyDeclaredException: ``name`` was declared before.
-            InvalidParameterTypeException: the override's type differs from the default's.
+            InvalidParameterTypeException: the override's type is not the declared type.
+            ValueError: a static declaration without a type (default None or NOT_SET).
         """
-        if isinstance(value, Parameter.Type):  # declare_parameter(name, Parameter.Type.X)
-            declared_type, value = value, None
+        if value is None and descriptor is None:
+            item: tuple = (name,)
         else:
-            declared_type = Parameter.Type.from_parameter_value(value)
-        if name in self._parameters:
-            raise ParameterAlreadyDeclaredException(f'parameter {name!r} already declared')
-        if not ignore_override and name in self._overrides:
-            override = self._overrides[name]
-            try:
-                override_type = Parameter.Type.from_parameter_value(override)
-            except ValueError as exc:
-                raise InvalidParameterTypeException(f'parameter {name!r}: {exc}') from exc
-            compatible = (declared_type == Parameter.Type.NOT_SET
-                          or override_type == declared_type
-                          or (override_type == Parameter.Type.NOT_SET
-                              and isinstance(override, list) and declared_type.name.endswith(
-                                  '_ARRAY')))
-            if not compatible:
-                raise InvalidParameterTypeException(
-                    f'parameter {name!r} of node {self.get_fully_qualified_name()!r}: override '
-                    f'{override!r} is {override_type.name}, but the default {value!r} is '
-                    f'{declared_type.name}')
-            value = override
-        parameter = Parameter(name, value=value)
-        self._parameters[name] = parameter
-        return parameter
+            item = (name, value, parameter_descriptor() if descriptor is None else descriptor)
+        return self.declare_parameters('', [item], ignore_override)[0]
 
     def declare_parameters(self, namespace: str, parameters: Iterable[tuple],
                            ignore_override: bool = False) -> list[Parameter]:
-        """Declare ``(name,)``, ``(name, default)`` or ``(name, default, descriptor)`` items."""
-        declared = []
-        for item in parameters:
-            if not isinstance(item, tuple) or not 1 <= len(item) <= 3:
-                raise TypeError(f'declare_parameters items must be (name[, value[, '
-                                f'descriptor]]) tuples, got {item!r}')
-            full = f'{namespace}.{item[0]}' if namespace else item[0]
-            declared.append(self.declare_parameter(full, *item[1:2],
-                                                   ignore_override=ignore_override))
-        return declared
+        """Declare ``(name,)``, ``(name, Parameter.Type)`` or ``(name, value, descriptor)``
+        items, each as :meth:`declare_parameter`; nothing is declared if one was before."""
+        descriptor_type = type(parameter_descriptor())
+        declared: list[Parameter] = []
+        descriptors: dict[str, Any] = {}
+        for index, item in enumerate(parameters):
+            if not 1 <= len(item) <= 3:
+                raise TypeError(f'Invalid parameter tuple length at index {index} in parameters '
+                                f'list: {item}; expecting length between 1 and 3')
+            name = item[0]
+            if not isinstance(name, str):
+                raise TypeError(f'First element {name} at index {index} in parameters list is '
+                                'not a str.')
+            if namespace:
+                name = f'{namespace}.{name}'
+            second = item[1] if len(item) > 1 else None
+            descriptor = item[2] if len(item) > 2 else parameter_descriptor()
+            if not isinstance(descriptor, descriptor_type):
+                raise TypeError(f'Third element {descriptor} at index {index} in parameters '
+                                'list is not a ParameterDescriptor.')
+            if len(item) == 1:
+                warnings.warn(f"when declaring parameter named '{name}', declaring a parameter "
+                              'only providing its name is deprecated', stacklevel=3)
+                descriptor.dynamic_typing = True
+            value = None
+            if isinstance(second, Parameter.Type):
+                if second is Parameter.Type.NOT_SET:
+                    raise ValueError(f'Cannot declare parameter {{{name}}} as statically typed '
+                                     'of type NOT_SET')
+                if descriptor.dynamic_typing:
+                    raise ValueError(f'When declaring parameter {{{name}}} passing a descriptor '
+                                     'with `dynamic_typing=True` is not allowed when the '
+                                     'parameter type is provided')
+                descriptor.type = second.value
+            else:
+                value = second
+                if not descriptor.dynamic_typing:
+                    descriptor.type = Parameter.Type.from_parameter_value(value).value
+                    if descriptor.type == Parameter.Type.NOT_SET.value:
+                        raise ValueError('Cannot declare a statically typed parameter with '
+                                         f'default value of type PARAMETER_NOT_SET ({name!r})')
+            if not ignore_override and name in self._parameter_overrides:
+                value = self._parameter_overrides[name].value
+            declared.append(Parameter(name, value=value))
+            descriptors[name] = descriptor
+        already = [p.name for p in declared if p.name in self._parameters]
+        if already:
+            raise ParameterAlreadyDeclaredException(already)
+        for parameter in declared:
+            descriptor = descriptors[parameter.name]
+            result = self._apply_descriptor(parameter, descriptor, check_read_only=False)
+            if not result.successful:
+                if result.reason.startswith('Wrong parameter type'):
+                    raise InvalidParameterTypeException(
+                        parameter, Parameter.Type(descriptor.type).name)
+                raise InvalidParameterValueException(parameter.name, parameter.value,
+                                                     result.reason)
+            self._descriptors[parameter.name] = descriptor
+            self._parameters[parameter.name] = parameter
+        return [self._parameters[p.name] for p in declared]
+
+    def _apply_descriptor(self, parameter: Parameter, descriptor: Any,
+                          check_read_only: bool = True) -> Any:
+        """Check ``parameter`` against ``descriptor`` (which takes its name, and its type when
+        dynamically typed); a SetParametersResult."""
+        descriptor.name = parameter.name
+        if check_read_only and descriptor.read_only:
+            return _set_parameters_result(
+                False, f'Trying to set a read-only parameter: {parameter.name}.')
+        if descriptor.dynamic_typing:
+            descriptor.type = parameter.type_.value
+        elif self.has_parameter(parameter.name) and parameter.type_ is Parameter.Type.NOT_SET:
+            return _set_parameters_result(False, 'Static parameter cannot be undeclared')
+        elif (parameter.type_ is not Parameter.Type.NOT_SET
+              and parameter.type_.value != descriptor.type):
+            return _set_parameters_result(
+                False, f"Wrong parameter type, expected '{Parameter.Type(descriptor.type)}' got "
+                       f"'{parameter.type_}'")
+        return _set_parameters_result(True)
 
     def has_parameter(self, name: str) -> bool:
         return name in self._parameters
 
     def get_parameter(self, name: str) -> Parameter:
+        """The declared parameter ``name``.
+
+        Raises:
+            ParameterNotDeclaredException: never declared (and undeclared ones not allowed).
+            ParameterUninitializedException: statically typed and without a value.
+        """
         if name in self._parameters:
-            return self._parameters[name]
+            parameter = self._parameters[name]
+            if (parameter.type_ is not Parameter.Type.NOT_SET
+                    or self._descriptors[name].dynamic_typing):
+                return parameter
+            raise ParameterUninitializedException(name)
         if self._allow_undeclared:
-            return Parameter(name, value=None)
-        raise ParameterNotDeclaredException(
-            f'parameter {name!r} is not declared on node {self.get_fully_qualified_name()!r}')
+            return Parameter(name, Parameter.Type.NOT_SET, None)
+        raise ParameterNotDeclaredException(name)
+
+    def get_parameter_or(self, name: str, alternative_value: Parameter | None = None
+                         ) -> Parameter:
+        """The parameter, or ``alternative_value`` if undeclared or without a value."""
+        if alternative_value is None:
+            alternative_value = Parameter(name, Parameter.Type.NOT_SET)
+        if name not in self._parameters:
+            return alternative_value
+        if self._parameters[name].type_ is Parameter.Type.NOT_SET:
+            return alternative_value
+        return self._parameters[name]
 
     def get_parameters(self, names: Iterable[str]) -> list[Parameter]:
         return [self.get_parameter(name) for name in names]
@@ -640,13 +796,43 @@ class Node:
         return {name[len(dotted):]: p for name, p in self._parameters.items()
                 if name.startswith(dotted)}
 
-    def set_parameters(self, parameters: Iterable[Parameter]) -> list[bool]:
+    def describe_parameter(self, name: str) -> Any:
+        """The descriptor kept for ``name`` (the object that was declared with)."""
+        if name in self._descriptors:
+            return self._descriptors[name]
+        if self._allow_undeclared:
+            return parameter_descriptor()
+        raise ParameterNotDeclaredException(name)
+
+    def describe_parameters(self, names: Iterable[str]) -> list[Any]:
+        return [self.describe_parameter(name) for name in names]
+
+    def set_parameters(self, parameters: Iterable[Parameter]) -> list[Any]:
+        """Set each parameter in turn; a SetParametersResult each. A NOT_SET value undeclares
+        a dynamically typed parameter.
+
+        Raises:
+            ParameterNotDeclaredException: one was never declared (undeclared not allowed).
+        """
         results = []
         for parameter in parameters:
+            if not isinstance(parameter, Parameter):
+                raise TypeError(f"parameter must be instance of type '{Parameter!r}'")
             if parameter.name not in self._parameters and not self._allow_undeclared:
-                raise ParameterNotDeclaredException(f'parameter {parameter.name!r} not declared')
-            self._parameters[parameter.name] = Parameter(parameter.name, value=parameter.value)
-            results.append(True)
+                raise ParameterNotDeclaredException([parameter.name])
+            descriptor = self._descriptors.get(parameter.name)
+            result = (_set_parameters_result(True) if descriptor is None
+                      else self._apply_descriptor(parameter, descriptor))
+            if result.successful:
+                if parameter.type_ is Parameter.Type.NOT_SET:
+                    self._parameters.pop(parameter.name, None)
+                    self._descriptors.pop(parameter.name, None)
+                else:
+                    if descriptor is None:
+                        self._descriptors[parameter.name] = parameter_descriptor(
+                            dynamic_typing=True)
+                    self._parameters[parameter.name] = parameter
+            results.append(result)
         return results
 
     # graph ----------------------------------------------------------------------------------
