@@ -84,9 +84,14 @@ def packaged_parameter_specs(system: str, section: str,
 
 def system_from_argv(argv: Sequence[str]) -> str:
     """The ``system`` a command line sets with ``-p system:=...`` (else the default)."""
-    from rcbf_ros.ros.dds.arguments import parse_ros_arguments, RosArgumentError
-    try:
-        value = parse_ros_arguments(argv).parameters.get('system', DEFAULT_SYSTEM)
+    from rcbf_ros.ros.dds.arguments import (
+        parameter_overrides,
+        parse_ros_arguments,
+        RosArgumentError,
+    )
+    try:  # the rules as the node named in --help would see them (rcl's order)
+        value = parameter_overrides([parse_ros_arguments(argv)], '/simulator').get(
+            'system', DEFAULT_SYSTEM)
     except RosArgumentError:
         return DEFAULT_SYSTEM
     return str(value) if str(value) in ENVS else DEFAULT_SYSTEM
