@@ -147,8 +147,9 @@ def test_the_offered_qos_is_requested_and_recorded(bag: Path) -> None:
     meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     offered = {t['topic_metadata']['name']: t['topic_metadata']['offered_qos_profiles']
                for t in meta['topics_with_message_count']}
-    assert 'durability: transient_local' in offered['/episode']
-    assert 'durability: volatile' in offered['/diagnostics']
+    # rosbag2 Jazzy (version 9) writes the profiles as a YAML sequence
+    assert [profile['durability'] for profile in offered['/episode']] == ['transient_local']
+    assert [profile['durability'] for profile in offered['/diagnostics']] == ['volatile']
 
 
 def test_foxglove_reads_every_message_without_trailing_bytes(

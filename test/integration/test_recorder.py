@@ -138,7 +138,11 @@ def _wait_for_whole_chunks(bag: Path, recorder: subprocess.Popen, publisher: sub
         assert recorder.poll() is None, recorder.stdout.read()
         assert publisher.poll() is None, publisher.stdout.read()
         if any(bag.glob('*.mcap')):
-            count = bag_info(bag).message_count
+            try:
+                count = bag_info(bag).message_count
+            except BagError:  # the writer has created the file but not yet written its header
+                time.sleep(0.1)
+                continue
             if count >= at_least:
                 return count
         time.sleep(0.1)
