@@ -143,6 +143,22 @@ def _init_options() -> dict[str, Any]:
     return {'signal_handler_options': SignalHandlerOptions.NO}
 
 
+def _init_errors() -> tuple[type[BaseException], ...]:
+    """What ``rclpy.init`` raises for a bad command line or params file: ValueError on our
+    runtime, rcl's ``RCLError`` ("failed to initialize rcl: ...") on real rclpy."""
+    from rcbf_ros.ros.runtime import USING_RCLPY
+    if not USING_RCLPY:
+        return (ValueError,)
+    from rclpy.impl.implementation_singleton import rclpy_implementation
+    return (ValueError, rclpy_implementation.RCLError)
+
+
+def init_error_line(error: BaseException) -> str:
+    """rcl's error text on one line: its ``, at <source file>:<line>`` trail dropped."""
+    text = ' '.join(str(error).split())
+    return text.split(', at /', 1)[0].rstrip()
+
+
 def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None = None, *,
              run: Callable[[Any], None] | None = None,
              on_exit: Callable[[Any], None] | None = None,
@@ -178,8 +194,8 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
     try:
         try:
             rclpy.init(args=argv, **_init_options())
-        except ValueError as exc:
-            print(f'{name}: {exc}', file=sys.stderr)
+        except _init_errors() as exc:
+            print(f'{name}: {init_error_line(exc)}', file=sys.stderr)
             return 2
         except (KeyboardInterrupt, ExternalShutdownException):
             _STOP.ignoring = True
