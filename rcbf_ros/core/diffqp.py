@@ -1,4 +1,4 @@
-"""Batched differentiable QP layer specialised to the small RCBF-QP (paper eq. QP, issue 2 item 6).
+"""Batched differentiable QP layer specialised to the small RCBF-QP of the paper.
 
 Solves, for every sample b of a minibatch, the strictly convex QP in the package's standard form
 (:mod:`rcbf_ros.core.qp`)
