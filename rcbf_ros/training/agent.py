@@ -62,8 +62,9 @@ class LearnerConfig:
     """Modular mode: keep the envelope's correction (the barriers that are the same in every
     layout, given to the learner as ``envelope``) in the critic target and actor loss, as the
     authors' code does for PVTOL. False (default): drop the whole u_S, the paper's eq.
-    q_update_mod (on PVTOL, one seed each, the envelope variant learned less in 15 episodes:
-    docs/RESULTS.md 4a)."""
+    q_update_mod. On PVTOL use True: there the paper's form drove 3 of 4 seeds into the arena's
+    corner (its critic extrapolates at proposals the envelope always cancels), while this variant
+    learns the task and transfers at the paper's level (docs/RESULTS.md 4a)."""
     rollout_interval: int = 250
     """Environment steps between model-rollout rounds (model-based only)."""
     rollouts: int = 256
