@@ -34,9 +34,11 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--mode', default='modular', choices=MODES)
     parser.add_argument('--model-based', dest='model_based', action='store_true', default=None,
                         help='MB SAC-RCBF: synthetic k-step rollouts (mode diff)')
-    parser.add_argument('--modular-envelope', dest='modular_envelope', action='store_true',
-                        default=None, help="modular: keep the envelope's correction (bands "
-                        "not marked 'layout: true') in the losses, as the authors' PVTOL code")
+    parser.add_argument('--modular-envelope', dest='modular_envelope',
+                        action=argparse.BooleanOptionalAction, default=None,
+                        help="modular: keep the envelope's correction (bands not marked "
+                        "'layout: true') in the losses, as the authors' PVTOL code (default: "
+                        "the config file's /learner modular_envelope; config/pvtol.yaml sets it)")
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--episodes', type=int, default=20)
     parser.add_argument('--max-steps', type=int, default=None, help='episode length override')

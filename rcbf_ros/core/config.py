@@ -86,6 +86,15 @@ def number(params: Mapping[str, Any], key: str, default: float, *,
     return out
 
 
+def flag(params: Mapping[str, Any], key: str, default: bool = False) -> bool:
+    """params[key] (or ``default``) as a bool; anything else (1, 'true') is refused naming
+    ``key``, as rcl types a YAML bool and nothing else as a bool parameter."""
+    value = params.get(key, default)
+    if not isinstance(value, bool):
+        raise ValueError(f'{key}: expected true or false, got {value!r}')
+    return value
+
+
 def _index(params: Mapping[str, Any], key: str, default: int, size: int,
            allow_none: bool = False, kind: str = 'state') -> int | None:
     """An index into the state (``kind`` 'state', size n_x) or the input ('input', n_u)."""

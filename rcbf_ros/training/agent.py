@@ -58,13 +58,15 @@ class LearnerConfig:
     """Training-set cap of each GP refit (keeps refit < 2 s and prediction < 1 ms)."""
     k_c: float = 2.0
     """Disturbance box mean +/- k_c std (paper eq. disturb_estimate)."""
-    modular_envelope: bool = False
+    modular_envelope: bool | None = None
     """Modular mode: keep the envelope's correction (the barriers that are the same in every
     layout, given to the learner as ``envelope``) in the critic target and actor loss, as the
-    authors' code does for PVTOL. False (default): drop the whole u_S, the paper's eq.
-    q_update_mod. On PVTOL use True: there the paper's form drove 3 of 4 seeds into the arena's
-    corner (its critic extrapolates at proposals the envelope always cancels), while this variant
-    learns the task and transfers at the paper's level (docs/RESULTS.md 4a)."""
+    authors' code does for PVTOL. False: drop the whole u_S, the paper's eq. q_update_mod. On
+    PVTOL use True (config/pvtol.yaml does): there the paper's form drove 3 of 4 seeds into the
+    arena's corner (its critic extrapolates at proposals the envelope always cancels), while this
+    variant learns the task and transfers at the paper's level (docs/RESULTS.md 4a). ``None``:
+    not resolved yet, the training code takes the config file's ``/learner``
+    ``modular_envelope`` (else False)."""
     rollout_interval: int = 250
     """Environment steps between model-rollout rounds (model-based only)."""
     rollouts: int = 256
@@ -90,7 +92,7 @@ class LearnerConfig:
     def uses_envelope(self) -> bool:
         """Whether the learner trains through the envelope's layer (modular with
         ``modular_envelope``): callers build the envelope problem only then."""
-        return self.mode == 'modular' and self.modular_envelope
+        return self.mode == 'modular' and bool(self.modular_envelope)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:

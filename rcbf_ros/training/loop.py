@@ -39,6 +39,7 @@ from rcbf_ros.core.config import (
     configures_barriers,
     envelope_problem,
     filter_config_from_params,
+    flag,
     float_list,
     number,
 )
@@ -130,16 +131,18 @@ def policy_limits(params: Mapping[str, Any]) -> dict[str, tuple[float, ...]]:
 def resolve_run(run: RunConfig) -> RunConfig:
     """``run`` with the settings it leaves to the config file filled in from it.
 
-    The learner's ``initial_alpha`` and policy box (``policy_limits.min/max``) come from the
-    file's ``/learner`` section when the run does not set them: they belong with the system
-    (the temperature is tied to the scale of its reward, the box to how it may be driven).
+    The learner's ``initial_alpha``, policy box (``policy_limits.min/max``) and
+    ``modular_envelope`` come from the file's ``/learner`` section when the run does not set
+    them: they belong with the system (the temperature is tied to the scale of its reward, the
+    box to how it may be driven, the envelope variant to where the paper's Modular fails).
 
     Raises:
         FileNotFoundError: no such config file.
         ValueError: a bad value in the file (the message names the key).
     """
     learner = run.learner
-    if learner.sac.initial_alpha is not None and learner.policy_min is not None:
+    if (learner.sac.initial_alpha is not None and learner.policy_min is not None
+            and learner.modular_envelope is not None):
         return run
     section = load_params(find_config(run.config_file or run.system), 'learner')
     try:
@@ -148,6 +151,8 @@ def resolve_run(run: RunConfig) -> RunConfig:
             learner = replace(learner, sac=replace(learner.sac, initial_alpha=value))
         if learner.policy_min is None:
             learner = replace(learner, **policy_limits(section))
+        if learner.modular_envelope is None:
+            learner = replace(learner, modular_envelope=flag(section, 'modular_envelope'))
     except ValueError as exc:
         raise ValueError(f'learner.{exc}') from None
     return replace(run, learner=learner)

@@ -364,3 +364,27 @@ def test_unicycle_policy_proposes_forward_speeds_only(tmp_path):
 def test_bad_policy_limits_name_the_key(low, high, match):
     with pytest.raises(ValueError, match=match):
         LearnerConfig(policy_min=low, policy_max=high)
+
+
+def test_modular_envelope_comes_from_the_config_unless_the_run_sets_it(tmp_path):
+    """config/pvtol.yaml's /learner modular_envelope makes `rcbf_ros train --mode modular` on
+    PVTOL train the advised variant, as the learner node (which reads that section) does."""
+    from rcbf_ros.training.loop import build_run, resolve_run
+    assert load_params(find_config('pvtol'), 'learner')['modular_envelope'] is True
+    small = dict(episodes=1, max_steps=20, record_bag=False, out_dir=str(tmp_path / 'r'))
+    cases = (('pvtol', None, True), ('pvtol', False, False), ('unicycle', None, False),
+             ('unicycle', True, True))
+    for system, given, expected in cases:
+        run = RunConfig(system=system, **small,
+                        learner=LearnerConfig(mode='modular', modular_envelope=given))
+        assert resolve_run(run).learner.modular_envelope is expected, (system, given)
+    _, _, learner, _ = build_run(RunConfig(system='pvtol', **small,
+                                           learner=LearnerConfig(mode='modular')))
+    assert learner.envelope_layer is not None
+    assert learner.sac.safety_layer is learner.envelope_layer
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text(find_config('pvtol').read_text().replace('modular_envelope: true',
+                                                            'modular_envelope: 1'))
+    with pytest.raises(ValueError, match='learner.modular_envelope: expected true or false'):
+        resolve_run(RunConfig(system='pvtol', config_file=str(bad), **small,
+                              learner=LearnerConfig(mode='modular')))
