@@ -27,7 +27,7 @@ setup(
         # Everything the package needs where rosdep does not provide it (pip installs).
         'standalone': [
             'numpy', 'torch', 'osqp', 'pyyaml', 'cyclonedds', 'rosbags', 'mcap',
-            'mcap-ros2-support', 'gpytorch', 'gymnasium', 'tqdm', 'matplotlib',
+            'mcap-ros2-support', 'gpytorch', 'gymnasium', 'matplotlib',
         ],
         'test': ['pytest', 'pytest-timeout', 'hypothesis', 'qpth', 'cvxpylayers', 'proxsuite',
                  'pymcap-cli', 'ruff', 'ray'],
