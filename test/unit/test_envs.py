@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from rcbf_ros.core.config import filter_config_from_params
-from rcbf_ros.envs import CarFollowingEnv, make_env, PVTOLEnv, UnicycleEnv
+from rcbf_ros.envs import (
+    CarFollowingEnv,
+    ENVS,
+    GYMNASIUM_IDS,
+    make_env,
+    PVTOLEnv,
+    UnicycleEnv,
+)
 from rcbf_ros.params import find_config, load_params
 
 
@@ -184,3 +191,22 @@ def test_bad_parameters_name_the_key():
     env.reset(seed=0)
     with pytest.raises(ValueError, match='action'):
         env.step([1.0])
+
+
+@pytest.mark.parametrize('system', sorted(GYMNASIUM_IDS))
+def test_registered_with_gymnasium_and_passes_its_checker(system):
+    """gymnasium.make builds the same env as make_env, and Gymnasium's own checker (spaces,
+    reset/step signatures, seeding determinism, dtypes) accepts it."""
+    import gymnasium
+    from gymnasium.utils.env_checker import check_env
+    params = load_params(find_config(system), 'simulator')
+    env = gymnasium.make(GYMNASIUM_IDS[system], params=params)
+    assert isinstance(env.unwrapped, ENVS[system])
+    check_env(env.unwrapped, skip_render_check=True)
+    ours = make_env(system, params)
+    obs_gym, _ = env.reset(seed=3)
+    obs_ours, _ = ours.reset(seed=3)
+    np.testing.assert_array_equal(obs_gym, obs_ours)
+    action = ours.action_space.sample() if np.isfinite(ours.action_space.high).all() else \
+        np.zeros(ours.action_space.shape)
+    np.testing.assert_array_equal(env.step(action)[0], ours.step(action)[0])
