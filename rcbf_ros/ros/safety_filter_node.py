@@ -157,13 +157,19 @@ INTERFACE = NodeInterface(
 class SafetyFilterNode(Node):
     """Parameters -> FilterConfig -> SafetyFilter; proposal in, safe command + details out."""
 
-    def __init__(self, node_name: str = NODE_NAME) -> None:
+    def __init__(self, node_name: str = NODE_NAME, *, cli_args: Sequence[str] | None = None
+                 ) -> None:
         """Declare and validate every parameter, build the filter, create the endpoints.
+
+        Args:
+            cli_args: this node's own ROS arguments (``['--params-file', path]``), after the
+                process's.
 
         Raises:
             ValueError: a parameter is invalid (the message names the key).
         """
-        super().__init__(node_name, automatically_declare_parameters_from_overrides=True)
+        super().__init__(node_name, cli_args=cli_args,
+                         automatically_declare_parameters_from_overrides=True)
         params = self._declared_parameters()
         try:
             self._active = self._build(params)
