@@ -28,10 +28,13 @@ node's QoS, ``qos.reliable`` / ``qos.depth``, default reliable, volatile, keep-l
   that a latched perception output published before the filter started is picked up): the
   whole obstacle set, k rows [x, y, radius] in row-major order (``data`` holds 3 k values;
   ``layout.dim`` empty or [k, 3]). Float64MultiArray because a ROS user can publish it with
-  stock tools and no message package of ours (``ros2 topic pub --once obstacles
-  std_msgs/msg/Float64MultiArray "{data: [0.0, 0.0, 0.6, 1.5, 1.5, 0.4]}"``), and because a
-  row carries each obstacle's own radius, which geometry_msgs/PoseArray has no field for (its
-  orientations would mean nothing). The margin, look-ahead and gains stay parameters.
+  stock tools and no message package of ours (``ros2 topic pub --once --qos-durability
+  transient_local obstacles std_msgs/msg/Float64MultiArray "{data: [0.0, 0.0, 0.6, 1.5, 1.5,
+  0.4]}"``), and because a row carries each obstacle's own radius, which geometry_msgs/PoseArray
+  has no field for (its orientations would mean nothing). The margin, look-ahead and gains stay
+  parameters. A transient-local reader matches transient-local writers only (DDS: the offered
+  durability must be at least the requested one); a volatile publisher is not connected, and
+  rclpy warns of the incompatible QoS.
 
 The invariant: the published command is either within the actuator limits and meets every RCBF
 row with a slack of at most ``slack_tolerance`` (evaluated from the rows at that command, not
