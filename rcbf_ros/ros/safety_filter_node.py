@@ -182,6 +182,7 @@ class SafetyFilterNode(Node):
         self.system = str(params.get('system'))
         self._pending: tuple[list[Any], logic.ActiveFilter | None] | None = None
         self._change_source = ''
+        self.add_pre_set_parameters_callback(self._warn_read_only)
         self.add_on_set_parameters_callback(self._check_parameter_change)
         self.add_post_set_parameters_callback(self._apply_parameter_change)
         self._latest_state: logic.StateSample | None = None
@@ -273,6 +274,16 @@ class SafetyFilterNode(Node):
                                          in self.get_parameters_by_prefix('').items()})
 
     # changes at runtime ------------------------------------------------------------------------
+    def _warn_read_only(self, parameters: list[Any]) -> list[Any]:
+        """Pre-set callback: a WARN for every read-only parameter in a set (the middleware
+        refuses the set before any on-set callback sees it); the list goes on unchanged."""
+        for parameter in parameters:
+            if logic.is_read_only(parameter.name) and self.has_parameter(parameter.name):
+                self.get_logger().warning(
+                    f'parameter change refused: {parameter.name} is '
+                    f'{logic.READ_ONLY_DESCRIPTION}')
+        return parameters
+
     def _check_parameter_change(self, parameters: list[Any]) -> Any:
         """On-set callback: build the filter the change would give; refuse it if that fails.
 

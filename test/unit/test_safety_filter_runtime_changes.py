@@ -78,7 +78,7 @@ def test_an_invalid_value_is_refused_with_the_key_and_nothing_changes(harness, c
         assert node.filter is old_filter
 
 
-def test_the_parameters_fixed_at_start_are_read_only(harness):
+def test_the_parameters_fixed_at_start_are_read_only(harness, capsys):
     node = harness.node
     for name, value in (('system', 'pvtol'), ('command_type', 'twist'), ('qos.depth', 1),
                         ('state_type', 'odometry'), ('twist_fields', ['linear.x'])):
@@ -86,6 +86,8 @@ def test_the_parameters_fixed_at_start_are_read_only(harness):
         result = node.set_parameters([Parameter(name, value=value)])[0]
         assert not result.successful
         assert result.reason == f'Trying to set a read-only parameter: {name}.'
+        warning = capsys.readouterr().err
+        assert '[WARN]' in warning and f'refused: {name} is read-only' in warning
     assert node.get_parameter('system').value == 'unicycle'  # the override kept its value
     assert not node.describe_parameter('k_c').read_only
 
