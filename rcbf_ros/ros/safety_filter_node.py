@@ -83,7 +83,7 @@ the new one; a set_parameters_atomically of several keys is one swap; an INFO li
 changed. The parameters that choose sizes, message types or the endpoints' QoS
 (:data:`rcbf_ros.ros.filter_logic.READ_ONLY_PARAMETERS`, ``system_params.*``) are declared
 read-only, and a set of one is refused by the middleware ("Trying to set a read-only
-parameter").
+parameter"; a pre-set callback logs the WARN).
 """
 from __future__ import annotations
 
