@@ -11,7 +11,11 @@ published lives here and is unit-tested without launching anything (ros2cli's ap
   (:func:`decide`);
 - the sections of ``filter_info`` (:func:`info_sections`) and the diagnostic level, message
   and key/values (:func:`diagnostic_values`) of one decision: what the command does not carry;
-- throttling of repeated log lines (:class:`LogThrottle`).
+- throttling of repeated log lines (:class:`LogThrottle`);
+- what a change of parameters at runtime builds (:func:`build_active_filter` from the merged
+  parameters, :func:`merged_parameters`), which parameters are fixed at start
+  (:func:`is_read_only`), and the parameters of an ``obstacles`` message
+  (:func:`obstacle_parameters`).
 
 Invariant: the published command is either within the actuator limits and meets every RCBF row
 with a slack of at most ``slack_tolerance`` (checked by the filter from the rows themselves at the
@@ -28,7 +32,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from rcbf_ros.core import filter_info
-from rcbf_ros.core.config import FilterConfig, number
+from rcbf_ros.core.config import filter_config_from_params, FilterConfig, number
 from rcbf_ros.core.filter import (
     FilterResult,
     InputBounds,
@@ -51,16 +55,16 @@ TWIST_FIELDS = tuple(f'{group}.{axis}' for group in ('linear', 'angular') for ax
 NODE_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec('state_type', 'array', 'string',
                   'type of `state`: array (std_msgs/Float64MultiArray) or odometry '
-                  '(nav_msgs/Odometry; unicycle only)'),
+                  '(nav_msgs/Odometry; unicycle only); read-only'),
     ParameterSpec('state_frame_id', '', 'string',
                   "with state_type odometry: the frame an Odometry's header.frame_id must name "
                   "(the obstacles' frame); '' accepts any"),
     ParameterSpec('command_type', 'array', 'string',
                   'type of `cmd_proposed` and `cmd_safe`: array (std_msgs/Float64MultiArray), '
-                  'twist or twist_stamped (geometry_msgs)'),
+                  'twist or twist_stamped (geometry_msgs); read-only'),
     ParameterSpec('twist_fields', ['linear.x', 'angular.z'], 'string[]',
                   'for twist and twist_stamped: the n_u Twist fields holding u, in order '
-                  '(the others are published as 0)'),
+                  '(the others are published as 0); read-only'),
     ParameterSpec('max_state_age_s', 0.5, 'double',
                   'a `state` older than this (s, since its arrival) is stale: fail-safe'),
     ParameterSpec('slack_tolerance', 1.0e-4, 'double',
@@ -75,8 +79,9 @@ NODE_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec('log_throttle_s', 1.0, 'double',
                   'least time (s) between two log lines with the same reason'),
     ParameterSpec('qos.reliable', True, 'bool',
-                  'reliable (true) or best-effort (false) QoS on every topic'),
-    ParameterSpec('qos.depth', 10, 'integer', 'keep-last history depth on every topic'),
+                  'reliable (true) or best-effort (false) QoS on every topic; read-only'),
+    ParameterSpec('qos.depth', 10, 'integer',
+                  'keep-last history depth on every topic; read-only'),
     ParameterSpec('osqp.eps_abs', OSQP_EPS, 'double', 'OSQP absolute tolerance'),
     ParameterSpec('osqp.eps_rel', OSQP_EPS, 'double', 'OSQP relative tolerance'),
     ParameterSpec('osqp.max_iter', OSQP_MAX_ITER, 'integer',
@@ -94,7 +99,8 @@ NODE_PARAMETER_DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in N
 
 FILTER_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec('system', None, 'string',
-                  'unicycle, car_following, pvtol or package.module.Class (required)'),
+                  'unicycle, car_following, pvtol or package.module.Class (required); '
+                  'read-only'),
     ParameterSpec('input_limits.min', None, 'double[]',
                   "lower input limits, n_u values ([]: none; not set: the system's)"),
     ParameterSpec('input_limits.max', None, 'double[]',
@@ -142,7 +148,8 @@ FILTER_PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec('compile_assembly', None, 'bool',
                   'compile the per-step constraint assembly (faster calls, slower start)'),
     ParameterSpec('system_params.<name>', None, 'any',
-                  'constructor argument <name> of the system (e.g. with_operator)'),
+                  'constructor argument <name> of the system (e.g. with_operator); '
+                  'read-only'),
     ParameterSpec('bands.<name>.index', None, 'integer',
                   'band barrier <name>: state index it bounds'),
     ParameterSpec('bands.<name>.center', None, 'double', 'band <name>: constant centre'),
@@ -166,6 +173,29 @@ FILTER_PARAMETER_KEYS: tuple[str, ...] = tuple(
     spec.name for spec in FILTER_PARAMETERS if not spec.pattern)
 # Families of keys whose names are chosen by the user (``bands.operator.index``, ...).
 OPEN_PARAMETER_PREFIXES: tuple[str, ...] = ('system_params.', 'bands.')
+_KNOWN_NAMES = frozenset(spec.name for spec in PARAMETERS if not spec.pattern)
+
+
+READ_ONLY_PARAMETERS: tuple[str, ...] = (
+    'system', 'state_type', 'command_type', 'twist_fields', 'qos.reliable', 'qos.depth')
+"""Parameters fixed at start: they choose the state and input sizes, the message types and the
+endpoints' QoS. Declared read-only; a set is refused (``ros2 param describe`` says so)."""
+READ_ONLY_PREFIXES: tuple[str, ...] = ('system_params.',)
+"""Families fixed at start (a system's constructor arguments may change n_x or n_u)."""
+READ_ONLY_DESCRIPTION = 'read-only: fixed at start (restart the node to change it)'
+"""The description of a read-only parameter's descriptor."""
+
+
+def is_read_only(name: str) -> bool:
+    """Whether the parameter ``name`` is fixed at start (:data:`READ_ONLY_PARAMETERS`)."""
+    return name in READ_ONLY_PARAMETERS or name.startswith(READ_ONLY_PREFIXES)
+
+
+def feeds_the_filter(name: str) -> bool:
+    """Whether the parameter ``name`` is read by :func:`build_active_filter` (a node or filter
+    key of :data:`PARAMETERS`, or one of the open families); other parameters (``use_sim_time``,
+    a shared params file's keys for other nodes) change nothing here."""
+    return name in _KNOWN_NAMES or name.startswith(OPEN_PARAMETER_PREFIXES)
 
 
 def parameter_declarations(override_names: Sequence[str] = ()) -> list[tuple[str, Any]]:
@@ -317,6 +347,101 @@ def build_safety_filter(*, config: FilterConfig, settings: NodeSettings) -> Safe
         eps_abs=settings.osqp_eps_abs, eps_rel=settings.osqp_eps_rel,
         max_iter=settings.osqp_max_iter, compile_assembly=config.compile_assembly,
         slack_tolerance=settings.slack_tolerance, input_bounds=settings.input_bounds)
+
+
+@dataclass(frozen=True)
+class ActiveFilter:
+    """Everything the node filters with, built from one set of parameters; the node swaps the
+    whole of it at once when the parameters change (a callback reads one of these, never half
+    of an old one and half of a new one)."""
+
+    params: Mapping[str, Any]
+    """The flat parameters it was built from (:func:`collect_parameters`)."""
+    settings: NodeSettings
+    """The node's own settings."""
+    config: FilterConfig
+    """The filter's configuration (problem, static disturbance box, fail-safe action)."""
+    safety_filter: SafetyFilter
+    """The filter itself."""
+
+
+def build_active_filter(*, params: Mapping[str, Any]) -> ActiveFilter:
+    """Validate every parameter and build the filter: the one construction of the node's
+    start and of every change at runtime (the same checks, the same messages).
+
+    Raises:
+        ValueError: one line naming the bad key.
+    """
+    params = collect_parameters(params)
+    settings = node_settings_from_params(params)
+    config = filter_config_from_params(params)
+    safety_filter = build_safety_filter(config=config, settings=settings)
+    if settings.command_type != 'array' and len(settings.twist_fields) != safety_filter.n_u:
+        raise ValueError(f'twist_fields: expected {safety_filter.n_u} fields (n_u of '
+                         f'{params.get("system")}), got {list(settings.twist_fields)}')
+    return ActiveFilter(params=params, settings=settings, config=config,
+                        safety_filter=safety_filter)
+
+
+def merged_parameters(*, current: Mapping[str, Any],
+                      changes: Mapping[str, Any]) -> dict[str, Any]:
+    """``current`` with ``changes`` applied (a value of None unsets the key), as the flat dict
+    :func:`build_active_filter` takes."""
+    merged = dict(current)
+    merged.update(changes)
+    return collect_parameters(merged)
+
+
+def describe_changes(*, old: Mapping[str, Any], new: Mapping[str, Any],
+                     width: int = 160) -> str:
+    """``key: old -> new`` for every key whose value differs, ``; `` between them (each value
+    cut to ``width`` characters); '' when nothing differs."""
+    def shown(key: str, params: Mapping[str, Any]) -> str:
+        text = repr(params[key]) if key in params else 'not set'
+        return text if len(text) <= width else text[:width - 3] + '...'
+    keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+    return '; '.join(f'{key}: {shown(key, old)} -> {shown(key, new)}' for key in keys)
+
+
+OBSTACLE_COLUMNS = ('x', 'y', 'radius')
+"""One row of an ``obstacles`` message: centre x, centre y (m), radius (m)."""
+
+
+def obstacle_parameters(*, data: Sequence[float], dims: Sequence[tuple[str, int, int]] = (),
+                        data_offset: int = 0) -> dict[str, list[float]]:
+    """The ``obstacles.x`` / ``.y`` / ``.radius`` parameters of an ``obstacles`` message.
+
+    The message is a std_msgs/Float64MultiArray of k rows [x, y, radius] in row-major order
+    (:data:`OBSTACLE_COLUMNS`): ``data`` holds 3 k values. Its layout may be empty, or two
+    dimensions, the second of size 3 (e.g. ``obstacles`` k 3k, ``xyr`` 3 3). The values
+    themselves (finite, radius >= 0, ...) are checked by the same function as a params file's
+    ``obstacles`` section, when the filter is built from them.
+
+    Args:
+        dims: (label, size, stride) of every ``layout.dim``.
+        data_offset: ``layout.data_offset`` (must be 0).
+
+    Raises:
+        ValueError: naming the message field (``data``, ``layout.dim``, ``layout.data_offset``).
+    """
+    values = list(data)
+    if data_offset != 0:
+        raise ValueError(f'obstacles: layout.data_offset: expected 0, got {data_offset}')
+    if len(values) % len(OBSTACLE_COLUMNS):
+        raise ValueError(f'obstacles: data: expected rows of [x, y, radius] (a multiple of 3 '
+                         f'values), got {len(values)} values')
+    rows = len(values) // len(OBSTACLE_COLUMNS)
+    if dims and (len(dims) != 2 or dims[1][1] != len(OBSTACLE_COLUMNS)
+                 or dims[0][1] != rows):
+        sizes = [size for _, size, _ in dims]
+        raise ValueError(f'obstacles: layout.dim: expected sizes [{rows}, 3] (rows of '
+                         f'[x, y, radius]) or none, got {sizes}')
+    try:
+        floats = [float(v) for v in values]
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'obstacles: data: not numbers ({exc})') from exc
+    return {f'obstacles.{column}': floats[index::len(OBSTACLE_COLUMNS)]
+            for index, column in enumerate(OBSTACLE_COLUMNS)}
 
 
 def checked_vector(name: str, values: Any, size: int) -> np.ndarray:

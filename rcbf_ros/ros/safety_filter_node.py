@@ -24,6 +24,17 @@ node's QoS, ``qos.reliable`` / ``qos.depth``, default reliable, volatile, keep-l
   with the level (OK, or ERROR: fail-safe), every h_i by barrier name, the constraint values,
   slack and the slack the rows need at the published command, solver status, solve and total
   time and the reason.
+- ``obstacles`` (sub, std_msgs/Float64MultiArray; reliable, keep-last 1, transient-local, so
+  that a latched perception output published before the filter started is picked up): the
+  whole obstacle set, k rows [x, y, radius] in row-major order (``data`` holds 3 k values;
+  ``layout.dim`` empty or [k, 3]). Float64MultiArray because a ROS user can publish it with
+  stock tools and no message package of ours (``ros2 topic pub --once --qos-durability
+  transient_local obstacles std_msgs/msg/Float64MultiArray "{data: [0.0, 0.0, 0.6, 1.5, 1.5,
+  0.4]}"``), and because a row carries each obstacle's own radius, which geometry_msgs/PoseArray
+  has no field for (its orientations would mean nothing). The margin, look-ahead and gains stay
+  parameters. A transient-local reader matches transient-local writers only (DDS: the offered
+  durability must be at least the requested one); a volatile publisher is not connected, and
+  rclpy warns of the incompatible QoS.
 
 The invariant: the published command is either within the actuator limits and meets every RCBF
 row with a slack of at most ``slack_tolerance`` (evaluated from the rows at that command, not
@@ -59,6 +70,20 @@ and ``refused_states``. A callback never raises: should the filtering itself fai
 Parameters: :data:`rcbf_ros.ros.filter_logic.PARAMETERS` (``safety_filter --help`` lists them
 with types, defaults and one line each): the filter keys of :mod:`rcbf_ros.core.config`
 (``config/<system>.yaml``) and the node's own.
+
+Changes at runtime (``ros2 param set``, ``set_parameters``, ``set_parameters_atomically``, an
+``obstacles`` message): the node builds a complete new filter from its parameters with the
+change applied, through the same validation as at start
+(:func:`rcbf_ros.ros.filter_logic.build_active_filter`). If that fails, the change is refused
+(``successful=False``, the reason is the one-line message naming the key; a WARN in the log, an
+ERROR for an ``obstacles`` message) and nothing changes. Otherwise the new filter replaces the
+old one after the parameters are stored (a post-set callback), between two message callbacks:
+each callback reads the filter once, so no proposal is ever filtered half by the old and half by
+the new one; a set_parameters_atomically of several keys is one swap; an INFO line says what
+changed. The parameters that choose sizes, message types or the endpoints' QoS
+(:data:`rcbf_ros.ros.filter_logic.READ_ONLY_PARAMETERS`, ``system_params.*``) are declared
+read-only, and a set of one is refused by the middleware ("Trying to set a read-only
+parameter"; a pre-set callback logs the WARN).
 """
 from __future__ import annotations
 
@@ -69,16 +94,19 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.config import FilterConfig
+from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.ros import conversions
 from rcbf_ros.ros import filter_logic as logic
 from rcbf_ros.ros.interface import NodeInterface, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     deserialize_message,
+    DurabilityPolicy,
     get_message,
     HistoryPolicy,
     Node,
+    Parameter,
     ParameterDescriptor,
     QoSProfile,
     ReliabilityPolicy,
@@ -87,6 +115,8 @@ from rcbf_ros.ros.runtime import (
 NODE_NAME = 'safety_filter'
 INPUT_COUNT_KEYS = ('dropped_samples', 'refused_proposals', 'refused_states')
 """Diagnostic keys of the node's cumulative input counts (see the module docstring)."""
+OBSTACLES_QOS = 'reliable, keep-last 1, transient-local'
+"""QoS of the ``obstacles`` subscription: the latest set only; a latched one is picked up."""
 
 _QOS = 'reliable, keep-last 10 (qos.reliable, qos.depth)'
 INTERFACE = NodeInterface(
@@ -115,6 +145,10 @@ INTERFACE = NodeInterface(
                   'one status per proposal (OK ones at most every diagnostics.min_period_s): '
                   'h.<barrier>, constraint.<barrier>, slack, status, reason, times, counts',
                   _QOS),
+        TopicSpec('obstacles', 'sub', 'std_msgs/msg/Float64MultiArray',
+                  'the whole obstacle set, rows [x, y, radius] (3 k values, layout.dim none or '
+                  '[k, 3]); replaces obstacles.x/y/radius as a parameter change would',
+                  OBSTACLES_QOS),
     ),
     parameters=logic.PARAMETERS,
     notes=('Parameters marked <name> are families whose names you choose (bands.operator.index, '
@@ -126,29 +160,31 @@ INTERFACE = NodeInterface(
 class SafetyFilterNode(Node):
     """Parameters -> FilterConfig -> SafetyFilter; proposal in, safe command + details out."""
 
-    def __init__(self, node_name: str = NODE_NAME) -> None:
+    def __init__(self, node_name: str = NODE_NAME, *, cli_args: Sequence[str] | None = None
+                 ) -> None:
         """Declare and validate every parameter, build the filter, create the endpoints.
+
+        Args:
+            cli_args: this node's own ROS arguments (``['--params-file', path]``), after the
+                process's.
 
         Raises:
             ValueError: a parameter is invalid (the message names the key).
         """
-        super().__init__(node_name, automatically_declare_parameters_from_overrides=True)
+        super().__init__(node_name, cli_args=cli_args,
+                         automatically_declare_parameters_from_overrides=True)
         params = self._declared_parameters()
         try:
-            self.settings = logic.node_settings_from_params(params)
-            self.config = filter_config_from_params(params)
-            self.filter = logic.build_safety_filter(config=self.config, settings=self.settings)
-            if (self.settings.command_type != 'array'
-                    and len(self.settings.twist_fields) != self.filter.n_u):
-                fields = list(self.settings.twist_fields)
-                raise ValueError(f'twist_fields: expected {self.filter.n_u} fields (n_u of '
-                                 f'{params.get("system")}), got {fields}')
-            if self.settings.state_type == 'odometry':
-                conversions.check_odometry_support(params.get('system'))
+            self._active = self._build(params)
         except ValueError as exc:
             self.get_logger().error(f'invalid parameters: {exc}')
             raise
         self.system = str(params.get('system'))
+        self._pending: tuple[list[Any], logic.ActiveFilter | None] | None = None
+        self._change_source = ''
+        self.add_pre_set_parameters_callback(self._warn_read_only)
+        self.add_on_set_parameters_callback(self._check_parameter_change)
+        self.add_post_set_parameters_callback(self._apply_parameter_change)
         self._latest_state: logic.StateSample | None = None
         self._last_ok_diagnostics_ns: int | None = None
         self._throttle = logic.LogThrottle(self.settings.log_throttle_s)
@@ -170,32 +206,162 @@ class SafetyFilterNode(Node):
         self._state_type, self._command_type = state_type, command_type
         self.create_subscription(state_type, 'state', self._on_state, qos, raw=True)
         self.create_subscription(command_type, 'cmd_proposed', self._on_proposal, qos, raw=True)
+        obstacles_qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
+                                   reliability=ReliabilityPolicy.RELIABLE,
+                                   durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self._array_type = array_type
+        self.create_subscription(array_type, 'obstacles', self._on_obstacles, obstacles_qos,
+                                 raw=True)
         problem = self.config.problem
         self.get_logger().info(
             f'{problem.n_barriers} barriers on {self.system} (n_x = {self.filter.n_x}, '
             f'n_u = {self.filter.n_u}); state_type {self.settings.state_type}, command_type '
             f'{self.settings.command_type}; fail-safe action {self.filter.fail_safe_action}')
 
+    # the active filter ------------------------------------------------------------------------
+    @property
+    def settings(self) -> logic.NodeSettings:
+        """The node's own settings (of the active filter)."""
+        return self._active.settings
+
+    @property
+    def config(self) -> FilterConfig:
+        """The filter's configuration (of the active filter)."""
+        return self._active.config
+
+    @property
+    def filter(self) -> SafetyFilter:
+        """The safety filter in use (replaced as a whole when the parameters change)."""
+        return self._active.safety_filter
+
+    def _build(self, params: dict[str, Any]) -> logic.ActiveFilter:
+        """The filter of ``params``, checked as at start (ValueError naming the key)."""
+        active = logic.build_active_filter(params=params)
+        if active.settings.state_type == 'odometry':
+            conversions.check_odometry_support(active.params.get('system'))
+        return active
+
     def _declared_parameters(self) -> dict[str, Any]:
         """Declare every known parameter (overrides are declared already); read all back.
 
         Each declaration gets a descriptor of its own, dynamically typed so that any YAML type
         is accepted: rclpy keeps the descriptor it is given and writes the parameter's name and
-        type into it, so a shared one would describe every parameter as the last one.
+        type into it, so a shared one would describe every parameter as the last one. The
+        read-only ones (:func:`rcbf_ros.ros.filter_logic.is_read_only`) that came as overrides
+        are declared again, read-only, with their value.
         """
         for name, default in logic.parameter_declarations():
             if not self.has_parameter(name):
-                self.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True))
-        values = {name: parameter.value
-                  for name, parameter in self.get_parameters_by_prefix('').items()}
-        return logic.collect_parameters(values)
+                self.declare_parameter(name, default, self._descriptor(name))
+        for name in list(self.get_parameters_by_prefix('')):
+            if logic.is_read_only(name) and not self.describe_parameter(name).read_only:
+                value = self.get_parameter(name).value
+                self.undeclare_parameter(name)
+                self.declare_parameter(name, value, self._descriptor(name),
+                                       ignore_override=True)
+        return self._parameter_values()
+
+    @staticmethod
+    def _descriptor(name: str) -> Any:
+        if logic.is_read_only(name):
+            return ParameterDescriptor(dynamic_typing=True, read_only=True,
+                                       description=logic.READ_ONLY_DESCRIPTION)
+        return ParameterDescriptor(dynamic_typing=True)
+
+    def _parameter_values(self) -> dict[str, Any]:
+        """Every declared parameter's value (unset ones dropped)."""
+        return logic.collect_parameters({name: parameter.value for name, parameter
+                                         in self.get_parameters_by_prefix('').items()})
+
+    # changes at runtime ------------------------------------------------------------------------
+    def _warn_read_only(self, parameters: list[Any]) -> list[Any]:
+        """Pre-set callback: a WARN for every read-only parameter in a set (the middleware
+        refuses the set before any on-set callback sees it); the list goes on unchanged."""
+        for parameter in parameters:
+            if logic.is_read_only(parameter.name) and self.has_parameter(parameter.name):
+                self.get_logger().warning(
+                    f'parameter change refused: {parameter.name} is '
+                    f'{logic.READ_ONLY_DESCRIPTION}')
+        return parameters
+
+    def _check_parameter_change(self, parameters: list[Any]) -> Any:
+        """On-set callback: build the filter the change would give; refuse it if that fails.
+
+        The filter is kept for :meth:`_apply_parameter_change`, which swaps it in once the
+        parameters are stored (a later on-set callback may still refuse them).
+        """
+        result = get_message('rcl_interfaces/msg/SetParametersResult')(successful=True)
+        self._pending = None
+        if not any(logic.feeds_the_filter(p.name) for p in parameters):
+            return result
+        changes = {p.name: p.value for p in parameters}
+        merged = logic.merged_parameters(current=self._parameter_values(), changes=changes)
+        if merged == self._active.params:
+            self._pending = (parameters, None)
+            return result
+        try:
+            self._pending = (parameters, self._build(merged))
+        except ValueError as exc:
+            result.successful = False
+            result.reason = ' '.join(str(exc).split())
+            if not self._change_source:  # an obstacles message says so itself, as an ERROR
+                self.get_logger().warning(
+                    f'parameter change refused: {result.reason} (the filter is unchanged)')
+        return result
+
+    def _apply_parameter_change(self, parameters: list[Any]) -> None:
+        """Post-set callback: the parameters are stored; swap in the filter built for them."""
+        pending, self._pending = self._pending, None
+        if pending is not None and pending[0] is parameters:
+            candidate = pending[1]
+        elif any(logic.feeds_the_filter(p.name) for p in parameters):
+            try:  # set without the on-set check (none seen): build from what is stored now
+                candidate = self._build(self._parameter_values())
+            except ValueError as exc:
+                self.get_logger().error(f'parameters stored but not applied, the filter is '
+                                        f'unchanged: {exc}')
+                return
+        else:
+            return
+        if candidate is None or candidate.params == self._active.params:
+            return
+        old, self._active = self._active, candidate  # the one swap
+        if old.settings.log_throttle_s != candidate.settings.log_throttle_s:
+            self._throttle = logic.LogThrottle(candidate.settings.log_throttle_s)
+        source = f' from the {self._change_source} topic' if self._change_source else ''
+        self.get_logger().info(f'filter updated{source}: '
+                               f'{logic.describe_changes(old=old.params, new=candidate.params)}')
+
+    def _on_obstacles(self, data: bytes) -> None:
+        """An ``obstacles`` sample (CDR bytes): the new obstacle set, or an ERROR and the old
+        set kept."""
+        msg, error = _decoded(data, self._array_type)
+        try:
+            if msg is None:
+                raise ValueError(f'undecodable sample: {error}')
+            changes = logic.obstacle_parameters(
+                data=msg.data, data_offset=int(msg.layout.data_offset),
+                dims=[(d.label, int(d.size), int(d.stride)) for d in msg.layout.dim])
+            self._change_source = 'obstacles'
+            try:
+                result = self.set_parameters_atomically([
+                    Parameter(name, Parameter.Type.DOUBLE_ARRAY, values)
+                    for name, values in changes.items()])
+            finally:
+                self._change_source = ''
+            if not result.successful:
+                raise ValueError(result.reason)
+        except Exception as exc:  # a bad message or a defect: never kills the node
+            text = str(exc) if isinstance(exc, ValueError) else _one_line(exc)
+            self.get_logger().error(f'obstacles message refused, the obstacles are unchanged: '
+                                    f'{" ".join(text.split())}')
 
     # callbacks ---------------------------------------------------------------------------------
     def _on_state(self, data: bytes) -> None:
         """A ``state`` sample (CDR bytes): the latest state, or a bad one that says why."""
         now_ns = time.monotonic_ns()
         try:
-            sample = self._state_sample(data, now_ns)
+            sample = self._state_sample(data, now_ns, self._active)
         except Exception as exc:  # a defect, not an input: see the module docstring
             sample = logic.StateSample(received_ns=now_ns, state=None,
                                        error=f'internal error: {_one_line(exc)}')
@@ -203,7 +369,8 @@ class SafetyFilterNode(Node):
         if sample.state is None:
             self._log(logic.ERROR, f'bad state: {sample.error}', now_ns)
 
-    def _state_sample(self, data: bytes, now_ns: int) -> logic.StateSample:
+    def _state_sample(self, data: bytes, now_ns: int,
+                      active: logic.ActiveFilter) -> logic.StateSample:
         """The state sample of one ``state`` message, counted when refused."""
         msg, error = _decoded(data, self._state_type)
         if msg is None:
@@ -211,13 +378,14 @@ class SafetyFilterNode(Node):
             return logic.StateSample(received_ns=now_ns, state=None,
                                      error=f'undecodable sample: {error}')
         try:
-            if self.settings.state_type == 'odometry':
+            if active.settings.state_type == 'odometry':
                 values = conversions.odometry_to_state(
-                    msg, system=self.system, frame_id=self.settings.state_frame_id)
+                    msg, system=self.system, frame_id=active.settings.state_frame_id)
                 sections = {'state': values}
             else:
                 sections = conversions.msg_to_sections(msg, default_label='state')
-            state = logic.state_from_sections(sections=sections, n_x=self.filter.n_x)
+            state = logic.state_from_sections(sections=sections,
+                                              n_x=active.safety_filter.n_x)
         except ValueError as exc:
             self.input_counts['refused_states'] += 1
             return logic.StateSample(received_ns=now_ns, state=None, error=str(exc))
@@ -228,49 +396,54 @@ class SafetyFilterNode(Node):
         now_ns = time.monotonic_ns()
         self.proposals_received += 1
         header = None
+        active = self._active  # one filter for the whole answer, whatever changes meanwhile
         try:
-            decision, header = self._decide(data, now_ns)
+            decision, header = self._decide(data, now_ns, active)
         except Exception as exc:  # a defect, not an input: see the module docstring
             decision = logic.fail_safe_decision(
-                safety_filter=self.filter, reason=f'internal error: {_one_line(exc)}')
-        self._publish(decision, now_ns, header=header)
+                safety_filter=active.safety_filter, reason=f'internal error: {_one_line(exc)}')
+        self._publish(decision, now_ns, active, header=header)
         if decision.level != logic.OK:
             self._log(decision.level, decision.reason, now_ns)
 
-    def _decide(self, data: bytes, now_ns: int) -> tuple[logic.Decision, Any]:
+    def _decide(self, data: bytes, now_ns: int,
+                active: logic.ActiveFilter) -> tuple[logic.Decision, Any]:
         """The decision for one proposal sample, and its header (TwistStamped; else None)."""
+        settings, safety_filter = active.settings, active.safety_filter
         msg, error = _decoded(data, self._command_type)
         if msg is None:
             self.input_counts['dropped_samples'] += 1
-            return logic.fail_safe_decision(safety_filter=self.filter,
+            return logic.fail_safe_decision(safety_filter=safety_filter,
                                             reason=f'undecodable proposal: {error}'), None
-        command_type = self.settings.command_type
+        command_type = settings.command_type
         header = msg.header if command_type == 'twist_stamped' else None
         proposal = None
         try:
             if command_type == 'twist':
-                sections = {'u': conversions.twist_to_array(msg, self.settings.twist_fields)}
+                sections = {'u': conversions.twist_to_array(msg, settings.twist_fields)}
             elif command_type == 'twist_stamped':
-                sections = {'u': conversions.twist_stamped_to_array(
-                    msg, self.settings.twist_fields)}
+                sections = {'u': conversions.twist_stamped_to_array(msg, settings.twist_fields)}
             else:
                 sections = conversions.msg_to_sections(msg, default_label='u')
-            proposal = logic.proposal_from_sections(sections=sections, n_u=self.filter.n_u,
-                                                    n_x=self.filter.n_x)
+            proposal = logic.proposal_from_sections(sections=sections, n_u=safety_filter.n_u,
+                                                    n_x=safety_filter.n_x)
         except (ValueError, TypeError) as exc:
             error = str(exc)
             self.input_counts['refused_proposals'] += 1
         decision = logic.decide(
-            safety_filter=self.filter, proposal=proposal, proposal_error=error,
+            safety_filter=safety_filter, proposal=proposal, proposal_error=error,
             latest_state=self._latest_state, now_ns=now_ns,
-            max_state_age_s=self.settings.max_state_age_s,
-            static_mean=self.config.static_mean, static_std=self.config.static_std,
-            slack_tolerance=self.settings.slack_tolerance)
+            max_state_age_s=settings.max_state_age_s,
+            static_mean=active.config.static_mean, static_std=active.config.static_std,
+            slack_tolerance=settings.slack_tolerance)
         return decision, header
 
     # output ------------------------------------------------------------------------------------
     def command_message(self, u_safe: np.ndarray, header: Any = None) -> Any:
-        """The ``cmd_safe`` message of a command (``header``: the proposal's, TwistStamped)."""
+        """The ``cmd_safe`` message of a command (``header``: the proposal's, TwistStamped).
+
+        The message type and twist_fields are read-only, so any filter's settings will do.
+        """
         fields = self.settings.twist_fields
         if self.settings.command_type == 'twist':
             return conversions.array_to_twist(u_safe, fields)
@@ -281,23 +454,25 @@ class SafetyFilterNode(Node):
             return conversions.array_to_twist_stamped(u_safe, fields, header)
         return conversions.sections_to_msg({'u': u_safe})
 
-    def _publish(self, decision: logic.Decision, now_ns: int, header: Any = None) -> None:
+    def _publish(self, decision: logic.Decision, now_ns: int, active: logic.ActiveFilter,
+                 header: Any = None) -> None:
+        settings = active.settings
         self._cmd_pub.publish(self.command_message(decision.u_safe, header))  # first
         self._info_pub.publish(conversions.sections_to_msg(logic.info_sections(decision)))
         if not logic.diagnostics_due(level=decision.level, now_ns=now_ns,
                                      last_ok_ns=self._last_ok_diagnostics_ns,
-                                     min_period_s=self.settings.diagnostics_min_period_s):
+                                     min_period_s=settings.diagnostics_min_period_s):
             return
         if decision.level == logic.OK:
             self._last_ok_diagnostics_ns = now_ns
         level, message, values = logic.diagnostic_values(
-            decision=decision, barrier_names=self.filter.barrier_names)
+            decision=decision, barrier_names=active.safety_filter.barrier_names)
         values.update(self.input_counts)
         diagnostics = get_message('diagnostic_msgs/msg/DiagnosticArray')()
         diagnostics.header.stamp = self.get_clock().now().to_msg()
         diagnostics.status = [conversions.diagnostic_status(
-            name=self.settings.diagnostics_name, level=level, message=message, values=values,
-            hardware_id=self.settings.diagnostics_hardware_id)]
+            name=settings.diagnostics_name, level=level, message=message, values=values,
+            hardware_id=settings.diagnostics_hardware_id)]
         self._diag_pub.publish(diagnostics)
 
     def _log(self, level: int, reason: str, now_ns: int) -> None:

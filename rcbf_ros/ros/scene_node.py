@@ -8,6 +8,10 @@ Topics (relative, so remappable):
   section, else its first section; or nav_msgs/Odometry with ``state_type: odometry``;
 - ``diagnostics`` (sub, diagnostic_msgs/DiagnosticArray): the filter's; the ``h.<barrier>``
   values and the message of the status that carries them;
+- ``obstacles`` (sub, std_msgs/Float64MultiArray, reliable, keep-last 1, transient-local): the
+  safety filter's obstacle set, rows [x, y, radius] (:data:`rcbf_ros.ros.safety_filter_node.
+  OBSTACLES_QOS`); the scene draws the new set. A set the filter would refuse is refused here
+  too (checked by the same functions), with an ERROR, and the old set stays drawn;
 - ``scene_markers`` (pub, visualization_msgs/MarkerArray): obstacles, margins, the robot, the
   guarded look-ahead point and every barrier's value (:mod:`rcbf_ros.ros.scene_logic`), at most
   ``rate_hz`` times a second and only after a new state or new diagnostics.
@@ -37,6 +41,8 @@ from rcbf_ros.ros.filter_logic import (
     collect_parameters,
     FILTER_PARAMETERS,
     LogThrottle,
+    merged_parameters,
+    obstacle_parameters,
     state_from_sections,
     STATE_TYPES,
 )
@@ -44,14 +50,18 @@ from rcbf_ros.ros.interface import NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     deserialize_message,
+    DurabilityPolicy,
     get_message,
+    HistoryPolicy,
     Node,
     ParameterDescriptor,
     QoSProfile,
+    ReliabilityPolicy,
 )
 
 NODE_NAME = 'scene_markers'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
+FLOAT64_MULTIARRAY = 'std_msgs/msg/Float64MultiArray'
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
 
 _DEFAULTS = logic.SCENE_PARAMETER_DEFAULTS
@@ -79,6 +89,9 @@ INTERFACE = NodeInterface(
                   'as the safety filter reads it (state_type)', _QOS),
         TopicSpec('diagnostics', 'sub', 'diagnostic_msgs/msg/DiagnosticArray',
                   "the filter's: h.<barrier> values and the status message", _QOS),
+        TopicSpec('obstacles', 'sub', FLOAT64_MULTIARRAY,
+                  "the safety filter's obstacle set, rows [x, y, radius]: drawn instead of "
+                  'obstacles.x/y/radius', 'reliable, keep-last 1, transient-local'),
         TopicSpec('scene_markers', 'pub', 'visualization_msgs/msg/MarkerArray',
                   'obstacles, margins, robot, guarded point, barrier values, in frame_id',
                   _QOS),
@@ -88,12 +101,24 @@ INTERFACE = NodeInterface(
 """Topics and parameters (``scene_markers --help``, README)."""
 
 
-def marker_array(markers: Sequence[Mapping[str, Any]], *, stamp: Any = None) -> Any:
-    """Marker dicts (:func:`rcbf_ros.ros.scene_logic.scene_markers`) -> a MarkerArray."""
+MARKER_DELETEALL = 3
+"""visualization_msgs/Marker DELETEALL: the viewer forgets every marker it has from us."""
+
+
+def marker_array(markers: Sequence[Mapping[str, Any]], *, stamp: Any = None,
+                 clear: bool = False) -> Any:
+    """Marker dicts (:func:`rcbf_ros.ros.scene_logic.scene_markers`) -> a MarkerArray.
+
+    Args:
+        clear: begin with a DELETEALL marker (the scene changed: fewer obstacles must not leave
+            old discs behind in the viewer).
+    """
     marker_cls = get_message('visualization_msgs/msg/Marker')
     point_cls = get_message('geometry_msgs/msg/Point')
     out = get_message(MARKER_ARRAY)()
     messages = []
+    if clear:
+        messages.append(marker_cls(action=MARKER_DELETEALL))
     for item in markers:
         msg = marker_cls()
         msg.header.frame_id = item['frame_id']
@@ -135,6 +160,7 @@ class SceneNode(Node):
                 self.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True))
         params = collect_parameters({name: parameter.value for name, parameter
                                      in self.get_parameters_by_prefix('').items()})
+        self._params = params
         try:
             self.settings = logic.scene_settings(params)
             self.geometry = scene_geometry(params)
@@ -147,6 +173,7 @@ class SceneNode(Node):
         self.status: tuple[int, str] | None = None
         self.published = 0
         self._changed = False
+        self._clear = False
         self._throttle = LogThrottle(1.0)
         qos = QoSProfile(depth=10)
         self._state_type = get_message(conversions.STATE_MESSAGES[self.state_type])
@@ -155,6 +182,12 @@ class SceneNode(Node):
         self._diagnostics_type = get_message(DIAGNOSTIC_ARRAY)
         self.create_subscription(self._diagnostics_type, 'diagnostics', self._on_diagnostics,
                                  qos, raw=True)
+        self._obstacles_type = get_message(FLOAT64_MULTIARRAY)
+        self.create_subscription(
+            self._obstacles_type, 'obstacles', self._on_obstacles,
+            QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
+                       reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL), raw=True)
         self.create_timer(1.0 / self.settings.rate_hz, self._on_timer)
         self.get_logger().info(
             f'{self.geometry.system}: {len(self.geometry.obstacles)} obstacles, '
@@ -208,6 +241,23 @@ class SceneNode(Node):
                 self.h, self.status = h, (_level(status), str(status.message))
                 self._changed = True
 
+    def _on_obstacles(self, data: bytes) -> None:
+        """A new obstacle set: the scene of the parameters with it, or an ERROR (old kept)."""
+        try:
+            msg = deserialize_message(data, self._obstacles_type)
+            changes = obstacle_parameters(
+                data=msg.data, data_offset=int(msg.layout.data_offset),
+                dims=[(d.label, int(d.size), int(d.stride)) for d in msg.layout.dim])
+            params = merged_parameters(current=self._params, changes=changes)
+            geometry = scene_geometry(params)
+        except Exception as exc:  # a bad message (or one that does not decode): keep the old
+            text = str(exc) if isinstance(exc, ValueError) else type(exc).__name__
+            self.get_logger().error(f'obstacles message refused, the obstacles drawn are '
+                                    f'unchanged: {" ".join(text.split())}')
+            return
+        self._params, self.geometry = params, geometry
+        self._changed = self._clear = True
+
     def _on_timer(self) -> None:
         if not self._changed:
             return
@@ -216,7 +266,9 @@ class SceneNode(Node):
             geometry=self.geometry, state=self.state, h=self.h,
             frame_id=self.settings.frame_id, caution=self.settings.caution_h,
             status=self.status)
-        self._publisher.publish(marker_array(markers, stamp=self.get_clock().now().to_msg()))
+        self._publisher.publish(marker_array(markers, stamp=self.get_clock().now().to_msg(),
+                                             clear=self._clear))
+        self._clear = False
         self.published += 1
 
     def _warn(self, key: str, text: str) -> None:

@@ -135,3 +135,56 @@ def test_invalid_parameters_exit_2_naming_the_key(domain_id, args, key):
     assert process.returncode == 2, output[-2000:]
     assert f'scene_markers: invalid parameters: {key}' in output
     assert 'Traceback' not in output
+
+
+def test_the_obstacles_topic_replaces_the_drawn_obstacles(domain_id):
+    """A latched obstacle set published before the node starts is drawn (transient-local);
+    a new set replaces it (a DELETEALL first, so no old disc stays in the viewer); a bad one
+    is an ERROR and the drawn set stays."""
+    from rcbf_ros.ros.conversions import sections_to_msg
+    from rcbf_ros.ros.runtime import (
+        DurabilityPolicy,
+        get_message,
+        HistoryPolicy,
+        QoSProfile,
+        ReliabilityPolicy,
+    )
+    probe = _Probe(domain_id)
+    array = get_message('std_msgs/msg/Float64MultiArray')
+    obstacles_pub = probe.node.create_publisher(array, '/obstacles', QoSProfile(
+        depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    obstacles_pub.publish(array(data=[1.0, 2.0, 0.5, 3.0, 4.0, 0.25]))  # before the node exists
+    process = spawn(domain_id, '-m', 'rcbf_ros.ros.scene_node', '--ros-args',
+                    '--params-file', UNICYCLE, '-p', 'rate_hz:=20.0')
+    try:
+        state = sections_to_msg({'state': [-1.0, 0.5, 0.25]})
+        latched = probe.publish_until(
+            lambda: probe.state_pub.publish(state),
+            lambda msg: len(_by_ns(msg, 'obstacles')) == 2, process)
+        replaced = probe.publish_until(
+            lambda: obstacles_pub.publish(array(data=[-2.0, 0.0, 0.75])),
+            lambda msg: len(_by_ns(msg, 'obstacles')) == 1, process)
+        obstacles_pub.publish(array(data=[-2.0, 0.0]))
+        time.sleep(0.5)
+        with probe.lock:
+            before = len(probe.arrays)
+        probe.state_pub.publish(sections_to_msg({'state': [-1.0, 0.0, 0.0]}))
+        kept = None
+        deadline = time.monotonic() + WAIT_S
+        while kept is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+            with probe.lock:
+                kept = probe.arrays[before] if len(probe.arrays) > before else None
+        assert process.poll() is None
+    finally:
+        probe.close()
+        output = stop(process, timeout=10)
+    assert [(m.pose.position.x, m.pose.position.y) for m in _by_ns(latched, 'obstacles')] == [
+        (1.0, 2.0), (3.0, 4.0)]
+    assert replaced.markers[0].action == 3  # DELETEALL before the new set
+    assert [(m.pose.position.x, m.scale.x) for m in _by_ns(replaced, 'obstacles')] == [
+        (-2.0, 1.5)]
+    assert [m.pose.position.x for m in _by_ns(kept, 'obstacles')] == [-2.0]
+    assert 'obstacles message refused, the obstacles drawn are unchanged: obstacles: data' in \
+        output, output[-2000:]

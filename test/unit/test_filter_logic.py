@@ -389,3 +389,49 @@ def test_the_unicycle_filter_box_is_the_simulated_slope(unicycle_params):
     assert np.all(moved >= low - 1e-12) and np.all(moved <= high + 1e-12)
     np.testing.assert_allclose(moved.min(axis=0), low, atol=1e-6)   # tight: every face reached
     np.testing.assert_allclose(moved.max(axis=0), high, atol=1e-6)
+
+
+def test_obstacle_rows_become_the_obstacles_parameters():
+    from rcbf_ros.ros.filter_logic import obstacle_parameters
+    assert obstacle_parameters(data=[1.0, 2.0, 0.5, 3.0, 4.0, 0.25]) == {
+        'obstacles.x': [1.0, 3.0], 'obstacles.y': [2.0, 4.0], 'obstacles.radius': [0.5, 0.25]}
+    assert obstacle_parameters(data=[1, 2, 3], dims=[('o', 1, 3), ('xyr', 3, 3)]) == {
+        'obstacles.x': [1.0], 'obstacles.y': [2.0], 'obstacles.radius': [3.0]}
+    assert obstacle_parameters(data=[]) == {
+        'obstacles.x': [], 'obstacles.y': [], 'obstacles.radius': []}
+    for kwargs, field in (({'data': [1.0, 2.0]}, 'data'),
+                          ({'data': [1.0, 2.0, 3.0], 'dims': [('a', 3, 3)]}, 'layout.dim'),
+                          ({'data': [1.0, 2.0, 3.0], 'dims': [('a', 1, 3), ('b', 2, 2)]},
+                           'layout.dim'),
+                          ({'data': [1.0, 2.0, 3.0], 'data_offset': 1}, 'layout.data_offset')):
+        with pytest.raises(ValueError, match=f'^obstacles: {field}'):
+            obstacle_parameters(**kwargs)
+
+
+def test_read_only_and_filter_parameters():
+    from rcbf_ros.ros.filter_logic import (
+        feeds_the_filter,
+        is_read_only,
+        PARAMETERS,
+        READ_ONLY_PARAMETERS,
+    )
+    assert is_read_only('system') and is_read_only('system_params.with_operator')
+    assert not is_read_only('k_c') and not is_read_only('obstacles.x')
+    for spec in PARAMETERS:  # --help and the README say which ones are read-only
+        assert spec.description.endswith('read-only') == is_read_only(
+            spec.name.replace('<name>', 'any')), spec.name
+    assert set(READ_ONLY_PARAMETERS) <= {spec.name for spec in PARAMETERS}
+    assert feeds_the_filter('k_c') and feeds_the_filter('bands.tilt.index')
+    assert not feeds_the_filter('use_sim_time') and not feeds_the_filter('frame_id')
+
+
+def test_describe_changes_lists_each_changed_key():
+    from rcbf_ros.ros.filter_logic import describe_changes, merged_parameters
+    old = {'k_c': 2.0, 'alpha': 1.0, 'obstacles.x': [0.0]}
+    new = merged_parameters(current=old, changes={'k_c': 0.5, 'obstacles.x': None, 'q': 1})
+    assert new == {'k_c': 0.5, 'alpha': 1.0, 'q': 1}
+    assert describe_changes(old=old, new=new) == (
+        'k_c: 2.0 -> 0.5; obstacles.x: [0.0] -> not set; q: not set -> 1')
+    assert describe_changes(old=old, new=old) == ''
+    assert describe_changes(old={'x': list(range(100))}, new={}, width=20) == (
+        'x: [0, 1, 2, 3, 4, 5... -> not set')

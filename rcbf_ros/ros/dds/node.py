@@ -9,6 +9,7 @@ from __future__ import annotations
 import array
 from dataclasses import dataclass
 import enum
+import math
 import sys
 import threading
 import time
@@ -233,6 +234,13 @@ class ParameterUninitializedException(ParameterException):
         super().__init__(f"The parameter '{parameter_name}' is not initialized", parameter_name)
 
 
+class ParameterImmutableException(ParameterException):
+    """undeclare_parameter() of a read-only parameter."""
+
+    def __init__(self, parameter_name: str) -> None:
+        super().__init__('Attempted to modify read-only parameter', parameter_name)
+
+
 class Parameter:
     """rclpy.parameter.Parameter: ``name``, ``type_``, ``value`` (NOT_SET: ``None``)."""
 
@@ -330,6 +338,55 @@ def parameter_descriptor(**fields: Any) -> Any:
 def _set_parameters_result(successful: bool, reason: str = '') -> Any:
     return messages.get_message('rcl_interfaces/msg/SetParametersResult')(
         successful=successful, reason=reason)
+
+
+PARAMETER_SEPARATOR = '.'
+"""What separates the levels of a parameter name (rclpy's PARAMETER_SEPARATOR_STRING)."""
+DEPTH_RECURSIVE = 0
+"""``list_parameters`` depth that lists every level (rcl_interfaces/srv/ListParameters)."""
+PARAM_REL_TOL = 1e-6
+"""Relative tolerance of a floating-point range's edges and steps (rclpy's Node.PARAM_REL_TOL)."""
+
+def _in_range(parameter: Parameter, bounds: Any, *, integer: bool) -> Any:
+    """A SetParametersResult: ``parameter`` within an Integer/FloatingPointRange, on a step.
+
+    The edges are always in; a floating-point value within :data:`PARAM_REL_TOL` of an edge or
+    of a step counts as on it.
+    """
+    low, high = sorted((bounds.from_value, bounds.to_value))
+    value = parameter.value
+
+    def close(a: float, b: float) -> bool:
+        return a == b if integer else math.isclose(a, b, rel_tol=PARAM_REL_TOL)
+
+    if close(value, low) or close(value, high):
+        return _set_parameters_result(True)
+    if not low < value < high:
+        dot = '.' if integer else ''
+        return _set_parameters_result(
+            False, f'Parameter {parameter.name} out of range{dot} Min: {low}, Max: {high}, '
+                   f'value: {value}')
+    if bounds.step == 0:
+        return _set_parameters_result(True)
+    if integer:
+        on_step = (value - low) % bounds.step == 0
+        text = 'is not a valid step'
+    else:
+        on_step = close(low + round((value - low) / bounds.step) * bounds.step, value)
+        text = 'is not close enough to a valid step'
+    if on_step:
+        return _set_parameters_result(True)
+    return _set_parameters_result(
+        False, f'The parameter value for {parameter.name} {text}. Min: {low}, max: {high}, '
+               f'value: {value}, step: {bounds.step}')
+
+
+PreSetCallback = Callable[[list[Parameter]], list[Parameter]]
+"""Gets the parameters about to be set; returns the list to set instead (all at once)."""
+OnSetCallback = Callable[[list[Parameter]], Any]
+"""Gets the parameters about to be set; returns a SetParametersResult (False: refuse all)."""
+PostSetCallback = Callable[[list[Parameter]], None]
+"""Gets the parameters that were just set."""
 
 
 # ----------------------------------------------------------------------------- endpoints
@@ -558,6 +615,9 @@ class Node:
         self._allow_undeclared = allow_undeclared_parameters
         self._parameters: dict[str, Parameter] = {}
         self._descriptors: dict[str, Any] = {}
+        self._pre_set_parameters_callbacks: list[PreSetCallback] = []
+        self._on_set_parameters_callbacks: list[OnSetCallback] = []
+        self._post_set_parameters_callbacks: list[PostSetCallback] = []
         if automatically_declare_parameters_from_overrides:  # as rclpy: static, typed by value
             self.declare_parameters('', [(name, parameter.value, parameter_descriptor())
                                          for name, parameter in self._parameter_overrides.items()],
@@ -660,6 +720,13 @@ class Node:
     # without a value (then get_parameter raises until one is set); overrides must have the
     # declared type; a NOT_SET value cannot be a static default. The descriptor passed in is
     # kept and modified (its name and type), as rclpy does.
+    #
+    # Setting goes through three lists of callbacks, each newest first: pre-set (set_parameters*
+    # only: each returns a list, their concatenation is set instead), on-set (declarations too:
+    # the first that refuses stops the set, and its reason is the result) and post-set (after
+    # the values are stored). set_parameters runs that once per parameter, in order;
+    # set_parameters_atomically once for the whole list, all or nothing; a declaration once per
+    # declared parameter (an on-set refusal raises there).
     def declare_parameter(self, name: str, value: Any = None, descriptor: Any = None,
                           ignore_override: bool = False) -> Parameter:
         """Declare ``name`` with default ``value`` (or a ``Parameter.Type``); an override wins.
@@ -725,23 +792,35 @@ class Node:
         already = [p.name for p in declared if p.name in self._parameters]
         if already:
             raise ParameterAlreadyDeclaredException(already)
-        for parameter in declared:
-            descriptor = descriptors[parameter.name]
-            result = self._apply_descriptor(parameter, descriptor, check_read_only=False)
+        for parameter in declared:  # one at a time: those before a refusal stay declared
+            result = self._set_parameters_common([parameter], descriptors, declaring=True)
             if not result.successful:
                 if result.reason.startswith('Wrong parameter type'):
                     raise InvalidParameterTypeException(
-                        parameter, Parameter.Type(descriptor.type).name)
+                        parameter, Parameter.Type(descriptors[parameter.name].type).name)
                 raise InvalidParameterValueException(parameter.name, parameter.value,
                                                      result.reason)
-            self._descriptors[parameter.name] = descriptor
-            self._parameters[parameter.name] = parameter
         return [self._parameters[p.name] for p in declared]
+
+    def undeclare_parameter(self, name: str) -> None:
+        """Forget a declared parameter (no callback is called).
+
+        Raises:
+            ParameterNotDeclaredException: ``name`` is not declared.
+            ParameterImmutableException: it was declared read-only.
+        """
+        if name not in self._parameters:
+            raise ParameterNotDeclaredException(name)
+        if self._descriptors[name].read_only:
+            raise ParameterImmutableException(name)
+        del self._parameters[name]
+        del self._descriptors[name]
 
     def _apply_descriptor(self, parameter: Parameter, descriptor: Any,
                           check_read_only: bool = True) -> Any:
         """Check ``parameter`` against ``descriptor`` (which takes its name, and its type when
-        dynamically typed); a SetParametersResult."""
+        dynamically typed): read-only, type, integer and floating-point ranges; a
+        SetParametersResult."""
         descriptor.name = parameter.name
         if check_read_only and descriptor.read_only:
             return _set_parameters_result(
@@ -755,6 +834,10 @@ class Node:
             return _set_parameters_result(
                 False, f"Wrong parameter type, expected '{Parameter.Type(descriptor.type)}' got "
                        f"'{parameter.type_}'")
+        if parameter.type_ is Parameter.Type.INTEGER and len(descriptor.integer_range):
+            return _in_range(parameter, descriptor.integer_range[0], integer=True)
+        if parameter.type_ is Parameter.Type.DOUBLE and len(descriptor.floating_point_range):
+            return _in_range(parameter, descriptor.floating_point_range[0], integer=False)
         return _set_parameters_result(True)
 
     def has_parameter(self, name: str) -> bool:
@@ -807,33 +890,144 @@ class Node:
     def describe_parameters(self, names: Iterable[str]) -> list[Any]:
         return [self.describe_parameter(name) for name in names]
 
-    def set_parameters(self, parameters: Iterable[Parameter]) -> list[Any]:
-        """Set each parameter in turn; a SetParametersResult each. A NOT_SET value undeclares
-        a dynamically typed parameter.
+    def set_parameters(self, parameter_list: Sequence[Parameter]) -> list[Any]:
+        """Set each parameter in turn, each through the callbacks on its own; a
+        SetParametersResult each. A NOT_SET value undeclares a dynamically typed parameter.
 
         Raises:
-            ParameterNotDeclaredException: one was never declared (undeclared not allowed).
+            ParameterNotDeclaredException: one was never declared (undeclared not allowed);
+                the ones before it stay set, the ones after are not tried.
         """
-        results = []
-        for parameter in parameters:
-            if not isinstance(parameter, Parameter):
-                raise TypeError(f"parameter must be instance of type '{Parameter!r}'")
-            if parameter.name not in self._parameters and not self._allow_undeclared:
-                raise ParameterNotDeclaredException([parameter.name])
-            descriptor = self._descriptors.get(parameter.name)
-            result = (_set_parameters_result(True) if descriptor is None
-                      else self._apply_descriptor(parameter, descriptor))
-            if result.successful:
-                if parameter.type_ is Parameter.Type.NOT_SET:
-                    self._parameters.pop(parameter.name, None)
-                    self._descriptors.pop(parameter.name, None)
-                else:
-                    if descriptor is None:
-                        self._descriptors[parameter.name] = parameter_descriptor(
-                            dynamic_typing=True)
-                    self._parameters[parameter.name] = parameter
-            results.append(result)
-        return results
+        return [self._set_parameters_atomically([parameter]) for parameter in parameter_list]
+
+    def set_parameters_atomically(self, parameter_list: Sequence[Parameter]) -> Any:
+        """Set every parameter or none: the callbacks see the whole list once; one
+        SetParametersResult.
+
+        Raises:
+            ParameterNotDeclaredException: one was never declared (nothing is set).
+        """
+        return self._set_parameters_atomically(list(parameter_list))
+
+    def _set_parameters_atomically(self, parameter_list: list[Parameter]) -> Any:
+        if self._pre_set_parameters_callbacks:
+            modified: list[Parameter] = []
+            for callback in list(self._pre_set_parameters_callbacks):
+                modified.extend(callback(parameter_list))
+            parameter_list = modified
+            if not parameter_list:
+                return _set_parameters_result(
+                    False, 'parameter list cannot be empty, this might be due to '
+                           'pre_set_parameters_callback modifying the original parameters list.')
+        if not all(isinstance(parameter, Parameter) for parameter in parameter_list):
+            raise TypeError(f"parameter must be instance of type '{Parameter!r}'")
+        undeclared = [p.name for p in parameter_list if p.name not in self._parameters]
+        if undeclared and not self._allow_undeclared:
+            raise ParameterNotDeclaredException(undeclared)
+        return self._set_parameters_common(parameter_list)
+
+    def _set_parameters_common(self, parameter_list: list[Parameter],
+                               descriptors: dict[str, Any] | None = None,
+                               declaring: bool = False) -> Any:
+        """Descriptor checks, on-set callbacks, store, post-set callbacks: all or nothing.
+
+        Args:
+            descriptors: new descriptors of a declaration (read-only is not checked then);
+                None: the stored ones.
+            declaring: a NOT_SET value is stored (a declaration without a value) instead of
+                undeclaring the parameter.
+        """
+        checking = self._descriptors if descriptors is None else descriptors
+        for parameter in parameter_list:
+            if parameter.name in checking:
+                result = self._apply_descriptor(parameter, checking[parameter.name],
+                                                check_read_only=descriptors is None)
+                if not result.successful:
+                    return result
+        for callback in list(self._on_set_parameters_callbacks):
+            result = callback(parameter_list)
+            if not result.successful:
+                return result
+        for parameter in parameter_list:
+            if not declaring and parameter.type_ is Parameter.Type.NOT_SET:
+                self._parameters.pop(parameter.name, None)
+                self._descriptors.pop(parameter.name, None)
+                continue
+            if descriptors is not None:
+                self._descriptors[parameter.name] = descriptors[parameter.name]
+            elif parameter.name not in self._descriptors:
+                self._descriptors[parameter.name] = parameter_descriptor(dynamic_typing=True)
+            self._parameters[parameter.name] = parameter
+        for callback in list(self._post_set_parameters_callbacks):
+            callback(parameter_list)
+        return _set_parameters_result(True)
+
+    def add_pre_set_parameters_callback(self, callback: PreSetCallback) -> None:
+        """Call ``callback`` first (before the older ones) on every set_parameters* (not on
+        declarations); the parameters it returns are set instead, all at once."""
+        self._pre_set_parameters_callbacks.insert(0, callback)
+
+    def add_on_set_parameters_callback(self, callback: OnSetCallback) -> None:
+        """Call ``callback`` first (before the older ones) before any parameters are set or
+        declared; a result with ``successful=False`` refuses them with its ``reason``."""
+        self._on_set_parameters_callbacks.insert(0, callback)
+
+    def add_post_set_parameters_callback(self, callback: PostSetCallback) -> None:
+        """Call ``callback`` first (before the older ones) after parameters were set or
+        declared."""
+        self._post_set_parameters_callbacks.insert(0, callback)
+
+    def remove_pre_set_parameters_callback(self, callback: PreSetCallback) -> None:
+        """Raises: ValueError: ``callback`` was not added."""
+        self._pre_set_parameters_callbacks.remove(callback)
+
+    def remove_on_set_parameters_callback(self, callback: OnSetCallback) -> None:
+        """Raises: ValueError: ``callback`` was not added."""
+        self._on_set_parameters_callbacks.remove(callback)
+
+    def remove_post_set_parameters_callback(self, callback: PostSetCallback) -> None:
+        """Raises: ValueError: ``callback`` was not added."""
+        self._post_set_parameters_callbacks.remove(callback)
+
+    def list_parameters(self, prefixes: list[str], depth: int) -> Any:
+        """The declared names under ``prefixes`` (none: all) at most ``depth`` levels below
+        them (:data:`DEPTH_RECURSIVE`: any), in declaration order, and the prefixes of those
+        names; an ``rcl_interfaces/msg/ListParametersResult``.
+
+        Raises:
+            TypeError: ``prefixes`` is not a list of str, or ``depth`` not an int.
+            ValueError: ``depth`` < 0.
+        """
+        if not isinstance(prefixes, list):
+            raise TypeError('The prefixes argument must be a list')
+        if not all(isinstance(prefix, str) for prefix in prefixes):
+            raise TypeError('All prefixes must be instances of type str')
+        if not isinstance(depth, int):
+            raise TypeError('The depth must be instance of type int')
+        if depth < 0:
+            raise ValueError('The depth must be greater than or equal to zero')
+
+        def shallow(name: str) -> bool:
+            return name.count(PARAMETER_SEPARATOR) < depth
+
+        def under(name: str, prefix: str) -> bool:
+            rest = name[len(prefix) + 1:]
+            return name == prefix or (name.startswith(prefix + PARAMETER_SEPARATOR) and (
+                depth == DEPTH_RECURSIVE or shallow(rest)))
+
+        everything = not prefixes and depth == DEPTH_RECURSIVE
+        names: list[str] = []
+        found_prefixes: list[str] = []
+        for name in self._parameters:
+            if not everything and not (not prefixes and shallow(name)) and not any(
+                    under(name, prefix) for prefix in prefixes):
+                continue
+            names.append(name)
+            prefix = name.rpartition(PARAMETER_SEPARATOR)[0]
+            if prefix and prefix not in found_prefixes:
+                found_prefixes.append(prefix)
+        return messages.get_message('rcl_interfaces/msg/ListParametersResult')(
+            names=names, prefixes=found_prefixes)
 
     # graph ----------------------------------------------------------------------------------
     def _alive_endpoints(self, kinds: tuple[Any, ...] = (

@@ -1,0 +1,84 @@
+"""On real rclpy, ``ros2 param set`` and ``ros2 topic pub`` change a running safety_filter.
+
+The node runs under a real Jazzy's rclpy (``RCBF_ROS_RUNTIME=rclpy``; this checkout and its
+virtual environment's packages after Jazzy's on the Python path), and rclpy serves its
+parameters: a value the filter's validation refuses prints "Setting parameter failed: <reason
+naming the key>", a good one is applied, a read-only one is refused by rclpy; an obstacles set
+published by ``ros2 topic pub`` replaces ``obstacles.*``, a malformed one is an ERROR.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+import sys
+import sysconfig
+import time
+from typing import Callable
+
+import pytest
+
+pytestmark = pytest.mark.ros2
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / 'test'))
+from conftest import stop_group  # noqa: E402
+
+OBSTACLES = ('ros2 topic pub --once -w 1 --qos-durability transient_local --qos-reliability '
+             'reliable /obstacles std_msgs/msg/Float64MultiArray')
+
+
+def _until(check: Callable[[], str | None], what: str, timeout: float = 90.0) -> str:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        found = check()
+        if found is not None:
+            return found
+        time.sleep(1.0)
+    raise AssertionError(f'{what} did not happen in {timeout} s')
+
+
+def test_ros2_param_set_and_topic_pub_change_the_running_filter(jazzy, tmp_path,
+                                                                ros_domain_id):
+    log = tmp_path / 'safety_filter.log'
+    path = f'{REPO}:{sysconfig.get_path("purelib")}'
+    node = jazzy.start(
+        'PY=$(head -1 "$(command -v ros2)" | cut -c3-); '
+        f'PYTHONPATH="$PYTHONPATH:{path}" RCBF_ROS_RUNTIME=rclpy exec "$PY" -m '
+        f'rcbf_ros.ros.safety_filter_node --ros-args --params-file '
+        f'{REPO / "config" / "unicycle.yaml"}', domain_id=ros_domain_id, log=log)
+
+    def ros2(command: str) -> str:
+        return jazzy.run(command, domain_id=ros_domain_id, timeout=60).stdout
+
+    def param(verb: str, rest: str) -> str:
+        return ros2(f'ros2 param {verb} --no-daemon /safety_filter {rest}')
+
+    try:
+        _until(lambda: '' if 'Double value is: 2.0' in param('get', 'k_c') else None,
+               'the safety_filter answering ros2 param get')
+        refused = param('set', 'k_c -1.0')
+        accepted = param('set', 'k_c 0.5')
+        got = param('get', 'k_c')
+        read_only = param('set', 'system pvtol')
+        published = ros2(f'{OBSTACLES} "{{data: [2.85, 0.0, 0.6, 1.5, 1.5, 0.4]}}"')
+        moved = _until(lambda: (lambda out: out if '2.85' in out else None)(
+            param('get', 'obstacles.x')), 'obstacles.x from the obstacles topic')
+        ros2(f'{OBSTACLES} "{{data: [1.0, 2.0]}}"')
+        _until(lambda: '' if 'obstacles message refused' in log.read_text() else None,
+               'the ERROR of a malformed obstacles message')
+        kept = param('get', 'obstacles.x')
+        assert node.poll() is None, log.read_text()[-3000:]
+    finally:
+        code = stop_group(node)
+    output = log.read_text()
+    assert refused.strip().endswith(
+        'Setting parameter failed: k_c: must be >= 0 (the box is mean +/- k_c std), got -1.0'), \
+        refused
+    assert 'Set parameter successful' in accepted and 'Double value is: 0.5' in got
+    assert 'Setting parameter failed: Trying to set a read-only parameter: system.' in read_only
+    assert 'publishing #1' in published, published
+    assert 'Double values are: [2.85, 1.5]' in moved, moved
+    assert '[2.85, 1.5]' in kept
+    assert 'filter updated: k_c: 2.0 -> 0.5' in output
+    assert 'parameter change refused: k_c: must be >= 0' in output
+    assert 'filter updated from the obstacles topic' in output
+    assert 'obstacles message refused, the obstacles are unchanged: obstacles: data' in output
+    assert code == 0 and 'Traceback' not in output, output[-3000:]
