@@ -26,7 +26,7 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
-from rcbf_ros.ros.dds import messages
+from rcbf_ros.ros.dds import messages, services
 from rcbf_ros.ros.dds.arguments import (
     check_namespace,
     check_node_name,
@@ -573,6 +573,8 @@ class Node:
         self._builtin_readers: list[tuple[BuiltinDataReader, ReadCondition, ReadCondition]] \
             | None = None
         self._endpoint_cache: dict[Any, list[Any]] = {}
+        self._service_endpoints: list[services.Service | services.Client] = []
+        self._services_polled_ns = 0
         self.context.add_node(self)
 
     # names ----------------------------------------------------------------------------------
@@ -647,6 +649,40 @@ class Node:
             return False
         self._timers.remove(timer)
         timer.destroy()
+        return True
+
+    def create_service(self, srv_type: Any, srv_name: str,
+                       callback: Callable[[Any, Any], Any], *,
+                       qos_profile: QoSProfile = services.qos_profile_services_default,
+                       **_ignored: Any) -> services.Service:
+        """Serve ``srv_name``: ``callback(request, response)`` returns the response."""
+        return self._add_service_endpoint(services.Service(
+            self, srv_type, self.resolve_topic_name(srv_name), callback,
+            as_profile(qos_profile)))
+
+    def create_client(self, srv_type: Any, srv_name: str, *,
+                      qos_profile: QoSProfile = services.qos_profile_services_default,
+                      **_ignored: Any) -> services.Client:
+        return self._add_service_endpoint(services.Client(
+            self, srv_type, self.resolve_topic_name(srv_name), as_profile(qos_profile)))
+
+    def _add_service_endpoint(self, endpoint: Any) -> Any:
+        self._waitset.attach(endpoint._condition)
+        self._service_endpoints.append(endpoint)
+        return endpoint
+
+    def destroy_service(self, service: services.Service) -> bool:
+        return self._destroy_service_endpoint(service)
+
+    def destroy_client(self, client: services.Client) -> bool:
+        return self._destroy_service_endpoint(client)
+
+    def _destroy_service_endpoint(self, endpoint: Any) -> bool:
+        if endpoint not in self._service_endpoints:
+            return False
+        self._service_endpoints.remove(endpoint)
+        self._waitset.detach(endpoint._condition)
+        endpoint.destroy()
         return True
 
     def _wake(self) -> None:
@@ -994,6 +1030,10 @@ class Node:
             subscription.destroy()
         for publisher in self._publishers:
             publisher.destroy()
+        for endpoint in self._service_endpoints:
+            self._waitset.detach(endpoint._condition)
+            endpoint.destroy()
+        self._service_endpoints = []
         for reader, alive_condition, unread_condition in self._builtin_readers or ():
             delete_entity(alive_condition)
             delete_entity(unread_condition)
