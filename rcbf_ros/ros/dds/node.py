@@ -524,7 +524,7 @@ class Node:
                  parameter_overrides: Iterable[Parameter] | None = None,
                  allow_undeclared_parameters: bool = False,
                  automatically_declare_parameters_from_overrides: bool = False,
-                 **_ignored: Any) -> None:
+                 start_parameter_services: bool = True, **_ignored: Any) -> None:
         self.context = default_context if context is None else context
         if not self.context.ok() or self.context.participant is None:
             raise RuntimeError('rclpy.init() must be called before creating a Node')
@@ -576,6 +576,9 @@ class Node:
         self._service_endpoints: list[services.Service | services.Client] = []
         self._services_polled_ns = 0
         self.context.add_node(self)
+        if start_parameter_services:  # as rclpy: ros2 param reaches every node
+            from rcbf_ros.ros.dds.parameter_service import ParameterService
+            self._parameter_service = ParameterService(self)
 
     # names ----------------------------------------------------------------------------------
     def get_name(self) -> str:
