@@ -1,9 +1,10 @@
-"""ROS 2 tools reach the parameters of a node running on our Cyclone runtime.
+"""ROS 2 tools reach the parameters of a node running on our Cyclone runtime, and back.
 
 The safety_filter node runs on our runtime (``RCBF_ROS_RUNTIME=cyclone``) with the unicycle
 configuration; real Jazzy tools talk to it: ``ros2 service list`` and ``ros2 service call``,
 rclpy's ``AsyncParameterClient`` (``rclpy_parameter_client.py``) and the ``ros2 param`` verbs.
-The service types' RIHS01 hashes must be Jazzy's own.
+The other way round, our client calls the parameter services of an rclpy node
+(``rclpy_parameter_node.py``). The service types' RIHS01 hashes must be Jazzy's own.
 """
 from __future__ import annotations
 
@@ -17,7 +18,9 @@ import time
 import pytest
 
 from rcbf_ros.ros.dds import messages
-from rcbf_ros.ros.dds.parameter_service import PARAMETER_SERVICES
+from rcbf_ros.ros.dds import rclpy_compat as rclpy
+from rcbf_ros.ros.dds.node import Node, Parameter
+from rcbf_ros.ros.dds.parameter_service import parameter_msg, PARAMETER_SERVICES
 from rcbf_ros.ros.dds.services import get_service
 from rcbf_ros.ros.loopback import ensure_loopback
 
@@ -129,3 +132,30 @@ def test_ros2_param_verbs_reach_the_filter(jazzy, ros_domain_id, safety_filter):
     got = jazzy.run('ros2 param get /safety_filter alpha --no-daemon',
                     domain_id=ros_domain_id, timeout=60)
     assert 'Double value is: 2.5' in got.stdout, got.stdout
+
+
+def test_our_client_reaches_an_rclpy_nodes_parameter_services(jazzy, ros_domain_id, tmp_path):
+    log = tmp_path / 'rclpy_node.log'
+    process = jazzy.start(f'PY=$(head -1 "$(command -v ros2)" | cut -c3-); '
+                          f'exec "$PY" {HERE / "rclpy_parameter_node.py"}',
+                          domain_id=ros_domain_id, log=log)
+    rclpy.init(args=[], domain_id=ros_domain_id)
+    try:
+        probe = Node('probe', start_parameter_services=False)
+        get = probe.create_client(get_service('rcl_interfaces/srv/GetParameters'),
+                                  '/safety_filter/get_parameters')
+        put = probe.create_client(get_service('rcl_interfaces/srv/SetParameters'),
+                                  '/safety_filter/set_parameters')
+        for client in (get, put):
+            assert client.wait_for_service(timeout_sec=60), log.read_text()[-2000:]
+        reply = get.call(get.srv_type.Request(names=['alpha']), timeout_sec=30)
+        assert reply is not None and [v.double_value for v in reply.values] == [2.0]
+        reply = put.call(put.srv_type.Request(parameters=[
+            parameter_msg(Parameter('alpha', value=0.5)),
+            parameter_msg(Parameter('alpha', value='fast'))]), timeout_sec=30)
+        assert [r.successful for r in reply.results] == [True, False]
+        reply = get.call(get.srv_type.Request(names=['alpha']), timeout_sec=30)
+        assert [v.double_value for v in reply.values] == [0.5]
+    finally:
+        rclpy.try_shutdown()
+        stop_group(process)
