@@ -72,7 +72,8 @@ def test_samples_without_a_header_are_refused_in_one_line(data):
 
 def test_endpoint_ids_are_written_as_rmw_writes_them():
     guid = bytes([0x01, 0x0f, 0xa0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 0xee, 0xee, 0xee, 0xee])
-    assert services.endpoint_id(guid, 0x0102) == '01.f.a0.0.1.2.3.4.5.6.7.8.0.0.1.2'
+    expected = '01.f.a0.0.1.2.3.4.5.6.7.8.0.0.1.2'
+    assert services.endpoint_id(participant_guid=guid, counter=0x0102) == expected
 
 
 def test_user_data_values_are_found_by_key():

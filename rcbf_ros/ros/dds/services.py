@@ -46,7 +46,7 @@ from cyclonedds.topic import Topic
 from rosbags.typesys import get_types_from_msg
 
 from rcbf_ros.ros.dds import messages
-from rcbf_ros.ros.dds.context import delete_entity
+from rcbf_ros.ros.dds.context import delete_entity, spin_once
 from rcbf_ros.ros.dds.qos import QoSProfile, to_cyclone_qos
 
 REQUEST_TOPIC_PREFIX = 'rq'
@@ -124,7 +124,7 @@ def decode_sample(data: bytes | memoryview) -> tuple[RequestHeader, bytes]:
     return RequestHeader(guid, sequence), bytes(view[:4]) + bytes(view[4 + _HEADER_SIZE:])
 
 
-def endpoint_id(participant_guid: bytes, counter: int) -> str:
+def endpoint_id(*, participant_guid: bytes, counter: int) -> str:
     """rmw's client/service id: the participant's 12-byte GUID prefix and a big-endian 32-bit
     counter, written as hex bytes joined by dots, the first two digits wide."""
     raw = bytes(participant_guid[:12]) + (counter & 0xFFFFFFFF).to_bytes(4, 'big')
@@ -150,7 +150,7 @@ _type_hash = functools.cache(messages.type_hash)
 def _new_endpoint_id(participant: Any) -> str:
     with _counter_lock:
         counter = next(_endpoint_counter)
-    return endpoint_id(participant.guid.bytes, counter)
+    return endpoint_id(participant_guid=participant.guid.bytes, counter=counter)
 
 
 # ----------------------------------------------------------------------------- service types
@@ -540,7 +540,6 @@ class Client(_Endpoint):
         """Send ``request`` and wait for the response (None on timeout).
 
         If no other thread spins the node, this one does (rclpy would wait forever)."""
-        from rcbf_ros.ros.dds.context import spin_once
         future = self.call_async(request)
         deadline = None if timeout_sec is None else time.monotonic() + timeout_sec
         while not future.done():
