@@ -45,6 +45,8 @@ from rcbf_ros.ros.loopback import (
 
 WAIT_SLICE_S = 0.05
 """Longest single DDS wait; bounds how late a signal is noticed while idle."""
+SERVICE_POLL_INTERVAL_NS = 10_000_000
+"""While callbacks keep a node busy, its services and clients are looked at this often (ns)."""
 
 
 class ExternalShutdownException(Exception):
@@ -174,6 +176,13 @@ def _work_available(node: Any) -> bool:
             node._ready.append(timer._fire)
     for subscription in node._subscriptions:
         node._ready.extend(subscription._take_ready())
+    # Services and clients: whenever nothing else is ready, else at most every
+    # SERVICE_POLL_INTERVAL_NS, so that their readers cost nothing per message of a busy topic.
+    if node._service_endpoints and (not node._ready or now - node._services_polled_ns
+                                    >= SERVICE_POLL_INTERVAL_NS):
+        node._services_polled_ns = now
+        for endpoint in node._service_endpoints:
+            node._ready.extend(endpoint._take_ready())
     return bool(node._ready)
 
 

@@ -27,7 +27,7 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
-from rcbf_ros.ros.dds import messages
+from rcbf_ros.ros.dds import messages, services
 from rcbf_ros.ros.dds.arguments import (
     check_namespace,
     check_node_name,
@@ -581,7 +581,7 @@ class Node:
                  parameter_overrides: Iterable[Parameter] | None = None,
                  allow_undeclared_parameters: bool = False,
                  automatically_declare_parameters_from_overrides: bool = False,
-                 **_ignored: Any) -> None:
+                 start_parameter_services: bool = True, **_ignored: Any) -> None:
         self.context = default_context if context is None else context
         if not self.context.ok() or self.context.participant is None:
             raise RuntimeError('rclpy.init() must be called before creating a Node')
@@ -633,7 +633,12 @@ class Node:
         self._builtin_readers: list[tuple[BuiltinDataReader, ReadCondition, ReadCondition]] \
             | None = None
         self._endpoint_cache: dict[Any, list[Any]] = {}
+        self._service_endpoints: list[services.Service | services.Client] = []
+        self._services_polled_ns = 0
         self.context.add_node(self)
+        if start_parameter_services:  # as rclpy: ros2 param reaches every node
+            from rcbf_ros.ros.dds.parameter_service import ParameterService
+            self._parameter_service = ParameterService(self)
 
     # names ----------------------------------------------------------------------------------
     def get_name(self) -> str:
@@ -707,6 +712,40 @@ class Node:
             return False
         self._timers.remove(timer)
         timer.destroy()
+        return True
+
+    def create_service(self, srv_type: Any, srv_name: str,
+                       callback: Callable[[Any, Any], Any], *,
+                       qos_profile: QoSProfile = services.qos_profile_services_default,
+                       **_ignored: Any) -> services.Service:
+        """Serve ``srv_name``: ``callback(request, response)`` returns the response."""
+        return self._add_service_endpoint(services.Service(
+            self, srv_type, self.resolve_topic_name(srv_name), callback,
+            as_profile(qos_profile)))
+
+    def create_client(self, srv_type: Any, srv_name: str, *,
+                      qos_profile: QoSProfile = services.qos_profile_services_default,
+                      **_ignored: Any) -> services.Client:
+        return self._add_service_endpoint(services.Client(
+            self, srv_type, self.resolve_topic_name(srv_name), as_profile(qos_profile)))
+
+    def _add_service_endpoint(self, endpoint: Any) -> Any:
+        self._waitset.attach(endpoint._condition)
+        self._service_endpoints.append(endpoint)
+        return endpoint
+
+    def destroy_service(self, service: services.Service) -> bool:
+        return self._destroy_service_endpoint(service)
+
+    def destroy_client(self, client: services.Client) -> bool:
+        return self._destroy_service_endpoint(client)
+
+    def _destroy_service_endpoint(self, endpoint: Any) -> bool:
+        if endpoint not in self._service_endpoints:
+            return False
+        self._service_endpoints.remove(endpoint)
+        self._waitset.detach(endpoint._condition)
+        endpoint.destroy()
         return True
 
     def _wake(self) -> None:
@@ -1029,6 +1068,77 @@ class Node:
         return messages.get_message('rcl_interfaces/msg/ListParametersResult')(
             names=names, prefixes=found_prefixes)
 
+    def set_parameters_atomically(self, parameters: Iterable[Parameter]) -> Any:
+        """Set all the parameters or none; one SetParametersResult (the first refusal's).
+
+        Raises:
+            ParameterNotDeclaredException: one was never declared (undeclared not allowed).
+        """
+        parameters = list(parameters)
+        if not all(isinstance(p, Parameter) for p in parameters):
+            raise TypeError(f"parameter must be instance of type '{Parameter!r}'")
+        undeclared = [p.name for p in parameters if p.name not in self._parameters]
+        if undeclared and not self._allow_undeclared:
+            raise ParameterNotDeclaredException(undeclared)
+        for parameter in parameters:
+            descriptor = self._descriptors.get(parameter.name)
+            if descriptor is not None:
+                result = self._apply_descriptor(parameter, descriptor)
+                if not result.successful:
+                    return result
+        return _set_parameters_result(True) if not parameters else self.set_parameters(
+            parameters)[-1]
+
+    def get_parameter_type(self, name: str) -> Any:
+        """The type of ``name`` as rclpy gives it: the ParameterType value (an int) of a
+        declared parameter, ``Parameter.Type.NOT_SET`` of an undeclared one if allowed.
+
+        Raises:
+            ParameterNotDeclaredException: never declared (and undeclared ones not allowed).
+        """
+        if name in self._parameters:
+            return self._parameters[name].type_.value
+        if self._allow_undeclared:
+            return Parameter.Type.NOT_SET
+        raise ParameterNotDeclaredException(name)
+
+    def get_parameter_types(self, names: Iterable[str]) -> list[Any]:
+        names = list(names)
+        if not all(isinstance(name, str) for name in names):
+            raise TypeError('All names must be instances of type str')
+        return [self.get_parameter_type(name) for name in names]
+
+    def list_parameters(self, prefixes: list[str], depth: int) -> Any:
+        """Names (and their dotted prefixes) of the parameters under ``prefixes`` (all if
+        empty) at most ``depth`` levels deep (0: any depth), as rclpy lists them.
+
+        Raises:
+            TypeError: prefixes not a list of str, or depth not an int.
+            ValueError: a negative depth.
+        """
+        if not isinstance(prefixes, list) or not all(isinstance(p, str) for p in prefixes):
+            raise TypeError('The prefixes argument must be a list of str')
+        if not isinstance(depth, int):
+            raise TypeError('The depth must be instance of type int')
+        if depth < 0:
+            raise ValueError('The depth must be greater than or equal to zero')
+        result = messages.get_message('rcl_interfaces/msg/ListParametersResult')()
+        names, found_prefixes = [], []
+        for name in self._parameters:
+            if prefixes or depth:
+                shallow = not prefixes and name.count('.') < depth
+                if not shallow and not any(
+                        name == prefix or (name.startswith(prefix + '.') and (
+                            depth == 0 or name[len(prefix) + 1:].count('.') < depth))
+                        for prefix in prefixes):
+                    continue
+            names.append(name)
+            prefix = name.rpartition('.')[0]
+            if prefix and prefix not in found_prefixes:
+                found_prefixes.append(prefix)
+        result.names, result.prefixes = names, found_prefixes
+        return result
+
     # graph ----------------------------------------------------------------------------------
     def _alive_endpoints(self, kinds: tuple[Any, ...] = (
             BuiltinTopicDcpsPublication, BuiltinTopicDcpsSubscription)) -> list[Any]:
@@ -1117,6 +1227,10 @@ class Node:
             subscription.destroy()
         for publisher in self._publishers:
             publisher.destroy()
+        for endpoint in self._service_endpoints:
+            self._waitset.detach(endpoint._condition)
+            endpoint.destroy()
+        self._service_endpoints = []
         for reader, alive_condition, unread_condition in self._builtin_readers or ():
             delete_entity(alive_condition)
             delete_entity(unread_condition)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import sys
+import time
 from types import SimpleNamespace
 from typing import Any, Sequence
 
@@ -43,6 +44,17 @@ def spin(node: Any, executor: Any = None) -> None:
 def spin_once(node: Any, *, executor: Any = None, timeout_sec: float | None = None) -> None:
     """Run at most one callback, waiting up to ``timeout_sec`` seconds (None: until one)."""
     _spin_once(node, timeout_sec=timeout_sec)
+
+
+def spin_until_future_complete(node: Any, future: Any, executor: Any = None,
+                               timeout_sec: float | None = None) -> None:
+    """Run the node's callbacks until ``future`` is done or ``timeout_sec`` passed."""
+    deadline = None if timeout_sec is None else time.monotonic() + timeout_sec
+    while not future.done() and node.context.ok():
+        left = None if deadline is None else deadline - time.monotonic()
+        if left is not None and left <= 0:
+            return
+        _spin_once(node, timeout_sec=0.1 if left is None else min(left, 0.1))
 
 
 def get_default_context() -> Context:

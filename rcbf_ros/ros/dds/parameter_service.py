@@ -1,0 +1,197 @@
+"""rcl_interfaces' parameter services of a node, answered as rclpy's ParameterService does.
+
+Every node serves, under its own name (``<node>/get_parameters`` resolved in its namespace,
+remaps applied), ``describe_parameters``, ``get_parameters``, ``get_parameter_types``,
+``list_parameters``, ``set_parameters`` and ``set_parameters_atomically`` with QoS
+``qos_profile_parameters``, so that ``ros2 param`` and rclpy's parameter clients reach it.
+
+Semantics (rclpy 7.1 ``parameter_service.py``): a get / describe / get-types request naming one
+undeclared (or, for get, uninitialized) parameter gets an empty list back; ``set_parameters``
+sets each parameter atomically on its own, an undeclared one failing with the exception's text
+as its reason; ``set_parameters_atomically`` sets all or none. Setting goes through the node's
+``set_parameters_atomically``, so its checks (types, read-only, set-parameter callbacks) apply.
+
+Successful sets through these services are announced on ``/parameter_events``
+(``rcl_interfaces/msg/ParameterEvent``: new, changed and deleted parameters, the node's fully
+qualified name, a stamp), as rclpy announces every set.
+"""
+from __future__ import annotations
+
+from typing import Any, Iterable
+import weakref
+
+import numpy as np
+
+from rcbf_ros.ros.dds import messages
+from rcbf_ros.ros.dds.node import (
+    Parameter,
+    ParameterNotDeclaredException,
+    ParameterUninitializedException,
+)
+from rcbf_ros.ros.dds.qos import QoSProfile
+from rcbf_ros.ros.dds.services import get_service, qos_profile_parameters
+
+qos_profile_parameter_events = QoSProfile(depth=1000)
+"""rclpy's QoS of ``/parameter_events``: reliable, volatile, keep-last 1000."""
+
+PARAMETER_SERVICES = ('describe_parameters', 'get_parameters', 'get_parameter_types',
+                      'list_parameters', 'set_parameters', 'set_parameters_atomically')
+"""The services every node offers, in the order rclpy creates them."""
+
+_VALUE_FIELDS = {
+    Parameter.Type.BOOL: 'bool_value', Parameter.Type.INTEGER: 'integer_value',
+    Parameter.Type.DOUBLE: 'double_value', Parameter.Type.STRING: 'string_value',
+    Parameter.Type.BYTE_ARRAY: 'byte_array_value',
+    Parameter.Type.BOOL_ARRAY: 'bool_array_value',
+    Parameter.Type.INTEGER_ARRAY: 'integer_array_value',
+    Parameter.Type.DOUBLE_ARRAY: 'double_array_value',
+    Parameter.Type.STRING_ARRAY: 'string_array_value',
+}
+
+
+def parameter_value_msg(parameter: Parameter) -> Any:
+    """The ``rcl_interfaces/msg/ParameterValue`` of a parameter (rclpy's
+    ``Parameter.get_parameter_value``)."""
+    value_msg = messages.get_message('rcl_interfaces/msg/ParameterValue')(
+        type=parameter.type_.value)
+    field = _VALUE_FIELDS.get(parameter.type_)
+    if field is not None:
+        value = parameter.value
+        if parameter.type_ is Parameter.Type.BYTE_ARRAY:
+            value = b''.join(value)
+        setattr(value_msg, field, value)
+    return value_msg
+
+
+def parameter_msg(parameter: Parameter) -> Any:
+    """The ``rcl_interfaces/msg/Parameter`` of a parameter (rclpy's ``to_parameter_msg``)."""
+    return messages.get_message('rcl_interfaces/msg/Parameter')(
+        name=parameter.name, value=parameter_value_msg(parameter))
+
+
+def parameter_from_msg(msg: Any) -> Parameter:
+    """The parameter a ``rcl_interfaces/msg/Parameter`` stands for (rclpy's
+    ``Parameter.from_parameter_msg``; arrays as Python lists, bytes as 1-byte ``bytes``).
+
+    Raises:
+        ValueError: the message's type is not a ParameterType.
+    """
+    type_ = Parameter.Type(msg.value.type)
+    field = _VALUE_FIELDS.get(type_)
+    value = None if field is None else getattr(msg.value, field)
+    if type_ is Parameter.Type.BYTE_ARRAY:
+        value = [bytes([int(b) & 0xFF]) for b in value]
+    elif isinstance(value, np.ndarray):
+        value = value.tolist()
+    elif isinstance(value, list):
+        value = list(value)
+    return Parameter(msg.name, type_, value)
+
+
+def _set_result(successful: bool, reason: str = '') -> Any:
+    return messages.get_message('rcl_interfaces/msg/SetParametersResult')(
+        successful=successful, reason=reason)
+
+
+class ParameterService:
+    """The six parameter services of ``node`` and its ``/parameter_events`` publisher."""
+
+    def __init__(self, node: Any) -> None:
+        self._node_ref = weakref.ref(node)
+        name = node.get_name()
+        callbacks = {
+            'describe_parameters': ('DescribeParameters', self._describe_parameters),
+            'get_parameters': ('GetParameters', self._get_parameters),
+            'get_parameter_types': ('GetParameterTypes', self._get_parameter_types),
+            'list_parameters': ('ListParameters', self._list_parameters),
+            'set_parameters': ('SetParameters', self._set_parameters),
+            'set_parameters_atomically': ('SetParametersAtomically',
+                                          self._set_parameters_atomically),
+        }
+        self.services = [
+            node.create_service(get_service(f'rcl_interfaces/srv/{srv_type}'),
+                                f'{name}/{service}', callback,
+                                qos_profile=qos_profile_parameters)
+            for service, (srv_type, callback) in ((s, callbacks[s]) for s in PARAMETER_SERVICES)]
+        self._event_type = messages.get_message('rcl_interfaces/msg/ParameterEvent')
+        self.event_publisher = node.create_publisher(
+            self._event_type, '/parameter_events', qos_profile_parameter_events)
+
+    def _node(self) -> Any:
+        node = self._node_ref()
+        if node is None:
+            raise ReferenceError('the node of this parameter service is gone')
+        return node
+
+    # callbacks --------------------------------------------------------------------------------
+    def _describe_parameters(self, request: Any, response: Any) -> Any:
+        node = self._node()
+        try:
+            response.descriptors = [node.describe_parameter(name) for name in request.names]
+        except ParameterNotDeclaredException:
+            response.descriptors = []
+        return response
+
+    def _get_parameters(self, request: Any, response: Any) -> Any:
+        node = self._node()
+        try:
+            response.values = [parameter_value_msg(node.get_parameter(name))
+                               for name in request.names]
+        except (ParameterNotDeclaredException, ParameterUninitializedException):
+            response.values = []
+        return response
+
+    def _get_parameter_types(self, request: Any, response: Any) -> Any:
+        node = self._node()
+        try:
+            response.types = [int(getattr(kind, 'value', kind))
+                              for kind in (node.get_parameter_type(name)
+                                           for name in request.names)]
+        except ParameterNotDeclaredException:
+            response.types = []
+        return response
+
+    def _list_parameters(self, request: Any, response: Any) -> Any:
+        node = self._node()
+        try:
+            response.result = node.list_parameters(list(request.prefixes), int(request.depth))
+        except (TypeError, ValueError):
+            response.result = messages.get_message('rcl_interfaces/msg/ListParametersResult')()
+        return response
+
+    def _set_parameters(self, request: Any, response: Any) -> Any:
+        response.results = [self._set_atomically([parameter_from_msg(p)])
+                            for p in request.parameters]
+        return response
+
+    def _set_parameters_atomically(self, request: Any, response: Any) -> Any:
+        response.result = self._set_atomically([parameter_from_msg(p)
+                                                for p in request.parameters])
+        return response
+
+    def _set_atomically(self, parameters: list[Parameter]) -> Any:
+        node = self._node()
+        before = {p.name: node.get_parameter_or(p.name).type_ is not Parameter.Type.NOT_SET
+                  for p in parameters}
+        try:
+            result = node.set_parameters_atomically(parameters)
+        except ParameterNotDeclaredException as exc:
+            return _set_result(False, str(exc))
+        if result.successful:
+            self.publish_event(
+                new=[p for p in parameters
+                     if p.type_ is not Parameter.Type.NOT_SET and not before[p.name]],
+                changed=[p for p in parameters
+                         if p.type_ is not Parameter.Type.NOT_SET and before[p.name]],
+                deleted=[p for p in parameters if p.type_ is Parameter.Type.NOT_SET])
+        return result
+
+    def publish_event(self, *, new: Iterable[Parameter] = (), changed: Iterable[Parameter] = (),
+                      deleted: Iterable[Parameter] = ()) -> None:
+        """Publish a ParameterEvent of this node on ``/parameter_events``."""
+        node = self._node()
+        self.event_publisher.publish(self._event_type(
+            stamp=node.get_clock().now().to_msg(), node=node.get_fully_qualified_name(),
+            new_parameters=[parameter_msg(p) for p in new],
+            changed_parameters=[parameter_msg(p) for p in changed],
+            deleted_parameters=[parameter_msg(p) for p in deleted]))
