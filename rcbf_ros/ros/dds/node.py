@@ -1068,27 +1068,6 @@ class Node:
         return messages.get_message('rcl_interfaces/msg/ListParametersResult')(
             names=names, prefixes=found_prefixes)
 
-    def set_parameters_atomically(self, parameters: Iterable[Parameter]) -> Any:
-        """Set all the parameters or none; one SetParametersResult (the first refusal's).
-
-        Raises:
-            ParameterNotDeclaredException: one was never declared (undeclared not allowed).
-        """
-        parameters = list(parameters)
-        if not all(isinstance(p, Parameter) for p in parameters):
-            raise TypeError(f"parameter must be instance of type '{Parameter!r}'")
-        undeclared = [p.name for p in parameters if p.name not in self._parameters]
-        if undeclared and not self._allow_undeclared:
-            raise ParameterNotDeclaredException(undeclared)
-        for parameter in parameters:
-            descriptor = self._descriptors.get(parameter.name)
-            if descriptor is not None:
-                result = self._apply_descriptor(parameter, descriptor)
-                if not result.successful:
-                    return result
-        return _set_parameters_result(True) if not parameters else self.set_parameters(
-            parameters)[-1]
-
     def get_parameter_type(self, name: str) -> Any:
         """The type of ``name`` as rclpy gives it: the ParameterType value (an int) of a
         declared parameter, ``Parameter.Type.NOT_SET`` of an undeclared one if allowed.
@@ -1107,37 +1086,6 @@ class Node:
         if not all(isinstance(name, str) for name in names):
             raise TypeError('All names must be instances of type str')
         return [self.get_parameter_type(name) for name in names]
-
-    def list_parameters(self, prefixes: list[str], depth: int) -> Any:
-        """Names (and their dotted prefixes) of the parameters under ``prefixes`` (all if
-        empty) at most ``depth`` levels deep (0: any depth), as rclpy lists them.
-
-        Raises:
-            TypeError: prefixes not a list of str, or depth not an int.
-            ValueError: a negative depth.
-        """
-        if not isinstance(prefixes, list) or not all(isinstance(p, str) for p in prefixes):
-            raise TypeError('The prefixes argument must be a list of str')
-        if not isinstance(depth, int):
-            raise TypeError('The depth must be instance of type int')
-        if depth < 0:
-            raise ValueError('The depth must be greater than or equal to zero')
-        result = messages.get_message('rcl_interfaces/msg/ListParametersResult')()
-        names, found_prefixes = [], []
-        for name in self._parameters:
-            if prefixes or depth:
-                shallow = not prefixes and name.count('.') < depth
-                if not shallow and not any(
-                        name == prefix or (name.startswith(prefix + '.') and (
-                            depth == 0 or name[len(prefix) + 1:].count('.') < depth))
-                        for prefix in prefixes):
-                    continue
-            names.append(name)
-            prefix = name.rpartition('.')[0]
-            if prefix and prefix not in found_prefixes:
-                found_prefixes.append(prefix)
-        result.names, result.prefixes = names, found_prefixes
-        return result
 
     # graph ----------------------------------------------------------------------------------
     def _alive_endpoints(self, kinds: tuple[Any, ...] = (
