@@ -344,13 +344,14 @@ def _unicycle_robot() -> LaunchSetup:
         nodes=(robot, DROP_IN_FILTER, controller, RECORDER))
 
 
-LAUNCHES: dict[str, LaunchSetup] = {
-    setup.name: setup for setup in (
-        _drop_in_filter(), _unicycle_robot(),
-        _filter_loop('unicycle'), _filter_loop('pvtol'), _filter_loop('car_following'),
-        _learner_loop('unicycle'), _learner_loop('pvtol'), _learner_loop('car_following'),
-        _policy_loop('unicycle'), _policy_loop('pvtol'), _policy_loop('car_following'))
-}
+CLOSED_LOOPS: tuple[LaunchSetup, ...] = tuple(
+    make(system) for make in (_filter_loop, _learner_loop, _policy_loop)
+    for system in ('unicycle', 'pvtol', 'car_following'))
+"""The launches of :func:`_closed_loop`: the simulator takes the filter's ``filter_info``."""
+ROBOT_LAUNCHES: tuple[LaunchSetup, ...] = (_drop_in_filter(), _unicycle_robot())
+"""The drop-in filter, alone and in the demo: the robot takes ``cmd_safe`` (``cmd_out``)."""
+LAUNCHES: dict[str, LaunchSetup] = {setup.name: setup
+                                    for setup in (*ROBOT_LAUNCHES, *CLOSED_LOOPS)}
 
 
 def launch_setup(name: str) -> LaunchSetup:

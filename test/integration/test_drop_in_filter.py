@@ -113,7 +113,7 @@ def test_the_demo_robot_moves_and_the_filter_keeps_it_out_of_the_obstacles(ros_d
          '-p', 'simulator:max_episodes:=1', '-p', f'simulator:max_steps:={steps}',
          '-p', f'recorder:output:={bag}'],
         env=subprocess_env(ros_domain_id), cwd=REPO, capture_output=True, text=True,
-        timeout=300)
+        timeout=180)
     output = launch.stdout + launch.stderr
     assert launch.returncode == 0 and 'Traceback' not in output, output[-4000:]
 
