@@ -4,7 +4,8 @@
 launch_ros and rclpy; an rclpy script of the Jazzy install is the robot and its controller
 (nav_msgs/Odometry and geometry_msgs/Twist in, the Twist on the robot's velocity input read
 back). ``unicycle_robot.launch.py`` runs its episode to the end on real launch_ros (its list
-parameter of launch arguments, ``wait_for_publishers``, evaluated as launch_ros does).
+parameter of launch arguments, ``wait_for_publishers``, evaluated as launch_ros does). Both
+launchers show the same arguments and refuse the same bad value.
 """
 from __future__ import annotations
 
@@ -129,3 +130,29 @@ def test_the_demo_launch_runs_its_episode_on_launch_ros(overlay, tmp_path,
     # The episode ran its steps: the robot's odometry, the controller's and the safe commands.
     for topic in ('/odom', '/ctl/cmd_vel', '/cmd_vel', '/filter_info'):
         assert counts.get(topic, 0) >= 50, info.stdout
+
+
+@pytest.mark.parametrize('name', ['safety_filter', 'unicycle_robot'])
+def test_both_launchers_show_the_same_arguments(overlay, name, capsys):
+    """``ros2 launch ... --show-args`` and ``rcbf_ros_launch ... --show-args``: the same names,
+    defaults (params_file aside: a path on one, the packaged file named on the other) and
+    choices; a value outside the choices refused by both."""
+    from rcbf_ros import launch_local
+    shown = overlay.jazzy.run(overlay.script(f'ros2 launch rcbf_ros {name}.launch.py --show-args'),
+                              domain_id=0)
+    assert shown.returncode == 0, shown.stdout
+
+    def arguments(text: str) -> dict[str, str]:
+        return dict(re.findall(r"'(\w+)':\n(?:.*\n)*?\s+\(default: '([^']*)'\)", text))
+
+    assert launch_local.main([name, '--show-args']) == 0
+    ours = arguments(capsys.readouterr().out)
+    theirs = arguments(shown.stdout)
+    assert theirs.pop('params_file').endswith('/share/rcbf_ros/config/unicycle.yaml')
+    assert ours.pop('params_file') == 'config/unicycle.yaml of the package'
+    assert ours == theirs and set(ours) == {'cmd_in', 'cmd_out', 'odom', 'command_type'}
+    assert "Valid choices are: ['twist', 'twist_stamped', 'array']" in shown.stdout
+    refused = overlay.jazzy.run(overlay.script(
+        f'ros2 launch rcbf_ros {name}.launch.py command_type:=Twist'), domain_id=0)
+    assert 'provided value "Twist" is not valid' in refused.stdout, refused.stdout
+    assert launch_local.main([name, 'command_type:=Twist']) == 2
