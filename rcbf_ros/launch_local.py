@@ -405,7 +405,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         print(f'rcbf_ros_launch: {exc}', file=sys.stderr)
         return 2
-    params_file = named_file or args.params_file or str(find_config(setup.config))
+    params_file = (named_file if named_file is not None
+                   else args.params_file or str(find_config(setup.config)))
     overrides: dict[str, dict[str, Any]] = {}
     for node, name, value in args.param:
         overrides.setdefault(node, {})[name] = value
