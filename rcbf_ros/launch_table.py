@@ -15,6 +15,11 @@ graph)::
     scene_markers: state + diagnostics -> scene_markers (MarkerArray)
     recorder: every topic -> MCAP
 
+``safety_filter`` and ``unicycle_robot`` put the filter in front of a robot instead, on the
+robot's own topic names (:data:`DROP_IN_FILTER`, :data:`ROBOT_ARGUMENTS`)::
+
+    odom + cmd_in (the controller's command) --> safety_filter --> cmd_out (the robot's input)
+
 Launch arguments (``name:=value`` after the launch name, in both launchers): a
 :class:`LaunchSetup` declares them (:class:`LaunchArgument`) and its entries' remappings and
 parameters name them with :class:`Argument`; ``ros2 launch`` gets ``DeclareLaunchArgument`` and
@@ -217,7 +222,7 @@ RECORDER = NodeEntry(name='recorder', executable='recorder', module='rcbf_ros.ro
                      sigint_timeout_s=10.0)
 SCENE = NodeEntry(name='scene_markers', executable='scene_markers',
                   module='rcbf_ros.ros.scene_node', required=False)
-"""The entries every launch shares; each launch adds the node that proposes actions.
+"""The entries the launches share; each closed loop adds the node that proposes actions.
 
 The recorder is required: a launch asked to record that cannot (the bag directory exists, is
 read-only, ...) stops with a failure instead of running unrecorded (``--without recorder`` runs
