@@ -18,9 +18,9 @@ gets SIGINT, then SIGTERM after its own limit (the table's ``sigint_timeout_s``,
 required node failed (a non-zero exit of its own, or it had to be killed), else 0.
 
 Launch arguments follow the launch name as ``name:=value``, as ``ros2 launch`` takes them
-(``--show-args`` lists a launch's); an argument the launch does not declare, or a value outside
-an argument's choices, is refused with one line naming it, exit code 2. ``params_file:=`` is
-``--params-file``.
+(``--show-args`` lists a launch's); an argument the launch does not declare, a value outside an
+argument's choices, or a remap target that is no topic name is refused with one line naming it,
+exit code 2. ``params_file:=`` is ``--params-file``.
 
 Examples::
 
@@ -43,6 +43,7 @@ from typing import Any, Callable, IO, Mapping, Sequence
 import yaml
 
 from rcbf_ros.launch_table import (
+    Argument,
     argument_values,
     launch_setup,
     LAUNCHES,
@@ -53,7 +54,7 @@ from rcbf_ros.launch_table import (
     ros_arguments,
 )
 from rcbf_ros.params import find_config, node_key_level
-from rcbf_ros.ros.dds.arguments import load_params_file
+from rcbf_ros.ros.dds.arguments import expand_topic_name, load_params_file
 from rcbf_ros.ros.loopback import ensure_loopback
 
 _REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -109,9 +110,18 @@ def child_commands(setup: LaunchSetup, *, params_file: str | Path,
 
     Raises:
         ValueError: an override or ``without`` names a node the launch does not have; an
-            argument the launch does not declare, or a value outside its choices.
+            argument the launch does not declare, a value outside its choices, or one that a
+            remap takes as a topic name and is none (empty, a bad token, ...).
     """
     values = argument_values(setup, arguments or {})
+    for entry in setup.nodes:
+        for _, target in entry.remappings:
+            if isinstance(target, Argument):
+                try:
+                    expand_topic_name(values[target.name], entry.name, '/')
+                except ValueError as exc:
+                    raise ValueError(f'{setup.name}: launch argument '
+                                     f'{target.name}:={values[target.name]!r}: {exc}') from exc
     names = {entry.name for entry in setup.nodes}
     for node in (*(overrides or {}), *without):
         if node not in names:

@@ -211,6 +211,9 @@ def test_main_takes_launch_arguments_as_ros2_launch_does(capsys):
                               "command_type:='Twist' is not one of twist, twist_stamped, array"),
     (['--params-file', 'a.yaml', 'params_file:=b.yaml'], 'the params file is given twice'),
     (['params_file:='], "--params-file '': "),
+    (['cmd_in:='], "safety_filter: launch argument cmd_in:='': topic name must not be empty"),
+    (['odom:=/robot odom'], "launch argument odom:='/robot odom': invalid topic name "
+                            "'/robot odom': bad token 'robot odom'"),
 ])
 def test_main_refuses_bad_launch_arguments_with_one_line(capsys, arguments, message):
     assert launch_local.main(['safety_filter', '--print', *arguments]) == 2
