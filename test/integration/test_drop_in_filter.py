@@ -12,11 +12,10 @@ from __future__ import annotations
 
 from pathlib import Path
 import subprocess
-import sys
 import time
 from typing import Any
 
-from dds_harness import spawn, stop, subprocess_env  # this directory: on sys.path for pytest
+from dds_harness import spawn, stop  # this directory: on sys.path for pytest
 import numpy as np
 import pytest
 from test_safety_filter_node import Probe, WAIT_S
@@ -107,14 +106,14 @@ def test_the_demo_robot_moves_and_the_filter_keeps_it_out_of_the_obstacles(ros_d
                                                                           tmp_path):
     steps = 150
     bag = tmp_path / 'bag'
-    launch = subprocess.run(
-        [sys.executable, '-m', 'rcbf_ros.launch_local', 'unicycle_robot',
-         '--domain-id', str(ros_domain_id), 'odom:=/robot/odometry',
-         '-p', 'simulator:max_episodes:=1', '-p', f'simulator:max_steps:={steps}',
-         '-p', f'recorder:output:={bag}'],
-        env=subprocess_env(ros_domain_id), cwd=REPO, capture_output=True, text=True,
-        timeout=180)
-    output = launch.stdout + launch.stderr
+    launch = spawn(ros_domain_id, '-m', 'rcbf_ros.launch_local', 'unicycle_robot',
+                   '--domain-id', str(ros_domain_id), 'odom:=/robot/odometry',
+                   '-p', 'simulator:max_episodes:=1', '-p', f'simulator:max_steps:={steps}',
+                   '-p', f'recorder:output:={bag}')
+    try:
+        output = ''.join(launch.communicate(timeout=180))
+    except subprocess.TimeoutExpired:
+        output = stop(launch)   # SIGINT: the launcher stops its nodes, none is left behind
     assert launch.returncode == 0 and 'Traceback' not in output, output[-4000:]
 
     poses = np.array([[m.pose.pose.position.x, m.pose.pose.position.y]
