@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from rcbf_ros.launch_table import launch_setup, PACKAGE
+from rcbf_ros.launch_table import Argument, launch_setup, PACKAGE, PARAMS_FILE_ARGUMENT, substitute
 
 
 def describe(name: str) -> Any:
@@ -25,6 +25,12 @@ def describe(name: str) -> Any:
     an enclosing launch). Without it launch_ros writes the dict under ``/**``, which rcl files
     in the ``/**`` key the params file opened first, so the file's ``/<name>`` section would win
     (see :mod:`rcbf_ros.params`).
+
+    The launch's own arguments (:class:`rcbf_ros.launch_table.LaunchArgument`) are declared
+    with their defaults, descriptions and choices; where an entry reads one
+    (:class:`rcbf_ros.launch_table.Argument`), its ``LaunchConfiguration`` stands. In a list
+    parameter each such item is a one-item list: launch_ros joins a list made only of
+    substitutions into ONE string, and reads a list of lists as a list of strings.
     """
     from ament_index_python.packages import get_package_share_directory
     from launch.actions import DeclareLaunchArgument, Shutdown
@@ -35,17 +41,31 @@ def describe(name: str) -> Any:
 
     setup = launch_setup(name)
     default_params = os.path.join(get_package_share_directory(PACKAGE), 'config', setup.config)
-    params_file = LaunchConfiguration('params_file')
-    actions = [DeclareLaunchArgument('params_file', default_value=default_params,
+    params_file = LaunchConfiguration(PARAMS_FILE_ARGUMENT)
+    actions = [DeclareLaunchArgument(PARAMS_FILE_ARGUMENT, default_value=default_params,
                                      description='ROS 2 params file of every node')]
+    for argument in setup.arguments:
+        actions.append(DeclareLaunchArgument(
+            argument.name, default_value=argument.default, description=argument.description,
+            **({'choices': list(argument.choices)} if argument.choices else {})))
+
+    def configuration(argument: Argument) -> Any:
+        return LaunchConfiguration(argument.name)
+
+    def parameter(value: Any) -> Any:
+        if isinstance(value, (list, tuple)) and any(isinstance(v, Argument) for v in value):
+            return [[substitute(item, configuration)] for item in value]
+        return substitute(value, configuration)
+
     for entry in setup.nodes:
         parameters: list[Any] = [params_file]
         if entry.parameters:
-            parameters.append(dict(entry.parameters))
+            parameters.append({key: parameter(value) for key, value in entry.parameters})
         actions.append(Node(
             package=PACKAGE, executable=entry.executable, name=entry.name, namespace='',
-            output='screen',
-            parameters=parameters, remappings=list(entry.remappings),
+            output='screen', parameters=parameters,
+            remappings=[(source, substitute(target, configuration))
+                        for source, target in entry.remappings],
             sigterm_timeout=str(entry.sigint_timeout_s),
             on_exit=Shutdown(reason=f'{entry.name} exited') if entry.ends_launch else None))
     return LaunchDescription(actions)

@@ -17,9 +17,15 @@ gets SIGINT, then SIGTERM after its own limit (the table's ``sigint_timeout_s``,
 ``--sigint-timeout`` for all), then SIGKILL after ``--sigterm-timeout``. The exit code is 1 if a
 required node failed (a non-zero exit of its own, or it had to be killed), else 0.
 
-Example::
+Launch arguments follow the launch name as ``name:=value``, as ``ros2 launch`` takes them
+(``--show-args`` lists a launch's); an argument the launch does not declare, a value outside an
+argument's choices, or a remap target that is no topic name is refused with one line naming it,
+exit code 2. ``params_file:=`` is ``--params-file``.
+
+Examples::
 
     rcbf_ros_launch unicycle_filter --domain-id 7 -p simulator:max_episodes:=1
+    rcbf_ros_launch safety_filter cmd_in:=/my_controller/cmd_vel cmd_out:=/cmd_vel odom:=/odom
 """
 from __future__ import annotations
 
@@ -36,9 +42,19 @@ from typing import Any, Callable, IO, Mapping, Sequence
 
 import yaml
 
-from rcbf_ros.launch_table import launch_setup, LAUNCHES, LaunchSetup, ros_arguments
+from rcbf_ros.launch_table import (
+    Argument,
+    argument_values,
+    launch_setup,
+    LAUNCHES,
+    LaunchSetup,
+    PARAMS_FILE_ARGUMENT,
+    parse_launch_arguments,
+    resolve_entry,
+    ros_arguments,
+)
 from rcbf_ros.params import find_config, node_key_level
-from rcbf_ros.ros.dds.arguments import load_params_file
+from rcbf_ros.ros.dds.arguments import expand_topic_name, load_params_file
 from rcbf_ros.ros.loopback import ensure_loopback
 
 _REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -82,17 +98,30 @@ class LaunchOutcome:
 
 def child_commands(setup: LaunchSetup, *, params_file: str | Path,
                    overrides: Mapping[str, Mapping[str, Any]] | None = None,
-                   without: Sequence[str] = (), python: str = sys.executable) -> list[ChildSpec]:
+                   without: Sequence[str] = (), python: str = sys.executable,
+                   arguments: Mapping[str, str] | None = None) -> list[ChildSpec]:
     """The processes of a launch, in start order.
 
     Args:
         params_file: the params file every node reads.
         overrides: node name -> {parameter: value} (``-p``), winning over the file.
         without: node names not to start.
+        arguments: launch arguments given (``name:=value``); the others take their defaults.
 
     Raises:
-        ValueError: an override or ``without`` names a node the launch does not have.
+        ValueError: an override or ``without`` names a node the launch does not have; an
+            argument the launch does not declare, a value outside its choices, or one that a
+            remap takes as a topic name and is none (empty, a bad token, ...).
     """
+    values = argument_values(setup, arguments or {})
+    for entry in setup.nodes:
+        for _, target in entry.remappings:
+            if isinstance(target, Argument):
+                try:
+                    expand_topic_name(values[target.name], entry.name, '/')
+                except ValueError as exc:
+                    raise ValueError(f'{setup.name}: launch argument '
+                                     f'{target.name}:={values[target.name]!r}: {exc}') from exc
     names = {entry.name for entry in setup.nodes}
     for node in (*(overrides or {}), *without):
         if node not in names:
@@ -101,6 +130,7 @@ def child_commands(setup: LaunchSetup, *, params_file: str | Path,
     for entry in setup.nodes:
         if entry.name in without:
             continue
+        entry = resolve_entry(entry, values)
         args = ros_arguments(entry, params_file=str(params_file),
                              overrides=(overrides or {}).get(entry.name))
         children.append(ChildSpec(name=entry.name,
@@ -334,6 +364,10 @@ def build_parser() -> argparse.ArgumentParser:
         epilog='launches: ' + '; '.join(f'{s.name}: {s.description}'
                                         for s in LAUNCHES.values()))
     parser.add_argument('launch', choices=sorted(LAUNCHES), help='which launch to run')
+    parser.add_argument('launch_arguments', nargs='*', metavar='NAME:=VALUE',
+                        help='launch arguments, as ros2 launch takes them (--show-args)')
+    parser.add_argument('-s', '--show-args', action='store_true',
+                        help="show the launch's arguments and exit")
     parser.add_argument('--params-file', help='params file (default: config/<system>.yaml)')
     parser.add_argument('--domain-id', type=int, default=None,
                         help='ROS_DOMAIN_ID of every node (default: $ROS_DOMAIN_ID or 0)')
@@ -351,11 +385,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def show_arguments(setup: LaunchSetup) -> str:
+    """The text of ``--show-args``: each argument, its description, default and choices."""
+    lines = [f"Arguments of {setup.name} (pass arguments as '<name>:=<value>'):", '']
+    shown = [(PARAMS_FILE_ARGUMENT, 'ROS 2 params file of every node',
+              f'config/{setup.config} of the package', ())]
+    shown += [(a.name, a.description, a.default, a.choices) for a in setup.arguments]
+    for name, description, default, choices in shown:
+        lines += [f"    '{name}':", f'        {description}']
+        if choices:
+            lines.append(f'        Valid choices are: {list(choices)}')
+        lines += [f"        (default: '{default}')", '']
+    return '\n'.join(lines)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``rcbf_ros_launch``; returns the launch's exit code."""
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_intermixed_args(argv)
     setup = launch_setup(args.launch)
-    params_file = args.params_file or str(find_config(setup.config))
+    if args.show_args:
+        print(show_arguments(setup))
+        return 0
+    try:
+        given = parse_launch_arguments(args.launch_arguments)
+        named_file = given.pop(PARAMS_FILE_ARGUMENT, None)
+        if named_file is not None and args.params_file not in (None, named_file):
+            raise ValueError(f'the params file is given twice: --params-file '
+                             f'{args.params_file!r} and {PARAMS_FILE_ARGUMENT}:={named_file!r}')
+    except ValueError as exc:
+        print(f'rcbf_ros_launch: {exc}', file=sys.stderr)
+        return 2
+    params_file = (named_file if named_file is not None
+                   else args.params_file or str(find_config(setup.config)))
     overrides: dict[str, dict[str, Any]] = {}
     for node, name, value in args.param:
         overrides.setdefault(node, {})[name] = value
@@ -365,7 +426,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         check_params_file(setup, params_file)
         children = child_commands(setup, params_file=params_file, overrides=overrides,
-                                  without=args.without)
+                                  without=args.without, arguments=given)
         env = child_environment(os.environ, domain_id=domain_id)
     except ValueError as exc:
         print(f'rcbf_ros_launch: {exc}', file=sys.stderr)

@@ -14,13 +14,58 @@ graph)::
                              (cmd_safe: the command u alone, for a robot)
     scene_markers: state + diagnostics -> scene_markers (MarkerArray)
     recorder: every topic -> MCAP
+
+``safety_filter`` and ``unicycle_robot`` put the filter in front of a robot instead, on the
+robot's own topic names (:data:`DROP_IN_FILTER`, :data:`ROBOT_ARGUMENTS`)::
+
+    odom + cmd_in (the controller's command) --> safety_filter --> cmd_out (the robot's input)
+
+Launch arguments (``name:=value`` after the launch name, in both launchers): a
+:class:`LaunchSetup` declares them (:class:`LaunchArgument`) and its entries' remappings and
+parameters name them with :class:`Argument`; ``ros2 launch`` gets ``DeclareLaunchArgument`` and
+``LaunchConfiguration``, ``rcbf_ros_launch`` substitutes the values itself
+(:func:`argument_values`, :func:`resolve_entry`). Every launch also takes ``params_file``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping, Sequence
+
+import yaml
 
 PACKAGE = 'rcbf_ros'
+PARAMS_FILE_ARGUMENT = 'params_file'
+"""The launch argument every launch takes: the params file of every node (default: the
+packaged ``config/<LaunchSetup.config>``)."""
+
+
+@dataclass(frozen=True)
+class Argument:
+    """Where a table entry's remap target or parameter value is a launch argument's value."""
+
+    name: str
+    """The :class:`LaunchArgument` it reads."""
+
+
+@dataclass(frozen=True)
+class LaunchArgument:
+    """A launch argument (``name:=value``) of a launch."""
+
+    name: str
+    """Its name on the command line."""
+    default: str
+    """Its value when not given."""
+    description: str
+    """One line for ``--show-args`` (and ros2 launch's)."""
+    choices: tuple[str, ...] = ()
+    """The values it may take (empty: any)."""
+
+    def __post_init__(self) -> None:
+        if self.name == PARAMS_FILE_ARGUMENT:
+            raise ValueError(f'{self.name}: every launch declares it already')
+        if self.choices and self.default not in self.choices:
+            raise ValueError(f'{self.name}: default {self.default!r} is not one of '
+                             f'{list(self.choices)}')
 
 
 @dataclass(frozen=True)
@@ -33,11 +78,14 @@ class NodeEntry:
     """console_scripts name (``ros2 run rcbf_ros <executable>``)."""
     module: str
     """Python module with ``main()`` run by the local launcher (``python -m <module>``)."""
-    remappings: tuple[tuple[str, str], ...] = ()
-    """Topic remaps (from, to) applied on top of the node's own names."""
+    remappings: tuple[tuple[str, str | Argument], ...] = ()
+    """Topic remaps (from, to) applied on top of the node's own names; ``to`` may be a launch
+    argument's value."""
     parameters: tuple[tuple[str, Any], ...] = ()
     """Parameter overrides that win over the params file (see :func:`ros_arguments` and
-    :func:`rcbf_ros.launch_description.describe` for how each launcher makes them win)."""
+    :func:`rcbf_ros.launch_description.describe` for how each launcher makes them win). A value
+    (or an item of a list value) may be an :class:`Argument`, typed from its text as YAML, as
+    launch_ros types a substitution."""
     required: bool = True
     """A failure of this node (non-zero exit, or not stopping when asked) fails the launch."""
     ends_launch: bool = False
@@ -64,6 +112,18 @@ class LaunchSetup:
     """Nodes in start order."""
     description: str = ''
     """One line for ``--help``."""
+    arguments: tuple[LaunchArgument, ...] = ()
+    """Its launch arguments besides ``params_file``."""
+
+    def __post_init__(self) -> None:
+        names = [argument.name for argument in self.arguments]
+        if len(set(names)) != len(names):
+            raise ValueError(f'{self.name}: launch arguments declared twice: {names}')
+        for entry in self.nodes:
+            for used in entry_arguments(entry):
+                if used not in names:
+                    raise ValueError(f'{self.name}: node {entry.name} reads launch argument '
+                                     f'{used!r}, which the launch does not declare ({names})')
 
     def node(self, name: str) -> NodeEntry:
         """The entry named ``name`` (KeyError naming the known ones otherwise)."""
@@ -71,6 +131,86 @@ class LaunchSetup:
             if entry.name == name:
                 return entry
         raise KeyError(f'{self.name}: no node {name!r} (nodes: {[n.name for n in self.nodes]})')
+
+
+def substitute(value: Any, resolve: Callable[[Argument], Any]) -> Any:
+    """``value`` with every :class:`Argument` in it (itself, or items of a list or tuple)
+    replaced by ``resolve(argument)``."""
+    if isinstance(value, Argument):
+        return resolve(value)
+    if isinstance(value, (list, tuple)):
+        return type(value)(substitute(item, resolve) for item in value)
+    return value
+
+
+def entry_arguments(entry: NodeEntry) -> list[str]:
+    """The names of the launch arguments ``entry`` reads, in order of appearance."""
+    found: list[str] = []
+
+    def note(argument: Argument) -> Argument:
+        found.append(argument.name)
+        return argument
+
+    substitute([target for _, target in entry.remappings], note)
+    substitute([value for _, value in entry.parameters], note)
+    return list(dict.fromkeys(found))
+
+
+def parse_launch_arguments(texts: Sequence[str]) -> dict[str, str]:
+    """``name:=value`` texts (as ``ros2 launch`` takes them after the launch file) -> dict.
+
+    Raises:
+        ValueError: naming a text that is not ``name:=value`` with a non-empty name.
+    """
+    values: dict[str, str] = {}
+    for text in texts:
+        name, sep, value = text.partition(':=')
+        if not sep or not name:
+            raise ValueError(f'launch argument {text!r}: expected name:=value')
+        values[name] = value
+    return values
+
+
+def argument_values(setup: LaunchSetup, given: Mapping[str, str]) -> dict[str, str]:
+    """Every launch argument of ``setup`` (not ``params_file``): ``given`` over the defaults.
+
+    Raises:
+        ValueError: one line naming the arguments ``setup`` does not declare, or a value
+            outside an argument's choices.
+    """
+    declared = {argument.name: argument for argument in setup.arguments}
+    unknown = sorted(set(given) - set(declared) - {PARAMS_FILE_ARGUMENT})
+    if unknown:
+        raise ValueError(f'{setup.name}: unknown launch argument(s) {", ".join(unknown)} '
+                         f'(arguments: {", ".join([*declared, PARAMS_FILE_ARGUMENT])})')
+    values = {name: given.get(name, argument.default) for name, argument in declared.items()}
+    for name, argument in declared.items():
+        if argument.choices and values[name] not in argument.choices:
+            raise ValueError(f'{setup.name}: launch argument {name}:={values[name]!r} is not '
+                             f'one of {", ".join(argument.choices)}')
+    return values
+
+
+def typed_value(text: str) -> Any:
+    """A launch argument's text as a parameter value, typed as launch_ros types a
+    substitution's result (YAML; ``''`` stays the empty string; other YAML stays text)."""
+    if text == '':
+        return ''
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+    return value if isinstance(value, (bool, int, float, str, list)) else text
+
+
+def resolve_entry(entry: NodeEntry, values: Mapping[str, str]) -> NodeEntry:
+    """``entry`` with its launch arguments replaced by ``values`` (see :func:`argument_values`):
+    remap targets as text, parameters typed (:func:`typed_value`)."""
+    remappings = tuple((source, substitute(target, lambda a: values[a.name]))
+                       for source, target in entry.remappings)
+    parameters = tuple((key, substitute(value, lambda a: typed_value(values[a.name])))
+                       for key, value in entry.parameters)
+    return replace(entry, remappings=remappings, parameters=parameters)
 
 
 SIMULATOR = NodeEntry(name='simulator', executable='simulator',
@@ -82,7 +222,7 @@ RECORDER = NodeEntry(name='recorder', executable='recorder', module='rcbf_ros.ro
                      sigint_timeout_s=10.0)
 SCENE = NodeEntry(name='scene_markers', executable='scene_markers',
                   module='rcbf_ros.ros.scene_node', required=False)
-"""The entries every launch shares; each launch adds the node that proposes actions.
+"""The entries the launches share; each closed loop adds the node that proposes actions.
 
 The recorder is required: a launch asked to record that cannot (the bag directory exists, is
 read-only, ...) stops with a failure instead of running unrecorded (``--without recorder`` runs
@@ -149,12 +289,74 @@ def _policy_loop(system: str) -> LaunchSetup:
         NodeEntry(name='policy', executable='policy', module='rcbf_ros.ros.policy_node'))
 
 
-LAUNCHES: dict[str, LaunchSetup] = {
-    setup.name: setup for setup in (
-        _filter_loop('unicycle'), _filter_loop('pvtol'), _filter_loop('car_following'),
-        _learner_loop('unicycle'), _learner_loop('pvtol'), _learner_loop('car_following'),
-        _policy_loop('unicycle'), _policy_loop('pvtol'), _policy_loop('car_following'))
-}
+ROBOT_ARGUMENTS = (
+    LaunchArgument('cmd_in', 'cmd_vel_nav',
+                   "the controller's command the filter takes (command_type)"),
+    LaunchArgument('cmd_out', 'cmd_vel', "the robot's velocity input: the safe command"),
+    LaunchArgument('odom', 'odom', "the robot's nav_msgs/Odometry (the state)"),
+    LaunchArgument('command_type', 'twist', 'type of cmd_in and cmd_out',
+                   choices=('twist', 'twist_stamped', 'array')),
+)
+"""The arguments of the drop-in filter.
+
+The defaults follow common ROS 2 names so that a stock robot needs few of them: bases, their
+simulators and teleop take ``cmd_vel`` and odometry sources publish ``odom``; ``cmd_vel_nav``
+is what Nav2's bringup names its controller's output. Any other controller: ``cmd_in:=`` its
+output topic.
+"""
+
+DROP_IN_FILTER = replace(
+    SAFETY_FILTER,
+    remappings=(('state', Argument('odom')), ('cmd_proposed', Argument('cmd_in')),
+                ('cmd_safe', Argument('cmd_out'))),
+    parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type'))))
+"""The safety filter in front of a robot: odometry in, the controller's command in, the safe
+command out in the same type. The one wiring both robot launches share."""
+
+
+def _drop_in_filter() -> LaunchSetup:
+    """Only the safety filter, between a robot's controller and its velocity input."""
+    return LaunchSetup(
+        name='safety_filter', config='unicycle.yaml', arguments=ROBOT_ARGUMENTS,
+        description='the safety filter alone in front of a robot: odom + cmd_in -> cmd_out',
+        nodes=(DROP_IN_FILTER,))
+
+
+def _unicycle_robot() -> LaunchSetup:
+    """The drop-in filter in front of a simulated robot, wired as a real one would be::
+
+        simulator --odom--> nominal_controller --cmd_in--> safety_filter --cmd_out--> simulator
+                   (odom)-------------------------------------^
+
+    The simulator stands in for the robot: Odometry on ``odom``, velocity input ``cmd_out``
+    (lock-step: it steps when a command arrives, so runs do not depend on the machine's load).
+    The go-to-goal controller drives straight at the goal through the obstacles; the filter
+    steers it around. The first episode waits until the filter and the controller listen.
+    """
+    robot = replace(
+        SIMULATOR, remappings=(('state', Argument('odom')), ('cmd_safe', Argument('cmd_out'))),
+        parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type')),
+                    ('wait_for_publishers', ['cmd_safe', Argument('cmd_in')])))
+    controller = NodeEntry(
+        name='nominal_controller', executable='nominal_controller',
+        module='sim_nodes.nominal_controller_node',
+        remappings=(('state', Argument('odom')), ('cmd_proposed', Argument('cmd_in'))),
+        parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type'))))
+    return LaunchSetup(
+        name='unicycle_robot', config='unicycle.yaml', arguments=ROBOT_ARGUMENTS,
+        description='demo: a simulated unicycle robot (odom, cmd_out) and a go-to-goal '
+        'controller (cmd_in) with the drop-in safety filter between them, recorded',
+        nodes=(robot, DROP_IN_FILTER, controller, RECORDER))
+
+
+CLOSED_LOOPS: tuple[LaunchSetup, ...] = tuple(
+    make(system) for make in (_filter_loop, _learner_loop, _policy_loop)
+    for system in ('unicycle', 'pvtol', 'car_following'))
+"""The launches of :func:`_closed_loop`: the simulator takes the filter's ``filter_info``."""
+ROBOT_LAUNCHES: tuple[LaunchSetup, ...] = (_drop_in_filter(), _unicycle_robot())
+"""The drop-in filter, alone and in the demo: the robot takes ``cmd_safe`` (``cmd_out``)."""
+LAUNCHES: dict[str, LaunchSetup] = {setup.name: setup
+                                    for setup in (*ROBOT_LAUNCHES, *CLOSED_LOOPS)}
 
 
 def launch_setup(name: str) -> LaunchSetup:
@@ -190,7 +392,13 @@ def ros_arguments(entry: NodeEntry, *, params_file: str,
     them under the node key ``<name>``, which appears after the file's ``/**`` and
     ``/<name>`` sections and so wins over both (a bare ``-p key:=value`` goes to ``/**`` and
     would lose to the file's ``/<name>`` section; see :mod:`rcbf_ros.params`).
+
+    Raises:
+        ValueError: ``entry`` still reads launch arguments (:func:`resolve_entry` first).
     """
+    if entry_arguments(entry):
+        raise ValueError(f'{entry.name}: launch arguments {entry_arguments(entry)} are not '
+                         'resolved (resolve_entry)')
     args = ['--ros-args', '-r', f'__node:={entry.name}', '--params-file', params_file]
     for source, target in entry.remappings:
         args += ['-r', f'{source}:={target}']

@@ -1,86 +1,27 @@
 """The package built with colcon as README.md says, run by ros2 run and ros2 launch on rclpy.
 
-The workspace follows README.md "On a ROS 2 Jazzy machine": a virtual environment with the
-system's site-packages, made before colcon runs; colcon run as ``python -m colcon`` from it, so
-that every node script starts that environment's Python; ``source install/setup.bash``.
-Here the "system" Python is the one of the Jazzy install (its ``ros2`` script's interpreter)
-and two ``.pth`` files stand in for what a stock machine has without network access: the Jazzy
-environment's site-packages (apt's colcon, numpy, PyYAML) and this checkout's virtual
-environment's (what ``pip install`` puts into the new one: torch, osqp, ...).
+The overlay (:mod:`colcon_overlay`) follows README.md "On a ROS 2 Jazzy machine".
 """
 from __future__ import annotations
 
 from pathlib import Path
 import re
-import shutil
 import sys
-import sysconfig
-import time
 from typing import Callable
 
+from colcon_overlay import Overlay, shared_overlay, wait_for
 import pytest
 import yaml
 
 pytestmark = pytest.mark.ros2
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / 'test'))
-from conftest import Jazzy, stop_group  # noqa: E402
-
-PACKAGE_FILES = ('setup.py', 'setup.cfg', 'package.xml', 'README.md', 'constraints.txt')
-PACKAGE_DIRS = ('rcbf_ros', 'sim_nodes', 'config', 'launch', 'resource')
-
-
-class Overlay:
-    """A colcon workspace with rcbf_ros built in it."""
-
-    def __init__(self, jazzy: Jazzy, workspace: Path) -> None:
-        self.jazzy = jazzy
-        self.workspace = workspace
-
-    def script(self, command: str) -> str:
-        return f'source {self.workspace}/install/setup.bash && {command}'
-
-    def share(self) -> Path:
-        return self.workspace / 'install' / 'rcbf_ros' / 'share' / 'rcbf_ros'
+from conftest import stop_group  # noqa: E402
 
 
 @pytest.fixture(scope='module')
-def overlay(jazzy: Jazzy, tmp_path_factory) -> Overlay:
-    workspace = tmp_path_factory.mktemp('ws')
-    source = workspace / 'src' / 'rcbf_ros'
-    source.mkdir(parents=True)
-    for name in PACKAGE_FILES:
-        shutil.copy2(REPO / name, source / name)
-    for name in PACKAGE_DIRS:
-        shutil.copytree(REPO / name, source / name,
-                        ignore=shutil.ignore_patterns('__pycache__', '*.egg-info'))
-    site = 'venv/lib/python3.*/site-packages'
-    done = jazzy.run(
-        'PY=$(head -1 "$(command -v ros2)" | cut -c3-)\n'
-        '"$PY" -m venv --system-site-packages --without-pip venv\n'
-        'touch venv/COLCON_IGNORE\n'
-        f'ROS_PY_SITE=$("$PY" -c "import sysconfig; print(sysconfig.get_path(\'purelib\'))")\n'
-        f'echo "$ROS_PY_SITE" > $(echo {site})/system_packages.pth\n'
-        f'echo {sysconfig.get_path("purelib")} > $(echo {site})/pip_installed.pth\n'
-        'source venv/bin/activate\n'
-        'python -m colcon build --packages-select rcbf_ros --event-handlers console_direct-\n',
-        domain_id=0, cwd=workspace, timeout=300)
-    assert done.returncode == 0, done.stdout[-4000:]
-    built = Overlay(jazzy, workspace)
-    script = workspace / 'install' / 'rcbf_ros' / 'lib' / 'rcbf_ros' / 'safety_filter'
-    assert script.read_text().splitlines()[0] == f'#!{workspace}/venv/bin/python'
-    return built
-
-
-def _wait_for(check: Callable[[], str | None], timeout: float, what: str) -> str:
-    """Poll ``check`` every second until it returns text."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        result = check()
-        if result is not None:
-            return result
-        time.sleep(1.0)
-    raise AssertionError(f'{what} did not happen in {timeout} s')
+def overlay(jazzy, tmp_path_factory) -> Overlay:
+    return shared_overlay(jazzy, tmp_path_factory)
 
 
 def _param(overlay: Overlay, verb: str, node: str, names: str, domain_id: int
@@ -105,7 +46,7 @@ def test_the_nodes_start_on_rclpy_with_the_pvtol_config(overlay, tmp_path, ros_d
             domain_id=ros_domain_id, log=tmp_path / f'{name}.log')
         for name, extra in nodes.items()}
     try:
-        described = _wait_for(_param(
+        described = wait_for(_param(
             overlay, 'describe', '/safety_filter',
             'max_state_age_s qos.reliable qos.depth bands.tilt.index', ros_domain_id),
             90, 'ros2 param describe /safety_filter')
@@ -113,7 +54,7 @@ def test_the_nodes_start_on_rclpy_with_the_pvtol_config(overlay, tmp_path, ros_d
                            ('qos.depth', 'integer'), ('bands.tilt.index', 'integer')):
             assert f'Parameter name: {name}\n  Type: {kind}\n' in described, described
         for name in nodes:
-            _wait_for(lambda n=name: '' if 'INFO' in (tmp_path / f'{n}.log').read_text()
+            wait_for(lambda n=name: '' if 'INFO' in (tmp_path / f'{n}.log').read_text()
                       else None, 90, f'{name} started')
             assert processes[name].poll() is None, (tmp_path / f'{name}.log').read_text()
     finally:
@@ -129,7 +70,7 @@ def test_the_recorder_takes_a_topic_list_on_rclpy(overlay, tmp_path, ros_domain_
         f"ros2 run rcbf_ros recorder --ros-args -p 'topics:=[/state, /other]' -p output:={bag}"),
         domain_id=ros_domain_id, log=tmp_path / 'recorder.log')
     try:
-        got = _wait_for(_param(overlay, 'get', '/recorder', 'topics', ros_domain_id), 90,
+        got = wait_for(_param(overlay, 'get', '/recorder', 'topics', ros_domain_id), 90,
                         'ros2 param get /recorder topics')
     finally:
         code = stop_group(recorder)
@@ -153,7 +94,7 @@ def test_the_learner_launch_runs_and_its_own_parameters_win(overlay, tmp_path, r
         f'ros2 launch rcbf_ros unicycle_learner.launch.py params_file:={params_file}'),
         domain_id=ros_domain_id, log=tmp_path / 'launch.log')
     try:
-        got = _wait_for(_param(overlay, 'get', '/simulator', 'action_timeout_s', ros_domain_id),
+        got = wait_for(_param(overlay, 'get', '/simulator', 'action_timeout_s', ros_domain_id),
                         90, 'ros2 param get /simulator action_timeout_s')
         launch.wait(timeout=240)
     finally:

@@ -14,11 +14,18 @@ import pytest
 
 from rcbf_ros import launch_local
 from rcbf_ros.launch_table import (
+    Argument,
+    argument_values,
+    DROP_IN_FILTER,
     format_parameter,
     launch_setup,
+    LaunchArgument,
     LAUNCHES,
+    LaunchSetup,
     NodeEntry,
+    resolve_entry,
     ros_arguments,
+    substitute,
 )
 from rcbf_ros.ros.dds.arguments import parameter_overrides, parse_ros_arguments
 from rcbf_ros.ros.loopback import LOOPBACK_CYCLONEDDS_URI
@@ -46,7 +53,8 @@ def test_a_launch_asked_to_record_fails_without_its_recorder():
     # recorder that cannot record fails the launch, it does not run on unrecorded
     # (``--without recorder`` is the way to run without one).
     for setup in LAUNCHES.values():
-        assert setup.node('recorder').required, setup.name
+        if setup.name != 'safety_filter':   # the filter alone, in front of a robot
+            assert setup.node('recorder').required, setup.name
         assert all(entry.required for entry in setup.nodes
                    if entry.name != 'scene_markers'), setup.name
 
@@ -57,8 +65,8 @@ def test_stop_limits_fit_what_each_node_does_on_exit():
     # recorder and learner write files on exit that grow with the run.
     for setup in LAUNCHES.values():
         limits = {entry.name: entry.sigint_timeout_s for entry in setup.nodes}
-        assert limits['simulator'] == limits['safety_filter'] == 5.0
-        assert limits['recorder'] == 10.0
+        assert limits.get('simulator', 5.0) == limits['safety_filter'] == 5.0
+        assert limits.get('recorder', 10.0) == 10.0
         assert limits.get('learner', 30.0) == 30.0
     with pytest.raises(ValueError, match='sigint_timeout_s'):
         NodeEntry(name='x', executable='x', module='x', sigint_timeout_s=0.0)
@@ -121,6 +129,109 @@ def test_child_commands_and_environment():
         launch_local.child_environment({}, domain_id=300)
 
 
+# --- launch arguments --------------------------------------------------------------------------
+
+def test_the_drop_in_filter_is_one_entry_shared_by_both_robot_launches():
+    alone, demo = launch_setup('safety_filter'), launch_setup('unicycle_robot')
+    assert alone.nodes == (DROP_IN_FILTER,) and demo.node('safety_filter') is DROP_IN_FILTER
+    assert alone.arguments == demo.arguments
+    assert [a.name for a in alone.arguments] == ['cmd_in', 'cmd_out', 'odom', 'command_type']
+    assert dict(DROP_IN_FILTER.remappings) == {
+        'state': Argument('odom'), 'cmd_proposed': Argument('cmd_in'),
+        'cmd_safe': Argument('cmd_out')}
+    assert dict(DROP_IN_FILTER.parameters) == {'state_type': 'odometry',
+                                               'command_type': Argument('command_type')}
+    # The demo's robot and controller meet the filter on the same arguments.
+    assert dict(demo.node('simulator').remappings) == {'state': Argument('odom'),
+                                                       'cmd_safe': Argument('cmd_out')}
+    assert dict(demo.node('nominal_controller').remappings) == {
+        'state': Argument('odom'), 'cmd_proposed': Argument('cmd_in')}
+
+
+def test_argument_values_take_defaults_and_refuse_unknown_names_and_choices():
+    setup = launch_setup('safety_filter')
+    assert argument_values(setup, {}) == {'cmd_in': 'cmd_vel_nav', 'cmd_out': 'cmd_vel',
+                                          'odom': 'odom', 'command_type': 'twist'}
+    assert argument_values(setup, {'odom': '/x', 'params_file': 'p.yaml'})['odom'] == '/x'
+    with pytest.raises(ValueError, match=r'unknown launch argument\(s\) cmd_inn, foo '
+                                         r'\(arguments: cmd_in, cmd_out, odom, command_type'):
+        argument_values(setup, {'foo': '1', 'cmd_inn': '/x'})
+    with pytest.raises(ValueError, match="command_type:='twists' is not one of twist, "):
+        argument_values(setup, {'command_type': 'twists'})
+
+
+def test_resolved_entries_type_parameters_as_launch_ros_does():
+    values = argument_values(launch_setup('unicycle_robot'), {'cmd_in': '/ctl/cmd'})
+    robot = resolve_entry(launch_setup('unicycle_robot').node('simulator'), values)
+    assert dict(robot.remappings) == {'state': 'odom', 'cmd_safe': 'cmd_vel'}
+    assert dict(robot.parameters)['wait_for_publishers'] == ['cmd_safe', '/ctl/cmd']
+    entry = NodeEntry(name='n', executable='n', module='m',
+                      parameters=(('a', Argument('a')), ('b', Argument('b')),
+                                  ('c', Argument('c'))))
+    assert dict(resolve_entry(entry, {'a': '3', 'b': 'true', 'c': ''}).parameters) == {
+        'a': 3, 'b': True, 'c': ''}
+
+
+def test_a_launch_refuses_an_argument_it_does_not_declare():
+    entry = NodeEntry(name='n', executable='n', module='m', remappings=(('a', Argument('x')),))
+    with pytest.raises(ValueError, match="node n reads launch argument 'x'"):
+        LaunchSetup(name='l', config='unicycle.yaml', nodes=(entry,))
+    with pytest.raises(ValueError, match='declared twice'):
+        LaunchSetup(name='l', config='unicycle.yaml', nodes=(entry,),
+                    arguments=(LaunchArgument('x', '', ''), LaunchArgument('x', '', '')))
+    with pytest.raises(ValueError, match='not one of'):
+        LaunchArgument('k', 'c', '', choices=('a', 'b'))
+    with pytest.raises(ValueError, match='params_file: every launch declares it'):
+        LaunchArgument('params_file', '', '')
+    with pytest.raises(ValueError, match='not resolved'):
+        ros_arguments(entry, params_file='p.yaml')
+
+
+def test_main_takes_launch_arguments_as_ros2_launch_does(capsys):
+    assert launch_local.main(['safety_filter', '--print', 'cmd_in:=/ctl/cmd', 'odom:=/robot/odom',
+                              'command_type:=twist_stamped']) == 0
+    out = capsys.readouterr().out
+    assert out.count('\n') == 1 and out.startswith('safety_filter: ')
+    assert ('-r state:=/robot/odom -r cmd_proposed:=/ctl/cmd -r cmd_safe:=cmd_vel -p '
+            "safety_filter:state_type:='odometry' -p "
+            "safety_filter:command_type:='twist_stamped'") in out
+    assert launch_local.main(['unicycle_robot', '--print', 'params_file:=/tmp/x.yaml']) == 2
+    assert "--params-file '/tmp/x.yaml'" in capsys.readouterr().err   # checked like --params-file
+    config = str(REPO / 'config' / 'unicycle.yaml')
+    assert launch_local.main(['safety_filter', '--print', f'params_file:={config}']) == 0
+    assert f'--params-file {config}' in capsys.readouterr().out
+
+
+@pytest.mark.parametrize('arguments, message', [
+    (['cmd_inn:=/x', 'foo:=1'], 'rcbf_ros_launch: safety_filter: unknown launch argument(s) '
+                                'cmd_inn, foo (arguments: cmd_in, cmd_out, odom, command_type, '
+                                'params_file)'),
+    (['cmd_in=/x'], "rcbf_ros_launch: launch argument 'cmd_in=/x': expected name:=value"),
+    (['command_type:=Twist'], "rcbf_ros_launch: safety_filter: launch argument "
+                              "command_type:='Twist' is not one of twist, twist_stamped, array"),
+    (['--params-file', 'a.yaml', 'params_file:=b.yaml'], 'the params file is given twice'),
+    (['params_file:='], "--params-file '': "),
+    (['cmd_in:='], "safety_filter: launch argument cmd_in:='': topic name must not be empty"),
+    (['odom:=/robot odom'], "launch argument odom:='/robot odom': invalid topic name "
+                            "'/robot odom': bad token 'robot odom'"),
+])
+def test_main_refuses_bad_launch_arguments_with_one_line(capsys, arguments, message):
+    assert launch_local.main(['safety_filter', '--print', *arguments]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == '' and message in captured.err
+    assert captured.err.count('\n') == 1 and 'Traceback' not in captured.err
+
+
+def test_show_args_lists_each_argument_with_its_default(capsys):
+    assert launch_local.main(['safety_filter', '--show-args']) == 0
+    out = capsys.readouterr().out
+    for name, default in (('params_file', 'config/unicycle.yaml of the package'),
+                          ('cmd_in', 'cmd_vel_nav'), ('cmd_out', 'cmd_vel'), ('odom', 'odom'),
+                          ('command_type', 'twist')):
+        assert f"    '{name}':" in out and f"(default: '{default}')" in out
+    assert "Valid choices are: ['twist', 'twist_stamped', 'array']" in out
+
+
 # --- ros2 launch file --------------------------------------------------------------------------
 
 @pytest.mark.parametrize('launch_file', LAUNCH_FILES, ids=lambda p: p.name)
@@ -137,7 +248,9 @@ def test_launch_file_parses_and_reads_the_table(launch_file):
 
 def test_launch_files_cover_the_unicycle_launches():
     assert {p.name for p in LAUNCH_FILES} >= {'unicycle_filter.launch.py',
-                                              'unicycle_learner.launch.py'}
+                                              'unicycle_learner.launch.py',
+                                              'safety_filter.launch.py',
+                                              'unicycle_robot.launch.py'}
 
 
 class _Recorded:
@@ -177,18 +290,43 @@ def test_launch_description_has_one_node_per_table_entry(monkeypatch, launch_fil
     assert argument.kwargs['default_value'] == '/share/rcbf_ros/config/unicycle.yaml'
     nodes = [a for a in actions if isinstance(a, kinds['Node'])]
     setup = launch_setup(launch_file.name.removesuffix('.launch.py'))
+    declared = [a for a in actions if isinstance(a, kinds['DeclareLaunchArgument'])]
+    assert [(a.args[0], a.kwargs['default_value'], a.kwargs.get('choices', []))
+            for a in declared[1:]] == [(a.name, a.default, list(a.choices))
+                                       for a in setup.arguments]
+
+    def configuration(argument):   # the recorded LaunchConfiguration, by name
+        return ('$', argument.name)
+
+    def named(value):
+        if isinstance(value, kinds['LaunchConfiguration']):
+            return ('$', value.args[0])
+        if isinstance(value, dict):
+            return {key: named(v) for key, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return type(value)(named(v) for v in value)
+        return value
+
     assert len(nodes) == len(setup.nodes)
     for node, entry in zip(nodes, setup.nodes):
         assert node.kwargs['package'] == 'rcbf_ros'
         assert node.kwargs['executable'] == entry.executable
         assert node.kwargs['name'] == entry.name
-        assert node.kwargs['remappings'] == list(entry.remappings)
+        assert named(node.kwargs['remappings']) == substitute(list(entry.remappings),
+                                                              configuration)
         assert isinstance(node.kwargs['parameters'][0], kinds['LaunchConfiguration'])
         # A namespace makes launch_ros write the dict under the node's own name (its
         # _create_params_file_from_dict), which wins over the params file's section.
         assert node.kwargs['namespace'] == ''
-        assert node.kwargs['parameters'][1:] == ([dict(entry.parameters)] if entry.parameters
-                                                 else [])
+        expected = {}
+        for key, value in entry.parameters:
+            if isinstance(value, list) and any(isinstance(v, Argument) for v in value):
+                # launch_ros joins a list made only of substitutions into one string; a list
+                # of one-item lists is a list of strings.
+                value = [[item] for item in value]
+            expected[key] = substitute(value, configuration)
+        assert named(node.kwargs['parameters'][1:]) == (
+            [expected] if entry.parameters else [])
         assert isinstance(node.kwargs['on_exit'], kinds['Shutdown']) == entry.ends_launch
         assert node.kwargs['sigterm_timeout'] == str(entry.sigint_timeout_s)
 

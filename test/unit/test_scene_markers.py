@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from rcbf_ros.core.scene import scene_geometry
-from rcbf_ros.launch_table import LAUNCHES
+from rcbf_ros.launch_table import CLOSED_LOOPS
 from rcbf_ros.params import find_config, load_params
 from rcbf_ros.ros import scene_logic as logic
 from rcbf_ros.ros.scene_logic import (
@@ -218,7 +218,7 @@ def test_marker_constants_and_message_round_trip():
 
 
 def test_every_closed_loop_launch_starts_the_scene_and_records_it():
-    for setup in LAUNCHES.values():
+    for setup in CLOSED_LOOPS:
         names = [n.name for n in setup.nodes]
         assert 'scene_markers' in names, setup.name
         assert not setup.node('scene_markers').required  # a picture never fails a launch

@@ -119,8 +119,8 @@ def test_odometry_state_needs_a_system_an_odometry_holds(ros_domain_id):
 def test_every_closed_loop_gives_the_simulator_the_filters_answers_with_their_state():
     # cmd_safe holds the command alone; filter_info's first section is that command and its
     # state section the state answered, which lock-step needs to drop late answers.
-    from rcbf_ros.launch_table import LAUNCHES
-    for setup in LAUNCHES.values():
+    from rcbf_ros.launch_table import CLOSED_LOOPS
+    for setup in CLOSED_LOOPS:
         simulator = setup.node('simulator')
         assert ('cmd_safe', 'filter_info') in simulator.remappings, setup.name
         assert not any(source == 'filter_info' or target == 'cmd_safe'
