@@ -189,6 +189,21 @@ def variance_excess_ratio(*, tail: torch.Tensor, noise: torch.Tensor) -> torch.T
     return best * (a - best) / ((best + noise) * (a + noise))
 
 
+def _rank_groups(ranks: torch.Tensor) -> list[torch.Tensor]:
+    """Outputs (indices into ``ranks``, ascending within a group) batched together: in order of
+    rank, a new group starts where the rank exceeds twice the group's smallest plus 32 (one
+    more group costs about as much as that many extra columns)."""
+    groups: list[list[int]] = []
+    smallest = 0
+    for output in torch.argsort(ranks, stable=True).tolist():
+        rank = int(ranks[output])
+        if not groups or rank > 2 * smallest + 32:
+            groups.append([])
+            smallest = rank
+        groups[-1].append(output)
+    return [torch.tensor(sorted(group), dtype=torch.int64) for group in groups]
+
+
 def variance_ranks(*, eigenvalues: torch.Tensor, noise: torch.Tensor,
                    tolerance: float) -> torch.Tensor:
     """Per output, the fewest leading eigenpairs whose bound is within ``tolerance``.
@@ -526,8 +541,10 @@ class DisturbanceGP:
         """The numpy arrays of the low-rank prediction (module docstring).
 
         The eigendecomposition is of ``L L^T``, the matrix the exact posterior uses (with the
-        jitter, if the Cholesky needed one). All active outputs keep the largest of their
-        ranks: the extra pairs only tighten the bound, at the cost the largest rank sets anyway.
+        jitter, if the Cholesky needed one). Outputs of similar rank share one batched group
+        at the group's largest rank (extra pairs only tighten the bound); an output that needs
+        far more pairs than another (a signal weaker than its noise) gets its own group, so
+        that the others do not read its columns.
         """
         n_points = chol.shape[-1]
         eigenvalues, eigenvectors = torch.linalg.eigh(chol @ chol.transpose(-1, -2))
@@ -536,45 +553,70 @@ class DisturbanceGP:
         eigenvectors = eigenvectors.flip(-1)
         ranks = variance_ranks(eigenvalues=eigenvalues, noise=noise,
                                tolerance=self.config.variance_rank_tolerance)
-        rank = int(ranks.max()) if ranks.numel() else 0
+        active_index = active.nonzero().squeeze(-1)
+        kept = torch.zeros_like(ranks)
+        excess = torch.zeros_like(noise)
+        groups = []
+        for members in _rank_groups(ranks):
+            rank = int(ranks[members].max())
+            kept[members] = rank
+            if rank < n_points:
+                tail = eigenvalues[members, rank]
+                excess[members] = variance_excess_ratio(tail=tail - noise[members],
+                                                        noise=noise[members])
+            groups.append(self._low_rank_group(
+                eigenvalues[members], eigenvectors[members], alpha[members],
+                x_scaled[members], lengthscales[members], outputscale[members], noise[members],
+                rank))
+            groups[-1]['index'] = active_index[members].numpy()
+        return {'groups': groups, 'all_active': bool(active.all()) and len(groups) == 1,
+                'ranks': ranks, 'kept': kept, 'excess': excess}
+
+    def _low_rank_group(self, eigenvalues: torch.Tensor, eigenvectors: torch.Tensor,
+                        alpha: torch.Tensor, x_scaled: torch.Tensor,
+                        lengthscales: torch.Tensor, outputscale: torch.Tensor,
+                        noise: torch.Tensor, rank: int) -> dict[str, Any]:
+        """One batched group of outputs at one rank (see ``_low_rank``)."""
+        n_points = eigenvalues.shape[-1]
+        # var_r = s - |k|^2 / mu_{r+1} + sum_{i<=r} (u_i . k)^2 (1 / mu_{r+1} - 1 / mu_i), the
+        # kept weights >= 0; with every pair kept, var = s - sum_i (u_i . k)^2 / mu_i. Stored
+        # as squared norms: k' = k sqrt(1 / mu_{r+1}) (folded into the exponent) and
+        # p' = k' V with V = U_r sqrt(|weight_i|) sqrt(mu_{r+1}), so var = s - |k'|^2 + |p'|^2
+        # (full rank: s - |p'|^2, k' = k).
         if rank < n_points:
             tail_weight = 1.0 / eigenvalues[:, rank]
-            excess = variance_excess_ratio(tail=eigenvalues[:, rank] - noise, noise=noise)
+            weights = tail_weight[:, None] - 1.0 / eigenvalues[:, :rank]
+            scale = tail_weight.sqrt()
         else:
-            tail_weight = torch.zeros_like(noise)
-            excess = torch.zeros_like(noise)
-        # var_r = s - |k|^2 / mu_{r+1} + sum_{i<=r} (u_i . k)^2 (1 / mu_{r+1} - 1 / mu_i)
-        # (with 1 / mu_{M+1} read as 0 when every pair is kept).
-        weights = tail_weight[:, None] - 1.0 / eigenvalues[:, :rank]
+            weights = -1.0 / eigenvalues
+            scale = torch.ones_like(noise)
+        columns = eigenvectors[:, :, :rank] * (weights.abs().sqrt() / scale[:, None])[:, None, :]
         # One (M, 1 + r) product gives the mean (column 0) and the r projections.
-        project = torch.cat([alpha.unsqueeze(-1), eigenvectors[:, :, :rank]], dim=-1)
-        # log k(q, x_j) = log s - |q~|^2 / 2 - |x~_j|^2 / 2 + q~ . x~_j (~: lengthscale-scaled) is
-        # one product of [q~, -|q~|^2 / 2, 1] with the rows [x~_j; 1; log s - |x~_j|^2 / 2].
+        project = torch.cat([(alpha / scale[:, None]).unsqueeze(-1), columns], dim=-1)
+        # log k'(q, x_j) = log (s scale) - |q~|^2 / 2 - |x~_j|^2 / 2 + q~ . x~_j (~: lengthscale-
+        # scaled) is one product of [q~, -|q~|^2 / 2, 1] with the rows
+        # [x~_j; 1; log (s scale) - |x~_j|^2 / 2].
         n_active, _, n_in = x_scaled.shape
         exponent_rows = torch.empty(n_active, n_in + 2, n_points, dtype=x_scaled.dtype)
         exponent_rows[:, :n_in] = x_scaled.transpose(-1, -2)
         exponent_rows[:, n_in] = 1.0
-        exponent_rows[:, n_in + 1] = (outputscale.log()[:, None]
+        exponent_rows[:, n_in + 1] = ((outputscale * scale).log()[:, None]
                                       - 0.5 * (x_scaled ** 2).sum(-1))
-        return {
-            'index': active.nonzero().squeeze(-1).numpy(),
-            'inv_lengthscales': (1.0 / lengthscales).numpy(),
-            'exponent_rows': exponent_rows.numpy(),
-            'outputscale': outputscale.numpy(), 'noise': noise.numpy(),
-            'project': project.contiguous().numpy(), 'weights': weights.numpy(),
-            'tail_weight': tail_weight.numpy(), 'rank': rank, 'ranks': ranks,
-            'excess': excess}
+        base = outputscale + noise if self.config.include_noise_in_std else outputscale
+        return {'inv_lengthscales': (1.0 / lengthscales).numpy(),
+                'exponent_rows': exponent_rows.numpy(), 'base': base.numpy()[:, None],
+                'full_rank': rank == n_points, 'project': project.contiguous().numpy()}
 
     @property
-    def variance_rank(self) -> dict[str, torch.Tensor | int]:
-        """The low-rank variance bound of the current posterior: ``ranks`` (n_active,) the
-        rank each active output's tolerance needs, ``rank`` the one kept (their maximum),
-        ``excess`` (n_active,) the worst-case variance excess at that rank relative to the
-        signal variance, and ``points`` M. Empty before the first fit."""
+    def variance_rank(self) -> dict[str, Any]:
+        """The low-rank variance bound of the current posterior, per active output:
+        ``ranks`` the rank its tolerance needs, ``kept`` the rank of its group (>= ranks),
+        ``excess`` the worst-case variance excess at the kept rank relative to the signal
+        variance; and ``points`` M. Empty before the first fit."""
         if self._cache is None:
             return {}
         low = self._cache['low_rank']
-        return {'ranks': low['ranks'].clone(), 'rank': low['rank'],
+        return {'ranks': low['ranks'].clone(), 'kept': low['kept'].clone(),
                 'excess': low['excess'].clone(), 'points': int(self._cache['alpha'].shape[-1])}
 
     @staticmethod
@@ -658,30 +700,37 @@ class DisturbanceGP:
     def _predict_low_rank(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and low-rank std bound, x (B, n_in) float64 -> two (B, n_out) arrays."""
         low = self._cache['low_rank']  # type: ignore[index]
+        if low['all_active']:
+            return self._predict_group(low['groups'][0], x)
         mean = np.zeros((x.shape[0], self.n_out))
         std = np.zeros((x.shape[0], self.n_out))
-        index = low['index']
-        if index.size == 0:
-            return mean, std
+        for group in low['groups']:
+            mean_g, std_g = self._predict_group(group, x)
+            mean[:, group['index']] = mean_g
+            std[:, group['index']] = std_g
+        return mean, std
+
+    def _predict_group(self, group: dict[str, Any], x: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """One group's mean and std bound: two (B, D_group) arrays."""
         n_in = self.n_in
-        query = np.empty((index.size, x.shape[0], n_in + 2))
-        q_scaled = np.multiply(x[None, :, :], low['inv_lengthscales'][:, None, :],
+        query = np.empty((group['index'].size, x.shape[0], n_in + 2))
+        q_scaled = np.multiply(x[None, :, :], group['inv_lengthscales'][:, None, :],
                                out=query[:, :, :n_in])  # (D, B, n_in)
         query[:, :, n_in] = -0.5 * np.einsum('dbi,dbi->db', q_scaled, q_scaled)
         query[:, :, n_in + 1] = 1.0
         # No clamp of the exponent at 0 (the squared distance's round-off): k may exceed s
         # by a few ulps, which moves the variance by round-off only.
-        k_cross = np.exp(query @ low['exponent_rows'])  # (D, B, M)
-        projected = k_cross @ low['project']  # (D, B, 1 + r)
+        k_cross = np.exp(query @ group['exponent_rows'])  # (D, B, M): k' (see _low_rank)
+        projected = k_cross @ group['project']  # (D, B, 1 + r)
         kept = projected[:, :, 1:]
-        var = (low['outputscale'][:, None]
-               - np.einsum('dbm,dbm->db', k_cross, k_cross) * low['tail_weight'][:, None]
-               + np.einsum('dbr,dr->db', kept * kept, low['weights']))
-        if self.config.include_noise_in_std:
-            var += low['noise'][:, None]
-        mean[:, index] = projected[:, :, 0].T
-        std[:, index] = np.sqrt(np.maximum(var, 0.0)).T
-        return mean, std
+        kept_sq = np.einsum('dbr,dbr->db', kept, kept)
+        if group['full_rank']:
+            var = group['base'] - kept_sq
+        else:
+            var = group['base'] - np.einsum('dbm,dbm->db', k_cross, k_cross) + kept_sq
+        std = np.sqrt(np.maximum(var, 0.0, out=var), out=var)
+        return projected[:, :, 0].T.copy(), std.T.copy()
 
     def bounds(self, x: ArrayLike, k_c: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Disturbance box of eq. (disturb_estimate): ``mean -/+ k_c std``.
