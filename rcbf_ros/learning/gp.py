@@ -578,34 +578,28 @@ class DisturbanceGP:
                         noise: torch.Tensor, rank: int) -> dict[str, Any]:
         """One batched group of outputs at one rank (see ``_low_rank``)."""
         n_points = eigenvalues.shape[-1]
-        # var_r = s - |k|^2 / mu_{r+1} + sum_{i<=r} (u_i . k)^2 (1 / mu_{r+1} - 1 / mu_i), the
-        # kept weights >= 0; with every pair kept, var = s - sum_i (u_i . k)^2 / mu_i. Stored
-        # as squared norms: k' = k sqrt(1 / mu_{r+1}) (folded into the exponent) and
-        # p' = k' V with V = U_r sqrt(|weight_i|) sqrt(mu_{r+1}), so var = s - |k'|^2 + |p'|^2
-        # (full rank: s - |p'|^2, k' = k).
-        if rank < n_points:
-            tail_weight = 1.0 / eigenvalues[:, rank]
-            weights = tail_weight[:, None] - 1.0 / eigenvalues[:, :rank]
-            scale = tail_weight.sqrt()
-        else:
-            weights = -1.0 / eigenvalues
-            scale = torch.ones_like(noise)
-        columns = eigenvectors[:, :, :rank] * (weights.abs().sqrt() / scale[:, None])[:, None, :]
-        # One (M, 1 + r) product gives the mean (column 0) and the r projections.
-        project = torch.cat([(alpha / scale[:, None]).unsqueeze(-1), columns], dim=-1)
-        # log k'(q, x_j) = log (s scale) - |q~|^2 / 2 - |x~_j|^2 / 2 + q~ . x~_j (~: lengthscale-
-        # scaled) is one product of [q~, -|q~|^2 / 2, 1] with the rows
-        # [x~_j; 1; log (s scale) - |x~_j|^2 / 2].
+        # var_r = s - sum_{i<=r} (u_i . k)^2 / mu_i - |k_perp|^2 / mu_{r+1}, k_perp = k minus its
+        # projection on the kept u_i, computed as that difference (not |k|^2 - sum (u_i . k)^2,
+        # which loses |k|^2 / n * eps to cancellation when n << s). Both subtracted terms are
+        # >= 0 and together at most s, so the round-off stays at eps * s.
+        tail_weight = (1.0 / eigenvalues[:, rank] if rank < n_points
+                       else torch.zeros_like(noise))
+        # One (M, 1 + r) product gives the mean (column 0) and the r projections u_i . k.
+        project = torch.cat([alpha.unsqueeze(-1), eigenvectors[:, :, :rank]], dim=-1)
+        # log k(q, x_j) = log s - |q~|^2 / 2 - |x~_j|^2 / 2 + q~ . x~_j (~: lengthscale-scaled)
+        # is one product of [q~, -|q~|^2 / 2, 1] with the rows [x~_j; 1; log s - |x~_j|^2 / 2].
         n_active, _, n_in = x_scaled.shape
         exponent_rows = torch.empty(n_active, n_in + 2, n_points, dtype=x_scaled.dtype)
         exponent_rows[:, :n_in] = x_scaled.transpose(-1, -2)
         exponent_rows[:, n_in] = 1.0
-        exponent_rows[:, n_in + 1] = ((outputscale * scale).log()[:, None]
+        exponent_rows[:, n_in + 1] = (outputscale.log()[:, None]
                                       - 0.5 * (x_scaled ** 2).sum(-1))
         base = outputscale + noise if self.config.include_noise_in_std else outputscale
         return {'inv_lengthscales': (1.0 / lengthscales).numpy(),
                 'exponent_rows': exponent_rows.numpy(), 'base': base.numpy()[:, None],
-                'full_rank': rank == n_points, 'project': project.contiguous().numpy()}
+                'full_rank': rank == n_points, 'project': project.contiguous().numpy(),
+                'kept_weights': (1.0 / eigenvalues[:, :rank]).numpy(),
+                'tail_weight': tail_weight.numpy()[:, None]}
 
     @property
     def variance_rank(self) -> dict[str, Any]:
@@ -721,14 +715,15 @@ class DisturbanceGP:
         query[:, :, n_in + 1] = 1.0
         # No clamp of the exponent at 0 (the squared distance's round-off): k may exceed s
         # by a few ulps, which moves the variance by round-off only.
-        k_cross = np.exp(query @ group['exponent_rows'])  # (D, B, M): k' (see _low_rank)
-        projected = k_cross @ group['project']  # (D, B, 1 + r)
+        k_cross = np.exp(query @ group['exponent_rows'])  # (D, B, M)
+        project = group['project']
+        projected = k_cross @ project  # (D, B, 1 + r): mean, then u_i . k
         kept = projected[:, :, 1:]
-        kept_sq = np.einsum('dbr,dbr->db', kept, kept)
-        if group['full_rank']:
-            var = group['base'] - kept_sq
-        else:
-            var = group['base'] - np.einsum('dbm,dbm->db', k_cross, k_cross) + kept_sq
+        var = group['base'] - np.einsum('dbr,dr->db', kept * kept, group['kept_weights'])
+        if not group['full_rank']:
+            # k_perp = k - U_r (U_r^T k), on the same (by now cached) columns.
+            k_cross -= kept @ project[:, :, 1:].transpose(0, 2, 1)
+            var -= np.einsum('dbm,dbm->db', k_cross, k_cross) * group['tail_weight']
         std = np.sqrt(np.maximum(var, 0.0, out=var), out=var)
         return projected[:, :, 0].T.copy(), std.T.copy()
 

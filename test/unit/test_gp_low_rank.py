@@ -186,3 +186,18 @@ def test_outputs_of_far_apart_ranks_are_predicted_in_separate_groups():
         np.testing.assert_allclose(one_mean, row_mean.numpy(), atol=1e-12, rtol=0)
         # Batch and single products round differently: equal to the variance's round-off.
         assert (np.abs(one_std ** 2 - row_std.numpy() ** 2) <= round_off(gp).numpy()).all()
+
+
+def test_a_noise_far_below_the_signal_costs_no_accuracy_near_the_data():
+    # noise / s = 1e-7 (as learned on Unicycle and Car Following): |k|^2 / n is ~1e8 s, so a
+    # variance formed as a difference of such terms would lose everything near the data.
+    gp = conditioned_gp(seed=11, points=300, n_in=2, lengthscale=1.0, noise_ratio=1e-7,
+                        tolerance=1e-4)
+    assert (gp.variance_rank['kept'] < 300).all()
+    q = queries(gp, 11, count=400)
+    _, std_exact = gp.predict(q, exact=True)
+    _, std_low = gp.predict(q)
+    assert gp.outputscale is not None
+    excess = (std_low ** 2 - std_exact ** 2)[:, :2] / gp.outputscale[:2]
+    assert excess.min() >= -1e-10
+    assert (std_low[:, :2] >= 0.999 * std_exact[:, :2]).all()
