@@ -201,3 +201,28 @@ def test_a_noise_far_below_the_signal_costs_no_accuracy_near_the_data():
     excess = (std_low ** 2 - std_exact ** 2)[:, :2] / gp.outputscale[:2]
     assert excess.min() >= -1e-10
     assert (std_low[:, :2] >= 0.999 * std_exact[:, :2]).all()
+
+
+def test_the_learners_proposal_carries_the_gp_estimate_at_the_state(tmp_path):
+    from rcbf_ros.learning.sac import SACConfig
+    from rcbf_ros.training.agent import LearnerConfig
+    from rcbf_ros.training.loop import build_run, RunConfig
+    run = RunConfig(system='car_following', episodes=1, max_steps=100, record_bag=False,
+                    out_dir=str(tmp_path / 'run'),
+                    learner=LearnerConfig(mode='baseline', seed=0, start_steps=10,
+                                          update_after=10 ** 6, gp_refit_interval=10 ** 6,
+                                          sac=SACConfig(hidden_sizes=(16, 16))))
+    env, _, learner, _ = build_run(run)
+    obs, info = env.reset(seed=0)
+    generator = torch.Generator().manual_seed(0)
+    states = torch.as_tensor(info['state']) + 0.1 * torch.randn(
+        80, len(info['state']), generator=generator, dtype=DTYPE)
+    residuals = torch.zeros_like(states)
+    residuals[:, 1::2] = 0.1 * torch.sin(states[:, ::2])  # velocities' rows: a posterior each
+    learner.gp.add(states, residuals)
+    learner.gp.fit()
+    proposal = learner.propose(obs, info['state'])
+    mean, std = learner.disturbance(torch.as_tensor(info['state']).unsqueeze(0))
+    np.testing.assert_allclose(proposal.disturbance_mean, mean[0].numpy(), atol=1e-12, rtol=0)
+    np.testing.assert_allclose(proposal.disturbance_std, std[0].numpy(), atol=1e-12, rtol=1e-9)
+    assert proposal.disturbance_std[1::2].all() and not proposal.disturbance_std[::2].any()
