@@ -25,6 +25,27 @@ Prediction does not go through GPyTorch: after a fit we cache, per output dimens
 batched over query points and output dimensions. The disturbance box of eq.
 (disturb_estimate) is ``mean +/- k_c std`` (``bounds``); ``k_c`` is the caller's.
 
+Low-rank variance bound (the default prediction): the exact variance reads one M x M factor
+per output and query, which at M = 512 (2 MB in float64) is most of a per-step action's cost.
+With the eigendecomposition ``K + n I = U diag(mu) U^T`` (descending ``mu``) computed at each
+refit, ``k^T (K + nI)^-1 k = sum_i (u_i . k)^2 / mu_i``; keeping the first r terms and giving
+every discarded direction the weight of the largest discarded eigenvalue,
+
+    var_r(x*) = s - sum_{i<=r} (u_i . k)^2 / mu_i - (|k|^2 - sum_{i<=r} (u_i . k)^2) / mu_{r+1},
+
+can only subtract less than the exact sum (the discarded directions have ``mu_i <= mu_{r+1}``,
+and their squared projections add up to ``|k|^2`` minus the kept ones), so ``var_r >= var``
+for every query and the box ``mean +/- k_c std_r`` contains the exact one. The excess is at
+most ``s * rho(mu_{r+1} - n)`` with ``rho(a) = max_{0<=l<=a} l (a - l) / ((l + n)(a + n))``
+(since ``sum_i (u_i . k)^2 / (mu_i - n) <= s``, the prior variance), and r is the smallest
+rank whose ``rho`` is within ``GPConfig.variance_rank_tolerance`` (0: every eigenpair, the
+exact variance to round-off). A query then reads r x M numbers instead of M x M (twice:
+the discarded part is evaluated as ``|k - U_r U_r^T k|^2``, not as the difference above,
+whose terms are of size ``|k|^2 / n`` and cancel to round-off when the noise is far below the
+signal). ``predict(x, exact=True)`` evaluates the exact variance (the reference). The mean is
+exact either way. In floating point both variances carry round-off of about
+``eps M s^2 / n``; the bound's measured deficits against the exact evaluation stay within it.
+
 Exactly known outputs: a dimension whose residuals are all within ``exact_output_tol`` of zero
 (e.g. a position whose derivative is a velocity in the state, so the nominal model predicts it
 to rounding error) gets no posterior: ``predict`` returns mean 0 and std 0 for it without
@@ -93,6 +114,11 @@ class GPConfig:
     """Output dimensions with every residual ``|y| <= exact_output_tol`` (raw units) are
     treated as exactly known: mean 0, std 0, no posterior cached. 0 keeps a GP on every
     output (then an all-zero dimension still gets one, with a tiny fitted signal variance)."""
+    variance_rank_tolerance: float = 1e-4
+    """Worst-case excess of the predicted variance over the exact one, relative to the
+    output's signal variance, that the low-rank variance bound may have (see the module
+    docstring); it never predicts less than the exact variance. 0: keep every eigenpair (the
+    exact variance, to round-off, at the exact cost)."""
     dtype: torch.dtype = torch.float64
     """Floating point type of data, hyperparameters and predictions."""
 
@@ -114,6 +140,9 @@ class GPConfig:
             raise ValueError(f'min_noise must be > 0, got {self.min_noise}')
         if not self.exact_output_tol >= 0:
             raise ValueError(f'exact_output_tol must be >= 0, got {self.exact_output_tol}')
+        if not 0 <= self.variance_rank_tolerance < 1:
+            raise ValueError('variance_rank_tolerance must be in [0, 1), got '
+                             f'{self.variance_rank_tolerance}')
 
 
 def _jittered_cholesky(a: torch.Tensor, tries: int = 6) -> torch.Tensor:
@@ -146,6 +175,54 @@ def _jittered_cholesky(a: torch.Tensor, tries: int = 6) -> torch.Tensor:
     raise torch.linalg.LinAlgError(
         f'GP covariance of output(s) {failed.nonzero().squeeze(-1).tolist()} is not positive '
         f'definite even with jitter {jitter / 10.0:g} x mean(diag)')
+
+
+def variance_excess_ratio(*, tail: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+    """Worst-case excess of the low-rank variance bound over the exact variance, relative to
+    the signal variance: ``rho(a) = max_{0<=l<=a} l (a - l) / ((l + n)(a + n))``, elementwise.
+
+    Args:
+        tail: the largest discarded eigenvalue of ``K + n I`` minus ``n`` (``a``); <= 0 gives 0.
+        noise: the noise variance ``n`` (> 0), broadcast against ``tail``.
+
+    The maximiser is ``l* = sqrt(n^2 + a n) - n``; rho grows with ``a`` from 0 (about
+    ``a^2 / (4 n^2)`` for ``a << n``) towards 1.
+    """
+    a = tail.clamp_min(0.0)
+    best = torch.sqrt(noise * noise + a * noise) - noise
+    return best * (a - best) / ((best + noise) * (a + noise))
+
+
+def _rank_groups(ranks: torch.Tensor) -> list[torch.Tensor]:
+    """Outputs (indices into ``ranks``, ascending within a group) batched together: in order of
+    rank, a new group starts where the rank exceeds twice the group's smallest plus 32 (one
+    more group costs about as much as that many extra columns)."""
+    groups: list[list[int]] = []
+    smallest = 0
+    for output in torch.argsort(ranks, stable=True).tolist():
+        rank = int(ranks[output])
+        if not groups or rank > 2 * smallest + 32:
+            groups.append([])
+            smallest = rank
+        groups[-1].append(output)
+    return [torch.tensor(sorted(group), dtype=torch.int64) for group in groups]
+
+
+def variance_ranks(*, eigenvalues: torch.Tensor, noise: torch.Tensor,
+                   tolerance: float) -> torch.Tensor:
+    """Per output, the fewest leading eigenpairs whose bound is within ``tolerance``.
+
+    Args:
+        eigenvalues: (D, M) of ``K_d + n_d I``, descending.
+        noise: (D,) the ``n_d``.
+        tolerance: largest allowed :func:`variance_excess_ratio` (0: all M).
+
+    Returns:
+        (D,) int64 ranks r_d in [0, M]: the ratio at tail ``mu_{r+1} - n`` is <= tolerance.
+    """
+    ratio = variance_excess_ratio(tail=eigenvalues - noise[:, None], noise=noise[:, None])
+    # rho grows with the tail eigenvalue, which falls with r: the rank is the count above.
+    return (ratio > tolerance).sum(dim=-1)
 
 
 class _BatchIndependentExactGP(gpytorch.models.ExactGP):
@@ -434,7 +511,8 @@ class DisturbanceGP:
         return self._cache['active'].clone()
 
     def _refresh_cache(self) -> None:
-        """Cache per active output dim: scaled inputs, ``L^-T`` and ``alpha = (K + nI)^-1 y``.
+        """Cache per active output dim: scaled inputs, ``L^-T``, ``alpha = (K + nI)^-1 y`` and
+        the low-rank variance bound (leading eigenvectors and their weights).
 
         A dimension is active unless every stored residual (all data, not only the capped
         training subset) is within ``exact_output_tol`` of zero.
@@ -457,7 +535,87 @@ class DisturbanceGP:
         self._cache = {'active': active, 'lengthscales': lengthscales,
                        'outputscale': outputscale, 'noise': noise,
                        'x_scaled': x_scaled,
-                       'chol_inv_t': chol_inv.transpose(-1, -2).contiguous(), 'alpha': alpha}
+                       'chol_inv_t': chol_inv.transpose(-1, -2).contiguous(), 'alpha': alpha,
+                       'low_rank': self._low_rank(chol, alpha, x_scaled, lengthscales,
+                                                  outputscale, noise, active)}
+
+    def _low_rank(self, chol: torch.Tensor, alpha: torch.Tensor, x_scaled: torch.Tensor,
+                  lengthscales: torch.Tensor, outputscale: torch.Tensor, noise: torch.Tensor,
+                  active: torch.Tensor) -> dict[str, Any]:
+        """The numpy arrays of the low-rank prediction (module docstring).
+
+        The eigendecomposition is of ``L L^T``, the matrix the exact posterior uses (with the
+        jitter, if the Cholesky needed one). Outputs of similar rank share one batched group
+        at the group's largest rank (extra pairs only tighten the bound); an output that needs
+        far more pairs than another (a signal weaker than its noise) gets its own group, so
+        that the others do not read its columns.
+        """
+        n_points = chol.shape[-1]
+        eigenvalues, eigenvectors = torch.linalg.eigh(chol @ chol.transpose(-1, -2))
+        # Descending; an eigenvalue of K + nI is >= n (K is PSD): clamp round-off below it.
+        eigenvalues = torch.maximum(eigenvalues.flip(-1), noise[:, None])
+        eigenvectors = eigenvectors.flip(-1)
+        ranks = variance_ranks(eigenvalues=eigenvalues, noise=noise,
+                               tolerance=self.config.variance_rank_tolerance)
+        active_index = active.nonzero().squeeze(-1)
+        kept = torch.zeros_like(ranks)
+        excess = torch.zeros_like(noise)
+        groups = []
+        for members in _rank_groups(ranks):
+            rank = int(ranks[members].max())
+            kept[members] = rank
+            if rank < n_points:
+                tail = eigenvalues[members, rank]
+                excess[members] = variance_excess_ratio(tail=tail - noise[members],
+                                                        noise=noise[members])
+            groups.append(self._low_rank_group(
+                eigenvalues[members], eigenvectors[members], alpha[members],
+                x_scaled[members], lengthscales[members], outputscale[members], noise[members],
+                rank))
+            groups[-1]['index'] = active_index[members].numpy()
+        return {'groups': groups, 'all_active': bool(active.all()) and len(groups) == 1,
+                'ranks': ranks, 'kept': kept, 'excess': excess}
+
+    def _low_rank_group(self, eigenvalues: torch.Tensor, eigenvectors: torch.Tensor,
+                        alpha: torch.Tensor, x_scaled: torch.Tensor,
+                        lengthscales: torch.Tensor, outputscale: torch.Tensor,
+                        noise: torch.Tensor, rank: int) -> dict[str, Any]:
+        """One batched group of outputs at one rank (see ``_low_rank``)."""
+        n_points = eigenvalues.shape[-1]
+        # var_r = s - sum_{i<=r} (u_i . k)^2 / mu_i - |k_perp|^2 / mu_{r+1}, k_perp = k minus its
+        # projection on the kept u_i, computed as that difference (not |k|^2 - sum (u_i . k)^2,
+        # which loses |k|^2 / n * eps to cancellation when n << s). Both subtracted terms are
+        # >= 0 and together at most s, so the round-off stays at eps * s.
+        tail_weight = (1.0 / eigenvalues[:, rank] if rank < n_points
+                       else torch.zeros_like(noise))
+        # One (M, 1 + r) product gives the mean (column 0) and the r projections u_i . k.
+        project = torch.cat([alpha.unsqueeze(-1), eigenvectors[:, :, :rank]], dim=-1)
+        # log k(q, x_j) = log s - |q~|^2 / 2 - |x~_j|^2 / 2 + q~ . x~_j (~: lengthscale-scaled)
+        # is one product of [q~, -|q~|^2 / 2, 1] with the rows [x~_j; 1; log s - |x~_j|^2 / 2].
+        n_active, _, n_in = x_scaled.shape
+        exponent_rows = torch.empty(n_active, n_in + 2, n_points, dtype=x_scaled.dtype)
+        exponent_rows[:, :n_in] = x_scaled.transpose(-1, -2)
+        exponent_rows[:, n_in] = 1.0
+        exponent_rows[:, n_in + 1] = (outputscale.log()[:, None]
+                                      - 0.5 * (x_scaled ** 2).sum(-1))
+        base = outputscale + noise if self.config.include_noise_in_std else outputscale
+        return {'inv_lengthscales': (1.0 / lengthscales).numpy(),
+                'exponent_rows': exponent_rows.numpy(), 'base': base.numpy()[:, None],
+                'full_rank': rank == n_points, 'project': project.contiguous().numpy(),
+                'kept_weights': (1.0 / eigenvalues[:, :rank]).numpy(),
+                'tail_weight': tail_weight.numpy()[:, None]}
+
+    @property
+    def variance_rank(self) -> dict[str, Any]:
+        """The low-rank variance bound of the current posterior, per active output:
+        ``ranks`` the rank its tolerance needs, ``kept`` the rank of its group (>= ranks),
+        ``excess`` the worst-case variance excess at the kept rank relative to the signal
+        variance; and ``points`` M. Empty before the first fit."""
+        if self._cache is None:
+            return {}
+        low = self._cache['low_rank']
+        return {'ranks': low['ranks'].clone(), 'kept': low['kept'].clone(),
+                'excess': low['excess'].clone(), 'points': int(self._cache['alpha'].shape[-1])}
 
     @staticmethod
     def _rbf(a_scaled: torch.Tensor, b_scaled: torch.Tensor,
@@ -476,11 +634,14 @@ class DisturbanceGP:
         return outputscale[:, None, None] * torch.exp(-0.5 * sq_dist)
 
     # --------------------------------------------------------------- predict
-    def predict(self, x: ArrayLike) -> tuple[torch.Tensor, torch.Tensor]:
+    def predict(self, x: ArrayLike, *, exact: bool = False
+                ) -> tuple[torch.Tensor, torch.Tensor]:
         """Posterior mean and std of the disturbance.
 
         Args:
             x: (B, n_in) query states (or (n_in,) for one state).
+            exact: the exact variance (one M x M factor per output) instead of the low-rank
+                bound, which is never below it (module docstring). The mean is the same.
 
         Returns:
             mean: (B, n_out); std: (B, n_out). Before any fit: zeros and ``prior_std``.
@@ -494,6 +655,9 @@ class DisturbanceGP:
         if self._cache is None:
             mean = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
             return mean, torch.full_like(mean, self.config.prior_std)
+        if not exact:
+            mean_np, std_np = self._predict_low_rank(x_t.numpy())
+            return torch.from_numpy(mean_np), torch.from_numpy(std_np)
         c = self._cache
         mean = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
         std = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
@@ -513,6 +677,59 @@ class DisturbanceGP:
             mean[:, active] = mean_a.T
             std[:, active] = var.clamp_min(0.0).sqrt().T
         return mean, std
+
+    def predict_state(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`predict` (low-rank bound) at ONE state, in numpy: the per-step path.
+
+        Args:
+            state: (n_in,) float64.
+
+        Returns:
+            mean: (n_out,); std: (n_out,), equal to ``predict(state)`` to round-off.
+        """
+        x = np.asarray(state, dtype=np.float64)
+        if x.shape != (self.n_in,):
+            raise ValueError(f'state must have shape ({self.n_in},), got {x.shape}')
+        if self._cache is None:
+            return np.zeros(self.n_out), np.full(self.n_out, self.config.prior_std)
+        mean, std = self._predict_low_rank(x[None, :])
+        return mean[0], std[0]
+
+    def _predict_low_rank(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and low-rank std bound, x (B, n_in) float64 -> two (B, n_out) arrays."""
+        low = self._cache['low_rank']  # type: ignore[index]
+        if low['all_active']:
+            return self._predict_group(low['groups'][0], x)
+        mean = np.zeros((x.shape[0], self.n_out))
+        std = np.zeros((x.shape[0], self.n_out))
+        for group in low['groups']:
+            mean_g, std_g = self._predict_group(group, x)
+            mean[:, group['index']] = mean_g
+            std[:, group['index']] = std_g
+        return mean, std
+
+    def _predict_group(self, group: dict[str, Any], x: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """One group's mean and std bound: two (B, D_group) arrays."""
+        n_in = self.n_in
+        query = np.empty((group['index'].size, x.shape[0], n_in + 2))
+        q_scaled = np.multiply(x[None, :, :], group['inv_lengthscales'][:, None, :],
+                               out=query[:, :, :n_in])  # (D, B, n_in)
+        query[:, :, n_in] = -0.5 * np.einsum('dbi,dbi->db', q_scaled, q_scaled)
+        query[:, :, n_in + 1] = 1.0
+        # No clamp of the exponent at 0 (the squared distance's round-off): k may exceed s
+        # by a few ulps, which moves the variance by round-off only.
+        k_cross = np.exp(query @ group['exponent_rows'])  # (D, B, M)
+        project = group['project']
+        projected = k_cross @ project  # (D, B, 1 + r): mean, then u_i . k
+        kept = projected[:, :, 1:]
+        var = group['base'] - np.einsum('dbr,dr->db', kept * kept, group['kept_weights'])
+        if not group['full_rank']:
+            # k_perp = k - U_r (U_r^T k), on the same (by now cached) columns.
+            k_cross -= kept @ project[:, :, 1:].transpose(0, 2, 1)
+            var -= np.einsum('dbm,dbm->db', k_cross, k_cross) * group['tail_weight']
+        std = np.sqrt(np.maximum(var, 0.0, out=var), out=var)
+        return projected[:, :, 0].T.copy(), std.T.copy()
 
     def bounds(self, x: ArrayLike, k_c: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Disturbance box of eq. (disturb_estimate): ``mean -/+ k_c std``.

@@ -233,9 +233,10 @@ class SafeLearner:
             detailed = self.sac.act_detailed(np.asarray(obs, dtype=np.float64), deterministic)
             u_rl = detailed.u_rl.astype(np.float64)
             u_proposed = detailed.u_proposed.astype(np.float64)
-        x = torch.as_tensor(np.array(state, dtype=np.float64)).unsqueeze(0)
-        mean, std = self.disturbance(x)
-        return Proposal(u_proposed, u_rl, mean[0].numpy().copy(), std[0].numpy().copy())
+        # One state, in numpy: the same GP posterior as ``disturbance`` without torch's per-op
+        # dispatch (the per-step cost is a few small products, see DisturbanceGP).
+        mean, std = self.gp.predict_state(np.asarray(state, dtype=np.float64))
+        return Proposal(u_proposed, u_rl, mean, std)
 
     def critic_value(self, obs: np.ndarray, u_rl: np.ndarray, u_safe: np.ndarray) -> float:
         """The critics' value (min of the twins) of one step, at the action they are trained
