@@ -36,6 +36,7 @@ from cyclonedds.domain import DomainParticipant
 from cyclonedds.util import duration
 
 from rcbf_ros.ros.dds.arguments import parse_ros_arguments, RosArguments
+from rcbf_ros.ros.dds.graph import GraphInfo
 from rcbf_ros.ros.loopback import (
     ensure_loopback,
     LOOPBACK_CYCLONEDDS_URI,
@@ -62,6 +63,8 @@ class Context:
 
     def __init__(self) -> None:
         self.participant: DomainParticipant | None = None
+        self.graph: GraphInfo | None = None
+        """This participant's ``ros_discovery_info`` entry and the graph (while initialized)."""
         self.domain_id: int = 0
         self.arguments: RosArguments = RosArguments()
         self._ok = False
@@ -86,6 +89,7 @@ class Context:
                 raise ValueError(f'domain_id must be in 0..232, got {domain_id}')
             self.domain_id = domain_id
             self.participant = _create_participant(domain_id)
+            self.graph = GraphInfo(self.participant)
             self._pending_signal = None
             self._ok = True
             if threading.current_thread() is threading.main_thread():
@@ -125,6 +129,9 @@ class Context:
             self._previous_handlers.clear()
             for node in list(self._nodes):
                 node.destroy_node()
+            if self.graph is not None:
+                self.graph.close()
+                self.graph = None
             delete_entity(self.participant)
             self.participant = None
 

@@ -43,7 +43,10 @@ from rcbf_ros.ros.dds.context import (
     new_ready_queue,
     new_wait_objects,
 )
+from rcbf_ros.ros.dds.graph import gid_of, node_of_endpoint
 from rcbf_ros.ros.dds.qos import as_profile, from_cyclone_qos, QoSProfile, to_cyclone_qos
+from rcbf_ros.ros.dds.rosout import LOG_TYPE, ROSOUT_TOPIC, RosoutWriter
+from rcbf_ros.ros.dds.time_source import TimeSource, USE_SIM_TIME
 
 _ANY_SAMPLE = SampleState.Any | ViewState.Any | InstanceState.Any
 _TAKE_BATCH = 256
@@ -102,10 +105,23 @@ class Time:
 
 
 class Clock:
-    """rclpy.clock.Clock subset (system time)."""
+    """rclpy.clock.ROSClock subset: system time, or the time ``/clock`` gives while the node's
+    ``use_sim_time`` is true (:mod:`.time_source`)."""
+
+    def __init__(self) -> None:
+        self._ros_time_ns: int | None = None
+
+    @property
+    def ros_time_is_active(self) -> bool:
+        return self._ros_time_ns is not None
+
+    def _set_ros_time(self, nanoseconds: int | None) -> None:
+        """Override the time (None: back to the system time)."""
+        self._ros_time_ns = nanoseconds
 
     def now(self) -> Time:
-        return Time(nanoseconds=time.time_ns())
+        ros_time_ns = self._ros_time_ns
+        return Time(nanoseconds=time.time_ns() if ros_time_ns is None else ros_time_ns)
 
 
 class LoggingSeverity(enum.IntEnum):
@@ -125,16 +141,19 @@ _LEVEL_NAMES = {'debug': LoggingSeverity.DEBUG, 'info': LoggingSeverity.INFO,
 
 
 class Logger:
-    """rcutils-style logger writing ``[LEVEL] [time] [name]: message`` to stderr."""
+    """rcutils-style logger writing ``[LEVEL] [time] [name]: message`` to stderr, and, for a
+    node's logger and its children, the same line to ``/rosout`` (:mod:`.rosout`)."""
 
-    def __init__(self, name: str, level: LoggingSeverity = LoggingSeverity.INFO) -> None:
+    def __init__(self, name: str, level: LoggingSeverity = LoggingSeverity.INFO,
+                 rosout: RosoutWriter | None = None) -> None:
         self.name = name
         self.level = level
+        self._rosout = rosout
         self._once: set[tuple[str, str]] = set()
         self._last: dict[tuple[str, str], float] = {}
 
     def get_child(self, suffix: str) -> Logger:
-        return Logger(f'{self.name}.{suffix}', self.level)
+        return Logger(f'{self.name}.{suffix}', self.level, self._rosout)
 
     def set_level(self, level: LoggingSeverity | int) -> None:
         self.level = LoggingSeverity(level)
@@ -163,8 +182,15 @@ class Logger:
                 return False
             else:
                 self._last[key] = now
-        sys.stderr.write(f'[{severity.name}] [{time.time():.9f}] [{self.name}]: {message}\n')
+        stamp_ns = time.time_ns()
+        sys.stderr.write(f'[{severity.name}] [{stamp_ns // 10**9}.{stamp_ns % 10**9:09d}] '
+                         f'[{self.name}]: {message}\n')
         sys.stderr.flush()
+        if self._rosout is not None:
+            caller = sys._getframe(2)  # the caller of debug() ... fatal()
+            self._rosout.write(stamp_ns=stamp_ns, level=int(severity), name=self.name,
+                               msg=str(message), file=caller.f_code.co_filename,
+                               function=caller.f_code.co_name, line=caller.f_lineno)
         return True
 
     def debug(self, message: str, **kwargs: Any) -> bool:
@@ -497,9 +523,9 @@ class TopicEndpointTypeEnum(enum.IntEnum):
 class TopicEndpointInfo:
     """rclpy.topic_endpoint_info.TopicEndpointInfo subset: one endpoint as discovery shows it.
 
-    Node names travel in ROS 2's ``ros_discovery_info``, which this runtime does not read, so
-    they are rmw's placeholders for endpoints of unknown nodes; ``endpoint_gid`` is the DDS
-    GUID, whose first 12 bytes name the participant (one per process).
+    Node names come from ROS 2's ``ros_discovery_info`` (:mod:`.graph`), with rmw's
+    placeholders where no node claims the endpoint; ``endpoint_gid`` is the 16-byte DDS GUID,
+    whose first 12 bytes name the participant (one per process).
     """
 
     node_name: str
@@ -524,7 +550,7 @@ class Node:
                  parameter_overrides: Iterable[Parameter] | None = None,
                  allow_undeclared_parameters: bool = False,
                  automatically_declare_parameters_from_overrides: bool = False,
-                 **_ignored: Any) -> None:
+                 enable_rosout: bool = True, **_ignored: Any) -> None:
         self.context = default_context if context is None else context
         if not self.context.ok() or self.context.participant is None:
             raise RuntimeError('rclpy.init() must be called before creating a Node')
@@ -574,6 +600,16 @@ class Node:
             | None = None
         self._endpoint_cache: dict[Any, list[Any]] = {}
         self.context.add_node(self)
+        self._graph_node = self.context.graph.add_node(name=self._name,
+                                                       namespace=self._namespace)
+        self._rosout: RosoutWriter | None = None
+        if enable_rosout:
+            self._rosout = RosoutWriter(self.context.participant,
+                                        self._dds_topic(ROSOUT_TOPIC, LOG_TYPE))
+            self.context.graph.add_endpoint(self._graph_node, gid_of(self._rosout.writer),
+                                            is_reader=False)
+            self._logger._rosout = self._rosout
+        self._time_source = TimeSource(node=self)
 
     # names ----------------------------------------------------------------------------------
     def get_name(self) -> str:
@@ -609,6 +645,8 @@ class Node:
         publisher = Publisher(self, msg_type, self.resolve_topic_name(topic),
                               as_profile(qos_profile))
         self._publishers.append(publisher)
+        self.context.graph.add_endpoint(self._graph_node, gid_of(publisher._writer),
+                                        is_reader=False)
         return publisher
 
     def create_subscription(self, msg_type: Any, topic: str, callback: Callable[[Any], None],
@@ -618,6 +656,8 @@ class Node:
                                     as_profile(qos_profile), raw)
         self._waitset.attach(subscription._condition)
         self._subscriptions.append(subscription)
+        self.context.graph.add_endpoint(self._graph_node, gid_of(subscription._reader),
+                                        is_reader=True)
         return subscription
 
     def create_timer(self, timer_period_sec: float, callback: Callable[[], None],
@@ -631,6 +671,8 @@ class Node:
         if publisher not in self._publishers:
             return False
         self._publishers.remove(publisher)
+        self.context.graph.remove_endpoint(self._graph_node, gid_of(publisher._writer),
+                                           is_reader=False)
         publisher.destroy()
         return True
 
@@ -639,6 +681,8 @@ class Node:
             return False
         self._subscriptions.remove(subscription)
         self._waitset.detach(subscription._condition)
+        self.context.graph.remove_endpoint(self._graph_node, gid_of(subscription._reader),
+                                           is_reader=True)
         subscription.destroy()
         return True
 
@@ -832,6 +876,8 @@ class Node:
                         self._descriptors[parameter.name] = parameter_descriptor(
                             dynamic_typing=True)
                     self._parameters[parameter.name] = parameter
+                    if parameter.name == USE_SIM_TIME and isinstance(parameter.value, bool):
+                        self._time_source.set_active(parameter.value)
             results.append(result)
         return results
 
@@ -890,14 +936,28 @@ class Node:
                         kind: TopicEndpointTypeEnum) -> list[TopicEndpointInfo]:
         dds_name = topic_name if no_mangle else 'rt' + self.resolve_topic_name(
             topic_name, only_expand=True)
-        builtin = (BuiltinTopicDcpsPublication if kind == TopicEndpointTypeEnum.PUBLISHER
-                   else BuiltinTopicDcpsSubscription)
-        return [TopicEndpointInfo(node_name='_NODE_NAME_UNKNOWN_',
-                                  node_namespace='_NODE_NAMESPACE_UNKNOWN_',
-                                  topic_type=messages.ros_type_name(e.type_name),
-                                  endpoint_type=kind, endpoint_gid=list(e.key.bytes),
-                                  qos_profile=from_cyclone_qos(e.qos))
-                for e in self._alive_endpoints((builtin,)) if e.topic_name == dds_name]
+        is_reader = kind == TopicEndpointTypeEnum.SUBSCRIPTION
+        builtin = BuiltinTopicDcpsSubscription if is_reader else BuiltinTopicDcpsPublication
+        endpoints = [e for e in self._alive_endpoints((builtin,)) if e.topic_name == dds_name]
+        participants = self.context.graph.participants() if endpoints else {}
+        infos = []
+        for e in endpoints:
+            name, namespace = node_of_endpoint(
+                participants=participants, participant_gid=e.participant_key.bytes,
+                endpoint_gid=e.key.bytes, is_reader=is_reader)
+            infos.append(TopicEndpointInfo(
+                node_name=name, node_namespace=namespace,
+                topic_type=messages.ros_type_name(e.type_name), endpoint_type=kind,
+                endpoint_gid=list(e.key.bytes), qos_profile=from_cyclone_qos(e.qos)))
+        return infos
+
+    def get_node_names(self) -> list[str]:
+        """Names of every node in the ROS graph (``ros_discovery_info``), this one included."""
+        return [name for name, _ in self.get_node_names_and_namespaces()]
+
+    def get_node_names_and_namespaces(self) -> list[tuple[str, str]]:
+        """``[(name, namespace), ...]`` of every node in the ROS graph, as rclpy's."""
+        return self.context.graph.node_names_and_namespaces()
 
     def count_publishers(self, topic_name: str) -> int:
         """Alive publishers of ``topic_name`` (resolved for this node) in the DDS graph."""
@@ -916,6 +976,9 @@ class Node:
         """Delete every DDS entity of this node (idempotent)."""
         if self._waitset is None:
             return
+        self.context.graph.remove_node(self._graph_node)  # its endpoints leave with it
+        if self._rosout is not None:
+            self._rosout.close()
         for timer in self._timers:
             timer.destroy()
         for subscription in self._subscriptions:
