@@ -153,15 +153,20 @@ def test_graph_sample_decodes_with_rosbags_and_lists_the_endpoint_guids(contexts
 
 
 def test_graph_sample_follows_endpoint_and_node_changes_and_reaches_late_joiners(
-        contexts, ros_domain_id):
+        contexts, bare, ros_domain_id):
     context = contexts()
     gid = context.participant.guid.bytes
     node = Node('simulator', context=context)
     publisher = node.create_publisher(_STRING, 'state', 10)
     subscription = node.create_subscription(_STRING, 'cmd_safe', lambda _: None, 10)
     rosout = node._rosout.writer.guid.bytes
+    both = ('/', 'simulator', {subscription._reader.guid.bytes},
+            {rosout, publisher._writer.guid.bytes})
+    _wait_for(lambda: bare.nodes_of(gid) == [both], 'the node with its endpoints')
     node.destroy_publisher(publisher)
     node.destroy_subscription(subscription)
+    _wait_for(lambda: bare.nodes_of(gid) == [('/', 'simulator', set(), {rosout})],
+              'the destroyed endpoints leaving the sample')
     other = Node('recorder', context=context)
     late = BareGraphReader(ros_domain_id)  # joins after every change: gets the current one
     try:
