@@ -266,6 +266,20 @@ def test_quiet_logger_sends_nothing(contexts, monkeypatch):
     assert node._rosout.writer is None
 
 
+def test_disable_rosout_logs_leaves_nodes_without_rosout(ros_domain_id):
+    context = Context()
+    context.init(args=['prog', '--ros-args', '--enable-rosout-logs', '--disable-rosout-logs'],
+                 domain_id=ros_domain_id)
+    try:
+        node = Node('silent', context=context)
+        assert node._rosout is None
+        assert node.get_logger().info('console only')
+        [entry] = context.graph.participants()[context.graph.gid]
+        assert entry.writers == []
+    finally:
+        context.shutdown()
+
+
 # ----------------------------------------------------------------------------- use_sim_time
 def test_use_sim_time_declared_false_by_default(contexts):
     node = Node('plain', context=contexts())

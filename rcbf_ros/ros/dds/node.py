@@ -603,7 +603,7 @@ class Node:
         self._graph_node = self.context.graph.add_node(name=self._name,
                                                        namespace=self._namespace)
         self._rosout: RosoutWriter | None = None
-        if enable_rosout:
+        if enable_rosout and self.context.arguments.rosout_logs:  # as rcl: global args only
             self._rosout = RosoutWriter(self.context.participant,
                                         self._dds_topic(ROSOUT_TOPIC, LOG_TYPE))
             self.context.graph.add_endpoint(self._graph_node, gid_of(self._rosout.writer),
