@@ -309,3 +309,45 @@ def test_use_sim_time_follows_clock_and_switches_back(contexts):
     assert abs(node.get_clock().now().nanoseconds * 1e-9 - time.time()) < 60
     [result] = node.set_parameters([Parameter('use_sim_time', value='yes')])
     assert not result.successful  # statically typed bool, as rclpy declares it
+
+
+def test_timers_follow_clock_under_use_sim_time(contexts):
+    clock_type = messages.get_message('rosgraph_msgs/msg/Clock')
+    time_type = messages.get_message('builtin_interfaces/msg/Time')
+    node = Node('simulated', context=contexts(),
+                parameter_overrides=[Parameter('use_sim_time', value=True)])
+    calls: list[int] = []
+    node.create_timer(0.2, lambda: calls.append(node.get_clock().now().nanoseconds))
+    clock_node = Node('clock', context=contexts())
+    clock_pub = clock_node.create_publisher(
+        clock_type, '/clock', QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+    _wait_for(lambda: clock_pub.get_subscription_count(), '/clock matched')
+
+    def spin_for(seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            spin_once(node, timeout_sec=0.02)
+
+    def set_sim_time(nanoseconds: int) -> None:
+        sec, nanosec = divmod(nanoseconds, 10**9)
+
+        def arrived() -> bool:
+            clock_pub.publish(clock_type(clock=time_type(sec=sec, nanosec=nanosec)))
+            spin_for(0.05)
+            return node.get_clock().now().nanoseconds == nanoseconds
+        _wait_for(arrived, f'simulated time {nanoseconds} ns')
+        spin_for(0.1)
+
+    spin_for(0.5)  # wall time passes, simulated time does not (zero: no /clock yet)
+    assert calls == []
+    set_sim_time(100_000_000)
+    assert calls == []
+    set_sim_time(250_000_000)
+    assert calls == [250_000_000]
+    set_sim_time(1_000_000_000)  # missed periods are skipped, not queued
+    assert calls == [250_000_000, 1_000_000_000]
+    set_sim_time(50_000_000)  # back beyond the last call: one period from there
+    set_sim_time(200_000_000)
+    assert calls == [250_000_000, 1_000_000_000]
+    set_sim_time(260_000_000)
+    assert calls == [250_000_000, 1_000_000_000, 260_000_000]

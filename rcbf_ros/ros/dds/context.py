@@ -185,7 +185,7 @@ def _work_available(node: Any) -> bool:
 
 
 def _next_timer_ns(node: Any) -> int | None:
-    deadlines = [t._next_ns for t in node._timers if not t._canceled]
+    deadlines = [t._next_ns for t in node._timers if not t._canceled and t._on_steady_clock()]
     return min(deadlines) if deadlines else None
 
 

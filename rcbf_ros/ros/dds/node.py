@@ -473,18 +473,53 @@ class Subscription:
 
 
 class Timer:
-    """rclpy.timer.Timer subset on the monotonic clock; missed periods are skipped, not queued."""
+    """rclpy.timer.Timer subset; missed periods are skipped, not queued.
 
-    def __init__(self, period_ns: int, callback: Callable[[], None]) -> None:
+    It runs on the monotonic clock, or, while ``clock`` (the node's) follows ``/clock``
+    (``use_sim_time``), on that time as rcl's ROS-time timers do: due when the simulated time
+    reaches the next period; restarted one period after the time jumps back beyond the last
+    call. A switch of ``use_sim_time`` restarts the period in the new time.
+    """
+
+    def __init__(self, period_ns: int, callback: Callable[[], None],
+                 clock: Clock | None = None) -> None:
         if period_ns <= 0:
             raise ValueError(f'timer period must be positive, got {period_ns} ns')
         self.timer_period_ns = period_ns
         self.callback = callback
         self._canceled = False
-        self._next_ns = time.monotonic_ns() + period_ns
+        self._clock = clock
+        self._ros_time = self._ros_time_active()
+        self._next_ns = self._now() + period_ns
+
+    def _ros_time_active(self) -> bool:
+        return self._clock is not None and self._clock.ros_time_is_active
+
+    def _now(self) -> int:
+        return self._clock.now().nanoseconds if self._ros_time else time.monotonic_ns()
+
+    def _on_steady_clock(self) -> bool:
+        """True unless the timer follows ``/clock`` (then no steady deadline applies)."""
+        return not self._ros_time
+
+    def _follow_switch(self) -> bool:
+        """Restart the period if ``use_sim_time`` switched since the last look; True if so."""
+        if self._ros_time_active() == self._ros_time:
+            return False
+        self._ros_time = not self._ros_time
+        self._next_ns = self._now() + self.timer_period_ns
+        return True
 
     def _due(self, now: int) -> bool:
-        if self._canceled or now < self._next_ns:
+        """True if a call is due at ``now`` (monotonic ns; ignored on simulated time)."""
+        if self._canceled or self._follow_switch():
+            return False
+        if self._ros_time:
+            now = self._now()
+            if now < self._next_ns - self.timer_period_ns:  # jumped back past the last call
+                self._next_ns = now + self.timer_period_ns
+                return False
+        if now < self._next_ns:
             return False
         missed = (now - self._next_ns) // self.timer_period_ns
         self._next_ns += (missed + 1) * self.timer_period_ns
@@ -499,13 +534,17 @@ class Timer:
 
     def reset(self) -> None:
         self._canceled = False
-        self._next_ns = time.monotonic_ns() + self.timer_period_ns
+        self._follow_switch()
+        self._next_ns = self._now() + self.timer_period_ns
 
     def is_canceled(self) -> bool:
         return self._canceled
 
     def time_until_next_call(self) -> int | None:
-        return None if self._canceled else self._next_ns - time.monotonic_ns()
+        if self._canceled:
+            return None
+        self._follow_switch()
+        return self._next_ns - self._now()
 
     def destroy(self) -> None:
         self._canceled = True
@@ -662,7 +701,7 @@ class Node:
 
     def create_timer(self, timer_period_sec: float, callback: Callable[[], None],
                      **_ignored: Any) -> Timer:
-        timer = Timer(int(round(timer_period_sec * 1e9)), callback)
+        timer = Timer(int(round(timer_period_sec * 1e9)), callback, self._clock)
         self._timers.append(timer)
         self._wake()
         return timer
