@@ -9,6 +9,8 @@ checks the same against the real ros2cli and rclpy.
 from __future__ import annotations
 
 import inspect
+import subprocess
+import sys
 import time
 from typing import Any, Callable
 
@@ -22,12 +24,13 @@ from cyclonedds.core import InstanceState, Policy, Qos, ReadCondition, SampleSta
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
+from dds_harness import REPO, subprocess_env  # this directory: on sys.path for pytest
 import pytest
 from rosbags.typesys import get_typestore, Stores
 
 from rcbf_ros.ros.dds import graph, messages
 from rcbf_ros.ros.dds.context import Context, spin_once
-from rcbf_ros.ros.dds.node import Node, Parameter
+from rcbf_ros.ros.dds.node import Node, Parameter, ParameterException
 from rcbf_ros.ros.dds.qos import QoSProfile, ReliabilityPolicy
 
 pytestmark = pytest.mark.integration
@@ -351,3 +354,22 @@ def test_timers_follow_clock_under_use_sim_time(contexts):
     assert calls == [250_000_000, 1_000_000_000]
     set_sim_time(260_000_000)
     assert calls == [250_000_000, 1_000_000_000, 260_000_000]
+
+
+def test_a_use_sim_time_override_of_another_type_leaves_no_node(contexts):
+    context = contexts()
+    with pytest.raises(ParameterException, match="'use_sim_time'.*expecting type 'BOOL'"):
+        Node('refused', context=context, parameter_overrides=[Parameter('use_sim_time', value=1)])
+    assert context.graph.node_names_and_namespaces() == []
+    assert context._nodes == []
+
+
+def test_a_node_script_refuses_a_bad_use_sim_time_in_one_line(ros_domain_id):
+    done = subprocess.run(
+        [sys.executable, '-m', 'rcbf_ros.ros.recorder_node', '--ros-args', '-p',
+         'use_sim_time:=1'], env=subprocess_env(ros_domain_id), cwd=REPO, timeout=120,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines() == [
+        "recorder: cannot record: Trying to set parameter 'use_sim_time' to '1' of type "
+        "'INTEGER', expecting type 'BOOL': use_sim_time"]

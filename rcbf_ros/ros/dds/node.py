@@ -648,7 +648,11 @@ class Node:
             self.context.graph.add_endpoint(self._graph_node, gid_of(self._rosout.writer),
                                             is_reader=False)
             self._logger._rosout = self._rosout
-        self._time_source = TimeSource(node=self)
+        try:
+            self._time_source = TimeSource(node=self)
+        except Exception:  # e.g. a use_sim_time override that is not a bool: no node is left
+            self.destroy_node()
+            raise
 
     # names ----------------------------------------------------------------------------------
     def get_name(self) -> str:
