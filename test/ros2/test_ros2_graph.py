@@ -85,6 +85,9 @@ def test_ros2cli_lists_and_describes_nodes_on_our_runtime(jazzy: Jazzy, tmp_path
         assert '/state: std_msgs/msg/Float64MultiArray' in subscribers
         assert '/cmd_proposed: std_msgs/msg/Float64MultiArray' in subscribers
         assert '/rosout: rcl_interfaces/msg/Log' in publishers
+        simulator = jazzy.run('ros2 node info /simulator --no-daemon', domain_id=ros_domain_id)
+        assert '/state: std_msgs/msg/Float64MultiArray' in \
+            simulator.stdout.split('Publishers:')[1].split('Service Servers:')[0], simulator.stdout
 
         def owners() -> str | tuple:
             done = jazzy.run('ros2 topic info -v /cmd_safe --no-daemon',
