@@ -5,7 +5,7 @@ from overrides). While it is true the node subscribes to ``/clock`` (``rosgraph_
 best effort, keep-last 1) and ``get_clock().now()`` returns the last time received there (zero
 until the first message); while false, the system time. Setting the parameter switches at once.
 
-Timers keep running on the steady clock either way (rclpy's would follow the simulated time).
+The node's timers follow the same clock (:class:`rcbf_ros.ros.dds.node.Timer`).
 """
 from __future__ import annotations
 
