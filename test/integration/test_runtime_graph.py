@@ -9,6 +9,8 @@ checks the same against the real ros2cli and rclpy.
 from __future__ import annotations
 
 import inspect
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -29,7 +31,7 @@ import pytest
 from rosbags.typesys import get_typestore, Stores
 
 from rcbf_ros.ros.dds import graph, messages
-from rcbf_ros.ros.dds.context import Context, spin_once
+from rcbf_ros.ros.dds.context import Context, ExternalShutdownException, spin_once
 from rcbf_ros.ros.dds.node import Node, Parameter, ParameterException
 from rcbf_ros.ros.dds.qos import QoSProfile, ReliabilityPolicy
 
@@ -373,3 +375,29 @@ def test_a_node_script_refuses_a_bad_use_sim_time_in_one_line(ros_domain_id):
     assert done.stderr.strip().splitlines() == [
         "recorder: cannot record: Trying to set parameter 'use_sim_time' to '1' of type "
         "'INTEGER', expecting type 'BOOL': use_sim_time"]
+
+
+@pytest.mark.parametrize('signum, expected', [(signal.SIGINT, KeyboardInterrupt),
+                                              (signal.SIGTERM, ExternalShutdownException)])
+def test_a_signal_during_a_graph_query_raises_the_signals_exception(
+        ros_domain_id, monkeypatch, signum, expected):
+    # Cyclone builds discovery samples through Python callbacks; a signal handled inside one
+    # used to come out of the query as a bare "Sampleinfo errored" Exception.
+    context = Context()
+    context.init(args=[], domain_id=ros_domain_id)  # installs the SIGINT/SIGTERM handlers
+    try:
+        node = Node('queried', context=context)
+        node.create_publisher(_STRING, 'state', 10)
+        _wait_for(lambda: node.count_publishers('state'), 'the publisher in discovery')
+        node._endpoint_cache.clear()
+        for reader, _, _ in node._builtin_readers:
+            build = reader._constructor
+
+            def build_with_signal(*args, build=build):
+                os.kill(os.getpid(), signum)
+                return build(*args)
+            monkeypatch.setattr(reader, '_constructor', build_with_signal)
+        with pytest.raises(expected):
+            node.get_topic_names_and_types()
+    finally:
+        context.try_shutdown()

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import threading
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from cyclonedds._clayer import ddspy_take, ddspy_write
 from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsParticipant
@@ -131,8 +131,12 @@ class GraphInfo:
     :meth:`add_endpoint` and :meth:`remove_endpoint`; each change publishes the whole entry once.
     """
 
-    def __init__(self, participant: DomainParticipant) -> None:
+    def __init__(self, participant: DomainParticipant, *,
+                 read_builtin: Callable[[Any, Any, int], list[Any]]) -> None:
+        """``read_builtin(reader, condition, count)`` reads a built-in topic reader (the
+        context's, which turns a signal inside Cyclone's callbacks into its exception)."""
         self.gid = gid_of(participant)
+        self._read_builtin = read_builtin
         """This participant's GID."""
         self.undecodable_count = 0
         """Samples of other participants that did not decode (dropped)."""
@@ -200,7 +204,8 @@ class GraphInfo:
                 return {}
             self._take_remote()
             alive = {}
-            for sample in self._participants.read(N=100000, condition=self._alive_participants):
+            for sample in self._read_builtin(self._participants, self._alive_participants,
+                                             100000):
                 alive[sample.key.bytes] = _is_ros_participant(sample.qos)
             self._remote = {gid: nodes for gid, nodes in self._remote.items() if gid in alive}
             known = {gid: [] for gid, ros in alive.items() if ros and gid != self.gid}

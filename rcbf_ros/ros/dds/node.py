@@ -948,9 +948,10 @@ class Node:
                 self._builtin_readers):
             if kind not in kinds:
                 continue
-            changed = reader.read(N=64, condition=unread_condition)  # any will do
+            read = self.context.read_builtin
+            changed = read(reader, unread_condition, 64)  # any will do
             if changed or kind not in self._endpoint_cache:
-                self._endpoint_cache[kind] = reader.read(N=100000, condition=alive_condition)
+                self._endpoint_cache[kind] = read(reader, alive_condition, 100000)
             endpoints.extend(self._endpoint_cache[kind])
         return endpoints
 

@@ -41,6 +41,8 @@ class RosoutWriter:
         self.writer: DataWriter | None = DataWriter(participant, topic, qos=qos)
         self._log_type = messages.get_message(LOG_TYPE)
         self._time_type = messages.get_message('builtin_interfaces/msg/Time')
+        # rosbags builds a type's serializer on first use (tens of ms): here, not in a callback
+        messages.serialize_message(self._log_type())
 
     def write(self, *, stamp_ns: int, level: int, name: str, msg: str, file: str,
               function: str, line: int) -> None:
