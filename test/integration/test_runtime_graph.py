@@ -401,3 +401,16 @@ def test_a_signal_during_a_graph_query_raises_the_signals_exception(
             node.get_topic_names_and_types()
     finally:
         context.try_shutdown()
+
+
+def test_use_sim_time_refuses_a_value_that_is_not_a_bool_as_rclpys_time_source(contexts):
+    # Declared from an integer override before the time source looks: rclpy logs an error and
+    # its time source refuses every later value that is not a bool.
+    node = Node('auto', context=contexts(),
+                parameter_overrides=[Parameter('use_sim_time', value=1)],
+                automatically_declare_parameters_from_overrides=True)
+    assert not node.get_clock().ros_time_is_active
+    [result] = node.set_parameters([Parameter('use_sim_time', value=3)])
+    assert not result.successful
+    assert result.reason == 'use_sim_time parameter set to something besides a bool'
+    assert node.get_parameter('use_sim_time').value == 1

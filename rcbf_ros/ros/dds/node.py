@@ -46,7 +46,7 @@ from rcbf_ros.ros.dds.context import (
 from rcbf_ros.ros.dds.graph import gid_of, node_of_endpoint
 from rcbf_ros.ros.dds.qos import as_profile, from_cyclone_qos, QoSProfile, to_cyclone_qos
 from rcbf_ros.ros.dds.rosout import LOG_TYPE, ROSOUT_TOPIC, RosoutWriter
-from rcbf_ros.ros.dds.time_source import TimeSource, USE_SIM_TIME
+from rcbf_ros.ros.dds.time_source import TimeSource
 
 _ANY_SAMPLE = SampleState.Any | ViewState.Any | InstanceState.Any
 _TAKE_BATCH = 256
@@ -910,6 +910,8 @@ class Node:
             descriptor = self._descriptors.get(parameter.name)
             result = (_set_parameters_result(True) if descriptor is None
                       else self._apply_descriptor(parameter, descriptor))
+            if result.successful:  # rclpy's time source is an on-set-parameters callback
+                result = self._time_source.on_parameters_set([parameter])
             if result.successful:
                 if parameter.type_ is Parameter.Type.NOT_SET:
                     self._parameters.pop(parameter.name, None)
@@ -919,8 +921,6 @@ class Node:
                         self._descriptors[parameter.name] = parameter_descriptor(
                             dynamic_typing=True)
                     self._parameters[parameter.name] = parameter
-                    if parameter.name == USE_SIM_TIME and isinstance(parameter.value, bool):
-                        self._time_source.set_active(parameter.value)
             results.append(result)
         return results
 

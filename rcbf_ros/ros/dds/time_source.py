@@ -56,7 +56,26 @@ class TimeSource:
             subscription, self._subscription = self._subscription, None
             self._node.destroy_subscription(subscription)
 
+    def on_parameters_set(self, parameters: list[Any]) -> Any:
+        """rclpy's on-set-parameters callback of the time source: ``use_sim_time`` switches the
+        clock; a value that is not a bool is refused (a ``SetParametersResult``)."""
+        for parameter in parameters:
+            if parameter.name != USE_SIM_TIME:
+                continue
+            if not isinstance(parameter.value, bool):
+                reason = f'{USE_SIM_TIME} parameter set to something besides a bool'
+                self._node.get_logger().error(reason)
+                return _result(False, reason)
+            self.set_active(parameter.value)
+            break
+        return _result(True)
+
     def _on_clock(self, message: Any) -> None:
         self._last_ns = message.clock.sec * 10**9 + message.clock.nanosec
         if self.active:
             self._node.get_clock()._set_ros_time(self._last_ns)
+
+
+def _result(successful: bool, reason: str = '') -> Any:
+    return messages.get_message('rcl_interfaces/msg/SetParametersResult')(
+        successful=successful, reason=reason)
