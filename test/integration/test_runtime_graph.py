@@ -9,6 +9,7 @@ checks the same against the real ros2cli and rclpy.
 from __future__ import annotations
 
 import inspect
+import io
 import os
 import signal
 import subprocess
@@ -414,3 +415,37 @@ def test_use_sim_time_refuses_a_value_that_is_not_a_bool_as_rclpys_time_source(c
     assert not result.successful
     assert result.reason == 'use_sim_time parameter set to something besides a bool'
     assert node.get_parameter('use_sim_time').value == 1
+
+
+def test_an_undecodable_graph_sample_is_dropped_and_counted(contexts, ros_domain_id):
+    from cyclonedds._clayer import ddspy_write
+    from cyclonedds.pub import DataWriter
+    context = contexts()
+    observer = Node('observer', context=context)
+    stranger = DomainParticipant(ros_domain_id)
+    try:
+        topic = Topic(stranger, graph.DISCOVERY_TOPIC,
+                      messages.idl_struct(graph.PARTICIPANT_INFO_TYPE))
+        writer = DataWriter(stranger, topic, qos=Qos(
+            Policy.Reliability.Reliable(max_blocking_time=10**9),
+            Policy.Durability.TransientLocal, Policy.History.KeepLast(1)))
+        # well-formed for DDS, but a node name that is not UTF-8
+        valid = messages.serialize_message(graph.participant_info_message(
+            participant_gid=stranger.guid.bytes,
+            nodes=[graph.NodeEntities(namespace='/', name='AB')]))
+        ddspy_write(writer._ref, messages.dds_payload(valid.replace(b'AB\x00', b'\xff\xfe\x00')))
+        _wait_for(lambda: context.graph.participants() is not None
+                  and context.graph.undecodable_count == 1, 'the sample counted')
+        assert observer.get_node_names() == ['observer']
+    finally:
+        stranger.__del__()
+
+
+def test_a_log_line_rosout_cannot_carry_goes_to_the_console_with_one_more_line(
+        contexts, monkeypatch):
+    node = Node('talker', context=contexts())
+    console = io.StringIO()
+    monkeypatch.setattr(sys, 'stderr', console)
+    assert node.get_logger().info('bad \udcff text')
+    err = console.getvalue()
+    assert err.count('\n') == 2 and 'Failed to publish log message to rosout: ' in err
