@@ -187,7 +187,7 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
         sys.stdout.write(help_text(resolve(interface, argv)))
         sys.stdout.flush()
         return 0
-    from rcbf_ros.ros.runtime import ExternalShutdownException, rclpy
+    from rcbf_ros.ros.runtime import ExternalShutdownException, ParameterException, rclpy
 
     _STOP.reset()
     _STOP.install()
@@ -202,7 +202,10 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
             rclpy.try_shutdown()
             return 0
         _STOP.install()  # our runtime's init installs handlers of its own
-        return _run(name, make_node, run=run, on_exit=on_exit, setup_errors=setup_errors,
+        # A parameter the runtime declares for every node (use_sim_time) refusing its override
+        # is the user's error too.
+        return _run(name, make_node, run=run, on_exit=on_exit,
+                    setup_errors=(*setup_errors, ParameterException),
                     setup_message=setup_message, shutdown_errors=(ExternalShutdownException,),
                     rclpy=rclpy)
     finally:

@@ -197,11 +197,11 @@ class RecorderNode(Node):
         self.recorder = Recorder(writer, lambda: self.get_clock().now().nanoseconds)
         self._subscriptions_by_topic: dict[str, Any] = {}
         self._warned: set[str] = set()
-        self.get_logger().info(
-            f'recording {list(self.config.topics) or "all topics"} into {self.bag_directory}')
         self.discover()
         self.create_timer(self.config.discovery_period_s, self.discover)
         self.create_timer(self.config.flush_period_s, self.flush)
+        self.get_logger().info(  # once set up: a stop from here on closes the bag
+            f'recording {list(self.config.topics) or "all topics"} into {self.bag_directory}')
 
     def _read_config(self) -> RecorderConfig:
         """Declare and read every parameter; a bad type is a ValueError naming the parameter.

@@ -293,9 +293,9 @@ def test_client_call_spins_the_node_itself_and_times_out(nodes):
 def test_list_parameters_follows_rclpys_prefix_and_depth_rules(nodes):
     server, _ = nodes
     everything = server.list_parameters([], 0)
-    assert everything.names == ['gain', 'limits.speed', 'limits.deep.x', 'mode']
+    assert everything.names == ['use_sim_time', 'gain', 'limits.speed', 'limits.deep.x', 'mode']
     assert everything.prefixes == ['limits', 'limits.deep']
-    assert server.list_parameters([], 1).names == ['gain', 'mode']
+    assert server.list_parameters([], 1).names == ['use_sim_time', 'gain', 'mode']
     assert server.list_parameters(['limits'], 0).names == ['limits.speed', 'limits.deep.x']
     assert server.list_parameters(['limits'], 1).names == ['limits.speed']
     assert server.list_parameters(['gain'], 1).names == ['gain']

@@ -139,7 +139,8 @@ def test_list_parameters_returns_the_rcl_interfaces_message(node):
     node.declare_parameter('p.q', 1)
     result = node.list_parameters([], DEPTH_RECURSIVE)
     assert type(result) is get_message('rcl_interfaces/msg/ListParametersResult')
-    assert list(result.names) == ['p.q'] and list(result.prefixes) == ['p']
+    assert list(result.names) == ['use_sim_time', 'p.q']  # use_sim_time: every node's, as rclpy
+    assert list(result.prefixes) == ['p']
 
 
 def test_the_same_list_object_reaches_the_on_set_and_post_set_callbacks(node):

@@ -71,6 +71,9 @@ class RosArguments:
     """``--log-level`` for the default logger (``debug|info|warn|error|fatal``)."""
     unparsed: tuple[str, ...] = ()
     """Arguments outside ``--ros-args`` sections (what ``remove_ros_args`` returns)."""
+    rosout_logs: bool = True
+    """False after ``--disable-rosout-logs`` (the last of it and ``--enable-rosout-logs``
+    wins); rcl reads it from the process's global arguments only."""
 
 
 def _split_assignment(flag: str, text: str) -> tuple[str, str]:
@@ -96,6 +99,7 @@ def parse_ros_arguments(argv: Sequence[str] | None) -> RosArguments:
     remaps: list[RemapRule] = []
     unparsed: list[str] = []
     node_name = namespace = log_level = None
+    rosout_logs = True
     words = list(argv or [])
     index = 0
     in_ros = False
@@ -112,6 +116,8 @@ def parse_ros_arguments(argv: Sequence[str] | None) -> RosArguments:
             in_ros = False
             continue
         if word in _FLAG_ONLY:
+            if word.endswith('-rosout-logs'):
+                rosout_logs = word == '--enable-rosout-logs'
             continue
         if word not in ('-p', '--param', '-r', '--remap', '--params-file', '--log-level', '-e',
                         '--enclave'):
@@ -145,7 +151,7 @@ def parse_ros_arguments(argv: Sequence[str] | None) -> RosArguments:
         elif word == '--log-level':
             log_level = (value.split(':=', 1)[1] if ':=' in value else value).lower()
     return RosArguments(rules, tuple(params_files), tuple(remaps), node_name, namespace,
-                        log_level, tuple(unparsed))
+                        log_level, tuple(unparsed), rosout_logs=rosout_logs)
 
 
 def _add_param_rule(rules: ParamRules, flag: str, text: str) -> None:

@@ -36,6 +36,7 @@ from cyclonedds.domain import DomainParticipant
 from cyclonedds.util import duration
 
 from rcbf_ros.ros.dds.arguments import parse_ros_arguments, RosArguments
+from rcbf_ros.ros.dds.graph import GraphInfo
 from rcbf_ros.ros.loopback import (
     ensure_loopback,
     LOOPBACK_CYCLONEDDS_URI,
@@ -64,12 +65,16 @@ class Context:
 
     def __init__(self) -> None:
         self.participant: DomainParticipant | None = None
+        self.graph: GraphInfo | None = None
+        """This participant's ``ros_discovery_info`` entry and the graph (while initialized)."""
         self.domain_id: int = 0
         self.arguments: RosArguments = RosArguments()
         self._ok = False
         self._nodes: list[Any] = []
         self._lock = threading.RLock()
         self._pending_signal: int | None = None
+        self.stopped_by_signal: int | None = None
+        """The signal that shut this context down (None: none did)."""
         self._previous_handlers: dict[int, Any] = {}
         self.spinning_threads: set[int] = set()
 
@@ -88,7 +93,8 @@ class Context:
                 raise ValueError(f'domain_id must be in 0..232, got {domain_id}')
             self.domain_id = domain_id
             self.participant = _create_participant(domain_id)
-            self._pending_signal = None
+            self.graph = GraphInfo(self.participant, read_builtin=self.read_builtin)
+            self._pending_signal = self.stopped_by_signal = None
             self._ok = True
             if threading.current_thread() is threading.main_thread():
                 for signum in (signal.SIGINT, signal.SIGTERM):
@@ -127,6 +133,9 @@ class Context:
             self._previous_handlers.clear()
             for node in list(self._nodes):
                 node.destroy_node()
+            if self.graph is not None:
+                self.graph.close()
+                self.graph = None
             delete_entity(self.participant)
             self.participant = None
 
@@ -137,7 +146,7 @@ class Context:
     def _on_signal(self, signum: int, frame: Any) -> None:
         if not self._ok:  # already stopping: let the clean-up finish
             return
-        self._pending_signal = signum
+        self._pending_signal = self.stopped_by_signal = signum
         self._mark_shutdown()
         if threading.get_ident() not in self.spinning_threads:
             self.raise_pending_signal()
@@ -145,10 +154,30 @@ class Context:
     def raise_pending_signal(self) -> None:
         """Raise the exception of a signal received since the last call, if any."""
         signum, self._pending_signal = self._pending_signal, None
-        if signum == signal.SIGINT:
-            raise KeyboardInterrupt
         if signum is not None:
-            raise ExternalShutdownException(f'received signal {signal.Signals(signum).name}')
+            raise signal_exception(signum)
+
+    def read_builtin(self, reader: Any, condition: Any, count: int) -> list[Any]:
+        """``reader.read(N=count, condition=condition)`` of a Cyclone built-in topic reader.
+
+        Cyclone builds those samples through Python callbacks; when a signal's handler raises
+        inside one, Cyclone reports a plain ``Exception``: this raises the signal's own
+        exception instead (``KeyboardInterrupt`` or :class:`ExternalShutdownException`).
+        """
+        try:
+            return reader.read(N=count, condition=condition)
+        except Exception as exc:
+            if self.stopped_by_signal is None:
+                raise
+            raise signal_exception(self.stopped_by_signal) from exc
+
+
+def signal_exception(signum: int) -> BaseException:
+    """What a spinning node raises for a signal: KeyboardInterrupt for SIGINT, else
+    :class:`ExternalShutdownException`."""
+    if signum == signal.SIGINT:
+        return KeyboardInterrupt()
+    return ExternalShutdownException(f'received signal {signal.Signals(signum).name}')
 
 
 default_context = Context()
@@ -187,7 +216,7 @@ def _work_available(node: Any) -> bool:
 
 
 def _next_timer_ns(node: Any) -> int | None:
-    deadlines = [t._next_ns for t in node._timers if not t._canceled]
+    deadlines = [t._next_ns for t in node._timers if not t._canceled and t._on_steady_clock()]
     return min(deadlines) if deadlines else None
 
 

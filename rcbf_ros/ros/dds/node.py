@@ -44,7 +44,10 @@ from rcbf_ros.ros.dds.context import (
     new_ready_queue,
     new_wait_objects,
 )
+from rcbf_ros.ros.dds.graph import gid_of, node_of_endpoint
 from rcbf_ros.ros.dds.qos import as_profile, from_cyclone_qos, QoSProfile, to_cyclone_qos
+from rcbf_ros.ros.dds.rosout import LOG_TYPE, ROSOUT_TOPIC, RosoutWriter
+from rcbf_ros.ros.dds.time_source import TimeSource
 
 _ANY_SAMPLE = SampleState.Any | ViewState.Any | InstanceState.Any
 _TAKE_BATCH = 256
@@ -103,10 +106,23 @@ class Time:
 
 
 class Clock:
-    """rclpy.clock.Clock subset (system time)."""
+    """rclpy.clock.ROSClock subset: system time, or the time ``/clock`` gives while the node's
+    ``use_sim_time`` is true (:mod:`.time_source`)."""
+
+    def __init__(self) -> None:
+        self._ros_time_ns: int | None = None
+
+    @property
+    def ros_time_is_active(self) -> bool:
+        return self._ros_time_ns is not None
+
+    def _set_ros_time(self, nanoseconds: int | None) -> None:
+        """Override the time (None: back to the system time)."""
+        self._ros_time_ns = nanoseconds
 
     def now(self) -> Time:
-        return Time(nanoseconds=time.time_ns())
+        ros_time_ns = self._ros_time_ns
+        return Time(nanoseconds=time.time_ns() if ros_time_ns is None else ros_time_ns)
 
 
 class LoggingSeverity(enum.IntEnum):
@@ -126,16 +142,19 @@ _LEVEL_NAMES = {'debug': LoggingSeverity.DEBUG, 'info': LoggingSeverity.INFO,
 
 
 class Logger:
-    """rcutils-style logger writing ``[LEVEL] [time] [name]: message`` to stderr."""
+    """rcutils-style logger writing ``[LEVEL] [time] [name]: message`` to stderr, and, for a
+    node's logger and its children, the same line to ``/rosout`` (:mod:`.rosout`)."""
 
-    def __init__(self, name: str, level: LoggingSeverity = LoggingSeverity.INFO) -> None:
+    def __init__(self, name: str, level: LoggingSeverity = LoggingSeverity.INFO,
+                 rosout: RosoutWriter | None = None) -> None:
         self.name = name
         self.level = level
+        self._rosout = rosout
         self._once: set[tuple[str, str]] = set()
         self._last: dict[tuple[str, str], float] = {}
 
     def get_child(self, suffix: str) -> Logger:
-        return Logger(f'{self.name}.{suffix}', self.level)
+        return Logger(f'{self.name}.{suffix}', self.level, self._rosout)
 
     def set_level(self, level: LoggingSeverity | int) -> None:
         self.level = LoggingSeverity(level)
@@ -164,8 +183,15 @@ class Logger:
                 return False
             else:
                 self._last[key] = now
-        sys.stderr.write(f'[{severity.name}] [{time.time():.9f}] [{self.name}]: {message}\n')
+        stamp_ns = time.time_ns()
+        sys.stderr.write(f'[{severity.name}] [{stamp_ns // 10**9}.{stamp_ns % 10**9:09d}] '
+                         f'[{self.name}]: {message}\n')
         sys.stderr.flush()
+        if self._rosout is not None:
+            caller = sys._getframe(2)  # the caller of debug() ... fatal()
+            self._rosout.write(stamp_ns=stamp_ns, level=int(severity), name=self.name,
+                               msg=str(message), file=caller.f_code.co_filename,
+                               function=caller.f_code.co_name, line=caller.f_lineno)
         return True
 
     def debug(self, message: str, **kwargs: Any) -> bool:
@@ -504,18 +530,53 @@ class Subscription:
 
 
 class Timer:
-    """rclpy.timer.Timer subset on the monotonic clock; missed periods are skipped, not queued."""
+    """rclpy.timer.Timer subset; missed periods are skipped, not queued.
 
-    def __init__(self, period_ns: int, callback: Callable[[], None]) -> None:
+    It runs on the monotonic clock, or, while ``clock`` (the node's) follows ``/clock``
+    (``use_sim_time``), on that time as rcl's ROS-time timers do: due when the simulated time
+    reaches the next period; restarted one period after the time jumps back beyond the last
+    call. A switch of ``use_sim_time`` restarts the period in the new time.
+    """
+
+    def __init__(self, period_ns: int, callback: Callable[[], None],
+                 clock: Clock | None = None) -> None:
         if period_ns <= 0:
             raise ValueError(f'timer period must be positive, got {period_ns} ns')
         self.timer_period_ns = period_ns
         self.callback = callback
         self._canceled = False
-        self._next_ns = time.monotonic_ns() + period_ns
+        self._clock = clock
+        self._ros_time = self._ros_time_active()
+        self._next_ns = self._now() + period_ns
+
+    def _ros_time_active(self) -> bool:
+        return self._clock is not None and self._clock.ros_time_is_active
+
+    def _now(self) -> int:
+        return self._clock.now().nanoseconds if self._ros_time else time.monotonic_ns()
+
+    def _on_steady_clock(self) -> bool:
+        """True unless the timer follows ``/clock`` (then no steady deadline applies)."""
+        return not self._ros_time
+
+    def _follow_switch(self) -> bool:
+        """Restart the period if ``use_sim_time`` switched since the last look; True if so."""
+        if self._ros_time_active() == self._ros_time:
+            return False
+        self._ros_time = not self._ros_time
+        self._next_ns = self._now() + self.timer_period_ns
+        return True
 
     def _due(self, now: int) -> bool:
-        if self._canceled or now < self._next_ns:
+        """True if a call is due at ``now`` (monotonic ns; ignored on simulated time)."""
+        if self._canceled or self._follow_switch():
+            return False
+        if self._ros_time:
+            now = self._now()
+            if now < self._next_ns - self.timer_period_ns:  # jumped back past the last call
+                self._next_ns = now + self.timer_period_ns
+                return False
+        if now < self._next_ns:
             return False
         missed = (now - self._next_ns) // self.timer_period_ns
         self._next_ns += (missed + 1) * self.timer_period_ns
@@ -530,13 +591,17 @@ class Timer:
 
     def reset(self) -> None:
         self._canceled = False
-        self._next_ns = time.monotonic_ns() + self.timer_period_ns
+        self._follow_switch()
+        self._next_ns = self._now() + self.timer_period_ns
 
     def is_canceled(self) -> bool:
         return self._canceled
 
     def time_until_next_call(self) -> int | None:
-        return None if self._canceled else self._next_ns - time.monotonic_ns()
+        if self._canceled:
+            return None
+        self._follow_switch()
+        return self._next_ns - self._now()
 
     def destroy(self) -> None:
         self._canceled = True
@@ -554,9 +619,9 @@ class TopicEndpointTypeEnum(enum.IntEnum):
 class TopicEndpointInfo:
     """rclpy.topic_endpoint_info.TopicEndpointInfo subset: one endpoint as discovery shows it.
 
-    Node names travel in ROS 2's ``ros_discovery_info``, which this runtime does not read, so
-    they are rmw's placeholders for endpoints of unknown nodes; ``endpoint_gid`` is the DDS
-    GUID, whose first 12 bytes name the participant (one per process).
+    Node names come from ROS 2's ``ros_discovery_info`` (:mod:`.graph`), with rmw's
+    placeholders where no node claims the endpoint; ``endpoint_gid`` is the 16-byte DDS GUID,
+    whose first 12 bytes name the participant (one per process).
     """
 
     node_name: str
@@ -581,7 +646,8 @@ class Node:
                  parameter_overrides: Iterable[Parameter] | None = None,
                  allow_undeclared_parameters: bool = False,
                  automatically_declare_parameters_from_overrides: bool = False,
-                 start_parameter_services: bool = True, **_ignored: Any) -> None:
+                 start_parameter_services: bool = True, enable_rosout: bool = True,
+                 **_ignored: Any) -> None:
         self.context = default_context if context is None else context
         if not self.context.ok() or self.context.participant is None:
             raise RuntimeError('rclpy.init() must be called before creating a Node')
@@ -636,6 +702,20 @@ class Node:
         self._service_endpoints: list[services.Service | services.Client] = []
         self._services_polled_ns = 0
         self.context.add_node(self)
+        self._graph_node = self.context.graph.add_node(name=self._name,
+                                                       namespace=self._namespace)
+        self._rosout: RosoutWriter | None = None
+        if enable_rosout and self.context.arguments.rosout_logs:  # as rcl: global args only
+            self._rosout = RosoutWriter(self.context.participant,
+                                        self._dds_topic(ROSOUT_TOPIC, LOG_TYPE))
+            self.context.graph.add_endpoint(self._graph_node, gid_of(self._rosout.writer),
+                                            is_reader=False)
+            self._logger._rosout = self._rosout
+        try:
+            self._time_source = TimeSource(node=self)
+        except Exception:  # e.g. a use_sim_time override that is not a bool: no node is left
+            self.destroy_node()
+            raise
         if start_parameter_services:  # as rclpy: ros2 param reaches every node
             from rcbf_ros.ros.dds.parameter_service import ParameterService
             self._parameter_service = ParameterService(self)
@@ -674,6 +754,8 @@ class Node:
         publisher = Publisher(self, msg_type, self.resolve_topic_name(topic),
                               as_profile(qos_profile))
         self._publishers.append(publisher)
+        self.context.graph.add_endpoint(self._graph_node, gid_of(publisher._writer),
+                                        is_reader=False)
         return publisher
 
     def create_subscription(self, msg_type: Any, topic: str, callback: Callable[[Any], None],
@@ -683,11 +765,13 @@ class Node:
                                     as_profile(qos_profile), raw)
         self._waitset.attach(subscription._condition)
         self._subscriptions.append(subscription)
+        self.context.graph.add_endpoint(self._graph_node, gid_of(subscription._reader),
+                                        is_reader=True)
         return subscription
 
     def create_timer(self, timer_period_sec: float, callback: Callable[[], None],
                      **_ignored: Any) -> Timer:
-        timer = Timer(int(round(timer_period_sec * 1e9)), callback)
+        timer = Timer(int(round(timer_period_sec * 1e9)), callback, self._clock)
         self._timers.append(timer)
         self._wake()
         return timer
@@ -696,6 +780,8 @@ class Node:
         if publisher not in self._publishers:
             return False
         self._publishers.remove(publisher)
+        self.context.graph.remove_endpoint(self._graph_node, gid_of(publisher._writer),
+                                           is_reader=False)
         publisher.destroy()
         return True
 
@@ -704,6 +790,8 @@ class Node:
             return False
         self._subscriptions.remove(subscription)
         self._waitset.detach(subscription._condition)
+        self.context.graph.remove_endpoint(self._graph_node, gid_of(subscription._reader),
+                                           is_reader=True)
         subscription.destroy()
         return True
 
@@ -732,6 +820,12 @@ class Node:
     def _add_service_endpoint(self, endpoint: Any) -> Any:
         self._waitset.attach(endpoint._condition)
         self._service_endpoints.append(endpoint)
+        # As rmw_cyclonedds: a service's (or client's) reader and writer are the node's
+        # endpoints in ros_discovery_info, so ros2 node info lists them.
+        self.context.graph.add_endpoint(self._graph_node, gid_of(endpoint._reader),
+                                        is_reader=True)
+        self.context.graph.add_endpoint(self._graph_node, gid_of(endpoint._writer),
+                                        is_reader=False)
         return endpoint
 
     def destroy_service(self, service: services.Service) -> bool:
@@ -745,6 +839,10 @@ class Node:
             return False
         self._service_endpoints.remove(endpoint)
         self._waitset.detach(endpoint._condition)
+        self.context.graph.remove_endpoint(self._graph_node, gid_of(endpoint._reader),
+                                           is_reader=True)
+        self.context.graph.remove_endpoint(self._graph_node, gid_of(endpoint._writer),
+                                           is_reader=False)
         endpoint.destroy()
         return True
 
@@ -1111,9 +1209,10 @@ class Node:
                 self._builtin_readers):
             if kind not in kinds:
                 continue
-            changed = reader.read(N=64, condition=unread_condition)  # any will do
+            read = self.context.read_builtin
+            changed = read(reader, unread_condition, 64)  # any will do
             if changed or kind not in self._endpoint_cache:
-                self._endpoint_cache[kind] = reader.read(N=100000, condition=alive_condition)
+                self._endpoint_cache[kind] = read(reader, alive_condition, 100000)
             endpoints.extend(self._endpoint_cache[kind])
         return endpoints
 
@@ -1142,14 +1241,28 @@ class Node:
                         kind: TopicEndpointTypeEnum) -> list[TopicEndpointInfo]:
         dds_name = topic_name if no_mangle else 'rt' + self.resolve_topic_name(
             topic_name, only_expand=True)
-        builtin = (BuiltinTopicDcpsPublication if kind == TopicEndpointTypeEnum.PUBLISHER
-                   else BuiltinTopicDcpsSubscription)
-        return [TopicEndpointInfo(node_name='_NODE_NAME_UNKNOWN_',
-                                  node_namespace='_NODE_NAMESPACE_UNKNOWN_',
-                                  topic_type=messages.ros_type_name(e.type_name),
-                                  endpoint_type=kind, endpoint_gid=list(e.key.bytes),
-                                  qos_profile=from_cyclone_qos(e.qos))
-                for e in self._alive_endpoints((builtin,)) if e.topic_name == dds_name]
+        is_reader = kind == TopicEndpointTypeEnum.SUBSCRIPTION
+        builtin = BuiltinTopicDcpsSubscription if is_reader else BuiltinTopicDcpsPublication
+        endpoints = [e for e in self._alive_endpoints((builtin,)) if e.topic_name == dds_name]
+        participants = self.context.graph.participants() if endpoints else {}
+        infos = []
+        for e in endpoints:
+            name, namespace = node_of_endpoint(
+                participants=participants, participant_gid=e.participant_key.bytes,
+                endpoint_gid=e.key.bytes, is_reader=is_reader)
+            infos.append(TopicEndpointInfo(
+                node_name=name, node_namespace=namespace,
+                topic_type=messages.ros_type_name(e.type_name), endpoint_type=kind,
+                endpoint_gid=list(e.key.bytes), qos_profile=from_cyclone_qos(e.qos)))
+        return infos
+
+    def get_node_names(self) -> list[str]:
+        """Names of every node in the ROS graph (``ros_discovery_info``), this one included."""
+        return [name for name, _ in self.get_node_names_and_namespaces()]
+
+    def get_node_names_and_namespaces(self) -> list[tuple[str, str]]:
+        """``[(name, namespace), ...]`` of every node in the ROS graph, as rclpy's."""
+        return self.context.graph.node_names_and_namespaces()
 
     def count_publishers(self, topic_name: str) -> int:
         """Alive publishers of ``topic_name`` (resolved for this node) in the DDS graph."""
@@ -1168,6 +1281,9 @@ class Node:
         """Delete every DDS entity of this node (idempotent)."""
         if self._waitset is None:
             return
+        self.context.graph.remove_node(self._graph_node)  # its endpoints leave with it
+        if self._rosout is not None:
+            self._rosout.close()
         for timer in self._timers:
             timer.destroy()
         for subscription in self._subscriptions:
