@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 
+from dds_harness import node_runtime  # this directory: on sys.path for pytest
 import numpy as np
 import pytest
 import torch
@@ -130,7 +131,7 @@ def test_killed_learner_resumes_from_its_checkpoint(tmp_path, ros_domain_id):
     ('policy_limits.min', '[0.0]', 'policy_limits'),
     ('policy_limits.min', '[2.6, 0.0]', 'policy_limits')])
 def test_invalid_setting_exits_2_naming_the_key(tmp_path, ros_domain_id, key, value, named):
-    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': 'cyclone',
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': node_runtime(),
            'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
     log = tmp_path / 'learner.log'
     proc = start('rcbf_ros.ros.learner_node', 'learner',
@@ -145,7 +146,7 @@ def test_invalid_setting_exits_2_naming_the_key(tmp_path, ros_domain_id, key, va
 
 def _learner_exit(tmp_path: Path, ros_domain_id: int, args: list[str]) -> tuple[int, str]:
     """Exit status and log of a learner node that is expected to stop at start-up."""
-    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': 'cyclone',
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': node_runtime(),
            'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
     log = tmp_path / 'learner.log'
     proc = start('rcbf_ros.ros.learner_node', 'learner', args, env, log)
@@ -206,7 +207,7 @@ def test_resume_without_a_checkpoint_starts_at_episode_0_keeping_the_rows(tmp_pa
     out.mkdir()
     row = json.dumps({'episode': 0, 'ret': 1.0}) + '\n'
     (out / 'metrics.jsonl').write_text(row)
-    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': 'cyclone',
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': node_runtime(),
            'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
     log = tmp_path / 'learner.log'
     proc = start('rcbf_ros.ros.learner_node', 'learner',

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+import shutil
 import signal
 import socket
 import subprocess
@@ -99,7 +100,11 @@ def test_the_cli_runs_an_experiment_on_an_existing_cluster_by_address(tmp_path):
     env = {**os.environ, **LOCAL_RAY_ENV,
            'RAY_AUTH_MODE': 'token',  # what `ray start` enables; its drivers must say so too
            'RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S': '0'}
+    # Beside the interpreter in a plain virtual environment; on PATH where the interpreter
+    # is another's (a ROS 2 Python that sees this environment's packages).
     ray_exe = Path(sys.executable).with_name('ray')
+    if not ray_exe.exists():
+        ray_exe = Path(shutil.which('ray') or ray_exe)
     head_log = tmp_path / 'head.log'
     with head_log.open('w') as log:
         head = subprocess.Popen(
