@@ -56,10 +56,13 @@ def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
                     '-p', 'learner:mode:=diff', '-p', f'learner:start_steps:={START}',
                     '-p', f'learner:update_after:={START}', '-p', f'learner:batch_size:={BATCH}',
                     '-p', 'learner:seed:=3']
+    # As the launch table wires it: the simulator takes filter_info (the command with the state
+    # it answers), so that an answer to a state published again (a learner still starting
+    # after action_timeout_s) is dropped, not applied to the next state.
     procs = [
         start('sim_nodes.simulator_node', 'simulator',
               ['-p', f'simulator:max_steps:={STEPS}', '-p', 'simulator:action_timeout_s:=5.0',
-               '-p', 'simulator:seed:=3'],
+               '-p', 'simulator:seed:=3', '-r', 'cmd_safe:=filter_info'],
               env, tmp_path / 'sim.log'),
         start('rcbf_ros.ros.safety_filter_node', 'safety_filter', [], env,
               tmp_path / 'filter.log'),

@@ -9,9 +9,7 @@ its console scripts (``pymcap-cli``, ``ray``) are found on PATH.
 
 A representative subset keeps this affordable (SUBSET below: 24 of 51 tests, 4.5 to 6
 minutes on 2 shared cores). The full suite (about 14 minutes) runs with
-``RCBF_ROS2_INTEGRATION=all``; there the learner node's trajectory departs from the in-process
-trainer's at the second step on rclpy (test_learner_node_matches_the_in_process_trainer), a
-difference not yet explained.
+``RCBF_ROS2_INTEGRATION=all``.
 """
 from __future__ import annotations
 
