@@ -34,7 +34,7 @@ SUBSET = ('not learner_node and not ray_backend and not policy_node and not inva
 too), the parameter-refusal cases (each start-up alone, no traffic), the real-time simulator
 and the Odometry/TwistStamped run (covered by the lockstep and Twist tests). Also the stop
 after a SIGKILLed recorder: on rclpy the simulator or the filter sometimes outlasts its 5 s
-SIGINT limit there (two runs of three), a difference not yet explained."""
+SIGINT limit there (two runs of five), a difference not yet explained."""
 
 
 def rclpy_python(jazzy: Jazzy, where: Path) -> Path:
