@@ -7,8 +7,11 @@ with a :class:`~rcbf_ros.core.filter.SafetyFilter` built from the NEW parameters
 new rosbag2-layout bag: every source topic copied unchanged (same CDR bytes, log and publish
 times, schema text, type hash and QoS), plus, at the proposal's log time,
 
-- ``/refilter/cmd_safe`` (std_msgs/Float64MultiArray, one section ``u``): the new command
-  u* = u_RL + u_S, as the node's ``cmd_safe`` with ``command_type: array``;
+- ``/refilter/cmd_safe``: the new command u* = u_RL + u_S in the type of the recorded
+  proposals, as the node's ``cmd_safe`` with the matching ``command_type``: a
+  std_msgs/Float64MultiArray with one section ``u``; a geometry_msgs/Twist with u in the new
+  parameters' ``twist_fields`` (other fields 0); a TwistStamped like that with the proposal's
+  header;
 - ``/refilter/filter_info`` (std_msgs/Float64MultiArray): the node's ``filter_info``
   (:func:`rcbf_ros.ros.filter_logic.info_sections`: ``u``, ``u_rl``, ``u_s``, ``fail_safe``,
   ``status``, ``h``, ... and the ``state`` it answers);
@@ -277,15 +280,18 @@ def _array_sections(topic: str, log_time_ns: int, data: bytes, type_name: str,
         raise RefilterError(f'{topic} at log time {log_time_ns}: {exc}') from exc
 
 
-def _proposal_sections(item: Any, settings: logic.NodeSettings) -> dict[str, np.ndarray]:
+def _proposal_sections(item: Any, settings: logic.NodeSettings
+                       ) -> tuple[dict[str, np.ndarray], Any]:
     """The sections of a recorded proposal: a Float64MultiArray's, or ``u`` of a Twist or
-    TwistStamped (the new parameters' ``twist_fields``)."""
+    TwistStamped (the new parameters' ``twist_fields``); and the TwistStamped's header (else
+    None)."""
     if item.type_name in (TWIST, TWIST_STAMPED):
         msg = deserialize_message(item.data, item.type_name)
+        header = None
         if item.type_name == TWIST_STAMPED:
-            msg = msg.twist
-        return {'u': twist_to_array(msg, settings.twist_fields)}
-    return _array_sections(item.topic, item.log_time_ns, item.data, item.type_name, 'u')
+            msg, header = msg.twist, msg.header
+        return {'u': twist_to_array(msg, settings.twist_fields)}, header
+    return _array_sections(item.topic, item.log_time_ns, item.data, item.type_name, 'u'), None
 
 
 def _state_sections(item: Any, settings: logic.NodeSettings,
@@ -365,6 +371,24 @@ def _sections_message(sections: Mapping[str, np.ndarray]) -> dict[str, Any]:
         dims.append({'label': label, 'size': int(array.size), 'stride': int(array.size)})
         data.append(array)
     return {'layout': {'dim': dims, 'data_offset': 0}, 'data': np.concatenate(data)}
+
+
+def command_message(u: np.ndarray, *, type_name: str, twist_fields: Sequence[str],
+                    header: Any = None) -> dict[str, Any]:
+    """The command ``u`` as a message of ``type_name`` (a dict), as the node's ``cmd_safe``:
+    a Float64MultiArray with one section ``u``; a Twist with u in ``twist_fields`` (others 0);
+    a TwistStamped like that with ``header`` (stamp and frame_id) copied."""
+    if type_name == FLOAT64_MULTIARRAY:
+        return _sections_message({'u': u})
+    twist = {'linear': {'x': 0.0, 'y': 0.0, 'z': 0.0}, 'angular': {'x': 0.0, 'y': 0.0, 'z': 0.0}}
+    for name, value in zip(twist_fields, np.asarray(u, dtype=np.float64)):
+        group, _, axis = name.partition('.')
+        twist[group][axis] = float(value)
+    if type_name == TWIST:
+        return twist
+    return {'header': {'stamp': {'sec': int(header.stamp.sec),
+                                 'nanosec': int(header.stamp.nanosec)},
+                       'frame_id': str(header.frame_id)}, 'twist': twist}
 
 
 def _value_text(value: Any) -> str:
@@ -471,7 +495,10 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
             for topic in topics.values():
                 writer.add_topic(topic.name, topic.type_name, topic.qos or None,
                                  message_definition=topic.definition, type_hash=topic.type_hash)
-            writer.add_topic(OUTPUT_COMMAND_TOPIC, FLOAT64_MULTIARRAY)
+            command_type = topics[PROPOSAL_TOPIC].type_name
+            if command_type not in (TWIST, TWIST_STAMPED):
+                command_type = FLOAT64_MULTIARRAY
+            writer.add_topic(OUTPUT_COMMAND_TOPIC, command_type)
             writer.add_topic(OUTPUT_INFO_TOPIC, FLOAT64_MULTIARRAY)
             writer.add_topic(OUTPUT_DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY)
             for item in read_bag(source):
@@ -496,7 +523,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     topic_states.append(state)
                 elif item.topic == PROPOSAL_TOPIC:
                     summary.proposals += 1
-                    sections = _proposal_sections(item, settings)
+                    sections, header = _proposal_sections(item, settings)
                     for label, size, what in (('u', n_u, 'n_u'), ('state', n_x, 'n_x'),
                                               ('disturbance_mean', n_x, 'n_x'),
                                               ('disturbance_std', n_x, 'n_x')):
@@ -522,8 +549,9 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     _account(summary, decision, proposal, recorded, deltas, tolerance)
                     if proposal.state is not None:
                         proposal_states.append(proposal.state)
-                    writer.write_message(OUTPUT_COMMAND_TOPIC, _sections_message(
-                        {'u': decision.u_safe}), item.log_time_ns)
+                    writer.write_message(OUTPUT_COMMAND_TOPIC, command_message(
+                        decision.u_safe, type_name=command_type,
+                        twist_fields=settings.twist_fields, header=header), item.log_time_ns)
                     writer.write_message(OUTPUT_INFO_TOPIC, _sections_message(
                         logic.info_sections(decision)), item.log_time_ns)
                     writer.write_message(OUTPUT_DIAGNOSTICS_TOPIC, _diagnostics_message(

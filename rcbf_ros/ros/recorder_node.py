@@ -197,10 +197,17 @@ class RecorderNode(Node):
         self.recorder = Recorder(writer, lambda: self.get_clock().now().nanoseconds)
         self._subscriptions_by_topic: dict[str, Any] = {}
         self._warned: set[str] = set()
-        self.discover()
-        self.create_timer(self.config.discovery_period_s, self.discover)
-        self.create_timer(self.config.flush_period_s, self.flush)
-        self.get_logger().info(  # once set up: a stop from here on closes the bag
+        try:
+            self.discover()
+            self.create_timer(self.config.discovery_period_s, self.discover)
+            self.create_timer(self.config.flush_period_s, self.flush)
+        except BaseException:
+            # Ctrl-C (or a failure) while the node is still being built, before it can take
+            # its exit path: the bag opened above is closed complete all the same.
+            writer.close()
+            raise
+        # Said once the node is built: from here on Ctrl-C closes the bag and reports it.
+        self.get_logger().info(
             f'recording {list(self.config.topics) or "all topics"} into {self.bag_directory}')
 
     def _read_config(self) -> RecorderConfig:

@@ -10,13 +10,19 @@ import sys
 REPO = Path(__file__).resolve().parents[2]
 
 
+def node_runtime() -> str:
+    """The runtime the node processes use: this suite's ``RCBF_ROS_RUNTIME`` (test/conftest.py
+    makes it ``cyclone`` unless set; the ros2 tier runs the suite with ``rclpy``)."""
+    return os.environ.get('RCBF_ROS_RUNTIME', 'cyclone')
+
+
 def subprocess_env(domain_id: int) -> dict[str, str]:
     """This environment, pinned to loopback, on ``domain_id``, with the repo importable."""
     from rcbf_ros.ros.loopback import ensure_loopback
     env = dict(os.environ)
     ensure_loopback(env, force=True)
     env['ROS_DOMAIN_ID'] = str(domain_id)
-    env['RCBF_ROS_RUNTIME'] = 'cyclone'
+    env['RCBF_ROS_RUNTIME'] = node_runtime()
     env['PYTHONUNBUFFERED'] = '1'
     env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(REPO), env.get('PYTHONPATH')]))
     return env

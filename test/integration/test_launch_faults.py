@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 
+from dds_harness import node_runtime  # this directory: on sys.path for pytest
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
@@ -24,7 +25,7 @@ pytestmark = pytest.mark.integration
 
 
 def _env(domain_id: int) -> dict[str, str]:
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), RCBF_ROS_RUNTIME='cyclone',
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), RCBF_ROS_RUNTIME=node_runtime(),
                PYTHONUNBUFFERED='1')
     env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(REPO), env.get('PYTHONPATH')]))
     return env

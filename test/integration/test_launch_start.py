@@ -15,6 +15,7 @@ import subprocess
 import sys
 import textwrap
 
+from dds_harness import node_runtime  # this directory: on sys.path for pytest
 import pytest
 
 from rcbf_ros.bag import bag_info, read_bag_messages, RecordedQos
@@ -49,8 +50,9 @@ _LATE_CONTROLLER = textwrap.dedent("""
 def test_a_late_controller_gets_the_first_state_and_the_bag_the_first_start(
         tmp_path: Path, ros_domain_id: int) -> None:
     bag = tmp_path / 'bag'
-    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id), PYTHONPATH=str(REPO_ROOT),
-               RCBF_ROS_RUNTIME='cyclone', PYTHONUNBUFFERED='1', OMP_NUM_THREADS='1')
+    paths = [str(REPO_ROOT), *filter(None, [os.environ.get('PYTHONPATH')])]  # ROS's kept
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id), PYTHONPATH=os.pathsep.join(paths),
+               RCBF_ROS_RUNTIME=node_runtime(), PYTHONUNBUFFERED='1', OMP_NUM_THREADS='1')
     controller_args = ros_arguments(launch_setup('unicycle_filter').node('nominal_controller'),
                                     params_file=str(find_config('unicycle.yaml')))
     controller = subprocess.Popen(

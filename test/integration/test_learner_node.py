@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 
+from dds_harness import node_runtime  # this directory: on sys.path for pytest
 import numpy as np
 import pytest
 import torch
@@ -55,10 +56,13 @@ def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
                     '-p', 'learner:mode:=diff', '-p', f'learner:start_steps:={START}',
                     '-p', f'learner:update_after:={START}', '-p', f'learner:batch_size:={BATCH}',
                     '-p', 'learner:seed:=3']
+    # As the launch table wires it: the simulator takes filter_info (the command with the state
+    # it answers), so that an answer to a state published again (a learner still starting
+    # after action_timeout_s) is dropped, not applied to the next state.
     procs = [
         start('sim_nodes.simulator_node', 'simulator',
               ['-p', f'simulator:max_steps:={STEPS}', '-p', 'simulator:action_timeout_s:=5.0',
-               '-p', 'simulator:seed:=3'],
+               '-p', 'simulator:seed:=3', '-r', 'cmd_safe:=filter_info'],
               env, tmp_path / 'sim.log'),
         start('rcbf_ros.ros.safety_filter_node', 'safety_filter', [], env,
               tmp_path / 'filter.log'),
@@ -130,7 +134,7 @@ def test_killed_learner_resumes_from_its_checkpoint(tmp_path, ros_domain_id):
     ('policy_limits.min', '[0.0]', 'policy_limits'),
     ('policy_limits.min', '[2.6, 0.0]', 'policy_limits')])
 def test_invalid_setting_exits_2_naming_the_key(tmp_path, ros_domain_id, key, value, named):
-    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': 'cyclone',
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': node_runtime(),
            'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
     log = tmp_path / 'learner.log'
     proc = start('rcbf_ros.ros.learner_node', 'learner',
@@ -145,7 +149,7 @@ def test_invalid_setting_exits_2_naming_the_key(tmp_path, ros_domain_id, key, va
 
 def _learner_exit(tmp_path: Path, ros_domain_id: int, args: list[str]) -> tuple[int, str]:
     """Exit status and log of a learner node that is expected to stop at start-up."""
-    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': 'cyclone',
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': node_runtime(),
            'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
     log = tmp_path / 'learner.log'
     proc = start('rcbf_ros.ros.learner_node', 'learner', args, env, log)
@@ -206,7 +210,7 @@ def test_resume_without_a_checkpoint_starts_at_episode_0_keeping_the_rows(tmp_pa
     out.mkdir()
     row = json.dumps({'episode': 0, 'ret': 1.0}) + '\n'
     (out / 'metrics.jsonl').write_text(row)
-    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': 'cyclone',
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': node_runtime(),
            'CYCLONEDDS_URI': LOOPBACK_CYCLONEDDS_URI}
     log = tmp_path / 'learner.log'
     proc = start('rcbf_ros.ros.learner_node', 'learner',

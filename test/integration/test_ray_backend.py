@@ -99,12 +99,13 @@ def test_the_cli_runs_an_experiment_on_an_existing_cluster_by_address(tmp_path):
     env = {**os.environ, **LOCAL_RAY_ENV,
            'RAY_AUTH_MODE': 'token',  # what `ray start` enables; its drivers must say so too
            'RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S': '0'}
-    ray_exe = Path(sys.executable).with_name('ray')
+    # `ray start` on this interpreter: Ray refuses a driver whose Python differs from the
+    # head's, even in the patch version (the ray script may start another Python).
     head_log = tmp_path / 'head.log'
     with head_log.open('w') as log:
         head = subprocess.Popen(
-            [str(ray_exe), 'start', '--head', f'--port={port}', '--num-cpus=2',
-             '--include-dashboard=false', '--disable-usage-stats', '--block'],
+            [sys.executable, '-m', 'ray.scripts.scripts', 'start', '--head', f'--port={port}',
+             '--num-cpus=2', '--include-dashboard=false', '--disable-usage-stats', '--block'],
             env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     command = ['experiment', 'transfer', '--budget', 'smoke', '--systems', 'unicycle',
                '--methods', 'modular', '--episodes', '1', '--max-steps', '30',

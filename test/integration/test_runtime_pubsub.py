@@ -157,7 +157,7 @@ def _expected_cdr(kind: str, index: int) -> bytes:
         pose=t['geometry_msgs/msg/PoseWithCovariance'](
             pose=t['geometry_msgs/msg/Pose'](
                 position=t['geometry_msgs/msg/Point'](x=float(index), y=0.0, z=0.0),
-                orientation=t['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=0.0)),
+                orientation=t['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0)),
             covariance=np.arange(index, index + 36, dtype=np.float64)),
         twist=t['geometry_msgs/msg/TwistWithCovariance'](
             twist=t['geometry_msgs/msg/Twist'](linear=vec(x=0.0, y=0.0, z=0.0),

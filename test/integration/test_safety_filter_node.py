@@ -20,7 +20,7 @@ import threading
 import time
 from typing import Any, Callable
 
-from dds_harness import stop  # this directory: on sys.path for pytest
+from dds_harness import node_runtime, stop  # this directory: on sys.path for pytest
 import numpy as np
 import pytest
 
@@ -39,7 +39,7 @@ def _env(domain_id: int) -> dict[str, str]:
     env = dict(os.environ)
     ensure_loopback(env, force=True)
     env['ROS_DOMAIN_ID'] = str(domain_id)
-    env['RCBF_ROS_RUNTIME'] = 'cyclone'
+    env['RCBF_ROS_RUNTIME'] = node_runtime()
     env['PYTHONUNBUFFERED'] = '1'
     env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(REPO), env.get('PYTHONPATH')]))
     return env
@@ -514,4 +514,8 @@ def test_unsafe_controller_behind_the_filter_never_violates(ros_domain_id, probe
             connections = [c for c in reader.connections if c.topic == '/h_true']
             bag_h = [reader.deserialize(raw, c.msgtype).data
                      for c, _, raw in reader.messages(connections=connections)]
-        assert len(bag_h) >= steps and min(float(np.min(h)) for h in bag_h) >= 0.0
+        # The recorder subscribes to each topic once discovery shows it; the simulator waits
+        # for the filter and the controller, not for it, so a slower start (rclpy's) can miss
+        # the first volatile samples. From then on it holds every one the probe received.
+        assert len(bag_h) >= steps - 100, (len(bag_h), steps)
+        np.testing.assert_array_equal(np.array(bag_h), h_true[len(h_true) - len(bag_h):])

@@ -111,7 +111,9 @@ def test_lockstep_simulator_and_nominal_controller(ros_domain_id, tmp_path):
     sim_err = _finish(simulator, listener, controller)
     record = json.loads(out.read_text())
 
-    events = record['events']
+    # A sample written while the reader is being matched can come twice (the transient-local
+    # writer's history and the live write; seen on rmw_cyclonedds): equal neighbours are one.
+    events = [e for i, e in enumerate(record['events']) if i == 0 or e != record['events'][i - 1]]
     assert [(e['event'], e['episode']) for e in events] == [
         ('start', 1), ('end', 1), ('start', 2), ('end', 2)]
     expected_states, expected_returns, expected_violations = _offline_rollout()

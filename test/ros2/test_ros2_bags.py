@@ -74,3 +74,23 @@ def test_ros2_bag_info_reads_every_offered_qos(jazzy, tmp_path, ros_domain_id):
     assert info.returncode == 0, info.stdout
     assert 'Topic: /scan | Type: std_msgs/msg/String | Count: 3' in info.stdout
     assert 'Messages:          6' in info.stdout
+
+
+@pytest.mark.parametrize('type_name', ['geometry_msgs/msg/Twist',
+                                       'geometry_msgs/msg/TwistStamped'])
+def test_ros2_bag_info_reads_refilter_commands_in_the_proposals_type(
+        jazzy, tmp_path, ros_domain_id, type_name):
+    import importlib.util
+
+    from rcbf_ros.refilter import refilter_bag
+    spec = importlib.util.spec_from_file_location(
+        'refilter_cases', REPO / 'test' / 'unit' / 'test_refilter.py')
+    cases = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cases)
+    source = cases.write_twist_source(tmp_path / 'run', type_name)
+    summary = refilter_bag(source, tmp_path / 'out', cases.PARAMS_B)
+    info = jazzy.run(f'ros2 bag info {tmp_path / "out"}', domain_id=ros_domain_id, timeout=60)
+    assert info.returncode == 0, info.stdout
+    assert (f'Topic: /refilter/cmd_safe | Type: {type_name} | Count: {summary.processed} |'
+            in info.stdout), info.stdout
+    assert f'Topic: /cmd_proposed | Type: {type_name} | Count: {cases.N_STEPS} |' in info.stdout

@@ -313,3 +313,46 @@ def test_bad_inputs_name_the_problem(case: str, needle: str, source_bag: Path, t
     assert needle in capsys.readouterr().err
     if case == 'wrong_state_length':  # no half-written bag is left behind
         assert not output.exists()
+
+
+def write_twist_source(directory: Path, type_name: str) -> Path:
+    """/state and /cmd_proposed of a Twist (or TwistStamped) controller: the STATES and the
+    PROPOSALS in ``linear.x`` / ``angular.z``, a stamp and frame of its own on each."""
+    with BagWriter(directory) as bag:
+        bag.add_topic('/state', 'std_msgs/msg/Float64MultiArray')
+        bag.add_topic('/cmd_proposed', type_name)
+        for k in range(N_STEPS):
+            t = T0 + k * STEP_NS
+            bag.write_message('/state', _sections(state=STATES[k]), t)
+            twist = {'linear': {'x': float(PROPOSALS[k][0]), 'y': 0.0, 'z': 0.0},
+                     'angular': {'x': 0.0, 'y': 0.0, 'z': float(PROPOSALS[k][1])}}
+            if type_name.endswith('Stamped'):
+                twist = {'header': {'stamp': {'sec': 100 + k, 'nanosec': 7 * k},
+                                    'frame_id': f'base_{k}'}, 'twist': twist}
+            bag.write_message('/cmd_proposed', twist, t + 1_000_000)
+    return directory
+
+
+@pytest.mark.parametrize('type_name', ['geometry_msgs/msg/Twist',
+                                       'geometry_msgs/msg/TwistStamped'])
+def test_twist_proposals_are_answered_in_their_own_type(type_name: str, tmp_path: Path) -> None:
+    source = write_twist_source(tmp_path / 'run', type_name)
+    summary = refilter_bag(source, tmp_path / 'out', PARAMS_B)
+    assert summary.processed == N_STEPS and summary.active > 0
+    with AnyReader([tmp_path / 'out']) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        read = {topic: [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(
+            connections=[c for c in reader.connections if c.topic == topic])]
+            for topic in ('/refilter/cmd_safe', '/refilter/filter_info')}
+    assert types['/refilter/cmd_safe'] == type_name
+    assert len(read['/refilter/cmd_safe']) == N_STEPS
+    for k, (command, info) in enumerate(zip(*read.values())):
+        u = np.asarray(info.data[:2])  # filter_info's first section: u
+        assert info.layout.dim[0].label == 'u'
+        if type_name.endswith('Stamped'):
+            assert (command.header.stamp.sec, command.header.stamp.nanosec,
+                    command.header.frame_id) == (100 + k, 7 * k, f'base_{k}')
+            command = command.twist
+        assert [command.linear.x, command.angular.z] == u.tolist()
+        assert [command.linear.y, command.linear.z, command.angular.x, command.angular.y] == \
+            [0.0] * 4

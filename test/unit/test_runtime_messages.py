@@ -164,6 +164,15 @@ def test_defaults_nesting_and_numpy_like_rclpy():
     assert get_message('std_msgs/Float64') is get_message('std_msgs/msg/Float64')
 
 
+def test_declared_defaults_are_rclpys():
+    """``float64 w 1`` in Quaternion.msg: rclpy starts an Odometry's orientation at the
+    identity (w = 1), and so does a message of ours; the default goes on the wire."""
+    assert get_message('nav_msgs/msg/Odometry')().pose.pose.orientation.w == 1.0
+    assert get_message('sensor_msgs/msg/NavSatStatus')().status == -2
+    quaternion = serialize_message(get_message('geometry_msgs/msg/Quaternion')())
+    assert struct.unpack_from('<4d', quaternion, 4) == (0.0, 0.0, 0.0, 1.0)
+
+
 @pytest.mark.parametrize('type_name, field, value, error, words', [
     ('std_msgs/msg/Float64', 'data', 1, TypeError, ['data', 'float']),
     ('std_msgs/msg/Bool', 'data', 1, TypeError, ['data', 'bool']),

@@ -46,6 +46,15 @@ _IDL_PRIMITIVES: dict[str, Any] = {
 }
 
 
+DECLARED_DEFAULTS: dict[tuple[str, str], Any] = {
+    ('geometry_msgs/msg/Quaternion', 'w'): 1.0,
+    ('sensor_msgs/msg/NavSatStatus', 'status'): -2,
+}
+"""The non-zero default values that Jazzy's .msg files declare (``float64 w 1``), which
+rclpy's generated classes start with and rosbags' type store does not keep; every other field
+starts at zero, False, '' or empty."""
+
+
 @functools.cache
 def typestore() -> Any:
     """The rosbags ROS 2 Jazzy type store (one per process)."""
@@ -261,6 +270,7 @@ def _message_class(type_name: str) -> type[Message]:
             coerce[name] = _scalar_coercer(type_name, name, base, bound)
             zero: Any = '' if base == 'string' else False if base == 'bool' else (
                 0.0 if base.startswith('float') else 0)
+            zero = DECLARED_DEFAULTS.get((type_name, name), zero)
             defaults[name] = functools.partial(lambda z: z, zero)
         elif kind == Nodetype.NAME:
             sub_cls = get_message(detail)
