@@ -7,15 +7,16 @@ Two halves in one file:
   ``python main.py ...`` would, in a temporary working directory so its output folder goes
   there) and only wraps callables from outside, without editing any of its files:
 
-  * each environment's ``step`` (through ``build_env.build_env``, which ``main.py`` star-imports
-    before the wrap is seen): a ``perf_counter`` stamp on entry, so consecutive stamps bracket
+  * each environment's ``step`` (``build_env.build_env`` is replaced in its module before
+    ``main.py`` star-imports it, and wraps the step of each environment it builds): a stamp on
+    entry, so consecutive stamps bracket
     one whole iteration of its training loop (SAC updates, action with GP + QP, env step,
     buffer push, GP data append, and a GP refit when one falls there); after the requested
     number of steps the wrapper ends the run;
   * ``DynamicsModel.fit_gp_model`` (the GP refit): start, end, and how many points it fits;
-  * ``RCBF_SAC.update_parameters`` (one SAC update) and ``CBFQPLayer.get_safe_action`` at
-    batch 1 (the per-step QP: constraint assembly, row normalisation, qpth, clamp): wall and
-    process CPU time of each call.
+  * ``RCBF_SAC.update_parameters`` (one SAC update, wall time of each call after the warm-up)
+    and ``CBFQPLayer.get_safe_action`` at batch 1 (the per-step QP: constraint assembly, row
+    normalisation, qpth, clamp; wall and process CPU time of each call).
 
   Each step stamp is taken twice: ``time.perf_counter`` and ``time.process_time``.
 
@@ -27,7 +28,9 @@ Two halves in one file:
 The reference's ``main.py`` is given ``--eval ''``: its argparse reads that flag with
 ``type=bool``, so only the empty string turns the evaluation episodes off (they would
 otherwise run inside the timed window, after every 5th episode). ``--start_steps`` is set to
-the warm-up so that the policy acts in the timed window, as in ours.
+the warm-up so that the policy acts in the timed window, as in ours. ``--filter-only`` sets
+``--start_steps`` and ``--batch_size`` beyond the run instead: random actions through its
+filter and no SAC update, for the per-call filter times.
 """
 from __future__ import annotations
 

@@ -250,6 +250,8 @@ def main() -> None:
     parser.add_argument('--systems', nargs='*', default=['unicycle', 'car_following', 'pvtol'])
     parser.add_argument('--modes', nargs='*', default=['baseline', 'modular', 'diff'],
                         choices=['baseline', 'modular', 'diff'])
+    parser.add_argument('--rows', nargs='*', default=None, metavar='SYSTEM/MODE',
+                        help='explicit rows (e.g. unicycle/diff); replaces --systems x --modes')
     parser.add_argument('--model-based', action='store_true',
                         help='add our diff + model_based rows (no reference counterpart)')
     parser.add_argument('--threads', type=int, nargs='*', default=[1])
@@ -265,6 +267,15 @@ def main() -> None:
     args = parser.parse_args()
     if min(args.steps, args.warmup, args.repeats) < 1:
         parser.error('--steps, --warmup and --repeats must be >= 1')
+    if args.rows is None:
+        rows = [(system, mode) for system in args.systems for mode in args.modes]
+    else:
+        rows = [tuple(row.split('/', 1)) for row in args.rows]
+        for row, pair in zip(args.rows, rows):
+            if len(pair) != 2 or pair[1] not in CBF_MODES:
+                parser.error(f'--rows: {row!r} is not SYSTEM/MODE with MODE one of '
+                             f'{", ".join(CBF_MODES)}')
+        args.systems = list(dict.fromkeys(system for system, _ in rows))
     for system in args.systems:
         if system not in ENV_NAMES:
             parser.error(f'--systems: unknown system {system!r}')
@@ -280,7 +291,7 @@ def main() -> None:
             parser.error(str(exc))
     else:
         print('Reference comparison skipped: no --reference DIR given.', flush=True)
-    configs = [(system, mode, False) for system in args.systems for mode in args.modes]
+    configs = [(system, mode, False) for system, mode in rows]
     if args.model_based:
         configs += [(s, 'diff', True) for s in args.systems if s in ('unicycle', 'pvtol')]
     load_before = os.getloadavg()
@@ -293,6 +304,7 @@ def main() -> None:
               '| action ms (policy+GP+filter) | filter ms | reference update ms '
               '| reference filter ms |', '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|']
     floors = {}
+    row_loads = []
     try:
         for system, mode, mb in configs:
             for threads in args.threads:
@@ -319,11 +331,17 @@ def main() -> None:
                 if threads == 1 and not mb:
                     compare.append(comparison_row(system, mode, ours, ref))
                     print(compare[-1], flush=True)
+                row_loads.append(os.getloadavg()[0])
     except ReferenceError as exc:
         sys.exit(f'bench_training: {exc}')
     load_after = os.getloadavg()
     load = (f'Load average (1, 5, 15 min) before {", ".join(f"{v:.2f}" for v in load_before)}, '
-            f'after {", ".join(f"{v:.2f}" for v in load_after)} (2 cores).')
+            f'after {", ".join(f"{v:.2f}" for v in load_after)}; 1 min after each row '
+            f'{min(row_loads):.1f} to {max(row_loads):.1f} (2 cores). On a shared '
+            "machine other work stretches both sides' wall time; the alternation spreads it "
+            'over both, the per-repeat ratios show how much it moved them, and the CPU-time '
+            'ratio is the check (it is not immune either: shared cores and caches slow the '
+            'CPU time too).')
     peaks = ', '.join(f'{peak[t]:.0f} GFLOP/s with {t} thread{"s" if t > 1 else ""}'
                       for t in args.threads)
     unicycle = [(t, *floors[('unicycle', t)]) for t in args.threads if ('unicycle', t) in floors]
@@ -344,9 +362,11 @@ def main() -> None:
                    'median ratio.')
     else:
         verdict = 'Reference comparison skipped (no --reference DIR): its columns are empty.'
+    selection = (f'--rows {" ".join(args.rows)}' if args.rows is not None else
+                 f'--systems {" ".join(args.systems)} --modes {" ".join(args.modes)}')
     command = (f'python benchmarks/bench_training.py --steps {args.steps} --warmup {args.warmup}'
-               f' --repeats {args.repeats} --systems {" ".join(args.systems)} --modes '
-               f'{" ".join(args.modes)}' + (' --model-based' if args.model_based else '')
+               f' --repeats {args.repeats} {selection}'
+               + (' --model-based' if args.model_based else '')
                + (f' --reference {args.reference} --reference-python {args.reference_python}'
                   if reference else ''))
     text = '\n'.join(['Ours against the reference, 1 thread each, steady state:', '',
