@@ -133,3 +133,38 @@ def test_run_reference_rejects_a_row_without_counterpart(tmp_path):
 def test_the_mode_and_system_maps_cover_the_compared_rows():
     assert ref.CBF_MODES == {'baseline': 'baseline', 'modular': 'mod', 'diff': 'full'}
     assert set(ref.ENV_NAMES) == {'unicycle', 'car_following', 'pvtol'}
+
+
+def _bench_training():
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        spec = importlib.util.spec_from_file_location('bench_training',
+                                                      BENCHMARKS / 'bench_training.py')
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return module
+
+
+def _run(rate: float) -> dict:
+    return {'steps_per_s': rate, 'cpu_steps_per_s': rate, 'refit_s': 1.0}
+
+
+def test_comparison_row_leaves_the_reference_columns_empty_without_reference_runs():
+    row = _bench_training().comparison_row('unicycle', 'baseline', [_run(30.0)], [])
+    cells = [c.strip() for c in row.strip('|').split('|')]
+    assert cells[:3] == ['unicycle', 'baseline <- baseline', '30.0']
+    assert cells[3:8] == ['', '', '', '', '']
+    assert cells[8:] == ['>= 2.5x', '']
+
+
+@pytest.mark.parametrize('ours, verdict', [(30.0, 'met'), (20.0, 'not met')])
+def test_comparison_row_judges_the_median_ratio_against_the_target(ours, verdict):
+    bench = _bench_training()
+    row = bench.comparison_row('car_following', 'diff', [_run(ours), _run(ours)],
+                               [_run(5.0), _run(5.0)])
+    cells = [c.strip() for c in row.strip('|').split('|')]
+    assert cells[3] == '5.0'
+    assert cells[4].startswith(f'{ours / 5:.1f}x')
+    assert cells[8:] == ['>= 6x', verdict]
