@@ -1,6 +1,7 @@
 """Per-step safety filter: the three constraint assemblies, and OSQP against the alternatives.
 
     python benchmarks/bench_filter_step.py [--calls 2000] [--rounds 4] [--no-write]
+        [--reference DIR --reference-python PATH [--reference-calls 400]]
 
 The shipped problems (config/unicycle.yaml, car_following.yaml, pvtol.yaml, the safety_filter
 section), then the two problems of this benchmark's earlier runs (see PROBLEMS), at random
@@ -27,15 +28,29 @@ a pass-through, with OSQP's own C timers of update and solve; the rest = input c
 clipping, the data check and the result.
 Then the solver alone against a new OSQP per call and qpth at batch 1, with the
 accuracy of each against Clarabel.
+
+Reference (``--reference DIR``, the authors' Mod-RL-RCBF tree; its venv as described in
+benchmarks/bench_training.py): for the three shipped systems, its per-step filter re-run in a
+subprocess after each block of ours (ours, reference, ours, reference, ...), 1 thread each. The
+driver (benchmarks/_reference.py) runs its own main.py with random actions and no SAC update
+(``--start_steps`` and ``--batch_size`` beyond the run) and times every batch-1 call of its
+``CBFQPLayer.get_safe_action``: its constraint assembly in torch, the row normalisation and
+qpth with its own settings (eps 1e-4, maxIter 100000, notImprovedLim 10), then the clamp; the
+GP prediction before it is not included (nor is ours). Its states are those its environment
+visits under random actions (ours: random states in the safe set), its obstacles its own.
+Without ``--reference`` the comparison is skipped.
 """
 from __future__ import annotations
 
 import argparse
 import os
+from pathlib import Path
+import sys
 import time
 from typing import Callable
 
 from _problems import pvtol_params, unicycle_params
+from _reference import check_reference, ENV_NAMES, ReferenceError, run_reference
 import numpy as np
 import osqp
 import scipy.sparse as sp
@@ -174,9 +189,11 @@ class _CountedSolve:
         return self.solve(*args, **kwargs)
 
 
-def bench_paths(problem, states, proposals, mean, std, rounds: int) -> dict:
+def bench_paths(problem, states, proposals, mean, std, rounds: int,
+                after_block: Callable[[], None] = lambda: None) -> dict:
     """The calls in ``rounds`` blocks; each block on the three filters one after the other
-    (warm caches within a block, the load shared between paths across the rounds)."""
+    (warm caches within a block, the load shared between paths across the rounds), then
+    ``after_block()`` (the reference's block, when compared)."""
     started = time.perf_counter()
     compiled = SafetyFilter(problem, closed_form=False, compile_assembly=True)
     compile_s = time.perf_counter() - started
@@ -222,6 +239,7 @@ def bench_paths(problem, states, proposals, mean, std, rounds: int) -> dict:
                 for stage, value in split.items():
                     stages[stage]['all'].append(value)
                     stages[stage]['osqp' if ran else 'pass'].append(value)
+        after_block()
     pairs = list(zip(results['closed form'], results['autograd']))
     return {'totals': totals, 'cpu': cpu, 'passed': passed, 'solved': solved,
             'stages': stages, 'iterations': iterations, 'compile_s': compile_s,
@@ -279,10 +297,23 @@ def bench_solvers(problem, states, proposals, mean, std) -> tuple[list, str]:
     rows = [('OSQP update + solve + row check, or the check alone (pass-through)', ours),
             (f'the same, only the {len(ours_osqp)} calls that ran OSQP', ours_osqp),
             ('a new OSQP set up every call', setup_every),
-            ('qpth at batch 1 (as in the reference code)', qpth_times)]
+            ('qpth at batch 1 (eps 1e-10, maxIter 50)', qpth_times)]
     accuracy = (f'vs Clarabel on {len(refs)} QPs ({slack_active} with active slack): max '
                 f'|u_S - u_S*| ours {diff_ours:.1e}, qpth {diff_qpth:.1e}')
     return rows, accuracy
+
+
+def reference_line(compared: list[str]) -> str:
+    """What the reference rows say, or that the comparison was skipped."""
+    if not compared:
+        return 'Reference comparison skipped (no --reference DIR).'
+    return ("Reference (the authors' per-step filter, re-run after each block of ours): its "
+            'median call over our closed-form median: ' + '; '.join(compared) + '. What '
+            'differs: it assembles the QP in torch and solves it with qpth (interior point, '
+            'eps 1e-4, rows normalised) on the states its environment visits under random '
+            'actions, with its own obstacles; ours assembles in closed form and solves with '
+            'warm-started OSQP on random states inside the safe set. Neither includes the GP '
+            'prediction.')
 
 
 def main() -> None:
@@ -291,7 +322,25 @@ def main() -> None:
     parser.add_argument('--rounds', type=int, default=4,
                         help='blocks of calls, each on the three filters in turn')
     parser.add_argument('--no-write', action='store_true', help='do not update RESULTS.md')
+    parser.add_argument('--reference', type=Path, default=None,
+                        help="the authors' Mod-RL-RCBF source tree (outside this repository)")
+    parser.add_argument('--reference-python', type=Path, default=None,
+                        help="python of the reference's venv")
+    parser.add_argument('--reference-calls', type=int, default=400,
+                        help="the reference's filter calls per system (split over the rounds)")
     args = parser.parse_args()
+    if args.reference is not None:
+        if args.reference_python is None:
+            parser.error('--reference needs --reference-python')
+        if args.reference_calls < args.rounds:
+            parser.error('--reference-calls: at least one call per round')
+        try:
+            check_reference(directory=args.reference, python=args.reference_python)
+        except ReferenceError as exc:
+            parser.error(str(exc))
+    else:
+        print('Reference comparison skipped: no --reference DIR given.', flush=True)
+    compared = []
     load_before = os.getloadavg()
     summary = ['| system | path | median us (all) | p99 us | median us, pass-through (n) '
                '| median us, OSQP ran (n) | median CPU us |', '|---|---|---:|---:|---:|---:|---:|']
@@ -305,7 +354,23 @@ def main() -> None:
         states, proposals = random_inputs(sampler, problem, args.calls, rng)
         mean = np.zeros(problem.system.n_x)
         std = np.full(problem.system.n_x, 0.02)
-        out = bench_paths(problem, states, proposals, mean, std, args.rounds)
+        reference_calls: list[tuple[float, float]] = []
+
+        def reference_block(system: str = label,
+                            calls: list[tuple[float, float]] = reference_calls) -> None:
+            if args.reference is None or system not in ENV_NAMES:
+                return
+            out = run_reference(directory=args.reference, python=args.reference_python,
+                                system=system, mode='baseline', warmup=0,
+                                steps=args.reference_calls // args.rounds, filter_only=True,
+                                seed=12345 + len(calls))  # each block from another start
+            calls.extend(out['filter_calls'])
+
+        try:
+            out = bench_paths(problem, states, proposals, mean, std, args.rounds,
+                              after_block=reference_block)
+        except ReferenceError as exc:
+            sys.exit(f'bench_filter_step: {exc}')
         for path in PATHS:
             totals = out['totals'][path]
             summary.append(
@@ -314,6 +379,14 @@ def main() -> None:
                 f'| {_median(out["passed"][path])} ({len(out["passed"][path])}) '
                 f'| {_median(out["solved"][path])} ({len(out["solved"][path])}) '
                 f'| {_median(out["cpu"][path])} |')
+        if reference_calls:
+            wall = [w for w, _ in reference_calls]
+            summary.append(f'| {label} | reference: qpth at batch 1 | {_median(wall)} '
+                           f'| {np.percentile(_us(wall), 99):.1f} | - | - '
+                           f'| {_median([c for _, c in reference_calls])} |')
+            ours_median = float(np.median(_us(out['totals']['closed form'])))
+            compared.append(f'{label} {np.median(_us(wall)) / ours_median:.0f}x '
+                            f'({len(wall)} reference calls)')
         median = float(np.median(_us(out['totals']['closed form'])))
         target.append(f'{label} {median:.1f} us ({"within" if median <= TARGET_US else "over"})')
         iterations = out['iterations']
@@ -341,13 +414,17 @@ def main() -> None:
                        f'{args.calls} calls per system:', '', *summary, '',
                        f'Closed form against the {TARGET_US:.0f} us target (median of all '
                        f'calls): {"; ".join(target)}.', '',
+                       reference_line(compared), '',
                        'The closed-form call in stages:', '', *breakdown, '', load, '',
                        PATHS_DIFFER, *details])
     print(table)
     if not args.no_write:
         from _results import machine_line, write_section
         write_section('Per-step safety filter', (
-            f'Command: `python benchmarks/bench_filter_step.py --calls {args.calls}`. '
+            f'Command: `python benchmarks/bench_filter_step.py --calls {args.calls} --rounds '
+            f'{args.rounds}' + (f' --reference {args.reference} --reference-python '
+                                f'{args.reference_python} --reference-calls '
+                                f'{args.reference_calls}' if args.reference else '') + '`. '
             + machine_line() + '.\n\n' + table))
 
 

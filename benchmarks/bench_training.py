@@ -1,22 +1,65 @@
-"""Training speed: environment steps per second including SAC updates, per system and mode.
+"""Training speed: environment steps per second including SAC updates, per system and mode,
+ours against the authors' reference code re-run side by side.
 
     python benchmarks/bench_training.py [--steps 200] [--systems unicycle ...]
+        [--reference DIR --reference-python PATH [--repeats 2]]
 
-Setting of issue 4: 1 SAC update per environment step, minibatch 256, 256x256 networks, the
-per-step safety filter (compiled assembly) and the GP estimate on every step, in-process. Each
-configuration first fills the buffer with ``warmup`` random steps (not timed), then times
-``steps`` steps with updates. Also reported: the median SAC update (diff mode: both losses
-through the differentiable QP) and the per-action latency (policy + GP prediction + filter).
+Ours: in-process, 1 SAC update per environment step, minibatch 256, 256x256 networks, the
+per-step safety filter (compiled assembly) and the GP estimate on every step. Each row first
+fills the buffer with ``--warmup`` random steps (not timed; the GP is fitted on them, at most
+512 points, at the last one), then times ``--steps`` steps with updates. Also reported: the
+median SAC update (diff mode: both losses through the differentiable QP), the per-action
+latency (policy + GP prediction + filter) and the update's arithmetic floor.
 
-The reference column is the authors' implementation measured on this machine size, as quoted
-in issue 4 (not re-measured here); the ratio is ours / reference.
+Reference (``--reference DIR``, the authors' Mod-RL-RCBF tree, e.g. exported from its git
+repository outside this one): its own ``main.py``, unmodified, in its own venv, one subprocess
+per row and repeat, timed from outside by benchmarks/_reference.py (read its docstring: it
+stamps each entry into the environment's ``step`` and each GP refit by wrapping them, never
+editing the reference's files). Prepare the venv once, outside this repository:
+
+    python3 -m venv /work/cache/ref-venv
+    /work/cache/ref-venv/bin/python -m pip install -c constraints.txt torch==2.13.0 qpth \
+        gpytorch gym==0.25.2 comet_ml
+
+(torch pinned by constraints.txt, a CPU wheel, as in scripts/setup.sh; gym 0.25 still has the
+``Env.seed`` its main.py calls; comet_ml is imported by its main.py, never used here.) The
+reference runs with ``--start_steps`` = ``--reference-warmup`` (default 400: its first GP refit,
+on 200 points, falls on step 400, before the window) and evaluation off; it starts its SAC
+updates once its buffer holds more than 256 transitions. Both sides run 1 thread
+(torch.set_num_threads(1), OMP_NUM_THREADS=1). For each row the runs alternate, ours then the
+reference, ``--repeats`` times; a row's steps/s is the median over the repeats.
+
+Steady state: steps/s over the timed window with every GP refit's own time taken out (ours
+refits at the end of the warm-up, outside the window anyway). Also from process CPU time
+(time.process_time stamps on both sides: what each process itself consumed, though cores shared
+with other work still slow it).
+Amortized: the same with each side's refit, as measured in the run, spread over its schedule
+while the GP learns: ours every LearnerConfig.gp_refit_interval steps, the reference every 400
+steps (a data point every 2nd step, a refit every 200 points; during its first 100 episodes).
+
+Mode map (ours <- reference ``--cbf_mode``): baseline <- baseline, modular <- mod,
+diff <- full. Without ``--reference`` the comparison is skipped and its columns stay empty.
 """
 from __future__ import annotations
 
 import argparse
+import os
+from pathlib import Path
 import statistics
+import sys
 import time
 
+from _reference import (
+    amortized_rate,
+    CBF_MODES,
+    check_reference,
+    ENV_NAMES,
+    ReferenceError,
+    Refit,
+    REFIT_EVERY_STEPS,
+    run_reference,
+    steady_rate,
+)
 import numpy as np
 import torch
 
@@ -25,12 +68,29 @@ from rcbf_ros.training.loop import build_run, RunConfig
 
 torch.set_num_threads(1)
 
-REFERENCE_STEPS_PER_S = {
-    ('unicycle', 'diff'): 8.4, ('unicycle', 'modular'): 18.9, ('unicycle', 'baseline'): 27.3,
-    ('car_following', 'diff'): 3.6, ('pvtol', 'diff'): 5.1,
-}
-"""Issue 4: the reference code's steps/s; its 'full' (differentiable layer) runs are listed
-under diff and compared with both our diff rows."""
+TARGETS = {('unicycle', 'baseline'): 2.5, ('unicycle', 'modular'): 2.5,
+           ('car_following', 'baseline'): 2.5, ('car_following', 'modular'): 2.5,
+           ('pvtol', 'baseline'): 2.5, ('pvtol', 'modular'): 2.5,
+           ('unicycle', 'diff'): 4.0, ('car_following', 'diff'): 6.0, ('pvtol', 'diff'): 6.0}
+"""The project's speed goals: minimum steady-state steps/s of ours over the reference's."""
+DIFFERENCES = (
+    'What the two sides do differently. Per-step filter: ours solves the RCBF-QP with OSQP '
+    'on a closed-form or compiled constraint assembly (float64, one state); the reference '
+    'assembles it in torch and solves it with qpth at batch 1 (eps 1e-4, maxIter 100000, '
+    'notImprovedLim 10, rows normalised). GP: ours is one batch-independent exact GP over the '
+    'state, at most 512 training points, refitted every 1000 steps; the reference fits one '
+    'exact GPyTorch GP per state dimension (70 Adam iterations each) on up to 2000 points, '
+    'refitted every 400 steps, here on 200 points (its first refit; later refits on more '
+    'points cost it more, so the amortized ratio is a lower bound). Updates: both 1 SAC update '
+    'per step, minibatch 256, 256x256 actor and twin critics, float32. Differentiable layer '
+    '(diff <- full): ours a batched active-set QP with its analytic backward; the reference '
+    'qpth on the batch of 256 (interior point, backward through its KKT factorisation), in '
+    'the critic target and the actor loss. Modular (modular <- mod): on Unicycle and Cars the '
+    'reference only clamps to the input box in the losses (no QP, its GP still predicts the '
+    'batch), on PVTOL it solves its QP with the modular constraint set; ours (no envelope '
+    'layer, the default) uses no QP in the losses on any system. Buffer '
+    'sampling: ours preallocated tensors; the reference a Python list of tuples.')
+"""Printed with the table."""
 
 
 def matmul_gflops(threads: int, size: int = 256, repeats: int = 2000) -> float:
@@ -60,6 +120,7 @@ def update_gflop(obs_dim: int, n_u: int, hidden: int = 256, batch: int = 256) ->
 
 def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
             threads: int) -> dict:
+    """Ours in-process: ``warmup`` untimed steps, then ``steps`` stamped steps."""
     learner_cfg = LearnerConfig(mode=mode, model_based=model_based, seed=0,
                                 start_steps=warmup, update_after=warmup, batch_size=256,
                                 gp_refit_interval=warmup, rollout_interval=100)
@@ -70,9 +131,23 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
     obs, info = env.reset(seed=0)
     state = info['state']
     action_times, update_times, filter_times = [], [], []
+    stamps, cpu_stamps, refits = [], [], []
+    fit = learner.gp.fit
+
+    def timed_fit() -> None:
+        start, cpu = time.perf_counter(), time.process_time()
+        fit()
+        refits.append(Refit(after_step=len(stamps), seconds=time.perf_counter() - start,
+                            cpu_seconds=time.process_time() - cpu,
+                            points=int(learner.gp.num_data)))
+
+    learner.gp.fit = timed_fit
 
     def one_step(timed: bool) -> None:
         nonlocal obs, state
+        if timed:
+            stamps.append(time.perf_counter())
+            cpu_stamps.append(time.process_time())
         t0 = time.perf_counter()
         proposal = learner.propose(obs, state)
         t1 = time.perf_counter()
@@ -99,12 +174,16 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
 
     for _ in range(warmup):
         one_step(False)
-    start = time.perf_counter()
+    warmup_refits = list(refits)
+    refits.clear()
     for _ in range(steps):
         one_step(True)
-    elapsed = time.perf_counter() - start
+    stamps.append(time.perf_counter())
+    cpu_stamps.append(time.process_time())
     return {
-        'steps_per_s': steps / elapsed,
+        'steps_per_s': steady_rate(stamps=stamps, refits=refits, first=0),
+        'cpu_steps_per_s': steady_rate(stamps=cpu_stamps, refits=refits, first=0, cpu=True),
+        'refit_s': statistics.median(r.seconds for r in warmup_refits + refits),
         'update_ms': 1e3 * statistics.median(update_times) if update_times else float('nan'),
         'action_ms': 1e3 * statistics.median(action_times),
         'filter_ms': 1e3 * statistics.median(filter_times),
@@ -112,40 +191,157 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
     }
 
 
+def measure_reference(directory: Path, python: Path, system: str, mode: str, steps: int,
+                      warmup: int) -> dict:
+    """The reference's row: ``run_reference`` reduced to the same quantities as ours."""
+    out = run_reference(directory=directory, python=python, system=system, mode=mode,
+                        warmup=warmup, steps=steps)
+    refits = out['refits']
+    if not refits:
+        raise ReferenceError(f'reference {system}/{mode}: no GP refit within {warmup} steps')
+    filter_ms = [1e3 * wall for wall, _ in out['filter_calls'][warmup:]]
+    return {
+        'steps_per_s': steady_rate(stamps=out['stamps'], refits=refits, first=warmup),
+        'cpu_steps_per_s': steady_rate(stamps=out['cpu_stamps'], refits=refits, first=warmup,
+                                       cpu=True),
+        'refit_s': statistics.median(r.seconds for r in refits),
+        'refit_points': sorted({r.points for r in refits}),
+        'update_ms': 1e3 * statistics.median(out['updates']) if out['updates'] else float('nan'),
+        'filter_ms': statistics.median(filter_ms) if filter_ms else float('nan'),
+    }
+
+
+def _median(runs: list[dict], key: str) -> float:
+    return statistics.median(r[key] for r in runs)
+
+
+def _ratio(ours: list[dict], ref: list[dict], key: str) -> float:
+    return _median(ours, key) / _median(ref, key)
+
+
+def comparison_row(system: str, mode: str, ours: list[dict], ref: list[dict]) -> str:
+    """One row of the comparison table (reference columns empty without reference runs)."""
+    head = f'| {system} | {mode} <- {CBF_MODES[mode]} | {_median(ours, "steps_per_s"):.1f} '
+    target = TARGETS.get((system, mode))
+    target_text = f'>= {target:g}x' if target else ''
+    if not ref:
+        return head + f'| | | | | | {target_text} | |'
+    ratio = _ratio(ours, ref, 'steps_per_s')
+    per_repeat = [o['steps_per_s'] / r['steps_per_s'] for o, r in zip(ours, ref)]
+    cpu_ratio = _ratio(ours, ref, 'cpu_steps_per_s')
+    interval = LearnerConfig().gp_refit_interval
+    ours_am = statistics.median(amortized_rate(steps_per_s=o['steps_per_s'],
+                                               refit_s=o['refit_s'], every_steps=interval)
+                                for o in ours)
+    ref_am = statistics.median(amortized_rate(steps_per_s=r['steps_per_s'],
+                                              refit_s=r['refit_s'],
+                                              every_steps=REFIT_EVERY_STEPS) for r in ref)
+    met = '' if target is None else ('met' if ratio >= target else 'not met')
+    return (head + f'| {_median(ref, "steps_per_s"):.1f} | {ratio:.1f}x '
+            f'({", ".join(f"{x:.1f}" for x in per_repeat)}) | {cpu_ratio:.1f}x '
+            f'| {ours_am / ref_am:.1f}x | {_median(ref, "refit_s"):.1f} '
+            f'| {target_text} | {met} |')
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--steps', type=int, default=200)
-    parser.add_argument('--warmup', type=int, default=600)
+    parser.add_argument('--steps', type=int, default=200, help='timed steps per run')
+    parser.add_argument('--warmup', type=int, default=600, help='our untimed steps')
     parser.add_argument('--systems', nargs='*', default=['unicycle', 'car_following', 'pvtol'])
-    parser.add_argument('--threads', type=int, nargs='*', default=[1, 2])
+    parser.add_argument('--modes', nargs='*', default=['baseline', 'modular', 'diff'],
+                        choices=['baseline', 'modular', 'diff'])
+    parser.add_argument('--rows', nargs='*', default=None, metavar='SYSTEM/MODE',
+                        help='explicit rows (e.g. unicycle/diff); replaces --systems x --modes')
+    parser.add_argument('--model-based', action='store_true',
+                        help='add our diff + model_based rows (no reference counterpart)')
+    parser.add_argument('--threads', type=int, nargs='*', default=[1])
+    parser.add_argument('--repeats', type=int, default=2,
+                        help='alternating runs per side and row (with --reference)')
+    parser.add_argument('--reference', type=Path, default=None,
+                        help="the authors' Mod-RL-RCBF source tree (outside this repository)")
+    parser.add_argument('--reference-python', type=Path, default=None,
+                        help="python of the reference's venv")
+    parser.add_argument('--reference-warmup', type=int, default=400,
+                        help="the reference's untimed steps (its first GP refit is at 400)")
     parser.add_argument('--no-write', action='store_true')
     args = parser.parse_args()
-    configs = []
+    if min(args.steps, args.warmup, args.repeats) < 1:
+        parser.error('--steps, --warmup and --repeats must be >= 1')
+    if args.rows is None:
+        rows = [(system, mode) for system in args.systems for mode in args.modes]
+    else:
+        rows = [tuple(row.split('/', 1)) for row in args.rows]
+        for row, pair in zip(args.rows, rows):
+            if len(pair) != 2 or pair[1] not in CBF_MODES:
+                parser.error(f'--rows: {row!r} is not SYSTEM/MODE with MODE one of '
+                             f'{", ".join(CBF_MODES)}')
+        args.systems = list(dict.fromkeys(system for system, _ in rows))
     for system in args.systems:
-        modes = [('baseline', False), ('modular', False), ('diff', False)]
-        if system in ('unicycle', 'pvtol'):
-            modes.append(('diff', True))
-        configs += [(system, m, mb) for m, mb in modes]
+        if system not in ENV_NAMES:
+            parser.error(f'--systems: unknown system {system!r}')
+    reference = args.reference is not None
+    if reference:
+        if args.reference_python is None:
+            parser.error('--reference needs --reference-python (its venv, see the docstring)')
+        if args.reference_warmup < 400:
+            parser.error('--reference-warmup: at least 400 (its first GP refit)')
+        try:
+            check_reference(directory=args.reference, python=args.reference_python)
+        except ReferenceError as exc:
+            parser.error(str(exc))
+    else:
+        print('Reference comparison skipped: no --reference DIR given.', flush=True)
+    configs = [(system, mode, False) for system, mode in rows]
+    if args.model_based:
+        configs += [(s, 'diff', True) for s in args.systems if s in ('unicycle', 'pvtol')]
+    load_before = os.getloadavg()
     peak = {threads: matmul_gflops(threads) for threads in args.threads}
-    rows = ['| system | mode | threads | steps/s | median update ms | update floor ms '
-            '| action ms (policy+GP+filter) | filter ms | reference steps/s | ours / reference |',
-            '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|']
+    compare = ['| system | mode, ours <- reference | ours steps/s | reference steps/s '
+               '| ours / reference (per repeat) | CPU-time ratio | ratio, refits amortized '
+               '| reference refit s | target | |',
+               '|---|---|---:|---:|---:|---:|---:|---:|---|---|']
+    detail = ['| system | mode | threads | steps/s | median update ms | update floor ms '
+              '| action ms (policy+GP+filter) | filter ms | reference update ms '
+              '| reference filter ms |', '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|']
     floors = {}
-    for system, mode, mb in configs:
-        for threads in args.threads:
-            result = measure(system, mode, mb, args.steps, args.warmup, threads)
-            name = f"{mode}{' + model_based' if mb else ''}"
-            ref = REFERENCE_STEPS_PER_S.get((system, mode))
-            ratio = f"{result['steps_per_s'] / ref:.1f}x" if ref else ''
-            floor_ms = 1e3 * result['gflop'] / peak[threads]
-            floors[(system, threads)] = (result['gflop'], floor_ms)
-            row = (f"| {system} | {name} | {threads} | {result['steps_per_s']:.1f} "
-                   f"| {result['update_ms']:.1f} | {floor_ms:.1f} | {result['action_ms']:.2f} "
-                   f"| {result['filter_ms']:.2f} | {ref or ''} | {ratio} |")
-            print(row, flush=True)
-            rows.append(row)
-    table = '\n'.join(rows)
-    print(table)
+    row_loads = []
+    try:
+        for system, mode, mb in configs:
+            for threads in args.threads:
+                paired = reference and threads == 1 and not mb
+                ours, ref = [], []
+                for _ in range(args.repeats if paired else 1):
+                    ours.append(measure(system, mode, mb, args.steps, args.warmup, threads))
+                    torch.set_num_threads(1)
+                    if paired:
+                        ref.append(measure_reference(args.reference, args.reference_python,
+                                                     system, mode, args.steps,
+                                                     args.reference_warmup))
+                name = f"{mode}{' + model_based' if mb else ''}"
+                floor_ms = 1e3 * ours[0]['gflop'] / peak[threads]
+                floors[(system, threads)] = (ours[0]['gflop'], floor_ms)
+                ref_cols = (f'| {_median(ref, "update_ms"):.1f} '
+                            f'| {_median(ref, "filter_ms"):.2f} |' if ref else '| | |')
+                row = (f'| {system} | {name} | {threads} | {_median(ours, "steps_per_s"):.1f} '
+                       f'| {_median(ours, "update_ms"):.1f} | {floor_ms:.1f} '
+                       f'| {_median(ours, "action_ms"):.2f} | {_median(ours, "filter_ms"):.2f} '
+                       + ref_cols)
+                detail.append(row)
+                print(row, flush=True)
+                if threads == 1 and not mb:
+                    compare.append(comparison_row(system, mode, ours, ref))
+                    print(compare[-1], flush=True)
+                row_loads.append(os.getloadavg()[0])
+    except ReferenceError as exc:
+        sys.exit(f'bench_training: {exc}')
+    load_after = os.getloadavg()
+    load = (f'Load average (1, 5, 15 min) before {", ".join(f"{v:.2f}" for v in load_before)}, '
+            f'after {", ".join(f"{v:.2f}" for v in load_after)}; 1 min after each row '
+            f'{min(row_loads):.1f} to {max(row_loads):.1f} (2 cores). On a shared '
+            "machine other work stretches both sides' wall time; the alternation spreads it "
+            'over both, the per-repeat ratios show how much it moved them, and the CPU-time '
+            'ratio is the check (it is not immune either: shared cores and caches slow the '
+            'CPU time too).')
     peaks = ', '.join(f'{peak[t]:.0f} GFLOP/s with {t} thread{"s" if t > 1 else ""}'
                       for t in args.threads)
     unicycle = [(t, *floors[('unicycle', t)]) for t in args.threads if ('unicycle', t) in floors]
@@ -156,25 +352,36 @@ def main() -> None:
     reading = (
         'Reading: "update floor" is the update\'s matmul arithmetic (counted from the network '
         'sizes, see `update_gflop`) at the best float32 matmul rate measured in this run '
-        f'({peaks}; one 256x256x256 product). It bounds every mode from below.{bound} The '
-        "issue's 10x target for baseline is 273 steps/s: 3.7 ms per step for update, "
-        f'action and environment together, against an update floor alone of '
-        f'{min(f for _, _, f in unicycle):.1f} ms with the best thread count: out of reach '
-        'in float32 on this hardware (a GPU, or bfloat16 matmuls, would change that; bfloat16 '
-        'autocast, measured once while looking, took 6.1 vs 11.0 ms per update on one thread '
-        'and was not adopted: it keeps Q values to ~3 significant digits). The diff rows add '
-        'the differentiable QP (two batched solves and their backward) on top.')
-    print(reading)
+        f'({peaks}; one 256x256x256 product). It bounds every mode from below.{bound} The diff '
+        'rows add the differentiable QP (two batched solves and their backward) on top. '
+        'bfloat16 autocast would shorten the update (6.1 vs 11.0 ms on one thread) and is not '
+        'used: it keeps Q values to ~3 significant digits.')
+    if reference:
+        verdict = ('Target: ours / reference steady-state steps/s at least the "target" '
+                   'column (the project\'s speed goals); "met" is judged on the wall-clock '
+                   'median ratio.')
+    else:
+        verdict = 'Reference comparison skipped (no --reference DIR): its columns are empty.'
+    selection = (f'--rows {" ".join(args.rows)}' if args.rows is not None else
+                 f'--systems {" ".join(args.systems)} --modes {" ".join(args.modes)}')
+    command = (f'python benchmarks/bench_training.py --steps {args.steps} --warmup {args.warmup}'
+               f' --repeats {args.repeats} {selection}'
+               + (' --model-based' if args.model_based else '')
+               + (f' --reference {args.reference} --reference-python {args.reference_python}'
+                  if reference else ''))
+    text = '\n'.join(['Ours against the reference, 1 thread each, steady state:', '',
+                      *compare, '', verdict, '', load, '', DIFFERENCES, '',
+                      'Ours in detail (reference columns: median of its repeats):', '',
+                      *detail, '', reading])
+    print(text)
     if not args.no_write:
         from _results import machine_line, write_section
         write_section('Training speed', (
-            f'Command: `python benchmarks/bench_training.py --steps {args.steps}` (one run). '
-            + machine_line() + '. In-process, 1 SAC update per env step, batch 256, 256x256 '
-            'networks, compiled per-step filter assembly, GP estimate every step; each row '
-            f'times {args.steps} steps after {args.warmup} warm-up steps (the GP is fitted on '
-            'them, at most 512 points). Reference steps/s: '
-            "the authors' code on this machine size as quoted in issue 4 (their `full` runs "
-            'are compared with our diff rows).\n\n' + table + '\n\n' + reading))
+            f'Command: `{command}`. ' + machine_line() + '. Each row alternates a run of ours '
+            f'and of the reference, {args.repeats if reference else 1} time(s); ours times '
+            f'{args.steps} steps after {args.warmup} warm-up steps, the reference {args.steps} '
+            f'steps after {args.reference_warmup}. Method and venv: the docstrings of '
+            'benchmarks/bench_training.py and benchmarks/_reference.py.\n\n' + text))
 
 
 if __name__ == '__main__':
