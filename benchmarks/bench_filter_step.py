@@ -422,8 +422,8 @@ def main() -> None:
         from _results import machine_line, write_section
         write_section('Per-step safety filter', (
             f'Command: `python benchmarks/bench_filter_step.py --calls {args.calls} --rounds '
-            f'{args.rounds}' + (f' --reference {args.reference} --reference-python '
-                                f'{args.reference_python} --reference-calls '
+            f'{args.rounds}' + (' --reference <Mod-RL-RCBF checkout> --reference-python '
+                                '<its venv>/bin/python --reference-calls '
                                 f'{args.reference_calls}' if args.reference else '') + '`. '
             + machine_line() + '.\n\n' + table))
 

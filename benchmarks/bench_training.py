@@ -17,8 +17,8 @@ per row and repeat, timed from outside by benchmarks/_reference.py (read its doc
 stamps each entry into the environment's ``step`` and each GP refit by wrapping them, never
 editing the reference's files). Prepare the venv once, outside this repository:
 
-    python3 -m venv /work/cache/ref-venv
-    /work/cache/ref-venv/bin/python -m pip install -c constraints.txt torch==2.13.0 qpth \
+    python3 -m venv ref-venv
+    ref-venv/bin/python -m pip install -c constraints.txt torch==2.13.0 qpth \
         gpytorch gym==0.25.2 comet_ml
 
 (torch pinned by constraints.txt, a CPU wheel, as in scripts/setup.sh; gym 0.25 still has the
@@ -367,7 +367,7 @@ def main() -> None:
     command = (f'python benchmarks/bench_training.py --steps {args.steps} --warmup {args.warmup}'
                f' --repeats {args.repeats} {selection}'
                + (' --model-based' if args.model_based else '')
-               + (f' --reference {args.reference} --reference-python {args.reference_python}'
+               + (' --reference <Mod-RL-RCBF checkout> --reference-python <its venv>/bin/python'
                   if reference else ''))
     text = '\n'.join(['Ours against the reference, 1 thread each, steady state:', '',
                       *compare, '', verdict, '', load, '', DIFFERENCES, '',
