@@ -425,7 +425,11 @@ def test_odometry_and_twist_stamped_from_end_to_end(ros_domain_id, probe, tmp_pa
     assert len(commands) >= ends[0]['steps']
     # Every safe command carries the stamp of a state and the Odometry's frame, as proposed.
     assert all(stamp in states and frame == 'map' for stamp, frame in commands)
-    assert [item for _, item in probe.received['/cmd_proposed']][:len(commands)] == commands
+    # A state not answered within action_timeout_s is published again (a late subscriber
+    # under load), so one state can be proposed for, and answered, twice in a row.
+    proposals = _without_repeats([item for _, item in probe.received['/cmd_proposed']])
+    answered = _without_repeats(commands)
+    assert proposals[:len(answered)] == answered
     assert 'Traceback' not in ''.join(outputs)
 
 
@@ -519,3 +523,8 @@ def test_unsafe_controller_behind_the_filter_never_violates(ros_domain_id, probe
         # the first volatile samples. From then on it holds every one the probe received.
         assert len(bag_h) >= steps - 100, (len(bag_h), steps)
         np.testing.assert_array_equal(np.array(bag_h), h_true[len(h_true) - len(bag_h):])
+
+
+def _without_repeats(items: list) -> list:
+    """``items`` with each run of equal neighbours kept once."""
+    return [item for i, item in enumerate(items) if i == 0 or item != items[i - 1]]

@@ -52,8 +52,8 @@ def test_model_based_diff_adds_synthetic_transitions(tmp_path):
 def test_modular_learner_keeps_the_envelope_layer_of_every_layout(tmp_path):
     """Modular SAC-RCBF drops the layout's correction from its losses but keeps the envelope's
     (PVTOL: tilt, thrust, arena; not the operator, ``layout: true`` in config/pvtol.yaml), as
-    the authors' code does (``modular_envelope``; off by default, the paper's plain modular).
-    The Unicycle has no envelope: plain modular either way."""
+    the authors' code does (``modular_envelope``, which config/pvtol.yaml turns on; False gives
+    the paper's plain modular). The Unicycle has no envelope: plain modular either way."""
     from rcbf_ros.training.loop import build_run, run_episode
     env, filt, learner, _ = build_run(small_run(tmp_path, 'pvtol', 'modular',
                                                 modular_envelope=True))
@@ -63,7 +63,7 @@ def test_modular_learner_keeps_the_envelope_layer_of_every_layout(tmp_path):
     assert sorted(learner.envelope_layer.problem.barrier_names) == [
         'arena_x_lower', 'arena_x_upper', 'arena_y_lower', 'arena_y_upper', 'thrust', 'tilt']
     assert run_episode(env, filt, learner, episode=0, seed=0).violations == 0
-    _, _, plain, _ = build_run(small_run(tmp_path, 'pvtol', 'modular'))
+    _, _, plain, _ = build_run(small_run(tmp_path, 'pvtol', 'modular', modular_envelope=False))
     assert plain.envelope_layer is None and plain.sac.safety_layer is None
     _, _, unicycle, _ = build_run(small_run(tmp_path, 'unicycle', 'modular',
                                             modular_envelope=True))
