@@ -257,8 +257,10 @@ def _on_numpy(assembly: Assembly) -> NumpyAssembly:
 
     def assemble(x: np.ndarray, u: np.ndarray, mean: np.ndarray, std: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        h, g_matrix, upper = assembly(*(torch.from_numpy(a).unsqueeze(0)
-                                        for a in (x, u, mean, std)))
+        # torch takes no read-only arrays (the filter passes the caller's arrays as they are)
+        h, g_matrix, upper = assembly(*(
+            torch.from_numpy(a if a.flags.writeable else a.copy()).unsqueeze(0)
+            for a in (x, u, mean, std)))
         return h[0].numpy(), g_matrix[0].numpy(), upper[0].numpy()
 
     return assemble

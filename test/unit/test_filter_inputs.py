@@ -91,3 +91,15 @@ def test_read_only_inputs_are_filtered_and_left_unchanged():
         np.testing.assert_allclose(result.u_s, result.u_safe - inputs[1], rtol=0, atol=0)
     for array, copy in zip(inputs, copies):
         np.testing.assert_array_equal(array, copy)
+
+
+@pytest.mark.parametrize('closed_form', [True, False])
+def test_defaults_and_read_only_inputs_give_no_warning_on_either_assembly(closed_form):
+    problem = unicycle_problem()
+    safety_filter = SafetyFilter(problem, closed_form=closed_form)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        plain = safety_filter.filter(read_only(STATE), read_only(PROPOSAL))
+        boxed = safety_filter.filter(STATE, PROPOSAL, read_only([0.0] * 3), read_only([0.0] * 3))
+    assert plain.status == boxed.status == 'solved'
+    np.testing.assert_allclose(plain.u_safe, boxed.u_safe, rtol=0, atol=1e-9)
