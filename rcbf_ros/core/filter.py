@@ -516,10 +516,11 @@ class SafetyFilter:
         u_rl_applied = np.array(applied) if clipped else u
         h_values, g_matrix, upper = self._assemble(x, u_rl_applied, mu, sd)
         g_flat = g_matrix.ravel()
-        # One reduction per array when the data passes (NaN and inf fail the <=); else the
-        # exact check, for the refusal naming the data.
-        if not (h_values.dot(h_values) + g_flat.dot(g_flat) + upper.dot(upper)
-                <= _QP_DATA_SQUARES):
+        # One reduction per array when the data passes (NaN and inf fail the <=; the sum on
+        # Python floats overflows to inf without numpy's warning); else the exact check, for
+        # the refusal naming the data.
+        if not (float(h_values.dot(h_values)) + float(g_flat.dot(g_flat))
+                + float(upper.dot(upper)) <= _QP_DATA_SQUARES):
             for name, data in (('barrier values', h_values), ('constraint rows', g_matrix),
                                ('constraint bounds', upper)):
                 if not np.abs(data).max(initial=0.0) <= QP_DATA_LIMIT:
