@@ -103,3 +103,24 @@ def test_defaults_and_read_only_inputs_give_no_warning_on_either_assembly(closed
         boxed = safety_filter.filter(STATE, PROPOSAL, read_only([0.0] * 3), read_only([0.0] * 3))
     assert plain.status == boxed.status == 'solved'
     np.testing.assert_allclose(plain.u_safe, boxed.u_safe, rtol=0, atol=1e-9)
+
+
+def test_qp_data_whose_squares_overflow_only_together_is_refused_without_warning():
+    # Each array's sum of squares is finite (about 1.4e308); their total overflows.
+    safety_filter = SafetyFilter(unicycle_problem())
+    assemble = safety_filter._assemble
+
+    def huge(x, u, mean, std):
+        h_values, g_matrix, upper = assemble(x, u, mean, std)
+        h_values, upper = h_values.copy(), upper.copy()
+        h_values[:] = 0.0
+        upper[:] = 0.0
+        h_values[0] = upper[0] = 1.2e154
+        return h_values, g_matrix, upper
+
+    safety_filter._assemble = huge
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        result = safety_filter.filter(STATE, PROPOSAL)
+    assert result.fail_safe and result.status == 'input_refused'
+    assert result.reason == 'barrier values: not finite or beyond 1e+15 at this input'
