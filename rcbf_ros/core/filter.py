@@ -63,6 +63,10 @@ QP_DATA_LIMIT = 1e15
 """Largest |value| of the assembled QP data (rows and right-hand sides) the filter passes to the
 solver. OSQP refuses data beyond about 1e30 and keeps the previous problem; far below that,
 float64 rows lose the absolute precision the row check needs. Larger data: ``input_refused``."""
+_QP_DATA_SQUARES = 0.5 * QP_DATA_LIMIT ** 2
+"""A sum of squares of the QP data at most this has every |value| below :data:`QP_DATA_LIMIT`
+(by a factor of 0.7, far beyond the sum's rounding): the one-reduction data check; data that
+fails it goes through the exact one."""
 LIMIT_TOLERANCE = 1e-9
 """How far past an actuator limit the solver's answer may land before it is projected back (a
 solve at tolerance 1e-9 ends there); farther is a failed check."""
@@ -137,9 +141,21 @@ class _Refused(Exception):
     """An input the filter refuses (fail-safe, status ``input_refused``)."""
 
 
+_FLOAT64 = np.dtype(np.float64)
+_min_of = np.minimum.reduce
+_max_of = np.maximum.reduce
+"""The reductions without the Python wrapper of ``ndarray.min``/``max`` (most of their cost on
+arrays of a few entries)."""
+
+
 def _vector(name: str, value: object, size: int) -> np.ndarray:
-    """A 1-D float64 copy of ``value`` with ``size`` entries; raise ValueError naming the field
-    for a wrong length or non-numeric data (values are checked by :func:`_bounded`)."""
+    """A 1-D float64 array of ``value`` with ``size`` entries; raise ValueError naming the field
+    for a wrong length or non-numeric data (values are checked by :func:`_bounded`).
+
+    A float64 array of that shape is used as it is (the filter neither changes nor keeps its
+    inputs); anything else is converted into a new array."""
+    if type(value) is np.ndarray and value.dtype is _FLOAT64 and value.shape == (size,):
+        return value
     try:
         array = np.array(value, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError, OverflowError) as exc:
@@ -241,8 +257,10 @@ def _on_numpy(assembly: Assembly) -> NumpyAssembly:
 
     def assemble(x: np.ndarray, u: np.ndarray, mean: np.ndarray, std: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        h, g_matrix, upper = assembly(*(torch.from_numpy(a).unsqueeze(0)
-                                        for a in (x, u, mean, std)))
+        # torch takes no read-only arrays (the filter passes the caller's arrays as they are)
+        h, g_matrix, upper = assembly(*(
+            torch.from_numpy(a if a.flags.writeable else a.copy()).unsqueeze(0)
+            for a in (x, u, mean, std)))
         return h[0].numpy(), g_matrix[0].numpy(), upper[0].numpy()
 
     return assemble
@@ -396,12 +414,15 @@ class SafetyFilter:
         if self.assembly == 'closed_form' and max(bounds.state, bounds.command,
                                                   bounds.disturbance) > QUIET_BOUND:
             self._assemble = _quiet(self._assemble)
-        # [state, u_rl, mean, std] bounds elementwise (std also >= 0), for one check per call
-        n_x, n_u = self.n_x, self.n_u
-        self._inputs_high = np.concatenate((
-            np.full(n_x, bounds.state), np.full(n_u, bounds.command),
-            np.full(2 * n_x, bounds.disturbance)))
-        self._inputs_low = np.concatenate((-self._inputs_high[:-n_x], np.zeros(n_x)))
+        # Python floats for the per-call checks on a few values (cheaper than numpy calls)
+        self._limits = list(zip(self._u_min.tolist(), self._u_max.tolist()))
+        self._limits_tolerated = list(zip(self._u_min_tolerated.tolist(),
+                                          self._u_max_tolerated.tolist()))
+        self._zeros_x = np.zeros(self.n_x)
+        self._zeros_x.setflags(write=False)
+        self._zeros_x_list = self._zeros_x.tolist()
+        self._zeros_z = np.zeros(self.n_u + 1)
+        self._zeros_z.setflags(write=False)
         action = np.zeros(self.n_u) if fail_safe_action is None else _vector(
             'fail_safe_action', fail_safe_action, self.n_u)
         if not np.all(np.isfinite(action)):
@@ -453,15 +474,31 @@ class SafetyFilter:
             ValueError: naming the field, for a wrong length or non-numeric data.
         """
         start = time.perf_counter()
-        x = _vector('state', state, self.n_x)
-        u = _vector('u_rl', u_rl, self.n_u)
-        mu = np.zeros(self.n_x) if mean is None else _vector('disturbance_mean', mean, self.n_x)
-        sd = np.zeros(self.n_x) if std is None else _vector('disturbance_std', std, self.n_x)
-        inputs = np.concatenate((x, u, mu, sd))
-        # Every check below at once (NaN fails both comparisons); only an input that fails it
-        # goes through them one by one, for the reason naming the field.
-        if not ((inputs >= self._inputs_low) & (inputs <= self._inputs_high)).all():
-            bounds = self.input_bounds
+        n_x, n_u = self.n_x, self.n_u
+        x = _vector('state', state, n_x)
+        u = _vector('u_rl', u_rl, n_u)
+        if mean is None:
+            mu, mu_list = self._zeros_x, self._zeros_x_list
+        else:
+            mu = _vector('disturbance_mean', mean, n_x)
+            mu_list = mu.tolist()
+        if std is None:
+            sd, sd_list = self._zeros_x, self._zeros_x_list
+        else:
+            sd = _vector('disturbance_std', std, n_x)
+            sd_list = sd.tolist()
+        x_list, u_list = x.tolist(), u.tolist()
+        bounds = self.input_bounds
+        # Every check below at once, on Python floats: a NaN or inf makes the sum NaN or inf
+        # (so can a sum of large finite values: such an input only goes through the checks one
+        # by one). Only an input that fails it goes through them one by one, for the reason
+        # naming the field.
+        if not (math.isfinite(sum(x_list) + sum(u_list) + sum(mu_list) + sum(sd_list))
+                and max(map(abs, x_list), default=0.0) <= bounds.state
+                and max(map(abs, u_list), default=0.0) <= bounds.command
+                and max(map(abs, mu_list), default=0.0) <= bounds.disturbance
+                and max(sd_list, default=0.0) <= bounds.disturbance
+                and min(sd_list, default=0.0) >= 0.0):
             try:
                 _bounded('state', x, bounds.state)
                 _bounded('u_rl', u, bounds.command)
@@ -473,75 +510,63 @@ class SafetyFilter:
                 return self._fail_safe(u, start, status='input_refused', reason=str(refusal))
 
         # Clip before the QP: its rows are then written at a command the plant can take.
-        u_rl_applied = u.clip(self._u_min, self._u_max)
-        clipped = bool((u_rl_applied != u).any())
+        applied = [low if value < low else high if value > high else value
+                   for value, (low, high) in zip(u_list, self._limits)]
+        clipped = applied != u_list
+        u_rl_applied = np.array(applied) if clipped else u
         h_values, g_matrix, upper = self._assemble(x, u_rl_applied, mu, sd)
-        everything = np.concatenate((h_values, g_matrix.ravel(), upper))
-        if not np.abs(everything).max(initial=0.0) <= QP_DATA_LIMIT:  # NaN and inf fail too
+        g_flat = g_matrix.ravel()
+        # One reduction per array when the data passes (NaN and inf fail the <=; the sum on
+        # Python floats overflows to inf without numpy's warning); else the exact check, for
+        # the refusal naming the data.
+        if not (float(h_values.dot(h_values)) + float(g_flat.dot(g_flat))
+                + float(upper.dot(upper)) <= _QP_DATA_SQUARES):
             for name, data in (('barrier values', h_values), ('constraint rows', g_matrix),
                                ('constraint bounds', upper)):
                 if not np.abs(data).max(initial=0.0) <= QP_DATA_LIMIT:
                     return self._fail_safe(
                         u, start, status='input_refused', h=h_values, clipped=clipped,
                         reason=f'{name}: not finite or beyond {QP_DATA_LIMIT:.0e} at this input')
-        lg_h = -g_matrix[:self.n_barriers, :self.n_u]
-        rows_upper = upper[:self.n_barriers]
-
-        def check(z: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float] | None:
-            """The action of solution z and its row values, if z passes the check."""
-            if z is None or z.shape != (self.n_u + 1,) or not np.isfinite(z).all():
-                return None
-            action = u_rl_applied + z[:self.n_u]
-            if (action < self._u_min_tolerated).any() or (action > self._u_max_tolerated).any():
-                return None
-            action = action.clip(self._u_min, self._u_max)
-            values = rows_upper + lg_h.dot(action - u_rl_applied)
-            needed = max(0.0, -float(values.min(initial=0.0)))
-            # The solver's own eps must account for what the rows need: else the answer is
-            # not the solution of this QP (a stale or garbage iterate).
-            claimed = max(0.0, float(z[-1]))
-            scale = 1.0 + float(np.abs(rows_upper).max(initial=0.0))
-            if needed > claimed + 1e-6 * scale:
-                return None
-            return action, values, needed
+        # The RCBF rows: -L_g h (the top left block of G) and their right-hand sides.
+        rows = (upper[:self.n_barriers], g_matrix[:self.n_barriers, :n_u], applied)
 
         solve_start = time.perf_counter()
         status = 'solved'
-        if (upper >= 0.0).all():
+        if _min_of(upper, initial=math.inf) >= 0.0:
             # z = 0 is feasible, hence optimal (the objective's minimum): the proposal passes
             # through exactly, without a solve.
-            z = np.zeros(self.n_u + 1)
-            checked = check(z)
+            z = self._zeros_z
+            checked = self._check(z, rows)
         else:
             self._solver.update(Ax=g_matrix.take(self._pattern_index), u=upper)
             result = self._solver.solve(raise_error=False)
             status_val = int(result.info.status_val)
             z = None if result.x is None else np.array(result.x, dtype=np.float64)
-            checked = check(z) if status_val in _OK_STATUS else None
+            checked = self._check(z, rows) if status_val in _OK_STATUS else None
             status = _OK_STATUS.get(status_val, str(result.info.status))
             if checked is None:
                 # Never start a later solve from this iterate.
-                self._solver.warm_start(x=np.zeros(self.n_u + 1), y=np.zeros(self._nc))
+                self._solver.warm_start(x=np.zeros(n_u + 1), y=np.zeros(self._nc))
                 if self.fallback:
                     # ADMM can stall when the slack is far from 0 (the 1 : l diagonal); the
                     # interior point of the differentiable layer solves the same QP robustly.
+                    # (copies: the inputs may be the caller's read-only arrays)
                     solution = solve_qp_batch_full(*self.problem.qp(
-                        *(torch.from_numpy(a).unsqueeze(0)
-                          for a in (x, u_rl_applied, mu, sd))))
+                        *(torch.tensor(a).unsqueeze(0) for a in (x, u_rl_applied, mu, sd))))
                     if bool(solution.converged[0]):
                         z = solution.z[0].detach().numpy().astype(np.float64)
-                        checked = check(z)
+                        checked = self._check(z, rows)
                         status = 'solved_interior_point'
         solve_time = time.perf_counter() - solve_start
         if checked is None:
             return self._fail_safe(u, start, status='unverified', h=h_values, clipped=clipped,
-                                   solve_time=solve_time, rows=(rows_upper, lg_h, u_rl_applied),
+                                   solve_time=solve_time, rows=rows,
                                    reason=f'no solution passed the row check (solver: {status})')
         u_safe, values, needed = checked
         if self.slack_tolerance is not None and needed > self.slack_tolerance:
             return self._fail_safe(
                 u, start, status='slack_exceeded', h=h_values, clipped=clipped,
-                solve_time=solve_time, rows=(rows_upper, lg_h, u_rl_applied),
+                solve_time=solve_time, rows=rows,
                 reason=f'barrier rows need slack {needed:.3g} > slack_tolerance '
                        f'{self.slack_tolerance:.3g} within the input limits')
         return FilterResult(
@@ -551,17 +576,50 @@ class SafetyFilter:
             barrier_names=list(self.barrier_names), needed_slack=needed,
             proposal_clipped=clipped)
 
+    def _check(self, z: np.ndarray | None,
+               rows: tuple[np.ndarray, np.ndarray, list[float]]
+               ) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """The action of solution z and its row values, if z passes the row check.
+
+        ``rows``: the RCBF rows' right-hand sides (K,), -L_g h (K, n_u) and the proposal they
+        are written at (n_u floats). The action u + z[:n_u] must lie within the limits (to
+        :data:`LIMIT_TOLERANCE`; then projected onto them), and the slack its rows need, from
+        the rows themselves, must be accounted for by the solver's own eps z[-1]."""
+        if z is None or z.shape != (self.n_u + 1,):
+            return None
+        z_list = z.tolist()
+        if not all(map(math.isfinite, z_list)):
+            return None
+        rows_upper, minus_lg_h, applied = rows
+        action = [a + b for a, b in zip(applied, z_list)]
+        for value, (low, high) in zip(action, self._limits_tolerated):
+            if value < low or value > high:
+                return None
+        action = [low if value < low else high if value > high else value
+                  for value, (low, high) in zip(action, self._limits)]
+        values = rows_upper - minus_lg_h.dot(np.array([a - b for a, b in zip(action, applied)]))
+        needed = max(0.0, -float(_min_of(values, initial=0.0)))
+        # The solver's own eps must account for what the rows need: else the answer is not the
+        # solution of this QP (a stale or garbage iterate).
+        claimed = max(0.0, z_list[-1])
+        if needed > claimed:
+            scale = 1.0 + float(_max_of(np.abs(rows_upper), initial=0.0))
+            if needed > claimed + 1e-6 * scale:
+                return None
+        return np.array(action), values, needed
+
     def _fail_safe(self, u: np.ndarray, start: float, *, status: str, reason: str,
                    h: np.ndarray | None = None, clipped: bool = False, solve_time: float = 0.0,
-                   rows: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                   rows: tuple[np.ndarray, np.ndarray, list[float]] | None = None
                    ) -> FilterResult:
-        """The fail-safe result; ``rows`` (upper, L_g h, u at the rows) give its row values."""
+        """The fail-safe result; ``rows`` (upper, -L_g h, u at the rows) give its row
+        values."""
         action = self.fail_safe_action.copy()
         nan = np.full(self.n_barriers, np.nan)
         values, needed = nan, float('nan')
         if rows is not None:
-            rows_upper, lg_h, u_rows = rows
-            values = rows_upper + lg_h @ (action - u_rows)
+            rows_upper, minus_lg_h, u_rows = rows
+            values = rows_upper - minus_lg_h.dot(action - np.array(u_rows))
             needed = max(0.0, -float(np.min(values, initial=0.0)))
         return FilterResult(
             u_safe=action, u_s=action - u, slack=float('nan'),

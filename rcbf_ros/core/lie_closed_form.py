@@ -49,6 +49,9 @@ from rcbf_ros.core.rcbf import RCBFProblem
 MAX_CASCADE_DEPTH = 2
 """Deepest cascade with a closed form here (the built-in configs use up to 2)."""
 _QUADRATIC_FAMILIES = (BandBarrier, CircleObstacles, HalfPlane, PairGap)
+_PAIR_SUM = np.ones(2)
+_PAIR_SUM.setflags(write=False)
+"""Sums the two columns of a (k, 2) array in one product (cheaper than ``sum(axis=1)``)."""
 
 
 class NumpyTerms(NamedTuple):
@@ -160,7 +163,7 @@ class _LookaheadCircles:
         cos, sin = math.cos(theta), math.sin(theta)
         offset = self._lookahead * side
         d = (values[self._i] + offset * cos, values[self._j] + offset * sin) - self._centers
-        h = (d * d).sum(axis=1) - self._delta_sq
+        h = (d * d).dot(_PAIR_SUM) - self._delta_sq
         m = self._position.copy()
         m[0, self._heading] += -2.0 * offset * sin
         m[1, self._heading] += 2.0 * offset * cos
@@ -171,7 +174,7 @@ class _LookaheadCircles:
         """(h (k,), grad h (k, n_x)) at the point the proposal u chooses."""
         if self._speed is not None and u is not None and u[self._speed] < 0:
             h, grad = self._point(values, -1.0)
-            if (h >= 0).all():
+            if np.minimum.reduce(h, initial=math.inf) >= 0:
                 return h, grad
         return self._point(values, 1.0)
 
