@@ -165,8 +165,8 @@ class SafetyFilterNode(Node):
         """Declare and validate every parameter, build the filter, create the endpoints.
 
         Args:
-            cli_args: this node's own ROS arguments (``['--params-file', path]``), after the
-                process's.
+            cli_args: this node's own command line, after the process's; as in rclpy, only
+                the words after ``--ros-args`` count (``['--ros-args', '--params-file', path]``).
 
         Raises:
             ValueError: a parameter is invalid (the message names the key).

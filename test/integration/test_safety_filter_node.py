@@ -113,7 +113,8 @@ class Probe:
 
     def close(self) -> None:
         self._running = False
-        self._thread.join(timeout=5)
+        if self._thread.is_alive():  # not started when a test failed before start()
+            self._thread.join(timeout=5)
         self.node.destroy_node()
         self.rclpy.try_shutdown()
 

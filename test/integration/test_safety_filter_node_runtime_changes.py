@@ -102,7 +102,9 @@ def test_obstacles_topic_moves_an_obstacle_and_a_bad_message_changes_nothing(
 
         obstacles_pub.publish(_array(MOVED))
         braked, (level, _, values) = _until(answer, lambda c, d: c['u'][0] < 2.5)
+        # Keep-last 1: the node sees only the latest set, so each bad one gets its time.
         obstacles_pub.publish(_array(MOVED[:-1]))   # 14 values: not rows of [x, y, radius]
+        time.sleep(1.0)
         obstacles_pub.publish(_array([2.85, 0.0, -0.6]))  # a negative radius
         time.sleep(1.0)
         after_bad, (after_level, _, after_values) = answer()
@@ -130,7 +132,7 @@ class _InProcessFilter:
         from rcbf_ros.ros.runtime import rclpy
         from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
         self.rclpy = rclpy
-        self.node = SafetyFilterNode(cli_args=['--params-file', UNICYCLE])
+        self.node = SafetyFilterNode(cli_args=['--ros-args', '--params-file', UNICYCLE])
         self._calls: queue.Queue = queue.Queue()
         self._running = True
         self._thread = threading.Thread(target=self._spin, daemon=True)

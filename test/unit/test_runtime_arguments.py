@@ -166,8 +166,12 @@ def test_node_rejects_override_of_another_type(context_args):
 def test_node_renamed_from_command_line(ros_domain_id):
     rclpy_compat.init(args=['--ros-args', '-r', '__node:=renamed'], domain_id=ros_domain_id)
     try:
-        node = Node('original', cli_args=['-r', '__ns:=/inner'])
+        node = Node('original', cli_args=['--ros-args', '-r', '__ns:=/inner'])
         assert (node.get_name(), node.get_namespace()) == ('renamed', '/inner')
+        node.destroy_node()
+        # As rcl: words before --ros-args are the program's, not ROS arguments.
+        node = Node('original', cli_args=['-r', '__ns:=/inner'])
+        assert (node.get_name(), node.get_namespace()) == ('renamed', '/')
         node.destroy_node()
     finally:
         rclpy_compat.try_shutdown()

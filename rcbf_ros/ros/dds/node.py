@@ -652,8 +652,8 @@ class Node:
         if not self.context.ok() or self.context.participant is None:
             raise RuntimeError('rclpy.init() must be called before creating a Node')
         arguments = [self.context.arguments] if use_global_arguments else []
-        arguments.append(parse_ros_arguments(['--ros-args', *cli_args] if cli_args and
-                                             '--ros-args' not in cli_args else cli_args))
+        # As rcl: only words after --ros-args are ROS arguments (others are the program's).
+        arguments.append(parse_ros_arguments(cli_args))
         original_name = check_node_name(node_name)
         name, ns = original_name, namespace or '/'
         for args in arguments:
