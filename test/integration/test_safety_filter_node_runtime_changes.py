@@ -135,12 +135,22 @@ class _InProcessFilter:
         self.node = SafetyFilterNode(cli_args=['--ros-args', '--params-file', UNICYCLE])
         self._calls: queue.Queue = queue.Queue()
         self._running = True
+        # The probe spins rclpy's global executor in a thread of its own; an executor is not
+        # to be shared between threads, so on rclpy this node gets one of its own.
+        from rcbf_ros.ros.runtime import USING_RCLPY
+        if USING_RCLPY:
+            from rclpy.executors import SingleThreadedExecutor
+            executor = SingleThreadedExecutor()
+            executor.add_node(self.node)
+            self._spin_once = lambda: executor.spin_once(timeout_sec=0.02)
+        else:
+            self._spin_once = lambda: rclpy.spin_once(self.node, timeout_sec=0.02)
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
         while self._running and self.rclpy.ok():
-            self.rclpy.spin_once(self.node, timeout_sec=0.02)
+            self._spin_once()
             while not self._calls.empty():
                 call, done = self._calls.get()
                 done.put(call())
