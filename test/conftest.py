@@ -1,4 +1,4 @@
-"""Session-wide test setup: loopback-only DDS and single-threaded torch, before anything else;
+"""Setup for every test: loopback-only DDS and single-threaded torch, before anything else;
 and the ``ros2`` tier's access to a real ROS 2 Jazzy (skipped, with the reason, without one)."""
 from __future__ import annotations
 

@@ -32,7 +32,7 @@ def _env(domain_id: int) -> dict[str, str]:
 
 
 class Launch:
-    """A launcher process in its own session, its output collected line by line."""
+    """A launcher process in its own process group, its output collected line by line."""
 
     def __init__(self, args: list[str], domain_id: int) -> None:
         self.process = subprocess.Popen([*LAUNCH, *args], env=_env(domain_id), cwd=REPO,

@@ -1,4 +1,4 @@
-"""The colcon overlay of the ``ros2`` tier: rcbf_ros built as README.md says, once per session.
+"""The colcon overlay of the ``ros2`` tier: rcbf_ros built as README.md says, once per pytest run.
 
 The workspace follows README.md "On a ROS 2 Jazzy machine": a virtual environment with the
 system's site-packages, made before colcon runs; colcon run as ``python -m colcon`` from it, so
@@ -77,7 +77,7 @@ def build_overlay(jazzy: Jazzy, workspace: Path) -> Overlay:
 
 
 def shared_overlay(jazzy: Jazzy, tmp_path_factory: pytest.TempPathFactory) -> Overlay:
-    """The session's overlay for ``jazzy``, built on first use."""
+    """The overlay for ``jazzy`` of this pytest run, built on first use."""
     if jazzy not in _BUILT:
         _BUILT[jazzy] = build_overlay(jazzy, tmp_path_factory.mktemp('ws'))
     return _BUILT[jazzy]
