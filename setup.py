@@ -10,8 +10,8 @@ setup(
     name=package_name,
     version='0.1.0',
     # config/*.yaml ship inside the package as rcbf_ros/config (package data), so that
-    # rcbf_ros.params.find_config finds them in a wheel or any pip install; colcon also gets
-    # share/rcbf_ros/config (data_files) for ros2 launch and $(ros2 pkg prefix).
+    # rcbf_ros.parameters.rules.find_config finds them in a wheel or any pip install; colcon also
+    # gets share/rcbf_ros/config (data_files) for ros2 launch and $(ros2 pkg prefix).
     packages=find_packages(exclude=['test', 'test.*', 'benchmarks']) + ['rcbf_ros.config'],
     package_dir={'rcbf_ros.config': 'config'},
     package_data={'rcbf_ros.config': ['*.yaml', '*.json']},
@@ -48,9 +48,9 @@ setup(
             'learner = rcbf_ros.ros.learner_node:main',
             'policy = rcbf_ros.ros.policy_node:main',
             'scene_markers = rcbf_ros.ros.scene_node:main',
-            'rcbf_ros = rcbf_ros.cli:main',
-            'rcbf_ros_launch = rcbf_ros.launch_local:main',
-            'rcbf_ros_refilter = rcbf_ros.refilter:main',
+            'rcbf_ros = rcbf_ros.cli.main:main',
+            'rcbf_ros_launch = rcbf_ros.launch.local:main',
+            'rcbf_ros_refilter = rcbf_ros.bag.refilter:main',
         ],
     },
 )

@@ -54,7 +54,7 @@ def run_filter_latency(rate_hz: float, n: int, node_args: tuple[str, ...] = ()
     Args:
         node_args: extra ``--ros-args`` of the filter process (e.g. ``-p name:=value``).
     """
-    from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
+    from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
     from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
     env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED='1')
     process = subprocess.Popen(

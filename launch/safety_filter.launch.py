@@ -10,10 +10,10 @@ uses, so most robots need only ``cmd_in``: bases, their simulators and teleop ta
 odometry sources publish ``odom``, and ``cmd_vel_nav`` is the name Nav2's bringup gives its
 controller's output. ``command_type``: twist (default), twist_stamped or array.
 ``params_file`` (default: the packaged ``config/unicycle.yaml``) holds the robot's model,
-obstacles and limits. The wiring comes from ``rcbf_ros.launch_table`` (``safety_filter``), the
+obstacles and limits. The wiring comes from ``rcbf_ros.launch.table`` (``safety_filter``), the
 table ``rcbf_ros_launch safety_filter cmd_in:=...`` also starts without ROS.
 """
-from rcbf_ros.launch_description import describe
+from rcbf_ros.launch.description import describe
 
 
 def generate_launch_description():

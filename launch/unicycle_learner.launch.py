@@ -2,10 +2,10 @@
 
     ros2 launch rcbf_ros unicycle_learner.launch.py [params_file:=/path/to/unicycle.yaml]
 
-The nodes come from ``rcbf_ros.launch_table`` (``unicycle_learner``), the table ``rcbf_ros_launch
+The nodes come from ``rcbf_ros.launch.table`` (``unicycle_learner``), the table ``rcbf_ros_launch
 unicycle_learner`` also starts without ROS.
 """
-from rcbf_ros.launch_description import describe
+from rcbf_ros.launch.description import describe
 
 
 def generate_launch_description():

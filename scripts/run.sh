@@ -20,5 +20,5 @@ status=0
   -p "simulator:seed:=$SEED" -p "learner:out_dir:=$RUN/learner" \
   -p "recorder:output:=$RUN/bag" -p "safety_filter:compile_assembly:=true" || status=$?
 echo
-.venv/bin/python -m rcbf_ros.run_summary "$RUN"
+.venv/bin/python -m rcbf_ros.reports.run_summary "$RUN"
 exit "$status"

@@ -25,9 +25,9 @@ import numpy as np
 
 from rcbf_ros.core.config import build_system
 from rcbf_ros.envs.nominal import cars_accelerate, pvtol_go_to_goal, unicycle_go_to_goal
-from rcbf_ros.ros import conversions
-from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.ros.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.messages import conversions
+from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
+from rcbf_ros.node_logic.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from sim_nodes.packaged import (

@@ -11,9 +11,9 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 from rcbf_ros.envs import ENVS
-from rcbf_ros.params import find_config, load_params
-from rcbf_ros.ros.filter_logic import FILTER_PARAMETERS
-from rcbf_ros.ros.interface import ParameterSpec, type_of
+from rcbf_ros.node_logic.interface import ParameterSpec, type_of
+from rcbf_ros.node_logic.safety_filter import FILTER_PARAMETERS
+from rcbf_ros.parameters.rules import find_config, load_params
 
 DEFAULT_SYSTEM = 'unicycle'
 

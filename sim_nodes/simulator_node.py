@@ -67,10 +67,10 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from rcbf_ros.envs import make_env
-from rcbf_ros.ros import conversions
-from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.ros.filter_logic import COMMAND_TYPES, STATE_TYPES, TWIST_FIELDS
-from rcbf_ros.ros.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.messages import conversions
+from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
+from rcbf_ros.node_logic.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.node_logic.safety_filter import COMMAND_TYPES, STATE_TYPES, TWIST_FIELDS
 from rcbf_ros.ros.node_main import run_node, spin_once
 from rcbf_ros.ros.runtime import DurabilityPolicy, get_message, Node, QoSProfile, rclpy
 from sim_nodes.packaged import (

@@ -23,9 +23,9 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Message, Schema
 import yaml
 
-from rcbf_ros.bag.messages import deserialize_message
 from rcbf_ros.bag.qos import parse_offered_qos_profiles, RecordedQos
 from rcbf_ros.bag.scan import BagError, BagNotFoundError, McapScan
+from rcbf_ros.messages.typestore import deserialize_message
 
 
 class BagMessage(NamedTuple):

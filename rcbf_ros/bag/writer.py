@@ -47,14 +47,14 @@ from typing import Any, Iterable, Protocol, Sequence
 from mcap.writer import CompressionType, IndexType, Writer
 import yaml
 
-from rcbf_ros.bag.messages import (
+from rcbf_ros.bag.qos import dump_offered_qos_profiles, offered_qos_sequence, RecordedQos
+from rcbf_ros.messages.typestore import (
     jazzy_typestore,
     message_definition_text,
     normalize_type_name,
     serialize_message,
     type_hash_rihs01,
 )
-from rcbf_ros.bag.qos import dump_offered_qos_profiles, offered_qos_sequence, RecordedQos
 
 #: rosbag2 bag information format version written (Jazzy: QoS policies as names).
 BAG_FORMAT_VERSION = 9

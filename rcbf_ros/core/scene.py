@@ -5,8 +5,8 @@ the same checks as the safety_filter node, :func:`rcbf_ros.core.config.filter_co
 and walks its barrier families, through any cascade, keeping what can be drawn: obstacle discs
 with their margin, the look-ahead point, car gaps, bands and walls, and every barrier's name in
 row order (the ``h.<name>`` keys of the filter's diagnostics). The scene markers
-(:mod:`rcbf_ros.ros.scene_logic`) and the trajectory pictures (:mod:`rcbf_ros.plots`) draw from
-it, so both show what the filter guards. Pure: no ROS, no I/O.
+(:mod:`rcbf_ros.node_logic.scene`) and the trajectory pictures (:mod:`rcbf_ros.reports.plots`)
+draw from it, so both show what the filter guards. Pure: no ROS, no I/O.
 """
 from __future__ import annotations
 

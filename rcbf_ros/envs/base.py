@@ -1,7 +1,8 @@
 """Shared machinery of the simulated systems: parameters, the Gymnasium loop, the step info.
 
 Every env is built from the *flat* ROS parameters of ``config/<system>.yaml`` (``/**`` merged
-with ``/simulator``, e.g. ``rcbf_ros.params.load_params(find_config('unicycle'), 'simulator')``)
+with ``/simulator``, e.g.
+``rcbf_ros.parameters.rules.load_params(find_config('unicycle'), 'simulator')``)
 plus keyword overrides, where a double underscore stands for the dot of a nested key
 (``obstacles__x=[...]`` overrides ``obstacles.x``). The layout therefore comes from the same
 ``obstacles.*`` keys the safety filter reads; :meth:`SafetyEnv.filter_params` hands back those

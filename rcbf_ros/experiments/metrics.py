@@ -1,7 +1,7 @@
 """Small pure metric functions of the experiments (unit-tested on hand-computed values).
 
 All standard deviations are population standard deviations (``ddof=0``), as numpy's default
-and as :func:`rcbf_ros.plots.plot_reward_bands` draws its bands.
+and as :func:`rcbf_ros.reports.plots.plot_reward_bands` draws its bands.
 
 How a transfer episode ended (:data:`ENDINGS`, :func:`episode_ending`) is read from its last
 ``window`` steps (default 200, 4 s at the go-to-goal systems' dt of 0.02 s): an episode that did

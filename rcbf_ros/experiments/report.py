@@ -85,7 +85,7 @@ def sample_efficiency_report(specs: Sequence[RunSpec], root: str | Path,
     ``prefix`` names the files (``<prefix>_<system>.csv|png``, ``<prefix>.md``): the
     sample-efficiency experiment, or the training curves of the transfer runs.
     """
-    from rcbf_ros.plots import plot_critic_vs_return, plot_reward_bands
+    from rcbf_ros.reports.plots import plot_critic_vs_return, plot_reward_bands
     lines = [f'## {heading}', '',
              'Episode return per training episode, mean over seeds with a 2-std band. '
              '"final" is the mean of the last 10 episodes of each seed (mean +/- std over '
@@ -273,11 +273,11 @@ def transfer_paths_report(specs: Sequence[RunSpec], root: str | Path, report_dir
                           gp: str = 'learned') -> str:
     """Every method's path (its first seed's deterministic policy, re-run exactly as the
     transfer evaluation runs it) on the first :data:`PATH_LAYOUTS` transfer layouts, one
-    picture per layout (:func:`rcbf_ros.plots.plot_trajectories`); returns markdown."""
+    picture per layout (:func:`rcbf_ros.reports.plots.plot_trajectories`); returns markdown."""
     from rcbf_ros.core.scene import scene_geometry
     from rcbf_ros.experiments.evaluate import evaluate_layout, load_trained_learner
-    from rcbf_ros.params import find_config, load_params
-    from rcbf_ros.plots import plot_trajectories
+    from rcbf_ros.parameters.rules import find_config, load_params
+    from rcbf_ros.reports.plots import plot_trajectories
     from rcbf_ros.training.loop import episode_path, make_env
     lines = ['## Transfer paths', '',
              "Each method's deterministic policy (its first seed) on the first transfer "
@@ -322,7 +322,7 @@ def value_maps_report(maps: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
                       report_dir: Path, *, seed: int) -> str:
     """CSV and figure of the Unicycle value maps (keys: method)."""
     from rcbf_ros.experiments.value_map import map_contrast, plot_value_maps
-    from rcbf_ros.params import find_config, load_params
+    from rcbf_ros.parameters.rules import find_config, load_params
     rows = []
     for method, (xs, ys, values) in maps.items():
         for iy, y in enumerate(ys):

@@ -42,8 +42,8 @@ from rcbf_ros.core.config import (
     number,
 )
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA, SACConfig
-from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.ros.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
+from rcbf_ros.node_logic.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import request_stop, run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.agent import LearnerConfig, policy_box, SafeLearner
@@ -354,7 +354,7 @@ class LearnerNode(Node):
             save_policy(self.out_dir / 'policy.pt', self.learner.sac, u_low=self.learner.u_low,
                         u_high=self.learner.u_high, system=str(self.settings['system']))
         if self.history:
-            from rcbf_ros.plots import plot_reward_curve
+            from rcbf_ros.reports.plots import plot_reward_curve
             plot_reward_curve([r['ret'] for r in self.history],
                               self.out_dir / 'reward_curve.png',
                               title=f"{self.settings['system']} / {self.settings['mode']} "

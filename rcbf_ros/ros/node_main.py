@@ -6,7 +6,7 @@ node keeps a one-line ``main`` that says what differs: how it runs, what it does
 which construction errors are the user's (bad parameters, a missing file) rather than bugs.
 
 ``-h`` / ``--help`` (outside ``--ros-args``) print the node's topics and parameters
-(:mod:`rcbf_ros.ros.interface`) and exit 0 before anything starts: no ``rclpy.init``, no DDS
+(:mod:`rcbf_ros.node_logic.interface`) and exit 0 before anything starts: no ``rclpy.init``, no DDS
 participant.
 
 Stopping. SIGINT and SIGTERM are handled here, not by the middleware: ``rclpy.init`` installs
@@ -37,7 +37,7 @@ import sys
 import threading
 from typing import Any, Callable, Sequence
 
-from rcbf_ros.ros.interface import help_text, InterfaceSource, resolve, wants_help
+from rcbf_ros.node_logic.interface import help_text, InterfaceSource, resolve, wants_help
 
 INTERRUPTED_EXIT = 130
 """Exit status of a node stopped by SIGINT before it started (128 + SIGINT, as a shell says)."""

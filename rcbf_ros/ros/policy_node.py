@@ -17,8 +17,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from rcbf_ros.ros.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.ros.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
+from rcbf_ros.node_logic.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.policy_io import load_policy

@@ -24,7 +24,7 @@ adds to a multiple of 4 bytes where the sample's encapsulation header declares i
 (:func:`cdr_payload`); nothing is deserialised. Ctrl-C or SIGTERM close the bag (summary,
 ``metadata.yaml``) and log the message counts. A SIGKILL leaves the bag without its summary,
 footer and ``metadata.yaml``; the readers refuse it until ``rcbf_ros bag recover <output>`` has
-rewritten it from its whole chunks (``rcbf_ros.run_summary`` does so by itself).
+rewritten it from its whole chunks (``rcbf_ros.reports.run_summary`` does so by itself).
 """
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ import sys
 from typing import Any, Callable, Sequence
 
 from rcbf_ros.bag import BagWriter, BagWriterConfig, RecordedQos
-from rcbf_ros.ros.interface import NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     DurabilityPolicy,

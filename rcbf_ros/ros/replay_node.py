@@ -28,7 +28,7 @@ from typing import Any, Sequence
 
 from rcbf_ros.bag import bag_info
 from rcbf_ros.bag.playback import iter_bag_messages, playback_schedule, replay_qos
-from rcbf_ros.ros.interface import NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     DurabilityPolicy,

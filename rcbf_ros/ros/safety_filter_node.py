@@ -43,7 +43,7 @@ limits is clipped before the QP; a NaN, wrong-length or out-of-bound (``input_bo
 proposal or disturbance box, no state yet, a state older than ``max_state_age_s`` (from its
 arrival), a failed or unverified solve, or rows infeasible within the limits all publish the
 fail-safe, with the reason in ``filter_info``, in diagnostics and (throttled) in the log. The
-decisions live in :mod:`rcbf_ros.ros.filter_logic`; this module only moves messages.
+decisions live in :mod:`rcbf_ros.node_logic.safety_filter`; this module only moves messages.
 
 No message can kill the node, and none is ignored in silence. Both subscriptions take CDR bytes
 (``raw=True``) and the node decodes them itself, so it sees every sample that does not decode,
@@ -67,21 +67,21 @@ cumulative counts ``dropped_samples`` (undecodable, on either topic), ``refused_
 and ``refused_states``. A callback never raises: should the filtering itself fail unexpectedly
 (a defect, not an input), the proposal gets the fail-safe with ``internal error: <type>: ...``.
 
-Parameters: :data:`rcbf_ros.ros.filter_logic.PARAMETERS` (``safety_filter --help`` lists them
-with types, defaults and one line each): the filter keys of :mod:`rcbf_ros.core.config`
+Parameters: :data:`rcbf_ros.node_logic.safety_filter.PARAMETERS` (``safety_filter --help``
+lists them with types, defaults and one line each): the filter keys of :mod:`rcbf_ros.core.config`
 (``config/<system>.yaml``) and the node's own.
 
 Changes at runtime (``ros2 param set``, ``set_parameters``, ``set_parameters_atomically``, an
 ``obstacles`` message): the node builds a complete new filter from its parameters with the
 change applied, through the same validation as at start
-(:func:`rcbf_ros.ros.filter_logic.build_active_filter`). If that fails, the change is refused
-(``successful=False``, the reason is the one-line message naming the key; a WARN in the log, an
-ERROR for an ``obstacles`` message) and nothing changes. Otherwise the new filter replaces the
-old one after the parameters are stored (a post-set callback), between two message callbacks:
+(:func:`rcbf_ros.node_logic.safety_filter.build_active_filter`). If that fails, the change is
+refused (``successful=False``, the reason is the one-line message naming the key; a WARN in the
+log, an ERROR for an ``obstacles`` message) and nothing changes. Otherwise the new filter replaces
+the old one after the parameters are stored (a post-set callback), between two message callbacks:
 each callback reads the filter once, so no proposal is ever filtered half by the old and half by
 the new one; a set_parameters_atomically of several keys is one swap; an INFO line says what
 changed. The parameters that choose sizes, message types or the endpoints' QoS
-(:data:`rcbf_ros.ros.filter_logic.READ_ONLY_PARAMETERS`, ``system_params.*``) are declared
+(:data:`rcbf_ros.node_logic.safety_filter.READ_ONLY_PARAMETERS`, ``system_params.*``) are declared
 read-only, and a set of one is refused by the middleware ("Trying to set a read-only
 parameter"; a pre-set callback logs the WARN).
 """
@@ -96,9 +96,9 @@ import torch
 
 from rcbf_ros.core.config import FilterConfig
 from rcbf_ros.core.filter import SafetyFilter
-from rcbf_ros.ros import conversions
-from rcbf_ros.ros import filter_logic as logic
-from rcbf_ros.ros.interface import NodeInterface, TopicSpec
+from rcbf_ros.messages import conversions
+from rcbf_ros.node_logic import safety_filter as logic
+from rcbf_ros.node_logic.interface import NodeInterface, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     deserialize_message,
@@ -247,8 +247,8 @@ class SafetyFilterNode(Node):
         Each declaration gets a descriptor of its own, dynamically typed so that any YAML type
         is accepted: rclpy keeps the descriptor it is given and writes the parameter's name and
         type into it, so a shared one would describe every parameter as the last one. The
-        read-only ones (:func:`rcbf_ros.ros.filter_logic.is_read_only`) that came as overrides
-        are declared again, read-only, with their value.
+        read-only ones (:func:`rcbf_ros.node_logic.safety_filter.is_read_only`) that came as
+        overrides are declared again, read-only, with their value.
         """
         for name, default in logic.parameter_declarations():
             if not self.has_parameter(name):

@@ -13,7 +13,7 @@ Topics (relative, so remappable):
   OBSTACLES_QOS`); the scene draws the new set. A set the filter would refuse is refused here
   too (checked by the same functions), with an ERROR, and the old set stays drawn;
 - ``scene_markers`` (pub, visualization_msgs/MarkerArray): obstacles, margins, the robot, the
-  guarded look-ahead point and every barrier's value (:mod:`rcbf_ros.ros.scene_logic`), at most
+  guarded look-ahead point and every barrier's value (:mod:`rcbf_ros.node_logic.scene`), at most
   ``rate_hz`` times a second and only after a new state or new diagnostics.
 
 Parameters: the filter keys of the params file (``system``, ``obstacles.*``, ``bands.*``,
@@ -35,9 +35,10 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from rcbf_ros.core.scene import scene_geometry
-from rcbf_ros.ros import conversions
-from rcbf_ros.ros import scene_logic as logic
-from rcbf_ros.ros.filter_logic import (
+from rcbf_ros.messages import conversions
+from rcbf_ros.node_logic import scene as logic
+from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.node_logic.safety_filter import (
     collect_parameters,
     FILTER_PARAMETERS,
     LogThrottle,
@@ -46,7 +47,6 @@ from rcbf_ros.ros.filter_logic import (
     state_from_sections,
     STATE_TYPES,
 )
-from rcbf_ros.ros.interface import NodeInterface, ParameterSpec, TopicSpec
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     deserialize_message,
@@ -107,7 +107,7 @@ MARKER_DELETEALL = 3
 
 def marker_array(markers: Sequence[Mapping[str, Any]], *, stamp: Any = None,
                  clear: bool = False) -> Any:
-    """Marker dicts (:func:`rcbf_ros.ros.scene_logic.scene_markers`) -> a MarkerArray.
+    """Marker dicts (:func:`rcbf_ros.node_logic.scene.scene_markers`) -> a MarkerArray.
 
     Args:
         clear: begin with a DELETEALL marker (the scene changed: fewer obstacles must not leave

@@ -11,7 +11,7 @@ One run writes into its output directory::
     reward_curve.png   return per episode
     trajectories.png   the paths of this start's episodes (at most the last 200) over the
                        layout, where the filter corrected, the closest approach
-                       (rcbf_ros.plots.plot_trajectories)
+                       (rcbf_ros.reports.plots.plot_trajectories)
 
 Ctrl-C (KeyboardInterrupt) or an exception ends the run after writing the checkpoint, closing
 the bag and the metrics file, so nothing already computed is lost; a kill loses at most the
@@ -46,7 +46,7 @@ from rcbf_ros.core.config import (
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.core.filter_info import info_sections
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
 from rcbf_ros.training.policy_io import save_policy
 from rcbf_ros.training.run_files import (
@@ -451,7 +451,7 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
         if recorder is not None:
             recorder.close()
         if history:
-            from rcbf_ros.plots import plot_reward_curve
+            from rcbf_ros.reports.plots import plot_reward_curve
             plot_reward_curve([row['ret'] for row in history], out / 'reward_curve.png',
                               title=f'{run.system} / {run.learner.mode}')
         if paths:
@@ -466,18 +466,18 @@ TRAJECTORY_EPISODES = 200
 
 
 def episode_path(number: int, trace: list[tuple[np.ndarray, bool]]) -> Any:
-    """The :class:`rcbf_ros.plots.EpisodePath` of a :func:`run_episode` trace."""
-    from rcbf_ros.plots import EpisodePath
+    """The :class:`rcbf_ros.reports.plots.EpisodePath` of a :func:`run_episode` trace."""
+    from rcbf_ros.reports.plots import EpisodePath
     return EpisodePath(number, np.array([state for state, _ in trace]),
                        np.array([corrected for _, corrected in trace], dtype=bool))
 
 
 def draw_trajectories(paths: list[Any], *, env: Any, filter_params: Mapping[str, Any],
                       png: Path, title: str) -> str:
-    """Draw episodes (:class:`rcbf_ros.plots.EpisodePath`) over the env's layout into ``png``;
-    one line saying where and the closest approach, or why not."""
+    """Draw episodes (:class:`rcbf_ros.reports.plots.EpisodePath`) over the env's layout into
+    ``png``; one line saying where and the closest approach, or why not."""
     from rcbf_ros.core.scene import scene_geometry
-    from rcbf_ros.plots import plot_trajectories
+    from rcbf_ros.reports.plots import plot_trajectories
     if getattr(env, 'layout_mode', 'fixed') == 'random' and getattr(env, 'layout_seed', 0) < 0:
         return 'trajectories: not drawn: every episode ran on a new random layout'
     try:

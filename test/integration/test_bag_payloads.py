@@ -26,7 +26,7 @@ import pytest
 import yaml
 
 from rcbf_ros.bag import bag_info, RecordedQos
-from rcbf_ros.bag.messages import jazzy_typestore
+from rcbf_ros.messages.typestore import jazzy_typestore
 
 pytestmark = pytest.mark.integration
 

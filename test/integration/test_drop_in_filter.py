@@ -21,7 +21,7 @@ import pytest
 from test_safety_filter_node import Probe, WAIT_S
 
 from rcbf_ros.bag import read_bag_messages
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 
 pytestmark = pytest.mark.integration
 
@@ -32,7 +32,7 @@ TOPICS = {'cmd_in': '/robot/nav_cmd', 'cmd_out': '/robot/base_cmd', 'odom': '/ro
 
 
 def _odometry(state: list[float]) -> Any:
-    from rcbf_ros.ros.conversions import state_to_odometry
+    from rcbf_ros.messages.conversions import state_to_odometry
     return state_to_odometry(state, system='unicycle', stamp_ns=0, frame_id='map',
                              child_frame_id='base_link')
 
@@ -53,7 +53,7 @@ def _answer(probe: Probe, odom_pub: Any, twist_pub: Any, state: list[float],
     the filter answers a proposal without a state with the fail-safe; an answer that filtered
     (fail_safe 0) for this proposal proves both arrived.
     """
-    from rcbf_ros.ros.conversions import array_to_twist
+    from rcbf_ros.messages.conversions import array_to_twist
     deadline = time.monotonic() + WAIT_S
     while time.monotonic() < deadline:
         before = probe.count(TOPICS['cmd_out'])
@@ -72,8 +72,8 @@ def _answer(probe: Probe, odom_pub: Any, twist_pub: Any, state: list[float],
 
 
 def test_the_filter_launch_sits_between_a_robots_own_topics(ros_domain_id, probe):
-    from rcbf_ros.ros.conversions import msg_to_sections, twist_to_array
-    launch = spawn(ros_domain_id, '-m', 'rcbf_ros.launch_local', 'safety_filter',
+    from rcbf_ros.messages.conversions import msg_to_sections, twist_to_array
+    launch = spawn(ros_domain_id, '-m', 'rcbf_ros.launch.local', 'safety_filter',
                    '--domain-id', str(ros_domain_id),
                    *(f'{name}:={topic}' for name, topic in TOPICS.items()))
     try:
@@ -106,7 +106,7 @@ def test_the_demo_robot_moves_and_the_filter_keeps_it_out_of_the_obstacles(ros_d
                                                                           tmp_path):
     steps = 150
     bag = tmp_path / 'bag'
-    launch = spawn(ros_domain_id, '-m', 'rcbf_ros.launch_local', 'unicycle_robot',
+    launch = spawn(ros_domain_id, '-m', 'rcbf_ros.launch.local', 'unicycle_robot',
                    '--domain-id', str(ros_domain_id), 'odom:=/robot/odometry',
                    '-p', 'simulator:max_episodes:=1', '-p', f'simulator:max_steps:={steps}',
                    '-p', f'recorder:output:={bag}')

@@ -17,7 +17,7 @@ from dds_harness import node_runtime  # this directory: on sys.path for pytest
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-LAUNCH = (sys.executable, '-m', 'rcbf_ros.launch_local')
+LAUNCH = (sys.executable, '-m', 'rcbf_ros.launch.local')
 WAIT_S = 90.0
 """Upper bound for a launch to come up or stop on a loaded machine (a hang, not a speed test)."""
 

@@ -19,8 +19,8 @@ from dds_harness import node_runtime  # this directory: on sys.path for pytest
 import pytest
 
 from rcbf_ros.bag import bag_info, read_bag_messages, RecordedQos
-from rcbf_ros.launch_table import launch_setup, ros_arguments
-from rcbf_ros.params import find_config
+from rcbf_ros.launch.table import launch_setup, ros_arguments
+from rcbf_ros.parameters.rules import find_config
 
 pytestmark = pytest.mark.integration
 
@@ -60,7 +60,7 @@ def test_a_late_controller_gets_the_first_state_and_the_bag_the_first_start(
         env=env, cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         launch = subprocess.run(
-            [sys.executable, '-m', 'rcbf_ros.launch_local', 'unicycle_filter',
+            [sys.executable, '-m', 'rcbf_ros.launch.local', 'unicycle_filter',
              '--domain-id', str(ros_domain_id), '--without', 'nominal_controller',
              '-p', 'simulator:max_episodes:=1', '-p', f'simulator:max_steps:={STEPS}',
              '-p', f'recorder:output:={bag}'],

@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from rcbf_ros.learning.sac import SACConfig
-from rcbf_ros.params import find_config
+from rcbf_ros.parameters.rules import find_config
 from rcbf_ros.ros.loopback import LOOPBACK_CYCLONEDDS_URI
 from rcbf_ros.training.agent import LearnerConfig
 from rcbf_ros.training.loop import RunConfig, train
@@ -116,7 +116,7 @@ def test_killed_learner_resumes_from_its_checkpoint(tmp_path, ros_domain_id):
     env = dict(os.environ, OMP_NUM_THREADS='1')
     for extra in (['-p', 'learner:episodes:=1'],
                   ['-p', 'learner:episodes:=2', '-p', 'learner:resume:=true']):
-        done = subprocess.run([sys.executable, '-m', 'rcbf_ros.launch_local', 'unicycle_learner',
+        done = subprocess.run([sys.executable, '-m', 'rcbf_ros.launch.local', 'unicycle_learner',
                                *common, *extra], capture_output=True, text=True, timeout=240,
                               env=env)
         assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]

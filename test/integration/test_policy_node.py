@@ -29,7 +29,7 @@ def test_policy_export_drives_the_simulator_through_the_filter(tmp_path, ros_dom
     with pytest.raises(ValueError, match='observation'):
         policy(np.zeros(policy.obs_dim + 1))
 
-    cmd = [sys.executable, '-m', 'rcbf_ros.launch_local', 'unicycle_policy',
+    cmd = [sys.executable, '-m', 'rcbf_ros.launch.local', 'unicycle_policy',
            '--domain-id', str(ros_domain_id), '--without', 'recorder',
            '-p', 'simulator:max_steps:=150', '-p', 'simulator:max_episodes:=1',
            '-p', f'policy:policy_path:={policy_path}']

@@ -18,7 +18,7 @@ import time
 
 import pytest
 
-from rcbf_ros.cli import main as cli_main
+from rcbf_ros.cli.main import main as cli_main
 from rcbf_ros.experiments.definitions import Budget, RunSpec
 from rcbf_ros.experiments.evaluate import evaluate_job
 from rcbf_ros.experiments.runner import (
@@ -117,7 +117,7 @@ def test_the_cli_runs_an_experiment_on_an_existing_cluster_by_address(tmp_path):
             assert time.monotonic() < deadline, head_log.read_text()
             time.sleep(0.5)
         driver = subprocess.Popen(
-            [sys.executable, '-m', 'rcbf_ros.cli', *command, '--address', f'127.0.0.1:{port}',
+            [sys.executable, '-m', 'rcbf_ros', *command, '--address', f'127.0.0.1:{port}',
              '--out', str(tmp_path / 'cluster')],
             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         out, err = driver.communicate(timeout=500)

@@ -19,7 +19,7 @@ from rosbags.highlevel import AnyReader
 import yaml
 
 from rcbf_ros.bag import bag_info, BagError, read_bag_messages
-from rcbf_ros.bag.messages import jazzy_typestore
+from rcbf_ros.messages.typestore import jazzy_typestore
 
 with warnings.catch_warnings():
     warnings.simplefilter('ignore', DeprecationWarning)  # the module warns on import
@@ -210,7 +210,7 @@ def test_recorder_sigkill_mid_recording_recovers_to_a_complete_bag(
     with pytest.raises(BagError, match='cut short'):  # refused as it is
         list(read_bag_messages(bag))
 
-    result = subprocess.run([sys.executable, '-m', 'rcbf_ros.cli', 'bag', 'recover', str(bag)],
+    result = subprocess.run([sys.executable, '-m', 'rcbf_ros', 'bag', 'recover', str(bag)],
                             env=subprocess_env(ros_domain_id), capture_output=True, text=True,
                             timeout=120)
     assert result.returncode == 0, result.stdout + result.stderr

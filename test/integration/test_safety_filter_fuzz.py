@@ -49,7 +49,7 @@ pytestmark = pytest.mark.integration
 
 
 def _cdr(sections: dict) -> bytes:
-    from rcbf_ros.ros.conversions import sections_to_msg
+    from rcbf_ros.messages.conversions import sections_to_msg
     from rcbf_ros.ros.runtime import serialize_message  # the runtime conversions build for
     return serialize_message(sections_to_msg(sections))
 
@@ -144,7 +144,7 @@ class Probe:
 
 
 def _sections(msg: Any) -> dict[str, np.ndarray]:
-    from rcbf_ros.ros.conversions import msg_to_sections
+    from rcbf_ros.messages.conversions import msg_to_sections
     return {key: value.copy() for key, value in msg_to_sections(msg).items()}
 
 
@@ -171,7 +171,7 @@ def _intruders(domain_id: int) -> tuple[Any, list[tuple[Any, Any]]]:
 
 def _barrage(rng: np.random.Generator) -> list[tuple[str, str, bytes]]:
     """(kind, topic, bytes) samples of every malformed class, in a seeded random order."""
-    from rcbf_ros.ros.conversions import array_to_twist, sections_to_msg
+    from rcbf_ros.messages.conversions import array_to_twist, sections_to_msg
     from rcbf_ros.ros.runtime import get_message, serialize_message
     valid = {'/cmd_proposed': [_cdr(ACTIVE), _cdr(PASS_THROUGH), _cdr({'u': [1.0, 0.0]}),
                                _cdr({'u': [0.5, 0.2], 'disturbance_mean': [0.0] * 3,

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from rcbf_ros.core.config import filter_config_from_params
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.ros.loopback import ensure_loopback
 
 REPO = Path(__file__).resolve().parents[2]
@@ -169,7 +169,7 @@ def _exchange_with_state(probe: Probe, state_pub: Any, state: list[float], propo
     matched the new /state writer too, a volatile sample on it can be dropped. Once one got
     through, the reliable writer delivers every later one, in order.
     """
-    from rcbf_ros.ros.conversions import sections_to_msg
+    from rcbf_ros.messages.conversions import sections_to_msg
     for _ in range(100):
         state_pub.publish(sections_to_msg({'state': state}))
         time.sleep(0.05)
@@ -180,7 +180,7 @@ def _exchange_with_state(probe: Probe, state_pub: Any, state: list[float], propo
 
 
 def _sections(msg: Any) -> dict[str, np.ndarray]:
-    from rcbf_ros.ros.conversions import msg_to_sections
+    from rcbf_ros.messages.conversions import msg_to_sections
     return {k: v.copy() for k, v in msg_to_sections(msg).items()}
 
 
@@ -197,7 +197,7 @@ def probe(ros_domain_id):
 
 
 def test_bad_input_yields_fail_safe_and_error_diagnostics(ros_domain_id, probe):
-    from rcbf_ros.ros.conversions import sections_to_msg
+    from rcbf_ros.messages.conversions import sections_to_msg
     process = _start_filter(ros_domain_id, '-r', 'cmd_proposed:=/my_controller/cmd',
                             '-p', 'safety_filter:max_state_age_s:=0.3',
                             '-p', 'safety_filter:fail_safe_action:=[0.0, 0.5]')
@@ -272,7 +272,7 @@ def test_bad_input_yields_fail_safe_and_error_diagnostics(ros_domain_id, probe):
 
 
 def test_twist_mode(ros_domain_id, probe):
-    from rcbf_ros.ros.conversions import array_to_twist, sections_to_msg, twist_to_array
+    from rcbf_ros.messages.conversions import array_to_twist, sections_to_msg, twist_to_array
     fields = ['linear.x', 'angular.z']
     process = _start_filter(ros_domain_id, '-p', 'safety_filter:command_type:=twist')
     try:
@@ -299,7 +299,7 @@ def test_twist_mode(ros_domain_id, probe):
 
 def test_pvtol_proposal_with_learned_disturbance(ros_domain_id, probe):
     """PVTOL's band barrier (bands.operator.*: user-named keys) and the proposal's GP box."""
-    from rcbf_ros.ros.conversions import sections_to_msg
+    from rcbf_ros.messages.conversions import sections_to_msg
     process = _start_filter(ros_domain_id, params_file=str(REPO / 'config' / 'pvtol.yaml'))
     try:
         probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
@@ -355,7 +355,7 @@ def test_invalid_parameters_exit_2_naming_the_key(ros_domain_id, args, key):
 def test_sigint_while_proposals_stream_exits_0_without_traceback(ros_domain_id, probe):
     """Ctrl-C lands while callbacks run and publish: the one under way finishes, none follows,
     and the node stops cleanly (under rclpy its publish used to find the context invalid)."""
-    from rcbf_ros.ros.conversions import sections_to_msg
+    from rcbf_ros.messages.conversions import sections_to_msg
     process = _start_filter(ros_domain_id)
     try:
         probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
@@ -389,7 +389,7 @@ def test_odometry_and_twist_stamped_from_end_to_end(ros_domain_id, probe, tmp_pa
     the nominal controller answers each with a TwistStamped carrying the Odometry's header,
     the filter passes that header through, and the simulator takes each answer for the state
     whose stamp it carries. Into the obstacles at full speed, no true clearance goes negative."""
-    from rcbf_ros.ros.conversions import stamp_ns
+    from rcbf_ros.messages.conversions import stamp_ns
     steps = 120
     common = ['-p', 'system:=unicycle', '-p', 'state_type:=odometry', '-p',
               'command_type:=twist_stamped']
@@ -438,12 +438,12 @@ def test_odometry_and_twist_stamped_from_end_to_end(ros_domain_id, probe, tmp_pa
 
 @pytest.mark.slow
 def test_unsafe_controller_behind_the_filter_never_violates(ros_domain_id, probe, tmp_path):
-    from rcbf_ros.ros.conversions import msg_to_sections
+    from rcbf_ros.messages.conversions import msg_to_sections
     episodes, max_steps = 4, 800
     bag = tmp_path / 'bag'
     nodes = ['simulator', 'safety_filter', 'nominal_controller']
     recorder = (REPO / 'rcbf_ros' / 'ros' / 'recorder_node.py').exists()
-    command = [sys.executable, '-m', 'rcbf_ros.launch_local', 'unicycle_filter',
+    command = [sys.executable, '-m', 'rcbf_ros.launch.local', 'unicycle_filter',
                '--domain-id', str(ros_domain_id),
                '-p', f'simulator:max_episodes:={episodes}',
                '-p', f'simulator:max_steps:={max_steps}',

@@ -78,7 +78,7 @@ def _until(answer: Callable[[], tuple[Any, Any]], accept: Callable[[Any, Any], b
 
 def test_obstacles_topic_moves_an_obstacle_and_a_bad_message_changes_nothing(
         ros_domain_id, probe):
-    from rcbf_ros.ros.conversions import sections_to_msg
+    from rcbf_ros.messages.conversions import sections_to_msg
     process = spawn(ros_domain_id, '-m', 'rcbf_ros.ros.safety_filter_node', '--ros-args',
                     '--params-file', UNICYCLE)
     try:
@@ -167,7 +167,7 @@ class _InProcessFilter:
 
 
 def test_a_gain_set_while_filtering_and_a_refused_one(probe, capfd):
-    from rcbf_ros.ros.conversions import sections_to_msg
+    from rcbf_ros.messages.conversions import sections_to_msg
     from rcbf_ros.ros.runtime import Parameter
     running = _InProcessFilter()
     try:

@@ -85,9 +85,9 @@ def _by_ns(msg: Any, ns: str) -> list[Any]:
 
 
 def test_state_and_diagnostics_in_markers_out(domain_id):
-    from rcbf_ros.ros.conversions import diagnostic_status, sections_to_msg
+    from rcbf_ros.messages.conversions import diagnostic_status, sections_to_msg
+    from rcbf_ros.node_logic.scene import AMBER, GREEN, RED
     from rcbf_ros.ros.runtime import get_message
-    from rcbf_ros.ros.scene_logic import AMBER, GREEN, RED
     process = spawn(domain_id, '-m', 'rcbf_ros.ros.scene_node', '--ros-args',
                     '--params-file', UNICYCLE, '-p', 'frame_id:=odom', '-p', 'rate_hz:=20.0')
     probe = _Probe(domain_id)
@@ -141,7 +141,7 @@ def test_the_obstacles_topic_replaces_the_drawn_obstacles(domain_id):
     """A latched obstacle set published before the node starts is drawn (transient-local);
     a new set replaces it (a DELETEALL first, so no old disc stays in the viewer); a bad one
     is an ERROR and the drawn set stays."""
-    from rcbf_ros.ros.conversions import sections_to_msg
+    from rcbf_ros.messages.conversions import sections_to_msg
     from rcbf_ros.ros.runtime import (
         DurabilityPolicy,
         get_message,

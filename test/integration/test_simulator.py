@@ -25,7 +25,7 @@ SEED = 3
 
 def role_listener(out_path: str, episodes: int) -> None:
     """Record every state section and episode event until ``episodes`` episodes ended."""
-    from rcbf_ros.ros.conversions import msg_to_sections
+    from rcbf_ros.messages.conversions import msg_to_sections
     from rcbf_ros.ros.runtime import get_message, Node, QoSProfile, rclpy
     rclpy.init(args=[])
     node = Node('test_listener')
@@ -75,7 +75,7 @@ def _offline_rollout() -> tuple[list[np.ndarray], list[float], list[int]]:
     """Same env, seed and controller without middleware: states after reset and every step."""
     from rcbf_ros.envs import UnicycleEnv
     from rcbf_ros.envs.nominal import unicycle_go_to_goal
-    from rcbf_ros.params import find_config, load_params
+    from rcbf_ros.parameters.rules import find_config, load_params
     env = UnicycleEnv(load_params(find_config('unicycle'), 'simulator'), max_steps=MAX_STEPS,
                       random_start=True)
     states, returns, violations = [], [], []
@@ -138,7 +138,7 @@ def test_lockstep_simulator_and_nominal_controller(ros_domain_id, tmp_path):
 @pytest.mark.integration
 def test_realtime_simulator_holds_the_last_action(ros_domain_id, tmp_path):
     from rcbf_ros.envs import UnicycleEnv
-    from rcbf_ros.params import find_config, load_params
+    from rcbf_ros.parameters.rules import find_config, load_params
     out = tmp_path / 'record.json'
     steps = 100
     listener = spawn(ros_domain_id, __file__, 'listener', str(out), '1')

@@ -82,7 +82,7 @@ def test_ros2_bag_info_reads_refilter_commands_in_the_proposals_type(
         jazzy, tmp_path, ros_domain_id, type_name):
     import importlib.util
 
-    from rcbf_ros.refilter import refilter_bag
+    from rcbf_ros.bag.refilter import refilter_bag
     spec = importlib.util.spec_from_file_location(
         'refilter_cases', REPO / 'test' / 'unit' / 'test_refilter.py')
     cases = importlib.util.module_from_spec(spec)

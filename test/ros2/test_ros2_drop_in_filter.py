@@ -142,7 +142,7 @@ def test_both_launchers_show_the_same_arguments(overlay, name, capsys):
     """``ros2 launch ... --show-args`` and ``rcbf_ros_launch ... --show-args``: the same names,
     defaults (params_file aside: a path on one, the packaged file named on the other) and
     choices; a value outside the choices refused by both."""
-    from rcbf_ros import launch_local
+    from rcbf_ros.launch import local as launch_local
     shown = overlay.jazzy.run(overlay.script(f'ros2 launch rcbf_ros {name}.launch.py --show-args'),
                               domain_id=0)
     assert shown.returncode == 0, shown.stdout

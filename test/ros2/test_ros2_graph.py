@@ -18,8 +18,8 @@ from typing import Callable
 
 import pytest
 
-from rcbf_ros.launch_table import launch_setup, ros_arguments
-from rcbf_ros.params import find_config
+from rcbf_ros.launch.table import launch_setup, ros_arguments
+from rcbf_ros.parameters.rules import find_config
 from rcbf_ros.ros.loopback import ensure_loopback
 
 pytestmark = pytest.mark.ros2

@@ -80,7 +80,7 @@ def recorded(jazzy: Jazzy, tmp_path_factory) -> tuple[Path, int]:
     try:
         wait_for_text(log, 'Listening for topics', 60)
         launch = subprocess.run(
-            [sys.executable, '-m', 'rcbf_ros.launch_local', 'unicycle_filter',
+            [sys.executable, '-m', 'rcbf_ros.launch.local', 'unicycle_filter',
              '--domain-id', str(domain_id), '--without', 'recorder', '--without',
              'scene_markers', '-p', f'simulator:max_episodes:={EPISODES}',
              '-p', f'simulator:max_steps:={MAX_STEPS}'],
@@ -137,12 +137,12 @@ def test_our_replay_plays_the_rosbag2_bag_to_rclpy(recorded, jazzy, tmp_path):
 
 def test_refilter_reads_the_rosbag2_bag_and_its_commands_satisfy_the_barriers(recorded, jazzy,
                                                                               tmp_path):
-    from rcbf_ros.params import find_config, load_params
-    from rcbf_ros.refilter import build_filter
+    from rcbf_ros.bag.refilter import build_filter
+    from rcbf_ros.parameters.rules import find_config, load_params
     bag, domain_id = recorded
     out, summary_path = tmp_path / 'refiltered', tmp_path / 'summary.json'
     done = subprocess.run(
-        [sys.executable, '-m', 'rcbf_ros.refilter', str(bag), str(out), '--params-file',
+        [sys.executable, '-m', 'rcbf_ros.bag.refilter', str(bag), str(out), '--params-file',
          'unicycle', '--json', str(summary_path)],
         env=ours_env(domain_id), capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr

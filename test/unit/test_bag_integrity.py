@@ -9,8 +9,7 @@ import re
 from mcap.reader import make_reader
 import pytest
 
-from rcbf_ros import refilter
-from rcbf_ros.bag import bag_info, BagError, BagWriter, BagWriterConfig, read_bag
+from rcbf_ros.bag import bag_info, BagError, BagWriter, BagWriterConfig, read_bag, refilter
 from rcbf_ros.ros import replay_node
 
 T0 = 1_700_000_000_000_000_000

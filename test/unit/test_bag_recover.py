@@ -16,7 +16,6 @@ import pytest
 from rosbags.highlevel import AnyReader
 import yaml
 
-from rcbf_ros import cli
 from rcbf_ros.bag import (
     bag_info,
     BagError,
@@ -26,8 +25,9 @@ from rcbf_ros.bag import (
     recover_bag,
     recover_file,
 )
-from rcbf_ros.bag.messages import jazzy_typestore
-from rcbf_ros.run_summary import summarize_run
+from rcbf_ros.cli.main import main as cli
+from rcbf_ros.messages.typestore import jazzy_typestore
+from rcbf_ros.reports.run_summary import summarize_run
 
 with warnings.catch_warnings():
     warnings.simplefilter('ignore', DeprecationWarning)  # the module warns on import

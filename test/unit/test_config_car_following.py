@@ -13,7 +13,7 @@ import torch
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.envs.nominal import cars_accelerate
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.training.loop import make_env
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rcbf_ros.ros.conversions import MAX_LABEL_CHARS, msg_to_sections, sections_to_msg
+from rcbf_ros.messages.conversions import MAX_LABEL_CHARS, msg_to_sections, sections_to_msg
 from rcbf_ros.ros.runtime import get_message
 
 
@@ -73,7 +73,7 @@ def _rotation_matrix(q: np.ndarray) -> np.ndarray:
 
 
 def test_yaw_of_a_quaternion_matches_the_closed_form():
-    from rcbf_ros.ros.conversions import yaw_from_quaternion
+    from rcbf_ros.messages.conversions import yaw_from_quaternion
     rng = np.random.default_rng(11)
     for _ in range(500):
         yaw = rng.uniform(-np.pi, np.pi)
@@ -98,13 +98,13 @@ def test_yaw_of_a_quaternion_matches_the_closed_form():
     ((0.0, np.sin(-np.pi / 4), 0.0, np.cos(-np.pi / 4)), 'straight up or down'),  # pitch 90 deg
 ])
 def test_an_orientation_without_heading_is_refused_naming_the_field(quaternion, words):
-    from rcbf_ros.ros.conversions import yaw_from_quaternion
+    from rcbf_ros.messages.conversions import yaw_from_quaternion
     with pytest.raises(ValueError, match=f'^pose.orientation: .*{words}'):
         yaw_from_quaternion(*quaternion)
 
 
 def test_odometry_holds_the_unicycle_state_and_nothing_else():
-    from rcbf_ros.ros.conversions import odometry_to_state, state_to_odometry
+    from rcbf_ros.messages.conversions import odometry_to_state, state_to_odometry
     msg = state_to_odometry([1.5, -2.0, 2.5], system='unicycle', stamp_ns=3_250_000_000,
                             frame_id='map', child_frame_id='base_link', command=[1.0, -0.5])
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (3, 250_000_000)
@@ -119,7 +119,7 @@ def test_odometry_holds_the_unicycle_state_and_nothing_else():
 
 
 def test_twist_stamped_keeps_the_header():
-    from rcbf_ros.ros.conversions import array_to_twist_stamped, twist_stamped_to_array
+    from rcbf_ros.messages.conversions import array_to_twist_stamped, twist_stamped_to_array
     header = get_message('std_msgs/msg/Header')()
     header.stamp.sec, header.stamp.nanosec, header.frame_id = 7, 8, 'base_link'
     msg = array_to_twist_stamped([0.5, -1.0], ['linear.x', 'angular.z'], header)

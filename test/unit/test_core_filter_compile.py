@@ -12,7 +12,7 @@ from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.dynamics import Unicycle
 from rcbf_ros.core.filter import compiled_assembly, eager_assembly, SafetyFilter
 from rcbf_ros.core.rcbf import RCBFProblem
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 
 pytestmark = pytest.mark.slow  # each compile takes seconds
 

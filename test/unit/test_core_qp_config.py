@@ -12,7 +12,7 @@ from rcbf_ros.core.config import filter_config_from_params, flatten
 from rcbf_ros.core.dynamics import CarFollowing, load_system, PVTOL, step_euler, Unicycle
 from rcbf_ros.core.qp import build_rcbf_qp
 from rcbf_ros.core.rcbf import RCBFProblem
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 
 
 def test_qp_rows_encode_the_rcbf_inequality():

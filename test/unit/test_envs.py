@@ -15,7 +15,7 @@ from rcbf_ros.envs import (
     PVTOLEnv,
     UnicycleEnv,
 )
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 
 
 def sim_params(system: str) -> dict:

@@ -13,7 +13,7 @@ from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.envs import make_env
 from rcbf_ros.envs.nominal import cars_accelerate, pvtol_go_to_goal, unicycle_go_to_goal
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 
 
 def controller(env):

@@ -185,7 +185,7 @@ def test_the_input_box_is_a_budget_of_its_own_and_reaches_the_learner(tmp_path):
 
 
 def test_without_ray_the_sequential_path_is_used(capsys, monkeypatch):
-    from rcbf_ros.cli import main as cli_main
+    from rcbf_ros.cli.main import main as cli_main
     find_spec = importlib.util.find_spec  # ray uninstalled, as far as the import system says
     monkeypatch.setattr(importlib.util, 'find_spec',
                         lambda name, *rest: None if name == 'ray' else find_spec(name, *rest))
@@ -227,7 +227,7 @@ def test_an_address_where_nothing_answers_fails_fast_naming_the_flag(capsys, mon
     with pytest.raises(RuntimeError, match='--address.*nothing answers'):
         check_reachable(f'127.0.0.1:{port}')
     # Through the CLI, as if ray were installed: the check comes before any Ray call.
-    from rcbf_ros.cli import main as cli_main
+    from rcbf_ros.cli.main import main as cli_main
     from rcbf_ros.experiments import command
 
     def no_ray(*_args, **_kwargs):
@@ -243,7 +243,7 @@ def test_an_address_where_nothing_answers_fails_fast_naming_the_flag(capsys, mon
 
 
 def test_cli_rejects_bad_experiment_arguments(capsys):
-    from rcbf_ros.cli import main as cli_main
+    from rcbf_ros.cli.main import main as cli_main
     assert cli_main(['experiment', 'transfer', '--seeds', '0']) == 2
     assert 'seeds' in capsys.readouterr().err
     assert cli_main(['experiment', 'transfer', '--layouts', '0']) == 2
@@ -265,7 +265,7 @@ def test_the_200_transfer_layouts_follow_the_rules_and_reach_the_filter():
         unicycle_random_layout,
         UNICYCLE_STARTS,
     )
-    from rcbf_ros.params import find_config, load_params
+    from rcbf_ros.parameters.rules import find_config, load_params
     from rcbf_ros.training.loop import make_env
     params = load_params(find_config('unicycle'), 'simulator')
     for seed in range(200):

@@ -13,7 +13,7 @@ import pytest
 
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import InputBounds, QP_DATA_LIMIT, SafetyFilter
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 
 STATE, PROPOSAL = [-0.85, 0.0, 0.0], [2.5, 0.0]
 """A unicycle state whose rows bind at full speed (the filter brakes)."""

@@ -1,4 +1,5 @@
-"""Decision logic of the safety_filter node (rcbf_ros.ros.filter_logic), without any middleware.
+"""Decision logic of the safety_filter node (rcbf_ros.node_logic.safety_filter), without
+any middleware.
 
 A real SafetyFilter (real OSQP) built from config/unicycle.yaml stands behind every decision.
 """
@@ -12,8 +13,8 @@ import pytest
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.core.filter_info import STATUS_CODES
-from rcbf_ros.params import find_config, load_params
-from rcbf_ros.ros import filter_logic as fl
+from rcbf_ros.node_logic import safety_filter as fl
+from rcbf_ros.parameters.rules import find_config, load_params
 
 SECOND = 1_000_000_000
 
@@ -392,7 +393,7 @@ def test_the_unicycle_filter_box_is_the_simulated_slope(unicycle_params):
 
 
 def test_obstacle_rows_become_the_obstacles_parameters():
-    from rcbf_ros.ros.filter_logic import obstacle_parameters
+    from rcbf_ros.node_logic.safety_filter import obstacle_parameters
     assert obstacle_parameters(data=[1.0, 2.0, 0.5, 3.0, 4.0, 0.25]) == {
         'obstacles.x': [1.0, 3.0], 'obstacles.y': [2.0, 4.0], 'obstacles.radius': [0.5, 0.25]}
     assert obstacle_parameters(data=[1, 2, 3], dims=[('o', 1, 3), ('xyr', 3, 3)]) == {
@@ -409,7 +410,7 @@ def test_obstacle_rows_become_the_obstacles_parameters():
 
 
 def test_read_only_and_filter_parameters():
-    from rcbf_ros.ros.filter_logic import (
+    from rcbf_ros.node_logic.safety_filter import (
         feeds_the_filter,
         is_read_only,
         PARAMETERS,
@@ -426,7 +427,7 @@ def test_read_only_and_filter_parameters():
 
 
 def test_describe_changes_lists_each_changed_key():
-    from rcbf_ros.ros.filter_logic import describe_changes, merged_parameters
+    from rcbf_ros.node_logic.safety_filter import describe_changes, merged_parameters
     old = {'k_c': 2.0, 'alpha': 1.0, 'obstacles.x': [0.0]}
     new = merged_parameters(current=old, changes={'k_c': 0.5, 'obstacles.x': None, 'q': 1})
     assert new == {'k_c': 0.5, 'alpha': 1.0, 'q': 1}

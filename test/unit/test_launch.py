@@ -12,8 +12,8 @@ import types
 
 import pytest
 
-from rcbf_ros import launch_local
-from rcbf_ros.launch_table import (
+from rcbf_ros.launch import local as launch_local
+from rcbf_ros.launch.table import (
     Argument,
     argument_values,
     DROP_IN_FILTER,
@@ -240,7 +240,7 @@ def test_launch_file_parses_and_reads_the_table(launch_file):
     functions = {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
     assert 'generate_launch_description' in functions
     imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
-    assert 'rcbf_ros.launch_description' in imported
+    assert 'rcbf_ros.launch.description' in imported
     name = launch_file.name.removesuffix('.launch.py')
     names = [n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)]
     assert name in names and name in LAUNCHES

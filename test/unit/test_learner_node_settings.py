@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from rcbf_ros.envs import make_env
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.ros.learner_node import learner_from_settings, PARAMETERS
 
 

@@ -37,7 +37,7 @@ from rcbf_ros.core.lie_closed_form import (
 from rcbf_ros.core.qp import build_rcbf_qp
 from rcbf_ros.core.qp import robust_margin as torch_robust_margin
 from rcbf_ros.core.rcbf import RCBFProblem
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 
 SYSTEMS = ('unicycle', 'car_following', 'pvtol')
 TOLERANCE = 1e-10

@@ -11,9 +11,9 @@ from typing import Any, Callable
 
 import pytest
 
-from rcbf_ros.ros import interface_doc
+from rcbf_ros.node_logic import interface_doc
+from rcbf_ros.node_logic.interface import help_text, NodeInterface, resolve, wants_help
 from rcbf_ros.ros.dds.time_source import USE_SIM_TIME
-from rcbf_ros.ros.interface import help_text, NodeInterface, resolve, wants_help
 
 REPO = Path(__file__).resolve().parents[2]
 UNICYCLE = str(REPO / 'config' / 'unicycle.yaml')
@@ -171,7 +171,7 @@ def test_every_declared_parameter_has_its_spec_and_every_spec_is_declared(
 
 def test_the_readme_interface_section_is_the_generated_one():
     assert interface_doc.main(['--check', str(REPO / 'README.md')]) == 0, (
-        'run python -m rcbf_ros.ros.interface_doc --write README.md')
+        'run python -m rcbf_ros.node_logic.interface_doc --write README.md')
 
 
 def test_a_stale_readme_section_is_reported(tmp_path, capsys):

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from rcbf_ros.params import read_params_file
+from rcbf_ros.parameters.rules import read_params_file
 from rcbf_ros.ros.dds import rclpy_compat
 from rcbf_ros.ros.dds.node import (
     InvalidParameterTypeException,

@@ -48,7 +48,8 @@ def test_a_wheel_installed_with_pip_finds_its_configs(tmp_path):
                       ]).stdout.strip())
     # Dependencies (PyYAML) from this environment, after the venv's own site-packages.
     (site / 'dependencies.pth').write_text(sysconfig.get_path('purelib') + '\n')
-    done = _run([str(python), '-c', 'import rcbf_ros.params as p; print(p.find_config("pvtol"));'
+    done = _run([str(python), '-c', 'import rcbf_ros.parameters.rules as p; '
+                 'print(p.find_config("pvtol"));'
                  ' print(p.find_config("unicycle.yaml")); print(p.__file__)'],
                 cwd=tmp_path, env={'PATH': '/usr/bin:/bin'})
     pvtol, unicycle, module = (Path(line) for line in done.stdout.split())
@@ -59,7 +60,7 @@ def test_a_wheel_installed_with_pip_finds_its_configs(tmp_path):
 
 
 def test_the_source_tree_finds_its_configs():
-    from rcbf_ros.params import find_config
+    from rcbf_ros.parameters.rules import find_config
     assert find_config('car_following') == REPO / 'config' / 'car_following.yaml'
 
 

@@ -23,7 +23,7 @@ import textwrap
 
 import pytest
 
-from rcbf_ros.params import load_params, ParamRules, scalar_value
+from rcbf_ros.parameters.rules import load_params, ParamRules, scalar_value
 from rcbf_ros.ros.dds.arguments import parameter_overrides, parse_ros_arguments, RosArgumentError
 
 SIM = '/simulator'

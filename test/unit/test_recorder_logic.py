@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import pytest
 
 from rcbf_ros.bag import RecordedQos
-from rcbf_ros.bag.messages import jazzy_typestore
+from rcbf_ros.messages.typestore import jazzy_typestore
 from rcbf_ros.ros.dds.messages import dds_payload
 from rcbf_ros.ros.recorder_node import (
     cdr_payload,

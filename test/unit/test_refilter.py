@@ -1,4 +1,5 @@
-"""Offline re-filtering (rcbf_ros.refilter): a synthetic recorded run re-filtered with the same and
+"""Offline re-filtering (rcbf_ros.bag.refilter): a synthetic recorded run re-filtered with the
+same and
 with other parameters, the output read back by independent readers and checked by
 ``pymcap-cli doctor``; bad inputs give errors naming the problem."""
 from __future__ import annotations
@@ -17,11 +18,11 @@ import torch
 import yaml
 
 from rcbf_ros.bag import BagWriter, read_bag
-from rcbf_ros.bag.messages import jazzy_typestore
+from rcbf_ros.bag.refilter import main, refilter_bag, RefilterError
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
-from rcbf_ros.refilter import main, refilter_bag, RefilterError
-from rcbf_ros.ros.filter_logic import NODE_PARAMETER_DEFAULTS
+from rcbf_ros.messages.typestore import jazzy_typestore
+from rcbf_ros.node_logic.safety_filter import NODE_PARAMETER_DEFAULTS
 
 PYMCAP_CLI = shutil.which('pymcap-cli') or str(Path(sys.executable).parent / 'pymcap-cli')
 T0 = 1_700_000_000_000_000_000

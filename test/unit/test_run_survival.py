@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from rcbf_ros.cli import main as cli_main
+from rcbf_ros.cli.main import main as cli_main
 from rcbf_ros.training import loop
 from rcbf_ros.training.loop import RunConfig, RunSetupError, train
 from rcbf_ros.training.run_files import (
@@ -66,7 +66,7 @@ def test_sigkill_mid_run_then_resume_keeps_every_finished_episode(tmp_path):
     metrics_superseded.jsonl) and the killed run's bag is left alone."""
     out = tmp_path / 'run'
     proc = subprocess.Popen(
-        [sys.executable, '-m', 'rcbf_ros.cli', 'train', *TINY, '--episodes', '50',
+        [sys.executable, '-m', 'rcbf_ros', 'train', *TINY, '--episodes', '50',
          '--out', str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         env=dict(os.environ, OMP_NUM_THREADS='1'))
     try:

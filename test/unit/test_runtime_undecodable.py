@@ -7,7 +7,7 @@ import struct
 
 import pytest
 
-from rcbf_ros.ros.conversions import sections_to_msg
+from rcbf_ros.messages.conversions import sections_to_msg
 from rcbf_ros.ros.dds import node as dds_node
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
 from rcbf_ros.ros.dds.messages import get_message, serialize_message

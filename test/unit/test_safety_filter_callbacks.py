@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from rcbf_ros.ros import filter_logic
-from rcbf_ros.ros.conversions import array_to_twist, msg_to_sections, sections_to_msg
+from rcbf_ros.messages.conversions import array_to_twist, msg_to_sections, sections_to_msg
+from rcbf_ros.node_logic import safety_filter as filter_logic
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
 from rcbf_ros.ros.dds.messages import serialize_message
 

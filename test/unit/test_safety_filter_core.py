@@ -25,7 +25,7 @@ from rcbf_ros.core.dynamics import step_euler
 from rcbf_ros.core.filter import InputBounds, SafetyFilter
 from rcbf_ros.envs.nominal import unicycle_go_to_goal
 from rcbf_ros.learning.safety_layer import DifferentiableSafetyLayer
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 
 SYSTEMS = ('unicycle', 'pvtol', 'car_following')
 # OSQP's default cap (4000) is too small for some PVTOL states and for infeasible rows (slack

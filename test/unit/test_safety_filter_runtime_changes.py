@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from test_safety_filter_callbacks import _cdr, FilterHarness, UNICYCLE
 
-from rcbf_ros.ros import filter_logic
+from rcbf_ros.node_logic import safety_filter as filter_logic
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
 from rcbf_ros.ros.dds.messages import get_message, serialize_message
 from rcbf_ros.ros.dds.node import Parameter

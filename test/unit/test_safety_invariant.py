@@ -31,12 +31,12 @@ from rosbags.highlevel import AnyReader
 import torch
 
 from rcbf_ros.bag import BagWriter
-from rcbf_ros.bag.messages import jazzy_typestore
+from rcbf_ros.bag.refilter import refilter_bag
 from rcbf_ros.core.config import filter_config_from_params, FilterConfig
 from rcbf_ros.core.filter import FilterResult, SafetyFilter
-from rcbf_ros.params import find_config, load_params
-from rcbf_ros.refilter import refilter_bag
-from rcbf_ros.ros import filter_logic as fl
+from rcbf_ros.messages.typestore import jazzy_typestore
+from rcbf_ros.node_logic import safety_filter as fl
+from rcbf_ros.parameters.rules import find_config, load_params
 
 SLACK_TOLERANCE = 1e-4
 SYSTEMS = ('unicycle', 'pvtol', 'car_following')

@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 
 from rcbf_ros.core.scene import scene_geometry
-from rcbf_ros.launch_table import CLOSED_LOOPS
-from rcbf_ros.params import find_config, load_params
-from rcbf_ros.ros import scene_logic as logic
-from rcbf_ros.ros.scene_logic import (
+from rcbf_ros.launch.table import CLOSED_LOOPS
+from rcbf_ros.node_logic import scene as logic
+from rcbf_ros.node_logic.scene import (
     AMBER,
     ARROW,
     CUBE,
@@ -24,6 +23,7 @@ from rcbf_ros.ros.scene_logic import (
     SPHERE,
     TEXT_VIEW_FACING,
 )
+from rcbf_ros.parameters.rules import find_config, load_params
 
 
 def _geometry(system: str):

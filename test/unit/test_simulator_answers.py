@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from rcbf_ros.ros.conversions import sections_to_msg
+from rcbf_ros.messages.conversions import sections_to_msg
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
 from rcbf_ros.ros.dds.messages import get_message
 
@@ -119,7 +119,7 @@ def test_odometry_state_needs_a_system_an_odometry_holds(ros_domain_id):
 def test_every_closed_loop_gives_the_simulator_the_filters_answers_with_their_state():
     # cmd_safe holds the command alone; filter_info's first section is that command and its
     # state section the state answered, which lock-step needs to drop late answers.
-    from rcbf_ros.launch_table import CLOSED_LOOPS
+    from rcbf_ros.launch.table import CLOSED_LOOPS
     for setup in CLOSED_LOOPS:
         simulator = setup.node('simulator')
         assert ('cmd_safe', 'filter_info') in simulator.remappings, setup.name

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from rcbf_ros.cli import main as cli_main
+from rcbf_ros.cli.main import main as cli_main
 from rcbf_ros.learning.sac import SACConfig
-from rcbf_ros.params import find_config, load_params
+from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig
 from rcbf_ros.training.loop import make_env, RunConfig, train
 from rcbf_ros.training.models import MODELS
@@ -254,7 +254,7 @@ def test_sigterm_mid_run_keeps_checkpoint_metrics_and_bag(tmp_path):
     import time
     out = tmp_path / 'killed'
     proc = subprocess.Popen(
-        [sys.executable, '-m', 'rcbf_ros.cli', 'train', '--system', 'unicycle', '--mode',
+        [sys.executable, '-m', 'rcbf_ros', 'train', '--system', 'unicycle', '--mode',
          'baseline', '--episodes', '50', '--max-steps', '40', '--start-steps', '20',
          '--update-after', '20', '--batch-size', '16', '--out', str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -281,7 +281,7 @@ def test_sigterm_mid_run_keeps_checkpoint_metrics_and_bag(tmp_path):
 def test_train_cli_modular_envelope_flag_reaches_the_learner_config():
     import argparse
 
-    from rcbf_ros.cli import _learner_overrides, add_train_arguments
+    from rcbf_ros.cli.main import _learner_overrides, add_train_arguments
     parser = argparse.ArgumentParser()
     add_train_arguments(parser)
     assert _learner_overrides(parser.parse_args(['--modular-envelope']))['modular_envelope']

@@ -15,9 +15,9 @@ import pytest
 
 from rcbf_ros.bag import BagWriter
 from rcbf_ros.core.scene import scene_geometry
-from rcbf_ros.params import find_config, load_params
-from rcbf_ros.plots import closest_approach, EpisodePath, plot_trajectories
-from rcbf_ros.run_summary import episode_paths, trajectory_line
+from rcbf_ros.parameters.rules import find_config, load_params
+from rcbf_ros.reports.plots import closest_approach, EpisodePath, plot_trajectories
+from rcbf_ros.reports.run_summary import episode_paths, trajectory_line
 
 ARRAY = 'std_msgs/msg/Float64MultiArray'
 MIN_PNG_BYTES = 20_000
@@ -305,7 +305,7 @@ def test_experiment_report_draws_every_method_on_the_first_transfer_layouts(tmp_
 
 
 def test_summary_of_a_run_directory_ends_with_its_picture(tmp_path, capsys):
-    from rcbf_ros.run_summary import main
+    from rcbf_ros.reports.run_summary import main
     run = tmp_path / 'run'
     (run / 'learner').mkdir(parents=True)
     (run / 'learner' / 'summary.json').write_text(json.dumps(
@@ -317,4 +317,4 @@ def test_summary_of_a_run_directory_ends_with_its_picture(tmp_path, capsys):
     assert lines[-1].startswith(f'trajectories: {run / "trajectories.png"}; closest approach ')
     assert main([str(run), '--params-file', str(find_config('unicycle'))]) == 0
     assert main([str(run), '--params']) == 2
-    assert 'usage: python -m rcbf_ros.run_summary' in capsys.readouterr().err
+    assert 'usage: python -m rcbf_ros.reports.run_summary' in capsys.readouterr().err

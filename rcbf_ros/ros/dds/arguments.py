@@ -8,7 +8,7 @@ Implements the subset of rcl's argument grammar that our nodes use::
 
 Special remaps ``__node``/``__name`` and ``__ns`` rename the node and set its namespace.
 
-Parameters follow rcl and rclpy exactly (:mod:`rcbf_ros.params` has the rules): every
+Parameters follow rcl and rclpy exactly (:mod:`rcbf_ros.parameters.rules` has the rules): every
 ``--params-file`` and ``-p [node:]name:=value`` of one command line fills one table in
 command-line order (a bare ``-p`` under the node key ``/**``, ``-p node:...`` under ``node``);
 a node takes every key that matches its fully qualified name in the order the keys first
@@ -22,7 +22,7 @@ from typing import Any, Iterable, Sequence
 
 import yaml
 
-from rcbf_ros.params import node_values, ParamRules, WILDCARD_KEY
+from rcbf_ros.parameters.rules import node_values, ParamRules, WILDCARD_KEY
 
 _FLAG_ONLY = {
     '--enable-rosout-logs', '--disable-rosout-logs', '--enable-stdout-logs',

@@ -1,14 +1,14 @@
 """The README's interface tables, generated from the nodes' own specs (so they cannot drift).
 
-    python -m rcbf_ros.ros.interface_doc              # print the generated section
-    python -m rcbf_ros.ros.interface_doc --write README.md
-    python -m rcbf_ros.ros.interface_doc --check README.md   # exit 1 when it differs
+    python -m rcbf_ros.node_logic.interface_doc              # print the generated section
+    python -m rcbf_ros.node_logic.interface_doc --write README.md
+    python -m rcbf_ros.node_logic.interface_doc --check README.md   # exit 1 when it differs
 
 The section lies between :data:`BEGIN` and :data:`END` in the README; everything else there is
 written by hand. It holds the state and command layout of every shipped system, the
 ``filter_info`` sections and status codes, and per node (:data:`NODES`) its topics (type,
 layout, QoS, direction) and its parameters (type, default, one line): the same
-:class:`rcbf_ros.ros.interface.NodeInterface` that ``<node> --help`` prints.
+:class:`rcbf_ros.node_logic.interface.NodeInterface` that ``<node> --help`` prints.
 """
 from __future__ import annotations
 
@@ -20,11 +20,11 @@ import sys
 from typing import Sequence
 
 from rcbf_ros.core.filter_info import INFO_SECTIONS, STATUS_CODES, UNKNOWN_STATUS
-from rcbf_ros.ros.conversions import COMMAND_LAYOUTS, ODOMETRY_STATES, STATE_LAYOUTS
-from rcbf_ros.ros.filter_logic import FILTER_PARAMETERS
-from rcbf_ros.ros.interface import NodeInterface, parameter_table, resolve, topic_table
+from rcbf_ros.messages.conversions import COMMAND_LAYOUTS, ODOMETRY_STATES, STATE_LAYOUTS
+from rcbf_ros.node_logic.interface import NodeInterface, parameter_table, resolve, topic_table
+from rcbf_ros.node_logic.safety_filter import FILTER_PARAMETERS
 
-BEGIN = ('<!-- BEGIN interface (generated: python -m rcbf_ros.ros.interface_doc --write '
+BEGIN = ('<!-- BEGIN interface (generated: python -m rcbf_ros.node_logic.interface_doc --write '
          'README.md) -->')
 END = '<!-- END interface -->'
 
@@ -108,7 +108,7 @@ def replace_section(text: str, section: str) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Print, write or check the generated section. Exit 1 when --check finds a difference."""
-    parser = argparse.ArgumentParser(prog='python -m rcbf_ros.ros.interface_doc',
+    parser = argparse.ArgumentParser(prog='python -m rcbf_ros.node_logic.interface_doc',
                                      description='The README interface tables, generated.')
     group = parser.add_mutually_exclusive_group()
     group.add_argument('--write', metavar='README', help='rewrite the section in this file')
@@ -128,7 +128,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.check:
         if updated != text:
             print(f'interface_doc: {path}: the interface section is out of date; run python -m '
-                  f'rcbf_ros.ros.interface_doc --write {path}', file=sys.stderr)
+                  f'rcbf_ros.node_logic.interface_doc --write {path}', file=sys.stderr)
             return 1
         return 0
     Path(path).write_text(updated, encoding='utf-8')

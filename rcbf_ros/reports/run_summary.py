@@ -1,13 +1,14 @@
 """Print what a training run left behind: returns, violations, speed, the bag and the plots.
 
-    python -m rcbf_ros.run_summary bags/<run> [--params-file my_layout.yaml]
+    python -m rcbf_ros.reports.run_summary bags/<run> [--params-file my_layout.yaml]
 
 Reads ``<run>/learner/summary.json`` and ``metrics.jsonl`` (written by the learner node or
 ``rcbf_ros train``) and the MCAP bag under ``<run>/bag``. A bag whose recorder was killed is
 recovered first (``rcbf_ros bag recover``: complete files from its whole chunks, the originals
 kept as ``*.mcap.orig``), so that every bag reader accepts it.
 
-From the bag it draws ``<run>/trajectories.png`` (:func:`rcbf_ros.plots.plot_trajectories`):
+From the bag it draws ``<run>/trajectories.png``
+(:func:`rcbf_ros.reports.plots.plot_trajectories`):
 the states of ``/sim/step`` (else ``/state``, split at the ``/episode`` events), the steps whose
 filter answer carries a correction |u_S| > 1e-7 (``/filter_info``; in bags recorded before the
 filter published it, ``/cmd_safe`` with its ``u_s`` section), over the layout of the params file
@@ -111,15 +112,15 @@ class _Episodes:
                 return
 
     def paths(self) -> list[Any]:
-        from rcbf_ros.plots import EpisodePath
+        from rcbf_ros.reports.plots import EpisodePath
         return [EpisodePath(episode, np.array(states), np.array(self.corrected[episode]))
                 for episode, states in self.states.items() if len(states) >= 2]
 
 
 def _sections(item: Any) -> dict[str, np.ndarray] | None:
     """The labelled sections of a recorded Float64MultiArray (None: not one)."""
-    from rcbf_ros.bag.messages import deserialize_message
-    from rcbf_ros.ros.conversions import msg_to_sections
+    from rcbf_ros.messages.conversions import msg_to_sections
+    from rcbf_ros.messages.typestore import deserialize_message
     try:
         return msg_to_sections(deserialize_message(item.data, item.type_name),
                                default_label='state' if item.topic == STATE_TOPIC else 'u')
@@ -145,7 +146,7 @@ def _correction(sections: dict[str, np.ndarray]) -> float:
 
 def episode_events(items: Iterable[Any]) -> list[dict[str, Any]]:
     """The JSON objects of recorded ``/episode`` messages (others skipped)."""
-    from rcbf_ros.bag.messages import deserialize_message
+    from rcbf_ros.messages.typestore import deserialize_message
     events = []
     for item in items:
         try:
@@ -158,7 +159,7 @@ def episode_events(items: Iterable[Any]) -> list[dict[str, Any]]:
 
 
 def episode_paths(bag: Path, *, n_x: int) -> list[Any]:
-    """The episodes recorded in ``bag`` as :class:`rcbf_ros.plots.EpisodePath`, in order.
+    """The episodes recorded in ``bag`` as :class:`rcbf_ros.reports.plots.EpisodePath`, in order.
 
     States come from ``/sim/step`` (sections ``state`` and ``episode`` in one message per step,
     so no cross-topic ordering is needed) when the bag has it, else from ``/state``,
@@ -171,7 +172,7 @@ def episode_paths(bag: Path, *, n_x: int) -> list[Any]:
     an episode without a step (a reset the run ended at).
     """
     from rcbf_ros.bag import bag_info, read_bag
-    from rcbf_ros.plots import CORRECTION_THRESHOLD
+    from rcbf_ros.reports.plots import CORRECTION_THRESHOLD
     recorded = bag_info(bag).topics
     by_steps = STEP_TOPIC in recorded
     answers = INFO_TOPIC if INFO_TOPIC in recorded else COMMAND_TOPIC
@@ -217,8 +218,8 @@ def trajectory_line(bag: Path, png: Path, *, params_file: str | None = None) -> 
     """Draw the bag's trajectories into ``png``; one line saying where, or why not."""
     from rcbf_ros.bag import BagError, read_bag
     from rcbf_ros.core.scene import scene_geometry
-    from rcbf_ros.params import find_config, load_params
-    from rcbf_ros.plots import plot_trajectories
+    from rcbf_ros.parameters.rules import find_config, load_params
+    from rcbf_ros.reports.plots import plot_trajectories
     try:
         events = episode_events(read_bag(bag, topics=[EPISODE_TOPIC]))
         starts = [e for e in events if e.get('event') == 'start']
@@ -251,7 +252,8 @@ def main(argv: list[str] | None = None) -> int:
     if len(args) == 3 and args[1] == '--params-file':
         params_file = args[2]
     elif len(args) != 1:
-        print('usage: python -m rcbf_ros.run_summary <run directory> [--params-file <yaml>]',
+        print('usage: python -m rcbf_ros.reports.run_summary <run directory> '
+              '[--params-file <yaml>]',
               file=sys.stderr)
         return 2
     print(summarize_run(Path(args[0]), params_file=params_file))

@@ -1,6 +1,6 @@
 """Offline re-filtering of a recorded run: the safety filter with another YAML, no DDS.
 
-    python -m rcbf_ros.refilter SOURCE_BAG OUTPUT_BAG --params-file F [--node N]
+    python -m rcbf_ros.bag.refilter SOURCE_BAG OUTPUT_BAG --params-file F [--node N]
 
 Reads ``/cmd_proposed`` and ``/state`` from a bag in log-time order, filters every proposal
 with a :class:`~rcbf_ros.core.filter.SafetyFilter` built from the NEW parameters, and writes a
@@ -13,11 +13,11 @@ times, schema text, type hash and QoS), plus, at the proposal's log time,
   parameters' ``twist_fields`` (other fields 0); a TwistStamped like that with the proposal's
   header;
 - ``/refilter/filter_info`` (std_msgs/Float64MultiArray): the node's ``filter_info``
-  (:func:`rcbf_ros.ros.filter_logic.info_sections`: ``u``, ``u_rl``, ``u_s``, ``fail_safe``,
-  ``status``, ``h``, ... and the ``state`` it answers);
+  (:func:`rcbf_ros.node_logic.safety_filter.info_sections`: ``u``, ``u_rl``, ``u_s``,
+  ``fail_safe``, ``status``, ``h``, ... and the ``state`` it answers);
 - ``/refilter/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per filtered
   proposal with the same level, message and key/values as the safety_filter node's
-  (:func:`rcbf_ros.ros.filter_logic.diagnostic_values`: ``h.<barrier>``,
+  (:func:`rcbf_ros.node_logic.safety_filter.diagnostic_values`: ``h.<barrier>``,
   ``constraint.<barrier>``, ``slack``, ``status``, ...), stamped with the proposal's log time.
 
 Proposals are read as the node reads them: a Float64MultiArray (sections ``u``, ``state``,
@@ -25,7 +25,7 @@ Proposals are read as the node reads them: a Float64MultiArray (sections ``u``, 
 new parameters' ``twist_fields``); states as a Float64MultiArray or a nav_msgs/Odometry
 (``state_frame_id`` checked as the node does).
 
-Decisions are the node's own (:func:`rcbf_ros.ros.filter_logic.decide`): the proposal's
+Decisions are the node's own (:func:`rcbf_ros.node_logic.safety_filter.decide`): the proposal's
 ``state`` section wins, else the latest ``/state`` if it is at most ``max_state_age_s`` older
 than the proposal (log times); the proposal's learned ``disturbance_mean`` / ``disturbance_std``
 win over the static ``disturbance.*`` box. A proposal that cannot be filtered (no state yet,
@@ -59,12 +59,9 @@ import numpy as np
 import torch
 
 from rcbf_ros.bag import bag_info, BagError, BagWriter, mcap_files, read_bag
-from rcbf_ros.bag.messages import deserialize_message, jazzy_typestore
 from rcbf_ros.core.config import filter_config_from_params, FilterConfig, flatten
 from rcbf_ros.core.filter import ACTIVE_TOLERANCE, SafetyFilter
-from rcbf_ros.params import find_config, load_params
-from rcbf_ros.ros import filter_logic as logic
-from rcbf_ros.ros.conversions import (
+from rcbf_ros.messages.conversions import (
     FLOAT64_MULTIARRAY,
     msg_to_sections,
     ODOMETRY,
@@ -73,6 +70,9 @@ from rcbf_ros.ros.conversions import (
     TWIST_STAMPED,
     twist_to_array,
 )
+from rcbf_ros.messages.typestore import deserialize_message, jazzy_typestore
+from rcbf_ros.node_logic import safety_filter as logic
+from rcbf_ros.parameters.rules import find_config, load_params
 
 PROPOSAL_TOPIC = '/cmd_proposed'
 STATE_TOPIC = '/state'

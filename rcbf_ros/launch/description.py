@@ -1,4 +1,4 @@
-"""``ros2 launch`` descriptions built from :mod:`rcbf_ros.launch_table` (ROS 2 install only).
+"""``ros2 launch`` descriptions built from :mod:`rcbf_ros.launch.table` (ROS 2 install only).
 
 Every ``launch/<name>.launch.py`` is three lines calling :func:`describe` with its name, so the
 launch files, the table and ``rcbf_ros_launch`` (which starts the same table without ROS) cannot
@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from rcbf_ros.launch_table import Argument, launch_setup, PACKAGE, PARAMS_FILE_ARGUMENT, substitute
+from rcbf_ros.launch.table import Argument, launch_setup, PACKAGE, PARAMS_FILE_ARGUMENT, substitute
 
 
 def describe(name: str) -> Any:
@@ -24,11 +24,11 @@ def describe(name: str) -> Any:
     when the node has a namespace: hence ``namespace=''`` (the root, or the namespace pushed by
     an enclosing launch). Without it launch_ros writes the dict under ``/**``, which rcl files
     in the ``/**`` key the params file opened first, so the file's ``/<name>`` section would win
-    (see :mod:`rcbf_ros.params`).
+    (see :mod:`rcbf_ros.parameters.rules`).
 
-    The launch's own arguments (:class:`rcbf_ros.launch_table.LaunchArgument`) are declared
+    The launch's own arguments (:class:`rcbf_ros.launch.table.LaunchArgument`) are declared
     with their defaults, descriptions and choices; where an entry reads one
-    (:class:`rcbf_ros.launch_table.Argument`), its ``LaunchConfiguration`` stands. In a list
+    (:class:`rcbf_ros.launch.table.Argument`), its ``LaunchConfiguration`` stands. In a list
     parameter each such item is a one-item list: launch_ros joins a list made only of
     substitutions into ONE string, and reads a list of lists as a list of strings.
     """

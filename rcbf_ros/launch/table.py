@@ -1,7 +1,7 @@
 """Which nodes a launch starts, with which remaps: ONE table for ``ros2 launch`` and our launcher.
 
 ``launch/<name>.launch.py`` (launch_ros ``Node`` actions, for a ROS 2 install) and
-``rcbf_ros_launch <name>`` (:mod:`rcbf_ros.launch_local`, separate ``python -m`` processes, for
+``rcbf_ros_launch <name>`` (:mod:`rcbf_ros.launch.local`, separate ``python -m`` processes, for
 machines without ROS) both read :data:`LAUNCHES`, so the two cannot drift. Pure data and string
 building: no ROS, no processes.
 
@@ -83,7 +83,7 @@ class NodeEntry:
     argument's value."""
     parameters: tuple[tuple[str, Any], ...] = ()
     """Parameter overrides that win over the params file (see :func:`ros_arguments` and
-    :func:`rcbf_ros.launch_description.describe` for how each launcher makes them win). A value
+    :func:`rcbf_ros.launch.description.describe` for how each launcher makes them win). A value
     (or an item of a list value) may be an :class:`Argument`, typed from its text as YAML, as
     launch_ros types a substitution."""
     required: bool = True
@@ -391,7 +391,7 @@ def ros_arguments(entry: NodeEntry, *, params_file: str,
     The parameters are written ``-p <name>:<key>:=<value>``, AFTER the params file: rcl files
     them under the node key ``<name>``, which appears after the file's ``/**`` and
     ``/<name>`` sections and so wins over both (a bare ``-p key:=value`` goes to ``/**`` and
-    would lose to the file's ``/<name>`` section; see :mod:`rcbf_ros.params`).
+    would lose to the file's ``/<name>`` section; see :mod:`rcbf_ros.parameters.rules`).
 
     Raises:
         ValueError: ``entry`` still reads launch arguments (:func:`resolve_entry` first).

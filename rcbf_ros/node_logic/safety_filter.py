@@ -40,7 +40,7 @@ from rcbf_ros.core.filter import (
     OSQP_MAX_ITER,
     SafetyFilter,
 )
-from rcbf_ros.ros.interface import declarations, ParameterSpec
+from rcbf_ros.node_logic.interface import declarations, ParameterSpec
 
 # diagnostic_msgs/DiagnosticStatus levels.
 OK = 0

@@ -1,7 +1,7 @@
 """rcbf_ros_launch: start a launch's nodes as separate processes, without ROS 2 installed.
 
 The local counterpart of ``ros2 launch rcbf_ros <name>.launch.py``; both read
-:mod:`rcbf_ros.launch_table`. Every node runs as ``python -m rcbf_ros.ros.node_main <module>
+:mod:`rcbf_ros.launch.table`. Every node runs as ``python -m rcbf_ros.ros.node_main <module>
 --ros-args -r __node:=<name> --params-file config/<system>.yaml -r ...`` (``python -m <module>``,
 but a node stopped while it is still importing exits quietly) in its own process group, with the
 loopback ``CYCLONEDDS_URI`` (no traffic off the machine) and one ``ROS_DOMAIN_ID`` in its
@@ -42,7 +42,7 @@ from typing import Any, Callable, IO, Mapping, Sequence
 
 import yaml
 
-from rcbf_ros.launch_table import (
+from rcbf_ros.launch.table import (
     Argument,
     argument_values,
     launch_setup,
@@ -53,7 +53,7 @@ from rcbf_ros.launch_table import (
     resolve_entry,
     ros_arguments,
 )
-from rcbf_ros.params import find_config, node_key_level
+from rcbf_ros.parameters.rules import find_config, node_key_level
 from rcbf_ros.ros.dds.arguments import expand_topic_name, load_params_file
 from rcbf_ros.ros.loopback import ensure_loopback
 

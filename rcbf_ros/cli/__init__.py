@@ -1,0 +1,1 @@
+"""The ``rcbf_ros`` command (:mod:`.main`)."""
