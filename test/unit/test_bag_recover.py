@@ -25,7 +25,7 @@ from rcbf_ros.bag import (
     recover_bag,
     recover_file,
 )
-from rcbf_ros.cli.main import main as cli
+from rcbf_ros.cli import main as cli
 from rcbf_ros.messages.typestore import jazzy_typestore
 from rcbf_ros.reports.run_summary import summarize_run
 
