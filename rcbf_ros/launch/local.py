@@ -57,7 +57,7 @@ from rcbf_ros.parameters.rules import find_config, node_key_level
 from rcbf_ros.ros.dds.arguments import expand_topic_name, load_params_file
 from rcbf_ros.ros.loopback import ensure_loopback
 
-_REPO_ROOT = Path(__file__).resolve().parent.parent
+_REPO_ROOT = Path(__file__).resolve().parents[2]
 # Exit statuses of a process that stopped because we asked it to.
 _STOPPED_OK = {0, -signal.SIGINT, -signal.SIGTERM, 128 + signal.SIGINT, 128 + signal.SIGTERM}
 NODE_RUNNER = 'rcbf_ros.ros.node_main'

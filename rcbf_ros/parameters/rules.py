@@ -43,7 +43,7 @@ from typing import Any, Iterable
 
 import yaml
 
-_SOURCE_CONFIG_DIR = Path(__file__).resolve().parent.parent / 'config'
+_SOURCE_CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
 PACKAGE = 'rcbf_ros'
 
 PARAMS_KEY = 'ros__parameters'
