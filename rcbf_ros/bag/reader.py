@@ -25,7 +25,7 @@ import yaml
 
 from rcbf_ros.bag.qos import parse_offered_qos_profiles, RecordedQos
 from rcbf_ros.bag.scan import BagError, BagNotFoundError, McapScan
-from rcbf_ros.messages.typestore import deserialize_message
+from rcbf_ros.messages.cdr import deserialize_rosbags_message
 
 
 class BagMessage(NamedTuple):
@@ -224,7 +224,7 @@ def read_bag_messages(path: str | os.PathLike[str], *, topics: Iterable[str] | N
                       allow_cut_short: bool = False) -> Iterator[tuple[BagMessage, Any]]:
     """Like :func:`read_bag`, with each message also decoded to a rosbags message object."""
     for item in read_bag(path, topics=topics, allow_cut_short=allow_cut_short):
-        yield item, deserialize_message(item.data, item.type_name)
+        yield item, deserialize_rosbags_message(item.data, item.type_name)
 
 
 @dataclass

@@ -61,6 +61,7 @@ import torch
 from rcbf_ros.bag import bag_info, BagError, BagWriter, mcap_files, read_bag
 from rcbf_ros.core.config import filter_config_from_params, FilterConfig, flatten
 from rcbf_ros.core.filter import ACTIVE_TOLERANCE, SafetyFilter
+from rcbf_ros.messages.cdr import deserialize_rosbags_message
 from rcbf_ros.messages.conversions import (
     FLOAT64_MULTIARRAY,
     msg_to_sections,
@@ -70,7 +71,7 @@ from rcbf_ros.messages.conversions import (
     TWIST_STAMPED,
     twist_to_array,
 )
-from rcbf_ros.messages.typestore import deserialize_message, jazzy_typestore
+from rcbf_ros.messages.typestore import jazzy_typestore
 from rcbf_ros.node_logic import safety_filter as logic
 from rcbf_ros.parameters.rules import find_config, load_params
 
@@ -275,7 +276,8 @@ def _array_sections(topic: str, log_time_ns: int, data: bytes, type_name: str,
         raise RefilterError(f'{topic}: type {type_name!r} is not supported (re-filtering reads '
                             f'{FLOAT64_MULTIARRAY} sections)')
     try:
-        return msg_to_sections(deserialize_message(data, type_name), default_label=default_label)
+        return msg_to_sections(deserialize_rosbags_message(data, type_name),
+                               default_label=default_label)
     except ValueError as exc:
         raise RefilterError(f'{topic} at log time {log_time_ns}: {exc}') from exc
 
@@ -286,7 +288,7 @@ def _proposal_sections(item: Any, settings: logic.NodeSettings
     TwistStamped (the new parameters' ``twist_fields``); and the TwistStamped's header (else
     None)."""
     if item.type_name in (TWIST, TWIST_STAMPED):
-        msg = deserialize_message(item.data, item.type_name)
+        msg = deserialize_rosbags_message(item.data, item.type_name)
         header = None
         if item.type_name == TWIST_STAMPED:
             msg, header = msg.twist, msg.header
@@ -300,8 +302,8 @@ def _state_sections(item: Any, settings: logic.NodeSettings,
     Odometry is refused (a wrong frame, an orientation without heading)."""
     if item.type_name == ODOMETRY:
         try:
-            return {'state': odometry_to_state(deserialize_message(item.data, item.type_name),
-                                               system=system,
+            odometry = deserialize_rosbags_message(item.data, item.type_name)
+            return {'state': odometry_to_state(odometry, system=system,
                                                frame_id=settings.state_frame_id)}
         except ValueError as exc:
             if str(exc).startswith('state_type:'):

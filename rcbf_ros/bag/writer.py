@@ -48,11 +48,11 @@ from mcap.writer import CompressionType, IndexType, Writer
 import yaml
 
 from rcbf_ros.bag.qos import dump_offered_qos_profiles, offered_qos_sequence, RecordedQos
+from rcbf_ros.messages.cdr import serialize_message
 from rcbf_ros.messages.typestore import (
     jazzy_typestore,
     message_definition_text,
     normalize_type_name,
-    serialize_message,
     type_hash_rihs01,
 )
 

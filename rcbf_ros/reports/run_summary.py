@@ -119,8 +119,8 @@ class _Episodes:
 
 def _sections(item: Any) -> dict[str, np.ndarray] | None:
     """The labelled sections of a recorded Float64MultiArray (None: not one)."""
+    from rcbf_ros.messages.cdr import deserialize_rosbags_message as deserialize_message
     from rcbf_ros.messages.conversions import msg_to_sections
-    from rcbf_ros.messages.typestore import deserialize_message
     try:
         return msg_to_sections(deserialize_message(item.data, item.type_name),
                                default_label='state' if item.topic == STATE_TOPIC else 'u')
@@ -146,7 +146,7 @@ def _correction(sections: dict[str, np.ndarray]) -> float:
 
 def episode_events(items: Iterable[Any]) -> list[dict[str, Any]]:
     """The JSON objects of recorded ``/episode`` messages (others skipped)."""
-    from rcbf_ros.messages.typestore import deserialize_message
+    from rcbf_ros.messages.cdr import deserialize_rosbags_message as deserialize_message
     events = []
     for item in items:
         try:

@@ -47,9 +47,10 @@ if USING_RCLPY:
     from rclpy.serialization import deserialize_message, serialize_message
     from rosidl_runtime_py.utilities import get_message
 else:
+    from rcbf_ros.messages.cdr import deserialize_message, serialize_message
+    from rcbf_ros.messages.classes import get_message
     from rcbf_ros.ros.dds import rclpy_compat as rclpy
     from rcbf_ros.ros.dds.context import ExternalShutdownException
-    from rcbf_ros.ros.dds.messages import deserialize_message, get_message, serialize_message
     from rcbf_ros.ros.dds.node import Node, Parameter, ParameterException
     from rcbf_ros.ros.dds.qos import (
         DurabilityPolicy,

@@ -59,8 +59,8 @@ class Probe:
 
     def __init__(self, domain_id: int, node_alive: Callable[[], None]) -> None:
         """Args: node_alive: raises AssertionError (with the node's stderr) once it is dead."""
+        from rcbf_ros.messages.classes import get_message
         from rcbf_ros.ros.dds import rclpy_compat as rclpy
-        from rcbf_ros.ros.dds.messages import get_message
         from rcbf_ros.ros.dds.node import Node
         from rcbf_ros.ros.dds.qos import QoSProfile
         rclpy.init(args=[], domain_id=domain_id)
@@ -155,8 +155,8 @@ def _diagnostic(msg: Any) -> tuple[int, str, dict[str, str]]:
 
 def _intruders(domain_id: int) -> tuple[Any, list[tuple[Any, Any]]]:
     """Another participant with other types on the filter's topic names."""
+    from rcbf_ros.messages.classes import get_message
     from rcbf_ros.ros.dds.context import Context
-    from rcbf_ros.ros.dds.messages import get_message
     from rcbf_ros.ros.dds.node import Node
     context = Context()
     context.init(args=[], domain_id=domain_id)

@@ -36,8 +36,8 @@ def middleware(which: str) -> dict[str, Any]:
                 'Descriptor': ParameterDescriptor, 'IntegerRange': IntegerRange,
                 'FloatingPointRange': FloatingPointRange, 'Result': SetParametersResult,
                 'shutdown': lambda: rclpy.shutdown(context=context)}
+    from rcbf_ros.messages.classes import get_message
     from rcbf_ros.ros.dds import rclpy_compat
-    from rcbf_ros.ros.dds.messages import get_message
     from rcbf_ros.ros.dds.node import Node, Parameter
     rclpy_compat.init(args=[], domain_id=int(os.environ.get('ROS_DOMAIN_ID', '0')))
     return {'node': Node, 'Parameter': Parameter,

@@ -7,7 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from rcbf_ros.ros.dds.messages import get_message, serialize_message, typestore
+from rcbf_ros.messages.cdr import serialize_message
+from rcbf_ros.messages.classes import get_message
+from rcbf_ros.messages.typestore import jazzy_typestore as typestore
 
 pytestmark = pytest.mark.ros2
 HERE = Path(__file__).resolve().parent

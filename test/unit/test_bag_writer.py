@@ -28,7 +28,8 @@ from rcbf_ros.bag import (
     RecordedQos,
     reindex_bag,
 )
-from rcbf_ros.messages.typestore import jazzy_typestore, serialize_message
+from rcbf_ros.messages.cdr import serialize_message
+from rcbf_ros.messages.typestore import jazzy_typestore
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 PYMCAP_CLI = shutil.which('pymcap-cli') or str(Path(sys.executable).parent / 'pymcap-cli')

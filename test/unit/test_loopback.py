@@ -41,7 +41,7 @@ def test_the_loopback_configuration_names_the_loopback_address():
 _REPORT_SOCKETS = textwrap.dedent("""
     import json, os
     from rcbf_ros.ros.dds import rclpy_compat as rclpy
-    from rcbf_ros.ros.dds.messages import get_message
+    from rcbf_ros.messages.classes import get_message
     from rcbf_ros.ros.dds.node import Node
     from rcbf_ros.ros.loopback import bound_device, own_socket_fds, own_udp_sockets
     rclpy.init(args=[])

@@ -6,8 +6,8 @@ import threading
 
 import pytest
 
+from rcbf_ros.messages.classes import get_message
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
-from rcbf_ros.ros.dds.messages import get_message
 from rcbf_ros.ros.dds.node import Node
 
 Float64 = get_message('std_msgs/msg/Float64')

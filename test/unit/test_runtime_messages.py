@@ -10,16 +10,10 @@ import pytest
 from rosbags.typesys import get_typestore, Stores
 from rosbags.typesys.store import Nodetype
 
+from rcbf_ros.messages.cdr import deserialize_message, serialize_message
+from rcbf_ros.messages.classes import get_message
 from rcbf_ros.ros.dds import messages
-from rcbf_ros.ros.dds.messages import (
-    dds_payload,
-    dds_type_name,
-    deserialize_message,
-    get_message,
-    idl_struct,
-    ros_type_name,
-    serialize_message,
-)
+from rcbf_ros.ros.dds.messages import dds_payload, dds_type_name, idl_struct, ros_type_name
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
 

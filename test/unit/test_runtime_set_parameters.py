@@ -14,8 +14,8 @@ from typing import Any
 
 import pytest
 
+from rcbf_ros.messages.classes import get_message
 from rcbf_ros.ros.dds import rclpy_compat
-from rcbf_ros.ros.dds.messages import get_message
 from rcbf_ros.ros.dds.node import (
     DEPTH_RECURSIVE,
     Node,

@@ -7,10 +7,11 @@ import struct
 
 import pytest
 
+from rcbf_ros.messages.cdr import serialize_message
+from rcbf_ros.messages.classes import get_message
 from rcbf_ros.messages.conversions import sections_to_msg
 from rcbf_ros.ros.dds import node as dds_node
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
-from rcbf_ros.ros.dds.messages import get_message, serialize_message
 from rcbf_ros.ros.dds.node import Node
 
 Array = get_message('std_msgs/msg/Float64MultiArray')

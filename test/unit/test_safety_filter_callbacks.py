@@ -14,10 +14,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from rcbf_ros.messages.cdr import serialize_message
 from rcbf_ros.messages.conversions import array_to_twist, msg_to_sections, sections_to_msg
 from rcbf_ros.node_logic import safety_filter as filter_logic
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
-from rcbf_ros.ros.dds.messages import serialize_message
 
 REPO = Path(__file__).resolve().parents[2]
 UNICYCLE = str(REPO / 'config' / 'unicycle.yaml')
@@ -185,7 +185,7 @@ def stamped_harness(ros_domain_id):
 
 
 def _odometry(x: float, y: float, yaw: float, frame_id: str = 'map') -> bytes:
-    from rcbf_ros.ros.dds.messages import get_message
+    from rcbf_ros.messages.classes import get_message
     msg = get_message('nav_msgs/msg/Odometry')()
     msg.header.frame_id = frame_id
     msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
@@ -195,7 +195,7 @@ def _odometry(x: float, y: float, yaw: float, frame_id: str = 'map') -> bytes:
 
 
 def _twist_stamped(u: list[float], sec: int, nanosec: int, frame_id: str) -> bytes:
-    from rcbf_ros.ros.dds.messages import get_message
+    from rcbf_ros.messages.classes import get_message
     msg = get_message('geometry_msgs/msg/TwistStamped')()
     msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
     msg.header.frame_id = frame_id

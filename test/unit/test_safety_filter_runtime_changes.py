@@ -17,9 +17,10 @@ import numpy as np
 import pytest
 from test_safety_filter_callbacks import _cdr, FilterHarness, UNICYCLE
 
+from rcbf_ros.messages.cdr import serialize_message
+from rcbf_ros.messages.classes import get_message
 from rcbf_ros.node_logic import safety_filter as filter_logic
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
-from rcbf_ros.ros.dds.messages import get_message, serialize_message
 from rcbf_ros.ros.dds.node import Parameter
 
 STATE = [-0.85, 0.0, 0.0]  # facing the obstacle at the origin, 0.25 m from its edge

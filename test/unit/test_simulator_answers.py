@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from rcbf_ros.messages.classes import get_message
 from rcbf_ros.messages.conversions import sections_to_msg
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
-from rcbf_ros.ros.dds.messages import get_message
 
 
 @pytest.fixture
