@@ -62,11 +62,17 @@ from rcbf_ros.bag import bag_info, BagError, BagWriter, mcap_files, read_bag
 from rcbf_ros.core.config import filter_config_from_params, FilterConfig, flatten
 from rcbf_ros.core.filter import ACTIVE_TOLERANCE, SafetyFilter
 from rcbf_ros.messages.cdr import deserialize_rosbags_message
+from rcbf_ros.messages.classes import get_message
 from rcbf_ros.messages.conversions import (
+    command_to_msg,
+    DIAGNOSTIC_ARRAY,
+    diagnostic_array,
+    diagnostic_status,
     FLOAT64_MULTIARRAY,
     msg_to_sections,
     ODOMETRY,
     odometry_to_state,
+    sections_to_msg,
     TWIST,
     TWIST_STAMPED,
     twist_to_array,
@@ -83,7 +89,6 @@ OUTPUT_COMMAND_TOPIC = '/refilter/cmd_safe'
 OUTPUT_INFO_TOPIC = '/refilter/filter_info'
 OUTPUT_DIAGNOSTICS_TOPIC = '/refilter/diagnostics'
 OUTPUT_TOPICS = (OUTPUT_COMMAND_TOPIC, OUTPUT_INFO_TOPIC, OUTPUT_DIAGNOSTICS_TOPIC)
-DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
 DEFAULT_TOLERANCE = 1e-6
 
 
@@ -366,50 +371,15 @@ def _pop_recorded(answers: RecordedAnswers, u_rl: np.ndarray,
 
 # -- output messages -------------------------------------------------------------------------
 
-def _sections_message(sections: Mapping[str, np.ndarray]) -> dict[str, Any]:
-    dims, data = [], []
-    for label, values in sections.items():
-        array = np.asarray(values, dtype=np.float64).reshape(-1)
-        dims.append({'label': label, 'size': int(array.size), 'stride': int(array.size)})
-        data.append(array)
-    return {'layout': {'dim': dims, 'data_offset': 0}, 'data': np.concatenate(data)}
-
-
-def command_message(u: np.ndarray, *, type_name: str, twist_fields: Sequence[str],
-                    header: Any = None) -> dict[str, Any]:
-    """The command ``u`` as a message of ``type_name`` (a dict), as the node's ``cmd_safe``:
-    a Float64MultiArray with one section ``u``; a Twist with u in ``twist_fields`` (others 0);
-    a TwistStamped like that with ``header`` (stamp and frame_id) copied."""
-    if type_name == FLOAT64_MULTIARRAY:
-        return _sections_message({'u': u})
-    twist = {'linear': {'x': 0.0, 'y': 0.0, 'z': 0.0}, 'angular': {'x': 0.0, 'y': 0.0, 'z': 0.0}}
-    for name, value in zip(twist_fields, np.asarray(u, dtype=np.float64)):
-        group, _, axis = name.partition('.')
-        twist[group][axis] = float(value)
-    if type_name == TWIST:
-        return twist
-    return {'header': {'stamp': {'sec': int(header.stamp.sec),
-                                 'nanosec': int(header.stamp.nanosec)},
-                       'frame_id': str(header.frame_id)}, 'twist': twist}
-
-
-def _value_text(value: Any) -> str:
-    if isinstance(value, float):
-        return 'nan' if math.isnan(value) else repr(value)
-    return str(value)
-
-
 def _diagnostics_message(decision: logic.Decision, barrier_names: Sequence[str],
-                         settings: logic.NodeSettings, stamp_ns: int) -> dict[str, Any]:
+                         settings: logic.NodeSettings, stamp_ns: int) -> Any:
+    """The safety_filter node's diagnostics for ``decision``, stamped ``stamp_ns``."""
     level, message, values = logic.diagnostic_values(decision=decision,
                                                      barrier_names=barrier_names)
-    return {
-        'header': {'stamp': {'sec': stamp_ns // 1_000_000_000,
-                             'nanosec': stamp_ns % 1_000_000_000}, 'frame_id': ''},
-        'status': [{'level': level, 'name': settings.diagnostics_name, 'message': message,
-                    'hardware_id': settings.diagnostics_hardware_id,
-                    'values': [{'key': str(k), 'value': _value_text(v)}
-                               for k, v in values.items()]}]}
+    status = diagnostic_status(name=settings.diagnostics_name, level=level, message=message,
+                               values=values, hardware_id=settings.diagnostics_hardware_id,
+                               message_class=get_message)
+    return diagnostic_array(statuses=[status], stamp_ns=stamp_ns, message_class=get_message)
 
 
 # -- barrier statistics ----------------------------------------------------------------------
@@ -551,11 +521,13 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     _account(summary, decision, proposal, recorded, deltas, tolerance)
                     if proposal.state is not None:
                         proposal_states.append(proposal.state)
-                    writer.write_message(OUTPUT_COMMAND_TOPIC, command_message(
+                    writer.write_message(OUTPUT_COMMAND_TOPIC, command_to_msg(
                         decision.u_safe, type_name=command_type,
-                        twist_fields=settings.twist_fields, header=header), item.log_time_ns)
-                    writer.write_message(OUTPUT_INFO_TOPIC, _sections_message(
-                        logic.info_sections(decision)), item.log_time_ns)
+                        twist_fields=settings.twist_fields, header=header,
+                        message_class=get_message), item.log_time_ns)
+                    writer.write_message(OUTPUT_INFO_TOPIC, sections_to_msg(
+                        logic.info_sections(decision), message_class=get_message),
+                        item.log_time_ns)
                     writer.write_message(OUTPUT_DIAGNOSTICS_TOPIC, _diagnostics_message(
                         decision, safety_filter.barrier_names, settings, item.log_time_ns),
                         item.log_time_ns)

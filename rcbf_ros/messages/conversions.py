@@ -14,11 +14,17 @@ States may also come as ``nav_msgs/Odometry`` where the system's state maps onto
 (:data:`ODOMETRY_STATES`: the Unicycle's [x, y, theta] is the pose's position and yaw).
 :data:`STATE_LAYOUTS` and :data:`COMMAND_LAYOUTS` name every entry of the shipped systems'
 vectors with its unit.
+
+The builders (``sections_to_msg``, ``array_to_twist``, ``command_to_msg``, ...) make instances of
+the classes the node's runtime publishes (rclpy's on rclpy, else the Cyclone runtime's); with
+``message_class`` (a type name -> class function, e.g.
+:func:`rcbf_ros.messages.classes.get_message`) they make that function's classes instead and
+touch no middleware, as the offline bag tools need.
 """
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -26,6 +32,11 @@ FLOAT64_MULTIARRAY = 'std_msgs/msg/Float64MultiArray'
 TWIST = 'geometry_msgs/msg/Twist'
 TWIST_STAMPED = 'geometry_msgs/msg/TwistStamped'
 ODOMETRY = 'nav_msgs/msg/Odometry'
+DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+
+MessageClass = Callable[[str], Any]
+"""A type name -> message class function (rclpy's get_message, or
+:func:`rcbf_ros.messages.classes.get_message`)."""
 
 STATE_MESSAGES = {'array': FLOAT64_MULTIARRAY, 'odometry': ODOMETRY}
 """``state_type`` -> message type of a state topic."""
@@ -56,15 +67,19 @@ ODOMETRY_STATES: dict[str, str] = {
 PVTOL's thrust and operator, or the five cars of car following, are not in one)."""
 
 
-def _message_class(type_name: str) -> Any:
+def _message_class(type_name: str, message_class: MessageClass | None = None) -> Any:
+    """The class of ``type_name``: ``message_class``'s, else the node runtime's."""
+    if message_class is not None:
+        return message_class(type_name)
     from rcbf_ros.ros.runtime import get_message
     return get_message(type_name)
 
 
-def sections_to_msg(sections: Mapping[str, Sequence[float] | np.ndarray]) -> Any:
+def sections_to_msg(sections: Mapping[str, Sequence[float] | np.ndarray], *,
+                    message_class: MessageClass | None = None) -> Any:
     """Labelled sections -> Float64MultiArray (section order preserved)."""
-    msg_cls = _message_class(FLOAT64_MULTIARRAY)
-    dim_cls = _message_class('std_msgs/msg/MultiArrayDimension')
+    msg_cls = _message_class(FLOAT64_MULTIARRAY, message_class)
+    dim_cls = _message_class('std_msgs/msg/MultiArrayDimension', message_class)
     msg = msg_cls()
     dims, data = [], []
     for label, values in sections.items():
@@ -127,9 +142,10 @@ def twist_to_array(msg: Any, fields: Sequence[str]) -> np.ndarray:
     return np.asarray(out, dtype=np.float64)
 
 
-def array_to_twist(values: Sequence[float] | np.ndarray, fields: Sequence[str]) -> Any:
+def array_to_twist(values: Sequence[float] | np.ndarray, fields: Sequence[str], *,
+                   message_class: MessageClass | None = None) -> Any:
     """Vector -> Twist with the given fields set (others zero)."""
-    msg = _message_class(TWIST)()
+    msg = _message_class(TWIST, message_class)()
     for field_name, value in zip(fields, np.asarray(values, dtype=np.float64)):
         group, _, axis = field_name.partition('.')
         setattr(getattr(msg, group), axis, float(value))
@@ -137,10 +153,11 @@ def array_to_twist(values: Sequence[float] | np.ndarray, fields: Sequence[str]) 
 
 
 def diagnostic_status(*, name: str, level: int, message: str,
-                      values: Mapping[str, Any], hardware_id: str = '') -> Any:
+                      values: Mapping[str, Any], hardware_id: str = '',
+                      message_class: MessageClass | None = None) -> Any:
     """A diagnostic_msgs/DiagnosticStatus with KeyValue pairs (floats printed with repr)."""
-    status_cls = _message_class('diagnostic_msgs/msg/DiagnosticStatus')
-    kv_cls = _message_class('diagnostic_msgs/msg/KeyValue')
+    status_cls = _message_class('diagnostic_msgs/msg/DiagnosticStatus', message_class)
+    kv_cls = _message_class('diagnostic_msgs/msg/KeyValue', message_class)
 
     def text(v: Any) -> str:
         if isinstance(v, float):
@@ -156,20 +173,51 @@ def diagnostic_status(*, name: str, level: int, message: str,
     return status
 
 
+def diagnostic_array(*, statuses: Sequence[Any], stamp_ns: int, frame_id: str = '',
+                     message_class: MessageClass | None = None) -> Any:
+    """A diagnostic_msgs/DiagnosticArray of ``statuses`` (see :func:`diagnostic_status`)
+    stamped ``stamp_ns``."""
+    msg = _message_class(DIAGNOSTIC_ARRAY, message_class)()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    msg.header.frame_id = frame_id
+    msg.status = list(statuses)
+    return msg
+
+
 def twist_stamped_to_array(msg: Any, fields: Sequence[str]) -> np.ndarray:
     """Pick the ``twist`` fields of a TwistStamped into a vector."""
     return twist_to_array(msg.twist, fields)
 
 
 def array_to_twist_stamped(values: Sequence[float] | np.ndarray, fields: Sequence[str],
-                           header: Any) -> Any:
+                           header: Any, *, message_class: MessageClass | None = None) -> Any:
     """Vector -> TwistStamped with ``header`` (stamp and frame_id copied) and the fields set."""
-    msg = _message_class(TWIST_STAMPED)()
+    msg = _message_class(TWIST_STAMPED, message_class)()
     msg.header.stamp.sec = int(header.stamp.sec)
     msg.header.stamp.nanosec = int(header.stamp.nanosec)
     msg.header.frame_id = str(header.frame_id)
-    msg.twist = array_to_twist(values, fields)
+    msg.twist = array_to_twist(values, fields, message_class=message_class)
     return msg
+
+
+def command_to_msg(u: Sequence[float] | np.ndarray, *, type_name: str,
+                   twist_fields: Sequence[str], header: Any = None,
+                   message_class: MessageClass | None = None) -> Any:
+    """The command ``u`` as the safety filter's ``cmd_safe`` of ``type_name``: a
+    Float64MultiArray with one section ``u``; a Twist with u in ``twist_fields`` (others 0); a
+    TwistStamped like that with ``header``'s stamp and frame_id.
+
+    Raises:
+        ValueError: ``type_name`` is not one of :data:`COMMAND_MESSAGES`.
+    """
+    if type_name == FLOAT64_MULTIARRAY:
+        return sections_to_msg({'u': u}, message_class=message_class)
+    if type_name == TWIST:
+        return array_to_twist(u, twist_fields, message_class=message_class)
+    if type_name == TWIST_STAMPED:
+        return array_to_twist_stamped(u, twist_fields, header, message_class=message_class)
+    raise ValueError(f'command type {type_name!r} is not one of '
+                     f'{sorted(COMMAND_MESSAGES.values())}')
 
 
 def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:

@@ -4,6 +4,8 @@ with other parameters, the output read back by independent readers and checked b
 ``pymcap-cli doctor``; bad inputs give errors naming the problem."""
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
 import shutil
 import subprocess
@@ -357,3 +359,34 @@ def test_twist_proposals_are_answered_in_their_own_type(type_name: str, tmp_path
         assert [command.linear.x, command.angular.z] == u.tolist()
         assert [command.linear.y, command.linear.z, command.angular.x, command.angular.y] == \
             [0.0] * 4
+
+
+_WITHOUT_MIDDLEWARE = """
+import json, sys
+import numpy as np
+from rcbf_ros.bag.refilter import refilter_bag
+from rcbf_ros.messages import classes
+from rcbf_ros.messages.cdr import deserialize_message, serialize_message
+from rcbf_ros.messages.conversions import array_to_twist
+summary = refilter_bag(sys.argv[1], sys.argv[2], json.loads(sys.argv[3]))
+twist = array_to_twist(np.array([1.0, 0.5]), ['linear.x', 'angular.z'],
+                       message_class=classes.get_message)
+assert deserialize_message(serialize_message(twist), 'geometry_msgs/msg/Twist') == twist
+print(json.dumps({'processed': summary.processed,
+                  'loaded': sorted(m for m in sys.modules
+                                   if m.split('.')[0] == 'cyclonedds' or m == 'rclpy'
+                                   or m.startswith('rcbf_ros.ros'))}))
+"""
+
+
+def test_refiltering_and_the_message_layer_load_no_middleware(tmp_path: Path) -> None:
+    """The bag tools and rcbf_ros.messages build, write and read messages without a DDS
+    runtime: neither rcbf_ros.ros, nor Cyclone DDS, nor rclpy is imported."""
+    source = write_twist_source(tmp_path / 'run', 'geometry_msgs/msg/TwistStamped')
+    result = subprocess.run(
+        [sys.executable, '-c', _WITHOUT_MIDDLEWARE, str(source), str(tmp_path / 'out'),
+         json.dumps(PARAMS_B)], capture_output=True, text=True, timeout=120,
+        env=dict(os.environ, OMP_NUM_THREADS='1'))
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout.strip().splitlines()[-1])
+    assert report == {'processed': N_STEPS, 'loaded': []}
