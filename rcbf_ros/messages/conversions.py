@@ -16,10 +16,11 @@ States may also come as ``nav_msgs/Odometry`` where the system's state maps onto
 vectors with its unit.
 
 The builders (``sections_to_msg``, ``array_to_twist``, ``command_to_msg``, ...) make instances of
-the classes the node's runtime publishes (rclpy's on rclpy, else the Cyclone runtime's); with
-``message_class`` (a type name -> class function, e.g.
-:func:`rcbf_ros.messages.classes.get_message`) they make that function's classes instead and
-touch no middleware, as the offline bag tools need.
+the classes the node's runtime publishes: :mod:`rcbf_ros.ros.runtime` names its ``get_message``
+at import (:func:`use_message_classes`; rclpy's on rclpy), and before any runtime is imported
+they make the middleware-free classes of :mod:`rcbf_ros.messages.classes`. With
+``message_class`` (a type name -> class function) they make that function's classes, whatever
+the runtime, as the offline bag tools do.
 """
 from __future__ import annotations
 
@@ -27,6 +28,8 @@ import math
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
+
+from rcbf_ros.messages import classes
 
 FLOAT64_MULTIARRAY = 'std_msgs/msg/Float64MultiArray'
 TWIST = 'geometry_msgs/msg/Twist'
@@ -67,12 +70,19 @@ ODOMETRY_STATES: dict[str, str] = {
 PVTOL's thrust and operator, or the five cars of car following, are not in one)."""
 
 
+_runtime_message_class: MessageClass = classes.get_message
+
+
+def use_message_classes(message_class: MessageClass) -> None:
+    """Make the builders' default classes ``message_class``'s: the node runtime's, which it
+    publishes (called once by :mod:`rcbf_ros.ros.runtime` at import)."""
+    global _runtime_message_class
+    _runtime_message_class = message_class
+
+
 def _message_class(type_name: str, message_class: MessageClass | None = None) -> Any:
     """The class of ``type_name``: ``message_class``'s, else the node runtime's."""
-    if message_class is not None:
-        return message_class(type_name)
-    from rcbf_ros.ros.runtime import get_message
-    return get_message(type_name)
+    return (message_class or _runtime_message_class)(type_name)
 
 
 def sections_to_msg(sections: Mapping[str, Sequence[float] | np.ndarray], *,

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import os
 
+from rcbf_ros.messages import conversions
+
 _CHOICE = os.environ.get('RCBF_ROS_RUNTIME', 'auto').strip().lower()
 if _CHOICE not in ('auto', 'rclpy', 'cyclone'):
     raise ImportError(f'RCBF_ROS_RUNTIME must be auto, rclpy or cyclone, got {_CHOICE!r}')
@@ -61,6 +63,8 @@ else:
     )
 
     ParameterDescriptor = get_message('rcl_interfaces/msg/ParameterDescriptor')
+
+conversions.use_message_classes(get_message)  # the message builders make what we publish
 
 __all__ = [
     'DurabilityPolicy', 'ExternalShutdownException', 'HistoryPolicy', 'Node', 'Parameter',

@@ -2,6 +2,9 @@
 could not be printed on one line of a log or a diagnostic, are refused with the dimension."""
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -185,3 +188,39 @@ def test_diagnostics_of_the_pure_classes_serialize_as_their_field_dicts():
                                {'key': 'steps', 'value': '3'}]}]}
     type_name = 'diagnostic_msgs/msg/DiagnosticArray'
     assert serialize_message(msg) == serialize_message(expected, type_name)
+
+
+_BUILD_BEFORE_ANY_RUNTIME = """
+import sys
+from rcbf_ros.messages import classes
+from rcbf_ros.messages.conversions import array_to_twist, sections_to_msg
+built = [sections_to_msg({'u': [1.0]}), array_to_twist([1.0], ['linear.x'])]
+assert all(isinstance(msg, classes.Message) for msg in built), built
+print(sorted(m for m in sys.modules if m.split('.')[0] in ('cyclonedds', 'rclpy')
+             or m.startswith('rcbf_ros.ros')))
+"""
+
+
+def test_the_builders_need_no_middleware():
+    """Before any runtime is imported the builders make rcbf_ros.messages' own classes, and
+    rcbf_ros.messages loads neither rcbf_ros.ros, nor Cyclone DDS, nor rclpy."""
+    result = subprocess.run([sys.executable, '-c', _BUILD_BEFORE_ANY_RUNTIME],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == '[]'
+
+
+def test_the_builders_make_the_classes_the_runtime_names():
+    from rcbf_ros.messages import conversions
+    from rcbf_ros.ros import runtime
+    asked = []
+
+    def recording(type_name: str) -> type:
+        asked.append(type_name)
+        return runtime.get_message(type_name)
+    conversions.use_message_classes(recording)
+    try:
+        conversions.array_to_twist([1.0], ['linear.x'])
+    finally:
+        conversions.use_message_classes(runtime.get_message)
+    assert asked == ['geometry_msgs/msg/Twist']
