@@ -23,7 +23,7 @@ import weakref
 import numpy as np
 
 from rcbf_ros.ros.dds import messages
-from rcbf_ros.ros.dds.node import (
+from rcbf_ros.ros.dds.parameters import (
     Parameter,
     ParameterNotDeclaredException,
     ParameterUninitializedException,
