@@ -1,4 +1,4 @@
-"""rclpy's time types over the Cyclone runtime: ``Duration``, ``Time`` and a node's ``Clock``.
+"""rclpy's time types over the Cyclone runtime: ``Time`` and a node's ``Clock``.
 
 A node's clock is the system time, or, while its ``use_sim_time`` parameter is true, the time
 ``/clock`` gives (:mod:`.time_source` drives it).
@@ -6,22 +6,8 @@ A node's clock is the system time, or, while its ``use_sim_time`` parameter is t
 from __future__ import annotations
 
 import time
-from typing import Any
 
 from rcbf_ros.ros.dds import messages
-
-
-class Duration:
-    """rclpy.duration.Duration subset (nanoseconds)."""
-
-    def __init__(self, *, seconds: float = 0.0, nanoseconds: int = 0) -> None:
-        self.nanoseconds = int(seconds * 1e9) + int(nanoseconds)
-
-    def __repr__(self) -> str:
-        return f'Duration(nanoseconds={self.nanoseconds})'
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, Duration) and other.nanoseconds == self.nanoseconds
 
 
 class Time:
@@ -30,31 +16,10 @@ class Time:
     def __init__(self, *, seconds: float = 0.0, nanoseconds: int = 0) -> None:
         self.nanoseconds = int(seconds * 1e9) + int(nanoseconds)
 
-    def seconds_nanoseconds(self) -> tuple[int, int]:
-        return divmod(self.nanoseconds, 10**9)
-
     def to_msg(self) -> messages.Message:
         """A ``builtin_interfaces/msg/Time``."""
-        sec, nanosec = self.seconds_nanoseconds()
+        sec, nanosec = divmod(self.nanoseconds, 10**9)
         return messages.get_message('builtin_interfaces/msg/Time')(sec=sec, nanosec=nanosec)
-
-    @classmethod
-    def from_msg(cls, msg: Any) -> Time:
-        return cls(nanoseconds=msg.sec * 10**9 + msg.nanosec)
-
-    def __sub__(self, other: Time | Duration) -> Time | Duration:
-        if isinstance(other, Time):
-            return Duration(nanoseconds=self.nanoseconds - other.nanoseconds)
-        return Time(nanoseconds=self.nanoseconds - other.nanoseconds)
-
-    def __add__(self, other: Duration) -> Time:
-        return Time(nanoseconds=self.nanoseconds + other.nanoseconds)
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, Time) and other.nanoseconds == self.nanoseconds
-
-    def __lt__(self, other: Time) -> bool:
-        return self.nanoseconds < other.nanoseconds
 
     def __repr__(self) -> str:
         return f'Time(nanoseconds={self.nanoseconds})'

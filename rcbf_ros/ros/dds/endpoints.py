@@ -202,23 +202,6 @@ class Timer:
         if not self._canceled:
             self.callback()
 
-    def cancel(self) -> None:
-        self._canceled = True
-
-    def reset(self) -> None:
-        self._canceled = False
-        self._follow_switch()
-        self._next_ns = self._now() + self.timer_period_ns
-
-    def is_canceled(self) -> bool:
-        return self._canceled
-
-    def time_until_next_call(self) -> int | None:
-        if self._canceled:
-            return None
-        self._follow_switch()
-        return self._next_ns - self._now()
-
     def destroy(self) -> None:
         self._canceled = True
 

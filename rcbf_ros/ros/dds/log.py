@@ -20,9 +20,10 @@ class LoggingSeverity(enum.IntEnum):
     FATAL = 50
 
 
-_LEVEL_NAMES = {'debug': LoggingSeverity.DEBUG, 'info': LoggingSeverity.INFO,
-                'warn': LoggingSeverity.WARN, 'warning': LoggingSeverity.WARN,
-                'error': LoggingSeverity.ERROR, 'fatal': LoggingSeverity.FATAL}
+LEVEL_NAMES = {'debug': LoggingSeverity.DEBUG, 'info': LoggingSeverity.INFO,
+               'warn': LoggingSeverity.WARN, 'warning': LoggingSeverity.WARN,
+               'error': LoggingSeverity.ERROR, 'fatal': LoggingSeverity.FATAL}
+"""The severity of each ``--log-level`` name."""
 
 
 class Logger:
@@ -39,12 +40,6 @@ class Logger:
 
     def get_child(self, suffix: str) -> Logger:
         return Logger(f'{self.name}.{suffix}', self.level, self._rosout)
-
-    def set_level(self, level: LoggingSeverity | int) -> None:
-        self.level = LoggingSeverity(level)
-
-    def get_effective_level(self) -> LoggingSeverity:
-        return self.level
 
     def _log(self, severity: LoggingSeverity, message: str, *, once: bool = False,
              throttle_duration_sec: float | None = None, skip_first: bool = False,
@@ -87,10 +82,5 @@ class Logger:
     def warning(self, message: str, **kwargs: Any) -> bool:
         return self._log(LoggingSeverity.WARN, message, **kwargs)
 
-    warn = warning
-
     def error(self, message: str, **kwargs: Any) -> bool:
         return self._log(LoggingSeverity.ERROR, message, **kwargs)
-
-    def fatal(self, message: str, **kwargs: Any) -> bool:
-        return self._log(LoggingSeverity.FATAL, message, **kwargs)

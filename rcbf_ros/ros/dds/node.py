@@ -33,7 +33,7 @@ from rcbf_ros.ros.dds.context import (
 )
 from rcbf_ros.ros.dds.endpoints import Publisher, Subscription, Timer
 from rcbf_ros.ros.dds.graph import gid_of
-from rcbf_ros.ros.dds.log import Logger, LoggingSeverity
+from rcbf_ros.ros.dds.log import LEVEL_NAMES, Logger
 from rcbf_ros.ros.dds.node_graph import NodeGraph
 from rcbf_ros.ros.dds.node_parameters import NodeParameters
 from rcbf_ros.ros.dds.parameters import (
@@ -88,13 +88,10 @@ class Node(NodeParameters, NodeGraph):
         self._remaps = [rule for args in reversed(arguments) for rule in args.remaps
                         if rule.node in (None, original_name, self._name)]
         log_level = next((a.log_level for a in reversed(arguments) if a.log_level), 'info')
-        if log_level not in ('debug', 'info', 'warn', 'warning', 'error', 'fatal'):
+        if log_level not in LEVEL_NAMES:
             raise ValueError(f'--log-level {log_level!r} is not debug|info|warn|error|fatal')
         self._logger = Logger(self.get_fully_qualified_name().lstrip('/').replace('/', '.'),
-                              {'debug': LoggingSeverity.DEBUG, 'info': LoggingSeverity.INFO,
-                               'warn': LoggingSeverity.WARN, 'warning': LoggingSeverity.WARN,
-                               'error': LoggingSeverity.ERROR,
-                               'fatal': LoggingSeverity.FATAL}[log_level])
+                              LEVEL_NAMES[log_level])
         overrides = {
             name: Parameter(name, value=value) for name, value in
             collect_parameter_overrides(arguments, self.get_fully_qualified_name()).items()}
@@ -209,13 +206,6 @@ class Node(NodeParameters, NodeGraph):
         subscription.destroy()
         return True
 
-    def destroy_timer(self, timer: Timer) -> bool:
-        if timer not in self._timers:
-            return False
-        self._timers.remove(timer)
-        timer.destroy()
-        return True
-
     def create_service(self, srv_type: Any, srv_name: str,
                        callback: Callable[[Any, Any], Any], *,
                        qos_profile: QoSProfile = services.qos_profile_services_default,
@@ -241,9 +231,6 @@ class Node(NodeParameters, NodeGraph):
         self.context.graph.add_endpoint(self._graph_node, gid_of(endpoint._writer),
                                         is_reader=False)
         return endpoint
-
-    def destroy_service(self, service: services.Service) -> bool:
-        return self._destroy_service_endpoint(service)
 
     def destroy_client(self, client: services.Client) -> bool:
         return self._destroy_service_endpoint(client)

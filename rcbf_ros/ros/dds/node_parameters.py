@@ -197,9 +197,6 @@ class NodeParameters:
             return alternative_value
         return self._parameters[name]
 
-    def get_parameters(self, names: Iterable[str]) -> list[Parameter]:
-        return [self.get_parameter(name) for name in names]
-
     def get_parameters_by_prefix(self, prefix: str) -> dict[str, Parameter]:
         dotted = prefix + '.' if prefix else ''
         return {name[len(dotted):]: p for name, p in self._parameters.items()

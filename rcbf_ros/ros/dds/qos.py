@@ -64,9 +64,6 @@ class QoSProfile:
 qos_profile_sensor_data = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
 """rclpy's sensor-data profile: best effort, volatile, keep-last 5."""
 
-qos_profile_system_default = QoSProfile()
-"""Our system default (ROS 2's default profile)."""
-
 
 def as_profile(qos: QoSProfile | int) -> QoSProfile:
     """``create_publisher(..., 10)`` means keep-last 10 with the other defaults, as in rclpy."""

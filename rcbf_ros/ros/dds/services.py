@@ -275,7 +275,6 @@ class Future:
     def __init__(self) -> None:
         self._done = threading.Event()
         self._result: Any = None
-        self._exception: BaseException | None = None
         self._cancelled = False
         self._callbacks: list[Callable[[Future], None]] = []
 
@@ -291,20 +290,11 @@ class Future:
             self._finish()
 
     def result(self) -> Any:
-        """The result (None while not done); raises the exception set instead, if any."""
-        if self._exception is not None:
-            raise self._exception
+        """The result (None while not done)."""
         return self._result
-
-    def exception(self) -> BaseException | None:
-        return self._exception
 
     def set_result(self, result: Any) -> None:
         self._result = result
-        self._finish()
-
-    def set_exception(self, exception: BaseException) -> None:
-        self._exception = exception
         self._finish()
 
     def add_done_callback(self, callback: Callable[[Future], None]) -> None:
@@ -437,10 +427,6 @@ class Service(_Endpoint):
             deadline = time.monotonic_ns() + int(REPLY_READER_WAIT_S * 1e9)
             self._send_or_hold(deadline, writer_handle, header, response)
         return serve
-
-    def send_response(self, response: Any, header: RequestHeader) -> None:
-        """Reply to the request ``header`` (the client must still be there)."""
-        self._write(header, response)
 
     def _send_or_hold(self, deadline: int, writer_handle: int, header: RequestHeader,
                       response: Any) -> bool:
