@@ -21,19 +21,75 @@ from cyclonedds.sub import DataReader
 from rcbf_ros.ros.dds import messages
 from rcbf_ros.ros.dds.clock import Clock
 from rcbf_ros.ros.dds.context import delete_entity
-from rcbf_ros.ros.dds.qos import QoSProfile, to_cyclone_qos
+from rcbf_ros.ros.dds.qos import QoSProfile, to_cyclone_qos, type_user_data
 
 if TYPE_CHECKING:
+    from rcbf_ros.ros.dds.log import Logger
     from rcbf_ros.ros.dds.node import Node
 
 _ANY_SAMPLE = SampleState.Any | ViewState.Any | InstanceState.Any
 _TAKE_BATCH = 256
 UNDECODABLE_WARNING_PERIOD_S = 1.0
-"""Shortest interval between two warnings about undecodable samples on one subscription."""
+"""Shortest interval between two warnings about undecodable samples on one endpoint."""
 
 
-class Publisher:
-    """rclpy.publisher.Publisher subset."""
+def take_valid(reader: DataReader, *, batch: int, name: str) -> list[tuple[bytes, Any]]:
+    """Every valid sample ``reader`` holds (taken ``batch`` at a time), with its sample info.
+
+    Raises:
+        RuntimeError: DDS refused the take (the message names ``name``).
+    """
+    taken: list[tuple[bytes, Any]] = []
+    while True:
+        samples = ddspy_take(reader._ref, _ANY_SAMPLE, batch)
+        if isinstance(samples, int):
+            raise RuntimeError(f'DDS take on {name} failed with code {samples}')
+        taken.extend((data, info) for data, info in samples if info.valid_data)
+        if len(samples) < batch:
+            return taken
+
+
+def write_payload(writer: DataWriter, payload: bytes, *, name: str) -> None:
+    """Write one DDS payload (encapsulation header and CDR) with ``writer``.
+
+    Raises:
+        RuntimeError: DDS refused the write (the message names ``name``).
+    """
+    ret = ddspy_write(writer._ref, payload)
+    if isinstance(ret, int) and ret < 0:
+        raise RuntimeError(f'DDS write on {name} failed with code {ret}')
+
+
+class DropsUndecodable:
+    """Base of an endpoint that drops the samples that do not decode: it counts them in
+    ``undecodable_count`` and reports them by a one-line warning naming the endpoint, at most
+    once per :data:`UNDECODABLE_WARNING_PERIOD_S`."""
+
+    def _init_undecodable(self, *, logger: Logger, name: str) -> None:
+        self.undecodable_count = 0
+        """Samples dropped because they did not decode (since creation)."""
+        self._undecodable_logger = logger
+        self._undecodable_name = name
+        self._last_warning_ns: int | None = None
+        self._unreported = 0
+
+    def _drop_undecodable(self, exc: Exception) -> None:
+        """Count one undecodable sample and say so, throttled."""
+        self.undecodable_count += 1
+        self._unreported += 1
+        now = time.monotonic_ns()
+        period_ns = int(UNDECODABLE_WARNING_PERIOD_S * 1e9)
+        if self._last_warning_ns is not None and now - self._last_warning_ns < period_ns:
+            return
+        self._last_warning_ns = now
+        self._undecodable_logger.warning(
+            f'{self._undecodable_name}: dropped {self._unreported} undecodable sample(s) '
+            f'({self.undecodable_count} since start); last: {exc}')
+        self._unreported = 0
+
+
+class _TopicEndpoint:
+    """What a publisher and a subscription share: a message type on one of the node's topics."""
 
     def __init__(self, node: Node, msg_type: Any, topic_name: str, qos: QoSProfile) -> None:
         self.msg_type = msg_type
@@ -41,8 +97,15 @@ class Publisher:
         self.qos_profile = qos
         self._type_name = messages.message_type_name(msg_type)
         self._topic = node._dds_topic(topic_name, self._type_name)
-        self._writer = DataWriter(node.context.participant, self._topic,
-                                  qos=to_cyclone_qos(qos, _user_data(self._type_name)))
+        self._dds_qos = to_cyclone_qos(qos, type_user_data(self._type_name))
+
+
+class Publisher(_TopicEndpoint):
+    """rclpy.publisher.Publisher subset."""
+
+    def __init__(self, node: Node, msg_type: Any, topic_name: str, qos: QoSProfile) -> None:
+        super().__init__(node, msg_type, topic_name, qos)
+        self._writer = DataWriter(node.context.participant, self._topic, qos=self._dds_qos)
 
     def publish(self, msg: Any) -> None:
         """Publish a message instance, or already serialized CDR bytes (as rclpy allows)."""
@@ -55,9 +118,7 @@ class Publisher:
                 raise TypeError(f'publisher on {self.topic_name!r} expects {self._type_name}, '
                                 f'got {type(msg).__name__}')
             data = messages.serialize_message(msg)
-        ret = ddspy_write(self._writer._ref, messages.dds_payload(data))
-        if isinstance(ret, int) and ret < 0:
-            raise RuntimeError(f'DDS write on {self.topic_name!r} failed with code {ret}')
+        write_payload(self._writer, messages.dds_payload(data), name=repr(self.topic_name))
 
     def get_subscription_count(self) -> int:
         """Matched subscriptions (any process, including this one)."""
@@ -68,46 +129,31 @@ class Publisher:
         self._writer = None
 
 
-class Subscription:
+class Subscription(_TopicEndpoint, DropsUndecodable):
     """rclpy.subscription.Subscription subset; ``raw=True`` delivers CDR ``bytes``.
 
     A sample that does not decode as the topic's type (DDS has checked its structure, but not,
     e.g., that its strings are UTF-8) never reaches the callback nor escapes into the executor:
     it is dropped, counted in :attr:`undecodable_count`, and reported by a one-line warning
-    naming the topic, at most once per :data:`UNDECODABLE_WARNING_PERIOD_S`. A node that must
-    answer such samples subscribes with ``raw=True`` and decodes them itself.
+    naming the topic (:class:`DropsUndecodable`). A node that must answer such samples
+    subscribes with ``raw=True`` and decodes them itself.
     """
 
     def __init__(self, node: Node, msg_type: Any, topic_name: str,
                  callback: Callable[[Any], None], qos: QoSProfile, raw: bool) -> None:
-        self.undecodable_count = 0
-        """Samples dropped because they did not decode (since creation)."""
-        self._logger = node.get_logger()
-        self._last_warning_ns: int | None = None
-        self._unreported = 0
-        self.msg_type = msg_type
-        self.topic_name = topic_name
+        super().__init__(node, msg_type, topic_name, qos)
+        self._init_undecodable(logger=node.get_logger(), name=topic_name)
         self.callback = callback
-        self.qos_profile = qos
         self.raw = raw
-        self._type_name = messages.message_type_name(msg_type)
-        self._topic = node._dds_topic(topic_name, self._type_name)
-        self._reader = DataReader(node.context.participant, self._topic,
-                                  qos=to_cyclone_qos(qos, _user_data(self._type_name)))
+        self._reader = DataReader(node.context.participant, self._topic, qos=self._dds_qos)
         self._condition = ReadCondition(self._reader, _ANY_SAMPLE)
 
     def _take_ready(self) -> list[Callable[[], None]]:
         """Take every received sample now; return one work item per valid sample."""
         if self._reader is None:
             return []
-        work: list[Callable[[], None]] = []
-        while True:
-            samples = ddspy_take(self._reader._ref, _ANY_SAMPLE, _TAKE_BATCH)
-            if isinstance(samples, int):
-                raise RuntimeError(f'DDS take on {self.topic_name!r} failed with code {samples}')
-            work.extend(self._deliver_later(data) for data, info in samples if info.valid_data)
-            if len(samples) < _TAKE_BATCH:
-                return work
+        return [self._deliver_later(data) for data, _info in
+                take_valid(self._reader, batch=_TAKE_BATCH, name=repr(self.topic_name))]
 
     def _deliver_later(self, data: bytes) -> Callable[[], None]:
         def deliver() -> None:
@@ -121,20 +167,6 @@ class Subscription:
                 return
             self.callback(message)
         return deliver
-
-    def _drop_undecodable(self, exc: messages.DeserializationError) -> None:
-        """Count an undecodable sample and say so, throttled (the callback never sees it)."""
-        self.undecodable_count += 1
-        self._unreported += 1
-        now = time.monotonic_ns()
-        period_ns = int(UNDECODABLE_WARNING_PERIOD_S * 1e9)
-        if self._last_warning_ns is not None and now - self._last_warning_ns < period_ns:
-            return
-        self._last_warning_ns = now
-        self._logger.warning(
-            f'{self.topic_name}: dropped {self._unreported} undecodable sample(s) '
-            f'({self.undecodable_count} since start); last: {exc}')
-        self._unreported = 0
 
     def get_publisher_count(self) -> int:
         return self._reader.get_subscription_matched_status().current_count
@@ -229,7 +261,3 @@ class TopicEndpointInfo:
     endpoint_type: TopicEndpointTypeEnum
     endpoint_gid: list[int]
     qos_profile: QoSProfile
-
-
-def _user_data(type_name: str) -> bytes:
-    return f'typehash={messages.type_hash(type_name)};'.encode()

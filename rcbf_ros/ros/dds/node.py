@@ -162,23 +162,15 @@ class Node(NodeParameters, NodeGraph):
 
     def create_publisher(self, msg_type: Any, topic: str, qos_profile: QoSProfile | int,
                          **_ignored: Any) -> Publisher:
-        publisher = Publisher(self, msg_type, self.resolve_topic_name(topic),
-                              as_profile(qos_profile))
-        self._publishers.append(publisher)
-        self.context.graph.add_endpoint(self._graph_node, gid_of(publisher._writer),
-                                        is_reader=False)
-        return publisher
+        return self._adopt(Publisher(self, msg_type, self.resolve_topic_name(topic),
+                                     as_profile(qos_profile)), self._publishers)
 
     def create_subscription(self, msg_type: Any, topic: str, callback: Callable[[Any], None],
                             qos_profile: QoSProfile | int, *, raw: bool = False,
                             **_ignored: Any) -> Subscription:
-        subscription = Subscription(self, msg_type, self.resolve_topic_name(topic), callback,
-                                    as_profile(qos_profile), raw)
-        self._waitset.attach(subscription._condition)
-        self._subscriptions.append(subscription)
-        self.context.graph.add_endpoint(self._graph_node, gid_of(subscription._reader),
-                                        is_reader=True)
-        return subscription
+        return self._adopt(Subscription(self, msg_type, self.resolve_topic_name(topic),
+                                        callback, as_profile(qos_profile), raw),
+                           self._subscriptions)
 
     def create_timer(self, timer_period_sec: float, callback: Callable[[], None],
                      **_ignored: Any) -> Timer:
@@ -187,63 +179,54 @@ class Node(NodeParameters, NodeGraph):
         self._wake()
         return timer
 
-    def destroy_publisher(self, publisher: Publisher) -> bool:
-        if publisher not in self._publishers:
-            return False
-        self._publishers.remove(publisher)
-        self.context.graph.remove_endpoint(self._graph_node, gid_of(publisher._writer),
-                                           is_reader=False)
-        publisher.destroy()
-        return True
-
-    def destroy_subscription(self, subscription: Subscription) -> bool:
-        if subscription not in self._subscriptions:
-            return False
-        self._subscriptions.remove(subscription)
-        self._waitset.detach(subscription._condition)
-        self.context.graph.remove_endpoint(self._graph_node, gid_of(subscription._reader),
-                                           is_reader=True)
-        subscription.destroy()
-        return True
-
     def create_service(self, srv_type: Any, srv_name: str,
                        callback: Callable[[Any, Any], Any], *,
                        qos_profile: QoSProfile = services.qos_profile_services_default,
                        **_ignored: Any) -> services.Service:
         """Serve ``srv_name``: ``callback(request, response)`` returns the response."""
-        return self._add_service_endpoint(services.Service(
-            self, srv_type, self.resolve_topic_name(srv_name), callback,
-            as_profile(qos_profile)))
+        return self._adopt(services.Service(self, srv_type, self.resolve_topic_name(srv_name),
+                                            callback, as_profile(qos_profile)),
+                           self._service_endpoints)
 
     def create_client(self, srv_type: Any, srv_name: str, *,
                       qos_profile: QoSProfile = services.qos_profile_services_default,
                       **_ignored: Any) -> services.Client:
-        return self._add_service_endpoint(services.Client(
-            self, srv_type, self.resolve_topic_name(srv_name), as_profile(qos_profile)))
+        return self._adopt(services.Client(self, srv_type, self.resolve_topic_name(srv_name),
+                                           as_profile(qos_profile)), self._service_endpoints)
 
-    def _add_service_endpoint(self, endpoint: Any) -> Any:
-        self._waitset.attach(endpoint._condition)
-        self._service_endpoints.append(endpoint)
-        # As rmw_cyclonedds: a service's (or client's) reader and writer are the node's
-        # endpoints in ros_discovery_info, so ros2 node info lists them.
-        self.context.graph.add_endpoint(self._graph_node, gid_of(endpoint._reader),
-                                        is_reader=True)
-        self.context.graph.add_endpoint(self._graph_node, gid_of(endpoint._writer),
-                                        is_reader=False)
-        return endpoint
+    def destroy_publisher(self, publisher: Publisher) -> bool:
+        return self._release(publisher, self._publishers)
+
+    def destroy_subscription(self, subscription: Subscription) -> bool:
+        return self._release(subscription, self._subscriptions)
 
     def destroy_client(self, client: services.Client) -> bool:
-        return self._destroy_service_endpoint(client)
+        return self._release(client, self._service_endpoints)
 
-    def _destroy_service_endpoint(self, endpoint: Any) -> bool:
-        if endpoint not in self._service_endpoints:
+    def _adopt(self, endpoint: Any, endpoints: list[Any]) -> Any:
+        """Keep ``endpoint`` in ``endpoints``, wake the executor on its samples, and list its
+        DDS reader and writer as this node's in ros_discovery_info (as rmw_cyclonedds does, a
+        service's and a client's too, so ros2 node info lists them)."""
+        condition = _condition_of(endpoint)
+        if condition is not None:
+            self._waitset.attach(condition)
+        endpoints.append(endpoint)
+        for entity, is_reader in _dds_entities(endpoint):
+            self.context.graph.add_endpoint(self._graph_node, gid_of(entity),
+                                            is_reader=is_reader)
+        return endpoint
+
+    def _release(self, endpoint: Any, endpoints: list[Any]) -> bool:
+        """Undo :meth:`_adopt` and destroy ``endpoint``; False if it is not in ``endpoints``."""
+        if endpoint not in endpoints:
             return False
-        self._service_endpoints.remove(endpoint)
-        self._waitset.detach(endpoint._condition)
-        self.context.graph.remove_endpoint(self._graph_node, gid_of(endpoint._reader),
-                                           is_reader=True)
-        self.context.graph.remove_endpoint(self._graph_node, gid_of(endpoint._writer),
-                                           is_reader=False)
+        endpoints.remove(endpoint)
+        condition = _condition_of(endpoint)
+        if condition is not None:
+            self._waitset.detach(condition)
+        for entity, is_reader in _dds_entities(endpoint):
+            self.context.graph.remove_endpoint(self._graph_node, gid_of(entity),
+                                               is_reader=is_reader)
         endpoint.destroy()
         return True
 
@@ -261,13 +244,10 @@ class Node(NodeParameters, NodeGraph):
             self._rosout.close()
         for timer in self._timers:
             timer.destroy()
-        for subscription in self._subscriptions:
-            self._waitset.detach(subscription._condition)
-            subscription.destroy()
-        for publisher in self._publishers:
-            publisher.destroy()
-        for endpoint in self._service_endpoints:
-            self._waitset.detach(endpoint._condition)
+        for endpoint in (*self._subscriptions, *self._publishers, *self._service_endpoints):
+            condition = _condition_of(endpoint)
+            if condition is not None:
+                self._waitset.detach(condition)
             endpoint.destroy()
         self._service_endpoints = []
         self._close_graph_queries()
@@ -281,3 +261,15 @@ class Node(NodeParameters, NodeGraph):
             delete_entity(topic)
         self._topics.clear()
         self.context.remove_node(self)
+
+
+def _condition_of(endpoint: Any) -> Any:
+    """The read condition the node's wait set waits on for ``endpoint`` (None: it writes only)."""
+    return getattr(endpoint, '_condition', None)
+
+
+def _dds_entities(endpoint: Any) -> list[tuple[Any, bool]]:
+    """``(entity, is_reader)`` of the DDS reader and writer ``endpoint`` has, reader first."""
+    return [(entity, is_reader) for entity, is_reader in (
+        (getattr(endpoint, '_reader', None), True), (getattr(endpoint, '_writer', None), False))
+        if entity is not None]

@@ -122,12 +122,12 @@ class NodeGraph:
 
     def count_publishers(self, topic_name: str) -> int:
         """Alive publishers of ``topic_name`` (resolved for this node) in the DDS graph."""
-        dds_name = 'rt' + self.resolve_topic_name(topic_name)
-        return sum(1 for e in self._alive_endpoints((BuiltinTopicDcpsPublication,))
-                   if e.topic_name == dds_name)
+        return self._count(topic_name, BuiltinTopicDcpsPublication)
 
     def count_subscribers(self, topic_name: str) -> int:
         """Alive subscriptions of ``topic_name`` (resolved for this node) in the DDS graph."""
+        return self._count(topic_name, BuiltinTopicDcpsSubscription)
+
+    def _count(self, topic_name: str, kind: Any) -> int:
         dds_name = 'rt' + self.resolve_topic_name(topic_name)
-        return sum(1 for e in self._alive_endpoints((BuiltinTopicDcpsSubscription,))
-                   if e.topic_name == dds_name)
+        return sum(1 for e in self._alive_endpoints((kind,)) if e.topic_name == dds_name)

@@ -162,6 +162,7 @@ def parameter_descriptor(**fields: Any) -> Any:
 
 
 def set_parameters_result(successful: bool, reason: str = '') -> Any:
+    """A new ``rcl_interfaces/msg/SetParametersResult``."""
     return messages.get_message('rcl_interfaces/msg/SetParametersResult')(
         successful=successful, reason=reason)
 
