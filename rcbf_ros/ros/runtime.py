@@ -53,7 +53,8 @@ else:
     from rcbf_ros.messages.classes import get_message
     from rcbf_ros.ros.dds import rclpy_compat as rclpy
     from rcbf_ros.ros.dds.context import ExternalShutdownException
-    from rcbf_ros.ros.dds.node import Node, Parameter, ParameterException
+    from rcbf_ros.ros.dds.node import Node
+    from rcbf_ros.ros.dds.parameters import Parameter, ParameterException
     from rcbf_ros.ros.dds.qos import (
         DurabilityPolicy,
         HistoryPolicy,

@@ -10,7 +10,7 @@ import pytest
 from rcbf_ros.messages.cdr import serialize_message
 from rcbf_ros.messages.classes import get_message
 from rcbf_ros.messages.conversions import sections_to_msg
-from rcbf_ros.ros.dds import node as dds_node
+from rcbf_ros.ros.dds import endpoints as dds_endpoints
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
 from rcbf_ros.ros.dds.node import Node
 
@@ -43,7 +43,7 @@ def _spin_until(node, condition, limit: int = 200) -> None:
 
 
 def test_undecodable_samples_are_dropped_counted_and_reported_once(node, capfd, monkeypatch):
-    monkeypatch.setattr(dds_node, 'UNDECODABLE_WARNING_PERIOD_S', 60.0, raising=False)
+    monkeypatch.setattr(dds_endpoints, 'UNDECODABLE_WARNING_PERIOD_S', 60.0)
     received, raw = [], []
     publisher = node.create_publisher(Array, 'cmd_proposed', 10)
     subscription = node.create_subscription(Array, 'cmd_proposed',

@@ -29,7 +29,6 @@ _FLAG_ONLY = {
     '--disable-stdout-logs', '--enable-external-lib-logs', '--disable-external-lib-logs',
 }
 _TOKEN = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*$')
-_SUBSTITUTION = re.compile(r'^\{[A-Za-z_][A-Za-z0-9_]*\}$')
 # rcl's _rcl_parse_param_rule: [token ':'] name ':=' value; a name is '.'-separated runs of
 # tokens and '/' (a token does not start with a digit); no wildcards.
 _PARAM_RULE = re.compile(r'(?:(?P<node>[A-Za-z_][A-Za-z0-9_]*):(?!=))?'
@@ -136,13 +135,13 @@ def parse_ros_arguments(argv: Sequence[str] | None) -> RosArguments:
             if not rhs:
                 raise RosArgumentError(f'{word} has an empty replacement in {value!r}')
             if lhs in ('__node', '__name'):
-                _check_node_name(rhs)
+                check_node_name(rhs)
                 if node is None:
                     node_name = rhs
                 else:
                     remaps.append(RemapRule('__node', rhs, node))
             elif lhs == '__ns':
-                namespace = _check_namespace(rhs)
+                namespace = check_namespace(rhs)
             else:
                 remaps.append(RemapRule(lhs, rhs, node))
         elif word == '--params-file':
@@ -216,19 +215,16 @@ def parameter_overrides(arguments: Iterable[RosArguments], fully_qualified: str
     return node_values((args.parameter_rules for args in arguments), fully_qualified)
 
 
-def _check_node_name(name: str) -> str:
+def check_node_name(name: str) -> str:
+    """Validate a node name (``[A-Za-z_][A-Za-z0-9_]*``); return it."""
     if not _TOKEN.match(name):
         raise RosArgumentError(f'invalid node name {name!r}: use letters, digits and _, '
                                'not starting with a digit')
     return name
 
 
-def check_node_name(name: str) -> str:
-    """Validate a node name (``[A-Za-z_][A-Za-z0-9_]*``); return it."""
-    return _check_node_name(name)
-
-
-def _check_namespace(namespace: str) -> str:
+def check_namespace(namespace: str) -> str:
+    """Validate and normalize a namespace (``'ns'`` -> ``'/ns'``, ``''`` -> ``'/'``)."""
     if namespace in ('', '/'):
         return '/'
     if not namespace.startswith('/'):
@@ -238,11 +234,6 @@ def _check_namespace(namespace: str) -> str:
         if not _TOKEN.match(token):
             raise RosArgumentError(f'invalid namespace {namespace!r}: bad token {token!r}')
     return namespace
-
-
-def check_namespace(namespace: str) -> str:
-    """Validate and normalize a namespace (``'ns'`` -> ``'/ns'``, ``''`` -> ``'/'``)."""
-    return _check_namespace(namespace)
 
 
 def expand_topic_name(name: str, node_name: str, namespace: str) -> str:

@@ -36,6 +36,7 @@ from rcbf_ros.ros.dds.qos import (
     QoSProfile,
     ReliabilityPolicy,
     to_cyclone_qos,
+    type_user_data,
 )
 
 DISCOVERY_TOPIC = 'ros_discovery_info'
@@ -143,7 +144,7 @@ class GraphInfo:
         self._lock = threading.RLock()
         self._nodes: list[NodeEntities] = []
         self._remote: dict[bytes, list[NodeEntities]] = {}
-        user_data = f'typehash={messages.type_hash(PARTICIPANT_INFO_TYPE)};'.encode()
+        user_data = type_user_data(PARTICIPANT_INFO_TYPE)
         self._topic = Topic(participant, DISCOVERY_TOPIC,
                             messages.idl_struct(PARTICIPANT_INFO_TYPE))
         self._writer: DataWriter | None = DataWriter(

@@ -17,16 +17,17 @@ qualified name, a stamp), as rclpy announces every set.
 """
 from __future__ import annotations
 
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 import weakref
 
 import numpy as np
 
 from rcbf_ros.ros.dds import messages
-from rcbf_ros.ros.dds.node import (
+from rcbf_ros.ros.dds.parameters import (
     Parameter,
     ParameterNotDeclaredException,
     ParameterUninitializedException,
+    set_parameters_result,
 )
 from rcbf_ros.ros.dds.qos import QoSProfile
 from rcbf_ros.ros.dds.services import get_service, qos_profile_parameters
@@ -88,9 +89,21 @@ def parameter_from_msg(msg: Any) -> Parameter:
     return Parameter(msg.name, type_, value)
 
 
-def _set_result(successful: bool, reason: str = '') -> Any:
-    return messages.get_message('rcl_interfaces/msg/SetParametersResult')(
-        successful=successful, reason=reason)
+def _type_number(kind: Any) -> int:
+    """The ParameterType number of what ``get_parameter_type`` gives: a number, or, for an
+    undeclared parameter (where allowed), ``Parameter.Type.NOT_SET``."""
+    return int(getattr(kind, 'value', kind))
+
+
+def _each_or_none(names: Iterable[str], answer: Callable[[str], Any], *,
+                  refusals: tuple[type[Exception], ...] = (ParameterNotDeclaredException,)
+                  ) -> list[Any]:
+    """``answer(name)`` of every name, or none at all if one raises one of ``refusals`` (as
+    rclpy's parameter service answers a request naming an undeclared parameter)."""
+    try:
+        return [answer(name) for name in names]
+    except refusals:
+        return []
 
 
 class ParameterService:
@@ -125,30 +138,20 @@ class ParameterService:
 
     # callbacks --------------------------------------------------------------------------------
     def _describe_parameters(self, request: Any, response: Any) -> Any:
-        node = self._node()
-        try:
-            response.descriptors = [node.describe_parameter(name) for name in request.names]
-        except ParameterNotDeclaredException:
-            response.descriptors = []
+        response.descriptors = _each_or_none(request.names, self._node().describe_parameter)
         return response
 
     def _get_parameters(self, request: Any, response: Any) -> Any:
         node = self._node()
-        try:
-            response.values = [parameter_value_msg(node.get_parameter(name))
-                               for name in request.names]
-        except (ParameterNotDeclaredException, ParameterUninitializedException):
-            response.values = []
+        response.values = _each_or_none(
+            request.names, lambda name: parameter_value_msg(node.get_parameter(name)),
+            refusals=(ParameterNotDeclaredException, ParameterUninitializedException))
         return response
 
     def _get_parameter_types(self, request: Any, response: Any) -> Any:
         node = self._node()
-        try:
-            response.types = [int(getattr(kind, 'value', kind))
-                              for kind in (node.get_parameter_type(name)
-                                           for name in request.names)]
-        except ParameterNotDeclaredException:
-            response.types = []
+        response.types = _each_or_none(
+            request.names, lambda name: _type_number(node.get_parameter_type(name)))
         return response
 
     def _list_parameters(self, request: Any, response: Any) -> Any:
@@ -176,7 +179,7 @@ class ParameterService:
         try:
             result = node.set_parameters_atomically(parameters)
         except ParameterNotDeclaredException as exc:
-            return _set_result(False, str(exc))
+            return set_parameters_result(False, str(exc))
         if result.successful:
             self.publish_event(
                 new=[p for p in parameters

@@ -7,6 +7,8 @@ import enum
 from cyclonedds.core import Policy, Qos
 from cyclonedds.util import duration
 
+from rcbf_ros.ros.dds import messages
+
 # A reliable writer whose KEEP_ALL history is full blocks at most this long in write().
 _RELIABLE_MAX_BLOCKING_S = 1
 
@@ -64,9 +66,6 @@ class QoSProfile:
 qos_profile_sensor_data = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
 """rclpy's sensor-data profile: best effort, volatile, keep-last 5."""
 
-qos_profile_system_default = QoSProfile()
-"""Our system default (ROS 2's default profile)."""
-
 
 def as_profile(qos: QoSProfile | int) -> QoSProfile:
     """``create_publisher(..., 10)`` means keep-last 10 with the other defaults, as in rclpy."""
@@ -80,8 +79,13 @@ def as_profile(qos: QoSProfile | int) -> QoSProfile:
     raise TypeError(f'qos_profile must be a QoSProfile or a history depth, got {qos!r}')
 
 
+def type_user_data(type_name: str) -> bytes:
+    """The USER_DATA rmw gives an endpoint of ``type_name``: ``typehash=RIHS01_<hex>;``."""
+    return f'typehash={messages.type_hash(type_name)};'.encode()
+
+
 def to_cyclone_qos(profile: QoSProfile, user_data: bytes) -> Qos:
-    """The Cyclone QoS of an endpoint with this profile and USER_DATA (``typehash=...;``)."""
+    """The Cyclone QoS of an endpoint with this profile and USER_DATA (:func:`type_user_data`)."""
     if profile.reliability == ReliabilityPolicy.BEST_EFFORT:
         reliability = Policy.Reliability.BestEffort
     else:

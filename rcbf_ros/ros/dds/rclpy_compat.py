@@ -57,9 +57,5 @@ def spin_until_future_complete(node: Any, future: Any, executor: Any = None,
         _spin_once(node, timeout_sec=0.1 if left is None else min(left, 0.1))
 
 
-def get_default_context() -> Context:
-    return default_context
-
-
 utilities = SimpleNamespace(remove_ros_args=remove_ros_args)
 """``rclpy.utilities.remove_ros_args``."""

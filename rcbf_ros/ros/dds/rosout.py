@@ -20,7 +20,7 @@ from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
 from rcbf_ros.ros.dds import messages
-from rcbf_ros.ros.dds.qos import DurabilityPolicy, QoSProfile, to_cyclone_qos
+from rcbf_ros.ros.dds.qos import DurabilityPolicy, QoSProfile, to_cyclone_qos, type_user_data
 
 ROSOUT_TOPIC = '/rosout'
 LOG_TYPE = 'rcl_interfaces/msg/Log'
@@ -35,8 +35,7 @@ class RosoutWriter:
     as rcl reports it)."""
 
     def __init__(self, participant: Any, topic: Topic) -> None:
-        user_data = f'typehash={messages.type_hash(LOG_TYPE)};'.encode()
-        qos = to_cyclone_qos(ROSOUT_QOS, user_data) + Qos(
+        qos = to_cyclone_qos(ROSOUT_QOS, type_user_data(LOG_TYPE)) + Qos(
             Policy.Lifespan(duration(seconds=ROSOUT_LIFESPAN_S)))
         self.writer: DataWriter | None = DataWriter(participant, topic, qos=qos)
         self._log_type = messages.get_message(LOG_TYPE)

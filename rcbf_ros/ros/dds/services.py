@@ -36,7 +36,6 @@ import threading
 import time
 from typing import Any, Callable
 
-from cyclonedds._clayer import ddspy_take, ddspy_write
 from cyclonedds.core import InstanceState, Policy, ReadCondition, SampleState, ViewState
 from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.idl import types as idl_types
@@ -47,6 +46,7 @@ from rosbags.typesys import get_types_from_msg
 
 from rcbf_ros.ros.dds import messages
 from rcbf_ros.ros.dds.context import delete_entity, spin_once
+from rcbf_ros.ros.dds.endpoints import DropsUndecodable, take_valid, write_payload
 from rcbf_ros.ros.dds.qos import QoSProfile, to_cyclone_qos
 
 REQUEST_TOPIC_PREFIX = 'rq'
@@ -55,8 +55,6 @@ REPLY_TOPIC_PREFIX = 'rr'
 """DDS topic of a service's replies: ``rr<service name>Reply``."""
 REPLY_READER_WAIT_S = 1.0
 """Longest a reply waits for the reply writer to match the requesting client's reply reader."""
-UNDECODABLE_WARNING_PERIOD_S = 1.0
-"""Shortest interval between two warnings about undecodable samples on one endpoint."""
 
 qos_profile_services_default = QoSProfile(depth=10)
 """rclpy's default QoS of services and clients: reliable, volatile, keep-last 10."""
@@ -275,7 +273,6 @@ class Future:
     def __init__(self) -> None:
         self._done = threading.Event()
         self._result: Any = None
-        self._exception: BaseException | None = None
         self._cancelled = False
         self._callbacks: list[Callable[[Future], None]] = []
 
@@ -291,20 +288,11 @@ class Future:
             self._finish()
 
     def result(self) -> Any:
-        """The result (None while not done); raises the exception set instead, if any."""
-        if self._exception is not None:
-            raise self._exception
+        """The result (None while not done)."""
         return self._result
-
-    def exception(self) -> BaseException | None:
-        return self._exception
 
     def set_result(self, result: Any) -> None:
         self._result = result
-        self._finish()
-
-    def set_exception(self, exception: BaseException) -> None:
-        self._exception = exception
         self._finish()
 
     def add_done_callback(self, callback: Callable[[Future], None]) -> None:
@@ -324,7 +312,7 @@ class Future:
 
 
 # ----------------------------------------------------------------------------- endpoints
-class _Endpoint:
+class _Endpoint(DropsUndecodable):
     """What a service and a client share: a reader and a writer on the two topics."""
 
     def __init__(self, node: Any, srv_type: type[ServiceType] | str, service_name: str,
@@ -334,10 +322,7 @@ class _Endpoint:
         self.srv_name = service_name
         self.qos_profile = qos
         self._logger = node.get_logger()
-        self._last_warning_ns: int | None = None
-        self._unreported = 0
-        self.undecodable_count = 0
-        """Samples dropped because they did not decode (since creation)."""
+        self._init_undecodable(logger=self._logger, name=service_name)
         participant = node.context.participant
         self.endpoint_id = _new_endpoint_id(participant)
         request_type, reply_type = f'{type_name}_Request', f'{type_name}_Response'
@@ -363,14 +348,7 @@ class _Endpoint:
         """Every valid sample received so far, with its sample info."""
         if self._reader is None:
             return []
-        taken: list[tuple[bytes, Any]] = []
-        while True:
-            samples = ddspy_take(self._reader._ref, _ANY_SAMPLE, _TAKE_BATCH)
-            if isinstance(samples, int):
-                raise RuntimeError(f'DDS take on {self.srv_name!r} failed with code {samples}')
-            taken.extend((data, info) for data, info in samples if info.valid_data)
-            if len(samples) < _TAKE_BATCH:
-                return taken
+        return take_valid(self._reader, batch=_TAKE_BATCH, name=repr(self.srv_name))
 
     def _decode(self, data: bytes) -> tuple[RequestHeader, Any] | None:
         """Header and message of a sample, or None (counted, warned about) if undecodable."""
@@ -382,22 +360,9 @@ class _Endpoint:
             return None
 
     def _write(self, header: RequestHeader, message: Any) -> None:
-        payload = encode_sample(header=header, cdr=messages.serialize_message(message))
-        ret = ddspy_write(self._writer._ref, payload)
-        if isinstance(ret, int) and ret < 0:
-            raise RuntimeError(f'DDS write on {self.srv_name!r} failed with code {ret}')
-
-    def _drop_undecodable(self, exc: Exception) -> None:
-        self.undecodable_count += 1
-        self._unreported += 1
-        now = time.monotonic_ns()
-        if (self._last_warning_ns is not None
-                and now - self._last_warning_ns < int(UNDECODABLE_WARNING_PERIOD_S * 1e9)):
-            return
-        self._last_warning_ns = now
-        self._logger.warning(f'{self.srv_name}: dropped {self._unreported} undecodable '
-                             f'sample(s) ({self.undecodable_count} since start); last: {exc}')
-        self._unreported = 0
+        write_payload(self._writer, encode_sample(header=header,
+                                                  cdr=messages.serialize_message(message)),
+                      name=repr(self.srv_name))
 
     def destroy(self) -> None:
         for entity in (self._condition, self._reader, self._writer, self._reader_topic,
@@ -437,10 +402,6 @@ class Service(_Endpoint):
             deadline = time.monotonic_ns() + int(REPLY_READER_WAIT_S * 1e9)
             self._send_or_hold(deadline, writer_handle, header, response)
         return serve
-
-    def send_response(self, response: Any, header: RequestHeader) -> None:
-        """Reply to the request ``header`` (the client must still be there)."""
-        self._write(header, response)
 
     def _send_or_hold(self, deadline: int, writer_handle: int, header: RequestHeader,
                       response: Any) -> bool:

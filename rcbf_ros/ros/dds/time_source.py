@@ -5,13 +5,14 @@ from overrides). While it is true the node subscribes to ``/clock`` (``rosgraph_
 best effort, keep-last 1) and ``get_clock().now()`` returns the last time received there (zero
 until the first message); while false, the system time. Setting the parameter switches at once.
 
-The node's timers follow the same clock (:class:`rcbf_ros.ros.dds.node.Timer`).
+The node's timers follow the same clock (:class:`rcbf_ros.ros.dds.endpoints.Timer`).
 """
 from __future__ import annotations
 
 from typing import Any
 
 from rcbf_ros.ros.dds import messages
+from rcbf_ros.ros.dds.parameters import set_parameters_result
 from rcbf_ros.ros.dds.qos import QoSProfile, ReliabilityPolicy
 
 USE_SIM_TIME = 'use_sim_time'
@@ -66,17 +67,12 @@ class TimeSource:
             if not isinstance(parameter.value, bool):
                 reason = f'{USE_SIM_TIME} parameter set to something besides a bool'
                 self._node.get_logger().error(reason)
-                return _result(False, reason)
+                return set_parameters_result(False, reason)
             self.set_active(parameter.value)
             break
-        return _result(True)
+        return set_parameters_result(True)
 
     def _on_clock(self, message: Any) -> None:
         self._last_ns = message.clock.sec * 10**9 + message.clock.nanosec
         if self.active:
             self._node.get_clock()._set_ros_time(self._last_ns)
-
-
-def _result(successful: bool, reason: str = '') -> Any:
-    return messages.get_message('rcl_interfaces/msg/SetParametersResult')(
-        successful=successful, reason=reason)

@@ -1,0 +1,263 @@
+"""rclpy's endpoints over the Cyclone runtime: ``Publisher``, ``Subscription``, ``Timer``, and
+``TopicEndpointInfo`` (an endpoint as graph queries report it).
+
+A node creates them (:mod:`.node`); its executor (:mod:`.context`) takes their samples and fires
+their timers. Wire conventions: a publisher or subscription of ``/a/b`` is a writer or reader of
+the DDS topic ``rt/a/b`` whose USER_DATA is ``typehash=RIHS01_<hex>;``; QoS as rmw_cyclonedds
+maps it (:mod:`.qos`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import enum
+import time
+from typing import Any, Callable, TYPE_CHECKING
+
+from cyclonedds._clayer import ddspy_take, ddspy_write
+from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState
+from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
+
+from rcbf_ros.ros.dds import messages
+from rcbf_ros.ros.dds.clock import Clock
+from rcbf_ros.ros.dds.context import delete_entity
+from rcbf_ros.ros.dds.qos import QoSProfile, to_cyclone_qos, type_user_data
+
+if TYPE_CHECKING:
+    from rcbf_ros.ros.dds.log import Logger
+    from rcbf_ros.ros.dds.node import Node
+
+_ANY_SAMPLE = SampleState.Any | ViewState.Any | InstanceState.Any
+_TAKE_BATCH = 256
+UNDECODABLE_WARNING_PERIOD_S = 1.0
+"""Shortest interval between two warnings about undecodable samples on one endpoint."""
+
+
+def take_valid(reader: DataReader, *, batch: int, name: str) -> list[tuple[bytes, Any]]:
+    """Every valid sample ``reader`` holds (taken ``batch`` at a time), with its sample info.
+
+    Raises:
+        RuntimeError: DDS refused the take (the message names ``name``).
+    """
+    taken: list[tuple[bytes, Any]] = []
+    while True:
+        samples = ddspy_take(reader._ref, _ANY_SAMPLE, batch)
+        if isinstance(samples, int):
+            raise RuntimeError(f'DDS take on {name} failed with code {samples}')
+        taken.extend((data, info) for data, info in samples if info.valid_data)
+        if len(samples) < batch:
+            return taken
+
+
+def write_payload(writer: DataWriter, payload: bytes, *, name: str) -> None:
+    """Write one DDS payload (encapsulation header and CDR) with ``writer``.
+
+    Raises:
+        RuntimeError: DDS refused the write (the message names ``name``).
+    """
+    ret = ddspy_write(writer._ref, payload)
+    if isinstance(ret, int) and ret < 0:
+        raise RuntimeError(f'DDS write on {name} failed with code {ret}')
+
+
+class DropsUndecodable:
+    """Base of an endpoint that drops the samples that do not decode: it counts them in
+    ``undecodable_count`` and reports them by a one-line warning naming the endpoint, at most
+    once per :data:`UNDECODABLE_WARNING_PERIOD_S`."""
+
+    def _init_undecodable(self, *, logger: Logger, name: str) -> None:
+        self.undecodable_count = 0
+        """Samples dropped because they did not decode (since creation)."""
+        self._undecodable_logger = logger
+        self._undecodable_name = name
+        self._last_warning_ns: int | None = None
+        self._unreported = 0
+
+    def _drop_undecodable(self, exc: Exception) -> None:
+        """Count one undecodable sample and say so, throttled."""
+        self.undecodable_count += 1
+        self._unreported += 1
+        now = time.monotonic_ns()
+        period_ns = int(UNDECODABLE_WARNING_PERIOD_S * 1e9)
+        if self._last_warning_ns is not None and now - self._last_warning_ns < period_ns:
+            return
+        self._last_warning_ns = now
+        self._undecodable_logger.warning(
+            f'{self._undecodable_name}: dropped {self._unreported} undecodable sample(s) '
+            f'({self.undecodable_count} since start); last: {exc}')
+        self._unreported = 0
+
+
+class _TopicEndpoint:
+    """What a publisher and a subscription share: a message type on one of the node's topics."""
+
+    def __init__(self, node: Node, msg_type: Any, topic_name: str, qos: QoSProfile) -> None:
+        self.msg_type = msg_type
+        self.topic_name = topic_name
+        self.qos_profile = qos
+        self._type_name = messages.message_type_name(msg_type)
+        self._topic = node._dds_topic(topic_name, self._type_name)
+        self._dds_qos = to_cyclone_qos(qos, type_user_data(self._type_name))
+
+
+class Publisher(_TopicEndpoint):
+    """rclpy.publisher.Publisher subset."""
+
+    def __init__(self, node: Node, msg_type: Any, topic_name: str, qos: QoSProfile) -> None:
+        super().__init__(node, msg_type, topic_name, qos)
+        self._writer = DataWriter(node.context.participant, self._topic, qos=self._dds_qos)
+
+    def publish(self, msg: Any) -> None:
+        """Publish a message instance, or already serialized CDR bytes (as rclpy allows)."""
+        if self._writer is None:
+            raise RuntimeError(f'publisher on {self.topic_name!r} has been destroyed')
+        if isinstance(msg, (bytes, bytearray, memoryview)):
+            data = bytes(msg)
+        else:
+            if getattr(msg, '_type_name', None) != self._type_name:
+                raise TypeError(f'publisher on {self.topic_name!r} expects {self._type_name}, '
+                                f'got {type(msg).__name__}')
+            data = messages.serialize_message(msg)
+        write_payload(self._writer, messages.dds_payload(data), name=repr(self.topic_name))
+
+    def get_subscription_count(self) -> int:
+        """Matched subscriptions (any process, including this one)."""
+        return self._writer.get_publication_matched_status().current_count
+
+    def destroy(self) -> None:
+        delete_entity(self._writer)
+        self._writer = None
+
+
+class Subscription(_TopicEndpoint, DropsUndecodable):
+    """rclpy.subscription.Subscription subset; ``raw=True`` delivers CDR ``bytes``.
+
+    A sample that does not decode as the topic's type (DDS has checked its structure, but not,
+    e.g., that its strings are UTF-8) never reaches the callback nor escapes into the executor:
+    it is dropped, counted in :attr:`undecodable_count`, and reported by a one-line warning
+    naming the topic (:class:`DropsUndecodable`). A node that must answer such samples
+    subscribes with ``raw=True`` and decodes them itself.
+    """
+
+    def __init__(self, node: Node, msg_type: Any, topic_name: str,
+                 callback: Callable[[Any], None], qos: QoSProfile, raw: bool) -> None:
+        super().__init__(node, msg_type, topic_name, qos)
+        self._init_undecodable(logger=node.get_logger(), name=topic_name)
+        self.callback = callback
+        self.raw = raw
+        self._reader = DataReader(node.context.participant, self._topic, qos=self._dds_qos)
+        self._condition = ReadCondition(self._reader, _ANY_SAMPLE)
+
+    def _take_ready(self) -> list[Callable[[], None]]:
+        """Take every received sample now; return one work item per valid sample."""
+        if self._reader is None:
+            return []
+        return [self._deliver_later(data) for data, _info in
+                take_valid(self._reader, batch=_TAKE_BATCH, name=repr(self.topic_name))]
+
+    def _deliver_later(self, data: bytes) -> Callable[[], None]:
+        def deliver() -> None:
+            if self.raw:
+                self.callback(bytes(data))
+                return
+            try:
+                message = messages.deserialize_message(data, self._type_name)
+            except messages.DeserializationError as exc:
+                self._drop_undecodable(exc)
+                return
+            self.callback(message)
+        return deliver
+
+    def get_publisher_count(self) -> int:
+        return self._reader.get_subscription_matched_status().current_count
+
+    def destroy(self) -> None:
+        delete_entity(self._condition)
+        delete_entity(self._reader)
+        self._reader = self._condition = None
+
+
+class Timer:
+    """rclpy.timer.Timer subset; missed periods are skipped, not queued.
+
+    It runs on the monotonic clock, or, while ``clock`` (the node's) follows ``/clock``
+    (``use_sim_time``), on that time as rcl's ROS-time timers do: due when the simulated time
+    reaches the next period; restarted one period after the time jumps back beyond the last
+    call. A switch of ``use_sim_time`` restarts the period in the new time.
+    """
+
+    def __init__(self, period_ns: int, callback: Callable[[], None],
+                 clock: Clock | None = None) -> None:
+        if period_ns <= 0:
+            raise ValueError(f'timer period must be positive, got {period_ns} ns')
+        self.timer_period_ns = period_ns
+        self.callback = callback
+        self._canceled = False
+        self._clock = clock
+        self._ros_time = self._ros_time_active()
+        self._next_ns = self._now() + period_ns
+
+    def _ros_time_active(self) -> bool:
+        return self._clock is not None and self._clock.ros_time_is_active
+
+    def _now(self) -> int:
+        return self._clock.now().nanoseconds if self._ros_time else time.monotonic_ns()
+
+    def _on_steady_clock(self) -> bool:
+        """True unless the timer follows ``/clock`` (then no steady deadline applies)."""
+        return not self._ros_time
+
+    def _follow_switch(self) -> bool:
+        """Restart the period if ``use_sim_time`` switched since the last look; True if so."""
+        if self._ros_time_active() == self._ros_time:
+            return False
+        self._ros_time = not self._ros_time
+        self._next_ns = self._now() + self.timer_period_ns
+        return True
+
+    def _due(self, now: int) -> bool:
+        """True if a call is due at ``now`` (monotonic ns; ignored on simulated time)."""
+        if self._canceled or self._follow_switch():
+            return False
+        if self._ros_time:
+            now = self._now()
+            if now < self._next_ns - self.timer_period_ns:  # jumped back past the last call
+                self._next_ns = now + self.timer_period_ns
+                return False
+        if now < self._next_ns:
+            return False
+        missed = (now - self._next_ns) // self.timer_period_ns
+        self._next_ns += (missed + 1) * self.timer_period_ns
+        return True
+
+    def _fire(self) -> None:
+        if not self._canceled:
+            self.callback()
+
+    def destroy(self) -> None:
+        self._canceled = True
+
+
+class TopicEndpointTypeEnum(enum.IntEnum):
+    """rclpy.topic_endpoint_info.TopicEndpointTypeEnum."""
+
+    INVALID = 0
+    PUBLISHER = 1
+    SUBSCRIPTION = 2
+
+
+@dataclass(frozen=True)
+class TopicEndpointInfo:
+    """rclpy.topic_endpoint_info.TopicEndpointInfo subset: one endpoint as discovery shows it.
+
+    Node names come from ROS 2's ``ros_discovery_info`` (:mod:`.graph`), with rmw's
+    placeholders where no node claims the endpoint; ``endpoint_gid`` is the 16-byte DDS GUID,
+    whose first 12 bytes name the participant (one per process).
+    """
+
+    node_name: str
+    node_namespace: str
+    topic_type: str
+    endpoint_type: TopicEndpointTypeEnum
+    endpoint_gid: list[int]
+    qos_profile: QoSProfile
