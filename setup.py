@@ -49,6 +49,7 @@ setup(
             'policy = rcbf_ros.ros.policy_node:main',
             'scene_markers = rcbf_ros.ros.scene_node:main',
             'rcbf_ros = rcbf_ros.cli.main:main',
+            # The same as `rcbf_ros launch` and `rcbf_ros refilter`, under their first names.
             'rcbf_ros_launch = rcbf_ros.launch.local:main',
             'rcbf_ros_refilter = rcbf_ros.bag.refilter:main',
         ],

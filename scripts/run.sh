@@ -15,10 +15,11 @@ RUN=${RUN:-bags/${SYSTEM}_${MODE}_$(date -u +%Y%m%d-%H%M%S)}
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( $$ % 150 + 20 ))}
 echo "training $MODE on $SYSTEM for $EPISODES episodes -> $RUN (ROS_DOMAIN_ID=$ROS_DOMAIN_ID)"
 status=0
-.venv/bin/rcbf_ros_launch "${SYSTEM}_learner" \
+.venv/bin/python -m rcbf_ros launch "${SYSTEM}_learner" \
   -p "learner:episodes:=$EPISODES" -p "learner:mode:=$MODE" -p "learner:seed:=$SEED" \
   -p "simulator:seed:=$SEED" -p "learner:out_dir:=$RUN/learner" \
   -p "recorder:output:=$RUN/bag" -p "safety_filter:compile_assembly:=true" || status=$?
 echo
-.venv/bin/python -m rcbf_ros.reports.run_summary "$RUN"
+# The launch's exit code comes first; the summary's counts when the launch succeeded.
+.venv/bin/python -m rcbf_ros summary "$RUN" || { rc=$?; [ "$status" -ne 0 ] || status=$rc; }
 exit "$status"

@@ -1,138 +1,112 @@
-"""``rcbf_ros`` command line: in-process training (no middleware) and run inspection.
+"""The rcbf_ros command: training, experiments, launches, bags and run reports.
 
     rcbf_ros train --system unicycle --mode modular --seed 0 --episodes 50
-    rcbf_ros train --system unicycle --mode diff --model-based --episodes 50
-    rcbf_ros train --system unicycle --mode unconstrained --no-obstacles
-    rcbf_ros train ... --resume            # continue a killed run from its checkpoint
     rcbf_ros experiment transfer --budget smoke --seeds 2 --out runs/experiments [--ray]
     rcbf_ros bag recover bags/<run>/bag    # a bag whose recorder was killed -> complete MCAP
     rcbf_ros bag check bags/<run>/bag      # every chunk and CRC checked
+    rcbf_ros launch unicycle_filter --domain-id 7   # a launch's nodes as processes, no ROS 2
+    rcbf_ros refilter bags/<run>/bag out --params-file my.yaml   # the filter again, offline
+    rcbf_ros summary bags/<run>            # what a run left behind, and its trajectories
+    rcbf_ros interface-doc --check README.md       # the README's interface tables up to date
+
+``train``, ``experiment`` and ``bag`` are parsed here (their arguments in
+:mod:`rcbf_ros.cli.train`, :mod:`rcbf_ros.experiments.command`, :mod:`rcbf_ros.bag.recover`).
+The other subcommands hand the rest of the command line, unchanged, to their module's own
+``main(argv)`` (:data:`DELEGATED`): their ``--help``, messages and exit codes are that
+module's. ``rcbf_ros_launch`` and ``rcbf_ros_refilter`` are the same commands under their
+older console-script names.
 """
 from __future__ import annotations
 
 import argparse
-from dataclasses import fields
-import json
-from pathlib import Path
-import signal
+from collections.abc import Sequence
+from dataclasses import dataclass
+import importlib
 import sys
 
-from rcbf_ros.learning.sac import SACConfig
-from rcbf_ros.training.agent import LearnerConfig, MODES
-from rcbf_ros.training.run_files import DEFAULT_CHECKPOINT_EVERY
+
+@dataclass(frozen=True)
+class Delegated:
+    """A subcommand that is another module's command line."""
+
+    module: str
+    """Module whose ``main(argv: Sequence[str] | None) -> int`` runs the subcommand."""
+    help: str
+    """The one line ``rcbf_ros --help`` shows for it."""
 
 
-def _learner_overrides(args: argparse.Namespace) -> dict:
-    names = {f.name for f in fields(LearnerConfig)}
-    return {k: v for k, v in vars(args).items() if k in names and v is not None}
+DELEGATED: dict[str, Delegated] = {
+    'launch': Delegated('rcbf_ros.launch.local',
+                        "start a launch's nodes as processes, without ROS 2"),
+    'refilter': Delegated('rcbf_ros.bag.refilter',
+                          'filter the proposals of a bag again, other parameters'),
+    'summary': Delegated('rcbf_ros.reports.run_summary',
+                         "print a run's results and draw its trajectories"),
+    'interface-doc': Delegated('rcbf_ros.node_logic.interface_doc',
+                               "print, write or check the README's interface tables"),
+}
+"""Subcommands run by another module's ``main``, by name."""
 
 
-def add_train_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``rcbf_ros train`` (shared with the experiment runner)."""
-    parser.add_argument('--system', default='unicycle',
-                        choices=['unicycle', 'car_following', 'pvtol'])
-    parser.add_argument('--mode', default='modular', choices=MODES)
-    parser.add_argument('--model-based', dest='model_based', action='store_true', default=None,
-                        help='MB SAC-RCBF: synthetic k-step rollouts (mode diff)')
-    parser.add_argument('--modular-envelope', dest='modular_envelope',
-                        action=argparse.BooleanOptionalAction, default=None,
-                        help="modular: keep the envelope's correction (bands not marked "
-                        "'layout: true') in the losses, as the authors' PVTOL code (default: "
-                        "the config file's /learner modular_envelope; config/pvtol.yaml sets it)")
-    parser.add_argument('--seed', type=int, default=0)
-    parser.add_argument('--episodes', type=int, default=20)
-    parser.add_argument('--max-steps', type=int, default=None, help='episode length override')
-    parser.add_argument('--config', default=None, help='ROS params file (default: packaged)')
-    parser.add_argument('--out', default=None, help='output directory (default: runs/<name>)')
-    parser.add_argument('--no-obstacles', action='store_true',
-                        help='train without obstacles and filter (transfer upper bound)')
-    parser.add_argument('--no-bag', action='store_true', help='do not record MCAP')
-    parser.add_argument('--resume', action='store_true',
-                        help='continue the run in --out from its checkpoint (none: start at '
-                             'episode 0, keeping its files); without it an existing run is '
-                             'refused')
-    parser.add_argument('--checkpoint-every', dest='checkpoint_every', type=int,
-                        default=DEFAULT_CHECKPOINT_EVERY, metavar='N',
-                        help='episodes between checkpoints (a kill loses at most the episodes '
-                             'since the last one; default %(default)s)')
-    parser.add_argument('--compile-filter', action='store_true',
-                        help='compile the per-step autograd constraint assembly of a system or '
-                             'barrier without a closed form (faster, slower start)')
-    parser.add_argument('--threads', type=int, default=1,
-                        help='torch threads (2 speeds SAC updates 1.2-1.7x on an idle 2-core '
-                             'machine; 1 when runs or nodes share the cores)')
-    parser.add_argument('--random-start', dest='random_start', action='store_true',
-                        default=None, help="random episode starts (default: the config's)")
-    parser.add_argument('--initial-alpha', dest='initial_alpha', type=float, default=None,
-                        help="SAC's initial entropy temperature (default: the config's "
-                             'learner initial_alpha, else 0.2)')
-    parser.add_argument('--start-steps', dest='start_steps', type=int, default=None)
-    parser.add_argument('--update-after', dest='update_after', type=int, default=None)
-    parser.add_argument('--batch-size', dest='batch_size', type=int, default=None)
-    parser.add_argument('--gp-refit-interval', dest='gp_refit_interval', type=int,
-                        default=None)
+PARSED: dict[str, str] = {
+    'train': 'train in-process (no middleware)',
+    'experiment': "reproduce a paper's experiment: train, evaluate, report",
+    'bag': 'check a bag, or recover one whose recorder was killed',
+}
+"""Subcommands parsed here, by name, with the one line ``rcbf_ros --help`` shows."""
 
 
-def run_train(args: argparse.Namespace) -> int:
-    from rcbf_ros.training.loop import check_out_dir, RunConfig, RunSetupError, summarize, train
-    try:
-        learner = LearnerConfig(**_learner_overrides(args),
-                                sac=SACConfig(initial_alpha=args.initial_alpha))
-    except (TypeError, ValueError) as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 2
-    name = f"{args.system}_{args.mode}{'_mb' if args.model_based else ''}_s{args.seed}"
-    run = RunConfig(system=args.system, episodes=args.episodes,
-                    out_dir=args.out or str(Path('runs') / name), config_file=args.config,
-                    max_steps=args.max_steps, no_obstacles=args.no_obstacles,
-                    random_start=args.random_start,
-                    record_bag=not args.no_bag, resume=args.resume,
-                    checkpoint_every=args.checkpoint_every,
-                    compile_filter=args.compile_filter, threads=args.threads, learner=learner)
-    try:
-        check_out_dir(run)
-    except RunSetupError as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 2
-    print(f'training {name}: {args.episodes} episodes -> {run.out_dir}', flush=True)
-
-    def on_sigterm(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt  # same path as Ctrl-C: checkpoint, bag and plot are written
-
-    previous = signal.signal(signal.SIGTERM, on_sigterm)
-    try:
-        history = train(run, log=lambda line: print(line, flush=True))
-    except RunSetupError as exc:
-        print(f'error: {exc}', file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f'interrupted: checkpoint and partial results are in {run.out_dir}',
-              file=sys.stderr)
-        return 130
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    summary = summarize(history)
-    summary['out_dir'] = run.out_dir
-    print(json.dumps(summary, indent=2))
-    return 0
+def commands_help() -> str:
+    """The ``commands:`` part of ``rcbf_ros --help``: every subcommand and its line."""
+    lines = {**PARSED, **{name: d.help for name, d in DELEGATED.items()}}
+    width = max(map(len, lines)) + 2
+    return 'commands:\n' + '\n'.join(f'  {name:<{width}}{line}' for name, line in lines.items())
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='rcbf_ros', description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest='command', required=True)
-    add_train_arguments(sub.add_parser('train', help='train in-process (no middleware)'))
-    from rcbf_ros.experiments.command import add_experiment_arguments, run_experiment_command
-    add_experiment_arguments(sub.add_parser(
-        'experiment', help="reproduce one of the paper's experiments (train, evaluate, report)"))
-    from rcbf_ros.bag.recover import add_bag_arguments, run_bag_command
-    add_bag_arguments(sub.add_parser(
-        'bag', help='check a bag, or recover one whose recorder was killed'))
-    args = parser.parse_args(argv)
+def build_parser() -> argparse.ArgumentParser:
+    """The ``rcbf_ros`` parser: the arguments of the subcommands of :data:`PARSED`."""
+    from rcbf_ros.bag.recover import add_bag_arguments
+    from rcbf_ros.cli.train import add_train_arguments
+    from rcbf_ros.experiments.command import add_experiment_arguments
+
+    parser = argparse.ArgumentParser(
+        prog='rcbf_ros', usage='%(prog)s [-h] COMMAND ...',
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=__doc__.splitlines()[0] + '\n\n' + commands_help(),
+        epilog='rcbf_ros <command> --help: its arguments. rcbf_ros_launch and '
+               'rcbf_ros_refilter are\nrcbf_ros launch and rcbf_ros refilter; python -m '
+               'rcbf_ros is rcbf_ros.')
+    sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND', prog='rcbf_ros',
+                                help=argparse.SUPPRESS)
+    add_train_arguments(sub.add_parser('train', help=PARSED['train']))
+    add_experiment_arguments(sub.add_parser('experiment', help=PARSED['experiment']))
+    add_bag_arguments(sub.add_parser('bag', help=PARSED['bag']))
+    for name, delegated in DELEGATED.items():  # choices only: main() hands these on unparsed
+        sub.add_parser(name, help=delegated.help, add_help=False)
+    return parser
+
+
+def run_delegated(name: str, argv: Sequence[str]) -> int:
+    """Run the subcommand ``name`` of :data:`DELEGATED` on ``argv`` (what follows its name)."""
+    module = importlib.import_module(DELEGATED[name].module)
+    return module.main(list(argv))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script ``rcbf_ros`` (and ``python -m rcbf_ros``); returns the exit code."""
+    given = sys.argv[1:] if argv is None else list(argv)
+    # Before any parsing: a delegated subcommand's --help and errors are its module's own.
+    if given and given[0] in DELEGATED:
+        return run_delegated(given[0], given[1:])
+    args = build_parser().parse_args(given)
     if args.command == 'train':
+        from rcbf_ros.cli.train import run_train
         return run_train(args)
     if args.command == 'experiment':
+        from rcbf_ros.experiments.command import run_experiment_command
         return run_experiment_command(args, argv)
     if args.command == 'bag':
+        from rcbf_ros.bag.recover import run_bag_command
         return run_bag_command(args)
     return 2
 

@@ -1,6 +1,6 @@
 """Print what a training run left behind: returns, violations, speed, the bag and the plots.
 
-    python -m rcbf_ros.reports.run_summary bags/<run> [--params-file my_layout.yaml]
+    rcbf_ros summary bags/<run> [--params-file my_layout.yaml]
 
 Reads ``<run>/learner/summary.json`` and ``metrics.jsonl`` (written by the learner node or
 ``rcbf_ros train``) and the MCAP bag under ``<run>/bag``. A bag whose recorder was killed is
@@ -246,17 +246,29 @@ def trajectory_line(bag: Path, png: Path, *, params_file: str | None = None) -> 
     return f'trajectories: {picture.path}{closest}'
 
 
+USAGE = 'usage: python -m rcbf_ros.reports.run_summary <run directory> [--params-file <yaml>]'
+"""The command's usage line (it is also ``rcbf_ros summary``)."""
+
+
 def main(argv: list[str] | None = None) -> int:
+    """``rcbf_ros summary``: 0, or 2 with one line on stderr (bad arguments, no such run)."""
     args = sys.argv[1:] if argv is None else list(argv)
     params_file = None
+    if args in (['-h'], ['--help']):
+        print(USAGE)
+        return 0
     if len(args) == 3 and args[1] == '--params-file':
         params_file = args[2]
     elif len(args) != 1:
-        print('usage: python -m rcbf_ros.reports.run_summary <run directory> '
-              '[--params-file <yaml>]',
+        print(USAGE, file=sys.stderr)
+        return 2
+    run = Path(args[0])
+    if not run.is_dir():
+        reason = 'not a directory' if run.exists() else 'no such directory'
+        print(f'rcbf_ros summary: error: {run}: {reason} (expected a run directory)',
               file=sys.stderr)
         return 2
-    print(summarize_run(Path(args[0]), params_file=params_file))
+    print(summarize_run(run, params_file=params_file))
     return 0
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import ast
+import importlib
 from pathlib import Path
 import re
 import shutil
@@ -100,3 +101,34 @@ def test_package_xml_points_only_at_files_that_exist():
     text = (REPO / 'package.xml').read_text()
     for name in re.findall(r'[\w./-]+\.(?:txt|md|py|cfg|toml)\b', text):
         assert (REPO / name).exists() or name.startswith('test/'), name
+
+
+def _console_scripts() -> dict[str, str]:
+    """setup.py's console_scripts, name -> 'module:function', read without running setup()."""
+    tree = ast.parse((REPO / 'setup.py').read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Dict):
+            for key, value in zip(node.keys, node.values):
+                if isinstance(key, ast.Constant) and key.value == 'console_scripts':
+                    entries = [ast.literal_eval(item) for item in value.elts]
+                    return dict(tuple(part.strip() for part in entry.split('=', 1))
+                                for entry in entries)
+    raise AssertionError('setup.py declares no console_scripts')
+
+
+def test_every_console_script_points_at_a_function_that_exists():
+    scripts = _console_scripts()
+    assert {'rcbf_ros', 'rcbf_ros_launch', 'rcbf_ros_refilter', 'safety_filter'} <= set(scripts)
+    for name, target in scripts.items():
+        module_name, _, function = target.partition(':')
+        module = importlib.import_module(module_name)
+        assert callable(getattr(module, function, None)), f'{name} = {target}'
+
+
+def test_the_old_console_scripts_are_the_rcbf_ros_subcommands():
+    """rcbf_ros_launch and rcbf_ros_refilter run what rcbf_ros launch / refilter run."""
+    from rcbf_ros.cli.main import DELEGATED
+    scripts = _console_scripts()
+    assert scripts['rcbf_ros'] == 'rcbf_ros.cli.main:main'
+    for alias, subcommand in (('rcbf_ros_launch', 'launch'), ('rcbf_ros_refilter', 'refilter')):
+        assert scripts[alias] == f'{DELEGATED[subcommand].module}:main'

@@ -281,7 +281,7 @@ def test_sigterm_mid_run_keeps_checkpoint_metrics_and_bag(tmp_path):
 def test_train_cli_modular_envelope_flag_reaches_the_learner_config():
     import argparse
 
-    from rcbf_ros.cli.main import _learner_overrides, add_train_arguments
+    from rcbf_ros.cli.train import _learner_overrides, add_train_arguments
     parser = argparse.ArgumentParser()
     add_train_arguments(parser)
     assert _learner_overrides(parser.parse_args(['--modular-envelope']))['modular_envelope']

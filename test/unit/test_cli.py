@@ -1,0 +1,108 @@
+"""The ``rcbf_ros`` command: every subcommand reaches its module, its command line unchanged."""
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+import subprocess
+import sys
+
+import pytest
+
+from rcbf_ros.cli import main as cli
+from rcbf_ros.node_logic import interface_doc
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_help_lists_every_subcommand_with_its_line(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(['--help'])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    lines = {**cli.PARSED, **{name: d.help for name, d in cli.DELEGATED.items()}}
+    assert set(lines) == {'train', 'experiment', 'bag', 'launch', 'refilter', 'summary',
+                          'interface-doc'}
+    for name, line in lines.items():
+        assert any(row.split() == [name, *line.split()] for row in out.splitlines()), name
+    assert 'rcbf_ros_launch' in out and 'rcbf_ros_refilter' in out
+
+
+@pytest.mark.parametrize('name', sorted(cli.DELEGATED))
+def test_a_delegated_subcommand_hands_its_arguments_on_and_returns_the_exit_code(
+        name, monkeypatch):
+    module = importlib.import_module(cli.DELEGATED[name].module)
+    seen: list[list[str]] = []
+
+    def fake_main(argv):
+        seen.append(argv)
+        return 7
+
+    monkeypatch.setattr(module, 'main', fake_main)
+    assert cli.main([name, '--help', 'a:=1', '-p', 'x']) == 7
+    assert seen == [['--help', 'a:=1', '-p', 'x']]
+
+
+def test_launch_shows_a_launchs_arguments(capsys):
+    assert cli.main(['launch', 'safety_filter', '--show-args']) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("Arguments of safety_filter (pass arguments as '<name>:=<value>'):")
+    assert "'cmd_in':" in out
+
+
+def test_refilter_help_is_the_refilter_commands_own(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(['refilter', '--help'])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith('usage: rcbf_ros_refilter') and '--params-file' in out
+
+
+def test_summary_of_a_missing_directory_is_one_line_and_exit_2(tmp_path, capsys):
+    missing = tmp_path / 'no_run'
+    assert cli.main(['summary', str(missing)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ''
+    assert captured.err == (f'rcbf_ros summary: error: {missing}: no such directory '
+                            '(expected a run directory)\n')
+    a_file = tmp_path / 'file'
+    a_file.write_text('')
+    assert cli.main(['summary', str(a_file)]) == 2
+    assert 'not a directory' in capsys.readouterr().err
+
+
+def test_summary_help_prints_the_usage(capsys):
+    assert cli.main(['summary', '--help']) == 0
+    assert capsys.readouterr().out.startswith('usage: ')
+
+
+def test_interface_doc_prints_the_generated_section(capsys):
+    assert cli.main(['interface-doc']) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(interface_doc.BEGIN) and interface_doc.END in out
+
+
+@pytest.mark.parametrize('name', sorted(cli.PARSED))
+def test_the_parsed_subcommands_keep_their_help(name, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main([name, '--help'])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out.startswith(f'usage: rcbf_ros {name} ')
+
+
+def test_an_unknown_subcommand_is_refused_naming_the_choices(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(['lanch'])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "invalid choice: 'lanch'" in err and "'interface-doc'" in err
+
+
+def test_python_m_rcbf_ros_summary_as_run_sh_calls_it(tmp_path):
+    """scripts/run.sh ends with ``python -m rcbf_ros summary <run>``: no traceback, exit 2."""
+    missing = tmp_path / 'never_started'
+    done = subprocess.run([sys.executable, '-m', 'rcbf_ros', 'summary', str(missing)],
+                          capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert done.returncode == 2
+    assert done.stderr.splitlines() == [f'rcbf_ros summary: error: {missing}: no such '
+                                        'directory (expected a run directory)']
+    assert 'python -m rcbf_ros summary "$RUN"' in (REPO / 'scripts' / 'run.sh').read_text()
