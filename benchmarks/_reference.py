@@ -22,8 +22,10 @@ Two halves in one file:
 
   It prints one line ``REFERENCE_RESULT <json>`` at the end.
 
-- the parent side (``run_reference``, ``parse_result``, ``steady_rate``, ``amortized_rate``),
-  imported by the benchmarks; pure functions apart from the subprocess.
+- the parent side (``run_reference``, ``parse_result``, ``steady_rate``, ``amortized_rate``,
+  and the benchmarks' ``--reference`` arguments: ``add_reference_arguments``,
+  ``reference_requested``), imported by the benchmarks; pure functions apart from the
+  subprocess.
 
 The reference's ``main.py`` is given ``--eval ''``: its argparse reads that flag with
 ``type=bool``, so only the empty string turns the evaluation episodes off (they would
@@ -35,6 +37,7 @@ filter and no SAC update, for the per-call filter times.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from dataclasses import dataclass
 import json
 import os
@@ -123,6 +126,38 @@ def check_reference(*, directory: Path, python: Path) -> None:
                              "(the authors' Mod-RL-RCBF tree)")
     if not os.access(python, os.X_OK):
         raise ReferenceError(f'--reference-python: {python} is not an executable')
+
+
+def add_reference_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--reference DIR`` and ``--reference-python PATH`` of a benchmark comparing with it."""
+    parser.add_argument('--reference', type=Path, default=None,
+                        help="the authors' Mod-RL-RCBF source tree (outside this repository)")
+    parser.add_argument('--reference-python', type=Path, default=None,
+                        help="python of the reference's venv")
+
+
+def reference_requested(parser: argparse.ArgumentParser, args: argparse.Namespace, *,
+                        minimums: Sequence[tuple[int, int, str]] = ()) -> bool:
+    """Whether to compare with the reference: True when ``--reference`` is given and usable.
+
+    Without ``--reference`` it prints that the comparison is skipped and returns False. With it,
+    a missing ``--reference-python``, a ``(value, least, message)`` of ``minimums`` with
+    ``value < least``, or a tree or interpreter :func:`check_reference` refuses ends the
+    benchmark through ``parser.error`` (one line, exit 2) before anything is timed.
+    """
+    if args.reference is None:
+        print('Reference comparison skipped: no --reference DIR given.', flush=True)
+        return False
+    if args.reference_python is None:
+        parser.error('--reference needs --reference-python (its venv, see the docstring)')
+    for value, least, message in minimums:
+        if value < least:
+            parser.error(message)
+    try:
+        check_reference(directory=args.reference, python=args.reference_python)
+    except ReferenceError as exc:
+        parser.error(str(exc))
+    return True
 
 
 def run_reference(*, directory: Path, python: Path, system: str, mode: str, warmup: int,

@@ -1,6 +1,7 @@
 """Write one section of benchmarks/RESULTS.md without touching the others."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 import platform
 import re
@@ -27,3 +28,21 @@ def write_section(title: str, body: str) -> None:
     else:
         text = text.rstrip('\n') + '\n\n' + section
     RESULTS.write_text(text.rstrip('\n') + '\n')
+
+
+def publish_section(title: str, *, script: str, blocks: Sequence[str | Sequence[str]],
+                    write: bool, conditions: str = '') -> str:
+    """Print the ``## title`` section of a benchmark's one run; also write it when ``write``.
+
+    The body: ``python benchmarks/<script>`` and where it ran (:func:`machine_line`, then
+    ``conditions``, e.g. ``'; 2 busy processes beside'``), then ``blocks``, a blank line before
+    each: a string is a paragraph, a sequence of strings the lines of a table. Returns the body.
+    """
+    lines = [f'`python benchmarks/{script}` (one run; {machine_line()}{conditions}).']
+    for block in blocks:
+        lines += [''] + ([block] if isinstance(block, str) else list(block))
+    body = '\n'.join(lines)
+    if write:
+        write_section(title, body)
+    print(body)
+    return body

@@ -27,7 +27,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._results import machine_line, write_section  # noqa: E402
+from benchmarks._results import publish_section  # noqa: E402
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner  # noqa: E402
 from rcbf_ros.training.loop import build_run, run_episode, RunConfig  # noqa: E402
 from rcbf_ros.training.run_files import load_payload, save_payload  # noqa: E402
@@ -118,21 +118,16 @@ def main() -> None:
             rows.append(f'| {label} | {n} | {n // EPISODE_STEPS} | {size:.1f} | {save:.3f} '
                         f'| {load:.3f} | {100 * save / episode_s:.2f} % |')
             print(rows[-1], flush=True)
-    body = '\n'.join([
-        '`python benchmarks/bench_checkpoint.py` (one run; ' + machine_line() + ').',
-        '',
-        'One checkpoint of an in-process Unicycle diff run (learner with replay buffer and GP '
-        'data, env RNG, metrics rows, settings) written as the trainer writes it (plain-data '
-        'check, torch.save, fsync, rename) and read back with weights_only, after N '
-        'transitions; the model-based row also holds a model buffer of N rows. A training '
-        f'step took {1e3 * step_s:.1f} ms here (mean of {stats.steps} steps with updates), '
-        f'so a 1000-step episode about {episode_s:.0f} s: a checkpoint after every episode '
-        '(the default, `--checkpoint-every 1`) costs the last column. (The Training speed '
-        "section's diff rate, 35 steps/s, gives 29 s episodes: at most 0.7 %.)",
-        '', *rows])
-    if not args.no_write:
-        write_section('Checkpoint cost', body)
-    print(body)
+    note = ('One checkpoint of an in-process Unicycle diff run (learner with replay buffer and GP '
+            'data, env RNG, metrics rows, settings) written as the trainer writes it (plain-data '
+            'check, torch.save, fsync, rename) and read back with weights_only, after N '
+            'transitions; the model-based row also holds a model buffer of N rows. A training '
+            f'step took {1e3 * step_s:.1f} ms here (mean of {stats.steps} steps with updates), '
+            f'so a 1000-step episode about {episode_s:.0f} s: a checkpoint after every episode '
+            '(the default, `--checkpoint-every 1`) costs the last column. (The Training speed '
+            "section's diff rate, 35 steps/s, gives 29 s episodes: at most 0.7 %.)")
+    publish_section('Checkpoint cost', script='bench_checkpoint.py', blocks=[note, rows],
+                    write=not args.no_write)
 
 
 if __name__ == '__main__':

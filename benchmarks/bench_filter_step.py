@@ -44,13 +44,18 @@ from __future__ import annotations
 
 import argparse
 import os
-from pathlib import Path
 import sys
 import time
 from typing import Callable
 
 from _problems import pvtol_params, unicycle_params
-from _reference import check_reference, ENV_NAMES, ReferenceError, run_reference
+from _reference import (
+    add_reference_arguments,
+    ENV_NAMES,
+    reference_requested,
+    ReferenceError,
+    run_reference,
+)
 import numpy as np
 import osqp
 import scipy.sparse as sp
@@ -322,24 +327,12 @@ def main() -> None:
     parser.add_argument('--rounds', type=int, default=4,
                         help='blocks of calls, each on the three filters in turn')
     parser.add_argument('--no-write', action='store_true', help='do not update RESULTS.md')
-    parser.add_argument('--reference', type=Path, default=None,
-                        help="the authors' Mod-RL-RCBF source tree (outside this repository)")
-    parser.add_argument('--reference-python', type=Path, default=None,
-                        help="python of the reference's venv")
+    add_reference_arguments(parser)
     parser.add_argument('--reference-calls', type=int, default=400,
                         help="the reference's filter calls per system (split over the rounds)")
     args = parser.parse_args()
-    if args.reference is not None:
-        if args.reference_python is None:
-            parser.error('--reference needs --reference-python')
-        if args.reference_calls < args.rounds:
-            parser.error('--reference-calls: at least one call per round')
-        try:
-            check_reference(directory=args.reference, python=args.reference_python)
-        except ReferenceError as exc:
-            parser.error(str(exc))
-    else:
-        print('Reference comparison skipped: no --reference DIR given.', flush=True)
+    reference_requested(parser, args, minimums=[
+        (args.reference_calls, args.rounds, '--reference-calls: at least one call per round')])
     compared = []
     load_before = os.getloadavg()
     summary = ['| system | path | median us (all) | p99 us | median us, pass-through (n) '

@@ -32,7 +32,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._results import machine_line, write_section  # noqa: E402
+from benchmarks._results import publish_section  # noqa: E402
 from rcbf_ros.learning.gp import DisturbanceGP, GPConfig  # noqa: E402
 
 torch.set_num_threads(1)
@@ -185,25 +185,22 @@ def main() -> None:
                             f'| {diff:.1e} |')
         print(predict_rows[-1], flush=True)
 
-    body = '\n'.join([
-        '`python benchmarks/bench_gp.py` (one run; ' + machine_line() + ').',
-        '',
+    blocks = [
         'Unicycle slope disturbance, 3 inputs / 3 outputs, noise std 0.01. Default `GPConfig`: '
         'posterior on <= 512 farthest-point points, marginal likelihood on the first 256, '
         '30 Adam steps, cold start. Fit: median of 3.',
-        '', *rows, '',
+        rows,
         'Prediction with the 5000-point model (512 training points), median per call; '
         'GPyTorch: same points and hyperparameters, eval mode, exact variances, warm caches.',
-        '', *predict_rows, '',
+        predict_rows,
         'One state, 2000 points (512 training points), synthetic residuals with each '
         "system's exactly known dimensions at 0 (`SYSTEM_SHAPES`); median per call. "
         "'every dim': `exact_output_tol=0`, a posterior on every output; "
         "'known skipped': the default, known outputs return 0 / 0 without a kernel matrix. "
         "'cold': a 64 MB buffer is written (untimed) before each call, as a SAC update evicts "
-        "the GP's factors in the training loop.", '', *known_dimension_rows(args.repeats)])
-    if not args.no_write:
-        write_section('GP disturbance model', body)
-    print(body)
+        "the GP's factors in the training loop.", known_dimension_rows(args.repeats)]
+    publish_section('GP disturbance model', script='bench_gp.py', blocks=blocks,
+                    write=not args.no_write)
 
 
 if __name__ == '__main__':

@@ -23,7 +23,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._results import machine_line, write_section  # noqa: E402
+from benchmarks._results import publish_section  # noqa: E402
 from rcbf_ros.learning.gp import DisturbanceGP  # noqa: E402
 
 torch.set_num_threads(1)
@@ -63,6 +63,12 @@ def main() -> None:
     parser.add_argument('--no-write', action='store_true', help='do not touch RESULTS.md')
     args = parser.parse_args()
 
+    note = ("One environment step's `DisturbanceGP.add` of a (state, residual) row, PVTOL's shape "
+            '(6 x 6, float64), after N stored rows, over ' + str(args.repeats) + ' consecutive '
+            'adds, next to the same checks followed by the `torch.cat` of all rows that it '
+            'replaced. 30 000 rows is a 15-episode PVTOL run, 120 000 a 60-episode one, 200 000 '
+            'the `paper` budget. A training step '
+            '(SAC update, QP, GP prediction) takes about 24 ms on PVTOL.')
     rows = ['| stored rows N | ours, median (us) | ours, mean (us) | torch.cat, median (us) '
             '| torch.cat, mean (us) | ratio cat / ours (median) | ratio (mean) |',
             '|---:|---:|---:|---:|---:|---:|---:|']
@@ -74,19 +80,8 @@ def main() -> None:
         rows.append(f'| {stored} | {ours[0]:.1f} | {ours[1]:.1f} | {cat[0]:.1f} | {cat[1]:.1f} '
                     f'| {cat[0] / ours[0]:.1f}x | {cat[1] / ours[1]:.1f}x |')
         print(rows[-1], flush=True)
-    body = '\n'.join([
-        '`python benchmarks/bench_gp_append.py` (one run; ' + machine_line() + ').',
-        '',
-        "One environment step's `DisturbanceGP.add` of a (state, residual) row, PVTOL's shape "
-        '(6 x 6, float64), after N stored rows, over ' + str(args.repeats) + ' consecutive '
-        'adds, next to the same checks followed by the `torch.cat` of all rows that it '
-        'replaced. 30 000 rows is a 15-episode PVTOL run, 120 000 a 60-episode one, 200 000 '
-        'the `paper` budget. A training step '
-        '(SAC update, QP, GP prediction) takes about 24 ms on PVTOL.',
-        '', *rows])
-    if not args.no_write:
-        write_section('GP data storage', body)
-    print(body)
+    publish_section('GP data storage', script='bench_gp_append.py', blocks=[note, rows],
+                    write=not args.no_write)
 
 
 if __name__ == '__main__':

@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from benchmarks._results import machine_line, write_section  # noqa: E402
+from benchmarks._results import publish_section  # noqa: E402
 
 torch.set_num_threads(1)  # as in every run (RunConfig.threads); machine_line reports it
 
@@ -91,19 +91,16 @@ def main() -> None:
                     f"| {result['wall_s'] / reference['wall_s']:.2f}x "
                     f"| {result['returns'] == reference['returns']} |")
         print(rows[-1], flush=True)
-    body = '\n'.join([
-        '`python benchmarks/bench_ray.py` (one run; ' + machine_line() + f'; {args.load} busy '
-        'processes beside).',
-        '',
+    blocks = [
         f'{args.runs} Unicycle Modular runs of {args.episodes} episodes x 200 steps (256x256 '
         'SAC, batch 256, updates from step 100) per way, each way in a fresh process, wall time '
         "including Ray's start and the workers' imports; ratio = wall / sequential wall. "
         'Ray: a local instance with 2 CPUs. Runs this short show the cost of starting Ray '
         "(about 10 s) more than its parallelism; the niceness row is the point: Ray's default "
-        'starves its workers on a machine with other work.', '', *rows])
-    if not args.no_write:
-        write_section('Experiment runner, sequential vs Ray', body)
-    print(body)
+        'starves its workers on a machine with other work.', rows]
+    publish_section('Experiment runner, sequential vs Ray', script='bench_ray.py', blocks=blocks,
+                    write=not args.no_write,
+                    conditions=f'; {args.load} busy processes beside')
 
 
 if __name__ == '__main__':

@@ -50,10 +50,11 @@ import sys
 import time
 
 from _reference import (
+    add_reference_arguments,
     amortized_rate,
     CBF_MODES,
-    check_reference,
     ENV_NAMES,
+    reference_requested,
     ReferenceError,
     Refit,
     REFIT_EVERY_STEPS,
@@ -257,10 +258,7 @@ def main() -> None:
     parser.add_argument('--threads', type=int, nargs='*', default=[1])
     parser.add_argument('--repeats', type=int, default=2,
                         help='alternating runs per side and row (with --reference)')
-    parser.add_argument('--reference', type=Path, default=None,
-                        help="the authors' Mod-RL-RCBF source tree (outside this repository)")
-    parser.add_argument('--reference-python', type=Path, default=None,
-                        help="python of the reference's venv")
+    add_reference_arguments(parser)
     parser.add_argument('--reference-warmup', type=int, default=400,
                         help="the reference's untimed steps (its first GP refit is at 400)")
     parser.add_argument('--no-write', action='store_true')
@@ -279,18 +277,8 @@ def main() -> None:
     for system in args.systems:
         if system not in ENV_NAMES:
             parser.error(f'--systems: unknown system {system!r}')
-    reference = args.reference is not None
-    if reference:
-        if args.reference_python is None:
-            parser.error('--reference needs --reference-python (its venv, see the docstring)')
-        if args.reference_warmup < 400:
-            parser.error('--reference-warmup: at least 400 (its first GP refit)')
-        try:
-            check_reference(directory=args.reference, python=args.reference_python)
-        except ReferenceError as exc:
-            parser.error(str(exc))
-    else:
-        print('Reference comparison skipped: no --reference DIR given.', flush=True)
+    reference = reference_requested(parser, args, minimums=[
+        (args.reference_warmup, 400, '--reference-warmup: at least 400 (its first GP refit)')])
     configs = [(system, mode, False) for system, mode in rows]
     if args.model_based:
         configs += [(s, 'diff', True) for s in args.systems if s in ('unicycle', 'pvtol')]

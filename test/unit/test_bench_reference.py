@@ -1,9 +1,11 @@
 """The reference driver's parsing and timing arithmetic (benchmarks/_reference.py)."""
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import json
 from pathlib import Path
+import re
 import sys
 
 import pytest
@@ -168,3 +170,43 @@ def test_comparison_row_judges_the_median_ratio_against_the_target(ours, verdict
     assert cells[3] == '5.0'
     assert cells[4].startswith(f'{ours / 5:.1f}x')
     assert cells[8:] == ['>= 6x', verdict]
+
+
+def _reference_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog='bench')
+    ref.add_reference_arguments(parser)
+    parser.add_argument('--reference-calls', type=int, default=400)
+    return parser
+
+
+def test_no_reference_skips_the_comparison_and_says_so(capsys):
+    parser = _reference_parser()
+    assert not ref.reference_requested(parser, parser.parse_args([]))
+    assert capsys.readouterr().out == 'Reference comparison skipped: no --reference DIR given.\n'
+
+
+@pytest.mark.parametrize('extra, message', [
+    ([], '--reference needs --reference-python'),
+    (['--reference-python', '{python}', '--reference-calls', '3'],
+     '--reference-calls: at least one call per round'),
+    (['--reference-python', '{missing}'], '--reference-python: .* is not an executable'),
+])
+def test_a_reference_that_cannot_run_ends_the_benchmark_in_one_line(tmp_path, capsys, extra,
+                                                                     message):
+    python = _fake_python(tmp_path, 'exit 0\n')
+    parser = _reference_parser()
+    args = parser.parse_args(['--reference', str(tmp_path)] + [
+        part.format(python=python, missing=tmp_path / 'missing') for part in extra])
+    with pytest.raises(SystemExit) as exit_info:
+        ref.reference_requested(parser, args, minimums=[
+            (args.reference_calls, 4, '--reference-calls: at least one call per round')])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err.splitlines()[-1]
+    assert re.fullmatch(f'bench: error: {message}.*', error), error
+
+
+def test_a_usable_reference_is_requested(tmp_path):
+    parser = _reference_parser()
+    python = _fake_python(tmp_path, 'exit 0\n')
+    args = parser.parse_args(['--reference', str(tmp_path), '--reference-python', str(python)])
+    assert ref.reference_requested(parser, args, minimums=[(args.reference_calls, 4, 'calls')])

@@ -1,0 +1,43 @@
+"""benchmarks/_results.py: a benchmark's section of benchmarks/RESULTS.md, written alone."""
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+import sys
+
+BENCHMARKS = Path(__file__).resolve().parents[2] / 'benchmarks'
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location('_results', BENCHMARKS / '_results.py')
+    module = importlib.util.module_from_spec(spec)
+    sys.modules['_results'] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+results = _load()
+
+
+def test_a_section_is_the_command_then_paragraphs_and_tables(monkeypatch, tmp_path, capsys):
+    monkeypatch.setattr(results, 'RESULTS', tmp_path / 'RESULTS.md')
+    monkeypatch.setattr(results, 'machine_line', lambda: 'Python 3, torch 2 (1 thread), x86')
+    table = ['| a | b |', '|---|---|', '| 1 | 2 |']
+    body = results.publish_section('Speed', script='bench_x.py', write=True,
+                                   conditions='; 2 busy processes beside',
+                                   blocks=['First paragraph.', table, 'Second.', table[:2]])
+    assert body == ('`python benchmarks/bench_x.py` (one run; Python 3, torch 2 (1 thread), '
+                    'x86; 2 busy processes beside).\n\nFirst paragraph.\n\n| a | b |\n|---|---|\n'
+                    '| 1 | 2 |\n\nSecond.\n\n| a | b |\n|---|---|')
+    assert capsys.readouterr().out == body + '\n'
+    text = (tmp_path / 'RESULTS.md').read_text()
+    assert text.startswith(results.HEADER) and text.endswith(f'## Speed\n\n{body}\n')
+
+
+def test_without_write_the_results_file_is_left_alone(monkeypatch, tmp_path, capsys):
+    monkeypatch.setattr(results, 'RESULTS', tmp_path / 'RESULTS.md')
+    monkeypatch.setattr(results, 'machine_line', lambda: 'here')
+    body = results.publish_section('Speed', script='bench_x.py', blocks=['Text.'], write=False)
+    assert body == '`python benchmarks/bench_x.py` (one run; here).\n\nText.'
+    assert not (tmp_path / 'RESULTS.md').exists()
+    assert capsys.readouterr().out == body + '\n'
