@@ -1,7 +1,7 @@
 """``ros2 launch`` descriptions built from :mod:`rcbf_ros.launch.table` (ROS 2 install only).
 
 Every ``launch/<name>.launch.py`` is three lines calling :func:`describe` with its name, so the
-launch files, the table and ``rcbf_ros_launch`` (which starts the same table without ROS) cannot
+launch files, the table and ``rcbf_ros launch`` (which starts the same table without ROS) cannot
 drift. ROS 2's launch packages are imported when a description is built, not at import time.
 """
 from __future__ import annotations

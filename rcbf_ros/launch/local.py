@@ -1,4 +1,4 @@
-"""rcbf_ros_launch: start a launch's nodes as separate processes, without ROS 2 installed.
+"""rcbf_ros launch: start a launch's nodes as separate processes, without ROS 2 installed.
 
 The local counterpart of ``ros2 launch rcbf_ros <name>.launch.py``; both read
 :mod:`rcbf_ros.launch.table`. Every node runs as ``python -m rcbf_ros.ros.node_main <module>
@@ -24,8 +24,10 @@ exit code 2. ``params_file:=`` is ``--params-file``.
 
 Examples::
 
-    rcbf_ros_launch unicycle_filter --domain-id 7 -p simulator:max_episodes:=1
-    rcbf_ros_launch safety_filter cmd_in:=/my_controller/cmd_vel cmd_out:=/cmd_vel odom:=/odom
+    rcbf_ros launch unicycle_filter --domain-id 7 -p simulator:max_episodes:=1
+    rcbf_ros launch safety_filter cmd_in:=/my_controller/cmd_vel cmd_out:=/cmd_vel odom:=/odom
+
+The console script ``rcbf_ros_launch`` is the same command (its name in messages and usage).
 """
 from __future__ import annotations
 
@@ -400,7 +402,7 @@ def show_arguments(setup: LaunchSetup) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console script ``rcbf_ros_launch``; returns the launch's exit code."""
+    """``rcbf_ros launch`` (console script ``rcbf_ros_launch``); returns the launch's exit code."""
     args = build_parser().parse_intermixed_args(argv)
     setup = launch_setup(args.launch)
     if args.show_args:

@@ -1,7 +1,7 @@
 """Which nodes a launch starts, with which remaps: ONE table for ``ros2 launch`` and our launcher.
 
 ``launch/<name>.launch.py`` (launch_ros ``Node`` actions, for a ROS 2 install) and
-``rcbf_ros_launch <name>`` (:mod:`rcbf_ros.launch.local`, separate ``python -m`` processes, for
+``rcbf_ros launch <name>`` (:mod:`rcbf_ros.launch.local`, separate ``python -m`` processes, for
 machines without ROS) both read :data:`LAUNCHES`, so the two cannot drift. Pure data and string
 building: no ROS, no processes.
 
@@ -23,7 +23,7 @@ robot's own topic names (:data:`DROP_IN_FILTER`, :data:`ROBOT_ARGUMENTS`)::
 Launch arguments (``name:=value`` after the launch name, in both launchers): a
 :class:`LaunchSetup` declares them (:class:`LaunchArgument`) and its entries' remappings and
 parameters name them with :class:`Argument`; ``ros2 launch`` gets ``DeclareLaunchArgument`` and
-``LaunchConfiguration``, ``rcbf_ros_launch`` substitutes the values itself
+``LaunchConfiguration``, ``rcbf_ros launch`` substitutes the values itself
 (:func:`argument_values`, :func:`resolve_entry`). Every launch also takes ``params_file``.
 """
 from __future__ import annotations
@@ -102,10 +102,15 @@ class NodeEntry:
 
 @dataclass(frozen=True)
 class LaunchSetup:
-    """A set of nodes sharing one params file."""
+    """A launch: nodes in start order sharing one params file, and the arguments they read.
+
+    ``launch/<name>.launch.py`` turns it into launch_ros actions
+    (:func:`rcbf_ros.launch.description.describe`), ``rcbf_ros launch <name>`` into processes
+    (:func:`rcbf_ros.launch.local.child_commands`).
+    """
 
     name: str
-    """Launch name: ``launch/<name>.launch.py`` and ``rcbf_ros_launch <name>``."""
+    """Launch name: ``launch/<name>.launch.py`` and ``rcbf_ros launch <name>``."""
     config: str
     """Params file name in ``config/`` (``ros__parameters`` per node, ``/**`` shared)."""
     nodes: tuple[NodeEntry, ...]
