@@ -45,3 +45,20 @@ def stop(process: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 3
         out, err = process.communicate()
     return ''.join(part.decode(errors='replace') if isinstance(part, bytes) else part
                    for part in (out, err) if part)
+
+
+def end_process(process: subprocess.Popen, *, sig: int = signal.SIGINT,
+                timeout: float = 30.0) -> int:
+    """Send ``sig`` (if still running), wait up to ``timeout`` s, then kill; the exit code.
+
+    Unlike :func:`stop` it leaves the pipes alone: for a process whose output goes to a file,
+    or is read by a thread of the test.
+    """
+    if process.poll() is None:
+        process.send_signal(sig)
+        try:
+            process.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+    return process.returncode

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import collections
 import json
-import os
 from pathlib import Path
 import subprocess
 import sys
@@ -20,13 +19,12 @@ import threading
 import time
 from typing import Any, Callable
 
-from dds_harness import node_runtime, stop  # this directory: on sys.path for pytest
+from dds_harness import stop, subprocess_env  # this directory: on sys.path for pytest
 import numpy as np
 import pytest
 
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.parameters.rules import find_config, load_params
-from rcbf_ros.ros.loopback import ensure_loopback
 
 REPO = Path(__file__).resolve().parents[2]
 UNICYCLE = str(REPO / 'config' / 'unicycle.yaml')
@@ -35,22 +33,12 @@ WAIT_S = 60.0
 pytestmark = pytest.mark.integration
 
 
-def _env(domain_id: int) -> dict[str, str]:
-    env = dict(os.environ)
-    ensure_loopback(env, force=True)
-    env['ROS_DOMAIN_ID'] = str(domain_id)
-    env['RCBF_ROS_RUNTIME'] = node_runtime()
-    env['PYTHONUNBUFFERED'] = '1'
-    env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(REPO), env.get('PYTHONPATH')]))
-    return env
-
-
 def _start_filter(domain_id: int, *ros_args: str, params_file: str = UNICYCLE
                   ) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, '-m', 'rcbf_ros.ros.safety_filter_node', '--ros-args',
          '--params-file', params_file, *ros_args],
-        env=_env(domain_id), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        env=subprocess_env(domain_id), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 
 def _level(status: Any) -> int:
@@ -125,6 +113,25 @@ def _wait_matched(publisher: Any, process: subprocess.Popen) -> None:
         assert process.poll() is None, stop(process, timeout=10)
         assert time.monotonic() < deadline, 'the safety_filter never subscribed'
         time.sleep(0.02)
+
+
+def _connect(probe: Probe, process: subprocess.Popen, proposal_type: str,
+             proposal_topic: str = '/cmd_proposed', *, with_state: bool = True
+             ) -> tuple[Any, Any]:
+    """Subscribe /diagnostics, publish proposals (and states, unless ``with_state`` is False)
+    to the filter, start the probe and wait until the filter has subscribed to each.
+
+    Returns the proposal publisher and the state publisher (None without states).
+    """
+    probe.subscribe('diagnostic_msgs/msg/DiagnosticArray', '/diagnostics', _diagnostic)
+    state_pub = (probe.publisher('std_msgs/msg/Float64MultiArray', '/state') if with_state
+                 else None)
+    proposal_pub = probe.publisher(proposal_type, proposal_topic)
+    probe.start()
+    _wait_matched(proposal_pub, process)
+    if state_pub is not None:
+        _wait_matched(state_pub, process)
+    return proposal_pub, state_pub
 
 
 def _exchange(probe: Probe, proposal_pub: Any, proposal: Any,
@@ -204,12 +211,8 @@ def test_bad_input_yields_fail_safe_and_error_diagnostics(ros_domain_id, probe):
     try:
         probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
         probe.subscribe('std_msgs/msg/Float64MultiArray', '/filter_info', _sections)
-        probe.subscribe('diagnostic_msgs/msg/DiagnosticArray', '/diagnostics', _diagnostic)
-        state_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/state')
-        proposal_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/my_controller/cmd')
-        probe.start()
-        _wait_matched(proposal_pub, process)
-        _wait_matched(state_pub, process)
+        proposal_pub, state_pub = _connect(probe, process, 'std_msgs/msg/Float64MultiArray',
+                                           '/my_controller/cmd')
         unsafe = {'u': [2.5, 0.0]}  # full speed at the centre obstacle from 0.25 m
         good_state = [-0.85, 0.0, 0.0]
 
@@ -278,12 +281,7 @@ def test_twist_mode(ros_domain_id, probe):
     try:
         probe.subscribe('geometry_msgs/msg/Twist', '/cmd_safe',
                         lambda m: twist_to_array(m, fields))
-        probe.subscribe('diagnostic_msgs/msg/DiagnosticArray', '/diagnostics', _diagnostic)
-        state_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/state')
-        proposal_pub = probe.publisher('geometry_msgs/msg/Twist', '/cmd_proposed')
-        probe.start()
-        _wait_matched(proposal_pub, process)
-        _wait_matched(state_pub, process)
+        proposal_pub, state_pub = _connect(probe, process, 'geometry_msgs/msg/Twist')
         _handshake(probe, proposal_pub, array_to_twist([1.0, 0.3], fields))   # no state yet
         free, _ = _exchange_with_state(probe, state_pub, [-2.5, -2.5, -0.75 * np.pi],
                                        proposal_pub, array_to_twist([1.0, 0.3], fields))
@@ -303,10 +301,8 @@ def test_pvtol_proposal_with_learned_disturbance(ros_domain_id, probe):
     process = _start_filter(ros_domain_id, params_file=str(REPO / 'config' / 'pvtol.yaml'))
     try:
         probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
-        probe.subscribe('diagnostic_msgs/msg/DiagnosticArray', '/diagnostics', _diagnostic)
-        proposal_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/cmd_proposed')
-        probe.start()
-        _wait_matched(proposal_pub, process)
+        proposal_pub, _ = _connect(probe, process, 'std_msgs/msg/Float64MultiArray',
+                                   with_state=False)
         state = [-4.5, -1.0, 0.3, 0.0, -0.2, 1.0, -5.0]  # 0.5 from the operator, moving away
         proposal = {'u': [1.0, 0.5], 'disturbance_mean': [0.0] * 7,
                     'disturbance_std': [0.0, 0.0, 0.1, 0.1, 0.1, 0.1, 0.0], 'state': state}
@@ -359,10 +355,8 @@ def test_sigint_while_proposals_stream_exits_0_without_traceback(ros_domain_id, 
     process = _start_filter(ros_domain_id)
     try:
         probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
-        probe.subscribe('diagnostic_msgs/msg/DiagnosticArray', '/diagnostics', _diagnostic)
-        proposal_pub = probe.publisher('std_msgs/msg/Float64MultiArray', '/cmd_proposed')
-        probe.start()
-        _wait_matched(proposal_pub, process)
+        proposal_pub, _ = _connect(probe, process, 'std_msgs/msg/Float64MultiArray',
+                                   with_state=False)
         proposal = sections_to_msg({'u': [2.5, 0.0], 'state': [-0.85, 0.0, 0.0]})
         _handshake(probe, proposal_pub, proposal)
         answered = probe.count('/cmd_safe')
@@ -397,13 +391,13 @@ def test_odometry_and_twist_stamped_from_end_to_end(ros_domain_id, probe, tmp_pa
         subprocess.Popen([sys.executable, '-m', 'sim_nodes.simulator_node', '--ros-args',
                           *common, '-p', f'max_steps:={steps}', '-p', 'max_episodes:=1',
                           '-p', 'start:=[-2.5, 0.0, 0.0]', '-p', 'goal:=[2.5, 0.0]'],
-                         env=_env(ros_domain_id), cwd=REPO, stdout=subprocess.PIPE,
+                         env=subprocess_env(ros_domain_id), cwd=REPO, stdout=subprocess.PIPE,
                          stderr=subprocess.STDOUT),
         _start_filter(ros_domain_id, '-r', '__node:=safety_filter', *common,
                       '-p', 'state_frame_id:=map'),
         subprocess.Popen([sys.executable, '-m', 'sim_nodes.nominal_controller_node',
                           '--ros-args', *common, '-p', 'goal:=[2.5, 0.0]'],
-                         env=_env(ros_domain_id), cwd=REPO, stdout=subprocess.PIPE,
+                         env=subprocess_env(ros_domain_id), cwd=REPO, stdout=subprocess.PIPE,
                          stderr=subprocess.STDOUT)]
     header = lambda m: (stamp_ns(m.header), m.header.frame_id)  # noqa: E731
     probe.subscribe('nav_msgs/msg/Odometry', '/state', header)
@@ -458,8 +452,8 @@ def test_unsafe_controller_behind_the_filter_never_violates(ros_domain_id, probe
     probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_proposed', _sections)
     probe.subscribe('std_msgs/msg/String', '/episode', lambda m: json.loads(m.data))
     probe.start()
-    launch = subprocess.run(command, env=_env(ros_domain_id), cwd=REPO, capture_output=True,
-                            text=True, timeout=1200)
+    launch = subprocess.run(command, env=subprocess_env(ros_domain_id), cwd=REPO,
+                            capture_output=True, text=True, timeout=1200)
     output = launch.stdout + launch.stderr
     assert launch.returncode == 0, output[-4000:]
     for node in nodes:

@@ -2,26 +2,15 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 from pathlib import Path
 import re
 import sys
 
+from benchmark_modules import load_benchmark
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[2] / 'benchmarks'
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location('_reference', BENCHMARKS / '_reference.py')
-    module = importlib.util.module_from_spec(spec)
-    sys.modules['_reference'] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-ref = _load()
+ref = load_benchmark('_reference')
 
 
 def test_steady_rate_takes_out_a_refit_inside_the_window():
@@ -138,15 +127,7 @@ def test_the_mode_and_system_maps_cover_the_compared_rows():
 
 
 def _bench_training():
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        spec = importlib.util.spec_from_file_location('bench_training',
-                                                      BENCHMARKS / 'bench_training.py')
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(BENCHMARKS))
-    return module
+    return load_benchmark('bench_training')
 
 
 def _run(rate: float) -> dict:

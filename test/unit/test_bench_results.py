@@ -1,22 +1,9 @@
 """benchmarks/_results.py: a benchmark's section of benchmarks/RESULTS.md, written alone."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-import sys
+from benchmark_modules import load_benchmark
 
-BENCHMARKS = Path(__file__).resolve().parents[2] / 'benchmarks'
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location('_results', BENCHMARKS / '_results.py')
-    module = importlib.util.module_from_spec(spec)
-    sys.modules['_results'] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-results = _load()
+results = load_benchmark('_results')
 
 
 def test_a_section_is_the_command_then_paragraphs_and_tables(monkeypatch, tmp_path, capsys):
