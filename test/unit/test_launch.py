@@ -11,6 +11,7 @@ import threading
 import types
 
 import pytest
+from repo_files import LAUNCH_FILES, REPO
 
 from rcbf_ros.launch import local as launch_local
 from rcbf_ros.launch.table import (
@@ -29,10 +30,6 @@ from rcbf_ros.launch.table import (
 )
 from rcbf_ros.ros.dds.arguments import parameter_overrides, parse_ros_arguments
 from rcbf_ros.ros.loopback import LOOPBACK_CYCLONEDDS_URI
-
-REPO = Path(__file__).resolve().parents[2]
-LAUNCH_FILES = sorted((REPO / 'launch').glob('*.launch.py'))
-
 
 # --- table -------------------------------------------------------------------------------------
 

@@ -8,9 +8,8 @@ in is kept and written into.
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
+from repo_files import CONFIGS, REPO
 
 from rcbf_ros.parameters.rules import read_params_file
 from rcbf_ros.ros.dds import rclpy_compat
@@ -22,8 +21,6 @@ from rcbf_ros.ros.dds.node import (
     ParameterUninitializedException,
 )
 
-REPO = Path(__file__).resolve().parents[2]
-CONFIGS = sorted((REPO / 'config').glob('*.yaml'))
 STRING_ARRAY = Parameter.Type.STRING_ARRAY
 
 

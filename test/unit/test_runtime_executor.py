@@ -5,21 +5,18 @@ from __future__ import annotations
 import threading
 
 import pytest
+from runtime_node import runtime_node
 
 from rcbf_ros.messages.classes import get_message
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
-from rcbf_ros.ros.dds.node import Node
 
 Float64 = get_message('std_msgs/msg/Float64')
 
 
 @pytest.fixture
 def node(ros_domain_id):
-    rclpy.init(args=[], domain_id=ros_domain_id)
-    node = Node('executor_test')
-    yield node
-    node.destroy_node()
-    rclpy.try_shutdown()
+    with runtime_node('executor_test', domain_id=ros_domain_id) as instance:
+        yield instance
 
 
 def test_spin_returns_after_shutdown_from_a_timer(node):

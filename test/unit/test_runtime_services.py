@@ -123,6 +123,19 @@ def nodes(ros_domain_id):
     rclpy.try_shutdown()
 
 
+def _matched_writer(node: Node, topic: str, type_name: str, *, qos: Qos | None = None
+                    ) -> DataWriter:
+    """A plain DDS writer of ``type_name`` on ``topic`` (a service's request or reply topic,
+    past the runtime) in ``node``'s participant, once a reader matched it (or after 10 s)."""
+    participant = node.context.participant
+    writer = DataWriter(participant,
+                        Topic(participant, topic, services.sample_idl_struct(type_name)), qos=qos)
+    deadline = time.monotonic() + 10
+    while not writer.get_matched_subscriptions() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return writer
+
+
 def _call(server: Node, probe: Node, srv_type, name: str, request, timeout: float = 10.0):
     client = probe.create_client(srv_type, name)
     assert client.wait_for_service(timeout_sec=timeout), f'{name} never became available'
@@ -240,12 +253,9 @@ def test_a_user_service_replies_and_a_wrong_response_type_raises(nodes):
 def test_an_undecodable_request_is_dropped_and_the_service_goes_on(nodes, capfd):
     server, probe = nodes
     service = next(s for s in server._service_endpoints if s.srv_name.endswith('/get_parameters'))
-    topic = Topic(probe.context.participant, 'rq/robot/safety_filter/get_parametersRequest',
-                  services.sample_idl_struct('rcl_interfaces/srv/GetParameters_Request'))
-    writer = DataWriter(probe.context.participant, topic)
+    writer = _matched_writer(probe, 'rq/robot/safety_filter/get_parametersRequest',
+                             'rcl_interfaces/srv/GetParameters_Request')
     deadline = time.monotonic() + 10
-    while not writer.get_matched_subscriptions() and time.monotonic() < deadline:
-        time.sleep(0.01)
     # DDS checks a sample's structure; a name that is not UTF-8 gets past it.
     ddspy_write(writer._ref, b'\x00\x01\x00\x00' + struct.pack('<QqII', 1, 1, 1, 3)
                 + b'\xff\xfe\x00\x00')
@@ -261,14 +271,11 @@ def test_an_undecodable_request_is_dropped_and_the_service_goes_on(nodes, capfd)
 def test_a_reply_whose_client_never_reads_is_dropped_with_a_warning(nodes, capfd, monkeypatch):
     server, probe = nodes
     monkeypatch.setattr(services, 'REPLY_READER_WAIT_S', 0.2)
-    topic = Topic(probe.context.participant, 'rq/robot/safety_filter/get_parametersRequest',
-                  services.sample_idl_struct('rcl_interfaces/srv/GetParameters_Request'))
     # A client's request writer whose reply reader never appears.
-    writer = DataWriter(probe.context.participant, topic,
-                        qos=Qos(Policy.Userdata(b'clientid=01.2.3.4;')))
+    writer = _matched_writer(probe, 'rq/robot/safety_filter/get_parametersRequest',
+                             'rcl_interfaces/srv/GetParameters_Request',
+                             qos=Qos(Policy.Userdata(b'clientid=01.2.3.4;')))
     deadline = time.monotonic() + 10
-    while not writer.get_matched_subscriptions() and time.monotonic() < deadline:
-        time.sleep(0.01)
     ddspy_write(writer._ref, _hand_built_get_parameters_request())
     service = next(s for s in server._service_endpoints if s.srv_name.endswith('/get_parameters'))
     while 'reply to request 42 dropped' not in capfd.readouterr().err:
@@ -320,12 +327,9 @@ def test_a_reply_carrying_another_clients_handle_is_not_taken(nodes):
     assert client.wait_for_service(timeout_sec=10)
     future = client.call_async(GetParameters.Request(names=['gain']))
     (sequence,) = client._futures
-    topic = Topic(server.context.participant, 'rr/robot/safety_filter/get_parametersReply',
-                  services.sample_idl_struct('rcl_interfaces/srv/GetParameters_Response'))
-    writer = DataWriter(server.context.participant, topic)
+    writer = _matched_writer(server, 'rr/robot/safety_filter/get_parametersReply',
+                             'rcl_interfaces/srv/GetParameters_Response')
     deadline = time.monotonic() + 10
-    while not writer.get_matched_subscriptions() and time.monotonic() < deadline:
-        time.sleep(0.01)
     stranger = services.RequestHeader(client._writer_handle ^ 1, sequence)
     cdr = messages.serialize_message(GetParameters.Response())
     ddspy_write(writer._ref, services.encode_sample(header=stranger, cdr=cdr))

@@ -13,12 +13,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from runtime_node import runtime_node
 
 from rcbf_ros.messages.classes import get_message
-from rcbf_ros.ros.dds import rclpy_compat
 from rcbf_ros.ros.dds.node import (
     DEPTH_RECURSIVE,
-    Node,
     Parameter,
     parameter_descriptor,
     ParameterNotDeclaredException,
@@ -42,11 +41,8 @@ def steps() -> dict[str, dict[str, Any]]:
 
 @pytest.fixture
 def node(ros_domain_id):
-    rclpy_compat.init(args=[], domain_id=ros_domain_id)
-    instance = Node('n')
-    yield instance
-    instance.destroy_node()
-    rclpy_compat.try_shutdown()
+    with runtime_node('n', domain_id=ros_domain_id) as instance:
+        yield instance
 
 
 def test_set_parameters_runs_every_parameter_through_the_callbacks_on_its_own(steps):
@@ -155,27 +151,18 @@ def test_the_same_list_object_reaches_the_on_set_and_post_set_callbacks(node):
 
 
 def test_allowed_undeclared_parameters_are_set_dynamically_typed(ros_domain_id):
-    rclpy_compat.init(args=[], domain_id=ros_domain_id)
-    node = Node('u', allow_undeclared_parameters=True)
-    try:
+    with runtime_node('u', domain_id=ros_domain_id, allow_undeclared_parameters=True) as node:
         assert node.set_parameters([Parameter('free', value=1)])[0].successful
         assert node.set_parameters([Parameter('free', value='text')])[0].successful
         assert node.describe_parameter('free').dynamic_typing
-    finally:
-        node.destroy_node()
-        rclpy_compat.try_shutdown()
 
 
 def test_a_read_only_parameter_is_declared_with_its_override_and_never_set(ros_domain_id):
-    rclpy_compat.init(args=['--ros-args', '-p', 'ro:=5'], domain_id=ros_domain_id)
-    node = Node('r')
-    try:
+    with runtime_node('r', domain_id=ros_domain_id,
+                      args=['--ros-args', '-p', 'ro:=5']) as node:
         node.declare_parameter('ro', 1, parameter_descriptor(read_only=True))
         assert node.get_parameter('ro').value == 5
         result = node.set_parameters([Parameter('ro', value=6)])[0]
         assert not result.successful and 'read-only' in result.reason
         with pytest.raises(ParameterNotDeclaredException):
             node.set_parameters_atomically([Parameter('missing', value=1)])
-    finally:
-        node.destroy_node()
-        rclpy_compat.try_shutdown()

@@ -6,13 +6,13 @@ from __future__ import annotations
 import struct
 
 import pytest
+from runtime_node import runtime_node
 
 from rcbf_ros.messages.cdr import serialize_message
 from rcbf_ros.messages.classes import get_message
 from rcbf_ros.messages.conversions import sections_to_msg
 from rcbf_ros.ros.dds import endpoints as dds_endpoints
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
-from rcbf_ros.ros.dds.node import Node
 
 Array = get_message('std_msgs/msg/Float64MultiArray')
 
@@ -27,11 +27,8 @@ def _non_utf8_label() -> bytes:
 
 @pytest.fixture
 def node(ros_domain_id):
-    rclpy.init(args=[], domain_id=ros_domain_id)
-    node = Node('undecodable_test')
-    yield node
-    node.destroy_node()
-    rclpy.try_shutdown()
+    with runtime_node('undecodable_test', domain_id=ros_domain_id) as instance:
+        yield instance
 
 
 def _spin_until(node, condition, limit: int = 200) -> None:

@@ -182,6 +182,8 @@ def assert_invariant(*, config: FilterConfig, fail_safe: np.ndarray, x: np.ndarr
 
 @pytest.mark.parametrize('system', SYSTEMS)
 def test_core_filter_keeps_the_invariant(system: str) -> None:
+    """SafetyFilter on drawn configs: three calls on one filter, each at a drawn state with a
+    drawn proposal and disturbance box (no answer may depend on the one before)."""
     @PROPERTY
     @given(data=st.data())
     def check(data: st.DataObject) -> None:
@@ -222,6 +224,9 @@ def _sections(draw: st.DrawFn, n_x: int, n_u: int, x: np.ndarray) -> dict[str, n
 
 @pytest.mark.parametrize('system', SYSTEMS)
 def test_node_decisions_keep_the_invariant(system: str) -> None:
+    """The node's decision logic from raw message sections: proposals of any length and labels,
+    with or without their state, and a latest state sample that is valid, malformed or absent,
+    at any age."""
     @PROPERTY
     @given(data=st.data())
     def check(data: st.DataObject) -> None:
