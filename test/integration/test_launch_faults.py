@@ -13,7 +13,7 @@ import sys
 import threading
 import time
 
-from dds_harness import node_runtime  # this directory: on sys.path for pytest
+from dds_harness import end_process, node_runtime  # this directory: on sys.path for pytest
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
@@ -77,20 +77,11 @@ class Launch:
         try:
             code = self.process.wait(timeout=WAIT_S)
         except subprocess.TimeoutExpired:
-            _stop(self.process)
+            # SIGTERM: the launcher stops its children; SIGKILL as a last resort.
+            end_process(self.process, sig=signal.SIGTERM, timeout=30.0)
             pytest.fail(f'the launch did not stop:\n{self.output[-3000:]}')
         self._reader.join(timeout=5.0)
         return code
-
-
-def _stop(process: subprocess.Popen) -> None:
-    """SIGTERM a launcher that failed to stop (it stops its children), SIGKILL as a last resort."""
-    process.send_signal(signal.SIGTERM)
-    try:
-        process.wait(timeout=30.0)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
 
 
 def _last_line(output: str) -> str:

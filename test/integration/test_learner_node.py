@@ -8,12 +8,11 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-import signal
 import subprocess
 import sys
 import time
 
-from dds_harness import node_runtime  # this directory: on sys.path for pytest
+from dds_harness import end_process, node_runtime  # this directory: on sys.path for pytest
 import numpy as np
 import pytest
 import torch
@@ -39,13 +38,8 @@ def start(module: str, name: str, args: list[str], env: dict, log: Path) -> subp
 
 
 def stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    """SIGINT (if still running), SIGKILL after 10 s."""
+    end_process(proc, timeout=10)
 
 
 def test_learner_node_matches_the_in_process_trainer(tmp_path, ros_domain_id):
