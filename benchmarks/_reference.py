@@ -149,7 +149,7 @@ def reference_requested(parser: argparse.ArgumentParser, args: argparse.Namespac
         print('Reference comparison skipped: no --reference DIR given.', flush=True)
         return False
     if args.reference_python is None:
-        parser.error('--reference needs --reference-python (its venv, see the docstring)')
+        parser.error('--reference needs --reference-python (the python of its venv)')
     for value, least, message in minimums:
         if value < least:
             parser.error(message)
