@@ -8,8 +8,9 @@ and two ``.pth`` files stand in for what a stock machine has without network acc
 environment's site-packages (apt's colcon, numpy, PyYAML) and this checkout's virtual
 environment's (what ``pip install`` puts into the new one: torch, osqp, ...).
 
-Test modules make their ``overlay`` fixture with :func:`shared_overlay`: the first one builds the
-workspace, the others reuse it.
+Test modules make their ``overlay`` fixture with :func:`overlay_fixture` (on
+:func:`shared_overlay`): the first one builds the workspace, the others reuse it. They take
+``stop_group`` from here too.
 """
 from __future__ import annotations
 
@@ -24,7 +25,9 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / 'test'))
-from conftest import Jazzy  # noqa: E402
+from conftest import Jazzy, stop_group  # noqa: E402
+
+__all__ = ['Overlay', 'overlay_fixture', 'shared_overlay', 'stop_group', 'wait_for']
 
 PACKAGE_FILES = ('setup.py', 'setup.cfg', 'package.xml', 'README.md', 'constraints.txt')
 PACKAGE_DIRS = ('rcbf_ros', 'sim_nodes', 'config', 'launch', 'resource')
@@ -81,6 +84,14 @@ def shared_overlay(jazzy: Jazzy, tmp_path_factory: pytest.TempPathFactory) -> Ov
     if jazzy not in _BUILT:
         _BUILT[jazzy] = build_overlay(jazzy, tmp_path_factory.mktemp('ws'))
     return _BUILT[jazzy]
+
+
+def overlay_fixture() -> Callable[..., Overlay]:
+    """A module-scoped ``overlay`` fixture: ``overlay = overlay_fixture()`` in a test module."""
+    @pytest.fixture(scope='module', name='overlay')
+    def overlay(jazzy: Jazzy, tmp_path_factory: pytest.TempPathFactory) -> Overlay:
+        return shared_overlay(jazzy, tmp_path_factory)
+    return overlay
 
 
 def wait_for(check: Callable[[], str | None], timeout: float, what: str) -> str:

@@ -10,25 +10,15 @@ launchers show the same arguments and refuse the same bad value.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 import re
-import sys
 import textwrap
 
-from colcon_overlay import Overlay, shared_overlay
+from colcon_overlay import overlay_fixture, stop_group
 import pytest
 import yaml
 
 pytestmark = pytest.mark.ros2
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / 'test'))
-from conftest import stop_group  # noqa: E402
-
-
-@pytest.fixture(scope='module')
-def overlay(jazzy, tmp_path_factory) -> Overlay:
-    return shared_overlay(jazzy, tmp_path_factory)
-
+overlay = overlay_fixture()
 
 TOPICS = {'cmd_in': '/robot/nav_cmd', 'cmd_out': '/robot/base_cmd', 'odom': '/robot/odometry'}
 

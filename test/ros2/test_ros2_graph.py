@@ -12,7 +12,6 @@ import os
 from pathlib import Path
 import subprocess
 import sys
-import textwrap
 import time
 from typing import Callable
 
@@ -107,30 +106,11 @@ def test_ros2cli_lists_and_describes_nodes_on_our_runtime(jazzy: Jazzy, tmp_path
             stop_group(process)
 
 
-_RCLPY_TALKER = textwrap.dedent("""
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
-    from rclpy.node import Node
-    from std_msgs.msg import String
-    rclpy.init()
-    node = Node('jazzy_talker', namespace='/oracle')
-    node.create_publisher(String, 'chatter', 10)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-""")
-
-
 def test_our_runtime_sees_an_rclpy_node(jazzy: Jazzy, tmp_path: Path,
                                         ros_domain_id: int) -> None:
     from rcbf_ros.ros.dds.context import Context
     from rcbf_ros.ros.dds.node import Node
-    script = tmp_path / 'talker.py'
-    script.write_text(_RCLPY_TALKER)
+    script = REPO / 'test' / 'ros2' / 'rclpy_talker.py'
     talker = jazzy.start(f'exec "$(head -1 "$(command -v ros2)" | cut -c3-)" {script}',
                          domain_id=ros_domain_id, log=tmp_path / 'talker.log')
     context = Context()

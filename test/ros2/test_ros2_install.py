@@ -4,24 +4,15 @@ The overlay (:mod:`colcon_overlay`) follows README.md "On a ROS 2 Jazzy machine"
 """
 from __future__ import annotations
 
-from pathlib import Path
 import re
-import sys
 from typing import Callable
 
-from colcon_overlay import Overlay, shared_overlay, wait_for
+from colcon_overlay import Overlay, overlay_fixture, stop_group, wait_for
 import pytest
 import yaml
 
 pytestmark = pytest.mark.ros2
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / 'test'))
-from conftest import stop_group  # noqa: E402
-
-
-@pytest.fixture(scope='module')
-def overlay(jazzy, tmp_path_factory) -> Overlay:
-    return shared_overlay(jazzy, tmp_path_factory)
+overlay = overlay_fixture()
 
 
 def _param(overlay: Overlay, verb: str, node: str, names: str, domain_id: int

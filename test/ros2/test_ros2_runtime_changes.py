@@ -11,9 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 import sys
 import sysconfig
-import time
-from typing import Callable
 
+from colcon_overlay import wait_for
 import pytest
 
 pytestmark = pytest.mark.ros2
@@ -23,16 +22,7 @@ from conftest import stop_group  # noqa: E402
 
 OBSTACLES = ('ros2 topic pub --once -w 1 --qos-durability transient_local --qos-reliability '
              'reliable /obstacles std_msgs/msg/Float64MultiArray')
-
-
-def _until(check: Callable[[], str | None], what: str, timeout: float = 90.0) -> str:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        found = check()
-        if found is not None:
-            return found
-        time.sleep(1.0)
-    raise AssertionError(f'{what} did not happen in {timeout} s')
+WAIT_S = 90.0
 
 
 def test_ros2_param_set_and_topic_pub_change_the_running_filter(jazzy, tmp_path,
@@ -52,18 +42,18 @@ def test_ros2_param_set_and_topic_pub_change_the_running_filter(jazzy, tmp_path,
         return ros2(f'ros2 param {verb} --no-daemon /safety_filter {rest}')
 
     try:
-        _until(lambda: '' if 'Double value is: 2.0' in param('get', 'k_c') else None,
-               'the safety_filter answering ros2 param get')
+        wait_for(lambda: '' if 'Double value is: 2.0' in param('get', 'k_c') else None,
+                 WAIT_S, 'the safety_filter answering ros2 param get')
         refused = param('set', 'k_c -1.0')
         accepted = param('set', 'k_c 0.5')
         got = param('get', 'k_c')
         read_only = param('set', 'system pvtol')
         published = ros2(f'{OBSTACLES} "{{data: [2.85, 0.0, 0.6, 1.5, 1.5, 0.4]}}"')
-        moved = _until(lambda: (lambda out: out if '2.85' in out else None)(
-            param('get', 'obstacles.x')), 'obstacles.x from the obstacles topic')
+        moved = wait_for(lambda: (lambda out: out if '2.85' in out else None)(
+            param('get', 'obstacles.x')), WAIT_S, 'obstacles.x from the obstacles topic')
         ros2(f'{OBSTACLES} "{{data: [1.0, 2.0]}}"')
-        _until(lambda: '' if 'obstacles message refused' in log.read_text() else None,
-               'the ERROR of a malformed obstacles message')
+        wait_for(lambda: '' if 'obstacles message refused' in log.read_text() else None,
+                 WAIT_S, 'the ERROR of a malformed obstacles message')
         kept = param('get', 'obstacles.x')
         assert node.poll() is None, log.read_text()[-3000:]
     finally:
