@@ -11,7 +11,7 @@ odometry sources publish ``odom``, and ``cmd_vel_nav`` is the name Nav2's bringu
 controller's output. ``command_type``: twist (default), twist_stamped or array.
 ``params_file`` (default: the packaged ``config/unicycle.yaml``) holds the robot's model,
 obstacles and limits. The wiring comes from ``rcbf_ros.launch.table`` (``safety_filter``), the
-table ``rcbf_ros_launch safety_filter cmd_in:=...`` also starts without ROS.
+table ``rcbf_ros launch safety_filter cmd_in:=...`` also starts without ROS.
 """
 from rcbf_ros.launch.description import describe
 

@@ -6,7 +6,7 @@ The simulator stands in for a robot (nav_msgs/Odometry on ``odom``, Twist veloci
 ``cmd_out``), the nominal controller drives straight at the goal (Twist on ``cmd_in``), and the
 safety filter sits between them exactly as ``safety_filter.launch.py`` puts it in front of a
 real robot, with the same arguments; the recorder writes every topic to MCAP. The nodes come
-from ``rcbf_ros.launch.table`` (``unicycle_robot``), the table ``rcbf_ros_launch
+from ``rcbf_ros.launch.table`` (``unicycle_robot``), the table ``rcbf_ros launch
 unicycle_robot`` also starts without ROS.
 """
 from rcbf_ros.launch.description import describe

@@ -1,6 +1,6 @@
 """Offline re-filtering of a recorded run: the safety filter with another YAML, no DDS.
 
-    python -m rcbf_ros.bag.refilter SOURCE_BAG OUTPUT_BAG --params-file F [--node N]
+    rcbf_ros refilter SOURCE_BAG OUTPUT_BAG --params-file F [--node N]
 
 Reads ``/cmd_proposed`` and ``/state`` from a bag in log-time order, filters every proposal
 with a :class:`~rcbf_ros.core.filter.SafetyFilter` built from the NEW parameters, and writes a

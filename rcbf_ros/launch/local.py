@@ -27,7 +27,7 @@ Examples::
     rcbf_ros launch unicycle_filter --domain-id 7 -p simulator:max_episodes:=1
     rcbf_ros launch safety_filter cmd_in:=/my_controller/cmd_vel cmd_out:=/cmd_vel odom:=/odom
 
-The console script ``rcbf_ros_launch`` is the same command (its name in messages and usage).
+The console script ``rcbf_ros launch`` is the same command (its name in messages and usage).
 """
 from __future__ import annotations
 
@@ -188,7 +188,7 @@ def _pump(name: str, stream: IO[bytes], sink: IO[str], lock: threading.Lock) -> 
 def _default_sigint() -> None:
     """Runs in each child between fork and exec: SIGINT back to its default.
 
-    A shell starts a background job (``rcbf_ros_launch ... &``, CI runners, ``nohup``) with
+    A shell starts a background job (``rcbf_ros launch ... &``, CI runners, ``nohup``) with
     SIGINT ignored, and an ignored signal stays ignored across exec; Python then never installs
     its KeyboardInterrupt handler. Our nodes install their own handlers (rclpy.init), but any
     other child would sit out our SIGINT and only stop at the SIGTERM escalation, skipping its
@@ -362,7 +362,7 @@ def _seconds(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog='rcbf_ros_launch', description=__doc__.split('\n\n')[0],
+        prog='rcbf_ros launch', description=__doc__.split('\n\n')[0],
         epilog='launches: ' + '; '.join(f'{s.name}: {s.description}'
                                         for s in LAUNCHES.values()))
     parser.add_argument('launch', choices=sorted(LAUNCHES), help='which launch to run')
@@ -402,7 +402,7 @@ def show_arguments(setup: LaunchSetup) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``rcbf_ros launch`` (console script ``rcbf_ros_launch``); returns the launch's exit code."""
+    """``rcbf_ros launch`` (console script ``rcbf_ros launch``); returns the launch's exit code."""
     args = build_parser().parse_intermixed_args(argv)
     setup = launch_setup(args.launch)
     if args.show_args:
@@ -415,7 +415,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError(f'the params file is given twice: --params-file '
                              f'{args.params_file!r} and {PARAMS_FILE_ARGUMENT}:={named_file!r}')
     except ValueError as exc:
-        print(f'rcbf_ros_launch: {exc}', file=sys.stderr)
+        print(f'rcbf_ros launch: {exc}', file=sys.stderr)
         return 2
     params_file = (named_file if named_file is not None
                    else args.params_file or str(find_config(setup.config)))
@@ -431,7 +431,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                   without=args.without, arguments=given)
         env = child_environment(os.environ, domain_id=domain_id)
     except ValueError as exc:
-        print(f'rcbf_ros_launch: {exc}', file=sys.stderr)
+        print(f'rcbf_ros launch: {exc}', file=sys.stderr)
         return 2
     if args.sigint_timeout is not None:
         children = [replace(child, sigint_timeout_s=args.sigint_timeout) for child in children]
@@ -445,7 +445,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         stop.set()
 
     # SIGINT explicitly, not Python's KeyboardInterrupt: a shell starts a background job
-    # (``rcbf_ros_launch ... &``) with SIGINT ignored, and Python then installs no handler.
+    # (``rcbf_ros launch ... &``) with SIGINT ignored, and Python then installs no handler.
     previous = {signum: signal.signal(signum, on_signal)
                 for signum in (signal.SIGINT, signal.SIGTERM)}
     try:

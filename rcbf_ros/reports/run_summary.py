@@ -246,8 +246,8 @@ def trajectory_line(bag: Path, png: Path, *, params_file: str | None = None) -> 
     return f'trajectories: {picture.path}{closest}'
 
 
-USAGE = 'usage: python -m rcbf_ros.reports.run_summary <run directory> [--params-file <yaml>]'
-"""The command's usage line (it is also ``rcbf_ros summary``)."""
+USAGE = 'usage: rcbf_ros summary <run directory> [--params-file <yaml>]'
+"""The command's usage line (``python -m rcbf_ros.reports.run_summary`` takes the same)."""
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,10 +1,10 @@
-"""The drop-in safety filter as a user starts it: ``rcbf_ros_launch safety_filter`` and the demo.
+"""The drop-in safety filter as a user starts it: ``rcbf_ros launch safety_filter`` and the demo.
 
-- ``rcbf_ros_launch safety_filter`` with the robot's own topic names (not the defaults): the
+- ``rcbf_ros launch safety_filter`` with the robot's own topic names (not the defaults): the
   test is the robot and its controller (nav_msgs/Odometry and geometry_msgs/Twist in), and a
   Twist comes out on the robot's velocity input only: unchanged far from the obstacles, slowed
   down heading into one;
-- ``rcbf_ros_launch unicycle_robot``: the simulated robot moves, the filter corrects the
+- ``rcbf_ros launch unicycle_robot``: the simulated robot moves, the filter corrects the
   go-to-goal controller at least once, and no recorded Odometry lies inside an obstacle of the
   config.
 """

@@ -1,4 +1,4 @@
-"""rcbf_ros_launch with real nodes over loopback DDS when something goes wrong: a bad params file,
+"""rcbf_ros launch with real nodes over loopback DDS when something goes wrong: a bad params file,
 a recorder that cannot record, a sibling SIGKILLed, SIGINT to a launcher started in the
 background. Every case ends with the right exit code and without a traceback."""
 from __future__ import annotations
@@ -99,7 +99,7 @@ def test_a_missing_params_file_is_refused_before_anything_starts(tmp_path, ros_d
     assert result.returncode == 2
     assert result.stdout == ''  # not one node line, not even the launcher's summary
     assert result.stderr.splitlines() == [
-        f"rcbf_ros_launch: --params-file '{tmp_path / 'missing.yaml'}': "
+        f"rcbf_ros launch: --params-file '{tmp_path / 'missing.yaml'}': "
         'No such file or directory']
 
 

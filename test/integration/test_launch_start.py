@@ -1,6 +1,6 @@
 """The filter launch starts its first episode once the loop listens, and records its start.
 
-``rcbf_ros_launch unicycle_filter`` runs with its nominal controller started two seconds after
+``rcbf_ros launch unicycle_filter`` runs with its nominal controller started two seconds after
 the simulator is up (a proposer that is slow to start, as the learner is while it loads torch).
 The simulator must hold the first state until the controller listens (no "no cmd_safe within"
 warning, no warning at all), and the bag must begin with the first episode's start event.

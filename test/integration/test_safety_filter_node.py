@@ -5,7 +5,7 @@
 - the node behind a remapped proposal topic, and in Twist mode;
 - invalid parameters: the process exits with status 2 and names the key;
 - closed loop (slow): simulator + deliberately unsafe nominal controller + safety_filter
-  (+ recorder) started by rcbf_ros_launch, >= 2000 lock-step steps into the obstacles: zero
+  (+ recorder) started by rcbf_ros launch, >= 2000 lock-step steps into the obstacles: zero
   violations of any true clearance h_i, and u_safe == u_RL wherever no row is active.
 """
 from __future__ import annotations

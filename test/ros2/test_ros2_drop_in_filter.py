@@ -129,7 +129,7 @@ def test_the_demo_launch_runs_its_episode_on_launch_ros(overlay, tmp_path,
 
 @pytest.mark.parametrize('name', ['safety_filter', 'unicycle_robot'])
 def test_both_launchers_show_the_same_arguments(overlay, name, capsys):
-    """``ros2 launch ... --show-args`` and ``rcbf_ros_launch ... --show-args``: the same names,
+    """``ros2 launch ... --show-args`` and ``rcbf_ros launch ... --show-args``: the same names,
     defaults (params_file aside: a path on one, the packaged file named on the other) and
     choices; a value outside the choices refused by both."""
     from rcbf_ros.launch import local as launch_local

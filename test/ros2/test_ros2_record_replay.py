@@ -1,6 +1,6 @@
 """A bag that real rosbag2 records of a running filter launch, read by our replay and refilter.
 
-``ros2 bag record`` (Jazzy, MCAP) records ``rcbf_ros_launch unicycle_filter`` running on our
+``ros2 bag record`` (Jazzy, MCAP) records ``rcbf_ros launch unicycle_filter`` running on our
 runtime (short episodes). Then our replay node plays the bag to an rclpy subscriber, and
 ``rcbf_ros_refilter`` filters its proposals again; what comes out is checked against what the
 bag holds (read with rosbags) and, for refilter, against the barriers (the QP rows evaluated

@@ -200,11 +200,11 @@ def test_main_takes_launch_arguments_as_ros2_launch_does(capsys):
 
 
 @pytest.mark.parametrize('arguments, message', [
-    (['cmd_inn:=/x', 'foo:=1'], 'rcbf_ros_launch: safety_filter: unknown launch argument(s) '
+    (['cmd_inn:=/x', 'foo:=1'], 'rcbf_ros launch: safety_filter: unknown launch argument(s) '
                                 'cmd_inn, foo (arguments: cmd_in, cmd_out, odom, command_type, '
                                 'params_file)'),
-    (['cmd_in=/x'], "rcbf_ros_launch: launch argument 'cmd_in=/x': expected name:=value"),
-    (['command_type:=Twist'], "rcbf_ros_launch: safety_filter: launch argument "
+    (['cmd_in=/x'], "rcbf_ros launch: launch argument 'cmd_in=/x': expected name:=value"),
+    (['command_type:=Twist'], "rcbf_ros launch: safety_filter: launch argument "
                               "command_type:='Twist' is not one of twist, twist_stamped, array"),
     (['--params-file', 'a.yaml', 'params_file:=b.yaml'], 'the params file is given twice'),
     (['params_file:='], "--params-file '': "),
@@ -558,7 +558,7 @@ def test_a_bad_params_file_is_refused_in_one_line_before_any_node_starts(tmp_pat
         assert captured.out == ''
         lines = captured.err.splitlines()
         assert len(lines) == 1, captured.err
-        assert lines[0].startswith('rcbf_ros_launch: --params-file')
+        assert lines[0].startswith('rcbf_ros launch: --params-file')
         assert str(path) in lines[0] and BAD_PARAMS[kind][1] in lines[0]
 
 

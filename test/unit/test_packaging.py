@@ -14,8 +14,9 @@ import xml.etree.ElementTree as ET
 REPO = Path(__file__).resolve().parents[2]
 SOURCES = [*(REPO / 'rcbf_ros').rglob('*.py'), *(REPO / 'sim_nodes').rglob('*.py'),
            *(REPO / 'launch').glob('*.py')]
-# Our Cyclone runtime names messages for itself; it never runs on ROS.
-FALLBACK = REPO / 'rcbf_ros' / 'ros' / 'dds'
+# Our Cyclone runtime and the middleware-free message classes name messages for themselves
+# (e.g. the defaults Jazzy's .msg files declare); on ROS the nodes use rclpy's own classes.
+FALLBACK = (REPO / 'rcbf_ros' / 'ros' / 'dds', REPO / 'rcbf_ros' / 'messages' / 'classes.py')
 ROS_PYTHON_PACKAGES = {'rclpy', 'rcl_interfaces', 'rosidl_runtime_py', 'ament_index_python',
                        'launch', 'launch_ros', 'launch_testing', 'rosbag2_py', 'ros2cli'}
 TYPE_NAME = re.compile(r'^([a-z][a-z0-9_]*(?:_msgs|_interfaces))/(?:msg/)?[A-Z][A-Za-z0-9]*$')
@@ -69,7 +70,7 @@ def _ros_names_used() -> dict[str, set[str]]:
     """ROS package -> the files that import it or name one of its message types."""
     used: dict[str, set[str]] = {}
     for path in SOURCES:
-        if path.is_relative_to(FALLBACK):
+        if any(path.is_relative_to(part) for part in FALLBACK):
             continue
         tree = ast.parse(path.read_text(), filename=str(path))
         for node in ast.walk(tree):

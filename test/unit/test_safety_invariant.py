@@ -5,12 +5,13 @@ The invariant: what the filter returns is either
 (b) exactly the configured fail-safe action, flagged, with a reason.
 
 It is checked in the three places a command can come from: the core filter
-(:class:`SafetyFilter`), the node's decision logic (:func:`filter_logic.decide`, from raw message
-sections) and the offline re-filter (:func:`refilter_bag`, read back from its output bag). The
-oracle evaluates the rows itself: h, grad h, f and g at the state from the barrier and system
-definitions, the robust margin grad h^T mean - k_c |grad h|^T std written out here in numpy,
-then L_f h + L_g h u + alpha h + rho at the returned command. It never looks at the filter's QP
-data or the solver's answer.
+(:class:`SafetyFilter`), the node's decision logic
+(:func:`rcbf_ros.node_logic.safety_filter.decide`, from raw message sections) and the offline
+re-filter (:func:`refilter_bag`, read back from its output bag). The oracle evaluates the rows
+itself: h, grad h, f and g at the state from the barrier and system definitions, the robust
+margin grad h^T mean - k_c |grad h|^T std written out here in numpy, then L_f h + L_g h u +
+alpha h + rho at the returned command. It never looks at the filter's QP data or the solver's
+answer.
 
 Inputs: all three systems; configs drawn at random within their valid ranges (obstacle layouts,
 gains, input weights, limits, fail-safe actions); states inside, on and outside the safe set and

@@ -317,4 +317,4 @@ def test_summary_of_a_run_directory_ends_with_its_picture(tmp_path, capsys):
     assert lines[-1].startswith(f'trajectories: {run / "trajectories.png"}; closest approach ')
     assert main([str(run), '--params-file', str(find_config('unicycle'))]) == 0
     assert main([str(run), '--params']) == 2
-    assert 'usage: python -m rcbf_ros.reports.run_summary' in capsys.readouterr().err
+    assert 'usage: rcbf_ros summary' in capsys.readouterr().err
