@@ -124,8 +124,7 @@ def main() -> None:
             'transitions; the model-based row also holds a model buffer of N rows. A training '
             f'step took {1e3 * step_s:.1f} ms here (mean of {stats.steps} steps with updates), '
             f'so a 1000-step episode about {episode_s:.0f} s: a checkpoint after every episode '
-            '(the default, `--checkpoint-every 1`) costs the last column. (The Training speed '
-            "section's diff rate, 35 steps/s, gives 29 s episodes: at most 0.7 %.)")
+            '(the default, `--checkpoint-every 1`) costs the last column.')
     publish_section('Checkpoint cost', script='bench_checkpoint.py', blocks=[note, rows],
                     write=not args.no_write)
 

@@ -4,7 +4,7 @@
         [--reference DIR --reference-python PATH [--reference-calls 400]]
 
 The shipped problems (config/unicycle.yaml, car_following.yaml, pvtol.yaml, the safety_filter
-section), then the two problems of this benchmark's earlier runs (see PROBLEMS), at random
+section), then two denser problems (see PROBLEMS), at random
 states inside the safe set (every barrier >= 0), proposals uniform in the input box (Car
 following, unbounded: in [-5, 5]) and a disturbance box std 0.02. The calls go in --rounds
 blocks, each block through the three filters one after the other (consecutive calls on one
@@ -115,13 +115,13 @@ def _cars_platoon(n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def _unicycle_ring(n: int, rng: np.random.Generator) -> np.ndarray:
-    """The earlier runs' states: inside the ring of 8 obstacles."""
+    """States inside a ring of 8 obstacles."""
     r, a = rng.uniform(0.3, 1.5, n), rng.uniform(0, 2 * np.pi, n)
     return np.stack([r * np.cos(a), r * np.sin(a), rng.uniform(-np.pi, np.pi, n)], 1)
 
 
 def _pvtol_centre(n: int, rng: np.random.Generator) -> np.ndarray:
-    """The earlier runs' states: near the origin, hovering."""
+    """States near the origin, hovering."""
     return np.concatenate([rng.uniform(-0.5, 0.5, (n, 2)), rng.normal(0, 0.5, (n, 2)),
                            rng.normal(0, 0.2, (n, 1)), rng.uniform(0.8, 1.2, (n, 1)),
                            rng.uniform(-0.3, 0.3, (n, 1))], 1)
@@ -136,11 +136,11 @@ PROBLEMS: tuple[tuple[str, Sampler, Callable[[], dict]], ...] = (
     ('unicycle', _unicycle_arena, _shipped('unicycle')),
     ('car_following', _cars_platoon, _shipped('car_following')),
     ('pvtol', _pvtol_arena, _shipped('pvtol')),
-    ('unicycle-8 (earlier runs)', _unicycle_ring, unicycle_params),
-    ('pvtol-9 (earlier runs)', _pvtol_centre, pvtol_params),
+    ('unicycle-8 ring', _unicycle_ring, unicycle_params),
+    ('pvtol-9 hover', _pvtol_centre, pvtol_params),
 )
-"""(label, state sampler, flat parameters): the shipped configs, then the problems and states
-of the earlier runs of this benchmark (benchmarks/_problems.py: a ring of 8 obstacles; 9
+"""(label, state sampler, flat parameters): the shipped configs, then two denser
+problems (benchmarks/_problems.py: a ring of 8 obstacles; 9
 obstacles and the quadratic operator band, without the envelope)."""
 
 
