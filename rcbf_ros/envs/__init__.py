@@ -1,12 +1,15 @@
 """The simulated systems as plain Python (Gymnasium API): Unicycle, Car Following, PVTOL.
 
-No ROS, no file I/O: build an env from flat parameters, e.g.
-``UnicycleEnv(load_params(find_config('unicycle'), 'simulator'))``, or through Gymnasium's
-registry once this package is imported: ``gymnasium.make('rcbf_ros/Unicycle-v0', params=...)``
-(ids in :data:`GYMNASIUM_IDS`; keyword arguments go to the env's constructor).
+No ROS, no file I/O. :func:`make_env` is the one way the package builds an env: from a
+built-in system name (:data:`ENVS`) or the dotted path of a :class:`SafetyEnv` subclass, plus
+flat parameters, e.g. ``make_env('unicycle', load_params(find_config('unicycle'),
+'simulator'))``. The built-ins are also in Gymnasium's registry once this package is imported:
+``gymnasium.make('rcbf_ros/Unicycle-v0', params=...)`` (ids in :data:`GYMNASIUM_IDS`; keyword
+arguments go to the env's constructor).
 """
 from __future__ import annotations
 
+import importlib
 from typing import Any, Mapping
 
 import gymnasium
@@ -36,16 +39,38 @@ for _system, _id in GYMNASIUM_IDS.items():
         gymnasium.register(_id, entry_point=ENVS[_system])
 
 
-def make_env(system: str, params: Mapping[str, Any] | None = None, **overrides: Any) -> SafetyEnv:
-    """The env of ``system`` built from flat parameters and keyword overrides.
+def env_class(system: str) -> type[SafetyEnv]:
+    """The env class of a built-in system name or of a dotted path ``package.module.Class``.
 
     Raises:
-        ValueError: naming ``system`` when it is not one of :data:`ENVS`.
+        ValueError: naming ``system`` when the name is unknown, the path cannot be imported or
+            does not name a :class:`SafetyEnv` subclass.
     """
-    if system not in ENVS:
-        raise ValueError(f'system: no simulator for {system!r}; choose one of {sorted(ENVS)}')
-    return ENVS[system](params, **overrides)
+    if system in ENVS:
+        return ENVS[system]
+    if '.' not in system:
+        raise ValueError(f'system: no simulator for {system!r}; choose one of {sorted(ENVS)} '
+                         'or give the dotted path of a SafetyEnv class')
+    module_name, _, name = system.rpartition('.')
+    try:
+        found = getattr(importlib.import_module(module_name), name)
+    except (ImportError, AttributeError) as exc:
+        raise ValueError(f'system: cannot import {system!r}: {exc}') from None
+    if not (isinstance(found, type) and issubclass(found, SafetyEnv)):
+        raise ValueError(f'system: {system!r} is not a subclass of '
+                         'rcbf_ros.envs.base.SafetyEnv')
+    return found
 
 
-__all__ = ['CarFollowingEnv', 'ENVS', 'GYMNASIUM_IDS', 'make_env', 'PVTOLEnv', 'SafetyEnv',
-           'UnicycleEnv']
+def make_env(system: str, params: Mapping[str, Any] | None = None, **overrides: Any) -> SafetyEnv:
+    """The env of ``system`` (see :func:`env_class`) built from flat parameters and keyword
+    overrides (``a__b=...`` sets ``a.b``).
+
+    Raises:
+        ValueError: naming ``system`` (see :func:`env_class`), or the parameter the env refuses.
+    """
+    return env_class(system)(params, **overrides)
+
+
+__all__ = ['CarFollowingEnv', 'env_class', 'ENVS', 'GYMNASIUM_IDS', 'make_env', 'PVTOLEnv',
+           'SafetyEnv', 'UnicycleEnv']

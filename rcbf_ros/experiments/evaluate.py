@@ -38,11 +38,12 @@ import torch
 
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.envs import make_env
 from rcbf_ros.experiments.metrics import episode_ending, episode_tail
 from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
-from rcbf_ros.training.loop import build_run, make_env, RunConfig, write_jsonl
+from rcbf_ros.training.loop import build_run, RunConfig, write_jsonl
 from rcbf_ros.training.run_files import load_payload
 
 GPSource = Literal['learned', 'prior']

@@ -275,10 +275,11 @@ def transfer_paths_report(specs: Sequence[RunSpec], root: str | Path, report_dir
     transfer evaluation runs it) on the first :data:`PATH_LAYOUTS` transfer layouts, one
     picture per layout (:func:`rcbf_ros.reports.plots.plot_trajectories`); returns markdown."""
     from rcbf_ros.core.scene import scene_geometry
+    from rcbf_ros.envs import make_env
     from rcbf_ros.experiments.evaluate import evaluate_layout, load_trained_learner
     from rcbf_ros.parameters.rules import find_config, load_params
     from rcbf_ros.reports.plots import plot_trajectories
-    from rcbf_ros.training.loop import episode_path, make_env
+    from rcbf_ros.training.loop import episode_path
     lines = ['## Transfer paths', '',
              "Each method's deterministic policy (its first seed) on the first transfer "
              "layouts, with the filter of that layout, as in the table above: the true "

@@ -19,9 +19,9 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from rcbf_ros.envs import make_env
 from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.training.agent import SafeLearner
-from rcbf_ros.training.loop import make_env
 from rcbf_ros.training.models import unicycle_models
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import asdict, dataclass, field, replace
-import importlib
 import json
 import math
 from pathlib import Path
@@ -45,6 +44,7 @@ from rcbf_ros.core.config import (
 )
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.core.filter_info import info_sections
+from rcbf_ros.envs import make_env
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
 from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
@@ -60,12 +60,6 @@ from rcbf_ros.training.run_files import (
     save_payload,
 )
 from rcbf_ros.training.run_files import write_jsonl as write_jsonl  # re-exported
-
-ENV_CLASSES = {
-    'unicycle': 'rcbf_ros.envs.unicycle.UnicycleEnv',
-    'car_following': 'rcbf_ros.envs.car_following.CarFollowingEnv',
-    'pvtol': 'rcbf_ros.envs.pvtol.PVTOLEnv',
-}
 
 
 @dataclass(frozen=True)
@@ -111,14 +105,6 @@ class RunConfig:
 
 class RunSetupError(ValueError):
     """The run cannot start: a bad config file, parameter or setting (the message names it)."""
-
-
-def make_env(system: str, params: dict[str, Any]) -> Any:
-    """The Gymnasium env of ``system`` built from flat parameters."""
-    if system not in ENV_CLASSES:
-        raise ValueError(f'system: expected one of {sorted(ENV_CLASSES)}, got {system!r}')
-    module_name, _, cls_name = ENV_CLASSES[system].rpartition('.')
-    return getattr(importlib.import_module(module_name), cls_name)(params)
 
 
 def policy_limits(params: Mapping[str, Any]) -> dict[str, tuple[float, ...]]:

@@ -12,9 +12,9 @@ import torch
 
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.envs import make_env
 from rcbf_ros.envs.nominal import cars_accelerate
 from rcbf_ros.parameters.rules import find_config, load_params
-from rcbf_ros.training.loop import make_env
 
 
 def _env_and_filter():

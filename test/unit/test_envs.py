@@ -210,3 +210,25 @@ def test_registered_with_gymnasium_and_passes_its_checker(system):
     action = ours.action_space.sample() if np.isfinite(ours.action_space.high).all() else \
         np.zeros(ours.action_space.shape)
     np.testing.assert_array_equal(env.step(action)[0], ours.step(action)[0])
+
+
+def test_make_env_takes_a_dotted_path_as_well_as_a_name():
+    """One registry: a built-in name and the dotted path of its class build the same env."""
+    params = sim_params('pvtol')
+    by_name = make_env('pvtol', params)
+    by_path = make_env('rcbf_ros.envs.pvtol.PVTOLEnv', params)
+    assert type(by_path) is type(by_name) is ENVS['pvtol']
+    np.testing.assert_array_equal(by_path.reset(seed=5)[0], by_name.reset(seed=5)[0])
+    action = np.array([0.3, -0.2])
+    np.testing.assert_array_equal(by_path.step(action)[0], by_name.step(action)[0])
+
+
+@pytest.mark.parametrize('system, match', [
+    ('segway', "no simulator for 'segway'"),
+    ('rcbf_ros.envs.nowhere.Env', "cannot import 'rcbf_ros.envs.nowhere.Env'"),
+    ('rcbf_ros.envs.unicycle.Missing', "cannot import 'rcbf_ros.envs.unicycle.Missing'"),
+    ('rcbf_ros.core.dynamics.Unicycle', 'not a subclass of rcbf_ros.envs.base.SafetyEnv'),
+])
+def test_make_env_names_the_system_it_cannot_build(system, match):
+    with pytest.raises(ValueError, match=f'^system: .*{match}'):
+        make_env(system, sim_params('unicycle'))

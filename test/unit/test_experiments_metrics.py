@@ -257,6 +257,7 @@ def _dist(a, b) -> float:
 def test_the_200_transfer_layouts_follow_the_rules_and_reach_the_filter():
     """The evaluation's env with layout_seed s runs unicycle_random_layout(s) (rules hold for
     all 200 seeds) and hands exactly those barrier circles to the filter."""
+    from rcbf_ros.envs import make_env
     from rcbf_ros.envs.layouts import (
         PVTOL_GOAL,
         pvtol_random_layout,
@@ -266,7 +267,6 @@ def test_the_200_transfer_layouts_follow_the_rules_and_reach_the_filter():
         UNICYCLE_STARTS,
     )
     from rcbf_ros.parameters.rules import find_config, load_params
-    from rcbf_ros.training.loop import make_env
     params = load_params(find_config('unicycle'), 'simulator')
     for seed in range(200):
         layout = unicycle_random_layout(seed)

@@ -14,13 +14,13 @@ import pytest
 import torch
 
 from rcbf_ros.cli.main import main as cli_main
+from rcbf_ros.envs import make_env
 from rcbf_ros.envs.layouts import unicycle_random_layout
 from rcbf_ros.experiments.definitions import Budget, BUDGETS, RunSpec
 from rcbf_ros.experiments.evaluate import evaluate_transfer, load_trained_learner
 from rcbf_ros.experiments.metrics import ENDINGS
 from rcbf_ros.experiments.runner import run_all, run_status
 from rcbf_ros.parameters.rules import find_config, load_params
-from rcbf_ros.training.loop import make_env
 
 PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
 

@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from rcbf_ros.cli.main import main as cli_main
+from rcbf_ros.envs import make_env
 from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig
-from rcbf_ros.training.loop import make_env, RunConfig, train
+from rcbf_ros.training.loop import RunConfig, train
 from rcbf_ros.training.models import MODELS
 from rcbf_ros.training.run_files import load_payload
 

@@ -271,11 +271,11 @@ def test_mismatched_paths_are_refused():
 
 
 def test_experiment_report_draws_every_method_on_the_first_transfer_layouts(tmp_path):
+    from rcbf_ros.envs import make_env
     from rcbf_ros.experiments.definitions import Budget, METHODS, RunSpec
     from rcbf_ros.experiments.evaluate import evaluate_transfer
     from rcbf_ros.experiments.report import transfer_paths_report
     from rcbf_ros.experiments.runner import run_all
-    from rcbf_ros.training.loop import make_env
     budget = Budget(name='tiny', episodes={'unicycle': 1}, max_steps={'unicycle': 30},
                     start_steps=10, update_after=10, batch_size=8, gp_refit_interval=20,
                     hidden_sizes=(8, 8), record_bag=False)
