@@ -49,7 +49,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from rcbf_ros.training.agent import LearnerConfig  # noqa: E402
-from rcbf_ros.training.loop import build_run, RunConfig  # noqa: E402
+from rcbf_ros.training.build import build_run, RunConfig  # noqa: E402
 
 torch.set_num_threads(1)
 

@@ -29,7 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._results import publish_section  # noqa: E402
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner  # noqa: E402
-from rcbf_ros.training.loop import build_run, run_episode, RunConfig  # noqa: E402
+from rcbf_ros.training.build import build_run, RunConfig  # noqa: E402
+from rcbf_ros.training.episodes import run_episode  # noqa: E402
 from rcbf_ros.training.run_files import load_payload, save_payload  # noqa: E402
 
 torch.set_num_threads(1)

@@ -65,7 +65,7 @@ import numpy as np
 import torch
 
 from rcbf_ros.training.agent import LearnerConfig
-from rcbf_ros.training.loop import build_run, RunConfig
+from rcbf_ros.training.build import build_run, RunConfig
 
 torch.set_num_threads(1)
 

@@ -74,7 +74,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 def run_train(args: argparse.Namespace) -> int:
     """Run ``rcbf_ros train``: 0, 2 on bad arguments or output directory, 130 on Ctrl-C or
     SIGTERM (checkpoint, bag and plot written)."""
-    from rcbf_ros.training.loop import check_out_dir, RunConfig, RunSetupError, summarize, train
+    from rcbf_ros.training.build import RunConfig, RunSetupError
+    from rcbf_ros.training.loop import check_out_dir, train
+    from rcbf_ros.training.progress import summarize
     try:
         learner = LearnerConfig(**_learner_overrides(args),
                                 sac=SACConfig(initial_alpha=args.initial_alpha))

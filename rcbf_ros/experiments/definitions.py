@@ -26,7 +26,7 @@ from typing import Any, Sequence
 
 from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.training.agent import LearnerConfig
-from rcbf_ros.training.loop import RunConfig
+from rcbf_ros.training.build import RunConfig
 
 EXPERIMENTS: tuple[str, ...] = ('sample_efficiency', 'transfer', 'value_maps')
 """Experiment names (``all`` runs every one)."""

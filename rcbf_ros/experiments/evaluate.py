@@ -43,8 +43,8 @@ from rcbf_ros.experiments.metrics import episode_ending, episode_tail
 from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
-from rcbf_ros.training.loop import build_run, RunConfig, write_jsonl
-from rcbf_ros.training.run_files import load_payload
+from rcbf_ros.training.build import build_run, RunConfig
+from rcbf_ros.training.run_files import load_payload, write_jsonl
 
 GPSource = Literal['learned', 'prior']
 

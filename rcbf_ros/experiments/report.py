@@ -279,7 +279,7 @@ def transfer_paths_report(specs: Sequence[RunSpec], root: str | Path, report_dir
     from rcbf_ros.experiments.evaluate import evaluate_layout, load_trained_learner
     from rcbf_ros.parameters.rules import find_config, load_params
     from rcbf_ros.reports.plots import plot_trajectories
-    from rcbf_ros.training.loop import episode_path
+    from rcbf_ros.training.pictures import episode_path
     lines = ['## Transfer paths', '',
              "Each method's deterministic policy (its first seed) on the first transfer "
              "layouts, with the filter of that layout, as in the table above: the true "

@@ -47,13 +47,10 @@ from rcbf_ros.node_logic.interface import declarations, NodeInterface, Parameter
 from rcbf_ros.ros.node_main import request_stop, run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.agent import LearnerConfig, policy_box, SafeLearner
-from rcbf_ros.training.loop import (
-    CriticCheck,
-    format_progress,
-    policy_limits,
-    summarize,
-)
+from rcbf_ros.training.build import policy_limits
+from rcbf_ros.training.episodes import CriticCheck
 from rcbf_ros.training.policy_io import save_policy
+from rcbf_ros.training.progress import format_progress, summarize
 from rcbf_ros.training.run_files import (
     append_row,
     DEFAULT_CHECKPOINT_EVERY,

@@ -21,7 +21,8 @@ from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.parameters.rules import find_config
 from rcbf_ros.ros.loopback import LOOPBACK_CYCLONEDDS_URI
 from rcbf_ros.training.agent import LearnerConfig
-from rcbf_ros.training.loop import RunConfig, train
+from rcbf_ros.training.build import RunConfig
+from rcbf_ros.training.loop import train
 from rcbf_ros.training.run_files import load_payload
 
 pytestmark = pytest.mark.integration

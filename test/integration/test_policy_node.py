@@ -10,7 +10,8 @@ import pytest
 
 from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.training.agent import LearnerConfig
-from rcbf_ros.training.loop import RunConfig, train
+from rcbf_ros.training.build import RunConfig
+from rcbf_ros.training.loop import train
 from rcbf_ros.training.policy_io import load_policy
 
 pytestmark = pytest.mark.integration

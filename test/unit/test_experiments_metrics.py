@@ -169,7 +169,7 @@ def test_overrides_rename_the_budget_so_runs_never_mix():
 
 
 def test_the_input_box_is_a_budget_of_its_own_and_reaches_the_learner(tmp_path):
-    from rcbf_ros.training.loop import resolve_run
+    from rcbf_ros.training.build import resolve_run
     box = BUDGETS['paper'].with_overrides(episodes=12, policy_box='inputs')
     assert box.name == 'paper-e12-box_inputs'
     assert BUDGETS['paper'].with_overrides(policy_box='config').name == 'paper'

@@ -206,7 +206,7 @@ def test_a_noise_far_below_the_signal_costs_no_accuracy_near_the_data():
 def test_the_learners_proposal_carries_the_gp_estimate_at_the_state(tmp_path):
     from rcbf_ros.learning.sac import SACConfig
     from rcbf_ros.training.agent import LearnerConfig
-    from rcbf_ros.training.loop import build_run, RunConfig
+    from rcbf_ros.training.build import build_run, RunConfig
     run = RunConfig(system='car_following', episodes=1, max_steps=100, record_bag=False,
                     out_dir=str(tmp_path / 'run'),
                     learner=LearnerConfig(mode='baseline', seed=0, start_steps=10,

@@ -16,7 +16,8 @@ import torch
 
 from rcbf_ros.cli.main import main as cli_main
 from rcbf_ros.training import loop
-from rcbf_ros.training.loop import RunConfig, RunSetupError, train
+from rcbf_ros.training.build import RunConfig, RunSetupError
+from rcbf_ros.training.loop import train
 from rcbf_ros.training.run_files import (
     check_plain,
     load_payload,

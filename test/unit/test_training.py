@@ -13,7 +13,8 @@ from rcbf_ros.envs import make_env
 from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig
-from rcbf_ros.training.loop import RunConfig, train
+from rcbf_ros.training.build import RunConfig
+from rcbf_ros.training.loop import train
 from rcbf_ros.training.models import MODELS
 from rcbf_ros.training.run_files import load_payload
 
@@ -40,11 +41,11 @@ def test_every_mode_trains_without_safety_violations(tmp_path, system, mode):
 
 
 def test_model_based_diff_adds_synthetic_transitions(tmp_path):
-    from rcbf_ros.training.loop import build_run
+    from rcbf_ros.training.build import build_run
     run = small_run(tmp_path, 'unicycle', 'diff', model_based=True, rollout_interval=50,
                     rollouts=16, rollout_horizon=2)
     env, filt, learner, _ = build_run(run)
-    from rcbf_ros.training.loop import run_episode
+    from rcbf_ros.training.episodes import run_episode
     stats = run_episode(env, filt, learner, episode=0, seed=0)
     assert stats.violations == 0
     assert learner.model_buffer is not None and len(learner.model_buffer) > 0
@@ -55,7 +56,8 @@ def test_modular_learner_keeps_the_envelope_layer_of_every_layout(tmp_path):
     (PVTOL: tilt, thrust, arena; not the operator, ``layout: true`` in config/pvtol.yaml), as
     the authors' code does (``modular_envelope``, which config/pvtol.yaml turns on; False gives
     the paper's plain modular). The Unicycle has no envelope: plain modular either way."""
-    from rcbf_ros.training.loop import build_run, run_episode
+    from rcbf_ros.training.build import build_run
+    from rcbf_ros.training.episodes import run_episode
     env, filt, learner, _ = build_run(small_run(tmp_path, 'pvtol', 'modular',
                                                 modular_envelope=True))
     assert env.with_operator and 'operator_upper' in filt.problem.barrier_names
@@ -76,7 +78,8 @@ def test_upper_bound_run_drops_the_layout_but_keeps_the_envelope(tmp_path):
     barriers that are not part of the layout stay filtered: PVTOL's tilt/thrust/arena envelope,
     nothing on the Unicycle. The unconstrained PVTOL learner used to fly away (returns of
     -3000 in its first 10 episodes) with no filter at all."""
-    from rcbf_ros.training.loop import build_run, run_episode
+    from rcbf_ros.training.build import build_run
+    from rcbf_ros.training.episodes import run_episode
     env, filt, learner, _ = build_run(replace(small_run(tmp_path, 'pvtol', 'unconstrained'),
                                               no_obstacles=True))
     assert len(env.obstacles) == 0
@@ -207,7 +210,7 @@ def test_cli_rejects_bad_learner_settings(capsys, tmp_path):
 
 
 def test_initial_alpha_and_random_start_come_from_the_config_unless_the_run_sets_them(tmp_path):
-    from rcbf_ros.training.loop import build_run, resolve_run
+    from rcbf_ros.training.build import build_run, resolve_run
     assert load_params(find_config('unicycle'), 'learner')['initial_alpha'] == 0.01
     small = dict(episodes=1, max_steps=20, record_bag=False)
     for alpha, expected in ((None, 0.01), (0.3, 0.3)):
@@ -321,7 +324,7 @@ def test_unicycle_policy_proposes_forward_speeds_only(tmp_path):
     deterministic policy) has v >= 0; the filter may still reverse. The box is written to
     run_config.json and used again when the policy is evaluated."""
     from rcbf_ros.experiments.evaluate import load_trained_learner, run_config_from_json
-    from rcbf_ros.training.loop import build_run, resolve_run
+    from rcbf_ros.training.build import build_run, resolve_run
     section = load_params(find_config('unicycle'), 'learner')
     assert section['policy_limits.min'] == [0.0, -2.5]
     run = small_run(tmp_path, 'unicycle', 'modular', steps=120)
@@ -370,7 +373,7 @@ def test_bad_policy_limits_name_the_key(low, high, match):
 def test_modular_envelope_comes_from_the_config_unless_the_run_sets_it(tmp_path):
     """config/pvtol.yaml's /learner modular_envelope makes `rcbf_ros train --mode modular` on
     PVTOL train the advised variant, as the learner node (which reads that section) does."""
-    from rcbf_ros.training.loop import build_run, resolve_run
+    from rcbf_ros.training.build import build_run, resolve_run
     assert load_params(find_config('pvtol'), 'learner')['modular_envelope'] is True
     small = dict(episodes=1, max_steps=20, record_bag=False, out_dir=str(tmp_path / 'r'))
     cases = (('pvtol', None, True), ('pvtol', False, False), ('unicycle', None, False),

@@ -187,7 +187,8 @@ def test_random_layouts_and_unknown_systems_are_said_not_drawn(tmp_path):
 
 def test_in_process_run_writes_its_picture(tmp_path):
     from rcbf_ros.training.agent import LearnerConfig
-    from rcbf_ros.training.loop import RunConfig, train
+    from rcbf_ros.training.build import RunConfig
+    from rcbf_ros.training.loop import train
     lines: list[str] = []
     out = tmp_path / 'run'
     history = train(RunConfig(system='unicycle', episodes=2, max_steps=60, out_dir=str(out),
