@@ -74,9 +74,23 @@ def _constant(array: np.ndarray) -> np.ndarray:
     return array
 
 
+def nominal_derivative(system: ControlAffineSystem, x: Tensor, u: Tensor) -> Tensor:
+    """x_dot = f(x) + g(x) u of the nominal model (no disturbance).
+
+    Args:
+        x: (B, n_x) states.
+        u: (B, n_u) inputs.
+
+    Returns:
+        (B, n_x) state derivatives.
+    """
+    return system.f(x) + (system.g(x) @ u.unsqueeze(-1)).squeeze(-1)
+
+
 def step_euler(system: ControlAffineSystem, x: Tensor, u: Tensor, dt: float,
                disturbance: Tensor | None = None) -> Tensor:
-    """One explicit Euler step of x_dot = f + g u (+ d) (paper eq. discrete_dynamics).
+    """One explicit Euler step of x_dot = f + g u (+ d) (paper eq. discrete_dynamics):
+    x + dt ((f(x) + g(x) u) + d), in that order of operations.
 
     Args:
         x: (B, n_x) states.
@@ -87,7 +101,7 @@ def step_euler(system: ControlAffineSystem, x: Tensor, u: Tensor, dt: float,
     Returns:
         (B, n_x) next states.
     """
-    x_dot = system.f(x) + (system.g(x) @ u.unsqueeze(-1)).squeeze(-1)
+    x_dot = nominal_derivative(system, x, u)
     if disturbance is not None:
         x_dot = x_dot + disturbance
     return x + dt * x_dot

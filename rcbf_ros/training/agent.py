@@ -21,7 +21,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 import torch
 
-from rcbf_ros.core.dynamics import ControlAffineSystem
+from rcbf_ros.core.dynamics import ControlAffineSystem, nominal_derivative, step_euler
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.learning.buffers import ReplayBuffer
 from rcbf_ros.learning.gp import DisturbanceGP, GPConfig
@@ -218,9 +218,7 @@ class SafeLearner:
         """Euler step of the prior plus the GP mean (model-based rollouts)."""
         x = state.to(torch.float64)
         mean, _ = self.disturbance(x)
-        x_dot = (self.system.f(x) + (self.system.g(x) @ u.to(x.dtype).unsqueeze(-1)).squeeze(-1)
-                 + mean)
-        return (x + self.dt * x_dot).to(state.dtype)
+        return step_euler(self.system, x, u.to(x.dtype), self.dt, mean).to(state.dtype)
 
     # ------------------------------------------------------------------ acting
     def propose(self, obs: np.ndarray, state: np.ndarray,
@@ -262,8 +260,7 @@ class SafeLearner:
         x = torch.as_tensor(np.array(state, dtype=np.float64)).unsqueeze(0)
         x_next = torch.as_tensor(np.asarray(next_state, dtype=np.float64)).unsqueeze(0)
         u = torch.as_tensor(u_safe).unsqueeze(0)
-        nominal = self.system.f(x) + (self.system.g(x) @ u.unsqueeze(-1)).squeeze(-1)
-        residual = (x_next - x) / self.dt - nominal
+        residual = (x_next - x) / self.dt - nominal_derivative(self.system, x, u)
         self.gp.add(x, residual)
         self.env_steps += 1
 

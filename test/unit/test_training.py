@@ -137,6 +137,48 @@ def test_same_seed_same_result_and_resume_equals_uninterrupted(tmp_path):
             assert got[key] == pytest.approx(value, rel=1e-6, abs=1e-9), key
 
 
+class DenseSystem:
+    """n_x = 7, n_u = 2 with every entry of f and g state-dependent (a test system)."""
+
+    n_x, n_u, u_min, u_max = 7, 2, None, None
+
+    def f(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.sin(x) * 3.1
+
+    def g(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.stack([torch.cos(x), torch.exp(0.1 * x)], dim=-1)
+
+
+def test_learner_models_are_the_core_euler_step_bit_for_bit(tmp_path):
+    """The learner's model step (model-based rollouts) is core.dynamics.step_euler with the GP
+    mean, and its GP residual subtracts core.dynamics.nominal_derivative: both the same
+    floating-point operations, in the same order, as x + dt ((f + g u) + d)."""
+    from rcbf_ros.core.dynamics import step_euler
+    from rcbf_ros.training.build import build_run
+    _, _, learner, _ = build_run(small_run(tmp_path, 'pvtol', 'diff'))
+    system, dt = learner.system, learner.dt
+    rng = np.random.default_rng(0)
+    x = torch.as_tensor(rng.normal(size=(32, system.n_x)))
+    u = torch.as_tensor(rng.normal(size=(32, system.n_u)))
+    learner.gp.add(x, torch.as_tensor(rng.normal(scale=0.1, size=(32, system.n_x))))
+    learner.gp.fit()
+    mean, _ = learner.disturbance(x)
+    assert mean.abs().max() > 0
+    rate = system.f(x) + (system.g(x) @ u.unsqueeze(-1)).squeeze(-1)
+    by_hand = x + dt * (rate + mean)
+    assert torch.equal(learner.predict_next_state(x, u), by_hand)
+    # A drift and an input matrix that overlap in every entry make the order visible.
+    dense = DenseSystem()
+    dense_rate = dense.f(x) + (dense.g(x) @ u.unsqueeze(-1)).squeeze(-1)
+    assert torch.equal(step_euler(dense, x, u, dt, mean), x + dt * (dense_rate + mean))
+    obs = np.zeros(learner.sac.obs_dim)
+    learner.observe(obs=obs, state=x[0].numpy(), u_rl=u[0].numpy(),
+                    u_safe=u[0].numpy(), reward=0.0, next_obs=obs,
+                    next_state=by_hand[0].numpy(), terminated=False)
+    residual = learner.gp.state_dict()['y'][-1]
+    assert torch.equal(residual, ((by_hand[0] - x[0]) / dt - rate[0]).to(residual.dtype))
+
+
 @pytest.mark.parametrize('system', sorted(MODELS))
 def test_reward_and_observation_models_match_the_env(system):
     env = make_env(system, load_params(find_config(system), 'simulator'))
