@@ -59,6 +59,15 @@ def _as_tensor(values: Sequence, like: Tensor) -> Tensor:
     return torch.as_tensor(values, dtype=like.dtype, device=like.device)
 
 
+class NumberedNames:
+    """``names`` of a family whose k barriers are called ``<name>_0`` ... ``<name>_{k-1}``
+    (the family defines ``name`` and ``count``)."""
+
+    @property
+    def names(self) -> list[str]:
+        return [f'{self.name}_{i}' for i in range(self.count)]  # type: ignore[attr-defined]
+
+
 class QuadraticRows(NamedTuple):
     """k barriers that are quadratic polynomials of the state, exactly:
     h_i(x) = c_i + a_i^T x + 1/2 x^T Q_i x, so grad h_i = a_i + Q_i x and the Hessian is Q_i."""
@@ -88,7 +97,7 @@ def _add_square(rows: QuadraticRows, row: int, weight: float, i: int, j: int | N
 
 
 @dataclass(frozen=True)
-class CircleObstacles:
+class CircleObstacles(NumberedNames):
     """Circular keep-out zones: h_o(x) = ||p(x) - p_o||^2 - delta_o^2, delta_o = r_o + margin."""
 
     centers: tuple[tuple[float, float], ...]
@@ -127,10 +136,6 @@ class CircleObstacles:
     @property
     def count(self) -> int:
         return len(self.centers)
-
-    @property
-    def names(self) -> list[str]:
-        return [f'{self.name}_{i}' for i in range(self.count)]
 
     def point(self, x: Tensor, side: Tensor | None = None) -> Tensor:
         """The point kept out of the obstacles. x: (R, n_x) -> (R, 2); side: (R,) +1 for the
@@ -298,7 +303,7 @@ class PairGap:
 
 
 @dataclass(frozen=True)
-class HalfPlane:
+class HalfPlane(NumberedNames):
     """Half-spaces h_j = n_j^T x_S - b_j >= 0 over the state entries S (e.g. arena walls)."""
 
     normals: tuple[tuple[float, ...], ...]
@@ -319,10 +324,6 @@ class HalfPlane:
     @property
     def count(self) -> int:
         return len(self.normals)
-
-    @property
-    def names(self) -> list[str]:
-        return [f'{self.name}_{i}' for i in range(self.count)]
 
     def value(self, x: Tensor, index: Tensor) -> Tensor:
         normals = _as_tensor(self.normals, x)[index]
@@ -369,6 +370,13 @@ class Cascaded:
             h = self.base.value(x, index)
             (grad_h,) = torch.autograd.grad(h.sum(), x, create_graph=True)
         return (grad_h * self.system.f(x)).sum(-1) + self.gamma * h
+
+
+def uncascaded(family: BarrierFamily) -> BarrierFamily:
+    """The family under every cascade level (:class:`Cascaded`, subclasses included)."""
+    while isinstance(family, Cascaded):
+        family = family.base
+    return family
 
 
 def cascade(base: BarrierFamily, system: ControlAffineSystem,

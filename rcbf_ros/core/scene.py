@@ -16,14 +16,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from rcbf_ros.core.barriers import (
-    BandBarrier,
-    BarrierFamily,
-    Cascaded,
-    CircleObstacles,
-    HalfPlane,
-    PairGap,
-)
+from rcbf_ros.core.barriers import BandBarrier, CircleObstacles, HalfPlane, PairGap, uncascaded
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.mappings import flatten
 
@@ -135,13 +128,6 @@ class SceneGeometry:
         return None
 
 
-def _base(family: BarrierFamily) -> BarrierFamily:
-    """The family under every cascade level."""
-    while isinstance(family, Cascaded):
-        family = family.base
-    return family
-
-
 def scene_geometry(params: Mapping[str, Any]) -> SceneGeometry:
     """The geometry of the filter configured by flat (or nested) parameters.
 
@@ -157,7 +143,7 @@ def scene_geometry(params: Mapping[str, Any]) -> SceneGeometry:
     walls: list[Wall] = []
     planar: dict[str, Any] = {}
     for family in problem.families:
-        base = _base(family)
+        base = uncascaded(family)
         if isinstance(base, CircleObstacles):
             obstacles += [Disc(name, float(c[0]), float(c[1]), float(r), float(base.margin))
                           for name, c, r in zip(base.names, base.centers, base.radii)]

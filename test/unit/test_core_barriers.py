@@ -206,3 +206,14 @@ def test_float32_and_batch_consistency():
     single = barrier_terms(system, (family,), x[3:4])
     torch.testing.assert_close(full.grad_h[3:4], single.grad_h)
     assert np.isfinite(full.lg_h.numpy()).all()
+
+
+def test_numbered_families_name_each_barrier_and_cascades_unwrap_to_the_base():
+    from rcbf_ros.core.barriers import uncascaded
+    obstacles = CircleObstacles(centers=((0.0, 1.0), (2.0, 3.0)), radii=(0.5, 0.5),
+                                name='rock')
+    walls = HalfPlane(normals=((1.0, 0.0),), offsets=(-3.0,))
+    assert obstacles.names == ['rock_0', 'rock_1'] and walls.names == ['wall_0']
+    twice = cascade(obstacles, Unicycle(), [1.0, 2.0])
+    assert twice.names == obstacles.names and twice.count == 2
+    assert uncascaded(twice) is obstacles and uncascaded(walls) is walls
