@@ -137,6 +137,23 @@ def test_same_seed_same_result_and_resume_equals_uninterrupted(tmp_path):
             assert got[key] == pytest.approx(value, rel=1e-6, abs=1e-9), key
 
 
+def test_a_run_builds_its_env_through_the_one_registry(tmp_path):
+    """build_run takes the system by name or by the dotted path of its env class (with a
+    config file) and builds the same run; an unknown one is refused naming ``system``."""
+    from rcbf_ros.envs.unicycle import UnicycleEnv
+    from rcbf_ros.training.build import build_run
+    by_name = build_run(small_run(tmp_path, 'unicycle', 'modular'))
+    by_path = build_run(replace(small_run(tmp_path, 'unicycle', 'modular'),
+                                system='rcbf_ros.envs.unicycle.UnicycleEnv',
+                                config_file='unicycle'))
+    assert type(by_path[0]) is type(by_name[0]) is UnicycleEnv
+    np.testing.assert_array_equal(by_path[0].state, by_name[0].state)
+    assert by_path[1].problem.barrier_names == by_name[1].problem.barrier_names
+    with pytest.raises(ValueError, match="^system: no simulator for 'segway'"):
+        build_run(replace(small_run(tmp_path, 'unicycle', 'modular'), system='segway',
+                          config_file='unicycle'))
+
+
 class DenseSystem:
     """n_x = 7, n_u = 2 with every entry of f and g state-dependent (a test system)."""
 
