@@ -20,21 +20,22 @@ the nominal model (physical saturation) when the model has limits. ``info`` of e
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar, Mapping, Sequence
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-from rcbf_ros.core.config import flatten, float_list, number
+from rcbf_ros.core.config import FILTER_OPEN_PREFIXES, FilterParameters, flatten
 from rcbf_ros.core.dynamics import ControlAffineSystem
+from rcbf_ros.parameters.reader import parameter_keys, read_floats, read_parameters, setting
 
-FILTER_KEYS = ('system', 'alpha', 'k_c', 'slack_weight', 'input_weight',
-               'fail_safe_action')
+FILTER_KEYS: tuple[str, ...] = parameter_keys(FilterParameters)
 """Flat keys (exact) that :func:`rcbf_ros.core.config.filter_config_from_params` reads."""
-FILTER_PREFIXES = ('system_params.', 'input_limits.', 'obstacles.', 'bands.', 'gaps.', 'walls.',
-                   'disturbance.')
-"""Key prefixes that :func:`rcbf_ros.core.config.filter_config_from_params` reads."""
+FILTER_PREFIXES: tuple[str, ...] = FILTER_OPEN_PREFIXES
+"""Key prefixes (names the user chooses) that
+:func:`rcbf_ros.core.config.filter_config_from_params` reads."""
 
 
 def merge_params(params: Mapping[str, Any] | None, overrides: Mapping[str, Any]) -> dict[str, Any]:
@@ -45,44 +46,37 @@ def merge_params(params: Mapping[str, Any] | None, overrides: Mapping[str, Any])
     return merged
 
 
-class ParamReader:
-    """Typed access to flat parameters; every error names the key."""
+GOAL_RADIUS = 'the episode ends with the goal reward within this distance (m)'
+START = 'start state (unicycle [x, y, theta]; pvtol [x1, x2], level hover)'
+RANDOM_START = 'start among the packaged start points with a random heading'
+LAYOUTS = ('fixed', 'random')
+LAYOUT = 'fixed (obstacles.* here) or random (a seeded transfer layout per reset)'
+LAYOUT_SEED = '>= 0 pins one random layout (-1: a new one per reset)'
+"""One-line descriptions of the go-to-goal systems' shared keys (``--help``, README)."""
 
-    def __init__(self, params: Mapping[str, Any]) -> None:
-        self.params = params
 
-    def number(self, key: str, default: float, *, positive: bool = False) -> float:
-        return number(self.params, key, default, positive=positive)
+@dataclass(frozen=True)
+class EnvSettings:
+    """Parameters every simulated system reads (subclassed per system)."""
 
-    def integer(self, key: str, default: int, *, minimum: int | None = None) -> int:
-        value = self.params.get(key, default)
-        if isinstance(value, bool) or not float(value).is_integer():
-            raise ValueError(f'{key}: expected an integer, got {value!r}')
-        out = int(value)
-        if minimum is not None and out < minimum:
-            raise ValueError(f'{key}: must be >= {minimum}, got {out}')
-        return out
+    dt: float = setting(0.02, positive=True, description='integration step (s)')
+    """Euler step [s]."""
 
-    def flag(self, key: str, default: bool) -> bool:
-        value = self.params.get(key, default)
-        if isinstance(value, str) and value.lower() in ('true', 'false'):
-            return value.lower() == 'true'
-        if not isinstance(value, (bool, np.bool_)):
-            raise ValueError(f'{key}: expected true or false, got {value!r}')
-        return bool(value)
 
-    def numbers(self, key: str, default: Sequence[float], length: int | None = None
-                ) -> tuple[float, ...]:
-        out = float_list(self.params, key, default=default)
-        if length is not None and len(out) != length:
-            raise ValueError(f'{key}: expected {length} values, got {len(out)}')
-        return out
+def layout_lists(params: Mapping[str, Any]) -> tuple[tuple[float, ...], ...]:
+    """``obstacles.x``, ``.y`` and ``.radius`` as floats (each may be empty)."""
+    return tuple(read_floats(f'obstacles.{name}', params.get(f'obstacles.{name}'))
+                 for name in ('x', 'y', 'radius'))
 
-    def choice(self, key: str, default: str, options: Sequence[str]) -> str:
-        value = str(self.params.get(key, default))
-        if value not in options:
-            raise ValueError(f'{key}: expected one of {list(options)}, got {value!r}')
-        return value
+
+def input_limits(params: Mapping[str, Any], n_u: int) -> dict[str, tuple[float, ...]]:
+    """``u_min`` / ``u_max`` of ``input_limits.min/max`` (n_u values each) when the parameters
+    set them, else {} (the system's own)."""
+    if 'input_limits.min' not in params:
+        return {}
+    return {'u_min': read_floats('input_limits.min', params['input_limits.min'], length=n_u),
+            'u_max': read_floats('input_limits.max', params.get('input_limits.max', ()),
+                                 length=n_u)}
 
 
 class SafetyEnv(gym.Env):
@@ -93,6 +87,8 @@ class SafetyEnv(gym.Env):
     """
 
     system_name: ClassVar[str] = ''
+    settings_type: ClassVar[type[EnvSettings]] = EnvSettings
+    """The dataclass of the system's parameters (read into ``self.settings``)."""
     metadata: ClassVar[dict[str, Any]] = {'render_modes': []}
 
     nominal_system: ControlAffineSystem
@@ -110,8 +106,8 @@ class SafetyEnv(gym.Env):
         if system != self.system_name:
             raise ValueError(f'system: this env simulates {self.system_name!r}, '
                              f'the parameters name {system!r}')
-        self.reader = ParamReader(self.params)
-        self.dt = self.reader.number('dt', 0.02, positive=True)
+        self.settings = read_parameters(self.settings_type, self.params)
+        self.dt = self.settings.dt
         self._state = np.zeros(0)
         self._steps = 0
         self._has_reset = False
@@ -149,7 +145,6 @@ class SafetyEnv(gym.Env):
         source.update(flatten(dict(base or {})))
         out = {k: v for k, v in source.items()
                if k in FILTER_KEYS or k.startswith(FILTER_PREFIXES)}
-        out.pop('obstacles.shape', None)
         out['system'] = self.system_name
         self._set_layout_filter_params(out)
         return out

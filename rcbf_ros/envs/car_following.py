@@ -30,6 +30,7 @@ asymptotically, and the unknown 1 + d_i gains then cross it by millimetres witho
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 import math
 from typing import Any, Mapping
 
@@ -37,32 +38,67 @@ import gymnasium as gym
 import numpy as np
 
 from rcbf_ros.core.dynamics import CarFollowing
-from rcbf_ros.envs.base import SafetyEnv
+from rcbf_ros.envs.base import EnvSettings, SafetyEnv
+from rcbf_ros.parameters.reader import setting
+
+
+@dataclass(frozen=True)
+class CarFollowingSettings(EnvSettings):
+    """The car-following env's parameters (defaults: the reference's values)."""
+
+    max_steps: int = setting(300, minimum=1,
+                             description='steps per episode before it is truncated')
+    """Steps before truncation."""
+    initial_positions: tuple[float, ...] = setting(
+        (34.0, 28.0, 22.0, 16.0, 10.0), length=5,
+        description='initial positions of the five cars (m)')
+    """Initial positions of the five cars (m)."""
+    initial_velocity: float = setting(30.0,
+                                      description='initial velocity of cars 1, 2, 3, 5 (m/s)')
+    """Initial velocity of cars 1, 2, 3, 5 (m/s)."""
+    initial_velocity_car4: float = setting(35.0, description='initial velocity of car 4 (m/s)')
+    """Initial velocity of car 4 (m/s)."""
+    velocity_noise: float = setting(
+        0.5, minimum=0, description="std of one draw added to every car's initial velocity "
+                                    '(m/s)')
+    """Std of one draw added to every car's initial velocity (m/s)."""
+    disturbance_gain: float = setting(0.1,
+                                      description='unknown input gain d_i of cars 1, 2, 3, 5')
+    """Unknown input gain d_i of cars 1, 2, 3, 5."""
+    leader_amplitude: float = setting(10.0, description="amplitude of the leader's sine "
+                                                        'acceleration (m/s^2)')
+    """Amplitude of the leader's sine acceleration (m/s^2)."""
+    leader_frequency: float = setting(0.2, description="frequency of the leader's sine "
+                                                       'acceleration (rad/s)')
+    """Frequency of the leader's sine acceleration (rad/s)."""
+    reward_scale: float = setting(1.0 / 300.0, description='reward = -reward_scale ||u||^2')
+    """reward = -reward_scale ||u||^2."""
+    collision_gap: float = setting(3.5, positive=True,
+                                   description='true least gap between two cars (m)')
+    """True least gap between two cars (m)."""
 
 
 class CarFollowingEnv(SafetyEnv):
     """Car Following (see module docstring)."""
 
     system_name = 'car_following'
+    settings_type = CarFollowingSettings
     h_true_names = ['gap_3_4', 'gap_4_5']
 
     def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
         super().__init__(params, overrides)
-        r = self.reader
+        s: CarFollowingSettings = self.settings
         self.nominal_system = CarFollowing()
-        self.max_steps = r.integer('max_steps', 300, minimum=1)
-        self.initial_positions = np.asarray(
-            r.numbers('initial_positions', (34.0, 28.0, 22.0, 16.0, 10.0), 5))
-        self.initial_velocity = r.number('initial_velocity', 30.0)
-        self.initial_velocity_car4 = r.number('initial_velocity_car4', 35.0)
-        self.velocity_noise = r.number('velocity_noise', 0.5)
-        if self.velocity_noise < 0:
-            raise ValueError('velocity_noise: must be >= 0')
-        self.disturbance_gain = r.number('disturbance_gain', 0.1)
-        self.leader_amplitude = r.number('leader_amplitude', 10.0)
-        self.leader_frequency = r.number('leader_frequency', 0.2)
-        self.reward_scale = r.number('reward_scale', 1.0 / 300.0)
-        self.min_gap = r.number('collision_gap', 3.5, positive=True)
+        self.max_steps = s.max_steps
+        self.initial_positions = np.asarray(s.initial_positions)
+        self.initial_velocity = s.initial_velocity
+        self.initial_velocity_car4 = s.initial_velocity_car4
+        self.velocity_noise = s.velocity_noise
+        self.disturbance_gain = s.disturbance_gain
+        self.leader_amplitude = s.leader_amplitude
+        self.leader_frequency = s.leader_frequency
+        self.reward_scale = s.reward_scale
+        self.min_gap = s.collision_gap
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(15,), dtype=np.float64)
         self.action_space = gym.spaces.Box(-np.inf, np.inf, shape=(1,), dtype=np.float64)
         self._accelerations = np.zeros(5)

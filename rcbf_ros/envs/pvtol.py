@@ -31,6 +31,7 @@ to the goal in the body frame. The arena [-6, 6] x [-3, 3] is not a barrier here
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 import math
 from typing import Any, Mapping
 
@@ -38,7 +39,19 @@ import gymnasium as gym
 import numpy as np
 
 from rcbf_ros.core.dynamics import PVTOL
-from rcbf_ros.envs.base import GoToGoalReward, SafetyEnv
+from rcbf_ros.envs.base import (
+    EnvSettings,
+    GOAL_RADIUS,
+    GoToGoalReward,
+    input_limits,
+    LAYOUT,
+    layout_lists,
+    LAYOUT_SEED,
+    LAYOUTS,
+    RANDOM_START,
+    SafetyEnv,
+    START,
+)
 from rcbf_ros.envs.layouts import (
     layout_from_params,
     layout_to_params,
@@ -47,6 +60,7 @@ from rcbf_ros.envs.layouts import (
     PVTOL_STARTS,
     signed_clearance,
 )
+from rcbf_ros.parameters.reader import setting
 
 
 def pvtol_attitude_error(state: np.ndarray, gain: float = 0.1) -> float:
@@ -54,37 +68,69 @@ def pvtol_attitude_error(state: np.ndarray, gain: float = 0.1) -> float:
     return gain * ((state[5] - 1.0) - math.sin(state[4]))
 
 
+@dataclass(frozen=True)
+class PVTOLSettings(EnvSettings):
+    """The PVTOL env's parameters (defaults: the reference's values)."""
+
+    with_operator: bool = setting(True, key='system_params.with_operator', text_bool=True)
+    """Whether the state carries the safety operator (x_h, its band)."""
+    operator_gain: float = setting(3.5, key='system_params.operator_gain', positive=True)
+    """Gain of the operator following x1."""
+    max_steps: int = setting(2000, minimum=1,
+                             description='steps per episode before it is truncated')
+    """Steps before truncation."""
+    goal: tuple[float, ...] = setting((5.0, -1.5), length=2,
+                                      description='goal position [x, y] (m)')
+    """Goal position (m)."""
+    goal_radius: float = setting(0.3, positive=True, description=GOAL_RADIUS)
+    """The episode ends at the goal within this distance (m)."""
+    goal_reward: float = setting(3.0, description='reward for reaching the goal')
+    """Reward for reaching the goal."""
+    start: tuple[float, ...] = setting((-4.5, 2.0), length=2, description=START)
+    """Start position [x1, x2] (level hover)."""
+    random_start: bool = setting(False, text_bool=True, description=RANDOM_START)
+    """Start among PVTOL_STARTS."""
+    attitude_error_gain: float = setting(
+        0.1, description='gain of the attitude-tracking error on theta_dot')
+    """Gain of the attitude-tracking error on theta_dot."""
+    operator_noise: float = setting(0.06, minimum=0,
+                                    description="std of the operator's motion noise per sqrt(s)")
+    """Std of the operator's motion noise per sqrt(s)."""
+    operator_band: float = setting(
+        0.6, positive=True,
+        description='true band |x1 - x_h| the operator keeps to (the filter adds a margin)')
+    """True band |x1 - x_h| the operator keeps to."""
+    layout: str = setting('fixed', choices=LAYOUTS, description=LAYOUT)
+    """fixed (the obstacles.* keys) or random (a seeded layout per reset)."""
+    layout_seed: int = setting(-1, description=LAYOUT_SEED)
+    """>= 0 pins one random layout."""
+
+
 class PVTOLEnv(GoToGoalReward, SafetyEnv):
     """PVTOL go-to-goal (see module docstring)."""
 
     system_name = 'pvtol'
+    settings_type = PVTOLSettings
 
     def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
         super().__init__(params, overrides)
-        r = self.reader
-        self.configured_operator = r.flag('system_params.with_operator', True)
-        self.operator_gain = r.number('system_params.operator_gain', 3.5, positive=True)
-        limits = {}
-        if 'input_limits.min' in self.params:
-            limits = {'u_min': r.numbers('input_limits.min', (), 2),
-                      'u_max': r.numbers('input_limits.max', (), 2)}
-        self._limits = limits
-        self.max_steps = r.integer('max_steps', 2000, minimum=1)
-        self.goal = np.asarray(r.numbers('goal', (5.0, -1.5), 2))
-        self.goal_radius = r.number('goal_radius', 0.3, positive=True)
-        self.goal_reward = r.number('goal_reward', 3.0)
-        self.start = np.asarray(r.numbers('start', (-4.5, 2.0), 2))
-        self.random_start = r.flag('random_start', False)
-        self.attitude_error_gain = r.number('attitude_error_gain', 0.1)
-        self.operator_noise = r.number('operator_noise', 0.06)
-        if self.operator_noise < 0:
-            raise ValueError('operator_noise: must be >= 0')
-        self.operator_band = r.number('operator_band', 0.6, positive=True)
-        self.layout_mode = r.choice('layout', 'fixed', ('fixed', 'random'))
-        self.layout_seed = r.integer('layout_seed', -1)
+        s: PVTOLSettings = self.settings
+        self.configured_operator = s.with_operator
+        self.operator_gain = s.operator_gain
+        self._limits = input_limits(self.params, 2)
+        self.max_steps = s.max_steps
+        self.goal = np.asarray(s.goal)
+        self.goal_radius = s.goal_radius
+        self.goal_reward = s.goal_reward
+        self.start = np.asarray(s.start)
+        self.random_start = s.random_start
+        self.attitude_error_gain = s.attitude_error_gain
+        self.operator_noise = s.operator_noise
+        self.operator_band = s.operator_band
+        self.layout_mode = s.layout
+        self.layout_seed = s.layout_seed
         self.obstacles: tuple[Obstacle, ...] = layout_from_params(
-            r.numbers('obstacles.x', ()), r.numbers('obstacles.y', ()),
-            r.numbers('obstacles.radius', ()), self.params.get('obstacles.shape'))
+            *layout_lists(self.params), self.params.get('obstacles.shape'))
         self.with_operator = self.configured_operator
         self.current_layout_seed: int | None = None
         if self.layout_mode == 'random' and self.layout_seed >= 0:

@@ -26,6 +26,7 @@ square or triangle; no filter margin, no look-ahead).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 import math
 from typing import Any, Mapping
 
@@ -33,7 +34,19 @@ import gymnasium as gym
 import numpy as np
 
 from rcbf_ros.core.dynamics import Unicycle
-from rcbf_ros.envs.base import GoToGoalReward, SafetyEnv
+from rcbf_ros.envs.base import (
+    EnvSettings,
+    GOAL_RADIUS,
+    GoToGoalReward,
+    input_limits,
+    LAYOUT,
+    layout_lists,
+    LAYOUT_SEED,
+    LAYOUTS,
+    RANDOM_START,
+    SafetyEnv,
+    START,
+)
 from rcbf_ros.envs.layouts import (
     layout_from_params,
     layout_to_params,
@@ -42,6 +55,7 @@ from rcbf_ros.envs.layouts import (
     unicycle_random_layout,
     UNICYCLE_STARTS,
 )
+from rcbf_ros.parameters.reader import setting
 
 
 def unicycle_slope_disturbance(state: np.ndarray) -> np.ndarray:
@@ -49,30 +63,50 @@ def unicycle_slope_disturbance(state: np.ndarray) -> np.ndarray:
     return np.array([-0.1 * math.cos(state[2]), 0.0])
 
 
+@dataclass(frozen=True)
+class UnicycleSettings(EnvSettings):
+    """The unicycle env's parameters (defaults: the reference's values)."""
+
+    max_steps: int = setting(1000, minimum=1,
+                             description='steps per episode before it is truncated')
+    """Steps before truncation."""
+    goal: tuple[float, ...] = setting((2.5, 2.5), length=2,
+                                      description='goal position [x, y] (m)')
+    """Goal position (m)."""
+    goal_radius: float = setting(0.3, positive=True, description=GOAL_RADIUS)
+    """The episode ends at the goal within this distance (m)."""
+    goal_reward: float = setting(1.0, description='reward for reaching the goal')
+    """Reward for reaching the goal."""
+    start: tuple[float, ...] = setting((-2.5, -2.5, 0.0), length=3, description=START)
+    """Start state [x, y, theta]."""
+    random_start: bool = setting(False, text_bool=True, description=RANDOM_START)
+    """Start among UNICYCLE_STARTS with a random heading."""
+    layout: str = setting('fixed', choices=LAYOUTS, description=LAYOUT)
+    """fixed (the obstacles.* keys) or random (a seeded layout per reset)."""
+    layout_seed: int = setting(-1, description=LAYOUT_SEED)
+    """>= 0 pins one random layout."""
+
+
 class UnicycleEnv(GoToGoalReward, SafetyEnv):
     """Unicycle go-to-goal with obstacles (see module docstring)."""
 
     system_name = 'unicycle'
+    settings_type = UnicycleSettings
 
     def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
         super().__init__(params, overrides)
-        r = self.reader
-        limits = {}
-        if 'input_limits.min' in self.params:
-            limits = {'u_min': r.numbers('input_limits.min', (), 2),
-                      'u_max': r.numbers('input_limits.max', (), 2)}
-        self.nominal_system = Unicycle(**limits)
-        self.max_steps = r.integer('max_steps', 1000, minimum=1)
-        self.goal = np.asarray(r.numbers('goal', (2.5, 2.5), 2))
-        self.goal_radius = r.number('goal_radius', 0.3, positive=True)
-        self.goal_reward = r.number('goal_reward', 1.0)
-        self.start = np.asarray(r.numbers('start', (-2.5, -2.5, 0.0), 3))
-        self.random_start = r.flag('random_start', False)
-        self.layout_mode = r.choice('layout', 'fixed', ('fixed', 'random'))
-        self.layout_seed = r.integer('layout_seed', -1)
+        s: UnicycleSettings = self.settings
+        self.nominal_system = Unicycle(**input_limits(self.params, 2))
+        self.max_steps = s.max_steps
+        self.goal = np.asarray(s.goal)
+        self.goal_radius = s.goal_radius
+        self.goal_reward = s.goal_reward
+        self.start = np.asarray(s.start)
+        self.random_start = s.random_start
+        self.layout_mode = s.layout
+        self.layout_seed = s.layout_seed
         self.obstacles: tuple[Obstacle, ...] = layout_from_params(
-            r.numbers('obstacles.x', ()), r.numbers('obstacles.y', ()),
-            r.numbers('obstacles.radius', ()), self.params.get('obstacles.shape'))
+            *layout_lists(self.params), self.params.get('obstacles.shape'))
         self.current_layout_seed: int | None = None
         if self.layout_mode == 'random' and self.layout_seed >= 0:
             self._use_random_layout(self.layout_seed)
