@@ -12,7 +12,7 @@ from typing import Any, Sequence
 
 from rcbf_ros.envs import ENVS
 from rcbf_ros.node_logic.interface import ParameterSpec, type_of
-from rcbf_ros.node_logic.safety_filter import FILTER_PARAMETERS
+from rcbf_ros.node_logic.safety_filter import FILTER_DESCRIPTIONS, FILTER_PARAMETERS
 from rcbf_ros.parameters.rules import find_config, load_params
 
 DEFAULT_SYSTEM = 'unicycle'
@@ -48,7 +48,8 @@ def _description(name: str) -> tuple[str, str | None]:
         return DESCRIPTIONS[name], None
     for spec in FILTER_PARAMETERS:
         if spec.matches(name):
-            return spec.description, None if spec.type == 'any' else spec.type
+            return (FILTER_DESCRIPTIONS[spec.name],
+                    None if spec.type == 'any' else spec.type)
     raise KeyError(name)
 
 
