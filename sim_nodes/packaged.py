@@ -8,38 +8,32 @@ environments' own keys) or from the safety filter's specs (the shared layout key
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 from rcbf_ros.envs import ENVS
 from rcbf_ros.node_logic.interface import ParameterSpec, type_of
 from rcbf_ros.node_logic.safety_filter import FILTER_DESCRIPTIONS, FILTER_PARAMETERS
+from rcbf_ros.parameters.reader import parameters_of, setting
 from rcbf_ros.parameters.rules import find_config, load_params
 
 DEFAULT_SYSTEM = 'unicycle'
 
+@dataclass(frozen=True)
+class CarControllerSettings:
+    """The car-following controller's parameter (``/nominal_controller`` section)."""
+
+    acceleration: float = setting(
+        5.0, description="the nominal controller's constant acceleration of car 4 (m/s^2)")
+    """Constant acceleration of car 4 (m/s^2)."""
+
+
 DESCRIPTIONS: dict[str, str] = {
-    'dt': 'integration step (s)',
-    'max_steps': 'steps per episode before it is truncated',
-    'goal': 'goal position [x, y] (m)',
-    'goal_radius': 'the episode ends with the goal reward within this distance (m)',
-    'goal_reward': 'reward for reaching the goal',
-    'start': 'start state (unicycle [x, y, theta]; pvtol [x1, x2], level hover)',
-    'random_start': 'start among the packaged start points with a random heading',
-    'layout': 'fixed (obstacles.* here) or random (a seeded transfer layout per reset)',
-    'layout_seed': '>= 0 pins one random layout (-1: a new one per reset)',
-    'operator_band': 'true band |x1 - x_h| the operator keeps to (the filter adds a margin)',
-    'operator_noise': "std of the operator's motion noise per sqrt(s)",
-    'attitude_error_gain': 'gain of the attitude-tracking error on theta_dot',
-    'initial_positions': 'initial positions of the five cars (m)',
-    'initial_velocity': 'initial velocity of cars 1, 2, 3, 5 (m/s)',
-    'initial_velocity_car4': 'initial velocity of car 4 (m/s)',
-    'collision_gap': 'true least gap between two cars (m)',
-    'velocity_noise': "std of one draw added to every car's initial velocity (m/s)",
-    'disturbance_gain': 'unknown input gain d_i of cars 1, 2, 3, 5',
-    'reward_scale': 'reward = -reward_scale ||u||^2',
-    'acceleration': "the nominal controller's constant acceleration of car 4 (m/s^2)",
-}
-"""One line per key of the environments and nominal controllers in the packaged configs."""
+    parameter.key: parameter.rule.description
+    for cls in [env.settings_type for env in ENVS.values()] + [CarControllerSettings]
+    for parameter in parameters_of(cls) if parameter.rule.description}
+"""One line per key of the environments and nominal controllers in the packaged configs (from
+their settings dataclasses)."""
 
 
 def _description(name: str) -> tuple[str, str | None]:

@@ -134,7 +134,8 @@ def parameter_type(kind: Any) -> str:
 
 
 def parameter_specs(cls: type, *, prefix: str = '', declared_defaults: bool = True,
-                    say_default: bool = False) -> tuple[ParameterSpec, ...]:
+                    say_default: bool = False, mark_read_only: bool = True
+                    ) -> tuple[ParameterSpec, ...]:
     """One spec per parameter of the dataclass ``cls`` (:func:`rcbf_ros.parameters.reader.
     parameters_of`), in field order: the description from its rule (``; read-only`` added when
     it is fixed at start), the type from its annotation, the default from the dataclass.
@@ -144,6 +145,8 @@ def parameter_specs(cls: type, *, prefix: str = '', declared_defaults: bool = Tr
             applies the default (keys of a params file, declared when given).
         say_default: add ``(default <value>)`` to the description (with ``declared_defaults``
             False, so that the default is still shown).
+        mark_read_only: say ``read-only`` for a parameter the node declares read-only (the
+            rule's ``read_only``); False for a node that declares none so.
     """
     specs = []
     for parameter in parameters_of(cls, prefix=prefix):
@@ -153,7 +156,7 @@ def parameter_specs(cls: type, *, prefix: str = '', declared_defaults: bool = Tr
         description = parameter.rule.description
         if say_default and default not in (None, '', []):
             description += f' (default {format_value(default)})'
-        if parameter.rule.read_only:
+        if mark_read_only and parameter.rule.read_only:
             description += READ_ONLY_SUFFIX
         specs.append(ParameterSpec(
             parameter.key, default if declared_defaults else None,
