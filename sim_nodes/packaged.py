@@ -3,7 +3,7 @@
 The simulator and the nominal controller declare ``system`` and every key of their section
 (with ``/**``) of the packaged params file of that system, with the file's values as defaults;
 overrides (``--params-file``, ``-p``) win. :func:`packaged_parameter_specs` describes exactly
-those declarations for ``--help`` and the README, one line each from :data:`DESCRIPTIONS` (the
+those declarations for ``--help`` and the README, one line each from :func:`descriptions` (the
 environments' own keys) or from the safety filter's specs (the shared layout keys).
 """
 from __future__ import annotations
@@ -28,18 +28,19 @@ class CarControllerSettings:
     """Constant acceleration of car 4 (m/s^2)."""
 
 
-DESCRIPTIONS: dict[str, str] = {
-    parameter.key: parameter.rule.description
-    for cls in [env.settings_type for env in ENVS.values()] + [CarControllerSettings]
-    for parameter in parameters_of(cls) if parameter.rule.description}
-"""One line per key of the environments and nominal controllers in the packaged configs (from
-their settings dataclasses)."""
+def descriptions(system: str) -> dict[str, str]:
+    """Key -> one line, for the keys of ``system``'s env and nominal controller (from their
+    settings dataclasses)."""
+    return {parameter.key: parameter.rule.description
+            for cls in (ENVS[system].settings_type, CarControllerSettings)
+            for parameter in parameters_of(cls) if parameter.rule.description}
 
 
-def _description(name: str) -> tuple[str, str | None]:
+def _description(name: str, system: str) -> tuple[str, str | None]:
     """(one line, declared type or None) of a packaged key."""
-    if name in DESCRIPTIONS:
-        return DESCRIPTIONS[name], None
+    own = descriptions(system)
+    if name in own:
+        return own[name], None
     for spec in FILTER_PARAMETERS:
         if spec.matches(name):
             return (FILTER_DESCRIPTIONS[spec.name],
@@ -72,7 +73,7 @@ def packaged_parameter_specs(system: str, section: str,
     for name, value in packaged_parameters(system, section).items():
         if name in skip:
             continue
-        description, declared = _description(name)
+        description, declared = _description(name, system)
         specs.append(ParameterSpec(name, value, declared or type_of(value), description))
     return tuple(specs)
 

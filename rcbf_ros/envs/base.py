@@ -29,6 +29,7 @@ import torch
 
 from rcbf_ros.core.config import FILTER_OPEN_PREFIXES, FilterParameters, flatten
 from rcbf_ros.core.dynamics import ControlAffineSystem
+from rcbf_ros.envs.layouts import layout_from_params
 from rcbf_ros.parameters.reader import parameter_keys, read_floats, read_parameters, setting
 
 FILTER_KEYS: tuple[str, ...] = parameter_keys(FilterParameters)
@@ -46,21 +47,42 @@ def merge_params(params: Mapping[str, Any] | None, overrides: Mapping[str, Any])
     return merged
 
 
-GOAL_RADIUS = 'the episode ends with the goal reward within this distance (m)'
-START = 'start state (unicycle [x, y, theta]; pvtol [x1, x2], level hover)'
-RANDOM_START = 'start among the packaged start points with a random heading'
-LAYOUTS = ('fixed', 'random')
-LAYOUT = 'fixed (obstacles.* here) or random (a seeded transfer layout per reset)'
-LAYOUT_SEED = '>= 0 pins one random layout (-1: a new one per reset)'
-"""One-line descriptions of the go-to-goal systems' shared keys (``--help``, README)."""
-
-
 @dataclass(frozen=True)
 class EnvSettings:
     """Parameters every simulated system reads (subclassed per system)."""
 
     dt: float = setting(0.02, positive=True, description='integration step (s)')
     """Euler step [s]."""
+
+
+@dataclass(frozen=True)
+class GoToGoalSettings(EnvSettings):
+    """The keys the go-to-goal systems (Unicycle, PVTOL) share; each subclass adds its goal,
+    start, episode length and goal reward with its own defaults."""
+
+    goal_radius: float = setting(
+        0.3, positive=True,
+        description='the episode ends with the goal reward within this distance (m)')
+    """The episode ends at the goal within this distance (m)."""
+    random_start: bool = setting(
+        False, text_bool=True,
+        description='start among the packaged start points with a random heading')
+    """Start among the system's packaged start points."""
+    layout: str = setting(
+        'fixed', choices=('fixed', 'random'),
+        description='fixed (obstacles.* here) or random (a seeded transfer layout per reset)')
+    """fixed (the obstacles.* keys) or random (a seeded layout per reset)."""
+    layout_seed: int = setting(-1, description='>= 0 pins one random layout (-1: a new one per '
+                                               'reset)')
+    """>= 0 pins one random layout."""
+    max_steps: int = setting(1000, minimum=1,
+                             description='steps per episode before it is truncated')
+    """Steps before truncation."""
+    goal: tuple[float, ...] = setting((0.0, 0.0), length=2,
+                                      description='goal position [x, y] (m)')
+    """Goal position (m)."""
+    goal_reward: float = setting(1.0, description='reward for reaching the goal')
+    """Reward for reaching the goal."""
 
 
 def layout_lists(params: Mapping[str, Any]) -> tuple[tuple[float, ...], ...]:
@@ -240,8 +262,22 @@ class GoToGoalReward:
     goal: np.ndarray
     goal_radius: float
     goal_reward: float
+    max_steps: int
+    obstacles: tuple[Any, ...]
+    params: dict[str, Any]
     _last_distance: float
     _state: np.ndarray
+
+    def _take_goal_settings(self, settings: GoToGoalSettings) -> None:
+        """The goal, episode length and fixed layout of ``settings`` (a random layout is drawn
+        later, see the subclasses)."""
+        self.max_steps = settings.max_steps
+        self.goal = np.asarray(settings.goal)
+        self.goal_radius = settings.goal_radius
+        self.goal_reward = settings.goal_reward
+        self.random_start = settings.random_start
+        self.obstacles = layout_from_params(*layout_lists(self.params),
+                                            self.params.get('obstacles.shape'))
 
     def _reward_and_goal(self, previous: np.ndarray, u: np.ndarray) -> tuple[float, bool]:
         distance = float(np.linalg.norm(self._state[:2] - self.goal))

@@ -83,22 +83,13 @@ class CarFollowingEnv(SafetyEnv):
 
     system_name = 'car_following'
     settings_type = CarFollowingSettings
+    settings: CarFollowingSettings
     h_true_names = ['gap_3_4', 'gap_4_5']
 
     def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
         super().__init__(params, overrides)
-        s: CarFollowingSettings = self.settings
         self.nominal_system = CarFollowing()
-        self.max_steps = s.max_steps
-        self.initial_positions = np.asarray(s.initial_positions)
-        self.initial_velocity = s.initial_velocity
-        self.initial_velocity_car4 = s.initial_velocity_car4
-        self.velocity_noise = s.velocity_noise
-        self.disturbance_gain = s.disturbance_gain
-        self.leader_amplitude = s.leader_amplitude
-        self.leader_frequency = s.leader_frequency
-        self.reward_scale = s.reward_scale
-        self.min_gap = s.collision_gap
+        self.max_steps = self.settings.max_steps
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(15,), dtype=np.float64)
         self.action_space = gym.spaces.Box(-np.inf, np.inf, shape=(1,), dtype=np.float64)
         self._accelerations = np.zeros(5)
@@ -107,18 +98,20 @@ class CarFollowingEnv(SafetyEnv):
         """(5,) v_dot of every car under the TRUE dynamics at time t."""
         f, _ = self.nominal_terms(state)
         inputs = f[1::2].copy()  # nominal u_2, u_3, u_5 (u_1 = u_4 = 0 in the prior)
+        s = self.settings
         inputs[0] = (self.nominal_system.k_v * (self.nominal_system.v_des - state[1])
-                     + self.leader_amplitude * math.sin(self.leader_frequency * t))
+                     + s.leader_amplitude * math.sin(s.leader_frequency * t))
         inputs[3] = 0.0
-        accelerations = (1.0 + self.disturbance_gain) * inputs
+        accelerations = (1.0 + s.disturbance_gain) * inputs
         accelerations[3] = u[0]
         return accelerations
 
     def _reset_state(self, options: dict[str, Any]) -> np.ndarray:
         state = np.zeros(10)
-        state[0::2] = self.initial_positions
-        state[1::2] = self.initial_velocity + self.velocity_noise * self.np_random.normal()
-        state[7] = self.initial_velocity_car4
+        s = self.settings
+        state[0::2] = s.initial_positions
+        state[1::2] = s.initial_velocity + s.velocity_noise * self.np_random.normal()
+        state[7] = s.initial_velocity_car4
         self._accelerations = np.zeros(5)
         return state
 
@@ -138,8 +131,9 @@ class CarFollowingEnv(SafetyEnv):
         return obs
 
     def _reward_and_goal(self, previous: np.ndarray, u: np.ndarray) -> tuple[float, bool]:
-        return -self.reward_scale * float(np.dot(u, u)), False
+        return -self.settings.reward_scale * float(np.dot(u, u)), False
 
     def _h_true(self, state: np.ndarray) -> np.ndarray:
         p = state[0::2]
-        return np.array([p[2] - p[3] - self.min_gap, p[3] - p[4] - self.min_gap])
+        gap = self.settings.collision_gap
+        return np.array([p[2] - p[3] - gap, p[3] - p[4] - gap])

@@ -39,23 +39,9 @@ import gymnasium as gym
 import numpy as np
 
 from rcbf_ros.core.dynamics import PVTOL
-from rcbf_ros.envs.base import (
-    EnvSettings,
-    GOAL_RADIUS,
-    GoToGoalReward,
-    input_limits,
-    LAYOUT,
-    layout_lists,
-    LAYOUT_SEED,
-    LAYOUTS,
-    RANDOM_START,
-    SafetyEnv,
-    START,
-)
+from rcbf_ros.envs.base import GoToGoalReward, GoToGoalSettings, input_limits, SafetyEnv
 from rcbf_ros.envs.layouts import (
-    layout_from_params,
     layout_to_params,
-    Obstacle,
     pvtol_random_layout,
     PVTOL_STARTS,
     signed_clearance,
@@ -69,7 +55,7 @@ def pvtol_attitude_error(state: np.ndarray, gain: float = 0.1) -> float:
 
 
 @dataclass(frozen=True)
-class PVTOLSettings(EnvSettings):
+class PVTOLSettings(GoToGoalSettings):
     """The PVTOL env's parameters (defaults: the reference's values)."""
 
     with_operator: bool = setting(True, key='system_params.with_operator', text_bool=True)
@@ -82,14 +68,11 @@ class PVTOLSettings(EnvSettings):
     goal: tuple[float, ...] = setting((5.0, -1.5), length=2,
                                       description='goal position [x, y] (m)')
     """Goal position (m)."""
-    goal_radius: float = setting(0.3, positive=True, description=GOAL_RADIUS)
-    """The episode ends at the goal within this distance (m)."""
     goal_reward: float = setting(3.0, description='reward for reaching the goal')
     """Reward for reaching the goal."""
-    start: tuple[float, ...] = setting((-4.5, 2.0), length=2, description=START)
+    start: tuple[float, ...] = setting((-4.5, 2.0), length=2,
+                                       description='start position [x1, x2] (m), level hover')
     """Start position [x1, x2] (level hover)."""
-    random_start: bool = setting(False, text_bool=True, description=RANDOM_START)
-    """Start among PVTOL_STARTS."""
     attitude_error_gain: float = setting(
         0.1, description='gain of the attitude-tracking error on theta_dot')
     """Gain of the attitude-tracking error on theta_dot."""
@@ -100,10 +83,6 @@ class PVTOLSettings(EnvSettings):
         0.6, positive=True,
         description='true band |x1 - x_h| the operator keeps to (the filter adds a margin)')
     """True band |x1 - x_h| the operator keeps to."""
-    layout: str = setting('fixed', choices=LAYOUTS, description=LAYOUT)
-    """fixed (the obstacles.* keys) or random (a seeded layout per reset)."""
-    layout_seed: int = setting(-1, description=LAYOUT_SEED)
-    """>= 0 pins one random layout."""
 
 
 class PVTOLEnv(GoToGoalReward, SafetyEnv):
@@ -111,30 +90,16 @@ class PVTOLEnv(GoToGoalReward, SafetyEnv):
 
     system_name = 'pvtol'
     settings_type = PVTOLSettings
+    settings: PVTOLSettings
 
     def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
         super().__init__(params, overrides)
-        s: PVTOLSettings = self.settings
-        self.configured_operator = s.with_operator
-        self.operator_gain = s.operator_gain
         self._limits = input_limits(self.params, 2)
-        self.max_steps = s.max_steps
-        self.goal = np.asarray(s.goal)
-        self.goal_radius = s.goal_radius
-        self.goal_reward = s.goal_reward
-        self.start = np.asarray(s.start)
-        self.random_start = s.random_start
-        self.attitude_error_gain = s.attitude_error_gain
-        self.operator_noise = s.operator_noise
-        self.operator_band = s.operator_band
-        self.layout_mode = s.layout
-        self.layout_seed = s.layout_seed
-        self.obstacles: tuple[Obstacle, ...] = layout_from_params(
-            *layout_lists(self.params), self.params.get('obstacles.shape'))
-        self.with_operator = self.configured_operator
+        self._take_goal_settings(self.settings)
+        self.with_operator = self.settings.with_operator
         self.current_layout_seed: int | None = None
-        if self.layout_mode == 'random' and self.layout_seed >= 0:
-            self._use_random_layout(self.layout_seed)
+        if self.settings.layout == 'random' and self.settings.layout_seed >= 0:
+            self._use_random_layout(self.settings.layout_seed)
         self._build_system()
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(10,), dtype=np.float64)
         lo = self.nominal_system.u_min or (-np.inf, -np.inf)
@@ -144,7 +109,7 @@ class PVTOLEnv(GoToGoalReward, SafetyEnv):
 
     def _build_system(self) -> None:
         self.nominal_system = PVTOL(with_operator=self.with_operator,
-                                    operator_gain=self.operator_gain, **self._limits)
+                                    operator_gain=self.settings.operator_gain, **self._limits)
 
     def _use_random_layout(self, seed: int) -> None:
         self.current_layout_seed = seed
@@ -156,13 +121,13 @@ class PVTOLEnv(GoToGoalReward, SafetyEnv):
         return names + (['operator'] if self.with_operator else [])
 
     def _reset_state(self, options: dict[str, Any]) -> np.ndarray:
-        if self.layout_mode == 'random' and self.layout_seed < 0:
+        if self.settings.layout == 'random' and self.settings.layout_seed < 0:
             self._use_random_layout(int(self.np_random.integers(2 ** 31 - 1)))
             self._build_system()
         if self.random_start:
             xy = PVTOL_STARTS[int(self.np_random.integers(len(PVTOL_STARTS)))]
         else:
-            xy = self.start
+            xy = self.settings.start
         state = [xy[0], xy[1], 0.0, 0.0, 0.0, 1.0] + ([xy[0]] if self.with_operator else [])
         self._last_distance = float(np.hypot(xy[0] - self.goal[0], xy[1] - self.goal[1]))
         return np.asarray(state, dtype=np.float64)
@@ -170,13 +135,13 @@ class PVTOLEnv(GoToGoalReward, SafetyEnv):
     def _true_derivative(self, state: np.ndarray, u: np.ndarray) -> np.ndarray:
         f, g = self.nominal_terms(state)
         derivative = f + g @ u
-        derivative[4] += pvtol_attitude_error(state, self.attitude_error_gain)
+        derivative[4] += pvtol_attitude_error(state, self.settings.attitude_error_gain)
         return derivative
 
     def _post_step(self, state: np.ndarray) -> np.ndarray:
-        if self.with_operator and self.operator_noise > 0:
+        if self.with_operator and self.settings.operator_noise > 0:
             state = state.copy()
-            state[6] += math.sqrt(self.dt) * self.operator_noise * self.np_random.normal()
+            state[6] += math.sqrt(self.dt) * self.settings.operator_noise * self.np_random.normal()
         return state
 
     def _observation(self) -> np.ndarray:
@@ -192,7 +157,7 @@ class PVTOLEnv(GoToGoalReward, SafetyEnv):
     def _h_true(self, state: np.ndarray) -> np.ndarray:
         values = [signed_clearance(o, state[:2]) for o in self.obstacles]
         if self.with_operator:
-            values.append(self.operator_band - abs(state[0] - state[6]))
+            values.append(self.settings.operator_band - abs(state[0] - state[6]))
         return np.asarray(values)
 
     def _set_layout_filter_params(self, params: dict[str, Any]) -> None:
@@ -200,7 +165,7 @@ class PVTOLEnv(GoToGoalReward, SafetyEnv):
         layout.pop('obstacles.shape')
         params.update(layout)
         params['system_params.with_operator'] = self.with_operator
-        params['system_params.operator_gain'] = self.operator_gain
+        params['system_params.operator_gain'] = self.settings.operator_gain
         if not self.with_operator:
             for key in [k for k in params if k.startswith('bands.operator.')]:
                 del params[key]

@@ -34,23 +34,9 @@ import gymnasium as gym
 import numpy as np
 
 from rcbf_ros.core.dynamics import Unicycle
-from rcbf_ros.envs.base import (
-    EnvSettings,
-    GOAL_RADIUS,
-    GoToGoalReward,
-    input_limits,
-    LAYOUT,
-    layout_lists,
-    LAYOUT_SEED,
-    LAYOUTS,
-    RANDOM_START,
-    SafetyEnv,
-    START,
-)
+from rcbf_ros.envs.base import GoToGoalReward, GoToGoalSettings, input_limits, SafetyEnv
 from rcbf_ros.envs.layouts import (
-    layout_from_params,
     layout_to_params,
-    Obstacle,
     signed_clearance,
     unicycle_random_layout,
     UNICYCLE_STARTS,
@@ -64,27 +50,15 @@ def unicycle_slope_disturbance(state: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class UnicycleSettings(EnvSettings):
+class UnicycleSettings(GoToGoalSettings):
     """The unicycle env's parameters (defaults: the reference's values)."""
 
-    max_steps: int = setting(1000, minimum=1,
-                             description='steps per episode before it is truncated')
-    """Steps before truncation."""
     goal: tuple[float, ...] = setting((2.5, 2.5), length=2,
                                       description='goal position [x, y] (m)')
     """Goal position (m)."""
-    goal_radius: float = setting(0.3, positive=True, description=GOAL_RADIUS)
-    """The episode ends at the goal within this distance (m)."""
-    goal_reward: float = setting(1.0, description='reward for reaching the goal')
-    """Reward for reaching the goal."""
-    start: tuple[float, ...] = setting((-2.5, -2.5, 0.0), length=3, description=START)
+    start: tuple[float, ...] = setting((-2.5, -2.5, 0.0), length=3,
+                                       description='start state [x, y, theta] (m, rad)')
     """Start state [x, y, theta]."""
-    random_start: bool = setting(False, text_bool=True, description=RANDOM_START)
-    """Start among UNICYCLE_STARTS with a random heading."""
-    layout: str = setting('fixed', choices=LAYOUTS, description=LAYOUT)
-    """fixed (the obstacles.* keys) or random (a seeded layout per reset)."""
-    layout_seed: int = setting(-1, description=LAYOUT_SEED)
-    """>= 0 pins one random layout."""
 
 
 class UnicycleEnv(GoToGoalReward, SafetyEnv):
@@ -92,24 +66,15 @@ class UnicycleEnv(GoToGoalReward, SafetyEnv):
 
     system_name = 'unicycle'
     settings_type = UnicycleSettings
+    settings: UnicycleSettings
 
     def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
         super().__init__(params, overrides)
-        s: UnicycleSettings = self.settings
         self.nominal_system = Unicycle(**input_limits(self.params, 2))
-        self.max_steps = s.max_steps
-        self.goal = np.asarray(s.goal)
-        self.goal_radius = s.goal_radius
-        self.goal_reward = s.goal_reward
-        self.start = np.asarray(s.start)
-        self.random_start = s.random_start
-        self.layout_mode = s.layout
-        self.layout_seed = s.layout_seed
-        self.obstacles: tuple[Obstacle, ...] = layout_from_params(
-            *layout_lists(self.params), self.params.get('obstacles.shape'))
+        self._take_goal_settings(self.settings)
         self.current_layout_seed: int | None = None
-        if self.layout_mode == 'random' and self.layout_seed >= 0:
-            self._use_random_layout(self.layout_seed)
+        if self.settings.layout == 'random' and self.settings.layout_seed >= 0:
+            self._use_random_layout(self.settings.layout_seed)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(7,), dtype=np.float64)
         lo = self.nominal_system.u_min or (-np.inf, -np.inf)
         hi = self.nominal_system.u_max or (np.inf, np.inf)
@@ -125,13 +90,13 @@ class UnicycleEnv(GoToGoalReward, SafetyEnv):
         self.obstacles = unicycle_random_layout(seed)
 
     def _reset_state(self, options: dict[str, Any]) -> np.ndarray:
-        if self.layout_mode == 'random' and self.layout_seed < 0:
+        if self.settings.layout == 'random' and self.settings.layout_seed < 0:
             self._use_random_layout(int(self.np_random.integers(2 ** 31 - 1)))
         if self.random_start:
             xy = UNICYCLE_STARTS[int(self.np_random.integers(len(UNICYCLE_STARTS)))]
             state = np.array([xy[0], xy[1], self.np_random.uniform(-math.pi, math.pi)])
         else:
-            state = self.start.copy()
+            state = np.array(self.settings.start)
         self._last_distance = float(np.linalg.norm(state[:2] - self.goal))
         return state
 
