@@ -32,7 +32,6 @@ from rcbf_ros.node_logic.edges import MessageSettings
 from rcbf_ros.node_logic.interface import (
     COMMAND_TOPIC_TYPES,
     declarations,
-    DEFAULT_QOS,
     NodeInterface,
     parameter_specs,
     ParameterSpec,
@@ -55,14 +54,12 @@ NODE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(MessageSettings,
 """The controller's own parameters."""
 
 
-_QOS = DEFAULT_QOS
 TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec('state', 'sub', STATE_TOPIC_TYPES,
-              'state_type array: section `state` (else all data); odometry: pose [x, y, yaw]',
-              _QOS),
+              'state_type array: section `state` (else all data); odometry: pose [x, y, yaw]'),
     TopicSpec('cmd_proposed', 'pub', COMMAND_TOPIC_TYPES,
               'array: sections `u` (n_u) and `state` (n_x, the state it answers); '
-              "twist(_stamped): u in twist_fields, the Odometry's header", _QOS),
+              "twist(_stamped): u in twist_fields, the Odometry's header"),
 )
 
 

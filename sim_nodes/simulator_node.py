@@ -70,11 +70,11 @@ import numpy as np
 from rcbf_ros.envs import make_env
 from rcbf_ros.messages import conversions
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.node_logic.edges import MessageSettings
+from rcbf_ros.node_logic.edges import MessageSettings, SIM_STEP_SECTIONS
 from rcbf_ros.node_logic.interface import (
     COMMAND_TOPIC_TYPES,
     declarations,
-    DEFAULT_QOS,
+    FLOAT64_MULTIARRAY,
     NodeInterface,
     parameter_specs,
     ParameterSpec,
@@ -137,24 +137,21 @@ them)."""
 NODE_DEFAULTS: dict[str, Any] = dict(declarations(NODE_PARAMETERS))
 """Name -> default of :data:`NODE_PARAMETERS`."""
 
-_QOS = DEFAULT_QOS
 TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec('state', 'pub', STATE_TOPIC_TYPES,
               'state_type array: section `state`, n_x values in the state layout; odometry: '
-              'pose [x, y, yaw], twist [v, omega], stamped with the simulation clock', _QOS),
+              'pose [x, y, yaw], twist [v, omega], stamped with the simulation clock'),
     TopicSpec('cmd_safe', 'sub', COMMAND_TOPIC_TYPES,
               'the action: array: first section u (n_u), optional section `state` it answers '
               "(the filter's `filter_info`; launches remap cmd_safe to it); twist(_stamped): "
-              'u in twist_fields, the stamp of the state it answers', _QOS),
-    TopicSpec('sim/step', 'pub', 'std_msgs/msg/Float64MultiArray',
-              'per step: sections state, observation, reward, action, terminated, truncated, '
-              'violation, goal_reached, episode, step', _QOS),
-    TopicSpec('observation', 'pub', 'std_msgs/msg/Float64MultiArray',
-              "section `observation`: the policy's input", _QOS),
-    TopicSpec('h_true', 'pub', 'std_msgs/msg/Float64MultiArray',
-              'section `h_true`: true signed clearances (names in the episode start event)',
-              _QOS),
-    TopicSpec('reward', 'pub', 'std_msgs/msg/Float64', 'reward of the last step', _QOS),
+              'u in twist_fields, the stamp of the state it answers'),
+    TopicSpec('sim/step', 'pub', FLOAT64_MULTIARRAY,
+              "the simulator's per-step sections: " + ', '.join(SIM_STEP_SECTIONS)),
+    TopicSpec('observation', 'pub', FLOAT64_MULTIARRAY,
+              "section `observation`: the policy's input"),
+    TopicSpec('h_true', 'pub', FLOAT64_MULTIARRAY,
+              'section `h_true`: true signed clearances (names in the episode start event)'),
+    TopicSpec('reward', 'pub', 'std_msgs/msg/Float64', 'reward of the last step'),
     TopicSpec('episode', 'pub', 'std_msgs/msg/String',
               'one JSON object per episode start and end',
               'reliable, transient local, keep-last 10'),

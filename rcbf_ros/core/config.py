@@ -220,8 +220,7 @@ class FilterParameters:
     """The actuator limits, when they override the system's."""
     alpha: float = setting(1.0, positive=True, description='class-K gain of every RCBF row, > 0')
     """Class-K gain of every RCBF row."""
-    k_c: float = setting(2.0, minimum=0, description='the disturbance box is mean +/- k_c std, '
-                                                     '>= 0')
+    k_c: float = setting(2.0, description='the disturbance box is mean +/- k_c std, >= 0')
     """The disturbance box is mean +/- k_c std."""
     slack_weight: float = setting(1.0e6, positive=True,
                                   description='weight l of the slack in the QP cost, > 0')
@@ -433,6 +432,8 @@ def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
     params = flatten(params)
     system = build_system(params)
     p = read_parameters(FilterParameters, params)
+    if p.k_c < 0:
+        raise ParameterError(f'k_c: must be >= 0 (the box is mean +/- k_c std), got {p.k_c}')
     problem = RCBFProblem(
         system=system, families=_families(p, params, system), alpha=p.alpha, k_c=p.k_c,
         slack_weight=p.slack_weight,

@@ -14,6 +14,9 @@ STATE_TYPES = ('array', 'odometry')
 """``state_type``: std_msgs/Float64MultiArray or nav_msgs/Odometry."""
 COMMAND_TYPES = ('array', 'twist', 'twist_stamped')
 """``command_type``: std_msgs/Float64MultiArray, geometry_msgs/Twist or TwistStamped."""
+SIM_STEP_SECTIONS = ('state', 'observation', 'reward', 'action', 'terminated', 'truncated',
+                     'violation', 'goal_reached', 'episode', 'step')
+"""The sections of the simulator's ``sim/step`` message, in order."""
 TWIST_FIELDS = tuple(f'{group}.{axis}' for group in ('linear', 'angular') for axis in 'xyz')
 """The Twist fields u may sit in."""
 

@@ -12,13 +12,14 @@ import math
 import typing
 from typing import Any, Callable, Sequence, Union
 
+from rcbf_ros.messages.conversions import FLOAT64_MULTIARRAY
 from rcbf_ros.parameters.reader import parameters_of
 
 DEFAULT_QOS = 'reliable, keep-last 10'
 """The QoS text of a topic with ROS 2's default profile (``--help``, README)."""
-STATE_TOPIC_TYPES = 'std_msgs/msg/Float64MultiArray or nav_msgs/msg/Odometry'
+STATE_TOPIC_TYPES = f'{FLOAT64_MULTIARRAY} or nav_msgs/msg/Odometry'
 """The types a ``state`` topic takes (``state_type``)."""
-COMMAND_TOPIC_TYPES = ('std_msgs/msg/Float64MultiArray, geometry_msgs/msg/Twist or '
+COMMAND_TOPIC_TYPES = (f'{FLOAT64_MULTIARRAY}, geometry_msgs/msg/Twist or '
                        'geometry_msgs/msg/TwistStamped')
 """The types a command topic takes (``command_type``)."""
 READ_ONLY_SUFFIX = '; read-only'
@@ -79,7 +80,7 @@ class TopicSpec:
     """Message type (``std_msgs/msg/Float64MultiArray``), or the choice a parameter makes."""
     layout: str
     """What the message holds (sections, fields, units), one line."""
-    qos: str
+    qos: str = DEFAULT_QOS
     """``reliable``/``best effort``, history and depth."""
 
     def __post_init__(self) -> None:

@@ -39,8 +39,9 @@ from rcbf_ros.core.config import build_system, envelope_problem, filter_config_f
 from rcbf_ros.envs.base import EnvSettings
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA, SACConfig
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
+from rcbf_ros.node_logic.edges import SIM_STEP_SECTIONS
 from rcbf_ros.node_logic.interface import (
-    DEFAULT_QOS,
+    FLOAT64_MULTIARRAY,
     NodeInterface,
     parameter_specs,
     ParameterSpec,
@@ -138,18 +139,16 @@ FILE_PARAMETERS: tuple[ParameterSpec, ...] = (
 )
 """Read from the params file when given (``/learner`` section), declared only then."""
 
-_QOS = DEFAULT_QOS
 INTERFACE = NodeInterface(
     node='learner',
     summary='SAC-RCBF training against the simulator and safety_filter nodes, in lock-step.',
     topics=(
-        TopicSpec('sim/step', 'sub', 'std_msgs/msg/Float64MultiArray',
-                  "the simulator's per-step sections: state, observation, reward, action, "
-                  'terminated, truncated, violation, goal_reached, episode, step', _QOS),
-        TopicSpec('cmd_proposed', 'pub', 'std_msgs/msg/Float64MultiArray',
-                  'sections u (n_u), disturbance_mean, disturbance_std, state (n_x each)', _QOS),
+        TopicSpec('sim/step', 'sub', FLOAT64_MULTIARRAY,
+                  "the simulator's per-step sections: " + ', '.join(SIM_STEP_SECTIONS)),
+        TopicSpec('cmd_proposed', 'pub', FLOAT64_MULTIARRAY,
+                  'sections u (n_u), disturbance_mean, disturbance_std, state (n_x each)'),
         TopicSpec('learner/metrics', 'pub', 'std_msgs/msg/String',
-                  "one JSON row per episode (as metrics.jsonl's)", _QOS),
+                  "one JSON row per episode (as metrics.jsonl's)"),
     ),
     parameters=LEARNER_PARAMETERS + FILE_PARAMETERS,
     notes=("The safety problem's keys (system, obstacles.*, alpha, ...: see safety_filter "

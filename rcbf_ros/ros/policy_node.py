@@ -21,7 +21,7 @@ import torch
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.node_logic.interface import (
     declarations,
-    DEFAULT_QOS,
+    FLOAT64_MULTIARRAY,
     NodeInterface,
     parameter_specs,
     ParameterSpec,
@@ -48,17 +48,16 @@ class PolicySettings:
 PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(PolicySettings)
 """The policy node's parameters, in declaration order."""
 
-_QOS = DEFAULT_QOS
 INTERFACE = NodeInterface(
     node='policy',
     summary='A trained policy alone, proposing actions to the safety filter (deployment).',
     topics=(
-        TopicSpec('sim/step', 'sub', 'std_msgs/msg/Float64MultiArray',
+        TopicSpec('sim/step', 'sub', FLOAT64_MULTIARRAY,
                   'input_topic: sections observation (the policy input) and optional state, '
-                  'episode, step, terminated, truncated', _QOS),
-        TopicSpec('cmd_proposed', 'pub', 'std_msgs/msg/Float64MultiArray',
+                  'episode, step, terminated, truncated'),
+        TopicSpec('cmd_proposed', 'pub', FLOAT64_MULTIARRAY,
                   "sections u (n_u: the actor's mean action) and state (n_x, when the input "
-                  'has it)', _QOS),
+                  'has it)'),
     ),
     parameters=PARAMETERS,
 )

@@ -98,7 +98,13 @@ from rcbf_ros.core.config import FilterConfig
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.messages import conversions
 from rcbf_ros.node_logic import safety_filter as logic
-from rcbf_ros.node_logic.interface import NodeInterface, TopicSpec
+from rcbf_ros.node_logic.interface import (
+    COMMAND_TOPIC_TYPES,
+    FLOAT64_MULTIARRAY,
+    NodeInterface,
+    STATE_TOPIC_TYPES,
+    TopicSpec,
+)
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     deserialize_message,
@@ -124,12 +130,10 @@ INTERFACE = NodeInterface(
     summary='The RCBF safety filter in front of any controller: a proposed command in, the '
             'safe command out (every parameter also from --params-file config/<system>.yaml).',
     topics=(
-        TopicSpec('state', 'sub', 'std_msgs/msg/Float64MultiArray or nav_msgs/msg/Odometry',
+        TopicSpec('state', 'sub', STATE_TOPIC_TYPES,
                   'state_type array: section `state` (else the first), n_x values in the '
                   "system's state layout; odometry: [x, y, yaw] of the pose (unicycle)", _QOS),
-        TopicSpec('cmd_proposed', 'sub',
-                  'std_msgs/msg/Float64MultiArray, geometry_msgs/msg/Twist or '
-                  'geometry_msgs/msg/TwistStamped',
+        TopicSpec('cmd_proposed', 'sub', COMMAND_TOPIC_TYPES,
                   'command_type array: section `u` (n_u; unlabelled data is u) and optional '
                   '`disturbance_mean`, `disturbance_std`, `state` (n_x each); twist(_stamped): '
                   'u in twist_fields', _QOS),
@@ -137,7 +141,7 @@ INTERFACE = NodeInterface(
                   'the safe command only: array: exactly u (n_u values, section `u`); '
                   "twist(_stamped): u in twist_fields, others 0; TwistStamped: the proposal's "
                   'header (stamp, frame_id)', _QOS),
-        TopicSpec('filter_info', 'pub', 'std_msgs/msg/Float64MultiArray',
+        TopicSpec('filter_info', 'pub', FLOAT64_MULTIARRAY,
                   'one per command: sections u, u_rl, u_s (n_u each), fail_safe, status (1 each),'
                   ' then when known h, constraint (K each), slack, needed_slack, solve_time_s '
                   '(1 each), state (n_x); never NaN', _QOS),
@@ -145,7 +149,7 @@ INTERFACE = NodeInterface(
                   'one status per proposal (OK ones at most every diagnostics.min_period_s): '
                   'h.<barrier>, constraint.<barrier>, slack, status, reason, times, counts',
                   _QOS),
-        TopicSpec('obstacles', 'sub', 'std_msgs/msg/Float64MultiArray',
+        TopicSpec('obstacles', 'sub', FLOAT64_MULTIARRAY,
                   'the whole obstacle set, rows [x, y, radius] (3 k values, layout.dim none or '
                   '[k, 3]); replaces obstacles.x/y/radius as a parameter change would',
                   OBSTACLES_QOS),

@@ -37,7 +37,13 @@ import numpy as np
 from rcbf_ros.core.scene import scene_geometry
 from rcbf_ros.messages import conversions
 from rcbf_ros.node_logic import scene as logic
-from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.node_logic.interface import (
+    FLOAT64_MULTIARRAY,
+    NodeInterface,
+    ParameterSpec,
+    STATE_TOPIC_TYPES,
+    TopicSpec,
+)
 from rcbf_ros.node_logic.safety_filter import (
     collect_parameters,
     FILTER_PARAMETERS,
@@ -61,7 +67,6 @@ from rcbf_ros.ros.runtime import (
 
 NODE_NAME = 'scene_markers'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
-FLOAT64_MULTIARRAY = 'std_msgs/msg/Float64MultiArray'
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
 
 _DEFAULTS = logic.SCENE_PARAMETER_DEFAULTS
@@ -79,22 +84,20 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
 """Every parameter the node declares: its own, then the filter keys of the params file
 (declared when given, as the filter reads them)."""
 
-_QOS = 'reliable, keep-last 10'
 INTERFACE = NodeInterface(
     node=NODE_NAME,
     summary='The safety problem as a MarkerArray for RViz and Foxglove: obstacles, margins, the '
             'robot and every barrier value.',
     topics=(
-        TopicSpec('state', 'sub', 'std_msgs/msg/Float64MultiArray or nav_msgs/msg/Odometry',
-                  'as the safety filter reads it (state_type)', _QOS),
+        TopicSpec('state', 'sub', STATE_TOPIC_TYPES,
+                  'as the safety filter reads it (state_type)'),
         TopicSpec('diagnostics', 'sub', 'diagnostic_msgs/msg/DiagnosticArray',
-                  "the filter's: h.<barrier> values and the status message", _QOS),
+                  "the filter's: h.<barrier> values and the status message"),
         TopicSpec('obstacles', 'sub', FLOAT64_MULTIARRAY,
                   "the safety filter's obstacle set, rows [x, y, radius]: drawn instead of "
                   'obstacles.x/y/radius', 'reliable, keep-last 1, transient-local'),
         TopicSpec('scene_markers', 'pub', 'visualization_msgs/msg/MarkerArray',
-                  'obstacles, margins, robot, guarded point, barrier values, in frame_id',
-                  _QOS),
+                  'obstacles, margins, robot, guarded point, barrier values, in frame_id'),
     ),
     parameters=PARAMETERS,
 )
