@@ -152,3 +152,90 @@ def test_the_reader_is_a_leaf() -> None:
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                          check=True).stdout.strip()
     assert out == "['rcbf_ros']"
+
+
+# --- the readers built on it ------------------------------------------------------------------
+
+def _every_group(unicycle: dict) -> dict:
+    """A unicycle configuration with every barrier group set (each group's keys are read)."""
+    return {**unicycle, 'gaps.a': [0], 'gaps.b': [1], 'gaps.delta': 0.1,
+            'walls.nx': [1.0], 'walls.ny': [0.0], 'walls.offset': [-10.0]}
+
+
+def test_every_filter_key_is_read_and_named_when_bad() -> None:
+    """FILTER_PARAMETER_KEYS is derived from FilterParameters; each key is really read by
+    filter_config_from_params (a wrong type there is refused naming exactly that key)."""
+    from rcbf_ros.core.config import filter_config_from_params
+    from rcbf_ros.node_logic.safety_filter import FILTER_PARAMETER_KEYS
+    from rcbf_ros.parameters.rules import find_config, load_params
+    params = _every_group(load_params(find_config('unicycle'), 'safety_filter'))
+    filter_config_from_params(params)  # valid as it is
+    for key in FILTER_PARAMETER_KEYS:
+        bad = 'submarine' if key == 'system' else ['junk']
+        with pytest.raises(ValueError, match=f'^{key.replace(".", "[.]")}[:/]'):
+            filter_config_from_params({**params, key: bad})
+
+
+def test_k_c_keeps_the_refusal_text_ros2_param_set_reports() -> None:
+    from rcbf_ros.core.config import filter_config_from_params
+    from rcbf_ros.parameters.rules import find_config, load_params
+    params = load_params(find_config('unicycle'), 'safety_filter')
+    with pytest.raises(ValueError) as info:
+        filter_config_from_params({**params, 'k_c': -1.0})
+    assert str(info.value) == 'k_c: must be >= 0 (the box is mean +/- k_c std), got -1.0'
+
+
+def test_node_specs_and_defaults_come_from_the_dataclasses() -> None:
+    from rcbf_ros.envs.base import EnvSettings
+    from rcbf_ros.node_logic import safety_filter as fl
+    from rcbf_ros.ros.learner_node import LearnerSettings, PARAMETERS
+    from rcbf_ros.training.agent import LearnerConfig
+    assert fl.NODE_PARAMETER_DEFAULTS == defaults_of(fl.NodeSettings)
+    assert [s.name for s in fl.NODE_PARAMETERS] == list(parameter_keys(fl.NodeSettings))
+    assert fl.READ_ONLY_PARAMETERS == (
+        'state_type', 'command_type', 'twist_fields', 'qos.reliable', 'qos.depth', 'system')
+    for name in ('mode', 'seed', 'batch_size', 'start_steps', 'update_after',
+                 'gp_refit_interval', 'k_c', 'model_based'):
+        assert PARAMETERS[name] == getattr(LearnerConfig, name), name
+    assert PARAMETERS['dt'] == EnvSettings.dt
+    assert list(PARAMETERS) == list(parameter_keys(LearnerSettings))
+
+
+@pytest.mark.parametrize('key, value, why', [
+    ('threads', 0, 'must be >= 1, got 0'),
+    ('checkpoint_every', 2.0, 'expected an integer, got 2.0'),
+    ('initial_alpha', -1.0, 'must be > 0, got -1.0'),
+    ('seed', 1.5, 'expected an integer, got 1.5'),
+    ('resume', 'yes', "expected true or false, got 'yes'"),
+])
+def test_learner_settings_errors_name_the_key(key: str, value: object, why: str) -> None:
+    from rcbf_ros.ros.learner_node import LearnerSettings, PARAMETERS
+    with pytest.raises(ParameterError) as info:
+        read_parameters(LearnerSettings, {**PARAMETERS, key: value})
+    assert str(info.value) == f'{key}: {why}'
+
+
+
+@pytest.mark.parametrize('system, key, value, why', [
+    ('unicycle', 'goal', [1.0], 'expected 2 values, got 1'),
+    ('unicycle', 'max_steps', 0, 'must be >= 1, got 0'),
+    ('unicycle', 'layout', 'maze', "expected one of ['fixed', 'random'], got 'maze'"),
+    ('pvtol', 'system_params.with_operator', 'maybe', "expected true or false, got 'maybe'"),
+    ('pvtol', 'operator_noise', -0.1, 'must be >= 0, got -0.1'),
+    ('car_following', 'collision_gap', 0.0, 'must be > 0, got 0.0'),
+    ('car_following', 'initial_positions', [1.0, 2.0], 'expected 5 values, got 2'),
+])
+def test_env_settings_errors_name_the_key(system: str, key: str, value: object,
+                                          why: str) -> None:
+    from rcbf_ros.envs import make_env
+    with pytest.raises(ParameterError) as info:
+        make_env(system, {key: value})
+    assert str(info.value) == f'{key}: {why}'
+
+
+
+def test_env_text_booleans_are_still_taken() -> None:
+    from rcbf_ros.envs import make_env
+    assert make_env('unicycle', {'random_start': 'True'}).settings.random_start is True
+    assert make_env('pvtol', {'system_params.with_operator': np.bool_(False)}
+                    ).settings.with_operator is False
