@@ -271,14 +271,15 @@ class SimulatorNode(Node):
             if not self.has_parameter(name):
                 self.declare_parameter(name, value)
         params = declare_with_packaged_defaults(self, 'simulator')
+        wait_for = params.get('wait_for_publishers', [])
+        if not isinstance(wait_for, list) or not all(isinstance(t, str) and t for t in wait_for):
+            raise ValueError(f'wait_for_publishers: expected a list of topic names, got '
+                             f'{wait_for!r}')
         settings = read_parameters(SimulatorSettings, params)
         self.system = str(params['system'])
         self.mode, self.rate_hz, self.seed = settings.mode, settings.rate_hz, settings.seed
         self.max_episodes = settings.max_episodes
         self.action_timeout_s = settings.action_timeout_s
-        if not all(settings.wait_for_publishers):
-            raise ValueError(f'wait_for_publishers: expected a list of topic names, got '
-                             f'{list(settings.wait_for_publishers)!r}')
         self.wait_for_publishers = [self.resolve_topic_name(t)
                                     for t in settings.wait_for_publishers]
         self.env = make_env(self.system, params)
