@@ -44,8 +44,7 @@ from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from sim_nodes.packaged import (
     CarControllerSettings,
     declare_with_packaged_defaults,
-    packaged_parameter_specs,
-    system_from_argv,
+    packaged_interface,
 )
 from sim_nodes.simulator_node import message_settings
 
@@ -65,15 +64,11 @@ TOPICS: tuple[TopicSpec, ...] = (
 
 def nominal_controller_interface(argv: Sequence[str] = ()) -> NodeInterface:
     """Topics and parameters of the nominal controller for the ``system`` of a command line."""
-    system = system_from_argv(argv)
-    return NodeInterface(
-        node='nominal_controller',
+    return packaged_interface(
+        argv, node='nominal_controller', section='nominal_controller', topics=TOPICS,
+        own=NODE_PARAMETERS,
         summary='A deliberately unsafe controller (straight at the goal, or into the car ahead) '
-                f'to put behind the safety filter. Defaults below: system {system}.',
-        topics=TOPICS,
-        parameters=NODE_PARAMETERS + packaged_parameter_specs(system, 'nominal_controller'),
-        notes=('Other systems: nominal_controller --help --ros-args -p system:=pvtol '
-               '(or car_following).',))
+                'to put behind the safety filter.')
 
 
 def controller_from_params(params: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 from rcbf_ros.envs import ENVS
-from rcbf_ros.node_logic.interface import ParameterSpec, type_of
+from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpec, type_of
 from rcbf_ros.node_logic.safety_filter import FILTER_DESCRIPTIONS, FILTER_PARAMETERS
 from rcbf_ros.parameters.reader import parameters_of, setting
 from rcbf_ros.parameters.rules import find_config, load_params
@@ -76,6 +76,21 @@ def packaged_parameter_specs(system: str, section: str,
         description, declared = _description(name, system)
         specs.append(ParameterSpec(name, value, declared or type_of(value), description))
     return tuple(specs)
+
+
+def packaged_interface(argv: Sequence[str], *, node: str, section: str, summary: str,
+                       topics: tuple[TopicSpec, ...],
+                       own: tuple[ParameterSpec, ...]) -> NodeInterface:
+    """The interface (``--help``, README) of a simulated-system node for the ``system`` of a
+    command line: its ``own`` parameters, then ``system`` and the keys of that system's
+    packaged file (:func:`packaged_parameter_specs`)."""
+    system = system_from_argv(argv)
+    return NodeInterface(
+        node=node, summary=f'{summary} Defaults below: system {system}.', topics=topics,
+        parameters=own + packaged_parameter_specs(system, section,
+                                                  skip=tuple(spec.name for spec in own)),
+        notes=(f'Other systems: {node} --help --ros-args -p system:=pvtol '
+               '(or car_following).',))
 
 
 def system_from_argv(argv: Sequence[str]) -> str:

@@ -86,8 +86,7 @@ from rcbf_ros.ros.node_main import run_node, spin_once
 from rcbf_ros.ros.runtime import DurabilityPolicy, get_message, Node, QoSProfile, rclpy
 from sim_nodes.packaged import (
     declare_with_packaged_defaults,
-    packaged_parameter_specs,
-    system_from_argv,
+    packaged_interface,
 )
 
 MODES = ('lockstep', 'realtime')
@@ -164,16 +163,10 @@ start event and those of the next few episodes."""
 
 def simulator_interface(argv: Sequence[str] = ()) -> NodeInterface:
     """Topics and parameters of the simulator for the ``system`` of a command line."""
-    system = system_from_argv(argv)
-    return NodeInterface(
-        node='simulator',
+    return packaged_interface(
+        argv, node='simulator', section='simulator', topics=TOPICS, own=NODE_PARAMETERS,
         summary='One of the simulated systems (rcbf_ros.envs) on topics, lock-step or '
-                f'real-time. Defaults below: system {system}.',
-        topics=TOPICS,
-        parameters=NODE_PARAMETERS + packaged_parameter_specs(system, 'simulator',
-                                                              skip=tuple(NODE_DEFAULTS)),
-        notes=('Other systems: simulator --help --ros-args -p system:=pvtol '
-               '(or car_following).',))
+                'real-time.')
 
 
 def action_from_msg(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:

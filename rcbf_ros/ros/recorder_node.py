@@ -34,7 +34,7 @@ import sys
 from typing import Any, Callable, Sequence
 
 from rcbf_ros.bag import BagWriter, BagWriterConfig, RecordedQos
-from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, ParameterSpec, TopicSpec
+from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, TopicSpec
 from rcbf_ros.parameters.reader import setting
 from rcbf_ros.ros.node_main import declare_settings, run_node
 from rcbf_ros.ros.runtime import (
@@ -282,10 +282,6 @@ class RecorderNode(Node):
         return counts
 
 
-PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(RecorderConfig)
-"""The recorder's parameters (``recorder --help``, README; a test compares them with what
-the node declares)."""
-
 INTERFACE = NodeInterface(
     node='recorder',
     summary="Record topics into an MCAP bag in rosbag2's layout (Ctrl-C closes it).",
@@ -293,7 +289,7 @@ INTERFACE = NodeInterface(
                       'all topics, or `topics`; re-checked every discovery_period_s',
                       'keep-all; reliable unless a publisher offers best effort, or '
                       'best_effort_topics'),),
-    parameters=PARAMETERS,
+    parameters=parameter_specs(RecorderConfig),  # a test compares them with the declarations
 )
 
 

@@ -28,7 +28,7 @@ from typing import Any, Sequence
 
 from rcbf_ros.bag import bag_info
 from rcbf_ros.bag.playback import iter_bag_messages, playback_schedule, replay_qos
-from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, ParameterSpec, TopicSpec
+from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, TopicSpec
 from rcbf_ros.parameters.reader import setting
 from rcbf_ros.ros.node_main import declare_settings, run_node
 from rcbf_ros.ros.runtime import (
@@ -137,17 +137,13 @@ class ReplayNode(Node):
         self._sleep_until(time.monotonic() + self.config.linger_s)
 
 
-PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(ReplayConfig)
-"""The replay node's parameters (``replay --help``, README; a test compares them with what
-the node declares)."""
-
 INTERFACE = NodeInterface(
     node='replay',
     summary='Play a bag onto its topics (the bag is checked in full first).',
     topics=(TopicSpec('<every recorded topic>', 'pub', 'as recorded (CDR bytes as recorded)',
                       'all recorded topics, or `topics`, on the recorded schedule / rate',
                       "the recorded publishers' QoS, keep-all"),),
-    parameters=PARAMETERS,
+    parameters=parameter_specs(ReplayConfig),  # a test compares them with the declarations
 )
 
 
