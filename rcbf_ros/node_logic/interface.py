@@ -17,6 +17,10 @@ from rcbf_ros.parameters.reader import parameters_of
 
 DEFAULT_QOS = 'reliable, keep-last 10'
 """The QoS text of a topic with ROS 2's default profile (``--help``, README)."""
+DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+"""The type of ``diagnostics``."""
+OBSTACLES_QOS = 'reliable, keep-last 1, transient-local'
+"""QoS of an ``obstacles`` subscription: the latest set only; a latched one is picked up."""
 STATE_TOPIC_TYPES = f'{FLOAT64_MULTIARRAY} or nav_msgs/msg/Odometry'
 """The types a ``state`` topic takes (``state_type``)."""
 COMMAND_TOPIC_TYPES = (f'{FLOAT64_MULTIARRAY}, geometry_msgs/msg/Twist or '

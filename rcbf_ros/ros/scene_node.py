@@ -9,7 +9,7 @@ Topics (relative, so remappable):
 - ``diagnostics`` (sub, diagnostic_msgs/DiagnosticArray): the filter's; the ``h.<barrier>``
   values and the message of the status that carries them;
 - ``obstacles`` (sub, std_msgs/Float64MultiArray, reliable, keep-last 1, transient-local): the
-  safety filter's obstacle set, rows [x, y, radius] (:data:`rcbf_ros.ros.safety_filter_node.
+  safety filter's obstacle set, rows [x, y, radius] (:data:`rcbf_ros.node_logic.interface.
   OBSTACLES_QOS`); the scene draws the new set. A set the filter would refuse is refused here
   too (checked by the same functions), with an ERROR, and the old set stays drawn;
 - ``scene_markers`` (pub, visualization_msgs/MarkerArray): obstacles, margins, the robot, the
@@ -38,8 +38,10 @@ from rcbf_ros.core.scene import scene_geometry
 from rcbf_ros.messages import conversions
 from rcbf_ros.node_logic import scene as logic
 from rcbf_ros.node_logic.interface import (
+    DIAGNOSTIC_ARRAY,
     FLOAT64_MULTIARRAY,
     NodeInterface,
+    OBSTACLES_QOS,
     ParameterSpec,
     STATE_TOPIC_TYPES,
     TopicSpec,
@@ -67,7 +69,6 @@ from rcbf_ros.ros.runtime import (
 
 NODE_NAME = 'scene_markers'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
-DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
 
 _DEFAULTS = logic.SCENE_PARAMETER_DEFAULTS
 STATE_TYPE_DEFAULT = 'array'
@@ -91,11 +92,11 @@ INTERFACE = NodeInterface(
     topics=(
         TopicSpec('state', 'sub', STATE_TOPIC_TYPES,
                   'as the safety filter reads it (state_type)'),
-        TopicSpec('diagnostics', 'sub', 'diagnostic_msgs/msg/DiagnosticArray',
+        TopicSpec('diagnostics', 'sub', DIAGNOSTIC_ARRAY,
                   "the filter's: h.<barrier> values and the status message"),
         TopicSpec('obstacles', 'sub', FLOAT64_MULTIARRAY,
                   "the safety filter's obstacle set, rows [x, y, radius]: drawn instead of "
-                  'obstacles.x/y/radius', 'reliable, keep-last 1, transient-local'),
+                  'obstacles.x/y/radius', OBSTACLES_QOS),
         TopicSpec('scene_markers', 'pub', 'visualization_msgs/msg/MarkerArray',
                   'obstacles, margins, robot, guarded point, barrier values, in frame_id'),
     ),
