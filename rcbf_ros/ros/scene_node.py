@@ -37,11 +37,13 @@ import numpy as np
 from rcbf_ros.core.scene import scene_geometry
 from rcbf_ros.messages import conversions
 from rcbf_ros.node_logic import scene as logic
+from rcbf_ros.node_logic.edges import MessageSettings
 from rcbf_ros.node_logic.interface import (
     DIAGNOSTIC_ARRAY,
     FLOAT64_MULTIARRAY,
     NodeInterface,
     OBSTACLES_QOS,
+    parameter_specs,
     ParameterSpec,
     STATE_TOPIC_TYPES,
     TopicSpec,
@@ -53,8 +55,8 @@ from rcbf_ros.node_logic.safety_filter import (
     merged_parameters,
     obstacle_parameters,
     state_from_sections,
-    STATE_TYPES,
 )
+from rcbf_ros.parameters.reader import read_parameters
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     deserialize_message,
@@ -70,17 +72,9 @@ from rcbf_ros.ros.runtime import (
 NODE_NAME = 'scene_markers'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
 
-_DEFAULTS = logic.SCENE_PARAMETER_DEFAULTS
-STATE_TYPE_DEFAULT = 'array'
 PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('frame_id', _DEFAULTS['frame_id'], 'string',
-                  "frame of every marker (the obstacles' frame)"),
-    ParameterSpec('rate_hz', _DEFAULTS['rate_hz'], 'double',
-                  'most MarkerArrays a second (one after each new state or diagnostics)'),
-    ParameterSpec('caution_h', _DEFAULTS['caution_h'], 'double',
-                  'barrier values in [0, caution_h) are drawn amber, below 0 red'),
-    ParameterSpec('state_type', STATE_TYPE_DEFAULT, 'string',
-                  "type of `state`, as the safety filter's: array or odometry (unicycle)"),
+    *parameter_specs(logic.SceneSettings),
+    *parameter_specs(MessageSettings, mark_read_only=False)[:1],  # state_type
 ) + FILTER_PARAMETERS
 """Every parameter the node declares: its own, then the filter keys of the params file
 (declared when given, as the filter reads them)."""
@@ -200,12 +194,11 @@ class SceneNode(Node):
     def _state_type_parameter(self) -> str:
         """The declared ``state_type``, checked against the system (ValueError naming it)."""
         if not self.has_parameter('state_type'):
-            self.declare_parameter('state_type', STATE_TYPE_DEFAULT)
-        state_type = self.get_parameter('state_type').value
+            self.declare_parameter('state_type', MessageSettings.state_type)
         try:
-            if state_type not in STATE_TYPES:
-                raise ValueError(f'state_type: expected one of {list(STATE_TYPES)}, got '
-                                 f'{state_type!r}')
+            state_type = read_parameters(
+                MessageSettings, {'state_type': self.get_parameter('state_type').value}
+            ).state_type
             if state_type == 'odometry':
                 conversions.check_odometry_support(self.geometry.system)
         except ValueError as exc:
