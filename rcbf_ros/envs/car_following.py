@@ -11,12 +11,10 @@ cars 1, 2, 3, 5 and d_4 = 0, where
 
 The nominal prior lacks the 1 + d_i gains and car 1's input; the learned disturbance covers them.
 
-Parameters: ``dt`` 0.02, ``max_steps`` 300, ``initial_positions`` [34, 28, 22, 16, 10],
-``initial_velocity`` 30, ``initial_velocity_car4`` 35 (ref: car 4 starts 5 m/s faster than the
-others, closing on car 3; "car 4 at 35" in ENVIRONMENTS.md is this velocity), ``velocity_noise``
-0.5 (std of ONE normal draw added to every car's initial velocity, from the env's generator),
-``disturbance_gain`` 0.1, ``leader_amplitude`` 10, ``leader_frequency`` 0.2, ``reward_scale``
-1/300.
+Parameters: :class:`CarFollowingSettings` (flat keys, the reference's values as defaults). Car
+4 starts faster than the others, closing on car 3 ("car 4 at 35" in ENVIRONMENTS.md is
+``initial_velocity_car4``); ``velocity_noise`` is the std of ONE normal draw added to every
+car's initial velocity, from the env's generator.
 
 Reward: -reward_scale ||u||^2 (paper r(u) = -||u||^2, scaled so that an episode's return is
 minus the mean squared acceleration). Observation (15,): positions / 100, velocities / 30 and

@@ -6,21 +6,20 @@ ones plus
 
 - attitude-tracking error d_omega(x) = 0.1 (f - 1) - 0.1 sin(theta) on theta_dot (smooth,
   bounded for bounded thrust, zero in level hover: the inner attitude loop lags more at high
-  thrust and leans back toward level), scaled by ``attitude_error_gain`` (0.1);
+  thrust and leans back toward level), scaled by ``attitude_error_gain``;
 - the operator: a noisy single integrator x_h' = x_h + dt k_h (x1 - x_h) + sqrt(dt) sigma_h n,
-  n ~ N(0, 1) from the env's generator, k_h = ``system_params.operator_gain`` (3.5),
-  sigma_h = ``operator_noise`` (0.06). The reference moves its operator by
+  n ~ N(0, 1) from the env's generator, k_h = ``system_params.operator_gain``,
+  sigma_h = ``operator_noise``. The reference moves its operator by
   clip(0.07 (x1 - x_h), +-0.07) + 0.015 U(-1, 1) per 0.02 s step: k_h = 0.07 / dt = 3.5 per
   second (the clip, 3.5 m/s, is never reached inside the 0.6 m band) and a per-step noise std
   of 0.015 / sqrt(3) = sqrt(dt) 0.06 (Gaussian here).
 
-Parameters: ``dt`` 0.02, ``max_steps`` 2000, ``goal`` [5, -1.5], ``goal_radius`` 0.3,
-``goal_reward`` 3.0, ``start`` [-4.5, 2.0] (level hover: v = 0, theta = 0, f = 1; the operator
-starts under the drone, x_h = x1), ``random_start`` (among
-:data:`~rcbf_ros.envs.layouts.PVTOL_STARTS`), ``layout`` ``fixed`` | ``random``
-(:func:`~rcbf_ros.envs.layouts.pvtol_random_layout`, operator present with probability 0.5),
-``layout_seed``, ``operator_band`` 0.6 (the TRUE band |x1 - x_h| <= 0.6; the filter's
-``bands.operator.half_width`` is smaller by its margin), ``system_params.with_operator``.
+Parameters: :class:`PVTOLSettings` (flat keys, the reference's values as defaults). The start
+is a level hover (v = 0, theta = 0, f = 1; the operator starts under the drone, x_h = x1);
+``random_start`` picks it among :data:`~rcbf_ros.envs.layouts.PVTOL_STARTS`; ``layout``
+``random`` draws :func:`~rcbf_ros.envs.layouts.pvtol_random_layout` (operator present with
+probability 0.5); ``operator_band`` is the TRUE band |x1 - x_h| (the filter's
+``bands.operator.half_width`` is smaller by its margin).
 
 Reward: progress toward the goal + ``goal_reward`` on reaching it (terminates). Observation
 (10,): [x1, x2, cos th, sin th, v1, v2, f, e_goal (2), exp(-distance)], e_goal the unit vector

@@ -4,17 +4,14 @@ TRUE dynamics (unknown to the agent): x_dot = g(x) (u + u_d), u_d = -0.1 cos(the
 (a slope), with the nominal g of :class:`rcbf_ros.core.dynamics.Unicycle`; Euler step
 x' = x + dt g(x) (u + u_d(x)).
 
-Parameters (flat keys; defaults are the reference's values):
-
-- ``dt`` 0.02, ``max_steps`` 1000, ``arena_half_size`` 3.0 (informational: the arena is not a
-  barrier), ``goal`` [2.5, 2.5], ``goal_radius`` 0.3, ``goal_reward`` 1.0,
-  ``start`` [-2.5, -2.5, 0.0];
-- ``random_start`` (false): pick the start among :data:`~rcbf_ros.envs.layouts.UNICYCLE_STARTS`
-  (corners and edge midpoints away from the goal) with a heading U[-pi, pi);
-- ``layout``: ``fixed`` (the ``obstacles.x/.y/.radius(/.shape)`` keys) or ``random`` (a new
-  :func:`~rcbf_ros.envs.layouts.unicycle_random_layout` per reset, its seed drawn from the env's
-  generator and reported as ``info['layout_seed']``); ``layout_seed`` >= 0 pins one random
-  layout.
+Parameters: :class:`UnicycleSettings` (flat keys, the reference's values as defaults; an
+``arena_half_size`` key is informational: the arena is not a barrier). ``random_start`` picks
+the start among :data:`~rcbf_ros.envs.layouts.UNICYCLE_STARTS` (corners and edge midpoints away
+from the goal) with a heading U[-pi, pi); ``layout``: ``fixed`` (the
+``obstacles.x/.y/.radius(/.shape)`` keys) or ``random`` (a new
+:func:`~rcbf_ros.envs.layouts.unicycle_random_layout` per reset, its seed drawn from the env's
+generator and reported as ``info['layout_seed']``); ``layout_seed`` >= 0 pins one random
+layout.
 
 Reward: previous distance - distance to the goal, + ``goal_reward`` when within
 ``goal_radius`` (the episode terminates there). Observation (7,):
