@@ -239,3 +239,12 @@ def test_env_text_booleans_are_still_taken() -> None:
     assert make_env('unicycle', {'random_start': 'True'}).settings.random_start is True
     assert make_env('pvtol', {'system_params.with_operator': np.bool_(False)}
                     ).settings.with_operator is False
+
+
+def test_env_hands_on_every_filter_key() -> None:
+    """env.filter_params() keeps every key of FilterParameters (compile_assembly included) and
+    drops the env's own (obstacles.shape)."""
+    from rcbf_ros.envs import make_env
+    params = make_env('unicycle', compile_assembly=True, k_c=1.5).filter_params()
+    assert params['compile_assembly'] is True and params['k_c'] == 1.5
+    assert 'obstacles.shape' not in params and 'goal' not in params
