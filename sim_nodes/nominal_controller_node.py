@@ -24,54 +24,51 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from rcbf_ros.core.config import build_system
+from rcbf_ros.envs import ENVS
 from rcbf_ros.envs.nominal import cars_accelerate, pvtol_go_to_goal, unicycle_go_to_goal
 from rcbf_ros.messages import conversions
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.node_logic.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.node_logic.edges import MessageSettings
+from rcbf_ros.node_logic.interface import (
+    COMMAND_TOPIC_TYPES,
+    declarations,
+    NodeInterface,
+    parameter_specs,
+    ParameterSpec,
+    STATE_TOPIC_TYPES,
+    TopicSpec,
+)
+from rcbf_ros.parameters.reader import read_floats, read_parameters
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from sim_nodes.packaged import (
+    CarControllerSettings,
     declare_with_packaged_defaults,
-    packaged_parameter_specs,
-    system_from_argv,
+    packaged_interface,
 )
 from sim_nodes.simulator_node import message_settings
 
-NODE_PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('state_type', 'array', 'string',
-                  'type of `state`: array (Float64MultiArray) or odometry (nav_msgs/Odometry, '
-                  'unicycle only)'),
-    ParameterSpec('command_type', 'array', 'string',
-                  'type of `cmd_proposed`: array (sections u and state), twist or '
-                  'twist_stamped'),
-    ParameterSpec('twist_fields', ['linear.x', 'angular.z'], 'string[]',
-                  'for twist and twist_stamped: the n_u Twist fields holding u, in order'),
-)
+NODE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(MessageSettings,
+                                                             mark_read_only=False)
 """The controller's own parameters."""
 
-_QOS = 'reliable, keep-last 10'
+
 TOPICS: tuple[TopicSpec, ...] = (
-    TopicSpec('state', 'sub', 'std_msgs/msg/Float64MultiArray or nav_msgs/msg/Odometry',
-              'state_type array: section `state` (else all data); odometry: pose [x, y, yaw]',
-              _QOS),
-    TopicSpec('cmd_proposed', 'pub', 'std_msgs/msg/Float64MultiArray, geometry_msgs/msg/Twist or '
-              'geometry_msgs/msg/TwistStamped',
+    TopicSpec('state', 'sub', STATE_TOPIC_TYPES,
+              'state_type array: section `state` (else all data); odometry: pose [x, y, yaw]'),
+    TopicSpec('cmd_proposed', 'pub', COMMAND_TOPIC_TYPES,
               'array: sections `u` (n_u) and `state` (n_x, the state it answers); '
-              "twist(_stamped): u in twist_fields, the Odometry's header", _QOS),
+              "twist(_stamped): u in twist_fields, the Odometry's header"),
 )
 
 
 def nominal_controller_interface(argv: Sequence[str] = ()) -> NodeInterface:
     """Topics and parameters of the nominal controller for the ``system`` of a command line."""
-    system = system_from_argv(argv)
-    return NodeInterface(
-        node='nominal_controller',
+    return packaged_interface(
+        argv, node='nominal_controller', section='nominal_controller', topics=TOPICS,
+        own=NODE_PARAMETERS,
         summary='A deliberately unsafe controller (straight at the goal, or into the car ahead) '
-                f'to put behind the safety filter. Defaults below: system {system}.',
-        topics=TOPICS,
-        parameters=NODE_PARAMETERS + packaged_parameter_specs(system, 'nominal_controller'),
-        notes=('Other systems: nominal_controller --help --ros-args -p system:=pvtol '
-               '(or car_following).',))
+                'to put behind the safety filter.')
 
 
 def controller_from_params(params: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
@@ -82,16 +79,12 @@ def controller_from_params(params: dict[str, Any]) -> Callable[[np.ndarray], np.
     """
     system = params['system']
     if system == 'car_following':
-        try:
-            acceleration = float(params.get('acceleration', 5.0))
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f'acceleration: expected a number, got '
-                             f'{params.get("acceleration")!r}') from exc
+        acceleration = read_parameters(CarControllerSettings, params).acceleration
         return lambda x: cars_accelerate(x, acceleration=acceleration)
-    default_goal = (2.5, 2.5) if system == 'unicycle' else (5.0, -1.5)
-    goal = [float(v) for v in params.get('goal', default_goal)]
-    if len(goal) != 2:
-        raise ValueError(f'goal: expected 2 values, got {len(goal)}')
+    if system not in ('unicycle', 'pvtol'):
+        raise ValueError(f'system: no nominal controller for {system!r}')
+    # The env's own goal by default: the controller drives at the goal the episode rewards.
+    goal = read_floats('goal', params.get('goal', ENVS[system].settings_type.goal), length=2)
     if system == 'unicycle':
         return lambda x: unicycle_go_to_goal(x, goal)
     return lambda x: pvtol_go_to_goal(x, goal)
@@ -110,8 +103,8 @@ class NominalControllerNode(Node):
         self.system = str(params['system'])
         self.controller = controller_from_params(params)
         messages = message_settings(params, system=self.system, n_u=build_system(params).n_u)
-        self.state_type, self.command_type = messages['state_type'], messages['command_type']
-        self.twist_fields = messages['twist_fields']
+        self.state_type, self.command_type = messages.state_type, messages.command_type
+        self.twist_fields = messages.twist_fields
         self.publisher = self.create_publisher(
             get_message(conversions.COMMAND_MESSAGES[self.command_type]), 'cmd_proposed',
             QoSProfile(depth=10))

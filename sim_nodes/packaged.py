@@ -3,52 +3,48 @@
 The simulator and the nominal controller declare ``system`` and every key of their section
 (with ``/**``) of the packaged params file of that system, with the file's values as defaults;
 overrides (``--params-file``, ``-p``) win. :func:`packaged_parameter_specs` describes exactly
-those declarations for ``--help`` and the README, one line each from :data:`DESCRIPTIONS` (the
+those declarations for ``--help`` and the README, one line each from :func:`descriptions` (the
 environments' own keys) or from the safety filter's specs (the shared layout keys).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 from rcbf_ros.envs import ENVS
-from rcbf_ros.node_logic.interface import ParameterSpec, type_of
-from rcbf_ros.node_logic.safety_filter import FILTER_PARAMETERS
+from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpec, type_of
+from rcbf_ros.node_logic.safety_filter import FILTER_DESCRIPTIONS, FILTER_PARAMETERS
+from rcbf_ros.parameters.reader import parameters_of, setting
 from rcbf_ros.parameters.rules import find_config, load_params
 
 DEFAULT_SYSTEM = 'unicycle'
 
-DESCRIPTIONS: dict[str, str] = {
-    'dt': 'integration step (s)',
-    'max_steps': 'steps per episode before it is truncated',
-    'goal': 'goal position [x, y] (m)',
-    'goal_radius': 'the episode ends with the goal reward within this distance (m)',
-    'goal_reward': 'reward for reaching the goal',
-    'start': 'start state (unicycle [x, y, theta]; pvtol [x1, x2], level hover)',
-    'random_start': 'start among the packaged start points with a random heading',
-    'layout': 'fixed (obstacles.* here) or random (a seeded transfer layout per reset)',
-    'layout_seed': '>= 0 pins one random layout (-1: a new one per reset)',
-    'operator_band': 'true band |x1 - x_h| the operator keeps to (the filter adds a margin)',
-    'operator_noise': "std of the operator's motion noise per sqrt(s)",
-    'attitude_error_gain': 'gain of the attitude-tracking error on theta_dot',
-    'initial_positions': 'initial positions of the five cars (m)',
-    'initial_velocity': 'initial velocity of cars 1, 2, 3, 5 (m/s)',
-    'initial_velocity_car4': 'initial velocity of car 4 (m/s)',
-    'collision_gap': 'true least gap between two cars (m)',
-    'velocity_noise': "std of one draw added to every car's initial velocity (m/s)",
-    'disturbance_gain': 'unknown input gain d_i of cars 1, 2, 3, 5',
-    'reward_scale': 'reward = -reward_scale ||u||^2',
-    'acceleration': "the nominal controller's constant acceleration of car 4 (m/s^2)",
-}
-"""One line per key of the environments and nominal controllers in the packaged configs."""
+@dataclass(frozen=True)
+class CarControllerSettings:
+    """The car-following controller's parameter (``/nominal_controller`` section)."""
+
+    acceleration: float = setting(
+        5.0, description="the nominal controller's constant acceleration of car 4 (m/s^2)")
+    """Constant acceleration of car 4 (m/s^2)."""
 
 
-def _description(name: str) -> tuple[str, str | None]:
+def descriptions(system: str) -> dict[str, str]:
+    """Key -> one line, for the keys of ``system``'s env and nominal controller (from their
+    settings dataclasses)."""
+    return {parameter.key: parameter.rule.description
+            for cls in (ENVS[system].settings_type, CarControllerSettings)
+            for parameter in parameters_of(cls) if parameter.rule.description}
+
+
+def _description(name: str, system: str) -> tuple[str, str | None]:
     """(one line, declared type or None) of a packaged key."""
-    if name in DESCRIPTIONS:
-        return DESCRIPTIONS[name], None
+    own = descriptions(system)
+    if name in own:
+        return own[name], None
     for spec in FILTER_PARAMETERS:
         if spec.matches(name):
-            return spec.description, None if spec.type == 'any' else spec.type
+            return (FILTER_DESCRIPTIONS[spec.name],
+                    None if spec.type == 'any' else spec.type)
     raise KeyError(name)
 
 
@@ -77,9 +73,24 @@ def packaged_parameter_specs(system: str, section: str,
     for name, value in packaged_parameters(system, section).items():
         if name in skip:
             continue
-        description, declared = _description(name)
+        description, declared = _description(name, system)
         specs.append(ParameterSpec(name, value, declared or type_of(value), description))
     return tuple(specs)
+
+
+def packaged_interface(argv: Sequence[str], *, node: str, section: str, summary: str,
+                       topics: tuple[TopicSpec, ...],
+                       own: tuple[ParameterSpec, ...]) -> NodeInterface:
+    """The interface (``--help``, README) of a simulated-system node for the ``system`` of a
+    command line: its ``own`` parameters, then ``system`` and the keys of that system's
+    packaged file (:func:`packaged_parameter_specs`)."""
+    system = system_from_argv(argv)
+    return NodeInterface(
+        node=node, summary=f'{summary} Defaults below: system {system}.', topics=topics,
+        parameters=own + packaged_parameter_specs(system, section,
+                                                  skip=tuple(spec.name for spec in own)),
+        notes=(f'Other systems: {node} --help --ros-args -p system:=pvtol '
+               '(or car_following).',))
 
 
 def system_from_argv(argv: Sequence[str]) -> str:

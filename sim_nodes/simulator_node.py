@@ -58,6 +58,7 @@ topic names as the node resolves them, remaps included.
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import dataclass
 import json
 import math
 import sys
@@ -69,69 +70,87 @@ import numpy as np
 from rcbf_ros.envs import make_env
 from rcbf_ros.messages import conversions
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.node_logic.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
-from rcbf_ros.node_logic.safety_filter import COMMAND_TYPES, STATE_TYPES, TWIST_FIELDS
+from rcbf_ros.node_logic.edges import MessageSettings, SIM_STEP_SECTIONS
+from rcbf_ros.node_logic.interface import (
+    COMMAND_TOPIC_TYPES,
+    declarations,
+    FLOAT64_MULTIARRAY,
+    NodeInterface,
+    parameter_specs,
+    ParameterSpec,
+    STATE_TOPIC_TYPES,
+    TopicSpec,
+)
+from rcbf_ros.parameters.reader import read_parameters, setting
 from rcbf_ros.ros.node_main import run_node, spin_once
 from rcbf_ros.ros.runtime import DurabilityPolicy, get_message, Node, QoSProfile, rclpy
 from sim_nodes.packaged import (
     declare_with_packaged_defaults,
-    packaged_parameter_specs,
-    system_from_argv,
+    packaged_interface,
 )
 
-NODE_PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('mode', 'lockstep', 'string',
-                  'lockstep (step when the action for the pending state arrives) or realtime '
-                  '(step at rate_hz, holding the last action)'),
-    ParameterSpec('rate_hz', 50.0, 'double', 'steps per second in realtime mode'),
-    ParameterSpec('seed', 0, 'integer',
-                  "the first reset's seed (later episodes continue its generator)"),
-    ParameterSpec('max_episodes', 0, 'integer',
-                  'episodes to run, then the node exits (0: forever)'),
-    ParameterSpec('action_timeout_s', 1.0, 'double',
-                  'lockstep: publish the pending state again after this long without an '
-                  'action (s)'),
-    ParameterSpec('state_type', 'array', 'string',
-                  'type of `state`: array (Float64MultiArray) or odometry (nav_msgs/Odometry, '
-                  'unicycle only)'),
-    ParameterSpec('frame_id', 'map', 'string',
-                  "state_type odometry: the Odometry's header.frame_id (the obstacles' frame)"),
-    ParameterSpec('child_frame_id', 'base_link', 'string',
-                  "state_type odometry: the Odometry's child_frame_id (the robot's frame)"),
-    ParameterSpec('command_type', 'array', 'string',
-                  'type of `cmd_safe`: array (Float64MultiArray, first section u), twist or '
-                  'twist_stamped'),
-    ParameterSpec('twist_fields', ['linear.x', 'angular.z'], 'string[]',
-                  'for twist and twist_stamped: the n_u Twist fields holding u, in order'),
-    ParameterSpec('wait_for_publishers', [], 'string[]',
-                  'the first episode waits until each of these topics has a publisher that '
-                  'listens to the simulator (launches: cmd_safe and cmd_proposed)'),
-)
+MODES = ('lockstep', 'realtime')
+"""``mode``: step when the action arrives, or at ``rate_hz``."""
+
+
+@dataclass(frozen=True)
+class SimulatorSettings(MessageSettings):
+    """The simulator's own parameters (besides ``system`` and its env's)."""
+
+    mode: str = setting('lockstep', choices=MODES,
+                        description='lockstep (step when the action for the pending state '
+                                    'arrives) or realtime (step at rate_hz, holding the last '
+                                    'action)')
+    """lockstep or realtime (module docstring)."""
+    rate_hz: float = setting(50.0, positive=True,
+                             description='steps per second in realtime mode')
+    """Steps per second in realtime mode."""
+    seed: int = setting(0, description="the first reset's seed (later episodes continue its "
+                                       'generator)')
+    """The first reset's seed."""
+    max_episodes: int = setting(0, minimum=0,
+                                description='episodes to run, then the node exits (0: forever)')
+    """Episodes to run (0: forever)."""
+    action_timeout_s: float = setting(
+        1.0, positive=True, description='lockstep: publish the pending state again after this '
+                                        'long without an action (s)')
+    """Lock-step: publish the pending state again after this long without an action."""
+    frame_id: str = setting('map', description="state_type odometry: the Odometry's "
+                                               "header.frame_id (the obstacles' frame)")
+    """The Odometry's header.frame_id."""
+    child_frame_id: str = setting('base_link', description="state_type odometry: the "
+                                                           "Odometry's child_frame_id (the "
+                                                           "robot's frame)")
+    """The Odometry's child_frame_id."""
+    wait_for_publishers: tuple[str, ...] = setting(
+        (), description='the first episode waits until each of these topics has a publisher '
+                        'that listens to the simulator (launches: cmd_safe and cmd_proposed)')
+    """Topics whose publishers the first episode waits for."""
+
+
+NODE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(SimulatorSettings,
+                                                             mark_read_only=False)
 """The simulator's own parameters (declared before the packaged ones, which cannot replace
 them)."""
 
 NODE_DEFAULTS: dict[str, Any] = dict(declarations(NODE_PARAMETERS))
 """Name -> default of :data:`NODE_PARAMETERS`."""
 
-_QOS = 'reliable, keep-last 10'
 TOPICS: tuple[TopicSpec, ...] = (
-    TopicSpec('state', 'pub', 'std_msgs/msg/Float64MultiArray or nav_msgs/msg/Odometry',
+    TopicSpec('state', 'pub', STATE_TOPIC_TYPES,
               'state_type array: section `state`, n_x values in the state layout; odometry: '
-              'pose [x, y, yaw], twist [v, omega], stamped with the simulation clock', _QOS),
-    TopicSpec('cmd_safe', 'sub', 'std_msgs/msg/Float64MultiArray, geometry_msgs/msg/Twist or '
-              'geometry_msgs/msg/TwistStamped',
+              'pose [x, y, yaw], twist [v, omega], stamped with the simulation clock'),
+    TopicSpec('cmd_safe', 'sub', COMMAND_TOPIC_TYPES,
               'the action: array: first section u (n_u), optional section `state` it answers '
               "(the filter's `filter_info`; launches remap cmd_safe to it); twist(_stamped): "
-              'u in twist_fields, the stamp of the state it answers', _QOS),
-    TopicSpec('sim/step', 'pub', 'std_msgs/msg/Float64MultiArray',
-              'per step: sections state, observation, reward, action, terminated, truncated, '
-              'violation, goal_reached, episode, step', _QOS),
-    TopicSpec('observation', 'pub', 'std_msgs/msg/Float64MultiArray',
-              "section `observation`: the policy's input", _QOS),
-    TopicSpec('h_true', 'pub', 'std_msgs/msg/Float64MultiArray',
-              'section `h_true`: true signed clearances (names in the episode start event)',
-              _QOS),
-    TopicSpec('reward', 'pub', 'std_msgs/msg/Float64', 'reward of the last step', _QOS),
+              'u in twist_fields, the stamp of the state it answers'),
+    TopicSpec('sim/step', 'pub', FLOAT64_MULTIARRAY,
+              "the simulator's per-step sections: " + ', '.join(SIM_STEP_SECTIONS)),
+    TopicSpec('observation', 'pub', FLOAT64_MULTIARRAY,
+              "section `observation`: the policy's input"),
+    TopicSpec('h_true', 'pub', FLOAT64_MULTIARRAY,
+              'section `h_true`: true signed clearances (names in the episode start event)'),
+    TopicSpec('reward', 'pub', 'std_msgs/msg/Float64', 'reward of the last step'),
     TopicSpec('episode', 'pub', 'std_msgs/msg/String',
               'one JSON object per episode start and end',
               'reliable, transient local, keep-last 10'),
@@ -144,16 +163,10 @@ start event and those of the next few episodes."""
 
 def simulator_interface(argv: Sequence[str] = ()) -> NodeInterface:
     """Topics and parameters of the simulator for the ``system`` of a command line."""
-    system = system_from_argv(argv)
-    return NodeInterface(
-        node='simulator',
+    return packaged_interface(
+        argv, node='simulator', section='simulator', topics=TOPICS, own=NODE_PARAMETERS,
         summary='One of the simulated systems (rcbf_ros.envs) on topics, lock-step or '
-                f'real-time. Defaults below: system {system}.',
-        topics=TOPICS,
-        parameters=NODE_PARAMETERS + packaged_parameter_specs(system, 'simulator',
-                                                              skip=tuple(NODE_DEFAULTS)),
-        notes=('Other systems: simulator --help --ros-args -p system:=pvtol '
-               '(or car_following).',))
+                'real-time.')
 
 
 def action_from_msg(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
@@ -170,35 +183,18 @@ def action_from_msg(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
     return sections[labels[0]], answered
 
 
-def message_settings(params: dict[str, Any], *, system: str, n_u: int) -> dict[str, Any]:
+def message_settings(params: Mapping[str, Any], *, system: str, n_u: int) -> MessageSettings:
     """``state_type``, ``command_type`` and ``twist_fields``, checked.
 
     Raises:
         ValueError: naming the key (an unknown type, odometry for a system it cannot hold,
             twist fields that are not n_u known distinct names).
     """
-    state_type = params.get('state_type', NODE_DEFAULTS['state_type'])
-    if state_type not in STATE_TYPES:
-        raise ValueError(f'state_type: expected one of {list(STATE_TYPES)}, got {state_type!r}')
-    if state_type == 'odometry':
+    settings = read_parameters(MessageSettings, params)
+    if settings.state_type == 'odometry':
         conversions.check_odometry_support(system)
-    command_type = params.get('command_type', NODE_DEFAULTS['command_type'])
-    if command_type not in COMMAND_TYPES:
-        raise ValueError(f'command_type: expected one of {list(COMMAND_TYPES)}, '
-                         f'got {command_type!r}')
-    fields = params.get('twist_fields', NODE_DEFAULTS['twist_fields'])
-    if isinstance(fields, str) or not all(f in TWIST_FIELDS for f in fields) or (
-            len(set(fields)) != len(fields)):
-        raise ValueError(f'twist_fields: expected distinct names of {list(TWIST_FIELDS)}, '
-                         f'got {fields!r}')
-    if command_type != 'array' and len(fields) != n_u:
-        raise ValueError(f'twist_fields: expected {n_u} fields (n_u of {system}), '
-                         f'got {list(fields)}')
-    for key in ('frame_id', 'child_frame_id'):
-        if not isinstance(params.get(key, NODE_DEFAULTS[key]), str):
-            raise ValueError(f'{key}: expected a string, got {params.get(key)!r}')
-    return {'state_type': state_type, 'command_type': command_type,
-            'twist_fields': tuple(fields)}
+    settings.check_inputs(n_u=n_u, system=system)
+    return settings
 
 
 def episode_event(event: str, **fields: Any) -> str:
@@ -268,33 +264,23 @@ class SimulatorNode(Node):
             if not self.has_parameter(name):
                 self.declare_parameter(name, value)
         params = declare_with_packaged_defaults(self, 'simulator')
-        self.system = str(params['system'])
-        self.mode = str(params['mode'])
-        if self.mode not in ('lockstep', 'realtime'):
-            raise ValueError(f"mode: expected 'lockstep' or 'realtime', got {self.mode!r}")
-        self.rate_hz = float(params['rate_hz'])
-        if not self.rate_hz > 0:
-            raise ValueError(f'rate_hz: must be > 0, got {self.rate_hz}')
-        self.seed = int(params['seed'])
-        self.max_episodes = int(params['max_episodes'])
-        if self.max_episodes < 0:
-            raise ValueError('max_episodes: must be >= 0 (0 = forever)')
-        self.action_timeout_s = float(params['action_timeout_s'])
-        if not self.action_timeout_s > 0:
-            raise ValueError('action_timeout_s: must be > 0')
-        wait_for = params['wait_for_publishers']
-        if not isinstance(wait_for, list) or not all(
-                isinstance(t, str) and t for t in wait_for):
+        wait_for = params.get('wait_for_publishers', [])
+        if not isinstance(wait_for, list) or not all(isinstance(t, str) and t for t in wait_for):
             raise ValueError(f'wait_for_publishers: expected a list of topic names, got '
                              f'{wait_for!r}')
-        self.wait_for_publishers = [self.resolve_topic_name(t) for t in wait_for]
+        settings = read_parameters(SimulatorSettings, params)
+        self.system = str(params['system'])
+        self.mode, self.rate_hz, self.seed = settings.mode, settings.rate_hz, settings.seed
+        self.max_episodes = settings.max_episodes
+        self.action_timeout_s = settings.action_timeout_s
+        self.wait_for_publishers = [self.resolve_topic_name(t)
+                                    for t in settings.wait_for_publishers]
         self.env = make_env(self.system, params)
         self.n_u = self.env.nominal_system.n_u
         messages = message_settings(params, system=self.system, n_u=self.n_u)
-        self.state_type, self.command_type = messages['state_type'], messages['command_type']
-        self.twist_fields = messages['twist_fields']
-        self.frame_id = str(params['frame_id'])
-        self.child_frame_id = str(params['child_frame_id'])
+        self.state_type, self.command_type = messages.state_type, messages.command_type
+        self.twist_fields = messages.twist_fields
+        self.frame_id, self.child_frame_id = settings.frame_id, settings.child_frame_id
         self.dt_ns = int(round(float(self.env.dt) * 1e9))
         self.clock_ns = 0
         """Simulation clock: the stamp of the latest state (``dt`` per new state)."""

@@ -29,8 +29,7 @@ Keys (all optional except ``system``)::
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-import math
+from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from rcbf_ros.core.barriers import (
@@ -44,26 +43,29 @@ from rcbf_ros.core.barriers import (
 from rcbf_ros.core.dynamics import ControlAffineSystem, load_system
 from rcbf_ros.core.mappings import flatten
 from rcbf_ros.core.rcbf import RCBFProblem
+from rcbf_ros.parameters.reader import (
+    ParameterError,
+    read_bool,
+    read_float,
+    read_floats,
+    read_int,
+    read_parameters,
+    setting,
+)
 
 
 def float_list(params: Mapping[str, Any], key: str, length: int | None = None, *,
                default: Any = ()) -> tuple[float, ...]:
     """params[key] as floats (a scalar counts as one); errors name ``key``. An empty list is
     accepted whatever ``length`` (meaning: not set)."""
-    value = params.get(key, default)
-    if value is None:
-        return ()
-    if isinstance(value, (int, float)):
-        value = [value]
-    try:
-        out = tuple(float(v) for v in value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f'{key}: expected a list of numbers, got {value!r}') from exc
-    if any(not math.isfinite(v) for v in out):
-        raise ValueError(f'{key}: contains NaN or inf')
-    if length is not None and out and len(out) != length:
-        raise ValueError(f'{key}: expected {length} values, got {len(out)}')
-    return out
+    return _sized(key, read_floats(key, params.get(key, default)), length)
+
+
+def _sized(key: str, values: tuple[Any, ...], length: int | None) -> tuple[Any, ...]:
+    """``values``, refused naming ``key`` when not empty and not ``length`` long."""
+    if length is not None and values and len(values) != length:
+        raise ParameterError(f'{key}: expected {length} values, got {len(values)}')
+    return values
 
 
 def number(params: Mapping[str, Any], key: str, default: float, *,
@@ -72,47 +74,180 @@ def number(params: Mapping[str, Any], key: str, default: float, *,
 
     A numeric string is taken (YAML 1.1 reads ``1.0e6`` as a string); a bool is not a number.
     """
-    value = params.get(key, default)
-    if isinstance(value, bool):
-        raise ValueError(f'{key}: expected a number, got {value!r}')
-    try:
-        out = float(value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f'{key}: expected a number, got {value!r}') from exc
-    if not math.isfinite(out):
-        raise ValueError(f'{key}: must be finite, got {out}')
-    if positive and out <= 0:
-        raise ValueError(f'{key}: must be > 0, got {out}')
-    return out
+    return read_float(key, params.get(key, default), positive=positive)
 
 
 def flag(params: Mapping[str, Any], key: str, default: bool = False) -> bool:
     """params[key] (or ``default``) as a bool; anything else (1, 'true') is refused naming
     ``key``, as rcl types a YAML bool and nothing else as a bool parameter."""
-    value = params.get(key, default)
-    if not isinstance(value, bool):
-        raise ValueError(f'{key}: expected true or false, got {value!r}')
-    return value
+    return read_bool(key, params.get(key, default))
 
 
-def _index(params: Mapping[str, Any], key: str, default: int, size: int,
-           allow_none: bool = False, kind: str = 'state') -> int | None:
-    """An index into the state (``kind`` 'state', size n_x) or the input ('input', n_u)."""
-    value = params.get(key, default)
-    # int() would take True as 1 and truncate 1.5 to 1: a typo must not pick another index.
-    # (Non-finite floats fail is_integer() here too.)
-    if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
-        raise ValueError(f'{key}: expected an integer, got {value!r}')
-    try:
-        out = int(value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f'{key}: expected an integer, got {value!r}') from exc
+def _index(key: str, value: Any, size: int, *, allow_none: bool = False,
+           kind: str = 'state') -> int | None:
+    """An index into the state (``kind`` 'state', size n_x) or the input ('input', n_u);
+    with ``allow_none`` a negative one is None."""
+    out = read_int(key, value)  # True or 1.5: a typo must not pick another index
     if allow_none and out < 0:
         return None
     if not 0 <= out < size:
         name = 'n_x' if kind == 'state' else 'n_u'
-        raise ValueError(f'{key}: {kind} index {out} out of range for {name} = {size}')
+        raise ParameterError(f'{key}: {kind} index {out} out of range for {name} = {size}')
     return out
+
+
+@dataclass(frozen=True)
+class InputLimitParameters:
+    """``input_limits.*``: the system's actuator limits, overridden."""
+
+    lower: tuple[float, ...] | None = setting(
+        None, key='min', description="lower input limits, n_u values ([]: none; not set: the "
+                                     "system's)")
+    """Lower limits (None: the system's; empty: none)."""
+    upper: tuple[float, ...] | None = setting(
+        None, key='max', description="upper input limits, n_u values ([]: none; not set: the "
+                                     "system's)")
+    """Upper limits (None: the system's; empty: none)."""
+
+
+@dataclass(frozen=True)
+class ObstacleParameters:
+    """``obstacles.*``: circular obstacles (read when ``obstacles.x`` lists one)."""
+
+    x: tuple[float, ...] = setting((), description='obstacle centres, x (m), one per obstacle')
+    """Centres, x (m)."""
+    y: tuple[float, ...] = setting((), description='obstacle centres, y (m), one per obstacle')
+    """Centres, y (m)."""
+    radius: tuple[float, ...] = setting((), description='obstacle radii (m), one per obstacle')
+    """Radii (m), >= 0."""
+    margin: float = setting(0.0, minimum=0, description='added to every radius (m, >= 0)')
+    """Added to every radius (m)."""
+    lookahead: float = setting(
+        0.0, minimum=0, description='distance (m) of the guarded point ahead of the position')
+    """Distance of the guarded point ahead of the position (m)."""
+    heading_index: int = setting(
+        -1, description='state index of the heading the look-ahead follows (-1: none)')
+    """State index of the heading (-1: none)."""
+    position_indices: tuple[int, ...] = setting(
+        (0, 1), length=2, description='state indices of the position')
+    """State indices of the position."""
+    gammas: tuple[float, ...] = setting(
+        (), description='cascade gains for relative degree r > 1, r - 1 values > 0')
+    """Cascade gains (relative degree r > 1: r - 1 of them)."""
+    speed_input: int = setting(
+        -1, description='input whose negative proposals move the look-ahead point behind '
+                        '(-1: none)')
+    """Input whose negative proposals move the look-ahead point behind (-1: none); see
+    rcbf_ros.core.rcbf.barrier_terms."""
+
+
+@dataclass(frozen=True)
+class GapParameters:
+    """``gaps.*``: least distances between pairs of state entries (read when ``gaps.a`` is
+    set)."""
+
+    a: tuple[int, ...] = setting((), description='state index of the first position of each gap')
+    """State index of each gap's first position."""
+    b: tuple[int, ...] = setting((), description='state index of the second position of each '
+                                                 'gap')
+    """State index of each gap's second position."""
+    delta: float = setting(0.0, minimum=0, description='least distance |x_a - x_b| to keep (m)')
+    """Least distance to keep (m)."""
+    gammas: tuple[float, ...] = setting((), description='cascade gains of the gap barriers')
+    """Cascade gains."""
+
+
+@dataclass(frozen=True)
+class WallParameters:
+    """``walls.*``: half-planes h = nx x + ny y - offset (read when ``walls.nx`` is set)."""
+
+    nx: tuple[float, ...] = setting((), description='wall normals, x: h = nx x + ny y - offset')
+    """Normals, x."""
+    ny: tuple[float, ...] = setting((), description='wall normals, y, one per wall')
+    """Normals, y."""
+    offset: tuple[float, ...] = setting((), description='wall offsets (m), one per wall')
+    """Offsets (m)."""
+    gammas: tuple[float, ...] = setting((), description='cascade gains of the wall barriers')
+    """Cascade gains."""
+
+
+@dataclass(frozen=True)
+class DisturbanceParameters:
+    """``disturbance.*``: a static disturbance box."""
+
+    mean: tuple[float, ...] = setting(
+        (), description='static disturbance box centre, n_x values in state-derivative units '
+                        "(a proposal's disturbance_mean wins)")
+    """Box centre (n_x values; empty: zero / learned)."""
+    std: tuple[float, ...] = setting(
+        (), minimum=0, description='static disturbance box std, n_x values >= 0 (box: mean +/- '
+                                   "k_c std; a proposal's disturbance_std wins)")
+    """Box std (n_x values >= 0; empty: zero / learned)."""
+
+
+@dataclass(frozen=True)
+class BandParameters:
+    """``bands.<name>.*``: one band barrier per name."""
+
+    index: int = setting(0, description='band barrier <name>: state index it bounds')
+    """State index it bounds."""
+    center: float = setting(0.0, description='band <name>: constant centre')
+    """Constant centre."""
+    center_index: int = setting(
+        -1, description='band <name>: state index of a moving centre (-1: the constant centre)')
+    """State index of a moving centre (-1: the constant centre)."""
+    half_width: float = setting(0.0, description='band <name>: half width')
+    """Half width (> 0)."""
+    form: str = setting('quadratic', description='band <name>: quadratic (one barrier) or sides '
+                                                 '(two linear ones)')
+    """quadratic: one barrier (the paper's); sides: two linear ones (see BandBarrier)."""
+    gammas: tuple[float, ...] = setting((), description='band <name>: cascade gains')
+    """Cascade gains."""
+    layout: bool = setting(False, description='band <name> belongs to the layout (left out of '
+                                              'the envelope)')
+    """Part of the layout, not of the envelope (see :func:`envelope_params`)."""
+
+
+@dataclass(frozen=True)
+class FilterParameters:
+    """Every fixed key of ``config/<system>.yaml`` the filter reads (``system_params.<name>``
+    and ``bands.<name>.*`` (:class:`BandParameters`) come on top, one per name)."""
+
+    system: str = setting('', description='unicycle, car_following, pvtol or '
+                                          'package.module.Class (required)', read_only=True)
+    """The system: a packaged name or a dotted path (required: :func:`build_system` says so)."""
+    input_limits: InputLimitParameters = field(default_factory=InputLimitParameters)
+    """The actuator limits, when they override the system's."""
+    alpha: float = setting(1.0, positive=True, description='class-K gain of every RCBF row, > 0')
+    """Class-K gain of every RCBF row."""
+    k_c: float = setting(2.0, description='the disturbance box is mean +/- k_c std, >= 0')
+    """The disturbance box is mean +/- k_c std."""
+    slack_weight: float = setting(1.0e6, positive=True,
+                                  description='weight l of the slack in the QP cost, > 0')
+    """Weight of the slack in the QP cost."""
+    input_weight: tuple[float, ...] = setting(
+        (), description='weights of u_S in the QP cost, n_u values > 0 ([]: all 1)')
+    """Weights of u_S in the QP cost (empty: all 1)."""
+    obstacles: ObstacleParameters | None = setting(None, when='x')
+    """Circular obstacles (None: none)."""
+    gaps: GapParameters | None = setting(None, when='a')
+    """Pair gaps (None: none)."""
+    walls: WallParameters | None = setting(None, when='nx')
+    """Walls (None: none)."""
+    disturbance: DisturbanceParameters = field(default_factory=DisturbanceParameters)
+    """The static disturbance box."""
+    fail_safe_action: tuple[float, ...] = setting(
+        (), description='what is published when the filter cannot filter, n_u values within the '
+                        'limits ([]: zeros clipped to the limits)')
+    """Action when filtering is impossible (empty: zeros clipped to the limits)."""
+    compile_assembly: bool = setting(
+        False, description='compile the per-step constraint assembly (faster calls, slower '
+                           'start)')
+    """Compile the per-step autograd assembly (see :class:`FilterConfig`)."""
+
+
+FILTER_OPEN_PREFIXES: tuple[str, ...] = ('system_params.', 'bands.')
+"""Families of keys whose middle part the user names (``bands.operator.index``)."""
 
 
 @dataclass(frozen=True)
@@ -139,9 +274,9 @@ def build_system(params: Mapping[str, Any]) -> ControlAffineSystem:
         raise ValueError('system: required (unicycle, car_following, pvtol or a dotted path)')
     sys_params = {k[len('system_params.'):]: v for k, v in params.items()
                   if k.startswith('system_params.')}
-    if 'input_limits.min' in params or 'input_limits.max' in params:
-        lo = float_list(params, 'input_limits.min')
-        hi = float_list(params, 'input_limits.max')
+    limits = read_parameters(InputLimitParameters, params, prefix='input_limits.')
+    if limits.lower is not None or limits.upper is not None:
+        lo, hi = limits.lower or (), limits.upper or ()
         if len(lo) != len(hi):
             raise ValueError('input_limits.min/max: lengths differ')
         if any(a > b for a, b in zip(lo, hi)):
@@ -162,84 +297,89 @@ def _cascade(base: BarrierFamily, system: ControlAffineSystem, gammas: tuple[flo
     return cascade(base, system, gammas)
 
 
+def _obstacles(p: ObstacleParameters, system: ControlAffineSystem) -> BarrierFamily:
+    n = len(p.x)
+    _sized('obstacles.y', p.y, n)
+    _sized('obstacles.radius', p.radius, n)
+    if len(p.y) != n or len(p.radius) != n:
+        raise ValueError('obstacles.y/obstacles.radius: need one value per obstacles.x')
+    if any(r < 0 for r in p.radius):
+        raise ValueError(f'obstacles.radius: every radius must be >= 0, got {list(p.radius)}')
+    if min(p.radius) + p.margin <= 0:
+        raise ValueError('obstacles.radius: radius + obstacles.margin must be > 0 for every '
+                         'obstacle')
+    key = 'obstacles.position_indices'
+    base = CircleObstacles(
+        centers=tuple(zip(p.x, p.y)), radii=p.radius, margin=p.margin,
+        position_indices=tuple(_index(key, i, system.n_x) for i in p.position_indices),
+        heading_index=_index('obstacles.heading_index', p.heading_index, system.n_x,
+                             allow_none=True),
+        lookahead=p.lookahead,
+        speed_input=_index('obstacles.speed_input', p.speed_input, system.n_u,
+                           allow_none=True, kind='input'))  # type: ignore[arg-type]
+    if base.speed_input is not None and p.gammas:
+        raise ValueError('obstacles.speed_input: the look-ahead point follows the direction '
+                         'of travel only at relative degree 1 (no obstacles.gammas)')
+    return _cascade(base, system, p.gammas, 'obstacles.gammas')
+
+
+def band_names(params: Mapping[str, Any]) -> list[str]:
+    """The ``<name>`` of every ``bands.<name>.<key>`` parameter, sorted."""
+    return sorted({k.split('.')[1] for k in params
+                   if k.startswith('bands.') and k.count('.') == 2})
+
+
+def _band(name: str, params: Mapping[str, Any], system: ControlAffineSystem) -> BarrierFamily:
+    prefix = f'bands.{name}.'
+    p = read_parameters(BandParameters, params, prefix=prefix)
+    try:
+        base = BandBarrier(
+            index=_index(f'{prefix}index', p.index, system.n_x),  # type: ignore[arg-type]
+            half_width=p.half_width, center=p.center,
+            center_index=_index(f'{prefix}center_index', p.center_index, system.n_x,
+                                allow_none=True),
+            name=name, form=p.form)
+        return cascade(base, system, p.gammas)
+    except ParameterError:
+        raise
+    except ValueError as exc:  # the barrier's own checks name the key below the prefix
+        raise ValueError(f'{prefix}{exc}') from exc
+
+
+def _gaps(p: GapParameters, system: ControlAffineSystem) -> BarrierFamily:
+    if len(p.b) != len(p.a):
+        raise ValueError('gaps.b: need one index per gaps.a')
+    pairs = tuple((_index('gaps.a', a, system.n_x), _index('gaps.b', b, system.n_x))
+                  for a, b in zip(p.a, p.b))
+    base = PairGap(pairs=pairs, delta=p.delta)  # type: ignore
+    return _cascade(base, system, p.gammas, 'gaps.gammas')
+
+
+def _walls(p: WallParameters, system: ControlAffineSystem) -> BarrierFamily:
+    nys = _sized('walls.ny', p.ny, len(p.nx))
+    offsets = _sized('walls.offset', p.offset, len(p.nx))
+    if any(a == 0.0 and b == 0.0 for a, b in zip(p.nx, nys)):
+        raise ValueError('walls.nx/walls.ny: every wall needs a non-zero normal')
+    base = HalfPlane(normals=tuple(zip(p.nx, nys)), offsets=offsets)
+    return _cascade(base, system, p.gammas, 'walls.gammas')
+
+
 def build_families(params: Mapping[str, Any],
                    system: ControlAffineSystem) -> tuple[BarrierFamily, ...]:
     """Barrier families (cascaded as configured) from the flat parameters."""
-    n_x = system.n_x
+    return _families(read_parameters(FilterParameters, params), params, system)
+
+
+def _families(p: FilterParameters, params: Mapping[str, Any],
+              system: ControlAffineSystem) -> tuple[BarrierFamily, ...]:
     families: list[BarrierFamily] = []
-    xs = float_list(params, 'obstacles.x')
-    if xs:
-        ys = float_list(params, 'obstacles.y', len(xs))
-        radius = float_list(params, 'obstacles.radius', len(xs))
-        if len(ys) != len(xs) or len(radius) != len(xs):
-            raise ValueError('obstacles.y/obstacles.radius: need one value per obstacles.x')
-        if any(r < 0 for r in radius):
-            raise ValueError(f'obstacles.radius: every radius must be >= 0, got {list(radius)}')
-        margin = number(params, 'obstacles.margin', 0.0)
-        if margin < 0:
-            raise ValueError(f'obstacles.margin: must be >= 0 (it widens every obstacle), '
-                             f'got {margin}')
-        if min(radius) + margin <= 0:
-            raise ValueError('obstacles.radius: radius + obstacles.margin must be > 0 for every '
-                             'obstacle')
-        lookahead = number(params, 'obstacles.lookahead', 0.0)
-        if lookahead < 0:
-            raise ValueError(f'obstacles.lookahead: must be >= 0, got {lookahead}')
-        pos = params.get('obstacles.position_indices', [0, 1])
-        if len(pos) != 2:
-            raise ValueError('obstacles.position_indices: expected 2 indices')
-        key = 'obstacles.position_indices'
-        pos_idx = (_index({key: pos[0]}, key, 0, n_x), _index({key: pos[1]}, key, 1, n_x))
-        base = CircleObstacles(
-            centers=tuple(zip(xs, ys)), radii=radius,
-            margin=margin,
-            position_indices=pos_idx,  # type: ignore[arg-type]
-            heading_index=_index(params, 'obstacles.heading_index', -1, n_x, allow_none=True),
-            lookahead=lookahead,
-            speed_input=_index(params, 'obstacles.speed_input', -1, system.n_u,
-                               allow_none=True, kind='input'))
-        gammas = float_list(params, 'obstacles.gammas')
-        if base.speed_input is not None and gammas:
-            raise ValueError('obstacles.speed_input: the look-ahead point follows the direction '
-                             'of travel only at relative degree 1 (no obstacles.gammas)')
-        families.append(_cascade(base, system, gammas, 'obstacles.gammas'))
-    band_names = sorted({k.split('.')[1] for k in params
-                         if k.startswith('bands.') and k.count('.') == 2})
-    for band in band_names:
-        key = f'bands.{band}.'
-        sub = {k[len(key):]: v for k, v in params.items() if k.startswith(key)}
-        try:
-            base = BandBarrier(
-                index=_index(sub, 'index', 0, n_x),  # type: ignore[arg-type]
-                half_width=number(sub, 'half_width', 0.0),
-                center=number(sub, 'center', 0.0),
-                center_index=_index(sub, 'center_index', -1, n_x, allow_none=True),
-                name=band, form=str(sub.get('form', 'quadratic')))
-            families.append(cascade(base, system, float_list(sub, 'gammas')))
-        except ValueError as exc:
-            raise ValueError(f'{key}{exc}') from exc
-    gap_a = params.get('gaps.a') or []
-    if gap_a:
-        gap_b = params.get('gaps.b') or []
-        if len(gap_b) != len(gap_a):
-            raise ValueError('gaps.b: need one index per gaps.a')
-        pairs = tuple((_index({'gaps.a': a}, 'gaps.a', 0, n_x),
-                       _index({'gaps.b': b}, 'gaps.b', 0, n_x)) for a, b in zip(gap_a, gap_b))
-        delta = number(params, 'gaps.delta', 0.0)
-        if delta < 0:
-            raise ValueError(f'gaps.delta: must be >= 0, got {delta}')
-        base = PairGap(pairs=pairs, delta=delta)  # type: ignore
-        families.append(_cascade(base, system, float_list(params, 'gaps.gammas'),
-                                 'gaps.gammas'))
-    nxs = float_list(params, 'walls.nx')
-    if nxs:
-        nys = float_list(params, 'walls.ny', len(nxs))
-        offsets = float_list(params, 'walls.offset', len(nxs))
-        if any(a == 0.0 and b == 0.0 for a, b in zip(nxs, nys)):
-            raise ValueError('walls.nx/walls.ny: every wall needs a non-zero normal')
-        base = HalfPlane(normals=tuple(zip(nxs, nys)), offsets=offsets)
-        families.append(_cascade(base, system, float_list(params, 'walls.gammas'),
-                                 'walls.gammas'))
+    if p.obstacles is not None:
+        families.append(_obstacles(p.obstacles, system))
+    families += [_band(name, params, system) for name in band_names(params)]
+    if p.gaps is not None:
+        families.append(_gaps(p.gaps, system))
+    if p.walls is not None:
+        families.append(_walls(p.walls, system))
     if not families:
         raise ValueError('barriers: configure at least one of obstacles.*, bands.*, gaps.*, '
                          'walls.*')
@@ -284,28 +424,26 @@ def envelope_problem(params: Mapping[str, Any]) -> RCBFProblem | None:
 
 
 def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
-    """Validate flat (or nested) parameters into a :class:`FilterConfig`."""
+    """Validate flat (or nested) parameters into a :class:`FilterConfig`.
+
+    Raises:
+        ValueError: one line naming the bad key.
+    """
     params = flatten(params)
     system = build_system(params)
-    k_c = number(params, 'k_c', 2.0)
-    if k_c < 0:
-        raise ValueError(f'k_c: must be >= 0 (the box is mean +/- k_c std), got {k_c}')
+    p = read_parameters(FilterParameters, params)
+    if p.k_c < 0:
+        raise ParameterError(f'k_c: must be >= 0 (the box is mean +/- k_c std), got {p.k_c}')
     problem = RCBFProblem(
-        system=system, families=build_families(params, system),
-        alpha=number(params, 'alpha', 1.0, positive=True), k_c=k_c,
-        slack_weight=number(params, 'slack_weight', 1.0e6, positive=True),
-        input_weight=float_list(params, 'input_weight', system.n_u) or None)
-    mean = float_list(params, 'disturbance.mean', system.n_x)
-    std = float_list(params, 'disturbance.std', system.n_x)
-    if any(s < 0 for s in std):
-        raise ValueError('disturbance.std: must be >= 0')
-    fail_safe = float_list(params, 'fail_safe_action', system.n_u) or None
+        system=system, families=_families(p, params, system), alpha=p.alpha, k_c=p.k_c,
+        slack_weight=p.slack_weight,
+        input_weight=_sized('input_weight', p.input_weight, system.n_u) or None)
+    mean = _sized('disturbance.mean', p.disturbance.mean, system.n_x)
+    std = _sized('disturbance.std', p.disturbance.std, system.n_x)
+    fail_safe = _sized('fail_safe_action', p.fail_safe_action, system.n_u) or None
     if fail_safe is not None and system.u_min is not None and any(
             not lo <= a <= hi for a, lo, hi in zip(fail_safe, system.u_min, system.u_max)):
         raise ValueError(f'fail_safe_action: {list(fail_safe)} lies outside the input limits '
                          f'[{list(system.u_min)}, {list(system.u_max)}]')
-    compile_flag = params.get('compile_assembly', False)
-    if not isinstance(compile_flag, bool):
-        raise ValueError(f'compile_assembly: expected true or false, got {compile_flag!r}')
     return FilterConfig(problem=problem, static_mean=mean, static_std=std,
-                        fail_safe_action=fail_safe, compile_assembly=compile_flag)
+                        fail_safe_action=fail_safe, compile_assembly=p.compile_assembly)

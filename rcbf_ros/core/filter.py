@@ -55,6 +55,7 @@ from rcbf_ros.core.diffqp import solve_qp_batch_full
 from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, NumpyAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
+from rcbf_ros.parameters.reader import setting
 
 _OK_STATUS = {1: 'solved', 2: 'solved_inaccurate'}
 ACTIVE_TOLERANCE = 1e-7
@@ -79,11 +80,13 @@ class InputBounds:
     Finite but absurd values (a proposal of 1e10, a learned std of 1e300) are not a command or
     an estimate anyone meant; they also push the QP data past what the solver takes."""
 
-    state: float = 1e6
+    state: float = setting(1e6, description='largest |x_i| of a state; beyond: fail-safe')
     """Largest |x_i| of the state."""
-    command: float = 1e6
+    command: float = setting(1e6, description='largest |u_i| of a proposal (below it, a proposal '
+                                              'outside the limits is clipped); beyond: fail-safe')
     """Largest |u_i| of the proposal (below it, a proposal outside the limits is clipped)."""
-    disturbance: float = 1e6
+    disturbance: float = setting(1e6, description='largest |mean_i| and std_i of the disturbance '
+                                                  'box; beyond: fail-safe')
     """Largest |mean_i| and std_i of the disturbance box."""
 
     def __post_init__(self) -> None:

@@ -20,21 +20,23 @@ the nominal model (physical saturation) when the model has limits. ``info`` of e
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar, Mapping, Sequence
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-from rcbf_ros.core.config import flatten, float_list, number
+from rcbf_ros.core.config import FILTER_OPEN_PREFIXES, FilterParameters, flatten
 from rcbf_ros.core.dynamics import ControlAffineSystem
+from rcbf_ros.envs.layouts import layout_from_params
+from rcbf_ros.parameters.reader import parameter_keys, read_floats, read_parameters, setting
 
-FILTER_KEYS = ('system', 'alpha', 'k_c', 'slack_weight', 'input_weight',
-               'fail_safe_action')
+FILTER_KEYS: tuple[str, ...] = parameter_keys(FilterParameters)
 """Flat keys (exact) that :func:`rcbf_ros.core.config.filter_config_from_params` reads."""
-FILTER_PREFIXES = ('system_params.', 'input_limits.', 'obstacles.', 'bands.', 'gaps.', 'walls.',
-                   'disturbance.')
-"""Key prefixes that :func:`rcbf_ros.core.config.filter_config_from_params` reads."""
+FILTER_PREFIXES: tuple[str, ...] = FILTER_OPEN_PREFIXES
+"""Key prefixes (names the user chooses) that
+:func:`rcbf_ros.core.config.filter_config_from_params` reads."""
 
 
 def merge_params(params: Mapping[str, Any] | None, overrides: Mapping[str, Any]) -> dict[str, Any]:
@@ -45,44 +47,58 @@ def merge_params(params: Mapping[str, Any] | None, overrides: Mapping[str, Any])
     return merged
 
 
-class ParamReader:
-    """Typed access to flat parameters; every error names the key."""
+@dataclass(frozen=True)
+class EnvSettings:
+    """Parameters every simulated system reads (subclassed per system)."""
 
-    def __init__(self, params: Mapping[str, Any]) -> None:
-        self.params = params
+    dt: float = setting(0.02, positive=True, description='integration step (s)')
+    """Euler step [s]."""
 
-    def number(self, key: str, default: float, *, positive: bool = False) -> float:
-        return number(self.params, key, default, positive=positive)
 
-    def integer(self, key: str, default: int, *, minimum: int | None = None) -> int:
-        value = self.params.get(key, default)
-        if isinstance(value, bool) or not float(value).is_integer():
-            raise ValueError(f'{key}: expected an integer, got {value!r}')
-        out = int(value)
-        if minimum is not None and out < minimum:
-            raise ValueError(f'{key}: must be >= {minimum}, got {out}')
-        return out
+@dataclass(frozen=True)
+class GoToGoalSettings(EnvSettings):
+    """The keys the go-to-goal systems (Unicycle, PVTOL) share; each subclass adds its goal,
+    start, episode length and goal reward with its own defaults."""
 
-    def flag(self, key: str, default: bool) -> bool:
-        value = self.params.get(key, default)
-        if isinstance(value, str) and value.lower() in ('true', 'false'):
-            return value.lower() == 'true'
-        if not isinstance(value, (bool, np.bool_)):
-            raise ValueError(f'{key}: expected true or false, got {value!r}')
-        return bool(value)
+    goal_radius: float = setting(
+        0.3, positive=True,
+        description='the episode ends with the goal reward within this distance (m)')
+    """The episode ends at the goal within this distance (m)."""
+    random_start: bool = setting(
+        False, text_bool=True,
+        description='start among the packaged start points with a random heading')
+    """Start among the system's packaged start points."""
+    layout: str = setting(
+        'fixed', choices=('fixed', 'random'),
+        description='fixed (obstacles.* here) or random (a seeded transfer layout per reset)')
+    """fixed (the obstacles.* keys) or random (a seeded layout per reset)."""
+    layout_seed: int = setting(-1, description='>= 0 pins one random layout (-1: a new one per '
+                                               'reset)')
+    """>= 0 pins one random layout."""
+    max_steps: int = setting(1000, minimum=1,
+                             description='steps per episode before it is truncated')
+    """Steps before truncation."""
+    goal: tuple[float, ...] = setting((0.0, 0.0), length=2,
+                                      description='goal position [x, y] (m)')
+    """Goal position (m)."""
+    goal_reward: float = setting(1.0, description='reward for reaching the goal')
+    """Reward for reaching the goal."""
 
-    def numbers(self, key: str, default: Sequence[float], length: int | None = None
-                ) -> tuple[float, ...]:
-        out = float_list(self.params, key, default=default)
-        if length is not None and len(out) != length:
-            raise ValueError(f'{key}: expected {length} values, got {len(out)}')
-        return out
 
-    def choice(self, key: str, default: str, options: Sequence[str]) -> str:
-        value = str(self.params.get(key, default))
-        if value not in options:
-            raise ValueError(f'{key}: expected one of {list(options)}, got {value!r}')
-        return value
+def layout_lists(params: Mapping[str, Any]) -> tuple[tuple[float, ...], ...]:
+    """``obstacles.x``, ``.y`` and ``.radius`` as floats (each may be empty)."""
+    return tuple(read_floats(f'obstacles.{name}', params.get(f'obstacles.{name}'))
+                 for name in ('x', 'y', 'radius'))
+
+
+def input_limits(params: Mapping[str, Any], n_u: int) -> dict[str, tuple[float, ...]]:
+    """``u_min`` / ``u_max`` of ``input_limits.min/max`` (n_u values each) when the parameters
+    set them, else {} (the system's own)."""
+    if 'input_limits.min' not in params:
+        return {}
+    return {'u_min': read_floats('input_limits.min', params['input_limits.min'], length=n_u),
+            'u_max': read_floats('input_limits.max', params.get('input_limits.max', ()),
+                                 length=n_u)}
 
 
 class SafetyEnv(gym.Env):
@@ -93,6 +109,8 @@ class SafetyEnv(gym.Env):
     """
 
     system_name: ClassVar[str] = ''
+    settings_type: ClassVar[type[EnvSettings]] = EnvSettings
+    """The dataclass of the system's parameters (read into ``self.settings``)."""
     metadata: ClassVar[dict[str, Any]] = {'render_modes': []}
 
     nominal_system: ControlAffineSystem
@@ -110,8 +128,8 @@ class SafetyEnv(gym.Env):
         if system != self.system_name:
             raise ValueError(f'system: this env simulates {self.system_name!r}, '
                              f'the parameters name {system!r}')
-        self.reader = ParamReader(self.params)
-        self.dt = self.reader.number('dt', 0.02, positive=True)
+        self.settings = read_parameters(self.settings_type, self.params)
+        self.dt = self.settings.dt
         self._state = np.zeros(0)
         self._steps = 0
         self._has_reset = False
@@ -149,7 +167,6 @@ class SafetyEnv(gym.Env):
         source.update(flatten(dict(base or {})))
         out = {k: v for k, v in source.items()
                if k in FILTER_KEYS or k.startswith(FILTER_PREFIXES)}
-        out.pop('obstacles.shape', None)
         out['system'] = self.system_name
         self._set_layout_filter_params(out)
         return out
@@ -245,8 +262,22 @@ class GoToGoalReward:
     goal: np.ndarray
     goal_radius: float
     goal_reward: float
+    max_steps: int
+    obstacles: tuple[Any, ...]
+    params: dict[str, Any]
     _last_distance: float
     _state: np.ndarray
+
+    def _take_goal_settings(self, settings: GoToGoalSettings) -> None:
+        """The goal, episode length and fixed layout of ``settings`` (a random layout is drawn
+        later, see the subclasses)."""
+        self.max_steps = settings.max_steps
+        self.goal = np.asarray(settings.goal)
+        self.goal_radius = settings.goal_radius
+        self.goal_reward = settings.goal_reward
+        self.random_start = settings.random_start
+        self.obstacles = layout_from_params(*layout_lists(self.params),
+                                            self.params.get('obstacles.shape'))
 
     def _reward_and_goal(self, previous: np.ndarray, u: np.ndarray) -> tuple[float, bool]:
         distance = float(np.linalg.norm(self._state[:2] - self.goal))

@@ -11,12 +11,10 @@ cars 1, 2, 3, 5 and d_4 = 0, where
 
 The nominal prior lacks the 1 + d_i gains and car 1's input; the learned disturbance covers them.
 
-Parameters: ``dt`` 0.02, ``max_steps`` 300, ``initial_positions`` [34, 28, 22, 16, 10],
-``initial_velocity`` 30, ``initial_velocity_car4`` 35 (ref: car 4 starts 5 m/s faster than the
-others, closing on car 3; "car 4 at 35" in ENVIRONMENTS.md is this velocity), ``velocity_noise``
-0.5 (std of ONE normal draw added to every car's initial velocity, from the env's generator),
-``disturbance_gain`` 0.1, ``leader_amplitude`` 10, ``leader_frequency`` 0.2, ``reward_scale``
-1/300.
+Parameters: :class:`CarFollowingSettings` (flat keys, the reference's values as defaults). Car
+4 starts faster than the others, closing on car 3 ("car 4 at 35" in ENVIRONMENTS.md is
+``initial_velocity_car4``); ``velocity_noise`` is the std of ONE normal draw added to every
+car's initial velocity, from the env's generator.
 
 Reward: -reward_scale ||u||^2 (paper r(u) = -||u||^2, scaled so that an episode's return is
 minus the mean squared acceleration). Observation (15,): positions / 100, velocities / 30 and
@@ -30,6 +28,7 @@ asymptotically, and the unknown 1 + d_i gains then cross it by millimetres witho
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 import math
 from typing import Any, Mapping
 
@@ -37,32 +36,58 @@ import gymnasium as gym
 import numpy as np
 
 from rcbf_ros.core.dynamics import CarFollowing
-from rcbf_ros.envs.base import SafetyEnv
+from rcbf_ros.envs.base import EnvSettings, SafetyEnv
+from rcbf_ros.parameters.reader import setting
+
+
+@dataclass(frozen=True)
+class CarFollowingSettings(EnvSettings):
+    """The car-following env's parameters (defaults: the reference's values)."""
+
+    max_steps: int = setting(300, minimum=1,
+                             description='steps per episode before it is truncated')
+    """Steps before truncation."""
+    initial_positions: tuple[float, ...] = setting(
+        (34.0, 28.0, 22.0, 16.0, 10.0), length=5,
+        description='initial positions of the five cars (m)')
+    """Initial positions of the five cars (m)."""
+    initial_velocity: float = setting(30.0,
+                                      description='initial velocity of cars 1, 2, 3, 5 (m/s)')
+    """Initial velocity of cars 1, 2, 3, 5 (m/s)."""
+    initial_velocity_car4: float = setting(35.0, description='initial velocity of car 4 (m/s)')
+    """Initial velocity of car 4 (m/s)."""
+    velocity_noise: float = setting(
+        0.5, minimum=0, description="std of one draw added to every car's initial velocity "
+                                    '(m/s)')
+    """Std of one draw added to every car's initial velocity (m/s)."""
+    disturbance_gain: float = setting(0.1,
+                                      description='unknown input gain d_i of cars 1, 2, 3, 5')
+    """Unknown input gain d_i of cars 1, 2, 3, 5."""
+    leader_amplitude: float = setting(10.0, description="amplitude of the leader's sine "
+                                                        'acceleration (m/s^2)')
+    """Amplitude of the leader's sine acceleration (m/s^2)."""
+    leader_frequency: float = setting(0.2, description="frequency of the leader's sine "
+                                                       'acceleration (rad/s)')
+    """Frequency of the leader's sine acceleration (rad/s)."""
+    reward_scale: float = setting(1.0 / 300.0, description='reward = -reward_scale ||u||^2')
+    """reward = -reward_scale ||u||^2."""
+    collision_gap: float = setting(3.5, positive=True,
+                                   description='true least gap between two cars (m)')
+    """True least gap between two cars (m)."""
 
 
 class CarFollowingEnv(SafetyEnv):
     """Car Following (see module docstring)."""
 
     system_name = 'car_following'
+    settings_type = CarFollowingSettings
+    settings: CarFollowingSettings
     h_true_names = ['gap_3_4', 'gap_4_5']
 
     def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
         super().__init__(params, overrides)
-        r = self.reader
         self.nominal_system = CarFollowing()
-        self.max_steps = r.integer('max_steps', 300, minimum=1)
-        self.initial_positions = np.asarray(
-            r.numbers('initial_positions', (34.0, 28.0, 22.0, 16.0, 10.0), 5))
-        self.initial_velocity = r.number('initial_velocity', 30.0)
-        self.initial_velocity_car4 = r.number('initial_velocity_car4', 35.0)
-        self.velocity_noise = r.number('velocity_noise', 0.5)
-        if self.velocity_noise < 0:
-            raise ValueError('velocity_noise: must be >= 0')
-        self.disturbance_gain = r.number('disturbance_gain', 0.1)
-        self.leader_amplitude = r.number('leader_amplitude', 10.0)
-        self.leader_frequency = r.number('leader_frequency', 0.2)
-        self.reward_scale = r.number('reward_scale', 1.0 / 300.0)
-        self.min_gap = r.number('collision_gap', 3.5, positive=True)
+        self.max_steps = self.settings.max_steps
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(15,), dtype=np.float64)
         self.action_space = gym.spaces.Box(-np.inf, np.inf, shape=(1,), dtype=np.float64)
         self._accelerations = np.zeros(5)
@@ -71,18 +96,20 @@ class CarFollowingEnv(SafetyEnv):
         """(5,) v_dot of every car under the TRUE dynamics at time t."""
         f, _ = self.nominal_terms(state)
         inputs = f[1::2].copy()  # nominal u_2, u_3, u_5 (u_1 = u_4 = 0 in the prior)
+        s = self.settings
         inputs[0] = (self.nominal_system.k_v * (self.nominal_system.v_des - state[1])
-                     + self.leader_amplitude * math.sin(self.leader_frequency * t))
+                     + s.leader_amplitude * math.sin(s.leader_frequency * t))
         inputs[3] = 0.0
-        accelerations = (1.0 + self.disturbance_gain) * inputs
+        accelerations = (1.0 + s.disturbance_gain) * inputs
         accelerations[3] = u[0]
         return accelerations
 
     def _reset_state(self, options: dict[str, Any]) -> np.ndarray:
         state = np.zeros(10)
-        state[0::2] = self.initial_positions
-        state[1::2] = self.initial_velocity + self.velocity_noise * self.np_random.normal()
-        state[7] = self.initial_velocity_car4
+        s = self.settings
+        state[0::2] = s.initial_positions
+        state[1::2] = s.initial_velocity + s.velocity_noise * self.np_random.normal()
+        state[7] = s.initial_velocity_car4
         self._accelerations = np.zeros(5)
         return state
 
@@ -102,8 +129,9 @@ class CarFollowingEnv(SafetyEnv):
         return obs
 
     def _reward_and_goal(self, previous: np.ndarray, u: np.ndarray) -> tuple[float, bool]:
-        return -self.reward_scale * float(np.dot(u, u)), False
+        return -self.settings.reward_scale * float(np.dot(u, u)), False
 
     def _h_true(self, state: np.ndarray) -> np.ndarray:
         p = state[0::2]
-        return np.array([p[2] - p[3] - self.min_gap, p[3] - p[4] - self.min_gap])
+        gap = self.settings.collision_gap
+        return np.array([p[2] - p[3] - gap, p[3] - p[4] - gap])

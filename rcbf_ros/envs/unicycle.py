@@ -4,17 +4,14 @@ TRUE dynamics (unknown to the agent): x_dot = g(x) (u + u_d), u_d = -0.1 cos(the
 (a slope), with the nominal g of :class:`rcbf_ros.core.dynamics.Unicycle`; Euler step
 x' = x + dt g(x) (u + u_d(x)).
 
-Parameters (flat keys; defaults are the reference's values):
-
-- ``dt`` 0.02, ``max_steps`` 1000, ``arena_half_size`` 3.0 (informational: the arena is not a
-  barrier), ``goal`` [2.5, 2.5], ``goal_radius`` 0.3, ``goal_reward`` 1.0,
-  ``start`` [-2.5, -2.5, 0.0];
-- ``random_start`` (false): pick the start among :data:`~rcbf_ros.envs.layouts.UNICYCLE_STARTS`
-  (corners and edge midpoints away from the goal) with a heading U[-pi, pi);
-- ``layout``: ``fixed`` (the ``obstacles.x/.y/.radius(/.shape)`` keys) or ``random`` (a new
-  :func:`~rcbf_ros.envs.layouts.unicycle_random_layout` per reset, its seed drawn from the env's
-  generator and reported as ``info['layout_seed']``); ``layout_seed`` >= 0 pins one random
-  layout.
+Parameters: :class:`UnicycleSettings` (flat keys, the reference's values as defaults; an
+``arena_half_size`` key is informational: the arena is not a barrier). ``random_start`` picks
+the start among :data:`~rcbf_ros.envs.layouts.UNICYCLE_STARTS` (corners and edge midpoints away
+from the goal) with a heading U[-pi, pi); ``layout``: ``fixed`` (the
+``obstacles.x/.y/.radius(/.shape)`` keys) or ``random`` (a new
+:func:`~rcbf_ros.envs.layouts.unicycle_random_layout` per reset, its seed drawn from the env's
+generator and reported as ``info['layout_seed']``); ``layout_seed`` >= 0 pins one random
+layout.
 
 Reward: previous distance - distance to the goal, + ``goal_reward`` when within
 ``goal_radius`` (the episode terminates there). Observation (7,):
@@ -26,6 +23,7 @@ square or triangle; no filter margin, no look-ahead).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 import math
 from typing import Any, Mapping
 
@@ -33,15 +31,14 @@ import gymnasium as gym
 import numpy as np
 
 from rcbf_ros.core.dynamics import Unicycle
-from rcbf_ros.envs.base import GoToGoalReward, SafetyEnv
+from rcbf_ros.envs.base import GoToGoalReward, GoToGoalSettings, input_limits, SafetyEnv
 from rcbf_ros.envs.layouts import (
-    layout_from_params,
     layout_to_params,
-    Obstacle,
     signed_clearance,
     unicycle_random_layout,
     UNICYCLE_STARTS,
 )
+from rcbf_ros.parameters.reader import setting
 
 
 def unicycle_slope_disturbance(state: np.ndarray) -> np.ndarray:
@@ -49,33 +46,32 @@ def unicycle_slope_disturbance(state: np.ndarray) -> np.ndarray:
     return np.array([-0.1 * math.cos(state[2]), 0.0])
 
 
+@dataclass(frozen=True)
+class UnicycleSettings(GoToGoalSettings):
+    """The unicycle env's parameters (defaults: the reference's values)."""
+
+    goal: tuple[float, ...] = setting((2.5, 2.5), length=2,
+                                      description='goal position [x, y] (m)')
+    """Goal position (m)."""
+    start: tuple[float, ...] = setting((-2.5, -2.5, 0.0), length=3,
+                                       description='start state [x, y, theta] (m, rad)')
+    """Start state [x, y, theta]."""
+
+
 class UnicycleEnv(GoToGoalReward, SafetyEnv):
     """Unicycle go-to-goal with obstacles (see module docstring)."""
 
     system_name = 'unicycle'
+    settings_type = UnicycleSettings
+    settings: UnicycleSettings
 
     def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
         super().__init__(params, overrides)
-        r = self.reader
-        limits = {}
-        if 'input_limits.min' in self.params:
-            limits = {'u_min': r.numbers('input_limits.min', (), 2),
-                      'u_max': r.numbers('input_limits.max', (), 2)}
-        self.nominal_system = Unicycle(**limits)
-        self.max_steps = r.integer('max_steps', 1000, minimum=1)
-        self.goal = np.asarray(r.numbers('goal', (2.5, 2.5), 2))
-        self.goal_radius = r.number('goal_radius', 0.3, positive=True)
-        self.goal_reward = r.number('goal_reward', 1.0)
-        self.start = np.asarray(r.numbers('start', (-2.5, -2.5, 0.0), 3))
-        self.random_start = r.flag('random_start', False)
-        self.layout_mode = r.choice('layout', 'fixed', ('fixed', 'random'))
-        self.layout_seed = r.integer('layout_seed', -1)
-        self.obstacles: tuple[Obstacle, ...] = layout_from_params(
-            r.numbers('obstacles.x', ()), r.numbers('obstacles.y', ()),
-            r.numbers('obstacles.radius', ()), self.params.get('obstacles.shape'))
+        self.nominal_system = Unicycle(**input_limits(self.params, 2))
+        self._take_goal_settings(self.settings)
         self.current_layout_seed: int | None = None
-        if self.layout_mode == 'random' and self.layout_seed >= 0:
-            self._use_random_layout(self.layout_seed)
+        if self.settings.layout == 'random' and self.settings.layout_seed >= 0:
+            self._use_random_layout(self.settings.layout_seed)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(7,), dtype=np.float64)
         lo = self.nominal_system.u_min or (-np.inf, -np.inf)
         hi = self.nominal_system.u_max or (np.inf, np.inf)
@@ -91,13 +87,13 @@ class UnicycleEnv(GoToGoalReward, SafetyEnv):
         self.obstacles = unicycle_random_layout(seed)
 
     def _reset_state(self, options: dict[str, Any]) -> np.ndarray:
-        if self.layout_mode == 'random' and self.layout_seed < 0:
+        if self.settings.layout == 'random' and self.settings.layout_seed < 0:
             self._use_random_layout(int(self.np_random.integers(2 ** 31 - 1)))
         if self.random_start:
             xy = UNICYCLE_STARTS[int(self.np_random.integers(len(UNICYCLE_STARTS)))]
             state = np.array([xy[0], xy[1], self.np_random.uniform(-math.pi, math.pi)])
         else:
-            state = self.start.copy()
+            state = np.array(self.settings.start)
         self._last_distance = float(np.linalg.norm(state[:2] - self.goal))
         return state
 

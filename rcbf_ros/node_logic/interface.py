@@ -9,7 +9,25 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
+import typing
 from typing import Any, Callable, Sequence, Union
+
+from rcbf_ros.messages.conversions import FLOAT64_MULTIARRAY
+from rcbf_ros.parameters.reader import parameters_of
+
+DEFAULT_QOS = 'reliable, keep-last 10'
+"""The QoS text of a topic with ROS 2's default profile (``--help``, README)."""
+DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+"""The type of ``diagnostics``."""
+OBSTACLES_QOS = 'reliable, keep-last 1, transient-local'
+"""QoS of an ``obstacles`` subscription: the latest set only; a latched one is picked up."""
+STATE_TOPIC_TYPES = f'{FLOAT64_MULTIARRAY} or nav_msgs/msg/Odometry'
+"""The types a ``state`` topic takes (``state_type``)."""
+COMMAND_TOPIC_TYPES = (f'{FLOAT64_MULTIARRAY}, geometry_msgs/msg/Twist or '
+                       'geometry_msgs/msg/TwistStamped')
+"""The types a command topic takes (``command_type``)."""
+READ_ONLY_SUFFIX = '; read-only'
+"""Ends the description of a parameter fixed at start."""
 
 PARAMETER_TYPES = ('string', 'bool', 'integer', 'double', 'string[]', 'integer[]', 'double[]',
                    'any')
@@ -66,7 +84,7 @@ class TopicSpec:
     """Message type (``std_msgs/msg/Float64MultiArray``), or the choice a parameter makes."""
     layout: str
     """What the message holds (sections, fields, units), one line."""
-    qos: str
+    qos: str = DEFAULT_QOS
     """``reliable``/``best effort``, history and depth."""
 
     def __post_init__(self) -> None:
@@ -105,6 +123,50 @@ class NodeInterface:
 
 InterfaceSource = Union[NodeInterface, Callable[[Sequence[str]], NodeInterface]]
 """A node's interface, or a function of its command line (when ``system`` changes it)."""
+
+
+_SCALAR_TYPES = {str: 'string', bool: 'bool', int: 'integer', float: 'double'}
+
+
+def parameter_type(kind: Any) -> str:
+    """The ROS parameter type (:data:`PARAMETER_TYPES`) of a dataclass field's annotation."""
+    args = [a for a in typing.get_args(kind) if a is not type(None)]
+    if typing.get_origin(kind) is tuple:
+        return _SCALAR_TYPES[args[0]] + '[]'
+    if args and typing.get_origin(kind) is not None:  # X | None
+        return parameter_type(args[0])
+    return _SCALAR_TYPES[kind]
+
+
+def parameter_specs(cls: type, *, prefix: str = '', declared_defaults: bool = True,
+                    say_default: bool = False, mark_read_only: bool = True
+                    ) -> tuple[ParameterSpec, ...]:
+    """One spec per parameter of the dataclass ``cls`` (:func:`rcbf_ros.parameters.reader.
+    parameters_of`), in field order: the description from its rule (``; read-only`` added when
+    it is fixed at start), the type from its annotation, the default from the dataclass.
+
+    Args:
+        declared_defaults: declare the dataclass's defaults; False: not set (None), the reader
+            applies the default (keys of a params file, declared when given).
+        say_default: add ``(default <value>)`` to the description (with ``declared_defaults``
+            False, so that the default is still shown).
+        mark_read_only: say ``read-only`` for a parameter the node declares read-only (the
+            rule's ``read_only``); False for a node that declares none so.
+    """
+    specs = []
+    for parameter in parameters_of(cls, prefix=prefix):
+        default = None if parameter.required else parameter.default
+        if isinstance(default, tuple):
+            default = list(default)  # what a params file and the runtimes hold
+        description = parameter.rule.description
+        if say_default and default not in (None, '', []):
+            description += f' (default {format_value(default)})'
+        if mark_read_only and parameter.rule.read_only:
+            description += READ_ONLY_SUFFIX
+        specs.append(ParameterSpec(
+            parameter.key, default if declared_defaults else None,
+            parameter_type(parameter.kind), description))
+    return tuple(specs)
 
 
 def declarations(specs: Sequence[ParameterSpec]) -> list[tuple[str, Any]]:
@@ -167,22 +229,25 @@ def _cell(text: str) -> str:
     return '`'.join(parts)
 
 
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """A markdown table."""
+    lines = ['| ' + ' | '.join(header) + ' |', '|' + '---|' * len(header)]
+    lines += ['| ' + ' | '.join(row) + ' |' for row in rows]
+    return '\n'.join(lines)
+
+
 def topic_table(interface: NodeInterface) -> str:
     """The node's topics as a markdown table."""
-    rows = ['| topic | direction | type | layout | QoS |', '|---|---|---|---|---|']
-    for topic in interface.topics:
-        rows.append(f'| `{topic.name}` | {topic.direction} | {_cell(topic.type)} | '
-                    f'{_cell(topic.layout)} | {topic.qos} |')
-    return '\n'.join(rows)
+    return _table(('topic', 'direction', 'type', 'layout', 'QoS'), [
+        (f'`{t.name}`', t.direction, _cell(t.type), _cell(t.layout), t.qos)
+        for t in interface.topics])
 
 
 def parameter_table(interface: NodeInterface) -> str:
     """The node's parameters as a markdown table."""
-    rows = ['| parameter | type | default | description |', '|---|---|---|---|']
-    for spec in interface.parameters:
-        rows.append(f'| `{spec.name}` | {spec.type} | `{format_value(spec.default)}` | '
-                    f'{_cell(spec.description)} |')
-    return '\n'.join(rows)
+    return _table(('parameter', 'type', 'default', 'description'), [
+        (f'`{p.name}`', p.type, f'`{format_value(p.default)}`', _cell(p.description))
+        for p in interface.parameters])
 
 
 def resolve(source: InterfaceSource, argv: Sequence[str]) -> NodeInterface:

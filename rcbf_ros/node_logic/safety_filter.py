@@ -25,14 +25,20 @@ unverified or infeasible solve) yields the fail-safe.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import math
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from rcbf_ros.core import filter_info
-from rcbf_ros.core.config import filter_config_from_params, FilterConfig, number
+from rcbf_ros.core.config import (
+    BandParameters,
+    filter_config_from_params,
+    FILTER_OPEN_PREFIXES,
+    FilterConfig,
+    FilterParameters,
+)
 from rcbf_ros.core.filter import (
     FilterResult,
     InputBounds,
@@ -40,7 +46,25 @@ from rcbf_ros.core.filter import (
     OSQP_MAX_ITER,
     SafetyFilter,
 )
-from rcbf_ros.node_logic.interface import declarations, ParameterSpec
+from rcbf_ros.node_logic.edges import (  # noqa: F401 - the node's edge types, re-exported
+    COMMAND_TYPES,
+    MessageSettings,
+    STATE_TYPES,
+    TWIST_FIELDS,
+)
+from rcbf_ros.node_logic.interface import (
+    declarations,
+    parameter_specs,
+    ParameterSpec,
+    READ_ONLY_SUFFIX,
+)
+from rcbf_ros.parameters.reader import (
+    defaults_of,
+    parameter_keys,
+    parameters_of,
+    read_parameters,
+    setting,
+)
 
 # diagnostic_msgs/DiagnosticStatus levels.
 OK = 0
@@ -48,136 +72,104 @@ WARN = 1
 ERROR = 2
 LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR'}
 
-STATE_TYPES = ('array', 'odometry')
-COMMAND_TYPES = ('array', 'twist', 'twist_stamped')
-TWIST_FIELDS = tuple(f'{group}.{axis}' for group in ('linear', 'angular') for axis in 'xyz')
 
-NODE_PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('state_type', 'array', 'string',
-                  'type of `state`: array (std_msgs/Float64MultiArray) or odometry '
-                  '(nav_msgs/Odometry; unicycle only); read-only'),
-    ParameterSpec('state_frame_id', '', 'string',
-                  "with state_type odometry: the frame an Odometry's header.frame_id must name "
-                  "(the obstacles' frame); '' accepts any"),
-    ParameterSpec('command_type', 'array', 'string',
-                  'type of `cmd_proposed` and `cmd_safe`: array (std_msgs/Float64MultiArray), '
-                  'twist or twist_stamped (geometry_msgs); read-only'),
-    ParameterSpec('twist_fields', ['linear.x', 'angular.z'], 'string[]',
-                  'for twist and twist_stamped: the n_u Twist fields holding u, in order '
-                  '(the others are published as 0); read-only'),
-    ParameterSpec('max_state_age_s', 0.5, 'double',
-                  'a `state` older than this (s, since its arrival) is stale: fail-safe'),
-    ParameterSpec('slack_tolerance', 1.0e-4, 'double',
-                  'most slack the published command may need in any RCBF row; more: fail-safe'),
-    ParameterSpec('input_bounds.state', InputBounds.state, 'double',
-                  'largest |x_i| of a state; beyond: fail-safe'),
-    ParameterSpec('input_bounds.command', InputBounds.command, 'double',
-                  'largest |u_i| of a proposal (below it, a proposal outside the limits is '
-                  'clipped); beyond: fail-safe'),
-    ParameterSpec('input_bounds.disturbance', InputBounds.disturbance, 'double',
-                  'largest |mean_i| and std_i of the disturbance box; beyond: fail-safe'),
-    ParameterSpec('log_throttle_s', 1.0, 'double',
-                  'least time (s) between two log lines with the same reason'),
-    ParameterSpec('qos.reliable', True, 'bool',
-                  'reliable (true) or best-effort (false) QoS on every topic; read-only'),
-    ParameterSpec('qos.depth', 10, 'integer',
-                  'keep-last history depth on every topic; read-only'),
-    ParameterSpec('osqp.eps_abs', OSQP_EPS, 'double', 'OSQP absolute tolerance'),
-    ParameterSpec('osqp.eps_rel', OSQP_EPS, 'double', 'OSQP relative tolerance'),
-    ParameterSpec('osqp.max_iter', OSQP_MAX_ITER, 'integer',
-                  'OSQP iteration cap (then the interior-point fallback, else fail-safe)'),
-    ParameterSpec('diagnostics.min_period_s', 0.0, 'double',
-                  'least time (s) between two OK diagnostics (0: one per proposal); WARN and '
-                  'ERROR always go out'),
-    ParameterSpec('diagnostics.name', 'safety_filter', 'string', 'DiagnosticStatus.name'),
-    ParameterSpec('diagnostics.hardware_id', '', 'string', 'DiagnosticStatus.hardware_id'),
-)
+
+@dataclass(frozen=True)
+class NodeSettings(MessageSettings):
+    """Settings of the safety_filter node besides the filter itself."""
+
+    state_frame_id: str = setting(
+        '', description="with state_type odometry: the frame an Odometry's header.frame_id must "
+                        "name (the obstacles' frame); '' accepts any")
+    """For 'odometry': the frame a state's header.frame_id must name ('' accepts any)."""
+    max_state_age_s: float = setting(
+        0.5, positive=True,
+        description='a `state` older than this (s, since its arrival) is stale: fail-safe')
+    """A state message older than this (since its arrival) is stale: fail-safe."""
+    slack_tolerance: float = setting(
+        1.0e-4, minimum=0,
+        description='most slack the published command may need in any RCBF row; more: fail-safe')
+    """The most slack the published command may need in any RCBF row; more (the rows are
+    infeasible within the input limits) publishes the fail-safe.
+
+    An active but feasible row still carries eps ~ |u_S| / (l |L_g h|) > 0 (the soft penalty
+    l eps^2 of the paper's QP), about 1e-6 with l = 1e6, hence the default 1e-4."""
+    input_bounds: InputBounds = field(default_factory=InputBounds)
+    """Magnitude bounds of state, proposal and disturbance box; beyond them: fail-safe."""
+    log_throttle_s: float = setting(
+        1.0, minimum=0, description='least time (s) between two log lines with the same reason')
+    """Minimum period of repeated log lines with the same reason."""
+    qos_reliable: bool = setting(
+        True, key='qos.reliable', read_only=True,
+        description='reliable (true) or best-effort (false) QoS on every topic')
+    """Reliable (True) or best-effort QoS on every topic."""
+    qos_depth: int = setting(10, key='qos.depth', strict=True, minimum=1, read_only=True,
+                             description='keep-last history depth on every topic')
+    """Keep-last history depth on every topic."""
+    osqp_eps_abs: float = setting(OSQP_EPS, key='osqp.eps_abs', positive=True,
+                                  description='OSQP absolute tolerance')
+    """OSQP absolute tolerance."""
+    osqp_eps_rel: float = setting(OSQP_EPS, key='osqp.eps_rel', positive=True,
+                                  description='OSQP relative tolerance')
+    """OSQP relative tolerance."""
+    osqp_max_iter: int = setting(
+        OSQP_MAX_ITER, key='osqp.max_iter', strict=True, minimum=1,
+        description='OSQP iteration cap (then the interior-point fallback, else fail-safe)')
+    """OSQP iteration cap (a starved solve yields the fail-safe)."""
+    diagnostics_min_period_s: float = setting(
+        0.0, key='diagnostics.min_period_s', minimum=0,
+        description='least time (s) between two OK diagnostics (0: one per proposal); WARN and '
+                    'ERROR always go out')
+    """Minimum period of OK diagnostics (0: one per proposal); WARN / ERROR always go out."""
+    diagnostics_name: str = setting('safety_filter', key='diagnostics.name',
+                                    description='DiagnosticStatus.name')
+    """DiagnosticStatus.name."""
+    diagnostics_hardware_id: str = setting('', key='diagnostics.hardware_id',
+                                           description='DiagnosticStatus.hardware_id')
+    """DiagnosticStatus.hardware_id."""
+
+
+NODE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(NodeSettings)
 """Parameters of the node itself (not of the filter), in declaration order."""
 
-NODE_PARAMETER_DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in NODE_PARAMETERS}
+NODE_PARAMETER_DEFAULTS: dict[str, Any] = defaults_of(NodeSettings)
 """Name -> default of :data:`NODE_PARAMETERS`."""
 
-FILTER_PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('system', None, 'string',
-                  'unicycle, car_following, pvtol or package.module.Class (required); '
-                  'read-only'),
-    ParameterSpec('input_limits.min', None, 'double[]',
-                  "lower input limits, n_u values ([]: none; not set: the system's)"),
-    ParameterSpec('input_limits.max', None, 'double[]',
-                  "upper input limits, n_u values ([]: none; not set: the system's)"),
-    ParameterSpec('alpha', None, 'double', 'class-K gain of every RCBF row, > 0 (default 1.0)'),
-    ParameterSpec('k_c', None, 'double',
-                  'the disturbance box is mean +/- k_c std, >= 0 (default 2.0)'),
-    ParameterSpec('slack_weight', None, 'double',
-                  'weight l of the slack in the QP cost, > 0 (default 1e6)'),
-    ParameterSpec('input_weight', None, 'double[]',
-                  'weights of u_S in the QP cost, n_u values > 0 (default all 1)'),
-    ParameterSpec('obstacles.x', None, 'double[]', 'obstacle centres, x (m), one per obstacle'),
-    ParameterSpec('obstacles.y', None, 'double[]', 'obstacle centres, y (m), one per obstacle'),
-    ParameterSpec('obstacles.radius', None, 'double[]', 'obstacle radii (m), one per obstacle'),
-    ParameterSpec('obstacles.margin', None, 'double',
-                  'added to every radius (m, >= 0, default 0)'),
-    ParameterSpec('obstacles.lookahead', None, 'double',
-                  'distance (m) of the guarded point ahead of the position (default 0)'),
-    ParameterSpec('obstacles.heading_index', None, 'integer',
-                  'state index of the heading the look-ahead follows (-1: none, default)'),
-    ParameterSpec('obstacles.position_indices', None, 'integer[]',
-                  'state indices of the position (default [0, 1])'),
-    ParameterSpec('obstacles.gammas', None, 'double[]',
-                  'cascade gains for relative degree r > 1, r - 1 values > 0 (default [])'),
-    ParameterSpec('obstacles.speed_input', None, 'integer',
-                  'input whose negative proposals move the look-ahead point behind '
-                  '(-1: none, default)'),
-    ParameterSpec('gaps.a', None, 'integer[]', 'state index of the first position of each gap'),
-    ParameterSpec('gaps.b', None, 'integer[]', 'state index of the second position of each gap'),
-    ParameterSpec('gaps.delta', None, 'double', 'least distance |x_a - x_b| to keep (m)'),
-    ParameterSpec('gaps.gammas', None, 'double[]', 'cascade gains of the gap barriers'),
-    ParameterSpec('walls.nx', None, 'double[]', 'wall normals, x: h = nx x + ny y - offset'),
-    ParameterSpec('walls.ny', None, 'double[]', 'wall normals, y, one per wall'),
-    ParameterSpec('walls.offset', None, 'double[]', 'wall offsets (m), one per wall'),
-    ParameterSpec('walls.gammas', None, 'double[]', 'cascade gains of the wall barriers'),
-    ParameterSpec('disturbance.mean', None, 'double[]',
-                  'static disturbance box centre, n_x values in state-derivative units '
-                  "(a proposal's disturbance_mean wins)"),
-    ParameterSpec('disturbance.std', None, 'double[]',
-                  'static disturbance box std, n_x values >= 0 (box: mean +/- k_c std; a '
-                  "proposal's disturbance_std wins)"),
-    ParameterSpec('fail_safe_action', None, 'double[]',
-                  'what is published when the filter cannot filter, n_u values within the '
-                  'limits (default zeros clipped to the limits)'),
-    ParameterSpec('compile_assembly', None, 'bool',
-                  'compile the per-step constraint assembly (faster calls, slower start)'),
+_OPEN_FAMILIES: tuple[ParameterSpec, ...] = (
     ParameterSpec('system_params.<name>', None, 'any',
-                  'constructor argument <name> of the system (e.g. with_operator); '
-                  'read-only'),
-    ParameterSpec('bands.<name>.index', None, 'integer',
-                  'band barrier <name>: state index it bounds'),
-    ParameterSpec('bands.<name>.center', None, 'double', 'band <name>: constant centre'),
-    ParameterSpec('bands.<name>.center_index', None, 'integer',
-                  'band <name>: state index of a moving centre (-1: the constant centre)'),
-    ParameterSpec('bands.<name>.half_width', None, 'double', 'band <name>: half width'),
-    ParameterSpec('bands.<name>.form', None, 'string',
-                  'band <name>: quadratic (one barrier) or sides (two linear ones)'),
-    ParameterSpec('bands.<name>.gammas', None, 'double[]', 'band <name>: cascade gains'),
-    ParameterSpec('bands.<name>.layout', None, 'bool',
-                  'band <name> belongs to the layout (left out of the envelope)'),
+                  'constructor argument <name> of the system (e.g. with_operator)'
+                  + READ_ONLY_SUFFIX),
+    *parameter_specs(BandParameters, prefix='bands.<name>.', declared_defaults=False,
+                     say_default=True),
 )
-"""Keys of :func:`rcbf_ros.core.config.filter_config_from_params` (``config/<system>.yaml``).
-Not set (``None``) by default: the config's own default applies. ``<name>`` families are
-declared when the parameter overrides (YAML, ``-p``) name them."""
+
+FILTER_DESCRIPTIONS: dict[str, str] = {
+    spec.name: spec.description
+    for spec in parameter_specs(FilterParameters) + _OPEN_FAMILIES[:1]
+    + parameter_specs(BandParameters, prefix='bands.<name>.')}
+"""Key -> one line, without the filter's default (for nodes that declare the keys with values
+of their own)."""
+
+FILTER_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(
+    FilterParameters, declared_defaults=False, say_default=True) + _OPEN_FAMILIES
+"""Keys of :func:`rcbf_ros.core.config.filter_config_from_params` (``config/<system>.yaml``),
+from :class:`rcbf_ros.core.config.FilterParameters`. Not set (``None``) by default: the
+config's own default applies. ``<name>`` families are declared when the parameter overrides
+(YAML, ``-p``) name them."""
 
 PARAMETERS: tuple[ParameterSpec, ...] = NODE_PARAMETERS + FILTER_PARAMETERS
 """Every parameter the safety_filter node declares (one spec per declaration)."""
 
-FILTER_PARAMETER_KEYS: tuple[str, ...] = tuple(
-    spec.name for spec in FILTER_PARAMETERS if not spec.pattern)
-# Families of keys whose names are chosen by the user (``bands.operator.index``, ...).
-OPEN_PARAMETER_PREFIXES: tuple[str, ...] = ('system_params.', 'bands.')
+FILTER_PARAMETER_KEYS: tuple[str, ...] = parameter_keys(FilterParameters)
+"""The fixed keys of the filter's configuration (the fields of FilterParameters)."""
+OPEN_PARAMETER_PREFIXES: tuple[str, ...] = FILTER_OPEN_PREFIXES
+"""Families of keys whose names are chosen by the user (``bands.operator.index``, ...)."""
 _KNOWN_NAMES = frozenset(spec.name for spec in PARAMETERS if not spec.pattern)
 
 
-READ_ONLY_PARAMETERS: tuple[str, ...] = (
-    'system', 'state_type', 'command_type', 'twist_fields', 'qos.reliable', 'qos.depth')
+READ_ONLY_PARAMETERS: tuple[str, ...] = tuple(
+    p.key for cls in (NodeSettings, FilterParameters) for p in parameters_of(cls)
+    if p.rule.read_only)
 """Parameters fixed at start: they choose the state and input sizes, the message types and the
 endpoints' QoS. Declared read-only; a set is refused (``ros2 param describe`` says so)."""
 READ_ONLY_PREFIXES: tuple[str, ...] = ('system_params.',)
@@ -230,109 +222,13 @@ def collect_parameters(values: Mapping[str, Any]) -> dict[str, Any]:
     return flat
 
 
-@dataclass(frozen=True)
-class NodeSettings:
-    """Settings of the safety_filter node besides the filter itself."""
-
-    command_type: str
-    """'array' (Float64MultiArray with labelled sections), 'twist' (geometry_msgs/Twist) or
-    'twist_stamped' (geometry_msgs/TwistStamped; the proposal's header goes on the answer)."""
-    twist_fields: tuple[str, ...]
-    """For 'twist' / 'twist_stamped': the Twist fields holding u in order, e.g.
-    (linear.x, angular.z)."""
-    max_state_age_s: float
-    """A state message older than this (since its arrival) is stale: fail-safe."""
-    slack_tolerance: float
-    """The most slack the published command may need in any RCBF row; more (the rows are
-    infeasible within the input limits) publishes the fail-safe.
-
-    An active but feasible row still carries eps ~ |u_S| / (l |L_g h|) > 0 (the soft penalty
-    l eps^2 of the paper's QP), about 1e-6 with l = 1e6, hence the default 1e-4."""
-    input_bounds: InputBounds
-    """Magnitude bounds of state, proposal and disturbance box; beyond them: fail-safe."""
-    log_throttle_s: float
-    """Minimum period of repeated log lines with the same reason."""
-    qos_reliable: bool
-    """Reliable (True) or best-effort QoS on every topic."""
-    qos_depth: int
-    """Keep-last history depth on every topic."""
-    osqp_eps_abs: float
-    """OSQP absolute tolerance."""
-    osqp_eps_rel: float
-    """OSQP relative tolerance."""
-    osqp_max_iter: int
-    """OSQP iteration cap (a starved solve yields the fail-safe)."""
-    diagnostics_min_period_s: float
-    """Minimum period of OK diagnostics (0: one per proposal); WARN / ERROR always go out."""
-    diagnostics_name: str
-    """DiagnosticStatus.name."""
-    diagnostics_hardware_id: str
-    """DiagnosticStatus.hardware_id."""
-    state_type: str = 'array'
-    """'array' (Float64MultiArray, its ``state`` section) or 'odometry' (nav_msgs/Odometry)."""
-    state_frame_id: str = ''
-    """For 'odometry': the frame a state's header.frame_id must name ('' accepts any)."""
-
-
-def _positive(params: Mapping[str, Any], key: str, *, allow_zero: bool = False) -> float:
-    out = number(params, key, NODE_PARAMETER_DEFAULTS[key])  # a finite number, not a bool
-    if out < 0 or (out == 0 and not allow_zero):
-        raise ValueError(f'{key}: must be a finite number {">=" if allow_zero else ">"} 0, '
-                         f'got {params.get(key)!r}')
-    return out
-
-
-def _count(params: Mapping[str, Any], key: str) -> int:
-    value = params.get(key, NODE_PARAMETER_DEFAULTS[key])
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ValueError(f'{key}: expected an integer >= 1, got {value!r}')
-    return int(value)
-
-
 def node_settings_from_params(params: Mapping[str, Any]) -> NodeSettings:
     """Validate the node's own parameters (missing ones take their defaults).
 
     Raises:
         ValueError: naming the bad key.
     """
-    command_type = params.get('command_type', NODE_PARAMETER_DEFAULTS['command_type'])
-    if command_type not in COMMAND_TYPES:
-        raise ValueError(f'command_type: expected one of {list(COMMAND_TYPES)}, '
-                         f'got {command_type!r}')
-    state_type = params.get('state_type', NODE_PARAMETER_DEFAULTS['state_type'])
-    if state_type not in STATE_TYPES:
-        raise ValueError(f'state_type: expected one of {list(STATE_TYPES)}, got {state_type!r}')
-    fields = params.get('twist_fields', NODE_PARAMETER_DEFAULTS['twist_fields'])
-    if isinstance(fields, str) or not all(isinstance(f, str) for f in fields):
-        raise ValueError(f'twist_fields: expected a list of names like linear.x, got {fields!r}')
-    bad = [f for f in fields if f not in TWIST_FIELDS]
-    if bad or not fields:
-        raise ValueError(f'twist_fields: {bad or "empty"} not in {list(TWIST_FIELDS)}')
-    if len(set(fields)) != len(fields):
-        raise ValueError(f'twist_fields: repeated field in {list(fields)}')
-    reliable = params.get('qos.reliable', NODE_PARAMETER_DEFAULTS['qos.reliable'])
-    if not isinstance(reliable, bool):
-        raise ValueError(f'qos.reliable: expected true or false, got {reliable!r}')
-    texts = {}
-    for key in ('diagnostics.name', 'diagnostics.hardware_id', 'state_frame_id'):
-        texts[key] = params.get(key, NODE_PARAMETER_DEFAULTS[key])
-        if not isinstance(texts[key], str):
-            raise ValueError(f'{key}: expected a string, got {texts[key]!r}')
-    return NodeSettings(
-        command_type=command_type, twist_fields=tuple(fields),
-        max_state_age_s=_positive(params, 'max_state_age_s'),
-        slack_tolerance=_positive(params, 'slack_tolerance', allow_zero=True),
-        input_bounds=InputBounds(**{name: _positive(params, f'input_bounds.{name}')
-                                    for name in ('state', 'command', 'disturbance')}),
-        log_throttle_s=_positive(params, 'log_throttle_s', allow_zero=True),
-        qos_reliable=reliable, qos_depth=_count(params, 'qos.depth'),
-        osqp_eps_abs=_positive(params, 'osqp.eps_abs'),
-        osqp_eps_rel=_positive(params, 'osqp.eps_rel'),
-        osqp_max_iter=_count(params, 'osqp.max_iter'),
-        diagnostics_min_period_s=_positive(params, 'diagnostics.min_period_s', allow_zero=True),
-        diagnostics_name=texts['diagnostics.name'],
-        diagnostics_hardware_id=texts['diagnostics.hardware_id'],
-        state_type=state_type, state_frame_id=texts['state_frame_id'])
+    return read_parameters(NodeSettings, params)
 
 
 def build_safety_filter(*, config: FilterConfig, settings: NodeSettings) -> SafetyFilter:
@@ -376,9 +272,7 @@ def build_active_filter(*, params: Mapping[str, Any]) -> ActiveFilter:
     settings = node_settings_from_params(params)
     config = filter_config_from_params(params)
     safety_filter = build_safety_filter(config=config, settings=settings)
-    if settings.command_type != 'array' and len(settings.twist_fields) != safety_filter.n_u:
-        raise ValueError(f'twist_fields: expected {safety_filter.n_u} fields (n_u of '
-                         f'{params.get("system")}), got {list(settings.twist_fields)}')
+    settings.check_inputs(n_u=safety_filter.n_u, system=str(params.get('system')))
     return ActiveFilter(params=params, settings=settings, config=config,
                         safety_filter=safety_filter)
 

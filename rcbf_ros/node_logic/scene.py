@@ -32,8 +32,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from rcbf_ros.core.config import number
 from rcbf_ros.core.scene import SceneGeometry
+from rcbf_ros.parameters.reader import defaults_of, read_parameters, setting
 
 ARROW, CUBE, SPHERE, CYLINDER, LINE_STRIP, TEXT_VIEW_FACING = 0, 1, 2, 3, 4, 9
 """visualization_msgs/Marker type constants used here."""
@@ -57,39 +57,37 @@ IDENTITY = (0.0, 0.0, 0.0, 1.0)
 Marker = dict[str, Any]
 Color = tuple[float, float, float, float]
 
-SCENE_PARAMETER_DEFAULTS: dict[str, Any] = {
-    'frame_id': 'map', 'rate_hz': 10.0, 'caution_h': DEFAULT_CAUTION}
-"""The scene_markers node's own parameters and their defaults (see :class:`SceneSettings`)."""
-
-
 @dataclass(frozen=True)
 class SceneSettings:
     """Settings of the scene_markers node besides the filter geometry."""
 
-    frame_id: str
-    """Frame of every marker."""
-    rate_hz: float
+    frame_id: str = setting('map', description="frame of every marker (the obstacles' frame)")
+    """Frame of every marker (not empty)."""
+    rate_hz: float = setting(10.0, positive=True,
+                             description='most MarkerArrays a second (one after each new state '
+                                         'or diagnostics)')
     """Most MarkerArrays a second (one after each new state or diagnostics, no faster)."""
-    caution_h: float
+    caution_h: float = setting(DEFAULT_CAUTION, minimum=0,
+                               description='barrier values in [0, caution_h) are drawn amber, '
+                                           'below 0 red')
     """Barrier values in [0, caution_h) are amber, above green."""
 
 
+SCENE_PARAMETER_DEFAULTS: dict[str, Any] = defaults_of(SceneSettings)
+"""The scene_markers node's own parameters and their defaults (:class:`SceneSettings`)."""
+
+
 def scene_settings(params: Mapping[str, Any]) -> SceneSettings:
-    """The node's settings from its flat parameters (defaults:
-    :data:`SCENE_PARAMETER_DEFAULTS`).
+    """The node's settings from its flat parameters (defaults: :class:`SceneSettings`'s).
 
     Raises:
         ValueError: naming the key: an empty or non-string ``frame_id``, ``rate_hz`` not > 0,
             ``caution_h`` < 0.
     """
-    frame_id = params.get('frame_id', SCENE_PARAMETER_DEFAULTS['frame_id'])
+    frame_id = params.get('frame_id', SceneSettings.frame_id)
     if not isinstance(frame_id, str) or not frame_id.strip():
         raise ValueError(f'frame_id: expected a frame name, got {frame_id!r}')
-    rate = number(params, 'rate_hz', SCENE_PARAMETER_DEFAULTS['rate_hz'], positive=True)
-    caution = number(params, 'caution_h', SCENE_PARAMETER_DEFAULTS['caution_h'])
-    if caution < 0:
-        raise ValueError(f'caution_h: must be >= 0, got {caution}')
-    return SceneSettings(frame_id=frame_id.strip(), rate_hz=rate, caution_h=caution)
+    return read_parameters(SceneSettings, {**params, 'frame_id': frame_id.strip()})
 
 
 def h_colour(h: float, *, caution: float = DEFAULT_CAUTION) -> Color:

@@ -75,15 +75,23 @@ class ParamsFileError(ValueError):
 
 
 # ----------------------------------------------------------------------------- scalars
-def _c_strtoll(text: str) -> int | None:
-    """``strtoll(text, &end, 0)`` when it reads all of ``text`` without overflow, else None."""
+def _c_whole(pattern: re.Pattern[str], text: str) -> tuple[int, str] | None:
+    """(sign, the unsigned number) when ``pattern`` reads all of ``text`` after C's leading
+    white space (as ``strto*`` with ``*end == '\\0'``), else None."""
     body = text.lstrip(_C_SPACE)
-    match = _STRTOLL.match(body)
+    match = pattern.match(body)
     if body == '' or match is None or match.end() != len(body):
         return None
-    digits = match.group(0)
-    sign = -1 if digits[0] == '-' else 1
-    digits = digits.lstrip('+-')
+    number = match.group(0)
+    return (-1 if number.startswith('-') else 1), number.lstrip('+-')
+
+
+def _c_strtoll(text: str) -> int | None:
+    """``strtoll(text, &end, 0)`` when it reads all of ``text`` without overflow, else None."""
+    whole = _c_whole(_STRTOLL, text)
+    if whole is None:
+        return None
+    sign, digits = whole
     if digits[:2] in ('0x', '0X'):
         value = int(digits[2:], 16)
     elif digits.startswith('0'):
@@ -96,12 +104,10 @@ def _c_strtoll(text: str) -> int | None:
 
 def _c_strtod(text: str) -> float | None:
     """``strtod(text, &end)`` when it reads all of ``text`` without ERANGE, else None."""
-    body = text.lstrip(_C_SPACE)
-    match = _STRTOD.match(body)
-    if body == '' or match is None or match.end() != len(body):
+    whole = _c_whole(_STRTOD, text)
+    if whole is None:
         return None
-    number = match.group(0)
-    unsigned = number.lstrip('+-')
+    sign, unsigned = whole
     if unsigned[0] in 'iInN':
         value = float(unsigned[:3])
     else:
@@ -110,7 +116,7 @@ def _c_strtod(text: str) -> float | None:
         mantissa = re.split('[pP]' if is_hex else '[eE]', unsigned[2:] if is_hex else unsigned)[0]
         if math.isinf(value) or (abs(value) < _DBL_MIN and mantissa.strip('0.') != ''):
             return None  # overflow or underflow: strtod sets ERANGE
-    return -value if number.startswith('-') else value
+    return sign * value
 
 
 def scalar_value(text: str, *, quoted: bool = False, str_tag: bool = False) -> tuple[str, Any]:

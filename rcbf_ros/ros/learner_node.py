@@ -24,26 +24,30 @@ code from them.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 import json
 import math
 from pathlib import Path
 import sys
 import time
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 import torch
 
-from rcbf_ros.core.config import (
-    build_system,
-    envelope_problem,
-    filter_config_from_params,
-    number,
-)
+from rcbf_ros.core.config import build_system, envelope_problem, filter_config_from_params
+from rcbf_ros.envs.base import EnvSettings
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA, SACConfig
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.node_logic.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.node_logic.edges import SIM_STEP_SECTIONS
+from rcbf_ros.node_logic.interface import (
+    FLOAT64_MULTIARRAY,
+    NodeInterface,
+    parameter_specs,
+    ParameterSpec,
+    TopicSpec,
+)
+from rcbf_ros.parameters.reader import defaults_of, read_parameters, setting
 from rcbf_ros.ros.node_main import request_stop, run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.agent import LearnerConfig, policy_box, SafeLearner
@@ -61,36 +65,66 @@ from rcbf_ros.training.run_files import (
     save_payload,
 )
 
-LEARNER_PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('system', 'unicycle', 'string', 'unicycle, car_following or pvtol'),
-    ParameterSpec('mode', 'modular', 'string',
-                  'SAC losses: modular, diff, baseline, baseline_compensator or unconstrained'),
-    ParameterSpec('model_based', False, 'bool',
-                  'add short model rollouts (MB SAC-RCBF; needs mode diff)'),
-    ParameterSpec('seed', 0, 'integer', 'seeds networks, buffers, exploration and the GP'),
-    ParameterSpec('episodes', 10, 'integer', 'episodes to train, then the node exits'),
-    ParameterSpec('out_dir', 'bags/learner_run', 'string',
-                  'where metrics, checkpoint, policy and plots go'),
-    ParameterSpec('dt', 0.02, 'double', "the simulator's step (s), for the GP's derivatives"),
-    ParameterSpec('start_steps', 1000, 'integer',
-                  'uniformly random proposals before the policy acts'),
-    ParameterSpec('update_after', 500, 'integer', 'environment steps before the first update'),
-    ParameterSpec('batch_size', 256, 'integer', 'SAC minibatch size'),
-    ParameterSpec('gp_refit_interval', 1000, 'integer', 'environment steps between GP refits'),
-    ParameterSpec('checkpoint_every', DEFAULT_CHECKPOINT_EVERY, 'integer',
-                  'episodes between checkpoints (also on exit)'),
-    ParameterSpec('resume', False, 'bool',
-                  "continue from out_dir's checkpoint (without: an out_dir holding a run is "
-                  'refused)'),
-    ParameterSpec('k_c', 2.0, 'double', 'the learned disturbance box is mean +/- k_c std'),
-    ParameterSpec('threads', 1, 'integer', 'torch threads'),
-    ParameterSpec('initial_alpha', DEFAULT_INITIAL_ALPHA, 'double',
-                  "SAC's initial entropy temperature (config/<system>.yaml's /learner sets it)"),
-    ParameterSpec('modular_envelope', False, 'bool',
-                  "modular mode: keep the system envelope's correction in the losses"),
-)
+
+@dataclass(frozen=True)
+class LearnerSettings:
+    """The learner node's own parameters; the defaults it shares with the in-process trainer
+    are LearnerConfig's (and the simulator's ``dt``)."""
+
+    system: str = setting('unicycle', description='unicycle, car_following or pvtol')
+    """The simulated system (the safety problem's keys come from the params file)."""
+    mode: str = setting(LearnerConfig.mode, description='SAC losses: modular, diff, baseline, '
+                                                        'baseline_compensator or unconstrained')
+    """Which SAC losses (LearnerConfig.mode)."""
+    model_based: bool = setting(LearnerConfig.model_based,
+                                description='add short model rollouts (MB SAC-RCBF; needs mode '
+                                            'diff)')
+    """MB SAC-RCBF (LearnerConfig.model_based)."""
+    seed: int = setting(LearnerConfig.seed,
+                        description='seeds networks, buffers, exploration and the GP')
+    """Seeds everything random (LearnerConfig.seed)."""
+    episodes: int = setting(10, description='episodes to train, then the node exits')
+    """Episodes to train, then the node exits."""
+    out_dir: str = setting('bags/learner_run',
+                           description='where metrics, checkpoint, policy and plots go')
+    """Where metrics, checkpoint, policy and plots go."""
+    dt: float = setting(EnvSettings.dt,
+                        description="the simulator's step (s), for the GP's derivatives")
+    """The simulator's step (s)."""
+    start_steps: int = setting(LearnerConfig.start_steps,
+                               description='uniformly random proposals before the policy acts')
+    """Exploration warm-up (LearnerConfig.start_steps)."""
+    update_after: int = setting(LearnerConfig.update_after,
+                                description='environment steps before the first update')
+    """Steps before the first update (LearnerConfig.update_after)."""
+    batch_size: int = setting(LearnerConfig.batch_size, description='SAC minibatch size')
+    """SAC minibatch size (LearnerConfig.batch_size)."""
+    gp_refit_interval: int = setting(LearnerConfig.gp_refit_interval,
+                                     description='environment steps between GP refits')
+    """Steps between GP refits (LearnerConfig.gp_refit_interval)."""
+    checkpoint_every: int = setting(DEFAULT_CHECKPOINT_EVERY, strict=True, minimum=1,
+                                    description='episodes between checkpoints (also on exit)')
+    """Episodes between checkpoints."""
+    resume: bool = setting(False, description="continue from out_dir's checkpoint (without: an "
+                                              'out_dir holding a run is refused)')
+    """Continue the run in out_dir."""
+    k_c: float = setting(LearnerConfig.k_c,
+                         description='the learned disturbance box is mean +/- k_c std')
+    """Disturbance box mean +/- k_c std (LearnerConfig.k_c)."""
+    threads: int = setting(1, strict=True, minimum=1, description='torch threads')
+    """Torch threads (1: the simulator, filter and recorder share the cores)."""
+    initial_alpha: float = setting(DEFAULT_INITIAL_ALPHA, positive=True,
+                                   description="SAC's initial entropy temperature "
+                                               "(config/<system>.yaml's /learner sets it)")
+    """SAC's initial entropy temperature."""
+    modular_envelope: bool = setting(
+        False, description="modular mode: keep the system envelope's correction in the losses")
+    """LearnerConfig.modular_envelope, resolved (not set: False)."""
+
+
+LEARNER_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(LearnerSettings)
 """The learner's own parameters, in declaration order."""
-PARAMETERS: dict[str, Any] = dict(declarations(LEARNER_PARAMETERS))
+PARAMETERS: dict[str, Any] = defaults_of(LearnerSettings)
 """Name -> default of :data:`LEARNER_PARAMETERS`."""
 
 FILE_PARAMETERS: tuple[ParameterSpec, ...] = (
@@ -102,18 +136,16 @@ FILE_PARAMETERS: tuple[ParameterSpec, ...] = (
 )
 """Read from the params file when given (``/learner`` section), declared only then."""
 
-_QOS = 'reliable, keep-last 10'
 INTERFACE = NodeInterface(
     node='learner',
     summary='SAC-RCBF training against the simulator and safety_filter nodes, in lock-step.',
     topics=(
-        TopicSpec('sim/step', 'sub', 'std_msgs/msg/Float64MultiArray',
-                  "the simulator's per-step sections: state, observation, reward, action, "
-                  'terminated, truncated, violation, goal_reached, episode, step', _QOS),
-        TopicSpec('cmd_proposed', 'pub', 'std_msgs/msg/Float64MultiArray',
-                  'sections u (n_u), disturbance_mean, disturbance_std, state (n_x each)', _QOS),
+        TopicSpec('sim/step', 'sub', FLOAT64_MULTIARRAY,
+                  "the simulator's per-step sections: " + ', '.join(SIM_STEP_SECTIONS)),
+        TopicSpec('cmd_proposed', 'pub', FLOAT64_MULTIARRAY,
+                  'sections u (n_u), disturbance_mean, disturbance_std, state (n_x each)'),
         TopicSpec('learner/metrics', 'pub', 'std_msgs/msg/String',
-                  "one JSON row per episode (as metrics.jsonl's)", _QOS),
+                  "one JSON row per episode (as metrics.jsonl's)"),
     ),
     parameters=LEARNER_PARAMETERS + FILE_PARAMETERS,
     notes=("The safety problem's keys (system, obstacles.*, alpha, ...: see safety_filter "
@@ -122,8 +154,8 @@ INTERFACE = NodeInterface(
 """Topics and parameters (``learner --help``, README)."""
 
 
-def learner_config_from_settings(settings: dict[str, Any],
-                                 filter_params: dict[str, Any]) -> LearnerConfig:
+def learner_config_from_settings(settings: Mapping[str, Any],
+                                 filter_params: Mapping[str, Any]) -> LearnerConfig:
     """The LearnerConfig of the node's parameters (``settings``, keys of :data:`PARAMETERS`)
     and of the params file's ``/learner`` policy box (in ``filter_params``: every parameter
     given to the node), as the in-process trainer reads it (``resolve_run``).
@@ -131,13 +163,12 @@ def learner_config_from_settings(settings: dict[str, Any],
     Raises:
         ValueError: naming the bad setting.
     """
-    s = settings
+    s = read_parameters(LearnerSettings, settings)
     return LearnerConfig(
-        mode=str(s['mode']), model_based=bool(s['model_based']), seed=int(s['seed']),
-        start_steps=int(s['start_steps']), update_after=int(s['update_after']),
-        batch_size=int(s['batch_size']), gp_refit_interval=int(s['gp_refit_interval']),
-        k_c=float(s['k_c']), modular_envelope=bool(s['modular_envelope']),
-        **policy_limits(filter_params), sac=SACConfig(initial_alpha=s['initial_alpha']))
+        mode=s.mode, model_based=s.model_based, seed=s.seed, start_steps=s.start_steps,
+        update_after=s.update_after, batch_size=s.batch_size,
+        gp_refit_interval=s.gp_refit_interval, k_c=s.k_c, modular_envelope=s.modular_envelope,
+        **policy_limits(filter_params), sac=SACConfig(initial_alpha=s.initial_alpha))
 
 
 def learner_from_settings(settings: dict[str, Any], filter_params: dict[str, Any],
@@ -146,10 +177,11 @@ def learner_from_settings(settings: dict[str, Any], filter_params: dict[str, Any
     and the shared safety problem's (``filter_params``): the same RCBF problem the
     safety_filter node solves, and, when ``modular_envelope`` asks for it in ``modular`` mode,
     the envelope problem of its losses."""
-    params = {**filter_params, 'k_c': settings['k_c']}
+    s = read_parameters(LearnerSettings, settings)
+    params = {**filter_params, 'k_c': s.k_c}
     config = filter_config_from_params(params)
     learner_cfg = learner_config_from_settings(settings, filter_params)
-    return SafeLearner(config.problem, obs_dim=obs_dim, dt=float(settings['dt']),
+    return SafeLearner(config.problem, obs_dim=obs_dim, dt=s.dt,
                        config=learner_cfg,
                        envelope=envelope_problem(params) if learner_cfg.uses_envelope else None)
 
@@ -176,13 +208,8 @@ class LearnerNode(Node):
         for name, default in PARAMETERS.items():
             if not self.has_parameter(name):
                 self.declare_parameter(name, default)
-        self.settings = {name: self.get_parameter(name).value for name in PARAMETERS}
-        for name in ('threads', 'checkpoint_every'):
-            value = self.settings[name]
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f'{name}: must be an integer >= 1, got {value!r}')
-        self.settings['initial_alpha'] = number(self.settings, 'initial_alpha',
-                                                DEFAULT_INITIAL_ALPHA, positive=True)
+        values = {name: self.get_parameter(name).value for name in PARAMETERS}
+        self.settings = asdict(read_parameters(LearnerSettings, values))
         # 1 by default: the simulator, filter and recorder share the cores.
         torch.set_num_threads(self.settings['threads'])
         # The safety problem's keys (system, obstacles.*, gains) come from the params file.

@@ -35,9 +35,18 @@ import os
 import signal
 import sys
 import threading
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, TypeVar
 
-from rcbf_ros.node_logic.interface import help_text, InterfaceSource, resolve, wants_help
+from rcbf_ros.node_logic.interface import (
+    help_text,
+    InterfaceSource,
+    parameter_type,
+    resolve,
+    wants_help,
+)
+from rcbf_ros.parameters.reader import parameters_of, read_parameters
+
+T = TypeVar('T')
 
 INTERRUPTED_EXIT = 130
 """Exit status of a node stopped by SIGINT before it started (128 + SIGINT, as a shell says)."""
@@ -111,6 +120,39 @@ def request_stop() -> None:
 def stop_requested() -> bool:
     """Whether a signal or :func:`request_stop` asked the node to stop."""
     return _STOP.requested
+
+
+def declare_settings(node: Any, cls: type[T]) -> T:
+    """Declare every parameter of the dataclass ``cls`` on ``node`` and read them into it.
+
+    Each is declared with the dataclass's default, except string lists: those are declared as
+    STRING_ARRAY by type, without a default (rclpy types an empty list as a BYTE_ARRAY, which
+    refuses ``-p topics:=[/a]``, and a params file cannot hold an empty list: rcl reads ``[]`` as
+    no value), and read as empty while unset, their empty strings dropped.
+
+    Raises:
+        ValueError: one line naming the parameter (a declaration the runtime refuses, or a
+            value the typed reader refuses).
+    """
+    from rcbf_ros.ros.runtime import Parameter, ParameterException
+
+    lists = {p.key for p in parameters_of(cls) if parameter_type(p.kind) == 'string[]'}
+    try:
+        for parameter in parameters_of(cls):
+            if parameter.key in lists:
+                node.declare_parameter(parameter.key, Parameter.Type.STRING_ARRAY)
+            else:
+                node.declare_parameter(parameter.key, parameter.default)
+    except ParameterException as exc:
+        raise ValueError(str(exc)) from exc
+    values = {}
+    for key in (p.key for p in parameters_of(cls)):
+        if key in lists:
+            unset = Parameter(key, Parameter.Type.STRING_ARRAY, [])
+            values[key] = [str(v) for v in node.get_parameter_or(key, unset).value if str(v)]
+        else:
+            values[key] = node.get_parameter(key).value
+    return read_parameters(cls, values)
 
 
 def spin_once(node: Any, *, timeout_sec: float | None = SPIN_SLICE_S) -> None:

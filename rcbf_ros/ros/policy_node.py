@@ -11,6 +11,7 @@ Parameters: ``policy_path`` (required), ``input_topic`` (default ``sim/step``).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 import sys
 from typing import Any, Sequence
 
@@ -18,30 +19,45 @@ import numpy as np
 import torch
 
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
-from rcbf_ros.node_logic.interface import declarations, NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.node_logic.interface import (
+    declarations,
+    FLOAT64_MULTIARRAY,
+    NodeInterface,
+    parameter_specs,
+    ParameterSpec,
+    TopicSpec,
+)
+from rcbf_ros.parameters.reader import read_parameters, setting
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.policy_io import load_policy
 
-PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('policy_path', '', 'string',
-                  'the policy.pt to run (from the learner or rcbf_ros train; required)'),
-    ParameterSpec('input_topic', 'sim/step', 'string',
-                  'Float64MultiArray topic with an `observation` section (and `state`)'),
-)
+
+@dataclass(frozen=True)
+class PolicySettings:
+    """The policy node's parameters."""
+
+    policy_path: str = setting('', description='the policy.pt to run (from the learner or '
+                                                'rcbf_ros train; required)')
+    """The policy.pt to run (required)."""
+    input_topic: str = setting('sim/step', description='Float64MultiArray topic with an '
+                                                       '`observation` section (and `state`)')
+    """Where the observations come from."""
+
+
+PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(PolicySettings)
 """The policy node's parameters, in declaration order."""
 
-_QOS = 'reliable, keep-last 10'
 INTERFACE = NodeInterface(
     node='policy',
     summary='A trained policy alone, proposing actions to the safety filter (deployment).',
     topics=(
-        TopicSpec('sim/step', 'sub', 'std_msgs/msg/Float64MultiArray',
+        TopicSpec('sim/step', 'sub', FLOAT64_MULTIARRAY,
                   'input_topic: sections observation (the policy input) and optional state, '
-                  'episode, step, terminated, truncated', _QOS),
-        TopicSpec('cmd_proposed', 'pub', 'std_msgs/msg/Float64MultiArray',
+                  'episode, step, terminated, truncated'),
+        TopicSpec('cmd_proposed', 'pub', FLOAT64_MULTIARRAY,
                   "sections u (n_u: the actor's mean action) and state (n_x, when the input "
-                  'has it)', _QOS),
+                  'has it)'),
     ),
     parameters=PARAMETERS,
 )
@@ -55,7 +71,8 @@ class PolicyNode(Node):
         super().__init__('policy')
         values = {name: self.declare_parameter(name, default).value
                   for name, default in declarations(PARAMETERS)}
-        path, topic = str(values['policy_path']), str(values['input_topic'])
+        settings = read_parameters(PolicySettings, values)
+        path, topic = settings.policy_path, settings.input_topic
         if not path:
             raise ValueError('policy_path: required (a policy.pt from the learner)')
         self.policy = load_policy(path)

@@ -34,15 +34,14 @@ import sys
 from typing import Any, Callable, Sequence
 
 from rcbf_ros.bag import BagWriter, BagWriterConfig, RecordedQos
-from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpec
-from rcbf_ros.ros.node_main import run_node
+from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, TopicSpec
+from rcbf_ros.parameters.reader import setting
+from rcbf_ros.ros.node_main import declare_settings, run_node
 from rcbf_ros.ros.runtime import (
     DurabilityPolicy,
     get_message,
     HistoryPolicy,
     Node,
-    Parameter,
-    ParameterException,
     QoSProfile,
     ReliabilityPolicy,
 )
@@ -52,19 +51,25 @@ from rcbf_ros.ros.runtime import (
 class RecorderConfig:
     """What the recorder records, where, and how often it flushes."""
 
-    topics: tuple[str, ...] = ()
+    topics: tuple[str, ...] = setting(
+        (), description='topics to record ([]: every topic discovery finds)')
     """Topic names to record; empty: every discovered topic."""
-    output: str = ''
-    """Bag directory; empty: ``bags/run_<UTC time>``."""
-    best_effort_topics: tuple[str, ...] = ()
+    best_effort_topics: tuple[str, ...] = setting(
+        (), description='topics to subscribe best effort (sensor-data publishers)')
     """Topics subscribed best effort (sensor-data publishers)."""
-    flush_period_s: float = 0.5
+    output: str = setting('', description="the bag directory ('': bags/run_<UTC time>)")
+    """Bag directory; empty: ``bags/run_<UTC time>``."""
+    flush_period_s: float = setting(
+        0.5, positive=True,
+        description='seconds between flushes of the open chunk (what a SIGKILL can lose)')
     """Seconds between flushes of the open chunk (upper bound on data lost to SIGKILL)."""
-    discovery_period_s: float = 0.1
+    discovery_period_s: float = setting(
+        0.1, positive=True, description='seconds between discovery checks for new topics')
     """Seconds between discovery checks for new topics (``ros2 bag record``'s default)."""
-    chunk_size: int = 256 * 1024
+    chunk_size: int = setting(256 * 1024, description='uncompressed MCAP chunk size (bytes)')
     """Uncompressed MCAP chunk size in bytes."""
-    compression: str = 'auto'
+    compression: str = setting('auto',
+                               description='chunk compression: auto, zstd, lz4 or none')
     """Chunk compression: ``auto``, ``zstd``, ``lz4`` or ``none``."""
 
     def __post_init__(self) -> None:
@@ -211,35 +216,9 @@ class RecorderNode(Node):
             f'recording {list(self.config.topics) or "all topics"} into {self.bag_directory}')
 
     def _read_config(self) -> RecorderConfig:
-        """Declare and read every parameter; a bad type is a ValueError naming the parameter.
-
-        The topic lists are declared as STRING_ARRAY by type, without a default: rclpy types an
-        empty list as a BYTE_ARRAY (which refuses ``-p topics:=[/a]``), and a params file
-        cannot hold an empty list (rcl reads ``[]`` as no value). Unset, a list is empty.
-        """
-        try:
-            for name in ('topics', 'best_effort_topics'):
-                self.declare_parameter(name, Parameter.Type.STRING_ARRAY)
-            self.declare_parameter('output', RecorderConfig.output)
-            self.declare_parameter('flush_period_s', RecorderConfig.flush_period_s)
-            self.declare_parameter('discovery_period_s', RecorderConfig.discovery_period_s)
-            self.declare_parameter('chunk_size', RecorderConfig.chunk_size)
-            self.declare_parameter('compression', RecorderConfig.compression)
-        except ParameterException as exc:
-            raise ValueError(str(exc)) from exc
-
-        def strings(name: str) -> tuple[str, ...]:
-            unset = Parameter(name, Parameter.Type.STRING_ARRAY, [])
-            return tuple(str(v) for v in self.get_parameter_or(name, unset).value if str(v))
-
-        return RecorderConfig(
-            topics=strings('topics'),
-            output=str(self.get_parameter('output').value or ''),
-            best_effort_topics=strings('best_effort_topics'),
-            flush_period_s=float(self.get_parameter('flush_period_s').value),
-            discovery_period_s=float(self.get_parameter('discovery_period_s').value),
-            chunk_size=int(self.get_parameter('chunk_size').value),
-            compression=str(self.get_parameter('compression').value))
+        """Declare and read every parameter (:func:`declare_settings`); a bad one is a
+        ValueError naming it. A topic list unset is empty."""
+        return declare_settings(self, RecorderConfig)
 
     def _offered_qos(self, topic: str) -> list[RecordedQos] | None:
         """The publishers' offered QoS ([] while there is none); None where the runtime does
@@ -303,24 +282,6 @@ class RecorderNode(Node):
         return counts
 
 
-PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('topics', [], 'string[]', 'topics to record ([]: every topic discovery finds)'),
-    ParameterSpec('best_effort_topics', [], 'string[]',
-                  'topics to subscribe best effort (sensor-data publishers)'),
-    ParameterSpec('output', RecorderConfig.output, 'string',
-                  "the bag directory ('': bags/run_<UTC time>)"),
-    ParameterSpec('flush_period_s', RecorderConfig.flush_period_s, 'double',
-                  'seconds between flushes of the open chunk (what a SIGKILL can lose)'),
-    ParameterSpec('discovery_period_s', RecorderConfig.discovery_period_s, 'double',
-                  'seconds between discovery checks for new topics'),
-    ParameterSpec('chunk_size', RecorderConfig.chunk_size, 'integer',
-                  'uncompressed MCAP chunk size (bytes)'),
-    ParameterSpec('compression', RecorderConfig.compression, 'string',
-                  'chunk compression: auto, zstd, lz4 or none'),
-)
-"""The recorder's parameters (``recorder --help``, README; a test compares them with what
-the node declares)."""
-
 INTERFACE = NodeInterface(
     node='recorder',
     summary="Record topics into an MCAP bag in rosbag2's layout (Ctrl-C closes it).",
@@ -328,7 +289,7 @@ INTERFACE = NodeInterface(
                       'all topics, or `topics`; re-checked every discovery_period_s',
                       'keep-all; reliable unless a publisher offers best effort, or '
                       'best_effort_topics'),),
-    parameters=PARAMETERS,
+    parameters=parameter_specs(RecorderConfig),  # a test compares them with the declarations
 )
 
 

@@ -28,15 +28,14 @@ from typing import Any, Sequence
 
 from rcbf_ros.bag import bag_info
 from rcbf_ros.bag.playback import iter_bag_messages, playback_schedule, replay_qos
-from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpec
-from rcbf_ros.ros.node_main import run_node
+from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, TopicSpec
+from rcbf_ros.parameters.reader import setting
+from rcbf_ros.ros.node_main import declare_settings, run_node
 from rcbf_ros.ros.runtime import (
     DurabilityPolicy,
     get_message,
     HistoryPolicy,
     Node,
-    Parameter,
-    ParameterException,
     QoSProfile,
     rclpy,
     ReliabilityPolicy,
@@ -47,17 +46,20 @@ from rcbf_ros.ros.runtime import (
 class ReplayConfig:
     """What to play and how fast."""
 
-    bag: str
+    bag: str = setting('', description='bag directory or .mcap file (required)')
     """Bag directory or ``.mcap`` file."""
-    rate: float = 1.0
+    rate: float = setting(1.0, positive=True, description='speed factor (2.0: twice as fast)')
     """Speed factor (> 0)."""
-    loop: bool = False
+    loop: bool = setting(False, description='start over after the last message, until stopped')
     """Repeat until stopped."""
-    topics: tuple[str, ...] = ()
+    topics: tuple[str, ...] = setting((), description='topics to play ([]: all)')
     """Topics to play; empty: all."""
-    wait_for_subscribers_s: float = 0.0
+    wait_for_subscribers_s: float = setting(
+        0.0, minimum=0, description='longest wait (s) for a subscriber on every topic before '
+                                    'playing')
     """Longest wait for a subscriber on every topic before playing."""
-    linger_s: float = 0.5
+    linger_s: float = setting(0.5, minimum=0, description='seconds to stay alive after the last '
+                                                          'message (retransmissions)')
     """Seconds to stay alive after the last message."""
 
     def __post_init__(self) -> None:
@@ -100,30 +102,9 @@ class ReplayNode(Node):
             f'{self.config.bag} at rate {self.config.rate}{" (loop)" if self.config.loop else ""}')
 
     def _read_config(self) -> ReplayConfig:
-        """Declare and read every parameter; a bad type is a ValueError naming the parameter.
-
-        ``topics`` is declared as STRING_ARRAY by type, without a default: rclpy types an empty
-        list as a BYTE_ARRAY (which refuses ``-p topics:=[/a]``), and a params file cannot hold
-        an empty list (rcl reads ``[]`` as no value). Unset, it is empty (every topic).
-        """
-        try:
-            self.declare_parameter('bag', '')
-            self.declare_parameter('rate', 1.0)
-            self.declare_parameter('loop', False)
-            self.declare_parameter('topics', Parameter.Type.STRING_ARRAY)
-            self.declare_parameter('wait_for_subscribers_s', 0.0)
-            self.declare_parameter('linger_s', 0.5)
-        except ParameterException as exc:
-            raise ValueError(str(exc)) from exc
-        unset = Parameter('topics', Parameter.Type.STRING_ARRAY, [])
-        topics = self.get_parameter_or('topics', unset).value
-        return ReplayConfig(
-            bag=str(self.get_parameter('bag').value or ''),
-            rate=float(self.get_parameter('rate').value),
-            loop=bool(self.get_parameter('loop').value),
-            topics=tuple(str(t) for t in topics if str(t)),
-            wait_for_subscribers_s=float(self.get_parameter('wait_for_subscribers_s').value),
-            linger_s=float(self.get_parameter('linger_s').value))
+        """Declare and read every parameter (:func:`declare_settings`); a bad one is a
+        ValueError naming it. ``topics`` unset: every topic."""
+        return declare_settings(self, ReplayConfig)
 
     def _sleep_until(self, deadline: float) -> None:
         """Serve the executor (so signals are seen) until ``time.monotonic() >= deadline``."""
@@ -156,26 +137,13 @@ class ReplayNode(Node):
         self._sleep_until(time.monotonic() + self.config.linger_s)
 
 
-PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('bag', '', 'string', 'bag directory or .mcap file (required)'),
-    ParameterSpec('rate', 1.0, 'double', 'speed factor (2.0: twice as fast)'),
-    ParameterSpec('loop', False, 'bool', 'start over after the last message, until stopped'),
-    ParameterSpec('topics', [], 'string[]', 'topics to play ([]: all)'),
-    ParameterSpec('wait_for_subscribers_s', 0.0, 'double',
-                  'longest wait (s) for a subscriber on every topic before playing'),
-    ParameterSpec('linger_s', 0.5, 'double',
-                  'seconds to stay alive after the last message (retransmissions)'),
-)
-"""The replay node's parameters (``replay --help``, README; a test compares them with what
-the node declares)."""
-
 INTERFACE = NodeInterface(
     node='replay',
     summary='Play a bag onto its topics (the bag is checked in full first).',
     topics=(TopicSpec('<every recorded topic>', 'pub', 'as recorded (CDR bytes as recorded)',
                       'all recorded topics, or `topics`, on the recorded schedule / rate',
                       "the recorded publishers' QoS, keep-all"),),
-    parameters=PARAMETERS,
+    parameters=parameter_specs(ReplayConfig),  # a test compares them with the declarations
 )
 
 

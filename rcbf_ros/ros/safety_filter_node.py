@@ -98,7 +98,15 @@ from rcbf_ros.core.config import FilterConfig
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.messages import conversions
 from rcbf_ros.node_logic import safety_filter as logic
-from rcbf_ros.node_logic.interface import NodeInterface, TopicSpec
+from rcbf_ros.node_logic.interface import (
+    COMMAND_TOPIC_TYPES,
+    DIAGNOSTIC_ARRAY,
+    FLOAT64_MULTIARRAY,
+    NodeInterface,
+    OBSTACLES_QOS,
+    STATE_TOPIC_TYPES,
+    TopicSpec,
+)
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     deserialize_message,
@@ -115,37 +123,38 @@ from rcbf_ros.ros.runtime import (
 NODE_NAME = 'safety_filter'
 INPUT_COUNT_KEYS = ('dropped_samples', 'refused_proposals', 'refused_states')
 """Diagnostic keys of the node's cumulative input counts (see the module docstring)."""
-OBSTACLES_QOS = 'reliable, keep-last 1, transient-local'
-"""QoS of the ``obstacles`` subscription: the latest set only; a latched one is picked up."""
-
 _QOS = 'reliable, keep-last 10 (qos.reliable, qos.depth)'
+
+
+def _topic(name: str, direction: str, kind: str, layout: str) -> TopicSpec:
+    """A topic of the filter's own (QoS from qos.reliable and qos.depth)."""
+    return TopicSpec(name, direction, kind, layout, _QOS)
+
+
 INTERFACE = NodeInterface(
     node=NODE_NAME,
     summary='The RCBF safety filter in front of any controller: a proposed command in, the '
             'safe command out (every parameter also from --params-file config/<system>.yaml).',
     topics=(
-        TopicSpec('state', 'sub', 'std_msgs/msg/Float64MultiArray or nav_msgs/msg/Odometry',
-                  'state_type array: section `state` (else the first), n_x values in the '
-                  "system's state layout; odometry: [x, y, yaw] of the pose (unicycle)", _QOS),
-        TopicSpec('cmd_proposed', 'sub',
-                  'std_msgs/msg/Float64MultiArray, geometry_msgs/msg/Twist or '
-                  'geometry_msgs/msg/TwistStamped',
-                  'command_type array: section `u` (n_u; unlabelled data is u) and optional '
-                  '`disturbance_mean`, `disturbance_std`, `state` (n_x each); twist(_stamped): '
-                  'u in twist_fields', _QOS),
-        TopicSpec('cmd_safe', 'pub', 'the type of cmd_proposed (command_type)',
-                  'the safe command only: array: exactly u (n_u values, section `u`); '
-                  "twist(_stamped): u in twist_fields, others 0; TwistStamped: the proposal's "
-                  'header (stamp, frame_id)', _QOS),
-        TopicSpec('filter_info', 'pub', 'std_msgs/msg/Float64MultiArray',
-                  'one per command: sections u, u_rl, u_s (n_u each), fail_safe, status (1 each),'
-                  ' then when known h, constraint (K each), slack, needed_slack, solve_time_s '
-                  '(1 each), state (n_x); never NaN', _QOS),
-        TopicSpec('diagnostics', 'pub', 'diagnostic_msgs/msg/DiagnosticArray',
-                  'one status per proposal (OK ones at most every diagnostics.min_period_s): '
-                  'h.<barrier>, constraint.<barrier>, slack, status, reason, times, counts',
-                  _QOS),
-        TopicSpec('obstacles', 'sub', 'std_msgs/msg/Float64MultiArray',
+        _topic('state', 'sub', STATE_TOPIC_TYPES,
+               'state_type array: section `state` (else the first), n_x values in the '
+               "system's state layout; odometry: [x, y, yaw] of the pose (unicycle)"),
+        _topic('cmd_proposed', 'sub', COMMAND_TOPIC_TYPES,
+               'command_type array: section `u` (n_u; unlabelled data is u) and optional '
+               '`disturbance_mean`, `disturbance_std`, `state` (n_x each); twist(_stamped): '
+               'u in twist_fields'),
+        _topic('cmd_safe', 'pub', 'the type of cmd_proposed (command_type)',
+               'the safe command only: array: exactly u (n_u values, section `u`); '
+               "twist(_stamped): u in twist_fields, others 0; TwistStamped: the proposal's "
+               'header (stamp, frame_id)'),
+        _topic('filter_info', 'pub', FLOAT64_MULTIARRAY,
+               'one per command: sections u, u_rl, u_s (n_u each), fail_safe, status (1 each),'
+               ' then when known h, constraint (K each), slack, needed_slack, solve_time_s '
+               '(1 each), state (n_x); never NaN'),
+        _topic('diagnostics', 'pub', DIAGNOSTIC_ARRAY,
+               'one status per proposal (OK ones at most every diagnostics.min_period_s): '
+               'h.<barrier>, constraint.<barrier>, slack, status, reason, times, counts'),
+        TopicSpec('obstacles', 'sub', FLOAT64_MULTIARRAY,
                   'the whole obstacle set, rows [x, y, radius] (3 k values, layout.dim none or '
                   '[k, 3]); replaces obstacles.x/y/radius as a parameter change would',
                   OBSTACLES_QOS),
@@ -202,7 +211,7 @@ class SafetyFilterNode(Node):
         self._cmd_pub = self.create_publisher(command_type, 'cmd_safe', qos)
         self._info_pub = self.create_publisher(array_type, 'filter_info', qos)
         self._diag_pub = self.create_publisher(
-            get_message('diagnostic_msgs/msg/DiagnosticArray'), 'diagnostics', qos)
+            get_message(DIAGNOSTIC_ARRAY), 'diagnostics', qos)
         self._state_type, self._command_type = state_type, command_type
         self.create_subscription(state_type, 'state', self._on_state, qos, raw=True)
         self.create_subscription(command_type, 'cmd_proposed', self._on_proposal, qos, raw=True)
@@ -468,7 +477,7 @@ class SafetyFilterNode(Node):
         level, message, values = logic.diagnostic_values(
             decision=decision, barrier_names=active.safety_filter.barrier_names)
         values.update(self.input_counts)
-        diagnostics = get_message('diagnostic_msgs/msg/DiagnosticArray')()
+        diagnostics = get_message(DIAGNOSTIC_ARRAY)()
         diagnostics.header.stamp = self.get_clock().now().to_msg()
         diagnostics.status = [conversions.diagnostic_status(
             name=settings.diagnostics_name, level=level, message=message, values=values,

@@ -9,7 +9,7 @@ Topics (relative, so remappable):
 - ``diagnostics`` (sub, diagnostic_msgs/DiagnosticArray): the filter's; the ``h.<barrier>``
   values and the message of the status that carries them;
 - ``obstacles`` (sub, std_msgs/Float64MultiArray, reliable, keep-last 1, transient-local): the
-  safety filter's obstacle set, rows [x, y, radius] (:data:`rcbf_ros.ros.safety_filter_node.
+  safety filter's obstacle set, rows [x, y, radius] (:data:`rcbf_ros.node_logic.interface.
   OBSTACLES_QOS`); the scene draws the new set. A set the filter would refuse is refused here
   too (checked by the same functions), with an ERROR, and the old set stays drawn;
 - ``scene_markers`` (pub, visualization_msgs/MarkerArray): obstacles, margins, the robot, the
@@ -37,7 +37,17 @@ import numpy as np
 from rcbf_ros.core.scene import scene_geometry
 from rcbf_ros.messages import conversions
 from rcbf_ros.node_logic import scene as logic
-from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpec
+from rcbf_ros.node_logic.edges import MessageSettings
+from rcbf_ros.node_logic.interface import (
+    DIAGNOSTIC_ARRAY,
+    FLOAT64_MULTIARRAY,
+    NodeInterface,
+    OBSTACLES_QOS,
+    parameter_specs,
+    ParameterSpec,
+    STATE_TOPIC_TYPES,
+    TopicSpec,
+)
 from rcbf_ros.node_logic.safety_filter import (
     collect_parameters,
     FILTER_PARAMETERS,
@@ -45,8 +55,8 @@ from rcbf_ros.node_logic.safety_filter import (
     merged_parameters,
     obstacle_parameters,
     state_from_sections,
-    STATE_TYPES,
 )
+from rcbf_ros.parameters.reader import read_parameters
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import (
     deserialize_message,
@@ -61,40 +71,28 @@ from rcbf_ros.ros.runtime import (
 
 NODE_NAME = 'scene_markers'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
-FLOAT64_MULTIARRAY = 'std_msgs/msg/Float64MultiArray'
-DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
 
-_DEFAULTS = logic.SCENE_PARAMETER_DEFAULTS
-STATE_TYPE_DEFAULT = 'array'
 PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('frame_id', _DEFAULTS['frame_id'], 'string',
-                  "frame of every marker (the obstacles' frame)"),
-    ParameterSpec('rate_hz', _DEFAULTS['rate_hz'], 'double',
-                  'most MarkerArrays a second (one after each new state or diagnostics)'),
-    ParameterSpec('caution_h', _DEFAULTS['caution_h'], 'double',
-                  'barrier values in [0, caution_h) are drawn amber, below 0 red'),
-    ParameterSpec('state_type', STATE_TYPE_DEFAULT, 'string',
-                  "type of `state`, as the safety filter's: array or odometry (unicycle)"),
+    *parameter_specs(logic.SceneSettings),
+    *parameter_specs(MessageSettings, mark_read_only=False)[:1],  # state_type
 ) + FILTER_PARAMETERS
 """Every parameter the node declares: its own, then the filter keys of the params file
 (declared when given, as the filter reads them)."""
 
-_QOS = 'reliable, keep-last 10'
 INTERFACE = NodeInterface(
     node=NODE_NAME,
     summary='The safety problem as a MarkerArray for RViz and Foxglove: obstacles, margins, the '
             'robot and every barrier value.',
     topics=(
-        TopicSpec('state', 'sub', 'std_msgs/msg/Float64MultiArray or nav_msgs/msg/Odometry',
-                  'as the safety filter reads it (state_type)', _QOS),
-        TopicSpec('diagnostics', 'sub', 'diagnostic_msgs/msg/DiagnosticArray',
-                  "the filter's: h.<barrier> values and the status message", _QOS),
+        TopicSpec('state', 'sub', STATE_TOPIC_TYPES,
+                  'as the safety filter reads it (state_type)'),
+        TopicSpec('diagnostics', 'sub', DIAGNOSTIC_ARRAY,
+                  "the filter's: h.<barrier> values and the status message"),
         TopicSpec('obstacles', 'sub', FLOAT64_MULTIARRAY,
                   "the safety filter's obstacle set, rows [x, y, radius]: drawn instead of "
-                  'obstacles.x/y/radius', 'reliable, keep-last 1, transient-local'),
+                  'obstacles.x/y/radius', OBSTACLES_QOS),
         TopicSpec('scene_markers', 'pub', 'visualization_msgs/msg/MarkerArray',
-                  'obstacles, margins, robot, guarded point, barrier values, in frame_id',
-                  _QOS),
+                  'obstacles, margins, robot, guarded point, barrier values, in frame_id'),
     ),
     parameters=PARAMETERS,
 )
@@ -196,12 +194,11 @@ class SceneNode(Node):
     def _state_type_parameter(self) -> str:
         """The declared ``state_type``, checked against the system (ValueError naming it)."""
         if not self.has_parameter('state_type'):
-            self.declare_parameter('state_type', STATE_TYPE_DEFAULT)
-        state_type = self.get_parameter('state_type').value
+            self.declare_parameter('state_type', MessageSettings.state_type)
         try:
-            if state_type not in STATE_TYPES:
-                raise ValueError(f'state_type: expected one of {list(STATE_TYPES)}, got '
-                                 f'{state_type!r}')
+            state_type = read_parameters(
+                MessageSettings, {'state_type': self.get_parameter('state_type').value}
+            ).state_type
             if state_type == 'odometry':
                 conversions.check_odometry_support(self.geometry.system)
         except ValueError as exc:
