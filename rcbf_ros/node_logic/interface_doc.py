@@ -1,8 +1,8 @@
 """The README's interface tables, generated from the nodes' own specs (so they cannot drift).
 
-    python -m rcbf_ros.node_logic.interface_doc              # print the generated section
-    python -m rcbf_ros.node_logic.interface_doc --write README.md
-    python -m rcbf_ros.node_logic.interface_doc --check README.md   # exit 1 when it differs
+    rcbf_ros interface-doc              # print the generated section
+    rcbf_ros interface-doc --write README.md
+    rcbf_ros interface-doc --check README.md   # exit 1 when it differs
 
 The section lies between :data:`BEGIN` and :data:`END` in the README; everything else there is
 written by hand. It holds the state and command layout of every shipped system, the
@@ -24,7 +24,7 @@ from rcbf_ros.messages.conversions import COMMAND_LAYOUTS, ODOMETRY_STATES, STAT
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_table, resolve, topic_table
 from rcbf_ros.node_logic.safety_filter import FILTER_PARAMETERS
 
-BEGIN = ('<!-- BEGIN interface (generated: python -m rcbf_ros.node_logic.interface_doc --write '
+BEGIN = ('<!-- BEGIN interface (generated: rcbf_ros interface-doc --write '
          'README.md) -->')
 END = '<!-- END interface -->'
 
@@ -108,7 +108,7 @@ def replace_section(text: str, section: str) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Print, write or check the generated section. Exit 1 when --check finds a difference."""
-    parser = argparse.ArgumentParser(prog='python -m rcbf_ros.node_logic.interface_doc',
+    parser = argparse.ArgumentParser(prog='rcbf_ros interface-doc',
                                      description='The README interface tables, generated.')
     group = parser.add_mutually_exclusive_group()
     group.add_argument('--write', metavar='README', help='rewrite the section in this file')

@@ -70,7 +70,6 @@ from rcbf_ros.parameters.reader import (
 OK = 0
 WARN = 1
 ERROR = 2
-LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR'}
 
 
 

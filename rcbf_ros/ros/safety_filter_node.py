@@ -453,15 +453,14 @@ class SafetyFilterNode(Node):
 
         The message type and twist_fields are read-only, so any filter's settings will do.
         """
-        fields = self.settings.twist_fields
-        if self.settings.command_type == 'twist':
-            return conversions.array_to_twist(u_safe, fields)
-        if self.settings.command_type == 'twist_stamped':
-            if header is None:  # an undecodable proposal: no header to copy
-                header = get_message('std_msgs/msg/Header')()
-                header.stamp = self.get_clock().now().to_msg()
-            return conversions.array_to_twist_stamped(u_safe, fields, header)
-        return conversions.sections_to_msg({'u': u_safe})
+        command_type = self.settings.command_type
+        if command_type == 'twist_stamped' and header is None:
+            # an undecodable proposal: no header to copy
+            header = get_message('std_msgs/msg/Header')()
+            header.stamp = self.get_clock().now().to_msg()
+        return conversions.command_to_msg(
+            u_safe, type_name=conversions.COMMAND_MESSAGES[command_type],
+            twist_fields=self.settings.twist_fields, header=header)
 
     def _publish(self, decision: logic.Decision, now_ns: int, active: logic.ActiveFilter,
                  header: Any = None) -> None:

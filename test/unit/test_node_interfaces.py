@@ -171,7 +171,7 @@ def test_every_declared_parameter_has_its_spec_and_every_spec_is_declared(
 
 def test_the_readme_interface_section_is_the_generated_one():
     assert interface_doc.main(['--check', str(REPO / 'README.md')]) == 0, (
-        'run python -m rcbf_ros.node_logic.interface_doc --write README.md')
+        'run rcbf_ros interface-doc --write README.md')
 
 
 def test_a_stale_readme_section_is_reported(tmp_path, capsys):
