@@ -89,6 +89,9 @@ class CarFollowingEnv(SafetyEnv):
         self.nominal_system = CarFollowing()
         self.max_steps = self.settings.max_steps
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(15,), dtype=np.float64)
+        # Car 4's acceleration has no actuator limit in the model (nor in the paper): the safe
+        # action u_RL + u_S may leave any box the policy draws from (the learner's is
+        # +/- LearnerConfig.policy_bound), so the plant takes any finite value.
         self.action_space = gym.spaces.Box(-np.inf, np.inf, shape=(1,), dtype=np.float64)
         self._accelerations = np.zeros(5)
 
