@@ -43,8 +43,9 @@ FREE_STATE = [-2.5, -2.5, -0.75 * np.pi]
 FACING_OBSTACLE = [-0.85, 0.0, 0.0]
 WARMUP = 50
 INDEX_STEP = 1e-6
-DIAGNOSTICS = {'every': 'every proposal (default)', 'decimated': 'OK ones at 10 Hz',
-               'compiled': 'OK ones at 10 Hz + compile_assembly'}
+DIAGNOSTICS = {'every': 'every proposal (default)', 'decimated': 'OK ones at 10 Hz'}
+TARGET_RATIO = 1.5
+"""The budget: the median end-to-end latency at most this times the raw DDS ping-pong."""
 
 
 def run_filter_latency(rate_hz: float, n: int, node_args: tuple[str, ...] = ()
@@ -141,9 +142,7 @@ def main() -> None:
     options = parser.parse_args()
     load_before = os.getloadavg()[0]
     rows = []
-    variants = {'every': (), 'decimated': ('-p', 'diagnostics.min_period_s:=0.1'),
-                'compiled': ('-p', 'diagnostics.min_period_s:=0.1',
-                             '-p', 'compile_assembly:=true')}
+    variants = {'every': (), 'decimated': ('-p', 'diagnostics.min_period_s:=0.1')}
     for rate in options.rates:
         raw = run_pingpong(rate, options.n, 'raw')
         runtime = run_pingpong(rate, options.n, 'runtime')
@@ -207,24 +206,26 @@ def write_results(rows: list[dict], options: argparse.Namespace,
             f"{r['raw_p99']:.0f} | {r['rt_med']:.0f} / {r['rt_p99']:.0f} | "
             f"{r['ratio_raw']:.2f} | {r['ratio_rt']:.2f} | {r['ratio_wo_compute']:.2f} |")
     lines += ['', f'{options.n} proposals per row after {WARMUP} warm-up; active QPs: '
-              f'{", ".join(str(r["active"]) for r in rows)}. Target: median <= 2x the floor.', '']
+              f'{", ".join(str(r["active"]) for r in rows)}. Target: median <= {TARGET_RATIO:g}x '
+              'the raw floor, nothing lost.', '']
     for r in rows:
-        verdict = 'met' if r['ratio_raw'] <= 2.0 else 'NOT met'
+        verdict = 'met' if r['ratio_raw'] <= TARGET_RATIO and not r['lost'] else 'NOT met'
         lines.append(f"- {r['rate']:g} Hz, diagnostics {DIAGNOSTICS[r['variant']]}: median "
                      f"{r['ratio_raw']:.1f}x the raw floor, target {verdict}"
                      + (f"; {r['lost']} commands lost (keep-last queues overflowed)"
                         if r['lost'] else '') + '.')
     lines += [
         '',
-        "Reading: the filter's own compute (the core `SafetyFilter.filter`, mostly the autograd "
-        'pass of `barrier_terms` and the QP assembly in torch, then OSQP) is the larger part of '
-        'the end-to-end time; without it the node and transport add about the last column '
-        "times the floor. When the node's cost per proposal (compute + two deserialisations "
-        '+ building the command and the DiagnosticArray) exceeds the period, as at 1 kHz on '
-        'this shared 2-core machine, queues grow and latency is the queueing delay. The '
-        'compiled constraint assembly (`compile_assembly: true`) makes the core step cheap '
-        'enough for 1 kHz with nothing lost; at 100 Hz the idle CPU between proposals makes '
-        'every call slower (cold caches), so the ratio to the floor is higher there.',
+        "Reading: the filter's own compute (the core `SafetyFilter.filter`: the closed-form "
+        'constraint assembly, then OSQP when a row is active) is a fifth to a third of the '
+        'end-to-end time; the node and the transport add about the last column times the '
+        "floor. When the node's cost per proposal (compute, two deserialisations, the command, "
+        '`filter_info` and, by default, a DiagnosticArray) exceeds the period, as at 1 kHz on '
+        'this 2-core machine, the keep-last queues overflow and latency is the queueing delay; '
+        'OK diagnostics at 10 Hz (`diagnostics.min_period_s: 0.1`; WARN and ERROR still go '
+        'out at once, `filter_info` still carries every answer) bring the cost under 1 ms. '
+        'At 100 Hz the idle CPU between proposals makes every call slower (cold caches), so '
+        'the ratio to the floor is higher there.',
     ]
     write_section('Safety filter over DDS', '\n'.join(lines))
 

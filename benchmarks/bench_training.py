@@ -88,8 +88,10 @@ DIFFERENCES = (
     'qpth on the batch of 256 (interior point, backward through its KKT factorisation), in '
     'the critic target and the actor loss. Modular (modular <- mod): on Unicycle and Cars the '
     'reference only clamps to the input box in the losses (no QP, its GP still predicts the '
-    'batch), on PVTOL it solves its QP with the modular constraint set; ours (no envelope '
-    'layer, the default) uses no QP in the losses on any system. Buffer '
+    'batch), on PVTOL it solves its QP with the modular constraint set; ours uses no QP in '
+    "the losses on Unicycle and Cars, and on PVTOL, as config/pvtol.yaml's "
+    '`modular_envelope: true` asks, the differentiable QP of the envelope (the tilt, thrust and '
+    'arena bands) in both losses. Buffer '
     'sampling: ours preallocated tensors; the reference a Python list of tuples.')
 """Printed with the table."""
 
