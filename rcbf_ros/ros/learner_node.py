@@ -24,7 +24,7 @@ code from them.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 import json
 import math
 from pathlib import Path
@@ -154,16 +154,15 @@ INTERFACE = NodeInterface(
 """Topics and parameters (``learner --help``, README)."""
 
 
-def learner_config_from_settings(settings: Mapping[str, Any],
+def learner_config_from_settings(s: LearnerSettings,
                                  filter_params: Mapping[str, Any]) -> LearnerConfig:
-    """The LearnerConfig of the node's parameters (``settings``, keys of :data:`PARAMETERS`)
-    and of the params file's ``/learner`` policy box (in ``filter_params``: every parameter
-    given to the node), as the in-process trainer reads it (``resolve_run``).
+    """The LearnerConfig of the node's settings and of the params file's ``/learner`` policy
+    box (in ``filter_params``: every parameter given to the node), as the in-process trainer
+    reads it (``resolve_run``).
 
     Raises:
-        ValueError: naming the bad setting.
+        ValueError: naming the bad policy box key.
     """
-    s = read_parameters(LearnerSettings, settings)
     return LearnerConfig(
         mode=s.mode, model_based=s.model_based, seed=s.seed, start_steps=s.start_steps,
         update_after=s.update_after, batch_size=s.batch_size,
@@ -171,16 +170,14 @@ def learner_config_from_settings(settings: Mapping[str, Any],
         **policy_limits(filter_params), sac=SACConfig(initial_alpha=s.initial_alpha))
 
 
-def learner_from_settings(settings: dict[str, Any], filter_params: dict[str, Any],
+def learner_from_settings(s: LearnerSettings, filter_params: Mapping[str, Any],
                           obs_dim: int) -> SafeLearner:
-    """The node's SafeLearner from its parameters (``settings``, keys of :data:`PARAMETERS`)
-    and the shared safety problem's (``filter_params``): the same RCBF problem the
-    safety_filter node solves, and, when ``modular_envelope`` asks for it in ``modular`` mode,
-    the envelope problem of its losses."""
-    s = read_parameters(LearnerSettings, settings)
+    """The node's SafeLearner from its settings and the shared safety problem's parameters
+    (``filter_params``): the same RCBF problem the safety_filter node solves, and, when
+    ``modular_envelope`` asks for it in ``modular`` mode, the envelope problem of its losses."""
     params = {**filter_params, 'k_c': s.k_c}
     config = filter_config_from_params(params)
-    learner_cfg = learner_config_from_settings(settings, filter_params)
+    learner_cfg = learner_config_from_settings(s, filter_params)
     return SafeLearner(config.problem, obs_dim=obs_dim, dt=s.dt,
                        config=learner_cfg,
                        envelope=envelope_problem(params) if learner_cfg.uses_envelope else None)
@@ -209,16 +206,16 @@ class LearnerNode(Node):
             if not self.has_parameter(name):
                 self.declare_parameter(name, default)
         values = {name: self.get_parameter(name).value for name in PARAMETERS}
-        self.settings = asdict(read_parameters(LearnerSettings, values))
+        self.settings = read_parameters(LearnerSettings, values)
         # 1 by default: the simulator, filter and recorder share the cores.
-        torch.set_num_threads(self.settings['threads'])
+        torch.set_num_threads(self.settings.threads)
         # The safety problem's keys (system, obstacles.*, gains) come from the params file.
         self.filter_params = self._declared_filter_params()
         # The learner is built at the first step (it needs the observation's size); its
         # settings and policy box are checked now, so that a bad one exits 2 naming the key.
         policy_box(build_system(self.filter_params),
                    learner_config_from_settings(self.settings, self.filter_params))
-        self.out_dir = Path(str(self.settings['out_dir']))
+        self.out_dir = Path(self.settings.out_dir)
         self.learner: SafeLearner | None = None
         self.pending: dict[str, np.ndarray] | None = None
         self.pending_msg: Any = None
@@ -237,19 +234,19 @@ class LearnerNode(Node):
         self.create_subscription(get_message('std_msgs/msg/Float64MultiArray'), 'sim/step',
                                  self.on_step, qos)
         self.get_logger().info(
-            f"learner: {self.settings['mode']} on {self.settings['system']}, "
-            f"{self.settings['episodes']} episodes -> {self.out_dir}")
+            f'learner: {self.settings.mode} on {self.settings.system}, '
+            f'{self.settings.episodes} episodes -> {self.out_dir}')
 
     def _open_run(self) -> None:
         """Refuse an out_dir that holds a run unless resuming; read the checkpoint to resume
         and cut metrics.jsonl back to it. ValueError names the parameter."""
         existing = run_data(self.out_dir)
-        if existing and not self.settings['resume']:
+        if existing and not self.settings.resume:
             raise ValueError(f"out_dir: {self.out_dir} already holds a run "
                              f"({', '.join(existing)}); set resume:=true to continue it or "
                              'choose another out_dir')
         checkpoint = self.out_dir / 'checkpoint.pt'
-        if self.settings['resume'] and checkpoint.exists():
+        if self.settings.resume and checkpoint.exists():
             try:
                 state = load_payload(checkpoint)
                 self.resume_state = dict(state['learner'])
@@ -261,7 +258,7 @@ class LearnerNode(Node):
             except (TypeError, ValueError) as exc:
                 raise ValueError(f'resume: {exc}') from None
             self.get_logger().info(f'resumed at episode {self.episodes_done}')
-        elif self.settings['resume']:
+        elif self.settings.resume:
             self.get_logger().info(f'no checkpoint in {self.out_dir}: starting at episode 0'
                                    + (' (the files there are kept)' if existing else ''))
         self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -272,7 +269,7 @@ class LearnerNode(Node):
     def _declared_filter_params(self) -> dict[str, Any]:
         """Every parameter given to this node (params file / -p), flat, for the RCBF problem."""
         params = {name: p.value for name, p in self.get_parameters_by_prefix('').items()}
-        params['system'] = self.settings['system']
+        params['system'] = self.settings.system
         return params
 
     # ----------------------------------------------------------------- callbacks
@@ -330,8 +327,7 @@ class LearnerNode(Node):
 
     # ----------------------------------------------------------------- bookkeeping
     def _build_learner(self, obs_dim: int) -> SafeLearner:
-        s = self.settings
-        learner = learner_from_settings(s, self.filter_params, obs_dim)
+        learner = learner_from_settings(self.settings, self.filter_params, obs_dim)
         if self.resume_state is not None:
             learner.load_state_dict(self.resume_state)
             self.resume_state = None
@@ -353,10 +349,10 @@ class LearnerNode(Node):
         msg = get_message('std_msgs/msg/String')()
         msg.data = json.dumps(row)
         self.metrics_pub.publish(msg)
-        self.get_logger().info(format_progress(row, int(self.settings['episodes'])))
-        if self.episodes_done % int(self.settings['checkpoint_every']) == 0:
+        self.get_logger().info(format_progress(row, self.settings.episodes))
+        if self.episodes_done % self.settings.checkpoint_every == 0:
             self.save_checkpoint()
-        if self.episodes_done >= int(self.settings['episodes']):
+        if self.episodes_done >= self.settings.episodes:
             self.finish()
             request_stop()  # then destroy_node and the shutdown, after this callback
 
@@ -376,12 +372,12 @@ class LearnerNode(Node):
         summary = summarize(self.history)
         if self.learner is not None:
             save_policy(self.out_dir / 'policy.pt', self.learner.sac, u_low=self.learner.u_low,
-                        u_high=self.learner.u_high, system=str(self.settings['system']))
+                        u_high=self.learner.u_high, system=self.settings.system)
         if self.history:
             from rcbf_ros.reports.plots import plot_reward_curve
             plot_reward_curve([r['ret'] for r in self.history],
                               self.out_dir / 'reward_curve.png',
-                              title=f"{self.settings['system']} / {self.settings['mode']} "
+                              title=f'{self.settings.system} / {self.settings.mode} '
                                     '(nodes over DDS)')
             summary['reward_curve'] = str(self.out_dir / 'reward_curve.png')
         (self.out_dir / 'summary.json').write_text(json.dumps(summary, indent=2))
@@ -392,7 +388,7 @@ def main(args: list[str] | None = None) -> int:
     """Run until the episodes are done or Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
 
     def keep_what_was_learned(node: LearnerNode) -> None:
-        if node.episodes_done < int(node.settings['episodes']):
+        if node.episodes_done < node.settings.episodes:
             node.finish()  # Ctrl-C / SIGTERM before the last episode
 
     return run_node('learner', LearnerNode, args, on_exit=keep_what_was_learned,
