@@ -596,9 +596,10 @@ def _discard(writer: BagWriter) -> None:
 # -- command line ----------------------------------------------------------------------------
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console script ``rcbf_ros_refilter``. Returns 0, or 2 on bad input (message on stderr)."""
+    """``rcbf_ros refilter`` (also the console script ``rcbf_ros_refilter``). Returns 0, or 2
+    on bad input (message on stderr)."""
     parser = argparse.ArgumentParser(
-        prog='rcbf_ros_refilter',
+        prog='rcbf_ros refilter',
         description='Run the safety filter over the proposals recorded in a bag with other '
                     'parameters; write a new bag with /refilter/cmd_safe and '
                     '/refilter/diagnostics and print what changed.')
@@ -620,7 +621,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (RefilterError, BagError, OSError) as exc:
         # A bag that cannot be read (BagError: the file and what is wrong, e.g. a chunk's CRC
         # mismatch), bad parameters, an output that cannot be written: one line, exit 2.
-        print(f'rcbf_ros_refilter: error: {exc}', file=sys.stderr)
+        print(f'rcbf_ros refilter: error: {exc}', file=sys.stderr)
         return 2
     print(summary.format())
     if args.json_path:

@@ -2,7 +2,7 @@
 
 The safety_filter node publishes the command alone on ``cmd_safe`` and these numbers on
 ``filter_info`` (a ``std_msgs/Float64MultiArray`` whose ``layout.dim`` labels the sections);
-``rcbf_ros_refilter`` and the in-process trainer's bags write the same. Pure data: the sections
+``rcbf_ros refilter`` and the in-process trainer's bags write the same. Pure data: the sections
 of one answer as numpy arrays, no messages.
 
 Sections, in this order (:data:`INFO_SECTIONS`). The first five are always there, so that their

@@ -2,7 +2,7 @@
 
 ``ros2 bag record`` (Jazzy, MCAP) records ``rcbf_ros launch unicycle_filter`` running on our
 runtime (short episodes). Then our replay node plays the bag to an rclpy subscriber, and
-``rcbf_ros_refilter`` filters its proposals again; what comes out is checked against what the
+``rcbf_ros refilter`` filters its proposals again; what comes out is checked against what the
 bag holds (read with rosbags) and, for refilter, against the barriers (the QP rows evaluated
 at each new command).
 """

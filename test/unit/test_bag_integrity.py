@@ -99,7 +99,7 @@ def test_refilter_exits_2_with_one_line(case: str, tmp_path: Path,
     assert refilter.main([str(path), str(output), '--params-file', 'unicycle']) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1, err
-    assert err.startswith('rcbf_ros_refilter: error: ')
+    assert err.startswith('rcbf_ros refilter: error: ')
     assert re.search(expected, err), err
     assert not output.exists()  # nothing half-written
 

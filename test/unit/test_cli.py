@@ -54,7 +54,7 @@ def test_refilter_help_is_the_refilter_commands_own(capsys):
         cli.main(['refilter', '--help'])
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
-    assert out.startswith('usage: rcbf_ros_refilter') and '--params-file' in out
+    assert out.startswith('usage: rcbf_ros refilter') and '--params-file' in out
 
 
 def test_summary_of_a_missing_directory_is_one_line_and_exit_2(tmp_path, capsys):
