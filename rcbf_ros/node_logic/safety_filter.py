@@ -116,10 +116,15 @@ class NodeSettings(MessageSettings):
         description='OSQP iteration cap (then the interior-point fallback, else fail-safe)')
     """OSQP iteration cap (a starved solve yields the fail-safe)."""
     diagnostics_min_period_s: float = setting(
-        0.0, key='diagnostics.min_period_s', minimum=0,
+        0.1, key='diagnostics.min_period_s', minimum=0,
         description='least time (s) between two OK diagnostics (0: one per proposal); WARN and '
-                    'ERROR always go out')
-    """Minimum period of OK diagnostics (0: one per proposal); WARN / ERROR always go out."""
+                    'ERROR always go out; filter_info carries every answer')
+    """Minimum period of OK diagnostics (0: one per proposal); WARN / ERROR always go out.
+
+    ``/diagnostics`` is for people and monitors (diagnostic_updater publishes at about 1 Hz);
+    ``filter_info`` is the record of every answer. By default OK statuses go out at most at
+    10 Hz, so that a DiagnosticArray per command does not bound the rate the node keeps up
+    with."""
     diagnostics_name: str = setting('safety_filter', key='diagnostics.name',
                                     description='DiagnosticStatus.name')
     """DiagnosticStatus.name."""

@@ -20,10 +20,12 @@ node's QoS, ``qos.reliable`` / ``qos.depth``, default reliable, volatile, keep-l
   labelled sections (:data:`rcbf_ros.core.filter_info.INFO_SECTIONS`): ``u``, ``u_rl``,
   ``u_s``, ``fail_safe``, ``status`` always, then ``h``, ``constraint``, ``slack``,
   ``needed_slack``, ``solve_time_s`` and ``state`` when known. No NaN anywhere.
-- ``diagnostics`` (pub, diagnostic_msgs/DiagnosticArray): one status per proposal (by default)
-  with the level (OK, or ERROR: fail-safe), every h_i by barrier name, the constraint values,
-  slack and the slack the rows need at the published command, solver status, solve and total
-  time and the reason.
+- ``diagnostics`` (pub, diagnostic_msgs/DiagnosticArray): a status for every WARN or ERROR
+  answer (ERROR: the fail-safe) at once, and for OK answers at most one every
+  ``diagnostics.min_period_s`` (default 0.1 s; 0: one per answer), with the level, every h_i by
+  barrier name, the constraint values, slack and the slack the rows need at the published
+  command, solver status, solve and total time and the reason. ``filter_info`` is the record
+  of every answer; diagnostics are for people and monitors.
 - ``obstacles`` (sub, std_msgs/Float64MultiArray; reliable, keep-last 1, transient-local, so
   that a latched perception output published before the filter started is picked up): the
   whole obstacle set, k rows [x, y, radius] in row-major order (``data`` holds 3 k values;
@@ -152,8 +154,9 @@ INTERFACE = NodeInterface(
                ' then when known h, constraint (K each), slack, needed_slack, solve_time_s '
                '(1 each), state (n_x); never NaN'),
         _topic('diagnostics', 'pub', DIAGNOSTIC_ARRAY,
-               'one status per proposal (OK ones at most every diagnostics.min_period_s): '
-               'h.<barrier>, constraint.<barrier>, slack, status, reason, times, counts'),
+               'a status per WARN / ERROR answer, OK ones at most every '
+               'diagnostics.min_period_s (0: every one): h.<barrier>, constraint.<barrier>, '
+               'slack, status, reason, times, counts'),
         TopicSpec('obstacles', 'sub', FLOAT64_MULTIARRAY,
                   'the whole obstacle set, rows [x, y, radius] (3 k values, layout.dim none or '
                   '[k, 3]); replaces obstacles.x/y/radius as a parameter change would',

@@ -45,6 +45,10 @@ BARRAGE = 400
 PASS_THROUGH = {'u': [0.4, 0.1], 'state': [2.0, 0.0, 0.0]}       # far from every obstacle
 ACTIVE = {'u': [2.5, 0.0], 'state': [-0.85, 0.0, 0.0]}            # full speed at the centre one
 
+EVERY_DIAGNOSTIC = ('-p', 'diagnostics.min_period_s:=0.0')
+"""A diagnostic with every answer (the default rate-limits OK ones): each exchange reads the
+counts from its own answer's diagnostic."""
+
 pytestmark = pytest.mark.integration
 
 
@@ -239,7 +243,8 @@ def test_fuzz_barrage_never_kills_the_node(ros_domain_id, tmp_path):
     with open(stdout, 'wb') as out, open(stderr, 'wb') as err:
         process = subprocess.Popen(
             [sys.executable, '-m', 'rcbf_ros.ros.safety_filter_node', '--ros-args',
-             '--params-file', UNICYCLE], env=env, cwd=REPO, stdout=out, stderr=err)
+             '--params-file', UNICYCLE, *EVERY_DIAGNOSTIC], env=env, cwd=REPO, stdout=out,
+            stderr=err)
 
     def node_alive() -> None:
         assert process.poll() is None, f'the node died:\n{stderr.read_text()[-4000:]}'

@@ -33,11 +33,16 @@ WAIT_S = 60.0
 pytestmark = pytest.mark.integration
 
 
+EVERY_DIAGNOSTIC = ('-p', 'diagnostics.min_period_s:=0.0')
+"""A diagnostic with every answer (the default rate-limits OK ones): the exchanges below pair
+each command with its diagnostic."""
+
+
 def _start_filter(domain_id: int, *ros_args: str, params_file: str = UNICYCLE
                   ) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, '-m', 'rcbf_ros.ros.safety_filter_node', '--ros-args',
-         '--params-file', params_file, *ros_args],
+         '--params-file', params_file, *EVERY_DIAGNOSTIC, *ros_args],
         env=subprocess_env(domain_id), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 

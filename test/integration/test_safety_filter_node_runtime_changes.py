@@ -25,6 +25,7 @@ from test_safety_filter_node import (
     _handshake,
     _sections,
     _wait_matched,
+    EVERY_DIAGNOSTIC,
     Probe,
 )
 
@@ -80,7 +81,7 @@ def test_obstacles_topic_moves_an_obstacle_and_a_bad_message_changes_nothing(
         ros_domain_id, probe):
     from rcbf_ros.messages.conversions import sections_to_msg
     process = spawn(ros_domain_id, '-m', 'rcbf_ros.ros.safety_filter_node', '--ros-args',
-                    '--params-file', UNICYCLE)
+                    '--params-file', UNICYCLE, *EVERY_DIAGNOSTIC)
     try:
         probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
         probe.subscribe('diagnostic_msgs/msg/DiagnosticArray', '/diagnostics', _diagnostic)
@@ -132,7 +133,8 @@ class _InProcessFilter:
         from rcbf_ros.ros.runtime import rclpy
         from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
         self.rclpy = rclpy
-        self.node = SafetyFilterNode(cli_args=['--ros-args', '--params-file', UNICYCLE])
+        self.node = SafetyFilterNode(
+            cli_args=['--ros-args', '--params-file', UNICYCLE, *EVERY_DIAGNOSTIC])
         self._calls: queue.Queue = queue.Queue()
         self._running = True
         # The probe spins rclpy's global executor in a thread of its own; an executor is not

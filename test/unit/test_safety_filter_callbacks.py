@@ -55,8 +55,10 @@ class FilterHarness:
                                      {kv.key: kv.value for kv in status.values}))
         self.node._diag_pub.publish = diagnose
 
-    def propose(self, data: bytes) -> tuple[np.ndarray, tuple[int, str, dict[str, str]]]:
-        before = len(self.commands)
+    def answer(self, data: bytes
+               ) -> tuple[np.ndarray, tuple[int, str, dict[str, str]] | None]:
+        """One proposal in: its command, and the diagnostic published with it (or None)."""
+        before, diagnosed = len(self.commands), len(self.diagnostics)
         self.node._on_proposal(data)
         assert len(self.commands) == before + 1
         command = self.commands[-1]
@@ -67,13 +69,26 @@ class FilterHarness:
         else:
             u = np.array([command.linear.x, command.angular.z])
         assert len(self.infos) == len(self.commands)  # one filter_info per command
-        return u, self.diagnostics[-1]
+        assert len(self.diagnostics) - diagnosed in (0, 1)
+        return u, (self.diagnostics[-1] if len(self.diagnostics) > diagnosed else None)
+
+    def propose(self, data: bytes) -> tuple[np.ndarray, tuple[int, str, dict[str, str]]]:
+        """One proposal in: its command and the diagnostic it was answered with."""
+        u, diagnostic = self.answer(data)
+        assert diagnostic is not None, 'no diagnostic published with the answer'
+        return u, diagnostic
 
 
-def _harness(ros_domain_id: int, *ros_args: str):
+EVERY_DIAGNOSTIC = ('-p', 'diagnostics.min_period_s:=0.0')
+"""A diagnostic with every answer (the default rate-limits OK ones), for tests that read the
+diagnostic of each answer."""
+
+
+def _harness(ros_domain_id: int, *ros_args: str, every_diagnostic: bool = True):
     # safety_filter:...: after the file, so that it wins over its /safety_filter section.
     rclpy.init(args=['--ros-args', '--params-file', UNICYCLE, '-p',
-                     f'safety_filter:fail_safe_action:={FAIL_SAFE}', *ros_args],
+                     f'safety_filter:fail_safe_action:={FAIL_SAFE}',
+                     *(EVERY_DIAGNOSTIC if every_diagnostic else ()), *ros_args],
                domain_id=ros_domain_id)
     return FilterHarness()
 
@@ -277,3 +292,53 @@ def test_no_nan_in_what_is_published_for_a_refused_proposal(harness, proposal, r
     np.testing.assert_array_equal(sections['u_s'], sections['u'] - sections['u_rl'])
     numeric = {k: v for k, v in values.items() if k != 'reason'}
     assert not any('nan' in v.lower() for v in numeric.values()), numeric
+
+
+# --- diagnostics under the default parameters --------------------------------------------------
+
+@pytest.fixture
+def default_harness(ros_domain_id):
+    instance = _harness(ros_domain_id, every_diagnostic=False)
+    yield instance
+    instance.node.destroy_node()
+    rclpy.try_shutdown()
+
+
+class _Clock:
+    """A monotonic clock the test moves (stands in for the node's ``time`` module)."""
+
+    def __init__(self) -> None:
+        self.now_ns = 1_000_000_000
+
+    def monotonic_ns(self) -> int:
+        return self.now_ns
+
+
+def test_ok_diagnostics_are_rate_limited_by_default_and_errors_go_out_at_once(
+        default_harness, monkeypatch):
+    """1 kHz for 1 s under the defaults: every answer has its command and filter_info, every
+    ERROR its diagnostic at once, OK ones at most one per diagnostics.min_period_s (0.1 s)."""
+    from rcbf_ros.ros import safety_filter_node
+    harness, clock = default_harness, _Clock()
+    monkeypatch.setattr(safety_filter_node, 'time', clock)
+    period_s = harness.node.settings.diagnostics_min_period_s
+    assert period_s == 0.1
+    ok_diagnostics, errors = 0, 0
+    for index in range(1000):
+        harness.node._on_state(_cdr({'state': GOOD_STATE}))
+        bad = index % 97 == 5
+        u, diagnostic = harness.answer(_cdr({'u': [np.nan if bad else 2.5, 0.0]}))
+        if bad:  # at once, whenever the last OK one went out
+            errors += 1
+            assert diagnostic is not None and diagnostic[0] == filter_logic.ERROR, index
+            assert diagnostic[1].startswith('bad proposal: u: contains NaN')
+            np.testing.assert_array_equal(u, FAIL_SAFE)
+        elif diagnostic is not None:
+            ok_diagnostics += 1
+            assert diagnostic[0] == filter_logic.OK and diagnostic[1] == 'filtering'
+        clock.now_ns += 1_000_000
+    assert len(harness.commands) == len(harness.infos) == 1000
+    assert errors == 11
+    # OK at t = 0, 0.1, ..., 0.9 s: the first answer, then one per period.
+    assert ok_diagnostics == round(1.0 / period_s)
+    assert len(harness.diagnostics) == ok_diagnostics + errors

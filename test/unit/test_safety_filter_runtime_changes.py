@@ -15,7 +15,7 @@ from hypothesis import given, HealthCheck, settings
 from hypothesis import strategies as st
 import numpy as np
 import pytest
-from test_safety_filter_callbacks import _cdr, FilterHarness, UNICYCLE
+from test_safety_filter_callbacks import _cdr, EVERY_DIAGNOSTIC, FilterHarness, UNICYCLE
 
 from rcbf_ros.messages.cdr import serialize_message
 from rcbf_ros.messages.classes import get_message
@@ -28,7 +28,8 @@ STATE = [-0.85, 0.0, 0.0]  # facing the obstacle at the origin, 0.25 m from its 
 
 @pytest.fixture
 def harness(ros_domain_id):
-    rclpy.init(args=['--ros-args', '--params-file', UNICYCLE], domain_id=ros_domain_id)
+    rclpy.init(args=['--ros-args', '--params-file', UNICYCLE, *EVERY_DIAGNOSTIC],
+               domain_id=ros_domain_id)
     instance = FilterHarness()
     yield instance
     instance.node.destroy_node()
