@@ -15,6 +15,10 @@ States may also come as ``nav_msgs/Odometry`` where the system's state maps onto
 :data:`STATE_LAYOUTS` and :data:`COMMAND_LAYOUTS` name every entry of the shipped systems'
 vectors with its unit.
 
+:func:`sections_to_cdr` and :func:`sections_from_cdr` write and read a serialized
+Float64MultiArray directly (the bytes and arrays of the message route, without building the
+message): the safety filter's per-command path.
+
 The builders (``sections_to_msg``, ``array_to_twist``, ``command_to_msg``, ...) make instances of
 the classes the node's runtime publishes: :mod:`rcbf_ros.ros.runtime` names its ``get_message``
 at import (:func:`use_message_classes`; rclpy's on rclpy), and before any runtime is imported
@@ -24,7 +28,9 @@ the runtime, as the offline bag tools do.
 """
 from __future__ import annotations
 
+import functools
 import math
+import struct
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -101,6 +107,54 @@ def sections_to_msg(sections: Mapping[str, Sequence[float] | np.ndarray], *,
     return msg
 
 
+def sections_to_cdr(sections: Mapping[str, Sequence[float] | np.ndarray]) -> bytes:
+    """Labelled sections -> the serialized Float64MultiArray (little-endian CDR with its
+    encapsulation header, as ``serialize_message`` gives it), without building the message.
+
+    The bytes are those of ``serialize_message(sections_to_msg(sections))``: a publisher
+    takes them in place of the message (rclpy's and ours alike). The layout part is computed
+    once per sequence of (label, size).
+    """
+    arrays = [np.asarray(values, dtype=np.float64).reshape(-1) for values in sections.values()]
+    head = _float64_multiarray_head(tuple(zip(sections, [array.size for array in arrays])))
+    if not arrays:
+        return head
+    return head + np.concatenate(arrays).astype('<f8', copy=False).tobytes()
+
+
+_CDR_LE = b'\x00\x01\x00\x00'
+"""Encapsulation header of plain little-endian CDR (XCDR1)."""
+
+
+@functools.lru_cache(maxsize=256)
+def _float64_multiarray_head(layout: tuple[tuple[str, int], ...]) -> bytes:
+    """Everything of a serialized Float64MultiArray before its values: the encapsulation
+    header, ``layout`` (dim: label, size, stride = size; data_offset 0) and the length of
+    ``data`` (then the padding to the values' 8-byte alignment, when there are values).
+
+    CDR aligns every primitive to its size, counted from the start of the body (after the
+    4-byte header); strings are a uint32 length that counts their terminating NUL, then the
+    UTF-8 bytes and the NUL.
+
+    Raises:
+        TypeError: a label that is not a str (as the message's field refuses it).
+    """
+    body = bytearray(struct.pack('<I', len(layout)))
+    for label, size in layout:
+        if not isinstance(label, str):
+            raise TypeError(f"field 'label' of std_msgs/msg/MultiArrayDimension must be str, "
+                            f'got {type(label).__name__}')
+        text = label.encode('utf-8')
+        body += struct.pack('<I', len(text) + 1) + text + b'\x00'
+        body += bytes(-len(body) % 4)
+        body += struct.pack('<II', size, size)
+    count = sum(size for _, size in layout)
+    body += struct.pack('<II', 0, count)  # data_offset, then the length of data
+    if count:
+        body += bytes(-len(body) % 8)
+    return _CDR_LE + bytes(body)
+
+
 def msg_to_sections(msg: Any, default_label: str = 'data') -> dict[str, np.ndarray]:
     """Float64MultiArray -> {label: array}.
 
@@ -110,14 +164,88 @@ def msg_to_sections(msg: Any, default_label: str = 'data') -> dict[str, np.ndarr
             name (at most :data:`MAX_LABEL_CHARS`; labels reach logs and diagnostics).
     """
     data = np.array(msg.data, dtype=np.float64).reshape(-1)  # writable copy
-    dims = list(msg.layout.dim)
+    dims = [(dim.label, int(dim.size)) for dim in msg.layout.dim]
+    return _split_sections(dims, int(msg.layout.data_offset), data, default_label)
+
+
+def sections_from_cdr(data: bytes, default_label: str = 'data'
+                      ) -> dict[str, np.ndarray] | None:
+    """Serialized Float64MultiArray (CDR with its encapsulation header) -> {label: array}, as
+    :func:`msg_to_sections` of the decoded message gives it, without building the message.
+
+    Reads the plain little-endian CDR that publishers send. Anything else (big-endian, bytes
+    that end early, a label that is not NUL-terminated UTF-8 without NULs, ...) returns None:
+    decode those as a message, whose decoder says what is wrong with them. Bytes after a
+    complete message are ignored, as the decoders do.
+
+    Raises:
+        ValueError: as :func:`msg_to_sections`, for a decoded layout that does not fit.
+    """
+    parsed = _parse_float64_multiarray(memoryview(data).cast('B'))
+    if parsed is None:
+        return None
+    dims, data_offset, values = parsed
+    return _split_sections(dims, data_offset, values, default_label)
+
+
+_UINT32 = struct.Struct('<I')
+_TWO_UINT32 = struct.Struct('<II')
+
+
+def _parse_float64_multiarray(view: memoryview
+                              ) -> tuple[list[tuple[str, int]], int, np.ndarray] | None:
+    """(dims as (label, size), data_offset, data) of a little-endian CDR Float64MultiArray,
+    or None when it is not one this reader takes (see :func:`sections_from_cdr`)."""
+    if len(view) < 8 or view[0] != 0 or view[1] != 1:
+        return None
+    body = view[4:]
+    end = len(body)
+    (count,), pos = _UINT32.unpack_from(body, 0), 4
+    if count > (end - pos) // 12:  # every dimension takes at least 12 bytes
+        return None
+    dims = []
+    for _ in range(count):
+        pos += -pos % 4
+        if pos + 4 > end:
+            return None
+        (length,), pos = _UINT32.unpack_from(body, pos), pos + 4
+        if length < 1 or pos + length > end or body[pos + length - 1] != 0:
+            return None
+        raw = bytes(body[pos:pos + length - 1])
+        if b'\x00' in raw:
+            return None
+        try:
+            label = raw.decode('utf-8')
+        except UnicodeDecodeError:
+            return None
+        pos += length
+        pos += -pos % 4
+        if pos + 8 > end:
+            return None
+        (size, _stride), pos = _TWO_UINT32.unpack_from(body, pos), pos + 8
+        dims.append((label, size))
+    pos += -pos % 4
+    if pos + 8 > end:
+        return None
+    (data_offset, length), pos = _TWO_UINT32.unpack_from(body, pos), pos + 8
+    if length:
+        pos += -pos % 8
+    if pos + 8 * length > end:
+        return None
+    values = np.frombuffer(body, dtype='<f8', count=length, offset=pos).astype(np.float64)
+    return dims, data_offset, values
+
+
+def _split_sections(dims: list[tuple[str, int]], data_offset: int, data: np.ndarray,
+                    default_label: str) -> dict[str, np.ndarray]:
+    """The sections of a Float64MultiArray's ``data`` (a writable float64 copy) by its
+    dimensions (label, size) (see :func:`msg_to_sections`)."""
     if not dims:
         return {default_label: data}
     out: dict[str, np.ndarray] = {}
-    offset = int(msg.layout.data_offset)
-    for index, dim in enumerate(dims):
-        label = _checked_label(index, dim.label) or default_label
-        size = int(dim.size)
+    offset = data_offset
+    for index, (raw_label, size) in enumerate(dims):
+        label = _checked_label(index, raw_label) or default_label
         if offset + size > data.size:
             raise ValueError(f'layout.dim[{label!r}]: size {size} runs past data '
                              f'({data.size} values)')

@@ -354,7 +354,7 @@ def checked_vector(name: str, values: Any, size: int) -> np.ndarray:
         raise ValueError(f'{name}: not a numeric vector ({exc})') from exc
     if array.size != size:
         raise ValueError(f'{name}: expected {size} values, got {array.size}')
-    if not np.all(np.isfinite(array)):
+    if not np.isfinite(array).all():
         raise ValueError(f'{name}: contains NaN or inf')
     return array
 
@@ -386,6 +386,7 @@ class Proposal:
 
 
 PROPOSAL_SECTIONS = ('u', 'disturbance_mean', 'disturbance_std', 'state')
+_PROPOSAL_SECTION_SET = frozenset(PROPOSAL_SECTIONS)
 
 
 def proposal_from_sections(*, sections: Mapping[str, np.ndarray], n_u: int,
@@ -396,7 +397,7 @@ def proposal_from_sections(*, sections: Mapping[str, np.ndarray], n_u: int,
         ValueError: naming the section (missing ``u``, unknown label, wrong length, NaN/inf,
             negative std).
     """
-    unknown = sorted(set(sections) - set(PROPOSAL_SECTIONS))
+    unknown = sorted(set(sections) - _PROPOSAL_SECTION_SET)
     if unknown:
         raise ValueError(f'{unknown[0]}: unknown proposal section (expected '
                          f'{list(PROPOSAL_SECTIONS)})')
@@ -406,7 +407,7 @@ def proposal_from_sections(*, sections: Mapping[str, np.ndarray], n_u: int,
     extra = {key: checked_vector(key, sections[key], n_x)
              for key in PROPOSAL_SECTIONS[1:] if key in sections}
     std = extra.get('disturbance_std')
-    if std is not None and np.any(std < 0):
+    if std is not None and (std < 0).any():
         raise ValueError('disturbance_std: must be >= 0')
     return Proposal(u=u, disturbance_mean=extra.get('disturbance_mean'),
                     disturbance_std=std, state=extra.get('state'))

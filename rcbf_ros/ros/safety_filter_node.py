@@ -64,6 +64,11 @@ such samples with a warning, and rclpy may raise in its executor instead):
   fail-safe with ``bad state: undecodable sample: ...``. Keeping the older state instead would
   filter against a state that the state source has already superseded.
 
+Float64MultiArray samples in plain little-endian CDR (what publishers send) are read without
+building the message (:func:`rcbf_ros.messages.conversions.sections_from_cdr`), any other bytes
+through the decoder, with the same result; Float64MultiArray answers go out as the same bytes
+the message would serialize to (:func:`rcbf_ros.messages.conversions.sections_to_cdr`).
+
 A decodable but unusable sample is refused as before. Every diagnostic status carries the
 cumulative counts ``dropped_samples`` (undecodable, on either topic), ``refused_proposals``
 and ``refused_states``. A callback never raises: should the filtering itself fail unexpectedly
@@ -213,9 +218,14 @@ class SafetyFilterNode(Node):
         state_type = get_message(conversions.STATE_MESSAGES[self.settings.state_type])
         self._cmd_pub = self.create_publisher(command_type, 'cmd_safe', qos)
         self._info_pub = self.create_publisher(array_type, 'filter_info', qos)
-        self._diag_pub = self.create_publisher(
-            get_message(DIAGNOSTIC_ARRAY), 'diagnostics', qos)
+        self._diagnostics_type = get_message(DIAGNOSTIC_ARRAY)
+        self._diag_pub = self.create_publisher(self._diagnostics_type, 'diagnostics', qos)
         self._state_type, self._command_type = state_type, command_type
+        # Float64MultiArrays are read and written by conversions.sections_from_cdr and
+        # sections_to_cdr (the same arrays and bytes as through the message, without building
+        # one); state_type and command_type are read-only.
+        self._array_states = self.settings.state_type == 'array'
+        self._array_commands = self.settings.command_type == 'array'
         self.create_subscription(state_type, 'state', self._on_state, qos, raw=True)
         self.create_subscription(command_type, 'cmd_proposed', self._on_proposal, qos, raw=True)
         obstacles_qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
@@ -384,18 +394,20 @@ class SafetyFilterNode(Node):
     def _state_sample(self, data: bytes, now_ns: int,
                       active: logic.ActiveFilter) -> logic.StateSample:
         """The state sample of one ``state`` message, counted when refused."""
-        msg, error = _decoded(data, self._state_type)
-        if msg is None:
-            self.input_counts['dropped_samples'] += 1
-            return logic.StateSample(received_ns=now_ns, state=None,
-                                     error=f'undecodable sample: {error}')
         try:
-            if active.settings.state_type == 'odometry':
-                values = conversions.odometry_to_state(
-                    msg, system=self.system, frame_id=active.settings.state_frame_id)
-                sections = {'state': values}
-            else:
-                sections = conversions.msg_to_sections(msg, default_label='state')
+            sections = (conversions.sections_from_cdr(data, default_label='state')
+                        if self._array_states else None)
+            if sections is None:
+                msg, error = _decoded(data, self._state_type)
+                if msg is None:
+                    self.input_counts['dropped_samples'] += 1
+                    return logic.StateSample(received_ns=now_ns, state=None,
+                                             error=f'undecodable sample: {error}')
+                if self._array_states:
+                    sections = conversions.msg_to_sections(msg, default_label='state')
+                else:
+                    sections = {'state': conversions.odometry_to_state(
+                        msg, system=self.system, frame_id=active.settings.state_frame_id)}
             state = logic.state_from_sections(sections=sections,
                                               n_x=active.safety_filter.n_x)
         except ValueError as exc:
@@ -422,21 +434,26 @@ class SafetyFilterNode(Node):
                 active: logic.ActiveFilter) -> tuple[logic.Decision, Any]:
         """The decision for one proposal sample, and its header (TwistStamped; else None)."""
         settings, safety_filter = active.settings, active.safety_filter
-        msg, error = _decoded(data, self._command_type)
-        if msg is None:
-            self.input_counts['dropped_samples'] += 1
-            return logic.fail_safe_decision(safety_filter=safety_filter,
-                                            reason=f'undecodable proposal: {error}'), None
-        command_type = settings.command_type
-        header = msg.header if command_type == 'twist_stamped' else None
-        proposal = None
+        header, proposal, error = None, None, ''
         try:
-            if command_type == 'twist':
-                sections = {'u': conversions.twist_to_array(msg, settings.twist_fields)}
-            elif command_type == 'twist_stamped':
-                sections = {'u': conversions.twist_stamped_to_array(msg, settings.twist_fields)}
-            else:
-                sections = conversions.msg_to_sections(msg, default_label='u')
+            sections = (conversions.sections_from_cdr(data, default_label='u')
+                        if self._array_commands else None)
+            if sections is None:
+                msg, error = _decoded(data, self._command_type)
+                if msg is None:
+                    self.input_counts['dropped_samples'] += 1
+                    return logic.fail_safe_decision(
+                        safety_filter=safety_filter,
+                        reason=f'undecodable proposal: {error}'), None
+                command_type = settings.command_type
+                if command_type == 'twist':
+                    sections = {'u': conversions.twist_to_array(msg, settings.twist_fields)}
+                elif command_type == 'twist_stamped':
+                    header = msg.header
+                    sections = {'u': conversions.twist_stamped_to_array(
+                        msg, settings.twist_fields)}
+                else:
+                    sections = conversions.msg_to_sections(msg, default_label='u')
             proposal = logic.proposal_from_sections(sections=sections, n_u=safety_filter.n_u,
                                                     n_x=safety_filter.n_x)
         except (ValueError, TypeError) as exc:
@@ -468,8 +485,11 @@ class SafetyFilterNode(Node):
     def _publish(self, decision: logic.Decision, now_ns: int, active: logic.ActiveFilter,
                  header: Any = None) -> None:
         settings = active.settings
-        self._cmd_pub.publish(self.command_message(decision.u_safe, header))  # first
-        self._info_pub.publish(conversions.sections_to_msg(logic.info_sections(decision)))
+        if self._array_commands:  # first, the command
+            self._cmd_pub.publish(conversions.sections_to_cdr({'u': decision.u_safe}))
+        else:
+            self._cmd_pub.publish(self.command_message(decision.u_safe, header))
+        self._info_pub.publish(conversions.sections_to_cdr(logic.info_sections(decision)))
         if not logic.diagnostics_due(level=decision.level, now_ns=now_ns,
                                      last_ok_ns=self._last_ok_diagnostics_ns,
                                      min_period_s=settings.diagnostics_min_period_s):
@@ -479,7 +499,7 @@ class SafetyFilterNode(Node):
         level, message, values = logic.diagnostic_values(
             decision=decision, barrier_names=active.safety_filter.barrier_names)
         values.update(self.input_counts)
-        diagnostics = get_message(DIAGNOSTIC_ARRAY)()
+        diagnostics = self._diagnostics_type()
         diagnostics.header.stamp = self.get_clock().now().to_msg()
         diagnostics.status = [conversions.diagnostic_status(
             name=settings.diagnostics_name, level=level, message=message, values=values,

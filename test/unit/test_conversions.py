@@ -224,3 +224,96 @@ def test_the_builders_make_the_classes_the_runtime_names():
     finally:
         conversions.use_message_classes(runtime.get_message)
     assert asked == ['geometry_msgs/msg/Twist']
+
+
+# --- serialized Float64MultiArrays, read and written without building the message ---------------
+
+def _section_sets(rng: np.random.Generator) -> list[dict[str, np.ndarray]]:
+    """Fixed cases (empty, empty sections, unlabelled, non-ASCII) and random ones: labels of
+    every length modulo 4 and data of every length modulo 2 (so every CDR padding occurs)."""
+    cases = [{}, {'u': []}, {'u': [1.0, 2.0]}, {'': [1.0]}, {'ü': [1.0], 'abc': [], 'x': [-0.0]},
+             {'u': [np.nan, np.inf, -np.inf, 5e-324]}]
+    for _ in range(300):
+        cases.append({
+            ''.join(chr(int(c)) for c in rng.integers(97, 123, int(rng.integers(0, 9)))) + str(i):
+            rng.normal(size=int(rng.integers(0, 6))) for i in range(int(rng.integers(0, 6)))})
+    return [{label: np.asarray(values, dtype=np.float64) for label, values in case.items()}
+            for case in cases]
+
+
+def test_sections_to_cdr_is_the_serialized_message():
+    from rcbf_ros.messages.cdr import serialize_message
+    from rcbf_ros.messages.conversions import sections_to_cdr
+    for sections in _section_sets(np.random.default_rng(7)):
+        assert sections_to_cdr(sections) == serialize_message(sections_to_msg(sections)), sections
+    with pytest.raises(TypeError, match='label'):
+        sections_to_cdr({1: [1.0]})
+
+
+def _generic_sections(data: bytes) -> object:
+    """What decoding ``data`` as a message and taking its sections gives (or the error)."""
+    from rcbf_ros.messages.cdr import DeserializationError, deserialize_message
+    try:
+        message = deserialize_message(data, 'std_msgs/msg/Float64MultiArray')
+    except DeserializationError:
+        return 'undecodable'
+    try:
+        return msg_to_sections(message, default_label='u')
+    except ValueError as exc:
+        return f'refused: {exc}'
+
+
+def _fast_sections(data: bytes) -> object:
+    from rcbf_ros.messages.conversions import sections_from_cdr
+    try:
+        return sections_from_cdr(data, default_label='u')
+    except ValueError as exc:
+        return f'refused: {exc}'
+
+
+def _same(fast: object, generic: object) -> bool:
+    if isinstance(fast, dict) and isinstance(generic, dict):
+        return list(fast) == list(generic) and all(
+            fast[k].tobytes() == generic[k].tobytes() and fast[k].flags.writeable
+            for k in fast)
+    return fast == generic
+
+
+def test_sections_from_cdr_reads_what_the_decoder_reads_or_leaves_it_to_the_decoder():
+    """Well-formed samples are read without the decoder, to the same arrays (bit for bit);
+    mutated, truncated, extended or random bytes are either read the same way or handed back
+    (None) for the decoder to name what is wrong; a layout that does not fit is refused with
+    the same words as msg_to_sections."""
+    from rcbf_ros.messages.cdr import serialize_message
+    rng = np.random.default_rng(11)
+    valid = [serialize_message(sections_to_msg(s)) for s in _section_sets(rng)]
+    for data in valid:
+        fast = _fast_sections(data)
+        assert fast is not None and _same(fast, _generic_sections(data))
+    mutated = []
+    for data in valid[:150]:
+        for _ in range(8):
+            out = bytearray(data)
+            for _ in range(int(rng.integers(1, 4))):
+                out[int(rng.integers(0, len(out)))] ^= 1 << int(rng.integers(0, 8))
+            mutated.append(bytes(out))
+        mutated += [data[:int(rng.integers(0, len(data)))], data + b'\x00\x07' * 3,
+                    data[:1] + b'\x00' + data[2:],  # big-endian header
+                    rng.integers(0, 256, int(rng.integers(0, 80)), dtype=np.uint8).tobytes()]
+    bad_label = bytearray(serialize_message(sections_to_msg({'ab': [1.0]})))
+    bad_label[12] = 0xFF  # not UTF-8
+    mutated.append(bytes(bad_label))
+    handed_back = read = 0
+    for data in mutated:
+        fast = _fast_sections(data)
+        if fast is None:
+            handed_back += 1
+        else:
+            read += 1
+            assert _same(fast, _generic_sections(data)), (data.hex(), fast)
+    assert handed_back > 50 and read > 200, (handed_back, read)
+    # Refused layouts: the words of msg_to_sections.
+    overrun = sections_to_msg({'u': [1.0, 2.0]})
+    overrun.layout.dim[0].size = 3
+    assert _fast_sections(serialize_message(overrun)) == _generic_sections(
+        serialize_message(overrun)) == "refused: layout.dim['u']: size 3 runs past data (2 values)"

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from rcbf_ros.messages.cdr import serialize_message
+from rcbf_ros.messages.cdr import deserialize_message, serialize_message
 from rcbf_ros.messages.conversions import array_to_twist, msg_to_sections, sections_to_msg
 from rcbf_ros.node_logic import safety_filter as filter_logic
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
@@ -37,6 +37,14 @@ def _non_utf8_label(sections: dict) -> bytes:
     return bytes(data)
 
 
+def _recorder(store: list, msg_type: Any) -> Any:
+    """A publish function that keeps what it is given: a message, or the message that
+    serialized bytes hold (a publisher takes either)."""
+    def publish(msg: Any) -> None:
+        store.append(deserialize_message(msg, msg_type) if isinstance(msg, bytes) else msg)
+    return publish
+
+
 class FilterHarness:
     """A SafetyFilterNode whose two publishers record instead of sending."""
 
@@ -46,8 +54,8 @@ class FilterHarness:
         self.commands: list[Any] = []
         self.infos: list[Any] = []
         self.diagnostics: list[tuple[int, str, dict[str, str]]] = []
-        self.node._cmd_pub.publish = self.commands.append
-        self.node._info_pub.publish = self.infos.append
+        self.node._cmd_pub.publish = _recorder(self.commands, self.node._cmd_pub.msg_type)
+        self.node._info_pub.publish = _recorder(self.infos, self.node._info_pub.msg_type)
 
         def diagnose(msg: Any) -> None:
             status = msg.status[0]
