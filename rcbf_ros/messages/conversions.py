@@ -290,25 +290,64 @@ def array_to_twist(values: Sequence[float] | np.ndarray, fields: Sequence[str], 
     return msg
 
 
+def _value_text(value: Any) -> str:
+    """A diagnostic value as its KeyValue text (floats printed with repr)."""
+    if isinstance(value, float):
+        return 'nan' if math.isnan(value) else repr(value)
+    return str(value)
+
+
 def diagnostic_status(*, name: str, level: int, message: str,
                       values: Mapping[str, Any], hardware_id: str = '',
                       message_class: MessageClass | None = None) -> Any:
     """A diagnostic_msgs/DiagnosticStatus with KeyValue pairs (floats printed with repr)."""
     status_cls = _message_class('diagnostic_msgs/msg/DiagnosticStatus', message_class)
     kv_cls = _message_class('diagnostic_msgs/msg/KeyValue', message_class)
-
-    def text(v: Any) -> str:
-        if isinstance(v, float):
-            return 'nan' if math.isnan(v) else repr(v)
-        return str(v)
-
     status = status_cls()
     status.level = bytes([level]) if isinstance(status.level, bytes) else level
     status.name = name
     status.message = message
     status.hardware_id = hardware_id
-    status.values = [kv_cls(key=str(k), value=text(v)) for k, v in values.items()]
+    status.values = [kv_cls(key=str(k), value=_value_text(v)) for k, v in values.items()]
     return status
+
+
+def diagnostics_to_cdr(*, stamp_ns: int, name: str, level: int, message: str,
+                       values: Mapping[str, Any], hardware_id: str = '',
+                       frame_id: str = '') -> bytes:
+    """A serialized diagnostic_msgs/DiagnosticArray of one status, without building it.
+
+    The bytes are those of ``serialize_message(diagnostic_array(statuses=[diagnostic_status(
+    name=..., level=..., message=..., values=..., hardware_id=...)], stamp_ns=...,
+    frame_id=...))`` (little-endian CDR with its encapsulation header).
+
+    Raises:
+        ValueError: ``level`` is not a byte (0-255), or the stamp does not fit a Time.
+    """
+    if not 0 <= level <= 255:
+        raise ValueError(f'diagnostic level {level} is not a byte')
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    if not -2**31 <= sec < 2**31:
+        raise ValueError(f'stamp {stamp_ns} ns does not fit builtin_interfaces/msg/Time')
+    body = bytearray(struct.pack('<iI', sec, nanosec))
+    _put_string(body, frame_id)
+    body += bytes(-len(body) % 4) + _UINT32.pack(1)  # one status
+    body.append(level)
+    for text in (name, message, hardware_id):
+        _put_string(body, text)
+    body += bytes(-len(body) % 4) + _UINT32.pack(len(values))
+    for key, value in values.items():
+        _put_string(body, str(key))
+        _put_string(body, _value_text(value))
+    return _CDR_LE + bytes(body)
+
+
+def _put_string(body: bytearray, text: str) -> None:
+    """Append a CDR string: padding to 4, uint32 length with the NUL, UTF-8 bytes, NUL."""
+    if not isinstance(text, str):
+        raise TypeError(f'a string field must be str, got {type(text).__name__}')
+    encoded = text.encode('utf-8')
+    body += bytes(-len(body) % 4) + _UINT32.pack(len(encoded) + 1) + encoded + b'\x00'
 
 
 def diagnostic_array(*, statuses: Sequence[Any], stamp_ns: int, frame_id: str = '',

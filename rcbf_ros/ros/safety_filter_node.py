@@ -66,8 +66,9 @@ such samples with a warning, and rclpy may raise in its executor instead):
 
 Float64MultiArray samples in plain little-endian CDR (what publishers send) are read without
 building the message (:func:`rcbf_ros.messages.conversions.sections_from_cdr`), any other bytes
-through the decoder, with the same result; Float64MultiArray answers go out as the same bytes
-the message would serialize to (:func:`rcbf_ros.messages.conversions.sections_to_cdr`).
+through the decoder, with the same result; Float64MultiArray answers and diagnostics go out as
+the same bytes the messages would serialize to
+(:func:`rcbf_ros.messages.conversions.sections_to_cdr`, ``diagnostics_to_cdr``).
 
 A decodable but unusable sample is refused as before. Every diagnostic status carries the
 cumulative counts ``dropped_samples`` (undecodable, on either topic), ``refused_proposals``
@@ -218,12 +219,13 @@ class SafetyFilterNode(Node):
         state_type = get_message(conversions.STATE_MESSAGES[self.settings.state_type])
         self._cmd_pub = self.create_publisher(command_type, 'cmd_safe', qos)
         self._info_pub = self.create_publisher(array_type, 'filter_info', qos)
-        self._diagnostics_type = get_message(DIAGNOSTIC_ARRAY)
-        self._diag_pub = self.create_publisher(self._diagnostics_type, 'diagnostics', qos)
+        self._diag_pub = self.create_publisher(
+            get_message(DIAGNOSTIC_ARRAY), 'diagnostics', qos)
         self._state_type, self._command_type = state_type, command_type
         # Float64MultiArrays are read and written by conversions.sections_from_cdr and
-        # sections_to_cdr (the same arrays and bytes as through the message, without building
-        # one); state_type and command_type are read-only.
+        # sections_to_cdr, diagnostics written by diagnostics_to_cdr (the same arrays and bytes
+        # as through the message, without building one); state_type and command_type are
+        # read-only.
         self._array_states = self.settings.state_type == 'array'
         self._array_commands = self.settings.command_type == 'array'
         self.create_subscription(state_type, 'state', self._on_state, qos, raw=True)
@@ -499,12 +501,10 @@ class SafetyFilterNode(Node):
         level, message, values = logic.diagnostic_values(
             decision=decision, barrier_names=active.safety_filter.barrier_names)
         values.update(self.input_counts)
-        diagnostics = self._diagnostics_type()
-        diagnostics.header.stamp = self.get_clock().now().to_msg()
-        diagnostics.status = [conversions.diagnostic_status(
-            name=settings.diagnostics_name, level=level, message=message, values=values,
-            hardware_id=settings.diagnostics_hardware_id)]
-        self._diag_pub.publish(diagnostics)
+        self._diag_pub.publish(conversions.diagnostics_to_cdr(
+            stamp_ns=self.get_clock().now().nanoseconds, name=settings.diagnostics_name,
+            level=level, message=message, values=values,
+            hardware_id=settings.diagnostics_hardware_id))
 
     def _log(self, level: int, reason: str, now_ns: int) -> None:
         key = logic.reason_key(reason)

@@ -317,3 +317,27 @@ def test_sections_from_cdr_reads_what_the_decoder_reads_or_leaves_it_to_the_deco
     overrun.layout.dim[0].size = 3
     assert _fast_sections(serialize_message(overrun)) == _generic_sections(
         serialize_message(overrun)) == "refused: layout.dim['u']: size 3 runs past data (2 values)"
+
+
+def test_diagnostics_to_cdr_is_the_serialized_diagnostic_array():
+    from rcbf_ros.messages.cdr import serialize_message
+    from rcbf_ros.messages.conversions import (
+        diagnostic_array,
+        diagnostic_status,
+        diagnostics_to_cdr,
+    )
+    rng = np.random.default_rng(5)
+    choices = [1.5, float('nan'), -0.0, 1e-300, 'ü', True, 3, '', 'abc', None]
+    for _ in range(200):
+        values = {'k' * int(rng.integers(1, 6)) + str(j): choices[int(rng.integers(0, 10))]
+                  for j in range(int(rng.integers(0, 6)))}
+        status = dict(name='n' * int(rng.integers(0, 5)), level=int(rng.integers(0, 3)),
+                      message='m' * int(rng.integers(0, 7)) + 'é', values=values,
+                      hardware_id='h' * int(rng.integers(0, 3)))
+        stamp_ns = int(rng.integers(0, 2**31 * 10**9))
+        frame_id = 'f' * int(rng.integers(0, 4))
+        expected = serialize_message(diagnostic_array(
+            statuses=[diagnostic_status(**status)], stamp_ns=stamp_ns, frame_id=frame_id))
+        assert diagnostics_to_cdr(stamp_ns=stamp_ns, frame_id=frame_id, **status) == expected
+    with pytest.raises(ValueError, match='level 256'):
+        diagnostics_to_cdr(stamp_ns=0, name='', level=256, message='', values={})

@@ -57,7 +57,11 @@ class FilterHarness:
         self.node._cmd_pub.publish = _recorder(self.commands, self.node._cmd_pub.msg_type)
         self.node._info_pub.publish = _recorder(self.infos, self.node._info_pub.msg_type)
 
+        diagnostics_type = self.node._diag_pub.msg_type
+
         def diagnose(msg: Any) -> None:
+            if isinstance(msg, bytes):
+                msg = deserialize_message(msg, diagnostics_type)
             status = msg.status[0]
             self.diagnostics.append((int(status.level), status.message,
                                      {kv.key: kv.value for kv in status.values}))
