@@ -46,7 +46,7 @@ def _recorder(store: list, msg_type: Any) -> Any:
 
 
 class FilterHarness:
-    """A SafetyFilterNode whose two publishers record instead of sending."""
+    """A SafetyFilterNode whose publishers record instead of sending."""
 
     def __init__(self) -> None:
         from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
