@@ -1,7 +1,8 @@
-"""Replay buffer of SAC-RCBF transitions: preallocated tensors, seeded sampling."""
+"""Replay buffer of SAC-RCBF transitions: preallocated tensors, seeded sampling, and a memo of
+the disturbance model's prediction at each stored transition."""
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 import torch
@@ -34,6 +35,19 @@ class TransitionBatch(NamedTuple):
     truncation is not terminal."""
 
 
+class BatchDisturbance(NamedTuple):
+    """The disturbance model's estimate at a batch's states, for the safety layer."""
+
+    state: torch.Tensor
+    """(B, 2, state_dim) float64: mean ([:, 0]) and std ([:, 1]) at ``TransitionBatch.state``."""
+    next_state: torch.Tensor
+    """The same at ``TransitionBatch.next_state``."""
+
+
+Predictor = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+"""states (B, state_dim) float64 -> (mean, std), each (B, state_dim)."""
+
+
 class ReplayBuffer:
     """Circular buffer of ``TransitionBatch`` fields in preallocated tensors.
 
@@ -61,6 +75,10 @@ class ReplayBuffer:
         self._position = 0
         self._size = 0
         self._generator = torch.Generator().manual_seed(seed)
+        # The memo of predictions (allocated at the first call of ``predictions``): per slot,
+        # the model version it was computed for, -1 when none or the slot was written since.
+        self._predicted: torch.Tensor | None = None
+        self._predicted_version = torch.full((capacity,), -1, dtype=torch.int64)
 
     def __len__(self) -> int:
         return self._size
@@ -95,21 +113,53 @@ class ReplayBuffer:
         index = (self._position + torch.arange(count)) % self.capacity
         for name, tensor in rows.items():
             self._data[name][index] = tensor
+        self._predicted_version[index] = -1
         self._position = (self._position + count) % self.capacity
         self._size = min(self._size + count, self.capacity)
 
     def sample(self, batch_size: int) -> TransitionBatch:
         """Uniform sample with replacement, drawn from the buffer's seeded generator."""
+        return self.gather(self.sample_index(batch_size))
+
+    def sample_index(self, batch_size: int) -> torch.Tensor:
+        """The (B,) positions ``sample`` would gather (the same draw from the generator)."""
         if self._size == 0:
             raise ValueError('cannot sample from an empty buffer')
         if batch_size < 1:
             raise ValueError(f'batch_size must be >= 1, got {batch_size}')
-        index = torch.randint(self._size, (batch_size,), generator=self._generator)
-        return self.gather(index)
+        return torch.randint(self._size, (batch_size,), generator=self._generator)
 
     def gather(self, index: torch.Tensor) -> TransitionBatch:
         """The transitions at ``index`` ((B,) int64 positions < len(self))."""
         return TransitionBatch(**{name: tensor[index] for name, tensor in self._data.items()})
+
+    def predictions(self, index: torch.Tensor, *, version: int,
+                    predict: Predictor) -> BatchDisturbance:
+        """A model's (mean, std) at the state and the next state of the transitions at
+        ``index``.
+
+        Memoised per slot: ``predict`` runs, in one call, only on the slots never predicted,
+        written since, or predicted for another ``version`` of the model. The caller changes
+        ``version`` whenever the model's predictions change (a GP refit); the result then equals
+        ``predict`` on the gathered states, up to the round-off of the batch it ran in.
+        """
+        if self._predicted is None:
+            # torch.empty: pages are only touched for slots that get predicted.
+            self._predicted = torch.empty((self.capacity, 2, 2, self._widths['state']),
+                                          dtype=torch.float64)
+        unique = torch.unique(index)
+        stale = unique[self._predicted_version[unique] != version]
+        if stale.numel():
+            states = torch.cat([self._data['state'][stale],
+                                self._data['next_state'][stale]]).to(torch.float64)
+            mean, std = predict(states)
+            count = stale.numel()
+            values = torch.stack([mean, std], dim=1).to(torch.float64)  # (2 count, 2, n)
+            self._predicted[stale, 0] = values[:count]
+            self._predicted[stale, 1] = values[count:]
+            self._predicted_version[stale] = version
+        rows = self._predicted[index]
+        return BatchDisturbance(state=rows[:, 0], next_state=rows[:, 1])
 
     def state_dict(self) -> dict[str, Any]:
         """Stored transitions (only the filled rows), write position and sampler state."""
@@ -130,6 +180,7 @@ class ReplayBuffer:
                                  f'{tuple(self._data[name].shape[1:])}')
         self._size = state['size']
         self._position = state['position']
+        self._predicted_version.fill_(-1)
         for name, tensor in state['data'].items():
             self._data[name].zero_()
             self._data[name][:self._size] = tensor.to(self.dtype)

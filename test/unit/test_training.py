@@ -51,6 +51,64 @@ def test_model_based_diff_adds_synthetic_transitions(tmp_path):
     assert learner.model_buffer is not None and len(learner.model_buffer) > 0
 
 
+def _filled_learner(tmp_path, system: str, mode: str, **extra):
+    """A learner whose buffer and GP hold 120 random transitions of ``system``, GP fitted."""
+    from rcbf_ros.training.build import build_run
+    env, _, learner, _ = build_run(small_run(tmp_path, system, mode, **extra))
+    rng = np.random.default_rng(5)
+    obs, info = env.reset(seed=0)
+    for _ in range(120):
+        u = rng.uniform(learner.u_low, learner.u_high)
+        next_obs, reward, terminated, truncated, next_info = env.step(u)
+        learner.observe(obs=obs, state=info['state'], u_rl=u, u_safe=u, reward=reward,
+                        next_obs=next_obs, next_state=next_info['state'], terminated=terminated)
+        obs, info = next_obs, next_info
+        if terminated or truncated:
+            obs, info = env.reset()
+    learner.gp.fit()
+    return learner
+
+
+@pytest.mark.parametrize('system, mode, extra', [
+    ('car_following', 'diff', {}), ('pvtol', 'modular', {'modular_envelope': True}),
+    ('unicycle', 'diff', {'model_based': True, 'rollouts': 16, 'rollout_horizon': 2})])
+def test_the_losses_see_the_gp_estimate_memoised_per_transition_as_if_predicted_afresh(
+        tmp_path, system, mode, extra):
+    """The learner hands the losses the GP's estimate at each batch's states from the replay
+    buffer's memo; an update with it equals one whose safety layer predicts the estimate
+    itself, and after a refit the memo holds the new GP's estimate."""
+    memo = _filled_learner(tmp_path / 'memo', system, mode, **extra)
+    fresh = _filled_learner(tmp_path / 'fresh', system, mode, **extra)
+    if memo.rollout is not None:
+        for learner in (memo, fresh):
+            learner.rollout.run(learner.buffer, learner.model_buffer)
+    for _ in range(3):
+        batch, estimate = memo.sample_batch()
+        assert estimate is not None
+        for states, at in ((batch.state, estimate.state), (batch.next_state, estimate.next_state)):
+            mean, std = memo.disturbance(states.to(torch.float64))
+            torch.testing.assert_close(at[:, 0], mean, rtol=1e-12, atol=1e-14)
+            torch.testing.assert_close(at[:, 1], std, rtol=1e-12, atol=1e-14)
+        ours = memo.sac.update(batch, estimate)
+        theirs = fresh.sac.update(*(fresh.sample_batch()[0], None))
+        assert ours.keys() == theirs.keys()
+        for key in ours:
+            assert ours[key] == pytest.approx(theirs[key], rel=1e-6, abs=1e-9), key
+    # A refit on more data: the memo's entries are stale and predicted again.
+    memo.gp.add(torch.zeros(1, memo.system.n_x, dtype=torch.float64),
+                torch.full((1, memo.system.n_x), 0.3, dtype=torch.float64))
+    memo.gp.fit()
+    batch, estimate = memo.sample_batch()
+    mean, std = memo.disturbance(batch.state.to(torch.float64))
+    torch.testing.assert_close(estimate.state[:, 0], mean, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(estimate.state[:, 1], std, rtol=1e-12, atol=1e-14)
+
+
+def test_without_a_layer_in_the_losses_no_estimate_is_drawn(tmp_path):
+    learner = _filled_learner(tmp_path, 'unicycle', 'baseline')
+    assert learner.sample_batch()[1] is None
+
+
 def test_modular_learner_keeps_the_envelope_layer_of_every_layout(tmp_path):
     """Modular SAC-RCBF drops the layout's correction from its losses but keeps the envelope's
     (PVTOL: tilt, thrust, arena; not the operator, ``layout: true`` in config/pvtol.yaml), as
