@@ -114,10 +114,15 @@ class ActionProposal(NamedTuple):
 
 def polyak_update(params: Iterable[nn.Parameter], target_params: Iterable[nn.Parameter],
                   tau: float) -> None:
-    """In place: target <- tau * param + (1 - tau) * target, pairwise."""
+    """In place: target <- tau * param + (1 - tau) * target, pairwise (one multi-tensor kernel
+    per operation, the same arithmetic as the per-pair loop)."""
+    params, target_params = list(params), list(target_params)
+    if len(params) != len(target_params):
+        raise ValueError(f'polyak_update: {len(params)} parameters, {len(target_params)} '
+                         'targets')
     with torch.no_grad():
-        for param, target in zip(params, target_params, strict=True):
-            target.mul_(1.0 - tau).add_(param, alpha=tau)
+        torch._foreach_mul_(target_params, 1.0 - tau)
+        torch._foreach_add_(target_params, params, alpha=tau)
 
 
 class SAC:
@@ -177,12 +182,15 @@ class SAC:
                                       requires_grad=True)
         self.target_entropy = (cfg.target_entropy if cfg.target_entropy is not None
                                else -float(n_u))
-        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
+        # Fused Adam: one kernel per step for all of a network's tensors (the same update rule;
+        # its round-off differs from the per-tensor loop's).
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr,
+                                                fused=True)
         self.critic_optimizer = torch.optim.Adam(
-            [*self.q1.parameters(), *self.q2.parameters()], lr=cfg.critic_lr)
+            [*self.q1.parameters(), *self.q2.parameters()], lr=cfg.critic_lr, fused=True)
         self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr)
         self.compensator_optimizer = (
-            torch.optim.Adam(self.compensator.parameters(), lr=cfg.compensator_lr)
+            torch.optim.Adam(self.compensator.parameters(), lr=cfg.compensator_lr, fused=True)
             if self.compensator is not None else None)
         self.generator = torch.Generator().manual_seed(seed + 1)
         self.num_updates = 0
