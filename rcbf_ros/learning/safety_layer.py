@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from rcbf_ros.core.diffqp import solve_qp_batch
+from rcbf_ros.core.lie_closed_form_batch import BatchClosedForm
 from rcbf_ros.core.rcbf import RCBFProblem
 
 DisturbanceModel = Callable[[Tensor], tuple[Tensor, Tensor]]
@@ -32,6 +33,9 @@ class DifferentiableSafetyLayer:
         """
         self.problem = problem
         self.disturbance = disturbance
+        # The barrier terms are constants of the QP (the states are data): in closed form for
+        # the built-in systems and barriers, else by autograd (RCBFProblem.terms).
+        self._closed_form = BatchClosedForm.from_problem(problem)
 
     def correction(self, state: Tensor, u_rl: Tensor,
                    disturbance: tuple[Tensor, Tensor] | None = None) -> Tensor:
@@ -56,7 +60,8 @@ class DifferentiableSafetyLayer:
                 disturbance = self.disturbance(x)
         if disturbance is not None:
             mean, std = (part.detach().to(torch.float64) for part in disturbance)
-        qp = self.problem.qp(x, u, mean, std)
+        terms = None if self._closed_form is None else self._closed_form.terms(x, u)
+        qp = self.problem.qp(x, u, mean, std, terms=terms)
         z = solve_qp_batch(*qp)
         return (u - u_in + z[:, :system.n_u]).to(u_rl.dtype)
 
