@@ -69,9 +69,15 @@ class ReplayBuffer:
         self._widths = {'obs': obs_dim, 'state': state_dim, 'u_rl': n_u, 'u_safe': n_u,
                         'u_s': n_u, 'reward': 0, 'next_obs': obs_dim,
                         'next_state': state_dim, 'done': 0}
-        self._data = {name: torch.zeros((capacity, width) if width else (capacity,),
-                                        dtype=dtype)
-                      for name, width in self._widths.items()}
+        # One table, a row per transition, the fields side by side: an add is one write and a
+        # sample one gather; ``_data`` holds each field's columns as a view of it.
+        self._columns: dict[str, slice] = {}
+        start = 0
+        for name, width in self._widths.items():
+            self._columns[name] = slice(start, start + (width or 1))
+            start += width or 1
+        self._table = torch.zeros((capacity, start), dtype=dtype)
+        self._data = self._fields(self._table)
         self._position = 0
         self._size = 0
         self._generator = torch.Generator().manual_seed(seed)
@@ -90,30 +96,33 @@ class ReplayBuffer:
         fields = {'obs': obs, 'state': state, 'u_rl': u_rl, 'u_safe': u_safe, 'u_s': u_s,
                   'reward': reward, 'next_obs': next_obs, 'next_state': next_state,
                   'done': done}
-        obs_t = torch.as_tensor(np.asarray(obs) if not isinstance(obs, torch.Tensor) else obs)
-        count = 1 if obs_t.ndim == 1 else obs_t.shape[0]
-        rows: dict[str, torch.Tensor] = {}
+        count = 1 if np.ndim(obs) == 1 else len(obs)
+        blocks = []
         for name, value in fields.items():
-            tensor = value if isinstance(value, torch.Tensor) else torch.as_tensor(
-                np.asarray(value, dtype=np.float64))
-            tensor = tensor.detach().to(self.dtype)
+            array = (value.detach().cpu().numpy() if isinstance(value, torch.Tensor)
+                     else np.asarray(value, dtype=np.float64))
             width = self._widths[name]
-            shape = ((count, width) if width else (count,))
             try:
-                tensor = tensor.reshape(shape)
-            except RuntimeError:
+                blocks.append(array.reshape(count, width or 1))
+            except ValueError:
                 raise ValueError(f'{name} must hold {count} row(s) of width {width or 1}, '
-                                 f'got shape {tuple(tensor.shape)}') from None
-            if not torch.isfinite(tensor).all():
-                raise ValueError(f'{name} contains non-finite values')
-            rows[name] = tensor
-        if count > self.capacity:
-            rows = {name: tensor[-self.capacity:] for name, tensor in rows.items()}
-            count = self.capacity
-        index = (self._position + torch.arange(count)) % self.capacity
-        for name, tensor in rows.items():
-            self._data[name][index] = tensor
-        self._predicted_version[index] = -1
+                                 f'got shape {tuple(array.shape)}') from None
+        rows = torch.from_numpy(np.concatenate(blocks, axis=1, dtype=np.float64)).to(self.dtype)
+        # Checked in the storage type: a value beyond its range is as unusable as a NaN.
+        if not bool(torch.isfinite(rows).all()):
+            bad = next(name for name, columns in self._columns.items()
+                       if not bool(torch.isfinite(rows[:, columns]).all()))
+            raise ValueError(f'{bad} contains non-finite values')
+        if count == 1:
+            self._table[self._position] = rows[0]
+            self._predicted_version[self._position] = -1
+        else:
+            if count > self.capacity:
+                rows = rows[-self.capacity:]
+                count = self.capacity
+            index = (self._position + torch.arange(count)) % self.capacity
+            self._table[index] = rows
+            self._predicted_version[index] = -1
         self._position = (self._position + count) % self.capacity
         self._size = min(self._size + count, self.capacity)
 
@@ -131,7 +140,12 @@ class ReplayBuffer:
 
     def gather(self, index: torch.Tensor) -> TransitionBatch:
         """The transitions at ``index`` ((B,) int64 positions < len(self))."""
-        return TransitionBatch(**{name: tensor[index] for name, tensor in self._data.items()})
+        return TransitionBatch(**self._fields(self._table[index]))
+
+    def _fields(self, rows: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Each field's columns of ``rows`` (views; a scalar field as (R,))."""
+        return {name: rows[:, columns] if self._widths[name] else rows[:, columns.start]
+                for name, columns in self._columns.items()}
 
     def predictions(self, index: torch.Tensor, *, version: int,
                     predict: Predictor) -> BatchDisturbance:

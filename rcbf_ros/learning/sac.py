@@ -114,15 +114,14 @@ class ActionProposal(NamedTuple):
 
 def polyak_update(params: Iterable[nn.Parameter], target_params: Iterable[nn.Parameter],
                   tau: float) -> None:
-    """In place: target <- tau * param + (1 - tau) * target, pairwise (one multi-tensor kernel
-    per operation, the same arithmetic as the per-pair loop)."""
+    """In place: target <- tau * param + (1 - tau) * target, pairwise, as one multi-tensor
+    ``target + tau (param - target)`` (one pass over each tensor)."""
     params, target_params = list(params), list(target_params)
     if len(params) != len(target_params):
         raise ValueError(f'polyak_update: {len(params)} parameters, {len(target_params)} '
                          'targets')
     with torch.no_grad():
-        torch._foreach_mul_(target_params, 1.0 - tau)
-        torch._foreach_add_(target_params, params, alpha=tau)
+        torch._foreach_lerp_(target_params, params, tau)
 
 
 class SAC:

@@ -84,6 +84,15 @@ def test_bad_input_names_the_field():
         buffer.add(**{**good, 'next_state': np.zeros(3)})
     with pytest.raises(ValueError, match='reward'):
         buffer.add(**{**good, 'reward': float('nan')})
+    # Beyond float32's range: infinite once stored, refused the same way.
+    with pytest.raises(ValueError, match='^u_safe contains non-finite values$'):
+        buffer.add(**{**good, 'u_safe': [1e300]})
+    with pytest.raises(ValueError, match='^obs contains'):
+        buffer.add(**{**good, 'obs': torch.tensor([0.0, float('inf'), 0.0])})
+    with pytest.raises(ValueError, match='done must hold 2 row'):
+        buffer.add(**{name: np.stack([value, value]) if np.ndim(value) else [value, value]
+                      for name, value in good.items()} | {'done': [True, False, True]})
+    assert len(buffer) == 0  # nothing refused was stored
     with pytest.raises(ValueError, match='empty'):
         buffer.sample(1)
     with pytest.raises(ValueError, match='capacity'):
