@@ -16,7 +16,7 @@ from rcbf_ros.training.agent import LearnerConfig
 from rcbf_ros.training.build import RunConfig
 from rcbf_ros.training.loop import train
 from rcbf_ros.training.models import MODELS
-from rcbf_ros.training.run_files import load_payload
+from rcbf_ros.training.run_files import append_row, load_payload
 
 SMALL = dict(start_steps=40, update_after=40, batch_size=32, gp_refit_interval=60,
              sac=SACConfig(hidden_sizes=(32, 32)))
@@ -397,6 +397,30 @@ def test_sigterm_mid_run_keeps_checkpoint_metrics_and_bag(tmp_path):
     from rosbags.highlevel import AnyReader
     with AnyReader([next(out.glob('bag_*'))]) as reader:
         assert sum(c.msgcount for c in reader.connections if c.topic == '/cmd_safe') >= 80
+
+
+def test_an_interrupt_between_an_episodes_row_and_its_line_loses_neither(tmp_path, monkeypatch):
+    """Ctrl-C after an episode's row joined the history but before the metrics file got it:
+    the file, the checkpoint's counter and its history still agree."""
+    import rcbf_ros.training.loop as loop
+    calls = []
+
+    def interrupted_append(path, row):
+        calls.append(row)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        append_row(path, row)
+
+    monkeypatch.setattr(loop, 'append_row', interrupted_append)
+    run = small_run(tmp_path, 'unicycle', 'baseline', episodes=4, steps=30)
+    with pytest.raises(KeyboardInterrupt):
+        train(run, log=lambda _: None)
+    out = tmp_path / 'unicycle_baseline_0'
+    lines = (out / 'metrics.jsonl').read_text().splitlines()
+    checkpoint = load_payload(out / 'checkpoint.pt')
+    assert len(lines) == checkpoint['episode'] == len(checkpoint['history']) == 2
+    assert [json.loads(line)['episode'] for line in lines] == [
+        row['episode'] for row in checkpoint['history']]
 
 
 def test_train_cli_modular_envelope_flag_reaches_the_learner_config():
