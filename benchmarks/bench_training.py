@@ -83,16 +83,22 @@ DIFFERENCES = (
     'exact GPyTorch GP per state dimension (70 Adam iterations each) on up to 2000 points, '
     'refitted every 400 steps, here on 200 points (its first refit; later refits on more '
     'points cost it more, so the amortized ratio is a lower bound). Updates: both 1 SAC update '
-    'per step, minibatch 256, 256x256 actor and twin critics, float32. Differentiable layer '
-    '(diff <- full): ours a batched active-set QP with its analytic backward; the reference '
-    'qpth on the batch of 256 (interior point, backward through its KKT factorisation), in '
-    'the critic target and the actor loss. Modular (modular <- mod): on Unicycle and Cars the '
+    'per step, minibatch 256, 256x256 actor and twin critics, float32; ours with fused Adam. '
+    'Differentiable layer (diff <- full): ours a batched active-set QP with its analytic '
+    "backward, its barrier terms in closed form, and the GP estimate at the batch's states "
+    'from a memo per stored transition (each transition predicted at most once per refit: here, '
+    'with a few hundred transitions stored, nearly every one is a hit; with N stored and a '
+    'refit every R steps, an update still predicts up to 2 N / R states on average, e.g. 400 '
+    'of the 512 at the 200 000-transition buffer of a full run); the reference '
+    'qpth on the batch of 256 (interior point, backward through its KKT factorisation) and its '
+    'GP predicted on the batch, in the critic target and the actor loss. Modular '
+    '(modular <- mod): on Unicycle and Cars the '
     'reference only clamps to the input box in the losses (no QP, its GP still predicts the '
     'batch), on PVTOL it solves its QP with the modular constraint set; ours uses no QP in '
     "the losses on Unicycle and Cars, and on PVTOL, as config/pvtol.yaml's "
     '`modular_envelope: true` asks, the differentiable QP of the envelope (the tilt, thrust and '
     'arena bands) in both losses. Buffer '
-    'sampling: ours preallocated tensors; the reference a Python list of tuples.')
+    'sampling: ours one preallocated table; the reference a Python list of tuples.')
 """Printed with the table."""
 
 

@@ -137,6 +137,10 @@ class Unicycle:
             torch.stack([zeros, ones], dim=-1),
         ], dim=1)
 
+    def drift_jacobian(self, x: Tensor) -> Tensor:
+        """d f / d x = 0. x: (B, 3) -> (B, 3, 3)."""
+        return x.new_zeros(x.shape[0], 3, 3)
+
     def closed_form_drift(self) -> DriftJetFunction:
         """f = 0, J = 0 (so J does not change along f) and g = [[cos th, 0], [sin th, 0],
         [0, 1]] at one state."""
@@ -214,6 +218,21 @@ class CarFollowing:
         """x: (B, 10) -> (B, 10, 1): the input drives v_4 only."""
         out = torch.zeros(x.shape[0], 10, 1, dtype=x.dtype, device=x.device)
         out[:, 7, 0] = 1.0
+        return out
+
+    def drift_jacobian(self, x: Tensor) -> Tensor:
+        """d f / d x, x: (B, 10) -> (B, 10, 10): p_dot = v, the speed tracking -k_v, and
+        +/- k_b on the gap of each follower inside its braking gap (the branch :meth:`f`
+        takes, as autograd sees it)."""
+        out = x.new_zeros(x.shape[0], 10, 10)
+        for car in range(5):
+            out[:, 2 * car, 2 * car + 1] = 1.0
+        for me, ahead, gap in ((1, 0, self.brake_gap), (2, 1, self.brake_gap),
+                               (4, 2, self.rear_brake_gap)):
+            out[:, 2 * me + 1, 2 * me + 1] = -self.k_v
+            braking = ((x[:, 2 * ahead] - x[:, 2 * me]).abs() < gap).to(x.dtype) * self.k_b
+            out[:, 2 * me + 1, 2 * ahead] = -braking
+            out[:, 2 * me + 1, 2 * me] = braking
         return out
 
     def closed_form_drift(self) -> DriftJetFunction:
@@ -295,6 +314,21 @@ class PVTOL:
         out = torch.zeros(x.shape[0], self.n_x, 2, dtype=x.dtype, device=x.device)
         out[:, 4, 0] = 1.0
         out[:, 5, 1] = 1.0
+        return out
+
+    def drift_jacobian(self, x: Tensor) -> Tensor:
+        """d f / d x, x: (B, n_x) -> (B, n_x, n_x)."""
+        theta, thrust = x[:, 4], x[:, 5]
+        sin, cos = torch.sin(theta), torch.cos(theta)
+        out = x.new_zeros(x.shape[0], self.n_x, self.n_x)
+        out[:, 0, 2] = out[:, 1, 3] = 1.0
+        out[:, 2, 4] = -cos * thrust
+        out[:, 2, 5] = -sin
+        out[:, 3, 4] = -sin * thrust
+        out[:, 3, 5] = cos
+        if self.with_operator:
+            out[:, 6, 0] = self.operator_gain
+            out[:, 6, 6] = -self.operator_gain
         return out
 
     def closed_form_drift(self) -> DriftJetFunction:

@@ -1,7 +1,8 @@
-"""Replay buffer of SAC-RCBF transitions: preallocated tensors, seeded sampling."""
+"""Replay buffer of SAC-RCBF transitions: preallocated tensors, seeded sampling, and a memo of
+the disturbance model's prediction at each stored transition."""
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 import torch
@@ -34,6 +35,19 @@ class TransitionBatch(NamedTuple):
     truncation is not terminal."""
 
 
+class BatchDisturbance(NamedTuple):
+    """The disturbance model's estimate at a batch's states, for the safety layer."""
+
+    state: torch.Tensor
+    """(B, 2, state_dim) float64: mean ([:, 0]) and std ([:, 1]) at ``TransitionBatch.state``."""
+    next_state: torch.Tensor
+    """The same at ``TransitionBatch.next_state``."""
+
+
+Predictor = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+"""states (B, state_dim) float64 -> (mean, std), each (B, state_dim)."""
+
+
 class ReplayBuffer:
     """Circular buffer of ``TransitionBatch`` fields in preallocated tensors.
 
@@ -55,12 +69,22 @@ class ReplayBuffer:
         self._widths = {'obs': obs_dim, 'state': state_dim, 'u_rl': n_u, 'u_safe': n_u,
                         'u_s': n_u, 'reward': 0, 'next_obs': obs_dim,
                         'next_state': state_dim, 'done': 0}
-        self._data = {name: torch.zeros((capacity, width) if width else (capacity,),
-                                        dtype=dtype)
-                      for name, width in self._widths.items()}
+        # One table, a row per transition, the fields side by side: an add is one write and a
+        # sample one gather; ``_data`` holds each field's columns as a view of it.
+        self._columns: dict[str, slice] = {}
+        start = 0
+        for name, width in self._widths.items():
+            self._columns[name] = slice(start, start + (width or 1))
+            start += width or 1
+        self._table = torch.zeros((capacity, start), dtype=dtype)
+        self._data = self._fields(self._table)
         self._position = 0
         self._size = 0
         self._generator = torch.Generator().manual_seed(seed)
+        # The memo of predictions (allocated at the first call of ``predictions``): per slot,
+        # the model version it was computed for, -1 when none or the slot was written since.
+        self._predicted: torch.Tensor | None = None
+        self._predicted_version = torch.full((capacity,), -1, dtype=torch.int64)
 
     def __len__(self) -> int:
         return self._size
@@ -72,44 +96,84 @@ class ReplayBuffer:
         fields = {'obs': obs, 'state': state, 'u_rl': u_rl, 'u_safe': u_safe, 'u_s': u_s,
                   'reward': reward, 'next_obs': next_obs, 'next_state': next_state,
                   'done': done}
-        obs_t = torch.as_tensor(np.asarray(obs) if not isinstance(obs, torch.Tensor) else obs)
-        count = 1 if obs_t.ndim == 1 else obs_t.shape[0]
-        rows: dict[str, torch.Tensor] = {}
+        count = 1 if np.ndim(obs) == 1 else len(obs)
+        blocks = []
         for name, value in fields.items():
-            tensor = value if isinstance(value, torch.Tensor) else torch.as_tensor(
-                np.asarray(value, dtype=np.float64))
-            tensor = tensor.detach().to(self.dtype)
+            array = (value.detach().cpu().numpy() if isinstance(value, torch.Tensor)
+                     else np.asarray(value, dtype=np.float64))
             width = self._widths[name]
-            shape = ((count, width) if width else (count,))
             try:
-                tensor = tensor.reshape(shape)
-            except RuntimeError:
+                blocks.append(array.reshape(count, width or 1))
+            except ValueError:
                 raise ValueError(f'{name} must hold {count} row(s) of width {width or 1}, '
-                                 f'got shape {tuple(tensor.shape)}') from None
-            if not torch.isfinite(tensor).all():
-                raise ValueError(f'{name} contains non-finite values')
-            rows[name] = tensor
-        if count > self.capacity:
-            rows = {name: tensor[-self.capacity:] for name, tensor in rows.items()}
-            count = self.capacity
-        index = (self._position + torch.arange(count)) % self.capacity
-        for name, tensor in rows.items():
-            self._data[name][index] = tensor
+                                 f'got shape {tuple(array.shape)}') from None
+        rows = torch.from_numpy(np.concatenate(blocks, axis=1, dtype=np.float64)).to(self.dtype)
+        # Checked in the storage type: a value beyond its range is as unusable as a NaN.
+        if not bool(torch.isfinite(rows).all()):
+            bad = next(name for name, columns in self._columns.items()
+                       if not bool(torch.isfinite(rows[:, columns]).all()))
+            raise ValueError(f'{bad} contains non-finite values')
+        if count == 1:
+            self._table[self._position] = rows[0]
+            self._predicted_version[self._position] = -1
+        else:
+            if count > self.capacity:
+                rows = rows[-self.capacity:]
+                count = self.capacity
+            index = (self._position + torch.arange(count)) % self.capacity
+            self._table[index] = rows
+            self._predicted_version[index] = -1
         self._position = (self._position + count) % self.capacity
         self._size = min(self._size + count, self.capacity)
 
     def sample(self, batch_size: int) -> TransitionBatch:
         """Uniform sample with replacement, drawn from the buffer's seeded generator."""
+        return self.gather(self.sample_index(batch_size))
+
+    def sample_index(self, batch_size: int) -> torch.Tensor:
+        """The (B,) positions ``sample`` would gather (the same draw from the generator)."""
         if self._size == 0:
             raise ValueError('cannot sample from an empty buffer')
         if batch_size < 1:
             raise ValueError(f'batch_size must be >= 1, got {batch_size}')
-        index = torch.randint(self._size, (batch_size,), generator=self._generator)
-        return self.gather(index)
+        return torch.randint(self._size, (batch_size,), generator=self._generator)
 
     def gather(self, index: torch.Tensor) -> TransitionBatch:
         """The transitions at ``index`` ((B,) int64 positions < len(self))."""
-        return TransitionBatch(**{name: tensor[index] for name, tensor in self._data.items()})
+        return TransitionBatch(**self._fields(self._table[index]))
+
+    def _fields(self, rows: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Each field's columns of ``rows`` (views; a scalar field as (R,))."""
+        return {name: rows[:, columns] if self._widths[name] else rows[:, columns.start]
+                for name, columns in self._columns.items()}
+
+    def predictions(self, index: torch.Tensor, *, version: int,
+                    predict: Predictor) -> BatchDisturbance:
+        """A model's (mean, std) at the state and the next state of the transitions at
+        ``index``.
+
+        Memoised per slot: ``predict`` runs, in one call, only on the slots never predicted,
+        written since, or predicted for another ``version`` of the model. The caller changes
+        ``version`` whenever the model's predictions change (a GP refit); the result then equals
+        ``predict`` on the gathered states, up to the round-off of the batch it ran in.
+        """
+        if self._predicted is None:
+            # torch.empty: pages are only touched for slots that get predicted.
+            self._predicted = torch.empty((self.capacity, 2, 2, self._widths['state']),
+                                          dtype=torch.float64)
+        unique = torch.unique(index)
+        stale = unique[self._predicted_version[unique] != version]
+        if stale.numel():
+            states = torch.cat([self._data['state'][stale],
+                                self._data['next_state'][stale]]).to(torch.float64)
+            mean, std = predict(states)
+            count = stale.numel()
+            values = torch.stack([mean, std], dim=1).to(torch.float64)  # (2 count, 2, n)
+            self._predicted[stale, 0] = values[:count]
+            self._predicted[stale, 1] = values[count:]
+            self._predicted_version[stale] = version
+        rows = self._predicted[index]
+        return BatchDisturbance(state=rows[:, 0], next_state=rows[:, 1])
 
     def state_dict(self) -> dict[str, Any]:
         """Stored transitions (only the filled rows), write position and sampler state."""
@@ -130,6 +194,7 @@ class ReplayBuffer:
                                  f'{tuple(self._data[name].shape[1:])}')
         self._size = state['size']
         self._position = state['position']
+        self._predicted_version.fill_(-1)
         for name, tensor in state['data'].items():
             self._data[name].zero_()
             self._data[name][:self._size] = tensor.to(self.dtype)

@@ -311,7 +311,24 @@ class DisturbanceGP:
         self.outputscale: torch.Tensor | None = None
         self.noise: torch.Tensor | None = None
         self.train_indices: torch.Tensor | None = None
-        self._cache: dict[str, torch.Tensor] | None = None
+        self._posterior: dict[str, torch.Tensor] | None = None
+        self._version = 0
+
+    @property
+    def _cache(self) -> dict[str, Any] | None:
+        """The posterior's factors (None before a fit)."""
+        return self._posterior
+
+    @_cache.setter
+    def _cache(self, value: dict[str, Any] | None) -> None:
+        self._posterior = value
+        self._version += 1
+
+    @property
+    def version(self) -> int:
+        """Changes whenever the predictions may change (each posterior rebuilt or dropped);
+        data added without a refit leaves it, and the predictions, as they are."""
+        return self._version
 
     # ------------------------------------------------------------------ data
     @property

@@ -30,7 +30,9 @@ learns the correction the filter would otherwise have to make; SAC is trained on
 The safety layer is injected: any callable ``safety_layer(state: (B, n_x), u_rl: (B, n_u)) ->
 u_safe: (B, n_u)`` that is differentiable in ``u_rl`` (the RCBF-QP layer); only ``diff``
 needs it. It receives tensors in the agent's dtype (float32 by default) and may compute in
-float64 internally; its output is cast back to the agent's dtype.
+float64 internally; its output is cast back to the agent's dtype. When a batch carries the
+disturbance estimate at a batch's states is given to the losses (:class:`BatchDisturbance`),
+the layer is called with it as a third argument, ``(mean, std)``, instead of predicting it.
 """
 from __future__ import annotations
 
@@ -42,7 +44,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from rcbf_ros.learning.buffers import TransitionBatch
+from rcbf_ros.learning.buffers import BatchDisturbance, TransitionBatch
 from rcbf_ros.learning.networks import Compensator, NumpyMLP, QNetwork, SquashedGaussianActor
 
 SafetyLayer = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -112,10 +114,14 @@ class ActionProposal(NamedTuple):
 
 def polyak_update(params: Iterable[nn.Parameter], target_params: Iterable[nn.Parameter],
                   tau: float) -> None:
-    """In place: target <- tau * param + (1 - tau) * target, pairwise."""
+    """In place: target <- tau * param + (1 - tau) * target, pairwise, as one multi-tensor
+    ``target + tau (param - target)`` (one pass over each tensor)."""
+    params, target_params = list(params), list(target_params)
+    if len(params) != len(target_params):
+        raise ValueError(f'polyak_update: {len(params)} parameters, {len(target_params)} '
+                         'targets')
     with torch.no_grad():
-        for param, target in zip(params, target_params, strict=True):
-            target.mul_(1.0 - tau).add_(param, alpha=tau)
+        torch._foreach_lerp_(target_params, params, tau)
 
 
 class SAC:
@@ -175,12 +181,15 @@ class SAC:
                                       requires_grad=True)
         self.target_entropy = (cfg.target_entropy if cfg.target_entropy is not None
                                else -float(n_u))
-        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
+        # Fused Adam: one kernel per step for all of a network's tensors (the same update rule;
+        # its round-off differs from the per-tensor loop's).
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr,
+                                                fused=True)
         self.critic_optimizer = torch.optim.Adam(
-            [*self.q1.parameters(), *self.q2.parameters()], lr=cfg.critic_lr)
+            [*self.q1.parameters(), *self.q2.parameters()], lr=cfg.critic_lr, fused=True)
         self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr)
         self.compensator_optimizer = (
-            torch.optim.Adam(self.compensator.parameters(), lr=cfg.compensator_lr)
+            torch.optim.Adam(self.compensator.parameters(), lr=cfg.compensator_lr, fused=True)
             if self.compensator is not None else None)
         self.generator = torch.Generator().manual_seed(seed + 1)
         self.num_updates = 0
@@ -247,15 +256,21 @@ class SAC:
 
     # ----------------------------------------------------------------- losses
     @property
-    def _through_layer(self) -> bool:
+    def through_layer(self) -> bool:
         """Whether the losses see the action through the safety layer (diff; modular with an
         envelope layer)."""
         return self.config.mode in ('diff', 'modular') and self.safety_layer is not None
 
-    def _safe_action(self, state: torch.Tensor, u_rl: torch.Tensor) -> torch.Tensor:
-        """u^RL + u^S(x, u^RL) = safety_layer(x, u^RL), cast to the networks' dtype."""
+    def _safe_action(self, state: torch.Tensor, u_rl: torch.Tensor,
+                     disturbance: torch.Tensor | None) -> torch.Tensor:
+        """u^RL + u^S(x, u^RL) = safety_layer(x, u^RL), cast to the networks' dtype.
+
+        ``disturbance``: (B, 2, n_x) mean and std at x, or None (the layer asks its model)."""
         assert self.safety_layer is not None
-        return self.safety_layer(state, u_rl).to(self.dtype)
+        if disturbance is None:
+            return self.safety_layer(state, u_rl).to(self.dtype)
+        estimate = (disturbance[:, 0], disturbance[:, 1])
+        return self.safety_layer(state, u_rl, estimate).to(self.dtype)
 
     def critic_action(self, batch: TransitionBatch) -> torch.Tensor:
         """The action the critic is trained at: u^RL_t (eq. q_update) or u*_t (eqs.
@@ -274,20 +289,24 @@ class SAC:
             obs = obs.to(self.dtype)
             return torch.minimum(self.q1(obs, action), self.q2(obs, action))
 
-    def critic_target(self, batch: TransitionBatch,
-                      noise: torch.Tensor | None = None) -> torch.Tensor:
+    def critic_target(self, batch: TransitionBatch, noise: torch.Tensor | None = None,
+                      disturbance: BatchDisturbance | None = None) -> torch.Tensor:
         """Soft Bellman target y = r + gamma (1 - done) V_bar(x_{t+1}): (B,).
 
         Args:
             noise: optional (B, n_u) standard normal draw for a' ~ pi(.|x_{t+1}).
+            disturbance: the estimate at the batch's states for the safety layer (None: the
+                layer predicts it).
         """
         with torch.no_grad():
             next_sample = self.actor(batch.next_obs, noise=noise, generator=self.generator)
             next_action = next_sample.action
-            if self._through_layer:
+            if self.through_layer:
                 # eq. q_update_diff: V_bar(x') = Q_bar(x', a' + u^S(x', a')) - alpha log pi
                 # (modular: the envelope's correction u^E only).
-                next_action = self._safe_action(batch.next_state, next_action)
+                next_action = self._safe_action(
+                    batch.next_state, next_action,
+                    None if disturbance is None else disturbance.next_state)
             # eq. q_update (plain) and eq. q_update_mod (modular): u^S_{t+1} = 0, so
             # V_bar(x') = Q_bar(x', a') - alpha log pi(a'|x').
             next_q = torch.minimum(self.q1_target(batch.next_obs, next_action),
@@ -295,10 +314,11 @@ class SAC:
             next_value = next_q - self.alpha * next_sample.log_prob
             return batch.reward + self.config.gamma * (1.0 - batch.done) * next_value
 
-    def critic_loss(self, batch: TransitionBatch,
-                    noise: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    def critic_loss(self, batch: TransitionBatch, noise: torch.Tensor | None = None,
+                    disturbance: BatchDisturbance | None = None
+                    ) -> tuple[torch.Tensor, dict[str, float]]:
         """J_Q = E[1/2 (Q_i(x_t, action_t) - y)^2], summed over the twin critics."""
-        target = self.critic_target(batch, noise)
+        target = self.critic_target(batch, noise, disturbance)
         action = self.critic_action(batch)
         q1 = self.q1(batch.obs, action)
         q2 = self.q2(batch.obs, action)
@@ -306,19 +326,22 @@ class SAC:
         return loss, {'q1_mean': float(q1.detach().mean()), 'q2_mean': float(q2.detach().mean()),
                       'target_mean': float(target.mean())}
 
-    def actor_loss(self, batch: TransitionBatch,
-                   noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def actor_loss(self, batch: TransitionBatch, noise: torch.Tensor | None = None,
+                   disturbance: BatchDisturbance | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
         """J_pi = E[alpha log pi(a|x) - min_i Q_i(x, action(a))], and log pi(a|x): (B,).
 
         Args:
             noise: optional (B, n_u) standard normal draw for a ~ pi(.|x_t).
+            disturbance: as in :meth:`critic_target`.
         """
         sample = self.actor(batch.obs, noise=noise, generator=self.generator)
         action = sample.action
-        if self._through_layer:
+        if self.through_layer:
             # eq. pi_update_diff: Q(x, a + u^S(x, a)); gradients flow through the layer
             # (modular: the envelope's layer).
-            action = self._safe_action(batch.state, action)
+            action = self._safe_action(batch.state, action,
+                                       None if disturbance is None else disturbance.state)
         # eq. pi_update (unconstrained, baselines, modular): Q(x, a).
         q = torch.minimum(self.q1(batch.obs, action), self.q2(batch.obs, action))
         loss = (self.alpha * sample.log_prob - q).mean()
@@ -330,11 +353,15 @@ class SAC:
         return 0.5 * ((self.compensator(batch.obs) - batch.u_s) ** 2).sum(-1).mean()
 
     # ----------------------------------------------------------------- update
-    def update(self, batch: TransitionBatch) -> dict[str, float]:
-        """One gradient step of critics, actor, alpha (and compensator); returns metrics."""
+    def update(self, batch: TransitionBatch,
+               disturbance: BatchDisturbance | None = None) -> dict[str, float]:
+        """One gradient step of critics, actor, alpha (and compensator); returns metrics.
+
+        ``disturbance``: the estimate at the batch's states for the safety layer, when the
+        caller has it (None: the layer predicts it)."""
         batch = TransitionBatch(*(t.to(self.dtype) for t in batch))
         cfg = self.config
-        critic_loss, metrics = self.critic_loss(batch)
+        critic_loss, metrics = self.critic_loss(batch, disturbance=disturbance)
         self.critic_optimizer.zero_grad()
         critic_loss.backward()
         self.critic_optimizer.step()
@@ -345,7 +372,7 @@ class SAC:
         for param in critic_params:
             param.requires_grad_(False)
         try:
-            actor_loss, log_prob = self.actor_loss(batch)
+            actor_loss, log_prob = self.actor_loss(batch, disturbance=disturbance)
             self.actor_optimizer.zero_grad()
             actor_loss.backward()
         finally:

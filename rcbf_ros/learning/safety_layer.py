@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from rcbf_ros.core.diffqp import solve_qp_batch
+from rcbf_ros.core.lie_closed_form_batch import BatchClosedForm
 from rcbf_ros.core.rcbf import RCBFProblem
 
 DisturbanceModel = Callable[[Tensor], tuple[Tensor, Tensor]]
@@ -32,9 +33,16 @@ class DifferentiableSafetyLayer:
         """
         self.problem = problem
         self.disturbance = disturbance
+        # The barrier terms are constants of the QP (the states are data): in closed form for
+        # the built-in systems and barriers, else by autograd (RCBFProblem.terms).
+        self._closed_form = BatchClosedForm.from_problem(problem)
 
-    def correction(self, state: Tensor, u_rl: Tensor) -> Tensor:
+    def correction(self, state: Tensor, u_rl: Tensor,
+                   disturbance: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """u_S: (B, n_u).
+
+        ``disturbance``: the estimate's (mean, std) at ``state``, each (B, n_x), when the caller
+        has it already (the learner memoises it per stored transition); None asks the model.
 
         As in the per-step filter, a proposal outside the actuator limits is clipped before the
         QP (u_S then includes the clipping; its gradient there is zero). SAC's squashed policy
@@ -47,13 +55,16 @@ class DifferentiableSafetyLayer:
             u = torch.clamp(u_in, torch.as_tensor(system.u_min, dtype=torch.float64),
                             torch.as_tensor(system.u_max, dtype=torch.float64))
         mean = std = None
-        if self.disturbance is not None:
+        if disturbance is None and self.disturbance is not None:
             with torch.no_grad():
-                mean, std = self.disturbance(x)
-            mean, std = mean.to(torch.float64), std.to(torch.float64)
-        qp = self.problem.qp(x, u, mean, std)
+                disturbance = self.disturbance(x)
+        if disturbance is not None:
+            mean, std = (part.detach().to(torch.float64) for part in disturbance)
+        terms = None if self._closed_form is None else self._closed_form.terms(x, u)
+        qp = self.problem.qp(x, u, mean, std, terms=terms)
         z = solve_qp_batch(*qp)
         return (u - u_in + z[:, :system.n_u]).to(u_rl.dtype)
 
-    def __call__(self, state: Tensor, u_rl: Tensor) -> Tensor:
-        return u_rl + self.correction(state, u_rl)
+    def __call__(self, state: Tensor, u_rl: Tensor,
+                 disturbance: tuple[Tensor, Tensor] | None = None) -> Tensor:
+        return u_rl + self.correction(state, u_rl, disturbance)

@@ -23,7 +23,7 @@ import torch
 
 from rcbf_ros.core.dynamics import ControlAffineSystem, nominal_derivative, step_euler
 from rcbf_ros.core.rcbf import RCBFProblem
-from rcbf_ros.learning.buffers import ReplayBuffer
+from rcbf_ros.learning.buffers import BatchDisturbance, ReplayBuffer, TransitionBatch
 from rcbf_ros.learning.gp import DisturbanceGP, GPConfig
 from rcbf_ros.learning.model_based import ModelRollout, RolloutConfig
 from rcbf_ros.learning.sac import Mode, MODES, SAC, SACConfig
@@ -275,18 +275,36 @@ class SafeLearner:
         if self.env_steps < cfg.update_after or len(self.buffer) < cfg.batch_size:
             return {}
         for _ in range(cfg.updates_per_step):
-            self.last_metrics = self.sac.update(self.sample_batch())
+            self.last_metrics = self.sac.update(*self.sample_batch())
         return self.last_metrics
 
-    def sample_batch(self):
-        """A minibatch; in model-based mode a ``model_ratio`` share comes from the model."""
+    def sample_batch(self) -> tuple[TransitionBatch, BatchDisturbance | None]:
+        """A minibatch; in model-based mode a ``model_ratio`` share comes from the model.
+
+        When the losses see the action through a safety layer, also the GP's estimate at the
+        batch's states, memoised per stored transition until the next refit (the GP changes
+        only there): each transition's states are predicted once per refit instead of at every
+        draw of it. Otherwise None.
+        """
         cfg = self.config
         if self.model_buffer is None or len(self.model_buffer) == 0:
-            return self.buffer.sample(cfg.batch_size)
+            return self._draw(self.buffer, cfg.batch_size)
         n_model = int(round(cfg.model_ratio * cfg.batch_size))
-        real = self.buffer.sample(cfg.batch_size - n_model)
-        model = self.model_buffer.sample(n_model)
-        return type(real)(*(torch.cat([a, b]) for a, b in zip(real, model)))
+        real, real_estimate = self._draw(self.buffer, cfg.batch_size - n_model)
+        model, model_estimate = self._draw(self.model_buffer, n_model)
+        batch = TransitionBatch(*(torch.cat([a, b]) for a, b in zip(real, model)))
+        if real_estimate is None or model_estimate is None:
+            return batch, None
+        return batch, BatchDisturbance(*(torch.cat([a, b]) for a, b in
+                                          zip(real_estimate, model_estimate)))
+
+    def _draw(self, buffer: ReplayBuffer, size: int
+              ) -> tuple[TransitionBatch, BatchDisturbance | None]:
+        index = buffer.sample_index(size)
+        if not self.sac.through_layer:
+            return buffer.gather(index), None
+        return buffer.gather(index), buffer.predictions(index, version=self.gp.version,
+                                                        predict=self.disturbance)
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:

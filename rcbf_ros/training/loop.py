@@ -134,6 +134,10 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
             if episode % run.checkpoint_every == 0:
                 save_checkpoint()
     finally:
+        # A signal can land between the updates above: the rows in ``history`` are the
+        # episodes done, and the metrics file gets any row it has not received yet.
+        episode = len(history)
+        reconcile_metrics(metrics_path, history=history)
         if learner.env_steps != saved_at:  # not already saved with every step taken so far
             save_checkpoint()
         save_policy(out / 'policy.pt', learner.sac, u_low=learner.u_low, u_high=learner.u_high,

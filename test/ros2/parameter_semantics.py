@@ -2,7 +2,8 @@
 
 ``python parameter_semantics.py rclpy|cyclone`` prints one JSON list: every step's outcome
 (SetParametersResult flags and reasons, the exception type a call raised, the values after it,
-the callbacks called and in which order). The ros2 tier runs it under a real Jazzy and on ours
+the callbacks called and in which order, the parameter events the node published). The ros2
+tier runs it under a real Jazzy and on ours
 and compares the two lists; the unit tests import :func:`run` and check the semantics one by
 one. The steps cover per-parameter and atomic sets, the three kinds of callbacks (each list
 newest first; a refusal stops the on-set ones), descriptors (read-only, types, integer and
@@ -48,6 +49,11 @@ def middleware(which: str) -> dict[str, Any]:
             'shutdown': rclpy_compat.try_shutdown}
 
 
+VALUE_FIELDS = {1: 'bool_value', 2: 'integer_value', 3: 'double_value', 4: 'string_value',
+                5: 'byte_array_value', 6: 'bool_array_value', 7: 'integer_array_value',
+                8: 'double_array_value', 9: 'string_array_value'}
+"""rcl_interfaces/msg/ParameterType number -> the ParameterValue field holding it."""
+
 RCLPY_OWN = ('use_sim_time', 'start_type_description_service')
 """Parameters rclpy declares on every node (simulated time, the type description service),
 which the Cyclone runtime has no use for."""
@@ -66,6 +72,20 @@ def run(which: str) -> list[dict[str, Any]]:
     node = m['node']('parameter_semantics')
     calls: list[str] = []
     steps: list[dict[str, Any]] = []
+    events: list[Any] = []
+
+    class EventCapture:
+        """Stands in for the node's ``/parameter_events`` publisher (the same attribute on
+        rclpy's Node and on ours): what the node publishes, without DDS timing."""
+
+        def publish(self, msg: Any) -> None:
+            events.append(msg)
+
+    node._parameter_event_publisher = EventCapture()
+
+    def event_entries(parameters: Any) -> list[Any]:
+        return [[p.name, p.value.type, _plain(getattr(p.value, VALUE_FIELDS[p.value.type]))
+                 if p.value.type in VALUE_FIELDS else None] for p in parameters]
 
     def result(successful: bool, reason: str = '') -> Any:
         return m['Result'](successful=successful, reason=reason)
@@ -90,6 +110,7 @@ def run(which: str) -> list[dict[str, Any]]:
 
     def step(name: str, call: Callable[[], Any]) -> None:
         calls.clear()
+        events.clear()
         try:
             out = call()
         except Exception as exc:  # noqa: BLE001 - the exception type is the outcome here
@@ -105,17 +126,26 @@ def run(which: str) -> list[dict[str, Any]]:
             else:
                 outcome = None
         steps.append({'step': name, 'outcome': outcome, 'calls': list(calls),
-                      'values': values()})
+                      'values': values(),
+                      'events': [{'node': e.node, 'new': event_entries(e.new_parameters),
+                                  'changed': event_entries(e.changed_parameters),
+                                  'deleted': event_entries(e.deleted_parameters)}
+                                 for e in events]})
 
     d = m['Descriptor']
-    node.declare_parameter('a', 2, d(integer_range=[m['IntegerRange'](
-        from_value=0, to_value=10, step=2)]))
-    node.declare_parameter('b', 0.5, d(floating_point_range=[m['FloatingPointRange'](
-        from_value=1.0, to_value=-2.0, step=0.25)]))
-    node.declare_parameter('ro', 'fixed', d(read_only=True))
-    node.declare_parameter('dyn', 1, d(dynamic_typing=True))
-    node.declare_parameter('x.y.z', 1.0)
-    node.declare_parameter('x.w', [1.0, 2.0])
+
+    def first_declarations() -> None:
+        node.declare_parameter('a', 2, d(integer_range=[m['IntegerRange'](
+            from_value=0, to_value=10, step=2)]))
+        node.declare_parameter('b', 0.5, d(floating_point_range=[m['FloatingPointRange'](
+            from_value=1.0, to_value=-2.0, step=0.25)]))
+        node.declare_parameter('ro', 'fixed', d(read_only=True))
+        node.declare_parameter('dyn', 1, d(dynamic_typing=True))
+        node.declare_parameter('x.y.z', 1.0)
+        node.declare_parameter('x.w', [1.0, 2.0])
+        node.declare_parameter('unset', m['Parameter'].Type.INTEGER)
+
+    step('declare the first parameters', first_declarations)
     node.add_on_set_parameters_callback(refuse_negative_b)
     node.add_on_set_parameters_callback(record_on)
     node.add_post_set_parameters_callback(post)

@@ -138,7 +138,7 @@ def _episode_events(bag: Path) -> list[dict]:
     events = []
     for path in sorted(bag.glob('*.mcap')):
         with path.open('rb') as stream:
-            for _, channel, _, msg in make_reader(
+            for _, _, _, msg in make_reader(
                     stream, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
                         topics=['/episode']):
                 events.append(json.loads(msg.data))

@@ -84,7 +84,85 @@ def test_bad_input_names_the_field():
         buffer.add(**{**good, 'next_state': np.zeros(3)})
     with pytest.raises(ValueError, match='reward'):
         buffer.add(**{**good, 'reward': float('nan')})
+    # Beyond float32's range: infinite once stored, refused the same way.
+    with pytest.raises(ValueError, match='^u_safe contains non-finite values$'):
+        buffer.add(**{**good, 'u_safe': [1e300]})
+    with pytest.raises(ValueError, match='^obs contains'):
+        buffer.add(**{**good, 'obs': torch.tensor([0.0, float('inf'), 0.0])})
+    with pytest.raises(ValueError, match='done must hold 2 row'):
+        buffer.add(**{name: np.stack([value, value]) if np.ndim(value) else [value, value]
+                      for name, value in good.items()} | {'done': [True, False, True]})
+    assert len(buffer) == 0  # nothing refused was stored
     with pytest.raises(ValueError, match='empty'):
         buffer.sample(1)
     with pytest.raises(ValueError, match='capacity'):
         ReplayBuffer(0, 3, 2, 1)
+
+
+class CountingModel:
+    """mean = 2 x + offset, std = |x| + 1 (float64), counting the rows it was asked for."""
+
+    def __init__(self) -> None:
+        self.offset = 0.0
+        self.rows: list[int] = []
+
+    def __call__(self, states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        assert states.dtype == torch.float64
+        self.rows.append(states.shape[0])
+        return 2.0 * states + self.offset, states.abs() + 1.0
+
+
+def expected(model: CountingModel, states: torch.Tensor) -> torch.Tensor:
+    x = states.to(torch.float64)
+    return torch.stack([2.0 * x + model.offset, x.abs() + 1.0], dim=1)
+
+
+def test_predictions_are_the_models_at_both_states_and_each_slot_is_predicted_once():
+    buffer = ReplayBuffer(10, 3, 2, 1)
+    add_numbered(buffer, 0, 6)
+    model = CountingModel()
+    index = torch.tensor([4, 1, 4, 0, 1])
+    at = buffer.predictions(index, version=0, predict=model)
+    batch = buffer.gather(index)
+    torch.testing.assert_close(at.state, expected(model, batch.state), rtol=0, atol=0)
+    torch.testing.assert_close(at.next_state, expected(model, batch.next_state), rtol=0, atol=0)
+    assert model.rows == [6]  # one call: 3 distinct slots, state and next state each
+    again = buffer.predictions(torch.tensor([0, 1, 4, 4]), version=0, predict=model)
+    assert model.rows == [6]  # nothing stale
+    torch.testing.assert_close(again.state, expected(model, buffer.gather(
+        torch.tensor([0, 1, 4, 4])).state), rtol=0, atol=0)
+    buffer.predictions(torch.tensor([0, 5]), version=0, predict=model)
+    assert model.rows == [6, 2]  # only slot 5 is new
+
+
+def test_a_new_model_version_or_an_overwritten_slot_is_predicted_again():
+    buffer = ReplayBuffer(4, 3, 2, 1)
+    add_numbered(buffer, 0, 4)
+    model = CountingModel()
+    everything = torch.arange(4)
+    buffer.predictions(everything, version=0, predict=model)
+    model.offset = 10.0  # a refit: new predictions, new version
+    at = buffer.predictions(everything, version=1, predict=model)
+    assert model.rows == [8, 8]
+    torch.testing.assert_close(at.state, expected(model, buffer.gather(everything).state),
+                               rtol=0, atol=0)
+    add_numbered(buffer, 50, 1)  # overwrites the oldest slot, 0
+    at = buffer.predictions(everything, version=1, predict=model)
+    assert model.rows == [8, 8, 2]
+    torch.testing.assert_close(at.next_state, expected(
+        model, buffer.gather(everything).next_state), rtol=0, atol=0)
+
+
+def test_a_restored_buffer_predicts_every_slot_again():
+    buffer = ReplayBuffer(5, 3, 2, 1)
+    add_numbered(buffer, 0, 5)
+    model = CountingModel()
+    buffer.predictions(torch.arange(5), version=3, predict=model)
+    other = ReplayBuffer(5, 3, 2, 1)
+    add_numbered(other, 100, 5)
+    other.predictions(torch.arange(5), version=3, predict=model)
+    other.load_state_dict(buffer.state_dict())  # same version number, other transitions
+    at = other.predictions(torch.arange(5), version=3, predict=model)
+    assert model.rows == [10, 10, 10]
+    torch.testing.assert_close(at.state, expected(model, buffer.gather(torch.arange(5)).state),
+                               rtol=0, atol=0)

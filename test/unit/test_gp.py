@@ -157,6 +157,31 @@ def test_state_dict_round_trip_restores_posterior_without_refit(fitted_slope_gp)
         DisturbanceGP(2, 3).load_state_dict(fitted_slope_gp.state_dict())
 
 
+def test_version_changes_with_the_posterior_and_not_with_added_data():
+    """Callers memoise predictions per version (the replay buffer's memo for the losses)."""
+    gp = DisturbanceGP(3, 3, GPConfig(max_train_points=50, training_iterations=2))
+    generator = torch.Generator().manual_seed(3)
+    states = uniform_states(80, generator)
+    versions = [gp.version]
+    gp.add(states[:60], unicycle_slope_disturbance(states[:60]))
+    versions.append(gp.version)
+    gp.fit()
+    versions.append(gp.version)
+    queries = uniform_states(5, generator)
+    before = gp.predict(queries)
+    gp.add(states[60:], unicycle_slope_disturbance(states[60:]))
+    versions.append(gp.version)
+    for a, b in zip(gp.predict(queries), before):  # data alone leaves the predictions
+        assert torch.equal(a, b)
+    gp.fit()
+    versions.append(gp.version)
+    restored = DisturbanceGP(3, 3, GPConfig(max_train_points=50))
+    start = restored.version
+    restored.load_state_dict(gp.state_dict())
+    assert versions[0] == versions[1] < versions[2] == versions[3] < versions[4]
+    assert restored.version != start
+
+
 def test_rows_added_one_at_a_time_equal_one_batch_across_storage_growth():
     """The training loop adds one row per step; the stored data (past the storage's first
     growths) and the fitted posterior must equal adding the same rows at once."""

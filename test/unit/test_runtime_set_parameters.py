@@ -116,12 +116,32 @@ def test_removing_callbacks(steps):
     assert steps['undeclare undeclared']['outcome'] == {'raises': 'ParameterNotDeclaredException'}
 
 
+def test_every_declaration_and_set_is_announced_as_rclpy_announces_it(steps):
+    """One ParameterEvent per successful declaration or set, from the node itself (not only
+    through the parameter services): new when the parameter had no value, changed when it had,
+    deleted when a NOT_SET value undeclared it; none for a refused set or an undeclare."""
+    def names(step: str, kind: str) -> list[list[str]]:
+        return [[entry[0] for entry in event[kind]] for event in steps[step]['events']]
+    first = steps['declare the first parameters']['events']
+    assert [event['new'][0][0] for event in first] == ['a', 'b', 'ro', 'dyn', 'x.y.z', 'x.w',
+                                                       'unset']
+    assert first[-1]['new'] == [['unset', 0, None]]  # declared without a value: NOT_SET
+    assert {event['node'] for event in first} == {'/parameter_semantics'}
+    # the six accepted sets of the fourteen, in order; the last undeclared `dyn`
+    assert names('set one by one', 'changed') == [['a'], ['a'], ['b'], ['b'], ['dyn'], []]
+    assert names('set one by one', 'deleted') == [[], [], [], [], [], ['dyn']]
+    assert steps['atomic refused by a callback']['events'] == []
+    assert names('atomic accepted', 'changed') == [['a', 'b']]
+    assert names('declare many, one refused', 'new') == [['d1']]
+    assert steps['undeclare']['events'] == []
+
+
 def test_list_parameters_by_prefix_and_depth(steps):
     def listed(key: str) -> tuple[list[str], list[str]]:
         outcome = steps[key]['outcome']
         return outcome['names'], outcome['prefixes']
-    assert listed('list [] 1') == (['a', 'b', 'ro', 'd1'], [])
-    assert listed('list [] 2') == (['a', 'b', 'ro', 'x.w', 'd1'], ['x'])
+    assert listed('list [] 1') == (['a', 'b', 'ro', 'unset', 'd1'], [])
+    assert listed('list [] 2') == (['a', 'b', 'ro', 'x.w', 'unset', 'd1'], ['x'])
     assert listed("list ['x'] 1") == (['x.w'], ['x'])
     assert listed("list ['x'] 0") == (['x.y.z', 'x.w', 'x.y.q', 'x.v.q.r'],
                                       ['x.y', 'x', 'x.v.q'])

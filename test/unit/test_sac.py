@@ -287,6 +287,8 @@ def test_polyak_update():
     polyak_update(source.parameters(), target.parameters(), 0.1)
     for e, t in zip(expected, target.parameters()):
         torch.testing.assert_close(t, e)
+    with pytest.raises(ValueError, match='2 parameters, 1 targets'):
+        polyak_update(source.parameters(), [target.weight], 0.1)
 
 
 def test_bad_configuration_is_rejected_naming_the_field():

@@ -16,7 +16,7 @@ from rcbf_ros.training.agent import LearnerConfig
 from rcbf_ros.training.build import RunConfig
 from rcbf_ros.training.loop import train
 from rcbf_ros.training.models import MODELS
-from rcbf_ros.training.run_files import load_payload
+from rcbf_ros.training.run_files import append_row, load_payload
 
 SMALL = dict(start_steps=40, update_after=40, batch_size=32, gp_refit_interval=60,
              sac=SACConfig(hidden_sizes=(32, 32)))
@@ -49,6 +49,64 @@ def test_model_based_diff_adds_synthetic_transitions(tmp_path):
     stats = run_episode(env, filt, learner, episode=0, seed=0)
     assert stats.violations == 0
     assert learner.model_buffer is not None and len(learner.model_buffer) > 0
+
+
+def _filled_learner(tmp_path, system: str, mode: str, **extra):
+    """A learner whose buffer and GP hold 120 random transitions of ``system``, GP fitted."""
+    from rcbf_ros.training.build import build_run
+    env, _, learner, _ = build_run(small_run(tmp_path, system, mode, **extra))
+    rng = np.random.default_rng(5)
+    obs, info = env.reset(seed=0)
+    for _ in range(120):
+        u = rng.uniform(learner.u_low, learner.u_high)
+        next_obs, reward, terminated, truncated, next_info = env.step(u)
+        learner.observe(obs=obs, state=info['state'], u_rl=u, u_safe=u, reward=reward,
+                        next_obs=next_obs, next_state=next_info['state'], terminated=terminated)
+        obs, info = next_obs, next_info
+        if terminated or truncated:
+            obs, info = env.reset()
+    learner.gp.fit()
+    return learner
+
+
+@pytest.mark.parametrize('system, mode, extra', [
+    ('car_following', 'diff', {}), ('pvtol', 'modular', {'modular_envelope': True}),
+    ('unicycle', 'diff', {'model_based': True, 'rollouts': 16, 'rollout_horizon': 2})])
+def test_the_losses_see_the_gp_estimate_memoised_per_transition_as_if_predicted_afresh(
+        tmp_path, system, mode, extra):
+    """The learner hands the losses the GP's estimate at each batch's states from the replay
+    buffer's memo; an update with it equals one whose safety layer predicts the estimate
+    itself, and after a refit the memo holds the new GP's estimate."""
+    memo = _filled_learner(tmp_path / 'memo', system, mode, **extra)
+    fresh = _filled_learner(tmp_path / 'fresh', system, mode, **extra)
+    if memo.rollout is not None:
+        for learner in (memo, fresh):
+            learner.rollout.run(learner.buffer, learner.model_buffer)
+    for _ in range(3):
+        batch, estimate = memo.sample_batch()
+        assert estimate is not None
+        for states, at in ((batch.state, estimate.state), (batch.next_state, estimate.next_state)):
+            mean, std = memo.disturbance(states.to(torch.float64))
+            torch.testing.assert_close(at[:, 0], mean, rtol=1e-12, atol=1e-14)
+            torch.testing.assert_close(at[:, 1], std, rtol=1e-12, atol=1e-14)
+        ours = memo.sac.update(batch, estimate)
+        theirs = fresh.sac.update(*(fresh.sample_batch()[0], None))
+        assert ours.keys() == theirs.keys()
+        for key in ours:
+            assert ours[key] == pytest.approx(theirs[key], rel=1e-6, abs=1e-9), key
+    # A refit on more data: the memo's entries are stale and predicted again.
+    memo.gp.add(torch.zeros(1, memo.system.n_x, dtype=torch.float64),
+                torch.full((1, memo.system.n_x), 0.3, dtype=torch.float64))
+    memo.gp.fit()
+    batch, estimate = memo.sample_batch()
+    mean, std = memo.disturbance(batch.state.to(torch.float64))
+    torch.testing.assert_close(estimate.state[:, 0], mean, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(estimate.state[:, 1], std, rtol=1e-12, atol=1e-14)
+
+
+def test_without_a_layer_in_the_losses_no_estimate_is_drawn(tmp_path):
+    learner = _filled_learner(tmp_path, 'unicycle', 'baseline')
+    assert learner.sample_batch()[1] is None
 
 
 def test_modular_learner_keeps_the_envelope_layer_of_every_layout(tmp_path):
@@ -339,6 +397,30 @@ def test_sigterm_mid_run_keeps_checkpoint_metrics_and_bag(tmp_path):
     from rosbags.highlevel import AnyReader
     with AnyReader([next(out.glob('bag_*'))]) as reader:
         assert sum(c.msgcount for c in reader.connections if c.topic == '/cmd_safe') >= 80
+
+
+def test_an_interrupt_between_an_episodes_row_and_its_line_loses_neither(tmp_path, monkeypatch):
+    """Ctrl-C after an episode's row joined the history but before the metrics file got it:
+    the file, the checkpoint's counter and its history still agree."""
+    import rcbf_ros.training.loop as loop
+    calls = []
+
+    def interrupted_append(path, row):
+        calls.append(row)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        append_row(path, row)
+
+    monkeypatch.setattr(loop, 'append_row', interrupted_append)
+    run = small_run(tmp_path, 'unicycle', 'baseline', episodes=4, steps=30)
+    with pytest.raises(KeyboardInterrupt):
+        train(run, log=lambda _: None)
+    out = tmp_path / 'unicycle_baseline_0'
+    lines = (out / 'metrics.jsonl').read_text().splitlines()
+    checkpoint = load_payload(out / 'checkpoint.pt')
+    assert len(lines) == checkpoint['episode'] == len(checkpoint['history']) == 2
+    assert [json.loads(line)['episode'] for line in lines] == [
+        row['episode'] for row in checkpoint['history']]
 
 
 def test_train_cli_modular_envelope_flag_reaches_the_learner_config():

@@ -36,6 +36,7 @@ from rcbf_ros.ros.dds.graph import gid_of
 from rcbf_ros.ros.dds.log import LEVEL_NAMES, Logger
 from rcbf_ros.ros.dds.node_graph import NodeGraph
 from rcbf_ros.ros.dds.node_parameters import NodeParameters
+from rcbf_ros.ros.dds.parameter_service import qos_profile_parameter_events
 from rcbf_ros.ros.dds.parameters import (
     DEPTH_RECURSIVE,
     InvalidParameterTypeException,
@@ -115,6 +116,9 @@ class Node(NodeParameters, NodeGraph):
         self.context.add_node(self)
         self._graph_node = self.context.graph.add_node(name=self._name,
                                                        namespace=self._namespace)
+        self._parameter_event_publisher = self.create_publisher(
+            messages.get_message('rcl_interfaces/msg/ParameterEvent'), '/parameter_events',
+            qos_profile_parameter_events)
         self._rosout: RosoutWriter | None = None
         if enable_rosout and self.context.arguments.rosout_logs:  # as rcl: global args only
             self._rosout = RosoutWriter(self.context.participant,

@@ -20,6 +20,7 @@ from typing import Any, Iterable, Sequence
 import warnings
 
 from rcbf_ros.ros.dds import messages
+from rcbf_ros.ros.dds.parameter_service import parameter_msg
 from rcbf_ros.ros.dds.parameters import (
     DEPTH_RECURSIVE,
     in_range,
@@ -52,6 +53,9 @@ class NodeParameters:
         self._pre_set_parameters_callbacks: list[PreSetCallback] = []
         self._on_set_parameters_callbacks: list[OnSetCallback] = []
         self._post_set_parameters_callbacks: list[PostSetCallback] = []
+        # ``/parameter_events`` (the node creates it once it can publish, as rclpy does first
+        # thing): every successful declaration and set is announced there.
+        self._parameter_event_publisher: Any = None
 
     def declare_parameter(self, name: str, value: Any = None, descriptor: Any = None,
                           ignore_override: bool = False) -> Parameter:
@@ -271,8 +275,10 @@ class NodeParameters:
             result = callback(parameter_list)
             if not result.successful:
                 return result
+        event: dict[str, list[Parameter]] = {'new': [], 'changed': [], 'deleted': []}
         for parameter in parameter_list:
             if not declaring and parameter.type_ is Parameter.Type.NOT_SET:
+                event['deleted'].append(parameter)
                 self._parameters.pop(parameter.name, None)
                 self._descriptors.pop(parameter.name, None)
                 continue
@@ -280,10 +286,26 @@ class NodeParameters:
                 self._descriptors[parameter.name] = descriptors[parameter.name]
             elif parameter.name not in self._descriptors:
                 self._descriptors[parameter.name] = parameter_descriptor(dynamic_typing=True)
+            had_value = self.get_parameter_or(parameter.name).type_ is not Parameter.Type.NOT_SET
+            event['changed' if had_value else 'new'].append(parameter)
             self._parameters[parameter.name] = parameter
+        self._publish_parameter_event(**event)
         for callback in list(self._post_set_parameters_callbacks):
             callback(parameter_list)
         return set_parameters_result(True)
+
+    def _publish_parameter_event(self, *, new: list[Parameter], changed: list[Parameter],
+                                 deleted: list[Parameter]) -> None:
+        """One ``rcl_interfaces/msg/ParameterEvent`` of this node on ``/parameter_events``
+        (before the post-set callbacks run, as rclpy publishes it)."""
+        if self._parameter_event_publisher is None:
+            return
+        self._parameter_event_publisher.publish(
+            messages.get_message('rcl_interfaces/msg/ParameterEvent')(
+                stamp=self.get_clock().now().to_msg(), node=self.get_fully_qualified_name(),
+                new_parameters=[parameter_msg(p) for p in new],
+                changed_parameters=[parameter_msg(p) for p in changed],
+                deleted_parameters=[parameter_msg(p) for p in deleted]))
 
     def add_pre_set_parameters_callback(self, callback: PreSetCallback) -> None:
         """Call ``callback`` first (before the older ones) on every set_parameters* (not on

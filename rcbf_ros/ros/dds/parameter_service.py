@@ -11,9 +11,9 @@ sets each parameter atomically on its own, an undeclared one failing with the ex
 as its reason; ``set_parameters_atomically`` sets all or none. Setting goes through the node's
 ``set_parameters_atomically``, so its checks (types, read-only, set-parameter callbacks) apply.
 
-Successful sets through these services are announced on ``/parameter_events``
-(``rcl_interfaces/msg/ParameterEvent``: new, changed and deleted parameters, the node's fully
-qualified name, a stamp), as rclpy announces every set.
+Successful sets, through these services or from inside the node, are announced on
+``/parameter_events`` by the node itself (:meth:`NodeParameters._set_parameters_common`), as
+rclpy announces every declaration and set.
 """
 from __future__ import annotations
 
@@ -126,9 +126,6 @@ class ParameterService:
                                 f'{name}/{service}', callback,
                                 qos_profile=qos_profile_parameters)
             for service, (srv_type, callback) in ((s, callbacks[s]) for s in PARAMETER_SERVICES)]
-        self._event_type = messages.get_message('rcl_interfaces/msg/ParameterEvent')
-        self.event_publisher = node.create_publisher(
-            self._event_type, '/parameter_events', qos_profile_parameter_events)
 
     def _node(self) -> Any:
         node = self._node_ref()
@@ -173,28 +170,7 @@ class ParameterService:
         return response
 
     def _set_atomically(self, parameters: list[Parameter]) -> Any:
-        node = self._node()
-        before = {p.name: node.get_parameter_or(p.name).type_ is not Parameter.Type.NOT_SET
-                  for p in parameters}
         try:
-            result = node.set_parameters_atomically(parameters)
+            return self._node().set_parameters_atomically(parameters)
         except ParameterNotDeclaredException as exc:
             return set_parameters_result(False, str(exc))
-        if result.successful:
-            self.publish_event(
-                new=[p for p in parameters
-                     if p.type_ is not Parameter.Type.NOT_SET and not before[p.name]],
-                changed=[p for p in parameters
-                         if p.type_ is not Parameter.Type.NOT_SET and before[p.name]],
-                deleted=[p for p in parameters if p.type_ is Parameter.Type.NOT_SET])
-        return result
-
-    def publish_event(self, *, new: Iterable[Parameter] = (), changed: Iterable[Parameter] = (),
-                      deleted: Iterable[Parameter] = ()) -> None:
-        """Publish a ParameterEvent of this node on ``/parameter_events``."""
-        node = self._node()
-        self.event_publisher.publish(self._event_type(
-            stamp=node.get_clock().now().to_msg(), node=node.get_fully_qualified_name(),
-            new_parameters=[parameter_msg(p) for p in new],
-            changed_parameters=[parameter_msg(p) for p in changed],
-            deleted_parameters=[parameter_msg(p) for p in deleted]))
