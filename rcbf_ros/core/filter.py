@@ -567,7 +567,8 @@ class SafetyFilter:
         self._solver.update(Ax=g_matrix.take(self._pattern_index), u=upper)
         result = self._solver.solve(raise_error=False)
         status_val = int(result.info.status_val)
-        z = None if result.x is None else np.array(result.x, dtype=np.float64)
+        # used within this call only (the action and values are new arrays): no copy
+        z = None if result.x is None else np.asarray(result.x, dtype=np.float64)
         checked = self._check(z, rows) if status_val in _OK_STATUS else None
         status = _OK_STATUS.get(status_val, str(result.info.status))
         if checked is None:
