@@ -26,19 +26,20 @@ With w = (x, f, J f) (3 n_x entries), T the symmetric 3 x 3 matrix
 [[beta_0, beta_1, beta_2], [beta_1, 2 beta_2, 0], [beta_2, 0, 0]] and M = T (x) Q (Kronecker),
 b = (beta_0 a, beta_1 a, beta_2 a), the coefficients C = b + M w (three n_x blocks) give
 
-    grad h_top = C [I; J; J^2]          h_top = beta_0 c + 1/2 (b + C)^T w
+    grad h_top^T = C [I; J; J^2]          h_top = beta_0 c + 1/2 (b + C)^T w
 
 (expand the products to see the table above). M, b and beta_0 c are fixed per row, so one
 product w M for every row, of any cascade depth, gives C; one more gives every gradient
-(:class:`_QuadraticStack`). Rows cascaded at most once use w = (x, f) and [I; J].
+(:class:`_QuadraticStack`). Where no row is cascaded twice, the third blocks (beta_2 = 0) are
+left out: w = (x, f) and [I; J]; where none is cascaded, w = x and I.
 
 A look-ahead circle, h = ||p - c||^2 - delta^2 with p = (x_i, x_j) + s l_p (cos th, sin th),
 has grad h = 2 (p - c) on (x_i, x_j) and 2 s l_p (p - c)^T (-sin th, cos th) on th; it is used
 uncascaded only, with the direction-of-travel switch of :func:`barrier_terms`, and evaluated on
 Python floats (a handful of values per obstacle, fewer operations than numpy's per-call cost).
 
-The QP rows then take three products: L_g h = grad h g, and the right-hand side of the RCBF row
-(:func:`rcbf_ros.core.qp.build_rcbf_qp`) in one,
+The QP rows then take a few more products: L_g h = grad h^T g, and the right-hand side of the
+RCBF row (:func:`rcbf_ros.core.qp.build_rcbf_qp`) at once,
 
     L_f h + L_g h u + alpha h + rho = grad h^T (f + g u + mean) + alpha h - k_c |grad h|^T std.
 
