@@ -38,10 +38,10 @@ has grad h = 2 (p - c) on (x_i, x_j) and 2 s l_p (p - c)^T (-sin th, cos th) on 
 uncascaded only, with the direction-of-travel switch of :func:`barrier_terms`, and evaluated on
 Python floats (a handful of values per obstacle, fewer operations than numpy's per-call cost).
 
-The QP rows then take a few more products: L_g h = grad h^T g, and the right-hand side of the
-RCBF row (:func:`rcbf_ros.core.qp.build_rcbf_qp`) at once,
-
-    L_f h + L_g h u + alpha h + rho = grad h^T (f + g u + mean) + alpha h - k_c |grad h|^T std.
+The QP rows then take a few more products, in the order of
+:func:`rcbf_ros.core.qp.build_rcbf_qp` (so that the row values round as there):
+L_f h = grad h^T f, L_g h = grad h^T g, rho = grad h^T mean - k_c |grad h|^T std and the right-hand
+side L_f h + L_g h u + alpha h + rho.
 
 :meth:`ClosedFormTerms.from_problem` is the one place that decides whether a problem has a
 closed form: a built-in system (by exact type) and built-in families, cascaded at most twice,
@@ -365,15 +365,11 @@ class ClosedFormAssembly:
     def __call__(self, x: np.ndarray, u_rl: np.ndarray, mean: np.ndarray, std: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(h (K,), G (nc, m + 1), right-hand side (nc,)) at state x, proposal u_rl and the
-        disturbance box mean +/- k_c std (all 1-D float64), as :meth:`RCBFProblem.qp`.
-
-        The RCBF rows' right-hand sides in one product (module docstring):
-        L_f h + L_g h u + alpha h + rho = grad h^T (f + g u + mean) + alpha h - k_c |grad h|^T std.
-        """
+        disturbance box mean +/- k_c std (all 1-D float64), as :meth:`RCBFProblem.qp`."""
         jet = self.terms.jet(x)
         h, grad = self.terms.top(x, jet, u_rl)
-        g = jet.g
-        upper = (grad.dot(jet.f + g.dot(u_rl) + mean) + self._alpha_rows * h
-                 - self._k_c_rows * np.abs(grad).dot(std))
-        g_matrix, upper = self.rows.complete(upper=upper, lg_h=grad.dot(g), u_rl=u_rl)
+        lg_h = grad.dot(jet.g)
+        rho = grad.dot(mean) - self._k_c_rows * np.abs(grad).dot(std)  # robust_margin
+        upper = grad.dot(jet.f) + lg_h.dot(u_rl) + self._alpha_rows * h + rho
+        g_matrix, upper = self.rows.complete(upper=upper, lg_h=lg_h, u_rl=u_rl)
         return h, g_matrix, upper
