@@ -23,9 +23,9 @@ over those that ran OSQP (counted by wrapping its solve), and the median CPU tim
 thread (time.thread_time: what the call itself consumed, less sensitive to the machine's load
 than the wall time, though cores shared with other work still slow it). For the closed form,
 the call split in stages: the assembly (timed per call by wrapping it); solve =
-FilterResult.solve_time_s, i.e. OSQP update + solve + the row check, or the row check alone on
-a pass-through, with OSQP's own C timers of update and solve; the rest = input checks,
-clipping, the data check and the result.
+FilterResult.solve_time_s, i.e. OSQP update + solve + the row check, or on a pass-through the
+result at z = 0 (where the row check holds by construction), with OSQP's own C timers of
+update and solve; the rest = input checks, clipping, the data check and the result.
 Then the solver alone against a new OSQP per call and qpth at batch 1, with the
 accuracy of each against Clarabel.
 
@@ -85,7 +85,7 @@ PATHS_DIFFER = (
 """Printed with the tables."""
 STAGES = {'rest': 'input checks, clip, data check, result',
           'assembly': 'constraint assembly (closed form)',
-          'solve': 'solve + row check (pass-through: the check at z = 0)',
+          'solve': 'solve + row check (pass-through: the result at z = 0)',
           'osqp update': 'of which OSQP update, C timer',
           'osqp solve': 'of which OSQP solve, C timer'}
 """The stages of a closed-form call (module docstring)."""

@@ -133,6 +133,25 @@ class FilterResult:
     proposal_clipped: bool = False
     """Whether the proposal lay outside the actuator limits and was clipped before the QP."""
 
+    @classmethod
+    def _filled(cls, *, u_safe: np.ndarray, u_s: np.ndarray, slack: float, h: np.ndarray,
+                constraint_values: np.ndarray, status: str, solve_time_s: float,
+                total_time_s: float, fail_safe: bool, barrier_names: list[str],
+                needed_slack: float, reason: str, proposal_clipped: bool) -> FilterResult:
+        """The result with every field given, as ``FilterResult(...)`` builds it.
+
+        The filter's per-call constructor: the ``__init__`` a frozen dataclass generates sets
+        each field through ``object.__setattr__`` (about 3 us for these 13 fields, a tenth of
+        a pass-through call); this fills the instance's ``__dict__`` in one update. Every field
+        is a required keyword, so none can be left out."""
+        result = object.__new__(cls)
+        result.__dict__.update(
+            u_safe=u_safe, u_s=u_s, slack=slack, h=h, constraint_values=constraint_values,
+            status=status, solve_time_s=solve_time_s, total_time_s=total_time_s,
+            fail_safe=fail_safe, barrier_names=barrier_names, needed_slack=needed_slack,
+            reason=reason, proposal_clipped=proposal_clipped)
+        return result
+
     @property
     def active(self) -> bool:
         """Whether the filter changed the proposal by more than the solver's tolerance (1e-7;
@@ -424,8 +443,6 @@ class SafetyFilter:
         self._zeros_x = np.zeros(self.n_x)
         self._zeros_x.setflags(write=False)
         self._zeros_x_list = self._zeros_x.tolist()
-        self._zeros_z = np.zeros(self.n_u + 1)
-        self._zeros_z.setflags(write=False)
         action = np.zeros(self.n_u) if fail_safe_action is None else _vector(
             'fail_safe_action', fail_safe_action, self.n_u)
         if not np.all(np.isfinite(action)):
@@ -530,36 +547,43 @@ class SafetyFilter:
                     return self._fail_safe(
                         u, start, status='input_refused', h=h_values, clipped=clipped,
                         reason=f'{name}: not finite or beyond {QP_DATA_LIMIT:.0e} at this input')
-        # The RCBF rows: -L_g h (the top left block of G) and their right-hand sides.
-        rows = (upper[:self.n_barriers], g_matrix[:self.n_barriers, :n_u], applied)
-
         solve_start = time.perf_counter()
-        status = 'solved'
         if _min_of(upper, initial=math.inf) >= 0.0:
             # z = 0 is feasible, hence optimal (the objective's minimum): the proposal passes
-            # through exactly, without a solve.
-            z = self._zeros_z
-            checked = self._check(z, rows)
-        else:
-            self._solver.update(Ax=g_matrix.take(self._pattern_index), u=upper)
-            result = self._solver.solve(raise_error=False)
-            status_val = int(result.info.status_val)
-            z = None if result.x is None else np.array(result.x, dtype=np.float64)
-            checked = self._check(z, rows) if status_val in _OK_STATUS else None
-            status = _OK_STATUS.get(status_val, str(result.info.status))
-            if checked is None:
-                # Never start a later solve from this iterate.
-                self._solver.warm_start(x=np.zeros(n_u + 1), y=np.zeros(self._nc))
-                if self.fallback:
-                    # ADMM can stall when the slack is far from 0 (the 1 : l diagonal); the
-                    # interior point of the differentiable layer solves the same QP robustly.
-                    # (copies: the inputs may be the caller's read-only arrays)
-                    solution = solve_qp_batch_full(*self.problem.qp(
-                        *(torch.tensor(a).unsqueeze(0) for a in (x, u_rl_applied, mu, sd))))
-                    if bool(solution.converged[0]):
-                        z = solution.z[0].detach().numpy().astype(np.float64)
-                        checked = self._check(z, rows)
-                        status = 'solved_interior_point'
+            # through exactly, without a solve. The row check holds at z = 0 by construction:
+            # the action is the clipped proposal (within the limits), each row's value at it is
+            # its right-hand side (all >= 0 here: no slack needed, none claimed).
+            values = upper[:self.n_barriers].copy()
+            solve_time = time.perf_counter() - solve_start
+            u_safe = np.array([value + 0.0 for value in applied])  # as u + z[:n_u], z = 0
+            return FilterResult._filled(
+                u_safe=u_safe, u_s=u_safe - u, slack=0.0, h=h_values, constraint_values=values,
+                status='solved', solve_time_s=solve_time,
+                total_time_s=time.perf_counter() - start, fail_safe=False,
+                barrier_names=list(self.barrier_names), needed_slack=0.0, reason='',
+                proposal_clipped=clipped)
+        # The RCBF rows: -L_g h (the top left block of G) and their right-hand sides.
+        rows = (upper[:self.n_barriers], g_matrix[:self.n_barriers, :n_u], applied)
+        self._solver.update(Ax=g_matrix.take(self._pattern_index), u=upper)
+        result = self._solver.solve(raise_error=False)
+        status_val = int(result.info.status_val)
+        # used within this call only (the action and values are new arrays): no copy
+        z = None if result.x is None else np.asarray(result.x, dtype=np.float64)
+        checked = self._check(z, rows) if status_val in _OK_STATUS else None
+        status = _OK_STATUS.get(status_val, str(result.info.status))
+        if checked is None:
+            # Never start a later solve from this iterate.
+            self._solver.warm_start(x=np.zeros(n_u + 1), y=np.zeros(self._nc))
+            if self.fallback:
+                # ADMM can stall when the slack is far from 0 (the 1 : l diagonal); the
+                # interior point of the differentiable layer solves the same QP robustly.
+                # (copies: the inputs may be the caller's read-only arrays)
+                solution = solve_qp_batch_full(*self.problem.qp(
+                    *(torch.tensor(a).unsqueeze(0) for a in (x, u_rl_applied, mu, sd))))
+                if bool(solution.converged[0]):
+                    z = solution.z[0].detach().numpy().astype(np.float64)
+                    checked = self._check(z, rows)
+                    status = 'solved_interior_point'
         solve_time = time.perf_counter() - solve_start
         if checked is None:
             return self._fail_safe(u, start, status='unverified', h=h_values, clipped=clipped,
@@ -572,11 +596,11 @@ class SafetyFilter:
                 solve_time=solve_time, rows=rows,
                 reason=f'barrier rows need slack {needed:.3g} > slack_tolerance '
                        f'{self.slack_tolerance:.3g} within the input limits')
-        return FilterResult(
+        return FilterResult._filled(
             u_safe=u_safe, u_s=u_safe - u, slack=float(z[-1]), h=h_values,
             constraint_values=values, status=status, solve_time_s=solve_time,
             total_time_s=time.perf_counter() - start, fail_safe=False,
-            barrier_names=list(self.barrier_names), needed_slack=needed,
+            barrier_names=list(self.barrier_names), needed_slack=needed, reason='',
             proposal_clipped=clipped)
 
     def _check(self, z: np.ndarray | None,

@@ -7,20 +7,41 @@ the definition the learner differentiates through; the tests hold the two equal.
 
 Every built-in base barrier except a look-ahead circle is a quadratic of the state,
 h(x) = c + a^T x + 1/2 x^T Q x (:class:`~rcbf_ros.core.barriers.QuadraticRows`). With J the
-Jacobian of f (:class:`DriftJet`), the cascades h1 = L_f h + gamma_1 h and
-h2 = L_f h1 + gamma_2 h1 have the gradients
+Jacobian of f (:class:`DriftJet`), the Lie derivatives along f (L^0 h = h, L^1 h = L_f h,
+L^2 h = L_f L_f h) and their gradients are
 
-    grad h   = a + Q x
-    grad h1  = Q f + J^T grad h + gamma_1 grad h
-    grad h2  = Q J f + J^T Q f + R^T grad h + gamma_1 Q f + J^T grad h1 + gamma_2 grad h1
+    L^0 h = c + a^T x + 1/2 x^T Q x          grad L^0 h = a + Q x
+    L^1 h = a^T f + x^T Q f                  grad L^1 h = Q f + J^T (a + Q x)
+    L^2 h = f^T Q f + a^T J f + x^T Q J f    grad L^2 h = Q J f + 2 J^T Q f + (J^2)^T (a + Q x)
 
-(the Hessian of h1 is Q J + J^T Q + sum_m (grad h)_m Hess f_m + gamma_1 Q, applied to f), where
-R = sum_k f_k dJ/dx_k is the rate of J along f. R = 0 for the built-in systems (the drift jet
-test checks it against autograd), so the closed form leaves that term out; a system with R != 0
-would need it.
+leaving out R = sum_k f_k dJ/dx_k, the rate of J along f: R = 0 for the built-in systems (the
+drift jet test checks it against autograd); a system with R != 0 would need it. The cascades
+h1 = L_f h + gamma_1 h and h2 = L_f h1 + gamma_2 h1 are sums of these levels,
+
+    h_top = beta_0 L^0 h + beta_1 L^1 h + beta_2 L^2 h    (and grad h_top likewise), with
+    beta = (1, 0, 0) uncascaded, (gamma_1, 1, 0) cascaded once,
+    (gamma_1 gamma_2, gamma_1 + gamma_2, 1) cascaded twice.
+
+With w = (x, f, J f) (3 n_x entries), T the symmetric 3 x 3 matrix
+[[beta_0, beta_1, beta_2], [beta_1, 2 beta_2, 0], [beta_2, 0, 0]] and M = T (x) Q (Kronecker),
+b = (beta_0 a, beta_1 a, beta_2 a), the coefficients C = b + M w (three n_x blocks) give
+
+    grad h_top^T = C [I; J; J^2]          h_top = beta_0 c + 1/2 (b + C)^T w
+
+(expand the products to see the table above). M, b and beta_0 c are fixed per row, so one
+product w M for every row, of any cascade depth, gives C; one more gives every gradient
+(:class:`_QuadraticStack`). Where no row is cascaded twice, the third blocks (beta_2 = 0) are
+left out: w = (x, f) and [I; J]; where none is cascaded, w = x and I.
+
 A look-ahead circle, h = ||p - c||^2 - delta^2 with p = (x_i, x_j) + s l_p (cos th, sin th),
 has grad h = 2 (p - c) on (x_i, x_j) and 2 s l_p (p - c)^T (-sin th, cos th) on th; it is used
-uncascaded only, with the direction-of-travel switch of :func:`barrier_terms`.
+uncascaded only, with the direction-of-travel switch of :func:`barrier_terms`, and evaluated on
+Python floats (a handful of values per obstacle, fewer operations than numpy's per-call cost).
+
+The QP rows then take a few more products, in the order of
+:func:`rcbf_ros.core.qp.build_rcbf_qp` (so that the row values round as there):
+L_f h = grad h^T f, L_g h = grad h^T g, rho = grad h^T mean - k_c |grad h|^T std and the right-hand
+side L_f h + L_g h u + alpha h + rho.
 
 :meth:`ClosedFormTerms.from_problem` is the one place that decides whether a problem has a
 closed form: a built-in system (by exact type) and built-in families, cascaded at most twice,
@@ -49,9 +70,6 @@ from rcbf_ros.core.rcbf import RCBFProblem
 MAX_CASCADE_DEPTH = 2
 """Deepest cascade with a closed form here (the built-in configs use up to 2)."""
 _QUADRATIC_FAMILIES = (BandBarrier, CircleObstacles, HalfPlane, PairGap)
-_PAIR_SUM = np.ones(2)
-_PAIR_SUM.setflags(write=False)
-"""Sums the two columns of a (k, 2) array in one product (cheaper than ``sum(axis=1)``)."""
 
 
 class NumpyTerms(NamedTuple):
@@ -77,104 +95,106 @@ def _unwrap(family: BarrierFamily) -> tuple[BarrierFamily, list[Cascaded]]:
 
 
 class _QuadraticStack:
-    """Every quadratic row of the problem, cascaded 0, 1 or 2 times, in one set of arrays."""
+    """Every quadratic row of the problem, cascaded 0, 1 or 2 times, in one set of arrays
+    (the products of the module docstring)."""
 
     def __init__(self, rows: Sequence[tuple[QuadraticRows, tuple[float, ...]]], n_x: int):
-        constant = np.concatenate([r.constant for r, _ in rows])
-        linear = np.concatenate([r.linear for r, _ in rows])
-        hessian = np.concatenate([r.hessian for r, _ in rows])
-        k = constant.size
-        depth = np.concatenate([np.full(r.constant.size, len(g), dtype=np.intp)
-                                for r, g in rows])
-        gammas = np.zeros((MAX_CASCADE_DEPTH, k))
-        start = 0
-        for r, g in rows:
-            gammas[:len(g), start:start + r.constant.size] = np.array(g, dtype=np.float64)[:, None]
-            start += r.constant.size
-        self.count = k
-        self.depth = int(depth.max(initial=0))
-        self._constant = constant
-        self._linear = linear
-        # Q stacked as (n_x, K n_x) so that one product gives Q x, Q f, Q J f for every row.
-        self._hessian_t = np.ascontiguousarray(hessian.reshape(k * n_x, n_x).T)
+        blocks, offsets, constants = [], [], []
+        self.depth = max(len(gammas) for _, gammas in rows)
+        levels = self.depth + 1
+        for quadratic, gammas in rows:
+            weights = _cascade_weights(gammas)
+            # T of the module docstring, truncated to the levels the deepest row needs
+            t = np.array([[weights[0], weights[1], weights[2]],
+                          [weights[1], 2.0 * weights[2], 0.0],
+                          [weights[2], 0.0, 0.0]])[:levels, :levels]
+            for c, a, q in zip(quadratic.constant, quadratic.linear, quadratic.hessian):
+                blocks.append(np.kron(t, q))  # M = T (x) Q, symmetric
+                offsets.append(np.concatenate([w * a for w in weights[:levels]]))
+                constants.append(weights[0] * c)
+        self.count = len(constants)
         self._n_x = n_x
-        self._gamma1 = gammas[0]
-        self._gamma2 = gammas[1]
-        # the gains repeated along each row (an elementwise product without broadcasting)
-        self._gamma1_rows = np.repeat(gammas[0][:, None], n_x, axis=1)
-        self._gamma2_rows = np.repeat(gammas[1][:, None], n_x, axis=1)
-        # Row i's top level is level depth[i]: index into the levels stacked row-wise.
-        self._select = None if np.all(depth == self.depth) else depth * k + np.arange(k)
+        self._levels = levels
+        # w M for every row in one product: row i's M as columns [i L n_x, (i + 1) L n_x)
+        self._product = np.ascontiguousarray(np.concatenate(blocks, axis=1))
+        self._offset = np.concatenate(offsets)  # b of every row, flat like w M
+        self._offsets = self._offset.reshape(self.count, levels * n_x)
+        self._constant = np.array(constants)  # beta_0 c
+        self._identity = np.eye(n_x)
 
-    def __call__(self, x: np.ndarray, jet: DriftJet | None) -> tuple[np.ndarray, np.ndarray]:
-        """(h (k,), grad h (k, n_x)) at the top level of every row (the formulas of the module
-        docstring; ``.dot`` rather than ``@``: half the call overhead at these sizes)."""
-        k, n_x = self.count, self._n_x
-        linear = self._linear
-        if self.depth == 0:
-            qx = x.dot(self._hessian_t).reshape(k, n_x)
-            return self._constant + (linear + 0.5 * qx).dot(x), qx + linear
-        f, jacobian = jet.f, jet.jacobian
-        if self.depth == 1:
-            qx, qf = np.array((x, f)).dot(self._hessian_t).reshape(2, k, n_x)
+    def __call__(self, x: np.ndarray, jet: DriftJet) -> tuple[np.ndarray, np.ndarray]:
+        """(h (k,), grad h (k, n_x)) at the top level of every row (``.dot`` rather than
+        ``@``: a third of the call overhead at these sizes)."""
+        levels = self._levels
+        jacobian = jet.jacobian
+        if levels == 1:
+            w, powers = x, self._identity
+        elif levels == 2:
+            w = np.concatenate((x, jet.f))
+            powers = np.concatenate((self._identity, jacobian))
         else:
-            qx, qf, qjf = np.array((x, f, jacobian.dot(f))).dot(self._hessian_t).reshape(
-                3, k, n_x)
-        g0 = qx + linear
-        h0 = self._constant + (linear + 0.5 * qx).dot(x)
-        h1 = g0.dot(f) + self._gamma1 * h0
-        g1 = qf + g0.dot(jacobian) + self._gamma1_rows * g0
-        if self.depth == 1:
-            levels_h, levels_g = (h0, h1), (g0, g1)
-        else:
-            h2 = g1.dot(f) + self._gamma2 * h1
-            g2 = qjf + self._gamma1_rows * qf + (qf + g1).dot(jacobian) + self._gamma2_rows * g1
-            levels_h, levels_g = (h0, h1, h2), (g0, g1, g2)
-        if self._select is None:
-            return levels_h[-1], levels_g[-1]
-        return (np.concatenate(levels_h).take(self._select),
-                np.concatenate(levels_g).take(self._select, axis=0))
+            w = np.concatenate((x, jet.f, jacobian.dot(jet.f)))
+            powers = np.concatenate((self._identity, jacobian, jacobian.dot(jacobian)))
+        # C = b + M w, one row of C per barrier
+        coefficients = (w.dot(self._product) + self._offset).reshape(self.count, -1)
+        h = (coefficients + self._offsets).dot(0.5 * w) + self._constant
+        return h, coefficients.dot(powers)
+
+
+def _cascade_weights(gammas: Sequence[float]) -> tuple[float, float, float]:
+    """beta of the module docstring: h_top = sum_l beta_l L_f^l h for a cascade's gains."""
+    if len(gammas) == 0:
+        return 1.0, 0.0, 0.0
+    if len(gammas) == 1:
+        return float(gammas[0]), 1.0, 0.0
+    g1, g2 = (float(g) for g in gammas)
+    return g1 * g2, g1 + g2, 1.0
 
 
 class _LookaheadCircles:
     """An uncascaded :class:`CircleObstacles` with a look-ahead point, and its direction-of-travel
-    switch (the point behind for a reversing proposal, when that point is clear).
+    switch (the point behind for a reversing proposal, when that point is clear), on Python
+    floats.
 
-    With d = p - c (k, 2), grad h = d M, M = [[2 on x_i, -2 s l_p sin th on th],
-    [2 on x_j, 2 s l_p cos th on th]] (2, n_x): one product for every obstacle."""
+    With d = p - c, h = d_x^2 + d_y^2 - delta^2 and grad h = 2 d_x on x_i, 2 d_y on x_j and
+    2 s l_p (-d_x sin th + d_y cos th) on th."""
 
     def __init__(self, family: CircleObstacles, n_x: int):
-        delta = np.array(family.radii, dtype=np.float64) + family.margin
+        delta = [radius + family.margin for radius in family.radii]
         self.count = family.count
-        self._centers = np.array(family.centers, dtype=np.float64).reshape(-1, 2)
-        self._delta_sq = delta ** 2
+        self._obstacles = [(float(cx), float(cy), float(d * d))
+                           for (cx, cy), d in zip(family.centers, delta)]
         self._i, self._j = family.position_indices
         self._heading = family.heading_index
-        self._lookahead = family.lookahead
+        self._lookahead = float(family.lookahead)
         self._speed = family.speed_input
-        position = np.zeros((2, n_x))
-        position[0, self._i] += 2.0
-        position[1, self._j] += 2.0
-        position.setflags(write=False)
-        self._position = position  # M without the heading's column
+        self._n_x = n_x
 
-    def _point(self, values: list[float], side: float) -> tuple[np.ndarray, np.ndarray]:
-        theta = values[self._heading]
+    def _point(self, values: list[float], side: float
+               ) -> tuple[list[float], list[list[float]]]:
+        i, j, heading = self._i, self._j, self._heading
+        theta = values[heading]
         cos, sin = math.cos(theta), math.sin(theta)
         offset = self._lookahead * side
-        d = (values[self._i] + offset * cos, values[self._j] + offset * sin) - self._centers
-        h = (d * d).dot(_PAIR_SUM) - self._delta_sq
-        m = self._position.copy()
-        m[0, self._heading] += -2.0 * offset * sin
-        m[1, self._heading] += 2.0 * offset * cos
-        return h, d.dot(m)
+        px, py = values[i] + offset * cos, values[j] + offset * sin
+        turn_x, turn_y = -2.0 * offset * sin, 2.0 * offset * cos  # 2 dp/dth
+        h, grad = [], []
+        for cx, cy, delta_sq in self._obstacles:
+            dx, dy = px - cx, py - cy
+            h.append(dx * dx + dy * dy - delta_sq)
+            row = [0.0] * self._n_x
+            row[i] += 2.0 * dx
+            row[j] += 2.0 * dy
+            row[heading] += dx * turn_x + dy * turn_y
+            grad.append(row)
+        return h, grad
 
     def __call__(self, values: list[float], u: np.ndarray | None
-                 ) -> tuple[np.ndarray, np.ndarray]:
-        """(h (k,), grad h (k, n_x)) at the point the proposal u chooses."""
+                 ) -> tuple[list[float], list[list[float]]]:
+        """(h (k values), grad h (k rows of n_x)) at the point the proposal u chooses."""
         if self._speed is not None and u is not None and u[self._speed] < 0:
             h, grad = self._point(values, -1.0)
-            if np.minimum.reduce(h, initial=math.inf) >= 0:
+            if all(value >= 0.0 for value in h):
                 return h, grad
         return self._point(values, 1.0)
 
@@ -228,23 +248,35 @@ class ClosedFormTerms:
         stack = _QuadraticStack(quadratic, n_x) if quadratic else None
         return cls(system.closed_form_drift(), n_x, stack, lookahead, order)
 
+    def jet(self, x: np.ndarray) -> DriftJet:
+        """f, J and g of the problem's system at x: (n_x,)."""
+        return self._jet(x)
+
+    def top(self, x: np.ndarray, jet: DriftJet, u_rl: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
+        """(h (K,), grad h (K, n_x)) at x: (n_x,), in the problem's row order; ``jet`` at x
+        (:meth:`jet`); u_rl (n_u,) picks the look-ahead point (see :meth:`terms`)."""
+        if self._quadratic is not None and not self._lookahead:
+            return self._quadratic(x, jet)
+        values = x.tolist()
+        circles = [family(values, u_rl) for family in self._lookahead]
+        h = np.array([value for family_h, _ in circles for value in family_h])
+        grad = np.array([row for _, family_grad in circles for row in family_grad]
+                        ).reshape(h.size, self._n_x)
+        if self._quadratic is None:
+            return h, grad
+        quadratic_h, quadratic_grad = self._quadratic(x, jet)
+        h = np.concatenate((quadratic_h, h))
+        grad = np.concatenate((quadratic_grad, grad))
+        if self._order is not None:
+            h, grad = h[self._order], grad[self._order]
+        return h, grad
+
     def terms(self, x: np.ndarray, u_rl: np.ndarray | None = None) -> NumpyTerms:
         """Barrier terms at x: (n_x,); u_rl: (n_u,) picks the look-ahead point of obstacles with
         a ``speed_input`` (None: the point ahead), as in :func:`barrier_terms`."""
         jet = self._jet(x)
-        parts = []
-        if self._quadratic is not None:
-            parts.append(self._quadratic(x, jet))
-        if self._lookahead:
-            values = x.tolist()
-            parts += [family(values, u_rl) for family in self._lookahead]
-        if len(parts) == 1:
-            h, grad = parts[0]
-        else:
-            h = np.concatenate([p[0] for p in parts])
-            grad = np.concatenate([p[1] for p in parts])
-            if self._order is not None:
-                h, grad = h[self._order], grad[self._order]
+        h, grad = self.top(x, jet, u_rl)
         return NumpyTerms(h, grad, grad.dot(jet.f), grad.dot(jet.g))
 
 
@@ -286,7 +318,13 @@ class RCBFRows:
                  u_rl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """h, lf_h, rho: (K,); lg_h: (K, m); u_rl: (m,) -> (G (nc, m + 1), right-hand side
         (nc,)), nc = K (+ 2 m with limits)."""
-        upper = lf_h + lg_h.dot(u_rl) + self._alpha * h + rho
+        return self.complete(upper=lf_h + lg_h.dot(u_rl) + self._alpha * h + rho, lg_h=lg_h,
+                             u_rl=u_rl)
+
+    def complete(self, *, upper: np.ndarray, lg_h: np.ndarray, u_rl: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """G and the right-hand side from the RCBF rows' right-hand sides upper (K,) =
+        L_f h + L_g h u_RL + alpha h + rho, lg_h (K, m) and u_rl (m,)."""
         g_matrix = self._template.copy()
         np.negative(lg_h, out=g_matrix[:self._k, :self._m])
         if self._u_min is None:
@@ -307,6 +345,9 @@ class ClosedFormAssembly:
         self.terms = terms
         """The barrier terms' evaluator."""
         self._k_c = float(problem.k_c)
+        # alpha and k_c once per row: array * array costs a third of array * Python float
+        self._alpha_rows = np.full(problem.n_barriers, float(problem.alpha))
+        self._k_c_rows = np.full(problem.n_barriers, self._k_c)
         limits = problem.has_limits
         self.rows = RCBFRows(n_barriers=problem.n_barriers, n_u=problem.system.n_u,
                              alpha=problem.alpha,
@@ -325,8 +366,10 @@ class ClosedFormAssembly:
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(h (K,), G (nc, m + 1), right-hand side (nc,)) at state x, proposal u_rl and the
         disturbance box mean +/- k_c std (all 1-D float64), as :meth:`RCBFProblem.qp`."""
-        terms = self.terms.terms(x, u_rl)
-        rho = robust_margin(terms.grad_h, mean, std, self._k_c)
-        g_matrix, upper = self.rows(h=terms.h, lf_h=terms.lf_h, lg_h=terms.lg_h, rho=rho,
-                                    u_rl=u_rl)
-        return terms.h, g_matrix, upper
+        jet = self.terms.jet(x)
+        h, grad = self.terms.top(x, jet, u_rl)
+        lg_h = grad.dot(jet.g)
+        rho = grad.dot(mean) - self._k_c_rows * np.abs(grad).dot(std)  # robust_margin
+        upper = grad.dot(jet.f) + lg_h.dot(u_rl) + self._alpha_rows * h + rho
+        g_matrix, upper = self.rows.complete(upper=upper, lg_h=lg_h, u_rl=u_rl)
+        return h, g_matrix, upper
