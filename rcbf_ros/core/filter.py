@@ -4,7 +4,11 @@ Given a state x, a proposal u_RL and (optionally) a disturbance box mean +/- k_c
 u* = u_RL + u_S with u_S from the RCBF-QP of :meth:`RCBFProblem.qp` (the builder the learner's
 differentiable layer uses). The sparsity pattern of the constraint matrix is fixed at
 construction (dense RCBF rows, one entry per actuator-limit row) so that every call is
-``OSQP.update(Ax=, u=)`` + ``solve()``.
+``OSQP.update(Ax=, u=)`` + ``solve()``. Two cases need no iterative solve: a proposal that
+meets every row passes through (z = 0 is the optimum), and where one RCBF row alone is active
+its equality gives the exact optimum in closed form (:meth:`SafetyFilter._one_active_row`,
+accepted only where it meets every other row and limit). Every answer, whichever way it was
+found, goes through the same row check.
 
 The constraint assembly (barrier terms, then the QP rows) takes one of three paths, chosen at
 construction by :func:`select_assembly` (:attr:`SafetyFilter.assembly`): the closed form in
@@ -164,6 +168,10 @@ class _Refused(Exception):
 
 
 _FLOAT64 = np.dtype(np.float64)
+ONE_ROW_TOLERANCE = 1e-12
+"""How far (relative to the largest right-hand side) the one-active-row solution may exceed an
+inactive row or limit and still count as meeting it: round-off only, far below OSQP's eps."""
+
 _min_of = np.minimum.reduce
 _max_of = np.maximum.reduce
 """The reductions without the Python wrapper of ``ndarray.min``/``max`` (most of their cost on
@@ -475,6 +483,7 @@ class SafetyFilter:
                            warm_starting=True)
         self._solver = _DirectOSQP.wrap(self._solver)
         self._nc = nc
+        self._p_inverse = 1.0 / diag  # P = diag(diag), for the one-active-row solution
 
     def filter(self, state: Sequence[float], u_rl: Sequence[float],
                mean: Sequence[float] | None = None,
@@ -564,13 +573,17 @@ class SafetyFilter:
                 proposal_clipped=clipped)
         # The RCBF rows: -L_g h (the top left block of G) and their right-hand sides.
         rows = (upper[:self.n_barriers], g_matrix[:self.n_barriers, :n_u], applied)
-        self._solver.update(Ax=g_matrix.take(self._pattern_index), u=upper)
-        result = self._solver.solve(raise_error=False)
-        status_val = int(result.info.status_val)
-        # used within this call only (the action and values are new arrays): no copy
-        z = None if result.x is None else np.asarray(result.x, dtype=np.float64)
-        checked = self._check(z, rows) if status_val in _OK_STATUS else None
-        status = _OK_STATUS.get(status_val, str(result.info.status))
+        status = 'solved'
+        z = self._one_active_row(g_matrix, upper)
+        checked = None if z is None else self._check(z, rows)
+        if checked is None:
+            self._solver.update(Ax=g_matrix.take(self._pattern_index), u=upper)
+            result = self._solver.solve(raise_error=False)
+            status_val = int(result.info.status_val)
+            # used within this call only (the action and values are new arrays): no copy
+            z = None if result.x is None else np.asarray(result.x, dtype=np.float64)
+            checked = self._check(z, rows) if status_val in _OK_STATUS else None
+            status = _OK_STATUS.get(status_val, str(result.info.status))
         if checked is None:
             # Never start a later solve from this iterate.
             self._solver.warm_start(x=np.zeros(n_u + 1), y=np.zeros(self._nc))
@@ -602,6 +615,32 @@ class SafetyFilter:
             total_time_s=time.perf_counter() - start, fail_safe=False,
             barrier_names=list(self.barrier_names), needed_slack=needed, reason='',
             proposal_clipped=clipped)
+
+    def _one_active_row(self, g_matrix: np.ndarray, upper: np.ndarray) -> np.ndarray | None:
+        """The QP's exact solution when one RCBF row alone is active at it, else None.
+
+        The row r that z = 0 violates most (the largest ``-upper_r / ||g_r||``, the norm
+        weighted by P^-1) held as an equality gives z = P^-1 g_r upper_r / (g_r^T P^-1 g_r),
+        with multiplier -upper_r / (g_r^T P^-1 g_r) > 0. Where z meets every other row and
+        limit (to :data:`ONE_ROW_TOLERANCE` relative), the KKT conditions hold with r the only
+        active row, and a strictly convex QP has no other solution: this is it, exactly
+        (OSQP's answer is within its tolerance of it). Otherwise (two or more rows active, a
+        limit reached) OSQP solves the QP. Either answer then goes through the row check."""
+        p_inverse = self._p_inverse
+        k = self.n_barriers
+        rows = g_matrix[:k]
+        rhs = upper[:k]
+        # g_r^T P^-1 g_r >= P^-1's slack entry > 0: every RCBF row has -1 in the slack column.
+        norms = (rows * rows).dot(p_inverse)
+        r = int((rhs / np.sqrt(norms)).argmin())
+        if not rhs[r] < 0.0:
+            return None
+        z = p_inverse * rows[r] * (rhs[r] / norms[r])
+        excess = g_matrix.dot(z) - upper
+        excess[r] = 0.0
+        if _max_of(excess) > ONE_ROW_TOLERANCE * (1.0 + _max_of(np.abs(upper))):
+            return None
+        return z
 
     def _check(self, z: np.ndarray | None,
                rows: tuple[np.ndarray, np.ndarray, list[float]]

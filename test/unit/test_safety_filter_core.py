@@ -15,6 +15,7 @@ References, none of them the code under test:
 from __future__ import annotations
 
 import cvxpy as cp
+from filter_paths import osqp_only
 import numpy as np
 import pytest
 from scipy.optimize import linprog
@@ -348,8 +349,8 @@ def test_default_iteration_cap_solves_random_pvtol_states():
 
 def test_starved_solver_returns_fail_safe_with_status():
     config = config_for('unicycle')
-    safety_filter = SafetyFilter(config.problem, fail_safe_action=[0.5, -2.5], max_iter=1,
-                                 fallback=False)
+    safety_filter = osqp_only(SafetyFilter(config.problem, fail_safe_action=[0.5, -2.5],
+                                           max_iter=1, fallback=False))
     result = safety_filter.filter([-0.85, 0.0, 0.0], [2.5, 0.0])
     assert result.fail_safe and result.active
     assert result.status == 'unverified' and 'iterations' in result.reason
@@ -378,7 +379,7 @@ def test_a_solver_answer_that_breaks_the_rows_is_never_published(fallback):
     state, u_rl = [-0.85, 0.0, 0.0], [2.5, 0.0]
     honest = SafetyFilter(problem).filter(state, u_rl)
     safety_filter = SafetyFilter(problem, fallback=fallback)
-    safety_filter._solver = _LyingSolver(safety_filter._solver)
+    osqp_only(safety_filter)._solver = _LyingSolver(safety_filter._solver)
     result = safety_filter.filter(state, u_rl)
     if fallback:  # the interior point solves the same QP, and its answer passes the check
         assert result.status == 'solved_interior_point' and not result.fail_safe
@@ -392,7 +393,7 @@ def test_interior_point_fallback_solves_what_a_starved_osqp_cannot():
     config = config_for('unicycle')
     state, u_rl = [-0.85, 0.0, 0.0], [2.5, 0.0]
     reference = SafetyFilter(config.problem).filter(state, u_rl)
-    fallback = SafetyFilter(config.problem, max_iter=1).filter(state, u_rl)
+    fallback = osqp_only(SafetyFilter(config.problem, max_iter=1)).filter(state, u_rl)
     assert reference.status == 'solved' and fallback.status == 'solved_interior_point'
     assert not fallback.fail_safe
     np.testing.assert_allclose(fallback.u_safe, reference.u_safe, atol=1e-6)
@@ -587,3 +588,46 @@ def test_differentiable_layer_gives_the_filters_action(system, overrides):
         np.testing.assert_allclose(batch[b], result.u_safe, rtol=0, atol=1e-5)
         active += bool(result.active)
     assert active >= 3
+
+
+@pytest.mark.parametrize('system', SYSTEMS)
+def test_one_active_row_is_solved_exactly_and_everything_else_goes_to_osqp(system):
+    """Where one RCBF row alone is active, the filter answers with that row's exact solution
+    (Clarabel agrees to 1e-8, closer than OSQP's tolerance); where it is not the solution (two
+    rows or a limit active), OSQP's answer is the one returned."""
+    rng = np.random.default_rng(11)
+    problem = config_for(system).problem
+    safety_filter = SafetyFilter(problem, max_iter=ROOMY_MAX_ITER)
+    taken: list[bool] = []
+    one_row = safety_filter._one_active_row
+
+    def counting(g_matrix, upper):
+        z = one_row(g_matrix, upper)
+        taken.append(z is not None)
+        return z
+
+    safety_filter._one_active_row = counting
+    n_x, n_u = problem.system.n_x, problem.system.n_u
+    exact = by_osqp = 0
+    for _ in range(80):
+        x = random_state(system, rng)
+        u_rl = rng.uniform(-3.0, 3.0, n_u)
+        mean = rng.normal(0.0, 0.05, n_x)
+        std = np.abs(rng.normal(0.0, 0.05, n_x))
+        taken.clear()
+        result = safety_filter.filter(x, u_rl, mean, std)
+        if not taken:
+            continue  # passed through: no row active
+        applied = (np.clip(u_rl, problem.system.u_min, problem.system.u_max)
+                   if problem.has_limits else u_rl)
+        expected, expected_eps = reference_solution(problem, x, applied, mean, std)
+        if taken[0]:
+            exact += 1
+            assert result.status == 'solved'
+            np.testing.assert_allclose(result.u_safe, expected, rtol=0, atol=1e-8)
+            assert result.slack == pytest.approx(expected_eps, abs=1e-9)
+        else:
+            by_osqp += 1
+            assert not result.fail_safe
+            np.testing.assert_allclose(result.u_safe, expected, rtol=0, atol=1e-5)
+    assert exact >= 5, (exact, by_osqp)
