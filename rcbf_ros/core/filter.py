@@ -7,8 +7,8 @@ construction (dense RCBF rows, one entry per actuator-limit row) so that every c
 ``OSQP.update(Ax=, u=)`` + ``solve()``. Two cases need no iterative solve: a proposal that
 meets every row passes through (z = 0 is the optimum), and where one RCBF row alone is active
 its equality gives the exact optimum in closed form (:meth:`SafetyFilter._one_active_row`,
-accepted only where it meets every other row and limit). Every answer, whichever way it was
-found, goes through the same row check.
+accepted only where it meets every other row and limit). Every solution, closed form or OSQP's,
+goes through the same row check (a pass-through meets it by construction).
 
 The constraint assembly (barrier terms, then the QP rows) takes one of three paths, chosen at
 construction by :func:`select_assembly` (:attr:`SafetyFilter.assembly`): the closed form in
