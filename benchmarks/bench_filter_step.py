@@ -18,8 +18,9 @@ filter, as when it filters continuously; the rounds spread the machine's load ov
   compiled at construction.
 
 Reported per path: the median and p99 of FilterResult.total_time_s over all calls, the
-medians over the calls that passed the proposal through (every row holds at z = 0, no solve) and
-over those that ran OSQP (counted by wrapping its solve), and the median CPU time of the calling
+medians over the calls that passed the proposal through (every row holds at z = 0, no solve),
+over those answered with one active row's exact solution (no OSQP) and over those that ran
+OSQP (each counted by wrapping it), and the median CPU time of the calling
 thread (time.thread_time: what the call itself consumed, less sensitive to the machine's load
 than the wall time, though cores shared with other work still slow it). For the closed form,
 the call split in stages: the assembly (timed per call by wrapping it); solve =
@@ -85,7 +86,8 @@ PATHS_DIFFER = (
 """Printed with the tables."""
 STAGES = {'rest': 'input checks, clip, data check, result',
           'assembly': 'constraint assembly (closed form)',
-          'solve': 'solve + row check (pass-through: the result at z = 0)',
+          'solve': 'solve + row check (pass-through: the result at z = 0; one active row: '
+                   'its closed form)',
           'osqp update': 'of which OSQP update, C timer',
           'osqp solve': 'of which OSQP solve, C timer'}
 """The stages of a closed-form call (module docstring)."""
@@ -182,6 +184,19 @@ class _TimedAssembly:
         return out
 
 
+class _CountedOneRow:
+    """Wraps a filter's one-active-row solution and counts the calls it answered."""
+
+    def __init__(self, one_row) -> None:
+        self.one_row = one_row
+        self.answered = 0
+
+    def __call__(self, *args, **kwargs):
+        z = self.one_row(*args, **kwargs)
+        self.answered += z is not None
+        return z
+
+
 class _CountedSolve:
     """Wraps a filter's OSQP solve and counts its calls (a pass-through makes none)."""
 
@@ -211,28 +226,32 @@ def bench_paths(problem, states, proposals, mean, std, rounds: int,
     timer = _TimedAssembly(filters['closed form']._assemble)
     filters['closed form']._assemble = timer
     solves = {path: _CountedSolve(filt._solver) for path, filt in filters.items()}
+    one_rows = {path: _CountedOneRow(filt._one_active_row) for path, filt in filters.items()}
     for path, filt in filters.items():
         filt._solver.solve = solves[path]
+        filt._one_active_row = one_rows[path]
     totals = {path: [] for path in PATHS}
     cpu = {path: [] for path in PATHS}
-    passed = {path: [] for path in PATHS}
-    solved = {path: [] for path in PATHS}
-    # stage -> calls: all, pass-through, OSQP ran; OSQP's own C timers on the calls that ran it
-    stages = {stage: {'all': [], 'pass': [], 'osqp': []} for stage in STAGES}
+    # how each call was answered: pass-through, one active row in closed form, OSQP
+    answered = {kind: {path: [] for path in PATHS} for kind in ('pass', 'one row', 'osqp')}
+    # stage -> calls: all, and by how they were answered; OSQP's own C timers where it ran
+    stages = {stage: {'all': [], 'pass': [], 'one row': [], 'osqp': []} for stage in STAGES}
     iterations = []
     osqp_info = filters['closed form']._solver._ext.info
     results = {path: [] for path in PATHS}
     for block in np.array_split(np.arange(len(states)), rounds):
         for path, filt in filters.items():
             for i in block:
-                calls = solves[path].calls
+                calls, one_row = solves[path].calls, one_rows[path].answered
                 cpu_start = time.thread_time()
                 res = filt.filter(states[i], proposals[i], mean, std)
                 cpu[path].append(time.thread_time() - cpu_start)
                 ran = solves[path].calls > calls
+                kind = ('osqp' if ran else 'one row' if one_rows[path].answered > one_row
+                        else 'pass')
                 results[path].append(res)
                 totals[path].append(res.total_time_s)
-                (solved if ran else passed)[path].append(res.total_time_s)
+                answered[kind][path].append(res.total_time_s)
                 if path != 'closed form':
                     continue
                 split = {'assembly': timer.last, 'solve': res.solve_time_s,
@@ -243,10 +262,10 @@ def bench_paths(problem, states, proposals, mean, std, rounds: int,
                     iterations.append(osqp_info.iter)
                 for stage, value in split.items():
                     stages[stage]['all'].append(value)
-                    stages[stage]['osqp' if ran else 'pass'].append(value)
+                    stages[stage][kind].append(value)
         after_block()
     pairs = list(zip(results['closed form'], results['autograd']))
-    return {'totals': totals, 'cpu': cpu, 'passed': passed, 'solved': solved,
+    return {'totals': totals, 'cpu': cpu, 'answered': answered,
             'stages': stages, 'iterations': iterations, 'compile_s': compile_s,
             'worst_action': max(float(np.max(np.abs(a.u_safe - b.u_safe))) for a, b in pairs),
             'worst_h': max(float(np.max(np.abs(a.h - b.h))) for a, b in pairs)}
@@ -299,8 +318,10 @@ def bench_solvers(problem, states, proposals, mean, std) -> tuple[list, str]:
     diff_ours = max(float(np.abs(a - r[:-1]).max()) for a, r in zip(z_ours, refs))
     diff_qpth = max(float(np.abs(a - r[:-1]).max()) for a, r in zip(z_qpth, refs))
     slack_active = sum(1 for r in refs if abs(r[-1]) > 1e-6)
-    rows = [('OSQP update + solve + row check, or the check alone (pass-through)', ours),
-            (f'the same, only the {len(ours_osqp)} calls that ran OSQP', ours_osqp),
+    rows = [("the filter's solve and row check: OSQP update + solve, one active row's closed "
+             'form, or the result at z = 0 (pass-through)', ours),
+            (f'the same, only the {len(ours_osqp)} calls that corrected the proposal',
+             ours_osqp),
             ('a new OSQP set up every call', setup_every),
             ('qpth at batch 1 (eps 1e-10, maxIter 50)', qpth_times)]
     accuracy = (f'vs Clarabel on {len(refs)} QPs ({slack_active} with active slack): max '
@@ -336,9 +357,10 @@ def main() -> None:
     compared = []
     load_before = os.getloadavg()
     summary = ['| system | path | median us (all) | p99 us | median us, pass-through (n) '
-               '| median us, OSQP ran (n) | median CPU us |', '|---|---|---:|---:|---:|---:|---:|']
-    breakdown = ['| system | stage | median us, all calls | pass-through | OSQP ran |',
-                 '|---|---|---:|---:|---:|']
+               '| median us, one active row (n) | median us, OSQP ran (n) | median CPU us |',
+               '|---|---|---:|---:|---:|---:|---:|---:|']
+    breakdown = ['| system | stage | median us, all calls | pass-through | one active row '
+                 '| OSQP ran |', '|---|---|---:|---:|---:|---:|']
     details = []
     target = []
     for label, sampler, params in PROBLEMS:
@@ -369,13 +391,14 @@ def main() -> None:
             summary.append(
                 f'| {label} | {path} | {_median(totals)} '
                 f'| {np.percentile(_us(totals), 99):.1f} '
-                f'| {_median(out["passed"][path])} ({len(out["passed"][path])}) '
-                f'| {_median(out["solved"][path])} ({len(out["solved"][path])}) '
-                f'| {_median(out["cpu"][path])} |')
+                + ''.join(f'| {_median(out["answered"][kind][path])} '
+                          f'({len(out["answered"][kind][path])}) '
+                          for kind in ('pass', 'one row', 'osqp'))
+                + f'| {_median(out["cpu"][path])} |')
         if reference_calls:
             wall = [w for w, _ in reference_calls]
             summary.append(f'| {label} | reference: qpth at batch 1 | {_median(wall)} '
-                           f'| {np.percentile(_us(wall), 99):.1f} | - | - '
+                           f'| {np.percentile(_us(wall), 99):.1f} | - | - | - '
                            f'| {_median([c for _, c in reference_calls])} |')
             ours_median = float(np.median(_us(out['totals']['closed form'])))
             compared.append(f'{label} {np.median(_us(wall)) / ours_median:.0f}x '
@@ -388,7 +411,8 @@ def main() -> None:
                 stage_name += f' ({np.median(iterations):.0f} iterations)'
             times = out['stages'][stage]
             breakdown.append(f'| {label} | {stage_name} | {_median(times["all"])} '
-                             f'| {_median(times["pass"])} | {_median(times["osqp"])} |')
+                             f'| {_median(times["pass"])} | {_median(times["one row"])} '
+                             f'| {_median(times["osqp"])} |')
         rows, accuracy = bench_solvers(problem, states, proposals, mean, std)
         details.append(
             f'\n**{label}** ({args.calls} calls; K = {problem.n_barriers} barrier rows; '
