@@ -140,16 +140,19 @@ def test_graph_sample_decodes_with_rosbags_and_lists_the_endpoint_guids(contexts
 
     def complete() -> Any:
         nodes = bare.nodes_of(gid)
-        return nodes if nodes and len(nodes[0][2]) == 1 and len(nodes[0][3]) == 2 else None
-    [(namespace, name, readers, writers)] = _wait_for(complete, 'the node with 3 endpoints')
+        return nodes if nodes and len(nodes[0][2]) == 1 and len(nodes[0][3]) == 3 else None
+    [(namespace, name, readers, writers)] = _wait_for(complete, 'the node with 4 endpoints')
     assert (namespace, name) == ('/robot', 'safety_filter')
     writers_seen = _wait_for(lambda: bare.endpoints(BuiltinTopicDcpsPublication, gid).get(
-        'rt/robot/cmd_safe') and bare.endpoints(BuiltinTopicDcpsPublication, gid),
+        'rt/robot/cmd_safe') and bare.endpoints(BuiltinTopicDcpsPublication, gid).get(
+        'rt/parameter_events') and bare.endpoints(BuiltinTopicDcpsPublication, gid),
         'the writers in discovery')
     readers_seen = _wait_for(lambda: bare.endpoints(BuiltinTopicDcpsSubscription, gid).get(
         'rt/robot/state') and bare.endpoints(BuiltinTopicDcpsSubscription, gid),
         'the reader in discovery')
-    assert writers == writers_seen['rt/robot/cmd_safe'] | writers_seen['rt/rosout']
+    # as rclpy's: every node publishes /rosout and /parameter_events
+    assert writers == (writers_seen['rt/robot/cmd_safe'] | writers_seen['rt/rosout']
+                       | writers_seen['rt/parameter_events'])
     assert readers == readers_seen['rt/robot/state']
     assert publisher._writer.guid.bytes in writers
     assert subscription._reader.guid.bytes in readers
@@ -172,19 +175,20 @@ def test_graph_sample_follows_endpoint_and_node_changes_and_reaches_late_joiners
     node = Node('simulator', context=context)
     publisher = node.create_publisher(_STRING, 'state', 10)
     subscription = node.create_subscription(_STRING, 'cmd_safe', lambda _: None, 10)
-    rosout = node._rosout.writer.guid.bytes
+    own = {node._rosout.writer.guid.bytes,
+           node._parameter_event_publisher._writer.guid.bytes}  # every node's, as rclpy's
     both = ('/', 'simulator', {subscription._reader.guid.bytes},
-            {rosout, publisher._writer.guid.bytes})
+            own | {publisher._writer.guid.bytes})
     _wait_for(lambda: bare.nodes_of(gid) == [both], 'the node with its endpoints')
     node.destroy_publisher(publisher)
     node.destroy_subscription(subscription)
-    _wait_for(lambda: bare.nodes_of(gid) == [('/', 'simulator', set(), {rosout})],
+    _wait_for(lambda: bare.nodes_of(gid) == [('/', 'simulator', set(), own)],
               'the destroyed endpoints leaving the sample')
     other = Node('recorder', context=context)
     late = BareGraphReader(ros_domain_id)  # joins after every change: gets the current one
     try:
         nodes = _wait_for(lambda: late.nodes_of(gid), 'the current sample')
-        assert nodes[0] == ('/', 'simulator', set(), {rosout})
+        assert nodes[0] == ('/', 'simulator', set(), own)
         assert [entry[:2] for entry in nodes] == [('/', 'simulator'), ('/', 'recorder')]
         node.destroy_node()
         _wait_for(lambda: [e[1] for e in late.nodes_of(gid)] == ['recorder'],
@@ -288,7 +292,8 @@ def test_disable_rosout_logs_leaves_nodes_without_rosout(ros_domain_id):
         assert node._rosout is None
         assert node.get_logger().info('console only')
         [entry] = context.graph.participants()[context.graph.gid]
-        assert entry.writers == []
+        # only /parameter_events, which every node publishes (as rclpy's)
+        assert entry.writers == [graph.gid_of(node._parameter_event_publisher._writer)]
     finally:
         context.shutdown()
 
