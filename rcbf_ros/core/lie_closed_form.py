@@ -85,7 +85,7 @@ class NumpyTerms(NamedTuple):
     """(K, n_u) L_g h_i(x)."""
 
 
-def _unwrap(family: BarrierFamily) -> tuple[BarrierFamily, list[Cascaded]]:
+def unwrap_cascades(family: BarrierFamily) -> tuple[BarrierFamily, list[Cascaded]]:
     """The base family under a stack of cascades, and the cascade levels (innermost first)."""
     levels = []
     while type(family) is Cascaded:
@@ -226,7 +226,7 @@ class ClosedFormTerms:
         lookahead_rows: list[np.ndarray] = []
         start = 0
         for family in problem.families:
-            base, levels = _unwrap(family)
+            base, levels = unwrap_cascades(family)
             if type(base) not in _QUADRATIC_FAMILIES or len(levels) > MAX_CASCADE_DEPTH:
                 return None
             if any(level.system != system or type(level.system) is not type(system)

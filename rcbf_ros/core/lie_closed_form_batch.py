@@ -26,19 +26,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from rcbf_ros.core.barriers import BarrierFamily, Cascaded, CircleObstacles
+from rcbf_ros.core.barriers import CircleObstacles
 from rcbf_ros.core.dynamics import ControlAffineSystem
-from rcbf_ros.core.lie_closed_form import ClosedFormTerms
+from rcbf_ros.core.lie_closed_form import ClosedFormTerms, unwrap_cascades
 from rcbf_ros.core.rcbf import BarrierTerms, RCBFProblem
-
-
-def _unwrap(family: BarrierFamily) -> tuple[BarrierFamily, list[float]]:
-    """The base family under a stack of cascades, and the cascades' gains, innermost first."""
-    gammas = []
-    while type(family) is Cascaded:
-        gammas.append(float(family.gamma))
-        family = family.base
-    return family, gammas[::-1]
 
 
 class _Quadratics:
@@ -161,7 +152,8 @@ class BatchClosedForm:
         lookahead_rows: list[np.ndarray] = []
         start = 0
         for family in problem.families:
-            base, gammas = _unwrap(family)
+            base, levels = unwrap_cascades(family)
+            gammas = [float(level.gamma) for level in levels]
             rows = np.arange(start, start + base.count)
             start += base.count
             if type(base) is CircleObstacles and base.has_lookahead:
