@@ -15,7 +15,21 @@ def machine_line() -> str:
     """A one-line description of where the numbers came from."""
     import torch
     return (f'Python {platform.python_version()}, torch {torch.__version__} '
-            f'({torch.get_num_threads()} thread), {platform.machine()}')
+            f'({torch.get_num_threads()} thread), {platform.machine()}{numpy_blas()}')
+
+
+def numpy_blas() -> str:
+    """', numpy OpenBLAS <kernel>' as this process's numpy runs it (empty without
+    threadpoolctl or OpenBLAS)."""
+    try:
+        import numpy  # noqa: F401  (loads the BLAS that threadpoolctl inspects)
+        import threadpoolctl
+    except ImportError:
+        return ''
+    for info in threadpoolctl.threadpool_info():
+        if info.get('internal_api') == 'openblas':
+            return f", numpy OpenBLAS {info.get('architecture')} kernels"
+    return ''
 
 
 def write_section(title: str, body: str) -> None:

@@ -17,6 +17,9 @@ Writes the ``## Differentiable QP`` section of benchmarks/RESULTS.md.
 """
 from __future__ import annotations
 
+# First: numpy's BLAS set up as in every rcbf_ros process (rcbf_ros/openblas.py).
+import rcbf_ros  # noqa: F401  # isort: skip
+
 import argparse
 import itertools
 from pathlib import Path

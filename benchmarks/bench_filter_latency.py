@@ -16,6 +16,9 @@ measured in the same invocation.
 """
 from __future__ import annotations
 
+# First: numpy's BLAS set up as in every rcbf_ros process (rcbf_ros/openblas.py).
+import rcbf_ros  # noqa: F401  # isort: skip
+
 import argparse
 import os
 from pathlib import Path
