@@ -3,7 +3,7 @@
     python benchmarks/bench_blas_threads.py [--calls 3000] [--no-write]
 
 Two settings of numpy's OpenBLAS, each timed in child processes that import numpy with the
-environment variable under test (rcbf_ros/openblas.py says why each is set):
+environment variable under test (rcbf_ros/__init__.py says why each is set):
 
 - **Threads**: a (1, 256) x (256, 256) float64 product (the actor's hidden layer, as the numpy
   acting path computes it) with ``OPENBLAS_NUM_THREADS`` unset (OpenBLAS's default: a thread
@@ -11,7 +11,7 @@ environment variable under test (rcbf_ros/openblas.py says why each is set):
   process per core beside it (like two training runs side by side, or the simulator, filter and
   recorder nodes). Both with the kernel rcbf_ros chooses.
 - **Kernel**: the per-step products with ``OPENBLAS_CORETYPE`` unset (OpenBLAS picks by the
-  CPU's model number) and set to what :func:`rcbf_ros.openblas.coretype_for` picks from the
+  CPU's model number) and set to what :func:`rcbf_ros.coretype_for` picks from the
   CPU's flags, one thread, interleaved over several child processes each. The kernel each
   child's OpenBLAS reports is printed (threadpoolctl).
 """
@@ -28,7 +28,7 @@ import sys
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from rcbf_ros.openblas import coretype_for, cpu_flags  # noqa: E402
+from rcbf_ros import coretype_for, cpu_flags  # noqa: E402
 
 CHILD = r"""
 import json, statistics, sys, time
@@ -160,7 +160,7 @@ def main() -> None:
             f'--repeats {args.repeats}` (one run; {machine_line()}). What `import rcbf_ros` '
             'sets before numpy loads, unless the environment already sets it: '
             "OPENBLAS_NUM_THREADS=1 and OPENBLAS_CORETYPE from the CPU's flags "
-            '(rcbf_ros/openblas.py).\n\n'
+            '(rcbf_ros/__init__.py).\n\n'
             '**Threads.** One (1, 256) x (256, 256) float64 product per call (the numpy '
             "acting path's hidden layer), in child processes with OPENBLAS_NUM_THREADS unset "
             f'and set to 1, both with OPENBLAS_CORETYPE={coretype}.\n\n' + threads

@@ -18,7 +18,7 @@ sequential vs Ray`` section of benchmarks/RESULTS.md.
 """
 from __future__ import annotations
 
-# First: numpy's BLAS set up as in every rcbf_ros process (rcbf_ros/openblas.py).
+# First: numpy's BLAS set up as in every rcbf_ros process (rcbf_ros/__init__.py).
 import rcbf_ros  # noqa: F401  # isort: skip
 
 import argparse

@@ -14,7 +14,7 @@ Run: ``python benchmarks/bench_recorder.py [--messages 5000] [--sizes 1 100 1000
 """
 from __future__ import annotations
 
-# First: numpy's BLAS set up as in every rcbf_ros process (rcbf_ros/openblas.py).
+# First: numpy's BLAS set up as in every rcbf_ros process (rcbf_ros/__init__.py).
 import rcbf_ros  # noqa: F401  # isort: skip
 
 import argparse

@@ -1,5 +1,5 @@
 """numpy's OpenBLAS setup at ``import rcbf_ros``: the kernel from the CPU's flags, one thread,
-and what the environment already sets is kept (rcbf_ros/openblas.py)."""
+and what the environment already sets is kept (rcbf_ros/__init__.py)."""
 from __future__ import annotations
 
 import json
@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from rcbf_ros.openblas import AVX2_FLAGS, AVX512_FLAGS, configure, coretype_for, cpu_flags
+from rcbf_ros import AVX2_FLAGS, AVX512_FLAGS, configure_openblas, coretype_for, cpu_flags
 
 CPUINFO = """processor\t: 0
 vendor_id\t: GenuineIntel
@@ -56,13 +56,14 @@ def test_configure_sets_what_is_unset_and_keeps_what_is_set(tmp_path: Path) -> N
     info = tmp_path / 'cpuinfo'
     info.write_text(CPUINFO.format(extra=' '.join(sorted(AVX512_FLAGS | AVX2_FLAGS))))
     environ: dict[str, str] = {}
-    configure(environ, cpuinfo=info)
+    configure_openblas(environ, cpuinfo=info)
     assert environ == {'OPENBLAS_NUM_THREADS': '1', 'OPENBLAS_CORETYPE': 'SkylakeX'}
     environ = {'OPENBLAS_NUM_THREADS': '2', 'OPENBLAS_CORETYPE': 'Prescott'}
-    configure(environ, cpuinfo=info)
+    configure_openblas(environ, cpuinfo=info)
     assert environ == {'OPENBLAS_NUM_THREADS': '2', 'OPENBLAS_CORETYPE': 'Prescott'}
     environ = {}
-    configure(environ, cpuinfo=tmp_path / 'missing')  # no flags: the kernel is OpenBLAS's
+    # No flags: the kernel is OpenBLAS's choice.
+    configure_openblas(environ, cpuinfo=tmp_path / 'missing')
     assert environ == {'OPENBLAS_NUM_THREADS': '1'}
 
 
