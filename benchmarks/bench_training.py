@@ -53,7 +53,9 @@ the next states without gradient, forward and backward at the states, at the act
 with the memoised disturbance estimate); its part is the median. The action (policy + GP +
 filter) and the environment step (``env.step`` alone): medians over the timed window. The
 step: 1000 / steady-state steps/s. Reported per row: step ms, floor ms and its parts, step /
-floor against the target.
+floor against the target. Beyond the floor: the eager update, storing the transition and the
+GP's residual pair, drawing the minibatch (and its memoised disturbance estimate), the
+model-based rollouts (``--model-based`` rows), Python between the parts.
 
 Mode map (ours <- reference ``--cbf_mode``): baseline <- baseline, modular <- mod,
 diff <- full. Without ``--reference`` the comparison is skipped and its columns stay empty.

@@ -1,10 +1,9 @@
-"""The training benchmark's own floor: the functional SAC update is SAC.update, and the floor's
+"""The training benchmark's own floor: the update it times is SAC.update's, and the floor's
 table arithmetic."""
 from __future__ import annotations
 
 from benchmark_modules import load_benchmark
 import numpy as np
-import pytest
 import torch
 
 from rcbf_ros.learning.buffers import TransitionBatch
@@ -36,39 +35,14 @@ def _agent(mode: str = 'baseline', **config) -> SAC:
                seed=3)
 
 
-@pytest.mark.parametrize('autotune', [True, False])
-def test_functional_update_is_sac_update_to_round_off_over_several_steps(autotune):
-    sac = _agent(autotune_alpha=autotune)
-    batches = _batches(5)
-    for batch in batches[:2]:  # Adam moments and step count are carried over, not restarted
-        sac.update(batch)
-    functional = floor_module.FunctionalUpdate(sac)
-    draws = torch.Generator()
-    draws.set_state(sac.generator.get_state())
-    for batch in batches[2:]:
-        next_noise = torch.randn((B, N_U), generator=draws)
-        noise = torch.randn((B, N_U), generator=draws)
-        functional.step(batch, next_noise, noise)
-        sac.update(batch)
-        assert functional.difference(sac) < 1e-6
-    assert sac.num_updates == 5 and float(functional.step_count) == 5.0
-
-
-def test_functional_update_never_touches_the_agent():
-    sac = _agent()
-    before = {name: p.detach().clone() for name, p in sac.actor.named_parameters()}
-    functional = floor_module.FunctionalUpdate(sac)
-    functional.step(_batches(1)[0], torch.zeros(B, N_U), torch.zeros(B, N_U))
-    assert all(torch.equal(p, before[name]) for name, p in sac.actor.named_parameters())
-    assert functional.difference(sac) > 0.0
-
-
 def test_baseline_twin_carries_the_state_of_an_agent_with_a_safety_layer():
     sac = _agent('diff')
     sac.update(_batches(1)[0])
     twin = floor_module.baseline_twin(sac)
     assert twin.config.mode == 'baseline' and twin.num_updates == 1
-    assert floor_module.FunctionalUpdate(twin).difference(sac) == 0.0
+    assert floor_module.difference(twin, sac) == 0.0
+    twin.update(_batches(1)[0])
+    assert floor_module.difference(twin, sac) > 0.0
 
 
 def test_best_update_times_the_eager_update_without_compile_modes():
@@ -78,6 +52,16 @@ def test_best_update_times_the_eager_update_without_compile_modes():
     best, median = out['variants']['eager']
     assert 0.0 < best <= median
     assert sac.num_updates == 0  # timed on a twin
+
+
+def test_best_update_checks_each_compile_mode_against_sac_update(monkeypatch):
+    monkeypatch.setattr(torch, 'compile', lambda function, **_: function)
+    sac = _agent()
+    sac.update(_batches(1)[0])
+    out = floor_module.best_update(sac, _batches(2), modes=['default'], calls=2)
+    assert list(out['variants']) == ['eager', 'default']
+    assert out['compile_s']['default'] > 0.0 and out['agreement']['default'] < 1e-6
+    assert sac.num_updates == 1
 
 
 def _run(steps_per_s: float, *, qp: float = 0.0) -> dict:
