@@ -4,6 +4,7 @@ ours against the authors' reference code re-run side by side.
     python benchmarks/bench_training.py [--steps 200] [--systems unicycle ...]
         [--reference DIR --reference-python PATH [--repeats 2]]
         [--floor-modes default max-autotune-no-cudagraphs] [--floor-calls 200]
+        [--compile-update]
 
 Ours: in-process, 1 SAC update per environment step, minibatch 256, 256x256 networks, the
 per-step safety filter (compiled assembly) and the GP estimate on every step. Each row first
@@ -57,12 +58,18 @@ floor against the target. Beyond the floor: the eager update, storing the transi
 GP's residual pair, drawing the minibatch (and its memoised disturbance estimate), the
 model-based rollouts (``--model-based`` rows), Python between the parts.
 
+``--compile-update``: ours trains with ``SACConfig.compile_update`` (the update the floor
+times) in the rows whose losses pass no safety layer; its first update, which compiles, is moved
+to the last warm-up step so that the compile stays out of the window. Without it, ours trains
+as configured by default (the eager update).
+
 Mode map (ours <- reference ``--cbf_mode``): baseline <- baseline, modular <- mod,
 diff <- full. Without ``--reference`` the comparison is skipped and its columns stay empty.
 """
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import os
 from pathlib import Path
 import statistics
@@ -87,7 +94,7 @@ import torch
 
 from rcbf_ros.learning.buffers import TransitionBatch
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
-from rcbf_ros.training.build import build_run, RunConfig
+from rcbf_ros.training.build import build_run, resolve_run, RunConfig
 
 torch.set_num_threads(1)
 
@@ -193,15 +200,22 @@ def update_floor(learner: SafeLearner, *, modes: list[str], calls: int) -> dict:
 
 def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
             threads: int, floor: dict | None = None, floor_modes: list[str] | None = None,
-            floor_calls: int = 200) -> dict:
+            floor_calls: int = 200, compile_update: bool = False) -> dict:
     """Ours in-process: ``warmup`` untimed steps, then ``steps`` stamped steps; then the
     floor's parts (see the module docstring). ``floor``: the system's update floor from an
-    earlier row, else measured here (``floor_modes``; None: no floor)."""
+    earlier row, else measured here (``floor_modes``; None: no floor). ``compile_update``:
+    train with ``SACConfig.compile_update`` where the losses pass no safety layer (its first
+    update, which compiles, then falls on the last warm-up step)."""
     learner_cfg = LearnerConfig(mode=mode, model_based=model_based, seed=0,
                                 start_steps=warmup, update_after=warmup, batch_size=256,
                                 gp_refit_interval=warmup, rollout_interval=100)
-    run = RunConfig(system=system, episodes=1, max_steps=10 ** 6, record_bag=False,
-                    out_dir='/tmp/bench_training', compile_filter=True, learner=learner_cfg)
+    run = resolve_run(RunConfig(system=system, episodes=1, max_steps=10 ** 6,
+                                record_bag=False, out_dir='/tmp/bench_training',
+                                compile_filter=True, learner=learner_cfg))
+    if compile_update and mode != 'diff' and not run.learner.uses_envelope:
+        run = replace(run, learner=replace(
+            run.learner, update_after=warmup - 1,
+            sac=replace(run.learner.sac, compile_update=True)))
     env, filt, learner, _ = build_run(run)
     torch.set_num_threads(threads)
     obs, info = env.reset(seed=0)
@@ -399,10 +413,16 @@ def main() -> None:
                              'floor)')
     parser.add_argument('--floor-calls', type=int, default=200,
                         help="timed calls per variant of the floor's update")
+    parser.add_argument('--compile-update', action='store_true',
+                        help='ours trains with SACConfig.compile_update where the losses pass '
+                             'no safety layer (baseline; modular without envelope layer)')
     parser.add_argument('--no-write', action='store_true')
     args = parser.parse_args()
     if min(args.steps, args.warmup, args.repeats, args.floor_calls) < 1:
         parser.error('--steps, --warmup, --repeats and --floor-calls must be >= 1')
+    if args.compile_update and args.warmup <= 256:
+        parser.error('--compile-update: --warmup must exceed the batch size (256), so that '
+                     'the compiling first update falls in the warm-up')
     if args.rows is None:
         rows = [(system, mode) for system in args.systems for mode in args.modes]
     else:
@@ -444,7 +464,8 @@ def main() -> None:
                     ours.append(measure(system, mode, mb, args.steps, args.warmup, threads,
                                         floor=update_floors.get(f'{system}/{threads}'),
                                         floor_modes=args.floor_modes,
-                                        floor_calls=args.floor_calls))
+                                        floor_calls=args.floor_calls,
+                                        compile_update=args.compile_update))
                     if ours[-1]['floor'] is not None:
                         update_floors[f'{system}/{threads}'] = ours[-1]['floor']
                     torch.set_num_threads(1)
@@ -507,6 +528,7 @@ def main() -> None:
     command = (f'python benchmarks/bench_training.py --steps {args.steps} --warmup {args.warmup}'
                f' --repeats {args.repeats} {selection}'
                + (' --model-based' if args.model_based else '')
+               + (' --compile-update' if args.compile_update else '')
                + (' --reference <Mod-RL-RCBF checkout> --reference-python <its venv>/bin/python'
                   if reference else ''))
     text = '\n'.join(['Ours against the reference, 1 thread each, steady state:', '',

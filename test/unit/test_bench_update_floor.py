@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from benchmark_modules import load_benchmark
 import numpy as np
+import pytest
 import torch
 
 from rcbf_ros.learning.buffers import TransitionBatch
@@ -86,3 +87,11 @@ def test_floor_reading_names_compile_cost_and_agreement():
     text = bench.floor_reading({'unicycle/1': _run(1.0)['floor']}, 200)
     assert 'one-off compile default 40 s, max-autotune-no-cudagraphs 60 s' in text
     assert 'after one step 2.0e-06' in text and 'best of 200 calls' in text
+
+
+def test_compile_update_needs_a_warm_up_longer_than_the_batch(monkeypatch, capsys):
+    monkeypatch.setattr('sys.argv', ['bench_training.py', '--compile-update', '--warmup', '256'])
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main()
+    assert exit_info.value.code == 2
+    assert '--compile-update: --warmup must exceed the batch size' in capsys.readouterr().err
