@@ -110,9 +110,11 @@ def test_compile_update_is_refused_where_the_losses_pass_a_safety_layer():
 
 
 @pytest.mark.slow
-def test_compiled_update_agrees_with_the_eager_update():
-    eager, compiled = _agent(False), _agent(True)
+def test_compiled_update_agrees_with_the_eager_update_and_repeats_itself_exactly():
+    eager, compiled, again = _agent(False), _agent(True), _agent(True)
     for batch in _batches(3):
         expected, got = eager.update(batch), compiled.update(batch)
         assert all(abs(got[key] - expected[key]) < 1e-5 for key in expected)
+        assert again.update(batch) == got
     assert _difference(eager, compiled) < 1e-6
+    assert _difference(compiled, again) == 0.0
