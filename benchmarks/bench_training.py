@@ -374,7 +374,8 @@ def floor_reading(update_floors: dict[str, dict], calls: int) -> str:
                               for mode, seconds in floor['compile_s'].items())
         agreement = max(floor['agreement'].values())
         parts.append(f'{system} ({threads} thread{"s" if threads != "1" else ""}): update ms, '
-                     f'best of {calls} calls: {variants}; one-off compile {compile_s}; largest '
+                     f"best of {calls} calls: {variants}; one-off compile {compile_s} (torch's "
+                     'compile cache on disk shortens it after a first run); largest '
                      f'parameter difference to SAC.update after one step {agreement:.1e}.')
     return (
         "Floor: the SAC update's best compiled time (the whole update as one function, "

@@ -85,7 +85,7 @@ def test_floor_takes_the_fastest_compile_mode_and_judges_the_step_against_it():
 
 def test_floor_reading_names_compile_cost_and_agreement():
     text = bench.floor_reading({'unicycle/1': _run(1.0)['floor']}, 200)
-    assert 'one-off compile default 40 s, max-autotune-no-cudagraphs 60 s' in text
+    assert 'one-off compile default 40 s, max-autotune-no-cudagraphs 60 s (torch' in text
     assert 'after one step 2.0e-06' in text and 'best of 200 calls' in text
 
 
