@@ -200,12 +200,13 @@ class SAC:
         self.critic_optimizer = torch.optim.Adam(
             [*self.q1.parameters(), *self.q2.parameters()], lr=cfg.critic_lr, fused=True)
         self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr)
+        # Built at the first update when ``compile_update`` (it binds the optimizers' state).
+        self._functional_update: FunctionalUpdate | None = None
         self.compensator_optimizer = (
             torch.optim.Adam(self.compensator.parameters(), lr=cfg.compensator_lr, fused=True)
             if self.compensator is not None else None)
         self.generator = torch.Generator().manual_seed(seed + 1)
         self.num_updates = 0
-        self._functional_update: FunctionalUpdate | None = None
         # Batch-1 acting in numpy on live views of the weights (NumpyMLP's docstring says why).
         self._numpy_actor = self.actor.numpy_sampler()
         self._numpy_compensator = (NumpyMLP(self.compensator.net)
