@@ -3,6 +3,8 @@ ours against the authors' reference code re-run side by side.
 
     python benchmarks/bench_training.py [--steps 200] [--systems unicycle ...]
         [--reference DIR --reference-python PATH [--repeats 2]]
+        [--floor-modes default max-autotune-no-cudagraphs] [--floor-calls 200]
+        [--compile-update]
 
 Ours: in-process, 1 SAC update per environment step, minibatch 256, 256x256 networks, the
 per-step safety filter (compiled assembly) and the GP estimate on every step. Each row first
@@ -37,12 +39,39 @@ Amortized: the same with each side's refit, as measured in the run, spread over 
 while the GP learns: ours every LearnerConfig.gp_refit_interval steps, the reference every 400
 steps (a data point every 2nd step, a refit every 200 points; during its first 100 episodes).
 
+Own floor (the goal: a training step at most 1.25x it, measured in the same run): the SAC
+update's best compiled time, plus the differentiable QP's forward and backward where the mode
+trains through it, plus the action and the environment step. The update: after each system's
+first timed window, the whole update of the learner's agent as it stands (networks, Adam
+moments, alpha), the one ``SACConfig.compile_update`` runs (benchmarks/_update_floor.py),
+compiled with ``torch.compile(fullgraph=True)`` in each of ``--floor-modes`` and called
+``--floor-calls`` times on minibatches from the buffer, interleaved with the eager
+``SAC.update``; its part of the floor is the fastest mode's best call. The first call of each
+mode compiles (its one-off cost is printed, never timed in) and is checked against
+``SAC.update`` from the same state on the same batch and noise draws (the largest parameter
+difference is printed). The QP: 30 minibatches from the buffer, each timed as one update runs
+the layer (forward at the next states without gradient, forward and backward at the states, at
+the actor's samples, with the memoised disturbance estimate); its part is the best of them (a
+minibatch of 256 averages over the states, so minibatches differ little; other load on the
+machine only adds). The action (policy + GP + filter) and the environment step (``env.step``
+alone): medians over the timed window. The step: 1000 / steady-state steps/s. Reported per
+row: step ms, floor ms and its parts, step / floor against the target. Beyond the floor: the
+eager update (unless ``--compile-update``), storing the transition and the GP's residual pair,
+drawing the minibatch (and its memoised disturbance estimate), the model-based rollouts
+(``--model-based`` rows), Python between the parts.
+
+``--compile-update``: ours trains with ``SACConfig.compile_update`` (the update the floor
+times) in the rows whose losses pass no safety layer; its first update, which compiles, is moved
+to the last warm-up step so that the compile stays out of the window. Without it, ours trains
+as configured by default (the eager update).
+
 Mode map (ours <- reference ``--cbf_mode``): baseline <- baseline, modular <- mod,
 diff <- full. Without ``--reference`` the comparison is skipped and its columns stay empty.
 """
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import os
 from pathlib import Path
 import statistics
@@ -61,11 +90,13 @@ from _reference import (
     run_reference,
     steady_rate,
 )
+from _update_floor import best_update
 import numpy as np
 import torch
 
-from rcbf_ros.training.agent import LearnerConfig
-from rcbf_ros.training.build import build_run, RunConfig
+from rcbf_ros.learning.buffers import TransitionBatch
+from rcbf_ros.training.agent import LearnerConfig, SafeLearner
+from rcbf_ros.training.build import build_run, resolve_run, RunConfig
 
 torch.set_num_threads(1)
 
@@ -100,6 +131,11 @@ DIFFERENCES = (
     'arena bands) in both losses. Buffer '
     'sampling: ours one preallocated table; the reference a Python list of tuples.')
 """Printed with the table."""
+FLOOR_TARGET = 1.25
+"""The project's speed goal against the floor: step time at most this multiple of it."""
+FLOOR_MODES = ('default', 'max-autotune-no-cudagraphs', 'reduce-overhead')
+"""torch.compile modes the floor's update may try (reduce-overhead's CUDA graphs do not apply
+on CPU)."""
 
 
 def matmul_gflops(threads: int, size: int = 256, repeats: int = 2000) -> float:
@@ -127,19 +163,66 @@ def update_gflop(obs_dim: int, n_u: int, hidden: int = 256, batch: int = 256) ->
     return 2 * batch * (4 * actor + 12 * critic) / 1e9
 
 
+def qp_parts_ms(learner: SafeLearner, *, draws: int) -> float:
+    """Best ms over ``draws`` minibatches of the differentiable QP as one update runs it:
+    a forward pass at the next states (the critic target, no gradient) and a forward and
+    backward pass at the states (the actor loss), each at the actor's samples, with the
+    memoised disturbance estimate, on batches drawn from the learner's buffer."""
+    sac, buffer = learner.sac, learner.buffer
+    layer = sac.safety_layer
+    assert layer is not None
+    noise = torch.Generator().manual_seed(1)
+    times = []
+    for _ in range(draws):
+        index = buffer.sample_index(learner.config.batch_size)
+        batch = TransitionBatch(*(t.to(sac.dtype) for t in buffer.gather(index)))
+        estimate = buffer.predictions(index, version=learner.gp.version,
+                                      predict=learner.disturbance)
+        with torch.no_grad():
+            following = sac.actor(batch.next_obs, generator=noise).action
+            action = sac.actor(batch.obs, generator=noise).action
+        action.requires_grad_(True)
+        start = time.perf_counter()
+        with torch.no_grad():
+            layer(batch.next_state, following,
+                  (estimate.next_state[:, 0], estimate.next_state[:, 1]))
+        safe = layer(batch.state, action, (estimate.state[:, 0], estimate.state[:, 1]))
+        safe.backward(torch.ones_like(safe))
+        times.append(time.perf_counter() - start)
+    return 1e3 * min(times)
+
+
+def update_floor(learner: SafeLearner, *, modes: list[str], calls: int) -> dict:
+    """:func:`_update_floor.best_update` on 8 minibatches from the learner's buffer."""
+    sac = learner.sac
+    batches = [TransitionBatch(*(t.to(sac.dtype) for t in learner.buffer.gather(
+        learner.buffer.sample_index(learner.config.batch_size)))) for _ in range(8)]
+    return best_update(sac, batches, modes=modes, calls=calls)
+
+
 def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
-            threads: int) -> dict:
-    """Ours in-process: ``warmup`` untimed steps, then ``steps`` stamped steps."""
+            threads: int, floor: dict | None = None, floor_modes: list[str] | None = None,
+            floor_calls: int = 200, compile_update: bool = False) -> dict:
+    """Ours in-process: ``warmup`` untimed steps, then ``steps`` stamped steps; then the
+    floor's parts (see the module docstring). ``floor``: the system's update floor from an
+    earlier row, else measured here (``floor_modes``; None: no floor). ``compile_update``:
+    train with ``SACConfig.compile_update`` where the losses pass no safety layer (its first
+    update, which compiles, then falls on the last warm-up step)."""
     learner_cfg = LearnerConfig(mode=mode, model_based=model_based, seed=0,
                                 start_steps=warmup, update_after=warmup, batch_size=256,
                                 gp_refit_interval=warmup, rollout_interval=100)
-    run = RunConfig(system=system, episodes=1, max_steps=10 ** 6, record_bag=False,
-                    out_dir='/tmp/bench_training', compile_filter=True, learner=learner_cfg)
+    run = resolve_run(RunConfig(system=system, episodes=1, max_steps=10 ** 6,
+                                record_bag=False, out_dir='/tmp/bench_training',
+                                compile_filter=True, learner=learner_cfg))
+    if compile_update and mode != 'diff' and not run.learner.uses_envelope:
+        run = replace(run, learner=replace(
+            run.learner, update_after=warmup - 1,
+            sac=replace(run.learner.sac, compile_update=True)))
     env, filt, learner, _ = build_run(run)
     torch.set_num_threads(threads)
     obs, info = env.reset(seed=0)
     state = info['state']
-    action_times, update_times, filter_times = [], [], []
+    action_times, update_times, filter_times, env_times = [], [], [], []
     stamps, cpu_stamps, refits = [], [], []
     fit = learner.gp.fit
 
@@ -166,6 +249,7 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
                                  proposal.disturbance_std).u_safe
         t2 = time.perf_counter()
         next_obs, reward, terminated, truncated, info = env.step(u_safe)
+        t_env = time.perf_counter()
         learner.observe(obs=obs, state=state, u_rl=proposal.u_rl, u_safe=u_safe, reward=reward,
                         next_obs=next_obs, next_state=info['state'], terminated=terminated)
         t3 = time.perf_counter()
@@ -174,6 +258,7 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
         if timed:
             action_times.append(t2 - t0)
             filter_times.append(t2 - t1)
+            env_times.append(t_env - t2)
             if metrics:
                 update_times.append(t4 - t3)
         obs, state = next_obs, info['state']
@@ -189,7 +274,13 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
         one_step(True)
     stamps.append(time.perf_counter())
     cpu_stamps.append(time.process_time())
+    if floor is None and floor_modes:
+        floor = update_floor(learner, modes=floor_modes, calls=floor_calls)
     return {
+        'floor': floor,
+        'qp_ms': (qp_parts_ms(learner, draws=30) if floor is not None
+                  and learner.sac.through_layer else 0.0),
+        'env_ms': 1e3 * statistics.median(env_times),
         'steps_per_s': steady_rate(stamps=stamps, refits=refits, first=0),
         'cpu_steps_per_s': steady_rate(stamps=cpu_stamps, refits=refits, first=0, cpu=True),
         'refit_s': statistics.median(r.seconds for r in warmup_refits + refits),
@@ -252,6 +343,56 @@ def comparison_row(system: str, mode: str, ours: list[dict], ref: list[dict]) ->
             f'| {target_text} | {met} |')
 
 
+def floor_row(system: str, name: str, ours: list[dict]) -> str:
+    """One row of the own-floor table: medians over the row's repeats."""
+    update_ms = best_compiled_ms(ours[0]['floor'])[1]
+    floors = [update_ms + run['qp_ms'] + run['action_ms'] + run['env_ms'] for run in ours]
+    ratios = [1e3 / run['steps_per_s'] / floor for run, floor in zip(ours, floors)]
+    ratio = statistics.median(ratios)
+    return (f'| {system} | {name} | {1e3 / _median(ours, "steps_per_s"):.2f} '
+            f'| {statistics.median(floors):.2f} | {update_ms:.2f} '
+            f'| {_median(ours, "qp_ms"):.2f} | {_median(ours, "action_ms"):.2f} '
+            f'| {_median(ours, "env_ms"):.2f} | {ratio:.2f}x '
+            f'| <= {FLOOR_TARGET:g}x | {"met" if ratio <= FLOOR_TARGET else "not met"} |')
+
+
+def best_compiled_ms(floor: dict) -> tuple[str, float]:
+    """The compile mode with the shortest best time, and that time (ms)."""
+    compiled = {mode: best for mode, (best, _) in floor['variants'].items() if mode != 'eager'}
+    mode = min(compiled, key=compiled.__getitem__)
+    return mode, compiled[mode]
+
+
+def floor_reading(update_floors: dict[str, dict], calls: int) -> str:
+    """The floor's method and the update measurements behind it, per system."""
+    parts = []
+    for key, floor in update_floors.items():
+        system, threads = key.split('/')
+        variants = '; '.join(f'{name} {best:.2f} (median {median:.2f})'
+                             for name, (best, median) in floor['variants'].items())
+        compile_s = ', '.join(f'{mode} {seconds:.0f} s'
+                              for mode, seconds in floor['compile_s'].items())
+        agreement = max(floor['agreement'].values())
+        parts.append(f'{system} ({threads} thread{"s" if threads != "1" else ""}): update ms, '
+                     f"best of {calls} calls: {variants}; one-off compile {compile_s} (torch's "
+                     'compile cache on disk shortens it after a first run); largest '
+                     f'parameter difference to SAC.update after one step {agreement:.1e}.')
+    return (
+        "Floor: the SAC update's best compiled time (the whole update as one function, "
+        "compiled with torch.compile(fullgraph=True) in each mode tried, the fastest mode's "
+        'best call; benchmarks/_update_floor.py; the compile is not timed in), plus, where '
+        'the mode trains through the differentiable QP (diff; PVTOL modular with its envelope '
+        'layer), the QP as one update runs it (forward at the next states, forward and '
+        'backward at the states; best of 30 minibatches from the buffer), plus the action '
+        '(policy + GP + filter) and the environment step (each the median over the timed '
+        'window). "step ms" is the steady-state step (1000 / steps/s). What the step does '
+        'beyond the floor: the eager update instead of the compiled one (unless '
+        '--compile-update), storing the '
+        'transition and the GP pair, drawing the minibatch and its memoised disturbance '
+        'estimate, Python between the parts. Target: step / floor <= '
+        f'{FLOOR_TARGET:g}x. ' + ' '.join(parts))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--steps', type=int, default=200, help='timed steps per run')
@@ -269,10 +410,23 @@ def main() -> None:
     add_reference_arguments(parser)
     parser.add_argument('--reference-warmup', type=int, default=400,
                         help="the reference's untimed steps (its first GP refit is at 400)")
+    parser.add_argument('--floor-modes', nargs='*',
+                        default=['default', 'max-autotune-no-cudagraphs'],
+                        choices=list(FLOOR_MODES),
+                        help="torch.compile modes tried for the floor's update (none: no "
+                             'floor)')
+    parser.add_argument('--floor-calls', type=int, default=200,
+                        help="timed calls per variant of the floor's update")
+    parser.add_argument('--compile-update', action='store_true',
+                        help='ours trains with SACConfig.compile_update where the losses pass '
+                             'no safety layer (baseline; modular without envelope layer)')
     parser.add_argument('--no-write', action='store_true')
     args = parser.parse_args()
-    if min(args.steps, args.warmup, args.repeats) < 1:
-        parser.error('--steps, --warmup and --repeats must be >= 1')
+    if min(args.steps, args.warmup, args.repeats, args.floor_calls) < 1:
+        parser.error('--steps, --warmup, --repeats and --floor-calls must be >= 1')
+    if args.compile_update and args.warmup <= 256:
+        parser.error('--compile-update: --warmup must exceed the batch size (256), so that '
+                     'the compiling first update falls in the warm-up')
     if args.rows is None:
         rows = [(system, mode) for system in args.systems for mode in args.modes]
     else:
@@ -296,10 +450,14 @@ def main() -> None:
                '| ours / reference (per repeat) | CPU-time ratio | ratio, refits amortized '
                '| reference refit s | target | |',
                '|---|---|---:|---:|---:|---:|---:|---:|---|---|']
-    detail = ['| system | mode | threads | steps/s | median update ms | update floor ms '
+    detail = ['| system | mode | threads | steps/s | median update ms | update arithmetic ms '
               '| action ms (policy+GP+filter) | filter ms | reference update ms '
               '| reference filter ms |', '|---|---|---:|---:|---:|---:|---:|---:|---:|---:|']
+    own_floor = ['| system | mode | step ms | floor ms | update, best compiled ms '
+                 '| diff. QP fwd+bwd ms | action ms | env step ms | step / floor | target | |',
+                 '|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|']
     floors = {}
+    update_floors: dict[str, dict] = {}
     row_loads = []
     try:
         for system, mode, mb in configs:
@@ -307,7 +465,13 @@ def main() -> None:
                 paired = reference and threads == 1 and not mb
                 ours, ref = [], []
                 for _ in range(args.repeats if paired else 1):
-                    ours.append(measure(system, mode, mb, args.steps, args.warmup, threads))
+                    ours.append(measure(system, mode, mb, args.steps, args.warmup, threads,
+                                        floor=update_floors.get(f'{system}/{threads}'),
+                                        floor_modes=args.floor_modes,
+                                        floor_calls=args.floor_calls,
+                                        compile_update=args.compile_update))
+                    if ours[-1]['floor'] is not None:
+                        update_floors[f'{system}/{threads}'] = ours[-1]['floor']
                     torch.set_num_threads(1)
                     if paired:
                         ref.append(measure_reference(args.reference, args.reference_python,
@@ -324,6 +488,9 @@ def main() -> None:
                        + ref_cols)
                 detail.append(row)
                 print(row, flush=True)
+                if ours[0]['floor'] is not None:
+                    own_floor.append(floor_row(system, name, ours))
+                    print(own_floor[-1], flush=True)
                 if threads == 1 and not mb:
                     compare.append(comparison_row(system, mode, ours, ref))
                     print(compare[-1], flush=True)
@@ -346,12 +513,14 @@ def main() -> None:
         f'least {floor:.1f} ms, at most {1e3 / floor:.0f} updates/s even with nothing else '
         'to do.' for t, gflop, floor in unicycle)
     reading = (
-        'Reading: "update floor" is the update\'s matmul arithmetic (counted from the network '
-        'sizes, see `update_gflop`) at the best float32 matmul rate measured in this run '
+        'Reading: "update arithmetic" is the update\'s matmul arithmetic (counted from the '
+        'network sizes, see `update_gflop`) at the best float32 matmul rate measured in this run '
         f'({peaks}; one 256x256x256 product). It bounds every mode from below.{bound} The diff '
         'rows add the differentiable QP (two batched solves and their backward) on top. '
         'bfloat16 autocast would shorten the update (6.1 vs 11.0 ms on one thread) and is not '
         'used: it keeps Q values to ~3 significant digits.')
+    floor_text = floor_reading(update_floors, args.floor_calls) if update_floors else (
+        'Floor not measured (--floor-modes with no mode).')
     if reference:
         verdict = ('Target: ours / reference steady-state steps/s at least the "target" '
                    'column (the project\'s speed goals); "met" is judged on the wall-clock '
@@ -363,12 +532,15 @@ def main() -> None:
     command = (f'python benchmarks/bench_training.py --steps {args.steps} --warmup {args.warmup}'
                f' --repeats {args.repeats} {selection}'
                + (' --model-based' if args.model_based else '')
+               + (' --compile-update' if args.compile_update else '')
                + (' --reference <Mod-RL-RCBF checkout> --reference-python <its venv>/bin/python'
                   if reference else ''))
     text = '\n'.join(['Ours against the reference, 1 thread each, steady state:', '',
                       *compare, '', verdict, '', load, '', DIFFERENCES, '',
                       'Ours in detail (reference columns: median of its repeats):', '',
-                      *detail, '', reading])
+                      *detail, '', reading, '',
+                      'Ours against its own floor, measured in the same run:', '',
+                      *own_floor, '', floor_text])
     print(text)
     if not args.no_write:
         from _results import machine_line, write_section

@@ -1,0 +1,97 @@
+"""The training benchmark's own floor: the update it times is SAC.update's, and the floor's
+table arithmetic."""
+from __future__ import annotations
+
+from benchmark_modules import load_benchmark
+import numpy as np
+import pytest
+import torch
+
+from rcbf_ros.learning.buffers import TransitionBatch
+from rcbf_ros.learning.sac import SAC, SACConfig
+
+floor_module = load_benchmark('_update_floor')
+bench = load_benchmark('bench_training')
+
+OBS, N_X, N_U, B = 5, 3, 2, 32
+
+
+def _batches(count: int) -> list[TransitionBatch]:
+    draws = torch.Generator().manual_seed(11)
+
+    def rand(*shape: int) -> torch.Tensor:
+        return torch.randn(*shape, generator=draws)
+
+    return [TransitionBatch(obs=rand(B, OBS), state=rand(B, N_X),
+                            u_rl=rand(B, N_U).clamp(-1, 1), u_safe=rand(B, N_U).clamp(-1, 1),
+                            u_s=rand(B, N_U), reward=rand(B), next_obs=rand(B, OBS),
+                            next_state=rand(B, N_X), done=(rand(B) > 1.0).float())
+            for _ in range(count)]
+
+
+def _agent(mode: str = 'baseline', **config) -> SAC:
+    layer = (lambda state, u, estimate=None: u) if mode == 'diff' else None
+    return SAC(OBS, N_U, -np.ones(N_U), np.ones(N_U),
+               SACConfig(mode=mode, hidden_sizes=(16, 16), **config), safety_layer=layer,
+               seed=3)
+
+
+def test_baseline_twin_carries_the_state_of_an_agent_with_a_safety_layer():
+    sac = _agent('diff')
+    sac.update(_batches(1)[0])
+    twin = floor_module.baseline_twin(sac)
+    assert twin.config.mode == 'baseline' and twin.num_updates == 1
+    assert floor_module.difference(twin, sac) == 0.0
+    twin.update(_batches(1)[0])
+    assert floor_module.difference(twin, sac) > 0.0
+
+
+def test_best_update_times_the_eager_update_without_compile_modes():
+    sac = _agent()
+    out = floor_module.best_update(sac, _batches(2), modes=[], calls=3)
+    assert list(out['variants']) == ['eager'] and out['compile_s'] == {}
+    best, median = out['variants']['eager']
+    assert 0.0 < best <= median
+    assert sac.num_updates == 0  # timed on a twin
+
+
+def test_best_update_checks_each_compile_mode_against_sac_update(monkeypatch):
+    monkeypatch.setattr(torch, 'compile', lambda function, **_: function)
+    sac = _agent()
+    sac.update(_batches(1)[0])
+    out = floor_module.best_update(sac, _batches(2), modes=['default'], calls=2)
+    assert list(out['variants']) == ['eager', 'default']
+    assert out['compile_s']['default'] > 0.0 and out['agreement']['default'] < 1e-6
+    assert sac.num_updates == 1
+
+
+def _run(steps_per_s: float, *, qp: float = 0.0) -> dict:
+    floor = {'variants': {'eager': (9.0, 9.5), 'default': (6.0, 6.5),
+                          'max-autotune-no-cudagraphs': (5.0, 7.0)},
+             'compile_s': {'default': 40.0, 'max-autotune-no-cudagraphs': 60.0},
+             'agreement': {'default': 1e-6, 'max-autotune-no-cudagraphs': 2e-6}}
+    return {'floor': floor, 'qp_ms': qp, 'action_ms': 1.0, 'env_ms': 0.5,
+            'steps_per_s': steps_per_s}
+
+
+def test_floor_takes_the_fastest_compile_mode_and_judges_the_step_against_it():
+    assert bench.best_compiled_ms(_run(1.0)['floor']) == ('max-autotune-no-cudagraphs', 5.0)
+    # floor 5 + 2 + 1 + 0.5 = 8.5 ms; a 10 ms step is 1.18x, a 12.5 ms step 1.47x.
+    met = bench.floor_row('unicycle', 'diff', [_run(100.0, qp=2.0)]).split(' | ')
+    assert met[3:5] == ['8.50', '5.00'] and met[-3:] == ['1.18x', '<= 1.25x', 'met |']
+    missed = bench.floor_row('unicycle', 'diff', [_run(80.0, qp=2.0)])
+    assert missed.endswith('| 1.47x | <= 1.25x | not met |')
+
+
+def test_floor_reading_names_compile_cost_and_agreement():
+    text = bench.floor_reading({'unicycle/1': _run(1.0)['floor']}, 200)
+    assert 'one-off compile default 40 s, max-autotune-no-cudagraphs 60 s (torch' in text
+    assert 'after one step 2.0e-06' in text and 'best of 200 calls' in text
+
+
+def test_compile_update_needs_a_warm_up_longer_than_the_batch(monkeypatch, capsys):
+    monkeypatch.setattr('sys.argv', ['bench_training.py', '--compile-update', '--warmup', '256'])
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main()
+    assert exit_info.value.code == 2
+    assert '--compile-update: --warmup must exceed the batch size' in capsys.readouterr().err
