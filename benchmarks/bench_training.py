@@ -70,6 +70,9 @@ diff <- full. Without ``--reference`` the comparison is skipped and its columns 
 """
 from __future__ import annotations
 
+# First: numpy's BLAS set up as in every rcbf_ros process (rcbf_ros/__init__.py).
+import rcbf_ros  # noqa: F401  # isort: skip
+
 import argparse
 from dataclasses import replace
 import os
