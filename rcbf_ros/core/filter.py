@@ -243,32 +243,36 @@ def _solve_small(matrix: list[list[float]], rhs: list[float]) -> list[float] | N
 
 def _on_rows(basis: list[list[float]], rhs: list[float], tolerance: float
              ) -> tuple[list[float], list[float]] | None:
-    """The least |y| with basis y = rhs (to ``tolerance``) and its multipliers (y = -sum_i
-    lambda_i basis_i), if every lambda_i >= 0 and stationarity holds to round-off; else None.
+    """The least |y| with basis y = rhs and its multipliers lambda (y = -sum_i lambda_i
+    basis_i), if the rows hold to ``tolerance``, every lambda_i >= 0 and stationarity holds
+    to round-off; else None.
 
     lambda comes from the Gram system of the rows. y sums terms far larger than itself when a
     costly slack makes the multipliers large; where it then misses the rows by more than
-    ``tolerance``, one step of iterative refinement puts it back on them, and stationarity
-    holds up to that step's shift: at most :data:`STATIONARITY_TOLERANCE` of the terms."""
+    ``tolerance``, one step of iterative refinement (on lambda, and y with it) puts it back.
+    Stationarity, |y + sum_i lambda_i basis_i| evaluated, must be at most
+    :data:`STATIONARITY_TOLERANCE` of the terms summed."""
     gram = [[_dot(a, b) for b in basis] for a in basis]
     multipliers = _solve_small(gram, [-value for value in rhs])
-    if multipliers is None or not all(value >= 0.0 for value in multipliers):
+    if multipliers is None:
         return None
     columns = list(zip(*basis))
     y = [-_dot(multipliers, column) for column in columns]
     residual = [_dot(a, y) - value for a, value in zip(basis, rhs)]
-    if max(map(abs, residual)) <= tolerance:
-        return y, multipliers  # stationarity exact: y is -sum_i lambda_i basis_i as computed
-    correction = _solve_small(gram, residual)
-    if correction is None:
-        return None
-    shift = [_dot(correction, column) for column in columns]
-    terms = 1.0 + sum(value * max(map(abs, a)) for value, a in zip(multipliers, basis))
-    if not max(map(abs, shift)) <= STATIONARITY_TOLERANCE * terms:
-        return None
-    y = [value - delta for value, delta in zip(y, shift)]
-    residual = [_dot(a, y) - value for a, value in zip(basis, rhs)]
     if not max(map(abs, residual)) <= tolerance:
+        correction = _solve_small(gram, residual)
+        if correction is None:
+            return None
+        multipliers = [value + delta for value, delta in zip(multipliers, correction)]
+        y = [value - _dot(correction, column) for value, column in zip(y, columns)]
+        residual = [_dot(a, y) - value for a, value in zip(basis, rhs)]
+        if not max(map(abs, residual)) <= tolerance:
+            return None
+    if not all(value >= 0.0 for value in multipliers):
+        return None
+    stationarity = [value + _dot(multipliers, column) for value, column in zip(y, columns)]
+    terms = 1.0 + sum(value * max(map(abs, a)) for value, a in zip(multipliers, basis))
+    if not max(map(abs, stationarity)) <= STATIONARITY_TOLERANCE * terms:
         return None
     return y, multipliers
 
