@@ -241,18 +241,28 @@ def _solve_small(matrix: list[list[float]], rhs: list[float]) -> list[float] | N
     return solution
 
 
+def _gram(basis: list[list[float]]) -> list[list[float]]:
+    """The Gram matrix of a few rows (each inner product computed once)."""
+    gram = [[0.0] * len(basis) for _ in basis]
+    for i, a in enumerate(basis):
+        for j in range(i, len(basis)):
+            gram[i][j] = gram[j][i] = _dot(a, basis[j])
+    return gram
+
+
 def _on_rows(basis: list[list[float]], rhs: list[float], tolerance: float
              ) -> tuple[list[float], list[float]] | None:
     """The least |y| with basis y = rhs and its multipliers lambda (y = -sum_i lambda_i
     basis_i), if the rows hold to ``tolerance``, every lambda_i >= 0 and stationarity holds
     to round-off; else None.
 
-    lambda comes from the Gram system of the rows. y sums terms far larger than itself when a
-    costly slack makes the multipliers large; where it then misses the rows by more than
-    ``tolerance``, one step of iterative refinement (on lambda, and y with it) puts it back.
-    Stationarity, |y + sum_i lambda_i basis_i| evaluated, must be at most
+    lambda comes from the Gram system of the rows, y = -sum_i lambda_i basis_i from lambda
+    (stationarity by construction). y sums terms far larger than itself when a costly slack
+    makes the multipliers large; where it then misses the rows by more than ``tolerance``,
+    one step of iterative refinement (on lambda, and y with it) puts it back, and
+    stationarity, |y + sum_i lambda_i basis_i| evaluated, must then be at most
     :data:`STATIONARITY_TOLERANCE` of the terms summed."""
-    gram = [[_dot(a, b) for b in basis] for a in basis]
+    gram = _gram(basis)
     multipliers = _solve_small(gram, [-value for value in rhs])
     if multipliers is None:
         return None
@@ -268,62 +278,79 @@ def _on_rows(basis: list[list[float]], rhs: list[float], tolerance: float
         residual = [_dot(a, y) - value for a, value in zip(basis, rhs)]
         if not max(map(abs, residual)) <= tolerance:
             return None
-    if not all(value >= 0.0 for value in multipliers):
-        return None
-    stationarity = [value + _dot(multipliers, column) for value, column in zip(y, columns)]
-    terms = 1.0 + sum(value * max(map(abs, a)) for value, a in zip(multipliers, basis))
-    if not max(map(abs, stationarity)) <= STATIONARITY_TOLERANCE * terms:
+        stationarity = [value + _dot(multipliers, column) for value, column in zip(y, columns)]
+        terms = 1.0 + sum(value * max(map(abs, a)) for value, a in zip(multipliers, basis))
+        if not max(map(abs, stationarity)) <= STATIONARITY_TOLERANCE * terms:
+            return None
+    if not min(multipliers) >= 0.0:
         return None
     return y, multipliers
 
 
-def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, tolerance: float,
-                        max_steps: int = ACTIVE_SET_STEPS) -> list[float] | None:
-    """The exact solution of min 1/2 |y|^2 s.t. rows y <= upper, with its KKT certificate.
+def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, p_inverse: np.ndarray,
+                        tolerance: float, max_steps: int = ACTIVE_SET_STEPS
+                        ) -> np.ndarray | None:
+    """The exact solution of min 1/2 z^T P z s.t. rows z <= upper, P = diag(1 / p_inverse),
+    with its KKT certificate.
 
-    A dual active-set method (Goldfarb and Idnani's, with the identity as the Hessian): from
-    the unconstrained minimum y = 0, the row violated most (in distance) joins the working
+    In y = P^1/2 z the QP is min 1/2 |y|^2 s.t. (rows P^-1/2) y <= upper: the projection of 0
+    onto the rows' polyhedron. A dual active-set method (Goldfarb and Idnani's, with the
+    identity as the Hessian) solves it: from the unconstrained minimum y = 0, the row
+    violated most (in distance) joins the working
     set W; where the step that meets it would turn a multiplier of W negative, that row
     leaves first. Every step raises the dual objective, so no working set repeats: the
     method ends after finitely many steps, with W's rows linearly independent (at most
     len(y) of them). After each row joins, y and the multipliers are recomputed from W alone
     (:func:`_on_rows`), so no round-off accumulates over the steps.
 
+    The first step is written out in numpy, in z: the row farthest from 0 alone, z on it,
+    with multiplier -upper_p / (row_p^T P^-1 row_p) > 0 (the one-active-row solution, often
+    the answer).
+
     The answer comes with the certificate that makes it the QP's one solution: every
     multiplier >= 0 and stationarity to round-off (:func:`_on_rows`), every row met to
     ``tolerance`` (the last scan) and W's rows held to it. Otherwise None (the caller solves
-    the QP another way): past ``max_steps``, for a singular Gram system, for rows that admit
-    no step (inconsistent), or for a failed certificate (round-off in nearly dependent rows).
+    the QP another way): where y = 0 already meets every row to ``tolerance`` (not this
+    method's case), past ``max_steps``, for a singular Gram system, for rows that admit no
+    step (inconsistent), or for a failed certificate (round-off in nearly dependent rows).
 
     Args:
-        rows: (m, n) the constraint matrix, scaled so that the cost is 1/2 |y|^2.
+        rows: (m, n) the constraint matrix.
         upper: (m,) the right-hand sides.
+        p_inverse: (n,) the diagonal of P^-1, every entry > 0.
         tolerance: how far a row may be exceeded (or an active one missed), absolute.
         max_steps: most rows added or dropped.
+
+    Returns:
+        z (n,), or None.
     """
-    # The first step, vectorised: the row farthest from y = 0 (in distance) alone, with
-    # multiplier -upper_p / |row_p|^2 > 0. Often the answer already (one active row).
-    norms = (rows * rows).sum(1)
+    # The first step, vectorised: the row farthest from z = 0 (in distance) alone.
+    norms = (rows * rows).dot(p_inverse)  # > 0: a row of zeros is no constraint
     lengths = np.sqrt(norms)
     p = int((upper / lengths).argmin())
-    if not upper[p] < -tolerance:
-        return None  # y = 0 meets every row to the tolerance: not this method's case
-    multiplier = -float(upper[p]) / float(norms[p])
-    first = rows[p] * -multiplier
+    upper_p = float(upper[p])
+    if not upper_p < -tolerance:
+        return None  # z = 0 meets every row to the tolerance: not this method's case
+    multiplier = -upper_p / float(norms[p])
+    first = p_inverse * rows[p] * -multiplier
     excess = rows.dot(first) - upper
-    if not abs(excess[p]) <= tolerance:
+    if not abs(float(excess[p])) <= tolerance:
         return None
     excess[p] = -math.inf
     if _max_of(excess) <= tolerance:
-        return first.tolist()
-    row_list, upper_list = rows.tolist(), upper.tolist()
-    y = first.tolist()
+        return first
+    # The further steps in y = P^1/2 z, on Python floats.
+    scale = np.sqrt(p_inverse)
+    scaled = rows * scale
+    row_list, upper_list = scaled.tolist(), upper.tolist()
+    y = (first / scale).tolist()
     active, multipliers = [p], [multiplier]
     ceiling = upper + tolerance
     score = (excess - tolerance) / lengths
     steps = 1
     while True:
-        score[active] = -math.inf
+        for j in active:
+            score[j] = -math.inf
         p = int(score.argmax())
         if score[p] <= 0.0:  # every row met (a NaN goes on, and fails below)
             break
@@ -334,8 +361,8 @@ def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, tolerance: float
                 return None
             basis = [row_list[j] for j in active]
             # ratios: row p's coordinates on W's rows; direction: its part orthogonal to them
-            ratios = _solve_small([[_dot(a, b) for b in basis] for a in basis],
-                                  [_dot(a, row_p) for a in basis]) if basis else []
+            ratios = _solve_small(_gram(basis), [_dot(a, row_p) for a in basis]
+                                  ) if basis else []
             if ratios is None:
                 return None
             direction = row_p
@@ -367,8 +394,9 @@ def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, tolerance: float
         if solved is None:
             return None
         y, multipliers = solved
-        score = (rows.dot(y) - ceiling) / lengths
-    return y  # W's rows held to the tolerance (_on_rows), every other row met (the scan)
+        score = (scaled.dot(y) - ceiling) / lengths
+    # W's rows held to the tolerance (_on_rows), every other row met (the last scan)
+    return scale * np.array(y)
 
 
 def _vector(name: str, value: object, size: int) -> np.ndarray:
@@ -676,8 +704,7 @@ class SafetyFilter:
                            warm_starting=True)
         self._solver = _DirectOSQP.wrap(self._solver)
         self._nc = nc
-        self._scale = 1.0 / np.sqrt(diag)
-        """P^-1/2 as a vector: z = P^-1/2 y for the active-set solve in y."""
+        self._p_inverse = 1.0 / diag  # P = diag(diag), for the active-set solve
 
     def filter(self, state: Sequence[float], u_rl: Sequence[float],
                mean: Sequence[float] | None = None,
@@ -813,18 +840,15 @@ class SafetyFilter:
     def _active_set(self, g_matrix: np.ndarray, upper: np.ndarray) -> np.ndarray | None:
         """The QP's exact solution by :func:`active_set_solution`, else None (then OSQP).
 
-        With P = diag(p) the QP is the projection of 0 onto the rows' polyhedron in the
-        P-metric: in y = sqrt(P) z it is min 1/2 |y|^2 s.t. (G P^-1/2) y <= upper, which
-        :func:`active_set_solution` solves exactly, certified (multipliers >= 0, every row and
-        limit met and the active ones held, each to :data:`ACTIVE_SET_TOLERANCE` relative to
-        the largest right-hand side). A strictly convex QP has one solution, so a certified
-        answer is it (OSQP's is within its tolerance of it). The answer then goes through the
-        row check like any other."""
-        scale = self._scale
-        y = active_set_solution(
-            rows=g_matrix * scale, upper=upper,
+        With P diagonal the QP is the projection of 0 onto the rows' polyhedron in the
+        P-metric, which :func:`active_set_solution` solves exactly, certified (multipliers >=
+        0, stationarity, every row and limit met and the active ones held, each to
+        :data:`ACTIVE_SET_TOLERANCE` relative to the largest right-hand side). A strictly
+        convex QP has one solution, so a certified answer is it (OSQP's is within its
+        tolerance of it). The answer then goes through the row check like any other."""
+        return active_set_solution(
+            rows=g_matrix, upper=upper, p_inverse=self._p_inverse,
             tolerance=ACTIVE_SET_TOLERANCE * (1.0 + float(_max_of(np.abs(upper)))))
-        return None if y is None else scale * np.array(y)
 
     def _check(self, z: np.ndarray | None,
                rows: tuple[np.ndarray, np.ndarray, list[float]]
