@@ -296,12 +296,12 @@ def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, p_inverse: np.nd
     In y = P^1/2 z the QP is min 1/2 |y|^2 s.t. (rows P^-1/2) y <= upper: the projection of 0
     onto the rows' polyhedron. A dual active-set method (Goldfarb and Idnani's, with the
     identity as the Hessian) solves it: from the unconstrained minimum y = 0, the row
-    violated most (in distance) joins the working
-    set W; where the step that meets it would turn a multiplier of W negative, that row
-    leaves first. Every step raises the dual objective, so no working set repeats: the
-    method ends after finitely many steps, with W's rows linearly independent (at most
-    len(y) of them). After each row joins, y and the multipliers are recomputed from W alone
-    (:func:`_on_rows`), so no round-off accumulates over the steps.
+    violated most (in distance) joins the working set W; where the step that meets it would
+    turn a multiplier of W negative, that row leaves first. Every step raises the dual
+    objective, so no working set repeats: the method ends after finitely many steps, with
+    W's rows linearly independent (at most len(y) of them). After each row joins, y and the
+    multipliers are recomputed from W alone (:func:`_on_rows`), so no round-off accumulates
+    over the steps.
 
     The first step is written out in numpy, in z: the row farthest from 0 alone, z on it,
     with multiplier -upper_p / (row_p^T P^-1 row_p) > 0 (the one-active-row solution, often
