@@ -220,8 +220,8 @@ def write_results(rows: list[dict], options: argparse.Namespace,
     lines += [
         '',
         "Reading: the filter's own compute (the core `SafetyFilter.filter`: the closed-form "
-        "constraint assembly, then, when a row is active, the one active row's closed form or "
-        'OSQP) is a fifth to a third of the '
+        "constraint assembly, then, when a row is active, the exact active-set solve, OSQP where "
+        'it gives way) is a fifth to a third of the '
         'end-to-end time; the node and the transport add about the last column times the '
         "floor. When the node's cost per proposal (compute, two deserialisations, the command, "
         '`filter_info` and, with `diagnostics.min_period_s: 0`, a DiagnosticArray) exceeds the '

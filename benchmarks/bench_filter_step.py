@@ -19,14 +19,16 @@ filter, as when it filters continuously; the rounds spread the machine's load ov
 
 Reported per path: the median and p99 of FilterResult.total_time_s over all calls, the
 medians over the calls that passed the proposal through (every row holds at z = 0, no solve),
-over those answered with one active row's exact solution (no OSQP) and over those that ran
-OSQP (each counted by wrapping it), and the median CPU time of the calling
+over those answered by the exact active-set solve (SafetyFilter._active_set: one, two or
+three rows active, limits among them; no OSQP) and over those that ran OSQP (where the
+active-set solve gave way; each counted by wrapping it), and the median CPU time of the calling
 thread (time.thread_time: what the call itself consumed, less sensitive to the machine's load
 than the wall time, though cores shared with other work still slow it). For the closed form,
 the call split in stages: the assembly (timed per call by wrapping it); solve =
-FilterResult.solve_time_s, i.e. OSQP update + solve + the row check, or on a pass-through the
-result at z = 0 (where the row check holds by construction), with OSQP's own C timers of
-update and solve; the rest = input checks, clipping, the data check and the result.
+FilterResult.solve_time_s, i.e. the active-set solve (and, where it gave way, OSQP update +
+solve) + the row check, or on a pass-through the result at z = 0 (where the row check holds by
+construction), with OSQP's own C timers of update and solve; the rest = input checks,
+clipping, the data check and the result.
 Then the solver alone against a new OSQP per call and qpth at batch 1, with the
 accuracy of each against Clarabel.
 
@@ -75,22 +77,26 @@ CAR_PROPOSAL = 5.0
 accelerates at 5 m/s^2)."""
 PATHS_DIFFER = (
     'What differs between the paths: only the constraint assembly (h, grad h, L_f h, L_g h, '
-    'the robust margin and the QP rows); the input checks, clipping, OSQP and the row check '
+    'the robust margin and the QP rows); the input checks, clipping, the solve and the row '
+    'check '
     "are the same code. Closed form: numpy on one state, from each family's quadratic "
     "coefficients (or the look-ahead circle's formula) and the system's f, J, g, no "
     'warm-up. Autograd: RCBFProblem.qp in torch, one autograd pass per family (a double one '
     'through each cascade), no warm-up. Compiled: that autograd graph traced and compiled at '
     'construction (its seconds per system below). The QP data agree to round-off; OSQP '
-    "answers then agree to its tolerance (differences below), and a call near the row check's "
+    "answers then agree to round-off (active set) or OSQP's tolerance (differences below), "
+    "and a call near the row check's "
     'threshold can go to the interior-point fallback on one path and not the other.')
 """Printed with the tables."""
 STAGES = {'rest': 'input checks, clip, data check, result',
           'assembly': 'constraint assembly (closed form)',
-          'solve': 'solve + row check (pass-through: the result at z = 0; one active row: '
-                   'its closed form)',
+          'solve': 'solve + row check (pass-through: the result at z = 0; active set: the '
+                   'exact solve)',
           'osqp update': 'of which OSQP update, C timer',
           'osqp solve': 'of which OSQP solve, C timer'}
 """The stages of a closed-form call (module docstring)."""
+KINDS = ('pass', 'active set', 'osqp')
+"""How a call was answered: pass-through, the exact active-set solve, OSQP (module docstring)."""
 TARGET_US = 50.0
 """The per-call budget the closed form is measured against (median of all calls)."""
 REFERENCE_QPS = 300
@@ -184,15 +190,15 @@ class _TimedAssembly:
         return out
 
 
-class _CountedOneRow:
-    """Wraps a filter's one-active-row solution and counts the calls it answered."""
+class _CountedActiveSet:
+    """Wraps a filter's active-set solve and counts the calls it answered."""
 
-    def __init__(self, one_row) -> None:
-        self.one_row = one_row
+    def __init__(self, active_set) -> None:
+        self.active_set = active_set
         self.answered = 0
 
     def __call__(self, *args, **kwargs):
-        z = self.one_row(*args, **kwargs)
+        z = self.active_set(*args, **kwargs)
         self.answered += z is not None
         return z
 
@@ -226,28 +232,28 @@ def bench_paths(problem, states, proposals, mean, std, rounds: int,
     timer = _TimedAssembly(filters['closed form']._assemble)
     filters['closed form']._assemble = timer
     solves = {path: _CountedSolve(filt._solver) for path, filt in filters.items()}
-    one_rows = {path: _CountedOneRow(filt._one_active_row) for path, filt in filters.items()}
+    active_sets = {path: _CountedActiveSet(filt._active_set) for path, filt in filters.items()}
     for path, filt in filters.items():
         filt._solver.solve = solves[path]
-        filt._one_active_row = one_rows[path]
+        filt._active_set = active_sets[path]
     totals = {path: [] for path in PATHS}
     cpu = {path: [] for path in PATHS}
-    # how each call was answered: pass-through, one active row in closed form, OSQP
-    answered = {kind: {path: [] for path in PATHS} for kind in ('pass', 'one row', 'osqp')}
+    # how each call was answered: pass-through, the exact active-set solve, OSQP
+    answered = {kind: {path: [] for path in PATHS} for kind in KINDS}
     # stage -> calls: all, and by how they were answered; OSQP's own C timers where it ran
-    stages = {stage: {'all': [], 'pass': [], 'one row': [], 'osqp': []} for stage in STAGES}
+    stages = {stage: {'all': [], **{kind: [] for kind in KINDS}} for stage in STAGES}
     iterations = []
     osqp_info = filters['closed form']._solver._ext.info
     results = {path: [] for path in PATHS}
     for block in np.array_split(np.arange(len(states)), rounds):
         for path, filt in filters.items():
             for i in block:
-                calls, one_row = solves[path].calls, one_rows[path].answered
+                calls, exact = solves[path].calls, active_sets[path].answered
                 cpu_start = time.thread_time()
                 res = filt.filter(states[i], proposals[i], mean, std)
                 cpu[path].append(time.thread_time() - cpu_start)
                 ran = solves[path].calls > calls
-                kind = ('osqp' if ran else 'one row' if one_rows[path].answered > one_row
+                kind = ('osqp' if ran else 'active set' if active_sets[path].answered > exact
                         else 'pass')
                 results[path].append(res)
                 totals[path].append(res.total_time_s)
@@ -282,7 +288,7 @@ def clarabel_solution(qp) -> np.ndarray:
 
 
 def bench_solvers(problem, states, proposals, mean, std) -> tuple[list, str]:
-    """OSQP as the filter runs it against a new OSQP per call and qpth at batch 1."""
+    """The filter's solve as it runs it against a new OSQP per call and qpth at batch 1."""
     from qpth.qp import QPFunction
     filt = SafetyFilter(problem)
     qps = [problem.qp(torch.from_numpy(x)[None], torch.from_numpy(u)[None],
@@ -318,8 +324,8 @@ def bench_solvers(problem, states, proposals, mean, std) -> tuple[list, str]:
     diff_ours = max(float(np.abs(a - r[:-1]).max()) for a, r in zip(z_ours, refs))
     diff_qpth = max(float(np.abs(a - r[:-1]).max()) for a, r in zip(z_qpth, refs))
     slack_active = sum(1 for r in refs if abs(r[-1]) > 1e-6)
-    rows = [("the filter's solve and row check: OSQP update + solve, one active row's closed "
-             'form, or the result at z = 0 (pass-through)', ours),
+    rows = [("the filter's solve and row check: the exact active-set solve (OSQP update + "
+             'solve where it gives way), or the result at z = 0 (pass-through)', ours),
             (f'the same, only the {len(ours_osqp)} calls that corrected the proposal',
              ours_osqp),
             ('a new OSQP set up every call', setup_every),
@@ -357,9 +363,9 @@ def main() -> None:
     compared = []
     load_before = os.getloadavg()
     summary = ['| system | path | median us (all) | p99 us | median us, pass-through (n) '
-               '| median us, one active row (n) | median us, OSQP ran (n) | median CPU us |',
+               '| median us, active set (n) | median us, OSQP ran (n) | median CPU us |',
                '|---|---|---:|---:|---:|---:|---:|---:|']
-    breakdown = ['| system | stage | median us, all calls | pass-through | one active row '
+    breakdown = ['| system | stage | median us, all calls | pass-through | active set '
                  '| OSQP ran |', '|---|---|---:|---:|---:|---:|']
     details = []
     target = []
@@ -393,7 +399,7 @@ def main() -> None:
                 f'| {np.percentile(_us(totals), 99):.1f} '
                 + ''.join(f'| {_median(out["answered"][kind][path])} '
                           f'({len(out["answered"][kind][path])}) '
-                          for kind in ('pass', 'one row', 'osqp'))
+                          for kind in KINDS)
                 + f'| {_median(out["cpu"][path])} |')
         if reference_calls:
             wall = [w for w, _ in reference_calls]
@@ -411,8 +417,7 @@ def main() -> None:
                 stage_name += f' ({np.median(iterations):.0f} iterations)'
             times = out['stages'][stage]
             breakdown.append(f'| {label} | {stage_name} | {_median(times["all"])} '
-                             f'| {_median(times["pass"])} | {_median(times["one row"])} '
-                             f'| {_median(times["osqp"])} |')
+                             + ''.join(f'| {_median(times[kind])} ' for kind in KINDS) + '|')
         rows, accuracy = bench_solvers(problem, states, proposals, mean, std)
         details.append(
             f'\n**{label}** ({args.calls} calls; K = {problem.n_barriers} barrier rows; '

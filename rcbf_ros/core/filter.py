@@ -1,14 +1,25 @@
-"""Per-step RCBF safety filter: OSQP set up once, ``update()`` + warm-started solve per call.
+"""Per-step RCBF safety filter: an exact small active-set solve per call, OSQP as its fallback.
 
 Given a state x, a proposal u_RL and (optionally) a disturbance box mean +/- k_c std, returns
 u* = u_RL + u_S with u_S from the RCBF-QP of :meth:`RCBFProblem.qp` (the builder the learner's
-differentiable layer uses). The sparsity pattern of the constraint matrix is fixed at
-construction (dense RCBF rows, one entry per actuator-limit row) so that every call is
-``OSQP.update(Ax=, u=)`` + ``solve()``. Two cases need no iterative solve: a proposal that
-meets every row passes through (z = 0 is the optimum), and where one RCBF row alone is active
-its equality gives the exact optimum in closed form (:meth:`SafetyFilter._one_active_row`,
-accepted only where it meets every other row and limit). Every solution, closed form or OSQP's,
-goes through the same row check (a pass-through meets it by construction).
+differentiable layer uses): min 1/2 z^T P z s.t. G z <= upper, z = (u_S, eps), P diagonal.
+Each call tries, in order:
+
+1. pass-through: a proposal that meets every row (upper >= 0) is the optimum z = 0, no solve;
+2. the active-set solve (:func:`active_set_solution`, :meth:`SafetyFilter._active_set`): with
+   P diagonal the QP is the projection of 0 onto the rows' polyhedron in the P-metric, which
+   a dual active-set method solves exactly in a few steps (nz = n_u + 1 unknowns, at most nz
+   rows active). Its answer is kept only with a KKT certificate (multipliers >= 0,
+   stationarity, every row and limit met and the active ones held, to round-off); otherwise
+   (a degenerate or nearly dependent case, too many steps) it gives way to
+3. OSQP, set up once with the fixed sparsity pattern of the constraint matrix (dense RCBF rows,
+   one entry per actuator-limit row), so that a call is ``OSQP.update(Ax=, u=)`` + a
+   warm-started ``solve()``; then the interior point of :mod:`rcbf_ros.core.diffqp`; then the
+   fail-safe (below).
+
+Every answer, whichever step gave it, goes through the same row check (a pass-through meets it
+by construction). The status is ``solved`` for a pass-through and an active-set answer, as for
+OSQP's (whose ``solved_inaccurate`` is passed on).
 
 The constraint assembly (barrier terms, then the QP rows) takes one of three paths, chosen at
 construction by :func:`select_assembly` (:attr:`SafetyFilter.assembly`): the closed form in
@@ -46,6 +57,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
+import operator
 import time
 from types import SimpleNamespace
 from typing import Callable, Sequence
@@ -122,7 +134,8 @@ class FilterResult:
     """'solved', 'solved_inaccurate', 'solved_interior_point' (the fallback solved it), or why
     the fail-safe was returned: 'input_refused', 'unverified', 'slack_exceeded'."""
     solve_time_s: float
-    """Wall time of OSQP update + solve."""
+    """Wall time of the solve (the active-set method, OSQP update + solve, the fallback, as
+    far as the call went) and the row check."""
     total_time_s: float
     """Wall time of the whole call (constraint assembly included)."""
     fail_safe: bool
@@ -168,14 +181,222 @@ class _Refused(Exception):
 
 
 _FLOAT64 = np.dtype(np.float64)
-ONE_ROW_TOLERANCE = 1e-12
-"""How far (relative to the largest right-hand side) the one-active-row solution may exceed an
-inactive row or limit and still count as meeting it: round-off only, far below OSQP's eps."""
+ACTIVE_SET_TOLERANCE = 1e-12
+"""How far (relative to the largest right-hand side) the active-set solution may exceed a row
+or limit, or miss the equality of an active one, and still count as meeting it: round-off only,
+far below OSQP's eps."""
+ACTIVE_SET_STEPS = 40
+"""Most steps (a row added or dropped) of :func:`active_set_solution` before it gives up (a
+degenerate or cycling case in floating point; then OSQP solves the QP). The filter's QPs take
+one to four."""
+STATIONARITY_TOLERANCE = 1e-12
+"""How large the stationarity residual |y + sum_i lambda_i row_i| of the active-set solution may
+be, relative to the terms summed (sum_i lambda_i |row_i|): round-off only."""
+DEPENDENT_ROW = 1e-20
+"""A row whose part orthogonal to the active rows has a squared norm below this fraction of its
+own counts as their linear combination (an angle below 1e-10 rad)."""
 
 _min_of = np.minimum.reduce
 _max_of = np.maximum.reduce
 """The reductions without the Python wrapper of ``ndarray.min``/``max`` (most of their cost on
 arrays of a few entries)."""
+
+
+def _dot(left: Sequence[float], right: Sequence[float]) -> float:
+    """The inner product of two short sequences of floats."""
+    return sum(map(operator.mul, left, right))
+
+
+def _solve_small(matrix: list[list[float]], rhs: list[float]) -> list[float] | None:
+    """x with matrix x = rhs on a few Python floats (cheaper than a numpy call for the
+    filter's systems of 1 to 3 unknowns): directly for one unknown, else Gaussian elimination
+    with partial pivoting; None when a pivot is zero or not finite (singular)."""
+    n = len(rhs)
+    if n == 1:
+        pivot = matrix[0][0]
+        return [rhs[0] / pivot] if 0.0 < abs(pivot) < math.inf else None
+    if n == 2:  # Cramer's rule
+        (a, b), (c, d) = matrix
+        determinant = a * d - b * c
+        if not 0.0 < abs(determinant) < math.inf:
+            return None
+        return [(d * rhs[0] - b * rhs[1]) / determinant, (a * rhs[1] - c * rhs[0]) / determinant]
+    work = [row[:] + [value] for row, value in zip(matrix, rhs)]
+    for col in range(n):
+        pivot = max(range(col, n), key=lambda i: abs(work[i][col]))
+        head = work[pivot]
+        if not 0.0 < abs(head[col]) < math.inf:
+            return None
+        work[col], work[pivot] = head, work[col]
+        for i in range(col + 1, n):
+            row = work[i]
+            factor = row[col] / head[col]
+            if factor:
+                for k in range(col, n + 1):
+                    row[k] -= factor * head[k]
+    solution = [0.0] * n
+    for i in range(n - 1, -1, -1):
+        row = work[i]
+        solution[i] = (row[n] - _dot(row[i + 1:n], solution[i + 1:])) / row[i]
+    return solution
+
+
+def _gram(basis: list[list[float]]) -> list[list[float]]:
+    """The Gram matrix of a few rows (each inner product computed once)."""
+    gram = [[0.0] * len(basis) for _ in basis]
+    for i, a in enumerate(basis):
+        for j in range(i, len(basis)):
+            gram[i][j] = gram[j][i] = _dot(a, basis[j])
+    return gram
+
+
+def _on_rows(basis: list[list[float]], rhs: list[float], tolerance: float
+             ) -> tuple[list[float], list[float]] | None:
+    """The least |y| with basis y = rhs and its multipliers lambda (y = -sum_i lambda_i
+    basis_i), if the rows hold to ``tolerance``, every lambda_i >= 0 and stationarity holds
+    to round-off; else None.
+
+    lambda comes from the Gram system of the rows, y = -sum_i lambda_i basis_i from lambda
+    (stationarity by construction). y sums terms far larger than itself when a costly slack
+    makes the multipliers large; where it then misses the rows by more than ``tolerance``,
+    one step of iterative refinement (on lambda, and y with it) puts it back, and
+    stationarity, |y + sum_i lambda_i basis_i| evaluated, must then be at most
+    :data:`STATIONARITY_TOLERANCE` of the terms summed."""
+    gram = _gram(basis)
+    multipliers = _solve_small(gram, [-value for value in rhs])
+    if multipliers is None:
+        return None
+    columns = list(zip(*basis))
+    y = [-_dot(multipliers, column) for column in columns]
+    residual = [_dot(a, y) - value for a, value in zip(basis, rhs)]
+    if not max(map(abs, residual)) <= tolerance:
+        correction = _solve_small(gram, residual)
+        if correction is None:
+            return None
+        multipliers = [value + delta for value, delta in zip(multipliers, correction)]
+        y = [value - _dot(correction, column) for value, column in zip(y, columns)]
+        residual = [_dot(a, y) - value for a, value in zip(basis, rhs)]
+        if not max(map(abs, residual)) <= tolerance:
+            return None
+        stationarity = [value + _dot(multipliers, column) for value, column in zip(y, columns)]
+        terms = 1.0 + sum(value * max(map(abs, a)) for value, a in zip(multipliers, basis))
+        if not max(map(abs, stationarity)) <= STATIONARITY_TOLERANCE * terms:
+            return None
+    if not min(multipliers) >= 0.0:
+        return None
+    return y, multipliers
+
+
+def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, p_inverse: np.ndarray,
+                        tolerance: float, max_steps: int = ACTIVE_SET_STEPS
+                        ) -> np.ndarray | None:
+    """The exact solution of min 1/2 z^T P z s.t. rows z <= upper, P = diag(1 / p_inverse),
+    with its KKT certificate.
+
+    In y = P^1/2 z the QP is min 1/2 |y|^2 s.t. (rows P^-1/2) y <= upper: the projection of 0
+    onto the rows' polyhedron. A dual active-set method (Goldfarb and Idnani's, with the
+    identity as the Hessian) solves it: from the unconstrained minimum y = 0, the row
+    violated most (in distance) joins the working set W; where the step that meets it would
+    turn a multiplier of W negative, that row leaves first. Every step raises the dual
+    objective, so no working set repeats: the method ends after finitely many steps, with
+    W's rows linearly independent (at most len(y) of them). After each row joins, y and the
+    multipliers are recomputed from W alone (:func:`_on_rows`), so no round-off accumulates
+    over the steps.
+
+    The first step is written out in numpy, in z: the row farthest from 0 alone, z on it,
+    with multiplier -upper_p / (row_p^T P^-1 row_p) > 0 (the one-active-row solution, often
+    the answer).
+
+    The answer comes with the certificate that makes it the QP's one solution: every
+    multiplier >= 0 and stationarity to round-off (:func:`_on_rows`), every row met to
+    ``tolerance`` (the last scan) and W's rows held to it. Otherwise None (the caller solves
+    the QP another way): where y = 0 already meets every row to ``tolerance`` (not this
+    method's case), past ``max_steps``, for a singular Gram system, for rows that admit no
+    step (inconsistent), or for a failed certificate (round-off in nearly dependent rows).
+
+    Args:
+        rows: (m, n) the constraint matrix.
+        upper: (m,) the right-hand sides.
+        p_inverse: (n,) the diagonal of P^-1, every entry > 0.
+        tolerance: how far a row may be exceeded (or an active one missed), absolute.
+        max_steps: most rows added or dropped.
+
+    Returns:
+        z (n,), or None.
+    """
+    # The first step, vectorised: the row farthest from z = 0 (in distance) alone.
+    norms = (rows * rows).dot(p_inverse)  # > 0: a row of zeros is no constraint
+    lengths = np.sqrt(norms)
+    p = int((upper / lengths).argmin())
+    upper_p = float(upper[p])
+    if not upper_p < -tolerance:
+        return None  # z = 0 meets every row to the tolerance: not this method's case
+    multiplier = -upper_p / float(norms[p])
+    first = p_inverse * rows[p] * -multiplier
+    excess = rows.dot(first) - upper
+    if not abs(float(excess[p])) <= tolerance:
+        return None
+    excess[p] = -math.inf
+    if _max_of(excess) <= tolerance:
+        return first
+    # The further steps in y = P^1/2 z, on Python floats.
+    scale = np.sqrt(p_inverse)
+    scaled = rows * scale
+    row_list, upper_list = scaled.tolist(), upper.tolist()
+    y = (first / scale).tolist()
+    active, multipliers = [p], [multiplier]
+    ceiling = upper + tolerance
+    score = (excess - tolerance) / lengths
+    steps = 1
+    while True:
+        for j in active:
+            score[j] = -math.inf
+        p = int(score.argmax())
+        if score[p] <= 0.0:  # every row met (a NaN goes on, and fails below)
+            break
+        row_p, added = row_list[p], 0.0
+        while True:  # add row p, dropping rows of W whose multiplier would turn negative
+            steps += 1
+            if steps > max_steps:
+                return None
+            basis = [row_list[j] for j in active]
+            # ratios: row p's coordinates on W's rows; direction: its part orthogonal to them
+            ratios = _solve_small(_gram(basis), [_dot(a, row_p) for a in basis]
+                                  ) if basis else []
+            if ratios is None:
+                return None
+            direction = row_p
+            for ratio, row in zip(ratios, basis):
+                direction = [d - ratio * r for d, r in zip(direction, row)]
+            dual_step, drop = math.inf, -1
+            for q, (multiplier, ratio) in enumerate(zip(multipliers, ratios)):
+                if ratio > 0.0 and multiplier < dual_step * ratio:
+                    dual_step, drop = multiplier / ratio, q
+            squared = _dot(direction, direction)
+            primal_step = math.inf
+            if squared > DEPENDENT_ROW * norms[p]:
+                primal_step = (_dot(row_p, y) - upper_list[p]) / squared
+                if not primal_step >= 0.0:
+                    return None
+            step = min(primal_step, dual_step)
+            if step == math.inf:
+                return None  # row p contradicts W's rows: the QP has no solution
+            if primal_step < math.inf:
+                y = [value - step * d for value, d in zip(y, direction)]
+            multipliers = [value - step * ratio for value, ratio in zip(multipliers, ratios)]
+            added += step
+            if primal_step <= dual_step:
+                active.append(p)
+                break
+            del active[drop], multipliers[drop]
+        solved = _on_rows([row_list[j] for j in active], [upper_list[j] for j in active],
+                          tolerance)
+        if solved is None:
+            return None
+        y, multipliers = solved
+        score = (scaled.dot(y) - ceiling) / lengths
+    # W's rows held to the tolerance (_on_rows), every other row met (the last scan)
+    return scale * np.array(y)
 
 
 def _vector(name: str, value: object, size: int) -> np.ndarray:
@@ -483,7 +704,7 @@ class SafetyFilter:
                            warm_starting=True)
         self._solver = _DirectOSQP.wrap(self._solver)
         self._nc = nc
-        self._p_inverse = 1.0 / diag  # P = diag(diag), for the one-active-row solution
+        self._p_inverse = 1.0 / diag  # P = diag(diag), for the active-set solve
 
     def filter(self, state: Sequence[float], u_rl: Sequence[float],
                mean: Sequence[float] | None = None,
@@ -574,7 +795,7 @@ class SafetyFilter:
         # The RCBF rows: -L_g h (the top left block of G) and their right-hand sides.
         rows = (upper[:self.n_barriers], g_matrix[:self.n_barriers, :n_u], applied)
         status = 'solved'
-        z = self._one_active_row(g_matrix, upper)
+        z = self._active_set(g_matrix, upper)
         checked = None if z is None else self._check(z, rows)
         if checked is None:
             self._solver.update(Ax=g_matrix.take(self._pattern_index), u=upper)
@@ -616,31 +837,18 @@ class SafetyFilter:
             barrier_names=list(self.barrier_names), needed_slack=needed, reason='',
             proposal_clipped=clipped)
 
-    def _one_active_row(self, g_matrix: np.ndarray, upper: np.ndarray) -> np.ndarray | None:
-        """The QP's exact solution when one RCBF row alone is active at it, else None.
+    def _active_set(self, g_matrix: np.ndarray, upper: np.ndarray) -> np.ndarray | None:
+        """The QP's exact solution by :func:`active_set_solution`, else None (then OSQP).
 
-        The row r that z = 0 violates most (the largest ``-upper_r / ||g_r||``, the norm
-        weighted by P^-1) held as an equality gives z = P^-1 g_r upper_r / (g_r^T P^-1 g_r),
-        with multiplier -upper_r / (g_r^T P^-1 g_r) > 0. Where z meets every other row and
-        limit (to :data:`ONE_ROW_TOLERANCE` relative), the KKT conditions hold with r the only
-        active row, and a strictly convex QP has no other solution: this is it, exactly
-        (OSQP's answer is within its tolerance of it). Otherwise (two or more rows active, a
-        limit reached) OSQP solves the QP. Either answer then goes through the row check."""
-        p_inverse = self._p_inverse
-        k = self.n_barriers
-        rows = g_matrix[:k]
-        rhs = upper[:k]
-        # g_r^T P^-1 g_r >= P^-1's slack entry > 0: every RCBF row has -1 in the slack column.
-        norms = (rows * rows).dot(p_inverse)
-        r = int((rhs / np.sqrt(norms)).argmin())
-        if not rhs[r] < 0.0:
-            return None
-        z = p_inverse * rows[r] * (rhs[r] / norms[r])
-        excess = g_matrix.dot(z) - upper
-        excess[r] = 0.0
-        if _max_of(excess) > ONE_ROW_TOLERANCE * (1.0 + _max_of(np.abs(upper))):
-            return None
-        return z
+        With P diagonal the QP is the projection of 0 onto the rows' polyhedron in the
+        P-metric, which :func:`active_set_solution` solves exactly, certified (multipliers >=
+        0, stationarity, every row and limit met and the active ones held, each to
+        :data:`ACTIVE_SET_TOLERANCE` relative to the largest right-hand side). A strictly
+        convex QP has one solution, so a certified answer is it (OSQP's is within its
+        tolerance of it). The answer then goes through the row check like any other."""
+        return active_set_solution(
+            rows=g_matrix, upper=upper, p_inverse=self._p_inverse,
+            tolerance=ACTIVE_SET_TOLERANCE * (1.0 + float(_max_of(np.abs(upper)))))
 
     def _check(self, z: np.ndarray | None,
                rows: tuple[np.ndarray, np.ndarray, list[float]]

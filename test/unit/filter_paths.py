@@ -1,4 +1,4 @@
-"""Test helper: a SafetyFilter that always solves with OSQP (no exact one-active-row answer),
+"""Test helper: a SafetyFilter that always solves with OSQP (no exact active-set answer),
 for tests of what happens when OSQP fails, lies or is starved."""
 from __future__ import annotations
 
@@ -7,5 +7,5 @@ from rcbf_ros.core.filter import SafetyFilter
 
 def osqp_only(safety_filter: SafetyFilter) -> SafetyFilter:
     """``safety_filter``, every active QP sent to OSQP (and its fallback)."""
-    safety_filter._one_active_row = lambda g_matrix, upper: None
+    safety_filter._active_set = lambda g_matrix, upper: None
     return safety_filter

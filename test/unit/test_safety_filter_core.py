@@ -591,22 +591,22 @@ def test_differentiable_layer_gives_the_filters_action(system, overrides):
 
 
 @pytest.mark.parametrize('system', SYSTEMS)
-def test_one_active_row_is_solved_exactly_and_everything_else_goes_to_osqp(system):
-    """Where one RCBF row alone is active, the filter answers with that row's exact solution
-    (Clarabel agrees to 1e-8, closer than OSQP's tolerance); where it is not the solution (two
-    rows or a limit active), OSQP's answer is the one returned."""
+def test_the_active_set_solve_is_exact_and_osqp_answers_what_it_leaves(system):
+    """Where the active-set method certifies its answer (one, two or three rows active, limits
+    among them), the filter returns it (Clarabel agrees to 1e-8, closer than OSQP's
+    tolerance); where it gives way, OSQP's answer is the one returned."""
     rng = np.random.default_rng(11)
     problem = config_for(system).problem
     safety_filter = SafetyFilter(problem, max_iter=ROOMY_MAX_ITER)
     taken: list[bool] = []
-    one_row = safety_filter._one_active_row
+    active_set = safety_filter._active_set
 
     def counting(g_matrix, upper):
-        z = one_row(g_matrix, upper)
+        z = active_set(g_matrix, upper)
         taken.append(z is not None)
         return z
 
-    safety_filter._one_active_row = counting
+    safety_filter._active_set = counting
     n_x, n_u = problem.system.n_x, problem.system.n_u
     exact = by_osqp = 0
     for _ in range(80):

@@ -1,0 +1,314 @@
+"""The safety filter's active-set solve against an independent solver.
+
+The reference enumerates active sets: for every set of at most nz linearly independent rows it
+takes the least-cost point with those rows held as equalities (z = P^-1 G_W^T (G_W P^-1
+G_W^T)^-1 upper_W, in numpy, in the filter's own units), keeps the points that meet every row
+and returns the cheapest. The QP's solution is such a point (its active rows, or a linearly
+independent subset of them, determine it), and no feasible point costs less, so this is the
+solution without any multiplier or step logic of the method under test.
+
+QPs: the filter's shape (K dense RCBF rows with -1 in the slack column, then two limit rows
+per input), random and adversarial (two and three rows active, limits active, nearly parallel
+and duplicated rows, slack far from zero, data spanning many orders of magnitude), the
+shipped systems' own QPs, and a Hypothesis search over hostile QP data fed to the whole
+filter.
+"""
+from __future__ import annotations
+
+import itertools
+
+from hypothesis import given, HealthCheck, settings
+from hypothesis import strategies as st
+import numpy as np
+import pytest
+
+from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.filter import active_set_solution, ACTIVE_SET_TOLERANCE, SafetyFilter
+from rcbf_ros.parameters.rules import find_config, load_params
+
+SYSTEMS = ('unicycle', 'car_following', 'pvtol')
+
+
+def enumerated_solution(g_matrix: np.ndarray, upper: np.ndarray, weights: np.ndarray
+                        ) -> np.ndarray | None:
+    """min 1/2 z^T diag(weights) z s.t. g_matrix z <= upper by enumerating active sets.
+
+    In y = sqrt(weights) z (cost 1/2 |y|^2, rows A = G diag(weights)^-1/2): for every set W of
+    up to nz rows of full rank, the least |y| with A_W y = upper_W (by SVD, all sets of one
+    size at once); the cheapest of those that meet every row."""
+    m, nz = g_matrix.shape
+    scale = 1.0 / np.sqrt(weights)
+    rows = g_matrix * scale
+    lengths = np.linalg.norm(rows, axis=1)
+    best = np.zeros(nz) if upper.min() >= 0.0 else None
+    best_cost = 0.0 if best is not None else np.inf
+    for size in range(1, min(nz, m) + 1):
+        subsets = np.array(list(itertools.combinations(range(m), size)))
+        u_matrix, singular, v_rows = np.linalg.svd(rows[subsets], full_matrices=False)
+        full_rank = singular.min(axis=1) > 1e-10 * singular.max(axis=1)
+        with np.errstate(all='ignore'):  # the rank-deficient sets, left out below
+            coordinates = np.einsum('csk,cs->ck', u_matrix, upper[subsets]) / singular
+            candidates = np.einsum('ckn,ck->cn', v_rows, coordinates)
+            # each row met to the round-off of its own terms
+            tolerance = 1e-9 * (1.0 + np.abs(upper) + np.outer(
+                np.linalg.norm(candidates, axis=1), lengths))
+            feasible = full_rank & np.all(candidates @ rows.T - upper <= tolerance, axis=1)
+        if feasible.any():
+            with np.errstate(all='ignore'):
+                costs = np.where(feasible, 0.5 * (candidates ** 2).sum(axis=1), np.inf)
+            c = int(costs.argmin())
+            if costs[c] < best_cost:
+                best, best_cost = candidates[c], float(costs[c])
+    return None if best is None else scale * best
+
+
+def filter_shaped_qp(rng: np.random.Generator, *, n_u: int, k: int, limits: bool = True
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(G, upper, P's diagonal) of the filter's shape with random rows, limits and weights."""
+    rows = np.concatenate([rng.normal(0.0, 3.0, (k, n_u)), -np.ones((k, 1))], axis=1)
+    upper = rng.normal(-1.0, 3.0, k)
+    if limits:
+        identity = np.concatenate([np.eye(n_u), np.zeros((n_u, 1))], axis=1)
+        high, low = rng.uniform(0.0, 3.0, n_u), rng.uniform(0.0, 3.0, n_u)
+        rows = np.concatenate([rows, identity, -identity])
+        upper = np.concatenate([upper, high, low])
+    weights = 2.0 * np.concatenate([10.0 ** rng.uniform(-2.0, 2.0, n_u),
+                                    [10.0 ** rng.uniform(0.0, 8.0)]])
+    return rows, upper, weights
+
+
+def solve(g_matrix: np.ndarray, upper: np.ndarray, weights: np.ndarray) -> np.ndarray | None:
+    """The method under test, as SafetyFilter._active_set calls it."""
+    return active_set_solution(
+        rows=g_matrix, upper=upper, p_inverse=1.0 / weights,
+        tolerance=ACTIVE_SET_TOLERANCE * (1.0 + float(np.abs(upper).max())))
+
+
+def active_rows(g_matrix: np.ndarray, upper: np.ndarray, z: np.ndarray) -> np.ndarray:
+    return np.abs(g_matrix @ z - upper) <= 1e-9 * (1.0 + np.abs(upper).max())
+
+
+def assert_same_solution(z: np.ndarray, reference: np.ndarray, weights: np.ndarray,
+                         g_matrix: np.ndarray, upper: np.ndarray, *,
+                         spread_data: bool = False) -> None:
+    """Equal to the reference in the cost's own metric, to 1e-7 of its size. With
+    ``spread_data`` (right-hand sides over many orders of magnitude) also to what a row met
+    to 1e-9 of the largest right-hand side can move the answer (the method meets rows to
+    1e-12 of it, the reference to their own round-off): that over the shortest row's length
+    in the metric."""
+    gap = np.linalg.norm(np.sqrt(weights) * (z - reference))
+    allowed = 1e-7 * (1.0 + float(np.linalg.norm(np.sqrt(weights) * reference)))
+    if spread_data:
+        shortest = float(np.linalg.norm(g_matrix / np.sqrt(weights), axis=1).min())
+        allowed += 1e-9 * (1.0 + float(np.abs(upper).max())) / shortest
+    assert gap <= allowed, (z, reference, gap, allowed)
+
+
+def test_random_qps_of_the_filters_shape_match_enumeration():
+    rng = np.random.default_rng(3)
+    seen = {1: 0, 2: 0, 3: 0}
+    limit_active = declined = 0
+    for trial in range(300):
+        n_u = (1, 2, 2, 3)[trial % 4]
+        k = int(rng.integers(1, 7))
+        g_matrix, upper, weights = filter_shaped_qp(rng, n_u=n_u, k=k, limits=trial % 5 != 0)
+        if upper.min() >= 0.0:
+            continue  # a pass-through: the filter never calls the method
+        reference = enumerated_solution(g_matrix, upper, weights)
+        z = solve(g_matrix, upper, weights)
+        if z is None:
+            declined += 1
+            continue
+        assert_same_solution(z, reference, weights, g_matrix, upper)
+        active = active_rows(g_matrix, upper, reference)
+        seen[min(int(active.sum()), 3)] += 1
+        limit_active += bool(active[k:].any())
+    assert min(seen.values()) >= 10, seen
+    assert limit_active >= 20 and declined <= 3, (limit_active, declined)
+
+
+def test_adversarial_qps_are_solved_exactly_or_left_to_osqp():
+    """Nearly parallel and duplicated rows, slack far from 0, rows of very different size,
+    rows with no input term, right-hand sides that are exactly 0: an answer, when there is
+    one, is the solution; the method may decline (None: OSQP solves it) but never errs."""
+    rng = np.random.default_rng(4)
+    answered = 0
+    for trial in range(240):
+        g_matrix, upper, weights = filter_shaped_qp(rng, n_u=2, k=4)
+        case = trial % 6
+        if case == 0:  # nearly parallel rows, both violated
+            g_matrix[1] = g_matrix[0] + np.append(rng.normal(0.0, 1e-9, 2), 0.0)
+            upper[:2] = -abs(upper[:2]) - 0.5
+        elif case == 1:  # a duplicated row
+            g_matrix[1], upper[1] = g_matrix[0], upper[0]
+        elif case == 2:  # the limits make the rows infeasible: slack far from 0
+            g_matrix[:4, :2] = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+            upper[:4] = -1e3 * rng.uniform(1.0, 2.0, 4)
+        elif case == 3:  # rows of very different magnitude
+            g_matrix[:4] *= 10.0 ** rng.uniform(-6.0, 6.0, (4, 1))
+            g_matrix[:4, 2] = -1.0
+        elif case == 4:  # rows with no input term: only the slack can meet them
+            g_matrix[:2, :2] = 0.0
+        else:  # a row exactly met at z = 0, another violated
+            upper[0] = 0.0
+            upper[1] = -abs(upper[1]) - 0.1
+        if upper.min() >= 0.0:
+            continue
+        z = solve(g_matrix, upper, weights)
+        if z is None:
+            continue
+        answered += 1
+        reference = enumerated_solution(g_matrix, upper, weights)
+        assert reference is not None
+        assert_same_solution(z, reference, weights, g_matrix, upper)
+    assert answered >= 200, answered
+
+
+def test_the_certificate_refuses_what_it_cannot_prove():
+    """No step possible (contradicting rows, no slack), a singular working set and too few
+    steps give None, never a wrong answer."""
+    unit = np.ones(2)
+    contradicting = np.array([[1.0, 0.0], [-1.0, 0.0]])
+    assert active_set_solution(rows=contradicting, upper=np.array([-1.0, -1.0]),
+                               p_inverse=unit, tolerance=1e-12) is None
+    # two rows violated whose solution needs both: one step is not enough
+    rows = np.array([[1.0, 0.2], [0.2, 1.0]])
+    upper = np.array([-1.0, -1.0])
+    assert active_set_solution(rows=rows, upper=upper, p_inverse=unit, tolerance=1e-12,
+                               max_steps=1) is None
+    z = active_set_solution(rows=rows, upper=upper, p_inverse=unit, tolerance=1e-12)
+    np.testing.assert_allclose(rows @ z, upper, rtol=0, atol=1e-12)
+    # z = 0 already meets every row: not the method's case
+    assert active_set_solution(rows=rows, upper=np.array([1.0, 0.0]), p_inverse=unit,
+                               tolerance=1e-12) is None
+
+
+def shipped_filter(system: str) -> SafetyFilter:
+    return SafetyFilter(filter_config_from_params(
+        load_params(find_config(system), 'safety_filter')).problem)
+
+
+def random_call(system: str, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    if system == 'unicycle':
+        x = np.array([*rng.uniform(-3.0, 3.0, 2), rng.uniform(-np.pi, np.pi)])
+    elif system == 'pvtol':
+        x1 = rng.uniform(-5.5, 5.5)
+        x = np.array([x1, rng.uniform(-2.5, 2.5), *rng.normal(0.0, 0.5, 2),
+                      rng.normal(0.0, 0.2), rng.uniform(0.6, 1.4), x1 + rng.uniform(-0.5, 0.5)])
+    else:
+        positions = np.array([34.0, 28.0, 22.0, 16.0, 10.0]) + rng.normal(0.0, 1.0, 5)
+        x = np.stack([positions, 30.0 + rng.normal(0.0, 2.0, 5)], axis=1).reshape(-1)
+    n_u = 1 if system == 'car_following' else 2
+    return x, rng.uniform(-3.5, 3.5, n_u), np.zeros(x.size), np.full(x.size, 0.02)
+
+
+class _CountedSolve:
+    """Wraps the filter's OSQP solve and counts its calls."""
+
+    def __init__(self, solve) -> None:
+        self.solve, self.calls = solve, 0
+
+    def __call__(self, *args, **kwargs):
+        self.calls += 1
+        return self.solve(*args, **kwargs)
+
+
+@pytest.mark.parametrize('system', SYSTEMS)
+def test_the_filter_answers_active_qps_without_osqp(system):
+    """On the shipped systems every active QP met here (two and three rows active, limits
+    among them) is answered by the active-set solve: status 'solved', OSQP not called, the
+    action the enumerated solution's."""
+    rng = np.random.default_rng(5)
+    safety_filter = shipped_filter(system)
+    counted = _CountedSolve(safety_filter._solver.solve)
+    safety_filter._solver.solve = counted
+    n_u, k = safety_filter.n_u, safety_filter.n_barriers
+    weights = 1.0 / safety_filter._p_inverse
+    rows_active = {1: 0, 2: 0, 3: 0}
+    for _ in range(250):
+        x, u, mean, std = random_call(system, rng)
+        applied = np.clip(u, safety_filter._u_min, safety_filter._u_max)
+        _, g_matrix, upper = safety_filter._assemble(x, applied, mean, std)
+        if upper.min() >= 0.0:
+            continue
+        result = safety_filter.filter(x, u, mean, std)
+        assert counted.calls == 0
+        assert result.status == 'solved' and not result.fail_safe
+        reference = enumerated_solution(g_matrix, upper, weights)
+        np.testing.assert_allclose(result.u_safe, applied + reference[:n_u], rtol=0, atol=1e-9)
+        assert result.slack == pytest.approx(reference[-1], rel=1e-7, abs=1e-12)
+        values = upper[:k] - g_matrix[:k, :n_u] @ (result.u_safe - applied)
+        np.testing.assert_allclose(result.constraint_values, values, rtol=0, atol=1e-12)
+        rows_active[min(int(active_rows(g_matrix, upper, reference).sum()), 3)] += 1
+    wanted = {'car_following': (1,), 'unicycle': (1, 2, 3), 'pvtol': (1, 2, 3)}[system]
+    assert all(rows_active[n] >= 2 for n in wanted), rows_active
+
+
+PROPERTY = settings(max_examples=120, derandomize=True, deadline=None, database=None,
+                    suppress_health_check=[HealthCheck.too_slow])
+ENTRY = st.one_of(st.floats(-10.0, 10.0), st.floats(-1e6, 1e6),
+                  st.sampled_from([0.0, -0.0, 1e-300, -1e-12, 1e-12, 1e8, -1e8, 1e12]))
+
+
+@st.composite
+def hostile_qp(draw: st.DrawFn) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
+    """A shipped system, a proposal within its limits and RCBF rows of any finite size."""
+    system = draw(st.sampled_from(['unicycle', 'car_following']))
+    k = {'unicycle': 5, 'car_following': 2}[system]
+    n_u = 1 if system == 'car_following' else 2
+    lg_h = np.array(draw(st.lists(ENTRY, min_size=k * n_u, max_size=k * n_u))).reshape(k, n_u)
+    if draw(st.booleans()):  # two rows nearly parallel
+        lg_h[1] = lg_h[0] * (1.0 + draw(st.floats(-1e-9, 1e-9)))
+    rhs = np.array(draw(st.lists(ENTRY, min_size=k, max_size=k)))
+    proposal = np.array(draw(st.lists(st.floats(-2.5, 2.5), min_size=n_u, max_size=n_u)))
+    return system, lg_h, rhs, proposal
+
+
+FILTERS = {system: shipped_filter(system) for system in ('unicycle', 'car_following')}
+
+
+@PROPERTY
+@given(hostile_qp())
+def test_hostile_qp_data_never_break_the_row_check_and_match_enumeration(drawn):
+    """Whatever QP data reach the solve, the filter's answer meets every row to the slack it
+    reports and lies within the limits (or is the fail-safe), and an answer of the active-set
+    solve is the enumerated solution."""
+    system, lg_h, rhs, proposal = drawn
+    template = FILTERS[system]
+    safety_filter = SafetyFilter(template.problem, fallback=False)
+    n_u, k = safety_filter.n_u, safety_filter.n_barriers
+    g_matrix = np.zeros((safety_filter._nc, n_u + 1))
+    g_matrix[:k, :n_u], g_matrix[:k, n_u] = -lg_h, -1.0
+    upper = np.zeros(safety_filter._nc)
+    upper[:k] = rhs
+    if safety_filter.problem.has_limits:
+        for j in range(n_u):
+            g_matrix[k + j, j], g_matrix[k + n_u + j, j] = 1.0, -1.0
+        upper[k:k + n_u] = safety_filter._u_max - proposal
+        upper[k + n_u:] = proposal - safety_filter._u_min
+    safety_filter._assemble = lambda x, u, mean, std: (np.zeros(k), g_matrix, upper)
+    answered: list[np.ndarray] = []
+    method = safety_filter._active_set
+
+    def recorded(g, b):
+        z = method(g, b)
+        if z is not None:
+            answered.append(z)
+        return z
+
+    safety_filter._active_set = recorded
+    result = safety_filter.filter(np.zeros(safety_filter.n_x), proposal)
+    if result.fail_safe:
+        assert result.reason
+        return
+    assert np.all(result.u_safe >= safety_filter._u_min)
+    assert np.all(result.u_safe <= safety_filter._u_max)
+    values = rhs + lg_h @ (result.u_safe - proposal)
+    scale = 1.0 + float(np.abs(rhs).max())
+    assert float(values.min()) >= -max(result.slack, 0.0) - 1e-6 * scale
+    if answered:
+        weights = 1.0 / safety_filter._p_inverse
+        reference = enumerated_solution(g_matrix, upper, weights)
+        assert reference is not None
+        assert_same_solution(answered[0], reference, weights, g_matrix, upper,
+                             spread_data=True)
