@@ -45,6 +45,9 @@ Without ``--reference`` the comparison is skipped.
 """
 from __future__ import annotations
 
+# First: numpy's BLAS set up as in every rcbf_ros process (rcbf_ros/__init__.py).
+import rcbf_ros  # noqa: F401  # isort: skip
+
 import argparse
 import os
 import sys

@@ -7,7 +7,7 @@ ours against the authors' reference code re-run side by side.
         [--compile-update]
 
 Ours: in-process, 1 SAC update per environment step, minibatch 256, 256x256 networks, the
-per-step safety filter (compiled assembly) and the GP estimate on every step. Each row first
+per-step safety filter (closed-form assembly) and the GP estimate on every step. Each row first
 fills the buffer with ``--warmup`` random steps (not timed; the GP is fitted on them, at most
 512 points, at the last one), then times ``--steps`` steps with updates. Also reported: the
 median SAC update (diff mode: both losses through the differentiable QP), the per-action
@@ -109,8 +109,9 @@ TARGETS = {('unicycle', 'baseline'): 2.5, ('unicycle', 'modular'): 2.5,
            ('unicycle', 'diff'): 4.0, ('car_following', 'diff'): 6.0, ('pvtol', 'diff'): 6.0}
 """The project's speed goals: minimum steady-state steps/s of ours over the reference's."""
 DIFFERENCES = (
-    'What the two sides do differently. Per-step filter: ours solves the RCBF-QP with OSQP '
-    'on a closed-form or compiled constraint assembly (float64, one state); the reference '
+    'What the two sides do differently. Per-step filter: ours solves the RCBF-QP exactly with '
+    'a small active-set method (OSQP where it cannot certify its answer) on a closed-form '
+    'constraint assembly (float64, one state, numpy); the reference '
     'assembles it in torch and solves it with qpth at batch 1 (eps 1e-4, maxIter 100000, '
     'notImprovedLim 10, rows normalised). GP: ours is one batch-independent exact GP over the '
     'state, at most 512 training points, refitted every 1000 steps; the reference fits one '
@@ -132,7 +133,10 @@ DIFFERENCES = (
     "the losses on Unicycle and Cars, and on PVTOL, as config/pvtol.yaml's "
     '`modular_envelope: true` asks, the differentiable QP of the envelope (the tilt, thrust and '
     'arena bands) in both losses. Buffer '
-    'sampling: ours one preallocated table; the reference a Python list of tuples.')
+    'sampling: ours one preallocated table; the reference a Python list of tuples. BLAS: '
+    "torch's own for both sides' networks; numpy's OpenBLAS with the kernels rcbf_ros picks "
+    'from the CPU flags on both sides (the reference inherits OPENBLAS_CORETYPE from this '
+    'process).')
 """Printed with the table."""
 FLOOR_TARGET = 1.25
 """The project's speed goal against the floor: step time at most this multiple of it."""

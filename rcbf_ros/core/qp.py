@@ -1,4 +1,4 @@
-"""ONE builder of the RCBF-QP data, used by the OSQP filter (B = 1) and the differentiable layer.
+"""ONE builder of the RCBF-QP data, for the per-step filter (B = 1) and the differentiable layer.
 
 The paper's RCBF-QP (eq. QP), with z = [u_S, eps]:
 
@@ -82,7 +82,7 @@ def check_input_weight(input_weight: Sequence[float], m: int) -> tuple[float, ..
 def cost_weights(m: int, slack_weight: float,
                  input_weight: Sequence[float] | None = None) -> tuple[float, ...]:
     """(w_1, ..., w_m, l): the cost's diagonal, P = 2 diag(w, l) (the one definition, shared
-    by :func:`build_rcbf_qp` and the OSQP filter's fixed P)."""
+    by :func:`build_rcbf_qp` and the per-step filter's fixed P)."""
     if slack_weight <= 0:
         raise ValueError('slack_weight: must be > 0')
     weights = (1.0,) * m if input_weight is None else check_input_weight(input_weight, m)
