@@ -755,11 +755,12 @@ class DisturbanceGP:
         # >= 0 and together at most s, so the round-off stays at eps * s.
         tail_weight = (1.0 / eigenvalues[:, rank] if rank < n_points
                        else torch.zeros(outputs.numel(), dtype=eigenvalues.dtype))
-        # One (M, 1 + r) product gives the mean (column 0) and the r projections u_i . k.
+        # One (1 + r, M) product gives the mean (row 0) and the r projections u_i . k; stored
+        # row by row, so that one query's product reads each row contiguously.
         project = torch.cat([c['alpha'][outputs].unsqueeze(-1),
-                             c['eigenvectors'][outputs, :, :rank]], dim=-1)
+                             c['eigenvectors'][outputs, :, :rank]], dim=-1).transpose(-1, -2)
         group = {**self._group_base(outputs), 'rank': rank,
-                 'full_rank': rank == n_points, 'project': project.contiguous().numpy(),
+                 'full_rank': rank == n_points, 'project_t': project.contiguous().numpy(),
                  'kept_weights': (1.0 / eigenvalues[:, :rank]).numpy(),
                  'tail_weight': tail_weight.numpy()[:, None]}
         if factor_t is not None:
@@ -875,12 +876,15 @@ class DisturbanceGP:
             plans[bound] = self._plan(torch.full_like(c['hybrid_rank'], -1))
         return plans[bound]
 
-    def predict_state(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def predict_state(self, state: np.ndarray, *,
+                      bound: Literal['chosen', 'low_rank'] = 'chosen'
+                      ) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`predict` (each output's chosen bound) at ONE state, in numpy: the per-step
         path.
 
         Args:
             state: (n_in,) float64.
+            bound: as :meth:`predict`'s.
 
         Returns:
             mean: (n_out,); std: (n_out,), equal to ``predict(state)`` to round-off.
@@ -890,7 +894,12 @@ class DisturbanceGP:
             raise ValueError(f'state must have shape ({self.n_in},), got {x.shape}')
         if self._cache is None:
             return np.zeros(self.n_out), np.full(self.n_out, self.config.prior_std)
-        mean, std = self._predict_bound(x[None, :], self._cache['plans']['chosen'])
+        plan = self._cache['plans'].get(bound)
+        if plan is None:
+            if bound not in ('chosen', 'low_rank'):
+                raise ValueError(f"bound must be 'chosen' or 'low_rank', got {bound!r}")
+            plan = self._plan_named(bound)
+        mean, std = self._predict_bound(x[None, :], plan)
         return mean[0], std[0]
 
     def _predict_bound(self, x: np.ndarray, plan: list[dict[str, Any]]
@@ -921,14 +930,15 @@ class DisturbanceGP:
         hybrid = 'factor_t' in group
         if hybrid:
             nearest = k_cross.argmax(axis=-1)  # (D, B): the nearest training point
-        project = group['project']
-        projected = k_cross @ project  # (D, B, 1 + r): mean, then u_i . k
+        project_t = group['project_t']
+        # (D, B, 1 + r): mean, then u_i . k
+        projected = (project_t @ k_cross.transpose(0, 2, 1)).transpose(0, 2, 1)
         kept = projected[:, :, 1:]
         var = group['base'] - np.einsum('dbr,dr->db', kept * kept, group['kept_weights'])
         if not group['full_rank']:
             # k_perp = k - U_r (U_r^T k), on the same (by now cached) columns.
             if group['rank']:
-                k_cross -= kept @ project[:, :, 1:].transpose(0, 2, 1)
+                k_cross -= kept @ project_t[:, 1:, :]
             tail = np.einsum('dbm,dbm->db', k_cross, k_cross) * group['tail_weight']
             if hybrid:
                 # q^T E'_SS^-1 q on the nearest training point's neighbourhood S, q = k_perp[S].

@@ -147,9 +147,13 @@ def test_a_noise_dominated_short_lengthscale_output_takes_the_neighbourhood():
         one_mean, one_std = gp.predict_state(row.numpy())
         np.testing.assert_allclose(one_mean, mean_row.numpy(), atol=1e-12, rtol=0)
         np.testing.assert_allclose(one_std, std_row.numpy(), atol=1e-12, rtol=1e-9)
-    # The low-rank bound stays available on every output.
-    _, low = gp.predict(q, bound='low_rank')
+    # The low-rank bound stays available on every output, in both paths.
+    low_mean, low = gp.predict(q, bound='low_rank')
     assert ((low ** 2)[:, :2].numpy() - exact >= -round_off(gp)).all()
+    for row, mean_row, std_row in zip(q[:5], low_mean[:5], low[:5]):
+        one_mean, one_std = gp.predict_state(row.numpy(), bound='low_rank')
+        np.testing.assert_allclose(one_mean, mean_row.numpy(), atol=1e-12, rtol=0)
+        np.testing.assert_allclose(one_std, std_row.numpy(), atol=1e-12, rtol=1e-9)
 
 
 def test_a_smooth_output_keeps_the_low_rank_bound_and_the_hybrid_can_be_turned_off():
@@ -176,6 +180,8 @@ def test_an_unknown_bound_is_rejected_naming_it():
     gp = random_gp(seed=1, points=20, n_in=2, lengthscale=0.5, noise_ratio=0.1, neighbours=4)
     with pytest.raises(ValueError, match="bound must be 'chosen' or 'low_rank'"):
         gp.predict(torch.zeros(1, 2, dtype=DTYPE), bound='exact')  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="bound must be 'chosen' or 'low_rank'"):
+        gp.predict_state(np.zeros(2), bound='exact')  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize('system', ['unicycle', 'pvtol', 'car_following'])
