@@ -57,7 +57,8 @@ m training points, with ``E = K + nI - U_r diag(mu_r) U_r^T`` (the discarded par
 
 ``E_SS`` can be singular, so the bound uses ``E'_SS`` from ``E' = E + n U_r U_r^T`` (every
 eigenvalue >= n, as conditioned as ``K + nI`` itself): ``E' >= E`` only lowers the subtracted
-term. The bound keeps the larger of this term and the low-rank one, ``|k_perp|^2 / mu_{r+1}``
+term. (``E'_SS`` is formed as ``(K + nI)_SS - U_S diag(mu_r - n) U_S^T``: M m^2 r work per rank.)
+The bound keeps the larger of this term and the low-rank one, ``|k_perp|^2 / mu_{r+1}``
 (both are valid), so it is at least as tight as the low-rank bound at the same rank. With
 r = 0 it is the variance conditioned on S alone (fewer data never lower a GP's variance).
 S is the neighbourhood of the training point nearest to the query (its m nearest training
@@ -597,7 +598,8 @@ class DisturbanceGP:
         # Descending; an eigenvalue of K + nI is >= n (K is PSD): clamp round-off below it.
         # The eigendecomposition is of L L^T, the matrix the exact posterior uses (with the
         # jitter, if the Cholesky needed one).
-        eigenvalues, eigenvectors = torch.linalg.eigh(chol @ chol.transpose(-1, -2))
+        k_used = chol @ chol.transpose(-1, -2)
+        eigenvalues, eigenvectors = torch.linalg.eigh(k_used)
         eigenvalues = torch.maximum(eigenvalues.flip(-1), noise[:, None])
         ranks = variance_ranks(eigenvalues=eigenvalues, noise=noise,
                                tolerance=self.config.variance_rank_tolerance)
@@ -619,21 +621,26 @@ class DisturbanceGP:
             # k(x_i, x_j) falls with the scaled distance: the nearest are the largest entries;
             # the diagonal (s + n) is every row's largest, so x_i itself comes first.
             self._cache['neighbour_index'] = torch.topk(k_noisy, neighbours, dim=-1).indices
+            self._cache['k_used'] = k_used
             self._choose_hybrid_ranks()
         self._cache['plans']['chosen'] = self._plan(self._cache['hybrid_rank'])
 
     def _hybrid_factor(self, output: int, rank: int) -> torch.Tensor:
         """(M, m, m) ``L_i^-T`` per training point i, ``L_i L_i^T`` the principal submatrix on
-        i's neighbourhood S_i of ``E' = U diag(mu') U^T``, ``mu'`` the eigenvalues of
-        ``K + nI`` with the first ``rank`` replaced by n (module docstring; jittered further
-        if it must be, which only raises the variance)."""
+        i's neighbourhood S_i of ``E' = K + nI - U_r diag(mu_r - n) U_r^T`` (module
+        docstring), jittered further if it must be, which only raises the variance.
+        ``K + nI`` is the cached ``L L^T`` (with the jitter, if the Cholesky needed one).
+        """
         c = self._cache
         assert c is not None
-        vectors, values = c['eigenvectors'][output], c['eigenvalues'][output].clone()
-        values[:rank] = c['noise'][output]
-        tail = (vectors * values) @ vectors.T
         index = c['neighbour_index'][output]  # (M, m)
-        sub = tail[index.unsqueeze(-1), index.unsqueeze(-2)]  # (M, m, m)
+        sub = c['k_used'][output][index.unsqueeze(-1), index.unsqueeze(-2)]  # (M, m, m)
+        if rank:
+            # Entries of size s less the kept part: E' >= n I, so the round-off of the
+            # difference (eps r s) is far below its smallest eigenvalue unless s / n ~ 1e10.
+            vectors = c['eigenvectors'][output][:, :rank][index]  # (M, m, r)
+            weights = c['eigenvalues'][output][:rank] - c['noise'][output]
+            sub = sub - (vectors * weights) @ vectors.transpose(-1, -2)
         chol = _jittered_cholesky(sub)
         eye = torch.eye(sub.shape[-1], dtype=sub.dtype).expand_as(chol)
         chol_inv = torch.linalg.solve_triangular(chol, eye, upper=False)
