@@ -612,7 +612,8 @@ class DisturbanceGP:
                        'eigenvalues': eigenvalues, 'eigenvectors': eigenvectors.flip(-1),
                        'ranks': ranks, 'plans': {}}
         outputs = torch.arange(int(active.sum()))
-        _, kept, excess = self._low_rank_groups(outputs)
+        groups, kept, excess = self._low_rank_groups(outputs)
+        self._cache['plans']['low_rank'] = groups
         self._cache['low_rank'] = {'ranks': ranks, 'kept': kept, 'excess': excess}
         self._cache['hybrid_rank'] = torch.full_like(ranks, -1)
         self._cache['hybrid_factor'] = {}
@@ -623,7 +624,9 @@ class DisturbanceGP:
             self._cache['neighbour_index'] = torch.topk(k_noisy, neighbours, dim=-1).indices
             self._cache['k_used'] = k_used
             self._choose_hybrid_ranks()
-        self._cache['plans']['chosen'] = self._plan(self._cache['hybrid_rank'])
+        hybrid_rank = self._cache['hybrid_rank']
+        self._cache['plans']['chosen'] = (self._plan(hybrid_rank) if bool((hybrid_rank >= 0).any())
+                                          else groups)
 
     def _hybrid_factor(self, output: int, rank: int) -> torch.Tensor:
         """(M, m, m) ``L_i^-T`` per training point i, ``L_i L_i^T`` the principal submatrix on
@@ -843,7 +846,7 @@ class DisturbanceGP:
             mean = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
             return mean, torch.full_like(mean, self.config.prior_std)
         if not exact:
-            mean_np, std_np = self._predict_bound(x_t.numpy(), self._plan_named(bound))
+            mean_np, std_np = self._predict_bound(x_t.numpy(), self._cache['plans'][bound])
             return torch.from_numpy(mean_np), torch.from_numpy(std_np)
         c = self._cache
         mean = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
@@ -874,15 +877,6 @@ class DisturbanceGP:
             return var
         return (k_cross * c['alpha'].unsqueeze(1)).sum(-1), var
 
-    def _plan_named(self, bound: str) -> list[dict[str, Any]]:
-        """The groups of ``bound`` ('chosen' or 'low_rank'), built once per posterior."""
-        c = self._cache
-        assert c is not None
-        plans = c['plans']
-        if bound not in plans:
-            plans[bound] = self._plan(torch.full_like(c['hybrid_rank'], -1))
-        return plans[bound]
-
     def predict_state(self, state: np.ndarray, *,
                       bound: Literal['chosen', 'low_rank'] = 'chosen'
                       ) -> tuple[np.ndarray, np.ndarray]:
@@ -903,9 +897,7 @@ class DisturbanceGP:
             return np.zeros(self.n_out), np.full(self.n_out, self.config.prior_std)
         plan = self._cache['plans'].get(bound)
         if plan is None:
-            if bound not in ('chosen', 'low_rank'):
-                raise ValueError(f"bound must be 'chosen' or 'low_rank', got {bound!r}")
-            plan = self._plan_named(bound)
+            raise ValueError(f"bound must be 'chosen' or 'low_rank', got {bound!r}")
         mean, std = self._predict_bound(x[None, :], plan)
         return mean[0], std[0]
 
