@@ -358,6 +358,7 @@ class DisturbanceGP:
         self.noise: torch.Tensor | None = None
         self.train_indices: torch.Tensor | None = None
         self._posterior: dict[str, torch.Tensor] | None = None
+        self._pending: dict[str, Any] | None = None
         self._version = 0
 
     @property
@@ -605,28 +606,41 @@ class DisturbanceGP:
                                tolerance=self.config.variance_rank_tolerance)
         # Row-vector layout: k^T L^-T is one batched (B, M) x (M, M) product, which is several
         # times faster on CPU than L^-1 k with a (M, 1) right-hand side.
-        self._cache = {'active': active, 'lengthscales': lengthscales,
-                       'outputscale': outputscale, 'noise': noise,
-                       'x_scaled': x_scaled,
-                       'chol_inv_t': chol_inv.transpose(-1, -2).contiguous(), 'alpha': alpha,
-                       'eigenvalues': eigenvalues, 'eigenvectors': eigenvectors.flip(-1),
-                       'ranks': ranks, 'plans': {}}
-        outputs = torch.arange(int(active.sum()))
-        groups, kept, excess = self._low_rank_groups(outputs)
-        self._cache['plans']['low_rank'] = groups
-        self._cache['low_rank'] = {'ranks': ranks, 'kept': kept, 'excess': excess}
-        self._cache['hybrid_rank'] = torch.full_like(ranks, -1)
-        self._cache['hybrid_factor'] = {}
-        neighbours = min(self.config.variance_neighbours, n_points)
-        if 0 < neighbours < n_points and outputs.numel():
-            # k(x_i, x_j) falls with the scaled distance: the nearest are the largest entries;
-            # the diagonal (s + n) is every row's largest, so x_i itself comes first.
-            self._cache['neighbour_index'] = torch.topk(k_noisy, neighbours, dim=-1).indices
-            self._cache['k_used'] = k_used
-            self._choose_hybrid_ranks()
-        hybrid_rank = self._cache['hybrid_rank']
-        self._cache['plans']['chosen'] = (self._plan(hybrid_rank) if bool((hybrid_rank >= 0).any())
-                                          else groups)
+        cache = {'active': active, 'lengthscales': lengthscales,
+                 'outputscale': outputscale, 'noise': noise,
+                 'x_scaled': x_scaled,
+                 'chol_inv_t': chol_inv.transpose(-1, -2).contiguous(), 'alpha': alpha,
+                 'eigenvalues': eigenvalues, 'eigenvectors': eigenvectors.flip(-1),
+                 'ranks': ranks, 'plans': {}, 'hybrid_rank': torch.full_like(ranks, -1),
+                 'hybrid_factor': {}}
+        # Built aside and published whole at the end: a failure on the way (a neighbourhood
+        # matrix no jitter makes positive definite) leaves the previous posterior in place.
+        self._pending = cache
+        try:
+            outputs = torch.arange(int(active.sum()))
+            groups, kept, excess = self._low_rank_groups(outputs)
+            cache['plans']['low_rank'] = groups
+            cache['low_rank'] = {'ranks': ranks, 'kept': kept, 'excess': excess}
+            neighbours = min(self.config.variance_neighbours, n_points)
+            if 0 < neighbours < n_points and outputs.numel():
+                # k(x_i, x_j) falls with the scaled distance: the nearest are the largest
+                # entries; the diagonal (s + n) is every row's largest: x_i comes first.
+                cache['neighbour_index'] = torch.topk(k_noisy, neighbours, dim=-1).indices
+                cache['k_used'] = k_used
+                self._choose_hybrid_ranks()
+            hybrid_rank = cache['hybrid_rank']
+            cache['plans']['chosen'] = (self._plan(hybrid_rank)
+                                        if bool((hybrid_rank >= 0).any()) else groups)
+        finally:
+            self._pending = None
+        self._cache = cache
+
+    @property
+    def _work(self) -> dict[str, Any]:
+        """The posterior being built by ``_refresh_cache``, else the current one."""
+        cache = self._pending if self._pending is not None else self._cache
+        assert cache is not None
+        return cache
 
     def _hybrid_factor(self, output: int, rank: int) -> torch.Tensor:
         """(M, m, m) ``L_i^-T`` per training point i, ``L_i L_i^T`` the principal submatrix on
@@ -634,8 +648,7 @@ class DisturbanceGP:
         docstring), jittered further if it must be, which only raises the variance.
         ``K + nI`` is the cached ``L L^T`` (with the jitter, if the Cholesky needed one).
         """
-        c = self._cache
-        assert c is not None
+        c = self._work
         index = c['neighbour_index'][output]  # (M, m)
         sub = c['k_used'][output][index.unsqueeze(-1), index.unsqueeze(-2)]  # (M, m, m)
         if rank:
@@ -654,8 +667,7 @@ class DisturbanceGP:
         bound's own) whose hybrid bound's std is within ``hybrid_std_tolerance`` of the
         exact std on every probe state: stored states, and stored states moved by a quarter
         and a whole lengthscale. Outputs where none is stay on the low-rank bound (-1)."""
-        c = self._cache
-        assert c is not None
+        c = self._work
         generator = torch.Generator().manual_seed(self.config.seed)
         rows = self._x[torch.randperm(self.num_data, generator=generator)[:64]]
         shift = c['lengthscales'].min(dim=0).values
@@ -689,7 +701,7 @@ class DisturbanceGP:
         groups = self._low_rank_groups(outputs[hybrid_rank < 0])[0]
         for rank in sorted(set(hybrid_rank[hybrid_rank >= 0].tolist())):
             members = outputs[hybrid_rank == rank]
-            factor_t = torch.stack([self._cache['hybrid_factor'][int(o)] for o in members])
+            factor_t = torch.stack([self._work['hybrid_factor'][int(o)] for o in members])
             groups.append(self._low_rank_group(members, rank, factor_t=factor_t))
         return groups
 
@@ -704,8 +716,7 @@ class DisturbanceGP:
         signal weaker than its noise) gets its own group, so that the others do not read its
         columns.
         """
-        c = self._cache
-        assert c is not None
+        c = self._work
         eigenvalues, noise, ranks = c['eigenvalues'], c['noise'], c['ranks']
         n_points = eigenvalues.shape[-1]
         kept = torch.zeros_like(ranks)
@@ -730,8 +741,7 @@ class DisturbanceGP:
         """(D, n_in + 2, M): log k(q, x_j) = log s - |q~|^2 / 2 - |x~_j|^2 / 2 + q~ . x~_j
         (~: lengthscale-scaled) is one product of [q~, -|q~|^2 / 2, 1] with these rows
         [x~_j; 1; log s - |x~_j|^2 / 2]."""
-        c = self._cache
-        assert c is not None
+        c = self._work
         x_scaled, outputscale = c['x_scaled'][outputs], c['outputscale'][outputs]
         n_active, n_points, n_in = x_scaled.shape
         rows = torch.empty(n_active, n_in + 2, n_points, dtype=x_scaled.dtype)
@@ -742,8 +752,7 @@ class DisturbanceGP:
 
     def _group_base(self, outputs: torch.Tensor) -> dict[str, Any]:
         """What every group has: outputs, inverse lengthscales, exponent rows, prior variance."""
-        c = self._cache
-        assert c is not None
+        c = self._work
         outputscale = c['outputscale'][outputs]
         base = (outputscale + c['noise'][outputs] if self.config.include_noise_in_std
                 else outputscale)
@@ -755,8 +764,7 @@ class DisturbanceGP:
                         factor_t: torch.Tensor | None = None) -> dict[str, Any]:
         """One batched low-rank group of outputs at one rank (see ``_low_rank_groups``);
         with ``factor_t`` (D, M, m, m) from ``_hybrid_factor``, the hybrid bound at it."""
-        c = self._cache
-        assert c is not None
+        c = self._work
         eigenvalues = c['eigenvalues'][outputs]
         n_points = eigenvalues.shape[-1]
         # var_r = s - sum_{i<=r} (u_i . k)^2 / mu_i - |k_perp|^2 / mu_{r+1}, k_perp = k minus its
@@ -865,8 +873,7 @@ class DisturbanceGP:
     def _exact_variance(self, x: torch.Tensor, *, with_mean: bool = False) -> Any:
         """Exact posterior variance (D_active, B) at x (B, n_in); with ``with_mean``, the
         pair (mean, variance)."""
-        c = self._cache
-        assert c is not None
+        c = self._work
         q_scaled = x.unsqueeze(0) / c['lengthscales'].unsqueeze(1)  # (D, B, n_in)
         k_cross = self._rbf(q_scaled, c['x_scaled'], c['outputscale'])  # (D, B, M)
         v = k_cross @ c['chol_inv_t']  # (D, B, M): rows of (L^-1 k)^T

@@ -223,3 +223,23 @@ def test_on_each_systems_residuals_every_bound_contains_the_exact_box(system, tm
     for bound in ('chosen', 'low_rank'):
         _, std = gp.predict(q, bound=bound)
         assert ((std ** 2)[:, gp.active_outputs].numpy() - exact >= -slack).all(), bound
+
+
+def test_a_refit_that_fails_on_the_way_leaves_the_previous_posterior(monkeypatch):
+    gp = random_gp(seed=7, points=120, n_in=3, lengthscale=0.1, noise_ratio=0.5,
+                   neighbours=16)
+    q = queries(gp, 2, count=12)
+    before, version = gp.predict(q), gp.version
+    state_before = gp.predict_state(q[0].numpy())
+
+    def no_factor(*args: object, **kwargs: object) -> None:
+        raise torch.linalg.LinAlgError('not positive definite')
+
+    monkeypatch.setattr(DisturbanceGP, '_hybrid_factor', no_factor)
+    with pytest.raises(torch.linalg.LinAlgError):
+        gp.set_hyperparameters(gp.lengthscales * 2.0, gp.outputscale, gp.noise)
+    assert gp.version == version
+    for now, then in zip(gp.predict(q), before):
+        torch.testing.assert_close(now, then, rtol=0, atol=0)
+    for now, then in zip(gp.predict_state(q[0].numpy()), state_before):
+        np.testing.assert_array_equal(now, then)
