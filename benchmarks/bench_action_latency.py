@@ -15,14 +15,15 @@ that load from other processes hits both alike:
 - **deployed**: no update since the previous action, as in the ``policy`` node (trained policy
   plus filter, no learner) and in the standalone ``safety_filter`` node.
 
-Each setting runs with two GP paths, also interleaved: ``low-rank`` (the default,
-``DisturbanceGP.predict_state``: numpy on one state, the low-rank variance bound) and ``exact``
+Each setting runs with three GP paths, also interleaved: ``chosen`` (the default,
+``DisturbanceGP.predict_state``: numpy on one state, each output's variance bound as chosen at
+the refit, the hybrid low-rank-plus-neighbourhood bound or the low-rank one), ``low-rank``
+(``predict_state(..., bound='low_rank')``: the low-rank bound on every output) and ``exact``
 (``DisturbanceGP.predict(..., exact=True)`` on a torch tensor: the exact variance through the
-M x M factor, the path every action took before). The action applied is the one filtered with
-the path's own estimate.
+M x M factor). The action applied is the one filtered with the path's own estimate.
 
 Each system first runs ``--warmup`` steps with updates, so that the GP is fitted at its training
-cap (512 points) and the networks are trained; then the timed actions cycle through the four
+cap (512 points) and the networks are trained; then the timed actions cycle through the six
 (setting, GP path) pairs. The learner is the in-process one (``build_run``, baseline mode,
 the filter's closed-form assembly), one torch thread, one BLAS thread.
 
@@ -30,9 +31,10 @@ Also reported, per system: where the filter's time goes (its constraint assembly
 row check, the rest of ``SafetyFilter.filter``, and the call's own overhead outside the
 filter's timer), the CPU time of the action (``time.thread_time``: less sensitive to other
 processes than the wall time), and the low-rank bound against the exact variance on the same
-GP and states: the kept rank, the worst-case variance excess the rank was chosen for, the
-measured std ratio, and how often the true disturbance (the environment's, at the state and the
-applied action) lies inside each box mean +/- k_c std.
+GP and states: the low-rank bound's kept rank, the worst-case variance excess the rank was
+chosen for, each output's chosen bound (hybrid rank or low-rank), the measured std ratios of
+both bounds to the exact std, and how often the true disturbance (the environment's, at the
+state and the applied action) lies inside each box mean +/- k_c std.
 """
 from __future__ import annotations
 
@@ -56,7 +58,7 @@ torch.set_num_threads(1)
 PARTS = ('policy', 'gp', 'filter', 'total', 'cpu', 'assembly', 'solve', 'filter_rest',
          'call_overhead', 'osqp', 'policy_again', 'gp_again', 'filter_again')
 SETTINGS = ('training', 'deployed')
-PATHS = ('low-rank', 'exact')
+PATHS = ('chosen', 'low-rank', 'exact')
 
 
 def measure(system: str, actions: int, warmup: int) -> dict[str, object]:
@@ -93,8 +95,10 @@ def measure(system: str, actions: int, warmup: int) -> dict[str, object]:
     boxes: list[tuple[np.ndarray, ...]] = []
 
     def gp_estimate(path: str) -> tuple[np.ndarray, np.ndarray]:
-        if path == 'low-rank':
+        if path == 'chosen':
             return gp.predict_state(np.asarray(state, dtype=np.float64))
+        if path == 'low-rank':
+            return gp.predict_state(np.asarray(state, dtype=np.float64), bound='low_rank')
         x = torch.as_tensor(np.array(state, dtype=np.float64)).unsqueeze(0)
         mean, std = gp.predict(x, exact=True)
         return mean[0].numpy(), std[0].numpy()
@@ -145,10 +149,10 @@ def measure(system: str, actions: int, warmup: int) -> dict[str, object]:
         return true
 
     for _ in range(warmup):
-        step(*act('low-rank', None))
+        step(*act('chosen', None))
         learner.after_step()
-    for k in range(4 * actions):
-        setting, path = SETTINGS[k % 2], PATHS[(k // 2) % 2]
+    for k in range(2 * len(PATHS) * actions):
+        setting, path = SETTINGS[k % 2], PATHS[(k // 2) % len(PATHS)]
         if setting == 'training':
             learner.after_step()  # the update right before the action, as in the loop
         x_before = np.asarray(state, dtype=np.float64)
@@ -159,9 +163,14 @@ def measure(system: str, actions: int, warmup: int) -> dict[str, object]:
     states = torch.as_tensor(np.stack([b[0] for b in boxes]))
     truth = np.stack([b[1] for b in boxes])[:, active]
     mean_e, std_e = (t.numpy()[:, active] for t in gp.predict(states, exact=True))
-    mean_r, std_r = (t.numpy()[:, active] for t in gp.predict(states))
+    mean_r, std_r = (t.numpy()[:, active] for t in gp.predict(states, bound='low_rank'))
+    mean_c, std_c = (t.numpy()[:, active] for t in gp.predict(states))
     ratio = std_r / np.maximum(std_e, 1e-300)
+    ratio_c = std_c / np.maximum(std_e, 1e-300)
     rank = gp.variance_rank
+    hybrid = gp.variance_bound
+    chosen = ', '.join(f'hybrid {r}' if r >= 0 else 'low-rank'
+                       for r in hybrid['rank'].tolist())
     return {
         'times': {key: {p: np.asarray(v) for p, v in parts.items()}
                   for key, parts in times.items()},
@@ -170,7 +179,11 @@ def measure(system: str, actions: int, warmup: int) -> dict[str, object]:
         'excess': float(rank['excess'].max()) if rank['excess'].numel() else 0.0,
         'contained_exact': float((np.abs(truth - mean_e) <= k_c * std_e).mean()),
         'contained_low_rank': float((np.abs(truth - mean_r) <= k_c * std_r).mean()),
+        'contained_chosen': float((np.abs(truth - mean_c) <= k_c * std_c).mean()),
         'std_ratio': (float(np.median(ratio)), float(ratio.max()), float(ratio.min())),
+        'std_ratio_chosen': (float(np.median(ratio_c)), float(ratio_c.max()),
+                             float(ratio_c.min())),
+        'chosen': f"{chosen} (m = {hybrid['size']})",
         'checks': truth.size,
     }
 
@@ -195,23 +208,26 @@ def main() -> None:
              '| call overhead | actions that ran OSQP | called again at once: policy, GP, '
              'filter |',
              '|---|---|---:|---:|---:|---:|---:|---:|---|']
-    bound = ['| system | rank kept per output | worst-case variance excess / s '
-             '| std ratio low-rank / exact (median, max, min) '
-             '| true disturbance inside the box: exact | low-rank | checks |',
-             '|---|---:|---:|---|---:|---:|---:|']
+    bound = ['| system | low-rank: rank kept per output | worst-case variance excess / s '
+             '| chosen bound per output | std ratio low-rank / exact (median, max, min) '
+             '| std ratio chosen / exact (median, max, min) '
+             '| true disturbance inside the box: exact | low-rank | chosen | checks |',
+             '|---|---:|---:|---|---|---|---:|---:|---:|---:|']
     verdicts = []
     for system in args.systems:
         result = measure(system, args.actions, args.warmup)
         times = result['times']
         med = {key: {p: 1e6 * np.median(v) for p, v in parts.items()}
                for key, parts in times.items()}
-        training = med[('training', 'low-rank')]['total']
-        deployed = med[('deployed', 'low-rank')]['total']
+        training = med[('training', 'chosen')]['total']
+        deployed = med[('deployed', 'chosen')]['total']
         verdicts.append(
             f"{system} training {training:.0f} us "
-            f"({'met' if training <= TARGET_US['training'] else 'not met'}; exact GP "
+            f"({'met' if training <= TARGET_US['training'] else 'not met'}; low-rank GP "
+            f"{med[('training', 'low-rank')]['total']:.0f}, exact GP "
             f"{med[('training', 'exact')]['total']:.0f}), deployed {deployed:.0f} us "
-            f"({'met' if deployed <= TARGET_US['deployed'] else 'not met'}; exact GP "
+            f"({'met' if deployed <= TARGET_US['deployed'] else 'not met'}; low-rank GP "
+            f"{med[('deployed', 'low-rank')]['total']:.0f}, exact GP "
             f"{med[('deployed', 'exact')]['total']:.0f})")
         for setting in SETTINGS:
             for path in PATHS:
@@ -222,24 +238,27 @@ def main() -> None:
                        f"| {m['total']:.0f} | {p99:.0f} | {m['cpu']:.0f} |")
                 print(row, flush=True)
                 rows.append(row)
-            m = med[(setting, 'low-rank')]
-            osqp = 100.0 * times[(setting, 'low-rank')]['osqp'].mean()
+            m = med[(setting, 'chosen')]
+            osqp = 100.0 * times[(setting, 'chosen')]['osqp'].mean()
             split.append(f"| {system} | {setting} | {m['filter']:.0f} | {m['assembly']:.0f} "
                          f"| {m['solve']:.0f} | {m['filter_rest']:.0f} "
                          f"| {m['call_overhead']:.0f} | {osqp:.0f} % "
                          f"| {m['policy_again']:.0f}, {m['gp_again']:.0f}, "
                          f"{m['filter_again']:.0f} |")
-        ratio = result['std_ratio']
+        ratio, ratio_c = result['std_ratio'], result['std_ratio_chosen']
         bound.append(f"| {system} | {result['rank']} | {result['excess']:.1e} "
+                     f"| {result['chosen']} "
                      f"| {ratio[0]:.6f}, {ratio[1]:.6f}, {ratio[2]:.6f} "
+                     f"| {ratio_c[0]:.6f}, {ratio_c[1]:.6f}, {ratio_c[2]:.6f} "
                      f"| {100 * result['contained_exact']:.2f} % "
-                     f"| {100 * result['contained_low_rank']:.2f} % | {result['checks']} |")
+                     f"| {100 * result['contained_low_rank']:.2f} % "
+                     f"| {100 * result['contained_chosen']:.2f} % | {result['checks']} |")
         print(split[-2], split[-1], bound[-1], sep='\n', flush=True)
     load_after = os.getloadavg()[0]
     tables = '\n'.join(rows) + '\n\n' + '\n'.join(split) + '\n\n' + '\n'.join(bound)
     reading = ('Medians against the targets (training <= '
                f"{TARGET_US['training']:.0f} us, deployed <= {TARGET_US['deployed']:.0f} us), "
-               'GP path low-rank (the default): ' + '; '.join(verdicts) + '.')
+               'GP path chosen (the default): ' + '; '.join(verdicts) + '.')
     print(tables, reading, sep='\n\n')
     if not args.no_write:
         from _results import machine_line, write_section

@@ -25,7 +25,7 @@ Prediction does not go through GPyTorch: after a fit we cache, per output dimens
 batched over query points and output dimensions. The disturbance box of eq.
 (disturb_estimate) is ``mean +/- k_c std`` (``bounds``); ``k_c`` is the caller's.
 
-Low-rank variance bound (the default prediction): the exact variance reads one M x M factor
+Low-rank variance bound: the exact variance reads one M x M factor
 per output and query, which at M = 512 (2 MB in float64) is most of a per-step action's cost.
 With the eigendecomposition ``K + n I = U diag(mu) U^T`` (descending ``mu``) computed at each
 refit, ``k^T (K + nI)^-1 k = sum_i (u_i . k)^2 / mu_i``; keeping the first r terms and giving
@@ -42,9 +42,34 @@ rank whose ``rho`` is within ``GPConfig.variance_rank_tolerance`` (0: every eige
 exact variance to round-off). A query then reads r x M numbers instead of M x M (twice:
 the discarded part is evaluated as ``|k - U_r U_r^T k|^2``, not as the difference above,
 whose terms are of size ``|k|^2 / n`` and cancel to round-off when the noise is far below the
-signal). ``predict(x, exact=True)`` evaluates the exact variance (the reference). The mean is
+signal; from r = M / 2 on, every eigenpair, in one pass, costs no more). ``predict(x,
+exact=True)`` evaluates the exact variance (the reference). The mean is
 exact either way. In floating point both variances carry round-off of about
 ``eps M s^2 / n``; the bound's measured deficits against the exact evaluation stay within it.
+
+Hybrid variance bound (low rank plus a neighbourhood): for any vector w,
+``2 w . k - w^T (K + nI) w <= k^T (K + nI)^-1 k`` (the maximum over w is at
+``w = (K + nI)^-1 k``), so ``s - (2 w . k - w^T (K + nI) w)`` is never below the exact variance.
+Maximising over w in the span of the first r eigenvectors and the unit vectors of a set S of
+m training points, with ``E = K + nI - U_r diag(mu_r) U_r^T`` (the discarded part) gives
+
+    var_h(x*) = s - sum_{i<=r} (u_i . k)^2 / mu_i - q^T E_SS^-1 q,    q = (k - U_r U_r^T k)_S.
+
+``E_SS`` can be singular, so the bound uses ``E'_SS`` from ``E' = E + n U_r U_r^T`` (every
+eigenvalue >= n, as conditioned as ``K + nI`` itself): ``E' >= E`` only lowers the subtracted
+term. (``E'_SS`` is formed as ``(K + nI)_SS - U_S diag(mu_r - n) U_S^T``: M m^2 r work per rank.)
+The bound keeps the larger of this term and the low-rank one, ``|k_perp|^2 / mu_{r+1}``
+(both are valid), so it is at least as tight as the low-rank bound at the same rank. With
+r = 0 it is the variance conditioned on S alone (fewer data never lower a GP's variance).
+S is the neighbourhood of the training point nearest to the query (its m nearest training
+points in the output's lengthscale-scaled metric), whose ``E'_SS`` factor is cached per
+training point and rank at each refit (M m^2 numbers). The worst-case excess of the hybrid
+bound has no closed form; at each refit, an output uses it at the smallest rank (of 0, 8, 16,
+..., below the low-rank bound's own) whose std is within ``GPConfig.hybrid_std_tolerance`` of
+the exact std on probe states, and keeps the low-rank bound when none is. Short lengthscales
+and noise near the signal variance (where the low-rank bound needs nearly every eigenpair) are
+where the neighbourhood carries the posterior. ``predict(x, bound='low_rank')`` evaluates the
+low-rank bound on every output.
 
 Exactly known outputs: a dimension whose residuals are all within ``exact_output_tol`` of zero
 (e.g. a position whose derivative is a velocity in the state, so the nominal model predicts it
@@ -119,6 +144,14 @@ class GPConfig:
     output's signal variance, that the low-rank variance bound may have (see the module
     docstring); it never predicts less than the exact variance. 0: keep every eigenpair (the
     exact variance, to round-off, at the exact cost)."""
+    variance_neighbours: int = 32
+    """Neighbourhood size m of the hybrid variance bound (module docstring), which an output
+    uses instead of the low-rank bound when the bound at a smaller rank stays within
+    ``hybrid_std_tolerance`` of the exact std on probe states at the refit. Both bounds are
+    never below the exact variance. 0 (or m >= M): the low-rank bound only."""
+    hybrid_std_tolerance: float = 0.01
+    """Largest relative excess of the hybrid bound's std over the exact std, on every probe
+    state, for an output to use it (see ``variance_neighbours``)."""
     dtype: torch.dtype = torch.float64
     """Floating point type of data, hyperparameters and predictions."""
 
@@ -143,6 +176,12 @@ class GPConfig:
         if not 0 <= self.variance_rank_tolerance < 1:
             raise ValueError('variance_rank_tolerance must be in [0, 1), got '
                              f'{self.variance_rank_tolerance}')
+        if self.variance_neighbours < 0:
+            raise ValueError(
+                f'variance_neighbours must be >= 0, got {self.variance_neighbours}')
+        if not self.hybrid_std_tolerance >= 0:
+            raise ValueError(
+                f'hybrid_std_tolerance must be >= 0, got {self.hybrid_std_tolerance}')
 
 
 def _jittered_cholesky(a: torch.Tensor, tries: int = 6) -> torch.Tensor:
@@ -206,6 +245,13 @@ def _rank_groups(ranks: torch.Tensor) -> list[torch.Tensor]:
             smallest = rank
         groups[-1].append(output)
     return [torch.tensor(sorted(group), dtype=torch.int64) for group in groups]
+
+
+_HYBRID_RANKS = (0, 8, 16, 32, 64, 128, 256)
+"""Ranks the hybrid bound is tried at, smallest (cheapest) first."""
+_HYBRID_COST_COLUMNS = 16
+"""The hybrid bound's neighbourhood term costs about as much as this many more low-rank
+columns: a hybrid rank is only tried this far below the low-rank bound's own."""
 
 
 def variance_ranks(*, eigenvalues: torch.Tensor, noise: torch.Tensor,
@@ -312,6 +358,7 @@ class DisturbanceGP:
         self.noise: torch.Tensor | None = None
         self.train_indices: torch.Tensor | None = None
         self._posterior: dict[str, torch.Tensor] | None = None
+        self._pending: dict[str, Any] | None = None
         self._version = 0
 
     @property
@@ -528,8 +575,9 @@ class DisturbanceGP:
         return self._cache['active'].clone()
 
     def _refresh_cache(self) -> None:
-        """Cache per active output dim: scaled inputs, ``L^-T``, ``alpha = (K + nI)^-1 y`` and
-        the low-rank variance bound (leading eigenvectors and their weights).
+        """Cache per active output dim: scaled inputs, ``L^-T``, ``alpha = (K + nI)^-1 y``, the
+        low-rank variance bound's eigenpairs, the neighbour bound's factors, and which bound
+        each output uses (module docstring).
 
         A dimension is active unless every stored residual (all data, not only the capped
         training subset) is within ``exact_output_tol`` of zero.
@@ -547,80 +595,208 @@ class DisturbanceGP:
         chol = _jittered_cholesky(k_noisy)  # (n_out, M, M)
         chol_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
         alpha = torch.cholesky_solve(y.T.unsqueeze(-1), chol).squeeze(-1)  # (n_out, M)
-        # Row-vector layout: k^T L^-T is one batched (B, M) x (M, M) product, which is several
-        # times faster on CPU than L^-1 k with a (M, 1) right-hand side.
-        self._cache = {'active': active, 'lengthscales': lengthscales,
-                       'outputscale': outputscale, 'noise': noise,
-                       'x_scaled': x_scaled,
-                       'chol_inv_t': chol_inv.transpose(-1, -2).contiguous(), 'alpha': alpha,
-                       'low_rank': self._low_rank(chol, alpha, x_scaled, lengthscales,
-                                                  outputscale, noise, active)}
-
-    def _low_rank(self, chol: torch.Tensor, alpha: torch.Tensor, x_scaled: torch.Tensor,
-                  lengthscales: torch.Tensor, outputscale: torch.Tensor, noise: torch.Tensor,
-                  active: torch.Tensor) -> dict[str, Any]:
-        """The numpy arrays of the low-rank prediction (module docstring).
-
-        The eigendecomposition is of ``L L^T``, the matrix the exact posterior uses (with the
-        jitter, if the Cholesky needed one). Outputs of similar rank share one batched group
-        at the group's largest rank (extra pairs only tighten the bound); an output that needs
-        far more pairs than another (a signal weaker than its noise) gets its own group, so
-        that the others do not read its columns.
-        """
-        n_points = chol.shape[-1]
-        eigenvalues, eigenvectors = torch.linalg.eigh(chol @ chol.transpose(-1, -2))
+        n_points = x.shape[0]
         # Descending; an eigenvalue of K + nI is >= n (K is PSD): clamp round-off below it.
+        # The eigendecomposition is of L L^T, the matrix the exact posterior uses (with the
+        # jitter, if the Cholesky needed one).
+        k_used = chol @ chol.transpose(-1, -2)
+        eigenvalues, eigenvectors = torch.linalg.eigh(k_used)
         eigenvalues = torch.maximum(eigenvalues.flip(-1), noise[:, None])
-        eigenvectors = eigenvectors.flip(-1)
         ranks = variance_ranks(eigenvalues=eigenvalues, noise=noise,
                                tolerance=self.config.variance_rank_tolerance)
-        active_index = active.nonzero().squeeze(-1)
+        # Row-vector layout: k^T L^-T is one batched (B, M) x (M, M) product, which is several
+        # times faster on CPU than L^-1 k with a (M, 1) right-hand side.
+        cache = {'active': active, 'lengthscales': lengthscales,
+                 'outputscale': outputscale, 'noise': noise,
+                 'x_scaled': x_scaled,
+                 'chol_inv_t': chol_inv.transpose(-1, -2).contiguous(), 'alpha': alpha,
+                 'eigenvalues': eigenvalues, 'eigenvectors': eigenvectors.flip(-1),
+                 'ranks': ranks, 'plans': {}, 'hybrid_rank': torch.full_like(ranks, -1),
+                 'hybrid_factor': {}}
+        # Built aside and published whole at the end: a failure on the way (a neighbourhood
+        # matrix no jitter makes positive definite) leaves the previous posterior in place.
+        self._pending = cache
+        try:
+            outputs = torch.arange(int(active.sum()))
+            groups, kept, excess = self._low_rank_groups(outputs)
+            cache['plans']['low_rank'] = groups
+            cache['low_rank'] = {'ranks': ranks, 'kept': kept, 'excess': excess}
+            neighbours = min(self.config.variance_neighbours, n_points)
+            if 0 < neighbours < n_points and outputs.numel():
+                # k(x_i, x_j) falls with the scaled distance: the nearest are the largest
+                # entries; the diagonal (s + n) is every row's largest: x_i comes first.
+                cache['neighbour_index'] = torch.topk(k_noisy, neighbours, dim=-1).indices
+                cache['k_used'] = k_used
+                self._choose_hybrid_ranks()
+            hybrid_rank = cache['hybrid_rank']
+            cache['plans']['chosen'] = (self._plan(hybrid_rank)
+                                        if bool((hybrid_rank >= 0).any()) else groups)
+        finally:
+            self._pending = None
+        self._cache = cache
+
+    @property
+    def _work(self) -> dict[str, Any]:
+        """The posterior being built by ``_refresh_cache``, else the current one."""
+        cache = self._pending if self._pending is not None else self._cache
+        assert cache is not None
+        return cache
+
+    def _hybrid_factor(self, output: int, rank: int) -> torch.Tensor:
+        """(M, m, m) ``L_i^-T`` per training point i, ``L_i L_i^T`` the principal submatrix on
+        i's neighbourhood S_i of ``E' = K + nI - U_r diag(mu_r - n) U_r^T`` (module
+        docstring), jittered further if it must be, which only raises the variance.
+        ``K + nI`` is the cached ``L L^T`` (with the jitter, if the Cholesky needed one).
+        """
+        c = self._work
+        index = c['neighbour_index'][output]  # (M, m)
+        sub = c['k_used'][output][index.unsqueeze(-1), index.unsqueeze(-2)]  # (M, m, m)
+        if rank:
+            # Entries of size s less the kept part: E' >= n I, so the round-off of the
+            # difference (eps r s) is far below its smallest eigenvalue unless s / n ~ 1e10.
+            vectors = c['eigenvectors'][output][:, :rank][index]  # (M, m, r)
+            weights = c['eigenvalues'][output][:rank] - c['noise'][output]
+            sub = sub - (vectors * weights) @ vectors.transpose(-1, -2)
+        chol = _jittered_cholesky(sub)
+        eye = torch.eye(sub.shape[-1], dtype=sub.dtype).expand_as(chol)
+        chol_inv = torch.linalg.solve_triangular(chol, eye, upper=False)
+        return chol_inv.transpose(-1, -2).contiguous()
+
+    def _choose_hybrid_ranks(self) -> None:
+        """Per active output, the smallest rank of ``_HYBRID_RANKS`` (below the low-rank
+        bound's own) whose hybrid bound's std is within ``hybrid_std_tolerance`` of the
+        exact std on every probe state: stored states, and stored states moved by a quarter
+        and a whole lengthscale. Outputs where none is stay on the low-rank bound (-1)."""
+        c = self._work
+        generator = torch.Generator().manual_seed(self.config.seed)
+        rows = self._x[torch.randperm(self.num_data, generator=generator)[:64]]
+        shift = c['lengthscales'].min(dim=0).values
+        probes = torch.cat([rows] + [
+            rows + scale * shift * torch.randn(rows.shape, generator=generator,
+                                               dtype=rows.dtype) for scale in (0.25, 1.0)])
+        with torch.no_grad():
+            exact = self._exact_variance(probes)  # (D, P)
+        base = c['outputscale'] + (c['noise'] if self.config.include_noise_in_std else 0.0)
+        # The exact std, floored at 1e-6 of the prior's against round-off near the data.
+        exact_std = torch.maximum(exact, 1e-12 * base[:, None]).sqrt()
+        allowed = 1.0 + self.config.hybrid_std_tolerance
+        for output in range(exact.shape[0]):
+            one = torch.tensor([output])
+            for rank in _HYBRID_RANKS:
+                if rank + _HYBRID_COST_COLUMNS >= int(c['ranks'][output]):
+                    break
+                factor = self._hybrid_factor(output, rank)
+                group = self._low_rank_group(one, rank, factor_t=factor[None])
+                _, std = self._predict_group(group, probes.numpy())
+                ratio = torch.from_numpy(std[:, 0]) / exact_std[output]
+                if float(ratio.max()) <= allowed:
+                    c['hybrid_rank'][output] = rank
+                    c['hybrid_factor'][output] = factor
+                    break
+
+    def _plan(self, hybrid_rank: torch.Tensor) -> list[dict[str, Any]]:
+        """The numpy groups one prediction runs: the low-rank groups of the outputs with
+        ``hybrid_rank`` -1, and one hybrid group per rank of the others."""
+        outputs = torch.arange(hybrid_rank.numel())
+        groups = self._low_rank_groups(outputs[hybrid_rank < 0])[0]
+        for rank in sorted(set(hybrid_rank[hybrid_rank >= 0].tolist())):
+            members = outputs[hybrid_rank == rank]
+            factor_t = torch.stack([self._work['hybrid_factor'][int(o)] for o in members])
+            groups.append(self._low_rank_group(members, rank, factor_t=factor_t))
+        return groups
+
+    def _low_rank_groups(self, members: torch.Tensor
+                         ) -> tuple[list[dict[str, Any]], torch.Tensor, torch.Tensor]:
+        """The low-rank prediction's numpy groups for ``members`` (indices into the active
+        outputs), with each active output's kept rank and worst-case excess (zero for the
+        others).
+
+        Outputs of similar rank share one batched group at the group's largest rank (extra
+        pairs only tighten the bound); an output that needs far more pairs than another (a
+        signal weaker than its noise) gets its own group, so that the others do not read its
+        columns.
+        """
+        c = self._work
+        eigenvalues, noise, ranks = c['eigenvalues'], c['noise'], c['ranks']
+        n_points = eigenvalues.shape[-1]
         kept = torch.zeros_like(ranks)
         excess = torch.zeros_like(noise)
         groups = []
-        for members in _rank_groups(ranks):
-            rank = int(ranks[members].max())
-            kept[members] = rank
+        for local in (_rank_groups(ranks[members]) if members.numel() else []):
+            group = members[local]
+            rank = int(ranks[group].max())
+            if 2 * rank >= n_points:
+                # Below rank M the discarded part is a second pass over the r columns: from
+                # M / 2 on, every pair (one pass, the exact variance) costs no more.
+                rank = n_points
+            kept[group] = rank
             if rank < n_points:
-                tail = eigenvalues[members, rank]
-                excess[members] = variance_excess_ratio(tail=tail - noise[members],
-                                                        noise=noise[members])
-            groups.append(self._low_rank_group(
-                eigenvalues[members], eigenvectors[members], alpha[members],
-                x_scaled[members], lengthscales[members], outputscale[members], noise[members],
-                rank))
-            groups[-1]['index'] = active_index[members].numpy()
-        return {'groups': groups, 'all_active': bool(active.all()) and len(groups) == 1,
-                'ranks': ranks, 'kept': kept, 'excess': excess}
+                tail = eigenvalues[group, rank]
+                excess[group] = variance_excess_ratio(tail=tail - noise[group],
+                                                      noise=noise[group])
+            groups.append(self._low_rank_group(group, rank))
+        return groups, kept, excess
 
-    def _low_rank_group(self, eigenvalues: torch.Tensor, eigenvectors: torch.Tensor,
-                        alpha: torch.Tensor, x_scaled: torch.Tensor,
-                        lengthscales: torch.Tensor, outputscale: torch.Tensor,
-                        noise: torch.Tensor, rank: int) -> dict[str, Any]:
-        """One batched group of outputs at one rank (see ``_low_rank``)."""
+    def _exponent_rows(self, outputs: torch.Tensor) -> np.ndarray:
+        """(D, n_in + 2, M): log k(q, x_j) = log s - |q~|^2 / 2 - |x~_j|^2 / 2 + q~ . x~_j
+        (~: lengthscale-scaled) is one product of [q~, -|q~|^2 / 2, 1] with these rows
+        [x~_j; 1; log s - |x~_j|^2 / 2]."""
+        c = self._work
+        x_scaled, outputscale = c['x_scaled'][outputs], c['outputscale'][outputs]
+        n_active, n_points, n_in = x_scaled.shape
+        rows = torch.empty(n_active, n_in + 2, n_points, dtype=x_scaled.dtype)
+        rows[:, :n_in] = x_scaled.transpose(-1, -2)
+        rows[:, n_in] = 1.0
+        rows[:, n_in + 1] = outputscale.log()[:, None] - 0.5 * (x_scaled ** 2).sum(-1)
+        return rows.numpy()
+
+    def _group_base(self, outputs: torch.Tensor) -> dict[str, Any]:
+        """What every group has: outputs, inverse lengthscales, exponent rows, prior variance."""
+        c = self._work
+        outputscale = c['outputscale'][outputs]
+        base = (outputscale + c['noise'][outputs] if self.config.include_noise_in_std
+                else outputscale)
+        return {'index': c['active'].nonzero().squeeze(-1)[outputs].numpy(),
+                'inv_lengthscales': (1.0 / c['lengthscales'][outputs]).numpy(),
+                'exponent_rows': self._exponent_rows(outputs), 'base': base.numpy()[:, None]}
+
+    def _low_rank_group(self, outputs: torch.Tensor, rank: int,
+                        factor_t: torch.Tensor | None = None) -> dict[str, Any]:
+        """One batched low-rank group of outputs at one rank (see ``_low_rank_groups``);
+        with ``factor_t`` (D, M, m, m) from ``_hybrid_factor``, the hybrid bound at it."""
+        c = self._work
+        eigenvalues = c['eigenvalues'][outputs]
         n_points = eigenvalues.shape[-1]
         # var_r = s - sum_{i<=r} (u_i . k)^2 / mu_i - |k_perp|^2 / mu_{r+1}, k_perp = k minus its
         # projection on the kept u_i, computed as that difference (not |k|^2 - sum (u_i . k)^2,
         # which loses |k|^2 / n * eps to cancellation when n << s). Both subtracted terms are
         # >= 0 and together at most s, so the round-off stays at eps * s.
         tail_weight = (1.0 / eigenvalues[:, rank] if rank < n_points
-                       else torch.zeros_like(noise))
-        # One (M, 1 + r) product gives the mean (column 0) and the r projections u_i . k.
-        project = torch.cat([alpha.unsqueeze(-1), eigenvectors[:, :, :rank]], dim=-1)
-        # log k(q, x_j) = log s - |q~|^2 / 2 - |x~_j|^2 / 2 + q~ . x~_j (~: lengthscale-scaled)
-        # is one product of [q~, -|q~|^2 / 2, 1] with the rows [x~_j; 1; log s - |x~_j|^2 / 2].
-        n_active, _, n_in = x_scaled.shape
-        exponent_rows = torch.empty(n_active, n_in + 2, n_points, dtype=x_scaled.dtype)
-        exponent_rows[:, :n_in] = x_scaled.transpose(-1, -2)
-        exponent_rows[:, n_in] = 1.0
-        exponent_rows[:, n_in + 1] = (outputscale.log()[:, None]
-                                      - 0.5 * (x_scaled ** 2).sum(-1))
-        base = outputscale + noise if self.config.include_noise_in_std else outputscale
-        return {'inv_lengthscales': (1.0 / lengthscales).numpy(),
-                'exponent_rows': exponent_rows.numpy(), 'base': base.numpy()[:, None],
-                'full_rank': rank == n_points, 'project': project.contiguous().numpy(),
-                'kept_weights': (1.0 / eigenvalues[:, :rank]).numpy(),
-                'tail_weight': tail_weight.numpy()[:, None]}
+                       else torch.zeros(outputs.numel(), dtype=eigenvalues.dtype))
+        # One (1 + r, M) product gives the mean (row 0) and the r projections u_i . k; stored
+        # row by row, so that one query's product reads each row contiguously.
+        project = torch.cat([c['alpha'][outputs].unsqueeze(-1),
+                             c['eigenvectors'][outputs, :, :rank]], dim=-1).transpose(-1, -2)
+        group = {**self._group_base(outputs), 'rank': rank,
+                 'full_rank': rank == n_points, 'project_t': project.contiguous().numpy(),
+                 'kept_weights': (1.0 / eigenvalues[:, :rank]).numpy(),
+                 'tail_weight': tail_weight.numpy()[:, None]}
+        if factor_t is not None:
+            group['neighbours'] = c['neighbour_index'][outputs].numpy()
+            group['factor_t'] = factor_t.numpy()
+        return group
+
+    @property
+    def variance_bound(self) -> dict[str, Any]:
+        """The bound each active output's prediction uses: ``rank`` (n_active,) the rank of
+        its hybrid bound, -1 for the low-rank bound (at ``variance_rank``'s ``kept``); and
+        ``size``, the neighbourhood size m (0: the hybrid bound is off). Empty before the
+        first fit."""
+        if self._cache is None:
+            return {}
+        index = self._cache.get('neighbour_index')
+        return {'rank': self._cache['hybrid_rank'].clone(),
+                'size': 0 if index is None else int(index.shape[-1])}
 
     @property
     def variance_rank(self) -> dict[str, Any]:
@@ -651,18 +827,23 @@ class DisturbanceGP:
         return outputscale[:, None, None] * torch.exp(-0.5 * sq_dist)
 
     # --------------------------------------------------------------- predict
-    def predict(self, x: ArrayLike, *, exact: bool = False
+    def predict(self, x: ArrayLike, *, exact: bool = False,
+                bound: Literal['chosen', 'low_rank'] = 'chosen'
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """Posterior mean and std of the disturbance.
 
         Args:
             x: (B, n_in) query states (or (n_in,) for one state).
-            exact: the exact variance (one M x M factor per output) instead of the low-rank
-                bound, which is never below it (module docstring). The mean is the same.
+            exact: the exact variance (one M x M factor per output) instead of a bound, which
+                is never below it (module docstring). The mean is the same.
+            bound: which bound, if not ``exact``: each output's choice at the last refit
+                (``variance_bound``), or the low-rank bound for every output.
 
         Returns:
             mean: (B, n_out); std: (B, n_out). Before any fit: zeros and ``prior_std``.
         """
+        if bound not in ('chosen', 'low_rank'):
+            raise ValueError(f"bound must be 'chosen' or 'low_rank', got {bound!r}")
         x_t = _as_tensor(x, 'x', self.config.dtype)
         if x_t.ndim == 1:
             x_t = x_t.unsqueeze(0)
@@ -673,7 +854,7 @@ class DisturbanceGP:
             mean = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
             return mean, torch.full_like(mean, self.config.prior_std)
         if not exact:
-            mean_np, std_np = self._predict_low_rank(x_t.numpy())
+            mean_np, std_np = self._predict_bound(x_t.numpy(), self._cache['plans'][bound])
             return torch.from_numpy(mean_np), torch.from_numpy(std_np)
         c = self._cache
         mean = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
@@ -681,13 +862,7 @@ class DisturbanceGP:
         if not bool(c['active'].any()):
             return mean, std
         with torch.no_grad():
-            q_scaled = x_t.unsqueeze(0) / c['lengthscales'].unsqueeze(1)  # (D, B, n_in)
-            k_cross = self._rbf(q_scaled, c['x_scaled'], c['outputscale'])  # (D, B, M)
-            mean_a = (k_cross * c['alpha'].unsqueeze(1)).sum(-1)  # (D, B)
-            v = k_cross @ c['chol_inv_t']  # (D, B, M): rows of (L^-1 k)^T
-            var = c['outputscale'].unsqueeze(-1) - (v ** 2).sum(-1)
-            if self.config.include_noise_in_std:
-                var = var + c['noise'].unsqueeze(-1)
+            mean_a, var = self._exact_variance(x_t, with_mean=True)
             active = c['active']
             if bool(active.all()):
                 return mean_a.T.contiguous(), var.clamp_min(0.0).sqrt().T.contiguous()
@@ -695,11 +870,29 @@ class DisturbanceGP:
             std[:, active] = var.clamp_min(0.0).sqrt().T
         return mean, std
 
-    def predict_state(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`predict` (low-rank bound) at ONE state, in numpy: the per-step path.
+    def _exact_variance(self, x: torch.Tensor, *, with_mean: bool = False) -> Any:
+        """Exact posterior variance (D_active, B) at x (B, n_in); with ``with_mean``, the
+        pair (mean, variance)."""
+        c = self._work
+        q_scaled = x.unsqueeze(0) / c['lengthscales'].unsqueeze(1)  # (D, B, n_in)
+        k_cross = self._rbf(q_scaled, c['x_scaled'], c['outputscale'])  # (D, B, M)
+        v = k_cross @ c['chol_inv_t']  # (D, B, M): rows of (L^-1 k)^T
+        var = c['outputscale'].unsqueeze(-1) - (v ** 2).sum(-1)
+        if self.config.include_noise_in_std:
+            var = var + c['noise'].unsqueeze(-1)
+        if not with_mean:
+            return var
+        return (k_cross * c['alpha'].unsqueeze(1)).sum(-1), var
+
+    def predict_state(self, state: np.ndarray, *,
+                      bound: Literal['chosen', 'low_rank'] = 'chosen'
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`predict` (each output's chosen bound) at ONE state, in numpy: the per-step
+        path.
 
         Args:
             state: (n_in,) float64.
+            bound: as :meth:`predict`'s.
 
         Returns:
             mean: (n_out,); std: (n_out,), equal to ``predict(state)`` to round-off.
@@ -709,17 +902,20 @@ class DisturbanceGP:
             raise ValueError(f'state must have shape ({self.n_in},), got {x.shape}')
         if self._cache is None:
             return np.zeros(self.n_out), np.full(self.n_out, self.config.prior_std)
-        mean, std = self._predict_low_rank(x[None, :])
+        plan = self._cache['plans'].get(bound)
+        if plan is None:
+            raise ValueError(f"bound must be 'chosen' or 'low_rank', got {bound!r}")
+        mean, std = self._predict_bound(x[None, :], plan)
         return mean[0], std[0]
 
-    def _predict_low_rank(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and low-rank std bound, x (B, n_in) float64 -> two (B, n_out) arrays."""
-        low = self._cache['low_rank']  # type: ignore[index]
-        if low['all_active']:
-            return self._predict_group(low['groups'][0], x)
+    def _predict_bound(self, x: np.ndarray, plan: list[dict[str, Any]]
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and std bound, x (B, n_in) float64 -> two (B, n_out) arrays."""
+        if len(plan) == 1 and plan[0]['index'].size == self.n_out:
+            return self._predict_group(plan[0], x)
         mean = np.zeros((x.shape[0], self.n_out))
         std = np.zeros((x.shape[0], self.n_out))
-        for group in low['groups']:
+        for group in plan:
             mean_g, std_g = self._predict_group(group, x)
             mean[:, group['index']] = mean_g
             std[:, group['index']] = std_g
@@ -737,14 +933,26 @@ class DisturbanceGP:
         # No clamp of the exponent at 0 (the squared distance's round-off): k may exceed s
         # by a few ulps, which moves the variance by round-off only.
         k_cross = np.exp(query @ group['exponent_rows'])  # (D, B, M)
-        project = group['project']
-        projected = k_cross @ project  # (D, B, 1 + r): mean, then u_i . k
+        hybrid = 'factor_t' in group
+        if hybrid:
+            nearest = k_cross.argmax(axis=-1)  # (D, B): the nearest training point
+        project_t = group['project_t']
+        # (D, B, 1 + r): mean, then u_i . k
+        projected = (project_t @ k_cross.transpose(0, 2, 1)).transpose(0, 2, 1)
         kept = projected[:, :, 1:]
         var = group['base'] - np.einsum('dbr,dr->db', kept * kept, group['kept_weights'])
         if not group['full_rank']:
             # k_perp = k - U_r (U_r^T k), on the same (by now cached) columns.
-            k_cross -= kept @ project[:, :, 1:].transpose(0, 2, 1)
-            var -= np.einsum('dbm,dbm->db', k_cross, k_cross) * group['tail_weight']
+            if group['rank']:
+                k_cross -= kept @ project_t[:, 1:, :]
+            tail = np.einsum('dbm,dbm->db', k_cross, k_cross) * group['tail_weight']
+            if hybrid:
+                # q^T E'_SS^-1 q on the nearest training point's neighbourhood S, q = k_perp[S].
+                outputs = np.arange(nearest.shape[0])[:, None]
+                near = np.take_along_axis(k_cross, group['neighbours'][outputs, nearest], -1)
+                v = (near[:, :, None, :] @ group['factor_t'][outputs, nearest])[:, :, 0, :]
+                np.maximum(tail, np.einsum('dbm,dbm->db', v, v), out=tail)
+            var -= tail
         std = np.sqrt(np.maximum(var, 0.0, out=var), out=var)
         return projected[:, :, 0].T.copy(), std.T.copy()
 

@@ -140,20 +140,44 @@ class NumpyActor:
         self.half_range = actor.action_half_range.detach().numpy()
         self.low, self.high = self.center - self.half_range, self.center + self.half_range
         self.dtype = self.center.dtype
+        # One flat list of (weight, bias, relu) for the trunk, then the two heads' views: the
+        # call below walks them without a Python call per network.
+        self._trunk_layers = tuple(self.trunk.layers)
+        (self._mean_weight, self._mean_bias, _), = self.heads.layers
+        (self._log_std_weight, self._log_std_bias, _), = self.log_std.layers
 
     def __call__(self, obs: np.ndarray, noise: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """obs: (obs_dim,); noise: (n_u,) standard normal, or None for the mean only.
 
         Returns:
-            action (the mean action when ``noise`` is None) and mean_action, both (n_u,).
+            action (the mean action when ``noise`` is None) and mean_action, both (n_u,),
+            new arrays. The operations are those of ``center + half_range * tanh(...)``, in
+            place where an intermediate is not needed again (the same values).
         """
-        features = np.maximum(self.trunk(np.asarray(obs, dtype=self.dtype)), 0.0)
-        mean = self.heads(features)
-        mean_action = self.center + self.half_range * np.tanh(mean)
+        x = np.asarray(obs, dtype=self.dtype)
+        for weight, bias, relu in self._trunk_layers:
+            x = weight @ x
+            x += bias
+            if relu:
+                np.maximum(x, 0.0, out=x)
+        np.maximum(x, 0.0, out=x)  # the trunk's closing ReLU
+        mean = self._mean_weight @ x
+        mean += self._mean_bias
+        mean_action = np.tanh(mean)
+        mean_action *= self.half_range
+        mean_action += self.center
         if noise is None:
             return mean_action, mean_action
-        log_std = np.clip(self.log_std(features), LOG_STD_MIN, LOG_STD_MAX)
-        action = self.center + self.half_range * np.tanh(mean + np.exp(log_std) * noise)
+        action = self._log_std_weight @ x
+        action += self._log_std_bias
+        np.maximum(action, LOG_STD_MIN, out=action)  # np.clip's min(max(.)), without its wrapper
+        np.minimum(action, LOG_STD_MAX, out=action)
+        np.exp(action, out=action)
+        action *= noise
+        action += mean
+        np.tanh(action, out=action)
+        action *= self.half_range
+        action += self.center
         return action, mean_action
 
 

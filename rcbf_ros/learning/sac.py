@@ -209,6 +209,11 @@ class SAC:
         self.num_updates = 0
         # Batch-1 acting in numpy on live views of the weights (NumpyMLP's docstring says why).
         self._numpy_actor = self.actor.numpy_sampler()
+        # The one-observation noise draw fills this tensor in place (``normal_`` is what
+        # ``torch.randn`` runs on a new tensor: the same numbers from the generator) and the
+        # numpy actor reads it through a view.
+        self._noise = torch.empty(n_u, dtype=dtype)
+        self._noise_view = self._noise.numpy()
         self._numpy_compensator = (NumpyMLP(self.compensator.net)
                                    if self.compensator is not None else None)
 
@@ -231,6 +236,8 @@ class SAC:
         Args:
             obs: (obs_dim,) or (B, obs_dim).
         """
+        if type(obs) is np.ndarray and obs.shape == (self.obs_dim,):
+            return self._act_one(obs, deterministic)
         if not isinstance(obs, torch.Tensor) and np.ndim(obs) == 1 and len(obs) == self.obs_dim:
             return self._act_one(np.asarray(obs), deterministic)
         obs_t = torch.as_tensor(np.asarray(obs) if not isinstance(obs, torch.Tensor) else obs,
@@ -254,10 +261,11 @@ class SAC:
     def _act_one(self, obs: np.ndarray, deterministic: bool) -> ActionProposal:
         """:meth:`act_detailed` for one numpy observation, without torch ops but the noise draw
         (same generator, same draw as the batched path, so the two agree up to rounding)."""
-        noise = None if deterministic else torch.randn(
-            (1, self.n_u), generator=self.generator, dtype=self.dtype)[0].numpy()
-        action, mean_action = self._numpy_actor(obs, noise)
-        u_rl = mean_action if deterministic else action
+        if deterministic:
+            u_rl = self._numpy_actor(obs, None)[0]
+        else:
+            self._noise.normal_(generator=self.generator)
+            u_rl = self._numpy_actor(obs, self._noise_view)[0]
         u_proposed = u_rl
         if self._numpy_compensator is not None:
             u_proposed = np.clip(u_rl + self._numpy_compensator(obs.astype(u_rl.dtype)),

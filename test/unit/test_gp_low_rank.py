@@ -1,5 +1,7 @@
 """DisturbanceGP's low-rank variance bound: never below the exact variance, within its stated
-worst-case excess, exact at full rank, and the one-state numpy path equal to ``predict``."""
+worst-case excess, exact at full rank, and the one-state numpy path equal to ``predict``.
+The GPs here have the neighbour bound off (``variance_neighbours=0``), so that every output
+uses the low-rank one (test_gp_neighbours.py tests the other and the choice)."""
 from __future__ import annotations
 
 import math
@@ -31,7 +33,8 @@ def conditioned_gp(*, seed: int, points: int, n_in: int, lengthscale: float, noi
     y = torch.stack([torch.sin(3.0 * x[:, 0]), 5.0 * torch.cos(2.0 * x.sum(-1)),
                      torch.zeros(points, dtype=DTYPE)], dim=1)
     gp = DisturbanceGP(n_in, 3, GPConfig(variance_rank_tolerance=tolerance,
-                                         include_noise_in_std=include_noise))
+                                         include_noise_in_std=include_noise,
+                                         variance_neighbours=0))
     gp.add(x, y)
     outputscale = torch.tensor([1.0, 25.0, 1.0], dtype=DTYPE)
     gp.set_hyperparameters(torch.full((3, n_in), lengthscale, dtype=DTYPE), outputscale,
@@ -102,7 +105,8 @@ def test_a_looser_tolerance_keeps_fewer_pairs_and_the_box_still_contains_the_exa
     truth = torch.stack([-0.1 * torch.cos(states[:, 2]) ** 2,
                          -0.1 * torch.cos(states[:, 2]) * torch.sin(states[:, 2])], dim=1)
     observed = truth + 0.01 * torch.randn(600, 2, generator=generator, dtype=DTYPE)
-    exact = DisturbanceGP(3, 2, GPConfig(max_train_points=400, variance_rank_tolerance=0.0))
+    exact = DisturbanceGP(3, 2, GPConfig(max_train_points=400, variance_rank_tolerance=0.0,
+                                         variance_neighbours=0))
     exact.add(states, observed)
     exact.fit()
     held_out = (2.0 * torch.rand(2000, 3, generator=generator, dtype=DTYPE) - 1.0) * 3.0
@@ -113,7 +117,8 @@ def test_a_looser_tolerance_keeps_fewer_pairs_and_the_box_still_contains_the_exa
     ranks = []
     for tolerance in (1e-6, 1e-4, 1e-2):
         gp = DisturbanceGP(3, 2, GPConfig(max_train_points=400, training_iterations=0,
-                                          variance_rank_tolerance=tolerance))
+                                          variance_rank_tolerance=tolerance,
+                                          variance_neighbours=0))
         gp.load_state_dict(exact.state_dict())  # same data and hyperparameters
         ranks.append(int(gp.variance_rank['kept'].max()))
         lower, upper = gp.bounds(held_out, 2.0)
@@ -170,7 +175,7 @@ def test_outputs_of_far_apart_ranks_are_predicted_in_separate_groups():
     x = 2.0 * torch.rand(150, 2, generator=generator, dtype=DTYPE) - 1.0
     y = torch.stack([torch.sin(3.0 * x[:, 0]), 0.1 * torch.cos(2.0 * x[:, 1]),
                      torch.zeros(150, dtype=DTYPE)], dim=1)
-    gp = DisturbanceGP(2, 3, GPConfig(variance_rank_tolerance=1e-4))
+    gp = DisturbanceGP(2, 3, GPConfig(variance_rank_tolerance=1e-4, variance_neighbours=0))
     gp.add(x, y)
     gp.set_hyperparameters(torch.tensor([[2.0, 2.0], [0.05, 0.05], [1.0, 1.0]], dtype=DTYPE),
                            torch.tensor([1.0, 0.01, 1.0], dtype=DTYPE),
