@@ -38,10 +38,13 @@ state and the applied action) lies inside each box mean +/- k_c std.
 """
 from __future__ import annotations
 
+# First: numpy's BLAS set up as in every rcbf_ros process (rcbf_ros/__init__.py).
+import rcbf_ros  # noqa: F401  # isort: skip
+
 import os
 
-# One BLAS thread, as torch's: set before numpy loads its BLAS.
-for _name in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+# One thread for OpenMP and MKL too, as torch's (rcbf_ros set OpenBLAS's): before numpy loads.
+for _name in ('OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
     os.environ.setdefault(_name, '1')
 
 import argparse  # noqa: E402
