@@ -141,6 +141,8 @@ DIFFERENCES = (
 FLOOR_TARGET = 1.25
 """The project's speed goal against the floor: step time at most this multiple of it."""
 FLOOR_MODES = ('default', 'max-autotune-no-cudagraphs', 'reduce-overhead')
+DEFAULT_FLOOR_MODES = ('default', 'max-autotune-no-cudagraphs')
+"""The modes tried unless ``--floor-modes`` says otherwise."""
 """torch.compile modes the floor's update may try (reduce-overhead's CUDA graphs do not apply
 on CPU)."""
 
@@ -418,7 +420,7 @@ def main() -> None:
     parser.add_argument('--reference-warmup', type=int, default=400,
                         help="the reference's untimed steps (its first GP refit is at 400)")
     parser.add_argument('--floor-modes', nargs='*',
-                        default=['default', 'max-autotune-no-cudagraphs'],
+                        default=list(DEFAULT_FLOOR_MODES),
                         choices=list(FLOOR_MODES),
                         help="torch.compile modes tried for the floor's update (none: no "
                              'floor)')
@@ -524,8 +526,7 @@ def main() -> None:
         'network sizes, see `update_gflop`) at the best float32 matmul rate measured in this run '
         f'({peaks}; one 256x256x256 product). It bounds every mode from below.{bound} The diff '
         'rows add the differentiable QP (two batched solves and their backward) on top. '
-        'bfloat16 autocast would shorten the update (6.1 vs 11.0 ms on one thread) and is not '
-        'used: it keeps Q values to ~3 significant digits.')
+        'bfloat16 autocast is not used: it keeps Q values to ~3 significant digits.')
     floor_text = floor_reading(update_floors, args.floor_calls) if update_floors else (
         'Floor not measured (--floor-modes with no mode).')
     if reference:
@@ -540,6 +541,8 @@ def main() -> None:
                f' --repeats {args.repeats} {selection}'
                + (' --model-based' if args.model_based else '')
                + (' --compile-update' if args.compile_update else '')
+               + (f' --floor-modes {" ".join(args.floor_modes)}'
+                  if list(args.floor_modes) != list(DEFAULT_FLOOR_MODES) else '')
                + (' --reference <Mod-RL-RCBF checkout> --reference-python <its venv>/bin/python'
                   if reference else ''))
     text = '\n'.join(['Ours against the reference, 1 thread each, steady state:', '',
@@ -551,7 +554,8 @@ def main() -> None:
     print(text)
     if not args.no_write:
         from _results import machine_line, write_section
-        write_section('Training speed', (
+        title = 'Training speed' + (', compiled update' if args.compile_update else '')
+        write_section(title, (
             f'Command: `{command}`. ' + machine_line() + '. Each row alternates a run of ours '
             f'and of the reference, {args.repeats if reference else 1} time(s); ours times '
             f'{args.steps} steps after {args.warmup} warm-up steps, the reference {args.steps} '
