@@ -33,13 +33,16 @@ def enumerated_solution(g_matrix: np.ndarray, upper: np.ndarray, weights: np.nda
                         ) -> np.ndarray | None:
     """min 1/2 z^T diag(weights) z s.t. g_matrix z <= upper by enumerating active sets.
 
-    In y = sqrt(weights) z (cost 1/2 |y|^2, rows A = G diag(weights)^-1/2): for every set W of
-    up to nz rows of full rank, the least |y| with A_W y = upper_W (by SVD, all sets of one
-    size at once); the cheapest of those that meet every row."""
+    In y = sqrt(weights) z (cost 1/2 |y|^2, rows A = G diag(weights)^-1/2), each row and its
+    right-hand side divided by the row's length (the same constraint; unit rows keep the rank
+    test and the round-off independent of the rows' scales, which may differ by 1e8 and
+    more): for every set W of up to nz rows of full rank, the least |y| with A_W y = upper_W
+    (by SVD, all sets of one size at once); the cheapest of those that meet every row."""
     m, nz = g_matrix.shape
     scale = 1.0 / np.sqrt(weights)
     rows = g_matrix * scale
-    lengths = np.linalg.norm(rows, axis=1)
+    lengths = np.linalg.norm(rows, axis=1)  # > 0: every row of the filter's QP has an entry
+    rows, bounds = rows / lengths[:, None], upper / lengths
     best = np.zeros(nz) if upper.min() >= 0.0 else None
     best_cost = 0.0 if best is not None else np.inf
     for size in range(1, min(nz, m) + 1):
@@ -47,12 +50,12 @@ def enumerated_solution(g_matrix: np.ndarray, upper: np.ndarray, weights: np.nda
         u_matrix, singular, v_rows = np.linalg.svd(rows[subsets], full_matrices=False)
         full_rank = singular.min(axis=1) > 1e-10 * singular.max(axis=1)
         with np.errstate(all='ignore'):  # the rank-deficient sets, left out below
-            coordinates = np.einsum('csk,cs->ck', u_matrix, upper[subsets]) / singular
+            coordinates = np.einsum('csk,cs->ck', u_matrix, bounds[subsets]) / singular
             candidates = np.einsum('ckn,ck->cn', v_rows, coordinates)
-            # each row met to the round-off of its own terms
-            tolerance = 1e-9 * (1.0 + np.abs(upper) + np.outer(
-                np.linalg.norm(candidates, axis=1), lengths))
-            feasible = full_rank & np.all(candidates @ rows.T - upper <= tolerance, axis=1)
+            # each (unit) row met to the round-off of its own terms
+            tolerance = 1e-9 * (1.0 + np.abs(bounds)
+                                + np.linalg.norm(candidates, axis=1)[:, None])
+            feasible = full_rank & np.all(candidates @ rows.T - bounds <= tolerance, axis=1)
         if feasible.any():
             with np.errstate(all='ignore'):
                 costs = np.where(feasible, 0.5 * (candidates ** 2).sum(axis=1), np.inf)
