@@ -346,9 +346,9 @@ def reference_line(compared: list[str]) -> str:
             'median call over our closed-form median: ' + '; '.join(compared) + '. What '
             'differs: it assembles the QP in torch and solves it with qpth (interior point, '
             'eps 1e-4, rows normalised) on the states its environment visits under random '
-            'actions, with its own obstacles; ours assembles in closed form and solves with '
-            'warm-started OSQP on random states inside the safe set. Neither includes the GP '
-            'prediction.')
+            'actions, with its own obstacles; ours assembles in closed form and solves '
+            'exactly with the active-set method (warm-started OSQP where it gives way) on '
+            'random states inside the safe set. Neither includes the GP prediction.')
 
 
 def main() -> None:
