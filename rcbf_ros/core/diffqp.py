@@ -492,6 +492,16 @@ def _solve_scaled(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_it
     return z, lam, iterations, converged, active
 
 
+def _diagonal_of(P: Tensor) -> Tensor | None:
+    """(B, n) detached diagonal of P: (B, n, n) if every off-diagonal entry is zero, else None.
+
+    Diagonal P (the RCBF-QP's) lets the solver skip factorisations: the unconstrained minimiser,
+    single-row KKT systems and the backward pass of samples without active rows have closed
+    forms."""
+    diagonal = torch.diagonal(P.detach(), dim1=-2, dim2=-1)
+    return diagonal if torch.equal(P.detach(), torch.diag_embed(diagonal)) else None
+
+
 class _QPLayer(torch.autograd.Function):
     """autograd.Function on the scaled problem; see the module docstring."""
 
@@ -578,12 +588,8 @@ def solve_qp_batch_full(P: Tensor, q: Tensor, G: Tensor, h: Tensor, *, tol: floa
     row = torch.where(row_norm > 0, 1.0 / row_norm.clamp_min(1e-300), torch.ones_like(row_norm))
     G_s = row.unsqueeze(-1) * G_cols
     h_s = row * h
-    # Diagonal P (the RCBF-QP's): the unconstrained minimiser and the backward pass of samples
-    # without active rows need no factorisation.
-    diag_s = torch.diagonal(P_s.detach(), dim1=-2, dim2=-1)
-    diagonal = diag_s if torch.equal(P_s.detach(), torch.diag_embed(diag_s)) else None
     y, lam_s, iterations, converged, _ = _QPLayer.apply(P_s, q_s, G_s, h_s, tol, max_iter,
-                                                        polish, diagonal)
+                                                        polish, _diagonal_of(P_s))
     z = col * y
     lam = row * lam_s
     return QPSolution(z.to(out_dtype), lam.to(out_dtype), iterations, converged)
