@@ -362,7 +362,8 @@ def _active_set_rounds(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, r
 
     P: (B, n, n), q: (B, n), G: (B, m, n) (unit rows), h: (B, m), seed: (B, m) bool or None.
     diagonal: (B, n) the diagonal of P where P is known to be diagonal (the unconstrained
-    minimiser is then -q / diagonal, no factorisation), else None.
+    minimiser is then -q / diagonal and the second round's single row has a closed form,
+    :func:`_kkt_solve_one_row`), else None.
     Returns z: (B, n), lam: (B, m), active: (B, m), ok: (B,) (z, lam, active valid where ok).
     """
     batch, _, n = G.shape
@@ -372,13 +373,31 @@ def _active_set_rounds(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, r
     ok_out = torch.zeros(batch, dtype=torch.bool, device=h.device)
     # Working set: samples not accepted yet (accepted ones are written out and dropped).
     index = torch.arange(batch, device=h.device)
-    active = torch.zeros_like(active_out) if seed is None else seed.clone()
     feas_tol = tol * (1.0 + h.abs().amax(-1, keepdim=True))
-    for round_ in range(rounds):
-        if round_ == 0 and seed is None:
-            z = -q / diagonal if diagonal is not None else _chol_solve(_cholesky(P), -q)
-            lam = torch.zeros_like(h)
-        elif round_ == 1 and seed is None and diagonal is not None:
+    first = 0
+    if seed is None:
+        # Round one, the unconstrained minimiser: no multiplier to check, no row to drop.
+        z = -q / diagonal if diagonal is not None else _chol_solve(_cholesky(P), -q)
+        violation = _matvec(G, z) - h
+        ok = (violation <= feas_tol).all(-1) & torch.isfinite(z).all(-1)
+        z_out = torch.where(ok.unsqueeze(-1), z, z_out)
+        ok_out = ok
+        keep = ~ok
+        if rounds == 1 or not bool(keep.any()):
+            return z_out, lam_out, active_out, ok_out
+        index = index[keep]
+        P, q, G, h, feas_tol = P[keep], q[keep], G[keep], h[keep], feas_tol[keep]
+        if diagonal is not None:
+            diagonal = diagonal[keep]
+        violation = violation[keep]
+        # The most violated row enters.
+        active = (torch.zeros_like(h, dtype=torch.bool).scatter_(
+            -1, violation.argmax(-1, keepdim=True), True) & (violation > feas_tol))
+        first = 1
+    else:
+        active = seed.clone()
+    for round_ in range(first, rounds):
+        if round_ == 1 and seed is None and diagonal is not None:
             # From the empty set the second round holds at most the one added row.
             z, lam = _kkt_solve_one_row(diagonal, G, active, -q, h * active)
         else:
