@@ -472,16 +472,18 @@ def _solve_scaled(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_it
     ``diagonal``: (B, n) the diagonal of P where P is diagonal (see :func:`_active_set_rounds`).
     """
     batch, m, _ = G.shape
-    z = torch.zeros_like(q)
-    lam = torch.zeros_like(h)
-    active = torch.zeros_like(h, dtype=torch.bool)
     iterations = torch.zeros(batch, dtype=torch.int64, device=q.device)
-    converged = torch.zeros(batch, dtype=torch.bool, device=q.device)
-    todo = torch.arange(batch, device=q.device)
     if polish:
         z, lam, active, converged = _active_set_rounds(P, q, G, h, tol, _GUESS_ROUNDS,
                                                        diagonal=diagonal)
+        if bool(converged.all()):
+            return z, lam, iterations, converged, active
         todo = (~converged).nonzero().squeeze(-1)
+    else:
+        z, lam = torch.zeros_like(q), torch.zeros_like(h)
+        active = torch.zeros_like(h, dtype=torch.bool)
+        converged = torch.zeros(batch, dtype=torch.bool, device=q.device)
+        todo = torch.arange(batch, device=q.device)
     stages = (*_STAGE_ITERATIONS, max_iter) if polish else (max_iter,)
     start = None
     for stage, stage_iterations in enumerate(stages):
