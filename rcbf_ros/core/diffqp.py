@@ -45,6 +45,13 @@ Cholesky of P + A^T A / delta.
 Backward: the adjoint of the same active-set KKT system, solved the same way (one nz x nz
 Cholesky), gives dL/dP, dL/dq, dL/dG, dL/dh (and supports a loss on lam).
 
+Diagonal P (the RCBF-QP's; :func:`_diagonal_of`): at these sizes the per-operation overhead
+dominates, so the solver skips factorisations where a closed form is exact: the unconstrained
+minimiser -q / diag(P), the second round from the empty set (one row a:
+nu = (a P^-1 (-q) - h_a) / (a P^-1 a^T)), and in the backward pass the samples without active
+rows (P^-1 grad) or, where no sample has several, with one. Acceptance is unchanged (a closed
+form that is not finite is rejected and the general path takes over).
+
 Before solving, variables are scaled to unit Hessian diagonal (the slack weight l ~ 1e3-1e6
 otherwise dominates the conditioning) and constraint rows to unit norm. Both scalings are
 detached: the solution and the multipliers are invariant under them, so the chain rule through
