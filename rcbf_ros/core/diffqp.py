@@ -45,6 +45,13 @@ Cholesky of P + A^T A / delta.
 Backward: the adjoint of the same active-set KKT system, solved the same way (one nz x nz
 Cholesky), gives dL/dP, dL/dq, dL/dG, dL/dh (and supports a loss on lam).
 
+Diagonal P (the RCBF-QP's; :func:`_diagonal_of`): at these sizes the per-operation overhead
+dominates, so the solver skips factorisations where a closed form is exact: the unconstrained
+minimiser -q / diag(P), the second round from the empty set (one row a:
+nu = (a P^-1 (-q) - h_a) / (a P^-1 a^T)), and in the backward pass the samples without active
+rows (P^-1 grad) or, where no sample has several, with one. Acceptance is unchanged (a closed
+form that is not finite is rejected and the general path takes over).
+
 Before solving, variables are scaled to unit Hessian diagonal (the slack weight l ~ 1e3-1e6
 otherwise dominates the conditioning) and constraint rows to unit norm. Both scalings are
 detached: the solution and the multipliers are invariant under them, so the chain rule through
@@ -123,11 +130,13 @@ def _check_inputs(P: Tensor, q: Tensor, G: Tensor, h: Tensor
                          f'{tuple(G.shape)}')
     if nc == 0:
         raise ValueError('G, h: need at least one inequality constraint')
-    for name, value in (('P', P), ('q', q), ('G', G), ('h', h)):
-        if not bool(torch.isfinite(value.detach()).all()):
-            raise ValueError(f'{name}: contains NaN or inf')
+    finite = [torch.isfinite(value.detach()).all() for value in (P, q, G, h)]
     diag = torch.diagonal(P.detach(), dim1=-2, dim2=-1)
-    if not bool((diag > 0).all()):
+    # One synchronising check for the common case; the field is named only on failure.
+    if not bool(torch.stack([*finite, (diag > 0).all()]).all()):
+        for name, ok in zip(('P', 'q', 'G', 'h'), finite):
+            if not bool(ok):
+                raise ValueError(f'{name}: contains NaN or inf')
         raise ValueError('P: must be positive definite (found a diagonal entry <= 0)')
     return P, q, G, h
 
@@ -320,8 +329,32 @@ def _kkt_solve(P: Tensor, G: Tensor, active: Tensor, rhs_z: Tensor, rhs_nu: Tens
     return x, nu * mask
 
 
+def _kkt_solve_one_row(diagonal: Tensor, G: Tensor, active: Tensor, rhs_z: Tensor,
+                       rhs_nu: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`_kkt_solve` in closed form for diagonal P and at most one active row per sample.
+
+    With P = diag(d) and the single active row a: x = (rhs_z - a nu) / d and a x = rhs_nu give
+    nu = (a (rhs_z / d) - rhs_nu) / (a (a / d)); without an active row x = rhs_z / d, nu = 0.
+    Exact to rounding (no regularisation, no refinement); a zero row yields a non-finite x,
+    which the callers' acceptance test rejects.
+
+    diagonal: (B, n) > 0, G: (B, m, n), active: (B, m) bool with at most one True per sample,
+    rhs_z: (B, n), rhs_nu: (B, m). Returns x: (B, n), nu: (B, m) (zero on inactive rows).
+    """
+    mask = active.to(G.dtype)
+    row = _rmatvec(G, mask)
+    has_row = active.any(-1, keepdim=True)
+    x_free = rhs_z / diagonal
+    scaled = row / diagonal
+    gram = (row * scaled).sum(-1, keepdim=True)
+    nu = torch.where(has_row, ((row * x_free).sum(-1, keepdim=True)
+                               - (rhs_nu * mask).sum(-1, keepdim=True)) / gram, 0.0)
+    return x_free - scaled * nu, nu * mask
+
+
 def _active_set_rounds(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, rounds: int,
-                       seed: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                       seed: Tensor | None = None, diagonal: Tensor | None = None
+                       ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Primal active-set rounds, each result accepted only where the KKT conditions hold.
 
     Starting from ``seed`` (the interior point's lam > s) or the empty set, a round solves the
@@ -335,6 +368,9 @@ def _active_set_rounds(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, r
     batch in one to three rounds (the first is the unconstrained minimiser -P^-1 q).
 
     P: (B, n, n), q: (B, n), G: (B, m, n) (unit rows), h: (B, m), seed: (B, m) bool or None.
+    diagonal: (B, n) the diagonal of P where P is known to be diagonal (the unconstrained
+    minimiser is then -q / diagonal and the second round's single row has a closed form,
+    :func:`_kkt_solve_one_row`), else None.
     Returns z: (B, n), lam: (B, m), active: (B, m), ok: (B,) (z, lam, active valid where ok).
     """
     batch, _, n = G.shape
@@ -344,25 +380,57 @@ def _active_set_rounds(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, r
     ok_out = torch.zeros(batch, dtype=torch.bool, device=h.device)
     # Working set: samples not accepted yet (accepted ones are written out and dropped).
     index = torch.arange(batch, device=h.device)
-    active = torch.zeros_like(active_out) if seed is None else seed.clone()
     feas_tol = tol * (1.0 + h.abs().amax(-1, keepdim=True))
-    for round_ in range(rounds):
-        if round_ == 0 and seed is None:
-            z, lam = _chol_solve(_cholesky(P), -q), torch.zeros_like(h)
+    first = 0
+    if seed is None:
+        # Round one, the unconstrained minimiser: no multiplier to check, no row to drop.
+        z = -q / diagonal if diagonal is not None else _chol_solve(_cholesky(P), -q)
+        violation = _matvec(G, z) - h
+        ok = (violation <= feas_tol).all(-1) & torch.isfinite(z).all(-1)
+        z_out = torch.where(ok.unsqueeze(-1), z, z_out)
+        ok_out = ok
+        keep = ~ok
+        if rounds == 1 or not bool(keep.any()):
+            return z_out, lam_out, active_out, ok_out
+        index = index[keep]
+        P, q, G, h, feas_tol = P[keep], q[keep], G[keep], h[keep], feas_tol[keep]
+        if diagonal is not None:
+            diagonal = diagonal[keep]
+        violation = violation[keep]
+        # The most violated row enters.
+        active = (torch.zeros_like(h, dtype=torch.bool).scatter_(
+            -1, violation.argmax(-1, keepdim=True), True) & (violation > feas_tol))
+        first = 1
+    else:
+        active = seed.clone()
+    for round_ in range(first, rounds):
+        if round_ == 1 and seed is None and diagonal is not None:
+            # From the empty set the second round holds at most the one added row.
+            z, lam = _kkt_solve_one_row(diagonal, G, active, -q, h * active)
         else:
             z, lam = _kkt_solve(P, G, active, -q, h * active)
         violation = _matvec(G, z) - h
         dual_tol = tol * (1.0 + lam.abs().amax(-1, keepdim=True))
         ok = ((violation <= feas_tol).all(-1) & (lam >= -dual_tol).all(-1)
               & torch.isfinite(z).all(-1))
-        done = index[ok]
-        z_out[done], lam_out[done], active_out[done] = z[ok], lam[ok].clamp_min(0.0), active[ok]
-        ok_out[done] = True
+        if round_ == 0:
+            # The working set is still the whole batch: select instead of scattering.
+            ok_column = ok.unsqueeze(-1)
+            z_out = torch.where(ok_column, z, z_out)
+            lam_out = torch.where(ok_column, lam.clamp_min(0.0), lam_out)
+            active_out = active & ok_column
+            ok_out = ok
+        else:
+            done = index[ok]
+            z_out[done], lam_out[done] = z[ok], lam[ok].clamp_min(0.0)
+            active_out[done], ok_out[done] = active[ok], True
         keep = ~ok
         if round_ == rounds - 1 or not bool(keep.any()):
             break
         index = index[keep]
         P, q, G, h, feas_tol = P[keep], q[keep], G[keep], h[keep], feas_tol[keep]
+        if diagonal is not None:
+            diagonal = diagonal[keep]
         z, lam, active, violation = z[keep], lam[keep], active[keep], violation[keep]
         worst = violation.argmax(-1, keepdim=True)
         add = (torch.zeros_like(active).scatter_(-1, worst, True)
@@ -396,7 +464,8 @@ runs to the tolerance (or max_iter)."""
 
 
 def _solve_scaled(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_iter: int,
-                  polish: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+                  polish: bool, diagonal: Tensor | None = None
+                  ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Forward pass on the scaled problem: z, lam, iterations, converged, active (see module).
 
     Each step works only on the samples the previous ones left open:
@@ -407,17 +476,21 @@ def _solve_scaled(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_it
     3. where the polish never succeeds, the interior point iterate itself.
 
     With ``polish=False`` only the interior point runs (for testing and comparison).
+    ``diagonal``: (B, n) the diagonal of P where P is diagonal (see :func:`_active_set_rounds`).
     """
     batch, m, _ = G.shape
-    z = torch.zeros_like(q)
-    lam = torch.zeros_like(h)
-    active = torch.zeros_like(h, dtype=torch.bool)
     iterations = torch.zeros(batch, dtype=torch.int64, device=q.device)
-    converged = torch.zeros(batch, dtype=torch.bool, device=q.device)
-    todo = torch.arange(batch, device=q.device)
     if polish:
-        z, lam, active, converged = _active_set_rounds(P, q, G, h, tol, _GUESS_ROUNDS)
+        z, lam, active, converged = _active_set_rounds(P, q, G, h, tol, _GUESS_ROUNDS,
+                                                       diagonal=diagonal)
+        if bool(converged.all()):
+            return z, lam, iterations, converged, active
         todo = (~converged).nonzero().squeeze(-1)
+    else:
+        z, lam = torch.zeros_like(q), torch.zeros_like(h)
+        active = torch.zeros_like(h, dtype=torch.bool)
+        converged = torch.zeros(batch, dtype=torch.bool, device=q.device)
+        todo = torch.arange(batch, device=q.device)
     stages = (*_STAGE_ITERATIONS, max_iter) if polish else (max_iter,)
     start = None
     for stage, stage_iterations in enumerate(stages):
@@ -447,25 +520,37 @@ def _solve_scaled(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_it
     return z, lam, iterations, converged, active
 
 
+def _diagonal_of(P: Tensor) -> Tensor | None:
+    """(B, n) detached diagonal of P: (B, n, n) if every off-diagonal entry is zero, else None.
+
+    Diagonal P (the RCBF-QP's) lets the solver skip factorisations: the unconstrained minimiser,
+    single-row KKT systems and the backward pass of samples without active rows have closed
+    forms."""
+    diagonal = torch.diagonal(P.detach(), dim1=-2, dim2=-1)
+    return diagonal if torch.equal(P.detach(), torch.diag_embed(diagonal)) else None
+
+
 class _QPLayer(torch.autograd.Function):
-    """autograd.Function on the scaled problem; see the module docstring."""
+    """autograd.Function on the scaled problem; see the module docstring.
+
+    The forward takes ``ctx`` itself (no ``setup_context``): ``apply`` then skips binding the
+    arguments to the signature, a per-call cost comparable to the whole solve of a batch
+    without active rows."""
 
     @staticmethod
-    def forward(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_iter: int,
-                polish: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        return _solve_scaled(P, q, G, h, tol, max_iter, polish)
-
-    @staticmethod
-    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: tuple[Any, ...]) -> None:
-        P, q, G, h, *_ = inputs
-        z, lam, iterations, converged, active = output
+    def forward(ctx: Any, P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, max_iter: int,
+                polish: bool, diagonal: Tensor | None
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        z, lam, iterations, converged, active = _solve_scaled(P, q, G, h, tol, max_iter, polish,
+                                                              diagonal)
         ctx.mark_non_differentiable(iterations, converged, active)
-        ctx.save_for_backward(P, G, z, lam, active)
+        ctx.save_for_backward(P, G, z, lam, active, diagonal)
+        return z, lam, iterations, converged, active
 
     @staticmethod
     def backward(ctx: Any, grad_z: Tensor | None, grad_lam: Tensor | None, *_: Any
                  ) -> tuple[Tensor | None, ...]:
-        P, G, z, lam, active = ctx.saved_tensors
+        P, G, z, lam, active, diagonal = ctx.saved_tensors
         if grad_z is None:
             grad_z = torch.zeros_like(z)
         mask = active.to(z.dtype)
@@ -473,12 +558,27 @@ class _QPLayer(torch.autograd.Function):
         lam = lam * mask
         # Adjoint of the active-set KKT system K [dz; dnu] = -[dP z + dq + dG^T lam; dG_A z - dh_A]
         # (K is symmetric): K [b_z; b_nu] = [grad_z; grad_lam_A].
-        b_z, b_nu = _kkt_solve(P, G, active, grad_z, grad_lam)
+        if diagonal is None:
+            b_z, b_nu = _kkt_solve(P, G, active, grad_z, grad_lam)
+        else:
+            # Diagonal P: without active rows K is P itself (b_z = grad_z / diagonal, b_nu = 0),
+            # with one a closed form; only where some sample has more (or the closed form is not
+            # finite) the samples with active rows take the KKT solve.
+            count = active.sum(-1)
+            several = bool((count > 1).any())
+            if several:
+                b_z, b_nu = grad_z / diagonal, torch.zeros_like(grad_lam)
+            else:
+                b_z, b_nu = _kkt_solve_one_row(diagonal, G, active, grad_z, grad_lam)
+            if several or not bool(torch.isfinite(b_z).all()):
+                rows = (count > 0).nonzero().squeeze(-1)
+                b_z[rows], b_nu[rows] = _kkt_solve(P[rows], G[rows], active[rows], grad_z[rows],
+                                                   grad_lam[rows])
         grad_q = -b_z
         grad_P = -b_z.unsqueeze(-1) * z.unsqueeze(-2)
         grad_G = -(lam.unsqueeze(-1) * b_z.unsqueeze(-2) + b_nu.unsqueeze(-1) * z.unsqueeze(-2))
         grad_h = b_nu
-        return grad_P, grad_q, grad_G, grad_h, None, None, None
+        return grad_P, grad_q, grad_G, grad_h, None, None, None, None
 
 
 def solve_qp_batch_full(P: Tensor, q: Tensor, G: Tensor, h: Tensor, *, tol: float = 1e-9,
@@ -518,7 +618,7 @@ def solve_qp_batch_full(P: Tensor, q: Tensor, G: Tensor, h: Tensor, *, tol: floa
     G_s = row.unsqueeze(-1) * G_cols
     h_s = row * h
     y, lam_s, iterations, converged, _ = _QPLayer.apply(P_s, q_s, G_s, h_s, tol, max_iter,
-                                                        polish)
+                                                        polish, _diagonal_of(P_s))
     z = col * y
     lam = row * lam_s
     return QPSolution(z.to(out_dtype), lam.to(out_dtype), iterations, converged)

@@ -104,29 +104,33 @@ class _Lookahead:
         self.heading = family.heading_index
         self.lookahead = float(family.lookahead)
         self.speed = family.speed_input
+        # Signed look-ahead distances: the point ahead, and behind (for reversing).
+        self.ahead = torch.tensor([[self.lookahead]], dtype=torch.float64)
+        self.both = torch.tensor([[self.lookahead], [-self.lookahead]], dtype=torch.float64)
 
-    def _at(self, x: Tensor, side: float) -> tuple[Tensor, Tensor]:
+    def _at(self, x: Tensor, offset: Tensor) -> tuple[Tensor, Tensor]:
+        """h (S, B, k) and grad h (S, B, k, n_x) at the S look-ahead points offset: (S, 1)."""
         theta = x[:, self.heading]
         cos, sin = torch.cos(theta), torch.sin(theta)
-        offset = self.lookahead * side
-        point = torch.stack([x[:, self.i] + offset * cos, x[:, self.j] + offset * sin], dim=-1)
-        d = point[:, None, :] - self.centers  # (B, k, 2)
-        h = (d * d).sum(-1) - self.delta_sq
+        dx = (x[:, self.i] + offset * cos)[..., None] - self.centers[:, 0]  # (S, B, k)
+        dy = (x[:, self.j] + offset * sin)[..., None] - self.centers[:, 1]
+        h = dx * dx + dy * dy - self.delta_sq
         grad = torch.zeros(*h.shape, x.shape[1], dtype=x.dtype, device=x.device)
-        grad[:, :, self.i] += 2.0 * d[..., 0]
-        grad[:, :, self.j] += 2.0 * d[..., 1]
-        grad[:, :, self.heading] += 2.0 * offset * (d[..., 1] * cos[:, None]
-                                                    - d[..., 0] * sin[:, None])
+        grad[..., self.i] += 2.0 * dx
+        grad[..., self.j] += 2.0 * dy
+        grad[..., self.heading] += (2.0 * offset[..., None]) * (dy * cos[:, None]
+                                                               - dx * sin[:, None])
         return h, grad
 
     def __call__(self, x: Tensor, u: Tensor | None) -> tuple[Tensor, Tensor]:
-        h, grad = self._at(x, 1.0)
         if self.speed is None or u is None:
-            return h, grad
-        h_behind, grad_behind = self._at(x, -1.0)
-        use = (u.detach()[:, self.speed] < 0) & (h_behind >= 0).all(dim=1)
-        return (torch.where(use[:, None], h_behind, h),
-                torch.where(use[:, None, None], grad_behind, grad))
+            h, grad = self._at(x, self.ahead)
+            return h[0], grad[0]
+        # Both points in one pass; behind where reversing and every circle is clear of it.
+        h, grad = self._at(x, self.both)
+        use = (u.detach()[:, self.speed] < 0) & (h[1] >= 0).all(dim=1)
+        return (torch.where(use[:, None], h[1], h[0]),
+                torch.where(use[:, None, None], grad[1], grad[0]))
 
 
 class BatchClosedForm:

@@ -36,6 +36,10 @@ class DifferentiableSafetyLayer:
         # The barrier terms are constants of the QP (the states are data): in closed form for
         # the built-in systems and barriers, else by autograd (RCBFProblem.terms).
         self._closed_form = BatchClosedForm.from_problem(problem)
+        system = problem.system
+        self._limits = ((torch.as_tensor(system.u_min, dtype=torch.float64),
+                         torch.as_tensor(system.u_max, dtype=torch.float64))
+                        if problem.has_limits else None)
 
     def correction(self, state: Tensor, u_rl: Tensor,
                    disturbance: tuple[Tensor, Tensor] | None = None) -> Tensor:
@@ -50,10 +54,7 @@ class DifferentiableSafetyLayer:
         x = state.detach().to(torch.float64)
         u_in = u_rl.to(torch.float64)
         system = self.problem.system
-        u = u_in
-        if self.problem.has_limits:
-            u = torch.clamp(u_in, torch.as_tensor(system.u_min, dtype=torch.float64),
-                            torch.as_tensor(system.u_max, dtype=torch.float64))
+        u = u_in if self._limits is None else torch.clamp(u_in, *self._limits)
         mean = std = None
         if disturbance is None and self.disturbance is not None:
             with torch.no_grad():
