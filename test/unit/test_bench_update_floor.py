@@ -5,28 +5,13 @@ from __future__ import annotations
 from benchmark_modules import load_benchmark
 import numpy as np
 import pytest
+from sac_batches import N_U, OBS, random_batches
 import torch
 
-from rcbf_ros.learning.buffers import TransitionBatch
 from rcbf_ros.learning.sac import SAC, SACConfig
 
 floor_module = load_benchmark('_update_floor')
 bench = load_benchmark('bench_training')
-
-OBS, N_X, N_U, B = 5, 3, 2, 32
-
-
-def _batches(count: int) -> list[TransitionBatch]:
-    draws = torch.Generator().manual_seed(11)
-
-    def rand(*shape: int) -> torch.Tensor:
-        return torch.randn(*shape, generator=draws)
-
-    return [TransitionBatch(obs=rand(B, OBS), state=rand(B, N_X),
-                            u_rl=rand(B, N_U).clamp(-1, 1), u_safe=rand(B, N_U).clamp(-1, 1),
-                            u_s=rand(B, N_U), reward=rand(B), next_obs=rand(B, OBS),
-                            next_state=rand(B, N_X), done=(rand(B) > 1.0).float())
-            for _ in range(count)]
 
 
 def _agent(mode: str = 'baseline', **config) -> SAC:
@@ -38,17 +23,17 @@ def _agent(mode: str = 'baseline', **config) -> SAC:
 
 def test_baseline_twin_carries_the_state_of_an_agent_with_a_safety_layer():
     sac = _agent('diff')
-    sac.update(_batches(1)[0])
+    sac.update(random_batches(1)[0])
     twin = floor_module.baseline_twin(sac)
     assert twin.config.mode == 'baseline' and twin.num_updates == 1
     assert floor_module.difference(twin, sac) == 0.0
-    twin.update(_batches(1)[0])
+    twin.update(random_batches(1)[0])
     assert floor_module.difference(twin, sac) > 0.0
 
 
 def test_best_update_times_the_eager_update_without_compile_modes():
     sac = _agent()
-    out = floor_module.best_update(sac, _batches(2), modes=[], calls=3)
+    out = floor_module.best_update(sac, random_batches(2), modes=[], calls=3)
     assert list(out['variants']) == ['eager'] and out['compile_s'] == {}
     best, median = out['variants']['eager']
     assert 0.0 < best <= median
@@ -58,8 +43,8 @@ def test_best_update_times_the_eager_update_without_compile_modes():
 def test_best_update_checks_each_compile_mode_against_sac_update(monkeypatch):
     monkeypatch.setattr(torch, 'compile', lambda function, **_: function)
     sac = _agent()
-    sac.update(_batches(1)[0])
-    out = floor_module.best_update(sac, _batches(2), modes=['default'], calls=2)
+    sac.update(random_batches(1)[0])
+    out = floor_module.best_update(sac, random_batches(2), modes=['default'], calls=2)
     assert list(out['variants']) == ['eager', 'default']
     assert out['compile_s']['default'] > 0.0 and out['agreement']['default'] < 1e-6
     assert sac.num_updates == 1

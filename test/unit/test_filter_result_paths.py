@@ -9,35 +9,14 @@ from __future__ import annotations
 
 import dataclasses
 
+from filter_paths import random_call, shipped_filter
 import numpy as np
 import pytest
 
-from rcbf_ros.core.config import filter_config_from_params
-from rcbf_ros.core.filter import FilterResult, SafetyFilter
-from rcbf_ros.parameters.rules import find_config, load_params
+from rcbf_ros.core.filter import FilterResult
 
 SYSTEMS = ('unicycle', 'car_following', 'pvtol')
 FIELDS = {f.name for f in dataclasses.fields(FilterResult)}
-
-
-def shipped_filter(system: str) -> SafetyFilter:
-    return SafetyFilter(filter_config_from_params(
-        load_params(find_config(system), 'safety_filter')).problem)
-
-
-def random_call(system: str, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
-    """A state, a proposal (partly outside the limits, to be clipped) and a disturbance box."""
-    if system == 'unicycle':
-        x = np.array([*rng.uniform(-3.0, 3.0, 2), rng.uniform(-np.pi, np.pi)])
-    elif system == 'pvtol':
-        x1 = rng.uniform(-5.5, 5.5)
-        x = np.array([x1, rng.uniform(-2.5, 2.5), *rng.normal(0.0, 0.5, 2),
-                      rng.normal(0.0, 0.2), rng.uniform(0.6, 1.4), x1 + rng.uniform(-0.5, 0.5)])
-    else:
-        positions = np.array([34.0, 28.0, 22.0, 16.0, 10.0]) + rng.normal(0.0, 1.0, 5)
-        x = np.stack([positions, 30.0 + rng.normal(0.0, 2.0, 5)], axis=1).reshape(-1)
-    n_u = 1 if system == 'car_following' else 2
-    return x, rng.uniform(-3.5, 3.5, n_u), np.zeros(x.size), np.full(x.size, 0.02)
 
 
 @pytest.mark.parametrize('system', SYSTEMS)

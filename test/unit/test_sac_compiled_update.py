@@ -7,25 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sac_batches import N_U, OBS, random_batches
 import torch
 
-from rcbf_ros.learning.buffers import TransitionBatch
 from rcbf_ros.learning.sac import SAC, SACConfig
-
-OBS, N_X, N_U, B = 5, 3, 2, 32
-
-
-def _batches(count: int) -> list[TransitionBatch]:
-    draws = torch.Generator().manual_seed(11)
-
-    def rand(*shape: int) -> torch.Tensor:
-        return torch.randn(*shape, generator=draws)
-
-    return [TransitionBatch(obs=rand(B, OBS), state=rand(B, N_X),
-                            u_rl=rand(B, N_U).clamp(-1, 1), u_safe=rand(B, N_U).clamp(-1, 1),
-                            u_s=rand(B, N_U), reward=rand(B), next_obs=rand(B, OBS),
-                            next_state=rand(B, N_X), done=(rand(B) > 1.0).float())
-            for _ in range(count)]
 
 
 def _agent(compiled: bool, mode: str = 'baseline', seed: int = 3, **config) -> SAC:
@@ -59,7 +44,7 @@ def no_compiler(monkeypatch: pytest.MonkeyPatch) -> None:
 ])
 def test_functional_update_is_sac_update_to_round_off(no_compiler, mode, config):
     eager, functional = _agent(False, mode, **config), _agent(True, mode, **config)
-    for batch in _batches(5):
+    for batch in random_batches(5):
         expected, got = eager.update(batch), functional.update(batch)
         assert sorted(got) == sorted(expected)
         assert all(abs(got[key] - expected[key]) < 1e-5 for key in expected)
@@ -73,7 +58,7 @@ def test_functional_update_is_sac_update_to_round_off(no_compiler, mode, config)
 def test_equal_seeds_give_bit_identical_functional_updates(no_compiler):
     def train(seed: int) -> list[torch.Tensor]:
         agent = _agent(True, seed=seed)
-        for batch in _batches(4):
+        for batch in random_batches(4):
             agent.update(batch)
         return [p.detach().clone() for p in (*agent.actor.parameters(),
                                              *agent.q2_target.parameters(), agent.log_alpha)]
@@ -84,7 +69,7 @@ def test_equal_seeds_give_bit_identical_functional_updates(no_compiler):
 
 
 def test_checkpoints_pass_between_the_compiled_and_the_eager_update(no_compiler):
-    batches = _batches(4)
+    batches = random_batches(4)
     compiled, eager = _agent(True), _agent(False, seed=9)
     compiled.update(batches[0])
     eager.load_state_dict(compiled.state_dict())
@@ -112,7 +97,7 @@ def test_compile_update_is_refused_where_the_losses_pass_a_safety_layer():
 @pytest.mark.slow
 def test_compiled_update_agrees_with_the_eager_update_and_repeats_itself_exactly():
     eager, compiled, again = _agent(False), _agent(True), _agent(True)
-    for batch in _batches(3):
+    for batch in random_batches(3):
         expected, got = eager.update(batch), compiled.update(batch)
         assert all(abs(got[key] - expected[key]) < 1e-5 for key in expected)
         assert again.update(batch) == got
