@@ -115,7 +115,14 @@ def role_spinner(ready: str, marker: str) -> None:
     from rcbf_ros.ros.runtime import ExternalShutdownException, Node, rclpy
     rclpy.init(args=sys.argv)
     node = Node('test_spinner')
-    node.create_timer(0.01, lambda: Path(ready).touch())
+
+    def spinning() -> None:
+        # Once: then the executor waits, where the signal finds it (a signal that lands
+        # between two callbacks lets rclpy's spin return without an exception).
+        timer.cancel()
+        Path(ready).touch()
+
+    timer = node.create_timer(0.01, spinning)
     outcome = 'returned'
     try:
         rclpy.spin(node)

@@ -32,6 +32,28 @@ def test_spin_returns_after_shutdown_from_a_timer(node):
     assert not rclpy.ok()
 
 
+def test_a_canceled_timer_stops_until_reset_and_a_destroyed_one_for_good(node):
+    ticks = []
+    timer = node.create_timer(0.001, lambda: ticks.append(1))
+    while not ticks:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    timer.cancel()
+    assert timer.is_canceled()
+    count = len(ticks)
+    for _ in range(5):
+        rclpy.spin_once(node, timeout_sec=0.01)
+    assert len(ticks) == count
+    timer.reset()
+    assert not timer.is_canceled()
+    while len(ticks) == count:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    assert node.destroy_timer(timer) and not node.destroy_timer(timer)
+    count = len(ticks)
+    for _ in range(5):
+        rclpy.spin_once(node, timeout_sec=0.01)
+    assert len(ticks) == count
+
+
 def test_spin_once_runs_one_callback_at_a_time_in_order(node):
     received = []
     publisher = node.create_publisher(Float64, 'numbers', 10)

@@ -234,6 +234,20 @@ class Timer:
         if not self._canceled:
             self.callback()
 
+    def cancel(self) -> None:
+        """Stop calling back until :meth:`reset` (rclpy's ``Timer.cancel``)."""
+        self._canceled = True
+
+    def is_canceled(self) -> bool:
+        """True after :meth:`cancel` and before :meth:`reset`."""
+        return self._canceled
+
+    def reset(self) -> None:
+        """Run again, the next call one period from now (rclpy's ``Timer.reset``)."""
+        self._canceled = False
+        self._ros_time = self._ros_time_active()
+        self._next_ns = self._now() + self.timer_period_ns
+
     def destroy(self) -> None:
         self._canceled = True
 

@@ -207,6 +207,15 @@ class Node(NodeParameters, NodeGraph):
     def destroy_client(self, client: services.Client) -> bool:
         return self._release(client, self._service_endpoints)
 
+    def destroy_timer(self, timer: Timer) -> bool:
+        """Stop and forget ``timer``; False if it is not this node's (rclpy's
+        ``Node.destroy_timer``)."""
+        if timer not in self._timers:
+            return False
+        self._timers.remove(timer)
+        timer.destroy()
+        return True
+
     def _adopt(self, endpoint: Any, endpoints: list[Any]) -> Any:
         """Keep ``endpoint`` in ``endpoints``, wake the executor on its samples, and list its
         DDS reader and writer as this node's in ros_discovery_info (as rmw_cyclonedds does, a
