@@ -108,9 +108,8 @@ class FunctionalUpdate:
             **{f'q2.{k}': v for k, v in sac.q2.named_parameters()}})
         self.critic_adam = critics
         self.alpha_adam = _adam_state(sac.alpha_optimizer, {'log_alpha': sac.log_alpha})
-        self.q1_names = [k for k in critics.params if k.startswith('q1.')]
-        self.q1_target = [p for _, p in sac.q1_target.named_parameters()]
-        self.q2_target = [p for _, p in sac.q2_target.named_parameters()]
+        self.q1_target = dict(sac.q1_target.named_parameters())
+        self.q2_target = dict(sac.q2_target.named_parameters())
         self._run = (torch.compile(self._step, fullgraph=True, dynamic=False, mode=mode)
                      if compile_ else self._step)
 
@@ -133,11 +132,9 @@ class FunctionalUpdate:
         alpha = log_alpha.exp()
         following = functional_call(self.actor, self.actor_adam.params, (batch.next_obs,),
                                     {'noise': next_noise})
-        q1_target = dict(zip((k for k, _ in self.q1.named_parameters()), self.q1_target))
-        q2_target = dict(zip((k for k, _ in self.q2.named_parameters()), self.q2_target))
         next_q = torch.minimum(
-            functional_call(self.q1, q1_target, (batch.next_obs, following.action)),
-            functional_call(self.q2, q2_target, (batch.next_obs, following.action)))
+            functional_call(self.q1, self.q1_target, (batch.next_obs, following.action)),
+            functional_call(self.q2, self.q2_target, (batch.next_obs, following.action)))
         target = batch.reward + self.gamma * (1.0 - batch.done) * (
             next_q - alpha * following.log_prob)
 
@@ -168,7 +165,8 @@ class FunctionalUpdate:
             alpha_loss = -(log_alpha * (log_prob + self.target_entropy)).mean()
             _adam_step(self.alpha_adam, {'log_alpha': -(log_prob + self.target_entropy).mean()})
         if polyak:
-            torch._foreach_lerp_(self.q1_target, [q1_params[k] for k in q1_target], self.tau)
-            torch._foreach_lerp_(self.q2_target, [q2_params[k] for k in q2_target], self.tau)
+            for targets, params in ((self.q1_target, q1_params), (self.q2_target, q2_params)):
+                torch._foreach_lerp_(list(targets.values()), [params[k] for k in targets],
+                                     self.tau)
         return UpdateStats(critic_value, actor_value, alpha_loss, q1_mean, q2_mean,
                            target.mean(), -log_prob.mean())

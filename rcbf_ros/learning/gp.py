@@ -254,6 +254,12 @@ _HYBRID_COST_COLUMNS = 16
 columns: a hybrid rank is only tried this far below the low-rank bound's own."""
 
 
+def _check_bound(bound: str) -> None:
+    """Refuse a ``bound`` argument of ``predict``/``predict_state`` that names no bound."""
+    if bound not in ('chosen', 'low_rank'):
+        raise ValueError(f"bound must be 'chosen' or 'low_rank', got {bound!r}")
+
+
 def variance_ranks(*, eigenvalues: torch.Tensor, noise: torch.Tensor,
                    tolerance: float) -> torch.Tensor:
     """Per output, the fewest leading eigenpairs whose bound is within ``tolerance``.
@@ -842,8 +848,7 @@ class DisturbanceGP:
         Returns:
             mean: (B, n_out); std: (B, n_out). Before any fit: zeros and ``prior_std``.
         """
-        if bound not in ('chosen', 'low_rank'):
-            raise ValueError(f"bound must be 'chosen' or 'low_rank', got {bound!r}")
+        _check_bound(bound)
         x_t = _as_tensor(x, 'x', self.config.dtype)
         if x_t.ndim == 1:
             x_t = x_t.unsqueeze(0)
@@ -902,10 +907,8 @@ class DisturbanceGP:
             raise ValueError(f'state must have shape ({self.n_in},), got {x.shape}')
         if self._cache is None:
             return np.zeros(self.n_out), np.full(self.n_out, self.config.prior_std)
-        plan = self._cache['plans'].get(bound)
-        if plan is None:
-            raise ValueError(f"bound must be 'chosen' or 'low_rank', got {bound!r}")
-        mean, std = self._predict_bound(x[None, :], plan)
+        _check_bound(bound)
+        mean, std = self._predict_bound(x[None, :], self._cache['plans'][bound])
         return mean[0], std[0]
 
     def _predict_bound(self, x: np.ndarray, plan: list[dict[str, Any]]

@@ -140,9 +140,7 @@ class NumpyActor:
         self.half_range = actor.action_half_range.detach().numpy()
         self.low, self.high = self.center - self.half_range, self.center + self.half_range
         self.dtype = self.center.dtype
-        # One flat list of (weight, bias, relu) for the trunk, then the two heads' views: the
-        # call below walks them without a Python call per network.
-        self._trunk_layers = tuple(self.trunk.layers)
+        # The two heads' views: the call below applies them in place.
         (self._mean_weight, self._mean_bias, _), = self.heads.layers
         (self._log_std_weight, self._log_std_bias, _), = self.log_std.layers
 
@@ -154,12 +152,7 @@ class NumpyActor:
             new arrays. The operations are those of ``center + half_range * tanh(...)``, in
             place where an intermediate is not needed again (the same values).
         """
-        x = np.asarray(obs, dtype=self.dtype)
-        for weight, bias, relu in self._trunk_layers:
-            x = weight @ x
-            x += bias
-            if relu:
-                np.maximum(x, 0.0, out=x)
+        x = self.trunk(np.asarray(obs, dtype=self.dtype))
         np.maximum(x, 0.0, out=x)  # the trunk's closing ReLU
         mean = self._mean_weight @ x
         mean += self._mean_bias

@@ -236,8 +236,6 @@ class SAC:
         Args:
             obs: (obs_dim,) or (B, obs_dim).
         """
-        if type(obs) is np.ndarray and obs.shape == (self.obs_dim,):
-            return self._act_one(obs, deterministic)
         if not isinstance(obs, torch.Tensor) and np.ndim(obs) == 1 and len(obs) == self.obs_dim:
             return self._act_one(np.asarray(obs), deterministic)
         obs_t = torch.as_tensor(np.asarray(obs) if not isinstance(obs, torch.Tensor) else obs,
