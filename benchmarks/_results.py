@@ -15,7 +15,29 @@ def machine_line() -> str:
     """A one-line description of where the numbers came from."""
     import torch
     return (f'Python {platform.python_version()}, torch {torch.__version__} '
-            f'({torch.get_num_threads()} thread), {platform.machine()}{numpy_blas()}')
+            f'({torch.get_num_threads()} thread), {platform.machine()}{cpu_model()}'
+            f'{numpy_blas()}')
+
+
+def cpu_model(cpuinfo: Path = Path('/proc/cpuinfo')) -> str:
+    """', <model name> (family F model M)' of the first CPU in ``cpuinfo`` (empty where the
+    file is missing). Hosts of one machine size differ in CPU model, and absolute times differ
+    with it: compare figures within one run, or between runs on the same model."""
+    try:
+        text = cpuinfo.read_text()
+    except OSError:
+        return ''
+    fields: dict[str, str] = {}
+    for line in text.splitlines():
+        if not line.strip():
+            break  # the first processor's block only
+        key, _, value = line.partition(':')
+        fields.setdefault(key.strip(), value.strip())
+    name = fields.get('model name', '')
+    if not name:
+        return ''
+    family, model = fields.get('cpu family'), fields.get('model')
+    return f', {name}' + (f' (family {family} model {model})' if family and model else '')
 
 
 def numpy_blas() -> str:

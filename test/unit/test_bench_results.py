@@ -28,3 +28,14 @@ def test_without_write_the_results_file_is_left_alone(monkeypatch, tmp_path, cap
     assert body == '`python benchmarks/bench_x.py` (one run; here).\n\nText.'
     assert not (tmp_path / 'RESULTS.md').exists()
     assert capsys.readouterr().out == body + '\n'
+
+
+def test_the_machine_line_names_the_first_cpu_model(tmp_path):
+    cpuinfo = tmp_path / 'cpuinfo'
+    cpuinfo.write_text('processor\t: 0\nvendor_id\t: GenuineIntel\ncpu family\t: 6\n'
+                       'model\t\t: 167\nmodel name\t: Intel(R) Xeon(R) Processor\n\n'
+                       'processor\t: 1\ncpu family\t: 7\nmodel\t\t: 1\nmodel name\t: Other\n')
+    assert results.cpu_model(cpuinfo) == ', Intel(R) Xeon(R) Processor (family 6 model 167)'
+    cpuinfo.write_text('processor\t: 0\nmodel name\t: Some CPU\n')
+    assert results.cpu_model(cpuinfo) == ', Some CPU'
+    assert results.cpu_model(tmp_path / 'missing') == ''
