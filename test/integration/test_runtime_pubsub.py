@@ -144,7 +144,12 @@ def _start(domain_id: int, *args: str) -> subprocess.Popen:
 
 
 def _finish(process: subprocess.Popen) -> None:
-    stdout, stderr = process.communicate(timeout=PEER_TIMEOUT_S + 30)
+    try:
+        stdout, stderr = process.communicate(timeout=PEER_TIMEOUT_S + 30)
+    except subprocess.TimeoutExpired:
+        process.kill()  # no peer outlives its test
+        process.communicate()
+        raise
     assert process.returncode == 0, f'peer failed ({process.returncode}):\n{stderr}{stdout}'
 
 
