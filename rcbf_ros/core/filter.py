@@ -56,6 +56,7 @@ field; the ROS node validates them first and publishes the fail-safe instead.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import chain
 import math
 import operator
 import time
@@ -68,7 +69,7 @@ import scipy.sparse as sp
 import torch
 
 from rcbf_ros.core.diffqp import solve_qp_batch_full
-from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, NumpyAssembly
+from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.parameters.reader import setting
@@ -82,8 +83,8 @@ solver. OSQP refuses data beyond about 1e30 and keeps the previous problem; far 
 float64 rows lose the absolute precision the row check needs. Larger data: ``input_refused``."""
 _QP_DATA_SQUARES = 0.5 * QP_DATA_LIMIT ** 2
 """A sum of squares of the QP data at most this has every |value| below :data:`QP_DATA_LIMIT`
-(by a factor of 0.7, far beyond the sum's rounding): the one-reduction data check; data that
-fails it goes through the exact one."""
+(by a factor of 0.7, far beyond the sum's rounding): the one-sum data check (the assembly
+returns the sum); data that fails it goes through the exact one."""
 LIMIT_TOLERANCE = 1e-9
 """How far past an actuator limit the solver's answer may land before it is projected back (a
 solve at tolerance 1e-9 ends there); farther is a failed check."""
@@ -176,10 +177,6 @@ class FilterResult:
         return bool(np.any(np.abs(self.u_s) > ACTIVE_TOLERANCE)) or self.fail_safe
 
 
-class _Refused(Exception):
-    """An input the filter refuses (fail-safe, status ``input_refused``)."""
-
-
 _FLOAT64 = np.dtype(np.float64)
 ACTIVE_SET_TOLERANCE = 1e-12
 """How far (relative to the largest right-hand side) the active-set solution may exceed a row
@@ -195,12 +192,6 @@ be, relative to the terms summed (sum_i lambda_i |row_i|): round-off only."""
 DEPENDENT_ROW = 1e-20
 """A row whose part orthogonal to the active rows has a squared norm below this fraction of its
 own counts as their linear combination (an angle below 1e-10 rad)."""
-
-_min_of = np.minimum.reduce
-_max_of = np.maximum.reduce
-"""The reductions without the Python wrapper of ``ndarray.min``/``max`` (most of their cost on
-arrays of a few entries)."""
-
 
 def _dot(left: Sequence[float], right: Sequence[float]) -> float:
     """The inner product of two short sequences of floats."""
@@ -243,6 +234,13 @@ def _solve_small(matrix: list[list[float]], rhs: list[float]) -> list[float] | N
 
 def _gram(basis: list[list[float]]) -> list[list[float]]:
     """The Gram matrix of a few rows (each inner product computed once)."""
+    if len(basis) == 1:
+        (a,) = basis
+        return [[_dot(a, a)]]
+    if len(basis) == 2:
+        a, b = basis
+        ab = _dot(a, b)
+        return [[_dot(a, a), ab], [ab, _dot(b, b)]]
     gram = [[0.0] * len(basis) for _ in basis]
     for i, a in enumerate(basis):
         for j in range(i, len(basis)):
@@ -267,7 +265,11 @@ def _on_rows(basis: list[list[float]], rhs: list[float], tolerance: float
     if multipliers is None:
         return None
     columns = list(zip(*basis))
-    y = [-_dot(multipliers, column) for column in columns]
+    if len(basis) == 2:  # the common case, written out (the same sums)
+        l0, l1 = multipliers
+        y = [-(l0 * a + l1 * b) for a, b in columns]
+    else:
+        y = [-_dot(multipliers, column) for column in columns]
     residual = [_dot(a, y) - value for a, value in zip(basis, rhs)]
     if not max(map(abs, residual)) <= tolerance:
         correction = _solve_small(gram, residual)
@@ -287,11 +289,53 @@ def _on_rows(basis: list[list[float]], rhs: list[float], tolerance: float
     return y, multipliers
 
 
-def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, p_inverse: np.ndarray,
-                        tolerance: float, max_steps: int = ACTIVE_SET_STEPS
-                        ) -> np.ndarray | None:
+def _as_floats(value: Sequence) -> list:
+    """``value`` as a list (of floats, or of sequences of floats): an array's ``tolist()``, a
+    list as it is (the method does not change it)."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return value if isinstance(value, list) else list(value)
+
+
+def _kernels(rows: list[list[float]], upper: list[float], p_inverse: list[float]
+             ) -> tuple[Callable[[Sequence[float]], float],
+                        Callable[[Sequence[float]], list[float]]]:
+    """(row -> row^T P^-1 row, z -> [row^T z - upper for each row]), written out for the
+    filter's two and three unknowns (the same sums as :func:`_dot`)."""
+    if len(p_inverse) == 3:
+        w0, w1, w2 = p_inverse
+
+        def norm(row: Sequence[float]) -> float:
+            a, b, c = row
+            return a * a * w0 + b * b * w1 + c * c * w2
+
+        def excess(z: Sequence[float]) -> list[float]:
+            z0, z1, z2 = z
+            return [a * z0 + b * z1 + c * z2 - value for (a, b, c), value in zip(rows, upper)]
+    elif len(p_inverse) == 2:
+        w0, w1 = p_inverse
+
+        def norm(row: Sequence[float]) -> float:
+            a, b = row
+            return a * a * w0 + b * b * w1
+
+        def excess(z: Sequence[float]) -> list[float]:
+            z0, z1 = z
+            return [a * z0 + b * z1 - value for (a, b), value in zip(rows, upper)]
+    else:
+        def norm(row: Sequence[float]) -> float:
+            return sum([r * r * w for r, w in zip(row, p_inverse)])
+
+        def excess(z: Sequence[float]) -> list[float]:
+            return [_dot(row, z) - value for row, value in zip(rows, upper)]
+    return norm, excess
+
+
+def active_set_solution(*, rows: Sequence[Sequence[float]], upper: Sequence[float],
+                        p_inverse: Sequence[float], tolerance: float,
+                        max_steps: int = ACTIVE_SET_STEPS) -> list[float] | None:
     """The exact solution of min 1/2 z^T P z s.t. rows z <= upper, P = diag(1 / p_inverse),
-    with its KKT certificate.
+    with its KKT certificate, on Python floats.
 
     In y = P^1/2 z the QP is min 1/2 |y|^2 s.t. (rows P^-1/2) y <= upper: the projection of 0
     onto the rows' polyhedron. A dual active-set method (Goldfarb and Idnani's, with the
@@ -303,63 +347,116 @@ def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, p_inverse: np.nd
     multipliers are recomputed from W alone (:func:`_on_rows`), so no round-off accumulates
     over the steps.
 
-    The first step is written out in numpy, in z: the row farthest from 0 alone, z on it,
-    with multiplier -upper_p / (row_p^T P^-1 row_p) > 0 (the one-active-row solution, often
-    the answer).
+    The first two steps are written out, for the filter's QPs (one or two rows active in
+    most calls). The first: the row p farthest from z = 0 (in distance) alone, z on it, with
+    multiplier -upper_p / (row_p^T P^-1 row_p) > 0. Where another row is still violated, the
+    row q violated most there joins: the method then ends at W = {p, q}, or at W = {q} where
+    p's multiplier would turn negative; each is tried, on its own certificate. Only where
+    neither answers do the steps go on as above. Each scan for the row violated most
+    evaluates row^T z - upper for every row and the distance only for the rows it exceeds.
 
-    The answer comes with the certificate that makes it the QP's one solution: every
-    multiplier >= 0 and stationarity to round-off (:func:`_on_rows`), every row met to
-    ``tolerance`` (the last scan) and W's rows held to it. Otherwise None (the caller solves
-    the QP another way): where y = 0 already meets every row to ``tolerance`` (not this
-    method's case), past ``max_steps``, for a singular Gram system, for rows that admit no
-    step (inconsistent), or for a failed certificate (round-off in nearly dependent rows).
+    The answer comes with the certificate that makes it the QP's one solution (whichever
+    steps found it): every multiplier >= 0 and stationarity to round-off (:func:`_on_rows`),
+    every row met to ``tolerance`` (the last scan) and W's rows held to it. Otherwise None
+    (the caller solves the QP another way): where y = 0 already meets every row to
+    ``tolerance`` (not this method's case), past ``max_steps``, for a singular Gram system,
+    for rows that admit no step (inconsistent, or a violated row of zeros), for a NaN, or for
+    a failed certificate (round-off in nearly dependent rows).
 
     Args:
-        rows: (m, n) the constraint matrix.
+        rows: m rows of n floats, the constraint matrix (lists or an (m, n) array).
         upper: (m,) the right-hand sides.
         p_inverse: (n,) the diagonal of P^-1, every entry > 0.
         tolerance: how far a row may be exceeded (or an active one missed), absolute.
         max_steps: most rows added or dropped.
 
     Returns:
-        z (n,), or None.
+        z (n floats), or None.
     """
-    # The first step, vectorised: the row farthest from z = 0 (in distance) alone.
-    norms = (rows * rows).dot(p_inverse)  # > 0: a row of zeros is no constraint
-    lengths = np.sqrt(norms)
-    p = int((upper / lengths).argmin())
-    upper_p = float(upper[p])
-    if not upper_p < -tolerance:
+    rows, upper, p_inverse = _as_floats(rows), _as_floats(upper), _as_floats(p_inverse)
+    norm, excess_at = _kernels(rows, upper, p_inverse)
+    # The first step: the row farthest from z = 0 (in distance) alone. Only a violated row
+    # (upper < 0) can be farthest; the first of equals is taken.
+    p, distance, norm_p = -1, 0.0, 0.0
+    for i, value in enumerate(upper):
+        if value < 0.0:
+            squared = norm(rows[i])
+            if not squared > 0.0:
+                return None  # a violated row of zeros (or NaN): no step meets it
+            ratio = value / math.sqrt(squared)
+            if ratio < distance:
+                p, distance, norm_p = i, ratio, squared
+    if p < 0 or not upper[p] < -tolerance:
         return None  # z = 0 meets every row to the tolerance: not this method's case
-    multiplier = -upper_p / float(norms[p])
-    first = p_inverse * rows[p] * -multiplier
-    excess = rows.dot(first) - upper
-    if not abs(float(excess[p])) <= tolerance:
+    multiplier = -upper[p] / norm_p
+    first = [w * r * -multiplier for w, r in zip(p_inverse, rows[p])]
+    excess = excess_at(first)
+    if not abs(excess[p]) <= tolerance:
         return None
     excess[p] = -math.inf
-    if _max_of(excess) <= tolerance:
+    if max(excess) <= tolerance and sum(excess) == -math.inf:  # (a NaN makes the sum NaN)
         return first
-    # The further steps in y = P^1/2 z, on Python floats.
-    scale = np.sqrt(p_inverse)
-    scaled = rows * scale
-    row_list, upper_list = scaled.tolist(), upper.tolist()
-    y = (first / scale).tolist()
+    # The further steps in y = P^1/2 z.
+    scale = [math.sqrt(w) for w in p_inverse]
+    scaled: dict[int, list[float]] = {}
+    lengths: dict[int, float] = {p: math.sqrt(norm_p)}
+
+    def scaled_row(i: int) -> list[float]:
+        row = scaled.get(i)
+        if row is None:
+            row = scaled[i] = [r * s for r, s in zip(rows[i], scale)]
+        return row
+
+    def violated_most(excess: list[float]) -> int | None:
+        """The row violated most (in distance), -1 where every row is met, None for a NaN."""
+        p, best = -1, 0.0
+        for i, value in enumerate(excess):
+            if not value <= tolerance:
+                if value != value:
+                    return None
+                length = lengths.get(i)
+                if length is None:
+                    length = lengths[i] = math.sqrt(norm(rows[i]))
+                score = (value - tolerance) / length
+                if score > best:
+                    p, best = i, score
+        return p
+
+    def certified(working: list[int]) -> tuple[list[float], list[float], list[float]] | None:
+        """(y, multipliers, the rows' excess) on W = ``working``, if _on_rows certifies it."""
+        solved = _on_rows([scaled_row(j) for j in working], [upper[j] for j in working],
+                          tolerance)
+        if solved is None:
+            return None
+        y, multipliers = solved
+        excess = excess_at([s * value for s, value in zip(scale, y)])
+        for j in working:
+            excess[j] = -math.inf
+        return y, multipliers, excess
+
+    q = violated_most(excess)
+    if q is None:
+        return None
+    # the second step, written out: q joins (2 steps), or p leaves and q joins (3 steps)
+    for working in ([p, q], [q])[:max(0, max_steps - 1)]:
+        found = certified(working)
+        if found is not None and max(found[2]) <= tolerance and sum(found[2]) == -math.inf:
+            return [s * value for s, value in zip(scale, found[0])]
+    y = [value / s for value, s in zip(first, scale)]
     active, multipliers = [p], [multiplier]
-    ceiling = upper + tolerance
-    score = (excess - tolerance) / lengths
     steps = 1
     while True:
-        for j in active:
-            score[j] = -math.inf
-        p = int(score.argmax())
-        if score[p] <= 0.0:  # every row met (a NaN goes on, and fails below)
+        p = violated_most(excess)
+        if p is None:
+            return None
+        if p < 0:  # every row met
             break
-        row_p, added = row_list[p], 0.0
+        row_p = scaled_row(p)
         while True:  # add row p, dropping rows of W whose multiplier would turn negative
             steps += 1
             if steps > max_steps:
                 return None
-            basis = [row_list[j] for j in active]
+            basis = [scaled_row(j) for j in active]
             # ratios: row p's coordinates on W's rows; direction: its part orthogonal to them
             ratios = _solve_small(_gram(basis), [_dot(a, row_p) for a in basis]
                                   ) if basis else []
@@ -369,13 +466,13 @@ def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, p_inverse: np.nd
             for ratio, row in zip(ratios, basis):
                 direction = [d - ratio * r for d, r in zip(direction, row)]
             dual_step, drop = math.inf, -1
-            for q, (multiplier, ratio) in enumerate(zip(multipliers, ratios)):
+            for k, (multiplier, ratio) in enumerate(zip(multipliers, ratios)):
                 if ratio > 0.0 and multiplier < dual_step * ratio:
-                    dual_step, drop = multiplier / ratio, q
+                    dual_step, drop = multiplier / ratio, k
             squared = _dot(direction, direction)
             primal_step = math.inf
-            if squared > DEPENDENT_ROW * norms[p]:
-                primal_step = (_dot(row_p, y) - upper_list[p]) / squared
+            if squared > DEPENDENT_ROW * lengths[p] ** 2:
+                primal_step = (_dot(row_p, y) - upper[p]) / squared
                 if not primal_step >= 0.0:
                     return None
             step = min(primal_step, dual_step)
@@ -384,24 +481,21 @@ def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, p_inverse: np.nd
             if primal_step < math.inf:
                 y = [value - step * d for value, d in zip(y, direction)]
             multipliers = [value - step * ratio for value, ratio in zip(multipliers, ratios)]
-            added += step
             if primal_step <= dual_step:
                 active.append(p)
                 break
             del active[drop], multipliers[drop]
-        solved = _on_rows([row_list[j] for j in active], [upper_list[j] for j in active],
-                          tolerance)
-        if solved is None:
+        found = certified(active)
+        if found is None:
             return None
-        y, multipliers = solved
-        score = (scaled.dot(y) - ceiling) / lengths
+        y, multipliers, excess = found
     # W's rows held to the tolerance (_on_rows), every other row met (the last scan)
-    return scale * np.array(y)
+    return [s * value for s, value in zip(scale, y)]
 
 
 def _vector(name: str, value: object, size: int) -> np.ndarray:
     """A 1-D float64 array of ``value`` with ``size`` entries; raise ValueError naming the field
-    for a wrong length or non-numeric data (values are checked by :func:`_bounded`).
+    for a wrong length or non-numeric data.
 
     A float64 array of that shape is used as it is (the filter neither changes nor keeps its
     inputs); anything else is converted into a new array."""
@@ -416,17 +510,60 @@ def _vector(name: str, value: object, size: int) -> np.ndarray:
     return array
 
 
-def _bounded(name: str, array: np.ndarray, bound: float) -> np.ndarray:
-    """``array`` when it is finite and within +/- ``bound``; else :class:`_Refused`."""
-    # One reduction when the array passes: max propagates NaN, and NaN and inf fail the <=.
-    if not array.size or np.abs(array).max() <= bound:
-        return array
-    if not np.all(np.isfinite(array)):
-        raise _Refused(f'{name}: contains NaN or inf')
-    worst = float(np.max(np.abs(array))) if array.size else 0.0
+def _floats(name: str, value: object, size: int) -> list[float]:
+    """The ``size`` values of ``value`` as a new list of Python floats (as :func:`_vector`
+    converts them; the same ValueError for a wrong length or non-numeric data)."""
+    if type(value) is np.ndarray and value.dtype is _FLOAT64 and value.shape == (size,):
+        return value.tolist()
+    return _vector(name, value, size).tolist()
+
+
+def _out_of_bounds(name: str, values: list[float], bound: float) -> str | None:
+    """Why ``values`` is refused (not finite, or beyond +/- ``bound``), or None."""
+    if not all(map(math.isfinite, values)):
+        return f'{name}: contains NaN or inf'
+    worst = max(map(abs, values), default=0.0)
     if worst > bound:
-        raise _Refused(f'{name}: |value| {worst:.3g} beyond the bound {bound:.3g}')
-    return array
+        return f'{name}: |value| {worst:.3g} beyond the bound {bound:.3g}'
+    return None
+
+
+def _input_refusal(x: list[float], u: list[float], mean: list[float], std: list[float],
+                   bounds: InputBounds) -> str | None:
+    """The filter's input checks one by one, in order: the reason naming the first field that
+    fails, or None."""
+    for name, values, bound in (('state', x, bounds.state), ('u_rl', u, bounds.command),
+                                ('disturbance_mean', mean, bounds.disturbance),
+                                ('disturbance_std', std, bounds.disturbance)):
+        reason = _out_of_bounds(name, values, bound)
+        if reason is not None:
+            return reason
+    if min(std, default=0.0) < 0.0:
+        return 'disturbance_std: must be >= 0'
+    return None
+
+
+def _data_refusal(h: list[float], rows: list[list[float]], upper: list[float]) -> str | None:
+    """Why the QP data is refused (a value not finite or beyond :data:`QP_DATA_LIMIT`, in
+    order: the barrier values, the rows, their right-hand sides), or None."""
+    for name, values in (('barrier values', h), ('constraint rows', chain.from_iterable(rows)),
+                         ('constraint bounds', upper)):
+        if not all(abs(value) <= QP_DATA_LIMIT for value in values):
+            return f'{name}: not finite or beyond {QP_DATA_LIMIT:.0e} at this input'
+    return None
+
+
+def _row_values(upper: list[float], rows: list[list[float]], step: list[float]
+                ) -> list[float]:
+    """upper_i - row_i[:n_u]^T step of each RCBF row: its value L_f h + L_g h u + alpha h +
+    rho at the action u = u_rows + step (the rows hold -L_g h in their first n_u entries)."""
+    if len(step) == 2:
+        d0, d1 = step
+        return [value - (g0 * d0 + g1 * d1) for value, (g0, g1, _) in zip(upper, rows)]
+    if len(step) == 1:
+        (d0,) = step
+        return [value - g0 * d0 for value, (g0, _) in zip(upper, rows)]
+    return [value - _dot(row, step) for value, row in zip(upper, rows)]
 
 
 Assembly = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
@@ -503,39 +640,22 @@ def compiled_assembly(problem: RCBFProblem, *, checks: int = 8, seed: int = 0) -
     return compiled
 
 
-def _on_numpy(assembly: Assembly) -> NumpyAssembly:
-    """A torch assembly of one state with numpy inputs and outputs."""
+def _on_lists(assembly: Assembly) -> RowAssembly:
+    """A torch assembly of one state with the filter's lists in and out
+    (:data:`RowAssembly`)."""
 
-    def assemble(x: np.ndarray, u: np.ndarray, mean: np.ndarray, std: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        # torch takes no read-only arrays (the filter passes the caller's arrays as they are)
-        h, g_matrix, upper = assembly(*(
-            torch.from_numpy(a if a.flags.writeable else a.copy()).unsqueeze(0)
-            for a in (x, u, mean, std)))
-        return h[0].numpy(), g_matrix[0].numpy(), upper[0].numpy()
-
-    return assemble
-
-
-QUIET_BOUND = 1e50
-"""Input bounds up to this keep every closed-form product far from float64 overflow; beyond it
-the closed-form assembly runs with numpy's overflow warnings off (inf and NaN are refused
-after the assembly either way, as on the torch paths)."""
-
-
-def _quiet(assembly: NumpyAssembly) -> NumpyAssembly:
-    """``assembly`` with numpy's floating-point warnings off (costs microseconds per call)."""
-
-    def assemble(x: np.ndarray, u: np.ndarray, mean: np.ndarray, std: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        with np.errstate(all='ignore'):
-            return assembly(x, u, mean, std)
+    def assemble(x: list[float], u: list[float], mean: list[float], std: list[float]
+                 ) -> tuple[list[float], list[list[float]], list[float], float]:
+        h, g_matrix, upper = (a[0] for a in assembly(*(torch.tensor([a], dtype=torch.float64)
+                                                       for a in (x, u, mean, std))))
+        size = sum(float(v.square().sum()) for v in (h, g_matrix, upper))
+        return h.tolist(), g_matrix.tolist(), upper.tolist(), size
 
     return assemble
 
 
 def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
-                    closed_form: bool = True) -> tuple[str, NumpyAssembly]:
+                    closed_form: bool = True) -> tuple[str, RowAssembly]:
     """The filter's constraint assembly and its name.
 
     ``closed_form`` where the problem has one (:meth:`ClosedFormAssembly.from_problem` decides)
@@ -543,10 +663,10 @@ def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
     assembly, ``compiled`` with ``compile_assembly``, else ``autograd``."""
     fast = ClosedFormAssembly.from_problem(problem) if closed_form else None
     if fast is not None:
-        return 'closed_form', fast
+        return 'closed_form', fast.evaluate
     if compile_assembly:
-        return 'compiled', _on_numpy(compiled_assembly(problem))
-    return 'autograd', _on_numpy(eager_assembly(problem))
+        return 'compiled', _on_lists(compiled_assembly(problem))
+    return 'autograd', _on_lists(eager_assembly(problem))
 
 
 class _DirectOSQP:
@@ -661,17 +781,11 @@ class SafetyFilter:
                              f'got {slack_tolerance!r}')
         self.slack_tolerance = slack_tolerance
         self.input_bounds = InputBounds() if input_bounds is None else input_bounds
-        bounds = self.input_bounds
-        if self.assembly == 'closed_form' and max(bounds.state, bounds.command,
-                                                  bounds.disturbance) > QUIET_BOUND:
-            self._assemble = _quiet(self._assemble)
         # Python floats for the per-call checks on a few values (cheaper than numpy calls)
         self._limits = list(zip(self._u_min.tolist(), self._u_max.tolist()))
         self._limits_tolerated = list(zip(self._u_min_tolerated.tolist(),
                                           self._u_max_tolerated.tolist()))
-        self._zeros_x = np.zeros(self.n_x)
-        self._zeros_x.setflags(write=False)
-        self._zeros_x_list = self._zeros_x.tolist()
+        self._zeros_x_list = [0.0] * self.n_x
         action = np.zeros(self.n_u) if fail_safe_action is None else _vector(
             'fail_safe_action', fail_safe_action, self.n_u)
         if not np.all(np.isfinite(action)):
@@ -705,6 +819,7 @@ class SafetyFilter:
         self._solver = _DirectOSQP.wrap(self._solver)
         self._nc = nc
         self._p_inverse = 1.0 / diag  # P = diag(diag), for the active-set solve
+        self._p_inverse_list = self._p_inverse.tolist()
 
     def filter(self, state: Sequence[float], u_rl: Sequence[float],
                mean: Sequence[float] | None = None,
@@ -724,81 +839,63 @@ class SafetyFilter:
             ValueError: naming the field, for a wrong length or non-numeric data.
         """
         start = time.perf_counter()
-        n_x, n_u = self.n_x, self.n_u
-        x = _vector('state', state, n_x)
-        u = _vector('u_rl', u_rl, n_u)
-        if mean is None:
-            mu, mu_list = self._zeros_x, self._zeros_x_list
-        else:
-            mu = _vector('disturbance_mean', mean, n_x)
-            mu_list = mu.tolist()
-        if std is None:
-            sd, sd_list = self._zeros_x, self._zeros_x_list
-        else:
-            sd = _vector('disturbance_std', std, n_x)
-            sd_list = sd.tolist()
-        x_list, u_list = x.tolist(), u.tolist()
+        n_x = self.n_x
+        x = _floats('state', state, n_x)
+        u = _floats('u_rl', u_rl, self.n_u)
+        mu = self._zeros_x_list if mean is None else _floats('disturbance_mean', mean, n_x)
+        sd = self._zeros_x_list if std is None else _floats('disturbance_std', std, n_x)
         bounds = self.input_bounds
-        # Every check below at once, on Python floats: a NaN or inf makes the sum NaN or inf
-        # (so can a sum of large finite values: such an input only goes through the checks one
-        # by one). Only an input that fails it goes through them one by one, for the reason
-        # naming the field.
-        if not (math.isfinite(sum(x_list) + sum(u_list) + sum(mu_list) + sum(sd_list))
-                and max(map(abs, x_list), default=0.0) <= bounds.state
-                and max(map(abs, u_list), default=0.0) <= bounds.command
-                and max(map(abs, mu_list), default=0.0) <= bounds.disturbance
-                and max(sd_list, default=0.0) <= bounds.disturbance
-                and min(sd_list, default=0.0) >= 0.0):
-            try:
-                _bounded('state', x, bounds.state)
-                _bounded('u_rl', u, bounds.command)
-                _bounded('disturbance_mean', mu, bounds.disturbance)
-                _bounded('disturbance_std', sd, bounds.disturbance)
-                if (sd < 0).any():
-                    raise _Refused('disturbance_std: must be >= 0')
-            except _Refused as refusal:
-                return self._fail_safe(u, start, status='input_refused', reason=str(refusal))
+        state_bound, command_bound = bounds.state, bounds.command
+        box_bound = bounds.disturbance
+        # Every check below at once: a NaN or inf makes the sum NaN or inf (so can a sum of
+        # large finite values: such an input only goes through the checks one by one), and
+        # the bounds hold where the finite values' extremes do. Only an input that fails it
+        # goes through the checks one by one, for the reason naming the field.
+        if not (math.isfinite(sum(x) + sum(u) + sum(mu) + sum(sd))
+                and -state_bound <= min(x) and max(x) <= state_bound
+                and -command_bound <= min(u) and max(u) <= command_bound
+                and -box_bound <= min(mu) and max(mu) <= box_bound
+                and 0.0 <= min(sd) and max(sd) <= box_bound):
+            reason = _input_refusal(x, u, mu, sd, bounds)
+            if reason is not None:
+                return self._fail_safe(u, start, status='input_refused', reason=reason)
 
         # Clip before the QP: its rows are then written at a command the plant can take.
         applied = [low if value < low else high if value > high else value
-                   for value, (low, high) in zip(u_list, self._limits)]
-        clipped = applied != u_list
-        u_rl_applied = np.array(applied) if clipped else u
-        h_values, g_matrix, upper = self._assemble(x, u_rl_applied, mu, sd)
-        g_flat = g_matrix.ravel()
-        # One reduction per array when the data passes (NaN and inf fail the <=; the sum on
-        # Python floats overflows to inf without numpy's warning); else the exact check, for
-        # the refusal naming the data.
-        if not (float(h_values.dot(h_values)) + float(g_flat.dot(g_flat))
-                + float(upper.dot(upper)) <= _QP_DATA_SQUARES):
-            for name, data in (('barrier values', h_values), ('constraint rows', g_matrix),
-                               ('constraint bounds', upper)):
-                if not np.abs(data).max(initial=0.0) <= QP_DATA_LIMIT:
-                    return self._fail_safe(
-                        u, start, status='input_refused', h=h_values, clipped=clipped,
-                        reason=f'{name}: not finite or beyond {QP_DATA_LIMIT:.0e} at this input')
+                   for value, (low, high) in zip(u, self._limits)]
+        clipped = applied != u
+        h_values, g_rows, upper, size = self._assemble(x, applied, mu, sd)
+        # One sum of squares when the data passes (NaN and inf fail the <=); else the exact
+        # check, for the refusal naming the data.
+        if not size <= _QP_DATA_SQUARES:
+            reason = _data_refusal(h_values, g_rows, upper)
+            if reason is not None:
+                return self._fail_safe(u, start, status='input_refused', h=h_values,
+                                       clipped=clipped, reason=reason)
         solve_start = time.perf_counter()
-        if _min_of(upper, initial=math.inf) >= 0.0:
+        k = self.n_barriers
+        if min(upper) >= 0.0:
             # z = 0 is feasible, hence optimal (the objective's minimum): the proposal passes
             # through exactly, without a solve. The row check holds at z = 0 by construction:
             # the action is the clipped proposal (within the limits), each row's value at it is
             # its right-hand side (all >= 0 here: no slack needed, none claimed).
-            values = upper[:self.n_barriers].copy()
+            values = np.array(upper[:k])
+            u_safe = [value + 0.0 for value in applied]  # as u + z[:n_u], z = 0
             solve_time = time.perf_counter() - solve_start
-            u_safe = np.array([value + 0.0 for value in applied])  # as u + z[:n_u], z = 0
             return FilterResult._filled(
-                u_safe=u_safe, u_s=u_safe - u, slack=0.0, h=h_values, constraint_values=values,
-                status='solved', solve_time_s=solve_time,
-                total_time_s=time.perf_counter() - start, fail_safe=False,
-                barrier_names=list(self.barrier_names), needed_slack=0.0, reason='',
-                proposal_clipped=clipped)
-        # The RCBF rows: -L_g h (the top left block of G) and their right-hand sides.
-        rows = (upper[:self.n_barriers], g_matrix[:self.n_barriers, :n_u], applied)
+                u_safe=np.array(u_safe), u_s=np.array([a - b for a, b in zip(u_safe, u)]),
+                slack=0.0, h=np.array(h_values), constraint_values=values, status='solved',
+                solve_time_s=solve_time, total_time_s=time.perf_counter() - start,
+                fail_safe=False, barrier_names=list(self.barrier_names), needed_slack=0.0,
+                reason='', proposal_clipped=clipped)
+        # The RCBF rows (their right-hand sides, the rows of G) at the clipped proposal.
+        rows = (upper[:k], g_rows[:k], applied)
         status = 'solved'
-        z = self._active_set(g_matrix, upper)
+        z = self._active_set(g_rows, upper)
         checked = None if z is None else self._check(z, rows)
         if checked is None:
-            self._solver.update(Ax=g_matrix.take(self._pattern_index), u=upper)
+            self._solver.update(Ax=np.array(g_rows).take(self._pattern_index),
+                                u=np.array(upper))
             result = self._solver.solve(raise_error=False)
             status_val = int(result.info.status_val)
             # used within this call only (the action and values are new arrays): no copy
@@ -807,13 +904,12 @@ class SafetyFilter:
             status = _OK_STATUS.get(status_val, str(result.info.status))
         if checked is None:
             # Never start a later solve from this iterate.
-            self._solver.warm_start(x=np.zeros(n_u + 1), y=np.zeros(self._nc))
+            self._solver.warm_start(x=np.zeros(self.n_u + 1), y=np.zeros(self._nc))
             if self.fallback:
                 # ADMM can stall when the slack is far from 0 (the 1 : l diagonal); the
                 # interior point of the differentiable layer solves the same QP robustly.
-                # (copies: the inputs may be the caller's read-only arrays)
                 solution = solve_qp_batch_full(*self.problem.qp(
-                    *(torch.tensor(a).unsqueeze(0) for a in (x, u_rl_applied, mu, sd))))
+                    *(torch.tensor([a], dtype=torch.float64) for a in (x, applied, mu, sd))))
                 if bool(solution.converged[0]):
                     z = solution.z[0].detach().numpy().astype(np.float64)
                     checked = self._check(z, rows)
@@ -823,7 +919,7 @@ class SafetyFilter:
             return self._fail_safe(u, start, status='unverified', h=h_values, clipped=clipped,
                                    solve_time=solve_time, rows=rows,
                                    reason=f'no solution passed the row check (solver: {status})')
-        u_safe, values, needed = checked
+        action, values, needed = checked
         if self.slack_tolerance is not None and needed > self.slack_tolerance:
             return self._fail_safe(
                 u, start, status='slack_exceeded', h=h_values, clipped=clipped,
@@ -831,13 +927,13 @@ class SafetyFilter:
                 reason=f'barrier rows need slack {needed:.3g} > slack_tolerance '
                        f'{self.slack_tolerance:.3g} within the input limits')
         return FilterResult._filled(
-            u_safe=u_safe, u_s=u_safe - u, slack=float(z[-1]), h=h_values,
-            constraint_values=values, status=status, solve_time_s=solve_time,
-            total_time_s=time.perf_counter() - start, fail_safe=False,
-            barrier_names=list(self.barrier_names), needed_slack=needed, reason='',
-            proposal_clipped=clipped)
+            u_safe=np.array(action), u_s=np.array([a - b for a, b in zip(action, u)]),
+            slack=float(z[-1]), h=np.array(h_values), constraint_values=np.array(values),
+            status=status, solve_time_s=solve_time, total_time_s=time.perf_counter() - start,
+            fail_safe=False, barrier_names=list(self.barrier_names), needed_slack=needed,
+            reason='', proposal_clipped=clipped)
 
-    def _active_set(self, g_matrix: np.ndarray, upper: np.ndarray) -> np.ndarray | None:
+    def _active_set(self, g_rows: list[list[float]], upper: list[float]) -> list[float] | None:
         """The QP's exact solution by :func:`active_set_solution`, else None (then OSQP).
 
         With P diagonal the QP is the projection of 0 onto the rows' polyhedron in the
@@ -847,57 +943,66 @@ class SafetyFilter:
         convex QP has one solution, so a certified answer is it (OSQP's is within its
         tolerance of it). The answer then goes through the row check like any other."""
         return active_set_solution(
-            rows=g_matrix, upper=upper, p_inverse=self._p_inverse,
-            tolerance=ACTIVE_SET_TOLERANCE * (1.0 + float(_max_of(np.abs(upper)))))
+            rows=g_rows, upper=upper, p_inverse=self._p_inverse_list,
+            tolerance=ACTIVE_SET_TOLERANCE * (1.0 + max(max(upper), -min(upper))))
 
-    def _check(self, z: np.ndarray | None,
-               rows: tuple[np.ndarray, np.ndarray, list[float]]
-               ) -> tuple[np.ndarray, np.ndarray, float] | None:
+    def _check(self, z: Sequence[float] | np.ndarray | None,
+               rows: tuple[list[float], list[list[float]], list[float]]
+               ) -> tuple[list[float], list[float], float] | None:
         """The action of solution z and its row values, if z passes the row check.
 
-        ``rows``: the RCBF rows' right-hand sides (K,), -L_g h (K, n_u) and the proposal they
-        are written at (n_u floats). The action u + z[:n_u] must lie within the limits (to
-        :data:`LIMIT_TOLERANCE`; then projected onto them), and the slack its rows need, from
-        the rows themselves, must be accounted for by the solver's own eps z[-1]."""
-        if z is None or z.shape != (self.n_u + 1,):
-            return None
-        z_list = z.tolist()
-        if not all(map(math.isfinite, z_list)):
-            return None
-        rows_upper, minus_lg_h, applied = rows
-        action = [a + b for a, b in zip(applied, z_list)]
-        for value, (low, high) in zip(action, self._limits_tolerated):
-            if value < low or value > high:
+        ``rows``: the RCBF rows' right-hand sides (K floats), the rows themselves (K lists
+        [-L_g h_i, -1]) and the proposal they are written at (n_u floats). The action
+        u + z[:n_u] must lie within the limits (to :data:`LIMIT_TOLERANCE`; then projected
+        onto them), and the slack its rows need, from the rows themselves, must be accounted
+        for by the solver's own eps z[-1]."""
+        if type(z) is not list:
+            if z is None or z.shape != (self.n_u + 1,):
                 return None
-        action = [low if value < low else high if value > high else value
-                  for value, (low, high) in zip(action, self._limits)]
-        values = rows_upper - minus_lg_h.dot(np.array([a - b for a, b in zip(action, applied)]))
-        needed = max(0.0, -float(_min_of(values, initial=0.0)))
+            z = z.tolist()
+        elif len(z) != self.n_u + 1:
+            return None
+        if not all(map(math.isfinite, z)):
+            return None
+        rows_upper, g_rows, applied = rows
+        action, step = [], []
+        for value, delta, (low, high), (low_tolerated, high_tolerated) in zip(
+                applied, z, self._limits, self._limits_tolerated):
+            moved = value + delta
+            if moved < low_tolerated or moved > high_tolerated:
+                return None
+            moved = low if moved < low else high if moved > high else moved
+            action.append(moved)
+            step.append(moved - value)
+        values = _row_values(rows_upper, g_rows, step)
+        needed = max(0.0, -min(values))
         # The solver's own eps must account for what the rows need: else the answer is not the
         # solution of this QP (a stale or garbage iterate).
-        claimed = max(0.0, z_list[-1])
+        claimed = max(0.0, z[-1])
         if needed > claimed:
-            scale = 1.0 + float(_max_of(np.abs(rows_upper), initial=0.0))
+            scale = 1.0 + max(max(rows_upper), -min(rows_upper))
             if needed > claimed + 1e-6 * scale:
                 return None
-        return np.array(action), values, needed
+        return action, values, needed
 
-    def _fail_safe(self, u: np.ndarray, start: float, *, status: str, reason: str,
-                   h: np.ndarray | None = None, clipped: bool = False, solve_time: float = 0.0,
-                   rows: tuple[np.ndarray, np.ndarray, list[float]] | None = None
+    def _fail_safe(self, u: list[float], start: float, *, status: str, reason: str,
+                   h: list[float] | None = None, clipped: bool = False,
+                   solve_time: float = 0.0,
+                   rows: tuple[list[float], list[list[float]], list[float]] | None = None
                    ) -> FilterResult:
-        """The fail-safe result; ``rows`` (upper, -L_g h, u at the rows) give its row
+        """The fail-safe result; ``rows`` (right-hand sides, rows, u at the rows) give its row
         values."""
         action = self.fail_safe_action.copy()
         nan = np.full(self.n_barriers, np.nan)
         values, needed = nan, float('nan')
         if rows is not None:
-            rows_upper, minus_lg_h, u_rows = rows
-            values = rows_upper - minus_lg_h.dot(action - np.array(u_rows))
-            needed = max(0.0, -float(np.min(values, initial=0.0)))
+            rows_upper, g_rows, u_rows = rows
+            row_values = _row_values(rows_upper, g_rows,
+                                     [a - b for a, b in zip(action.tolist(), u_rows)])
+            values, needed = np.array(row_values), max(0.0, -min(row_values))
         return FilterResult(
-            u_safe=action, u_s=action - u, slack=float('nan'),
-            h=nan if h is None else h, constraint_values=values, status=status,
+            u_safe=action, u_s=action - np.array(u), slack=float('nan'),
+            h=nan if h is None else np.array(h), constraint_values=values, status=status,
             solve_time_s=solve_time, total_time_s=time.perf_counter() - start, fail_safe=True,
             barrier_names=list(self.barrier_names), needed_slack=needed, reason=reason,
             proposal_clipped=clipped)

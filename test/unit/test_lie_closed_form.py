@@ -22,14 +22,7 @@ from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.dynamics import CarFollowing, PVTOL, Unicycle
 import rcbf_ros.core.filter as filter_module
 from rcbf_ros.core.filter import InputBounds, SafetyFilter, select_assembly
-from rcbf_ros.core.lie_closed_form import (
-    ClosedFormAssembly,
-    ClosedFormTerms,
-    RCBFRows,
-    robust_margin,
-)
-from rcbf_ros.core.qp import build_rcbf_qp
-from rcbf_ros.core.qp import robust_margin as torch_robust_margin
+from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, ClosedFormTerms
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.parameters.rules import find_config, load_params
 
@@ -128,7 +121,7 @@ def problems(system: str, count: int, seed: int) -> list[RCBFProblem]:
                          ids=['unicycle', 'cars', 'pvtol', 'pvtol-6', 'cars-gains'])
 def test_drift_jet_matches_autograd(system):
     rng = np.random.default_rng(0)
-    jet_of = system.closed_form_drift()
+    jet_of = system.closed_form_source().function()
     name = type(system).__name__
     n_x = system.n_x
     for _ in range(30):
@@ -244,42 +237,14 @@ def test_assembly_matches_the_problems_qp(system):
             x = random_state(system, rng, n_x)
             u = rng.uniform(-3.0, 3.0, n_u)
             mean, std = rng.normal(0.0, 0.1, n_x), rng.uniform(0.0, 0.2, n_x)
-            h, g_matrix, upper = assembly(x, u, mean, std)
+            h, rows, upper, size = assembly.evaluate(*(a.tolist() for a in (x, u, mean, std)))
             want = problem.qp(*(torch.from_numpy(a)[None] for a in (x, u, mean, std)))
             want_h = problem.terms(torch.from_numpy(x)[None], torch.from_numpy(u)[None]).h
-            assert_close(h, want_h[0].numpy(), 'h')
-            assert_close(g_matrix, want.G[0].numpy(), 'G')
-            assert_close(upper, want.h[0].numpy(), 'h_qp')
-
-
-@pytest.mark.parametrize('limits', [True, False])
-def test_rows_equal_the_torch_builder(limits):
-    rng = np.random.default_rng(6)
-    for k, m in ((1, 1), (5, 2), (17, 2), (3, 4)):
-        h, lf_h, rho = (rng.normal(0.0, 3.0, k) for _ in range(3))
-        lg_h = rng.normal(0.0, 3.0, (k, m))
-        u = rng.normal(0.0, 2.0, m)
-        alpha = float(rng.uniform(0.1, 5.0))
-        u_min = tuple(rng.uniform(-3.0, -1.0, m)) if limits else None
-        u_max = tuple(rng.uniform(1.0, 3.0, m)) if limits else None
-        g_matrix, upper = RCBFRows(n_barriers=k, n_u=m, alpha=alpha, u_min=u_min,
-                                   u_max=u_max)(h=h, lf_h=lf_h, lg_h=lg_h, rho=rho, u_rl=u)
-        want = build_rcbf_qp(h=torch.from_numpy(h)[None], lf_h=torch.from_numpy(lf_h)[None],
-                             lg_h=torch.from_numpy(lg_h)[None], rho=torch.from_numpy(rho)[None],
-                             u_rl=torch.from_numpy(u)[None], alpha=alpha, slack_weight=1e6,
-                             u_min=u_min, u_max=u_max)
-        np.testing.assert_allclose(g_matrix, want.G[0].numpy(), rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(upper, want.h[0].numpy(), rtol=1e-12, atol=1e-12)
-
-
-def test_robust_margin_equals_the_torch_one():
-    rng = np.random.default_rng(7)
-    grad = rng.normal(0.0, 2.0, (6, 5))
-    mean, std = rng.normal(0.0, 1.0, 5), rng.uniform(0.0, 1.0, 5)
-    want = torch_robust_margin(torch.from_numpy(grad)[None], torch.from_numpy(mean)[None],
-                               torch.from_numpy(std)[None], 2.0)[0].numpy()
-    np.testing.assert_allclose(robust_margin(grad, mean, std, 2.0), want, rtol=1e-12,
-                               atol=1e-12)
+            assert_close(np.array(h), want_h[0].numpy(), 'h')
+            assert_close(np.array(rows), want.G[0].numpy(), 'G')
+            assert_close(np.array(upper), want.h[0].numpy(), 'h_qp')
+            squares = sum(float(np.square(a).sum()) for a in (h, rows, upper))
+            assert size == pytest.approx(squares, rel=1e-12)
 
 
 # --- which problems get the closed form ------------------------------------------------------
