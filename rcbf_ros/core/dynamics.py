@@ -66,8 +66,10 @@ DriftJetFunction = Callable[[np.ndarray], DriftJet]
 Entry = Union[float, str]
 """An entry of a :class:`DriftSource`: a constant, or the name of a variable its lines assign."""
 
-SOURCE_NAMESPACE: dict[str, Any] = {'cos': math.cos, 'sin': math.sin}
-"""The functions the generated source may call besides the builtins."""
+SOURCE_NAMESPACE: dict[str, Any] = {'cos': math.cos, 'sin': math.sin, 'inf': math.inf,
+                                    'nan': math.nan}
+"""The functions the generated source may call besides the builtins, and the names ``repr``
+gives the floats inf and nan (a constant of an absurd config can overflow)."""
 
 
 def state_names(n_x: int) -> list[str]:

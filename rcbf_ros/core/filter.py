@@ -22,10 +22,18 @@ by construction). The status is ``solved`` for a pass-through and an active-set 
 OSQP's (whose ``solved_inaccurate`` is passed on).
 
 The constraint assembly (barrier terms, then the QP rows) takes one of three paths, chosen at
-construction by :func:`select_assembly` (:attr:`SafetyFilter.assembly`): the closed form in
-numpy (:mod:`rcbf_ros.core.lie_closed_form`, for the built-in systems and barrier families), or
-the autograd path through :meth:`RCBFProblem.qp` (any other system or family), eager or traced
-and compiled (``compile_assembly``). All three give the same QP data to round-off (tested).
+construction by :func:`select_assembly` (:attr:`SafetyFilter.assembly`): the closed form, as
+straight-line Python generated for the problem at construction
+(:mod:`rcbf_ros.core.lie_closed_form`, for the built-in systems and barrier families), or the
+autograd path through :meth:`RCBFProblem.qp` (any other system or family), eager or traced and
+compiled (``compile_assembly``). All three give the same QP data to round-off (tested), as
+lists of Python floats (:data:`~rcbf_ros.core.lie_closed_form.RowAssembly`).
+
+A call works on Python floats from its inputs to its result: the inputs are read once into
+lists, the checks, the clip, the assembly, the pass-through test, the active-set solve and the
+row check are plain float arithmetic (on a few dozen values, a numpy call costs more than the
+work it does), and numpy arrays are built only for the result (and for OSQP and the fallback,
+where a call gets that far).
 
 The invariant (checked on every call, whatever the solver reports): the returned action is
 either
@@ -297,11 +305,14 @@ def _as_floats(value: Sequence) -> list:
     return value if isinstance(value, list) else list(value)
 
 
-def _kernels(rows: list[list[float]], upper: list[float], p_inverse: list[float]
-             ) -> tuple[Callable[[Sequence[float]], float],
-                        Callable[[Sequence[float]], list[float]]]:
-    """(row -> row^T P^-1 row, z -> [row^T z - upper for each row]), written out for the
-    filter's two and three unknowns (the same sums as :func:`_dot`)."""
+Kernels = tuple[Callable[[Sequence[float]], float],
+                Callable[[list[list[float]], list[float], Sequence[float]], list[float]]]
+"""(row -> row^T P^-1 row, (rows, upper, z) -> [row^T z - upper for each row])."""
+
+
+def _kernels(p_inverse: list[float]) -> Kernels:
+    """The two inner loops of :func:`active_set_solution` for P^-1 = diag(p_inverse), written
+    out for the filter's two and three unknowns (the same sums as :func:`_dot`)."""
     if len(p_inverse) == 3:
         w0, w1, w2 = p_inverse
 
@@ -309,7 +320,8 @@ def _kernels(rows: list[list[float]], upper: list[float], p_inverse: list[float]
             a, b, c = row
             return a * a * w0 + b * b * w1 + c * c * w2
 
-        def excess(z: Sequence[float]) -> list[float]:
+        def excess(rows: list[list[float]], upper: list[float], z: Sequence[float]
+                   ) -> list[float]:
             z0, z1, z2 = z
             return [a * z0 + b * z1 + c * z2 - value for (a, b, c), value in zip(rows, upper)]
     elif len(p_inverse) == 2:
@@ -319,14 +331,16 @@ def _kernels(rows: list[list[float]], upper: list[float], p_inverse: list[float]
             a, b = row
             return a * a * w0 + b * b * w1
 
-        def excess(z: Sequence[float]) -> list[float]:
+        def excess(rows: list[list[float]], upper: list[float], z: Sequence[float]
+                   ) -> list[float]:
             z0, z1 = z
             return [a * z0 + b * z1 - value for (a, b), value in zip(rows, upper)]
     else:
         def norm(row: Sequence[float]) -> float:
             return sum([r * r * w for r, w in zip(row, p_inverse)])
 
-        def excess(z: Sequence[float]) -> list[float]:
+        def excess(rows: list[list[float]], upper: list[float], z: Sequence[float]
+                   ) -> list[float]:
             return [_dot(row, z) - value for row, value in zip(rows, upper)]
     return norm, excess
 
@@ -374,7 +388,18 @@ def active_set_solution(*, rows: Sequence[Sequence[float]], upper: Sequence[floa
         z (n floats), or None.
     """
     rows, upper, p_inverse = _as_floats(rows), _as_floats(upper), _as_floats(p_inverse)
-    norm, excess_at = _kernels(rows, upper, p_inverse)
+    return _active_set_steps(rows, upper, p_inverse, tolerance, max_steps, _kernels(p_inverse))
+
+
+def _active_set_steps(rows: list[list[float]], upper: list[float], p_inverse: list[float],
+                      tolerance: float, max_steps: int, kernels: Kernels
+                      ) -> list[float] | None:
+    """:func:`active_set_solution` on lists, with the :func:`_kernels` of ``p_inverse``."""
+    norm, excess_of = kernels
+
+    def excess_at(z: Sequence[float]) -> list[float]:
+        return excess_of(rows, upper, z)
+
     # The first step: the row farthest from z = 0 (in distance) alone. Only a violated row
     # (upper < 0) can be farthest; the first of equals is taken.
     p, distance, norm_p = -1, 0.0, 0.0
@@ -820,6 +845,7 @@ class SafetyFilter:
         self._nc = nc
         self._p_inverse = 1.0 / diag  # P = diag(diag), for the active-set solve
         self._p_inverse_list = self._p_inverse.tolist()
+        self._kernels = _kernels(self._p_inverse_list)
 
     def filter(self, state: Sequence[float], u_rl: Sequence[float],
                mean: Sequence[float] | None = None,
@@ -845,17 +871,20 @@ class SafetyFilter:
         mu = self._zeros_x_list if mean is None else _floats('disturbance_mean', mean, n_x)
         sd = self._zeros_x_list if std is None else _floats('disturbance_std', std, n_x)
         bounds = self.input_bounds
-        state_bound, command_bound = bounds.state, bounds.command
-        box_bound = bounds.disturbance
+        bound = bounds.state
+        values = x + u + mu + sd
         # Every check below at once: a NaN or inf makes the sum NaN or inf (so can a sum of
         # large finite values: such an input only goes through the checks one by one), and
-        # the bounds hold where the finite values' extremes do. Only an input that fails it
-        # goes through the checks one by one, for the reason naming the field.
-        if not (math.isfinite(sum(x) + sum(u) + sum(mu) + sum(sd))
-                and -state_bound <= min(x) and max(x) <= state_bound
-                and -command_bound <= min(u) and max(u) <= command_bound
-                and -box_bound <= min(mu) and max(mu) <= box_bound
-                and 0.0 <= min(sd) and max(sd) <= box_bound):
+        # the bounds hold where the finite values' extremes do (the extremes of all four
+        # inputs at once where the three bounds are one number, as by default). Only an input
+        # that fails it goes through the checks one by one, for the reason naming the field.
+        if not (math.isfinite(sum(values)) and 0.0 <= min(sd) and (
+                -bound <= min(values) and max(values) <= bound
+                if bound == bounds.command == bounds.disturbance
+                else -bound <= min(x) and max(x) <= bound
+                and -bounds.command <= min(u) and max(u) <= bounds.command
+                and -bounds.disturbance <= min(mu) and max(mu) <= bounds.disturbance
+                and max(sd) <= bounds.disturbance)):
             reason = _input_refusal(x, u, mu, sd, bounds)
             if reason is not None:
                 return self._fail_safe(u, start, status='input_refused', reason=reason)
@@ -942,9 +971,10 @@ class SafetyFilter:
         :data:`ACTIVE_SET_TOLERANCE` relative to the largest right-hand side). A strictly
         convex QP has one solution, so a certified answer is it (OSQP's is within its
         tolerance of it). The answer then goes through the row check like any other."""
-        return active_set_solution(
-            rows=g_rows, upper=upper, p_inverse=self._p_inverse_list,
-            tolerance=ACTIVE_SET_TOLERANCE * (1.0 + max(max(upper), -min(upper))))
+        return _active_set_steps(
+            g_rows, upper, self._p_inverse_list,
+            ACTIVE_SET_TOLERANCE * (1.0 + max(max(upper), -min(upper))), ACTIVE_SET_STEPS,
+            self._kernels)
 
     def _check(self, z: Sequence[float] | np.ndarray | None,
                rows: tuple[list[float], list[list[float]], list[float]]

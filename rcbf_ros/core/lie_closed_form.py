@@ -22,16 +22,18 @@ cascades h1 = L_f h + gamma_1 h and h2 = L_f h1 + gamma_2 h1 are sums of these l
     beta = (1, 0, 0) uncascaded, (gamma_1, 1, 0) cascaded once,
     (gamma_1 gamma_2, gamma_1 + gamma_2, 1) cascaded twice.
 
-With w = (x, f, J f), b = (beta_0 a, beta_1 a, beta_2 a) and the three coefficient blocks
+With g0 = a + Q x = grad L^0 h and the three coefficient blocks
 
-    C_0 = beta_0 (a + Q x) + beta_1 Q f + beta_2 Q J f
-    C_1 = beta_1 (a + Q x) + 2 beta_2 Q f
-    C_2 = beta_2 (a + Q x)
+    C_0 = beta_0 g0 + beta_1 Q f + beta_2 Q J f
+    C_1 = beta_1 g0 + 2 beta_2 Q f
+    C_2 = beta_2 g0
 
-(C = b + M w with M = T (x) Q, T = [[beta_0, beta_1, beta_2], [beta_1, 2 beta_2, 0],
-[beta_2, 0, 0]]; expand the products to see the table above),
+(the blocks of C = b + M w, w = (x, f, J f), b = (beta_0 a, beta_1 a, beta_2 a), M = T (x) Q,
+T = [[beta_0, beta_1, beta_2], [beta_1, 2 beta_2, 0], [beta_2, 0, 0]]; expand the products to
+see the table above; the deepest block is g0 itself, its beta being 1)
 
-    grad h_top = C_0 + J^T C_1 + (J^2)^T C_2          h_top = beta_0 c + 1/2 (b + C)^T w.
+    grad h_top = C_0 + J^T C_1 + (J^2)^T C_2,
+    h_top = beta_0 (c + 1/2 (a + g0)^T x) + beta_1 g0^T f + beta_2 (f^T Q f + g0^T J f).
 
 A look-ahead circle, h = ||p - c||^2 - delta^2 with p = (x_i, x_j) + s l_p (cos th, sin th),
 has grad h = 2 (p - c) on (x_i, x_j) and 2 s l_p (p - c)^T (-sin th, cos th) on th; it is used
@@ -39,9 +41,15 @@ uncascaded only, with the direction-of-travel switch of :func:`barrier_terms` (t
 behind, s = -1, for a proposal with a negative ``speed_input`` whose point behind is clear of
 every obstacle of the family; the same comparisons in the same order as there).
 
-Then the QP rows, in the terms of :func:`rcbf_ros.core.qp.build_rcbf_qp`: L_f h = grad h^T f,
-L_g h = grad h^T g, rho = grad h^T mean - k_c |grad h|^T std and the right-hand side
-L_f h + L_g h u + alpha h + rho.
+Then the QP rows of :func:`rcbf_ros.core.qp.build_rcbf_qp`: [-L_g h, -1] with L_g h =
+grad h^T g, the limit rows, and the right-hand side L_f h + L_g h u + alpha h + rho, with
+rho = grad h^T mean - k_c |grad h|^T std = min over the box of grad h^T psi. It is evaluated as
+
+    grad h^T (x_dot + psi) + alpha h,    x_dot = f + g u,  psi_k = mean_k - k_c std_k sign(grad_k)
+
+(the same sum regrouped: x_dot + psi has two candidates per state entry, computed once for
+every row, and each row picks one by the sign of its gradient entry). The assembly also returns
+the sum of the squares of its data, for the filter's one-sum data check.
 
 How it is evaluated: not as matrix products (numpy's per-call cost, about a microsecond, is
 far more than a product of these sizes takes) but as straight-line Python on floats,
@@ -52,8 +60,11 @@ entries (:meth:`~rcbf_ros.core.dynamics.Unicycle.closed_form_source`, whose stat
 inlines), and the values it has named so far. Constants are folded into the coefficients and
 structural zeros drop out (the zeros of Q, of J, of g, of f), so what remains is the handful
 of multiplications each row really needs; a value used more than once (J f, the entries of
-J^2, C, grad h, L_g h) is computed once into a name. A call is then one Python function of a
-few hundred float operations, with no numpy call and no allocation beyond its result lists.
+J^2, grad h, L_g h) is computed once into a name, and so are the parts the barriers of a
+family share (the terms of degree two, which come from their common Hessian, and everything
+but the constant of a gradient entry, where obstacles differ in their centres only). A call
+is then one Python function of a few hundred float operations, with no numpy call and no
+allocation beyond its result lists. :attr:`ClosedFormAssembly.source` holds its text.
 
 :meth:`ClosedFormTerms.from_problem` is the one place that decides whether a problem has a
 closed form: a built-in system (by exact type) and built-in families, cascaded at most twice,
