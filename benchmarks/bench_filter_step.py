@@ -479,9 +479,10 @@ def main() -> None:
         from _results import machine_line, write_section
         write_section('Per-step safety filter', (
             f'Command: `python benchmarks/bench_filter_step.py --calls {args.calls} --rounds '
-            f'{args.rounds} --cold-calls {args.cold_calls}' + (' --reference <Mod-RL-RCBF checkout> --reference-python '
-                                '<its venv>/bin/python --reference-calls '
-                                f'{args.reference_calls}' if args.reference else '') + '`. '
+            f'{args.rounds} --cold-calls {args.cold_calls}'
+            + (' --reference <Mod-RL-RCBF checkout> --reference-python '
+               '<its venv>/bin/python --reference-calls '
+               f'{args.reference_calls}' if args.reference else '') + '`. '
             + machine_line() + '.\n\n' + table))
 
 

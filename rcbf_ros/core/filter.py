@@ -396,10 +396,6 @@ def _active_set_steps(rows: list[list[float]], upper: list[float], p_inverse: li
                       ) -> list[float] | None:
     """:func:`active_set_solution` on lists, with the :func:`_kernels` of ``p_inverse``."""
     norm, excess_of = kernels
-
-    def excess_at(z: Sequence[float]) -> list[float]:
-        return excess_of(rows, upper, z)
-
     # The first step: the row farthest from z = 0 (in distance) alone. Only a violated row
     # (upper < 0) can be farthest; the first of equals is taken.
     p, distance, norm_p = -1, 0.0, 0.0
@@ -415,7 +411,7 @@ def _active_set_steps(rows: list[list[float]], upper: list[float], p_inverse: li
         return None  # z = 0 meets every row to the tolerance: not this method's case
     multiplier = -upper[p] / norm_p
     first = [w * r * -multiplier for w, r in zip(p_inverse, rows[p])]
-    excess = excess_at(first)
+    excess = excess_of(rows, upper, first)
     if not abs(excess[p]) <= tolerance:
         return None
     excess[p] = -math.inf
@@ -454,7 +450,7 @@ def _active_set_steps(rows: list[list[float]], upper: list[float], p_inverse: li
         if solved is None:
             return None
         y, multipliers = solved
-        excess = excess_at([s * value for s, value in zip(scale, y)])
+        excess = excess_of(rows, upper, [s * value for s, value in zip(scale, y)])
         for j in working:
             excess[j] = -math.inf
         return y, multipliers, excess
@@ -578,17 +574,44 @@ def _data_refusal(h: list[float], rows: list[list[float]], upper: list[float]) -
     return None
 
 
-def _row_values(upper: list[float], rows: list[list[float]], step: list[float]
-                ) -> list[float]:
-    """upper_i - row_i[:n_u]^T step of each RCBF row: its value L_f h + L_g h u + alpha h +
-    rho at the action u = u_rows + step (the rows hold -L_g h in their first n_u entries)."""
-    if len(step) == 2:
-        d0, d1 = step
-        return [value - (g0 * d0 + g1 * d1) for value, (g0, g1, _) in zip(upper, rows)]
-    if len(step) == 1:
-        (d0,) = step
-        return [value - g0 * d0 for value, (g0, _) in zip(upper, rows)]
-    return [value - _dot(row, step) for value, row in zip(upper, rows)]
+RowValues = Callable[[list[float], list[list[float]], Sequence[float]], list[float]]
+"""(upper (K), rows (K), step (n_u)) -> [upper_i - row_i[:n_u]^T step for each RCBF row]: the
+row values L_f h + L_g h u + alpha h + rho at u = u_rows + step (the rows hold -L_g h in their
+first n_u entries)."""
+
+
+def _shape_kernels(p_inverse: list[float], n_barriers: int, n_u: int, has_limits: bool
+                   ) -> tuple[Kernels, RowValues]:
+    """The inner loops over the filter's QP rows, as straight-line Python generated for its
+    shape at construction (about half the time of the loops): row^T z - upper of every row (K
+    RCBF rows, then, with limits, [e_j, 0] z <= . and [-e_j, 0] z <= ., their zeros and ones
+    folded in), and the RCBF rows' values at a step of the action (:data:`RowValues`). The
+    same sums as :func:`_kernels`; the norm is its own."""
+    nz, k = n_u + 1, n_barriers
+    z = [f'z{j}' for j in range(nz)]
+    rows = ['(' + ', '.join(f'r{i}_{j}' for j in range(nz)) + ')' for i in range(k)]
+    limits = [f'_{j}' for j in range(2 * n_u)] if has_limits else []
+    upper = [f'v{i}' for i in range(k + len(limits))]
+    excess = [' + '.join(f'r{i}_{j}*{z[j]}' for j in range(nz)) + f' - v{i}' for i in range(k)]
+    if has_limits:
+        excess += [f'z{j} - v{k + j}' for j in range(n_u)]
+        excess += [f'-z{j} - v{k + n_u + j}' for j in range(n_u)]
+    values = [f'v{i} - (' + ' + '.join(f'r{i}_{j}*d{j}' for j in range(n_u)) + ')'
+              for i in range(k)]
+    source = '\n'.join([
+        'def excess(rows, upper, z):',
+        f'    {", ".join(z)}, = z',
+        f'    {", ".join(rows + limits)}, = rows',
+        f'    {", ".join(upper)}, = upper',
+        f'    return [{", ".join(excess)}]',
+        'def row_values(upper, rows, step):',
+        f'    {", ".join(f"d{j}" for j in range(n_u))}, = step',
+        f'    {", ".join(rows)}, = rows',
+        f'    {", ".join(upper[:k])}, = upper',
+        f'    return [{", ".join(values)}]', ''])
+    namespace: dict = {}
+    exec(compile(source, '<filter rows>', 'exec'), namespace)  # noqa: S102 - own source
+    return (_kernels(p_inverse)[0], namespace['excess']), namespace['row_values']
 
 
 Assembly = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
@@ -845,7 +868,8 @@ class SafetyFilter:
         self._nc = nc
         self._p_inverse = 1.0 / diag  # P = diag(diag), for the active-set solve
         self._p_inverse_list = self._p_inverse.tolist()
-        self._kernels = _kernels(self._p_inverse_list)
+        self._kernels, self._row_values = _shape_kernels(
+            self._p_inverse_list, self.n_barriers, self.n_u, problem.has_limits)
 
     def filter(self, state: Sequence[float], u_rl: Sequence[float],
                mean: Sequence[float] | None = None,
@@ -1004,7 +1028,7 @@ class SafetyFilter:
             moved = low if moved < low else high if moved > high else moved
             action.append(moved)
             step.append(moved - value)
-        values = _row_values(rows_upper, g_rows, step)
+        values = self._row_values(rows_upper, g_rows, step)
         needed = max(0.0, -min(values))
         # The solver's own eps must account for what the rows need: else the answer is not the
         # solution of this QP (a stale or garbage iterate).
@@ -1027,7 +1051,7 @@ class SafetyFilter:
         values, needed = nan, float('nan')
         if rows is not None:
             rows_upper, g_rows, u_rows = rows
-            row_values = _row_values(rows_upper, g_rows,
+            row_values = self._row_values(rows_upper, g_rows,
                                      [a - b for a, b in zip(action.tolist(), u_rows)])
             values, needed = np.array(row_values), max(0.0, -min(row_values))
         return FilterResult(

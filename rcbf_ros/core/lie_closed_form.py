@@ -348,14 +348,21 @@ def _quadratic_rows(code: _Source, drift: _Drift, x: list[Poly], rows: Quadratic
                 for k in range(n_x):
                     if power[k]:
                         grad[k] = _plus(grad[k], _times(c, power[k]))
-        # h_top = beta_0 L^0 h + beta_1 L^1 h + beta_2 L^2 h with L^0 h = c + 1/2 (a + g0)^T x,
-        # L^1 h = g0^T f and L^2 h = f^T Q f + g0^T J f
-        h = _plus(_constant(beta[0] * float(constant)), _scaled(_dot(
-            [_plus(_constant(a), g) for a, g in zip(linear, g0)], x), 0.5 * beta[0]))
+        # h_top = beta_0 c + a^T (beta_0 x + beta_1 f + beta_2 J f) + beta_0 1/2 x^T Q x
+        #         + beta_1 x^T Q f + beta_2 (f^T Q f + x^T Q J f): the point in parentheses is
+        # the same for every barrier with these gains, the terms of Q for the whole family
+        parts = [x, drift.f, drift.jf() if levels >= 3 else []][:levels]
+        h = _plus(_constant(beta[0] * float(constant)), _scaled(_dot(x, q_times(x)),
+                                                                0.5 * beta[0]))
         if levels >= 2:
-            h = _plus(h, _scaled(_dot(g0, drift.f), beta[1]))
+            h = _plus(h, _scaled(_dot(x, qf), beta[1]))
         if levels >= 3:
-            h = _plus(h, _scaled(_plus(_dot(drift.f, qf), _dot(g0, drift.jf())), beta[2]))
+            h = _plus(h, _scaled(_plus(_dot(drift.f, qf), _dot(x, qjf)), beta[2]))
+        for j, a in enumerate(linear):
+            if a:
+                point = code.named(_plus(*(_scaled(part[j], weight)
+                                           for part, weight in zip(parts, beta))))
+                h = _plus(h, _scaled(point, a))
         out.append((h, grad))
     return out
 
