@@ -69,7 +69,7 @@ import math
 import operator
 import time
 from types import SimpleNamespace
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 import osqp
@@ -580,38 +580,70 @@ row values L_f h + L_g h u + alpha h + rho at u = u_rows + step (the rows hold -
 first n_u entries)."""
 
 
-def _shape_kernels(p_inverse: list[float], n_barriers: int, n_u: int, has_limits: bool
-                   ) -> tuple[Kernels, RowValues]:
-    """The inner loops over the filter's QP rows, as straight-line Python generated for its
-    shape at construction (about half the time of the loops): row^T z - upper of every row (K
-    RCBF rows, then, with limits, [e_j, 0] z <= . and [-e_j, 0] z <= ., their zeros and ones
-    folded in), and the RCBF rows' values at a step of the action (:data:`RowValues`). The
-    same sums as :func:`_kernels`; the norm is its own."""
+class _ShapeKernels(NamedTuple):
+    """The filter's per-call loops over a few values, generated for its shape (n_x, n_u, K,
+    the limits) at construction by :func:`_shape_kernels`."""
+
+    solve: Kernels
+    """For :func:`_active_set_steps`: the norm, and row^T z - upper over every row."""
+    row_values: RowValues
+    """The RCBF rows' values at a step of the action."""
+    within_bounds: Callable[..., bool]
+    """(x, u, mean, std, state, command, disturbance bound) -> whether every value is finite
+    and within its bound and every std >= 0: exactly what the field-by-field checks accept."""
+    clip: Callable[[list[float]], list[float]]
+    """u -> u clipped to the actuator limits (a new list)."""
+
+
+def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
+                   limits: list[tuple[float, float]] | None) -> _ShapeKernels:
+    """The filter's per-call loops as straight-line Python (a fraction of the time of loops
+    and builtin calls on a few dozen values): row^T z - upper of every row (K RCBF rows, then,
+    with limits, [e_j, 0] z <= . and [-e_j, 0] z <= ., their zeros and ones folded in; the same
+    sums as :func:`_kernels`, whose norm is taken), the RCBF rows' values at a step of the
+    action (:data:`RowValues`), the input bounds as one chained comparison per value (NaN
+    fails every comparison) and the clip, its limits folded in. ``limits``: (low, high) per
+    input, or None."""
+    n_u = len(p_inverse) - 1
     nz, k = n_u + 1, n_barriers
     z = [f'z{j}' for j in range(nz)]
     rows = ['(' + ', '.join(f'r{i}_{j}' for j in range(nz)) + ')' for i in range(k)]
-    limits = [f'_{j}' for j in range(2 * n_u)] if has_limits else []
-    upper = [f'v{i}' for i in range(k + len(limits))]
+    limit_rows = [f'_{j}' for j in range(2 * n_u)] if limits else []
+    upper = [f'v{i}' for i in range(k + len(limit_rows))]
     excess = [' + '.join(f'r{i}_{j}*{z[j]}' for j in range(nz)) + f' - v{i}' for i in range(k)]
-    if has_limits:
+    if limits:
         excess += [f'z{j} - v{k + j}' for j in range(n_u)]
         excess += [f'-z{j} - v{k + n_u + j}' for j in range(n_u)]
     values = [f'v{i} - (' + ' + '.join(f'r{i}_{j}*d{j}' for j in range(n_u)) + ')'
               for i in range(k)]
+    x, u = [f'x{i}' for i in range(n_x)], [f'u{j}' for j in range(n_u)]
+    m, sd = [f'm{i}' for i in range(n_x)], [f's{i}' for i in range(n_x)]
+    bounded = ([f'-state <= {v} <= state' for v in x] + [f'-command <= {v} <= command' for v in u]
+               + [f'-box <= {v} <= box' for v in m] + [f'0.0 <= {v} <= box' for v in sd])
+    clipped = ([f'{low!r} if {v} < {low!r} else {high!r} if {v} > {high!r} else {v}'
+                for v, (low, high) in zip(u, limits)] if limits else u)
     source = '\n'.join([
         'def excess(rows, upper, z):',
         f'    {", ".join(z)}, = z',
-        f'    {", ".join(rows + limits)}, = rows',
+        f'    {", ".join(rows + limit_rows)}, = rows',
         f'    {", ".join(upper)}, = upper',
         f'    return [{", ".join(excess)}]',
         'def row_values(upper, rows, step):',
         f'    {", ".join(f"d{j}" for j in range(n_u))}, = step',
         f'    {", ".join(rows)}, = rows',
         f'    {", ".join(upper[:k])}, = upper',
-        f'    return [{", ".join(values)}]', ''])
-    namespace: dict = {}
+        f'    return [{", ".join(values)}]',
+        'def within_bounds(x, u, mean, std, state, command, box):',
+        *(f'    {", ".join(names)}, = {arg}'
+          for names, arg in ((x, 'x'), (u, 'u'), (m, 'mean'), (sd, 'std'))),
+        f'    return {" and ".join(bounded)}',
+        'def clip(u):',
+        f'    {", ".join(u)}, = u',
+        f'    return [{", ".join(clipped)}]', ''])
+    namespace: dict = {'inf': math.inf}
     exec(compile(source, '<filter rows>', 'exec'), namespace)  # noqa: S102 - own source
-    return (_kernels(p_inverse)[0], namespace['excess']), namespace['row_values']
+    return _ShapeKernels((_kernels(p_inverse)[0], namespace['excess']),
+                         namespace['row_values'], namespace['within_bounds'], namespace['clip'])
 
 
 Assembly = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
@@ -868,8 +900,10 @@ class SafetyFilter:
         self._nc = nc
         self._p_inverse = 1.0 / diag  # P = diag(diag), for the active-set solve
         self._p_inverse_list = self._p_inverse.tolist()
-        self._kernels, self._row_values = _shape_kernels(
-            self._p_inverse_list, self.n_barriers, self.n_u, problem.has_limits)
+        kernels = _shape_kernels(self._p_inverse_list, self.n_x, self.n_barriers,
+                                 self._limits if problem.has_limits else None)
+        self._kernels, self._row_values = kernels.solve, kernels.row_values
+        self._within_bounds, self._clip = kernels.within_bounds, kernels.clip
 
     def filter(self, state: Sequence[float], u_rl: Sequence[float],
                mean: Sequence[float] | None = None,
@@ -895,27 +929,17 @@ class SafetyFilter:
         mu = self._zeros_x_list if mean is None else _floats('disturbance_mean', mean, n_x)
         sd = self._zeros_x_list if std is None else _floats('disturbance_std', std, n_x)
         bounds = self.input_bounds
-        bound = bounds.state
-        values = x + u + mu + sd
-        # Every check below at once: a NaN or inf makes the sum NaN or inf (so can a sum of
-        # large finite values: such an input only goes through the checks one by one), and
-        # the bounds hold where the finite values' extremes do (the extremes of all four
-        # inputs at once where the three bounds are one number, as by default). Only an input
-        # that fails it goes through the checks one by one, for the reason naming the field.
-        if not (math.isfinite(sum(values)) and 0.0 <= min(sd) and (
-                -bound <= min(values) and max(values) <= bound
-                if bound == bounds.command == bounds.disturbance
-                else -bound <= min(x) and max(x) <= bound
-                and -bounds.command <= min(u) and max(u) <= bounds.command
-                and -bounds.disturbance <= min(mu) and max(mu) <= bounds.disturbance
-                and max(sd) <= bounds.disturbance)):
+        # Finite, within the bounds and std >= 0: one chained comparison per value (NaN fails
+        # each); an input that fails goes through the checks one by one, for the reason
+        # naming the field.
+        if not self._within_bounds(x, u, mu, sd, bounds.state, bounds.command,
+                                   bounds.disturbance):
             reason = _input_refusal(x, u, mu, sd, bounds)
             if reason is not None:
                 return self._fail_safe(u, start, status='input_refused', reason=reason)
 
         # Clip before the QP: its rows are then written at a command the plant can take.
-        applied = [low if value < low else high if value > high else value
-                   for value, (low, high) in zip(u, self._limits)]
+        applied = self._clip(u)
         clipped = applied != u
         h_values, g_rows, upper, size = self._assemble(x, applied, mu, sd)
         # One sum of squares when the data passes (NaN and inf fail the <=); else the exact
