@@ -66,10 +66,11 @@ but the constant of a gradient entry, where obstacles differ in their centres on
 is then one Python function of a few hundred float operations, with no numpy call and no
 allocation beyond its result lists. :attr:`ClosedFormAssembly.source` holds its text.
 
-:meth:`ClosedFormTerms.from_problem` is the one place that decides whether a problem has a
-closed form: a built-in system (by exact type) and built-in families, cascaded at most twice,
-no look-ahead circle inside a cascade, every cascade over the problem's own system. Anything else
-(a system or family given by dotted path) keeps the autograd path.
+One function decides whether a problem has a closed form (``_closed_form_families``; both
+builders, :meth:`ClosedFormTerms.from_problem` and :meth:`ClosedFormAssembly.from_problem`,
+return None where it finds none): a built-in system (by exact type) and built-in families,
+cascaded at most twice, no look-ahead circle inside a cascade, every cascade over the problem's
+own system. Anything else (a system or family given by dotted path) keeps the autograd path.
 """
 from __future__ import annotations
 
@@ -490,8 +491,8 @@ class ClosedFormTerms:
 
     @classmethod
     def from_problem(cls, problem: RCBFProblem) -> ClosedFormTerms | None:
-        """The closed form of ``problem``, or None where it has none (module docstring): the one
-        place that decides between the closed form and autograd."""
+        """The closed form of ``problem``'s terms, or None where it has none (module
+        docstring)."""
         code = _Source()
         found = _row_terms(problem, code)
         if found is None:
@@ -542,8 +543,8 @@ class ClosedFormAssembly:
 
     @classmethod
     def from_problem(cls, problem: RCBFProblem) -> ClosedFormAssembly | None:
-        """The closed-form assembly, or None where :meth:`ClosedFormTerms.from_problem` finds
-        no closed form."""
+        """The closed-form assembly, or None where the problem has no closed form (module
+        docstring)."""
         code = _Source()
         found = _row_terms(problem, code)
         if found is None:
