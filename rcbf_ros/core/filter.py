@@ -593,6 +593,9 @@ class _ShapeKernels(NamedTuple):
     and within its bound and every std >= 0: exactly what the field-by-field checks accept."""
     clip: Callable[[list[float]], list[float]]
     """u -> u clipped to the actuator limits (a new list)."""
+    act: Callable[[list[float], list[float]], tuple[list[float], list[float]] | None]
+    """(u, z) -> (the action u + z[:n_u] projected onto the limits, its step from u), or None
+    where u + z[:n_u] lies beyond a limit by more than :data:`LIMIT_TOLERANCE`."""
 
 
 def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
@@ -602,8 +605,9 @@ def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
     with limits, [e_j, 0] z <= . and [-e_j, 0] z <= ., their zeros and ones folded in; the same
     sums as :func:`_kernels`, whose norm is taken), the RCBF rows' values at a step of the
     action (:data:`RowValues`), the input bounds as one chained comparison per value (NaN
-    fails every comparison) and the clip, its limits folded in. ``limits``: (low, high) per
-    input, or None."""
+    fails every comparison), the clip and the action of a solution (the row check's
+    projection onto the limits), the limits folded in. ``limits``: (low, high) per input, or
+    None (no limits: no clip, no projection)."""
     n_u = len(p_inverse) - 1
     nz, k = n_u + 1, n_barriers
     z = [f'z{j}' for j in range(nz)]
@@ -622,6 +626,14 @@ def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
                + [f'-box <= {v} <= box' for v in m] + [f'0.0 <= {v} <= box' for v in sd])
     clipped = ([f'{low!r} if {v} < {low!r} else {high!r} if {v} > {high!r} else {v}'
                 for v, (low, high) in zip(u, limits)] if limits else u)
+    act = []
+    for j, (low, high) in enumerate(limits or []):
+        act += [f'    a{j} = u{j} + z{j}',
+                f'    if a{j} < {low - LIMIT_TOLERANCE!r} or a{j} > {high + LIMIT_TOLERANCE!r}:',
+                '        return None',
+                f'    a{j} = {low!r} if a{j} < {low!r} else {high!r} if a{j} > {high!r} else a{j}']
+    if not limits:
+        act += [f'    a{j} = u{j} + z{j}' for j in range(n_u)]
     source = '\n'.join([
         'def excess(rows, upper, z):',
         f'    {", ".join(z)}, = z',
@@ -639,11 +651,18 @@ def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
         f'    return {" and ".join(bounded)}',
         'def clip(u):',
         f'    {", ".join(u)}, = u',
-        f'    return [{", ".join(clipped)}]', ''])
+        f'    return [{", ".join(clipped)}]',
+        'def act(applied, z):',
+        f'    {", ".join(u)}, = applied',
+        f'    {", ".join(z)}, = z',
+        *act,
+        f'    return [{", ".join(f"a{j}" for j in range(n_u))}], '
+        f'[{", ".join(f"a{j} - u{j}" for j in range(n_u))}]', ''])
     namespace: dict = {'inf': math.inf}
     exec(compile(source, '<filter rows>', 'exec'), namespace)  # noqa: S102 - own source
     return _ShapeKernels((_kernels(p_inverse)[0], namespace['excess']),
-                         namespace['row_values'], namespace['within_bounds'], namespace['clip'])
+                         namespace['row_values'], namespace['within_bounds'], namespace['clip'],
+                         namespace['act'])
 
 
 Assembly = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
@@ -853,18 +872,13 @@ class SafetyFilter:
         else:
             self._u_min = np.full(self.n_u, -np.inf)
             self._u_max = np.full(self.n_u, np.inf)
-        self._u_min_tolerated = self._u_min - LIMIT_TOLERANCE
-        self._u_max_tolerated = self._u_max + LIMIT_TOLERANCE
         if slack_tolerance is not None and not (math.isfinite(slack_tolerance)
                                                 and slack_tolerance >= 0):
             raise ValueError(f'slack_tolerance: must be a finite number >= 0, '
                              f'got {slack_tolerance!r}')
         self.slack_tolerance = slack_tolerance
         self.input_bounds = InputBounds() if input_bounds is None else input_bounds
-        # Python floats for the per-call checks on a few values (cheaper than numpy calls)
         self._limits = list(zip(self._u_min.tolist(), self._u_max.tolist()))
-        self._limits_tolerated = list(zip(self._u_min_tolerated.tolist(),
-                                          self._u_max_tolerated.tolist()))
         self._zeros_x_list = [0.0] * self.n_x
         action = np.zeros(self.n_u) if fail_safe_action is None else _vector(
             'fail_safe_action', fail_safe_action, self.n_u)
@@ -904,6 +918,7 @@ class SafetyFilter:
                                  self._limits if problem.has_limits else None)
         self._kernels, self._row_values = kernels.solve, kernels.row_values
         self._within_bounds, self._clip = kernels.within_bounds, kernels.clip
+        self._act = kernels.act
 
     def filter(self, state: Sequence[float], u_rl: Sequence[float],
                mean: Sequence[float] | None = None,
@@ -1043,15 +1058,10 @@ class SafetyFilter:
         if not all(map(math.isfinite, z)):
             return None
         rows_upper, g_rows, applied = rows
-        action, step = [], []
-        for value, delta, (low, high), (low_tolerated, high_tolerated) in zip(
-                applied, z, self._limits, self._limits_tolerated):
-            moved = value + delta
-            if moved < low_tolerated or moved > high_tolerated:
-                return None
-            moved = low if moved < low else high if moved > high else moved
-            action.append(moved)
-            step.append(moved - value)
+        moved = self._act(applied, z)
+        if moved is None:
+            return None
+        action, step = moved
         values = self._row_values(rows_upper, g_rows, step)
         needed = max(0.0, -min(values))
         # The solver's own eps must account for what the rows need: else the answer is not the
