@@ -267,17 +267,26 @@ def _on_rows(basis: list[list[float]], rhs: list[float], tolerance: float
     makes the multipliers large; where it then misses the rows by more than ``tolerance``,
     one step of iterative refinement (on lambda, and y with it) puts it back, and
     stationarity, |y + sum_i lambda_i basis_i| evaluated, must then be at most
-    :data:`STATIONARITY_TOLERANCE` of the terms summed."""
+    :data:`STATIONARITY_TOLERANCE` of the terms summed. Two rows (the filter's common case)
+    are written out, the same sums, as far as no refinement is needed."""
+    if len(basis) == 2:
+        a, b = basis
+        ra, rb = rhs
+        aa, ab, bb = _dot(a, a), _dot(a, b), _dot(b, b)
+        determinant = aa * bb - ab * ab  # Cramer's rule, as _solve_small
+        if not 0.0 < abs(determinant) < math.inf:
+            return None
+        l0 = (bb * -ra - ab * -rb) / determinant
+        l1 = (aa * -rb - ab * -ra) / determinant
+        y = [-(l0 * p + l1 * q) for p, q in zip(a, b)]
+        if abs(_dot(a, y) - ra) <= tolerance and abs(_dot(b, y) - rb) <= tolerance:
+            return (y, [l0, l1]) if l0 >= 0.0 and l1 >= 0.0 else None
     gram = _gram(basis)
     multipliers = _solve_small(gram, [-value for value in rhs])
     if multipliers is None:
         return None
     columns = list(zip(*basis))
-    if len(basis) == 2:  # the common case, written out (the same sums)
-        l0, l1 = multipliers
-        y = [-(l0 * a + l1 * b) for a, b in columns]
-    else:
-        y = [-_dot(multipliers, column) for column in columns]
+    y = [-_dot(multipliers, column) for column in columns]
     residual = [_dot(a, y) - value for a, value in zip(basis, rhs)]
     if not max(map(abs, residual)) <= tolerance:
         correction = _solve_small(gram, residual)
