@@ -373,10 +373,11 @@ def active_set_solution(*, rows: Sequence[Sequence[float]], upper: Sequence[floa
     The first two steps are written out, for the filter's QPs (one or two rows active in
     most calls). The first: the row p farthest from z = 0 (in distance) alone, z on it, with
     multiplier -upper_p / (row_p^T P^-1 row_p) > 0. Where another row is still violated, the
-    row q violated most there joins: the method then ends at W = {p, q}, or at W = {q} where
-    p's multiplier would turn negative; each is tried, on its own certificate. Only where
-    neither answers do the steps go on as above. Each scan for the row violated most
-    evaluates row^T z - upper for every row and the distance only for the rows it exceeds.
+    row q violated most there joins, and W = {p, q} is tried on its certificate (q alone is
+    no answer but in a tie: every point that meets p is at least p's distance from 0, q's own
+    point no farther; p can leave W only once more rows join). Only where it does not answer do
+    the steps go on as above, from W = {p}. Each scan for the row violated most evaluates
+    row^T z - upper for every row and the distance only for the rows it exceeds.
 
     The answer comes with the certificate that makes it the QP's one solution (whichever
     steps found it): every multiplier >= 0 and stationarity to round-off (:func:`_on_rows`),
@@ -467,9 +468,8 @@ def _active_set_steps(rows: list[list[float]], upper: list[float], p_inverse: li
     q = violated_most(excess)
     if q is None:
         return None
-    # the second step, written out: q joins (2 steps), or p leaves and q joins (3 steps)
-    for working in ([p, q], [q])[:max(0, max_steps - 1)]:
-        found = certified(working)
+    if max_steps >= 2:  # the second step, written out: q joins
+        found = certified([p, q])
         if found is not None and max(found[2]) <= tolerance and sum(found[2]) == -math.inf:
             return [s * value for s, value in zip(scale, found[0])]
     y = [value / s for value, s in zip(first, scale)]
