@@ -33,7 +33,9 @@ A call works on Python floats from its inputs to its result: the inputs are read
 lists, the checks, the clip, the assembly, the pass-through test, the active-set solve and the
 row check are plain float arithmetic (on a few dozen values, a numpy call costs more than the
 work it does), and numpy arrays are built only for the result (and for OSQP and the fallback,
-where a call gets that far).
+where a call gets that far). The loops over a few values that every call runs (the input
+bounds, the clip, the active-set scans over the rows, the row values) are straight-line code
+generated for the filter's shape at construction (``_shape_kernels``), like the assembly.
 
 The invariant (checked on every call, whatever the solver reports): the returned action is
 either
@@ -315,13 +317,17 @@ def _as_floats(value: Sequence) -> list:
 
 
 Kernels = tuple[Callable[[Sequence[float]], float],
-                Callable[[list[list[float]], list[float], Sequence[float]], list[float]]]
-"""(row -> row^T P^-1 row, (rows, upper, z) -> [row^T z - upper for each row])."""
+                Callable[[list[list[float]], list[float], Sequence[float]], list[float]],
+                Callable[[list[list[float]], list[float]], tuple[int, float] | None]]
+"""(row -> row^T P^-1 row, (rows, upper, z) -> [row^T z - upper for each row],
+(rows, upper) -> (the violated row farthest from z = 0 in distance, -1 for none, and its
+row^T P^-1 row), None for a violated row of zeros)."""
 
 
 def _kernels(p_inverse: list[float]) -> Kernels:
-    """The two inner loops of :func:`active_set_solution` for P^-1 = diag(p_inverse), written
-    out for the filter's two and three unknowns (the same sums as :func:`_dot`)."""
+    """The inner loops of :func:`active_set_solution` for P^-1 = diag(p_inverse)
+    (:data:`Kernels`), written out for the filter's two and three unknowns (the same sums as
+    :func:`_dot`)."""
     if len(p_inverse) == 3:
         w0, w1, w2 = p_inverse
 
@@ -351,7 +357,21 @@ def _kernels(p_inverse: list[float]) -> Kernels:
         def excess(rows: list[list[float]], upper: list[float], z: Sequence[float]
                    ) -> list[float]:
             return [_dot(row, z) - value for row, value in zip(rows, upper)]
-    return norm, excess
+
+    def farthest(rows: list[list[float]], upper: list[float]) -> tuple[int, float] | None:
+        # only a violated row (upper < 0) can be farthest; the first of equals is taken
+        p, distance, norm_p = -1, 0.0, 0.0
+        for i, value in enumerate(upper):
+            if value < 0.0:
+                squared = norm(rows[i])
+                if not squared > 0.0:
+                    return None  # a violated row of zeros (or NaN): no step meets it
+                ratio = value / math.sqrt(squared)
+                if ratio < distance:
+                    p, distance, norm_p = i, ratio, squared
+        return p, norm_p
+
+    return norm, excess, farthest
 
 
 def active_set_solution(*, rows: Sequence[Sequence[float]], upper: Sequence[float],
@@ -405,18 +425,12 @@ def _active_set_steps(rows: list[list[float]], upper: list[float], p_inverse: li
                       tolerance: float, max_steps: int, kernels: Kernels
                       ) -> list[float] | None:
     """:func:`active_set_solution` on lists, with the :func:`_kernels` of ``p_inverse``."""
-    norm, excess_of = kernels
-    # The first step: the row farthest from z = 0 (in distance) alone. Only a violated row
-    # (upper < 0) can be farthest; the first of equals is taken.
-    p, distance, norm_p = -1, 0.0, 0.0
-    for i, value in enumerate(upper):
-        if value < 0.0:
-            squared = norm(rows[i])
-            if not squared > 0.0:
-                return None  # a violated row of zeros (or NaN): no step meets it
-            ratio = value / math.sqrt(squared)
-            if ratio < distance:
-                p, distance, norm_p = i, ratio, squared
+    norm, excess_of, farthest = kernels
+    # The first step: the row farthest from z = 0 (in distance) alone.
+    found = farthest(rows, upper)
+    if found is None:
+        return None  # a violated row of zeros (or NaN): no step meets it
+    p, norm_p = found
     if p < 0 or not upper[p] < -tolerance:
         return None  # z = 0 meets every row to the tolerance: not this method's case
     multiplier = -upper[p] / norm_p
@@ -594,7 +608,8 @@ class _ShapeKernels(NamedTuple):
     the limits) at construction by :func:`_shape_kernels`."""
 
     solve: Kernels
-    """For :func:`_active_set_steps`: the norm, and row^T z - upper over every row."""
+    """For :func:`_active_set_steps`: the norm, row^T z - upper over every row, the violated
+    row farthest from z = 0."""
     row_values: RowValues
     """The RCBF rows' values at a step of the action."""
     within_bounds: Callable[..., bool]
@@ -610,9 +625,10 @@ class _ShapeKernels(NamedTuple):
 def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
                    limits: list[tuple[float, float]] | None) -> _ShapeKernels:
     """The filter's per-call loops as straight-line Python (a fraction of the time of loops
-    and builtin calls on a few dozen values): row^T z - upper of every row (K RCBF rows, then,
-    with limits, [e_j, 0] z <= . and [-e_j, 0] z <= ., their zeros and ones folded in; the same
-    sums as :func:`_kernels`, whose norm is taken), the RCBF rows' values at a step of the
+    and builtin calls on a few dozen values): the active-set method's scans over the rows (K
+    RCBF rows, then, with limits, [e_j, 0] z <= . and [-e_j, 0] z <= ., their zeros and ones
+    folded in; the same sums as :func:`_kernels`, whose norm is taken), the RCBF rows' values
+    at a step of the
     action (:data:`RowValues`), the input bounds as one chained comparison per value (NaN
     fails every comparison), the clip and the action of a solution (the row check's
     projection onto the limits), the limits folded in. ``limits``: (low, high) per input, or
@@ -629,6 +645,19 @@ def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
         excess += [f'-z{j} - v{k + n_u + j}' for j in range(n_u)]
     values = [f'v{i} - (' + ' + '.join(f'r{i}_{j}*d{j}' for j in range(n_u)) + ')'
               for i in range(k)]
+    norms = [' + '.join(f'r{i}_{j}*r{i}_{j}*{w!r}' for j, w in enumerate(p_inverse))
+             for i in range(k)]
+    if limits:  # a limit row's norm: its one entry's weight
+        norms += [repr(float(p_inverse[j])) for j in range(n_u)] * 2
+    farthest = []
+    for i, norm in enumerate(norms):
+        farthest += [f'    if v{i} < 0.0:',
+                     f'        squared = {norm}',
+                     '        if not squared > 0.0:',
+                     '            return None',
+                     f'        ratio = v{i} / sqrt(squared)',
+                     '        if ratio < distance:',
+                     f'            p, distance, norm_p = {i}, ratio, squared']
     x, u = [f'x{i}' for i in range(n_x)], [f'u{j}' for j in range(n_u)]
     m, sd = [f'm{i}' for i in range(n_x)], [f's{i}' for i in range(n_x)]
     bounded = ([f'-state <= {v} <= state' for v in x] + [f'-command <= {v} <= command' for v in u]
@@ -649,6 +678,12 @@ def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
         f'    {", ".join(rows + limit_rows)}, = rows',
         f'    {", ".join(upper)}, = upper',
         f'    return [{", ".join(excess)}]',
+        'def farthest(rows, upper):',
+        f'    {", ".join(rows + limit_rows)}, = rows',
+        f'    {", ".join(upper)}, = upper',
+        '    p, distance, norm_p = -1, 0.0, 0.0',
+        *farthest,
+        '    return p, norm_p',
         'def row_values(upper, rows, step):',
         f'    {", ".join(f"d{j}" for j in range(n_u))}, = step',
         f'    {", ".join(rows)}, = rows',
@@ -667,9 +702,9 @@ def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
         *act,
         f'    return [{", ".join(f"a{j}" for j in range(n_u))}], '
         f'[{", ".join(f"a{j} - u{j}" for j in range(n_u))}]', ''])
-    namespace: dict = {'inf': math.inf}
+    namespace: dict = {'inf': math.inf, 'sqrt': math.sqrt}
     exec(compile(source, '<filter rows>', 'exec'), namespace)  # noqa: S102 - own source
-    return _ShapeKernels((_kernels(p_inverse)[0], namespace['excess']),
+    return _ShapeKernels((_kernels(p_inverse)[0], namespace['excess'], namespace['farthest']),
                          namespace['row_values'], namespace['within_bounds'], namespace['clip'],
                          namespace['act'])
 
