@@ -1,7 +1,7 @@
 """Per-step safety filter: the three constraint assemblies, and OSQP against the alternatives.
 
-    python benchmarks/bench_filter_step.py [--calls 2000] [--rounds 4] [--no-write]
-        [--reference DIR --reference-python PATH [--reference-calls 400]]
+    python benchmarks/bench_filter_step.py [--calls 2000] [--rounds 4] [--cold-calls 300]
+        [--no-write] [--reference DIR --reference-python PATH [--reference-calls 400]]
 
 The shipped problems (config/unicycle.yaml, car_following.yaml, pvtol.yaml, the safety_filter
 section), then two denser problems (see PROBLEMS), at random
@@ -10,8 +10,9 @@ following, unbounded: in [-5, 5]) and a disturbance box std 0.02. The calls go i
 blocks, each block through the three filters one after the other (consecutive calls on one
 filter, as when it filters continuously; the rounds spread the machine's load over the paths):
 
-- closed form: SafetyFilter's default for the built-in problems, the constraint assembly in
-  numpy (rcbf_ros.core.lie_closed_form), no warm-up;
+- closed form: SafetyFilter's default for the built-in problems, the constraint assembly as
+  straight-line Python on floats generated for the problem at construction
+  (rcbf_ros.core.lie_closed_form), no warm-up;
 - autograd: the same filter with closed_form=False, the assembly through torch autograd
   (RCBFProblem.qp), no warm-up;
 - compiled: closed_form=False, compile_assembly=True: the autograd assembly traced and
@@ -29,6 +30,9 @@ FilterResult.solve_time_s, i.e. the active-set solve (and, where it gave way, OS
 solve) + the row check, or on a pass-through the result at z = 0 (where the row check holds by
 construction), with OSQP's own C timers of update and solve; the rest = input checks,
 clipping, the data check and the result.
+Then the closed-form call with cold caches: before each of --cold-calls calls a 64 MB buffer
+is written (untimed), as a SAC update or the rest of a ROS node evicts the last-level cache
+between two filter calls, and the same call is repeated at once (warm) for the comparison.
 Then the solver alone against a new OSQP per call and qpth at batch 1, with the
 accuracy of each against Clarabel.
 
@@ -82,9 +86,10 @@ PATHS_DIFFER = (
     'What differs between the paths: only the constraint assembly (h, grad h, L_f h, L_g h, '
     'the robust margin and the QP rows); the input checks, clipping, the solve and the row '
     'check '
-    "are the same code. Closed form: numpy on one state, from each family's quadratic "
-    "coefficients (or the look-ahead circle's formula) and the system's f, J, g, no "
-    'warm-up. Autograd: RCBFProblem.qp in torch, one autograd pass per family (a double one '
+    "are the same code. Closed form: one generated Python function of the state on floats, "
+    "from each family's quadratic coefficients (or the look-ahead circle's formula) and the "
+    "system's f, J, g, constants folded in, no warm-up. Autograd: RCBFProblem.qp in torch, "
+    'one autograd pass per family (a double one '
     'through each cascade), no warm-up. Compiled: that autograd graph traced and compiled at '
     'construction (its seconds per system below). The QP data agree to round-off; OSQP '
     "answers then agree to round-off (active set) or OSQP's tolerance (differences below), "
@@ -280,6 +285,23 @@ def bench_paths(problem, states, proposals, mean, std, rounds: int,
             'worst_h': max(float(np.max(np.abs(a.h - b.h))) for a, b in pairs)}
 
 
+COLD_BUFFER_BYTES = 64 * 2 ** 20
+"""Written before each cold call: more than the last-level cache of the machines measured."""
+
+
+def bench_cold(problem, states, proposals, mean, std, calls: int) -> tuple[list, list]:
+    """The closed-form filter's whole call (total_time_s) with the caches flushed before it
+    (a 64 MB buffer written, untimed), and the same call repeated at once (warm)."""
+    filt = SafetyFilter(problem)
+    flush = np.zeros(COLD_BUFFER_BYTES // 8)
+    cold, warm = [], []
+    for i in range(min(calls, len(states))):
+        np.add(flush, 1.0, out=flush)
+        cold.append(filt.filter(states[i], proposals[i], mean, std).total_time_s)
+        warm.append(filt.filter(states[i], proposals[i], mean, std).total_time_s)
+    return cold, warm
+
+
 def clarabel_solution(qp) -> np.ndarray:
     """Independent reference: the same QP through cvxpy + Clarabel (interior point, float64)."""
     import cvxpy as cp
@@ -358,6 +380,8 @@ def main() -> None:
                         help='blocks of calls, each on the three filters in turn')
     parser.add_argument('--no-write', action='store_true', help='do not update RESULTS.md')
     add_reference_arguments(parser)
+    parser.add_argument('--cold-calls', type=int, default=300,
+                        help='closed-form calls with the caches flushed before each, per system')
     parser.add_argument('--reference-calls', type=int, default=400,
                         help="the reference's filter calls per system (split over the rounds)")
     args = parser.parse_args()
@@ -371,6 +395,8 @@ def main() -> None:
     breakdown = ['| system | stage | median us, all calls | pass-through | active set '
                  '| OSQP ran |', '|---|---|---:|---:|---:|---:|']
     details = []
+    cold_rows = ['| system | median us, warm | median us, cold | p90 us, cold | calls |',
+                 '|---|---:|---:|---:|---:|']
     target = []
     for label, sampler, params in PROBLEMS:
         problem = filter_config_from_params(params()).problem
@@ -421,6 +447,9 @@ def main() -> None:
             times = out['stages'][stage]
             breakdown.append(f'| {label} | {stage_name} | {_median(times["all"])} '
                              + ''.join(f'| {_median(times[kind])} ' for kind in KINDS) + '|')
+        cold, warm = bench_cold(problem, states, proposals, mean, std, args.cold_calls)
+        cold_rows.append(f'| {label} | {_median(warm)} | {_median(cold)} '
+                         f'| {np.percentile(_us(cold), 90):.1f} | {len(cold)} |')
         rows, accuracy = bench_solvers(problem, states, proposals, mean, std)
         details.append(
             f'\n**{label}** ({args.calls} calls; K = {problem.n_barriers} barrier rows; '
@@ -440,16 +469,20 @@ def main() -> None:
                        f'Closed form against the {TARGET_US:.0f} us target (median of all '
                        f'calls): {"; ".join(target)}.', '',
                        reference_line(compared), '',
-                       'The closed-form call in stages:', '', *breakdown, '', load, '',
+                       'The closed-form call in stages:', '', *breakdown, '',
+                       'The closed-form call with cold caches (a 64 MB buffer written before '
+                       'each call), and the same call repeated at once:', '', *cold_rows, '',
+                       load, '',
                        PATHS_DIFFER, *details])
     print(table)
     if not args.no_write:
         from _results import machine_line, write_section
         write_section('Per-step safety filter', (
             f'Command: `python benchmarks/bench_filter_step.py --calls {args.calls} --rounds '
-            f'{args.rounds}' + (' --reference <Mod-RL-RCBF checkout> --reference-python '
-                                '<its venv>/bin/python --reference-calls '
-                                f'{args.reference_calls}' if args.reference else '') + '`. '
+            f'{args.rounds} --cold-calls {args.cold_calls}'
+            + (' --reference <Mod-RL-RCBF checkout> --reference-python '
+               '<its venv>/bin/python --reference-calls '
+               f'{args.reference_calls}' if args.reference else '') + '`. '
             + machine_line() + '.\n\n' + table))
 
 

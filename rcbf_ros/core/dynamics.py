@@ -8,17 +8,18 @@ at B = 1 for the per-step filter and at B = minibatch for the differentiable lay
 A user's own system plugs in by implementing :class:`ControlAffineSystem` (``n_x``, ``n_u``,
 ``u_min``, ``u_max``, ``f``, ``g``) and naming it in YAML by dotted path (:func:`load_system`).
 
-The built-in systems also give f, its Jacobian and g in closed form for one state in numpy
-(:meth:`Unicycle.closed_form_drift` and the same on the others, returning a :class:`DriftJet`):
-the per-step filter's closed-form constraint assembly (:mod:`rcbf_ros.core.lie_closed_form`)
-uses them; the tests check them against autograd through ``f`` and ``g``.
+The built-in systems also give f, its Jacobian and g at one state as Python source on floats
+(:meth:`Unicycle.closed_form_source` and the same on the others, returning a
+:class:`DriftSource`): the per-step filter's closed-form constraint assembly
+(:mod:`rcbf_ros.core.lie_closed_form`) inlines it into the code it generates; the tests check
+it, through :meth:`DriftSource.function`, against autograd through ``f`` and ``g``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 import importlib
 import math
-from typing import Any, Callable, Mapping, NamedTuple, Protocol, runtime_checkable
+from typing import Any, Callable, Mapping, NamedTuple, Protocol, runtime_checkable, Union
 
 import numpy as np
 import torch
@@ -49,12 +50,7 @@ class ControlAffineSystem(Protocol):
 
 
 class DriftJet(NamedTuple):
-    """The drift, its Jacobian and the input matrix at one state (numpy float64).
-
-    Enough for cascades of depth <= 2 over barriers with a constant Hessian (see
-    :mod:`rcbf_ros.core.lie_closed_form`) for drifts whose Jacobian does not change along f:
-    sum_k f_k dJ/dx_k = 0, which holds for the three built-in systems (see each
-    ``closed_form_drift``; tested against autograd)."""
+    """The drift, its Jacobian and the input matrix at one state (numpy float64)."""
 
     f: np.ndarray
     """(n_x,) f(x)."""
@@ -67,11 +63,73 @@ class DriftJet(NamedTuple):
 DriftJetFunction = Callable[[np.ndarray], DriftJet]
 """x: (n_x,) float64 -> :class:`DriftJet` at x."""
 
+Entry = Union[float, str]
+"""An entry of a :class:`DriftSource`: a constant, or the name of a variable its lines assign."""
 
-def _constant(array: np.ndarray) -> np.ndarray:
-    """``array``, read-only (shared between calls)."""
-    array.setflags(write=False)
-    return array
+SOURCE_NAMESPACE: dict[str, Any] = {'cos': math.cos, 'sin': math.sin, 'inf': math.inf,
+                                    'nan': math.nan}
+"""The functions the generated source may call besides the builtins, and the names ``repr``
+gives the floats inf and nan (a constant of an absurd config can overflow)."""
+
+
+def state_names(n_x: int) -> list[str]:
+    """The names the source gives the state entries: x0, x1, ..."""
+    return [f'x{i}' for i in range(n_x)]
+
+
+class DriftSource(NamedTuple):
+    """f, its Jacobian J and g at one state as Python source on floats.
+
+    ``lines`` are statements (``if`` blocks allowed, indented by four spaces) that read the
+    state entries as ``x0``, ``x1``, ... (Python floats, finite), may call ``cos`` and
+    ``sin`` (:data:`SOURCE_NAMESPACE`) and assign every variable an entry names; those
+    variables start with ``d_`` (the code generated around the lines uses no such name).
+    ``jacobian`` and ``g`` leave out their structural zeros and f holds 0.0 for its own:
+    :mod:`rcbf_ros.core.lie_closed_form` folds every constant into the code it generates, so
+    that a zero costs nothing.
+
+    The closed form of the cascades needs J not to change along f: sum_k f_k dJ/dx_k = 0, which
+    holds for the three built-in systems (see each ``closed_form_source``; tested against
+    autograd)."""
+
+    lines: tuple[str, ...]
+    """Statements computing the named entries from x0, x1, ..."""
+    f: tuple[Entry, ...]
+    """n_x entries of f(x)."""
+    jacobian: Mapping[tuple[int, int], Entry]
+    """(i, j) -> J_ij = d f_i / d x_j, the nonzero entries."""
+    g: Mapping[tuple[int, int], Entry]
+    """(i, j) -> g_ij(x), the nonzero entries."""
+    n_u: int
+    """Columns of g."""
+
+    def function(self) -> DriftJetFunction:
+        """The source compiled into one function of a state (numpy in and out), as the
+        generated code evaluates it (what the tests compare with autograd)."""
+        n_x = len(self.f)
+
+        def table(entries: Mapping[tuple[int, int], Entry], columns: int) -> str:
+            rows = [['0.0'] * columns for _ in range(n_x)]
+            for (i, j), entry in entries.items():
+                rows[i][j] = entry if isinstance(entry, str) else repr(float(entry))
+            return '[' + ', '.join('[' + ', '.join(row) + ']' for row in rows) + ']'
+
+        f = ', '.join(e if isinstance(e, str) else repr(float(e)) for e in self.f)
+        source = '\n'.join([
+            'def jet(values):',
+            f'    {", ".join(state_names(n_x))}, = values',
+            *(f'    {line}' for line in self.lines),
+            f'    return [{f}], {table(self.jacobian, n_x)}, {table(self.g, self.n_u)}'])
+        namespace = dict(SOURCE_NAMESPACE)
+        exec(compile(source, '<drift source>', 'exec'), namespace)  # noqa: S102 - own source
+        evaluate = namespace['jet']
+
+        def jet(x: np.ndarray) -> DriftJet:
+            f_values, jacobian, g = evaluate(np.asarray(x, dtype=np.float64).tolist())
+            return DriftJet(np.array(f_values), np.array(jacobian).reshape(n_x, n_x),
+                            np.array(g).reshape(n_x, self.n_u))
+
+        return jet
 
 
 def nominal_derivative(system: ControlAffineSystem, x: Tensor, u: Tensor) -> Tensor:
@@ -141,21 +199,12 @@ class Unicycle:
         """d f / d x = 0. x: (B, 3) -> (B, 3, 3)."""
         return x.new_zeros(x.shape[0], 3, 3)
 
-    def closed_form_drift(self) -> DriftJetFunction:
+    def closed_form_source(self) -> DriftSource:
         """f = 0, J = 0 (so J does not change along f) and g = [[cos th, 0], [sin th, 0],
         [0, 1]] at one state."""
-        zero_f = _constant(np.zeros(3))
-        zero_j = _constant(np.zeros((3, 3)))
-
-        def jet(x: np.ndarray) -> DriftJet:
-            theta = float(x[2])
-            g = np.zeros((3, 2))
-            g[0, 0] = math.cos(theta)
-            g[1, 0] = math.sin(theta)
-            g[2, 1] = 1.0
-            return DriftJet(zero_f, zero_j, g)
-
-        return jet
+        return DriftSource(lines=('d_cos = cos(x2)', 'd_sin = sin(x2)'), f=(0.0, 0.0, 0.0),
+                           jacobian={}, g={(0, 0): 'd_cos', (1, 0): 'd_sin', (2, 1): 1.0},
+                           n_u=2)
 
 
 @dataclass(frozen=True)
@@ -235,42 +284,36 @@ class CarFollowing:
             out[:, 2 * me + 1, 2 * me] = braking
         return out
 
-    def closed_form_drift(self) -> DriftJetFunction:
+    def closed_form_source(self) -> DriftSource:
         """f, J and g at one state. f is affine wherever no braking switch sits exactly at the
         state, so J is piecewise constant (the branch :meth:`nominal_accelerations` takes, as
-        autograd sees it) and does not change along f."""
-        # (car, car ahead, braking gap) of every car with a nominal controller
-        followers = ((1, 0, self.brake_gap), (2, 1, self.brake_gap),
-                     (4, 2, self.rear_brake_gap))
-        base = np.zeros((10, 10))
-        for car in range(5):
-            base[2 * car, 2 * car + 1] = 1.0  # p_dot = v
-        for me, _, _ in followers:
-            base[2 * me + 1, 2 * me + 1] = -self.k_v
-        base = _constant(base)
-        g = np.zeros((10, 1))
-        g[7, 0] = 1.0
-        g = _constant(g)
-        v_des, k_v, k_b = self.v_des, self.k_v, self.k_b
-
-        def jet(x: np.ndarray) -> DriftJet:
-            values = x.tolist()
-            p, v = values[0::2], values[1::2]
-            f = [0.0] * 10
-            f[0::2] = v
-            jacobian = base.copy()
-            for me, ahead, gap in followers:
-                track = k_v * (v_des - v[me])
-                dp = p[ahead] - p[me]
-                if abs(dp) < gap:
-                    f[2 * me + 1] = track - k_b * dp
-                    jacobian[2 * me + 1, 2 * ahead] = -k_b
-                    jacobian[2 * me + 1, 2 * me] = k_b
-                else:
-                    f[2 * me + 1] = track
-            return DriftJet(np.array(f), jacobian, g)
-
-        return jet
+        autograd sees it: -k_b and k_b on the gap inside it, 0 outside) and does not change
+        along f. The operations are those of :meth:`nominal_accelerations`, in its order."""
+        lines: list[str] = []
+        f: list[Entry] = [entry for car in range(5) for entry in (f'x{2 * car + 1}', 0.0)]
+        jacobian: dict[tuple[int, int], Entry] = {(2 * car, 2 * car + 1): 1.0
+                                                  for car in range(5)}
+        v_des, k_v, k_b = (repr(float(v)) for v in (self.v_des, self.k_v, self.k_b))
+        for me, ahead, gap in ((1, 0, self.brake_gap), (2, 1, self.brake_gap),
+                               (4, 2, self.rear_brake_gap)):
+            row = 2 * me + 1
+            gap_name, track = f'd_gap{me}', f'd_track{me}'
+            lines += [f'{gap_name} = x{2 * ahead} - x{2 * me}',
+                      f'{track} = {k_v} * ({v_des} - x{row})',
+                      f'if abs({gap_name}) < {float(gap)!r}:',
+                      f'    d_f{row} = {track} - {k_b} * {gap_name}',
+                      f'    d_j{row}_{2 * ahead} = -{k_b}',
+                      f'    d_j{row}_{2 * me} = {k_b}',
+                      'else:',
+                      f'    d_f{row} = {track}',
+                      f'    d_j{row}_{2 * ahead} = 0.0',
+                      f'    d_j{row}_{2 * me} = 0.0']
+            f[row] = f'd_f{row}'
+            jacobian[row, row] = -float(self.k_v)
+            jacobian[row, 2 * ahead] = f'd_j{row}_{2 * ahead}'
+            jacobian[row, 2 * me] = f'd_j{row}_{2 * me}'
+        return DriftSource(lines=tuple(lines), f=tuple(f), jacobian=jacobian, g={(7, 0): 1.0},
+                           n_u=1)
 
 
 @dataclass(frozen=True)
@@ -331,37 +374,25 @@ class PVTOL:
             out[:, 6, 6] = -self.operator_gain
         return out
 
-    def closed_form_drift(self) -> DriftJetFunction:
-        """f, J and g at one state.
+    def closed_form_source(self) -> DriftSource:
+        """f, J and g at one state, with the operations of :meth:`f` in its order.
 
         J's only state-dependent entries, d(-sin th f, cos th f - 1)/d(th, f), depend on theta
         and the thrust, whose drift entries are 0: J does not change along f."""
-        n_x, k_h = self.n_x, self.operator_gain
-        base = np.zeros((n_x, n_x))
-        base[0, 2] = base[1, 3] = 1.0
+        lines = ['d_sin = sin(x4)', 'd_cos = cos(x4)', 'd_f2 = -d_sin * x5',
+                 'd_f3 = d_cos * x5 - 1.0', 'd_j2_4 = -d_cos * x5', 'd_j2_5 = -d_sin',
+                 'd_j3_4 = -d_sin * x5']
+        f: list[Entry] = ['x2', 'x3', 'd_f2', 'd_f3', 0.0, 0.0]
+        jacobian: dict[tuple[int, int], Entry] = {
+            (0, 2): 1.0, (1, 3): 1.0, (2, 4): 'd_j2_4', (2, 5): 'd_j2_5', (3, 4): 'd_j3_4',
+            (3, 5): 'd_cos'}
         if self.with_operator:
-            base[6, 0], base[6, 6] = k_h, -k_h
-        base = _constant(base)
-        g = np.zeros((n_x, 2))
-        g[4, 0] = g[5, 1] = 1.0
-        g = _constant(g)
-        with_operator = self.with_operator
-
-        def jet(x: np.ndarray) -> DriftJet:
-            values = x.tolist()
-            theta, thrust = values[4], values[5]
-            sin, cos = math.sin(theta), math.cos(theta)
-            f = [values[2], values[3], -sin * thrust, cos * thrust - 1.0, 0.0, 0.0]
-            if with_operator:
-                f.append(k_h * (values[0] - values[6]))
-            jacobian = base.copy()
-            jacobian[2, 4] = -cos * thrust
-            jacobian[2, 5] = -sin
-            jacobian[3, 4] = -sin * thrust
-            jacobian[3, 5] = cos
-            return DriftJet(np.array(f), jacobian, g)
-
-        return jet
+            k_h = float(self.operator_gain)
+            lines.append(f'd_f6 = {k_h!r} * (x0 - x6)')
+            f.append('d_f6')
+            jacobian[6, 0], jacobian[6, 6] = k_h, -k_h
+        return DriftSource(lines=tuple(lines), f=tuple(f), jacobian=jacobian,
+                           g={(4, 0): 1.0, (5, 1): 1.0}, n_u=2)
 
 
 BUILTIN_SYSTEMS: dict[str, type] = {
@@ -371,7 +402,7 @@ BUILTIN_SYSTEMS: dict[str, type] = {
 }
 
 CLOSED_FORM_SYSTEMS: tuple[type, ...] = (Unicycle, CarFollowing, PVTOL)
-"""Systems whose ``closed_form_drift`` is exact, by exact type: a subclass may override f or g,
+"""Systems whose ``closed_form_source`` is exact, by exact type: a subclass may override f or g,
 so it keeps the autograd path."""
 
 

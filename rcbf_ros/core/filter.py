@@ -22,10 +22,20 @@ by construction). The status is ``solved`` for a pass-through and an active-set 
 OSQP's (whose ``solved_inaccurate`` is passed on).
 
 The constraint assembly (barrier terms, then the QP rows) takes one of three paths, chosen at
-construction by :func:`select_assembly` (:attr:`SafetyFilter.assembly`): the closed form in
-numpy (:mod:`rcbf_ros.core.lie_closed_form`, for the built-in systems and barrier families), or
-the autograd path through :meth:`RCBFProblem.qp` (any other system or family), eager or traced
-and compiled (``compile_assembly``). All three give the same QP data to round-off (tested).
+construction by :func:`select_assembly` (:attr:`SafetyFilter.assembly`): the closed form, as
+straight-line Python generated for the problem at construction
+(:mod:`rcbf_ros.core.lie_closed_form`, for the built-in systems and barrier families), or the
+autograd path through :meth:`RCBFProblem.qp` (any other system or family), eager or traced and
+compiled (``compile_assembly``). All three give the same QP data to round-off (tested), as
+lists of Python floats (:data:`~rcbf_ros.core.lie_closed_form.RowAssembly`).
+
+A call works on Python floats from its inputs to its result: the inputs are read once into
+lists, the checks, the clip, the assembly, the pass-through test, the active-set solve and the
+row check are plain float arithmetic (on a few dozen values, a numpy call costs more than the
+work it does), and numpy arrays are built only for the result (and for OSQP and the fallback,
+where a call gets that far). The loops over a few values that every call runs (the input
+bounds, the clip, the active-set scans over the rows, the row values) are straight-line code
+generated for the filter's shape at construction (``_shape_kernels``), like the assembly.
 
 The invariant (checked on every call, whatever the solver reports): the returned action is
 either
@@ -56,11 +66,12 @@ field; the ROS node validates them first and publishes the fail-safe instead.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import chain
 import math
 import operator
 import time
 from types import SimpleNamespace
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 import osqp
@@ -68,7 +79,7 @@ import scipy.sparse as sp
 import torch
 
 from rcbf_ros.core.diffqp import solve_qp_batch_full
-from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, NumpyAssembly
+from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.parameters.reader import setting
@@ -82,8 +93,8 @@ solver. OSQP refuses data beyond about 1e30 and keeps the previous problem; far 
 float64 rows lose the absolute precision the row check needs. Larger data: ``input_refused``."""
 _QP_DATA_SQUARES = 0.5 * QP_DATA_LIMIT ** 2
 """A sum of squares of the QP data at most this has every |value| below :data:`QP_DATA_LIMIT`
-(by a factor of 0.7, far beyond the sum's rounding): the one-reduction data check; data that
-fails it goes through the exact one."""
+(by a factor of 0.7, far beyond the sum's rounding): the one-sum data check (the assembly
+returns the sum); data that fails it goes through the exact one."""
 LIMIT_TOLERANCE = 1e-9
 """How far past an actuator limit the solver's answer may land before it is projected back (a
 solve at tolerance 1e-9 ends there); farther is a failed check."""
@@ -176,10 +187,6 @@ class FilterResult:
         return bool(np.any(np.abs(self.u_s) > ACTIVE_TOLERANCE)) or self.fail_safe
 
 
-class _Refused(Exception):
-    """An input the filter refuses (fail-safe, status ``input_refused``)."""
-
-
 _FLOAT64 = np.dtype(np.float64)
 ACTIVE_SET_TOLERANCE = 1e-12
 """How far (relative to the largest right-hand side) the active-set solution may exceed a row
@@ -195,12 +202,6 @@ be, relative to the terms summed (sum_i lambda_i |row_i|): round-off only."""
 DEPENDENT_ROW = 1e-20
 """A row whose part orthogonal to the active rows has a squared norm below this fraction of its
 own counts as their linear combination (an angle below 1e-10 rad)."""
-
-_min_of = np.minimum.reduce
-_max_of = np.maximum.reduce
-"""The reductions without the Python wrapper of ``ndarray.min``/``max`` (most of their cost on
-arrays of a few entries)."""
-
 
 def _dot(left: Sequence[float], right: Sequence[float]) -> float:
     """The inner product of two short sequences of floats."""
@@ -243,6 +244,13 @@ def _solve_small(matrix: list[list[float]], rhs: list[float]) -> list[float] | N
 
 def _gram(basis: list[list[float]]) -> list[list[float]]:
     """The Gram matrix of a few rows (each inner product computed once)."""
+    if len(basis) == 1:
+        (a,) = basis
+        return [[_dot(a, a)]]
+    if len(basis) == 2:
+        a, b = basis
+        ab = _dot(a, b)
+        return [[_dot(a, a), ab], [ab, _dot(b, b)]]
     gram = [[0.0] * len(basis) for _ in basis]
     for i, a in enumerate(basis):
         for j in range(i, len(basis)):
@@ -261,7 +269,20 @@ def _on_rows(basis: list[list[float]], rhs: list[float], tolerance: float
     makes the multipliers large; where it then misses the rows by more than ``tolerance``,
     one step of iterative refinement (on lambda, and y with it) puts it back, and
     stationarity, |y + sum_i lambda_i basis_i| evaluated, must then be at most
-    :data:`STATIONARITY_TOLERANCE` of the terms summed."""
+    :data:`STATIONARITY_TOLERANCE` of the terms summed. Two rows (the filter's common case)
+    are written out, the same sums, as far as no refinement is needed."""
+    if len(basis) == 2:
+        a, b = basis
+        ra, rb = rhs
+        aa, ab, bb = _dot(a, a), _dot(a, b), _dot(b, b)
+        determinant = aa * bb - ab * ab  # Cramer's rule, as _solve_small
+        if not 0.0 < abs(determinant) < math.inf:
+            return None
+        l0 = (bb * -ra - ab * -rb) / determinant
+        l1 = (aa * -rb - ab * -ra) / determinant
+        y = [-(l0 * p + l1 * q) for p, q in zip(a, b)]
+        if abs(_dot(a, y) - ra) <= tolerance and abs(_dot(b, y) - rb) <= tolerance:
+            return (y, [l0, l1]) if l0 >= 0.0 and l1 >= 0.0 else None
     gram = _gram(basis)
     multipliers = _solve_small(gram, [-value for value in rhs])
     if multipliers is None:
@@ -287,11 +308,77 @@ def _on_rows(basis: list[list[float]], rhs: list[float], tolerance: float
     return y, multipliers
 
 
-def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, p_inverse: np.ndarray,
-                        tolerance: float, max_steps: int = ACTIVE_SET_STEPS
-                        ) -> np.ndarray | None:
+def _as_floats(value: Sequence) -> list:
+    """``value`` as a list (of floats, or of sequences of floats): an array's ``tolist()``, a
+    list as it is (the method does not change it)."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return value if isinstance(value, list) else list(value)
+
+
+Kernels = tuple[Callable[[Sequence[float]], float],
+                Callable[[list[list[float]], list[float], Sequence[float]], list[float]],
+                Callable[[list[list[float]], list[float]], tuple[int, float] | None]]
+"""(row -> row^T P^-1 row, (rows, upper, z) -> [row^T z - upper for each row],
+(rows, upper) -> (the violated row farthest from z = 0 in distance, -1 for none, and its
+row^T P^-1 row), None for a violated row of zeros)."""
+
+
+def _kernels(p_inverse: list[float]) -> Kernels:
+    """The inner loops of :func:`active_set_solution` for P^-1 = diag(p_inverse)
+    (:data:`Kernels`), written out for the filter's two and three unknowns (the same sums as
+    :func:`_dot`)."""
+    if len(p_inverse) == 3:
+        w0, w1, w2 = p_inverse
+
+        def norm(row: Sequence[float]) -> float:
+            a, b, c = row
+            return a * a * w0 + b * b * w1 + c * c * w2
+
+        def excess(rows: list[list[float]], upper: list[float], z: Sequence[float]
+                   ) -> list[float]:
+            z0, z1, z2 = z
+            return [a * z0 + b * z1 + c * z2 - value for (a, b, c), value in zip(rows, upper)]
+    elif len(p_inverse) == 2:
+        w0, w1 = p_inverse
+
+        def norm(row: Sequence[float]) -> float:
+            a, b = row
+            return a * a * w0 + b * b * w1
+
+        def excess(rows: list[list[float]], upper: list[float], z: Sequence[float]
+                   ) -> list[float]:
+            z0, z1 = z
+            return [a * z0 + b * z1 - value for (a, b), value in zip(rows, upper)]
+    else:
+        def norm(row: Sequence[float]) -> float:
+            return sum([r * r * w for r, w in zip(row, p_inverse)])
+
+        def excess(rows: list[list[float]], upper: list[float], z: Sequence[float]
+                   ) -> list[float]:
+            return [_dot(row, z) - value for row, value in zip(rows, upper)]
+
+    def farthest(rows: list[list[float]], upper: list[float]) -> tuple[int, float] | None:
+        # only a violated row (upper < 0) can be farthest; the first of equals is taken
+        p, distance, norm_p = -1, 0.0, 0.0
+        for i, value in enumerate(upper):
+            if value < 0.0:
+                squared = norm(rows[i])
+                if not squared > 0.0:
+                    return None  # a violated row of zeros (or NaN): no step meets it
+                ratio = value / math.sqrt(squared)
+                if ratio < distance:
+                    p, distance, norm_p = i, ratio, squared
+        return p, norm_p
+
+    return norm, excess, farthest
+
+
+def active_set_solution(*, rows: Sequence[Sequence[float]], upper: Sequence[float],
+                        p_inverse: Sequence[float], tolerance: float,
+                        max_steps: int = ACTIVE_SET_STEPS) -> list[float] | None:
     """The exact solution of min 1/2 z^T P z s.t. rows z <= upper, P = diag(1 / p_inverse),
-    with its KKT certificate.
+    with its KKT certificate, on Python floats.
 
     In y = P^1/2 z the QP is min 1/2 |y|^2 s.t. (rows P^-1/2) y <= upper: the projection of 0
     onto the rows' polyhedron. A dual active-set method (Goldfarb and Idnani's, with the
@@ -303,63 +390,117 @@ def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, p_inverse: np.nd
     multipliers are recomputed from W alone (:func:`_on_rows`), so no round-off accumulates
     over the steps.
 
-    The first step is written out in numpy, in z: the row farthest from 0 alone, z on it,
-    with multiplier -upper_p / (row_p^T P^-1 row_p) > 0 (the one-active-row solution, often
-    the answer).
+    The first two steps are written out, for the filter's QPs (one or two rows active in
+    most calls). The first: the row p farthest from z = 0 (in distance) alone, z on it, with
+    multiplier -upper_p / (row_p^T P^-1 row_p) > 0. Where another row is still violated, the
+    row q violated most there joins, and W = {p, q} is tried on its certificate (q alone is
+    no answer but in a tie: every point that meets p is at least p's distance from 0, q's own
+    point no farther; p can leave W only once more rows join). Only where it does not answer do
+    the steps go on as above, from W = {p}. Each scan for the row violated most evaluates
+    row^T z - upper for every row and the distance only for the rows it exceeds.
 
-    The answer comes with the certificate that makes it the QP's one solution: every
-    multiplier >= 0 and stationarity to round-off (:func:`_on_rows`), every row met to
-    ``tolerance`` (the last scan) and W's rows held to it. Otherwise None (the caller solves
-    the QP another way): where y = 0 already meets every row to ``tolerance`` (not this
-    method's case), past ``max_steps``, for a singular Gram system, for rows that admit no
-    step (inconsistent), or for a failed certificate (round-off in nearly dependent rows).
+    The answer comes with the certificate that makes it the QP's one solution (whichever
+    steps found it): every multiplier >= 0 and stationarity to round-off (:func:`_on_rows`),
+    every row met to ``tolerance`` (the last scan) and W's rows held to it. Otherwise None
+    (the caller solves the QP another way): where y = 0 already meets every row to
+    ``tolerance`` (not this method's case), past ``max_steps``, for a singular Gram system,
+    for rows that admit no step (inconsistent, or a violated row of zeros), for a NaN, or for
+    a failed certificate (round-off in nearly dependent rows).
 
     Args:
-        rows: (m, n) the constraint matrix.
+        rows: m rows of n floats, the constraint matrix (lists or an (m, n) array).
         upper: (m,) the right-hand sides.
         p_inverse: (n,) the diagonal of P^-1, every entry > 0.
         tolerance: how far a row may be exceeded (or an active one missed), absolute.
         max_steps: most rows added or dropped.
 
     Returns:
-        z (n,), or None.
+        z (n floats), or None.
     """
-    # The first step, vectorised: the row farthest from z = 0 (in distance) alone.
-    norms = (rows * rows).dot(p_inverse)  # > 0: a row of zeros is no constraint
-    lengths = np.sqrt(norms)
-    p = int((upper / lengths).argmin())
-    upper_p = float(upper[p])
-    if not upper_p < -tolerance:
+    rows, upper, p_inverse = _as_floats(rows), _as_floats(upper), _as_floats(p_inverse)
+    return _active_set_steps(rows, upper, p_inverse, tolerance, max_steps, _kernels(p_inverse))
+
+
+def _active_set_steps(rows: list[list[float]], upper: list[float], p_inverse: list[float],
+                      tolerance: float, max_steps: int, kernels: Kernels
+                      ) -> list[float] | None:
+    """:func:`active_set_solution` on lists, with the :func:`_kernels` of ``p_inverse``."""
+    norm, excess_of, farthest = kernels
+    # The first step: the row farthest from z = 0 (in distance) alone.
+    found = farthest(rows, upper)
+    if found is None:
+        return None  # a violated row of zeros (or NaN): no step meets it
+    p, norm_p = found
+    if p < 0 or not upper[p] < -tolerance:
         return None  # z = 0 meets every row to the tolerance: not this method's case
-    multiplier = -upper_p / float(norms[p])
-    first = p_inverse * rows[p] * -multiplier
-    excess = rows.dot(first) - upper
-    if not abs(float(excess[p])) <= tolerance:
+    multiplier = -upper[p] / norm_p
+    first = [w * r * -multiplier for w, r in zip(p_inverse, rows[p])]
+    excess = excess_of(rows, upper, first)
+    if not abs(excess[p]) <= tolerance:
         return None
     excess[p] = -math.inf
-    if _max_of(excess) <= tolerance:
+    if max(excess) <= tolerance and sum(excess) == -math.inf:  # (a NaN makes the sum NaN)
         return first
-    # The further steps in y = P^1/2 z, on Python floats.
-    scale = np.sqrt(p_inverse)
-    scaled = rows * scale
-    row_list, upper_list = scaled.tolist(), upper.tolist()
-    y = (first / scale).tolist()
+    # The further steps in y = P^1/2 z.
+    scale = [math.sqrt(w) for w in p_inverse]
+    scaled: dict[int, list[float]] = {}
+    lengths: dict[int, float] = {p: math.sqrt(norm_p)}
+
+    def scaled_row(i: int) -> list[float]:
+        row = scaled.get(i)
+        if row is None:
+            row = scaled[i] = [r * s for r, s in zip(rows[i], scale)]
+        return row
+
+    def violated_most(excess: list[float]) -> int | None:
+        """The row violated most (in distance), -1 where every row is met, None for a NaN."""
+        p, best = -1, 0.0
+        for i, value in enumerate(excess):
+            if not value <= tolerance:
+                if value != value:
+                    return None
+                length = lengths.get(i)
+                if length is None:
+                    length = lengths[i] = math.sqrt(norm(rows[i]))
+                score = (value - tolerance) / length
+                if score > best:
+                    p, best = i, score
+        return p
+
+    def certified(working: list[int]) -> tuple[list[float], list[float], list[float]] | None:
+        """(y, multipliers, the rows' excess) on W = ``working``, if _on_rows certifies it."""
+        solved = _on_rows([scaled_row(j) for j in working], [upper[j] for j in working],
+                          tolerance)
+        if solved is None:
+            return None
+        y, multipliers = solved
+        excess = excess_of(rows, upper, [s * value for s, value in zip(scale, y)])
+        for j in working:
+            excess[j] = -math.inf
+        return y, multipliers, excess
+
+    q = violated_most(excess)
+    if q is None:
+        return None
+    if max_steps >= 2:  # the second step, written out: q joins
+        found = certified([p, q])
+        if found is not None and max(found[2]) <= tolerance and sum(found[2]) == -math.inf:
+            return [s * value for s, value in zip(scale, found[0])]
+    y = [value / s for value, s in zip(first, scale)]
     active, multipliers = [p], [multiplier]
-    ceiling = upper + tolerance
-    score = (excess - tolerance) / lengths
     steps = 1
     while True:
-        for j in active:
-            score[j] = -math.inf
-        p = int(score.argmax())
-        if score[p] <= 0.0:  # every row met (a NaN goes on, and fails below)
+        p = violated_most(excess)
+        if p is None:
+            return None
+        if p < 0:  # every row met
             break
-        row_p, added = row_list[p], 0.0
+        row_p = scaled_row(p)
         while True:  # add row p, dropping rows of W whose multiplier would turn negative
             steps += 1
             if steps > max_steps:
                 return None
-            basis = [row_list[j] for j in active]
+            basis = [scaled_row(j) for j in active]
             # ratios: row p's coordinates on W's rows; direction: its part orthogonal to them
             ratios = _solve_small(_gram(basis), [_dot(a, row_p) for a in basis]
                                   ) if basis else []
@@ -369,13 +510,13 @@ def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, p_inverse: np.nd
             for ratio, row in zip(ratios, basis):
                 direction = [d - ratio * r for d, r in zip(direction, row)]
             dual_step, drop = math.inf, -1
-            for q, (multiplier, ratio) in enumerate(zip(multipliers, ratios)):
+            for k, (multiplier, ratio) in enumerate(zip(multipliers, ratios)):
                 if ratio > 0.0 and multiplier < dual_step * ratio:
-                    dual_step, drop = multiplier / ratio, q
+                    dual_step, drop = multiplier / ratio, k
             squared = _dot(direction, direction)
             primal_step = math.inf
-            if squared > DEPENDENT_ROW * norms[p]:
-                primal_step = (_dot(row_p, y) - upper_list[p]) / squared
+            if squared > DEPENDENT_ROW * lengths[p] ** 2:
+                primal_step = (_dot(row_p, y) - upper[p]) / squared
                 if not primal_step >= 0.0:
                     return None
             step = min(primal_step, dual_step)
@@ -384,24 +525,21 @@ def active_set_solution(*, rows: np.ndarray, upper: np.ndarray, p_inverse: np.nd
             if primal_step < math.inf:
                 y = [value - step * d for value, d in zip(y, direction)]
             multipliers = [value - step * ratio for value, ratio in zip(multipliers, ratios)]
-            added += step
             if primal_step <= dual_step:
                 active.append(p)
                 break
             del active[drop], multipliers[drop]
-        solved = _on_rows([row_list[j] for j in active], [upper_list[j] for j in active],
-                          tolerance)
-        if solved is None:
+        found = certified(active)
+        if found is None:
             return None
-        y, multipliers = solved
-        score = (scaled.dot(y) - ceiling) / lengths
+        y, multipliers, excess = found
     # W's rows held to the tolerance (_on_rows), every other row met (the last scan)
-    return scale * np.array(y)
+    return [s * value for s, value in zip(scale, y)]
 
 
 def _vector(name: str, value: object, size: int) -> np.ndarray:
     """A 1-D float64 array of ``value`` with ``size`` entries; raise ValueError naming the field
-    for a wrong length or non-numeric data (values are checked by :func:`_bounded`).
+    for a wrong length or non-numeric data.
 
     A float64 array of that shape is used as it is (the filter neither changes nor keeps its
     inputs); anything else is converted into a new array."""
@@ -416,17 +554,159 @@ def _vector(name: str, value: object, size: int) -> np.ndarray:
     return array
 
 
-def _bounded(name: str, array: np.ndarray, bound: float) -> np.ndarray:
-    """``array`` when it is finite and within +/- ``bound``; else :class:`_Refused`."""
-    # One reduction when the array passes: max propagates NaN, and NaN and inf fail the <=.
-    if not array.size or np.abs(array).max() <= bound:
-        return array
-    if not np.all(np.isfinite(array)):
-        raise _Refused(f'{name}: contains NaN or inf')
-    worst = float(np.max(np.abs(array))) if array.size else 0.0
+def _floats(name: str, value: object, size: int) -> list[float]:
+    """The ``size`` values of ``value`` as a new list of Python floats (as :func:`_vector`
+    converts them; the same ValueError for a wrong length or non-numeric data)."""
+    if type(value) is np.ndarray and value.dtype is _FLOAT64 and value.shape == (size,):
+        return value.tolist()
+    return _vector(name, value, size).tolist()
+
+
+def _out_of_bounds(name: str, values: list[float], bound: float) -> str | None:
+    """Why ``values`` is refused (not finite, or beyond +/- ``bound``), or None."""
+    if not all(map(math.isfinite, values)):
+        return f'{name}: contains NaN or inf'
+    worst = max(map(abs, values), default=0.0)
     if worst > bound:
-        raise _Refused(f'{name}: |value| {worst:.3g} beyond the bound {bound:.3g}')
-    return array
+        return f'{name}: |value| {worst:.3g} beyond the bound {bound:.3g}'
+    return None
+
+
+def _input_refusal(x: list[float], u: list[float], mean: list[float], std: list[float],
+                   bounds: InputBounds) -> str | None:
+    """The filter's input checks one by one, in order: the reason naming the first field that
+    fails, or None."""
+    for name, values, bound in (('state', x, bounds.state), ('u_rl', u, bounds.command),
+                                ('disturbance_mean', mean, bounds.disturbance),
+                                ('disturbance_std', std, bounds.disturbance)):
+        reason = _out_of_bounds(name, values, bound)
+        if reason is not None:
+            return reason
+    if min(std, default=0.0) < 0.0:
+        return 'disturbance_std: must be >= 0'
+    return None
+
+
+def _data_refusal(h: list[float], rows: list[list[float]], upper: list[float]) -> str | None:
+    """Why the QP data is refused (a value not finite or beyond :data:`QP_DATA_LIMIT`, in
+    order: the barrier values, the rows, their right-hand sides), or None."""
+    for name, values in (('barrier values', h), ('constraint rows', chain.from_iterable(rows)),
+                         ('constraint bounds', upper)):
+        if not all(abs(value) <= QP_DATA_LIMIT for value in values):
+            return f'{name}: not finite or beyond {QP_DATA_LIMIT:.0e} at this input'
+    return None
+
+
+RowValues = Callable[[list[float], list[list[float]], Sequence[float]], list[float]]
+"""(upper (K), rows (K), step (n_u)) -> [upper_i - row_i[:n_u]^T step for each RCBF row]: the
+row values L_f h + L_g h u + alpha h + rho at u = u_rows + step (the rows hold -L_g h in their
+first n_u entries)."""
+
+
+class _ShapeKernels(NamedTuple):
+    """The filter's per-call loops over a few values, generated for its shape (n_x, n_u, K,
+    the limits) at construction by :func:`_shape_kernels`."""
+
+    solve: Kernels
+    """For :func:`_active_set_steps`: the norm, row^T z - upper over every row, the violated
+    row farthest from z = 0."""
+    row_values: RowValues
+    """The RCBF rows' values at a step of the action."""
+    within_bounds: Callable[..., bool]
+    """(x, u, mean, std, state, command, disturbance bound) -> whether every value is finite
+    and within its bound and every std >= 0: exactly what the field-by-field checks accept."""
+    clip: Callable[[list[float]], list[float]]
+    """u -> u clipped to the actuator limits (a new list)."""
+    act: Callable[[list[float], list[float]], tuple[list[float], list[float]] | None]
+    """(u, z) -> (the action u + z[:n_u] projected onto the limits, its step from u), or None
+    where u + z[:n_u] lies beyond a limit by more than :data:`LIMIT_TOLERANCE`."""
+
+
+def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
+                   limits: list[tuple[float, float]] | None) -> _ShapeKernels:
+    """The filter's per-call loops as straight-line Python (a fraction of the time of loops
+    and builtin calls on a few dozen values): the active-set method's scans over the rows (K
+    RCBF rows, then, with limits, [e_j, 0] z <= . and [-e_j, 0] z <= ., their zeros and ones
+    folded in; the same sums as :func:`_kernels`, whose norm is taken), the RCBF rows' values
+    at a step of the
+    action (:data:`RowValues`), the input bounds as one chained comparison per value (NaN
+    fails every comparison), the clip and the action of a solution (the row check's
+    projection onto the limits), the limits folded in. ``limits``: (low, high) per input, or
+    None (no limits: no clip, no projection)."""
+    n_u = len(p_inverse) - 1
+    nz, k = n_u + 1, n_barriers
+    z = [f'z{j}' for j in range(nz)]
+    rows = ['(' + ', '.join(f'r{i}_{j}' for j in range(nz)) + ')' for i in range(k)]
+    limit_rows = [f'_{j}' for j in range(2 * n_u)] if limits else []
+    upper = [f'v{i}' for i in range(k + len(limit_rows))]
+    excess = [' + '.join(f'r{i}_{j}*{z[j]}' for j in range(nz)) + f' - v{i}' for i in range(k)]
+    if limits:
+        excess += [f'z{j} - v{k + j}' for j in range(n_u)]
+        excess += [f'-z{j} - v{k + n_u + j}' for j in range(n_u)]
+    values = [f'v{i} - (' + ' + '.join(f'r{i}_{j}*d{j}' for j in range(n_u)) + ')'
+              for i in range(k)]
+    norms = [' + '.join(f'r{i}_{j}*r{i}_{j}*{w!r}' for j, w in enumerate(p_inverse))
+             for i in range(k)]
+    if limits:  # a limit row's norm: its one entry's weight
+        norms += [repr(float(p_inverse[j])) for j in range(n_u)] * 2
+    farthest = []
+    for i, norm in enumerate(norms):
+        farthest += [f'    if v{i} < 0.0:',
+                     f'        squared = {norm}',
+                     '        if not squared > 0.0:',
+                     '            return None',
+                     f'        ratio = v{i} / sqrt(squared)',
+                     '        if ratio < distance:',
+                     f'            p, distance, norm_p = {i}, ratio, squared']
+    x, u = [f'x{i}' for i in range(n_x)], [f'u{j}' for j in range(n_u)]
+    m, sd = [f'm{i}' for i in range(n_x)], [f's{i}' for i in range(n_x)]
+    bounded = ([f'-state <= {v} <= state' for v in x] + [f'-command <= {v} <= command' for v in u]
+               + [f'-box <= {v} <= box' for v in m] + [f'0.0 <= {v} <= box' for v in sd])
+    clipped = ([f'{low!r} if {v} < {low!r} else {high!r} if {v} > {high!r} else {v}'
+                for v, (low, high) in zip(u, limits)] if limits else u)
+    act = []
+    for j, (low, high) in enumerate(limits or []):
+        act += [f'    a{j} = u{j} + z{j}',
+                f'    if a{j} < {low - LIMIT_TOLERANCE!r} or a{j} > {high + LIMIT_TOLERANCE!r}:',
+                '        return None',
+                f'    a{j} = {low!r} if a{j} < {low!r} else {high!r} if a{j} > {high!r} else a{j}']
+    if not limits:
+        act += [f'    a{j} = u{j} + z{j}' for j in range(n_u)]
+    source = '\n'.join([
+        'def excess(rows, upper, z):',
+        f'    {", ".join(z)}, = z',
+        f'    {", ".join(rows + limit_rows)}, = rows',
+        f'    {", ".join(upper)}, = upper',
+        f'    return [{", ".join(excess)}]',
+        'def farthest(rows, upper):',
+        f'    {", ".join(rows + limit_rows)}, = rows',
+        f'    {", ".join(upper)}, = upper',
+        '    p, distance, norm_p = -1, 0.0, 0.0',
+        *farthest,
+        '    return p, norm_p',
+        'def row_values(upper, rows, step):',
+        f'    {", ".join(f"d{j}" for j in range(n_u))}, = step',
+        f'    {", ".join(rows)}, = rows',
+        f'    {", ".join(upper[:k])}, = upper',
+        f'    return [{", ".join(values)}]',
+        'def within_bounds(x, u, mean, std, state, command, box):',
+        *(f'    {", ".join(names)}, = {arg}'
+          for names, arg in ((x, 'x'), (u, 'u'), (m, 'mean'), (sd, 'std'))),
+        f'    return {" and ".join(bounded)}',
+        'def clip(u):',
+        f'    {", ".join(u)}, = u',
+        f'    return [{", ".join(clipped)}]',
+        'def act(applied, z):',
+        f'    {", ".join(u)}, = applied',
+        f'    {", ".join(z)}, = z',
+        *act,
+        f'    return [{", ".join(f"a{j}" for j in range(n_u))}], '
+        f'[{", ".join(f"a{j} - u{j}" for j in range(n_u))}]', ''])
+    namespace: dict = {'inf': math.inf, 'sqrt': math.sqrt}
+    exec(compile(source, '<filter rows>', 'exec'), namespace)  # noqa: S102 - own source
+    return _ShapeKernels((_kernels(p_inverse)[0], namespace['excess'], namespace['farthest']),
+                         namespace['row_values'], namespace['within_bounds'], namespace['clip'],
+                         namespace['act'])
 
 
 Assembly = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
@@ -503,39 +783,22 @@ def compiled_assembly(problem: RCBFProblem, *, checks: int = 8, seed: int = 0) -
     return compiled
 
 
-def _on_numpy(assembly: Assembly) -> NumpyAssembly:
-    """A torch assembly of one state with numpy inputs and outputs."""
+def _on_lists(assembly: Assembly) -> RowAssembly:
+    """A torch assembly of one state with the filter's lists in and out
+    (:data:`RowAssembly`)."""
 
-    def assemble(x: np.ndarray, u: np.ndarray, mean: np.ndarray, std: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        # torch takes no read-only arrays (the filter passes the caller's arrays as they are)
-        h, g_matrix, upper = assembly(*(
-            torch.from_numpy(a if a.flags.writeable else a.copy()).unsqueeze(0)
-            for a in (x, u, mean, std)))
-        return h[0].numpy(), g_matrix[0].numpy(), upper[0].numpy()
-
-    return assemble
-
-
-QUIET_BOUND = 1e50
-"""Input bounds up to this keep every closed-form product far from float64 overflow; beyond it
-the closed-form assembly runs with numpy's overflow warnings off (inf and NaN are refused
-after the assembly either way, as on the torch paths)."""
-
-
-def _quiet(assembly: NumpyAssembly) -> NumpyAssembly:
-    """``assembly`` with numpy's floating-point warnings off (costs microseconds per call)."""
-
-    def assemble(x: np.ndarray, u: np.ndarray, mean: np.ndarray, std: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        with np.errstate(all='ignore'):
-            return assembly(x, u, mean, std)
+    def assemble(x: list[float], u: list[float], mean: list[float], std: list[float]
+                 ) -> tuple[list[float], list[list[float]], list[float], float]:
+        h, g_matrix, upper = (a[0] for a in assembly(*(torch.tensor([a], dtype=torch.float64)
+                                                       for a in (x, u, mean, std))))
+        size = sum(float(v.square().sum()) for v in (h, g_matrix, upper))
+        return h.tolist(), g_matrix.tolist(), upper.tolist(), size
 
     return assemble
 
 
 def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
-                    closed_form: bool = True) -> tuple[str, NumpyAssembly]:
+                    closed_form: bool = True) -> tuple[str, RowAssembly]:
     """The filter's constraint assembly and its name.
 
     ``closed_form`` where the problem has one (:meth:`ClosedFormAssembly.from_problem` decides)
@@ -543,10 +806,10 @@ def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
     assembly, ``compiled`` with ``compile_assembly``, else ``autograd``."""
     fast = ClosedFormAssembly.from_problem(problem) if closed_form else None
     if fast is not None:
-        return 'closed_form', fast
+        return 'closed_form', fast.evaluate
     if compile_assembly:
-        return 'compiled', _on_numpy(compiled_assembly(problem))
-    return 'autograd', _on_numpy(eager_assembly(problem))
+        return 'compiled', _on_lists(compiled_assembly(problem))
+    return 'autograd', _on_lists(eager_assembly(problem))
 
 
 class _DirectOSQP:
@@ -653,25 +916,14 @@ class SafetyFilter:
         else:
             self._u_min = np.full(self.n_u, -np.inf)
             self._u_max = np.full(self.n_u, np.inf)
-        self._u_min_tolerated = self._u_min - LIMIT_TOLERANCE
-        self._u_max_tolerated = self._u_max + LIMIT_TOLERANCE
         if slack_tolerance is not None and not (math.isfinite(slack_tolerance)
                                                 and slack_tolerance >= 0):
             raise ValueError(f'slack_tolerance: must be a finite number >= 0, '
                              f'got {slack_tolerance!r}')
         self.slack_tolerance = slack_tolerance
         self.input_bounds = InputBounds() if input_bounds is None else input_bounds
-        bounds = self.input_bounds
-        if self.assembly == 'closed_form' and max(bounds.state, bounds.command,
-                                                  bounds.disturbance) > QUIET_BOUND:
-            self._assemble = _quiet(self._assemble)
-        # Python floats for the per-call checks on a few values (cheaper than numpy calls)
         self._limits = list(zip(self._u_min.tolist(), self._u_max.tolist()))
-        self._limits_tolerated = list(zip(self._u_min_tolerated.tolist(),
-                                          self._u_max_tolerated.tolist()))
-        self._zeros_x = np.zeros(self.n_x)
-        self._zeros_x.setflags(write=False)
-        self._zeros_x_list = self._zeros_x.tolist()
+        self._zeros_x_list = [0.0] * self.n_x
         action = np.zeros(self.n_u) if fail_safe_action is None else _vector(
             'fail_safe_action', fail_safe_action, self.n_u)
         if not np.all(np.isfinite(action)):
@@ -705,6 +957,12 @@ class SafetyFilter:
         self._solver = _DirectOSQP.wrap(self._solver)
         self._nc = nc
         self._p_inverse = 1.0 / diag  # P = diag(diag), for the active-set solve
+        self._p_inverse_list = self._p_inverse.tolist()
+        kernels = _shape_kernels(self._p_inverse_list, self.n_x, self.n_barriers,
+                                 self._limits if problem.has_limits else None)
+        self._kernels, self._row_values = kernels.solve, kernels.row_values
+        self._within_bounds, self._clip = kernels.within_bounds, kernels.clip
+        self._act = kernels.act
 
     def filter(self, state: Sequence[float], u_rl: Sequence[float],
                mean: Sequence[float] | None = None,
@@ -724,81 +982,56 @@ class SafetyFilter:
             ValueError: naming the field, for a wrong length or non-numeric data.
         """
         start = time.perf_counter()
-        n_x, n_u = self.n_x, self.n_u
-        x = _vector('state', state, n_x)
-        u = _vector('u_rl', u_rl, n_u)
-        if mean is None:
-            mu, mu_list = self._zeros_x, self._zeros_x_list
-        else:
-            mu = _vector('disturbance_mean', mean, n_x)
-            mu_list = mu.tolist()
-        if std is None:
-            sd, sd_list = self._zeros_x, self._zeros_x_list
-        else:
-            sd = _vector('disturbance_std', std, n_x)
-            sd_list = sd.tolist()
-        x_list, u_list = x.tolist(), u.tolist()
+        n_x = self.n_x
+        x = _floats('state', state, n_x)
+        u = _floats('u_rl', u_rl, self.n_u)
+        mu = self._zeros_x_list if mean is None else _floats('disturbance_mean', mean, n_x)
+        sd = self._zeros_x_list if std is None else _floats('disturbance_std', std, n_x)
         bounds = self.input_bounds
-        # Every check below at once, on Python floats: a NaN or inf makes the sum NaN or inf
-        # (so can a sum of large finite values: such an input only goes through the checks one
-        # by one). Only an input that fails it goes through them one by one, for the reason
+        # Finite, within the bounds and std >= 0: one chained comparison per value (NaN fails
+        # each); an input that fails goes through the checks one by one, for the reason
         # naming the field.
-        if not (math.isfinite(sum(x_list) + sum(u_list) + sum(mu_list) + sum(sd_list))
-                and max(map(abs, x_list), default=0.0) <= bounds.state
-                and max(map(abs, u_list), default=0.0) <= bounds.command
-                and max(map(abs, mu_list), default=0.0) <= bounds.disturbance
-                and max(sd_list, default=0.0) <= bounds.disturbance
-                and min(sd_list, default=0.0) >= 0.0):
-            try:
-                _bounded('state', x, bounds.state)
-                _bounded('u_rl', u, bounds.command)
-                _bounded('disturbance_mean', mu, bounds.disturbance)
-                _bounded('disturbance_std', sd, bounds.disturbance)
-                if (sd < 0).any():
-                    raise _Refused('disturbance_std: must be >= 0')
-            except _Refused as refusal:
-                return self._fail_safe(u, start, status='input_refused', reason=str(refusal))
+        if not self._within_bounds(x, u, mu, sd, bounds.state, bounds.command,
+                                   bounds.disturbance):
+            reason = _input_refusal(x, u, mu, sd, bounds)
+            if reason is not None:
+                return self._fail_safe(u, start, status='input_refused', reason=reason)
 
         # Clip before the QP: its rows are then written at a command the plant can take.
-        applied = [low if value < low else high if value > high else value
-                   for value, (low, high) in zip(u_list, self._limits)]
-        clipped = applied != u_list
-        u_rl_applied = np.array(applied) if clipped else u
-        h_values, g_matrix, upper = self._assemble(x, u_rl_applied, mu, sd)
-        g_flat = g_matrix.ravel()
-        # One reduction per array when the data passes (NaN and inf fail the <=; the sum on
-        # Python floats overflows to inf without numpy's warning); else the exact check, for
-        # the refusal naming the data.
-        if not (float(h_values.dot(h_values)) + float(g_flat.dot(g_flat))
-                + float(upper.dot(upper)) <= _QP_DATA_SQUARES):
-            for name, data in (('barrier values', h_values), ('constraint rows', g_matrix),
-                               ('constraint bounds', upper)):
-                if not np.abs(data).max(initial=0.0) <= QP_DATA_LIMIT:
-                    return self._fail_safe(
-                        u, start, status='input_refused', h=h_values, clipped=clipped,
-                        reason=f'{name}: not finite or beyond {QP_DATA_LIMIT:.0e} at this input')
+        applied = self._clip(u)
+        clipped = applied != u
+        h_values, g_rows, upper, size = self._assemble(x, applied, mu, sd)
+        # One sum of squares when the data passes (NaN and inf fail the <=); else the exact
+        # check, for the refusal naming the data.
+        if not size <= _QP_DATA_SQUARES:
+            reason = _data_refusal(h_values, g_rows, upper)
+            if reason is not None:
+                return self._fail_safe(u, start, status='input_refused', h=h_values,
+                                       clipped=clipped, reason=reason)
         solve_start = time.perf_counter()
-        if _min_of(upper, initial=math.inf) >= 0.0:
+        k = self.n_barriers
+        if min(upper) >= 0.0:
             # z = 0 is feasible, hence optimal (the objective's minimum): the proposal passes
             # through exactly, without a solve. The row check holds at z = 0 by construction:
             # the action is the clipped proposal (within the limits), each row's value at it is
             # its right-hand side (all >= 0 here: no slack needed, none claimed).
-            values = upper[:self.n_barriers].copy()
+            values = np.array(upper[:k])
+            u_safe = [value + 0.0 for value in applied]  # as u + z[:n_u], z = 0
             solve_time = time.perf_counter() - solve_start
-            u_safe = np.array([value + 0.0 for value in applied])  # as u + z[:n_u], z = 0
             return FilterResult._filled(
-                u_safe=u_safe, u_s=u_safe - u, slack=0.0, h=h_values, constraint_values=values,
-                status='solved', solve_time_s=solve_time,
-                total_time_s=time.perf_counter() - start, fail_safe=False,
-                barrier_names=list(self.barrier_names), needed_slack=0.0, reason='',
-                proposal_clipped=clipped)
-        # The RCBF rows: -L_g h (the top left block of G) and their right-hand sides.
-        rows = (upper[:self.n_barriers], g_matrix[:self.n_barriers, :n_u], applied)
+                u_safe=np.array(u_safe), u_s=np.array([a - b for a, b in zip(u_safe, u)]),
+                slack=0.0, h=np.array(h_values), constraint_values=values, status='solved',
+                solve_time_s=solve_time, total_time_s=time.perf_counter() - start,
+                fail_safe=False, barrier_names=list(self.barrier_names), needed_slack=0.0,
+                reason='', proposal_clipped=clipped)
+        # The RCBF rows (their right-hand sides, the rows of G) at the clipped proposal.
+        rows = (upper[:k], g_rows[:k], applied)
         status = 'solved'
-        z = self._active_set(g_matrix, upper)
+        z = self._active_set(g_rows, upper)
         checked = None if z is None else self._check(z, rows)
         if checked is None:
-            self._solver.update(Ax=g_matrix.take(self._pattern_index), u=upper)
+            self._solver.update(Ax=np.array(g_rows).take(self._pattern_index),
+                                u=np.array(upper))
             result = self._solver.solve(raise_error=False)
             status_val = int(result.info.status_val)
             # used within this call only (the action and values are new arrays): no copy
@@ -807,13 +1040,12 @@ class SafetyFilter:
             status = _OK_STATUS.get(status_val, str(result.info.status))
         if checked is None:
             # Never start a later solve from this iterate.
-            self._solver.warm_start(x=np.zeros(n_u + 1), y=np.zeros(self._nc))
+            self._solver.warm_start(x=np.zeros(self.n_u + 1), y=np.zeros(self._nc))
             if self.fallback:
                 # ADMM can stall when the slack is far from 0 (the 1 : l diagonal); the
                 # interior point of the differentiable layer solves the same QP robustly.
-                # (copies: the inputs may be the caller's read-only arrays)
                 solution = solve_qp_batch_full(*self.problem.qp(
-                    *(torch.tensor(a).unsqueeze(0) for a in (x, u_rl_applied, mu, sd))))
+                    *(torch.tensor([a], dtype=torch.float64) for a in (x, applied, mu, sd))))
                 if bool(solution.converged[0]):
                     z = solution.z[0].detach().numpy().astype(np.float64)
                     checked = self._check(z, rows)
@@ -823,7 +1055,7 @@ class SafetyFilter:
             return self._fail_safe(u, start, status='unverified', h=h_values, clipped=clipped,
                                    solve_time=solve_time, rows=rows,
                                    reason=f'no solution passed the row check (solver: {status})')
-        u_safe, values, needed = checked
+        action, values, needed = checked
         if self.slack_tolerance is not None and needed > self.slack_tolerance:
             return self._fail_safe(
                 u, start, status='slack_exceeded', h=h_values, clipped=clipped,
@@ -831,13 +1063,13 @@ class SafetyFilter:
                 reason=f'barrier rows need slack {needed:.3g} > slack_tolerance '
                        f'{self.slack_tolerance:.3g} within the input limits')
         return FilterResult._filled(
-            u_safe=u_safe, u_s=u_safe - u, slack=float(z[-1]), h=h_values,
-            constraint_values=values, status=status, solve_time_s=solve_time,
-            total_time_s=time.perf_counter() - start, fail_safe=False,
-            barrier_names=list(self.barrier_names), needed_slack=needed, reason='',
-            proposal_clipped=clipped)
+            u_safe=np.array(action), u_s=np.array([a - b for a, b in zip(action, u)]),
+            slack=float(z[-1]), h=np.array(h_values), constraint_values=np.array(values),
+            status=status, solve_time_s=solve_time, total_time_s=time.perf_counter() - start,
+            fail_safe=False, barrier_names=list(self.barrier_names), needed_slack=needed,
+            reason='', proposal_clipped=clipped)
 
-    def _active_set(self, g_matrix: np.ndarray, upper: np.ndarray) -> np.ndarray | None:
+    def _active_set(self, g_rows: list[list[float]], upper: list[float]) -> list[float] | None:
         """The QP's exact solution by :func:`active_set_solution`, else None (then OSQP).
 
         With P diagonal the QP is the projection of 0 onto the rows' polyhedron in the
@@ -846,58 +1078,63 @@ class SafetyFilter:
         :data:`ACTIVE_SET_TOLERANCE` relative to the largest right-hand side). A strictly
         convex QP has one solution, so a certified answer is it (OSQP's is within its
         tolerance of it). The answer then goes through the row check like any other."""
-        return active_set_solution(
-            rows=g_matrix, upper=upper, p_inverse=self._p_inverse,
-            tolerance=ACTIVE_SET_TOLERANCE * (1.0 + float(_max_of(np.abs(upper)))))
+        return _active_set_steps(
+            g_rows, upper, self._p_inverse_list,
+            ACTIVE_SET_TOLERANCE * (1.0 + max(max(upper), -min(upper))), ACTIVE_SET_STEPS,
+            self._kernels)
 
-    def _check(self, z: np.ndarray | None,
-               rows: tuple[np.ndarray, np.ndarray, list[float]]
-               ) -> tuple[np.ndarray, np.ndarray, float] | None:
+    def _check(self, z: Sequence[float] | np.ndarray | None,
+               rows: tuple[list[float], list[list[float]], list[float]]
+               ) -> tuple[list[float], list[float], float] | None:
         """The action of solution z and its row values, if z passes the row check.
 
-        ``rows``: the RCBF rows' right-hand sides (K,), -L_g h (K, n_u) and the proposal they
-        are written at (n_u floats). The action u + z[:n_u] must lie within the limits (to
-        :data:`LIMIT_TOLERANCE`; then projected onto them), and the slack its rows need, from
-        the rows themselves, must be accounted for by the solver's own eps z[-1]."""
-        if z is None or z.shape != (self.n_u + 1,):
-            return None
-        z_list = z.tolist()
-        if not all(map(math.isfinite, z_list)):
-            return None
-        rows_upper, minus_lg_h, applied = rows
-        action = [a + b for a, b in zip(applied, z_list)]
-        for value, (low, high) in zip(action, self._limits_tolerated):
-            if value < low or value > high:
+        ``rows``: the RCBF rows' right-hand sides (K floats), the rows themselves (K lists
+        [-L_g h_i, -1]) and the proposal they are written at (n_u floats). The action
+        u + z[:n_u] must lie within the limits (to :data:`LIMIT_TOLERANCE`; then projected
+        onto them), and the slack its rows need, from the rows themselves, must be accounted
+        for by the solver's own eps z[-1]."""
+        if type(z) is not list:
+            if z is None or z.shape != (self.n_u + 1,):
                 return None
-        action = [low if value < low else high if value > high else value
-                  for value, (low, high) in zip(action, self._limits)]
-        values = rows_upper - minus_lg_h.dot(np.array([a - b for a, b in zip(action, applied)]))
-        needed = max(0.0, -float(_min_of(values, initial=0.0)))
+            z = z.tolist()
+        elif len(z) != self.n_u + 1:
+            return None
+        if not all(map(math.isfinite, z)):
+            return None
+        rows_upper, g_rows, applied = rows
+        moved = self._act(applied, z)
+        if moved is None:
+            return None
+        action, step = moved
+        values = self._row_values(rows_upper, g_rows, step)
+        needed = max(0.0, -min(values))
         # The solver's own eps must account for what the rows need: else the answer is not the
         # solution of this QP (a stale or garbage iterate).
-        claimed = max(0.0, z_list[-1])
+        claimed = max(0.0, z[-1])
         if needed > claimed:
-            scale = 1.0 + float(_max_of(np.abs(rows_upper), initial=0.0))
+            scale = 1.0 + max(max(rows_upper), -min(rows_upper))
             if needed > claimed + 1e-6 * scale:
                 return None
-        return np.array(action), values, needed
+        return action, values, needed
 
-    def _fail_safe(self, u: np.ndarray, start: float, *, status: str, reason: str,
-                   h: np.ndarray | None = None, clipped: bool = False, solve_time: float = 0.0,
-                   rows: tuple[np.ndarray, np.ndarray, list[float]] | None = None
+    def _fail_safe(self, u: list[float], start: float, *, status: str, reason: str,
+                   h: list[float] | None = None, clipped: bool = False,
+                   solve_time: float = 0.0,
+                   rows: tuple[list[float], list[list[float]], list[float]] | None = None
                    ) -> FilterResult:
-        """The fail-safe result; ``rows`` (upper, -L_g h, u at the rows) give its row
+        """The fail-safe result; ``rows`` (right-hand sides, rows, u at the rows) give its row
         values."""
         action = self.fail_safe_action.copy()
         nan = np.full(self.n_barriers, np.nan)
         values, needed = nan, float('nan')
         if rows is not None:
-            rows_upper, minus_lg_h, u_rows = rows
-            values = rows_upper - minus_lg_h.dot(action - np.array(u_rows))
-            needed = max(0.0, -float(np.min(values, initial=0.0)))
+            rows_upper, g_rows, u_rows = rows
+            row_values = self._row_values(rows_upper, g_rows,
+                                     [a - b for a, b in zip(action.tolist(), u_rows)])
+            values, needed = np.array(row_values), max(0.0, -min(row_values))
         return FilterResult(
-            u_safe=action, u_s=action - u, slack=float('nan'),
-            h=nan if h is None else h, constraint_values=values, status=status,
+            u_safe=action, u_s=action - np.array(u), slack=float('nan'),
+            h=nan if h is None else np.array(h), constraint_values=values, status=status,
             solve_time_s=solve_time, total_time_s=time.perf_counter() - start, fail_safe=True,
             barrier_names=list(self.barrier_names), needed_slack=needed, reason=reason,
             proposal_clipped=clipped)

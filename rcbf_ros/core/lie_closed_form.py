@@ -1,4 +1,4 @@
-"""Barrier terms and RCBF-QP rows of ONE state in closed form (numpy float64).
+"""Barrier terms and RCBF-QP rows of ONE state in closed form, as generated Python on floats.
 
 The same math as :func:`rcbf_ros.core.rcbf.barrier_terms` and
 :func:`rcbf_ros.core.qp.build_rcbf_qp`, evaluated without autograd for the per-step filter
@@ -7,50 +7,73 @@ the definition the learner differentiates through; the tests hold the two equal.
 
 Every built-in base barrier except a look-ahead circle is a quadratic of the state,
 h(x) = c + a^T x + 1/2 x^T Q x (:class:`~rcbf_ros.core.barriers.QuadraticRows`). With J the
-Jacobian of f (:class:`DriftJet`), the Lie derivatives along f (L^0 h = h, L^1 h = L_f h,
-L^2 h = L_f L_f h) and their gradients are
+Jacobian of f, the Lie derivatives along f (L^0 h = h, L^1 h = L_f h, L^2 h = L_f L_f h) and
+their gradients are
 
     L^0 h = c + a^T x + 1/2 x^T Q x          grad L^0 h = a + Q x
     L^1 h = a^T f + x^T Q f                  grad L^1 h = Q f + J^T (a + Q x)
     L^2 h = f^T Q f + a^T J f + x^T Q J f    grad L^2 h = Q J f + 2 J^T Q f + (J^2)^T (a + Q x)
 
 leaving out R = sum_k f_k dJ/dx_k, the rate of J along f: R = 0 for the built-in systems (the
-drift jet test checks it against autograd); a system with R != 0 would need it. The cascades
-h1 = L_f h + gamma_1 h and h2 = L_f h1 + gamma_2 h1 are sums of these levels,
+drift source test checks it against autograd); a system with R != 0 would need it. The
+cascades h1 = L_f h + gamma_1 h and h2 = L_f h1 + gamma_2 h1 are sums of these levels,
 
     h_top = beta_0 L^0 h + beta_1 L^1 h + beta_2 L^2 h    (and grad h_top likewise), with
     beta = (1, 0, 0) uncascaded, (gamma_1, 1, 0) cascaded once,
     (gamma_1 gamma_2, gamma_1 + gamma_2, 1) cascaded twice.
 
-With w = (x, f, J f) (3 n_x entries), T the symmetric 3 x 3 matrix
-[[beta_0, beta_1, beta_2], [beta_1, 2 beta_2, 0], [beta_2, 0, 0]] and M = T (x) Q (Kronecker),
-b = (beta_0 a, beta_1 a, beta_2 a), the coefficients C = b + M w (three n_x blocks) give
+With g0 = a + Q x = grad L^0 h and the three coefficient blocks
 
-    grad h_top^T = C [I; J; J^2]          h_top = beta_0 c + 1/2 (b + C)^T w
+    C_0 = beta_0 g0 + beta_1 Q f + beta_2 Q J f
+    C_1 = beta_1 g0 + 2 beta_2 Q f
+    C_2 = beta_2 g0
 
-(expand the products to see the table above). M, b and beta_0 c are fixed per row, so one
-product w M for every row, of any cascade depth, gives C; one more gives every gradient
-(:class:`_QuadraticStack`). Where no row is cascaded twice, the third blocks (beta_2 = 0) are
-left out: w = (x, f) and [I; J]; where none is cascaded, w = x and I.
+(the blocks of C = b + M w, w = (x, f, J f), b = (beta_0 a, beta_1 a, beta_2 a), M = T (x) Q,
+T = [[beta_0, beta_1, beta_2], [beta_1, 2 beta_2, 0], [beta_2, 0, 0]]; expand the products to
+see the table above; the deepest block is g0 itself, its beta being 1)
+
+    grad h_top = C_0 + J^T C_1 + (J^2)^T C_2,
+    h_top = beta_0 (c + 1/2 (a + g0)^T x) + beta_1 g0^T f + beta_2 (f^T Q f + g0^T J f).
 
 A look-ahead circle, h = ||p - c||^2 - delta^2 with p = (x_i, x_j) + s l_p (cos th, sin th),
 has grad h = 2 (p - c) on (x_i, x_j) and 2 s l_p (p - c)^T (-sin th, cos th) on th; it is used
-uncascaded only, with the direction-of-travel switch of :func:`barrier_terms`, and evaluated on
-Python floats (a handful of values per obstacle, fewer operations than numpy's per-call cost).
+uncascaded only, with the direction-of-travel switch of :func:`barrier_terms` (the point
+behind, s = -1, for a proposal with a negative ``speed_input`` whose point behind is clear of
+every obstacle of the family; the same comparisons in the same order as there).
 
-The QP rows then take a few more products, in the order of
-:func:`rcbf_ros.core.qp.build_rcbf_qp` (so that the row values round as there):
-L_f h = grad h^T f, L_g h = grad h^T g, rho = grad h^T mean - k_c |grad h|^T std and the right-hand
-side L_f h + L_g h u + alpha h + rho.
+Then the QP rows of :func:`rcbf_ros.core.qp.build_rcbf_qp`: [-L_g h, -1] with L_g h =
+grad h^T g, the limit rows, and the right-hand side L_f h + L_g h u + alpha h + rho, with
+rho = grad h^T mean - k_c |grad h|^T std = min over the box of grad h^T psi. It is evaluated as
 
-:meth:`ClosedFormTerms.from_problem` is the one place that decides whether a problem has a
-closed form: a built-in system (by exact type) and built-in families, cascaded at most twice,
-no look-ahead circle inside a cascade, every cascade over the problem's own system. Anything else
-(a system or family given by dotted path) keeps the autograd path.
+    grad h^T (x_dot + psi) + alpha h,    x_dot = f + g u,  psi_k = mean_k - k_c std_k sign(grad_k)
+
+(the same sum regrouped: x_dot + psi has two candidates per state entry, computed once for
+every row, and each row picks one by the sign of its gradient entry). The assembly also returns
+the sum of the squares of its data, for the filter's one-sum data check.
+
+How it is evaluated: not as matrix products (numpy's per-call cost, about a microsecond, is
+far more than a product of these sizes takes) but as straight-line Python on floats,
+generated once per problem at construction (milliseconds) and compiled with ``compile``. The
+generator (:class:`_Source`) carries every quantity as a polynomial in named floats with
+constant coefficients: the state, the proposal and the disturbance box, the system's f, J and g
+entries (:meth:`~rcbf_ros.core.dynamics.Unicycle.closed_form_source`, whose statements it
+inlines), and the values it has named so far. Constants are folded into the coefficients and
+structural zeros drop out (the zeros of Q, of J, of g, of f), so what remains is the handful
+of multiplications each row really needs; a value used more than once (J f, the entries of
+J^2, grad h, L_g h) is computed once into a name, and so are the parts the barriers of a
+family share (the terms of degree two, which come from their common Hessian, and everything
+but the constant of a gradient entry, where obstacles differ in their centres only). A call
+is then one Python function of a few hundred float operations, with no numpy call and no
+allocation beyond its result lists. :attr:`ClosedFormAssembly.source` holds its text.
+
+One function decides whether a problem has a closed form (``_closed_form_families``; both
+builders, :meth:`ClosedFormTerms.from_problem` and :meth:`ClosedFormAssembly.from_problem`,
+return None where it finds none): a built-in system (by exact type) and built-in families,
+cascaded at most twice, no look-ahead circle inside a cascade, every cascade over the problem's
+own system. Anything else (a system or family given by dotted path) keeps the autograd path.
 """
 from __future__ import annotations
 
-import math
 from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
@@ -64,7 +87,13 @@ from rcbf_ros.core.barriers import (
     PairGap,
     QuadraticRows,
 )
-from rcbf_ros.core.dynamics import CLOSED_FORM_SYSTEMS, DriftJet, DriftJetFunction
+from rcbf_ros.core.dynamics import (
+    CLOSED_FORM_SYSTEMS,
+    DriftSource,
+    Entry,
+    SOURCE_NAMESPACE,
+    state_names,
+)
 from rcbf_ros.core.rcbf import RCBFProblem
 
 MAX_CASCADE_DEPTH = 2
@@ -94,53 +123,6 @@ def unwrap_cascades(family: BarrierFamily) -> tuple[BarrierFamily, list[Cascaded
     return family, levels[::-1]
 
 
-class _QuadraticStack:
-    """Every quadratic row of the problem, cascaded 0, 1 or 2 times, in one set of arrays
-    (the products of the module docstring)."""
-
-    def __init__(self, rows: Sequence[tuple[QuadraticRows, tuple[float, ...]]], n_x: int):
-        blocks, offsets, constants = [], [], []
-        self.depth = max(len(gammas) for _, gammas in rows)
-        levels = self.depth + 1
-        for quadratic, gammas in rows:
-            weights = _cascade_weights(gammas)
-            # T of the module docstring, truncated to the levels the deepest row needs
-            t = np.array([[weights[0], weights[1], weights[2]],
-                          [weights[1], 2.0 * weights[2], 0.0],
-                          [weights[2], 0.0, 0.0]])[:levels, :levels]
-            for c, a, q in zip(quadratic.constant, quadratic.linear, quadratic.hessian):
-                blocks.append(np.kron(t, q))  # M = T (x) Q, symmetric
-                offsets.append(np.concatenate([w * a for w in weights[:levels]]))
-                constants.append(weights[0] * c)
-        self.count = len(constants)
-        self._n_x = n_x
-        self._levels = levels
-        # w M for every row in one product: row i's M as columns [i L n_x, (i + 1) L n_x)
-        self._product = np.ascontiguousarray(np.concatenate(blocks, axis=1))
-        self._offset = np.concatenate(offsets)  # b of every row, flat like w M
-        self._offsets = self._offset.reshape(self.count, levels * n_x)
-        self._constant = np.array(constants)  # beta_0 c
-        self._identity = np.eye(n_x)
-
-    def __call__(self, x: np.ndarray, jet: DriftJet) -> tuple[np.ndarray, np.ndarray]:
-        """(h (k,), grad h (k, n_x)) at the top level of every row (``.dot`` rather than
-        ``@``: a third of the call overhead at these sizes)."""
-        levels = self._levels
-        jacobian = jet.jacobian
-        if levels == 1:
-            w, powers = x, self._identity
-        elif levels == 2:
-            w = np.concatenate((x, jet.f))
-            powers = np.concatenate((self._identity, jacobian))
-        else:
-            w = np.concatenate((x, jet.f, jacobian.dot(jet.f)))
-            powers = np.concatenate((self._identity, jacobian, jacobian.dot(jacobian)))
-        # C = b + M w, one row of C per barrier
-        coefficients = (w.dot(self._product) + self._offset).reshape(self.count, -1)
-        h = (coefficients + self._offsets).dot(0.5 * w) + self._constant
-        return h, coefficients.dot(powers)
-
-
 def _cascade_weights(gammas: Sequence[float]) -> tuple[float, float, float]:
     """beta of the module docstring: h_top = sum_l beta_l L_f^l h for a cascade's gains."""
     if len(gammas) == 0:
@@ -151,225 +133,483 @@ def _cascade_weights(gammas: Sequence[float]) -> tuple[float, float, float]:
     return g1 * g2, g1 + g2, 1.0
 
 
-class _LookaheadCircles:
-    """An uncascaded :class:`CircleObstacles` with a look-ahead point, and its direction-of-travel
-    switch (the point behind for a reversing proposal, when that point is clear), on Python
-    floats.
+# --- polynomials in named floats -------------------------------------------------------------
 
-    With d = p - c, h = d_x^2 + d_y^2 - delta^2 and grad h = 2 d_x on x_i, 2 d_y on x_j and
-    2 s l_p (-d_x sin th + d_y cos th) on th."""
+Poly = dict[tuple[str, ...], float]
+"""sum of coefficient * product of named floats: {sorted names: coefficient}; () holds the
+constant. No entry has a zero coefficient (a zero is the empty dict)."""
 
-    def __init__(self, family: CircleObstacles, n_x: int):
-        delta = [radius + family.margin for radius in family.radii]
-        self.count = family.count
-        self._obstacles = [(float(cx), float(cy), float(d * d))
-                           for (cx, cy), d in zip(family.centers, delta)]
-        self._i, self._j = family.position_indices
-        self._heading = family.heading_index
-        self._lookahead = float(family.lookahead)
-        self._speed = family.speed_input
-        self._n_x = n_x
 
-    def _point(self, values: list[float], side: float
-               ) -> tuple[list[float], list[list[float]]]:
-        i, j, heading = self._i, self._j, self._heading
-        theta = values[heading]
-        cos, sin = math.cos(theta), math.sin(theta)
-        offset = self._lookahead * side
-        px, py = values[i] + offset * cos, values[j] + offset * sin
-        turn_x, turn_y = -2.0 * offset * sin, 2.0 * offset * cos  # 2 dp/dth
-        h, grad = [], []
-        for cx, cy, delta_sq in self._obstacles:
-            dx, dy = px - cx, py - cy
-            h.append(dx * dx + dy * dy - delta_sq)
-            row = [0.0] * self._n_x
-            row[i] += 2.0 * dx
-            row[j] += 2.0 * dy
-            row[heading] += dx * turn_x + dy * turn_y
-            grad.append(row)
-        return h, grad
+def _constant(value: float) -> Poly:
+    return {(): float(value)} if value != 0.0 else {}
 
-    def __call__(self, values: list[float], u: np.ndarray | None
-                 ) -> tuple[list[float], list[list[float]]]:
-        """(h (k values), grad h (k rows of n_x)) at the point the proposal u chooses."""
-        if self._speed is not None and u is not None and u[self._speed] < 0:
-            h, grad = self._point(values, -1.0)
-            if all(value >= 0.0 for value in h):
-                return h, grad
-        return self._point(values, 1.0)
+
+def _atom(name: str) -> Poly:
+    return {(name,): 1.0}
+
+
+def _entry(entry: Entry) -> Poly:
+    """A :class:`DriftSource` entry (a constant or a name) as a polynomial."""
+    return _atom(entry) if isinstance(entry, str) else _constant(entry)
+
+
+def _plus(*polys: Poly) -> Poly:
+    total: Poly = {}
+    for poly in polys:
+        for monomial, coefficient in poly.items():
+            total[monomial] = total.get(monomial, 0.0) + coefficient
+    return {monomial: c for monomial, c in total.items() if c != 0.0}
+
+
+def _scaled(poly: Poly, factor: float) -> Poly:
+    if factor == 0.0:
+        return {}
+    return {monomial: c * factor for monomial, c in poly.items() if c * factor != 0.0}
+
+
+def _times(left: Poly, right: Poly) -> Poly:
+    product: Poly = {}
+    for m1, c1 in left.items():
+        for m2, c2 in right.items():
+            monomial = tuple(sorted(m1 + m2))
+            product[monomial] = product.get(monomial, 0.0) + c1 * c2
+    return {monomial: c for monomial, c in product.items() if c != 0.0}
+
+
+def _dot(left: Sequence[Poly], right: Sequence[Poly]) -> Poly:
+    return _plus(*(_times(a, b) for a, b in zip(left, right) if a and b))
+
+
+def _constant_of(poly: Poly) -> float | None:
+    """The value of a constant polynomial (0.0 for the empty one), else None."""
+    if not poly:
+        return 0.0
+    if len(poly) == 1 and () in poly:
+        return poly[()]
+    return None
+
+
+def _trivial(poly: Poly) -> bool:
+    """Whether ``poly`` is a constant or one name as it is (nothing to compute)."""
+    if _constant_of(poly) is not None:
+        return True
+    if len(poly) == 1:
+        ((monomial, coefficient),) = poly.items()
+        return coefficient == 1.0 and len(monomial) == 1
+    return False
+
+
+def _render(poly: Poly) -> str:
+    """Python source of ``poly`` (terms left to right, a constant term last)."""
+    terms = []
+    for monomial, coefficient in sorted(poly.items(), key=lambda item: item[0] == ()):
+        if not monomial:
+            terms.append(repr(coefficient))
+        elif coefficient == 1.0:
+            terms.append('*'.join(monomial))
+        elif coefficient == -1.0:
+            terms.append('-' + '*'.join(monomial))
+        else:
+            terms.append(f'{coefficient!r}*' + '*'.join(monomial))
+    if not terms:
+        return '0.0'
+    text = terms[0]
+    for term in terms[1:]:
+        text += f' - {term[1:]}' if term.startswith('-') else f' + {term}'
+    return text
+
+
+class _Source:
+    """The body of a generated function: one assignment per named value (module docstring).
+
+    :meth:`named` gives a polynomial a name unless it is a constant or a name already; the same
+    polynomial gets the same name every time (a value is computed once), and the parts it
+    shares with others can get names of their own."""
+
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+        self._names: dict[str, str] = {}
+
+    def named(self, poly: Poly, prefix: str = 't', shared: bool = False) -> Poly:
+        """``poly`` as a name (or as it is: a constant or a name). ``shared``: the parts
+        other values are likely to have too get names of their own, the terms of degree two
+        (from a family's Hessian and the drift, the same for each of its barriers), then all
+        but the constant (barriers that differ in their offsets only)."""
+        if _trivial(poly):
+            return poly
+        if shared:
+            nonlinear = {m: c for m, c in poly.items() if len(m) >= 2}
+            if nonlinear and len(nonlinear) < len(poly):
+                poly = _plus(self.named(nonlinear),
+                             {m: c for m, c in poly.items() if len(m) < 2})
+            if () in poly and len(poly) > 1:
+                rest = {m: c for m, c in poly.items() if m != ()}
+                if not _trivial(rest):
+                    poly = _plus(self.named(rest), _constant(poly[()]))
+        text = _render(poly)
+        name = self._names.get(text)
+        if name is None:
+            name = f'{prefix}{len(self._names)}'
+            self._names[text] = name
+            self.lines.append(f'{name} = {text}')
+        return _atom(name)
+
+    def known(self, line: str) -> None:
+        """Take an assignment ``name = text`` of inlined source as the value of ``text``."""
+        name, equals, text = line.partition(' = ')
+        if equals and name.isidentifier() and not line.startswith((' ', 'if ', 'else')):
+            self._names.setdefault(text, name)
+
+    def call(self, text: str) -> str:
+        """The name of a call's value (``cos(x2)``), computed once."""
+        name = self._names.get(text)
+        if name is None:
+            name = f'c{len(self._names)}'
+            self._names[text] = name
+            self.lines.append(f'{name} = {text}')
+        return name
+
+    def fresh(self, prefix: str) -> str:
+        """A new name, for a value assigned by raw lines."""
+        name = f'{prefix}{len(self._names)}'
+        self._names[f'<{name}>'] = name
+        return name
+
+
+class _Drift:
+    """The system's f, J and g as polynomials of its source's names, with J f and the rows
+    of J^2 named on first use (shared by every barrier)."""
+
+    def __init__(self, drift: DriftSource, code: _Source) -> None:
+        self.n_x = len(drift.f)
+        self.f = [_entry(e) for e in drift.f]
+        self.jacobian = [[{} for _ in range(self.n_x)] for _ in range(self.n_x)]
+        for (i, j), entry in drift.jacobian.items():
+            self.jacobian[i][j] = _entry(entry)
+        self.g = [[{} for _ in range(drift.n_u)] for _ in range(self.n_x)]
+        for (i, j), entry in drift.g.items():
+            self.g[i][j] = _entry(entry)
+        self._code = code
+        self._jf: list[Poly] | None = None
+        self._square: dict[int, list[Poly]] = {}
+
+    def jf(self) -> list[Poly]:
+        """J f, entry by entry."""
+        if self._jf is None:
+            self._jf = [self._code.named(_dot(row, self.f)) for row in self.jacobian]
+        return self._jf
+
+    def square_row(self, i: int) -> list[Poly]:
+        """Row i of J^2."""
+        if i not in self._square:
+            row = self.jacobian[i]
+            self._square[i] = [
+                self._code.named(_plus(*(_times(row[j], self.jacobian[j][k])
+                                         for j in range(self.n_x) if row[j])))
+                for k in range(self.n_x)]
+        return self._square[i]
+
+
+def _quadratic_rows(code: _Source, drift: _Drift, x: list[Poly], rows: QuadraticRows,
+                    gammas: Sequence[float]) -> list[tuple[Poly, list[Poly]]]:
+    """(h, grad h) of each row of ``rows`` at the top of its cascade (module docstring)."""
+    beta = _cascade_weights(gammas)
+    levels = len(gammas) + 1
+    n_x = drift.n_x
+    out = []
+    for constant, linear, hessian in zip(rows.constant, rows.linear, rows.hessian):
+        linear = [float(v) for v in linear]
+        hessian = [[float(v) for v in row] for row in hessian]
+
+        def q_times(vector: list[Poly], hessian: list[list[float]] = hessian) -> list[Poly]:
+            return [_plus(*(_scaled(vector[j], q) for j, q in enumerate(row) if q))
+                    for row in hessian]
+
+        # g0 = a + Q x = grad L^0 h, then the blocks C_l in terms of it (the last is g0)
+        g0 = [_plus(_constant(a), qx) for a, qx in zip(linear, q_times(x))]
+        qf = q_times(drift.f) if levels >= 2 else []
+        qjf = q_times(drift.jf()) if levels >= 3 else []
+        if levels == 1:
+            blocks = [g0]
+        elif levels == 2:
+            blocks = [[_plus(_scaled(g, beta[0]), _scaled(v, beta[1])) for g, v in zip(g0, qf)],
+                      g0]
+        else:
+            blocks = [[_plus(_scaled(g, beta[0]), _scaled(v, beta[1]), _scaled(w, beta[2]))
+                       for g, v, w in zip(g0, qf, qjf)],
+                      [_plus(_scaled(g, beta[1]), _scaled(v, 2.0 * beta[2]))
+                       for g, v in zip(g0, qf)],
+                      g0]
+        grad = list(blocks[0])
+        for level, block in enumerate(blocks[1:], start=1):
+            for i, c in enumerate(block):
+                if not c:
+                    continue
+                power = drift.jacobian[i] if level == 1 else drift.square_row(i)
+                for k in range(n_x):
+                    if power[k]:
+                        grad[k] = _plus(grad[k], _times(c, power[k]))
+        # h_top = beta_0 c + a^T (beta_0 x + beta_1 f + beta_2 J f) + beta_0 1/2 x^T Q x
+        #         + beta_1 x^T Q f + beta_2 (f^T Q f + x^T Q J f): the point in parentheses is
+        # the same for every barrier with these gains, the terms of Q for the whole family
+        parts = [x, drift.f, drift.jf() if levels >= 3 else []][:levels]
+        h = _plus(_constant(beta[0] * float(constant)), _scaled(_dot(x, q_times(x)),
+                                                                0.5 * beta[0]))
+        if levels >= 2:
+            h = _plus(h, _scaled(_dot(x, qf), beta[1]))
+        if levels >= 3:
+            h = _plus(h, _scaled(_plus(_dot(drift.f, qf), _dot(x, qjf)), beta[2]))
+        for j, a in enumerate(linear):
+            if a:
+                point = code.named(_plus(*(_scaled(part[j], weight)
+                                           for part, weight in zip(parts, beta))))
+                h = _plus(h, _scaled(point, a))
+        out.append((h, grad))
+    return out
+
+
+def _lookahead_rows(code: _Source, family: CircleObstacles, n_x: int
+                    ) -> list[tuple[Poly, list[Poly]]]:
+    """(h, grad h) of an uncascaded look-ahead circle family, with the point chosen as in
+    :func:`~rcbf_ros.core.rcbf.barrier_terms` (module docstring)."""
+    i, j = family.position_indices
+    heading = family.heading_index
+    lookahead = float(family.lookahead)
+    cos = _atom(code.call(f'cos(x{heading})'))
+    sin = _atom(code.call(f'sin(x{heading})'))
+    obstacles = [(float(cx), float(cy), float(radius + family.margin) ** 2)
+                 for (cx, cy), radius in zip(family.centers, family.radii)]
+    if family.speed_input is None:
+        offset = _constant(lookahead)
+    else:
+        # the point behind, where the proposal reverses and that point is clear of every
+        # obstacle: ||p - c||^2 - delta^2 >= 0 for each, as barrier_terms compares
+        name, bx, by = code.fresh('o'), code.fresh('t'), code.fresh('t')
+        clear = ' and '.join(
+            f'({bx} - {cx!r})*({bx} - {cx!r}) + ({by} - {cy!r})*({by} - {cy!r}) - {d2!r} >= 0.0'
+            for cx, cy, d2 in obstacles)
+        code.lines += [f'{name} = {lookahead!r}',
+                       f'if u{family.speed_input} < 0.0:',
+                       f'    {bx} = x{i} + {-lookahead!r}*{_render(cos)}',
+                       f'    {by} = x{j} + {-lookahead!r}*{_render(sin)}',
+                       f'    if {clear}:',
+                       f'        {name} = {-lookahead!r}']
+        offset = _atom(name)
+    px = code.named(_plus(_atom(f'x{i}'), _times(offset, cos)))
+    py = code.named(_plus(_atom(f'x{j}'), _times(offset, sin)))
+    turn_x = code.named(_scaled(_times(offset, sin), -2.0))  # 2 dp/dth
+    turn_y = code.named(_scaled(_times(offset, cos), 2.0))
+    out = []
+    for cx, cy, d2 in obstacles:
+        dx = code.named(_plus(px, _constant(-cx)))
+        dy = code.named(_plus(py, _constant(-cy)))
+        h = _plus(_times(dx, dx), _times(dy, dy), _constant(-d2))
+        grad: list[Poly] = [{} for _ in range(n_x)]
+        grad[i] = _plus(grad[i], _scaled(dx, 2.0))
+        grad[j] = _plus(grad[j], _scaled(dy, 2.0))
+        grad[heading] = _plus(grad[heading], _times(dx, turn_x), _times(dy, turn_y))
+        out.append((h, grad))
+    return out
+
+
+def _closed_form_families(problem: RCBFProblem
+                          ) -> list[tuple[BarrierFamily, tuple[float, ...]]] | None:
+    """(base family, cascade gains) of every family, or None where the problem has no closed
+    form (module docstring)."""
+    system = problem.system
+    if type(system) not in CLOSED_FORM_SYSTEMS:
+        return None
+    parts = []
+    for family in problem.families:
+        base, levels = unwrap_cascades(family)
+        if type(base) not in _QUADRATIC_FAMILIES or len(levels) > MAX_CASCADE_DEPTH:
+            return None
+        if any(level.system != system or type(level.system) is not type(system)
+               for level in levels):
+            return None
+        if type(base) is CircleObstacles and base.has_lookahead and levels:
+            return None
+        parts.append((base, tuple(float(level.gamma) for level in levels)))
+    return parts
+
+
+def _row_terms(problem: RCBFProblem, code: _Source
+               ) -> tuple[_Drift, list[tuple[Poly, list[Poly]]]] | None:
+    """The drift and (h, grad h) of every row in the problem's order, their lines in ``code``."""
+    parts = _closed_form_families(problem)
+    if parts is None:
+        return None
+    system = problem.system
+    n_x = system.n_x
+    source = system.closed_form_source()
+    code.lines += list(source.lines)
+    for line in source.lines:
+        code.known(line)
+    drift = _Drift(source, code)
+    x = [_atom(name) for name in state_names(n_x)]
+    rows = []
+    for base, gammas in parts:
+        if type(base) is CircleObstacles and base.has_lookahead:
+            rows += _lookahead_rows(code, base, n_x)
+        else:
+            rows += _quadratic_rows(code, drift, x, base.quadratic_rows(n_x), gammas)
+    return drift, rows
+
+
+def _compiled(code: _Source, arguments: str, n_x: int, n_u: int, name: str,
+              returned: str, constants: dict | None = None) -> tuple[Callable, str]:
+    """The function of ``code`` (arguments: lists of floats, unpacked into named floats;
+    ``constants``: more names for it to read)."""
+    unpack = {'x': state_names(n_x), 'u': [f'u{j}' for j in range(n_u)],
+              'mean': [f'm{k}' for k in range(n_x)], 'std': [f's{k}' for k in range(n_x)]}
+    source = '\n'.join([f'def {name}({arguments}):',
+                        *(f'    {", ".join(unpack[a])}, = {a}' for a in arguments.split(', ')),
+                        *(f'    {line}' for line in code.lines),
+                        f'    return {returned}', ''])
+    namespace = dict(SOURCE_NAMESPACE, **(constants or {}))
+    exec(compile(source, f'<closed form: {name}>', 'exec'), namespace)  # noqa: S102
+    return namespace[name], source
+
+
+def _lie(code: _Source, drift: _Drift, grad: list[Poly]) -> tuple[Poly, list[Poly]]:
+    """L_f h and the (named) entries of L_g h of one row."""
+    lf = _dot(grad, drift.f)
+    lg = [code.named(_dot(grad, [row[j] for row in drift.g]), 'l')
+          for j in range(len(drift.g[0]))]
+    return lf, lg
 
 
 class ClosedFormTerms:
-    """h, grad h, L_f h and L_g h of one state for a problem with a closed form (module doc)."""
+    """h, grad h, L_f h and L_g h of one state for a problem with a closed form, generated
+    for the problem (module docstring); build with :meth:`from_problem`."""
 
-    def __init__(self, jet: DriftJetFunction, n_x: int,
-                 quadratic: _QuadraticStack | None, lookahead: list[_LookaheadCircles],
-                 order: np.ndarray | None) -> None:
-        self._jet = jet
-        self._n_x = n_x
-        self._quadratic = quadratic
-        self._lookahead = lookahead
-        self._order = order
+    def __init__(self, evaluate: Callable, source: str, n_u: int) -> None:
+        self._evaluate = evaluate
+        self._no_proposal = [0.0] * n_u  # picks the point ahead
+        self.source = source
+        """The generated function's source."""
 
     @classmethod
     def from_problem(cls, problem: RCBFProblem) -> ClosedFormTerms | None:
-        """The closed form of ``problem``, or None where it has none (module docstring): the one
-        place that decides between the closed form and autograd."""
-        system = problem.system
-        if type(system) not in CLOSED_FORM_SYSTEMS:
+        """The closed form of ``problem``'s terms, or None where it has none (module
+        docstring)."""
+        code = _Source()
+        found = _row_terms(problem, code)
+        if found is None:
             return None
-        n_x = system.n_x
-        quadratic: list[tuple[QuadraticRows, tuple[float, ...]]] = []
-        lookahead: list[_LookaheadCircles] = []
-        # row positions in the problem's order: quadratic rows first, then look-ahead ones
-        quadratic_rows: list[np.ndarray] = []
-        lookahead_rows: list[np.ndarray] = []
-        start = 0
-        for family in problem.families:
-            base, levels = unwrap_cascades(family)
-            if type(base) not in _QUADRATIC_FAMILIES or len(levels) > MAX_CASCADE_DEPTH:
-                return None
-            if any(level.system != system or type(level.system) is not type(system)
-                   for level in levels):
-                return None
-            rows = np.arange(start, start + base.count)
-            start += base.count
-            if type(base) is CircleObstacles and base.has_lookahead:
-                if levels:
-                    return None
-                lookahead.append(_LookaheadCircles(base, n_x))
-                lookahead_rows.append(rows)
-                continue
-            quadratic.append((base.quadratic_rows(n_x),
-                              tuple(float(level.gamma) for level in levels)))
-            quadratic_rows.append(rows)
-        position = np.concatenate(quadratic_rows + lookahead_rows)
-        order = None if np.array_equal(position, np.arange(start)) else np.argsort(position)
-        stack = _QuadraticStack(quadratic, n_x) if quadratic else None
-        return cls(system.closed_form_drift(), n_x, stack, lookahead, order)
-
-    def jet(self, x: np.ndarray) -> DriftJet:
-        """f, J and g of the problem's system at x: (n_x,)."""
-        return self._jet(x)
-
-    def top(self, x: np.ndarray, jet: DriftJet, u_rl: np.ndarray | None = None
-            ) -> tuple[np.ndarray, np.ndarray]:
-        """(h (K,), grad h (K, n_x)) at x: (n_x,), in the problem's row order; ``jet`` at x
-        (:meth:`jet`); u_rl (n_u,) picks the look-ahead point (see :meth:`terms`)."""
-        if self._quadratic is not None and not self._lookahead:
-            return self._quadratic(x, jet)
-        values = x.tolist()
-        circles = [family(values, u_rl) for family in self._lookahead]
-        h = np.array([value for family_h, _ in circles for value in family_h])
-        grad = np.array([row for _, family_grad in circles for row in family_grad]
-                        ).reshape(h.size, self._n_x)
-        if self._quadratic is None:
-            return h, grad
-        quadratic_h, quadratic_grad = self._quadratic(x, jet)
-        h = np.concatenate((quadratic_h, h))
-        grad = np.concatenate((quadratic_grad, grad))
-        if self._order is not None:
-            h, grad = h[self._order], grad[self._order]
-        return h, grad
+        drift, rows = found
+        outputs = []
+        for h, grad in rows:
+            grad = [code.named(v, 'g') for v in grad]
+            lf, lg = _lie(code, drift, grad)
+            outputs.append([_render(code.named(h, 'h')), [_render(v) for v in grad],
+                            _render(code.named(lf, 'f')), [_render(v) for v in lg]])
+        returned = ', '.join(
+            '[' + ', '.join(('[' + ', '.join(row[part]) + ']') if isinstance(row[part], list)
+                            else row[part] for row in outputs) + ']' for part in range(4))
+        evaluate, source = _compiled(code, 'x, u', problem.system.n_x, problem.system.n_u,
+                                     'barrier_terms', returned)
+        return cls(evaluate, source, problem.system.n_u)
 
     def terms(self, x: np.ndarray, u_rl: np.ndarray | None = None) -> NumpyTerms:
         """Barrier terms at x: (n_x,); u_rl: (n_u,) picks the look-ahead point of obstacles with
         a ``speed_input`` (None: the point ahead), as in :func:`barrier_terms`."""
-        jet = self._jet(x)
-        h, grad = self.top(x, jet, u_rl)
-        return NumpyTerms(h, grad, grad.dot(jet.f), grad.dot(jet.g))
+        x_list = np.asarray(x, dtype=np.float64).tolist()
+        u_list = (np.asarray(u_rl, dtype=np.float64).tolist() if u_rl is not None
+                  else self._no_proposal)
+        h, grad, lf, lg = self._evaluate(x_list, u_list)
+        return NumpyTerms(np.array(h), np.array(grad).reshape(len(h), len(x_list)),
+                          np.array(lf), np.array(lg).reshape(len(h), -1))
 
 
-def robust_margin(grad_h: np.ndarray, mean: np.ndarray, std: np.ndarray,
-                  k_c: float) -> np.ndarray:
-    """:func:`rcbf_ros.core.qp.robust_margin` at one state: grad_h (K, n_x), mean and std (n_x,)
-    -> (K,) rho = grad_h mean - k_c |grad_h| std."""
-    return grad_h.dot(mean) - k_c * np.abs(grad_h).dot(std)
-
-
-class RCBFRows:
-    """G and the right-hand side of :func:`rcbf_ros.core.qp.build_rcbf_qp` for one state.
-
-    The constant part of G (the slack column, the limit rows) is built once; a call writes
-    -L_g h into a copy. Rows: [-L_g h_i, -1] z <= L_f h_i + L_g h_i u_RL + alpha h_i + rho_i,
-    then [e_j, 0] z <= u_max_j - u_RL_j and [-e_j, 0] z <= u_RL_j - u_min_j with limits."""
-
-    def __init__(self, *, n_barriers: int, n_u: int, alpha: float,
-                 u_min: Sequence[float] | None = None,
-                 u_max: Sequence[float] | None = None) -> None:
-        """Args: n_barriers (K), n_u (m), alpha (the class-K gain), u_min and u_max (m actuator
-        limits each, or both None)."""
-        if (u_min is None) != (u_max is None):
-            raise ValueError('u_min/u_max: give both actuator limits or neither')
-        k, m = n_barriers, n_u
-        self._k, self._m = k, m
-        self._alpha = float(alpha)
-        self._u_min = None if u_min is None else np.array(u_min, dtype=np.float64)
-        self._u_max = None if u_max is None else np.array(u_max, dtype=np.float64)
-        template = np.zeros((k if u_min is None else k + 2 * m, m + 1))
-        template[:k, m] = -1.0
-        if u_min is not None:
-            template[k:k + m, :m] = np.eye(m)
-            template[k + m:, :m] = -np.eye(m)
-        template.setflags(write=False)
-        self._template = template
-
-    def __call__(self, *, h: np.ndarray, lf_h: np.ndarray, lg_h: np.ndarray, rho: np.ndarray,
-                 u_rl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """h, lf_h, rho: (K,); lg_h: (K, m); u_rl: (m,) -> (G (nc, m + 1), right-hand side
-        (nc,)), nc = K (+ 2 m with limits)."""
-        return self.complete(upper=lf_h + lg_h.dot(u_rl) + self._alpha * h + rho, lg_h=lg_h,
-                             u_rl=u_rl)
-
-    def complete(self, *, upper: np.ndarray, lg_h: np.ndarray, u_rl: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
-        """G and the right-hand side from the RCBF rows' right-hand sides upper (K,) =
-        L_f h + L_g h u_RL + alpha h + rho, lg_h (K, m) and u_rl (m,)."""
-        g_matrix = self._template.copy()
-        np.negative(lg_h, out=g_matrix[:self._k, :self._m])
-        if self._u_min is None:
-            return g_matrix, upper
-        return g_matrix, np.concatenate((upper, self._u_max - u_rl, u_rl - self._u_min))
-
-
-NumpyAssembly = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-                         tuple[np.ndarray, np.ndarray, np.ndarray]]
-"""(x, u_rl, mean, std), each 1-D float64 -> (h (K,), G (nc, nz), h_qp (nc,))."""
+RowAssembly = Callable[[list, list, list, list], tuple[list, list, list, float]]
+"""(x, u_rl, mean, std), each a list of floats -> (h (K floats), the rows of G (nc lists of
+n_u + 1 floats: K RCBF rows [-L_g h_i, -1], then the limit rows), its right-hand side (nc
+floats), the sum of the squares of all three (for the filter's data check)): the per-call
+constraint assembly of the filter, on every path (the rows of a list may be shared between
+calls: they are read, never changed)."""
 
 
 class ClosedFormAssembly:
-    """The filter's per-call constraint assembly in closed form: :meth:`RCBFProblem.qp` at one
-    state, numpy in and out. Build with :meth:`from_problem`."""
+    """The filter's per-call constraint assembly in closed form: G and h of
+    :meth:`RCBFProblem.qp` at one state, generated for the problem; build with
+    :meth:`from_problem`."""
 
-    def __init__(self, problem: RCBFProblem, terms: ClosedFormTerms) -> None:
-        self.terms = terms
-        """The barrier terms' evaluator."""
-        self._k_c = float(problem.k_c)
-        # alpha and k_c once per row: array * array costs a third of array * Python float
-        self._alpha_rows = np.full(problem.n_barriers, float(problem.alpha))
-        self._k_c_rows = np.full(problem.n_barriers, self._k_c)
-        limits = problem.has_limits
-        self.rows = RCBFRows(n_barriers=problem.n_barriers, n_u=problem.system.n_u,
-                             alpha=problem.alpha,
-                             u_min=problem.system.u_min if limits else None,
-                             u_max=problem.system.u_max if limits else None)
-        """The QP rows' builder."""
+    def __init__(self, evaluate: RowAssembly, source: str) -> None:
+        self.evaluate = evaluate
+        """(x, u_rl, mean, std) -> (h, rows, upper, sum of squares) (:data:`RowAssembly`)."""
+        self.source = source
+        """The generated function's source."""
 
     @classmethod
     def from_problem(cls, problem: RCBFProblem) -> ClosedFormAssembly | None:
-        """The closed-form assembly, or None where :meth:`ClosedFormTerms.from_problem` finds
-        no closed form."""
-        terms = ClosedFormTerms.from_problem(problem)
-        return None if terms is None else cls(problem, terms)
-
-    def __call__(self, x: np.ndarray, u_rl: np.ndarray, mean: np.ndarray, std: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(h (K,), G (nc, m + 1), right-hand side (nc,)) at state x, proposal u_rl and the
-        disturbance box mean +/- k_c std (all 1-D float64), as :meth:`RCBFProblem.qp`."""
-        jet = self.terms.jet(x)
-        h, grad = self.terms.top(x, jet, u_rl)
-        lg_h = grad.dot(jet.g)
-        rho = grad.dot(mean) - self._k_c_rows * np.abs(grad).dot(std)  # robust_margin
-        upper = grad.dot(jet.f) + lg_h.dot(u_rl) + self._alpha_rows * h + rho
-        g_matrix, upper = self.rows.complete(upper=upper, lg_h=lg_h, u_rl=u_rl)
-        return h, g_matrix, upper
+        """The closed-form assembly, or None where the problem has no closed form (module
+        docstring)."""
+        code = _Source()
+        found = _row_terms(problem, code)
+        if found is None:
+            return None
+        drift, rows = found
+        n_x, n_u = problem.system.n_x, problem.system.n_u
+        alpha, k_c = float(problem.alpha), float(problem.k_c)
+        named = []
+        for h, grad in rows:
+            grad = [code.named(v, 'g', shared=True) for v in grad]
+            named.append((code.named(h, 'h', shared=True), grad, *_lie(code, drift, grad)))
+        # The right-hand side L_f h + L_g h u + alpha h + rho is grad h^T (x_dot + psi) +
+        # alpha h with x_dot = f + g u, the nominal motion at the proposal, and psi the vertex
+        # of the box where rho = min grad h^T psi is attained: psi_k = mean_k - k_c std_k
+        # sign(grad_k) (qp.robust_margin). The two candidates x_dot_k + psi_k of each entry
+        # are computed once for all rows (one where k_c = 0).
+        used = sorted({k for _, grad, _, _ in named for k, v in enumerate(grad) if v})
+        for k in used:
+            motion = _plus(drift.f[k], *(_times(entry, _atom(f'u{j}'))
+                                         for j, entry in enumerate(drift.g[k]) if entry),
+                           _atom(f'm{k}'))
+            code.lines.append(f'lo{k} = {_render(_plus(motion, _scaled(_atom(f"s{k}"), -k_c)))}')
+            if k_c != 0.0:
+                code.lines.append(
+                    f'hi{k} = {_render(_plus(motion, _scaled(_atom(f"s{k}"), k_c)))}')
+        h_out, rows_out, upper_out, squares = [], [], [], []
+        for h, grad, _, lg in named:
+            vertex: list[Poly] = []
+            for k, v in enumerate(grad):
+                value = _constant_of(v)
+                if not v:
+                    vertex.append({})
+                elif k_c == 0.0:
+                    vertex.append(_atom(f'lo{k}'))
+                elif value is None:
+                    vertex.append(_atom(f'(lo{k} if {_render(v)} >= 0.0 else hi{k})'))
+                else:
+                    vertex.append(_atom(f'lo{k}' if value >= 0.0 else f'hi{k}'))
+            upper = code.named(_plus(_dot(grad, vertex), _scaled(h, alpha)), 'b')
+            h_out.append(_render(h))
+            rows_out.append('[' + ', '.join(
+                [_render(_scaled(v, -1.0)) for v in lg] + ['-1.0']) + ']')
+            upper_out.append(_render(upper))
+            # the data's sum of squares: h, the row (-L_g h, -1) and its right-hand side
+            squares.append(_plus(*(_times(v, v) for v in (h, *lg, upper)), _constant(1.0)))
+        # the limit rows: [e_j, 0] z <= u_max_j - u_j, then [-e_j, 0] z <= u_j - u_min_j
+        constants = {}
+        if problem.has_limits:
+            system = problem.system
+            unit = np.eye(n_u, n_u + 1)
+            for j, row in enumerate((np.concatenate((unit, -unit)) + 0.0).tolist()):
+                constants[f'limit{j}'] = row  # the same list every call (never changed)
+                rows_out.append(f'limit{j}')
+                squares.append(_constant(1.0))
+            for j in range(n_u):
+                limit = _plus(_constant(float(system.u_max[j])), _scaled(_atom(f'u{j}'), -1.0))
+                upper_out.append(_render(limit))
+                squares.append(_times(limit, limit))
+            for j in range(n_u):
+                limit = _plus(_atom(f'u{j}'), _constant(-float(system.u_min[j])))
+                upper_out.append(_render(limit))
+                squares.append(_times(limit, limit))
+        code.lines.append(f'size = {_render(_plus(*squares))}')
+        returned = (f'[{", ".join(h_out)}], [{", ".join(rows_out)}], '
+                    f'[{", ".join(upper_out)}], size')
+        evaluate, source = _compiled(code, 'x, u, mean, std', n_x, n_u, 'rcbf_rows', returned,
+                                     constants)
+        return cls(evaluate, source)

@@ -1,6 +1,6 @@
 """Test helpers for the safety filter: the shipped configs' filters, random calls to them,
-and a SafetyFilter that always solves with OSQP (no exact active-set answer), for tests of
-what happens when OSQP fails, lies or is starved."""
+the QP a filter solves as arrays, and a SafetyFilter that always solves with OSQP (no exact
+active-set answer), for tests of what happens when OSQP fails, lies or is starved."""
 from __future__ import annotations
 
 import numpy as np
@@ -14,6 +14,15 @@ def osqp_only(safety_filter: SafetyFilter) -> SafetyFilter:
     """``safety_filter``, every active QP sent to OSQP (and its fallback)."""
     safety_filter._active_set = lambda g_matrix, upper: None
     return safety_filter
+
+
+def qp_arrays(safety_filter: SafetyFilter, x: np.ndarray, applied: np.ndarray,
+              mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(h (K,), G (nc, n_u + 1), its right-hand side (nc,)) of the QP the filter solves at x
+    and the clipped proposal ``applied``, from its assembly."""
+    h, rows, upper, _ = safety_filter._assemble(*(np.asarray(a, dtype=np.float64).tolist()
+                                                  for a in (x, applied, mean, std)))
+    return np.array(h), np.array(rows), np.array(upper)
 
 
 def shipped_filter(system: str) -> SafetyFilter:

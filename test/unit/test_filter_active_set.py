@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import itertools
 
-from filter_paths import random_call, shipped_filter
+from filter_paths import qp_arrays, random_call, shipped_filter
 from hypothesis import given, HealthCheck, settings
 from hypothesis import strategies as st
 import numpy as np
@@ -211,7 +211,7 @@ def test_the_filter_answers_active_qps_without_osqp(system):
     for _ in range(250):
         x, u, mean, std = random_call(system, rng)
         applied = np.clip(u, safety_filter._u_min, safety_filter._u_max)
-        _, g_matrix, upper = safety_filter._assemble(x, applied, mean, std)
+        _, g_matrix, upper = qp_arrays(safety_filter, x, applied, mean, std)
         if upper.min() >= 0.0:
             continue
         result = safety_filter.filter(x, u, mean, std)
@@ -269,7 +269,9 @@ def test_hostile_qp_data_never_break_the_row_check_and_match_enumeration(drawn):
             g_matrix[k + j, j], g_matrix[k + n_u + j, j] = 1.0, -1.0
         upper[k:k + n_u] = safety_filter._u_max - proposal
         upper[k + n_u:] = proposal - safety_filter._u_min
-    safety_filter._assemble = lambda x, u, mean, std: (np.zeros(k), g_matrix, upper)
+    safety_filter._assemble = lambda x, u, mean, std: (
+        [0.0] * k, g_matrix.tolist(), upper.tolist(),
+        float(np.square(g_matrix).sum() + np.square(upper).sum()))
     answered: list[np.ndarray] = []
     method = safety_filter._active_set
 

@@ -108,18 +108,16 @@ def test_defaults_and_read_only_inputs_give_no_warning_on_either_assembly(closed
     np.testing.assert_allclose(plain.u_safe, boxed.u_safe, rtol=0, atol=1e-9)
 
 
-def test_qp_data_whose_squares_overflow_only_together_is_refused_without_warning():
-    # Each array's sum of squares is finite (about 1.4e308); their total overflows.
+def test_qp_data_beyond_the_limit_is_refused_without_warning():
+    # The squares of these values overflow (1.4e308 each), their sum does not.
     safety_filter = SafetyFilter(unicycle_problem())
     assemble = safety_filter._assemble
 
     def huge(x, u, mean, std):
-        h_values, g_matrix, upper = assemble(x, u, mean, std)
-        h_values, upper = h_values.copy(), upper.copy()
-        h_values[:] = 0.0
-        upper[:] = 0.0
+        h_values, rows, upper, _ = assemble(x, u, mean, std)
+        h_values, upper = [0.0] * len(h_values), [0.0] * len(upper)
         h_values[0] = upper[0] = 1.2e154
-        return h_values, g_matrix, upper
+        return h_values, rows, upper, 2.0 * 1.2e154 ** 2
 
     safety_filter._assemble = huge
     with warnings.catch_warnings():
@@ -127,3 +125,20 @@ def test_qp_data_whose_squares_overflow_only_together_is_refused_without_warning
         result = safety_filter.filter(STATE, PROPOSAL)
     assert result.fail_safe and result.status == 'input_refused'
     assert result.reason == 'barrier values: not finite or beyond 1e+15 at this input'
+
+
+def test_qp_data_beyond_the_limit_only_in_sum_is_filtered_not_refused():
+    # Each value lies within the limit, their sum of magnitudes beyond it: the one-sum check
+    # fails, the value-by-value check passes.
+    safety_filter = SafetyFilter(unicycle_problem())
+    assemble = safety_filter._assemble
+
+    def large(x, u, mean, std):
+        h_values, rows, upper, _ = assemble(x, u, mean, std)
+        h_values, upper = [0.6 * QP_DATA_LIMIT] * len(h_values), [QP_DATA_LIMIT] * len(upper)
+        return h_values, rows, upper, sum(v * v for v in h_values + upper)
+
+    safety_filter._assemble = large
+    result = safety_filter.filter(STATE, PROPOSAL)
+    assert result.status == 'solved' and not result.fail_safe, result.reason
+    np.testing.assert_array_equal(result.h, 0.6 * QP_DATA_LIMIT)

@@ -12,6 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import warnings
 
+from hypothesis import given, HealthCheck, settings
+from hypothesis import strategies as st
 import numpy as np
 import pytest
 import torch
@@ -22,14 +24,7 @@ from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.dynamics import CarFollowing, PVTOL, Unicycle
 import rcbf_ros.core.filter as filter_module
 from rcbf_ros.core.filter import InputBounds, SafetyFilter, select_assembly
-from rcbf_ros.core.lie_closed_form import (
-    ClosedFormAssembly,
-    ClosedFormTerms,
-    RCBFRows,
-    robust_margin,
-)
-from rcbf_ros.core.qp import build_rcbf_qp
-from rcbf_ros.core.qp import robust_margin as torch_robust_margin
+from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, ClosedFormTerms
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.parameters.rules import find_config, load_params
 
@@ -128,7 +123,7 @@ def problems(system: str, count: int, seed: int) -> list[RCBFProblem]:
                          ids=['unicycle', 'cars', 'pvtol', 'pvtol-6', 'cars-gains'])
 def test_drift_jet_matches_autograd(system):
     rng = np.random.default_rng(0)
-    jet_of = system.closed_form_drift()
+    jet_of = system.closed_form_source().function()
     name = type(system).__name__
     n_x = system.n_x
     for _ in range(30):
@@ -244,42 +239,72 @@ def test_assembly_matches_the_problems_qp(system):
             x = random_state(system, rng, n_x)
             u = rng.uniform(-3.0, 3.0, n_u)
             mean, std = rng.normal(0.0, 0.1, n_x), rng.uniform(0.0, 0.2, n_x)
-            h, g_matrix, upper = assembly(x, u, mean, std)
+            h, rows, upper, size = assembly.evaluate(*(a.tolist() for a in (x, u, mean, std)))
             want = problem.qp(*(torch.from_numpy(a)[None] for a in (x, u, mean, std)))
             want_h = problem.terms(torch.from_numpy(x)[None], torch.from_numpy(u)[None]).h
-            assert_close(h, want_h[0].numpy(), 'h')
-            assert_close(g_matrix, want.G[0].numpy(), 'G')
-            assert_close(upper, want.h[0].numpy(), 'h_qp')
+            assert_close(np.array(h), want_h[0].numpy(), 'h')
+            assert_close(np.array(rows), want.G[0].numpy(), 'G')
+            assert_close(np.array(upper), want.h[0].numpy(), 'h_qp')
+            squares = sum(float(np.square(a).sum()) for a in (h, rows, upper))
+            assert size == pytest.approx(squares, rel=1e-12)
 
 
-@pytest.mark.parametrize('limits', [True, False])
-def test_rows_equal_the_torch_builder(limits):
-    rng = np.random.default_rng(6)
-    for k, m in ((1, 1), (5, 2), (17, 2), (3, 4)):
-        h, lf_h, rho = (rng.normal(0.0, 3.0, k) for _ in range(3))
-        lg_h = rng.normal(0.0, 3.0, (k, m))
-        u = rng.normal(0.0, 2.0, m)
-        alpha = float(rng.uniform(0.1, 5.0))
-        u_min = tuple(rng.uniform(-3.0, -1.0, m)) if limits else None
-        u_max = tuple(rng.uniform(1.0, 3.0, m)) if limits else None
-        g_matrix, upper = RCBFRows(n_barriers=k, n_u=m, alpha=alpha, u_min=u_min,
-                                   u_max=u_max)(h=h, lf_h=lf_h, lg_h=lg_h, rho=rho, u_rl=u)
-        want = build_rcbf_qp(h=torch.from_numpy(h)[None], lf_h=torch.from_numpy(lf_h)[None],
-                             lg_h=torch.from_numpy(lg_h)[None], rho=torch.from_numpy(rho)[None],
-                             u_rl=torch.from_numpy(u)[None], alpha=alpha, slack_weight=1e6,
-                             u_min=u_min, u_max=u_max)
-        np.testing.assert_allclose(g_matrix, want.G[0].numpy(), rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(upper, want.h[0].numpy(), rtol=1e-12, atol=1e-12)
+# Hostile but valid: anything the filter's input checks let through (finite, within the default
+# bounds of 1e6, std >= 0), weighted toward exact zeros of either sign, subnormals, the bounds
+# themselves, the cars' braking gaps and headings far from 0.
+EDGES = [0.0, -0.0, 5e-324, -5e-324, 1e-300, 1e6, -1e6, 6.0, -6.0, 12.0, -12.0, 1e5, -1e5,
+         np.pi, -np.pi, 2.5, -2.5]
+ENTRY = st.one_of(st.floats(-1e6, 1e6), st.sampled_from(EDGES), st.floats(-10.0, 10.0))
+SPREAD = st.one_of(st.floats(0.0, 1e6), st.sampled_from([0.0, 5e-324, 1e-300, 1e6]),
+                   st.floats(0.0, 1.0))
+HOSTILE = settings(max_examples=80, derandomize=True, deadline=None, database=None,
+                   suppress_health_check=[HealthCheck.too_slow])
+ASSEMBLIES = {system: [(problem, ClosedFormAssembly.from_problem(problem))
+                       for problem in problems(system, 3, seed=40 + i)]
+              for i, system in enumerate(SYSTEMS)}
 
 
-def test_robust_margin_equals_the_torch_one():
-    rng = np.random.default_rng(7)
-    grad = rng.normal(0.0, 2.0, (6, 5))
-    mean, std = rng.normal(0.0, 1.0, 5), rng.uniform(0.0, 1.0, 5)
-    want = torch_robust_margin(torch.from_numpy(grad)[None], torch.from_numpy(mean)[None],
-                               torch.from_numpy(std)[None], 2.0)[0].numpy()
-    np.testing.assert_allclose(robust_margin(grad, mean, std, 2.0), want, rtol=1e-12,
-                               atol=1e-12)
+@st.composite
+def hostile_call(draw: st.DrawFn, system: str, n_x: int, n_u: int):
+    """A state near the system's operating point, some entries hostile (for the cars, some
+    gaps exactly at a braking switch), a proposal and a disturbance box of any valid size."""
+    rng = np.random.default_rng(draw(st.integers(0, 2 ** 32 - 1)))
+    x = random_state(system, rng, n_x)
+    hostile = np.array(draw(st.lists(ENTRY, min_size=n_x, max_size=n_x)))
+    keep = np.array(draw(st.lists(st.booleans(), min_size=n_x, max_size=n_x)))
+    if system == 'car_following' and draw(st.booleans()):
+        me, ahead, gap = draw(st.sampled_from([(2, 0, 6.0), (4, 2, 6.0), (8, 4, 12.0)]))
+        x[me] = np.round(x[me])  # whole metres: x_ahead - x_me is the gap exactly
+        x[ahead] = x[me] + draw(st.sampled_from([gap, -gap]))
+        keep[[me, ahead]] = True
+    x = np.where(keep, x, hostile)
+    u = np.array(draw(st.lists(ENTRY, min_size=n_u, max_size=n_u)))
+    mean = np.array(draw(st.lists(ENTRY, min_size=n_x, max_size=n_x)))
+    std = np.array(draw(st.lists(SPREAD, min_size=n_x, max_size=n_x)))
+    return x, u, mean, std
+
+
+@pytest.mark.parametrize('system', SYSTEMS)
+def test_the_generated_assembly_equals_autograd_on_hostile_inputs(system):
+    """h, G and the right-hand side of the generated code against RCBFProblem.qp (autograd
+    through every barrier and cascade), on the shipped config and three variations, at
+    states, proposals and boxes of any size the filter accepts."""
+    @HOSTILE
+    @given(data=st.data())
+    def check(data: st.DataObject) -> None:
+        problem, assembly = data.draw(st.sampled_from(ASSEMBLIES[system]))
+        n_x, n_u = problem.system.n_x, problem.system.n_u
+        x, u, mean, std = data.draw(hostile_call(system, n_x, n_u))
+        h, rows, upper, size = assembly.evaluate(*(a.tolist() for a in (x, u, mean, std)))
+        tensors = [torch.from_numpy(a)[None] for a in (x, u, mean, std)]
+        want = problem.qp(*tensors)
+        assert_close(np.array(h), problem.terms(tensors[0], tensors[1]).h[0].numpy(), 'h')
+        assert_close(np.array(rows), want.G[0].numpy(), 'G')
+        assert_close(np.array(upper), want.h[0].numpy(), 'h_qp')
+        squares = sum(float(np.square(a).sum()) for a in (h, rows, upper))
+        assert size == pytest.approx(squares, rel=1e-12)
+
+    check()
 
 
 # --- which problems get the closed form ------------------------------------------------------
@@ -407,15 +432,20 @@ def expected_refusal(field: str, value: float) -> str | None:
     return None
 
 
+@pytest.mark.parametrize('others', [1.0, 3.0], ids=['one bound', 'three bounds'])
 @pytest.mark.parametrize('field', ['state', 'u_rl', 'disturbance_mean', 'disturbance_std'])
 @pytest.mark.parametrize('value', [BOUND, np.nextafter(BOUND, np.inf), -BOUND,
                                    -np.nextafter(BOUND, np.inf), np.nan, np.inf, -np.inf,
                                    -0.0, -1e-300])
-def test_input_checks_hold_exactly_at_their_edges(field, value):
+def test_input_checks_hold_exactly_at_their_edges(field, value, others):
     # The one-comparison check of every input must accept exactly what the field-by-field
-    # checks accept (they give the reason).
+    # checks accept (they give the reason), with the three bounds equal (one comparison for
+    # all inputs) and with the other fields' bounds larger.
+    own = {'state': 'state', 'u_rl': 'command'}.get(field, 'disturbance')
+    bounds = InputBounds(**{name: BOUND if name == own else others * BOUND
+                            for name in ('state', 'command', 'disturbance')})
     safety_filter = SafetyFilter(filter_config_from_params(shipped('unicycle')).problem,
-                                 input_bounds=InputBounds(BOUND, BOUND, BOUND))
+                                 input_bounds=bounds)
     args = {'state': [2.0, -2.5, 0.0], 'u_rl': [0.0, 0.0], 'disturbance_mean': [0.0] * 3,
             'disturbance_std': [0.0] * 3}
     args[field][-1] = value
@@ -427,3 +457,17 @@ def test_input_checks_hold_exactly_at_their_edges(field, value):
     else:
         assert result.status == 'input_refused'
         assert result.reason.startswith(f'{field}:') and refused in result.reason, result.reason
+
+
+def test_constants_that_overflow_are_refused_on_both_paths_alike():
+    # Gains and a centre whose products overflow: the generated code holds inf (and the NaN
+    # of inf - inf) among its constants and runs; both paths refuse the data.
+    system = PVTOL()
+    circle = CircleObstacles(centers=((1e200, 0.0),), radii=(0.5,))
+    problem = RCBFProblem(system, (cascade(circle, system, [1e200, 1e200]),))
+    fast, autograd = SafetyFilter(problem), SafetyFilter(problem, closed_form=False)
+    assert fast.assembly == 'closed_form'
+    x = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+    a, b = fast.filter(x, [0.0, 0.0]), autograd.filter(x, [0.0, 0.0])
+    assert a.status == b.status == 'input_refused'
+    assert a.reason == b.reason
