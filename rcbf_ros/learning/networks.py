@@ -1,6 +1,7 @@
-"""Neural networks of SAC: squashed-Gaussian actor, Q critic, compensator (all MLPs)."""
+"""Neural networks of SAC: squashed-Gaussian actor, Q critics, compensator (all MLPs)."""
 from __future__ import annotations
 
+import math
 from typing import NamedTuple, Sequence
 
 import numpy as np
@@ -9,14 +10,18 @@ from torch import nn
 
 LOG_STD_MIN = -5.0
 LOG_STD_MAX = 2.0
+_HALF_LOG_TWO_PI = 0.5 * math.log(2.0 * math.pi)
 
 
 def mlp(n_in: int, n_out: int, hidden_sizes: Sequence[int]) -> nn.Sequential:
-    """Fully connected ReLU network ``n_in -> hidden_sizes... -> n_out`` (linear output)."""
+    """Fully connected ReLU network ``n_in -> hidden_sizes... -> n_out`` (linear output).
+
+    The ReLUs work in place on their linear layer's output, which nothing else reads (the
+    linear layer's gradient needs its input, not its output): one buffer less per layer."""
     layers: list[nn.Module] = []
     width = n_in
     for hidden in hidden_sizes:
-        layers += [nn.Linear(width, hidden), nn.ReLU()]
+        layers += [nn.Linear(width, hidden), nn.ReLU(inplace=True)]
         width = hidden
     layers.append(nn.Linear(width, n_out))
     return nn.Sequential(*layers)
@@ -86,7 +91,8 @@ class SquashedGaussianActor(nn.Module):
         if len(hidden_sizes) < 1:
             raise ValueError('hidden_sizes must name at least one layer')
         # obs -> hidden_sizes (ReLU after each) -> two linear heads.
-        self.trunk = nn.Sequential(mlp(obs_dim, hidden_sizes[-1], hidden_sizes[:-1]), nn.ReLU())
+        self.trunk = nn.Sequential(mlp(obs_dim, hidden_sizes[-1], hidden_sizes[:-1]),
+                                   nn.ReLU(inplace=True))
         self.mean_head = nn.Linear(hidden_sizes[-1], n_u)
         self.log_std_head = nn.Linear(hidden_sizes[-1], n_u)
         self.register_buffer('action_center', (u_high + u_low) / 2.0)
@@ -105,19 +111,22 @@ class SquashedGaussianActor(nn.Module):
         features = self.trunk(obs)
         mean = self.mean_head(features)
         log_std = torch.clamp(self.log_std_head(features), LOG_STD_MIN, LOG_STD_MAX)
-        std = log_std.exp()
         if noise is None:
             noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype,
                                 device=mean.device)
-        pre_tanh = mean + std * noise
-        squashed = torch.tanh(pre_tanh)
-        action = self.action_center + self.action_half_range * squashed
-        gaussian_log_prob = (-0.5 * noise ** 2 - log_std - 0.5 * torch.log(
-            torch.tensor(2.0 * torch.pi, dtype=mean.dtype))).sum(-1)
-        # log |d action / d z| = log(s (1 - tanh^2)); 1e-6 guards tanh saturation.
-        log_jacobian = torch.log(self.action_half_range * (1.0 - squashed ** 2) + 1e-6).sum(-1)
-        mean_action = self.action_center + self.action_half_range * torch.tanh(mean)
-        return PolicySample(action, gaussian_log_prob - log_jacobian, mean_action)
+        half_range = self.action_half_range
+        # z = mu + sigma noise; u = c + s tanh(z) (addcmul: one operation each).
+        squashed = torch.tanh(torch.addcmul(mean, log_std.exp(), noise))
+        action = torch.addcmul(self.action_center, half_range, squashed)
+        # log N(z; mu, sigma) = -(log sigma + noise^2 / 2) - log(2 pi) / 2 per dimension, and
+        # log |d u / d z| = log(s (1 - tanh^2)), written s + 1e-6 - s tanh^2 (1e-6 guards tanh
+        # saturation).
+        log_jacobian = torch.log(torch.addcmul(half_range + 1e-6, half_range, squashed.square(),
+                                               value=-1.0))
+        log_prob = ((-_HALF_LOG_TWO_PI * mean.shape[-1])
+                    - (torch.addcmul(log_std, noise, noise, value=0.5) + log_jacobian).sum(-1))
+        mean_action = torch.addcmul(self.action_center, half_range, torch.tanh(mean))
+        return PolicySample(action, log_prob, mean_action)
 
     def numpy_sampler(self) -> NumpyActor:
         """A :class:`NumpyActor` on this actor's (live) weights."""
@@ -184,6 +193,100 @@ class QNetwork(nn.Module):
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """obs: (B, obs_dim), action: (B, n_u) -> (B,)."""
         return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)
+
+
+class _StackedLinear(nn.Module):
+    """The same linear layer of both twins: ``weight`` (2, n_in, n_out), each twin's weight
+    matrix transposed (so that the batched product's gradient comes out in the parameter's own
+    layout, with no copy), and ``bias`` (2, 1, n_out)."""
+
+    def __init__(self, weight: torch.Tensor, bias: torch.Tensor) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(weight)
+        self.bias = nn.Parameter(bias)
+
+
+class TwinQNetwork(nn.Module):
+    """Two :class:`QNetwork` of one shape evaluated together: (Q1(obs, u), Q2(obs, u)), (2, B).
+
+    Each layer of the pair is one batched product ``baddbmm(bias, x, weight)`` over the stacked
+    weights (:class:`_StackedLinear`), forward and backward, instead of one product per twin:
+    each twin's arithmetic is the same as its own network's (the same products and sums, round-off
+    aside), in half the operations. Both twins read the same input ``[obs, u]``.
+
+    :meth:`member` gives each twin as a plain :class:`QNetwork` whose parameters are views of
+    its slices (they see every in-place change, an optimizer step, a Polyak step,
+    ``load_state_dict``, without copying; loading a twin's ``state_dict`` writes the slices).
+    Train through this module: the views do not require gradients.
+
+    Args:
+        members: the two networks whose weights start the pair (copied).
+    """
+
+    def __init__(self, members: Sequence[QNetwork]) -> None:
+        super().__init__()
+        if len(members) != 2:
+            raise ValueError(f'TwinQNetwork: expected 2 networks, got {len(members)}')
+        linears = [[m for m in member.net if isinstance(m, nn.Linear)] for member in members]
+        if len(linears[0]) != len(linears[1]) or any(
+                a.weight.shape != b.weight.shape for a, b in zip(*linears)):
+            raise ValueError('TwinQNetwork: the two networks must have the same layer sizes')
+        with torch.no_grad():
+            self.layers = nn.ModuleList(
+                _StackedLinear(self.stacked_tensor('weight', a.weight, b.weight),
+                               self.stacked_tensor('bias', a.bias, b.bias))
+                for a, b in zip(*linears))
+        self.n_in = linears[0][0].in_features
+        self.hidden_sizes = tuple(linear.out_features for linear in linears[0][:-1])
+
+    @staticmethod
+    def member_tensor(name: str, stacked: torch.Tensor, index: int) -> torch.Tensor:
+        """Twin ``index``'s part of a tensor laid out as the stacked parameter ``name`` (a
+        weight or a bias, or an optimizer moment of one), as a view in :class:`QNetwork`'s
+        layout."""
+        if name.endswith('weight'):
+            return stacked[index].t()
+        if name.endswith('bias'):
+            return stacked[index, 0]
+        raise ValueError(f'TwinQNetwork: {name!r} is neither a weight nor a bias')
+
+    @staticmethod
+    def stacked_tensor(name: str, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+        """Inverse of :meth:`member_tensor`: the two twins' tensors (QNetwork's layout) laid
+        out as the stacked parameter ``name`` (a new tensor)."""
+        if name.endswith('weight'):
+            return torch.stack([first.t(), second.t()]).contiguous()
+        if name.endswith('bias'):
+            return torch.stack([first, second]).unsqueeze(1).contiguous()
+        raise ValueError(f'TwinQNetwork: {name!r} is neither a weight nor a bias')
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """obs: (B, obs_dim), action: (B, n_u) -> (2, B): row i is twin i's Q."""
+        x = torch.cat([obs, action], dim=-1)
+        x = x.expand(2, *x.shape)
+        last = len(self.layers) - 1
+        for index, layer in enumerate(self.layers):
+            x = torch.baddbmm(layer.bias, x, layer.weight)
+            if index < last:
+                # In place: baddbmm's gradient needs its inputs, not its output.
+                x = x.relu_()
+        return x.squeeze(-1)
+
+    def member(self, index: int) -> QNetwork:
+        """Twin ``index`` (0 or 1) as a :class:`QNetwork` on views of its weights."""
+        if index not in (0, 1):
+            raise ValueError(f'TwinQNetwork.member: index must be 0 or 1, got {index}')
+        # Built on the meta device: no initialisation, no draw from the global generator (only
+        # the sum obs_dim + n_u matters to QNetwork).
+        with torch.device('meta'):
+            network = QNetwork(self.n_in - 1, 1, self.hidden_sizes)
+        linears = [m for m in network.net if isinstance(m, nn.Linear)]
+        for linear, layer in zip(linears, self.layers):
+            linear.weight = nn.Parameter(self.member_tensor('weight', layer.weight.detach(),
+                                                            index), requires_grad=False)
+            linear.bias = nn.Parameter(self.member_tensor('bias', layer.bias.detach(), index),
+                                       requires_grad=False)
+        return network
 
 
 class Compensator(nn.Module):

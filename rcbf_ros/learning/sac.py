@@ -46,7 +46,13 @@ from torch import nn
 
 from rcbf_ros.learning.buffers import BatchDisturbance, TransitionBatch
 from rcbf_ros.learning.compiled_update import FunctionalUpdate
-from rcbf_ros.learning.networks import Compensator, NumpyMLP, QNetwork, SquashedGaussianActor
+from rcbf_ros.learning.networks import (
+    Compensator,
+    NumpyMLP,
+    QNetwork,
+    SquashedGaussianActor,
+    TwinQNetwork,
+)
 
 SafetyLayer = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 Mode = Literal['unconstrained', 'baseline', 'baseline_compensator', 'diff', 'modular']
@@ -133,6 +139,110 @@ def polyak_update(params: Iterable[nn.Parameter], target_params: Iterable[nn.Par
         torch._foreach_lerp_(target_params, params, tau)
 
 
+class AdamStep:
+    """``optimizer.step()`` of a ``torch.optim.Adam`` with one group and no weight decay,
+    amsgrad, maximize or differentiable mode, with less Python per call.
+
+    It runs the kernel ``torch.optim.Adam(fused=True)`` runs, ``torch._fused_adam_``, after the
+    same increment of the step counts, on the optimizer's own state tensors (``step``,
+    ``exp_avg``, ``exp_avg_sq``; created as Adam creates them at its first step), with the
+    group's current ``lr``, ``betas`` and ``eps``: for a fused optimizer the same update bit
+    for bit, without ``Optimizer.step``'s per-call grouping, hooks and state lookups. The
+    parameters' step counts (equal: they step together) become views of one tensor, so that
+    one increment counts them all. Where a parameter has no gradient it leaves the step to the
+    optimizer (which skips it). Build it again once the optimizer's state tensors are replaced
+    (``load_state_dict``).
+    """
+
+    def __init__(self, optimizer: torch.optim.Optimizer) -> None:
+        if len(optimizer.param_groups) != 1:
+            raise ValueError('AdamStep: expected one parameter group')
+        group = optimizer.param_groups[0]
+        if (group['weight_decay'] or group['amsgrad'] or group['maximize']
+                or group['differentiable'] or group.get('decoupled_weight_decay')
+                or isinstance(group['lr'], torch.Tensor)):
+            raise ValueError('AdamStep: supports plain Adam (no weight decay, amsgrad, '
+                             'maximize, differentiable mode or tensor lr)')
+        self.optimizer, self.group = optimizer, group
+        self.params: list[torch.Tensor] = list(group['params'])
+        for param in self.params:
+            state = optimizer.state[param]
+            if not state:
+                state['step'] = torch.zeros((), dtype=torch.float32, device=param.device)
+                state['exp_avg'] = torch.zeros_like(param, memory_format=torch.preserve_format)
+                state['exp_avg_sq'] = torch.zeros_like(param,
+                                                       memory_format=torch.preserve_format)
+        states = [optimizer.state[param] for param in self.params]
+        self.counts = torch.stack([state['step'] for state in states])
+        for index, state in enumerate(states):
+            state['step'] = self.counts[index]
+        self.steps = [state['step'] for state in states]
+        self.first = [state['exp_avg'] for state in states]
+        self.second = [state['exp_avg_sq'] for state in states]
+
+    def zero_grad(self) -> None:
+        """``optimizer.zero_grad()`` (gradients set to None)."""
+        for param in self.params:
+            param.grad = None
+
+    def __call__(self) -> None:
+        """One Adam step of every parameter from its ``.grad``."""
+        grads = [param.grad for param in self.params]
+        if any(grad is None for grad in grads):
+            self.optimizer.step()
+            return
+        group = self.group
+        beta1, beta2 = group['betas']
+        with torch.no_grad():
+            self.counts.add_(1.0)
+            torch._fused_adam_(self.params, grads, self.first, self.second, [], self.steps,
+                               lr=float(group['lr']), beta1=float(beta1), beta2=float(beta2),
+                               weight_decay=0.0, eps=float(group['eps']), amsgrad=False,
+                               maximize=False)
+
+
+def _critic_state_per_network(twin: TwinQNetwork, state: dict[str, Any]) -> dict[str, Any]:
+    """The critics' optimizer ``state_dict`` over the twin's stacked parameters, rewritten as
+    Adam over ``[*q1.parameters(), *q2.parameters()]`` keeps it (the checkpoint layout: each
+    network's own tensors, q1's first)."""
+    names = [name for name, _ in twin.named_parameters()]
+    per_network: dict[int, dict[str, Any]] = {}
+    for index, entry in state['state'].items():
+        for member in (0, 1):
+            per_network[index + member * len(names)] = {
+                key: (value.clone() if key == 'step' else TwinQNetwork.member_tensor(
+                    names[index], value, member).clone(memory_format=torch.contiguous_format))
+                for key, value in entry.items()}
+    groups = [{**group, 'params': list(range(2 * len(names)))}
+              for group in state['param_groups']]
+    return {'state': dict(sorted(per_network.items())), 'param_groups': groups}
+
+
+def _critic_state_stacked(twin: TwinQNetwork, state: dict[str, Any]) -> dict[str, Any]:
+    """Inverse of :func:`_critic_state_per_network`: a checkpoint's critic optimizer state as
+    the optimizer over the twin's stacked parameters keeps it."""
+    names = [name for name, _ in twin.named_parameters()]
+    count = len(names)
+    groups = state['param_groups']
+    if len(groups) != 1 or len(groups[0]['params']) != 2 * count:
+        raise ValueError(f'critic_optimizer: expected one group of {2 * count} parameters '
+                         '(q1 then q2), got '
+                         f'{[len(group["params"]) for group in groups]}')
+    ids = groups[0]['params']
+    entries = state['state']
+    stacked: dict[int, dict[str, Any]] = {}
+    for index, name in enumerate(names):
+        first, second = entries.get(ids[index]), entries.get(ids[index + count])
+        if first is None and second is None:
+            continue
+        if first is None or second is None or set(first) != set(second):
+            raise ValueError(f'critic_optimizer: the twins disagree on the state of {name}')
+        stacked[index] = {key: (first[key].clone() if key == 'step' else
+                                TwinQNetwork.stacked_tensor(name, first[key], second[key]))
+                          for key in first}
+    return {'state': stacked, 'param_groups': [{**groups[0], 'params': list(range(count))}]}
+
+
 class SAC:
     """SAC agent with SAC-RCBF's training modes.
 
@@ -146,6 +256,11 @@ class SAC:
         seed: seeds network initialisation (without touching the global RNG) and the policy
             noise generator, so equal seeds give bit-identical training.
         dtype: parameter type (float32; float64 for gradient checks).
+
+    The twin critics are trained as one :class:`TwinQNetwork` (``critics``, target
+    ``critics_target``); ``q1``, ``q2``, ``q1_target``, ``q2_target`` are each twin as a
+    :class:`QNetwork` on views of its weights, for evaluation and checkpoints (which keep one
+    state per network).
     """
 
     def __init__(self, obs_dim: int, n_u: int, u_low: np.ndarray | torch.Tensor,
@@ -178,16 +293,17 @@ class SAC:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.actor = SquashedGaussianActor(obs_dim, low, high, hidden).to(dtype)
-            self.q1 = QNetwork(obs_dim, n_u, hidden).to(dtype)
-            self.q2 = QNetwork(obs_dim, n_u, hidden).to(dtype)
+            q1 = QNetwork(obs_dim, n_u, hidden).to(dtype)
+            q2 = QNetwork(obs_dim, n_u, hidden).to(dtype)
             self.compensator = (Compensator(obs_dim, n_u, hidden).to(dtype)
                                 if cfg.mode == 'baseline_compensator' else None)
-        self.q1_target = QNetwork(obs_dim, n_u, hidden).to(dtype)
-        self.q2_target = QNetwork(obs_dim, n_u, hidden).to(dtype)
-        self.q1_target.load_state_dict(self.q1.state_dict())
-        self.q2_target.load_state_dict(self.q2.state_dict())
-        for param in [*self.q1_target.parameters(), *self.q2_target.parameters()]:
-            param.requires_grad_(False)
+        self.critics = TwinQNetwork([q1, q2])
+        self.critics_target = copy.deepcopy(self.critics)
+        self.critics_target.requires_grad_(False)
+        self._target_params = list(self.critics_target.parameters())
+        self.q1, self.q2 = self.critics.member(0), self.critics.member(1)
+        self.q1_target, self.q2_target = (self.critics_target.member(0),
+                                          self.critics_target.member(1))
         alpha0 = DEFAULT_INITIAL_ALPHA if cfg.initial_alpha is None else cfg.initial_alpha
         self.log_alpha = torch.tensor(float(np.log(alpha0)), dtype=dtype,
                                       requires_grad=True)
@@ -197,14 +313,16 @@ class SAC:
         # its round-off differs from the per-tensor loop's).
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr,
                                                 fused=True)
-        self.critic_optimizer = torch.optim.Adam(
-            [*self.q1.parameters(), *self.q2.parameters()], lr=cfg.critic_lr, fused=True)
-        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr)
+        self.critic_optimizer = torch.optim.Adam(self.critics.parameters(), lr=cfg.critic_lr,
+                                                 fused=True)
+        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr, fused=True)
         # Built at the first update when ``compile_update`` (it binds the optimizers' state).
         self._functional_update: FunctionalUpdate | None = None
         self.compensator_optimizer = (
             torch.optim.Adam(self.compensator.parameters(), lr=cfg.compensator_lr, fused=True)
             if self.compensator is not None else None)
+        # The optimizers' steps (AdamStep), bound at the first update that steps each.
+        self._steps: dict[str, AdamStep] = {}
         self.generator = torch.Generator().manual_seed(seed + 1)
         self.num_updates = 0
         # Batch-1 acting in numpy on live views of the weights (NumpyMLP's docstring says why).
@@ -306,8 +424,8 @@ class SAC:
         gradient: the soft value the learner believes in, to hold against returns."""
         action = self._trained_action(u_rl, u_safe).to(self.dtype)
         with torch.no_grad():
-            obs = obs.to(self.dtype)
-            return torch.minimum(self.q1(obs, action), self.q2(obs, action))
+            q = self.critics(obs.to(self.dtype), action)
+            return torch.minimum(q[0], q[1])
 
     def critic_target(self, batch: TransitionBatch, noise: torch.Tensor | None = None,
                       disturbance: BatchDisturbance | None = None) -> torch.Tensor:
@@ -329,22 +447,27 @@ class SAC:
                     None if disturbance is None else disturbance.next_state)
             # eq. q_update (plain) and eq. q_update_mod (modular): u^S_{t+1} = 0, so
             # V_bar(x') = Q_bar(x', a') - alpha log pi(a'|x').
-            next_q = torch.minimum(self.q1_target(batch.next_obs, next_action),
-                                   self.q2_target(batch.next_obs, next_action))
-            next_value = next_q - self.alpha * next_sample.log_prob
+            next_q = self.critics_target(batch.next_obs, next_action)
+            next_value = torch.minimum(next_q[0], next_q[1]) - self.alpha * next_sample.log_prob
             return batch.reward + self.config.gamma * (1.0 - batch.done) * next_value
 
     def critic_loss(self, batch: TransitionBatch, noise: torch.Tensor | None = None,
                     disturbance: BatchDisturbance | None = None
                     ) -> tuple[torch.Tensor, dict[str, float]]:
         """J_Q = E[1/2 (Q_i(x_t, action_t) - y)^2], summed over the twin critics."""
+        loss, q, target = self._critic_loss(batch, noise, disturbance)
+        q1_mean, q2_mean, target_mean = torch.cat([q.detach().mean(-1),
+                                                   target.mean().reshape(1)]).tolist()
+        return loss, {'q1_mean': q1_mean, 'q2_mean': q2_mean, 'target_mean': target_mean}
+
+    def _critic_loss(self, batch: TransitionBatch, noise: torch.Tensor | None,
+                     disturbance: BatchDisturbance | None
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`critic_loss` and the twins' Q (2, B) and the target y (B,) behind it."""
         target = self.critic_target(batch, noise, disturbance)
-        action = self.critic_action(batch)
-        q1 = self.q1(batch.obs, action)
-        q2 = self.q2(batch.obs, action)
-        loss = 0.5 * ((q1 - target) ** 2).mean() + 0.5 * ((q2 - target) ** 2).mean()
-        return loss, {'q1_mean': float(q1.detach().mean()), 'q2_mean': float(q2.detach().mean()),
-                      'target_mean': float(target.mean())}
+        q = self.critics(batch.obs, self.critic_action(batch))
+        # 1/2 E[(Q_1 - y)^2] + 1/2 E[(Q_2 - y)^2] is the mean over both rows of (Q - y)^2.
+        return ((q - target) ** 2).mean(), q, target
 
     def actor_loss(self, batch: TransitionBatch, noise: torch.Tensor | None = None,
                    disturbance: BatchDisturbance | None = None
@@ -363,8 +486,8 @@ class SAC:
             action = self._safe_action(batch.state, action,
                                        None if disturbance is None else disturbance.state)
         # eq. pi_update (unconstrained, baselines, modular): Q(x, a).
-        q = torch.minimum(self.q1(batch.obs, action), self.q2(batch.obs, action))
-        loss = (self.alpha * sample.log_prob - q).mean()
+        q = self.critics(batch.obs, action)
+        loss = (self.alpha * sample.log_prob - torch.minimum(q[0], q[1])).mean()
         return loss, sample.log_prob
 
     def compensator_loss(self, batch: TransitionBatch) -> torch.Tensor:
@@ -383,52 +506,64 @@ class SAC:
         cfg = self.config
         if cfg.compile_update:
             return self._update_compiled(batch)
-        critic_loss, metrics = self.critic_loss(batch, disturbance=disturbance)
-        self.critic_optimizer.zero_grad()
+        critic_step = self._step('critic')
+        critic_loss, q, target = self._critic_loss(batch, None, disturbance)
+        critic_step.zero_grad()
         critic_loss.backward()
-        self.critic_optimizer.step()
+        critic_step()
 
         # The actor's loss differentiates through the critics only to reach the action: their
         # weight gradients would be computed and thrown away (~10 % of the update's FLOPs).
-        critic_params = [*self.q1.parameters(), *self.q2.parameters()]
+        critic_params = critic_step.params
         for param in critic_params:
             param.requires_grad_(False)
+        actor_step = self._step('actor')
         try:
             actor_loss, log_prob = self.actor_loss(batch, disturbance=disturbance)
-            self.actor_optimizer.zero_grad()
+            actor_step.zero_grad()
             actor_loss.backward()
         finally:
             for param in critic_params:
                 param.requires_grad_(True)
-        self.actor_optimizer.step()
+        actor_step()
 
-        alpha_loss = torch.zeros(())
+        log_prob = log_prob.detach()
+        alpha_loss = torch.zeros((), dtype=self.dtype)
         if cfg.autotune_alpha:
-            # Haarnoja et al. 2018b: J(alpha) = E[-alpha (log pi + target_entropy)].
-            alpha_loss = -(self.log_alpha * (log_prob.detach() + self.target_entropy)).mean()
-            self.alpha_optimizer.zero_grad()
-            alpha_loss.backward()
-            self.alpha_optimizer.step()
+            # Haarnoja et al. 2018b: J(alpha) = E[-log_alpha (log pi + target_entropy)], whose
+            # gradient in log_alpha is -E[log pi + target_entropy] (no graph needed for it).
+            gradient = -(log_prob + self.target_entropy).mean()
+            alpha_loss = self.log_alpha.detach() * gradient
+            self.log_alpha.grad = gradient
+            self._step('alpha')()
 
         self.num_updates += 1
         if self.num_updates % cfg.target_update_interval == 0:
-            polyak_update(self.q1.parameters(), self.q1_target.parameters(), cfg.tau)
-            polyak_update(self.q2.parameters(), self.q2_target.parameters(), cfg.tau)
+            polyak_update(critic_params, self._target_params, cfg.tau)
 
-        metrics.update({'critic_loss': float(critic_loss.detach()),
-                        'actor_loss': float(actor_loss.detach()),
-                        'alpha': float(self.alpha), 'alpha_loss': float(alpha_loss.detach()),
-                        'entropy': float(-log_prob.detach().mean())})
+        # The metrics as one tensor, converted to Python floats at once.
+        values = torch.cat([q.detach().mean(-1), torch.stack([
+            target.mean(), critic_loss.detach(), actor_loss.detach(), self.alpha, alpha_loss,
+            -log_prob.mean()])]).tolist()
+        metrics = dict(zip(('q1_mean', 'q2_mean', 'target_mean', 'critic_loss', 'actor_loss',
+                            'alpha', 'alpha_loss', 'entropy'), values))
         self._update_compensator(batch, metrics)
         return metrics
 
+    def _step(self, name: str) -> AdamStep:
+        """The :class:`AdamStep` of ``{name}_optimizer`` (bound at its first use)."""
+        step = self._steps.get(name)
+        if step is None:
+            step = self._steps[name] = AdamStep(getattr(self, f'{name}_optimizer'))
+        return step
+
     def _update_compensator(self, batch: TransitionBatch, metrics: dict[str, float]) -> None:
         if self.compensator is not None:
-            assert self.compensator_optimizer is not None
             compensator_loss = self.compensator_loss(batch)
-            self.compensator_optimizer.zero_grad()
+            step = self._step('compensator')
+            step.zero_grad()
             compensator_loss.backward()
-            self.compensator_optimizer.step()
+            step()
             metrics['compensator_loss'] = float(compensator_loss.detach())
 
     def _update_compiled(self, batch: TransitionBatch) -> dict[str, float]:
@@ -443,11 +578,11 @@ class SAC:
         stats = self._functional_update.step(
             batch, self.critic_action(batch), next_noise, noise,
             self.num_updates % self.config.target_update_interval == 0)
-        metrics = {'q1_mean': float(stats.q1_mean), 'q2_mean': float(stats.q2_mean),
-                   'target_mean': float(stats.target_mean),
-                   'critic_loss': float(stats.critic_loss),
-                   'actor_loss': float(stats.actor_loss), 'alpha': float(self.alpha),
-                   'alpha_loss': float(stats.alpha_loss), 'entropy': float(stats.entropy)}
+        values = torch.stack([stats.q1_mean, stats.q2_mean, stats.target_mean,
+                              stats.critic_loss, stats.actor_loss, self.alpha,
+                              stats.alpha_loss, stats.entropy]).tolist()
+        metrics = dict(zip(('q1_mean', 'q2_mean', 'target_mean', 'critic_loss', 'actor_loss',
+                            'alpha', 'alpha_loss', 'entropy'), values))
         self._update_compensator(batch, metrics)
         return metrics
 
@@ -464,9 +599,21 @@ class SAC:
 
     def state_dict(self) -> dict[str, Any]:
         """A snapshot (deep copy) of networks, optimisers, log(alpha), generator state and
-        update count."""
-        state = {name: copy.deepcopy(module.state_dict())
-                 for name, module in self._modules().items()}
+        update count. Each twin critic has its own network and optimizer state, as
+        ``torch.optim.Adam`` over ``[*q1.parameters(), *q2.parameters()]`` keeps it."""
+        state: dict[str, Any] = {}
+        for name, module in self._modules().items():
+            if name == 'critic_optimizer':
+                state[name] = _critic_state_per_network(self.critics, module.state_dict())
+            elif isinstance(module, QNetwork):
+                # Views of the twins' slices: copied alone, in the network's own layout.
+                own = module.state_dict()
+                copied = type(own)((key, value.detach().clone(
+                    memory_format=torch.contiguous_format)) for key, value in own.items())
+                copied._metadata = copy.deepcopy(getattr(own, '_metadata', None))
+                state[name] = copied
+            else:
+                state[name] = copy.deepcopy(module.state_dict())
         state.update({'log_alpha': self.log_alpha.detach().clone(),
                       'generator': self.generator.get_state(),
                       'num_updates': self.num_updates, 'mode': self.config.mode})
@@ -478,10 +625,15 @@ class SAC:
             raise ValueError(f"mode mismatch: state_dict has {state['mode']!r}, agent has "
                              f'{self.config.mode!r}')
         for name, module in self._modules().items():
-            module.load_state_dict(state[name])
+            if name == 'critic_optimizer':
+                module.load_state_dict(_critic_state_stacked(self.critics, state[name]))
+            else:
+                module.load_state_dict(state[name])
         with torch.no_grad():
             self.log_alpha.copy_(state['log_alpha'])
         self.generator.set_state(state['generator'])
         self.num_updates = state['num_updates']
-        # The optimizers' state tensors were replaced: the compiled update binds the new ones.
+        # The optimizers' state tensors were replaced: the steps and the compiled update bind
+        # the new ones.
+        self._steps.clear()
         self._functional_update = None
