@@ -69,6 +69,7 @@ well defined. Non-convergence is reported per sample in
 """
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple
 
 import torch
@@ -130,15 +131,31 @@ def _check_inputs(P: Tensor, q: Tensor, G: Tensor, h: Tensor
                          f'{tuple(G.shape)}')
     if nc == 0:
         raise ValueError('G, h: need at least one inequality constraint')
-    finite = [torch.isfinite(value.detach()).all() for value in (P, q, G, h)]
-    diag = torch.diagonal(P.detach(), dim1=-2, dim2=-1)
-    # One synchronising check for the common case; the field is named only on failure.
-    if not bool(torch.stack([*finite, (diag > 0).all()]).all()):
-        for name, ok in zip(('P', 'q', 'G', 'h'), finite):
-            if not bool(ok):
+    # One synchronising check for the common case: a sum of entries is finite unless an entry
+    # is not (or finite entries overflow it: the exact test below then decides), and P's
+    # diagonal must be > 0 (a NaN fails that too). A batch-shared P or q (2-D / 1-D input, or
+    # expanded) is checked once.
+    parts = [_distinct(value.detach()) for value in (P, q, G, h)]
+    diag = torch.diagonal(parts[0], dim1=-2, dim2=-1)
+    *sums, smallest = torch.stack([*(part.sum() for part in parts), diag.amin()]).tolist()
+    if not (all(math.isfinite(total) for total in sums) and smallest > 0):
+        for name, part in zip(('P', 'q', 'G', 'h'), parts):
+            if not bool(torch.isfinite(part).all()):
                 raise ValueError(f'{name}: contains NaN or inf')
-        raise ValueError('P: must be positive definite (found a diagonal entry <= 0)')
+        if not bool((diag > 0).all()):
+            raise ValueError('P: must be positive definite (found a diagonal entry <= 0)')
     return P, q, G, h
+
+
+def _shared(value: Tensor) -> bool:
+    """Whether every sample of the batched ``value`` is the same memory (an expanded view,
+    batch stride 0), so that its per-sample work can be done once."""
+    return value.shape[0] > 1 and value.stride(0) == 0
+
+
+def _distinct(value: Tensor) -> Tensor:
+    """``value`` with a batch-shared leading dimension (:func:`_shared`) cut to one sample."""
+    return value[:1] if _shared(value) else value
 
 
 def _schur(P: Tensor, G: Tensor, weights: Tensor) -> Tensor:
@@ -525,9 +542,14 @@ def _diagonal_of(P: Tensor) -> Tensor | None:
 
     Diagonal P (the RCBF-QP's) lets the solver skip factorisations: the unconstrained minimiser,
     single-row KKT systems and the backward pass of samples without active rows have closed
-    forms."""
-    diagonal = torch.diagonal(P.detach(), dim1=-2, dim2=-1)
-    return diagonal if torch.equal(P.detach(), torch.diag_embed(diagonal)) else None
+    forms. A batch-shared P (:func:`_shared`) is examined once."""
+    detached = P.detach()
+    shared = _shared(detached)
+    distinct = detached[:1] if shared else detached
+    diagonal = torch.diagonal(distinct, dim1=-2, dim2=-1)
+    if not torch.equal(distinct, torch.diag_embed(diagonal)):
+        return None
+    return diagonal.expand(P.shape[0], -1) if shared else diagonal
 
 
 class _QPLayer(torch.autograd.Function):
@@ -574,9 +596,12 @@ class _QPLayer(torch.autograd.Function):
                 rows = (count > 0).nonzero().squeeze(-1)
                 b_z[rows], b_nu[rows] = _kkt_solve(P[rows], G[rows], active[rows], grad_z[rows],
                                                    grad_lam[rows])
-        grad_q = -b_z
-        grad_P = -b_z.unsqueeze(-1) * z.unsqueeze(-2)
-        grad_G = -(lam.unsqueeze(-1) * b_z.unsqueeze(-2) + b_nu.unsqueeze(-1) * z.unsqueeze(-2))
+        # Only the gradients autograd asks for (the RCBF-QP's P and q are constants).
+        need_P, need_q, need_G = ctx.needs_input_grad[:3]
+        grad_q = -b_z if need_q else None
+        grad_P = -b_z.unsqueeze(-1) * z.unsqueeze(-2) if need_P else None
+        grad_G = (-(lam.unsqueeze(-1) * b_z.unsqueeze(-2) + b_nu.unsqueeze(-1) * z.unsqueeze(-2))
+                  if need_G else None)
         grad_h = b_nu
         return grad_P, grad_q, grad_G, grad_h, None, None, None, None
 
@@ -605,13 +630,17 @@ def solve_qp_batch_full(P: Tensor, q: Tensor, G: Tensor, h: Tensor, *, tol: floa
         raise ValueError(f'max_iter: must be >= 1, got {max_iter}')
     P, q, G, h = _check_inputs(P, q, G, h)
     out_dtype = q.dtype
+    batch, nz = q.shape
+    # A batch-shared P (as the RCBF-QP's; also q) is symmetrised and scaled once, then
+    # expanded again: the same values as per sample.
+    P, q = _distinct(P), _distinct(q)
     P, q, G, h = (x.to(torch.float64) for x in (P, q, G, h))
     P = 0.5 * (P + P.mT)
     # Detached equilibration (exact for gradients, see module docstring):
     # z = E y with E = diag(P)^-1/2, rows of G E scaled by R = 1 / ||(G E)_i||.
     col = torch.diagonal(P.detach(), dim1=-2, dim2=-1).rsqrt()
-    P_s = col.unsqueeze(-1) * P * col.unsqueeze(-2)
-    q_s = col * q
+    P_s = (col.unsqueeze(-1) * P * col.unsqueeze(-2)).expand(batch, nz, nz)
+    q_s = (col * q).expand(batch, nz)
     G_cols = G * col.unsqueeze(-2)
     row_norm = torch.linalg.vector_norm(G_cols.detach(), dim=-1)
     row = torch.where(row_norm > 0, 1.0 / row_norm.clamp_min(1e-300), torch.ones_like(row_norm))
