@@ -66,8 +66,13 @@ def robust_margin(grad_h: Tensor, mean: Tensor, std: Tensor, k_c: float) -> Tens
     Returns:
         (B, K) margins rho_i.
     """
-    return (torch.einsum('bkn,bn->bk', grad_h, mean)
-            - k_c * torch.einsum('bkn,bn->bk', grad_h.abs(), std))
+    return (_batched_matvec(grad_h, mean) - k_c * _batched_matvec(grad_h.abs(), std))
+
+
+def _batched_matvec(A: Tensor, x: Tensor) -> Tensor:
+    """A x per sample, A: (B, K, n), x: (B, n) -> (B, K) (einsum 'bkn,bn->bk' as one batched
+    product, without einsum's per-call parsing)."""
+    return torch.matmul(A, x.unsqueeze(-1)).squeeze(-1)
 
 
 def check_input_weight(input_weight: Sequence[float], m: int) -> tuple[float, ...]:
@@ -123,7 +128,7 @@ def build_rcbf_qp(*, h: Tensor, lf_h: Tensor, lg_h: Tensor, rho: Tensor, u_rl: T
     # RCBF rows: -L_g h u_S - eps <= L_f h + L_g h u_RL + alpha h + rho
     g_rows = torch.cat([-lg_h, _constant(-1.0, dtype, device).expand(*lg_h.shape[:2], 1)],
                        dim=-1)
-    h_rows = lf_h + torch.einsum('bkm,bm->bk', lg_h, u_rl) + alpha_t * h + rho
+    h_rows = lf_h + _batched_matvec(lg_h, u_rl) + alpha_t * h + rho
     if u_min is not None:
         limit_g, lo, hi = _limit_rows(m, tuple(float(v) for v in u_min),
                                       tuple(float(v) for v in u_max), dtype, device)
