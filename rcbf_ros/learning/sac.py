@@ -95,8 +95,8 @@ class SACConfig:
     compile_update: bool = False
     """Run the networks' part of each update as one ``torch.compile``'d function
     (:mod:`rcbf_ros.learning.compiled_update`): the same update, up to float32 round-off, in
-    about two thirds of the eager time on CPU, after a one-off compile of tens of seconds at the
-    first update (again after ``load_state_dict``, which replaces the optimizers' state; twice
+    about three quarters of the eager time on CPU, after a one-off compile of tens of seconds at
+    the first update (again after ``load_state_dict``, which replaces the optimizers' state; twice
     with ``target_update_interval`` > 1: with and without the Polyak step). Equal seeds still
     give equal runs. Not where the losses pass the action through a safety layer (``diff``;
     ``modular`` with an envelope layer)."""
