@@ -101,11 +101,15 @@ class FunctionalUpdate:
         cfg = sac.config
         self.gamma, self.tau = cfg.gamma, cfg.tau
         self.autotune_alpha, self.target_entropy = cfg.autotune_alpha, sac.target_entropy
-        self.actor, self.critics = sac.actor, sac.critics
+        self.actor, self.q1, self.q2 = sac.actor, sac.q1, sac.q2
         self.actor_adam = _adam_state(sac.actor_optimizer, dict(sac.actor.named_parameters()))
-        self.critic_adam = _adam_state(sac.critic_optimizer, dict(sac.critics.named_parameters()))
+        critics = _adam_state(sac.critic_optimizer, {
+            **{f'q1.{k}': v for k, v in sac.q1.named_parameters()},
+            **{f'q2.{k}': v for k, v in sac.q2.named_parameters()}})
+        self.critic_adam = critics
         self.alpha_adam = _adam_state(sac.alpha_optimizer, {'log_alpha': sac.log_alpha})
-        self.critics_target = dict(sac.critics_target.named_parameters())
+        self.q1_target = dict(sac.q1_target.named_parameters())
+        self.q2_target = dict(sac.q2_target.named_parameters())
         self._run = (torch.compile(self._step, fullgraph=True, dynamic=False, mode=mode)
                      if compile_ else self._step)
 
@@ -117,30 +121,40 @@ class FunctionalUpdate:
         with torch.no_grad():
             return self._run(batch, action, next_noise, noise, polyak)
 
+    def _critics(self, params: Tensors) -> tuple[Tensors, Tensors]:
+        q1 = {k[3:]: v for k, v in params.items() if k.startswith('q1.')}
+        q2 = {k[3:]: v for k, v in params.items() if k.startswith('q2.')}
+        return q1, q2
+
     def _step(self, batch: TransitionBatch, action: torch.Tensor, next_noise: torch.Tensor,
               noise: torch.Tensor, polyak: bool) -> UpdateStats:
         log_alpha = self.alpha_adam.params['log_alpha']
         alpha = log_alpha.exp()
         following = functional_call(self.actor, self.actor_adam.params, (batch.next_obs,),
                                     {'noise': next_noise})
-        next_q = functional_call(self.critics, self.critics_target,
-                                 (batch.next_obs, following.action))
+        next_q = torch.minimum(
+            functional_call(self.q1, self.q1_target, (batch.next_obs, following.action)),
+            functional_call(self.q2, self.q2_target, (batch.next_obs, following.action)))
         target = batch.reward + self.gamma * (1.0 - batch.done) * (
-            torch.minimum(next_q[0], next_q[1]) - alpha * following.log_prob)
+            next_q - alpha * following.log_prob)
 
-        def critic_loss(params: Tensors) -> tuple[torch.Tensor, torch.Tensor]:
-            q = functional_call(self.critics, params, (batch.obs, action))
-            return ((q - target) ** 2).mean(), q.mean(-1)
+        def critic_loss(params: Tensors) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+            q1_params, q2_params = self._critics(params)
+            q1 = functional_call(self.q1, q1_params, (batch.obs, action))
+            q2 = functional_call(self.q2, q2_params, (batch.obs, action))
+            loss = 0.5 * ((q1 - target) ** 2).mean() + 0.5 * ((q2 - target) ** 2).mean()
+            return loss, (q1.mean(), q2.mean())
 
-        critic_grads, (critic_value, q_means) = grad_and_value(
+        critic_grads, (critic_value, (q1_mean, q2_mean)) = grad_and_value(
             critic_loss, has_aux=True)(self.critic_adam.params)
         _adam_step(self.critic_adam, critic_grads)
-        critic_params = self.critic_adam.params
+        q1_params, q2_params = self._critics(self.critic_adam.params)
 
         def actor_loss(params: Tensors) -> tuple[torch.Tensor, torch.Tensor]:
             sample = functional_call(self.actor, params, (batch.obs,), {'noise': noise})
-            q = functional_call(self.critics, critic_params, (batch.obs, sample.action))
-            return (alpha * sample.log_prob - torch.minimum(q[0], q[1])).mean(), sample.log_prob
+            q = torch.minimum(functional_call(self.q1, q1_params, (batch.obs, sample.action)),
+                              functional_call(self.q2, q2_params, (batch.obs, sample.action)))
+            return (alpha * sample.log_prob - q).mean(), sample.log_prob
 
         actor_grads, (actor_value, log_prob) = grad_and_value(actor_loss, has_aux=True)(
             self.actor_adam.params)
@@ -151,8 +165,8 @@ class FunctionalUpdate:
             alpha_loss = -(log_alpha * (log_prob + self.target_entropy)).mean()
             _adam_step(self.alpha_adam, {'log_alpha': -(log_prob + self.target_entropy).mean()})
         if polyak:
-            targets = self.critics_target
-            torch._foreach_lerp_(list(targets.values()), [critic_params[k] for k in targets],
-                                 self.tau)
-        return UpdateStats(critic_value, actor_value, alpha_loss, q_means[0], q_means[1],
+            for targets, params in ((self.q1_target, q1_params), (self.q2_target, q2_params)):
+                torch._foreach_lerp_(list(targets.values()), [params[k] for k in targets],
+                                     self.tau)
+        return UpdateStats(critic_value, actor_value, alpha_loss, q1_mean, q2_mean,
                            target.mean(), -log_prob.mean())

@@ -46,13 +46,7 @@ from torch import nn
 
 from rcbf_ros.learning.buffers import BatchDisturbance, TransitionBatch
 from rcbf_ros.learning.compiled_update import FunctionalUpdate
-from rcbf_ros.learning.networks import (
-    Compensator,
-    NumpyMLP,
-    QNetwork,
-    SquashedGaussianActor,
-    TwinQNetwork,
-)
+from rcbf_ros.learning.networks import Compensator, NumpyMLP, QNetwork, SquashedGaussianActor
 
 SafetyLayer = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 Mode = Literal['unconstrained', 'baseline', 'baseline_compensator', 'diff', 'modular']
@@ -201,48 +195,6 @@ class AdamStep:
                                maximize=False)
 
 
-def _critic_state_per_network(twin: TwinQNetwork, state: dict[str, Any]) -> dict[str, Any]:
-    """The critics' optimizer ``state_dict`` over the twin's stacked parameters, rewritten as
-    Adam over ``[*q1.parameters(), *q2.parameters()]`` keeps it (the checkpoint layout: each
-    network's own tensors, q1's first)."""
-    names = [name for name, _ in twin.named_parameters()]
-    per_network: dict[int, dict[str, Any]] = {}
-    for index, entry in state['state'].items():
-        for member in (0, 1):
-            per_network[index + member * len(names)] = {
-                key: (value.clone() if key == 'step' else TwinQNetwork.member_tensor(
-                    names[index], value, member).clone(memory_format=torch.contiguous_format))
-                for key, value in entry.items()}
-    groups = [{**group, 'params': list(range(2 * len(names)))}
-              for group in state['param_groups']]
-    return {'state': dict(sorted(per_network.items())), 'param_groups': groups}
-
-
-def _critic_state_stacked(twin: TwinQNetwork, state: dict[str, Any]) -> dict[str, Any]:
-    """Inverse of :func:`_critic_state_per_network`: a checkpoint's critic optimizer state as
-    the optimizer over the twin's stacked parameters keeps it."""
-    names = [name for name, _ in twin.named_parameters()]
-    count = len(names)
-    groups = state['param_groups']
-    if len(groups) != 1 or len(groups[0]['params']) != 2 * count:
-        raise ValueError(f'critic_optimizer: expected one group of {2 * count} parameters '
-                         '(q1 then q2), got '
-                         f'{[len(group["params"]) for group in groups]}')
-    ids = groups[0]['params']
-    entries = state['state']
-    stacked: dict[int, dict[str, Any]] = {}
-    for index, name in enumerate(names):
-        first, second = entries.get(ids[index]), entries.get(ids[index + count])
-        if first is None and second is None:
-            continue
-        if first is None or second is None or set(first) != set(second):
-            raise ValueError(f'critic_optimizer: the twins disagree on the state of {name}')
-        stacked[index] = {key: (first[key].clone() if key == 'step' else
-                                TwinQNetwork.stacked_tensor(name, first[key], second[key]))
-                          for key in first}
-    return {'state': stacked, 'param_groups': [{**groups[0], 'params': list(range(count))}]}
-
-
 class SAC:
     """SAC agent with SAC-RCBF's training modes.
 
@@ -256,11 +208,6 @@ class SAC:
         seed: seeds network initialisation (without touching the global RNG) and the policy
             noise generator, so equal seeds give bit-identical training.
         dtype: parameter type (float32; float64 for gradient checks).
-
-    The twin critics are trained as one :class:`TwinQNetwork` (``critics``, target
-    ``critics_target``); ``q1``, ``q2``, ``q1_target``, ``q2_target`` are each twin as a
-    :class:`QNetwork` on views of its weights, for evaluation and checkpoints (which keep one
-    state per network).
     """
 
     def __init__(self, obs_dim: int, n_u: int, u_low: np.ndarray | torch.Tensor,
@@ -293,17 +240,15 @@ class SAC:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.actor = SquashedGaussianActor(obs_dim, low, high, hidden).to(dtype)
-            q1 = QNetwork(obs_dim, n_u, hidden).to(dtype)
-            q2 = QNetwork(obs_dim, n_u, hidden).to(dtype)
+            self.q1 = QNetwork(obs_dim, n_u, hidden).to(dtype)
+            self.q2 = QNetwork(obs_dim, n_u, hidden).to(dtype)
             self.compensator = (Compensator(obs_dim, n_u, hidden).to(dtype)
                                 if cfg.mode == 'baseline_compensator' else None)
-        self.critics = TwinQNetwork([q1, q2])
-        self.critics_target = copy.deepcopy(self.critics)
-        self.critics_target.requires_grad_(False)
-        self._target_params = list(self.critics_target.parameters())
-        self.q1, self.q2 = self.critics.member(0), self.critics.member(1)
-        self.q1_target, self.q2_target = (self.critics_target.member(0),
-                                          self.critics_target.member(1))
+        self.q1_target = copy.deepcopy(self.q1).requires_grad_(False)
+        self.q2_target = copy.deepcopy(self.q2).requires_grad_(False)
+        # Both targets' parameters in the critic optimizer's order (q1's, then q2's): one
+        # Polyak step moves both.
+        self._target_params = [*self.q1_target.parameters(), *self.q2_target.parameters()]
         alpha0 = DEFAULT_INITIAL_ALPHA if cfg.initial_alpha is None else cfg.initial_alpha
         self.log_alpha = torch.tensor(float(np.log(alpha0)), dtype=dtype,
                                       requires_grad=True)
@@ -313,8 +258,8 @@ class SAC:
         # its round-off differs from the per-tensor loop's).
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr,
                                                 fused=True)
-        self.critic_optimizer = torch.optim.Adam(self.critics.parameters(), lr=cfg.critic_lr,
-                                                 fused=True)
+        self.critic_optimizer = torch.optim.Adam(
+            [*self.q1.parameters(), *self.q2.parameters()], lr=cfg.critic_lr, fused=True)
         self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr, fused=True)
         # Built at the first update when ``compile_update`` (it binds the optimizers' state).
         self._functional_update: FunctionalUpdate | None = None
@@ -424,8 +369,8 @@ class SAC:
         gradient: the soft value the learner believes in, to hold against returns."""
         action = self._trained_action(u_rl, u_safe).to(self.dtype)
         with torch.no_grad():
-            q = self.critics(obs.to(self.dtype), action)
-            return torch.minimum(q[0], q[1])
+            obs = obs.to(self.dtype)
+            return torch.minimum(self.q1(obs, action), self.q2(obs, action))
 
     def critic_target(self, batch: TransitionBatch, noise: torch.Tensor | None = None,
                       disturbance: BatchDisturbance | None = None) -> torch.Tensor:
@@ -447,27 +392,30 @@ class SAC:
                     None if disturbance is None else disturbance.next_state)
             # eq. q_update (plain) and eq. q_update_mod (modular): u^S_{t+1} = 0, so
             # V_bar(x') = Q_bar(x', a') - alpha log pi(a'|x').
-            next_q = self.critics_target(batch.next_obs, next_action)
-            next_value = torch.minimum(next_q[0], next_q[1]) - self.alpha * next_sample.log_prob
+            next_q = torch.minimum(self.q1_target(batch.next_obs, next_action),
+                                   self.q2_target(batch.next_obs, next_action))
+            next_value = next_q - self.alpha * next_sample.log_prob
             return batch.reward + self.config.gamma * (1.0 - batch.done) * next_value
 
     def critic_loss(self, batch: TransitionBatch, noise: torch.Tensor | None = None,
                     disturbance: BatchDisturbance | None = None
                     ) -> tuple[torch.Tensor, dict[str, float]]:
         """J_Q = E[1/2 (Q_i(x_t, action_t) - y)^2], summed over the twin critics."""
-        loss, q, target = self._critic_loss(batch, noise, disturbance)
-        q1_mean, q2_mean, target_mean = torch.cat([q.detach().mean(-1),
-                                                   target.mean().reshape(1)]).tolist()
+        loss, q1, q2, target = self._critic_loss(batch, noise, disturbance)
+        q1_mean, q2_mean, target_mean = torch.stack([q1.detach().mean(), q2.detach().mean(),
+                                                     target.mean()]).tolist()
         return loss, {'q1_mean': q1_mean, 'q2_mean': q2_mean, 'target_mean': target_mean}
 
     def _critic_loss(self, batch: TransitionBatch, noise: torch.Tensor | None,
                      disturbance: BatchDisturbance | None
-                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """:meth:`critic_loss` and the twins' Q (2, B) and the target y (B,) behind it."""
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`critic_loss` and the Q1, Q2 and target y (each (B,)) behind it."""
         target = self.critic_target(batch, noise, disturbance)
-        q = self.critics(batch.obs, self.critic_action(batch))
-        # 1/2 E[(Q_1 - y)^2] + 1/2 E[(Q_2 - y)^2] is the mean over both rows of (Q - y)^2.
-        return ((q - target) ** 2).mean(), q, target
+        action = self.critic_action(batch)
+        q1 = self.q1(batch.obs, action)
+        q2 = self.q2(batch.obs, action)
+        loss = 0.5 * ((q1 - target) ** 2).mean() + 0.5 * ((q2 - target) ** 2).mean()
+        return loss, q1, q2, target
 
     def actor_loss(self, batch: TransitionBatch, noise: torch.Tensor | None = None,
                    disturbance: BatchDisturbance | None = None
@@ -486,8 +434,8 @@ class SAC:
             action = self._safe_action(batch.state, action,
                                        None if disturbance is None else disturbance.state)
         # eq. pi_update (unconstrained, baselines, modular): Q(x, a).
-        q = self.critics(batch.obs, action)
-        loss = (self.alpha * sample.log_prob - torch.minimum(q[0], q[1])).mean()
+        q = torch.minimum(self.q1(batch.obs, action), self.q2(batch.obs, action))
+        loss = (self.alpha * sample.log_prob - q).mean()
         return loss, sample.log_prob
 
     def compensator_loss(self, batch: TransitionBatch) -> torch.Tensor:
@@ -507,14 +455,14 @@ class SAC:
         if cfg.compile_update:
             return self._update_compiled(batch)
         critic_step = self._step('critic')
-        critic_loss, q, target = self._critic_loss(batch, None, disturbance)
+        critic_loss, q1, q2, target = self._critic_loss(batch, None, disturbance)
         critic_step.zero_grad()
         critic_loss.backward()
         critic_step()
 
         # The actor's loss differentiates through the critics only to reach the action: their
         # weight gradients would be computed and thrown away (~10 % of the update's FLOPs).
-        critic_params = critic_step.params
+        critic_params = critic_step.params    # q1's, then q2's
         for param in critic_params:
             param.requires_grad_(False)
         actor_step = self._step('actor')
@@ -542,9 +490,9 @@ class SAC:
             polyak_update(critic_params, self._target_params, cfg.tau)
 
         # The metrics as one tensor, converted to Python floats at once.
-        values = torch.cat([q.detach().mean(-1), torch.stack([
-            target.mean(), critic_loss.detach(), actor_loss.detach(), self.alpha, alpha_loss,
-            -log_prob.mean()])]).tolist()
+        values = torch.stack([
+            q1.detach().mean(), q2.detach().mean(), target.mean(), critic_loss.detach(),
+            actor_loss.detach(), self.alpha, alpha_loss, -log_prob.mean()]).tolist()
         metrics = dict(zip(('q1_mean', 'q2_mean', 'target_mean', 'critic_loss', 'actor_loss',
                             'alpha', 'alpha_loss', 'entropy'), values))
         self._update_compensator(batch, metrics)
@@ -599,21 +547,9 @@ class SAC:
 
     def state_dict(self) -> dict[str, Any]:
         """A snapshot (deep copy) of networks, optimisers, log(alpha), generator state and
-        update count. Each twin critic has its own network and optimizer state, as
-        ``torch.optim.Adam`` over ``[*q1.parameters(), *q2.parameters()]`` keeps it."""
-        state: dict[str, Any] = {}
-        for name, module in self._modules().items():
-            if name == 'critic_optimizer':
-                state[name] = _critic_state_per_network(self.critics, module.state_dict())
-            elif isinstance(module, QNetwork):
-                # Views of the twins' slices: copied alone, in the network's own layout.
-                own = module.state_dict()
-                copied = type(own)((key, value.detach().clone(
-                    memory_format=torch.contiguous_format)) for key, value in own.items())
-                copied._metadata = copy.deepcopy(getattr(own, '_metadata', None))
-                state[name] = copied
-            else:
-                state[name] = copy.deepcopy(module.state_dict())
+        update count."""
+        state = {name: copy.deepcopy(module.state_dict())
+                 for name, module in self._modules().items()}
         state.update({'log_alpha': self.log_alpha.detach().clone(),
                       'generator': self.generator.get_state(),
                       'num_updates': self.num_updates, 'mode': self.config.mode})
@@ -625,10 +561,7 @@ class SAC:
             raise ValueError(f"mode mismatch: state_dict has {state['mode']!r}, agent has "
                              f'{self.config.mode!r}')
         for name, module in self._modules().items():
-            if name == 'critic_optimizer':
-                module.load_state_dict(_critic_state_stacked(self.critics, state[name]))
-            else:
-                module.load_state_dict(state[name])
+            module.load_state_dict(state[name])
         with torch.no_grad():
             self.log_alpha.copy_(state['log_alpha'])
         self.generator.set_state(state['generator'])
