@@ -550,6 +550,11 @@ class SAC:
         update count."""
         state = {name: copy.deepcopy(module.state_dict())
                  for name, module in self._modules().items()}
+        for name in self._steps:
+            # AdamStep keeps an optimizer's step counts as views of one tensor; the checkpoint
+            # holds each as its own tensor, as torch.optim.Adam does.
+            for entry in state[f'{name}_optimizer']['state'].values():
+                entry['step'] = entry['step'].clone()
         state.update({'log_alpha': self.log_alpha.detach().clone(),
                       'generator': self.generator.get_state(),
                       'num_updates': self.num_updates, 'mode': self.config.mode})
