@@ -48,9 +48,12 @@ Cholesky), gives dL/dP, dL/dq, dL/dG, dL/dh (and supports a loss on lam).
 Diagonal P (the RCBF-QP's; :func:`_diagonal_of`): at these sizes the per-operation overhead
 dominates, so the solver skips factorisations where a closed form is exact: the unconstrained
 minimiser -q / diag(P), the second round from the empty set (one row a:
-nu = (a P^-1 (-q) - h_a) / (a P^-1 a^T)), and in the backward pass the samples without active
-rows (P^-1 grad) or, where no sample has several, with one. Acceptance is unchanged (a closed
-form that is not finite is rejected and the general path takes over).
+nu = (a P^-1 (-q) - h_a) / (a P^-1 a^T)), later rounds and the backward pass wherever a sample
+has at most two active rows (the 2 x 2 system A P^-1 A^T nu = A P^-1 rhs - h_A by its inverse,
+refined once; :func:`_kkt_solve_two_rows`), and in the backward pass the samples without active
+rows (P^-1 grad). Acceptance is unchanged (a closed form that is not finite, or whose two rows
+are close to dependent, is declined and the general path takes over). A batch-shared P and q
+(expanded views, as the RCBF-QP's) are checked and scaled once per batch.
 
 Before solving, variables are scaled to unit Hessian diagonal (the slack weight l ~ 1e3-1e6
 otherwise dominates the conditioning) and constraint rows to unit norm. Both scalings are
@@ -69,6 +72,7 @@ well defined. Non-convergence is reported per sample in
 """
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple
 
 import torch
@@ -130,15 +134,31 @@ def _check_inputs(P: Tensor, q: Tensor, G: Tensor, h: Tensor
                          f'{tuple(G.shape)}')
     if nc == 0:
         raise ValueError('G, h: need at least one inequality constraint')
-    finite = [torch.isfinite(value.detach()).all() for value in (P, q, G, h)]
-    diag = torch.diagonal(P.detach(), dim1=-2, dim2=-1)
-    # One synchronising check for the common case; the field is named only on failure.
-    if not bool(torch.stack([*finite, (diag > 0).all()]).all()):
-        for name, ok in zip(('P', 'q', 'G', 'h'), finite):
-            if not bool(ok):
+    # One synchronising check for the common case: a sum of entries is finite unless an entry
+    # is not (or finite entries overflow it: the exact test below then decides), and P's
+    # diagonal must be > 0 (a NaN fails that too). A batch-shared P or q (2-D / 1-D input, or
+    # expanded) is checked once.
+    parts = [_distinct(value.detach()) for value in (P, q, G, h)]
+    diag = torch.diagonal(parts[0], dim1=-2, dim2=-1)
+    *sums, smallest = torch.stack([*(part.sum() for part in parts), diag.amin()]).tolist()
+    if not (all(math.isfinite(total) for total in sums) and smallest > 0):
+        for name, part in zip(('P', 'q', 'G', 'h'), parts):
+            if not bool(torch.isfinite(part).all()):
                 raise ValueError(f'{name}: contains NaN or inf')
-        raise ValueError('P: must be positive definite (found a diagonal entry <= 0)')
+        if not bool((diag > 0).all()):
+            raise ValueError('P: must be positive definite (found a diagonal entry <= 0)')
     return P, q, G, h
+
+
+def _shared(value: Tensor) -> bool:
+    """Whether every sample of the batched ``value`` is the same memory (an expanded view,
+    batch stride 0), so that its per-sample work can be done once."""
+    return value.shape[0] > 1 and value.stride(0) == 0
+
+
+def _distinct(value: Tensor) -> Tensor:
+    """``value`` with a batch-shared leading dimension (:func:`_shared`) cut to one sample."""
+    return value[:1] if _shared(value) else value
 
 
 def _schur(P: Tensor, G: Tensor, weights: Tensor) -> Tensor:
@@ -352,6 +372,85 @@ def _kkt_solve_one_row(diagonal: Tensor, G: Tensor, active: Tensor, rhs_z: Tenso
     return x_free - scaled * nu, nu * mask
 
 
+_TWO_ROW_CONDITION = 1e-6
+"""The two-row closed form is taken where det M / (M_11 M_22), the squared sine of the angle
+between the two rows (in the metric P^-1), exceeds this; below, the rows are close to dependent
+(LICQ nearly fails) and the regularised general solve decides."""
+
+
+def _kkt_solve_two_rows(diagonal: Tensor, G: Tensor, active: Tensor, rhs_z: Tensor,
+                        rhs_nu: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_kkt_solve` in closed form for diagonal P and at most two active rows per sample.
+
+    With P = D = diag(d) and the active rows A (up to two), x = D^-1 (rhs_z - A^T nu) and
+    A x = rhs_nu give the 2 x 2 system M nu = A D^-1 rhs_z - rhs_nu, M = A D^-1 A^T, solved by
+    its explicit inverse and one step of iterative refinement on the rows' residual (to the
+    rounding level the general solve's refinement reaches); a missing row is a unit row of
+    M with a zero right-hand side (its multiplier 0). No regularisation is needed where M is
+    well conditioned; elsewhere, and where the result is not finite, ``ok`` is False and the
+    caller solves those samples with :func:`_kkt_solve`.
+
+    diagonal: (B, n) > 0, G: (B, m, n), active: (B, m) bool with at most two True per sample,
+    rhs_z: (B, n), rhs_nu: (B, m). Returns x: (B, n), nu: (B, m) (zero on inactive rows), ok:
+    (B,) bool.
+    """
+    n = G.shape[-1]
+    picked = torch.topk(active.to(G.dtype), min(2, active.shape[-1]), dim=-1).indices
+    on = active.gather(1, picked)
+    if picked.shape[-1] == 1:
+        picked, on = torch.cat([picked, picked], dim=1), torch.cat([on, torch.zeros_like(on)],
+                                                                   dim=1)
+    present = on.to(G.dtype)
+    rows = G.gather(1, picked.unsqueeze(-1).expand(-1, -1, n)) * present.unsqueeze(-1)
+    scaled = rows / diagonal.unsqueeze(1)                      # A D^-1: (B, 2, n)
+    gram = torch.matmul(scaled, rows.mT) + torch.diag_embed(1.0 - present)
+    free = rhs_z / diagonal
+    right = _matvec(rows, free) - rhs_nu.gather(1, picked) * present
+    a, b, c = gram[:, 0, 0], gram[:, 0, 1], gram[:, 1, 1]
+    det = a * c - b * b
+    inverse = torch.stack([torch.stack([c, -b], -1), torch.stack([-b, a], -1)], -2) / det[:, None,
+                                                                                          None]
+    nu = _matvec(inverse, right)
+    x = free - _rmatvec(scaled, nu)
+    # One refinement step on the rows' own residual A x - rhs_nu (what the rounding of M and of
+    # x left): nu += M^-1 (A x - rhs_nu), x -= D^-1 A^T (that change).
+    step = _matvec(inverse, _matvec(rows, x) - rhs_nu.gather(1, picked) * present)
+    nu = nu + step
+    x = x - _rmatvec(scaled, step)
+    ok = ((det > _TWO_ROW_CONDITION * a * c) & torch.isfinite(x).all(-1)
+          & torch.isfinite(nu).all(-1))
+    nu_full = torch.zeros_like(rhs_nu).scatter_add_(1, picked, nu * present)
+    return x, nu_full, ok
+
+
+def _kkt_solve_diagonal(P: Tensor, diagonal: Tensor, G: Tensor, active: Tensor,
+                        rhs_z: Tensor, rhs_nu: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`_kkt_solve` for diagonal P: the closed forms where a sample has at most two
+    active rows (:func:`_kkt_solve_two_rows`; the one-row form where no sample has more), the
+    general solve for the others and where a closed form is rejected."""
+    count = active.sum(-1)
+    if not bool((count > 2).any()):
+        if not bool((count > 1).any()):
+            x, nu = _kkt_solve_one_row(diagonal, G, active, rhs_z, rhs_nu)
+            ok = torch.isfinite(x).all(-1)
+        else:
+            x, nu, ok = _kkt_solve_two_rows(diagonal, G, active, rhs_z, rhs_nu)
+        if bool(ok.all()):
+            return x, nu
+        rest = (~ok).nonzero().squeeze(-1)
+    else:
+        x, nu = torch.empty_like(rhs_z), torch.empty_like(rhs_nu)
+        small = (count <= 2).nonzero().squeeze(-1)
+        rest = (count > 2).nonzero().squeeze(-1)
+        if small.numel():
+            x_s, nu_s, ok_s = _kkt_solve_two_rows(diagonal[small], G[small], active[small],
+                                                  rhs_z[small], rhs_nu[small])
+            x[small], nu[small] = x_s, nu_s
+            rest = torch.cat([rest, small[~ok_s]])
+    x[rest], nu[rest] = _kkt_solve(P[rest], G[rest], active[rest], rhs_z[rest], rhs_nu[rest])
+    return x, nu
+
+
 def _active_set_rounds(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, rounds: int,
                        seed: Tensor | None = None, diagonal: Tensor | None = None
                        ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -407,6 +506,8 @@ def _active_set_rounds(P: Tensor, q: Tensor, G: Tensor, h: Tensor, tol: float, r
         if round_ == 1 and seed is None and diagonal is not None:
             # From the empty set the second round holds at most the one added row.
             z, lam = _kkt_solve_one_row(diagonal, G, active, -q, h * active)
+        elif diagonal is not None:
+            z, lam = _kkt_solve_diagonal(P, diagonal, G, active, -q, h * active)
         else:
             z, lam = _kkt_solve(P, G, active, -q, h * active)
         violation = _matvec(G, z) - h
@@ -525,9 +626,14 @@ def _diagonal_of(P: Tensor) -> Tensor | None:
 
     Diagonal P (the RCBF-QP's) lets the solver skip factorisations: the unconstrained minimiser,
     single-row KKT systems and the backward pass of samples without active rows have closed
-    forms."""
-    diagonal = torch.diagonal(P.detach(), dim1=-2, dim2=-1)
-    return diagonal if torch.equal(P.detach(), torch.diag_embed(diagonal)) else None
+    forms. A batch-shared P (:func:`_shared`) is examined once."""
+    detached = P.detach()
+    shared = _shared(detached)
+    distinct = detached[:1] if shared else detached
+    diagonal = torch.diagonal(distinct, dim1=-2, dim2=-1)
+    if not torch.equal(distinct, torch.diag_embed(diagonal)):
+        return None
+    return diagonal.expand(P.shape[0], -1) if shared else diagonal
 
 
 class _QPLayer(torch.autograd.Function):
@@ -562,21 +668,15 @@ class _QPLayer(torch.autograd.Function):
             b_z, b_nu = _kkt_solve(P, G, active, grad_z, grad_lam)
         else:
             # Diagonal P: without active rows K is P itself (b_z = grad_z / diagonal, b_nu = 0),
-            # with one a closed form; only where some sample has more (or the closed form is not
-            # finite) the samples with active rows take the KKT solve.
-            count = active.sum(-1)
-            several = bool((count > 1).any())
-            if several:
-                b_z, b_nu = grad_z / diagonal, torch.zeros_like(grad_lam)
-            else:
-                b_z, b_nu = _kkt_solve_one_row(diagonal, G, active, grad_z, grad_lam)
-            if several or not bool(torch.isfinite(b_z).all()):
-                rows = (count > 0).nonzero().squeeze(-1)
-                b_z[rows], b_nu[rows] = _kkt_solve(P[rows], G[rows], active[rows], grad_z[rows],
-                                                   grad_lam[rows])
-        grad_q = -b_z
-        grad_P = -b_z.unsqueeze(-1) * z.unsqueeze(-2)
-        grad_G = -(lam.unsqueeze(-1) * b_z.unsqueeze(-2) + b_nu.unsqueeze(-1) * z.unsqueeze(-2))
+            # with one or two a closed form; the KKT solve only where a sample has more (or a
+            # closed form is rejected).
+            b_z, b_nu = _kkt_solve_diagonal(P, diagonal, G, active, grad_z, grad_lam)
+        # Only the gradients autograd asks for (the RCBF-QP's P and q are constants).
+        need_P, need_q, need_G = ctx.needs_input_grad[:3]
+        grad_q = -b_z if need_q else None
+        grad_P = -b_z.unsqueeze(-1) * z.unsqueeze(-2) if need_P else None
+        grad_G = (-(lam.unsqueeze(-1) * b_z.unsqueeze(-2) + b_nu.unsqueeze(-1) * z.unsqueeze(-2))
+                  if need_G else None)
         grad_h = b_nu
         return grad_P, grad_q, grad_G, grad_h, None, None, None, None
 
@@ -605,13 +705,17 @@ def solve_qp_batch_full(P: Tensor, q: Tensor, G: Tensor, h: Tensor, *, tol: floa
         raise ValueError(f'max_iter: must be >= 1, got {max_iter}')
     P, q, G, h = _check_inputs(P, q, G, h)
     out_dtype = q.dtype
+    batch, nz = q.shape
+    # A batch-shared P (as the RCBF-QP's; also q) is symmetrised and scaled once, then
+    # expanded again: the same values as per sample.
+    P, q = _distinct(P), _distinct(q)
     P, q, G, h = (x.to(torch.float64) for x in (P, q, G, h))
     P = 0.5 * (P + P.mT)
     # Detached equilibration (exact for gradients, see module docstring):
     # z = E y with E = diag(P)^-1/2, rows of G E scaled by R = 1 / ||(G E)_i||.
     col = torch.diagonal(P.detach(), dim1=-2, dim2=-1).rsqrt()
-    P_s = col.unsqueeze(-1) * P * col.unsqueeze(-2)
-    q_s = col * q
+    P_s = (col.unsqueeze(-1) * P * col.unsqueeze(-2)).expand(batch, nz, nz)
+    q_s = (col * q).expand(batch, nz)
     G_cols = G * col.unsqueeze(-2)
     row_norm = torch.linalg.vector_norm(G_cols.detach(), dim=-1)
     row = torch.where(row_norm > 0, 1.0 / row_norm.clamp_min(1e-300), torch.ones_like(row_norm))

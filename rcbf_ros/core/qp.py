@@ -26,6 +26,7 @@ pi_update_diff).
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple, Sequence
 
@@ -65,8 +66,13 @@ def robust_margin(grad_h: Tensor, mean: Tensor, std: Tensor, k_c: float) -> Tens
     Returns:
         (B, K) margins rho_i.
     """
-    return (torch.einsum('bkn,bn->bk', grad_h, mean)
-            - k_c * torch.einsum('bkn,bn->bk', grad_h.abs(), std))
+    return (_batched_matvec(grad_h, mean) - k_c * _batched_matvec(grad_h.abs(), std))
+
+
+def _batched_matvec(A: Tensor, x: Tensor) -> Tensor:
+    """A x per sample, A: (B, K, n), x: (B, n) -> (B, K) (einsum 'bkn,bn->bk' as one batched
+    product, without einsum's per-call parsing)."""
+    return torch.matmul(A, x.unsqueeze(-1)).squeeze(-1)
 
 
 def check_input_weight(input_weight: Sequence[float], m: int) -> tuple[float, ...]:
@@ -109,25 +115,44 @@ def build_rcbf_qp(*, h: Tensor, lf_h: Tensor, lg_h: Tensor, rho: Tensor, u_rl: T
         u_max: m upper limits, or None (both or neither).
 
     Returns:
-        QPData with nz = m + 1 and nc = K (+ 2 m with limits).
+        QPData with nz = m + 1 and nc = K (+ 2 m with limits). P and q are the same for every
+        sample, returned as expanded views (batch stride 0: read-only, shared by the batch).
     """
     batch, _, m = lg_h.shape
     dtype, device = lg_h.dtype, lg_h.device
     if (u_min is None) != (u_max is None):
         raise ValueError('u_min/u_max: give both actuator limits or neither')
-    alpha_t = torch.as_tensor(alpha, dtype=dtype, device=device)
+    # A number multiplies as a Python scalar (rounded to dtype, as a 0-d tensor of it would be).
+    alpha_t = (float(alpha) if isinstance(alpha, (int, float))
+               else torch.as_tensor(alpha, dtype=dtype, device=device))
     # RCBF rows: -L_g h u_S - eps <= L_f h + L_g h u_RL + alpha h + rho
-    g_rows = torch.cat([-lg_h, -torch.ones_like(lg_h[..., :1])], dim=-1)
-    h_rows = lf_h + torch.einsum('bkm,bm->bk', lg_h, u_rl) + alpha_t * h + rho
+    g_rows = torch.cat([-lg_h, _constant(-1.0, dtype, device).expand(*lg_h.shape[:2], 1)],
+                       dim=-1)
+    h_rows = lf_h + _batched_matvec(lg_h, u_rl) + alpha_t * h + rho
     if u_min is not None:
-        eye = torch.eye(m, dtype=dtype, device=device)
-        limit_g = torch.cat([torch.cat([eye, -eye], dim=0),
-                             torch.zeros(2 * m, 1, dtype=dtype, device=device)], dim=-1)
-        lo = torch.as_tensor(u_min, dtype=dtype, device=device)
-        hi = torch.as_tensor(u_max, dtype=dtype, device=device)
+        limit_g, lo, hi = _limit_rows(m, tuple(float(v) for v in u_min),
+                                      tuple(float(v) for v in u_max), dtype, device)
         g_rows = torch.cat([g_rows, limit_g.expand(batch, -1, -1)], dim=1)
         h_rows = torch.cat([h_rows, hi - u_rl, u_rl - lo], dim=1)
-    diag = torch.tensor(cost_weights(m, slack_weight, input_weight), dtype=dtype, device=device)
-    P = torch.diag_embed(2.0 * diag).expand(batch, -1, -1)
-    q = torch.zeros(batch, m + 1, dtype=dtype, device=device)
-    return QPData(P, q, g_rows, h_rows)
+    weights = cost_weights(m, slack_weight, input_weight)
+    P = torch.diag_embed(torch.tensor(weights, dtype=dtype, device=device) * 2.0)
+    q = torch.zeros(m + 1, dtype=dtype, device=device)
+    return QPData(P.expand(batch, -1, -1), q.expand(batch, -1), g_rows, h_rows)
+
+
+@functools.lru_cache(maxsize=64)
+def _constant(value: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """A 0-d constant tensor, made once per value, dtype and device (only ever read)."""
+    return torch.tensor(value, dtype=dtype, device=device)
+
+
+@functools.lru_cache(maxsize=64)
+def _limit_rows(m: int, u_min: tuple[float, ...], u_max: tuple[float, ...],
+                dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """The limit rows' constant parts: G rows [I, 0; -I, 0] (2 m, m + 1), u_min and u_max
+    (m,), made once per limits, dtype and device (only ever read, never returned)."""
+    eye = torch.eye(m, dtype=dtype, device=device)
+    limit_g = torch.cat([torch.cat([eye, -eye], dim=0),
+                         torch.zeros(2 * m, 1, dtype=dtype, device=device)], dim=-1)
+    return (limit_g, torch.tensor(u_min, dtype=dtype, device=device),
+            torch.tensor(u_max, dtype=dtype, device=device))

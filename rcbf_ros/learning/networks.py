@@ -1,6 +1,7 @@
-"""Neural networks of SAC: squashed-Gaussian actor, Q critic, compensator (all MLPs)."""
+"""Neural networks of SAC: squashed-Gaussian actor, Q critics, compensator (all MLPs)."""
 from __future__ import annotations
 
+import math
 from typing import NamedTuple, Sequence
 
 import numpy as np
@@ -9,14 +10,18 @@ from torch import nn
 
 LOG_STD_MIN = -5.0
 LOG_STD_MAX = 2.0
+_HALF_LOG_TWO_PI = 0.5 * math.log(2.0 * math.pi)
 
 
 def mlp(n_in: int, n_out: int, hidden_sizes: Sequence[int]) -> nn.Sequential:
-    """Fully connected ReLU network ``n_in -> hidden_sizes... -> n_out`` (linear output)."""
+    """Fully connected ReLU network ``n_in -> hidden_sizes... -> n_out`` (linear output).
+
+    The ReLUs work in place on their linear layer's output, which nothing else reads (the
+    linear layer's gradient needs its input, not its output): one buffer less per layer."""
     layers: list[nn.Module] = []
     width = n_in
     for hidden in hidden_sizes:
-        layers += [nn.Linear(width, hidden), nn.ReLU()]
+        layers += [nn.Linear(width, hidden), nn.ReLU(inplace=True)]
         width = hidden
     layers.append(nn.Linear(width, n_out))
     return nn.Sequential(*layers)
@@ -86,7 +91,8 @@ class SquashedGaussianActor(nn.Module):
         if len(hidden_sizes) < 1:
             raise ValueError('hidden_sizes must name at least one layer')
         # obs -> hidden_sizes (ReLU after each) -> two linear heads.
-        self.trunk = nn.Sequential(mlp(obs_dim, hidden_sizes[-1], hidden_sizes[:-1]), nn.ReLU())
+        self.trunk = nn.Sequential(mlp(obs_dim, hidden_sizes[-1], hidden_sizes[:-1]),
+                                   nn.ReLU(inplace=True))
         self.mean_head = nn.Linear(hidden_sizes[-1], n_u)
         self.log_std_head = nn.Linear(hidden_sizes[-1], n_u)
         self.register_buffer('action_center', (u_high + u_low) / 2.0)
@@ -105,19 +111,22 @@ class SquashedGaussianActor(nn.Module):
         features = self.trunk(obs)
         mean = self.mean_head(features)
         log_std = torch.clamp(self.log_std_head(features), LOG_STD_MIN, LOG_STD_MAX)
-        std = log_std.exp()
         if noise is None:
             noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype,
                                 device=mean.device)
-        pre_tanh = mean + std * noise
-        squashed = torch.tanh(pre_tanh)
-        action = self.action_center + self.action_half_range * squashed
-        gaussian_log_prob = (-0.5 * noise ** 2 - log_std - 0.5 * torch.log(
-            torch.tensor(2.0 * torch.pi, dtype=mean.dtype))).sum(-1)
-        # log |d action / d z| = log(s (1 - tanh^2)); 1e-6 guards tanh saturation.
-        log_jacobian = torch.log(self.action_half_range * (1.0 - squashed ** 2) + 1e-6).sum(-1)
-        mean_action = self.action_center + self.action_half_range * torch.tanh(mean)
-        return PolicySample(action, gaussian_log_prob - log_jacobian, mean_action)
+        half_range = self.action_half_range
+        # z = mu + sigma noise; u = c + s tanh(z) (addcmul: one operation each).
+        squashed = torch.tanh(torch.addcmul(mean, log_std.exp(), noise))
+        action = torch.addcmul(self.action_center, half_range, squashed)
+        # log N(z; mu, sigma) = -(log sigma + noise^2 / 2) - log(2 pi) / 2 per dimension, and
+        # log |d u / d z| = log(s (1 - tanh^2)), written s + 1e-6 - s tanh^2 (1e-6 guards tanh
+        # saturation).
+        log_jacobian = torch.log(torch.addcmul(half_range + 1e-6, half_range, squashed.square(),
+                                               value=-1.0))
+        log_prob = ((-_HALF_LOG_TWO_PI * mean.shape[-1])
+                    - (torch.addcmul(log_std, noise, noise, value=0.5) + log_jacobian).sum(-1))
+        mean_action = torch.addcmul(self.action_center, half_range, torch.tanh(mean))
+        return PolicySample(action, log_prob, mean_action)
 
     def numpy_sampler(self) -> NumpyActor:
         """A :class:`NumpyActor` on this actor's (live) weights."""

@@ -89,8 +89,8 @@ class SACConfig:
     compile_update: bool = False
     """Run the networks' part of each update as one ``torch.compile``'d function
     (:mod:`rcbf_ros.learning.compiled_update`): the same update, up to float32 round-off, in
-    about two thirds of the eager time on CPU, after a one-off compile of tens of seconds at the
-    first update (again after ``load_state_dict``, which replaces the optimizers' state; twice
+    about three quarters of the eager time on CPU, after a one-off compile of tens of seconds at
+    the first update (again after ``load_state_dict``, which replaces the optimizers' state; twice
     with ``target_update_interval`` > 1: with and without the Polyak step). Equal seeds still
     give equal runs. Not where the losses pass the action through a safety layer (``diff``;
     ``modular`` with an envelope layer)."""
@@ -131,6 +131,68 @@ def polyak_update(params: Iterable[nn.Parameter], target_params: Iterable[nn.Par
                          'targets')
     with torch.no_grad():
         torch._foreach_lerp_(target_params, params, tau)
+
+
+class AdamStep:
+    """``optimizer.step()`` of a ``torch.optim.Adam`` with one group and no weight decay,
+    amsgrad, maximize or differentiable mode, with less Python per call.
+
+    It runs the kernel ``torch.optim.Adam(fused=True)`` runs, ``torch._fused_adam_``, after the
+    same increment of the step counts, on the optimizer's own state tensors (``step``,
+    ``exp_avg``, ``exp_avg_sq``; created as Adam creates them at its first step), with the
+    group's current ``lr``, ``betas`` and ``eps``: for a fused optimizer the same update bit
+    for bit, without ``Optimizer.step``'s per-call grouping, hooks and state lookups. The
+    parameters' step counts (equal: they step together) become views of one tensor, so that
+    one increment counts them all. Where a parameter has no gradient it leaves the step to the
+    optimizer (which skips it). Build it again once the optimizer's state tensors are replaced
+    (``load_state_dict``).
+    """
+
+    def __init__(self, optimizer: torch.optim.Optimizer) -> None:
+        if len(optimizer.param_groups) != 1:
+            raise ValueError('AdamStep: expected one parameter group')
+        group = optimizer.param_groups[0]
+        if (group['weight_decay'] or group['amsgrad'] or group['maximize']
+                or group['differentiable'] or group.get('decoupled_weight_decay')
+                or isinstance(group['lr'], torch.Tensor)):
+            raise ValueError('AdamStep: supports plain Adam (no weight decay, amsgrad, '
+                             'maximize, differentiable mode or tensor lr)')
+        self.optimizer, self.group = optimizer, group
+        self.params: list[torch.Tensor] = list(group['params'])
+        for param in self.params:
+            state = optimizer.state[param]
+            if not state:
+                state['step'] = torch.zeros((), dtype=torch.float32, device=param.device)
+                state['exp_avg'] = torch.zeros_like(param, memory_format=torch.preserve_format)
+                state['exp_avg_sq'] = torch.zeros_like(param,
+                                                       memory_format=torch.preserve_format)
+        states = [optimizer.state[param] for param in self.params]
+        self.counts = torch.stack([state['step'] for state in states])
+        for index, state in enumerate(states):
+            state['step'] = self.counts[index]
+        self.steps = [state['step'] for state in states]
+        self.first = [state['exp_avg'] for state in states]
+        self.second = [state['exp_avg_sq'] for state in states]
+
+    def zero_grad(self) -> None:
+        """``optimizer.zero_grad()`` (gradients set to None)."""
+        for param in self.params:
+            param.grad = None
+
+    def __call__(self) -> None:
+        """One Adam step of every parameter from its ``.grad``."""
+        grads = [param.grad for param in self.params]
+        if any(grad is None for grad in grads):
+            self.optimizer.step()
+            return
+        group = self.group
+        beta1, beta2 = group['betas']
+        with torch.no_grad():
+            self.counts.add_(1.0)
+            torch._fused_adam_(self.params, grads, self.first, self.second, [], self.steps,
+                               lr=float(group['lr']), beta1=float(beta1), beta2=float(beta2),
+                               weight_decay=0.0, eps=float(group['eps']), amsgrad=False,
+                               maximize=False)
 
 
 class SAC:
@@ -182,12 +244,11 @@ class SAC:
             self.q2 = QNetwork(obs_dim, n_u, hidden).to(dtype)
             self.compensator = (Compensator(obs_dim, n_u, hidden).to(dtype)
                                 if cfg.mode == 'baseline_compensator' else None)
-        self.q1_target = QNetwork(obs_dim, n_u, hidden).to(dtype)
-        self.q2_target = QNetwork(obs_dim, n_u, hidden).to(dtype)
-        self.q1_target.load_state_dict(self.q1.state_dict())
-        self.q2_target.load_state_dict(self.q2.state_dict())
-        for param in [*self.q1_target.parameters(), *self.q2_target.parameters()]:
-            param.requires_grad_(False)
+        self.q1_target = copy.deepcopy(self.q1).requires_grad_(False)
+        self.q2_target = copy.deepcopy(self.q2).requires_grad_(False)
+        # Both targets' parameters in the critic optimizer's order (q1's, then q2's): one
+        # Polyak step moves both.
+        self._target_params = [*self.q1_target.parameters(), *self.q2_target.parameters()]
         alpha0 = DEFAULT_INITIAL_ALPHA if cfg.initial_alpha is None else cfg.initial_alpha
         self.log_alpha = torch.tensor(float(np.log(alpha0)), dtype=dtype,
                                       requires_grad=True)
@@ -199,12 +260,14 @@ class SAC:
                                                 fused=True)
         self.critic_optimizer = torch.optim.Adam(
             [*self.q1.parameters(), *self.q2.parameters()], lr=cfg.critic_lr, fused=True)
-        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr)
+        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr, fused=True)
         # Built at the first update when ``compile_update`` (it binds the optimizers' state).
         self._functional_update: FunctionalUpdate | None = None
         self.compensator_optimizer = (
             torch.optim.Adam(self.compensator.parameters(), lr=cfg.compensator_lr, fused=True)
             if self.compensator is not None else None)
+        # The optimizers' steps (AdamStep), bound at the first update that steps each.
+        self._steps: dict[str, AdamStep] = {}
         self.generator = torch.Generator().manual_seed(seed + 1)
         self.num_updates = 0
         # Batch-1 acting in numpy on live views of the weights (NumpyMLP's docstring says why).
@@ -338,13 +401,21 @@ class SAC:
                     disturbance: BatchDisturbance | None = None
                     ) -> tuple[torch.Tensor, dict[str, float]]:
         """J_Q = E[1/2 (Q_i(x_t, action_t) - y)^2], summed over the twin critics."""
+        loss, q1, q2, target = self._critic_loss(batch, noise, disturbance)
+        q1_mean, q2_mean, target_mean = torch.stack([q1.detach().mean(), q2.detach().mean(),
+                                                     target.mean()]).tolist()
+        return loss, {'q1_mean': q1_mean, 'q2_mean': q2_mean, 'target_mean': target_mean}
+
+    def _critic_loss(self, batch: TransitionBatch, noise: torch.Tensor | None,
+                     disturbance: BatchDisturbance | None
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`critic_loss` and the Q1, Q2 and target y (each (B,)) behind it."""
         target = self.critic_target(batch, noise, disturbance)
         action = self.critic_action(batch)
         q1 = self.q1(batch.obs, action)
         q2 = self.q2(batch.obs, action)
         loss = 0.5 * ((q1 - target) ** 2).mean() + 0.5 * ((q2 - target) ** 2).mean()
-        return loss, {'q1_mean': float(q1.detach().mean()), 'q2_mean': float(q2.detach().mean()),
-                      'target_mean': float(target.mean())}
+        return loss, q1, q2, target
 
     def actor_loss(self, batch: TransitionBatch, noise: torch.Tensor | None = None,
                    disturbance: BatchDisturbance | None = None
@@ -383,52 +454,64 @@ class SAC:
         cfg = self.config
         if cfg.compile_update:
             return self._update_compiled(batch)
-        critic_loss, metrics = self.critic_loss(batch, disturbance=disturbance)
-        self.critic_optimizer.zero_grad()
+        critic_step = self._step('critic')
+        critic_loss, q1, q2, target = self._critic_loss(batch, None, disturbance)
+        critic_step.zero_grad()
         critic_loss.backward()
-        self.critic_optimizer.step()
+        critic_step()
 
         # The actor's loss differentiates through the critics only to reach the action: their
         # weight gradients would be computed and thrown away (~10 % of the update's FLOPs).
-        critic_params = [*self.q1.parameters(), *self.q2.parameters()]
+        critic_params = critic_step.params    # q1's, then q2's
         for param in critic_params:
             param.requires_grad_(False)
+        actor_step = self._step('actor')
         try:
             actor_loss, log_prob = self.actor_loss(batch, disturbance=disturbance)
-            self.actor_optimizer.zero_grad()
+            actor_step.zero_grad()
             actor_loss.backward()
         finally:
             for param in critic_params:
                 param.requires_grad_(True)
-        self.actor_optimizer.step()
+        actor_step()
 
-        alpha_loss = torch.zeros(())
+        log_prob = log_prob.detach()
+        alpha_loss = torch.zeros((), dtype=self.dtype)
         if cfg.autotune_alpha:
-            # Haarnoja et al. 2018b: J(alpha) = E[-alpha (log pi + target_entropy)].
-            alpha_loss = -(self.log_alpha * (log_prob.detach() + self.target_entropy)).mean()
-            self.alpha_optimizer.zero_grad()
-            alpha_loss.backward()
-            self.alpha_optimizer.step()
+            # Haarnoja et al. 2018b: J(alpha) = E[-log_alpha (log pi + target_entropy)], whose
+            # gradient in log_alpha is -E[log pi + target_entropy] (no graph needed for it).
+            gradient = -(log_prob + self.target_entropy).mean()
+            alpha_loss = self.log_alpha.detach() * gradient
+            self.log_alpha.grad = gradient
+            self._step('alpha')()
 
         self.num_updates += 1
         if self.num_updates % cfg.target_update_interval == 0:
-            polyak_update(self.q1.parameters(), self.q1_target.parameters(), cfg.tau)
-            polyak_update(self.q2.parameters(), self.q2_target.parameters(), cfg.tau)
+            polyak_update(critic_params, self._target_params, cfg.tau)
 
-        metrics.update({'critic_loss': float(critic_loss.detach()),
-                        'actor_loss': float(actor_loss.detach()),
-                        'alpha': float(self.alpha), 'alpha_loss': float(alpha_loss.detach()),
-                        'entropy': float(-log_prob.detach().mean())})
+        # The metrics as one tensor, converted to Python floats at once.
+        values = torch.stack([
+            q1.detach().mean(), q2.detach().mean(), target.mean(), critic_loss.detach(),
+            actor_loss.detach(), self.alpha, alpha_loss, -log_prob.mean()]).tolist()
+        metrics = dict(zip(('q1_mean', 'q2_mean', 'target_mean', 'critic_loss', 'actor_loss',
+                            'alpha', 'alpha_loss', 'entropy'), values))
         self._update_compensator(batch, metrics)
         return metrics
 
+    def _step(self, name: str) -> AdamStep:
+        """The :class:`AdamStep` of ``{name}_optimizer`` (bound at its first use)."""
+        step = self._steps.get(name)
+        if step is None:
+            step = self._steps[name] = AdamStep(getattr(self, f'{name}_optimizer'))
+        return step
+
     def _update_compensator(self, batch: TransitionBatch, metrics: dict[str, float]) -> None:
         if self.compensator is not None:
-            assert self.compensator_optimizer is not None
             compensator_loss = self.compensator_loss(batch)
-            self.compensator_optimizer.zero_grad()
+            step = self._step('compensator')
+            step.zero_grad()
             compensator_loss.backward()
-            self.compensator_optimizer.step()
+            step()
             metrics['compensator_loss'] = float(compensator_loss.detach())
 
     def _update_compiled(self, batch: TransitionBatch) -> dict[str, float]:
@@ -443,11 +526,11 @@ class SAC:
         stats = self._functional_update.step(
             batch, self.critic_action(batch), next_noise, noise,
             self.num_updates % self.config.target_update_interval == 0)
-        metrics = {'q1_mean': float(stats.q1_mean), 'q2_mean': float(stats.q2_mean),
-                   'target_mean': float(stats.target_mean),
-                   'critic_loss': float(stats.critic_loss),
-                   'actor_loss': float(stats.actor_loss), 'alpha': float(self.alpha),
-                   'alpha_loss': float(stats.alpha_loss), 'entropy': float(stats.entropy)}
+        values = torch.stack([stats.q1_mean, stats.q2_mean, stats.target_mean,
+                              stats.critic_loss, stats.actor_loss, self.alpha,
+                              stats.alpha_loss, stats.entropy]).tolist()
+        metrics = dict(zip(('q1_mean', 'q2_mean', 'target_mean', 'critic_loss', 'actor_loss',
+                            'alpha', 'alpha_loss', 'entropy'), values))
         self._update_compensator(batch, metrics)
         return metrics
 
@@ -467,6 +550,11 @@ class SAC:
         update count."""
         state = {name: copy.deepcopy(module.state_dict())
                  for name, module in self._modules().items()}
+        for name in self._steps:
+            # AdamStep keeps an optimizer's step counts as views of one tensor; the checkpoint
+            # holds each as its own tensor, as torch.optim.Adam does.
+            for entry in state[f'{name}_optimizer']['state'].values():
+                entry['step'] = entry['step'].clone()
         state.update({'log_alpha': self.log_alpha.detach().clone(),
                       'generator': self.generator.get_state(),
                       'num_updates': self.num_updates, 'mode': self.config.mode})
@@ -483,5 +571,7 @@ class SAC:
             self.log_alpha.copy_(state['log_alpha'])
         self.generator.set_state(state['generator'])
         self.num_updates = state['num_updates']
-        # The optimizers' state tensors were replaced: the compiled update binds the new ones.
+        # The optimizers' state tensors were replaced: the steps and the compiled update bind
+        # the new ones.
+        self._steps.clear()
         self._functional_update = None
