@@ -28,12 +28,13 @@ batched over query points and output dimensions. The disturbance box of eq.
 The variance bounds (``rcbf_ros.learning.gp_bounds``): reading the exact variance costs one
 M x M factor per output and query, most of a per-step action's cost. ``predict`` evaluates
 instead, per output, the bound chosen at the refit: a low-rank bound (the leading eigenpairs of
-``K + n I`` plus a tail term), a projection bound (the leading eigenpairs alone, one pass) or a
-hybrid bound (low rank plus the training points around the query), whichever reads the fewest
-numbers for its tightness. Every one is never below the exact variance (by construction, for
-every state), so the box ``mean +/- k_c std`` contains the exact one; ``predict(x,
-exact=True)`` evaluates the exact variance (the reference), ``predict(x, bound='low_rank')``
-the low-rank bound on every output. The mean is exact either way.
+``K + n I`` plus a tail term), a projection bound (the leading eigenpairs alone, one pass; or,
+for outputs whose kernels are alike, on one basis they share) or a hybrid bound (low rank plus
+the training points around the query), whichever reads the fewest numbers for its tightness.
+Every one is never below the exact variance (by construction, for every state), so the box
+``mean +/- k_c std`` contains the exact one; ``predict(x, exact=True)`` evaluates the exact
+variance (the reference), ``predict(x, bound='low_rank')`` the low-rank bound on every output.
+The mean is exact either way.
 
 Exactly known outputs: a dimension whose residuals are all within ``exact_output_tol`` of zero
 (e.g. a position whose derivative is a velocity in the state, so the nominal model predicts it
@@ -534,15 +535,18 @@ class DisturbanceGP:
     @property
     def variance_bound(self) -> dict[str, Any]:
         """The bound each active output's prediction uses (``gp_bounds``, "The choice"):
-        ``bound`` its name ('projection', 'low_rank' or 'hybrid') and ``rank`` (n_active,) its
-        rank; ``size``, the hybrid bound's neighbourhood size m (0: the hybrid bound is off).
-        Empty before the first fit."""
+        ``bound`` its name ('projection', 'shared_projection', 'low_rank' or 'hybrid') and
+        ``rank`` (n_active,) its rank; ``size``, the hybrid bound's neighbourhood size m (0:
+        the hybrid bound is off); ``shared``, the size R of the shared projection's basis (0:
+        none). Empty before the first fit."""
         if self._cache is None:
             return {}
         index = self._cache.get('neighbour_index')
+        shared = self._cache.get('shared')
         return {'bound': tuple(self._cache['bound_kind']),
                 'rank': self._cache['bound_rank'].clone(),
-                'size': 0 if index is None else int(index.shape[-1])}
+                'size': 0 if index is None else int(index.shape[-1]),
+                'shared': 0 if shared is None else int(shared['basis'].shape[-1])}
 
     @property
     def variance_rank(self) -> dict[str, Any]:

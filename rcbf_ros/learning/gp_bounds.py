@@ -42,6 +42,18 @@ smallest (in steps of 8) at which its std is within ``GPConfig.bound_std_toleran
 exact std on every probe state (below), found for every rank at once from the probes'
 projections on all M eigenvectors. At r = M it is the exact variance.
 
+Shared projection: the identity's maximum over the span of any basis W is
+``sum_i (w_i . k)^2 / lambda_i`` once W is made (K + nI)-orthogonal (``w_i^T A w_j = lambda_i
+delta_ij``): any span gives a valid bound. Outputs whose kernels are alike (Car Following's
+four velocity outputs; Unicycle's two) have leading eigenvectors that span nearly one space: 4 x
+56 of them span about 80 dimensions. So these outputs share one orthonormal basis V (M x R, the
+leading left singular vectors of their eigenvectors at their projection ranks side by side),
+and each output keeps the (K + nI)-orthogonal directions ``w_i = V q_i`` of V's span, from the
+eigenpairs of the R x R matrix ``V^T (K + nI) V``, at its own rank (probed as the projection
+bound's, on these directions). A query reads V once for all of them and R numbers per
+direction: for Car Following 80 x M + 4 x 60 x 80 numbers instead of 4 x 60 x M. The basis is
+the smallest, in steps of 8 from the outputs' largest rank on, on which every output passes.
+
 Hybrid bound (low rank plus a neighbourhood): maximising over w in the span of the first r
 eigenvectors and the unit vectors of a set S of m training points, with
 ``E = A - U_r diag(mu_r) U_r^T`` (the discarded part), gives
@@ -63,7 +75,8 @@ posterior.
 The choice: at each refit, each output takes the cheapest of the low-rank bound (always
 admissible: its excess is bounded), the projection bound at its rank, and the hybrid bound at
 the smallest rank of ``HYBRID_RANKS`` whose std is within ``bound_std_tolerance`` of the exact
-std on every probe state, in rows of M numbers a query reads (``bound_cost``). The probes are
+std on every probe state, in rows of M numbers a query reads (``bound_cost``); then the outputs
+on the projection bound share a basis if that reads fewer rows. The probes are
 stored states and stored states moved by a quarter and a whole lengthscale. Outputs of one
 kind and similar rank are evaluated as one batch at the group's largest rank (extra pairs only
 tighten a bound). The tolerance is a tightness criterion only: every bound is at least the
@@ -85,7 +98,10 @@ HYBRID_COST_ROWS = 16
 """The hybrid bound's neighbourhood term costs a query about as much as this many rows of M
 numbers (gathers of its factor and of k_perp on the neighbourhood)."""
 PROJECTION_RANK_STEP = 8
-"""The projection bound's rank is a multiple of this (or M)."""
+"""The projection bound's rank is a multiple of this (or M); so is a shared basis's size."""
+SHARED_COST_ROWS = 16
+"""A shared projection's two more products (basis, then each output's vectors) cost a query
+about as much as this many rows of M numbers."""
 
 
 def variance_excess_ratio(*, tail: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
@@ -173,6 +189,17 @@ def _part_arrays(c: dict[str, Any], kind: str, outputs: torch.Tensor, rank: int,
         scaled = vectors * eigenvalues[:, :rank].rsqrt().unsqueeze(-2)
         project = torch.cat([alpha, scaled], dim=-1) * outputscale[:, None, None]
         return {'kind': kind, 'rank': rank, 'project': project.contiguous().numpy()}
+    if kind == 'shared_projection':
+        # k / s times s alpha: the mean; times the basis, then times each output's s q_i /
+        # sqrt(lambda_i) (zero columns up to the part's largest rank): the terms.
+        shared = c['shared']
+        width = max(vectors.shape[-1] for vectors in shared['vectors'])
+        terms = torch.stack([torch.nn.functional.pad(vectors, (0, width - vectors.shape[-1]))
+                             for vectors in shared['vectors']]) * outputscale[:, None, None]
+        return {'kind': kind, 'rank': rank,
+                'alpha': (alpha * outputscale[:, None, None]).contiguous().numpy(),
+                'basis': shared['basis'].contiguous().numpy(),
+                'vectors': terms.contiguous().numpy()}
     neighbourhood = {} if factor_t is None else {
         'neighbours': c['neighbour_index'][outputs].numpy(),
         'outputs': np.arange(outputs.numel())[:, None]}
@@ -305,6 +332,12 @@ def predict_plan(plan: dict[str, Any], x: np.ndarray) -> np.ndarray:
     np.exp(k_all, out=k_all)
     n_rows, n_batch = k_all.shape[:2]
     parts = plan['parts']
+    if len(parts) == 1 and parts[0]['kind'] == 'shared_projection':
+        result = np.zeros((n_rows + 1, n_batch, 2))
+        _shared_projection(parts[0], k_all, result[:-1])
+        std = result[:-1, :, 1]
+        np.sqrt(np.maximum(std, 0.0, out=std), out=std)
+        return result
     if len(parts) == 1 and parts[0]['kind'] == 'projection' and parts[0]['rank']:
         # One projection part: its product's first two columns become the mean and the std.
         part = parts[0]
@@ -324,6 +357,8 @@ def predict_plan(plan: dict[str, Any], x: np.ndarray) -> np.ndarray:
             _projection_variance(part, projected, result[rows, :, 1])
         elif kind == 'neighbourhood':
             _neighbourhood(part, k_all[rows], result[rows])
+        elif kind == 'shared_projection':
+            _shared_projection(part, k_all[rows], result[rows])
         else:
             _low_rank(part, k_all[rows] * part['outputscale'], result[rows])
     std = result[:-1, :, 1]
@@ -337,6 +372,17 @@ def _projection_variance(part: dict[str, Any], projected: np.ndarray, out: np.nd
     terms = projected[:, :, None, 1:]  # (D, B, 1, r), each row contiguous
     squares = terms @ terms.transpose(0, 1, 3, 2)  # (D, B, 1, 1)
     np.subtract(part['base'], squares[:, :, 0, 0], out=out)
+
+
+def _shared_projection(part: dict[str, Any], k_part: np.ndarray, result: np.ndarray) -> None:
+    """The projection bound on a shared basis, on k / s (D, B, M): the mean and the variance
+    into result (D, B, 2)."""
+    np.matmul(k_part, part['alpha'], out=result[:, :, :1])
+    n_rows, n_batch, n_points = k_part.shape
+    on_basis = (k_part.reshape(-1, n_points) @ part['basis']).reshape(n_rows, n_batch, -1)
+    terms = (on_basis @ part['vectors'])[:, :, None, :]  # (D, B, 1, r)
+    squares = terms @ terms.transpose(0, 1, 3, 2)
+    np.subtract(part['base'], squares[:, :, 0, 0], out=result[:, :, 1])
 
 
 def _batch_index(count: int) -> np.ndarray:
@@ -507,6 +553,66 @@ def choose_bounds(c: dict[str, Any], probes: torch.Tensor, *, include_noise: boo
                 kinds[output], ranks[output] = 'hybrid', rank
                 factors[output] = factor
                 break
+    _share_projections(c, k_probe, base, exact_std, allowed)
+
+
+def subspace_directions(c: dict[str, Any], output: int, basis: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The directions of span(V) that ``K + nI`` of one output keeps apart: the eigenpairs
+    (Q, lambda) of the Gram matrix ``V^T (K + nI) V``, descending, so that ``w_i = V q_i``
+    satisfy ``w_i^T (K + nI) w_j = lambda_i delta_ij`` (any V, M x R, orthonormal columns).
+
+    Returns:
+        directions: (R, R) the q_i as columns; values: (R,) the lambda_i, each >= n.
+    """
+    coordinates = c['eigenvectors'][output].T @ basis  # (M, R)
+    gram = coordinates.T @ (c['eigenvalues'][output, :, None] * coordinates)
+    values, directions = torch.linalg.eigh(gram)
+    # V^T A V >= n I for orthonormal V: clamp round-off below it, as the eigenvalues of A.
+    return directions.flip(-1), torch.maximum(values.flip(-1), c['noise'][output])
+
+
+def _share_projections(c: dict[str, Any], k_probe: torch.Tensor, base: torch.Tensor,
+                       exact_std: torch.Tensor, allowed: float) -> None:
+    """Put the outputs on the projection bound on one shared basis (module docstring,
+    "Shared projection") if that reads fewer rows: the smallest basis, in steps of
+    ``PROJECTION_RANK_STEP`` from their largest rank on, on which every one of them passes
+    its probes. Sets ``c['shared']`` and their kind 'shared_projection' and rank."""
+    kinds, ranks = c['bound_kind'], c['bound_rank']
+    members = [o for o, kind in enumerate(kinds) if kind == 'projection']
+    if len(members) < 2:
+        return
+    n_points = c['alpha'].shape[-1]
+    member_ranks = ranks[members]
+    separate = sum(int(member_ranks[group].max() + 1) * group.numel()
+                   for group in rank_groups(member_ranks))
+    stacked = torch.cat([c['eigenvectors'][o, :, :int(r)] for o, r in zip(members, member_ranks)],
+                        dim=-1)
+    left = torch.linalg.svd(stacked, full_matrices=False)[0]
+    step = PROJECTION_RANK_STEP
+    smallest = -(-int(member_ranks.max()) // step) * step
+    for size in range(smallest, min(n_points, left.shape[-1]) + 1, step):
+        if size + len(members) + SHARED_COST_ROWS >= separate:
+            return
+        basis = left[:, :size]  # (M, R), orthonormal
+        vectors, shared_ranks = [], []
+        for output in members:
+            directions, values = subspace_directions(c, output, basis)
+            rank = projection_rank((k_probe[output] @ basis) @ directions, values,
+                                   base[output], exact_std[output], allowed)
+            if rank > size:
+                break
+            vectors.append(directions[:, :rank] * values[:rank].rsqrt())
+            shared_ranks.append(rank)
+        else:
+            cost = (size + len(members) + SHARED_COST_ROWS
+                    + sum(shared_ranks) * size / n_points)
+            if cost < separate:
+                c['shared'] = {'members': torch.tensor(members), 'basis': basis,
+                               'vectors': vectors}
+                for output, rank in zip(members, shared_ranks):
+                    kinds[output], ranks[output] = 'shared_projection', rank
+            return
 
 
 def chosen_parts(c: dict[str, Any]) -> list[Part]:
@@ -524,6 +630,9 @@ def chosen_parts(c: dict[str, Any]) -> list[Part]:
     for local in (rank_groups(ranks[projection]) if projection.numel() else []):
         group = projection[local]
         parts.append(('projection', group, int(ranks[group].max()), None))
+    if 'shared' in c:
+        shared = c['shared']
+        parts.append(('shared_projection', shared['members'], shared['basis'].shape[-1], None))
     hybrid = members('hybrid')
     for rank in sorted(set(ranks[hybrid].tolist())):
         group = hybrid[ranks[hybrid] == rank]

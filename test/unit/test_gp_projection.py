@@ -1,7 +1,8 @@
-"""DisturbanceGP's projection bound and the refit's choice of each output's bound: never below
-the exact variance at any rank and at any state (near-duplicate inputs, noise far below the
-signal, states far outside the data), exact at full rank, at least the low-rank bound of the
-same rank; the chosen rank the smallest passing one; the one-state path equal to ``predict``."""
+"""DisturbanceGP's projection bounds (on each output's eigenvectors, and on a basis outputs
+share) and the refit's choice of each output's bound: never below the exact variance at any
+rank, on any basis and at any state (near-duplicate inputs, noise far below the signal, states
+far outside the data), exact at full rank, at least the low-rank bound of the same rank; the
+chosen rank the smallest passing one; the one-state path equal to ``predict``."""
 from __future__ import annotations
 
 from hypothesis import given, HealthCheck, settings
@@ -19,25 +20,27 @@ EPS = float(torch.finfo(DTYPE).eps)
 
 def random_gp(*, seed: int, points: int, n_in: int, lengthscale: float, noise_ratio: float,
               neighbours: int = 0, duplicates: int = 0, include_noise: bool = False,
-              tolerance: float = 0.01) -> DisturbanceGP:
+              tolerance: float = 0.01, spread: float = 0.0, second: bool = True
+              ) -> DisturbanceGP:
     """Set hyperparameters on random data: output 0 smooth, output 1 another signal at 25 times
-    the variance, output 2 exactly zero (no posterior). ``duplicates`` inputs repeat others to
-    1e-9."""
+    the variance and ``1 + spread`` times the lengthscale (or, without ``second``, zero),
+    output 2 exactly zero (no posterior). ``duplicates`` inputs repeat others to 1e-9."""
     generator = torch.Generator().manual_seed(seed)
     x = 2.0 * torch.rand(points, n_in, generator=generator, dtype=DTYPE) - 1.0
     if duplicates:
         source = torch.randint(points, (duplicates,), generator=generator)
         x[-duplicates:] = x[source] + 1e-9 * torch.randn(duplicates, n_in, generator=generator,
                                                          dtype=DTYPE)
-    y = torch.stack([torch.sin(3.0 * x[:, 0]), 5.0 * torch.cos(2.0 * x.sum(-1)),
+    y = torch.stack([torch.sin(3.0 * x[:, 0]), 5.0 * torch.cos(2.0 * x.sum(-1)) * second,
                      torch.zeros(points, dtype=DTYPE)], dim=1)
     gp = DisturbanceGP(n_in, 3, GPConfig(variance_neighbours=neighbours,
                                          include_noise_in_std=include_noise,
                                          bound_std_tolerance=tolerance))
     gp.add(x, y)
     outputscale = torch.tensor([1.0, 25.0, 1.0], dtype=DTYPE)
-    gp.set_hyperparameters(torch.full((3, n_in), lengthscale, dtype=DTYPE), outputscale,
-                           noise_ratio * outputscale)
+    lengthscales = torch.full((3, n_in), lengthscale, dtype=DTYPE)
+    lengthscales[1] *= 1.0 + spread
+    gp.set_hyperparameters(lengthscales, outputscale, noise_ratio * outputscale)
     return gp
 
 
@@ -120,13 +123,14 @@ def test_the_projection_bound_is_never_below_the_exact_variance_at_any_rank(
 @given(seed=st.integers(0, 10_000), points=st.integers(3, 120), n_in=st.integers(1, 4),
        lengthscale=st.floats(0.05, 3.0), noise_ratio=st.floats(1e-7, 10.0),
        neighbours=st.sampled_from([0, 4, 16, 32]), duplicates=st.integers(0, 2),
-       include_noise=st.booleans(), tolerance=st.sampled_from([0.0, 0.01, 0.3]))
+       include_noise=st.booleans(), tolerance=st.sampled_from([0.0, 0.01, 0.3]),
+       spread=st.sampled_from([0.0, 0.02, 0.1, 0.5]))
 def test_the_chosen_bound_is_never_below_the_exact_variance(
         seed, points, n_in, lengthscale, noise_ratio, neighbours, duplicates, include_noise,
-        tolerance):
+        tolerance, spread):
     gp = random_gp(seed=seed, points=points, n_in=n_in, lengthscale=lengthscale,
                    noise_ratio=noise_ratio, neighbours=neighbours, duplicates=duplicates,
-                   include_noise=include_noise, tolerance=tolerance)
+                   include_noise=include_noise, tolerance=tolerance, spread=spread)
     q = queries(gp, seed)
     mean_exact, var_exact = exact(gp, q)
     slack = round_off(gp)
@@ -142,9 +146,10 @@ def test_the_chosen_bound_is_never_below_the_exact_variance(
 
 
 def test_a_smooth_output_takes_the_projection_bound_at_the_smallest_passing_rank():
-    gp = random_gp(seed=3, points=300, n_in=2, lengthscale=0.8, noise_ratio=1e-6)
+    gp = random_gp(seed=3, points=300, n_in=2, lengthscale=0.8, noise_ratio=1e-6,
+                   second=False)
     bound, low_rank = gp.variance_bound, gp.variance_rank
-    assert bound['bound'] == ('projection', 'projection')
+    assert bound['bound'] == ('projection',) and bound['shared'] == 0
     ranks = bound['rank']
     assert (ranks % gp_bounds.PROJECTION_RANK_STEP == 0).all()
     assert (ranks + 1 < 2 * low_rank['kept'] + 1).all()  # fewer rows than the low-rank bound
@@ -154,24 +159,24 @@ def test_a_smooth_output_takes_the_projection_bound_at_the_smallest_passing_rank
     probes = gp._probe_states(c['lengthscales'])
     exact_std = np.sqrt(np.maximum(exact(gp, probes)[1], 1e-12 * c['outputscale'].numpy()))
     step = gp_bounds.PROJECTION_RANK_STEP
-    for output in range(2):
-        passing = [rank for rank in range(0, 301, step)
-                   if (np.sqrt(bound_variance(gp, probes, 'projection', rank)[:, output])
-                       <= 1.01 * exact_std[:, output]).all()]
-        assert int(ranks[output]) == passing[0] and passing == list(range(passing[0], 301, step))
+    passing = [rank for rank in range(0, 301, step)
+               if (np.sqrt(bound_variance(gp, probes, 'projection', rank)[:, 0])
+                   <= 1.01 * exact_std[:, 0]).all()]
+    assert int(ranks[0]) == passing[0] and passing == list(range(passing[0], 301, step))
     # Off the probes the tightness is not promised; on the data it holds here.
     q = queries(gp, 3)[:80]
     _, std = gp.predict(q)
-    ratio = std[:, :2].numpy() / np.sqrt(exact(gp, q)[1])
+    ratio = std[:, :1].numpy() / np.sqrt(exact(gp, q)[1])
     assert ratio.min() >= 1.0 - 1e-6 and ratio.max() <= 1.05
 
 
 def test_a_looser_tolerance_takes_fewer_pairs_and_none_keeps_every_one():
     bounds = [random_gp(seed=4, points=200, n_in=3, lengthscale=0.7, noise_ratio=1e-5,
-                        tolerance=tolerance).variance_bound for tolerance in (0.0, 1e-3, 0.1)]
+                        tolerance=tolerance, second=False).variance_bound
+              for tolerance in (0.0, 1e-3, 0.1)]
     # No tolerance: only every eigenpair passes, which the low-rank bound reads in one pass.
-    assert bounds[0]['bound'] == ('low_rank', 'low_rank') and (bounds[0]['rank'] == 200).all()
-    assert bounds[1]['bound'] == bounds[2]['bound'] == ('projection', 'projection')
+    assert bounds[0]['bound'] == ('low_rank',) and (bounds[0]['rank'] == 200).all()
+    assert bounds[1]['bound'] == bounds[2]['bound'] == ('projection',)
     assert (200 > bounds[1]['rank']).all() and (bounds[1]['rank'] > bounds[2]['rank']).all()
 
 
@@ -181,7 +186,7 @@ def test_outputs_of_one_bound_and_similar_rank_share_one_product_and_the_others_
     c = gp._cache
     assert c is not None
     plan = c['plans']['chosen']
-    assert [part['kind'] for part in plan['parts']] == ['projection']
+    assert [part['kind'] for part in plan['parts']] == ['shared_projection']
     assert plan['index'].tolist() == [0, 1] and not plan['identity']
     assert plan['take'].tolist() == [0, 1, 2]  # the output without a posterior: the zero row
     mixed = random_gp(seed=7, points=300, n_in=3, lengthscale=0.1, noise_ratio=0.5,
@@ -200,3 +205,75 @@ def test_a_batch_predicts_each_state_as_any_other_batch_holding_it(bound):
         sub_mean, sub_std = gp.predict(q[index], bound=bound)
         torch.testing.assert_close(sub_mean, mean[index], rtol=0, atol=0)
         torch.testing.assert_close(sub_std, std[index], rtol=0, atol=0)
+
+
+def test_outputs_of_alike_kernels_share_a_basis_smaller_than_their_ranks_together():
+    gp = random_gp(seed=8, points=300, n_in=2, lengthscale=0.6, noise_ratio=1e-6, spread=0.05)
+    bound = gp.variance_bound
+    assert bound['bound'] == ('shared_projection', 'shared_projection')
+    alone = [random_gp(seed=8, points=300, n_in=2, lengthscale=0.6 * scale, noise_ratio=1e-6,
+                       second=False).variance_bound['rank'][0] for scale in (1.0, 1.05)]
+    assert max(alone) <= bound['shared'] < sum(alone)
+    assert (bound['rank'] <= bound['shared']).all()
+    c = gp._cache
+    assert c is not None
+    probes = gp._probe_states(c['lengthscales'])
+    _, var_exact = exact(gp, probes)
+    _, std = gp.predict(probes)
+    ratio = std[:, :2].numpy() / np.sqrt(var_exact)
+    assert ratio.min() >= 1.0 - 1e-6 and ratio.max() <= 1.01
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), points=st.integers(4, 90), n_in=st.integers(1, 4),
+       lengthscale=st.floats(0.05, 3.0), noise_ratio=st.floats(1e-7, 10.0),
+       spread=st.floats(0.0, 1.0), duplicates=st.integers(0, 2), include_noise=st.booleans(),
+       eigen_part=st.floats(0.0, 1.0))
+def test_a_projection_on_any_shared_basis_is_never_below_the_exact_variance(
+        seed, points, n_in, lengthscale, noise_ratio, spread, duplicates, include_noise,
+        eigen_part):
+    """Any orthonormal basis: some of output 0's eigenvectors, the rest random directions."""
+    gp = random_gp(seed=seed, points=points, n_in=n_in, lengthscale=lengthscale,
+                   noise_ratio=noise_ratio, duplicates=duplicates, include_noise=include_noise,
+                   spread=spread)
+    c = gp._cache
+    assert c is not None
+    n_points = gp.train_x.shape[0]
+    size = max(1, n_points // 2)
+    generator = torch.Generator().manual_seed(seed)
+    own = int(eigen_part * size)
+    columns = torch.cat([c['eigenvectors'][0][:, :own],
+                         torch.randn(n_points, size - own, generator=generator, dtype=DTYPE)], 1)
+    basis = torch.linalg.qr(columns)[0]
+    vectors = []
+    for output, rank in ((0, size), (1, size // 2)):
+        directions, values = gp_bounds.subspace_directions(c, output, basis)
+        vectors.append(directions[:, :rank] * values[:rank].rsqrt())
+    shared = {**c, 'shared': {'members': torch.arange(2), 'basis': basis, 'vectors': vectors}}
+    plan = gp_bounds.make_plan(shared, [('shared_projection', torch.arange(2), size, None)],
+                               include_noise)
+    q = queries(gp, seed)
+    result = gp_bounds.predict_plan(plan, q.numpy())[:-1]
+    mean_exact, var_exact = exact(gp, q)
+    assert (result[:, :, 1].T ** 2 - var_exact >= -round_off(gp)).all()
+    np.testing.assert_allclose(result[:, :, 0].T, mean_exact, atol=1e-9, rtol=1e-9)
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), points=st.integers(150, 260), n_in=st.integers(1, 3),
+       lengthscale=st.floats(0.3, 2.0), noise_ratio=st.floats(1e-7, 1e-3),
+       spread=st.floats(0.0, 0.2), include_noise=st.booleans())
+def test_where_outputs_share_a_basis_the_chosen_bound_is_never_below_the_exact_variance(
+        seed, points, n_in, lengthscale, noise_ratio, spread, include_noise):
+    """Smooth outputs of alike lengthscales, mostly on a shared basis (a few on their own)."""
+    gp = random_gp(seed=seed, points=points, n_in=n_in, lengthscale=lengthscale,
+                   noise_ratio=noise_ratio, include_noise=include_noise, spread=spread)
+    q = queries(gp, seed)
+    _, var_exact = exact(gp, q)
+    mean, std = gp.predict(q)
+    assert ((std ** 2)[:, :2].numpy() - var_exact >= -round_off(gp)).all(), gp.variance_bound
+    for row, row_mean, row_std in zip(q[::11], mean[::11], std[::11]):
+        one_mean, one_std = gp.predict_state(row.numpy())
+        np.testing.assert_allclose(one_mean, row_mean.numpy(), atol=1e-9, rtol=1e-9)
+        assert (np.abs(one_std ** 2 - row_std.numpy() ** 2)
+                <= np.append(round_off(gp), 0.0)).all()
