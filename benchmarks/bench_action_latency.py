@@ -187,7 +187,7 @@ def measure(system: str, actions: int, warmup: int) -> dict[str, object]:
         'std_ratio': (float(np.median(ratio)), float(ratio.max()), float(ratio.min())),
         'std_ratio_chosen': (float(np.median(ratio_c)), float(ratio_c.max()),
                              float(ratio_c.min())),
-        'chosen': f"{chosen} (m = {hybrid['size']})",
+        'chosen': f"{chosen} (m = {hybrid['size']}, shared basis {hybrid['shared']})",
         'checks': truth.size,
     }
 
