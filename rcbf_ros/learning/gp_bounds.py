@@ -401,6 +401,13 @@ def _neighbourhood(part: dict[str, Any], k_part: np.ndarray, result: np.ndarray)
     point's neighbourhood S alone, s - k_S^T A_SS^-1 k_S; the mean and the variance into
     result (D, B, 2)."""
     result[:, :, 0] = (k_part @ part['project'])[:, :, 0]
+    if k_part.shape[1] == 1:
+        # One state: plain indexing per output (views, not gathers), as the batch below.
+        for output, k_row in enumerate(k_part[:, 0]):
+            nearest = int(k_row.argmax())
+            v = k_row[part['neighbours'][output, nearest]] @ part['factor_t'][output, nearest]
+            result[output, 0, 1] = part['base'][output, 0] - v @ v
+        return
     outputs = part['outputs']  # (D, 1)
     nearest = k_part.argmax(axis=-1)  # (D, B)
     near = k_part[outputs[:, :, None], _batch_index(k_part.shape[1]),

@@ -64,6 +64,21 @@ def round_off(gp: DisturbanceGP) -> np.ndarray:
     return (64.0 * EPS * max(gp.train_x.shape[0], 16) * s * (1.0 + s / n)).numpy()
 
 
+def mean_round_off(gp: DisturbanceGP, q: torch.Tensor) -> np.ndarray:
+    """(B, n_active) the round-off of any evaluation of the mean k . alpha: eps M |k| . |alpha|
+    (alpha is large when the noise is far below the signal or inputs nearly repeat), each k_j
+    itself off by eps times its exponent's terms: |q~|^2 + |x~_j|^2 in the exact evaluation's
+    expansion (~: over the lengthscales), |log(k_j / s)| in the direct one."""
+    c = gp._cache
+    assert c is not None
+    k = gp_bounds.cross_kernel(c, q)  # (D, B, M)
+    exponent = (k / c['outputscale'][:, None, None]).clamp_min(1e-320).log().abs()
+    squares = (((q.unsqueeze(0) / c['lengthscales'].unsqueeze(1)) ** 2).sum(-1)[:, :, None]
+               + (c['x_scaled'] ** 2).sum(-1)[:, None, :])  # (D, B, M)
+    scale = (k.abs() * (1.0 + exponent + squares) * c['alpha'].abs().unsqueeze(1)).sum(-1).T
+    return (16.0 * EPS * max(gp.train_x.shape[0], 16) * scale).numpy()
+
+
 def bound_variance(gp: DisturbanceGP, q: torch.Tensor, kind: str, rank: int) -> np.ndarray:
     """(B, n_active) one bound's variance at one rank on every active output."""
     c = gp._cache
@@ -110,8 +125,8 @@ def test_the_projection_bound_is_never_below_the_exact_variance_at_any_rank(
     assert c is not None
     plan = gp_bounds.make_plan(c, [('projection', torch.arange(2), n_points, None)],
                                include_noise)
-    np.testing.assert_allclose(gp_bounds.predict_plan(plan, q.numpy())[:-1, :, 0].T,
-                               mean_exact, atol=1e-9, rtol=1e-9)
+    mean = gp_bounds.predict_plan(plan, q.numpy())[:-1, :, 0].T
+    assert (np.abs(mean - mean_exact) <= mean_round_off(gp, q)).all()
     # Far outside the data: the prior, exactly.
     far = torch.full((1, n_in), 1e3 * lengthscale * 40.0, dtype=DTYPE)
     prior = (gp.outputscale + gp.noise if include_noise else gp.outputscale)[:2].numpy()
@@ -137,11 +152,12 @@ def test_the_chosen_bound_is_never_below_the_exact_variance(
     mean, std = gp.predict(q)
     active = gp.active_outputs
     assert ((std ** 2)[:, active].numpy() - var_exact >= -slack).all(), gp.variance_bound
-    np.testing.assert_allclose(mean[:, active].numpy(), mean_exact, atol=1e-9, rtol=1e-9)
+    mean_slack = mean_round_off(gp, q)
+    assert (np.abs(mean[:, active].numpy() - mean_exact) <= mean_slack).all()
     assert not mean[:, 2].any() and not std[:, 2].any()
-    for row, row_mean, row_std in zip(q[::7], mean[::7], std[::7]):
+    for row, row_mean, row_std, row_slack in zip(q[::7], mean[::7], std[::7], mean_slack[::7]):
         one_mean, one_std = gp.predict_state(row.numpy())
-        np.testing.assert_allclose(one_mean, row_mean.numpy(), atol=1e-9, rtol=1e-9)
+        assert (np.abs(one_mean - row_mean.numpy()) <= np.append(row_slack, 0.0)).all()
         assert (np.abs(one_std ** 2 - row_std.numpy() ** 2) <= np.append(slack, 0.0)).all()
 
 
@@ -256,7 +272,7 @@ def test_a_projection_on_any_shared_basis_is_never_below_the_exact_variance(
     result = gp_bounds.predict_plan(plan, q.numpy())[:-1]
     mean_exact, var_exact = exact(gp, q)
     assert (result[:, :, 1].T ** 2 - var_exact >= -round_off(gp)).all()
-    np.testing.assert_allclose(result[:, :, 0].T, mean_exact, atol=1e-9, rtol=1e-9)
+    assert (np.abs(result[:, :, 0].T - mean_exact) <= mean_round_off(gp, q)).all()
 
 
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -272,8 +288,10 @@ def test_where_outputs_share_a_basis_the_chosen_bound_is_never_below_the_exact_v
     _, var_exact = exact(gp, q)
     mean, std = gp.predict(q)
     assert ((std ** 2)[:, :2].numpy() - var_exact >= -round_off(gp)).all(), gp.variance_bound
-    for row, row_mean, row_std in zip(q[::11], mean[::11], std[::11]):
+    mean_slack = mean_round_off(gp, q)
+    for row, row_mean, row_std, row_slack in zip(q[::11], mean[::11], std[::11],
+                                                 mean_slack[::11]):
         one_mean, one_std = gp.predict_state(row.numpy())
-        np.testing.assert_allclose(one_mean, row_mean.numpy(), atol=1e-9, rtol=1e-9)
+        assert (np.abs(one_mean - row_mean.numpy()) <= np.append(row_slack, 0.0)).all()
         assert (np.abs(one_std ** 2 - row_std.numpy() ** 2)
                 <= np.append(round_off(gp), 0.0)).all()
