@@ -587,9 +587,8 @@ class DisturbanceGP:
             mean = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
             return mean, torch.full_like(mean, self.config.prior_std)
         if not exact:
-            result = self._predict_bound(x_t.numpy(), self._cache['plans'][bound])
-            return (torch.from_numpy(result[:, :, 0].T.copy()),
-                    torch.from_numpy(result[:, :, 1].T.copy()))
+            mean_np, std_np = self._predict_bound(x_t.numpy(), self._cache['plans'][bound])
+            return torch.from_numpy(mean_np), torch.from_numpy(std_np)
         c = self._cache
         mean = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
         std = torch.zeros(n_query, self.n_out, dtype=x_t.dtype)
@@ -625,13 +624,14 @@ class DisturbanceGP:
         if self._cache is None:
             return np.zeros(self.n_out), np.full(self.n_out, self.config.prior_std)
         _check_bound(bound)
-        result = self._predict_bound(x[None, :], self._cache['plans'][bound])
-        return result[:, 0, 0], result[:, 0, 1]
+        mean, std = self._predict_bound(x[None, :], self._cache['plans'][bound])[:, 0]
+        return mean, std
 
     def _predict_bound(self, x: np.ndarray, plan: dict[str, Any]) -> np.ndarray:
-        """Mean and std bound at x (B, n_in) float64: (n_out, B, 2), [..., 0] the mean."""
-        result = gp_bounds.predict_plan(plan, x)  # (D_active + 1, B, 2)
-        return result[:-1] if plan['identity'] else result.take(plan['take'], axis=0)
+        """Mean and std bound at x (B, n_in) float64: (2, B, n_out), [0] the mean, each
+        (B, n_out) contiguous."""
+        result = gp_bounds.predict_plan(plan, x).transpose(2, 1, 0)  # (2, B, D_active + 1)
+        return result[:, :, :-1].copy() if plan['identity'] else result.take(plan['take'], 2)
 
     def bounds(self, x: ArrayLike, k_c: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Disturbance box of eq. (disturb_estimate): ``mean -/+ k_c std``.
