@@ -198,16 +198,17 @@ def _part_arrays(c: dict[str, Any], kind: str, outputs: torch.Tensor, rank: int,
         project = torch.cat([alpha, scaled], dim=-1) * outputscale[:, None, None]
         return {'kind': kind, 'rank': rank, 'project': project.contiguous().numpy()}
     if kind == 'shared_projection':
-        # k / s times s alpha: the mean; times the basis, then times each output's s q_i /
-        # sqrt(lambda_i) (zero columns up to the part's largest rank): the terms.
+        # k / s times [V, s_1 alpha_1, ..., s_D alpha_D] (M x (R + D)): on the basis, and
+        # output d's mean in column R + d; the former times each output's s q_i / sqrt(lambda_i)
+        # (zero columns up to the part's largest rank): the terms.
         shared = c['shared']
         width = max(vectors.shape[-1] for vectors in shared['vectors'])
         terms = torch.stack([torch.nn.functional.pad(vectors, (0, width - vectors.shape[-1]))
                              for vectors in shared['vectors']]) * outputscale[:, None, None]
-        return {'kind': kind, 'rank': rank,
-                'alpha': (alpha * outputscale[:, None, None]).contiguous().numpy(),
-                'basis': shared['basis'].contiguous().numpy(),
-                'vectors': terms.contiguous().numpy()}
+        means = (alpha[:, :, 0] * outputscale[:, None]).T
+        return {'kind': kind, 'rank': rank, 'size': shared['basis'].shape[-1],
+                'basis': torch.cat([shared['basis'], means], dim=-1).contiguous().numpy(),
+                'vectors': terms.contiguous().numpy(), 'diagonal': np.arange(outputs.numel())}
     neighbourhood = {} if factor_t is None else {
         'neighbours': c['neighbour_index'][outputs].numpy(),
         'outputs': np.arange(outputs.numel())[:, None]}
@@ -378,10 +379,11 @@ def _projection_variance(part: dict[str, Any], projected: np.ndarray, out: np.nd
 def _shared_projection(part: dict[str, Any], k_part: np.ndarray, result: np.ndarray) -> None:
     """The projection bound on a shared basis, on k / s (D, B, M): the mean and the variance
     into result (D, B, 2)."""
-    np.matmul(k_part, part['alpha'], out=result[:, :, :1])
     n_rows, n_batch, n_points = k_part.shape
+    size, diagonal = part['size'], part['diagonal']
     on_basis = (k_part.reshape(-1, n_points) @ part['basis']).reshape(n_rows, n_batch, -1)
-    terms = (on_basis @ part['vectors'])[:, :, None, :]  # (D, B, 1, r)
+    result[:, :, 0] = on_basis[diagonal, :, size + diagonal]
+    terms = (on_basis[:, :, :size] @ part['vectors'])[:, :, None, :]  # (D, B, 1, r)
     squares = terms @ terms.transpose(0, 1, 3, 2)
     np.subtract(part['base'], squares[:, :, 0, 0], out=result[:, :, 1])
 
