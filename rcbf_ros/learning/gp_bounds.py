@@ -206,9 +206,12 @@ def _part_arrays(c: dict[str, Any], kind: str, outputs: torch.Tensor, rank: int,
         terms = torch.stack([torch.nn.functional.pad(vectors, (0, width - vectors.shape[-1]))
                              for vectors in shared['vectors']]) * outputscale[:, None, None]
         means = (alpha[:, :, 0] * outputscale[:, None]).T
-        return {'kind': kind, 'rank': rank, 'size': shared['basis'].shape[-1],
+        size, count = shared['basis'].shape[-1], outputs.numel()
+        return {'kind': kind, 'rank': rank, 'size': size,
                 'basis': torch.cat([shared['basis'], means], dim=-1).contiguous().numpy(),
-                'vectors': terms.contiguous().numpy(), 'diagonal': np.arange(outputs.numel())}
+                'vectors': terms.contiguous().numpy(), 'diagonal': np.arange(count),
+                # Of one state's (D, 1, R + D) product: output d's mean at [d, 0, R + d].
+                'mean_index': np.arange(count) * (size + count + 1) + size}
     neighbourhood = {} if factor_t is None else {
         'neighbours': c['neighbour_index'][outputs].numpy(),
         'outputs': np.arange(outputs.numel())[:, None]}
@@ -382,7 +385,10 @@ def _shared_projection(part: dict[str, Any], k_part: np.ndarray, result: np.ndar
     n_rows, n_batch, n_points = k_part.shape
     size, diagonal = part['size'], part['diagonal']
     on_basis = (k_part.reshape(-1, n_points) @ part['basis']).reshape(n_rows, n_batch, -1)
-    result[:, :, 0] = on_basis[diagonal, :, size + diagonal]
+    if n_batch == 1:  # the diagonal by flat index: a cheaper gather than two index arrays
+        result[:, 0, 0] = on_basis.take(part['mean_index'])
+    else:
+        result[:, :, 0] = on_basis[diagonal, :, size + diagonal]
     terms = (on_basis[:, :, :size] @ part['vectors'])[:, :, None, :]  # (D, B, 1, r)
     squares = terms @ terms.transpose(0, 1, 3, 2)
     np.subtract(part['base'], squares[:, :, 0, 0], out=result[:, :, 1])
