@@ -414,7 +414,7 @@ def _neighbourhood(part: dict[str, Any], k_part: np.ndarray, result: np.ndarray)
         # One state: plain indexing per output (views, not gathers), as the batch below.
         for output, k_row in enumerate(k_part[:, 0]):
             nearest = int(k_row.argmax())
-            v = k_row[part['neighbours'][output, nearest]] @ part['factor_t'][output, nearest]
+            v = k_row.take(part['neighbours'][output, nearest]) @ part['factor_t'][output, nearest]
             result[output, 0, 1] = part['base'][output, 0] - v @ v
         return
     outputs = part['outputs']  # (D, 1)
