@@ -633,8 +633,8 @@ def _share_projections(c: dict[str, Any], k_probe: torch.Tensor, base: torch.Ten
 
 def chosen_parts(c: dict[str, Any]) -> list[Part]:
     """The parts of a prediction with the chosen bounds (``choose_bounds``): the low-rank
-    parts, the projection parts (``rank_groups`` of their ranks) and one hybrid part per
-    rank."""
+    parts, the projection parts (``rank_groups`` of their ranks), the shared projection's one
+    part and one hybrid part per rank."""
     kinds, ranks = c['bound_kind'], c['bound_rank']
     outputs = torch.arange(len(kinds))
 
