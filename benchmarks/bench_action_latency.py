@@ -17,7 +17,8 @@ that load from other processes hits both alike:
 
 Each setting runs with three GP paths, also interleaved: ``chosen`` (the default,
 ``DisturbanceGP.predict_state``: numpy on one state, each output's variance bound as chosen at
-the refit, the hybrid low-rank-plus-neighbourhood bound or the low-rank one), ``low-rank``
+the refit, the projection, the hybrid low-rank-plus-neighbourhood or the low-rank bound),
+``low-rank``
 (``predict_state(..., bound='low_rank')``: the low-rank bound on every output) and ``exact``
 (``DisturbanceGP.predict(..., exact=True)`` on a torch tensor: the exact variance through the
 M x M factor). The action applied is the one filtered with the path's own estimate.
@@ -32,7 +33,7 @@ row check, the rest of ``SafetyFilter.filter``, and the call's own overhead outs
 filter's timer), the CPU time of the action (``time.thread_time``: less sensitive to other
 processes than the wall time), and the low-rank bound against the exact variance on the same
 GP and states: the low-rank bound's kept rank, the worst-case variance excess the rank was
-chosen for, each output's chosen bound (hybrid rank or low-rank), the measured std ratios of
+chosen for, each output's chosen bound and its rank, the measured std ratios of
 both bounds to the exact std, and how often the true disturbance (the environment's, at the
 state and the applied action) lies inside each box mean +/- k_c std.
 """
@@ -172,8 +173,8 @@ def measure(system: str, actions: int, warmup: int) -> dict[str, object]:
     ratio_c = std_c / np.maximum(std_e, 1e-300)
     rank = gp.variance_rank
     hybrid = gp.variance_bound
-    chosen = ', '.join(f'hybrid {r}' if r >= 0 else 'low-rank'
-                       for r in hybrid['rank'].tolist())
+    chosen = ', '.join(f"{name.replace('_', '-')} {r}"
+                       for name, r in zip(hybrid['bound'], hybrid['rank'].tolist()))
     return {
         'times': {key: {p: np.asarray(v) for p, v in parts.items()}
                   for key, parts in times.items()},
@@ -186,7 +187,7 @@ def measure(system: str, actions: int, warmup: int) -> dict[str, object]:
         'std_ratio': (float(np.median(ratio)), float(ratio.max()), float(ratio.min())),
         'std_ratio_chosen': (float(np.median(ratio_c)), float(ratio_c.max()),
                              float(ratio_c.min())),
-        'chosen': f"{chosen} (m = {hybrid['size']})",
+        'chosen': f"{chosen} (m = {hybrid['size']}, shared basis {hybrid['shared']})",
         'checks': truth.size,
     }
 

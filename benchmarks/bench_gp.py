@@ -15,7 +15,12 @@ uniform states in the arena with noise std 0.01 (3 inputs, 3 outputs). One run m
   (positions and other rows the nominal model predicts to rounding error: residual 0), with
   those dimensions skipped (default ``exact_output_tol``) and with a GP on every dimension
   (``exact_output_tol=0``), caches warm and with the last-level cache flushed before each call
-  (as after a SAC update in the training loop).
+  (as after a SAC update in the training loop);
+- one-state prediction on a GP fitted to each system's own residuals (2000 simulator steps of
+  uniform random actions, default ``GPConfig``), by variance bound: the bound each output took
+  at the refit (``predict_state``), the low-rank bound on every output and the exact variance,
+  interleaved state by state, warm and cold, with the numbers each reads per state and its std
+  against the exact one on the stored states.
 Writes the ``## GP disturbance model`` section of benchmarks/RESULTS.md.
 """
 from __future__ import annotations
@@ -31,12 +36,14 @@ import sys
 import time
 
 import gpytorch
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._results import publish_section  # noqa: E402
 from rcbf_ros.learning.gp import DisturbanceGP, GPConfig  # noqa: E402
+from rcbf_ros.learning.gp_bounds import predict_plan  # noqa: E402
 
 torch.set_num_threads(1)
 DTYPE = torch.float64
@@ -143,6 +150,99 @@ def known_dimension_rows(repeats: int) -> list[str]:
     return rows
 
 
+def system_residuals(system: str, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """States and residuals ``x_dot_hat - f - g u`` of ``steps`` simulator steps with uniform
+    random actions, as the learner labels them."""
+    from rcbf_ros.training.agent import LearnerConfig
+    from rcbf_ros.training.build import build_run, RunConfig
+    run = RunConfig(system=system, episodes=1, max_steps=10 ** 6, record_bag=False,
+                    out_dir='/tmp/bench_gp', learner=LearnerConfig(mode='baseline', seed=0))
+    env, _, learner, _ = build_run(run)
+    rng = np.random.default_rng(0)
+    _, info = env.reset(seed=0)
+    states, residuals = [], []
+    for _ in range(steps):
+        u = rng.uniform(learner.sac.u_low.numpy(), learner.sac.u_high.numpy())
+        _, _, terminated, truncated, next_info = env.step(u)
+        x = torch.as_tensor(np.asarray(info['state'], dtype=np.float64)).unsqueeze(0)
+        model = learner.system
+        nominal = model.f(x) + (model.g(x) @ torch.as_tensor(u).reshape(1, -1, 1)).squeeze(-1)
+        residuals.append(((torch.as_tensor(next_info['state']) - x[0]) / env.dt
+                          - nominal[0]).numpy())
+        states.append(x[0].numpy())
+        info = next_info
+        if terminated or truncated:
+            _, info = env.reset()
+    return np.stack(states), np.stack(residuals)
+
+
+def numbers_read(plan: dict) -> int:
+    """Numbers one state's prediction on a plan reads: the training inputs, the lengthscales
+    and each part's rows (of a neighbourhood factor, the one block it gathers)."""
+    count = plan['points_t'].size + plan['neg_half_w'].size
+    for part in plan['parts']:
+        for name in ('project', 'project_t', 'alpha', 'basis', 'vectors', 'kept_weights'):
+            count += part[name].size if name in part else 0
+        if 'factor_t' in part:
+            count += part['factor_t'][:, 0].size + part['neighbours'][:, 0].size
+    return count
+
+
+def bound_rows(repeats: int) -> list[str]:
+    """One-state prediction by bound on GPs fitted to each system's residuals."""
+    flush = torch.empty(64 * 2 ** 20 // 8, dtype=DTYPE)
+    rows = ['| system | outputs with a posterior | bound per output (rank) | numbers read per '
+            'state: chosen, low-rank, exact | warm (us): chosen, low-rank, exact | cold (us): '
+            'chosen, low-rank, exact | std chosen / exact on the stored states (max, min) |',
+            '|---|---:|---|---|---|---|---|']
+    for system in SYSTEM_SHAPES:
+        states, residuals = system_residuals(system, 2000)
+        gp = DisturbanceGP(states.shape[1], residuals.shape[1])
+        gp.add(states, residuals)
+        gp.fit()
+        cache = gp._cache
+        assert cache is not None
+        queries = [torch.as_tensor(row) for row in states[-repeats:]]
+        calls = {
+            'chosen': lambda q, gp=gp: gp.predict_state(q.numpy()),
+            'low-rank': lambda q, gp=gp: gp.predict_state(q.numpy(), bound='low_rank'),
+            'exact': lambda q, gp=gp: gp.predict(q.unsqueeze(0), exact=True)}
+        times: dict[tuple[str, str], list[float]] = {}
+        for q in queries:  # interleaved: every path and setting at each state
+            for caches in ('warm', 'cold'):
+                for name, fn in calls.items():
+                    fn(q)
+                    if caches == 'cold':
+                        flush.add_(1.0)
+                    start = time.perf_counter()
+                    fn(q)
+                    times.setdefault((caches, name), []).append(time.perf_counter() - start)
+        med = {key: 1e6 * statistics.median(value) for key, value in times.items()}
+        active = gp.active_outputs
+        exact_std = gp.predict(torch.as_tensor(states), exact=True)[1][:, active]
+        ratio = (gp.predict(torch.as_tensor(states))[1][:, active]
+                 / exact_std.clamp_min(1e-300))
+        bound = gp.variance_bound
+        names = ', '.join(f"{name.replace('_', ' ')} {rank}"
+                          for name, rank in zip(bound['bound'], bound['rank'].tolist()))
+        if bound['shared']:
+            names += f" (shared basis {bound['shared']})"
+        read = [numbers_read(cache['plans']['chosen']), numbers_read(cache['plans']['low_rank']),
+                cache['chol_inv_t'].numel() + cache['x_scaled'].numel()]
+        # The plan's arithmetic is the one predict_state runs: check it once here.
+        assert np.array_equal(predict_plan(cache['plans']['chosen'], states[-1:])[:-1, 0, 1],
+                              gp.predict_state(states[-1])[1][active.numpy()])
+        rows.append(
+            f"| {system} | {int(active.sum())} of {active.numel()} | {names} "
+            f"| {read[0]:,}, {read[1]:,}, {read[2]:,} "
+            f"| {med[('warm', 'chosen')]:.0f}, {med[('warm', 'low-rank')]:.0f}, "
+            f"{med[('warm', 'exact')]:.0f} | {med[('cold', 'chosen')]:.0f}, "
+            f"{med[('cold', 'low-rank')]:.0f}, {med[('cold', 'exact')]:.0f} "
+            f"| {float(ratio.max()):.4f}, {float(ratio.min()):.6f} |")
+        print(rows[-1], flush=True)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--repeats', type=int, default=300, help='predict calls per case')
@@ -201,7 +301,14 @@ def main() -> None:
         "'every dim': `exact_output_tol=0`, a posterior on every output; "
         "'known skipped': the default, known outputs return 0 / 0 without a kernel matrix. "
         "'cold': a 64 MB buffer is written (untimed) before each call, as a SAC update evicts "
-        "the GP's factors in the training loop.", known_dimension_rows(args.repeats)]
+        "the GP's factors in the training loop.", known_dimension_rows(args.repeats),
+        "One state, by variance bound, on a GP fitted (default `GPConfig`, 512 training "
+        "points) to 2000 steps of each system's simulator under uniform random actions; "
+        'median per call over the last states visited, every path and setting interleaved '
+        "state by state. 'chosen': `predict_state`, each output's bound as the refit chose "
+        "it; 'low-rank': the low-rank bound on every output; 'exact': `predict(exact=True)`. "
+        "'cold' as above. Every bound is never below the exact variance.",
+        bound_rows(min(args.repeats, 300))]
     publish_section('GP disturbance model', script='bench_gp.py', blocks=blocks,
                     write=not args.no_write)
 

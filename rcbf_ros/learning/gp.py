@@ -25,51 +25,16 @@ Prediction does not go through GPyTorch: after a fit we cache, per output dimens
 batched over query points and output dimensions. The disturbance box of eq.
 (disturb_estimate) is ``mean +/- k_c std`` (``bounds``); ``k_c`` is the caller's.
 
-Low-rank variance bound: the exact variance reads one M x M factor
-per output and query, which at M = 512 (2 MB in float64) is most of a per-step action's cost.
-With the eigendecomposition ``K + n I = U diag(mu) U^T`` (descending ``mu``) computed at each
-refit, ``k^T (K + nI)^-1 k = sum_i (u_i . k)^2 / mu_i``; keeping the first r terms and giving
-every discarded direction the weight of the largest discarded eigenvalue,
-
-    var_r(x*) = s - sum_{i<=r} (u_i . k)^2 / mu_i - (|k|^2 - sum_{i<=r} (u_i . k)^2) / mu_{r+1},
-
-can only subtract less than the exact sum (the discarded directions have ``mu_i <= mu_{r+1}``,
-and their squared projections add up to ``|k|^2`` minus the kept ones), so ``var_r >= var``
-for every query and the box ``mean +/- k_c std_r`` contains the exact one. The excess is at
-most ``s * rho(mu_{r+1} - n)`` with ``rho(a) = max_{0<=l<=a} l (a - l) / ((l + n)(a + n))``
-(since ``sum_i (u_i . k)^2 / (mu_i - n) <= s``, the prior variance), and r is the smallest
-rank whose ``rho`` is within ``GPConfig.variance_rank_tolerance`` (0: every eigenpair, the
-exact variance to round-off). A query then reads r x M numbers instead of M x M (twice:
-the discarded part is evaluated as ``|k - U_r U_r^T k|^2``, not as the difference above,
-whose terms are of size ``|k|^2 / n`` and cancel to round-off when the noise is far below the
-signal; from r = M / 2 on, every eigenpair, in one pass, costs no more). ``predict(x,
-exact=True)`` evaluates the exact variance (the reference). The mean is
-exact either way. In floating point both variances carry round-off of about
-``eps M s^2 / n``; the bound's measured deficits against the exact evaluation stay within it.
-
-Hybrid variance bound (low rank plus a neighbourhood): for any vector w,
-``2 w . k - w^T (K + nI) w <= k^T (K + nI)^-1 k`` (the maximum over w is at
-``w = (K + nI)^-1 k``), so ``s - (2 w . k - w^T (K + nI) w)`` is never below the exact variance.
-Maximising over w in the span of the first r eigenvectors and the unit vectors of a set S of
-m training points, with ``E = K + nI - U_r diag(mu_r) U_r^T`` (the discarded part) gives
-
-    var_h(x*) = s - sum_{i<=r} (u_i . k)^2 / mu_i - q^T E_SS^-1 q,    q = (k - U_r U_r^T k)_S.
-
-``E_SS`` can be singular, so the bound uses ``E'_SS`` from ``E' = E + n U_r U_r^T`` (every
-eigenvalue >= n, as conditioned as ``K + nI`` itself): ``E' >= E`` only lowers the subtracted
-term. (``E'_SS`` is formed as ``(K + nI)_SS - U_S diag(mu_r - n) U_S^T``: M m^2 r work per rank.)
-The bound keeps the larger of this term and the low-rank one, ``|k_perp|^2 / mu_{r+1}``
-(both are valid), so it is at least as tight as the low-rank bound at the same rank. With
-r = 0 it is the variance conditioned on S alone (fewer data never lower a GP's variance).
-S is the neighbourhood of the training point nearest to the query (its m nearest training
-points in the output's lengthscale-scaled metric), whose ``E'_SS`` factor is cached per
-training point and rank at each refit (M m^2 numbers). The worst-case excess of the hybrid
-bound has no closed form; at each refit, an output uses it at the smallest rank (of 0, 8, 16,
-..., below the low-rank bound's own) whose std is within ``GPConfig.hybrid_std_tolerance`` of
-the exact std on probe states, and keeps the low-rank bound when none is. Short lengthscales
-and noise near the signal variance (where the low-rank bound needs nearly every eigenpair) are
-where the neighbourhood carries the posterior. ``predict(x, bound='low_rank')`` evaluates the
-low-rank bound on every output.
+The variance bounds (``rcbf_ros.learning.gp_bounds``): reading the exact variance costs one
+M x M factor per output and query, most of a per-step action's cost. ``predict`` evaluates
+instead, per output, the bound chosen at the refit: a low-rank bound (the leading eigenpairs of
+``K + n I`` plus a tail term), a projection bound (the leading eigenpairs alone, one pass; or,
+for outputs whose kernels are alike, on one basis they share) or a hybrid bound (low rank plus
+the training points around the query), whichever reads the fewest numbers for its tightness.
+Every one is never below the exact variance (by construction, for every state), so the box
+``mean +/- k_c std`` contains the exact one; ``predict(x, exact=True)`` evaluates the exact
+variance (the reference), ``predict(x, bound='low_rank')`` the low-rank bound on every output.
+The mean is exact either way.
 
 Exactly known outputs: a dimension whose residuals are all within ``exact_output_tol`` of zero
 (e.g. a position whose derivative is a velocity in the state, so the nominal model predicts it
@@ -92,6 +57,13 @@ from typing import Any, Literal
 import gpytorch
 import numpy as np
 import torch
+
+from rcbf_ros.learning import gp_bounds
+from rcbf_ros.learning.gp_bounds import (  # noqa: F401  (public API of this module)
+    jittered_cholesky,
+    variance_excess_ratio,
+    variance_ranks,
+)
 
 ArrayLike = torch.Tensor | np.ndarray
 
@@ -140,18 +112,16 @@ class GPConfig:
     treated as exactly known: mean 0, std 0, no posterior cached. 0 keeps a GP on every
     output (then an all-zero dimension still gets one, with a tiny fitted signal variance)."""
     variance_rank_tolerance: float = 1e-4
-    """Worst-case excess of the predicted variance over the exact one, relative to the
-    output's signal variance, that the low-rank variance bound may have (see the module
-    docstring); it never predicts less than the exact variance. 0: keep every eigenpair (the
-    exact variance, to round-off, at the exact cost)."""
+    """Worst-case excess of the low-rank variance bound over the exact variance, relative to
+    the output's signal variance (``gp_bounds``); it never predicts less than the exact
+    variance. 0: keep every eigenpair (the exact variance, to round-off, at the exact cost)."""
     variance_neighbours: int = 32
-    """Neighbourhood size m of the hybrid variance bound (module docstring), which an output
-    uses instead of the low-rank bound when the bound at a smaller rank stays within
-    ``hybrid_std_tolerance`` of the exact std on probe states at the refit. Both bounds are
-    never below the exact variance. 0 (or m >= M): the low-rank bound only."""
-    hybrid_std_tolerance: float = 0.01
-    """Largest relative excess of the hybrid bound's std over the exact std, on every probe
-    state, for an output to use it (see ``variance_neighbours``)."""
+    """Neighbourhood size m of the hybrid variance bound (``gp_bounds``), one of the bounds
+    a refit chooses from. 0 (or m >= M): no hybrid bound."""
+    bound_std_tolerance: float = 0.01
+    """Largest relative excess of the projection or hybrid bound's std over the exact std, on
+    every probe state of a refit, for an output to use it (``gp_bounds``, "The choice"); a
+    tightness criterion only, as every bound is never below the exact variance."""
     dtype: torch.dtype = torch.float64
     """Floating point type of data, hyperparameters and predictions."""
 
@@ -179,102 +149,15 @@ class GPConfig:
         if self.variance_neighbours < 0:
             raise ValueError(
                 f'variance_neighbours must be >= 0, got {self.variance_neighbours}')
-        if not self.hybrid_std_tolerance >= 0:
+        if not self.bound_std_tolerance >= 0:
             raise ValueError(
-                f'hybrid_std_tolerance must be >= 0, got {self.hybrid_std_tolerance}')
-
-
-def _jittered_cholesky(a: torch.Tensor, tries: int = 6) -> torch.Tensor:
-    """Cholesky factors of a batch (B, M, M) of covariance matrices.
-
-    A batch element that is not numerically positive definite (near-duplicate inputs, a signal
-    variance ~1e7 times the noise: a Car Following checkpoint held one) is refactored with
-    jitter j * mean(diag) added, j = 1e-8 (float64; 1e-6 float32), then 10x per try, as GPyTorch
-    does; the rest keep their exact factor.
-
-    Raises:
-        torch.linalg.LinAlgError: still not positive definite after ``tries`` jitters.
-    """
-    chol, info = torch.linalg.cholesky_ex(a)
-    failed = info > 0
-    if not bool(failed.any()):
-        return chol
-    eye = torch.eye(a.shape[-1], dtype=a.dtype)
-    scale = a.diagonal(dim1=-2, dim2=-1).mean(-1)
-    jitter = 1e-8 if a.dtype == torch.float64 else 1e-6
-    for _ in range(tries):
-        index = failed.nonzero().squeeze(-1)
-        fixed, info_fixed = torch.linalg.cholesky_ex(
-            a[index] + (jitter * scale[index])[:, None, None] * eye)
-        chol[index] = fixed
-        failed[index] = info_fixed > 0
-        if not bool(failed.any()):
-            return chol
-        jitter *= 10.0
-    raise torch.linalg.LinAlgError(
-        f'GP covariance of output(s) {failed.nonzero().squeeze(-1).tolist()} is not positive '
-        f'definite even with jitter {jitter / 10.0:g} x mean(diag)')
-
-
-def variance_excess_ratio(*, tail: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-    """Worst-case excess of the low-rank variance bound over the exact variance, relative to
-    the signal variance: ``rho(a) = max_{0<=l<=a} l (a - l) / ((l + n)(a + n))``, elementwise.
-
-    Args:
-        tail: the largest discarded eigenvalue of ``K + n I`` minus ``n`` (``a``); <= 0 gives 0.
-        noise: the noise variance ``n`` (> 0), broadcast against ``tail``.
-
-    The maximiser is ``l* = sqrt(n^2 + a n) - n``; rho grows with ``a`` from 0 (about
-    ``a^2 / (4 n^2)`` for ``a << n``) towards 1.
-    """
-    a = tail.clamp_min(0.0)
-    best = torch.sqrt(noise * noise + a * noise) - noise
-    return best * (a - best) / ((best + noise) * (a + noise))
-
-
-def _rank_groups(ranks: torch.Tensor) -> list[torch.Tensor]:
-    """Outputs (indices into ``ranks``, ascending within a group) batched together: in order of
-    rank, a new group starts where the rank exceeds twice the group's smallest plus 32 (one
-    more group costs about as much as that many extra columns)."""
-    groups: list[list[int]] = []
-    smallest = 0
-    for output in torch.argsort(ranks, stable=True).tolist():
-        rank = int(ranks[output])
-        if not groups or rank > 2 * smallest + 32:
-            groups.append([])
-            smallest = rank
-        groups[-1].append(output)
-    return [torch.tensor(sorted(group), dtype=torch.int64) for group in groups]
-
-
-_HYBRID_RANKS = (0, 8, 16, 32, 64, 128, 256)
-"""Ranks the hybrid bound is tried at, smallest (cheapest) first."""
-_HYBRID_COST_COLUMNS = 16
-"""The hybrid bound's neighbourhood term costs about as much as this many more low-rank
-columns: a hybrid rank is only tried this far below the low-rank bound's own."""
+                f'bound_std_tolerance must be >= 0, got {self.bound_std_tolerance}')
 
 
 def _check_bound(bound: str) -> None:
     """Refuse a ``bound`` argument of ``predict``/``predict_state`` that names no bound."""
     if bound not in ('chosen', 'low_rank'):
         raise ValueError(f"bound must be 'chosen' or 'low_rank', got {bound!r}")
-
-
-def variance_ranks(*, eigenvalues: torch.Tensor, noise: torch.Tensor,
-                   tolerance: float) -> torch.Tensor:
-    """Per output, the fewest leading eigenpairs whose bound is within ``tolerance``.
-
-    Args:
-        eigenvalues: (D, M) of ``K_d + n_d I``, descending.
-        noise: (D,) the ``n_d``.
-        tolerance: largest allowed :func:`variance_excess_ratio` (0: all M).
-
-    Returns:
-        (D,) int64 ranks r_d in [0, M]: the ratio at tail ``mu_{r+1} - n`` is <= tolerance.
-    """
-    ratio = variance_excess_ratio(tail=eigenvalues - noise[:, None], noise=noise[:, None])
-    # rho grows with the tail eigenvalue, which falls with r: the rank is the count above.
-    return (ratio > tolerance).sum(dim=-1)
 
 
 class _BatchIndependentExactGP(gpytorch.models.ExactGP):
@@ -364,7 +247,6 @@ class DisturbanceGP:
         self.noise: torch.Tensor | None = None
         self.train_indices: torch.Tensor | None = None
         self._posterior: dict[str, torch.Tensor] | None = None
-        self._pending: dict[str, Any] | None = None
         self._version = 0
 
     @property
@@ -582,23 +464,26 @@ class DisturbanceGP:
 
     def _refresh_cache(self) -> None:
         """Cache per active output dim: scaled inputs, ``L^-T``, ``alpha = (K + nI)^-1 y``, the
-        low-rank variance bound's eigenpairs, the neighbour bound's factors, and which bound
-        each output uses (module docstring).
+        eigenpairs of ``K + nI``, the neighbourhoods, each output's chosen variance bound and the
+        numpy groups ``predict`` runs (``gp_bounds``).
 
         A dimension is active unless every stored residual (all data, not only the capped
-        training subset) is within ``exact_output_tol`` of zero.
+        training subset) is within ``exact_output_tol`` of zero. The posterior is built aside
+        and published whole at the end: a failure on the way (a neighbourhood matrix no jitter
+        makes positive definite) leaves the previous one in place.
         """
         assert self.lengthscales is not None and self.outputscale is not None
         assert self.noise is not None
-        active = (self._y.abs() > self.config.exact_output_tol).any(dim=0)
+        cfg = self.config
+        active = (self._y.abs() > cfg.exact_output_tol).any(dim=0)
         x, y = self.train_x, self.train_y[:, active]
         lengthscales = self.lengthscales[active]
         outputscale, noise = self.outputscale[active], self.noise[active]
         x_scaled = x.unsqueeze(0) / lengthscales.unsqueeze(1)  # (n_active, M, n_in)
-        k_train = self._rbf(x_scaled, x_scaled, outputscale)
+        k_train = gp_bounds.rbf(x_scaled, x_scaled, outputscale)
         eye = torch.eye(x.shape[0], dtype=x.dtype)
         k_noisy = k_train + noise[:, None, None] * eye
-        chol = _jittered_cholesky(k_noisy)  # (n_out, M, M)
+        chol = jittered_cholesky(k_noisy)  # (n_out, M, M)
         chol_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
         alpha = torch.cholesky_solve(y.T.unsqueeze(-1), chol).squeeze(-1)  # (n_out, M)
         n_points = x.shape[0]
@@ -609,200 +494,59 @@ class DisturbanceGP:
         eigenvalues, eigenvectors = torch.linalg.eigh(k_used)
         eigenvalues = torch.maximum(eigenvalues.flip(-1), noise[:, None])
         ranks = variance_ranks(eigenvalues=eigenvalues, noise=noise,
-                               tolerance=self.config.variance_rank_tolerance)
+                               tolerance=cfg.variance_rank_tolerance)
         # Row-vector layout: k^T L^-T is one batched (B, M) x (M, M) product, which is several
         # times faster on CPU than L^-1 k with a (M, 1) right-hand side.
-        cache = {'active': active, 'lengthscales': lengthscales,
-                 'outputscale': outputscale, 'noise': noise,
-                 'x_scaled': x_scaled,
-                 'chol_inv_t': chol_inv.transpose(-1, -2).contiguous(), 'alpha': alpha,
-                 'eigenvalues': eigenvalues, 'eigenvectors': eigenvectors.flip(-1),
-                 'ranks': ranks, 'plans': {}, 'hybrid_rank': torch.full_like(ranks, -1),
-                 'hybrid_factor': {}}
-        # Built aside and published whole at the end: a failure on the way (a neighbourhood
-        # matrix no jitter makes positive definite) leaves the previous posterior in place.
-        self._pending = cache
-        try:
-            outputs = torch.arange(int(active.sum()))
-            groups, kept, excess = self._low_rank_groups(outputs)
-            cache['plans']['low_rank'] = groups
-            cache['low_rank'] = {'ranks': ranks, 'kept': kept, 'excess': excess}
-            neighbours = min(self.config.variance_neighbours, n_points)
-            if 0 < neighbours < n_points and outputs.numel():
-                # k(x_i, x_j) falls with the scaled distance: the nearest are the largest
-                # entries; the diagonal (s + n) is every row's largest: x_i comes first.
-                cache['neighbour_index'] = torch.topk(k_noisy, neighbours, dim=-1).indices
-                cache['k_used'] = k_used
-                self._choose_hybrid_ranks()
-            hybrid_rank = cache['hybrid_rank']
-            cache['plans']['chosen'] = (self._plan(hybrid_rank)
-                                        if bool((hybrid_rank >= 0).any()) else groups)
-        finally:
-            self._pending = None
+        cache: dict[str, Any] = {
+            'active': active, 'lengthscales': lengthscales, 'outputscale': outputscale,
+            'noise': noise, 'x_scaled': x_scaled, 'points': x,
+            'chol_inv_t': chol_inv.transpose(-1, -2).contiguous(), 'alpha': alpha,
+            'eigenvalues': eigenvalues, 'eigenvectors': eigenvectors.flip(-1), 'ranks': ranks,
+            'plans': {}}
+        include_noise = cfg.include_noise_in_std
+        outputs = torch.arange(int(active.sum()))
+        parts, kept, excess = gp_bounds.low_rank_parts(cache, outputs)
+        cache['plans']['low_rank'] = gp_bounds.make_plan(cache, parts, include_noise)
+        cache['low_rank'] = {'ranks': ranks, 'kept': kept, 'excess': excess}
+        neighbours = min(cfg.variance_neighbours, n_points)
+        if 0 < neighbours < n_points and outputs.numel():
+            # k(x_i, x_j) falls with the scaled distance: the nearest are the largest
+            # entries; the diagonal (s + n) is every row's largest: x_i comes first.
+            cache['neighbour_index'] = torch.topk(k_noisy, neighbours, dim=-1).indices
+            cache['k_used'] = k_used
+        probes = self._probe_states(lengthscales) if outputs.numel() else x[:0]
+        gp_bounds.choose_bounds(cache, probes, include_noise=include_noise,
+                                tolerance=cfg.bound_std_tolerance)
+        cache['plans']['chosen'] = (
+            cache['plans']['low_rank'] if all(kind == 'low_rank' for kind in cache['bound_kind'])
+            else gp_bounds.make_plan(cache, gp_bounds.chosen_parts(cache), include_noise))
         self._cache = cache
 
-    @property
-    def _work(self) -> dict[str, Any]:
-        """The posterior being built by ``_refresh_cache``, else the current one."""
-        cache = self._pending if self._pending is not None else self._cache
-        assert cache is not None
-        return cache
-
-    def _hybrid_factor(self, output: int, rank: int) -> torch.Tensor:
-        """(M, m, m) ``L_i^-T`` per training point i, ``L_i L_i^T`` the principal submatrix on
-        i's neighbourhood S_i of ``E' = K + nI - U_r diag(mu_r - n) U_r^T`` (module
-        docstring), jittered further if it must be, which only raises the variance.
-        ``K + nI`` is the cached ``L L^T`` (with the jitter, if the Cholesky needed one).
-        """
-        c = self._work
-        index = c['neighbour_index'][output]  # (M, m)
-        sub = c['k_used'][output][index.unsqueeze(-1), index.unsqueeze(-2)]  # (M, m, m)
-        if rank:
-            # Entries of size s less the kept part: E' >= n I, so the round-off of the
-            # difference (eps r s) is far below its smallest eigenvalue unless s / n ~ 1e10.
-            vectors = c['eigenvectors'][output][:, :rank][index]  # (M, m, r)
-            weights = c['eigenvalues'][output][:rank] - c['noise'][output]
-            sub = sub - (vectors * weights) @ vectors.transpose(-1, -2)
-        chol = _jittered_cholesky(sub)
-        eye = torch.eye(sub.shape[-1], dtype=sub.dtype).expand_as(chol)
-        chol_inv = torch.linalg.solve_triangular(chol, eye, upper=False)
-        return chol_inv.transpose(-1, -2).contiguous()
-
-    def _choose_hybrid_ranks(self) -> None:
-        """Per active output, the smallest rank of ``_HYBRID_RANKS`` (below the low-rank
-        bound's own) whose hybrid bound's std is within ``hybrid_std_tolerance`` of the
-        exact std on every probe state: stored states, and stored states moved by a quarter
-        and a whole lengthscale. Outputs where none is stay on the low-rank bound (-1)."""
-        c = self._work
+    def _probe_states(self, lengthscales: torch.Tensor) -> torch.Tensor:
+        """The states a refit checks the chosen bounds' tightness on: 64 stored states, and
+        the same moved by a quarter and a whole (smallest) lengthscale in random directions."""
         generator = torch.Generator().manual_seed(self.config.seed)
         rows = self._x[torch.randperm(self.num_data, generator=generator)[:64]]
-        shift = c['lengthscales'].min(dim=0).values
-        probes = torch.cat([rows] + [
+        shift = lengthscales.min(dim=0).values
+        return torch.cat([rows] + [
             rows + scale * shift * torch.randn(rows.shape, generator=generator,
                                                dtype=rows.dtype) for scale in (0.25, 1.0)])
-        with torch.no_grad():
-            exact = self._exact_variance(probes)  # (D, P)
-        base = c['outputscale'] + (c['noise'] if self.config.include_noise_in_std else 0.0)
-        # The exact std, floored at 1e-6 of the prior's against round-off near the data.
-        exact_std = torch.maximum(exact, 1e-12 * base[:, None]).sqrt()
-        allowed = 1.0 + self.config.hybrid_std_tolerance
-        for output in range(exact.shape[0]):
-            one = torch.tensor([output])
-            for rank in _HYBRID_RANKS:
-                if rank + _HYBRID_COST_COLUMNS >= int(c['ranks'][output]):
-                    break
-                factor = self._hybrid_factor(output, rank)
-                group = self._low_rank_group(one, rank, factor_t=factor[None])
-                _, std = self._predict_group(group, probes.numpy())
-                ratio = torch.from_numpy(std[:, 0]) / exact_std[output]
-                if float(ratio.max()) <= allowed:
-                    c['hybrid_rank'][output] = rank
-                    c['hybrid_factor'][output] = factor
-                    break
-
-    def _plan(self, hybrid_rank: torch.Tensor) -> list[dict[str, Any]]:
-        """The numpy groups one prediction runs: the low-rank groups of the outputs with
-        ``hybrid_rank`` -1, and one hybrid group per rank of the others."""
-        outputs = torch.arange(hybrid_rank.numel())
-        groups = self._low_rank_groups(outputs[hybrid_rank < 0])[0]
-        for rank in sorted(set(hybrid_rank[hybrid_rank >= 0].tolist())):
-            members = outputs[hybrid_rank == rank]
-            factor_t = torch.stack([self._work['hybrid_factor'][int(o)] for o in members])
-            groups.append(self._low_rank_group(members, rank, factor_t=factor_t))
-        return groups
-
-    def _low_rank_groups(self, members: torch.Tensor
-                         ) -> tuple[list[dict[str, Any]], torch.Tensor, torch.Tensor]:
-        """The low-rank prediction's numpy groups for ``members`` (indices into the active
-        outputs), with each active output's kept rank and worst-case excess (zero for the
-        others).
-
-        Outputs of similar rank share one batched group at the group's largest rank (extra
-        pairs only tighten the bound); an output that needs far more pairs than another (a
-        signal weaker than its noise) gets its own group, so that the others do not read its
-        columns.
-        """
-        c = self._work
-        eigenvalues, noise, ranks = c['eigenvalues'], c['noise'], c['ranks']
-        n_points = eigenvalues.shape[-1]
-        kept = torch.zeros_like(ranks)
-        excess = torch.zeros_like(noise)
-        groups = []
-        for local in (_rank_groups(ranks[members]) if members.numel() else []):
-            group = members[local]
-            rank = int(ranks[group].max())
-            if 2 * rank >= n_points:
-                # Below rank M the discarded part is a second pass over the r columns: from
-                # M / 2 on, every pair (one pass, the exact variance) costs no more.
-                rank = n_points
-            kept[group] = rank
-            if rank < n_points:
-                tail = eigenvalues[group, rank]
-                excess[group] = variance_excess_ratio(tail=tail - noise[group],
-                                                      noise=noise[group])
-            groups.append(self._low_rank_group(group, rank))
-        return groups, kept, excess
-
-    def _exponent_rows(self, outputs: torch.Tensor) -> np.ndarray:
-        """(D, n_in + 2, M): log k(q, x_j) = log s - |q~|^2 / 2 - |x~_j|^2 / 2 + q~ . x~_j
-        (~: lengthscale-scaled) is one product of [q~, -|q~|^2 / 2, 1] with these rows
-        [x~_j; 1; log s - |x~_j|^2 / 2]."""
-        c = self._work
-        x_scaled, outputscale = c['x_scaled'][outputs], c['outputscale'][outputs]
-        n_active, n_points, n_in = x_scaled.shape
-        rows = torch.empty(n_active, n_in + 2, n_points, dtype=x_scaled.dtype)
-        rows[:, :n_in] = x_scaled.transpose(-1, -2)
-        rows[:, n_in] = 1.0
-        rows[:, n_in + 1] = outputscale.log()[:, None] - 0.5 * (x_scaled ** 2).sum(-1)
-        return rows.numpy()
-
-    def _group_base(self, outputs: torch.Tensor) -> dict[str, Any]:
-        """What every group has: outputs, inverse lengthscales, exponent rows, prior variance."""
-        c = self._work
-        outputscale = c['outputscale'][outputs]
-        base = (outputscale + c['noise'][outputs] if self.config.include_noise_in_std
-                else outputscale)
-        return {'index': c['active'].nonzero().squeeze(-1)[outputs].numpy(),
-                'inv_lengthscales': (1.0 / c['lengthscales'][outputs]).numpy(),
-                'exponent_rows': self._exponent_rows(outputs), 'base': base.numpy()[:, None]}
-
-    def _low_rank_group(self, outputs: torch.Tensor, rank: int,
-                        factor_t: torch.Tensor | None = None) -> dict[str, Any]:
-        """One batched low-rank group of outputs at one rank (see ``_low_rank_groups``);
-        with ``factor_t`` (D, M, m, m) from ``_hybrid_factor``, the hybrid bound at it."""
-        c = self._work
-        eigenvalues = c['eigenvalues'][outputs]
-        n_points = eigenvalues.shape[-1]
-        # var_r = s - sum_{i<=r} (u_i . k)^2 / mu_i - |k_perp|^2 / mu_{r+1}, k_perp = k minus its
-        # projection on the kept u_i, computed as that difference (not |k|^2 - sum (u_i . k)^2,
-        # which loses |k|^2 / n * eps to cancellation when n << s). Both subtracted terms are
-        # >= 0 and together at most s, so the round-off stays at eps * s.
-        tail_weight = (1.0 / eigenvalues[:, rank] if rank < n_points
-                       else torch.zeros(outputs.numel(), dtype=eigenvalues.dtype))
-        # One (1 + r, M) product gives the mean (row 0) and the r projections u_i . k; stored
-        # row by row, so that one query's product reads each row contiguously.
-        project = torch.cat([c['alpha'][outputs].unsqueeze(-1),
-                             c['eigenvectors'][outputs, :, :rank]], dim=-1).transpose(-1, -2)
-        group = {**self._group_base(outputs), 'rank': rank,
-                 'full_rank': rank == n_points, 'project_t': project.contiguous().numpy(),
-                 'kept_weights': (1.0 / eigenvalues[:, :rank]).numpy(),
-                 'tail_weight': tail_weight.numpy()[:, None]}
-        if factor_t is not None:
-            group['neighbours'] = c['neighbour_index'][outputs].numpy()
-            group['factor_t'] = factor_t.numpy()
-        return group
 
     @property
     def variance_bound(self) -> dict[str, Any]:
-        """The bound each active output's prediction uses: ``rank`` (n_active,) the rank of
-        its hybrid bound, -1 for the low-rank bound (at ``variance_rank``'s ``kept``); and
-        ``size``, the neighbourhood size m (0: the hybrid bound is off). Empty before the
-        first fit."""
+        """The bound each active output's prediction uses (``gp_bounds``, "The choice"):
+        ``bound`` its name ('projection', 'shared_projection', 'low_rank' or 'hybrid') and
+        ``rank`` (n_active,) its rank; ``size``, the hybrid bound's neighbourhood size m (0:
+        the hybrid bound is off); ``shared``, the size R of the shared projection's basis (0:
+        none). Empty before the first fit."""
         if self._cache is None:
             return {}
         index = self._cache.get('neighbour_index')
-        return {'rank': self._cache['hybrid_rank'].clone(),
-                'size': 0 if index is None else int(index.shape[-1])}
+        shared = self._cache.get('shared')
+        return {'bound': tuple(self._cache['bound_kind']),
+                'rank': self._cache['bound_rank'].clone(),
+                'size': 0 if index is None else int(index.shape[-1]),
+                'shared': 0 if shared is None else int(shared['basis'].shape[-1])}
 
     @property
     def variance_rank(self) -> dict[str, Any]:
@@ -815,22 +559,6 @@ class DisturbanceGP:
         low = self._cache['low_rank']
         return {'ranks': low['ranks'].clone(), 'kept': low['kept'].clone(),
                 'excess': low['excess'].clone(), 'points': int(self._cache['alpha'].shape[-1])}
-
-    @staticmethod
-    def _rbf(a_scaled: torch.Tensor, b_scaled: torch.Tensor,
-             outputscale: torch.Tensor) -> torch.Tensor:
-        """s_d exp(-|a - b|^2 / 2) on lengthscale-scaled inputs.
-
-        Args:
-            a_scaled: (D, A, n_in); b_scaled: (D, B, n_in); outputscale: (D,) the s_d.
-
-        Returns:
-            (D, A, B).
-        """
-        sq_dist = ((a_scaled ** 2).sum(-1, keepdim=True)
-                   + (b_scaled ** 2).sum(-1).unsqueeze(-2)
-                   - 2.0 * a_scaled @ b_scaled.transpose(-1, -2)).clamp_min(0.0)
-        return outputscale[:, None, None] * torch.exp(-0.5 * sq_dist)
 
     # --------------------------------------------------------------- predict
     def predict(self, x: ArrayLike, *, exact: bool = False,
@@ -867,27 +595,15 @@ class DisturbanceGP:
         if not bool(c['active'].any()):
             return mean, std
         with torch.no_grad():
-            mean_a, var = self._exact_variance(x_t, with_mean=True)
+            k_cross = gp_bounds.cross_kernel(c, x_t)  # (D, B, M)
+            mean_a = (k_cross * c['alpha'].unsqueeze(1)).sum(-1)
+            var = gp_bounds.exact_variance(c, k_cross, self.config.include_noise_in_std)
             active = c['active']
             if bool(active.all()):
                 return mean_a.T.contiguous(), var.clamp_min(0.0).sqrt().T.contiguous()
             mean[:, active] = mean_a.T
             std[:, active] = var.clamp_min(0.0).sqrt().T
         return mean, std
-
-    def _exact_variance(self, x: torch.Tensor, *, with_mean: bool = False) -> Any:
-        """Exact posterior variance (D_active, B) at x (B, n_in); with ``with_mean``, the
-        pair (mean, variance)."""
-        c = self._work
-        q_scaled = x.unsqueeze(0) / c['lengthscales'].unsqueeze(1)  # (D, B, n_in)
-        k_cross = self._rbf(q_scaled, c['x_scaled'], c['outputscale'])  # (D, B, M)
-        v = k_cross @ c['chol_inv_t']  # (D, B, M): rows of (L^-1 k)^T
-        var = c['outputscale'].unsqueeze(-1) - (v ** 2).sum(-1)
-        if self.config.include_noise_in_std:
-            var = var + c['noise'].unsqueeze(-1)
-        if not with_mean:
-            return var
-        return (k_cross * c['alpha'].unsqueeze(1)).sum(-1), var
 
     def predict_state(self, state: np.ndarray, *,
                       bound: Literal['chosen', 'low_rank'] = 'chosen'
@@ -908,56 +624,14 @@ class DisturbanceGP:
         if self._cache is None:
             return np.zeros(self.n_out), np.full(self.n_out, self.config.prior_std)
         _check_bound(bound)
-        mean, std = self._predict_bound(x[None, :], self._cache['plans'][bound])
-        return mean[0], std[0]
-
-    def _predict_bound(self, x: np.ndarray, plan: list[dict[str, Any]]
-                       ) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and std bound, x (B, n_in) float64 -> two (B, n_out) arrays."""
-        if len(plan) == 1 and plan[0]['index'].size == self.n_out:
-            return self._predict_group(plan[0], x)
-        mean = np.zeros((x.shape[0], self.n_out))
-        std = np.zeros((x.shape[0], self.n_out))
-        for group in plan:
-            mean_g, std_g = self._predict_group(group, x)
-            mean[:, group['index']] = mean_g
-            std[:, group['index']] = std_g
+        mean, std = self._predict_bound(x[None, :], self._cache['plans'][bound])[:, 0]
         return mean, std
 
-    def _predict_group(self, group: dict[str, Any], x: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray]:
-        """One group's mean and std bound: two (B, D_group) arrays."""
-        n_in = self.n_in
-        query = np.empty((group['index'].size, x.shape[0], n_in + 2))
-        q_scaled = np.multiply(x[None, :, :], group['inv_lengthscales'][:, None, :],
-                               out=query[:, :, :n_in])  # (D, B, n_in)
-        query[:, :, n_in] = -0.5 * np.einsum('dbi,dbi->db', q_scaled, q_scaled)
-        query[:, :, n_in + 1] = 1.0
-        # No clamp of the exponent at 0 (the squared distance's round-off): k may exceed s
-        # by a few ulps, which moves the variance by round-off only.
-        k_cross = np.exp(query @ group['exponent_rows'])  # (D, B, M)
-        hybrid = 'factor_t' in group
-        if hybrid:
-            nearest = k_cross.argmax(axis=-1)  # (D, B): the nearest training point
-        project_t = group['project_t']
-        # (D, B, 1 + r): mean, then u_i . k
-        projected = (project_t @ k_cross.transpose(0, 2, 1)).transpose(0, 2, 1)
-        kept = projected[:, :, 1:]
-        var = group['base'] - np.einsum('dbr,dr->db', kept * kept, group['kept_weights'])
-        if not group['full_rank']:
-            # k_perp = k - U_r (U_r^T k), on the same (by now cached) columns.
-            if group['rank']:
-                k_cross -= kept @ project_t[:, 1:, :]
-            tail = np.einsum('dbm,dbm->db', k_cross, k_cross) * group['tail_weight']
-            if hybrid:
-                # q^T E'_SS^-1 q on the nearest training point's neighbourhood S, q = k_perp[S].
-                outputs = np.arange(nearest.shape[0])[:, None]
-                near = np.take_along_axis(k_cross, group['neighbours'][outputs, nearest], -1)
-                v = (near[:, :, None, :] @ group['factor_t'][outputs, nearest])[:, :, 0, :]
-                np.maximum(tail, np.einsum('dbm,dbm->db', v, v), out=tail)
-            var -= tail
-        std = np.sqrt(np.maximum(var, 0.0, out=var), out=var)
-        return projected[:, :, 0].T.copy(), std.T.copy()
+    def _predict_bound(self, x: np.ndarray, plan: dict[str, Any]) -> np.ndarray:
+        """Mean and std bound at x (B, n_in) float64: (2, B, n_out), [0] the mean, each
+        (B, n_out) contiguous."""
+        result = gp_bounds.predict_plan(plan, x).transpose(2, 1, 0)  # (2, B, D_active + 1)
+        return result[:, :, :-1].copy() if plan['identity'] else result.take(plan['take'], 2)
 
     def bounds(self, x: ArrayLike, k_c: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Disturbance box of eq. (disturb_estimate): ``mean -/+ k_c std``.

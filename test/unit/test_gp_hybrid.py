@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from rcbf_ros.learning.gp import _HYBRID_RANKS, DisturbanceGP, GPConfig
+from rcbf_ros.learning import gp_bounds
+from rcbf_ros.learning.gp import DisturbanceGP, GPConfig
+from rcbf_ros.learning.gp_bounds import HYBRID_RANKS
 
 DTYPE = torch.float64
 EPS = float(torch.finfo(DTYPE).eps)
@@ -59,11 +61,14 @@ def round_off(gp: DisturbanceGP) -> np.ndarray:
 
 def hybrid_variance(gp: DisturbanceGP, q: torch.Tensor, rank: int) -> np.ndarray:
     """(B, n_active) the hybrid bound's variance at ``rank`` on every active output."""
+    c = gp._cache
+    assert c is not None
     outputs = torch.arange(int(gp.active_outputs.sum()))
-    factor = torch.stack([gp._hybrid_factor(int(o), rank) for o in outputs])
-    group = gp._low_rank_group(outputs, rank, factor_t=factor)
-    _, std = gp._predict_group(group, q.numpy())
-    return std ** 2
+    factor = torch.stack([gp_bounds.hybrid_factor(c, int(o), rank) for o in outputs])
+    plan = gp_bounds.make_plan(c, [('hybrid', outputs, rank, factor)],
+                               gp.config.include_noise_in_std)
+    std = gp_bounds.predict_plan(plan, q.numpy())[:-1, :, 1]
+    return std.T ** 2
 
 
 def exact_variance(gp: DisturbanceGP, q: torch.Tensor) -> np.ndarray:
@@ -83,12 +88,12 @@ def test_the_hybrid_bound_is_never_below_the_exact_variance(
                    include_noise=include_noise)
     if neighbours >= points:
         assert gp.variance_bound['size'] == 0
-        assert (gp.variance_bound['rank'] == -1).all()
+        assert 'hybrid' not in gp.variance_bound['bound']
         return
     q = queries(gp, seed)
     exact = exact_variance(gp, q)
     slack = round_off(gp)
-    for rank in [r for r in _HYBRID_RANKS if r < points]:
+    for rank in [r for r in HYBRID_RANKS if r < points]:
         excess = hybrid_variance(gp, q, rank) - exact
         assert (excess >= -slack).all(), (rank, (excess / slack).min())
     # Far from the data both are the prior variance.
@@ -110,8 +115,7 @@ def test_with_no_low_rank_part_it_is_the_variance_given_the_neighbourhood_alone(
     variance = hybrid_variance(gp, q, 0)
     c = gp._cache
     assert c is not None
-    k = gp._rbf(q.unsqueeze(0) / c['lengthscales'].unsqueeze(1), c['x_scaled'],
-                c['outputscale'])  # (D, B, M)
+    k = gp_bounds.cross_kernel(c, q)  # (D, B, M)
     for output in range(2):
         nearest = k[output].argmax(-1)
         for b in range(q.shape[0]):
@@ -123,7 +127,6 @@ def test_with_no_low_rank_part_it_is_the_variance_given_the_neighbourhood_alone(
                                        c['outputscale'][output:output + 1],
                                        c['noise'][output:output + 1])
             _, std = sub_gp.predict(q[b], exact=True)
-            # The low-rank tail |k|^2 / mu_1 can only be the smaller of the two.
             assert variance[b, output] == pytest.approx(float(std[0, 0]) ** 2, rel=1e-9,
                                                         abs=1e-12)
 
@@ -136,7 +139,7 @@ def test_a_noise_dominated_short_lengthscale_output_takes_the_neighbourhood():
     bound = gp.variance_bound
     assert bound['size'] == 32
     assert (gp.variance_rank['ranks'] == 300).all()
-    assert (bound['rank'] == 0).all()
+    assert bound['bound'] == ('hybrid', 'hybrid') and (bound['rank'] == 0).all()
     q = queries(gp, 7)
     exact = exact_variance(gp, q)
     _, std = gp.predict(q)
@@ -156,21 +159,22 @@ def test_a_noise_dominated_short_lengthscale_output_takes_the_neighbourhood():
         np.testing.assert_allclose(one_std, std_row.numpy(), atol=1e-12, rtol=1e-9)
 
 
-def test_a_smooth_output_keeps_the_low_rank_bound_and_the_hybrid_can_be_turned_off():
+def test_a_smooth_output_takes_no_neighbourhood_and_the_hybrid_can_be_turned_off():
     smooth = random_gp(seed=8, points=200, n_in=2, lengthscale=2.0, noise_ratio=1e-4,
                        neighbours=16)
-    assert (smooth.variance_bound['rank'] == -1).all()
+    assert 'hybrid' not in smooth.variance_bound['bound']
     off = random_gp(seed=7, points=300, n_in=3, lengthscale=0.1, noise_ratio=0.5,
                     neighbours=0)
-    assert off.variance_bound['size'] == 0 and off.variance_bound['rank'].tolist() == [-1, -1]
+    assert off.variance_bound['size'] == 0
+    assert off.variance_bound['bound'] == ('low_rank', 'low_rank')
     q = queries(off, 1)
     torch.testing.assert_close(off.predict(q), off.predict(q, bound='low_rank'))
     assert DisturbanceGP(2, 1).variance_bound == {}
 
 
 @pytest.mark.parametrize('field, value', [('variance_neighbours', -1),
-                                          ('hybrid_std_tolerance', -0.1),
-                                          ('hybrid_std_tolerance', float('nan'))])
+                                          ('bound_std_tolerance', -0.1),
+                                          ('bound_std_tolerance', float('nan'))])
 def test_bad_hybrid_settings_are_rejected_naming_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         GPConfig(**{field: value})
@@ -218,7 +222,7 @@ def test_on_each_systems_residuals_every_bound_contains_the_exact_box(system, tm
     q = torch.cat([queries(gp, 3), torch.as_tensor(np.stack(states[::3]))])
     exact = exact_variance(gp, q)
     slack = round_off(gp)
-    for rank in [r for r in _HYBRID_RANKS if r < 160]:
+    for rank in [r for r in HYBRID_RANKS if r < 160]:
         assert (hybrid_variance(gp, q, rank) - exact >= -slack).all(), rank
     for bound in ('chosen', 'low_rank'):
         _, std = gp.predict(q, bound=bound)
@@ -235,7 +239,7 @@ def test_a_refit_that_fails_on_the_way_leaves_the_previous_posterior(monkeypatch
     def no_factor(*args: object, **kwargs: object) -> None:
         raise torch.linalg.LinAlgError('not positive definite')
 
-    monkeypatch.setattr(DisturbanceGP, '_hybrid_factor', no_factor)
+    monkeypatch.setattr(gp_bounds, 'hybrid_factor', no_factor)
     with pytest.raises(torch.linalg.LinAlgError):
         gp.set_hyperparameters(gp.lengthscales * 2.0, gp.outputscale, gp.noise)
     assert gp.version == version

@@ -1,7 +1,8 @@
-"""DisturbanceGP's low-rank variance bound: never below the exact variance, within its stated
-worst-case excess, exact at full rank, and the one-state numpy path equal to ``predict``.
-The GPs here have the neighbour bound off (``variance_neighbours=0``), so that every output
-uses the low-rank one (test_gp_neighbours.py tests the other and the choice)."""
+"""DisturbanceGP's low-rank variance bound (``predict(..., bound='low_rank')``): never below the
+exact variance, within its stated worst-case excess, exact at full rank, and the one-state
+numpy path equal to ``predict``. The GPs here have the hybrid bound off
+(``variance_neighbours=0``); test_gp_hybrid.py tests that one, test_gp_projection.py the
+projection bound and the choice."""
 from __future__ import annotations
 
 import math
@@ -12,13 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from rcbf_ros.learning.gp import (
-    _rank_groups,
-    DisturbanceGP,
-    GPConfig,
-    variance_excess_ratio,
-    variance_ranks,
-)
+from rcbf_ros.learning.gp import DisturbanceGP, GPConfig, variance_excess_ratio, variance_ranks
+from rcbf_ros.learning.gp_bounds import rank_groups
 
 DTYPE = torch.float64
 EPS = float(torch.finfo(DTYPE).eps)
@@ -71,7 +67,7 @@ def test_low_rank_variance_is_never_below_the_exact_one_and_within_its_excess(
                         include_noise=include_noise)
     q = queries(gp, seed)
     mean_exact, std_exact = gp.predict(q, exact=True)
-    mean_low, std_low = gp.predict(q)
+    mean_low, std_low = gp.predict(q, bound='low_rank')
     torch.testing.assert_close(mean_low, mean_exact, atol=1e-9, rtol=1e-9)
     assert gp.outputscale is not None
     excess = (std_low ** 2 - std_exact ** 2)[:, :2]
@@ -92,7 +88,7 @@ def test_full_rank_is_the_exact_variance_to_round_off(include_noise):
     assert not gp.variance_rank['excess'].any()
     q = queries(gp, 3)
     mean_exact, std_exact = gp.predict(q, exact=True)
-    mean_low, std_low = gp.predict(q)
+    mean_low, std_low = gp.predict(q, bound='low_rank')
     assert gp.outputscale is not None
     relative = (std_low ** 2 - std_exact ** 2)[:, :2].abs() / gp.outputscale[:2]
     assert relative.max() < 1e-12
@@ -167,9 +163,9 @@ def test_bad_tolerance_is_rejected_naming_the_field(value):
 
 
 def test_outputs_of_far_apart_ranks_are_predicted_in_separate_groups():
-    groups = _rank_groups(torch.tensor([56, 331, 50, 60]))
+    groups = rank_groups(torch.tensor([56, 331, 50, 60]))
     assert [g.tolist() for g in groups] == [[0, 2, 3], [1]]
-    assert [g.tolist() for g in _rank_groups(torch.tensor([46, 55, 53]))] == [[0, 1, 2]]
+    assert [g.tolist() for g in rank_groups(torch.tensor([46, 55, 53]))] == [[0, 1, 2]]
     # A strong signal (few pairs) next to one weaker than its noise (many pairs).
     generator = torch.Generator().manual_seed(2)
     x = 2.0 * torch.rand(150, 2, generator=generator, dtype=DTYPE) - 1.0
@@ -184,10 +180,10 @@ def test_outputs_of_far_apart_ranks_are_predicted_in_separate_groups():
     assert kept[1] > 2 * kept[0] + 32  # two groups
     q = queries(gp, 2)
     _, std_exact = gp.predict(q, exact=True)
-    mean, std = gp.predict(q)
+    mean, std = gp.predict(q, bound='low_rank')
     assert ((std ** 2 - std_exact ** 2)[:, :2] >= -round_off(gp)[:2]).all()
     for row, row_mean, row_std in zip(q[:5], mean[:5], std[:5]):
-        one_mean, one_std = gp.predict_state(row.numpy())
+        one_mean, one_std = gp.predict_state(row.numpy(), bound='low_rank')
         np.testing.assert_allclose(one_mean, row_mean.numpy(), atol=1e-12, rtol=0)
         # Batch and single products round differently: equal to the variance's round-off.
         assert (np.abs(one_std ** 2 - row_std.numpy() ** 2) <= round_off(gp).numpy()).all()
@@ -201,11 +197,12 @@ def test_a_noise_far_below_the_signal_costs_no_accuracy_near_the_data():
     assert (gp.variance_rank['kept'] < 300).all()
     q = queries(gp, 11, count=400)
     _, std_exact = gp.predict(q, exact=True)
-    _, std_low = gp.predict(q)
     assert gp.outputscale is not None
-    excess = (std_low ** 2 - std_exact ** 2)[:, :2] / gp.outputscale[:2]
-    assert excess.min() >= -1e-10
-    assert (std_low[:, :2] >= 0.999 * std_exact[:, :2]).all()
+    for bound in ('low_rank', 'chosen'):
+        _, std_low = gp.predict(q, bound=bound)
+        excess = (std_low ** 2 - std_exact ** 2)[:, :2] / gp.outputscale[:2]
+        assert excess.min() >= -1e-10, bound
+        assert (std_low[:, :2] >= 0.999 * std_exact[:, :2]).all(), bound
 
 
 def test_the_learners_proposal_carries_the_gp_estimate_at_the_state(tmp_path):
