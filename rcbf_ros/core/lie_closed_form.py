@@ -433,6 +433,11 @@ def _closed_form_families(problem: RCBFProblem
     return parts
 
 
+def has_closed_form(problem: RCBFProblem) -> bool:
+    """Whether ``problem`` has a closed form (module docstring), without generating it."""
+    return _closed_form_families(problem) is not None
+
+
 def _row_terms(problem: RCBFProblem, code: _Source
                ) -> tuple[_Drift, list[tuple[Poly, list[Poly]]]] | None:
     """The drift and (h, grad h) of every row in the problem's order, their lines in ``code``."""

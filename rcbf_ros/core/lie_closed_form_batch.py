@@ -15,10 +15,10 @@ grad h = 2 (p - c) on (x_i, x_j) and 2 s l_p (p - c) . (-sin th, cos th) on th, 
 direction-of-travel switch of :func:`rcbf_ros.core.rcbf.barrier_terms`.
 
 J comes from each built-in system's ``drift_jacobian`` (tested against autograd through its
-``f``). The closed form applies exactly where :meth:`ClosedFormTerms.from_problem` finds one
-(built-in systems, whose J does not change along f); elsewhere
-:meth:`BatchClosedForm.from_problem` returns None and the caller keeps
-:meth:`RCBFProblem.terms`. The tests hold both equal to 1e-10.
+``f``). The closed form applies exactly where
+:func:`~rcbf_ros.core.lie_closed_form.has_closed_form` finds one (built-in systems, whose J
+does not change along f); elsewhere :meth:`BatchClosedForm.from_problem` returns None and the
+caller keeps :meth:`RCBFProblem.terms`. The tests hold both equal to 1e-10.
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from torch import Tensor
 
 from rcbf_ros.core.barriers import CircleObstacles
 from rcbf_ros.core.dynamics import ControlAffineSystem
-from rcbf_ros.core.lie_closed_form import ClosedFormTerms, unwrap_cascades
+from rcbf_ros.core.lie_closed_form import has_closed_form, unwrap_cascades
 from rcbf_ros.core.rcbf import BarrierTerms, RCBFProblem
 
 
@@ -146,9 +146,9 @@ class BatchClosedForm:
 
     @classmethod
     def from_problem(cls, problem: RCBFProblem) -> BatchClosedForm | None:
-        """The closed form of ``problem``'s terms, or None where
-        :meth:`ClosedFormTerms.from_problem` finds none."""
-        if ClosedFormTerms.from_problem(problem) is None:
+        """The closed form of ``problem``'s terms, or None where it has none
+        (:func:`~rcbf_ros.core.lie_closed_form.has_closed_form`)."""
+        if not has_closed_form(problem):
             return None
         n_x = problem.system.n_x
         quadratic, lookahead = [], []

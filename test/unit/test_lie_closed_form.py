@@ -24,7 +24,8 @@ from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.dynamics import CarFollowing, PVTOL, Unicycle
 import rcbf_ros.core.filter as filter_module
 from rcbf_ros.core.filter import InputBounds, SafetyFilter, select_assembly
-from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, ClosedFormTerms
+from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, ClosedFormTerms, has_closed_form
+from rcbf_ros.core.lie_closed_form_batch import BatchClosedForm
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.parameters.rules import find_config, load_params
 
@@ -345,6 +346,8 @@ CIRCLE = CircleObstacles(centers=((1.0, 0.0),), radii=(0.5,))
 ])
 def test_other_problems_keep_the_autograd_path(problem, reason):
     assert ClosedFormTerms.from_problem(problem) is None, reason
+    assert not has_closed_form(problem), reason
+    assert BatchClosedForm.from_problem(problem) is None, reason
     assert SafetyFilter(problem).assembly == 'autograd', reason
 
 
