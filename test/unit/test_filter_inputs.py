@@ -109,7 +109,7 @@ def test_defaults_and_read_only_inputs_give_no_warning_on_either_assembly(closed
 
 
 def test_qp_data_beyond_the_limit_is_refused_without_warning():
-    # The squares of these values overflow (1.4e308 each), their sum does not.
+    # Each square is finite (about 1.4e308), their sum overflows.
     safety_filter = SafetyFilter(unicycle_problem())
     assemble = safety_filter._assemble
 
