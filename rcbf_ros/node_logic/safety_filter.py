@@ -263,6 +263,17 @@ class ActiveFilter:
     """The filter's configuration (problem, static disturbance box, fail-safe action)."""
     safety_filter: SafetyFilter
     """The filter itself."""
+    static_mean: np.ndarray = field(init=False, repr=False, compare=False)
+    """``config.static_mean`` as a read-only float64 array (empty: none), made once for every
+    :func:`decide` that uses it."""
+    static_std: np.ndarray = field(init=False, repr=False, compare=False)
+    """``config.static_std`` likewise."""
+
+    def __post_init__(self) -> None:
+        for name in ('static_mean', 'static_std'):
+            array = np.array(getattr(self.config, name), dtype=np.float64).reshape(-1)
+            array.setflags(write=False)
+            object.__setattr__(self, name, array)
 
 
 def build_active_filter(*, params: Mapping[str, Any]) -> ActiveFilter:
@@ -354,9 +365,15 @@ def checked_vector(name: str, values: Any, size: int) -> np.ndarray:
         raise ValueError(f'{name}: not a numeric vector ({exc})') from exc
     if array.size != size:
         raise ValueError(f'{name}: expected {size} values, got {array.size}')
-    if not np.isfinite(array).all():
+    # A state or command has a few values: checked as Python floats, a longer one by numpy.
+    if not (all(map(math.isfinite, array.tolist())) if size <= _FEW_VALUES
+            else np.isfinite(array).all()):
         raise ValueError(f'{name}: contains NaN or inf')
     return array
+
+
+_FEW_VALUES = 32
+"""Up to this many values, :func:`checked_vector` checks them one by one as Python floats."""
 
 
 def state_from_sections(*, sections: Mapping[str, np.ndarray], n_x: int) -> np.ndarray:
@@ -397,13 +414,15 @@ def proposal_from_sections(*, sections: Mapping[str, np.ndarray], n_u: int,
         ValueError: naming the section (missing ``u``, unknown label, wrong length, NaN/inf,
             negative std).
     """
-    unknown = sorted(set(sections) - _PROPOSAL_SECTION_SET)
-    if unknown:
+    if not _PROPOSAL_SECTION_SET.issuperset(sections):
+        unknown = sorted(set(sections) - _PROPOSAL_SECTION_SET)
         raise ValueError(f'{unknown[0]}: unknown proposal section (expected '
                          f'{list(PROPOSAL_SECTIONS)})')
     if 'u' not in sections:
         raise ValueError('u: proposal has no u section')
     u = checked_vector('u', sections['u'], n_u)
+    if len(sections) == 1:
+        return Proposal(u=u)
     extra = {key: checked_vector(key, sections[key], n_x)
              for key in PROPOSAL_SECTIONS[1:] if key in sections}
     std = extra.get('disturbance_std')

@@ -65,10 +65,14 @@ such samples with a warning, and rclpy may raise in its executor instead):
   filter against a state that the state source has already superseded.
 
 Float64MultiArray samples in plain little-endian CDR (what publishers send) are read without
-building the message (:func:`rcbf_ros.messages.conversions.sections_from_cdr`), any other bytes
-through the decoder, with the same result; Float64MultiArray answers and diagnostics go out as
-the same bytes the messages would serialize to
-(:func:`rcbf_ros.messages.conversions.sections_to_cdr`, ``diagnostics_to_cdr``).
+building the message: a state ``[state: n_x]`` or a proposal ``[u: n_u]`` (or as many
+unlabelled values) by comparing the bytes before its values with those of that layout
+(:class:`rcbf_ros.messages.cdr.Float64ArrayLayout`), any other layout by
+:func:`rcbf_ros.messages.conversions.sections_from_cdr`, any other bytes through the decoder:
+the same sections every way, validated by the same functions. Float64MultiArray answers and
+diagnostics go out as the same bytes the messages would serialize to (the command's layout
+again, :func:`rcbf_ros.messages.conversions.sections_to_cdr`, ``diagnostics_to_cdr``). Each
+answer publishes the command first, then ``filter_info``, then diagnostics.
 
 A decodable but unusable sample is refused as before. Every diagnostic status carries the
 cumulative counts ``dropped_samples`` (undecodable, on either topic), ``refused_proposals``
@@ -105,6 +109,7 @@ import torch
 from rcbf_ros.core.config import FilterConfig
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.messages import conversions
+from rcbf_ros.messages.cdr import Float64ArrayLayout
 from rcbf_ros.node_logic import safety_filter as logic
 from rcbf_ros.node_logic.interface import (
     COMMAND_TOPIC_TYPES,
@@ -228,6 +233,14 @@ class SafetyFilterNode(Node):
         # read-only.
         self._array_states = self.settings.state_type == 'array'
         self._array_commands = self.settings.command_type == 'array'
+        # The layouts read and written without building a message (n_x and n_u are fixed at
+        # start: system and system_params.* are read-only); '' is an unlabelled section.
+        n_x, n_u = self.filter.n_x, self.filter.n_u
+        self._state_layouts = (Float64ArrayLayout([('state', n_x)]),
+                               Float64ArrayLayout([('', n_x)]))
+        self._proposal_layouts = (Float64ArrayLayout([('u', n_u)]),
+                                  Float64ArrayLayout([('', n_u)]))
+        self._command_layout = self._proposal_layouts[0]
         self.create_subscription(state_type, 'state', self._on_state, qos, raw=True)
         self.create_subscription(command_type, 'cmd_proposed', self._on_proposal, qos, raw=True)
         obstacles_qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
@@ -397,7 +410,7 @@ class SafetyFilterNode(Node):
                       active: logic.ActiveFilter) -> logic.StateSample:
         """The state sample of one ``state`` message, counted when refused."""
         try:
-            sections = (conversions.sections_from_cdr(data, default_label='state')
+            sections = (_array_sections(data, self._state_layouts, 'state')
                         if self._array_states else None)
             if sections is None:
                 msg, error = _decoded(data, self._state_type)
@@ -438,7 +451,7 @@ class SafetyFilterNode(Node):
         settings, safety_filter = active.settings, active.safety_filter
         header, proposal, error = None, None, ''
         try:
-            sections = (conversions.sections_from_cdr(data, default_label='u')
+            sections = (_array_sections(data, self._proposal_layouts, 'u')
                         if self._array_commands else None)
             if sections is None:
                 msg, error = _decoded(data, self._command_type)
@@ -465,7 +478,7 @@ class SafetyFilterNode(Node):
             safety_filter=safety_filter, proposal=proposal, proposal_error=error,
             latest_state=self._latest_state, now_ns=now_ns,
             max_state_age_s=settings.max_state_age_s,
-            static_mean=active.config.static_mean, static_std=active.config.static_std,
+            static_mean=active.static_mean, static_std=active.static_std,
             slack_tolerance=settings.slack_tolerance)
         return decision, header
 
@@ -488,7 +501,10 @@ class SafetyFilterNode(Node):
                  header: Any = None) -> None:
         settings = active.settings
         if self._array_commands:  # first, the command
-            self._cmd_pub.publish(conversions.sections_to_cdr({'u': decision.u_safe}))
+            u_safe = decision.u_safe
+            layout = self._command_layout
+            self._cmd_pub.publish(layout.encode(u_safe) if u_safe.size == layout.size
+                                  else conversions.sections_to_cdr({'u': u_safe}))
         else:
             self._cmd_pub.publish(self.command_message(decision.u_safe, header))
         self._info_pub.publish(conversions.sections_to_cdr(logic.info_sections(decision)))
@@ -521,6 +537,23 @@ class SafetyFilterNode(Node):
     def fail_safe_action(self) -> np.ndarray:
         """(n_u,) what the node publishes when it cannot filter."""
         return self.filter.fail_safe_action
+
+
+def _array_sections(data: bytes, layouts: Sequence[Float64ArrayLayout],
+                    default_label: str) -> dict[str, Any] | None:
+    """The sections of a Float64MultiArray sample (CDR bytes), as
+    :func:`rcbf_ros.messages.conversions.sections_from_cdr` reads them: at once for a sample of
+    one of ``layouts`` (one section: its label, or ``default_label`` when unlabelled; the
+    values as a tuple of floats), else through that function (None: leave it to the decoder).
+
+    Raises:
+        ValueError: as sections_from_cdr, for a layout that does not fit.
+    """
+    for layout in layouts:
+        values = layout.decode(data)
+        if values is not None:
+            return {layout.sections[0][0] or default_label: values}
+    return conversions.sections_from_cdr(data, default_label=default_label)
 
 
 def _decoded(data: bytes, message_type: Any) -> tuple[Any, str]:
