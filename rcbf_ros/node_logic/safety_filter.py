@@ -506,6 +506,38 @@ def info_sections(decision: Decision) -> dict[str, np.ndarray]:
         status=status_name(decision), result=decision.result, state=decision.state)
 
 
+def full_info_values(decision: Decision) -> np.ndarray | None:
+    """The values of :func:`info_sections` of ``decision``, section after section, when it
+    has every section (:data:`rcbf_ros.core.filter_info.INFO_SECTIONS`: a solved answer with its
+    state, a usable proposal and every number finite), else None.
+
+    The answers of a running filter are nearly all of this kind, and their ``filter_info`` is
+    then one fixed layout (sizes n_u, 1, K, n_x) whose values these are, made in one step;
+    any other answer is left to :func:`info_sections`, which decides what to leave out.
+    """
+    result, u_rl, state = decision.result, decision.u_rl, decision.state
+    if result is None or u_rl is None or state is None:
+        return None
+    u = decision.u_safe
+    if u_rl.shape != u.shape or not len(result.h) or not len(result.constraint_values):
+        return None
+    code = filter_info.STATUS_CODES.get(status_name(decision), filter_info.UNKNOWN_STATUS)
+    values = np.concatenate((
+        u, u_rl, u - u_rl, (1.0 if decision.fail_safe else 0.0, float(code)), result.h,
+        result.constraint_values, (result.slack, result.needed_slack, result.solve_time_s),
+        state), dtype=np.float64)
+    return values if np.isfinite(values).all() else None
+
+
+def full_info_layout(decision: Decision) -> tuple[tuple[str, int], ...]:
+    """The (label, size) of every ``filter_info`` section of a decision that has them all
+    (see :func:`full_info_values`)."""
+    n_u, n_barriers = decision.u_safe.size, len(decision.result.h)
+    sizes = {'u': n_u, 'u_rl': n_u, 'u_s': n_u, 'h': n_barriers,
+             'constraint': len(decision.result.constraint_values), 'state': decision.state.size}
+    return tuple((label, sizes.get(label, 1)) for label, _, _ in filter_info.INFO_SECTIONS)
+
+
 def fail_safe_decision(*, safety_filter: SafetyFilter, reason: str,
                        u_rl: np.ndarray | None = None, state: np.ndarray | None = None,
                        state_source: str = '') -> Decision:

@@ -241,6 +241,7 @@ class SafetyFilterNode(Node):
         self._proposal_layouts = (Float64ArrayLayout([('u', n_u)]),
                                   Float64ArrayLayout([('', n_u)]))
         self._command_layout = self._proposal_layouts[0]
+        self._info_layouts: dict[tuple[tuple[str, int], ...], Float64ArrayLayout] = {}
         self.create_subscription(state_type, 'state', self._on_state, qos, raw=True)
         self.create_subscription(command_type, 'cmd_proposed', self._on_proposal, qos, raw=True)
         obstacles_qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
@@ -507,7 +508,7 @@ class SafetyFilterNode(Node):
                                   else conversions.sections_to_cdr({'u': u_safe}))
         else:
             self._cmd_pub.publish(self.command_message(decision.u_safe, header))
-        self._info_pub.publish(conversions.sections_to_cdr(logic.info_sections(decision)))
+        self._info_pub.publish(self._info_cdr(decision))
         if not logic.diagnostics_due(level=decision.level, now_ns=now_ns,
                                      last_ok_ns=self._last_ok_diagnostics_ns,
                                      min_period_s=settings.diagnostics_min_period_s):
@@ -521,6 +522,19 @@ class SafetyFilterNode(Node):
             stamp_ns=self.get_clock().now().nanoseconds, name=settings.diagnostics_name,
             level=level, message=message, values=values,
             hardware_id=settings.diagnostics_hardware_id))
+
+    def _info_cdr(self, decision: logic.Decision) -> bytes:
+        """The serialized ``filter_info`` of a decision: the values of an answer with every
+        section in the bytes of its layout (one per set of sizes, kept), any other answer
+        through its sections (the same bytes either way)."""
+        values = logic.full_info_values(decision)
+        if values is None:
+            return conversions.sections_to_cdr(logic.info_sections(decision))
+        sizes = logic.full_info_layout(decision)
+        layout = self._info_layouts.get(sizes)
+        if layout is None:
+            layout = self._info_layouts[sizes] = Float64ArrayLayout(sizes)
+        return layout.encode(values)
 
     def _log(self, level: int, reason: str, now_ns: int) -> None:
         key = logic.reason_key(reason)

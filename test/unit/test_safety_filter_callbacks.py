@@ -467,3 +467,56 @@ def test_the_command_goes_out_as_the_bytes_of_its_message(harness):
         assert sent == sections_to_cdr({'u': msg_to_sections(harness.infos[-1])['u']})
         assert sent == serialize_message(sections_to_msg(
             {'u': deserialize_message(sent, 'std_msgs/msg/Float64MultiArray').data}))
+
+
+def _decisions(harness: FilterHarness, draw: Any) -> Any:
+    """A decision of the node's filter on a drawn state and proposal, with its result's and
+    its own fields then drawn over (NaN, inf, empty, other sizes, None) or left as they are."""
+    import dataclasses
+
+    from hypothesis import strategies as st
+    node = harness.node
+    number = st.one_of(st.floats(-3.0, 3.0), st.sampled_from([np.nan, np.inf, -np.inf, 0.0]))
+    vector = lambda size: st.lists(number, min_size=size, max_size=size).map(  # noqa: E731
+        lambda v: np.array(v, dtype=np.float64))
+    state = draw(vector(node.filter.n_x))
+    u = draw(vector(node.filter.n_u))
+    decision = filter_logic.decide(
+        safety_filter=node.filter, proposal=filter_logic.Proposal(u=u),
+        latest_state=filter_logic.StateSample(received_ns=0, state=state), now_ns=0,
+        max_state_age_s=1.0)
+    result = decision.result
+    if result is not None and draw(st.booleans()):
+        k = len(result.h)
+        result = dataclasses.replace(
+            result, h=draw(st.one_of(vector(k), vector(0), vector(k + 1))),
+            constraint_values=draw(st.one_of(vector(k), vector(0))),
+            slack=draw(number), needed_slack=draw(number), solve_time_s=draw(number),
+            status=draw(st.sampled_from(['solved', 'solved_inaccurate', 'unverified', 'odd'])))
+    changes: dict[str, Any] = {'result': draw(st.sampled_from([result, None]))}
+    if draw(st.booleans()):
+        changes['u_rl'] = draw(st.one_of(st.none(), vector(node.filter.n_u), vector(3)))
+        changes['state'] = draw(st.one_of(st.none(), vector(node.filter.n_x)))
+        changes['fail_safe'] = draw(st.booleans())
+    return dataclasses.replace(decision, **changes)
+
+
+def test_filter_info_goes_out_as_the_bytes_of_its_sections(harness):
+    """Whatever the decision (the filter's own on any state and proposal, or with its fields
+    drawn over), filter_info is the bytes of info_sections' message, and the usual answers
+    take the one-step way."""
+    from hypothesis import given, HealthCheck, settings
+    from hypothesis import strategies as st
+
+    from rcbf_ros.messages.conversions import sections_to_cdr
+    one_step = []
+
+    @settings(max_examples=400, deadline=None, suppress_health_check=list(HealthCheck))
+    @given(st.data())
+    def check(data):
+        decision = _decisions(harness, data.draw)
+        one_step.append(filter_logic.full_info_values(decision) is not None)
+        assert harness.node._info_cdr(decision) == sections_to_cdr(
+            filter_logic.info_sections(decision))
+    check()
+    assert 20 < sum(one_step) < len(one_step) - 20, (sum(one_step), len(one_step))
