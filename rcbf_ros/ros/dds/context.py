@@ -257,14 +257,17 @@ def _collect_work(node: Any, triggered: list[int]) -> None:
             if timer._due(now):
                 ready.append(timer._fire)
     if triggered:
-        if node._guard._ref in triggered:
-            node._guard.take()
+        guard = node._guard
+        if guard is not None and guard._ref in triggered:
+            guard.take()
         for subscription in node._subscriptions:
-            if subscription._condition._ref in triggered:
+            condition = subscription._condition  # None once destroyed (from another thread)
+            if condition is not None and condition._ref in triggered:
                 ready.extend(subscription._take_ready())
     for endpoint in node._service_endpoints:
-        if endpoint._pending or (triggered and endpoint._condition is not None
-                                 and endpoint._condition._ref in triggered):
+        condition = endpoint._condition
+        if endpoint._pending or (triggered and condition is not None
+                                 and condition._ref in triggered):
             ready.extend(endpoint._take_ready())
 
 
