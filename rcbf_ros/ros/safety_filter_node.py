@@ -99,6 +99,7 @@ parameter"; a pre-set callback logs the WARN).
 """
 from __future__ import annotations
 
+import gc
 import sys
 import time
 from typing import Any, Sequence
@@ -120,7 +121,7 @@ from rcbf_ros.node_logic.interface import (
     STATE_TOPIC_TYPES,
     TopicSpec,
 )
-from rcbf_ros.ros.node_main import run_node
+from rcbf_ros.ros.node_main import run_node, spin
 from rcbf_ros.ros.runtime import (
     deserialize_message,
     DurabilityPolicy,
@@ -588,12 +589,23 @@ def _one_line(exc: BaseException) -> str:
     return text if len(text) <= 200 else text[:197] + '...'
 
 
+def spin_frozen(node: SafetyFilterNode) -> None:
+    """Spin ``node`` with everything built before (modules, torch, the filter: ~200 000
+    objects) frozen out of the garbage collector's generations (``gc.freeze``): a full
+    collection then walks only what the callbacks allocated since, instead of taking ~45 ms
+    (long enough to overflow keep-last 10 queues at 1 kHz). Reference counting still frees
+    frozen objects; only cycles among them are no longer collected."""
+    gc.collect()
+    gc.freeze()
+    spin(node)
+
+
 def main(args: Sequence[str] | None = None) -> int:
     """Run the node until Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
     torch.set_num_threads(1)  # B = 1 constraint assembly: threads only add contention
     # Parameter errors are already logged with the node's name by the constructor.
-    return run_node(NODE_NAME, SafetyFilterNode, args, setup_errors=(ValueError,),
-                    interface=INTERFACE)
+    return run_node(NODE_NAME, SafetyFilterNode, args, run=spin_frozen,
+                    setup_errors=(ValueError,), interface=INTERFACE)
 
 
 if __name__ == '__main__':
