@@ -7,17 +7,23 @@ stores them. Two readers: :func:`deserialize_message` gives the message classes 
 :func:`deserialize_rosbags_message` gives rosbags' own message objects. One writer,
 :func:`serialize_message`, takes a message instance, or with the type name also a ``dict`` of
 field values (missing fields take the type's zero) or any object with the fields as attributes.
+
+``std_msgs/Float64MultiArray``, the type of every vector this package sends, takes a shorter
+way through both (the same bytes and the same message, see :func:`serialize_message` and
+:func:`deserialize_message`), and :class:`Float64ArrayLayout` reads and writes the samples of
+one fixed layout without building a message at all.
 """
 from __future__ import annotations
 
+import functools
 import struct
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from rosbags.serde import SerdeError
 from rosbags.typesys.store import Nodetype, Typestore
 
-from rcbf_ros.messages.classes import Message, rosbags_converter
+from rcbf_ros.messages.classes import get_message, Message, rosbags_converter
 from rcbf_ros.messages.typestore import (
     jazzy_typestore,
     normalize_type_name,
@@ -49,10 +55,19 @@ def serialize_message(message: Any, type_name: str | None = None,
         own_type = getattr(message, '_type_name', None)
         if not own_type:
             raise TypeError(f'cannot serialize {type(message).__name__}: not a message instance')
-        return bytes(jazzy_typestore().serialize_cdr(message, own_type, little_endian=True))
+        if own_type == FLOAT64_MULTIARRAY:
+            data = _float64_multiarray_cdr(message)
+            if data is not None:
+                return data
+        return _serialized_by_rosbags(message, own_type)
     store = typestore or jazzy_typestore()
     name = require_known_type(type_name, store)
     return bytes(store.serialize_cdr(to_rosbags_message(message, name, store), name))
+
+
+def _serialized_by_rosbags(message: Message, type_name: str) -> bytes:
+    """rosbags' serializer on a message instance of ours (the general way)."""
+    return bytes(jazzy_typestore().serialize_cdr(message, type_name, little_endian=True))
 
 
 class DeserializationError(ValueError):
@@ -83,6 +98,15 @@ def deserialize_message(data: bytes | memoryview, message_type: type[Message] | 
     """
     type_name = message_type if isinstance(message_type, str) else message_type._type_name
     type_name = normalize_type_name(type_name)
+    if type_name == FLOAT64_MULTIARRAY:
+        message = _float64_multiarray_message(data)
+        if message is not None:
+            return message
+    return _decoded_by_rosbags(data, type_name)
+
+
+def _decoded_by_rosbags(data: bytes | memoryview, type_name: str) -> Message:
+    """rosbags' decoder into our classes (the general way; see :func:`deserialize_message`)."""
     convert = rosbags_converter(type_name)
     view = memoryview(data).cast('B')
     little_endian = _CDR_ENCAPSULATIONS.get(bytes(view[:2]))
@@ -98,6 +122,167 @@ def deserialize_message(data: bytes | memoryview, message_type: type[Message] | 
     except _DECODE_ERRORS as exc:
         raise DeserializationError(f'{type_name}: {_one_line(exc)}') from exc
     return convert(decoded)
+
+
+FLOAT64_MULTIARRAY = 'std_msgs/msg/Float64MultiArray'
+_CDR_LE = b'\x00\x01'
+"""The first two bytes of a plain little-endian CDR stream (the options bytes follow)."""
+_UINT32 = struct.Struct('<I')
+_TWO_UINT32 = struct.Struct('<II')
+
+
+def _float64_multiarray_cdr(message: Any) -> bytes | None:
+    """The serialized bytes of a Float64MultiArray instance: the bytes before its values (those
+    of :func:`_float64_multiarray_head`) and the values, or None when it is not the plain case
+    (data not a float64 array, fields of other types): the serializer then says what is
+    wrong with it."""
+    data = message.data
+    if (type(data) is not np.ndarray or data.dtype != np.float64 or data.ndim != 1
+            or not data.flags.c_contiguous):
+        return None
+    layout = message.layout
+    try:
+        key = tuple((dim.label, dim.size, dim.stride) for dim in layout.dim)
+        head = _float64_multiarray_head(key, layout.data_offset, data.size)
+    except Exception:  # noqa: BLE001 - any odd field: the serializer reports it
+        return None
+    return head + data.astype('<f8', copy=False).tobytes()
+
+
+@functools.lru_cache(maxsize=256)
+def _float64_multiarray_head(dims: tuple[tuple[str, int, int], ...], data_offset: int,
+                             count: int) -> bytes:
+    """Everything of a serialized Float64MultiArray before its ``count`` values, as the
+    serializer writes it for that layout (its own bytes for the layout with zeros: the values
+    are the last field, after their alignment, in plain little-endian doubles).
+
+    Raises:
+        whatever the serializer raises for such a layout (not cached).
+    """
+    if not all(type(label) is str and type(size) is int and type(stride) is int
+               for label, size, stride in dims) or type(data_offset) is not int:
+        raise TypeError('not the plain field types')
+    message = get_message(FLOAT64_MULTIARRAY)()
+    layout = message.layout
+    dim_class = get_message('std_msgs/msg/MultiArrayDimension')
+    layout.dim = [dim_class(label=label, size=size, stride=stride) for label, size, stride in dims]
+    layout.data_offset = data_offset
+    message.data = np.zeros(count)
+    zeros = bytes(jazzy_typestore().serialize_cdr(message, FLOAT64_MULTIARRAY,
+                                                  little_endian=True))
+    return zeros[:len(zeros) - 8 * count]
+
+
+@functools.cache
+def _float64_multiarray_classes() -> tuple[type[Message], type[Message], type[Message]]:
+    """The message classes of Float64MultiArray, MultiArrayLayout and MultiArrayDimension."""
+    return (get_message(FLOAT64_MULTIARRAY), get_message('std_msgs/msg/MultiArrayLayout'),
+            get_message('std_msgs/msg/MultiArrayDimension'))
+
+
+def _float64_multiarray_message(data: bytes | memoryview) -> Message | None:
+    """The Float64MultiArray of a plain little-endian CDR sample, as the decoder builds it
+    (ints, str labels, ``data`` a read-only float64 view of the sample), or None for anything
+    but the plain case (big endian, a sequence or string running past the end, a label that is
+    not NUL-terminated UTF-8 without NULs): the decoder then reads it, or says what is wrong."""
+    view = memoryview(data).cast('B') if not isinstance(data, bytes) else data
+    if len(view) < 16 or view[:2] != _CDR_LE:
+        return None
+    end = len(view)
+    (count,), pos = _UINT32.unpack_from(view, 4), 8
+    if count > (end - pos) // 12:  # every dimension takes at least 12 bytes
+        return None
+    base = 4  # CDR aligns from the start of the body, after the encapsulation header
+    array_class, layout_class, dim_class = _float64_multiarray_classes()
+    setter = object.__setattr__
+    dims = []
+    for _ in range(count):
+        pos += -(pos - base) % 4
+        if pos + 4 > end:
+            return None
+        (length,), pos = _UINT32.unpack_from(view, pos), pos + 4
+        if length < 1 or pos + length > end or view[pos + length - 1] != 0:
+            return None
+        raw = bytes(view[pos:pos + length - 1])
+        if b'\x00' in raw:
+            return None
+        try:
+            label = raw.decode('utf-8')
+        except UnicodeDecodeError:
+            return None
+        pos += length
+        pos += -(pos - base) % 4
+        if pos + 8 > end:
+            return None
+        (size, stride), pos = _TWO_UINT32.unpack_from(view, pos), pos + 8
+        dim = dim_class.__new__(dim_class)
+        setter(dim, 'label', label)
+        setter(dim, 'size', size)
+        setter(dim, 'stride', stride)
+        dims.append(dim)
+    pos += -(pos - base) % 4
+    if pos + 8 > end:
+        return None
+    (data_offset, length), pos = _TWO_UINT32.unpack_from(view, pos), pos + 8
+    if length:
+        pos += -(pos - base) % 8
+    if pos + 8 * length > end:
+        return None
+    layout = layout_class.__new__(layout_class)
+    setter(layout, 'dim', dims)
+    setter(layout, 'data_offset', data_offset)
+    message = array_class.__new__(array_class)
+    setter(message, 'layout', layout)
+    setter(message, 'data', np.frombuffer(view, dtype=np.float64, count=length, offset=pos))
+    return message
+
+
+class Float64ArrayLayout:
+    """The serialized ``std_msgs/Float64MultiArray`` samples of one layout: labelled sections
+    of fixed sizes (stride = size, data_offset 0) holding ``size`` values in all.
+
+    Everything before the values is then fixed (the serializer's own bytes for the layout),
+    so :meth:`encode` is those bytes and the values, and :meth:`decode` recognises a sample of
+    the layout by comparing them and reads its values at a fixed offset: what the decoder would
+    read from it. Every other sample (another layout, big endian, padding that is not zero,
+    one that ends early) is left to the general readers (:meth:`decode` returns None).
+    """
+
+    def __init__(self, sections: Sequence[tuple[str, int]]) -> None:
+        """Args: sections: (label, size) of each section, in order ('' labels one unlabelled
+        section: an empty ``layout.dim``, as a bare Float64MultiArray has)."""
+        sections = tuple((str(label), int(size)) for label, size in sections)
+        if len(sections) == 1 and sections[0][0] == '':
+            dims: tuple[tuple[str, int, int], ...] = ()
+        else:
+            dims = tuple((label, size, size) for label, size in sections)
+        self.sections = sections
+        self.size = sum(size for _, size in sections)
+        """How many values a sample holds."""
+        self.head = _float64_multiarray_head(dims, 0, self.size)
+        """The bytes before the values (encapsulation header and all)."""
+        self._body = self.head[4:]
+        self._length = len(self.head) + 8 * self.size
+        self._values = struct.Struct(f'<{self.size}d')
+
+    def decode(self, data: bytes) -> tuple[float, ...] | None:
+        """The values of a little-endian sample of this layout (any encapsulation options,
+        bytes after the values ignored, as the decoder ignores them), else None."""
+        if (type(data) is not bytes or len(data) < self._length or not data.startswith(_CDR_LE)
+                or not data.startswith(self._body, 4)):
+            return None
+        return self._values.unpack_from(data, len(self.head))
+
+    def encode(self, values: Any) -> bytes:
+        """The serialized message of ``values`` (``size`` numbers, section after section).
+
+        Raises:
+            ValueError: not ``size`` values.
+        """
+        array = np.asarray(values, dtype='<f8').reshape(-1)
+        if array.size != self.size:
+            raise ValueError(f'expected {self.size} values, got {array.size}')
+        return self.head + array.tobytes()
 
 
 def _one_line(exc: BaseException) -> str:

@@ -263,6 +263,17 @@ class ActiveFilter:
     """The filter's configuration (problem, static disturbance box, fail-safe action)."""
     safety_filter: SafetyFilter
     """The filter itself."""
+    static_mean: np.ndarray = field(init=False, repr=False, compare=False)
+    """``config.static_mean`` as a read-only float64 array (empty: none), made once for every
+    :func:`decide` that uses it."""
+    static_std: np.ndarray = field(init=False, repr=False, compare=False)
+    """``config.static_std`` likewise."""
+
+    def __post_init__(self) -> None:
+        for name in ('static_mean', 'static_std'):
+            array = np.array(getattr(self.config, name), dtype=np.float64).reshape(-1)
+            array.setflags(write=False)
+            object.__setattr__(self, name, array)
 
 
 def build_active_filter(*, params: Mapping[str, Any]) -> ActiveFilter:
@@ -354,9 +365,15 @@ def checked_vector(name: str, values: Any, size: int) -> np.ndarray:
         raise ValueError(f'{name}: not a numeric vector ({exc})') from exc
     if array.size != size:
         raise ValueError(f'{name}: expected {size} values, got {array.size}')
-    if not np.isfinite(array).all():
+    # A state or command has a few values: checked as Python floats, a longer one by numpy.
+    if not (all(map(math.isfinite, array.tolist())) if size <= _FEW_VALUES
+            else np.isfinite(array).all()):
         raise ValueError(f'{name}: contains NaN or inf')
     return array
+
+
+_FEW_VALUES = 32
+"""Up to this many values, :func:`checked_vector` checks them one by one as Python floats."""
 
 
 def state_from_sections(*, sections: Mapping[str, np.ndarray], n_x: int) -> np.ndarray:
@@ -397,13 +414,15 @@ def proposal_from_sections(*, sections: Mapping[str, np.ndarray], n_u: int,
         ValueError: naming the section (missing ``u``, unknown label, wrong length, NaN/inf,
             negative std).
     """
-    unknown = sorted(set(sections) - _PROPOSAL_SECTION_SET)
-    if unknown:
+    if not _PROPOSAL_SECTION_SET.issuperset(sections):
+        unknown = sorted(set(sections) - _PROPOSAL_SECTION_SET)
         raise ValueError(f'{unknown[0]}: unknown proposal section (expected '
                          f'{list(PROPOSAL_SECTIONS)})')
     if 'u' not in sections:
         raise ValueError('u: proposal has no u section')
     u = checked_vector('u', sections['u'], n_u)
+    if len(sections) == 1:
+        return Proposal(u=u)
     extra = {key: checked_vector(key, sections[key], n_x)
              for key in PROPOSAL_SECTIONS[1:] if key in sections}
     std = extra.get('disturbance_std')
@@ -485,6 +504,38 @@ def info_sections(decision: Decision) -> dict[str, np.ndarray]:
     return filter_info.info_sections(
         u=decision.u_safe, u_rl=decision.u_rl, fail_safe=decision.fail_safe,
         status=status_name(decision), result=decision.result, state=decision.state)
+
+
+def full_info_values(decision: Decision) -> np.ndarray | None:
+    """The values of :func:`info_sections` of ``decision``, section after section, when it
+    has every section (:data:`rcbf_ros.core.filter_info.INFO_SECTIONS`: a solved answer with its
+    state, a usable proposal and every number finite), else None.
+
+    The answers of a running filter are nearly all of this kind, and their ``filter_info`` is
+    then one fixed layout (sizes n_u, 1, K, n_x) whose values these are, made in one step;
+    any other answer is left to :func:`info_sections`, which decides what to leave out.
+    """
+    result, u_rl, state = decision.result, decision.u_rl, decision.state
+    if result is None or u_rl is None or state is None:
+        return None
+    u = decision.u_safe
+    if u_rl.shape != u.shape or not len(result.h) or not len(result.constraint_values):
+        return None
+    code = filter_info.STATUS_CODES.get(status_name(decision), filter_info.UNKNOWN_STATUS)
+    values = np.concatenate((
+        u, u_rl, u - u_rl, (1.0 if decision.fail_safe else 0.0, float(code)), result.h,
+        result.constraint_values, (result.slack, result.needed_slack, result.solve_time_s),
+        state), dtype=np.float64)
+    return values if np.isfinite(values).all() else None
+
+
+def full_info_layout(decision: Decision) -> tuple[tuple[str, int], ...]:
+    """The (label, size) of every ``filter_info`` section of a decision that has them all
+    (see :func:`full_info_values`)."""
+    n_u, n_barriers = decision.u_safe.size, len(decision.result.h)
+    sizes = {'u': n_u, 'u_rl': n_u, 'u_s': n_u, 'h': n_barriers,
+             'constraint': len(decision.result.constraint_values), 'state': decision.state.size}
+    return tuple((label, sizes.get(label, 1)) for label, _, _ in filter_info.INFO_SECTIONS)
 
 
 def fail_safe_decision(*, safety_filter: SafetyFilter, reason: str,

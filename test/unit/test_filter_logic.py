@@ -437,3 +437,32 @@ def test_describe_changes_lists_each_changed_key():
     assert describe_changes(old=old, new=old) == ''
     assert describe_changes(old={'x': list(range(100))}, new={}, width=20) == (
         'x: [0, 1, 2, 3, 4, 5... -> not set')
+
+
+def test_checked_vector_refuses_exactly_the_vectors_with_a_nan_or_inf():
+    """Short vectors (checked one value at a time) and long ones (by numpy) alike: a copy of
+    every finite vector of the right size, the same words for the others."""
+    rng = np.random.default_rng(4)
+    for size in (1, 2, 3, fl._FEW_VALUES, fl._FEW_VALUES + 1, 100):
+        values = rng.normal(size=size) * 10.0 ** rng.integers(-300, 300, size)
+        checked = fl.checked_vector('u', tuple(values), size)
+        assert checked.dtype == np.float64 and checked.flags.writeable
+        assert checked.tobytes() == values.tobytes()
+        for bad in (np.nan, np.inf, -np.inf):
+            for index in {0, size // 2, size - 1}:
+                broken = values.copy()
+                broken[index] = bad
+                with pytest.raises(ValueError, match='^u: contains NaN or inf$'):
+                    fl.checked_vector('u', broken, size)
+        with pytest.raises(ValueError, match=f'^u: expected {size} values, got {size + 1}$'):
+            fl.checked_vector('u', np.zeros(size + 1), size)
+
+
+def test_the_static_disturbance_box_is_the_configs_read_only():
+    config = filter_config_from_params(load_params(find_config('unicycle'), 'safety_filter'))
+    params = load_params(find_config('unicycle'), 'safety_filter')
+    active = fl.build_active_filter(params=params)
+    for name in ('static_mean', 'static_std'):
+        array = getattr(active, name)
+        assert array.tolist() == list(getattr(config, name)) and array.dtype == np.float64
+        assert not array.flags.writeable

@@ -137,3 +137,64 @@ def test_a_late_transient_local_subscriber_gets_the_writers_whole_history(node):
             break
         rclpy.spin_once(node, timeout_sec=0.02)
     assert received == [2.0, 3.0, 4.0, 5.0, 6.0]  # keep-last 5, not Cyclone's default 1
+
+
+# --- waiting: a wake-up says which readers hold samples ------------------------------------------
+
+def _drain(node) -> None:
+    while node._waitset.wait(0):
+        rclpy.spin_once(node, timeout_sec=0)
+
+
+def test_a_wait_reports_exactly_the_triggered_conditions(node):
+    publisher = node.create_publisher(Float64, 'numbers', 10)
+    subscription = node.create_subscription(Float64, 'numbers', lambda m: None, 10)
+    idle = node.create_subscription(Float64, 'other', lambda m: None, 10)
+    _drain(node)
+    assert node._waitset.wait(0) == []
+    node._wake()
+    assert node._waitset.wait(0) == [node._guard._ref]
+    node._guard.take()
+    publisher.publish(Float64(data=1.0))
+    assert node._waitset.wait(1_000_000_000) == [subscription._condition._ref]
+    assert idle._condition._ref not in node._waitset.wait(0)
+    rclpy.spin_once(node, timeout_sec=0)
+    assert node._waitset.wait(0) == []
+
+
+def test_more_triggered_readers_than_the_first_buffer_holds_all_deliver(node):
+    count = 3 * len(node._waitset._triggered)
+    received: list[int] = []
+    publishers = []
+    for index in range(count):
+        publishers.append(node.create_publisher(Float64, f'topic_{index}', 10))
+        node.create_subscription(Float64, f'topic_{index}',
+                                 lambda m, index=index: received.append(index), 10)
+    _drain(node)
+    for index, publisher in enumerate(publishers):
+        publisher.publish(Float64(data=float(index)))
+    assert len(node._waitset.wait(1_000_000_000)) == count  # local delivery: all at once
+    for _ in range(10 * count):
+        if len(received) == count:
+            break
+        rclpy.spin_once(node, timeout_sec=0.05)
+    assert sorted(received) == list(range(count))
+    assert received == sorted(received)  # taken in creation order
+
+
+def test_idle_readers_are_not_asked_after_every_wake_up(node, monkeypatch):
+    publisher = node.create_publisher(Float64, 'busy', 10)
+    received = []
+    node.create_subscription(Float64, 'busy', lambda m: received.append(m.data), 10)
+    idle = node.create_subscription(Float64, 'quiet', lambda m: None, 10)
+    _drain(node)
+    asked = []
+    monkeypatch.setattr(idle, '_take_ready', lambda: asked.append('idle') or [])
+    for endpoint in node._service_endpoints:  # the parameter services
+        monkeypatch.setattr(endpoint, '_take_ready',
+                            lambda endpoint=endpoint: asked.append(endpoint.srv_name) or [])
+    for value in range(20):
+        publisher.publish(Float64(data=float(value)))
+        while len(received) <= value:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    assert received == [float(v) for v in range(20)] and asked == []

@@ -354,3 +354,169 @@ def test_ok_diagnostics_are_rate_limited_by_default_and_errors_go_out_at_once(
     # OK at t = 0, 0.1, ..., 0.9 s: the first answer, then one per period.
     assert ok_diagnostics == round(1.0 / period_s)
     assert len(harness.diagnostics) == ok_diagnostics + errors
+
+
+# --- the fixed layouts: read and written without building a message -----------------------------
+
+def _sections_outcome(read: Any, data: bytes, label: str) -> Any:
+    """Sections as float64 bytes per label (in order), or the ValueError's text."""
+    try:
+        sections = read(data, label)
+    except ValueError as exc:
+        return f'refused: {exc}'
+    if sections is None:
+        return None
+    return [(key, np.asarray(values, dtype=np.float64).tobytes())
+            for key, values in sections.items()]
+
+
+def _samples(rng: np.random.Generator, n_x: int, n_u: int) -> list[bytes]:
+    """The layouts the node reads at once (labelled, unlabelled), other layouts and sizes,
+    non-finite values, each also padded as DDS sends it, mutated, truncated and extended."""
+    from rcbf_ros.ros.dds.messages import dds_payload
+    bare = [serialize_message(_bare(rng.normal(size=size) * 3)) for size in (n_x, n_u, 1, 4)]
+    base = [_cdr({'state': rng.normal(size=n_x)}), _cdr({'u': rng.normal(size=n_u)}),
+            _cdr({'state': [np.nan, 0.0, np.inf]}), _cdr({'u': [1e308, -1e308]}),
+            _cdr({'state': rng.normal(size=n_x + 1)}), _cdr({'u': rng.normal(size=n_u - 1)}),
+            _cdr({'u': rng.normal(size=n_u), 'state': rng.normal(size=n_x)}),
+            _cdr({'x': rng.normal(size=n_x)}), *bare]
+    samples = []
+    for data in base:
+        samples += [data, dds_payload(data), data + b'\x01\x02', data[:-1],
+                    data[:1] + b'\x00' + data[2:]]
+        for _ in range(30):
+            out = bytearray(data)
+            for _ in range(int(rng.integers(1, 3))):
+                out[int(rng.integers(0, len(out)))] ^= 1 << int(rng.integers(0, 8))
+            samples.append(bytes(out))
+    return samples
+
+
+def _bare(values: np.ndarray) -> Any:
+    from rcbf_ros.messages.classes import get_message
+    return get_message('std_msgs/msg/Float64MultiArray')(data=values)
+
+
+def test_fixed_layout_samples_give_the_sections_any_sample_gives(harness):
+    """What the node reads at once from a sample of its state and proposal layouts is what
+    sections_from_cdr reads from it (bit for bit), and every other sample goes that way."""
+    from rcbf_ros.messages.conversions import sections_from_cdr
+    from rcbf_ros.ros.safety_filter_node import _array_sections
+    node = harness.node
+    general = lambda data, label: sections_from_cdr(data, default_label=label)  # noqa: E731
+    at_once = 0
+    for layouts, label in ((node._state_layouts, 'state'), (node._proposal_layouts, 'u')):
+        for data in _samples(np.random.default_rng(5), node.filter.n_x, node.filter.n_u):
+            fast = _sections_outcome(
+                lambda d, lab, layouts=layouts: _array_sections(d, layouts, lab), data, label)
+            assert fast == _sections_outcome(general, data, label), data.hex()
+            at_once += any(layout.decode(data) is not None for layout in layouts)
+    assert at_once > 40, at_once
+
+
+def _answers(harness: FilterHarness, pairs: list[tuple[bytes, bytes]]) -> list[Any]:
+    """Command bytes and filter_info sections (but the solver's time) of each (state,
+    proposal) pair, with the input counts after each."""
+    commands: list[bytes] = []
+    harness.node._cmd_pub.publish = commands.append
+    out = []
+    for state, proposal in pairs:
+        harness.node._on_state(state)
+        harness.node._on_proposal(proposal)
+        info = msg_to_sections(harness.infos[-1])
+        info.pop('solve_time_s', None)
+        out.append((commands[-1], [(k, v.tobytes()) for k, v in info.items()],
+                    dict(harness.node.input_counts), harness.node._latest_state.error))
+    return out
+
+
+def test_answers_through_the_fixed_layouts_are_those_of_the_general_way(harness):
+    """States and proposals of the node's layouts (free, facing an obstacle, NaN, too large,
+    out of the limits, unlabelled, padded) and of others: the same commands, bytes for bytes,
+    the same filter_info and the same counts, with the fixed layouts as without them."""
+    rng = np.random.default_rng(9)
+    node = harness.node
+    states = _samples(rng, node.filter.n_x, node.filter.n_u)[::7] + [
+        _cdr({'state': GOOD_STATE}), _cdr({'state': [-2.5, -2.5, -2.4]}),
+        serialize_message(_bare(np.array(GOOD_STATE)))]
+    proposals = [_cdr({'u': [2.5, 0.0]}), _cdr({'u': [3.5, -9.0]}), _cdr({'u': [np.nan, 0.0]}),
+                 _cdr({'u': [1e7, 0.0]}), serialize_message(_bare(np.array([2.0, 0.5]))),
+                 _cdr({'u': [2.0, 0.1], 'state': GOOD_STATE})] + _samples(
+                     rng, node.filter.n_x, node.filter.n_u)[1::9]
+    pairs = [(states[i % len(states)], proposals[i % len(proposals)])
+             for i in range(3 * max(len(states), len(proposals)))]
+    fast = _answers(harness, pairs)
+    node.input_counts = dict.fromkeys(node.input_counts, 0)
+    node._latest_state = None
+    node._state_layouts = node._proposal_layouts = ()
+    assert _answers(harness, pairs) == fast
+    fail_safe = [dict(info)['fail_safe'] for _, info, _, _ in fast]  # both kinds of answer
+    assert fail_safe.count(np.array([0.0]).tobytes()) > 10
+    assert fail_safe.count(np.array([1.0]).tobytes()) > 10
+
+
+def test_the_command_goes_out_as_the_bytes_of_its_message(harness):
+    from rcbf_ros.messages.conversions import sections_to_cdr
+    commands: list[bytes] = []
+    harness.node._cmd_pub.publish = commands.append
+    harness.node._on_state(_cdr({'state': GOOD_STATE}))
+    for u in ([2.5, 0.0], [0.1, -0.3], [np.nan, 0.0], [-2.5, 2.5]):
+        harness.node._on_proposal(_cdr({'u': u}))
+        sent = commands[-1]
+        assert type(sent) is bytes
+        assert sent == sections_to_cdr({'u': msg_to_sections(harness.infos[-1])['u']})
+        assert sent == serialize_message(sections_to_msg(
+            {'u': deserialize_message(sent, 'std_msgs/msg/Float64MultiArray').data}))
+
+
+def _decisions(harness: FilterHarness, draw: Any) -> Any:
+    """A decision of the node's filter on a drawn state and proposal, with its result's and
+    its own fields then drawn over (NaN, inf, empty, other sizes, None) or left as they are."""
+    import dataclasses
+
+    from hypothesis import strategies as st
+    node = harness.node
+    number = st.one_of(st.floats(-3.0, 3.0), st.sampled_from([np.nan, np.inf, -np.inf, 0.0]))
+    vector = lambda size: st.lists(number, min_size=size, max_size=size).map(  # noqa: E731
+        lambda v: np.array(v, dtype=np.float64))
+    state = draw(vector(node.filter.n_x))
+    u = draw(vector(node.filter.n_u))
+    decision = filter_logic.decide(
+        safety_filter=node.filter, proposal=filter_logic.Proposal(u=u),
+        latest_state=filter_logic.StateSample(received_ns=0, state=state), now_ns=0,
+        max_state_age_s=1.0)
+    result = decision.result
+    if result is not None and draw(st.booleans()):
+        k = len(result.h)
+        result = dataclasses.replace(
+            result, h=draw(st.one_of(vector(k), vector(0), vector(k + 1))),
+            constraint_values=draw(st.one_of(vector(k), vector(0))),
+            slack=draw(number), needed_slack=draw(number), solve_time_s=draw(number),
+            status=draw(st.sampled_from(['solved', 'solved_inaccurate', 'unverified', 'odd'])))
+    changes: dict[str, Any] = {'result': draw(st.sampled_from([result, None]))}
+    if draw(st.booleans()):
+        changes['u_rl'] = draw(st.one_of(st.none(), vector(node.filter.n_u), vector(3)))
+        changes['state'] = draw(st.one_of(st.none(), vector(node.filter.n_x)))
+        changes['fail_safe'] = draw(st.booleans())
+    return dataclasses.replace(decision, **changes)
+
+
+def test_filter_info_goes_out_as_the_bytes_of_its_sections(harness):
+    """Whatever the decision (the filter's own on any state and proposal, or with its fields
+    drawn over), filter_info is the bytes of info_sections' message, and the usual answers
+    take the one-step way."""
+    from hypothesis import given, HealthCheck, settings
+    from hypothesis import strategies as st
+
+    from rcbf_ros.messages.conversions import sections_to_cdr
+    one_step = []
+
+    @settings(max_examples=400, deadline=None, suppress_health_check=list(HealthCheck))
+    @given(st.data())
+    def check(data):
+        decision = _decisions(harness, data.draw)
+        one_step.append(filter_logic.full_info_values(decision) is not None)
+        assert harness.node._info_cdr(decision) == sections_to_cdr(
+            filter_logic.info_sections(decision))
+    check()
+    assert 20 < sum(one_step) < len(one_step) - 20, (sum(one_step), len(one_step))

@@ -5,9 +5,10 @@ USER_DATA ``enclave=/;`` in domain ``ROS_DOMAIN_ID`` (default 0) unless ``domain
 
 The executor runs subscription callbacks and timers in the thread that calls :func:`spin` or
 :func:`spin_once`, one work item at a time, so callbacks never run concurrently. It waits on a
-Cyclone ``WaitSet`` (one read condition per subscription, one guard condition to wake it) in
-slices of at most :data:`WAIT_SLICE_S`, because Python runs signal handlers only between
-bytecodes of the main thread.
+Cyclone ``WaitSet`` (one read condition per subscription, service and client, one guard
+condition to wake it; :class:`NodeWaitSet`) in slices of at most :data:`WAIT_SLICE_S`, because
+Python runs signal handlers only between bytecodes of the main thread, and takes samples only
+from the readers whose condition the wait reports triggered.
 
 Signals: :func:`init` (from the main thread) installs SIGINT and SIGTERM handlers that shut the
 context down. A node spinning in the main thread then sees ``KeyboardInterrupt`` (SIGINT) or
@@ -24,6 +25,7 @@ Cyclone binds to 0.0.0.0 when the participant is created are bound to the loopba
 from __future__ import annotations
 
 import collections
+import ctypes
 import os
 import signal
 import sys
@@ -31,9 +33,8 @@ import threading
 import time
 from typing import Any, Callable, Sequence
 
-from cyclonedds.core import GuardCondition, Policy, Qos, WaitSet
+from cyclonedds.core import DDSException, GuardCondition, Policy, Qos, WaitSet
 from cyclonedds.domain import DomainParticipant
-from cyclonedds.util import duration
 
 from rcbf_ros.ros.dds.arguments import parse_ros_arguments, RosArguments
 from rcbf_ros.ros.dds.graph import GraphInfo
@@ -46,8 +47,7 @@ from rcbf_ros.ros.loopback import (
 
 WAIT_SLICE_S = 0.05
 """Longest single DDS wait; bounds how late a signal is noticed while idle."""
-SERVICE_POLL_INTERVAL_NS = 10_000_000
-"""While callbacks keep a node busy, its services and clients are looked at this often (ns)."""
+_WAIT_SLICE_NS = int(WAIT_SLICE_S * 1e9)
 
 
 class ExternalShutdownException(Exception):
@@ -197,27 +197,105 @@ def _create_participant(domain_id: int) -> DomainParticipant:
     return participant
 
 
-def _work_available(node: Any) -> bool:
-    """Move due timers and received samples of ``node`` into its ready queue."""
-    now = time.monotonic_ns()
-    for timer in node._timers:
-        if timer._due(now):
-            node._ready.append(timer._fire)
-    for subscription in node._subscriptions:
-        node._ready.extend(subscription._take_ready())
-    # Services and clients: whenever nothing else is ready, else at most every
-    # SERVICE_POLL_INTERVAL_NS, so that their readers cost nothing per message of a busy topic.
-    if node._service_endpoints and (not node._ready or now - node._services_polled_ns
-                                    >= SERVICE_POLL_INTERVAL_NS):
-        node._services_polled_ns = now
-        for endpoint in node._service_endpoints:
-            node._ready.extend(endpoint._take_ready())
-    return bool(node._ready)
+class NodeWaitSet:
+    """A node's Cyclone ``WaitSet`` with its wake-up guard condition: a wait says which of the
+    attached conditions are triggered.
+
+    Each condition is attached with its own entity handle as the attach value, which
+    ``dds_waitset_wait`` reports for every triggered condition, so that the executor takes
+    samples only from the readers that hold some (and resets the guard only when it was set)
+    instead of asking every reader, service and client after every wake-up.
+    """
+
+    def __init__(self, participant: DomainParticipant) -> None:
+        self.waitset = WaitSet(participant)
+        self.guard = GuardCondition(participant)
+        self._triggered = (ctypes.c_void_p * 8)()
+        self._count = 0
+        self.attach(self.guard)
+
+    def attach(self, condition: Any) -> None:
+        """Wait on ``condition`` too (a read or guard condition)."""
+        ret = self.waitset._waitset_attach(self.waitset._ref, condition._ref, condition._ref)
+        if ret < 0:
+            raise DDSException(ret, f'Occurred when attaching {condition!r} to a wait set')
+        self._count += 1
+        if self._count > len(self._triggered):
+            self._triggered = (ctypes.c_void_p * (2 * self._count))()
+
+    def detach(self, condition: Any) -> None:
+        """Stop waiting on ``condition``."""
+        ret = self.waitset._waitset_detach(self.waitset._ref, condition._ref)
+        if ret < 0:
+            raise DDSException(ret, f'Occurred when detaching {condition!r} from a wait set')
+        self._count -= 1
+
+    def wait(self, timeout_ns: int) -> list[int]:
+        """Block until a condition triggers or ``timeout_ns`` passed (0: do not block); the
+        entity handles of the triggered conditions (empty on timeout)."""
+        triggered = self._triggered
+        count = self.waitset._waitset_wait(self.waitset._ref, triggered, len(triggered),
+                                           timeout_ns)
+        if count < 0:
+            raise DDSException(count, 'Occurred while waiting in a wait set')
+        return triggered[:count]
+
+    def close(self) -> None:
+        """Delete the wait set and the guard condition (idempotent)."""
+        delete_entity(self.waitset)
+        delete_entity(self.guard)
+
+
+def _collect_work(node: Any, triggered: list[int]) -> None:
+    """Move due timers and the samples of the triggered readers of ``node`` into its ready
+    queue: timers, then subscriptions (in creation order), then services and clients. A
+    service whose replies wait for their client is looked at on every pass."""
+    ready = node._ready
+    if node._timers:
+        now = time.monotonic_ns()
+        for timer in node._timers:
+            if timer._due(now):
+                ready.append(timer._fire)
+    if triggered:
+        guard = node._guard
+        if guard is not None and guard._ref in triggered:
+            guard.take()
+        for subscription in node._subscriptions:
+            condition = subscription._condition  # None once destroyed (from another thread)
+            if condition is not None and condition._ref in triggered:
+                ready.extend(subscription._take_ready())
+    for endpoint in node._service_endpoints:
+        condition = endpoint._condition
+        if endpoint._pending or (triggered and condition is not None
+                                 and condition._ref in triggered):
+            ready.extend(endpoint._take_ready())
 
 
 def _next_timer_ns(node: Any) -> int | None:
     deadlines = [t._next_ns for t in node._timers if not t._canceled and t._on_steady_clock()]
     return min(deadlines) if deadlines else None
+
+
+def _wait_for_work(node: Any, deadline: int | None) -> None:
+    """Wait (in slices of :data:`WAIT_SLICE_S`) until ``node`` has work ready, the deadline
+    (monotonic ns; None: none) passed, or the context shut down."""
+    context = node.context
+    while True:
+        now = time.monotonic_ns()
+        limit = now + _WAIT_SLICE_NS
+        if deadline is not None and deadline < limit:
+            limit = deadline
+        if node._timers:
+            next_timer = _next_timer_ns(node)
+            if next_timer is not None and next_timer < limit:
+                limit = next_timer
+        triggered = node._waitset.wait(max(limit - now, 0))
+        context.raise_pending_signal()
+        if not context.ok() or node._waitset is None:
+            return
+        _collect_work(node, triggered)
+        if node._ready or (deadline is not None and time.monotonic_ns() >= deadline):
+            return
 
 
 def spin_once(node: Any, *, timeout_sec: float | None = None) -> None:
@@ -231,22 +309,9 @@ def spin_once(node: Any, *, timeout_sec: float | None = None) -> None:
         context.raise_pending_signal()
         if not context.ok() or node._waitset is None:
             return
-        deadline = None if timeout_sec is None else time.monotonic_ns() + int(timeout_sec * 1e9)
-        while not node._ready and not _work_available(node):
-            now = time.monotonic_ns()
-            limit = now + int(WAIT_SLICE_S * 1e9)
-            for candidate in (deadline, _next_timer_ns(node)):
-                if candidate is not None:
-                    limit = min(limit, candidate)
-            if limit > now:
-                node._waitset.wait(duration(nanoseconds=limit - now))
-                node._guard.take()
-            context.raise_pending_signal()
-            if not context.ok() or node._waitset is None:
-                return
-            if deadline is not None and time.monotonic_ns() >= deadline:
-                _work_available(node)
-                break
+        if not node._ready:
+            _wait_for_work(node, None if timeout_sec is None
+                           else time.monotonic_ns() + int(timeout_sec * 1e9))
         if node._ready:
             work: Callable[[], None] = node._ready.popleft()
             work()
@@ -267,11 +332,3 @@ def spin(node: Any) -> None:
 def new_ready_queue() -> collections.deque:
     """The per-node queue of work items (callables) taken from DDS but not yet run."""
     return collections.deque()
-
-
-def new_wait_objects(participant: DomainParticipant) -> tuple[WaitSet, GuardCondition]:
-    """A node's WaitSet with its wake-up guard condition attached."""
-    waitset = WaitSet(participant)
-    guard = GuardCondition(participant)
-    waitset.attach(guard)
-    return waitset, guard

@@ -106,19 +106,23 @@ class Publisher(_TopicEndpoint):
     def __init__(self, node: Node, msg_type: Any, topic_name: str, qos: QoSProfile) -> None:
         super().__init__(node, msg_type, topic_name, qos)
         self._writer = DataWriter(node.context.participant, self._topic, qos=self._dds_qos)
+        self._quoted_name = repr(topic_name)
 
     def publish(self, msg: Any) -> None:
         """Publish a message instance, or already serialized CDR bytes (as rclpy allows)."""
-        if self._writer is None:
+        writer = self._writer
+        if writer is None:
             raise RuntimeError(f'publisher on {self.topic_name!r} has been destroyed')
-        if isinstance(msg, (bytes, bytearray, memoryview)):
+        if type(msg) is bytes:
+            data = msg
+        elif isinstance(msg, (bytes, bytearray, memoryview)):
             data = bytes(msg)
         else:
             if getattr(msg, '_type_name', None) != self._type_name:
                 raise TypeError(f'publisher on {self.topic_name!r} expects {self._type_name}, '
                                 f'got {type(msg).__name__}')
             data = messages.serialize_message(msg)
-        write_payload(self._writer, messages.dds_payload(data), name=repr(self.topic_name))
+        write_payload(writer, messages.dds_payload(data), name=self._quoted_name)
 
     def get_subscription_count(self) -> int:
         """Matched subscriptions (any process, including this one)."""

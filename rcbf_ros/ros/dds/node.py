@@ -29,7 +29,7 @@ from rcbf_ros.ros.dds.context import (
     default_context,
     delete_entity,
     new_ready_queue,
-    new_wait_objects,
+    NodeWaitSet,
 )
 from rcbf_ros.ros.dds.endpoints import Publisher, Subscription, Timer
 from rcbf_ros.ros.dds.graph import gid_of
@@ -109,10 +109,10 @@ class Node(NodeParameters, NodeGraph):
         self._timers: list[Timer] = []
         self._ready = new_ready_queue()
         self._spin_lock = threading.Lock()
-        self._waitset, self._guard = new_wait_objects(self.context.participant)
+        self._waitset: NodeWaitSet | None = NodeWaitSet(self.context.participant)
+        self._guard = self._waitset.guard
         self._init_graph_queries()
         self._service_endpoints: list[services.Service | services.Client] = []
-        self._services_polled_ns = 0
         self.context.add_node(self)
         self._graph_node = self.context.graph.add_node(name=self._name,
                                                        namespace=self._namespace)
@@ -266,10 +266,8 @@ class Node(NodeParameters, NodeGraph):
         self._close_graph_queries()
         self._timers, self._subscriptions, self._publishers = [], [], []
         self._ready.clear()
-        waitset, guard = self._waitset, self._guard
-        self._waitset = self._guard = None
-        delete_entity(waitset)
-        delete_entity(guard)
+        waitset, self._waitset, self._guard = self._waitset, None, None
+        waitset.close()
         for topic in self._topics.values():
             delete_entity(topic)
         self._topics.clear()

@@ -340,6 +340,9 @@ class _Endpoint(DropsUndecodable):
         self._reader = DataReader(participant, self._reader_topic, qos=to_cyclone_qos(
             qos, self._user_data(key, read_type)))
         self._condition = ReadCondition(self._reader, _ANY_SAMPLE)
+        self._pending: list[tuple[int, int, RequestHeader, Any]] = []
+        """A service's replies waiting for their client's reader (the executor looks at an
+        endpoint with some on every pass, samples or not)."""
 
     def _user_data(self, key: str, type_name: str) -> bytes:
         return f'{key}={self.endpoint_id};typehash={_type_hash(type_name)};'.encode()
@@ -379,7 +382,6 @@ class Service(_Endpoint):
                  callback: Callable[[Any, Any], Any], qos: QoSProfile) -> None:
         super().__init__(node, srv_type, service_name, qos, is_service=True)
         self.callback = callback
-        self._pending: list[tuple[int, int, RequestHeader, Any]] = []
 
     def _take_ready(self) -> list[Callable[[], None]]:
         """Send replies that were waiting for their client; one work item per request."""
