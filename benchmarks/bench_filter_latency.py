@@ -10,9 +10,10 @@ per call comes from its diagnostics (``total_time_s``).
 
 Floor: a ping-pong of the same message type (one hop out, one back, as here) between two
 processes, raw Cyclone DDS and our runtime (:func:`benchmarks.bench_dds_pingpong.run_pingpong`),
-measured in the same invocation.
+measured in the same invocation, in ``--rounds`` rounds that alternate the floor and the
+filter.
 
-    python benchmarks/bench_filter_latency.py [--rates 100 1000] [-n 2000] [--write]
+    python benchmarks/bench_filter_latency.py [--rates 100 1000] [-n 2000] [--rounds 3] [--write]
 """
 from __future__ import annotations
 
@@ -108,6 +109,10 @@ def run_filter_latency(rate_hz: float, n: int, node_args: tuple[str, ...] = ()
         time.sleep(0.3)
         states = [sections_to_msg({'state': FACING_OBSTACLE if i % 2 else FREE_STATE})
                   for i in range(2)]
+        # Built before the clock starts: the latency is the transport's and the filter's, not
+        # this process's message building.
+        proposals = [sections_to_msg({'u': [2.0, 0.5 + INDEX_STEP * index]})
+                     for index in range(WARMUP + n)]
         period_ns = int(1e9 / rate_hz)
         sent: list[int] = []
         start = time.monotonic_ns()
@@ -115,7 +120,7 @@ def run_filter_latency(rate_hz: float, n: int, node_args: tuple[str, ...] = ()
             deadline = start + (index + 1) * period_ns
             sent.append(time.monotonic_ns())
             state_pub.publish(states[index % 2])
-            proposal_pub.publish(sections_to_msg({'u': [2.0, 0.5 + INDEX_STEP * index]}))
+            proposal_pub.publish(proposals[index])
             while (remaining := deadline - time.monotonic_ns()) > 0:
                 rclpy.spin_once(node, timeout_sec=remaining / 1e9)
         drain = time.monotonic() + 2.0
@@ -141,27 +146,44 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--rates', type=float, nargs='+', default=[100.0, 1000.0])
     parser.add_argument('-n', type=int, default=2000)
+    parser.add_argument('--rounds', type=int, default=3,
+                        help='interleaved rounds per rate (each: both ping-pongs, then the '
+                             'filter with each diagnostics setting), n / rounds samples each')
     parser.add_argument('--write', action='store_true', help='write the RESULTS.md section')
     options = parser.parse_args()
+    if options.rounds < 1 or options.n < options.rounds:
+        parser.error('--rounds: at least 1, and at most -n')
     load_before = os.getloadavg()[0]
     rows = []
     variants = {'every': ('-p', 'diagnostics.min_period_s:=0.0'), 'decimated': ()}
+    per_round = options.n // options.rounds
     for rate in options.rates:
-        raw = run_pingpong(rate, options.n, 'raw')
-        runtime = run_pingpong(rate, options.n, 'runtime')
-        for variant, node_args in variants.items():
-            rows.append(_row(rate, variant, run_filter_latency(rate, options.n, node_args),
-                             raw, runtime))
+        raw, runtime = [], []
+        filtered: dict[str, list[tuple]] = {variant: [] for variant in variants}
+        for _ in range(options.rounds):
+            # The floor and the filter alternate: a slow minute of the host moves both.
+            raw.append(run_pingpong(rate, per_round, 'raw'))
+            runtime.append(run_pingpong(rate, per_round, 'runtime'))
+            for variant, node_args in variants.items():
+                filtered[variant].append(run_filter_latency(rate, per_round, node_args))
+        for variant in variants:
+            rows.append(_row(rate, variant, filtered[variant], raw, runtime))
     if options.write:
         write_results(rows, options, load=(load_before, os.getloadavg()[0]))
 
 
-def _row(rate: float, variant: str, measured: tuple, raw: np.ndarray,
-         runtime: np.ndarray) -> dict:
-    """One result row (microseconds) and its console line."""
-    filt, totals, active, lost = measured
+def _row(rate: float, variant: str, rounds: list[tuple], raw_rounds: list[np.ndarray],
+         runtime_rounds: list[np.ndarray]) -> dict:
+    """One result row (microseconds) over the interleaved rounds, and its console line."""
+    filt = np.concatenate([measured[0] for measured in rounds])
+    totals = np.concatenate([measured[1] for measured in rounds])
+    active = sum(measured[2] for measured in rounds)
+    lost = sum(measured[3] for measured in rounds)
+    raw, runtime = np.concatenate(raw_rounds), np.concatenate(runtime_rounds)
     row = {
         'rate': rate, 'variant': variant, 'n': len(filt), 'active': active, 'lost': lost,
+        'round_ratios': [float(np.median(measured[0]) / np.median(floor))
+                         for measured, floor in zip(rounds, raw_rounds)],
         'filter_med': _us(filt, 50), 'filter_p99': _us(filt, 99),
         'compute_med': _us(totals, 50), 'compute_p99': _us(totals, 99),
         'raw_med': _us(raw, 50), 'raw_p99': _us(raw, 99),
@@ -176,7 +198,8 @@ def _row(rate: float, variant: str, measured: tuple, raw: np.ndarray,
           f"{row['compute_p99']:.0f})  raw ping-pong {row['raw_med']:.0f} / "
           f"{row['raw_p99']:.0f}  runtime ping-pong {row['rt_med']:.0f} / {row['rt_p99']:.0f}  "
           f"(median / p99)  filter/raw {row['ratio_raw']:.2f}  "
-          f"(filter - compute)/raw {row['ratio_wo_compute']:.2f}", flush=True)
+          f"(filter - compute)/raw {row['ratio_wo_compute']:.2f}  per round "
+          f"{', '.join(f'{r:.2f}' for r in row['round_ratios'])}", flush=True)
     return row
 
 
@@ -185,21 +208,26 @@ def write_results(rows: list[dict], options: argparse.Namespace,
     from _results import machine_line, write_section
     lines = [
         f'`python benchmarks/bench_filter_latency.py --rates '
-        f'{" ".join(f"{r:g}" for r in options.rates)} -n {options.n} --write` (one run; '
+        f'{" ".join(f"{r:g}" for r in options.rates)} -n {options.n} --rounds '
+        f'{options.rounds} --write` (one run; '
         f'{machine_line()}; 1-minute load average {load[0]:.1f} before, {load[1]:.1f} after, '
         'on 2 cores shared with other work).',
         '',
         'State published -> safe command received, through a separate `safety_filter` process '
         '(config/unicycle.yaml, 5 obstacles, OSQP; our Cyclone runtime), half the states '
         'facing an obstacle. Floor: a ping-pong of the same message type between two processes '
-        '(one hop out, one back), raw Cyclone DDS and our runtime, in the same run. '
+        '(one hop out, one back), raw Cyclone DDS and our runtime, in the same run: '
+        f'{options.rounds} rounds per rate, each the two ping-pongs and then the filter with '
+        'each diagnostics setting (a new filter process each time), so that a slow minute of '
+        "the host moves the floor and the filter alike; medians over the rounds' samples "
+        "pooled, and the ratio of each round's own medians. "
         '"compute" is the filter\'s own time per call (its diagnostics\' `total_time_s`: '
-        'constraint assembly + OSQP). Microseconds, median / p99.',
+        'the constraint assembly and the solve). Microseconds, median / p99.',
         '',
         '| rate | diagnostics | commands lost | filter end-to-end | filter compute | '
         'raw DDS ping-pong | runtime ping-pong | median filter / raw | median filter / runtime '
-        '| median (filter - compute) / raw |',
-        '|---|---|---|---|---|---|---|---|---|---|',
+        '| median (filter - compute) / raw | filter / raw per round |',
+        '|---|---|---|---|---|---|---|---|---|---|---|',
     ]
     for r in rows:
         lines.append(
@@ -207,7 +235,8 @@ def write_results(rows: list[dict], options: argparse.Namespace,
             f"{r['filter_med']:.0f} / {r['filter_p99']:.0f} | "
             f"{r['compute_med']:.0f} / {r['compute_p99']:.0f} | {r['raw_med']:.0f} / "
             f"{r['raw_p99']:.0f} | {r['rt_med']:.0f} / {r['rt_p99']:.0f} | "
-            f"{r['ratio_raw']:.2f} | {r['ratio_rt']:.2f} | {r['ratio_wo_compute']:.2f} |")
+            f"{r['ratio_raw']:.2f} | {r['ratio_rt']:.2f} | {r['ratio_wo_compute']:.2f} | "
+            f"{', '.join(f'{x:.2f}' for x in r['round_ratios'])} |")
     lines += ['', f'{options.n} proposals per row after {WARMUP} warm-up; active QPs: '
               f'{", ".join(str(r["active"]) for r in rows)}. Target: median <= {TARGET_RATIO:g}x '
               'the raw floor, nothing lost.', '']
@@ -221,9 +250,14 @@ def write_results(rows: list[dict], options: argparse.Namespace,
         '',
         "Reading: the filter's own compute (the core `SafetyFilter.filter`: the closed-form "
         "constraint assembly, then, when a row is active, the exact active-set solve, OSQP where "
-        'it gives way) is a fifth to a third of the '
-        'end-to-end time; the node and the transport add about the last column times the '
-        "floor. When the node's cost per proposal (compute, two deserialisations, the command, "
+        'it gives way) is '
+        f"{min(r['compute_med'] / r['filter_med'] for r in rows):.0%} to "
+        f"{max(r['compute_med'] / r['filter_med'] for r in rows):.0%} of the "
+        'end-to-end time; the node and the transport add about the last but one column times '
+        "the floor. The benchmark's own part is in the figure too: the proposal goes out "
+        'after the state (two messages in, one out, against one in and one out for the floor), '
+        'both built before the clock starts. '
+        "When the node's cost per proposal (compute, two deserialisations, the command, "
         '`filter_info` and, with `diagnostics.min_period_s: 0`, a DiagnosticArray) exceeds the '
         'period, the keep-last queues overflow and latency is the queueing delay; the default '
         'OK diagnostics at 10 Hz (`diagnostics.min_period_s: 0.1`; WARN and ERROR still go '
