@@ -19,6 +19,8 @@ from dds_harness import node_runtime, spawn
 import pytest
 
 PEER_TIMEOUT_S = 60.0
+SUBSCRIPTIONS = 2
+"""The subscriber role's subscriptions of one topic: raw bytes and decoded messages."""
 
 
 # ----------------------------------------------------------------------------- peer roles
@@ -63,7 +65,10 @@ def role_publisher(kind: str, qos: str, topic: str, count: int, burst: bool) -> 
     publisher = node.create_publisher(get_message(type_name), topic, _qos(qos))
     deadline = time.monotonic() + PEER_TIMEOUT_S
     try:
-        while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+        # Both of the subscriber's subscriptions (raw and decoded) before the first message:
+        # else the later one misses what the earlier one got, and the two lists do not pair.
+        while (publisher.get_subscription_count() < SUBSCRIPTIONS
+               and time.monotonic() < deadline):
             rclpy.spin_once(node, timeout_sec=0.02)
         if burst:
             for index in range(count):
