@@ -16,7 +16,10 @@ data-dependent active-set solve), so it runs eagerly between three compiled grap
 
 1. the actor's two samples: a' ~ pi(.|x_{t+1}) without gradient, a ~ pi(.|x_t) with autograd
    (AOTAutograd compiles its backward too);
-2. the layer at (x_{t+1}, a') without gradient and at (x_t, a) with autograd (eager);
+2. the layer (eager) at (x_t, a) and (x_{t+1}, a') in one call, the two halves side by side:
+   its QPs are independent per sample, so this is the eager update's two calls in one solve of
+   2B problems (the layer's cost is mostly per call); a' carries no gradient and its half of
+   the output is detached, so gradients reach the layer only through a;
 3. the critic target at the layer's a', the critic loss, its gradient and the critics' Adam
    step, the Polyak step, and the actor loss at the layer's action with the updated critics'
    weights held fixed, differentiated in the action and in log pi only;
@@ -214,9 +217,7 @@ class FunctionalUpdate:
         with torch.enable_grad():
             sample_action, log_prob, next_action, next_log_prob = self._samples(
                 None, batch.obs, batch.next_obs, noise, next_noise)
-        # The layer once, at (x_t, a) and (x_{t+1}, a') side by side: one solve of 2B
-        # independent QPs instead of two of B (its cost is mostly per call); a' carries no
-        # gradient, so the backward reaches a only.
+        # The layer once, at (x_t, a) and (x_{t+1}, a') side by side (module docstring, 2.).
         with torch.enable_grad():
             both = self._safe(
                 torch.cat([batch.state, batch.next_state]),
