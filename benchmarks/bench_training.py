@@ -50,20 +50,25 @@ compiled with ``torch.compile(fullgraph=True)`` in each of ``--floor-modes`` and
 mode compiles (its one-off cost is printed, never timed in) and is checked against
 ``SAC.update`` from the same state on the same batch and noise draws (the largest parameter
 difference is printed). The QP: 30 minibatches from the buffer, each timed as one update runs
-the layer (forward at the next states without gradient, forward and backward at the states, at
-the actor's samples, with the memoised disturbance estimate); its part is the best of them (a
-minibatch of 256 averages over the states, so minibatches differ little; other load on the
-machine only adds). The action (policy + GP + filter) and the environment step (``env.step``
-alone): medians over the timed window. The step: 1000 / steady-state steps/s. Reported per
-row: step ms, floor ms and its parts, step / floor against the target. Beyond the floor: the
-eager update (unless ``--compile-update``), storing the transition and the GP's residual pair,
-drawing the minibatch (and its memoised disturbance estimate), the model-based rollouts
-(``--model-based`` rows), Python between the parts.
+the layer in each of the two ways an update can (both give the same actions and gradients):
+as the eager update runs it (forward at the next states without gradient, forward and backward
+at the states) and as the compiled update does (one forward of both halves side by side, the
+backward from the states' half), at the actor's samples, with the memoised disturbance
+estimate; its part is the best of them (a minibatch of 256 averages over the states, so
+minibatches differ little; other load on the machine only adds). The action (policy + GP +
+filter) and the environment step (``env.step`` alone): medians over the timed window. The
+step: 1000 / steady-state steps/s. Reported per row: step ms, floor ms and its parts,
+step / floor against the target. Beyond the floor: the eager update (unless
+``--compile-update``), storing the transition and the GP's residual pair, drawing the
+minibatch (and its memoised disturbance estimate), the model-based rollouts (``--model-based``
+rows), Python between the parts.
 
-``--compile-update``: ours trains with ``SACConfig.compile_update`` (the update the floor
-times) in the rows whose losses pass no safety layer; its first update, which compiles, is moved
-to the last warm-up step so that the compile stays out of the window. Without it, ours trains
-as configured by default (the eager update).
+``--compile-update``: ours trains with ``SACConfig.compile_update`` in every row (without a
+safety layer in the losses the update the floor times; where the losses pass the layer, diff
+and PVTOL modular with its envelope, the network parts compiled and the layer eager between
+them); its first update, which compiles, is moved to the last warm-up step so that the compile
+stays out of the window, and its time is printed ("first update, compiling"). Without it, ours
+trains as configured by default (the eager update).
 
 Mode map (ours <- reference ``--cbf_mode``): baseline <- baseline, modular <- mod,
 diff <- full. Without ``--reference`` the comparison is skipped and its columns stay empty.
@@ -173,10 +178,13 @@ def update_gflop(obs_dim: int, n_u: int, hidden: int = 256, batch: int = 256) ->
 
 
 def qp_parts_ms(learner: SafeLearner, *, draws: int) -> float:
-    """Best ms over ``draws`` minibatches of the differentiable QP as one update runs it:
-    a forward pass at the next states (the critic target, no gradient) and a forward and
-    backward pass at the states (the actor loss), each at the actor's samples, with the
-    memoised disturbance estimate, on batches drawn from the learner's buffer."""
+    """Best ms over ``draws`` minibatches of the differentiable QP as one update runs it, the
+    better of its two ways (the same actions and gradients): as the eager update does, a
+    forward pass at the next states (the critic target, no gradient) and a forward and
+    backward pass at the states (the actor loss); as the compiled update does, one forward
+    pass of both halves side by side and the backward from the states' half. Each at the
+    actor's samples, with the memoised disturbance estimate, on batches drawn from the
+    learner's buffer; the two ways alternate."""
     sac, buffer = learner.sac, learner.buffer
     layer = sac.safety_layer
     assert layer is not None
@@ -198,6 +206,12 @@ def qp_parts_ms(learner: SafeLearner, *, draws: int) -> float:
         safe = layer(batch.state, action, (estimate.state[:, 0], estimate.state[:, 1]))
         safe.backward(torch.ones_like(safe))
         times.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        both = torch.cat([estimate.state, estimate.next_state])
+        safe = layer(torch.cat([batch.state, batch.next_state]),
+                     torch.cat([action, following]), (both[:, 0], both[:, 1]))
+        safe[:len(action)].backward(torch.ones_like(action))
+        times.append(time.perf_counter() - start)
     return 1e3 * min(times)
 
 
@@ -215,15 +229,15 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
     """Ours in-process: ``warmup`` untimed steps, then ``steps`` stamped steps; then the
     floor's parts (see the module docstring). ``floor``: the system's update floor from an
     earlier row, else measured here (``floor_modes``; None: no floor). ``compile_update``:
-    train with ``SACConfig.compile_update`` where the losses pass no safety layer (its first
-    update, which compiles, then falls on the last warm-up step)."""
+    train with ``SACConfig.compile_update`` (its first update, which compiles, then falls on
+    the last warm-up step; ``first_update_s`` is its time)."""
     learner_cfg = LearnerConfig(mode=mode, model_based=model_based, seed=0,
                                 start_steps=warmup, update_after=warmup, batch_size=256,
                                 gp_refit_interval=warmup, rollout_interval=100)
     run = resolve_run(RunConfig(system=system, episodes=1, max_steps=10 ** 6,
                                 record_bag=False, out_dir='/tmp/bench_training',
                                 compile_filter=True, learner=learner_cfg))
-    if compile_update and mode != 'diff' and not run.learner.uses_envelope:
+    if compile_update:
         run = replace(run, learner=replace(
             run.learner, update_after=warmup - 1,
             sac=replace(run.learner.sac, compile_update=True)))
@@ -233,6 +247,7 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
     state = info['state']
     action_times, update_times, filter_times, env_times = [], [], [], []
     stamps, cpu_stamps, refits = [], [], []
+    first_update: list[float] = []
     fit = learner.gp.fit
 
     def timed_fit() -> None:
@@ -264,6 +279,8 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
         t3 = time.perf_counter()
         metrics = learner.after_step()
         t4 = time.perf_counter()
+        if metrics and not first_update:
+            first_update.append(t4 - t3)
         if timed:
             action_times.append(t2 - t0)
             filter_times.append(t2 - t1)
@@ -297,6 +314,7 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
         'action_ms': 1e3 * statistics.median(action_times),
         'filter_ms': 1e3 * statistics.median(filter_times),
         'gflop': update_gflop(env.observation_space.shape[0], learner.system.n_u),
+        'first_update_s': first_update[0] if first_update else float('nan'),
     }
 
 
@@ -392,7 +410,8 @@ def floor_reading(update_floors: dict[str, dict], calls: int) -> str:
         'best call; benchmarks/_update_floor.py; the compile is not timed in), plus, where '
         'the mode trains through the differentiable QP (diff; PVTOL modular with its envelope '
         'layer), the QP as one update runs it (forward at the next states, forward and '
-        'backward at the states; best of 30 minibatches from the buffer), plus the action '
+        'backward at the states, as two calls or as one of both halves, the better; best of '
+        '30 minibatches from the buffer), plus the action '
         '(policy + GP + filter) and the environment step (each the median over the timed '
         'window). "step ms" is the steady-state step (1000 / steps/s). What the step does '
         'beyond the floor: the eager update instead of the compiled one (unless '
@@ -427,8 +446,7 @@ def main() -> None:
     parser.add_argument('--floor-calls', type=int, default=200,
                         help="timed calls per variant of the floor's update")
     parser.add_argument('--compile-update', action='store_true',
-                        help='ours trains with SACConfig.compile_update where the losses pass '
-                             'no safety layer (baseline; modular without envelope layer)')
+                        help='ours trains with SACConfig.compile_update (every row)')
     parser.add_argument('--no-write', action='store_true')
     args = parser.parse_args()
     if min(args.steps, args.warmup, args.repeats, args.floor_calls) < 1:
@@ -466,6 +484,7 @@ def main() -> None:
                  '| diff. QP fwd+bwd ms | action ms | env step ms | step / floor | target | |',
                  '|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|']
     floors = {}
+    first_updates: list[str] = []
     update_floors: dict[str, dict] = {}
     row_loads = []
     try:
@@ -487,6 +506,11 @@ def main() -> None:
                                                      system, mode, args.steps,
                                                      args.reference_warmup))
                 name = f"{mode}{' + model_based' if mb else ''}"
+                if args.compile_update:
+                    first_updates.append(f'{system}/{name} ({threads} thread'
+                                         f'{"s" if threads != 1 else ""}) '
+                                         f'{_median(ours, "first_update_s"):.1f} s')
+                    print(f'first update, compiling: {first_updates[-1]}', flush=True)
                 floor_ms = 1e3 * ours[0]['gflop'] / peak[threads]
                 floors[(system, threads)] = (ours[0]['gflop'], floor_ms)
                 ref_cols = (f'| {_median(ref, "update_ms"):.1f} '
@@ -550,7 +574,10 @@ def main() -> None:
                       'Ours in detail (reference columns: median of its repeats):', '',
                       *detail, '', reading, '',
                       'Ours against its own floor, measured in the same run:', '',
-                      *own_floor, '', floor_text])
+                      *own_floor, '', floor_text]
+                     + (['', 'First update, compiling (in the warm-up, not timed in; '
+                         "torch's compile cache on disk shortens it after a first run): "
+                         + ', '.join(first_updates) + '.'] if first_updates else []))
     print(text)
     if not args.no_write:
         from _results import machine_line, write_section

@@ -57,10 +57,12 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help='compile the per-step autograd constraint assembly of a system or '
                              'barrier without a closed form (faster, slower start)')
     parser.add_argument('--compile-update', dest='compile_update', action='store_true',
-                        help='compile the SAC update into one graph (about 1.6x faster per '
-                             'update; a one-off compile of tens of seconds, seconds once '
-                             "torch's compile cache has it); not where the losses pass the "
-                             'safety layer (diff; modular with an envelope)')
+                        help='compile the SAC update: without a safety layer in the losses '
+                             'as one graph (about 1.6x faster per update); where they pass it '
+                             '(diff; modular with an envelope) its network parts, the layer '
+                             'eager between them (training steps 1.1-1.25x faster); a one-off '
+                             "compile of tens of seconds, seconds once torch's compile cache "
+                             'has it')
     parser.add_argument('--threads', type=int, default=1,
                         help='torch threads (2 speeds SAC updates 1.2-1.7x on an idle 2-core '
                              'machine; 1 when runs or nodes share the cores)')

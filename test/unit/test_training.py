@@ -324,11 +324,6 @@ def test_cli_rejects_bad_learner_settings(capsys, tmp_path):
     assert cli_main(['train', '--config', str(bad_alpha), '--episodes', '1',
                      '--out', str(tmp_path / 'f')]) == 2
     assert 'learner.initial_alpha' in capsys.readouterr().err
-    # The compiled update cannot hold the safety layer: refused before anything is written.
-    assert cli_main(['train', '--mode', 'diff', '--compile-update', '--episodes', '1',
-                     '--no-bag', '--out', str(tmp_path / 'g')]) == 2
-    assert 'compile_update' in capsys.readouterr().err
-    assert not (tmp_path / 'g').exists()
 
 
 def test_initial_alpha_and_random_start_come_from_the_config_unless_the_run_sets_them(tmp_path):
