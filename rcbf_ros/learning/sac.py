@@ -389,11 +389,18 @@ class SAC:
                 next_action = self._safe_action(
                     batch.next_state, next_action,
                     None if disturbance is None else disturbance.next_state)
+            return self._target_at(batch, next_action, next_sample.log_prob)
+
+    def _target_at(self, batch: TransitionBatch, next_action: torch.Tensor,
+                   next_log_prob: torch.Tensor) -> torch.Tensor:
+        """y = r + gamma (1 - done) (min_i Q_bar_i(x_{t+1}, next_action) - alpha log pi(a'|x'))
+        for the action the target critics see at x_{t+1} (no gradient)."""
+        with torch.no_grad():
             # eq. q_update (plain) and eq. q_update_mod (modular): u^S_{t+1} = 0, so
             # V_bar(x') = Q_bar(x', a') - alpha log pi(a'|x').
             next_q = torch.minimum(self.q1_target(batch.next_obs, next_action),
                                    self.q2_target(batch.next_obs, next_action))
-            next_value = next_q - self.alpha * next_sample.log_prob
+            next_value = next_q - self.alpha * next_log_prob
             return batch.reward + self.config.gamma * (1.0 - batch.done) * next_value
 
     def critic_loss(self, batch: TransitionBatch, noise: torch.Tensor | None = None,
@@ -406,10 +413,13 @@ class SAC:
         return loss, {'q1_mean': q1_mean, 'q2_mean': q2_mean, 'target_mean': target_mean}
 
     def _critic_loss(self, batch: TransitionBatch, noise: torch.Tensor | None,
-                     disturbance: BatchDisturbance | None
+                     disturbance: BatchDisturbance | None,
+                     target: torch.Tensor | None = None
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """:meth:`critic_loss` and the Q1, Q2 and target y (each (B,)) behind it."""
-        target = self.critic_target(batch, noise, disturbance)
+        """:meth:`critic_loss` and the Q1, Q2 and target y (each (B,)) behind it (``target``:
+        y computed already)."""
+        if target is None:
+            target = self.critic_target(batch, noise, disturbance)
         action = self.critic_action(batch)
         q1 = self.q1(batch.obs, action)
         q2 = self.q2(batch.obs, action)
@@ -432,10 +442,39 @@ class SAC:
             # (modular: the envelope's layer).
             action = self._safe_action(batch.state, action,
                                        None if disturbance is None else disturbance.state)
+        return self._actor_loss_at(batch.obs, action, sample.log_prob), sample.log_prob
+
+    def _actor_loss_at(self, obs: torch.Tensor, action: torch.Tensor,
+                       log_prob: torch.Tensor) -> torch.Tensor:
+        """E[alpha log pi(a|x) - min_i Q_i(x, action)] for the action the critics see."""
         # eq. pi_update (unconstrained, baselines, modular): Q(x, a).
-        q = torch.minimum(self.q1(batch.obs, action), self.q2(batch.obs, action))
-        loss = (self.alpha * sample.log_prob - q).mean()
-        return loss, sample.log_prob
+        q = torch.minimum(self.q1(obs, action), self.q2(obs, action))
+        return (self.alpha * log_prob - q).mean()
+
+    def _through_layer_once(self, batch: TransitionBatch,
+                            disturbance: BatchDisturbance | None
+                            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Both of an update's policy samples and their safe actions from one layer call.
+
+        a' ~ pi(.|x_{t+1}) (no gradient) and a ~ pi(.|x_t) are drawn in the order
+        :meth:`critic_target` and :meth:`actor_loss` draw them (the same noise), then the layer
+        runs once on (x_t, a) and (x_{t+1}, a') side by side: each sample's QP has its own
+        solution, so this is the two calls of those methods in one solve of 2B problems (the
+        solver's batch-wide choices change only its rounding), and the layer's cost is mostly
+        per call. The actor's weights change only at its own Adam step, after the critics',
+        so sampling a before the critics' step draws what :meth:`actor_loss` would draw after
+        it. Returns the safe action at x_t (differentiable in the actor's weights), log pi(a|x_t),
+        the safe action at x_{t+1} (detached) and log pi(a'|x_{t+1})."""
+        with torch.no_grad():
+            following = self.actor(batch.next_obs, generator=self.generator)
+        sample = self.actor(batch.obs, generator=self.generator)
+        size = sample.action.shape[0]
+        both = self._safe_action(
+            torch.cat([batch.state, batch.next_state]),
+            torch.cat([sample.action, following.action]),
+            None if disturbance is None else torch.cat([disturbance.state,
+                                                        disturbance.next_state]))
+        return both[:size], sample.log_prob, both[size:].detach(), following.log_prob
 
     def compensator_loss(self, batch: TransitionBatch) -> torch.Tensor:
         """E[1/2 |c(obs_t) - u^S_t|^2] (Cheng et al. 2019: learn the filter's correction)."""
@@ -454,7 +493,12 @@ class SAC:
         if cfg.compile_update:
             return self._update_compiled(batch, disturbance)
         critic_step = self._step('critic')
-        critic_loss, q1, q2, target = self._critic_loss(batch, None, disturbance)
+        target = safe = log_prob = None
+        if self.through_layer:
+            safe, log_prob, next_safe, next_log_prob = self._through_layer_once(batch,
+                                                                                disturbance)
+            target = self._target_at(batch, next_safe, next_log_prob)
+        critic_loss, q1, q2, target = self._critic_loss(batch, None, disturbance, target)
         critic_step.zero_grad()
         critic_loss.backward()
         critic_step()
@@ -466,7 +510,10 @@ class SAC:
             param.requires_grad_(False)
         actor_step = self._step('actor')
         try:
-            actor_loss, log_prob = self.actor_loss(batch, disturbance=disturbance)
+            if safe is None:
+                actor_loss, log_prob = self.actor_loss(batch, disturbance=disturbance)
+            else:
+                actor_loss = self._actor_loss_at(batch.obs, safe, log_prob)
             actor_step.zero_grad()
             actor_loss.backward()
         finally:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from rcbf_ros.learning.buffers import TransitionBatch
+from rcbf_ros.learning.buffers import BatchDisturbance, TransitionBatch
 from rcbf_ros.learning.networks import QNetwork, SquashedGaussianActor
 from rcbf_ros.learning.sac import AdamStep, SAC, SACConfig
 
@@ -119,7 +119,8 @@ class _ReferenceSAC:
     agent's networks: alpha's loss differentiated by autograd, the Polyak rule as
     tau theta + (1 - tau) theta_bar, each critic and target on its own."""
 
-    def __init__(self, agent: SAC) -> None:
+    def __init__(self, agent: SAC, layer=None) -> None:
+        self.layer = layer
         cfg, low, high = agent.config, agent.u_low, agent.u_high
         self.config, self.target_entropy = cfg, agent.target_entropy
         self.actor = _copy(SquashedGaussianActor(OBS, low, high, HIDDEN), agent.actor)
@@ -134,25 +135,38 @@ class _ReferenceSAC:
         self.generator = torch.Generator().manual_seed(0)
         self.generator.set_state(agent.generator.get_state())
 
-    def update(self, batch: TransitionBatch) -> dict[str, float]:
+    def _safe(self, state, action, estimate):
+        """The layer's action (``layer`` given: diff mode), else the action itself."""
+        if self.layer is None:
+            return action
+        return self.layer(state, action, (estimate[:, 0], estimate[:, 1]))
+
+    def update(self, batch: TransitionBatch, disturbance=None) -> dict[str, float]:
+        """One update; with a layer, the diff mode's, the layer called apart at x_{t+1} (the
+        target) and at x_t (the actor loss, after the critics' step)."""
         cfg = self.config
         alpha = self.log_alpha.detach().exp()
         next_noise = torch.randn(B, N_U, generator=self.generator, dtype=torch.float64)
         noise = torch.randn(B, N_U, generator=self.generator, dtype=torch.float64)
         with torch.no_grad():
             following = self.actor(batch.next_obs, noise=next_noise)
-            next_q = torch.minimum(self.q1_target(batch.next_obs, following.action),
-                                   self.q2_target(batch.next_obs, following.action))
+            next_action = self._safe(batch.next_state, following.action,
+                                     None if disturbance is None else disturbance.next_state)
+            next_q = torch.minimum(self.q1_target(batch.next_obs, next_action),
+                                   self.q2_target(batch.next_obs, next_action))
             target = batch.reward + cfg.gamma * (1 - batch.done) * (
                 next_q - alpha * following.log_prob)
-        q1, q2 = self.q1(batch.obs, batch.u_rl), self.q2(batch.obs, batch.u_rl)
+        trained = batch.u_rl if self.layer is None else batch.u_safe
+        q1, q2 = self.q1(batch.obs, trained), self.q2(batch.obs, trained)
         critic_loss = 0.5 * ((q1 - target) ** 2).mean() + 0.5 * ((q2 - target) ** 2).mean()
         self.critic_optimizer.zero_grad()
         critic_loss.backward()
         self.critic_optimizer.step()
 
         sample = self.actor(batch.obs, noise=noise)
-        q = torch.minimum(self.q1(batch.obs, sample.action), self.q2(batch.obs, sample.action))
+        action = self._safe(batch.state, sample.action,
+                            None if disturbance is None else disturbance.state)
+        q = torch.minimum(self.q1(batch.obs, action), self.q2(batch.obs, action))
         actor_loss = (alpha * sample.log_prob - q).mean()
         self.actor_optimizer.zero_grad()
         actor_loss.backward()
@@ -197,6 +211,51 @@ def test_update_equals_the_update_written_out_with_autograd_and_optimizer_step()
             for key, value in entry.items():
                 torch.testing.assert_close(ours['state'][index][key], value, rtol=1e-9,
                                            atol=1e-12)
+
+
+def _kinked_layer(state, u_rl, estimate):
+    """A per-sample safety layer with a kink, differentiable almost everywhere: u_rl held
+    below a bound that depends on the state and on the estimate's mean and std, so that a
+    state or estimate paired with the wrong sample moves the answer."""
+    mean, std = estimate
+    bound = 0.1 + 0.5 * torch.tanh(state[:, :N_U] + mean[:, :N_U]) - std[:, :N_U]
+    return u_rl - torch.relu(u_rl - bound)
+
+
+def test_update_through_the_layer_equals_the_layer_called_apart_for_target_and_actor():
+    """SAC.update runs the layer once on both halves of the minibatch; the update written out
+    calls it apart, at x_{t+1} for the target and at x_t for the actor loss after the critics'
+    step (the eager order of the paper's equations)."""
+    config = SACConfig(mode='diff', hidden_sizes=HIDDEN, tau=0.3, actor_lr=1e-2,
+                       critic_lr=1e-2, alpha_lr=1e-2)
+    agent = SAC(OBS, N_U, -np.ones(N_U), np.ones(N_U), config, safety_layer=_kinked_layer,
+                seed=2, dtype=torch.float64)
+    reference = _ReferenceSAC(agent, _kinked_layer)
+    g = torch.Generator().manual_seed(11)
+    clipped = 0
+    for seed in range(4):
+        batch = _batch(seed)
+        batch = batch._replace(u_safe=batch.u_rl * 0.5)
+        disturbance = BatchDisturbance(
+            torch.rand(B, 2, 2, generator=g, dtype=torch.float64) * 0.4,
+            torch.rand(B, 2, 2, generator=g, dtype=torch.float64) * 0.4)
+        with torch.no_grad():
+            probe = agent.actor(batch.obs, generator=torch.Generator().manual_seed(seed)).action
+            clipped += int((_kinked_layer(batch.state, probe, (disturbance.state[:, 0],
+                                                              disturbance.state[:, 1]))
+                            != probe).sum())
+        metrics, expected = agent.update(batch, disturbance), reference.update(batch,
+                                                                               disturbance)
+        assert metrics.keys() == expected.keys()
+        for key, value in expected.items():
+            assert metrics[key] == pytest.approx(value, rel=1e-12, abs=1e-12), key
+    assert clipped > 0   # the layer changes some of the policy's actions
+    for name in ('actor', *CRITICS):
+        for ours, theirs in zip(getattr(agent, name).parameters(),
+                                getattr(reference, name).parameters()):
+            torch.testing.assert_close(ours, theirs, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(agent.log_alpha, reference.log_alpha.detach(), rtol=1e-12,
+                               atol=1e-13)
 
 
 def _adam_checkpoint(agent: SAC) -> dict:
