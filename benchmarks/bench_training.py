@@ -49,12 +49,12 @@ compiled with ``torch.compile(fullgraph=True)`` in each of ``--floor-modes`` and
 ``SAC.update``; its part of the floor is the fastest mode's best call. The first call of each
 mode compiles (its one-off cost is printed, never timed in) and is checked against
 ``SAC.update`` from the same state on the same batch and noise draws (the largest parameter
-difference is printed). The QP: 30 minibatches from the buffer, each timed as one update runs
-the layer in each of the two ways an update can (both give the same actions and gradients):
-as the eager update runs it (forward at the next states without gradient, forward and backward
-at the states) and as the compiled update does (one forward of both halves side by side, the
-backward from the states' half), at the actor's samples, with the memoised disturbance
-estimate; its part is the best of them (a minibatch of 256 averages over the states, so
+difference is printed). The QP: 30 minibatches from the buffer, each timed in two ways that
+give the same actions and gradients: as both updates run the layer (one forward of both halves
+side by side, the backward from the states' half) and with the layer called apart for the
+critic target and the actor loss (forward at the next states without gradient, forward and
+backward at the states), at the actor's samples, with the memoised disturbance estimate; its
+part is the best of them (a minibatch of 256 averages over the states, so
 minibatches differ little; other load on the machine only adds). The action (policy + GP +
 filter) and the environment step (``env.step`` alone): medians over the timed window. The
 step: 1000 / steady-state steps/s. Reported per row: step ms, floor ms and its parts,
@@ -178,13 +178,13 @@ def update_gflop(obs_dim: int, n_u: int, hidden: int = 256, batch: int = 256) ->
 
 
 def qp_parts_ms(learner: SafeLearner, *, draws: int) -> float:
-    """Best ms over ``draws`` minibatches of the differentiable QP as one update runs it, the
-    better of its two ways (the same actions and gradients): as the eager update does, a
-    forward pass at the next states (the critic target, no gradient) and a forward and
-    backward pass at the states (the actor loss); as the compiled update does, one forward
-    pass of both halves side by side and the backward from the states' half. Each at the
-    actor's samples, with the memoised disturbance estimate, on batches drawn from the
-    learner's buffer; the two ways alternate."""
+    """Best ms over ``draws`` minibatches of the differentiable QP as one update needs it, the
+    better of two ways (the same actions and gradients): called apart, a forward pass at the
+    next states (the critic target, no gradient) and a forward and backward pass at the states
+    (the actor loss); as both updates run it, one forward pass of both halves side by side and
+    the backward from the states' half. Each at the actor's samples, with the memoised
+    disturbance estimate, on batches drawn from the learner's buffer; the two ways
+    alternate."""
     sac, buffer = learner.sac, learner.buffer
     layer = sac.safety_layer
     assert layer is not None

@@ -16,11 +16,11 @@ data-dependent active-set solve), so it runs eagerly between three compiled grap
 
 1. the actor's two samples: a' ~ pi(.|x_{t+1}) without gradient, a ~ pi(.|x_t) with autograd
    (AOTAutograd compiles its backward too);
-2. the layer (eager) at (x_t, a) and (x_{t+1}, a') in one call, the two halves side by side:
-   each sample's QP has its own unique solution, so this is the eager update's two calls in
-   one solve of 2B problems (the solver's batch-wide choices, such as which closed form to
-   take, change only its rounding; the layer's cost is mostly per call); a' carries no
-   gradient and its half of the output is detached, so gradients reach the layer only via a;
+2. the layer (eager) at (x_t, a) and (x_{t+1}, a') in one call, the two halves side by side,
+   as the eager update calls it (``SAC._through_layer_once``: each sample's QP has its own
+   unique solution, so one solve of 2B problems answers the critic target's and the actor
+   loss's B each; the layer's cost is mostly per call); a' carries no gradient and its half of
+   the output is detached, so gradients reach the layer only via a;
 3. the critic target at the layer's a', the critic loss, its gradient and the critics' Adam
    step, the Polyak step, and the actor loss at the layer's action with the updated critics'
    weights held fixed, differentiated in the action and in log pi only;

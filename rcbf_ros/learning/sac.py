@@ -91,11 +91,12 @@ class SACConfig:
     (:mod:`rcbf_ros.learning.compiled_update`): the same update, up to float32 round-off, after
     a one-off compile of tens of seconds at the first update (twice with
     ``target_update_interval`` > 1: with and without the Polyak step). Without a safety layer in
-    the losses the whole update is one graph, in about three quarters of the eager time on CPU;
-    where the losses pass the action through the layer (``diff``; ``modular`` with an envelope
-    layer) the layer runs eagerly between compiled graphs, the gradients flowing through it as
-    in the eager update, in about five sixths of the eager time (the layer's solve is not
-    compiled). Equal seeds still give equal runs."""
+    the losses the whole update is one graph; where the losses pass the action through the
+    layer (``diff``; ``modular`` with an envelope layer) the layer runs eagerly between
+    compiled graphs, the gradients flowing through it as in the eager update (the layer's
+    solve is not compiled, so these modes gain less). What it gains depends on the CPU:
+    benchmarks/bench_training.py times both side by side. Equal seeds still give equal
+    runs."""
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
