@@ -187,6 +187,24 @@ class _ReferenceSAC:
                     'alpha_loss': float(alpha_loss), 'entropy': float(-sample.log_prob.mean())}
 
 
+def _assert_same_metrics(metrics: dict[str, float], expected: dict[str, float], *,
+                         rel: float) -> None:
+    assert metrics.keys() == expected.keys()
+    for key, value in expected.items():
+        assert metrics[key] == pytest.approx(value, rel=rel, abs=1e-12), key
+
+
+def _assert_same_weights(agent: SAC, reference: _ReferenceSAC, *, rtol: float,
+                         atol: float) -> None:
+    """The actor, the critics, their targets and log alpha of both agree."""
+    for name in ('actor', *CRITICS):
+        for ours, theirs in zip(getattr(agent, name).parameters(),
+                                getattr(reference, name).parameters()):
+            torch.testing.assert_close(ours, theirs, rtol=rtol, atol=atol)
+    torch.testing.assert_close(agent.log_alpha, reference.log_alpha.detach(), rtol=rtol,
+                               atol=atol)
+
+
 def test_update_equals_the_update_written_out_with_autograd_and_optimizer_step():
     # tau large enough that a target moved toward the wrong critic is far off.
     config = SACConfig(hidden_sizes=HIDDEN, tau=0.3, actor_lr=1e-2, critic_lr=1e-2,
@@ -194,16 +212,9 @@ def test_update_equals_the_update_written_out_with_autograd_and_optimizer_step()
     agent = SAC(OBS, N_U, -np.ones(N_U), np.ones(N_U), config, seed=2, dtype=torch.float64)
     reference = _ReferenceSAC(agent)
     for seed in range(4):
-        metrics, expected = agent.update(_batch(seed)), reference.update(_batch(seed))
-        assert metrics.keys() == expected.keys()
-        for key, value in expected.items():
-            assert metrics[key] == pytest.approx(value, rel=1e-9, abs=1e-12), key
-    for name in ('actor', *CRITICS):
-        for ours, theirs in zip(getattr(agent, name).parameters(),
-                                getattr(reference, name).parameters()):
-            torch.testing.assert_close(ours, theirs, rtol=1e-9, atol=1e-12)
-    torch.testing.assert_close(agent.log_alpha, reference.log_alpha.detach(), rtol=1e-9,
-                               atol=1e-12)
+        _assert_same_metrics(agent.update(_batch(seed)), reference.update(_batch(seed)),
+                             rel=1e-9)
+    _assert_same_weights(agent, reference, rtol=1e-9, atol=1e-12)
     for name in ('actor_optimizer', 'critic_optimizer', 'alpha_optimizer'):
         ours, theirs = getattr(agent, name).state_dict(), getattr(reference, name).state_dict()
         assert ours['state'].keys() == theirs['state'].keys()
@@ -244,18 +255,10 @@ def test_update_through_the_layer_equals_the_layer_called_apart_for_target_and_a
             clipped += int((_kinked_layer(batch.state, probe, (disturbance.state[:, 0],
                                                               disturbance.state[:, 1]))
                             != probe).sum())
-        metrics, expected = agent.update(batch, disturbance), reference.update(batch,
-                                                                               disturbance)
-        assert metrics.keys() == expected.keys()
-        for key, value in expected.items():
-            assert metrics[key] == pytest.approx(value, rel=1e-12, abs=1e-12), key
+        _assert_same_metrics(agent.update(batch, disturbance),
+                             reference.update(batch, disturbance), rel=1e-12)
     assert clipped > 0   # the layer changes some of the policy's actions
-    for name in ('actor', *CRITICS):
-        for ours, theirs in zip(getattr(agent, name).parameters(),
-                                getattr(reference, name).parameters()):
-            torch.testing.assert_close(ours, theirs, rtol=1e-12, atol=1e-13)
-    torch.testing.assert_close(agent.log_alpha, reference.log_alpha.detach(), rtol=1e-12,
-                               atol=1e-13)
+    _assert_same_weights(agent, reference, rtol=1e-12, atol=1e-13)
 
 
 def _adam_checkpoint(agent: SAC) -> dict:
