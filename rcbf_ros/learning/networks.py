@@ -7,6 +7,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 import torch
 from torch import nn
+import torch.nn.functional as F
 
 LOG_STD_MIN = -5.0
 LOG_STD_MAX = 2.0
@@ -190,9 +191,79 @@ class QNetwork(nn.Module):
         super().__init__()
         self.net = mlp(obs_dim + n_u, 1, hidden_sizes)
 
+    @property
+    def linears(self) -> list[nn.Linear]:
+        """The linear layers in order (a ReLU follows each but the last)."""
+        return [module for module in self.net if isinstance(module, nn.Linear)]
+
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """obs: (B, obs_dim), action: (B, n_u) -> (B,)."""
         return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)
+
+
+class _TwinMinimum(torch.autograd.Function):
+    """min(Q1(obs, u), Q2(obs, u)) with its gradient in the action only.
+
+    Each sample's minimum is one critic's value (at a tie, autograd's ``torch.minimum`` gives
+    each half the gradient), so the backward pass runs each critic's input-gradient chain only
+    over the samples whose minimum it is, instead of both critics over the whole batch with
+    zeros in half of the rows: one critic's backward arithmetic instead of two. The forward
+    pass is the critics' own (the same ``linear`` and ReLU, keeping each hidden layer's output
+    for ReLU's backward). The critics' weights must not change between the loss and its backward
+    pass (they are read again there).
+    """
+
+    @staticmethod
+    def forward(ctx, action: torch.Tensor, obs: torch.Tensor, first: QNetwork,
+                second: QNetwork) -> torch.Tensor:
+        x = torch.cat([obs, action], dim=-1)
+        values, chains = [], []
+        for critic in (first, second):
+            h, hidden = x, []
+            linears = critic.linears
+            for linear in linears[:-1]:
+                h = torch.relu_(F.linear(h, linear.weight, linear.bias))
+                hidden.append(h)
+            values.append(F.linear(h, linears[-1].weight, linears[-1].bias).squeeze(-1))
+            chains.append(([linear.weight for linear in linears], hidden))
+        ctx.chains = chains
+        ctx.values = values
+        ctx.obs_dim = obs.shape[-1]
+        return torch.minimum(*values)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        first, second = ctx.values
+        tie = first == second
+        share = torch.where(tie, 0.5 * grad, grad)
+        grad_action = None
+        for chain, picked in zip(ctx.chains, ((first < second) | tie, (second < first) | tie)):
+            rows = picked.nonzero().squeeze(-1)
+            if rows.numel() == 0:
+                continue
+            weights, hidden = chain
+            g = share[rows, None] @ weights[-1]
+            for weight, h in zip(weights[-2::-1], hidden[::-1]):
+                # ReLU's backward (the gradient where its output is > 0) on these rows.
+                g = torch.ops.aten.threshold_backward(g, h.index_select(0, rows), 0.0) @ weight
+            part = g[:, ctx.obs_dim:]
+            if grad_action is None:
+                grad_action = torch.zeros(grad.shape[0], part.shape[-1], dtype=part.dtype)
+            grad_action.index_add_(0, rows, part)
+        return grad_action, None, None, None
+
+
+def twin_minimum(first: QNetwork, second: QNetwork, obs: torch.Tensor,
+                 action: torch.Tensor) -> torch.Tensor:
+    """min(Q1(obs, action), Q2(obs, action)): (B,), differentiable in ``action`` only.
+
+    For a loss that holds the critics fixed (SAC's actor step): the critics' weights get no
+    gradient, and ``obs`` none (it is data). The value is ``torch.minimum`` of the two
+    critics; the action gradient equals autograd's through both (up to the order of the
+    floating-point sums), at a tie half through each, as autograd's."""
+    if obs.requires_grad:
+        raise ValueError('twin_minimum: obs must not require a gradient (the action only)')
+    return _TwinMinimum.apply(action, obs, first, second)
 
 
 class Compensator(nn.Module):

@@ -46,7 +46,13 @@ from torch import nn
 
 from rcbf_ros.learning.buffers import BatchDisturbance, TransitionBatch
 from rcbf_ros.learning.compiled_update import FunctionalUpdate
-from rcbf_ros.learning.networks import Compensator, NumpyMLP, QNetwork, SquashedGaussianActor
+from rcbf_ros.learning.networks import (
+    Compensator,
+    NumpyMLP,
+    QNetwork,
+    SquashedGaussianActor,
+    twin_minimum,
+)
 
 SafetyLayer = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 Mode = Literal['unconstrained', 'baseline', 'baseline_compensator', 'diff', 'modular']
@@ -445,11 +451,18 @@ class SAC:
                                        None if disturbance is None else disturbance.state)
         return self._actor_loss_at(batch.obs, action, sample.log_prob), sample.log_prob
 
-    def _actor_loss_at(self, obs: torch.Tensor, action: torch.Tensor,
-                       log_prob: torch.Tensor) -> torch.Tensor:
-        """E[alpha log pi(a|x) - min_i Q_i(x, action)] for the action the critics see."""
+    def _actor_loss_at(self, obs: torch.Tensor, action: torch.Tensor, log_prob: torch.Tensor,
+                       critics_fixed: bool = False) -> torch.Tensor:
+        """E[alpha log pi(a|x) - min_i Q_i(x, action)] for the action the critics see.
+
+        ``critics_fixed``: the loss's gradient is wanted in the action (and log pi) only, as in
+        the actor's step (:func:`twin_minimum`); else autograd through both critics, their
+        weights included."""
         # eq. pi_update (unconstrained, baselines, modular): Q(x, a).
-        q = torch.minimum(self.q1(obs, action), self.q2(obs, action))
+        if critics_fixed:
+            q = twin_minimum(self.q1, self.q2, obs, action)
+        else:
+            q = torch.minimum(self.q1(obs, action), self.q2(obs, action))
         return (self.alpha * log_prob - q).mean()
 
     def _through_layer_once(self, batch: TransitionBatch,
@@ -504,22 +517,16 @@ class SAC:
         critic_loss.backward()
         critic_step()
 
-        # The actor's loss differentiates through the critics only to reach the action: their
-        # weight gradients would be computed and thrown away (~10 % of the update's FLOPs).
-        critic_params = critic_step.params    # q1's, then q2's
-        for param in critic_params:
-            param.requires_grad_(False)
+        # The actor's loss differentiates through the critics only to reach the action
+        # (twin_minimum: no weight gradients, each sample through the critic of its minimum).
         actor_step = self._step('actor')
-        try:
-            if safe is None:
-                actor_loss, log_prob = self.actor_loss(batch, disturbance=disturbance)
-            else:
-                actor_loss = self._actor_loss_at(batch.obs, safe, log_prob)
-            actor_step.zero_grad()
-            actor_loss.backward()
-        finally:
-            for param in critic_params:
-                param.requires_grad_(True)
+        if safe is None:
+            # eq. pi_update (unconstrained, baselines, modular without a layer): Q(x, a).
+            sample = self.actor(batch.obs, generator=self.generator)
+            safe, log_prob = sample.action, sample.log_prob
+        actor_loss = self._actor_loss_at(batch.obs, safe, log_prob, critics_fixed=True)
+        actor_step.zero_grad()
+        actor_loss.backward()
         actor_step()
 
         log_prob = log_prob.detach()
@@ -534,7 +541,7 @@ class SAC:
 
         self.num_updates += 1
         if self.num_updates % cfg.target_update_interval == 0:
-            polyak_update(critic_params, self._target_params, cfg.tau)
+            polyak_update(critic_step.params, self._target_params, cfg.tau)
 
         # The metrics as one tensor, converted to Python floats at once.
         values = torch.stack([
