@@ -123,7 +123,9 @@ DIFFERENCES = (
     'exact GPyTorch GP per state dimension (70 Adam iterations each) on up to 2000 points, '
     'refitted every 400 steps, here on 200 points (its first refit; later refits on more '
     'points cost it more, so the amortized ratio is a lower bound). Updates: both 1 SAC update '
-    'per step, minibatch 256, 256x256 actor and twin critics, float32; ours with fused Adam. '
+    'per step, minibatch 256, 256x256 actor and twin critics, float32; ours with fused Adam, '
+    "and the actor's gradient through each sample's minimum critic only (twin_minimum: one "
+    "critic's backward instead of two). "
     'Differentiable layer (diff <- full): ours a batched active-set QP with its analytic '
     "backward, its barrier terms in closed form, and the GP estimate at the batch's states "
     'from a memo per stored transition (each transition predicted at most once per refit: here, '
@@ -415,7 +417,8 @@ def floor_reading(update_floors: dict[str, dict], calls: int) -> str:
         '(policy + GP + filter) and the environment step (each the median over the timed '
         'window). "step ms" is the steady-state step (1000 / steps/s). What the step does '
         'beyond the floor: the eager update instead of the compiled one (unless '
-        '--compile-update), storing the '
+        "--compile-update; the eager actor step runs each sample's action gradient through "
+        "the critic of its minimum only, the compiled one through both), storing the "
         'transition and the GP pair, drawing the minibatch and its memoised disturbance '
         'estimate, Python between the parts. Target: step / floor <= '
         f'{FLOOR_TARGET:g}x. ' + ' '.join(parts))
