@@ -1,4 +1,4 @@
-"""The SAC update's best compiled time, for the training benchmark's floor.
+"""The SAC update's best time, compiled or eager, for the training benchmark's floor.
 
 The update compiled is the library's own (:class:`rcbf_ros.learning.compiled_update.
 FunctionalUpdate`, what ``SACConfig.compile_update`` runs): the whole network update as one

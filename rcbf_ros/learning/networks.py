@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -14,6 +14,78 @@ LOG_STD_MAX = 2.0
 _HALF_LOG_TWO_PI = 0.5 * math.log(2.0 * math.pi)
 
 
+def _onednn_linear() -> Callable[..., torch.Tensor] | None:
+    """torch's oneDNN linear kernel (``mkldnn::_linear_pointwise``, x W^T + b) where this
+    build of torch has it and it answers a small product exactly, else None."""
+    try:
+        kernel = torch.ops.mkldnn._linear_pointwise
+        out = kernel(torch.ones(2, 3), torch.full((4, 3), 2.0), torch.ones(4), 'none', [], '')
+    except (AttributeError, RuntimeError):
+        return None
+    return kernel if torch.equal(out, torch.full((2, 4), 7.0)) else None
+
+
+_ONEDNN_LINEAR = _onednn_linear()
+_ONEDNN_MIN_SIZE = 64
+"""oneDNN takes a product whose weight has at least this many rows and columns (a hidden
+layer's); a thin one (an input layer or a head) costs oneDNN more per call than it saves."""
+
+
+def linear(x: torch.Tensor, weight: torch.Tensor,
+           bias: torch.Tensor | None = None) -> torch.Tensor:
+    """x W^T + b for a 2-D ``x``, as ``F.linear``; float32 products through oneDNN.
+
+    torch's own float32 product on CPU is MKL's, which takes its AVX2 path on CPUs that are
+    not Intel's although they have AVX-512 (benchmarks/bench_training.py measures both
+    kernels' rate on its machine); oneDNN takes the widest path the CPU has. Both are float32
+    products (the order of the sums differs, so the results differ by rounding). Thin weights
+    (a side under ``_ONEDNN_MIN_SIZE``), float64 and anything else go to ``F.linear``. No
+    autograd graph: for the gradient use :class:`Linear`.
+    """
+    if (_ONEDNN_LINEAR is None or x.dtype != torch.float32 or weight.dtype != torch.float32
+            or x.dim() != 2 or min(weight.shape) < _ONEDNN_MIN_SIZE):
+        return F.linear(x, weight, bias)
+    return _ONEDNN_LINEAR(x, weight, bias, 'none', [], '')
+
+
+class _LinearFunction(torch.autograd.Function):
+    """:func:`linear` with its gradient, each product through :func:`linear`."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor,
+                bias: torch.Tensor | None) -> torch.Tensor:
+        ctx.save_for_backward(x, weight)
+        ctx.has_bias = bias is not None
+        return linear(x, weight, bias)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        x, weight = ctx.saved_tensors
+        need_x, need_weight, need_bias = ctx.needs_input_grad
+        # oneDNN reads a transposed view slowly: the transposes are made contiguous first.
+        grad = grad.contiguous()
+        grad_x = linear(grad, weight.t().contiguous()) if need_x else None  # grad W
+        grad_weight = (linear(grad.t().contiguous(), x.t().contiguous())     # grad^T x
+                       if need_weight else None)
+        grad_bias = grad.sum(0) if need_bias and ctx.has_bias else None
+        return grad_x, grad_weight, grad_bias
+
+
+class Linear(nn.Linear):
+    """``nn.Linear`` (the same parameters and state dict) whose float32 products run through
+    :func:`linear`, its gradient too, where the weight is not thin. Where torch.compile traces
+    it or a ``torch.func`` transform runs it, and for any other dtype or shape, it is
+    ``nn.Linear`` itself."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if (_ONEDNN_LINEAR is None or x.dtype != torch.float32 or x.dim() != 2
+                or min(self.weight.shape) < _ONEDNN_MIN_SIZE
+                or torch.compiler.is_compiling()
+                or torch._C._are_functorch_transforms_active()):
+            return F.linear(x, self.weight, self.bias)
+        return _LinearFunction.apply(x, self.weight, self.bias)
+
+
 def mlp(n_in: int, n_out: int, hidden_sizes: Sequence[int]) -> nn.Sequential:
     """Fully connected ReLU network ``n_in -> hidden_sizes... -> n_out`` (linear output).
 
@@ -22,9 +94,9 @@ def mlp(n_in: int, n_out: int, hidden_sizes: Sequence[int]) -> nn.Sequential:
     layers: list[nn.Module] = []
     width = n_in
     for hidden in hidden_sizes:
-        layers += [nn.Linear(width, hidden), nn.ReLU(inplace=True)]
+        layers += [Linear(width, hidden), nn.ReLU(inplace=True)]
         width = hidden
-    layers.append(nn.Linear(width, n_out))
+    layers.append(Linear(width, n_out))
     return nn.Sequential(*layers)
 
 
@@ -94,8 +166,8 @@ class SquashedGaussianActor(nn.Module):
         # obs -> hidden_sizes (ReLU after each) -> two linear heads.
         self.trunk = nn.Sequential(mlp(obs_dim, hidden_sizes[-1], hidden_sizes[:-1]),
                                    nn.ReLU(inplace=True))
-        self.mean_head = nn.Linear(hidden_sizes[-1], n_u)
-        self.log_std_head = nn.Linear(hidden_sizes[-1], n_u)
+        self.mean_head = Linear(hidden_sizes[-1], n_u)
+        self.log_std_head = Linear(hidden_sizes[-1], n_u)
         self.register_buffer('action_center', (u_high + u_low) / 2.0)
         self.register_buffer('action_half_range', (u_high - u_low) / 2.0)
 
@@ -221,11 +293,11 @@ class _TwinMinimum(torch.autograd.Function):
         for critic in (first, second):
             h, hidden = x, []
             linears = critic.linears
-            for linear in linears[:-1]:
-                h = torch.relu_(F.linear(h, linear.weight, linear.bias))
+            for layer in linears[:-1]:
+                h = torch.relu_(linear(h, layer.weight, layer.bias))
                 hidden.append(h)
-            values.append(F.linear(h, linears[-1].weight, linears[-1].bias).squeeze(-1))
-            chains.append(([linear.weight for linear in linears], hidden))
+            values.append(linear(h, linears[-1].weight, linears[-1].bias).squeeze(-1))
+            chains.append(([layer.weight for layer in linears], hidden))
         ctx.chains = chains
         ctx.values = values
         ctx.obs_dim = obs.shape[-1]
@@ -244,8 +316,10 @@ class _TwinMinimum(torch.autograd.Function):
             weights, hidden = chain
             g = share[rows, None] @ weights[-1]
             for weight, h in zip(weights[-2::-1], hidden[::-1]):
-                # ReLU's backward (the gradient where its output is > 0) on these rows.
-                g = torch.ops.aten.threshold_backward(g, h.index_select(0, rows), 0.0) @ weight
+                # ReLU's backward (the gradient where its output is > 0) on these rows, then
+                # the product with the layer's weight (g W).
+                g = linear(torch.ops.aten.threshold_backward(g, h.index_select(0, rows), 0.0),
+                           weight.t().contiguous())
             part = g[:, ctx.obs_dim:]
             if grad_action is None:
                 grad_action = torch.zeros(grad.shape[0], part.shape[-1], dtype=part.dtype)

@@ -59,8 +59,11 @@ def _run(steps_per_s: float, *, qp: float = 0.0) -> dict:
             'steps_per_s': steps_per_s}
 
 
-def test_floor_takes_the_fastest_compile_mode_and_judges_the_step_against_it():
-    assert bench.best_compiled_ms(_run(1.0)['floor']) == ('max-autotune-no-cudagraphs', 5.0)
+def test_floor_takes_the_fastest_way_of_updating_and_judges_the_step_against_it():
+    assert bench.best_update_ms(_run(1.0)['floor']) == ('max-autotune-no-cudagraphs', 5.0)
+    faster_eager = _run(1.0)['floor']
+    faster_eager['variants']['eager'] = (4.0, 4.5)
+    assert bench.best_update_ms(faster_eager) == ('eager', 4.0)
     # floor 5 + 2 + 1 + 0.5 = 8.5 ms; a 10 ms step is 1.18x, a 12.5 ms step 1.47x.
     met = bench.floor_row('unicycle', 'diff', [_run(100.0, qp=2.0)]).split(' | ')
     assert met[3:5] == ['8.50', '5.00'] and met[-3:] == ['1.18x', '<= 1.25x', 'met |']
