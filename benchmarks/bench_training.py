@@ -181,7 +181,9 @@ def update_gflop(obs_dim: int, n_u: int, hidden: int = 256, batch: int = 256) ->
     Per sample, with A and C the multiply-adds of one actor and one critic forward pass:
     critic step = A (next action) + 2C (target critics) + 2C (critics) + 4C (their backward:
     input and weight gradients); actor step = A + 2C (critics) + 2C (backward to the action only,
-    critic weights frozen) + 2A (actor backward). Total 4A + 12C multiply-adds.
+    critic weights frozen) + 2A (actor backward). Total 4A + 12C multiply-adds: the compiled
+    update's count; the eager actor step's ``twin_minimum`` runs one critic's backward per
+    sample, 1C less, so the bound is a little above the eager update's least arithmetic.
     """
     actor = obs_dim * hidden + hidden * hidden + hidden * 2 * n_u
     critic = (obs_dim + n_u) * hidden + hidden * hidden + hidden
