@@ -7,6 +7,7 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 import torch
 from torch import nn
+from torch.autograd.function import once_differentiable
 import torch.nn.functional as F
 
 LOG_STD_MIN = -5.0
@@ -19,10 +20,12 @@ def _onednn_linear() -> Callable[..., torch.Tensor] | None:
     build of torch has it and it answers a small product exactly, else None."""
     try:
         kernel = torch.ops.mkldnn._linear_pointwise
-        out = kernel(torch.ones(2, 3), torch.full((4, 3), 2.0), torch.ones(4), 'none', [], '')
+        f32 = torch.float32
+        out = kernel(torch.ones(2, 3, dtype=f32), torch.full((4, 3), 2.0, dtype=f32),
+                     torch.ones(4, dtype=f32), 'none', [], '')
     except (AttributeError, RuntimeError):
         return None
-    return kernel if torch.equal(out, torch.full((2, 4), 7.0)) else None
+    return kernel if torch.equal(out, torch.full((2, 4), 7.0, dtype=f32)) else None
 
 
 _ONEDNN_LINEAR = _onednn_linear()
@@ -39,17 +42,20 @@ def linear(x: torch.Tensor, weight: torch.Tensor,
     not Intel's although they have AVX-512 (benchmarks/bench_training.py measures both
     kernels' rate on its machine); oneDNN takes the widest path the CPU has. Both are float32
     products (the order of the sums differs, so the results differ by rounding). Thin weights
-    (a side under ``_ONEDNN_MIN_SIZE``), float64 and anything else go to ``F.linear``. No
-    autograd graph: for the gradient use :class:`Linear`.
+    (a side under ``_ONEDNN_MIN_SIZE``), float64, ``torch.backends.mkldnn.enabled = False``
+    and anything else go to ``F.linear``. No autograd graph: for the gradient use
+    :class:`Linear`.
     """
     if (_ONEDNN_LINEAR is None or x.dtype != torch.float32 or weight.dtype != torch.float32
-            or x.dim() != 2 or min(weight.shape) < _ONEDNN_MIN_SIZE):
+            or x.dim() != 2 or min(weight.shape) < _ONEDNN_MIN_SIZE
+            or not torch.backends.mkldnn.enabled):
         return F.linear(x, weight, bias)
     return _ONEDNN_LINEAR(x, weight, bias, 'none', [], '')
 
 
 class _LinearFunction(torch.autograd.Function):
-    """:func:`linear` with its gradient, each product through :func:`linear`."""
+    """:func:`linear` with its gradient, each product through :func:`linear` (once
+    differentiable: a second derivative through it raises instead of coming out wrong)."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, weight: torch.Tensor,
@@ -59,6 +65,7 @@ class _LinearFunction(torch.autograd.Function):
         return linear(x, weight, bias)
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         x, weight = ctx.saved_tensors
         need_x, need_weight, need_bias = ctx.needs_input_grad
@@ -79,7 +86,7 @@ class Linear(nn.Linear):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if (_ONEDNN_LINEAR is None or x.dtype != torch.float32 or x.dim() != 2
-                or min(self.weight.shape) < _ONEDNN_MIN_SIZE
+                or min(self.weight.shape) < _ONEDNN_MIN_SIZE or not torch.backends.mkldnn.enabled
                 or torch.compiler.is_compiling()
                 or torch._C._are_functorch_transforms_active()):
             return F.linear(x, self.weight, self.bias)
@@ -298,18 +305,28 @@ class _TwinMinimum(torch.autograd.Function):
                 hidden.append(h)
             values.append(linear(h, linears[-1].weight, linears[-1].bias).squeeze(-1))
             chains.append(([layer.weight for layer in linears], hidden))
-        ctx.chains = chains
-        ctx.values = values
+        # Saved for backward, so that a weight changed before the backward pass raises.
+        ctx.sizes = [len(hidden) for _, hidden in chains]
+        ctx.save_for_backward(*values, *(t for weights, hidden in chains
+                                         for t in (*weights, *hidden)))
         ctx.obs_dim = obs.shape[-1]
         return torch.minimum(*values)
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-        first, second = ctx.values
+        first, second, *rest = ctx.saved_tensors
+        chains = []
+        for size in ctx.sizes:
+            weights, hidden = rest[:size + 1], rest[size + 1:2 * size + 1]
+            chains.append((weights, hidden))
+            rest = rest[2 * size + 1:]
         tie = first == second
         share = torch.where(tie, 0.5 * grad, grad)
         grad_action = None
-        for chain, picked in zip(ctx.chains, ((first < second) | tie, (second < first) | tie)):
+        # As torch.minimum's backward: a critic takes the rows where it is not above the other
+        # (at a tie half the gradient each; a NaN passes the gradient to both).
+        for chain, picked in zip(chains, (~(second < first), ~(first < second))):
             rows = picked.nonzero().squeeze(-1)
             if rows.numel() == 0:
                 continue
@@ -322,7 +339,8 @@ class _TwinMinimum(torch.autograd.Function):
                            weight.t().contiguous())
             part = g[:, ctx.obs_dim:]
             if grad_action is None:
-                grad_action = torch.zeros(grad.shape[0], part.shape[-1], dtype=part.dtype)
+                grad_action = torch.zeros(grad.shape[0], part.shape[-1], dtype=part.dtype,
+                                          device=part.device)
             grad_action.index_add_(0, rows, part)
         return grad_action, None, None, None
 
@@ -337,6 +355,9 @@ def twin_minimum(first: QNetwork, second: QNetwork, obs: torch.Tensor,
     floating-point sums), at a tie half through each, as autograd's."""
     if obs.requires_grad:
         raise ValueError('twin_minimum: obs must not require a gradient (the action only)')
+    if action.dim() != 2 or obs.dim() != 2:
+        raise ValueError(f'twin_minimum: obs and action must be (B, n), got '
+                         f'{tuple(obs.shape)} and {tuple(action.shape)}')
     return _TwinMinimum.apply(action, obs, first, second)
 
 

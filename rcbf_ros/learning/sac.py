@@ -28,8 +28,11 @@ learns the correction the filter would otherwise have to make; SAC is trained on
 (obs, u_rl) exactly as in ``baseline``.
 
 The safety layer is injected: any callable ``safety_layer(state: (B, n_x), u_rl: (B, n_u)) ->
-u_safe: (B, n_u)`` that is differentiable in ``u_rl`` (the RCBF-QP layer); only ``diff``
-needs it. It receives tensors in the agent's dtype (float32 by default) and may compute in
+u_safe: (B, n_u)`` that is differentiable in ``u_rl`` (the RCBF-QP layer) and answers each
+row on its own (an update calls it once on a minibatch's states and next states side by side,
+2B rows; the RCBF-QP's per-sample answers are unique, its solver's iteration budget alone is
+shared by the batch, which matters only to a sample the active-set rounds do not settle); only
+``diff`` needs it. It receives tensors in the agent's dtype (float32 by default) and may compute in
 float64 internally; its output is cast back to the agent's dtype. When a batch carries the
 disturbance estimate at a batch's states is given to the losses (:class:`BatchDisturbance`),
 the layer is called with it as a third argument, ``(mean, std)``, instead of predicting it.

@@ -131,3 +131,38 @@ def test_equal_seeds_train_bit_identical_networks_through_onednn(counted):
         assert torch.equal(ours, theirs)
     for ours, theirs in zip(agents[0].q1.parameters(), agents[1].q1.parameters()):
         assert torch.equal(ours, theirs)
+
+
+@needs_onednn
+def test_a_second_derivative_through_the_onednn_layer_raises_instead_of_being_wrong():
+    layer = _layer(64, 64, 10)
+    x = torch.randn(8, 64).requires_grad_(True)
+    (first,) = torch.autograd.grad(torch.tanh(layer(x)).sum(), x, create_graph=True)
+    with pytest.raises(RuntimeError, match='once_differentiable|not have been used'):
+        torch.autograd.grad(first.sum(), x)
+
+
+def test_mkldnn_switched_off_is_f_linear_bit_for_bit(counted):
+    layer = _layer(128, 128, 11)
+    x = torch.randn(16, 128)
+    with torch.backends.mkldnn.flags(enabled=False):
+        assert torch.equal(layer(x), F.linear(x, layer.weight, layer.bias))
+    assert counted == []
+
+
+def test_twin_minimum_checks_its_critics_weights_and_passes_a_nan_as_torch_minimum_does():
+    first, second = (QNetwork(3, 2, (8,)).to(torch.float64) for _ in range(2))
+    obs = torch.randn(6, 3, dtype=torch.float64)
+    action = torch.randn(6, 2, dtype=torch.float64, requires_grad=True)
+    value = twin_minimum(first, second, obs, action)
+    with torch.no_grad():
+        first.net[0].weight.add_(1.0)   # changed between the loss and its backward
+    with pytest.raises(RuntimeError, match='modified by an inplace operation'):
+        value.sum().backward()
+    obs[2] = float('nan')
+    ours = torch.autograd.grad(twin_minimum(first, second, obs, action).sum(), action)[0]
+    reference = action.detach().clone().requires_grad_(True)
+    expected = torch.autograd.grad(
+        torch.minimum(first(obs, reference), second(obs, reference)).sum(), reference)[0]
+    torch.testing.assert_close(ours, expected, equal_nan=True, rtol=1e-12, atol=1e-14)
+    assert bool((ours[2] != 0).any())   # the NaN sample's gradient reached the action
