@@ -42,29 +42,27 @@ steps (a data point every 2nd step, a refit every 200 points; during its first 1
 Own floor (the goal: a training step at most 1.25x it, measured in the same run): the SAC
 update's best time (compiled, or eager where that is faster), plus the differentiable QP's
 forward and backward where the mode trains through it, plus the action and the environment
-step. The update: after each system's
-first timed window, the whole update of the learner's agent as it stands (networks, Adam
-moments, alpha), the one ``SACConfig.compile_update`` runs (benchmarks/_update_floor.py),
-compiled with ``torch.compile(fullgraph=True)`` in each of ``--floor-modes`` and called
-``--floor-calls`` times on minibatches from the buffer, interleaved with the eager
-``SAC.update``; its part of the floor is the best call of the fastest of them, the eager
-update included (its hidden-layer products run through oneDNN, the compiled graph's through
-MKL: on a CPU where MKL takes its AVX2 path the eager update is the faster). The first call of each
-mode compiles (its one-off cost is printed, never timed in) and is checked against
-``SAC.update`` from the same state on the same batch and noise draws (the largest parameter
-difference is printed). The QP: 30 minibatches from the buffer, each timed in two ways that
-give the same actions and gradients: as both updates run the layer (one forward of both halves
-side by side, the backward from the states' half) and with the layer called apart for the
-critic target and the actor loss (forward at the next states without gradient, forward and
-backward at the states), at the actor's samples, with the memoised disturbance estimate; its
-part is the best of them (a minibatch of 256 averages over the states, so
+step. The update: after each system's first timed window, the whole update of the learner's
+agent as it stands (networks, Adam moments, alpha), the one ``SACConfig.compile_update`` runs
+(benchmarks/_update_floor.py), compiled with ``torch.compile(fullgraph=True)`` in each of
+``--floor-modes`` and called ``--floor-calls`` times on minibatches from the buffer,
+interleaved with the eager ``SAC.update``; its part of the floor is the best call of the
+fastest of them, the eager update included (its hidden-layer products run through oneDNN, the
+compiled graph's through MKL: on a CPU where MKL takes its AVX2 path the eager update is the
+faster). The first call of each mode compiles (its one-off cost is printed, never timed in) and
+is checked against ``SAC.update`` from the same state on the same batch and noise draws (the
+largest parameter difference is printed). The QP: 30 minibatches from the buffer, each timed in
+two ways that give the same actions and gradients: as both updates run the layer (one forward
+of both halves side by side, the backward from the states' half) and with the layer called
+apart for the critic target and the actor loss (forward at the next states without gradient,
+forward and backward at the states), at the actor's samples, with the memoised disturbance
+estimate; its part is the best of them (a minibatch of 256 averages over the states, so
 minibatches differ little; other load on the machine only adds). The action (policy + GP +
-filter) and the environment step (``env.step`` alone): medians over the timed window. The
-step: 1000 / steady-state steps/s. Reported per row: step ms, floor ms and its parts,
-step / floor against the target. Beyond the floor: the eager update (unless
-``--compile-update``), storing the transition and the GP's residual pair, drawing the
-minibatch (and its memoised disturbance estimate), the model-based rollouts (``--model-based``
-rows), Python between the parts.
+filter) and the environment step (``env.step`` alone): medians over the timed window. The step:
+1000 / steady-state steps/s. Reported per row: step ms, floor ms and its parts, step / floor
+against the target. Beyond the floor: the eager update (unless ``--compile-update``), storing
+the transition and the GP's residual pair, drawing the minibatch (and its memoised disturbance
+estimate), the model-based rollouts (``--model-based`` rows), Python between the parts.
 
 ``--compile-update``: ours trains with ``SACConfig.compile_update`` in every row (without a
 safety layer in the losses the update the floor times; where the losses pass the layer, diff

@@ -46,11 +46,16 @@ def linear(x: torch.Tensor, weight: torch.Tensor,
     and anything else go to ``F.linear``. No autograd graph: for the gradient use
     :class:`Linear`.
     """
-    if (_ONEDNN_LINEAR is None or x.dtype != torch.float32 or weight.dtype != torch.float32
-            or x.dim() != 2 or min(weight.shape) < _ONEDNN_MIN_SIZE
-            or not torch.backends.mkldnn.enabled):
+    if not _onednn_takes(x, weight):
         return F.linear(x, weight, bias)
     return _ONEDNN_LINEAR(x, weight, bias, 'none', [], '')
+
+
+def _onednn_takes(x: torch.Tensor, weight: torch.Tensor) -> bool:
+    """Whether :func:`linear` runs x W^T through oneDNN (its docstring says when)."""
+    return (_ONEDNN_LINEAR is not None and x.dtype == torch.float32
+            and weight.dtype == torch.float32 and x.dim() == 2
+            and min(weight.shape) >= _ONEDNN_MIN_SIZE and torch.backends.mkldnn.enabled)
 
 
 class _LinearFunction(torch.autograd.Function):
@@ -85,9 +90,7 @@ class Linear(nn.Linear):
     ``nn.Linear`` itself."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if (_ONEDNN_LINEAR is None or x.dtype != torch.float32 or x.dim() != 2
-                or min(self.weight.shape) < _ONEDNN_MIN_SIZE or not torch.backends.mkldnn.enabled
-                or torch.compiler.is_compiling()
+        if (not _onednn_takes(x, self.weight) or torch.compiler.is_compiling()
                 or torch._C._are_functorch_transforms_active()):
             return F.linear(x, self.weight, self.bias)
         return _LinearFunction.apply(x, self.weight, self.bias)

@@ -28,12 +28,12 @@ learns the correction the filter would otherwise have to make; SAC is trained on
 (obs, u_rl) exactly as in ``baseline``.
 
 The safety layer is injected: any callable ``safety_layer(state: (B, n_x), u_rl: (B, n_u)) ->
-u_safe: (B, n_u)`` that is differentiable in ``u_rl`` (the RCBF-QP layer) and answers each
-row on its own (an update calls it once on a minibatch's states and next states side by side,
-2B rows; the RCBF-QP's per-sample answers are unique, its solver's iteration budget alone is
+u_safe: (B, n_u)`` that is differentiable in ``u_rl`` (the RCBF-QP layer) and answers each row
+on its own (an update calls it once on a minibatch's states and next states side by side, 2B
+rows; the RCBF-QP's per-sample answers are unique, its solver's iteration budget alone is
 shared by the batch, which matters only to a sample the active-set rounds do not settle); only
-``diff`` needs it. It receives tensors in the agent's dtype (float32 by default) and may compute in
-float64 internally; its output is cast back to the agent's dtype. When a batch carries the
+``diff`` needs it. It receives tensors in the agent's dtype (float32 by default) and may
+compute in float64 internally; its output is cast back to the agent's dtype. When the
 disturbance estimate at a batch's states is given to the losses (:class:`BatchDisturbance`),
 the layer is called with it as a third argument, ``(mean, std)``, instead of predicting it.
 """
@@ -477,8 +477,8 @@ class SAC:
         :meth:`critic_target` and :meth:`actor_loss` draw them (the same noise), then the layer
         runs once on (x_t, a) and (x_{t+1}, a') side by side: each sample's QP has its own
         solution, so this is the two calls of those methods in one solve of 2B problems (the
-        solver's batch-wide choices change only its rounding), and the layer's cost is mostly
-        per call. The actor's weights change only at its own Adam step, after the critics',
+        layer must answer each row on its own: module docstring), and the layer's cost is
+        mostly per call. The actor's weights change only at its own Adam step, after the critics',
         so sampling a before the critics' step draws what :meth:`actor_loss` would draw after
         it. Returns the safe action at x_t (differentiable in the actor's weights), log pi(a|x_t),
         the safe action at x_{t+1} (detached) and log pi(a'|x_{t+1})."""
