@@ -52,10 +52,12 @@ def linear(x: torch.Tensor, weight: torch.Tensor,
 
 
 def _onednn_takes(x: torch.Tensor, weight: torch.Tensor) -> bool:
-    """Whether :func:`linear` runs x W^T through oneDNN (its docstring says when)."""
+    """Whether :func:`linear` runs x W^T through oneDNN (its docstring says when). Shapes that
+    do not fit go to ``F.linear``, whose error names them (oneDNN's does not)."""
     return (_ONEDNN_LINEAR is not None and x.dtype == torch.float32
             and weight.dtype == torch.float32 and x.dim() == 2
-            and min(weight.shape) >= _ONEDNN_MIN_SIZE and torch.backends.mkldnn.enabled)
+            and x.shape[1] == weight.shape[1] and min(weight.shape) >= _ONEDNN_MIN_SIZE
+            and torch.backends.mkldnn.enabled)
 
 
 class _LinearFunction(torch.autograd.Function):

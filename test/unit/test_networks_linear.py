@@ -166,3 +166,9 @@ def test_twin_minimum_checks_its_critics_weights_and_passes_a_nan_as_torch_minim
         torch.minimum(first(obs, reference), second(obs, reference)).sum(), reference)[0]
     torch.testing.assert_close(ours, expected, equal_nan=True, rtol=1e-12, atol=1e-14)
     assert bool((ours[2] != 0).any())   # the NaN sample's gradient reached the action
+
+
+def test_an_input_of_the_wrong_width_gets_torchs_error_naming_the_shapes():
+    layer = _layer(128, 128, 12)
+    with pytest.raises(RuntimeError, match='shapes cannot be multiplied'):
+        layer(torch.randn(4, 100))
