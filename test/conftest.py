@@ -15,9 +15,17 @@ import signal
 import subprocess
 from typing import Mapping
 
+from hypothesis import settings
 import pytest
 
 from rcbf_ros.ros.loopback import ensure_loopback
+
+# CI runs the property tests on Hypothesis's fixed, per-test example sequence, so that a run
+# is repeatable; a local run keeps searching new examples (where it finds a failure, add it
+# to the test with @example).
+settings.register_profile('ci', derandomize=True, database=None)
+if os.environ.get('CI') == 'true':
+    settings.load_profile('ci')
 
 # Before any DDS participant can exist: no traffic may leave the machine.
 ensure_loopback(force=True)
