@@ -47,13 +47,13 @@ Cholesky), gives dL/dP, dL/dq, dL/dG, dL/dh (and supports a loss on lam).
 
 Diagonal P (the RCBF-QP's; :func:`_diagonal_of`): at these sizes the per-operation overhead
 dominates, so the solver skips factorisations where a closed form is exact: the unconstrained
-minimiser -q / diag(P), the second round from the empty set (one row a:
-nu = (a P^-1 (-q) - h_a) / (a P^-1 a^T)), later rounds and the backward pass wherever a sample
-has at most two active rows (the 2 x 2 system A P^-1 A^T nu = A P^-1 rhs - h_A by its inverse,
-refined once; :func:`_kkt_solve_two_rows`), and in the backward pass the samples without active
-rows (P^-1 grad). Acceptance is unchanged (a closed form that is not finite, or whose two rows
-are close to dependent, is declined and the general path takes over). A batch-shared P and q
-(expanded views, as the RCBF-QP's) are checked and scaled once per batch.
+minimiser -q / diag(P), the second round from the empty set (one row a: nu = (a P^-1 (-q) - h_a) /
+(a P^-1 a^T), refined once), later rounds and the backward pass wherever a sample has at most two
+active rows (the 2 x 2 system A P^-1 A^T nu = A P^-1 rhs - h_A by its inverse, refined once;
+:func:`_kkt_solve_two_rows`), and in the backward pass the samples without active rows (P^-1 grad).
+Acceptance is unchanged (a closed form that is not finite, or whose two rows are close to
+dependent, is declined and the general path takes over). A batch-shared P and q (expanded views, as
+the RCBF-QP's) are checked and scaled once per batch.
 
 Before solving, variables are scaled to unit Hessian diagonal (the slack weight l ~ 1e3-1e6
 otherwise dominates the conditioning) and constraint rows to unit norm. Both scalings are
@@ -355,8 +355,10 @@ def _kkt_solve_one_row(diagonal: Tensor, G: Tensor, active: Tensor, rhs_z: Tenso
 
     With P = diag(d) and the single active row a: x = (rhs_z - a nu) / d and a x = rhs_nu give
     nu = (a (rhs_z / d) - rhs_nu) / (a (a / d)); without an active row x = rhs_z / d, nu = 0.
-    Exact to rounding (no regularisation, no refinement); a zero row yields a non-finite x,
-    which the callers' acceptance test rejects.
+    No regularisation; one step of iterative refinement on the row's residual (large row norms
+    against a small diagonal otherwise leave it above the rounding level the general solve's
+    refinement reaches). A zero row yields a non-finite x, which the callers' acceptance test
+    rejects.
 
     diagonal: (B, n) > 0, G: (B, m, n), active: (B, m) bool with at most one True per sample,
     rhs_z: (B, n), rhs_nu: (B, m). Returns x: (B, n), nu: (B, m) (zero on inactive rows).
@@ -367,9 +369,13 @@ def _kkt_solve_one_row(diagonal: Tensor, G: Tensor, active: Tensor, rhs_z: Tenso
     x_free = rhs_z / diagonal
     scaled = row / diagonal
     gram = (row * scaled).sum(-1, keepdim=True)
-    nu = torch.where(has_row, ((row * x_free).sum(-1, keepdim=True)
-                               - (rhs_nu * mask).sum(-1, keepdim=True)) / gram, 0.0)
-    return x_free - scaled * nu, nu * mask
+    target = (rhs_nu * mask).sum(-1, keepdim=True)
+    nu = torch.where(has_row, ((row * x_free).sum(-1, keepdim=True) - target) / gram, 0.0)
+    x = x_free - scaled * nu
+    # One refinement step on the row's own residual a x - rhs_nu (what the rounding of gram
+    # and of x left), as in the two-row form: nu += (a x - rhs_nu) / gram, x -= that / d.
+    step = torch.where(has_row, ((row * x).sum(-1, keepdim=True) - target) / gram, 0.0)
+    return x - scaled * step, (nu + step) * mask
 
 
 _TWO_ROW_CONDITION = 1e-6
