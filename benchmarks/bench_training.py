@@ -42,7 +42,8 @@ steps (a data point every 2nd step, a refit every 200 points; during its first 1
 Own floor (the goal: a training step at most 1.25x it, measured in the same run): the SAC
 update's best time (compiled, or eager where that is faster), plus the differentiable QP's
 forward and backward where the mode trains through it, plus the action and the environment
-step. The update: after each system's first timed window, the whole update of the learner's
+step, each run's measured right after its timed window (host speed that drifts between minutes
+then moves a run's step and its floor alike). The update: the whole update of the learner's
 agent as it stands (networks, Adam moments, alpha), the one ``SACConfig.compile_update`` runs
 (benchmarks/_update_floor.py), compiled with ``torch.compile(fullgraph=True)`` in each of
 ``--floor-modes`` and called ``--floor-calls`` times on minibatches from the buffer,
@@ -59,10 +60,11 @@ forward and backward at the states), at the actor's samples, with the memoised d
 estimate; its part is the best of them (a minibatch of 256 averages over the states, so
 minibatches differ little; other load on the machine only adds). The action (policy + GP +
 filter) and the environment step (``env.step`` alone): medians over the timed window. The step:
-1000 / steady-state steps/s. Reported per row: step ms, floor ms and its parts, step / floor
-against the target. Beyond the floor: the eager update (unless ``--compile-update``), storing
-the transition and the GP's residual pair, drawing the minibatch (and its memoised disturbance
-estimate), the model-based rollouts (``--model-based`` rows), Python between the parts.
+1000 / steady-state steps/s. Reported per row: step ms, floor ms and its parts (medians over
+the runs), step / floor against the target (the median of the runs' own ratios, each shown).
+Beyond the floor: the eager update (unless ``--compile-update``), storing the transition and
+the GP's residual pair, drawing the minibatch (and its memoised disturbance estimate), the
+model-based rollouts (``--model-based`` rows), Python between the parts.
 
 ``--compile-update``: ours trains with ``SACConfig.compile_update`` in every row (without a
 safety layer in the losses the update the floor times; where the losses pass the layer, diff
@@ -235,11 +237,12 @@ def update_floor(learner: SafeLearner, *, modes: list[str], calls: int) -> dict:
 
 
 def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
-            threads: int, floor: dict | None = None, floor_modes: list[str] | None = None,
+            threads: int, floor_modes: list[str] | None = None,
             floor_calls: int = 200, compile_update: bool = False) -> dict:
-    """Ours in-process: ``warmup`` untimed steps, then ``steps`` stamped steps; then the
-    floor's parts (see the module docstring). ``floor``: the system's update floor from an
-    earlier row, else measured here (``floor_modes``; None: no floor). ``compile_update``:
+    """Ours in-process: ``warmup`` untimed steps, then ``steps`` stamped steps; then, right
+    after them, the floor's parts (see the module docstring; ``floor_modes`` None or empty:
+    no floor), so that each run's step is held against a floor measured within seconds of
+    it. ``compile_update``:
     train with ``SACConfig.compile_update`` (its first update, which compiles, then falls on
     the last warm-up step; ``first_update_s`` is its time)."""
     learner_cfg = LearnerConfig(mode=mode, model_based=model_based, seed=0,
@@ -311,8 +314,8 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
         one_step(True)
     stamps.append(time.perf_counter())
     cpu_stamps.append(time.process_time())
-    if floor is None and floor_modes:
-        floor = update_floor(learner, modes=floor_modes, calls=floor_calls)
+    floor = (update_floor(learner, modes=floor_modes, calls=floor_calls) if floor_modes
+             else None)
     return {
         'floor': floor,
         'qp_ms': (qp_parts_ms(learner, draws=30) if floor is not None
@@ -382,15 +385,19 @@ def comparison_row(system: str, mode: str, ours: list[dict], ref: list[dict]) ->
 
 
 def floor_row(system: str, name: str, ours: list[dict]) -> str:
-    """One row of the own-floor table: medians over the row's repeats."""
-    update_ms = best_update_ms(ours[0]['floor'])[1]
-    floors = [update_ms + run['qp_ms'] + run['action_ms'] + run['env_ms'] for run in ours]
+    """One row of the own-floor table: each run's step against the floor measured right
+    after it; the ratio is the median of those per-run ratios (each shown), the other
+    columns medians over the runs."""
+    updates = [best_update_ms(run['floor'])[1] for run in ours]
+    floors = [update + run['qp_ms'] + run['action_ms'] + run['env_ms']
+              for update, run in zip(updates, ours)]
     ratios = [1e3 / run['steps_per_s'] / floor for run, floor in zip(ours, floors)]
     ratio = statistics.median(ratios)
+    per_run = f' ({", ".join(f"{r:.2f}" for r in ratios)})' if len(ratios) > 1 else ''
     return (f'| {system} | {name} | {1e3 / _median(ours, "steps_per_s"):.2f} '
-            f'| {statistics.median(floors):.2f} | {update_ms:.2f} '
+            f'| {statistics.median(floors):.2f} | {statistics.median(updates):.2f} '
             f'| {_median(ours, "qp_ms"):.2f} | {_median(ours, "action_ms"):.2f} '
-            f'| {_median(ours, "env_ms"):.2f} | {ratio:.2f}x '
+            f'| {_median(ours, "env_ms"):.2f} | {ratio:.2f}x{per_run} '
             f'| <= {FLOOR_TARGET:g}x | {"met" if ratio <= FLOOR_TARGET else "not met"} |')
 
 
@@ -402,20 +409,29 @@ def best_update_ms(floor: dict) -> tuple[str, float]:
     return way, best[way]
 
 
-def floor_reading(update_floors: dict[str, dict], calls: int) -> str:
-    """The floor's method and the update measurements behind it, per system."""
+def floor_reading(update_floors: dict[str, list[dict]], calls: int) -> str:
+    """The floor's method and the update measurements behind it, per system: each way's
+    best and median call, as medians over the system's measurements (one after each run)."""
     parts = []
-    for key, floor in update_floors.items():
+    for key, measured in update_floors.items():
         system, threads = key.split('/')
-        variants = '; '.join(f'{name} {best:.2f} (median {median:.2f})'
-                             for name, (best, median) in floor['variants'].items())
-        compile_s = ', '.join(f'{mode} {seconds:.0f} s'
-                              for mode, seconds in floor['compile_s'].items())
-        agreement = max(floor['agreement'].values())
+        names = list(measured[0]['variants'])
+        variants = '; '.join(
+            f'{name} {statistics.median(m["variants"][name][0] for m in measured):.2f} '
+            f'(median {statistics.median(m["variants"][name][1] for m in measured):.2f})'
+            for name in names)
+        modes = list(measured[0]['compile_s'])
+        compile_s = ', '.join(f'{mode} {max(m["compile_s"][mode] for m in measured):.0f} s'
+                              for mode in modes)
+        agreement = max((max(m['agreement'].values()) for m in measured if m['agreement']),
+                        default=0.0)
+        count = len(measured)
         parts.append(f'{system} ({threads} thread{"s" if threads != "1" else ""}): update ms, '
-                     f"best of {calls} calls: {variants}; one-off compile {compile_s} (torch's "
-                     'compile cache on disk shortens it after a first run); largest '
-                     f'parameter difference to SAC.update after one step {agreement:.1e}.')
+                     f'best of {calls} calls, median over {count} measurement'
+                     f'{"s" if count != 1 else ""}: {variants}; one-off compile, longest: '
+                     f"{compile_s} (torch's compile cache on disk shortens it after a first "
+                     'run); largest parameter difference to SAC.update after one step '
+                     f'{agreement:.1e}.')
     return (
         "Floor: the SAC update's best time, the faster of the eager SAC.update and the "
         'whole update as one function compiled with torch.compile(fullgraph=True) in each mode '
@@ -427,7 +443,11 @@ def floor_reading(update_floors: dict[str, dict], calls: int) -> str:
         'backward at the states, as two calls or as one of both halves, the better; best of '
         '30 minibatches from the buffer), plus the action '
         '(policy + GP + filter) and the environment step (each the median over the timed '
-        'window). "step ms" is the steady-state step (1000 / steps/s). What the step does '
+        "window), measured after each run's window and held against that run's step; "
+        'step / floor is the median of those ratios (per run in brackets). "step ms" is the '
+        "steady-state step (1000 / steps/s): a mean over the window, where the update's part "
+        "of the floor is a best call (the same calls' median lies above it by the spread of "
+        "the host's speed: both are listed below). What the step does "
         'beyond the floor: the eager update instead of the compiled one (unless '
         "--compile-update; the eager actor step runs each sample's action gradient through "
         "the critic of its minimum only, the compiled one through both), storing the "
@@ -500,7 +520,7 @@ def main() -> None:
                  '|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|']
     floors = {}
     first_updates: list[str] = []
-    update_floors: dict[str, dict] = {}
+    update_floors: dict[str, list[dict]] = {}
     row_loads = []
     try:
         for system, mode, mb in configs:
@@ -509,12 +529,12 @@ def main() -> None:
                 ours, ref = [], []
                 for _ in range(args.repeats if paired else 1):
                     ours.append(measure(system, mode, mb, args.steps, args.warmup, threads,
-                                        floor=update_floors.get(f'{system}/{threads}'),
                                         floor_modes=args.floor_modes,
                                         floor_calls=args.floor_calls,
                                         compile_update=args.compile_update))
                     if ours[-1]['floor'] is not None:
-                        update_floors[f'{system}/{threads}'] = ours[-1]['floor']
+                        update_floors.setdefault(f'{system}/{threads}', []).append(
+                            ours[-1]['floor'])
                     torch.set_num_threads(1)
                     if paired:
                         ref.append(measure_reference(args.reference, args.reference_python,

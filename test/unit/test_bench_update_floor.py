@@ -71,10 +71,26 @@ def test_floor_takes_the_fastest_way_of_updating_and_judges_the_step_against_it(
     assert missed.endswith('| 1.47x | <= 1.25x | not met |')
 
 
+def test_each_run_is_held_against_the_floor_measured_after_it():
+    # Run 1: floor 5 + 2 + 1 + 0.5 = 8.5 ms, step 10 ms: 1.18x. Run 2, its update timed 1.5x
+    # slower (the host's speed moved): best call 7.5 ms, floor 11 ms, step 13.3 ms: 1.21x.
+    # Against run 1's floor, run 2's step would be 1.57x.
+    slow = _run(75.0, qp=2.0)
+    slow['floor']['variants'] = {name: (1.5 * best, 1.5 * median) for name, (best, median)
+                                 in slow['floor']['variants'].items()}
+    cells = bench.floor_row('pvtol', 'diff', [_run(100.0, qp=2.0), slow]).split(' | ')
+    assert cells[3:5] == ['9.75', '6.25']          # medians of the floors and update parts
+    assert cells[-3:] == ['1.19x (1.18, 1.21)', '<= 1.25x', 'met |']
+
+
 def test_floor_reading_names_compile_cost_and_agreement():
-    text = bench.floor_reading({'unicycle/1': _run(1.0)['floor']}, 200)
-    assert 'one-off compile default 40 s, max-autotune-no-cudagraphs 60 s (torch' in text
-    assert 'after one step 2.0e-06' in text and 'best of 200 calls' in text
+    second = _run(1.0)['floor']
+    second['variants']['eager'] = (11.0, 12.5)
+    second['compile_s']['default'] = 2.0
+    text = bench.floor_reading({'unicycle/1': [_run(1.0)['floor'], second]}, 200)
+    assert 'one-off compile, longest: default 40 s, max-autotune-no-cudagraphs 60 s' in text
+    assert 'after one step 2.0e-06' in text
+    assert 'best of 200 calls, median over 2 measurements: eager 10.00 (median 11.00)' in text
 
 
 def test_compile_update_needs_a_warm_up_longer_than_the_batch(monkeypatch, capsys):
