@@ -423,8 +423,7 @@ def floor_reading(update_floors: dict[str, list[dict]], calls: int) -> str:
         modes = list(measured[0]['compile_s'])
         compile_s = ', '.join(f'{mode} {max(m["compile_s"][mode] for m in measured):.0f} s'
                               for mode in modes)
-        agreement = max((max(m['agreement'].values()) for m in measured if m['agreement']),
-                        default=0.0)
+        agreement = max(max(m['agreement'].values()) for m in measured)
         count = len(measured)
         parts.append(f'{system} ({threads} thread{"s" if threads != "1" else ""}): update ms, '
                      f'best of {calls} calls, median over {count} measurement'

@@ -370,11 +370,16 @@ def _kkt_solve_one_row(diagonal: Tensor, G: Tensor, active: Tensor, rhs_z: Tenso
     scaled = row / diagonal
     gram = (row * scaled).sum(-1, keepdim=True)
     target = (rhs_nu * mask).sum(-1, keepdim=True)
-    nu = torch.where(has_row, ((row * x_free).sum(-1, keepdim=True) - target) / gram, 0.0)
+
+    def correction(x: Tensor) -> Tensor:
+        """(a x - rhs_nu) / gram: the multiplier that moves x onto the row."""
+        return torch.where(has_row, ((row * x).sum(-1, keepdim=True) - target) / gram, 0.0)
+
+    nu = correction(x_free)
     x = x_free - scaled * nu
-    # One refinement step on the row's own residual a x - rhs_nu (what the rounding of gram
-    # and of x left), as in the two-row form: nu += (a x - rhs_nu) / gram, x -= that / d.
-    step = torch.where(has_row, ((row * x).sum(-1, keepdim=True) - target) / gram, 0.0)
+    # One refinement step on the row's own residual (what the rounding of gram and of x
+    # left), as in the two-row form.
+    step = correction(x)
     return x - scaled * step, (nu + step) * mask
 
 

@@ -437,13 +437,14 @@ class SAC:
         return loss, q1, q2, target
 
     def actor_loss(self, batch: TransitionBatch, noise: torch.Tensor | None = None,
-                   disturbance: BatchDisturbance | None = None
+                   disturbance: BatchDisturbance | None = None, critics_fixed: bool = False
                    ) -> tuple[torch.Tensor, torch.Tensor]:
         """J_pi = E[alpha log pi(a|x) - min_i Q_i(x, action(a))], and log pi(a|x): (B,).
 
         Args:
             noise: optional (B, n_u) standard normal draw for a ~ pi(.|x_t).
             disturbance: as in :meth:`critic_target`.
+            critics_fixed: as in :meth:`_actor_loss_at`.
         """
         sample = self.actor(batch.obs, noise=noise, generator=self.generator)
         action = sample.action
@@ -452,7 +453,8 @@ class SAC:
             # (modular: the envelope's layer).
             action = self._safe_action(batch.state, action,
                                        None if disturbance is None else disturbance.state)
-        return self._actor_loss_at(batch.obs, action, sample.log_prob), sample.log_prob
+        return (self._actor_loss_at(batch.obs, action, sample.log_prob, critics_fixed),
+                sample.log_prob)
 
     def _actor_loss_at(self, obs: torch.Tensor, action: torch.Tensor, log_prob: torch.Tensor,
                        critics_fixed: bool = False) -> torch.Tensor:
@@ -524,10 +526,9 @@ class SAC:
         # (twin_minimum: no weight gradients, each sample through the critic of its minimum).
         actor_step = self._step('actor')
         if safe is None:
-            # eq. pi_update (unconstrained, baselines, modular without a layer): Q(x, a).
-            sample = self.actor(batch.obs, generator=self.generator)
-            safe, log_prob = sample.action, sample.log_prob
-        actor_loss = self._actor_loss_at(batch.obs, safe, log_prob, critics_fixed=True)
+            actor_loss, log_prob = self.actor_loss(batch, critics_fixed=True)
+        else:
+            actor_loss = self._actor_loss_at(batch.obs, safe, log_prob, critics_fixed=True)
         actor_step.zero_grad()
         actor_loss.backward()
         actor_step()
