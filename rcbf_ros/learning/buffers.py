@@ -81,13 +81,21 @@ class ReplayBuffer:
         self._position = 0
         self._size = 0
         self._generator = torch.Generator().manual_seed(seed)
-        # The memo of predictions (allocated at the first call of ``predictions``): per slot,
-        # the model version it was computed for, -1 when none or the slot was written since.
+        # The memo of predictions (allocated at its first use): per slot and half (state, next
+        # state), the model version it was computed for, -1 when none or the slot was written
+        # since.
         self._predicted: torch.Tensor | None = None
-        self._predicted_version = torch.full((capacity,), -1, dtype=torch.int64)
+        self._predicted_version = torch.full((capacity, 2), -1, dtype=torch.int64)
 
     def __len__(self) -> int:
         return self._size
+
+    @property
+    def newest(self) -> int:
+        """The slot of the transition added last (the buffer must not be empty)."""
+        if self._size == 0:
+            raise ValueError('the buffer is empty')
+        return (self._position - 1) % self.capacity
 
     def add(self, *, obs: ArrayLike, state: ArrayLike, u_rl: ArrayLike, u_safe: ArrayLike,
             u_s: ArrayLike, reward: ArrayLike, next_obs: ArrayLike, next_state: ArrayLike,
@@ -152,28 +160,55 @@ class ReplayBuffer:
         """A model's (mean, std) at the state and the next state of the transitions at
         ``index``.
 
-        Memoised per slot: ``predict`` runs, in one call, only on the slots never predicted,
-        written since, or predicted for another ``version`` of the model. The caller changes
-        ``version`` whenever the model's predictions change (a GP refit); the result then equals
-        ``predict`` on the gathered states, up to the round-off of the batch it ran in.
+        Memoised per slot and state: ``predict`` runs, in one call, only on the states never
+        predicted, written since, or predicted for another ``version`` of the model. The caller
+        changes ``version`` whenever the model's predictions change (a GP refit); the result
+        then equals ``predict`` on the gathered states, up to the round-off of the batch it ran
+        in, or, where :meth:`remember` filled the memo, the model's prediction at the state as
+        it was before it was stored in the buffer's dtype.
         """
+        memo = self._memo()
+        if bool((self._predicted_version[index] != version).any()):
+            unique = torch.unique(index)
+            stale = self._predicted_version[unique] != version  # (U, 2)
+            slot, half = stale.nonzero(as_tuple=True)
+            slot = unique[slot]
+            states = torch.where((half == 0)[:, None], self._data['state'][slot],
+                                 self._data['next_state'][slot]).to(torch.float64)
+            mean, std = predict(states)
+            memo[slot, half] = torch.stack([mean, std], dim=1).to(torch.float64)
+            self._predicted_version[slot, half] = version
+        rows = memo[index]
+        return BatchDisturbance(state=rows[:, 0], next_state=rows[:, 1])
+
+    def remember(self, slot: int, half: int, state: np.ndarray, mean: np.ndarray,
+                 std: np.ndarray, *, version: int) -> bool:
+        """Put a prediction made elsewhere into the memo of :meth:`predictions`: the model's
+        (mean, std) at ``state``, for the state (``half`` 0) or the next state (1) of the
+        transition in ``slot``, computed by ``version`` of the model (the learner's acting path
+        predicts every state it acts in, which is the state of the transition it stores next
+        and the next state of the one before).
+
+        Kept only if the slot holds that state (``state`` in the buffer's dtype equals the
+        stored one); returns whether it was kept."""
+        # In numpy, on views of the tensors: a few element writes, no tensor op per step.
+        table = self._table.numpy()
+        stored = table[slot, self._columns[('state', 'next_state')[half]]]
+        if not np.array_equal(np.asarray(state).astype(stored.dtype), stored):
+            return False
+        memo = self._memo().numpy()
+        memo[slot, half, 0] = mean
+        memo[slot, half, 1] = std
+        self._predicted_version.numpy()[slot, half] = version
+        return True
+
+    def _memo(self) -> torch.Tensor:
+        """(capacity, 2 halves, 2 [mean, std], state_dim) float64, allocated at first use."""
         if self._predicted is None:
             # torch.empty: pages are only touched for slots that get predicted.
             self._predicted = torch.empty((self.capacity, 2, 2, self._widths['state']),
                                           dtype=torch.float64)
-        unique = torch.unique(index)
-        stale = unique[self._predicted_version[unique] != version]
-        if stale.numel():
-            states = torch.cat([self._data['state'][stale],
-                                self._data['next_state'][stale]]).to(torch.float64)
-            mean, std = predict(states)
-            count = stale.numel()
-            values = torch.stack([mean, std], dim=1).to(torch.float64)  # (2 count, 2, n)
-            self._predicted[stale, 0] = values[:count]
-            self._predicted[stale, 1] = values[count:]
-            self._predicted_version[stale] = version
-        rows = self._predicted[index]
-        return BatchDisturbance(state=rows[:, 0], next_state=rows[:, 1])
+        return self._predicted
 
     def state_dict(self) -> dict[str, Any]:
         """Stored transitions (only the filled rows), write position and sampler state."""

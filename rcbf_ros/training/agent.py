@@ -207,6 +207,12 @@ class SafeLearner:
         self.rng = np.random.default_rng(cfg.seed)
         self.env_steps = 0
         self.last_metrics: dict[str, float] = {}
+        # The acting path's GP estimates, for the buffer's memo (``_keep_estimate``): the last
+        # action's (state, mean, std, GP version), until the transition from its state is
+        # stored; the slot of the transition stored last and its next state, until the next
+        # action.
+        self._acted: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None
+        self._awaiting_next: tuple[int, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ models
     def disturbance(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -233,8 +239,27 @@ class SafeLearner:
             u_proposed = detailed.u_proposed.astype(np.float64)
         # One state, in numpy: the same GP posterior as ``disturbance`` without torch's per-op
         # dispatch (the per-step cost is a few small products, see DisturbanceGP).
-        mean, std = self.gp.predict_state(np.asarray(state, dtype=np.float64))
+        state = np.asarray(state, dtype=np.float64)
+        mean, std = self.gp.predict_state(state)
+        if self.sac.through_layer:
+            self._keep_estimate(state, mean, std)
         return Proposal(u_proposed, u_rl, mean, std)
+
+    def _keep_estimate(self, state: np.ndarray, mean: np.ndarray, std: np.ndarray) -> None:
+        """Keep the acting path's estimate for the memo the losses read
+        (``ReplayBuffer.predictions``): the state an action is proposed in is the state of the
+        transition stored next (:meth:`observe` puts it into the memo) and, within an episode,
+        the next state of the transition stored last (put into the memo here). Without it the
+        update predicts both again the first time it draws the transition. Kept only where the
+        states are equal to the last bit, with the GP version that predicted them (a refit in
+        between makes them stale like any memo entry)."""
+        version = self.gp.version
+        self._acted = (state.copy(), mean.copy(), std.copy(), version)
+        if self._awaiting_next is not None:
+            slot, next_state = self._awaiting_next
+            self._awaiting_next = None
+            if np.array_equal(next_state, state):
+                self.buffer.remember(slot, 1, state, mean, std, version=version)
 
     def critic_value(self, obs: np.ndarray, u_rl: np.ndarray, u_safe: np.ndarray) -> float:
         """The critics' value (min of the twins) of one step, at the action they are trained
@@ -257,6 +282,12 @@ class SafeLearner:
         self.buffer.add(obs=obs, state=state, u_rl=u_rl, u_safe=u_safe, u_s=u_safe - u_rl,
                         reward=reward, next_obs=next_obs, next_state=next_state,
                         done=float(terminated))
+        if self.sac.through_layer:
+            slot = self.buffer.newest
+            acted, self._acted = self._acted, None
+            if acted is not None and np.array_equal(acted[0], state):
+                self.buffer.remember(slot, 0, *acted[:3], version=acted[3])
+            self._awaiting_next = (slot, np.array(next_state, dtype=np.float64))
         x = torch.as_tensor(np.array(state, dtype=np.float64)).unsqueeze(0)
         x_next = torch.as_tensor(np.asarray(next_state, dtype=np.float64)).unsqueeze(0)
         u = torch.as_tensor(u_safe).unsqueeze(0)
@@ -325,3 +356,4 @@ class SafeLearner:
             self.model_buffer.load_state_dict(state['model_buffer'])
         self.rng.bit_generator.state = state['rng']
         self.env_steps = int(state['env_steps'])
+        self._acted = self._awaiting_next = None

@@ -166,3 +166,32 @@ def test_a_restored_buffer_predicts_every_slot_again():
     assert model.rows == [10, 10, 10]
     torch.testing.assert_close(at.state, expected(model, buffer.gather(torch.arange(5)).state),
                                rtol=0, atol=0)
+
+
+def test_a_remembered_prediction_stands_in_for_its_state_only():
+    """``remember`` puts a prediction made elsewhere (at the state before it was rounded to the
+    buffer's dtype) into the memo of one half of one slot; ``predictions`` then predicts only
+    the other halves. A state the slot does not hold, or another model version, is not
+    taken."""
+    buffer = ReplayBuffer(10, 3, 2, 1)
+    add_numbered(buffer, 0, 4)  # slot i: state (-i, -i), next state (-i - 1, -i - 1)
+    model = CountingModel()
+    mean, std = np.array([7.0, 8.0]), np.array([0.1, 0.2])
+    unrounded = np.array([-2.0 + 1e-9, -2.0])  # rounds to slot 2's float32 state
+    assert buffer.remember(2, 0, unrounded, mean, std, version=0)
+    assert not buffer.remember(2, 1, unrounded, mean, std, version=0)  # slot 2's next: -3
+    assert not buffer.remember(3, 0, np.array([-3.0, -3.001]), mean, std, version=0)
+    index = torch.tensor([2, 3, 2])
+    at = buffer.predictions(index, version=0, predict=model)
+    assert model.rows == [3]  # slot 2's next state, slot 3's two states
+    torch.testing.assert_close(at.state[0], torch.tensor([[7.0, 8.0], [0.1, 0.2]],
+                                                         dtype=torch.float64))
+    batch = buffer.gather(index)
+    torch.testing.assert_close(at.state[1], expected(model, batch.state)[1], rtol=0, atol=0)
+    torch.testing.assert_close(at.next_state, expected(model, batch.next_state),
+                               rtol=0, atol=0)
+    buffer.predictions(torch.tensor([2]), version=1, predict=model)
+    assert model.rows == [3, 2]  # a new version: the remembered half is stale too
+    assert buffer.newest == 3
+    add_numbered(buffer, 4, 7)  # wraps around
+    assert buffer.newest == 0

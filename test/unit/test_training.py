@@ -104,6 +104,57 @@ def test_the_losses_see_the_gp_estimate_memoised_per_transition_as_if_predicted_
     torch.testing.assert_close(estimate.state[:, 1], std, rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.parametrize('system, mode, extra', [
+    ('unicycle', 'diff', {}), ('pvtol', 'modular', {'modular_envelope': True})])
+def test_the_acting_path_fills_the_memo_with_its_own_estimate(tmp_path, system, mode, extra):
+    """The GP estimate each action is proposed with goes into the losses' memo, for the state
+    of the transition stored next and the next state of the one stored before: a transition
+    whose next state was acted in is never predicted again, and the memo holds the GP's
+    estimate at the true (float64) states, which the buffer stores in float32."""
+    from rcbf_ros.training.build import build_run
+    env, filt, learner, _ = build_run(small_run(tmp_path, system, mode, **extra))
+    obs, info = env.reset(seed=0)
+    rng = np.random.default_rng(5)
+    for _ in range(60):  # data for a fit
+        u = rng.uniform(learner.u_low, learner.u_high)
+        next_obs, reward, terminated, truncated, next_info = env.step(u)
+        learner.observe(obs=obs, state=info['state'], u_rl=u, u_safe=u, reward=reward,
+                        next_obs=next_obs, next_state=next_info['state'], terminated=terminated)
+        obs, info = next_obs, next_info
+    learner.gp.fit()
+    asked: list[torch.Tensor] = []
+    predict = learner.disturbance
+    learner.disturbance = lambda x: (asked.append(x), predict(x))[1]
+    acted, episode_ends = [], []
+    for step in range(25):
+        proposal = learner.propose(obs, info['state'])
+        u = filt.filter(info['state'], proposal.u_proposed, proposal.disturbance_mean,
+                        proposal.disturbance_std).u_safe
+        next_obs, reward, terminated, truncated, next_info = env.step(u)
+        learner.observe(obs=obs, state=info['state'], u_rl=proposal.u_rl, u_safe=u,
+                        reward=reward, next_obs=next_obs, next_state=next_info['state'],
+                        terminated=terminated)
+        acted.append((learner.buffer.newest, info['state'].copy(), next_info['state'].copy()))
+        obs, info = next_obs, next_info
+        if step in (11, 24) or terminated or truncated:  # the last's next state unacted
+            episode_ends.append(learner.buffer.newest)
+            obs, info = env.reset()
+    slots = torch.tensor([slot for slot, _, _ in acted])
+    estimate = learner.buffer.predictions(slots, version=learner.gp.version,
+                                          predict=learner.disturbance)
+    # Only the next states of the episodes' last transitions were never acted in.
+    assert len(asked) == 1
+    torch.testing.assert_close(asked[0], learner.buffer.gather(
+        torch.tensor(episode_ends)).next_state.to(torch.float64), rtol=0, atol=0)
+    for row, (slot, state, next_state) in enumerate(acted):
+        halves = ((estimate.state, state),) + (
+            () if slot in episode_ends else ((estimate.next_state, next_state),))
+        for at, true_state in halves:
+            mean, std = learner.gp.predict_state(true_state)
+            np.testing.assert_allclose(at[row, 0].numpy(), mean, rtol=1e-12, atol=1e-14)
+            np.testing.assert_allclose(at[row, 1].numpy(), std, rtol=1e-12, atol=1e-14)
+
+
 def test_without_a_layer_in_the_losses_no_estimate_is_drawn(tmp_path):
     learner = _filled_learner(tmp_path, 'unicycle', 'baseline')
     assert learner.sample_batch()[1] is None
