@@ -46,8 +46,10 @@ step, each run's measured right after its timed window (host speed that drifts b
 then moves a run's step and its floor alike). The update: the whole update of the learner's
 agent as it stands (networks, Adam moments, alpha), the one ``SACConfig.compile_update`` runs
 (benchmarks/_update_floor.py), compiled with ``torch.compile(fullgraph=True)`` in each of
-``--floor-modes`` and called ``--floor-calls`` times on minibatches from the buffer,
-interleaved with the eager ``SAC.update``; its part of the floor is the best call of the
+``--floor-modes`` and called ``--floor-calls`` times on minibatches from the buffer, as is
+the eager ``SAC.update``, each in blocks of consecutive calls, the blocks of the ways
+alternating (in its own block a way runs warm, as in training); its part of the floor is the
+best call of the
 fastest of them, the eager update included (its hidden-layer products run through oneDNN, the
 compiled graph's through MKL: on a CPU where MKL takes its AVX2 path the eager update is the
 faster). The first call of each mode compiles (its one-off cost is printed, never timed in) and
@@ -436,7 +438,8 @@ def floor_reading(update_floors: dict[str, list[dict]], calls: int) -> str:
     return (
         "Floor: the SAC update's best time, the faster of the eager SAC.update and the "
         'whole update as one function compiled with torch.compile(fullgraph=True) in each mode '
-        "tried (the fastest way's best call; benchmarks/_update_floor.py; the compile is not "
+        "tried (the fastest way's best call, each way timed in blocks of 25 consecutive calls, "
+        "the ways' blocks alternating; benchmarks/_update_floor.py; the compile is not "
         'timed in; the eager update is the faster where its hidden-layer products through '
         'oneDNN outrun the MKL products of the compiled graph), plus, where '
         'the mode trains through the differentiable QP (diff; PVTOL modular with its envelope '

@@ -99,3 +99,32 @@ def test_compile_update_needs_a_warm_up_longer_than_the_batch(monkeypatch, capsy
         bench.main()
     assert exit_info.value.code == 2
     assert '--compile-update: --warmup must exceed the batch size' in capsys.readouterr().err
+
+
+def test_best_update_times_each_way_in_blocks_of_consecutive_calls(monkeypatch):
+    """Each variant's calls run in blocks (one untimed call, then ``block`` timed ones), the
+    blocks alternating: the best call is one a variant reaches with its working set in the
+    caches, not right after another variant's products."""
+    from rcbf_ros.learning.compiled_update import FunctionalUpdate
+
+    monkeypatch.setattr(torch, 'compile', lambda function, **_: function)
+    order: list[str] = []
+    eager_update, compiled_step = SAC.update, FunctionalUpdate.step
+
+    def eager(self, *args, **kwargs):
+        order.append('eager')
+        return eager_update(self, *args, **kwargs)
+
+    def compiled(self, *args, **kwargs):
+        order.append('default')
+        return compiled_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(SAC, 'update', eager)
+    monkeypatch.setattr(FunctionalUpdate, 'step', compiled)
+    out = floor_module.best_update(_agent(), random_batches(2), modes=['default'], calls=5,
+                                   block=2)
+    # Blocks of 1 untimed + 2 timed calls; the last block holds the 5th timed call.
+    timed = (['eager'] * 3 + ['default'] * 3) * 2 + ['eager'] * 2 + ['default'] * 2
+    assert order[-len(timed):] == timed
+    assert order[-len(timed) - 10:-len(timed)] == ['eager'] * 5 + ['default'] * 5
+    assert all(0.0 < best <= median for best, median in out['variants'].values())
