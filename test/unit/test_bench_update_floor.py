@@ -128,3 +128,12 @@ def test_best_update_times_each_way_in_blocks_of_consecutive_calls(monkeypatch):
     assert order[-len(timed):] == timed
     assert order[-len(timed) - 10:-len(timed)] == ['eager'] * 5 + ['default'] * 5
     assert all(0.0 < best <= median for best, median in out['variants'].values())
+
+
+def test_the_qp_floor_is_the_typical_minibatch_at_its_best_speed():
+    """The QP's part of the floor: each minibatch's best call (its speed floor), the median
+    over minibatches (its work): one minibatch with almost nothing to correct does not set
+    it, nor do one minibatch's slow repeats."""
+    per_batch = [[1.6, 1.9, 1.7], [1.0, 1.1, 1.05], [1.5, 3.0, 1.55], [1.7, 1.65, 2.5],
+                 [1.62, 1.62, 1.62]]
+    assert bench.typical_best(per_batch) == 1.6
