@@ -24,6 +24,9 @@ from rcbf_ros.learning.buffers import TransitionBatch
 from rcbf_ros.learning.compiled_update import FunctionalUpdate
 from rcbf_ros.learning.sac import SAC
 
+BLOCK = 25
+"""Consecutive timed calls of one way of updating in :func:`best_update`."""
+
 
 def difference(a: SAC, b: SAC) -> float:
     """Largest |difference| of any parameter (actor, critics, targets, log alpha) of two
@@ -45,7 +48,7 @@ def baseline_twin(sac: SAC) -> SAC:
 
 
 def best_update(sac: SAC, batches: list[TransitionBatch], *, modes: list[str],
-                calls: int, block: int = 25) -> dict:
+                calls: int, block: int = BLOCK) -> dict:
     """The whole update compiled in each of ``modes``, timed next to the eager ``SAC.update``;
     each from the state of ``sac`` (its ``baseline_twin``; ``sac`` itself is not touched), on
     ``batches`` in turn.
@@ -63,6 +66,8 @@ def best_update(sac: SAC, batches: list[TransitionBatch], *, modes: list[str],
     ``agreement``: per mode, the largest parameter difference between its first call and
     ``SAC.update`` from the same state on the same batch and noise draws.
     """
+    if block < 1:
+        raise ValueError(f'block must be >= 1, got {block}')
     out: dict = {'variants': {}, 'compile_s': {}, 'agreement': {}}
     eager = baseline_twin(sac)
     variants: dict[str, Callable[[int], object]] = {

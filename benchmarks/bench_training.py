@@ -106,6 +106,7 @@ from _reference import (
     steady_rate,
 )
 from _update_floor import best_update
+from _update_floor import BLOCK as FLOOR_BLOCK
 import numpy as np
 import torch
 
@@ -137,11 +138,12 @@ DIFFERENCES = (
     'Differentiable layer (diff <- full): ours a batched active-set QP with its analytic '
     "backward, its barrier terms in closed form, and the GP estimate at the batch's states "
     'from a memo per stored transition (each transition predicted at most once per refit, and '
-    'not at all where the acting path predicted its states since: here every state but the '
-    "newest transition's next one, when the update right after its step draws it; with N "
-    'stored and a refit every R steps, an update still predicts up to 2 N / R states on '
-    'average, e.g. 400 of the 512 at the 200 000-transition buffer of a full run); the '
-    'reference '
+    'not at all where the acting path predicted its states since the last refit: here the '
+    "refit falls on the warm-up's last step, so the window's first updates predict the "
+    "warm-up transitions they draw, each once, and later ones only the newest transition's "
+    'next state when the update right after its step draws it; with N stored and a refit '
+    'every R steps, an update still predicts up to 2 N / R states on average, e.g. 400 of '
+    'the 512 at the 200 000-transition buffer of a full run); the reference '
     'qpth on the batch of 256 (interior point, backward through its KKT factorisation) and its '
     'GP predicted on the batch, in the critic target and the actor loss. Modular '
     '(modular <- mod): on Unicycle and Cars the '
@@ -457,7 +459,8 @@ def floor_reading(update_floors: dict[str, list[dict]], calls: int) -> str:
     return (
         "Floor: the SAC update's best time, the faster of the eager SAC.update and the "
         'whole update as one function compiled with torch.compile(fullgraph=True) in each mode '
-        "tried (the fastest way's best call, each way timed in blocks of 25 consecutive calls, "
+        "tried (the fastest way's best call, each way timed in blocks of "
+        f"{FLOOR_BLOCK} consecutive calls, "
         "the ways' blocks alternating; benchmarks/_update_floor.py; the compile is not "
         'timed in; the eager update is the faster where its hidden-layer products through '
         'oneDNN outrun the MKL products of the compiled graph), plus, where '

@@ -190,16 +190,18 @@ class ReplayBuffer:
         and the next state of the one before).
 
         Kept only if the slot holds that state (``state`` in the buffer's dtype equals the
-        stored one); returns whether it was kept."""
-        # In numpy, on views of the tensors: a few element writes, no tensor op per step.
-        table = self._table.numpy()
-        stored = table[slot, self._columns[('state', 'next_state')[half]]]
-        if not np.array_equal(np.asarray(state).astype(stored.dtype), stored):
+        stored one) and its memo does not hold this version's prediction already (one value
+        per version); returns whether it was kept."""
+        versions = self._predicted_version.numpy()
+        stored = self._data[('state', 'next_state')[half]][slot]
+        if versions[slot, half] == version or not torch.equal(
+                torch.from_numpy(np.asarray(state, dtype=np.float64)).to(self.dtype), stored):
             return False
+        # The memo's writes in numpy, on views of its tensors: a few element writes.
         memo = self._memo().numpy()
         memo[slot, half, 0] = mean
         memo[slot, half, 1] = std
-        self._predicted_version.numpy()[slot, half] = version
+        versions[slot, half] = version
         return True
 
     def _memo(self) -> torch.Tensor:

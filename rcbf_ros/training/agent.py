@@ -207,12 +207,9 @@ class SafeLearner:
         self.rng = np.random.default_rng(cfg.seed)
         self.env_steps = 0
         self.last_metrics: dict[str, float] = {}
-        # The acting path's GP estimates, for the buffer's memo (``_keep_estimate``): the last
-        # action's (state, mean, std, GP version), until the transition from its state is
-        # stored; the slot of the transition stored last and its next state, until the next
-        # action.
+        # The last action's GP estimate (state, mean, std, GP version), until the transition
+        # from its state is stored: for the buffer's memo (``_keep_estimate``).
         self._acted: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None
-        self._awaiting_next: tuple[int, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ models
     def disturbance(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -229,7 +226,10 @@ class SafeLearner:
     # ------------------------------------------------------------------ acting
     def propose(self, obs: np.ndarray, state: np.ndarray,
                 deterministic: bool = False) -> Proposal:
-        """u_RL (random during warm-up) and the GP estimate at ``state``."""
+        """u_RL (random during warm-up) and the GP estimate at ``state``.
+
+        When the losses see the action through a layer, the estimate also goes into the
+        buffer's memo of them (``_keep_estimate``), deterministic calls included."""
         if self.env_steps < self.config.start_steps and not deterministic:
             u_rl = self.rng.uniform(self.u_low, self.u_high)
             u_proposed = u_rl
@@ -247,19 +247,17 @@ class SafeLearner:
 
     def _keep_estimate(self, state: np.ndarray, mean: np.ndarray, std: np.ndarray) -> None:
         """Keep the acting path's estimate for the memo the losses read
-        (``ReplayBuffer.predictions``): the state an action is proposed in is the state of the
-        transition stored next (:meth:`observe` puts it into the memo) and, within an episode,
-        the next state of the transition stored last (put into the memo here). Without it the
-        update predicts both again the first time it draws the transition. Kept only where the
-        states are equal to the last bit, with the GP version that predicted them (a refit in
-        between makes them stale like any memo entry)."""
+        (``ReplayBuffer.predictions``; the same posterior and bound as :meth:`disturbance`):
+        the state an action is proposed in is the state of the transition stored next
+        (:meth:`observe` puts it into the memo) and, within an episode, the next state of the
+        transition stored last (put into the memo here). Without it the update predicts both
+        again the first time it draws the transition. ``ReplayBuffer.remember`` keeps it only
+        for a slot that holds this state, with the GP version that predicted it (a refit in
+        between makes it stale like any memo entry)."""
         version = self.gp.version
         self._acted = (state.copy(), mean.copy(), std.copy(), version)
-        if self._awaiting_next is not None:
-            slot, next_state = self._awaiting_next
-            self._awaiting_next = None
-            if np.array_equal(next_state, state):
-                self.buffer.remember(slot, 1, state, mean, std, version=version)
+        if len(self.buffer):
+            self.buffer.remember(self.buffer.newest, 1, state, mean, std, version=version)
 
     def critic_value(self, obs: np.ndarray, u_rl: np.ndarray, u_safe: np.ndarray) -> float:
         """The critics' value (min of the twins) of one step, at the action they are trained
@@ -282,12 +280,9 @@ class SafeLearner:
         self.buffer.add(obs=obs, state=state, u_rl=u_rl, u_safe=u_safe, u_s=u_safe - u_rl,
                         reward=reward, next_obs=next_obs, next_state=next_state,
                         done=float(terminated))
-        if self.sac.through_layer:
-            slot = self.buffer.newest
-            acted, self._acted = self._acted, None
-            if acted is not None and np.array_equal(acted[0], state):
-                self.buffer.remember(slot, 0, *acted[:3], version=acted[3])
-            self._awaiting_next = (slot, np.array(next_state, dtype=np.float64))
+        acted, self._acted = self._acted, None
+        if acted is not None and self.sac.through_layer:
+            self.buffer.remember(self.buffer.newest, 0, *acted[:3], version=acted[3])
         x = torch.as_tensor(np.array(state, dtype=np.float64)).unsqueeze(0)
         x_next = torch.as_tensor(np.asarray(next_state, dtype=np.float64)).unsqueeze(0)
         u = torch.as_tensor(u_safe).unsqueeze(0)
@@ -356,4 +351,4 @@ class SafeLearner:
             self.model_buffer.load_state_dict(state['model_buffer'])
         self.rng.bit_generator.state = state['rng']
         self.env_steps = int(state['env_steps'])
-        self._acted = self._awaiting_next = None
+        self._acted = None

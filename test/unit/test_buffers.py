@@ -172,7 +172,7 @@ def test_a_remembered_prediction_stands_in_for_its_state_only():
     """``remember`` puts a prediction made elsewhere (at the state before it was rounded to the
     buffer's dtype) into the memo of one half of one slot; ``predictions`` then predicts only
     the other halves. A state the slot does not hold, or another model version, is not
-    taken."""
+    taken, nor one for a half that holds this version's prediction already."""
     buffer = ReplayBuffer(10, 3, 2, 1)
     add_numbered(buffer, 0, 4)  # slot i: state (-i, -i), next state (-i - 1, -i - 1)
     model = CountingModel()
@@ -190,6 +190,10 @@ def test_a_remembered_prediction_stands_in_for_its_state_only():
     torch.testing.assert_close(at.state[1], expected(model, batch.state)[1], rtol=0, atol=0)
     torch.testing.assert_close(at.next_state, expected(model, batch.next_state),
                                rtol=0, atol=0)
+    # One value per version: a half this version predicted already is left as it is.
+    assert not buffer.remember(3, 0, np.array([-3.0, -3.0]), mean, std, version=0)
+    torch.testing.assert_close(buffer.predictions(index, version=0, predict=model).state[1],
+                               at.state[1], rtol=0, atol=0)
     buffer.predictions(torch.tensor([2]), version=1, predict=model)
     assert model.rows == [3, 2]  # a new version: the remembered half is stale too
     assert buffer.newest == 3

@@ -153,6 +153,20 @@ def test_the_acting_path_fills_the_memo_with_its_own_estimate(tmp_path, system, 
             mean, std = learner.gp.predict_state(true_state)
             np.testing.assert_allclose(at[row, 0].numpy(), mean, rtol=1e-12, atol=1e-14)
             np.testing.assert_allclose(at[row, 1].numpy(), std, rtol=1e-12, atol=1e-14)
+    # A refit between an action and its transition's store: its estimate is stale.
+    proposal = learner.propose(obs, info['state'])
+    learner.gp.fit()
+    next_obs, reward, terminated, _, next_info = env.step(proposal.u_proposed)
+    learner.observe(obs=obs, state=info['state'], u_rl=proposal.u_rl,
+                    u_safe=proposal.u_proposed, reward=reward, next_obs=next_obs,
+                    next_state=next_info['state'], terminated=terminated)
+    newest = torch.tensor([learner.buffer.newest])
+    refitted = learner.buffer.predictions(newest, version=learner.gp.version,
+                                          predict=learner.disturbance)
+    assert len(asked) == 2 and asked[1].shape[0] == 2  # both of its states, predicted anew
+    mean, std = predict(learner.buffer.gather(newest).state.to(torch.float64))
+    torch.testing.assert_close(refitted.state[:, 0], mean, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(refitted.state[:, 1], std, rtol=1e-12, atol=1e-14)
 
 
 def test_without_a_layer_in_the_losses_no_estimate_is_drawn(tmp_path):
