@@ -63,12 +63,11 @@ memoised disturbance estimate; its part is the median over the minibatches of ea
 call (its work depends on the minibatch: one with almost no row to correct runs far faster
 than a typical one, and the step does typical ones; see ``typical_best``). The action
 (policy + GP + filter) and the environment step (``env.step`` alone): medians over the timed
-window. The step:
-1000 / steady-state steps/s. Reported per row: step ms, floor ms and its parts (medians over
-the runs), step / floor against the target (the median of the runs' own ratios, each shown).
-Beyond the floor: the eager update (unless ``--compile-update``), storing the transition and
-the GP's residual pair, drawing the minibatch (and its memoised disturbance estimate), the
-model-based rollouts (``--model-based`` rows), Python between the parts.
+window. The step: 1000 / steady-state steps/s. Reported per row: step ms, floor ms and its
+parts (medians over the runs), step / floor against the target (the median of the runs' own
+ratios, each shown). Beyond the floor: the eager update (unless ``--compile-update``), storing
+the transition and the GP's residual pair, drawing the minibatch (and its memoised disturbance
+estimate), the model-based rollouts (``--model-based`` rows), Python between the parts.
 
 ``--compile-update``: ours trains with ``SACConfig.compile_update`` in every row (without a
 safety layer in the losses the update the floor times; where the losses pass the layer, diff
@@ -198,7 +197,12 @@ def update_gflop(obs_dim: int, n_u: int, hidden: int = 256, batch: int = 256) ->
     return 2 * batch * (4 * actor + 12 * critic) / 1e9
 
 
-def qp_parts_ms(learner: SafeLearner, *, draws: int, repeats: int = 3) -> float:
+QP_DRAWS, QP_REPEATS = 30, 3
+"""The QP's part of the floor: minibatches drawn, calls of each way per minibatch."""
+
+
+def qp_parts_ms(learner: SafeLearner, *, draws: int = QP_DRAWS,
+                repeats: int = QP_REPEATS) -> float:
     """The differentiable QP as one update needs it, in ms: each of ``draws`` minibatches
     timed ``repeats`` times in each of two ways that give the same actions and gradients, its
     best call; the median over the minibatches (:func:`typical_best`). The two ways, which
@@ -343,7 +347,7 @@ def measure(system: str, mode: str, model_based: bool, steps: int, warmup: int,
              else None)
     return {
         'floor': floor,
-        'qp_ms': (qp_parts_ms(learner, draws=30) if floor is not None
+        'qp_ms': (qp_parts_ms(learner) if floor is not None
                   and learner.sac.through_layer else 0.0),
         'env_ms': 1e3 * statistics.median(env_times),
         'steps_per_s': steady_rate(stamps=stamps, refits=refits, first=0),
@@ -466,9 +470,10 @@ def floor_reading(update_floors: dict[str, list[dict]], calls: int) -> str:
         'oneDNN outrun the MKL products of the compiled graph), plus, where '
         'the mode trains through the differentiable QP (diff; PVTOL modular with its envelope '
         'layer), the QP as one update runs it (forward at the next states, forward and '
-        'backward at the states, as two calls or as one of both halves; each of 30 '
-        "minibatches from the buffer timed 3 times each way, its best call, the median over "
-        "the minibatches: the QP's work depends on the minibatch, how many rows it corrects), "
+        f'backward at the states, as two calls or as one of both halves; each of {QP_DRAWS} '
+        f'minibatches from the buffer timed {QP_REPEATS} times each way, its best call, the '
+        "median over the minibatches: the QP's work depends on the minibatch, how many rows it "
+        'corrects), '
         'plus the action '
         '(policy + GP + filter) and the environment step (each the median over the timed '
         "window), measured after each run's window and held against that run's step; "

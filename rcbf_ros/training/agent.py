@@ -280,8 +280,8 @@ class SafeLearner:
         self.buffer.add(obs=obs, state=state, u_rl=u_rl, u_safe=u_safe, u_s=u_safe - u_rl,
                         reward=reward, next_obs=next_obs, next_state=next_state,
                         done=float(terminated))
-        acted, self._acted = self._acted, None
-        if acted is not None and self.sac.through_layer:
+        acted, self._acted = self._acted, None  # set only when the losses pass a layer
+        if acted is not None:
             self.buffer.remember(self.buffer.newest, 0, *acted[:3], version=acted[3])
         x = torch.as_tensor(np.array(state, dtype=np.float64)).unsqueeze(0)
         x_next = torch.as_tensor(np.asarray(next_state, dtype=np.float64)).unsqueeze(0)
