@@ -504,14 +504,16 @@ def _decisions(harness: FilterHarness, draw: Any) -> Any:
 def test_filter_info_goes_out_as_the_bytes_of_its_sections(harness):
     """Whatever the decision (the filter's own on any state and proposal, or with its fields
     drawn over), filter_info is the bytes of info_sections' message, and the usual answers
-    take the one-step way."""
+    take the one-step way. About 1 draw in 20 is an answer as the filter gave it (a one-step
+    one): 1000 draws put more than 20 of them out of chance's reach (at 400, 17 and 19 were
+    seen)."""
     from hypothesis import given, HealthCheck, settings
     from hypothesis import strategies as st
 
     from rcbf_ros.messages.conversions import sections_to_cdr
     one_step = []
 
-    @settings(max_examples=400, deadline=None, suppress_health_check=list(HealthCheck))
+    @settings(max_examples=1000, deadline=None, suppress_health_check=list(HealthCheck))
     @given(st.data())
     def check(data):
         decision = _decisions(harness, data.draw)
