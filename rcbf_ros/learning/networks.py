@@ -76,11 +76,11 @@ class _LinearFunction(torch.autograd.Function):
     def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         x, weight = ctx.saved_tensors
         need_x, need_weight, need_bias = ctx.needs_input_grad
-        # oneDNN reads a transposed view slowly: the transposes are made contiguous first.
+        # The transposes go to oneDNN as views of contiguous tensors: it reads them in place
+        # faster than a copy to a contiguous layout costs (benchmarks/bench_linear_transpose.py).
         grad = grad.contiguous()
-        grad_x = linear(grad, weight.t().contiguous()) if need_x else None  # grad W
-        grad_weight = (linear(grad.t().contiguous(), x.t().contiguous())     # grad^T x
-                       if need_weight else None)
+        grad_x = linear(grad, weight.t()) if need_x else None  # grad W
+        grad_weight = linear(grad.t(), x.t()) if need_weight else None  # grad^T x
         grad_bias = grad.sum(0) if need_bias and ctx.has_bias else None
         return grad_x, grad_weight, grad_bias
 
@@ -341,7 +341,7 @@ class _TwinMinimum(torch.autograd.Function):
                 # ReLU's backward (the gradient where its output is > 0) on these rows, then
                 # the product with the layer's weight (g W).
                 g = linear(torch.ops.aten.threshold_backward(g, h.index_select(0, rows), 0.0),
-                           weight.t().contiguous())
+                           weight.t())
             part = g[:, ctx.obs_dim:]
             if grad_action is None:
                 grad_action = torch.zeros(grad.shape[0], part.shape[-1], dtype=part.dtype,
