@@ -6,9 +6,10 @@ against copied to a contiguous layout first.
 The backward of a hidden layer y = x W^T (rcbf_ros.learning.networks: ``Linear``'s gradient and
 ``twin_minimum``'s) takes two products with transposed operands: grad_x = grad W
 (``linear(grad, W^T)``) and grad_W = grad^T x (``linear(grad^T, x^T)``). rcbf_ros passes the
-transposes to oneDNN as views (strided reads of contiguous tensors). The other way copies each
-transpose to a contiguous tensor first (``.t().contiguous()``, three copies of a (B, 256) or
-(256, 256) float32 tensor per layer), then multiplies.
+transposes to oneDNN as views of contiguous tensors: it reads a transposed weight in place, and
+copies a transposed input itself (torch's profiler shows one copy in grad_W, none in grad_x).
+The other way copies each transpose to a contiguous tensor first (``.t().contiguous()``, three
+copies of a (B, 256) or (256, 256) float32 tensor per layer), then multiplies.
 
 Two tables, one thread, each way's calls in alternating blocks of ``--calls`` consecutive calls
 (``--rounds`` blocks each, after 20 untimed calls), best block median and median of block

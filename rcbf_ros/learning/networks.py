@@ -76,8 +76,9 @@ class _LinearFunction(torch.autograd.Function):
     def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         x, weight = ctx.saved_tensors
         need_x, need_weight, need_bias = ctx.needs_input_grad
-        # The transposes go to oneDNN as views of contiguous tensors: it reads them in place
-        # faster than a copy to a contiguous layout costs (benchmarks/bench_linear_transpose.py).
+        # The transposes go to oneDNN as views: it reads a transposed weight in place and
+        # copies a transposed input once itself, faster than copying both here first
+        # (benchmarks/bench_linear_transpose.py).
         grad = grad.contiguous()
         grad_x = linear(grad, weight.t()) if need_x else None  # grad W
         grad_weight = linear(grad.t(), x.t()) if need_weight else None  # grad^T x
