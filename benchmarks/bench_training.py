@@ -183,18 +183,24 @@ def matmul_gflops(threads: int, size: int = 256, repeats: int = 2000) -> float:
 
 
 def update_gflop(obs_dim: int, n_u: int, hidden: int = 256, batch: int = 256) -> float:
-    """Arithmetic of one SAC update (GFLOP), counting matmuls only.
+    """Arithmetic of one eager SAC update (GFLOP), counting matmuls only: the least of the
+    update's ways.
 
-    Per sample, with A and C the multiply-adds of one actor and one critic forward pass:
-    critic step = A (next action) + 2C (target critics) + 2C (critics) + 4C (their backward:
-    input and weight gradients); actor step = A + 2C (critics) + 2C (backward to the action only,
-    critic weights frozen) + 2A (actor backward). Total 4A + 12C multiply-adds: the compiled
-    update's count; the eager actor step's ``twin_minimum`` runs one critic's backward per
-    sample, 1C less, so the bound is a little above the eager update's least arithmetic.
+    Per sample, with A and C the multiply-adds of one actor and one critic forward pass, and
+    A_1, C_1 those of their first layers (whose input gradient nothing needs): critic step =
+    A (next action) + 2C (target critics) + 2C (critics) + 2C (their weight gradients) +
+    2(C - C_1) (their input gradients, but the first layer's); actor step = A + 2C (critics) +
+    C (the gradient to the action, through the critic of each sample's minimum:
+    ``twin_minimum``) + A (actor weight gradients) + A - A_1 (its input gradients). Total
+    4A - A_1 + 11C - 2C_1. The compiled update runs the action's gradient through both
+    critics, C more.
     """
-    actor = obs_dim * hidden + hidden * hidden + hidden * 2 * n_u
-    critic = (obs_dim + n_u) * hidden + hidden * hidden + hidden
-    return 2 * batch * (4 * actor + 12 * critic) / 1e9
+    actor_first = obs_dim * hidden
+    critic_first = (obs_dim + n_u) * hidden
+    actor = actor_first + hidden * hidden + hidden * 2 * n_u
+    critic = critic_first + hidden * hidden + hidden
+    multiply_adds = 4 * actor - actor_first + 11 * critic - 2 * critic_first
+    return 2 * batch * multiply_adds / 1e9
 
 
 QP_DRAWS, QP_REPEATS = 30, 3
