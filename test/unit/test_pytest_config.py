@@ -2,8 +2,11 @@
 
 Jazzy's launch_testing (3.4) registers the pytest11 entry point ``launch_testing`` whose hooks
 take the ``path`` argument pytest 9 no longer passes, so loading it fails with a
-``PluginValidationError`` before any test runs. A stand-in distribution with the same entry
-point name and hook signature shows the failure, and that the project's config avoids it.
+``PluginValidationError`` before any test runs. launch_testing_ros (0.26, in ros_core, so on
+every Jazzy install) registers ``launch_ros``, which implements a hook that only
+launch_testing's own hook specification declares: with launch_testing left out, pytest rejects
+it as an unknown hook. Stand-in distributions with the same entry point names and hooks show
+each failure, and that the project's config avoids them.
 """
 from __future__ import annotations
 
@@ -11,23 +14,36 @@ from pathlib import Path
 import subprocess
 import sys
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _fake_launch_testing(root: Path) -> Path:
+PLUGINS = {
+    # distribution: (version, entry point name, module, its hook)
+    'launch_testing': ('3.4.2', 'launch_testing', 'launch_testing.pytest.hooks',
+                       'def pytest_pycollect_makemodule(path, parent):\n    return None\n'),
+    'launch_testing_ros': ('0.26.5', 'launch_ros', 'launch_testing_ros_pytest_entrypoint',
+                           'def pytest_launch_collect_makemodule(path, parent, entrypoint):\n'
+                           '    return None\n'),
+}
+
+
+def _fake_site(root: Path, distributions: tuple[str, ...]) -> Path:
+    """A site directory with stand-ins of these Jazzy distributions' pytest plugins."""
     site = root / 'site'
-    package = site / 'launch_testing' / 'pytest'
-    package.mkdir(parents=True)
-    (site / 'launch_testing' / '__init__.py').write_text('')
-    (package / '__init__.py').write_text('')
-    (package / 'hooks.py').write_text(
-        'def pytest_pycollect_makemodule(path, parent):\n    return None\n')
-    info = site / 'launch_testing-3.4.2.dist-info'
-    info.mkdir()
-    (info / 'METADATA').write_text('Metadata-Version: 2.1\nName: launch_testing\n'
-                                   'Version: 3.4.2\n')
-    (info / 'entry_points.txt').write_text(
-        '[pytest11]\nlaunch_testing = launch_testing.pytest.hooks\n')
+    for name in distributions:
+        version, entry, module, hook = PLUGINS[name]
+        path = site.joinpath(*module.split('.')).with_suffix('.py')
+        path.parent.mkdir(parents=True, exist_ok=True)
+        for package in list(path.relative_to(site).parents)[:-1]:
+            (site / package / '__init__.py').touch()
+        path.write_text(hook)
+        info = site / f'{name}-{version}.dist-info'
+        info.mkdir()
+        (info / 'METADATA').write_text(f'Metadata-Version: 2.1\nName: {name}\n'
+                                       f'Version: {version}\n')
+        (info / 'entry_points.txt').write_text(f'[pytest11]\n{entry} = {module}\n')
     return site
 
 
@@ -40,8 +56,10 @@ def _pytest(tmp_path: Path, site: Path, *config: str) -> subprocess.CompletedPro
         env={'PATH': '/usr/bin:/bin', 'PYTHONPATH': str(site)})
 
 
-def test_pytest_starts_with_launch_testing_on_the_path(tmp_path):
-    site = _fake_launch_testing(tmp_path)
+@pytest.mark.parametrize('distributions', [('launch_testing',), ('launch_testing_ros',),
+                                           ('launch_testing', 'launch_testing_ros')])
+def test_pytest_starts_with_jazzys_launch_testing_plugins_on_the_path(tmp_path, distributions):
+    site = _fake_site(tmp_path, distributions)
     (tmp_path / 'pytest.ini').write_text('[pytest]\n')
     bare = _pytest(tmp_path, site, '-c', str(tmp_path / 'pytest.ini'))
     assert bare.returncode != 0 and 'PluginValidationError' in bare.stdout + bare.stderr
