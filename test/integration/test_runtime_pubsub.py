@@ -118,7 +118,7 @@ def role_subscriber(kind: str, qos: str, topic: str, count: int, out: str) -> No
 
 def role_spinner(ready: str, marker: str) -> None:
     """Spin a node with a timer; on exit ``finally`` writes the exception name to ``marker``."""
-    from rcbf_ros.ros.runtime import ExternalShutdownException, Node, rclpy
+    from rcbf_ros.ros.runtime import ExternalShutdownException, Node, rclpy, USING_RCLPY
     rclpy.init(args=sys.argv)
     node = Node('test_spinner')
 
@@ -137,6 +137,15 @@ def role_spinner(ready: str, marker: str) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException) as exc:
         outcome = type(exc).__name__
+    except Exception as exc:
+        # Real rclpy's signal handler shuts the context down from its own thread; when that
+        # lands while the executor makes its next wait set, rcl refuses the shut-down context
+        # (a known race of rclpy's, discussed in ros2/ros2cli#854). Our nodes do not use that
+        # handler (rcbf_ros.ros.node_main). Our runtime must never take this path.
+        if not (USING_RCLPY and type(exc).__name__ == 'RCLError'
+                and 'context is not valid' in str(exc)):
+            raise
+        outcome = 'context refused'
     finally:
         Path(marker).write_text(outcome)
         node.destroy_node()
@@ -252,8 +261,10 @@ def test_signal_to_spinning_node_runs_finally(ros_domain_id, tmp_path, signum, e
     outcome = marker.read_text()
     if signum == signal.SIGTERM and node_runtime() == 'rclpy':
         # Real rclpy: when the shutdown lands between its executor's wake-up and the check of
-        # the context in rclpy.spin's loop, spin returns without raising. Both are rclpy's.
-        assert outcome in (expected, 'returned')
+        # the context in rclpy.spin's loop, spin returns without raising; when it lands while
+        # the executor makes its next wait set, rcl refuses the context (role_spinner). All
+        # three are rclpy's (the last in about 1 of 14 runs here).
+        assert outcome in (expected, 'returned', 'context refused')
     else:
         assert outcome == expected
 
