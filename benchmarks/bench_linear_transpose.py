@@ -173,10 +173,11 @@ def main() -> None:
     parser.add_argument('--no-write', action='store_true', help='print only')
     args = parser.parse_args()
     load_before = os.getloadavg()[0]
+    update_calls = max(args.calls // 10, 10)  # an update takes some 30 products' time
     products = products_table(args.calls, args.rounds)
-    update = update_table(max(args.calls // 10, 10), args.rounds)
+    update = update_table(update_calls, args.rounds)
     note = (f'Per block: the median of {args.calls} consecutive calls of one way (the update: '
-            f"{max(args.calls // 10, 10)}), {args.rounds} blocks per way, the ways' blocks "
+            f"{update_calls}), {args.rounds} blocks per way, the ways' blocks "
             'alternating; "best" is the best block median. "copies first" copies each '
             'transposed operand to a contiguous tensor before the product; "views" passes the '
             'transpose as a strided view (what rcbf_ros.learning.networks does). Both give the '

@@ -114,29 +114,30 @@ _JAZZY_DOMAINS: set[int] = set()
 """The domains Jazzy commands ran on since the last :func:`stop_ros2_daemons`."""
 
 
-def stop_ros2_daemons(jazzy: Jazzy, domains: set[int]) -> str:
-    """``ros2 daemon stop`` on each of ``domains``; its output.
+def stop_ros2_daemons(jazzy: Jazzy, domains: set[int]) -> None:
+    """``ros2 daemon stop`` on each of ``domains``.
 
     A ros2cli command without ``--no-daemon`` leaves a daemon behind, a participant of its
     domain that outlives the test and the run: a later test that draws the same domain id
     (another pytest process, such as the integration suite the tier runs on rclpy) would see
     its node in the graph."""
     if not domains:
-        return ''
+        return
     loop = ' '.join(str(domain) for domain in sorted(domains))
-    done = jazzy.run(f'for d in {loop}; do ROS_DOMAIN_ID=$d ros2 daemon stop || true; done',
-                     domain_id=0, timeout=60 + 10 * len(domains))
-    return done.stdout
+    jazzy.run(f'for d in {loop}; do ROS_DOMAIN_ID=$d ros2 daemon stop || true; done',
+              domain_id=0, timeout=60 + 10 * len(domains))
 
 
 @pytest.fixture(autouse=True)
 def _no_ros2_daemon_outlives_its_test():
     _JAZZY_DOMAINS.clear()
     yield
-    found, _ = find_jazzy() if _JAZZY_DOMAINS else (None, '')
-    if found is not None:
-        stop_ros2_daemons(found, set(_JAZZY_DOMAINS))
+    domains = set(_JAZZY_DOMAINS)
     _JAZZY_DOMAINS.clear()
+    if domains:
+        found, _ = find_jazzy()
+        if found is not None:
+            stop_ros2_daemons(found, domains)
 
 
 def stop_group(process: subprocess.Popen, *, timeout: float = 20.0) -> int:
