@@ -40,7 +40,7 @@ from rcbf_ros.core.barriers import (
     HalfPlane,
     PairGap,
 )
-from rcbf_ros.core.dynamics import ControlAffineSystem, load_system
+from rcbf_ros.core.dynamics import ControlAffineSystem, heading_indices, load_system
 from rcbf_ros.core.mappings import flatten
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.parameters.reader import (
@@ -83,6 +83,19 @@ def flag(params: Mapping[str, Any], key: str, default: bool = False) -> bool:
     return read_bool(key, params.get(key, default))
 
 
+OBSTACLE_LIMIT = 512
+"""The most circular obstacles one filter takes (``obstacles.x``; the ``obstacles`` topic too).
+
+Each row is assembled in closed form by code generated for the set; past ~750 rows Python's
+compiler refuses the generated code (measured on the Unicycle), so a larger set is refused at
+the edge, naming the key, before anything is built."""
+COST_WEIGHT_LIMIT = 1.0e12
+"""The largest weight of the QP cost (``slack_weight``, ``input_weight``): the solver squares
+and inverts the cost's diagonal, and 2 x 1e308 overflows."""
+CASCADE_LIMIT = 8
+"""The most cascade gains a barrier family takes (relative degree up to 9)."""
+
+
 def _index(key: str, value: Any, size: int, *, allow_none: bool = False,
            kind: str = 'state') -> int | None:
     """An index into the state (``kind`` 'state', size n_x) or the input ('input', n_u);
@@ -114,11 +127,14 @@ class InputLimitParameters:
 class ObstacleParameters:
     """``obstacles.*``: circular obstacles (read when ``obstacles.x`` lists one)."""
 
-    x: tuple[float, ...] = setting((), description='obstacle centres, x (m), one per obstacle')
+    x: tuple[float, ...] = setting(
+        (), max_length=OBSTACLE_LIMIT, description='obstacle centres, x (m), one per obstacle')
     """Centres, x (m)."""
-    y: tuple[float, ...] = setting((), description='obstacle centres, y (m), one per obstacle')
+    y: tuple[float, ...] = setting(
+        (), max_length=OBSTACLE_LIMIT, description='obstacle centres, y (m), one per obstacle')
     """Centres, y (m)."""
-    radius: tuple[float, ...] = setting((), description='obstacle radii (m), one per obstacle')
+    radius: tuple[float, ...] = setting(
+        (), max_length=OBSTACLE_LIMIT, description='obstacle radii (m), one per obstacle')
     """Radii (m), >= 0."""
     margin: float = setting(0.0, minimum=0, description='added to every radius (m, >= 0)')
     """Added to every radius (m)."""
@@ -132,7 +148,8 @@ class ObstacleParameters:
         (0, 1), length=2, description='state indices of the position')
     """State indices of the position."""
     gammas: tuple[float, ...] = setting(
-        (), description='cascade gains for relative degree r > 1, r - 1 values > 0')
+        (), max_length=CASCADE_LIMIT,
+        description='cascade gains for relative degree r > 1, r - 1 values > 0')
     """Cascade gains (relative degree r > 1: r - 1 of them)."""
     speed_input: int = setting(
         -1, description='input whose negative proposals move the look-ahead point behind '
@@ -153,7 +170,8 @@ class GapParameters:
     """State index of each gap's second position."""
     delta: float = setting(0.0, minimum=0, description='least distance |x_a - x_b| to keep (m)')
     """Least distance to keep (m)."""
-    gammas: tuple[float, ...] = setting((), description='cascade gains of the gap barriers')
+    gammas: tuple[float, ...] = setting((), max_length=CASCADE_LIMIT,
+                                        description='cascade gains of the gap barriers')
     """Cascade gains."""
 
 
@@ -167,7 +185,8 @@ class WallParameters:
     """Normals, y."""
     offset: tuple[float, ...] = setting((), description='wall offsets (m), one per wall')
     """Offsets (m)."""
-    gammas: tuple[float, ...] = setting((), description='cascade gains of the wall barriers')
+    gammas: tuple[float, ...] = setting((), max_length=CASCADE_LIMIT,
+                                        description='cascade gains of the wall barriers')
     """Cascade gains."""
 
 
@@ -201,7 +220,8 @@ class BandParameters:
     form: str = setting('quadratic', description='band <name>: quadratic (one barrier) or sides '
                                                  '(two linear ones)')
     """quadratic: one barrier (the paper's); sides: two linear ones (see BandBarrier)."""
-    gammas: tuple[float, ...] = setting((), description='band <name>: cascade gains')
+    gammas: tuple[float, ...] = setting((), max_length=CASCADE_LIMIT,
+                                        description='band <name>: cascade gains')
     """Cascade gains."""
     layout: bool = setting(False, description='band <name> belongs to the layout (left out of '
                                               'the envelope)')
@@ -220,13 +240,16 @@ class FilterParameters:
     """The actuator limits, when they override the system's."""
     alpha: float = setting(1.0, positive=True, description='class-K gain of every RCBF row, > 0')
     """Class-K gain of every RCBF row."""
-    k_c: float = setting(2.0, description='the disturbance box is mean +/- k_c std, >= 0')
+    k_c: float = setting(2.0, minimum=0,
+                         description='the disturbance box is mean +/- k_c std, >= 0')
     """The disturbance box is mean +/- k_c std."""
-    slack_weight: float = setting(1.0e6, positive=True,
-                                  description='weight l of the slack in the QP cost, > 0')
+    slack_weight: float = setting(
+        1.0e6, positive=True, maximum=COST_WEIGHT_LIMIT,
+        description='weight l of the slack in the QP cost, > 0')
     """Weight of the slack in the QP cost."""
     input_weight: tuple[float, ...] = setting(
-        (), description='weights of u_S in the QP cost, n_u values > 0 ([]: all 1)')
+        (), positive=True, maximum=COST_WEIGHT_LIMIT,
+        description='weights of u_S in the QP cost, n_u values > 0 ([]: all 1)')
     """Weights of u_S in the QP cost (empty: all 1)."""
     obstacles: ObstacleParameters | None = setting(None, when='x')
     """Circular obstacles (None: none)."""
@@ -309,11 +332,13 @@ def _obstacles(p: ObstacleParameters, system: ControlAffineSystem) -> BarrierFam
         raise ValueError('obstacles.radius: radius + obstacles.margin must be > 0 for every '
                          'obstacle')
     key = 'obstacles.position_indices'
+    positions = tuple(_index(key, i, system.n_x) for i in p.position_indices)
+    heading = _index('obstacles.heading_index', p.heading_index, system.n_x, allow_none=True)
+    _check_layout(system, positions=positions, heading=heading)
     base = CircleObstacles(
         centers=tuple(zip(p.x, p.y)), radii=p.radius, margin=p.margin,
-        position_indices=tuple(_index(key, i, system.n_x) for i in p.position_indices),
-        heading_index=_index('obstacles.heading_index', p.heading_index, system.n_x,
-                             allow_none=True),
+        position_indices=positions,  # type: ignore[arg-type]
+        heading_index=heading,
         lookahead=p.lookahead,
         speed_input=_index('obstacles.speed_input', p.speed_input, system.n_u,
                            allow_none=True, kind='input'))  # type: ignore[arg-type]
@@ -321,6 +346,31 @@ def _obstacles(p: ObstacleParameters, system: ControlAffineSystem) -> BarrierFam
         raise ValueError('obstacles.speed_input: the look-ahead point follows the direction '
                          'of travel only at relative degree 1 (no obstacles.gammas)')
     return _cascade(base, system, p.gammas, 'obstacles.gammas')
+
+
+def _check_layout(system: ControlAffineSystem, *, positions: tuple[int | None, ...],
+                  heading: int | None) -> None:
+    """The obstacles' indices against the system's state layout, where it declares its
+    headings (:func:`rcbf_ros.core.dynamics.heading_indices`): the heading index must name a
+    heading, and a position index must not.
+
+    Raises:
+        ParameterError: naming ``obstacles.heading_index`` or ``obstacles.position_indices``.
+    """
+    headings = heading_indices(system)
+    if headings is None:
+        return
+    name = type(system).__name__
+    if heading is not None and heading not in headings:
+        where = (f'its heading is state {list(headings)[0]}' if len(headings) == 1
+                 else f'its headings are states {list(headings)}' if headings
+                 else 'it has no heading (-1: none)')
+        raise ParameterError(f'obstacles.heading_index: state {heading} of {name} is not a '
+                             f'heading; {where}')
+    angles = [i for i in positions if i in headings]
+    if angles:
+        raise ParameterError(f'obstacles.position_indices: state {angles[0]} of {name} is a '
+                             'heading, not a position')
 
 
 def band_names(params: Mapping[str, Any]) -> list[str]:

@@ -19,7 +19,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import importlib
 import math
-from typing import Any, Callable, Mapping, NamedTuple, Protocol, runtime_checkable, Union
+from typing import (
+    Any,
+    Callable,
+    ClassVar,
+    Mapping,
+    NamedTuple,
+    Protocol,
+    runtime_checkable,
+    Union,
+)
 
 import numpy as np
 import torch
@@ -35,6 +44,10 @@ class ControlAffineSystem(Protocol):
         n_u: input dimension m.
         u_min: lower actuator limits, length m (``None``: unbounded).
         u_max: upper actuator limits, length m (``None``: unbounded).
+
+    Optional: ``heading_indices``, the state entries that are headings (angles, rad); where a
+    system declares it, a barrier's heading index is checked against it
+    (:func:`heading_indices`).
     """
 
     n_x: int
@@ -132,6 +145,12 @@ class DriftSource(NamedTuple):
         return jet
 
 
+def heading_indices(system: ControlAffineSystem) -> tuple[int, ...] | None:
+    """The state entries of ``system`` that are headings, or None where it does not say."""
+    indices = getattr(system, 'heading_indices', None)
+    return None if indices is None else tuple(int(i) for i in indices)
+
+
 def nominal_derivative(system: ControlAffineSystem, x: Tensor, u: Tensor) -> Tensor:
     """x_dot = f(x) + g(x) u of the nominal model (no disturbance).
 
@@ -180,6 +199,8 @@ class Unicycle:
     """State dimension: [x, y, theta]."""
     n_u: int = field(default=2, init=False)
     """Input dimension: [v, omega]."""
+    heading_indices: ClassVar[tuple[int, ...]] = (2,)
+    """State entries that are headings (angles in rad): theta."""
 
     def f(self, x: Tensor) -> Tensor:
         """Zero drift. x: (B, 3) -> (B, 3)."""
@@ -238,6 +259,8 @@ class CarFollowing:
     """State dimension: position and velocity of five cars."""
     n_u: int = field(default=1, init=False)
     """Input dimension: acceleration of car 4."""
+    heading_indices: ClassVar[tuple[int, ...]] = ()
+    """State entries that are headings: none (positions and speeds along one road)."""
 
     def nominal_accelerations(self, x: Tensor) -> Tensor:
         """Nominal accelerations of cars 1..5 with car 1 and car 4 set to 0. (B, 10) -> (B, 5)."""
@@ -337,6 +360,8 @@ class PVTOL:
     """Upper limits of [omega, u_f]."""
     n_u: int = field(default=2, init=False)
     """Input dimension: [omega, u_f]."""
+    heading_indices: ClassVar[tuple[int, ...]] = (4,)
+    """State entries that are headings (angles in rad): theta."""
 
     @property
     def n_x(self) -> int:

@@ -105,15 +105,20 @@ class InputBounds:
     """Magnitude bounds on the filter's inputs: anything larger is refused (fail-safe).
 
     Finite but absurd values (a proposal of 1e10, a learned std of 1e300) are not a command or
-    an estimate anyone meant; they also push the QP data past what the solver takes."""
+    an estimate anyone meant; they also push the QP data past what the solver takes. A bound
+    itself is at most :data:`QP_DATA_LIMIT`: an input beyond it could never be filtered."""
 
-    state: float = setting(1e6, description='largest |x_i| of a state; beyond: fail-safe')
+    state: float = setting(1e6, positive=True, maximum=QP_DATA_LIMIT,
+                           description='largest |x_i| of a state; beyond: fail-safe')
     """Largest |x_i| of the state."""
-    command: float = setting(1e6, description='largest |u_i| of a proposal (below it, a proposal '
-                                              'outside the limits is clipped); beyond: fail-safe')
+    command: float = setting(
+        1e6, positive=True, maximum=QP_DATA_LIMIT,
+        description='largest |u_i| of a proposal (below it, a proposal outside the limits is '
+                    'clipped); beyond: fail-safe')
     """Largest |u_i| of the proposal (below it, a proposal outside the limits is clipped)."""
-    disturbance: float = setting(1e6, description='largest |mean_i| and std_i of the disturbance '
-                                                  'box; beyond: fail-safe')
+    disturbance: float = setting(
+        1e6, positive=True, maximum=QP_DATA_LIMIT,
+        description='largest |mean_i| and std_i of the disturbance box; beyond: fail-safe')
     """Largest |mean_i| and std_i of the disturbance box."""
 
     def __post_init__(self) -> None:
@@ -854,6 +859,8 @@ OSQP_EPS = 1e-9
 (one value, so the node and the in-process trainer take the same actions)."""
 OSQP_MAX_ITER = 4000
 """Default OSQP iteration cap (the node's ``osqp.max_iter``)."""
+OSQP_INT_MAX = 2 ** 31 - 1
+"""The largest integer setting OSQP takes (its ``OSQPInt`` is 32 bits in the osqp wheels)."""
 
 
 class SafetyFilter:
@@ -1068,6 +1075,28 @@ class SafetyFilter:
             status=status, solve_time_s=solve_time, total_time_s=time.perf_counter() - start,
             fail_safe=False, barrier_names=list(self.barrier_names), needed_slack=needed,
             reason='', proposal_clipped=clipped)
+
+    def evaluation_refusal(self, state: Sequence[float], mean: Sequence[float] | None = None,
+                           std: Sequence[float] | None = None) -> str | None:
+        """Why :meth:`filter` would refuse every proposal at ``state`` with this box, or None.
+
+        The input checks and the QP data check of :meth:`filter`, at the fail-safe action:
+        parameters whose rows overflow float64 or pass :data:`QP_DATA_LIMIT` at an ordinary
+        state make every answer the fail-safe, which a caller can refuse before it uses the
+        filter. Nothing is solved and nothing changes (no warm start).
+
+        Raises:
+            ValueError: naming the field, for a wrong length or non-numeric data.
+        """
+        x = _floats('state', state, self.n_x)
+        u = [float(a) for a in self.fail_safe_action]
+        mu = self._zeros_x_list if mean is None else _floats('disturbance_mean', mean, self.n_x)
+        sd = self._zeros_x_list if std is None else _floats('disturbance_std', std, self.n_x)
+        reason = _input_refusal(x, u, mu, sd, self.input_bounds)
+        if reason is not None:
+            return reason
+        h_values, g_rows, upper, size = self._assemble(x, self._clip(u), mu, sd)
+        return None if size <= _QP_DATA_SQUARES else _data_refusal(h_values, g_rows, upper)
 
     def _active_set(self, g_rows: list[list[float]], upper: list[float]) -> list[float] | None:
         """The QP's exact solution by :func:`active_set_solution`, else None (then OSQP).

@@ -13,7 +13,7 @@ import typing
 from typing import Any, Callable, Sequence, Union
 
 from rcbf_ros.messages.conversions import FLOAT64_MULTIARRAY
-from rcbf_ros.parameters.reader import parameters_of
+from rcbf_ros.parameters.reader import INT64_MAX, parameters_of
 
 DEFAULT_QOS = 'reliable, keep-last 10'
 """The QoS text of a topic with ROS 2's default profile (``--help``, README)."""
@@ -49,12 +49,37 @@ class ParameterSpec:
     """One of :data:`PARAMETER_TYPES`."""
     description: str
     """One line: what it is, its unit and its allowed values."""
+    minimum: float | None = None
+    """Numbers: the least value (inclusive); None: none."""
+    maximum: float | None = None
+    """Numbers: the largest value (inclusive); None: none."""
+    positive: bool = False
+    """Numbers: must be > 0."""
 
     def __post_init__(self) -> None:
         if self.type not in PARAMETER_TYPES:
             raise ValueError(f'{self.name}: type {self.type!r} not in {list(PARAMETER_TYPES)}')
         if '\n' in self.description or not self.description.strip():
             raise ValueError(f'{self.name}: the description must be one non-empty line')
+
+    @property
+    def range(self) -> tuple[float, float] | None:
+        """(least, largest) value of a ``double`` or ``integer`` parameter, both inclusive, as
+        a ROS 2 FloatingPointRange / IntegerRange declares it; None: no range (other types, or
+        no bound). ``positive`` is the least value above 0: the smallest subnormal double
+        (5e-324) or 1; an open end is +-inf, or the int64 ends."""
+        if self.type not in ('double', 'integer') or (
+                self.minimum is None and self.maximum is None and not self.positive):
+            return None
+        integer = self.type == 'integer'
+        low, high = ((-INT64_MAX - 1, INT64_MAX) if integer else (-math.inf, math.inf))
+        if self.minimum is not None:
+            low = math.ceil(self.minimum) if integer else float(self.minimum)
+        if self.positive:
+            low = max(low, 1 if integer else math.ulp(0.0))
+        if self.maximum is not None:
+            high = math.floor(self.maximum) if integer else float(self.maximum)
+        return low, high
 
     @property
     def pattern(self) -> bool:
@@ -163,9 +188,11 @@ def parameter_specs(cls: type, *, prefix: str = '', declared_defaults: bool = Tr
             description += f' (default {format_value(default)})'
         if mark_read_only and parameter.rule.read_only:
             description += READ_ONLY_SUFFIX
+        rule = parameter.rule
         specs.append(ParameterSpec(
             parameter.key, default if declared_defaults else None,
-            parameter_type(parameter.kind), description))
+            parameter_type(parameter.kind), description, minimum=rule.minimum,
+            maximum=rule.maximum, positive=rule.positive))
     return tuple(specs)
 
 
@@ -213,11 +240,21 @@ def help_text(interface: NodeInterface) -> str:
         lines.append(f'      {topic.layout}; QoS: {topic.qos}')
     lines += ['', 'parameters (-p name:=value):']
     for spec in interface.parameters:
-        lines.append(f'  {spec.name}  ({spec.type}, default {format_value(spec.default)})')
+        lines.append(f'  {spec.name}  ({spec.type}, default {format_value(spec.default)}'
+                     f'{range_text(spec)})')
         lines.append(f'      {spec.description}')
     if interface.notes:
         lines += [''] + list(interface.notes)
     return '\n'.join(lines) + '\n'
+
+
+def range_text(spec: ParameterSpec) -> str:
+    """``, range <least> to <largest>`` of a spec with a declared range, else ''."""
+    bounds = spec.range
+    if bounds is None:
+        return ''
+    low, high = (f'{b}' if isinstance(b, int) else f'{b:.6g}' for b in bounds)
+    return f', range {low} to {high}'
 
 
 def _cell(text: str) -> str:
@@ -246,7 +283,8 @@ def topic_table(interface: NodeInterface) -> str:
 def parameter_table(interface: NodeInterface) -> str:
     """The node's parameters as a markdown table."""
     return _table(('parameter', 'type', 'default', 'description'), [
-        (f'`{p.name}`', p.type, f'`{format_value(p.default)}`', _cell(p.description))
+        (f'`{p.name}`', p.type + range_text(p).replace(', range', ',', 1),
+         f'`{format_value(p.default)}`', _cell(p.description))
         for p in interface.parameters])
 
 

@@ -38,11 +38,13 @@ from rcbf_ros.core.config import (
     FILTER_OPEN_PREFIXES,
     FilterConfig,
     FilterParameters,
+    OBSTACLE_LIMIT,
 )
 from rcbf_ros.core.filter import (
     FilterResult,
     InputBounds,
     OSQP_EPS,
+    OSQP_INT_MAX,
     OSQP_MAX_ITER,
     SafetyFilter,
 )
@@ -61,10 +63,19 @@ from rcbf_ros.node_logic.interface import (
 from rcbf_ros.parameters.reader import (
     defaults_of,
     parameter_keys,
+    ParameterError,
     parameters_of,
+    read_float,
+    read_floats,
     read_parameters,
     setting,
 )
+
+DURATION_LIMIT_S = 1.0e9
+"""The longest duration (s) a parameter may name: the node's clock counts int64 nanoseconds
+(292 years); 1e9 s leaves room for the sums it makes of them."""
+DDS_INT_MAX = 2 ** 31 - 1
+"""The largest history depth a DDS QoS takes (a 32-bit integer)."""
 
 # diagnostic_msgs/DiagnosticStatus levels.
 OK = 0
@@ -82,7 +93,7 @@ class NodeSettings(MessageSettings):
                         "name (the obstacles' frame); '' accepts any")
     """For 'odometry': the frame a state's header.frame_id must name ('' accepts any)."""
     max_state_age_s: float = setting(
-        0.5, positive=True,
+        0.5, positive=True, maximum=DURATION_LIMIT_S,
         description='a `state` older than this (s, since its arrival) is stale: fail-safe')
     """A state message older than this (since its arrival) is stale: fail-safe."""
     slack_tolerance: float = setting(
@@ -96,13 +107,15 @@ class NodeSettings(MessageSettings):
     input_bounds: InputBounds = field(default_factory=InputBounds)
     """Magnitude bounds of state, proposal and disturbance box; beyond them: fail-safe."""
     log_throttle_s: float = setting(
-        1.0, minimum=0, description='least time (s) between two log lines with the same reason')
+        1.0, minimum=0, maximum=DURATION_LIMIT_S,
+        description='least time (s) between two log lines with the same reason')
     """Minimum period of repeated log lines with the same reason."""
     qos_reliable: bool = setting(
         True, key='qos.reliable', read_only=True,
         description='reliable (true) or best-effort (false) QoS on every topic')
     """Reliable (True) or best-effort QoS on every topic."""
-    qos_depth: int = setting(10, key='qos.depth', strict=True, minimum=1, read_only=True,
+    qos_depth: int = setting(10, key='qos.depth', strict=True, minimum=1, maximum=DDS_INT_MAX,
+                             read_only=True,
                              description='keep-last history depth on every topic')
     """Keep-last history depth on every topic."""
     osqp_eps_abs: float = setting(OSQP_EPS, key='osqp.eps_abs', positive=True,
@@ -112,11 +125,11 @@ class NodeSettings(MessageSettings):
                                   description='OSQP relative tolerance')
     """OSQP relative tolerance."""
     osqp_max_iter: int = setting(
-        OSQP_MAX_ITER, key='osqp.max_iter', strict=True, minimum=1,
+        OSQP_MAX_ITER, key='osqp.max_iter', strict=True, minimum=1, maximum=OSQP_INT_MAX,
         description='OSQP iteration cap (then the interior-point fallback, else fail-safe)')
     """OSQP iteration cap (a starved solve yields the fail-safe)."""
     diagnostics_min_period_s: float = setting(
-        0.1, key='diagnostics.min_period_s', minimum=0,
+        0.1, key='diagnostics.min_period_s', minimum=0, maximum=DURATION_LIMIT_S,
         description='least time (s) between two OK diagnostics (0: one per proposal); WARN and '
                     'ERROR always go out; filter_info carries every answer')
     """Minimum period of OK diagnostics (0: one per proposal); WARN / ERROR always go out.
@@ -276,20 +289,76 @@ class ActiveFilter:
             object.__setattr__(self, name, array)
 
 
-def build_active_filter(*, params: Mapping[str, Any]) -> ActiveFilter:
+def build_active_filter(*, params: Mapping[str, Any],
+                        probe_states: Sequence[Sequence[float]] = ()) -> ActiveFilter:
     """Validate every parameter and build the filter: the one construction of the node's
     start and of every change at runtime (the same checks, the same messages).
 
+    Beyond each key's own checks, a filter is accepted only if it can filter: every length
+    of its geometry lies within ``input_bounds.state`` (:func:`check_geometry`), and its rows
+    can be evaluated in float64 within the QP's data limit at the origin and at every one of
+    ``probe_states`` (e.g. the robot's latest state), with its static disturbance box
+    (:meth:`rcbf_ros.core.filter.SafetyFilter.evaluation_refusal`). Parameters that fail
+    there would make every answer the fail-safe: filtering switched off by a value.
+
     Raises:
-        ValueError: one line naming the bad key.
+        ValueError: one line naming the bad key (:class:`ProbeError` for the evaluation
+            check, which names the state; the caller names the keys it changed).
     """
     params = collect_parameters(params)
     settings = node_settings_from_params(params)
     config = filter_config_from_params(params)
+    check_geometry(params, bound=settings.input_bounds.state)
     safety_filter = build_safety_filter(config=config, settings=settings)
     settings.check_inputs(n_u=safety_filter.n_u, system=str(params.get('system')))
-    return ActiveFilter(params=params, settings=settings, config=config,
-                        safety_filter=safety_filter)
+    active = ActiveFilter(params=params, settings=settings, config=config,
+                          safety_filter=safety_filter)
+    mean = active.static_mean if active.static_mean.size else None
+    std = active.static_std if active.static_std.size else None
+    for state in ([0.0] * safety_filter.n_x, *probe_states):
+        reason = safety_filter.evaluation_refusal(state, mean, std)
+        if reason is not None:
+            shown = ', '.join(f'{v:.6g}' for v in state)
+            raise ProbeError(f'the filter could never filter at the state [{shown}] (every '
+                             f'answer the fail-safe): {reason}')
+    return active
+
+
+class ProbeError(ValueError):
+    """Parameters each valid on its own whose filter cannot evaluate its rows at a probe
+    state (:func:`build_active_filter`)."""
+
+
+GEOMETRY_KEYS = ('obstacles.x', 'obstacles.y', 'obstacles.radius', 'obstacles.margin',
+                 'obstacles.lookahead', 'walls.offset', 'gaps.delta')
+"""Lengths (m) of the barrier geometry, besides the bands' ``center`` and ``half_width``."""
+
+
+def check_geometry(params: Mapping[str, Any], *, bound: float) -> None:
+    """Every length of the barrier geometry (:data:`GEOMETRY_KEYS`, ``bands.<name>.center``
+    and ``.half_width``), and every obstacle's radius plus margin, lies within ``bound``
+    (``input_bounds.state``).
+
+    A state beyond that bound is refused anyway; geometry beyond it is nowhere a state may
+    be, and its squares overflow float64 long before 1e308 (an obstacle at x = 1e200, a
+    radius of 1e154): every answer would be the fail-safe.
+
+    Raises:
+        ParameterError: naming the key, the value and the bound.
+    """
+    keys = [*GEOMETRY_KEYS, *(k for k in params if k.startswith('bands.')
+                              and k.endswith(('.center', '.half_width')))]
+    for key in keys:
+        values = read_floats(key, params.get(key))
+        far = [v for v in values if not abs(v) <= bound]
+        if far:
+            raise ParameterError(f'{key}: {far[0]:.6g} lies beyond input_bounds.state = '
+                                 f'{bound:.6g} (no state the filter takes is there)')
+    radii = read_floats('obstacles.radius', params.get('obstacles.radius'))
+    margin = read_float('obstacles.margin', params.get('obstacles.margin', 0.0))
+    if radii and not max(radii) + margin <= bound:
+        raise ParameterError(f'obstacles.radius: {max(radii):.6g} plus obstacles.margin '
+                             f'{margin:.6g} lies beyond input_bounds.state = {bound:.6g}')
 
 
 def merged_parameters(*, current: Mapping[str, Any],
@@ -333,13 +402,16 @@ def obstacle_parameters(*, data: Sequence[float], dims: Sequence[tuple[str, int,
     Raises:
         ValueError: naming the message field (``data``, ``layout.dim``, ``layout.data_offset``).
     """
-    values = list(data)
     if data_offset != 0:
         raise ValueError(f'obstacles: layout.data_offset: expected 0, got {data_offset}')
+    values = data
     if len(values) % len(OBSTACLE_COLUMNS):
         raise ValueError(f'obstacles: data: expected rows of [x, y, radius] (a multiple of 3 '
                          f'values), got {len(values)} values')
     rows = len(values) // len(OBSTACLE_COLUMNS)
+    if rows > OBSTACLE_LIMIT:
+        raise ValueError(f'obstacles: data: at most {OBSTACLE_LIMIT} rows of [x, y, radius], '
+                         f'got {rows}')
     if dims and (len(dims) != 2 or dims[1][1] != len(OBSTACLE_COLUMNS)
                  or dims[0][1] != rows):
         sizes = [size for _, size, _ in dims]
@@ -347,7 +419,7 @@ def obstacle_parameters(*, data: Sequence[float], dims: Sequence[tuple[str, int,
                          f'[x, y, radius]) or none, got {sizes}')
     try:
         floats = [float(v) for v in values]
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise ValueError(f'obstacles: data: not numbers ({exc})') from exc
     return {f'obstacles.{column}': floats[index::len(OBSTACLE_COLUMNS)]
             for index, column in enumerate(OBSTACLE_COLUMNS)}

@@ -13,7 +13,12 @@ checks a type cannot say (``positive``, ``minimum``, ``length``, ``choices``, ..
 Supported annotations: ``str``, ``bool``, ``int``, ``float``, ``tuple[float, ...]``,
 ``tuple[int, ...]``, ``tuple[str, ...]``, any of them ``| None`` (a value of None stays None),
 and a nested dataclass (a group, read from ``<key>.``; ``Group | None`` with
-``setting(None, when='x')``: read only when ``<key>.x`` is set). Every error is one line that
+``setting(None, when='x')``: read only when ``<key>.x`` is set).
+
+Every value is bounded whatever its rule says: a float is finite, an integer fits the int64 a
+ROS parameter holds (:data:`INT64_MAX`), and a list holds at most :data:`LIST_LIMIT` values
+(``max_length`` lowers it), checked before any value of it is converted, and a string at most
+:data:`STRING_LIMIT` characters. Every error is one line that
 starts with the parameter's full dotted name (``input_bounds.state: must be > 0, got -1.0``), as a
 :class:`ParameterError`, a ``ValueError``: the nodes print it and exit with status 2.
 
@@ -36,6 +41,14 @@ METADATA_KEY = 'rcbf_ros.parameter'
 """Key of a field's :class:`Rule` in ``dataclasses.field(metadata=...)``."""
 
 
+INT64_MAX = 2 ** 63 - 1
+"""The largest integer a ROS 2 parameter holds (rcl_interfaces' int64)."""
+LIST_LIMIT = 4096
+"""The most values a list parameter may hold unless its rule says fewer (``max_length``)."""
+STRING_LIMIT = 4096
+"""The most characters a string parameter (or a string of a list) may hold."""
+
+
 class ParameterError(ValueError):
     """A parameter value the reader refuses: one line, ``<dotted key>: <why>``."""
 
@@ -53,9 +66,11 @@ class Rule:
     minimum: float | None = None
     """Numbers: must be >= this."""
     maximum: float | None = None
-    """Numbers: must be <= this."""
+    """Numbers (and every number of a list): must be <= this."""
     length: int | None = None
     """Lists: exactly this many values."""
+    max_length: int = LIST_LIMIT
+    """Lists: at most this many values (checked before any is converted)."""
     choices: tuple[str, ...] = ()
     """Strings (or every string of a list): one of these."""
     nonempty: bool = False
@@ -97,7 +112,7 @@ def read_bool(key: str, value: Any, *, text: bool = False) -> bool:
         return value.lower() == 'true'
     if isinstance(value, bool) or (text and isinstance(value, np.bool_)):
         return bool(value)
-    raise _fail(key, f'expected true or false, got {value!r}')
+    raise _fail(key, f'expected true or false, got {_shown(value)}')
 
 
 def read_float(key: str, value: Any, *, positive: bool = False, minimum: float | None = None,
@@ -105,11 +120,11 @@ def read_float(key: str, value: Any, *, positive: bool = False, minimum: float |
     """A finite float (a numeric string counts: YAML 1.1 reads ``1.0e6`` as one; a bool does
     not)."""
     if isinstance(value, bool):
-        raise _fail(key, f'expected a number, got {value!r}')
+        raise _fail(key, f'expected a number, got {_shown(value)}')
     try:
         out = float(value)
-    except (TypeError, ValueError):
-        raise _fail(key, f'expected a number, got {value!r}') from None
+    except (TypeError, ValueError, OverflowError):
+        raise _fail(key, f'expected a number, got {_shown(value)}') from None
     if not math.isfinite(out):
         raise _fail(key, f'must be finite, got {out}')
     _check_range(key, out, positive=positive, minimum=minimum, maximum=maximum)
@@ -123,18 +138,27 @@ def read_int(key: str, value: Any, *, strict: bool = False, positive: bool = Fal
     if isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)):
         out = int(value)
     elif strict or isinstance(value, (bool, np.bool_)):
-        raise _fail(key, f'expected an integer, got {value!r}')
+        raise _fail(key, f'expected an integer, got {_shown(value)}')
     elif isinstance(value, (float, np.floating)):
         if not float(value).is_integer():
-            raise _fail(key, f'expected an integer, got {value!r}')
+            raise _fail(key, f'expected an integer, got {_shown(value)}')
         out = int(value)
     else:
         try:
             out = int(str(value).strip())
         except ValueError:
-            raise _fail(key, f'expected an integer, got {value!r}') from None
+            raise _fail(key, f'expected an integer, got {_shown(value)}') from None
+    if not -INT64_MAX - 1 <= out <= INT64_MAX:
+        raise _fail(key, f'must fit a 64-bit integer, got {_shown(out)}')
     _check_range(key, out, positive=positive, minimum=minimum, maximum=maximum)
     return out
+
+
+def _shown(value: Any, width: int = 60) -> str:
+    """``repr(value)`` cut to ``width`` characters (an error line stays one short line)."""
+    text = repr(value)
+    return text if len(text) <= width else text[:width - 3] + '...'
+
 
 
 def _check_range(key: str, value: float, *, positive: bool, minimum: float | None,
@@ -152,73 +176,86 @@ def read_str(key: str, value: Any, *, choices: Sequence[str] = (), nonempty: boo
     """A string, one of ``choices`` when given."""
     if not isinstance(value, str):
         if choices:
-            raise _fail(key, f'expected one of {list(choices)}, got {value!r}')
-        raise _fail(key, f'expected a string, got {value!r}')
+            raise _fail(key, f'expected one of {list(choices)}, got {_shown(value)}')
+        raise _fail(key, f'expected a string, got {_shown(value)}')
     if choices and value not in choices:
-        raise _fail(key, f'expected one of {list(choices)}, got {value!r}')
+        raise _fail(key, f'expected one of {list(choices)}, got {_shown(value)}')
+    if len(value) > STRING_LIMIT:
+        raise _fail(key, f'at most {STRING_LIMIT} characters, got {len(value)}')
     if nonempty and not value:
         raise _fail(key, 'required (empty)')
     return value
 
 
-def _items(key: str, value: Any, what: str) -> list[Any]:
-    """The values of a list parameter (a scalar counts as one; None as none)."""
+def _items(key: str, value: Any, what: str, max_length: int = LIST_LIMIT) -> list[Any]:
+    """The values of a list parameter (a scalar counts as one; None as none), at most
+    ``max_length`` of them (a longer list is refused before it is copied)."""
     if value is None:
         return []
     if isinstance(value, (str, bytes)):
-        raise _fail(key, f'expected a list of {what}, got {value!r}')
+        raise _fail(key, f'expected a list of {what}, got {_shown(value)}')
     if isinstance(value, (bool, int, float, np.generic)):
         return [value]
     try:
+        size = len(value)
+    except TypeError:
+        raise _fail(key, f'expected a list of {what}, got {_shown(value)}') from None
+    if size > max_length:
+        raise _fail(key, f'at most {max_length} values, got {size}')
+    try:
         return list(value)
     except TypeError:
-        raise _fail(key, f'expected a list of {what}, got {value!r}') from None
+        raise _fail(key, f'expected a list of {what}, got {_shown(value)}') from None
 
 
 def read_floats(key: str, value: Any, *, length: int | None = None, positive: bool = False,
-                minimum: float | None = None) -> tuple[float, ...]:
-    """Finite floats (a single number counts as one, None as none)."""
-    items = _items(key, value, 'numbers')
+                minimum: float | None = None, maximum: float | None = None,
+                max_length: int = LIST_LIMIT) -> tuple[float, ...]:
+    """Finite floats (a single number counts as one, None as none), at most ``max_length``."""
+    items = _items(key, value, 'numbers', max_length)
     out = []
     for item in items:
         if isinstance(item, (bool, np.bool_)):
-            raise _fail(key, f'expected a list of numbers, got {value!r}')
+            raise _fail(key, f'expected a list of numbers, got {_shown(value)}')
         try:
             out.append(float(item))
-        except (TypeError, ValueError):
-            raise _fail(key, f'expected a list of numbers, got {value!r}') from None
+        except (TypeError, ValueError, OverflowError):
+            raise _fail(key, f'expected a list of numbers, got {_shown(value)}') from None
     if any(not math.isfinite(v) for v in out):
         raise _fail(key, 'contains NaN or inf')
     if length is not None and len(out) != length:
         raise _fail(key, f'expected {length} values, got {len(out)}')
     for item in out:
-        _check_range(key, item, positive=positive, minimum=minimum, maximum=None)
+        _check_range(key, item, positive=positive, minimum=minimum, maximum=maximum)
     return tuple(out)
 
 
-def read_ints(key: str, value: Any, *, length: int | None = None, strict: bool = False
-              ) -> tuple[int, ...]:
-    """Integers (each as :func:`read_int`)."""
-    out = tuple(read_int(key, item, strict=strict) for item in _items(key, value, 'integers'))
+def read_ints(key: str, value: Any, *, length: int | None = None, strict: bool = False,
+              max_length: int = LIST_LIMIT) -> tuple[int, ...]:
+    """Integers (each as :func:`read_int`), at most ``max_length``."""
+    out = tuple(read_int(key, item, strict=strict)
+                for item in _items(key, value, 'integers', max_length))
     if length is not None and len(out) != length:
         raise _fail(key, f'expected {length} values, got {len(out)}')
     return out
 
 
 def read_strs(key: str, value: Any, *, length: int | None = None,
-              choices: Sequence[str] = (), nonempty: bool = False, distinct: bool = False
-              ) -> tuple[str, ...]:
-    """Strings; a single string is refused (a list was meant)."""
-    out = tuple(_items(key, value, 'strings'))
+              choices: Sequence[str] = (), nonempty: bool = False, distinct: bool = False,
+              max_length: int = LIST_LIMIT) -> tuple[str, ...]:
+    """Strings; a single string is refused (a list was meant); at most ``max_length``."""
+    out = tuple(_items(key, value, 'strings', max_length))
     if not all(isinstance(v, str) for v in out):
-        raise _fail(key, f'expected a list of strings, got {value!r}')
+        raise _fail(key, f'expected a list of strings, got {_shown(value)}')
+    if any(len(v) > STRING_LIMIT for v in out):
+        raise _fail(key, f'at most {STRING_LIMIT} characters a string')
     bad = [v for v in out if choices and v not in choices]
     if bad:
-        raise _fail(key, f'{bad} not in {list(choices)}')
+        raise _fail(key, f'{_shown(bad)} not in {list(choices)}')
     if nonempty and not out:
         raise _fail(key, 'must not be empty')
     if distinct and len(set(out)) != len(out):
-        raise _fail(key, f'repeated value in {list(out)}')
+        raise _fail(key, f'repeated value in {_shown(list(out))}')
     if length is not None and len(out) != length:
         raise _fail(key, f'expected {length} values, got {len(out)}')
     return out
@@ -259,12 +296,15 @@ def read_value(key: str, value: Any, kind: Any, rule: Rule = Rule()) -> Any:
         item = typing.get_args(kind)[0]
         if item is float:
             out = read_floats(key, value, length=rule.length, positive=rule.positive,
-                              minimum=rule.minimum)
+                              minimum=rule.minimum, maximum=rule.maximum,
+                              max_length=rule.max_length)
         elif item is int:
-            out = read_ints(key, value, length=rule.length, strict=rule.strict)
+            out = read_ints(key, value, length=rule.length, strict=rule.strict,
+                            max_length=rule.max_length)
         elif item is str:
             out = read_strs(key, value, length=rule.length, choices=rule.choices,
-                            nonempty=rule.nonempty, distinct=rule.distinct)
+                            nonempty=rule.nonempty, distinct=rule.distinct,
+                            max_length=rule.max_length)
         else:
             raise TypeError(f'{key}: unsupported list type {kind!r}')
         if rule.nonempty and not out:

@@ -100,6 +100,7 @@ parameter"; a pre-set callback logs the WARN).
 from __future__ import annotations
 
 import gc
+import math
 import sys
 import time
 from typing import Any, Sequence
@@ -138,6 +139,8 @@ NODE_NAME = 'safety_filter'
 INPUT_COUNT_KEYS = ('dropped_samples', 'refused_proposals', 'refused_states')
 """Diagnostic keys of the node's cumulative input counts (see the module docstring)."""
 _QOS = 'reliable, keep-last 10 (qos.reliable, qos.depth)'
+_RANGE_TOLERANCE = 1e-6
+"""rclpy's relative tolerance at the edges of a FloatingPointRange."""
 
 
 def _topic(name: str, direction: str, kind: str, layout: str) -> TopicSpec:
@@ -200,13 +203,14 @@ class SafetyFilterNode(Node):
         params = self._declared_parameters()
         try:
             self._active = self._build(params)
-        except ValueError as exc:
-            self.get_logger().error(f'invalid parameters: {exc}')
-            raise
+        except Exception as exc:  # a value no check foresaw is the user's error too: one line
+            error = exc if isinstance(exc, ValueError) else ValueError(_one_line(exc))
+            self.get_logger().error(f'invalid parameters: {error}')
+            raise error from None
         self.system = str(params.get('system'))
         self._pending: tuple[list[Any], logic.ActiveFilter | None] | None = None
         self._change_source = ''
-        self.add_pre_set_parameters_callback(self._warn_read_only)
+        self.add_pre_set_parameters_callback(self._warn_refused)
         self.add_on_set_parameters_callback(self._check_parameter_change)
         self.add_post_set_parameters_callback(self._apply_parameter_change)
         self._latest_state: logic.StateSample | None = None
@@ -273,9 +277,10 @@ class SafetyFilterNode(Node):
         """The safety filter in use (replaced as a whole when the parameters change)."""
         return self._active.safety_filter
 
-    def _build(self, params: dict[str, Any]) -> logic.ActiveFilter:
+    def _build(self, params: dict[str, Any],
+               probe_states: Sequence[Any] = ()) -> logic.ActiveFilter:
         """The filter of ``params``, checked as at start (ValueError naming the key)."""
-        active = logic.build_active_filter(params=params)
+        active = logic.build_active_filter(params=params, probe_states=probe_states)
         if active.settings.state_type == 'odometry':
             conversions.check_odometry_support(active.params.get('system'))
         return active
@@ -283,17 +288,19 @@ class SafetyFilterNode(Node):
     def _declared_parameters(self) -> dict[str, Any]:
         """Declare every known parameter (overrides are declared already); read all back.
 
-        Each declaration gets a descriptor of its own, dynamically typed so that any YAML type
-        is accepted: rclpy keeps the descriptor it is given and writes the parameter's name and
-        type into it, so a shared one would describe every parameter as the last one. The
-        read-only ones (:func:`rcbf_ros.node_logic.safety_filter.is_read_only`) that came as
-        overrides are declared again, read-only, with their value.
+        Each declaration gets a descriptor of its own (:meth:`_descriptor`): its description
+        and range from :data:`INTERFACE` (what ``--help`` prints), read-only where it is fixed
+        at start, dynamically typed so that any YAML type is accepted. rclpy keeps the
+        descriptor it is given and writes the parameter's name and type into it, so a shared
+        one would describe every parameter as the last one. Parameters the overrides declared
+        (with a bare descriptor) are declared again with theirs and their value: the declared
+        range then refuses an override outside it (ParameterException: one line, exit 2).
         """
         for name, default in logic.parameter_declarations():
             if not self.has_parameter(name):
                 self.declare_parameter(name, default, self._descriptor(name))
         for name in list(self.get_parameters_by_prefix('')):
-            if logic.is_read_only(name) and not self.describe_parameter(name).read_only:
+            if logic.feeds_the_filter(name) and not self.describe_parameter(name).description:
                 value = self.get_parameter(name).value
                 self.undeclare_parameter(name)
                 self.declare_parameter(name, value, self._descriptor(name),
@@ -302,10 +309,20 @@ class SafetyFilterNode(Node):
 
     @staticmethod
     def _descriptor(name: str) -> Any:
-        if logic.is_read_only(name):
-            return ParameterDescriptor(dynamic_typing=True, read_only=True,
-                                       description=logic.READ_ONLY_DESCRIPTION)
-        return ParameterDescriptor(dynamic_typing=True)
+        """The descriptor of the parameter ``name``: description and range of its spec."""
+        spec = INTERFACE.spec(name)
+        description = spec.description if spec is not None else logic.READ_ONLY_DESCRIPTION
+        descriptor = ParameterDescriptor(dynamic_typing=True, description=description,
+                                         read_only=logic.is_read_only(name))
+        bounds = None if spec is None else spec.range
+        if bounds is not None and spec.type == 'double':
+            descriptor.floating_point_range = [get_message(
+                'rcl_interfaces/msg/FloatingPointRange')(
+                    from_value=float(bounds[0]), to_value=float(bounds[1]), step=0.0)]
+        elif bounds is not None:
+            descriptor.integer_range = [get_message('rcl_interfaces/msg/IntegerRange')(
+                from_value=int(bounds[0]), to_value=int(bounds[1]), step=0)]
+        return descriptor
 
     def _parameter_values(self) -> dict[str, Any]:
         """Every declared parameter's value (unset ones dropped)."""
@@ -313,15 +330,37 @@ class SafetyFilterNode(Node):
                                          in self.get_parameters_by_prefix('').items()})
 
     # changes at runtime ------------------------------------------------------------------------
-    def _warn_read_only(self, parameters: list[Any]) -> list[Any]:
-        """Pre-set callback: a WARN for every read-only parameter in a set (the middleware
-        refuses the set before any on-set callback sees it); the list goes on unchanged."""
+    def _warn_refused(self, parameters: list[Any]) -> list[Any]:
+        """Pre-set callback: a WARN for every parameter of a set that its descriptor refuses
+        before any on-set callback sees it (read-only, or a number outside its declared range);
+        the list goes on unchanged. Never raises."""
         for parameter in parameters:
-            if logic.is_read_only(parameter.name) and self.has_parameter(parameter.name):
-                self.get_logger().warning(
-                    f'parameter change refused: {parameter.name} is '
-                    f'{logic.READ_ONLY_DESCRIPTION}')
+            try:
+                why = self._descriptor_refusal(parameter)
+            except Exception as exc:
+                why = f'{parameter.name}: {_one_line(exc)}'
+            if why:
+                self.get_logger().warning(f'parameter change refused: {why}')
         return parameters
+
+    def _descriptor_refusal(self, parameter: Any) -> str:
+        """Why the declared descriptor of ``parameter`` refuses its new value, naming it ('' if
+        it does not)."""
+        name = parameter.name
+        if not self.has_parameter(name):
+            return ''
+        if logic.is_read_only(name):
+            return f'{name} is {logic.READ_ONLY_DESCRIPTION}'
+        spec = INTERFACE.spec(name)
+        bounds = None if spec is None else spec.range
+        value = parameter.value
+        kind = {'double': float, 'integer': int}.get(getattr(spec, 'type', ''))
+        if bounds is None or type(value) is not kind or not (
+                value < bounds[0] or value > bounds[1]) or any(
+                math.isclose(value, edge, rel_tol=_RANGE_TOLERANCE) for edge in bounds):
+            return ''  # as rclpy: the edges (within its tolerance) are in, NaN is not refused
+        low, high = (f'{b:.6g}' for b in bounds)
+        return f'{name}: {value!r} is outside its declared range {low} to {high}'
 
     def _check_parameter_change(self, parameters: list[Any]) -> Any:
         """On-set callback: build the filter the change would give; refuse it if that fails.
@@ -333,32 +372,50 @@ class SafetyFilterNode(Node):
         self._pending = None
         if not any(logic.feeds_the_filter(p.name) for p in parameters):
             return result
-        changes = {p.name: p.value for p in parameters}
-        merged = logic.merged_parameters(current=self._parameter_values(), changes=changes)
-        if merged == self._active.params:
-            self._pending = (parameters, None)
-            return result
         try:
-            self._pending = (parameters, self._build(merged))
-        except ValueError as exc:
+            changes = {p.name: p.value for p in parameters}
+            merged = logic.merged_parameters(current=self._parameter_values(), changes=changes)
+            if merged == self._active.params:
+                self._pending = (parameters, None)
+                return result
+            latest = self._latest_state
+            probes = () if latest is None or latest.state is None else (latest.state,)
+            self._pending = (parameters, self._build(merged, probes))
+        except Exception as exc:  # refused whole; whatever the value, the node runs on
             result.successful = False
-            result.reason = ' '.join(str(exc).split())
+            if isinstance(exc, ValueError) and not isinstance(exc, logic.ProbeError):
+                text = str(exc)  # names the key itself
+            else:  # the probe's reason or an unforeseen error: name the keys that were set
+                why = exc if isinstance(exc, ValueError) else _one_line(exc)
+                text = f'{_names(parameters)}: {why}'
+            result.reason = _cut(' '.join(text.split()))
             if not self._change_source:  # an obstacles message says so itself, as an ERROR
                 self.get_logger().warning(
                     f'parameter change refused: {result.reason} (the filter is unchanged)')
         return result
 
     def _apply_parameter_change(self, parameters: list[Any]) -> None:
-        """Post-set callback: the parameters are stored; swap in the filter built for them."""
+        """Post-set callback: the parameters are stored; swap in the filter built for them.
+
+        Never raises (a callback's exception would end the node's spin): an unforeseen error
+        leaves the old filter in force and says so."""
+        try:
+            self._swap_in(parameters)
+        except Exception as exc:
+            self.get_logger().error(f'parameters stored but not applied, the filter is '
+                                    f'unchanged: {_one_line(exc)}')
+
+    def _swap_in(self, parameters: list[Any]) -> None:
+        """Swap in the filter built for ``parameters`` (see :meth:`_apply_parameter_change`)."""
         pending, self._pending = self._pending, None
         if pending is not None and pending[0] is parameters:
             candidate = pending[1]
         elif any(logic.feeds_the_filter(p.name) for p in parameters):
             try:  # set without the on-set check (none seen): build from what is stored now
                 candidate = self._build(self._parameter_values())
-            except ValueError as exc:
+            except Exception as exc:
                 self.get_logger().error(f'parameters stored but not applied, the filter is '
-                                        f'unchanged: {exc}')
+                                        f'unchanged: {_one_line(exc)}')
                 return
         else:
             return
@@ -443,9 +500,25 @@ class SafetyFilterNode(Node):
         except Exception as exc:  # a defect, not an input: see the module docstring
             decision = logic.fail_safe_decision(
                 safety_filter=active.safety_filter, reason=f'internal error: {_one_line(exc)}')
-        self._publish(decision, now_ns, active, header=header)
-        if decision.level != logic.OK:
-            self._log(decision.level, decision.reason, now_ns)
+        try:
+            self._publish(decision, now_ns, active, header=header)
+            if decision.level != logic.OK:
+                self._log(decision.level, decision.reason, now_ns)
+        except Exception as exc:  # a defect in the output: the command still goes out
+            self._publish_fail_safe(active, f'internal error: {_one_line(exc)}', header)
+
+    def _publish_fail_safe(self, active: logic.ActiveFilter, reason: str, header: Any) -> None:
+        """The fail-safe command alone, and the reason in the log: the last resort of an answer
+        whose publication failed (a second failure is logged, never raised)."""
+        try:
+            u_safe = active.safety_filter.fail_safe_action
+            if self._array_commands:
+                self._cmd_pub.publish(conversions.sections_to_cdr({'u': u_safe}))
+            else:
+                self._cmd_pub.publish(self.command_message(u_safe, header))
+            self.get_logger().error(f'fail-safe: {reason}')
+        except Exception as exc:
+            self.get_logger().error(f'no answer published: {reason}; then {_one_line(exc)}')
 
     def _decide(self, data: bytes, now_ns: int,
                 active: logic.ActiveFilter) -> tuple[logic.Decision, Any]:
@@ -581,6 +654,19 @@ def _decoded(data: bytes, message_type: Any) -> tuple[Any, str]:
         return deserialize_message(data, message_type), ''
     except Exception as exc:
         return None, _one_line(exc)
+
+
+def _names(parameters: Sequence[Any], most: int = 4) -> str:
+    """The names of a set's parameters, ``, ``-separated (the first ``most``, then how many
+    more)."""
+    names = [p.name for p in parameters]
+    more = f' and {len(names) - most} more' if len(names) > most else ''
+    return ', '.join(names[:most]) + more
+
+
+def _cut(text: str, width: int = 400) -> str:
+    """``text`` cut to ``width`` characters (a reason stays one readable line)."""
+    return text if len(text) <= width else text[:width - 3] + '...'
 
 
 def _one_line(exc: BaseException) -> str:

@@ -60,7 +60,7 @@ def test_ros2_param_set_and_topic_pub_change_the_running_filter(jazzy, tmp_path,
         code = stop_group(node)
     output = log.read_text()
     assert refused.strip().endswith(
-        'Setting parameter failed: k_c: must be >= 0 (the box is mean +/- k_c std), got -1.0'), \
+        'Setting parameter failed: Parameter k_c out of range Min: 0.0, Max: inf, value: -1.0'), \
         refused
     assert 'Set parameter successful' in accepted and 'Double value is: 0.5' in got
     assert 'Setting parameter failed: Trying to set a read-only parameter: system.' in read_only
@@ -68,7 +68,7 @@ def test_ros2_param_set_and_topic_pub_change_the_running_filter(jazzy, tmp_path,
     assert 'Double values are: [2.85, 1.5]' in moved, moved
     assert '[2.85, 1.5]' in kept
     assert 'filter updated: k_c: 2.0 -> 0.5' in output
-    assert 'parameter change refused: k_c: must be >= 0' in output
+    assert 'parameter change refused: k_c: -1.0 is outside its declared range' in output
     assert 'filter updated from the obstacles topic' in output
     assert 'obstacles message refused, the obstacles are unchanged: obstacles: data' in output
     assert code == 0 and 'Traceback' not in output, output[-3000:]
