@@ -303,25 +303,54 @@ def build_active_filter(*, params: Mapping[str, Any],
 
     Raises:
         ValueError: one line naming the bad key (:class:`ProbeError` for the evaluation
-            check, which names the state; the caller names the keys it changed).
+            check: the key without which the filter would pass it, and the state).
     """
+    active = _built(params)
+    reason = _probe_refusal(active, probe_states)
+    if reason is not None:
+        raise ProbeError(f'{_blame(active.params, probe_states)}: with this value the filter '
+                         f'could never filter (every answer the fail-safe) {reason}')
+    return active
+
+
+def _built(params: Mapping[str, Any]) -> ActiveFilter:
+    """The filter of ``params`` after every check but the probe."""
     params = collect_parameters(params)
     settings = node_settings_from_params(params)
     config = filter_config_from_params(params)
     check_geometry(params, bound=settings.input_bounds.state)
     safety_filter = build_safety_filter(config=config, settings=settings)
     settings.check_inputs(n_u=safety_filter.n_u, system=str(params.get('system')))
-    active = ActiveFilter(params=params, settings=settings, config=config,
-                          safety_filter=safety_filter)
+    return ActiveFilter(params=params, settings=settings, config=config,
+                        safety_filter=safety_filter)
+
+
+def _probe_refusal(active: ActiveFilter, probe_states: Sequence[Sequence[float]]) -> str | None:
+    """Why ``active`` cannot evaluate its rows at the origin or a probe state, or None."""
+    safety_filter = active.safety_filter
     mean = active.static_mean if active.static_mean.size else None
     std = active.static_std if active.static_std.size else None
     for state in ([0.0] * safety_filter.n_x, *probe_states):
         reason = safety_filter.evaluation_refusal(state, mean, std)
         if reason is not None:
             shown = ', '.join(f'{v:.6g}' for v in state)
-            raise ProbeError(f'the filter could never filter at the state [{shown}] (every '
-                             f'answer the fail-safe): {reason}')
-    return active
+            return f'at the state [{shown}]: {reason}'
+    return None
+
+
+def _blame(params: Mapping[str, Any], probe_states: Sequence[Sequence[float]]) -> str:
+    """The first key of ``params`` without which the filter passes the probe (its default
+    taken instead), or ``parameters`` when no single key is to blame."""
+    for key in params:
+        if key == 'system' or is_read_only(key):
+            continue
+        try:
+            trial = _built({k: v for k, v in params.items() if k != key})
+        except Exception:  # the others do not make a filter without it: not this one alone
+            continue
+        if _probe_refusal(trial, probe_states) is None:
+            return key
+    return 'parameters'
 
 
 class ProbeError(ValueError):

@@ -383,11 +383,9 @@ class SafetyFilterNode(Node):
             self._pending = (parameters, self._build(merged, probes))
         except Exception as exc:  # refused whole; whatever the value, the node runs on
             result.successful = False
-            if isinstance(exc, ValueError) and not isinstance(exc, logic.ProbeError):
-                text = str(exc)  # names the key itself
-            else:  # the probe's reason or an unforeseen error: name the keys that were set
-                why = exc if isinstance(exc, ValueError) else _one_line(exc)
-                text = f'{_names(parameters)}: {why}'
+            # a ValueError names the key itself; an unforeseen error: name the keys set
+            text = (str(exc) if isinstance(exc, ValueError)
+                    else f'{_names(parameters)}: {_one_line(exc)}')
             result.reason = _cut(' '.join(text.split()))
             if not self._change_source:  # an obstacles message says so itself, as an ERROR
                 self.get_logger().warning(
