@@ -230,3 +230,28 @@ def test_envelope_params_keep_only_the_bands_of_every_layout():
     # A string is not a flag ('false' would otherwise count as true).
     with pytest.raises(ValueError, match=r'bands\.operator\.layout'):
         envelope_params({**params, 'bands.operator.layout': 'false'})
+
+
+@pytest.mark.parametrize('system, obstacles, key', [
+    ('unicycle', {'heading_index': 0, 'lookahead': 0.03}, r'^obstacles\.heading_index: state 0 '
+     r'of Unicycle is not a heading; its heading is state 2'),
+    ('unicycle', {'heading_index': 1, 'lookahead': 0.03}, r'^obstacles\.heading_index: state 1'),
+    ('unicycle', {'position_indices': [0, 2]}, r'^obstacles\.position_indices: state 2 of '
+     r'Unicycle is a heading'),
+    ('pvtol', {'heading_index': 2, 'lookahead': 0.1}, r'^obstacles\.heading_index: state 2 of '
+     r'PVTOL is not a heading; its heading is state 4'),
+    ('car_following', {'heading_index': 1}, r'^obstacles\.heading_index: .* it has no heading'),
+])
+def test_obstacle_indices_are_checked_against_the_state_layout(system, obstacles, key):
+    # heading_index 0 on the Unicycle made the guarded point follow x as if it were the
+    # heading: the answer broke the true row by 0.019
+    params = {'system': system, 'obstacles': {**ONE_OBSTACLE, **obstacles}}
+    with pytest.raises(ValueError, match=key):
+        filter_config_from_params(params)
+
+
+@pytest.mark.parametrize('system, heading', [('unicycle', 2), ('pvtol', 4)])
+def test_the_heading_index_of_each_system_is_accepted(system, heading):
+    params = {'system': system, 'obstacles': {**ONE_OBSTACLE, 'heading_index': heading,
+                                              'lookahead': 0.05}}
+    assert filter_config_from_params(params).problem.n_barriers == 1

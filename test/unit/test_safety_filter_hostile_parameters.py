@@ -19,7 +19,7 @@ import subprocess
 import sys
 from typing import Any
 
-from hypothesis import given, HealthCheck, settings
+from hypothesis import example, given, HealthCheck, settings
 from hypothesis import strategies as st
 import numpy as np
 import pytest
@@ -47,7 +47,9 @@ _floats = st.one_of(st.sampled_from([v for v in HOSTILE_NUMBERS if isinstance(v,
 _ints = st.one_of(st.sampled_from([v for v in HOSTILE_NUMBERS if isinstance(v, int)]),
                   st.integers(-2 ** 63, 2 ** 63 - 1))
 VALUES = st.one_of(
-    _floats, _ints, st.booleans(), st.sampled_from(['', 'pvtol', 'x' * 10_000, 'true']),
+    st.sampled_from(HOSTILE_NUMBERS), _floats, _ints, st.booleans(),
+    st.sampled_from(['', 'pvtol', 'x' * 10_000, 'true']),
+    st.lists(st.sampled_from(HOSTILE_NUMBERS[:9]), min_size=1, max_size=6),
     st.lists(_floats, max_size=8), st.lists(_ints, min_size=1, max_size=8),
     st.lists(st.sampled_from(['a', 'linear.x', '']), min_size=1, max_size=3),
     st.sampled_from([[0.6] * 600, [1e308] * 5, [0.1] * 5000, [2 ** 63 - 1] * 2]),
@@ -126,7 +128,7 @@ def _section(info: Any, label: str) -> float:
     raise KeyError(label)
 
 
-_PROPERTY = settings(max_examples=60, deadline=None, derandomize=True,
+_PROPERTY = settings(max_examples=150, deadline=None, derandomize=True,
                      suppress_health_check=[HealthCheck.function_scoped_fixture,
                                             HealthCheck.too_slow, HealthCheck.data_too_large])
 
@@ -137,6 +139,15 @@ def test_no_parameter_set_kills_the_filter_or_switches_it_off(harness):
     _check_answer(harness)
 
     @_PROPERTY
+    @example(atomically=False, items=[('obstacles.margin', 1e308)])
+    @example(atomically=False, items=[('obstacles.radius', [1e308] * 5)])
+    @example(atomically=True, items=[('obstacles.x', [1e200, -1.5, -1.5, 1.5, 1.5])])
+    @example(atomically=False, items=[('log_throttle_s', 1e308)])
+    @example(atomically=False, items=[('diagnostics.min_period_s', 1e308)])
+    @example(atomically=False, items=[('osqp.max_iter', 2 ** 63 - 1)])
+    @example(atomically=False, items=[('obstacles.heading_index', 0)])
+    @example(atomically=False, items=[('alpha', 1e308)])
+    @example(atomically=True, items=[('k_c', 1e300), ('alpha', 5e-324)])
     @given(atomically=st.booleans(),
            items=st.lists(st.tuples(st.sampled_from(names), VALUES), min_size=1, max_size=4,
                           unique_by=lambda item: item[0]))

@@ -76,7 +76,14 @@ def test_an_invalid_value_is_refused_with_the_key_and_nothing_changes(harness, c
             '-1.0 is outside its declared range 0 to inf' in log), log
     for name, value in (('alpha', 0.0), ('obstacles.margin', -0.1), ('slack_tolerance', -1.0),
                         ('input_bounds.state', math.nan), ('osqp.max_iter', 0),
-                        ('obstacles.radius', [0.6, -0.6, 0.6, 0.6, 0.6])):
+                        ('obstacles.radius', [0.6, -0.6, 0.6, 0.6, 0.6]),
+                        # values each check of their own passed once, then killed the node or
+                        # made every answer the fail-safe
+                        ('obstacles.margin', 1e308), ('log_throttle_s', 1e308),
+                        ('osqp.max_iter', 2 ** 63 - 1), ('alpha', 1e300), ('k_c', 1e300),
+                        ('diagnostics.min_period_s', 1e308), ('obstacles.heading_index', 0),
+                        ('obstacles.x', [1e200, -1.5, -1.5, 1.5, 1.5]),
+                        ('obstacles.radius', [1e154] * 5), ('slack_weight', 1e308)):
         result = node.set_parameters([Parameter(name, value=value)])[0]
         assert not result.successful and result.reason.startswith(
             (f'{name}:', f'Parameter {name} out of range')), (name, result.reason)
