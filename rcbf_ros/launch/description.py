@@ -9,7 +9,15 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from rcbf_ros.launch.table import Argument, launch_setup, PACKAGE, PARAMS_FILE_ARGUMENT, substitute
+from rcbf_ros.launch.table import (
+    Argument,
+    launch_setup,
+    NodeEntry,
+    PACKAGE,
+    PARAMS_FILE_ARGUMENT,
+    respawn_settings,
+    substitute,
+)
 
 
 def describe(name: str) -> Any:
@@ -31,9 +39,15 @@ def describe(name: str) -> Any:
     (:class:`rcbf_ros.launch.table.Argument`), its ``LaunchConfiguration`` stands. In a list
     parameter each such item is a one-item list: launch_ros joins a list made only of
     substitutions into ONE string, and reads a list of lists as a list of strings.
+
+    An entry that respawns on a launch argument (``respawn``, ``respawn_delay``) is built when
+    the launch runs, in an ``OpaqueFunction``: Jazzy's ``ExecuteProcess`` takes
+    ``respawn_delay`` as a float only. Both values are read with
+    :func:`rcbf_ros.launch.table.respawn_settings`, as ``rcbf_ros launch`` reads them, so the
+    two launchers accept the same texts and refuse the others with the same line.
     """
     from ament_index_python.packages import get_package_share_directory
-    from launch.actions import DeclareLaunchArgument, Shutdown
+    from launch.actions import DeclareLaunchArgument, OpaqueFunction, Shutdown
     from launch.substitutions import LaunchConfiguration
     from launch_ros.actions import Node
 
@@ -57,15 +71,28 @@ def describe(name: str) -> Any:
             return [[substitute(item, configuration)] for item in value]
         return substitute(value, configuration)
 
-    for entry in setup.nodes:
+    def node(entry: NodeEntry, respawn: bool, respawn_delay_s: float) -> Any:
         parameters: list[Any] = [params_file]
         if entry.parameters:
             parameters.append({key: parameter(value) for key, value in entry.parameters})
-        actions.append(Node(
+        return Node(
             package=PACKAGE, executable=entry.executable, name=entry.name, namespace='',
             output='screen', parameters=parameters,
             remappings=[(source, substitute(target, configuration))
                         for source, target in entry.remappings],
             sigterm_timeout=str(entry.sigint_timeout_s),
-            on_exit=Shutdown(reason=f'{entry.name} exited') if entry.ends_launch else None))
+            on_exit=Shutdown(reason=f'{entry.name} exited') if entry.ends_launch else None,
+            respawn=respawn, respawn_delay=respawn_delay_s)
+
+    def node_when_launched(entry: NodeEntry) -> Any:
+        def build(context: Any) -> list[Any]:
+            return [node(entry, *respawn_settings(
+                entry, lambda argument: configuration(argument).perform(context)))]
+        return OpaqueFunction(function=build)
+
+    for entry in setup.nodes:
+        if isinstance(entry.respawn, Argument) or isinstance(entry.respawn_delay_s, Argument):
+            actions.append(node_when_launched(entry))
+        else:
+            actions.append(node(entry, *respawn_settings(entry, str)))
     return LaunchDescription(actions)

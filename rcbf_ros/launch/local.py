@@ -17,6 +17,12 @@ gets SIGINT, then SIGTERM after its own limit (the table's ``sigint_timeout_s``,
 ``--sigint-timeout`` for all), then SIGKILL after ``--sigterm-timeout``. The exit code is 1 if a
 required node failed (a non-zero exit of its own, or it had to be killed), else 0.
 
+Respawn: a node whose table entry respawns (``rcbf_ros launch safety_filter respawn:=true``)
+is started again ``respawn_delay`` seconds after it exits, whatever its exit status, as
+launch_ros respawns a ``Node``: its exit neither fails nor stops the launch, and is said in one
+line. A node that ends the launch is not respawned (launch's ``on_exit=Shutdown()`` wins there
+too); a stop during the delay starts nothing more.
+
 Launch arguments follow the launch name as ``name:=value``, as ``ros2 launch`` takes them
 (``--show-args`` lists a launch's); an argument the launch does not declare, a value outside an
 argument's choices, or a remap target that is no topic name is refused with one line naming it,
@@ -26,6 +32,7 @@ Examples::
 
     rcbf_ros launch unicycle_filter --domain-id 7 -p simulator:max_episodes:=1
     rcbf_ros launch safety_filter cmd_in:=/my_controller/cmd_vel cmd_out:=/cmd_vel odom:=/odom
+    rcbf_ros launch safety_filter cmd_in:=/my_controller/cmd_vel respawn:=true respawn_delay:=1.0
 
 The console script ``rcbf_ros launch`` is the same command (its name in messages and usage).
 """
@@ -80,6 +87,10 @@ class ChildSpec:
     """Its exit stops every other process."""
     sigint_timeout_s: float | None = None
     """Seconds from SIGINT to SIGTERM when stopping it (None: the launch's default)."""
+    respawn: bool = False
+    """Start it again whenever it exits while the launch runs."""
+    respawn_delay_s: float = 0.0
+    """Seconds from its exit to its new start."""
 
 
 @dataclass
@@ -96,6 +107,8 @@ class LaunchOutcome:
     """The strongest signal each stopped process needed ('SIGINT', 'SIGTERM', 'SIGKILL')."""
     reason: str = ''
     """Why the launch stopped."""
+    respawns: dict[str, int] = field(default_factory=dict)
+    """How many times each respawning process was started again."""
 
 
 def child_commands(setup: LaunchSetup, *, params_file: str | Path,
@@ -112,8 +125,9 @@ def child_commands(setup: LaunchSetup, *, params_file: str | Path,
 
     Raises:
         ValueError: an override or ``without`` names a node the launch does not have; an
-            argument the launch does not declare, a value outside its choices, or one that a
-            remap takes as a topic name and is none (empty, a bad token, ...).
+            argument the launch does not declare, a value outside its choices, one that a
+            remap takes as a topic name and is none (empty, a bad token, ...), or a respawn
+            setting that is none (:func:`rcbf_ros.launch.table.respawn_settings`).
     """
     values = argument_values(setup, arguments or {})
     for entry in setup.nodes:
@@ -132,13 +146,18 @@ def child_commands(setup: LaunchSetup, *, params_file: str | Path,
     for entry in setup.nodes:
         if entry.name in without:
             continue
-        entry = resolve_entry(entry, values)
+        try:
+            entry = resolve_entry(entry, values)
+        except ValueError as exc:
+            raise ValueError(f'{setup.name}: {exc}') from exc
         args = ros_arguments(entry, params_file=str(params_file),
                              overrides=(overrides or {}).get(entry.name))
         children.append(ChildSpec(name=entry.name,
                                   command=(python, '-m', NODE_RUNNER, entry.module, *args),
                                   required=entry.required, ends_launch=entry.ends_launch,
-                                  sigint_timeout_s=entry.sigint_timeout_s))
+                                  sigint_timeout_s=entry.sigint_timeout_s,
+                                  respawn=bool(entry.respawn),
+                                  respawn_delay_s=float(entry.respawn_delay_s)))
     return children
 
 
@@ -235,28 +254,42 @@ def run_processes(children: Sequence[ChildSpec], *, env: Mapping[str, str],
         outcome.failed.append(name)
         say(f'{name} failed: {why}')
 
+    def start(child: ChildSpec) -> None:
+        process = subprocess.Popen(child.command, env=dict(env), stdout=subprocess.PIPE,
+                                   stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                   start_new_session=True, preexec_fn=_default_sigint)
+        processes[child.name] = process
+        pump = threading.Thread(target=_pump, args=(child.name, process.stdout, sink, lock),
+                                daemon=True)
+        pump.start()
+        pumps[:] = [*(p for p in pumps if p.is_alive()), pump]  # a respawn loop stays bounded
+
+    respawn_at: dict[str, float] = {}  # respawning process -> when to start it again
     try:
         for child in children:
             if stop_event is not None and stop_event.is_set():
                 break
-            process = subprocess.Popen(child.command, env=dict(env), stdout=subprocess.PIPE,
-                                       stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                       start_new_session=True, preexec_fn=_default_sigint)
-            processes[child.name] = process
-            pump = threading.Thread(target=_pump, args=(child.name, process.stdout, sink, lock),
-                                    daemon=True)
-            pump.start()
-            pumps.append(pump)
+            start(child)
         while not outcome.reason:
             if stop_event is not None and stop_event.is_set():
                 outcome.reason = 'stop requested'
                 break
+            for name, when in list(respawn_at.items()):
+                if time.monotonic() >= when:
+                    del respawn_at[name]
+                    outcome.respawns[name] = outcome.respawns.get(name, 0) + 1
+                    say(f'respawning {name}')
+                    start(specs[name])
             for name, process in processes.items():
-                if name in outcome.returncodes or process.poll() is None:
+                if name in outcome.returncodes or name in respawn_at or process.poll() is None:
                     continue
                 code = process.returncode
-                outcome.returncodes[name] = code
                 child = specs[name]
+                if child.respawn and not child.ends_launch:
+                    say(f'{name} exited with {code}; respawning in {child.respawn_delay_s:g} s')
+                    respawn_at[name] = time.monotonic() + child.respawn_delay_s
+                    continue
+                outcome.returncodes[name] = code
                 if code != 0 and child.required:
                     note_failure(name, f'exited with {code}')
                     outcome.reason = f'{name} failed'
@@ -278,6 +311,8 @@ def run_processes(children: Sequence[ChildSpec], *, env: Mapping[str, str],
         if name in outcome.failed or not specs[name].required:
             continue
         stopped_by_us = name in outcome.escalations
+        if specs[name].respawn and not stopped_by_us:  # would have been started again
+            continue
         if outcome.escalations.get(name) == 'SIGKILL':
             note_failure(name, 'did not stop on SIGINT or SIGTERM (killed)')
         elif stopped_by_us and code not in _STOPPED_OK:
@@ -285,7 +320,8 @@ def run_processes(children: Sequence[ChildSpec], *, env: Mapping[str, str],
         elif not stopped_by_us and code not in (0, None):  # ended while the stop began
             note_failure(name, f'exited with {code}')
     outcome.exit_code = 1 if outcome.failed else 0
-    say(f'stopped ({outcome.reason}); return codes {outcome.returncodes}; '
+    respawned = f'respawns {outcome.respawns}; ' if outcome.respawns else ''
+    say(f'stopped ({outcome.reason}); return codes {outcome.returncodes}; {respawned}'
         f'exit code {outcome.exit_code}')
     return outcome
 

@@ -25,10 +25,16 @@ Launch arguments (``name:=value`` after the launch name, in both launchers): a
 parameters name them with :class:`Argument`; ``ros2 launch`` gets ``DeclareLaunchArgument`` and
 ``LaunchConfiguration``, ``rcbf_ros launch`` substitutes the values itself
 (:func:`argument_values`, :func:`resolve_entry`). Every launch also takes ``params_file``.
+
+Respawn: an entry may be started again when it exits (launch_ros ``respawn``,
+``respawn_delay``); the drop-in filter reads both from the launch arguments ``respawn`` and
+``respawn_delay`` (:data:`RESPAWN_ARGUMENTS`), which both launchers read with
+:func:`respawn_settings`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+import math
 from typing import Any, Callable, Mapping, Sequence
 
 import yaml
@@ -93,11 +99,22 @@ class NodeEntry:
     sigint_timeout_s: float = 5.0
     """Seconds the node gets to stop after SIGINT before it is sent SIGTERM (launch's
     ``sigterm_timeout``): what its exit work needs, with room for a loaded machine."""
+    respawn: bool | Argument = False
+    """Start the node again whenever it exits while the launch runs (launch_ros ``respawn``);
+    may be a launch argument's value, read by :func:`launch_bool`."""
+    respawn_delay_s: float | Argument = 0.0
+    """Seconds from its exit to its new start (launch_ros ``respawn_delay``); may be a launch
+    argument's value, read by :func:`respawn_delay`."""
 
     def __post_init__(self) -> None:
         if not self.sigint_timeout_s > 0:
             raise ValueError(f'{self.name}: sigint_timeout_s must be > 0, '
                              f'got {self.sigint_timeout_s}')
+        if not isinstance(self.respawn, (bool, Argument)):
+            raise ValueError(f'{self.name}: respawn must be a bool or an Argument, '
+                             f'got {self.respawn!r}')
+        if not isinstance(self.respawn_delay_s, Argument):
+            respawn_delay(f'{self.name}: respawn_delay_s', str(self.respawn_delay_s))
 
 
 @dataclass(frozen=True)
@@ -158,7 +175,55 @@ def entry_arguments(entry: NodeEntry) -> list[str]:
 
     substitute([target for _, target in entry.remappings], note)
     substitute([value for _, value in entry.parameters], note)
+    substitute([entry.respawn, entry.respawn_delay_s], note)
     return list(dict.fromkeys(found))
+
+
+def launch_bool(what: str, text: str) -> bool:
+    """A launch argument's text as a bool, as launch coerces one (``respawn``): ``1`` and
+    ``0``, or what YAML reads as a bool (``true``, ``False``, ...).
+
+    Raises:
+        ValueError: one line naming ``what`` and the text.
+    """
+    value = {'1': 'true', '0': 'false'}.get(text, text)
+    try:
+        parsed = yaml.safe_load(value) if value else None
+    except yaml.YAMLError:
+        parsed = None
+    if not isinstance(parsed, bool):
+        raise ValueError(f'{what}:={text!r}: expected true or false')
+    return parsed
+
+
+def respawn_delay(what: str, text: str) -> float:
+    """A respawn delay's text as seconds: a finite number >= 0.
+
+    Raises:
+        ValueError: one line naming ``what`` and the text.
+    """
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = math.nan
+    if not (math.isfinite(seconds) and seconds >= 0.0):
+        raise ValueError(f'{what}:={text!r}: expected seconds >= 0')
+    return seconds
+
+
+def respawn_settings(entry: NodeEntry, text_of: Callable[[Argument], str]) -> tuple[bool, float]:
+    """``(respawn, respawn_delay_s)`` of ``entry``, its launch arguments read through
+    ``text_of`` (the argument's text) with :func:`launch_bool` and :func:`respawn_delay`.
+
+    Raises:
+        ValueError: one line naming the launch argument whose text is no such value.
+    """
+    respawn, delay = entry.respawn, entry.respawn_delay_s
+    if isinstance(respawn, Argument):
+        respawn = launch_bool(f'launch argument {respawn.name}', text_of(respawn))
+    if isinstance(delay, Argument):
+        delay = respawn_delay(f'launch argument {delay.name}', text_of(delay))
+    return bool(respawn), float(delay)
 
 
 def parse_launch_arguments(texts: Sequence[str]) -> dict[str, str]:
@@ -210,12 +275,19 @@ def typed_value(text: str) -> Any:
 
 def resolve_entry(entry: NodeEntry, values: Mapping[str, str]) -> NodeEntry:
     """``entry`` with its launch arguments replaced by ``values`` (see :func:`argument_values`):
-    remap targets as text, parameters typed (:func:`typed_value`)."""
+    remap targets as text, parameters typed (:func:`typed_value`), respawn settings read
+    (:func:`respawn_settings`).
+
+    Raises:
+        ValueError: one line naming a respawn argument whose value is no such setting.
+    """
     remappings = tuple((source, substitute(target, lambda a: values[a.name]))
                        for source, target in entry.remappings)
     parameters = tuple((key, substitute(value, lambda a: typed_value(values[a.name])))
                        for key, value in entry.parameters)
-    return replace(entry, remappings=remappings, parameters=parameters)
+    respawn, delay = respawn_settings(entry, lambda a: values[a.name])
+    return replace(entry, remappings=remappings, parameters=parameters, respawn=respawn,
+                   respawn_delay_s=delay)
 
 
 SIMULATOR = NodeEntry(name='simulator', executable='simulator',
@@ -294,6 +366,21 @@ def _policy_loop(system: str) -> LaunchSetup:
         NodeEntry(name='policy', executable='policy', module='rcbf_ros.ros.policy_node'))
 
 
+RESPAWN_ARGUMENTS = (
+    LaunchArgument('respawn', 'false',
+                   'start the filter again when it dies: true or false (launch_ros respawn)'),
+    LaunchArgument('respawn_delay', '1.0',
+                   "seconds from the filter's exit to its new start, with respawn:=true"),
+)
+"""The drop-in filter's respawn, with launch_ros's names, off by default.
+
+Off, as launch_ros's ``Node`` and Nav2's ``use_respawn`` have it: a filter that dies stops the
+robot's commands (a base with a command timeout halts) and it stays stopped until someone
+looks, instead of driving again on its own after a fault that may come back. On, a dead filter
+is back after ``respawn_delay`` plus its start-up; the delay keeps a filter that exits at once
+(parameters it refuses) to one start, and one line of why, a second.
+"""
+
 ROBOT_ARGUMENTS = (
     LaunchArgument('cmd_in', 'cmd_vel_nav',
                    "the controller's command the filter takes (command_type)"),
@@ -301,22 +388,25 @@ ROBOT_ARGUMENTS = (
     LaunchArgument('odom', 'odom', "the robot's nav_msgs/Odometry (the state)"),
     LaunchArgument('command_type', 'twist', 'type of cmd_in and cmd_out',
                    choices=('twist', 'twist_stamped', 'array')),
+    *RESPAWN_ARGUMENTS,
 )
 """The arguments of the drop-in filter.
 
 The defaults follow common ROS 2 names so that a stock robot needs few of them: bases, their
 simulators and teleop take ``cmd_vel`` and odometry sources publish ``odom``; ``cmd_vel_nav``
 is what Nav2's bringup names its controller's output. Any other controller: ``cmd_in:=`` its
-output topic.
+output topic. ``respawn`` and ``respawn_delay``: :data:`RESPAWN_ARGUMENTS`.
 """
 
 DROP_IN_FILTER = replace(
     SAFETY_FILTER,
     remappings=(('state', Argument('odom')), ('cmd_proposed', Argument('cmd_in')),
                 ('cmd_safe', Argument('cmd_out'))),
-    parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type'))))
+    parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type'))),
+    respawn=Argument('respawn'), respawn_delay_s=Argument('respawn_delay'))
 """The safety filter in front of a robot: odometry in, the controller's command in, the safe
-command out in the same type. The one wiring both robot launches share."""
+command out in the same type, respawned on ``respawn:=true``. The one wiring both robot
+launches share."""
 
 
 def _drop_in_filter() -> LaunchSetup:

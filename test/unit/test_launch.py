@@ -10,10 +10,13 @@ import textwrap
 import threading
 import types
 
+from hypothesis import given, settings
+from hypothesis import strategies as st
 import pytest
 from repo_files import LAUNCH_FILES, REPO
 
 from rcbf_ros.launch import local as launch_local
+from rcbf_ros.launch import table
 from rcbf_ros.launch.table import (
     Argument,
     argument_values,
@@ -25,6 +28,7 @@ from rcbf_ros.launch.table import (
     LaunchSetup,
     NodeEntry,
     resolve_entry,
+    respawn_settings,
     ros_arguments,
     substitute,
 )
@@ -132,12 +136,15 @@ def test_the_drop_in_filter_is_one_entry_shared_by_both_robot_launches():
     alone, demo = launch_setup('safety_filter'), launch_setup('unicycle_robot')
     assert alone.nodes == (DROP_IN_FILTER,) and demo.node('safety_filter') is DROP_IN_FILTER
     assert alone.arguments == demo.arguments
-    assert [a.name for a in alone.arguments] == ['cmd_in', 'cmd_out', 'odom', 'command_type']
+    assert [a.name for a in alone.arguments] == ['cmd_in', 'cmd_out', 'odom', 'command_type',
+                                                 'respawn', 'respawn_delay']
     assert dict(DROP_IN_FILTER.remappings) == {
         'state': Argument('odom'), 'cmd_proposed': Argument('cmd_in'),
         'cmd_safe': Argument('cmd_out')}
     assert dict(DROP_IN_FILTER.parameters) == {'state_type': 'odometry',
                                                'command_type': Argument('command_type')}
+    assert (DROP_IN_FILTER.respawn, DROP_IN_FILTER.respawn_delay_s) == (
+        Argument('respawn'), Argument('respawn_delay'))
     # The demo's robot and controller meet the filter on the same arguments.
     assert dict(demo.node('simulator').remappings) == {'state': Argument('odom'),
                                                        'cmd_safe': Argument('cmd_out')}
@@ -148,10 +155,12 @@ def test_the_drop_in_filter_is_one_entry_shared_by_both_robot_launches():
 def test_argument_values_take_defaults_and_refuse_unknown_names_and_choices():
     setup = launch_setup('safety_filter')
     assert argument_values(setup, {}) == {'cmd_in': 'cmd_vel_nav', 'cmd_out': 'cmd_vel',
-                                          'odom': 'odom', 'command_type': 'twist'}
+                                          'odom': 'odom', 'command_type': 'twist',
+                                          'respawn': 'false', 'respawn_delay': '1.0'}
     assert argument_values(setup, {'odom': '/x', 'params_file': 'p.yaml'})['odom'] == '/x'
     with pytest.raises(ValueError, match=r'unknown launch argument\(s\) cmd_inn, foo '
-                                         r'\(arguments: cmd_in, cmd_out, odom, command_type'):
+                                         r'\(arguments: cmd_in, cmd_out, odom, command_type, '
+                                         r'respawn, respawn_delay'):
         argument_values(setup, {'foo': '1', 'cmd_inn': '/x'})
     with pytest.raises(ValueError, match="command_type:='twists' is not one of twist, "):
         argument_values(setup, {'command_type': 'twists'})
@@ -202,7 +211,7 @@ def test_main_takes_launch_arguments_as_ros2_launch_does(capsys):
 @pytest.mark.parametrize('arguments, message', [
     (['cmd_inn:=/x', 'foo:=1'], 'rcbf_ros launch: safety_filter: unknown launch argument(s) '
                                 'cmd_inn, foo (arguments: cmd_in, cmd_out, odom, command_type, '
-                                'params_file)'),
+                                'respawn, respawn_delay, params_file)'),
     (['cmd_in=/x'], "rcbf_ros launch: launch argument 'cmd_in=/x': expected name:=value"),
     (['command_type:=Twist'], "rcbf_ros launch: safety_filter: launch argument "
                               "command_type:='Twist' is not one of twist, twist_stamped, array"),
@@ -257,18 +266,27 @@ class _Recorded:
         self.args, self.kwargs = args, kwargs
 
 
-@pytest.mark.parametrize('launch_file', LAUNCH_FILES, ids=lambda p: p.name)
-def test_launch_description_has_one_node_per_table_entry(monkeypatch, launch_file):
-    # ROS 2's launch packages are not installable here; give the file recording stand-ins for
-    # them and check what it builds against the table.
+class _Configuration(_Recorded):
+    """Stands in for ``LaunchConfiguration``: ``perform`` reads the context's value."""
+
+    def perform(self, context):
+        return context.launch_configurations[self.args[0]]
+
+
+def _describe(monkeypatch, launch_file: Path, given: dict[str, str] | None = None):
+    """What ``launch_file`` builds with recording stand-ins for ROS 2's launch packages (not
+    installable here): the stand-in classes by name, the actions, and its nodes, those built
+    in an ``OpaqueFunction`` included (run with the declared defaults, ``given`` over them)."""
     kinds = {}
-    for name in ('LaunchDescription', 'DeclareLaunchArgument', 'Shutdown', 'LaunchConfiguration',
-                 'Node'):
+    for name in ('LaunchDescription', 'DeclareLaunchArgument', 'Shutdown', 'Node',
+                 'OpaqueFunction'):
         kinds[name] = type(name, (_Recorded,), {})
+    kinds['LaunchConfiguration'] = type('LaunchConfiguration', (_Configuration,), {})
     modules = {
         'launch': {'LaunchDescription': kinds['LaunchDescription']},
         'launch.actions': {'DeclareLaunchArgument': kinds['DeclareLaunchArgument'],
-                           'Shutdown': kinds['Shutdown']},
+                           'Shutdown': kinds['Shutdown'],
+                           'OpaqueFunction': kinds['OpaqueFunction']},
         'launch.substitutions': {'LaunchConfiguration': kinds['LaunchConfiguration']},
         'launch_ros': {}, 'launch_ros.actions': {'Node': kinds['Node']},
         'ament_index_python': {},
@@ -282,10 +300,24 @@ def test_launch_description_has_one_node_per_table_entry(monkeypatch, launch_fil
     exec(compile(launch_file.read_text(), str(launch_file), 'exec'), namespace)
     description = namespace['generate_launch_description']()
     actions = description.args[0]
+    declared = [a for a in actions if isinstance(a, kinds['DeclareLaunchArgument'])]
+    context = types.SimpleNamespace(launch_configurations={
+        **{a.args[0]: a.kwargs['default_value'] for a in declared}, **(given or {})})
+    nodes = []
+    for action in actions:
+        if isinstance(action, kinds['OpaqueFunction']):
+            nodes.extend(action.kwargs['function'](context))
+        elif isinstance(action, kinds['Node']):
+            nodes.append(action)
+    return kinds, actions, nodes
+
+
+@pytest.mark.parametrize('launch_file', LAUNCH_FILES, ids=lambda p: p.name)
+def test_launch_description_has_one_node_per_table_entry(monkeypatch, launch_file):
+    kinds, actions, nodes = _describe(monkeypatch, launch_file)
     argument = actions[0]
     assert argument.args[0] == 'params_file'
     assert argument.kwargs['default_value'] == '/share/rcbf_ros/config/unicycle.yaml'
-    nodes = [a for a in actions if isinstance(a, kinds['Node'])]
     setup = launch_setup(launch_file.name.removesuffix('.launch.py'))
     declared = [a for a in actions if isinstance(a, kinds['DeclareLaunchArgument'])]
     assert [(a.args[0], a.kwargs['default_value'], a.kwargs.get('choices', []))
@@ -326,6 +358,8 @@ def test_launch_description_has_one_node_per_table_entry(monkeypatch, launch_fil
             [expected] if entry.parameters else [])
         assert isinstance(node.kwargs['on_exit'], kinds['Shutdown']) == entry.ends_launch
         assert node.kwargs['sigterm_timeout'] == str(entry.sigint_timeout_s)
+        assert (node.kwargs['respawn'], node.kwargs['respawn_delay']) == respawn_settings(
+            entry, lambda a: next(d.default for d in setup.arguments if d.name == a.name))
 
 
 # --- local launcher: real processes ------------------------------------------------------------
@@ -514,6 +548,123 @@ def test_a_required_child_that_dies_as_the_stop_begins_still_fails_the_launch(tm
     thread.join()
     assert outcome.returncodes['node'] == 3 and outcome.failed == ['node']
     assert outcome.exit_code == 1
+
+
+# --- respawn ----------------------------------------------------------------------------------
+
+def test_respawn_is_off_by_default_and_reaches_both_launchers_alike(monkeypatch):
+    launch_file = REPO / 'launch' / 'safety_filter.launch.py'
+    setup = launch_setup('safety_filter')
+    for arguments, expected in (({}, (False, 1.0)),
+                            ({'respawn': 'true', 'respawn_delay': '0.5'}, (True, 0.5)),
+                            ({'respawn': 'True', 'respawn_delay': '0'}, (True, 0.0)),
+                            ({'respawn': '0'}, (False, 1.0))):
+        _, _, (node,) = _describe(monkeypatch, launch_file, arguments)
+        assert (node.kwargs['respawn'], node.kwargs['respawn_delay']) == expected, arguments
+        (child,) = launch_local.child_commands(setup, params_file='p.yaml', arguments=arguments)
+        assert (child.respawn, child.respawn_delay_s) == expected, arguments
+    # Only the drop-in filter respawns: every other entry keeps launch_ros's default.
+    for other in LAUNCHES.values():
+        for entry in other.nodes:
+            if entry is not DROP_IN_FILTER:
+                assert (entry.respawn, entry.respawn_delay_s) == (False, 0.0), entry.name
+
+
+@pytest.mark.parametrize('argument, text, message', [
+    ('respawn', 'maybe', "launch argument respawn:='maybe': expected true or false"),
+    ('respawn', '', "launch argument respawn:='': expected true or false"),
+    ('respawn', '[true]', "launch argument respawn:='[true]': expected true or false"),
+    ('respawn_delay', '-1', "launch argument respawn_delay:='-1': expected seconds >= 0"),
+    ('respawn_delay', 'nan', "launch argument respawn_delay:='nan': expected seconds >= 0"),
+    ('respawn_delay', 'inf', "launch argument respawn_delay:='inf': expected seconds >= 0"),
+    ('respawn_delay', '1 s', "launch argument respawn_delay:='1 s': expected seconds >= 0"),
+])
+def test_a_bad_respawn_argument_is_refused_alike_by_both_launchers(monkeypatch, capsys,
+                                                                   argument, text, message):
+    assert launch_local.main(['safety_filter', '--print', f'{argument}:={text}']) == 2
+    captured = capsys.readouterr()
+    assert captured.out == '' and captured.err == (
+        f'rcbf_ros launch: safety_filter: {message}\n')
+    with pytest.raises(ValueError) as refused:   # ros2 launch: its OpaqueFunction raises
+        _describe(monkeypatch, REPO / 'launch' / 'safety_filter.launch.py', {argument: text})
+    assert str(refused.value) == message
+
+
+@settings(max_examples=300, deadline=None)
+@given(text=st.text(max_size=12) | st.sampled_from(['1', '0', 'true', 'FALSE', 'yes', 'off',
+                                                     '1e3', '0.0', '-0.0', '1e309']))
+def test_respawn_texts_read_as_a_setting_or_one_line(text):
+    for read, kind in ((table.launch_bool, bool), (table.respawn_delay, float)):
+        try:
+            value = read('x', text)
+        except ValueError as exc:
+            assert str(exc).startswith(f'x:={text!r}: expected ') and '\n' not in str(exc)
+            continue
+        assert type(value) is kind
+        if kind is float:
+            assert value >= 0.0 and value < float('inf')
+
+
+def _respawner(tmp_path: Path, name: str, *, runs_before_it_stays: int) -> tuple[str, ...]:
+    """A child that exits with 3 on its first ``runs_before_it_stays`` starts (counted in a
+    file), then says so with the file ``<name>.stays`` and sleeps."""
+    count = tmp_path / f'{name}.runs'
+    return _python(f"""
+        import pathlib, sys, time
+        count = pathlib.Path({str(count)!r})
+        runs = int(count.read_text()) + 1 if count.exists() else 1
+        count.write_text(str(runs))
+        if runs <= {runs_before_it_stays}:
+            sys.exit(3)
+        pathlib.Path({str(tmp_path / (name + '.stays'))!r}).touch()
+        time.sleep(60)
+    """)
+
+
+def test_a_respawning_child_is_started_again_and_its_exit_fails_nothing(tmp_path):
+    children = [
+        launch_local.ChildSpec('filter', _respawner(tmp_path, 'filter', runs_before_it_stays=2),
+                               respawn=True, respawn_delay_s=0.0),
+        launch_local.ChildSpec('sim', _wait_for(tmp_path, ['filter.stays'], 'sys.exit(0)'),
+                               ends_launch=True),
+    ]
+    outcome, output = _run(children)
+    assert outcome.respawns == {'filter': 2} and (tmp_path / 'filter.runs').read_text() == '3'
+    assert outcome.exit_code == 0 and not outcome.failed, output
+    assert output.count('[launch] filter exited with 3; respawning in 0 s') == 2
+    assert output.count('[launch] respawning filter') == 2
+    assert outcome.escalations == {'filter': 'SIGINT'}   # the third run, stopped at the end
+    assert "respawns {'filter': 2}; exit code 0" in output
+
+
+def test_a_child_that_ends_the_launch_is_not_respawned(tmp_path):
+    children = [launch_local.ChildSpec('sim', _python('import sys; sys.exit(0)'),
+                                       ends_launch=True, respawn=True)]
+    outcome, output = _run(children)
+    assert outcome.reason == 'sim exited (0)' and outcome.respawns == {}
+    assert 'respawning' not in output
+
+
+def test_a_stop_during_the_respawn_delay_starts_nothing_more(tmp_path):
+    stop = threading.Event()
+    sink = io.StringIO()
+    children = [launch_local.ChildSpec('filter', _python('import sys; sys.exit(3)'),
+                                       respawn=True, respawn_delay_s=60.0)]
+
+    def stop_when_waiting():
+        while 'respawning in 60 s' not in sink.getvalue():
+            import time
+            time.sleep(0.01)
+        stop.set()
+
+    thread = threading.Thread(target=stop_when_waiting, daemon=True)
+    thread.start()
+    env = launch_local.child_environment(dict(__import__('os').environ), domain_id=0)
+    outcome = launch_local.run_processes(children, env=env, sink=sink, stop_event=stop)
+    thread.join(timeout=5)
+    assert outcome.reason == 'stop requested' and outcome.respawns == {}
+    assert outcome.returncodes == {'filter': 3} and outcome.exit_code == 0
+    assert '[launch] respawning filter' not in sink.getvalue()
 
 
 # --- params file: refused before any node starts -----------------------------------------------

@@ -5,8 +5,9 @@ USER_DATA ``enclave=/;`` in domain ``ROS_DOMAIN_ID`` (default 0) unless ``domain
 
 The executor runs subscription callbacks and timers in the thread that calls :func:`spin` or
 :func:`spin_once`, one work item at a time, so callbacks never run concurrently. It waits on a
-Cyclone ``WaitSet`` (one read condition per subscription, service and client, one guard
-condition to wake it; :class:`NodeWaitSet`) in slices of at most :data:`WAIT_SLICE_S`, because
+Cyclone ``WaitSet`` (one read condition per subscription, service and client, each publisher's
+and subscription's DDS writer or reader for its incompatible-QoS status, one guard condition to
+wake it; :class:`NodeWaitSet`) in slices of at most :data:`WAIT_SLICE_S`, because
 Python runs signal handlers only between bytecodes of the main thread, and takes samples only
 from the readers whose condition the wait reports triggered.
 
@@ -248,8 +249,9 @@ class NodeWaitSet:
 
 def _collect_work(node: Any, triggered: list[int]) -> None:
     """Move due timers and the samples of the triggered readers of ``node`` into its ready
-    queue: timers, then subscriptions (in creation order), then services and clients. A
-    service whose replies wait for their client is looked at on every pass."""
+    queue: timers, then subscriptions (in creation order), then the incompatible-QoS warnings of
+    triggered publishers and subscriptions, then services and clients. A service whose replies
+    wait for their client is looked at on every pass."""
     ready = node._ready
     if node._timers:
         now = time.monotonic_ns()
@@ -264,6 +266,11 @@ def _collect_work(node: Any, triggered: list[int]) -> None:
             condition = subscription._condition  # None once destroyed (from another thread)
             if condition is not None and condition._ref in triggered:
                 ready.extend(subscription._take_ready())
+        events = node._event_endpoints
+        for handle in triggered:
+            endpoint = events.get(handle)
+            if endpoint is not None:
+                ready.extend(endpoint._take_incompatible_qos())
     for endpoint in node._service_endpoints:
         condition = endpoint._condition
         if endpoint._pending or (triggered and condition is not None

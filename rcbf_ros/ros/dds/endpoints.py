@@ -1,10 +1,11 @@
 """rclpy's endpoints over the Cyclone runtime: ``Publisher``, ``Subscription``, ``Timer``, and
 ``TopicEndpointInfo`` (an endpoint as graph queries report it).
 
-A node creates them (:mod:`.node`); its executor (:mod:`.context`) takes their samples and fires
-their timers. Wire conventions: a publisher or subscription of ``/a/b`` is a writer or reader of
-the DDS topic ``rt/a/b`` whose USER_DATA is ``typehash=RIHS01_<hex>;``; QoS as rmw_cyclonedds
-maps it (:mod:`.qos`).
+A node creates them (:mod:`.node`); its executor (:mod:`.context`) takes their samples, fires
+their timers and, as rclpy's default QoS event callbacks do, warns once for each remote endpoint
+whose QoS keeps it from matching one of them (:class:`WarnsIncompatibleQos`). Wire conventions:
+a publisher or subscription of ``/a/b`` is a writer or reader of the DDS topic ``rt/a/b`` whose
+USER_DATA is ``typehash=RIHS01_<hex>;``; QoS as rmw_cyclonedds maps it (:mod:`.qos`).
 """
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import time
 from typing import Any, Callable, TYPE_CHECKING
 
 from cyclonedds._clayer import ddspy_take, ddspy_write
-from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState
+from cyclonedds.core import DDSStatus, InstanceState, ReadCondition, SampleState, ViewState
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 
@@ -88,6 +89,59 @@ class DropsUndecodable:
         self._unreported = 0
 
 
+QOS_POLICY_NAMES = {2: 'DURABILITY', 4: 'DEADLINE', 8: 'LIVELINESS', 11: 'RELIABILITY',
+                    13: 'HISTORY', 21: 'LIFESPAN'}
+"""rclpy's names (``QoSPolicyKind``) of Cyclone's QoS policy ids (``dds_qos_policy_id_t``), the
+ones rmw_cyclonedds maps; any other id is ``INVALID``, as there."""
+
+
+def qos_policy_name(policy_id: int) -> str:
+    """The name rclpy gives the QoS policy of Cyclone's ``policy_id`` (see
+    :data:`QOS_POLICY_NAMES`)."""
+    return QOS_POLICY_NAMES.get(policy_id, 'INVALID')
+
+
+class WarnsIncompatibleQos:
+    """Base of a publisher or subscription that says when a remote endpoint on its topic cannot
+    match it for its QoS (a best-effort publisher to a reliable subscription, a volatile one to
+    a transient-local subscription, ...): one WARN on the node's logger naming the topic and
+    the last incompatible policy, in rclpy's words (its default incompatible-QoS callbacks).
+
+    Cyclone raises the incompatible-QoS status of the reader or writer once per remote endpoint
+    it cannot match, not per sample; the node's wait set waits on it (:attr:`_event_entity`,
+    its status mask only that status) and the executor reads it (:meth:`_take_incompatible_qos`),
+    which resets it. As in rclpy, endpoints found between two reads of the status make one
+    warning, and the warning is logged by the spinning thread, between callbacks.
+    """
+
+    _EVENT_STATUS = 0
+    """The DDSStatus bit of the incompatible-QoS status of this kind of endpoint."""
+    _EVENT_TEXT = ''
+    """rclpy's warning, ``{topic}`` and ``{policy}`` to fill in."""
+
+    def _init_incompatible_qos(self, entity: Any, *, logger: Logger, topic: str) -> None:
+        entity.set_status_mask(self._EVENT_STATUS)
+        self._event_entity: Any = entity
+        """The reader or writer whose incompatible-QoS status the node's wait set waits on."""
+        self._event_logger = logger
+        self._event_topic = topic
+
+    def _incompatible_qos_status(self) -> Any:
+        raise NotImplementedError
+
+    def _take_incompatible_qos(self) -> list[Callable[[], None]]:
+        """Read (and so reset) the incompatible-QoS status; one work item that warns if a remote
+        endpoint was refused since the last read, else none."""
+        if self._event_entity is None:
+            return []
+        status = self._incompatible_qos_status()
+        if status.total_count_change <= 0:
+            return []
+        message = self._EVENT_TEXT.format(topic=self._event_topic,
+                                          policy=qos_policy_name(status.last_policy_id))
+        return [lambda: self._event_logger.warning(message)]
+
+
 class _TopicEndpoint:
     """What a publisher and a subscription share: a message type on one of the node's topics."""
 
@@ -100,13 +154,27 @@ class _TopicEndpoint:
         self._dds_qos = to_cyclone_qos(qos, type_user_data(self._type_name))
 
 
-class Publisher(_TopicEndpoint):
-    """rclpy.publisher.Publisher subset."""
+class Publisher(_TopicEndpoint, WarnsIncompatibleQos):
+    """rclpy.publisher.Publisher subset.
 
-    def __init__(self, node: Node, msg_type: Any, topic_name: str, qos: QoSProfile) -> None:
+    ``topic_as_given`` is the name the node was asked for (before expansion and remapping),
+    which rclpy's incompatible-QoS warning names (:class:`WarnsIncompatibleQos`).
+    """
+
+    _EVENT_STATUS = DDSStatus.OfferedIncompatibleQos
+    _EVENT_TEXT = ("New subscription discovered on topic '{topic}', requesting incompatible "
+                   'QoS. No messages will be sent to it. Last incompatible policy: {policy}')
+
+    def __init__(self, node: Node, msg_type: Any, topic_name: str, qos: QoSProfile, *,
+                 topic_as_given: str | None = None) -> None:
         super().__init__(node, msg_type, topic_name, qos)
         self._writer = DataWriter(node.context.participant, self._topic, qos=self._dds_qos)
         self._quoted_name = repr(topic_name)
+        self._init_incompatible_qos(self._writer, logger=node.get_logger(),
+                                    topic=topic_as_given or topic_name)
+
+    def _incompatible_qos_status(self) -> Any:
+        return self._writer.get_offered_incompatible_qos_status()
 
     def publish(self, msg: Any) -> None:
         """Publish a message instance, or already serialized CDR bytes (as rclpy allows)."""
@@ -130,27 +198,38 @@ class Publisher(_TopicEndpoint):
 
     def destroy(self) -> None:
         delete_entity(self._writer)
-        self._writer = None
+        self._writer = self._event_entity = None
 
 
-class Subscription(_TopicEndpoint, DropsUndecodable):
+class Subscription(_TopicEndpoint, DropsUndecodable, WarnsIncompatibleQos):
     """rclpy.subscription.Subscription subset; ``raw=True`` delivers CDR ``bytes``.
 
     A sample that does not decode as the topic's type (DDS has checked its structure, but not,
     e.g., that its strings are UTF-8) never reaches the callback nor escapes into the executor:
     it is dropped, counted in :attr:`undecodable_count`, and reported by a one-line warning
     naming the topic (:class:`DropsUndecodable`). A node that must answer such samples
-    subscribes with ``raw=True`` and decodes them itself.
+    subscribes with ``raw=True`` and decodes them itself. ``topic_as_given``: as for
+    :class:`Publisher`.
     """
 
+    _EVENT_STATUS = DDSStatus.RequestedIncompatibleQos
+    _EVENT_TEXT = ("New publisher discovered on topic '{topic}', offering incompatible QoS. "
+                   'No messages will be received from it. Last incompatible policy: {policy}')
+
     def __init__(self, node: Node, msg_type: Any, topic_name: str,
-                 callback: Callable[[Any], None], qos: QoSProfile, raw: bool) -> None:
+                 callback: Callable[[Any], None], qos: QoSProfile, raw: bool, *,
+                 topic_as_given: str | None = None) -> None:
         super().__init__(node, msg_type, topic_name, qos)
         self._init_undecodable(logger=node.get_logger(), name=topic_name)
         self.callback = callback
         self.raw = raw
         self._reader = DataReader(node.context.participant, self._topic, qos=self._dds_qos)
         self._condition = ReadCondition(self._reader, _ANY_SAMPLE)
+        self._init_incompatible_qos(self._reader, logger=node.get_logger(),
+                                    topic=topic_as_given or topic_name)
+
+    def _incompatible_qos_status(self) -> Any:
+        return self._reader.get_requested_incompatible_qos_status()
 
     def _take_ready(self) -> list[Callable[[], None]]:
         """Take every received sample now; return one work item per valid sample."""
@@ -178,7 +257,7 @@ class Subscription(_TopicEndpoint, DropsUndecodable):
     def destroy(self) -> None:
         delete_entity(self._condition)
         delete_entity(self._reader)
-        self._reader = self._condition = None
+        self._reader = self._condition = self._event_entity = None
 
 
 class Timer:

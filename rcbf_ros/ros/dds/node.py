@@ -106,6 +106,9 @@ class Node(NodeParameters, NodeGraph):
         self._topics: dict[tuple[str, str], Topic] = {}
         self._publishers: list[Publisher] = []
         self._subscriptions: list[Subscription] = []
+        self._event_endpoints: dict[int, Publisher | Subscription] = {}
+        """Endpoint by the handle of its reader or writer, which the wait set waits on for
+        incompatible QoS (:class:`rcbf_ros.ros.dds.endpoints.WarnsIncompatibleQos`)."""
         self._timers: list[Timer] = []
         self._ready = new_ready_queue()
         self._spin_lock = threading.Lock()
@@ -167,13 +170,15 @@ class Node(NodeParameters, NodeGraph):
     def create_publisher(self, msg_type: Any, topic: str, qos_profile: QoSProfile | int,
                          **_ignored: Any) -> Publisher:
         return self._adopt(Publisher(self, msg_type, self.resolve_topic_name(topic),
-                                     as_profile(qos_profile)), self._publishers)
+                                     as_profile(qos_profile), topic_as_given=topic),
+                           self._publishers)
 
     def create_subscription(self, msg_type: Any, topic: str, callback: Callable[[Any], None],
                             qos_profile: QoSProfile | int, *, raw: bool = False,
                             **_ignored: Any) -> Subscription:
         return self._adopt(Subscription(self, msg_type, self.resolve_topic_name(topic),
-                                        callback, as_profile(qos_profile), raw),
+                                        callback, as_profile(qos_profile), raw,
+                                        topic_as_given=topic),
                            self._subscriptions)
 
     def create_timer(self, timer_period_sec: float, callback: Callable[[], None],
@@ -217,12 +222,15 @@ class Node(NodeParameters, NodeGraph):
         return True
 
     def _adopt(self, endpoint: Any, endpoints: list[Any]) -> Any:
-        """Keep ``endpoint`` in ``endpoints``, wake the executor on its samples, and list its
-        DDS reader and writer as this node's in ros_discovery_info (as rmw_cyclonedds does, a
-        service's and a client's too, so ros2 node info lists them)."""
-        condition = _condition_of(endpoint)
-        if condition is not None:
+        """Keep ``endpoint`` in ``endpoints``, wake the executor on its samples and on its
+        incompatible-QoS status, and list its DDS reader and writer as this node's in
+        ros_discovery_info (as rmw_cyclonedds does, a service's and a client's too, so ros2 node
+        info lists them)."""
+        for condition in _conditions_of(endpoint):
             self._waitset.attach(condition)
+        events = getattr(endpoint, '_event_entity', None)
+        if events is not None:
+            self._event_endpoints[events._ref] = endpoint
         endpoints.append(endpoint)
         for entity, is_reader in _dds_entities(endpoint):
             self.context.graph.add_endpoint(self._graph_node, gid_of(entity),
@@ -234,14 +242,20 @@ class Node(NodeParameters, NodeGraph):
         if endpoint not in endpoints:
             return False
         endpoints.remove(endpoint)
-        condition = _condition_of(endpoint)
-        if condition is not None:
-            self._waitset.detach(condition)
+        self._detach(endpoint)
         for entity, is_reader in _dds_entities(endpoint):
             self.context.graph.remove_endpoint(self._graph_node, gid_of(entity),
                                                is_reader=is_reader)
         endpoint.destroy()
         return True
+
+    def _detach(self, endpoint: Any) -> None:
+        """Stop waiting on ``endpoint`` (before it is destroyed)."""
+        for condition in _conditions_of(endpoint):
+            self._waitset.detach(condition)
+        events = getattr(endpoint, '_event_entity', None)
+        if events is not None:
+            self._event_endpoints.pop(events._ref, None)
 
     def _wake(self) -> None:
         if self._guard is not None:
@@ -258,9 +272,7 @@ class Node(NodeParameters, NodeGraph):
         for timer in self._timers:
             timer.destroy()
         for endpoint in (*self._subscriptions, *self._publishers, *self._service_endpoints):
-            condition = _condition_of(endpoint)
-            if condition is not None:
-                self._waitset.detach(condition)
+            self._detach(endpoint)
             endpoint.destroy()
         self._service_endpoints = []
         self._close_graph_queries()
@@ -274,9 +286,13 @@ class Node(NodeParameters, NodeGraph):
         self.context.remove_node(self)
 
 
-def _condition_of(endpoint: Any) -> Any:
-    """The read condition the node's wait set waits on for ``endpoint`` (None: it writes only)."""
-    return getattr(endpoint, '_condition', None)
+def _conditions_of(endpoint: Any) -> list[Any]:
+    """What the node's wait set waits on for ``endpoint``: the read condition of its samples
+    (none for a publisher), then its reader or writer itself for incompatible QoS (none for a
+    service or client)."""
+    return [condition for condition in (getattr(endpoint, '_condition', None),
+                                        getattr(endpoint, '_event_entity', None))
+            if condition is not None]
 
 
 def _dds_entities(endpoint: Any) -> list[tuple[Any, bool]]:
