@@ -40,7 +40,9 @@ from typing import Any, Callable, Sequence, TypeVar
 from rcbf_ros.node_logic.interface import (
     help_text,
     InterfaceSource,
+    parameter_specs,
     parameter_type,
+    ParameterSpec,
     resolve,
     wants_help,
 )
@@ -122,6 +124,28 @@ def stop_requested() -> bool:
     return _STOP.requested
 
 
+def parameter_descriptor(spec: ParameterSpec | None, *, dynamic_typing: bool = False,
+                         read_only: bool = False, description: str = '') -> Any:
+    """The ParameterDescriptor of a parameter declared from ``spec``: its one-line description
+    (``description`` when there is no spec) and, for a number with bounds, its
+    FloatingPointRange or IntegerRange (:attr:`ParameterSpec.range`), so that ``ros2 param
+    describe`` shows what ``--help`` prints and the middleware refuses a value outside the
+    range before any callback runs. A new descriptor per call: rclpy keeps and modifies the
+    one it is given."""
+    from rcbf_ros.ros.runtime import get_message, ParameterDescriptor
+    descriptor = ParameterDescriptor(
+        dynamic_typing=dynamic_typing, read_only=read_only,
+        description=spec.description if spec is not None else description)
+    bounds = None if spec is None else spec.range
+    if bounds is not None and spec.type == 'double':
+        descriptor.floating_point_range = [get_message('rcl_interfaces/msg/FloatingPointRange')(
+            from_value=float(bounds[0]), to_value=float(bounds[1]), step=0.0)]
+    elif bounds is not None:
+        descriptor.integer_range = [get_message('rcl_interfaces/msg/IntegerRange')(
+            from_value=int(bounds[0]), to_value=int(bounds[1]), step=0)]
+    return descriptor
+
+
 def declare_settings(node: Any, cls: type[T]) -> T:
     """Declare every parameter of the dataclass ``cls`` on ``node`` and read them into it.
 
@@ -137,12 +161,16 @@ def declare_settings(node: Any, cls: type[T]) -> T:
     from rcbf_ros.ros.runtime import Parameter, ParameterException
 
     lists = {p.key for p in parameters_of(cls) if parameter_type(p.kind) == 'string[]'}
+    specs = {spec.name: spec for spec in parameter_specs(cls, mark_read_only=False)}
     try:
         for parameter in parameters_of(cls):
+            # a default of None declares no type: the value's type is then the user's
+            descriptor = parameter_descriptor(specs[parameter.key],
+                                              dynamic_typing=parameter.default is None)
             if parameter.key in lists:
-                node.declare_parameter(parameter.key, Parameter.Type.STRING_ARRAY)
+                node.declare_parameter(parameter.key, Parameter.Type.STRING_ARRAY, descriptor)
             else:
-                node.declare_parameter(parameter.key, parameter.default)
+                node.declare_parameter(parameter.key, parameter.default, descriptor)
     except ParameterException as exc:
         raise ValueError(str(exc)) from exc
     values = {}

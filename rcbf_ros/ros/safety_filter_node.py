@@ -122,7 +122,7 @@ from rcbf_ros.node_logic.interface import (
     STATE_TOPIC_TYPES,
     TopicSpec,
 )
-from rcbf_ros.ros.node_main import run_node, spin
+from rcbf_ros.ros.node_main import parameter_descriptor, run_node, spin
 from rcbf_ros.ros.runtime import (
     deserialize_message,
     DurabilityPolicy,
@@ -130,7 +130,6 @@ from rcbf_ros.ros.runtime import (
     HistoryPolicy,
     Node,
     Parameter,
-    ParameterDescriptor,
     QoSProfile,
     ReliabilityPolicy,
 )
@@ -310,19 +309,9 @@ class SafetyFilterNode(Node):
     @staticmethod
     def _descriptor(name: str) -> Any:
         """The descriptor of the parameter ``name``: description and range of its spec."""
-        spec = INTERFACE.spec(name)
-        description = spec.description if spec is not None else logic.READ_ONLY_DESCRIPTION
-        descriptor = ParameterDescriptor(dynamic_typing=True, description=description,
-                                         read_only=logic.is_read_only(name))
-        bounds = None if spec is None else spec.range
-        if bounds is not None and spec.type == 'double':
-            descriptor.floating_point_range = [get_message(
-                'rcl_interfaces/msg/FloatingPointRange')(
-                    from_value=float(bounds[0]), to_value=float(bounds[1]), step=0.0)]
-        elif bounds is not None:
-            descriptor.integer_range = [get_message('rcl_interfaces/msg/IntegerRange')(
-                from_value=int(bounds[0]), to_value=int(bounds[1]), step=0)]
-        return descriptor
+        return parameter_descriptor(INTERFACE.spec(name), dynamic_typing=True,
+                                    read_only=logic.is_read_only(name),
+                                    description=logic.READ_ONLY_DESCRIPTION)
 
     def _parameter_values(self) -> dict[str, Any]:
         """Every declared parameter's value (unset ones dropped)."""

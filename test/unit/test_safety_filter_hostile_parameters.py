@@ -256,3 +256,30 @@ def test_a_hostile_params_file_is_one_line_and_exit_2(tmp_path: Path, ros_domain
     assert 'Traceback' not in process.stderr
     last = process.stderr.strip().splitlines()[-1]
     assert last.startswith('safety_filter: ') and key in last, process.stderr[-2000:]
+
+
+def test_every_declared_parameter_describes_itself_with_its_range(harness):
+    from rcbf_ros.ros.safety_filter_node import INTERFACE
+    node = harness.node
+    names = sorted(_values(node))
+    # alpha and obstacles.* come from the params file (declared from the overrides first)
+    assert {'alpha', 'obstacles.x', 'k_c', 'osqp.max_iter', 'system'} <= set(names)
+    for name in names:
+        spec = INTERFACE.spec(name)
+        if spec is None:  # the runtime's own (use_sim_time)
+            continue
+        descriptor = node.describe_parameter(name)
+        assert descriptor.description == spec.description, name
+        bounds = spec.range
+        ranges = list(descriptor.floating_point_range) + list(descriptor.integer_range)
+        if bounds is None:
+            assert not ranges, name
+        else:
+            assert [(r.from_value, r.to_value) for r in ranges] == [bounds], name
+    k_c = node.describe_parameter('k_c').floating_point_range[0]
+    assert (k_c.from_value, k_c.to_value) == (0.0, math.inf)
+    max_iter = node.describe_parameter('osqp.max_iter').integer_range[0]
+    assert (max_iter.from_value, max_iter.to_value) == (1, 2 ** 31 - 1)
+    alpha = node.describe_parameter('alpha').floating_point_range[0]
+    assert alpha.from_value == 5e-324 and alpha.to_value == math.inf
+    assert node.describe_parameter('system').read_only
