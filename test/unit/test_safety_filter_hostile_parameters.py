@@ -283,3 +283,17 @@ def test_every_declared_parameter_describes_itself_with_its_range(harness):
     alpha = node.describe_parameter('alpha').floating_point_range[0]
     assert alpha.from_value == 5e-324 and alpha.to_value == math.inf
     assert node.describe_parameter('system').read_only
+
+
+def test_a_failing_publication_still_sends_the_fail_safe_command(harness, capsys):
+    node = harness.node
+    node._on_state(_cdr({'state': STATE}))
+
+    def broken(msg: Any) -> None:
+        raise RuntimeError('publisher gone')
+    node._info_pub.publish = broken  # the command goes out first, then filter_info fails
+    before = len(harness.commands)
+    node._on_proposal(_cdr({'u': PROPOSAL}))  # never raises
+    assert len(harness.commands) == before + 2  # the answer, then the fail-safe after it
+    np.testing.assert_array_equal(harness.commands[-1].data, node.fail_safe_action)
+    assert 'fail-safe: internal error: RuntimeError: publisher gone' in capsys.readouterr().err
