@@ -101,8 +101,10 @@ def write_atomically(path: str | Path, data: bytes | memoryview | str) -> None:
             stream.flush()
             os.fsync(stream.fileno())
         os.replace(partial, path)
-    except BaseException:
+    except BaseException as exc:
         partial.unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.filename is None:
+            exc.filename = str(path)  # a failed write() does not say which file
         raise
     _sync_directory(path.parent)
 
@@ -162,11 +164,26 @@ def load_payload(path: str | Path) -> dict[str, Any]:
 
 
 def append_row(path: str | Path, row: Mapping[str, Any]) -> None:
-    """Append one JSON row to ``path`` and flush it to disk before returning."""
-    with Path(path).open('a') as stream:
-        stream.write(json.dumps(row) + '\n')
-        stream.flush()
-        os.fsync(stream.fileno())
+    """Append one JSON row to ``path`` and flush it to disk before returning.
+
+    Raises:
+        OSError: naming ``path`` (a full disk; a torn row is cut by the next resume,
+            :func:`reconcile_metrics`).
+    """
+    _append(path, json.dumps(row) + '\n')
+
+
+def _append(path: str | Path, text: str) -> None:
+    """Append ``text`` to ``path`` and flush it to disk; an OSError names ``path``."""
+    try:
+        with Path(path).open('a') as stream:
+            stream.write(text)
+            stream.flush()
+            os.fsync(stream.fileno())
+    except OSError as exc:
+        if exc.filename is None:
+            exc.filename = str(path)  # a failed write() does not say which file
+        raise
 
 
 def write_jsonl(path: str | Path, rows: Sequence[Mapping[str, Any]]) -> None:
@@ -188,10 +205,8 @@ def reconcile_metrics(path: str | Path, *, history: Sequence[Mapping[str, Any]])
     lines = [line for line in lines if line.strip()]
     cut = lines[len(history):]
     if cut:
-        with path.with_name(SUPERSEDED).open('a') as stream:
-            stream.write(''.join(line if line.endswith('\n') else line + '\n' for line in cut))
-            stream.flush()
-            os.fsync(stream.fileno())
+        _append(path.with_name(SUPERSEDED),
+                ''.join(line if line.endswith('\n') else line + '\n' for line in cut))
     if cut or len(lines) < len(history) or not path.exists():
         write_jsonl(path, history)
     return len(cut)
