@@ -117,10 +117,24 @@ plain = st.recursive(
     max_leaves=8)
 
 
-@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(payload=st.fixed_dictionaries({}, optional={
-    'learner': plain, 'episode': plain, 'history': plain, 'identity': plain, 'env_rng': plain,
-    'made_by': plain, 'run': plain}))
+ENTRIES = ('learner', 'episode', 'history', 'identity', 'env_rng', 'made_by', 'run')
+
+
+@st.composite
+def checkpoint_payloads(draw) -> dict:
+    """A well-formed checkpoint's entries with one or two replaced by any plain data, or one
+    left out: each wrong entry among right ones."""
+    done = draw(st.integers(0, 2))
+    payload = {'learner': {}, 'episode': done, 'history': [{'episode': i} for i in range(done)],
+               'identity': None, 'env_rng': None}
+    payload.update(draw(st.dictionaries(st.sampled_from(ENTRIES), plain, max_size=2)))
+    for entry in draw(st.sets(st.sampled_from(ENTRIES), max_size=1)):
+        payload.pop(entry, None)
+    return payload
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(payload=checkpoint_payloads())
 def test_any_plain_file_is_read_or_refused_in_one_line(base_identity, payload):
     """Whatever plain data a checkpoint holds, reading it for a resume either succeeds with
     well-formed entries or raises CheckpointError: one line naming the file."""
