@@ -79,11 +79,13 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    """Run ``rcbf_ros train``: 0, 2 on bad arguments or output directory, 130 on Ctrl-C or
-    SIGTERM (checkpoint, bag and plot written)."""
+    """Run ``rcbf_ros train``: 0, 2 on bad arguments, output directory or checkpoint, 1 when a
+    file of the run cannot be written (a full disk: the bag closed, the previous checkpoint
+    kept), 130 on Ctrl-C or SIGTERM (checkpoint, bag and plot written)."""
     from rcbf_ros.training.build import RunConfig, RunSetupError
     from rcbf_ros.training.loop import check_out_dir, train
     from rcbf_ros.training.progress import summarize
+    from rcbf_ros.training.run_files import RunWriteError
     try:
         learner = LearnerConfig(**_learner_overrides(args),
                                 sac=SACConfig(initial_alpha=args.initial_alpha,
@@ -118,6 +120,9 @@ def run_train(args: argparse.Namespace) -> int:
     except RunSetupError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 2
+    except RunWriteError as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f'interrupted: checkpoint and partial results are in {run.out_dir}',
               file=sys.stderr)

@@ -18,13 +18,18 @@ and publishes the line as JSON on ``learner/metrics`` (so the run's MCAP holds i
 every ``checkpoint_every`` episodes (default every one) and on exit (Ctrl-C/SIGTERM included);
 after ``episodes`` it writes policy.pt, the reward curve and a summary, and shuts down.
 ``resume:=true`` continues from ``<out_dir>/checkpoint.pt`` (without one it starts at episode 0,
-keeping the files there); without it an ``out_dir`` that already holds a run is refused (exit
-2). The files follow :mod:`rcbf_ros.training.run_files`: checkpoints are read without running
-code from them.
+keeping the files there), also one ``rcbf_ros train`` wrote: the format is one
+(:mod:`rcbf_ros.training.checkpoint`), and a checkpoint of another system, mode or network is
+refused before it is loaded (exit 2, one line naming what differs). The simulator node owns the
+env, so a checkpoint's env generator is not restored here and this node writes none. Without
+``resume`` an ``out_dir`` that already holds a run is refused (exit 2). A file that cannot be
+written (a full disk) stops the node with one line and exit status 1; nothing more is written
+and the previous checkpoint stays as it was. The files follow
+:mod:`rcbf_ros.training.run_files`: checkpoints are read without running code from them.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 import json
 import math
 from pathlib import Path
@@ -52,6 +57,17 @@ from rcbf_ros.ros.node_main import request_stop, run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.agent import LearnerConfig, policy_box, SafeLearner
 from rcbf_ros.training.build import policy_limits
+from rcbf_ros.training.checkpoint import (
+    CHECKPOINT,
+    Checkpoint,
+    CheckpointError,
+    describe_difference,
+    identity_of,
+    learner_identity,
+    read_checkpoint,
+    restore_learner,
+    write_checkpoint,
+)
 from rcbf_ros.training.episodes import CriticCheck
 from rcbf_ros.training.policy_io import save_policy
 from rcbf_ros.training.progress import format_progress, summarize
@@ -59,11 +75,18 @@ from rcbf_ros.training.run_files import (
     append_row,
     DEFAULT_CHECKPOINT_EVERY,
     describe_cut,
-    load_payload,
+    describe_write_error,
     reconcile_metrics,
     run_data,
-    save_payload,
+    write_atomically,
 )
+
+MADE_BY = 'learner node'
+"""The ``made_by`` of this node's checkpoints."""
+WRITE_FAILED = 1
+"""Exit status after a file of the run could not be written (a full disk)."""
+BAD_CHECKPOINT = 2
+"""Exit status for a checkpoint this run cannot resume (as for a bad parameter)."""
 
 
 @dataclass(frozen=True)
@@ -213,8 +236,12 @@ class LearnerNode(Node):
         self.filter_params = self._declared_filter_params()
         # The learner is built at the first step (it needs the observation's size); its
         # settings and policy box are checked now, so that a bad one exits 2 naming the key.
-        policy_box(build_system(self.filter_params),
-                   learner_config_from_settings(self.settings, self.filter_params))
+        system = build_system(self.filter_params)
+        config = learner_config_from_settings(self.settings, self.filter_params)
+        policy_box(system, config)
+        # What a checkpoint to resume must match (the observation's size: at the first step).
+        self.identity = learner_identity(system_name=self.settings.system, system=system,
+                                         config=config, obs_dim=None)
         self.out_dir = Path(self.settings.out_dir)
         self.learner: SafeLearner | None = None
         self.pending: dict[str, np.ndarray] | None = None
@@ -222,8 +249,12 @@ class LearnerNode(Node):
         self.tally = EpisodeTally()
         self.history: list[dict[str, Any]] = []
         self.episodes_done = 0
-        # The checkpoint's learner state, loaded into the learner when it is built.
-        self.resume_state: dict[str, Any] | None = None
+        # The checkpoint to resume, loaded into the learner when it is built.
+        self.resume_from: Checkpoint | None = None
+        # (exit status, one line) once the node has to stop: nothing more is written.
+        self.failure: tuple[int, str] | None = None
+        # Episodes the checkpoint on disk holds (None: none yet).
+        self.saved_episodes: int | None = None
         self._open_run()
         self.last_step: tuple[int, int] | None = None
         qos = QoSProfile(depth=10)
@@ -245,19 +276,17 @@ class LearnerNode(Node):
             raise ValueError(f"out_dir: {self.out_dir} already holds a run "
                              f"({', '.join(existing)}); set resume:=true to continue it or "
                              'choose another out_dir')
-        checkpoint = self.out_dir / 'checkpoint.pt'
+        checkpoint = self.out_dir / CHECKPOINT
         if self.settings.resume and checkpoint.exists():
-            try:
-                state = load_payload(checkpoint)
-                self.resume_state = dict(state['learner'])
-                self.history = list(state['history'])
-                self.episodes_done = int(state['episode'])
-            except KeyError as exc:
-                raise ValueError(f'resume: {checkpoint}: no {exc} entry (not a checkpoint?)'
-                                 ) from None
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f'resume: {exc}') from None
-            self.get_logger().info(f'resumed at episode {self.episodes_done}')
+            self.resume_from = read_checkpoint(checkpoint, identity=self.identity)
+            self.history = list(self.resume_from.history)
+            self.episodes_done = self.saved_episodes = self.resume_from.episode
+            made_by = self.resume_from.made_by
+            self.get_logger().info(
+                f'resumed at episode {self.episodes_done}'
+                + (f' of a run of {made_by}' if made_by and made_by != MADE_BY else '')
+                + ('; the simulator keeps its own episode generator'
+                   if self.resume_from.env_rng is not None else ''))
         elif self.settings.resume:
             self.get_logger().info(f'no checkpoint in {self.out_dir}: starting at episode 0'
                                    + (' (the files there are kept)' if existing else ''))
@@ -274,6 +303,8 @@ class LearnerNode(Node):
 
     # ----------------------------------------------------------------- callbacks
     def on_step(self, msg: Any) -> None:
+        if self.failure is not None:
+            return  # stopping: the step is not answered
         try:
             sections = msg_to_sections(msg)
             state, obs = sections['state'], sections['observation']
@@ -289,7 +320,11 @@ class LearnerNode(Node):
             return
         self.last_step = index
         if self.learner is None:
-            self.learner = self._build_learner(obs_dim=obs.size)
+            try:
+                self.learner = self._build_learner(obs_dim=obs.size)
+            except CheckpointError as exc:
+                self._fail(BAD_CHECKPOINT, str(exc))
+                return
         flag = lambda key: bool(sections.get(key, np.zeros(1))[0] > 0.5)  # noqa: E731
         terminated, truncated = flag('terminated'), flag('truncated')
         if int(sections.get('step', np.zeros(1))[0]) == 0:
@@ -327,11 +362,31 @@ class LearnerNode(Node):
 
     # ----------------------------------------------------------------- bookkeeping
     def _build_learner(self, obs_dim: int) -> SafeLearner:
+        """The learner for observations of ``obs_dim`` values, with the checkpoint to resume
+        loaded. CheckpointError: the checkpoint's observation size or state does not fit."""
         learner = learner_from_settings(self.settings, self.filter_params, obs_dim)
-        if self.resume_state is not None:
-            learner.load_state_dict(self.resume_state)
-            self.resume_state = None
+        if self.resume_from is not None:
+            path = self.out_dir / CHECKPOINT
+            difference = describe_difference(self.resume_from.identity,
+                                             identity_of(learner, self.settings.system))
+            if difference:
+                raise CheckpointError(f'resume: {path} {difference}')
+            restore_learner(learner, self.resume_from, path)
+            self.resume_from = None
         return learner
+
+    def _fail(self, status: int, line: str) -> None:
+        """Stop after this callback with exit status ``status`` and ``line`` on stderr
+        (:func:`main`); nothing more is written. The first failure is the one reported."""
+        if self.failure is None:
+            self.failure = (status, line)
+        request_stop()
+
+    def _write_failed(self, exc: OSError) -> None:
+        saved = self.saved_episodes
+        kept = ('no checkpoint written yet' if saved is None else
+                f'{CHECKPOINT} holds {saved} episode(s); resume:=true continues from it')
+        self._fail(WRITE_FAILED, f'{describe_write_error(exc)}; the run stopped ({kept})')
 
     def _end_episode(self) -> None:
         t = self.tally
@@ -345,7 +400,11 @@ class LearnerNode(Node):
                'env_steps': self.learner.env_steps if self.learner else 0}
         self.history.append(row)
         self.episodes_done += 1
-        append_row(self.out_dir / 'metrics.jsonl', row)
+        try:
+            append_row(self.out_dir / 'metrics.jsonl', row)
+        except OSError as exc:
+            self._write_failed(exc)
+            return
         msg = get_message('std_msgs/msg/String')()
         msg.data = json.dumps(row)
         self.metrics_pub.publish(msg)
@@ -357,42 +416,65 @@ class LearnerNode(Node):
             request_stop()  # then destroy_node and the shutdown, after this callback
 
     def save_checkpoint(self) -> None:
-        if self.learner is None:
+        """Write the learner and the episodes done to checkpoint.pt (atomically); a failed
+        write stops the node (:meth:`_fail`), the previous checkpoint intact."""
+        if self.learner is None or self.failure is not None:
             return
-        save_payload(self.out_dir / 'checkpoint.pt', {
-            'learner': self.learner.state_dict(), 'episode': self.episodes_done,
-            'history': self.history})
+        try:
+            write_checkpoint(self.out_dir / CHECKPOINT, learner=self.learner,
+                             system_name=self.settings.system, episode=self.episodes_done,
+                             history=self.history, env_rng=None, made_by=MADE_BY,
+                             run=asdict(self.settings))
+        except OSError as exc:
+            self._write_failed(exc)
+            return
+        self.saved_episodes = self.episodes_done
 
     def finish(self) -> dict[str, Any]:
         """Checkpoint, policy export, reward curve and summary.json; returns the summary.
-        Before the first step of a new run there is nothing to write."""
-        if self.learner is None and not self.history:
-            return summarize(self.history)
-        self.save_checkpoint()
+        Before the first step of a new run, or after a failure, nothing is written."""
         summary = summarize(self.history)
-        if self.learner is not None:
-            save_policy(self.out_dir / 'policy.pt', self.learner.sac, u_low=self.learner.u_low,
-                        u_high=self.learner.u_high, system=self.settings.system)
-        if self.history:
-            from rcbf_ros.reports.plots import plot_reward_curve
-            plot_reward_curve([r['ret'] for r in self.history],
-                              self.out_dir / 'reward_curve.png',
-                              title=f'{self.settings.system} / {self.settings.mode} '
-                                    '(nodes over DDS)')
-            summary['reward_curve'] = str(self.out_dir / 'reward_curve.png')
-        (self.out_dir / 'summary.json').write_text(json.dumps(summary, indent=2))
+        if (self.learner is None and not self.history) or self.failure is not None:
+            return summary
+        self.save_checkpoint()
+        if self.failure is not None:
+            return summary
+        try:
+            if self.learner is not None:
+                save_policy(self.out_dir / 'policy.pt', self.learner.sac,
+                            u_low=self.learner.u_low, u_high=self.learner.u_high,
+                            system=self.settings.system)
+            if self.history:
+                from rcbf_ros.reports.plots import plot_reward_curve
+                plot_reward_curve([r['ret'] for r in self.history],
+                                  self.out_dir / 'reward_curve.png',
+                                  title=f'{self.settings.system} / {self.settings.mode} '
+                                        '(nodes over DDS)')
+                summary['reward_curve'] = str(self.out_dir / 'reward_curve.png')
+            write_atomically(self.out_dir / 'summary.json', json.dumps(summary, indent=2))
+        except OSError as exc:
+            self._write_failed(exc)
         return summary
 
 
 def main(args: list[str] | None = None) -> int:
-    """Run until the episodes are done or Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
+    """Run until the episodes are done or Ctrl-C / SIGTERM. Returns 2 on invalid parameters
+    or a checkpoint this run cannot resume, 1 when a file could not be written (one line on
+    stderr either way)."""
+    stopped: list[LearnerNode] = []
 
     def keep_what_was_learned(node: LearnerNode) -> None:
+        stopped.append(node)
         if node.episodes_done < node.settings.episodes:
             node.finish()  # Ctrl-C / SIGTERM before the last episode
 
-    return run_node('learner', LearnerNode, args, on_exit=keep_what_was_learned,
-                    setup_errors=(ValueError,), interface=INTERFACE)
+    status = run_node('learner', LearnerNode, args, on_exit=keep_what_was_learned,
+                      setup_errors=(ValueError,), interface=INTERFACE)
+    failure = stopped[0].failure if stopped else None
+    if status == 0 and failure is not None:
+        print(f'learner: {failure[1]}', file=sys.stderr)
+        return failure[0]
+    return status
 
 
 if __name__ == '__main__':

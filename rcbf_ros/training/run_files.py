@@ -16,6 +16,7 @@ Shared by the in-process trainer (:mod:`rcbf_ros.training.loop`) and the learner
 """
 from __future__ import annotations
 
+import io
 import json
 import os
 from pathlib import Path
@@ -33,6 +34,11 @@ SUPERSEDED = 'metrics_superseded.jsonl'
 """Rows a resume cut from ``metrics.jsonl`` (their episodes are played again)."""
 _RUN_FILES = ('checkpoint.pt', 'policy.pt', 'summary.json', SUPERSEDED)
 _PLAIN = (bool, int, float, str, type(None), torch.Tensor)
+
+
+class RunWriteError(OSError):
+    """A run's file could not be written (a full disk): one line naming the file, the reason
+    and what the run keeps."""
 
 
 class UnsafeFileError(ValueError):
@@ -62,18 +68,71 @@ def save_payload(path: str | Path, payload: Mapping[str, Any]) -> Path:
     """Write ``payload`` (tensors and plain data only) to ``path`` at once: written beside it,
     flushed to disk and renamed over it, so a crash leaves the old file or the new one.
 
+    The payload is serialised in memory first, so that the only writes to the disk are plain
+    file writes: a full disk (or a file-size limit) raises OSError from them, the partial file
+    is removed and ``path`` is left as it was.
+
     Raises:
         TypeError: an entry that is not a tensor or plain data (named).
+        OSError: the file could not be written (nothing of it is left).
     """
     path = Path(path)
     check_plain(dict(payload), where=path.name)
-    partial = path.with_name(path.name + '.partial')
-    with partial.open('wb') as stream:
-        torch.save(dict(payload), stream)
-        stream.flush()
-        os.fsync(stream.fileno())
-    os.replace(partial, path)
+    buffer = io.BytesIO()
+    torch.save(dict(payload), buffer)
+    write_atomically(path, buffer.getbuffer())
     return path
+
+
+def write_atomically(path: str | Path, data: bytes | memoryview | str) -> None:
+    """Make ``path`` hold ``data`` at once: written to ``<path>.partial``, flushed to disk and
+    renamed over ``path`` (then the directory flushed, so the rename survives a power cut).
+
+    Raises:
+        OSError: a write failed (a full disk); the partial file is removed, ``path`` is as it
+            was.
+    """
+    path = Path(path)
+    partial = path.with_name(path.name + '.partial')
+    raw = data.encode() if isinstance(data, str) else data
+    try:
+        with partial.open('wb') as stream:
+            stream.write(raw)
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(partial, path)
+    except BaseException as exc:
+        partial.unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.filename is None:
+            exc.filename = str(path)  # a failed write() does not say which file
+        raise
+    _sync_directory(path.parent)
+
+
+def _sync_directory(directory: Path) -> None:
+    """Flush ``directory``'s entries (a rename) to disk where the system allows it."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # some file systems refuse fsync on a directory; the rename is still done
+    finally:
+        os.close(fd)
+
+
+def describe_write_error(exc: OSError) -> str:
+    """One line for a failed write: the file and the system's reason (``File too large``,
+    ``No space left on device``), without errno numbers or a second line."""
+    if exc.filename is not None and exc.strerror:
+        name = str(exc.filename)
+        if name.endswith('.partial'):
+            name = name[:-len('.partial')]
+        return f'{name}: {exc.strerror}'
+    text = ' '.join(str(exc).split()) or type(exc).__name__
+    return text
 
 
 def load_payload(path: str | Path) -> dict[str, Any]:
@@ -105,23 +164,32 @@ def load_payload(path: str | Path) -> dict[str, Any]:
 
 
 def append_row(path: str | Path, row: Mapping[str, Any]) -> None:
-    """Append one JSON row to ``path`` and flush it to disk before returning."""
-    with Path(path).open('a') as stream:
-        stream.write(json.dumps(row) + '\n')
-        stream.flush()
-        os.fsync(stream.fileno())
+    """Append one JSON row to ``path`` and flush it to disk before returning.
+
+    Raises:
+        OSError: naming ``path`` (a full disk; a torn row is cut by the next resume,
+            :func:`reconcile_metrics`).
+    """
+    _append(path, json.dumps(row) + '\n')
+
+
+def _append(path: str | Path, text: str) -> None:
+    """Append ``text`` to ``path`` and flush it to disk; an OSError names ``path``."""
+    try:
+        with Path(path).open('a') as stream:
+            stream.write(text)
+            stream.flush()
+            os.fsync(stream.fileno())
+    except OSError as exc:
+        if exc.filename is None:
+            exc.filename = str(path)  # a failed write() does not say which file
+        raise
 
 
 def write_jsonl(path: str | Path, rows: Sequence[Mapping[str, Any]]) -> None:
-    """Make ``path`` hold exactly ``rows``, one JSON object per line, at once: written beside
-    it, flushed to disk and renamed over it, so a crash leaves the old file or the new one."""
-    path = Path(path)
-    partial = path.with_name(path.name + '.partial')
-    with partial.open('w') as stream:
-        stream.write(''.join(json.dumps(row) + '\n' for row in rows))
-        stream.flush()
-        os.fsync(stream.fileno())
-    os.replace(partial, path)
+    """Make ``path`` hold exactly ``rows``, one JSON object per line, at once
+    (:func:`write_atomically`): a crash leaves the old file or the new one."""
+    write_atomically(path, ''.join(json.dumps(row) + '\n' for row in rows))
 
 
 def reconcile_metrics(path: str | Path, *, history: Sequence[Mapping[str, Any]]) -> int:
@@ -137,10 +205,8 @@ def reconcile_metrics(path: str | Path, *, history: Sequence[Mapping[str, Any]])
     lines = [line for line in lines if line.strip()]
     cut = lines[len(history):]
     if cut:
-        with path.with_name(SUPERSEDED).open('a') as stream:
-            stream.write(''.join(line if line.endswith('\n') else line + '\n' for line in cut))
-            stream.flush()
-            os.fsync(stream.fileno())
+        _append(path.with_name(SUPERSEDED),
+                ''.join(line if line.endswith('\n') else line + '\n' for line in cut))
     if cut or len(lines) < len(history) or not path.exists():
         write_jsonl(path, history)
     return len(cut)
