@@ -671,7 +671,8 @@ class BagWriter:
         """
         closing = len(self._closing(after, extra_topic=extra_topic))
         limit = _file_size_limit()
-        if limit is not None and after.end + closing > limit:
+        if limit is not None and (after.end + closing > limit or len(_metadata_yaml_text(
+                self._information(after, extra_topic[0] if extra_topic else None))) > limit):
             what = (f'{len(piece)} more bytes' if piece else
                     f'topic {extra_topic[0].name}' if extra_topic else 'the closing records')
             raise self._stop(OSError(errno.EFBIG, (
@@ -875,6 +876,14 @@ def write_metadata_yaml(directory: str | os.PathLike[str], info: dict[str, Any])
     """Write ``<directory>/metadata.yaml`` (``rosbag2_bagfile_information: info``) atomically."""
     path = Path(directory) / 'metadata.yaml'
     tmp = path.with_suffix('.yaml.tmp')
-    tmp.write_text(yaml.safe_dump({'rosbag2_bagfile_information': info}, sort_keys=False))
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(_metadata_yaml_text(info))
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)  # a full disk: no half-written file left behind
+        raise
     return path
+
+
+def _metadata_yaml_text(info: dict[str, Any]) -> str:
+    return yaml.safe_dump({'rosbag2_bagfile_information': info}, sort_keys=False)
