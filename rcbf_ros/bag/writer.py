@@ -112,6 +112,8 @@ def _library_identifier() -> str:
 
 _MAGIC = b'\x89MCAP0\r\n'
 _RECORD_HEAD = struct.Struct('<BQ')  # opcode, content length
+_SUMMARY_OFFSET_SIZE = _RECORD_HEAD.size + 1 + 8 + 8  # opcode, group start and length
+_FOOTER_SIZE = _RECORD_HEAD.size + 8 + 8 + 4  # summary start, offsets start, CRC
 _CHUNK_HEAD = struct.Struct('<QQQII')  # start and end time, uncompressed size and CRC, len(str)
 _MESSAGE_INDEX_HEAD = struct.Struct('<HI')  # channel id, bytes of (time, offset) entries
 
@@ -213,7 +215,12 @@ class _Contents:
     data_crc: int = 0
     """CRC-32 of the bytes before :attr:`end` (the data section's CRC)."""
     chunk_indexes: list[bytes] = field(default_factory=list)
-    """One serialized chunk index record per chunk, in file order."""
+    """One serialized chunk index record per chunk, in file order: the first
+    :attr:`chunk_count` (the list is shared with the contents that follow)."""
+    chunk_count: int = 0
+    """Chunks in the file."""
+    chunk_index_size: int = 0
+    """Bytes of their chunk index records."""
     channel_counts: dict[int, int] = field(default_factory=dict)
     """Messages per channel id."""
     start_ns: int | None = None
@@ -227,8 +234,10 @@ class _Contents:
 
     def plus(self, piece: bytes) -> _Contents:
         """The contents once ``piece`` (whole records) is written after :attr:`end`."""
+        del self.chunk_indexes[self.chunk_count:]  # those of a piece never written
         after = _Contents(end=self.end + len(piece), data_crc=zlib.crc32(piece, self.data_crc),
-                          chunk_indexes=list(self.chunk_indexes),
+                          chunk_indexes=self.chunk_indexes, chunk_count=self.chunk_count,
+                          chunk_index_size=self.chunk_index_size,
                           channel_counts=dict(self.channel_counts),
                           start_ns=self.start_ns, end_ns=self.end_ns)
         view = memoryview(piece)
@@ -266,9 +275,10 @@ class _Contents:
 
     def _add_chunk_index(self, chunk: ChunkIndex | None) -> None:
         if chunk is not None:
-            builder = RecordBuilder()
-            chunk.write(builder)
-            self.chunk_indexes.append(builder.end())
+            record = _record_bytes(chunk)
+            self.chunk_indexes.append(record)
+            self.chunk_count += 1
+            self.chunk_index_size += len(record)
 
     def _add_times(self, start: int, end: int) -> None:
         self.start_ns = start if self.start_ns is None else min(self.start_ns, start)
@@ -459,6 +469,7 @@ class BagWriter:
         self._summary_records: list[tuple[Opcode, bytes]] = []  # schemas and channels
         self._error: BagWriteError | None = None
         self._closed = False
+        self._bound_cache: tuple[Any, int, int] = (None, 0, 0)  # see _closing_bound
         _ignore_file_size_signal()
         self._file = _BagFile(self.mcap_path)
         _lock_exclusive(self._file.fileno())
@@ -669,10 +680,9 @@ class BagWriter:
         (:meth:`_BagFile.reserve`): a full disk then fails the reservation, not the piece,
         and the blocks held for the present closing records are still there.
         """
-        closing = len(self._closing(after, extra_topic=extra_topic))
+        closing, yaml_size = self._closing_bound(after, extra_topic=extra_topic)
         limit = _file_size_limit()
-        if limit is not None and (after.end + closing > limit or len(_metadata_yaml_text(
-                self._information(after, extra_topic[0] if extra_topic else None))) > limit):
+        if limit is not None and (after.end + closing > limit or yaml_size > limit):
             what = (f'{len(piece)} more bytes' if piece else
                     f'topic {extra_topic[0].name}' if extra_topic else 'the closing records')
             raise self._stop(OSError(errno.EFBIG, (
@@ -699,29 +709,13 @@ class BagWriter:
         """The records that close a file holding ``contents``: the ``rosbag2`` metadata
         record, data end, summary (schemas, channels, statistics, chunk and metadata indexes,
         summary offsets), footer and magic, laid out as the mcap writer's ``finish()``."""
-        info = self._information(contents, extra_topic[0] if extra_topic else None)
-        metadata = _record_bytes(Metadata(name='rosbag2', metadata={
-            'serialized_metadata': yaml.safe_dump(info, sort_keys=False).rstrip('\n')}))
-        data_end = _record_bytes(DataEnd(zlib.crc32(metadata, contents.data_crc)))
-        records = self._summary_records + (extra_topic[1] if extra_topic else [])
-        schemas = b''.join(data for opcode, data in records if opcode == Opcode.SCHEMA)
-        channels = b''.join(data for opcode, data in records if opcode == Opcode.CHANNEL)
-        statistics = _record_bytes(Statistics(
-            message_count=contents.message_count,
-            schema_count=sum(opcode == Opcode.SCHEMA for opcode, _ in records),
-            channel_count=sum(opcode == Opcode.CHANNEL for opcode, _ in records),
-            attachment_count=0, metadata_count=1, chunk_count=len(contents.chunk_indexes),
-            message_start_time=contents.start_ns or 0, message_end_time=contents.end_ns or 0,
-            channel_message_counts=dict(sorted(contents.channel_counts.items()))))
-        metadata_index = _record_bytes(MetadataIndex(
-            offset=contents.end, length=len(metadata), name='rosbag2'))
-        summary_start = contents.end + len(metadata) + len(data_end)
+        head, groups = self._closing_parts(contents, extra_topic)
+        summary_start = contents.end + len(head)
         summary = bytearray()
         offsets = bytearray()
-        for opcode, group in ((Opcode.SCHEMA, schemas), (Opcode.CHANNEL, channels),
-                              (Opcode.STATISTICS, statistics),
-                              (Opcode.CHUNK_INDEX, b''.join(contents.chunk_indexes)),
-                              (Opcode.METADATA_INDEX, metadata_index)):
+        for opcode, group in groups:
+            if opcode == Opcode.CHUNK_INDEX:
+                group = b''.join(contents.chunk_indexes[:contents.chunk_count])
             if group:  # no offset to an empty group (``pymcap-cli doctor`` flags one)
                 offsets += _record_bytes(SummaryOffset(
                     group_opcode=opcode, group_start=summary_start + len(summary),
@@ -735,7 +729,56 @@ class BagWriter:
         footer = _record_bytes(Footer(summary_start=summary_start,
                                       summary_offset_start=summary_offset_start,
                                       summary_crc=summary_crc))
-        return metadata + data_end + bytes(summary) + footer + _MAGIC
+        return head + bytes(summary) + footer + _MAGIC
+
+    def _closing_bound(self, contents: _Contents, *,
+                       extra_topic: tuple[TopicRecord, list[tuple[Opcode, bytes]]] | None = None,
+                       ) -> tuple[int, int]:
+        """Upper bounds of ``len(self._closing(contents))`` and of metadata.yaml's size, checked
+        before every chunk: without writing the bag information as YAML each time (~30 ms for
+        a few topics) nor joining the chunk indexes (thousands in a long recording). Counts and
+        times are taken as 20 digits wide, the most a 64-bit number has."""
+        key = (len(self.topics), extra_topic[0].name if extra_topic else None)
+        if self._bound_cache[0] != key:
+            widest = _widest_counts(self._information(
+                _Contents(), extra_topic[0] if extra_topic else None))
+            head, groups = self._closing_parts(_Contents(), extra_topic, info=widest)
+            channels = len(self.topics) + (1 if extra_topic else 0)
+            fixed = (len(head) + sum(len(group) for _, group in groups)
+                     + 10 * channels  # statistics: a count per channel
+                     + len(groups) * _SUMMARY_OFFSET_SIZE + _FOOTER_SIZE + len(_MAGIC))
+            self._bound_cache = (key, fixed, len(_metadata_yaml_text(widest)))
+        _, fixed, yaml_size = self._bound_cache
+        return fixed + contents.chunk_index_size, yaml_size
+
+    def _closing_parts(self, contents: _Contents,
+                       extra_topic: tuple[TopicRecord, list[tuple[Opcode, bytes]]] | None, *,
+                       info: dict[str, Any] | None = None,
+                       ) -> tuple[bytes, list[tuple[Opcode, bytes]]]:
+        """The ``rosbag2`` metadata record (of ``info``, default: the contents' information)
+        and data end; the summary's groups in order (the chunk indexes' left empty:
+        :meth:`_closing` joins them)."""
+        if info is None:
+            info = self._information(contents, extra_topic[0] if extra_topic else None)
+        metadata = _record_bytes(Metadata(name='rosbag2', metadata={
+            'serialized_metadata': yaml.safe_dump(info, sort_keys=False).rstrip('\n')}))
+        data_end = _record_bytes(DataEnd(zlib.crc32(metadata, contents.data_crc)))
+        records = self._summary_records + (extra_topic[1] if extra_topic else [])
+        statistics = _record_bytes(Statistics(
+            message_count=contents.message_count,
+            schema_count=sum(opcode == Opcode.SCHEMA for opcode, _ in records),
+            channel_count=sum(opcode == Opcode.CHANNEL for opcode, _ in records),
+            attachment_count=0, metadata_count=1, chunk_count=contents.chunk_count,
+            message_start_time=contents.start_ns or 0, message_end_time=contents.end_ns or 0,
+            channel_message_counts=dict(sorted(contents.channel_counts.items()))))
+        metadata_index = _record_bytes(MetadataIndex(
+            offset=contents.end, length=len(metadata), name='rosbag2'))
+        return metadata + data_end, [
+            (Opcode.SCHEMA, b''.join(data for op, data in records if op == Opcode.SCHEMA)),
+            (Opcode.CHANNEL, b''.join(data for op, data in records if op == Opcode.CHANNEL)),
+            (Opcode.STATISTICS, statistics),
+            (Opcode.CHUNK_INDEX, b''),
+            (Opcode.METADATA_INDEX, metadata_index)]
 
     def _stop(self, error: OSError) -> BagWriteError:
         """Close the bag after a failed write (see the module docstring); the error to raise."""
@@ -791,6 +834,19 @@ class BagWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+_COUNT_KEYS = ('message_count', 'nanoseconds', 'nanoseconds_since_epoch')
+
+
+def _widest_counts(info: Any) -> Any:
+    """``info`` with every count and time 20 digits wide (for a size bound)."""
+    if isinstance(info, dict):
+        return {key: 10**19 if key in _COUNT_KEYS else _widest_counts(value)
+                for key, value in info.items()}
+    if isinstance(info, list):
+        return [_widest_counts(value) for value in info]
+    return info
 
 
 def _record_bytes(record: Any) -> bytes:
