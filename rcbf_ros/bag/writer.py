@@ -34,16 +34,52 @@ with a periodic ``flush()`` (the recorder calls it every ``flush_period_s``), at
 it until :func:`rcbf_ros.bag.recover.recover_bag` (``rcbf_ros bag recover <dir>``) has rewritten
 it as a complete file from its whole chunks. While the writer is open it holds an exclusive
 ``flock`` on the file, so recovery never touches a bag that is still being written.
+
+Write errors. The mcap writer writes into memory; the bag hands what it produced to the file
+one whole piece at a time (the header, a chunk with its message indexes), so the file always
+ends at a record boundary except while a piece is being written. The closing records (the
+``rosbag2`` metadata record, data end, summary, footer) are built by the bag itself from what
+reached the file. A write that fails (disk full ``ENOSPC``, file size limit ``EFBIG``, ``EIO``,
+any ``OSError``) stops the bag: the file is truncated back to its last whole piece (which frees
+the space the failed piece took), the closing records are written there and ``metadata.yaml``
+beside it, and the call raises :class:`BagWriteError`, one line naming the file and the error.
+So the bag holds every message written before the open chunk, and every reader takes it as
+it is. Under a file size limit (``RLIMIT_FSIZE``, ``ulimit -f``) the bag never writes a piece
+that would leave too little room for its closing records: it stops before, so the closing
+always fits (a write past the limit would otherwise kill the process with ``SIGXFSZ``; the bag
+ignores that signal, as CPython does). On a full disk the closing records can still fail to
+fit: the file then ends at its last whole chunk, as after a kill, and ``rcbf_ros bag recover``
+closes it once there is room (the error line says so). Later calls raise the same error;
+``close()`` after it does nothing.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import ctypes
+from dataclasses import dataclass, field, replace
+import errno
 from importlib.metadata import PackageNotFoundError, version
 import os
 from pathlib import Path
+import signal
+import struct
+import threading
 import time
 from typing import Any, Iterable, Protocol, Sequence
+import zlib
 
+from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
+from mcap.records import (
+    Channel,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
 from mcap.writer import CompressionType, IndexType, Writer
 import yaml
 
@@ -74,35 +110,238 @@ def _library_identifier() -> str:
     return f'rcbf_ros-{ours}; mcap-python-{theirs}'
 
 
-class _UnbufferedFile:
-    """The stream the mcap writer writes to: every ``write`` goes straight to the OS.
+_MAGIC = b'\x89MCAP0\r\n'
+_RECORD_HEAD = struct.Struct('<BQ')  # opcode, content length
+_SUMMARY_OFFSET_SIZE = _RECORD_HEAD.size + 1 + 8 + 8  # opcode, group start and length
+_FOOTER_SIZE = _RECORD_HEAD.size + 8 + 8 + 4  # summary start, offsets start, CRC
+_CHUNK_HEAD = struct.Struct('<QQQII')  # start and end time, uncompressed size and CRC, len(str)
+_MESSAGE_INDEX_HEAD = struct.Struct('<HI')  # channel id, bytes of (time, offset) entries
 
-    The mcap writer buffers a chunk itself and writes it (then its message indexes) in one
-    call each, so writing unbuffered costs a few system calls per chunk and puts every finished
-    chunk on disk at once. (A raw ``FileIO`` would be wrapped in a ``BufferedWriter`` by the
-    mcap writer, hence this small class.)
+
+class BagWriteError(OSError):
+    """Writing a bag file failed: disk full, file size limit, I/O error (``errno`` says which).
+
+    Raised by the call that met the error, once the bag is closed as well as it could be (see
+    the module docstring), and again by every later call but ``close()``. Its text is one line
+    naming the file, the error and what the bag holds.
     """
 
+    def __init__(self, code: int, line: str) -> None:
+        super().__init__(code, line)
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
+def _error_text(exc: OSError) -> str:
+    """``ENOSPC: No space left on device`` (the code's name, then the OS's words)."""
+    name = errno.errorcode.get(exc.errno or 0, 'error')
+    return f'{name}: {exc.strerror or exc}'
+
+
+def _file_size_limit() -> int | None:
+    """The process's file size limit (``RLIMIT_FSIZE`` soft limit, bytes); None if unlimited."""
+    try:
+        import resource
+    except ImportError:  # not POSIX
+        return None
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    return None if soft == resource.RLIM_INFINITY or soft < 0 else soft
+
+
+def _ignore_file_size_signal() -> None:
+    """Make a write past ``RLIMIT_FSIZE`` fail with ``EFBIG`` instead of killing the process
+    (``SIGXFSZ``'s default). CPython ignores the signal from the start; a program that embeds
+    it, or set the default back, may not."""
+    sigxfsz = getattr(signal, 'SIGXFSZ', None)
+    if (sigxfsz is not None and threading.current_thread() is threading.main_thread()
+            and signal.getsignal(sigxfsz) == signal.SIG_DFL):
+        signal.signal(sigxfsz, signal.SIG_IGN)
+
+
+_RESERVE_MARGIN = 8 * 1024
+"""Bytes held beyond twice the closing records' size: metadata.yaml and file-system overhead."""
+_FALLOC_FL_KEEP_SIZE = 1  # linux/falloc.h
+
+
+def _fallocate_keep_size() -> Any:
+    """Linux ``fallocate(fd, FALLOC_FL_KEEP_SIZE, offset, len)`` through ctypes; None where the
+    C library has none (blocks are then not held ahead, see :meth:`_BagFile.reserve`)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        function = getattr(libc, 'fallocate64', None) or libc.fallocate
+    except (OSError, AttributeError):
+        return None
+    function.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
+    function.restype = ctypes.c_int
+    return function
+
+
+class _MemorySink:
+    """The stream the mcap writer writes to: memory, handed to the file by :meth:`take`.
+
+    :meth:`tell` is the file offset that the next byte will have once taken, so the offsets
+    the mcap writer puts in its records are file offsets.
+    """
+
+    def __init__(self) -> None:
+        self._pending = bytearray()
+        self._taken = 0
+
+    def write(self, data: bytes | bytearray | memoryview) -> int:
+        self._pending += data
+        return len(data)
+
+    def tell(self) -> int:
+        return self._taken + len(self._pending)
+
+    def flush(self) -> None:
+        """Nothing to do: :meth:`take` hands the bytes on."""
+
+    def take(self) -> bytes:
+        """Everything written since the last call (whole records)."""
+        data = bytes(self._pending)
+        self._pending.clear()
+        self._taken += len(data)
+        return data
+
+
+@dataclass
+class _Contents:
+    """What the file holds up to :attr:`end`: the state its closing records describe."""
+
+    end: int = 0
+    """Offset just past the last whole piece written."""
+    data_crc: int = 0
+    """CRC-32 of the bytes before :attr:`end` (the data section's CRC)."""
+    chunk_indexes: list[bytes] = field(default_factory=list)
+    """One serialized chunk index record per chunk, in file order: the first
+    :attr:`chunk_count` (the list is shared with the contents that follow)."""
+    chunk_count: int = 0
+    """Chunks in the file."""
+    chunk_index_size: int = 0
+    """Bytes of their chunk index records."""
+    channel_counts: dict[int, int] = field(default_factory=dict)
+    """Messages per channel id."""
+    start_ns: int | None = None
+    """Earliest message log time."""
+    end_ns: int | None = None
+    """Latest message log time."""
+
+    @property
+    def message_count(self) -> int:
+        return sum(self.channel_counts.values())
+
+    def plus(self, piece: bytes) -> _Contents:
+        """The contents once ``piece`` (whole records) is written after :attr:`end`."""
+        del self.chunk_indexes[self.chunk_count:]  # those of a piece never written
+        after = _Contents(end=self.end + len(piece), data_crc=zlib.crc32(piece, self.data_crc),
+                          chunk_indexes=self.chunk_indexes, chunk_count=self.chunk_count,
+                          chunk_index_size=self.chunk_index_size,
+                          channel_counts=dict(self.channel_counts),
+                          start_ns=self.start_ns, end_ns=self.end_ns)
+        view = memoryview(piece)
+        chunk: ChunkIndex | None = None
+        pos = len(_MAGIC) if self.end == 0 else 0  # the first piece opens with the magic
+        while pos < len(view):
+            opcode, length = _RECORD_HEAD.unpack_from(view, pos)
+            body = pos + _RECORD_HEAD.size
+            if opcode == Opcode.CHUNK:
+                after._add_chunk_index(chunk)
+                start, stop, size, _, name_length = _CHUNK_HEAD.unpack_from(view, body)
+                name_at = body + _CHUNK_HEAD.size
+                compression = bytes(view[name_at:name_at + name_length]).decode()
+                (compressed,) = struct.unpack_from('<Q', view, name_at + name_length)
+                chunk = ChunkIndex(
+                    message_start_time=start, message_end_time=stop,
+                    chunk_start_offset=self.end + pos, chunk_length=_RECORD_HEAD.size + length,
+                    message_index_offsets={}, message_index_length=0, compression=compression,
+                    compressed_size=compressed, uncompressed_size=size)
+            elif opcode == Opcode.MESSAGE_INDEX and chunk is not None:
+                channel_id, entries = _MESSAGE_INDEX_HEAD.unpack_from(view, body)
+                chunk.message_index_offsets[channel_id] = self.end + pos
+                chunk.message_index_length += _RECORD_HEAD.size + length
+                count = entries // 16
+                if count:
+                    after.channel_counts[channel_id] = (
+                        after.channel_counts.get(channel_id, 0) + count)
+                    after._add_times(chunk.message_start_time, chunk.message_end_time)
+            else:
+                after._add_chunk_index(chunk)
+                chunk = None
+            pos = body + length
+        after._add_chunk_index(chunk)
+        return after
+
+    def _add_chunk_index(self, chunk: ChunkIndex | None) -> None:
+        if chunk is not None:
+            record = _record_bytes(chunk)
+            self.chunk_indexes.append(record)
+            self.chunk_count += 1
+            self.chunk_index_size += len(record)
+
+    def _add_times(self, start: int, end: int) -> None:
+        self.start_ns = start if self.start_ns is None else min(self.start_ns, start)
+        self.end_ns = end if self.end_ns is None else max(self.end_ns, end)
+
+
+class _BagFile:
+    """The MCAP file: written unbuffered, one whole piece at a time, at known offsets."""
+
     def __init__(self, path: Path) -> None:
+        self.path = path
         self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)  # never clobber
-        self._position = 0
+        self.contents = _Contents()
+        """What the file holds (up to its last whole piece)."""
+        self._fallocate = _fallocate_keep_size()
+
+    def reserve(self, length: int) -> None:
+        """Hold disk blocks for ``length`` bytes after the contents, the file's size unchanged,
+        so that they can be written when the disk is full (``FALLOC_FL_KEEP_SIZE``). Where the
+        file system cannot, nothing is held (closing on a full disk may then fail).
+
+        Raises:
+            OSError: no room for them (``ENOSPC``), or an I/O error.
+        """
+        if self._fallocate is None:
+            return
+        if self._fallocate(self._fd, _FALLOC_FL_KEEP_SIZE, self.contents.end, length) == 0:
+            return
+        code = ctypes.get_errno()
+        if code in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL, errno.ENODEV):
+            self._fallocate = None  # not on this file system
+            return
+        raise OSError(code, os.strerror(code))
 
     def fileno(self) -> int:
         return self._fd
 
-    def write(self, data: bytes | bytearray | memoryview) -> int:
+    def _write_at(self, offset: int, data: bytes) -> None:
         view = memoryview(data)
         while view:
-            written = os.write(self._fd, view)
-            view = view[written:]
-        self._position += len(data)
-        return len(data)
+            written = os.pwrite(self._fd, view, offset)
+            view, offset = view[written:], offset + written
 
-    def tell(self) -> int:
-        return self._position
+    def append(self, piece: bytes, after: _Contents) -> None:
+        """Write ``piece`` after the contents; ``after`` is ``contents.plus(piece)``.
 
-    def flush(self) -> None:
-        """Nothing is buffered here."""
+        Raises:
+            OSError: the write failed; :attr:`contents` is unchanged (the file may hold part
+                of the piece after it: :meth:`truncate` removes it).
+        """
+        self._write_at(self.contents.end, piece)
+        self.contents = after
+
+    def truncate(self, length: int = 0) -> None:
+        """Cut the file ``length`` bytes after its contents, dropping a piece written in part
+        and the blocks held beyond (raises OSError)."""
+        os.ftruncate(self._fd, self.contents.end + length)
+
+    def write_closing(self, closing: bytes) -> None:
+        """Write the closing records after the contents, over a piece written in part, and end
+        the file with them (raises OSError, see :meth:`append`)."""
+        self._write_at(self.contents.end, closing)
+        self.truncate(len(closing))
 
     def close(self) -> None:
         if self._fd >= 0:
@@ -227,13 +466,18 @@ class BagWriter:
         self._schema_ids: dict[str, int] = {}
         self._typestore = jazzy_typestore()
         self._times = _Times()
-        self._file = _UnbufferedFile(self.mcap_path)
-        _lock_exclusive(self._file.fileno())
-        self._writer = new_mcap_writer(self._file, config)
-        self._writer.start(profile='ros2', library=_library_identifier())
-        self._writer.flush()
-        self._last_flush = time.monotonic()
+        self._summary_records: list[tuple[Opcode, bytes]] = []  # schemas and channels
+        self._error: BagWriteError | None = None
         self._closed = False
+        self._bound_cache: tuple[Any, int, int] = (None, 0, 0)  # see _closing_bound
+        _ignore_file_size_signal()
+        self._file = _BagFile(self.mcap_path)
+        _lock_exclusive(self._file.fileno())
+        self._sink = _MemorySink()
+        self._writer = new_mcap_writer(self._sink, config)
+        self._writer.start(profile='ros2', library=_library_identifier())
+        self._write_out()
+        self._last_flush = time.monotonic()
 
     # -- topics ---------------------------------------------------------------------------
 
@@ -279,16 +523,27 @@ class BagWriter:
             if not all(isinstance(p, RecordedQos) for p in profiles):
                 raise TypeError('qos must be a RecordedQos or a sequence of them')
         schema_id = self._schema_ids.get(type_name)
+        new_schema = schema_id is None
         if schema_id is None:
-            schema_id = self._writer.register_schema(
-                name=type_name, encoding='ros2msg', data=message_definition.encode())
-            self._schema_ids[type_name] = schema_id
-        channel_id = self._writer.register_channel(
-            topic=name, message_encoding='cdr', schema_id=schema_id,
-            metadata={'offered_qos_profiles': dump_offered_qos_profiles(profiles),
-                      'topic_type_hash': type_hash})
-        record = TopicRecord(name=name, type_name=type_name, channel_id=channel_id,
+            schema_id = len(self._schema_ids) + 1
+        schema = Schema(id=schema_id, name=type_name, encoding='ros2msg',
+                        data=message_definition.encode())
+        channel = Channel(id=len(self.topics) + 1, topic=name, message_encoding='cdr',
+                          schema_id=schema_id,
+                          metadata={'offered_qos_profiles': dump_offered_qos_profiles(profiles),
+                                    'topic_type_hash': type_hash})
+        record = TopicRecord(name=name, type_name=type_name, channel_id=channel.id,
                              offered_qos=profiles, type_hash=type_hash)
+        added = ([(Opcode.SCHEMA, _record_bytes(schema))] if new_schema else []) + [
+            (Opcode.CHANNEL, _record_bytes(channel))]
+        # The closing records list every topic: check that they still fit, then register.
+        self._check_room(b'', self._file.contents, extra_topic=(record, added))
+        if new_schema:
+            self._schema_ids[type_name] = self._writer.register_schema(
+                name=schema.name, encoding=schema.encoding, data=schema.data)
+        self._writer.register_channel(topic=name, message_encoding=channel.message_encoding,
+                                      schema_id=schema_id, metadata=channel.metadata)
+        self._summary_records += added
         self.topics[name] = record
         return record
 
@@ -320,6 +575,7 @@ class BagWriter:
             publish_time=log_time_ns if publish_time_ns is None else int(publish_time_ns),
             sequence=record.message_count & 0xFFFFFFFF)
         record.message_count += 1
+        self._write_out()  # a chunk, if this message filled one
         self._times.add(log_time_ns)
         if time.monotonic() - self._last_flush >= self.config.flush_period_s:
             self.flush()
@@ -337,18 +593,23 @@ class BagWriter:
                    log_time_ns, publish_time_ns)
 
     def flush(self) -> None:
-        """Close the open chunk and hand everything written so far to the OS (see module doc)."""
+        """Close the open chunk and hand everything written so far to the OS (see module doc).
+
+        Raises:
+            BagWriteError: the write failed; the bag is closed (see the module docstring).
+        """
         self._check_open()
         self._writer.flush()
+        self._write_out()
         if self.config.fsync:
-            os.fsync(self._file.fileno())
+            self._fsync()
         self._last_flush = time.monotonic()
 
     # -- closing --------------------------------------------------------------------------
 
     @property
     def message_count(self) -> int:
-        """Messages written so far, all topics."""
+        """Messages written so far, all topics (after a write error: those the file holds)."""
         return self._times.count
 
     def bag_metadata(self) -> dict[str, Any]:
@@ -361,22 +622,210 @@ class BagWriter:
     def close(self) -> None:
         """Write the ``rosbag2`` metadata record, the summary and footer, then metadata.yaml.
 
-        Idempotent.
+        Idempotent; after a :class:`BagWriteError` (the bag is closed then) it does nothing.
+
+        Raises:
+            BagWriteError: a write failed; the bag is closed as the module docstring says.
         """
         if self._closed:
             return
-        info = self.bag_metadata()
         self._writer.flush()  # last chunk first: the metadata record then follows all data
-        self._writer.add_metadata('rosbag2', {
-            'serialized_metadata': yaml.safe_dump(info, sort_keys=False).rstrip('\n')})
-        self._writer.finish()
-        if self.config.fsync:
-            os.fsync(self._file.fileno())
+        self._write_out()
+        contents = self._file.contents
+        try:
+            self._file.write_closing(self._closing(contents))
+            if self.config.fsync:
+                os.fsync(self._file.fileno())
+        except OSError as exc:
+            raise self._stop(exc) from None
         self._file.close()
         self._closed = True
-        write_metadata_yaml(self.directory, info)
+        try:
+            write_metadata_yaml(self.directory, self._information(contents))
+        except OSError as exc:
+            self._error = BagWriteError(exc.errno or errno.EIO, (
+                f'cannot write {self.directory / "metadata.yaml"} ({_error_text(exc)}); '
+                f'{self.mcap_path} is complete'))
+            raise self._error from None
+
+    # -- writing out ----------------------------------------------------------------------
+
+    def _write_out(self) -> None:
+        """Hand what the mcap writer produced (whole records) to the file, or stop the bag."""
+        piece = self._sink.take()
+        if not piece:
+            return
+        before = self._file.contents
+        after = before.plus(piece)
+        self._check_room(piece, after)
+        try:
+            self._file.append(piece, after)
+        except OSError as exc:
+            raise self._stop(exc) from None
+
+    def _fsync(self) -> None:
+        try:
+            os.fsync(self._file.fileno())
+        except OSError as exc:
+            raise self._stop(exc) from None
+
+    def _check_room(self, piece: bytes, after: _Contents, *,
+                    extra_topic: tuple[TopicRecord, list[tuple[Opcode, bytes]]] | None = None,
+                    ) -> None:
+        """Make sure that the closing records will fit after ``piece`` (or a new topic), or
+        stop the bag now, while the present ones still fit.
+
+        Under a file size limit the piece and its closing must stay within it. On disk, the
+        blocks for the piece and its closing are held before the piece is written
+        (:meth:`_BagFile.reserve`): a full disk then fails the reservation, not the piece,
+        and the blocks held for the present closing records are still there.
+        """
+        closing, yaml_size = self._closing_bound(after, extra_topic=extra_topic)
+        limit = _file_size_limit()
+        if limit is not None and (after.end + closing > limit or yaml_size > limit):
+            what = (f'{len(piece)} more bytes' if piece else
+                    f'topic {extra_topic[0].name}' if extra_topic else 'the closing records')
+            raise self._stop(OSError(errno.EFBIG, (
+                f'{os.strerror(errno.EFBIG)}: {what} and the closing records would pass the '
+                f'file size limit (RLIMIT_FSIZE) of {limit} bytes')))
+        try:
+            self._file.reserve(len(piece) + 2 * closing + _RESERVE_MARGIN)
+        except OSError as exc:
+            raise self._stop(exc) from None
+
+    def _information(self, contents: _Contents,
+                     extra: TopicRecord | None = None) -> dict[str, Any]:
+        """The bag information of a file holding ``contents``."""
+        topics = [replace(t, message_count=contents.channel_counts.get(t.channel_id, 0))
+                  for t in (*self.topics.values(), *([extra] if extra else []))]
+        return bag_information(
+            files=[FileSpan(self.mcap_path.name, contents.start_ns or 0, contents.end_ns or 0,
+                            contents.message_count)],
+            topics=topics)
+
+    def _closing(self, contents: _Contents, *,
+                 extra_topic: tuple[TopicRecord, list[tuple[Opcode, bytes]]] | None = None,
+                 ) -> bytes:
+        """The records that close a file holding ``contents``: the ``rosbag2`` metadata
+        record, data end, summary (schemas, channels, statistics, chunk and metadata indexes,
+        summary offsets), footer and magic, laid out as the mcap writer's ``finish()``."""
+        head, groups = self._closing_parts(contents, extra_topic)
+        summary_start = contents.end + len(head)
+        summary = bytearray()
+        offsets = bytearray()
+        for opcode, group in groups:
+            if opcode == Opcode.CHUNK_INDEX:
+                group = b''.join(contents.chunk_indexes[:contents.chunk_count])
+            if group:  # no offset to an empty group (``pymcap-cli doctor`` flags one)
+                offsets += _record_bytes(SummaryOffset(
+                    group_opcode=opcode, group_start=summary_start + len(summary),
+                    group_length=len(group)))
+                summary += group
+        summary_offset_start = summary_start + len(summary)
+        summary += offsets
+        footer_fields = struct.pack('<QQ', summary_start, summary_offset_start)
+        summary_crc = zlib.crc32(_RECORD_HEAD.pack(Opcode.FOOTER, 20) + footer_fields,
+                                 zlib.crc32(summary))
+        footer = _record_bytes(Footer(summary_start=summary_start,
+                                      summary_offset_start=summary_offset_start,
+                                      summary_crc=summary_crc))
+        return head + bytes(summary) + footer + _MAGIC
+
+    def _closing_bound(self, contents: _Contents, *,
+                       extra_topic: tuple[TopicRecord, list[tuple[Opcode, bytes]]] | None = None,
+                       ) -> tuple[int, int]:
+        """Upper bounds of ``len(self._closing(contents))`` and of metadata.yaml's size, checked
+        before every chunk: without writing the bag information as YAML each time (~30 ms for
+        a few topics) nor joining the chunk indexes (thousands in a long recording). Counts and
+        times are taken as 20 digits wide, the most a 64-bit number has."""
+        key = (len(self.topics), extra_topic[0].name if extra_topic else None)
+        if self._bound_cache[0] != key:
+            widest = _widest_counts(self._information(
+                _Contents(), extra_topic[0] if extra_topic else None))
+            head, groups = self._closing_parts(_Contents(), extra_topic, info=widest)
+            channels = len(self.topics) + (1 if extra_topic else 0)
+            fixed = (len(head) + sum(len(group) for _, group in groups)
+                     + 10 * channels  # statistics: a count per channel
+                     + len(groups) * _SUMMARY_OFFSET_SIZE + _FOOTER_SIZE + len(_MAGIC))
+            self._bound_cache = (key, fixed, len(_metadata_yaml_text(widest)))
+        _, fixed, yaml_size = self._bound_cache
+        return fixed + contents.chunk_index_size, yaml_size
+
+    def _closing_parts(self, contents: _Contents,
+                       extra_topic: tuple[TopicRecord, list[tuple[Opcode, bytes]]] | None, *,
+                       info: dict[str, Any] | None = None,
+                       ) -> tuple[bytes, list[tuple[Opcode, bytes]]]:
+        """The ``rosbag2`` metadata record (of ``info``, default: the contents' information)
+        and data end; the summary's groups in order (the chunk indexes' left empty:
+        :meth:`_closing` joins them)."""
+        if info is None:
+            info = self._information(contents, extra_topic[0] if extra_topic else None)
+        metadata = _record_bytes(Metadata(name='rosbag2', metadata={
+            'serialized_metadata': yaml.safe_dump(info, sort_keys=False).rstrip('\n')}))
+        data_end = _record_bytes(DataEnd(zlib.crc32(metadata, contents.data_crc)))
+        records = self._summary_records + (extra_topic[1] if extra_topic else [])
+        statistics = _record_bytes(Statistics(
+            message_count=contents.message_count,
+            schema_count=sum(opcode == Opcode.SCHEMA for opcode, _ in records),
+            channel_count=sum(opcode == Opcode.CHANNEL for opcode, _ in records),
+            attachment_count=0, metadata_count=1, chunk_count=contents.chunk_count,
+            message_start_time=contents.start_ns or 0, message_end_time=contents.end_ns or 0,
+            channel_message_counts=dict(sorted(contents.channel_counts.items()))))
+        metadata_index = _record_bytes(MetadataIndex(
+            offset=contents.end, length=len(metadata), name='rosbag2'))
+        return metadata + data_end, [
+            (Opcode.SCHEMA, b''.join(data for op, data in records if op == Opcode.SCHEMA)),
+            (Opcode.CHANNEL, b''.join(data for op, data in records if op == Opcode.CHANNEL)),
+            (Opcode.STATISTICS, statistics),
+            (Opcode.CHUNK_INDEX, b''),
+            (Opcode.METADATA_INDEX, metadata_index)]
+
+    def _stop(self, error: OSError) -> BagWriteError:
+        """Close the bag after a failed write (see the module docstring); the error to raise."""
+        if self._error is not None:
+            return self._error
+        contents = self._file.contents
+        self._closed = True
+        self._times = _Times(contents.start_ns, contents.end_ns, contents.message_count)
+        for topic in self.topics.values():
+            topic.message_count = contents.channel_counts.get(topic.channel_id, 0)
+        failed = f'cannot write {self.mcap_path} ({_error_text(error)})'
+        if contents.end == 0:  # not even the header: no bag
+            self._file.close()
+            try:
+                self.mcap_path.unlink()
+            except OSError:
+                pass
+            self._error = BagWriteError(error.errno or errno.EIO, f'{failed}: no bag written')
+            return self._error
+        closed = True
+        try:
+            self._file.write_closing(self._closing(contents))
+            if self.config.fsync:
+                os.fsync(self._file.fileno())
+        except OSError:
+            closed = False
+            try:
+                self._file.truncate()  # back to the last whole chunk, as after a kill
+            except OSError:
+                pass
+        self._file.close()
+        n = contents.message_count
+        if not closed:
+            line = (f'{failed}: the file ends with the {n} messages of its whole chunks; '
+                    f"'rcbf_ros bag recover {self.directory}' closes it")
+        else:
+            line = f'{failed}: bag closed with the {n} messages written before the error'
+            try:
+                write_metadata_yaml(self.directory, self._information(contents))
+            except OSError as exc:
+                line += f'; {self.directory / "metadata.yaml"} not written ({_error_text(exc)})'
+        self._error = BagWriteError(error.errno or errno.EIO, line)
+        return self._error
 
     def _check_open(self) -> None:
+        if self._error is not None:
+            raise self._error
         if self._closed:
             raise RuntimeError(f'bag {str(self.directory)!r} is closed')
 
@@ -385,6 +834,26 @@ class BagWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+_COUNT_KEYS = ('message_count', 'nanoseconds', 'nanoseconds_since_epoch')
+
+
+def _widest_counts(info: Any) -> Any:
+    """``info`` with every count and time 20 digits wide (for a size bound)."""
+    if isinstance(info, dict):
+        return {key: 10**19 if key in _COUNT_KEYS else _widest_counts(value)
+                for key, value in info.items()}
+    if isinstance(info, list):
+        return [_widest_counts(value) for value in info]
+    return info
+
+
+def _record_bytes(record: Any) -> bytes:
+    """One MCAP record (a :mod:`mcap.records` object) serialized."""
+    builder = RecordBuilder()
+    record.write(builder)
+    return builder.end()
 
 
 def new_mcap_writer(stream: Any, config: BagWriterConfig) -> Writer:
@@ -463,6 +932,14 @@ def write_metadata_yaml(directory: str | os.PathLike[str], info: dict[str, Any])
     """Write ``<directory>/metadata.yaml`` (``rosbag2_bagfile_information: info``) atomically."""
     path = Path(directory) / 'metadata.yaml'
     tmp = path.with_suffix('.yaml.tmp')
-    tmp.write_text(yaml.safe_dump({'rosbag2_bagfile_information': info}, sort_keys=False))
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(_metadata_yaml_text(info))
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)  # a full disk: no half-written file left behind
+        raise
     return path
+
+
+def _metadata_yaml_text(info: dict[str, Any]) -> str:
+    return yaml.safe_dump({'rosbag2_bagfile_information': info}, sort_keys=False)

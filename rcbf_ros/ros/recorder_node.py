@@ -25,6 +25,13 @@ adds to a multiple of 4 bytes where the sample's encapsulation header declares i
 ``metadata.yaml``) and log the message counts. A SIGKILL leaves the bag without its summary,
 footer and ``metadata.yaml``; the readers refuse it until ``rcbf_ros bag recover <output>`` has
 rewritten it from its whole chunks (``rcbf_ros.reports.run_summary`` does so by itself).
+
+A write that fails (disk full, file size limit, I/O error) stops the recording: the bag is
+closed with every message before its open chunk (:class:`rcbf_ros.bag.writer.BagWriteError`),
+one error line names the file and the error, and the node goes on running without recording,
+as ``rosbag record`` disables recording and ``ros2 bag record`` drops what it cannot write,
+without taking the rest of the system down with it. Its exit status is then 1 (not 0) once it
+is stopped, so that a launch or a script sees that the bag is short.
 """
 from __future__ import annotations
 
@@ -34,6 +41,7 @@ import sys
 from typing import Any, Callable, Sequence
 
 from rcbf_ros.bag import BagWriter, BagWriterConfig, RecordedQos
+from rcbf_ros.bag.writer import BagWriteError
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, TopicSpec
 from rcbf_ros.parameters.reader import setting
 from rcbf_ros.ros.node_main import declare_settings, run_node
@@ -158,23 +166,45 @@ def cdr_payload(sample: bytes) -> bytes:
     return sample[:3] + bytes([sample[3] & ~_PADDING_MASK & 0xFF]) + sample[4:len(sample) - pad]
 
 
+def _print_error(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
 class Recorder:
     """Topic bookkeeping and the bag, independent of how messages arrive.
+
+    A write error stops the recording (:attr:`stopped`): the bag is closed then, one line goes
+    to ``report`` and every later call does nothing.
 
     Args:
         writer: the open bag.
         clock_ns: receive-time source (nanoseconds since the epoch).
+        report: where the line saying that recording stopped goes (the node's error log).
     """
 
-    def __init__(self, writer: BagWriter, clock_ns: Callable[[], int]) -> None:
+    def __init__(self, writer: BagWriter, clock_ns: Callable[[], int],
+                 report: Callable[[str], None] | None = None) -> None:
         self.writer = writer
         self.clock_ns = clock_ns
+        self.report = report or _print_error
         self.dropped_unknown_type: set[str] = set()
+        self.stopped: BagWriteError | None = None
+        """The write error that stopped the recording (None while recording)."""
+
+    def _stop(self, error: BagWriteError) -> None:
+        self.stopped = error
+        self.report(f'recording stopped: {error}; the recorder goes on without recording')
 
     def add(self, topic: str, type_name: str, offered: Sequence[RecordedQos]) -> bool:
-        """Register ``topic`` in the bag; False if its type has no definition available."""
+        """Register ``topic`` in the bag; False if its type has no definition available or
+        the recording has stopped."""
+        if self.stopped is not None:
+            return False
         try:
             self.writer.add_topic(topic, type_name, qos=list(offered) or None)
+        except BagWriteError as exc:
+            self._stop(exc)
+            return False
         except ValueError:
             self.dropped_unknown_type.add(topic)
             return False
@@ -182,10 +212,34 @@ class Recorder:
 
     def on_message(self, topic: str, sample: bytes) -> None:
         """Write one received sample's CDR stream, stamped with the receive time."""
-        self.writer.write(topic, cdr_payload(sample), self.clock_ns())
+        if self.stopped is not None:
+            return
+        try:
+            self.writer.write(topic, cdr_payload(sample), self.clock_ns())
+        except BagWriteError as exc:
+            self._stop(exc)
+
+    def flush(self) -> None:
+        """Write the open chunk out (bounds what a SIGKILL can lose)."""
+        if self.stopped is not None:
+            return
+        try:
+            self.writer.flush()
+        except BagWriteError as exc:
+            self._stop(exc)
+
+    def close(self) -> None:
+        """Close the bag (summary and metadata.yaml); a write error is reported, not raised."""
+        if self.stopped is not None:
+            return
+        try:
+            self.writer.close()
+        except BagWriteError as exc:
+            self.stopped = exc
+            self.report(f'closing the bag failed: {exc}')
 
     def counts(self) -> dict[str, int]:
-        """Messages written per topic."""
+        """Messages written per topic (after a write error: those in the bag)."""
         return {name: t.message_count for name, t in self.writer.topics.items()}
 
 
@@ -199,7 +253,8 @@ class RecorderNode(Node):
         writer = BagWriter(self.bag_directory, config=BagWriterConfig(
             chunk_size=self.config.chunk_size, compression=self.config.compression,
             flush_period_s=self.config.flush_period_s))
-        self.recorder = Recorder(writer, lambda: self.get_clock().now().nanoseconds)
+        self.recorder = Recorder(writer, lambda: self.get_clock().now().nanoseconds,
+                                 report=lambda line: self.get_logger().error(line))
         self._subscriptions_by_topic: dict[str, Any] = {}
         self._warned: set[str] = set()
         try:
@@ -209,7 +264,7 @@ class RecorderNode(Node):
         except BaseException:
             # Ctrl-C (or a failure) while the node is still being built, before it can take
             # its exit path: the bag opened above is closed complete all the same.
-            writer.close()
+            self.recorder.close()
             raise
         # Said once the node is built: from here on Ctrl-C closes the bag and reports it.
         self.get_logger().info(
@@ -233,6 +288,8 @@ class RecorderNode(Node):
 
     def discover(self) -> None:
         """Subscribe to topics that discovery shows and that are not recorded yet."""
+        if self.recorder.stopped is not None:
+            return
         discovered = [(name, list(types)) for name, types in self.get_topic_names_and_types()]
         for name, types in discovered:
             if len(types) > 1 and name not in self._warned:
@@ -252,7 +309,8 @@ class RecorderNode(Node):
         durability = request_durability(offered)
         recorded_offer = offered or [RecordedQos(reliability=reliability)]
         if not self.recorder.add(topic, type_name, recorded_offer):
-            self.get_logger().warning(f'not recording {topic}: type {type_name} unknown')
+            if self.recorder.stopped is None:
+                self.get_logger().warning(f'not recording {topic}: type {type_name} unknown')
             return
         try:
             msg_type = get_message(type_name)
@@ -273,13 +331,12 @@ class RecorderNode(Node):
 
     def flush(self) -> None:
         """Write the open chunk out (bounds what a SIGKILL can lose)."""
-        self.recorder.writer.flush()
+        self.recorder.flush()
 
     def close(self) -> dict[str, int]:
-        """Close the bag (summary and metadata.yaml); return per-topic counts."""
-        counts = self.recorder.counts()
-        self.recorder.writer.close()
-        return counts
+        """Close the bag (summary and metadata.yaml); return per-topic counts in it."""
+        self.recorder.close()
+        return self.recorder.counts()
 
 
 INTERFACE = NodeInterface(
@@ -293,19 +350,29 @@ INTERFACE = NodeInterface(
 )
 
 
+WRITE_ERROR_EXIT = 1
+"""Exit status of a recorder whose recording a write error stopped (the bag is short)."""
+
+
 def main(args: Sequence[str] | None = None) -> int:
-    """Console script ``recorder``."""
+    """Console script ``recorder``: 0; 2 for bad parameters or a bag it cannot start;
+    :data:`WRITE_ERROR_EXIT` if a write error stopped the recording."""
+    stopped: list[BagWriteError] = []
 
     def close_bag(node: RecorderNode) -> None:
         counts = node.close()
         total = sum(counts.values())
         per_topic = ', '.join(f'{name}: {n}' for name, n in counts.items()) or 'no topics'
+        if node.recorder.stopped is not None:
+            stopped.append(node.recorder.stopped)
         node.get_logger().info(
-            f'bag {node.bag_directory} closed: {total} messages ({per_topic})')
+            f'bag {node.bag_directory} closed: {total} messages ({per_topic})'
+            + ('; recording had stopped on a write error' if stopped else ''))
 
-    return run_node('recorder', RecorderNode, args, on_exit=close_bag,
-                    setup_errors=(OSError, ValueError), setup_message='cannot record: ',
-                    interface=INTERFACE)
+    status = run_node('recorder', RecorderNode, args, on_exit=close_bag,
+                      setup_errors=(OSError, ValueError), setup_message='cannot record: ',
+                      interface=INTERFACE)
+    return WRITE_ERROR_EXIT if status == 0 and stopped else status
 
 
 if __name__ == '__main__':
