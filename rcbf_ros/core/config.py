@@ -482,8 +482,6 @@ def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
     params = flatten(params)
     system = build_system(params)
     p = read_parameters(FilterParameters, params)
-    if p.k_c < 0:
-        raise ParameterError(f'k_c: must be >= 0 (the box is mean +/- k_c std), got {p.k_c}')
     problem = RCBFProblem(
         system=system, families=_families(p, params, system), alpha=p.alpha, k_c=p.k_c,
         slack_weight=p.slack_weight,
