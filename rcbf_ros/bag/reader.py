@@ -266,13 +266,19 @@ def _count_file(scan: McapScan) -> _FileCounts:
                 summary.schemas, summary.channels, dict(stats.channel_message_counts),
                 stats.message_start_time if stats.message_count else None,
                 stats.message_end_time if stats.message_count else None)
-    contents = _read_whole_chunks(scan.path)
-    per_channel: dict[int, int] = {}
-    for m in contents.messages:
-        per_channel[m.channel_id] = per_channel.get(m.channel_id, 0) + 1
-    times = [m.log_time for m in contents.messages]
-    return _FileCounts(contents.schemas, contents.channels, per_channel,
-                       min(times, default=None), max(times, default=None))
+    counts = _FileCounts({}, {}, {}, None, None)  # counted as read: no message is kept
+    for _, record in McapScan(scan.path).records():
+        if isinstance(record, Message):
+            counts.per_channel[record.channel_id] = counts.per_channel.get(record.channel_id,
+                                                                           0) + 1
+            t = record.log_time
+            counts.start_ns = t if counts.start_ns is None else min(counts.start_ns, t)
+            counts.end_ns = t if counts.end_ns is None else max(counts.end_ns, t)
+        elif isinstance(record, Schema):
+            counts.schemas[record.id] = record
+        elif isinstance(record, Channel):
+            counts.channels[record.id] = record
+    return counts
 
 
 def channel_qos(file: Path, channel: Channel) -> tuple[RecordedQos, ...]:

@@ -44,6 +44,7 @@ from typing import Any, Callable, IO, Mapping, Sequence
 
 import yaml
 
+from rcbf_ros import bounded_yaml
 from rcbf_ros.launch.table import (
     Argument,
     argument_values,
@@ -343,9 +344,12 @@ def _parse_override(text: str) -> tuple[str, str, Any]:
     if not sep or not colon or not node or not name:
         raise argparse.ArgumentTypeError(f'-p {text!r}: expected node:parameter:=value')
     try:
-        parsed = yaml.safe_load(value) if value else ''
+        parsed = bounded_yaml.safe_load(value, source=f'-p {node}:{name}') if value else ''
+    except bounded_yaml.YAMLLimitError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
     except yaml.YAMLError as exc:
-        raise argparse.ArgumentTypeError(f'-p {text!r}: value is not YAML ({exc})') from exc
+        why = ' '.join(str(exc).split())
+        raise argparse.ArgumentTypeError(f'-p {text!r}: value is not YAML ({why})') from exc
     return node, name, parsed
 
 
