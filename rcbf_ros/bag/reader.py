@@ -10,7 +10,7 @@ footer) is refused as well, with the command that recovers it (:mod:`rcbf_ros.ba
 (it reports :attr:`BagInfo.complete`).
 
 Limits. ``metadata.yaml`` is read up to :data:`MAX_METADATA_BYTES` (16 MiB), without aliases,
-nested at most 64 deep (:mod:`rcbf_ros.bounded_yaml`); a chunk holds at most
+nested at most 64 deep (:mod:`rcbf_ros.parameters.bounded_yaml`); a chunk holds at most
 :data:`rcbf_ros.bag.scan.MAX_CHUNK_BYTES` (64 MiB) once decompressed, checked before it is
 decompressed (:mod:`rcbf_ros.bag.scan`). A file past a limit is a :class:`BagError`.
 """
@@ -28,10 +28,10 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Message, Schema
 import yaml
 
-from rcbf_ros import bounded_yaml
 from rcbf_ros.bag.qos import parse_offered_qos_profiles, RecordedQos
 from rcbf_ros.bag.scan import BagError, BagNotFoundError, McapScan
 from rcbf_ros.messages.cdr import deserialize_rosbags_message
+from rcbf_ros.parameters import bounded_yaml
 
 MAX_METADATA_BYTES = 16 * 2**20
 """Largest ``metadata.yaml`` read (16 MiB; rosbag2 writes about 1 KiB per topic and file)."""

@@ -44,7 +44,6 @@ from typing import Any, Callable, IO, Mapping, Sequence
 
 import yaml
 
-from rcbf_ros import bounded_yaml
 from rcbf_ros.launch.table import (
     Argument,
     argument_values,
@@ -56,6 +55,7 @@ from rcbf_ros.launch.table import (
     resolve_entry,
     ros_arguments,
 )
+from rcbf_ros.parameters import bounded_yaml
 from rcbf_ros.parameters.rules import find_config, node_key_level
 from rcbf_ros.ros.dds.arguments import expand_topic_name, load_params_file
 from rcbf_ros.ros.loopback import ensure_loopback

@@ -33,7 +33,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import yaml
 
-from rcbf_ros import bounded_yaml
+from rcbf_ros.parameters import bounded_yaml
 
 PACKAGE = 'rcbf_ros'
 PARAMS_FILE_ARGUMENT = 'params_file'

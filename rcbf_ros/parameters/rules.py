@@ -30,7 +30,7 @@ Nested mappings flatten to dotted names. What a node gets follows rcl's YAML par
   earlier slot set, and the first set slot in the order bool, integer, double, string, bool[],
   integer[], double[], string[] is what the node gets.
 
-A params file is read within limits (:mod:`rcbf_ros.bounded_yaml`): at most
+A params file is read within limits (:mod:`rcbf_ros.parameters.bounded_yaml`): at most
 :data:`MAX_PARAMS_FILE_BYTES` (1 MiB), collections nested at most 64 deep, only the YAML core
 tags (a ``!!python/...`` tag is refused, naming the line), checked while it is parsed; rcl
 refuses aliases, and so does this reader.
@@ -48,7 +48,7 @@ from typing import Any, Iterable
 
 import yaml
 
-from rcbf_ros import bounded_yaml
+from rcbf_ros.parameters import bounded_yaml
 
 _SOURCE_CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
 PACKAGE = 'rcbf_ros'

@@ -33,10 +33,10 @@ import pytest
 import yaml
 import zstandard
 
-from rcbf_ros import bounded_yaml
 from rcbf_ros.bag import bag_info, BagError, BagWriter, BagWriterConfig, recover_file
 from rcbf_ros.bag.scan import MAX_CHUNK_BYTES, MAX_RECORD_BYTES, McapScan
 from rcbf_ros.launch.table import typed_value
+from rcbf_ros.parameters import bounded_yaml
 from rcbf_ros.parameters.rules import load_params, MAX_PARAMS_FILE_BYTES, ParamsFileError
 from rcbf_ros.ros import replay_node
 
