@@ -5,7 +5,7 @@ Every YAML text the tools take from outside goes through here: params files (``-
 its MCAP channels, and launch argument values. A text past a limit raises
 :class:`YAMLLimitError`, one line naming the source, the line and the limit:
 
-- size: a file is read up to its limit plus one byte, never further (``max_bytes``: 1 MiB for
+- size: a file is read up to its limit plus one byte, never further (``max_bytes``: 128 KiB for
   params files, 16 MiB for ``metadata.yaml``), so a file of any size, or a device that never
   ends, costs at most that;
 - depth: collections nest at most :data:`MAX_DEPTH` (64) levels, counted through aliases;

@@ -31,7 +31,7 @@ Nested mappings flatten to dotted names. What a node gets follows rcl's YAML par
   integer[], double[], string[] is what the node gets.
 
 A params file is read within limits (:mod:`rcbf_ros.parameters.bounded_yaml`): at most
-:data:`MAX_PARAMS_FILE_BYTES` (1 MiB), collections nested at most 64 deep, only the YAML core
+:data:`MAX_PARAMS_FILE_BYTES` (128 KiB), collections nested at most 64 deep, only the YAML core
 tags (a ``!!python/...`` tag is refused, naming the line), checked while it is parsed; rcl
 refuses aliases, and so does this reader.
 
@@ -56,9 +56,11 @@ PACKAGE = 'rcbf_ros'
 PARAMS_KEY = 'ros__parameters'
 WILDCARD_KEY = '/**'
 """The node key of a bare ``-p name:=value`` (every node)."""
-MAX_PARAMS_FILE_BYTES = 2**20
-"""Largest params file read (1 MiB; the packaged configs hold a few KiB): a larger one is
-refused after reading this much, never read whole."""
+MAX_PARAMS_FILE_BYTES = 128 * 2**10
+"""Largest params file read (128 KiB): a larger one is refused after reading this much, never
+read whole. The packaged configs hold at most 6 KiB, a large ROS 2 params file (nav2's) about
+20 KiB; rcl's table is quadratic in the number of parameters, so that 128 KiB of distinct
+one-line parameters still reads in seconds."""
 
 # rcl_variant_t's slots in the order rclpy reads them (_parameter_from_rcl_variant).
 _SLOTS = ('bool', 'integer', 'double', 'string', 'bool_array', 'integer_array', 'double_array',

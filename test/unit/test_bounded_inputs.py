@@ -144,7 +144,7 @@ def test_launch_values_past_a_limit_stay_text() -> None:
 
 def test_deep_params_file_refused_naming_file_line_and_limit(tmp_path: Path) -> None:
     path = tmp_path / 'deep.yaml'
-    path.write_text(deep_params(100_000))
+    path.write_text(deep_params(10_000))
     with pytest.raises(ParamsFileError, match=r"deep\.yaml': line 4: nested deeper than 64 "):
         load_params(path, 'safety_filter')
 
@@ -170,12 +170,12 @@ def test_node_with_hostile_params_file_exits_2_with_one_line(case: str, tmp_path
     if case == 'huge':
         huge_params(path, 2**40)
     elif case == 'deep':
-        path.write_text(deep_params(100_000))
+        path.write_text(deep_params(10_000))
     else:
         path.write_text('/**:\n  ros__parameters:\n    bag: !!python/name:os.system\n')
     status, _, err, peak = _cli('-m', 'rcbf_ros.ros.replay_node', '--ros-args',
                                 '--params-file', str(path))
-    _one_line(status, err, {'huge': 'larger than the 1048576-byte limit',
+    _one_line(status, err, {'huge': f'larger than the {MAX_PARAMS_FILE_BYTES}-byte limit',
                             'deep': 'line 4: nested deeper than 64 levels',
                             'tag': 'line 3: the tag !!python/name:os.system'}[case], peak)
     assert str(path) in err
