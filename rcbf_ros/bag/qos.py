@@ -15,6 +15,8 @@ from typing import Any, Sequence
 
 import yaml
 
+from rcbf_ros.parameters import bounded_yaml
+
 #: RMW_DURATION_INFINITE as rosbag2 dumps it: (sec, nsec) = (2**63 - 1) ns split at 1e9.
 INFINITE_DURATION_NS = 9223372036 * 1_000_000_000 + 854775807
 
@@ -144,15 +146,21 @@ def parse_offered_qos_profiles(value: str | Sequence[Any] | None) -> list[Record
     """Profiles from either form: the sequence (bag information, version 9) or the YAML string
     (channel metadata; bag information before version 9). Version-8 integer policies too.
 
+    The string is read within the limits of :mod:`rcbf_ros.parameters.bounded_yaml`, without
+    aliases (rosbag2 writes none).
+
     Raises:
-        ValueError: the string is not YAML, or the value is not a sequence of profile mappings
-            (the message names ``offered_qos_profiles``).
+        ValueError: the string is not YAML or past a limit, or the value is not a sequence of
+            profile mappings (the message names ``offered_qos_profiles``).
     """
     if value is None or (isinstance(value, str) and not value.strip()):
         return []
     if isinstance(value, str):
         try:
-            value = yaml.safe_load(value) or []
+            value = bounded_yaml.safe_load(value, source='offered_qos_profiles',
+                                           allow_aliases=False) or []
+        except bounded_yaml.YAMLLimitError:
+            raise
         except yaml.YAMLError as exc:
             raise ValueError(f'offered_qos_profiles: not YAML ({exc})') from exc
     if not isinstance(value, (list, tuple)):

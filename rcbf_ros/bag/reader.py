@@ -8,6 +8,11 @@ instead of yielding wrong or partial data. A file cut short (its writer killed: 
 footer) is refused as well, with the command that recovers it (:mod:`rcbf_ros.bag.recover`);
 ``allow_cut_short=True`` reads its whole chunks instead, and :func:`bag_info` does so by default
 (it reports :attr:`BagInfo.complete`).
+
+Limits. ``metadata.yaml`` is read up to :data:`MAX_METADATA_BYTES` (16 MiB), without aliases,
+nested at most 64 deep (:mod:`rcbf_ros.parameters.bounded_yaml`); a chunk holds at most
+:data:`rcbf_ros.bag.scan.MAX_CHUNK_BYTES` (64 MiB) once decompressed, checked before it is
+decompressed (:mod:`rcbf_ros.bag.scan`). A file past a limit is a :class:`BagError`.
 """
 from __future__ import annotations
 
@@ -26,6 +31,10 @@ import yaml
 from rcbf_ros.bag.qos import parse_offered_qos_profiles, RecordedQos
 from rcbf_ros.bag.scan import BagError, BagNotFoundError, McapScan
 from rcbf_ros.messages.cdr import deserialize_rosbags_message
+from rcbf_ros.parameters import bounded_yaml
+
+MAX_METADATA_BYTES = 16 * 2**20
+"""Largest ``metadata.yaml`` read (16 MiB; rosbag2 writes about 1 KiB per topic and file)."""
 
 
 class BagMessage(NamedTuple):
@@ -99,11 +108,21 @@ def mcap_files(path: str | os.PathLike[str]) -> list[Path]:
     meta = p / 'metadata.yaml'
     if meta.is_file():
         try:
-            info = yaml.safe_load(meta.read_text())['rosbag2_bagfile_information']
-            relative = [str(rel) for rel in info['relative_file_paths']]
+            info = bounded_yaml.load_file(meta, max_bytes=MAX_METADATA_BYTES,
+                                          what='bag metadata.yaml', allow_aliases=False)
+            listed = info['rosbag2_bagfile_information']['relative_file_paths']
+            if not isinstance(listed, list) or any(isinstance(rel, (list, dict))
+                                                   for rel in listed):
+                raise TypeError('relative_file_paths is not a list of file names')
+            relative = [str(rel) for rel in listed]
+        except bounded_yaml.YAMLLimitError as exc:
+            raise BagError(str(exc)) from exc
+        except OSError as exc:
+            raise BagError(f'{meta}: cannot be read ({exc.strerror or exc})') from exc
         except (yaml.YAMLError, KeyError, TypeError, UnicodeDecodeError) as exc:
+            why = ' '.join(str(exc).split())
             raise BagError(f'{meta}: not rosbag2 bag information ({type(exc).__name__}: '
-                           f'{exc})') from exc
+                           f'{why})') from exc
         files = [p / rel for rel in relative]
         for file in files:
             if not file.is_file():
@@ -247,13 +266,33 @@ def _count_file(scan: McapScan) -> _FileCounts:
                 summary.schemas, summary.channels, dict(stats.channel_message_counts),
                 stats.message_start_time if stats.message_count else None,
                 stats.message_end_time if stats.message_count else None)
-    contents = _read_whole_chunks(scan.path)
-    per_channel: dict[int, int] = {}
-    for m in contents.messages:
-        per_channel[m.channel_id] = per_channel.get(m.channel_id, 0) + 1
-    times = [m.log_time for m in contents.messages]
-    return _FileCounts(contents.schemas, contents.channels, per_channel,
-                       min(times, default=None), max(times, default=None))
+    counts = _FileCounts({}, {}, {}, None, None)  # counted as read: no message is kept
+    for _, record in McapScan(scan.path).records():
+        if isinstance(record, Message):
+            counts.per_channel[record.channel_id] = counts.per_channel.get(record.channel_id,
+                                                                           0) + 1
+            t = record.log_time
+            counts.start_ns = t if counts.start_ns is None else min(counts.start_ns, t)
+            counts.end_ns = t if counts.end_ns is None else max(counts.end_ns, t)
+        elif isinstance(record, Schema):
+            counts.schemas[record.id] = record
+        elif isinstance(record, Channel):
+            counts.channels[record.id] = record
+    return counts
+
+
+def channel_qos(file: Path, channel: Channel) -> tuple[RecordedQos, ...]:
+    """The offered QoS profiles a channel's metadata records.
+
+    Raises:
+        BagError: they cannot be read (naming the file and the topic).
+    """
+    try:
+        return tuple(parse_offered_qos_profiles(channel.metadata.get('offered_qos_profiles',
+                                                                     '')))
+    except ValueError as exc:
+        why = ' '.join(str(exc).split())
+        raise BagError(f'{file}: channel {channel.topic!r}: {why}') from exc
 
 
 def bag_info(path: str | os.PathLike[str], *, allow_cut_short: bool = True) -> BagInfo:
@@ -284,8 +323,7 @@ def bag_info(path: str | os.PathLike[str], *, allow_cut_short: bool = True) -> B
             schema = one.schemas.get(channel.schema_id)
             topic_meta.setdefault(channel.topic, (
                 schema.name if schema else '',
-                tuple(parse_offered_qos_profiles(
-                    channel.metadata.get('offered_qos_profiles', ''))),
+                channel_qos(file, channel),
                 channel.metadata.get('topic_type_hash', ''),
                 schema.data.decode(errors='replace') if schema else '',
                 schema.encoding if schema else ''))

@@ -32,8 +32,7 @@ from typing import Sequence
 from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
 import yaml
 
-from rcbf_ros.bag.qos import parse_offered_qos_profiles
-from rcbf_ros.bag.reader import bag_file_order, bag_info, BagInfo, TopicInfo
+from rcbf_ros.bag.reader import bag_file_order, bag_info, BagInfo, channel_qos, TopicInfo
 from rcbf_ros.bag.scan import BagError, BagNotFoundError, McapScan
 from rcbf_ros.bag.writer import (
     bag_information,
@@ -100,7 +99,7 @@ class _FileLock:
             self._file.close()
 
 
-def _topics_of(channels: dict[int, Channel], schemas: dict[int, Schema],
+def _topics_of(path: Path, channels: dict[int, Channel], schemas: dict[int, Schema],
                per_channel: dict[int, int]) -> list[TopicInfo]:
     """Per-topic counts for the ``rosbag2`` record, from the recovered channels."""
     topics: dict[str, TopicInfo] = {}
@@ -115,7 +114,7 @@ def _topics_of(channels: dict[int, Channel], schemas: dict[int, Schema],
             continue
         topics[channel.topic] = TopicInfo(
             channel.topic, schema.name if schema else '', count,
-            tuple(parse_offered_qos_profiles(channel.metadata.get('offered_qos_profiles', ''))),
+            channel_qos(path, channel),
             channel.metadata.get('topic_type_hash', ''))
     return list(topics.values())
 
@@ -173,7 +172,7 @@ def _rewrite(path: Path, partial: Path) -> tuple[int, McapScan]:
         if header.profile == 'ros2':
             info = bag_information(
                 files=[FileSpan(path.name, start or 0, end or 0, count)],
-                topics=_topics_of(channels, schemas, per_channel))
+                topics=_topics_of(path, channels, schemas, per_channel))
             writer.flush()  # the record follows all data, as the writer's close() does
             writer.add_metadata('rosbag2', {
                 'serialized_metadata': yaml.safe_dump(info, sort_keys=False).rstrip('\n')})

@@ -13,6 +13,13 @@
 - the summary's chunk indexes point at chunks of the file, and its statistics count the
   messages and chunks that the file holds.
 
+Limits, checked before the bytes they guard are read or made: a record is at most
+:data:`MAX_RECORD_BYTES` (68 MiB) and a chunk at most :data:`MAX_CHUNK_BYTES` (64 MiB) once
+decompressed, whatever its compression (none, lz4, zstd); decompression streams into a buffer
+of the size the chunk states and stops one byte past it, so a chunk that lies about its size
+(a decompression bomb) costs at most that much memory. A scan holds one record and one
+decompressed chunk at a time: about 3 x 64 MiB at most, on top of the reading program.
+
 A problem is a :class:`BagError` whose one-line message names the file, where, and what is
 wrong, e.g. ``bag_0.mcap: chunk at offset 1871: CRC mismatch (stored 0x..., computed 0x...)``.
 A file cut short is not an error of the scan: :attr:`McapScan.cut_short` then says where and why
@@ -34,7 +41,6 @@ from mcap.opcode import Opcode
 from mcap.records import (
     Attachment,
     Channel,
-    Chunk,
     ChunkIndex,
     DataEnd,
     Footer,
@@ -51,8 +57,15 @@ MAGIC = b'\x89MCAP0\r\n'
 _RECORD_HEAD = struct.Struct('<BQ')
 _MESSAGE_HEAD = struct.Struct('<HIQQ')
 _FOOTER_CRC_FIELDS = 8 + 8  # summary_start, summary_offset_start: the CRC covers them
-#: Largest uncompressed chunk accepted (the mcap library's own record limit).
-MAX_CHUNK_BYTES = 4 * 2**30
+MAX_CHUNK_BYTES = 64 * 2**20
+"""Most bytes a chunk may hold once decompressed (64 MiB). rosbag2's MCAP storage closes a chunk
+once it passes ``chunk_size`` (768 KiB by default; ours: 256 KiB), so a chunk holds that plus
+one message; 64 MiB is above any camera frame or point cloud a ROS message carries. A chunk
+that states more, or decompresses to other than it states, is refused before the excess is
+made: decompression streams into a buffer of the stated size and stops one byte past it."""
+MAX_RECORD_BYTES = MAX_CHUNK_BYTES + MAX_CHUNK_BYTES // 16
+"""Longest record read (68 MiB: a chunk of :data:`MAX_CHUNK_BYTES` that did not compress, with
+room for the compressor's overhead); a longer record is refused before it is read."""
 
 _OPCODE_NAMES = {int(op): op.name.lower().replace('_', ' ') for op in Opcode}
 
@@ -98,22 +111,74 @@ def _opcode_name(opcode: int) -> str:
     return _OPCODE_NAMES.get(opcode, f'opcode 0x{opcode:02x}')
 
 
-def _decompress(chunk: Chunk) -> bytes:
-    """The chunk's records, checked against its stated size and CRC."""
-    if chunk.uncompressed_size > MAX_CHUNK_BYTES:
-        raise _Corrupt(f'states {chunk.uncompressed_size} uncompressed bytes (more than '
-                       f'{MAX_CHUNK_BYTES})')
+_CHUNK_HEAD = struct.Struct('<QQQI')  # start and end time, uncompressed size and CRC
+_LENGTH4, _LENGTH8 = struct.Struct('<I'), struct.Struct('<Q')
+
+
+class _ChunkFields:
+    """A chunk record's fields, its data a view into the record (no copy)."""
+
+    __slots__ = ('uncompressed_size', 'uncompressed_crc', 'compression', 'data')
+
+    def __init__(self, body: memoryview) -> None:
+        try:
+            _, _, self.uncompressed_size, self.uncompressed_crc = _CHUNK_HEAD.unpack_from(body)
+            pos = _CHUNK_HEAD.size
+            (n,) = _LENGTH4.unpack_from(body, pos)
+            pos += _LENGTH4.size
+            if pos + n > len(body):
+                raise _Corrupt(f'its compression name needs {n} bytes, the record holds '
+                               f'{len(body) - pos}')
+            self.compression = bytes(body[pos:pos + n]).decode()
+            pos += n
+            (length,) = _LENGTH8.unpack_from(body, pos)
+            pos += _LENGTH8.size
+        except (struct.error, UnicodeDecodeError) as exc:
+            raise _Corrupt(f'malformed ({exc})') from exc
+        if length > len(body) - pos:
+            raise _Corrupt(f'its data needs {length} bytes, the record holds {len(body) - pos}')
+        self.data = body[pos:pos + length]
+
+
+def _stream_lz4(data: memoryview, size: int) -> bytes:
+    """One lz4 frame decompressed into at most ``size`` + 1 bytes."""
+    import lz4.frame
+    decompressor = lz4.frame.LZ4FrameDecompressor()
+    out = decompressor.decompress(data, max_length=size + 1)
+    if len(out) > size:
+        raise _Corrupt(f'decompresses to more than the {size} bytes it states')
+    if not decompressor.eof:
+        raise _Corrupt(f'its lz4 frame ends after {len(out)} of the {size} bytes it states')
+    return out
+
+
+def _stream_zstd(data: memoryview, size: int) -> bytes:
+    """zstd decompressed into at most ``size`` + 1 bytes (its window is virtual memory that
+    only what is decompressed touches; zstd refuses windows above 128 MiB)."""
+    import zstandard
+    reader = zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=True)
+    out = reader.read(size + 1)
+    if len(out) > size:
+        raise _Corrupt(f'decompresses to more than the {size} bytes it states')
+    return out
+
+
+def _decompress(chunk: _ChunkFields) -> bytes | memoryview:
+    """The chunk's records, checked against its stated size and CRC; the stated size is checked
+    against :data:`MAX_CHUNK_BYTES` before anything is decompressed, and no decompressor makes
+    more than one byte past it."""
+    size = chunk.uncompressed_size
+    if size > MAX_CHUNK_BYTES:
+        raise _Corrupt(f'states {size} uncompressed bytes, more than the {MAX_CHUNK_BYTES}-byte '
+                       'limit of a chunk')
     compression = chunk.compression
     try:
         if compression == '':
-            data = chunk.data
+            data: bytes | memoryview = chunk.data
         elif compression == 'zstd':
-            import zstandard
-            data = zstandard.ZstdDecompressor().decompress(
-                chunk.data, max_output_size=chunk.uncompressed_size)
+            data = _stream_zstd(chunk.data, size)
         elif compression == 'lz4':
-            import lz4.frame
-            data = lz4.frame.decompress(chunk.data)
+            data = _stream_lz4(chunk.data, size)
         else:
             raise _Corrupt(f'unknown compression {compression!r}')
     except ImportError as exc:
@@ -122,10 +187,10 @@ def _decompress(chunk: Chunk) -> bytes:
     except _Corrupt:
         raise
     except Exception as exc:  # noqa: BLE001 - zstandard / lz4 raise their own error types
-        raise _Corrupt(f'cannot be decompressed ({compression}: {exc})') from exc
-    if len(data) != chunk.uncompressed_size:
-        raise _Corrupt(f'decompresses to {len(data)} bytes, not the {chunk.uncompressed_size} '
-                       'it states')
+        why = ' '.join(str(exc).split())
+        raise _Corrupt(f'cannot be decompressed ({compression}: {why})') from exc
+    if len(data) != size:
+        raise _Corrupt(f'decompresses to {len(data)} bytes, not the {size} it states')
     if chunk.uncompressed_crc:
         computed = zlib.crc32(data)
         if computed != chunk.uncompressed_crc:
@@ -257,6 +322,19 @@ class McapScan:
                                      'closing magic)')
                 self._cut(offset, what)
                 return
+            if length > MAX_RECORD_BYTES:
+                what = (f'the {name} record at offset {offset} is {length} bytes, more than '
+                        f'the {MAX_RECORD_BYTES}-byte limit of a record')
+                if not self.salvage:
+                    raise self.error(what)
+                self.skipped.append(what)
+                if opcode not in (Opcode.CHUNK, Opcode.MESSAGE, Opcode.ATTACHMENT,
+                                  Opcode.METADATA):
+                    self._cut(offset, what)
+                    return
+                offset = stream.seek(length, os.SEEK_CUR)  # never read
+                self.readable_end = offset
+                continue
             body = stream.read(length)
             if len(body) < length:  # the file shrank while being read
                 self._cut(offset, f'the {name} record at offset {offset} is incomplete')
@@ -277,7 +355,8 @@ class McapScan:
                 if opcode == Opcode.CHUNK:
                     if summary_start is not None:
                         continue  # not part of the data: ignored, as readers do
-                    records, messages = self._chunk(_parse(Chunk, body), channels, emit)
+                    records, messages = self._chunk(_ChunkFields(memoryview(body)), channels,
+                                                    emit)
                     chunks[record_offset] = len(head) + length
                     self.chunk_count += 1
                     self.message_count += messages
@@ -348,16 +427,38 @@ class McapScan:
                     return
             self.readable_end = offset
 
-    def _chunk(self, chunk: Chunk, channels: set[int],
-               emit: bool) -> tuple[list[McapRecord], int]:
-        """The records of one chunk (messages only if ``emit``) and its message count.
+    def _chunk(self, chunk: _ChunkFields, channels: set[int],
+               emit: bool) -> tuple[Iterator[McapRecord], int]:
+        """The records of one chunk (messages only if ``emit``), made one at a time, and its
+        message count.
 
-        Everything is checked before anything is returned, so a damaged chunk adds nothing.
+        Everything is checked before anything is returned, so a damaged chunk adds nothing; the
+        records are then built while the caller takes them, so a chunk of many small messages
+        never stands in memory as that many objects.
         """
         data = memoryview(_decompress(chunk))
-        records: list[McapRecord] = []
         new_channels: set[int] = set()
         messages = 0
+        for pos, opcode, body in self._chunk_records(data):
+            if opcode == Opcode.MESSAGE:
+                if len(body) < _MESSAGE_HEAD.size:
+                    raise _Corrupt(f'the message at byte {pos} of its data is shorter than a '
+                                   'message header')
+                channel_id = _MESSAGE_HEAD.unpack_from(body)[0]
+                if channel_id not in channels and channel_id not in new_channels:
+                    raise _Corrupt(f'the message at byte {pos} of its data is on channel '
+                                   f'{channel_id}, which no channel record before it defines')
+                messages += 1
+            elif opcode == Opcode.CHANNEL:
+                new_channels.add(_parse(Channel, body).id)
+            elif opcode == Opcode.SCHEMA:
+                _parse(Schema, body)
+        channels |= new_channels
+        return self._chunk_objects(data, emit), messages
+
+    @staticmethod
+    def _chunk_records(data: memoryview) -> Iterator[tuple[int, int, memoryview]]:
+        """(byte, opcode, body) of each record in a chunk's data, framing checked."""
         pos = 0
         while pos < len(data):
             if pos + _RECORD_HEAD.size > len(data):
@@ -367,29 +468,22 @@ class McapScan:
             if end > len(data):
                 raise _Corrupt(f'the {_opcode_name(opcode)} record at byte {pos} of its data '
                                f"runs past the data's end")
-            body = data[start:end]
-            if opcode == Opcode.MESSAGE:
-                if length < _MESSAGE_HEAD.size:
-                    raise _Corrupt(f'the message at byte {pos} of its data is shorter than a '
-                                   'message header')
-                channel_id, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(body)
-                if channel_id not in channels and channel_id not in new_channels:
-                    raise _Corrupt(f'the message at byte {pos} of its data is on channel '
-                                   f'{channel_id}, which no channel record before it defines')
-                messages += 1
-                if emit:
-                    records.append(Message(channel_id=channel_id, log_time=log_time,
-                                           data=bytes(body[_MESSAGE_HEAD.size:]),
-                                           publish_time=publish_time, sequence=sequence))
-            elif opcode == Opcode.CHANNEL:
-                channel = _parse(Channel, body)
-                new_channels.add(channel.id)
-                records.append(channel)
-            elif opcode == Opcode.SCHEMA:
-                records.append(_parse(Schema, body))
+            yield pos, opcode, data[start:end]
             pos = end
-        channels |= new_channels
-        return records, messages
+
+    @classmethod
+    def _chunk_objects(cls, data: memoryview, emit: bool) -> Iterator[McapRecord]:
+        """The schemas and channels (and messages, if ``emit``) of checked chunk data."""
+        for _, opcode, body in cls._chunk_records(data):
+            if opcode == Opcode.MESSAGE and emit:
+                channel_id, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(body)
+                yield Message(channel_id=channel_id, log_time=log_time,
+                              data=bytes(body[_MESSAGE_HEAD.size:]),
+                              publish_time=publish_time, sequence=sequence)
+            elif opcode == Opcode.CHANNEL:
+                yield _parse(Channel, body)
+            elif opcode == Opcode.SCHEMA:
+                yield _parse(Schema, body)
 
     def _attachment(self, body: bytes) -> Attachment:
         record = _parse(Attachment, body)

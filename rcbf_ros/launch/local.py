@@ -62,6 +62,7 @@ from rcbf_ros.launch.table import (
     resolve_entry,
     ros_arguments,
 )
+from rcbf_ros.parameters import bounded_yaml
 from rcbf_ros.parameters.rules import find_config, node_key_level
 from rcbf_ros.ros.dds.arguments import expand_topic_name, load_params_file
 from rcbf_ros.ros.loopback import ensure_loopback
@@ -379,9 +380,12 @@ def _parse_override(text: str) -> tuple[str, str, Any]:
     if not sep or not colon or not node or not name:
         raise argparse.ArgumentTypeError(f'-p {text!r}: expected node:parameter:=value')
     try:
-        parsed = yaml.safe_load(value) if value else ''
+        parsed = bounded_yaml.safe_load(value, source=f'-p {node}:{name}') if value else ''
+    except bounded_yaml.YAMLLimitError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
     except yaml.YAMLError as exc:
-        raise argparse.ArgumentTypeError(f'-p {text!r}: value is not YAML ({exc})') from exc
+        why = ' '.join(str(exc).split())
+        raise argparse.ArgumentTypeError(f'-p {text!r}: value is not YAML ({why})') from exc
     return node, name, parsed
 
 

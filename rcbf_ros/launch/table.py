@@ -39,6 +39,8 @@ from typing import Any, Callable, Mapping, Sequence
 
 import yaml
 
+from rcbf_ros.parameters import bounded_yaml
+
 PACKAGE = 'rcbf_ros'
 PARAMS_FILE_ARGUMENT = 'params_file'
 """The launch argument every launch takes: the params file of every node (default: the
@@ -267,8 +269,8 @@ def typed_value(text: str) -> Any:
     if text == '':
         return ''
     try:
-        value = yaml.safe_load(text)
-    except yaml.YAMLError:
+        value = bounded_yaml.safe_load(text, source='launch argument')
+    except yaml.YAMLError:  # not YAML, or past a limit (bounded_yaml): the text itself
         return text
     return value if isinstance(value, (bool, int, float, str, list)) else text
 

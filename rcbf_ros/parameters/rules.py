@@ -30,6 +30,11 @@ Nested mappings flatten to dotted names. What a node gets follows rcl's YAML par
   earlier slot set, and the first set slot in the order bool, integer, double, string, bool[],
   integer[], double[], string[] is what the node gets.
 
+A params file is read within limits (:mod:`rcbf_ros.parameters.bounded_yaml`): at most
+:data:`MAX_PARAMS_FILE_BYTES` (128 KiB), collections nested at most 64 deep, only the YAML core
+tags (a ``!!python/...`` tag is refused, naming the line), checked while it is parsed; rcl
+refuses aliases, and so does this reader.
+
 This module is pure (no ROS, no DDS): the Cyclone runtime's nodes and the offline scripts
 (``load_params``) read parameters through it, so both get what a node on rclpy gets.
 """
@@ -43,12 +48,19 @@ from typing import Any, Iterable
 
 import yaml
 
+from rcbf_ros.parameters import bounded_yaml
+
 _SOURCE_CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
 PACKAGE = 'rcbf_ros'
 
 PARAMS_KEY = 'ros__parameters'
 WILDCARD_KEY = '/**'
 """The node key of a bare ``-p name:=value`` (every node)."""
+MAX_PARAMS_FILE_BYTES = 128 * 2**10
+"""Largest params file read (128 KiB): a larger one is refused after reading this much, never
+read whole. The packaged configs hold at most 6 KiB, a large ROS 2 params file (nav2's) about
+20 KiB; rcl's table is quadratic in the number of parameters, so that 128 KiB of distinct
+one-line parameters still reads in seconds."""
 
 # rcl_variant_t's slots in the order rclpy reads them (_parameter_from_rcl_variant).
 _SLOTS = ('bool', 'integer', 'double', 'string', 'bool_array', 'integer_array', 'double_array',
@@ -209,14 +221,21 @@ class ParamRules:
         Raises:
             OSError: the file cannot be read.
             UnicodeDecodeError: it is not UTF-8.
-            ParamsFileError: rcl refuses it (the message names the file and the line); for a
-                YAML syntax error its ``__cause__`` is PyYAML's error (with the position).
+            ParamsFileError: rcl refuses it, or it is past a limit (size, depth, tag; the
+                message names the file and the line); for a YAML syntax error its
+                ``__cause__`` is PyYAML's error (with the position).
         """
         path = str(path)
-        with open(path, encoding='utf-8') as stream:
-            text = stream.read()
+        try:
+            text = bounded_yaml.read_limited(path, max_bytes=MAX_PARAMS_FILE_BYTES,
+                                             what='params file')
+        except bounded_yaml.YAMLLimitError as exc:
+            raise ParamsFileError(f'{path!r}: larger than the {MAX_PARAMS_FILE_BYTES}-byte '
+                                  'limit of a params file') from exc
         try:  # YAML syntax first: its position says more than where rcl's rules would stop
-            events = list(yaml.parse(text, Loader=yaml.SafeLoader))
+            events = list(bounded_yaml.checked_events(text, source=repr(path)))
+        except bounded_yaml.YAMLLimitError as exc:
+            raise ParamsFileError(str(exc)) from exc
         except yaml.YAMLError as exc:
             raise ParamsFileError(f'{path!r} is not valid YAML: {exc}') from exc
         _FileParser(self, path).run(events)
@@ -235,7 +254,7 @@ class ParamRules:
         variant = self._entries[node][parameter][1]
         in_sequence, sequence_slot = False, None
         try:
-            for event in yaml.parse(text, Loader=yaml.SafeLoader):
+            for event in bounded_yaml.checked_events(text, source=f'-p {name}'):
                 if isinstance(event, yaml.ScalarEvent):
                     sequence_slot = _set_value(variant, event, in_sequence, sequence_slot,
                                                f'-p {name}')
@@ -247,6 +266,8 @@ class ParamRules:
                                             yaml.DocumentStartEvent, yaml.DocumentEndEvent)):
                     raise ParamsFileError(f'-p {name}:={text}: a value must be a scalar or a '
                                           'list of scalars')
+        except bounded_yaml.YAMLLimitError as exc:
+            raise ParamsFileError(str(exc)) from exc
         except yaml.YAMLError as exc:
             raise ParamsFileError(f'-p {name}:={text}: not YAML ({exc})') from exc
 
