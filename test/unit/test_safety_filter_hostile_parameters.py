@@ -297,3 +297,18 @@ def test_a_failing_publication_still_sends_the_fail_safe_command(harness, capsys
     assert len(harness.commands) == before + 2  # the answer, then the fail-safe after it
     np.testing.assert_array_equal(harness.commands[-1].data, node.fail_safe_action)
     assert 'fail-safe: internal error: RuntimeError: publisher gone' in capsys.readouterr().err
+
+
+def test_an_unforeseen_error_while_a_set_is_checked_refuses_it_in_one_line(harness, monkeypatch):
+    from rcbf_ros.node_logic import safety_filter as logic
+    node = harness.node
+    old = node.filter
+
+    def broken(**kwargs: Any) -> Any:
+        raise RuntimeError('a defect\nover two lines')
+    monkeypatch.setattr(logic, 'build_active_filter', broken)
+    result = node.set_parameters([Parameter('k_c', value=1.0)])[0]
+    assert not result.successful
+    assert result.reason == 'k_c: RuntimeError: a defect over two lines'
+    assert node.filter is old and node.get_parameter('k_c').value == 2.0
+    _check_answer(harness)
