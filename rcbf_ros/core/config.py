@@ -92,6 +92,8 @@ the edge, naming the key, before anything is built."""
 COST_WEIGHT_LIMIT = 1.0e12
 """The largest weight of the QP cost (``slack_weight``, ``input_weight``): the solver squares
 and inverts the cost's diagonal, and 2 x 1e308 overflows."""
+COST_WEIGHT_FLOOR = 1.0e-12
+"""The least weight of the QP cost: the inverse of 5e-324 overflows."""
 CASCADE_LIMIT = 8
 """The most cascade gains a barrier family takes (relative degree up to 9)."""
 
@@ -244,11 +246,11 @@ class FilterParameters:
                          description='the disturbance box is mean +/- k_c std, >= 0')
     """The disturbance box is mean +/- k_c std."""
     slack_weight: float = setting(
-        1.0e6, positive=True, maximum=COST_WEIGHT_LIMIT,
+        1.0e6, minimum=COST_WEIGHT_FLOOR, maximum=COST_WEIGHT_LIMIT,
         description='weight l of the slack in the QP cost, > 0')
     """Weight of the slack in the QP cost."""
     input_weight: tuple[float, ...] = setting(
-        (), positive=True, maximum=COST_WEIGHT_LIMIT,
+        (), minimum=COST_WEIGHT_FLOOR, maximum=COST_WEIGHT_LIMIT,
         description='weights of u_S in the QP cost, n_u values > 0 ([]: all 1)')
     """Weights of u_S in the QP cost (empty: all 1)."""
     obstacles: ObstacleParameters | None = setting(None, when='x')
@@ -345,6 +347,11 @@ def _obstacles(p: ObstacleParameters, system: ControlAffineSystem) -> BarrierFam
     if base.speed_input is not None and p.gammas:
         raise ValueError('obstacles.speed_input: the look-ahead point follows the direction '
                          'of travel only at relative degree 1 (no obstacles.gammas)')
+    if p.lookahead > p.margin:
+        raise ParameterError(
+            f'obstacles.lookahead: {p.lookahead:g} exceeds obstacles.margin {p.margin:g}: the '
+            'barriers guard a point that far ahead of the position, so the robot itself could '
+            'enter an obstacle by lookahead - margin (keep margin >= lookahead)')
     return _cascade(base, system, p.gammas, 'obstacles.gammas')
 
 
@@ -374,14 +381,25 @@ def _check_layout(system: ControlAffineSystem, *, positions: tuple[int | None, .
 
 
 def band_names(params: Mapping[str, Any]) -> list[str]:
-    """The ``<name>`` of every ``bands.<name>.<key>`` parameter, sorted."""
-    return sorted({k.split('.')[1] for k in params
-                   if k.startswith('bands.') and k.count('.') == 2})
+    """The ``<name>`` of every ``bands.<name>.<key>`` parameter, sorted.
+
+    Raises:
+        ParameterError: naming a ``bands.`` key that is not ``bands.<name>.<key>`` (a name
+            with a dot, or no key), which would otherwise be left out in silence.
+    """
+    odd = sorted(k for k in params if k.startswith('bands.') and k.count('.') != 2)
+    if odd:
+        raise ParameterError(f'{odd[0]}: expected bands.<name>.<key> (a band name holds no '
+                             "'.')")
+    return sorted({k.split('.')[1] for k in params if k.startswith('bands.')})
 
 
 def _band(name: str, params: Mapping[str, Any], system: ControlAffineSystem) -> BarrierFamily:
     prefix = f'bands.{name}.'
     p = read_parameters(BandParameters, params, prefix=prefix)
+    if p.center_index == p.index:
+        raise ParameterError(f"{prefix}center_index: state {p.index} is the band's own "
+                             f'{prefix}index: the band x - x would be 0, never active')
     try:
         base = BandBarrier(
             index=_index(f'{prefix}index', p.index, system.n_x),  # type: ignore[arg-type]
@@ -401,6 +419,10 @@ def _gaps(p: GapParameters, system: ControlAffineSystem) -> BarrierFamily:
         raise ValueError('gaps.b: need one index per gaps.a')
     pairs = tuple((_index('gaps.a', a, system.n_x), _index('gaps.b', b, system.n_x))
                   for a, b in zip(p.a, p.b))
+    same = [a for a, b in pairs if a == b]
+    if same:
+        raise ParameterError(f'gaps.b: state {same[0]} is also its gaps.a: a gap between an '
+                             'entry and itself is 0, never above gaps.delta')
     base = PairGap(pairs=pairs, delta=p.delta)  # type: ignore
     return _cascade(base, system, p.gammas, 'gaps.gammas')
 

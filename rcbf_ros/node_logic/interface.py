@@ -253,8 +253,16 @@ def range_text(spec: ParameterSpec) -> str:
     bounds = spec.range
     if bounds is None:
         return ''
-    low, high = (f'{b}' if isinstance(b, int) else f'{b:.6g}' for b in bounds)
-    return f', range {low} to {high}'
+    return f', range {bound_text(bounds[0])} to {bound_text(bounds[1])}'
+
+
+def bound_text(bound: float) -> str:
+    """A range's end as people read it: an integer as it is, a float in its shortest exact
+    form when that is short (``5e-324``, ``0.0``, ``inf``), else to 6 digits (``1e+15``)."""
+    if isinstance(bound, int):
+        return str(bound)
+    text = repr(float(bound))
+    return text if len(text) <= 12 else f'{bound:.6g}'
 
 
 def _cell(text: str) -> str:

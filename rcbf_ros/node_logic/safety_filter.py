@@ -74,6 +74,10 @@ from rcbf_ros.parameters.reader import (
 DURATION_LIMIT_S = 1.0e9
 """The longest duration (s) a parameter may name: the node's clock counts int64 nanoseconds
 (292 years); 1e9 s leaves room for the sums it makes of them."""
+SLACK_TOLERANCE_LIMIT = 0.01
+"""The most slack a published command may need: a row may then go unmet by that much, which
+lets a barrier fall to -0.01 / alpha (a few mm inside the margin of an obstacle); more would
+publish commands that drive into obstacles as OK answers."""
 DDS_INT_MAX = 2 ** 31 - 1
 """The largest history depth a DDS QoS takes (a 32-bit integer)."""
 
@@ -97,7 +101,7 @@ class NodeSettings(MessageSettings):
         description='a `state` older than this (s, since its arrival) is stale: fail-safe')
     """A state message older than this (since its arrival) is stale: fail-safe."""
     slack_tolerance: float = setting(
-        1.0e-4, minimum=0,
+        1.0e-4, minimum=0, maximum=SLACK_TOLERANCE_LIMIT,
         description='most slack the published command may need in any RCBF row; more: fail-safe')
     """The most slack the published command may need in any RCBF row; more (the rows are
     infeasible within the input limits) publishes the fail-safe.
@@ -290,7 +294,8 @@ class ActiveFilter:
 
 
 def build_active_filter(*, params: Mapping[str, Any],
-                        probe_states: Sequence[Sequence[float]] = ()) -> ActiveFilter:
+                        probe_states: Sequence[Sequence[float]] = (),
+                        changed: Sequence[str] = ()) -> ActiveFilter:
     """Validate every parameter and build the filter: the one construction of the node's
     start and of every change at runtime (the same checks, the same messages).
 
@@ -301,6 +306,11 @@ def build_active_filter(*, params: Mapping[str, Any],
     (:meth:`rcbf_ros.core.filter.SafetyFilter.evaluation_refusal`). Parameters that fail
     there would make every answer the fail-safe: filtering switched off by a value.
 
+    Args:
+        changed: the keys a change at runtime sets: the probe's refusal names one of them
+            (the one without which the filter passes, else all); at start (none), the first
+            key of ``params`` without which it passes.
+
     Raises:
         ValueError: one line naming the bad key (:class:`ProbeError` for the evaluation
             check: the key without which the filter would pass it, and the state).
@@ -308,8 +318,9 @@ def build_active_filter(*, params: Mapping[str, Any],
     active = _built(params)
     reason = _probe_refusal(active, probe_states)
     if reason is not None:
-        raise ProbeError(f'{_blame(active.params, probe_states)}: with this value the filter '
-                         f'could never filter (every answer the fail-safe) {reason}')
+        blamed = _blame(active.params, probe_states, changed or tuple(active.params))
+        raise ProbeError(f'{blamed or ", ".join(changed) or "parameters"}: with this value the '
+                         f'filter could never filter (every answer the fail-safe) {reason}')
     return active
 
 
@@ -318,7 +329,11 @@ def _built(params: Mapping[str, Any]) -> ActiveFilter:
     params = collect_parameters(params)
     settings = node_settings_from_params(params)
     config = filter_config_from_params(params)
-    check_geometry(params, bound=settings.input_bounds.state)
+    check_geometry(params, bounds=settings.input_bounds)
+    system = config.problem.system
+    for key, limits in (('input_limits.min', system.u_min), ('input_limits.max', system.u_max)):
+        # a proposal within the limits must never be refused as out of bounds
+        _within(key, limits or (), settings.input_bounds.command, 'input_bounds.command')
     safety_filter = build_safety_filter(config=config, settings=settings)
     settings.check_inputs(n_u=safety_filter.n_u, system=str(params.get('system')))
     return ActiveFilter(params=params, settings=settings, config=config,
@@ -338,11 +353,13 @@ def _probe_refusal(active: ActiveFilter, probe_states: Sequence[Sequence[float]]
     return None
 
 
-def _blame(params: Mapping[str, Any], probe_states: Sequence[Sequence[float]]) -> str:
-    """The first key of ``params`` without which the filter passes the probe (its default
-    taken instead), or ``parameters`` when no single key is to blame."""
-    for key in params:
-        if key == 'system' or is_read_only(key):
+def _blame(params: Mapping[str, Any], probe_states: Sequence[Sequence[float]],
+           suspects: Sequence[str]) -> str:
+    """The first of ``suspects`` without which the filter passes the probe (its default taken
+    instead), or '' when no single one is to blame. Each try builds a filter: at runtime only
+    the keys of the change are tried, so that a refusal costs a few builds."""
+    for key in suspects:
+        if key not in params or key == 'system' or is_read_only(key):
             continue
         try:
             trial = _built({k: v for k, v in params.items() if k != key})
@@ -350,7 +367,7 @@ def _blame(params: Mapping[str, Any], probe_states: Sequence[Sequence[float]]) -
             continue
         if _probe_refusal(trial, probe_states) is None:
             return key
-    return 'parameters'
+    return ''
 
 
 class ProbeError(ValueError):
@@ -363,31 +380,45 @@ GEOMETRY_KEYS = ('obstacles.x', 'obstacles.y', 'obstacles.radius', 'obstacles.ma
 """Lengths (m) of the barrier geometry, besides the bands' ``center`` and ``half_width``."""
 
 
-def check_geometry(params: Mapping[str, Any], *, bound: float) -> None:
+def check_geometry(params: Mapping[str, Any], *, bounds: InputBounds) -> None:
     """Every length of the barrier geometry (:data:`GEOMETRY_KEYS`, ``bands.<name>.center``
-    and ``.half_width``), and every obstacle's radius plus margin, lies within ``bound``
-    (``input_bounds.state``).
+    and ``.half_width``), every obstacle's radius plus margin and every wall's distance from
+    the origin lie within ``input_bounds.state``; the input limits within
+    ``input_bounds.command``.
 
-    A state beyond that bound is refused anyway; geometry beyond it is nowhere a state may
+    A state beyond its bound is refused anyway; geometry beyond it is nowhere a state may
     be, and its squares overflow float64 long before 1e308 (an obstacle at x = 1e200, a
-    radius of 1e154): every answer would be the fail-safe.
+    radius of 1e154, a wall whose normal of 1e-300 puts it 1e300 m away): every answer would
+    be the fail-safe.
 
     Raises:
         ParameterError: naming the key, the value and the bound.
     """
+    bound = bounds.state
     keys = [*GEOMETRY_KEYS, *(k for k in params if k.startswith('bands.')
                               and k.endswith(('.center', '.half_width')))]
     for key in keys:
-        values = read_floats(key, params.get(key))
-        far = [v for v in values if not abs(v) <= bound]
-        if far:
-            raise ParameterError(f'{key}: {far[0]:.6g} lies beyond input_bounds.state = '
-                                 f'{bound:.6g} (no state the filter takes is there)')
+        _within(key, read_floats(key, params.get(key)), bound, 'input_bounds.state')
     radii = read_floats('obstacles.radius', params.get('obstacles.radius'))
     margin = read_float('obstacles.margin', params.get('obstacles.margin', 0.0))
     if radii and not max(radii) + margin <= bound:
         raise ParameterError(f'obstacles.radius: {max(radii):.6g} plus obstacles.margin '
                              f'{margin:.6g} lies beyond input_bounds.state = {bound:.6g}')
+    normals = zip(read_floats('walls.nx', params.get('walls.nx')),
+                  read_floats('walls.ny', params.get('walls.ny')),
+                  read_floats('walls.offset', params.get('walls.offset')))
+    _within('walls.offset', [abs(c) / math.hypot(a, b) for a, b, c in normals if a or b],
+            bound, 'input_bounds.state', what='a wall at distance')
+
+
+def _within(key: str, values: Sequence[float], bound: float, name: str, *,
+            what: str = '') -> None:
+    """Refuse, naming ``key``, the first of ``values`` whose magnitude is beyond ``bound``."""
+    far = [v for v in values if not abs(v) <= bound]
+    if far:
+        lead = f'{what} ' if what else ''
+        raise ParameterError(f'{key}: {lead}{far[0]:.6g} lies beyond {name} = {bound:.6g} '
+                             '(no input the filter takes is there)')
 
 
 def merged_parameters(*, current: Mapping[str, Any],

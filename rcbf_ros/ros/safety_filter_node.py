@@ -114,6 +114,7 @@ from rcbf_ros.messages import conversions
 from rcbf_ros.messages.cdr import Float64ArrayLayout
 from rcbf_ros.node_logic import safety_filter as logic
 from rcbf_ros.node_logic.interface import (
+    bound_text,
     COMMAND_TOPIC_TYPES,
     DIAGNOSTIC_ARRAY,
     FLOAT64_MULTIARRAY,
@@ -276,10 +277,11 @@ class SafetyFilterNode(Node):
         """The safety filter in use (replaced as a whole when the parameters change)."""
         return self._active.safety_filter
 
-    def _build(self, params: dict[str, Any],
-               probe_states: Sequence[Any] = ()) -> logic.ActiveFilter:
+    def _build(self, params: dict[str, Any], probe_states: Sequence[Any] = (),
+               changed: Sequence[str] = ()) -> logic.ActiveFilter:
         """The filter of ``params``, checked as at start (ValueError naming the key)."""
-        active = logic.build_active_filter(params=params, probe_states=probe_states)
+        active = logic.build_active_filter(params=params, probe_states=probe_states,
+                                           changed=changed)
         if active.settings.state_type == 'odometry':
             conversions.check_odometry_support(active.params.get('system'))
         return active
@@ -301,6 +303,9 @@ class SafetyFilterNode(Node):
         for name in list(self.get_parameters_by_prefix('')):
             if logic.feeds_the_filter(name) and not self.describe_parameter(name).description:
                 value = self.get_parameter(name).value
+                refusal = _range_refusal(name, value)
+                if refusal:  # the declaration would refuse it: say so with the key first
+                    raise ValueError(refusal)
                 self.undeclare_parameter(name)
                 self.declare_parameter(name, value, self._descriptor(name),
                                        ignore_override=True)
@@ -340,16 +345,7 @@ class SafetyFilterNode(Node):
             return ''
         if logic.is_read_only(name):
             return f'{name} is {logic.READ_ONLY_DESCRIPTION}'
-        spec = INTERFACE.spec(name)
-        bounds = None if spec is None else spec.range
-        value = parameter.value
-        kind = {'double': float, 'integer': int}.get(getattr(spec, 'type', ''))
-        if bounds is None or type(value) is not kind or not (
-                value < bounds[0] or value > bounds[1]) or any(
-                math.isclose(value, edge, rel_tol=_RANGE_TOLERANCE) for edge in bounds):
-            return ''  # as rclpy: the edges (within its tolerance) are in, NaN is not refused
-        low, high = (f'{b:.6g}' for b in bounds)
-        return f'{name}: {value!r} is outside its declared range {low} to {high}'
+        return _range_refusal(name, parameter.value)
 
     def _check_parameter_change(self, parameters: list[Any]) -> Any:
         """On-set callback: build the filter the change would give; refuse it if that fails.
@@ -369,7 +365,8 @@ class SafetyFilterNode(Node):
                 return result
             latest = self._latest_state
             probes = () if latest is None or latest.state is None else (latest.state,)
-            self._pending = (parameters, self._build(merged, probes))
+            self._pending = (parameters, self._build(merged, probes,
+                                                     [p.name for p in parameters]))
         except Exception as exc:  # refused whole; whatever the value, the node runs on
             result.successful = False
             # a ValueError names the key itself; an unforeseen error: name the keys set
@@ -641,6 +638,22 @@ def _decoded(data: bytes, message_type: Any) -> tuple[Any, str]:
         return deserialize_message(data, message_type), ''
     except Exception as exc:
         return None, _one_line(exc)
+
+
+def _range_refusal(name: str, value: Any) -> str:
+    """``<name>: <value> is outside its declared range <low> to <high>`` when the range the
+    parameter is declared with (:attr:`ParameterSpec.range` of its spec) refuses ``value``, as
+    rclpy's check does (a value of the range's type only; its ends within rclpy's tolerance are
+    in; NaN is not refused), else ''."""
+    spec = INTERFACE.spec(name)
+    bounds = None if spec is None else spec.range
+    kind = {'double': float, 'integer': int}.get(getattr(spec, 'type', ''))
+    if bounds is None or type(value) is not kind or not (
+            value < bounds[0] or value > bounds[1]) or any(
+            math.isclose(value, edge, rel_tol=_RANGE_TOLERANCE) for edge in bounds):
+        return ''
+    return (f'{name}: {value!r} is outside its declared range {bound_text(bounds[0])} to '
+            f'{bound_text(bounds[1])}')
 
 
 def _names(parameters: Sequence[Any], most: int = 4) -> str:

@@ -113,13 +113,13 @@ def test_shipped_configs_build(name):
     ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0],
                                           'heading_index': 7}}, 'obstacles.heading_index'),
     ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0],
-                                          'heading_index': 2, 'lookahead': 0.03,
+                                          'heading_index': 2, 'lookahead': 0.03, 'margin': 0.03,
                                           'speed_input': 2}}, 'obstacles.speed_input'),
     ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0],
                                           'heading_index': 2, 'speed_input': 0}},
      'obstacles.speed_input'),
     ({'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0],
-                                          'heading_index': 2, 'lookahead': 0.03,
+                                          'heading_index': 2, 'lookahead': 0.03, 'margin': 0.03,
                                           'speed_input': 0, 'gammas': [1.0]}},
      'obstacles.speed_input'),
     ({'system': 'pvtol', 'bands': {'operator': {'index': 0, 'half_width': -1.0}}},
@@ -156,8 +156,12 @@ ONE_OBSTACLE = {'x': [0.0], 'y': [0.0], 'radius': [1.0]}
     ({'alpha': 0.0}, r'^alpha: must be > 0'),
     ({'alpha': -2.0}, r'^alpha: must be > 0'),
     ({'k_c': -0.1}, r'^k_c: must be >= 0'),
-    ({'slack_weight': 0.0}, r'^slack_weight: must be > 0'),
+    ({'slack_weight': 0.0}, r'^slack_weight: must be >= 1e-12'),
     ({'walls': {'nx': [0.0], 'ny': [0.0], 'offset': [1.0]}}, r'^walls\.nx/walls\.ny: '),
+    # each accepted once, each made the filter guard nothing or refuse everything
+    ({'obstacles': dict(ONE_OBSTACLE, lookahead=10.0, heading_index=2, margin=0.1)},
+     r'^obstacles\.lookahead: 10 exceeds obstacles\.margin 0\.1'),
+    ({'input_weight': [5e-324, 5e-324]}, r'^input_weight: must be >= 1e-12'),
     ({'disturbance': {'std': [0.1, -0.1, 0.0]}}, r'^disturbance\.std: must be >= 0'),
 ])
 def test_unsafe_values_are_refused_naming_the_key(override, key):
@@ -166,6 +170,18 @@ def test_unsafe_values_are_refused_naming_the_key(override, key):
     params = {'system': 'unicycle', 'obstacles': ONE_OBSTACLE, **override}
     with pytest.raises(ValueError, match=key):
         filter_config_from_params(params)
+
+
+def test_a_gap_or_band_against_itself_and_a_dotted_band_name_are_refused():
+    with pytest.raises(ValueError, match=r'^gaps\.b: state 4 is also its gaps\.a'):
+        filter_config_from_params({'system': 'car_following',
+                                   'gaps': {'a': [4], 'b': [4], 'delta': 0.5}})
+    with pytest.raises(ValueError, match=r'^bands\.lane\.center_index: state 1 is the band'):
+        filter_config_from_params({'system': 'unicycle', 'bands.lane.index': 1,
+                                   'bands.lane.half_width': 3.0, 'bands.lane.center_index': 1})
+    with pytest.raises(ValueError, match=r'^bands\.a\.b\.\w+: expected bands\.<name>\.<key>'):
+        filter_config_from_params({'system': 'unicycle', 'bands.a.b.index': 0,
+                                   'bands.a.b.half_width': 1.0, 'obstacles': ONE_OBSTACLE})
 
 
 def test_gaps_delta_and_band_gains_are_checked():
@@ -180,7 +196,8 @@ def test_gaps_delta_and_band_gains_are_checked():
 @pytest.mark.parametrize('bad', [1.5, True, float('inf'), float('nan'), 'one'])
 def test_an_index_that_is_not_an_integer_is_refused_not_truncated(bad):
     base = {'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0],
-                                                'heading_index': 2, 'lookahead': 0.03}}
+                                                'heading_index': 2, 'lookahead': 0.03,
+                                                'margin': 0.03}}
     assert filter_config_from_params(
         {**base, 'obstacles': {**base['obstacles'], 'speed_input': 0.0}}) is not None
     with pytest.raises(ValueError, match=r'obstacles\.speed_input: expected an integer'):
@@ -233,12 +250,12 @@ def test_envelope_params_keep_only_the_bands_of_every_layout():
 
 
 @pytest.mark.parametrize('system, obstacles, key', [
-    ('unicycle', {'heading_index': 0, 'lookahead': 0.03}, r'^obstacles\.heading_index: state 0 '
+    ('unicycle', {'heading_index': 0}, r'^obstacles\.heading_index: state 0 '
      r'of Unicycle is not a heading; its heading is state 2'),
-    ('unicycle', {'heading_index': 1, 'lookahead': 0.03}, r'^obstacles\.heading_index: state 1'),
+    ('unicycle', {'heading_index': 1}, r'^obstacles\.heading_index: state 1'),
     ('unicycle', {'position_indices': [0, 2]}, r'^obstacles\.position_indices: state 2 of '
      r'Unicycle is a heading'),
-    ('pvtol', {'heading_index': 2, 'lookahead': 0.1}, r'^obstacles\.heading_index: state 2 of '
+    ('pvtol', {'heading_index': 2}, r'^obstacles\.heading_index: state 2 of '
      r'PVTOL is not a heading; its heading is state 4'),
     ('car_following', {'heading_index': 1}, r'^obstacles\.heading_index: .* it has no heading'),
 ])
@@ -253,5 +270,5 @@ def test_obstacle_indices_are_checked_against_the_state_layout(system, obstacles
 @pytest.mark.parametrize('system, heading', [('unicycle', 2), ('pvtol', 4)])
 def test_the_heading_index_of_each_system_is_accepted(system, heading):
     params = {'system': system, 'obstacles': {**ONE_OBSTACLE, 'heading_index': heading,
-                                              'lookahead': 0.05}}
+                                              'lookahead': 0.05, 'margin': 0.05}}
     assert filter_config_from_params(params).problem.n_barriers == 1

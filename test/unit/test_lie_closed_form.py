@@ -68,8 +68,9 @@ def variation(system: str, rng: np.random.Generator) -> dict:
         params.update({'obstacles.x': rng.uniform(-2.5, 2.5, k).tolist(),
                        'obstacles.y': rng.uniform(-2.5, 2.5, k).tolist(),
                        'obstacles.radius': rng.uniform(0.2, 0.7, k).tolist(),
-                       'obstacles.margin': float(rng.uniform(0.0, 0.2)),
-                       'obstacles.lookahead': float(rng.uniform(0.01, 0.3)),
+                       'obstacles.lookahead': (lookahead := float(rng.uniform(0.01, 0.3))),
+                       # the robot's centre outside the true radius: margin >= lookahead
+                       'obstacles.margin': lookahead + float(rng.uniform(0.0, 0.2)),
                        'obstacles.speed_input': int(rng.choice([-1, 0, 1])),
                        'alpha': float(rng.uniform(0.5, 5.0)),
                        'walls.nx': [1.0, -0.6], 'walls.ny': [0.0, 0.8],

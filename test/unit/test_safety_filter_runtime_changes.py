@@ -73,7 +73,7 @@ def test_an_invalid_value_is_refused_with_the_key_and_nothing_changes(harness, c
     assert result.reason == 'Parameter k_c out of range Min: 0.0, Max: inf, value: -1.0'
     assert node.filter is old_filter and node.get_parameter('k_c').value == old_k_c
     assert ('[WARN]' in (log := capsys.readouterr().err) and 'parameter change refused: k_c: '
-            '-1.0 is outside its declared range 0 to inf' in log), log
+            '-1.0 is outside its declared range 0.0 to inf' in log), log
     for name, value in (('alpha', 0.0), ('obstacles.margin', -0.1), ('slack_tolerance', -1.0),
                         ('input_bounds.state', math.nan), ('osqp.max_iter', 0),
                         ('obstacles.radius', [0.6, -0.6, 0.6, 0.6, 0.6]),
@@ -83,10 +83,17 @@ def test_an_invalid_value_is_refused_with_the_key_and_nothing_changes(harness, c
                         ('osqp.max_iter', 2 ** 63 - 1), ('alpha', 1e300), ('k_c', 1e300),
                         ('diagnostics.min_period_s', 1e308), ('obstacles.heading_index', 0),
                         ('obstacles.x', [1e200, -1.5, -1.5, 1.5, 1.5]),
-                        ('obstacles.radius', [1e154] * 5), ('slack_weight', 1e308)):
+                        ('obstacles.radius', [1e154] * 5), ('slack_weight', 1e308),
+                        # published commands that broke the rows as OK answers, or made every
+                        # ordinary proposal out of bounds
+                        ('slack_tolerance', 1.0), ('obstacles.lookahead', 10.0),
+                        ('input_bounds.command', 0.5), ('input_limits.max', [1e308, 2.5])):
         result = node.set_parameters([Parameter(name, value=value)])[0]
-        assert not result.successful and result.reason.startswith(
-            (f'{name}:', f'Parameter {name} out of range')), (name, result.reason)
+        # the key itself leads, or the key it contradicts names it (input_limits.min: ...
+        # lies beyond input_bounds.command = 0.5)
+        assert not result.successful and (result.reason.startswith(
+            (f'{name}:', f'Parameter {name} out of range')) or f' {name} = ' in result.reason
+        ), (name, result.reason)
         assert node.filter is old_filter
 
 
