@@ -73,7 +73,8 @@ def unicycle_params(draw: st.DrawFn) -> dict:
         'obstacles.x': draw(st.lists(coordinate, min_size=k, max_size=k)),
         'obstacles.y': draw(st.lists(coordinate, min_size=k, max_size=k)),
         'obstacles.radius': draw(st.lists(st.floats(0.05, 1.0), min_size=k, max_size=k)),
-        'obstacles.margin': draw(st.floats(0.0, 0.3)),
+        # the robot's centre stays outside the true radius only with margin >= lookahead
+        'obstacles.margin': draw(st.floats(lookahead, lookahead + 0.3)),
         'input_limits.min': [-limit, -limit], 'input_limits.max': [limit, limit],
     }
     if lookahead > 0:
