@@ -8,12 +8,12 @@ import resource
 import signal
 import subprocess
 import sys
-import textwrap
 import time
 
 from dds_harness import end_process, subprocess_env  # this directory: on sys.path for pytest
 import pytest
 from rosbags.highlevel import AnyReader
+from test_recorder import _STREAMING_PUBLISHER
 
 from rcbf_ros.bag.recover import main as bag_command
 from rcbf_ros.messages.typestore import jazzy_typestore
@@ -22,33 +22,6 @@ pytestmark = pytest.mark.integration
 
 LIMIT = 40_000
 WAIT_S = 60.0
-
-# Publishes /state = [i, 2i] for i = 0, 1, 2, ... (about 500 per second) until killed, from
-# 1.5 s after the recorder's subscription matched (a volatile reader misses what came before).
-_STREAMING_PUBLISHER = textwrap.dedent("""
-    import sys, time
-    from rcbf_ros.ros.runtime import get_message, HistoryPolicy, Node, QoSProfile, rclpy
-    rclpy.init()
-    node = Node('streaming_publisher')
-    State = get_message('std_msgs/msg/Float64MultiArray')
-    pub = node.create_publisher(State, '/state', QoSProfile(history=HistoryPolicy.KEEP_ALL,
-                                                            depth=1000))
-    deadline = time.monotonic() + 60
-    while pub.get_subscription_count() < 1:
-        if time.monotonic() > deadline:
-            sys.exit('recorder never subscribed')
-        rclpy.spin_once(node, timeout_sec=0.05)
-    settle = time.monotonic() + 1.5
-    while time.monotonic() < settle:
-        rclpy.spin_once(node, timeout_sec=0.05)
-    i = 0
-    while rclpy.ok():
-        state = State()
-        state.data = [float(i), 2.0 * i]
-        pub.publish(state)
-        i += 1
-        time.sleep(0.002)
-""")
 
 
 def _limited() -> None:
