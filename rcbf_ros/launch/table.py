@@ -188,14 +188,22 @@ def launch_bool(what: str, text: str) -> bool:
     Raises:
         ValueError: one line naming ``what`` and the text.
     """
-    value = {'1': 'true', '0': 'false'}.get(text, text)
-    try:
-        parsed = yaml.safe_load(value) if value else None
-    except yaml.YAMLError:
-        parsed = None
-    if not isinstance(parsed, bool):
-        raise ValueError(f'{what}:={text!r}: expected true or false')
+    parsed = _BOOL_WORDS.get(text)
+    if parsed is None:
+        shown = text if len(text) <= 40 else text[:37] + '...'
+        raise ValueError(f'{what}:={shown!r}: expected true or false')
     return parsed
+
+
+_BOOL_WORDS: dict[str, bool] = {
+    '1': True, '0': False,
+    **{word: True for base in ('true', 'yes', 'on')
+       for word in (base, base.capitalize(), base.upper())},
+    **{word: False for base in ('false', 'no', 'off')
+       for word in (base, base.capitalize(), base.upper())},
+}
+"""The texts YAML 1.1 (PyYAML) reads as a bool, and launch's ``1`` / ``0``: looked up, not
+parsed, so that no text can cost more than a dictionary look-up."""
 
 
 def respawn_delay(what: str, text: str) -> float:

@@ -112,6 +112,9 @@ def checked_events(text: str, *, source: str, max_depth: int = MAX_DEPTH,
             if not allow_aliases:
                 raise refuse(event, f'the alias *{event.anchor} is not allowed here (no '
                                     'aliases in this file)')
+            if any(opened[0] == event.anchor for opened in open_collections):
+                raise refuse(event, f'the alias *{event.anchor} lies inside the collection it '
+                                    'names (a structure that contains itself)')
             count, height = anchors.get(event.anchor, (1, 0))
             grow(event, count, depth + height)
         elif isinstance(event, yaml.ScalarEvent):

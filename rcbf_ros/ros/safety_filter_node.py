@@ -485,24 +485,34 @@ class SafetyFilterNode(Node):
             decision = logic.fail_safe_decision(
                 safety_filter=active.safety_filter, reason=f'internal error: {_one_line(exc)}')
         try:
-            self._publish(decision, now_ns, active, header=header)
+            self._publish_command(decision.u_safe, header)
+        except Exception as exc:  # a defect in the output: the fail-safe instead, if it can go
+            self._publish_fail_safe(active, f'internal error: {_one_line(exc)}', header, now_ns)
+            return
+        try:  # the command is out: a failure below costs the details, never a second command
+            self._publish_details(decision, now_ns, active)
             if decision.level != logic.OK:
                 self._log(decision.level, decision.reason, now_ns)
-        except Exception as exc:  # a defect in the output: the command still goes out
-            self._publish_fail_safe(active, f'internal error: {_one_line(exc)}', header)
-
-    def _publish_fail_safe(self, active: logic.ActiveFilter, reason: str, header: Any) -> None:
-        """The fail-safe command alone, and the reason in the log: the last resort of an answer
-        whose publication failed (a second failure is logged, never raised)."""
-        try:
-            u_safe = active.safety_filter.fail_safe_action
-            if self._array_commands:
-                self._cmd_pub.publish(conversions.sections_to_cdr({'u': u_safe}))
-            else:
-                self._cmd_pub.publish(self.command_message(u_safe, header))
-            self.get_logger().error(f'fail-safe: {reason}')
         except Exception as exc:
-            self.get_logger().error(f'no answer published: {reason}; then {_one_line(exc)}')
+            self._log_safely(f'answer details not published: internal error: '
+                             f'{_one_line(exc)}', now_ns)
+
+    def _publish_fail_safe(self, active: logic.ActiveFilter, reason: str, header: Any,
+                           now_ns: int) -> None:
+        """The fail-safe command alone, and the reason in the (throttled) log: the last resort
+        of an answer whose command could not be published. Never raises."""
+        try:
+            self._publish_command(active.safety_filter.fail_safe_action, header)
+        except Exception as exc:
+            reason = f'no command published: {reason}; then {_one_line(exc)}'
+        self._log_safely(reason, now_ns)
+
+    def _log_safely(self, reason: str, now_ns: int) -> None:
+        """An ERROR through the log throttle; a failure of the log itself goes to stderr."""
+        try:
+            self._log(logic.ERROR, reason, now_ns)
+        except Exception as exc:
+            print(f'{NODE_NAME}: {reason} (log failed: {_one_line(exc)})', file=sys.stderr)
 
     def _decide(self, data: bytes, now_ns: int,
                 active: logic.ActiveFilter) -> tuple[logic.Decision, Any]:
@@ -556,16 +566,19 @@ class SafetyFilterNode(Node):
             u_safe, type_name=conversions.COMMAND_MESSAGES[command_type],
             twist_fields=self.settings.twist_fields, header=header)
 
-    def _publish(self, decision: logic.Decision, now_ns: int, active: logic.ActiveFilter,
-                 header: Any = None) -> None:
-        settings = active.settings
-        if self._array_commands:  # first, the command
-            u_safe = decision.u_safe
+    def _publish_command(self, u_safe: np.ndarray, header: Any = None) -> None:
+        """``cmd_safe``: the command alone, in the proposal's type."""
+        if self._array_commands:
             layout = self._command_layout
             self._cmd_pub.publish(layout.encode(u_safe) if u_safe.size == layout.size
                                   else conversions.sections_to_cdr({'u': u_safe}))
         else:
-            self._cmd_pub.publish(self.command_message(decision.u_safe, header))
+            self._cmd_pub.publish(self.command_message(u_safe, header))
+
+    def _publish_details(self, decision: logic.Decision, now_ns: int,
+                         active: logic.ActiveFilter) -> None:
+        """``filter_info`` of an answer whose command is out, then its diagnostics if due."""
+        settings = active.settings
         self._info_pub.publish(self._info_cdr(decision))
         if not logic.diagnostics_due(level=decision.level, now_ns=now_ns,
                                      last_ok_ns=self._last_ok_diagnostics_ns,

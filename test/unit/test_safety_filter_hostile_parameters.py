@@ -305,15 +305,36 @@ def test_every_declared_parameter_describes_itself_with_its_range(harness):
 def test_a_failing_publication_still_sends_the_fail_safe_command(harness, capsys):
     node = harness.node
     node._on_state(_cdr({'state': STATE}))
+    sent: list[Any] = []
+    publish = node._cmd_pub.publish
 
-    def broken(msg: Any) -> None:
-        raise RuntimeError('publisher gone')
-    node._info_pub.publish = broken  # the command goes out first, then filter_info fails
+    def first_fails(msg: Any) -> None:  # the answer's command cannot go out, the next can
+        sent.append(msg)
+        if len(sent) == 1:
+            raise RuntimeError('publisher gone')
+        publish(msg)
+    node._cmd_pub.publish = first_fails
     before = len(harness.commands)
     node._on_proposal(_cdr({'u': PROPOSAL}))  # never raises
-    assert len(harness.commands) == before + 2  # the answer, then the fail-safe after it
+    assert len(harness.commands) == before + 1  # the fail-safe instead of the answer
     np.testing.assert_array_equal(harness.commands[-1].data, node.fail_safe_action)
     assert 'fail-safe: internal error: RuntimeError: publisher gone' in capsys.readouterr().err
+
+
+def test_a_failing_detail_costs_the_details_never_a_second_command(harness, capsys):
+    node = harness.node
+    node._on_state(_cdr({'state': [-3.0, 0.0, 0.0]}))  # far from every obstacle: passed as is
+
+    def broken(msg: Any) -> None:
+        raise RuntimeError('info publisher gone')
+    node._info_pub.publish = broken
+    before = len(harness.commands)
+    for _ in range(50):
+        node._on_proposal(_cdr({'u': PROPOSAL}))  # never raises
+    assert len(harness.commands) == before + 50  # one command per proposal, the answer's
+    np.testing.assert_array_equal(harness.commands[-1].data, PROPOSAL)
+    log = capsys.readouterr().err
+    assert log.count('answer details not published') == 1, log  # throttled
 
 
 def test_an_unforeseen_error_while_a_set_is_checked_refuses_it_in_one_line(harness, monkeypatch):
