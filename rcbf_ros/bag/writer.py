@@ -303,11 +303,13 @@ class _BagFile:
         Raises:
             OSError: no room for them (``ENOSPC``), or an I/O error.
         """
-        if self._fallocate is None:
-            return
-        if self._fallocate(self._fd, _FALLOC_FL_KEEP_SIZE, self.contents.end, length) == 0:
-            return
-        code = ctypes.get_errno()
+        code = errno.EINTR
+        while code == errno.EINTR:  # a signal during the call (ctypes does not retry it)
+            if self._fallocate is None:
+                return
+            if self._fallocate(self._fd, _FALLOC_FL_KEEP_SIZE, self.contents.end, length) == 0:
+                return
+            code = ctypes.get_errno()
         if code in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL, errno.ENODEV):
             self._fallocate = None  # not on this file system
             return

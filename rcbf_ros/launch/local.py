@@ -280,7 +280,13 @@ def run_processes(children: Sequence[ChildSpec], *, env: Mapping[str, str],
                     del respawn_at[name]
                     outcome.respawns[name] = outcome.respawns.get(name, 0) + 1
                     say(f'respawning {name}')
-                    start(specs[name])
+                    try:
+                        start(specs[name])
+                    except OSError as exc:  # no process now (EAGAIN, ENOMEM): try again later
+                        delay = max(specs[name].respawn_delay_s, 1.0)
+                        say(f'{name} could not be started ({exc.strerror or exc}); trying '
+                            f'again in {delay:g} s')
+                        respawn_at[name] = time.monotonic() + delay
             for name, process in processes.items():
                 if name in outcome.returncodes or name in respawn_at or process.poll() is None:
                     continue

@@ -190,6 +190,8 @@ class Recorder:
         self.dropped_unknown_type: set[str] = set()
         self.stopped: BagWriteError | None = None
         """The write error that stopped the recording (None while recording)."""
+        self.refused_samples = 0
+        """Samples the bag refused (no CDR encapsulation header): left out, counted."""
 
     def _stop(self, error: BagWriteError) -> None:
         self.stopped = error
@@ -218,6 +220,11 @@ class Recorder:
             self.writer.write(topic, cdr_payload(sample), self.clock_ns())
         except BagWriteError as exc:
             self._stop(exc)
+        except ValueError as exc:  # not a CDR sample: left out, the recording goes on
+            self.refused_samples += 1
+            if self.refused_samples == 1:
+                self.report(f'a sample on {topic} left out of the bag: {exc} (the first; '
+                            'later ones are counted, not reported)')
 
     def flush(self) -> None:
         """Write the open chunk out (bounds what a SIGKILL can lose)."""

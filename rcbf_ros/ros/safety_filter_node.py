@@ -363,8 +363,7 @@ class SafetyFilterNode(Node):
             if merged == self._active.params:
                 self._pending = (parameters, None)
                 return result
-            latest = self._latest_state
-            probes = () if latest is None or latest.state is None else (latest.state,)
+            probes = self._probe_states()
             self._pending = (parameters, self._build(merged, probes,
                                                      [p.name for p in parameters]))
         except Exception as exc:  # refused whole; whatever the value, the node runs on
@@ -388,6 +387,17 @@ class SafetyFilterNode(Node):
         except Exception as exc:
             self.get_logger().error(f'parameters stored but not applied, the filter is '
                                     f'unchanged: {_one_line(exc)}')
+
+    def _probe_states(self) -> tuple[Any, ...]:
+        """The state a new filter must be able to filter at: the latest one while it is fresh
+        and within the filter in force's ``input_bounds.state`` (a state that filter refuses
+        is a glitch of the state source, not a reason to refuse a parameter)."""
+        latest, settings = self._latest_state, self.settings
+        if latest is None or latest.state is None or logic.state_age_s(
+                sample=latest, now_ns=time.monotonic_ns()) > settings.max_state_age_s:
+            return ()
+        bound = settings.input_bounds.state
+        return (latest.state,) if all(abs(v) <= bound for v in latest.state) else ()
 
     def _swap_in(self, parameters: list[Any]) -> None:
         """Swap in the filter built for ``parameters`` (see :meth:`_apply_parameter_change`)."""
@@ -662,9 +672,9 @@ def _range_refusal(name: str, value: Any) -> str:
     bounds = None if spec is None else spec.range
     kind = {'double': float, 'integer': int}.get(getattr(spec, 'type', ''))
     if bounds is None or type(value) is not kind or not (
-            value < bounds[0] or value > bounds[1]) or any(
+            value < bounds[0] or value > bounds[1]) or kind is float and any(
             math.isclose(value, edge, rel_tol=_RANGE_TOLERANCE) for edge in bounds):
-        return ''
+        return ''  # integers: the ends exactly, as rclpy's IntegerRange check
     return (f'{name}: {value!r} is outside its declared range {bound_text(bounds[0])} to '
             f'{bound_text(bounds[1])}')
 

@@ -94,3 +94,23 @@ def test_a_topic_is_subscribed_once_it_has_a_publisher_with_its_offer():
     unknown = _FakeRecorderNode(None)  # a runtime that does not report offers: as before
     RecorderNode._subscribe(unknown, '/episode', STRING)
     assert unknown.subscribed[0][1].durability == DurabilityPolicy.VOLATILE
+
+
+def test_a_sample_the_bag_refuses_is_left_out_and_the_recording_goes_on(tmp_path):
+    from rcbf_ros.bag import BagWriter, read_bag_messages
+    from rcbf_ros.messages.cdr import serialize_message
+    from rcbf_ros.messages.classes import get_message
+    from rcbf_ros.ros.recorder_node import Recorder
+    type_name = 'std_msgs/msg/Float64MultiArray'
+    reports: list[str] = []
+    bag = BagWriter(tmp_path / 'bag')
+    clock = iter(range(1, 100))
+    recorder = Recorder(bag, lambda: next(clock) * 1000, report=reports.append)
+    assert recorder.add('/state', type_name, [])
+    good = serialize_message(get_message(type_name)(data=[1.0, 2.0]), type_name)
+    for sample in (good, b'\xff\xff\x00\x00junk', b'', good, b'\x07'):
+        recorder.on_message('/state', sample)  # never raises
+    recorder.close()
+    assert recorder.refused_samples == 3 and recorder.stopped is None
+    assert len(reports) == 1 and 'left out of the bag' in reports[0]
+    assert [m.data for m, _ in read_bag_messages(tmp_path / 'bag')].count(good) == 2

@@ -126,16 +126,24 @@ class WarnsIncompatibleQos:
         self._event_logger = logger
         self._event_topic = topic
 
-    def _incompatible_qos_status(self) -> Any:
+    def _incompatible_qos_status(self, entity: Any) -> Any:
+        """The incompatible-QoS status of ``entity`` (this endpoint's reader or writer)."""
         raise NotImplementedError
 
     def _take_incompatible_qos(self) -> list[Callable[[], None]]:
         """Read (and so reset) the incompatible-QoS status; one work item that warns if a remote
-        endpoint was refused since the last read, else none."""
-        if self._event_entity is None:
+        endpoint was refused since the last read, else none. Never raises: the entity is read
+        once (another thread may destroy the endpoint meanwhile), and a status that cannot be
+        read (an entity deleted under it) gives no warning rather than ending the spin."""
+        entity = self._event_entity
+        if entity is None:
             return []
-        status = self._incompatible_qos_status()
-        if status.total_count_change <= 0:
+        try:
+            status = self._incompatible_qos_status(entity)
+            changed = status.total_count_change > 0
+        except Exception:
+            return []
+        if not changed:
             return []
         message = self._EVENT_TEXT.format(topic=self._event_topic,
                                           policy=qos_policy_name(status.last_policy_id))
@@ -173,8 +181,8 @@ class Publisher(_TopicEndpoint, WarnsIncompatibleQos):
         self._init_incompatible_qos(self._writer, logger=node.get_logger(),
                                     topic=topic_as_given or topic_name)
 
-    def _incompatible_qos_status(self) -> Any:
-        return self._writer.get_offered_incompatible_qos_status()
+    def _incompatible_qos_status(self, entity: Any) -> Any:
+        return entity.get_offered_incompatible_qos_status()
 
     def publish(self, msg: Any) -> None:
         """Publish a message instance, or already serialized CDR bytes (as rclpy allows)."""
@@ -228,8 +236,8 @@ class Subscription(_TopicEndpoint, DropsUndecodable, WarnsIncompatibleQos):
         self._init_incompatible_qos(self._reader, logger=node.get_logger(),
                                     topic=topic_as_given or topic_name)
 
-    def _incompatible_qos_status(self) -> Any:
-        return self._reader.get_requested_incompatible_qos_status()
+    def _incompatible_qos_status(self, entity: Any) -> Any:
+        return entity.get_requested_incompatible_qos_status()
 
     def _take_ready(self) -> list[Callable[[], None]]:
         """Take every received sample now; return one work item per valid sample."""
