@@ -158,7 +158,7 @@ ONE_OBSTACLE = {'x': [0.0], 'y': [0.0], 'radius': [1.0]}
     ({'k_c': -0.1}, r'^k_c: must be >= 0'),
     ({'slack_weight': 0.0}, r'^slack_weight: must be >= 1e-12'),
     ({'walls': {'nx': [0.0], 'ny': [0.0], 'offset': [1.0]}}, r'^walls\.nx/walls\.ny: '),
-    # each accepted once, each made the filter guard nothing or refuse everything
+    # each would make the filter guard nothing or refuse everything
     ({'obstacles': dict(ONE_OBSTACLE, lookahead=10.0, heading_index=2, margin=0.1)},
      r'^obstacles\.lookahead: 10 exceeds obstacles\.margin 0\.1'),
     ({'input_weight': [5e-324, 5e-324]}, r'^input_weight: must be >= 1e-12'),
@@ -260,8 +260,8 @@ def test_envelope_params_keep_only_the_bands_of_every_layout():
     ('car_following', {'heading_index': 1}, r'^obstacles\.heading_index: .* it has no heading'),
 ])
 def test_obstacle_indices_are_checked_against_the_state_layout(system, obstacles, key):
-    # heading_index 0 on the Unicycle made the guarded point follow x as if it were the
-    # heading: the answer broke the true row by 0.019
+    # heading_index 0 on the Unicycle would make the guarded point follow x as if it were the
+    # heading, and the answers break the true rows
     params = {'system': system, 'obstacles': {**ONE_OBSTACLE, **obstacles}}
     with pytest.raises(ValueError, match=key):
         filter_config_from_params(params)

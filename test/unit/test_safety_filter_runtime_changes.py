@@ -77,15 +77,15 @@ def test_an_invalid_value_is_refused_with_the_key_and_nothing_changes(harness, c
     for name, value in (('alpha', 0.0), ('obstacles.margin', -0.1), ('slack_tolerance', -1.0),
                         ('input_bounds.state', math.nan), ('osqp.max_iter', 0),
                         ('obstacles.radius', [0.6, -0.6, 0.6, 0.6, 0.6]),
-                        # values each check of their own passed once, then killed the node or
-                        # made every answer the fail-safe
+                        # values beyond what float64, OSQP or the clock take, or whose rows
+                        # overflow: each would kill the node or make every answer the fail-safe
                         ('obstacles.margin', 1e308), ('log_throttle_s', 1e308),
                         ('osqp.max_iter', 2 ** 63 - 1), ('alpha', 1e300), ('k_c', 1e300),
                         ('diagnostics.min_period_s', 1e308), ('obstacles.heading_index', 0),
                         ('obstacles.x', [1e200, -1.5, -1.5, 1.5, 1.5]),
                         ('obstacles.radius', [1e154] * 5), ('slack_weight', 1e308),
-                        # published commands that broke the rows as OK answers, or made every
-                        # ordinary proposal out of bounds
+                        # values that would publish commands breaking the rows as OK answers,
+                        # or put every ordinary proposal out of bounds
                         ('slack_tolerance', 1.0), ('obstacles.lookahead', 10.0),
                         ('input_bounds.command', 0.5), ('input_limits.max', [1e308, 2.5])):
         result = node.set_parameters([Parameter(name, value=value)])[0]
