@@ -31,7 +31,6 @@ from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.node_logic.edges import MessageSettings
 from rcbf_ros.node_logic.interface import (
     COMMAND_TOPIC_TYPES,
-    declarations,
     NodeInterface,
     parameter_specs,
     ParameterSpec,
@@ -39,7 +38,7 @@ from rcbf_ros.node_logic.interface import (
     TopicSpec,
 )
 from rcbf_ros.parameters.reader import read_floats, read_parameters
-from rcbf_ros.ros.node_main import run_node
+from rcbf_ros.ros.node_main import declare_specs, run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from sim_nodes.packaged import (
     CarControllerSettings,
@@ -96,9 +95,7 @@ class NominalControllerNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('nominal_controller',
                          automatically_declare_parameters_from_overrides=True, **kwargs)
-        for name, value in declarations(NODE_PARAMETERS):
-            if not self.has_parameter(name):
-                self.declare_parameter(name, value)
+        declare_specs(self, NODE_PARAMETERS)
         params = declare_with_packaged_defaults(self, 'nominal_controller')
         self.system = str(params['system'])
         self.controller = controller_from_params(params)

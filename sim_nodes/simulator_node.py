@@ -73,7 +73,6 @@ from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.node_logic.edges import MessageSettings, SIM_STEP_SECTIONS
 from rcbf_ros.node_logic.interface import (
     COMMAND_TOPIC_TYPES,
-    declarations,
     FLOAT64_MULTIARRAY,
     NodeInterface,
     parameter_specs,
@@ -82,7 +81,7 @@ from rcbf_ros.node_logic.interface import (
     TopicSpec,
 )
 from rcbf_ros.parameters.reader import read_parameters, setting
-from rcbf_ros.ros.node_main import run_node, spin_once
+from rcbf_ros.ros.node_main import declare_specs, run_node, spin_once
 from rcbf_ros.ros.runtime import DurabilityPolicy, get_message, Node, QoSProfile, rclpy
 from sim_nodes.packaged import (
     declare_with_packaged_defaults,
@@ -133,8 +132,6 @@ NODE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(SimulatorSettings,
 """The simulator's own parameters (declared before the packaged ones, which cannot replace
 them)."""
 
-NODE_DEFAULTS: dict[str, Any] = dict(declarations(NODE_PARAMETERS))
-"""Name -> default of :data:`NODE_PARAMETERS`."""
 
 TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec('state', 'pub', STATE_TOPIC_TYPES,
@@ -260,9 +257,7 @@ class SimulatorNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('simulator', automatically_declare_parameters_from_overrides=True,
                          **kwargs)
-        for name, value in NODE_DEFAULTS.items():
-            if not self.has_parameter(name):
-                self.declare_parameter(name, value)
+        declare_specs(self, NODE_PARAMETERS)
         params = declare_with_packaged_defaults(self, 'simulator')
         wait_for = params.get('wait_for_publishers', [])
         if not isinstance(wait_for, list) or not all(isinstance(t, str) and t for t in wait_for):

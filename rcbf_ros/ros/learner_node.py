@@ -53,7 +53,7 @@ from rcbf_ros.node_logic.interface import (
     TopicSpec,
 )
 from rcbf_ros.parameters.reader import defaults_of, read_parameters, setting
-from rcbf_ros.ros.node_main import request_stop, run_node
+from rcbf_ros.ros.node_main import declare_specs, request_stop, run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.agent import LearnerConfig, policy_box, SafeLearner
 from rcbf_ros.training.build import policy_limits
@@ -225,9 +225,7 @@ class LearnerNode(Node):
 
     def __init__(self) -> None:
         super().__init__('learner', automatically_declare_parameters_from_overrides=True)
-        for name, default in PARAMETERS.items():
-            if not self.has_parameter(name):
-                self.declare_parameter(name, default)
+        declare_specs(self, LEARNER_PARAMETERS)
         values = {name: self.get_parameter(name).value for name in PARAMETERS}
         self.settings = read_parameters(LearnerSettings, values)
         # 1 by default: the simulator, filter and recorder share the cores.

@@ -146,6 +146,16 @@ def parameter_descriptor(spec: ParameterSpec | None, *, dynamic_typing: bool = F
     return descriptor
 
 
+def declare_specs(node: Any, specs: Sequence[ParameterSpec]) -> None:
+    """Declare every spec of fixed name that ``node`` has not declared yet (an override may
+    have), with its default and :func:`parameter_descriptor`; a default of None declares no
+    type (dynamically typed, as rclpy declares a name given alone)."""
+    for spec in specs:
+        if not spec.pattern and not node.has_parameter(spec.name):
+            node.declare_parameter(spec.name, spec.default, parameter_descriptor(
+                spec, dynamic_typing=spec.default is None))
+
+
 def declare_settings(node: Any, cls: type[T]) -> T:
     """Declare every parameter of the dataclass ``cls`` on ``node`` and read them into it.
 

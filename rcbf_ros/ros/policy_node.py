@@ -28,7 +28,7 @@ from rcbf_ros.node_logic.interface import (
     TopicSpec,
 )
 from rcbf_ros.parameters.reader import read_parameters, setting
-from rcbf_ros.ros.node_main import run_node
+from rcbf_ros.ros.node_main import declare_specs, run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.policy_io import load_policy
 
@@ -69,8 +69,8 @@ class PolicyNode(Node):
 
     def __init__(self) -> None:
         super().__init__('policy')
-        values = {name: self.declare_parameter(name, default).value
-                  for name, default in declarations(PARAMETERS)}
+        declare_specs(self, PARAMETERS)
+        values = {name: self.get_parameter(name).value for name, _ in declarations(PARAMETERS)}
         settings = read_parameters(PolicySettings, values)
         path, topic = settings.policy_path, settings.input_topic
         if not path:

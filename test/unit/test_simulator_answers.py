@@ -126,3 +126,19 @@ def test_every_closed_loop_gives_the_simulator_the_filters_answers_with_their_st
         assert not any(source == 'filter_info' or target == 'cmd_safe'
                        for entry in setup.nodes if entry.name != 'simulator'
                        for source, target in entry.remappings), setup.name
+
+
+def test_the_simulators_own_parameters_describe_themselves(make_simulator):
+    from sim_nodes.simulator_node import NODE_PARAMETERS
+    node = make_simulator()
+    described = 0
+    for spec in NODE_PARAMETERS:
+        if spec.pattern or spec.name == 'max_steps':  # max_steps came as an override
+            continue
+        descriptor = node.describe_parameter(spec.name)
+        assert descriptor.description == spec.description, spec.name
+        ranges = [*descriptor.floating_point_range, *descriptor.integer_range]
+        assert [(r.from_value, r.to_value) for r in ranges] == (
+            [spec.range] if spec.range else []), spec.name
+        described += 1
+    assert described >= 5
