@@ -220,7 +220,7 @@ def recover_file(path: str | os.PathLike[str], *, keep_original: bool = True) ->
             os.replace(partial, path)
         finally:
             partial.unlink(missing_ok=True)
-    _sync_directory(path.parent)
+    sync_directory(path.parent)
     problems = list(salvage.skipped)
     dropped = 0
     if salvage.cut_short:
@@ -239,7 +239,8 @@ def _keep(path: Path, original: Path) -> None:
         shutil.copy2(path, original)
 
 
-def _sync_directory(directory: Path) -> None:
+def sync_directory(directory: Path) -> None:
+    """Flush ``directory``'s entries (a rename) to disk where the system allows it."""
     try:
         fd = os.open(directory, os.O_RDONLY)
     except OSError:
@@ -247,7 +248,7 @@ def _sync_directory(directory: Path) -> None:
     try:
         os.fsync(fd)
     except OSError:
-        pass
+        pass  # some file systems refuse fsync on a directory; the rename is still done
     finally:
         os.close(fd)
 

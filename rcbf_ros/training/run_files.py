@@ -26,6 +26,8 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
+from rcbf_ros.bag.recover import sync_directory
+
 DEFAULT_CHECKPOINT_EVERY = 1
 """Episodes between checkpoints: every episode, so a crash loses at most the episode under
 way. A Unicycle diff checkpoint with a full replay buffer (200 000 rows) is 35 MB and takes
@@ -106,21 +108,7 @@ def write_atomically(path: str | Path, data: bytes | memoryview | str) -> None:
         if isinstance(exc, OSError) and exc.filename is None:
             exc.filename = str(path)  # a failed write() does not say which file
         raise
-    _sync_directory(path.parent)
-
-
-def _sync_directory(directory: Path) -> None:
-    """Flush ``directory``'s entries (a rename) to disk where the system allows it."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass  # some file systems refuse fsync on a directory; the rename is still done
-    finally:
-        os.close(fd)
+    sync_directory(path.parent)
 
 
 def describe_write_error(exc: OSError) -> str:
