@@ -30,13 +30,16 @@ derivatives carry neither the input nor (for the systems here) the learned distu
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple, Protocol, runtime_checkable, Sequence
+from typing import NamedTuple, Protocol, runtime_checkable, Sequence, TYPE_CHECKING
 
 import numpy as np
-import torch
-from torch import Tensor
 
 from rcbf_ros.core.dynamics import ControlAffineSystem
+from rcbf_ros.core.torch_import import LazyTorch
+
+torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
+if TYPE_CHECKING:
+    from torch import Tensor
 
 
 @runtime_checkable

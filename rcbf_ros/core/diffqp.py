@@ -78,7 +78,11 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
+from rcbf_ros.core.torch_import import bind_torch
+
 __all__ = ['QPSolution', 'solve_qp_batch', 'solve_qp_batch_full']
+
+bind_torch()  # torch is here: the constraint modules that wait for it get it now
 
 _REGULARISATION = 1e-9
 """delta of the regularised KKT system in scaled units (unit Hessian diagonal, unit rows)."""

@@ -27,12 +27,17 @@ from typing import (
     NamedTuple,
     Protocol,
     runtime_checkable,
+    TYPE_CHECKING,
     Union,
 )
 
 import numpy as np
-import torch
-from torch import Tensor
+
+from rcbf_ros.core.torch_import import LazyTorch
+
+torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
+if TYPE_CHECKING:
+    from torch import Tensor
 
 
 @runtime_checkable

@@ -76,13 +76,14 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 import osqp
 import scipy.sparse as sp
-import torch
 
-from rcbf_ros.core.diffqp import solve_qp_batch_full
 from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
+from rcbf_ros.core.torch_import import LazyTorch
 from rcbf_ros.parameters.reader import setting
+
+torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
 
 _OK_STATUS = {1: 'solved', 2: 'solved_inaccurate'}
 ACTIVE_TOLERANCE = 1e-7
@@ -577,6 +578,22 @@ def _out_of_bounds(name: str, values: list[float], bound: float) -> str | None:
     return None
 
 
+def _interior_point(problem: RCBFProblem, inputs: tuple[list[float], ...]
+                    ) -> np.ndarray | None:
+    """The fallback's solution of the QP at ``inputs`` (x, u, mean, std), by the batched
+    interior point of :mod:`rcbf_ros.core.diffqp`; None when it did not converge, or where
+    PyTorch, which it runs on, is not installed (the filter then gives the fail-safe)."""
+    try:
+        from rcbf_ros.core.diffqp import solve_qp_batch_full
+    except ImportError:
+        return None
+    solution = solve_qp_batch_full(*problem.qp(
+        *(torch.tensor([a], dtype=torch.float64) for a in inputs)))
+    if not bool(solution.converged[0]):
+        return None
+    return solution.z[0].detach().numpy().astype(np.float64)
+
+
 def _input_refusal(x: list[float], u: list[float], mean: list[float], std: list[float],
                    bounds: InputBounds) -> str | None:
     """The filter's input checks one by one, in order: the reason naming the first field that
@@ -714,8 +731,8 @@ def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
                          namespace['act'])
 
 
-Assembly = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
-                   tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+Assembly = Callable[['torch.Tensor', 'torch.Tensor', 'torch.Tensor', 'torch.Tensor'],
+                   'tuple[torch.Tensor, torch.Tensor, torch.Tensor]']
 """(x, u_rl, mean, std), each (1, .) float64 -> (h (1, K), G (1, nc, nz), h_qp (1, nc))."""
 
 
@@ -1051,10 +1068,9 @@ class SafetyFilter:
             if self.fallback:
                 # ADMM can stall when the slack is far from 0 (the 1 : l diagonal); the
                 # interior point of the differentiable layer solves the same QP robustly.
-                solution = solve_qp_batch_full(*self.problem.qp(
-                    *(torch.tensor([a], dtype=torch.float64) for a in (x, applied, mu, sd))))
-                if bool(solution.converged[0]):
-                    z = solution.z[0].detach().numpy().astype(np.float64)
+                solved = _interior_point(self.problem, (x, applied, mu, sd))
+                if solved is not None:
+                    z = solved
                     checked = self._check(z, rows)
                     status = 'solved_interior_point'
         solve_time = time.perf_counter() - solve_start

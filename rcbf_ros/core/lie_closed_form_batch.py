@@ -22,14 +22,19 @@ caller keeps :meth:`RCBFProblem.terms`. The tests hold both equal to 1e-10.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
-from torch import Tensor
 
 from rcbf_ros.core.barriers import CircleObstacles
 from rcbf_ros.core.dynamics import ControlAffineSystem
 from rcbf_ros.core.lie_closed_form import has_closed_form, unwrap_cascades
 from rcbf_ros.core.rcbf import BarrierTerms, RCBFProblem
+from rcbf_ros.core.torch_import import LazyTorch
+
+torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
+if TYPE_CHECKING:
+    from torch import Tensor
 
 
 class _Quadratics:

@@ -28,10 +28,13 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import NamedTuple, Sequence
+from typing import NamedTuple, Sequence, TYPE_CHECKING
 
-import torch
-from torch import Tensor
+from rcbf_ros.core.torch_import import LazyTorch
+
+torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
+if TYPE_CHECKING:
+    from torch import Tensor
 
 
 class QPData(NamedTuple):

@@ -8,14 +8,16 @@ class-K gain, the disturbance confidence k_c and the slack weight meet. Both the
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple, Sequence
-
-import torch
-from torch import Tensor
+from typing import NamedTuple, Sequence, TYPE_CHECKING
 
 from rcbf_ros.core.barriers import BarrierFamily, BothPoints
 from rcbf_ros.core.dynamics import ControlAffineSystem
 from rcbf_ros.core.qp import build_rcbf_qp, check_input_weight, QPData, robust_margin
+from rcbf_ros.core.torch_import import LazyTorch
+
+torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
+if TYPE_CHECKING:
+    from torch import Tensor
 
 
 class BarrierTerms(NamedTuple):

@@ -6,3 +6,6 @@
   baseline, baseline_compensator, diff, modular); the safety layer is injected as a callable.
 - ``model_based``: ``ModelRollout``, k-step synthetic transitions (Algorithm 1).
 """
+from rcbf_ros.core.torch_import import bind_torch
+
+bind_torch()  # learning runs on torch: the constraint modules that wait for it get it now

@@ -101,12 +101,12 @@ from __future__ import annotations
 
 import gc
 import math
+import os
 import sys
 import time
 from typing import Any, Sequence
 
 import numpy as np
-import torch
 
 from rcbf_ros.core.config import FilterConfig
 from rcbf_ros.core.filter import SafetyFilter
@@ -699,7 +699,7 @@ def _one_line(exc: BaseException) -> str:
 
 
 def spin_frozen(node: SafetyFilterNode) -> None:
-    """Spin ``node`` with everything built before (modules, torch, the filter: ~200 000
+    """Spin ``node`` with everything built before (modules, the filter: ~200 000
     objects) frozen out of the garbage collector's generations (``gc.freeze``): a full
     collection then walks only what the callbacks allocated since, instead of taking ~45 ms
     (long enough to overflow keep-last 10 queues at 1 kHz). Reference counting still frees
@@ -711,7 +711,9 @@ def spin_frozen(node: SafetyFilterNode) -> None:
 
 def main(args: Sequence[str] | None = None) -> int:
     """Run the node until Ctrl-C / SIGTERM. Returns 2 on invalid parameters."""
-    torch.set_num_threads(1)  # B = 1 constraint assembly: threads only add contention
+    # A batch of one (the autograd assembly, the fallback): threads would only add contention.
+    # torch is imported only by a system or barrier that needs it (rcbf_ros.core.torch_import).
+    os.environ.setdefault('OMP_NUM_THREADS', '1')
     # Parameter errors are already logged with the node's name by the constructor.
     return run_node(NODE_NAME, SafetyFilterNode, args, run=spin_frozen,
                     setup_errors=(ValueError,), interface=INTERFACE)
