@@ -28,6 +28,8 @@ COMMAND_TOPIC_TYPES = (f'{FLOAT64_MULTIARRAY}, geometry_msgs/msg/Twist or '
 """The types a command topic takes (``command_type``)."""
 READ_ONLY_SUFFIX = '; read-only'
 """Ends the description of a parameter fixed at start."""
+RANGE_TOLERANCE = 1e-6
+"""rclpy's relative tolerance at the ends of a FloatingPointRange."""
 
 PARAMETER_TYPES = ('string', 'bool', 'integer', 'double', 'string[]', 'integer[]', 'double[]',
                    'any')
@@ -80,6 +82,19 @@ class ParameterSpec:
         if self.maximum is not None:
             high = math.floor(self.maximum) if integer else float(self.maximum)
         return low, high
+
+    def range_refuses(self, value: Any) -> bool:
+        """Whether the declared :attr:`range` refuses ``value``, as rclpy's check does: a value
+        of the range's type only (a double's range leaves an integer to the node's own checks),
+        the ends within :data:`RANGE_TOLERANCE` in for a double and exactly for an integer,
+        NaN not refused."""
+        bounds = self.range
+        kind = {'double': float, 'integer': int}.get(self.type)
+        if bounds is None or type(value) is not kind or not (
+                value < bounds[0] or value > bounds[1]):
+            return False
+        return not (kind is float and any(
+            math.isclose(value, edge, rel_tol=RANGE_TOLERANCE) for edge in bounds))
 
     @property
     def pattern(self) -> bool:
@@ -248,12 +263,12 @@ def help_text(interface: NodeInterface) -> str:
     return '\n'.join(lines) + '\n'
 
 
-def range_text(spec: ParameterSpec) -> str:
-    """``, range <least> to <largest>`` of a spec with a declared range, else ''."""
+def range_text(spec: ParameterSpec, lead: str = ', range ') -> str:
+    """``<lead><least> to <largest>`` of a spec with a declared range, else ''."""
     bounds = spec.range
     if bounds is None:
         return ''
-    return f', range {bound_text(bounds[0])} to {bound_text(bounds[1])}'
+    return f'{lead}{bound_text(bounds[0])} to {bound_text(bounds[1])}'
 
 
 def bound_text(bound: float) -> str:
@@ -291,7 +306,7 @@ def topic_table(interface: NodeInterface) -> str:
 def parameter_table(interface: NodeInterface) -> str:
     """The node's parameters as a markdown table."""
     return _table(('parameter', 'type', 'default', 'description'), [
-        (f'`{p.name}`', p.type + range_text(p).replace(', range', ',', 1),
+        (f'`{p.name}`', p.type + range_text(p, lead=', '),
          f'`{format_value(p.default)}`', _cell(p.description))
         for p in interface.parameters])
 

@@ -383,8 +383,7 @@ GEOMETRY_KEYS = ('obstacles.x', 'obstacles.y', 'obstacles.radius', 'obstacles.ma
 def check_geometry(params: Mapping[str, Any], *, bounds: InputBounds) -> None:
     """Every length of the barrier geometry (:data:`GEOMETRY_KEYS`, ``bands.<name>.center``
     and ``.half_width``), every obstacle's radius plus margin and every wall's distance from
-    the origin lie within ``input_bounds.state``; the input limits within
-    ``input_bounds.command``.
+    the origin lie within ``input_bounds.state``.
 
     A state beyond its bound is refused anyway; geometry beyond it is nowhere a state may
     be, and its squares overflow float64 long before 1e308 (an obstacle at x = 1e200, a

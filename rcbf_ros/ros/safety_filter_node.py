@@ -100,7 +100,6 @@ parameter"; a pre-set callback logs the WARN).
 from __future__ import annotations
 
 import gc
-import math
 import os
 import sys
 import time
@@ -139,8 +138,6 @@ NODE_NAME = 'safety_filter'
 INPUT_COUNT_KEYS = ('dropped_samples', 'refused_proposals', 'refused_states')
 """Diagnostic keys of the node's cumulative input counts (see the module docstring)."""
 _QOS = 'reliable, keep-last 10 (qos.reliable, qos.depth)'
-_RANGE_TOLERANCE = 1e-6
-"""rclpy's relative tolerance at the edges of a FloatingPointRange."""
 
 
 def _topic(name: str, direction: str, kind: str, layout: str) -> TopicSpec:
@@ -665,18 +662,14 @@ def _decoded(data: bytes, message_type: Any) -> tuple[Any, str]:
 
 def _range_refusal(name: str, value: Any) -> str:
     """``<name>: <value> is outside its declared range <low> to <high>`` when the range the
-    parameter is declared with (:attr:`ParameterSpec.range` of its spec) refuses ``value``, as
-    rclpy's check does (a value of the range's type only; its ends within rclpy's tolerance are
-    in; NaN is not refused), else ''."""
+    parameter is declared with refuses ``value`` (:meth:`ParameterSpec.range_refuses`), else
+    ''."""
     spec = INTERFACE.spec(name)
-    bounds = None if spec is None else spec.range
-    kind = {'double': float, 'integer': int}.get(getattr(spec, 'type', ''))
-    if bounds is None or type(value) is not kind or not (
-            value < bounds[0] or value > bounds[1]) or kind is float and any(
-            math.isclose(value, edge, rel_tol=_RANGE_TOLERANCE) for edge in bounds):
-        return ''  # integers: the ends exactly, as rclpy's IntegerRange check
-    return (f'{name}: {value!r} is outside its declared range {bound_text(bounds[0])} to '
-            f'{bound_text(bounds[1])}')
+    if spec is None or not spec.range_refuses(value):
+        return ''
+    low, high = spec.range  # type: ignore[misc]
+    return (f'{name}: {value!r} is outside its declared range {bound_text(low)} to '
+            f'{bound_text(high)}')
 
 
 def _names(parameters: Sequence[Any], most: int = 4) -> str:
