@@ -46,7 +46,9 @@ The loop is up when ``state`` has a subscriber and, for every topic in ``wait_fo
 (default none; the launches list ``cmd_safe`` and ``cmd_proposed``), a publisher exists and the
 process of each such publisher has subscribed to one of the simulator's topics and been matched
 (:func:`loop_waits_for`). A controller that starts after the simulator thus still gets the
-first state, and nothing is re-published at start-up.
+first state, and nothing is re-published at start-up. Each node named in
+``wait_for_subscribers`` (the recorded launches name the recorder) must also subscribe to
+``state`` first, so that the bag holds the run from its first state.
 
 Parameters: :func:`simulator_interface` (``simulator --help``; ``--help --ros-args -p
 system:=pvtol`` for another system): the node's own (:data:`NODE_PARAMETERS`), ``system``
@@ -125,6 +127,10 @@ class SimulatorSettings(MessageSettings):
         (), description='the first episode waits until each of these topics has a publisher '
                         'that listens to the simulator (launches: cmd_safe and cmd_proposed)')
     """Topics whose publishers the first episode waits for."""
+    wait_for_subscribers: tuple[str, ...] = setting(
+        (), description='the first episode waits until each of these nodes subscribes to the '
+                        'state topic (recorded launches: the recorder)')
+    """Nodes whose subscription to ``state`` the first episode waits for."""
 
 
 NODE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(SimulatorSettings,
@@ -211,7 +217,8 @@ def episode_event(event: str, **fields: Any) -> str:
 
 def loop_waits_for(*, state_topic: str, matched: Mapping[str, int],
                    readers: Mapping[str, Sequence[bytes]],
-                   loop_publishers: Mapping[str, Sequence[bytes]]) -> str:
+                   loop_publishers: Mapping[str, Sequence[bytes]],
+                   state_listeners: Mapping[str, Sequence[bytes]] | None = None) -> str:
     """What the first episode still waits for, in one line; ``''`` once the loop is up.
 
     Args:
@@ -221,16 +228,23 @@ def loop_waits_for(*, state_topic: str, matched: Mapping[str, int],
             process) of the subscriptions that discovery shows on it.
         loop_publishers: each ``wait_for_publishers`` topic -> the participants of its
             publishers in the graph.
+        state_listeners: each ``wait_for_subscribers`` node name -> the participants of its
+            subscriptions on ``state_topic`` (a recorder must not miss the first states).
 
     The loop is up when ``state`` has a matched subscription, every ``wait_for_publishers``
     topic has a publisher, every such publisher's process subscribes to one of the simulator's
     topics, and the simulator's publishers have matched at least as many subscriptions on each
-    topic as those processes hold there. Processes outside the loop (a recorder, a
-    ``ros2 topic echo``) neither hold the start back nor count.
+    topic as those processes hold there. Each ``wait_for_subscribers`` node joins the loop once
+    it subscribes to ``state_topic``; other processes (a ``ros2 topic echo``) neither hold the
+    start back nor count.
     """
     if matched.get(state_topic, 0) < 1:
         return f'a subscriber on {state_topic}'
     loop = set()
+    for name, owners in (state_listeners or {}).items():
+        if not owners:
+            return f'{name} to subscribe to {state_topic}'
+        loop.update(owners)
     for topic, owners in loop_publishers.items():
         if not owners:
             return f'a publisher on {topic}'
@@ -270,6 +284,7 @@ class SimulatorNode(Node):
         self.action_timeout_s = settings.action_timeout_s
         self.wait_for_publishers = [self.resolve_topic_name(t)
                                     for t in settings.wait_for_publishers]
+        self.wait_for_subscribers = list(settings.wait_for_subscribers)
         self.env = make_env(self.system, params)
         self.n_u = self.env.nominal_system.n_u
         messages = message_settings(params, system=self.system, n_u=self.n_u)
@@ -465,16 +480,21 @@ class SimulatorNode(Node):
                       self.episode_pub, self.step_pub)
         matched = {p.topic_name: p.get_subscription_count() for p in publishers}
         state_topic = self.state_pub.topic_name
-        if matched[state_topic] < 1 or not self.wait_for_publishers:
+        if matched[state_topic] < 1 or not (self.wait_for_publishers
+                                            or self.wait_for_subscribers):
             return loop_waits_for(state_topic=state_topic, matched=matched, readers={},
                                   loop_publishers={})
         loop_publishers = {topic: [_participant(e)
                                    for e in self.get_publishers_info_by_topic(topic)]
                            for topic in self.wait_for_publishers}
-        readers = {topic: [_participant(e) for e in self.get_subscriptions_info_by_topic(topic)]
-                   for topic in matched}
+        subscriptions = {topic: self.get_subscriptions_info_by_topic(topic) for topic in matched}
+        readers = {topic: [_participant(e) for e in endpoints]
+                   for topic, endpoints in subscriptions.items()}
+        listeners = {name: [_participant(e) for e in subscriptions[state_topic]
+                            if e.node_name == name]
+                     for name in self.wait_for_subscribers}
         return loop_waits_for(state_topic=state_topic, matched=matched, readers=readers,
-                              loop_publishers=loop_publishers)
+                              loop_publishers=loop_publishers, state_listeners=listeners)
 
     def on_watchdog(self) -> None:
         if not self._running():

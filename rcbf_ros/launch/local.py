@@ -151,6 +151,13 @@ def child_commands(setup: LaunchSetup, *, params_file: str | Path,
             entry = resolve_entry(entry, values)
         except ValueError as exc:
             raise ValueError(f'{setup.name}: {exc}') from exc
+        if without:   # nobody waits for a node that is not started (an empty list: unset)
+            parameters = [(key, [name for name in value if name not in without])
+                          if key == 'wait_for_subscribers' else (key, value)
+                          for key, value in entry.parameters]
+            entry = replace(entry, parameters=tuple(
+                (key, value) for key, value in parameters
+                if not (key == 'wait_for_subscribers' and value == [])))
         args = ros_arguments(entry, params_file=str(params_file),
                              overrides=(overrides or {}).get(entry.name))
         children.append(ChildSpec(name=entry.name,

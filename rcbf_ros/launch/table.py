@@ -329,7 +329,8 @@ def _closed_loop(system: str, kind: str, description: str, proposer: NodeEntry,
     listen to it (its ``cmd_safe``, remapped, is the filter's ``filter_info``).
     """
     simulator = replace(simulator, parameters=(
-        *simulator.parameters, ('wait_for_publishers', ['cmd_safe', 'cmd_proposed'])))
+        *simulator.parameters, ('wait_for_publishers', ['cmd_safe', 'cmd_proposed']),
+        ('wait_for_subscribers', [RECORDER.name])))
     return LaunchSetup(name=f'{system}_{kind}', config=f'{system}.yaml',
                        description=description,
                        nodes=(simulator, SAFETY_FILTER, proposer, SCENE, RECORDER))
@@ -441,7 +442,8 @@ def _unicycle_robot() -> LaunchSetup:
     robot = replace(
         SIMULATOR, remappings=(('state', Argument('odom')), ('cmd_safe', Argument('cmd_out'))),
         parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type')),
-                    ('wait_for_publishers', ['cmd_safe', Argument('cmd_in')])))
+                    ('wait_for_publishers', ['cmd_safe', Argument('cmd_in')]),
+                    ('wait_for_subscribers', [RECORDER.name])))
     controller = NodeEntry(
         name='nominal_controller', executable='nominal_controller',
         module='sim_nodes.nominal_controller_node',

@@ -119,7 +119,9 @@ def test_the_demo_robot_moves_and_the_filter_keeps_it_out_of_the_obstacles(ros_d
     poses = np.array([[m.pose.pose.position.x, m.pose.pose.position.y]
                       for _, m in read_bag_messages(bag, topics=['/robot/odometry'])])
     infos = [np.asarray(m.data) for _, m in read_bag_messages(bag, topics=['/filter_info'])]
-    assert len(poses) >= steps // 2 and len(infos) >= steps // 2, (len(poses), len(infos))
+    assert len(infos) >= steps // 2, len(infos)
+    # The first episode waited for the recorder: every state the filter answered is in the bag.
+    assert len(poses) >= len(infos), (len(poses), len(infos))
     assert np.linalg.norm(poses[-1] - poses[0]) > 1.0, (poses[0], poses[-1])   # it moved
     # filter_info begins with u, u_rl, u_s (n_u = 2 each): the filter corrected some command.
     assert max(float(np.abs(info[4:6]).max()) for info in infos) > 1e-3

@@ -117,8 +117,12 @@ def test_child_commands_and_environment():
     assert sim.command[:4] == ('py', '-m', 'rcbf_ros.ros.node_main', 'sim_nodes.simulator_node')
     assert sim.sigint_timeout_s == 5.0
     parsed = parse_ros_arguments(sim.command)
+    # Without the recorder, the first episode does not wait for it.
     assert parsed.parameter_rules.sections()['simulator'] == {
         'wait_for_publishers': ['cmd_safe', 'cmd_proposed'], 'max_episodes': 1}
+    recorded = launch_local.child_commands(setup, params_file=params_file, python='py')
+    assert parse_ros_arguments(recorded[0].command).parameter_rules.sections()['simulator'][
+        'wait_for_subscribers'] == ['recorder']
     assert parameter_overrides([parsed], '/simulator')['max_episodes'] == 1
     with pytest.raises(ValueError, match="no node 'planner'"):
         launch_local.child_commands(setup, params_file='p.yaml', without=['planner'])

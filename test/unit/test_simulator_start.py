@@ -48,3 +48,18 @@ def test_processes_outside_the_loop_neither_hold_back_nor_count():
     readers = {topic: [RECORDER] for topic in TOPICS}
     readers['/state'] = [RECORDER, FILTER, CONTROLLER]
     assert _waits_for(readers, loop, {topic: 0 for topic in TOPICS} | {'/state': 2}) == ''
+
+
+def test_waits_for_each_named_listener_to_subscribe_to_the_state():
+    loop = {'/cmd_safe': [FILTER], '/cmd_proposed': [CONTROLLER]}
+    readers = {'/state': [FILTER, CONTROLLER]}
+    assert loop_waits_for(state_topic='/state', matched={'/state': 2}, readers=readers,
+                          loop_publishers=loop, state_listeners={'recorder': []}) == \
+        'recorder to subscribe to /state'
+    readers = {'/state': [FILTER, CONTROLLER, RECORDER]}
+    # Subscribed but not matched yet: its first states would be lost.
+    assert loop_waits_for(state_topic='/state', matched={'/state': 2}, readers=readers,
+                          loop_publishers=loop, state_listeners={'recorder': [RECORDER]}) == \
+        '3 subscription(s) on /state to match (2 so far)'
+    assert loop_waits_for(state_topic='/state', matched={'/state': 3}, readers=readers,
+                          loop_publishers=loop, state_listeners={'recorder': [RECORDER]}) == ''
