@@ -42,7 +42,7 @@ DELEGATED: dict[str, Delegated] = {
                           'filter the proposals of a bag again, other parameters'),
     'summary': Delegated('rcbf_ros.reports.run_summary',
                          "print a run's results and draw its trajectories"),
-    'interface-doc': Delegated('rcbf_ros.node_logic.interface_doc',
+    'interface-doc': Delegated('rcbf_ros.cli.interface_doc',
                                "print, write or check the README's interface tables"),
 }
 """Subcommands run by another module's ``main``, by name."""

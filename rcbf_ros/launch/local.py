@@ -63,8 +63,8 @@ from rcbf_ros.launch.table import (
     ros_arguments,
 )
 from rcbf_ros.parameters import bounded_yaml
+from rcbf_ros.parameters.arguments import expand_topic_name, parse_ros_arguments
 from rcbf_ros.parameters.rules import find_config, node_key_level
-from rcbf_ros.ros.dds.arguments import expand_topic_name, load_params_file
 from rcbf_ros.ros.loopback import ensure_loopback
 
 _REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -176,7 +176,9 @@ def check_params_file(setup: LaunchSetup, params_file: str | Path) -> None:
         ValueError: one line naming the file: missing or unreadable, not YAML, not a mapping of
             node sections with ``ros__parameters``, or no section for any node of ``setup``.
     """
-    sections = load_params_file(str(params_file))  # RosArgumentError is a ValueError
+    # Read as every node reads its --params-file; RosArgumentError is a ValueError.
+    arguments = parse_ros_arguments(['--ros-args', '--params-file', str(params_file)])
+    sections = arguments.parameter_rules.sections()
     names = [entry.name for entry in setup.nodes]
     if not any(node_key_level(key, name, f'/{name}') for key in sections for name in names):
         raise ValueError(f'--params-file {str(params_file)!r}: no section for any node of '

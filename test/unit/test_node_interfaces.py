@@ -11,7 +11,7 @@ from typing import Any, Callable
 
 import pytest
 
-from rcbf_ros.node_logic import interface_doc
+from rcbf_ros.cli import interface_doc
 from rcbf_ros.node_logic.interface import help_text, NodeInterface, resolve, wants_help
 from rcbf_ros.ros.dds.time_source import USE_SIM_TIME
 

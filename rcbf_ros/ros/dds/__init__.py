@@ -13,7 +13,8 @@ Import through :mod:`rcbf_ros.ros.runtime`, not directly. Modules, split as rclp
 - :mod:`.clock`: ``Time`` and ``Clock``; :mod:`.time_source`: ``use_sim_time`` and ``/clock``;
 - :mod:`.log`: ``Logger`` and ``LoggingSeverity``; :mod:`.rosout`: the ``/rosout`` writer;
 - :mod:`.graph`: ``ros_discovery_info`` (which node owns which endpoint);
-- :mod:`.arguments`: ``--ros-args``, parameter files, names;
 - :mod:`.qos`: QoS profiles and their Cyclone equivalents;
 - :mod:`.messages`: message classes, CDR, DDS types from rosbags' Jazzy store.
+
+``--ros-args``, parameter files and names are parsed by :mod:`rcbf_ros.parameters.arguments`.
 """

@@ -128,7 +128,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.check:
         if updated != text:
             print(f'interface_doc: {path}: the interface section is out of date; run python -m '
-                  f'rcbf_ros.node_logic.interface_doc --write {path}', file=sys.stderr)
+                  f'rcbf_ros.cli.interface_doc --write {path}', file=sys.stderr)
             return 1
         return 0
     Path(path).write_text(updated, encoding='utf-8')
