@@ -138,6 +138,16 @@ def test_every_folder_has_a_layer() -> None:
     assert folders - set(RANK) == set(), 'a package folder missing from LAYERS'
 
 
+@pytest.mark.parametrize('path', sorted([*ROOT.glob('rcbf_ros/**/__init__.py'),
+                                         ROOT / 'sim_nodes' / '__init__.py']),
+                         ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_package_says_in_two_lines_what_it_is_for(path: Path) -> None:
+    """A package's face: a docstring of one or two lines that is a sentence, not its name."""
+    face = ast.get_docstring(ast.parse(path.read_text())) or ''
+    assert 0 < len(face.splitlines()) <= 2 and len(face.split()) >= 8, (
+        f'{path.relative_to(ROOT)}: say in two lines what the package is for')
+
+
 def test_the_architecture_page_lists_the_layers_in_order() -> None:
     """docs/ARCHITECTURE.md's layer table names the folders of LAYERS, bottom first."""
     rows = re.findall(r'^\| *(\d+) *\| *(.+?) *\|', ARCHITECTURE.read_text(), re.MULTILINE)
