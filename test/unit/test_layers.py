@@ -3,8 +3,9 @@ point down only (the layers of docs/ARCHITECTURE.md, plus the concern folders ar
 
 Read from the sources with ``ast``: every import statement, also those inside functions, and
 every ``importlib.import_module(...)`` / ``__import__(...)`` whose module name the file itself
-spells (a string literal, or string constants that reach the call through names bound in the
-file: ``for module, name in NODES: import_module(module)``). A lazy import that climbs a layer
+spells (a string literal, the package part of one built from pieces, or string constants that
+reach the call through names bound in the file: ``for module, name in NODES:
+import_module(module)``). A lazy import that climbs a layer
 fails here as surely as one at the top of a file. A name known only at run time (a command
 line's module, a user's dotted path) is not an import of the package's own layout.
 """
@@ -40,7 +41,7 @@ RANK = {folder: rank for rank, layer in enumerate(LAYERS) for folder in layer}
 IMPORTERS = frozenset({'import_module', '__import__'})
 """Calls that import the module named by their first argument."""
 
-_MODULE_NAME = re.compile(r'(?:rcbf_ros|sim_nodes)(?:\.[A-Za-z_][A-Za-z0-9_]*)+')
+_MODULE_NAME = re.compile(r'rcbf_ros(?:\.[A-Za-z_][A-Za-z0-9_]*)+|sim_nodes(?:\.[A-Za-z_]\w*)*')
 
 
 def _folder(module: str) -> str | None:
@@ -85,6 +86,7 @@ def _strings(expr: ast.expr, bound: dict[str, list[ast.expr]], seen: set[str]) -
     for node in ast.walk(expr):
         if isinstance(node, ast.Constant) and isinstance(node.value, str):
             found.add(node.value)
+            found.add(node.value.rstrip('.'))  # the package part of f'rcbf_ros.ros.{name}'
         elif isinstance(node, ast.Name) and node.id not in seen:
             seen.add(node.id)
             for value in bound.get(node.id, []):
@@ -169,6 +171,10 @@ def test_the_architecture_page_lists_the_layers_in_order() -> None:
      ['line 2: rcbf_ros.training (training)']),
     ("import importlib\nimportlib.import_module('rcbf_ros.messages.cdr')\n", []),
     ('import importlib\ndef f(name):\n    return importlib.import_module(name)\n', []),
+    ("import importlib\ndef f(n):\n    return importlib.import_module(f'rcbf_ros.ros.{n}')\n",
+     ['line 3: rcbf_ros.ros (ros)']),
+    ("import importlib\ndef f(name):\n    return importlib.import_module('sim_nodes.' + name)\n",
+     ['line 3: sim_nodes (sim_nodes)']),
     ("NAME = 'rcbf_ros.cli.main'  # data, never imported here\n", []),
 ])
 def test_the_scan_follows_spelled_out_dynamic_imports(source: str, expected: list[str]) -> None:
