@@ -18,7 +18,6 @@ import re
 import shlex
 import subprocess
 import sys
-import sysconfig
 
 import pytest
 
@@ -29,14 +28,15 @@ SYSTEM_PACKAGES = ('colcon-core==0.21.3', 'setuptools==68.1.2', 'numpy==1.26.4')
 """What Ubuntu 24.04 with ROS 2 Jazzy has in /usr/lib/python3 that the line meets."""
 
 
-def readme_pip_line() -> list[str]:
-    """The ``pip install`` line of the README's Jazzy block, ``src/rcbf_ros`` made this repo."""
+def readme_pip_lines() -> list[list[str]]:
+    """The ``pip install`` lines of the README's Jazzy block, in order, ``src/rcbf_ros`` made
+    this checkout."""
     text = (REPO / 'README.md').read_text()
     section = text[text.index('## On a ROS 2 Jazzy machine'):]
-    block = section[section.index('```bash'):section.index('```\n', section.index('```bash') + 7)]
-    (line,) = [ln for ln in block.splitlines() if ln.startswith('pip install')]
-    words = shlex.split(line, comments=True)
-    return [word.replace('src/rcbf_ros', str(REPO)) for word in words]
+    start = section.index('```bash')
+    block = section[start:section.index('```\n', start + 7)]
+    return [[word.replace('src/rcbf_ros', str(REPO)) for word in shlex.split(line, comments=True)]
+            for line in block.splitlines() if line.startswith('pip install')]
 
 
 def _run(*command: str | Path, cwd: Path) -> str:
@@ -47,13 +47,15 @@ def _run(*command: str | Path, cwd: Path) -> str:
 
 
 def _site(venv: Path) -> Path:
-    return Path(sysconfig.get_path('purelib', vars={'base': str(venv),
-                                                     'platbase': str(venv)}))
+    """The venv's site-packages, as its own Python names it (Debian's scheme differs)."""
+    return Path(_run(venv / 'bin' / 'python', '-c',
+                     'import sysconfig; print(sysconfig.get_path("purelib"))', cwd=venv).strip())
 
 
-def test_the_readme_pip_line_finds_the_line():
-    words = readme_pip_line()
-    assert words[:2] == ['pip', 'install'] and str(REPO / 'constraints.txt') in words
+def test_the_readme_pip_lines_are_found():
+    lines = readme_pip_lines()
+    assert lines and all(words[:2] == ['pip', 'install'] for words in lines)
+    assert all(str(REPO / 'constraints.txt') in words for words in lines)
 
 
 @pytest.mark.timeout(1800)
@@ -72,9 +74,9 @@ def test_the_jazzy_pip_line_prints_no_error(tmp_path):
                   'print(setuptools.__version__)', cwd=tmp_path)
     assert before.split()[-1] == '68.1.2'
 
-    words = readme_pip_line()
-    out = _run(venv / 'bin' / 'python', '-m', *words, cwd=tmp_path / 'ws')
-    errors = [ln for ln in out.splitlines() if re.match(r'\s*ERROR\b', ln)]
-    assert errors == [], '\n'.join(errors + [out[-3000:]])
+    for words in readme_pip_lines():
+        out = _run(venv / 'bin' / 'python', '-m', *words, cwd=tmp_path / 'ws')
+        errors = [ln for ln in out.splitlines() if re.match(r'\s*ERROR\b', ln)]
+        assert errors == [], '\n'.join(errors + [out[-3000:]])
     # The oracle of pip's message itself: every installed requirement holds, colcon's too.
     _run(venv / 'bin' / 'python', '-m', 'pip', 'check', cwd=tmp_path)
