@@ -1,28 +1,5 @@
 """rcbf_ros: safe reinforcement learning with robust control barrier functions for ROS 2.
-
-Importing the package sets numpy's OpenBLAS up for the package's one-state products, before
-numpy first loads. numpy serves the per-step paths (the policy's action, the GP's prediction
-at one state, the filter's small matrices). Two of OpenBLAS's defaults cost them several times
-the arithmetic:
-
-- **Threads.** Above ~10^4 elements OpenBLAS splits a product over a thread per core; on the
-  shared cores of a run (simulator, filter, recorder, perhaps another run) that helper thread
-  is often descheduled: benchmarks/bench_blas_threads.py measures a 1 x 256 x 256 product at a
-  few ms p99 with the default and microseconds with one thread. So: one thread.
-- **Kernel.** A DYNAMIC_ARCH OpenBLAS picks its kernels from the CPU's family and model number.
-  A model newer than the library (a recent Xeon, often behind a hypervisor's generic model
-  name) falls back to the oldest x86-64 kernels ('Prescott', SSE3), although the CPU has AVX2
-  or AVX-512: benchmarks/bench_blas_threads.py measures the policy's products up to several
-  times slower with them, a minibatch-sized one more. So: the kernel family that the CPU's
-  instruction set flags (``/proc/cpuinfo``, which lists only what the kernel enabled) support,
-  the choice OpenBLAS itself makes for a model it knows.
-
-Both are environment variables that OpenBLAS reads once, when numpy loads it: this module sets
-them (:func:`configure_openblas`) when it is imported, i.e. before numpy whenever the first
-import of a process is of ``rcbf_ros`` (every entry point, the tests' conftest, the
-benchmarks). A value already in the environment is kept; a process that imported numpy first
-keeps what its OpenBLAS chose.
-"""
+Importing it first sets numpy's OpenBLAS up for the per-step paths (:func:`configure_openblas`)."""
 from __future__ import annotations
 
 from collections.abc import Iterable, MutableMapping
@@ -64,7 +41,18 @@ def cpu_flags(cpuinfo: Path = Path('/proc/cpuinfo')) -> frozenset[str]:
 def configure_openblas(environ: MutableMapping[str, str], *,
               cpuinfo: Path = Path('/proc/cpuinfo')) -> None:
     """Set ``OPENBLAS_NUM_THREADS`` to 1 and ``OPENBLAS_CORETYPE`` to :func:`coretype_for` the
-    CPU's flags, each unless ``environ`` already has it."""
+    CPU's flags, each unless ``environ`` already has it.
+
+    numpy serves the per-step paths (the policy's action, the GP at one state, the filter's small
+    matrices), where two OpenBLAS defaults cost several times the arithmetic
+    (benchmarks/bench_blas_threads.py measures both): above ~10^4 elements it splits a product
+    over a thread per core, often descheduled on shared cores; and a DYNAMIC_ARCH build falls
+    back to its oldest x86-64 kernels on a CPU model newer than itself, although the CPU has
+    AVX2 or AVX-512. OpenBLAS reads both variables once, when numpy loads it, so this runs when
+    the package is imported: before numpy whenever a process imports ``rcbf_ros`` first (every
+    entry point, the tests' conftest, the benchmarks). A process that imported numpy first keeps
+    what its OpenBLAS chose.
+    """
     environ.setdefault('OPENBLAS_NUM_THREADS', '1')
     if 'OPENBLAS_CORETYPE' not in environ:
         coretype = coretype_for(cpu_flags(cpuinfo))

@@ -95,7 +95,7 @@ def packaged_interface(argv: Sequence[str], *, node: str, section: str, summary:
 
 def system_from_argv(argv: Sequence[str]) -> str:
     """The ``system`` a command line sets with ``-p system:=...`` (else the default)."""
-    from rcbf_ros.ros.dds.arguments import (
+    from rcbf_ros.parameters.arguments import (
         parameter_overrides,
         parse_ros_arguments,
         RosArgumentError,

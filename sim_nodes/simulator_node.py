@@ -1,61 +1,9 @@
 """The ``simulator`` node: one of :mod:`rcbf_ros.envs` on topics, lock-step or real-time.
 
-Topics (names relative, remappable with ``-r``; all reliable, keep-last 10):
-
-- publishes ``state``: ``state_type: array``: std_msgs/Float64MultiArray, section ``state``
-  (the QP state, n_x); ``state_type: odometry`` (unicycle): nav_msgs/Odometry in ``frame_id``
-  with the pose [x, y, yaw] and the applied [v, omega] as twist, stamped with the simulation
-  clock (each new state ``dt`` after the one before, across episodes; a state published again
-  keeps its stamp);
-- publishes ``observation`` (section ``observation``), ``reward`` (std_msgs/Float64, after
-  every step), ``h_true`` (section ``h_true``: true signed clearances, names in the episode
-  start event), ``episode`` (std_msgs/String, one JSON object per event:
-  ``{"event": "start", "episode", "system", "seed", "layout_seed", "h_true_names", "n_x",
-  "n_u"}`` and ``{"event": "end", "episode", "return", "steps", "violations", "goal_reached",
-  "terminated", "truncated"}``; transient local, keep-last :data:`EPISODE_HISTORY_DEPTH`, so
-  that a subscriber asking for transient local, such as the recorder, gets the run's first
-  start event however late it joins the first episodes);
-- publishes ``sim/step`` (Float64MultiArray), everything about one plant step in one message
-  for the learner: sections ``state``, ``observation``, ``reward`` (of the transition INTO this
-  state; 0 after a reset), ``action`` (the u applied to get here, saturated to the limits;
-  zeros after a reset), ``terminated``, ``truncated``, ``violation``, ``goal_reached``,
-  ``episode``, ``step`` (0 right after a reset);
-- subscribes ``cmd_safe``, the action, of ``command_type``: ``array``: a Float64MultiArray
-  whose FIRST section is u (length n_u) and whose optional section ``state`` names the state
-  the action answers (the safety filter's ``filter_info`` has that form: the launches remap
-  ``cmd_safe`` to it, see lock-step below); ``twist`` / ``twist_stamped``: u in
-  ``twist_fields``; a TwistStamped's stamp names the state it answers.
-
-Modes (parameter ``mode``):
-
-- ``lockstep``: publish the state, wait for one action, step, publish, ... The first state goes
-  out once the loop is up (see ``wait_for_publishers`` below); if no action arrives within
-  ``action_timeout_s`` the state is published again with a warning, so a late subscriber (or a
-  lost sample) cannot deadlock the loop. An action is consumed by the step it answers; actions
-  arriving while no state is pending are dropped. A re-published state can be answered twice,
-  and a late duplicate answer must not be applied to the next step: an array action with a
-  ``state`` section answering any other state than the pending one, and a TwistStamped whose
-  stamp is that of an earlier state, are dropped as stale. That keeps lock-step runs exactly
-  reproducible. A bare array or a Twist names no state; a late duplicate of one would be
-  applied to the next step.
-- ``realtime``: step at ``rate_hz`` with a zero-order hold on the last action (zeros until the
-  first one), publishing after every step. Like lock-step, the first episode starts once the
-  loop is up (nobody listening: nothing to simulate for).
-
-The loop is up when ``state`` has a subscriber and, for every topic in ``wait_for_publishers``
-(default none; the launches list ``cmd_safe`` and ``cmd_proposed``), a publisher exists and the
-process of each such publisher has subscribed to one of the simulator's topics and been matched
-(:func:`loop_waits_for`). A controller that starts after the simulator thus still gets the
-first state, and nothing is re-published at start-up. Each node named in
-``wait_for_subscribers`` (the recorded launches name the recorder) must also subscribe to
-``state`` first, so that the bag holds the run from its first state.
-
-Parameters: :func:`simulator_interface` (``simulator --help``; ``--help --ros-args -p
-system:=pvtol`` for another system): the node's own (:data:`NODE_PARAMETERS`), ``system``
-(unicycle | car_following | pvtol) and every key of ``/simulator`` and ``/**`` in
-``config/<system>.yaml`` (env settings and the layout: ``obstacles.*``, ...; the packaged file
-gives the defaults, ``--params-file`` / ``-p`` override them). ``wait_for_publishers`` takes
-topic names as the node resolves them, remaps included.
+It stands in for a robot: publishes the state (and ``sim/step``, all of one plant step for the
+learner) and applies the action it gets. Lock-step drops stale answers, so runs repeat exactly.
+Topics and parameters: :func:`simulator_interface` (``simulator --help``); protocol and modes:
+docs/NODES.md.
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""Bags: MCAP in the rosbag2 layout (writer, checked reader, recovery, QoS records). Pure
-library, no DDS."""
+"""Bags: MCAP in the rosbag2 layout, written, read with every chunk checked, and recovered
+after a killed recorder; a pure library (no DDS), shared by the recorder, replay and refilter."""
 from __future__ import annotations
 
 from rcbf_ros.bag.qos import (

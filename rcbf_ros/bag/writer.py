@@ -1,56 +1,9 @@
 """Write bags: MCAP files in the layout of rosbag2's MCAP storage plugin, plus ``metadata.yaml``.
 
-A bag is a directory ``<dir>/`` holding ``<dir>/<name>_0.mcap`` and, once closed,
-``<dir>/metadata.yaml`` (rosbag2 bag information, version 9, ``storage_identifier: mcap``), so
-that ``ros2 bag info/play <dir>``, Foxglove and rosbags read it.
-
-The MCAP file follows what rosbag2_storage_mcap writes:
-
-- header profile ``ros2``;
-- one schema per message type: name ``pkg/msg/Type``, encoding ``ros2msg``, data the full
-  concatenated message definition (root ``.msg`` text, then each dependency after a line of
-  80 ``=`` and ``MSG: pkg/Type``);
-- one channel per topic: message encoding ``cdr``, metadata ``offered_qos_profiles`` (the
-  profiles dumped to a YAML string, see :mod:`rcbf_ros.bag.qos`) and ``topic_type_hash``
-  (``RIHS01_...``);
-- messages with ``log_time`` = receive time and ``publish_time`` = send time, in nanoseconds;
-- a metadata record named ``rosbag2`` with key ``serialized_metadata`` (the bag information
-  YAML, the same as ``metadata.yaml``'s: from version 9 on, each topic's
-  ``offered_qos_profiles`` is a YAML sequence of profiles there, not a string) written on close,
-  then the summary: schemas, channels, statistics, chunk / metadata indexes and summary
-  offsets.
-
-Integrity. Every chunk carries the CRC of its records and the data end record the CRC of the
-data section; the readers (:mod:`rcbf_ros.bag.scan`) check them.
-
-Crash safety. Messages are grouped into compressed chunks. The file is written unbuffered, so a
-chunk, with its message indexes, reaches the operating system as soon as it is finished: when it
-fills (``chunk_size`` bytes), when ``flush()`` is called, and at the latest on the first
-``write()`` after ``flush_period_s`` has passed since the last flush. What has reached the OS
-survives the writer process being killed (SIGKILL included; not a power cut unless
-``fsync=True``). So after a kill at most the messages written since the last flush are lost:
-with a periodic ``flush()`` (the recorder calls it every ``flush_period_s``), at most the last
-``flush_period_s`` of data. The file then lacks its summary and footer, and the readers refuse
-it until :func:`rcbf_ros.bag.recover.recover_bag` (``rcbf_ros bag recover <dir>``) has rewritten
-it as a complete file from its whole chunks. While the writer is open it holds an exclusive
-``flock`` on the file, so recovery never touches a bag that is still being written.
-
-Write errors. The mcap writer writes into memory; the bag hands what it produced to the file
-one whole piece at a time (the header, a chunk with its message indexes), so the file always
-ends at a record boundary except while a piece is being written. The closing records (the
-``rosbag2`` metadata record, data end, summary, footer) are built by the bag itself from what
-reached the file. A write that fails (disk full ``ENOSPC``, file size limit ``EFBIG``, ``EIO``,
-any ``OSError``) stops the bag: the file is truncated back to its last whole piece (which frees
-the space the failed piece took), the closing records are written there and ``metadata.yaml``
-beside it, and the call raises :class:`BagWriteError`, one line naming the file and the error.
-So the bag holds every message written before the open chunk, and every reader takes it as
-it is. Under a file size limit (``RLIMIT_FSIZE``, ``ulimit -f``) the bag never writes a piece
-that would leave too little room for its closing records: it stops before, so the closing
-always fits (a write past the limit would otherwise kill the process with ``SIGXFSZ``; the bag
-ignores that signal, as CPython does). On a full disk the closing records can still fail to
-fit: the file then ends at its last whole chunk, as after a kill, and ``rcbf_ros bag recover``
-closes it once there is room (the error line says so). Later calls raise the same error;
-``close()`` after it does nothing.
+rosbag2's MCAP layout, so ``ros2 bag``, Foxglove and rosbags read the bags. The file is written
+unbuffered a whole chunk at a time and closed properly even after a failed write, so a kill
+loses at most the open chunk and a full disk never leaves a torn record: docs/BAGS.md has the
+format, the crash safety and the write-error rules.
 """
 from __future__ import annotations
 

@@ -7,7 +7,7 @@
     rcbf_ros launch unicycle_filter --domain-id 7   # a launch's nodes as processes, no ROS 2
     rcbf_ros refilter bags/<run>/bag out --params-file my.yaml   # the filter again, offline
     rcbf_ros summary bags/<run>            # what a run left behind, and its trajectories
-    rcbf_ros interface-doc --check README.md       # the README's interface tables up to date
+    rcbf_ros interface-doc --check docs/INTERFACE.md   # the interface tables up to date
 
 ``train``, ``experiment`` and ``bag`` are parsed here (their arguments in
 :mod:`rcbf_ros.cli.train`, :mod:`rcbf_ros.experiments.command`, :mod:`rcbf_ros.bag.recover`).
@@ -42,8 +42,8 @@ DELEGATED: dict[str, Delegated] = {
                           'filter the proposals of a bag again, other parameters'),
     'summary': Delegated('rcbf_ros.reports.run_summary',
                          "print a run's results and draw its trajectories"),
-    'interface-doc': Delegated('rcbf_ros.node_logic.interface_doc',
-                               "print, write or check the README's interface tables"),
+    'interface-doc': Delegated('rcbf_ros.cli.interface_doc',
+                               "print, write or check docs/INTERFACE.md's tables"),
 }
 """Subcommands run by another module's ``main``, by name."""
 

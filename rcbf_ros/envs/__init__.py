@@ -1,12 +1,5 @@
-"""The simulated systems as plain Python (Gymnasium API): Unicycle, Car Following, PVTOL.
-
-No ROS, no file I/O. :func:`make_env` is the one way the package builds an env: from a
-built-in system name (:data:`ENVS`) or the dotted path of a :class:`SafetyEnv` subclass, plus
-flat parameters, e.g. ``make_env('unicycle', load_params(find_config('unicycle'),
-'simulator'))``. The built-ins are also in Gymnasium's registry once this package is imported:
-``gymnasium.make('rcbf_ros/Unicycle-v0', params=...)`` (ids in :data:`GYMNASIUM_IDS`; keyword
-arguments go to the env's constructor).
-"""
+"""The simulated systems (Unicycle, Car Following, PVTOL) as Gymnasium envs, for training and
+the simulator node; :func:`make_env` builds one from a name or a dotted path (no ROS, no I/O)."""
 from __future__ import annotations
 
 import importlib

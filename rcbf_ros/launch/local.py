@@ -1,40 +1,10 @@
 """rcbf_ros launch: start a launch's nodes as separate processes, without ROS 2 installed.
 
-The local counterpart of ``ros2 launch rcbf_ros <name>.launch.py``; both read
-:mod:`rcbf_ros.launch.table`. Every node runs as ``python -m rcbf_ros.ros.node_main <module>
---ros-args -r __node:=<name> --params-file config/<system>.yaml -r ...`` (``python -m <module>``,
-but a node stopped while it is still importing exits quietly) in its own process group, with the
-loopback ``CYCLONEDDS_URI`` (no traffic off the machine) and one ``ROS_DOMAIN_ID`` in its
-environment. Each output line is prefixed with ``[<node>]``.
-
-Before any node starts, the params file is read with the nodes' own reader: a missing,
-unreadable or malformed file (not YAML, not a mapping of node sections with ``ros__parameters``,
-or no section for any node of the launch) is refused with one line naming it, exit code 2.
-
-Stopping: on SIGINT (Ctrl-C, also when the launcher was started in the background) or SIGTERM,
-when a node marked ``ends_launch`` exits, or when a required node fails, every node still running
-gets SIGINT, then SIGTERM after its own limit (the table's ``sigint_timeout_s``, or
-``--sigint-timeout`` for all), then SIGKILL after ``--sigterm-timeout``. The exit code is 1 if a
-required node failed (a non-zero exit of its own, or it had to be killed), else 0.
-
-Respawn: a node whose table entry respawns (``rcbf_ros launch safety_filter respawn:=true``)
-is started again ``respawn_delay`` seconds after it exits, whatever its exit status, as
-launch_ros respawns a ``Node``: its exit neither fails nor stops the launch, and is said in one
-line. A node that ends the launch is not respawned (launch's ``on_exit=Shutdown()`` wins there
-too); a stop during the delay starts nothing more.
-
-Launch arguments follow the launch name as ``name:=value``, as ``ros2 launch`` takes them
-(``--show-args`` lists a launch's); an argument the launch does not declare, a value outside an
-argument's choices, or a remap target that is no topic name is refused with one line naming it,
-exit code 2. ``params_file:=`` is ``--params-file``.
-
-Examples::
-
-    rcbf_ros launch unicycle_filter --domain-id 7 -p simulator:max_episodes:=1
-    rcbf_ros launch safety_filter cmd_in:=/my_controller/cmd_vel cmd_out:=/cmd_vel odom:=/odom
-    rcbf_ros launch safety_filter cmd_in:=/my_controller/cmd_vel respawn:=true respawn_delay:=1.0
-
-The console script ``rcbf_ros launch`` is the same command (its name in messages and usage).
+The local counterpart of ``ros2 launch rcbf_ros <name>.launch.py``: both read
+:mod:`rcbf_ros.launch.table`, so the two start the same nodes with the same arguments. Each node
+runs through :mod:`rcbf_ros.ros.node_main` in its own process group on loopback DDS; the params
+file and the launch arguments are checked before any node starts. Stopping, respawn and exit
+codes follow launch_ros (docs/NODES.md).
 """
 from __future__ import annotations
 
@@ -63,8 +33,8 @@ from rcbf_ros.launch.table import (
     ros_arguments,
 )
 from rcbf_ros.parameters import bounded_yaml
+from rcbf_ros.parameters.arguments import expand_topic_name, parse_ros_arguments
 from rcbf_ros.parameters.rules import find_config, node_key_level
-from rcbf_ros.ros.dds.arguments import expand_topic_name, load_params_file
 from rcbf_ros.ros.loopback import ensure_loopback
 
 _REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -176,7 +146,9 @@ def check_params_file(setup: LaunchSetup, params_file: str | Path) -> None:
         ValueError: one line naming the file: missing or unreadable, not YAML, not a mapping of
             node sections with ``ros__parameters``, or no section for any node of ``setup``.
     """
-    sections = load_params_file(str(params_file))  # RosArgumentError is a ValueError
+    # Read as every node reads its --params-file; RosArgumentError is a ValueError.
+    arguments = parse_ros_arguments(['--ros-args', '--params-file', str(params_file)])
+    sections = arguments.parameter_rules.sections()
     names = [entry.name for entry in setup.nodes]
     if not any(node_key_level(key, name, f'/{name}') for key in sections for name in names):
         raise ValueError(f'--params-file {str(params_file)!r}: no section for any node of '

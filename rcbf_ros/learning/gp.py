@@ -25,16 +25,10 @@ Prediction does not go through GPyTorch: after a fit we cache, per output dimens
 batched over query points and output dimensions. The disturbance box of eq.
 (disturb_estimate) is ``mean +/- k_c std`` (``bounds``); ``k_c`` is the caller's.
 
-The variance bounds (``rcbf_ros.learning.gp_bounds``): reading the exact variance costs one
-M x M factor per output and query, most of a per-step action's cost. ``predict`` evaluates
-instead, per output, the bound chosen at the refit: a low-rank bound (the leading eigenpairs of
-``K + n I`` plus a tail term), a projection bound (the leading eigenpairs alone, one pass; or,
-for outputs whose kernels are alike, on one basis they share) or a hybrid bound (low rank plus
-the training points around the query), whichever reads the fewest numbers for its tightness.
-Every one is never below the exact variance (by construction, for every state), so the box
+Variance bounds (:mod:`rcbf_ros.learning.gp_bounds`, docs/GP_BOUNDS.md): ``predict`` evaluates,
+per output, the bound chosen at the refit, never below the exact variance, so the box
 ``mean +/- k_c std`` contains the exact one; ``predict(x, exact=True)`` evaluates the exact
-variance (the reference), ``predict(x, bound='low_rank')`` the low-rank bound on every output.
-The mean is exact either way.
+variance. The mean is exact either way.
 
 Exactly known outputs: a dimension whose residuals are all within ``exact_output_tol`` of zero
 (e.g. a position whose derivative is a velocity in the state, so the nominal model predicts it

@@ -1,97 +1,13 @@
 """Variance bounds of ``DisturbanceGP``: their math, the per-output choice at a refit, and the
 numpy evaluation that one prediction runs.
 
-Notation (per output dimension): ``A = K + n I`` on the M training points, its
-eigendecomposition ``A = U diag(mu) U^T`` (descending ``mu``, every ``mu_i >= n``), and at a query
-x* the cross-kernel vector ``k = k(x*, X)`` and the prior variance ``s``. The exact posterior
-variance is ``var = s - k^T A^-1 k``; reading it costs one M x M factor per output and query
-(2 MB in float64 at M = 512), which is most of a per-step action's cost. Every bound below is
-``s - t`` with a subtracted term ``t <= k^T A^-1 k``, so it is never below the exact variance:
-the disturbance box ``mean +/- k_c std`` built on it contains the exact one. They rest on one
-identity: for every vector w,
-
-    2 w . k - w^T A w <= k^T A^-1 k      (the maximum over w is at w = A^-1 k),
-
-so the maximum of the left side over any set of w is a valid ``t``.
-
-Low-rank bound (rank r): keep the first r eigenpairs and give every discarded direction the
-weight of the largest discarded eigenvalue,
-
-    var_r = s - sum_{i<=r} (u_i . k)^2 / mu_i - |k - U_r U_r^T k|^2 / mu_{r+1}.
-
-The discarded directions have ``mu_i <= mu_{r+1}``, so this subtracts less than the exact sum.
-Its excess is at most ``s * rho(mu_{r+1} - n)`` with ``rho(a) = max_{0<=l<=a} l (a - l) /
-((l + n)(a + n))`` (since ``sum_i (u_i . k)^2 / (mu_i - n) <= s``), and r is the smallest rank
-whose ``rho`` is within ``GPConfig.variance_rank_tolerance`` (0: every eigenpair, the exact
-variance to round-off). A query reads the r x M eigenvector block twice: the discarded part is
-evaluated as ``|k - U_r U_r^T k|^2``, not as ``|k|^2 - |U_r^T k|^2``, whose terms are of size
-``|k|^2 / n`` and cancel to round-off when the noise is far below the signal; from r = M / 2 on,
-every eigenpair, in one pass, costs no more.
-
-Projection bound (rank r): the identity's maximum over w in the span of the first r
-eigenvectors,
-
-    var_p = s - sum_{i<=r} (u_i . k)^2 / mu_i,
-
-the low-rank bound without its tail term: never below it, and one pass over r rows (stored as
-``u_i / sqrt(mu_i)``, so that the query squares and sums what it projects). At a rank where the
-tail is negligible against the variance it is as tight; near the data of a GP with noise far
-below its signal the tail term is 1e-5 of the variance at the low-rank bound's rank. Its
-worst-case excess, ``s (mu_{r+1} - n) / mu_{r+1}``, is no use for choosing r: the rank is the
-smallest (in steps of 8) at which its std is within ``GPConfig.bound_std_tolerance`` of the
-exact std on every probe state (below), found for every rank at once from the probes'
-projections on all M eigenvectors. At r = M it is the exact variance.
-
-Shared projection: the identity's maximum over the span of any basis W is
-``sum_i (w_i . k)^2 / lambda_i`` once W is made (K + nI)-orthogonal (``w_i^T A w_j = lambda_i
-delta_ij``): any span gives a valid bound. Outputs whose kernels are alike (Car Following's
-four velocity outputs; Unicycle's two) have leading eigenvectors that span nearly one space: 4 x
-56 of them span about 80 dimensions. So these outputs share one orthonormal basis V (M x R, the
-leading left singular vectors of their eigenvectors at their projection ranks side by side),
-and each output keeps the (K + nI)-orthogonal directions ``w_i = V q_i`` of V's span, from the
-eigenpairs of the R x R matrix ``V^T (K + nI) V``, at its own rank (probed as the projection
-bound's, on these directions). A query reads V once for all of them and R numbers per
-direction: for Car Following 80 x M + 4 x 60 x 80 numbers instead of 4 x 60 x M. The basis is
-the smallest, in steps of 8 from the outputs' largest rank on, on which every output passes.
-
-Hybrid bound (low rank plus a neighbourhood): maximising over w in the span of the first r
-eigenvectors and the unit vectors of a set S of m training points, with
-``E = A - U_r diag(mu_r) U_r^T`` (the discarded part), gives
-
-    var_h = s - sum_{i<=r} (u_i . k)^2 / mu_i - q^T E_SS^-1 q,    q = (k - U_r U_r^T k)_S.
-
-``E_SS`` can be singular, so the bound uses ``E'_SS`` from ``E' = E + n U_r U_r^T`` (every
-eigenvalue >= n, as conditioned as ``A`` itself): ``E' >= E`` only lowers the subtracted term.
-(``E'_SS`` is formed as ``A_SS - U_S diag(mu_r - n) U_S^T``: M m^2 r work per rank.) Above
-rank 0 the bound keeps the larger of this term and the low-rank one, ``|k_perp|^2 / mu_{r+1}``
-(both are valid), so it is at least as tight as the low-rank bound at the same rank. At r = 0
-it is the variance conditioned on S alone (fewer data never lower a GP's variance). S is the
-neighbourhood of the training point nearest to the query (its m nearest training points in the
-output's lengthscale-scaled metric), whose ``E'_SS`` factor is cached per training point and
-rank at each refit (M m^2 numbers). Short lengthscales and noise near the signal variance
-(where the other bounds need nearly every eigenpair) are where the neighbourhood carries the
-posterior.
-
-The choice: at each refit, each output takes the cheapest of the low-rank bound (always
-admissible: its excess is bounded), the projection bound at its rank, and the hybrid bound at
-the smallest rank of ``HYBRID_RANKS`` whose std is within ``bound_std_tolerance`` of the exact
-std on every probe state, in rows of M numbers a query reads (``bound_cost``); then the outputs
-on the projection bound share a basis if that reads fewer rows. The probes are
-stored states and stored states moved by a quarter and a whole lengthscale. Outputs of one
-kind and similar rank are evaluated as one batch at the group's largest rank (extra pairs only
-tighten a bound). The tolerance is a tightness criterion only: every bound is at least the
-exact variance at every state, probed or not.
-
-In floating point every variance, the exact evaluation's included, carries round-off of about
-``eps M s^2 / n``; the bounds' measured deficits against the exact evaluation stay within it.
-The factors stay float64: near the data of an output whose noise is 1e-6 to 1e-7 of its signal
-(every output of Unicycle and Car Following with a posterior, one of PVTOL's two) the variance
-is 1e-7 to 1e-8 of the terms it is the difference of, below float32's resolution.
-
-One state's evaluation (``predict_plan``) runs a dozen numpy calls: after a SAC update each
-call costs microseconds, as numpy's code and the GP's arrays come back from memory, and each
-row of M numbers about a third of one, so both the calls and the rows read are what the bounds
-and their layout keep few.
+The exact posterior variance ``s - k^T (K + nI)^-1 k`` reads one M x M factor per output and
+query, most of a per-step action's cost. Each bound here (low rank, projection, a projection on
+a basis shared by alike outputs, low rank plus a neighbourhood) subtracts a term that the
+identity ``2 w.k - w^T (K + nI) w <= k^T (K + nI)^-1 k`` keeps below the exact one, so it is
+never below the exact variance at any state, and the box ``mean +/- k_c std`` built on it holds
+the exact box. At each refit every output takes the bound that reads the fewest numbers within
+its tolerance. The derivations, error bounds and the choice: docs/GP_BOUNDS.md.
 """
 from __future__ import annotations
 

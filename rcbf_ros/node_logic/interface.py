@@ -2,8 +2,9 @@
 
 One :class:`ParameterSpec` per declared parameter (name, default, type, one line) is the single
 source of a node's declarations, of its ``--help`` (:func:`help_text`, printed without starting
-the node: no DDS participant) and of the README's interface tables (:mod:`rcbf_ros.ros.
-interface_doc`), so that the three cannot drift apart. Pure: no middleware, no messages.
+the node: no DDS participant) and of docs/INTERFACE.md's tables
+(:mod:`rcbf_ros.cli.interface_doc`), so that the three cannot drift apart. Pure: no
+middleware, no messages.
 """
 from __future__ import annotations
 

@@ -1,42 +1,11 @@
 """ROS 2 parameter files and ``-p`` rules read exactly as rcl and rclpy (Jazzy) read them.
 
-The file format is the one ``--params-file`` takes::
-
-    /**:                      # every node
-      ros__parameters: {...}
-    /safety_filter:           # one node (fully qualified; the leading slash may be left out)
-      ros__parameters: {...}
-
-Nested mappings flatten to dotted names. What a node gets follows rcl's YAML parser
-(``rcl_yaml_param_parser``: ``parse_file_events``, ``parse_key``, ``parse_value``,
-``get_value``, ``find_node``, ``find_parameter``) and rclpy's
-``_populate_node_parameters_from_rcl_params`` (``rclpy/src/rclpy/node.cpp``):
-
-- every ``--params-file`` and ``-p`` of one command line fills ONE table of node keys, in
-  command-line order. A node key is stored as written (``/simulator`` and ``simulator`` are
-  different keys); a key keeps the place where it first appeared, and a parameter written again
-  under the same key is overwritten in place;
-- a node takes, in that order of first appearance, every key whose pattern matches its fully
-  qualified name (``/*`` is one name token, ``/**`` any number; a key without a leading slash
-  gets one), each overwriting the earlier ones: the LAST matching key to appear wins, not the
-  most specific one. A bare ``-p name:=value`` is stored under ``/**``, ``-p node:name:=value``
-  under ``node``;
-- values are typed as rcl types them (not as YAML 1.1 does): unquoted ``true/yes/on/y``...
-  are booleans, what ``strtoll`` reads whole is an integer, what ``strtod`` reads whole is a
-  float (``1e3``, ``inf``), anything else (``null`` included) a string; quoted or ``!!str``
-  scalars are strings. Lists hold one type. An empty list ``[]`` sets NO value (rclpy's
-  ``NOT_SET``, ``None`` here) and leaves a value written earlier under the same key in place;
-- rcl keeps one slot per type: a value of another type written over an earlier one leaves the
-  earlier slot set, and the first set slot in the order bool, integer, double, string, bool[],
-  integer[], double[], string[] is what the node gets.
-
-A params file is read within limits (:mod:`rcbf_ros.parameters.bounded_yaml`): at most
-:data:`MAX_PARAMS_FILE_BYTES` (128 KiB), collections nested at most 64 deep, only the YAML core
-tags (a ``!!python/...`` tag is refused, naming the line), checked while it is parsed; rcl
-refuses aliases, and so does this reader.
-
-This module is pure (no ROS, no DDS): the Cyclone runtime's nodes and the offline scripts
-(``load_params``) read parameters through it, so both get what a node on rclpy gets.
+Every ``--params-file`` and ``-p`` of one command line fills one table of node keys, which a
+node reads in the order the keys first appeared (the last matching key wins), typed as rcl's
+YAML parser types values (``rcl_yaml_param_parser``; rclpy's ``node.cpp`` for the overrides).
+Files are read within :mod:`rcbf_ros.parameters.bounded_yaml`'s limits. Pure (no ROS, no DDS):
+the Cyclone runtime's nodes and the offline scripts (``load_params``) read parameters here, so
+both get what a node on rclpy gets. The rules in full: docs/NODES.md.
 """
 from __future__ import annotations
 

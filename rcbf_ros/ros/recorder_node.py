@@ -1,37 +1,9 @@
 """recorder: record topics into an MCAP bag in rosbag2's layout (``ros2 run rcbf_ros recorder``).
 
-Parameters (``--ros-args -p name:=value``):
-
-- ``topics`` (string list, default empty): topic names to record; empty records every topic
-  that discovery finds. Discovery is re-checked every ``discovery_period_s``, so topics that
-  appear later (or listed topics whose publisher starts later) are picked up. As with
-  ``ros2 bag record``, a topic is subscribed once it has a publisher, with the QoS its
-  publishers offer (see below), and those offers are what the bag's metadata records.
-- ``output`` (string, default ``bags/run_<UTC time>``): the bag directory.
-- ``best_effort_topics`` (string list): topics to subscribe best effort whatever their
-  publishers offer. Otherwise a topic is subscribed reliable only if every publisher offers
-  reliable, and transient local only if every publisher offers transient local (a latched topic
-  such as the simulator's ``/episode``: the recorder then also gets what was published before
-  it subscribed, up to the publishers' history depth).
-- ``flush_period_s`` (float, 0.5): how often the open chunk is written out; a SIGKILLed recorder
-  loses at most this much data (see :mod:`rcbf_ros.bag.writer`).
-- ``discovery_period_s`` (float, 0.1, ``ros2 bag record``'s polling interval),
-  ``chunk_size`` (int, bytes, 262144), ``compression`` (``auto``/``zstd``/``lz4``/``none``).
-
-Subscriptions are raw with keep-all history, so nothing is dropped while the recorder keeps up.
-Each message is written as its CDR stream: the sample as received, less the padding that DDS
-adds to a multiple of 4 bytes where the sample's encapsulation header declares it
-(:func:`cdr_payload`); nothing is deserialised. Ctrl-C or SIGTERM close the bag (summary,
-``metadata.yaml``) and log the message counts. A SIGKILL leaves the bag without its summary,
-footer and ``metadata.yaml``; the readers refuse it until ``rcbf_ros bag recover <output>`` has
-rewritten it from its whole chunks (``rcbf_ros.reports.run_summary`` does so by itself).
-
-A write that fails (disk full, file size limit, I/O error) stops the recording: the bag is
-closed with every message before its open chunk (:class:`rcbf_ros.bag.writer.BagWriteError`),
-one error line names the file and the error, and the node goes on running without recording,
-as ``rosbag record`` disables recording and ``ros2 bag record`` drops what it cannot write,
-without taking the rest of the system down with it. Its exit status is then 1 (not 0) once it
-is stopped, so that a launch or a script sees that the bag is short.
+Each message is written as the CDR bytes received (less DDS's padding), never deserialised, so
+the bag holds what was on the wire. A failed write stops the recording, not the node, and sets
+the exit status to 1. Parameters: :data:`INTERFACE` (``recorder --help``); behaviour:
+docs/NODES.md.
 """
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 Every case of test/unit/test_parameter_rules.py (precedence, wildcards, empty lists, type
 slots, scalar typing, refused keys) runs through rclpy 7.1 under Jazzy
 (``rclpy_overrides.py``: ``Node._parameter_overrides`` of a node of that name) and through
-:func:`rcbf_ros.ros.dds.arguments.parameter_overrides`; the dicts must be equal, and a command
+:func:`rcbf_ros.parameters.arguments.parameter_overrides`; the dicts must be equal, and a command
 line one refuses the other must refuse too.
 """
 from __future__ import annotations
@@ -16,7 +16,11 @@ from typing import Any
 
 import pytest
 
-from rcbf_ros.ros.dds.arguments import parameter_overrides, parse_ros_arguments, RosArgumentError
+from rcbf_ros.parameters.arguments import (
+    parameter_overrides,
+    parse_ros_arguments,
+    RosArgumentError,
+)
 
 pytestmark = pytest.mark.ros2
 HERE = Path(__file__).resolve().parent

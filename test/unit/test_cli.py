@@ -8,8 +8,8 @@ import sys
 
 import pytest
 
+from rcbf_ros.cli import interface_doc
 from rcbf_ros.cli import main as cli
-from rcbf_ros.node_logic import interface_doc
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -32,7 +32,7 @@ from rcbf_ros.launch.table import (
     ros_arguments,
     substitute,
 )
-from rcbf_ros.ros.dds.arguments import parameter_overrides, parse_ros_arguments
+from rcbf_ros.parameters.arguments import parameter_overrides, parse_ros_arguments
 from rcbf_ros.ros.loopback import LOOPBACK_CYCLONEDDS_URI
 
 # --- table -------------------------------------------------------------------------------------

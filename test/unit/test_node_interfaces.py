@@ -11,7 +11,7 @@ from typing import Any, Callable
 
 import pytest
 
-from rcbf_ros.node_logic import interface_doc
+from rcbf_ros.cli import interface_doc
 from rcbf_ros.node_logic.interface import help_text, NodeInterface, resolve, wants_help
 from rcbf_ros.ros.dds.time_source import USE_SIM_TIME
 
@@ -167,11 +167,17 @@ def test_every_declared_parameter_has_its_spec_and_every_spec_is_declared(
             assert spec.name in declared, f'{module}: {spec.name} has a spec, is not declared'
 
 
-# --- the README -------------------------------------------------------------------------------
+# --- docs/INTERFACE.md ----------------------------------------------------------------------
 
-def test_the_readme_interface_section_is_the_generated_one():
-    assert interface_doc.main(['--check', str(REPO / 'README.md')]) == 0, (
-        'run rcbf_ros interface-doc --write README.md')
+def test_the_interface_doc_section_is_the_generated_one():
+    assert interface_doc.main(['--check', str(REPO / interface_doc.INTERFACE_DOC)]) == 0, (
+        f'run rcbf_ros interface-doc --write {interface_doc.INTERFACE_DOC}')
+
+
+def test_the_readme_links_the_interface_doc_and_holds_no_copy():
+    readme = (REPO / 'README.md').read_text()
+    assert f']({interface_doc.INTERFACE_DOC})' in readme
+    assert interface_doc.END not in readme and 'BEGIN interface' not in readme
 
 
 def test_a_stale_readme_section_is_reported(tmp_path, capsys):

@@ -23,8 +23,12 @@ import textwrap
 
 import pytest
 
+from rcbf_ros.parameters.arguments import (
+    parameter_overrides,
+    parse_ros_arguments,
+    RosArgumentError,
+)
 from rcbf_ros.parameters.rules import load_params, ParamRules, scalar_value
-from rcbf_ros.ros.dds.arguments import parameter_overrides, parse_ros_arguments, RosArgumentError
 
 SIM = '/simulator'
 FILE_WILDCARD_THEN_NODE = """

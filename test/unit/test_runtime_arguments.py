@@ -6,8 +6,7 @@ import textwrap
 import pytest
 
 from rcbf_ros.core.mappings import flatten as flatten_parameters
-from rcbf_ros.ros.dds import rclpy_compat
-from rcbf_ros.ros.dds.arguments import (
+from rcbf_ros.parameters.arguments import (
     expand_topic_name,
     parameter_overrides,
     parse_ros_arguments,
@@ -15,6 +14,7 @@ from rcbf_ros.ros.dds.arguments import (
     resolve_topic_name,
     RosArgumentError,
 )
+from rcbf_ros.ros.dds import rclpy_compat
 from rcbf_ros.ros.dds.node import (
     InvalidParameterTypeException,
     Node,

@@ -37,7 +37,7 @@ from typing import Any, Callable, Sequence
 from cyclonedds.core import DDSException, GuardCondition, Policy, Qos, WaitSet
 from cyclonedds.domain import DomainParticipant
 
-from rcbf_ros.ros.dds.arguments import parse_ros_arguments, RosArguments
+from rcbf_ros.parameters.arguments import parse_ros_arguments, RosArguments
 from rcbf_ros.ros.dds.graph import GraphInfo
 from rcbf_ros.ros.loopback import (
     ensure_loopback,

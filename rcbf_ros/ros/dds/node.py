@@ -13,16 +13,16 @@ from typing import Any, Callable, Iterable, Sequence
 
 from cyclonedds.topic import Topic
 
-from rcbf_ros.ros.dds import messages, services
-from rcbf_ros.ros.dds.arguments import (
+from rcbf_ros.parameters.arguments import (
     check_namespace,
     check_node_name,
     parse_ros_arguments,
     resolve_topic_name,
 )
-from rcbf_ros.ros.dds.arguments import (
+from rcbf_ros.parameters.arguments import (
     parameter_overrides as collect_parameter_overrides,
 )
+from rcbf_ros.ros.dds import messages, services
 from rcbf_ros.ros.dds.clock import Clock
 from rcbf_ros.ros.dds.context import (
     Context,

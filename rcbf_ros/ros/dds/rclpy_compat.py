@@ -6,7 +6,7 @@ import time
 from types import SimpleNamespace
 from typing import Any, Sequence
 
-from rcbf_ros.ros.dds.arguments import remove_ros_args
+from rcbf_ros.parameters.arguments import remove_ros_args
 from rcbf_ros.ros.dds.context import Context, default_context
 from rcbf_ros.ros.dds.context import spin as _spin
 from rcbf_ros.ros.dds.context import spin_once as _spin_once

@@ -1,4 +1,4 @@
-"""ROS 2 command-line arguments, parameter files and name resolution (pure, no DDS).
+"""ROS 2 command-line arguments and name resolution, as rcl parses them (pure, no DDS).
 
 Implements the subset of rcl's argument grammar that our nodes use::
 
@@ -13,6 +13,8 @@ Parameters follow rcl and rclpy exactly (:mod:`rcbf_ros.parameters.rules` has th
 command-line order (a bare ``-p`` under the node key ``/**``, ``-p node:...`` under ``node``);
 a node takes every key that matches its fully qualified name in the order the keys first
 appeared, later ones overwriting earlier ones, global arguments before its own ``cli_args``.
+A ``--params-file`` is read by :meth:`~rcbf_ros.parameters.rules.ParamRules.add_file` (within
+:mod:`rcbf_ros.parameters.bounded_yaml`'s limits); this module only words its refusal.
 """
 from __future__ import annotations
 
@@ -194,17 +196,6 @@ def _add_params_file(rules: ParamRules, path: str) -> None:
                                    f'{mark.line + 1}, column {mark.column + 1}: '
                                    f'{cause.problem}') from exc
         raise RosArgumentError(' '.join(f'--params-file {exc}'.split())) from exc
-
-
-def load_params_file(path: str) -> dict[str, dict[str, Any]]:
-    """Read a ROS 2 parameter file: node key (as written) -> {name: value} (None: NOT_SET).
-
-    Raises:
-        RosArgumentError: as :func:`parse_ros_arguments` for a ``--params-file``.
-    """
-    rules = ParamRules()
-    _add_params_file(rules, path)
-    return rules.sections()
 
 
 def parameter_overrides(arguments: Iterable[RosArguments], fully_qualified: str

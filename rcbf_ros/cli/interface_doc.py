@@ -1,14 +1,13 @@
-"""The README's interface tables, generated from the nodes' own specs (so they cannot drift).
+"""docs/INTERFACE.md's tables, generated from the nodes' own specs (so they cannot drift).
 
-    rcbf_ros interface-doc              # print the generated section
-    rcbf_ros interface-doc --write README.md
-    rcbf_ros interface-doc --check README.md   # exit 1 when it differs
+    rcbf_ros interface-doc                                # print the generated section
+    rcbf_ros interface-doc --write docs/INTERFACE.md
+    rcbf_ros interface-doc --check docs/INTERFACE.md      # exit 1 when it differs
 
-The section lies between :data:`BEGIN` and :data:`END` in the README; everything else there is
-written by hand. It holds the state and command layout of every shipped system, the
-``filter_info`` sections and status codes, and per node (:data:`NODES`) its topics (type,
-layout, QoS, direction) and its parameters (type, default, one line): the same
-:class:`rcbf_ros.node_logic.interface.NodeInterface` that ``<node> --help`` prints.
+The section lies between :data:`BEGIN` and :data:`END`; the rest of the file is written by hand.
+It holds every shipped system's state and command layout, ``filter_info``'s sections and status
+codes, and per node (:data:`NODES`) the :class:`~rcbf_ros.node_logic.interface.NodeInterface`
+that ``<node> --help`` prints. A command, not node logic: it imports every node module.
 """
 from __future__ import annotations
 
@@ -24,8 +23,10 @@ from rcbf_ros.messages.conversions import COMMAND_LAYOUTS, ODOMETRY_STATES, STAT
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_table, resolve, topic_table
 from rcbf_ros.node_logic.safety_filter import FILTER_PARAMETERS
 
+INTERFACE_DOC = 'docs/INTERFACE.md'
+"""Where the generated section lives, from the repository's root."""
 BEGIN = ('<!-- BEGIN interface (generated: rcbf_ros interface-doc --write '
-         'README.md) -->')
+         f'{INTERFACE_DOC}) -->')
 END = '<!-- END interface -->'
 
 NODES: tuple[tuple[str, str], ...] = (
@@ -38,7 +39,7 @@ NODES: tuple[tuple[str, str], ...] = (
     ('rcbf_ros.ros.replay_node', 'INTERFACE'),
     ('rcbf_ros.ros.scene_node', 'INTERFACE'),
 )
-"""(module, attribute) of every node's interface, in README order."""
+"""(module, attribute) of every node's interface, in the order of the document."""
 
 
 def node_interfaces() -> list[NodeInterface]:
@@ -80,7 +81,7 @@ def _without_filter_keys(interface: NodeInterface) -> tuple[NodeInterface, bool]
 
 
 def generated_section() -> str:
-    """The README text between :data:`BEGIN` and :data:`END` (both lines included)."""
+    """The generated text between :data:`BEGIN` and :data:`END` (both lines included)."""
     parts = [BEGIN, '', '### State and command layouts', '', layout_tables()]
     for full in node_interfaces():
         interface, shared = _without_filter_keys(full)
@@ -108,11 +109,12 @@ def replace_section(text: str, section: str) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Print, write or check the generated section. Exit 1 when --check finds a difference."""
-    parser = argparse.ArgumentParser(prog='rcbf_ros interface-doc',
-                                     description='The README interface tables, generated.')
+    parser = argparse.ArgumentParser(
+        prog='rcbf_ros interface-doc',
+        description=f'The interface tables of {INTERFACE_DOC}, generated.')
     group = parser.add_mutually_exclusive_group()
-    group.add_argument('--write', metavar='README', help='rewrite the section in this file')
-    group.add_argument('--check', metavar='README', help='exit 1 when the section differs')
+    group.add_argument('--write', metavar='FILE', help='rewrite the section in this file')
+    group.add_argument('--check', metavar='FILE', help='exit 1 when the section differs')
     args = parser.parse_args(argv)
     section = generated_section()
     path = args.write or args.check
@@ -128,7 +130,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.check:
         if updated != text:
             print(f'interface_doc: {path}: the interface section is out of date; run python -m '
-                  f'rcbf_ros.node_logic.interface_doc --write {path}', file=sys.stderr)
+                  f'rcbf_ros.cli.interface_doc --write {path}', file=sys.stderr)
             return 1
         return 0
     Path(path).write_text(updated, encoding='utf-8')
