@@ -110,8 +110,10 @@ import numpy as np
 from rcbf_ros.core.config import FilterConfig
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.messages import conversions
-from rcbf_ros.messages.cdr import Float64ArrayLayout
 from rcbf_ros.node_logic import safety_filter as logic
+from rcbf_ros.node_logic.filter_edge import array_sections as _array_sections  # noqa: F401
+from rcbf_ros.node_logic.filter_edge import FilterEdge, INPUT_COUNT_KEYS
+from rcbf_ros.node_logic.filter_edge import one_line as _one_line
 from rcbf_ros.node_logic.interface import (
     bound_text,
     COMMAND_TOPIC_TYPES,
@@ -135,8 +137,6 @@ from rcbf_ros.ros.runtime import (
 )
 
 NODE_NAME = 'safety_filter'
-INPUT_COUNT_KEYS = ('dropped_samples', 'refused_proposals', 'refused_states')
-"""Diagnostic keys of the node's cumulative input counts (see the module docstring)."""
 _QOS = 'reliable, keep-last 10 (qos.reliable, qos.depth)'
 
 
@@ -228,28 +228,16 @@ class SafetyFilterNode(Node):
         self._info_pub = self.create_publisher(array_type, 'filter_info', qos)
         self._diag_pub = self.create_publisher(
             get_message(DIAGNOSTIC_ARRAY), 'diagnostics', qos)
-        self._state_type, self._command_type = state_type, command_type
-        # Float64MultiArrays are read and written by conversions.sections_from_cdr and
-        # sections_to_cdr, diagnostics written by diagnostics_to_cdr (the same arrays and bytes
-        # as through the message, without building one); state_type and command_type are
-        # read-only.
-        self._array_states = self.settings.state_type == 'array'
-        self._array_commands = self.settings.command_type == 'array'
-        # The layouts read and written without building a message (n_x and n_u are fixed at
-        # start: system and system_params.* are read-only); '' is an unlabelled section.
-        n_x, n_u = self.filter.n_x, self.filter.n_u
-        self._state_layouts = (Float64ArrayLayout([('state', n_x)]),
-                               Float64ArrayLayout([('', n_x)]))
-        self._proposal_layouts = (Float64ArrayLayout([('u', n_u)]),
-                                  Float64ArrayLayout([('', n_u)]))
-        self._command_layout = self._proposal_layouts[0]
-        self._info_layouts: dict[tuple[tuple[str, int], ...], Float64ArrayLayout] = {}
+        # Bytes in and out (message types and sizes are read-only: fixed at start).
+        self._edge = FilterEdge(
+            state_type=self.settings.state_type, command_type=self.settings.command_type,
+            system=self.system, n_x=self.filter.n_x, n_u=self.filter.n_u,
+            deserialize=deserialize_message, get_message=get_message)
         self.create_subscription(state_type, 'state', self._on_state, qos, raw=True)
         self.create_subscription(command_type, 'cmd_proposed', self._on_proposal, qos, raw=True)
         obstacles_qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                                    reliability=ReliabilityPolicy.RELIABLE,
                                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self._array_type = array_type
         self.create_subscription(array_type, 'obstacles', self._on_obstacles, obstacles_qos,
                                  raw=True)
         problem = self.config.problem
@@ -422,13 +410,8 @@ class SafetyFilterNode(Node):
     def _on_obstacles(self, data: bytes) -> None:
         """An ``obstacles`` sample (CDR bytes): the new obstacle set, or an ERROR and the old
         set kept."""
-        msg, error = _decoded(data, self._array_type)
         try:
-            if msg is None:
-                raise ValueError(f'undecodable sample: {error}')
-            changes = logic.obstacle_parameters(
-                data=msg.data, data_offset=int(msg.layout.data_offset),
-                dims=[(d.label, int(d.size), int(d.stride)) for d in msg.layout.dim])
+            changes = self._edge.read_obstacles(data)
             self._change_source = 'obstacles'
             try:
                 result = self.set_parameters_atomically([
@@ -458,27 +441,12 @@ class SafetyFilterNode(Node):
 
     def _state_sample(self, data: bytes, now_ns: int,
                       active: logic.ActiveFilter) -> logic.StateSample:
-        """The state sample of one ``state`` message, counted when refused."""
-        try:
-            sections = (_array_sections(data, self._state_layouts, 'state')
-                        if self._array_states else None)
-            if sections is None:
-                msg, error = _decoded(data, self._state_type)
-                if msg is None:
-                    self.input_counts['dropped_samples'] += 1
-                    return logic.StateSample(received_ns=now_ns, state=None,
-                                             error=f'undecodable sample: {error}')
-                if self._array_states:
-                    sections = conversions.msg_to_sections(msg, default_label='state')
-                else:
-                    sections = {'state': conversions.odometry_to_state(
-                        msg, system=self.system, frame_id=active.settings.state_frame_id)}
-            state = logic.state_from_sections(sections=sections,
-                                              n_x=active.safety_filter.n_x)
-        except ValueError as exc:
-            self.input_counts['refused_states'] += 1
-            return logic.StateSample(received_ns=now_ns, state=None, error=str(exc))
-        return logic.StateSample(received_ns=now_ns, state=state)
+        """The state sample of one ``state`` message, counted when dropped or refused."""
+        sample, count = self._edge.read_state(data, received_ns=now_ns,
+                                              frame_id=active.settings.state_frame_id)
+        if count:
+            self.input_counts[count] += 1
+        return sample
 
     def _on_proposal(self, data: bytes) -> None:
         """A ``cmd_proposed`` sample (CDR bytes): answered with one command, always."""
@@ -525,38 +493,20 @@ class SafetyFilterNode(Node):
                 active: logic.ActiveFilter) -> tuple[logic.Decision, Any]:
         """The decision for one proposal sample, and its header (TwistStamped; else None)."""
         settings, safety_filter = active.settings, active.safety_filter
-        header, proposal, error = None, None, ''
-        try:
-            sections = (_array_sections(data, self._proposal_layouts, 'u')
-                        if self._array_commands else None)
-            if sections is None:
-                msg, error = _decoded(data, self._command_type)
-                if msg is None:
-                    self.input_counts['dropped_samples'] += 1
-                    return logic.fail_safe_decision(
-                        safety_filter=safety_filter,
-                        reason=f'undecodable proposal: {error}'), None
-                command_type = settings.command_type
-                if command_type == 'twist':
-                    sections = {'u': conversions.twist_to_array(msg, settings.twist_fields)}
-                elif command_type == 'twist_stamped':
-                    header = msg.header
-                    sections = {'u': conversions.twist_stamped_to_array(
-                        msg, settings.twist_fields)}
-                else:
-                    sections = conversions.msg_to_sections(msg, default_label='u')
-            proposal = logic.proposal_from_sections(sections=sections, n_u=safety_filter.n_u,
-                                                    n_x=safety_filter.n_x)
-        except (ValueError, TypeError) as exc:
-            error = str(exc)
-            self.input_counts['refused_proposals'] += 1
+        sample = self._edge.read_proposal(data, twist_fields=settings.twist_fields)
+        if sample.count:
+            self.input_counts[sample.count] += 1
+        if sample.undecodable:
+            return logic.fail_safe_decision(
+                safety_filter=safety_filter,
+                reason=f'undecodable proposal: {sample.error}'), None
         decision = logic.decide(
-            safety_filter=safety_filter, proposal=proposal, proposal_error=error,
+            safety_filter=safety_filter, proposal=sample.proposal, proposal_error=sample.error,
             latest_state=self._latest_state, now_ns=now_ns,
             max_state_age_s=settings.max_state_age_s,
             static_mean=active.static_mean, static_std=active.static_std,
             slack_tolerance=settings.slack_tolerance)
-        return decision, header
+        return decision, sample.header
 
     # output ------------------------------------------------------------------------------------
     def command_message(self, u_safe: np.ndarray, header: Any = None) -> Any:
@@ -569,18 +519,12 @@ class SafetyFilterNode(Node):
             # an undecodable proposal: no header to copy
             header = get_message('std_msgs/msg/Header')()
             header.stamp = self.get_clock().now().to_msg()
-        return conversions.command_to_msg(
-            u_safe, type_name=conversions.COMMAND_MESSAGES[command_type],
-            twist_fields=self.settings.twist_fields, header=header)
+        return self._edge.command(u_safe, twist_fields=self.settings.twist_fields,
+                                  header=header)
 
     def _publish_command(self, u_safe: np.ndarray, header: Any = None) -> None:
         """``cmd_safe``: the command alone, in the proposal's type."""
-        if self._array_commands:
-            layout = self._command_layout
-            self._cmd_pub.publish(layout.encode(u_safe) if u_safe.size == layout.size
-                                  else conversions.sections_to_cdr({'u': u_safe}))
-        else:
-            self._cmd_pub.publish(self.command_message(u_safe, header))
+        self._cmd_pub.publish(self.command_message(u_safe, header))
 
     def _publish_details(self, decision: logic.Decision, now_ns: int,
                          active: logic.ActiveFilter) -> None:
@@ -593,26 +537,32 @@ class SafetyFilterNode(Node):
             return
         if decision.level == logic.OK:
             self._last_ok_diagnostics_ns = now_ns
-        level, message, values = logic.diagnostic_values(
-            decision=decision, barrier_names=active.safety_filter.barrier_names)
-        values.update(self.input_counts)
-        self._diag_pub.publish(conversions.diagnostics_to_cdr(
+        self._diag_pub.publish(self._edge.diagnostics_cdr(
+            decision, barrier_names=active.safety_filter.barrier_names,
             stamp_ns=self.get_clock().now().nanoseconds, name=settings.diagnostics_name,
-            level=level, message=message, values=values,
-            hardware_id=settings.diagnostics_hardware_id))
+            hardware_id=settings.diagnostics_hardware_id, counts=self.input_counts))
 
     def _info_cdr(self, decision: logic.Decision) -> bytes:
-        """The serialized ``filter_info`` of a decision: the values of an answer with every
-        section in the bytes of its layout (one per set of sizes, kept), any other answer
-        through its sections (the same bytes either way)."""
-        values = logic.full_info_values(decision)
-        if values is None:
-            return conversions.sections_to_cdr(logic.info_sections(decision))
-        sizes = logic.full_info_layout(decision)
-        layout = self._info_layouts.get(sizes)
-        if layout is None:
-            layout = self._info_layouts[sizes] = Float64ArrayLayout(sizes)
-        return layout.encode(values)
+        """The serialized ``filter_info`` of a decision (:meth:`FilterEdge.info_cdr`)."""
+        return self._edge.info_cdr(decision)
+
+    # The Float64MultiArray layouts the edge reads at fixed offsets (() reads every sample the
+    # general way).
+    @property
+    def _state_layouts(self) -> tuple[Any, ...]:
+        return self._edge.state_layouts
+
+    @_state_layouts.setter
+    def _state_layouts(self, layouts: tuple[Any, ...]) -> None:
+        self._edge.state_layouts = layouts
+
+    @property
+    def _proposal_layouts(self) -> tuple[Any, ...]:
+        return self._edge.proposal_layouts
+
+    @_proposal_layouts.setter
+    def _proposal_layouts(self, layouts: tuple[Any, ...]) -> None:
+        self._edge.proposal_layouts = layouts
 
     def _log(self, level: int, reason: str, now_ns: int) -> None:
         key = logic.reason_key(reason)
@@ -629,35 +579,6 @@ class SafetyFilterNode(Node):
     def fail_safe_action(self) -> np.ndarray:
         """(n_u,) what the node publishes when it cannot filter."""
         return self.filter.fail_safe_action
-
-
-def _array_sections(data: bytes, layouts: Sequence[Float64ArrayLayout],
-                    default_label: str) -> dict[str, Any] | None:
-    """The sections of a Float64MultiArray sample (CDR bytes), as
-    :func:`rcbf_ros.messages.conversions.sections_from_cdr` reads them: at once for a sample of
-    one of ``layouts`` (one section: its label, or ``default_label`` when unlabelled; the
-    values as a tuple of floats), else through that function (None: leave it to the decoder).
-
-    Raises:
-        ValueError: as sections_from_cdr, for a layout that does not fit.
-    """
-    for layout in layouts:
-        values = layout.decode(data)
-        if values is not None:
-            return {layout.sections[0][0] or default_label: values}
-    return conversions.sections_from_cdr(data, default_label=default_label)
-
-
-def _decoded(data: bytes, message_type: Any) -> tuple[Any, str]:
-    """(message, '') or (None, why): CDR bytes of an untrusted sample, decoded.
-
-    Any exception of the decoder means "not a sample of this type": the decoder is rclpy's or
-    ours (:mod:`rcbf_ros.ros.runtime`) and neither promises a closed set of exceptions.
-    """
-    try:
-        return deserialize_message(data, message_type), ''
-    except Exception as exc:
-        return None, _one_line(exc)
 
 
 def _range_refusal(name: str, value: Any) -> str:
@@ -683,12 +604,6 @@ def _names(parameters: Sequence[Any], most: int = 4) -> str:
 def _cut(text: str, width: int = 400) -> str:
     """``text`` cut to ``width`` characters (a reason stays one readable line)."""
     return text if len(text) <= width else text[:width - 3] + '...'
-
-
-def _one_line(exc: BaseException) -> str:
-    """``Type: text`` of an exception on one line, at most 200 characters."""
-    text = ' '.join(f'{type(exc).__name__}: {exc}'.split())
-    return text if len(text) <= 200 else text[:197] + '...'
 
 
 def spin_frozen(node: SafetyFilterNode) -> None:
