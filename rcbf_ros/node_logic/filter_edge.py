@@ -78,6 +78,23 @@ def array_sections(data: bytes, layouts: Sequence[Float64ArrayLayout],
     return conversions.sections_from_cdr(data, default_label=default_label)
 
 
+def float64_sections(data: bytes, *, default_label: str,
+                     layouts: Sequence[Float64ArrayLayout] = (), message_type: Any = None,
+                     deserialize: Deserialize = deserialize_message) -> dict[str, Any]:
+    """The sections of a Float64MultiArray sample (unlabelled data as ``default_label``): at
+    once where :func:`array_sections` reads it, else through the decoder.
+
+    Raises:
+        Undecodable: the bytes are not a Float64MultiArray sample.
+        ValueError: a layout that does not fit (naming the dimension).
+    """
+    sections = array_sections(data, layouts, default_label)
+    if sections is not None:
+        return sections
+    msg = decoded(data, message_type or FLOAT64_MULTIARRAY, deserialize)
+    return conversions.msg_to_sections(msg, default_label=default_label)
+
+
 def proposal_sections(data: bytes, *, type_name: str, twist_fields: Sequence[str],
                       layouts: Sequence[Float64ArrayLayout] = (), message_type: Any = None,
                       deserialize: Deserialize = deserialize_message
@@ -95,18 +112,15 @@ def proposal_sections(data: bytes, *, type_name: str, twist_fields: Sequence[str
         ValueError: a layout that does not fit, or a type that holds no proposal.
     """
     if type_name == FLOAT64_MULTIARRAY:
-        sections = array_sections(data, layouts, 'u')
-        if sections is not None:
-            return sections, None
-    elif type_name not in (TWIST, TWIST_STAMPED):
+        return float64_sections(data, default_label='u', layouts=layouts,
+                                message_type=message_type, deserialize=deserialize), None
+    if type_name not in (TWIST, TWIST_STAMPED):
         raise ValueError(f'type {type_name!r} holds no proposal (expected one of '
                          f'{sorted(conversions.COMMAND_MESSAGES.values())})')
     msg = decoded(data, message_type or type_name, deserialize)
     if type_name == TWIST:
         return {'u': conversions.twist_to_array(msg, twist_fields)}, None
-    if type_name == TWIST_STAMPED:
-        return {'u': conversions.twist_stamped_to_array(msg, twist_fields)}, msg.header
-    return conversions.msg_to_sections(msg, default_label='u'), None
+    return {'u': conversions.twist_stamped_to_array(msg, twist_fields)}, msg.header
 
 
 def state_sections(data: bytes, *, type_name: str, system: str, frame_id: str = '',
@@ -123,16 +137,13 @@ def state_sections(data: bytes, *, type_name: str, system: str, frame_id: str = 
             that holds no state.
     """
     if type_name == FLOAT64_MULTIARRAY:
-        sections = array_sections(data, layouts, 'state')
-        if sections is not None:
-            return sections
-    elif type_name != ODOMETRY:
+        return float64_sections(data, default_label='state', layouts=layouts,
+                                message_type=message_type, deserialize=deserialize)
+    if type_name != ODOMETRY:
         raise ValueError(f'type {type_name!r} holds no state (expected one of '
                          f'{sorted(conversions.STATE_MESSAGES.values())})')
     msg = decoded(data, message_type or type_name, deserialize)
-    if type_name == ODOMETRY:
-        return {'state': conversions.odometry_to_state(msg, system=system, frame_id=frame_id)}
-    return conversions.msg_to_sections(msg, default_label='state')
+    return {'state': conversions.odometry_to_state(msg, system=system, frame_id=frame_id)}
 
 
 @dataclass(frozen=True)
