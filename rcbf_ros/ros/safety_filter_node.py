@@ -1,101 +1,11 @@
 """safety_filter: the RCBF-QP in front of any controller (``ros2 run rcbf_ros safety_filter``).
 
-Topics (all relative, so remappable: ``-r cmd_proposed:=/my_controller/cmd``; every one with the
-node's QoS, ``qos.reliable`` / ``qos.depth``, default reliable, volatile, keep-last 10):
-
-- ``state`` (sub): the system state. ``state_type: array``: std_msgs/Float64MultiArray, its
-  ``state`` section, else its first section (n_x values, README: state layout per system).
-  ``state_type: odometry``: nav_msgs/Odometry, for the Unicycle [x, y, yaw] of the pose
-  (``state_frame_id`` names the frame it must be in; '' accepts any).
-- ``cmd_proposed`` (sub): the proposal. ``command_type: array``: a Float64MultiArray with
-  sections ``u`` (unlabelled data counts as ``u``) and optionally ``disturbance_mean``,
-  ``disturbance_std`` (the learner's GP estimate, which wins over the static box
-  ``disturbance.mean/std``) and ``state`` (the proposal is then filtered against that state).
-  ``command_type: twist`` / ``twist_stamped``: a geometry_msgs/Twist or TwistStamped whose
-  ``twist_fields`` hold u.
-- ``cmd_safe`` (pub, the proposal's type): the command u* = u_RL + u_S, nothing else: for
-  arrays exactly the n_u values (one section ``u``); for twists the ``twist_fields`` (others
-  0); a TwistStamped carries the proposal's header (stamp and frame_id) unchanged.
-- ``filter_info`` (pub, std_msgs/Float64MultiArray): one per command, right after it, with
-  labelled sections (:data:`rcbf_ros.core.filter_info.INFO_SECTIONS`): ``u``, ``u_rl``,
-  ``u_s``, ``fail_safe``, ``status`` always, then ``h``, ``constraint``, ``slack``,
-  ``needed_slack``, ``solve_time_s`` and ``state`` when known. No NaN anywhere.
-- ``diagnostics`` (pub, diagnostic_msgs/DiagnosticArray): a status for every WARN or ERROR
-  answer (ERROR: the fail-safe) at once, and for OK answers at most one every
-  ``diagnostics.min_period_s`` (default 0.1 s; 0: one per answer), with the level, every h_i by
-  barrier name, the constraint values, slack and the slack the rows need at the published
-  command, solver status, solve and total time and the reason. ``filter_info`` is the record
-  of every answer; diagnostics are for people and monitors.
-- ``obstacles`` (sub, std_msgs/Float64MultiArray; reliable, keep-last 1, transient-local, so
-  that a latched perception output published before the filter started is picked up): the
-  whole obstacle set, k rows [x, y, radius] in row-major order (``data`` holds 3 k values;
-  ``layout.dim`` empty or [k, 3]). Float64MultiArray because a ROS user can publish it with
-  stock tools and no message package of ours (``ros2 topic pub --once --qos-durability
-  transient_local obstacles std_msgs/msg/Float64MultiArray "{data: [0.0, 0.0, 0.6, 1.5, 1.5,
-  0.4]}"``), and because a row carries each obstacle's own radius, which geometry_msgs/PoseArray
-  has no field for (its orientations would mean nothing). The margin, look-ahead and gains stay
-  parameters. A transient-local reader matches transient-local writers only (DDS: the offered
-  durability must be at least the requested one); a volatile publisher is not connected, and
-  rclpy warns of the incompatible QoS.
-
-The invariant: the published command is either within the actuator limits and meets every RCBF
-row with a slack of at most ``slack_tolerance`` (evaluated from the rows at that command, not
-taken from the solver), or the fail-safe action with an ERROR saying why. A proposal outside the
-limits is clipped before the QP; a NaN, wrong-length or out-of-bound (``input_bounds.*``) state,
-proposal or disturbance box, no state yet, a state older than ``max_state_age_s`` (from its
-arrival), a failed or unverified solve, or rows infeasible within the limits all publish the
-fail-safe, with the reason in ``filter_info``, in diagnostics and (throttled) in the log. The
-decisions live in :mod:`rcbf_ros.node_logic.safety_filter`; this module only moves messages.
-
-No message can kill the node, and none is ignored in silence. Both subscriptions take CDR bytes
-(``raw=True``) and the node decodes them itself, so it sees every sample that does not decode,
-on rclpy as on the Cyclone runtime (where a subscription that decodes for its callback drops
-such samples with a warning, and rclpy may raise in its executor instead):
-
-- an undecodable ``cmd_proposed`` sample is answered with the fail-safe action and an ERROR
-  ``undecodable proposal: ...``. Dropping it would leave the actuator holding the previous
-  command while its controller believes a new one was sent: not fail-closed. Answering keeps
-  one ``cmd_safe`` per proposal, so a lock-step loop does not stall either; a flood of garbage
-  can hold the robot in its fail-safe, which is the safe side of that trade. (A TwistStamped
-  answer to an undecodable one has no header to copy: it is stamped with the node's clock and
-  an empty frame_id);
-- an undecodable ``state`` sample replaces the latest state as a bad one, exactly as a NaN state
-  does: until a good state arrives, proposals without their own ``state`` section get the
-  fail-safe with ``bad state: undecodable sample: ...``. Keeping the older state instead would
-  filter against a state that the state source has already superseded.
-
-Float64MultiArray samples in plain little-endian CDR (what publishers send) are read without
-building the message: a state ``[state: n_x]`` or a proposal ``[u: n_u]`` (or as many
-unlabelled values) by comparing the bytes before its values with those of that layout
-(:class:`rcbf_ros.messages.cdr.Float64ArrayLayout`), any other layout by
-:func:`rcbf_ros.messages.conversions.sections_from_cdr`, any other bytes through the decoder:
-the same sections every way, validated by the same functions. Float64MultiArray answers and
-diagnostics go out as the same bytes the messages would serialize to (the command's layout
-again, :func:`rcbf_ros.messages.conversions.sections_to_cdr`, ``diagnostics_to_cdr``). Each
-answer publishes the command first, then ``filter_info``, then diagnostics.
-
-A decodable but unusable sample is refused as before. Every diagnostic status carries the
-cumulative counts ``dropped_samples`` (undecodable, on either topic), ``refused_proposals``
-and ``refused_states``. A callback never raises: should the filtering itself fail unexpectedly
-(a defect, not an input), the proposal gets the fail-safe with ``internal error: <type>: ...``.
-
-Parameters: :data:`rcbf_ros.node_logic.safety_filter.PARAMETERS` (``safety_filter --help``
-lists them with types, defaults and one line each): the filter keys of :mod:`rcbf_ros.core.config`
-(``config/<system>.yaml``) and the node's own.
-
-Changes at runtime (``ros2 param set``, ``set_parameters``, ``set_parameters_atomically``, an
-``obstacles`` message): the node builds a complete new filter from its parameters with the
-change applied, through the same validation as at start
-(:func:`rcbf_ros.node_logic.safety_filter.build_active_filter`). If that fails, the change is
-refused (``successful=False``, the reason is the one-line message naming the key; a WARN in the
-log, an ERROR for an ``obstacles`` message) and nothing changes. Otherwise the new filter replaces
-the old one after the parameters are stored (a post-set callback), between two message callbacks:
-each callback reads the filter once, so no proposal is ever filtered half by the old and half by
-the new one; a set_parameters_atomically of several keys is one swap; an INFO line says what
-changed. The parameters that choose sizes, message types or the endpoints' QoS
-(:data:`rcbf_ros.node_logic.safety_filter.READ_ONLY_PARAMETERS`, ``system_params.*``) are declared
-read-only, and a set of one is refused by the middleware ("Trying to set a read-only
-parameter"; a pre-set callback logs the WARN).
+The node keeps subscriptions, parameters and timing: each proposal's bytes go to the message
+edge (:mod:`rcbf_ros.node_logic.filter_edge`), the checked sample to the decision
+(:mod:`rcbf_ros.node_logic.safety_filter`), the decision back to the edge for the bytes of
+``cmd_safe``, ``filter_info`` and diagnostics. Parameter changes build a whole new filter and
+swap it in between two callbacks. Topics, the fail-closed handling of bad samples and the
+parameters: docs/SAFETY_FILTER.md and ``safety_filter --help``.
 """
 from __future__ import annotations
 
@@ -432,7 +342,7 @@ class SafetyFilterNode(Node):
         now_ns = time.monotonic_ns()
         try:
             sample = self._state_sample(data, now_ns, self._active)
-        except Exception as exc:  # a defect, not an input: see the module docstring
+        except Exception as exc:  # a defect, not an input (docs/SAFETY_FILTER.md)
             sample = logic.StateSample(received_ns=now_ns, state=None,
                                        error=f'internal error: {_one_line(exc)}')
         self._latest_state = sample
@@ -456,7 +366,7 @@ class SafetyFilterNode(Node):
         active = self._active  # one filter for the whole answer, whatever changes meanwhile
         try:
             decision, header = self._decide(data, now_ns, active)
-        except Exception as exc:  # a defect, not an input: see the module docstring
+        except Exception as exc:  # a defect, not an input (docs/SAFETY_FILTER.md)
             decision = logic.fail_safe_decision(
                 safety_filter=active.safety_filter, reason=f'internal error: {_one_line(exc)}')
         try:
