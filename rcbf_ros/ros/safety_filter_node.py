@@ -419,22 +419,17 @@ class SafetyFilterNode(Node):
         return decision, sample.header
 
     # output ------------------------------------------------------------------------------------
-    def command_message(self, u_safe: np.ndarray, header: Any = None) -> Any:
-        """The ``cmd_safe`` message of a command (``header``: the proposal's, TwistStamped).
-
-        The message type and twist_fields are read-only, so any filter's settings will do.
-        """
-        command_type = self.settings.command_type
-        if command_type == 'twist_stamped' and header is None:
+    def _publish_command(self, u_safe: np.ndarray, header: Any = None) -> None:
+        """``cmd_safe``: the command alone, in the proposal's type (``header``: the proposal's,
+        TwistStamped). The message type and twist_fields are read-only, so any filter's
+        settings will do."""
+        settings = self.settings
+        if settings.command_type == 'twist_stamped' and header is None:
             # an undecodable proposal: no header to copy
             header = get_message('std_msgs/msg/Header')()
             header.stamp = self.get_clock().now().to_msg()
-        return self._edge.command(u_safe, twist_fields=self.settings.twist_fields,
-                                  header=header)
-
-    def _publish_command(self, u_safe: np.ndarray, header: Any = None) -> None:
-        """``cmd_safe``: the command alone, in the proposal's type."""
-        self._cmd_pub.publish(self.command_message(u_safe, header))
+        self._cmd_pub.publish(self._edge.command(u_safe, twist_fields=settings.twist_fields,
+                                                 header=header))
 
     def _publish_details(self, decision: logic.Decision, now_ns: int,
                          active: logic.ActiveFilter) -> None:
