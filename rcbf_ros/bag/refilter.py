@@ -5,7 +5,8 @@
 Reads ``/cmd_proposed`` and ``/state`` from a bag in log-time order, filters every proposal
 with a :class:`~rcbf_ros.core.filter.SafetyFilter` built from the NEW parameters, and writes a
 new rosbag2-layout bag: every source topic copied unchanged (same CDR bytes, log and publish
-times, schema text, type hash and QoS), plus, at the proposal's log time,
+times, schema text, type hash and QoS), plus, at the proposal's log time, the bytes the
+node's edge writes (:mod:`rcbf_ros.node_logic.filter_edge`):
 
 - ``/refilter/cmd_safe``: the new command u* = u_RL + u_S in the type of the recorded
   proposals, as the node's ``cmd_safe`` with the matching ``command_type``: a
@@ -63,15 +64,10 @@ import torch
 from rcbf_ros.bag import bag_info, BagError, BagWriter, mcap_files, read_bag
 from rcbf_ros.core.config import filter_config_from_params, FilterConfig, flatten
 from rcbf_ros.core.filter import ACTIVE_TOLERANCE, SafetyFilter
-from rcbf_ros.messages.classes import get_message
 from rcbf_ros.messages.conversions import (
-    command_to_msg,
     DIAGNOSTIC_ARRAY,
-    diagnostic_array,
-    diagnostic_status,
     FLOAT64_MULTIARRAY,
     ODOMETRY,
-    sections_to_msg,
     TWIST,
     TWIST_STAMPED,
 )
@@ -375,19 +371,6 @@ def _pop_recorded(answers: RecordedAnswers, u_rl: np.ndarray,
     return None
 
 
-# -- output messages -------------------------------------------------------------------------
-
-def _diagnostics_message(decision: logic.Decision, barrier_names: Sequence[str],
-                         settings: logic.NodeSettings, stamp_ns: int) -> Any:
-    """The safety_filter node's diagnostics for ``decision``, stamped ``stamp_ns``."""
-    level, message, values = logic.diagnostic_values(decision=decision,
-                                                     barrier_names=barrier_names)
-    status = diagnostic_status(name=settings.diagnostics_name, level=level, message=message,
-                               values=values, hardware_id=settings.diagnostics_hardware_id,
-                               message_class=get_message)
-    return diagnostic_array(statuses=[status], stamp_ns=stamp_ns, message_class=get_message)
-
-
 # -- barrier statistics ----------------------------------------------------------------------
 
 def _barrier_statistics(summary: RefilterSummary, safety_filter: SafetyFilter,
@@ -468,6 +451,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     proposal_states: list[np.ndarray] = []
     latest: logic.StateSample | None = None
     skipped: dict[str, int] = defaultdict(int)
+    info_layouts: dict[Any, Any] = {}
     try:
         with writer:
             for topic in topics.values():
@@ -527,16 +511,15 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     _account(summary, decision, proposal, recorded, deltas, tolerance)
                     if proposal.state is not None:
                         proposal_states.append(proposal.state)
-                    writer.write_message(OUTPUT_COMMAND_TOPIC, command_to_msg(
+                    writer.write(OUTPUT_COMMAND_TOPIC, filter_edge.command_cdr(
                         decision.u_safe, type_name=command_type,
-                        twist_fields=settings.twist_fields, header=header,
-                        message_class=get_message), item.log_time_ns)
-                    writer.write_message(OUTPUT_INFO_TOPIC, sections_to_msg(
-                        logic.info_sections(decision), message_class=get_message),
-                        item.log_time_ns)
-                    writer.write_message(OUTPUT_DIAGNOSTICS_TOPIC, _diagnostics_message(
-                        decision, safety_filter.barrier_names, settings, item.log_time_ns),
-                        item.log_time_ns)
+                        twist_fields=settings.twist_fields, header=header), item.log_time_ns)
+                    writer.write(OUTPUT_INFO_TOPIC, filter_edge.info_cdr(decision, info_layouts),
+                                 item.log_time_ns)
+                    writer.write(OUTPUT_DIAGNOSTICS_TOPIC, filter_edge.diagnostics_cdr(
+                        decision, barrier_names=safety_filter.barrier_names,
+                        stamp_ns=item.log_time_ns, name=settings.diagnostics_name,
+                        hardware_id=settings.diagnostics_hardware_id), item.log_time_ns)
     except (RefilterError, BagError):
         _discard(writer)
         raise

@@ -17,7 +17,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from rcbf_ros.messages import conversions
-from rcbf_ros.messages.cdr import deserialize_message, Float64ArrayLayout
+from rcbf_ros.messages.cdr import deserialize_message, Float64ArrayLayout, serialize_message
 from rcbf_ros.messages.classes import get_message as classes_get_message
 from rcbf_ros.messages.conversions import FLOAT64_MULTIARRAY, ODOMETRY, TWIST, TWIST_STAMPED
 from rcbf_ros.node_logic import safety_filter as logic
@@ -146,6 +146,54 @@ def state_sections(data: bytes, *, type_name: str, system: str, frame_id: str = 
     return {'state': conversions.odometry_to_state(msg, system=system, frame_id=frame_id)}
 
 
+def command_cdr(u_safe: np.ndarray, *, type_name: str, twist_fields: Sequence[str],
+                header: Any = None) -> bytes:
+    """The serialized ``cmd_safe`` of a command in ``type_name``: a Float64MultiArray with one
+    section ``u``, or a Twist or TwistStamped (with ``header``'s stamp and frame_id) with u in
+    ``twist_fields`` (others 0).
+
+    Raises:
+        ValueError: ``type_name`` is not a command type.
+    """
+    if type_name == FLOAT64_MULTIARRAY:
+        return conversions.sections_to_cdr({'u': u_safe})
+    return serialize_message(conversions.command_to_msg(
+        u_safe, type_name=type_name, twist_fields=twist_fields, header=header,
+        message_class=classes_get_message))
+
+
+def info_cdr(decision: logic.Decision,
+             layouts: dict[tuple[tuple[str, int], ...], Float64ArrayLayout] | None = None
+             ) -> bytes:
+    """The serialized ``filter_info`` of a decision: the values of an answer with every
+    section in the bytes of its layout (kept in ``layouts``, one per set of sizes), any other
+    answer through its sections (the same bytes either way)."""
+    values = logic.full_info_values(decision)
+    if values is None:
+        return conversions.sections_to_cdr(logic.info_sections(decision))
+    sizes = logic.full_info_layout(decision)
+    layout = None if layouts is None else layouts.get(sizes)
+    if layout is None:
+        layout = Float64ArrayLayout(sizes)
+        if layouts is not None:
+            layouts[sizes] = layout
+    return layout.encode(values)
+
+
+def diagnostics_cdr(decision: logic.Decision, *, barrier_names: Sequence[str], stamp_ns: int,
+                    name: str, hardware_id: str = '',
+                    counts: Mapping[str, int] | None = None) -> bytes:
+    """The serialized DiagnosticArray of a decision (one status: its level, message and
+    key/values, :func:`rcbf_ros.node_logic.safety_filter.diagnostic_values`, then ``counts``),
+    stamped ``stamp_ns``."""
+    level, message, values = logic.diagnostic_values(decision=decision,
+                                                     barrier_names=barrier_names)
+    values.update(counts or {})
+    return conversions.diagnostics_to_cdr(stamp_ns=stamp_ns, name=name, level=level,
+                                          message=message, values=values,
+                                          hardware_id=hardware_id)
+
+
 @dataclass(frozen=True)
 class ProposalSample:
     """One ``cmd_proposed`` sample as read: a checked proposal, or why there is none."""
@@ -264,28 +312,8 @@ class FilterEdge:
                                           twist_fields=twist_fields, header=header)
 
     def info_cdr(self, decision: logic.Decision) -> bytes:
-        """The serialized ``filter_info`` of a decision: the values of an answer with every
-        section in the bytes of its layout (one per set of sizes, kept), any other answer
-        through its sections (the same bytes either way)."""
-        values = logic.full_info_values(decision)
-        if values is None:
-            return conversions.sections_to_cdr(logic.info_sections(decision))
-        sizes = logic.full_info_layout(decision)
-        layout = self._info_layouts.get(sizes)
-        if layout is None:
-            layout = self._info_layouts[sizes] = Float64ArrayLayout(sizes)
-        return layout.encode(values)
+        """The serialized ``filter_info`` of a decision (:func:`info_cdr`; the layouts of the
+        answers with every section kept)."""
+        return info_cdr(decision, self._info_layouts)
 
-    @staticmethod
-    def diagnostics_cdr(decision: logic.Decision, *, barrier_names: Sequence[str],
-                        stamp_ns: int, name: str, hardware_id: str = '',
-                        counts: Mapping[str, int] | None = None) -> bytes:
-        """The serialized DiagnosticArray of a decision (one status: its level, message and
-        key/values, :func:`rcbf_ros.node_logic.safety_filter.diagnostic_values`, then
-        ``counts``), stamped ``stamp_ns``."""
-        level, message, values = logic.diagnostic_values(decision=decision,
-                                                         barrier_names=barrier_names)
-        values.update(counts or {})
-        return conversions.diagnostics_to_cdr(stamp_ns=stamp_ns, name=name, level=level,
-                                              message=message, values=values,
-                                              hardware_id=hardware_id)
+    diagnostics_cdr = staticmethod(diagnostics_cdr)
