@@ -11,7 +11,9 @@ field values (missing fields take the type's zero) or any object with the fields
 ``std_msgs/Float64MultiArray``, the type of every vector this package sends, takes a shorter
 way through both (the same bytes and the same message, see :func:`serialize_message` and
 :func:`deserialize_message`), and :class:`Float64ArrayLayout` reads and writes the samples of
-one fixed layout without building a message at all.
+one fixed layout without building a message at all. :func:`float64_multiarray_head` and
+:func:`float64_multiarray_fields` are the one writer and the one reader of those bytes: the
+message path, the fixed layouts and :mod:`.conversions`' sections all go through them.
 """
 from __future__ import annotations
 

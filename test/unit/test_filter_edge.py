@@ -294,3 +294,23 @@ def test_the_refilter_stops_on_an_undecodable_proposal_in_one_line(tmp_path, cap
     error = capsys.readouterr().err
     assert error.count('\n') == 1 and 'undecodable sample' in error
     assert not (tmp_path / 'out').exists() and not (tmp_path / 'out2').exists()
+
+
+@pytest.mark.parametrize('type_name', [ARRAY, 'geometry_msgs/msg/Twist',
+                                       'geometry_msgs/msg/TwistStamped'])
+def test_the_offline_command_is_the_bytes_of_the_nodes(type_name):
+    """command_cdr (refilter's) reads back as the command, and for arrays is the node's
+    bytes."""
+    from rcbf_ros.messages.classes import get_message
+    header = get_message('std_msgs/msg/Header')(frame_id='base')
+    data = filter_edge.command_cdr(np.array([0.25, -1.5]), type_name=type_name,
+                                   twist_fields=FIELDS, header=header)
+    if type_name == ARRAY:
+        assert data == _edge().command(np.array([0.25, -1.5]), twist_fields=FIELDS)
+        assert _rosbags_sections(data) == {'u': [0.25, -1.5]}
+        return
+    read = _rosbags(data, type_name)
+    twist = read.twist if type_name.endswith('Stamped') else read
+    assert (twist.linear.x, twist.angular.z, twist.angular.x) == (0.25, -1.5, 0.0)
+    if type_name.endswith('Stamped'):
+        assert read.header.frame_id == 'base'
