@@ -235,7 +235,9 @@ def main(argv: list[str] | None = None) -> int:
     from benchmarks._results import publish_section
     publish_section(
         TITLE, script='edge_call_graph.py' + (f' --compare {args.compare}' if args.compare
-                                              else ''),
+                                              else '')
+        + (f' --calls {args.calls}' if args.calls != 2000 else ''),
+        conditions=f"; load averages {', '.join(f'{x:.2f}' for x in os.getloadavg())}",
         write=args.write, blocks=[
             'One proposal through an in-process `safety_filter` (config/unicycle.yaml, '
             'diagnostics with every answer) from its CDR bytes to the bytes of `cmd_safe`, '
