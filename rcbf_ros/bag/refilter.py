@@ -5,7 +5,8 @@
 Reads ``/cmd_proposed`` and ``/state`` from a bag in log-time order, filters every proposal
 with a :class:`~rcbf_ros.core.filter.SafetyFilter` built from the NEW parameters, and writes a
 new rosbag2-layout bag: every source topic copied unchanged (same CDR bytes, log and publish
-times, schema text, type hash and QoS), plus, at the proposal's log time,
+times, schema text, type hash and QoS), plus, at the proposal's log time, the bytes the
+node's edge writes (:mod:`rcbf_ros.node_logic.filter_edge`):
 
 - ``/refilter/cmd_safe``: the new command u* = u_RL + u_S in the type of the recorded
   proposals, as the node's ``cmd_safe`` with the matching ``command_type``: a
@@ -20,10 +21,12 @@ times, schema text, type hash and QoS), plus, at the proposal's log time,
   (:func:`rcbf_ros.node_logic.safety_filter.diagnostic_values`: ``h.<barrier>``,
   ``constraint.<barrier>``, ``slack``, ``status``, ...), stamped with the proposal's log time.
 
-Proposals are read as the node reads them: a Float64MultiArray (sections ``u``, ``state``,
-``disturbance_mean``, ``disturbance_std``), or a geometry_msgs/Twist or TwistStamped (u in the
-new parameters' ``twist_fields``); states as a Float64MultiArray or a nav_msgs/Odometry
-(``state_frame_id`` checked as the node does).
+Proposals are read as the node reads them, by :mod:`rcbf_ros.node_logic.filter_edge`: a
+Float64MultiArray (sections ``u``, ``state``, ``disturbance_mean``, ``disturbance_std``), or a
+geometry_msgs/Twist or TwistStamped (u in the new parameters' ``twist_fields``); states as a
+Float64MultiArray or a nav_msgs/Odometry (``state_frame_id`` checked as the node does). A
+sample that does not decode stops the run with the topic and log time, as a layout that does
+not fit does (an undecodable Odometry is a bad state, as in the node).
 
 Decisions are the node's own (:func:`rcbf_ros.node_logic.safety_filter.decide`): the proposal's
 ``state`` section wins, else the latest ``/state`` if it is at most ``max_state_age_s`` older
@@ -61,23 +64,15 @@ import torch
 from rcbf_ros.bag import bag_info, BagError, BagWriter, mcap_files, read_bag
 from rcbf_ros.core.config import filter_config_from_params, FilterConfig, flatten
 from rcbf_ros.core.filter import ACTIVE_TOLERANCE, SafetyFilter
-from rcbf_ros.messages.cdr import deserialize_rosbags_message
-from rcbf_ros.messages.classes import get_message
 from rcbf_ros.messages.conversions import (
-    command_to_msg,
     DIAGNOSTIC_ARRAY,
-    diagnostic_array,
-    diagnostic_status,
     FLOAT64_MULTIARRAY,
-    msg_to_sections,
     ODOMETRY,
-    odometry_to_state,
-    sections_to_msg,
     TWIST,
     TWIST_STAMPED,
-    twist_to_array,
 )
 from rcbf_ros.messages.typestore import jazzy_typestore
+from rcbf_ros.node_logic import filter_edge
 from rcbf_ros.node_logic import safety_filter as logic
 from rcbf_ros.parameters.rules import find_config, load_params
 
@@ -281,39 +276,46 @@ def _array_sections(topic: str, log_time_ns: int, data: bytes, type_name: str,
         raise RefilterError(f'{topic}: type {type_name!r} is not supported (re-filtering reads '
                             f'{FLOAT64_MULTIARRAY} sections)')
     try:
-        return msg_to_sections(deserialize_rosbags_message(data, type_name),
-                               default_label=default_label)
-    except ValueError as exc:
-        raise RefilterError(f'{topic} at log time {log_time_ns}: {exc}') from exc
+        return filter_edge.float64_sections(data, default_label=default_label)
+    except ValueError as exc:  # undecodable bytes, or a layout that does not fit
+        raise RefilterError(f'{topic} at log time {log_time_ns}: {_decoding_error(exc)}'
+                            ) from exc
+
+
+def _decoding_error(exc: ValueError) -> str:
+    """What the edge refused, as the safety_filter node says it."""
+    return (f'undecodable sample: {exc}' if isinstance(exc, filter_edge.Undecodable)
+            else str(exc))
 
 
 def _proposal_sections(item: Any, settings: logic.NodeSettings
                        ) -> tuple[dict[str, np.ndarray], Any]:
-    """The sections of a recorded proposal: a Float64MultiArray's, or ``u`` of a Twist or
-    TwistStamped (the new parameters' ``twist_fields``); and the TwistStamped's header (else
-    None)."""
+    """The sections of a recorded proposal, read as the node reads them
+    (:func:`rcbf_ros.node_logic.filter_edge.proposal_sections`: a Float64MultiArray's, or ``u``
+    of a Twist or TwistStamped in the new parameters' ``twist_fields``); and the
+    TwistStamped's header (else None)."""
     if item.type_name in (TWIST, TWIST_STAMPED):
-        msg = deserialize_rosbags_message(item.data, item.type_name)
-        header = None
-        if item.type_name == TWIST_STAMPED:
-            msg, header = msg.twist, msg.header
-        return {'u': twist_to_array(msg, settings.twist_fields)}, header
+        try:
+            return filter_edge.proposal_sections(item.data, type_name=item.type_name,
+                                                 twist_fields=settings.twist_fields)
+        except ValueError as exc:
+            raise RefilterError(f'{item.topic} at log time {item.log_time_ns}: '
+                                f'{_decoding_error(exc)}') from exc
     return _array_sections(item.topic, item.log_time_ns, item.data, item.type_name, 'u'), None
 
 
 def _state_sections(item: Any, settings: logic.NodeSettings,
                     system: str) -> dict[str, np.ndarray] | str:
     """The sections of a recorded state (an Odometry's as the node reads it), or why an
-    Odometry is refused (a wrong frame, an orientation without heading)."""
+    Odometry is refused (undecodable, a wrong frame, an orientation without heading)."""
     if item.type_name == ODOMETRY:
         try:
-            odometry = deserialize_rosbags_message(item.data, item.type_name)
-            return {'state': odometry_to_state(odometry, system=system,
-                                               frame_id=settings.state_frame_id)}
+            return filter_edge.state_sections(item.data, type_name=ODOMETRY, system=system,
+                                              frame_id=settings.state_frame_id)
         except ValueError as exc:
             if str(exc).startswith('state_type:'):
                 raise RefilterError(f'{item.topic}: {exc}') from exc
-            return str(exc)
+            return _decoding_error(exc)
     return _array_sections(item.topic, item.log_time_ns, item.data, item.type_name, 'state')
 
 
@@ -367,19 +369,6 @@ def _pop_recorded(answers: RecordedAnswers, u_rl: np.ndarray,
             del queue[index]
             return u
     return None
-
-
-# -- output messages -------------------------------------------------------------------------
-
-def _diagnostics_message(decision: logic.Decision, barrier_names: Sequence[str],
-                         settings: logic.NodeSettings, stamp_ns: int) -> Any:
-    """The safety_filter node's diagnostics for ``decision``, stamped ``stamp_ns``."""
-    level, message, values = logic.diagnostic_values(decision=decision,
-                                                     barrier_names=barrier_names)
-    status = diagnostic_status(name=settings.diagnostics_name, level=level, message=message,
-                               values=values, hardware_id=settings.diagnostics_hardware_id,
-                               message_class=get_message)
-    return diagnostic_array(statuses=[status], stamp_ns=stamp_ns, message_class=get_message)
 
 
 # -- barrier statistics ----------------------------------------------------------------------
@@ -462,6 +451,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     proposal_states: list[np.ndarray] = []
     latest: logic.StateSample | None = None
     skipped: dict[str, int] = defaultdict(int)
+    info_layouts: dict[Any, Any] = {}
     try:
         with writer:
             for topic in topics.values():
@@ -521,16 +511,15 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     _account(summary, decision, proposal, recorded, deltas, tolerance)
                     if proposal.state is not None:
                         proposal_states.append(proposal.state)
-                    writer.write_message(OUTPUT_COMMAND_TOPIC, command_to_msg(
+                    writer.write(OUTPUT_COMMAND_TOPIC, filter_edge.command_cdr(
                         decision.u_safe, type_name=command_type,
-                        twist_fields=settings.twist_fields, header=header,
-                        message_class=get_message), item.log_time_ns)
-                    writer.write_message(OUTPUT_INFO_TOPIC, sections_to_msg(
-                        logic.info_sections(decision), message_class=get_message),
-                        item.log_time_ns)
-                    writer.write_message(OUTPUT_DIAGNOSTICS_TOPIC, _diagnostics_message(
-                        decision, safety_filter.barrier_names, settings, item.log_time_ns),
-                        item.log_time_ns)
+                        twist_fields=settings.twist_fields, header=header), item.log_time_ns)
+                    writer.write(OUTPUT_INFO_TOPIC, filter_edge.info_cdr(decision, info_layouts),
+                                 item.log_time_ns)
+                    writer.write(OUTPUT_DIAGNOSTICS_TOPIC, filter_edge.diagnostics_cdr(
+                        decision, barrier_names=safety_filter.barrier_names,
+                        stamp_ns=item.log_time_ns, name=settings.diagnostics_name,
+                        hardware_id=settings.diagnostics_hardware_id), item.log_time_ns)
     except (RefilterError, BagError):
         _discard(writer)
         raise

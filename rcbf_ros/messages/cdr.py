@@ -11,7 +11,9 @@ field values (missing fields take the type's zero) or any object with the fields
 ``std_msgs/Float64MultiArray``, the type of every vector this package sends, takes a shorter
 way through both (the same bytes and the same message, see :func:`serialize_message` and
 :func:`deserialize_message`), and :class:`Float64ArrayLayout` reads and writes the samples of
-one fixed layout without building a message at all.
+one fixed layout without building a message at all. :func:`float64_multiarray_head` and
+:func:`float64_multiarray_fields` are the one writer and the one reader of those bytes: the
+message path, the fixed layouts and :mod:`.conversions`' sections all go through them.
 """
 from __future__ import annotations
 
@@ -125,15 +127,19 @@ def _decoded_by_rosbags(data: bytes | memoryview, type_name: str) -> Message:
 
 
 FLOAT64_MULTIARRAY = 'std_msgs/msg/Float64MultiArray'
-_CDR_LE = b'\x00\x01'
-"""The first two bytes of a plain little-endian CDR stream (the options bytes follow)."""
+CDR_LE_HEADER = b'\x00\x01\x00\x00'
+"""The encapsulation header of plain little-endian CDR (XCDR1) as writers send it; a reader
+looks at its first two bytes only (the options bytes that follow are the writer's)."""
 _UINT32 = struct.Struct('<I')
 _TWO_UINT32 = struct.Struct('<II')
+
+Float64Dims = tuple[tuple[str, int, int], ...]
+"""``layout.dim`` of a Float64MultiArray as (label, size, stride) per dimension."""
 
 
 def _float64_multiarray_cdr(message: Any) -> bytes | None:
     """The serialized bytes of a Float64MultiArray instance: the bytes before its values (those
-    of :func:`_float64_multiarray_head`) and the values, or None when it is not the plain case
+    of :func:`float64_multiarray_head`) and the values, or None when it is not the plain case
     (data not a float64 array, fields of other types): the serializer then says what is
     wrong with it."""
     data = message.data
@@ -143,58 +149,65 @@ def _float64_multiarray_cdr(message: Any) -> bytes | None:
     layout = message.layout
     try:
         key = tuple((dim.label, dim.size, dim.stride) for dim in layout.dim)
-        head = _float64_multiarray_head(key, layout.data_offset, data.size)
+        if not all(type(label) is str and type(size) is int and type(stride) is int
+                   for label, size, stride in key) or type(layout.data_offset) is not int:
+            return None
+        head = float64_multiarray_head(key, layout.data_offset, data.size)
     except Exception:  # noqa: BLE001 - any odd field: the serializer reports it
         return None
     return head + data.astype('<f8', copy=False).tobytes()
 
 
 @functools.lru_cache(maxsize=256)
-def _float64_multiarray_head(dims: tuple[tuple[str, int, int], ...], data_offset: int,
-                             count: int) -> bytes:
-    """Everything of a serialized Float64MultiArray before its ``count`` values, as the
-    serializer writes it for that layout (its own bytes for the layout with zeros: the values
-    are the last field, after their alignment, in plain little-endian doubles).
+def float64_multiarray_head(dims: Float64Dims, data_offset: int, count: int) -> bytes:
+    """Everything of a serialized Float64MultiArray before its ``count`` values: the
+    encapsulation header, ``layout`` (``dims``, ``data_offset``) and the length of ``data``
+    (then the padding to the values' 8-byte alignment, when there are values), as the
+    serializer writes them.
+
+    CDR aligns every primitive to its size, counted from the start of the body (after the
+    4-byte header); strings are a uint32 length that counts their terminating NUL, then the
+    UTF-8 bytes and the NUL.
 
     Raises:
-        whatever the serializer raises for such a layout (not cached).
+        TypeError: a label that is not a str (as the message's field refuses it).
+        struct.error: a size, stride, offset or count that is not a uint32.
     """
-    if not all(type(label) is str and type(size) is int and type(stride) is int
-               for label, size, stride in dims) or type(data_offset) is not int:
-        raise TypeError('not the plain field types')
-    message = get_message(FLOAT64_MULTIARRAY)()
-    layout = message.layout
-    dim_class = get_message('std_msgs/msg/MultiArrayDimension')
-    layout.dim = [dim_class(label=label, size=size, stride=stride) for label, size, stride in dims]
-    layout.data_offset = data_offset
-    message.data = np.zeros(count)
-    zeros = bytes(jazzy_typestore().serialize_cdr(message, FLOAT64_MULTIARRAY,
-                                                  little_endian=True))
-    return zeros[:len(zeros) - 8 * count]
+    body = bytearray(_UINT32.pack(len(dims)))
+    for label, size, stride in dims:
+        if not isinstance(label, str):
+            raise TypeError(f"field 'label' of std_msgs/msg/MultiArrayDimension must be str, "
+                            f'got {type(label).__name__}')
+        text = label.encode('utf-8')
+        body += _UINT32.pack(len(text) + 1) + text + b'\x00'
+        body += bytes(-len(body) % 4)
+        body += _TWO_UINT32.pack(size, stride)
+    body += _TWO_UINT32.pack(data_offset, count)  # data_offset, then the length of data
+    if count:
+        body += bytes(-len(body) % 8)
+    return CDR_LE_HEADER + bytes(body)
 
 
-@functools.cache
-def _float64_multiarray_classes() -> tuple[type[Message], type[Message], type[Message]]:
-    """The message classes of Float64MultiArray, MultiArrayLayout and MultiArrayDimension."""
-    return (get_message(FLOAT64_MULTIARRAY), get_message('std_msgs/msg/MultiArrayLayout'),
-            get_message('std_msgs/msg/MultiArrayDimension'))
+def float64_multiarray_fields(data: bytes | memoryview
+                              ) -> tuple[list[tuple[str, int, int]], int, np.ndarray] | None:
+    """(``layout.dim`` as (label, size, stride), ``layout.data_offset``, ``data``) of a plain
+    little-endian CDR Float64MultiArray sample, read without building a message (``data``: a
+    read-only float64 view of the sample); None for anything but the plain case (big endian,
+    a sequence or string running past the end, a label that is not NUL-terminated UTF-8
+    without NULs): the decoder then reads it, or says what is wrong. Bytes after a complete
+    message are ignored, as the decoder ignores them.
 
-
-def _float64_multiarray_message(data: bytes | memoryview) -> Message | None:
-    """The Float64MultiArray of a plain little-endian CDR sample, as the decoder builds it
-    (ints, str labels, ``data`` a read-only float64 view of the sample), or None for anything
-    but the plain case (big endian, a sequence or string running past the end, a label that is
-    not NUL-terminated UTF-8 without NULs): the decoder then reads it, or says what is wrong."""
+    The one reader of these bytes: :func:`deserialize_message` builds its message from it and
+    :func:`rcbf_ros.messages.conversions.sections_from_cdr` its sections.
+    """
     view = memoryview(data).cast('B') if not isinstance(data, bytes) else data
-    if len(view) < 16 or view[:2] != _CDR_LE:
+    if len(view) < 16 or view[:2] != CDR_LE_HEADER[:2]:
         return None
     end = len(view)
     (count,), pos = _UINT32.unpack_from(view, 4), 8
     if count > (end - pos) // 12:  # every dimension takes at least 12 bytes
         return None
     base = 4  # CDR aligns from the start of the body, after the encapsulation header
-    array_class, layout_class, dim_class = _float64_multiarray_classes()
-    setter = object.__setattr__
     dims = []
     for _ in range(count):
         pos += -(pos - base) % 4
@@ -215,11 +228,7 @@ def _float64_multiarray_message(data: bytes | memoryview) -> Message | None:
         if pos + 8 > end:
             return None
         (size, stride), pos = _TWO_UINT32.unpack_from(view, pos), pos + 8
-        dim = dim_class.__new__(dim_class)
-        setter(dim, 'label', label)
-        setter(dim, 'size', size)
-        setter(dim, 'stride', stride)
-        dims.append(dim)
+        dims.append((label, size, stride))
     pos += -(pos - base) % 4
     if pos + 8 > end:
         return None
@@ -228,12 +237,39 @@ def _float64_multiarray_message(data: bytes | memoryview) -> Message | None:
         pos += -(pos - base) % 8
     if pos + 8 * length > end:
         return None
+    return dims, data_offset, np.frombuffer(view, dtype=np.float64, count=length, offset=pos)
+
+
+@functools.cache
+def _float64_multiarray_classes() -> tuple[type[Message], type[Message], type[Message]]:
+    """The message classes of Float64MultiArray, MultiArrayLayout and MultiArrayDimension."""
+    return (get_message(FLOAT64_MULTIARRAY), get_message('std_msgs/msg/MultiArrayLayout'),
+            get_message('std_msgs/msg/MultiArrayDimension'))
+
+
+def _float64_multiarray_message(data: bytes | memoryview) -> Message | None:
+    """The Float64MultiArray of a plain little-endian CDR sample, as the decoder builds it
+    (ints, str labels, ``data`` a read-only float64 view of the sample), or None for anything
+    but the plain case (see :func:`float64_multiarray_fields`)."""
+    fields = float64_multiarray_fields(data)
+    if fields is None:
+        return None
+    raw_dims, data_offset, values = fields
+    array_class, layout_class, dim_class = _float64_multiarray_classes()
+    setter = object.__setattr__
+    dims = []
+    for label, size, stride in raw_dims:
+        dim = dim_class.__new__(dim_class)
+        setter(dim, 'label', label)
+        setter(dim, 'size', size)
+        setter(dim, 'stride', stride)
+        dims.append(dim)
     layout = layout_class.__new__(layout_class)
     setter(layout, 'dim', dims)
     setter(layout, 'data_offset', data_offset)
     message = array_class.__new__(array_class)
     setter(message, 'layout', layout)
-    setter(message, 'data', np.frombuffer(view, dtype=np.float64, count=length, offset=pos))
+    setter(message, 'data', values)
     return message
 
 
@@ -259,7 +295,7 @@ class Float64ArrayLayout:
         self.sections = sections
         self.size = sum(size for _, size in sections)
         """How many values a sample holds."""
-        self.head = _float64_multiarray_head(dims, 0, self.size)
+        self.head = float64_multiarray_head(dims, 0, self.size)
         """The bytes before the values (encapsulation header and all)."""
         self._body = self.head[4:]
         self._length = len(self.head) + 8 * self.size
@@ -268,8 +304,8 @@ class Float64ArrayLayout:
     def decode(self, data: bytes) -> tuple[float, ...] | None:
         """The values of a little-endian sample of this layout (any encapsulation options,
         bytes after the values ignored, as the decoder ignores them), else None."""
-        if (type(data) is not bytes or len(data) < self._length or not data.startswith(_CDR_LE)
-                or not data.startswith(self._body, 4)):
+        if (type(data) is not bytes or len(data) < self._length
+                or not data.startswith(CDR_LE_HEADER[:2]) or not data.startswith(self._body, 4)):
             return None
         return self._values.unpack_from(data, len(self.head))
 

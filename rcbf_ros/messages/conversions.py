@@ -16,8 +16,8 @@ States may also come as ``nav_msgs/Odometry`` where the system's state maps onto
 vectors with its unit.
 
 :func:`sections_to_cdr` and :func:`sections_from_cdr` write and read a serialized
-Float64MultiArray directly (the bytes and arrays of the message route, without building the
-message): the safety filter's per-command path.
+Float64MultiArray as sections, without building the message, through the one reader and
+writer of those bytes in :mod:`.cdr` (the bytes and arrays of the message route).
 
 The builders (``sections_to_msg``, ``array_to_twist``, ``command_to_msg``, ...) make instances of
 the classes the node's runtime publishes: :mod:`rcbf_ros.ros.runtime` names its ``get_message``
@@ -28,7 +28,6 @@ the runtime, as the offline bag tools do.
 """
 from __future__ import annotations
 
-import functools
 import math
 import struct
 from typing import Any, Callable, Mapping, Sequence
@@ -36,6 +35,11 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from rcbf_ros.messages import classes
+from rcbf_ros.messages.cdr import (
+    CDR_LE_HEADER,
+    float64_multiarray_fields,
+    float64_multiarray_head,
+)
 
 FLOAT64_MULTIARRAY = 'std_msgs/msg/Float64MultiArray'
 TWIST = 'geometry_msgs/msg/Twist'
@@ -116,43 +120,11 @@ def sections_to_cdr(sections: Mapping[str, Sequence[float] | np.ndarray]) -> byt
     once per sequence of (label, size).
     """
     arrays = [np.asarray(values, dtype=np.float64).reshape(-1) for values in sections.values()]
-    head = _float64_multiarray_head(tuple(zip(sections, [array.size for array in arrays])))
+    dims = tuple((label, array.size, array.size) for label, array in zip(sections, arrays))
+    head = float64_multiarray_head(dims, 0, sum(array.size for array in arrays))
     if not arrays:
         return head
     return head + np.concatenate(arrays).astype('<f8', copy=False).tobytes()
-
-
-_CDR_LE = b'\x00\x01\x00\x00'
-"""Encapsulation header of plain little-endian CDR (XCDR1)."""
-
-
-@functools.lru_cache(maxsize=256)
-def _float64_multiarray_head(layout: tuple[tuple[str, int], ...]) -> bytes:
-    """Everything of a serialized Float64MultiArray before its values: the encapsulation
-    header, ``layout`` (dim: label, size, stride = size; data_offset 0) and the length of
-    ``data`` (then the padding to the values' 8-byte alignment, when there are values).
-
-    CDR aligns every primitive to its size, counted from the start of the body (after the
-    4-byte header); strings are a uint32 length that counts their terminating NUL, then the
-    UTF-8 bytes and the NUL.
-
-    Raises:
-        TypeError: a label that is not a str (as the message's field refuses it).
-    """
-    body = bytearray(struct.pack('<I', len(layout)))
-    for label, size in layout:
-        if not isinstance(label, str):
-            raise TypeError(f"field 'label' of std_msgs/msg/MultiArrayDimension must be str, "
-                            f'got {type(label).__name__}')
-        text = label.encode('utf-8')
-        body += struct.pack('<I', len(text) + 1) + text + b'\x00'
-        body += bytes(-len(body) % 4)
-        body += struct.pack('<II', size, size)
-    count = sum(size for _, size in layout)
-    body += struct.pack('<II', 0, count)  # data_offset, then the length of data
-    if count:
-        body += bytes(-len(body) % 8)
-    return _CDR_LE + bytes(body)
 
 
 def msg_to_sections(msg: Any, default_label: str = 'data') -> dict[str, np.ndarray]:
@@ -181,59 +153,15 @@ def sections_from_cdr(data: bytes, default_label: str = 'data'
     Raises:
         ValueError: as :func:`msg_to_sections`, for a decoded layout that does not fit.
     """
-    parsed = _parse_float64_multiarray(memoryview(data).cast('B'))
-    if parsed is None:
+    fields = float64_multiarray_fields(data)
+    if fields is None:
         return None
-    dims, data_offset, values = parsed
-    return _split_sections(dims, data_offset, values, default_label)
+    dims, data_offset, values = fields
+    return _split_sections([(label, size) for label, size, _ in dims], data_offset,
+                           values.astype(np.float64), default_label)
 
 
 _UINT32 = struct.Struct('<I')
-_TWO_UINT32 = struct.Struct('<II')
-
-
-def _parse_float64_multiarray(view: memoryview
-                              ) -> tuple[list[tuple[str, int]], int, np.ndarray] | None:
-    """(dims as (label, size), data_offset, data) of a little-endian CDR Float64MultiArray,
-    or None when it is not one this reader takes (see :func:`sections_from_cdr`)."""
-    if len(view) < 8 or view[0] != 0 or view[1] != 1:
-        return None
-    body = view[4:]
-    end = len(body)
-    (count,), pos = _UINT32.unpack_from(body, 0), 4
-    if count > (end - pos) // 12:  # every dimension takes at least 12 bytes
-        return None
-    dims = []
-    for _ in range(count):
-        pos += -pos % 4
-        if pos + 4 > end:
-            return None
-        (length,), pos = _UINT32.unpack_from(body, pos), pos + 4
-        if length < 1 or pos + length > end or body[pos + length - 1] != 0:
-            return None
-        raw = bytes(body[pos:pos + length - 1])
-        if b'\x00' in raw:
-            return None
-        try:
-            label = raw.decode('utf-8')
-        except UnicodeDecodeError:
-            return None
-        pos += length
-        pos += -pos % 4
-        if pos + 8 > end:
-            return None
-        (size, _stride), pos = _TWO_UINT32.unpack_from(body, pos), pos + 8
-        dims.append((label, size))
-    pos += -pos % 4
-    if pos + 8 > end:
-        return None
-    (data_offset, length), pos = _TWO_UINT32.unpack_from(body, pos), pos + 8
-    if length:
-        pos += -pos % 8
-    if pos + 8 * length > end:
-        return None
-    values = np.frombuffer(body, dtype='<f8', count=length, offset=pos).astype(np.float64)
-    return dims, data_offset, values
 
 
 def _split_sections(dims: list[tuple[str, int]], data_offset: int, data: np.ndarray,
@@ -339,7 +267,7 @@ def diagnostics_to_cdr(*, stamp_ns: int, name: str, level: int, message: str,
     for key, value in values.items():
         _put_string(body, str(key))
         _put_string(body, _value_text(value))
-    return _CDR_LE + bytes(body)
+    return CDR_LE_HEADER + bytes(body)
 
 
 def _put_string(body: bytearray, text: str) -> None:

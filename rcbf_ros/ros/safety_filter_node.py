@@ -1,101 +1,11 @@
 """safety_filter: the RCBF-QP in front of any controller (``ros2 run rcbf_ros safety_filter``).
 
-Topics (all relative, so remappable: ``-r cmd_proposed:=/my_controller/cmd``; every one with the
-node's QoS, ``qos.reliable`` / ``qos.depth``, default reliable, volatile, keep-last 10):
-
-- ``state`` (sub): the system state. ``state_type: array``: std_msgs/Float64MultiArray, its
-  ``state`` section, else its first section (n_x values, README: state layout per system).
-  ``state_type: odometry``: nav_msgs/Odometry, for the Unicycle [x, y, yaw] of the pose
-  (``state_frame_id`` names the frame it must be in; '' accepts any).
-- ``cmd_proposed`` (sub): the proposal. ``command_type: array``: a Float64MultiArray with
-  sections ``u`` (unlabelled data counts as ``u``) and optionally ``disturbance_mean``,
-  ``disturbance_std`` (the learner's GP estimate, which wins over the static box
-  ``disturbance.mean/std``) and ``state`` (the proposal is then filtered against that state).
-  ``command_type: twist`` / ``twist_stamped``: a geometry_msgs/Twist or TwistStamped whose
-  ``twist_fields`` hold u.
-- ``cmd_safe`` (pub, the proposal's type): the command u* = u_RL + u_S, nothing else: for
-  arrays exactly the n_u values (one section ``u``); for twists the ``twist_fields`` (others
-  0); a TwistStamped carries the proposal's header (stamp and frame_id) unchanged.
-- ``filter_info`` (pub, std_msgs/Float64MultiArray): one per command, right after it, with
-  labelled sections (:data:`rcbf_ros.core.filter_info.INFO_SECTIONS`): ``u``, ``u_rl``,
-  ``u_s``, ``fail_safe``, ``status`` always, then ``h``, ``constraint``, ``slack``,
-  ``needed_slack``, ``solve_time_s`` and ``state`` when known. No NaN anywhere.
-- ``diagnostics`` (pub, diagnostic_msgs/DiagnosticArray): a status for every WARN or ERROR
-  answer (ERROR: the fail-safe) at once, and for OK answers at most one every
-  ``diagnostics.min_period_s`` (default 0.1 s; 0: one per answer), with the level, every h_i by
-  barrier name, the constraint values, slack and the slack the rows need at the published
-  command, solver status, solve and total time and the reason. ``filter_info`` is the record
-  of every answer; diagnostics are for people and monitors.
-- ``obstacles`` (sub, std_msgs/Float64MultiArray; reliable, keep-last 1, transient-local, so
-  that a latched perception output published before the filter started is picked up): the
-  whole obstacle set, k rows [x, y, radius] in row-major order (``data`` holds 3 k values;
-  ``layout.dim`` empty or [k, 3]). Float64MultiArray because a ROS user can publish it with
-  stock tools and no message package of ours (``ros2 topic pub --once --qos-durability
-  transient_local obstacles std_msgs/msg/Float64MultiArray "{data: [0.0, 0.0, 0.6, 1.5, 1.5,
-  0.4]}"``), and because a row carries each obstacle's own radius, which geometry_msgs/PoseArray
-  has no field for (its orientations would mean nothing). The margin, look-ahead and gains stay
-  parameters. A transient-local reader matches transient-local writers only (DDS: the offered
-  durability must be at least the requested one); a volatile publisher is not connected, and
-  rclpy warns of the incompatible QoS.
-
-The invariant: the published command is either within the actuator limits and meets every RCBF
-row with a slack of at most ``slack_tolerance`` (evaluated from the rows at that command, not
-taken from the solver), or the fail-safe action with an ERROR saying why. A proposal outside the
-limits is clipped before the QP; a NaN, wrong-length or out-of-bound (``input_bounds.*``) state,
-proposal or disturbance box, no state yet, a state older than ``max_state_age_s`` (from its
-arrival), a failed or unverified solve, or rows infeasible within the limits all publish the
-fail-safe, with the reason in ``filter_info``, in diagnostics and (throttled) in the log. The
-decisions live in :mod:`rcbf_ros.node_logic.safety_filter`; this module only moves messages.
-
-No message can kill the node, and none is ignored in silence. Both subscriptions take CDR bytes
-(``raw=True``) and the node decodes them itself, so it sees every sample that does not decode,
-on rclpy as on the Cyclone runtime (where a subscription that decodes for its callback drops
-such samples with a warning, and rclpy may raise in its executor instead):
-
-- an undecodable ``cmd_proposed`` sample is answered with the fail-safe action and an ERROR
-  ``undecodable proposal: ...``. Dropping it would leave the actuator holding the previous
-  command while its controller believes a new one was sent: not fail-closed. Answering keeps
-  one ``cmd_safe`` per proposal, so a lock-step loop does not stall either; a flood of garbage
-  can hold the robot in its fail-safe, which is the safe side of that trade. (A TwistStamped
-  answer to an undecodable one has no header to copy: it is stamped with the node's clock and
-  an empty frame_id);
-- an undecodable ``state`` sample replaces the latest state as a bad one, exactly as a NaN state
-  does: until a good state arrives, proposals without their own ``state`` section get the
-  fail-safe with ``bad state: undecodable sample: ...``. Keeping the older state instead would
-  filter against a state that the state source has already superseded.
-
-Float64MultiArray samples in plain little-endian CDR (what publishers send) are read without
-building the message: a state ``[state: n_x]`` or a proposal ``[u: n_u]`` (or as many
-unlabelled values) by comparing the bytes before its values with those of that layout
-(:class:`rcbf_ros.messages.cdr.Float64ArrayLayout`), any other layout by
-:func:`rcbf_ros.messages.conversions.sections_from_cdr`, any other bytes through the decoder:
-the same sections every way, validated by the same functions. Float64MultiArray answers and
-diagnostics go out as the same bytes the messages would serialize to (the command's layout
-again, :func:`rcbf_ros.messages.conversions.sections_to_cdr`, ``diagnostics_to_cdr``). Each
-answer publishes the command first, then ``filter_info``, then diagnostics.
-
-A decodable but unusable sample is refused as before. Every diagnostic status carries the
-cumulative counts ``dropped_samples`` (undecodable, on either topic), ``refused_proposals``
-and ``refused_states``. A callback never raises: should the filtering itself fail unexpectedly
-(a defect, not an input), the proposal gets the fail-safe with ``internal error: <type>: ...``.
-
-Parameters: :data:`rcbf_ros.node_logic.safety_filter.PARAMETERS` (``safety_filter --help``
-lists them with types, defaults and one line each): the filter keys of :mod:`rcbf_ros.core.config`
-(``config/<system>.yaml``) and the node's own.
-
-Changes at runtime (``ros2 param set``, ``set_parameters``, ``set_parameters_atomically``, an
-``obstacles`` message): the node builds a complete new filter from its parameters with the
-change applied, through the same validation as at start
-(:func:`rcbf_ros.node_logic.safety_filter.build_active_filter`). If that fails, the change is
-refused (``successful=False``, the reason is the one-line message naming the key; a WARN in the
-log, an ERROR for an ``obstacles`` message) and nothing changes. Otherwise the new filter replaces
-the old one after the parameters are stored (a post-set callback), between two message callbacks:
-each callback reads the filter once, so no proposal is ever filtered half by the old and half by
-the new one; a set_parameters_atomically of several keys is one swap; an INFO line says what
-changed. The parameters that choose sizes, message types or the endpoints' QoS
-(:data:`rcbf_ros.node_logic.safety_filter.READ_ONLY_PARAMETERS`, ``system_params.*``) are declared
-read-only, and a set of one is refused by the middleware ("Trying to set a read-only
-parameter"; a pre-set callback logs the WARN).
+The node keeps subscriptions, parameters and timing: each proposal's bytes go to the message
+edge (:mod:`rcbf_ros.node_logic.filter_edge`), the checked sample to the decision
+(:mod:`rcbf_ros.node_logic.safety_filter`), the decision back to the edge for the bytes of
+``cmd_safe``, ``filter_info`` and diagnostics. Parameter changes build a whole new filter and
+swap it in between two callbacks. Topics, the fail-closed handling of bad samples and the
+parameters: docs/SAFETY_FILTER.md and ``safety_filter --help``.
 """
 from __future__ import annotations
 
@@ -110,8 +20,10 @@ import numpy as np
 from rcbf_ros.core.config import FilterConfig
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.messages import conversions
-from rcbf_ros.messages.cdr import Float64ArrayLayout
 from rcbf_ros.node_logic import safety_filter as logic
+from rcbf_ros.node_logic.filter_edge import array_sections as _array_sections  # noqa: F401
+from rcbf_ros.node_logic.filter_edge import FilterEdge, INPUT_COUNT_KEYS
+from rcbf_ros.node_logic.filter_edge import one_line as _one_line
 from rcbf_ros.node_logic.interface import (
     bound_text,
     COMMAND_TOPIC_TYPES,
@@ -135,8 +47,6 @@ from rcbf_ros.ros.runtime import (
 )
 
 NODE_NAME = 'safety_filter'
-INPUT_COUNT_KEYS = ('dropped_samples', 'refused_proposals', 'refused_states')
-"""Diagnostic keys of the node's cumulative input counts (see the module docstring)."""
 _QOS = 'reliable, keep-last 10 (qos.reliable, qos.depth)'
 
 
@@ -228,28 +138,16 @@ class SafetyFilterNode(Node):
         self._info_pub = self.create_publisher(array_type, 'filter_info', qos)
         self._diag_pub = self.create_publisher(
             get_message(DIAGNOSTIC_ARRAY), 'diagnostics', qos)
-        self._state_type, self._command_type = state_type, command_type
-        # Float64MultiArrays are read and written by conversions.sections_from_cdr and
-        # sections_to_cdr, diagnostics written by diagnostics_to_cdr (the same arrays and bytes
-        # as through the message, without building one); state_type and command_type are
-        # read-only.
-        self._array_states = self.settings.state_type == 'array'
-        self._array_commands = self.settings.command_type == 'array'
-        # The layouts read and written without building a message (n_x and n_u are fixed at
-        # start: system and system_params.* are read-only); '' is an unlabelled section.
-        n_x, n_u = self.filter.n_x, self.filter.n_u
-        self._state_layouts = (Float64ArrayLayout([('state', n_x)]),
-                               Float64ArrayLayout([('', n_x)]))
-        self._proposal_layouts = (Float64ArrayLayout([('u', n_u)]),
-                                  Float64ArrayLayout([('', n_u)]))
-        self._command_layout = self._proposal_layouts[0]
-        self._info_layouts: dict[tuple[tuple[str, int], ...], Float64ArrayLayout] = {}
+        # Bytes in and out (message types and sizes are read-only: fixed at start).
+        self._edge = FilterEdge(
+            state_type=self.settings.state_type, command_type=self.settings.command_type,
+            system=self.system, n_x=self.filter.n_x, n_u=self.filter.n_u,
+            deserialize=deserialize_message, get_message=get_message)
         self.create_subscription(state_type, 'state', self._on_state, qos, raw=True)
         self.create_subscription(command_type, 'cmd_proposed', self._on_proposal, qos, raw=True)
         obstacles_qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                                    reliability=ReliabilityPolicy.RELIABLE,
                                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self._array_type = array_type
         self.create_subscription(array_type, 'obstacles', self._on_obstacles, obstacles_qos,
                                  raw=True)
         problem = self.config.problem
@@ -422,13 +320,8 @@ class SafetyFilterNode(Node):
     def _on_obstacles(self, data: bytes) -> None:
         """An ``obstacles`` sample (CDR bytes): the new obstacle set, or an ERROR and the old
         set kept."""
-        msg, error = _decoded(data, self._array_type)
         try:
-            if msg is None:
-                raise ValueError(f'undecodable sample: {error}')
-            changes = logic.obstacle_parameters(
-                data=msg.data, data_offset=int(msg.layout.data_offset),
-                dims=[(d.label, int(d.size), int(d.stride)) for d in msg.layout.dim])
+            changes = self._edge.read_obstacles(data)
             self._change_source = 'obstacles'
             try:
                 result = self.set_parameters_atomically([
@@ -449,7 +342,7 @@ class SafetyFilterNode(Node):
         now_ns = time.monotonic_ns()
         try:
             sample = self._state_sample(data, now_ns, self._active)
-        except Exception as exc:  # a defect, not an input: see the module docstring
+        except Exception as exc:  # a defect, not an input (docs/SAFETY_FILTER.md)
             sample = logic.StateSample(received_ns=now_ns, state=None,
                                        error=f'internal error: {_one_line(exc)}')
         self._latest_state = sample
@@ -458,27 +351,12 @@ class SafetyFilterNode(Node):
 
     def _state_sample(self, data: bytes, now_ns: int,
                       active: logic.ActiveFilter) -> logic.StateSample:
-        """The state sample of one ``state`` message, counted when refused."""
-        try:
-            sections = (_array_sections(data, self._state_layouts, 'state')
-                        if self._array_states else None)
-            if sections is None:
-                msg, error = _decoded(data, self._state_type)
-                if msg is None:
-                    self.input_counts['dropped_samples'] += 1
-                    return logic.StateSample(received_ns=now_ns, state=None,
-                                             error=f'undecodable sample: {error}')
-                if self._array_states:
-                    sections = conversions.msg_to_sections(msg, default_label='state')
-                else:
-                    sections = {'state': conversions.odometry_to_state(
-                        msg, system=self.system, frame_id=active.settings.state_frame_id)}
-            state = logic.state_from_sections(sections=sections,
-                                              n_x=active.safety_filter.n_x)
-        except ValueError as exc:
-            self.input_counts['refused_states'] += 1
-            return logic.StateSample(received_ns=now_ns, state=None, error=str(exc))
-        return logic.StateSample(received_ns=now_ns, state=state)
+        """The state sample of one ``state`` message, counted when dropped or refused."""
+        sample, count = self._edge.read_state(data, received_ns=now_ns,
+                                              frame_id=active.settings.state_frame_id)
+        if count:
+            self.input_counts[count] += 1
+        return sample
 
     def _on_proposal(self, data: bytes) -> None:
         """A ``cmd_proposed`` sample (CDR bytes): answered with one command, always."""
@@ -488,7 +366,7 @@ class SafetyFilterNode(Node):
         active = self._active  # one filter for the whole answer, whatever changes meanwhile
         try:
             decision, header = self._decide(data, now_ns, active)
-        except Exception as exc:  # a defect, not an input: see the module docstring
+        except Exception as exc:  # a defect, not an input (docs/SAFETY_FILTER.md)
             decision = logic.fail_safe_decision(
                 safety_filter=active.safety_filter, reason=f'internal error: {_one_line(exc)}')
         try:
@@ -525,62 +403,33 @@ class SafetyFilterNode(Node):
                 active: logic.ActiveFilter) -> tuple[logic.Decision, Any]:
         """The decision for one proposal sample, and its header (TwistStamped; else None)."""
         settings, safety_filter = active.settings, active.safety_filter
-        header, proposal, error = None, None, ''
-        try:
-            sections = (_array_sections(data, self._proposal_layouts, 'u')
-                        if self._array_commands else None)
-            if sections is None:
-                msg, error = _decoded(data, self._command_type)
-                if msg is None:
-                    self.input_counts['dropped_samples'] += 1
-                    return logic.fail_safe_decision(
-                        safety_filter=safety_filter,
-                        reason=f'undecodable proposal: {error}'), None
-                command_type = settings.command_type
-                if command_type == 'twist':
-                    sections = {'u': conversions.twist_to_array(msg, settings.twist_fields)}
-                elif command_type == 'twist_stamped':
-                    header = msg.header
-                    sections = {'u': conversions.twist_stamped_to_array(
-                        msg, settings.twist_fields)}
-                else:
-                    sections = conversions.msg_to_sections(msg, default_label='u')
-            proposal = logic.proposal_from_sections(sections=sections, n_u=safety_filter.n_u,
-                                                    n_x=safety_filter.n_x)
-        except (ValueError, TypeError) as exc:
-            error = str(exc)
-            self.input_counts['refused_proposals'] += 1
+        sample = self._edge.read_proposal(data, twist_fields=settings.twist_fields)
+        if sample.count:
+            self.input_counts[sample.count] += 1
+        if sample.undecodable:
+            return logic.fail_safe_decision(
+                safety_filter=safety_filter,
+                reason=f'undecodable proposal: {sample.error}'), None
         decision = logic.decide(
-            safety_filter=safety_filter, proposal=proposal, proposal_error=error,
+            safety_filter=safety_filter, proposal=sample.proposal, proposal_error=sample.error,
             latest_state=self._latest_state, now_ns=now_ns,
             max_state_age_s=settings.max_state_age_s,
             static_mean=active.static_mean, static_std=active.static_std,
             slack_tolerance=settings.slack_tolerance)
-        return decision, header
+        return decision, sample.header
 
     # output ------------------------------------------------------------------------------------
-    def command_message(self, u_safe: np.ndarray, header: Any = None) -> Any:
-        """The ``cmd_safe`` message of a command (``header``: the proposal's, TwistStamped).
-
-        The message type and twist_fields are read-only, so any filter's settings will do.
-        """
-        command_type = self.settings.command_type
-        if command_type == 'twist_stamped' and header is None:
+    def _publish_command(self, u_safe: np.ndarray, header: Any = None) -> None:
+        """``cmd_safe``: the command alone, in the proposal's type (``header``: the proposal's,
+        TwistStamped). The message type and twist_fields are read-only, so any filter's
+        settings will do."""
+        settings = self.settings
+        if settings.command_type == 'twist_stamped' and header is None:
             # an undecodable proposal: no header to copy
             header = get_message('std_msgs/msg/Header')()
             header.stamp = self.get_clock().now().to_msg()
-        return conversions.command_to_msg(
-            u_safe, type_name=conversions.COMMAND_MESSAGES[command_type],
-            twist_fields=self.settings.twist_fields, header=header)
-
-    def _publish_command(self, u_safe: np.ndarray, header: Any = None) -> None:
-        """``cmd_safe``: the command alone, in the proposal's type."""
-        if self._array_commands:
-            layout = self._command_layout
-            self._cmd_pub.publish(layout.encode(u_safe) if u_safe.size == layout.size
-                                  else conversions.sections_to_cdr({'u': u_safe}))
-        else:
-            self._cmd_pub.publish(self.command_message(u_safe, header))
+        self._cmd_pub.publish(self._edge.command(u_safe, twist_fields=settings.twist_fields,
+                                                 header=header))
 
     def _publish_details(self, decision: logic.Decision, now_ns: int,
                          active: logic.ActiveFilter) -> None:
@@ -593,26 +442,32 @@ class SafetyFilterNode(Node):
             return
         if decision.level == logic.OK:
             self._last_ok_diagnostics_ns = now_ns
-        level, message, values = logic.diagnostic_values(
-            decision=decision, barrier_names=active.safety_filter.barrier_names)
-        values.update(self.input_counts)
-        self._diag_pub.publish(conversions.diagnostics_to_cdr(
+        self._diag_pub.publish(self._edge.diagnostics_cdr(
+            decision, barrier_names=active.safety_filter.barrier_names,
             stamp_ns=self.get_clock().now().nanoseconds, name=settings.diagnostics_name,
-            level=level, message=message, values=values,
-            hardware_id=settings.diagnostics_hardware_id))
+            hardware_id=settings.diagnostics_hardware_id, counts=self.input_counts))
 
     def _info_cdr(self, decision: logic.Decision) -> bytes:
-        """The serialized ``filter_info`` of a decision: the values of an answer with every
-        section in the bytes of its layout (one per set of sizes, kept), any other answer
-        through its sections (the same bytes either way)."""
-        values = logic.full_info_values(decision)
-        if values is None:
-            return conversions.sections_to_cdr(logic.info_sections(decision))
-        sizes = logic.full_info_layout(decision)
-        layout = self._info_layouts.get(sizes)
-        if layout is None:
-            layout = self._info_layouts[sizes] = Float64ArrayLayout(sizes)
-        return layout.encode(values)
+        """The serialized ``filter_info`` of a decision (:meth:`FilterEdge.info_cdr`)."""
+        return self._edge.info_cdr(decision)
+
+    # The Float64MultiArray layouts the edge reads at fixed offsets (() reads every sample the
+    # general way).
+    @property
+    def _state_layouts(self) -> tuple[Any, ...]:
+        return self._edge.state_layouts
+
+    @_state_layouts.setter
+    def _state_layouts(self, layouts: tuple[Any, ...]) -> None:
+        self._edge.state_layouts = layouts
+
+    @property
+    def _proposal_layouts(self) -> tuple[Any, ...]:
+        return self._edge.proposal_layouts
+
+    @_proposal_layouts.setter
+    def _proposal_layouts(self, layouts: tuple[Any, ...]) -> None:
+        self._edge.proposal_layouts = layouts
 
     def _log(self, level: int, reason: str, now_ns: int) -> None:
         key = logic.reason_key(reason)
@@ -629,35 +484,6 @@ class SafetyFilterNode(Node):
     def fail_safe_action(self) -> np.ndarray:
         """(n_u,) what the node publishes when it cannot filter."""
         return self.filter.fail_safe_action
-
-
-def _array_sections(data: bytes, layouts: Sequence[Float64ArrayLayout],
-                    default_label: str) -> dict[str, Any] | None:
-    """The sections of a Float64MultiArray sample (CDR bytes), as
-    :func:`rcbf_ros.messages.conversions.sections_from_cdr` reads them: at once for a sample of
-    one of ``layouts`` (one section: its label, or ``default_label`` when unlabelled; the
-    values as a tuple of floats), else through that function (None: leave it to the decoder).
-
-    Raises:
-        ValueError: as sections_from_cdr, for a layout that does not fit.
-    """
-    for layout in layouts:
-        values = layout.decode(data)
-        if values is not None:
-            return {layout.sections[0][0] or default_label: values}
-    return conversions.sections_from_cdr(data, default_label=default_label)
-
-
-def _decoded(data: bytes, message_type: Any) -> tuple[Any, str]:
-    """(message, '') or (None, why): CDR bytes of an untrusted sample, decoded.
-
-    Any exception of the decoder means "not a sample of this type": the decoder is rclpy's or
-    ours (:mod:`rcbf_ros.ros.runtime`) and neither promises a closed set of exceptions.
-    """
-    try:
-        return deserialize_message(data, message_type), ''
-    except Exception as exc:
-        return None, _one_line(exc)
 
 
 def _range_refusal(name: str, value: Any) -> str:
@@ -683,12 +509,6 @@ def _names(parameters: Sequence[Any], most: int = 4) -> str:
 def _cut(text: str, width: int = 400) -> str:
     """``text`` cut to ``width`` characters (a reason stays one readable line)."""
     return text if len(text) <= width else text[:width - 3] + '...'
-
-
-def _one_line(exc: BaseException) -> str:
-    """``Type: text`` of an exception on one line, at most 200 characters."""
-    text = ' '.join(f'{type(exc).__name__}: {exc}'.split())
-    return text if len(text) <= 200 else text[:197] + '...'
 
 
 def spin_frozen(node: SafetyFilterNode) -> None:
