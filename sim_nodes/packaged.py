@@ -8,31 +8,24 @@ environments' own keys) or from the safety filter's specs (the shared layout key
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, Sequence
 
-from rcbf_ros.envs import ENVS
+from rcbf_ros.envs import env_class
+from rcbf_ros.messages import systems
 from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpec, type_of
 from rcbf_ros.node_logic.safety_filter import FILTER_DESCRIPTIONS, FILTER_PARAMETERS
-from rcbf_ros.parameters.reader import parameters_of, setting
-from rcbf_ros.parameters.rules import find_config, load_params
+from rcbf_ros.parameters.reader import parameters_of
+from rcbf_ros.parameters.rules import load_params
 
 DEFAULT_SYSTEM = 'unicycle'
-
-@dataclass(frozen=True)
-class CarControllerSettings:
-    """The car-following controller's parameter (``/nominal_controller`` section)."""
-
-    acceleration: float = setting(
-        5.0, description="the nominal controller's constant acceleration of car 4 (m/s^2)")
-    """Constant acceleration of car 4 (m/s^2)."""
 
 
 def descriptions(system: str) -> dict[str, str]:
     """Key -> one line, for the keys of ``system``'s env and nominal controller (from their
     settings dataclasses)."""
+    env = env_class(system)
     return {parameter.key: parameter.rule.description
-            for cls in (ENVS[system].settings_type, CarControllerSettings)
+            for cls in (env.settings_type, env.controller_settings) if cls is not None
             for parameter in parameters_of(cls) if parameter.rule.description}
 
 
@@ -55,9 +48,10 @@ def packaged_parameters(system: str, section: str) -> dict[str, Any]:
     Raises:
         ValueError: naming ``system`` when it is not a packaged system.
     """
-    if system not in ENVS:
-        raise ValueError(f'system: expected one of {sorted(ENVS)}, got {system!r}')
-    values = load_params(find_config(system), section)
+    if system not in systems.system_names():
+        raise ValueError(f'system: expected one of {sorted(systems.system_names())}, '
+                         f'got {system!r}')
+    values = load_params(systems.lookup(system).config_path(), section)
     values.pop('system', None)
     return {name: value for name, value in values.items()
             if value is not None and value != []}
@@ -68,7 +62,8 @@ def packaged_parameter_specs(system: str, section: str,
     """One spec per key :func:`declare_with_packaged_defaults` declares for ``system``
     (besides ``skip``: keys the node declares itself)."""
     specs = [ParameterSpec('system', DEFAULT_SYSTEM, 'string',
-                           f'the simulated system: {", ".join(sorted(ENVS))} (the other '
+                           f'the simulated system: {", ".join(sorted(systems.system_names()))} '
+                           '(the other '
                            'defaults below are those of its config/<system>.yaml)')]
     for name, value in packaged_parameters(system, section).items():
         if name in skip:
@@ -105,7 +100,7 @@ def system_from_argv(argv: Sequence[str]) -> str:
             'system', DEFAULT_SYSTEM)
     except RosArgumentError:
         return DEFAULT_SYSTEM
-    return str(value) if str(value) in ENVS else DEFAULT_SYSTEM
+    return str(value) if str(value) in systems.system_names() else DEFAULT_SYSTEM
 
 
 def declare_with_packaged_defaults(node: Any, section: str) -> dict[str, Any]:
