@@ -36,7 +36,7 @@ from rcbf_ros.node_logic.interface import (
     STATE_TOPIC_TYPES,
     TopicSpec,
 )
-from rcbf_ros.ros.node_main import declare_specs, run_node
+from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from sim_nodes.packaged import declare_with_packaged_defaults, packaged_interface
 from sim_nodes.simulator_node import message_settings
@@ -80,8 +80,7 @@ class NominalControllerNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('nominal_controller',
                          automatically_declare_parameters_from_overrides=True, **kwargs)
-        declare_specs(self, NODE_PARAMETERS)
-        params = declare_with_packaged_defaults(self, 'nominal_controller')
+        params = declare_with_packaged_defaults(self, 'nominal_controller', own=NODE_PARAMETERS)
         self.system = str(params['system'])
         self.controller = controller_from_params(params)
         messages = message_settings(params, system=self.system, n_u=build_system(params).n_u)

@@ -16,6 +16,7 @@ from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpe
 from rcbf_ros.node_logic.safety_filter import FILTER_DESCRIPTIONS, FILTER_PARAMETERS
 from rcbf_ros.parameters.reader import parameters_of
 from rcbf_ros.parameters.rules import load_params
+from rcbf_ros.ros.node_main import declare_specs
 
 DEFAULT_SYSTEM = 'unicycle'
 
@@ -57,14 +58,18 @@ def packaged_parameters(system: str, section: str) -> dict[str, Any]:
             if value is not None and value != []}
 
 
+def system_spec() -> ParameterSpec:
+    """The ``system`` parameter of a simulated-system node."""
+    return ParameterSpec('system', DEFAULT_SYSTEM, 'string',
+                         f'the simulated system: {", ".join(sorted(systems.system_names()))} '
+                         '(the other defaults below are those of its config/<system>.yaml)')
+
+
 def packaged_parameter_specs(system: str, section: str,
                              skip: Sequence[str] = ()) -> tuple[ParameterSpec, ...]:
     """One spec per key :func:`declare_with_packaged_defaults` declares for ``system``
     (besides ``skip``: keys the node declares itself)."""
-    specs = [ParameterSpec('system', DEFAULT_SYSTEM, 'string',
-                           f'the simulated system: {", ".join(sorted(systems.system_names()))} '
-                           '(the other '
-                           'defaults below are those of its config/<system>.yaml)')]
+    specs = [system_spec()]
     for name, value in packaged_parameters(system, section).items():
         if name in skip:
             continue
@@ -103,24 +108,28 @@ def system_from_argv(argv: Sequence[str]) -> str:
     return str(value) if str(value) in systems.system_names() else DEFAULT_SYSTEM
 
 
-def declare_with_packaged_defaults(node: Any, section: str) -> dict[str, Any]:
-    """Declare ``system`` and every key of the packaged ``config/<system>.yaml`` for ``section``.
+def declare_with_packaged_defaults(node: Any, section: str,
+                                   own: Sequence[ParameterSpec] = ()) -> dict[str, Any]:
+    """Declare the node's ``own`` parameters, ``system`` and every key of the packaged
+    ``config/<system>.yaml`` for ``section`` (:func:`rcbf_ros.ros.node_main.declare_specs`,
+    with their descriptions: :func:`packaged_parameter_specs`).
 
     Overrides given on the command line or in ``--params-file`` were already declared by the
     node (``automatically_declare_parameters_from_overrides``) and win; the packaged file
-    supplies the rest. Returns every declared parameter as a flat dict.
+    supplies the rest. Returns every declared parameter that is set as a flat dict (an empty
+    string list is declared by type, unset: its reader's default applies).
 
     Raises:
-        ValueError: naming ``system`` when it is not a packaged system.
+        ValueError: naming ``system`` when it is not a packaged system, or the parameter a
+            declaration refuses.
     """
-    if not node.has_parameter('system'):
-        node.declare_parameter('system', DEFAULT_SYSTEM)
+    declare_specs(node, own, others=None)
+    declare_specs(node, (system_spec(),), others=None)
     system = str(node.get_parameter('system').value)
-    for name, value in packaged_parameters(system, section).items():
-        if not node.has_parameter(name):
-            node.declare_parameter(name, value)
+    declare_specs(node, packaged_parameter_specs(system, section,
+                                                 skip=tuple(spec.name for spec in own)))
     return {name: _plain(p.value)
-            for name, p in node.get_parameters_by_prefix('').items()}
+            for name, p in node.get_parameters_by_prefix('').items() if p.value is not None}
 
 
 def _plain(value: Any) -> Any:
