@@ -54,6 +54,7 @@ def test_the_oracle_sees_the_one_way(tmp_path):
 
 
 def _cases(tmp_path: Path) -> list[tuple[str, Callable[[], Any], list[str]]]:
+    from rcbf_ros.ros.learner_node import LearnerNode
     from rcbf_ros.ros.policy_node import PolicyNode
     from rcbf_ros.ros.recorder_node import RecorderNode
     from rcbf_ros.ros.replay_node import ReplayNode
@@ -67,6 +68,8 @@ def _cases(tmp_path: Path) -> list[tuple[str, Callable[[], Any], list[str]]]:
         ('simulator', SimulatorNode, ['--params-file', UNICYCLE]),
         ('nominal_controller', NominalControllerNode, ['-p', 'system:=car_following']),
         ('nominal_controller', NominalControllerNode, ['--params-file', UNICYCLE]),
+        ('learner', LearnerNode, ['--params-file', UNICYCLE, '-p',
+                                  f'out_dir:={tmp_path / "learner"}']),
         ('policy', PolicyNode, []),  # no policy file: it refuses after declaring
         ('recorder', RecorderNode, ['-p', f'output:={tmp_path / "bag"}']),
         ('replay', ReplayNode, []),  # no bag: it refuses after declaring
