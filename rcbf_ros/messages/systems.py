@@ -27,9 +27,9 @@ PARTS = ('dynamics', 'env')
 """The classes that join an entry (each declares ``system_name``)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class System:
-    """One system of the table."""
+    """One system of the table (its classes join :attr:`parts` when they are defined)."""
 
     name: str
     """The value of the ``system`` parameter (and the stem of its params file)."""
@@ -47,7 +47,7 @@ class System:
     def __post_init__(self) -> None:
         if not self.name.isidentifier():
             raise ValueError(f'system: a table name is an identifier, got {self.name!r}')
-        self.config = self.config or f'{self.name}.yaml'
+        object.__setattr__(self, 'config', self.config or f'{self.name}.yaml')
 
     def config_path(self) -> Path:
         """The packaged params file (:func:`rcbf_ros.parameters.rules.find_config`).
