@@ -24,8 +24,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from rcbf_ros.core.config import build_system
-from rcbf_ros.envs import ENVS
-from rcbf_ros.envs.nominal import cars_accelerate, pvtol_go_to_goal, unicycle_go_to_goal
+from rcbf_ros.envs import env_class
 from rcbf_ros.messages import conversions
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.node_logic.edges import MessageSettings
@@ -37,14 +36,9 @@ from rcbf_ros.node_logic.interface import (
     STATE_TOPIC_TYPES,
     TopicSpec,
 )
-from rcbf_ros.parameters.reader import read_floats, read_parameters
-from rcbf_ros.ros.node_main import declare_specs, run_node
+from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
-from sim_nodes.packaged import (
-    CarControllerSettings,
-    declare_with_packaged_defaults,
-    packaged_interface,
-)
+from sim_nodes.packaged import declare_with_packaged_defaults, packaged_interface
 from sim_nodes.simulator_node import message_settings
 
 NODE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(MessageSettings,
@@ -71,22 +65,13 @@ def nominal_controller_interface(argv: Sequence[str] = ()) -> NodeInterface:
 
 
 def controller_from_params(params: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
-    """The nominal controller of ``params['system']`` with its parameters bound.
+    """The nominal controller of ``params['system']`` with its parameters bound (the env's
+    :meth:`~rcbf_ros.envs.base.SafetyEnv.nominal_controller`).
 
     Raises:
-        ValueError: naming ``goal`` or ``acceleration`` when malformed.
+        ValueError: naming ``system``, or ``goal`` / ``acceleration`` when malformed.
     """
-    system = params['system']
-    if system == 'car_following':
-        acceleration = read_parameters(CarControllerSettings, params).acceleration
-        return lambda x: cars_accelerate(x, acceleration=acceleration)
-    if system not in ('unicycle', 'pvtol'):
-        raise ValueError(f'system: no nominal controller for {system!r}')
-    # The env's own goal by default: the controller drives at the goal the episode rewards.
-    goal = read_floats('goal', params.get('goal', ENVS[system].settings_type.goal), length=2)
-    if system == 'unicycle':
-        return lambda x: unicycle_go_to_goal(x, goal)
-    return lambda x: pvtol_go_to_goal(x, goal)
+    return env_class(str(params['system'])).nominal_controller(params)
 
 
 class NominalControllerNode(Node):
@@ -95,8 +80,7 @@ class NominalControllerNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('nominal_controller',
                          automatically_declare_parameters_from_overrides=True, **kwargs)
-        declare_specs(self, NODE_PARAMETERS)
-        params = declare_with_packaged_defaults(self, 'nominal_controller')
+        params = declare_with_packaged_defaults(self, 'nominal_controller', own=NODE_PARAMETERS)
         self.system = str(params['system'])
         self.controller = controller_from_params(params)
         messages = message_settings(params, system=self.system, n_u=build_system(params).n_u)

@@ -8,31 +8,25 @@ environments' own keys) or from the safety filter's specs (the shared layout key
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, Sequence
 
-from rcbf_ros.envs import ENVS
+from rcbf_ros.envs import env_class
+from rcbf_ros.messages import systems
 from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpec, type_of
 from rcbf_ros.node_logic.safety_filter import FILTER_DESCRIPTIONS, FILTER_PARAMETERS
-from rcbf_ros.parameters.reader import parameters_of, setting
-from rcbf_ros.parameters.rules import find_config, load_params
+from rcbf_ros.parameters.reader import parameters_of
+from rcbf_ros.parameters.rules import load_params
+from rcbf_ros.ros.node_main import declare_specs
 
 DEFAULT_SYSTEM = 'unicycle'
-
-@dataclass(frozen=True)
-class CarControllerSettings:
-    """The car-following controller's parameter (``/nominal_controller`` section)."""
-
-    acceleration: float = setting(
-        5.0, description="the nominal controller's constant acceleration of car 4 (m/s^2)")
-    """Constant acceleration of car 4 (m/s^2)."""
 
 
 def descriptions(system: str) -> dict[str, str]:
     """Key -> one line, for the keys of ``system``'s env and nominal controller (from their
     settings dataclasses)."""
+    env = env_class(system)
     return {parameter.key: parameter.rule.description
-            for cls in (ENVS[system].settings_type, CarControllerSettings)
+            for cls in (env.settings_type, env.controller_settings) if cls is not None
             for parameter in parameters_of(cls) if parameter.rule.description}
 
 
@@ -55,21 +49,27 @@ def packaged_parameters(system: str, section: str) -> dict[str, Any]:
     Raises:
         ValueError: naming ``system`` when it is not a packaged system.
     """
-    if system not in ENVS:
-        raise ValueError(f'system: expected one of {sorted(ENVS)}, got {system!r}')
-    values = load_params(find_config(system), section)
+    if system not in systems.system_names():
+        raise ValueError(f'system: expected one of {sorted(systems.system_names())}, '
+                         f'got {system!r}')
+    values = load_params(systems.lookup(system).config_path(), section)
     values.pop('system', None)
     return {name: value for name, value in values.items()
             if value is not None and value != []}
+
+
+def system_spec() -> ParameterSpec:
+    """The ``system`` parameter of a simulated-system node."""
+    return ParameterSpec('system', DEFAULT_SYSTEM, 'string',
+                         f'the simulated system: {", ".join(sorted(systems.system_names()))} '
+                         '(the other defaults below are those of its config/<system>.yaml)')
 
 
 def packaged_parameter_specs(system: str, section: str,
                              skip: Sequence[str] = ()) -> tuple[ParameterSpec, ...]:
     """One spec per key :func:`declare_with_packaged_defaults` declares for ``system``
     (besides ``skip``: keys the node declares itself)."""
-    specs = [ParameterSpec('system', DEFAULT_SYSTEM, 'string',
-                           f'the simulated system: {", ".join(sorted(ENVS))} (the other '
-                           'defaults below are those of its config/<system>.yaml)')]
+    specs = [system_spec()]
     for name, value in packaged_parameters(system, section).items():
         if name in skip:
             continue
@@ -105,27 +105,31 @@ def system_from_argv(argv: Sequence[str]) -> str:
             'system', DEFAULT_SYSTEM)
     except RosArgumentError:
         return DEFAULT_SYSTEM
-    return str(value) if str(value) in ENVS else DEFAULT_SYSTEM
+    return str(value) if str(value) in systems.system_names() else DEFAULT_SYSTEM
 
 
-def declare_with_packaged_defaults(node: Any, section: str) -> dict[str, Any]:
-    """Declare ``system`` and every key of the packaged ``config/<system>.yaml`` for ``section``.
+def declare_with_packaged_defaults(node: Any, section: str,
+                                   own: Sequence[ParameterSpec] = ()) -> dict[str, Any]:
+    """Declare the node's ``own`` parameters, ``system`` and every key of the packaged
+    ``config/<system>.yaml`` for ``section`` (:func:`rcbf_ros.ros.node_main.declare_specs`,
+    with their descriptions: :func:`packaged_parameter_specs`).
 
     Overrides given on the command line or in ``--params-file`` were already declared by the
     node (``automatically_declare_parameters_from_overrides``) and win; the packaged file
-    supplies the rest. Returns every declared parameter as a flat dict.
+    supplies the rest. Returns every declared parameter that is set as a flat dict (an empty
+    string list is declared by type, unset: its reader's default applies).
 
     Raises:
-        ValueError: naming ``system`` when it is not a packaged system.
+        ValueError: naming ``system`` when it is not a packaged system, or the parameter a
+            declaration refuses.
     """
-    if not node.has_parameter('system'):
-        node.declare_parameter('system', DEFAULT_SYSTEM)
+    declare_specs(node, own, others=None)
+    declare_specs(node, (system_spec(),), others=None)
     system = str(node.get_parameter('system').value)
-    for name, value in packaged_parameters(system, section).items():
-        if not node.has_parameter(name):
-            node.declare_parameter(name, value)
+    declare_specs(node, packaged_parameter_specs(system, section,
+                                                 skip=tuple(spec.name for spec in own)))
     return {name: _plain(p.value)
-            for name, p in node.get_parameters_by_prefix('').items()}
+            for name, p in node.get_parameters_by_prefix('').items() if p.value is not None}
 
 
 def _plain(value: Any) -> Any:

@@ -31,7 +31,7 @@ from rcbf_ros.node_logic.interface import (
     TopicSpec,
 )
 from rcbf_ros.parameters.reader import read_parameters, setting
-from rcbf_ros.ros.node_main import declare_specs, run_node, spin_once
+from rcbf_ros.ros.node_main import run_node, spin_once
 from rcbf_ros.ros.runtime import DurabilityPolicy, get_message, Node, QoSProfile, rclpy
 from sim_nodes.packaged import (
     declare_with_packaged_defaults,
@@ -219,8 +219,7 @@ class SimulatorNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('simulator', automatically_declare_parameters_from_overrides=True,
                          **kwargs)
-        declare_specs(self, NODE_PARAMETERS)
-        params = declare_with_packaged_defaults(self, 'simulator')
+        params = declare_with_packaged_defaults(self, 'simulator', own=NODE_PARAMETERS)
         wait_for = params.get('wait_for_publishers', [])
         if not isinstance(wait_for, list) or not all(isinstance(t, str) and t for t in wait_for):
             raise ValueError(f'wait_for_publishers: expected a list of topic names, got '

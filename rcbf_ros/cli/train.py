@@ -15,6 +15,7 @@ import signal
 import sys
 
 from rcbf_ros.learning.sac import SACConfig
+from rcbf_ros.messages import systems
 from rcbf_ros.training.agent import LearnerConfig, MODES
 from rcbf_ros.training.run_files import DEFAULT_CHECKPOINT_EVERY
 
@@ -27,8 +28,7 @@ def _learner_overrides(args: argparse.Namespace) -> dict:
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``rcbf_ros train``."""
-    parser.add_argument('--system', default='unicycle',
-                        choices=['unicycle', 'car_following', 'pvtol'])
+    parser.add_argument('--system', default='unicycle', choices=systems.system_names())
     parser.add_argument('--mode', default='modular', choices=MODES)
     parser.add_argument('--model-based', dest='model_based', action='store_true', default=None,
                         help='MB SAC-RCBF: synthetic k-step rollouts (mode diff)')

@@ -7,6 +7,8 @@ at B = 1 for the per-step filter and at B = minibatch for the differentiable lay
 
 A user's own system plugs in by implementing :class:`ControlAffineSystem` (``n_x``, ``n_u``,
 ``u_min``, ``u_max``, ``f``, ``g``) and naming it in YAML by dotted path (:func:`load_system`).
+A system of the table (:mod:`rcbf_ros.messages.systems`) is built from the
+:class:`NamedDynamics` that declares its name.
 
 The built-in systems also give f, its Jacobian and g at one state as Python source on floats
 (:meth:`Unicycle.closed_form_source` and the same on the others, returning a
@@ -17,7 +19,6 @@ it, through :meth:`DriftSource.function`, against autograd through ``f`` and ``g
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-import importlib
 import math
 from typing import (
     Any,
@@ -34,6 +35,7 @@ from typing import (
 import numpy as np
 
 from rcbf_ros.core.torch_import import LazyTorch
+from rcbf_ros.messages import systems
 
 torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
 if TYPE_CHECKING:
@@ -189,8 +191,21 @@ def step_euler(system: ControlAffineSystem, x: Tensor, u: Tensor, dt: float,
     return x + dt * x_dot
 
 
+class NamedDynamics:
+    """Base of the dynamics of a system of the table (:mod:`rcbf_ros.messages.systems`): a
+    subclass that sets ``system_name`` itself joins that entry when it is defined, and
+    :func:`load_system` builds it from the name."""
+
+    system_name: ClassVar[str] = ''
+    """The table name this class is the dynamics of ('' or unset: none)."""
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        systems.join(cls, 'dynamics')
+
+
 @dataclass(frozen=True)
-class Unicycle:
+class Unicycle(NamedDynamics):
     """Unicycle [x, y, theta] with input [v, omega] (paper, "Unicycle Environment").
 
     x_dot = g(x) u with g = [[cos th, 0], [sin th, 0], [0, 1]] and f = 0.
@@ -206,6 +221,7 @@ class Unicycle:
     """Input dimension: [v, omega]."""
     heading_indices: ClassVar[tuple[int, ...]] = (2,)
     """State entries that are headings (angles in rad): theta."""
+    system_name: ClassVar[str] = 'unicycle'
 
     def f(self, x: Tensor) -> Tensor:
         """Zero drift. x: (B, 3) -> (B, 3)."""
@@ -234,7 +250,7 @@ class Unicycle:
 
 
 @dataclass(frozen=True)
-class CarFollowing:
+class CarFollowing(NamedDynamics):
     """Chain of five double-integrator cars; the agent drives car 4 (paper, "Car Following").
 
     State [p1, v1, p2, v2, ..., p5, v5] (n_x = 10), input [u4] (acceleration of car 4).
@@ -266,6 +282,7 @@ class CarFollowing:
     """Input dimension: acceleration of car 4."""
     heading_indices: ClassVar[tuple[int, ...]] = ()
     """State entries that are headings: none (positions and speeds along one road)."""
+    system_name: ClassVar[str] = 'car_following'
 
     def nominal_accelerations(self, x: Tensor) -> Tensor:
         """Nominal accelerations of cars 1..5 with car 1 and car 4 set to 0. (B, 10) -> (B, 5)."""
@@ -345,7 +362,7 @@ class CarFollowing:
 
 
 @dataclass(frozen=True)
-class PVTOL:
+class PVTOL(NamedDynamics):
     """Modified planar VTOL of the paper, optionally with the safety operator as a state.
 
     State [x1, x2, v1, v2, theta, f] (+ [x_h] when ``with_operator``), input [omega, u_f]:
@@ -367,6 +384,7 @@ class PVTOL:
     """Input dimension: [omega, u_f]."""
     heading_indices: ClassVar[tuple[int, ...]] = (4,)
     """State entries that are headings (angles in rad): theta."""
+    system_name: ClassVar[str] = 'pvtol'
 
     @property
     def n_x(self) -> int:
@@ -425,23 +443,18 @@ class PVTOL:
                            g={(4, 0): 1.0, (5, 1): 1.0}, n_u=2)
 
 
-BUILTIN_SYSTEMS: dict[str, type] = {
-    'unicycle': Unicycle,
-    'car_following': CarFollowing,
-    'pvtol': PVTOL,
-}
-
 CLOSED_FORM_SYSTEMS: tuple[type, ...] = (Unicycle, CarFollowing, PVTOL)
 """Systems whose ``closed_form_source`` is exact, by exact type: a subclass may override f or g,
 so it keeps the autograd path."""
 
 
 def load_system(name: str, params: Mapping[str, Any] | None = None) -> ControlAffineSystem:
-    """Build a system from a built-in name or a dotted path ``package.module.ClassName``.
+    """Build a system from a name of the table or a dotted path ``package.module.ClassName``.
 
     Args:
-        name: ``unicycle``, ``car_following``, ``pvtol`` or a dotted path to a class (or
-            factory) whose instances implement :class:`ControlAffineSystem`.
+        name: a name of :mod:`rcbf_ros.messages.systems` (``unicycle``, ``car_following``,
+            ``pvtol``) or a dotted path to a class (or factory) whose instances implement
+            :class:`ControlAffineSystem`.
         params: keyword arguments for the constructor (e.g. from YAML).
 
     Raises:
@@ -452,17 +465,13 @@ def load_system(name: str, params: Mapping[str, Any] | None = None) -> ControlAf
     for key in ('u_min', 'u_max'):
         if params.get(key) is not None:
             params[key] = tuple(float(v) for v in params[key])
-    if name in BUILTIN_SYSTEMS:
-        factory = BUILTIN_SYSTEMS[name]
+    if name in systems.system_names():
+        factory = systems.lookup(name).part('dynamics')
     elif '.' in name:
-        module_name, _, attr = name.rpartition('.')
-        try:
-            factory = getattr(importlib.import_module(module_name), attr)
-        except (ImportError, AttributeError) as exc:
-            raise ValueError(f'system: cannot import {name!r}: {exc}') from exc
+        factory = systems.import_object(name)
     else:
-        raise ValueError(f'system: unknown system {name!r}; built-ins are '
-                         f'{sorted(BUILTIN_SYSTEMS)} or give a dotted path')
+        raise ValueError(f'system: unknown system {name!r}; the table has '
+                         f'{list(systems.system_names())} or give a dotted path')
     try:
         system = factory(**params)
     except TypeError as exc:

@@ -17,20 +17,35 @@ the nominal model (physical saturation) when the model has limits. ``info`` of e
 - ``h_true``: (K_true,) signed clearances on the TRUE geometry, > 0 safe (names in
   ``env.h_true_names``); ``violation``: any ``h_true < 0``;
 - ``goal_reached``: the episode ended at the goal; ``t``: time since reset [s].
+
+An env class that sets ``system_name`` joins that system's entry of the table
+(:mod:`rcbf_ros.messages.systems`) when it is defined; it also holds the system's deliberately
+unsafe nominal controller (:meth:`SafetyEnv.nominal_controller`) and, where the reward and
+observation are functions of the state, their batched torch restatement for model-based
+rollouts (:meth:`SafetyEnv.torch_models`).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar, Mapping, Sequence
+from typing import Any, Callable, ClassVar, Mapping, Sequence
 
 import gymnasium as gym
 import numpy as np
 import torch
+from torch import Tensor
 
 from rcbf_ros.core.config import FILTER_OPEN_PREFIXES, FilterParameters, flatten
 from rcbf_ros.core.dynamics import ControlAffineSystem
 from rcbf_ros.envs.layouts import layout_from_params
+from rcbf_ros.messages import systems
 from rcbf_ros.parameters.reader import parameter_keys, read_floats, read_parameters, setting
+
+Controller = Callable[[np.ndarray], np.ndarray]
+"""A nominal controller: the QP state (n_x,) -> u (n_u,)."""
+RewardFn = Callable[[Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]
+"""(state, u, next_state): (B, n_x), (B, n_u), (B, n_x) -> reward (B,), goal reached (B,)."""
+ObsFn = Callable[[Tensor], Tensor]
+"""state (B, n_x) -> observation (B, n_obs)."""
 
 FILTER_KEYS: tuple[str, ...] = parameter_keys(FilterParameters)
 """Flat keys (exact) that :func:`rcbf_ros.core.config.filter_config_from_params` reads."""
@@ -109,8 +124,14 @@ class SafetyEnv(gym.Env):
     """
 
     system_name: ClassVar[str] = ''
+    """The table name this env simulates (a subclass that sets it joins that entry)."""
+    gymnasium_id: ClassVar[str] = ''
+    """Its id in Gymnasium's registry ('': not registered)."""
     settings_type: ClassVar[type[EnvSettings]] = EnvSettings
     """The dataclass of the system's parameters (read into ``self.settings``)."""
+    controller_settings: ClassVar[type | None] = None
+    """The dataclass of the nominal controller's own parameters (``/nominal_controller``),
+    None: it reads the env's (the goal)."""
     metadata: ClassVar[dict[str, Any]] = {'render_modes': []}
 
     nominal_system: ControlAffineSystem
@@ -121,6 +142,26 @@ class SafetyEnv(gym.Env):
     """Steps before truncation."""
     h_true_names: list[str]
     """Names of the ``info['h_true']`` entries."""
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        systems.join(cls, 'env')
+
+    @classmethod
+    def nominal_controller(cls, params: Mapping[str, Any]) -> Controller:
+        """The system's deliberately unsafe nominal controller (:mod:`rcbf_ros.envs.nominal`)
+        with its parameters from the flat ``params`` bound.
+
+        Raises:
+            ValueError: naming ``system`` where the system has none, or the parameter refused.
+        """
+        raise ValueError(f'system: no nominal controller for {cls.system_name!r}')
+
+    def torch_models(self) -> tuple[RewardFn, ObsFn] | None:
+        """The reward and observation of this env as batched torch functions of the state (for
+        model-based rollouts: synthetic transitions from states the plant never visited); None
+        where the observation is not a function of the state alone."""
+        return None
 
     def __init__(self, params: Mapping[str, Any] | None, overrides: Mapping[str, Any]) -> None:
         self.params = merge_params(params, overrides)
@@ -285,3 +326,57 @@ class GoToGoalReward:
         self._last_distance = distance
         reached = distance <= self.goal_radius
         return reward + (self.goal_reward if reached else 0.0), reached
+
+    go_to_goal: ClassVar[Callable[..., np.ndarray]]
+    """The nominal controller: (state, goal) -> u, straight at the goal."""
+    settings_type: ClassVar[type[GoToGoalSettings]]
+
+    @classmethod
+    def nominal_controller(cls, params: Mapping[str, Any]) -> Controller:
+        """:attr:`go_to_goal` at ``goal`` (default: the env's own goal, the one an episode
+        rewards).
+
+        Raises:
+            ValueError: naming ``goal`` when malformed.
+        """
+        goal = read_floats('goal', params.get('goal', cls.settings_type.goal), length=2)
+        drive = cls.go_to_goal
+        return lambda x: drive(x, goal)
+
+    def torch_models(self) -> tuple[RewardFn, ObsFn] | None:
+        """The go-to-goal reward (:func:`go_to_goal_reward`) and :meth:`_torch_observation`."""
+        goal = torch.as_tensor(self.goal, dtype=torch.float64)
+
+        def obs(state: Tensor) -> Tensor:
+            return self._torch_observation(state, goal.to(state.dtype))
+
+        return go_to_goal_reward(goal, self.goal_radius, self.goal_reward), obs
+
+    def _torch_observation(self, state: Tensor, goal: Tensor) -> Tensor:
+        """The observation of a batch of states (B, n_x), as :meth:`_observation` gives it."""
+        raise NotImplementedError
+
+
+def goal_terms(position: Tensor, heading: Tensor, goal: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """cos/sin of the heading, the unit goal direction in the body frame, the distance
+    (batched: position (B, 2), heading (B,), goal (2,))."""
+    to_goal = goal - position
+    distance = to_goal.norm(dim=-1)
+    c, s = torch.cos(heading), torch.sin(heading)
+    body = torch.stack([c * to_goal[:, 0] + s * to_goal[:, 1],
+                        -s * to_goal[:, 0] + c * to_goal[:, 1]], dim=-1)
+    body = body / (body.norm(dim=-1, keepdim=True) + 1e-3)
+    return torch.stack([c, s], dim=-1), body, distance
+
+
+def go_to_goal_reward(goal: Tensor, radius: float, bonus: float) -> RewardFn:
+    """Progress toward the goal plus ``bonus`` (once) on arrival; arrival ends the episode."""
+
+    def reward(state: Tensor, u: Tensor, next_state: Tensor) -> tuple[Tensor, Tensor]:
+        g = goal.to(state.dtype)
+        before = (state[:, :2] - g).norm(dim=-1)
+        after = (next_state[:, :2] - g).norm(dim=-1)
+        reached = after <= radius
+        return before - after + bonus * reached.to(state.dtype), reached
+
+    return reward

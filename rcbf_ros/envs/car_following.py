@@ -36,8 +36,9 @@ import gymnasium as gym
 import numpy as np
 
 from rcbf_ros.core.dynamics import CarFollowing
-from rcbf_ros.envs.base import EnvSettings, SafetyEnv
-from rcbf_ros.parameters.reader import setting
+from rcbf_ros.envs.base import Controller, EnvSettings, SafetyEnv
+from rcbf_ros.envs.nominal import cars_accelerate
+from rcbf_ros.parameters.reader import read_parameters, setting
 
 
 @dataclass(frozen=True)
@@ -76,11 +77,22 @@ class CarFollowingSettings(EnvSettings):
     """True least gap between two cars (m)."""
 
 
+@dataclass(frozen=True)
+class CarControllerSettings:
+    """The car-following nominal controller's parameter (``/nominal_controller`` section)."""
+
+    acceleration: float = setting(
+        5.0, description="the nominal controller's constant acceleration of car 4 (m/s^2)")
+    """Constant acceleration of car 4 (m/s^2)."""
+
+
 class CarFollowingEnv(SafetyEnv):
     """Car Following (see module docstring)."""
 
     system_name = 'car_following'
+    gymnasium_id = 'rcbf_ros/CarFollowing-v0'
     settings_type = CarFollowingSettings
+    controller_settings = CarControllerSettings
     settings: CarFollowingSettings
     h_true_names = ['gap_3_4', 'gap_4_5']
 
@@ -94,6 +106,16 @@ class CarFollowingEnv(SafetyEnv):
         # +/- LearnerConfig.policy_bound), so the plant takes any finite value.
         self.action_space = gym.spaces.Box(-np.inf, np.inf, shape=(1,), dtype=np.float64)
         self._accelerations = np.zeros(5)
+
+    @classmethod
+    def nominal_controller(cls, params: Mapping[str, Any]) -> Controller:
+        """Car 4 accelerates into car 3 at ``acceleration`` (:func:`cars_accelerate`).
+
+        Raises:
+            ValueError: naming ``acceleration`` when malformed.
+        """
+        acceleration = read_parameters(CarControllerSettings, params).acceleration
+        return lambda x: cars_accelerate(x, acceleration=acceleration)
 
     def true_accelerations(self, state: np.ndarray, u: np.ndarray, t: float) -> np.ndarray:
         """(5,) v_dot of every car under the TRUE dynamics at time t."""

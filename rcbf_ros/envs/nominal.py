@@ -2,12 +2,13 @@
 
 They exist to exercise the safety filter (tests, demos, the ``nominal_controller`` node): each
 drives straight at its objective, so any safety comes from the filter alone. Pure functions of
-the QP state (numpy in, numpy out).
+the QP state (numpy in, numpy out); each system's env binds its own
+(:meth:`rcbf_ros.envs.base.SafetyEnv.nominal_controller`).
 """
 from __future__ import annotations
 
 import math
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -81,11 +82,3 @@ def cars_accelerate(state: Sequence[float], *, acceleration: float = 5.0) -> np.
         (1,) [u_4].
     """
     return np.array([float(acceleration)])
-
-
-NOMINAL_CONTROLLERS: dict[str, Callable[..., np.ndarray]] = {
-    'unicycle': unicycle_go_to_goal,
-    'car_following': cars_accelerate,
-    'pvtol': pvtol_go_to_goal,
-}
-"""The unsafe nominal controller of each built-in system."""

@@ -36,15 +36,24 @@ from typing import Any, Mapping
 
 import gymnasium as gym
 import numpy as np
+import torch
+from torch import Tensor
 
 from rcbf_ros.core.dynamics import PVTOL
-from rcbf_ros.envs.base import GoToGoalReward, GoToGoalSettings, input_limits, SafetyEnv
+from rcbf_ros.envs.base import (
+    goal_terms,
+    GoToGoalReward,
+    GoToGoalSettings,
+    input_limits,
+    SafetyEnv,
+)
 from rcbf_ros.envs.layouts import (
     layout_to_params,
     pvtol_random_layout,
     PVTOL_STARTS,
     signed_clearance,
 )
+from rcbf_ros.envs.nominal import pvtol_go_to_goal
 from rcbf_ros.parameters.reader import setting
 
 
@@ -88,7 +97,9 @@ class PVTOLEnv(GoToGoalReward, SafetyEnv):
     """PVTOL go-to-goal (see module docstring)."""
 
     system_name = 'pvtol'
+    gymnasium_id = 'rcbf_ros/PVTOL-v0'
     settings_type = PVTOLSettings
+    go_to_goal = staticmethod(pvtol_go_to_goal)
     settings: PVTOLSettings
 
     def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
@@ -152,6 +163,13 @@ class PVTOLEnv(GoToGoalReward, SafetyEnv):
         body = body / (np.linalg.norm(body) + 1e-3)
         return np.array([s[0], s[1], c, sn, s[2], s[3], s[5], body[0], body[1],
                          math.exp(-distance)])
+
+    def _torch_observation(self, state: Tensor, goal: Tensor) -> Tensor:
+        """[x1, x2, cos th, sin th, v1, v2, f, body-frame goal direction (2),
+        exp(-distance)]."""
+        trig, body, distance = goal_terms(state[:, :2], state[:, 4], goal)
+        return torch.cat([state[:, :2], trig, state[:, 2:4], state[:, 5:6], body,
+                          torch.exp(-distance)[:, None]], dim=-1)
 
     def _h_true(self, state: np.ndarray) -> np.ndarray:
         values = [signed_clearance(o, state[:2]) for o in self.obstacles]

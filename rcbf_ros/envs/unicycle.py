@@ -29,15 +29,24 @@ from typing import Any, Mapping
 
 import gymnasium as gym
 import numpy as np
+import torch
+from torch import Tensor
 
 from rcbf_ros.core.dynamics import Unicycle
-from rcbf_ros.envs.base import GoToGoalReward, GoToGoalSettings, input_limits, SafetyEnv
+from rcbf_ros.envs.base import (
+    goal_terms,
+    GoToGoalReward,
+    GoToGoalSettings,
+    input_limits,
+    SafetyEnv,
+)
 from rcbf_ros.envs.layouts import (
     layout_to_params,
     signed_clearance,
     unicycle_random_layout,
     UNICYCLE_STARTS,
 )
+from rcbf_ros.envs.nominal import unicycle_go_to_goal
 from rcbf_ros.parameters.reader import setting
 
 
@@ -62,8 +71,10 @@ class UnicycleEnv(GoToGoalReward, SafetyEnv):
     """Unicycle go-to-goal with obstacles (see module docstring)."""
 
     system_name = 'unicycle'
+    gymnasium_id = 'rcbf_ros/Unicycle-v0'
     settings_type = UnicycleSettings
     settings: UnicycleSettings
+    go_to_goal = staticmethod(unicycle_go_to_goal)
 
     def __init__(self, params: Mapping[str, Any] | None = None, **overrides: Any) -> None:
         super().__init__(params, overrides)
@@ -109,6 +120,11 @@ class UnicycleEnv(GoToGoalReward, SafetyEnv):
         body = np.array([c * to_goal[0] + s * to_goal[1], -s * to_goal[0] + c * to_goal[1]])
         body = body / (np.linalg.norm(body) + 1e-3)
         return np.array([x, y, c, s, body[0], body[1], math.exp(-distance)])
+
+    def _torch_observation(self, state: Tensor, goal: Tensor) -> Tensor:
+        """[x, y, cos th, sin th, body-frame goal direction (2), exp(-distance)]."""
+        trig, body, distance = goal_terms(state[:, :2], state[:, 2], goal)
+        return torch.cat([state[:, :2], trig, body, torch.exp(-distance)[:, None]], dim=-1)
 
     def _h_true(self, state: np.ndarray) -> np.ndarray:
         return np.array([signed_clearance(o, state[:2]) for o in self.obstacles])

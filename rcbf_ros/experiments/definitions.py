@@ -7,7 +7,7 @@ sample_efficiency  unicycle        baseline, baseline_compensator, sac_rcbf (MF:
                                    sac_rcbf_mb (MB: ``diff`` + model rollouts)
                    car_following   baseline, baseline_compensator, sac_rcbf (no MB: Car
                                    Following has no state-only observation model, see
-                                   rcbf_ros.training.models)
+                                   SafetyEnv.torch_models)
 transfer           unicycle, pvtol sac_no_obstacles (``unconstrained``, trained without obstacles,
                                    PVTOL also without its operator: the upper bound; only
                                    PVTOL's tilt/thrust/arena envelope is filtered), baseline,

@@ -4,7 +4,7 @@ For a trained run, over a grid of positions (x, y) in the arena,
 
     V(x, y) = max_k  min_{i=1,2} Q_i(o(x, y, theta_k), mu_pi(o(x, y, theta_k)))
 
-with o the env's observation of the state (x, y, theta) (rcbf_ros.training.models, checked
+with o the env's observation of the state (x, y, theta) (SafetyEnv.torch_models, checked
 against the env), mu_pi the policy's mean action and theta_k, k < n_headings, evenly spaced
 headings: the value at the best heading, i.e. where the robot could be pointed. Using the mean
 action and dropping the entropy term (-alpha log pi) gives the deterministic policy's value; the
@@ -22,7 +22,6 @@ import torch
 from rcbf_ros.envs import make_env
 from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.training.agent import SafeLearner
-from rcbf_ros.training.models import unicycle_models
 
 
 def value_map(learner: SafeLearner, *, grid: int = 61, half_size: float = 3.0,
@@ -38,7 +37,7 @@ def value_map(learner: SafeLearner, *, grid: int = 61, half_size: float = 3.0,
     if n_headings < 1:
         raise ValueError(f'n_headings: must be >= 1, got {n_headings}')
     env = make_env('unicycle', load_params(find_config(config_file or 'unicycle'), 'simulator'))
-    _, obs_fn = unicycle_models(env)
+    _, obs_fn = env.torch_models()
     xs = np.linspace(-half_size, half_size, grid)
     ys = np.linspace(-half_size, half_size, grid)
     headings = np.linspace(-np.pi, np.pi, n_headings, endpoint=False)

@@ -39,6 +39,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import yaml
 
+from rcbf_ros.messages import systems
 from rcbf_ros.parameters import bounded_yaml
 
 PACKAGE = 'rcbf_ros'
@@ -458,7 +459,7 @@ def _unicycle_robot() -> LaunchSetup:
 
 CLOSED_LOOPS: tuple[LaunchSetup, ...] = tuple(
     make(system) for make in (_filter_loop, _learner_loop, _policy_loop)
-    for system in ('unicycle', 'pvtol', 'car_following'))
+    for system in systems.system_names())
 """The launches of :func:`_closed_loop`: the simulator takes the filter's ``filter_info``."""
 ROBOT_LAUNCHES: tuple[LaunchSetup, ...] = (_drop_in_filter(), _unicycle_robot())
 """The drop-in filter, alone and in the demo: the robot takes ``cmd_safe`` (``cmd_out``)."""

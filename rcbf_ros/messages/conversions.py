@@ -34,7 +34,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from rcbf_ros.messages import classes
+from rcbf_ros.messages import classes, systems
 from rcbf_ros.messages.cdr import (
     CDR_LE_HEADER,
     float64_multiarray_fields,
@@ -56,26 +56,12 @@ STATE_MESSAGES = {'array': FLOAT64_MULTIARRAY, 'odometry': ODOMETRY}
 COMMAND_MESSAGES = {'array': FLOAT64_MULTIARRAY, 'twist': TWIST, 'twist_stamped': TWIST_STAMPED}
 """``command_type`` -> message type of a command topic."""
 
-STATE_LAYOUTS: dict[str, tuple[tuple[str, str], ...]] = {
-    'unicycle': (('x', 'm'), ('y', 'm'), ('theta', 'rad, heading from the x axis')),
-    'pvtol': (('x1', 'horizontal position'), ('x2', 'vertical position'),
-              ('v1', 'horizontal velocity'), ('v2', 'vertical velocity'),
-              ('theta', 'rad, tilt'), ('f', 'thrust, 1 = hover'),
-              ('x_h', "operator's horizontal position; only with_operator")),
-    'car_following': tuple(item for car in range(1, 6) for item in (
-        (f'p{car}', f'm, car {car} position'), (f'v{car}', f'm/s, car {car} velocity'))),
-}
-"""The state vector of each shipped system, (name, unit) per entry, in order (PVTOL's units
-are the paper's normalized ones: gravity 1)."""
-COMMAND_LAYOUTS: dict[str, tuple[tuple[str, str], ...]] = {
-    'unicycle': (('v', 'm/s, forward speed'), ('omega', 'rad/s, turn rate')),
-    'pvtol': (('omega', 'rad/s, tilt rate'), ('u_f', 'thrust rate')),
-    'car_following': (('a4', 'm/s^2, acceleration of car 4'),),
-}
-"""The command vector u of each shipped system, (name, unit) per entry, in order."""
-ODOMETRY_STATES: dict[str, str] = {
-    'unicycle': '[pose.position.x, pose.position.y, yaw of pose.orientation]',
-}
+STATE_LAYOUTS: Mapping[str, systems.Layout] = systems.FactView('state')
+"""The state vector of each system of the table (:mod:`rcbf_ros.messages.systems`), (name,
+unit) per entry, in order."""
+COMMAND_LAYOUTS: Mapping[str, systems.Layout] = systems.FactView('command')
+"""The command vector u of each system of the table, (name, unit) per entry, in order."""
+ODOMETRY_STATES: Mapping[str, str] = systems.FactView('odometry', skip_none=True)
 """The systems whose state a nav_msgs/Odometry holds, and how (others: not supported, e.g.
 PVTOL's thrust and operator, or the five cars of car following, are not in one)."""
 

@@ -146,46 +146,87 @@ def parameter_descriptor(spec: ParameterSpec | None, *, dynamic_typing: bool = F
     return descriptor
 
 
-def declare_specs(node: Any, specs: Sequence[ParameterSpec]) -> None:
-    """Declare every spec of fixed name that ``node`` has not declared yet (an override may
-    have), with its default and :func:`parameter_descriptor`; a default of None declares no
-    type (dynamically typed, as rclpy declares a name given alone)."""
-    for spec in specs:
-        if not spec.pattern and not node.has_parameter(spec.name):
-            node.declare_parameter(spec.name, spec.default, parameter_descriptor(
-                spec, dynamic_typing=spec.default is None))
+RUNTIME_PARAMETERS = ('use_sim_time', 'start_type_description_service')
+"""Parameters the runtime declares itself (rclpy's, and ours as rclpy), with its own
+descriptors: :func:`declare_specs` leaves them alone."""
+OTHER_DESCRIPTION = 'not read by this node (given on its command line or in a params file)'
+"""The description of a parameter an override declared that no spec of the node names."""
+
+
+def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
+                  given: Sequence[ParameterSpec] = (), dynamic_typing: bool = False,
+                  others: str | None = OTHER_DESCRIPTION) -> None:
+    """Declare ``node``'s parameters from ``specs``: the one way the nodes declare them.
+
+    Every declaration gets a descriptor of its own (:func:`parameter_descriptor`: the spec's
+    one line and range; rclpy keeps and modifies the one it is given):
+
+    - a spec of fixed name not declared yet is declared with its default: a default of None
+      declares no type (dynamically typed, as rclpy declares a name given alone); a string list
+      without a default is declared as STRING_ARRAY by type (rclpy types an empty list as a
+      BYTE_ARRAY, which refuses ``-p topics:=[/a]``, and a params file cannot hold an empty
+      list: rcl reads ``[]`` as no value);
+    - a parameter declared already without a description (by an override, in a node made with
+      ``automatically_declare_parameters_from_overrides``) is declared again with its value, as
+      the override declared it (typed by its value), and the descriptor of the spec of
+      ``specs`` or ``given`` that names it (a ``<name>`` pattern too), else with ``others`` as
+      its description (None: left as it is, for a call that declares part of a node's
+      parameters). An override outside the spec's range is left as it was declared: the
+      node's reader refuses it, one line naming the key, as it reads its settings.
+
+    ``given``: specs of parameters declared only when given (the filter keys a node reads from a
+    params file). ``dynamic_typing``: the declarations from defaults take a value of any type
+    (else only those without a default). :data:`RUNTIME_PARAMETERS` are left as the runtime
+    declared them.
+
+    Raises:
+        ValueError: one line naming the parameter: a declaration the runtime refuses (e.g. a
+            default outside the declared range, an override of another type).
+    """
+    from rcbf_ros.ros.runtime import Parameter, ParameterException
+
+    try:
+        for spec in specs:
+            if spec.pattern or node.has_parameter(spec.name):
+                continue
+            descriptor = parameter_descriptor(
+                spec, dynamic_typing=dynamic_typing or spec.default is None)
+            if spec.type == 'string[]' and not spec.default:
+                node.declare_parameter(spec.name, Parameter.Type.STRING_ARRAY, descriptor)
+            else:
+                node.declare_parameter(spec.name, spec.default, descriptor)
+        for name, parameter in node.get_parameters_by_prefix('').items():
+            if name in RUNTIME_PARAMETERS or node.describe_parameter(name).description:
+                continue
+            spec = next((s for s in (*specs, *given) if s.matches(name)), None)
+            if spec is None and others is None:
+                continue
+            value = parameter.value
+            if spec is not None and spec.range_refuses(value):
+                continue  # as the override declared it: the node's reader refuses it
+            node.undeclare_parameter(name)
+            node.declare_parameter(name, value, parameter_descriptor(
+                spec, dynamic_typing=value is None, description=others or ''),
+                ignore_override=True)
+    except ParameterException as exc:
+        raise ValueError(str(exc)) from exc
 
 
 def declare_settings(node: Any, cls: type[T]) -> T:
-    """Declare every parameter of the dataclass ``cls`` on ``node`` and read them into it.
-
-    Each is declared with the dataclass's default, except string lists: those are declared as
-    STRING_ARRAY by type, without a default (rclpy types an empty list as a BYTE_ARRAY, which
-    refuses ``-p topics:=[/a]``, and a params file cannot hold an empty list: rcl reads ``[]`` as
-    no value), and read as empty while unset, their empty strings dropped.
+    """Declare every parameter of the dataclass ``cls`` on ``node`` (:func:`declare_specs`)
+    and read them into it; string lists read as empty while unset, their empty strings dropped.
 
     Raises:
         ValueError: one line naming the parameter (a declaration the runtime refuses, or a
             value the typed reader refuses).
     """
-    from rcbf_ros.ros.runtime import Parameter, ParameterException
+    from rcbf_ros.ros.runtime import Parameter
 
-    lists = {p.key for p in parameters_of(cls) if parameter_type(p.kind) == 'string[]'}
-    specs = {spec.name: spec for spec in parameter_specs(cls, mark_read_only=False)}
-    try:
-        for parameter in parameters_of(cls):
-            # a default of None declares no type: the value's type is then the user's
-            descriptor = parameter_descriptor(specs[parameter.key],
-                                              dynamic_typing=parameter.default is None)
-            if parameter.key in lists:
-                node.declare_parameter(parameter.key, Parameter.Type.STRING_ARRAY, descriptor)
-            else:
-                node.declare_parameter(parameter.key, parameter.default, descriptor)
-    except ParameterException as exc:
-        raise ValueError(str(exc)) from exc
+    declare_specs(node, parameter_specs(cls, mark_read_only=False))
     values = {}
-    for key in (p.key for p in parameters_of(cls)):
-        if key in lists:
+    for parameter in parameters_of(cls):
+        key = parameter.key
+        if parameter_type(parameter.kind) == 'string[]':
             unset = Parameter(key, Parameter.Type.STRING_ARRAY, [])
             values[key] = [str(v) for v in node.get_parameter_or(key, unset).value if str(v)]
         else:

@@ -57,14 +57,13 @@ from rcbf_ros.node_logic.safety_filter import (
     state_from_sections,
 )
 from rcbf_ros.parameters.reader import read_parameters
-from rcbf_ros.ros.node_main import run_node
+from rcbf_ros.ros.node_main import declare_specs, run_node
 from rcbf_ros.ros.runtime import (
     deserialize_message,
     DurabilityPolicy,
     get_message,
     HistoryPolicy,
     Node,
-    ParameterDescriptor,
     QoSProfile,
     ReliabilityPolicy,
 )
@@ -72,10 +71,13 @@ from rcbf_ros.ros.runtime import (
 NODE_NAME = 'scene_markers'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
 
-PARAMETERS: tuple[ParameterSpec, ...] = (
-    *parameter_specs(logic.SceneSettings),
-    *parameter_specs(MessageSettings, mark_read_only=False)[:1],  # state_type
-) + FILTER_PARAMETERS
+SCENE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(logic.SceneSettings)
+"""The scene's settings (:class:`rcbf_ros.node_logic.scene.SceneSettings`)."""
+STATE_TYPE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(
+    MessageSettings, mark_read_only=False)[:1]
+"""``state_type``."""
+PARAMETERS: tuple[ParameterSpec, ...] = SCENE_PARAMETERS + STATE_TYPE_PARAMETERS + \
+    FILTER_PARAMETERS
 """Every parameter the node declares: its own, then the filter keys of the params file
 (declared when given, as the filter reads them)."""
 
@@ -151,11 +153,14 @@ class SceneNode(Node):
             ValueError: a parameter is invalid (the message names the key).
         """
         super().__init__(node_name, automatically_declare_parameters_from_overrides=True)
-        # Dynamically typed, so that rate_hz:=10 is taken as well as 10.0; a descriptor per
-        # declaration, as rclpy keeps and modifies the one it is given.
-        for name, default in logic.SCENE_PARAMETER_DEFAULTS.items():
-            if not self.has_parameter(name):
-                self.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True))
+        # The settings dynamically typed, so that rate_hz:=10 is taken as well as 10.0; the
+        # filter keys are declared when given (by the overrides), described as the filter's.
+        try:
+            declare_specs(self, SCENE_PARAMETERS, dynamic_typing=True, others=None)
+            declare_specs(self, STATE_TYPE_PARAMETERS, given=FILTER_PARAMETERS)
+        except ValueError as exc:
+            self.get_logger().error(f'invalid parameters: {exc}')
+            raise
         params = collect_parameters({name: parameter.value for name, parameter
                                      in self.get_parameters_by_prefix('').items()})
         self._params = params
@@ -193,8 +198,6 @@ class SceneNode(Node):
 
     def _state_type_parameter(self) -> str:
         """The declared ``state_type``, checked against the system (ValueError naming it)."""
-        if not self.has_parameter('state_type'):
-            self.declare_parameter('state_type', MessageSettings.state_type)
         try:
             state_type = read_parameters(
                 MessageSettings, {'state_type': self.get_parameter('state_type').value}

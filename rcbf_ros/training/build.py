@@ -158,5 +158,4 @@ def with_far_wall(params: Mapping[str, Any]) -> dict[str, Any]:
 
 def model_functions(system: str, env: Any) -> tuple[Callable, Callable] | None:
     """(reward_fn, obs_fn) in torch for model-based rollouts (None: not available)."""
-    from rcbf_ros.training.models import MODELS
-    return MODELS[system](env) if system in MODELS else None
+    return env.torch_models()

@@ -9,12 +9,13 @@ import pytest
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.envs import (
     CarFollowingEnv,
-    ENVS,
-    GYMNASIUM_IDS,
+    env_class,
+    gymnasium_id,
     make_env,
     PVTOLEnv,
     UnicycleEnv,
 )
+from rcbf_ros.messages.systems import system_names
 from rcbf_ros.parameters.rules import find_config, load_params
 
 
@@ -193,15 +194,15 @@ def test_bad_parameters_name_the_key():
         env.step([1.0])
 
 
-@pytest.mark.parametrize('system', sorted(GYMNASIUM_IDS))
+@pytest.mark.parametrize('system', system_names())
 def test_registered_with_gymnasium_and_passes_its_checker(system):
     """gymnasium.make builds the same env as make_env, and Gymnasium's own checker (spaces,
     reset/step signatures, seeding determinism, dtypes) accepts it."""
     import gymnasium
     from gymnasium.utils.env_checker import check_env
     params = load_params(find_config(system), 'simulator')
-    env = gymnasium.make(GYMNASIUM_IDS[system], params=params)
-    assert isinstance(env.unwrapped, ENVS[system])
+    env = gymnasium.make(gymnasium_id(system), params=params)
+    assert isinstance(env.unwrapped, env_class(system))
     check_env(env.unwrapped, skip_render_check=True)
     ours = make_env(system, params)
     obs_gym, _ = env.reset(seed=3)
@@ -217,7 +218,7 @@ def test_make_env_takes_a_dotted_path_as_well_as_a_name():
     params = sim_params('pvtol')
     by_name = make_env('pvtol', params)
     by_path = make_env('rcbf_ros.envs.pvtol.PVTOLEnv', params)
-    assert type(by_path) is type(by_name) is ENVS['pvtol']
+    assert type(by_path) is type(by_name) is PVTOLEnv
     np.testing.assert_array_equal(by_path.reset(seed=5)[0], by_name.reset(seed=5)[0])
     action = np.array([0.3, -0.2])
     np.testing.assert_array_equal(by_path.step(action)[0], by_name.step(action)[0])

@@ -1,0 +1,169 @@
+"""The nodes declare their parameters one way: :func:`rcbf_ros.ros.node_main.declare_specs`.
+
+An AST oracle finds every ``declare_parameter`` / ``has_parameter`` / ``undeclare_parameter``
+call in the node modules; only node_main may make them. And every parameter a node holds once
+built, its own, the packaged ones and those its command line gave, has a description (and a
+range where its spec has one), read back through the runtime's ``describe_parameters``.
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+from typing import Any, Callable
+
+import pytest
+
+from rcbf_ros.parameters.rules import find_config
+from rcbf_ros.ros.node_main import declare_specs, OTHER_DESCRIPTION, RUNTIME_PARAMETERS
+
+ROOT = Path(__file__).resolve().parents[2]
+UNICYCLE = str(find_config('unicycle'))
+DECLARING = ('declare_parameter', 'declare_parameters', 'has_parameter', 'undeclare_parameter')
+ONE_WAY = 'rcbf_ros/ros/node_main.py'
+NOT_YET = ('rcbf_ros/ros/safety_filter_node.py', 'rcbf_ros/ros/learner_node.py')
+"""Node modules left out of the oracle while they move onto declare_specs (the filter node
+declares and re-declares its own; drop each from here once it is on declare_specs)."""
+
+
+def _node_modules() -> list[Path]:
+    return sorted([*ROOT.glob('rcbf_ros/ros/*.py'), *ROOT.glob('sim_nodes/*.py')])
+
+
+def _declaring_calls(path: Path) -> list[str]:
+    return [f'line {node.lineno}: {node.func.attr}'
+            for node in ast.walk(ast.parse(path.read_text(), filename=str(path)))
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+            and node.func.attr in DECLARING]
+
+
+@pytest.mark.parametrize('path', _node_modules(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_only_node_main_declares_parameters(path):
+    relative = str(path.relative_to(ROOT))
+    if relative == ONE_WAY or relative in NOT_YET:
+        return
+    assert _declaring_calls(path) == [], f'{relative}: declare through node_main.declare_specs'
+
+
+def test_the_oracle_sees_the_one_way(tmp_path):
+    assert _declaring_calls(ROOT / ONE_WAY)
+    sample = tmp_path / 'sample.py'
+    sample.write_text('if not self.has_parameter(n):\n    self.declare_parameter(n, 1)\n')
+    assert _declaring_calls(sample) == ['line 1: has_parameter', 'line 2: declare_parameter']
+    for relative in NOT_YET:
+        assert (ROOT / relative).is_file(), f'{relative} is gone: drop it from NOT_YET'
+
+
+def _cases(tmp_path: Path) -> list[tuple[str, Callable[[], Any], list[str]]]:
+    from rcbf_ros.ros.learner_node import LearnerNode
+    from rcbf_ros.ros.policy_node import PolicyNode
+    from rcbf_ros.ros.recorder_node import RecorderNode
+    from rcbf_ros.ros.replay_node import ReplayNode
+    from rcbf_ros.ros.scene_node import SceneNode
+    from sim_nodes.nominal_controller_node import NominalControllerNode
+    from sim_nodes.simulator_node import SimulatorNode
+    return [
+        ('simulator', SimulatorNode, []),
+        ('simulator', SimulatorNode, ['-p', 'system:=pvtol', '-p', 'rate_hz:=20.0',
+                                      '-p', 'goal:=[1.0, 2.0]', '-p', 'stray:=3']),
+        ('simulator', SimulatorNode, ['--params-file', UNICYCLE]),
+        ('nominal_controller', NominalControllerNode, ['-p', 'system:=car_following']),
+        ('nominal_controller', NominalControllerNode, ['--params-file', UNICYCLE]),
+        ('learner', LearnerNode, ['--params-file', UNICYCLE, '-p',
+                                  f'out_dir:={tmp_path / "learner"}']),
+        ('policy', PolicyNode, []),  # no policy file: it refuses after declaring
+        ('recorder', RecorderNode, ['-p', f'output:={tmp_path / "bag"}']),
+        ('replay', ReplayNode, []),  # no bag: it refuses after declaring
+        ('scene_markers', SceneNode, ['--params-file', UNICYCLE, '-p', 'rate_hz:=5']),
+    ]
+
+
+def _built(monkeypatch, ros_domain_id: int, make: Callable[[], Any], args: list[str]
+           ) -> dict[str, Any]:
+    """name -> descriptor (``describe_parameters``) of every parameter the node holds once
+    built; a node that refuses to start (no policy file, no bag) is described as it stood."""
+    from rcbf_ros.ros.dds import rclpy_compat as rclpy
+    from rcbf_ros.ros.dds.node import Node
+    nodes: list[Any] = []
+    original = Node.__init__
+
+    def remember(self: Any, *a: Any, **k: Any) -> None:
+        nodes.append(self)
+        original(self, *a, **k)
+    monkeypatch.setattr(Node, '__init__', remember)
+    rclpy.init(args=['node', '--ros-args', *args], domain_id=ros_domain_id)
+    try:
+        try:
+            made = make()
+        except (ValueError, OSError):
+            made = None
+        node = nodes[0]
+        names = sorted(node.get_parameters_by_prefix(''))
+        described = dict(zip(names, node.describe_parameters(names)))
+        if made is not None and hasattr(made, 'close'):
+            made.close()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+        monkeypatch.undo()
+    return described
+
+
+def test_every_parameter_of_every_node_has_a_description(monkeypatch, ros_domain_id, tmp_path):
+    for name, make, args in _cases(tmp_path):
+        described = _built(monkeypatch, ros_domain_id, make, args)
+        assert described, name
+        bare = [key for key, descriptor in described.items()
+                if key not in RUNTIME_PARAMETERS and not descriptor.description]
+        assert bare == [], f'{name} {args}: declared without a description: {bare}'
+
+
+def test_an_override_gets_its_spec_and_a_stray_one_says_it_is_not_read(
+        monkeypatch, ros_domain_id, tmp_path):
+    from sim_nodes.simulator_node import NODE_PARAMETERS, SimulatorNode
+    described = _built(monkeypatch, ros_domain_id, SimulatorNode,
+                       ['-p', 'system:=pvtol', '-p', 'rate_hz:=20.0', '-p', 'stray:=3'])
+    rate = next(spec for spec in NODE_PARAMETERS if spec.name == 'rate_hz')
+    assert described['rate_hz'].description == rate.description
+    assert described['rate_hz'].floating_point_range[0].from_value == rate.range[0]
+    assert described['max_episodes'].integer_range[0].from_value == 0
+    assert 'the simulated system' in described['system'].description
+    assert described['stray'].description == OTHER_DESCRIPTION
+    scene = _built(monkeypatch, ros_domain_id, _scene, ['--params-file', UNICYCLE])
+    assert 'obstacle' in scene['obstacles.x'].description  # described as the filter's
+
+
+def _scene() -> Any:
+    from rcbf_ros.ros.scene_node import SceneNode
+    return SceneNode()
+
+
+def test_an_override_outside_its_range_is_refused_in_one_line_as_before(ros_domain_id):
+    """Left as the override declared it, for the node's reader to refuse with its own line."""
+    from rcbf_ros.ros.dds import rclpy_compat as rclpy
+    from sim_nodes.simulator_node import SimulatorNode
+    rclpy.init(args=['node', '--ros-args', '-p', 'rate_hz:=-2.0'], domain_id=ros_domain_id)
+    try:
+        with pytest.raises(ValueError, match=r'^rate_hz: must be > 0, got -2\.0$'):
+            SimulatorNode()
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_declare_specs_declares_a_string_list_by_type_and_a_pattern_only_when_given(
+        ros_domain_id):
+    from rcbf_ros.node_logic.interface import ParameterSpec
+    from rcbf_ros.ros.dds import rclpy_compat as rclpy
+    from rcbf_ros.ros.dds.node import Node
+    rclpy.init(args=['node', '--ros-args', '-p', 'bands.a.index:=1'], domain_id=ros_domain_id)
+    try:
+        node = Node('declarations', automatically_declare_parameters_from_overrides=True)
+        declare_specs(node, (ParameterSpec('topics', [], 'string[]', 'topics'),
+                             ParameterSpec('bands.<name>.index', None, 'integer', 'an index',
+                                           minimum=0)))
+        assert node.get_parameters_by_prefix('')['topics'].value is None  # by type: not set
+        assert node.describe_parameter('topics').type == 9  # STRING_ARRAY
+        assert not node.has_parameter('bands.<name>.index')
+        assert node.describe_parameter('bands.a.index').description == 'an index'
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
