@@ -33,7 +33,7 @@ from typing import (
 
 import numpy as np
 
-from rcbf_ros.core.torch_import import LazyTorch
+from rcbf_ros.core.torch_import import import_error_line, LazyTorch
 
 torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
 if TYPE_CHECKING:
@@ -459,7 +459,8 @@ def load_system(name: str, params: Mapping[str, Any] | None = None) -> ControlAf
         try:
             factory = getattr(importlib.import_module(module_name), attr)
         except (ImportError, AttributeError) as exc:
-            raise ValueError(f'system: cannot import {name!r}: {exc}') from exc
+            reason = import_error_line(exc) if isinstance(exc, ImportError) else exc
+            raise ValueError(f'system: cannot import {name!r}: {reason}') from exc
     else:
         raise ValueError(f'system: unknown system {name!r}; built-ins are '
                          f'{sorted(BUILTIN_SYSTEMS)} or give a dotted path')

@@ -80,7 +80,7 @@ import scipy.sparse as sp
 from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
-from rcbf_ros.core.torch_import import LazyTorch
+from rcbf_ros.core.torch_import import bind_torch, LazyTorch
 from rcbf_ros.parameters.reader import setting
 
 torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
@@ -825,10 +825,16 @@ def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
 
     ``closed_form`` where the problem has one (:meth:`ClosedFormAssembly.from_problem` decides)
     and ``closed_form`` is on: the fastest, with nothing to compile. Otherwise the autograd
-    assembly, ``compiled`` with ``compile_assembly``, else ``autograd``."""
+    assembly, ``compiled`` with ``compile_assembly``, else ``autograd``.
+
+    Raises:
+        ImportError: the autograd assembly without torch installed (one line saying how to
+            install it, :data:`rcbf_ros.core.torch_import.INSTALL_HINT`).
+    """
     fast = ClosedFormAssembly.from_problem(problem) if closed_form else None
     if fast is not None:
         return 'closed_form', fast.evaluate
+    bind_torch()  # now, so that a filter that needs torch and has none is refused when built
     if compile_assembly:
         return 'compiled', _on_lists(compiled_assembly(problem))
     return 'autograd', _on_lists(eager_assembly(problem))

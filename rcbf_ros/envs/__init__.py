@@ -14,6 +14,7 @@ from typing import Any, Mapping
 
 import gymnasium
 
+from rcbf_ros.core.torch_import import import_error_line
 from rcbf_ros.envs.base import SafetyEnv
 from rcbf_ros.envs.car_following import CarFollowingEnv
 from rcbf_ros.envs.pvtol import PVTOLEnv
@@ -55,7 +56,8 @@ def env_class(system: str) -> type[SafetyEnv]:
     try:
         found = getattr(importlib.import_module(module_name), name)
     except (ImportError, AttributeError) as exc:
-        raise ValueError(f'system: cannot import {system!r}: {exc}') from None
+        reason = import_error_line(exc) if isinstance(exc, ImportError) else exc
+        raise ValueError(f'system: cannot import {system!r}: {reason}') from None
     if not (isinstance(found, type) and issubclass(found, SafetyEnv)):
         raise ValueError(f'system: {system!r} is not a subclass of '
                          'rcbf_ros.envs.base.SafetyEnv')
