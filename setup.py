@@ -6,6 +6,12 @@ from setuptools import find_packages, setup
 
 package_name = 'rcbf_ros'
 
+FILTER_REQUIRES = ['numpy', 'osqp', 'pyyaml', 'cyclonedds', 'rosbags', 'mcap',
+                   'gymnasium']
+"""What the filter's path imports (no torch)."""
+LEARNING_REQUIRES = ['torch', 'gpytorch', 'matplotlib']
+"""What learning adds to :data:`FILTER_REQUIRES`."""
+
 setup(
     name=package_name,
     version='0.1.0',
@@ -22,13 +28,20 @@ setup(
          glob('config/*.yaml') + glob('config/*.json')),
         (os.path.join('share', package_name, 'launch'), glob('launch/*.py')),
     ],
+    # ROS 2's convention: what rosdep provides is in package.xml, colcon installs no Python
+    # dependencies, and a node script does not check them.
     install_requires=['setuptools'],
     extras_require={
-        # Everything the package needs where rosdep does not provide it (pip installs).
-        'standalone': [
-            'numpy', 'torch', 'osqp', 'pyyaml', 'cyclonedds', 'rosbags', 'mcap',
-            'mcap-ros2-support', 'gpytorch', 'gymnasium', 'matplotlib',
-        ],
+        # The filter's path, without torch: the safety_filter, simulator, nominal_controller,
+        # recorder, replay and scene_markers nodes and rcbf_ros launch / refilter / bag /
+        # summary on the built-in systems (test/unit/test_lean_filter.py refuses torch and runs
+        # them). On ROS 2, rosdep provides numpy and yaml, and rclpy stands in for cyclonedds.
+        'filter': FILTER_REQUIRES,
+        # Learning on top: the learner and policy nodes, rcbf_ros train / experiment, the
+        # pictures (reward curve, trajectories). torch from constraints.txt's pin (CPU wheel).
+        'learning': FILTER_REQUIRES + LEARNING_REQUIRES,
+        # Everything the package needs where rosdep does not provide it (the full install).
+        'standalone': FILTER_REQUIRES + LEARNING_REQUIRES + ['mcap-ros2-support'],
         'test': ['pytest', 'pytest-timeout', 'hypothesis', 'qpth', 'cvxpylayers', 'proxsuite',
                  'pymcap-cli', 'ruff', 'ray'],
         'ray': ['ray'],

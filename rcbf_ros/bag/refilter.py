@@ -59,11 +59,11 @@ import sys
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-import torch
 
 from rcbf_ros.bag import bag_info, BagError, BagWriter, mcap_files, read_bag
 from rcbf_ros.core.config import filter_config_from_params, FilterConfig, flatten
 from rcbf_ros.core.filter import ACTIVE_TOLERANCE, SafetyFilter
+from rcbf_ros.core.lie_closed_form import state_barrier_values
 from rcbf_ros.messages.conversions import (
     DIAGNOSTIC_ARRAY,
     FLOAT64_MULTIARRAY,
@@ -382,9 +382,7 @@ def _barrier_statistics(summary: RefilterSummary, safety_filter: SafetyFilter,
     if not states:
         summary.min_h = {name: math.nan for name in names}
         return
-    stacked = torch.from_numpy(np.stack(states))
-    h = np.concatenate([safety_filter.problem.state_h(chunk).numpy()
-                        for chunk in torch.split(stacked, 4096)])  # (N, K)
+    h = state_barrier_values(safety_filter.problem, np.stack(states))  # (N, K)
     summary.min_h = {name: float(h[:, i].min()) for i, name in enumerate(names)}
     violated = h < 0
     summary.violations_per_barrier = {name: int(violated[:, i].sum())
@@ -603,7 +601,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--json', dest='json_path', default=None,
                         help='also write the summary as JSON to this file')
     args = parser.parse_args(None if argv is None else list(argv))
-    torch.set_num_threads(1)
     try:
         summary = refilter_bag(args.source, args.output, args.params_file, node=args.node,
                                tolerance=args.tolerance)

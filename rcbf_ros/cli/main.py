@@ -14,7 +14,8 @@
 The other subcommands hand the rest of the command line, unchanged, to their module's own
 ``main(argv)`` (:data:`DELEGATED`): their ``--help``, messages and exit codes are that
 module's. ``rcbf_ros_launch`` and ``rcbf_ros_refilter`` are the same commands under their
-older console-script names.
+older console-script names. A subcommand's module is imported only when it runs, so that
+``rcbf_ros --help`` and each subcommand start without the others' imports (torch, Ray).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 import importlib
 import sys
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -48,11 +50,32 @@ DELEGATED: dict[str, Delegated] = {
 """Subcommands run by another module's ``main``, by name."""
 
 
-PARSED: dict[str, str] = {
-    'train': 'train in-process (no middleware)',
-    'experiment': "reproduce a paper's experiment: train, evaluate, report",
-    'bag': 'check a bag, or recover one whose recorder was killed',
+@dataclass(frozen=True)
+class Parsed:
+    """A subcommand whose arguments are parsed here (its module imported only when it runs)."""
+
+    module: str
+    """Module holding the two functions below."""
+    add_arguments: str
+    """Its function that adds the subcommand's arguments to an ``argparse`` parser."""
+    run: str
+    """Its function that runs the parsed arguments and returns the exit code."""
+    help: str
+    """The one line ``rcbf_ros --help`` shows for it."""
+
+
+PARSED_COMMANDS: dict[str, Parsed] = {
+    'train': Parsed('rcbf_ros.cli.train', 'add_train_arguments', 'run_train',
+                    'train in-process (no middleware)'),
+    'experiment': Parsed('rcbf_ros.experiments.command', 'add_experiment_arguments',
+                         'run_experiment_command',
+                         "reproduce a paper's experiment: train, evaluate, report"),
+    'bag': Parsed('rcbf_ros.bag.recover', 'add_bag_arguments', 'run_bag_command',
+                  'check a bag, or recover one whose recorder was killed'),
 }
+"""Subcommands parsed here, by name."""
+
+PARSED: dict[str, str] = {name: parsed.help for name, parsed in PARSED_COMMANDS.items()}
 """Subcommands parsed here, by name, with the one line ``rcbf_ros --help`` shows."""
 
 
@@ -63,12 +86,10 @@ def commands_help() -> str:
     return 'commands:\n' + '\n'.join(f'  {name:<{width}}{line}' for name, line in lines.items())
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``rcbf_ros`` parser: the arguments of the subcommands of :data:`PARSED`."""
-    from rcbf_ros.bag.recover import add_bag_arguments
-    from rcbf_ros.cli.train import add_train_arguments
-    from rcbf_ros.experiments.command import add_experiment_arguments
-
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``rcbf_ros`` parser. Only ``command`` (one of :data:`PARSED`) gets its arguments,
+    so that its module is the only one imported: ``rcbf_ros --help`` imports none, and a
+    subcommand does not wait for the others' (torch, Ray, ...). None: every subcommand's."""
     parser = argparse.ArgumentParser(
         prog='rcbf_ros', usage='%(prog)s [-h] COMMAND ...',
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -78,12 +99,19 @@ def build_parser() -> argparse.ArgumentParser:
                'rcbf_ros is rcbf_ros.')
     sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND', prog='rcbf_ros',
                                 help=argparse.SUPPRESS)
-    add_train_arguments(sub.add_parser('train', help=PARSED['train']))
-    add_experiment_arguments(sub.add_parser('experiment', help=PARSED['experiment']))
-    add_bag_arguments(sub.add_parser('bag', help=PARSED['bag']))
+    for name, parsed in PARSED_COMMANDS.items():
+        subparser = sub.add_parser(name, help=parsed.help)
+        if command is None or command == name:
+            _function(parsed, 'add_arguments')(subparser)
     for name, delegated in DELEGATED.items():  # choices only: main() hands these on unparsed
         sub.add_parser(name, help=delegated.help, add_help=False)
     return parser
+
+
+def _function(parsed: Parsed, role: str) -> Any:
+    """The function ``parsed`` names for ``role`` ('add_arguments' or 'run'), its module
+    imported now."""
+    return getattr(importlib.import_module(parsed.module), getattr(parsed, role))
 
 
 def run_delegated(name: str, argv: Sequence[str]) -> int:
@@ -98,17 +126,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     # Before any parsing: a delegated subcommand's --help and errors are its module's own.
     if given and given[0] in DELEGATED:
         return run_delegated(given[0], given[1:])
-    args = build_parser().parse_args(given)
-    if args.command == 'train':
-        from rcbf_ros.cli.train import run_train
-        return run_train(args)
-    if args.command == 'experiment':
-        from rcbf_ros.experiments.command import run_experiment_command
-        return run_experiment_command(args, argv)
-    if args.command == 'bag':
-        from rcbf_ros.bag.recover import run_bag_command
-        return run_bag_command(args)
-    return 2
+    args = build_parser(given[0] if given else '').parse_args(given)
+    run = _function(PARSED_COMMANDS[args.command], 'run')
+    if args.command == 'experiment':  # its run records the command line it was given
+        return run(args, argv)
+    return run(args)
 
 
 if __name__ == '__main__':

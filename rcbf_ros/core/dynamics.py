@@ -34,7 +34,7 @@ from typing import (
 
 import numpy as np
 
-from rcbf_ros.core.torch_import import LazyTorch
+from rcbf_ros.core.torch_import import import_error_line, LazyTorch
 from rcbf_ros.messages import systems
 
 torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
@@ -468,7 +468,7 @@ def load_system(name: str, params: Mapping[str, Any] | None = None) -> ControlAf
     if name in systems.system_names():
         factory = systems.lookup(name).part('dynamics')
     elif '.' in name:
-        factory = systems.import_object(name)
+        factory = systems.import_object(name, explain=import_error_line)
     else:
         raise ValueError(f'system: unknown system {name!r}; the table has '
                          f'{list(systems.system_names())} or give a dotted path')

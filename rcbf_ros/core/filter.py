@@ -71,19 +71,19 @@ import math
 import operator
 import time
 from types import SimpleNamespace
-from typing import Callable, NamedTuple, Sequence
+from typing import Callable, NamedTuple, Sequence, TYPE_CHECKING
 
 import numpy as np
-import osqp
-import scipy.sparse as sp
 
 from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
-from rcbf_ros.core.torch_import import LazyTorch
+from rcbf_ros.core.torch_import import bind_torch, LazyTorch
 from rcbf_ros.parameters.reader import setting
 
 torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
+if TYPE_CHECKING:
+    import osqp
 
 _OK_STATUS = {1: 'solved', 2: 'solved_inaccurate'}
 ACTIVE_TOLERANCE = 1e-7
@@ -825,10 +825,16 @@ def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
 
     ``closed_form`` where the problem has one (:meth:`ClosedFormAssembly.from_problem` decides)
     and ``closed_form`` is on: the fastest, with nothing to compile. Otherwise the autograd
-    assembly, ``compiled`` with ``compile_assembly``, else ``autograd``."""
+    assembly, ``compiled`` with ``compile_assembly``, else ``autograd``.
+
+    Raises:
+        ImportError: the autograd assembly without torch installed (one line saying how to
+            install it, :data:`rcbf_ros.core.torch_import.INSTALL_HINT`).
+    """
     fast = ClosedFormAssembly.from_problem(problem) if closed_form else None
     if fast is not None:
         return 'closed_form', fast.evaluate
+    bind_torch()  # now, so that a filter that needs torch and has none is refused when built
     if compile_assembly:
         return 'compiled', _on_lists(compiled_assembly(problem))
     return 'autograd', _on_lists(eager_assembly(problem))
@@ -969,6 +975,9 @@ class SafetyFilter:
         cols, rows = np.nonzero(pattern.T)  # column-major = CSC order
         self._rows, self._cols = rows, cols
         self._pattern_index = rows * nz + cols  # A's entries in G.ravel(), CSC order
+        # Imported here: what only reads the filter's settings (a node's --help) skips them.
+        import osqp
+        import scipy.sparse as sp
         a_matrix = sp.csc_matrix((np.ones(rows.size), (rows, cols)), shape=(nc, nz))
         a_matrix.sort_indices()
         diag = 2.0 * np.asarray(cost_weights(self.n_u, problem.slack_weight,

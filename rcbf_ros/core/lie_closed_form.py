@@ -618,3 +618,39 @@ class ClosedFormAssembly:
         evaluate, source = _compiled(code, 'x, u, mean, std', n_x, n_u, 'rcbf_rows', returned,
                                      constants)
         return cls(evaluate, source)
+
+
+def state_barrier_values(problem: RCBFProblem, states: np.ndarray) -> np.ndarray:
+    """:meth:`RCBFProblem.state_h` of many states, as numpy: where a look-ahead point follows
+    the direction of travel, each value is the larger of the point ahead's and the point
+    behind's. In closed form where the problem has one (no torch); otherwise through
+    ``state_h`` in batches (torch imported here).
+
+    Args:
+        states: (N, n_x) float64 states.
+
+    Returns:
+        (N, K) barrier values.
+    """
+    states = np.asarray(states, dtype=np.float64).reshape(-1, problem.system.n_x)
+    shape = (len(states), problem.n_barriers)
+    closed_form = ClosedFormTerms.from_problem(problem)
+    if closed_form is None:
+        from rcbf_ros.core.torch_import import load_torch
+        torch = load_torch()
+        stacked = torch.from_numpy(np.ascontiguousarray(states))
+        return np.concatenate([np.zeros((0, shape[1]))] + [
+            problem.state_h(chunk).numpy() for chunk in torch.split(stacked, 4096)])
+    speeds = sorted({s for s in (getattr(f, 'speed_input', None) for f in problem.families)
+                     if s is not None})
+    backwards = None
+    if speeds:
+        backwards = np.zeros(problem.system.n_u)
+        backwards[speeds] = -1.0
+    rows = []
+    for x in states:
+        h = closed_form.terms(x).h
+        if backwards is not None:
+            h = np.maximum(h, closed_form.terms(x, backwards).h)
+        rows.append(h)
+    return np.array(rows, dtype=np.float64).reshape(shape)

@@ -16,10 +16,10 @@ import importlib
 from types import ModuleType
 from typing import Any
 
-INSTALL_HINT = ('PyTorch is needed here (a system or barrier without a closed form, the '
-                'interior-point fallback, or learning): pip install torch (a CPU wheel, e.g. '
-                'torch==2.13.0), or apt install python3-torch')
-"""What the ImportError of a missing torch says."""
+INSTALL_HINT = ('PyTorch is needed here (no closed form, the interior-point fallback, learning): '
+                'pip install torch==2.13.0 or apt install python3-torch')
+"""What the ImportError of a missing torch says (one line, short enough for a node's
+error line)."""
 
 
 def load_torch() -> ModuleType:
@@ -32,6 +32,15 @@ def load_torch() -> ModuleType:
         return importlib.import_module('torch')
     except ImportError as exc:
         raise ImportError(f'{INSTALL_HINT} ({exc})') from exc
+
+
+def import_error_line(exc: ImportError) -> str:
+    """What an ImportError says in one line: :data:`INSTALL_HINT` where torch is what is
+    missing (a user's module that imports it), else the error itself."""
+    missing = getattr(exc, 'name', None) or ''
+    if missing.partition('.')[0] == 'torch' and INSTALL_HINT not in str(exc):
+        return f'{INSTALL_HINT} ({exc})'
+    return str(exc)
 
 
 _WAITING: list[dict[str, Any]] = []

@@ -6,6 +6,7 @@ from typing import Any, Mapping
 
 import gymnasium
 
+from rcbf_ros.core.torch_import import import_error_line
 from rcbf_ros.envs.base import SafetyEnv
 from rcbf_ros.envs.car_following import CarFollowingEnv
 from rcbf_ros.envs.pvtol import PVTOLEnv
@@ -26,7 +27,7 @@ def env_class(system: str) -> type[SafetyEnv]:
         raise ValueError(f'system: no simulator for {system!r}; choose one of '
                          f'{sorted(systems.system_names())} or give the dotted path of a '
                          'SafetyEnv class')
-    found = systems.import_object(system)
+    found = systems.import_object(system, explain=import_error_line)
     if not (isinstance(found, type) and issubclass(found, SafetyEnv)):
         raise ValueError(f'system: {system!r} is not a subclass of '
                          'rcbf_ros.envs.base.SafetyEnv')

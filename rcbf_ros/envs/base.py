@@ -27,24 +27,27 @@ rollouts (:meth:`SafetyEnv.torch_models`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar, Mapping, Sequence
+from typing import Any, Callable, ClassVar, Mapping, Sequence, TYPE_CHECKING
 
 import gymnasium as gym
 import numpy as np
-import torch
-from torch import Tensor
 
 from rcbf_ros.core.config import FILTER_OPEN_PREFIXES, FilterParameters, flatten
-from rcbf_ros.core.dynamics import ControlAffineSystem
+from rcbf_ros.core.dynamics import CLOSED_FORM_SYSTEMS, ControlAffineSystem, DriftJetFunction
+from rcbf_ros.core.torch_import import LazyTorch, load_torch
 from rcbf_ros.envs.layouts import layout_from_params
 from rcbf_ros.messages import systems
 from rcbf_ros.parameters.reader import parameter_keys, read_floats, read_parameters, setting
 
+torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
+if TYPE_CHECKING:
+    from torch import Tensor
+
 Controller = Callable[[np.ndarray], np.ndarray]
 """A nominal controller: the QP state (n_x,) -> u (n_u,)."""
-RewardFn = Callable[[Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]
+RewardFn = Callable[['Tensor', 'Tensor', 'Tensor'], tuple['Tensor', 'Tensor']]
 """(state, u, next_state): (B, n_x), (B, n_u), (B, n_x) -> reward (B,), goal reached (B,)."""
-ObsFn = Callable[[Tensor], Tensor]
+ObsFn = Callable[['Tensor'], 'Tensor']
 """state (B, n_x) -> observation (B, n_obs)."""
 
 FILTER_KEYS: tuple[str, ...] = parameter_keys(FilterParameters)
@@ -174,6 +177,8 @@ class SafetyEnv(gym.Env):
         self._state = np.zeros(0)
         self._steps = 0
         self._has_reset = False
+        self._nominal_jet: tuple[ControlAffineSystem, DriftJetFunction | None] | None = None
+        """The model :meth:`nominal_terms` last evaluated, and its closed form (or None)."""
 
     # -- public API -------------------------------------------------------------------------
 
@@ -256,9 +261,25 @@ class SafetyEnv(gym.Env):
         return np.clip(u, system.u_min, system.u_max)
 
     def nominal_terms(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """f(x): (n_x,) and g(x): (n_x, n_u) of the nominal model at one state."""
+        """f(x): (n_x,) and g(x): (n_x, n_u) of the nominal model at one state.
+
+        A built-in model (by exact type) is evaluated through its closed form, the source the
+        filter's assembly inlines (numpy, no torch); any other model through its batched torch
+        ``f`` and ``g`` (torch imported here, saying how to install it where it is missing).
+        """
+        system = self.nominal_system
+        cached = self._nominal_jet
+        if cached is None or cached[0] is not system:
+            jet = (system.closed_form_source().function()
+                   if type(system) in CLOSED_FORM_SYSTEMS else None)
+            cached = self._nominal_jet = (system, jet)
+        jet: DriftJetFunction | None = cached[1]
+        if jet is not None:
+            terms = jet(state)
+            return terms.f, terms.g
+        torch = load_torch()
         x = torch.as_tensor(state, dtype=torch.float64).unsqueeze(0)
-        return (self.nominal_system.f(x)[0].numpy(), self.nominal_system.g(x)[0].numpy())
+        return system.f(x)[0].numpy(), system.g(x)[0].numpy()
 
     def h_true(self, state: np.ndarray | None = None) -> np.ndarray:
         """(K_true,) true signed clearances at ``state`` (default: the current state)."""

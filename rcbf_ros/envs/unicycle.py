@@ -25,14 +25,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
-from typing import Any, Mapping
+from typing import Any, Mapping, TYPE_CHECKING
 
 import gymnasium as gym
 import numpy as np
-import torch
-from torch import Tensor
 
 from rcbf_ros.core.dynamics import Unicycle
+from rcbf_ros.core.torch_import import LazyTorch
 from rcbf_ros.envs.base import (
     goal_terms,
     GoToGoalReward,
@@ -48,6 +47,10 @@ from rcbf_ros.envs.layouts import (
 )
 from rcbf_ros.envs.nominal import unicycle_go_to_goal
 from rcbf_ros.parameters.reader import setting
+
+torch = LazyTorch(globals())  # imported where first used: see rcbf_ros.core.torch_import
+if TYPE_CHECKING:
+    from torch import Tensor
 
 
 def unicycle_slope_disturbance(state: np.ndarray) -> np.ndarray:

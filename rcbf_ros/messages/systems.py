@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import importlib
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 from rcbf_ros.parameters.rules import find_config
 
@@ -120,8 +120,12 @@ def lookup(name: Any) -> System:
     return _TABLE[name]
 
 
-def import_object(path: str) -> Any:
+def import_object(path: str, explain: Callable[[ImportError], str] = str) -> Any:
     """The object a dotted path ``package.module.Name`` names.
+
+    Args:
+        explain: what an ImportError of the module says in one line (a layer above may say
+            how to install what is missing).
 
     Raises:
         ValueError: naming ``system`` when the path has no dot, or cannot be imported.
@@ -133,7 +137,8 @@ def import_object(path: str) -> Any:
     try:
         return getattr(importlib.import_module(module_name), attr)
     except (ImportError, AttributeError) as exc:
-        raise ValueError(f'system: cannot import {path!r}: {exc}') from None
+        reason = explain(exc) if isinstance(exc, ImportError) else exc
+        raise ValueError(f'system: cannot import {path!r}: {reason}') from None
 
 
 class FactView(Mapping[str, Any]):

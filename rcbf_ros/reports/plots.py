@@ -11,9 +11,16 @@ import numpy as np
 from rcbf_ros.core.scene import SceneGeometry
 from rcbf_ros.envs.layouts import Obstacle, signed_clearance
 
+MATPLOTLIB_HINT = ('matplotlib draws the pictures: pip install matplotlib (or apt install '
+                   'python3-matplotlib)')
+"""What the ImportError of a missing matplotlib says."""
+
 
 def _pyplot():
-    import matplotlib
+    try:
+        import matplotlib
+    except ImportError as exc:  # not in the filter's install (setup.py's extra 'filter')
+        raise ImportError(f'{MATPLOTLIB_HINT} ({exc})') from exc
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     return plt

@@ -239,7 +239,7 @@ def trajectory_line(bag: Path, png: Path, *, params_file: str | None = None) -> 
             paths, geometry, png, goal=goal, dt=simulator.get('dt'),
             true_gap=simulator.get('collision_gap'),
             title=f'{geometry.system}: {len(paths)} episodes, {png.parent.name}')
-    except (BagError, FileNotFoundError, ValueError) as exc:
+    except (BagError, FileNotFoundError, ValueError, ImportError) as exc:
         return f'trajectories: not drawn: {exc}'
     closest = (f'; closest approach {picture.closest.describe()}' if picture.closest
                else '')
