@@ -24,8 +24,9 @@ refused before it is loaded (exit 2, one line naming what differs). The simulato
 env, so a checkpoint's env generator is not restored here and this node writes none. Without
 ``resume`` an ``out_dir`` that already holds a run is refused (exit 2). A file that cannot be
 written (a full disk) stops the node with one line and exit status 1; nothing more is written
-and the previous checkpoint stays as it was. The files follow
-:mod:`rcbf_ros.training.run_files`: checkpoints are read without running code from them.
+and the previous checkpoint stays as it was. The run's lifecycle in ``out_dir`` is
+:class:`rcbf_ros.training.run.TrainingRun`, the one ``rcbf_ros train`` drives: checkpoints are
+read without running code from them.
 """
 from __future__ import annotations
 
@@ -57,31 +58,14 @@ from rcbf_ros.ros.node_main import declare_specs, request_stop, run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.agent import LearnerConfig, policy_box, SafeLearner
 from rcbf_ros.training.build import policy_limits
-from rcbf_ros.training.checkpoint import (
-    CHECKPOINT,
-    Checkpoint,
-    CheckpointError,
-    describe_difference,
-    identity_of,
-    learner_identity,
-    read_checkpoint,
-    restore_learner,
-    write_checkpoint,
-)
+from rcbf_ros.training.checkpoint import Checkpoint, CheckpointError, learner_identity
 from rcbf_ros.training.episodes import CriticCheck
-from rcbf_ros.training.policy_io import save_policy
+from rcbf_ros.training.pictures import draw_reward_curve
 from rcbf_ros.training.progress import format_progress, summarize
-from rcbf_ros.training.run_files import (
-    append_row,
-    DEFAULT_CHECKPOINT_EVERY,
-    describe_cut,
-    describe_write_error,
-    reconcile_metrics,
-    run_data,
-    write_atomically,
-)
+from rcbf_ros.training.run import NODE, TrainingRun
+from rcbf_ros.training.run_files import DEFAULT_CHECKPOINT_EVERY, write_atomically
 
-MADE_BY = 'learner node'
+MADE_BY = NODE.made_by
 """The ``made_by`` of this node's checkpoints."""
 WRITE_FAILED = 1
 """Exit status after a file of the run could not be written (a full disk)."""
@@ -245,15 +229,16 @@ class LearnerNode(Node):
         self.pending: dict[str, np.ndarray] | None = None
         self.pending_msg: Any = None
         self.tally = EpisodeTally()
-        self.history: list[dict[str, Any]] = []
-        self.episodes_done = 0
-        # The checkpoint to resume, loaded into the learner when it is built.
-        self.resume_from: Checkpoint | None = None
         # (exit status, one line) once the node has to stop: nothing more is written.
         self.failure: tuple[int, str] | None = None
-        # Episodes the checkpoint on disk holds (None: none yet).
-        self.saved_episodes: int | None = None
-        self._open_run()
+        # The run's files (as rcbf_ros train's); the checkpoint to resume is loaded into the
+        # learner when it is built.
+        self.run = TrainingRun(self.out_dir, entry=NODE, system_name=self.settings.system,
+                               resume=self.settings.resume,
+                               checkpoint_every=self.settings.checkpoint_every,
+                               settings=asdict(self.settings),
+                               log=self.get_logger().info)
+        self.resume_from: Checkpoint | None = self.run.open(self.identity)
         self.last_step: tuple[int, int] | None = None
         qos = QoSProfile(depth=10)
         self.proposal_pub = self.create_publisher(
@@ -265,33 +250,6 @@ class LearnerNode(Node):
         self.get_logger().info(
             f'learner: {self.settings.mode} on {self.settings.system}, '
             f'{self.settings.episodes} episodes -> {self.out_dir}')
-
-    def _open_run(self) -> None:
-        """Refuse an out_dir that holds a run unless resuming; read the checkpoint to resume
-        and cut metrics.jsonl back to it. ValueError names the parameter."""
-        existing = run_data(self.out_dir)
-        if existing and not self.settings.resume:
-            raise ValueError(f"out_dir: {self.out_dir} already holds a run "
-                             f"({', '.join(existing)}); set resume:=true to continue it or "
-                             'choose another out_dir')
-        checkpoint = self.out_dir / CHECKPOINT
-        if self.settings.resume and checkpoint.exists():
-            self.resume_from = read_checkpoint(checkpoint, identity=self.identity)
-            self.history = list(self.resume_from.history)
-            self.episodes_done = self.saved_episodes = self.resume_from.episode
-            made_by = self.resume_from.made_by
-            self.get_logger().info(
-                f'resumed at episode {self.episodes_done}'
-                + (f' of a run of {made_by}' if made_by and made_by != MADE_BY else '')
-                + ('; the simulator keeps its own episode generator'
-                   if self.resume_from.env_rng is not None else ''))
-        elif self.settings.resume:
-            self.get_logger().info(f'no checkpoint in {self.out_dir}: starting at episode 0'
-                                   + (' (the files there are kept)' if existing else ''))
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        cut = reconcile_metrics(self.out_dir / 'metrics.jsonl', history=self.history)
-        if cut:
-            self.get_logger().info(describe_cut(count=cut, history=self.history))
 
     def _declared_filter_params(self) -> dict[str, Any]:
         """Every parameter given to this node (params file / -p), flat, for the RCBF problem."""
@@ -364,12 +322,7 @@ class LearnerNode(Node):
         loaded. CheckpointError: the checkpoint's observation size or state does not fit."""
         learner = learner_from_settings(self.settings, self.filter_params, obs_dim)
         if self.resume_from is not None:
-            path = self.out_dir / CHECKPOINT
-            difference = describe_difference(self.resume_from.identity,
-                                             identity_of(learner, self.settings.system))
-            if difference:
-                raise CheckpointError(f'resume: {path} {difference}')
-            restore_learner(learner, self.resume_from, path)
+            self.run.restore(learner, self.resume_from)
             self.resume_from = None
         return learner
 
@@ -381,10 +334,12 @@ class LearnerNode(Node):
         request_stop()
 
     def _write_failed(self, exc: OSError) -> None:
-        saved = self.saved_episodes
-        kept = ('no checkpoint written yet' if saved is None else
-                f'{CHECKPOINT} holds {saved} episode(s); resume:=true continues from it')
-        self._fail(WRITE_FAILED, f'{describe_write_error(exc)}; the run stopped ({kept})')
+        self._fail(WRITE_FAILED, self.run.stopped(exc))
+
+    @property
+    def episodes_done(self) -> int:
+        """Episodes done (a resumed run's included)."""
+        return self.run.episodes
 
     def _end_episode(self) -> None:
         t = self.tally
@@ -396,10 +351,8 @@ class LearnerNode(Node):
                # no transition this episode: an unfed check's values (gamma unused)
                **(t.critic or CriticCheck(gamma=math.nan)).as_dict(),
                'env_steps': self.learner.env_steps if self.learner else 0}
-        self.history.append(row)
-        self.episodes_done += 1
         try:
-            append_row(self.out_dir / 'metrics.jsonl', row)
+            self.run.record(row)
         except OSError as exc:
             self._write_failed(exc)
             return
@@ -407,7 +360,7 @@ class LearnerNode(Node):
         msg.data = json.dumps(row)
         self.metrics_pub.publish(msg)
         self.get_logger().info(format_progress(row, self.settings.episodes))
-        if self.episodes_done % self.settings.checkpoint_every == 0:
+        if self.run.checkpoint_due():
             self.save_checkpoint()
         if self.episodes_done >= self.settings.episodes:
             self.finish()
@@ -419,37 +372,30 @@ class LearnerNode(Node):
         if self.learner is None or self.failure is not None:
             return
         try:
-            write_checkpoint(self.out_dir / CHECKPOINT, learner=self.learner,
-                             system_name=self.settings.system, episode=self.episodes_done,
-                             history=self.history, env_rng=None, made_by=MADE_BY,
-                             run=asdict(self.settings))
+            self.run.save_checkpoint(self.learner, env_rng=None)
         except OSError as exc:
             self._write_failed(exc)
-            return
-        self.saved_episodes = self.episodes_done
 
     def finish(self) -> dict[str, Any]:
         """Checkpoint, policy export, reward curve and summary.json; returns the summary.
         Before the first step of a new run, or after a failure, nothing is written."""
-        summary = summarize(self.history)
-        if (self.learner is None and not self.history) or self.failure is not None:
+        history = self.run.history
+        summary = summarize(history)
+        if (self.learner is None and not history) or self.failure is not None:
             return summary
-        self.save_checkpoint()
-        if self.failure is not None:
-            return summary
-        try:
-            if self.learner is not None:
-                save_policy(self.out_dir / 'policy.pt', self.learner.sac,
-                            u_low=self.learner.u_low, u_high=self.learner.u_high,
-                            system=self.settings.system)
-            if self.history:
-                from rcbf_ros.reports.plots import plot_reward_curve
-                plot_reward_curve([r['ret'] for r in self.history],
-                                  self.out_dir / 'reward_curve.png',
-                                  title=f'{self.settings.system} / {self.settings.mode} '
-                                        '(nodes over DDS)')
-                summary['reward_curve'] = str(self.out_dir / 'reward_curve.png')
+
+        def reward_curve() -> None:
+            if history:
+                png = self.out_dir / 'reward_curve.png'
+                draw_reward_curve(history, png=png, title=f'{self.settings.system} / '
+                                  f'{self.settings.mode} (nodes over DDS)')
+                summary['reward_curve'] = str(png)
+
+        def summary_file() -> None:
             write_atomically(self.out_dir / 'summary.json', json.dumps(summary, indent=2))
+
+        try:
+            self.run.finish(self.learner, env_rng=None, then=(reward_curve, summary_file))
         except OSError as exc:
             self._write_failed(exc)
         return summary

@@ -467,7 +467,7 @@ def test_sigterm_mid_run_keeps_checkpoint_metrics_and_bag(tmp_path):
 def test_an_interrupt_between_an_episodes_row_and_its_line_loses_neither(tmp_path, monkeypatch):
     """Ctrl-C after an episode's row joined the history but before the metrics file got it:
     the file, the checkpoint's counter and its history still agree."""
-    import rcbf_ros.training.loop as loop
+    import rcbf_ros.training.run as run_module
     calls = []
 
     def interrupted_append(path, row):
@@ -476,7 +476,7 @@ def test_an_interrupt_between_an_episodes_row_and_its_line_loses_neither(tmp_pat
             raise KeyboardInterrupt
         append_row(path, row)
 
-    monkeypatch.setattr(loop, 'append_row', interrupted_append)
+    monkeypatch.setattr(run_module, 'append_row', interrupted_append)
     run = small_run(tmp_path, 'unicycle', 'baseline', episodes=4, steps=30)
     with pytest.raises(KeyboardInterrupt):
         train(run, log=lambda _: None)
