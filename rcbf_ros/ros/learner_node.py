@@ -30,7 +30,7 @@ read without running code from them.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, replace
 import json
 import math
 from pathlib import Path
@@ -43,7 +43,7 @@ import torch
 
 from rcbf_ros.core.config import build_system, envelope_problem, filter_config_from_params
 from rcbf_ros.envs.base import EnvSettings
-from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA, SACConfig
+from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.node_logic.edges import SIM_STEP_SECTIONS
 from rcbf_ros.node_logic.interface import (
@@ -53,17 +53,18 @@ from rcbf_ros.node_logic.interface import (
     ParameterSpec,
     TopicSpec,
 )
-from rcbf_ros.parameters.reader import defaults_of, read_parameters, setting
+from rcbf_ros.parameters.reader import read_parameters, setting
 from rcbf_ros.ros.node_main import declare_specs, request_stop, run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.agent import LearnerConfig, policy_box, SafeLearner
-from rcbf_ros.training.build import policy_limits
+from rcbf_ros.training.build import LearnerSection, POLICY_LIMITS, policy_limits
 from rcbf_ros.training.checkpoint import Checkpoint, CheckpointError, learner_identity
 from rcbf_ros.training.episodes import CriticCheck
 from rcbf_ros.training.pictures import draw_reward_curve
 from rcbf_ros.training.progress import format_progress, summarize
 from rcbf_ros.training.run import NODE, TrainingRun
-from rcbf_ros.training.run_files import DEFAULT_CHECKPOINT_EVERY, write_atomically
+from rcbf_ros.training.run_files import write_atomically
+from rcbf_ros.training.settings import TrainingSettings
 
 MADE_BY = NODE.made_by
 """The ``made_by`` of this node's checkpoints."""
@@ -74,73 +75,44 @@ BAD_CHECKPOINT = 2
 
 
 @dataclass(frozen=True)
-class LearnerSettings:
-    """The learner node's own parameters; the defaults it shares with the in-process trainer
-    are LearnerConfig's (and the simulator's ``dt``)."""
+class SimulatorLink:
+    """The node's one parameter that is not a run's setting (the env is the simulator's)."""
 
-    system: str = setting('unicycle', description='unicycle, car_following or pvtol')
-    """The simulated system (the safety problem's keys come from the params file)."""
-    mode: str = setting(LearnerConfig.mode, description='SAC losses: modular, diff, baseline, '
-                                                        'baseline_compensator or unconstrained')
-    """Which SAC losses (LearnerConfig.mode)."""
-    model_based: bool = setting(LearnerConfig.model_based,
-                                description='add short model rollouts (MB SAC-RCBF; needs mode '
-                                            'diff)')
-    """MB SAC-RCBF (LearnerConfig.model_based)."""
-    seed: int = setting(LearnerConfig.seed,
-                        description='seeds networks, buffers, exploration and the GP')
-    """Seeds everything random (LearnerConfig.seed)."""
-    episodes: int = setting(10, description='episodes to train, then the node exits')
-    """Episodes to train, then the node exits."""
-    out_dir: str = setting('bags/learner_run',
-                           description='where metrics, checkpoint, policy and plots go')
-    """Where metrics, checkpoint, policy and plots go."""
     dt: float = setting(EnvSettings.dt,
                         description="the simulator's step (s), for the GP's derivatives")
     """The simulator's step (s)."""
-    start_steps: int = setting(LearnerConfig.start_steps,
-                               description='uniformly random proposals before the policy acts')
-    """Exploration warm-up (LearnerConfig.start_steps)."""
-    update_after: int = setting(LearnerConfig.update_after,
-                                description='environment steps before the first update')
-    """Steps before the first update (LearnerConfig.update_after)."""
-    batch_size: int = setting(LearnerConfig.batch_size, description='SAC minibatch size')
-    """SAC minibatch size (LearnerConfig.batch_size)."""
-    gp_refit_interval: int = setting(LearnerConfig.gp_refit_interval,
-                                     description='environment steps between GP refits')
-    """Steps between GP refits (LearnerConfig.gp_refit_interval)."""
-    checkpoint_every: int = setting(DEFAULT_CHECKPOINT_EVERY, strict=True, minimum=1,
-                                    description='episodes between checkpoints (also on exit)')
-    """Episodes between checkpoints."""
-    resume: bool = setting(False, description="continue from out_dir's checkpoint (without: an "
-                                              'out_dir holding a run is refused)')
-    """Continue the run in out_dir."""
-    k_c: float = setting(LearnerConfig.k_c,
-                         description='the learned disturbance box is mean +/- k_c std')
-    """Disturbance box mean +/- k_c std (LearnerConfig.k_c)."""
-    threads: int = setting(1, strict=True, minimum=1, description='torch threads')
-    """Torch threads (1: the simulator, filter and recorder share the cores)."""
-    initial_alpha: float = setting(DEFAULT_INITIAL_ALPHA, positive=True,
-                                   description="SAC's initial entropy temperature "
-                                               "(config/<system>.yaml's /learner sets it)")
-    """SAC's initial entropy temperature."""
-    modular_envelope: bool = setting(
-        False, description="modular mode: keep the system envelope's correction in the losses")
-    """LearnerConfig.modular_envelope, resolved (not set: False)."""
 
 
-LEARNER_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(LearnerSettings)
+NODE_DEFAULTS: dict[str, Any] = {
+    'episodes': 10, 'out_dir': 'bags/learner_run', 'initial_alpha': DEFAULT_INITIAL_ALPHA,
+    'modular_envelope': False}
+"""The node's defaults where they are not :class:`TrainingSettings`' (``rcbf_ros train``'s): a
+shorter run, written beside the bags; the ``/learner`` values declared with their value when
+unset (the params file sets them)."""
+NODE_SETTINGS: tuple[str, ...] = (
+    'system', 'mode', 'model_based', 'seed', 'episodes', 'out_dir', 'dt', 'start_steps',
+    'update_after', 'batch_size', 'gp_refit_interval', 'checkpoint_every', 'resume', 'k_c',
+    'threads', 'initial_alpha', 'modular_envelope')
+"""The node's own parameters, in declaration order: the run's settings the node takes (the
+others, such as ``max_steps`` or ``record_bag``, are the simulator's and the recorder's), and
+``dt``."""
+
+
+def _node_parameters() -> tuple[ParameterSpec, ...]:
+    specs = {spec.name: spec for spec in
+             parameter_specs(TrainingSettings) + parameter_specs(SimulatorLink)}
+    return tuple(replace(specs[name], default=NODE_DEFAULTS[name]) if name in NODE_DEFAULTS
+                 else specs[name] for name in NODE_SETTINGS)
+
+
+LEARNER_PARAMETERS: tuple[ParameterSpec, ...] = _node_parameters()
 """The learner's own parameters, in declaration order."""
-PARAMETERS: dict[str, Any] = defaults_of(LearnerSettings)
+PARAMETERS: dict[str, Any] = {spec.name: spec.default for spec in LEARNER_PARAMETERS}
 """Name -> default of :data:`LEARNER_PARAMETERS`."""
 
-FILE_PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('policy_limits.min', None, 'double[]',
-                  'lower corner of the box the policy draws u_RL from (not set: the input '
-                  'limits)'),
-    ParameterSpec('policy_limits.max', None, 'double[]',
-                  'upper corner of that box (not set: the input limits)'),
-)
+FILE_PARAMETERS: tuple[ParameterSpec, ...] = tuple(
+    spec for spec in parameter_specs(LearnerSection, declared_defaults=False)
+    if spec.name in POLICY_LIMITS)
 """Read from the params file when given (``/learner`` section), declared only then."""
 
 INTERFACE = NodeInterface(
@@ -161,7 +133,17 @@ INTERFACE = NodeInterface(
 """Topics and parameters (``learner --help``, README)."""
 
 
-def learner_config_from_settings(s: LearnerSettings,
+def node_settings(values: Mapping[str, Any]) -> TrainingSettings:
+    """The run's settings from the node's parameter values (:data:`PARAMETERS`' defaults for
+    the ones not in ``values``).
+
+    Raises:
+        ParameterError: one line naming the bad parameter.
+    """
+    return read_parameters(TrainingSettings, {**PARAMETERS, **values})
+
+
+def learner_config_from_settings(s: TrainingSettings,
                                  filter_params: Mapping[str, Any]) -> LearnerConfig:
     """The LearnerConfig of the node's settings and of the params file's ``/learner`` policy
     box (in ``filter_params``: every parameter given to the node), as the in-process trainer
@@ -170,22 +152,19 @@ def learner_config_from_settings(s: LearnerSettings,
     Raises:
         ValueError: naming the bad policy box key.
     """
-    return LearnerConfig(
-        mode=s.mode, model_based=s.model_based, seed=s.seed, start_steps=s.start_steps,
-        update_after=s.update_after, batch_size=s.batch_size,
-        gp_refit_interval=s.gp_refit_interval, k_c=s.k_c, modular_envelope=s.modular_envelope,
-        **policy_limits(filter_params), sac=SACConfig(initial_alpha=s.initial_alpha))
+    return s.learner_config(**policy_limits(filter_params))
 
 
-def learner_from_settings(s: LearnerSettings, filter_params: Mapping[str, Any],
-                          obs_dim: int) -> SafeLearner:
+def learner_from_settings(s: TrainingSettings, filter_params: Mapping[str, Any],
+                          obs_dim: int, *, dt: float = SimulatorLink.dt) -> SafeLearner:
     """The node's SafeLearner from its settings and the shared safety problem's parameters
     (``filter_params``): the same RCBF problem the safety_filter node solves, and, when
-    ``modular_envelope`` asks for it in ``modular`` mode, the envelope problem of its losses."""
+    ``modular_envelope`` asks for it in ``modular`` mode, the envelope problem of its losses;
+    ``dt``: the simulator's step."""
     params = {**filter_params, 'k_c': s.k_c}
     config = filter_config_from_params(params)
     learner_cfg = learner_config_from_settings(s, filter_params)
-    return SafeLearner(config.problem, obs_dim=obs_dim, dt=s.dt,
+    return SafeLearner(config.problem, obs_dim=obs_dim, dt=dt,
                        config=learner_cfg,
                        envelope=envelope_problem(params) if learner_cfg.uses_envelope else None)
 
@@ -211,7 +190,8 @@ class LearnerNode(Node):
         super().__init__('learner', automatically_declare_parameters_from_overrides=True)
         declare_specs(self, LEARNER_PARAMETERS)
         values = {name: self.get_parameter(name).value for name in PARAMETERS}
-        self.settings = read_parameters(LearnerSettings, values)
+        self.settings = node_settings(values)
+        self.dt = read_parameters(SimulatorLink, values).dt
         # 1 by default: the simulator, filter and recorder share the cores.
         torch.set_num_threads(self.settings.threads)
         # The safety problem's keys (system, obstacles.*, gains) come from the params file.
@@ -236,7 +216,7 @@ class LearnerNode(Node):
         self.run = TrainingRun(self.out_dir, entry=NODE, system_name=self.settings.system,
                                resume=self.settings.resume,
                                checkpoint_every=self.settings.checkpoint_every,
-                               settings=asdict(self.settings),
+                               settings=values,
                                log=self.get_logger().info)
         self.resume_from: Checkpoint | None = self.run.open(self.identity)
         self.last_step: tuple[int, int] | None = None
@@ -320,7 +300,8 @@ class LearnerNode(Node):
     def _build_learner(self, obs_dim: int) -> SafeLearner:
         """The learner for observations of ``obs_dim`` values, with the checkpoint to resume
         loaded. CheckpointError: the checkpoint's observation size or state does not fit."""
-        learner = learner_from_settings(self.settings, self.filter_params, obs_dim)
+        learner = learner_from_settings(self.settings, self.filter_params, obs_dim,
+                                        dt=self.dt)
         if self.resume_from is not None:
             self.run.restore(learner, self.resume_from)
             self.resume_from = None
