@@ -63,7 +63,7 @@ from rcbf_ros.training.episodes import CriticCheck
 from rcbf_ros.training.pictures import draw_reward_curve
 from rcbf_ros.training.progress import format_progress, summarize
 from rcbf_ros.training.run import NODE, TrainingRun
-from rcbf_ros.training.run_files import write_atomically
+from rcbf_ros.training.run_files import RunWriteError, write_atomically
 from rcbf_ros.training.settings import TrainingSettings
 
 MADE_BY = NODE.made_by
@@ -218,7 +218,10 @@ class LearnerNode(Node):
                                checkpoint_every=self.settings.checkpoint_every,
                                settings=values,
                                log=self.get_logger().info)
-        self.resume_from: Checkpoint | None = self.run.open(self.identity)
+        try:
+            self.resume_from: Checkpoint | None = self.run.open(self.identity)
+        except RunWriteError as exc:  # out_dir cannot be made or written: exit 2 naming it
+            raise ValueError(f'out_dir: {exc}') from None
         self.last_step: tuple[int, int] | None = None
         qos = QoSProfile(depth=10)
         self.proposal_pub = self.create_publisher(
