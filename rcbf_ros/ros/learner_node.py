@@ -66,8 +66,6 @@ from rcbf_ros.training.run import NODE, TrainingRun
 from rcbf_ros.training.run_files import RunWriteError, write_atomically
 from rcbf_ros.training.settings import TrainingSettings
 
-MADE_BY = NODE.made_by
-"""The ``made_by`` of this node's checkpoints."""
 WRITE_FAILED = 1
 """Exit status after a file of the run could not be written (a full disk)."""
 BAD_CHECKPOINT = 2
