@@ -10,104 +10,110 @@ from __future__ import annotations
 import argparse
 from dataclasses import fields
 import json
-from pathlib import Path
 import signal
 import sys
+import typing
+from typing import Any
 
-from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.messages import systems
-from rcbf_ros.training.agent import LearnerConfig, MODES
-from rcbf_ros.training.run_files import DEFAULT_CHECKPOINT_EVERY
+from rcbf_ros.training.settings import MODES, TrainingSettings
 
-
-def _learner_overrides(args: argparse.Namespace) -> dict:
-    """The :class:`LearnerConfig` fields given on the command line (None: not given)."""
-    names = {f.name for f in fields(LearnerConfig)}
-    return {k: v for k, v in vars(args).items() if k in names and v is not None}
+OPTIONS: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    ('system', '--system', dict(choices=systems.system_names())),
+    ('mode', '--mode', dict(choices=MODES)),
+    ('model_based', '--model-based', dict(
+        action='store_true', help='MB SAC-RCBF: synthetic k-step rollouts (mode diff)')),
+    ('modular_envelope', '--modular-envelope', dict(
+        action=argparse.BooleanOptionalAction,
+        help="modular: keep the envelope's correction (bands not marked 'layout: true') in the "
+             "losses, as the authors' PVTOL code (default: the config file's /learner "
+             'modular_envelope; config/pvtol.yaml sets it)')),
+    ('seed', '--seed', {}),
+    ('episodes', '--episodes', {}),
+    ('max_steps', '--max-steps', dict(help='episode length override')),
+    ('config_file', '--config', dict(metavar='CONFIG',
+                                     help='ROS params file (default: packaged)')),
+    ('out_dir', '--out', dict(metavar='OUT', help='output directory (default: runs/<name>)')),
+    ('no_obstacles', '--no-obstacles', dict(
+        action='store_true', help='train without obstacles and filter (transfer upper bound)')),
+    ('record_bag', '--no-bag', dict(action='store_false', help='do not record MCAP')),
+    ('resume', '--resume', dict(
+        action='store_true',
+        help='continue the run in --out from its checkpoint (none: start at episode 0, keeping '
+             'its files); without it an existing run is refused')),
+    ('checkpoint_every', '--checkpoint-every', dict(
+        metavar='N', help='episodes between checkpoints (a kill loses at most the episodes '
+                          'since the last one; default %(default)s)')),
+    ('compile_filter', '--compile-filter', dict(
+        action='store_true',
+        help='compile the per-step autograd constraint assembly of a system or barrier without '
+             'a closed form (faster, slower start)')),
+    ('compile_update', '--compile-update', dict(
+        action='store_true',
+        help='compile the SAC update: without a safety layer in the losses as one graph (about '
+             '1.6x faster per update); where they pass it (diff; modular with an envelope) its '
+             'network parts, the layer eager between them (training steps 1.1-1.25x faster); a '
+             "one-off compile of tens of seconds, seconds once torch's compile cache has it")),
+    ('threads', '--threads', dict(
+        help='torch threads (2 speeds SAC updates 1.2-1.7x on an idle 2-core machine; 1 when '
+             'runs or nodes share the cores)')),
+    ('random_start', '--random-start', dict(
+        action='store_true', help="random episode starts (default: the config's)")),
+    ('initial_alpha', '--initial-alpha', dict(
+        help="SAC's initial entropy temperature (default: the config's learner initial_alpha, "
+             'else 0.2)')),
+    ('start_steps', '--start-steps', {}),
+    ('update_after', '--update-after', {}),
+    ('batch_size', '--batch-size', {}),
+    ('gp_refit_interval', '--gp-refit-interval', {}),
+)
+"""(TrainingSettings field, option, what argparse needs beyond the field's type and default),
+in ``--help``'s order."""
 
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``rcbf_ros train``."""
-    parser.add_argument('--system', default='unicycle', choices=systems.system_names())
-    parser.add_argument('--mode', default='modular', choices=MODES)
-    parser.add_argument('--model-based', dest='model_based', action='store_true', default=None,
-                        help='MB SAC-RCBF: synthetic k-step rollouts (mode diff)')
-    parser.add_argument('--modular-envelope', dest='modular_envelope',
-                        action=argparse.BooleanOptionalAction, default=None,
-                        help="modular: keep the envelope's correction (bands not marked "
-                        "'layout: true') in the losses, as the authors' PVTOL code (default: "
-                        "the config file's /learner modular_envelope; config/pvtol.yaml sets it)")
-    parser.add_argument('--seed', type=int, default=0)
-    parser.add_argument('--episodes', type=int, default=20)
-    parser.add_argument('--max-steps', type=int, default=None, help='episode length override')
-    parser.add_argument('--config', default=None, help='ROS params file (default: packaged)')
-    parser.add_argument('--out', default=None, help='output directory (default: runs/<name>)')
-    parser.add_argument('--no-obstacles', action='store_true',
-                        help='train without obstacles and filter (transfer upper bound)')
-    parser.add_argument('--no-bag', action='store_true', help='do not record MCAP')
-    parser.add_argument('--resume', action='store_true',
-                        help='continue the run in --out from its checkpoint (none: start at '
-                             'episode 0, keeping its files); without it an existing run is '
-                             'refused')
-    parser.add_argument('--checkpoint-every', dest='checkpoint_every', type=int,
-                        default=DEFAULT_CHECKPOINT_EVERY, metavar='N',
-                        help='episodes between checkpoints (a kill loses at most the episodes '
-                             'since the last one; default %(default)s)')
-    parser.add_argument('--compile-filter', action='store_true',
-                        help='compile the per-step autograd constraint assembly of a system or '
-                             'barrier without a closed form (faster, slower start)')
-    parser.add_argument('--compile-update', dest='compile_update', action='store_true',
-                        help='compile the SAC update: without a safety layer in the losses '
-                             'as one graph (about 1.6x faster per update); where they pass it '
-                             '(diff; modular with an envelope) its network parts, the layer '
-                             'eager between them (training steps 1.1-1.25x faster); a one-off '
-                             "compile of tens of seconds, seconds once torch's compile cache "
-                             'has it')
-    parser.add_argument('--threads', type=int, default=1,
-                        help='torch threads (2 speeds SAC updates 1.2-1.7x on an idle 2-core '
-                             'machine; 1 when runs or nodes share the cores)')
-    parser.add_argument('--random-start', dest='random_start', action='store_true',
-                        default=None, help="random episode starts (default: the config's)")
-    parser.add_argument('--initial-alpha', dest='initial_alpha', type=float, default=None,
-                        help="SAC's initial entropy temperature (default: the config's "
-                             'learner initial_alpha, else 0.2)')
-    parser.add_argument('--start-steps', dest='start_steps', type=int, default=None)
-    parser.add_argument('--update-after', dest='update_after', type=int, default=None)
-    parser.add_argument('--batch-size', dest='batch_size', type=int, default=None)
-    parser.add_argument('--gp-refit-interval', dest='gp_refit_interval', type=int,
-                        default=None)
+    """Arguments of ``rcbf_ros train``: one option per :data:`OPTIONS` entry, its destination,
+    default and type those of its :class:`TrainingSettings` field."""
+    settings = {f.name: f for f in fields(TrainingSettings)}
+    hints = typing.get_type_hints(TrainingSettings)
+    for name, option, extra in OPTIONS:
+        kwargs: dict[str, Any] = {'dest': name, 'default': settings[name].default, **extra}
+        if 'action' not in extra:
+            kind = [a for a in typing.get_args(hints[name]) if a is not type(None)] or \
+                [hints[name]]
+            if kind[0] is not str:
+                kwargs['type'] = kind[0]
+        parser.add_argument(option, **kwargs)
+
+
+def settings_from_arguments(args: argparse.Namespace) -> TrainingSettings:
+    """The run's settings from the parsed options (fields without an option keep their
+    defaults)."""
+    return TrainingSettings(**{name: getattr(args, name) for name, _, _ in OPTIONS})
 
 
 def run_train(args: argparse.Namespace) -> int:
     """Run ``rcbf_ros train``: 0, 2 on bad arguments, output directory or checkpoint, 1 when a
     file of the run cannot be written (a full disk: the bag closed, the previous checkpoint
     kept), 130 on Ctrl-C or SIGTERM (checkpoint, bag and plot written)."""
-    from rcbf_ros.training.build import RunConfig, RunSetupError
+    from rcbf_ros.training.build import RunSetupError
     from rcbf_ros.training.loop import check_out_dir, train
     from rcbf_ros.training.progress import summarize
     from rcbf_ros.training.run_files import RunWriteError
+    settings = settings_from_arguments(args)
     try:
-        learner = LearnerConfig(**_learner_overrides(args),
-                                sac=SACConfig(initial_alpha=args.initial_alpha,
-                                              compile_update=args.compile_update))
+        run = settings.run_config()
     except (TypeError, ValueError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 2
-    name = f"{args.system}_{args.mode}{'_mb' if args.model_based else ''}_s{args.seed}"
-    run = RunConfig(system=args.system, episodes=args.episodes,
-                    out_dir=args.out or str(Path('runs') / name), config_file=args.config,
-                    max_steps=args.max_steps, no_obstacles=args.no_obstacles,
-                    random_start=args.random_start,
-                    record_bag=not args.no_bag, resume=args.resume,
-                    checkpoint_every=args.checkpoint_every,
-                    compile_filter=args.compile_filter, threads=args.threads, learner=learner)
+    name = settings.name
     try:
         check_out_dir(run)
     except RunSetupError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 2
-    print(f'training {name}: {args.episodes} episodes -> {run.out_dir}', flush=True)
-    if args.compile_update:
+    print(f'training {name}: {run.episodes} episodes -> {run.out_dir}', flush=True)
+    if settings.compile_update:
         print('--compile-update: the first SAC update compiles (tens of seconds the first time, '
               "seconds once torch's compile cache has it)", flush=True)
 

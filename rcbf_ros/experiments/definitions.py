@@ -25,8 +25,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from rcbf_ros.learning.sac import SACConfig
-from rcbf_ros.training.agent import LearnerConfig
 from rcbf_ros.training.build import RunConfig
+from rcbf_ros.training.settings import SETTING_NAMES, TrainingSettings
 
 EXPERIMENTS: tuple[str, ...] = ('sample_efficiency', 'transfer', 'value_maps')
 """Experiment names (``all`` runs every one)."""
@@ -232,15 +232,16 @@ class RunSpec:
     def run_config(self, root: str | Path, *, resume: bool = False) -> RunConfig:
         """The trainer's RunConfig of this run."""
         method = METHODS[self.method]
-        learner = LearnerConfig(mode=method.mode, model_based=method.model_based, seed=self.seed,
-                                modular_envelope=method.envelope,
-                                **self.budget.learner_overrides())
-        return RunConfig(system=self.system, episodes=self.episodes,
-                         out_dir=str(self.run_dir(root)),
-                         max_steps=self.budget.max_steps.get(self.system),
-                         no_obstacles=method.no_obstacles, record_bag=self.budget.record_bag,
-                         random_start=self.budget.random_start.get(self.system),
-                         resume=resume, learner=learner)
+        learner = self.budget.learner_overrides()
+        schedule = {name: learner.pop(name) for name in list(learner) if name in SETTING_NAMES}
+        settings = TrainingSettings(
+            system=self.system, mode=method.mode, model_based=method.model_based,
+            seed=self.seed, modular_envelope=method.envelope, episodes=self.episodes,
+            out_dir=str(self.run_dir(root)), max_steps=self.budget.max_steps.get(self.system),
+            no_obstacles=method.no_obstacles, record_bag=self.budget.record_bag,
+            random_start=self.budget.random_start.get(self.system), resume=resume,
+            **schedule)
+        return settings.run_config(**learner)
 
 
 def experiment_names(name: str) -> tuple[str, ...]:

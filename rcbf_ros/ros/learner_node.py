@@ -24,12 +24,13 @@ refused before it is loaded (exit 2, one line naming what differs). The simulato
 env, so a checkpoint's env generator is not restored here and this node writes none. Without
 ``resume`` an ``out_dir`` that already holds a run is refused (exit 2). A file that cannot be
 written (a full disk) stops the node with one line and exit status 1; nothing more is written
-and the previous checkpoint stays as it was. The files follow
-:mod:`rcbf_ros.training.run_files`: checkpoints are read without running code from them.
+and the previous checkpoint stays as it was. The run's lifecycle in ``out_dir`` is
+:class:`rcbf_ros.training.run.TrainingRun`, the one ``rcbf_ros train`` drives: checkpoints are
+read without running code from them.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, replace
 import json
 import math
 from pathlib import Path
@@ -42,7 +43,7 @@ import torch
 
 from rcbf_ros.core.config import build_system, envelope_problem, filter_config_from_params
 from rcbf_ros.envs.base import EnvSettings
-from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA, SACConfig
+from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.node_logic.edges import SIM_STEP_SECTIONS
 from rcbf_ros.node_logic.interface import (
@@ -52,37 +53,19 @@ from rcbf_ros.node_logic.interface import (
     ParameterSpec,
     TopicSpec,
 )
-from rcbf_ros.parameters.reader import defaults_of, read_parameters, setting
+from rcbf_ros.parameters.reader import read_parameters, setting
 from rcbf_ros.ros.node_main import declare_specs, request_stop, run_node
 from rcbf_ros.ros.runtime import get_message, Node, QoSProfile
 from rcbf_ros.training.agent import LearnerConfig, policy_box, SafeLearner
-from rcbf_ros.training.build import policy_limits
-from rcbf_ros.training.checkpoint import (
-    CHECKPOINT,
-    Checkpoint,
-    CheckpointError,
-    describe_difference,
-    identity_of,
-    learner_identity,
-    read_checkpoint,
-    restore_learner,
-    write_checkpoint,
-)
+from rcbf_ros.training.build import LearnerSection, POLICY_LIMITS, policy_limits
+from rcbf_ros.training.checkpoint import Checkpoint, CheckpointError, learner_identity
 from rcbf_ros.training.episodes import CriticCheck
-from rcbf_ros.training.policy_io import save_policy
+from rcbf_ros.training.pictures import draw_reward_curve
 from rcbf_ros.training.progress import format_progress, summarize
-from rcbf_ros.training.run_files import (
-    append_row,
-    DEFAULT_CHECKPOINT_EVERY,
-    describe_cut,
-    describe_write_error,
-    reconcile_metrics,
-    run_data,
-    write_atomically,
-)
+from rcbf_ros.training.run import NODE, TrainingRun
+from rcbf_ros.training.run_files import RunWriteError, write_atomically
+from rcbf_ros.training.settings import TrainingSettings
 
-MADE_BY = 'learner node'
-"""The ``made_by`` of this node's checkpoints."""
 WRITE_FAILED = 1
 """Exit status after a file of the run could not be written (a full disk)."""
 BAD_CHECKPOINT = 2
@@ -90,73 +73,44 @@ BAD_CHECKPOINT = 2
 
 
 @dataclass(frozen=True)
-class LearnerSettings:
-    """The learner node's own parameters; the defaults it shares with the in-process trainer
-    are LearnerConfig's (and the simulator's ``dt``)."""
+class SimulatorLink:
+    """The node's one parameter that is not a run's setting (the env is the simulator's)."""
 
-    system: str = setting('unicycle', description='unicycle, car_following or pvtol')
-    """The simulated system (the safety problem's keys come from the params file)."""
-    mode: str = setting(LearnerConfig.mode, description='SAC losses: modular, diff, baseline, '
-                                                        'baseline_compensator or unconstrained')
-    """Which SAC losses (LearnerConfig.mode)."""
-    model_based: bool = setting(LearnerConfig.model_based,
-                                description='add short model rollouts (MB SAC-RCBF; needs mode '
-                                            'diff)')
-    """MB SAC-RCBF (LearnerConfig.model_based)."""
-    seed: int = setting(LearnerConfig.seed,
-                        description='seeds networks, buffers, exploration and the GP')
-    """Seeds everything random (LearnerConfig.seed)."""
-    episodes: int = setting(10, description='episodes to train, then the node exits')
-    """Episodes to train, then the node exits."""
-    out_dir: str = setting('bags/learner_run',
-                           description='where metrics, checkpoint, policy and plots go')
-    """Where metrics, checkpoint, policy and plots go."""
     dt: float = setting(EnvSettings.dt,
                         description="the simulator's step (s), for the GP's derivatives")
     """The simulator's step (s)."""
-    start_steps: int = setting(LearnerConfig.start_steps,
-                               description='uniformly random proposals before the policy acts')
-    """Exploration warm-up (LearnerConfig.start_steps)."""
-    update_after: int = setting(LearnerConfig.update_after,
-                                description='environment steps before the first update')
-    """Steps before the first update (LearnerConfig.update_after)."""
-    batch_size: int = setting(LearnerConfig.batch_size, description='SAC minibatch size')
-    """SAC minibatch size (LearnerConfig.batch_size)."""
-    gp_refit_interval: int = setting(LearnerConfig.gp_refit_interval,
-                                     description='environment steps between GP refits')
-    """Steps between GP refits (LearnerConfig.gp_refit_interval)."""
-    checkpoint_every: int = setting(DEFAULT_CHECKPOINT_EVERY, strict=True, minimum=1,
-                                    description='episodes between checkpoints (also on exit)')
-    """Episodes between checkpoints."""
-    resume: bool = setting(False, description="continue from out_dir's checkpoint (without: an "
-                                              'out_dir holding a run is refused)')
-    """Continue the run in out_dir."""
-    k_c: float = setting(LearnerConfig.k_c,
-                         description='the learned disturbance box is mean +/- k_c std')
-    """Disturbance box mean +/- k_c std (LearnerConfig.k_c)."""
-    threads: int = setting(1, strict=True, minimum=1, description='torch threads')
-    """Torch threads (1: the simulator, filter and recorder share the cores)."""
-    initial_alpha: float = setting(DEFAULT_INITIAL_ALPHA, positive=True,
-                                   description="SAC's initial entropy temperature "
-                                               "(config/<system>.yaml's /learner sets it)")
-    """SAC's initial entropy temperature."""
-    modular_envelope: bool = setting(
-        False, description="modular mode: keep the system envelope's correction in the losses")
-    """LearnerConfig.modular_envelope, resolved (not set: False)."""
 
 
-LEARNER_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(LearnerSettings)
+NODE_DEFAULTS: dict[str, Any] = {
+    'episodes': 10, 'out_dir': 'bags/learner_run', 'initial_alpha': DEFAULT_INITIAL_ALPHA,
+    'modular_envelope': False}
+"""The node's defaults where they are not :class:`TrainingSettings`' (``rcbf_ros train``'s): a
+shorter run, written beside the bags; the ``/learner`` values declared with their value when
+unset (the params file sets them)."""
+NODE_SETTINGS: tuple[str, ...] = (
+    'system', 'mode', 'model_based', 'seed', 'episodes', 'out_dir', 'dt', 'start_steps',
+    'update_after', 'batch_size', 'gp_refit_interval', 'checkpoint_every', 'resume', 'k_c',
+    'threads', 'initial_alpha', 'modular_envelope')
+"""The node's own parameters, in declaration order: the run's settings the node takes (the
+others, such as ``max_steps`` or ``record_bag``, are the simulator's and the recorder's), and
+``dt``."""
+
+
+def _node_parameters() -> tuple[ParameterSpec, ...]:
+    specs = {spec.name: spec for spec in
+             parameter_specs(TrainingSettings) + parameter_specs(SimulatorLink)}
+    return tuple(replace(specs[name], default=NODE_DEFAULTS[name]) if name in NODE_DEFAULTS
+                 else specs[name] for name in NODE_SETTINGS)
+
+
+LEARNER_PARAMETERS: tuple[ParameterSpec, ...] = _node_parameters()
 """The learner's own parameters, in declaration order."""
-PARAMETERS: dict[str, Any] = defaults_of(LearnerSettings)
+PARAMETERS: dict[str, Any] = {spec.name: spec.default for spec in LEARNER_PARAMETERS}
 """Name -> default of :data:`LEARNER_PARAMETERS`."""
 
-FILE_PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('policy_limits.min', None, 'double[]',
-                  'lower corner of the box the policy draws u_RL from (not set: the input '
-                  'limits)'),
-    ParameterSpec('policy_limits.max', None, 'double[]',
-                  'upper corner of that box (not set: the input limits)'),
-)
+FILE_PARAMETERS: tuple[ParameterSpec, ...] = tuple(
+    spec for spec in parameter_specs(LearnerSection, declared_defaults=False)
+    if spec.name in POLICY_LIMITS)
 """Read from the params file when given (``/learner`` section), declared only then."""
 
 INTERFACE = NodeInterface(
@@ -177,7 +131,17 @@ INTERFACE = NodeInterface(
 """Topics and parameters (``learner --help``, README)."""
 
 
-def learner_config_from_settings(s: LearnerSettings,
+def node_settings(values: Mapping[str, Any]) -> TrainingSettings:
+    """The run's settings from the node's parameter values (:data:`PARAMETERS`' defaults for
+    the ones not in ``values``).
+
+    Raises:
+        ParameterError: one line naming the bad parameter.
+    """
+    return read_parameters(TrainingSettings, {**PARAMETERS, **values})
+
+
+def learner_config_from_settings(s: TrainingSettings,
                                  filter_params: Mapping[str, Any]) -> LearnerConfig:
     """The LearnerConfig of the node's settings and of the params file's ``/learner`` policy
     box (in ``filter_params``: every parameter given to the node), as the in-process trainer
@@ -186,22 +150,19 @@ def learner_config_from_settings(s: LearnerSettings,
     Raises:
         ValueError: naming the bad policy box key.
     """
-    return LearnerConfig(
-        mode=s.mode, model_based=s.model_based, seed=s.seed, start_steps=s.start_steps,
-        update_after=s.update_after, batch_size=s.batch_size,
-        gp_refit_interval=s.gp_refit_interval, k_c=s.k_c, modular_envelope=s.modular_envelope,
-        **policy_limits(filter_params), sac=SACConfig(initial_alpha=s.initial_alpha))
+    return s.learner_config(**policy_limits(filter_params))
 
 
-def learner_from_settings(s: LearnerSettings, filter_params: Mapping[str, Any],
-                          obs_dim: int) -> SafeLearner:
+def learner_from_settings(s: TrainingSettings, filter_params: Mapping[str, Any],
+                          obs_dim: int, *, dt: float = SimulatorLink.dt) -> SafeLearner:
     """The node's SafeLearner from its settings and the shared safety problem's parameters
     (``filter_params``): the same RCBF problem the safety_filter node solves, and, when
-    ``modular_envelope`` asks for it in ``modular`` mode, the envelope problem of its losses."""
+    ``modular_envelope`` asks for it in ``modular`` mode, the envelope problem of its losses;
+    ``dt``: the simulator's step."""
     params = {**filter_params, 'k_c': s.k_c}
     config = filter_config_from_params(params)
     learner_cfg = learner_config_from_settings(s, filter_params)
-    return SafeLearner(config.problem, obs_dim=obs_dim, dt=s.dt,
+    return SafeLearner(config.problem, obs_dim=obs_dim, dt=dt,
                        config=learner_cfg,
                        envelope=envelope_problem(params) if learner_cfg.uses_envelope else None)
 
@@ -227,7 +188,8 @@ class LearnerNode(Node):
         super().__init__('learner', automatically_declare_parameters_from_overrides=True)
         declare_specs(self, LEARNER_PARAMETERS)
         values = {name: self.get_parameter(name).value for name in PARAMETERS}
-        self.settings = read_parameters(LearnerSettings, values)
+        self.settings = node_settings(values)
+        self.dt = read_parameters(SimulatorLink, values).dt
         # 1 by default: the simulator, filter and recorder share the cores.
         torch.set_num_threads(self.settings.threads)
         # The safety problem's keys (system, obstacles.*, gains) come from the params file.
@@ -245,15 +207,19 @@ class LearnerNode(Node):
         self.pending: dict[str, np.ndarray] | None = None
         self.pending_msg: Any = None
         self.tally = EpisodeTally()
-        self.history: list[dict[str, Any]] = []
-        self.episodes_done = 0
-        # The checkpoint to resume, loaded into the learner when it is built.
-        self.resume_from: Checkpoint | None = None
         # (exit status, one line) once the node has to stop: nothing more is written.
         self.failure: tuple[int, str] | None = None
-        # Episodes the checkpoint on disk holds (None: none yet).
-        self.saved_episodes: int | None = None
-        self._open_run()
+        # The run's files (as rcbf_ros train's); the checkpoint to resume is loaded into the
+        # learner when it is built.
+        self.run = TrainingRun(self.out_dir, entry=NODE, system_name=self.settings.system,
+                               resume=self.settings.resume,
+                               checkpoint_every=self.settings.checkpoint_every,
+                               settings=values,
+                               log=self.get_logger().info)
+        try:
+            self.resume_from: Checkpoint | None = self.run.open(self.identity)
+        except RunWriteError as exc:  # out_dir cannot be made or written: exit 2 naming it
+            raise ValueError(f'out_dir: {exc}') from None
         self.last_step: tuple[int, int] | None = None
         qos = QoSProfile(depth=10)
         self.proposal_pub = self.create_publisher(
@@ -265,33 +231,6 @@ class LearnerNode(Node):
         self.get_logger().info(
             f'learner: {self.settings.mode} on {self.settings.system}, '
             f'{self.settings.episodes} episodes -> {self.out_dir}')
-
-    def _open_run(self) -> None:
-        """Refuse an out_dir that holds a run unless resuming; read the checkpoint to resume
-        and cut metrics.jsonl back to it. ValueError names the parameter."""
-        existing = run_data(self.out_dir)
-        if existing and not self.settings.resume:
-            raise ValueError(f"out_dir: {self.out_dir} already holds a run "
-                             f"({', '.join(existing)}); set resume:=true to continue it or "
-                             'choose another out_dir')
-        checkpoint = self.out_dir / CHECKPOINT
-        if self.settings.resume and checkpoint.exists():
-            self.resume_from = read_checkpoint(checkpoint, identity=self.identity)
-            self.history = list(self.resume_from.history)
-            self.episodes_done = self.saved_episodes = self.resume_from.episode
-            made_by = self.resume_from.made_by
-            self.get_logger().info(
-                f'resumed at episode {self.episodes_done}'
-                + (f' of a run of {made_by}' if made_by and made_by != MADE_BY else '')
-                + ('; the simulator keeps its own episode generator'
-                   if self.resume_from.env_rng is not None else ''))
-        elif self.settings.resume:
-            self.get_logger().info(f'no checkpoint in {self.out_dir}: starting at episode 0'
-                                   + (' (the files there are kept)' if existing else ''))
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        cut = reconcile_metrics(self.out_dir / 'metrics.jsonl', history=self.history)
-        if cut:
-            self.get_logger().info(describe_cut(count=cut, history=self.history))
 
     def _declared_filter_params(self) -> dict[str, Any]:
         """Every parameter given to this node (params file / -p), flat, for the RCBF problem."""
@@ -362,14 +301,10 @@ class LearnerNode(Node):
     def _build_learner(self, obs_dim: int) -> SafeLearner:
         """The learner for observations of ``obs_dim`` values, with the checkpoint to resume
         loaded. CheckpointError: the checkpoint's observation size or state does not fit."""
-        learner = learner_from_settings(self.settings, self.filter_params, obs_dim)
+        learner = learner_from_settings(self.settings, self.filter_params, obs_dim,
+                                        dt=self.dt)
         if self.resume_from is not None:
-            path = self.out_dir / CHECKPOINT
-            difference = describe_difference(self.resume_from.identity,
-                                             identity_of(learner, self.settings.system))
-            if difference:
-                raise CheckpointError(f'resume: {path} {difference}')
-            restore_learner(learner, self.resume_from, path)
+            self.run.restore(learner, self.resume_from)
             self.resume_from = None
         return learner
 
@@ -381,10 +316,12 @@ class LearnerNode(Node):
         request_stop()
 
     def _write_failed(self, exc: OSError) -> None:
-        saved = self.saved_episodes
-        kept = ('no checkpoint written yet' if saved is None else
-                f'{CHECKPOINT} holds {saved} episode(s); resume:=true continues from it')
-        self._fail(WRITE_FAILED, f'{describe_write_error(exc)}; the run stopped ({kept})')
+        self._fail(WRITE_FAILED, self.run.stopped(exc))
+
+    @property
+    def episodes_done(self) -> int:
+        """Episodes done (a resumed run's included)."""
+        return self.run.episodes
 
     def _end_episode(self) -> None:
         t = self.tally
@@ -396,10 +333,8 @@ class LearnerNode(Node):
                # no transition this episode: an unfed check's values (gamma unused)
                **(t.critic or CriticCheck(gamma=math.nan)).as_dict(),
                'env_steps': self.learner.env_steps if self.learner else 0}
-        self.history.append(row)
-        self.episodes_done += 1
         try:
-            append_row(self.out_dir / 'metrics.jsonl', row)
+            self.run.record(row)
         except OSError as exc:
             self._write_failed(exc)
             return
@@ -407,7 +342,7 @@ class LearnerNode(Node):
         msg.data = json.dumps(row)
         self.metrics_pub.publish(msg)
         self.get_logger().info(format_progress(row, self.settings.episodes))
-        if self.episodes_done % self.settings.checkpoint_every == 0:
+        if self.run.checkpoint_due():
             self.save_checkpoint()
         if self.episodes_done >= self.settings.episodes:
             self.finish()
@@ -419,37 +354,30 @@ class LearnerNode(Node):
         if self.learner is None or self.failure is not None:
             return
         try:
-            write_checkpoint(self.out_dir / CHECKPOINT, learner=self.learner,
-                             system_name=self.settings.system, episode=self.episodes_done,
-                             history=self.history, env_rng=None, made_by=MADE_BY,
-                             run=asdict(self.settings))
+            self.run.save_checkpoint(self.learner, env_rng=None)
         except OSError as exc:
             self._write_failed(exc)
-            return
-        self.saved_episodes = self.episodes_done
 
     def finish(self) -> dict[str, Any]:
         """Checkpoint, policy export, reward curve and summary.json; returns the summary.
         Before the first step of a new run, or after a failure, nothing is written."""
-        summary = summarize(self.history)
-        if (self.learner is None and not self.history) or self.failure is not None:
+        history = self.run.history
+        summary = summarize(history)
+        if (self.learner is None and not history) or self.failure is not None:
             return summary
-        self.save_checkpoint()
-        if self.failure is not None:
-            return summary
-        try:
-            if self.learner is not None:
-                save_policy(self.out_dir / 'policy.pt', self.learner.sac,
-                            u_low=self.learner.u_low, u_high=self.learner.u_high,
-                            system=self.settings.system)
-            if self.history:
-                from rcbf_ros.reports.plots import plot_reward_curve
-                plot_reward_curve([r['ret'] for r in self.history],
-                                  self.out_dir / 'reward_curve.png',
-                                  title=f'{self.settings.system} / {self.settings.mode} '
-                                        '(nodes over DDS)')
-                summary['reward_curve'] = str(self.out_dir / 'reward_curve.png')
+
+        def reward_curve() -> None:
+            if history:
+                png = self.out_dir / 'reward_curve.png'
+                draw_reward_curve(history, png=png, title=f'{self.settings.system} / '
+                                  f'{self.settings.mode} (nodes over DDS)')
+                summary['reward_curve'] = str(png)
+
+        def summary_file() -> None:
             write_atomically(self.out_dir / 'summary.json', json.dumps(summary, indent=2))
+
+        try:
+            self.run.finish(self.learner, env_rng=None, then=(reward_curve, summary_file))
         except OSError as exc:
             self._write_failed(exc)
         return summary

@@ -28,37 +28,44 @@ from rcbf_ros.learning.gp import DisturbanceGP, GPConfig
 from rcbf_ros.learning.model_based import ModelRollout, RolloutConfig
 from rcbf_ros.learning.sac import Mode, MODES, SAC, SACConfig
 from rcbf_ros.learning.safety_layer import DifferentiableSafetyLayer
+from rcbf_ros.training.settings import TrainingSettings
+
+_RUN = TrainingSettings  # the defaults a run's user may set are written there
 
 
 @dataclass(frozen=True)
 class LearnerConfig:
-    """Training schedule and model settings (one per run; the same for node and in-process)."""
+    """Training schedule and model settings (one per run; the same for node and in-process).
 
-    mode: Mode = 'modular'
+    The fields a run's user sets take their defaults from
+    :class:`~rcbf_ros.training.settings.TrainingSettings` (which builds this class); the others
+    are the learner's own."""
+
+    mode: Mode = _RUN.mode
     """Which SAC losses: see rcbf_ros.learning.sac (and MODES)."""
-    model_based: bool = False
+    model_based: bool = _RUN.model_based
     """Add k-step synthetic rollouts from prior + GP mean (MB SAC-RCBF, needs mode 'diff')."""
-    seed: int = 0
+    seed: int = _RUN.seed
     """Seeds networks, buffers, exploration and the GP subsample."""
-    batch_size: int = 256
+    batch_size: int = _RUN.batch_size
     """SAC minibatch size."""
     buffer_size: int = 200_000
     """Replay capacity (environment buffer; the model buffer has the same)."""
-    start_steps: int = 1000
+    start_steps: int = _RUN.start_steps
     """Uniformly random proposals before the policy acts (exploration warm-up)."""
-    update_after: int = 500
+    update_after: int = _RUN.update_after
     """Environment steps before the first SAC update."""
     updates_per_step: int = 1
     """SAC updates per environment step."""
-    gp_refit_interval: int = 1000
+    gp_refit_interval: int = _RUN.gp_refit_interval
     """Environment steps between GP refits (Algorithm 1: once per iteration)."""
     gp_prior_std: float = 0.1
     """Disturbance std assumed before the GP has data (the filter stays robust from step 0)."""
     gp_max_points: int = 512
     """Training-set cap of each GP refit (keeps refit < 2 s and prediction < 1 ms)."""
-    k_c: float = 2.0
+    k_c: float = _RUN.k_c
     """Disturbance box mean +/- k_c std (paper eq. disturb_estimate)."""
-    modular_envelope: bool | None = None
+    modular_envelope: bool | None = _RUN.modular_envelope
     """Modular mode: keep the envelope's correction (the barriers that are the same in every
     layout, given to the learner as ``envelope``) in the critic target and actor loss, as the
     authors' code does for PVTOL. False: drop the whole u_S, the paper's eq. q_update_mod. On

@@ -1,7 +1,9 @@
 """Building a training run: its settings, and the env, filter and learner they describe.
 
-A :class:`RunConfig` names the system and the config file; :func:`resolve_run` fills in the
-learner settings the run leaves to the file's ``/learner`` section, and :func:`build_run` makes
+A :class:`RunConfig` (built from :class:`~rcbf_ros.training.settings.TrainingSettings`, or
+directly) names the system and the config file; :func:`resolve_run` fills in the learner
+settings the run leaves to the file's ``/learner`` section (:class:`LearnerSection`, read as the
+learner node reads it), and :func:`build_run` makes
 the env (``/simulator``), the per-step filter (``/safety_filter``, for the env's layout) and
 the :class:`~rcbf_ros.training.agent.SafeLearner`. The in-process trainer
 (:mod:`rcbf_ros.training.loop`), the benchmarks and the experiments' evaluation all start here.
@@ -13,57 +15,54 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from rcbf_ros.core.config import (
-    configures_barriers,
-    envelope_problem,
-    filter_config_from_params,
-    flag,
-    float_list,
-    number,
-)
+from rcbf_ros.core.config import configures_barriers, envelope_problem, filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.envs import make_env
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
+from rcbf_ros.parameters.reader import read_parameters, setting
 from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
-from rcbf_ros.training.run_files import DEFAULT_CHECKPOINT_EVERY
+from rcbf_ros.training.settings import TrainingSettings
+
+_RUN = TrainingSettings  # the defaults a run's user may set are written there
 
 
 @dataclass(frozen=True)
 class RunConfig:
-    """One training run."""
+    """One training run, as the trainer takes it: the defaults of what a run's user sets are
+    :class:`~rcbf_ros.training.settings.TrainingSettings`' (which builds this class)."""
 
-    system: str = 'unicycle'
+    system: str = _RUN.system
     """unicycle | car_following | pvtol, or the dotted path of a SafetyEnv class (then give
     config_file)."""
-    episodes: int = 20
+    episodes: int = _RUN.episodes
     """Training episodes."""
     out_dir: str = 'runs/unicycle'
     """Where metrics, checkpoints, the bag and the plot go."""
-    config_file: str | None = None
+    config_file: str | None = _RUN.config_file
     """ROS params file (default: the packaged config/<system>.yaml)."""
-    max_steps: int | None = None
+    max_steps: int | None = _RUN.max_steps
     """Override the env's episode length."""
-    no_obstacles: bool = False
+    no_obstacles: bool = _RUN.no_obstacles
     """Train without the layout (the transfer upper bound): no obstacles and, on PVTOL, no safety
     operator (paper: "no obstacles nor a safety operator"). Barriers that do not belong to the
     layout (PVTOL's tilt, thrust and arena envelope) stay in a filter; with none left (Unicycle)
     the run has no filter."""
-    random_start: bool | None = None
+    random_start: bool | None = _RUN.random_start
     """Start each episode from a random start of the env (Unicycle: corners and edges, random
     heading; the paper's value-map figure shows these starts); None: the config file's
     simulator ``random_start``."""
-    checkpoint_every: int = DEFAULT_CHECKPOINT_EVERY
+    checkpoint_every: int = _RUN.checkpoint_every
     """Episodes between checkpoints (a kill loses the episodes since the last one)."""
-    record_bag: bool = True
+    record_bag: bool = _RUN.record_bag
     """Record the run's topics to MCAP."""
-    resume: bool = False
+    resume: bool = _RUN.resume
     """Continue from out_dir/checkpoint.pt (without one: start at episode 0, keeping the files
     already there). Without it, an out_dir that already holds a run is refused."""
-    compile_filter: bool = False
+    compile_filter: bool = _RUN.compile_filter
     """Compile the per-step filter's autograd constraint assembly (worth it for long runs of a
     system or barrier without a closed form; the built-in ones need none)."""
-    threads: int = 1
+    threads: int = _RUN.threads
     """torch threads. 1 leaves a core to other work (several runs side by side, or the other
     nodes); a lone in-process run gets 1.2-1.7x faster SAC updates from 2 on a 2-core machine
     (benchmarks/bench_training.py)."""
@@ -75,40 +74,78 @@ class RunSetupError(ValueError):
     """The run cannot start: a bad config file, parameter or setting (the message names it)."""
 
 
+@dataclass(frozen=True)
+class LearnerSection:
+    """A config file's ``/learner`` section: the learner settings that belong with the system
+    (the temperature is tied to the scale of its reward, the box to how it may be driven, the
+    envelope variant to where the paper's Modular fails). The learner node gets them as
+    parameters from the same file."""
+
+    initial_alpha: float = setting(DEFAULT_INITIAL_ALPHA, positive=True,
+                                   description="SAC's initial entropy temperature")
+    """SAC's initial entropy temperature."""
+    modular_envelope: bool = setting(False, description="modular mode: keep the system "
+                                                        "envelope's correction in the losses")
+    """LearnerConfig.modular_envelope."""
+    policy_min: tuple[float, ...] = setting(
+        (), key='policy_limits.min', description='lower corner of the box the policy draws '
+                                                 'u_RL from (not set: the input limits)')
+    """LearnerConfig.policy_min (``()``: the input limits)."""
+    policy_max: tuple[float, ...] = setting(
+        (), key='policy_limits.max', description='upper corner of that box (not set: the '
+                                                 'input limits)')
+    """LearnerConfig.policy_max (``()``: the input limits)."""
+
+
+POLICY_LIMITS = ('policy_limits.min', 'policy_limits.max')
+"""The keys of the policy box in a ``/learner`` section."""
+
+
+def read_learner_section(params: Mapping[str, Any], keys: tuple[str, ...]) -> LearnerSection:
+    """The ``/learner`` settings of ``params`` (flat, dotted keys), reading only ``keys`` (the
+    others keep their defaults: a run that sets one does not read the file's).
+
+    Raises:
+        ValueError: one line naming the bad key.
+    """
+    return read_parameters(LearnerSection, {k: params[k] for k in keys if k in params})
+
+
 def policy_limits(params: Mapping[str, Any]) -> dict[str, tuple[float, ...]]:
     """``policy_min`` / ``policy_max`` of a LearnerConfig from a ``/learner`` section's
     ``policy_limits.min`` / ``.max`` (absent: ``()``, the input limits); errors name the key."""
-    return {'policy_min': float_list(params, 'policy_limits.min'),
-            'policy_max': float_list(params, 'policy_limits.max')}
+    section = read_learner_section(params, POLICY_LIMITS)
+    return {'policy_min': section.policy_min, 'policy_max': section.policy_max}
 
 
 def resolve_run(run: RunConfig) -> RunConfig:
     """``run`` with the settings it leaves to the config file filled in from it.
 
     The learner's ``initial_alpha``, policy box (``policy_limits.min/max``) and
-    ``modular_envelope`` come from the file's ``/learner`` section when the run does not set
-    them: they belong with the system (the temperature is tied to the scale of its reward, the
-    box to how it may be driven, the envelope variant to where the paper's Modular fails).
+    ``modular_envelope`` come from the file's ``/learner`` section (:class:`LearnerSection`)
+    when the run does not set them.
 
     Raises:
         FileNotFoundError: no such config file.
         ValueError: a bad value in the file (the message names the key).
     """
     learner = run.learner
-    if (learner.sac.initial_alpha is not None and learner.policy_min is not None
-            and learner.modular_envelope is not None):
+    keys = (('initial_alpha',) if learner.sac.initial_alpha is None else ()) \
+        + (POLICY_LIMITS if learner.policy_min is None else ()) \
+        + (('modular_envelope',) if learner.modular_envelope is None else ())
+    if not keys:
         return run
-    section = load_params(find_config(run.config_file or run.system), 'learner')
+    params = load_params(find_config(run.config_file or run.system), 'learner')
     try:
-        if learner.sac.initial_alpha is None:
-            value = number(section, 'initial_alpha', DEFAULT_INITIAL_ALPHA, positive=True)
-            learner = replace(learner, sac=replace(learner.sac, initial_alpha=value))
-        if learner.policy_min is None:
-            learner = replace(learner, **policy_limits(section))
-        if learner.modular_envelope is None:
-            learner = replace(learner, modular_envelope=flag(section, 'modular_envelope'))
+        section = read_learner_section(params, keys)
     except ValueError as exc:
         raise ValueError(f'learner.{exc}') from None
+    if learner.sac.initial_alpha is None:
+        learner = replace(learner, sac=replace(learner.sac, initial_alpha=section.initial_alpha))
+    if learner.policy_min is None:
+        learner = replace(learner, policy_min=section.policy_min, policy_max=section.policy_max)
+    if learner.modular_envelope is None:
+        learner = replace(learner, modular_envelope=section.modular_envelope)
     return replace(run, learner=learner)
 
 

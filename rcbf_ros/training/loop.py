@@ -27,8 +27,9 @@ already holds a run is refused. Checkpoints and policies hold tensors and plain 
 are read without running code from them (:mod:`rcbf_ros.training.run_files`).
 
 The pieces: :mod:`~rcbf_ros.training.build` (settings -> env, filter, learner),
-:mod:`~rcbf_ros.training.episodes` (one episode), :mod:`~rcbf_ros.training.run_files` (the
-files), :mod:`~rcbf_ros.training.recorder` (the bag), :mod:`~rcbf_ros.training.progress` and
+:mod:`~rcbf_ros.training.episodes` (one episode), :mod:`~rcbf_ros.training.run` (the run's
+lifecycle in its directory, as the learner node drives it too),
+:mod:`~rcbf_ros.training.recorder` (the bag), :mod:`~rcbf_ros.training.progress` and
 :mod:`~rcbf_ros.training.pictures` (what the run says and draws). This module runs them in
 order, episode after episode.
 """
@@ -43,17 +44,8 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from rcbf_ros.training.agent import SafeLearner
 from rcbf_ros.training.build import build_run, resolve_run, RunConfig, RunSetupError
-from rcbf_ros.training.checkpoint import (
-    CHECKPOINT,
-    CheckpointError,
-    env_seed,
-    identity_of,
-    read_checkpoint,
-    restore_learner,
-    write_checkpoint,
-)
+from rcbf_ros.training.checkpoint import Checkpoint, CheckpointError, env_seed, identity_of
 from rcbf_ros.training.episodes import run_episode
 from rcbf_ros.training.pictures import (
     draw_reward_curve,
@@ -61,22 +53,15 @@ from rcbf_ros.training.pictures import (
     episode_path,
     TRAJECTORY_EPISODES,
 )
-from rcbf_ros.training.policy_io import save_policy
 from rcbf_ros.training.progress import format_progress
 from rcbf_ros.training.recorder import RunRecorder
+from rcbf_ros.training.run import TRAINER, TrainingRun
 from rcbf_ros.training.run_files import (
-    append_row,
-    describe_cut,
     describe_write_error,
     next_bag_dir,
-    reconcile_metrics,
-    run_data,
     RunWriteError,
     write_atomically,
 )
-
-MADE_BY = 'rcbf_ros train'
-"""The ``made_by`` of this entry point's checkpoints."""
 
 
 def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[str, Any]]:
@@ -97,32 +82,24 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
     if run.checkpoint_every < 1:
         raise RunSetupError(f'checkpoint_every: must be >= 1, got {run.checkpoint_every}')
     out = Path(run.out_dir)
-    existing = check_out_dir(run)
+    check_out_dir(run)
     try:
         run = resolve_run(run)
         env, filt, learner, filter_params = build_run(run)
     except (FileNotFoundError, ValueError) as exc:
         raise RunSetupError(str(exc)) from exc
-    metrics_path = out / 'metrics.jsonl'
-    checkpoint_path = out / CHECKPOINT
-    history: list[dict[str, Any]] = []
-    first_episode = 0
+    files = training_run(run, log=log)
     first_seed: int | None = run.learner.seed  # the env's seed for the first episode played
-    saved_at = -1  # env steps the checkpoint on disk holds (-1: none of this start's)
-    saved_episodes: int | None = None  # episodes the checkpoint on disk holds
-    if run.resume and checkpoint_path.exists():
-        first_episode, history, first_seed = _restore(checkpoint_path, learner, env, run)
-        saved_at, saved_episodes = learner.env_steps, first_episode
-        log(f'resumed from {checkpoint_path} at episode {first_episode}')
-    elif run.resume:
-        log(f'no checkpoint in {out}: starting at episode 0'
-            + (' (the files there are kept)' if existing else ''))
+    try:
+        checkpoint = files.open(identity_of(learner, run.system))
+        if checkpoint is not None:
+            files.restore(learner, checkpoint)
+            first_seed = _restore_env(env, checkpoint, files.checkpoint_path, run)
+    except CheckpointError as exc:
+        raise RunSetupError(str(exc)) from None
+    first_episode = files.episodes
     recorder = None
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        cut = reconcile_metrics(metrics_path, history=history)
-        if cut:
-            log(describe_cut(count=cut, history=history))
         write_atomically(out / 'run_config.json', json.dumps(asdict(run), indent=2, default=str))
         if run.record_bag and first_episode < run.episodes:
             recorder = RunRecorder(next_bag_dir(out))
@@ -130,66 +107,47 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
         if recorder is not None:
             _close_quietly(recorder)
         raise RunWriteError(f'{describe_write_error(exc)}; the run did not start') from None
-    episode = first_episode
     paths: deque[Any] = deque(maxlen=TRAJECTORY_EPISODES)
 
-    def save_checkpoint() -> None:
-        nonlocal saved_at, saved_episodes
-        write_checkpoint(checkpoint_path, learner=learner, system_name=run.system,
-                         episode=episode, history=history,
-                         env_rng=env.np_random.bit_generator.state, made_by=MADE_BY,
-                         run=asdict(run))
-        saved_at, saved_episodes = learner.env_steps, episode
+    def env_rng() -> dict[str, Any]:
+        return env.np_random.bit_generator.state
 
     failure: OSError | None = None
     try:
-        while episode < run.episodes:
+        while files.episodes < run.episodes:
+            episode = files.episodes
             trace: list[tuple[np.ndarray, bool]] = []
             stats = run_episode(env, filt, learner, episode=episode,
                                 seed=first_seed if episode == first_episode else None,
                                 recorder=recorder,
                                 t0_ns=int(1e9 * 1e4 * episode), trace=trace)
-            episode += 1
-            paths.append(episode_path(episode, trace))
+            paths.append(episode_path(episode + 1, trace))
             row = stats.as_json()
             row['env_steps'] = learner.env_steps
-            history.append(row)
-            append_row(metrics_path, row)
+            files.record(row)
             if recorder is not None:
                 recorder.event('/episode', {'event': 'end', **{k: row[k] for k in (
                     'episode', 'ret', 'steps', 'violations', 'goal_reached')}})
             log(format_progress(row, run.episodes))
-            if episode % run.checkpoint_every == 0:
-                save_checkpoint()
+            if files.checkpoint_due():
+                files.save_checkpoint(learner, env_rng=env_rng())
     except OSError as exc:
         failure = exc  # a full disk: nothing more is written, the bag is closed below
     finally:
-        # A signal can land between the updates above: the rows in ``history`` are the
+        # A signal can land between the updates above: the rows in the run's history are the
         # episodes done, and the metrics file gets any row it has not received yet.
-        episode = len(history)
         title = f'{run.system} / {run.learner.mode}'
 
-        def final_checkpoint() -> None:
-            if learner.env_steps != saved_at:  # not already saved with every step taken
-                save_checkpoint()
-
         def pictures() -> None:
-            if history:
-                draw_reward_curve(history, png=out / 'reward_curve.png', title=title)
+            if files.history:
+                draw_reward_curve(files.history, png=out / 'reward_curve.png', title=title)
             if paths:
                 log(draw_trajectories(list(paths), env=env, filter_params=filter_params,
                                       png=out / 'trajectories.png', title=title))
 
-        steps: list[Callable[[], Any]] = [
-            lambda: reconcile_metrics(metrics_path, history=history), final_checkpoint,
-            lambda: save_policy(out / 'policy.pt', learner.sac, u_low=learner.u_low,
-                                u_high=learner.u_high, system=run.system),
-            pictures]
-        for step in steps:
-            if failure is not None:
-                break  # after a failed write nothing more is written
+        if failure is None:  # after a failed write nothing more is written
             try:
-                step()
+                files.finish(learner, env_rng=env_rng(), then=(pictures,))
             except OSError as exc:
                 failure = exc
         if recorder is not None:
@@ -198,12 +156,14 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
             except OSError as exc:
                 failure = failure or exc
         if failure is not None:
-            kept = ('no checkpoint written yet' if saved_episodes is None else
-                    f'{checkpoint_path.name} holds {saved_episodes} episode(s); --resume '
-                    'continues from it')
-            raise RunWriteError(f'{describe_write_error(failure)}; the run stopped '
-                                f'({kept})') from None
-    return history
+            raise RunWriteError(files.stopped(failure)) from None
+    return files.history
+
+
+def training_run(run: RunConfig, *, log: Callable[[str], None] = print) -> TrainingRun:
+    """The :class:`~rcbf_ros.training.run.TrainingRun` of ``run`` (not opened yet)."""
+    return TrainingRun(run.out_dir, entry=TRAINER, system_name=run.system, resume=run.resume,
+                       checkpoint_every=run.checkpoint_every, settings=asdict(run), log=log)
 
 
 def check_out_dir(run: RunConfig) -> list[str]:
@@ -212,30 +172,19 @@ def check_out_dir(run: RunConfig) -> list[str]:
     Raises:
         RunSetupError: there is some and ``run.resume`` is off.
     """
-    existing = run_data(run.out_dir)
-    if existing and not run.resume:
-        raise RunSetupError(f"out_dir: {run.out_dir} already holds a run "
-                            f"({', '.join(existing)}); resume it (--resume) or choose another "
-                            'directory')
-    return existing
+    return training_run(run).check_out_dir()
 
 
-def _restore(path: Path, learner: SafeLearner, env: Any,
-             run: RunConfig) -> tuple[int, list[dict[str, Any]], int | None]:
-    """Load ``checkpoint.pt`` into ``learner`` and ``env``: (next episode, metrics rows, the
-    env's seed for that episode: None to go on with the restored generator).
+def _restore_env(env: Any, checkpoint: Checkpoint, path: Path, run: RunConfig) -> int | None:
+    """Put the env's episode generator where ``checkpoint`` left it; returns the env's seed
+    for the next episode (None: go on with the restored generator).
 
     A checkpoint of the learner node holds no env generator (the simulator node owns the
     env): the env is seeded from the run's seed and the episode (``checkpoint.env_seed``).
 
     Raises:
-        RunSetupError: the file is refused, damaged or of another run (naming it).
+        CheckpointError: the generator state does not fit this env (naming the file).
     """
-    try:
-        checkpoint = read_checkpoint(path, identity=identity_of(learner, run.system))
-        restore_learner(learner, checkpoint, path)
-    except CheckpointError as exc:
-        raise RunSetupError(str(exc)) from None
     seed: int | None = None
     if checkpoint.env_rng is None:
         seed = env_seed(run.learner.seed, checkpoint.episode)
@@ -243,11 +192,11 @@ def _restore(path: Path, learner: SafeLearner, env: Any,
         try:
             env.np_random.bit_generator.state = checkpoint.env_rng
         except (KeyError, TypeError, ValueError) as exc:
-            raise RunSetupError(f'resume: {path}: env_rng: not a generator state of this env '
-                                f'({exc})') from None
+            raise CheckpointError(f'resume: {path}: env_rng: not a generator state of this '
+                                  f'env ({exc})') from None
     if checkpoint.episode == 0:
         seed = run.learner.seed  # nothing played yet: the run's own first episode
-    return checkpoint.episode, list(checkpoint.history), seed
+    return seed
 
 
 def _close_quietly(recorder: RunRecorder) -> None:

@@ -27,8 +27,9 @@ from typing import Any, Mapping, Sequence
 import torch
 
 from rcbf_ros.bag.recover import sync_directory
+from rcbf_ros.training.settings import TrainingSettings
 
-DEFAULT_CHECKPOINT_EVERY = 1
+DEFAULT_CHECKPOINT_EVERY: int = TrainingSettings.checkpoint_every
 """Episodes between checkpoints: every episode, so a crash loses at most the episode under
 way. A Unicycle diff checkpoint with a full replay buffer (200 000 rows) is 35 MB and takes
 about 0.1 s, under 1 % of a 1000-step episode (benchmarks/bench_checkpoint.py)."""

@@ -142,6 +142,18 @@ def test_invalid_setting_exits_2_naming_the_key(tmp_path, ros_domain_id, key, va
     assert f'learner: invalid parameters: {named}' in log.read_text()
 
 
+def test_an_out_dir_that_cannot_be_made_exits_2_naming_it(tmp_path, ros_domain_id):
+    """out_dir under a file: one line naming the parameter and the path, nothing written."""
+    (tmp_path / 'file').write_text('')
+    out = tmp_path / 'file' / 'run'
+    code, text = _learner_exit(tmp_path, ros_domain_id, ['-p', f'learner:out_dir:={out}'])
+    assert code == 2, text
+    assert f'learner: invalid parameters: out_dir: {out}: Not a directory; the run did not ' \
+        'start' in text
+    assert 'Traceback' not in text
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['file', 'learner.log']
+
+
 def _learner_exit(tmp_path: Path, ros_domain_id: int, args: list[str]) -> tuple[int, str]:
     """Exit status and log of a learner node that is expected to stop at start-up."""
     env = {**os.environ, 'ROS_DOMAIN_ID': str(ros_domain_id), 'RCBF_ROS_RUNTIME': node_runtime(),

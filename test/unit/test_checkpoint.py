@@ -19,6 +19,7 @@ import torch
 from rcbf_ros.cli.main import main as cli_main
 from rcbf_ros.learning.sac import SACConfig
 from rcbf_ros.training import loop
+from rcbf_ros.training import run as run_module
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
 from rcbf_ros.training.build import build_run, RunConfig, RunSetupError
 from rcbf_ros.training.checkpoint import (
@@ -228,8 +229,8 @@ def test_a_write_failing_mid_run_closes_the_bag_and_writes_nothing_more(tmp_path
     monkeypatch.setattr(loop.RunRecorder, 'step', step)
     monkeypatch.setattr(loop.RunRecorder, 'close', close)
     checkpoints = []
-    real_write = loop.write_checkpoint
-    monkeypatch.setattr(loop, 'write_checkpoint',
+    real_write = run_module.write_checkpoint
+    monkeypatch.setattr(run_module, 'write_checkpoint',
                         lambda path, **kw: checkpoints.append(kw['episode']) or
                         real_write(path, **kw))
     with pytest.raises(RunWriteError) as stopped:

@@ -200,3 +200,23 @@ def test_a_first_checkpoint_that_does_not_fit_leaves_no_file(tmp_path, ros_domai
     assert error_lines(done.stderr) == [expected]
     assert not (out / 'checkpoint.pt').exists() and not list(out.rglob('*.partial'))
     assert [r['episode'] for r in rows_of(out / 'metrics.jsonl')] == [0]
+
+
+def test_one_run_passes_from_the_node_to_the_trainer_and_back(tmp_path, ros_domain_id):
+    """One out_dir, three starts: the node plays episode 0, ``rcbf_ros train`` episode 1, the
+    node episode 2. Each start continues the last one's learner and rows, and each writes its
+    own ``made_by``: the two entry points drive one run, not two formats."""
+    out = tmp_path / 'run'
+    first = run_node(out, ros_domain_id, '-p', 'episodes:=1')
+    assert first.returncode == 0, first.stderr[-3000:]
+    assert cli_main([*TRAIN, '--episodes', '2', '--out', str(out), '--resume']) == 0
+    assert load_payload(out / 'checkpoint.pt')['made_by'] == 'rcbf_ros train'
+    last = run_node(out, ros_domain_id, '-p', 'episodes:=3', '-p', 'resume:=true')
+    assert last.returncode == 0, last.stderr[-3000:]
+    assert 'resumed at episode 2 of a run of rcbf_ros train' in last.stderr
+    assert [r['episode'] for r in rows_of(out / 'metrics.jsonl')] == [0, 1, 2]
+    checkpoint = load_payload(out / 'checkpoint.pt')
+    assert checkpoint['episode'] == 3 and checkpoint['made_by'] == 'learner node'
+    assert [r['episode'] for r in checkpoint['history']] == [0, 1, 2]
+    assert checkpoint['learner']['buffer']['size'] == checkpoint['learner']['env_steps'] == \
+        3 * STEPS

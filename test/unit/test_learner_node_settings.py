@@ -6,7 +6,7 @@ import pytest
 
 from rcbf_ros.envs import make_env
 from rcbf_ros.parameters.rules import find_config, load_params
-from rcbf_ros.ros.learner_node import learner_from_settings, LearnerSettings
+from rcbf_ros.ros.learner_node import learner_from_settings, node_settings
 
 
 @pytest.fixture(scope='module')
@@ -20,7 +20,7 @@ def pvtol() -> tuple[dict, int]:
     ('modular', True, True), ('modular', False, False), ('diff', True, False)])
 def test_modular_envelope_parameter_reaches_the_losses(pvtol, mode, envelope, expect_layer):
     params, obs_dim = pvtol
-    settings = LearnerSettings(system='pvtol', mode=mode, modular_envelope=envelope)
+    settings = node_settings({'system': 'pvtol', 'mode': mode, 'modular_envelope': envelope})
     learner = learner_from_settings(settings, params, obs_dim)
     assert learner.config.mode == mode and learner.config.modular_envelope is envelope
     assert (learner.envelope_layer is not None) is expect_layer
@@ -39,10 +39,11 @@ def test_the_nodes_learner_takes_the_policy_box_of_the_params_file():
     policy_limits reach the node's SAC; PVTOL's file has none, so its input limits apply."""
     path = find_config('unicycle')
     params = {**load_params(path, 'safety_filter'), **load_params(path, 'learner')}
-    learner = learner_from_settings(LearnerSettings(system='unicycle'), params, obs_dim=7)
+    learner = learner_from_settings(node_settings({'system': 'unicycle'}), params,
+                                    obs_dim=7)
     np.testing.assert_array_equal(learner.u_low, [0.0, -2.5])
     np.testing.assert_array_equal(learner.u_high, [2.5, 2.5])
     path = find_config('pvtol')
     params = {**load_params(path, 'safety_filter'), **load_params(path, 'learner')}
-    learner = learner_from_settings(LearnerSettings(system='pvtol'), params, obs_dim=12)
+    learner = learner_from_settings(node_settings({'system': 'pvtol'}), params, obs_dim=12)
     np.testing.assert_array_equal(learner.u_low, learner.system.u_min)

@@ -188,8 +188,9 @@ def test_k_c_keeps_the_refusal_text_ros2_param_set_reports() -> None:
 def test_node_specs_and_defaults_come_from_the_dataclasses() -> None:
     from rcbf_ros.envs.base import EnvSettings
     from rcbf_ros.node_logic import safety_filter as fl
-    from rcbf_ros.ros.learner_node import LearnerSettings, PARAMETERS
+    from rcbf_ros.ros.learner_node import NODE_DEFAULTS, NODE_SETTINGS, PARAMETERS
     from rcbf_ros.training.agent import LearnerConfig
+    from rcbf_ros.training.settings import TrainingSettings
     assert fl.NODE_PARAMETER_DEFAULTS == defaults_of(fl.NodeSettings)
     assert [s.name for s in fl.NODE_PARAMETERS] == list(parameter_keys(fl.NodeSettings))
     assert fl.READ_ONLY_PARAMETERS == (
@@ -198,7 +199,9 @@ def test_node_specs_and_defaults_come_from_the_dataclasses() -> None:
                  'gp_refit_interval', 'k_c', 'model_based'):
         assert PARAMETERS[name] == getattr(LearnerConfig, name), name
     assert PARAMETERS['dt'] == EnvSettings.dt
-    assert list(PARAMETERS) == list(parameter_keys(LearnerSettings))
+    assert list(PARAMETERS) == list(NODE_SETTINGS)
+    for name in set(NODE_SETTINGS) - {'dt'} - set(NODE_DEFAULTS):  # one default for both
+        assert PARAMETERS[name] == getattr(TrainingSettings, name), name
 
 
 @pytest.mark.parametrize('key, value, why', [
@@ -209,9 +212,9 @@ def test_node_specs_and_defaults_come_from_the_dataclasses() -> None:
     ('resume', 'yes', "expected true or false, got 'yes'"),
 ])
 def test_learner_settings_errors_name_the_key(key: str, value: object, why: str) -> None:
-    from rcbf_ros.ros.learner_node import LearnerSettings, PARAMETERS
+    from rcbf_ros.ros.learner_node import node_settings
     with pytest.raises(ParameterError) as info:
-        read_parameters(LearnerSettings, {**PARAMETERS, key: value})
+        node_settings({key: value})
     assert str(info.value) == f'{key}: {why}'
 
 

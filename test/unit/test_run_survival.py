@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from rcbf_ros.cli.main import main as cli_main
-from rcbf_ros.training import loop
+from rcbf_ros.training import run as run_module
 from rcbf_ros.training.build import RunConfig, RunSetupError
 from rcbf_ros.training.checkpoint import write_checkpoint
 from rcbf_ros.training.loop import train
@@ -178,7 +178,7 @@ def test_checkpoint_every_is_a_flag_checked_at_start(tmp_path, capsys, monkeypat
         written.append(entries['episode'])
         return write_checkpoint(path, **entries)
 
-    monkeypatch.setattr(loop, 'write_checkpoint', spy)
+    monkeypatch.setattr(run_module, 'write_checkpoint', spy)
     # Every 2 episodes of 3: after episode 2, and on exit.
     assert cli_main(['train', *TINY, '--episodes', '3', '--no-bag', '--checkpoint-every', '2',
                      '--out', str(out)]) == 0

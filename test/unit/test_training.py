@@ -466,7 +466,7 @@ def test_sigterm_mid_run_keeps_checkpoint_metrics_and_bag(tmp_path):
 def test_an_interrupt_between_an_episodes_row_and_its_line_loses_neither(tmp_path, monkeypatch):
     """Ctrl-C after an episode's row joined the history but before the metrics file got it:
     the file, the checkpoint's counter and its history still agree."""
-    import rcbf_ros.training.loop as loop
+    import rcbf_ros.training.run as run_module
     calls = []
 
     def interrupted_append(path, row):
@@ -475,7 +475,7 @@ def test_an_interrupt_between_an_episodes_row_and_its_line_loses_neither(tmp_pat
             raise KeyboardInterrupt
         append_row(path, row)
 
-    monkeypatch.setattr(loop, 'append_row', interrupted_append)
+    monkeypatch.setattr(run_module, 'append_row', interrupted_append)
     run = small_run(tmp_path, 'unicycle', 'baseline', episodes=4, steps=30)
     with pytest.raises(KeyboardInterrupt):
         train(run, log=lambda _: None)
@@ -490,12 +490,52 @@ def test_an_interrupt_between_an_episodes_row_and_its_line_loses_neither(tmp_pat
 def test_train_cli_modular_envelope_flag_reaches_the_learner_config():
     import argparse
 
-    from rcbf_ros.cli.train import _learner_overrides, add_train_arguments
+    from rcbf_ros.cli.train import add_train_arguments, settings_from_arguments
     parser = argparse.ArgumentParser()
     add_train_arguments(parser)
-    assert _learner_overrides(parser.parse_args(['--modular-envelope']))['modular_envelope']
-    assert 'modular_envelope' not in _learner_overrides(parser.parse_args([]))
+
+    def envelope(*argv: str) -> bool | None:
+        return settings_from_arguments(parser.parse_args(argv)).run_config().learner \
+            .modular_envelope
+
+    assert envelope('--modular-envelope') is True
+    assert envelope('--no-modular-envelope') is False
+    assert envelope() is None  # left to the config file's /learner section
     assert not LearnerConfig().modular_envelope  # the paper's modular by default
+
+
+def test_the_train_cli_builds_its_options_and_defaults_from_the_run_settings():
+    """``rcbf_ros train`` without options is TrainingSettings(), and every option sets the
+    field of its name: the defaults are written once."""
+    import argparse
+    from dataclasses import fields
+
+    from rcbf_ros.cli.train import add_train_arguments, OPTIONS, settings_from_arguments
+    from rcbf_ros.learning.sac import MODES
+    from rcbf_ros.training.settings import MODES as SETTING_MODES
+    from rcbf_ros.training.settings import TrainingSettings
+    parser = argparse.ArgumentParser()
+    add_train_arguments(parser)
+    assert settings_from_arguments(parser.parse_args([])) == TrainingSettings()
+    assert {name for name, _, _ in OPTIONS} <= {f.name for f in fields(TrainingSettings)}
+    given = settings_from_arguments(parser.parse_args([
+        '--system', 'pvtol', '--mode', 'diff', '--model-based', '--seed', '3',
+        '--episodes', '7', '--max-steps', '9', '--config', 'c.yaml', '--out', 'o',
+        '--no-obstacles', '--no-bag', '--resume', '--checkpoint-every', '2',
+        '--compile-filter', '--compile-update', '--threads', '2', '--random-start',
+        '--initial-alpha', '0.5', '--start-steps', '11', '--update-after', '12',
+        '--batch-size', '13', '--gp-refit-interval', '14', '--no-modular-envelope']))
+    assert given == TrainingSettings(
+        system='pvtol', mode='diff', model_based=True, seed=3, episodes=7, max_steps=9,
+        config_file='c.yaml', out_dir='o', no_obstacles=True, record_bag=False, resume=True,
+        checkpoint_every=2, compile_filter=True, compile_update=True, threads=2,
+        random_start=True, initial_alpha=0.5, start_steps=11, update_after=12, batch_size=13,
+        gp_refit_interval=14, modular_envelope=False)
+    run = given.run_config()
+    assert (run.learner.sac.initial_alpha, run.learner.sac.compile_update) == (0.5, True)
+    assert (run.learner.batch_size, run.learner.gp_refit_interval) == (13, 14)
+    assert TrainingSettings().run_config().out_dir == 'runs/unicycle_modular_s0'
+    assert SETTING_MODES == MODES
 
 
 def test_episode_metrics_hold_the_critics_first_value_and_the_discounted_return(tmp_path):
