@@ -19,7 +19,7 @@ from rcbf_ros.messages import systems
 from rcbf_ros.training.settings import MODES, TrainingSettings
 
 OPTIONS: tuple[tuple[str, str, dict[str, Any]], ...] = (
-    ('system', '--system', dict(choices=systems.system_names())),
+    ('system', '--system', {}),   # choices: the table's names when the parser is built
     ('mode', '--mode', dict(choices=MODES)),
     ('model_based', '--model-based', dict(
         action='store_true', help='MB SAC-RCBF: synthetic k-step rollouts (mode diff)')),
@@ -78,6 +78,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     hints = typing.get_type_hints(TrainingSettings)
     for name, option, extra in OPTIONS:
         kwargs: dict[str, Any] = {'dest': name, 'default': settings[name].default, **extra}
+        if name == 'system':
+            kwargs['choices'] = systems.system_names()
         if 'action' not in extra:
             kind = [a for a in typing.get_args(hints[name]) if a is not type(None)] or \
                 [hints[name]]
