@@ -352,3 +352,20 @@ def test_an_unforeseen_error_while_a_set_is_checked_refuses_it_in_one_line(harne
     assert result.reason == 'k_c: RuntimeError: a defect over two lines'
     assert node.filter is old and node.get_parameter('k_c').value == 2.0
     _check_answer(harness)
+
+
+def test_an_obstacles_message_of_10000_rows_is_installed_and_answered(harness):
+    node = harness.node
+    rng = np.random.default_rng(0)
+    rows = np.column_stack([rng.uniform(20.0, 120.0, 10_000), rng.uniform(-50.0, 50.0, 10_000),
+                            rng.uniform(0.05, 0.5, 10_000)])
+    rows[0] = [0.0, 0.0, 0.6]  # the obstacle STATE faces
+    msg = get_message('std_msgs/msg/Float64MultiArray')(data=rows.ravel().tolist())
+    node._on_obstacles(serialize_message(msg))
+    assert _same(list(node.get_parameter('obstacles.radius').value), rows[:, 2].tolist())
+    assert node._active.safety_filter.assembly == 'vectorised'
+    _assert_in_force(node)
+    _check_answer(harness)  # every one of the 10,000 rows met at the answer
+    info = harness.infos[-1]
+    assert not _section(info, 'fail_safe')
+    assert np.any(np.abs(harness.answer(_cdr({'u': PROPOSAL}))[0] - PROPOSAL) > 1e-6)
