@@ -84,7 +84,7 @@ import osqp
 import scipy.sparse as sp
 
 from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
-from rcbf_ros.core.lie_closed_form_rows import VECTOR_ROWS, VectorAssembly
+from rcbf_ros.core.lie_closed_form_rows import ManyRows, VECTOR_ROWS, VectorAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.core.torch_import import LazyTorch
@@ -881,6 +881,28 @@ def binding_rows(*, lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
     return np.flatnonzero(~(least >= margin))
 
 
+GENERATED_ROWS = 1024
+"""The most RCBF rows for which the filter generates its per-call loops as code per row
+(``_shape_kernels``, several lines a row); a problem with more takes the many-row path
+whatever its assembly (e.g. many circles on a system without a closed form)."""
+
+
+class _RowsAsArrays:
+    """A :data:`RowAssembly` (lists) with the many-row path's :class:`ManyRows` out, for a
+    problem of more than :data:`GENERATED_ROWS` rows without rows over arrays (a system or
+    family without a closed form)."""
+
+    def __init__(self, assemble: RowAssembly, n_barriers: int, n_u: int) -> None:
+        self._assemble, self._k, self.n_u = assemble, n_barriers, n_u
+
+    def evaluate(self, x: list[float], u: list[float], mean: list[float], std: list[float]
+                 ) -> ManyRows:
+        h, rows, upper, size = self._assemble(x, u, mean, std)
+        k = self._k
+        return ManyRows(np.array(h), -np.array(rows[:k])[:, :self.n_u], np.array(upper[:k]),
+                        list(upper[k:]), size)
+
+
 def _many_as_lists(many: VectorAssembly) -> RowAssembly:
     """The many-row assembly with the lists of :data:`RowAssembly` (for the checks that take
     every row: :meth:`SafetyFilter.evaluation_refusal`)."""
@@ -1009,13 +1031,16 @@ class SafetyFilter:
                 limits) or ``slack_tolerance`` (negative or not finite).
         """
         self.fallback = fallback
-        self._many = (VectorAssembly.from_problem(problem, threshold=vector_rows)
-                      if closed_form else None)
+        self._many: VectorAssembly | _RowsAsArrays | None = (
+            VectorAssembly.from_problem(problem, threshold=vector_rows) if closed_form else None)
         if self._many is not None:
             assembly, self._assemble = 'vectorised', _many_as_lists(self._many)
         else:
             assembly, self._assemble = select_assembly(
                 problem, compile_assembly=compile_assembly, closed_form=closed_form)
+            if problem.n_barriers > GENERATED_ROWS:  # the many-row path, on this assembly
+                self._many = _RowsAsArrays(self._assemble, problem.n_barriers,
+                                           problem.system.n_u)
         self.assembly = assembly
         """The constraint assembly's path: 'closed_form', 'vectorised' (the closed form with
         circle rows over arrays), 'autograd' or 'compiled'."""

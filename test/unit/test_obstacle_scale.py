@@ -322,3 +322,22 @@ def test_the_solvers_behind_the_exact_solve_take_every_row(monkeypatch, limits):
         assert got.constraint_values.min() >= -max(got.slack, 0.0) - 1e-6 * (
             1.0 + np.abs(got.constraint_values).max())
     assert corrected
+
+
+def test_a_problem_without_rows_over_arrays_takes_the_many_row_path_past_its_size():
+    """Many circles on the autograd assembly (no closed form asked for): the filter's loops
+    are not generated per row past GENERATED_ROWS; the answers are the rows over arrays'."""
+    rng = np.random.default_rng(6)
+    problem = filter_config_from_params(
+        world('unicycle', rng, filter_module.GENERATED_ROWS + 1, spread=30.0)).problem
+    autograd, vector = SafetyFilter(problem, closed_form=False), SafetyFilter(problem)
+    assert (autograd.assembly, vector.assembly) == ('autograd', 'vectorised')
+    assert autograd._many is not None
+    corrected = 0
+    for _ in range(40):
+        call = inputs('unicycle', rng, 3, 2)
+        got, want = autograd.filter(*call), vector.filter(*call)
+        corrected += want.active
+        assert (got.status, got.fail_safe) == (want.status, want.fail_safe)
+        np.testing.assert_allclose(got.u_safe, want.u_safe, rtol=0, atol=1e-8)
+    assert corrected
