@@ -83,12 +83,16 @@ def flag(params: Mapping[str, Any], key: str, default: bool = False) -> bool:
     return read_bool(key, params.get(key, default))
 
 
-OBSTACLE_LIMIT = 512
+OBSTACLE_LIMIT = 20_000
 """The most circular obstacles one filter takes (``obstacles.x``; the ``obstacles`` topic too).
 
-Each row is assembled in closed form by code generated for the set; past ~750 rows Python's
-compiler refuses the generated code (measured on the Unicycle), so a larger set is refused at
-the edge, naming the key, before anything is built."""
+A large set is evaluated over arrays (:mod:`rcbf_ros.core.lie_closed_form_rows`), its memory
+linear in the rows (about 0.7 kB a row with its parameters: 14 MB at 20,000, built in about
+0.1 s), and its QP carries only the rows that can bind; a decision still checks
+every row, in time linear in the rows (about 0.25 ms at 10,000 and 1.9 ms at 100,000 on the
+Unicycle, benchmarks/bench_obstacle_scale.py), and every answer (``filter_info``) carries h
+and the row value of every row, 16 bytes a row. The bound keeps both small beside a control
+period; a larger set is refused at the edge, naming the key, before anything is built."""
 COST_WEIGHT_LIMIT = 1.0e12
 """The largest weight of the QP cost (``slack_weight``, ``input_weight``): the solver squares
 and inverts the cost's diagonal, and 2 x 1e308 overflows."""

@@ -29,6 +29,12 @@ autograd path through :meth:`RCBFProblem.qp` (any other system or family), eager
 compiled (``compile_assembly``). All three give the same QP data to round-off (tested), as
 lists of Python floats (:data:`~rcbf_ros.core.lie_closed_form.RowAssembly`).
 
+A problem with a circle family of many obstacles (``vector_rows``) takes a fourth,
+``vectorised``: its rows are evaluated over arrays (:mod:`rcbf_ros.core.lie_closed_form_rows`)
+and :meth:`SafetyFilter._filter_many` runs the same steps on them, the exact solve on the rows
+that can bind only (:func:`binding_rows`: a row that holds at every action within the limits
+cannot change the QP's solution) and the row check over every row.
+
 A call works on Python floats from its inputs to its result: the inputs are read once into
 lists, the checks, the clip, the assembly, the pass-through test, the active-set solve and the
 row check are plain float arithmetic (on a few dozen values, a numpy call costs more than the
@@ -76,6 +82,7 @@ from typing import Callable, NamedTuple, Sequence, TYPE_CHECKING
 import numpy as np
 
 from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
+from rcbf_ros.core.lie_closed_form_rows import ManyRows, VECTOR_ROWS, VectorAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.core.torch_import import bind_torch, LazyTorch
@@ -654,7 +661,8 @@ def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
     action (:data:`RowValues`), the input bounds as one chained comparison per value (NaN
     fails every comparison), the clip and the action of a solution (the row check's
     projection onto the limits), the limits folded in. ``limits``: (low, high) per input, or
-    None (no limits: no clip, no projection)."""
+    None (no limits: no clip, no projection). ``n_barriers`` 0: no row functions (the
+    many-row path takes :func:`_kernels` and evaluates its rows over arrays)."""
     n_u = len(p_inverse) - 1
     nz, k = n_u + 1, n_barriers
     z = [f'z{j}' for j in range(nz)]
@@ -694,7 +702,7 @@ def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
                 f'    a{j} = {low!r} if a{j} < {low!r} else {high!r} if a{j} > {high!r} else a{j}']
     if not limits:
         act += [f'    a{j} = u{j} + z{j}' for j in range(n_u)]
-    source = '\n'.join([
+    row_source = [
         'def excess(rows, upper, z):',
         f'    {", ".join(z)}, = z',
         f'    {", ".join(rows + limit_rows)}, = rows',
@@ -710,7 +718,9 @@ def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
         f'    {", ".join(f"d{j}" for j in range(n_u))}, = step',
         f'    {", ".join(rows)}, = rows',
         f'    {", ".join(upper[:k])}, = upper',
-        f'    return [{", ".join(values)}]',
+        f'    return [{", ".join(values)}]'] if k else []
+    source = '\n'.join([
+        *row_source,
         'def within_bounds(x, u, mean, std, state, command, box):',
         *(f'    {", ".join(names)}, = {arg}'
           for names, arg in ((x, 'x'), (u, 'u'), (m, 'mean'), (sd, 'std'))),
@@ -726,9 +736,16 @@ def _shape_kernels(p_inverse: list[float], n_x: int, n_barriers: int,
         f'[{", ".join(f"a{j} - u{j}" for j in range(n_u))}]', ''])
     namespace: dict = {'inf': math.inf, 'sqrt': math.sqrt}
     exec(compile(source, '<filter rows>', 'exec'), namespace)  # noqa: S102 - own source
-    return _ShapeKernels((_kernels(p_inverse)[0], namespace['excess'], namespace['farthest']),
-                         namespace['row_values'], namespace['within_bounds'], namespace['clip'],
-                         namespace['act'])
+    solve = (_kernels(p_inverse) if not k else
+             (_kernels(p_inverse)[0], namespace['excess'], namespace['farthest']))
+    return _ShapeKernels(solve, namespace.get('row_values', _no_rows), namespace['within_bounds'],
+                         namespace['clip'], namespace['act'])
+
+
+def _no_rows(upper: list[float], rows: list[list[float]], step: Sequence[float]) -> list[float]:
+    """The row values of a filter whose rows are not generated (:data:`RowValues`; the
+    many-row path evaluates them over arrays)."""
+    raise AssertionError('row values of the many-row path are evaluated over arrays')
 
 
 Assembly = Callable[['torch.Tensor', 'torch.Tensor', 'torch.Tensor', 'torch.Tensor'],
@@ -819,6 +836,91 @@ def _on_lists(assembly: Assembly) -> RowAssembly:
     return assemble
 
 
+PRUNE_MARGIN = 1e-9
+"""How far (relative to 1 + the largest |right-hand side|) a row's least value over the input
+box must lie above 0 for the many-row path to leave it out of its QP: round-off of that least
+value is below 1e-15 of it, so a row left out holds at every action within the limits."""
+
+
+def binding_rows(*, lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
+                 u_min: Sequence[float] | None, u_max: Sequence[float] | None,
+                 margin: float) -> np.ndarray:
+    """The indices of the RCBF rows that can bind: those some action within the input box
+    could violate.
+
+    Row i at an action a is v_i(a) = upper_i + lg_i^T (a - applied) >= 0 (``upper`` written at
+    the proposal ``applied``, which lies in the box). Its least value over the box
+    [u_min, u_max] is attained at a vertex, coordinate-wise, in closed form:
+
+        min_a v_i(a) = upper_i + lg_i^T (mid - applied) - |lg_i|^T half,
+
+    mid and half the box's centre and half-widths. A row whose least value is at least
+    ``margin`` holds at every action the QP can return (its limit rows are hard, so u_S keeps
+    the action in the box, and its slack eps >= 0 at the optimum: a negative eps only costs and
+    tightens), so the QP without it has the same solution: the full QP's feasible set lies in
+    the smaller one's, and the smaller one's solution meets the full set. Without limits no row
+    is left out. A violated row (upper_i < 0) is always kept: its least value is at most
+    upper_i.
+
+    Args:
+        lg: (K, n_u) L_g h of each row.
+        upper: (K,) the right-hand sides at ``applied``.
+        applied: (n_u,) the proposal the rows are written at, within the limits.
+        u_min: (n_u,) lower limits, or None (no limits).
+        u_max: (n_u,) upper limits, or None.
+        margin: how far above 0 a row's least value must be to be left out.
+
+    Returns:
+        (k,) int indices into the rows, ascending.
+    """
+    if u_min is None or u_max is None:
+        return np.arange(upper.size)
+    low, high = np.asarray(u_min, dtype=np.float64), np.asarray(u_max, dtype=np.float64)
+    mid, half = 0.5 * (low + high), 0.5 * (high - low)
+    least = upper + lg @ (mid - np.asarray(applied, dtype=np.float64)) - np.abs(lg) @ half
+    return np.flatnonzero(~(least >= margin))
+
+
+GENERATED_ROWS = 1024
+"""The most RCBF rows for which the filter generates its per-call loops as code per row
+(``_shape_kernels``, several lines a row); a problem with more takes the many-row path
+whatever its assembly (e.g. many circles on a system without a closed form)."""
+
+
+class _RowsAsArrays:
+    """A :data:`RowAssembly` (lists) with the many-row path's :class:`ManyRows` out, for a
+    problem of more than :data:`GENERATED_ROWS` rows without rows over arrays (a system or
+    family without a closed form)."""
+
+    def __init__(self, assemble: RowAssembly, n_barriers: int, n_u: int) -> None:
+        self._assemble, self._k, self.n_u = assemble, n_barriers, n_u
+
+    def evaluate(self, x: list[float], u: list[float], mean: list[float], std: list[float]
+                 ) -> ManyRows:
+        h, rows, upper, size = self._assemble(x, u, mean, std)
+        k = self._k
+        return ManyRows(np.array(h), -np.array(rows[:k])[:, :self.n_u], np.array(upper[:k]),
+                        list(upper[k:]), size)
+
+
+def _many_as_lists(many: VectorAssembly) -> RowAssembly:
+    """The many-row assembly with the lists of :data:`RowAssembly` (for the checks that take
+    every row: :meth:`SafetyFilter.evaluation_refusal`)."""
+    n_u = many.n_u
+    unit = np.eye(n_u, n_u + 1)
+    limit_rows = (np.concatenate((unit, -unit)) + 0.0).tolist()
+
+    def assemble(x: list[float], u: list[float], mean: list[float], std: list[float]
+                 ) -> tuple[list[float], list[list[float]], list[float], float]:
+        rows = many.evaluate(x, u, mean, std)
+        g_rows = np.concatenate([-rows.lg, np.full((rows.h.size, 1), -1.0)], axis=1).tolist()
+        if rows.limit_upper:
+            g_rows += limit_rows
+        return rows.h.tolist(), g_rows, rows.upper.tolist() + rows.limit_upper, rows.size
+
+    return assemble
+
+
 def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
                     closed_form: bool = True) -> tuple[str, RowAssembly]:
     """The filter's constraint assembly and its name.
@@ -894,7 +996,8 @@ class SafetyFilter:
                  max_iter: int = OSQP_MAX_ITER,
                  polish: bool = False, fallback: bool = True,
                  compile_assembly: bool = False, slack_tolerance: float | None = None,
-                 input_bounds: InputBounds | None = None, closed_form: bool = True) -> None:
+                 input_bounds: InputBounds | None = None, closed_form: bool = True,
+                 vector_rows: int = VECTOR_ROWS) -> None:
         """Set OSQP up once with the fixed sparsity pattern.
 
         Args:
@@ -924,16 +1027,29 @@ class SafetyFilter:
             closed_form: assemble in closed form where the problem has one (see
                 :func:`select_assembly`; False: the autograd path, as for any other problem).
                 :attr:`assembly` names the path taken.
+            vector_rows: the fewest obstacles of a circle family that the closed form
+                evaluates over arrays (:mod:`rcbf_ros.core.lie_closed_form_rows`); the filter
+                then takes its many-row path (:meth:`_filter_many`), whose QP carries only
+                the rows that can bind.
 
         Raises:
             ValueError: naming ``fail_safe_action`` (wrong length, not finite, outside the
                 limits) or ``slack_tolerance`` (negative or not finite).
         """
         self.fallback = fallback
-        assembly, self._assemble = select_assembly(
-            problem, compile_assembly=compile_assembly, closed_form=closed_form)
+        self._many: VectorAssembly | _RowsAsArrays | None = (
+            VectorAssembly.from_problem(problem, threshold=vector_rows) if closed_form else None)
+        if self._many is not None:
+            assembly, self._assemble = 'vectorised', _many_as_lists(self._many)
+        else:
+            assembly, self._assemble = select_assembly(
+                problem, compile_assembly=compile_assembly, closed_form=closed_form)
+            if problem.n_barriers > GENERATED_ROWS:  # the many-row path, on this assembly
+                self._many = _RowsAsArrays(self._assemble, problem.n_barriers,
+                                           problem.system.n_u)
         self.assembly = assembly
-        """The constraint assembly's path: 'closed_form', 'autograd' or 'compiled'."""
+        """The constraint assembly's path: 'closed_form', 'vectorised' (the closed form with
+        circle rows over arrays), 'autograd' or 'compiled'."""
         self.problem = problem
         system = problem.system
         self.n_x, self.n_u = system.n_x, system.n_u
@@ -991,8 +1107,14 @@ class SafetyFilter:
         self._nc = nc
         self._p_inverse = 1.0 / diag  # P = diag(diag), for the active-set solve
         self._p_inverse_list = self._p_inverse.tolist()
-        kernels = _shape_kernels(self._p_inverse_list, self.n_x, self.n_barriers,
+        kernels = _shape_kernels(self._p_inverse_list, self.n_x,
+                                 0 if self._many is not None else self.n_barriers,
                                  self._limits if problem.has_limits else None)
+        self._pruned = 0
+        """How many RCBF rows the last call of the many-row path left out of its QP."""
+        unit = np.eye(self.n_u, nz)
+        self._limit_rows = ((np.concatenate((unit, -unit)) + 0.0).tolist()
+                            if problem.has_limits else [])
         self._kernels, self._row_values = kernels.solve, kernels.row_values
         self._within_bounds, self._clip = kernels.within_bounds, kernels.clip
         self._act = kernels.act
@@ -1033,6 +1155,8 @@ class SafetyFilter:
         # Clip before the QP: its rows are then written at a command the plant can take.
         applied = self._clip(u)
         clipped = applied != u
+        if self._many is not None:
+            return self._filter_many(x, u, applied, clipped, mu, sd, start)
         h_values, g_rows, upper, size = self._assemble(x, applied, mu, sd)
         # One sum of squares when the data passes (NaN and inf fail the <=); else the exact
         # check, for the refusal naming the data.
@@ -1171,21 +1295,137 @@ class SafetyFilter:
                 return None
         return action, values, needed
 
+    def _filter_many(self, x: list[float], u: list[float], applied: list[float],
+                     clipped: bool, mu: list[float], sd: list[float], start: float
+                     ) -> FilterResult:
+        """:meth:`filter` from the assembly on, for a problem whose circle rows are evaluated
+        over arrays (:class:`VectorAssembly`): the same steps and checks, the rows' data and
+        the row check over arrays, and the exact solve on the rows that can bind only
+        (:func:`binding_rows`); OSQP and the interior point, where reached, take every row."""
+        rows = self._many.evaluate(x, applied, mu, sd)  # type: ignore[union-attr]
+        h, lg, upper, limit_upper = rows.h, rows.lg, rows.upper, rows.limit_upper
+        if not rows.size <= _QP_DATA_SQUARES:
+            reason = _data_refusal(h.tolist(), (-lg).tolist(), upper.tolist() + limit_upper)
+            if reason is not None:
+                return self._fail_safe(u, start, status='input_refused', h=h.tolist(),
+                                       clipped=clipped, reason=reason)
+        solve_start = time.perf_counter()
+        lowest, highest = float(upper.min()), float(upper.max())
+        if limit_upper:
+            lowest, highest = min(lowest, min(limit_upper)), max(highest, max(limit_upper))
+        if lowest >= 0.0:  # the pass-through of filter(): z = 0 meets every row
+            self._pruned = h.size
+            u_safe = [value + 0.0 for value in applied]
+            return FilterResult._filled(
+                u_safe=np.array(u_safe), u_s=np.array([a - b for a, b in zip(u_safe, u)]),
+                slack=0.0, h=h, constraint_values=upper, status='solved',
+                solve_time_s=time.perf_counter() - solve_start,
+                total_time_s=time.perf_counter() - start, fail_safe=False,
+                barrier_names=list(self.barrier_names), needed_slack=0.0, reason='',
+                proposal_clipped=clipped)
+        has_limits = self.problem.has_limits
+        scale = 1.0 + max(highest, -lowest)
+        keep = binding_rows(lg=lg, upper=upper, applied=applied,
+                            u_min=self._u_min if has_limits else None,
+                            u_max=self._u_max if has_limits else None,
+                            margin=PRUNE_MARGIN * scale)
+        self._pruned = h.size - keep.size
+        g_rows = np.concatenate([-lg[keep], np.full((keep.size, 1), -1.0)], axis=1).tolist()
+        z = _active_set_steps(g_rows + self._limit_rows, upper[keep].tolist() + limit_upper,
+                              self._p_inverse_list, ACTIVE_SET_TOLERANCE * scale,
+                              ACTIVE_SET_STEPS, self._kernels)
+        status = 'solved'
+        checked = None if z is None else self._check_many(z, upper, lg, applied)
+        if checked is None:
+            g_matrix = np.empty((self._nc, self.n_u + 1))
+            g_matrix[:h.size, :self.n_u] = -lg
+            g_matrix[:h.size, self.n_u] = -1.0
+            if self._limit_rows:
+                g_matrix[h.size:] = self._limit_rows
+            self._solver.update(Ax=g_matrix.take(self._pattern_index),
+                                u=np.concatenate([upper, limit_upper]))
+            result = self._solver.solve(raise_error=False)
+            status_val = int(result.info.status_val)
+            z = None if result.x is None else np.asarray(result.x, dtype=np.float64)
+            checked = self._check_many(z, upper, lg, applied) if status_val in _OK_STATUS else None
+            status = _OK_STATUS.get(status_val, str(result.info.status))
+        if checked is None:
+            self._solver.warm_start(x=np.zeros(self.n_u + 1), y=np.zeros(self._nc))
+            if self.fallback:
+                solved = _interior_point(self.problem, (x, applied, mu, sd))
+                if solved is not None:
+                    z = solved
+                    checked = self._check_many(z, upper, lg, applied)
+                    status = 'solved_interior_point'
+        solve_time = time.perf_counter() - solve_start
+        fail_values = None
+        if checked is None or (self.slack_tolerance is not None
+                               and checked[2] > self.slack_tolerance):
+            fail_values = upper + lg @ (self.fail_safe_action - np.array(applied))
+        if checked is None:
+            return self._fail_safe(u, start, status='unverified', h=h.tolist(), clipped=clipped,
+                                   solve_time=solve_time, values=fail_values,
+                                   reason=f'no solution passed the row check (solver: {status})')
+        action, values, needed = checked
+        if self.slack_tolerance is not None and needed > self.slack_tolerance:
+            return self._fail_safe(
+                u, start, status='slack_exceeded', h=h.tolist(), clipped=clipped,
+                solve_time=solve_time, values=fail_values,
+                reason=f'barrier rows need slack {needed:.3g} > slack_tolerance '
+                       f'{self.slack_tolerance:.3g} within the input limits')
+        assert z is not None
+        return FilterResult._filled(
+            u_safe=np.array(action), u_s=np.array([a - b for a, b in zip(action, u)]),
+            slack=float(z[-1]), h=h, constraint_values=values,
+            status=status, solve_time_s=solve_time, total_time_s=time.perf_counter() - start,
+            fail_safe=False, barrier_names=list(self.barrier_names), needed_slack=needed,
+            reason='', proposal_clipped=clipped)
+
+    def _check_many(self, z: Sequence[float] | np.ndarray | None, upper: np.ndarray,
+                    lg: np.ndarray, applied: list[float]
+                    ) -> tuple[list[float], np.ndarray, float] | None:
+        """:meth:`_check` over arrays: the action of solution z and the values of EVERY row
+        at it (those left out of the QP too), if z passes the row check."""
+        if type(z) is not list:
+            if z is None or z.shape != (self.n_u + 1,):
+                return None
+            z = z.tolist()
+        elif len(z) != self.n_u + 1:
+            return None
+        if not all(map(math.isfinite, z)):
+            return None
+        moved = self._act(applied, z)
+        if moved is None:
+            return None
+        action, step = moved
+        values = upper + lg @ np.array(step)
+        needed = max(0.0, -float(values.min()))
+        claimed = max(0.0, z[-1])
+        if needed > claimed:
+            scale = 1.0 + max(float(upper.max()), -float(upper.min()))
+            if needed > claimed + 1e-6 * scale:
+                return None
+        return action, values, needed
+
     def _fail_safe(self, u: list[float], start: float, *, status: str, reason: str,
                    h: list[float] | None = None, clipped: bool = False,
                    solve_time: float = 0.0,
-                   rows: tuple[list[float], list[list[float]], list[float]] | None = None
-                   ) -> FilterResult:
+                   rows: tuple[list[float], list[list[float]], list[float]] | None = None,
+                   values: np.ndarray | None = None) -> FilterResult:
         """The fail-safe result; ``rows`` (right-hand sides, rows, u at the rows) give its row
         values."""
         action = self.fail_safe_action.copy()
         nan = np.full(self.n_barriers, np.nan)
-        values, needed = nan, float('nan')
+        needed = float('nan')
         if rows is not None:
             rows_upper, g_rows, u_rows = rows
             row_values = self._row_values(rows_upper, g_rows,
                                      [a - b for a, b in zip(action.tolist(), u_rows)])
             values, needed = np.array(row_values), max(0.0, -min(row_values))
+        elif values is not None:  # the many-row path's, evaluated over arrays
+            needed = max(0.0, -float(values.min()))
+        else:
+            values = nan
         return FilterResult(
             u_safe=action, u_s=action - np.array(u), slack=float('nan'),
             h=nan if h is None else np.array(h), constraint_values=values, status=status,

@@ -397,8 +397,10 @@ def check_geometry(params: Mapping[str, Any], *, bounds: InputBounds) -> None:
     keys = [*GEOMETRY_KEYS, *(k for k in params if k.startswith('bands.')
                               and k.endswith(('.center', '.half_width')))]
     for key in keys:
-        _within(key, read_floats(key, params.get(key)), bound, 'input_bounds.state')
-    radii = read_floats('obstacles.radius', params.get('obstacles.radius'))
+        _within(key, read_floats(key, params.get(key), max_length=OBSTACLE_LIMIT), bound,
+                'input_bounds.state')
+    radii = read_floats('obstacles.radius', params.get('obstacles.radius'),
+                        max_length=OBSTACLE_LIMIT)
     margin = read_float('obstacles.margin', params.get('obstacles.margin', 0.0))
     if radii and not max(radii) + margin <= bound:
         raise ParameterError(f'obstacles.radius: {max(radii):.6g} plus obstacles.margin '

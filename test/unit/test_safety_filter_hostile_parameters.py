@@ -27,6 +27,7 @@ from test_safety_filter_callbacks import _cdr, EVERY_DIAGNOSTIC, FilterHarness, 
 from test_safety_invariant import row_values
 import yaml
 
+from rcbf_ros.core.config import OBSTACLE_LIMIT
 from rcbf_ros.core.filter_info import STATUS_CODES
 from rcbf_ros.messages.cdr import serialize_message
 from rcbf_ros.messages.classes import get_message
@@ -205,7 +206,8 @@ def test_no_parameter_set_kills_the_filter_or_switches_it_off(harness):
 
 @st.composite
 def _obstacle_messages(draw: st.DrawFn) -> tuple[bytes, np.ndarray]:
-    rows = draw(st.sampled_from([0, 1, 2, 5, 512, 513, 1000, 100_000]))
+    rows = draw(st.sampled_from([0, 1, 2, 5, 512, 1000, OBSTACLE_LIMIT, OBSTACLE_LIMIT + 1,
+                                 100_000]))
     value = draw(_floats)
     data = np.tile(np.array([0.0, 1.5, 0.4]), rows)
     if rows and draw(st.booleans()):
@@ -236,7 +238,7 @@ def test_no_obstacles_message_kills_the_filter_or_switches_it_off(harness):
         if not all(_same(a, b) for a, b in zip(after, before)):
             for column, values in enumerate(after):
                 assert _same(values, sent[column::3].tolist())
-        assert len(after[0]) <= 512
+        assert len(after[0]) <= OBSTACLE_LIMIT
         _assert_in_force(node)
         _check_answer(harness)
 
@@ -251,8 +253,8 @@ HOSTILE_FILES = [
     ({'diagnostics': {'min_period_s': 1e308}}, 'diagnostics.min_period_s'),
     ({'osqp': {'max_iter': 2 ** 63 - 1}}, 'osqp.max_iter'),
     ({'obstacles': {'heading_index': 0}}, 'obstacles.heading_index'),
-    ({'obstacles': {'x': [0.5] * 1000, 'y': [0.5] * 1000, 'radius': [0.1] * 1000}},
-     'obstacles.x'),
+    # more obstacles than a filter takes: a params file that size is refused first
+    ({'obstacles': {'x': [0.5] * (OBSTACLE_LIMIT + 1)}}, 'byte limit of a params file'),
     ({'alpha': 1e300}, 'alpha'),
     ({'slack_weight': 1e308}, 'slack_weight'),
     ({'input_bounds': {'state': 1e300}}, 'input_bounds.state'),
@@ -350,3 +352,20 @@ def test_an_unforeseen_error_while_a_set_is_checked_refuses_it_in_one_line(harne
     assert result.reason == 'k_c: RuntimeError: a defect over two lines'
     assert node.filter is old and node.get_parameter('k_c').value == 2.0
     _check_answer(harness)
+
+
+def test_an_obstacles_message_of_10000_rows_is_installed_and_answered(harness):
+    node = harness.node
+    rng = np.random.default_rng(0)
+    rows = np.column_stack([rng.uniform(20.0, 120.0, 10_000), rng.uniform(-50.0, 50.0, 10_000),
+                            rng.uniform(0.05, 0.5, 10_000)])
+    rows[0] = [0.0, 0.0, 0.6]  # the obstacle STATE faces
+    msg = get_message('std_msgs/msg/Float64MultiArray')(data=rows.ravel().tolist())
+    node._on_obstacles(serialize_message(msg))
+    assert _same(list(node.get_parameter('obstacles.radius').value), rows[:, 2].tolist())
+    assert node._active.safety_filter.assembly == 'vectorised'
+    _assert_in_force(node)
+    _check_answer(harness)  # every one of the 10,000 rows met at the answer
+    info = harness.infos[-1]
+    assert not _section(info, 'fail_safe')
+    assert np.any(np.abs(harness.answer(_cdr({'u': PROPOSAL}))[0] - PROPOSAL) > 1e-6)

@@ -1,0 +1,216 @@
+"""The RCBF rows of one state for MANY circle obstacles: numpy over the rows, not code per row.
+
+:mod:`rcbf_ros.core.lie_closed_form` generates straight-line Python per row: the fastest for a
+few dozen rows, but its cost and its code grow with the row count (Python's compiler refuses
+the function past about 750 rows). A :class:`~rcbf_ros.core.barriers.CircleObstacles` family
+of at least :data:`VECTOR_ROWS` obstacles is evaluated here instead, as one expression over
+arrays of centres and radii (its rows differ in their centre and radius only):
+
+- with a look-ahead point p = (x_i, x_j) + s l_p (cos th, sin th), uncascaded,
+  d = p - c_o, h_o = |d|^2 - delta_o^2, grad h_o = 2 d on (x_i, x_j) and
+  2 s l_p d^T (-sin th, cos th) on th (s = -1, the point behind, for a proposal with a
+  negative ``speed_input`` whose point behind is clear of every obstacle, as
+  :func:`~rcbf_ros.core.rcbf.barrier_terms` chooses);
+- without one, h_o = (x_i - c_o,x)^2 + (x_j - c_o,y)^2 - delta_o^2 (Hessian Q = 2 on
+  (x_i, x_j), the same for every row) and its cascades (g0 = grad h_o, J the Jacobian of f):
+
+      h1 = g0^T f + gamma_1 h_o              grad h1 = Q f + J^T g0 + gamma_1 g0
+      h2 = grad h1^T f + gamma_2 h1          grad h2 = Q J f + gamma_1 Q f + J^T (Q f + grad h1)
+                                                       + gamma_2 grad h1
+
+  (the formulas of :mod:`rcbf_ros.core.lie_closed_form_batch`).
+
+Then the rows of :meth:`~rcbf_ros.core.rcbf.RCBFProblem.qp`: L_g h = grad h^T g and the
+right-hand side grad h^T (x_dot + psi) + alpha h, psi the vertex of the disturbance box by the
+sign of each gradient entry, as the generated code evaluates it. The other families of the
+problem (bands, walls, gaps, small circle sets) keep the generated code; f, J and g come from
+the system's :class:`~rcbf_ros.core.dynamics.DriftSource`. Nothing here imports torch.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from rcbf_ros.core.barriers import CircleObstacles
+from rcbf_ros.core.lie_closed_form import (
+    _closed_form_families,
+    ClosedFormAssembly,
+)
+from rcbf_ros.core.rcbf import RCBFProblem
+
+VECTOR_ROWS = 64
+"""The fewest obstacles of a :class:`CircleObstacles` family evaluated over arrays; a smaller
+family keeps the generated per-row code (faster there: a numpy call costs about a microsecond,
+a generated row a fraction of one; benchmarks/bench_obstacle_scale.py)."""
+
+
+class ManyRows(NamedTuple):
+    """The RCBF rows of one state (K barriers, numpy float64), as the filter's many-row path
+    takes them: row i is [-lg_i, -1] z <= upper_i."""
+
+    h: np.ndarray
+    """(K,) h_i(x)."""
+    lg: np.ndarray
+    """(K, n_u) L_g h_i(x)."""
+    upper: np.ndarray
+    """(K,) L_f h_i + L_g h_i u + alpha h_i + rho_i at the proposal u."""
+    limit_upper: list[float]
+    """The limit rows' right-hand sides: u_max_j - u_j, then u_j - u_min_j ([] without
+    limits)."""
+    size: float
+    """The sum of the squares of h, the rows (with their -1) and every right-hand side, as
+    :data:`~rcbf_ros.core.lie_closed_form.RowAssembly` returns it (the one-sum data check)."""
+
+
+class _Circles:
+    """One :class:`CircleObstacles` family over arrays (module docstring)."""
+
+    def __init__(self, family: CircleObstacles, gammas: tuple[float, ...], n_x: int) -> None:
+        self.cx = np.array([c[0] for c in family.centers], dtype=np.float64)
+        self.cy = np.array([c[1] for c in family.centers], dtype=np.float64)
+        delta = np.array(family.radii, dtype=np.float64) + float(family.margin)
+        self.delta_sq = delta * delta
+        self.i, self.j = family.position_indices
+        self.heading = family.heading_index if family.has_lookahead else None
+        self.lookahead = float(family.lookahead)
+        self.speed = family.speed_input
+        self.gammas = gammas
+        self.n_x = n_x
+
+    def terms(self, x: list[float], u: list[float], f: np.ndarray | None,
+              jacobian: np.ndarray | None) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
+        """(h (k,), the gradient's columns that can be nonzero: (state index, (k,))) at x,
+        the look-ahead point chosen by the proposal u."""
+        if self.heading is not None:
+            cos, sin = np.cos(x[self.heading]), np.sin(x[self.heading])
+            offset = self.lookahead
+            if self.speed is not None and u[self.speed] < 0.0:
+                bx = x[self.i] + -offset * cos - self.cx
+                by = x[self.j] + -offset * sin - self.cy
+                if bool(np.all(bx * bx + by * by - self.delta_sq >= 0.0)):
+                    offset = -offset
+            dx = (x[self.i] + offset * cos) - self.cx
+            dy = (x[self.j] + offset * sin) - self.cy
+            h = dx * dx + dy * dy - self.delta_sq
+            turn = dx * (-2.0 * offset * sin) + dy * (2.0 * offset * cos)
+            return h, [(self.i, 2.0 * dx), (self.j, 2.0 * dy), (self.heading, turn)]
+        dx, dy = x[self.i] - self.cx, x[self.j] - self.cy
+        h = dx * dx + dy * dy - self.delta_sq
+        if not self.gammas:
+            return h, [(self.i, 2.0 * dx), (self.j, 2.0 * dy)]
+        assert f is not None and jacobian is not None
+        grad = np.zeros((h.size, self.n_x))
+        grad[:, self.i] = 2.0 * dx
+        grad[:, self.j] = 2.0 * dy
+        qf = np.zeros(self.n_x)  # Q f, the same for every row
+        qf[self.i], qf[self.j] = 2.0 * f[self.i], 2.0 * f[self.j]
+        gamma1 = self.gammas[0]
+        h1 = grad @ f + gamma1 * h
+        grad1 = qf + grad @ jacobian + gamma1 * grad
+        if len(self.gammas) == 1:
+            return h1, list(enumerate(grad1.T))
+        gamma2 = self.gammas[1]
+        jf = jacobian @ f
+        qjf = np.zeros(self.n_x)
+        qjf[self.i], qjf[self.j] = 2.0 * jf[self.i], 2.0 * jf[self.j]
+        h2 = grad1 @ f + gamma2 * h1
+        grad2 = qjf + gamma1 * qf + (qf + grad1) @ jacobian + gamma2 * grad1
+        return h2, list(enumerate(grad2.T))
+
+
+class VectorAssembly:
+    """The filter's per-call constraint assembly for a problem with a large circle family
+    (module docstring); build with :meth:`from_problem`. ``evaluate(x, u, mean, std)`` (lists
+    of floats) -> :class:`ManyRows`."""
+
+    def __init__(self, problem: RCBFProblem, parts: list[tuple[str, object, int]],
+                 small: Callable | None) -> None:
+        system = problem.system
+        self.n_x, self.n_u = system.n_x, system.n_u
+        self._parts = parts
+        self._small = small
+        self._jet = system.closed_form_source().function()
+        self._alpha, self._k_c = float(problem.alpha), float(problem.k_c)
+        self._cascaded = any(isinstance(p, _Circles) and p.gammas for _, p, _ in parts)
+        if problem.has_limits:
+            self._u_min = [float(v) for v in system.u_min]
+            self._u_max = [float(v) for v in system.u_max]
+        else:
+            self._u_min = self._u_max = None
+
+    @classmethod
+    def from_problem(cls, problem: RCBFProblem, *, threshold: int = VECTOR_ROWS
+                     ) -> VectorAssembly | None:
+        """The vectorised assembly where ``problem`` has a closed form and a circle family of
+        at least ``threshold`` obstacles; else None (the generated code serves it whole)."""
+        families = _closed_form_families(problem)
+        if families is None:
+            return None
+        n_x = problem.system.n_x
+        parts: list[tuple[str, object, int]] = []
+        small = []
+        for family, (base, gammas) in zip(problem.families, families):
+            if type(base) is CircleObstacles and base.count >= threshold:
+                parts.append(('circles', _Circles(base, gammas, n_x), base.count))
+            else:
+                parts.append(('small', None, family.count))
+                small.append(family)
+        if all(kind == 'small' for kind, _, _ in parts):
+            return None
+        evaluate = None
+        if small:
+            sub = dataclasses.replace(problem, families=tuple(small), use_input_limits=False)
+            assembly = ClosedFormAssembly.from_problem(sub)
+            assert assembly is not None  # the same families have a closed form in problem
+            evaluate = assembly.evaluate
+        return cls(problem, parts, evaluate)
+
+    def evaluate(self, x: list[float], u: list[float], mean: list[float], std: list[float]
+                 ) -> ManyRows:
+        """The rows at state x, proposal u (within the limits) and the box mean +/- k_c std."""
+        f_values, jacobian, g = self._jet(np.array(x))
+        # x_dot + mean, and k_c std: the vertex of the box for a gradient entry of either sign
+        motion = (f_values + g @ np.array(u) + np.array(mean)).tolist()
+        spread = (self._k_c * np.array(std)).tolist()
+        g_rows = g.tolist()
+        small = None if self._small is None else self._small(x, u, mean, std)
+        hs, lgs, uppers = [], [], []
+        start = 0
+        for kind, part, count in self._parts:
+            if kind == 'small':
+                assert small is not None
+                hs.append(np.array(small[0][start:start + count]))
+                lgs.append(-np.array(small[1][start:start + count])[:, :self.n_u]
+                           .reshape(count, self.n_u))
+                uppers.append(np.array(small[2][start:start + count]))
+                start += count
+                continue
+            h, columns = part.terms(x, u, f_values, jacobian)  # type: ignore[union-attr]
+            # grad h^T (x_dot + psi) + alpha h, psi_k = mean_k - k_c std_k sign(grad_k):
+            # grad_k (x_dot_k + mean_k) - k_c std_k |grad_k| per entry
+            upper = self._alpha * h
+            lg = np.zeros((h.size, self.n_u))
+            for k, column in columns:
+                if motion[k] != 0.0:
+                    upper += motion[k] * column
+                if spread[k] != 0.0:
+                    upper -= spread[k] * np.abs(column)
+                for j, entry in enumerate(g_rows[k]):
+                    if entry != 0.0:
+                        lg[:, j] += entry * column
+            hs.append(h)
+            lgs.append(lg)
+            uppers.append(upper)
+        h = np.concatenate(hs) if len(hs) > 1 else hs[0]
+        lg = np.concatenate(lgs) if len(lgs) > 1 else lgs[0]
+        upper = np.concatenate(uppers) if len(uppers) > 1 else uppers[0]
+        limit_upper: list[float] = []
+        if self._u_min is not None:
+            limit_upper = ([hi_j - u_j for hi_j, u_j in zip(self._u_max, u)]
+                           + [u_j - lo_j for lo_j, u_j in zip(self._u_min, u)])
+        flat = lg.ravel()
+        size = (float(h @ h) + float(flat @ flat) + float(upper @ upper) + h.size
+                + sum(v * v for v in limit_upper) + len(limit_upper))
+        return ManyRows(h, lg, upper, limit_upper, size)
