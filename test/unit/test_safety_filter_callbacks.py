@@ -16,6 +16,7 @@ import pytest
 
 from rcbf_ros.messages.cdr import deserialize_message, serialize_message
 from rcbf_ros.messages.conversions import array_to_twist, msg_to_sections, sections_to_msg
+from rcbf_ros.node_logic import filter_edge
 from rcbf_ros.node_logic import safety_filter as filter_logic
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
 
@@ -168,7 +169,7 @@ def test_a_defect_in_the_filtering_yields_the_fail_safe_not_an_exception(harness
     def broken(**_kwargs: Any) -> None:
         raise RuntimeError('broken\nfilter')
     monkeypatch.setattr(filter_logic, 'decide', broken)
-    monkeypatch.setattr(filter_logic, 'state_from_sections', broken)
+    monkeypatch.setattr(filter_edge, 'state_from_sections', broken)
     harness.node._on_state(_cdr({'state': GOOD_STATE}))
     assert harness.node._latest_state.error == 'internal error: RuntimeError: broken filter'
     u, (level, message, _) = harness.propose(_cdr({'u': [1.0, 0.0]}))
