@@ -1,6 +1,6 @@
 """The filter's main path as the tree's own call graph: one proposal to ``cmd_safe``.
 
-    python benchmarks/edge_call_graph.py [--compare REF] [--calls 2000] [--no-write]
+    python benchmarks/edge_call_graph.py [--compare REF] [--calls 2000] [--repeat 1] [--no-write]
 
 One ``safety_filter`` node in this process (config/unicycle.yaml, diagnostics with every
 answer, publishers that keep the bytes instead of sending them), a state, three untraced
@@ -20,7 +20,8 @@ distinct files). Three views:
 Two proposals: one far from every obstacle (no row active) and one facing an obstacle (a row
 active, the QP solved). Each is also timed untraced (``--calls`` of them, median).
 ``--compare REF`` measures the tree of git revision ``REF`` too (its ``git archive`` in a
-temporary directory, in a child process), for a before/after table.
+temporary directory), for a before/after table; every tree runs in a child process of its
+own, ``--repeat`` times, the trees taking turns, so that the times show their spread.
 Writes the ``## The filter's edge as a call graph`` section of benchmarks/RESULTS.md.
 """
 from __future__ import annotations
@@ -148,19 +149,41 @@ def measure(calls: int = 2000) -> dict[str, dict[str, Any]]:
     return out
 
 
-def _measure_revision(ref: str, calls: int) -> dict[str, dict[str, Any]]:
-    """:func:`measure` of git revision ``ref``'s tree, in a child process."""
-    with tempfile.TemporaryDirectory() as tree:
-        archive = subprocess.run(['git', '-C', str(ROOT), 'archive', ref], check=True,
-                                 capture_output=True).stdout
-        subprocess.run(['tar', '-x', '-C', tree], input=archive, check=True)
-        env = dict(os.environ, PYTHONPATH=tree)
-        result = subprocess.run([sys.executable, __file__, '--json', '--calls', str(calls)],
-                                env=env, cwd=tree,
-                                capture_output=True, text=True)
-        if result.returncode != 0:
-            raise SystemExit(f'edge_call_graph: {ref}: {result.stderr.strip()[-400:]}')
-        return json.loads(result.stdout.strip().splitlines()[-1])
+def _measure_tree(tree: Path, calls: int) -> dict[str, dict[str, Any]]:
+    """:func:`measure` of the package in directory ``tree``, in a child process."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    result = subprocess.run([sys.executable, __file__, '--json', '--calls', str(calls)],
+                            env=env, cwd=tree, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise SystemExit(f'edge_call_graph: {tree}: {result.stderr.strip()[-400:]}')
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def measure_trees(compare: str | None, calls: int, repeat: int
+                  ) -> dict[str, dict[str, dict[str, Any]]]:
+    """{tree: {case: figures}} of git revision ``compare`` (its ``git archive``; None: none)
+    and of this tree, each run ``repeat`` times in a process of its own, the trees taking
+    turns; the times are the median of the runs' medians, with their range (``range_us``)."""
+    with tempfile.TemporaryDirectory() as scratch:
+        trees = {}
+        if compare:
+            archive = subprocess.run(['git', '-C', str(ROOT), 'archive', compare], check=True,
+                                     capture_output=True).stdout
+            subprocess.run(['tar', '-x', '-C', scratch], input=archive, check=True)
+            trees[compare] = Path(scratch)
+        trees['this tree'] = ROOT
+        runs: dict[str, list[dict[str, dict[str, Any]]]] = {tree: [] for tree in trees}
+        for _ in range(repeat):
+            for tree, path in trees.items():
+                runs[tree].append(_measure_tree(path, calls))
+    measured = {}
+    for tree, results in runs.items():
+        measured[tree] = results[0]
+        for case, figures in measured[tree].items():
+            times = [result[case]['median_us'] for result in results]
+            figures['median_us'] = statistics.median(times)
+            figures['range_us'] = (min(times), max(times))
+    return measured
 
 
 def _figures(stops: list[str]) -> tuple[int, int, int]:
@@ -177,14 +200,17 @@ def report(measured: dict[str, dict[str, dict[str, Any]]]) -> list[Any]:
     """The section's blocks: the figures table, the times, then the hand-offs per tree."""
     table = ['| tree | proposal | view | stops | files | returns |',
              '|---|---|---|---:|---:|---:|']
-    times = ['| tree | proposal | one proposal, median (us) |', '|---|---|---:|']
+    times = ['| tree | proposal | one proposal, median (us) | runs, min - max (us) |',
+             '|---|---|---:|---:|']
     paths = []
     for tree, cases in measured.items():
         for case, figures in cases.items():
             for view, stops in figures['views'].items():
                 count, files, returns = _figures(stops)
                 table.append(f'| {tree} | {case} | {view} | {count} | {files} | {returns} |')
-            times.append(f"| {tree} | {case} | {figures['median_us']:.1f} |")
+            low, high = figures['range_us']
+            times.append(f"| {tree} | {case} | {figures['median_us']:.1f} | {low:.1f} - "
+                         f'{high:.1f} |')
         paths.append(f'{tree}, hand-offs of the active proposal: '
                      f"{_path(cases['active']['views']['hand-offs'])}.")
     return [table, *paths, times]
@@ -195,21 +221,22 @@ def reading(before: str, measured: dict[str, dict[str, dict[str, Any]]]) -> str:
     figures = {}
     for tree in (before, 'this tree'):
         views = measured[tree]['active']['views']
-        hand_offs = views['hand-offs']
-        figures[tree] = (sum(stop != NODE_FILE for stop in hand_offs),
-                         len(set(hand_offs) - {NODE_FILE}), len(views['every file']))
-    (h0, f0, e0), (h1, f1, e1) = figures[before], figures['this tree']
-    return (f'Reading: in {before} the node handed the active proposal on {h0} times, to {f0} '
-            f'other files; in this tree {h1} times, to {f1}: the message edge '
-            '(`node_logic/filter_edge.py`: the checked sample in; the bytes of the command, '
-            '`filter_info` and diagnostics out, one call each in publishing order, so that a '
-            'failure after the command costs the details only), the decision (`decide`, then '
-            "its rule for when diagnostics are due) and the runtime (`get_clock().now()`, two "
-            "files) for the diagnostics' stamp. Counting every file, the path went from "
-            f'{e0} to {e1} stops: the edge reads and writes through the one '
-            'Float64MultiArray codec (`messages/cdr.py`) and checks samples and fills '
-            '`filter_info` and diagnostics '
-            "with the decision module's functions, each a file of its own.")
+        figures[tree] = [_figures(views[view]) for view in VIEWS]
+    (e0, d0, h0), (e1, d1, h1) = figures[before], figures['this tree']
+    return (f'Reading (the active proposal, stops / files / returns): counting every file, '
+            f'{before} made {e0[0]} / {e0[1]} / {e0[2]}, this tree {e1[0]} / {e1[1]} / '
+            f'{e1[2]}; with the decision as one stop {d0[0]} / {d0[1]} / {d0[2]} -> {d1[0]} / '
+            f'{d1[1]} / {d1[2]}; hand-offs {h0[0]} / {h0[1]} / {h0[2]} -> {h1[0]} / {h1[1]} / '
+            f'{h1[2]}. The node hands the bytes to the message edge '
+            '(`node_logic/filter_edge.py`: read, checked into a `Proposal`, in one pass), the '
+            "sample to `decide` (`node_logic/safety_filter.py`, the filter's math in "
+            '`core/filter.py` below it), and the decision back to the edge, which makes '
+            '`cmd_safe`, `filter_info` and the due diagnostics in one pass '
+            '(`FilterEdge.answer`); the node publishes them, the command first. What is left '
+            "inside that pass is the diagnostics': their stamp from the runtime's clock "
+            '(`ros/dds/clock.py`) and their bytes from `messages/conversions.py`, two stops '
+            'that only an answer with diagnostics due makes (here every answer; by default an '
+            'OK answer at most every `diagnostics.min_period_s` = 0.1 s).')
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -220,23 +247,25 @@ def main(argv: list[str] | None = None) -> int:
                         help='print the section only; leave benchmarks/RESULTS.md alone')
     parser.add_argument('--calls', type=int, default=2000,
                         help='untraced proposals timed per case (default 2000)')
+    parser.add_argument('--repeat', type=int, default=1,
+                        help='runs of each tree, taking turns (default 1)')
     parser.add_argument('--json', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.calls < 1:
         parser.error('--calls must be >= 1')
+    if args.repeat < 1:
+        parser.error('--repeat must be >= 1')
     if args.json:  # a child of --compare: this tree's figures, one JSON line
         print(json.dumps(measure(args.calls)))
         return 0
-    measured = {}
-    if args.compare:
-        measured[args.compare] = _measure_revision(args.compare, args.calls)
-    measured['this tree'] = measure(args.calls)
+    measured = measure_trees(args.compare, args.calls, args.repeat)
     sys.path.insert(0, str(ROOT))
     from benchmarks._results import publish_section
     publish_section(
         TITLE, script='edge_call_graph.py' + (f' --compare {args.compare}' if args.compare
                                               else '')
-        + (f' --calls {args.calls}' if args.calls != 2000 else ''),
+        + (f' --calls {args.calls}' if args.calls != 2000 else '')
+        + (f' --repeat {args.repeat}' if args.repeat != 1 else ''),
         conditions=f"; load averages {', '.join(f'{x:.2f}' for x in os.getloadavg())}",
         write=args.write, blocks=[
             'One proposal through an in-process `safety_filter` (config/unicycle.yaml, '
@@ -247,8 +276,10 @@ def main(argv: list[str] | None = None) -> int:
             "below it as one stop; 'hand-offs' counts each call the node makes as one stop in "
             'the file it calls. These figures count calls, not time: they do not vary between '
             'runs. The last table times one untraced proposal the same way (publishers that '
-            'keep the bytes; a fresh state every 50; median of `--calls`), each tree in its '
-            'own process one after the other, so load between them moves it.',
+            'keep the bytes; a fresh state every 50; median of `--calls`), each tree in a '
+            "process of its own, `--repeat` runs taking turns: the median of the runs' "
+            'medians and their range. The machine is shared, so a run that meets a busy core '
+            'shows as the top of the range.',
             *report(measured), *([reading(args.compare, measured)] if args.compare else [])])
     return 0
 
