@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import math
 import struct
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -549,9 +549,9 @@ def diagnostics_cdr(decision: Decision, *, barrier_names: Sequence[str], stamp_n
                                           hardware_id=hardware_id)
 
 
-@dataclass(frozen=True)
-class ProposalSample:
-    """One ``cmd_proposed`` sample as read: a checked proposal, or why there is none."""
+class ProposalSample(NamedTuple):
+    """One ``cmd_proposed`` sample as read: a checked proposal, or why there is none (a tuple:
+    one per proposal, made in a fraction of a frozen dataclass's time)."""
 
     proposal: Proposal | None
     """The checked proposal, or None."""
@@ -565,9 +565,9 @@ class ProposalSample:
     """The bytes were no sample of the topic's type (answered with the fail-safe)."""
 
 
-@dataclass(frozen=True)
-class Answer:
-    """The messages of one answer, in publishing order (:meth:`FilterEdge.answer`)."""
+class Answer(NamedTuple):
+    """The messages of one answer, in publishing order (:meth:`FilterEdge.answer`; a tuple,
+    as :class:`ProposalSample`)."""
 
     command: Any
     """``cmd_safe``: bytes (Float64MultiArray), else the Twist or TwistStamped message."""
@@ -643,6 +643,13 @@ class FilterEdge:
 
     def read_proposal(self, data: bytes, *, twist_fields: Sequence[str]) -> ProposalSample:
         """The checked proposal of one ``cmd_proposed`` sample, or why there is none."""
+        for layout in self.proposal_layouts:  # the node's own layouts: ``u`` alone, at once
+            values = layout.decode(data)
+            if values is not None:
+                try:
+                    return ProposalSample(Proposal(u=checked_vector('u', values, self.n_u)))
+                except ValueError as exc:
+                    return ProposalSample(None, str(exc), None, REFUSED_PROPOSAL)
         header = None
         try:
             sections, header = proposal_sections(
