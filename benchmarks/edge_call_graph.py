@@ -17,8 +17,9 @@ distinct files). Three views:
 - hand-offs: each call the node makes counted as one stop, in the file it calls (all below
   it inside): the rooms the node passes the proposal through.
 
-Two proposals: one far from every obstacle (no row active) and one facing an obstacle (a row
-active, the QP solved). Each is also timed untraced (``--calls`` of them, median).
+Three proposals (:data:`CASES`): one far from every obstacle (no row active), one facing an
+obstacle (a row active, the QP solved), and that one again with no diagnostics due. Each is
+also timed untraced (``--calls`` of them, median).
 ``--compare REF`` measures the tree of git revision ``REF`` too (its ``git archive`` in a
 temporary directory), for a before/after table; every tree runs in a child process of its
 own, ``--repeat`` times, the trees taking turns, so that the times show their spread.
@@ -39,8 +40,14 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 TITLE = "The filter's edge as a call graph"
-CASES = {'free': ([-3.0, 0.0, 0.0], [1.0, 0.2]), 'active': ([-0.85, 0.0, 0.0], [1.0, 0.2])}
-"""case -> (state, proposal): far from every obstacle, and facing the one at the origin."""
+QUIET = 'active, diagnostics not due'
+"""The case of :data:`CASES` whose answer makes no diagnostics."""
+CASES = {'free': ([-3.0, 0.0, 0.0], [1.0, 0.2], 0.0),
+         'active': ([-0.85, 0.0, 0.0], [1.0, 0.2], 0.0),
+         QUIET: ([-0.85, 0.0, 0.0], [1.0, 0.2], 3600.0)}
+"""case -> (state, proposal, ``diagnostics.min_period_s``): far from every obstacle, and facing
+the one at the origin, with diagnostics with every answer; and facing it again, with the OK
+diagnostics not due (the common answer: by default they go out at most every 0.1 s)."""
 OPAQUE = (('node_logic/safety_filter.py', 'decide'),)
 """(file, function) counted as one stop in the view 'decide as one stop'."""
 NODE_FILE = 'ros/safety_filter_node.py'
@@ -116,6 +123,7 @@ def measure(calls: int = 2000) -> dict[str, dict[str, Any]]:
     from rcbf_ros.messages.cdr import serialize_message
     from rcbf_ros.messages.conversions import sections_to_msg
     from rcbf_ros.ros.dds import rclpy_compat as rclpy
+    from rcbf_ros.ros.runtime import Parameter
     from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
 
     package = Path(rcbf_ros.__file__).resolve().parent
@@ -129,7 +137,10 @@ def measure(calls: int = 2000) -> dict[str, dict[str, Any]]:
         publisher.publish = sent.append
     out = {}
     try:
-        for case, (state, proposal) in CASES.items():
+        for case, (state, proposal, period) in CASES.items():
+            if period != node.settings.diagnostics_min_period_s:
+                node.set_parameters([Parameter('diagnostics.min_period_s',
+                                               Parameter.Type.DOUBLE, period)])
             state_cdr = serialize_message(sections_to_msg({'state': state}))
             proposal_cdr = serialize_message(sections_to_msg({'u': proposal}))
             node._on_state(state_cdr)
@@ -137,9 +148,10 @@ def measure(calls: int = 2000) -> dict[str, dict[str, Any]]:
                 node._on_proposal(proposal_cdr)
             del sent[:]
             views = _trace(lambda data=proposal_cdr: node._on_proposal(data), package)
-            if len(sent) != 3 or not all(isinstance(b, bytes) for b in sent):
-                raise SystemExit(f'edge_call_graph: {case}: expected three answers as bytes, '
-                                 f'got {[type(b).__name__ for b in sent]}')
+            expected = 3 if period == 0 else 2  # cmd_safe, filter_info (, diagnostics)
+            if len(sent) != expected or not all(isinstance(b, bytes) for b in sent):
+                raise SystemExit(f'edge_call_graph: {case}: expected {expected} messages as '
+                                 f'bytes, got {[type(b).__name__ for b in sent]}')
             out[case] = {'views': views,
                          'median_us': _median_us(node, state_cdr, proposal_cdr, calls)}
             del sent[:]
@@ -223,6 +235,8 @@ def reading(before: str, measured: dict[str, dict[str, dict[str, Any]]]) -> str:
         views = measured[tree]['active']['views']
         figures[tree] = [_figures(views[view]) for view in VIEWS]
     (e0, d0, h0), (e1, d1, h1) = figures[before], figures['this tree']
+    q0, q1 = (_figures(measured[tree][QUIET]['views']['every file'])
+              for tree in (before, 'this tree'))
     return (f'Reading (the active proposal, stops / files / returns): counting every file, '
             f'{before} made {e0[0]} / {e0[1]} / {e0[2]}, this tree {e1[0]} / {e1[1]} / '
             f'{e1[2]}; with the decision as one stop {d0[0]} / {d0[1]} / {d0[2]} -> {d1[0]} / '
@@ -235,8 +249,10 @@ def reading(before: str, measured: dict[str, dict[str, dict[str, Any]]]) -> str:
             '(`FilterEdge.answer`); the node publishes them, the command first. What is left '
             "inside that pass is the diagnostics': their stamp from the runtime's clock "
             '(`ros/dds/clock.py`) and their bytes from `messages/conversions.py`, two stops '
-            'that only an answer with diagnostics due makes (here every answer; by default an '
-            'OK answer at most every `diagnostics.min_period_s` = 0.1 s).')
+            'that only an answer with diagnostics due makes (by default an OK answer at most '
+            'every `diagnostics.min_period_s` = 0.1 s). With none due, every file: '
+            f'{q0[0]} / {q0[1]} / {q0[2]} -> {q1[0]} / {q1[1]} / {q1[2]} ('
+            f"{_path(measured['this tree'][QUIET]['views']['every file'])}).")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -269,17 +285,17 @@ def main(argv: list[str] | None = None) -> int:
         conditions=f"; load averages {', '.join(f'{x:.2f}' for x in os.getloadavg())}",
         write=args.write, blocks=[
             'One proposal through an in-process `safety_filter` (config/unicycle.yaml, '
-            'diagnostics with every answer) from its CDR bytes to the bytes of `cmd_safe`, '
-            '`filter_info` and diagnostics, traced with `sys.setprofile`. A stop is a run of '
-            "calls and returns in one file of the tree; returns: stops in a file the path "
-            "had already left. 'decide as one stop' counts `decide` and the filter's math "
-            "below it as one stop; 'hand-offs' counts each call the node makes as one stop in "
-            'the file it calls. These figures count calls, not time: they do not vary between '
-            'runs. The last table times one untraced proposal the same way (publishers that '
-            'keep the bytes; a fresh state every 50; median of `--calls`), each tree in a '
-            "process of its own, `--repeat` runs taking turns: the median of the runs' "
-            'medians and their range. The machine is shared, so a run that meets a busy core '
-            'shows as the top of the range.',
+            'diagnostics with every answer, then with none due) from its CDR bytes to the '
+            'bytes of `cmd_safe`, `filter_info` and diagnostics, traced with '
+            '`sys.setprofile`. A stop is a run of calls and returns in one file of the tree; '
+            "returns: stops in a file the path had already left. 'decide as one stop' counts "
+            "`decide` and the filter's math below it as one stop; 'hand-offs' counts each "
+            'call the node makes as one stop in the file it calls. These figures count calls, '
+            'not time: they do not vary between runs. The last table times one untraced '
+            'proposal the same way (publishers that keep the bytes; a fresh state every 50; '
+            'median of `--calls`), each tree in a process of its own, `--repeat` runs taking '
+            "turns: the median of the runs' medians and their range. The machine is shared, "
+            'so a run that meets a busy core shows as the top of the range.',
             *report(measured), *([reading(args.compare, measured)] if args.compare else [])])
     return 0
 
