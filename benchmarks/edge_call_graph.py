@@ -252,7 +252,18 @@ def reading(before: str, measured: dict[str, dict[str, dict[str, Any]]]) -> str:
             'that only an answer with diagnostics due makes (by default an OK answer at most '
             'every `diagnostics.min_period_s` = 0.1 s). With none due, every file: '
             f'{q0[0]} / {q0[1]} / {q0[2]} -> {q1[0]} / {q1[1]} / {q1[2]} ('
-            f"{_path(measured['this tree'][QUIET]['views']['every file'])}).")
+            f"{_path(measured['this tree'][QUIET]['views']['every file'])}). Times, this "
+            f"tree against {before} (median, difference, inside or outside its runs' range): "
+            + '; '.join(_time_against(case, measured[before][case], measured['this tree'][case])
+                        for case in CASES) + '.')
+
+
+def _time_against(case: str, before: dict[str, Any], after: dict[str, Any]) -> str:
+    """``case: median us (+difference, inside / outside the compared tree's range)``."""
+    (low, high), median = before['range_us'], after['median_us']
+    where = 'inside' if low <= median <= high else 'outside'
+    return (f"{case} {median:.1f} us ({median - before['median_us']:+.1f}, {where} "
+            f'{low:.1f} - {high:.1f})')
 
 
 def main(argv: list[str] | None = None) -> int:
