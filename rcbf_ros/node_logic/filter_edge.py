@@ -5,9 +5,10 @@ state by its message type (Float64MultiArray sections, a Twist's or TwistStamped
 ``twist_fields``, an Odometry's pose), checked into a :class:`Proposal` or :class:`StateSample`;
 an ``obstacles`` sample into parameters; and a :class:`Decision` back into the bytes of
 ``cmd_safe``, ``filter_info`` and diagnostics (:meth:`FilterEdge.answer`, one pass, the command
-first). The node's own layouts are read and written at fixed offsets (:class:`Float64ArrayLayout`,
-templates the one codec, :mod:`rcbf_ros.messages.cdr`, writes once); any other sample goes
-through that codec. What to answer is :func:`rcbf_ros.node_logic.safety_filter.decide`'s job.
+first). The node's own layouts are read and written at fixed offsets
+(:class:`Float64ArrayLayout`: the bytes the one codec, :mod:`rcbf_ros.messages.cdr`, writes
+for a layout, made once); any other sample goes through that codec. What to answer is
+:func:`rcbf_ros.node_logic.safety_filter.decide`'s job.
 No middleware: the node hands in its runtime's decoder, message classes and clock.
 """
 from __future__ import annotations
