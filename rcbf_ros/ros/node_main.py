@@ -7,7 +7,9 @@ which construction errors are the user's (bad parameters, a missing file) rather
 
 ``-h`` / ``--help`` (outside ``--ros-args``) print the node's topics and parameters
 (:mod:`rcbf_ros.node_logic.interface`) and exit 0 before anything starts: no ``rclpy.init``, no DDS
-participant.
+participant. A node whose interface lives in a module of its own (:data:`LIGHT_INTERFACES`)
+answers them from there through :func:`main_of`, its console script, before the middleware is
+even imported.
 
 Stopping. SIGINT and SIGTERM are handled here, not by the middleware: ``rclpy.init`` installs
 no signal handlers (``SignalHandlerOptions.NO``; our runtime's are replaced), because rclpy's
@@ -280,6 +282,46 @@ def init_error_line(error: BaseException) -> str:
     return text.split(', at /', 1)[0].rstrip()
 
 
+def print_help(interface: InterfaceSource, argv: Sequence[str]) -> int:
+    """Print the ``--help`` of ``interface`` for the command line ``argv``; exit status 0."""
+    sys.stdout.write(help_text(resolve(interface, argv)))
+    sys.stdout.flush()
+    return 0
+
+
+LIGHT_INTERFACES: dict[str, str] = {
+    'rcbf_ros.ros.safety_filter_node': 'rcbf_ros.node_logic.safety_filter_interface',
+}
+"""Node module -> the module that holds its ``INTERFACE`` without the node class, and so
+without the middleware its class derives from: its ``--help`` is answered from there
+(:func:`main_of`, :func:`run_module`) without loading the DDS runtime."""
+
+
+def _light_interface(module: str, argv: Sequence[str]) -> InterfaceSource | None:
+    """The ``INTERFACE`` of node module ``module`` when ``argv`` asks for the help and
+    :data:`LIGHT_INTERFACES` names where it lives; else None (the node module answers)."""
+    light = LIGHT_INTERFACES.get(module)
+    if light is None or not wants_help(argv):
+        return None
+    return importlib.import_module(light).INTERFACE
+
+
+def main_of(module: str, args: Sequence[str] | None = None) -> int:
+    """A node's console script: ``-h`` / ``--help`` from :data:`LIGHT_INTERFACES`'s module of
+    node module ``module`` when it has one, before the node module (and the middleware) is
+    imported; otherwise the node module's ``main(args)``."""
+    argv = list(sys.argv if args is None else args)
+    interface = _light_interface(module, argv)
+    if interface is not None:
+        return print_help(interface, argv)
+    return importlib.import_module(module).main(args)
+
+
+def safety_filter(args: Sequence[str] | None = None) -> int:
+    """The console script ``safety_filter`` (:mod:`rcbf_ros.ros.safety_filter_node`)."""
+    return main_of('rcbf_ros.ros.safety_filter_node', args)
+
+
 def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None = None, *,
              run: Callable[[Any], None] | None = None,
              on_exit: Callable[[Any], None] | None = None,
@@ -305,9 +347,7 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
     """
     argv = list(sys.argv if args is None else args)
     if interface is not None and wants_help(argv):
-        sys.stdout.write(help_text(resolve(interface, argv)))
-        sys.stdout.flush()
-        return 0
+        return print_help(interface, argv)
     from rcbf_ros.ros.runtime import ExternalShutdownException, ParameterException, rclpy
 
     _STOP.reset()
@@ -364,7 +404,8 @@ def _exit_interrupted(signum: int, frame: Any) -> None:
 
 
 def run_module(argv: Sequence[str]) -> int:
-    """Import node module ``argv[0]`` and return its ``main()``, with ``sys.argv = argv``.
+    """Import node module ``argv[0]`` and return its ``main()``, with ``sys.argv = argv``
+    (its ``--help`` from :data:`LIGHT_INTERFACES`'s module, when it has one, without it).
 
     Returns:
         The node's exit status; :data:`INTERRUPTED_EXIT` after a SIGINT before the node
@@ -374,6 +415,9 @@ def run_module(argv: Sequence[str]) -> int:
         print('usage: python -m rcbf_ros.ros.node_main <module> [args ...]', file=sys.stderr)
         return 2
     sys.argv = list(argv)
+    interface = _light_interface(argv[0], argv)
+    if interface is not None:
+        return print_help(interface, argv)
     previous = signal.signal(signal.SIGINT, _exit_interrupted)
     try:
         module = importlib.import_module(argv[0])
