@@ -157,7 +157,10 @@ OTHER_DESCRIPTION = 'not read by this node (given on its command line or in a pa
 
 def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
                   given: Sequence[ParameterSpec] = (), dynamic_typing: bool = False,
-                  others: str | None = OTHER_DESCRIPTION) -> None:
+                  dynamic_overrides: bool = False,
+                  read_only: Callable[[str], bool] | None = None,
+                  others: str | Callable[[str], str | None] | None = OTHER_DESCRIPTION
+                  ) -> None:
     """Declare ``node``'s parameters from ``specs``: the one way the nodes declare them.
 
     Every declaration gets a descriptor of its own (:func:`parameter_descriptor`: the spec's
@@ -170,16 +173,19 @@ def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
       list: rcl reads ``[]`` as no value);
     - a parameter declared already without a description (by an override, in a node made with
       ``automatically_declare_parameters_from_overrides``) is declared again with its value, as
-      the override declared it (typed by its value), and the descriptor of the spec of
-      ``specs`` or ``given`` that names it (a ``<name>`` pattern too), else with ``others`` as
-      its description (None: left as it is, for a call that declares part of a node's
-      parameters). An override outside the spec's range is left as it was declared: the
-      node's reader refuses it, one line naming the key, as it reads its settings.
+      the override declared it (typed by its value, or of any type with
+      ``dynamic_overrides``), and the descriptor of the spec of ``specs`` or ``given`` that
+      names it (a ``<name>`` pattern too), else with ``others`` as its description (a function
+      of the name: its description; None: left as it is, for a call that declares part of a
+      node's parameters, or for a name the function returns None for). An override outside the
+      spec's range is left as it was declared: the node's reader refuses it, one line naming
+      the key, as it reads its settings.
 
     ``given``: specs of parameters declared only when given (the filter keys a node reads from a
     params file). ``dynamic_typing``: the declarations from defaults take a value of any type
-    (else only those without a default). :data:`RUNTIME_PARAMETERS` are left as the runtime
-    declared them.
+    (else only those without a default). ``read_only``: whether the parameter of a name is
+    fixed at start (its descriptor read-only, so that the runtime refuses a set of it);
+    None: none is. :data:`RUNTIME_PARAMETERS` are left as the runtime declared them.
 
     Raises:
         ValueError: one line naming the parameter: a declaration the runtime refuses (e.g. a
@@ -192,7 +198,8 @@ def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
             if spec.pattern or node.has_parameter(spec.name):
                 continue
             descriptor = parameter_descriptor(
-                spec, dynamic_typing=dynamic_typing or spec.default is None)
+                spec, dynamic_typing=dynamic_typing or spec.default is None,
+                read_only=read_only is not None and read_only(spec.name))
             if spec.type == 'string[]' and not spec.default:
                 node.declare_parameter(spec.name, Parameter.Type.STRING_ARRAY, descriptor)
             else:
@@ -201,15 +208,17 @@ def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
             if name in RUNTIME_PARAMETERS or node.describe_parameter(name).description:
                 continue
             spec = next((s for s in (*specs, *given) if s.matches(name)), None)
-            if spec is None and others is None:
+            other = others(name) if callable(others) else others
+            if spec is None and other is None:
                 continue
             value = parameter.value
             if spec is not None and spec.range_refuses(value):
                 continue  # as the override declared it: the node's reader refuses it
             node.undeclare_parameter(name)
             node.declare_parameter(name, value, parameter_descriptor(
-                spec, dynamic_typing=value is None, description=others or ''),
-                ignore_override=True)
+                spec, dynamic_typing=dynamic_overrides or value is None,
+                read_only=read_only is not None and read_only(name),
+                description=other or ''), ignore_override=True)
     except ParameterException as exc:
         raise ValueError(str(exc)) from exc
 

@@ -27,7 +27,7 @@ from rcbf_ros.node_logic.filter_edge import array_sections as _array_sections  #
 from rcbf_ros.node_logic.filter_edge import one_line as _one_line
 from rcbf_ros.node_logic.interface import bound_text, DIAGNOSTIC_ARRAY
 from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME
-from rcbf_ros.ros.node_main import parameter_descriptor, run_node, spin
+from rcbf_ros.ros.node_main import declare_specs, run_node, spin
 from rcbf_ros.ros.runtime import (
     deserialize_message,
     DurabilityPolicy,
@@ -132,36 +132,25 @@ class SafetyFilterNode(Node):
         return active
 
     def _declared_parameters(self) -> dict[str, Any]:
-        """Declare every known parameter (overrides are declared already); read all back.
+        """Declare every known parameter (:func:`declare_specs`); read all back.
 
-        Each declaration gets a descriptor of its own (:meth:`_descriptor`): its description
-        and range from :data:`INTERFACE` (what ``--help`` prints), read-only where it is fixed
-        at start, dynamically typed so that any YAML type is accepted. rclpy keeps the
-        descriptor it is given and writes the parameter's name and type into it, so a shared
-        one would describe every parameter as the last one. Parameters the overrides declared
-        (with a bare descriptor) are declared again with theirs and their value: the declared
-        range then refuses an override outside it (ParameterException: one line, exit 2).
+        Each declaration gets the description and range of its spec in :data:`INTERFACE` (what
+        ``--help`` prints), read-only where it is fixed at start, dynamically typed so that any
+        YAML type is accepted; a key of the filter's families that no spec names is described
+        as :data:`logic.READ_ONLY_DESCRIPTION`; other overrides (a shared params file's keys
+        for other nodes) are left as given. Parameters the overrides declared are declared
+        again with their descriptor and value, except one outside its declared range, which
+        declare_specs leaves as it was: it is refused here, the key first (ValueError: one
+        line, exit 2).
         """
-        for name, default in logic.parameter_declarations():
-            if not self.has_parameter(name):
-                self.declare_parameter(name, default, self._descriptor(name))
-        for name in list(self.get_parameters_by_prefix('')):
+        declare_specs(self, INTERFACE.parameters, dynamic_typing=True, dynamic_overrides=True,
+                      read_only=logic.is_read_only, others=_other_description)
+        for name, parameter in self.get_parameters_by_prefix('').items():
             if logic.feeds_the_filter(name) and not self.describe_parameter(name).description:
-                value = self.get_parameter(name).value
-                refusal = _range_refusal(name, value)
-                if refusal:  # the declaration would refuse it: say so with the key first
+                refusal = _range_refusal(name, parameter.value)
+                if refusal:  # left as the override declared it: say why, the key first
                     raise ValueError(refusal)
-                self.undeclare_parameter(name)
-                self.declare_parameter(name, value, self._descriptor(name),
-                                       ignore_override=True)
         return self._parameter_values()
-
-    @staticmethod
-    def _descriptor(name: str) -> Any:
-        """The descriptor of the parameter ``name``: description and range of its spec."""
-        return parameter_descriptor(INTERFACE.spec(name), dynamic_typing=True,
-                                    read_only=logic.is_read_only(name),
-                                    description=logic.READ_ONLY_DESCRIPTION)
 
     def _parameter_values(self) -> dict[str, Any]:
         """Every declared parameter's value (unset ones dropped)."""
@@ -186,7 +175,7 @@ class SafetyFilterNode(Node):
         """Why the declared descriptor of ``parameter`` refuses its new value, naming it ('' if
         it does not)."""
         name = parameter.name
-        if not self.has_parameter(name):
+        if name not in self.get_parameters_by_prefix(''):  # undeclared: the runtime says so
             return ''
         if logic.is_read_only(name):
             return f'{name} is {logic.READ_ONLY_DESCRIPTION}'
@@ -431,6 +420,13 @@ class SafetyFilterNode(Node):
     def fail_safe_action(self) -> np.ndarray:
         """(n_u,) what the node publishes when it cannot filter."""
         return self.filter.fail_safe_action
+
+
+def _other_description(name: str) -> str | None:
+    """The description of an override no spec names: a key of the filter's families
+    (:func:`logic.feeds_the_filter`) is described as read-only text; others are left as
+    given (None)."""
+    return logic.READ_ONLY_DESCRIPTION if logic.feeds_the_filter(name) else None
 
 
 def _range_refusal(name: str, value: Any) -> str:
