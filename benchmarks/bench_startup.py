@@ -148,11 +148,17 @@ def first_answer(probe: _Probe, config: str, environment: dict[str, str],
             process.wait()
 
 
+INSIDE = ('numpy', 'rcbf_ros.node_logic.interface', 'rcbf_ros.messages.classes',
+          'rcbf_ros.core.config', 'rcbf_ros.core.filter', 'rcbf_ros.ros.runtime', 'cyclonedds')
+"""Modules whose share of the help's import time has a row of its own when they are imported
+(with what they import first): the middleware's (``rcbf_ros.ros.runtime``, ``cyclonedds``)
+have none while the help is answered without it."""
+
+
 def help_imports(top: int = 7) -> list[str]:
     """Where ``safety_filter --help`` spends its import time: ``python -X importtime`` of it
     once, the modules its chain imports first (which partition the import time; each with what
-    it imports) by cumulative ms, and inside them the DDS runtime's package (``cyclonedds``)
-    and the message classes without ROS (``rcbf_ros.messages.classes``)."""
+    it imports) by cumulative ms, and inside them those of :data:`INSIDE` it imports."""
     done = subprocess.run([sys.executable, '-X', 'importtime', *SAFETY_FILTER_SCRIPT, '--help'],
                           capture_output=True, text=True, check=True)
     outermost: list[tuple[float, str]] = []
@@ -166,7 +172,7 @@ def help_imports(top: int = 7) -> list[str]:
         module = name.strip()
         if len(name) - len(name.lstrip()) == 1:  # one space: imported by the program itself
             outermost.append((int(fields[1]) / 1000.0, module))
-        if module in ('cyclonedds', 'rcbf_ros.messages.classes'):  # with what they import
+        if module in INSIDE:  # with what they import
             inside.setdefault(module, int(fields[1]) / 1000.0)
     total = sum(ms for ms, _ in outermost)
     rows = ['| imported first by the chain | cumulative ms | share |', '|---|---|---|']
@@ -240,7 +246,8 @@ def main(argv: list[str] | None = None) -> int:
             'node class (`rcbf_ros.node_logic.safety_filter_interface`): the middleware the '
             'node class derives from (`rcbf_ros.ros.runtime`: the DDS runtime and the message '
             'classes) is not imported; `python -m rcbf_ros.ros.safety_filter_node --help` '
-            'still imports it, as the node module holds the class.',
+            'still imports it, as the node module holds the class. A module of '
+            f'{", ".join(f"`{m}`" for m in INSIDE)} without a row of its own was not imported.',
             imports,
             'Caveats: the machine (2 cores) is shared with other jobs, whose load the first '
             'line gives; wall times rise with it, the memory figures do not. The peak RSS of '
