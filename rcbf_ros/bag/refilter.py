@@ -2,49 +2,13 @@
 
     rcbf_ros refilter SOURCE_BAG OUTPUT_BAG --params-file F [--node N]
 
-Reads ``/cmd_proposed`` and ``/state`` from a bag in log-time order, filters every proposal
-with a :class:`~rcbf_ros.core.filter.SafetyFilter` built from the NEW parameters, and writes a
-new rosbag2-layout bag: every source topic copied unchanged (same CDR bytes, log and publish
-times, schema text, type hash and QoS), plus, at the proposal's log time, the bytes the
-node's edge writes (:mod:`rcbf_ros.node_logic.filter_edge`):
+Filters every recorded proposal with a ``SafetyFilter`` built from the new parameters, making
+the node's own decisions, and writes a new bag: the source topics unchanged plus
+``/refilter/cmd_safe``, ``/refilter/filter_info`` and ``/refilter/diagnostics`` as the node
+would publish them; then compares the new commands with the recorded ones. A pure library and
+command line, so that a parameter change can be tried on a run without a robot or middleware.
 
-- ``/refilter/cmd_safe``: the new command u* = u_RL + u_S in the type of the recorded
-  proposals, as the node's ``cmd_safe`` with the matching ``command_type``: a
-  std_msgs/Float64MultiArray with one section ``u``; a geometry_msgs/Twist with u in the new
-  parameters' ``twist_fields`` (other fields 0); a TwistStamped like that with the proposal's
-  header;
-- ``/refilter/filter_info`` (std_msgs/Float64MultiArray): the node's ``filter_info``
-  (:func:`rcbf_ros.node_logic.filter_edge.info_sections`: ``u``, ``u_rl``, ``u_s``,
-  ``fail_safe``, ``status``, ``h``, ... and the ``state`` it answers);
-- ``/refilter/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per filtered
-  proposal with the same level, message and key/values as the safety_filter node's
-  (:func:`rcbf_ros.node_logic.filter_edge.diagnostic_values`: ``h.<barrier>``,
-  ``constraint.<barrier>``, ``slack``, ``status``, ...), stamped with the proposal's log time.
-
-Proposals are read as the node reads them, by :mod:`rcbf_ros.node_logic.filter_edge`: a
-Float64MultiArray (sections ``u``, ``state``, ``disturbance_mean``, ``disturbance_std``), or a
-geometry_msgs/Twist or TwistStamped (u in the new parameters' ``twist_fields``); states as a
-Float64MultiArray or a nav_msgs/Odometry (``state_frame_id`` checked as the node does). A
-sample that does not decode stops the run with the topic and log time, as a layout that does
-not fit does (an undecodable Odometry is a bad state, as in the node).
-
-Decisions are the node's own (:func:`rcbf_ros.node_logic.safety_filter.decide`): the proposal's
-``state`` section wins, else the latest ``/state`` if it is at most ``max_state_age_s`` older
-than the proposal (log times); the proposal's learned ``disturbance_mean`` / ``disturbance_std``
-win over the static ``disturbance.*`` box. A proposal that cannot be filtered (no state yet,
-a stale or NaN state, a NaN proposal) is skipped: nothing is written for it, and the reason is
-counted. A state or proposal of the wrong LENGTH for the new system is a configuration mismatch
-and stops the run with an error (:class:`RefilterError`).
-
-Comparison. The recorded answers come from ``/filter_info`` (sections ``u``, ``u_rl`` and the
-``state`` answered) when the bag has it, else from ``/cmd_safe`` in the form it had before the
-node published ``filter_info`` (sections ``u``, ``u_rl``, ``u_s`` and optionally ``state``); a
-``/cmd_safe`` that holds the command alone cannot be paired. A recorded answer is paired with
-the proposal whose ``u`` equals its ``u_rl``, bit for bit, first come first served, and, when
-both name a state, whose state equals it; |Δu| = ||u_new - u_recorded||_2.
-
-Pure library + command line: reads and writes MCAP with :mod:`rcbf_ros.bag`, never touches
-the middleware.
+What it reads, writes, skips and compares: docs/BAGS.md#re-filtering-a-run
 """
 from __future__ import annotations
 

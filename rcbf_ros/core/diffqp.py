@@ -1,74 +1,13 @@
 """Batched differentiable QP layer specialised to the small RCBF-QP of the paper.
 
-Solves, for every sample b of a minibatch, the strictly convex QP in the package's standard form
-(:mod:`rcbf_ros.core.qp`)
+Solves, for every sample of a minibatch, min 1/2 z^T P z + q^T z s.t. G z <= h (P positive
+definite; the standard form of ``rcbf_ros.core.qp``) and differentiates z* and the multipliers
+by implicit differentiation of the KKT conditions (OptNet), as the paper's differentiable
+safety layer requires. The problems are tiny (3 unknowns, 4-25 rows), so it works by exact
+KKT-checked active-set rounds, an interior point method for the samples they leave open, and
+closed forms where P is diagonal; non-convergence is reported per sample, never as NaN.
 
-    minimize_z  1/2 z^T P z + q^T z   subject to   G z <= h
-
-    P: (B, nz, nz) symmetric positive definite,  q: (B, nz),  G: (B, nc, nz),  h: (B, nc)
-
-and differentiates the solution z*(P, q, G, h) (and the multipliers lam*) by implicit
-differentiation of the KKT conditions at the solution (OptNet, Amos & Kolter 2017), as the
-paper's differentiable safety layer requires (eqs. q_update_diff, pi_update_diff).
-
-Why it is fast: nz is tiny (n_u + 1 = 3) and nc is small (4-25), so every linear solve is an
-nz x nz batched Cholesky, and the forward pass works in stages, each only on the samples the
-previous stages left open (finished samples are written out and dropped from the working set):
-
-1. Active-set rounds (:func:`_active_set_rounds`). Round one is the unconstrained minimiser
-   -P^-1 q (in the RCBF-QP q = 0: u_S = 0 whenever the proposal is already safe); each further
-   round solves the equality-constrained KKT system of a guessed active set A exactly,
-
-       [P   A^T] [z ]   [-q ]
-       [A    0 ] [nu] = [h_A] ,
-
-   and corrects the guess (drop rows with nu < 0, add the most violated row). A result is
-   accepted only when it is primal feasible with nu >= 0; stationarity holds by construction,
-   so an accepted z IS the unique KKT point, never an approximation. On realistic RCBF batches
-   this settles ~98-100% of the samples in one to six rounds.
-2. A batched primal-dual interior point method (Mehrotra predictor-corrector, centred start)
-   for the rest,
-
-       P z + q + G^T lam = 0,   G z + s = h,   s o lam = 0,   s, lam >= 0,
-
-   with the Newton step reduced to the nz x nz Schur complement
-   (P + G^T diag(lam / s) G) dz = r: one batched Cholesky per iteration, two triangular solves.
-3. Polish: the interior point's active set {i : lam_i > s_i} seeds the same KKT-checked
-   active-set rounds (after a few iterations, and again at convergence), which returns the exact
-   solution (~1e-12) and the exact active set for the backward pass. Where no round is
-   accepted, the interior point iterate (converged to ``tol``) is returned.
-
-The equality KKT solves use the proximal method of multipliers: iterative refinement of the
-regularised system (-delta I in the multiplier block) whose elimination leaves the nz x nz
-Cholesky of P + A^T A / delta.
-
-Backward: the adjoint of the same active-set KKT system, solved the same way (one nz x nz
-Cholesky), gives dL/dP, dL/dq, dL/dG, dL/dh (and supports a loss on lam).
-
-Diagonal P (the RCBF-QP's; :func:`_diagonal_of`): at these sizes the per-operation overhead
-dominates, so the solver skips factorisations where a closed form is exact: the unconstrained
-minimiser -q / diag(P), the second round from the empty set (one row a: nu = (a P^-1 (-q) - h_a) /
-(a P^-1 a^T), refined once), later rounds and the backward pass wherever a sample has at most two
-active rows (the 2 x 2 system A P^-1 A^T nu = A P^-1 rhs - h_A by its inverse, refined once;
-:func:`_kkt_solve_two_rows`), and in the backward pass the samples without active rows (P^-1 grad).
-Acceptance is unchanged (a closed form that is not finite, or whose two rows are close to
-dependent, is declined and the general path takes over). A batch-shared P and q (expanded views, as
-the RCBF-QP's) are checked and scaled once per batch.
-
-Before solving, variables are scaled to unit Hessian diagonal (the slack weight l ~ 1e3-1e6
-otherwise dominates the conditioning) and constraint rows to unit norm. Both scalings are
-detached: the solution and the multipliers are invariant under them, so the chain rule through
-constant scalings gives the exact gradient.
-
-Degenerate points. At a weakly active constraint (lam_i = 0 = s_i) the solution map is not
-differentiable. The backward pass uses the active set of the accepted KKT point: the rounds
-add a row only when it is violated, so a row that merely touches the solution stays out
-(from an interior point seed: in iff lam_i > s_i, whichever side of the central path
-dominates). The result is the derivative of that active set's equality-constrained QP, a
-one-sided derivative. Where more rows are active than independent (LICQ fails, e.g. duplicated
-barriers), the regularisation delta picks a bounded multiplier, and z and its gradient remain
-well defined. Non-convergence is reported per sample in
-:class:`QPSolution.converged`, never as NaN, on feasible problems.
+Design notes (the stages, scaling, degenerate points): docs/DESIGN.md#the-differentiable-qp
 """
 from __future__ import annotations
 

@@ -1,73 +1,14 @@
 """Per-step RCBF safety filter: an exact small active-set solve per call, OSQP as its fallback.
 
-Given a state x, a proposal u_RL and (optionally) a disturbance box mean +/- k_c std, returns
-u* = u_RL + u_S with u_S from the RCBF-QP of :meth:`RCBFProblem.qp` (the builder the learner's
-differentiable layer uses): min 1/2 z^T P z s.t. G z <= upper, z = (u_S, eps), P diagonal.
-Each call tries, in order:
+Given a state, a proposal u_RL and (optionally) a disturbance box, returns u* = u_RL + u_S with
+u_S from the RCBF-QP of ``RCBFProblem.qp`` (the builder the learner's differentiable layer
+uses). Every answer is checked against the rows themselves: the result is within the actuator
+limits and meets every row within ``slack_tolerance``, or it is the fail-safe action with the
+reason. A call works on Python floats and generated straight-line code, because on a few dozen
+values a numpy call costs more than the work it does.
 
-1. pass-through: a proposal that meets every row (upper >= 0) is the optimum z = 0, no solve;
-2. the active-set solve (:func:`active_set_solution`, :meth:`SafetyFilter._active_set`): with
-   P diagonal the QP is the projection of 0 onto the rows' polyhedron in the P-metric, which
-   a dual active-set method solves exactly in a few steps (nz = n_u + 1 unknowns, at most nz
-   rows active). Its answer is kept only with a KKT certificate (multipliers >= 0,
-   stationarity, every row and limit met and the active ones held, to round-off); otherwise
-   (a degenerate or nearly dependent case, too many steps) it gives way to
-3. OSQP, set up once with the fixed sparsity pattern of the constraint matrix (dense RCBF rows,
-   one entry per actuator-limit row), so that a call is ``OSQP.update(Ax=, u=)`` + a
-   warm-started ``solve()``; then the interior point of :mod:`rcbf_ros.core.diffqp`; then the
-   fail-safe (below).
-
-Every answer, whichever step gave it, goes through the same row check (a pass-through meets it
-by construction). The status is ``solved`` for a pass-through and an active-set answer, as for
-OSQP's (whose ``solved_inaccurate`` is passed on).
-
-The constraint assembly (barrier terms, then the QP rows) takes one of three paths, chosen at
-construction by :func:`select_assembly` (:attr:`SafetyFilter.assembly`): the closed form, as
-straight-line Python generated for the problem at construction
-(:mod:`rcbf_ros.core.lie_closed_form`, for the built-in systems and barrier families), or the
-autograd path through :meth:`RCBFProblem.qp` (any other system or family), eager or traced and
-compiled (``compile_assembly``). All three give the same QP data to round-off (tested), as
-lists of Python floats (:data:`~rcbf_ros.core.lie_closed_form.RowAssembly`).
-
-A problem with a circle family of many obstacles (``vector_rows``) takes a fourth,
-``vectorised``: its rows are evaluated over arrays (:mod:`rcbf_ros.core.lie_closed_form_rows`)
-and :meth:`SafetyFilter._filter_many` runs the same steps on them, the exact solve on the rows
-that can bind only (:func:`binding_rows`: a row that holds at every action within the limits
-cannot change the QP's solution) and the row check over every row.
-
-A call works on Python floats from its inputs to its result: the inputs are read once into
-lists, the checks, the clip, the assembly, the pass-through test, the active-set solve and the
-row check are plain float arithmetic (on a few dozen values, a numpy call costs more than the
-work it does), and numpy arrays are built only for the result (and for OSQP and the fallback,
-where a call gets that far). The loops over a few values that every call runs (the input
-bounds, the clip, the active-set scans over the rows, the row values) are straight-line code
-generated for the filter's shape at construction (``_shape_kernels``), like the assembly.
-
-The invariant (checked on every call, whatever the solver reports): the returned action is
-either
-
-(a) within the actuator limits, and meets every RCBF row at the proposal's state with a slack
-    of at most ``slack_tolerance``, evaluated from the rows themselves at the returned action
-    (:attr:`FilterResult.needed_slack`), or
-(b) the fail-safe action (``fail_safe=True``), with the reason in :attr:`FilterResult.reason`.
-
-How each input is treated:
-
-- A proposal outside the actuator limits is clipped to them *before* the QP, so the QP's rows
-  are written at the command that can actually be applied (``proposal_clipped``).
-- Values that are not finite, or beyond the magnitude bounds (:class:`InputBounds`), a negative
-  std, or QP data beyond :data:`QP_DATA_LIMIT` (OSQP refuses such data and would silently keep
-  the previous problem) are refused: fail-safe, status ``input_refused``.
-- A solve that OSQP does not report ``solved`` / ``solved inaccurate``, or whose answer fails
-  the row check, goes to the interior-point solver of :mod:`rcbf_ros.core.diffqp` (``fallback``)
-  and is checked again; the warm start is reset so that no later call starts from it. If the
-  check still fails: fail-safe, status ``unverified``.
-- With ``slack_tolerance`` set (the safety_filter node, refilter), rows that need more slack than
-  that within the limits (infeasible) give the fail-safe too, status ``slack_exceeded``. Without
-  it (the in-process trainer) the QP's best effort is returned and the needed slack is reported.
-
-Wrong lengths or non-numeric inputs are the caller's bug and raise ``ValueError`` naming the
-field; the ROS node validates them first and publishes the fail-safe instead.
+The invariant and how each input is treated: docs/SAFETY_FILTER.md#the-core-filter.
+Design notes (the solve steps, the assembly paths): docs/DESIGN.md#the-per-step-filter
 """
 from __future__ import annotations
 

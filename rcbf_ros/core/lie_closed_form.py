@@ -1,76 +1,13 @@
 """Barrier terms and RCBF-QP rows of ONE state in closed form, as generated Python on floats.
 
-The same math as :func:`rcbf_ros.core.rcbf.barrier_terms` and
-:func:`rcbf_ros.core.qp.build_rcbf_qp`, evaluated without autograd for the per-step filter
-(B = 1, where torch's per-operation overhead is most of the cost). The batched torch path stays
-the definition the learner differentiates through; the tests hold the two equal.
+The same math as ``rcbf_ros.core.rcbf.barrier_terms`` and ``rcbf_ros.core.qp.build_rcbf_qp``,
+evaluated without autograd for the per-step filter (B = 1, where torch's per-operation overhead
+is most of the cost); the batched torch path stays the definition the learner differentiates
+through, and the tests hold the two equal. Each problem's Lie derivatives, cascades and rows
+become straight-line float code generated once at construction; a problem without a closed
+form (a system or family given by dotted path) keeps the autograd path.
 
-Every built-in base barrier except a look-ahead circle is a quadratic of the state,
-h(x) = c + a^T x + 1/2 x^T Q x (:class:`~rcbf_ros.core.barriers.QuadraticRows`). With J the
-Jacobian of f, the Lie derivatives along f (L^0 h = h, L^1 h = L_f h, L^2 h = L_f L_f h) and
-their gradients are
-
-    L^0 h = c + a^T x + 1/2 x^T Q x          grad L^0 h = a + Q x
-    L^1 h = a^T f + x^T Q f                  grad L^1 h = Q f + J^T (a + Q x)
-    L^2 h = f^T Q f + a^T J f + x^T Q J f    grad L^2 h = Q J f + 2 J^T Q f + (J^2)^T (a + Q x)
-
-leaving out R = sum_k f_k dJ/dx_k, the rate of J along f: R = 0 for the built-in systems (the
-drift source test checks it against autograd); a system with R != 0 would need it. The
-cascades h1 = L_f h + gamma_1 h and h2 = L_f h1 + gamma_2 h1 are sums of these levels,
-
-    h_top = beta_0 L^0 h + beta_1 L^1 h + beta_2 L^2 h    (and grad h_top likewise), with
-    beta = (1, 0, 0) uncascaded, (gamma_1, 1, 0) cascaded once,
-    (gamma_1 gamma_2, gamma_1 + gamma_2, 1) cascaded twice.
-
-With g0 = a + Q x = grad L^0 h and the three coefficient blocks
-
-    C_0 = beta_0 g0 + beta_1 Q f + beta_2 Q J f
-    C_1 = beta_1 g0 + 2 beta_2 Q f
-    C_2 = beta_2 g0
-
-(the blocks of C = b + M w, w = (x, f, J f), b = (beta_0 a, beta_1 a, beta_2 a), M = T (x) Q,
-T = [[beta_0, beta_1, beta_2], [beta_1, 2 beta_2, 0], [beta_2, 0, 0]]; expand the products to
-see the table above; the deepest block is g0 itself, its beta being 1)
-
-    grad h_top = C_0 + J^T C_1 + (J^2)^T C_2,
-    h_top = beta_0 (c + 1/2 (a + g0)^T x) + beta_1 g0^T f + beta_2 (f^T Q f + g0^T J f).
-
-A look-ahead circle, h = ||p - c||^2 - delta^2 with p = (x_i, x_j) + s l_p (cos th, sin th),
-has grad h = 2 (p - c) on (x_i, x_j) and 2 s l_p (p - c)^T (-sin th, cos th) on th; it is used
-uncascaded only, with the direction-of-travel switch of :func:`barrier_terms` (the point
-behind, s = -1, for a proposal with a negative ``speed_input`` whose point behind is clear of
-every obstacle of the family; the same comparisons in the same order as there).
-
-Then the QP rows of :func:`rcbf_ros.core.qp.build_rcbf_qp`: [-L_g h, -1] with L_g h =
-grad h^T g, the limit rows, and the right-hand side L_f h + L_g h u + alpha h + rho, with
-rho = grad h^T mean - k_c |grad h|^T std = min over the box of grad h^T psi. It is evaluated as
-
-    grad h^T (x_dot + psi) + alpha h,    x_dot = f + g u,  psi_k = mean_k - k_c std_k sign(grad_k)
-
-(the same sum regrouped: x_dot + psi has two candidates per state entry, computed once for
-every row, and each row picks one by the sign of its gradient entry). The assembly also returns
-the sum of the squares of its data, for the filter's one-sum data check.
-
-How it is evaluated: not as matrix products (numpy's per-call cost, about a microsecond, is
-far more than a product of these sizes takes) but as straight-line Python on floats,
-generated once per problem at construction (milliseconds) and compiled with ``compile``. The
-generator (:class:`_Source`) carries every quantity as a polynomial in named floats with
-constant coefficients: the state, the proposal and the disturbance box, the system's f, J and g
-entries (:meth:`~rcbf_ros.core.dynamics.Unicycle.closed_form_source`, whose statements it
-inlines), and the values it has named so far. Constants are folded into the coefficients and
-structural zeros drop out (the zeros of Q, of J, of g, of f), so what remains is the handful
-of multiplications each row really needs; a value used more than once (J f, the entries of
-J^2, grad h, L_g h) is computed once into a name, and so are the parts the barriers of a
-family share (the terms of degree two, which come from their common Hessian, and everything
-but the constant of a gradient entry, where obstacles differ in their centres only). A call
-is then one Python function of a few hundred float operations, with no numpy call and no
-allocation beyond its result lists. :attr:`ClosedFormAssembly.source` holds its text.
-
-One function decides whether a problem has a closed form (``_closed_form_families``; both
-builders, :meth:`ClosedFormTerms.from_problem` and :meth:`ClosedFormAssembly.from_problem`,
-return None where it finds none): a built-in system (by exact type) and built-in families,
-cascaded at most twice, no look-ahead circle inside a cascade, every cascade over the problem's
-own system. Anything else (a system or family given by dotted path) keeps the autograd path.
+Design notes (the derivation, the code generator): docs/DESIGN.md#closed-form-lie-derivatives
 """
 from __future__ import annotations
 

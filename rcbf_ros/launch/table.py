@@ -1,35 +1,11 @@
 """Which nodes a launch starts, with which remaps: ONE table for ``ros2 launch`` and our launcher.
 
-``launch/<name>.launch.py`` (launch_ros ``Node`` actions, for a ROS 2 install) and
-``rcbf_ros launch <name>`` (:mod:`rcbf_ros.launch.local`, separate ``python -m`` processes, for
-machines without ROS) both read :data:`LAUNCHES`, so the two cannot drift. Pure data and string
+``launch/<name>.launch.py`` (for a ROS 2 install) and ``rcbf_ros launch <name>``
+(``rcbf_ros.launch.local``, for machines without ROS) both read ``LAUNCHES``, so the two cannot
+drift; launch arguments and respawn settings are declared here for both. Pure data and string
 building: no ROS, no processes.
 
-Wiring of ``<system>_filter`` (the nodes' own relative names meet; a namespace moves the whole
-graph)::
-
-    simulator --state--> nominal_controller --cmd_proposed (u, state)--> safety_filter
-        ^                                                                      |
-        +------------------- filter_info (u, u_rl, u_s, ..., state) ----------+
-                             (cmd_safe: the command u alone, for a robot)
-    scene_markers: state + diagnostics -> scene_markers (MarkerArray)
-    recorder: every topic -> MCAP
-
-``safety_filter`` and ``unicycle_robot`` put the filter in front of a robot instead, on the
-robot's own topic names (:data:`DROP_IN_FILTER`, :data:`ROBOT_ARGUMENTS`)::
-
-    odom + cmd_in (the controller's command) --> safety_filter --> cmd_out (the robot's input)
-
-Launch arguments (``name:=value`` after the launch name, in both launchers): a
-:class:`LaunchSetup` declares them (:class:`LaunchArgument`) and its entries' remappings and
-parameters name them with :class:`Argument`; ``ros2 launch`` gets ``DeclareLaunchArgument`` and
-``LaunchConfiguration``, ``rcbf_ros launch`` substitutes the values itself
-(:func:`argument_values`, :func:`resolve_entry`). Every launch also takes ``params_file``.
-
-Respawn: an entry may be started again when it exits (launch_ros ``respawn``,
-``respawn_delay``); the drop-in filter reads both from the launch arguments ``respawn`` and
-``respawn_delay`` (:data:`RESPAWN_ARGUMENTS`), which both launchers read with
-:func:`respawn_settings`.
+The wiring, the arguments and respawn: docs/NODES.md#launches-one-table
 """
 from __future__ import annotations
 

@@ -1,49 +1,14 @@
 """SAC's network update as functions of tensors for torch.compile (``SACConfig.compile_update``).
 
-``SAC.update`` steps its networks through ``loss.backward()`` and ``torch.optim.Adam``;
-torch.compile can only compile the pieces between those calls, which gains nothing measurable.
-:class:`FunctionalUpdate` states the same update as functions of the agent's tensors, each
-compiled as one graph (``fullgraph=True``).
+``SAC.update`` steps its networks through ``loss.backward()`` and ``torch.optim.Adam``, and
+torch.compile can only compile the pieces between those calls, which gains nothing
+measurable. ``FunctionalUpdate`` states the same update as functions of the agent's tensors,
+each compiled as one graph (``fullgraph=True``), with the differentiable safety layer run
+eagerly between them where the losses use it. It works in place on the agent's own parameters
+and Adam state, agrees with the eager update up to float32 round-off, and raises a
+``RuntimeError`` naming ``compile_update`` rather than compiling again.
 
-Without a safety layer in the losses the whole update is one graph: the critic target (next
-action, target critics), the critic loss and its gradient (``torch.func.grad_and_value``), the
-critics' Adam step, the actor loss with the critics' weights held fixed and its gradient, the
-actor's Adam step, alpha's loss and Adam step, and the Polyak step of the target critics.
-
-Where the losses pass the action through the differentiable safety layer (``diff``; ``modular``
-with an envelope layer) the layer is not one torch graph (a custom autograd Function around a
-data-dependent active-set solve), so it runs eagerly between three compiled graphs:
-
-1. the actor's two samples: a' ~ pi(.|x_{t+1}) without gradient, a ~ pi(.|x_t) with autograd
-   (AOTAutograd compiles its backward too);
-2. the layer (eager) at (x_t, a) and (x_{t+1}, a') in one call, the two halves side by side,
-   as the eager update calls it (``SAC._through_layer_once``: each sample's QP has its own
-   unique solution, so one solve of 2B problems answers the critic target's and the actor
-   loss's B each; the layer's cost is mostly per call); a' carries no gradient and its half of
-   the output is detached, so gradients reach the layer only via a;
-3. the critic target at the layer's a', the critic loss, its gradient and the critics' Adam
-   step, the Polyak step, and the actor loss at the layer's action with the updated critics'
-   weights held fixed, differentiated in the action and in log pi only;
-4. (eager) ``torch.autograd.grad`` from those two gradients back through the layer's own
-   backward and the compiled backward of the sample at x_t, to the actor's weights;
-5. the actor's Adam step and alpha's loss and Adam step.
-
-The actor's weights change only at its Adam step, so sampling both actions first computes what
-the eager update computes after the critics' step; the chain rule of step 4 is the eager
-``actor_loss.backward()`` split at the layer.
-
-It works in place on the agent's own tensors: its parameters and the Adam state its optimizers
-keep (``exp_avg``, ``exp_avg_sq``, ``step``, in torch.optim.Adam's layout), so checkpoints, the
-numpy acting views and an eager ``SAC.update`` before or after all see one state. The noise of
-the two policy samples is drawn by the caller from the agent's generator in the eager order, and
-the layer gets the same disturbance estimates as in the eager update, so the compiled and the
-eager update agree up to float32 round-off (the order of floating-point operations differs);
-equal seeds still give equal runs.
-
-Each graph compiles at its first call (per variant: with and without the Polyak step) and never
-again: a later call that would compile (a guard failed, say on an input of another shape or
-dtype) raises a ``RuntimeError`` naming ``compile_update``, as does a graph that does not
-compile, rather than running slower than it should.
+Design notes (the graphs, the split at the layer): docs/DESIGN.md#sacs-compiled-update
 """
 from __future__ import annotations
 

@@ -1,46 +1,13 @@
 """Gaussian-process model of the unknown disturbance (paper: "Disturbance Estimation").
 
-Labels are residuals of the nominal model, computed by the caller,
+One independent exact GP (zero mean, ARD RBF kernel) per output dimension of the nominal
+model's residuals y = x_dot_hat - f(x) - g(x) u, fitted with GPyTorch and predicted in closed
+form from cached factors; the disturbance box of eq. (disturb_estimate) is
+``mean +/- k_c std`` (``bounds``). ``predict`` evaluates a variance bound chosen at the refit,
+never below the exact variance; outputs the nominal model predicts exactly get no posterior;
+the training set is subsampled so that fit and predict cost stay bounded as data grows.
 
-    y_i = x_dot_hat_i - f(x_i) - g(x_i) u_i,      y_i in R^{n_out},
-
-and one independent exact GP with a zero prior mean and an ARD RBF kernel is kept per output
-dimension d:
-
-    k_d(x, x') = s_d * exp(-1/2 sum_j (x_j - x'_j)^2 / l_{d,j}^2),   y_d = f_d(x) + eps,
-    eps ~ N(0, n_d).
-
-Hyperparameters (l, s, n) are fitted with GPyTorch by maximising the exact marginal likelihood
-for a bounded number of Adam steps, on inputs standardised per column and outputs scaled by
-their root mean square (optimisation only: the fitted values are mapped back to raw units, see
-``_fit_hyperparameters``). Weak Gamma priors keep lengthscales near the data's scale, so the
-fit cannot collapse to the nearly constant GP that a huge initial lengthscale gives.
-
-Prediction does not go through GPyTorch: after a fit we cache, per output dimension,
-``L`` with ``L L^T = K + n I`` and ``alpha = K^-1 y``, and evaluate in closed form
-
-    mean_d(x*) = k_d(x*, X)^T alpha_d,
-    var_d(x*)  = s_d - |L_d^-1 k_d(x*, X)|^2   (+ n_d if ``include_noise_in_std``),
-
-batched over query points and output dimensions. The disturbance box of eq.
-(disturb_estimate) is ``mean +/- k_c std`` (``bounds``); ``k_c`` is the caller's.
-
-Variance bounds (:mod:`rcbf_ros.learning.gp_bounds`, docs/GP_BOUNDS.md): ``predict`` evaluates,
-per output, the bound chosen at the refit, never below the exact variance, so the box
-``mean +/- k_c std`` contains the exact one; ``predict(x, exact=True)`` evaluates the exact
-variance. The mean is exact either way.
-
-Exactly known outputs: a dimension whose residuals are all within ``exact_output_tol`` of zero
-(e.g. a position whose derivative is a velocity in the state, so the nominal model predicts it
-to rounding error) gets no posterior: ``predict`` returns mean 0 and std 0 for it without
-touching a kernel matrix. Such dimensions are common (6 of 10 on Car Following, 5 of 6 on
-PVTOL), and the single-query variance reads an M x M factor per output dimension, so this
-cuts the per-step cost in proportion. A single residual beyond the tolerance makes the
-dimension a normal GP output again at the next fit.
-
-Data management: ``add`` appends to the full data set; ``fit`` trains on at most
-``max_train_points`` of it, chosen by greedy farthest-point sampling in standardised input
-space (or a seeded uniform random subsample), so fit and predict cost stay bounded as data grows.
+Design notes: docs/DESIGN.md#the-gp-model; the variance bounds: docs/GP_BOUNDS.md
 """
 from __future__ import annotations
 

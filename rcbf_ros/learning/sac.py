@@ -1,41 +1,13 @@
 """Soft Actor-Critic with the training modes of SAC-RCBF (paper: "Soft Actor-Critic",
 "Differentiable Safety Layer", "Modular Task Learning").
 
-One code path, one flag (``SACConfig.mode``); what each mode trains on what:
+One code path, one flag (``SACConfig.mode``: ``unconstrained``, ``baseline``,
+``baseline_compensator``, ``diff``, ``modular``) chooses what the critic and the actor train on.
+The safety layer is injected (any callable ``safety_layer(state, u_rl) -> u_safe``,
+differentiable in ``u_rl``); networks see ``obs``, the safety layer sees ``state``.
 
-=====================  ======================================  ===============================
-mode                   critic Q(x_t, .) and its target          actor loss
-=====================  ======================================  ===============================
-unconstrained          Q(x_t, u^RL_t); Q_bar(x_{t+1}, a')       a log pi(a|x) - Q(x, a)
-baseline               same as unconstrained (the filter acts only in the environment loop)
-baseline_compensator   same as baseline; plus c(obs) regressed on u^S_t (see below)
-diff                   Q(x_t, u*_t); Q_bar(x_{t+1}, a' + u^S)   a log pi(a|x) - Q(x, a + u^S(x, a))
-modular                Q(x_t, u*_t); Q_bar(x_{t+1}, a' + u^E)   a log pi(a|x) - Q(x, a + u^E(x, a))
-=====================  ======================================  ===============================
-
-with a' ~ pi(.|x_{t+1}) and a ~ pi(.|x_t) reparameterised, u^S(x, a) = safety_layer(x, a) - a.
-In ``modular`` the optional safety layer holds only the system's envelope (barriers that are the
-same in every layout, :func:`rcbf_ros.core.config.envelope_params`), and u^E is its
-correction: the layout's part of u^S is dropped (the paper's eq. q_update_mod), the envelope's
-is kept, as the authors' code does for PVTOL (tilt, thrust, arena). Without a layer u^E = 0.
-Networks see ``obs``; the safety layer sees ``state`` (they may differ).
-
-Compensator (Cheng et al. 2019, ``baseline_compensator``): ``act()`` proposes
-u^RL + c(obs) (clipped to the box) to the filter, which returns u*. The buffer stores the policy's
-own sample ``u_rl`` and ``u_s = u* - u_rl`` (the whole correction on top of the policy, i.e.
-compensator part plus filter part). c is trained by least squares, c(obs_t) -> u_s_t, so it
-learns the correction the filter would otherwise have to make; SAC is trained on
-(obs, u_rl) exactly as in ``baseline``.
-
-The safety layer is injected: any callable ``safety_layer(state: (B, n_x), u_rl: (B, n_u)) ->
-u_safe: (B, n_u)`` that is differentiable in ``u_rl`` (the RCBF-QP layer) and answers each row
-on its own (an update calls it once on a minibatch's states and next states side by side, 2B
-rows; the RCBF-QP's per-sample answers are unique, its solver's iteration budget alone is
-shared by the batch, which matters only to a sample the active-set rounds do not settle); only
-``diff`` needs it. It receives tensors in the agent's dtype (float32 by default) and may
-compute in float64 internally; its output is cast back to the agent's dtype. When the
-disturbance estimate at a batch's states is given to the losses (:class:`BatchDisturbance`),
-the layer is called with it as a third argument, ``(mean, std)``, instead of predicting it.
+Design notes (what each mode trains on what, the compensator, the layer's contract):
+docs/DESIGN.md#sacs-training-modes
 """
 from __future__ import annotations
 

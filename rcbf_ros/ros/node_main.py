@@ -1,34 +1,13 @@
 """The body of every node's ``main()``: the Jazzy pattern, written once.
 
 ``rclpy.init`` -> build the node -> spin -> Ctrl-C / SIGTERM end it quietly -> the node's own
-exit work -> ``destroy_node`` -> ``rclpy.try_shutdown``, as in ros2/examples (STYLE.md). Each
-node keeps a one-line ``main`` that says what differs: how it runs, what it does on exit and
-which construction errors are the user's (bad parameters, a missing file) rather than bugs.
+exit work -> ``destroy_node`` -> ``rclpy.try_shutdown``. Each node keeps a one-line ``main``
+that says what differs. ``--help`` answers before anything starts, and SIGINT / SIGTERM are
+handled here rather than by the middleware, so that a callback under way finishes with a
+valid context and the exit work is never cut short.
 
-``-h`` / ``--help`` (outside ``--ros-args``) print the node's topics and parameters
-(:mod:`rcbf_ros.node_logic.interface`) and exit 0 before anything starts: no ``rclpy.init``, no DDS
-participant. A node whose interface lives in a module of its own (:data:`LIGHT_INTERFACES`)
-answers them from there through :func:`main_of`, its console script, before the middleware is
-even imported.
-
-Stopping. SIGINT and SIGTERM are handled here, not by the middleware: ``rclpy.init`` installs
-no signal handlers (``SignalHandlerOptions.NO``; our runtime's are replaced), because rclpy's
-own handler shuts the context down at once, in the middle of whatever callback runs, and the
-callback's next ``publish`` then raises ``RCLError: publisher's context is invalid``. Here a
-signal only asks the node to stop: a callback under way runs to its end with a valid context
-and its messages go out; no further callback runs (:func:`spin`, :func:`spin_once` raise
-``KeyboardInterrupt`` for SIGINT, ``ExternalShutdownException`` for SIGTERM, between callbacks);
-then the exit work, ``destroy_node`` and only then ``try_shutdown``. Outside a callback (while
-the node is built, or in a ``run`` of its own that publishes without callbacks) the signal
-raises at once, as Python's default handler does. A second signal while the node stops is
-ignored, so that the exit work (a bag's summary, a checkpoint) is never cut short.
-
-``python -m rcbf_ros.ros.node_main <module> [args]`` imports a node module and calls its
-``main()``, as its console script does (the local launcher starts every node this way). A SIGINT
-that arrives while the module imports (torch, the middleware: seconds) ends the process at once
-with status 130: nothing has started that could be lost, and a ``KeyboardInterrupt`` raised
-there prints a traceback, or aborts the process when it surfaces inside torch's C++ start-up.
-This module imports the middleware only when a node runs, so that protection starts right away.
+Help, stopping and ``python -m rcbf_ros.ros.node_main``:
+docs/NODES.md#every-nodes-main-help-and-stopping
 """
 from __future__ import annotations
 

@@ -1,37 +1,11 @@
 """In-process training (no middleware): env + SafetyFilter + SafeLearner, Algorithm 1.
 
-One run writes into its output directory::
+Runs the pieces of ``rcbf_ros.training`` (build, episodes, run, recorder, progress, pictures)
+in order, episode after episode, writing metrics, checkpoints, the policy, a bag and plots into
+one output directory. An interrupt, an exception or a failed write ends the run without losing
+what is already written; ``resume=True`` continues from the checkpoint.
 
-    metrics.jsonl      one JSON object per episode (return, violations, max slack, steps/s, ...),
-                       appended and flushed to disk as each episode ends
-    checkpoint.pt      learner + episode counter (rcbf_ros.training.checkpoint), every
-                       ``checkpoint_every`` episodes and on exit
-    policy.pt          the final actor alone (for the ``policy`` node / evaluation)
-    run_config.json    the resolved :class:`~rcbf_ros.training.build.RunConfig`
-    bag_0000/          MCAP (rosbag2 layout) of the run's topics, as the node path records them;
-                       each resume records into the next one (bag_0001, ...)
-    reward_curve.png   return per episode
-    trajectories.png   the paths of this start's episodes (at most the last 200) over the
-                       layout, where the filter corrected, the closest approach
-                       (rcbf_ros.reports.plots.plot_trajectories)
-
-Ctrl-C (KeyboardInterrupt) or an exception ends the run after writing the checkpoint, closing
-the bag and the metrics file, so nothing already computed is lost; a kill loses at most the
-episodes since the last checkpoint (by default, the one under way). A write that fails (a full
-disk) ends the run too, but nothing more is written: the bag is closed, the previous checkpoint
-stays as it was and :class:`~rcbf_ros.training.run_files.RunWriteError` says which file failed.
-``resume=True`` continues from ``checkpoint.pt`` (or, without one, starts again at episode 0
-and keeps what is there), also one the learner node wrote (:mod:`rcbf_ros.training.checkpoint`:
-one format, checked against this run before it is loaded); without ``resume`` a directory that
-already holds a run is refused. Checkpoints and policies hold tensors and plain data only and
-are read without running code from them (:mod:`rcbf_ros.training.run_files`).
-
-The pieces: :mod:`~rcbf_ros.training.build` (settings -> env, filter, learner),
-:mod:`~rcbf_ros.training.episodes` (one episode), :mod:`~rcbf_ros.training.run` (the run's
-lifecycle in its directory, as the learner node drives it too),
-:mod:`~rcbf_ros.training.recorder` (the bag), :mod:`~rcbf_ros.training.progress` and
-:mod:`~rcbf_ros.training.pictures` (what the run says and draws). This module runs them in
-order, episode after episode.
+The output directory, ending and resuming: docs/DESIGN.md#the-in-process-training-run
 """
 from __future__ import annotations
 
