@@ -1,6 +1,6 @@
 """The filter's main path as the tree's own call graph: one proposal to ``cmd_safe``.
 
-    python benchmarks/edge_call_graph.py [--compare REF] [--calls 2000] [--no-write]
+    python benchmarks/edge_call_graph.py [--compare REF] [--calls 2000] [--repeat 1] [--no-write]
 
 One ``safety_filter`` node in this process (config/unicycle.yaml, diagnostics with every
 answer, publishers that keep the bytes instead of sending them), a state, three untraced
@@ -17,10 +17,12 @@ distinct files). Three views:
 - hand-offs: each call the node makes counted as one stop, in the file it calls (all below
   it inside): the rooms the node passes the proposal through.
 
-Two proposals: one far from every obstacle (no row active) and one facing an obstacle (a row
-active, the QP solved). Each is also timed untraced (``--calls`` of them, median).
+Three proposals (:data:`CASES`): one far from every obstacle (no row active), one facing an
+obstacle (a row active, the QP solved), and that one again with no diagnostics due. Each is
+also timed untraced (``--calls`` of them, median).
 ``--compare REF`` measures the tree of git revision ``REF`` too (its ``git archive`` in a
-temporary directory, in a child process), for a before/after table.
+temporary directory), for a before/after table; every tree runs in a child process of its
+own, ``--repeat`` times, the trees taking turns, so that the times show their spread.
 Writes the ``## The filter's edge as a call graph`` section of benchmarks/RESULTS.md.
 """
 from __future__ import annotations
@@ -38,8 +40,14 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 TITLE = "The filter's edge as a call graph"
-CASES = {'free': ([-3.0, 0.0, 0.0], [1.0, 0.2]), 'active': ([-0.85, 0.0, 0.0], [1.0, 0.2])}
-"""case -> (state, proposal): far from every obstacle, and facing the one at the origin."""
+QUIET = 'active, diagnostics not due'
+"""The case of :data:`CASES` whose answer makes no diagnostics."""
+CASES = {'free': ([-3.0, 0.0, 0.0], [1.0, 0.2], 0.0),
+         'active': ([-0.85, 0.0, 0.0], [1.0, 0.2], 0.0),
+         QUIET: ([-0.85, 0.0, 0.0], [1.0, 0.2], 3600.0)}
+"""case -> (state, proposal, ``diagnostics.min_period_s``): far from every obstacle, and facing
+the one at the origin, with diagnostics with every answer; and facing it again, with the OK
+diagnostics not due (the common answer: by default they go out at most every 0.1 s)."""
 OPAQUE = (('node_logic/safety_filter.py', 'decide'),)
 """(file, function) counted as one stop in the view 'decide as one stop'."""
 NODE_FILE = 'ros/safety_filter_node.py'
@@ -115,6 +123,7 @@ def measure(calls: int = 2000) -> dict[str, dict[str, Any]]:
     from rcbf_ros.messages.cdr import serialize_message
     from rcbf_ros.messages.conversions import sections_to_msg
     from rcbf_ros.ros.dds import rclpy_compat as rclpy
+    from rcbf_ros.ros.runtime import Parameter
     from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
 
     package = Path(rcbf_ros.__file__).resolve().parent
@@ -128,7 +137,10 @@ def measure(calls: int = 2000) -> dict[str, dict[str, Any]]:
         publisher.publish = sent.append
     out = {}
     try:
-        for case, (state, proposal) in CASES.items():
+        for case, (state, proposal, period) in CASES.items():
+            if period != node.settings.diagnostics_min_period_s:
+                node.set_parameters([Parameter('diagnostics.min_period_s',
+                                               Parameter.Type.DOUBLE, period)])
             state_cdr = serialize_message(sections_to_msg({'state': state}))
             proposal_cdr = serialize_message(sections_to_msg({'u': proposal}))
             node._on_state(state_cdr)
@@ -136,9 +148,10 @@ def measure(calls: int = 2000) -> dict[str, dict[str, Any]]:
                 node._on_proposal(proposal_cdr)
             del sent[:]
             views = _trace(lambda data=proposal_cdr: node._on_proposal(data), package)
-            if len(sent) != 3 or not all(isinstance(b, bytes) for b in sent):
-                raise SystemExit(f'edge_call_graph: {case}: expected three answers as bytes, '
-                                 f'got {[type(b).__name__ for b in sent]}')
+            expected = 3 if period == 0 else 2  # cmd_safe, filter_info (, diagnostics)
+            if len(sent) != expected or not all(isinstance(b, bytes) for b in sent):
+                raise SystemExit(f'edge_call_graph: {case}: expected {expected} messages as '
+                                 f'bytes, got {[type(b).__name__ for b in sent]}')
             out[case] = {'views': views,
                          'median_us': _median_us(node, state_cdr, proposal_cdr, calls)}
             del sent[:]
@@ -148,19 +161,41 @@ def measure(calls: int = 2000) -> dict[str, dict[str, Any]]:
     return out
 
 
-def _measure_revision(ref: str, calls: int) -> dict[str, dict[str, Any]]:
-    """:func:`measure` of git revision ``ref``'s tree, in a child process."""
-    with tempfile.TemporaryDirectory() as tree:
-        archive = subprocess.run(['git', '-C', str(ROOT), 'archive', ref], check=True,
-                                 capture_output=True).stdout
-        subprocess.run(['tar', '-x', '-C', tree], input=archive, check=True)
-        env = dict(os.environ, PYTHONPATH=tree)
-        result = subprocess.run([sys.executable, __file__, '--json', '--calls', str(calls)],
-                                env=env, cwd=tree,
-                                capture_output=True, text=True)
-        if result.returncode != 0:
-            raise SystemExit(f'edge_call_graph: {ref}: {result.stderr.strip()[-400:]}')
-        return json.loads(result.stdout.strip().splitlines()[-1])
+def _measure_tree(tree: Path, calls: int) -> dict[str, dict[str, Any]]:
+    """:func:`measure` of the package in directory ``tree``, in a child process."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    result = subprocess.run([sys.executable, __file__, '--json', '--calls', str(calls)],
+                            env=env, cwd=tree, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise SystemExit(f'edge_call_graph: {tree}: {result.stderr.strip()[-400:]}')
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def measure_trees(compare: str | None, calls: int, repeat: int
+                  ) -> dict[str, dict[str, dict[str, Any]]]:
+    """{tree: {case: figures}} of git revision ``compare`` (its ``git archive``; None: none)
+    and of this tree, each run ``repeat`` times in a process of its own, the trees taking
+    turns; the times are the median of the runs' medians, with their range (``range_us``)."""
+    with tempfile.TemporaryDirectory() as scratch:
+        trees = {}
+        if compare:
+            archive = subprocess.run(['git', '-C', str(ROOT), 'archive', compare], check=True,
+                                     capture_output=True).stdout
+            subprocess.run(['tar', '-x', '-C', scratch], input=archive, check=True)
+            trees[compare] = Path(scratch)
+        trees['this tree'] = ROOT
+        runs: dict[str, list[dict[str, dict[str, Any]]]] = {tree: [] for tree in trees}
+        for _ in range(repeat):
+            for tree, path in trees.items():
+                runs[tree].append(_measure_tree(path, calls))
+    measured = {}
+    for tree, results in runs.items():
+        measured[tree] = results[0]
+        for case, figures in measured[tree].items():
+            times = [result[case]['median_us'] for result in results]
+            figures['median_us'] = statistics.median(times)
+            figures['range_us'] = (min(times), max(times))
+    return measured
 
 
 def _figures(stops: list[str]) -> tuple[int, int, int]:
@@ -177,14 +212,17 @@ def report(measured: dict[str, dict[str, dict[str, Any]]]) -> list[Any]:
     """The section's blocks: the figures table, the times, then the hand-offs per tree."""
     table = ['| tree | proposal | view | stops | files | returns |',
              '|---|---|---|---:|---:|---:|']
-    times = ['| tree | proposal | one proposal, median (us) |', '|---|---|---:|']
+    times = ['| tree | proposal | one proposal, median (us) | runs, min - max (us) |',
+             '|---|---|---:|---:|']
     paths = []
     for tree, cases in measured.items():
         for case, figures in cases.items():
             for view, stops in figures['views'].items():
                 count, files, returns = _figures(stops)
                 table.append(f'| {tree} | {case} | {view} | {count} | {files} | {returns} |')
-            times.append(f"| {tree} | {case} | {figures['median_us']:.1f} |")
+            low, high = figures['range_us']
+            times.append(f"| {tree} | {case} | {figures['median_us']:.1f} | {low:.1f} - "
+                         f'{high:.1f} |')
         paths.append(f'{tree}, hand-offs of the active proposal: '
                      f"{_path(cases['active']['views']['hand-offs'])}.")
     return [table, *paths, times]
@@ -195,21 +233,37 @@ def reading(before: str, measured: dict[str, dict[str, dict[str, Any]]]) -> str:
     figures = {}
     for tree in (before, 'this tree'):
         views = measured[tree]['active']['views']
-        hand_offs = views['hand-offs']
-        figures[tree] = (sum(stop != NODE_FILE for stop in hand_offs),
-                         len(set(hand_offs) - {NODE_FILE}), len(views['every file']))
-    (h0, f0, e0), (h1, f1, e1) = figures[before], figures['this tree']
-    return (f'Reading: in {before} the node handed the active proposal on {h0} times, to {f0} '
-            f'other files; in this tree {h1} times, to {f1}: the message edge '
-            '(`node_logic/filter_edge.py`: the checked sample in; the bytes of the command, '
-            '`filter_info` and diagnostics out, one call each in publishing order, so that a '
-            'failure after the command costs the details only), the decision (`decide`, then '
-            "its rule for when diagnostics are due) and the runtime (`get_clock().now()`, two "
-            "files) for the diagnostics' stamp. Counting every file, the path went from "
-            f'{e0} to {e1} stops: the edge reads and writes through the one '
-            'Float64MultiArray codec (`messages/cdr.py`) and checks samples and fills '
-            '`filter_info` and diagnostics '
-            "with the decision module's functions, each a file of its own.")
+        figures[tree] = [_figures(views[view]) for view in VIEWS]
+    (e0, d0, h0), (e1, d1, h1) = figures[before], figures['this tree']
+    q0, q1 = (_figures(measured[tree][QUIET]['views']['every file'])
+              for tree in (before, 'this tree'))
+    return (f'Reading (the active proposal, stops / files / returns): counting every file, '
+            f'{before} made {e0[0]} / {e0[1]} / {e0[2]}, this tree {e1[0]} / {e1[1]} / '
+            f'{e1[2]}; with the decision as one stop {d0[0]} / {d0[1]} / {d0[2]} -> {d1[0]} / '
+            f'{d1[1]} / {d1[2]}; hand-offs {h0[0]} / {h0[1]} / {h0[2]} -> {h1[0]} / {h1[1]} / '
+            f'{h1[2]}. The node hands the bytes to the message edge '
+            '(`node_logic/filter_edge.py`: read, checked into a `Proposal`, in one pass), the '
+            "sample to `decide` (`node_logic/safety_filter.py`, the filter's math in "
+            '`core/filter.py` below it), and the decision back to the edge, which makes '
+            '`cmd_safe`, `filter_info` and the due diagnostics in one pass '
+            '(`FilterEdge.answer`); the node publishes them, the command first. What is left '
+            "inside that pass is the diagnostics': their stamp from the runtime's clock "
+            '(`ros/dds/clock.py`) and their bytes from `messages/conversions.py`, two stops '
+            'that only an answer with diagnostics due makes (by default an OK answer at most '
+            'every `diagnostics.min_period_s` = 0.1 s). With none due, every file: '
+            f'{q0[0]} / {q0[1]} / {q0[2]} -> {q1[0]} / {q1[1]} / {q1[2]} ('
+            f"{_path(measured['this tree'][QUIET]['views']['every file'])}). Times, this "
+            f"tree against {before} (median, difference, inside or outside its runs' range): "
+            + '; '.join(_time_against(case, measured[before][case], measured['this tree'][case])
+                        for case in CASES) + '.')
+
+
+def _time_against(case: str, before: dict[str, Any], after: dict[str, Any]) -> str:
+    """``case: median us (+difference, inside / outside the compared tree's range)``."""
+    (low, high), median = before['range_us'], after['median_us']
+    where = 'inside' if low <= median <= high else 'outside'
+    return (f"{case} {median:.1f} us ({median - before['median_us']:+.1f}, {where} "
+            f'{low:.1f} - {high:.1f})')
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -220,35 +274,39 @@ def main(argv: list[str] | None = None) -> int:
                         help='print the section only; leave benchmarks/RESULTS.md alone')
     parser.add_argument('--calls', type=int, default=2000,
                         help='untraced proposals timed per case (default 2000)')
+    parser.add_argument('--repeat', type=int, default=1,
+                        help='runs of each tree, taking turns (default 1)')
     parser.add_argument('--json', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.calls < 1:
         parser.error('--calls must be >= 1')
+    if args.repeat < 1:
+        parser.error('--repeat must be >= 1')
     if args.json:  # a child of --compare: this tree's figures, one JSON line
         print(json.dumps(measure(args.calls)))
         return 0
-    measured = {}
-    if args.compare:
-        measured[args.compare] = _measure_revision(args.compare, args.calls)
-    measured['this tree'] = measure(args.calls)
+    measured = measure_trees(args.compare, args.calls, args.repeat)
     sys.path.insert(0, str(ROOT))
     from benchmarks._results import publish_section
     publish_section(
         TITLE, script='edge_call_graph.py' + (f' --compare {args.compare}' if args.compare
                                               else '')
-        + (f' --calls {args.calls}' if args.calls != 2000 else ''),
+        + (f' --calls {args.calls}' if args.calls != 2000 else '')
+        + (f' --repeat {args.repeat}' if args.repeat != 1 else ''),
         conditions=f"; load averages {', '.join(f'{x:.2f}' for x in os.getloadavg())}",
         write=args.write, blocks=[
             'One proposal through an in-process `safety_filter` (config/unicycle.yaml, '
-            'diagnostics with every answer) from its CDR bytes to the bytes of `cmd_safe`, '
-            '`filter_info` and diagnostics, traced with `sys.setprofile`. A stop is a run of '
-            "calls and returns in one file of the tree; returns: stops in a file the path "
-            "had already left. 'decide as one stop' counts `decide` and the filter's math "
-            "below it as one stop; 'hand-offs' counts each call the node makes as one stop in "
-            'the file it calls. These figures count calls, not time: they do not vary between '
-            'runs. The last table times one untraced proposal the same way (publishers that '
-            'keep the bytes; a fresh state every 50; median of `--calls`), each tree in its '
-            'own process one after the other, so load between them moves it.',
+            'diagnostics with every answer, then with none due) from its CDR bytes to the '
+            'bytes of `cmd_safe`, `filter_info` and diagnostics, traced with '
+            '`sys.setprofile`. A stop is a run of calls and returns in one file of the tree; '
+            "returns: stops in a file the path had already left. 'decide as one stop' counts "
+            "`decide` and the filter's math below it as one stop; 'hand-offs' counts each "
+            'call the node makes as one stop in the file it calls. These figures count calls, '
+            'not time: they do not vary between runs. The last table times one untraced '
+            'proposal the same way (publishers that keep the bytes; a fresh state every 50; '
+            'median of `--calls`), each tree in a process of its own, `--repeat` runs taking '
+            "turns: the median of the runs' medians and their range. The machine is shared, "
+            'so a run that meets a busy core shows as the top of the range.',
             *report(measured), *([reading(args.compare, measured)] if args.compare else [])])
     return 0
 

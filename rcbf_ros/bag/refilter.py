@@ -14,11 +14,11 @@ node's edge writes (:mod:`rcbf_ros.node_logic.filter_edge`):
   parameters' ``twist_fields`` (other fields 0); a TwistStamped like that with the proposal's
   header;
 - ``/refilter/filter_info`` (std_msgs/Float64MultiArray): the node's ``filter_info``
-  (:func:`rcbf_ros.node_logic.safety_filter.info_sections`: ``u``, ``u_rl``, ``u_s``,
+  (:func:`rcbf_ros.node_logic.filter_edge.info_sections`: ``u``, ``u_rl``, ``u_s``,
   ``fail_safe``, ``status``, ``h``, ... and the ``state`` it answers);
 - ``/refilter/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per filtered
   proposal with the same level, message and key/values as the safety_filter node's
-  (:func:`rcbf_ros.node_logic.safety_filter.diagnostic_values`: ``h.<barrier>``,
+  (:func:`rcbf_ros.node_logic.filter_edge.diagnostic_values`: ``h.<barrier>``,
   ``constraint.<barrier>``, ``slack``, ``status``, ...), stamped with the proposal's log time.
 
 Proposals are read as the node reads them, by :mod:`rcbf_ros.node_logic.filter_edge`: a

@@ -10,16 +10,16 @@ field values (missing fields take the type's zero) or any object with the fields
 
 ``std_msgs/Float64MultiArray``, the type of every vector this package sends, takes a shorter
 way through both (the same bytes and the same message, see :func:`serialize_message` and
-:func:`deserialize_message`), and :class:`Float64ArrayLayout` reads and writes the samples of
-one fixed layout without building a message at all. :func:`float64_multiarray_head` and
+:func:`deserialize_message`). :func:`float64_multiarray_head` and
 :func:`float64_multiarray_fields` are the one writer and the one reader of those bytes: the
-message path, the fixed layouts and :mod:`.conversions`' sections all go through them.
+message path, :mod:`.conversions`' sections and the filter's fixed layouts (the heads
+:class:`rcbf_ros.node_logic.filter_edge.Float64ArrayLayout` keeps) all go through them.
 """
 from __future__ import annotations
 
 import functools
 import struct
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 import numpy as np
 from rosbags.serde import SerdeError
@@ -271,54 +271,6 @@ def _float64_multiarray_message(data: bytes | memoryview) -> Message | None:
     setter(message, 'layout', layout)
     setter(message, 'data', values)
     return message
-
-
-class Float64ArrayLayout:
-    """The serialized ``std_msgs/Float64MultiArray`` samples of one layout: labelled sections
-    of fixed sizes (stride = size, data_offset 0) holding ``size`` values in all.
-
-    Everything before the values is then fixed (the serializer's own bytes for the layout),
-    so :meth:`encode` is those bytes and the values, and :meth:`decode` recognises a sample of
-    the layout by comparing them and reads its values at a fixed offset: what the decoder would
-    read from it. Every other sample (another layout, big endian, padding that is not zero,
-    one that ends early) is left to the general readers (:meth:`decode` returns None).
-    """
-
-    def __init__(self, sections: Sequence[tuple[str, int]]) -> None:
-        """Args: sections: (label, size) of each section, in order ('' labels one unlabelled
-        section: an empty ``layout.dim``, as a bare Float64MultiArray has)."""
-        sections = tuple((str(label), int(size)) for label, size in sections)
-        if len(sections) == 1 and sections[0][0] == '':
-            dims: tuple[tuple[str, int, int], ...] = ()
-        else:
-            dims = tuple((label, size, size) for label, size in sections)
-        self.sections = sections
-        self.size = sum(size for _, size in sections)
-        """How many values a sample holds."""
-        self.head = float64_multiarray_head(dims, 0, self.size)
-        """The bytes before the values (encapsulation header and all)."""
-        self._body = self.head[4:]
-        self._length = len(self.head) + 8 * self.size
-        self._values = struct.Struct(f'<{self.size}d')
-
-    def decode(self, data: bytes) -> tuple[float, ...] | None:
-        """The values of a little-endian sample of this layout (any encapsulation options,
-        bytes after the values ignored, as the decoder ignores them), else None."""
-        if (type(data) is not bytes or len(data) < self._length
-                or not data.startswith(CDR_LE_HEADER[:2]) or not data.startswith(self._body, 4)):
-            return None
-        return self._values.unpack_from(data, len(self.head))
-
-    def encode(self, values: Any) -> bytes:
-        """The serialized message of ``values`` (``size`` numbers, section after section).
-
-        Raises:
-            ValueError: not ``size`` values.
-        """
-        array = np.asarray(values, dtype='<f8').reshape(-1)
-        if array.size != self.size:
-            raise ValueError(f'expected {self.size} values, got {array.size}')
-        return self.head + array.tobytes()
 
 
 def _one_line(exc: BaseException) -> str:

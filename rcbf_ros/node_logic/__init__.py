@@ -1,2 +1,2 @@
-"""What the nodes decide, as pure functions and dataclasses without middleware: the filter's
-checks and decision, scene markers, parameter and topic tables; refilter and tests call it."""
+"""What the nodes decide, without middleware: the filter's message edge (bytes to checked samples,
+answers to bytes) and decision, scene markers, parameter and topic tables."""

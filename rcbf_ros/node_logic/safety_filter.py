@@ -1,21 +1,18 @@
 """Decision logic of the safety_filter node, in plain functions (no messages, no middleware).
 
-The node (:mod:`rcbf_ros.ros.safety_filter_node`) is a thin wrapper: it turns messages into the
-arrays these functions take and publishes what they return. Everything that decides *what* is
-published lives here and is unit-tested without launching anything (ros2cli's api/verb split):
+The node (:mod:`rcbf_ros.ros.safety_filter_node`) keeps subscriptions, parameters and timing;
+the message edge (:mod:`rcbf_ros.node_logic.filter_edge`) turns bytes into checked samples and
+a :class:`Decision` back into bytes (its names are importable from here too). Here, unit-tested
+without launching anything (ros2cli's api/verb split):
 
 - which parameters the node declares, and their validation into :class:`NodeSettings`;
-- validating a state or a proposal (sections of a ``Float64MultiArray``) into arrays;
 - pairing a proposal with a state (its own ``state`` section, else the latest state message if
   it is fresh enough), choosing the disturbance box, and the fail-safe on any problem
   (:func:`decide`);
-- the sections of ``filter_info`` (:func:`info_sections`) and the diagnostic level, message
-  and key/values (:func:`diagnostic_values`) of one decision: what the command does not carry;
 - throttling of repeated log lines (:class:`LogThrottle`);
 - what a change of parameters at runtime builds (:func:`build_active_filter` from the merged
-  parameters, :func:`merged_parameters`), which parameters are fixed at start
-  (:func:`is_read_only`), and the parameters of an ``obstacles`` message
-  (:func:`obstacle_parameters`).
+  parameters, :func:`merged_parameters`) and which parameters are fixed at start
+  (:func:`is_read_only`).
 
 Invariant: the published command is either within the actuator limits and meets every RCBF row
 with a slack of at most ``slack_tolerance`` (checked by the filter from the rows themselves at the
@@ -31,7 +28,6 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from rcbf_ros.core import filter_info
 from rcbf_ros.core.config import (
     BandParameters,
     filter_config_from_params,
@@ -41,7 +37,6 @@ from rcbf_ros.core.config import (
     OBSTACLE_LIMIT,
 )
 from rcbf_ros.core.filter import (
-    FilterResult,
     InputBounds,
     OSQP_EPS,
     OSQP_INT_MAX,
@@ -53,6 +48,28 @@ from rcbf_ros.node_logic.edges import (  # noqa: F401 - the node's edge types, r
     MessageSettings,
     STATE_TYPES,
     TWIST_FIELDS,
+)
+from rcbf_ros.node_logic.filter_edge import (  # noqa: F401 - samples, answers: re-exported
+    checked_vector,
+    Decision,
+    diagnostic_values,
+    diagnostics_due,
+    ERROR,
+    full_info_layout,
+    full_info_values,
+    info_sections,
+    OBSTACLE_COLUMNS,
+    obstacle_parameters,
+    OK,
+    Proposal,
+    proposal_from_sections,
+    PROPOSAL_SECTIONS,
+    reason_key,
+    state_from_sections,
+    StateSample,
+    status_code,
+    status_name,
+    WARN,
 )
 from rcbf_ros.node_logic.interface import (
     declarations,
@@ -81,10 +98,6 @@ publish commands that drive into obstacles as OK answers."""
 DDS_INT_MAX = 2 ** 31 - 1
 """The largest history depth a DDS QoS takes (a 32-bit integer)."""
 
-# diagnostic_msgs/DiagnosticStatus levels.
-OK = 0
-WARN = 1
-ERROR = 2
 
 
 
@@ -442,233 +455,9 @@ def describe_changes(*, old: Mapping[str, Any], new: Mapping[str, Any],
     return '; '.join(f'{key}: {shown(key, old)} -> {shown(key, new)}' for key in keys)
 
 
-OBSTACLE_COLUMNS = ('x', 'y', 'radius')
-"""One row of an ``obstacles`` message: centre x, centre y (m), radius (m)."""
-
-
-def obstacle_parameters(*, data: Sequence[float], dims: Sequence[tuple[str, int, int]] = (),
-                        data_offset: int = 0) -> dict[str, list[float]]:
-    """The ``obstacles.x`` / ``.y`` / ``.radius`` parameters of an ``obstacles`` message.
-
-    The message is a std_msgs/Float64MultiArray of k rows [x, y, radius] in row-major order
-    (:data:`OBSTACLE_COLUMNS`): ``data`` holds 3 k values. Its layout may be empty, or two
-    dimensions, the second of size 3 (e.g. ``obstacles`` k 3k, ``xyr`` 3 3). The values
-    themselves (finite, radius >= 0, ...) are checked by the same function as a params file's
-    ``obstacles`` section, when the filter is built from them.
-
-    Args:
-        dims: (label, size, stride) of every ``layout.dim``.
-        data_offset: ``layout.data_offset`` (must be 0).
-
-    Raises:
-        ValueError: naming the message field (``data``, ``layout.dim``, ``layout.data_offset``).
-    """
-    if data_offset != 0:
-        raise ValueError(f'obstacles: layout.data_offset: expected 0, got {data_offset}')
-    values = data
-    if len(values) % len(OBSTACLE_COLUMNS):
-        raise ValueError(f'obstacles: data: expected rows of [x, y, radius] (a multiple of 3 '
-                         f'values), got {len(values)} values')
-    rows = len(values) // len(OBSTACLE_COLUMNS)
-    if rows > OBSTACLE_LIMIT:
-        raise ValueError(f'obstacles: data: at most {OBSTACLE_LIMIT} rows of [x, y, radius], '
-                         f'got {rows}')
-    if dims and (len(dims) != 2 or dims[1][1] != len(OBSTACLE_COLUMNS)
-                 or dims[0][1] != rows):
-        sizes = [size for _, size, _ in dims]
-        raise ValueError(f'obstacles: layout.dim: expected sizes [{rows}, 3] (rows of '
-                         f'[x, y, radius]) or none, got {sizes}')
-    try:
-        floats = [float(v) for v in values]
-    except (TypeError, ValueError, OverflowError) as exc:
-        raise ValueError(f'obstacles: data: not numbers ({exc})') from exc
-    return {f'obstacles.{column}': floats[index::len(OBSTACLE_COLUMNS)]
-            for index, column in enumerate(OBSTACLE_COLUMNS)}
-
-
-def checked_vector(name: str, values: Any, size: int) -> np.ndarray:
-    """A finite float64 vector (a writable copy) of exactly ``size`` values.
-
-    Raises:
-        ValueError: naming ``name`` (wrong length, NaN/inf, not numeric).
-    """
-    try:
-        array = np.array(values, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f'{name}: not a numeric vector ({exc})') from exc
-    if array.size != size:
-        raise ValueError(f'{name}: expected {size} values, got {array.size}')
-    # A state or command has a few values: checked as Python floats, a longer one by numpy.
-    if not (all(map(math.isfinite, array.tolist())) if size <= _FEW_VALUES
-            else np.isfinite(array).all()):
-        raise ValueError(f'{name}: contains NaN or inf')
-    return array
-
-
-_FEW_VALUES = 32
-"""Up to this many values, :func:`checked_vector` checks them one by one as Python floats."""
-
-
-def state_from_sections(*, sections: Mapping[str, np.ndarray], n_x: int) -> np.ndarray:
-    """The ``state`` section of a state message, else its first section, validated.
-
-    Raises:
-        ValueError: naming ``state`` (empty message, wrong length, NaN/inf).
-    """
-    if not sections:
-        raise ValueError('state: empty message')
-    values = sections['state'] if 'state' in sections else next(iter(sections.values()))
-    return checked_vector('state', values, n_x)
-
-
-@dataclass(frozen=True)
-class Proposal:
-    """A validated proposed command and what rides on it (float64 arrays)."""
-
-    u: np.ndarray
-    """(n_u,) proposed command u_RL."""
-    disturbance_mean: np.ndarray | None = None
-    """(n_x,) learned disturbance mean for the proposal's state, or None."""
-    disturbance_std: np.ndarray | None = None
-    """(n_x,) learned disturbance std (>= 0), or None."""
-    state: np.ndarray | None = None
-    """(n_x,) the state the proposal was made for, or None (use the state topic)."""
-
-
-PROPOSAL_SECTIONS = ('u', 'disturbance_mean', 'disturbance_std', 'state')
-_PROPOSAL_SECTION_SET = frozenset(PROPOSAL_SECTIONS)
-
-
-def proposal_from_sections(*, sections: Mapping[str, np.ndarray], n_u: int,
-                           n_x: int) -> Proposal:
-    """Validate the sections of a proposal message (``u`` required; unlabelled data is ``u``).
-
-    Raises:
-        ValueError: naming the section (missing ``u``, unknown label, wrong length, NaN/inf,
-            negative std).
-    """
-    if not _PROPOSAL_SECTION_SET.issuperset(sections):
-        unknown = sorted(set(sections) - _PROPOSAL_SECTION_SET)
-        raise ValueError(f'{unknown[0]}: unknown proposal section (expected '
-                         f'{list(PROPOSAL_SECTIONS)})')
-    if 'u' not in sections:
-        raise ValueError('u: proposal has no u section')
-    u = checked_vector('u', sections['u'], n_u)
-    if len(sections) == 1:
-        return Proposal(u=u)
-    extra = {key: checked_vector(key, sections[key], n_x)
-             for key in PROPOSAL_SECTIONS[1:] if key in sections}
-    std = extra.get('disturbance_std')
-    if std is not None and (std < 0).any():
-        raise ValueError('disturbance_std: must be >= 0')
-    return Proposal(u=u, disturbance_mean=extra.get('disturbance_mean'),
-                    disturbance_std=std, state=extra.get('state'))
-
-
-@dataclass(frozen=True)
-class StateSample:
-    """The latest state message as the node saw it."""
-
-    received_ns: int
-    """Monotonic arrival time in nanoseconds."""
-    state: np.ndarray | None
-    """(n_x,) validated state, or None when the message was bad."""
-    error: str = ''
-    """Why the message was rejected (empty when ``state`` is set)."""
-
-
 def state_age_s(*, sample: StateSample, now_ns: int) -> float:
     """Seconds since the sample arrived."""
     return (now_ns - sample.received_ns) * 1e-9
-
-
-@dataclass(frozen=True)
-class Decision:
-    """What the node publishes for one proposal."""
-
-    u_safe: np.ndarray
-    """(n_u,) the command to publish: the filtered proposal or the fail-safe action."""
-    u_rl: np.ndarray | None
-    """(n_u,) the proposal as received, or None when it was unusable (undecodable, wrong
-    length, NaN or inf)."""
-    level: int
-    """OK, WARN or ERROR."""
-    reason: str
-    """Human-readable reason for the level ('' when OK)."""
-    fail_safe: bool
-    """True when u_safe is the fail-safe action."""
-    result: FilterResult | None = None
-    """The filter's result when the QP was solved (even if it failed), else None."""
-    state_source: str = ''
-    """'proposal', 'topic' or '' (no usable state)."""
-    state: np.ndarray | None = None
-    """(n_x,) the state the command answers (the proposal's own, or the latest ``state``
-    sample), or None when there was no usable one."""
-
-    @property
-    def u_s(self) -> np.ndarray:
-        """(n_u,) the correction u_safe - u_rl; zeros when there was no usable proposal."""
-        if self.u_rl is None:
-            return np.zeros_like(self.u_safe)
-        return self.u_safe - self.u_rl
-
-    @property
-    def active(self) -> bool:
-        """Whether the published command differs from the proposal (the fail-safe counts)."""
-        return bool(self.fail_safe or np.any(self.u_safe != self.u_rl))
-
-
-def status_code(decision: Decision) -> int:
-    """The ``status`` number of a decision (:data:`rcbf_ros.core.filter_info.STATUS_CODES`)."""
-    return int(info_sections(decision)['status'][0])
-
-
-def status_name(decision: Decision) -> str:
-    """The solver status of a filtered command, else the key of the fail-safe's reason."""
-    if not decision.fail_safe and decision.result is not None:
-        return decision.result.status
-    return reason_key(decision.reason)
-
-
-def info_sections(decision: Decision) -> dict[str, np.ndarray]:
-    """The labelled sections of ``filter_info`` for one decision
-    (:data:`rcbf_ros.core.filter_info.INFO_SECTIONS`): never NaN, a value that was not
-    evaluated is left out with its section."""
-    return filter_info.info_sections(
-        u=decision.u_safe, u_rl=decision.u_rl, fail_safe=decision.fail_safe,
-        status=status_name(decision), result=decision.result, state=decision.state)
-
-
-def full_info_values(decision: Decision) -> np.ndarray | None:
-    """The values of :func:`info_sections` of ``decision``, section after section, when it
-    has every section (:data:`rcbf_ros.core.filter_info.INFO_SECTIONS`: a solved answer with its
-    state, a usable proposal and every number finite), else None.
-
-    The answers of a running filter are nearly all of this kind, and their ``filter_info`` is
-    then one fixed layout (sizes n_u, 1, K, n_x) whose values these are, made in one step;
-    any other answer is left to :func:`info_sections`, which decides what to leave out.
-    """
-    result, u_rl, state = decision.result, decision.u_rl, decision.state
-    if result is None or u_rl is None or state is None:
-        return None
-    u = decision.u_safe
-    if u_rl.shape != u.shape or not len(result.h) or not len(result.constraint_values):
-        return None
-    code = filter_info.STATUS_CODES.get(status_name(decision), filter_info.UNKNOWN_STATUS)
-    values = np.concatenate((
-        u, u_rl, u - u_rl, (1.0 if decision.fail_safe else 0.0, float(code)), result.h,
-        result.constraint_values, (result.slack, result.needed_slack, result.solve_time_s),
-        state), dtype=np.float64)
-    return values if np.isfinite(values).all() else None
-
-
-def full_info_layout(decision: Decision) -> tuple[tuple[str, int], ...]:
-    """The (label, size) of every ``filter_info`` section of a decision that has them all
-    (see :func:`full_info_values`)."""
-    n_u, n_barriers = decision.u_safe.size, len(decision.result.h)
-    sizes = {'u': n_u, 'u_rl': n_u, 'u_s': n_u, 'h': n_barriers,
-             'constraint': len(decision.result.constraint_values), 'state': decision.state.size}
-    return tuple((label, sizes.get(label, 1)) for label, _, _ in filter_info.INFO_SECTIONS)
 
 
 def fail_safe_decision(*, safety_filter: SafetyFilter, reason: str,
@@ -749,67 +538,6 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
                     fail_safe=False, result=result, state_source=source, state=state)
 
 
-def diagnostic_values(*, decision: Decision,
-                      barrier_names: Sequence[str]) -> tuple[int, str, dict[str, Any]]:
-    """(level, message, key/values) of the DiagnosticStatus for one decision.
-
-    Keys: ``status`` (solver status or 'not solved'), ``slack``, ``h.<barrier>`` and
-    ``constraint.<barrier>`` for every barrier, ``min_h``, ``solve_time_s``,
-    ``total_time_s``, ``needed_slack`` (what the rows need at the published command),
-    ``proposal_clipped``, ``fail_safe``, ``active``, ``reason``, ``state_source``, ``u_rl``,
-    ``u_safe``. A value that was not evaluated (no QP solved, a refused input, no usable
-    proposal) is ``''``, never NaN.
-    """
-    result = decision.result
-    nan = float('nan')
-    values: dict[str, Any] = {
-        'status': result.status if result is not None else 'not solved',
-        'slack': result.slack if result is not None else nan,
-    }
-    h = result.h if result is not None else np.full(len(barrier_names), np.nan)
-    residual = (result.constraint_values if result is not None
-                else np.full(len(barrier_names), np.nan))
-    for name, value in zip(barrier_names, h):
-        values[f'h.{name}'] = float(value)
-    for name, value in zip(barrier_names, residual):
-        values[f'constraint.{name}'] = float(value)
-    values['min_h'] = float(np.min(h)) if len(h) else nan
-    values['solve_time_s'] = result.solve_time_s if result is not None else nan
-    values['total_time_s'] = result.total_time_s if result is not None else nan
-    values['needed_slack'] = result.needed_slack if result is not None else nan
-    values['proposal_clipped'] = bool(result is not None and result.proposal_clipped)
-    values['fail_safe'] = decision.fail_safe
-    values['active'] = decision.active
-    values['reason'] = decision.reason
-    values['state_source'] = decision.state_source
-    values['u_rl'] = ('' if decision.u_rl is None
-                      else ' '.join(repr(float(v)) for v in decision.u_rl))
-    values['u_safe'] = ' '.join(repr(float(v)) for v in decision.u_safe)
-    for key, value in values.items():
-        if isinstance(value, float) and not math.isfinite(value):
-            values[key] = ''
-    if decision.level == OK:
-        message = 'filtering' if values['active'] else 'pass-through'
-    else:
-        message = decision.reason
-    return decision.level, message, values
-
-
-def diagnostics_due(*, level: int, now_ns: int, last_ok_ns: int | None,
-                    min_period_s: float) -> bool:
-    """Whether to publish the diagnostics of a decision now.
-
-    WARN and ERROR always; OK at most once per ``min_period_s`` (0: always), so that a 1 kHz
-    loop need not pay for a DiagnosticArray per command.
-
-    Args:
-        last_ok_ns: when OK diagnostics were last published (None: never).
-    """
-    if level != OK or min_period_s <= 0 or last_ok_ns is None:
-        return True
-    return now_ns - last_ok_ns >= int(min_period_s * 1e9)
-
-
 class LogThrottle:
     """Say a repeated problem at most once per period (per reason key)."""
 
@@ -833,6 +561,3 @@ class LogThrottle:
         return self.suppressed.pop(key, 0)
 
 
-def reason_key(reason: str) -> str:
-    """The throttling key of a reason: its text up to the first ':'."""
-    return reason.split(':', 1)[0]

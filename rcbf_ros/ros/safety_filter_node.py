@@ -3,7 +3,8 @@
 The node keeps subscriptions, parameters and timing: each proposal's bytes go to the message
 edge (:mod:`rcbf_ros.node_logic.filter_edge`), the checked sample to the decision
 (:mod:`rcbf_ros.node_logic.safety_filter`), the decision back to the edge for the bytes of
-``cmd_safe``, ``filter_info`` and diagnostics. Parameter changes build a whole new filter and
+``cmd_safe``, ``filter_info`` and diagnostics in one pass; the node publishes them, the
+command first. Parameter changes build a whole new filter and
 swap it in between two callbacks. Topics, the fail-closed handling of bad samples and the
 parameters: docs/SAFETY_FILTER.md and ``safety_filter --help``.
 """
@@ -21,8 +22,8 @@ from rcbf_ros.core.config import FilterConfig
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.messages import conversions
 from rcbf_ros.node_logic import safety_filter as logic
+from rcbf_ros.node_logic.filter_edge import Answer, FilterEdge, INPUT_COUNT_KEYS
 from rcbf_ros.node_logic.filter_edge import array_sections as _array_sections  # noqa: F401
-from rcbf_ros.node_logic.filter_edge import FilterEdge, INPUT_COUNT_KEYS
 from rcbf_ros.node_logic.filter_edge import one_line as _one_line
 from rcbf_ros.node_logic.interface import (
     bound_text,
@@ -120,6 +121,7 @@ class SafetyFilterNode(Node):
         self.add_pre_set_parameters_callback(self._warn_refused)
         self.add_on_set_parameters_callback(self._check_parameter_change)
         self.add_post_set_parameters_callback(self._apply_parameter_change)
+        self._clock = self.get_clock()
         self._latest_state: logic.StateSample | None = None
         self._last_ok_diagnostics_ns: int | None = None
         self._throttle = logic.LogThrottle(self.settings.log_throttle_s)
@@ -369,18 +371,24 @@ class SafetyFilterNode(Node):
         except Exception as exc:  # a defect, not an input (docs/SAFETY_FILTER.md)
             decision = logic.fail_safe_decision(
                 safety_filter=active.safety_filter, reason=f'internal error: {_one_line(exc)}')
-        try:
-            self._publish_command(decision.u_safe, header)
+        try:  # the command is made first: a failure making the details is in answer.error
+            answer = self._edge.answer(
+                decision, settings=active.settings,
+                barrier_names=active.safety_filter.barrier_names, header=header, now_ns=now_ns,
+                last_ok_ns=self._last_ok_diagnostics_ns, clock=self._clock,
+                counts=self.input_counts)
+            self._cmd_pub.publish(answer.command)
         except Exception as exc:  # a defect in the output: the fail-safe instead, if it can go
             self._publish_fail_safe(active, f'internal error: {_one_line(exc)}', header, now_ns)
             return
         try:  # the command is out: a failure below costs the details, never a second command
-            self._publish_details(decision, now_ns, active)
-            if decision.level != logic.OK:
+            error = self._publish_details(answer, decision.level, now_ns)
+            if not error and decision.level != logic.OK:
                 self._log(decision.level, decision.reason, now_ns)
         except Exception as exc:
-            self._log_safely(f'answer details not published: internal error: '
-                             f'{_one_line(exc)}', now_ns)
+            error = _one_line(exc)
+        if error:
+            self._log_safely(f'answer details not published: internal error: {error}', now_ns)
 
     def _publish_fail_safe(self, active: logic.ActiveFilter, reason: str, header: Any,
                            now_ns: int) -> None:
@@ -421,31 +429,22 @@ class SafetyFilterNode(Node):
     # output ------------------------------------------------------------------------------------
     def _publish_command(self, u_safe: np.ndarray, header: Any = None) -> None:
         """``cmd_safe``: the command alone, in the proposal's type (``header``: the proposal's,
-        TwistStamped). The message type and twist_fields are read-only, so any filter's
-        settings will do."""
-        settings = self.settings
-        if settings.command_type == 'twist_stamped' and header is None:
-            # an undecodable proposal: no header to copy
-            header = get_message('std_msgs/msg/Header')()
-            header.stamp = self.get_clock().now().to_msg()
-        self._cmd_pub.publish(self._edge.command(u_safe, twist_fields=settings.twist_fields,
-                                                 header=header))
+        TwistStamped; None: one stamped now). The message type and twist_fields are
+        read-only, so any filter's settings will do."""
+        self._cmd_pub.publish(self._edge.command(
+            u_safe, twist_fields=self.settings.twist_fields, header=header, clock=self._clock))
 
-    def _publish_details(self, decision: logic.Decision, now_ns: int,
-                         active: logic.ActiveFilter) -> None:
-        """``filter_info`` of an answer whose command is out, then its diagnostics if due."""
-        settings = active.settings
-        self._info_pub.publish(self._info_cdr(decision))
-        if not logic.diagnostics_due(level=decision.level, now_ns=now_ns,
-                                     last_ok_ns=self._last_ok_diagnostics_ns,
-                                     min_period_s=settings.diagnostics_min_period_s):
-            return
-        if decision.level == logic.OK:
+    def _publish_details(self, answer: Answer, level: int, now_ns: int) -> str:
+        """``filter_info`` and the diagnostics (if due) of an answer whose command is out, as
+        far as they were made; why one was not (``answer.error``, '' when none)."""
+        if answer.info is None:
+            return answer.error
+        self._info_pub.publish(answer.info)
+        if answer.diagnostics_due and level == logic.OK:
             self._last_ok_diagnostics_ns = now_ns
-        self._diag_pub.publish(self._edge.diagnostics_cdr(
-            decision, barrier_names=active.safety_filter.barrier_names,
-            stamp_ns=self.get_clock().now().nanoseconds, name=settings.diagnostics_name,
-            hardware_id=settings.diagnostics_hardware_id, counts=self.input_counts))
+        if answer.diagnostics is not None:
+            self._diag_pub.publish(answer.diagnostics)
+        return answer.error
 
     def _info_cdr(self, decision: logic.Decision) -> bytes:
         """The serialized ``filter_info`` of a decision (:meth:`FilterEdge.info_cdr`)."""

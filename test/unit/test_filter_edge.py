@@ -134,6 +134,75 @@ def test_filter_info_and_diagnostics_read_back_as_written(state):
     assert set(keys) == set(values) | {DROPPED, REFUSED_STATE}
 
 
+class _Clock:
+    """A node clock at a fixed time: ``now()`` as the runtimes' Time (``nanoseconds``)."""
+
+    class _Time:
+        nanoseconds = 7_000_000_011
+
+    def now(self) -> Any:
+        return self._Time()
+
+
+ANSWER_SETTINGS = logic.node_settings_from_params({'diagnostics.name': 'filter',
+                                                   'diagnostics.hardware_id': 'base'})
+
+
+def _answer(decision: logic.Decision, names: Any, **timing: Any) -> filter_edge.Answer:
+    return _edge().answer(decision, settings=ANSWER_SETTINGS, barrier_names=names, header=None,
+                          clock=_Clock(), counts={DROPPED: 2}, **timing)
+
+
+@pytest.mark.parametrize('state', [[-3.0, 0.0, 0.0], [-0.85, 0.0, 0.0], [np.nan, 0.0, 0.0]])
+def test_an_answer_is_its_command_filter_info_and_due_diagnostics_as_rosbags_reads_them(state):
+    """One pass: the command's values, filter_info's sections, and the diagnostics exactly
+    when due (WARN / ERROR always, OK at most every diagnostics.min_period_s), stamped by the
+    clock, with the counts."""
+    decision, names = _decision(state, [1.0, 0.2])
+    period_ns = int(ANSWER_SETTINGS.diagnostics_min_period_s * 1e9)
+    for last_ok_ns, due in ((None, True), (10 - period_ns, True),
+                            (11 - period_ns, decision.level != logic.OK)):
+        answer = _answer(decision, names, now_ns=10, last_ok_ns=last_ok_ns)
+        assert (answer.diagnostics_due, answer.error) == (due, '')
+        assert _rosbags_sections(answer.command) == {'u': decision.u_safe.tolist()}
+        assert _rosbags_sections(answer.info) == {
+            k: v.tolist() for k, v in logic.info_sections(decision).items()}
+        if not due:
+            assert answer.diagnostics is None
+            continue
+        message = _rosbags(answer.diagnostics, 'diagnostic_msgs/msg/DiagnosticArray')
+        assert (message.header.stamp.sec, message.header.stamp.nanosec) == (7, 11)
+        (status,) = message.status
+        assert (status.level, status.name, status.hardware_id) == (decision.level, 'filter',
+                                                                   'base')
+        assert {kv.key: kv.value for kv in status.values}[DROPPED] == '2'
+
+
+@pytest.mark.parametrize('broken', ['info_cdr', 'diagnostics_cdr'])
+def test_a_detail_that_cannot_be_made_leaves_the_command_and_says_why(broken, monkeypatch):
+    """The command is made first; a defect making filter_info or the diagnostics after it is
+    caught (one line), and what was made before it is kept."""
+    decision, names = _decision([-3.0, 0.0, 0.0], [1.0, 0.2])
+
+    def fails(*_args: Any, **_kwargs: Any) -> bytes:
+        raise RuntimeError(f'{broken}\nbroken')
+    monkeypatch.setattr(filter_edge, broken, fails)
+    answer = _answer(decision, names, now_ns=0, last_ok_ns=None)
+    assert _rosbags_sections(answer.command) == {'u': [1.0, 0.2]}
+    assert answer.error == f'RuntimeError: {broken} broken'
+    assert answer.diagnostics is None
+    assert (answer.info is None) == (broken == 'info_cdr')
+
+
+def test_an_answer_whose_command_cannot_be_made_raises():
+    """No command, nothing to publish: the caller sends the fail-safe instead."""
+    decision, names = _decision([-3.0, 0.0, 0.0], [1.0, 0.2])
+    odd = logic.Decision(u_safe=np.array(['x', 'y']), u_rl=None, level=logic.ERROR,
+                         reason='odd', fail_safe=True)
+    with pytest.raises(ValueError):
+        _answer(odd, names, now_ns=0, last_ok_ns=None)
+
+
 @pytest.mark.parametrize('type_name', ['geometry_msgs/msg/Twist',
                                        'geometry_msgs/msg/TwistStamped'])
 def test_twists_read_and_write_in_their_fields(type_name):

@@ -14,6 +14,7 @@ import pytest
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.core.filter_info import STATUS_CODES
+from rcbf_ros.node_logic import filter_edge
 from rcbf_ros.node_logic import safety_filter as fl
 from rcbf_ros.parameters.rules import find_config, load_params
 
@@ -443,7 +444,7 @@ def test_checked_vector_refuses_exactly_the_vectors_with_a_nan_or_inf():
     """Short vectors (checked one value at a time) and long ones (by numpy) alike: a copy of
     every finite vector of the right size, the same words for the others."""
     rng = np.random.default_rng(4)
-    for size in (1, 2, 3, fl._FEW_VALUES, fl._FEW_VALUES + 1, 100):
+    for size in (1, 2, 3, filter_edge._FEW_VALUES, filter_edge._FEW_VALUES + 1, 100):
         values = rng.normal(size=size) * 10.0 ** rng.integers(-300, 300, size)
         checked = fl.checked_vector('u', tuple(values), size)
         assert checked.dtype == np.float64 and checked.flags.writeable

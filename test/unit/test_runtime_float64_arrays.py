@@ -1,6 +1,6 @@
 """std_msgs/Float64MultiArray through the runtime's CDR the short way (rcbf_ros.messages.cdr):
 the same bytes as rosbags' serializer, the same message as rosbags' decoder (or its error), and
-Float64ArrayLayout's reads and writes of one fixed layout, against those two."""
+the filter edge's Float64ArrayLayout reads and writes of one fixed layout, against those two."""
 from __future__ import annotations
 
 import struct
@@ -12,14 +12,10 @@ import numpy as np
 import pytest
 
 from rcbf_ros.messages import cdr
-from rcbf_ros.messages.cdr import (
-    DeserializationError,
-    deserialize_message,
-    Float64ArrayLayout,
-    serialize_message,
-)
+from rcbf_ros.messages.cdr import DeserializationError, deserialize_message, serialize_message
 from rcbf_ros.messages.classes import get_message
 from rcbf_ros.messages.conversions import sections_to_cdr
+from rcbf_ros.node_logic.filter_edge import Float64ArrayLayout
 from rcbf_ros.ros.dds.messages import dds_payload
 
 ARRAY = 'std_msgs/msg/Float64MultiArray'

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 import struct
+import time
 from typing import Any
 
 import numpy as np
@@ -16,6 +17,7 @@ import pytest
 
 from rcbf_ros.messages.cdr import deserialize_message, serialize_message
 from rcbf_ros.messages.conversions import array_to_twist, msg_to_sections, sections_to_msg
+from rcbf_ros.node_logic import filter_edge
 from rcbf_ros.node_logic import safety_filter as filter_logic
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
 
@@ -168,7 +170,7 @@ def test_a_defect_in_the_filtering_yields_the_fail_safe_not_an_exception(harness
     def broken(**_kwargs: Any) -> None:
         raise RuntimeError('broken\nfilter')
     monkeypatch.setattr(filter_logic, 'decide', broken)
-    monkeypatch.setattr(filter_logic, 'state_from_sections', broken)
+    monkeypatch.setattr(filter_edge, 'state_from_sections', broken)
     harness.node._on_state(_cdr({'state': GOOD_STATE}))
     assert harness.node._latest_state.error == 'internal error: RuntimeError: broken filter'
     u, (level, message, _) = harness.propose(_cdr({'u': [1.0, 0.0]}))
@@ -263,6 +265,19 @@ def test_twist_stamped_answers_carry_the_proposals_header(stamped_harness):
     command = harness.commands[-1]
     assert (command.header.stamp.sec, command.header.stamp.nanosec, command.header.frame_id) == (
         99, 1, 'other_frame')
+
+
+def test_an_undecodable_twist_stamped_gets_the_fail_safe_stamped_by_the_nodes_clock(
+        stamped_harness):
+    """No header to keep: the fail-safe's is stamped now, by the node's (system) clock."""
+    harness = stamped_harness
+    harness.node._on_state(_odometry(-3.0, 0.0, 0.0))
+    before_s = time.time_ns() // 10**9
+    u, (_, message, _) = harness.propose(_twist_stamped([2.5, 0.0], 5, 0, 'base_link')[:20])
+    after_s = time.time_ns() // 10**9
+    np.testing.assert_array_equal(u, FAIL_SAFE)
+    assert message.startswith('undecodable proposal: ')
+    assert before_s <= harness.commands[-1].header.stamp.sec <= after_s
 
 
 def test_odometry_state_is_read_as_x_y_yaw(stamped_harness):

@@ -339,6 +339,29 @@ def test_a_failing_detail_costs_the_details_never_a_second_command(harness, caps
     assert log.count('answer details not published') == 1, log  # throttled
 
 
+@pytest.mark.parametrize('broken', ['info_cdr', 'diagnostics_cdr'])
+def test_a_detail_that_cannot_be_made_costs_the_details_never_the_command(harness, capsys,
+                                                                          monkeypatch, broken):
+    """filter_info or the diagnostics cannot be made: every proposal still gets its own
+    command (not the fail-safe), filter_info goes out when it was made, one throttled line."""
+    from rcbf_ros.node_logic import filter_edge
+    node = harness.node
+    node._on_state(_cdr({'state': [-3.0, 0.0, 0.0]}))  # far from every obstacle: passed as is
+
+    def fails(*_args: Any, **_kwargs: Any) -> bytes:
+        raise RuntimeError('encoder gone')
+    monkeypatch.setattr(filter_edge, broken, fails)
+    commands, infos = len(harness.commands), len(harness.infos)
+    for _ in range(20):
+        node._on_proposal(_cdr({'u': PROPOSAL}))  # never raises
+    assert len(harness.commands) == commands + 20
+    np.testing.assert_array_equal(harness.commands[-1].data, PROPOSAL)
+    assert len(harness.infos) == infos + (0 if broken == 'info_cdr' else 20)
+    log = capsys.readouterr().err
+    assert log.count('answer details not published: internal error: RuntimeError: encoder '
+                     'gone') == 1, log
+
+
 def test_an_unforeseen_error_while_a_set_is_checked_refuses_it_in_one_line(harness, monkeypatch):
     from rcbf_ros.node_logic import safety_filter as logic
     node = harness.node
