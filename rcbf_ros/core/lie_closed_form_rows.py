@@ -120,6 +120,28 @@ class _Circles:
         return h2, list(enumerate(grad2.T))
 
 
+def _circle_rows(part: _Circles, x: list[float], u: list[float], f_values: np.ndarray,
+                 jacobian: np.ndarray, g_rows: list[list[float]], motion: list[float],
+                 spread: list[float], alpha: float, n_u: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(h (k,), L_g h (k, n_u), right-hand sides (k,)) of one circle family over arrays;
+    ``motion`` is x_dot + mean, ``spread`` k_c std (one value per state entry)."""
+    h, columns = part.terms(x, u, f_values, jacobian)
+    # grad h^T (x_dot + psi) + alpha h, psi_k = mean_k - k_c std_k sign(grad_k):
+    # grad_k (x_dot_k + mean_k) - k_c std_k |grad_k| per entry
+    upper = alpha * h
+    lg = np.zeros((h.size, n_u))
+    for k, column in columns:
+        if motion[k] != 0.0:
+            upper += motion[k] * column
+        if spread[k] != 0.0:
+            upper -= spread[k] * np.abs(column)
+        for j, entry in enumerate(g_rows[k]):
+            if entry != 0.0:
+                lg[:, j] += entry * column
+    return h, lg, upper
+
+
 class VectorAssembly:
     """The filter's per-call constraint assembly for a problem with a large circle family
     (module docstring); build with :meth:`from_problem`. ``evaluate(x, u, mean, std)`` (lists
@@ -187,19 +209,8 @@ class VectorAssembly:
                 uppers.append(np.array(small[2][start:start + count]))
                 start += count
                 continue
-            h, columns = part.terms(x, u, f_values, jacobian)  # type: ignore[union-attr]
-            # grad h^T (x_dot + psi) + alpha h, psi_k = mean_k - k_c std_k sign(grad_k):
-            # grad_k (x_dot_k + mean_k) - k_c std_k |grad_k| per entry
-            upper = self._alpha * h
-            lg = np.zeros((h.size, self.n_u))
-            for k, column in columns:
-                if motion[k] != 0.0:
-                    upper += motion[k] * column
-                if spread[k] != 0.0:
-                    upper -= spread[k] * np.abs(column)
-                for j, entry in enumerate(g_rows[k]):
-                    if entry != 0.0:
-                        lg[:, j] += entry * column
+            h, lg, upper = _circle_rows(part, x, u, f_values, jacobian,  # type: ignore[arg-type]
+                                        g_rows, motion, spread, self._alpha, self.n_u)
             hs.append(h)
             lgs.append(lg)
             uppers.append(upper)
@@ -214,3 +225,59 @@ class VectorAssembly:
         size = (float(h @ h) + float(flat @ flat) + float(upper @ upper) + h.size
                 + sum(v * v for v in limit_upper) + len(limit_upper))
         return ManyRows(h, lg, upper, limit_upper, size)
+
+
+class PointRows:
+    """Circle rows around points that change with every sensor message, without a rebuild.
+
+    Built once from a one-obstacle circle family (its radius the footprint's radius, its
+    margin, look-ahead, indices and cascade gains those of the obstacles); :meth:`set` replaces
+    the centres by a message's points (arrays, microseconds), :meth:`evaluate` gives their rows
+    at a state as :class:`VectorAssembly` does for a fixed family (module docstring). Point i
+    keeps the guarded point at least footprint radius + margin + spread_i from it.
+    """
+
+    def __init__(self, problem: RCBFProblem, template: object) -> None:
+        """Raises:
+            ValueError: naming ``footprint``, where the system or the family has no closed
+                form here (a built-in system; a look-ahead without cascades).
+        """
+        sub = dataclasses.replace(problem, families=(template,), use_input_limits=False)
+        families = _closed_form_families(sub)
+        if families is None or type(families[0][0]) is not CircleObstacles:
+            raise ValueError('footprint: sensor points need a built-in system with a closed '
+                             'form and circle rows (a look-ahead point without obstacles.gammas)')
+        base, gammas = families[0]
+        system = problem.system
+        self.n_x, self.n_u = system.n_x, system.n_u
+        self._circles = _Circles(base, gammas, self.n_x)
+        self.reach = float(base.radii[0]) + float(base.margin)
+        """footprint radius + margin (m): the least distance kept from every point."""
+        self._jet = system.closed_form_source().function()
+        self._alpha, self._k_c = float(problem.alpha), float(problem.k_c)
+        self.set(np.zeros((0, 2)))
+
+    @property
+    def count(self) -> int:
+        """The points whose rows :meth:`evaluate` gives."""
+        return int(self._circles.cx.size)
+
+    def set(self, points: np.ndarray, spread: np.ndarray | float = 0.0) -> None:
+        """Replace the points: (N, 2) float64, finite; ``spread`` (N,) or one value >= 0 widens
+        each point's circle (a thinned cloud's cell)."""
+        circles = self._circles
+        circles.cx = np.ascontiguousarray(points[:, 0], dtype=np.float64)
+        circles.cy = np.ascontiguousarray(points[:, 1], dtype=np.float64)
+        delta = self.reach + np.broadcast_to(np.asarray(spread, dtype=np.float64),
+                                             circles.cx.shape)
+        circles.delta_sq = delta * delta
+
+    def evaluate(self, x: list[float], u: list[float], mean: list[float], std: list[float]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(h (N,), L_g h (N, n_u), right-hand sides (N,)) at state x, proposal u and the box
+        mean +/- k_c std, as :class:`ManyRows` holds them."""
+        f_values, jacobian, g = self._jet(np.array(x))
+        motion = (f_values + g @ np.array(u) + np.array(mean)).tolist()
+        spread = (self._k_c * np.array(std)).tolist()
+        return _circle_rows(self._circles, x, u, f_values, jacobian, g.tolist(), motion,
+                            spread, self._alpha, self.n_u)
