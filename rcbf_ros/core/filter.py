@@ -1441,12 +1441,16 @@ class SafetyFilter:
         if self._points is None:
             raise ValueError('set_points: this filter was built without a footprint')
         points = np.asarray(points, dtype=np.float64)
-        if points.ndim != 2 or points.shape[1] != 2 or not np.all(np.isfinite(points)):
+        if points.ndim != 2 or points.shape[1] != 2 or not np.isfinite(points).all():
             raise ValueError(f'set_points: expected finite (N, 2) points, got shape '
                              f'{points.shape}')
-        spread = np.asarray(spread, dtype=np.float64)
-        if not (np.all(np.isfinite(spread)) and np.all(spread >= 0.0)):
-            raise ValueError('set_points: spread must be finite and >= 0')
+        if np.ndim(spread) == 0:
+            if not 0.0 <= spread < math.inf:
+                raise ValueError('set_points: spread must be finite and >= 0')
+        else:
+            spread = np.asarray(spread, dtype=np.float64)
+            if spread.shape != (len(points),) or not ((spread >= 0.0) & (spread < math.inf)).all():
+                raise ValueError('set_points: spread must be (N,) finite and >= 0')
         self._points.set(points, spread)
 
     @property
@@ -1460,8 +1464,10 @@ class SafetyFilter:
         if self._points is None:
             return values
         k = self.n_barriers
-        least = float(values[k:].min()) if values.size > k else math.inf
-        return np.append(values[:k], least)
+        out = np.empty(k + 1)
+        out[:k] = values[:k]
+        out[k] = values[k:].min() if values.size > k else math.inf
+        return out
 
     def _check_many(self, z: Sequence[float] | np.ndarray | None, upper: np.ndarray,
                     lg: np.ndarray, applied: list[float]

@@ -29,6 +29,7 @@ the system's :class:`~rcbf_ros.core.dynamics.DriftSource`. Nothing here imports 
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -80,26 +81,36 @@ class _Circles:
         self.n_x = n_x
 
     def terms(self, x: list[float], u: list[float], f: np.ndarray | None,
-              jacobian: np.ndarray | None) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
-        """(h (k,), the gradient's columns that can be nonzero: (state index, (k,))) at x,
-        the look-ahead point chosen by the proposal u."""
+              jacobian: np.ndarray | None) -> tuple[np.ndarray, list[int], np.ndarray]:
+        """(h (k,), the state indices where the gradient can be nonzero, the gradient there
+        (c, k)) at x, the look-ahead point chosen by the proposal u."""
         if self.heading is not None:
-            cos, sin = np.cos(x[self.heading]), np.sin(x[self.heading])
+            cos, sin = math.cos(x[self.heading]), math.sin(x[self.heading])
             offset = self.lookahead
             if self.speed is not None and u[self.speed] < 0.0:
-                bx = x[self.i] + -offset * cos - self.cx
-                by = x[self.j] + -offset * sin - self.cy
-                if bool(np.all(bx * bx + by * by - self.delta_sq >= 0.0)):
+                bx = (x[self.i] - offset * cos) - self.cx
+                by = (x[self.j] - offset * sin) - self.cy
+                bx *= bx
+                by *= by
+                bx += by
+                if bool((bx >= self.delta_sq).all()):
                     offset = -offset
-            dx = (x[self.i] + offset * cos) - self.cx
-            dy = (x[self.j] + offset * sin) - self.cy
-            h = dx * dx + dy * dy - self.delta_sq
-            turn = dx * (-2.0 * offset * sin) + dy * (2.0 * offset * cos)
-            return h, [(self.i, 2.0 * dx), (self.j, 2.0 * dy), (self.heading, turn)]
+            grads = np.empty((3, self.cx.size))
+            dx, dy = grads[0], grads[1]
+            np.subtract(x[self.i] + offset * cos, self.cx, out=dx)
+            np.subtract(x[self.j] + offset * sin, self.cy, out=dy)
+            h = dx * dx
+            h += dy * dy
+            h -= self.delta_sq
+            # d h / d th = 2 s l_p d^T (-sin th, cos th)
+            np.multiply(dy, 2.0 * offset * cos, out=grads[2])
+            grads[2] -= (2.0 * offset * sin) * dx
+            grads[:2] *= 2.0
+            return h, [self.i, self.j, self.heading], grads
         dx, dy = x[self.i] - self.cx, x[self.j] - self.cy
         h = dx * dx + dy * dy - self.delta_sq
         if not self.gammas:
-            return h, [(self.i, 2.0 * dx), (self.j, 2.0 * dy)]
+            return h, [self.i, self.j], np.array([2.0 * dx, 2.0 * dy])
         assert f is not None and jacobian is not None
         grad = np.zeros((h.size, self.n_x))
         grad[:, self.i] = 2.0 * dx
@@ -110,14 +121,14 @@ class _Circles:
         h1 = grad @ f + gamma1 * h
         grad1 = qf + grad @ jacobian + gamma1 * grad
         if len(self.gammas) == 1:
-            return h1, list(enumerate(grad1.T))
+            return h1, list(range(self.n_x)), grad1.T
         gamma2 = self.gammas[1]
         jf = jacobian @ f
         qjf = np.zeros(self.n_x)
         qjf[self.i], qjf[self.j] = 2.0 * jf[self.i], 2.0 * jf[self.j]
         h2 = grad1 @ f + gamma2 * h1
         grad2 = qjf + gamma1 * qf + (qf + grad1) @ jacobian + gamma2 * grad1
-        return h2, list(enumerate(grad2.T))
+        return h2, list(range(self.n_x)), grad2.T
 
 
 def _circle_rows(part: _Circles, x: list[float], u: list[float], f_values: np.ndarray,
@@ -126,19 +137,16 @@ def _circle_rows(part: _Circles, x: list[float], u: list[float], f_values: np.nd
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(h (k,), L_g h (k, n_u), right-hand sides (k,)) of one circle family over arrays;
     ``motion`` is x_dot + mean, ``spread`` k_c std (one value per state entry)."""
-    h, columns = part.terms(x, u, f_values, jacobian)
+    h, index, grads = part.terms(x, u, f_values, jacobian)  # grads: (c, k)
     # grad h^T (x_dot + psi) + alpha h, psi_k = mean_k - k_c std_k sign(grad_k):
-    # grad_k (x_dot_k + mean_k) - k_c std_k |grad_k| per entry
-    upper = alpha * h
-    lg = np.zeros((h.size, n_u))
-    for k, column in columns:
-        if motion[k] != 0.0:
-            upper += motion[k] * column
-        if spread[k] != 0.0:
-            upper -= spread[k] * np.abs(column)
-        for j, entry in enumerate(g_rows[k]):
-            if entry != 0.0:
-                lg[:, j] += entry * column
+    # grad_k (x_dot_k + mean_k) - k_c std_k |grad_k| per entry; over the columns that can be
+    # nonzero, as three small matrix products (a few numpy calls whatever the row count)
+    upper = np.array([motion[k] for k in index]) @ grads
+    upper += alpha * h
+    widths = [spread[k] for k in index]
+    if any(widths):
+        upper -= np.array(widths) @ np.abs(grads)
+    lg = grads.T @ np.array([g_rows[k] for k in index]).reshape(len(index), n_u)
     return h, lg, upper
 
 
@@ -266,11 +274,11 @@ class PointRows:
         """Replace the points: (N, 2) float64, finite; ``spread`` (N,) or one value >= 0 widens
         each point's circle (a thinned cloud's cell)."""
         circles = self._circles
-        circles.cx = np.ascontiguousarray(points[:, 0], dtype=np.float64)
-        circles.cy = np.ascontiguousarray(points[:, 1], dtype=np.float64)
-        delta = self.reach + np.broadcast_to(np.asarray(spread, dtype=np.float64),
-                                             circles.cx.shape)
-        circles.delta_sq = delta * delta
+        circles.cx = points[:, 0].copy()
+        circles.cy = points[:, 1].copy()
+        delta = self.reach + spread
+        circles.delta_sq = (np.full(len(points), delta * delta) if np.ndim(delta) == 0
+                            else delta * delta)
 
     def evaluate(self, x: list[float], u: list[float], mean: list[float], std: list[float]
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

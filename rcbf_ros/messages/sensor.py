@@ -16,6 +16,7 @@ the barrier's squares would overflow). Pure library: numpy only.
 """
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from typing import NamedTuple
@@ -36,8 +37,13 @@ MAX_POINT_STEP = 65_536
 """The most bytes per point of a cloud."""
 MAX_COORDINATE = 1.0e4
 """Points farther than this (m) from the sensor frame's origin, on either axis, are skipped."""
+MAX_ANGLE = 1.0e3
+"""The largest |angle| (rad) of a scan's beam; a scan whose beams lie beyond is refused."""
 MIN_VOXEL_SIZE = 1.0e-3
 """The smallest grid cell (m) of a cloud's thinning (0 turns thinning off)."""
+
+_CELLS = int(MAX_COORDINATE / MIN_VOXEL_SIZE) + 1
+"""The largest |cell index| of a thinning grid."""
 
 FLOAT32, FLOAT64 = 7, 8
 """sensor_msgs/PointField datatypes of the coordinates read here."""
@@ -134,13 +140,25 @@ def _within(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return (np.abs(x) <= MAX_COORDINATE) & (np.abs(y) <= MAX_COORDINATE)
 
 
+@functools.lru_cache(maxsize=8)
+def _beam_directions(angle_min: float, increment: float, count: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """(cos, sin) of beam i's angle angle_min + i increment, i < count (read-only; a sensor
+    repeats its geometry in every message, so they are computed once)."""
+    angles = angle_min + np.arange(count) * increment
+    cos, sin = np.cos(angles), np.sin(angles)
+    cos.setflags(write=False)
+    sin.setflags(write=False)
+    return cos, sin
+
+
 def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
                 ) -> SensorPoints | Refused:
     """The valid points of a LaserScan sample, in its frame.
 
     Beam i lies at angle_min + i angle_increment; it counts where its range r is finite and
-    range_min <= r <= range_max (REP 117, as collision_monitor reads it), and is the point
-    (r cos a, r sin a). Intensities are not read.
+    range_min <= r <= range_max (REP 117, as collision_monitor reads it) and r <=
+    :data:`MAX_COORDINATE`, and is the point (r cos a, r sin a). Intensities are not read.
     """
     try:
         cursor = _Cursor(data)
@@ -159,18 +177,21 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         if count > max_points:
             return Refused(f'{LASER_SCAN}: ranges has {count} beams, more than the bound '
                            f'{max_points}')
+        if not abs(angle_min) + count * abs(increment) <= MAX_ANGLE:
+            return Refused(f'{LASER_SCAN}: angle_min {angle_min:g} and angle_increment '
+                           f'{increment:g} put beams beyond +-{MAX_ANGLE:g} rad')
         start = cursor._take(4 * count, 4, 'ranges')
         ranges = np.frombuffer(cursor.view, dtype=cursor.order + 'f4', count=count,
                                offset=start).astype(np.float64)
-        with np.errstate(invalid='ignore'):
-            valid = (ranges >= range_min) & (ranges <= range_max) & np.isfinite(ranges)
-        index = np.flatnonzero(valid)
+        # NaN fails both comparisons; a range within MAX_COORDINATE keeps both coordinates in
+        index = np.flatnonzero((ranges >= range_min)
+                               & (ranges <= min(range_max, MAX_COORDINATE)))
+        cos, sin = _beam_directions(angle_min, increment, count)
         r = ranges[index]
-        angle = angle_min + index * float(increment)
-        x, y = r * np.cos(angle), r * np.sin(angle)
-        keep = _within(x, y)
-        points = np.stack((x[keep], y[keep]), axis=1) if count else np.zeros((0, 2))
-        return SensorPoints(points.reshape(-1, 2), frame_id, stamp, count)
+        points = np.empty((index.size, 2))
+        np.multiply(r, cos[index], out=points[:, 0])
+        np.multiply(r, sin[index], out=points[:, 1])
+        return SensorPoints(points, frame_id, stamp, count)
     except _Bad as exc:
         return Refused(f'{LASER_SCAN}: {exc}')
     except Exception as exc:  # bytes are untrusted: any other failure is a refusal too
@@ -252,14 +273,18 @@ def cloud_points(data: bytes | memoryview, *, min_height: float = -math.inf,
                                 strides=(row_step, point_step))
             values.append(column.astype(np.float64).ravel())
         x, y, z = values
-        with np.errstate(invalid='ignore'):
-            keep = (z >= min_height) & (z <= max_height) & _within(x, y)
+        keep = (z >= min_height) & (z <= max_height) & _within(x, y)  # NaN fails each
         x, y = x[keep], y[keep]
         spread = 0.0
         if voxel_size and x.size:
-            cells = np.stack((np.floor(x / voxel_size), np.floor(y / voxel_size)), axis=1)
-            cells = np.unique(cells, axis=0)
-            x, y = (cells[:, 0] + 0.5) * voxel_size, (cells[:, 1] + 0.5) * voxel_size
+            # one int64 key per cell: |x|, |y| <= MAX_COORDINATE and voxel_size >=
+            # MIN_VOXEL_SIZE keep each cell index within +-_CELLS
+            column = np.floor(x / voxel_size).astype(np.int64) + _CELLS
+            row = np.floor(y / voxel_size).astype(np.int64) + _CELLS
+            keys = np.unique(column * (2 * _CELLS + 1) + row)
+            column, row = np.divmod(keys, 2 * _CELLS + 1)
+            x = (column - _CELLS + 0.5) * voxel_size
+            y = (row - _CELLS + 0.5) * voxel_size
             spread = voxel_size * math.sqrt(0.5)
         return SensorPoints(np.stack((x, y), axis=1), frame_id, stamp, count, spread)
     except _Bad as exc:

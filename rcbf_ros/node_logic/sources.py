@@ -91,9 +91,10 @@ class ObservationSources:
         return ''
 
     def points(self, state: np.ndarray, *, now_ns: int, stamp_now_ns: int
-               ) -> tuple[np.ndarray, np.ndarray] | str:
-        """Every source's points in the state's frame, and each point's spread, at ``state``
-        (n_x); else the fail-safe's reason, naming the source.
+               ) -> tuple[np.ndarray, np.ndarray | float] | str:
+        """Every source's points in the state's frame, and their spread (one value, or one per
+        point where the sources' differ), at ``state`` (n_x); else the fail-safe's reason,
+        naming the source.
 
         A message's age is counted from its header stamp on the node's clock
         (``stamp_now_ns``, as collision_monitor counts ``source_timeout``), and never from
@@ -102,7 +103,7 @@ class ObservationSources:
         """
         config = self.config
         parts: list[np.ndarray] = []
-        spreads: list[np.ndarray] = []
+        spreads: list[tuple[float, int]] = []
         for name, source in self._sources.items():
             timeout = source.params.timeout_s
             if source.refusal:
@@ -126,12 +127,15 @@ class ObservationSources:
                         f"{config.odom_frame_id!r} nor the robot's {config.base_frame_id!r} "
                         '(no tf here)')
             parts.append(points)
-            spreads.append(np.full(len(points), source.spread))
+            spreads.append((source.spread, len(points)))
         if not parts:
-            return np.zeros((0, 2)), np.zeros(0)
-        if len(parts) == 1:
-            return parts[0], spreads[0]
-        return np.concatenate(parts), np.concatenate(spreads)
+            return np.zeros((0, 2)), 0.0
+        widths = {float(spread) for spread, _ in spreads}
+        if len(widths) == 1:  # one spread for every point (the common case)
+            spread_out: np.ndarray | float = widths.pop()
+        else:
+            spread_out = np.concatenate([np.full(n, spread) for spread, n in spreads])
+        return (parts[0] if len(parts) == 1 else np.concatenate(parts)), spread_out
 
     def sense(self, safety_filter: Any, state: np.ndarray, *, now_ns: int, stamp_now_ns: int
               ) -> str:

@@ -42,7 +42,8 @@ def test_empty_scan_gives_no_points():
 @pytest.mark.parametrize(('field', 'value', 'words'), [
     ('angle_min', math.nan, 'angle_min'), ('increment', math.inf, 'angle_increment'),
     ('range_min', math.nan, 'range_min'), ('range_max', math.nan, 'range_max'),
-    ('range_min', 20.0, 'range_min')])
+    ('range_min', 20.0, 'range_min'), ('angle_min', 3e38, 'angle_min'),
+    ('increment', 1e37, 'beyond')])
 def test_scan_with_bad_geometry_is_refused(field, value, words):
     out = sensor.scan_points(_scan_bytes([1.0, 2.0], **{field: value}))
     assert isinstance(out, sensor.Refused) and words in out.reason and '\n' not in out.reason
@@ -58,12 +59,15 @@ def test_far_points_are_skipped():
     assert isinstance(out, sensor.SensorPoints) and len(out.points) == 2
 
 
+@pytest.mark.filterwarnings('error::RuntimeWarning')  # no numpy warning on the node's log
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(ranges=st.lists(st.floats(width=32), max_size=40),
+       angle_min=st.floats(width=32), increment=st.floats(width=32),
        cut=st.integers(0, 400), flips=st.lists(st.tuples(st.integers(0, 400),
                                                           st.integers(0, 255)), max_size=4))
-def test_hostile_scan_bytes_never_raise(ranges, cut, flips):
-    data = bytearray(_scan_bytes(ranges, range_max=math.inf))
+def test_hostile_scan_bytes_never_raise(ranges, angle_min, increment, cut, flips):
+    data = bytearray(_scan_bytes(ranges, angle_min=angle_min, increment=increment,
+                                 range_max=math.inf))
     for where, value in flips:
         if where < len(data):
             data[where] = value
@@ -73,6 +77,7 @@ def test_hostile_scan_bytes_never_raise(ranges, cut, flips):
         assert out.reason and '\n' not in out.reason and len(out.reason) <= 300
     else:
         assert out.points.ndim == 2 and out.points.shape[1] == 2
+        assert np.all(np.isfinite(out.points))
         assert np.all(np.abs(out.points) <= sensor.MAX_COORDINATE)
         assert len(out.points) <= out.received <= sensor.MAX_POINTS
 
@@ -144,6 +149,7 @@ def test_cloud_declaring_absurd_sizes_is_refused_without_allocating():
     assert isinstance(out, sensor.Refused) and 'height x width' in out.reason
 
 
+@pytest.mark.filterwarnings('error::RuntimeWarning')
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(n=st.integers(0, 30), height=st.sampled_from([1, 2, 3]),
        cut=st.integers(0, 300), voxel=st.sampled_from([0.0, 0.25]),
