@@ -53,7 +53,7 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'safety_filter = rcbf_ros.ros.safety_filter_node:main',
+            'safety_filter = rcbf_ros.ros.node_main:safety_filter',
             'simulator = sim_nodes.simulator_node:main',
             'nominal_controller = sim_nodes.nominal_controller_node:main',
             'recorder = rcbf_ros.ros.recorder_node:main',

@@ -10,8 +10,11 @@ Each command runs in a new Python process (the venv's interpreter), the commands
 - ``import rcbf_ros.ros.safety_filter_node``: the node's whole import chain, which no longer
   loads torch for the built-in systems (``rcbf_ros/core/torch_import.py``);
 - the same with ``import torch`` first: what the chain costs with torch loaded;
-- ``safety_filter --help`` (``python -m rcbf_ros.ros.safety_filter_node --help``) and
-  ``rcbf_ros --help`` (``python -m rcbf_ros --help``), as a user types them;
+- ``safety_filter --help`` (the console script, :data:`SAFETY_FILTER_SCRIPT`: the help from
+  the node's interface module, without the middleware) and ``rcbf_ros --help`` (``python -m
+  rcbf_ros --help``), as a user types them; beside them ``python -m
+  rcbf_ros.ros.safety_filter_node --help``, the node module's own help, which imports the
+  node class and the middleware first;
 - the filter node answering (:func:`first_answer`): started as a process on the Unicycle's
   config (loopback Cyclone DDS, a domain of its own), a probe in this process publishes a
   proposal with its state every 10 ms from the moment it starts; the time from the start to
@@ -37,13 +40,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._results import publish_section  # noqa: E402
 
+SAFETY_FILTER_SCRIPT = ['-c', 'import sys; from rcbf_ros.ros.node_main import safety_filter; '
+                        'sys.exit(safety_filter())']
+"""The interpreter's arguments of what the console script ``safety_filter`` runs (setup.py)."""
 COMMANDS: tuple[tuple[str, list[str]], ...] = (
     ('`import numpy, osqp`', ['-c', 'import numpy, osqp']),
     ('`import rcbf_ros.ros.safety_filter_node`',
      ['-c', 'import rcbf_ros.ros.safety_filter_node']),
     ('`import torch` then the same',
      ['-c', 'import torch, rcbf_ros.ros.safety_filter_node']),
-    ('`safety_filter --help`', ['-m', 'rcbf_ros.ros.safety_filter_node', '--help']),
+    ('`safety_filter --help`', [*SAFETY_FILTER_SCRIPT, '--help']),
+    ('`python -m rcbf_ros.ros.safety_filter_node --help`',
+     ['-m', 'rcbf_ros.ros.safety_filter_node', '--help']),
     ('`rcbf_ros --help`', ['-m', 'rcbf_ros', '--help']),
 )
 """(label, the interpreter's arguments) of every measured command."""
@@ -140,13 +148,18 @@ def first_answer(probe: _Probe, config: str, environment: dict[str, str],
             process.wait()
 
 
+INSIDE = ('numpy', 'rcbf_ros.node_logic.interface', 'rcbf_ros.messages.classes',
+          'rcbf_ros.core.config', 'rcbf_ros.core.filter', 'rcbf_ros.ros.runtime', 'cyclonedds')
+"""Modules whose share of the help's import time has a row of its own when they are imported
+(with what they import first): the middleware's (``rcbf_ros.ros.runtime``, ``cyclonedds``)
+have none while the help is answered without it."""
+
+
 def help_imports(top: int = 7) -> list[str]:
     """Where ``safety_filter --help`` spends its import time: ``python -X importtime`` of it
     once, the modules its chain imports first (which partition the import time; each with what
-    it imports) by cumulative ms, and inside them the DDS runtime's package (``cyclonedds``)
-    and the message classes without ROS (``rcbf_ros.messages.classes``)."""
-    done = subprocess.run([sys.executable, '-X', 'importtime', '-m',
-                           'rcbf_ros.ros.safety_filter_node', '--help'],
+    it imports) by cumulative ms, and inside them those of :data:`INSIDE` it imports."""
+    done = subprocess.run([sys.executable, '-X', 'importtime', *SAFETY_FILTER_SCRIPT, '--help'],
                           capture_output=True, text=True, check=True)
     outermost: list[tuple[float, str]] = []
     inside: dict[str, float] = {}
@@ -159,7 +172,7 @@ def help_imports(top: int = 7) -> list[str]:
         module = name.strip()
         if len(name) - len(name.lstrip()) == 1:  # one space: imported by the program itself
             outermost.append((int(fields[1]) / 1000.0, module))
-        if module in ('cyclonedds', 'rcbf_ros.messages.classes'):  # with what they import
+        if module in INSIDE:  # with what they import
             inside.setdefault(module, int(fields[1]) / 1000.0)
     total = sum(ms for ms, _ in outermost)
     rows = ['| imported first by the chain | cumulative ms | share |', '|---|---|---|']
@@ -226,13 +239,15 @@ def main(argv: list[str] | None = None) -> int:
             'on loopback Cyclone DDS; a probe in the benchmark process, started before it, '
             'publishes a proposal with its state every 10 ms until the first `cmd_safe`.',
             node,
-            'Where `safety_filter --help` spends its import time (`python -X importtime -m '
-            'rcbf_ros.ros.safety_filter_node --help`, one run; the times under -X importtime '
-            'are larger than without). The console script imports the node module, and with '
-            'it the middleware its node class derives from (`rcbf_ros.ros.runtime`: the DDS '
-            'runtime and the message classes), before `--help` is read: that part goes only '
-            'when the help is answered from a module that holds the interface without the '
-            'node class.',
+            'Where `safety_filter --help` spends its import time (`python -X importtime` of '
+            'the console script with `--help`, one run; the times under -X importtime are '
+            'larger than without). The console script (`rcbf_ros.ros.node_main:safety_filter`) '
+            "answers `--help` from the module that holds the node's interface without the "
+            'node class (`rcbf_ros.node_logic.safety_filter_interface`): the middleware the '
+            'node class derives from (`rcbf_ros.ros.runtime`: the DDS runtime and the message '
+            'classes) is not imported; `python -m rcbf_ros.ros.safety_filter_node --help` '
+            'still imports it, as the node module holds the class. A module of '
+            f'{", ".join(f"`{m}`" for m in INSIDE)} without a row of its own was not imported.',
             imports,
             'Caveats: the machine (2 cores) is shared with other jobs, whose load the first '
             'line gives; wall times rise with it, the memory figures do not. The peak RSS of '

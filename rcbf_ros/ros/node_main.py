@@ -7,7 +7,9 @@ which construction errors are the user's (bad parameters, a missing file) rather
 
 ``-h`` / ``--help`` (outside ``--ros-args``) print the node's topics and parameters
 (:mod:`rcbf_ros.node_logic.interface`) and exit 0 before anything starts: no ``rclpy.init``, no DDS
-participant.
+participant. A node whose interface lives in a module of its own (:data:`LIGHT_INTERFACES`)
+answers them from there through :func:`main_of`, its console script, before the middleware is
+even imported.
 
 Stopping. SIGINT and SIGTERM are handled here, not by the middleware: ``rclpy.init`` installs
 no signal handlers (``SignalHandlerOptions.NO``; our runtime's are replaced), because rclpy's
@@ -155,7 +157,10 @@ OTHER_DESCRIPTION = 'not read by this node (given on its command line or in a pa
 
 def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
                   given: Sequence[ParameterSpec] = (), dynamic_typing: bool = False,
-                  others: str | None = OTHER_DESCRIPTION) -> None:
+                  dynamic_overrides: bool = False,
+                  read_only: Callable[[str], bool] | None = None,
+                  others: str | Callable[[str], str | None] | None = OTHER_DESCRIPTION
+                  ) -> None:
     """Declare ``node``'s parameters from ``specs``: the one way the nodes declare them.
 
     Every declaration gets a descriptor of its own (:func:`parameter_descriptor`: the spec's
@@ -168,16 +173,19 @@ def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
       list: rcl reads ``[]`` as no value);
     - a parameter declared already without a description (by an override, in a node made with
       ``automatically_declare_parameters_from_overrides``) is declared again with its value, as
-      the override declared it (typed by its value), and the descriptor of the spec of
-      ``specs`` or ``given`` that names it (a ``<name>`` pattern too), else with ``others`` as
-      its description (None: left as it is, for a call that declares part of a node's
-      parameters). An override outside the spec's range is left as it was declared: the
-      node's reader refuses it, one line naming the key, as it reads its settings.
+      the override declared it (typed by its value, or of any type with
+      ``dynamic_overrides``), and the descriptor of the spec of ``specs`` or ``given`` that
+      names it (a ``<name>`` pattern too), else with ``others`` as its description (a function
+      of the name: its description; None: left as it is, for a call that declares part of a
+      node's parameters, or for a name the function returns None for). An override outside the
+      spec's range is left as it was declared: the node's reader refuses it, one line naming
+      the key, as it reads its settings.
 
     ``given``: specs of parameters declared only when given (the filter keys a node reads from a
     params file). ``dynamic_typing``: the declarations from defaults take a value of any type
-    (else only those without a default). :data:`RUNTIME_PARAMETERS` are left as the runtime
-    declared them.
+    (else only those without a default). ``read_only``: whether the parameter of a name is
+    fixed at start (its descriptor read-only, so that the runtime refuses a set of it);
+    None: none is. :data:`RUNTIME_PARAMETERS` are left as the runtime declared them.
 
     Raises:
         ValueError: one line naming the parameter: a declaration the runtime refuses (e.g. a
@@ -190,7 +198,8 @@ def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
             if spec.pattern or node.has_parameter(spec.name):
                 continue
             descriptor = parameter_descriptor(
-                spec, dynamic_typing=dynamic_typing or spec.default is None)
+                spec, dynamic_typing=dynamic_typing or spec.default is None,
+                read_only=read_only is not None and read_only(spec.name))
             if spec.type == 'string[]' and not spec.default:
                 node.declare_parameter(spec.name, Parameter.Type.STRING_ARRAY, descriptor)
             else:
@@ -199,15 +208,17 @@ def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
             if name in RUNTIME_PARAMETERS or node.describe_parameter(name).description:
                 continue
             spec = next((s for s in (*specs, *given) if s.matches(name)), None)
-            if spec is None and others is None:
+            other = others(name) if callable(others) else others
+            if spec is None and other is None:
                 continue
             value = parameter.value
             if spec is not None and spec.range_refuses(value):
                 continue  # as the override declared it: the node's reader refuses it
             node.undeclare_parameter(name)
             node.declare_parameter(name, value, parameter_descriptor(
-                spec, dynamic_typing=value is None, description=others or ''),
-                ignore_override=True)
+                spec, dynamic_typing=dynamic_overrides or value is None,
+                read_only=read_only is not None and read_only(name),
+                description=other or ''), ignore_override=True)
     except ParameterException as exc:
         raise ValueError(str(exc)) from exc
 
@@ -280,6 +291,46 @@ def init_error_line(error: BaseException) -> str:
     return text.split(', at /', 1)[0].rstrip()
 
 
+def print_help(interface: InterfaceSource, argv: Sequence[str]) -> int:
+    """Print the ``--help`` of ``interface`` for the command line ``argv``; exit status 0."""
+    sys.stdout.write(help_text(resolve(interface, argv)))
+    sys.stdout.flush()
+    return 0
+
+
+LIGHT_INTERFACES: dict[str, str] = {
+    'rcbf_ros.ros.safety_filter_node': 'rcbf_ros.node_logic.safety_filter_interface',
+}
+"""Node module -> the module that holds its ``INTERFACE`` without the node class, and so
+without the middleware its class derives from: its ``--help`` is answered from there
+(:func:`main_of`, :func:`run_module`) without loading the DDS runtime."""
+
+
+def _light_interface(module: str, argv: Sequence[str]) -> InterfaceSource | None:
+    """The ``INTERFACE`` of node module ``module`` when ``argv`` asks for the help and
+    :data:`LIGHT_INTERFACES` names where it lives; else None (the node module answers)."""
+    light = LIGHT_INTERFACES.get(module)
+    if light is None or not wants_help(argv):
+        return None
+    return importlib.import_module(light).INTERFACE
+
+
+def main_of(module: str, args: Sequence[str] | None = None) -> int:
+    """A node's console script: ``-h`` / ``--help`` from :data:`LIGHT_INTERFACES`'s module of
+    node module ``module`` when it has one, before the node module (and the middleware) is
+    imported; otherwise the node module's ``main(args)``."""
+    argv = list(sys.argv if args is None else args)
+    interface = _light_interface(module, argv)
+    if interface is not None:
+        return print_help(interface, argv)
+    return importlib.import_module(module).main(args)
+
+
+def safety_filter(args: Sequence[str] | None = None) -> int:
+    """The console script ``safety_filter`` (:mod:`rcbf_ros.ros.safety_filter_node`)."""
+    return main_of('rcbf_ros.ros.safety_filter_node', args)
+
+
 def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None = None, *,
              run: Callable[[Any], None] | None = None,
              on_exit: Callable[[Any], None] | None = None,
@@ -305,9 +356,7 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
     """
     argv = list(sys.argv if args is None else args)
     if interface is not None and wants_help(argv):
-        sys.stdout.write(help_text(resolve(interface, argv)))
-        sys.stdout.flush()
-        return 0
+        return print_help(interface, argv)
     from rcbf_ros.ros.runtime import ExternalShutdownException, ParameterException, rclpy
 
     _STOP.reset()
@@ -364,7 +413,8 @@ def _exit_interrupted(signum: int, frame: Any) -> None:
 
 
 def run_module(argv: Sequence[str]) -> int:
-    """Import node module ``argv[0]`` and return its ``main()``, with ``sys.argv = argv``.
+    """Import node module ``argv[0]`` and return its ``main()``, with ``sys.argv = argv``
+    (its ``--help`` from :data:`LIGHT_INTERFACES`'s module, when it has one, without it).
 
     Returns:
         The node's exit status; :data:`INTERRUPTED_EXIT` after a SIGINT before the node
@@ -374,6 +424,9 @@ def run_module(argv: Sequence[str]) -> int:
         print('usage: python -m rcbf_ros.ros.node_main <module> [args ...]', file=sys.stderr)
         return 2
     sys.argv = list(argv)
+    interface = _light_interface(argv[0], argv)
+    if interface is not None:
+        return print_help(interface, argv)
     previous = signal.signal(signal.SIGINT, _exit_interrupted)
     try:
         module = importlib.import_module(argv[0])

@@ -25,17 +25,9 @@ from rcbf_ros.node_logic import safety_filter as logic
 from rcbf_ros.node_logic.filter_edge import Answer, FilterEdge, INPUT_COUNT_KEYS
 from rcbf_ros.node_logic.filter_edge import array_sections as _array_sections  # noqa: F401
 from rcbf_ros.node_logic.filter_edge import one_line as _one_line
-from rcbf_ros.node_logic.interface import (
-    bound_text,
-    COMMAND_TOPIC_TYPES,
-    DIAGNOSTIC_ARRAY,
-    FLOAT64_MULTIARRAY,
-    NodeInterface,
-    OBSTACLES_QOS,
-    STATE_TOPIC_TYPES,
-    TopicSpec,
-)
-from rcbf_ros.ros.node_main import parameter_descriptor, run_node, spin
+from rcbf_ros.node_logic.interface import bound_text, DIAGNOSTIC_ARRAY
+from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME
+from rcbf_ros.ros.node_main import declare_specs, run_node, spin
 from rcbf_ros.ros.runtime import (
     deserialize_message,
     DurabilityPolicy,
@@ -46,50 +38,6 @@ from rcbf_ros.ros.runtime import (
     QoSProfile,
     ReliabilityPolicy,
 )
-
-NODE_NAME = 'safety_filter'
-_QOS = 'reliable, keep-last 10 (qos.reliable, qos.depth)'
-
-
-def _topic(name: str, direction: str, kind: str, layout: str) -> TopicSpec:
-    """A topic of the filter's own (QoS from qos.reliable and qos.depth)."""
-    return TopicSpec(name, direction, kind, layout, _QOS)
-
-
-INTERFACE = NodeInterface(
-    node=NODE_NAME,
-    summary='The RCBF safety filter in front of any controller: a proposed command in, the '
-            'safe command out (every parameter also from --params-file config/<system>.yaml).',
-    topics=(
-        _topic('state', 'sub', STATE_TOPIC_TYPES,
-               'state_type array: section `state` (else the first), n_x values in the '
-               "system's state layout; odometry: [x, y, yaw] of the pose (unicycle)"),
-        _topic('cmd_proposed', 'sub', COMMAND_TOPIC_TYPES,
-               'command_type array: section `u` (n_u; unlabelled data is u) and optional '
-               '`disturbance_mean`, `disturbance_std`, `state` (n_x each); twist(_stamped): '
-               'u in twist_fields'),
-        _topic('cmd_safe', 'pub', 'the type of cmd_proposed (command_type)',
-               'the safe command only: array: exactly u (n_u values, section `u`); '
-               "twist(_stamped): u in twist_fields, others 0; TwistStamped: the proposal's "
-               'header (stamp, frame_id)'),
-        _topic('filter_info', 'pub', FLOAT64_MULTIARRAY,
-               'one per command: sections u, u_rl, u_s (n_u each), fail_safe, status (1 each),'
-               ' then when known h, constraint (K each), slack, needed_slack, solve_time_s '
-               '(1 each), state (n_x); never NaN'),
-        _topic('diagnostics', 'pub', DIAGNOSTIC_ARRAY,
-               'a status per WARN / ERROR answer, OK ones at most every '
-               'diagnostics.min_period_s (0: every one): h.<barrier>, constraint.<barrier>, '
-               'slack, status, reason, times, counts'),
-        TopicSpec('obstacles', 'sub', FLOAT64_MULTIARRAY,
-                  'the whole obstacle set, rows [x, y, radius] (3 k values, layout.dim none or '
-                  '[k, 3]); replaces obstacles.x/y/radius as a parameter change would',
-                  OBSTACLES_QOS),
-    ),
-    parameters=logic.PARAMETERS,
-    notes=('Parameters marked <name> are families whose names you choose (bands.operator.index, '
-           'system_params.with_operator): declared when given.',),
-)
-"""Topics and parameters (``safety_filter --help``, README)."""
 
 
 class SafetyFilterNode(Node):
@@ -184,36 +132,25 @@ class SafetyFilterNode(Node):
         return active
 
     def _declared_parameters(self) -> dict[str, Any]:
-        """Declare every known parameter (overrides are declared already); read all back.
+        """Declare every known parameter (:func:`declare_specs`); read all back.
 
-        Each declaration gets a descriptor of its own (:meth:`_descriptor`): its description
-        and range from :data:`INTERFACE` (what ``--help`` prints), read-only where it is fixed
-        at start, dynamically typed so that any YAML type is accepted. rclpy keeps the
-        descriptor it is given and writes the parameter's name and type into it, so a shared
-        one would describe every parameter as the last one. Parameters the overrides declared
-        (with a bare descriptor) are declared again with theirs and their value: the declared
-        range then refuses an override outside it (ParameterException: one line, exit 2).
+        Each declaration gets the description and range of its spec in :data:`INTERFACE` (what
+        ``--help`` prints), read-only where it is fixed at start, dynamically typed so that any
+        YAML type is accepted; a key of the filter's families that no spec names is described
+        as :data:`logic.READ_ONLY_DESCRIPTION`; other overrides (a shared params file's keys
+        for other nodes) are left as given. Parameters the overrides declared are declared
+        again with their descriptor and value, except one outside its declared range, which
+        declare_specs leaves as it was: it is refused here, the key first (ValueError: one
+        line, exit 2).
         """
-        for name, default in logic.parameter_declarations():
-            if not self.has_parameter(name):
-                self.declare_parameter(name, default, self._descriptor(name))
-        for name in list(self.get_parameters_by_prefix('')):
+        declare_specs(self, INTERFACE.parameters, dynamic_typing=True, dynamic_overrides=True,
+                      read_only=logic.is_read_only, others=_other_description)
+        for name, parameter in self.get_parameters_by_prefix('').items():
             if logic.feeds_the_filter(name) and not self.describe_parameter(name).description:
-                value = self.get_parameter(name).value
-                refusal = _range_refusal(name, value)
-                if refusal:  # the declaration would refuse it: say so with the key first
+                refusal = _range_refusal(name, parameter.value)
+                if refusal:  # left as the override declared it: say why, the key first
                     raise ValueError(refusal)
-                self.undeclare_parameter(name)
-                self.declare_parameter(name, value, self._descriptor(name),
-                                       ignore_override=True)
         return self._parameter_values()
-
-    @staticmethod
-    def _descriptor(name: str) -> Any:
-        """The descriptor of the parameter ``name``: description and range of its spec."""
-        return parameter_descriptor(INTERFACE.spec(name), dynamic_typing=True,
-                                    read_only=logic.is_read_only(name),
-                                    description=logic.READ_ONLY_DESCRIPTION)
 
     def _parameter_values(self) -> dict[str, Any]:
         """Every declared parameter's value (unset ones dropped)."""
@@ -238,7 +175,7 @@ class SafetyFilterNode(Node):
         """Why the declared descriptor of ``parameter`` refuses its new value, naming it ('' if
         it does not)."""
         name = parameter.name
-        if not self.has_parameter(name):
+        if name not in self.get_parameters_by_prefix(''):  # undeclared: the runtime says so
             return ''
         if logic.is_read_only(name):
             return f'{name} is {logic.READ_ONLY_DESCRIPTION}'
@@ -483,6 +420,13 @@ class SafetyFilterNode(Node):
     def fail_safe_action(self) -> np.ndarray:
         """(n_u,) what the node publishes when it cannot filter."""
         return self.filter.fail_safe_action
+
+
+def _other_description(name: str) -> str | None:
+    """The description of an override no spec names: a key of the filter's families
+    (:func:`logic.feeds_the_filter`) is described as read-only text; others are left as
+    given (None)."""
+    return logic.READ_ONLY_DESCRIPTION if logic.feeds_the_filter(name) else None
 
 
 def _range_refusal(name: str, value: Any) -> str:

@@ -7,12 +7,16 @@ import importlib
 from pathlib import Path
 import subprocess
 import sys
+import types
 from typing import Any, Callable
+from unittest import mock
 
 import pytest
 
 from rcbf_ros.cli import interface_doc
+from rcbf_ros.node_logic import safety_filter_interface
 from rcbf_ros.node_logic.interface import help_text, NodeInterface, resolve, wants_help
+from rcbf_ros.ros import node_main
 from rcbf_ros.ros.dds.time_source import USE_SIM_TIME
 
 REPO = Path(__file__).resolve().parents[2]
@@ -21,7 +25,8 @@ MODULES = [module for module, _ in interface_doc.NODES]
 
 
 def _console_scripts() -> dict[str, str]:
-    """console script -> module of every node in setup.py."""
+    """console script -> module of every node in setup.py (a script of node_main's: the node
+    module its function hands to :func:`node_main.main_of`)."""
     text = (REPO / 'setup.py').read_text()
     scripts = {}
     for line in text.splitlines():
@@ -29,7 +34,18 @@ def _console_scripts() -> dict[str, str]:
         if ' = ' in line and ':main' in line:
             name, target = line.split(' = ')
             scripts[name] = target.split(':')[0]
+        elif ' = rcbf_ros.ros.node_main:' in line:
+            name, target = line.split(' = ')
+            scripts[name] = _node_module_of(getattr(node_main, target.split(':')[1]))
     return {name: module for name, module in scripts.items() if module in MODULES}
+
+
+def _node_module_of(entry: Callable[..., int]) -> str:
+    """The node module a console-script function of node_main runs."""
+    seen: list[str] = []
+    with mock.patch.object(node_main, 'main_of', lambda module, args=None: seen.append(module)):
+        entry(['script'])
+    return seen[0]
 
 
 def test_every_node_console_script_has_an_interface():
@@ -71,13 +87,62 @@ def test_help_lists_every_parameter_and_starts_nothing(module, flag, no_particip
         assert f' {topic.name} ' in out, topic.name
 
 
-def test_help_of_a_console_script_process_exits_0_at_once():
-    result = subprocess.run([sys.executable, '-m', 'rcbf_ros.ros.node_main',
-                             'rcbf_ros.ros.safety_filter_node', '--help'],
+MIDDLEWARE = ('rcbf_ros.ros.runtime', 'cyclonedds', 'rcbf_ros.ros.safety_filter_node')
+"""Modules the filter's ``--help`` must not import (the node class and what it derives from)."""
+SHOW_MIDDLEWARE = (f'import sys; print(sorted(m for m in {MIDDLEWARE!r} if m in sys.modules), '
+                   'file=sys.stderr)')
+"""Python that prints which of :data:`MIDDLEWARE` the process imported, on stderr."""
+
+
+@pytest.mark.parametrize('launch', [
+    ['-c', 'import sys; from rcbf_ros.ros.node_main import safety_filter; code = '
+           f'safety_filter(); {SHOW_MIDDLEWARE}; sys.exit(code)'],  # the console script
+    ['-c', 'import sys; from rcbf_ros.ros.node_main import run_module; code = '
+           f'run_module(sys.argv[1:]); {SHOW_MIDDLEWARE}; sys.exit(code)',
+     'rcbf_ros.ros.safety_filter_node'],  # python -m rcbf_ros.ros.node_main (the launcher)
+], ids=['console_script', 'node_main_module'])
+def test_help_of_the_filter_process_exits_0_without_the_middleware(launch):
+    result = subprocess.run([sys.executable, *launch, '--help'],
                             cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert (result.returncode, result.stderr) == (0, ''), result.stderr
+    assert (result.returncode, result.stderr) == (0, '[]\n'), result.stderr
     assert result.stdout.startswith('usage: safety_filter ')
     assert '\n  state_type  (string, default array)\n' in result.stdout
+    assert result.stdout == help_text(safety_filter_interface.INTERFACE)
+
+
+@pytest.mark.parametrize('argv', [
+    ['safety_filter', '--help'], ['safety_filter', '-h'],
+    ['safety_filter', '--ros-args', '-p', 'system:=pvtol', '--', '--help'],
+    ['safety_filter', '--ros-args', '--params-file', UNICYCLE, '--', '-h'],
+])
+def test_the_filter_help_without_the_node_is_the_node_modules_own(argv, no_participant,
+                                                                    capsys):
+    from rcbf_ros.ros import safety_filter_node
+    assert safety_filter_node.INTERFACE is safety_filter_interface.INTERFACE
+    assert safety_filter_node.main(argv) == 0
+    own = capsys.readouterr()
+    assert node_main.safety_filter(argv) == 0
+    assert capsys.readouterr() == own
+
+
+def test_main_of_runs_the_node_modules_main_unless_the_help_is_light(monkeypatch, capsys):
+    calls: list[Any] = []
+    for name in ('fake_light_node', 'fake_node'):
+        module = types.ModuleType(name)
+        module.main = lambda args=None, name=name: calls.append((name, args)) or 7
+        monkeypatch.setitem(sys.modules, name, module)
+    light = types.ModuleType('fake_light_interface')
+    light.INTERFACE = safety_filter_interface.INTERFACE
+    monkeypatch.setitem(sys.modules, 'fake_light_interface', light)
+    monkeypatch.setitem(node_main.LIGHT_INTERFACES, 'fake_light_node', 'fake_light_interface')
+    run = ['node', '--ros-args', '-r', '-h:=x']  # -h inside --ros-args: not a help request
+    assert node_main.main_of('fake_light_node', run) == 7
+    assert node_main.main_of('fake_node', ['node', '--help']) == 7  # its own help
+    assert calls == [('fake_light_node', run), ('fake_node', ['node', '--help'])]
+    assert capsys.readouterr().out == ''
+    assert node_main.main_of('fake_light_node', ['node', '--help']) == 0
+    assert capsys.readouterr().out == help_text(safety_filter_interface.INTERFACE)
+    assert len(calls) == 2
 
 
 # --- the specs are what the nodes declare -------------------------------------------------------

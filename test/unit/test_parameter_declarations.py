@@ -20,9 +20,9 @@ ROOT = Path(__file__).resolve().parents[2]
 UNICYCLE = str(find_config('unicycle'))
 DECLARING = ('declare_parameter', 'declare_parameters', 'has_parameter', 'undeclare_parameter')
 ONE_WAY = 'rcbf_ros/ros/node_main.py'
-NOT_YET = ('rcbf_ros/ros/safety_filter_node.py',)
-"""Node modules left out of the oracle while they move onto declare_specs (the filter node
-declares and re-declares its own; drop each from here once it is on declare_specs)."""
+NOT_YET: tuple[str, ...] = ()
+"""Node modules left out of the oracle while they move onto declare_specs (drop each from here
+once it is on declare_specs)."""
 
 
 def _node_modules() -> list[Path]:
@@ -58,6 +58,7 @@ def _cases(tmp_path: Path) -> list[tuple[str, Callable[[], Any], list[str]]]:
     from rcbf_ros.ros.policy_node import PolicyNode
     from rcbf_ros.ros.recorder_node import RecorderNode
     from rcbf_ros.ros.replay_node import ReplayNode
+    from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
     from rcbf_ros.ros.scene_node import SceneNode
     from sim_nodes.nominal_controller_node import NominalControllerNode
     from sim_nodes.simulator_node import SimulatorNode
@@ -74,6 +75,7 @@ def _cases(tmp_path: Path) -> list[tuple[str, Callable[[], Any], list[str]]]:
         ('recorder', RecorderNode, ['-p', f'output:={tmp_path / "bag"}']),
         ('replay', ReplayNode, []),  # no bag: it refuses after declaring
         ('scene_markers', SceneNode, ['--params-file', UNICYCLE, '-p', 'rate_hz:=5']),
+        ('safety_filter', SafetyFilterNode, ['--params-file', UNICYCLE, '-p', 'k_c:=3.0']),
     ]
 
 
@@ -165,5 +167,74 @@ def test_declare_specs_declares_a_string_list_by_type_and_a_pattern_only_when_gi
         assert not node.has_parameter('bands.<name>.index')
         assert node.describe_parameter('bands.a.index').description == 'an index'
         node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_declare_specs_marks_read_only_types_overrides_dynamically_and_describes_others(
+        ros_domain_id):
+    from rcbf_ros.node_logic.interface import ParameterSpec
+    from rcbf_ros.ros.dds import rclpy_compat as rclpy
+    from rcbf_ros.ros.dds.node import Node, Parameter
+    rclpy.init(args=['node', '--ros-args', '-p', 'fixed:=1', '-p', 'gain:=2.5', '-p',
+                     'family.x:=1', '-p', 'other:=3'], domain_id=ros_domain_id)
+    try:
+        node = Node('declarations', automatically_declare_parameters_from_overrides=True)
+        declare_specs(node, (ParameterSpec('fixed', 0, 'integer', 'fixed at start'),
+                             ParameterSpec('gain', 1.0, 'double', 'a gain', minimum=0.0),
+                             ParameterSpec('unset', 5, 'integer', 'from its default')),
+                      dynamic_overrides=True, read_only=lambda name: name != 'gain',
+                      others=lambda name: 'a family' if name.startswith('family.') else None)
+        described = {name: node.describe_parameter(name)
+                     for name in ('fixed', 'gain', 'unset', 'family.x', 'other')}
+        assert [(d.read_only, d.dynamic_typing, d.description)
+                for d in described.values()] == [
+            (True, True, 'fixed at start'), (False, True, 'a gain'),
+            (True, False, 'from its default'), (True, True, 'a family'), (False, False, '')]
+        assert described['gain'].floating_point_range[0].from_value == 0.0
+        assert node.get_parameter('gain').value == 2.5  # the override's value, kept
+        results = node.set_parameters([Parameter('gain', value='any type'),
+                                       Parameter('fixed', value=2)])
+        assert [r.successful for r in results] == [True, False]
+        assert 'read-only' in results[1].reason
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_the_filter_node_declares_as_it_did_through_declare_specs(monkeypatch, ros_domain_id):
+    """Read-only where fixed at start, every filter key typed dynamically and described by its
+    spec, a family key no spec names described as read-only text, a stray key left bare."""
+    from rcbf_ros.node_logic import safety_filter as logic
+    from rcbf_ros.node_logic.safety_filter_interface import INTERFACE
+    from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
+    described = _built(monkeypatch, ros_domain_id, SafetyFilterNode,  # refuses bands.stray
+                       ['--params-file', UNICYCLE, '-p', 'k_c:=2.0', '-p', 'bands.stray:=1',
+                        '-p', 'stray:=3'])
+    for name in ('system', 'qos.depth', 'state_type', 'k_c', 'alpha', 'walls.nx'):
+        spec = INTERFACE.spec(name)
+        descriptor = described[name]
+        assert (descriptor.description, descriptor.read_only, descriptor.dynamic_typing) == (
+            spec.description, logic.is_read_only(name), True), name
+    assert described['system'].read_only and not described['k_c'].read_only
+    assert described['k_c'].floating_point_range[0].from_value == 0.0
+    assert described['bands.stray'].description == logic.READ_ONLY_DESCRIPTION
+    assert described['stray'].description == ''
+
+
+@pytest.mark.parametrize('override, refusal', [
+    ('qos.depth:=-5', 'qos.depth: -5 is outside its declared range 1 to 2147483647'),
+    ('k_c:=-1.0', 'k_c: -1.0 is outside its declared range 0.0 to inf'),
+])
+def test_the_filter_node_refuses_an_override_outside_its_range_in_its_own_words(
+        override, refusal, ros_domain_id):
+    from rcbf_ros.ros.dds import rclpy_compat as rclpy
+    from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
+    rclpy.init(args=['node', '--ros-args', '-p', 'system:=unicycle', '-p', override],
+               domain_id=ros_domain_id)
+    try:
+        with pytest.raises(ValueError) as refused:
+            SafetyFilterNode()
+        assert str(refused.value) == refusal
     finally:
         rclpy.try_shutdown()
