@@ -26,10 +26,15 @@ Keys (all optional except ``system``)::
     fail_safe_action: [m floats]
     compile_assembly: bool (compile the per-step autograd assembly of a system or barrier
         without a closed form; see core/filter.py)
+    observation_sources: [names]; <name>.type (scan | pointcloud), <name>.topic,
+        <name>.timeout_s, <name>.min_height / .max_height / .voxel_size (pointcloud),
+        <name>.best_effort; footprint.radius; odom_frame_id, base_frame_id (the sensor
+        points' frames, docs/SAFETY_FILTER.md "Perception sources")
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+import re
 from typing import Any, Mapping
 
 from rcbf_ros.core.barriers import (
@@ -44,6 +49,7 @@ from rcbf_ros.core.dynamics import ControlAffineSystem, heading_indices, load_sy
 from rcbf_ros.core.mappings import flatten
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.parameters.reader import (
+    parameter_keys,
     ParameterError,
     read_bool,
     read_float,
@@ -234,6 +240,72 @@ class BandParameters:
     """Part of the layout, not of the envelope (see :func:`envelope_params`)."""
 
 
+SOURCE_TYPES = ('scan', 'pointcloud')
+"""The kinds of observation source: sensor_msgs/LaserScan, sensor_msgs/PointCloud2."""
+SOURCE_LIMIT = 16
+"""The most observation sources of one filter."""
+MIN_VOXEL_SIZE = 1.0e-3
+"""The smallest ``<name>.voxel_size`` but 0 (:data:`rcbf_ros.messages.sensor.MIN_VOXEL_SIZE`)."""
+SOURCE_TIMEOUT_S = 0.5
+"""Default of ``<name>.timeout_s``."""
+_SOURCE_NAME = re.compile(r'[A-Za-z][A-Za-z0-9_]*')
+
+
+@dataclass(frozen=True)
+class SourceParameters:
+    """``<name>.*``: one observation source (a name listed in ``observation_sources``)."""
+
+    type: str = setting('', choices=SOURCE_TYPES,
+                        description='scan (sensor_msgs/LaserScan) or pointcloud '
+                                    '(sensor_msgs/PointCloud2)', read_only=True)
+    """scan or pointcloud."""
+    topic: str = setting('', description='the topic the source subscribes to', read_only=True)
+    """The topic (required)."""
+    timeout_s: float = setting(
+        SOURCE_TIMEOUT_S, positive=True, maximum=3600.0,
+        description='the fail-safe when the latest message is older than this (s)')
+    """The fail-safe once the latest message is older than this (s); none yet too."""
+    min_height: float = setting(0.05, description='pointcloud: the lowest z (m) of a point '
+                                                  'that counts, in the message frame')
+    """pointcloud: lowest z of a point that counts (m)."""
+    max_height: float = setting(0.5, description='pointcloud: the highest z (m) of a point '
+                                                 'that counts, in the message frame')
+    """pointcloud: highest z of a point that counts (m)."""
+    voxel_size: float = setting(0.0, minimum=0, maximum=100.0,
+                                description='pointcloud: thinning grid cell (m; 0: off)')
+    """pointcloud: thinning grid cell (m); 0 turns thinning off."""
+    best_effort: bool = setting(True, description='subscribe best effort (sensor data QoS); '
+                                                  'false: reliable', read_only=True)
+    """Sensor-data QoS (best effort, keep last 5) by default; false: reliable."""
+
+
+@dataclass(frozen=True)
+class FootprintParameters:
+    """``footprint.*``: the robot's body as sensor points see it."""
+
+    radius: float = setting(
+        0.0, minimum=0, maximum=1.0e3,
+        description="the robot's radius (m): every sensor point keeps the guarded point "
+                    'radius + obstacles.margin away')
+    """The robot's radius (m); a point keeps the guarded point radius + margin away."""
+
+
+@dataclass(frozen=True)
+class SourceConfig:
+    """The observation sources of a filter, validated."""
+
+    sources: tuple[tuple[str, SourceParameters], ...]
+    """(name, parameters) per source, in ``observation_sources`` order."""
+    odom_frame_id: str
+    """The state's frame: points in it are taken as they are."""
+    base_frame_id: str
+    """The robot's frame: points in it go to the state's frame through the state's pose."""
+    position_indices: tuple[int, int]
+    """State indices of the robot's position (``obstacles.position_indices``)."""
+    heading_index: int | None
+    """State index of its heading (``obstacles.heading_index``; None: no base frame)."""
+
+
 @dataclass(frozen=True)
 class FilterParameters:
     """Every fixed key of ``config/<system>.yaml`` the filter reads (``system_params.<name>``
@@ -273,6 +345,19 @@ class FilterParameters:
         False, description='compile the per-step constraint assembly (faster calls, slower '
                            'start)')
     """Compile the per-step autograd assembly (see :class:`FilterConfig`)."""
+    observation_sources: tuple[str, ...] = setting(
+        (), max_length=SOURCE_LIMIT, distinct=True, read_only=True,
+        description='names of the sensor sources (each configured by <name>.*)')
+    """Sensor sources, each configured by ``<name>.*`` (:class:`SourceParameters`)."""
+    footprint: FootprintParameters = field(default_factory=FootprintParameters)
+    """The robot's body as sensor points see it."""
+    odom_frame_id: str = setting('odom', description="the state's frame (sensor points in it "
+                                                     'are taken as they are)', read_only=True)
+    """The state's frame."""
+    base_frame_id: str = setting('base_link', description="the robot's frame (sensor points in "
+                                                          "it go through the state's pose)",
+                                 read_only=True)
+    """The robot's frame."""
 
 
 FILTER_OPEN_PREFIXES: tuple[str, ...] = ('system_params.', 'bands.')
@@ -294,6 +379,11 @@ class FilterConfig:
     compile_assembly: bool = False
     """Trace and compile the per-step autograd constraint assembly (faster calls, slower start);
     no effect for the built-in systems and barriers, assembled in closed form."""
+    footprint: BarrierFamily | None = None
+    """With observation sources: the one-obstacle circle family whose centre each sensor
+    point takes (:class:`rcbf_ros.core.filter.SafetyFilter`'s ``footprint``), else None."""
+    sources: SourceConfig | None = None
+    """The observation sources (None: none)."""
 
 
 def build_system(params: Mapping[str, Any]) -> ControlAffineSystem:
@@ -519,5 +609,66 @@ def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
             not lo <= a <= hi for a, lo, hi in zip(fail_safe, system.u_min, system.u_max)):
         raise ValueError(f'fail_safe_action: {list(fail_safe)} lies outside the input limits '
                          f'[{list(system.u_min)}, {list(system.u_max)}]')
+    sources = _sources(p, params, system)
     return FilterConfig(problem=problem, static_mean=mean, static_std=std,
-                        fail_safe_action=fail_safe, compile_assembly=p.compile_assembly)
+                        fail_safe_action=fail_safe, compile_assembly=p.compile_assembly,
+                        footprint=None if sources is None else _footprint(p, params, system),
+                        sources=sources)
+
+
+def _sources(p: FilterParameters, params: Mapping[str, Any],
+             system: ControlAffineSystem) -> SourceConfig | None:
+    """The observation sources (None without ``observation_sources``)."""
+    if not p.observation_sources:
+        return None
+    taken = {key.split('.')[0] for key in parameter_keys(FilterParameters) if '.' in key}
+    taken |= {'system_params', 'bands', 'obstacles', 'gaps', 'walls', 'footprint'}
+    sources = []
+    for name in p.observation_sources:
+        if not _SOURCE_NAME.fullmatch(name) or name in taken:
+            raise ParameterError(f'observation_sources: {name!r} is not a source name (a '
+                                 'letter, then letters, digits or _; not a key group of the '
+                                 'filter)')
+        source = read_parameters(SourceParameters, params, prefix=f'{name}.')
+        if not source.type:
+            raise ParameterError(f'{name}.type: required (scan or pointcloud)')
+        if not source.topic:
+            raise ParameterError(f'{name}.topic: required')
+        if source.voxel_size and source.voxel_size < MIN_VOXEL_SIZE:
+            raise ParameterError(f'{name}.voxel_size: {source.voxel_size:g} is neither 0 nor '
+                                 f'>= {MIN_VOXEL_SIZE:g}')
+        if source.min_height > source.max_height:
+            raise ParameterError(f'{name}.min_height: {source.min_height:g} > '
+                                 f'{name}.max_height {source.max_height:g}')
+        sources.append((name, source))
+    topics = [source.topic for _, source in sources]
+    twice = sorted({t for t in topics if topics.count(t) > 1})
+    if twice:
+        raise ParameterError(f'observation_sources: topic {twice[0]!r} is taken by two sources')
+    geometry = read_parameters(ObstacleParameters, params, prefix='obstacles.')
+    positions = _index('obstacles.position_indices', geometry.position_indices[0],
+                       system.n_x), _index('obstacles.position_indices',
+                                           geometry.position_indices[1], system.n_x)
+    heading = _index('obstacles.heading_index', geometry.heading_index, system.n_x,
+                     allow_none=True)
+    for key, frame in (('odom_frame_id', p.odom_frame_id), ('base_frame_id', p.base_frame_id)):
+        if not frame:
+            raise ParameterError(f'{key}: required with observation_sources')
+    if p.odom_frame_id == p.base_frame_id:
+        raise ParameterError(f'base_frame_id: {p.base_frame_id!r} is odom_frame_id too')
+    return SourceConfig(sources=tuple(sources), odom_frame_id=p.odom_frame_id,
+                        base_frame_id=p.base_frame_id,
+                        position_indices=positions,  # type: ignore[arg-type]
+                        heading_index=heading)
+
+
+def _footprint(p: FilterParameters, params: Mapping[str, Any],
+               system: ControlAffineSystem) -> BarrierFamily:
+    """The one-obstacle family every sensor point takes: radius ``footprint.radius``, the
+    margin, look-ahead, indices and cascade gains of ``obstacles.*``."""
+    geometry = read_parameters(ObstacleParameters, params, prefix='obstacles.')
+    if p.footprint.radius + geometry.margin <= 0.0:
+        raise ParameterError('footprint.radius: footprint.radius + obstacles.margin must be > 0 '
+                             'with observation_sources')
+    template = replace(geometry, x=(0.0,), y=(0.0,), radius=(p.footprint.radius,))
+    return _obstacles(template, system)

@@ -23,7 +23,7 @@ from typing import Callable, NamedTuple, Sequence, TYPE_CHECKING
 import numpy as np
 
 from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
-from rcbf_ros.core.lie_closed_form_rows import ManyRows, VECTOR_ROWS, VectorAssembly
+from rcbf_ros.core.lie_closed_form_rows import ManyRows, PointRows, VECTOR_ROWS, VectorAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.core.torch_import import bind_torch, LazyTorch
@@ -822,6 +822,29 @@ def binding_rows(*, lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
     return np.flatnonzero(~(least >= margin))
 
 
+POINTS_BARRIER = 'sensor_points'
+"""The barrier name of the sensor points' rows in a result (one entry for all of them)."""
+
+
+def _solve_once(g_rows: list[list[float]], upper: list[float], p_inverse: np.ndarray
+                ) -> tuple[np.ndarray | None, str]:
+    """OSQP on G z <= upper with the cost diag(1 / p_inverse), set up for one call:
+    (z or None, the solver's status)."""
+    import osqp
+    import scipy.sparse as sp
+    a_matrix = sp.csc_matrix(np.array(g_rows, dtype=np.float64).reshape(len(g_rows), -1))
+    solver = osqp.OSQP()
+    solver.setup(P=sp.csc_matrix(np.diag(1.0 / p_inverse)), q=np.zeros(p_inverse.size),
+                 A=a_matrix, l=np.full(len(upper), -np.inf), u=np.array(upper, dtype=np.float64),
+                 verbose=False, polishing=True, eps_abs=OSQP_EPS, eps_rel=OSQP_EPS,
+                 max_iter=OSQP_MAX_ITER)
+    result = solver.solve(raise_error=False)
+    status_val = int(result.info.status_val)
+    z = None if result.x is None else np.asarray(result.x, dtype=np.float64)
+    return (z if status_val in _OK_STATUS else None), _OK_STATUS.get(
+        status_val, str(result.info.status))
+
+
 GENERATED_ROWS = 1024
 """The most RCBF rows for which the filter generates its per-call loops as code per row
 (``_shape_kernels``, several lines a row); a problem with more takes the many-row path
@@ -938,7 +961,7 @@ class SafetyFilter:
                  polish: bool = False, fallback: bool = True,
                  compile_assembly: bool = False, slack_tolerance: float | None = None,
                  input_bounds: InputBounds | None = None, closed_form: bool = True,
-                 vector_rows: int = VECTOR_ROWS) -> None:
+                 vector_rows: int = VECTOR_ROWS, footprint: object | None = None) -> None:
         """Set OSQP up once with the fixed sparsity pattern.
 
         Args:
@@ -972,12 +995,18 @@ class SafetyFilter:
                 evaluates over arrays (:mod:`rcbf_ros.core.lie_closed_form_rows`); the filter
                 then takes its many-row path (:meth:`_filter_many`), whose QP carries only
                 the rows that can bind.
+            footprint: a one-obstacle circle family (radius the robot's, the obstacles'
+                margin, look-ahead and cascade gains) for sensor points: :meth:`set_points`
+                then replaces the points without a rebuild, their rows join the many-row path,
+                and the result reports them as one more barrier, :data:`POINTS_BARRIER` (the
+                least h and the least row value over the points; h = inf without points).
 
         Raises:
             ValueError: naming ``fail_safe_action`` (wrong length, not finite, outside the
                 limits) or ``slack_tolerance`` (negative or not finite).
         """
         self.fallback = fallback
+        self._points = None if footprint is None else PointRows(problem, footprint)
         self._many: VectorAssembly | _RowsAsArrays | None = (
             VectorAssembly.from_problem(problem, threshold=vector_rows) if closed_form else None)
         if self._many is not None:
@@ -985,7 +1014,8 @@ class SafetyFilter:
         else:
             assembly, self._assemble = select_assembly(
                 problem, compile_assembly=compile_assembly, closed_form=closed_form)
-            if problem.n_barriers > GENERATED_ROWS:  # the many-row path, on this assembly
+            if problem.n_barriers > GENERATED_ROWS or self._points is not None:
+                # the many-row path, on this assembly
                 self._many = _RowsAsArrays(self._assemble, problem.n_barriers,
                                            problem.system.n_u)
         self.assembly = assembly
@@ -995,7 +1025,8 @@ class SafetyFilter:
         system = problem.system
         self.n_x, self.n_u = system.n_x, system.n_u
         self.n_barriers = problem.n_barriers
-        self.barrier_names = problem.barrier_names
+        self.barrier_names = problem.barrier_names + (
+            [POINTS_BARRIER] if self._points is not None else [])
         nz, nc = self.n_u + 1, problem.n_constraints
         if problem.has_limits:
             self._u_min = np.asarray(system.u_min, dtype=np.float64)
@@ -1245,10 +1276,20 @@ class SafetyFilter:
         (:func:`binding_rows`); OSQP and the interior point, where reached, take every row."""
         rows = self._many.evaluate(x, applied, mu, sd)  # type: ignore[union-attr]
         h, lg, upper, limit_upper = rows.h, rows.lg, rows.upper, rows.limit_upper
-        if not rows.size <= _QP_DATA_SQUARES:
+        size = rows.size
+        if self._points is not None:  # the sensor points' rows follow the problem's
+            point_h, point_lg, point_upper = self._points.evaluate(x, applied, mu, sd)
+            flat = point_lg.ravel()
+            size += (float(point_h @ point_h) + float(flat @ flat)
+                     + float(point_upper @ point_upper) + point_h.size)
+            h = np.concatenate([h, point_h])
+            lg = np.concatenate([lg, point_lg])
+            upper = np.concatenate([upper, point_upper])
+        report = self._reported
+        if not size <= _QP_DATA_SQUARES:
             reason = _data_refusal(h.tolist(), (-lg).tolist(), upper.tolist() + limit_upper)
             if reason is not None:
-                return self._fail_safe(u, start, status='input_refused', h=h.tolist(),
+                return self._fail_safe(u, start, status='input_refused', h=report(h).tolist(),
                                        clipped=clipped, reason=reason)
         solve_start = time.perf_counter()
         lowest, highest = float(upper.min()), float(upper.max())
@@ -1259,7 +1300,7 @@ class SafetyFilter:
             u_safe = [value + 0.0 for value in applied]
             return FilterResult._filled(
                 u_safe=np.array(u_safe), u_s=np.array([a - b for a, b in zip(u_safe, u)]),
-                slack=0.0, h=h, constraint_values=upper, status='solved',
+                slack=0.0, h=report(h), constraint_values=report(upper), status='solved',
                 solve_time_s=time.perf_counter() - solve_start,
                 total_time_s=time.perf_counter() - start, fail_safe=False,
                 barrier_names=list(self.barrier_names), needed_slack=0.0, reason='',
@@ -1277,7 +1318,13 @@ class SafetyFilter:
                               ACTIVE_SET_STEPS, self._kernels)
         status = 'solved'
         checked = None if z is None else self._check_many(z, upper, lg, applied)
-        if checked is None:
+        if checked is None and self._points is not None:
+            # the row count changes with the points: a QP of the rows that can bind, set up
+            # for this call (the exact solve failed: rare)
+            z, status = _solve_once(g_rows + self._limit_rows,
+                                    upper[keep].tolist() + limit_upper, self._p_inverse)
+            checked = None if z is None else self._check_many(z, upper, lg, applied)
+        elif checked is None:
             g_matrix = np.empty((self._nc, self.n_u + 1))
             g_matrix[:h.size, :self.n_u] = -lg
             g_matrix[:h.size, self.n_u] = -1.0
@@ -1292,7 +1339,7 @@ class SafetyFilter:
             status = _OK_STATUS.get(status_val, str(result.info.status))
         if checked is None:
             self._solver.warm_start(x=np.zeros(self.n_u + 1), y=np.zeros(self._nc))
-            if self.fallback:
+            if self.fallback and self._points is None:  # its problem has no points
                 solved = _interior_point(self.problem, (x, applied, mu, sd))
                 if solved is not None:
                     z = solved
@@ -1303,24 +1350,65 @@ class SafetyFilter:
         if checked is None or (self.slack_tolerance is not None
                                and checked[2] > self.slack_tolerance):
             fail_values = upper + lg @ (self.fail_safe_action - np.array(applied))
+        if fail_values is not None:
+            fail_values = report(fail_values)
         if checked is None:
-            return self._fail_safe(u, start, status='unverified', h=h.tolist(), clipped=clipped,
-                                   solve_time=solve_time, values=fail_values,
+            return self._fail_safe(u, start, status='unverified', h=report(h).tolist(),
+                                   clipped=clipped, solve_time=solve_time, values=fail_values,
                                    reason=f'no solution passed the row check (solver: {status})')
         action, values, needed = checked
         if self.slack_tolerance is not None and needed > self.slack_tolerance:
             return self._fail_safe(
-                u, start, status='slack_exceeded', h=h.tolist(), clipped=clipped,
+                u, start, status='slack_exceeded', h=report(h).tolist(), clipped=clipped,
                 solve_time=solve_time, values=fail_values,
                 reason=f'barrier rows need slack {needed:.3g} > slack_tolerance '
                        f'{self.slack_tolerance:.3g} within the input limits')
         assert z is not None
         return FilterResult._filled(
             u_safe=np.array(action), u_s=np.array([a - b for a, b in zip(action, u)]),
-            slack=float(z[-1]), h=h, constraint_values=values,
+            slack=float(z[-1]), h=report(h), constraint_values=report(values),
             status=status, solve_time_s=solve_time, total_time_s=time.perf_counter() - start,
             fail_safe=False, barrier_names=list(self.barrier_names), needed_slack=needed,
             reason='', proposal_clipped=clipped)
+
+    def set_points(self, points: np.ndarray, spread: np.ndarray | float = 0.0) -> None:
+        """Replace the sensor points (a filter built with ``footprint``): (N, 2) finite
+        float64 in the state's frame; ``spread`` (N,) or one value >= 0 widens each point's
+        circle. Costs microseconds: nothing is rebuilt.
+
+        Raises:
+            ValueError: the filter has no footprint, or ``points`` is not (N, 2) finite.
+        """
+        if self._points is None:
+            raise ValueError('set_points: this filter was built without a footprint')
+        points = np.asarray(points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 2 or not np.isfinite(points).all():
+            raise ValueError(f'set_points: expected finite (N, 2) points, got shape '
+                             f'{points.shape}')
+        if np.ndim(spread) == 0:
+            if not 0.0 <= spread < math.inf:
+                raise ValueError('set_points: spread must be finite and >= 0')
+        else:
+            spread = np.asarray(spread, dtype=np.float64)
+            if spread.shape != (len(points),) or not ((spread >= 0.0) & (spread < math.inf)).all():
+                raise ValueError('set_points: spread must be (N,) finite and >= 0')
+        self._points.set(points, spread)
+
+    @property
+    def point_count(self) -> int:
+        """How many sensor points the rows hold (0 without a footprint)."""
+        return 0 if self._points is None else self._points.count
+
+    def _reported(self, values: np.ndarray) -> np.ndarray:
+        """Per-row values as the result reports them: the problem's rows, then (with a
+        footprint) the least over the sensor points' rows (inf without points)."""
+        if self._points is None:
+            return values
+        k = self.n_barriers
+        out = np.empty(k + 1)
+        out[:k] = values[:k]
+        out[k] = values[k:].min() if values.size > k else math.inf
+        return out
 
     def _check_many(self, z: Sequence[float] | np.ndarray | None, upper: np.ndarray,
                     lg: np.ndarray, applied: list[float]
@@ -1356,7 +1444,7 @@ class SafetyFilter:
         """The fail-safe result; ``rows`` (right-hand sides, rows, u at the rows) give its row
         values."""
         action = self.fail_safe_action.copy()
-        nan = np.full(self.n_barriers, np.nan)
+        nan = np.full(len(self.barrier_names), np.nan)
         needed = float('nan')
         if rows is not None:
             rows_upper, g_rows, u_rows = rows

@@ -29,6 +29,7 @@ the system's :class:`~rcbf_ros.core.dynamics.DriftSource`. Nothing here imports 
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -80,26 +81,36 @@ class _Circles:
         self.n_x = n_x
 
     def terms(self, x: list[float], u: list[float], f: np.ndarray | None,
-              jacobian: np.ndarray | None) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
-        """(h (k,), the gradient's columns that can be nonzero: (state index, (k,))) at x,
-        the look-ahead point chosen by the proposal u."""
+              jacobian: np.ndarray | None) -> tuple[np.ndarray, list[int], np.ndarray]:
+        """(h (k,), the state indices where the gradient can be nonzero, the gradient there
+        (c, k)) at x, the look-ahead point chosen by the proposal u."""
         if self.heading is not None:
-            cos, sin = np.cos(x[self.heading]), np.sin(x[self.heading])
+            cos, sin = math.cos(x[self.heading]), math.sin(x[self.heading])
             offset = self.lookahead
             if self.speed is not None and u[self.speed] < 0.0:
-                bx = x[self.i] + -offset * cos - self.cx
-                by = x[self.j] + -offset * sin - self.cy
-                if bool(np.all(bx * bx + by * by - self.delta_sq >= 0.0)):
+                bx = (x[self.i] - offset * cos) - self.cx
+                by = (x[self.j] - offset * sin) - self.cy
+                bx *= bx
+                by *= by
+                bx += by
+                if bool((bx >= self.delta_sq).all()):
                     offset = -offset
-            dx = (x[self.i] + offset * cos) - self.cx
-            dy = (x[self.j] + offset * sin) - self.cy
-            h = dx * dx + dy * dy - self.delta_sq
-            turn = dx * (-2.0 * offset * sin) + dy * (2.0 * offset * cos)
-            return h, [(self.i, 2.0 * dx), (self.j, 2.0 * dy), (self.heading, turn)]
+            grads = np.empty((3, self.cx.size))
+            dx, dy = grads[0], grads[1]
+            np.subtract(x[self.i] + offset * cos, self.cx, out=dx)
+            np.subtract(x[self.j] + offset * sin, self.cy, out=dy)
+            h = dx * dx
+            h += dy * dy
+            h -= self.delta_sq
+            # d h / d th = 2 s l_p d^T (-sin th, cos th)
+            np.multiply(dy, 2.0 * offset * cos, out=grads[2])
+            grads[2] -= (2.0 * offset * sin) * dx
+            grads[:2] *= 2.0
+            return h, [self.i, self.j, self.heading], grads
         dx, dy = x[self.i] - self.cx, x[self.j] - self.cy
         h = dx * dx + dy * dy - self.delta_sq
         if not self.gammas:
-            return h, [(self.i, 2.0 * dx), (self.j, 2.0 * dy)]
+            return h, [self.i, self.j], np.array([2.0 * dx, 2.0 * dy])
         assert f is not None and jacobian is not None
         grad = np.zeros((h.size, self.n_x))
         grad[:, self.i] = 2.0 * dx
@@ -110,14 +121,33 @@ class _Circles:
         h1 = grad @ f + gamma1 * h
         grad1 = qf + grad @ jacobian + gamma1 * grad
         if len(self.gammas) == 1:
-            return h1, list(enumerate(grad1.T))
+            return h1, list(range(self.n_x)), grad1.T
         gamma2 = self.gammas[1]
         jf = jacobian @ f
         qjf = np.zeros(self.n_x)
         qjf[self.i], qjf[self.j] = 2.0 * jf[self.i], 2.0 * jf[self.j]
         h2 = grad1 @ f + gamma2 * h1
         grad2 = qjf + gamma1 * qf + (qf + grad1) @ jacobian + gamma2 * grad1
-        return h2, list(enumerate(grad2.T))
+        return h2, list(range(self.n_x)), grad2.T
+
+
+def _circle_rows(part: _Circles, x: list[float], u: list[float], f_values: np.ndarray,
+                 jacobian: np.ndarray, g_rows: list[list[float]], motion: list[float],
+                 spread: list[float], alpha: float, n_u: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(h (k,), L_g h (k, n_u), right-hand sides (k,)) of one circle family over arrays;
+    ``motion`` is x_dot + mean, ``spread`` k_c std (one value per state entry)."""
+    h, index, grads = part.terms(x, u, f_values, jacobian)  # grads: (c, k)
+    # grad h^T (x_dot + psi) + alpha h, psi_k = mean_k - k_c std_k sign(grad_k):
+    # grad_k (x_dot_k + mean_k) - k_c std_k |grad_k| per entry; over the columns that can be
+    # nonzero, as three small matrix products (a few numpy calls whatever the row count)
+    upper = np.array([motion[k] for k in index]) @ grads
+    upper += alpha * h
+    widths = [spread[k] for k in index]
+    if any(widths):
+        upper -= np.array(widths) @ np.abs(grads)
+    lg = grads.T @ np.array([g_rows[k] for k in index]).reshape(len(index), n_u)
+    return h, lg, upper
 
 
 class VectorAssembly:
@@ -187,19 +217,8 @@ class VectorAssembly:
                 uppers.append(np.array(small[2][start:start + count]))
                 start += count
                 continue
-            h, columns = part.terms(x, u, f_values, jacobian)  # type: ignore[union-attr]
-            # grad h^T (x_dot + psi) + alpha h, psi_k = mean_k - k_c std_k sign(grad_k):
-            # grad_k (x_dot_k + mean_k) - k_c std_k |grad_k| per entry
-            upper = self._alpha * h
-            lg = np.zeros((h.size, self.n_u))
-            for k, column in columns:
-                if motion[k] != 0.0:
-                    upper += motion[k] * column
-                if spread[k] != 0.0:
-                    upper -= spread[k] * np.abs(column)
-                for j, entry in enumerate(g_rows[k]):
-                    if entry != 0.0:
-                        lg[:, j] += entry * column
+            h, lg, upper = _circle_rows(part, x, u, f_values, jacobian,  # type: ignore[arg-type]
+                                        g_rows, motion, spread, self._alpha, self.n_u)
             hs.append(h)
             lgs.append(lg)
             uppers.append(upper)
@@ -214,3 +233,59 @@ class VectorAssembly:
         size = (float(h @ h) + float(flat @ flat) + float(upper @ upper) + h.size
                 + sum(v * v for v in limit_upper) + len(limit_upper))
         return ManyRows(h, lg, upper, limit_upper, size)
+
+
+class PointRows:
+    """Circle rows around points that change with every sensor message, without a rebuild.
+
+    Built once from a one-obstacle circle family (its radius the footprint's radius, its
+    margin, look-ahead, indices and cascade gains those of the obstacles); :meth:`set` replaces
+    the centres by a message's points (arrays, microseconds), :meth:`evaluate` gives their rows
+    at a state as :class:`VectorAssembly` does for a fixed family (module docstring). Point i
+    keeps the guarded point at least footprint radius + margin + spread_i from it.
+    """
+
+    def __init__(self, problem: RCBFProblem, template: object) -> None:
+        """Raises:
+            ValueError: naming ``footprint``, where the system or the family has no closed
+                form here (a built-in system; a look-ahead without cascades).
+        """
+        sub = dataclasses.replace(problem, families=(template,), use_input_limits=False)
+        families = _closed_form_families(sub)
+        if families is None or type(families[0][0]) is not CircleObstacles:
+            raise ValueError('footprint: sensor points need a built-in system with a closed '
+                             'form and circle rows (a look-ahead point without obstacles.gammas)')
+        base, gammas = families[0]
+        system = problem.system
+        self.n_x, self.n_u = system.n_x, system.n_u
+        self._circles = _Circles(base, gammas, self.n_x)
+        self.reach = float(base.radii[0]) + float(base.margin)
+        """footprint radius + margin (m): the least distance kept from every point."""
+        self._jet = system.closed_form_source().function()
+        self._alpha, self._k_c = float(problem.alpha), float(problem.k_c)
+        self.set(np.zeros((0, 2)))
+
+    @property
+    def count(self) -> int:
+        """The points whose rows :meth:`evaluate` gives."""
+        return int(self._circles.cx.size)
+
+    def set(self, points: np.ndarray, spread: np.ndarray | float = 0.0) -> None:
+        """Replace the points: (N, 2) float64, finite; ``spread`` (N,) or one value >= 0 widens
+        each point's circle (a thinned cloud's cell)."""
+        circles = self._circles
+        circles.cx = points[:, 0].copy()
+        circles.cy = points[:, 1].copy()
+        delta = self.reach + spread
+        circles.delta_sq = (np.full(len(points), delta * delta) if np.ndim(delta) == 0
+                            else delta * delta)
+
+    def evaluate(self, x: list[float], u: list[float], mean: list[float], std: list[float]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(h (N,), L_g h (N, n_u), right-hand sides (N,)) at state x, proposal u and the box
+        mean +/- k_c std, as :class:`ManyRows` holds them."""
+        f_values, jacobian, g = self._jet(np.array(x))
+        motion = (f_values + g @ np.array(u) + np.array(mean)).tolist()
+        spread = (self._k_c * np.array(std)).tolist()
+        return _circle_rows(self._circles, x, u, f_values, jacobian, g.tolist(), motion,
+                            spread, self._alpha, self.n_u)

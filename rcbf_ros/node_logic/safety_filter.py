@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -276,7 +276,8 @@ def build_safety_filter(*, config: FilterConfig, settings: NodeSettings) -> Safe
         config.problem, fail_safe_action=config.fail_safe_action,
         eps_abs=settings.osqp_eps_abs, eps_rel=settings.osqp_eps_rel,
         max_iter=settings.osqp_max_iter, compile_assembly=config.compile_assembly,
-        slack_tolerance=settings.slack_tolerance, input_bounds=settings.input_bounds)
+        slack_tolerance=settings.slack_tolerance, input_bounds=settings.input_bounds,
+        footprint=config.footprint)
 
 
 @dataclass(frozen=True)
@@ -478,7 +479,8 @@ def _disturbance(learned: np.ndarray | None, static: Sequence[float]) -> np.ndar
 def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_error: str = '',
            latest_state: StateSample | None, now_ns: int, max_state_age_s: float,
            static_mean: Sequence[float] = (), static_std: Sequence[float] = (),
-           slack_tolerance: float = 1e-4) -> Decision:
+           slack_tolerance: float = 1e-4,
+           sense: Callable[[np.ndarray], str] | None = None) -> Decision:
     """Filter one proposal, or decide the fail-safe.
 
     State: the proposal's own ``state`` section when it has one (the proposer's state: no
@@ -492,6 +494,9 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
         proposal_error: why the proposal was rejected (used when ``proposal`` is None).
         latest_state: the latest state message, or None when none arrived yet.
         now_ns: monotonic time of the proposal's arrival in nanoseconds.
+        sense: called with the state chosen, before the filter: sets the filter's sensor
+            points for it (:mod:`rcbf_ros.node_logic.sources`); a reason ('' for none) makes
+            the answer the fail-safe.
 
     Returns:
         ERROR + fail-safe on bad input, no / bad / stale state, a refused input, a failed or
@@ -516,6 +521,11 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
                 safety_filter=safety_filter, u_rl=proposal.u,
                 reason=f'stale state: {age:.3f} s old > max_state_age_s = {max_state_age_s}')
         state, source = latest_state.state, 'topic'
+    if sense is not None:
+        reason = sense(state)
+        if reason:
+            return fail_safe_decision(safety_filter=safety_filter, u_rl=proposal.u,
+                                      reason=reason, state=state, state_source=source)
     mean = _disturbance(proposal.disturbance_mean, static_mean)
     std = _disturbance(proposal.disturbance_std, static_std)
     try:

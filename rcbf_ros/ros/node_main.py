@@ -179,7 +179,7 @@ def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
             descriptor = parameter_descriptor(
                 spec, dynamic_typing=dynamic_typing or spec.default is None,
                 read_only=read_only is not None and read_only(spec.name))
-            if spec.type == 'string[]' and not spec.default:
+            if spec.type == 'string[]' and not spec.default and not descriptor.dynamic_typing:
                 node.declare_parameter(spec.name, Parameter.Type.STRING_ARRAY, descriptor)
             else:
                 node.declare_parameter(spec.name, spec.default, descriptor)

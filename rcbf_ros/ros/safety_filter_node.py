@@ -27,6 +27,7 @@ from rcbf_ros.node_logic.filter_edge import array_sections as _array_sections  #
 from rcbf_ros.node_logic.filter_edge import one_line as _one_line
 from rcbf_ros.node_logic.interface import bound_text, DIAGNOSTIC_ARRAY
 from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME
+from rcbf_ros.node_logic.sources import ObservationSources
 from rcbf_ros.ros.node_main import declare_specs, run_node, spin
 from rcbf_ros.ros.runtime import (
     deserialize_message,
@@ -38,6 +39,10 @@ from rcbf_ros.ros.runtime import (
     QoSProfile,
     ReliabilityPolicy,
 )
+
+SENSOR_MESSAGES = {'scan': 'sensor_msgs/msg/LaserScan',
+                   'pointcloud': 'sensor_msgs/msg/PointCloud2'}
+"""The message type of each ``<name>.type`` of an observation source."""
 
 
 class SafetyFilterNode(Node):
@@ -100,6 +105,7 @@ class SafetyFilterNode(Node):
                                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.create_subscription(array_type, 'obstacles', self._on_obstacles, obstacles_qos,
                                  raw=True)
+        self._sources = self._subscribe_sources()
         problem = self.config.problem
         self.get_logger().info(
             f'{problem.n_barriers} barriers on {self.system} (n_x = {self.filter.n_x}, '
@@ -275,6 +281,47 @@ class SafetyFilterNode(Node):
             self.get_logger().error(f'obstacles message refused, the obstacles are unchanged: '
                                     f'{" ".join(text.split())}')
 
+    # observation sources ---------------------------------------------------------------------
+    def _subscribe_sources(self) -> ObservationSources | None:
+        """One subscription per observation source (``observation_sources``, fixed at
+        start): sensor-data QoS (best effort, keep last 5) unless ``<name>.best_effort`` is
+        false."""
+        config = self.config.sources
+        if config is None:
+            return None
+        sources = ObservationSources(config)
+        for name, params in config.sources:
+            qos = QoSProfile(depth=5, history=HistoryPolicy.KEEP_LAST,
+                             reliability=(ReliabilityPolicy.BEST_EFFORT if params.best_effort
+                                          else ReliabilityPolicy.RELIABLE))
+            kind = SENSOR_MESSAGES[params.type]
+            self.create_subscription(
+                get_message(kind), params.topic,
+                lambda data, name=name: self._on_source(name, data), qos, raw=True)
+            self.get_logger().info(f'source {name}: {kind} on {params.topic}')
+        return sources
+
+    def _on_source(self, name: str, data: bytes) -> None:
+        """A message of source ``name`` (CDR bytes): its points kept, or one line saying why
+        it was refused (the fail-safe until a message is read). Never raises."""
+        now_ns = time.monotonic_ns()
+        try:
+            reason = self._sources.read(name, data, received_ns=now_ns)  # type: ignore[union-attr]
+            if reason:
+                self._log(logic.ERROR, f'source {name}: message refused: {reason}', now_ns)
+        except Exception as exc:  # a defect, not an input
+            self._log_safely(f'source {name}: internal error: {_one_line(exc)}', now_ns)
+
+    def _counts(self) -> dict[str, int]:
+        """The input counts of the diagnostics, with each source's (``<name>.messages``,
+        ``.refused``, ``.stale``)."""
+        if self._sources is None:
+            return self.input_counts
+        counts = dict(self.input_counts)
+        for name, values in self._sources.counts().items():
+            counts.update({f'{name}.{key}': value for key, value in values.items()})
+        return counts
+
     # callbacks ---------------------------------------------------------------------------------
     def _on_state(self, data: bytes) -> None:
         """A ``state`` sample (CDR bytes): the latest state, or a bad one that says why."""
@@ -313,7 +360,7 @@ class SafetyFilterNode(Node):
                 decision, settings=active.settings,
                 barrier_names=active.safety_filter.barrier_names, header=header, now_ns=now_ns,
                 last_ok_ns=self._last_ok_diagnostics_ns, clock=self._clock,
-                counts=self.input_counts)
+                counts=self._counts())
             self._cmd_pub.publish(answer.command)
         except Exception as exc:  # a defect in the output: the fail-safe instead, if it can go
             self._publish_fail_safe(active, f'internal error: {_one_line(exc)}', header, now_ns)
@@ -355,12 +402,17 @@ class SafetyFilterNode(Node):
             return logic.fail_safe_decision(
                 safety_filter=safety_filter,
                 reason=f'undecodable proposal: {sample.error}'), None
+        sources, sense = self._sources, None
+        if sources is not None:
+            def sense(state: np.ndarray) -> str:
+                return sources.sense(safety_filter, state, now_ns=now_ns,
+                                     stamp_now_ns=self._clock.now().nanoseconds)
         decision = logic.decide(
             safety_filter=safety_filter, proposal=sample.proposal, proposal_error=sample.error,
             latest_state=self._latest_state, now_ns=now_ns,
             max_state_age_s=settings.max_state_age_s,
             static_mean=active.static_mean, static_std=active.static_std,
-            slack_tolerance=settings.slack_tolerance)
+            slack_tolerance=settings.slack_tolerance, sense=sense)
         return decision, sample.header
 
     # output ------------------------------------------------------------------------------------

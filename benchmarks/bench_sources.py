@@ -1,0 +1,238 @@
+"""The safety filter's decision time from sensor messages to the command.
+
+    python benchmarks/bench_sources.py [--calls 1000] [--no-write]
+
+One decision = what the node does per proposal with an observation source: read the latest
+message's bytes (:mod:`rcbf_ros.messages.sensor`), take its points into the state's frame and
+into the filter (:meth:`ObservationSources.sense`), filter (:meth:`SafetyFilter.filter`).
+config/unicycle.yaml's filter with ``footprint.radius`` 0.2 m, the robot at random in a square
+room of 8 m (its walls, plus 5 posts, what the sensor sees), proposals within the limits.
+Messages are encoded by rosbags, once per world, before the timing:
+
+- LaserScan in ``base_link``, 360 and 2,000 beams (ray cast against the room, max range 8 m);
+- PointCloud2 in ``odom``, 24k points (x, y, z FLOAT32 and an intensity, z uniform in
+  -0.2..1.5 m; the z band 0.05-0.5 m keeps about a quarter), without and with a 5 cm grid;
+- PointCloud2 of 100k points (the cap is 200,000 per message: answered, not refused).
+
+Nav2 collision_monitor's figures from its README are printed beside ours as a reference, not
+re-measured here (another machine, and a stop/slow-down check, not a QP).
+"""
+from __future__ import annotations
+
+import argparse
+import gc
+import os
+from pathlib import Path
+import sys
+import time
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from rcbf_ros.core.config import filter_config_from_params  # noqa: E402
+from rcbf_ros.messages import sensor  # noqa: E402
+from rcbf_ros.messages.typestore import jazzy_typestore  # noqa: E402
+from rcbf_ros.node_logic.safety_filter import build_safety_filter, node_settings_from_params  # noqa: E402,E501
+from rcbf_ros.node_logic.sources import ObservationSources  # noqa: E402
+from rcbf_ros.parameters.rules import find_config, load_params  # noqa: E402
+
+TITLE = 'Perception sources: decision time from scan or cloud to command'
+HALF = 4.0
+"""Half the room's side (m)."""
+POSTS = np.array([[1.5, 1.5], [-1.5, 1.5], [-1.5, -1.5], [1.5, -1.5], [0.0, 2.5]])
+POST_RADIUS = 0.3
+CASES = (('LaserScan, 360 beams', 'scan', 360, 0.0, 150.0),
+         ('LaserScan, 2,000 beams', 'scan', 2_000, 0.0, 300.0),
+         ('PointCloud2, 24k points', 'pointcloud', 24_000, 0.0, 2_000.0),
+         ('PointCloud2, 24k points, 5 cm grid', 'pointcloud', 24_000, 0.05, None),
+         ('PointCloud2, 100k points', 'pointcloud', 100_000, 0.0, 20_000.0))
+"""(name, source type, beams or points, voxel_size, target median in us or None)."""
+COLLISION_MONITOR = [
+    '| Nav2 collision_monitor (its README, not re-measured here) | per frame |',
+    '|---|---|',
+    '| LaserScan, 360 points | 4.45-4.93 ms |',
+    '| PointCloud2, 24k points | 4.1-20.7 ms |',
+]
+
+
+def params(kind: str, voxel: float) -> dict:
+    """config/unicycle.yaml's safety_filter parameters with one source of ``kind``."""
+    out = load_params(find_config('unicycle'), 'safety_filter')
+    out.update({'observation_sources': ['sensor'], 'sensor.type': kind,
+                'sensor.topic': 'sensor', 'sensor.timeout_s': 10.0, 'sensor.voxel_size': voxel,
+                'footprint.radius': 0.2, 'obstacles.speed_input': 0,
+                'obstacles.x': [40.0], 'obstacles.y': [40.0], 'obstacles.radius': [0.5]})
+    return out
+
+
+def ray_ranges(position: np.ndarray, heading: float, beams: int) -> tuple[np.ndarray, float]:
+    """Ranges of ``beams`` beams over a full turn from ``position`` against the room's walls
+    and posts (max range 8 m), and the first beam's angle in the robot's frame."""
+    angle_min = -np.pi
+    angles = angle_min + np.arange(beams) * (2 * np.pi / beams)
+    world = angles + heading
+    d = np.stack([np.cos(world), np.sin(world)], axis=1)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        tx = np.where(d[:, 0] > 0, (HALF - position[0]) / d[:, 0],
+                      (-HALF - position[0]) / d[:, 0])
+        ty = np.where(d[:, 1] > 0, (HALF - position[1]) / d[:, 1],
+                      (-HALF - position[1]) / d[:, 1])
+    ranges = np.minimum(np.abs(tx), np.abs(ty))
+    for post in POSTS:
+        offset = position - post
+        b = d @ offset
+        c = offset @ offset - POST_RADIUS ** 2
+        disc = b * b - c
+        hit = (disc >= 0) & (-b - np.sqrt(np.maximum(disc, 0)) > 0)
+        ranges = np.where(hit, np.minimum(ranges, -b - np.sqrt(np.maximum(disc, 0))), ranges)
+    return np.where(ranges <= 8.0, ranges, np.inf), angle_min
+
+
+def scan_message(position: np.ndarray, heading: float, beams: int, stamp_s: int) -> bytes:
+    store = jazzy_typestore()
+    t = store.types
+    ranges, angle_min = ray_ranges(position, heading, beams)
+    msg = t[sensor.LASER_SCAN](
+        header=t['std_msgs/msg/Header'](stamp=t['builtin_interfaces/msg/Time'](
+            sec=stamp_s, nanosec=0), frame_id='base_link'),
+        angle_min=angle_min, angle_max=angle_min + 2 * np.pi * (beams - 1) / beams,
+        angle_increment=2 * np.pi / beams, time_increment=0.0, scan_time=0.1,
+        range_min=0.05, range_max=8.0, ranges=ranges.astype(np.float32),
+        intensities=np.zeros(0, np.float32))
+    return bytes(store.serialize_cdr(msg, sensor.LASER_SCAN))
+
+
+def cloud_message(count: int, stamp_s: int, rng: np.random.Generator) -> bytes:
+    """``count`` points on the room's walls and posts, z uniform in -0.2..1.5 m."""
+    store = jazzy_typestore()
+    t = store.types
+    side = rng.integers(0, 5, count)
+    along = rng.uniform(-HALF, HALF, count)
+    xy = np.where(side[:, None] == 0, np.stack([np.full(count, HALF), along], 1),
+                  np.where(side[:, None] == 1, np.stack([np.full(count, -HALF), along], 1),
+                           np.where(side[:, None] == 2, np.stack([along, np.full(count, HALF)], 1),
+                                    np.stack([along, np.full(count, -HALF)], 1))))
+    posts = side == 4
+    angle = rng.uniform(-np.pi, np.pi, posts.sum())
+    which = POSTS[rng.integers(0, len(POSTS), posts.sum())]
+    xy[posts] = which + POST_RADIUS * np.stack([np.cos(angle), np.sin(angle)], 1)
+    record = np.dtype({'names': ['x', 'y', 'z', 'intensity'], 'formats': ['<f4'] * 4})
+    table = np.zeros(count, record)
+    table['x'], table['y'], table['z'] = xy[:, 0], xy[:, 1], rng.uniform(-0.2, 1.5, count)
+    field = t['sensor_msgs/msg/PointField']
+    msg = t[sensor.POINT_CLOUD2](
+        header=t['std_msgs/msg/Header'](stamp=t['builtin_interfaces/msg/Time'](
+            sec=stamp_s, nanosec=0), frame_id='odom'),
+        height=1, width=count,
+        fields=[field(name=n, offset=4 * k, datatype=sensor.FLOAT32, count=1)
+                for k, n in enumerate(record.names)],
+        is_bigendian=False, point_step=16, row_step=16 * count,
+        data=table.view(np.uint8), is_dense=True)
+    return bytes(store.serialize_cdr(msg, sensor.POINT_CLOUD2))
+
+
+def measure(kind: str, size: int, voxel: float, number: int, seed: int = 0) -> dict:
+    """Median and p99 (us) of one decision, the share of corrected answers and of fail-safes,
+    the mean number of points in the filter, and one refusal if any."""
+    config = filter_config_from_params(params(kind, voxel))
+    safety_filter = build_safety_filter(config=config, settings=node_settings_from_params({}))
+    sources = ObservationSources(config.sources)
+    rng = np.random.default_rng(seed)
+    worlds = []
+    for _index in range(min(number, 20)):
+        while True:
+            position = rng.uniform(-HALF + 0.6, HALF - 0.6, 2)
+            if np.all(np.hypot(*(POSTS - position).T) > POST_RADIUS + 0.6):
+                break
+        heading = float(rng.uniform(-np.pi, np.pi))
+        data = (scan_message(position, heading, size, 100) if kind == 'scan'
+                else cloud_message(size, 100, rng))
+        worlds.append((data, [float(position[0]), float(position[1]), heading]))
+    inputs = [(worlds[i % len(worlds)], rng.uniform(-2.5, 2.5, 2).tolist())
+              for i in range(number)]
+    box = ([-0.05, 0.0, 0.0], [0.025, 0.025, 0.0])
+    times, active, fail, points, refusal = [], 0, 0, [], ''
+    gc.collect()
+    for timed, ((data, state), proposal) in zip([False] * 20 + [True] * number,
+                                               inputs[:20] + inputs):
+        start = time.perf_counter()
+        reason = sources.read('sensor', data, received_ns=0)
+        reason = reason or sources.sense(safety_filter, np.array(state), now_ns=0,
+                                         stamp_now_ns=100 * 10 ** 9)
+        if reason:
+            u = safety_filter.fail_safe_action
+        else:
+            result = safety_filter.filter(state, proposal, *box)
+            u = result.u_safe
+        elapsed = time.perf_counter() - start
+        if not timed:
+            continue
+        times.append(elapsed)
+        if reason:
+            fail += 1
+            refusal = refusal or reason
+        else:
+            active += bool(result.active)
+            fail += bool(result.fail_safe)
+            points.append(safety_filter.point_count)
+        del u
+    times_us = np.array(times) * 1e6
+    return {'median': float(np.median(times_us)), 'p99': float(np.percentile(times_us, 99)),
+            'active': active / number, 'fail': fail / number,
+            'points': float(np.mean(points)) if points else 0.0, 'refusal': refusal}
+
+
+def run(number: int) -> list[str]:
+    lines = ['| source | points in the filter (mean) | median (us) | p99 (us) | corrected | '
+             'fail-safe | target (median) |',
+             '|---|---:|---:|---:|---:|---:|---|']
+    for name, kind, size, voxel, goal in CASES:
+        figures = measure(kind, size, voxel, number)
+        verdict = ('-' if goal is None else
+                   f'<= {goal:,.0f} us: {"met" if figures["median"] <= goal else "not met"}')
+        lines.append(f'| {name} | {figures["points"]:,.0f} | {figures["median"]:,.0f} | '
+                     f'{figures["p99"]:,.0f} | {figures["active"]:.0%} | {figures["fail"]:.0%} '
+                     f'| {verdict} |')
+        print(lines[-1], flush=True)
+        if figures['refusal']:
+            print(f'  refused: {figures["refusal"]}', flush=True)
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--calls', type=int, default=1000,
+                        help='decisions timed per source (default 1000)')
+    parser.add_argument('--no-write', dest='write', action='store_false',
+                        help='print the section only; leave benchmarks/RESULTS.md alone')
+    args = parser.parse_args(argv)
+    if args.calls < 1:
+        parser.error('--calls must be >= 1')
+    table = run(args.calls)
+    from benchmarks._results import publish_section
+    publish_section(
+        TITLE, script='bench_sources.py'
+        + (f' --calls {args.calls}' if args.calls != 1000 else ''),
+        conditions=f"; load averages {', '.join(f'{x:.2f}' for x in os.getloadavg())}",
+        write=args.write, blocks=[
+            'One decision from sources to command: the latest message read from its CDR '
+            "bytes, its points taken into the state's frame and into the filter, and one "
+            '`SafetyFilter.filter` call (config/unicycle.yaml, `footprint.radius` 0.2 m; the '
+            'robot at random in a square room of 8 m with 5 posts; proposals within the '
+            'limits and a small disturbance box; `--calls` decisions per source after 20 '
+            'unmeasured). LaserScan in `base_link` over a full turn (max range 8 m); '
+            'PointCloud2 in `odom`, x/y/z/intensity FLOAT32, z in -0.2..1.5 m cut to the band '
+            '0.05-0.5 m. "corrected": the answers that changed the proposal.',
+            table, COLLISION_MONITOR,
+            'Caveats: the machine (2 cores) was shared with other jobs, which moves the p99 '
+            'most; the decode is timed per decision (the node reads a message once, when it '
+            'arrives, so a decision between two messages costs less); no publishing; '
+            "collision_monitor's figures come from its README, another machine and a "
+            'different check (stop / slow-down zones, no QP), printed as a reference only.'])
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

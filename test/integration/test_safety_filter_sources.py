@@ -1,0 +1,138 @@
+"""The safety_filter node with a LaserScan source, over real Cyclone DDS (loopback).
+
+The node runs as its own process with config/unicycle.yaml and one observation source,
+``front`` (a LaserScan on /scan, timeout 1 s, footprint radius 0.2 m); the test publishes the
+scans (encoded by rosbags, stamped now) and proposals that carry their own state, 2 m clear of
+every obstacle of the config, full speed ahead:
+
+- before any scan: the fail-safe, the reason naming the source;
+- a scan showing a wall 0.8 m ahead: the proposal is slowed down, not stopped;
+- no scan for longer than the timeout: the fail-safe, naming the source;
+- hostile scans (NaN geometry, more beams than the bound, angles beyond the bound, flipped
+  bytes): each refused in one line and counted, the fail-safe meanwhile, no traceback; a good
+  scan afterwards is used again.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+from dds_harness import stop  # this directory: on sys.path for pytest
+import numpy as np
+import pytest
+from test_safety_filter_node import (
+    _connect,
+    _exchange,
+    _handshake,
+    _sections,
+    _start_filter,
+    _wait_matched,
+    Probe,
+)
+
+pytestmark = pytest.mark.integration
+
+SOURCE = ('-p', 'observation_sources:=[front]', '-p', 'front.type:=scan',
+          '-p', 'front.topic:=/scan', '-p', 'front.timeout_s:=1.0',
+          '-p', 'footprint.radius:=0.2')
+STATE = [2.0, 0.0, 0.0]
+"""Clear of every obstacle of config/unicycle.yaml, heading away from them."""
+AHEAD = {'u': [2.5, 0.0], 'state': STATE}
+
+
+def _scan(ranges: Any, *, angle_min: float = -0.5, increment: float = 0.01,
+          range_min: float = 0.05, range_max: float = 10.0) -> bytes:
+    """A LaserScan in base_link stamped now (rosbags' encoder)."""
+    from rcbf_ros.messages.typestore import jazzy_typestore
+    store = jazzy_typestore()
+    t = store.types
+    now = time.time_ns()
+    msg = t['sensor_msgs/msg/LaserScan'](
+        header=t['std_msgs/msg/Header'](stamp=t['builtin_interfaces/msg/Time'](
+            sec=now // 10**9, nanosec=now % 10**9), frame_id='base_link'),
+        angle_min=angle_min, angle_max=angle_min + increment * (len(ranges) - 1),
+        angle_increment=increment, time_increment=0.0, scan_time=0.1, range_min=range_min,
+        range_max=range_max, ranges=np.asarray(ranges, np.float32),
+        intensities=np.zeros(0, np.float32))
+    return bytes(store.serialize_cdr(msg, 'sensor_msgs/msg/LaserScan'))
+
+
+def _wall(distance: float = 0.8) -> bytes:
+    """A straight wall ``distance`` ahead across 101 beams of -0.5..0.5 rad."""
+    angles = -0.5 + 0.01 * np.arange(101)
+    return _scan(distance / np.cos(angles))
+
+
+def _answer_after_scan(probe: Probe, scan_pub: Any, proposal_pub: Any, scan: bytes,
+                       proposal: Any) -> tuple[Any, tuple[int, str, dict[str, str]]]:
+    """Publish ``scan`` and then the proposal until the answer's reason is no longer the
+    missing-scan one (a sample may be lost until the reader matches)."""
+    for _ in range(50):
+        scan_pub.publish(scan)
+        time.sleep(0.1)
+        command, diagnostic = _exchange(probe, proposal_pub, proposal)
+        if 'no message yet' not in diagnostic[1]:
+            return command, diagnostic
+    raise AssertionError('the scan never reached the filter')
+
+
+def test_a_scan_source_slows_the_robot_and_fails_safe_without_fresh_scans(ros_domain_id):
+    from rcbf_ros.messages.conversions import sections_to_msg
+    probe = Probe(ros_domain_id)
+    process = _start_filter(ros_domain_id, *SOURCE)
+    try:
+        probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
+        scan_pub = probe.publisher('sensor_msgs/msg/LaserScan', '/scan')
+        proposal_pub, _ = _connect(probe, process, 'std_msgs/msg/Float64MultiArray',
+                                   with_state=False)
+        _wait_matched(scan_pub, process)
+        ahead = sections_to_msg(AHEAD)
+        _handshake(probe, proposal_pub, ahead)
+        no_scan = _exchange(probe, proposal_pub, ahead)
+        walled = _answer_after_scan(probe, scan_pub, proposal_pub, _wall(), ahead)
+        time.sleep(1.5)                                   # longer than front.timeout_s
+        stale = _exchange(probe, proposal_pub, ahead)
+        hostile = []
+        for scan in (_scan([1.0, 2.0], range_min=math.nan),
+                     _scan(np.ones(200_001)),
+                     _scan([1.0], angle_min=3.0e38),
+                     _scan([1.0] * 10, increment=1.0e37)):
+            hostile.append(_answer_after_scan(probe, scan_pub, proposal_pub, scan, ahead))
+        rng = np.random.default_rng(7)
+        flipped = 0
+        for _ in range(40):                               # flipped bytes of a valid scan
+            data = bytearray(_wall())
+            for where in rng.integers(4, len(data), 3):
+                data[where] = int(rng.integers(0, 256))
+            try:
+                scan_pub.publish(bytes(data))
+                flipped += 1
+            except RuntimeError:                          # the writer refuses malformed CDR
+                pass
+        time.sleep(0.5)
+        again = _answer_after_scan(probe, scan_pub, proposal_pub, _wall(), ahead)
+        process_alive = process.poll() is None
+    finally:
+        output = stop(process, timeout=10)
+        probe.close()
+    assert process_alive, output[-4000:]
+    level, message, values = no_scan[1]
+    assert level == 2 and message.startswith('source front: no message yet on /scan'), message
+    np.testing.assert_array_equal(no_scan[0]['u'], [0.0, 0.0])
+    command, (level, message, values) = walled
+    assert level == 0 and values['fail_safe'] == 'False', message
+    assert 0.0 <= command['u'][0] < 1.5, command          # slowed for the wall, not refused
+    command, (level, message, values) = stale
+    assert level == 2 and message.startswith('source front: latest message'), message
+    assert 'front.timeout_s 1' in message
+    for index, (command, (level, message, _)) in enumerate(hostile):
+        assert level == 2 and message.startswith('source front: latest message refused'), (
+            index, message)
+        np.testing.assert_array_equal(command['u'], [0.0, 0.0])
+    command, (level, message, values) = again
+    assert level == 0 and 0.0 <= command['u'][0] < 1.5, message
+    assert int(values['front.refused']) >= len(hostile)
+    assert int(values['front.messages']) >= 2 + len(hostile)
+    assert int(values['front.stale']) >= 2
+    assert 'Traceback' not in output, output[-4000:]

@@ -1,0 +1,34 @@
+"""benchmarks/bench_sources.py: its worlds and messages (the timing itself is the
+benchmark's, not a test's)."""
+from __future__ import annotations
+
+import math
+
+from benchmark_modules import load_benchmark
+import numpy as np
+
+from rcbf_ros.messages import sensor
+
+bench = load_benchmark('bench_sources')
+
+
+def test_the_scan_is_ray_cast_against_the_room_and_its_posts():
+    ranges, angle_min = bench.ray_ranges(np.array([0.0, 0.0]), 0.0, 4)
+    # beams at -pi, -pi/2, 0, pi/2: the walls at 4 m, the post (0, 2.5) r 0.3 at 2.2 m
+    assert angle_min == -math.pi
+    np.testing.assert_allclose(ranges, [4.0, 4.0, 4.0, 2.2], atol=1e-12)
+    out = sensor.scan_points(bench.scan_message(np.array([0.0, 0.0]), 0.0, 4, 100))
+    np.testing.assert_allclose(out.points, [[-4.0, 0.0], [0.0, -4.0], [4.0, 0.0], [0.0, 2.2]],
+                               atol=1e-5)
+
+
+def test_the_cloud_lies_on_the_walls_and_posts_and_a_quarter_is_in_the_band():
+    data = bench.cloud_message(4000, 100, np.random.default_rng(0))
+    everything = sensor.cloud_points(data)
+    band = sensor.cloud_points(data, min_height=0.05, max_height=0.5)
+    points = everything.points
+    on_wall = np.isclose(np.abs(points).max(axis=1), bench.HALF, atol=1e-5)
+    gaps = np.hypot(*(points[:, None, :] - bench.POSTS[None]).transpose(2, 0, 1))
+    on_post = np.isclose(gaps, bench.POST_RADIUS, atol=1e-5).any(axis=1)
+    assert len(points) == 4000 and np.all(on_wall | on_post)
+    assert 0.2 < len(band.points) / 4000 < 0.33   # 0.45 of the 1.7 m of z

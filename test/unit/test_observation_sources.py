@@ -1,0 +1,141 @@
+"""Observation sources: freshness, frames, counts, and the decision they feed
+(rcbf_ros.node_logic.sources; messages encoded by rosbags)."""
+from __future__ import annotations
+
+import math
+
+from hypothesis import given, HealthCheck, settings
+from hypothesis import strategies as st
+import numpy as np
+import pytest
+from sensor_messages import cloud_bytes as _cloud_bytes
+from sensor_messages import scan_bytes as _scan_bytes
+
+from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.messages import sensor
+from rcbf_ros.node_logic import safety_filter as logic
+from rcbf_ros.node_logic.sources import ObservationSources
+
+S = 1_000_000_000
+_PARAMS = {
+    'system': 'unicycle', 'alpha': 2.0, 'input_weight': [1.0, 0.01],
+    'input_limits.min': [-2.5, -2.5], 'input_limits.max': [2.5, 2.5],
+    'obstacles.x': [0.0], 'obstacles.y': [40.0], 'obstacles.radius': [0.5],
+    'obstacles.margin': 0.1, 'obstacles.lookahead': 0.03, 'obstacles.heading_index': 2,
+    'obstacles.speed_input': 0, 'footprint.radius': 0.2,
+    'observation_sources': ['front', 'cloud'],
+    'front.type': 'scan', 'front.topic': 'scan', 'front.timeout_s': 0.5,
+    'cloud.type': 'pointcloud', 'cloud.topic': 'points', 'cloud.timeout_s': 1.0,
+    'cloud.min_height': 0.0, 'cloud.max_height': 1.0,
+}
+
+
+def _sources(**changes):
+    params = dict(_PARAMS)
+    params.update(changes)
+    config = filter_config_from_params(params)
+    return config, ObservationSources(config.sources)
+
+
+def _scan(ranges, frame_id='base_link', sec=10, **kwargs):
+    data = bytearray(_scan_bytes(ranges, frame_id=frame_id, **kwargs))
+    # the stamp: rosbags encodes the header written by the helper (sec 12); set ours
+    data[4:8] = int(sec).to_bytes(4, 'little', signed=True)
+    data[8:12] = (0).to_bytes(4, 'little')
+    return bytes(data)
+
+
+def _cloud(points, frame_id='odom', sec=10):
+    data = bytearray(_cloud_bytes(np.asarray(points, dtype=np.float64), frame_id=frame_id))
+    data[4:8] = int(sec).to_bytes(4, 'little', signed=True)
+    data[8:12] = (0).to_bytes(4, 'little')
+    return bytes(data)
+
+
+def test_points_in_the_robot_frame_go_through_the_pose():
+    _, sources = _sources()
+    assert sources.read('front', _scan([2.0], angle_min=0.5), received_ns=0) == ''
+    assert sources.read('cloud', _cloud([[3.0, 4.0, 0.5], [1.0, 1.0, 5.0]]),
+                        received_ns=0) == ''
+    state = np.array([1.0, -2.0, math.pi / 2])
+    points, spread = sources.points(state, now_ns=0, stamp_now_ns=10 * S)
+    beam = np.float32(0.5)
+    expected_scan = [1.0 - 2.0 * math.sin(beam), -2.0 + 2.0 * math.cos(beam)]
+    np.testing.assert_allclose(points, [expected_scan, [3.0, 4.0]], atol=1e-6)
+    assert spread == 0.0
+
+
+@pytest.mark.parametrize(('setup', 'words'), [
+    ('none', 'source front: no message yet on scan'),
+    ('old', 'source front: latest message 0.600 s old > front.timeout_s 0.5'),
+    ('late', 'source front: latest message 0.700 s old'),
+    ('frame', "source front: frame 'laser' is neither the state's 'odom' nor the robot's "
+              "'base_link'"),
+    ('refused', 'source front: latest message refused: sensor_msgs/msg/LaserScan: range_min'),
+])
+def test_a_source_that_cannot_be_used_gives_a_reason_naming_it(setup, words):
+    _, sources = _sources()
+    sources.read('cloud', _cloud([[1.0, 1.0, 0.5]], sec=10), received_ns=0)
+    if setup == 'old':
+        sources.read('front', _scan([1.0], sec=10), received_ns=0)
+        now, stamp_now = 0, 10 * S + 600_000_000
+    elif setup == 'late':  # the stamp is fresh; received long ago on the monotonic clock
+        sources.read('front', _scan([1.0], sec=10), received_ns=0)
+        now, stamp_now = 700_000_000, 10 * S
+    elif setup == 'frame':
+        sources.read('front', _scan([1.0], frame_id='laser'), received_ns=0)
+        now, stamp_now = 0, 10 * S
+    elif setup == 'refused':
+        sources.read('front', _scan([1.0]), received_ns=0)
+        sources.read('front', _scan([1.0], range_min=math.nan), received_ns=0)
+        now, stamp_now = 0, 10 * S
+    else:
+        now, stamp_now = 0, 10 * S
+    reason = sources.points(np.zeros(3), now_ns=now, stamp_now_ns=stamp_now)
+    assert isinstance(reason, str) and reason.startswith(words), reason
+    counts = sources.counts()['front']
+    assert counts['stale'] == (1 if setup in ('none', 'old', 'late') else 0)
+    assert counts['refused'] == (1 if setup == 'refused' else 0)
+
+
+def test_a_good_message_after_a_refused_one_clears_the_refusal():
+    _, sources = _sources()
+    sources.read('cloud', _cloud([[1.0, 1.0, 0.5]]), received_ns=0)
+    sources.read('front', b'\x00\x01\x00\x00garbage', received_ns=0)
+    assert isinstance(sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S), str)
+    sources.read('front', _scan([1.0]), received_ns=0)
+    assert not isinstance(sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S), str)
+    assert sources.counts()['front'] == {'messages': 2, 'refused': 1, 'stale': 0}
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.binary(max_size=300), name=st.sampled_from(['front', 'cloud']))
+def test_hostile_bytes_never_raise_and_give_a_reason(data, name):
+    _, sources = _sources()
+    reason = sources.read(name, b'\x00\x01\x00\x00' + data, received_ns=0)
+    out = sources.points(np.zeros(3), now_ns=0, stamp_now_ns=0)
+    assert isinstance(out, str) and '\n' not in out and '\n' not in reason
+
+
+def test_a_scan_of_a_wall_ahead_slows_the_decision_and_a_stale_one_stops_it():
+    config, sources = _sources(observation_sources=['front'])
+    active = logic.build_safety_filter(config=config,
+                                       settings=logic.node_settings_from_params({}))
+    state = logic.StateSample(received_ns=0, state=np.array([0.0, 0.0, 0.0]), error='')
+    proposal = logic.Proposal(u=np.array([2.0, 0.0]))
+    angles = np.linspace(-0.5, 0.5, 101)
+    sources.read('front', _scan(0.8 / np.cos(angles), angle_min=-0.5, increment=0.01),
+                 received_ns=0)
+
+    def decide(stamp_now_ns):
+        return logic.decide(
+            safety_filter=active, proposal=proposal, latest_state=state, now_ns=0,
+            max_state_age_s=1.0, sense=lambda x: sources.sense(
+                active, x, now_ns=0, stamp_now_ns=stamp_now_ns))
+
+    fresh = decide(10 * S)
+    assert not fresh.fail_safe and fresh.u_safe[0] < 1.0, fresh.reason
+    stale = decide(11 * S)
+    assert stale.fail_safe and stale.reason.startswith('source front: latest message')
+    assert active.point_count == 0
+    assert sensor.MAX_POINTS >= 100_000

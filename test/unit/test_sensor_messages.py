@@ -1,0 +1,176 @@
+"""LaserScan and PointCloud2 bytes -> points (rcbf_ros.messages.sensor).
+
+The messages are encoded by rosbags' Jazzy type store, not by the reader under test; the
+expected points are closed forms (a scan of known ranges, a cloud built with numpy)."""
+from __future__ import annotations
+
+import math
+
+from hypothesis import given, HealthCheck, settings
+from hypothesis import strategies as st
+import numpy as np
+import pytest
+from sensor_messages import cloud_bytes as _cloud_bytes
+from sensor_messages import header as _header
+from sensor_messages import scan_bytes as _scan_bytes
+from sensor_messages import STORE as _STORE
+from sensor_messages import T as _T
+
+from rcbf_ros.messages import sensor
+
+
+@pytest.mark.parametrize('little_endian', [True, False])
+def test_scan_of_known_ranges_gives_known_points(little_endian):
+    ranges = [1.0, math.nan, 2.0, math.inf, -math.inf, 0.05, 11.0, 10.0, 0.1]
+    out = sensor.scan_points(_scan_bytes(ranges, angle_min=-0.4, increment=0.1,
+                                         little_endian=little_endian))
+    assert isinstance(out, sensor.SensorPoints), out
+    kept = [(i, r) for i, r in enumerate(ranges) if i in (0, 2, 7, 8)]
+    expected = [(np.float32(r) * math.cos(np.float32(-0.4) + i * np.float32(0.1)),
+                 np.float32(r) * math.sin(np.float32(-0.4) + i * np.float32(0.1)))
+                for i, r in kept]
+    np.testing.assert_allclose(out.points, expected, atol=1e-6)
+    assert out.frame_id == 'laser' and out.stamp_ns == 12_000_000_345
+    assert out.received == len(ranges) and out.spread == 0.0
+
+
+def test_empty_scan_gives_no_points():
+    out = sensor.scan_points(_scan_bytes([]))
+    assert isinstance(out, sensor.SensorPoints) and out.points.shape == (0, 2)
+
+
+@pytest.mark.parametrize(('field', 'value', 'words'), [
+    ('angle_min', math.nan, 'angle_min'), ('increment', math.inf, 'angle_increment'),
+    ('range_min', math.nan, 'range_min'), ('range_max', math.nan, 'range_max'),
+    ('range_min', 20.0, 'range_min'), ('angle_min', 3e38, 'angle_min'),
+    ('increment', 1e37, 'beyond')])
+def test_scan_with_bad_geometry_is_refused(field, value, words):
+    out = sensor.scan_points(_scan_bytes([1.0, 2.0], **{field: value}))
+    assert isinstance(out, sensor.Refused) and words in out.reason and '\n' not in out.reason
+
+
+def test_scan_past_the_bound_is_refused_in_one_line():
+    out = sensor.scan_points(_scan_bytes(np.ones(50)), max_points=49)
+    assert isinstance(out, sensor.Refused) and 'bound 49' in out.reason
+
+
+def test_far_points_are_skipped():
+    out = sensor.scan_points(_scan_bytes([1.0, 2e4, 3.0], range_max=1e30))
+    assert isinstance(out, sensor.SensorPoints) and len(out.points) == 2
+
+
+@pytest.mark.filterwarnings('error::RuntimeWarning')  # no numpy warning on the node's log
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(ranges=st.lists(st.floats(width=32), max_size=40),
+       angle_min=st.floats(width=32), increment=st.floats(width=32),
+       cut=st.integers(0, 400), flips=st.lists(st.tuples(st.integers(0, 400),
+                                                          st.integers(0, 255)), max_size=4))
+def test_hostile_scan_bytes_never_raise(ranges, angle_min, increment, cut, flips):
+    data = bytearray(_scan_bytes(ranges, angle_min=angle_min, increment=increment,
+                                 range_max=math.inf))
+    for where, value in flips:
+        if where < len(data):
+            data[where] = value
+    data = bytes(data[:max(len(data) - cut, 0)])
+    out = sensor.scan_points(data)
+    if isinstance(out, sensor.Refused):
+        assert out.reason and '\n' not in out.reason and len(out.reason) <= 300
+    else:
+        assert out.points.ndim == 2 and out.points.shape[1] == 2
+        assert np.all(np.isfinite(out.points))
+        assert np.all(np.abs(out.points) <= sensor.MAX_COORDINATE)
+        assert len(out.points) <= out.received <= sensor.MAX_POINTS
+
+
+@pytest.mark.parametrize(('dtype', 'layout', 'pad', 'height', 'row_pad', 'little_endian'), [
+    ('<f4', ('x', 'y', 'z'), 0, 1, 0, True),
+    ('>f4', ('z', 'x', 'y'), 3, 2, 5, True),
+    ('<f8', ('y', 'z', 'x'), 1, 4, 0, False),
+    ('>f8', ('x', 'y', 'z'), 8, 3, 9, False)])
+def test_cloud_built_with_numpy_gives_its_points(dtype, layout, pad, height, row_pad,
+                                                 little_endian):
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-5.0, 5.0, (120, 3))
+    points[::7, 0] = np.nan
+    data = _cloud_bytes(points, dtype=dtype, layout=layout, pad=pad, height=height,
+                        row_pad=row_pad, little_endian=little_endian)
+    out = sensor.cloud_points(data, min_height=-1.0, max_height=2.0)
+    assert isinstance(out, sensor.SensorPoints), out
+    stored = points.astype(dtype).astype(np.float64)
+    keep = (stored[:, 2] >= -1.0) & (stored[:, 2] <= 2.0) & np.isfinite(stored[:, 0])
+    np.testing.assert_array_equal(out.points, stored[keep, :2])
+    assert out.frame_id == 'base_link' and out.received == 120
+
+
+def test_cloud_thinning_keeps_every_point_within_spread_of_a_centre():
+    rng = np.random.default_rng(4)
+    points = np.concatenate([rng.uniform(-3.0, 3.0, (500, 2)), np.zeros((500, 1))], axis=1)
+    out = sensor.cloud_points(_cloud_bytes(points), voxel_size=0.5)
+    assert isinstance(out, sensor.SensorPoints)
+    assert len(out.points) < 500 and out.spread == pytest.approx(0.5 * math.sqrt(0.5))
+    stored = points[:, :2].astype(np.float32).astype(np.float64)
+    distance = np.linalg.norm(stored[:, None, :] - out.points[None, :, :], axis=2).min(axis=1)
+    assert np.all(distance <= out.spread + 1e-9)
+    assert len(np.unique(out.points, axis=0)) == len(out.points)
+
+
+def _fields(**changes):
+    field = _T['sensor_msgs/msg/PointField']
+    spec = {'x': (0, sensor.FLOAT32), 'y': (4, sensor.FLOAT32), 'z': (8, sensor.FLOAT32)}
+    spec.update(changes)
+    return [field(name=name, offset=offset, datatype=datatype, count=1)
+            for name, (offset, datatype) in spec.items() if offset is not None]
+
+
+@pytest.mark.parametrize(('kwargs', 'words'), [
+    ({'fields': _fields(x=(None, None))}, "no field 'x'"),
+    ({'fields': _fields(z=(10, sensor.FLOAT32))}, 'past point_step'),
+    ({'fields': _fields(y=(4, 5))}, 'datatype 5'),
+    ({'data_cut': 1}, 'fewer than'),
+    ({'height': 2, 'data_cut': 13}, 'fewer than')])
+def test_cloud_with_wrong_layout_is_refused(kwargs, words):
+    points = np.ones((10, 3))
+    out = sensor.cloud_points(_cloud_bytes(points, **kwargs))
+    assert isinstance(out, sensor.Refused), out
+    assert words in out.reason and '\n' not in out.reason
+
+
+def test_cloud_past_the_bound_is_refused():
+    out = sensor.cloud_points(_cloud_bytes(np.ones((30, 3))), max_points=29)
+    assert isinstance(out, sensor.Refused) and 'bound 29' in out.reason
+
+
+def test_cloud_declaring_absurd_sizes_is_refused_without_allocating():
+    msg = _T[sensor.POINT_CLOUD2](
+        header=_header(), height=2**31, width=2**31, fields=_fields(), is_bigendian=False,
+        point_step=12, row_step=12, data=np.zeros(12, np.uint8), is_dense=True)
+    data = bytes(_STORE.serialize_cdr(msg, sensor.POINT_CLOUD2))
+    out = sensor.cloud_points(data)
+    assert isinstance(out, sensor.Refused) and 'height x width' in out.reason
+
+
+@pytest.mark.filterwarnings('error::RuntimeWarning')
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(n=st.integers(0, 30), height=st.sampled_from([1, 2, 3]),
+       cut=st.integers(0, 300), voxel=st.sampled_from([0.0, 0.25]),
+       flips=st.lists(st.tuples(st.integers(0, 600), st.integers(0, 255)), max_size=4),
+       seed=st.integers(0, 2**16))
+def test_hostile_cloud_bytes_never_raise(n, height, cut, voxel, flips, seed):
+    points = np.random.default_rng(seed).normal(0.0, 1e3, (n * height, 3))
+    data = bytearray(_cloud_bytes(points, height=height))
+    for where, value in flips:
+        if where < len(data):
+            data[where] = value
+    data = bytes(data[:max(len(data) - cut, 0)])
+    out = sensor.cloud_points(data, min_height=-1e9, max_height=1e9, voxel_size=voxel)
+    if isinstance(out, sensor.Refused):
+        assert out.reason and '\n' not in out.reason and len(out.reason) <= 300
+    else:
+        assert out.points.ndim == 2 and out.points.shape[1] == 2
+        assert np.all(np.isfinite(out.points))
+        assert np.all(np.abs(out.points) <= sensor.MAX_COORDINATE + voxel)
+
+
+def test_bad_voxel_size_is_refused():
+    out = sensor.cloud_points(_cloud_bytes(np.ones((3, 3))), voxel_size=1e-9)
+    assert isinstance(out, sensor.Refused) and 'voxel_size' in out.reason

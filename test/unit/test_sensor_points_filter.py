@@ -1,0 +1,148 @@
+"""Sensor points in the filter: rows replaced per message, no rebuild (SafetyFilter.set_points).
+
+The oracle is a filter built from scratch with the same points as a static circle family (the
+generated per-row code): the two must give the same command."""
+from __future__ import annotations
+
+import math
+
+from hypothesis import given, HealthCheck, settings
+from hypothesis import strategies as st
+import numpy as np
+import pytest
+
+from rcbf_ros.core import filter as filter_module
+from rcbf_ros.core.barriers import CircleObstacles
+from rcbf_ros.core.config import filter_config_from_params, MIN_VOXEL_SIZE
+from rcbf_ros.core.filter import POINTS_BARRIER, SafetyFilter
+from rcbf_ros.core.rcbf import RCBFProblem
+from rcbf_ros.messages import sensor
+
+_BASE = {
+    'system': 'unicycle', 'alpha': 2.0, 'input_weight': [1.0, 0.01],
+    'input_limits.min': [-2.5, -2.5], 'input_limits.max': [2.5, 2.5],
+    'obstacles.x': [0.0], 'obstacles.y': [4.0], 'obstacles.radius': [0.5],
+    'obstacles.margin': 0.1, 'obstacles.lookahead': 0.03, 'obstacles.heading_index': 2,
+    'obstacles.speed_input': 0,
+    'observation_sources': ['front'], 'front.type': 'scan', 'front.topic': 'scan',
+    'footprint.radius': 0.2,
+}
+
+
+def _config(**changes):
+    params = dict(_BASE)
+    params.update(changes)
+    return filter_config_from_params(params)
+
+
+def _oracle(config, points: np.ndarray) -> SafetyFilter:
+    """A filter whose problem holds ``points`` as a static circle family."""
+    template = config.footprint
+    family = CircleObstacles(
+        centers=tuple(map(tuple, points.tolist())), radii=(template.radii[0],) * len(points),
+        margin=template.margin, position_indices=template.position_indices,
+        heading_index=template.heading_index, lookahead=template.lookahead,
+        speed_input=template.speed_input, name='point')
+    problem = RCBFProblem(
+        system=config.problem.system, families=config.problem.families + (family,),
+        alpha=config.problem.alpha, k_c=config.problem.k_c,
+        slack_weight=config.problem.slack_weight, input_weight=config.problem.input_weight)
+    return SafetyFilter(problem, vector_rows=10**9)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**16), n=st.integers(1, 12),
+       v=st.floats(-2.5, 2.5), w=st.floats(-2.5, 2.5), heading=st.floats(-math.pi, math.pi))
+def test_points_give_the_command_of_the_same_static_circles(seed, n, v, w, heading):
+    rng = np.random.default_rng(seed)
+    config = _config()
+    points = rng.uniform(-2.0, 2.0, (n, 2))
+    state = [0.0, 0.0, heading]
+    points = points[np.linalg.norm(points, axis=1) > 0.6]  # the robot starts outside
+    if not len(points):
+        return
+    fast = SafetyFilter(config.problem, footprint=config.footprint)
+    fast.set_points(rng.uniform(-5, 5, (30, 2)))  # replaced, not kept
+    fast.set_points(points)
+    mine = fast.filter(state, [v, w], [-0.05, 0, 0], [0.025, 0.025, 0])
+    theirs = _oracle(config, points).filter(state, [v, w], [-0.05, 0, 0], [0.025, 0.025, 0])
+    assert mine.fail_safe == theirs.fail_safe
+    np.testing.assert_allclose(mine.u_safe, theirs.u_safe, atol=2e-5)
+    k = config.problem.n_barriers
+    assert mine.barrier_names[-1] == POINTS_BARRIER and len(mine.h) == k + 1
+    assert mine.h[-1] == pytest.approx(theirs.h[k:].min(), abs=1e-9)
+    assert mine.constraint_values[-1] == pytest.approx(theirs.constraint_values[k:].min(),
+                                                       abs=1e-5)
+
+
+def test_without_points_the_answer_is_the_problems_own():
+    config = _config()
+    with_sources = SafetyFilter(config.problem, footprint=config.footprint)
+    without = SafetyFilter(config.problem)
+    for u in ([1.0, 0.0], [2.5, -1.0], [-1.0, 2.0]):
+        mine, theirs = with_sources.filter([0.0, 3.0, 1.5], u), without.filter([0.0, 3.0, 1.5], u)
+        np.testing.assert_allclose(mine.u_safe, theirs.u_safe, atol=1e-6)
+        assert mine.h[-1] == math.inf and with_sources.point_count == 0
+
+
+def test_a_wall_of_points_ahead_slows_the_robot_and_every_row_holds():
+    config = _config()
+    fast = SafetyFilter(config.problem, footprint=config.footprint)
+    wall = np.stack([np.full(4000, 1.0), np.linspace(-20.0, 20.0, 4000)], axis=1)
+    fast.set_points(wall)
+    result = fast.filter([0.4, 0.0, 0.0], [2.5, 0.0])
+    assert not result.fail_safe and result.u_safe[0] < 1.0
+    # every row holds up to the slack the QP's soft rows trade (weight slack_weight)
+    assert result.needed_slack <= 1e-5
+    assert result.constraint_values.min() >= -result.needed_slack - 1e-12
+    assert fast.point_count == 4000
+
+
+def test_the_fallback_solve_on_the_rows_that_bind_matches(monkeypatch):
+    config = _config()
+    points = np.array([[1.0, 0.0], [1.0, 0.3], [0.9, -0.4]])
+    expected = _oracle(config, points).filter([0.2, 0.0, 0.1], [2.0, 0.5])
+    monkeypatch.setattr(filter_module, '_active_set_steps', lambda *args: None)
+    fast = SafetyFilter(config.problem, footprint=config.footprint)
+    fast.set_points(points)
+    result = fast.filter([0.2, 0.0, 0.1], [2.0, 0.5])
+    assert result.status == 'solved' and not result.fail_safe
+    np.testing.assert_allclose(result.u_safe, expected.u_safe, atol=1e-4)
+
+
+@pytest.mark.parametrize('points', [np.zeros((3, 3)), np.array([[0.0, math.nan]]),
+                                    np.zeros(4)])
+def test_set_points_refuses_what_is_not_finite_n_by_2(points):
+    config = _config()
+    fast = SafetyFilter(config.problem, footprint=config.footprint)
+    with pytest.raises(ValueError, match='set_points'):
+        fast.set_points(points)
+    with pytest.raises(ValueError, match='without a footprint'):
+        SafetyFilter(config.problem).set_points(np.zeros((1, 2)))
+
+
+@pytest.mark.parametrize(('changes', 'key'), [
+    ({'observation_sources': ['obstacles']}, 'observation_sources'),
+    ({'observation_sources': ['a.b']}, 'observation_sources'),
+    ({'front.type': 'sonar'}, 'front.type'),
+    ({'front.type': ''}, 'front.type'),
+    ({'front.topic': ''}, 'front.topic'),
+    ({'front.timeout_s': 0.0}, 'front.timeout_s'),
+    ({'front.voxel_size': MIN_VOXEL_SIZE / 2}, 'front.voxel_size'),
+    ({'front.min_height': 1.0, 'front.max_height': 0.0}, 'front.min_height'),
+    ({'observation_sources': ['front', 'back'], 'back.type': 'pointcloud',
+      'back.topic': 'scan'}, 'observation_sources'),
+    ({'footprint.radius': 0.0, 'obstacles.margin': 0.0, 'obstacles.lookahead': 0.0,
+      'obstacles.speed_input': -1},
+     'footprint.radius'),
+    ({'base_frame_id': 'odom'}, 'base_frame_id'),
+])
+def test_bad_source_parameters_name_the_key(changes, key):
+    with pytest.raises(ValueError) as caught:
+        _config(**changes)
+    text = str(caught.value)
+    assert text.startswith(key) and '\n' not in text
+
+
+def test_the_voxel_floor_is_the_readers():
+    assert MIN_VOXEL_SIZE == sensor.MIN_VOXEL_SIZE
