@@ -28,7 +28,7 @@ Ways (``--ways``), each row measuring them one after the other, alternating:
 every stored transition into the buffer's memo (``ReplayBuffer.fill_predictions``); ``demand``,
 that pass switched off: the losses predict each minibatch's stale states on demand, as before
 the pass existed. Only modes whose losses see the action through a layer predict (diff; PVTOL
-modular with its envelope); elsewhere the two ways run the same code.
+modular with its envelope); elsewhere the ways run the same code, and only the first runs.
 
 Reported per row and way: both figures (ms per step), their ratio against the target
 (full-buffer step at most ``TARGET`` x the first-fit step), the GP refit's time in each period
@@ -255,7 +255,11 @@ def main(argv: list[str] | None = None) -> str:
                 runs[way].append(measure(system, mode, way, buffer=buffer,
                                          refit_interval=refit_interval,
                                          batch_size=defaults.get('batch_size', 256)))
+                if not runs[way][-1]['through_layer']:
+                    break  # no layer in the losses: every way runs the same code
         for way in args.ways:
+            if not runs[way]:
+                continue
             table.append(row_text(system, mode, way, runs[way]))
             print(table[-1], flush=True)
     load_after = os.getloadavg()
