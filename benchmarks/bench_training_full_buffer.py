@@ -32,9 +32,12 @@ modular with its envelope); elsewhere the ways run the same code, and only the f
 
 Reported per row and way: both figures (ms per step), their ratio against the target
 (full-buffer step at most ``TARGET`` x the first-fit step), the GP refit's time in each period
-(at the full buffer also its part selecting the training points among all pairs),
-the pass's time, and the states the GP predicted for the losses per step of the period.
-``--quick``: R = 60, a 400-transition buffer, minibatch 32, unicycle/diff only unless
+(at the full buffer also its part selecting the training points among all pairs), the pass's
+time, the states the GP predicted for the losses per step of the period, and the hours one
+seed's training at the ``paper`` budget would take on the machine (``paper_hours``: its
+episodes at full length, the step growing linearly from the first-fit figure to the
+full-buffer one as the buffer fills; evaluation not included).
+``--quick``: R = 40, a 200-transition buffer, minibatch 16, unicycle/diff only unless
 ``--rows`` says otherwise: a smoke test in seconds, no figure worth reading.
 """
 from __future__ import annotations
@@ -51,6 +54,7 @@ import time
 import numpy as np
 import torch
 
+from rcbf_ros.experiments.definitions import BUDGETS
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
 from rcbf_ros.training.build import build_run, resolve_run, RunConfig
 
@@ -61,7 +65,7 @@ TARGET = 1.2
 SYSTEMS = ('unicycle', 'car_following', 'pvtol')
 MODES = ('baseline', 'modular', 'diff')
 WAYS = ('pass', 'demand')
-QUICK = {'buffer': 400, 'refit_interval': 60, 'batch_size': 32, 'rows': ['unicycle/diff']}
+QUICK = {'buffer': 200, 'refit_interval': 40, 'batch_size': 16, 'rows': ['unicycle/diff']}
 
 
 class Period:
@@ -77,6 +81,21 @@ class Period:
 
     def mean_step_ms(self) -> float:
         return 1e3 * (self.stamps[-1] - self.stamps[0]) / (len(self.stamps) - 1)
+
+
+def run_hours(*, first_ms: float, full_ms: float, steps: int, capacity: int) -> float:
+    """Hours of a run of ``steps`` environment steps whose buffer holds ``capacity`` at most,
+    the step costing ``first_ms`` near an empty buffer and ``full_ms`` at a full one, linear
+    in the stored count in between (the parts that grow with it, the GP's prediction at every
+    stored transition and its selection among every pair, are linear in it): the stored
+    count is min(t, capacity) at step t."""
+    if steps <= 0 or capacity <= 0:
+        raise ValueError('steps and capacity must be > 0')
+    if steps <= capacity:
+        fullness = steps / (2 * capacity)
+    else:
+        fullness = (capacity / 2 + steps - capacity) / steps
+    return steps * (first_ms + (full_ms - first_ms) * fullness) / 1e3 / 3600
 
 
 def build(system: str, mode: str, *, buffer: int, refit_interval: int,
@@ -187,10 +206,10 @@ def measure(system: str, mode: str, way: str, *, buffer: int, refit_interval: in
     assert learner.env_steps % refit_interval == refit_interval - 1
     full = timed_period()
     return {'first': first, 'full': full, 'stored': (refit_interval, len(learner.buffer)),
-            'through_layer': learner.sac.through_layer}
+            'through_layer': learner.sac.through_layer, 'episode_steps': int(env.max_steps)}
 
 
-def row_text(system: str, mode: str, way: str, runs: list[dict]) -> str:
+def row_text(system: str, mode: str, way: str, runs: list[dict], *, capacity: int) -> str:
     """One table row: medians over the repeats."""
     def median(period: str, value) -> float:
         return statistics.median(value(run[period]) for run in runs)
@@ -209,7 +228,16 @@ def row_text(system: str, mode: str, way: str, runs: list[dict]) -> str:
             f'| {median("full", lambda p: p.fill_s):.2f} '
             f'| {median("first", lambda p: p.predicted) / steps:.0f} '
             f'| {median("full", lambda p: p.predicted) / steps:.0f} '
-            f'| <= {TARGET:g}x | {"met" if ratio <= TARGET else "not met"} |')
+            f'| <= {TARGET:g}x | {"met" if ratio <= TARGET else "not met"} '
+            f'| {paper_hours(system, runs[0]["episode_steps"], first, full, capacity):.1f} |')
+
+
+def paper_hours(system: str, episode_steps: int, first_ms: float, full_ms: float,
+                capacity: int) -> float:
+    """:func:`run_hours` of one seed at the ``paper`` budget: its episodes of the system,
+    each run to its full length (an episode ended at the goal is shorter)."""
+    steps = BUDGETS['paper'].episodes[system] * episode_steps
+    return run_hours(first_ms=first_ms, full_ms=full_ms, steps=steps, capacity=capacity)
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -223,7 +251,7 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument('--repeats', type=int, default=1, help='runs per row and way')
     parser.add_argument('--ways', nargs='*', default=list(WAYS), choices=list(WAYS))
     parser.add_argument('--quick', action='store_true',
-                        help='a smoke test: R = 60, 400 transitions, minibatch 32, unicycle/diff')
+                        help='a smoke test: R = 40, 200 transitions, minibatch 16, unicycle/diff')
     parser.add_argument('--no-write', action='store_true')
     args = parser.parse_args(argv)
     defaults = QUICK if args.quick else {'buffer': 200_000,
@@ -247,7 +275,8 @@ def main(argv: list[str] | None = None) -> str:
              '| full / first-fit | GP refit s, first | GP refit s, full (subset selection) '
              '| pass s, first '
              '| pass s, full | states predicted per step, first | the same, full | target '
-             '| |', '|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|']
+             '| | paper run h |',
+             '|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---:|']
     for system, mode in rows:
         runs: dict[str, list[dict]] = {way: [] for way in args.ways}
         for _ in range(args.repeats):
@@ -260,7 +289,7 @@ def main(argv: list[str] | None = None) -> str:
         for way in args.ways:
             if not runs[way]:
                 continue
-            table.append(row_text(system, mode, way, runs[way]))
+            table.append(row_text(system, mode, way, runs[way], capacity=buffer))
             print(table[-1], flush=True)
     load_after = os.getloadavg()
     command = ('python benchmarks/bench_training_full_buffer.py'
