@@ -11,7 +11,9 @@ the same transitions. Per environment step the driver calls
 3. :meth:`SafeLearner.observe` stores (o, x, u_RL, u*, u_S, r, o', x', done) and the GP's
    training pair (x, y = (x' - x)/dt - f(x) - g(x) u*);
 4. :meth:`SafeLearner.after_step` runs the schedule: SAC updates, the GP refit every
-   ``gp_refit_interval`` steps (Algorithm 1 line 2), model rollouts in model-based mode.
+   ``gp_refit_interval`` steps (Algorithm 1 line 2; when the losses pass a layer, followed by
+   one pass putting the new GP's estimate at every stored transition into the buffer's memo),
+   model rollouts in model-based mode.
 """
 from __future__ import annotations
 
