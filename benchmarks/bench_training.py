@@ -136,13 +136,12 @@ DIFFERENCES = (
     "critic's backward instead of two). "
     'Differentiable layer (diff <- full): ours a batched active-set QP with its analytic '
     "backward, its barrier terms in closed form, and the GP estimate at the batch's states "
-    'from a memo per stored transition (each transition predicted at most once per refit, and '
-    'not at all where the acting path predicted its states since the last refit: here the '
-    "refit falls on the warm-up's last step, so the window's first updates predict the "
-    "warm-up transitions they draw, each once, and later ones only the newest transition's "
-    'next state when the update right after its step draws it; with N stored and a refit '
-    'every R steps, an update still predicts up to 2 N / R states on average, e.g. 400 of '
-    'the 512 at the 200 000-transition buffer of a full run); the reference '
+    'from a memo per stored transition, filled for every stored transition in one pass after '
+    "each refit (here the refit on the warm-up's last step, outside the window) and for "
+    "transitions stored since by the acting path's own estimate, so that an update predicts "
+    "only the newest transition's next state when the update right after its step draws it "
+    '(benchmarks/bench_training_full_buffer.py times the pass at a 200 000-transition '
+    'buffer); the reference '
     'qpth on the batch of 256 (interior point, backward through its KKT factorisation) and its '
     'GP predicted on the batch, in the critic target and the actor loss. Modular '
     '(modular <- mod): on Unicycle and Cars the '

@@ -9,6 +9,11 @@ import torch
 
 ArrayLike = torch.Tensor | np.ndarray | float
 
+PREDICT_CHUNK = 128
+"""States per ``predict`` call of :meth:`ReplayBuffer.fill_predictions`: the GP's cost per
+state is lowest from about 32 to 256 (its cross-kernel block then stays in cache), and rises
+by half or more from 512 on (benchmarks/bench_training_full_buffer.py)."""
+
 
 class TransitionBatch(NamedTuple):
     """A batch of B transitions (x_t, u^RL_t, u*_t, u^S_t, r_t, x_{t+1}, done)."""
@@ -180,6 +185,56 @@ class ReplayBuffer:
             self._predicted_version[slot, half] = version
         rows = memo[index]
         return BatchDisturbance(state=rows[:, 0], next_state=rows[:, 1])
+
+    def fill_predictions(self, *, version: int, predict: Predictor,
+                         chunk: int = PREDICT_CHUNK) -> int:
+        """Put ``version``'s prediction at both states of every stored transition into the
+        memo of :meth:`predictions`, in calls of at most ``chunk`` states; returns how many
+        states ``predict`` was asked for.
+
+        Meant right after a refit: with N stored and a refit every R steps, predicting on
+        demand leaves up to 2 N / R states per minibatch to predict in small calls, where one
+        pass predicts each stored state once, in calls of the size that runs fastest (the
+        cross-kernel block of a few hundred states stays in cache). Within an episode the
+        next state of a transition is the state of the one stored after it: where the slot
+        after a slot holds that state (its stored value equal) and its memo holds this
+        version's prediction, it is copied instead of predicted again; equal stored states
+        give ``predict`` the same input, so the memo holds what predicting would give, up to
+        the round-off of the batch it ran in. Slots already holding this version's prediction
+        are left as they are."""
+        if chunk < 1:
+            raise ValueError(f'chunk must be >= 1, got {chunk}')
+        size = self._size
+        if size == 0:
+            return 0
+        memo = self._memo()
+        versions = self._predicted_version[:size]
+        states, next_states = self._data['state'][:size], self._data['next_state'][:size]
+        asked = self._predict_into(memo, (versions[:, 0] != version).nonzero().squeeze(1), 0,
+                                   states, version, predict, chunk)
+        stale = (versions[:, 1] != version).nonzero().squeeze(1)
+        following = (stale + 1) % self.capacity
+        shared = (following < size) & (versions[following.clamp_max(size - 1), 0] == version)
+        candidates = stale[shared]
+        after = following[shared]
+        same = (next_states[candidates] == states[after]).all(dim=1)
+        copied, source = candidates[same], after[same]
+        memo[copied, 1] = memo[source, 0]
+        self._predicted_version[copied, 1] = version
+        rest = (self._predicted_version[:size, 1] != version).nonzero().squeeze(1)
+        return asked + self._predict_into(memo, rest, 1, next_states, version, predict, chunk)
+
+    def _predict_into(self, memo: torch.Tensor, slots: torch.Tensor, half: int,
+                      states: torch.Tensor, version: int, predict: Predictor,
+                      chunk: int) -> int:
+        """``predict`` at ``states[slots]`` in calls of ``chunk`` rows, into ``half`` of the
+        memo; returns the number of rows."""
+        for start in range(0, slots.numel(), chunk):
+            slot = slots[start:start + chunk]
+            mean, std = predict(states[slot].to(torch.float64))
+            memo[slot, half] = torch.stack([mean, std], dim=1).to(torch.float64)
+            self._predicted_version[slot, half] = version
+        return int(slots.numel())
 
     def remember(self, slot: int, half: int, state: np.ndarray, mean: np.ndarray,
                  std: np.ndarray, *, version: int) -> bool:

@@ -155,7 +155,13 @@ def farthest_point_subset(points: torch.Tensor, count: int, first: int) -> torch
     """Greedy farthest-point sampling.
 
     Starting from ``points[first]``, repeatedly add the point whose distance to the chosen set
-    is largest.
+    is largest (the first such point on a tie).
+
+    Each pass over the N points runs column by column, in numpy, on preallocated rows: the
+    squared distance summed over the columns in order, as ``((points - c) ** 2).sum(dim=1)``
+    sums them, without its (N, n_in) temporaries. At the N of a long run (200,000 points of
+    up to 10 columns), that keeps the pass in cache and takes a refit's selection from about
+    a minute to a few seconds.
 
     Args:
         points: (N, n_in).
@@ -166,16 +172,28 @@ def farthest_point_subset(points: torch.Tensor, count: int, first: int) -> torch
         (count,) int64 indices into ``points``, in the order chosen.
     """
     n_points = points.shape[0]
-    chosen = torch.empty(count, dtype=torch.long)
-    chosen[0] = first
-    min_sq_dist = ((points - points[first]) ** 2).sum(dim=1)
-    for i in range(1, count):
-        nxt = int(torch.argmax(min_sq_dist))
-        chosen[i] = nxt
-        min_sq_dist = torch.minimum(min_sq_dist, ((points - points[nxt]) ** 2).sum(dim=1))
     if count > n_points:  # pragma: no cover - guarded by the caller
         raise ValueError('count exceeds the number of points')
-    return chosen
+    columns = points.detach().T.contiguous().numpy()  # (n_in, N)
+    chosen = np.empty(count, dtype=np.int64)
+    chosen[0] = first
+    min_sq_dist, sq_dist, term = np.empty((3, n_points), dtype=columns.dtype)
+
+    def distances_to(index: int, out: np.ndarray) -> np.ndarray:
+        np.subtract(columns[0], columns[0, index], out=out)
+        np.square(out, out=out)
+        for column in columns[1:]:
+            np.subtract(column, column[index], out=term)
+            np.square(term, out=term)
+            out += term
+        return out
+
+    distances_to(first, min_sq_dist)
+    for i in range(1, count):
+        nxt = int(np.argmax(min_sq_dist))
+        chosen[i] = nxt
+        np.minimum(min_sq_dist, distances_to(nxt, sq_dist), out=min_sq_dist)
+    return torch.from_numpy(chosen)
 
 
 class DisturbanceGP:

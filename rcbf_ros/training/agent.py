@@ -11,7 +11,9 @@ the same transitions. Per environment step the driver calls
 3. :meth:`SafeLearner.observe` stores (o, x, u_RL, u*, u_S, r, o', x', done) and the GP's
    training pair (x, y = (x' - x)/dt - f(x) - g(x) u*);
 4. :meth:`SafeLearner.after_step` runs the schedule: SAC updates, the GP refit every
-   ``gp_refit_interval`` steps (Algorithm 1 line 2), model rollouts in model-based mode.
+   ``gp_refit_interval`` steps (Algorithm 1 line 2; when the losses pass a layer, followed by
+   one pass putting the new GP's estimate at every stored transition into the buffer's memo),
+   model rollouts in model-based mode.
 """
 from __future__ import annotations
 
@@ -302,6 +304,7 @@ class SafeLearner:
         cfg = self.config
         if self.env_steps % cfg.gp_refit_interval == 0 and self.gp.num_data >= 16:
             self.gp.fit()
+            self._fill_memo()
         if (self.rollout is not None and self.env_steps >= cfg.update_after
                 and self.env_steps % cfg.rollout_interval == 0):
             self.rollout.run(self.buffer, self.model_buffer)
@@ -310,6 +313,17 @@ class SafeLearner:
         for _ in range(cfg.updates_per_step):
             self.last_metrics = self.sac.update(*self.sample_batch())
         return self.last_metrics
+
+    def _fill_memo(self) -> None:
+        """After a refit, when the losses see the action through a layer: the new GP's
+        estimate at every stored transition into the buffers' memo, in one pass of large
+        calls (``ReplayBuffer.fill_predictions``), so that the updates until the next refit
+        read the memo instead of predicting their minibatch's stale states in small calls."""
+        if not self.sac.through_layer:
+            return
+        for buffer in (self.buffer, self.model_buffer):
+            if buffer is not None:
+                buffer.fill_predictions(version=self.gp.version, predict=self.disturbance)
 
     def sample_batch(self) -> tuple[TransitionBatch, BatchDisturbance | None]:
         """A minibatch; in model-based mode a ``model_ratio`` share comes from the model.

@@ -1,11 +1,14 @@
 """ReplayBuffer: circular storage, seeded sampling, checkpoints, clear errors."""
 from __future__ import annotations
 
+from hypothesis import given, HealthCheck, settings
+from hypothesis import strategies as st
 import numpy as np
 import pytest
 import torch
 
 from rcbf_ros.learning.buffers import ReplayBuffer, TransitionBatch
+from rcbf_ros.learning.gp import DisturbanceGP, GPConfig
 
 
 def add_numbered(buffer: ReplayBuffer, start: int, count: int) -> None:
@@ -199,3 +202,106 @@ def test_a_remembered_prediction_stands_in_for_its_state_only():
     assert buffer.newest == 3
     add_numbered(buffer, 4, 7)  # wraps around
     assert buffer.newest == 0
+
+
+def test_one_pass_after_a_refit_predicts_each_stored_state_once_in_chunks():
+    """``fill_predictions`` predicts every stored state of a new version in calls of at most
+    ``chunk`` rows; a next state the following slot holds as its state is copied from it
+    (also across the wrap from the last slot to the first), one it does not (the oldest
+    transition follows the newest) is predicted. Afterwards a minibatch predicts nothing and
+    reads the model's values."""
+    buffer = ReplayBuffer(10, 3, 2, 1)
+    add_numbered(buffer, 0, 13)  # slots 0-2 hold transitions 10-12, slots 3-9 hold 3-9
+    model = CountingModel()
+    buffer.predictions(torch.tensor([4, 5]), version=0, predict=model)  # an older version
+    model.rows.clear()
+    model.offset = 3.0
+    assert buffer.fill_predictions(version=1, predict=model, chunk=4) == 11
+    assert model.rows == [4, 4, 2, 1]  # ten states, then slot 2's next state (-13)
+    everything = torch.arange(10)
+    at = buffer.predictions(everything, version=1, predict=model)
+    assert model.rows == [4, 4, 2, 1]
+    batch = buffer.gather(everything)
+    torch.testing.assert_close(at.state, expected(model, batch.state), rtol=0, atol=0)
+    torch.testing.assert_close(at.next_state, expected(model, batch.next_state),
+                               rtol=0, atol=0)
+    assert buffer.fill_predictions(version=1, predict=model) == 0  # nothing stale
+    with pytest.raises(ValueError, match='chunk'):
+        buffer.fill_predictions(version=2, predict=model, chunk=0)
+    assert ReplayBuffer(4, 3, 2, 1).fill_predictions(version=0, predict=model) == 0
+
+
+def _gp_on(states: np.ndarray, seed: int) -> DisturbanceGP:
+    """A GP on 2 states conditioned on ``states`` (no hyperparameter fit: fast)."""
+    gp = DisturbanceGP(2, 2, GPConfig(max_train_points=24, seed=seed))
+    rng = np.random.default_rng(seed)
+    gp.add(states, np.sin(states) + 0.05 * rng.standard_normal(states.shape))
+    gp.set_hyperparameters(np.full((2, 2), 0.7), np.array([1.0, 0.5]), np.array([1e-2, 1e-3]))
+    return gp
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(capacity=st.integers(2, 40), before=st.integers(1, 90), after=st.integers(0, 50),
+       breaks=st.lists(st.integers(0, 140), max_size=8), chunk=st.integers(1, 64),
+       stale_draw=st.integers(0, 30), seed=st.integers(0, 2 ** 16))
+def test_after_a_refit_every_minibatch_reads_fresh_predictions(capacity, before, after, breaks,
+                                                               chunk, stale_draw, seed):
+    """The memo's contract with the one-pass fill: after a refit (new version) and
+    ``fill_predictions``, the estimate of any minibatch, over transitions stored before the
+    refit and written after it (overwriting some, wrapping around), equals the GP predicting
+    afresh at the gathered states, to float round-off; transitions stored before the refit
+    cost no prediction at all, and the pass asks for each distinct stored state at most once
+    (a chained episode's next state is its successor's state)."""
+    rng = np.random.default_rng(seed)
+    total = before + after
+    # An episode's states in a walk; a break (episode end) starts a new walk.
+    walk = np.cumsum(rng.normal(scale=0.4, size=(total + 1, 2)), axis=0)
+    restart = np.zeros(total + 1, dtype=bool)
+    restart[[b for b in breaks if b < total]] = True
+    next_states = walk[1:].copy()
+    states = walk[:-1].copy()
+    for i in np.flatnonzero(restart[:total]):
+        states[i] = rng.normal(scale=2.0, size=2)  # after a reset: not the last next state
+    buffer = ReplayBuffer(capacity, 3, 2, 1, seed=seed)
+
+    def store(rows: slice) -> None:
+        count = rows.stop - rows.start
+        if count:
+            buffer.add(obs=np.zeros((count, 3)), state=states[rows], u_rl=np.zeros((count, 1)),
+                       u_safe=np.zeros((count, 1)), u_s=np.zeros((count, 1)),
+                       reward=np.zeros(count), next_obs=np.zeros((count, 3)),
+                       next_state=next_states[rows], done=np.zeros(count))
+
+    store(slice(0, before))
+    old = _gp_on(states[:before], seed)
+    buffer.predictions(buffer.sample_index(stale_draw + 1), version=old.version,
+                       predict=old.predict)  # a memo of the model before the refit
+    gp = _gp_on(np.concatenate([states[:before], next_states[:before]]), seed + 1)
+    version = gp.version + old.version + 1  # not the old model's
+    asked: list[int] = []
+
+    def predict(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        asked.append(x.shape[0])
+        return gp.predict(x)
+
+    filled = buffer.fill_predictions(version=version, predict=predict, chunk=chunk)
+    distinct = torch.unique(torch.cat([buffer.gather(torch.arange(len(buffer))).state,
+                                       buffer.gather(torch.arange(len(buffer))).next_state]),
+                            dim=0).shape[0]
+    assert sum(asked) == filled and max(asked, default=0) <= chunk
+    assert len(buffer) <= filled <= 2 * len(buffer)
+    assert filled <= distinct + int(restart[:before].sum()) + 1
+    asked.clear()
+    index = buffer.sample_index(48)
+    estimate = buffer.predictions(index, version=version, predict=predict)
+    assert not asked  # the pass left nothing to predict
+    store(slice(before, total))
+    for _ in range(3):
+        index = buffer.sample_index(48)
+        estimate = buffer.predictions(index, version=version, predict=predict)
+        batch = buffer.gather(index)
+        for at, states_at in ((estimate.state, batch.state),
+                              (estimate.next_state, batch.next_state)):
+            mean, std = gp.predict(states_at.to(torch.float64))
+            torch.testing.assert_close(at[:, 0], mean, rtol=1e-10, atol=1e-12)
+            torch.testing.assert_close(at[:, 1], std, rtol=1e-10, atol=1e-12)

@@ -4,6 +4,8 @@ from __future__ import annotations
 import math
 
 import gpytorch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 import pytest
 import torch
 
@@ -162,6 +164,38 @@ def test_random_subset_rule_is_seeded():
 def test_farthest_point_subset_small_example():
     points = torch.tensor([[0.0], [1.0], [10.0], [4.0]])
     assert farthest_point_subset(points, 3, first=0).tolist() == [0, 2, 3]
+
+
+def _farthest_point_by_definition(points: torch.Tensor, count: int, first: int) -> list[int]:
+    """Greedy farthest-point sampling written as its definition: each pick the first point
+    of largest squared distance to the chosen set, distances summed over the columns in
+    order."""
+    chosen = [first]
+    best = ((points - points[first]) ** 2).sum(dim=1)
+    for _ in range(1, count):
+        chosen.append(int(torch.argmax(best)))
+        best = torch.minimum(best, ((points - points[chosen[-1]]) ** 2).sum(dim=1))
+    return chosen
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.integers(1, 300), columns=st.integers(1, 10), seed=st.integers(0, 2 ** 16),
+       integer=st.booleans(), share=st.floats(0.05, 1.0), dtype=st.sampled_from(
+           [torch.float64, torch.float32]))
+def test_farthest_point_subset_picks_as_its_definition(rows, columns, seed, integer, share,
+                                                       dtype):
+    """The column-wise pass picks the same points in the same order as the definition, on
+    spread data and on integer grids full of ties and duplicate points (a run's repeated
+    states), in float64 and float32."""
+    generator = torch.Generator().manual_seed(seed)
+    points = torch.randn(rows, columns, generator=generator, dtype=torch.float64)
+    if integer:
+        points = torch.round(points * 2)
+    points = points.to(dtype)
+    count = max(1, int(share * rows))
+    first = int(torch.randint(rows, (1,), generator=generator))
+    assert farthest_point_subset(points, count, first).tolist() == \
+        _farthest_point_by_definition(points, count, first)
 
 
 def test_state_dict_round_trip_restores_posterior_without_refit(fitted_slope_gp):

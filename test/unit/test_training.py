@@ -168,6 +168,48 @@ def test_the_acting_path_fills_the_memo_with_its_own_estimate(tmp_path, system, 
     torch.testing.assert_close(refitted.state[:, 1], std, rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.parametrize('system, mode, extra', [
+    ('unicycle', 'diff', {}), ('pvtol', 'modular', {'modular_envelope': True}),
+    ('car_following', 'baseline', {})])
+def test_a_refit_in_the_schedule_fills_the_memo_of_every_stored_transition(tmp_path, system,
+                                                                           mode, extra):
+    """The refit ``after_step`` runs is followed by one pass over the buffer
+    (``ReplayBuffer.fill_predictions``) when the losses pass a layer: the minibatches until
+    the next refit predict nothing and read the refitted GP's estimate. Without a layer in
+    the losses nothing is predicted."""
+    from rcbf_ros.training.build import build_run
+    env, _, learner, _ = build_run(small_run(tmp_path, system, mode, **extra))
+    rng = np.random.default_rng(5)
+    obs, info = env.reset(seed=0)
+    for _ in range(SMALL['gp_refit_interval']):
+        u = rng.uniform(learner.u_low, learner.u_high)
+        next_obs, reward, terminated, truncated, next_info = env.step(u)
+        learner.observe(obs=obs, state=info['state'], u_rl=u, u_safe=u, reward=reward,
+                        next_obs=next_obs, next_state=next_info['state'], terminated=terminated)
+        obs, info = next_obs, next_info
+        if terminated or truncated:
+            obs, info = env.reset()
+    asked: list[torch.Tensor] = []
+    predict = learner.disturbance
+    learner.disturbance = lambda x: (asked.append(x), predict(x))[1]
+    version = learner.gp.version
+    learner.after_step()  # the refit, the pass, then an update
+    assert learner.gp.version != version
+    if not learner.sac.through_layer:
+        assert not asked
+        return
+    assert 0 < sum(len(x) for x in asked) <= 2 * len(learner.buffer)
+    asked.clear()
+    for _ in range(3):
+        batch, estimate = learner.sample_batch()
+        assert not asked
+        for at, states in ((estimate.state, batch.state),
+                           (estimate.next_state, batch.next_state)):
+            mean, std = predict(states.to(torch.float64))
+            torch.testing.assert_close(at[:, 0], mean, rtol=1e-10, atol=1e-12)
+            torch.testing.assert_close(at[:, 1], std, rtol=1e-10, atol=1e-12)
+
+
 def test_without_a_layer_in_the_losses_no_estimate_is_drawn(tmp_path):
     learner = _filled_learner(tmp_path, 'unicycle', 'baseline')
     assert learner.sample_batch()[1] is None
