@@ -254,6 +254,10 @@ def cloud_points(data: bytes | memoryview, *, min_height: float = -math.inf,
             if offset + _FIELD_SIZE[datatype] > point_step:
                 return Refused(f'{POINT_CLOUD2}: field {axis!r} at offset {offset} ends past '
                                f'point_step {point_step}')
+            for other, (begins, kind) in zip('xyz', columns):   # disjoint bytes of a point
+                if offset < begins + _FIELD_SIZE[kind] and begins < offset + _FIELD_SIZE[datatype]:
+                    return Refused(f'{POINT_CLOUD2}: fields {other!r} and {axis!r} overlap '
+                                   f'(offsets {begins} and {offset})')
             columns.append((offset, datatype))
         if count == 0:
             return SensorPoints(np.zeros((0, 2)), frame_id, stamp, 0)

@@ -2,6 +2,8 @@
 that is not the reader under test)."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from rcbf_ros.messages import sensor
@@ -9,6 +11,7 @@ from rcbf_ros.messages.typestore import jazzy_typestore
 
 STORE = jazzy_typestore()
 T = STORE.types
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def header(frame_id: str = 'laser', sec: int = 12, nanosec: int = 345):
@@ -19,9 +22,12 @@ def header(frame_id: str = 'laser', sec: int = 12, nanosec: int = 345):
 def scan_bytes(ranges, *, angle_min=0.0, increment=0.1, range_min=0.1, range_max=10.0,
                 frame_id='laser', little_endian=True, intensities=None) -> bytes:
     ranges = np.asarray(ranges, dtype=np.float32)
+    angle_max = angle_min + increment * max(len(ranges) - 1, 0)
+    if math.isfinite(angle_max):   # a float32 field: a finite sum past its range is its limit
+        angle_max = max(min(angle_max, FLOAT32_MAX), -FLOAT32_MAX)
     msg = T[sensor.LASER_SCAN](
         header=header(frame_id), angle_min=angle_min,
-        angle_max=angle_min + increment * max(len(ranges) - 1, 0), angle_increment=increment,
+        angle_max=angle_max, angle_increment=increment,
         time_increment=0.0, scan_time=0.1, range_min=range_min, range_max=range_max,
         ranges=ranges,
         intensities=np.asarray(intensities if intensities is not None else [], np.float32))

@@ -126,6 +126,10 @@ def _fields(**changes):
     ({'fields': _fields(x=(None, None))}, "no field 'x'"),
     ({'fields': _fields(z=(10, sensor.FLOAT32))}, 'past point_step'),
     ({'fields': _fields(y=(4, 5))}, 'datatype 5'),
+    ({'fields': _fields(y=(0, sensor.FLOAT32))}, "fields 'x' and 'y' overlap"),
+    ({'fields': _fields(z=(2, sensor.FLOAT32))}, "fields 'x' and 'z' overlap"),
+    ({'fields': _fields(x=(0, sensor.FLOAT64), y=(8, sensor.FLOAT32),
+                        z=(4, sensor.FLOAT32))}, "fields 'x' and 'z' overlap"),
     ({'data_cut': 1}, 'fewer than'),
     ({'height': 2, 'data_cut': 13}, 'fewer than')])
 def test_cloud_with_wrong_layout_is_refused(kwargs, words):
