@@ -77,7 +77,8 @@ class SimulatorSettings(MessageSettings):
     """Topics whose publishers the first episode waits for."""
     wait_for_subscribers: tuple[str, ...] = setting(
         (), description='the first episode waits until each of these nodes subscribes to the '
-                        'state topic (recorded launches: the recorder)')
+                        'state topic and every wait_for_publishers topic (recorded launches: '
+                        'the recorder)')
     """Nodes whose subscription to ``state`` the first episode waits for."""
 
 
@@ -166,7 +167,7 @@ def episode_event(event: str, **fields: Any) -> str:
 def loop_waits_for(*, state_topic: str, matched: Mapping[str, int],
                    readers: Mapping[str, Sequence[bytes]],
                    loop_publishers: Mapping[str, Sequence[bytes]],
-                   state_listeners: Mapping[str, Sequence[bytes]] | None = None) -> str:
+                   listeners: Mapping[str, Mapping[str, Sequence[bytes]]] | None = None) -> str:
     """What the first episode still waits for, in one line; ``''`` once the loop is up.
 
     Args:
@@ -176,23 +177,25 @@ def loop_waits_for(*, state_topic: str, matched: Mapping[str, int],
             process) of the subscriptions that discovery shows on it.
         loop_publishers: each ``wait_for_publishers`` topic -> the participants of its
             publishers in the graph.
-        state_listeners: each ``wait_for_subscribers`` node name -> the participants of its
-            subscriptions on ``state_topic`` (a recorder must not miss the first states).
+        listeners: each ``wait_for_subscribers`` node name -> ``state_topic`` and each
+            ``wait_for_publishers`` topic -> the participants of that node's subscriptions there
+            (a recorder must not miss the first states, proposals or answers).
 
     The loop is up when ``state`` has a matched subscription, every ``wait_for_publishers``
     topic has a publisher, every such publisher's process subscribes to one of the simulator's
     topics, and the simulator's publishers have matched at least as many subscriptions on each
     topic as those processes hold there. Each ``wait_for_subscribers`` node joins the loop once
-    it subscribes to ``state_topic``; other processes (a ``ros2 topic echo``) neither hold the
-    start back nor count.
+    it subscribes to ``state_topic`` and to every ``wait_for_publishers`` topic; other processes
+    (a ``ros2 topic echo``) neither hold the start back nor count.
     """
     if matched.get(state_topic, 0) < 1:
         return f'a subscriber on {state_topic}'
     loop = set()
-    for name, owners in (state_listeners or {}).items():
-        if not owners:
-            return f'{name} to subscribe to {state_topic}'
-        loop.update(owners)
+    for name, topics in (listeners or {}).items():
+        for topic, owners in topics.items():
+            if not owners:
+                return f'{name} to subscribe to {topic}'
+            loop.update(owners)
     for topic, owners in loop_publishers.items():
         if not owners:
             return f'a publisher on {topic}'
@@ -434,14 +437,15 @@ class SimulatorNode(Node):
         loop_publishers = {topic: [_participant(e)
                                    for e in self.get_publishers_info_by_topic(topic)]
                            for topic in self.wait_for_publishers}
-        subscriptions = {topic: self.get_subscriptions_info_by_topic(topic) for topic in matched}
-        readers = {topic: [_participant(e) for e in endpoints]
-                   for topic, endpoints in subscriptions.items()}
-        listeners = {name: [_participant(e) for e in subscriptions[state_topic]
-                            if e.node_name == name]
+        subscriptions = {topic: self.get_subscriptions_info_by_topic(topic)
+                         for topic in (*matched, *self.wait_for_publishers)}
+        readers = {topic: [_participant(e) for e in subscriptions[topic]] for topic in matched}
+        listeners = {name: {topic: [_participant(e) for e in subscriptions[topic]
+                                    if e.node_name == name]
+                            for topic in (state_topic, *self.wait_for_publishers)}
                      for name in self.wait_for_subscribers}
         return loop_waits_for(state_topic=state_topic, matched=matched, readers=readers,
-                              loop_publishers=loop_publishers, state_listeners=listeners)
+                              loop_publishers=loop_publishers, listeners=listeners)
 
     def on_watchdog(self) -> None:
         if not self._running():

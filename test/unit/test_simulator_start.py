@@ -50,16 +50,20 @@ def test_processes_outside_the_loop_neither_hold_back_nor_count():
     assert _waits_for(readers, loop, {topic: 0 for topic in TOPICS} | {'/state': 2}) == ''
 
 
-def test_waits_for_each_named_listener_to_subscribe_to_the_state():
+def test_waits_for_each_named_listener_to_subscribe_to_the_loops_topics():
     loop = {'/cmd_safe': [FILTER], '/cmd_proposed': [CONTROLLER]}
     readers = {'/state': [FILTER, CONTROLLER]}
-    assert loop_waits_for(state_topic='/state', matched={'/state': 2}, readers=readers,
-                          loop_publishers=loop, state_listeners={'recorder': []}) == \
-        'recorder to subscribe to /state'
+
+    def waits(listening: dict, matched: int) -> str:
+        return loop_waits_for(state_topic='/state', matched={'/state': matched},
+                              readers=readers, loop_publishers=loop,
+                              listeners={'recorder': listening})
+    everywhere = {'/state': [RECORDER], '/cmd_safe': [RECORDER], '/cmd_proposed': [RECORDER]}
+    assert waits(everywhere | {'/state': []}, 2) == 'recorder to subscribe to /state'
+    # On the state but not yet on the proposals: its first proposals would be lost.
+    assert waits(everywhere | {'/cmd_proposed': []}, 2) == \
+        'recorder to subscribe to /cmd_proposed'
     readers = {'/state': [FILTER, CONTROLLER, RECORDER]}
     # Subscribed but not matched yet: its first states would be lost.
-    assert loop_waits_for(state_topic='/state', matched={'/state': 2}, readers=readers,
-                          loop_publishers=loop, state_listeners={'recorder': [RECORDER]}) == \
-        '3 subscription(s) on /state to match (2 so far)'
-    assert loop_waits_for(state_topic='/state', matched={'/state': 3}, readers=readers,
-                          loop_publishers=loop, state_listeners={'recorder': [RECORDER]}) == ''
+    assert waits(everywhere, 2) == '3 subscription(s) on /state to match (2 so far)'
+    assert waits(everywhere, 3) == ''
