@@ -538,6 +538,8 @@ def build_families(params: Mapping[str, Any],
 
 def _families(p: FilterParameters, params: Mapping[str, Any],
               system: ControlAffineSystem) -> tuple[BarrierFamily, ...]:
+    """The static barrier families; none only with ``observation_sources`` (the sensor points
+    are then the filter's only obstacles)."""
     families: list[BarrierFamily] = []
     if p.obstacles is not None:
         families.append(_obstacles(p.obstacles, system))
@@ -546,9 +548,9 @@ def _families(p: FilterParameters, params: Mapping[str, Any],
         families.append(_gaps(p.gaps, system))
     if p.walls is not None:
         families.append(_walls(p.walls, system))
-    if not families:
+    if not families and not p.observation_sources:
         raise ValueError('barriers: configure at least one of obstacles.*, bands.*, gaps.*, '
-                         'walls.*')
+                         'walls.*, observation_sources')
     return tuple(families)
 
 
