@@ -29,6 +29,7 @@ from test_safety_filter_node import (
     _start_filter,
     _wait_matched,
     Probe,
+    UNICYCLE,
 )
 
 pytestmark = pytest.mark.integration
@@ -200,4 +201,49 @@ def test_a_pointcloud_source_slows_the_robot_before_a_wall(ros_domain_id):
     assert level == 0 and values['fail_safe'] == 'False', message
     np.testing.assert_array_equal(command['u'], AHEAD['u'])
     assert int(values['cloud.messages']) >= 2 and int(values['cloud.refused']) == 0
+    assert 'Traceback' not in output, output[-4000:]
+
+
+def test_a_robot_with_only_a_lidar_runs_without_static_obstacles(ros_domain_id, tmp_path):
+    """config/unicycle.yaml without its obstacles' centres and radii: the scan's points are
+    the filter's only rows."""
+    import yaml
+
+    from rcbf_ros.messages.conversions import sections_to_msg
+    with open(UNICYCLE) as stream:
+        document = yaml.safe_load(stream)
+    for node in document.values():
+        geometry = node['ros__parameters'].get('obstacles', {})
+        for key in ('x', 'y', 'radius'):
+            geometry.pop(key, None)
+    params_file = tmp_path / 'lidar_only.yaml'
+    params_file.write_text(yaml.safe_dump(document))
+    probe = Probe(ros_domain_id)
+    process = _start_filter(ros_domain_id, *SOURCE, params_file=str(params_file))
+    try:
+        probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
+        scan_pub = probe.publisher('sensor_msgs/msg/LaserScan', '/scan')
+        proposal_pub, _ = _connect(probe, process, 'std_msgs/msg/Float64MultiArray',
+                                   with_state=False)
+        _wait_matched(scan_pub, process)
+        # where config/unicycle.yaml's centre obstacle stood: gone with its parameters
+        ahead = sections_to_msg({'u': [2.5, 0.0], 'state': [-1.0, 0.0, 0.0]})
+        _handshake(probe, proposal_pub, ahead)
+        no_scan = _exchange(probe, proposal_pub, ahead)
+        walled = _answer_after_scan(probe, scan_pub, proposal_pub, _wall(), ahead)
+        open_space = _answer_after_scan(probe, scan_pub, proposal_pub,
+                                        _scan([math.inf] * 101), ahead)
+        process_alive = process.poll() is None
+    finally:
+        output = stop(process, timeout=10)
+        probe.close()
+    assert process_alive, output[-4000:]
+    level, message, _ = no_scan[1]
+    assert level == 2 and message.startswith('source front: no message yet'), message
+    command, (level, message, values) = walled
+    assert level == 0 and 0.0 <= command['u'][0] < 1.5, message
+    assert [key for key in values if key.startswith('h.')] == ['h.sensor_points'], values
+    command, (level, message, _) = open_space
+    assert level == 0, message
+    np.testing.assert_array_equal(command['u'], [2.5, 0.0])
     assert 'Traceback' not in output, output[-4000:]
