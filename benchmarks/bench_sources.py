@@ -14,6 +14,12 @@ Messages are encoded by rosbags, once per world, before the timing:
   -0.2..1.5 m; the z band 0.05-0.5 m keeps about a quarter), without and with a 5 cm grid;
 - PointCloud2 of 100k points (the cap is 200,000 per message: answered, not refused).
 
+Then what one 100k-point PointCloud2 costs the node's callback: the time the source's
+callback holds the executor (decode + store, :meth:`ObservationSources.read`: the node takes
+sensor messages as raw bytes, so this is all its callback does with a good one), which is how
+long any other callback can wait behind it on the single-threaded executor; and the memory
+over a stream of such messages (tracemalloc's current and peak, and the process's RSS).
+
 Nav2 collision_monitor's figures from its README are printed beside ours as a reference, not
 re-measured here (another machine, and a stop/slow-down check, not a QP).
 """
@@ -23,8 +29,10 @@ import argparse
 import gc
 import os
 from pathlib import Path
+import resource
 import sys
 import time
+import tracemalloc
 
 import numpy as np
 
@@ -184,6 +192,74 @@ def measure(kind: str, size: int, voxel: float, number: int, seed: int = 0) -> d
             'points': float(np.mean(points)) if points else 0.0, 'refusal': refusal}
 
 
+def rss_mb() -> float:
+    """The process's resident set size (MB), from /proc (0 where there is none)."""
+    try:
+        with open('/proc/self/statm') as statm:
+            return int(statm.read().split()[1]) * resource.getpagesize() / 2**20
+    except OSError:
+        return 0.0
+
+
+def hold(messages: int, size: int = 100_000, distinct: int = 5, seed: int = 1) -> dict:
+    """One source's callback on ``messages`` PointCloud2 of ``size`` points (``distinct``
+    different ones, in turn): the time each holds the callback (decode + store, ms), then,
+    over the same stream again with tracemalloc on, the memory held after the first message
+    and after the last (MB) and the peak; RSS after the first and the last of the timed
+    pass."""
+    config = filter_config_from_params(params('pointcloud', 0.0))
+    sources = ObservationSources(config.sources)
+    rng = np.random.default_rng(seed)
+    stream = [cloud_message(size, 100, rng) for _ in range(distinct)]
+    gc.collect()
+    times, rss = [], []
+    for index in range(messages):
+        data = bytes(stream[index % distinct])  # a fresh buffer, as the runtime hands over
+        start = time.perf_counter()
+        reason = sources.read('sensor', data, received_ns=0)
+        times.append(time.perf_counter() - start)
+        assert not reason, reason
+        del data
+        if index in (0, messages - 1):
+            rss.append(rss_mb())
+    gc.collect()
+    tracemalloc.start()
+    held = []
+    try:
+        for index in range(messages):
+            data = bytes(stream[index % distinct])
+            sources.read('sensor', data, received_ns=0)
+            del data
+            if index in (0, messages - 1):
+                held.append(tracemalloc.get_traced_memory()[0] / 2**20)
+        peak = tracemalloc.get_traced_memory()[1] / 2**20
+    finally:
+        tracemalloc.stop()
+    times_ms = np.array(times) * 1e3
+    return {'median': float(np.median(times_ms)), 'p99': float(np.percentile(times_ms, 99)),
+            'max': float(times_ms.max()), 'first_mb': held[0], 'last_mb': held[-1],
+            'peak_mb': peak, 'rss_first': rss[0], 'rss_last': rss[-1],
+            'message_mb': len(stream[0]) / 2**20}
+
+
+def hold_table(messages: int) -> list[str]:
+    """The callback's hold time and the memory over ``messages`` 100k-point clouds."""
+    f = hold(messages)
+    lines = ['| 100k-point PointCloud2 (%.1f MB), %d messages | value |' % (f['message_mb'],
+                                                                          messages),
+             '|---|---:|',
+             f'| callback hold (decode + store), median | {f["median"]:.1f} ms |',
+             f'| callback hold, p99 / max | {f["p99"]:.1f} / {f["max"]:.1f} ms |',
+             f'| memory held after message 1 / {messages} (tracemalloc) | '
+             f'{f["first_mb"]:.2f} / {f["last_mb"]:.2f} MB |',
+             f'| peak while reading (tracemalloc) | {f["peak_mb"]:.2f} MB |',
+             f'| RSS after message 1 / {messages} | {f["rss_first"]:.0f} / '
+             f'{f["rss_last"]:.0f} MB |']
+    for line in lines:
+        print(line, flush=True)
+    return lines
+
+
 def run(number: int) -> list[str]:
     lines = ['| source | points in the filter (mean) | median (us) | p99 (us) | corrected | '
              'fail-safe | target (median) |',
@@ -205,16 +281,23 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--calls', type=int, default=1000,
                         help='decisions timed per source (default 1000)')
+    parser.add_argument('--hold-messages', type=int, default=100,
+                        help='100k-point clouds read for the callback hold and memory '
+                             '(default 100)')
     parser.add_argument('--no-write', dest='write', action='store_false',
                         help='print the section only; leave benchmarks/RESULTS.md alone')
     args = parser.parse_args(argv)
     if args.calls < 1:
         parser.error('--calls must be >= 1')
+    if args.hold_messages < 2:
+        parser.error('--hold-messages must be >= 2')
     table = run(args.calls)
+    holding = hold_table(args.hold_messages)
     from benchmarks._results import publish_section
     publish_section(
         TITLE, script='bench_sources.py'
-        + (f' --calls {args.calls}' if args.calls != 1000 else ''),
+        + (f' --calls {args.calls}' if args.calls != 1000 else '')
+        + (f' --hold-messages {args.hold_messages}' if args.hold_messages != 100 else ''),
         conditions=f"; load averages {', '.join(f'{x:.2f}' for x in os.getloadavg())}",
         write=args.write, blocks=[
             'One decision from sources to command: the latest message read from its CDR '
@@ -226,11 +309,22 @@ def main(argv: list[str] | None = None) -> int:
             'PointCloud2 in `odom`, x/y/z/intensity FLOAT32, z in -0.2..1.5 m cut to the band '
             '0.05-0.5 m. "corrected": the answers that changed the proposal.',
             table, COLLISION_MONITOR,
+            'What one 100k-point PointCloud2 (x/y/z/intensity FLOAT32, the band keeping about '
+            'a quarter) costs the node: the time its source callback holds the executor '
+            '(`ObservationSources.read`, decode + store: the node takes sensor messages as raw '
+            'bytes, so this is the whole callback for a good message; another callback waits '
+            'at most this long behind it), over a stream of such messages; and the memory: '
+            "tracemalloc's current after the first and the last message (only the latest "
+            "message's points are kept, so it stays flat) and its peak (one message's decode "
+            'in flight), and the RSS.',
+            holding,
             'Caveats: the machine (2 cores) was shared with other jobs, which moves the p99 '
             'most; the decode is timed per decision (the node reads a message once, when it '
             'arrives, so a decision between two messages costs less); no publishing; '
             "collision_monitor's figures come from its README, another machine and a "
-            'different check (stop / slow-down zones, no QP), printed as a reference only.'])
+            'different check (stop / slow-down zones, no QP), printed as a reference only. '
+            "The callback hold leaves out the runtime's taking of the sample from DDS (a copy "
+            'of its bytes) before the callback runs.'])
     return 0
 
 

@@ -253,7 +253,8 @@ _SOURCE_NAME = re.compile(r'[A-Za-z][A-Za-z0-9_]*')
 
 @dataclass(frozen=True)
 class SourceParameters:
-    """``<name>.*``: one observation source (a name listed in ``observation_sources``)."""
+    """``<name>.*``: one observation source (a name listed in ``observation_sources``). Every
+    key is fixed at start: the node subscribes once, and keeps each source's settings."""
 
     type: str = setting('', choices=SOURCE_TYPES,
                         description='scan (sensor_msgs/LaserScan) or pointcloud '
@@ -262,16 +263,18 @@ class SourceParameters:
     topic: str = setting('', description='the topic the source subscribes to', read_only=True)
     """The topic (required)."""
     timeout_s: float = setting(
-        SOURCE_TIMEOUT_S, positive=True, maximum=3600.0,
+        SOURCE_TIMEOUT_S, positive=True, maximum=3600.0, read_only=True,
         description='the fail-safe when the latest message is older than this (s)')
     """The fail-safe once the latest message is older than this (s); none yet too."""
     min_height: float = setting(0.05, description='pointcloud: the lowest z (m) of a point '
-                                                  'that counts, in the message frame')
+                                                  'that counts, in the message frame',
+                                read_only=True)
     """pointcloud: lowest z of a point that counts (m)."""
     max_height: float = setting(0.5, description='pointcloud: the highest z (m) of a point '
-                                                 'that counts, in the message frame')
+                                                 'that counts, in the message frame',
+                                read_only=True)
     """pointcloud: highest z of a point that counts (m)."""
-    voxel_size: float = setting(0.0, minimum=0, maximum=100.0,
+    voxel_size: float = setting(0.0, minimum=0, maximum=100.0, read_only=True,
                                 description='pointcloud: thinning grid cell (m; 0: off)')
     """pointcloud: thinning grid cell (m); 0 turns thinning off."""
     best_effort: bool = setting(True, description='subscribe best effort (sensor data QoS); '
@@ -538,6 +541,8 @@ def build_families(params: Mapping[str, Any],
 
 def _families(p: FilterParameters, params: Mapping[str, Any],
               system: ControlAffineSystem) -> tuple[BarrierFamily, ...]:
+    """The static barrier families; none only with ``observation_sources`` (the sensor points
+    are then the filter's only obstacles)."""
     families: list[BarrierFamily] = []
     if p.obstacles is not None:
         families.append(_obstacles(p.obstacles, system))
@@ -546,9 +551,9 @@ def _families(p: FilterParameters, params: Mapping[str, Any],
         families.append(_gaps(p.gaps, system))
     if p.walls is not None:
         families.append(_walls(p.walls, system))
-    if not families:
+    if not families and not p.observation_sources:
         raise ValueError('barriers: configure at least one of obstacles.*, bands.*, gaps.*, '
-                         'walls.*')
+                         'walls.*, observation_sources')
     return tuple(families)
 
 

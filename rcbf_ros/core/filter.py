@@ -863,8 +863,9 @@ class _RowsAsArrays:
                  ) -> ManyRows:
         h, rows, upper, size = self._assemble(x, u, mean, std)
         k = self._k
-        return ManyRows(np.array(h), -np.array(rows[:k])[:, :self.n_u], np.array(upper[:k]),
-                        list(upper[k:]), size)
+        g_rows = np.array(rows[:k], dtype=np.float64).reshape(k, self.n_u + 1)  # k may be 0
+        return ManyRows(np.array(h, dtype=np.float64), -g_rows[:, :self.n_u],
+                        np.array(upper[:k], dtype=np.float64), list(upper[k:]), size)
 
 
 def _many_as_lists(many: VectorAssembly) -> RowAssembly:
@@ -1292,7 +1293,8 @@ class SafetyFilter:
                 return self._fail_safe(u, start, status='input_refused', h=report(h).tolist(),
                                        clipped=clipped, reason=reason)
         solve_start = time.perf_counter()
-        lowest, highest = float(upper.min()), float(upper.max())
+        lowest, highest = ((float(upper.min()), float(upper.max())) if upper.size
+                           else (0.0, 0.0))  # no rows: sensor points only, none in sight
         if limit_upper:
             lowest, highest = min(lowest, min(limit_upper)), max(highest, max(limit_upper))
         if lowest >= 0.0:  # the pass-through of filter(): z = 0 meets every row

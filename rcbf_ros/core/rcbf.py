@@ -78,9 +78,12 @@ def barrier_terms(system: ControlAffineSystem, families: Sequence[BarrierFamily]
                 grad = torch.where(use[:, None, None], grad_behind, both_grad[:, :k])
             hs.append(h)
             grads.append(grad)
+    x = x.detach()
+    if not families:  # no static barrier (a filter of sensor points only): K = 0
+        hs.append(x.new_zeros((x.shape[0], 0)))
+        grads.append(x.new_zeros((x.shape[0], 0, x.shape[1])))
     h = torch.cat(hs, dim=1)
     grad_h = torch.cat(grads, dim=1)
-    x = x.detach()
     lf_h = torch.einsum('bkn,bn->bk', grad_h, system.f(x))
     lg_h = torch.einsum('bkn,bnm->bkm', grad_h, system.g(x))
     return BarrierTerms(h, grad_h, lf_h, lg_h)
@@ -93,7 +96,9 @@ class RCBFProblem:
     system: ControlAffineSystem
     """Nominal control-affine model (f, g, input limits)."""
     families: tuple[BarrierFamily, ...]
-    """Barrier families, already cascaded to relative degree 1 where needed."""
+    """Barrier families, already cascaded to relative degree 1 where needed. Empty only for a
+    filter whose obstacles are all sensor points (:class:`rcbf_ros.core.filter.SafetyFilter`
+    with a ``footprint``): the rows are then the points' alone."""
     alpha: float = 1.0
     """Linear class-K gain: alpha(h) = alpha * h."""
     k_c: float = 2.0
@@ -106,8 +111,6 @@ class RCBFProblem:
     """Add the actuator-limit rows u_min <= u_RL + u_S <= u_max when the system has limits."""
 
     def __post_init__(self) -> None:
-        if not self.families:
-            raise ValueError('barriers: at least one barrier is needed')
         if self.alpha <= 0:
             raise ValueError('alpha: must be > 0')
         if self.k_c < 0:

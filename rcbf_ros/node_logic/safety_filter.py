@@ -35,6 +35,7 @@ from rcbf_ros.core.config import (
     FilterConfig,
     FilterParameters,
     OBSTACLE_LIMIT,
+    SourceParameters,
 )
 from rcbf_ros.core.filter import (
     InputBounds,
@@ -177,6 +178,11 @@ _OPEN_FAMILIES: tuple[ParameterSpec, ...] = (
                      say_default=True),
 )
 
+SOURCE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(
+    SourceParameters, prefix='<name>.', declared_defaults=False, say_default=True)
+"""``<name>.*`` of each observation source (a name of ``observation_sources``): declared when
+given, fixed at start."""
+
 FILTER_DESCRIPTIONS: dict[str, str] = {
     spec.name: spec.description
     for spec in parameter_specs(FilterParameters) + _OPEN_FAMILIES[:1]
@@ -185,7 +191,8 @@ FILTER_DESCRIPTIONS: dict[str, str] = {
 of their own)."""
 
 FILTER_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(
-    FilterParameters, declared_defaults=False, say_default=True) + _OPEN_FAMILIES
+    FilterParameters, declared_defaults=False, say_default=True) + _OPEN_FAMILIES \
+    + SOURCE_PARAMETERS
 """Keys of :func:`rcbf_ros.core.config.filter_config_from_params` (``config/<system>.yaml``),
 from :class:`rcbf_ros.core.config.FilterParameters`. Not set (``None``) by default: the
 config's own default applies. ``<name>`` families are declared when the parameter overrides
@@ -199,6 +206,8 @@ FILTER_PARAMETER_KEYS: tuple[str, ...] = parameter_keys(FilterParameters)
 OPEN_PARAMETER_PREFIXES: tuple[str, ...] = FILTER_OPEN_PREFIXES
 """Families of keys whose names are chosen by the user (``bands.operator.index``, ...)."""
 _KNOWN_NAMES = frozenset(spec.name for spec in PARAMETERS if not spec.pattern)
+_KEY_GROUPS = frozenset(spec.name.split('.', 1)[0] for spec in PARAMETERS if '.' in spec.name
+                        and not spec.name.startswith('<'))
 
 
 READ_ONLY_PARAMETERS: tuple[str, ...] = tuple(
@@ -212,16 +221,26 @@ READ_ONLY_DESCRIPTION = 'read-only: fixed at start (restart the node to change i
 """The description of a read-only parameter's descriptor."""
 
 
+def is_source_key(name: str) -> bool:
+    """Whether ``name`` is a key of an observation source (``<name>.timeout_s``, ...:
+    :data:`SOURCE_PARAMETERS`), its source name not a group of the filter's own keys."""
+    group = name.split('.', 1)[0]
+    return group not in _KEY_GROUPS and any(spec.matches(name) for spec in SOURCE_PARAMETERS)
+
+
 def is_read_only(name: str) -> bool:
-    """Whether the parameter ``name`` is fixed at start (:data:`READ_ONLY_PARAMETERS`)."""
-    return name in READ_ONLY_PARAMETERS or name.startswith(READ_ONLY_PREFIXES)
+    """Whether the parameter ``name`` is fixed at start (:data:`READ_ONLY_PARAMETERS`, the
+    open families of :data:`READ_ONLY_PREFIXES`, every source key)."""
+    return (name in READ_ONLY_PARAMETERS or name.startswith(READ_ONLY_PREFIXES)
+            or is_source_key(name))
 
 
 def feeds_the_filter(name: str) -> bool:
     """Whether the parameter ``name`` is read by :func:`build_active_filter` (a node or filter
     key of :data:`PARAMETERS`, or one of the open families); other parameters (``use_sim_time``,
     a shared params file's keys for other nodes) change nothing here."""
-    return name in _KNOWN_NAMES or name.startswith(OPEN_PARAMETER_PREFIXES)
+    return (name in _KNOWN_NAMES or name.startswith(OPEN_PARAMETER_PREFIXES)
+            or is_source_key(name))
 
 
 def parameter_declarations(override_names: Sequence[str] = ()) -> list[tuple[str, Any]]:
@@ -236,7 +255,8 @@ def parameter_declarations(override_names: Sequence[str] = ()) -> list[tuple[str
     """
     declared: dict[str, Any] = dict(declarations(PARAMETERS))
     for name in sorted(override_names):
-        if name.startswith(OPEN_PARAMETER_PREFIXES) and name not in declared:
+        if (name.startswith(OPEN_PARAMETER_PREFIXES) or is_source_key(name)) \
+                and name not in declared:
             declared[name] = None
     return list(declared.items())
 

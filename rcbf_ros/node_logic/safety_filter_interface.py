@@ -58,6 +58,7 @@ INTERFACE = NodeInterface(
     ),
     parameters=PARAMETERS,
     notes=('Parameters marked <name> are families whose names you choose (bands.operator.index, '
-           'system_params.with_operator): declared when given.',),
+           'system_params.with_operator, front.topic of a source front listed in '
+           'observation_sources): declared when given.',),
 )
 """Topics and parameters (``safety_filter --help``, README)."""

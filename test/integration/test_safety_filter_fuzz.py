@@ -5,15 +5,20 @@ raw CDR payloads on ``cmd_proposed`` and ``state`` through the runtime's writers
 takes serialized bytes as rclpy's does): random bytes, bit-flipped valid samples, truncated and
 extended samples, labels that are not UTF-8 or are very long, huge sequence length fields, and
 other types' payloads under the array type. A second participant publishes other message types
-(Twist, String) under the same topic names. Fixed seed, a few hundred samples.
+(Twist, String) under the same topic names. The node has a LaserScan source (``front``) and a
+PointCloud2 source (``cloud``), and the barrage covers them too: random bytes, bit flips,
+truncations, NaN ranges and geometry, counts beyond every bound, and clouds of wrong layouts
+(missing, overlapping or unknown fields, steps that do not add up, data shorter than declared).
+Fixed seed, a few hundred samples.
 
 Cyclone checks a sample's structure against the type on both ends (a writer refuses bytes that
 are not a well-formed Float64MultiArray, a reader drops them), so what reaches the node is
 structurally valid CDR that may still be undecodable (a label that is not UTF-8, an encapsulation
 the header misstates) or decodable but unusable (sizes that do not add up, NaN, odd labels).
 
-Afterwards the node is alive, its diagnostics count dropped and refused samples, its stderr has
-no traceback, and it answers the probe proposals as it did when it was fresh: bit for bit where
+Afterwards the node is alive, its diagnostics count dropped and refused samples (the sources'
+messages and refusals too), its stderr has no traceback, and, given a valid scan and cloud
+again, it answers the probe proposals as it did when it was fresh: bit for bit where
 the proposal passes through, and to the solver's tolerance where the QP is active (OSQP warm
 starts from its previous solution, so even a fresh node's second answer differs in the last
 bits).
@@ -21,6 +26,7 @@ bits).
 from __future__ import annotations
 
 import collections
+import math
 from pathlib import Path
 import signal
 import struct
@@ -46,6 +52,15 @@ PASS_THROUGH = {'u': [0.4, 0.1], 'state': [2.0, 0.0, 0.0]}       # far from ever
 ACTIVE = {'u': [2.5, 0.0], 'state': [-0.85, 0.0, 0.0]}            # full speed at the centre one
 
 EVERY_DIAGNOSTIC = ('-p', 'diagnostics.min_period_s:=0.0')
+SENSORS = ('-p', 'observation_sources:=[front, cloud]', '-p', 'front.type:=scan',
+           '-p', 'front.topic:=/scan', '-p', 'front.timeout_s:=30.0',
+           '-p', 'cloud.type:=pointcloud', '-p', 'cloud.topic:=/points',
+           '-p', 'cloud.timeout_s:=30.0', '-p', 'footprint.radius:=0.2')
+"""Two sources whose valid samples put points far behind the probe states (no row binds): the
+answers are those of the static obstacles."""
+SCAN = 'sensor_msgs/msg/LaserScan'
+CLOUD = 'sensor_msgs/msg/PointCloud2'
+SENSOR_BARRAGE = 240
 """A diagnostic with every answer (the default rate-limits OK ones): each exchange reads the
 counts from its own answer's diagnostic."""
 
@@ -76,6 +91,9 @@ class Probe:
         array = get_message(ARRAY)
         self.writers = {topic: self.node.create_publisher(array, topic, QoSProfile(depth=10))
                         for topic in ('/cmd_proposed', '/state')}
+        for topic, kind in (('/scan', SCAN), ('/points', CLOUD)):
+            self.writers[topic] = self.node.create_publisher(get_message(kind), topic,
+                                                             QoSProfile(depth=10))
         self._subscribe(array, '/cmd_safe', _sections)
         self._subscribe(array, '/filter_info', lambda m: np.array(m.data, dtype=np.float64))
         self._subscribe(get_message('diagnostic_msgs/msg/DiagnosticArray'), '/diagnostics',
@@ -229,11 +247,130 @@ def _barrage(rng: np.random.Generator) -> list[tuple[str, str, bytes]]:
     return [samples[i] for i in order]
 
 
+def _stamp() -> Any:
+    from rcbf_ros.messages.typestore import jazzy_typestore
+    t = jazzy_typestore().types
+    now = time.time_ns()
+    return t['builtin_interfaces/msg/Time'](sec=now // 10**9, nanosec=now % 10**9)
+
+
+def _scan_cdr(ranges: Any = None, **changes: Any) -> bytes:
+    """A LaserScan in base_link stamped now (rosbags' encoder): by default 90 beams 8 m behind
+    the robot (angles pi -+ 0.45), far from every probe state's obstacles."""
+    from rcbf_ros.messages.typestore import jazzy_typestore
+    store = jazzy_typestore()
+    t = store.types
+    ranges = np.full(90, 8.0) if ranges is None else ranges
+    fields = dict(
+        header=t['std_msgs/msg/Header'](stamp=_stamp(), frame_id='base_link'),
+        angle_min=math.pi - 0.45, angle_max=math.pi + 0.45, angle_increment=0.01,
+        time_increment=0.0, scan_time=0.1, range_min=0.05, range_max=10.0,
+        ranges=np.asarray(ranges, np.float32), intensities=np.zeros(0, np.float32))
+    fields.update(changes)
+    return bytes(store.serialize_cdr(t[SCAN](**fields), SCAN))
+
+
+def _cloud_cdr(points: Any = None, **changes: Any) -> bytes:
+    """A PointCloud2 of float32 x, y, z in odom stamped now: by default 50 points around
+    (-12, 8, 0.2), far from every probe state's obstacles; ``changes`` override any field
+    (wrong layouts)."""
+    from rcbf_ros.messages.typestore import jazzy_typestore
+    store = jazzy_typestore()
+    t = store.types
+    if points is None:
+        points = np.column_stack([np.linspace(-12.5, -11.5, 50), np.full(50, 8.0),
+                                  np.full(50, 0.2)])
+    data = np.ascontiguousarray(points, dtype='<f4').view(np.uint8).ravel()
+    field = t['sensor_msgs/msg/PointField']
+    fields = dict(
+        header=t['std_msgs/msg/Header'](stamp=_stamp(), frame_id='odom'), height=1,
+        width=len(points), fields=[field(name=name, offset=4 * k, datatype=7, count=1)
+                                   for k, name in enumerate('xyz')],
+        is_bigendian=False, point_step=12, row_step=12 * len(points), data=data,
+        is_dense=True)
+    fields.update(changes)
+    return bytes(store.serialize_cdr(t[CLOUD](**fields), CLOUD))
+
+
+def _sensor_barrage(rng: np.random.Generator) -> list[tuple[str, str, bytes]]:
+    """(kind, topic, bytes) hostile samples of the two sources, in a seeded random order."""
+    from rcbf_ros.messages.typestore import jazzy_typestore
+    field = jazzy_typestore().types['sensor_msgs/msg/PointField']
+
+    def xyz(offsets: tuple[int, ...] = (0, 4, 8), datatype: int = 7, count: int = 1,
+            names: str = 'xyz') -> list[Any]:
+        return [field(name=name, offset=offset, datatype=datatype, count=count)
+                for name, offset in zip(names, offsets)]
+
+    nan = float('nan')
+    scans: dict[str, Callable[[], bytes]] = {
+        'scan NaN ranges': lambda: _scan_cdr(np.full(90, nan)),
+        'scan inf and negative ranges': lambda: _scan_cdr(
+            rng.choice([np.inf, -np.inf, -1.0, 0.0, 1e30], 90)),
+        'scan NaN geometry': lambda: _scan_cdr(**{str(rng.choice(
+            ['angle_min', 'angle_increment', 'range_min', 'range_max'])): nan}),
+        'scan huge angles': lambda: _scan_cdr(angle_min=3.0e38, angle_increment=1.0e37),
+        'scan too many beams': lambda: _scan_cdr(np.ones(200_001)),
+        'scan huge range count': lambda: _patched_count(_scan_cdr(), 'scan'),
+        'scan truncated': lambda: (lambda b: b[:int(rng.integers(0, len(b)))])(_scan_cdr()),
+        'scan bit flips': lambda: _flipped(rng, _scan_cdr(), int(rng.integers(1, 6))),
+        'scan random bytes': lambda: b'\x00\x01\x00\x00' + rng.integers(
+            0, 256, int(rng.integers(0, 400)), dtype=np.uint8).tobytes(),
+    }
+    clouds: dict[str, Callable[[], bytes]] = {
+        'cloud NaN points': lambda: _cloud_cdr(np.full((20, 3), nan)),
+        'cloud without z': lambda: _cloud_cdr(fields=xyz(names='xy')),
+        'cloud overlapping fields': lambda: _cloud_cdr(fields=xyz(offsets=(0, 0, 2))),
+        'cloud unknown datatype': lambda: _cloud_cdr(fields=xyz(datatype=int(
+            rng.choice([0, 1, 5, 9, 255])))),
+        'cloud field count 0': lambda: _cloud_cdr(fields=xyz(count=0)),
+        'cloud fields beyond the step': lambda: _cloud_cdr(point_step=8),
+        'cloud huge width and height': lambda: _cloud_cdr(width=2**31 - 1, height=2**31 - 1),
+        'cloud row step short': lambda: _cloud_cdr(row_step=5),
+        'cloud data short': lambda: _cloud_cdr(width=5000, row_step=60_000),
+        'cloud big-endian flag': lambda: _cloud_cdr(is_bigendian=True),
+        'cloud huge point step': lambda: _cloud_cdr(point_step=2**32 - 1),
+        'cloud huge data count': lambda: _patched_count(_cloud_cdr(), 'cloud'),
+        'cloud truncated': lambda: (lambda b: b[:int(rng.integers(0, len(b)))])(_cloud_cdr()),
+        'cloud bit flips': lambda: _flipped(rng, _cloud_cdr(), int(rng.integers(1, 6))),
+        'cloud random bytes': lambda: b'\x00\x01\x00\x00' + rng.integers(
+            0, 256, int(rng.integers(0, 400)), dtype=np.uint8).tobytes(),
+    }
+    makers = [(kind, '/scan', make) for kind, make in sorted(scans.items())] + [
+        (kind, '/points', make) for kind, make in sorted(clouds.items())]
+    samples = [(kind, topic, make()) for index in range(SENSOR_BARRAGE)
+               for kind, topic, make in (makers[index % len(makers)],)]
+    order = rng.permutation(len(samples))
+    return [samples[i] for i in order]
+
+
+def _patched_count(data: bytes, kind: str) -> bytes:
+    """The length field of a scan's ranges or a cloud's data set huge (default samples)."""
+    out = bytearray(data)
+    if kind == 'scan':  # ranges (90 floats): its length just before, then empty intensities
+        struct.pack_into('<I', out, len(out) - 4 - 360 - 4, 0xFFFFFFF0)
+    else:  # data (600 bytes by default): its length just before, is_dense (1 byte) after
+        struct.pack_into('<I', out, len(out) - 1 - 600 - 4, 0xFFFFFFF0)
+    return bytes(out)
+
+
 def _flipped(rng: np.random.Generator, data: bytes, flips: int) -> bytes:
     out = bytearray(data)
     for _ in range(flips):
         out[int(rng.integers(0, len(out)))] ^= 1 << int(rng.integers(0, 8))
     return bytes(out)
+
+
+def _sensed_exchange(probe: Probe, sections: dict) -> tuple[dict, tuple[int, str, dict]]:
+    """A valid scan and cloud, then the proposal; again until the answer uses both sources (a
+    sample may be lost, or arrive after the proposal)."""
+    for _ in range(50):
+        assert probe.write('/scan', _scan_cdr()) and probe.write('/points', _cloud_cdr())
+        time.sleep(0.1)
+        answer = probe.exchange('/cmd_proposed', _cdr(sections))
+        if not answer[1][1].startswith('source '):
+            return answer
+    raise AssertionError(f'the sources were never used: {answer[1][1]}')
 
 
 def test_fuzz_barrage_never_kills_the_node(ros_domain_id, tmp_path):
@@ -243,7 +380,8 @@ def test_fuzz_barrage_never_kills_the_node(ros_domain_id, tmp_path):
     with open(stdout, 'wb') as out, open(stderr, 'wb') as err:
         process = subprocess.Popen(
             [sys.executable, '-m', 'rcbf_ros.ros.safety_filter_node', '--ros-args',
-             '--params-file', UNICYCLE, *EVERY_DIAGNOSTIC], env=env, cwd=REPO, stdout=out,
+             '--params-file', UNICYCLE, *EVERY_DIAGNOSTIC, *SENSORS], env=env, cwd=REPO,
+            stdout=out,
             stderr=err)
 
     def node_alive() -> None:
@@ -251,15 +389,17 @@ def test_fuzz_barrage_never_kills_the_node(ros_domain_id, tmp_path):
     probe = Probe(ros_domain_id, node_alive)
     intruder_context, intruders = _intruders(ros_domain_id)
     try:
-        fresh = {name: probe.exchange('/cmd_proposed', _cdr(sections))
+        fresh = {name: _sensed_exchange(probe, sections)
                  for name, sections in (('pass', PASS_THROUGH), ('active', ACTIVE))}
-        fresh['repeat'] = probe.exchange('/cmd_proposed', _cdr(ACTIVE))
+        fresh['repeat'] = _sensed_exchange(probe, ACTIVE)
         answered_before = probe.count('/cmd_safe')
 
         rng = np.random.default_rng(SEED)
         delivered: collections.Counter = collections.Counter()
         refused: collections.Counter = collections.Counter()
-        for index, (kind, topic, data) in enumerate(_barrage(rng)):
+        samples = _barrage(rng) + _sensor_barrage(rng)
+        samples = [samples[i] for i in rng.permutation(len(samples))]
+        for index, (kind, topic, data) in enumerate(samples):
             (delivered if probe.write(topic, data) else refused)[kind] += 1
             if index % 40 == 0:
                 for writer, message in intruders:
@@ -270,7 +410,7 @@ def test_fuzz_barrage_never_kills_the_node(ros_domain_id, tmp_path):
         node_alive()
         answered = probe.count('/cmd_safe') - answered_before
 
-        after = {name: probe.exchange('/cmd_proposed', _cdr(sections))
+        after = {name: _sensed_exchange(probe, sections)
                  for name, sections in (('pass', PASS_THROUGH), ('active', ACTIVE))}
         node_alive()
     finally:
@@ -302,6 +442,15 @@ def test_fuzz_barrage_never_kills_the_node(ros_domain_id, tmp_path):
     level, message, values = after['active'][1]
     assert (int(values['dropped_samples']) > 0) == undecodable_delivered, values
     assert int(values['refused_proposals']) > 0 and int(values['refused_states']) > 0, values
+    # ... and the sources' messages and refusals: hostile scans and clouds reached them.
+    sensor_kinds = [kind for kind in delivered if kind.startswith(('scan ', 'cloud '))]
+    assert sum(delivered[kind] for kind in sensor_kinds) > 50, (delivered, refused)
+    for kind in ('scan NaN geometry', 'scan too many beams', 'cloud without z',
+                 'cloud data short', 'cloud huge width and height'):
+        assert delivered[kind] > 0, (kind, delivered, refused)
+    for name in ('front', 'cloud'):
+        assert int(values[f'{name}.messages']) > int(fresh['active'][1][2][f'{name}.messages'])
+        assert int(values[f'{name}.refused']) > 0, values
     # The same answers as when fresh: exactly where nothing is solved, to the solver's
     # tolerance where the QP is active (as between two answers of a fresh node).
     for name in ('pass', 'active'):

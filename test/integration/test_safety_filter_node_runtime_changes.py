@@ -129,12 +129,12 @@ class _InProcessFilter:
     """A SafetyFilterNode in this process, spun in its own thread; parameter calls go through
     :meth:`call`, run in that thread between two message callbacks."""
 
-    def __init__(self) -> None:
+    def __init__(self, *extra: str) -> None:
         from rcbf_ros.ros.runtime import rclpy
         from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
         self.rclpy = rclpy
         self.node = SafetyFilterNode(
-            cli_args=['--ros-args', '--params-file', UNICYCLE, *EVERY_DIAGNOSTIC])
+            cli_args=['--ros-args', '--params-file', UNICYCLE, *EVERY_DIAGNOSTIC, *extra])
         self._calls: queue.Queue = queue.Queue()
         self._running = True
         # The probe spins rclpy's global executor in a thread of its own; an executor is not
@@ -203,3 +203,29 @@ def test_a_gain_set_while_filtering_and_a_refused_one(probe, capfd):
     assert all(unchanged[k] == after[k] for k in rows)
     assert 'filter updated: k_c: 2.0 -> 0.0' in log
     assert '[WARN]' in log and 'parameter change refused: k_c: -1.0 is outside' in log
+
+
+def test_a_source_key_set_at_runtime_is_refused_naming_it(probe, capfd):
+    """The sources are subscribed once, at start: a set of any ``<name>.*`` key is refused
+    by its read-only descriptor, one WARN line naming the key, and the source keeps its
+    settings (a set that was stored but not applied would leave a false timeout in force)."""
+    from rcbf_ros.ros.runtime import Parameter
+    running = _InProcessFilter('-p', 'observation_sources:=[front]', '-p', 'front.type:=scan',
+                               '-p', 'front.topic:=/scan', '-p', 'front.timeout_s:=1.0',
+                               '-p', 'footprint.radius:=0.2')
+    try:
+        results = {key: running.call(lambda key=key, value=value: running.node.set_parameters(
+            [Parameter(key, value=value)])[0]) for key, value in (
+                ('front.timeout_s', 5.0), ('front.topic', '/other'), ('k_c', 1.0))}
+        timeout = running.node._sources.params('front').timeout_s
+        stored = running.call(lambda: running.node.get_parameter('front.timeout_s').value)
+    finally:
+        running.close()
+    log = capfd.readouterr().err
+    assert not results['front.timeout_s'].successful
+    assert not results['front.topic'].successful
+    assert results['k_c'].successful  # the others still change at runtime
+    assert (timeout, stored) == (1.0, 1.0)
+    refused = [line for line in log.splitlines() if 'parameter change refused' in line]
+    assert any('front.timeout_s is read-only' in line for line in refused), log
+    assert any('front.topic is read-only' in line for line in refused), log

@@ -29,6 +29,7 @@ from test_safety_filter_node import (
     _start_filter,
     _wait_matched,
     Probe,
+    UNICYCLE,
 )
 
 pytestmark = pytest.mark.integration
@@ -135,4 +136,114 @@ def test_a_scan_source_slows_the_robot_and_fails_safe_without_fresh_scans(ros_do
     assert int(values['front.refused']) >= len(hostile)
     assert int(values['front.messages']) >= 2 + len(hostile)
     assert int(values['front.stale']) >= 2
+    assert 'Traceback' not in output, output[-4000:]
+
+
+CLOUD = ('-p', 'observation_sources:=[cloud]', '-p', 'cloud.type:=pointcloud',
+         '-p', 'cloud.topic:=/points', '-p', 'cloud.timeout_s:=1.0',
+         '-p', 'cloud.min_height:=0.05', '-p', 'cloud.max_height:=0.5',
+         '-p', 'footprint.radius:=0.2')
+
+
+def _cloud(points: np.ndarray, frame_id: str = 'base_link') -> bytes:
+    """A PointCloud2 of (N, 3) float32 x, y, z in ``frame_id`` stamped now (rosbags' encoder)."""
+    from rcbf_ros.messages.typestore import jazzy_typestore
+    store = jazzy_typestore()
+    t = store.types
+    now = time.time_ns()
+    field = t['sensor_msgs/msg/PointField']
+    data = np.ascontiguousarray(points, dtype='<f4')
+    msg = t['sensor_msgs/msg/PointCloud2'](
+        header=t['std_msgs/msg/Header'](stamp=t['builtin_interfaces/msg/Time'](
+            sec=now // 10**9, nanosec=now % 10**9), frame_id=frame_id),
+        height=1, width=len(data),
+        fields=[field(name=name, offset=4 * k, datatype=7, count=1)
+                for k, name in enumerate('xyz')],
+        is_bigendian=False, point_step=12, row_step=12 * len(data),
+        data=data.view(np.uint8).ravel(), is_dense=True)
+    return bytes(store.serialize_cdr(msg, 'sensor_msgs/msg/PointCloud2'))
+
+
+def _cloud_wall(distance: float = 0.8) -> bytes:
+    """A wall ``distance`` ahead, 4 m wide, from the floor (out of the z band) to 1 m."""
+    y, z = np.meshgrid(np.linspace(-2.0, 2.0, 81), np.linspace(0.0, 1.0, 21))
+    return _cloud(np.stack([np.full(y.size, distance), y.ravel(), z.ravel()], axis=1))
+
+
+def test_a_pointcloud_source_slows_the_robot_before_a_wall(ros_domain_id):
+    from rcbf_ros.messages.conversions import sections_to_msg
+    probe = Probe(ros_domain_id)
+    process = _start_filter(ros_domain_id, *CLOUD)
+    try:
+        probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
+        cloud_pub = probe.publisher('sensor_msgs/msg/PointCloud2', '/points')
+        proposal_pub, _ = _connect(probe, process, 'std_msgs/msg/Float64MultiArray',
+                                   with_state=False)
+        _wait_matched(cloud_pub, process)
+        ahead = sections_to_msg(AHEAD)
+        _handshake(probe, proposal_pub, ahead)
+        no_cloud = _exchange(probe, proposal_pub, ahead)
+        walled = _answer_after_scan(probe, cloud_pub, proposal_pub, _cloud_wall(), ahead)
+        floor = _answer_after_scan(  # the same wall below the z band: nothing in the way
+            probe, cloud_pub, proposal_pub,
+            _cloud(np.array([[0.8, y, 0.01] for y in np.linspace(-2.0, 2.0, 81)])), ahead)
+        process_alive = process.poll() is None
+    finally:
+        output = stop(process, timeout=10)
+        probe.close()
+    assert process_alive, output[-4000:]
+    level, message, _ = no_cloud[1]
+    assert level == 2 and message.startswith('source cloud: no message yet on /points'), message
+    command, (level, message, values) = walled
+    assert level == 0 and values['fail_safe'] == 'False', message
+    assert 0.0 <= command['u'][0] < 1.5, command          # slowed for the wall, not refused
+    command, (level, message, values) = floor
+    assert level == 0 and values['fail_safe'] == 'False', message
+    np.testing.assert_array_equal(command['u'], AHEAD['u'])
+    assert int(values['cloud.messages']) >= 2 and int(values['cloud.refused']) == 0
+    assert 'Traceback' not in output, output[-4000:]
+
+
+def test_a_robot_with_only_a_lidar_runs_without_static_obstacles(ros_domain_id, tmp_path):
+    """config/unicycle.yaml without its obstacles' centres and radii: the scan's points are
+    the filter's only rows."""
+    import yaml
+
+    from rcbf_ros.messages.conversions import sections_to_msg
+    with open(UNICYCLE) as stream:
+        document = yaml.safe_load(stream)
+    for node in document.values():
+        geometry = node['ros__parameters'].get('obstacles', {})
+        for key in ('x', 'y', 'radius'):
+            geometry.pop(key, None)
+    params_file = tmp_path / 'lidar_only.yaml'
+    params_file.write_text(yaml.safe_dump(document))
+    probe = Probe(ros_domain_id)
+    process = _start_filter(ros_domain_id, *SOURCE, params_file=str(params_file))
+    try:
+        probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
+        scan_pub = probe.publisher('sensor_msgs/msg/LaserScan', '/scan')
+        proposal_pub, _ = _connect(probe, process, 'std_msgs/msg/Float64MultiArray',
+                                   with_state=False)
+        _wait_matched(scan_pub, process)
+        # where config/unicycle.yaml's centre obstacle stood: gone with its parameters
+        ahead = sections_to_msg({'u': [2.5, 0.0], 'state': [-1.0, 0.0, 0.0]})
+        _handshake(probe, proposal_pub, ahead)
+        no_scan = _exchange(probe, proposal_pub, ahead)
+        walled = _answer_after_scan(probe, scan_pub, proposal_pub, _wall(), ahead)
+        open_space = _answer_after_scan(probe, scan_pub, proposal_pub,
+                                        _scan([math.inf] * 101), ahead)
+        process_alive = process.poll() is None
+    finally:
+        output = stop(process, timeout=10)
+        probe.close()
+    assert process_alive, output[-4000:]
+    level, message, _ = no_scan[1]
+    assert level == 2 and message.startswith('source front: no message yet'), message
+    command, (level, message, values) = walled
+    assert level == 0 and 0.0 <= command['u'][0] < 1.5, message
+    assert [key for key in values if key.startswith('h.')] == ['h.sensor_points'], values
+    command, (level, message, _) = open_space
+    assert level == 0, message
+    np.testing.assert_array_equal(command['u'], [2.5, 0.0])
     assert 'Traceback' not in output, output[-4000:]

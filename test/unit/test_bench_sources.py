@@ -32,3 +32,13 @@ def test_the_cloud_lies_on_the_walls_and_posts_and_a_quarter_is_in_the_band():
     on_post = np.isclose(gaps, bench.POST_RADIUS, atol=1e-5).any(axis=1)
     assert len(points) == 4000 and np.all(on_wall | on_post)
     assert 0.2 < len(band.points) / 4000 < 0.33   # 0.45 of the 1.7 m of z
+
+
+def test_the_hold_figures_are_read_and_the_memory_is_the_latest_message_only():
+    figures = bench.hold(4, size=20_000, distinct=2)
+    assert set(figures) == {'median', 'p99', 'max', 'first_mb', 'last_mb', 'peak_mb',
+                            'rss_first', 'rss_last', 'message_mb'}
+    assert 0.0 < figures['median'] <= figures['max']
+    # the source keeps only its latest message's points: nothing piles up from one to the next
+    assert figures['last_mb'] <= figures['first_mb'] * 1.5 + 0.05
+    assert figures['peak_mb'] >= figures['last_mb'] > 0.0

@@ -426,6 +426,12 @@ def test_read_only_and_filter_parameters():
     assert set(READ_ONLY_PARAMETERS) <= {spec.name for spec in PARAMETERS}
     assert feeds_the_filter('k_c') and feeds_the_filter('bands.tilt.index')
     assert not feeds_the_filter('use_sim_time') and not feeds_the_filter('frame_id')
+    # an observation source's keys: fixed at start (the subscriptions are made once)
+    for key in ('front.type', 'front.topic', 'front.timeout_s', 'cloud.min_height',
+                'cloud.max_height', 'cloud.voxel_size', 'front.best_effort'):
+        assert is_read_only(key) and feeds_the_filter(key), key
+    for key in ('obstacles.margin', 'footprint.radius', 'osqp.max_iter', 'front.radius'):
+        assert not is_read_only(key), key
 
 
 def test_describe_changes_lists_each_changed_key():

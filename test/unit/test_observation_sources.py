@@ -139,3 +139,81 @@ def test_a_scan_of_a_wall_ahead_slows_the_decision_and_a_stale_one_stops_it():
     assert stale.fail_safe and stale.reason.startswith('source front: latest message')
     assert active.point_count == 0
     assert sensor.MAX_POINTS >= 100_000
+
+
+_SCAN_ONLY = {key: value for key, value in _PARAMS.items()
+              if key not in ('obstacles.x', 'obstacles.y', 'obstacles.radius')}
+"""A robot with a lidar and no static obstacle: no family but the scan's points."""
+
+
+def _rows_at(config, points: np.ndarray, state, u) -> np.ndarray:
+    """The oracle: every point's RCBF row at the command u, from the autograd assembly of a
+    problem holding the points as a static circle family (the filter never takes it)."""
+    import torch
+
+    from rcbf_ros.core.barriers import CircleObstacles
+    from rcbf_ros.core.rcbf import RCBFProblem
+    template = config.footprint
+    family = CircleObstacles(
+        centers=tuple(map(tuple, points.tolist())), radii=(template.radii[0],) * len(points),
+        margin=template.margin, position_indices=template.position_indices,
+        heading_index=template.heading_index, lookahead=template.lookahead,
+        speed_input=template.speed_input, name='point')
+    problem = RCBFProblem(system=config.problem.system, families=(family,),
+                          alpha=config.problem.alpha, use_input_limits=False)
+    qp = problem.qp(torch.tensor([state], dtype=torch.float64),
+                    torch.tensor([u], dtype=torch.float64))
+    return qp.h[0].numpy()  # G z <= h at z = 0 (u_S = 0, no slack): each row's value
+
+
+@pytest.mark.parametrize('params', ['inline', 'unicycle.yaml'])
+def test_a_scan_only_filter_builds_and_slows_down_before_a_wall(params):
+    if params == 'inline':
+        params = dict(_SCAN_ONLY, observation_sources=['front'])
+    else:  # the shipped config without any static obstacle, with one source
+        from pathlib import Path
+
+        from rcbf_ros.parameters.rules import load_params
+        params = load_params(Path(__file__).parents[2] / 'config' / 'unicycle.yaml',
+                             'safety_filter')
+        params = {key: value for key, value in params.items()
+                  if not key.startswith(('obstacles.x', 'obstacles.y', 'obstacles.radius'))}
+        params.update({'observation_sources': ['front'], 'front.type': 'scan',
+                       'front.topic': 'scan', 'front.timeout_s': 0.5,
+                       'footprint.radius': 0.2})
+    config = filter_config_from_params(params)
+    assert config.problem.families == ()
+    sources = ObservationSources(config.sources)
+    active = logic.build_safety_filter(config=config,
+                                       settings=logic.node_settings_from_params({}))
+    assert active.barrier_names == ['sensor_points']
+    state = logic.StateSample(received_ns=0, state=np.array([0.0, 0.0, 0.0]), error='')
+    proposal = logic.Proposal(u=np.array([2.0, 0.0]))
+
+    def decide():
+        return logic.decide(
+            safety_filter=active, proposal=proposal, latest_state=state, now_ns=0,
+            max_state_age_s=1.0, sense=lambda x: sources.sense(
+                active, x, now_ns=0, stamp_now_ns=10 * S))
+
+    before = decide()  # no scan yet: the source's fail-safe, as with static families
+    assert before.fail_safe and before.reason.startswith('source front: no message yet')
+    sources.read('front', _scan([math.inf] * 50, angle_min=-0.5, increment=0.02),
+                 received_ns=0)
+    open_space = decide()  # a scan without a point in range: nothing to avoid
+    assert not open_space.fail_safe and open_space.u_safe.tolist() == [2.0, 0.0]
+    angles = np.linspace(-0.5, 0.5, 101)
+    sources.read('front', _scan(0.8 / np.cos(angles), angle_min=-0.5, increment=0.01),
+                 received_ns=0)
+    wall = decide()
+    assert not wall.fail_safe and 0.0 < wall.u_safe[0] < 1.0, wall.reason
+    points = sources.points(state.state, now_ns=0, stamp_now_ns=10 * S)[0]
+    assert len(points) == 101
+    rows = _rows_at(config, points, state.state.tolist(), wall.u_safe.tolist())
+    assert rows.min() >= -1e-5  # every point's row holds (up to the QP's slack tolerance)
+    assert _rows_at(config, points, state.state.tolist(), [2.0, 0.0]).min() < 0
+
+
+def test_without_static_family_or_source_the_config_is_refused():
+    with pytest.raises(ValueError, match='^barriers: .*observation_sources'):
+        filter_config_from_params(dict(_SCAN_ONLY, observation_sources=[]))

@@ -171,7 +171,7 @@ def test_every_filter_key_is_read_and_named_when_bad() -> None:
     params = _every_group(load_params(find_config('unicycle'), 'safety_filter'))
     filter_config_from_params(params)  # valid as it is
     for key in FILTER_PARAMETER_KEYS:
-        bad = 'submarine' if key == 'system' else ['junk']
+        bad = {'system': 'submarine', 'observation_sources': ['1junk']}.get(key, ['junk'])
         with pytest.raises(ValueError, match=f'^{key.replace(".", "[.]")}[:/]'):
             filter_config_from_params({**params, key: bad})
 
@@ -194,7 +194,8 @@ def test_node_specs_and_defaults_come_from_the_dataclasses() -> None:
     assert fl.NODE_PARAMETER_DEFAULTS == defaults_of(fl.NodeSettings)
     assert [s.name for s in fl.NODE_PARAMETERS] == list(parameter_keys(fl.NodeSettings))
     assert fl.READ_ONLY_PARAMETERS == (
-        'state_type', 'command_type', 'twist_fields', 'qos.reliable', 'qos.depth', 'system')
+        'state_type', 'command_type', 'twist_fields', 'qos.reliable', 'qos.depth', 'system',
+        'observation_sources', 'odom_frame_id', 'base_frame_id')
     for name in ('mode', 'seed', 'batch_size', 'start_steps', 'update_after',
                  'gp_refit_interval', 'k_c', 'model_based'):
         assert PARAMETERS[name] == getattr(LearnerConfig, name), name
