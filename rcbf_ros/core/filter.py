@@ -1234,6 +1234,16 @@ class SafetyFilter:
             ACTIVE_SET_TOLERANCE * (1.0 + max(max(upper), -min(upper))), ACTIVE_SET_STEPS,
             self._kernels)
 
+    def _finite_solution(self, z: Sequence[float] | np.ndarray | None) -> list[float] | None:
+        """Solution z as a list of n_u + 1 finite floats, or None if it is not one."""
+        if type(z) is not list:
+            if z is None or z.shape != (self.n_u + 1,):
+                return None
+            z = z.tolist()
+        elif len(z) != self.n_u + 1:
+            return None
+        return z if all(map(math.isfinite, z)) else None
+
     def _check(self, z: Sequence[float] | np.ndarray | None,
                rows: tuple[list[float], list[list[float]], list[float]]
                ) -> tuple[list[float], list[float], float] | None:
@@ -1244,13 +1254,8 @@ class SafetyFilter:
         u + z[:n_u] must lie within the limits (to :data:`LIMIT_TOLERANCE`; then projected
         onto them), and the slack its rows need, from the rows themselves, must be accounted
         for by the solver's own eps z[-1]."""
-        if type(z) is not list:
-            if z is None or z.shape != (self.n_u + 1,):
-                return None
-            z = z.tolist()
-        elif len(z) != self.n_u + 1:
-            return None
-        if not all(map(math.isfinite, z)):
+        z = self._finite_solution(z)
+        if z is None:
             return None
         rows_upper, g_rows, applied = rows
         moved = self._act(applied, z)
@@ -1417,13 +1422,8 @@ class SafetyFilter:
                     ) -> tuple[list[float], np.ndarray, float] | None:
         """:meth:`_check` over arrays: the action of solution z and the values of EVERY row
         at it (those left out of the QP too), if z passes the row check."""
-        if type(z) is not list:
-            if z is None or z.shape != (self.n_u + 1,):
-                return None
-            z = z.tolist()
-        elif len(z) != self.n_u + 1:
-            return None
-        if not all(map(math.isfinite, z)):
+        z = self._finite_solution(z)
+        if z is None:
             return None
         moved = self._act(applied, z)
         if moved is None:
