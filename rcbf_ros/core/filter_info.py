@@ -22,8 +22,8 @@ INFO_SECTIONS: tuple[tuple[str, str, str], ...] = (
     ('u_s', 'n_u', 'the correction u - u_rl'),
     ('fail_safe', '1', '1: u is the fail-safe action, 0: the filtered proposal'),
     ('status', '1', 'the solver status, or why the fail-safe was published (status codes)'),
-    ('h', 'K', 'barrier values h_i at the state, in the order of the h.<barrier> keys of '
-     'diagnostics (when evaluated)'),
+    ('h', 'K', 'barrier values h_i at the state, in the order of the barriers (the h.<barrier> '
+     'keys of diagnostics name them) (when evaluated)'),
     ('constraint', 'K', 'L_f h + L_g h u + alpha h + rho per barrier (when evaluated)'),
     ('slack', '1', 'the QP slack eps (when solved)'),
     ('needed_slack', '1', 'slack the rows need at u (when evaluated)'),

@@ -383,3 +383,32 @@ def test_the_offline_command_is_the_bytes_of_the_nodes(type_name):
     assert (twist.linear.x, twist.angular.z, twist.angular.x) == (0.25, -1.5, 0.0)
     if type_name.endswith('Stamped'):
         assert read.header.frame_id == 'base'
+
+
+def test_a_diagnostic_names_at_most_its_bound_of_barriers_those_of_least_h():
+    """20,000 barriers made each status 170 ms to encode, and the node answers in between:
+    a status names at most DIAGNOSTIC_BARRIERS of them, those of least h, and says so."""
+    count = 5 * filter_edge.DIAGNOSTIC_BARRIERS
+    h = np.linspace(10.0, 1.0, count)
+    h[7] = np.nan                       # not evaluated: shown last, if at all
+    result = type('Result', (), {})()
+    for name, value in (('status', 'solved'), ('slack', 0.0), ('h', h),
+                        ('constraint_values', h + 0.5), ('solve_time_s', 0.0),
+                        ('total_time_s', 0.0), ('needed_slack', 0.0),
+                        ('proposal_clipped', False)):
+        setattr(result, name, value)
+    decision = logic.Decision(u_safe=np.zeros(2), u_rl=np.zeros(2), level=logic.OK,
+                              result=result, fail_safe=False, reason='',
+                              state_source='latest')
+    names = [f'obstacle_{k}' for k in range(count)]
+    _, _, values = filter_edge.diagnostic_values(decision=decision, barrier_names=names)
+    shown = [key[2:] for key in values if key.startswith('h.')]
+    least = [names[k] for k in range(count - filter_edge.DIAGNOSTIC_BARRIERS, count)]
+    assert shown == least           # the least h, in the barriers' order
+    assert [key[11:] for key in values if key.startswith('constraint.')] == least
+    assert values['barriers_shown'].startswith(f'{filter_edge.DIAGNOSTIC_BARRIERS} of {count}')
+    few = names[:filter_edge.DIAGNOSTIC_BARRIERS]
+    result.h, result.constraint_values = h[:len(few)], h[:len(few)]
+    _, _, values = filter_edge.diagnostic_values(decision=decision, barrier_names=few)
+    assert sum(key.startswith('h.') for key in values) == len(few)
+    assert 'barriers_shown' not in values
