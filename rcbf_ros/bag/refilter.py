@@ -380,6 +380,8 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     """
     if not tolerance >= 0:
         raise RefilterError(f'tolerance: must be >= 0, got {tolerance}')
+    if not os.fspath(output):
+        raise RefilterError('output: must not be empty (a new bag directory)')
     try:
         files = mcap_files(source)
     except BagError as exc:
@@ -395,6 +397,9 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     if clashing:
         raise RefilterError(f'source bag already holds {clashing} (re-filter the original run)')
     flat = resolve_params(params, node=node)
+    if flat.get('observation_sources') not in (None, '', [], ()):
+        raise RefilterError('params: observation_sources: refilter does not replay sensor '
+                            'topics (use a params file without perception sources)')
     config, settings, safety_filter = build_filter(flat)
     system_name = str(flat.get('system'))
     n_x, n_u = safety_filter.n_x, safety_filter.n_u
@@ -548,7 +553,8 @@ def _discard(writer: BagWriter) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``rcbf_ros refilter`` (also the console script ``rcbf_ros_refilter``). Returns 0, or 2
-    on bad input (message on stderr)."""
+    on bad input (message on stderr), 1 when the summary's JSON cannot be written after the
+    run (the new bag kept)."""
     parser = argparse.ArgumentParser(
         prog='rcbf_ros refilter',
         description='Run the safety filter over the proposals recorded in a bag with other '
@@ -565,6 +571,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--json', dest='json_path', default=None,
                         help='also write the summary as JSON to this file')
     args = parser.parse_args(None if argv is None else list(argv))
+    if args.json_path is not None:
+        problem = _json_path_problem(args.json_path)
+        if problem:
+            print(f'rcbf_ros refilter: error: --json {args.json_path!r}: {problem}',
+                  file=sys.stderr)
+            return 2
     try:
         summary = refilter_bag(args.source, args.output, args.params_file, node=args.node,
                                tolerance=args.tolerance)
@@ -575,8 +587,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     print(summary.format())
     if args.json_path:
-        Path(args.json_path).write_text(summary.to_json() + '\n')
+        try:
+            Path(args.json_path).write_text(summary.to_json() + '\n')
+        except OSError as exc:
+            print(f'rcbf_ros refilter: error: --json {args.json_path!r}: cannot write '
+                  f'({exc.strerror or exc}); the bag {args.output!r} is kept', file=sys.stderr)
+            return 1
     return 0
+
+
+def _json_path_problem(path: str) -> str:
+    """Why the summary could not be written to ``path`` (checked before the run, so a bad
+    path does not cost it), or ''."""
+    if not path:
+        return 'must not be empty'
+    target = Path(path)
+    if target.is_dir():
+        return 'is a directory'
+    parent = target.parent
+    if not parent.is_dir():
+        return f'{str(parent)!r} is not a directory'
+    if not os.access(parent, os.W_OK):
+        return f'{str(parent)!r} is not writable'
+    return ''
 
 
 if __name__ == '__main__':

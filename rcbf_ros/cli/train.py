@@ -16,6 +16,7 @@ import typing
 from typing import Any
 
 from rcbf_ros.messages import systems
+from rcbf_ros.parameters.reader import ParameterError, read_parameters
 from rcbf_ros.training.settings import MODES, TrainingSettings
 
 OPTIONS: tuple[tuple[str, str, dict[str, Any]], ...] = (
@@ -90,20 +91,30 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 def settings_from_arguments(args: argparse.Namespace) -> TrainingSettings:
     """The run's settings from the parsed options (fields without an option keep their
-    defaults)."""
-    return TrainingSettings(**{name: getattr(args, name) for name, _, _ in OPTIONS})
+    defaults), each checked against its field's declared bounds.
+
+    Raises:
+        ParameterError: one line naming the option (``--seed: must be >= 0, got -1``).
+    """
+    options = {name: option for name, option, _ in OPTIONS}
+    try:
+        return read_parameters(TrainingSettings,
+                               {name: getattr(args, name) for name in options})
+    except ParameterError as exc:
+        key, _, why = str(exc).partition(': ')
+        raise ParameterError(f'{options.get(key, key)}: {why}') from None
 
 
 def run_train(args: argparse.Namespace) -> int:
     """Run ``rcbf_ros train``: 0, 2 on bad arguments, output directory or checkpoint, 1 when a
     file of the run cannot be written (a full disk: the bag closed, the previous checkpoint
     kept), 130 on Ctrl-C or SIGTERM (checkpoint, bag and plot written)."""
-    from rcbf_ros.training.build import RunSetupError
+    from rcbf_ros.training.build import check_config_file, RunSetupError
     from rcbf_ros.training.loop import check_out_dir, train
     from rcbf_ros.training.progress import summarize
     from rcbf_ros.training.run_files import RunWriteError
-    settings = settings_from_arguments(args)
     try:
+        settings = settings_from_arguments(args)
         run = settings.run_config()
     except (TypeError, ValueError) as exc:
         print(f'error: {exc}', file=sys.stderr)
@@ -111,7 +122,8 @@ def run_train(args: argparse.Namespace) -> int:
     name = settings.name
     try:
         check_out_dir(run)
-    except RunSetupError as exc:
+        check_config_file(run)
+    except (RunSetupError, FileNotFoundError, ValueError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 2
     print(f'training {name}: {run.episodes} episodes -> {run.out_dir}', flush=True)

@@ -22,7 +22,7 @@ from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
 from rcbf_ros.parameters.reader import read_parameters, setting
 from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.training.agent import LearnerConfig, SafeLearner
-from rcbf_ros.training.settings import TrainingSettings
+from rcbf_ros.training.settings import ALPHA_MAX, TrainingSettings
 
 _RUN = TrainingSettings  # the defaults a run's user may set are written there
 
@@ -81,7 +81,7 @@ class LearnerSection:
     envelope variant to where the paper's Modular fails). The learner node gets them as
     parameters from the same file."""
 
-    initial_alpha: float = setting(DEFAULT_INITIAL_ALPHA, positive=True,
+    initial_alpha: float = setting(DEFAULT_INITIAL_ALPHA, positive=True, maximum=ALPHA_MAX,
                                    description="SAC's initial entropy temperature")
     """SAC's initial entropy temperature."""
     modular_envelope: bool = setting(False, description="modular mode: keep the system "
@@ -149,6 +149,31 @@ def resolve_run(run: RunConfig) -> RunConfig:
     return replace(run, learner=learner)
 
 
+def refuse_sensor_sources(filter_section: Mapping[str, Any]) -> None:
+    """Refuse a ``/safety_filter`` section with ``observation_sources``: training has no
+    sensors (the env's layout is the barrier's obstacles).
+
+    Raises:
+        ValueError: one line naming ``observation_sources``.
+    """
+    if filter_section.get('observation_sources') not in (None, '', [], ()):
+        raise ValueError('observation_sources: perception sources are for the safety_filter '
+                         "node; training uses the config's static obstacles")
+
+
+def check_config_file(run: RunConfig) -> None:
+    """Read what a run takes from its config file without building anything (a bad file is
+    refused before the run says it starts).
+
+    Raises:
+        FileNotFoundError: no such config file.
+        ValueError: a bad value in the file, or perception sources (naming the key).
+    """
+    refuse_sensor_sources(load_params(find_config(run.config_file or run.system),
+                                      'safety_filter'))
+    resolve_run(run)
+
+
 def build_run(run: RunConfig) -> tuple[Any, SafetyFilter | None, SafeLearner, dict[str, Any]]:
     """Env, per-step filter (None when unconstrained) and learner from the run's config file."""
     run = resolve_run(run)
@@ -157,6 +182,7 @@ def build_run(run: RunConfig) -> tuple[Any, SafetyFilter | None, SafeLearner, di
     if run.random_start is not None:
         sim_params['random_start'] = bool(run.random_start)
     filter_section = load_params(path, 'safety_filter')
+    refuse_sensor_sources(filter_section)
     if run.no_obstacles:
         sim_params.update({'obstacles.x': [], 'obstacles.y': [], 'obstacles.radius': []})
         if 'system_params.with_operator' in sim_params:

@@ -23,6 +23,15 @@ MODES: tuple[str, ...] = ('unconstrained', 'baseline', 'baseline_compensator', '
 """The SAC losses (``rcbf_ros.learning.sac.MODES``, named here without importing torch; a test
 keeps the two equal)."""
 
+SEED_MAX: int = 2 ** 32 - 1
+"""The largest seed: numpy's and gymnasium's seeds are 0 .. 2**32 - 1 (a negative or larger one
+is refused when the env is reset, after the run has started)."""
+THREADS_MAX: int = 1024
+"""The most torch threads (torch refuses more than a C int; more than cores only slows)."""
+ALPHA_MAX: float = 1e6
+"""The largest initial entropy temperature (a larger one drowns the Q values: the policy's
+actions become NaN or inf once updates start)."""
+
 
 @dataclass(frozen=True)
 class TrainingSettings:
@@ -37,21 +46,25 @@ class TrainingSettings:
     model_based: bool = setting(False, description='add short model rollouts (MB SAC-RCBF; '
                                                    'needs mode diff)')
     """MB SAC-RCBF: k-step synthetic rollouts from prior + GP mean (needs mode 'diff')."""
-    seed: int = setting(0, description='seeds networks, buffers, exploration and the GP')
+    seed: int = setting(0, minimum=0, maximum=SEED_MAX,
+                        description='seeds networks, buffers, exploration and the GP')
     """Seeds networks, buffers, exploration, the GP subsample and the first episode."""
-    episodes: int = setting(20, description='episodes to train, then the node exits')
+    episodes: int = setting(20, minimum=1,
+                            description='episodes to train, then the node exits')
     """Training episodes (the learner node's default: NODE_DEFAULTS)."""
     out_dir: str | None = setting(None, description='where metrics, checkpoint, policy and '
                                                     'plots go')
     """Where metrics, checkpoints, the bag and the plots go; None: runs/<:attr:`name`>."""
-    start_steps: int = setting(1000, description='uniformly random proposals before the '
-                                                 'policy acts')
+    start_steps: int = setting(1000, minimum=0, description='uniformly random proposals '
+                                                            'before the policy acts')
     """Exploration warm-up: uniformly random proposals before the policy acts."""
-    update_after: int = setting(500, description='environment steps before the first update')
+    update_after: int = setting(500, minimum=0,
+                                description='environment steps before the first update')
     """Environment steps before the first SAC update."""
-    batch_size: int = setting(256, description='SAC minibatch size')
+    batch_size: int = setting(256, minimum=1, description='SAC minibatch size')
     """SAC minibatch size."""
-    gp_refit_interval: int = setting(1000, description='environment steps between GP refits')
+    gp_refit_interval: int = setting(1000, minimum=1,
+                                     description='environment steps between GP refits')
     """Environment steps between GP refits (Algorithm 1: once per iteration)."""
     checkpoint_every: int = setting(1, strict=True, minimum=1,
                                     description='episodes between checkpoints (also on exit)')
@@ -60,13 +73,15 @@ class TrainingSettings:
                                               'an out_dir holding a run is refused)')
     """Continue from out_dir/checkpoint.pt (without one: start at episode 0, keeping the files
     already there). Without it, an out_dir that already holds a run is refused."""
-    k_c: float = setting(2.0, description='the learned disturbance box is mean +/- k_c std')
+    k_c: float = setting(2.0, minimum=0.0,
+                         description='the learned disturbance box is mean +/- k_c std')
     """Disturbance box mean +/- k_c std (paper eq. disturb_estimate)."""
-    threads: int = setting(1, strict=True, minimum=1, description='torch threads')
+    threads: int = setting(1, strict=True, minimum=1, maximum=THREADS_MAX,
+                           description='torch threads')
     """torch threads. 1 leaves a core to other work (several runs side by side, or the other
     nodes); a lone in-process run gets 1.2-1.7x faster SAC updates from 2 on a 2-core machine
     (benchmarks/bench_training.py)."""
-    initial_alpha: float | None = setting(None, positive=True,
+    initial_alpha: float | None = setting(None, positive=True, maximum=ALPHA_MAX,
                                           description="SAC's initial entropy temperature "
                                                       "(config/<system>.yaml's /learner sets "
                                                       'it)')
@@ -80,7 +95,8 @@ class TrainingSettings:
     config_file: str | None = setting(None, description='ROS params file (default: the '
                                                         'packaged config/<system>.yaml)')
     """ROS params file (None: the packaged config/<system>.yaml)."""
-    max_steps: int | None = setting(None, description="episode length (default: the env's)")
+    max_steps: int | None = setting(None, minimum=1,
+                                    description="episode length (default: the env's)")
     """Override the env's episode length."""
     no_obstacles: bool = setting(False, description='train without the layout (the transfer '
                                                     'upper bound)')

@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import pytest
+import yaml
 
 from rcbf_ros.cli import interface_doc
 from rcbf_ros.cli import main as cli
@@ -106,3 +107,48 @@ def test_python_m_rcbf_ros_summary_as_run_sh_calls_it(tmp_path):
     assert done.stderr.splitlines() == [f'rcbf_ros summary: error: {missing}: no such '
                                         'directory (expected a run directory)']
     assert 'python -m rcbf_ros summary "$RUN"' in (REPO / 'scripts' / 'run.sh').read_text()
+
+
+BAD_TRAIN_ARGUMENTS = [
+    ('--seed', '-1'), ('--seed', str(2 ** 32)), ('--seed', str(10 ** 24)),
+    ('--initial-alpha', 'inf'), ('--initial-alpha', 'nan'), ('--initial-alpha', '1e308'),
+    ('--threads', str(10 ** 21)), ('--threads', '0'), ('--threads', '1025'),
+    ('--episodes', str(10 ** 30)), ('--episodes', '0'), ('--start-steps', '-1'),
+    ('--update-after', '-1'), ('--batch-size', str(10 ** 21)), ('--batch-size', '0'),
+    ('--gp-refit-interval', '0'), ('--max-steps', str(10 ** 21)), ('--max-steps', '0'),
+    ('--checkpoint-every', '0'),
+]
+
+
+@pytest.mark.parametrize(('option', 'value'), BAD_TRAIN_ARGUMENTS)
+def test_train_refuses_an_out_of_bounds_option_in_one_line(option, value, tmp_path, capsys):
+    """Every bound is a declaration of TrainingSettings, checked before the run is planned:
+    exit 2, one line naming the option, nothing on stdout, no directory made."""
+    out = tmp_path / 'run'
+    code = cli.main(['train', '--system', 'unicycle', '--mode', 'unconstrained',
+                     '--episodes', '1', '--out', str(out), option, value])
+    captured = capsys.readouterr()
+    assert code == 2
+    assert captured.out == ''
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f'error: {option}: '), captured.err
+    assert 'Traceback' not in captured.err
+    assert not out.exists()
+
+
+def test_train_refuses_perception_sources_in_one_line(tmp_path, capsys):
+    """A config with observation_sources (a node's sensors) is refused before the run starts:
+    training has no sensors."""
+    params = yaml.safe_load((REPO / 'config' / 'unicycle.yaml').read_text())
+    params['/safety_filter']['ros__parameters'].update(
+        {'observation_sources': ['front'], 'front.type': 'scan', 'front.topic': '/scan'})
+    config = tmp_path / 'sources.yaml'
+    config.write_text(yaml.safe_dump(params))
+    code = cli.main(['train', '--system', 'unicycle', '--mode', 'unconstrained',
+                     '--episodes', '1', '--out', str(tmp_path / 'run'),
+                     '--config', str(config)])
+    captured = capsys.readouterr()
+    assert code == 2
+    assert captured.out == ''
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('error: observation_sources: '), captured.err

@@ -390,3 +390,55 @@ def test_refiltering_and_the_message_layer_load_no_middleware(tmp_path: Path) ->
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout.strip().splitlines()[-1])
     assert report == {'processed': N_STEPS, 'loaded': []}
+
+
+@pytest.mark.parametrize(('case', 'needle'), [
+    ('empty_output', 'output: must not be empty'),
+    ('sensor_sources', 'observation_sources'),
+    ('json_under_a_file', '--json'),
+    ('json_in_a_missing_directory', '--json'),
+    ('json_is_a_directory', '--json'),
+    ('json_empty', '--json'),
+])
+def test_bad_command_lines_are_refused_in_one_line_before_the_run(
+        case: str, needle: str, source_bag: Path, tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Exit 2, one line naming the argument, no bag written (not even into the working
+    directory) and no traceback."""
+    work = tmp_path / 'work'
+    work.mkdir()
+    monkeypatch.chdir(work)
+    params = tmp_path / 'params.yaml'
+    body = dict(PARAMS_A)
+    if case == 'sensor_sources':
+        body.update(observation_sources=['front'],
+                    front={'type': 'scan', 'topic': '/scan'})
+    params.write_text(yaml.safe_dump({'/**': {'ros__parameters': body}}))
+    output = '' if case == 'empty_output' else str(tmp_path / 'out')
+    argv = [str(source_bag), output, '--params-file', str(params)]
+    argv += {'json_under_a_file': ['--json', str(params / 'x.json')],
+             'json_in_a_missing_directory': ['--json', str(tmp_path / 'no' / 'x.json')],
+             'json_is_a_directory': ['--json', str(work)],
+             'json_empty': ['--json', '']}.get(case, [])
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0], captured.err
+    assert 'Traceback' not in captured.err and captured.out == ''
+    assert list(work.iterdir()) == [] and not (tmp_path / 'out').exists()
+
+
+def test_a_summary_that_cannot_be_written_keeps_the_bag(
+        source_bag: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The JSON path checked fine but its write fails after the run (the directory went
+    away): exit 1, one line naming --json, the new bag kept."""
+    from rcbf_ros.bag import refilter
+    monkeypatch.setattr(refilter, '_json_path_problem', lambda path: '')
+    output = tmp_path / 'out'
+    code = main([str(source_bag), str(output), '--params-file', 'unicycle',
+                 '--json', str(tmp_path / 'gone' / 'x.json')])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert len(err.strip().splitlines()) == 1 and '--json' in err and 'Traceback' not in err
+    assert any(m.topic == refilter.OUTPUT_COMMAND_TOPIC for m in read_bag(output))

@@ -423,7 +423,7 @@ def test_cli_rejects_bad_learner_settings(capsys, tmp_path):
     assert not (tmp_path / 'c').exists()  # nothing half-written
     assert cli_main(['train', '--initial-alpha', '0', '--episodes', '1',
                      '--out', str(tmp_path / 'e')]) == 2
-    assert 'initial_alpha' in capsys.readouterr().err
+    assert '--initial-alpha' in capsys.readouterr().err
     bad_alpha = tmp_path / 'bad_alpha.yaml'
     bad_alpha.write_text(find_config('unicycle').read_text().replace(
         'initial_alpha: 0.01', 'initial_alpha: -1.0'))
