@@ -217,3 +217,52 @@ def test_a_scan_only_filter_builds_and_slows_down_before_a_wall(params):
 def test_without_static_family_or_source_the_config_is_refused():
     with pytest.raises(ValueError, match='^barriers: .*observation_sources'):
         filter_config_from_params(dict(_SCAN_ONLY, observation_sources=[]))
+
+
+_OWN_TOPICS = ('state', 'cmd_proposed', 'cmd_safe', 'filter_info', 'diagnostics', 'obstacles')
+
+
+def _resolver(namespace: str = '/', remaps: dict | None = None):
+    """A node's resolve_topic_name in ``namespace`` with ``remaps`` (the dds layer's)."""
+    from rcbf_ros.parameters.arguments import RemapRule, resolve_topic_name
+    rules = [RemapRule(match, replacement) for match, replacement in (remaps or {}).items()]
+    return lambda topic: resolve_topic_name(topic, 'safety_filter', namespace, rules)
+
+
+@pytest.mark.parametrize('own', [*_OWN_TOPICS, '/diagnostics', '/cmd_safe'])
+def test_a_source_on_one_of_the_node_topics_is_refused_naming_both(own):
+    from rcbf_ros.node_logic.sources import topic_refusal
+    config, _ = _sources(**{'front.topic': own})
+    why = topic_refusal(config.sources, _OWN_TOPICS, _resolver())
+    assert why.startswith('front.topic: ') and "the node's own" in why and '\n' not in why
+
+
+def test_names_are_compared_as_the_node_resolves_them():
+    from rcbf_ros.node_logic.sources import topic_refusal
+    config, _ = _sources(**{'front.topic': 'scan', 'cloud.topic': '/scan'})
+    assert topic_refusal(config.sources, _OWN_TOPICS, _resolver()).startswith(
+        "cloud.topic: '/scan' resolves to /scan, the topic of front.topic")
+    config, _ = _sources(**{'front.topic': 'scan', 'cloud.topic': '/scan'})
+    assert topic_refusal(config.sources, _OWN_TOPICS, _resolver('/robot')) == ''
+    config, _ = _sources(**{'front.topic': '/robot/state'})
+    assert topic_refusal(config.sources, _OWN_TOPICS, _resolver('/robot')).startswith(
+        'front.topic: ')
+    config, _ = _sources(**{'front.topic': 'lidar'})
+    assert 'own state topic' in topic_refusal(config.sources, _OWN_TOPICS,
+                                              _resolver(remaps={'lidar': 'state'}))
+    assert 'own cmd_safe topic' in topic_refusal(config.sources, _OWN_TOPICS,
+                                                 _resolver(remaps={'cmd_safe': '/lidar'}))
+
+
+@pytest.mark.parametrize('topic', ['scan', '/scan', 'front/scan', '/a/b'])
+def test_distinct_topics_pass(topic):
+    from rcbf_ros.node_logic.sources import topic_refusal
+    config, _ = _sources(**{'front.topic': topic})
+    assert topic_refusal(config.sources, _OWN_TOPICS, _resolver()) == ''
+
+
+def test_a_topic_name_the_runtime_refuses_is_refused_in_one_line():
+    from rcbf_ros.node_logic.sources import topic_refusal
+    config, _ = _sources(**{'front.topic': 'bad name!'})
+    why = topic_refusal(config.sources, _OWN_TOPICS, _resolver())
+    assert why.startswith("front.topic: 'bad name!' is not a valid topic name") and '\n' not in why
