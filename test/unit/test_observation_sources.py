@@ -12,7 +12,9 @@ from sensor_messages import cloud_bytes as _cloud_bytes
 from sensor_messages import scan_bytes as _scan_bytes
 
 from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.filter_info import STATUS_CODES
 from rcbf_ros.messages import sensor
+from rcbf_ros.node_logic import filter_edge
 from rcbf_ros.node_logic import safety_filter as logic
 from rcbf_ros.node_logic.sources import ObservationSources
 
@@ -137,6 +139,7 @@ def test_a_scan_of_a_wall_ahead_slows_the_decision_and_a_stale_one_stops_it():
     assert not fresh.fail_safe and fresh.u_safe[0] < 1.0, fresh.reason
     stale = decide(11 * S)
     assert stale.fail_safe and stale.reason.startswith('source front: latest message')
+    assert filter_edge.status_code(stale) == STATUS_CODES['source unusable'] == 17
     assert active.point_count == 0
     assert sensor.MAX_POINTS >= 100_000
 
