@@ -19,7 +19,7 @@ from __future__ import annotations
 import functools
 import math
 import struct
-from typing import NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -32,7 +32,8 @@ larger one is refused (a 3-D lidar's full cloud is ~100k points)."""
 MAX_FIELDS = 64
 """The most PointField entries of a cloud."""
 MAX_FRAME_ID = 1024
-"""The most bytes of a header's frame_id."""
+"""The most characters of a header's frame_id (and of a PointField name): the CDR length,
+which counts the terminating NUL and UTF-8 bytes, may be up to 4 x this + 1."""
 MAX_POINT_STEP = 65_536
 """The most bytes per point of a cloud."""
 MAX_COORDINATE = 1.0e4
@@ -116,17 +117,22 @@ class _Cursor:
         return struct.unpack_from(f'{self.order}{count}f', self.view, start)
 
     def string(self, what: str, bound: int) -> str:
+        """A CDR string of at most ``bound`` characters (its length counts the terminating
+        NUL and each UTF-8 byte: the bytes are bounded first, then the characters)."""
         size = self.uint32(what)
-        if size > bound:
-            raise _Bad(f'{what}: {size} bytes, more than the bound {bound}')
+        if size > 4 * bound + 1:
+            raise _Bad(f'{what}: {size} bytes, more than {bound} characters can take')
         start = self._take(size, 1, what)
         raw = bytes(self.view[start:start + size])
         if raw.endswith(b'\x00'):
             raw = raw[:-1]
         try:
-            return raw.decode('utf-8')
+            text = raw.decode('utf-8')
         except UnicodeDecodeError:
             raise _Bad(f'{what}: not UTF-8') from None
+        if len(text) > bound:
+            raise _Bad(f'{what}: {len(text)} characters, more than the bound {bound}')
+        return text
 
     def header(self) -> tuple[str, int]:
         sec = self.int32('header.stamp.sec')
@@ -152,6 +158,18 @@ def _beam_directions(angle_min: float, increment: float, count: int
     return cos, sin
 
 
+def _quiet(parse: Callable[..., SensorPoints | Refused]) -> Callable[..., SensorPoints | Refused]:
+    """``parse`` with numpy's floating-point warnings off: the bytes are untrusted, and a
+    signalling NaN or an overflow in a cast or product is a value the parse drops (NaN fails
+    every comparison), not a warning on the node's log."""
+    @functools.wraps(parse)
+    def quiet(*args: Any, **kwargs: Any) -> SensorPoints | Refused:
+        with np.errstate(all='ignore'):
+            return parse(*args, **kwargs)
+    return quiet
+
+
+@_quiet
 def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
                 ) -> SensorPoints | Refused:
     """The valid points of a LaserScan sample, in its frame.
@@ -198,6 +216,7 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         return Refused(f'{LASER_SCAN}: {type(exc).__name__}: {" ".join(str(exc).split())}'[:200])
 
 
+@_quiet
 def cloud_points(data: bytes | memoryview, *, min_height: float = -math.inf,
                  max_height: float = math.inf, voxel_size: float = 0.0,
                  max_points: int = MAX_POINTS) -> SensorPoints | Refused:

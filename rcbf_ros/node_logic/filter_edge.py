@@ -390,10 +390,12 @@ def status_code(decision: Decision) -> int:
 
 
 def status_name(decision: Decision) -> str:
-    """The solver status of a filtered command, else the key of the fail-safe's reason."""
+    """The solver status of a filtered command, else the key of the fail-safe's reason (an
+    observation source's, ``source <name>``, as the one status of every source)."""
     if not decision.fail_safe and decision.result is not None:
         return decision.result.status
-    return reason_key(decision.reason)
+    key = reason_key(decision.reason)
+    return filter_info.SOURCE_UNUSABLE if key.startswith('source ') else key
 
 
 def info_sections(decision: Decision) -> dict[str, np.ndarray]:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
-from typing import Any
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -24,6 +24,40 @@ from rcbf_ros.messages import sensor
 COUNT_KEYS = ('messages', 'refused', 'stale')
 """Per source: messages received, messages refused (undecodable, wrong layout, too large),
 decisions answered with the fail-safe because the source was stale or had no message yet."""
+
+
+def topic_refusal(config: SourceConfig, own_topics: Sequence[str],
+                  resolve: Callable[[str], str]) -> str:
+    """Why the sources' topics cannot be used, in one line naming ``<name>.topic`` ('' when
+    they can): a topic that resolves (``resolve``: the node's resolve_topic_name, remaps and
+    namespace included) to one of ``own_topics`` (the node's own: its answers would come back
+    as sensor data, or its inputs be read as scans), or to another source's topic, or that
+    does not resolve at all. Names are compared resolved: ``scan`` and ``/scan`` are one topic
+    in the root namespace."""
+    def resolved(key: str, topic: str) -> str:
+        try:
+            return resolve(topic)
+        except Exception as exc:  # the runtime's refusal of the name, in one line
+            raise ValueError(f'{key}: {topic!r} is not a valid topic name '
+                             f'({" ".join(str(exc).split())[:160]})') from None
+    try:
+        own = {}
+        for topic in own_topics:
+            own.setdefault(resolved(topic, topic), topic)
+        taken: dict[str, str] = {}
+        for name, params in config.sources:
+            key = f'{name}.topic'
+            topic = resolved(key, params.topic)
+            if topic in own:
+                return (f"{key}: {params.topic!r} resolves to {topic}, the node's own "
+                        f'{own[topic]} topic')
+            if topic in taken:
+                return (f'{key}: {params.topic!r} resolves to {topic}, the topic of '
+                        f'{taken[topic]}.topic too')
+            taken[topic] = name
+    except ValueError as exc:
+        return str(exc)
+    return ''
 
 
 @dataclass

@@ -10,6 +10,7 @@ parameters: docs/SAFETY_FILTER.md and ``safety_filter --help``.
 """
 from __future__ import annotations
 
+import dataclasses
 import gc
 import os
 import sys
@@ -27,7 +28,7 @@ from rcbf_ros.node_logic.filter_edge import array_sections as _array_sections  #
 from rcbf_ros.node_logic.filter_edge import one_line as _one_line
 from rcbf_ros.node_logic.interface import bound_text, DIAGNOSTIC_ARRAY
 from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME
-from rcbf_ros.node_logic.sources import ObservationSources
+from rcbf_ros.node_logic.sources import ObservationSources, topic_refusal
 from rcbf_ros.ros.node_main import declare_specs, run_node, spin
 from rcbf_ros.ros.runtime import (
     deserialize_message,
@@ -64,6 +65,7 @@ class SafetyFilterNode(Node):
         params = self._declared_parameters()
         try:
             self._active = self._build(params)
+            self._check_sources()
         except Exception as exc:  # a value no check foresaw is the user's error too: one line
             error = exc if isinstance(exc, ValueError) else ValueError(_one_line(exc))
             self.get_logger().error(f'invalid parameters: {error}')
@@ -282,6 +284,33 @@ class SafetyFilterNode(Node):
                                     f'{" ".join(text.split())}')
 
     # observation sources ---------------------------------------------------------------------
+    def _check_sources(self) -> None:
+        """Refuse the sources' topics that clash (:func:`topic_refusal`: resolved as this node
+        resolves them, against its own topics and each other), and declare every key of every
+        source with the value in force (read-only, described), so that ``ros2 param get``
+        shows a defaulted key and ``ros2 param set`` says it is read-only.
+
+        Raises:
+            ValueError: one line naming ``<name>.topic`` (exit 2).
+        """
+        config = self.config.sources
+        if config is None:
+            return
+        refusal = topic_refusal(config, [topic.name for topic in INTERFACE.topics],
+                                self.resolve_topic_name)
+        if refusal:
+            raise ValueError(refusal)
+        patterns = [spec for spec in INTERFACE.parameters if spec.pattern]
+        specs = []
+        for name, params in config.sources:
+            for key in dataclasses.fields(params):
+                full = f'{name}.{key.name}'
+                spec = next(s for s in patterns if s.matches(full))
+                specs.append(dataclasses.replace(spec, name=full,
+                                                 default=getattr(params, key.name)))
+        declare_specs(self, specs, dynamic_typing=True, read_only=logic.is_read_only,
+                      others=None)
+
     def _subscribe_sources(self) -> ObservationSources | None:
         """One subscription per observation source (``observation_sources``, fixed at
         start): sensor-data QoS (best effort, keep last 5) unless ``<name>.best_effort`` is

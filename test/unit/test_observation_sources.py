@@ -12,7 +12,9 @@ from sensor_messages import cloud_bytes as _cloud_bytes
 from sensor_messages import scan_bytes as _scan_bytes
 
 from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.filter_info import STATUS_CODES
 from rcbf_ros.messages import sensor
+from rcbf_ros.node_logic import filter_edge
 from rcbf_ros.node_logic import safety_filter as logic
 from rcbf_ros.node_logic.sources import ObservationSources
 
@@ -137,6 +139,7 @@ def test_a_scan_of_a_wall_ahead_slows_the_decision_and_a_stale_one_stops_it():
     assert not fresh.fail_safe and fresh.u_safe[0] < 1.0, fresh.reason
     stale = decide(11 * S)
     assert stale.fail_safe and stale.reason.startswith('source front: latest message')
+    assert filter_edge.status_code(stale) == STATUS_CODES['source unusable'] == 17
     assert active.point_count == 0
     assert sensor.MAX_POINTS >= 100_000
 
@@ -217,3 +220,52 @@ def test_a_scan_only_filter_builds_and_slows_down_before_a_wall(params):
 def test_without_static_family_or_source_the_config_is_refused():
     with pytest.raises(ValueError, match='^barriers: .*observation_sources'):
         filter_config_from_params(dict(_SCAN_ONLY, observation_sources=[]))
+
+
+_OWN_TOPICS = ('state', 'cmd_proposed', 'cmd_safe', 'filter_info', 'diagnostics', 'obstacles')
+
+
+def _resolver(namespace: str = '/', remaps: dict | None = None):
+    """A node's resolve_topic_name in ``namespace`` with ``remaps`` (the dds layer's)."""
+    from rcbf_ros.parameters.arguments import RemapRule, resolve_topic_name
+    rules = [RemapRule(match, replacement) for match, replacement in (remaps or {}).items()]
+    return lambda topic: resolve_topic_name(topic, 'safety_filter', namespace, rules)
+
+
+@pytest.mark.parametrize('own', [*_OWN_TOPICS, '/diagnostics', '/cmd_safe'])
+def test_a_source_on_one_of_the_node_topics_is_refused_naming_both(own):
+    from rcbf_ros.node_logic.sources import topic_refusal
+    config, _ = _sources(**{'front.topic': own})
+    why = topic_refusal(config.sources, _OWN_TOPICS, _resolver())
+    assert why.startswith('front.topic: ') and "the node's own" in why and '\n' not in why
+
+
+def test_names_are_compared_as_the_node_resolves_them():
+    from rcbf_ros.node_logic.sources import topic_refusal
+    config, _ = _sources(**{'front.topic': 'scan', 'cloud.topic': '/scan'})
+    assert topic_refusal(config.sources, _OWN_TOPICS, _resolver()).startswith(
+        "cloud.topic: '/scan' resolves to /scan, the topic of front.topic")
+    config, _ = _sources(**{'front.topic': 'scan', 'cloud.topic': '/scan'})
+    assert topic_refusal(config.sources, _OWN_TOPICS, _resolver('/robot')) == ''
+    config, _ = _sources(**{'front.topic': '/robot/state'})
+    assert topic_refusal(config.sources, _OWN_TOPICS, _resolver('/robot')).startswith(
+        'front.topic: ')
+    config, _ = _sources(**{'front.topic': 'lidar'})
+    assert 'own state topic' in topic_refusal(config.sources, _OWN_TOPICS,
+                                              _resolver(remaps={'lidar': 'state'}))
+    assert 'own cmd_safe topic' in topic_refusal(config.sources, _OWN_TOPICS,
+                                                 _resolver(remaps={'cmd_safe': '/lidar'}))
+
+
+@pytest.mark.parametrize('topic', ['scan', '/scan', 'front/scan', '/a/b'])
+def test_distinct_topics_pass(topic):
+    from rcbf_ros.node_logic.sources import topic_refusal
+    config, _ = _sources(**{'front.topic': topic})
+    assert topic_refusal(config.sources, _OWN_TOPICS, _resolver()) == ''
+
+
+def test_a_topic_name_the_runtime_refuses_is_refused_in_one_line():
+    from rcbf_ros.node_logic.sources import topic_refusal
+    config, _ = _sources(**{'front.topic': 'bad name!'})
+    why = topic_refusal(config.sources, _OWN_TOPICS, _resolver())
+    assert why.startswith("front.topic: 'bad name!' is not a valid topic name") and '\n' not in why

@@ -238,3 +238,57 @@ def test_the_filter_node_refuses_an_override_outside_its_range_in_its_own_words(
         assert str(refused.value) == refusal
     finally:
         rclpy.try_shutdown()
+
+
+_SOURCE = ['-p', 'observation_sources:=[front]', '-p', 'front.type:=scan',
+           '-p', 'front.topic:=scan', '-p', 'footprint.radius:=0.2']
+
+
+def test_every_key_of_a_source_is_declared_with_its_value_in_force(ros_domain_id):
+    """A source key left out of the params file is declared too (read-only, described, with
+    the default in force), so that ``ros2 param get`` shows it and a set is refused as
+    read-only rather than as undeclared."""
+    from rcbf_ros.core.config import SourceParameters
+    from rcbf_ros.ros.dds import rclpy_compat as rclpy
+    from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
+    rclpy.init(args=['node', '--ros-args', '--params-file', UNICYCLE, *_SOURCE,
+                     '-p', 'front.timeout_s:=2.0'], domain_id=ros_domain_id)
+    try:
+        node = SafetyFilterNode()
+        defaults = SourceParameters()
+        expected = {'type': 'scan', 'topic': 'scan', 'timeout_s': 2.0,
+                    'min_height': defaults.min_height, 'max_height': defaults.max_height,
+                    'voxel_size': defaults.voxel_size, 'best_effort': defaults.best_effort}
+        for key, value in expected.items():
+            name = f'front.{key}'
+            assert node.get_parameter(name).value == value, name
+            descriptor = node.describe_parameter(name)
+            assert descriptor.read_only and descriptor.description, name
+        from rcbf_ros.ros.runtime import Parameter
+        result = node.set_parameters([Parameter('front.voxel_size', value=0.5)])[0]
+        assert not result.successful and 'read-only' in result.reason
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+@pytest.mark.parametrize('args, words', [
+    (['-p', 'front.topic:=cmd_safe'], "front.topic: 'cmd_safe' resolves to /cmd_safe"),
+    (['-p', 'front.topic:=/diagnostics'], 'own diagnostics topic'),
+    (['-r', '__ns:=/robot', '-p', 'front.topic:=/robot/state'], 'own state topic'),
+    (['-r', 'lidar:=filter_info', '-p', 'front.topic:=lidar'], 'own filter_info topic'),
+    (['-p', 'observation_sources:=[front,back]', '-p', 'back.type:=scan',
+      '-p', 'back.topic:=/scan'], "back.topic: '/scan' resolves to /scan, the topic of "
+                                  'front.topic too'),
+])
+def test_the_filter_node_refuses_a_source_topic_that_clashes(args, words, ros_domain_id):
+    from rcbf_ros.ros.dds import rclpy_compat as rclpy
+    from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
+    rclpy.init(args=['node', '--ros-args', '--params-file', UNICYCLE, *_SOURCE, *args],
+               domain_id=ros_domain_id)
+    try:
+        with pytest.raises(ValueError) as refused:
+            SafetyFilterNode()
+        assert words in str(refused.value) and '\n' not in str(refused.value)
+    finally:
+        rclpy.try_shutdown()

@@ -178,3 +178,49 @@ def test_hostile_cloud_bytes_never_raise(n, height, cut, voxel, flips, seed):
 def test_bad_voxel_size_is_refused():
     out = sensor.cloud_points(_cloud_bytes(np.ones((3, 3))), voxel_size=1e-9)
     assert isinstance(out, sensor.Refused) and 'voxel_size' in out.reason
+
+
+def _floats_of_bits(bits) -> np.ndarray:
+    """float32 values of raw bit patterns (signalling NaNs kept as they are)."""
+    return np.frombuffer(np.asarray(bits, dtype='<u4').tobytes(), dtype='<f4')
+
+
+_SIGNALLING_NAN = 0x7F800001
+"""A float32 signalling NaN: its cast to float64 raises numpy's 'invalid value' flag."""
+
+
+@pytest.mark.filterwarnings('error::RuntimeWarning')  # no numpy warning on the node's log
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(bits=st.lists(st.one_of(st.just(_SIGNALLING_NAN), st.integers(0, 2**32 - 1)),
+                     min_size=1, max_size=30))
+def test_scan_of_any_bit_pattern_warns_nothing(bits):
+    out = sensor.scan_points(_scan_bytes(_floats_of_bits(bits), range_max=math.inf))
+    assert isinstance(out, sensor.SensorPoints) and np.all(np.isfinite(out.points))
+
+
+@pytest.mark.filterwarnings('error::RuntimeWarning')
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(bits=st.lists(st.one_of(st.just(_SIGNALLING_NAN), st.integers(0, 2**32 - 1)),
+                     min_size=3, max_size=60).map(lambda b: b[:len(b) - len(b) % 3]),
+       voxel=st.sampled_from([0.0, 0.25]))
+def test_cloud_of_any_bit_pattern_warns_nothing(bits, voxel):
+    points = _floats_of_bits(bits).reshape(-1, 3)
+    out = sensor.cloud_points(_cloud_bytes(points), min_height=-math.inf,
+                              max_height=math.inf, voxel_size=voxel)
+    assert isinstance(out, sensor.SensorPoints) and np.all(np.isfinite(out.points))
+
+
+@pytest.mark.parametrize('frame_id', ['f' * sensor.MAX_FRAME_ID, 'é' * sensor.MAX_FRAME_ID,
+                                      '\U0001F600' * sensor.MAX_FRAME_ID])
+def test_frame_id_of_the_bound_in_characters_is_kept(frame_id):
+    out = sensor.scan_points(_scan_bytes([1.0], frame_id=frame_id))
+    assert isinstance(out, sensor.SensorPoints) and out.frame_id == frame_id
+
+
+@pytest.mark.parametrize('frame_id', ['f' * (sensor.MAX_FRAME_ID + 1),
+                                      'é' * (sensor.MAX_FRAME_ID + 1),
+                                      '\U0001F600' * (sensor.MAX_FRAME_ID + 1)])
+def test_frame_id_past_the_bound_is_refused_in_characters(frame_id):
+    out = sensor.scan_points(_scan_bytes([1.0], frame_id=frame_id))
+    assert isinstance(out, sensor.Refused) and 'header.frame_id' in out.reason
+    assert '\n' not in out.reason
