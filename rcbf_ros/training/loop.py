@@ -119,16 +119,18 @@ def train(run: RunConfig, *, log: Callable[[str], None] = print) -> list[dict[st
                 log(draw_trajectories(list(paths), env=env, filter_params=filter_params,
                                       png=out / 'trajectories.png', title=title))
 
-        if failure is None:  # after a failed write nothing more is written
-            try:
-                files.finish(learner, env_rng=env_rng(), then=(pictures,))
-            except OSError as exc:
-                failure = exc
-        if recorder is not None:
-            try:
-                recorder.close()
-            except OSError as exc:
-                failure = failure or exc
+        try:
+            if failure is None:  # after a failed write nothing more is written
+                try:
+                    files.finish(learner, env_rng=env_rng(), then=(pictures,))
+                except OSError as exc:
+                    failure = exc
+        finally:  # a signal during the finish (the pictures take a while) still closes the bag
+            if recorder is not None:
+                try:
+                    recorder.close()
+                except OSError as exc:
+                    failure = failure or exc
         if failure is not None:
             raise RunWriteError(files.stopped(failure)) from None
     return files.history

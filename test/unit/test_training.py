@@ -529,6 +529,24 @@ def test_an_interrupt_between_an_episodes_row_and_its_line_loses_neither(tmp_pat
         row['episode'] for row in checkpoint['history']]
 
 
+def test_an_interrupt_during_the_finish_still_closes_the_bag(tmp_path, monkeypatch):
+    """A signal that lands while the run finishes (its pictures take a while under load) still
+    leaves a closed bag: every step's command is counted in its summary."""
+    import rcbf_ros.training.loop as loop_module
+
+    def interrupted_pictures(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(loop_module, 'draw_reward_curve', interrupted_pictures)
+    run = replace(small_run(tmp_path, 'unicycle', 'baseline', episodes=2, steps=30),
+                  record_bag=True)
+    with pytest.raises(KeyboardInterrupt):
+        train(run, log=lambda _: None)
+    from rosbags.highlevel import AnyReader
+    with AnyReader([tmp_path / 'unicycle_baseline_0' / 'bag_0000']) as reader:
+        assert sum(c.msgcount for c in reader.connections if c.topic == '/cmd_safe') == 60
+
+
 def test_train_cli_modular_envelope_flag_reaches_the_learner_config():
     import argparse
 
