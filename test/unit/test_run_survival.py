@@ -170,7 +170,7 @@ def test_checkpoint_every_is_a_flag_checked_at_start(tmp_path, capsys, monkeypat
     out = tmp_path / 'run'
     assert cli_main(['train', *TINY, '--episodes', '1', '--checkpoint-every', '0',
                      '--out', str(out)]) == 2
-    assert 'checkpoint_every: must be >= 1, got 0' in capsys.readouterr().err
+    assert '--checkpoint-every: must be >= 1, got 0' in capsys.readouterr().err
     assert not out.exists()
     written = []
 
