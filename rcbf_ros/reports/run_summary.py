@@ -174,7 +174,8 @@ def episode_paths(bag: Path, *, n_x: int) -> list[Any]:
     from rcbf_ros.bag import bag_info, read_bag
     from rcbf_ros.reports.plots import CORRECTION_THRESHOLD
     recorded = bag_info(bag).topics
-    by_steps = STEP_TOPIC in recorded
+    # a /sim/step the recorder subscribed to but nobody published on is no source of states
+    by_steps = STEP_TOPIC in recorded and recorded[STEP_TOPIC].message_count > 0
     answers = INFO_TOPIC if INFO_TOPIC in recorded else COMMAND_TOPIC
     episodes = _Episodes()
     ended, counter = True, 0

@@ -138,14 +138,18 @@ def test_run_summary_draws_the_bag_and_labels_the_closest_approach(tmp_path, for
     assert f'obstacle_{index} (episode {episode},' in line
 
 
-def test_run_summary_without_sim_step_splits_state_at_episode_events(tmp_path):
-    """An in-process bag: /state and /cmd_safe (no state section), end events only."""
+@pytest.mark.parametrize('empty_sim_step', [False, True])
+def test_run_summary_without_sim_step_splits_state_at_episode_events(tmp_path, empty_sim_step):
+    """An in-process bag: /state and /cmd_safe (no state section), end events only; a
+    /sim/step topic without messages (a recorder subscribed, nobody published) is none."""
     episodes = _episodes()
     bag = tmp_path / 'bag'
     writer = BagWriter(bag)
     for topic, type_name in (('/state', ARRAY), ('/cmd_safe', ARRAY),
                              ('/episode', 'std_msgs/msg/String')):
         writer.add_topic(topic, type_name)
+    if empty_sim_step:
+        writer.add_topic('/sim/step', ARRAY)
     t = 0
     for number, states in enumerate(episodes):
         for k, state in enumerate(states):
