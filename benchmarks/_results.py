@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+import os
 from pathlib import Path
 import platform
 import re
@@ -9,6 +10,11 @@ import re
 RESULTS = Path(__file__).resolve().parent / 'RESULTS.md'
 HEADER = ("# Benchmarks\n\nMeasured on this project's machine size (2 cores, no GPU), "
           'each by the command in its section. Numbers are medians unless noted.\n')
+
+
+def load_averages() -> str:
+    """The machine's 1, 5 and 15 minute load averages, as a section's conditions print them."""
+    return 'load averages ' + ', '.join(f'{x:.2f}' for x in os.getloadavg())
 
 
 def machine_line() -> str:

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import os
 from pathlib import Path
 import sys
 import time
@@ -180,11 +179,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.calls < 1:
         parser.error('--calls must be >= 1')
     table = run(args.calls)
-    from benchmarks._results import publish_section
+    from benchmarks._results import load_averages, publish_section
     publish_section(
         TITLE, script='bench_obstacle_scale.py'
         + (f' --calls {args.calls}' if args.calls != 2000 else ''),
-        conditions=f"; load averages {', '.join(f'{x:.2f}' for x in os.getloadavg())}",
+        conditions=f'; {load_averages()}',
         write=args.write, blocks=[
             'One `SafetyFilter.filter` call per decision (config/unicycle.yaml with random '
             'circles at one per 16 m^2, radii 0.05-0.4 m; half the states at random, half '

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import os
 from pathlib import Path
 import resource
 import sys
@@ -293,12 +292,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.error('--hold-messages must be >= 2')
     table = run(args.calls)
     holding = hold_table(args.hold_messages)
-    from benchmarks._results import publish_section
+    from benchmarks._results import load_averages, publish_section
     publish_section(
         TITLE, script='bench_sources.py'
         + (f' --calls {args.calls}' if args.calls != 1000 else '')
         + (f' --hold-messages {args.hold_messages}' if args.hold_messages != 100 else ''),
-        conditions=f"; load averages {', '.join(f'{x:.2f}' for x in os.getloadavg())}",
+        conditions=f'; {load_averages()}',
         write=args.write, blocks=[
             'One decision from sources to command: the latest message read from its CDR '
             "bytes, its points taken into the state's frame and into the filter, and one "

@@ -38,7 +38,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._results import publish_section  # noqa: E402
+from benchmarks._results import load_averages, publish_section  # noqa: E402
 
 SAFETY_FILTER_SCRIPT = ['-c', 'import sys; from rcbf_ros.ros.node_main import safety_filter; '
                         'sys.exit(safety_filter())']
@@ -223,10 +223,9 @@ def main(argv: list[str] | None = None) -> int:
             f'| its peak so far (VmHWM), MB | {peak:.0f} | '
             f'{min(a[2] for a in answers):.0f} .. {max(a[2] for a in answers):.0f} | |']
     imports = help_imports()
-    load = ', '.join(f'{x:.2f}' for x in os.getloadavg())
     publish_section(
         "Start-up of the filter's path", script='bench_startup.py', write=args.write,
-        conditions=f'; {args.repeats} interleaved runs of each; load averages {load}',
+        conditions=f'; {args.repeats} interleaved runs of each; {load_averages()}',
         blocks=[
             "Each command in a fresh process of the venv's Python. The node's import chain "
             'loads torch only where a system or barrier without a closed form, the '

@@ -287,13 +287,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     measured = measure_trees(args.compare, args.calls, args.repeat)
     sys.path.insert(0, str(ROOT))
-    from benchmarks._results import publish_section
+    from benchmarks._results import load_averages, publish_section
     publish_section(
         TITLE, script='edge_call_graph.py' + (f' --compare {args.compare}' if args.compare
                                               else '')
         + (f' --calls {args.calls}' if args.calls != 2000 else '')
         + (f' --repeat {args.repeat}' if args.repeat != 1 else ''),
-        conditions=f"; load averages {', '.join(f'{x:.2f}' for x in os.getloadavg())}",
+        conditions=f'; {load_averages()}',
         write=args.write, blocks=[
             'One proposal through an in-process `safety_filter` (config/unicycle.yaml, '
             'diagnostics with every answer, then with none due) from its CDR bytes to the '
