@@ -1,6 +1,6 @@
 """Offline re-filtering of a recorded run: the safety filter with another YAML, no DDS.
 
-    rcbf_ros refilter SOURCE_BAG OUTPUT_BAG --params-file F [--node N]
+    rcbf_ros refilter SOURCE_BAG OUTPUT_BAG --params-file F [--node N] [cmd_in:=/topic ...]
 
 Filters every recorded proposal with a ``SafetyFilter`` built from the new parameters, making
 the node's own decisions, and writes a new bag: the source topics unchanged plus
@@ -38,12 +38,24 @@ from rcbf_ros.messages.conversions import (
 from rcbf_ros.messages.typestore import jazzy_typestore
 from rcbf_ros.node_logic import filter_edge
 from rcbf_ros.node_logic import safety_filter as logic
+from rcbf_ros.node_logic.sources import ObservationSources, SENSOR_MESSAGES
 from rcbf_ros.parameters.rules import find_config, load_params
 
 PROPOSAL_TOPIC = '/cmd_proposed'
 STATE_TOPIC = '/state'
 RECORDED_COMMAND_TOPIC = '/cmd_safe'
 RECORDED_INFO_TOPIC = '/filter_info'
+NODE_TOPICS = {'cmd_proposed': PROPOSAL_TOPIC, 'state': STATE_TOPIC,
+               'cmd_safe': RECORDED_COMMAND_TOPIC, 'filter_info': RECORDED_INFO_TOPIC}
+"""The node's topics a bag is read by, under their names in the closed loops (no remaps)."""
+LAUNCH_ARGUMENTS = {'cmd_in': 'cmd_proposed', 'odom': 'state', 'cmd_out': 'cmd_safe'}
+"""The drop-in launch's arguments (``safety_filter.launch.py``) and the node topics they
+remap: ``cmd_in:=/x`` here reads what the launch with ``cmd_in:=/x`` filtered."""
+DROP_IN_TOPICS = {'cmd_proposed': '/cmd_vel_nav', 'state': '/odom', 'cmd_safe': '/cmd_vel',
+                  'filter_info': RECORDED_INFO_TOPIC}
+"""The topics of the drop-in launch at its defaults (``rcbf_ros.launch.table.ROBOT_ARGUMENTS``),
+read when a bag has no ``/cmd_proposed`` and no remap is given."""
+TOPIC_NAME_LIMIT = 256
 OUTPUT_COMMAND_TOPIC = '/refilter/cmd_safe'
 OUTPUT_INFO_TOPIC = '/refilter/filter_info'
 OUTPUT_DIAGNOSTICS_TOPIC = '/refilter/diagnostics'
@@ -67,8 +79,11 @@ class RefilterSummary:
     """The new parameters' ``system``."""
     barrier_names: list[str]
     """The new barriers, in row order."""
+    topics: dict[str, str] = field(default_factory=dict)
+    """The node's topics (``cmd_proposed``, ``state``, ``cmd_safe``, ``filter_info``, and each
+    observation source by name) -> the bag's topic read for it."""
     proposals: int = 0
-    """``/cmd_proposed`` messages read."""
+    """Proposals (``cmd_proposed``) read."""
     processed: int = 0
     """Proposals filtered (one ``/refilter/cmd_safe`` each)."""
     skipped: dict[str, int] = field(default_factory=dict)
@@ -138,6 +153,7 @@ class RefilterSummary:
         skipped = ', '.join(f'{n} {reason}' for reason, n in sorted(self.skipped.items()))
         lines = [
             f're-filtered {self.source} -> {self.output}',
+            'topics: ' + ', '.join(f'{name} {topic}' for name, topic in self.topics.items()),
             f'new filter: {self.system}, {len(self.barrier_names)} barriers',
             f'proposals: {self.proposals}   processed: {self.processed} '
             f'(own state {self.state_from_proposal}, /state {self.state_from_topic})   '
@@ -291,6 +307,55 @@ def _check_length(topic: str, log_time_ns: int, label: str, values: np.ndarray, 
             f'system {system!r} has {what} = {size} (parameters for another system?)')
 
 
+def resolve_topic(name: str, key: str) -> str:
+    """``name`` as the node resolves it in the root namespace (``odom`` -> ``/odom``), checked
+    against rcl's rules for a topic name (letters, digits, ``_`` and ``/`` separated tokens not
+    starting with a digit; ``~`` and substitutions are not taken here).
+
+    Raises:
+        RefilterError: naming ``key`` and the name.
+    """
+    text = name if isinstance(name, str) else ''
+    full = text if text.startswith('/') else '/' + text
+    tokens = full[1:].split('/')
+    if (not text or len(full) > TOPIC_NAME_LIMIT or full.endswith('/')
+            or any(not token or token[0].isdigit()
+                   or not all(c.isascii() and (c.isalnum() or c == '_') for c in token)
+                   for token in tokens)):
+        raise RefilterError(f'{key}: {str(name)[:80]!r} is not a topic name (letters, digits, '
+                            f'_ and / separated tokens, at most {TOPIC_NAME_LIMIT} characters)')
+    return full
+
+
+def topic_names(remaps: Mapping[str, str], bag_topics: Sequence[str]) -> dict[str, str]:
+    """The bag's topic for each of the node's (:data:`NODE_TOPICS`), from ``remaps`` (the
+    node's names or the drop-in launch's arguments, :data:`LAUNCH_ARGUMENTS`, -> topic names).
+
+    Without remaps: the node's own names when the bag has ``/cmd_proposed``, else the drop-in
+    launch's defaults (:data:`DROP_IN_TOPICS`) when it has their ``cmd_in``.
+
+    Raises:
+        RefilterError: an unknown name, a name given twice, or a topic that is not a name.
+    """
+    names = dict(NODE_TOPICS)
+    if not remaps and PROPOSAL_TOPIC not in bag_topics and \
+            DROP_IN_TOPICS['cmd_proposed'] in bag_topics:
+        names = dict(DROP_IN_TOPICS)
+    given: dict[str, str] = {}
+    for key, topic in remaps.items():
+        node_name = LAUNCH_ARGUMENTS.get(key, key)
+        if node_name not in NODE_TOPICS:
+            raise RefilterError(
+                f'{key}:={topic}: unknown topic name; known: '
+                f'{", ".join([*LAUNCH_ARGUMENTS, *NODE_TOPICS])}')
+        if node_name in given:
+            raise RefilterError(f'{key}:={topic}: {node_name} is remapped twice '
+                                f'({given[node_name]}:=...)')
+        given[node_name] = key
+        names[node_name] = resolve_topic(topic, key)
+    return names
+
+
 RecordedAnswers = dict[bytes, deque[tuple[bytes | None, np.ndarray]]]
 """Recorded answers: u_rl bytes -> FIFO of (answered state bytes or None, u)."""
 
@@ -299,11 +364,13 @@ def _bytes(values: np.ndarray | None) -> bytes | None:
     return None if values is None else np.ascontiguousarray(values, np.float64).tobytes()
 
 
-def _recorded_commands(path: str | os.PathLike[str], topics: Mapping[str, Any]
-                       ) -> tuple[str, int, RecordedAnswers]:
-    """(topic, count, answers): the recorded answers, from ``/filter_info`` when the bag has
-    it, else from a ``/cmd_safe`` of the earlier form (``u``, ``u_rl``, ``u_s`` sections)."""
-    topic = RECORDED_INFO_TOPIC if RECORDED_INFO_TOPIC in topics else RECORDED_COMMAND_TOPIC
+def _recorded_commands(path: str | os.PathLike[str], topics: Mapping[str, Any],
+                       names: Mapping[str, str]) -> tuple[str, int, RecordedAnswers]:
+    """(topic, count, answers): the recorded answers, from ``filter_info`` when the bag has
+    it, else from a ``cmd_safe`` of the earlier form (``u``, ``u_rl``, ``u_s`` sections);
+    ``names``: the bag's topic of each (:func:`topic_names`)."""
+    info, command = names['filter_info'], names['cmd_safe']
+    topic = info if info in topics else command
     if topic not in topics:
         return '', 0, {}
     answers: RecordedAnswers = defaultdict(deque)
@@ -359,16 +426,20 @@ def _barrier_statistics(summary: RefilterSummary, safety_filter: SafetyFilter,
 def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                  params: str | os.PathLike[str] | Mapping[str, Any], *,
                  node: str = 'safety_filter',
-                 tolerance: float = DEFAULT_TOLERANCE) -> RefilterSummary:
+                 tolerance: float = DEFAULT_TOLERANCE,
+                 remaps: Mapping[str, str] | None = None) -> RefilterSummary:
     """Filter the proposals recorded in ``source`` with new parameters; write ``output``.
 
     Args:
-        source: bag directory or ``.mcap`` file with ``/cmd_proposed`` (and ``/state``).
+        source: bag directory or ``.mcap`` file with the proposals (``/cmd_proposed``, or the
+            drop-in launch's ``cmd_in``), the states, and each observation source's topic.
         output: new bag directory (must not hold a bag yet).
         params: a ROS 2 params file (or packaged config name, e.g. ``unicycle``) read for
             ``node``, or a flat / nested parameter dict.
         node: the params file section to read (``/**`` merged in).
         tolerance: |Δu| above this counts as a changed command.
+        remaps: the node's topic names or the drop-in launch's arguments -> the bag's topics
+            (:func:`topic_names`), as the launch was given them.
 
     Returns:
         The summary of what changed.
@@ -390,24 +461,33 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
             Path(output).resolve() == f.resolve().parent for f in files):
         raise RefilterError('output: must not be the source bag')
     topics = _source_topics(source)
-    if PROPOSAL_TOPIC not in topics:
-        raise RefilterError(f'source bag {str(source)!r} has no {PROPOSAL_TOPIC} topic '
-                            f'(topics: {sorted(topics)})')
+    names = topic_names(dict(remaps or {}), list(topics))
+    proposal_topic, state_topic = names['cmd_proposed'], names['state']
+    if proposal_topic not in topics:
+        hint = ('' if remaps else f"; a bag of the drop-in launch has its cmd_in "
+                f"({DROP_IN_TOPICS['cmd_proposed']} unless given): name it, cmd_in:=/topic")
+        raise RefilterError(f'source bag {str(source)!r} has no {proposal_topic} topic '
+                            f'(topics: {sorted(topics)}){hint}')
     clashing = sorted(t for t in topics if t in OUTPUT_TOPICS)
     if clashing:
         raise RefilterError(f'source bag already holds {clashing} (re-filter the original run)')
     flat = resolve_params(params, node=node)
-    if flat.get('observation_sources') not in (None, '', [], ()):
-        raise RefilterError('params: observation_sources: refilter does not replay sensor '
-                            'topics (use a params file without perception sources)')
     config, settings, safety_filter = build_filter(flat)
+    sources, source_topics = _sources(config, topics, names)
     system_name = str(flat.get('system'))
     n_x, n_u = safety_filter.n_x, safety_filter.n_u
     summary = RefilterSummary(source=str(source), output=str(output), system=system_name,
-                              barrier_names=list(safety_filter.barrier_names),
-                              tolerance=float(tolerance))
-    summary.recorded_topic, summary.recorded_commands, recorded = _recorded_commands(source,
-                                                                                     topics)
+                              barrier_names=list(safety_filter.problem.barrier_names),
+                              tolerance=float(tolerance), topics=dict(names))
+    summary.topics.update({name: topic for topic, name in source_topics.items()})
+    summary.recorded_topic, summary.recorded_commands, recorded = _recorded_commands(
+        source, topics, names)
+    sense = None
+    if sources is not None:
+        def sense(state: np.ndarray) -> str:
+            return sources.sense(safety_filter, state, now_ns=decided_ns,
+                                 stamp_now_ns=decided_ns)
+    decided_ns = 0
 
     try:
         writer = BagWriter(output)
@@ -424,7 +504,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
             for topic in topics.values():
                 writer.add_topic(topic.name, topic.type_name, topic.qos or None,
                                  message_definition=topic.definition, type_hash=topic.type_hash)
-            command_type = topics[PROPOSAL_TOPIC].type_name
+            command_type = topics[proposal_topic].type_name
             if command_type not in (TWIST, TWIST_STAMPED):
                 command_type = FLOAT64_MULTIARRAY
             writer.add_topic(OUTPUT_COMMAND_TOPIC, command_type)
@@ -432,7 +512,10 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
             writer.add_topic(OUTPUT_DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY)
             for item in read_bag(source):
                 writer.write(item.topic, item.data, item.log_time_ns, item.publish_time_ns)
-                if item.topic == STATE_TOPIC:
+                if item.topic in source_topics:  # what the node's source callback reads
+                    sources.read(source_topics[item.topic], item.data,  # type: ignore[union-attr]
+                                 received_ns=item.log_time_ns)
+                elif item.topic == state_topic:
                     sections = _state_sections(item, settings, system_name)
                     if isinstance(sections, str):  # an Odometry the node would refuse
                         latest = logic.StateSample(item.log_time_ns, None, sections)
@@ -450,8 +533,9 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                         continue
                     latest = logic.StateSample(item.log_time_ns, state)
                     topic_states.append(state)
-                elif item.topic == PROPOSAL_TOPIC:
+                elif item.topic == proposal_topic:
                     summary.proposals += 1
+                    decided_ns = item.log_time_ns
                     sections, header = _proposal_sections(item, settings)
                     for label, size, what in (('u', n_u, 'n_u'), ('state', n_x, 'n_x'),
                                               ('disturbance_mean', n_x, 'n_x'),
@@ -470,7 +554,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                         latest_state=latest, now_ns=item.log_time_ns,
                         max_state_age_s=settings.max_state_age_s,
                         static_mean=config.static_mean, static_std=config.static_std,
-                        slack_tolerance=settings.slack_tolerance)
+                        slack_tolerance=settings.slack_tolerance, sense=sense)
                     if decision.result is None:
                         skipped[logic.reason_key(decision.reason)] += 1
                         continue
@@ -495,12 +579,43 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
         summary.max_abs_du = float(np.max(deltas))
         summary.mean_abs_du = float(np.mean(deltas))
     if topic_states:
-        summary.barrier_states = STATE_TOPIC
+        summary.barrier_states = state_topic
         _barrier_statistics(summary, safety_filter, topic_states)
     else:
-        summary.barrier_states = f'{PROPOSAL_TOPIC} state sections'
+        summary.barrier_states = f'{proposal_topic} state sections'
         _barrier_statistics(summary, safety_filter, proposal_states)
     return summary
+
+
+def _sources(config: FilterConfig, topics: Mapping[str, Any], names: Mapping[str, str]
+             ) -> tuple[ObservationSources | None, dict[str, str]]:
+    """The observation sources of the new parameters, read from the bag as the node's
+    subscriptions read them, and each source's bag topic -> its name (none: ``None, {}``).
+
+    Raises:
+        RefilterError: a source whose topic the bag lacks, holds another type, or is one of
+            the node's own topics.
+    """
+    if config.sources is None:
+        return None, {}
+    by_topic: dict[str, str] = {}
+    own = {topic: name for name, topic in names.items()}
+    for name, source in config.sources.sources:
+        key = f'{name}.topic'
+        topic = resolve_topic(source.topic, key)
+        wanted = SENSOR_MESSAGES[source.type]
+        if topic in own:
+            raise RefilterError(f'{key}: {topic} is the {own[topic]} topic read here')
+        if topic in by_topic:
+            raise RefilterError(f'{key}: {topic} is the topic of {by_topic[topic]}.topic too')
+        if topic not in topics:
+            raise RefilterError(f'{key}: the source bag has no {topic} topic (topics: '
+                                f'{sorted(topics)[:20]})')
+        if topics[topic].type_name != wanted:
+            raise RefilterError(f'{key}: {topic} holds {topics[topic].type_name}, not the '
+                                f'{wanted} of {name}.type {source.type}')
+        by_topic[topic] = name
+    return ObservationSources(config.sources), by_topic
 
 
 def _account(summary: RefilterSummary, decision: logic.Decision, proposal: logic.Proposal,
@@ -570,7 +685,25 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help=f'|du| counted as a change (default {DEFAULT_TOLERANCE:g})')
     parser.add_argument('--json', dest='json_path', default=None,
                         help='also write the summary as JSON to this file')
-    args = parser.parse_args(None if argv is None else list(argv))
+    parser.add_argument('remaps', nargs='*', metavar='NAME:=TOPIC',
+                        help="the bag's topic of a node topic (cmd_proposed, state, cmd_safe, "
+                             'filter_info) or of a drop-in launch argument (cmd_in, odom, '
+                             "cmd_out), as given to the launch; default: the node's names, or "
+                             "the drop-in launch's defaults (/cmd_vel_nav, /odom, /cmd_vel) "
+                             'in a bag without /cmd_proposed')
+    # the remaps may come after the options, as a launch's arguments do
+    args = parser.parse_intermixed_args(None if argv is None else list(argv))
+    remaps: dict[str, str] = {}
+    for text in args.remaps:
+        key, sep, topic = text.partition(':=')
+        if not sep or not key:
+            print(f'rcbf_ros refilter: error: {text[:80]!r}: not NAME:=TOPIC (for example '
+                  'cmd_in:=/cmd_vel_nav)', file=sys.stderr)
+            return 2
+        if key in remaps:
+            print(f'rcbf_ros refilter: error: {key}:= given twice', file=sys.stderr)
+            return 2
+        remaps[key] = topic
     if args.json_path is not None:
         problem = _json_path_problem(args.json_path)
         if problem:
@@ -579,7 +712,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
     try:
         summary = refilter_bag(args.source, args.output, args.params_file, node=args.node,
-                               tolerance=args.tolerance)
+                               tolerance=args.tolerance, remaps=remaps)
     except (RefilterError, BagError, OSError) as exc:
         # A bag that cannot be read (BagError: the file and what is wrong, e.g. a chunk's CRC
         # mismatch), bad parameters, an output that cannot be written: one line, exit 2.

@@ -21,6 +21,10 @@ import numpy as np
 from rcbf_ros.core.config import SourceConfig, SourceParameters
 from rcbf_ros.messages import sensor
 
+SENSOR_MESSAGES = {'scan': 'sensor_msgs/msg/LaserScan',
+                   'pointcloud': 'sensor_msgs/msg/PointCloud2'}
+"""The message type of each ``<name>.type`` of an observation source."""
+
 COUNT_KEYS = ('messages', 'refused', 'stale')
 """Per source: messages received, messages refused (undecodable, wrong layout, too large),
 decisions answered with the fail-safe because the source was stale or had no message yet."""

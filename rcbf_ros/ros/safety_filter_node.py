@@ -28,7 +28,7 @@ from rcbf_ros.node_logic.filter_edge import array_sections as _array_sections  #
 from rcbf_ros.node_logic.filter_edge import one_line as _one_line
 from rcbf_ros.node_logic.interface import bound_text, DIAGNOSTIC_ARRAY
 from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME
-from rcbf_ros.node_logic.sources import ObservationSources, topic_refusal
+from rcbf_ros.node_logic.sources import ObservationSources, SENSOR_MESSAGES, topic_refusal
 from rcbf_ros.ros.node_main import declare_specs, run_node, spin
 from rcbf_ros.ros.runtime import (
     deserialize_message,
@@ -40,10 +40,6 @@ from rcbf_ros.ros.runtime import (
     QoSProfile,
     ReliabilityPolicy,
 )
-
-SENSOR_MESSAGES = {'scan': 'sensor_msgs/msg/LaserScan',
-                   'pointcloud': 'sensor_msgs/msg/PointCloud2'}
-"""The message type of each ``<name>.type`` of an observation source."""
 
 
 class SafetyFilterNode(Node):

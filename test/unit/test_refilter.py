@@ -394,7 +394,7 @@ def test_refiltering_and_the_message_layer_load_no_middleware(tmp_path: Path) ->
 
 @pytest.mark.parametrize(('case', 'needle'), [
     ('empty_output', 'output: must not be empty'),
-    ('sensor_sources', 'observation_sources'),
+    ('sensor_sources', 'front.topic: the source bag has no /scan topic'),
     ('json_under_a_file', '--json'),
     ('json_in_a_missing_directory', '--json'),
     ('json_is_a_directory', '--json'),

@@ -1,0 +1,218 @@
+"""Re-filtering a robot's bag: the drop-in launch's topic names, remaps, and scan sources.
+
+A bag as ``ros2 bag record`` writes it around the drop-in launch holds the controller's Twist on
+its ``cmd_in`` (``/cmd_vel_nav`` by default), nav_msgs/Odometry on ``odom``, the safe command
+on ``cmd_out`` and a LaserScan. The oracle for every re-filtered command is the core filter
+given the scan's points as this test places them in the world (ranges cast here against one
+post, in closed form), not the sources' own reading.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+import yaml
+
+from rcbf_ros.bag import BagWriter
+from rcbf_ros.bag.refilter import (
+    build_filter,
+    DROP_IN_TOPICS,
+    LAUNCH_ARGUMENTS,
+    main,
+    refilter_bag,
+    RefilterError,
+    resolve_params,
+)
+from rcbf_ros.launch.table import launch_setup, ROBOT_ARGUMENTS
+
+T0 = 1_700_000_000_000_000_000
+STEP_NS = 50_000_000
+N_STEPS = 30
+POST, POST_RADIUS = np.array([0.0, 0.0]), 0.3
+BEAMS = 180
+ANGLE_MIN, INCREMENT = -np.pi, 2 * np.pi / BEAMS
+# The recorded robot drives along y = 0.05 at 0.8 m/s, from x = -2.0 to -0.84, towards the post.
+POSES = [np.array([-2.0 + 0.04 * k, 0.05, 0.0]) for k in range(N_STEPS)]
+PROPOSAL = np.array([0.6, 0.0])
+
+PARAMS = {
+    'system': 'unicycle', 'alpha': 2.0, 'state_type': 'odometry', 'command_type': 'twist',
+    'input_limits': {'min': [-1.0, -2.0], 'max': [1.0, 2.0]},
+    'fail_safe_action': [0.0, 0.0],
+    'obstacles': {'x': [40.0], 'y': [40.0], 'radius': [0.5], 'margin': 0.1,
+                  'lookahead': 0.03, 'heading_index': 2, 'speed_input': 0},
+    'footprint': {'radius': 0.2},
+    'observation_sources': ['front'],
+    'front': {'type': 'scan', 'topic': 'scan', 'timeout_s': 0.5},
+}
+
+
+def post_ranges(pose: np.ndarray) -> np.ndarray:
+    """Ranges of the scan's beams from ``pose`` against the post (inf: no return), closed form
+    of a ray meeting a circle."""
+    angles = ANGLE_MIN + np.arange(BEAMS) * INCREMENT + pose[2]
+    d = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    offset = pose[:2] - POST
+    b = d @ offset
+    disc = b * b - (offset @ offset - POST_RADIUS ** 2)
+    t = -b - np.sqrt(np.maximum(disc, 0.0))
+    return np.where((disc >= 0) & (t > 0), t, np.inf)
+
+
+def world_points(pose: np.ndarray) -> np.ndarray:
+    """The scan's returns from ``pose``, in the odom frame."""
+    ranges = post_ranges(pose)
+    hit = np.isfinite(ranges)
+    angles = ANGLE_MIN + np.arange(BEAMS)[hit] * INCREMENT + pose[2]
+    return pose[:2] + ranges[hit, None] * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+
+
+def odometry(pose: np.ndarray, stamp_ns: int) -> dict:
+    half = pose[2] / 2
+    return {'header': {'stamp': {'sec': stamp_ns // 10**9, 'nanosec': stamp_ns % 10**9},
+                       'frame_id': 'odom'},
+            'child_frame_id': 'base_link',
+            'pose': {'pose': {'position': {'x': float(pose[0]), 'y': float(pose[1]), 'z': 0.0},
+                              'orientation': {'x': 0.0, 'y': 0.0, 'z': float(np.sin(half)),
+                                              'w': float(np.cos(half))}},
+                     'covariance': np.zeros(36)},
+            'twist': {'twist': {'linear': {'x': 0.0, 'y': 0.0, 'z': 0.0},
+                                'angular': {'x': 0.0, 'y': 0.0, 'z': 0.0}},
+                      'covariance': np.zeros(36)}}
+
+
+def scan(pose: np.ndarray, stamp_ns: int) -> dict:
+    return {'header': {'stamp': {'sec': stamp_ns // 10**9, 'nanosec': stamp_ns % 10**9},
+                       'frame_id': 'base_link'},
+            'angle_min': ANGLE_MIN, 'angle_max': ANGLE_MIN + INCREMENT * (BEAMS - 1),
+            'angle_increment': INCREMENT, 'time_increment': 0.0, 'scan_time': 0.1,
+            'range_min': 0.05, 'range_max': 8.0,
+            'ranges': post_ranges(pose).astype(np.float32),
+            'intensities': np.zeros(0, np.float32)}
+
+
+def twist(u: np.ndarray) -> dict:
+    return {'linear': {'x': float(u[0]), 'y': 0.0, 'z': 0.0},
+            'angular': {'x': 0.0, 'y': 0.0, 'z': float(u[1])}}
+
+
+def write_robot_bag(directory: Path, *, command: str = '/cmd_vel_nav', odom: str = '/odom',
+                    scan_until: int = N_STEPS) -> Path:
+    """What ``ros2 bag record`` holds around the drop-in launch: Odometry, a LaserScan in
+    base_link (up to step ``scan_until``), the controller's Twist, the base's command."""
+    with BagWriter(directory) as bag:
+        bag.add_topic(odom, 'nav_msgs/msg/Odometry')
+        bag.add_topic('/scan', 'sensor_msgs/msg/LaserScan')
+        bag.add_topic(command, 'geometry_msgs/msg/Twist')
+        bag.add_topic('/cmd_vel', 'geometry_msgs/msg/Twist')
+        for k, pose in enumerate(POSES):
+            t = T0 + k * STEP_NS
+            bag.write_message(odom, odometry(pose, t), t)
+            if k < scan_until:
+                bag.write_message('/scan', scan(pose, t), t + 1_000_000)
+            bag.write_message(command, twist(PROPOSAL), t + 2_000_000)
+            bag.write_message('/cmd_vel', twist(PROPOSAL), t + 3_000_000)
+    return directory
+
+
+def commands(path: Path) -> list[np.ndarray]:
+    with AnyReader([path]) as reader:
+        connections = [c for c in reader.connections if c.topic == '/refilter/cmd_safe']
+        assert [c.msgtype for c in connections] == ['geometry_msgs/msg/Twist']
+        return [np.array([m.linear.x, m.angular.z]) for m in (
+            reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(connections))]
+
+
+def expected_commands() -> list[np.ndarray]:
+    """The core filter at each pose with the scan's points set by this test's geometry."""
+    _, _, safety_filter = build_filter(resolve_params(PARAMS))
+    out = []
+    for pose in POSES:
+        safety_filter.set_points(world_points(pose))
+        out.append(safety_filter.filter(pose, PROPOSAL).u_safe)
+    return out
+
+
+def test_a_drop_in_bag_is_refiltered_on_its_scan_under_the_launch_defaults(
+        tmp_path: Path) -> None:
+    source = write_robot_bag(tmp_path / 'robot')
+    summary = refilter_bag(source, tmp_path / 'out', PARAMS)
+    assert summary.topics['cmd_proposed'] == '/cmd_vel_nav'
+    assert summary.topics['state'] == '/odom' and summary.topics['front'] == '/scan'
+    assert summary.proposals == summary.processed == N_STEPS
+    got, want = commands(tmp_path / 'out'), expected_commands()
+    assert len(got) == N_STEPS
+    np.testing.assert_allclose(np.stack(got), np.stack(want), atol=1e-6)
+    # the post makes the filter act near it, and only there
+    assert summary.active > 0 and not np.allclose(got[-1], PROPOSAL)
+    assert np.allclose(got[0], PROPOSAL)
+
+
+def test_remaps_name_the_topics_as_the_launch_was_given_them(tmp_path: Path) -> None:
+    source = write_robot_bag(tmp_path / 'robot', command='/ctrl/cmd', odom='/robot/odom')
+    with pytest.raises(RefilterError, match=r'no /cmd_proposed topic.*cmd_in:='):
+        refilter_bag(source, tmp_path / 'none', PARAMS)
+    summary = refilter_bag(source, tmp_path / 'out', PARAMS,
+                           remaps={'cmd_in': 'ctrl/cmd', 'state': '/robot/odom'})
+    assert (summary.topics['cmd_proposed'], summary.topics['state']) == ('/ctrl/cmd',
+                                                                          '/robot/odom')
+    np.testing.assert_allclose(np.stack(commands(tmp_path / 'out')),
+                               np.stack(expected_commands()), atol=1e-6)
+
+
+def test_a_scan_that_stops_leaves_the_later_proposals_unfiltered(tmp_path: Path) -> None:
+    source = write_robot_bag(tmp_path / 'robot', scan_until=10)
+    summary = refilter_bag(source, tmp_path / 'out', PARAMS)
+    stale = sum(n for reason, n in summary.skipped.items() if 'source front' in reason)
+    # the last scan is stamped at step 9; proposal k comes 2 ms after its step: fresh while
+    # (k - 9) * 50 ms + 2 ms <= timeout_s 0.5 s, so up to step 18
+    assert summary.processed == 19 and stale == N_STEPS - 19, summary.skipped
+
+
+@pytest.mark.parametrize('change, needle', [
+    ({'front': {'type': 'scan', 'topic': 'laser'}}, 'front.topic: the source bag has no /laser'),
+    ({'front': {'type': 'pointcloud', 'topic': 'scan'}},
+     'front.topic: /scan holds sensor_msgs/msg/LaserScan'),
+    ({'front': {'type': 'scan', 'topic': 'odom'}}, 'front.topic: /odom is the state topic'),
+])
+def test_a_source_the_bag_cannot_feed_is_refused_naming_it(change: dict, needle: str,
+                                                           tmp_path: Path) -> None:
+    source = write_robot_bag(tmp_path / 'robot')
+    with pytest.raises(RefilterError, match=needle.replace('/', '/')):
+        refilter_bag(source, tmp_path / 'out', dict(PARAMS, **change))
+    assert not (tmp_path / 'out').exists()
+
+
+def test_the_command_line_takes_the_launch_arguments(tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture) -> None:
+    source = write_robot_bag(tmp_path / 'robot', command='/ctrl/cmd')
+    params = tmp_path / 'robot.yaml'
+    params.write_text(yaml.safe_dump({'safety_filter': {'ros__parameters': PARAMS}}))
+    assert main([str(source), str(tmp_path / 'out'), '--params-file', str(params),
+                 'cmd_in:=/ctrl/cmd']) == 0
+    assert 'cmd_proposed /ctrl/cmd' in capsys.readouterr().out
+    for bad, needle in (('cmd_in=/x', 'not NAME:=TOPIC'), ('speed:=/x', 'unknown topic name'),
+                        ('cmd_in:=9/x', 'is not a topic name'), ('odom:=', 'is not a topic'),
+                        ('cmd_in:=/a/../b', 'is not a topic name')):
+        assert main([str(source), str(tmp_path / 'bad'), '--params-file', str(params),
+                     bad]) == 2, bad
+        err = capsys.readouterr().err
+        assert needle in err and len(err.strip().splitlines()) == 1, err
+    assert main([str(source), str(tmp_path / 'bad'), '--params-file', str(params),
+                 'cmd_in:=/a', 'cmd_proposed:=/b']) == 2
+    assert 'remapped twice' in capsys.readouterr().err
+    assert not (tmp_path / 'bad').exists()
+
+
+def test_the_drop_in_names_are_the_launch_tables() -> None:
+    """The bag layer cannot import the launch table: its copy of the defaults is checked
+    here."""
+    defaults = {argument.name: argument.default for argument in ROBOT_ARGUMENTS}
+    for argument, node_topic in LAUNCH_ARGUMENTS.items():
+        assert DROP_IN_TOPICS[node_topic] == '/' + defaults[argument]
+    remapped = dict(next(node for node in launch_setup('safety_filter').nodes).remappings)
+    assert {node_topic: remapped[node_topic].name
+            for node_topic in LAUNCH_ARGUMENTS.values()} == {
+        node_topic: argument for argument, node_topic in LAUNCH_ARGUMENTS.items()}
