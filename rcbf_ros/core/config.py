@@ -641,7 +641,7 @@ def _sources(p: FilterParameters, params: Mapping[str, Any],
     if not p.observation_sources:
         return None
     taken = {key.split('.')[0] for key in parameter_keys(FilterParameters) if '.' in key}
-    taken |= {'system_params', 'bands', 'obstacles', 'gaps', 'walls', 'footprint'}
+    taken |= {'system_params', 'bands', 'obstacles', 'gaps', 'walls', 'footprint', 'tf'}
     sources = []
     for name in p.observation_sources:
         if not _SOURCE_NAME.fullmatch(name) or name in taken:
