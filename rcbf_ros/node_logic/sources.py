@@ -33,6 +33,7 @@ from rcbf_ros.node_logic.tf_buffer import (
     FRAME,
     IDENTITY,
     NoTransform,
+    Rigid,
     TransformBuffer,
 )
 
@@ -40,6 +41,8 @@ COUNT_KEYS = ('messages', 'refused', 'stale', 'untransformed')
 """Per source: messages received, messages refused (undecodable, wrong layout, too large),
 decisions answered with the fail-safe because the source was stale or had no message yet,
 and because its points had no transform to the state's frame."""
+MAX_WIDENING = 0.5
+"""The most (m) a cloud's circles are widened for a tilted frame; more refuses the source."""
 TF_COUNT_KEYS = ('messages', 'refused', 'transforms_refused')
 """Of ``/tf`` and ``/tf_static`` together: messages received, messages refused whole
 (undecodable, too many transforms), transforms refused alone (NaN, not a unit quaternion, a
@@ -199,12 +202,13 @@ class ObservationSources:
                 source.counts['stale'] += 1
                 return (f'source {name}: latest message {age:.3f} s old > {name}.timeout_s '
                         f'{timeout:g}')
-            points = self._placed(source, state)
-            if isinstance(points, str):
+            placed = self._placed(source, state)
+            if isinstance(placed, str):
                 source.counts['untransformed'] += 1
-                return f'source {name}: {points}'
+                return f'source {name}: {placed}'
+            points, widening = placed
             parts.append(points)
-            spreads.append((source.spread, len(points)))
+            spreads.append((source.spread + widening, len(points)))
         if not parts:
             return np.zeros((0, 2)), 0.0
         widths = {float(spread) for spread, _ in spreads}
@@ -225,21 +229,24 @@ class ObservationSources:
         safety_filter.set_points(*out)
         return ''
 
-    def _placed(self, source: _Source, state: np.ndarray) -> np.ndarray | str:
+    def _placed(self, source: _Source, state: np.ndarray) -> tuple[np.ndarray, float] | str:
         """``source``'s points in the state's frame (module docstring: tf at the message's
-        stamp, else the robot's frame and the state's pose), or why not (one line naming the
-        frames)."""
+        stamp, else the robot's frame and the state's pose) and how much wider (m) their
+        circles must be (:meth:`_widening`), or why not (one line naming the frames)."""
         config = self.config
         points, frame = source.points, source.frame_id
         assert points is not None
         odom, base = config.odom_frame_id, config.base_frame_id
         if frame == odom:
-            return points
+            return points, 0.0
         tolerance_ns = round(config.transform_tolerance * 1e9)
         to_odom = self.tf.lookup_transform(odom, frame, source.stamp_ns,
                                            tolerance_ns=tolerance_ns)
         if not isinstance(to_odom, NoTransform):
-            return to_odom.apply_planar(points)
+            widening = self._widening(source, to_odom, odom)
+            if isinstance(widening, str):
+                return widening
+            return to_odom.apply_planar(points), widening
         if to_odom.kind not in (FRAME, CONNECTIVITY):  # joined, but not at this stamp
             return to_odom.reason
         to_base = IDENTITY if frame == base else self.tf.lookup_transform(
@@ -250,7 +257,33 @@ class ObservationSources:
             return (f"frame {quoted(frame)} is placed neither in the state's {quoted(odom)} "
                     f"nor in the robot's {quoted(base)} by tf ({to_odom.reason}; "
                     f'{to_base.reason})')
-        return self._to_state_frame(to_base.apply_planar(points), state)
+        widening = self._widening(source, to_base, base)
+        if isinstance(widening, str):
+            return widening
+        placed = self._to_state_frame(to_base.apply_planar(points), state)
+        return placed if isinstance(placed, str) else (placed, widening)
+
+    @staticmethod
+    def _widening(source: _Source, rigid: Rigid, target: str) -> float | str:
+        """How far (m) a cloud's point may lie from where it is placed: its points are taken at
+        z = 0 of their frame, so a frame tilted by t from ``target``'s vertical moves a point
+        of height z by |z| sin t; the band bounds |z| (a scan's points lie at z = 0: 0)."""
+        params = source.params
+        if params.type == 'scan':
+            return 0.0
+        x, y, z, w = rigid.rotation
+        sin_tilt = math.hypot(2 * (x * z + y * w), 2 * (y * z - x * w))
+        if sin_tilt < 1e-9:  # level (rounding of a yaw-only quaternion)
+            return 0.0
+        height = max(abs(params.min_height), abs(params.max_height))
+        widening = height * sin_tilt
+        if not math.isfinite(widening) or widening > MAX_WIDENING:
+            tilt = math.degrees(math.acos(max(-1.0, min(1.0, 1 - 2 * (x * x + y * y)))))
+            return (f'frame {quoted(source.frame_id)} is tilted {tilt:.1f} deg from '
+                    f"{quoted(target)}'s vertical: its points, up to {height:g} m high "
+                    f'({source.name}.min_height, .max_height), would lie up to {widening:.3g} m '
+                    f'from where they are placed (at most {MAX_WIDENING:g})')
+        return widening
 
     def _to_state_frame(self, points: np.ndarray, state: np.ndarray) -> np.ndarray | str:
         """Points in the robot's frame -> the state's: rotated by the heading, moved to the

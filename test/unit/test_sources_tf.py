@@ -177,3 +177,53 @@ def test_hostile_tf_bytes_never_raise_and_leave_a_reason_or_points(data, static,
     sources.read('front', _scan([1.0], frame_id=frame), received_ns=0)
     out = sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S)
     assert (isinstance(out, str) and '\n' not in out) or np.all(np.isfinite(out[0]))
+
+
+_CLOUD = {'observation_sources': ['cloud'], 'cloud.type': 'pointcloud', 'cloud.topic': 'points',
+          'cloud.timeout_s': 1.0, 'cloud.min_height': -0.2, 'cloud.max_height': 0.4}
+
+
+def _cloud(points, *, frame_id='camera', stamp_ns=10 * S):
+    from sensor_messages import cloud_bytes
+    data = bytearray(cloud_bytes(np.asarray(points, dtype=np.float64), frame_id=frame_id))
+    sec, nanosec = divmod(stamp_ns, S)
+    data[4:8] = int(sec).to_bytes(4, 'little', signed=True)
+    data[8:12] = int(nanosec).to_bytes(4, 'little')
+    return bytes(data)
+
+
+@pytest.mark.parametrize('pitch', [0.0, 0.3, -0.7])
+def test_a_cloud_in_a_tilted_frame_is_widened_to_cover_every_point(pitch):
+    # camera on base_link at (0.2, 0, 0.5), pitched about y and turned 0.25 rad: each point is
+    # placed at z = 0 of its frame, within |z| sin(tilt) of the true 3-D point (scipy's
+    # Rotation is the oracle of the true point)
+    from scipy.spatial.transform import Rotation
+    _, sources = _sources(**_CLOUD)
+    mount = Rotation.from_euler('ZY', [0.25, pitch])
+    assert sources.read_tf(tf_bytes(transform_stamped(
+        'base_link', 'camera', translation=(0.2, 0.0, 0.5), rotation=mount.as_quat())),
+        static=True) == ''
+    assert _odom(sources, 10 * S, 1.0, -1.0, 0.5) == ''
+    points = np.array([[1.0, 0.5, 0.35], [2.0, -1.0, -0.15], [0.5, 0.0, 0.1], [3.0, 3.0, 0.0]])
+    assert sources.read('cloud', _cloud(points), received_ns=0) == ''
+    placed, spread = sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S)
+    base = Rotation.from_euler('Z', 0.5)
+    true = base.apply(mount.apply(points) + [0.2, 0.0, 0.5]) + [1.0, -1.0, 0.0]
+    assert spread == pytest.approx(0.4 * abs(math.sin(pitch)), abs=1e-12)
+    distance = np.hypot(*(placed - true[:, :2]).T)
+    assert np.all(distance <= spread + 1e-6), (distance, spread)
+    # each point is off by its own |z| sin(tilt): the band's bound covers the highest
+    np.testing.assert_allclose(distance, np.abs(points[:, 2]) * abs(math.sin(pitch)),
+                               atol=1e-6)
+
+
+def test_a_cloud_frame_too_tilted_for_its_band_is_refused_naming_it():
+    _, sources = _sources(**dict(_CLOUD, **{'cloud.max_height': 2.0}))
+    assert sources.read_tf(tf_bytes(transform_stamped(
+        'base_link', 'camera', rotation=(0.0, math.sin(0.4), 0.0, math.cos(0.4)))),
+        static=True) == ''  # pitched 0.8 rad: 2 m x sin(0.8) > 0.5 m
+    sources.read('cloud', _cloud([[1.0, 0.0, 0.1]]), received_ns=0)
+    reason = sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S)
+    assert reason == ("source cloud: frame 'camera' is tilted 45.8 deg from 'base_link''s "
+                      'vertical: its points, up to 2 m high (cloud.min_height, .max_height), '
+                      'would lie up to 1.43 m from where they are placed (at most 0.5)')
