@@ -163,10 +163,10 @@ class ObservationSources:
                 counts['refused'] += 1
                 return ' '.join(out.reason.split())
             refused = list(out.refused)
-            for k, transform in enumerate(out.transforms):
+            for transform in out.transforms:
                 why = self.tf.set_transform(transform, static=static)
                 if why:
-                    refused.append(f'transform {k}: {why}')
+                    refused.append(why)
         except Exception as exc:  # the readers never raise; kept so that no path escapes
             counts['refused'] += 1
             return f'internal error: {type(exc).__name__}: {" ".join(str(exc).split())}'[:200]
@@ -260,7 +260,9 @@ class ObservationSources:
         widening = self._widening(source, to_base, base)
         if isinstance(widening, str):
             return widening
-        placed = self._to_state_frame(to_base.apply_planar(points), state)
+        if to_base is not IDENTITY:
+            points = to_base.apply_planar(points)
+        placed = self._to_state_frame(points, state)
         return placed if isinstance(placed, str) else (placed, widening)
 
     @staticmethod
