@@ -31,6 +31,9 @@ MAX_FRAMES = 1000
 that would add one more is refused."""
 MAX_SAMPLES = 10_000
 """The most samples of one dynamic link (10 s at 1 kHz); the oldest go first."""
+MAX_TOTAL_SAMPLES = 100_000
+"""The most samples of all links together (100 dynamic frames at 100 Hz for 10 s, some 45 MB);
+a sample that would add one more is refused."""
 
 FRAME, CONNECTIVITY, EXTRAPOLATION, LOOP = 'frame', 'connectivity', 'extrapolation', 'loop'
 """The kinds of :class:`NoTransform` (tf2's LookupException, ConnectivityException,
@@ -159,14 +162,18 @@ class TransformBuffer:
     """The transforms received, and lookups between any two frames (module docstring)."""
 
     def __init__(self, *, cache_s: float = DEFAULT_CACHE_S, max_frames: int = MAX_FRAMES,
-                 max_samples: int = MAX_SAMPLES) -> None:
+                 max_samples: int = MAX_SAMPLES,
+                 max_total_samples: int = MAX_TOTAL_SAMPLES) -> None:
         if not (math.isfinite(cache_s) and cache_s > 0):
             raise ValueError(f'cache_s: {cache_s!r} is not a duration > 0')
         self.cache_ns = int(cache_s * _S)
         self.max_frames = max_frames
         self.max_samples = max_samples
+        self.max_total_samples = max_total_samples
         self._links: dict[str, _Link] = {}
         self._frames: set[str] = set()
+        self._samples = 0
+        """Samples held by all links together."""
 
     @property
     def frames(self) -> frozenset[str]:
@@ -209,25 +216,34 @@ class TransformBuffer:
         pose = Rigid(tuple(v / norm for v in rotation),  # type: ignore[arg-type]
                      translation)  # type: ignore[arg-type]
         link = self._links.get(child)
+        replaced = link is not None and (static or link.static or link.parent != parent)
+        if link is not None and not replaced and stamp < link.stamps[-1] - self.cache_ns:
+            return (f'{quoted(parent)} -> {quoted(child)}: stamp {_seconds(stamp)} is older '
+                    f'than the cache ({_seconds(self.cache_ns)} behind the newest, '
+                    f'{_seconds(link.stamps[-1])})')
+        freed = len(link.stamps) if replaced else 0  # type: ignore[union-attr]
+        if self._samples - freed + 1 > self.max_total_samples:
+            return (f'{quoted(parent)} -> {quoted(child)}: refused, the buffer holds '
+                    f'{self._samples} samples (at most {self.max_total_samples})')
+        if link is None or replaced:  # a new link: a new child, parent or kind
+            self._samples -= freed
+            link = self._links[child] = _Link(parent, static)
         if static:
-            self._links[child] = _Link(parent, True, [stamp], [pose])
+            self._samples += 1 - len(link.stamps)
+            link.stamps, link.poses = [stamp], [pose]
         else:
-            if link is None or link.static or link.parent != parent:
-                link = self._links[child] = _Link(parent, False)
-            elif stamp < link.stamps[-1] - self.cache_ns:
-                return (f'{quoted(parent)} -> {quoted(child)}: stamp {_seconds(stamp)} is older '
-                        f'than the cache ({_seconds(self.cache_ns)} behind the newest, '
-                        f'{_seconds(link.stamps[-1])})')
             at = bisect.bisect_left(link.stamps, stamp)
             if at < len(link.stamps) and link.stamps[at] == stamp:
                 link.poses[at] = pose  # the same instant again: the latest word counts
             else:
                 link.stamps.insert(at, stamp)
                 link.poses.insert(at, pose)
+                self._samples += 1
             drop = bisect.bisect_left(link.stamps, link.stamps[-1] - self.cache_ns)
             drop = max(drop, len(link.stamps) - self.max_samples)
             if drop > 0:
                 del link.stamps[:drop], link.poses[:drop]
+                self._samples -= drop
         self._frames.update(new)
         return ''
 

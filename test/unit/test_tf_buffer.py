@@ -211,6 +211,19 @@ def test_the_cache_keeps_ten_seconds_behind_the_newest_and_refuses_older_data():
     assert isinstance(capped.lookup_transform('odom', 'base_link', 2 * S), Rigid)
 
 
+def test_samples_past_the_total_bound_are_refused_and_a_replaced_link_frees_its_own():
+    buffer = TransformBuffer(max_total_samples=4)
+    for k in range(3):
+        assert buffer.set_transform(_t('odom', 'base_link', k * S), static=False) == ''
+    assert buffer.set_transform(_t('base_link', 'laser'), static=True) == ''
+    why = buffer.set_transform(_t('odom', 'base_link', 3 * S), static=False)
+    assert why == "'odom' -> 'base_link': refused, the buffer holds 4 samples (at most 4)"
+    assert buffer.set_transform(_t('base_link', 'laser', 0, (1.0, 0.0, 0.0)), static=True) == ''
+    # a new parent drops the old link's three samples: room again
+    assert buffer.set_transform(_t('map', 'base_link', 3 * S), static=False) == ''
+    assert buffer.set_transform(_t('map', 'base_link', 4 * S), static=False) == ''
+
+
 def test_frames_past_the_bound_are_refused():
     buffer = TransformBuffer(max_frames=3)
     assert buffer.set_transform(_t('a', 'b'), static=True) == ''
@@ -229,21 +242,42 @@ _HOSTILE = st.one_of(st.none(), st.text(max_size=3), st.integers(), st.floats(),
                                   st.sampled_from(['odom', 'base_link', 'laser', 'x', '']),
                                   st.one_of(st.integers(-3 * S, 3 * S), _HOSTILE),
                                   st.one_of(_VECTORS, _HOSTILE),
-                                  st.one_of(_QUATERNIONS, _HOSTILE), st.booleans()),
+                                  st.one_of(_QUATERNIONS.map(_unit), _QUATERNIONS, _HOSTILE),
+                                  st.booleans()),
                         max_size=8),
        target=st.one_of(st.sampled_from(['odom', 'laser', 'x']), _HOSTILE),
        source=st.one_of(st.sampled_from(['odom', 'laser', 'base_link']), _HOSTILE),
        time_ns=st.one_of(st.integers(-3 * S, 3 * S), _HOSTILE),
-       tolerance=st.one_of(st.integers(0, S), _HOSTILE))
+       tolerance=st.one_of(st.integers(0, S), _HOSTILE), small=st.booleans())
 def test_hostile_transforms_and_lookups_never_raise(entries, target, source, time_ns,
-                                                    tolerance):
-    buffer = TransformBuffer()
+                                                    tolerance, small):
+    buffer = (TransformBuffer(cache_s=1.0, max_samples=3, max_total_samples=5) if small
+              else TransformBuffer())
     for parent, child, stamp, translation, rotation, static in entries:
         why = buffer.set_transform(StampedTransform(parent, child, stamp, translation, rotation),
                                    static=static)
         assert isinstance(why, str) and '\n' not in why
+    held = sum(len(link.stamps) for link in buffer._links.values())
+    assert buffer._samples == held <= buffer.max_total_samples
     out = buffer.lookup_transform(target, source, time_ns, tolerance_ns=tolerance)
     if isinstance(out, NoTransform):
         assert '\n' not in out.reason
     else:
         assert np.all(np.isfinite(out.matrix())) and np.all(np.isfinite(out.translation))
+
+
+@settings(max_examples=200, deadline=None)
+@given(stream=st.lists(st.tuples(st.sampled_from(['odom', 'map']),
+                                 st.sampled_from(['base_link', 'laser']),
+                                 st.integers(0, 4 * S), st.booleans()), max_size=40))
+def test_the_cache_stays_sorted_within_its_bounds_under_any_stream(stream):
+    buffer = TransformBuffer(cache_s=1.0, max_samples=4, max_total_samples=6)
+    for parent, child, stamp, static in stream:
+        buffer.set_transform(_t(parent, child, stamp), static=static)
+        links = buffer._links.values()
+        assert buffer._samples == sum(len(link.stamps) for link in links) <= 6
+        for link in links:
+            assert link.stamps == sorted(set(link.stamps)) and len(link.stamps) <= 4
+            assert link.stamps[-1] - link.stamps[0] <= buffer.cache_ns
+            assert len(link.poses) == len(link.stamps) and (not link.static
+                                                            or len(link.stamps) == 1)
