@@ -28,8 +28,9 @@ Keys (all optional except ``system``)::
         without a closed form; see core/filter.py)
     observation_sources: [names]; <name>.type (scan | pointcloud), <name>.topic,
         <name>.timeout_s, <name>.min_height / .max_height / .voxel_size (pointcloud),
-        <name>.best_effort; footprint.radius; odom_frame_id, base_frame_id (the sensor
-        points' frames, docs/SAFETY_FILTER.md "Perception sources")
+        <name>.best_effort; footprint.radius; odom_frame_id, base_frame_id,
+        transform_tolerance (the sensor points' frames and tf, docs/SAFETY_FILTER.md
+        "Perception sources")
 """
 from __future__ import annotations
 
@@ -248,6 +249,8 @@ MIN_VOXEL_SIZE = 1.0e-3
 """The smallest ``<name>.voxel_size`` but 0 (:data:`rcbf_ros.messages.sensor.MIN_VOXEL_SIZE`)."""
 SOURCE_TIMEOUT_S = 0.5
 """Default of ``<name>.timeout_s``."""
+TRANSFORM_TOLERANCE_LIMIT_S = 10.0
+"""The largest ``transform_tolerance``: tf's cache holds 10 s behind a link's newest sample."""
 _SOURCE_NAME = re.compile(r'[A-Za-z][A-Za-z0-9_]*')
 
 
@@ -302,11 +305,15 @@ class SourceConfig:
     odom_frame_id: str
     """The state's frame: points in it are taken as they are."""
     base_frame_id: str
-    """The robot's frame: points in it go to the state's frame through the state's pose."""
+    """The robot's frame: points in it (or tf-joined to it but not to ``odom_frame_id``) go to
+    the state's frame through the state's pose."""
     position_indices: tuple[int, int]
     """State indices of the robot's position (``obstacles.position_indices``)."""
     heading_index: int | None
     """State index of its heading (``obstacles.heading_index``; None: no base frame)."""
+    transform_tolerance: float = 0.1
+    """How far (s) a tf link may be held past its first or last sample, for a message's
+    stamp (``transform_tolerance``)."""
 
 
 @dataclass(frozen=True)
@@ -357,10 +364,17 @@ class FilterParameters:
     odom_frame_id: str = setting('odom', description="the state's frame (sensor points in it "
                                                      'are taken as they are)', read_only=True)
     """The state's frame."""
-    base_frame_id: str = setting('base_link', description="the robot's frame (sensor points in "
-                                                          "it go through the state's pose)",
+    base_frame_id: str = setting('base_link', description="the robot's frame (sensor points "
+                                                          'that tf does not place in '
+                                                          "odom_frame_id go through it and the "
+                                                          "state's pose)",
                                  read_only=True)
     """The robot's frame."""
+    transform_tolerance: float = setting(
+        0.1, minimum=0, maximum=TRANSFORM_TOLERANCE_LIMIT_S, read_only=True,
+        description="how far (s) a tf link may be held past its first or last sample to place "
+                    "a source's message at its stamp; beyond: fail-safe")
+    """How far (s) a tf link may be held past its samples for a source's stamp."""
 
 
 FILTER_OPEN_PREFIXES: tuple[str, ...] = ('system_params.', 'bands.')
@@ -627,7 +641,7 @@ def _sources(p: FilterParameters, params: Mapping[str, Any],
     if not p.observation_sources:
         return None
     taken = {key.split('.')[0] for key in parameter_keys(FilterParameters) if '.' in key}
-    taken |= {'system_params', 'bands', 'obstacles', 'gaps', 'walls', 'footprint'}
+    taken |= {'system_params', 'bands', 'obstacles', 'gaps', 'walls', 'footprint', 'tf'}
     sources = []
     for name in p.observation_sources:
         if not _SOURCE_NAME.fullmatch(name) or name in taken:
@@ -664,7 +678,7 @@ def _sources(p: FilterParameters, params: Mapping[str, Any],
     return SourceConfig(sources=tuple(sources), odom_frame_id=p.odom_frame_id,
                         base_frame_id=p.base_frame_id,
                         position_indices=positions,  # type: ignore[arg-type]
-                        heading_index=heading)
+                        heading_index=heading, transform_tolerance=p.transform_tolerance)
 
 
 def _footprint(p: FilterParameters, params: Mapping[str, Any],

@@ -116,6 +116,10 @@ class _Cursor:
         start = self._take(4 * count, 4, what)
         return struct.unpack_from(f'{self.order}{count}f', self.view, start)
 
+    def float64s(self, count: int, what: str) -> tuple[float, ...]:
+        start = self._take(8 * count, 8, what)
+        return struct.unpack_from(f'{self.order}{count}d', self.view, start)
+
     def string(self, what: str, bound: int) -> str:
         """A CDR string of at most ``bound`` characters (its length counts the terminating
         NUL and each UTF-8 byte: the bytes are bounded first, then the characters)."""

@@ -20,6 +20,11 @@ from rcbf_ros.node_logic.safety_filter import PARAMETERS
 
 NODE_NAME = 'safety_filter'
 _QOS = 'reliable, keep-last 10 (qos.reliable, qos.depth)'
+TF_MESSAGE = 'tf2_msgs/msg/TFMessage'
+TF_QOS = 'reliable, keep-last 100 (tf2_ros listener)'
+"""QoS of the ``/tf`` subscription (tf2_ros's listener's)."""
+TF_STATIC_QOS = 'reliable, keep-last 1, transient-local (tf2_ros static listener)'
+"""QoS of the ``/tf_static`` subscription (tf2_ros's static listener's)."""
 
 
 def _topic(name: str, direction: str, kind: str, layout: str) -> TopicSpec:
@@ -55,6 +60,13 @@ INTERFACE = NodeInterface(
                   'the whole obstacle set, rows [x, y, radius] (3 k values, layout.dim none or '
                   '[k, 3]); replaces obstacles.x/y/radius as a parameter change would',
                   OBSTACLES_QOS),
+        TopicSpec('/tf', 'sub', TF_MESSAGE,
+                  'with observation_sources: transforms that place sensor points in '
+                  'odom_frame_id at their stamps (docs/SAFETY_FILTER.md "Perception sources")',
+                  TF_QOS),
+        TopicSpec('/tf_static', 'sub', TF_MESSAGE,
+                  'with observation_sources: the static transforms (sensor mounts)',
+                  TF_STATIC_QOS),
     ),
     parameters=PARAMETERS,
     notes=('Parameters marked <name> are families whose names you choose (bands.operator.index, '

@@ -6,9 +6,16 @@ keeps the points of its latest message, in the message's frame, as
 :mod:`rcbf_ros.messages.sensor` reads them. At a decision, :meth:`ObservationSources.points`
 gives every source's points in the state's frame, or why the filter must answer with the
 fail-safe: a source without a message yet, with one older than its ``timeout_s``, whose latest
-message was refused, or in a frame other than the state's (``odom_frame_id``) or the robot's
-(``base_frame_id``: taken to the state's frame through the pose in the state). No middleware:
-the node hands in bytes and times.
+message was refused, or whose frame cannot be placed in the state's.
+
+Frames: points in ``odom_frame_id`` (the state's frame) are taken as they are. Any other frame
+goes through tf (the transforms of :meth:`ObservationSources.read_tf`, kept in a
+:class:`~rcbf_ros.node_logic.tf_buffer.TransformBuffer`) at the message's stamp, within
+``transform_tolerance``. Where tf does not join the frame to ``odom_frame_id`` (no
+odom -> base_link on tf) but the frame is ``base_frame_id`` or joined to it, the points go to
+the robot's frame, then to the state's through the pose in the state. Where tf joins the
+frames but has no transform at the stamp (too old, too new, a loop), the fail-safe. No
+middleware: the node hands in bytes and times.
 """
 from __future__ import annotations
 
@@ -20,14 +27,30 @@ import numpy as np
 
 from rcbf_ros.core.config import SourceConfig, SourceParameters
 from rcbf_ros.messages import sensor
+from rcbf_ros.messages.tf import quoted, tf_transforms
+from rcbf_ros.node_logic.tf_buffer import (
+    CONNECTIVITY,
+    FRAME,
+    IDENTITY,
+    NoTransform,
+    Rigid,
+    TransformBuffer,
+)
 
 SENSOR_MESSAGES = {'scan': 'sensor_msgs/msg/LaserScan',
                    'pointcloud': 'sensor_msgs/msg/PointCloud2'}
 """The message type of each ``<name>.type`` of an observation source."""
 
-COUNT_KEYS = ('messages', 'refused', 'stale')
+COUNT_KEYS = ('messages', 'refused', 'stale', 'untransformed')
 """Per source: messages received, messages refused (undecodable, wrong layout, too large),
-decisions answered with the fail-safe because the source was stale or had no message yet."""
+decisions answered with the fail-safe because the source was stale or had no message yet,
+and because its points had no transform to the state's frame."""
+MAX_WIDENING = 0.5
+"""The most (m) a cloud's circles are widened for a tilted frame; more refuses the source."""
+TF_COUNT_KEYS = ('messages', 'refused', 'transforms_refused')
+"""Of ``/tf`` and ``/tf_static`` together: messages received, messages refused whole
+(undecodable, too many transforms), transforms refused alone (NaN, not a unit quaternion, a
+frame its own parent, data older than the cache, ...)."""
 
 
 def topic_refusal(config: SourceConfig, own_topics: Sequence[str],
@@ -88,6 +111,10 @@ class ObservationSources:
     def __init__(self, config: SourceConfig) -> None:
         self.config = config
         self._sources = {name: _Source(name, params) for name, params in config.sources}
+        self.tf = TransformBuffer()
+        """The transforms of ``/tf`` and ``/tf_static``."""
+        self.tf_counts = dict.fromkeys(TF_COUNT_KEYS, 0)
+        """Counts of the tf messages (:data:`TF_COUNT_KEYS`)."""
 
     @property
     def names(self) -> list[str]:
@@ -128,6 +155,31 @@ class ObservationSources:
         source.received_ns, source.refusal = received_ns, ''
         return ''
 
+    def read_tf(self, data: Any, *, static: bool) -> str:
+        """Take one ``/tf`` (``static`` False) or ``/tf_static`` message (CDR bytes): '' when
+        every transform was kept, else one line saying what was refused (the message whole,
+        or its first refused transform and how many more). Never raises."""
+        counts = self.tf_counts
+        counts['messages'] += 1
+        try:
+            out = tf_transforms(data)
+            if isinstance(out, sensor.Refused):
+                counts['refused'] += 1
+                return ' '.join(out.reason.split())
+            refused = list(out.refused)
+            for transform in out.transforms:
+                why = self.tf.set_transform(transform, static=static)
+                if why:
+                    refused.append(why)
+        except Exception as exc:  # the readers never raise; kept so that no path escapes
+            counts['refused'] += 1
+            return f'internal error: {type(exc).__name__}: {" ".join(str(exc).split())}'[:200]
+        counts['transforms_refused'] += len(refused)
+        if not refused:
+            return ''
+        more = f' (and {len(refused) - 1} more)' if len(refused) > 1 else ''
+        return ' '.join(refused[0].split()) + more
+
     def points(self, state: np.ndarray, *, now_ns: int, stamp_now_ns: int
                ) -> tuple[np.ndarray, np.ndarray | float] | str:
         """Every source's points in the state's frame, and their spread (one value, or one per
@@ -139,7 +191,6 @@ class ObservationSources:
         later than its receipt (``now_ns`` and the message's receipt, on the monotonic clock):
         a stamp in the future does not keep a source fresh.
         """
-        config = self.config
         parts: list[np.ndarray] = []
         spreads: list[tuple[float, int]] = []
         for name, source in self._sources.items():
@@ -155,17 +206,13 @@ class ObservationSources:
                 source.counts['stale'] += 1
                 return (f'source {name}: latest message {age:.3f} s old > {name}.timeout_s '
                         f'{timeout:g}')
-            points = source.points
-            if source.frame_id == config.base_frame_id:
-                points = self._to_state_frame(points, state)
-                if isinstance(points, str):
-                    return f'source {name}: {points}'
-            elif source.frame_id != config.odom_frame_id:
-                return (f"source {name}: frame {source.frame_id!r} is neither the state's "
-                        f"{config.odom_frame_id!r} nor the robot's {config.base_frame_id!r} "
-                        '(no tf here)')
+            placed = self._placed(source, state)
+            if isinstance(placed, str):
+                source.counts['untransformed'] += 1
+                return f'source {name}: {placed}'
+            points, widening = placed
             parts.append(points)
-            spreads.append((source.spread, len(points)))
+            spreads.append((source.spread + widening, len(points)))
         if not parts:
             return np.zeros((0, 2)), 0.0
         widths = {float(spread) for spread, _ in spreads}
@@ -185,6 +232,64 @@ class ObservationSources:
             return out
         safety_filter.set_points(*out)
         return ''
+
+    def _placed(self, source: _Source, state: np.ndarray) -> tuple[np.ndarray, float] | str:
+        """``source``'s points in the state's frame (module docstring: tf at the message's
+        stamp, else the robot's frame and the state's pose) and how much wider (m) their
+        circles must be (:meth:`_widening`), or why not (one line naming the frames)."""
+        config = self.config
+        points, frame = source.points, source.frame_id
+        assert points is not None
+        odom, base = config.odom_frame_id, config.base_frame_id
+        if frame == odom:
+            return points, 0.0
+        tolerance_ns = round(config.transform_tolerance * 1e9)
+        to_odom = self.tf.lookup_transform(odom, frame, source.stamp_ns,
+                                           tolerance_ns=tolerance_ns)
+        if not isinstance(to_odom, NoTransform):
+            widening = self._widening(source, to_odom, odom)
+            if isinstance(widening, str):
+                return widening
+            return to_odom.apply_planar(points), widening
+        if to_odom.kind not in (FRAME, CONNECTIVITY):  # joined, but not at this stamp
+            return to_odom.reason
+        to_base = IDENTITY if frame == base else self.tf.lookup_transform(
+            base, frame, source.stamp_ns, tolerance_ns=tolerance_ns)
+        if isinstance(to_base, NoTransform):
+            if to_base.kind not in (FRAME, CONNECTIVITY):
+                return to_base.reason
+            return (f"frame {quoted(frame)} is placed neither in the state's {quoted(odom)} "
+                    f"nor in the robot's {quoted(base)} by tf ({to_odom.reason}; "
+                    f'{to_base.reason})')
+        widening = self._widening(source, to_base, base)
+        if isinstance(widening, str):
+            return widening
+        if to_base is not IDENTITY:
+            points = to_base.apply_planar(points)
+        placed = self._to_state_frame(points, state)
+        return placed if isinstance(placed, str) else (placed, widening)
+
+    @staticmethod
+    def _widening(source: _Source, rigid: Rigid, target: str) -> float | str:
+        """How far (m) a cloud's point may lie from where it is placed: its points are taken at
+        z = 0 of their frame, so a frame tilted by t from ``target``'s vertical moves a point
+        of height z by |z| sin t; the band bounds |z| (a scan's points lie at z = 0: 0)."""
+        params = source.params
+        if params.type == 'scan':
+            return 0.0
+        x, y, z, w = rigid.rotation
+        sin_tilt = math.hypot(2 * (x * z + y * w), 2 * (y * z - x * w))
+        if sin_tilt < 1e-9:  # level (rounding of a yaw-only quaternion)
+            return 0.0
+        height = max(abs(params.min_height), abs(params.max_height))
+        widening = height * sin_tilt
+        if not math.isfinite(widening) or widening > MAX_WIDENING:
+            tilt = math.degrees(math.acos(max(-1.0, min(1.0, 1 - 2 * (x * x + y * y)))))
+            return (f'frame {quoted(source.frame_id)} is tilted {tilt:.1f} deg from '
+                    f"{quoted(target)}'s vertical: its points, up to {height:g} m high "
+                    f'({source.name}.min_height, .max_height), would lie up to {widening:.3g} m '
+                    f'from where they are placed (at most {MAX_WIDENING:g})')
+        return widening
 
     def _to_state_frame(self, points: np.ndarray, state: np.ndarray) -> np.ndarray | str:
         """Points in the robot's frame -> the state's: rotated by the heading, moved to the

@@ -27,7 +27,7 @@ from rcbf_ros.node_logic.filter_edge import Answer, FilterEdge, INPUT_COUNT_KEYS
 from rcbf_ros.node_logic.filter_edge import array_sections as _array_sections  # noqa: F401
 from rcbf_ros.node_logic.filter_edge import one_line as _one_line
 from rcbf_ros.node_logic.interface import bound_text, DIAGNOSTIC_ARRAY
-from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME
+from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME, TF_MESSAGE
 from rcbf_ros.node_logic.sources import ObservationSources, SENSOR_MESSAGES, topic_refusal
 from rcbf_ros.ros.node_main import declare_specs, run_node, spin
 from rcbf_ros.ros.runtime import (
@@ -104,6 +104,7 @@ class SafetyFilterNode(Node):
         self.create_subscription(array_type, 'obstacles', self._on_obstacles, obstacles_qos,
                                  raw=True)
         self._sources = self._subscribe_sources()
+        self._subscribe_tf()
         problem = self.config.problem
         self.get_logger().info(
             f'{problem.n_barriers} barriers on {self.system} (n_x = {self.filter.n_x}, '
@@ -326,6 +327,36 @@ class SafetyFilterNode(Node):
             self.get_logger().info(f'source {name}: {kind} on {params.topic}')
         return sources
 
+    def _subscribe_tf(self) -> None:
+        """With observation sources, ``/tf`` and ``/tf_static`` with tf2_ros's listener QoS
+        (reliable; keep last 100; keep last 1 and transient-local): a source's frame is known
+        only from its messages, so any may need tf."""
+        if self._sources is None:
+            return
+        tf_type = get_message(TF_MESSAGE)
+        dynamic = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.VOLATILE)
+        static = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
+                            reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.create_subscription(tf_type, '/tf', lambda data: self._on_tf(data, False), dynamic,
+                                 raw=True)
+        self.create_subscription(tf_type, '/tf_static', lambda data: self._on_tf(data, True),
+                                 static, raw=True)
+
+    def _on_tf(self, data: bytes, static: bool) -> None:
+        """A ``/tf`` or ``/tf_static`` message (CDR bytes): its transforms kept, a WARN (through
+        the log throttle) for what was refused. Never raises."""
+        now_ns = time.monotonic_ns()
+        topic = '/tf_static' if static else '/tf'
+        try:
+            reason = self._sources.read_tf(data, static=static)  # type: ignore[union-attr]
+            if reason:
+                self._log(logic.WARN, f'{topic} refused: {reason}', now_ns)
+        except Exception as exc:  # a defect, not an input
+            self._log_safely(f'{topic}: internal error: {_one_line(exc)}', now_ns)
+
     def _on_source(self, name: str, data: bytes) -> None:
         """A message of source ``name`` (CDR bytes): its points kept, or one line saying why
         it was refused (the fail-safe until a message is read). Never raises."""
@@ -339,12 +370,14 @@ class SafetyFilterNode(Node):
 
     def _counts(self) -> dict[str, int]:
         """The input counts of the diagnostics, with each source's (``<name>.messages``,
-        ``.refused``, ``.stale``)."""
+        ``.refused``, ``.stale``, ``.untransformed``) and tf's (``tf.messages``,
+        ``tf.refused``, ``tf.transforms_refused``)."""
         if self._sources is None:
             return self.input_counts
         counts = dict(self.input_counts)
         for name, values in self._sources.counts().items():
             counts.update({f'{name}.{key}': value for key, value in values.items()})
+        counts.update({f'tf.{key}': value for key, value in self._sources.tf_counts.items()})
         return counts
 
     # callbacks ---------------------------------------------------------------------------------

@@ -9,6 +9,9 @@ other types' payloads under the array type. A second participant publishes other
 PointCloud2 source (``cloud``), and the barrage covers them too: random bytes, bit flips,
 truncations, NaN ranges and geometry, counts beyond every bound, and clouds of wrong layouts
 (missing, overlapping or unknown fields, steps that do not add up, data shorter than declared).
+The tf subscriptions the sources bring get their share on ``/tf`` and ``/tf_static``: NaN and
+infinite translations, zero and far-from-unit quaternions, a frame its own parent, empty and
+over-long frame ids, counts beyond the bound, bit flips, truncations and random bytes.
 Fixed seed, a few hundred samples.
 
 Cyclone checks a sample's structure against the type on both ends (a writer refuses bytes that
@@ -61,6 +64,8 @@ answers are those of the static obstacles."""
 SCAN = 'sensor_msgs/msg/LaserScan'
 CLOUD = 'sensor_msgs/msg/PointCloud2'
 SENSOR_BARRAGE = 240
+TF = 'tf2_msgs/msg/TFMessage'
+TF_BARRAGE = 80
 """A diagnostic with every answer (the default rate-limits OK ones): each exchange reads the
 counts from its own answer's diagnostic."""
 
@@ -81,7 +86,7 @@ class Probe:
         from rcbf_ros.messages.classes import get_message
         from rcbf_ros.ros.dds import rclpy_compat as rclpy
         from rcbf_ros.ros.dds.node import Node
-        from rcbf_ros.ros.dds.qos import QoSProfile
+        from rcbf_ros.ros.dds.qos import DurabilityPolicy, QoSProfile
         rclpy.init(args=[], domain_id=domain_id)
         self.rclpy = rclpy
         self.node_alive = node_alive
@@ -91,9 +96,12 @@ class Probe:
         array = get_message(ARRAY)
         self.writers = {topic: self.node.create_publisher(array, topic, QoSProfile(depth=10))
                         for topic in ('/cmd_proposed', '/state')}
-        for topic, kind in (('/scan', SCAN), ('/points', CLOUD)):
+        for topic, kind in (('/scan', SCAN), ('/points', CLOUD), ('/tf', TF)):
             self.writers[topic] = self.node.create_publisher(get_message(kind), topic,
                                                              QoSProfile(depth=10))
+        self.writers['/tf_static'] = self.node.create_publisher(  # tf2_ros's static QoS
+            get_message(TF), '/tf_static',
+            QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self._subscribe(array, '/cmd_safe', _sections)
         self._subscribe(array, '/filter_info', lambda m: np.array(m.data, dtype=np.float64))
         self._subscribe(get_message('diagnostic_msgs/msg/DiagnosticArray'), '/diagnostics',
@@ -344,6 +352,50 @@ def _sensor_barrage(rng: np.random.Generator) -> list[tuple[str, str, bytes]]:
     return [samples[i] for i in order]
 
 
+def _tf_cdr(parent: str = 'map', child: str = 'fuzz', translation: Any = (1.0, 2.0, 0.0),
+            rotation: Any = (0.0, 0.0, 0.0, 1.0), copies: int = 1) -> bytes:
+    """A TFMessage of ``copies`` transforms stamped now (rosbags' encoder); by default of frames
+    no source uses, so that whatever a flip leaves valid places no point elsewhere."""
+    from rcbf_ros.messages.typestore import jazzy_typestore
+    store = jazzy_typestore()
+    t = store.types
+    transform = t['geometry_msgs/msg/TransformStamped'](
+        header=t['std_msgs/msg/Header'](stamp=_stamp(), frame_id=parent), child_frame_id=child,
+        transform=t['geometry_msgs/msg/Transform'](
+            translation=t['geometry_msgs/msg/Vector3'](*map(float, translation)),
+            rotation=t['geometry_msgs/msg/Quaternion'](*map(float, rotation))))
+    return bytes(store.serialize_cdr(t[TF](transforms=[transform] * copies), TF))
+
+
+def _tf_barrage(rng: np.random.Generator) -> list[tuple[str, str, bytes]]:
+    """(kind, topic, bytes) hostile samples of /tf and /tf_static, in a seeded random order.
+    The transforms naming the sources' frames (odom -> base_link) are all refused."""
+    nan, inf = float('nan'), float('inf')
+    makers: dict[str, Callable[[], bytes]] = {
+        'tf NaN translation': lambda: _tf_cdr('odom', 'base_link', (nan, 0.0, 0.0)),
+        'tf infinite translation': lambda: _tf_cdr('odom', 'base_link', (0.0, -inf, 0.0)),
+        'tf NaN rotation': lambda: _tf_cdr('odom', 'base_link', rotation=(0.0, 0.0, nan, 1.0)),
+        'tf zero quaternion': lambda: _tf_cdr('odom', 'base_link', rotation=(0.0,) * 4),
+        'tf long quaternion': lambda: _tf_cdr('odom', 'base_link', rotation=(0.0, 0.0, 1.0,
+                                                                              1.0)),
+        'tf own parent': lambda: _tf_cdr('base_link', 'base_link'),
+        'tf empty frame': lambda: _tf_cdr('', 'base_link'),
+        'tf long frame id': lambda: _tf_cdr('odom', 'b' * 5000),
+        'tf too many transforms': lambda: _tf_cdr(copies=1025),
+        'tf huge count': lambda: (lambda b: b[:4] + struct.pack('<I', 0xFFFFFFF0) + b[8:])(
+            _tf_cdr()),
+        'tf truncated': lambda: (lambda b: b[:int(rng.integers(0, len(b)))])(_tf_cdr()),
+        'tf bit flips': lambda: _flipped(rng, _tf_cdr(), int(rng.integers(1, 6))),
+        'tf random bytes': lambda: b'\x00\x01\x00\x00' + rng.integers(
+            0, 256, int(rng.integers(0, 200)), dtype=np.uint8).tobytes(),
+    }
+    kinds = sorted(makers)
+    samples = [(kinds[index % len(kinds)], '/tf_static' if rng.random() < 0.3 else '/tf',
+                makers[kinds[index % len(kinds)]]()) for index in range(TF_BARRAGE)]
+    order = rng.permutation(len(samples))
+    return [samples[i] for i in order]
+
+
 def _patched_count(data: bytes, kind: str) -> bytes:
     """The length field of a scan's ranges or a cloud's data set huge (default samples)."""
     out = bytearray(data)
@@ -397,7 +449,7 @@ def test_fuzz_barrage_never_kills_the_node(ros_domain_id, tmp_path):
         rng = np.random.default_rng(SEED)
         delivered: collections.Counter = collections.Counter()
         refused: collections.Counter = collections.Counter()
-        samples = _barrage(rng) + _sensor_barrage(rng)
+        samples = _barrage(rng) + _sensor_barrage(rng) + _tf_barrage(rng)
         samples = [samples[i] for i in rng.permutation(len(samples))]
         for index, (kind, topic, data) in enumerate(samples):
             (delivered if probe.write(topic, data) else refused)[kind] += 1
@@ -451,6 +503,11 @@ def test_fuzz_barrage_never_kills_the_node(ros_domain_id, tmp_path):
     for name in ('front', 'cloud'):
         assert int(values[f'{name}.messages']) > int(fresh['active'][1][2][f'{name}.messages'])
         assert int(values[f'{name}.refused']) > 0, values
+    # ... and tf's: whole messages refused (bounds, layout) and transforms refused alone.
+    for kind in ('tf NaN translation', 'tf zero quaternion', 'tf too many transforms'):
+        assert delivered[kind] > 0, (kind, delivered, refused)
+    assert int(values['tf.messages']) > 20 and int(values['tf.refused']) > 0, values
+    assert int(values['tf.transforms_refused']) >= delivered['tf zero quaternion'], values
     # The same answers as when fresh: exactly where nothing is solved, to the solver's
     # tolerance where the QP is active (as between two answers of a fresh node).
     for name in ('pass', 'active'):

@@ -71,8 +71,8 @@ def test_points_in_the_robot_frame_go_through_the_pose():
     ('none', 'source front: no message yet on scan'),
     ('old', 'source front: latest message 0.600 s old > front.timeout_s 0.5'),
     ('late', 'source front: latest message 0.700 s old'),
-    ('frame', "source front: frame 'laser' is neither the state's 'odom' nor the robot's "
-              "'base_link'"),
+    ('frame', "source front: frame 'laser' is placed neither in the state's 'odom' nor in the "
+              "robot's 'base_link' by tf (no transform from 'laser' to 'odom'"),
     ('refused', 'source front: latest message refused: sensor_msgs/msg/LaserScan: range_min'),
 ])
 def test_a_source_that_cannot_be_used_gives_a_reason_naming_it(setup, words):
@@ -98,6 +98,7 @@ def test_a_source_that_cannot_be_used_gives_a_reason_naming_it(setup, words):
     counts = sources.counts()['front']
     assert counts['stale'] == (1 if setup in ('none', 'old', 'late') else 0)
     assert counts['refused'] == (1 if setup == 'refused' else 0)
+    assert counts['untransformed'] == (1 if setup == 'frame' else 0)
 
 
 def test_a_good_message_after_a_refused_one_clears_the_refusal():
@@ -107,7 +108,8 @@ def test_a_good_message_after_a_refused_one_clears_the_refusal():
     assert isinstance(sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S), str)
     sources.read('front', _scan([1.0]), received_ns=0)
     assert not isinstance(sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S), str)
-    assert sources.counts()['front'] == {'messages': 2, 'refused': 1, 'stale': 0}
+    assert sources.counts()['front'] == {'messages': 2, 'refused': 1, 'stale': 0,
+                                              'untransformed': 0}
 
 
 @settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -1,0 +1,344 @@
+"""A transform buffer with tf2's lookup rules, in plain Python (no middleware).
+
+The filter keeps the transforms of ``/tf`` and ``/tf_static``
+(:func:`rcbf_ros.messages.tf.tf_transforms`) here and asks for sensor frames in the state's
+frame at a message's stamp. The rules are tf2's ``BufferCore``: the frames form a tree (each
+child one parent; a transform naming a new parent for a child replaces the child's link, as
+tf2 replaces its cache); a static link holds at every time; a dynamic link keeps its samples
+for :data:`DEFAULT_CACHE_S` (tf2's default) behind its newest, at most :data:`MAX_SAMPLES`;
+a lookup walks from both frames to their common ancestor; time 0 asks for the latest time at
+which every link of the chain is known; any other time interpolates each dynamic link between
+its two neighbouring samples (translation linearly, rotation by slerp). Where tf2 refuses any
+extrapolation, a lookup here may hold a link's first or last sample for up to a tolerance
+beyond it (``transform_tolerance``). Every refusal is one line naming both frames. Never
+raises for any input.
+"""
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass, field
+import math
+from typing import cast, NamedTuple, Sequence
+
+import numpy as np
+
+from rcbf_ros.messages.tf import quoted, StampedTransform, transform_refusal
+
+DEFAULT_CACHE_S = 10.0
+"""How long (s) behind a link's newest sample its older ones are kept (tf2's default)."""
+MAX_FRAMES = 1000
+"""The most frames a buffer holds (tf2 gives up walking a chain deeper than 1000); a transform
+that would add one more is refused."""
+MAX_SAMPLES = 10_000
+"""The most samples of one dynamic link (10 s at 1 kHz); the oldest go first."""
+MAX_TOTAL_SAMPLES = 100_000
+"""The most samples of all links together (100 dynamic frames at 100 Hz for 10 s, some 45 MB);
+a sample that would add one more is refused."""
+
+FRAME, CONNECTIVITY, EXTRAPOLATION, LOOP = 'frame', 'connectivity', 'extrapolation', 'loop'
+"""The kinds of :class:`NoTransform` (tf2's LookupException, ConnectivityException,
+ExtrapolationException, and its invalid tree)."""
+
+_S = 1_000_000_000
+
+
+class Rigid(NamedTuple):
+    """A rigid transform: p -> R(rotation) p + translation."""
+
+    rotation: tuple[float, float, float, float]
+    """x, y, z, w: a unit quaternion."""
+    translation: tuple[float, float, float]
+    """x, y, z."""
+
+    def compose(self, other: Rigid) -> Rigid:
+        """``self`` after ``other``: p -> self(other(p))."""
+        return Rigid(quaternion_product(self.rotation, other.rotation),
+                     _add(rotate(self.rotation, other.translation), self.translation))
+
+    def inverse(self) -> Rigid:
+        """The transform back: self.inverse().compose(self) is the identity."""
+        x, y, z, w = self.rotation
+        back = (-x, -y, -z, w)
+        tx, ty, tz = rotate(back, self.translation)
+        return Rigid(back, (-tx, -ty, -tz))
+
+    def matrix(self) -> np.ndarray:
+        """(3, 3) the rotation matrix of ``rotation``."""
+        x, y, z, w = self.rotation
+        return np.array([
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+    def apply_planar(self, points: np.ndarray) -> np.ndarray:
+        """(N, 2) points at z = 0 of the source frame -> (N, 2) x, y in the target frame (the
+        full 3-D transform of (x, y, 0), its z dropped)."""
+        m = self.matrix()
+        out = points @ m[:2, :2].T
+        out += self.translation[:2]
+        return out
+
+
+IDENTITY = Rigid((0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
+
+
+class NoTransform(NamedTuple):
+    """Why a lookup has no answer."""
+
+    reason: str
+    """One line naming both frames of the lookup."""
+    kind: str
+    """:data:`FRAME` (a frame unknown), :data:`CONNECTIVITY` (two trees),
+    :data:`EXTRAPOLATION` (data too old or too new), :data:`LOOP`."""
+
+
+def quaternion_product(a: Sequence[float], b: Sequence[float]) -> tuple[float, float, float,
+                                                                         float]:
+    """The Hamilton product a b of quaternions (x, y, z, w): rotation b, then a."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz)
+
+
+def rotate(q: Sequence[float], v: Sequence[float]) -> tuple[float, float, float]:
+    """Vector ``v`` rotated by the unit quaternion ``q`` (x, y, z, w)."""
+    x, y, z, w = q
+    vx, vy, vz = v
+    # v + 2 w (u x v) + 2 u x (u x v), u = (x, y, z)
+    cx, cy, cz = y * vz - z * vy, z * vx - x * vz, x * vy - y * vx
+    return (vx + 2 * (w * cx + y * cz - z * cy),
+            vy + 2 * (w * cy + z * cx - x * cz),
+            vz + 2 * (w * cz + x * cy - y * cx))
+
+
+def _add(a: Sequence[float], b: Sequence[float]) -> tuple[float, float, float]:
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+def slerp(a: Sequence[float], b: Sequence[float], s: float) -> tuple[float, float, float,
+                                                                      float]:
+    """The unit quaternion ``s`` of the way from ``a`` to ``b`` along the shorter arc
+    (s = 0: a, s = 1: b or -b)."""
+    dot = sum(p * q for p, q in zip(a, b))
+    if dot < 0.0:  # q and -q are one rotation: take the shorter way round
+        b, dot = tuple(-q for q in b), -dot
+    if dot > 0.9995:  # nearly equal: the linear blend, normalised, is exact to ~1e-8
+        out = [p + s * (q - p) for p, q in zip(a, b)]
+    else:
+        theta = math.acos(min(dot, 1.0))
+        sin = math.sin(theta)
+        wa, wb = math.sin((1.0 - s) * theta) / sin, math.sin(s * theta) / sin
+        out = [wa * p + wb * q for p, q in zip(a, b)]
+    norm = math.sqrt(sum(v * v for v in out))
+    return (out[0] / norm, out[1] / norm, out[2] / norm, out[3] / norm)
+
+
+def interpolate(a: Rigid, b: Rigid, s: float) -> Rigid:
+    """``s`` of the way from ``a`` to ``b``: translation linear, rotation by :func:`slerp`."""
+    ta, tb = a.translation, b.translation
+    return Rigid(slerp(a.rotation, b.rotation, s),
+                 (ta[0] + s * (tb[0] - ta[0]), ta[1] + s * (tb[1] - ta[1]),
+                  ta[2] + s * (tb[2] - ta[2])))
+
+
+def _seconds(ns: int) -> str:
+    return f'{ns / _S:.3f} s'
+
+
+@dataclass
+class _Link:
+    """Where a child frame is in its parent: one sample (static) or samples by stamp."""
+
+    parent: str
+    static: bool
+    stamps: list[int] = field(default_factory=list)
+    poses: list[Rigid] = field(default_factory=list)
+
+
+class TransformBuffer:
+    """The transforms received, and lookups between any two frames (module docstring)."""
+
+    def __init__(self, *, cache_s: float = DEFAULT_CACHE_S, max_frames: int = MAX_FRAMES,
+                 max_samples: int = MAX_SAMPLES,
+                 max_total_samples: int = MAX_TOTAL_SAMPLES) -> None:
+        if not (math.isfinite(cache_s) and cache_s > 0):
+            raise ValueError(f'cache_s: {cache_s!r} is not a duration > 0')
+        self.cache_ns = int(cache_s * _S)
+        self.max_frames = max_frames
+        self.max_samples = max_samples
+        self.max_total_samples = max_total_samples
+        self._links: dict[str, _Link] = {}
+        self._frames: set[str] = set()
+        self._samples = 0
+        """Samples held by all links together."""
+
+    @property
+    def frames(self) -> frozenset[str]:
+        """Every frame named so far (as a parent or a child)."""
+        return frozenset(self._frames)
+
+    def parent(self, frame: str) -> str | None:
+        """The parent of ``frame`` (None: a root or unknown)."""
+        link = self._links.get(frame)
+        return None if link is None else link.parent
+
+    def set_transform(self, transform: StampedTransform, *, static: bool) -> str:
+        """Keep ``transform``: '' when kept, else the one-line reason it was refused (a bad
+        transform, a new frame beyond :data:`MAX_FRAMES`, data older than the cache, as tf2's
+        TF_OLD_DATA). Never raises."""
+        try:
+            return self._set(transform, static)
+        except Exception as exc:  # any value a caller hands in: a refusal, never a raise
+            return f'transform refused: {type(exc).__name__}: {" ".join(str(exc).split())}'[:200]
+
+    def _set(self, transform: StampedTransform, static: bool) -> str:
+        parent, child, stamp = transform.parent, transform.child, transform.stamp_ns
+        if not (isinstance(parent, str) and isinstance(child, str)):
+            return 'transform refused: frame ids are not text'
+        if not isinstance(stamp, int) or isinstance(stamp, bool):
+            return f'{quoted(parent)} -> {quoted(child)}: stamp {stamp!r} is not an integer'
+        translation = tuple(float(v) for v in transform.translation)
+        rotation = tuple(float(v) for v in transform.rotation)
+        if len(translation) != 3 or len(rotation) != 4:
+            return (f'{quoted(parent)} -> {quoted(child)}: needs 3 translation and 4 rotation '
+                    'values')
+        why = transform_refusal(parent, child, translation, rotation)
+        if why:
+            return why
+        new = {parent, child} - self._frames
+        if len(self._frames) + len(new) > self.max_frames:
+            return (f'{quoted(parent)} -> {quoted(child)}: refused, the buffer holds '
+                    f'{len(self._frames)} frames (at most {self.max_frames})')
+        norm = math.sqrt(math.fsum(v * v for v in rotation))
+        pose = Rigid(tuple(v / norm for v in rotation),  # type: ignore[arg-type]
+                     translation)  # type: ignore[arg-type]
+        link = self._links.get(child)
+        replaced = link is not None and (static or link.static or link.parent != parent)
+        if link is not None and not replaced and stamp < link.stamps[-1] - self.cache_ns:
+            return (f'{quoted(parent)} -> {quoted(child)}: stamp {_seconds(stamp)} is older '
+                    f'than the cache ({_seconds(self.cache_ns)} behind the newest, '
+                    f'{_seconds(link.stamps[-1])})')
+        freed = len(link.stamps) if replaced else 0  # type: ignore[union-attr]
+        if self._samples - freed + 1 > self.max_total_samples:
+            return (f'{quoted(parent)} -> {quoted(child)}: refused, the buffer holds '
+                    f'{self._samples} samples (at most {self.max_total_samples})')
+        if link is None or replaced:  # a new link: a new child, parent or kind
+            self._samples -= freed
+            link = self._links[child] = _Link(parent, static)
+        if static:
+            self._samples += 1 - len(link.stamps)
+            link.stamps, link.poses = [stamp], [pose]
+        else:
+            at = bisect.bisect_left(link.stamps, stamp)
+            if at < len(link.stamps) and link.stamps[at] == stamp:
+                link.poses[at] = pose  # the same instant again: the latest word counts
+            else:
+                link.stamps.insert(at, stamp)
+                link.poses.insert(at, pose)
+                self._samples += 1
+            drop = bisect.bisect_left(link.stamps, link.stamps[-1] - self.cache_ns)
+            drop = max(drop, len(link.stamps) - self.max_samples)
+            if drop > 0:
+                del link.stamps[:drop], link.poses[:drop]
+                self._samples -= drop
+        self._frames.update(new)
+        return ''
+
+    def lookup_transform(self, target: str, source: str, time_ns: int, *,
+                         tolerance_ns: int = 0) -> Rigid | NoTransform:
+        """The transform taking points in ``source`` to ``target`` at ``time_ns`` (0: the
+        latest time the whole chain is known), each dynamic link interpolated at that time or
+        held within ``tolerance_ns`` of its first or last sample; else :class:`NoTransform`.
+        Never raises."""
+        try:
+            return self._lookup(target, source, int(time_ns), max(0, int(tolerance_ns)))
+        except Exception as exc:  # a defect or an absurd argument: a refusal all the same
+            return NoTransform(f'no transform from {quoted(str(source))} to '
+                               f'{quoted(str(target))}: {type(exc).__name__}: '
+                               f'{" ".join(str(exc).split())}'[:300], FRAME)
+
+    def _lookup(self, target: str, source: str, time_ns: int,
+                tolerance_ns: int) -> Rigid | NoTransform:
+        names = f'no transform from {quoted(source)} to {quoted(target)}'
+        for frame in (target, source):
+            if not isinstance(frame, str) or not frame:
+                return NoTransform(f'{names}: empty frame id', FRAME)
+        if target == source:
+            return IDENTITY
+        for frame in (source, target):
+            if frame not in self._frames:
+                return NoTransform(f'{names}: frame {quoted(frame)} does not exist', FRAME)
+        up_source, up_target = self._path(source), self._path(target)
+        for path in (up_source, up_target):
+            if isinstance(path, str):
+                return NoTransform(f'{names}: the tree has a loop through {path}', LOOP)
+        up_source, up_target = cast(list, up_source), cast(list, up_target)
+        on_target = set(up_target)
+        common = next((frame for frame in up_source if frame in on_target), None)
+        if common is None:
+            return NoTransform(f'{names}: they are in two unconnected trees (of roots '
+                               f'{quoted(up_source[-1])} and {quoted(up_target[-1])})',
+                               CONNECTIVITY)
+        source_links = [self._links[frame] for frame in up_source[:up_source.index(common)]]
+        target_links = [self._links[frame] for frame in up_target[:up_target.index(common)]]
+        if time_ns == 0:  # tf2: the latest time at which every link is known
+            newest = [link.stamps[-1] for link in source_links + target_links
+                      if not link.static]
+            time_ns = min(newest) if newest else 0
+        source_up = IDENTITY
+        for frame, link in zip(up_source, source_links):
+            pose = self._sample(link, frame, time_ns, tolerance_ns)
+            if isinstance(pose, str):
+                return NoTransform(f'{names} at {_seconds(time_ns)}: {pose}', EXTRAPOLATION)
+            source_up = pose.compose(source_up)
+        target_up = IDENTITY
+        for frame, link in zip(up_target, target_links):
+            pose = self._sample(link, frame, time_ns, tolerance_ns)
+            if isinstance(pose, str):
+                return NoTransform(f'{names} at {_seconds(time_ns)}: {pose}', EXTRAPOLATION)
+            target_up = pose.compose(target_up)
+        return target_up.inverse().compose(source_up)
+
+    def _path(self, frame: str) -> list[str] | str:
+        """``frame``, its parent, ..., its root; or the frame where the walk comes back on
+        itself (quoted: a loop)."""
+        path, seen = [frame], {frame}
+        link = self._links.get(frame)
+        while link is not None:
+            frame = link.parent
+            if frame in seen:
+                return quoted(frame)
+            path.append(frame)
+            seen.add(frame)
+            link = self._links.get(frame)
+        return path
+
+    @staticmethod
+    def _sample(link: _Link, child: str, time_ns: int, tolerance_ns: int) -> Rigid | str:
+        """``link`` at ``time_ns``: interpolated between its neighbouring samples, or its first
+        or last held within ``tolerance_ns``; else why not (one line)."""
+        if link.static:
+            return link.poses[0]
+        stamps, poses = link.stamps, link.poses
+        what = f'{quoted(link.parent)} -> {quoted(child)}'
+        if time_ns >= stamps[-1]:
+            if time_ns - stamps[-1] <= tolerance_ns:
+                return poses[-1]
+            return (f'{what} too old: its newest is at {_seconds(stamps[-1])}, '
+                    f'{_seconds(time_ns - stamps[-1])} before (tolerance '
+                    f'{_seconds(tolerance_ns)})')
+        if time_ns <= stamps[0]:
+            if stamps[0] - time_ns <= tolerance_ns:
+                return poses[0]
+            return (f'{what} too new: its oldest is at {_seconds(stamps[0])}, '
+                    f'{_seconds(stamps[0] - time_ns)} after (tolerance '
+                    f'{_seconds(tolerance_ns)})')
+        after = bisect.bisect_right(stamps, time_ns)
+        before = after - 1
+        if stamps[before] == time_ns:
+            return poses[before]
+        s = (time_ns - stamps[before]) / (stamps[after] - stamps[before])
+        return interpolate(poses[before], poses[after], s)
