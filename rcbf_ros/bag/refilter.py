@@ -56,6 +56,9 @@ DROP_IN_TOPICS = {'cmd_proposed': '/cmd_vel_nav', 'state': '/odom', 'cmd_safe': 
 """The topics of the drop-in launch at its defaults (``rcbf_ros.launch.table.ROBOT_ARGUMENTS``),
 read when a bag has no ``/cmd_proposed`` and no remap is given."""
 TOPIC_NAME_LIMIT = 256
+TF_TOPICS = ('/tf', '/tf_static')
+"""What the node's sources place points through (tf2_msgs/TFMessage), read from a bag that
+has them, as the node's subscriptions read them."""
 OUTPUT_COMMAND_TOPIC = '/refilter/cmd_safe'
 OUTPUT_INFO_TOPIC = '/refilter/filter_info'
 OUTPUT_DIAGNOSTICS_TOPIC = '/refilter/diagnostics'
@@ -515,6 +518,8 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                 if item.topic in source_topics:  # what the node's source callback reads
                     sources.read(source_topics[item.topic], item.data,  # type: ignore[union-attr]
                                  received_ns=item.log_time_ns)
+                elif sources is not None and item.topic in TF_TOPICS:
+                    sources.read_tf(item.data, static=item.topic == TF_TOPICS[1])
                 elif item.topic == state_topic:
                     sections = _state_sections(item, settings, system_name)
                     if isinstance(sections, str):  # an Odometry the node would refuse
@@ -600,6 +605,7 @@ def _sources(config: FilterConfig, topics: Mapping[str, Any], names: Mapping[str
         return None, {}
     by_topic: dict[str, str] = {}
     own = {topic: name for name, topic in names.items()}
+    own.update({topic: topic[1:] for topic in TF_TOPICS})
     for name, source in config.sources.sources:
         key = f'{name}.topic'
         topic = resolve_topic(source.topic, key)

@@ -49,6 +49,17 @@ PARAMS = {
 }
 
 
+LASER = np.array([0.15, -0.05])
+"""Where a ``laser`` frame sits on base_link (yaw 0), in the bags that carry tf."""
+
+
+def laser_pose(pose: np.ndarray) -> np.ndarray:
+    """The laser's pose in odom for the robot's ``pose``."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return np.array([pose[0] + c * LASER[0] - s * LASER[1],
+                     pose[1] + s * LASER[0] + c * LASER[1], pose[2]])
+
+
 def post_ranges(pose: np.ndarray) -> np.ndarray:
     """Ranges of the scan's beams from ``pose`` against the post (inf: no return), closed form
     of a ray meeting a circle."""
@@ -83,9 +94,19 @@ def odometry(pose: np.ndarray, stamp_ns: int) -> dict:
                       'covariance': np.zeros(36)}}
 
 
-def scan(pose: np.ndarray, stamp_ns: int) -> dict:
-    return {'header': {'stamp': {'sec': stamp_ns // 10**9, 'nanosec': stamp_ns % 10**9},
-                       'frame_id': 'base_link'},
+def stamp(stamp_ns: int) -> dict:
+    return {'sec': stamp_ns // 10**9, 'nanosec': stamp_ns % 10**9}
+
+
+def transform(parent: str, child: str, xy: np.ndarray, yaw: float, stamp_ns: int) -> dict:
+    return {'header': {'stamp': stamp(stamp_ns), 'frame_id': parent}, 'child_frame_id': child,
+            'transform': {'translation': {'x': float(xy[0]), 'y': float(xy[1]), 'z': 0.0},
+                          'rotation': {'x': 0.0, 'y': 0.0, 'z': float(np.sin(yaw / 2)),
+                                       'w': float(np.cos(yaw / 2))}}}
+
+
+def scan(pose: np.ndarray, stamp_ns: int, frame: str = 'base_link') -> dict:
+    return {'header': {'stamp': stamp(stamp_ns), 'frame_id': frame},
             'angle_min': ANGLE_MIN, 'angle_max': ANGLE_MIN + INCREMENT * (BEAMS - 1),
             'angle_increment': INCREMENT, 'time_increment': 0.0, 'scan_time': 0.1,
             'range_min': 0.05, 'range_max': 8.0,
@@ -99,18 +120,28 @@ def twist(u: np.ndarray) -> dict:
 
 
 def write_robot_bag(directory: Path, *, command: str = '/cmd_vel_nav', odom: str = '/odom',
-                    scan_until: int = N_STEPS) -> Path:
+                    scan_until: int = N_STEPS, tf: bool = False) -> Path:
     """What ``ros2 bag record`` holds around the drop-in launch: Odometry, a LaserScan in
-    base_link (up to step ``scan_until``), the controller's Twist, the base's command."""
+    base_link (up to step ``scan_until``), the controller's Twist, the base's command; with
+    ``tf``, the scan in the ``laser`` frame (:data:`LASER`) and /tf_static, /tf placing it."""
     with BagWriter(directory) as bag:
         bag.add_topic(odom, 'nav_msgs/msg/Odometry')
         bag.add_topic('/scan', 'sensor_msgs/msg/LaserScan')
         bag.add_topic(command, 'geometry_msgs/msg/Twist')
         bag.add_topic('/cmd_vel', 'geometry_msgs/msg/Twist')
+        if tf:
+            bag.add_topic('/tf', 'tf2_msgs/msg/TFMessage')
+            bag.add_topic('/tf_static', 'tf2_msgs/msg/TFMessage')
+            bag.write_message('/tf_static', {'transforms': [
+                transform('base_link', 'laser', LASER, 0.0, T0)]}, T0 - 1)
         for k, pose in enumerate(POSES):
             t = T0 + k * STEP_NS
             bag.write_message(odom, odometry(pose, t), t)
-            if k < scan_until:
+            if tf:
+                bag.write_message('/tf', {'transforms': [
+                    transform('odom', 'base_link', pose[:2], float(pose[2]), t)]}, t)
+                bag.write_message('/scan', scan(laser_pose(pose), t, 'laser'), t + 1_000_000)
+            elif k < scan_until:
                 bag.write_message('/scan', scan(pose, t), t + 1_000_000)
             bag.write_message(command, twist(PROPOSAL), t + 2_000_000)
             bag.write_message('/cmd_vel', twist(PROPOSAL), t + 3_000_000)
@@ -125,12 +156,12 @@ def commands(path: Path) -> list[np.ndarray]:
             reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(connections))]
 
 
-def expected_commands() -> list[np.ndarray]:
+def expected_commands(tf: bool = False) -> list[np.ndarray]:
     """The core filter at each pose with the scan's points set by this test's geometry."""
     _, _, safety_filter = build_filter(resolve_params(PARAMS))
     out = []
     for pose in POSES:
-        safety_filter.set_points(world_points(pose))
+        safety_filter.set_points(world_points(laser_pose(pose) if tf else pose))
         out.append(safety_filter.filter(pose, PROPOSAL).u_safe)
     return out
 
@@ -148,6 +179,17 @@ def test_a_drop_in_bag_is_refiltered_on_its_scan_under_the_launch_defaults(
     # the post makes the filter act near it, and only there
     assert summary.active > 0 and not np.allclose(got[-1], PROPOSAL)
     assert np.allclose(got[0], PROPOSAL)
+
+
+def test_a_scan_in_its_own_frame_is_placed_through_the_bags_tf(tmp_path: Path) -> None:
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+    summary = refilter_bag(source, tmp_path / 'out', PARAMS)
+    assert summary.processed == N_STEPS and summary.active > 0, summary.skipped
+    np.testing.assert_allclose(np.stack(commands(tmp_path / 'out')),
+                               np.stack(expected_commands(tf=True)), atol=1e-6)
+    # the same scan placed as if it were at base_link's origin answers otherwise
+    assert not np.allclose(np.stack(expected_commands(tf=True)), np.stack(expected_commands()),
+                           atol=1e-6)
 
 
 def test_remaps_name_the_topics_as_the_launch_was_given_them(tmp_path: Path) -> None:
@@ -176,6 +218,7 @@ def test_a_scan_that_stops_leaves_the_later_proposals_unfiltered(tmp_path: Path)
     ({'front': {'type': 'pointcloud', 'topic': 'scan'}},
      'front.topic: /scan holds sensor_msgs/msg/LaserScan'),
     ({'front': {'type': 'scan', 'topic': 'odom'}}, 'front.topic: /odom is the state topic'),
+    ({'front': {'type': 'scan', 'topic': '/tf'}}, 'front.topic: /tf is the tf topic'),
 ])
 def test_a_source_the_bag_cannot_feed_is_refused_naming_it(change: dict, needle: str,
                                                            tmp_path: Path) -> None:
