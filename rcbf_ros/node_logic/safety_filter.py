@@ -465,6 +465,14 @@ def merged_parameters(*, current: Mapping[str, Any],
     return collect_parameters(merged)
 
 
+def same_parameters(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
+    """Whether two flat parameter dicts hold the same keys with the same values of the same
+    types (``True`` is not ``1.0``, which ``==`` takes it for: a change from one to the other
+    is built, and refused when the key takes no bool)."""
+    return a.keys() == b.keys() and all(
+        type(a[key]) is type(b[key]) and repr(a[key]) == repr(b[key]) for key in a)
+
+
 def describe_changes(*, old: Mapping[str, Any], new: Mapping[str, Any],
                      width: int = 160) -> str:
     """``key: old -> new`` for every key whose value differs, ``; `` between them (each value

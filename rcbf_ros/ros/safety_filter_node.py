@@ -202,7 +202,7 @@ class SafetyFilterNode(Node):
         try:
             changes = {p.name: p.value for p in parameters}
             merged = logic.merged_parameters(current=self._parameter_values(), changes=changes)
-            if merged == self._active.params:
+            if logic.same_parameters(merged, self._active.params):
                 self._pending = (parameters, None)
                 return result
             probes = self._probe_states()
@@ -255,7 +255,7 @@ class SafetyFilterNode(Node):
                 return
         else:
             return
-        if candidate is None or candidate.params == self._active.params:
+        if candidate is None or logic.same_parameters(candidate.params, self._active.params):
             return
         old, self._active = self._active, candidate  # the one swap
         if old.settings.log_throttle_s != candidate.settings.log_throttle_s:
