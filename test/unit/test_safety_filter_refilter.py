@@ -7,12 +7,14 @@ traffic): a controller that proposes once and goes quiet while states keep comin
 """
 from __future__ import annotations
 
+import time
 from typing import Any
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
 import numpy as np
 import pytest
+from test_observation_sources import _scan
 from test_safety_filter_callbacks import _cdr, _harness, _odometry, _twist_stamped, FAIL_SAFE
 
 from rcbf_ros.core.config import filter_config_from_params
@@ -334,7 +336,6 @@ def test_a_refiltered_twist_stamped_has_the_proposals_frame_and_a_fresh_stamp(
         stamped_refilter):
     """The proposal's header.frame_id; the stamp of the node's clock at the answer (a
     consumer that checks a command's age sees it new), not the proposal's."""
-    import time
     harness, clock = stamped_refilter
     harness.node._on_state(_odometry(-3.0, 0.0, 0.0))
     harness.answer(_twist_stamped(AT_OBSTACLE, 1234, 567_000_000, 'base_link'))
@@ -379,3 +380,40 @@ def test_a_bool_for_a_number_is_refused_even_where_it_equals_the_value(lockstep)
     (result,) = node.set_parameters([Parameter('log_throttle_s', Parameter.Type.BOOL, True)])
     assert not result.successful and result.reason.startswith('log_throttle_s: ')
     assert node.get_parameter('log_throttle_s').value == 1.0
+
+
+@pytest.fixture
+def source_refilter(ros_domain_id, monkeypatch):
+    instance, clock = _node_harness(
+        ros_domain_id, monkeypatch, '-p', 'refilter_on_state:=true', '-p',
+        "observation_sources:=['front']", '-p', 'front.type:=scan', '-p', 'front.topic:=scan',
+        '-p', 'footprint.radius:=0.2')
+    yield instance, clock
+    instance.node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def _scan_now(ranges: list[float]) -> bytes:
+    """A LaserScan in base_link, stamped now on the system clock (the node's)."""
+    data = bytearray(_scan(ranges))
+    now_ns = time.time_ns()
+    data[4:8] = (now_ns // SECOND).to_bytes(4, 'little', signed=True)
+    data[8:12] = (now_ns % SECOND).to_bytes(4, 'little')
+    return bytes(data)
+
+
+def test_a_source_message_is_answered_too(source_refilter):
+    """A scan, like a state, re-filters the proposal in force: without one the proposal's
+    answer is the fail-safe (no message yet); the scan's answer filters it."""
+    harness, clock = source_refilter
+    node = harness.node
+    node._on_state(_cdr({'state': list(FAR)}))
+    u, _ = harness.answer(_cdr({'u': [1.0, 0.0]}))
+    np.testing.assert_array_equal(u, FAIL_SAFE)
+    assert _info(harness)['status'][0] == STATUS_CODES['source unusable']
+    clock.now_ns += 50 * MS
+    node._on_source('front', _scan_now([5.0]))
+    assert len(harness.commands) == 2 and node.refilters == 1
+    info = _info(harness)
+    assert info['fail_safe'][0] == 0, info
+    np.testing.assert_array_equal(info['u'], [1.0, 0.0])
