@@ -129,13 +129,14 @@ class NodeSettings(MessageSettings):
     proposal's command. The drop-in launch turns it on: a robot's base holds the last
     command, which must stay safe while the robot moves and the controller is quiet."""
     refilter_min_period_s: float = setting(
-        0.02, minimum=0, maximum=DURATION_LIMIT_S,
+        0.01, minimum=0, maximum=DURATION_LIMIT_S,
         description='least time (s) from any answer to a re-filter (0: one per state or '
                     'source message)')
     """The least time from the latest answer (a proposal's or a re-filter's) to a re-filter:
     a state that comes sooner is not answered (the next one is), which bounds the re-filters
-    to 1 / refilter_min_period_s a second (50 by default) whatever the state rate, and skips
-    the state right after a proposal's answer."""
+    to 1 / refilter_min_period_s a second (100 by default) whatever the state rate, and skips
+    the state right after a proposal's answer. 0.01 s leaves a 50 Hz odometry's jitter room:
+    each of its messages is answered."""
     max_proposal_age_s: float = setting(
         0.5, positive=True, maximum=DURATION_LIMIT_S,
         description='a re-filtered proposal older than this (s, since its arrival) is stale: '

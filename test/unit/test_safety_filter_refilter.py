@@ -274,22 +274,22 @@ def test_a_quiet_controller_is_corrected_then_stopped(refilter, capsys):
 
 
 def test_states_faster_than_the_period_are_answered_at_most_once_a_period(refilter):
-    """States at 1 kHz for 1 s with the default refilter_min_period_s (0.02 s): 50 answers, not
-    1000; and none right after a proposal's answer."""
+    """States at 1 kHz for 1 s with the default refilter_min_period_s (0.01 s): 100 answers,
+    not 1000; and none right after a proposal's answer."""
     harness, clock = refilter
     node = harness.node
-    assert node.settings.refilter_min_period_s == 0.02
+    assert node.settings.refilter_min_period_s == 0.01
     node._on_state(_cdr({'state': list(FREE_STATE)}))
     harness.answer(_cdr({'u': [1.0, 0.3]}))
     for _ in range(1000):
         clock.now_ns += 1 * MS
         node._on_state(_cdr({'state': list(FREE_STATE)}))
-    assert node.refilters == 50 and len(harness.commands) == 51
+    assert node.refilters == 100 and len(harness.commands) == 101
     clock.now_ns += 1 * MS
     harness.answer(_cdr({'u': [1.0, 0.3]}))
     clock.now_ns += 5 * MS
     node._on_state(_cdr({'state': list(FREE_STATE)}))   # 5 ms after a proposal's answer
-    assert node.refilters == 50
+    assert node.refilters == 100
 
 
 def test_no_answer_before_a_first_proposal_nor_after_an_internal_error(refilter, monkeypatch):
