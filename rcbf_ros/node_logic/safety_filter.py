@@ -26,7 +26,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 import math
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -605,10 +605,10 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
                     fail_safe=False, result=result, state_source=source, state=state)
 
 
-@dataclass(frozen=True)
-class HeldProposal:
+class HeldProposal(NamedTuple):
     """The proposal in force: the latest ``cmd_proposed`` sample as read (a bad one too: it is
-    what the controller last asked for), and when it arrived."""
+    what the controller last asked for), and when it arrived (a tuple, as
+    :class:`ProposalSample`: one per proposal)."""
 
     sample: ProposalSample
     """The sample as read (:meth:`rcbf_ros.node_logic.filter_edge.FilterEdge.read_proposal`)."""

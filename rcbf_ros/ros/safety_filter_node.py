@@ -4,7 +4,8 @@ The node keeps subscriptions, parameters and timing: each proposal's bytes go to
 edge (:mod:`rcbf_ros.node_logic.filter_edge`), the checked sample to the decision
 (:mod:`rcbf_ros.node_logic.safety_filter`), the decision back to the edge for the bytes of
 ``cmd_safe``, ``filter_info`` and diagnostics in one pass; the node publishes them, the
-command first. Parameter changes build a whole new filter and
+command first. With ``refilter_on_state`` each state or source message answers the proposal
+in force again, the same way. Parameter changes build a whole new filter and
 swap it in between two callbacks. Topics, the fail-closed handling of bad samples and the
 parameters: docs/SAFETY_FILTER.md and ``safety_filter --help``.
 """
