@@ -36,7 +36,8 @@ STATUS_CODES: dict[str, int] = {
     'solved': 0, 'solved_inaccurate': 1, 'solved_interior_point': 2,
     'bad proposal': 10, 'undecodable proposal': 11, 'no state received yet': 12,
     'bad state': 13, 'stale state': 14, 'bad input': 15, 'internal error': 16,
-    'source unusable': 17, 'input_refused': 20, 'unverified': 21, 'slack_exceeded': 22,
+    'source unusable': 17, 'stale proposal': 18, 'input_refused': 20, 'unverified': 21,
+    'slack_exceeded': 22,
 }
 """The ``status`` section: the solver status of a filtered command (0-9), or the reason the
 fail-safe was published (10-19: before the QP; 20-29: the QP's outcome, as the filter's
@@ -44,6 +45,9 @@ fail-safe was published (10-19: before the QP; 20-29: the QP's outcome, as the f
 SOURCE_UNUSABLE = 'source unusable'
 """The status of a fail-safe for an observation source (no fresh message, a refused one, a
 frame it cannot place: the reason, ``source <name>: ...``, names the source)."""
+STALE_PROPOSAL = 'stale proposal'
+"""The status of a fail-safe for a proposal filtered again more than ``max_proposal_age_s``
+after its arrival (the controller went quiet)."""
 UNKNOWN_STATUS = 99
 """``status`` of a status or reason not in :data:`STATUS_CODES`."""
 

@@ -390,11 +390,14 @@ DROP_IN_FILTER = replace(
     SAFETY_FILTER,
     remappings=(('state', Argument('odom')), ('cmd_proposed', Argument('cmd_in')),
                 ('cmd_safe', Argument('cmd_out'))),
-    parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type'))),
+    parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type')),
+                ('refilter_on_state', True)),
     respawn=Argument('respawn'), respawn_delay_s=Argument('respawn_delay'))
 """The safety filter in front of a robot: odometry in, the controller's command in, the safe
-command out in the same type, respawned on ``respawn:=true``. The one wiring both robot
-launches share."""
+command out in the same type, respawned on ``respawn:=true``; every odometry message filters
+the command in force again (``refilter_on_state``: a base holds the last command it got, which
+must stay safe while the robot moves and the controller is slow or quiet). The one wiring both
+robot launches share."""
 
 
 def _drop_in_filter() -> LaunchSetup:
@@ -430,7 +433,15 @@ def _unicycle_robot() -> LaunchSetup:
         name='unicycle_robot', config='unicycle.yaml', arguments=ROBOT_ARGUMENTS,
         description='demo: a simulated unicycle robot (odom, cmd_out) and a go-to-goal '
         'controller (cmd_in) with the drop-in safety filter between them, recorded',
-        nodes=(robot, DROP_IN_FILTER, controller, RECORDER))
+        nodes=(robot, lockstep(DROP_IN_FILTER), controller, RECORDER))
+
+
+def lockstep(entry: NodeEntry) -> NodeEntry:
+    """``entry`` answering proposals only (``refilter_on_state`` false): in front of a
+    lock-step simulator, which steps on any command while it waits for one, an answer per
+    state besides the answer per proposal would step it on the previous proposal's command."""
+    return replace(entry, parameters=tuple(
+        (key, False if key == 'refilter_on_state' else value) for key, value in entry.parameters))
 
 
 CLOSED_LOOPS: tuple[LaunchSetup, ...] = tuple(

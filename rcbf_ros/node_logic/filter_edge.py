@@ -718,6 +718,17 @@ class FilterEdge:
         return conversions.command_to_msg(u_safe, type_name=self.command_type_name,
                                           twist_fields=twist_fields, header=header)
 
+    def restamped(self, header: Any, *, clock: Any) -> Any:
+        """A copy of a proposal's ``header`` (None: None) stamped ``clock.now()``: the header
+        of a re-filtered answer, which keeps the proposal's frame_id and is as new as the
+        answer (as Nav2's collision_monitor stamps what it publishes)."""
+        if header is None:
+            return None
+        fresh = self._header_message()
+        fresh.frame_id = header.frame_id
+        fresh.stamp = clock.now().to_msg()
+        return fresh
+
     def info_cdr(self, decision: Decision) -> bytes:
         """The serialized ``filter_info`` of a decision (:func:`info_cdr`; the layouts of the
         answers with every section kept)."""

@@ -9,6 +9,8 @@ without launching anything (ros2cli's api/verb split):
 - pairing a proposal with a state (its own ``state`` section, else the latest state message if
   it is fresh enough), choosing the disturbance box, and the fail-safe on any problem
   (:func:`decide`);
+- answering a new state with the proposal in force, fail-safe once it is too old
+  (:func:`decide_held`), and when a new state is answered at all (:func:`refilter_due`);
 - throttling of repeated log lines (:class:`LogThrottle`);
 - what a change of parameters at runtime builds (:func:`build_active_filter` from the merged
   parameters, :func:`merged_parameters`) and which parameters are fixed at start
@@ -22,9 +24,9 @@ unverified or infeasible solve) yields the fail-safe.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -65,6 +67,7 @@ from rcbf_ros.node_logic.filter_edge import (  # noqa: F401 - samples, answers: 
     Proposal,
     proposal_from_sections,
     PROPOSAL_SECTIONS,
+    ProposalSample,
     reason_key,
     state_from_sections,
     StateSample,
@@ -114,6 +117,32 @@ class NodeSettings(MessageSettings):
         0.5, positive=True, maximum=DURATION_LIMIT_S,
         description='a `state` older than this (s, since its arrival) is stale: fail-safe')
     """A state message older than this (since its arrival) is stale: fail-safe."""
+    refilter_on_state: bool = setting(
+        False, description='filter the proposal in force again on every new state and source '
+                           'message (at most every refilter_min_period_s); false: one answer '
+                           'per proposal (lock-step)')
+    """Answer each new ``state`` (and observation source) message too, by filtering the
+    latest proposal again against the newest state (:func:`decide_held`).
+
+    Off by default: a lock-step simulator steps on every answer that names its pending state,
+    so an answer per state besides the answer per proposal would step it on the previous
+    proposal's command. The drop-in launch turns it on: a robot's base holds the last
+    command, which must stay safe while the robot moves and the controller is quiet."""
+    refilter_min_period_s: float = setting(
+        0.01, minimum=0, maximum=DURATION_LIMIT_S,
+        description='least time (s) from any answer to a re-filter (0: one per state or '
+                    'source message)')
+    """The least time from the latest answer (a proposal's or a re-filter's) to a re-filter:
+    a state that comes sooner is not answered (the next one is), which bounds the re-filters
+    to 1 / refilter_min_period_s a second (100 by default) whatever the state rate, and skips
+    the state right after a proposal's answer. 0.01 s leaves a 50 Hz odometry's jitter room:
+    each of its messages is answered."""
+    max_proposal_age_s: float = setting(
+        0.5, positive=True, maximum=DURATION_LIMIT_S,
+        description='a re-filtered proposal older than this (s, since its arrival) is stale: '
+                    'fail-safe until a new one arrives')
+    """A re-filtered proposal older than this (since its arrival) gives the fail-safe, as a
+    base's command timeout would; a proposal's own answer is made when it arrives (age 0)."""
     slack_tolerance: float = setting(
         1.0e-4, minimum=0, maximum=SLACK_TOLERANCE_LIMIT,
         description='most slack the published command may need in any RCBF row; more: fail-safe')
@@ -465,6 +494,14 @@ def merged_parameters(*, current: Mapping[str, Any],
     return collect_parameters(merged)
 
 
+def same_parameters(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
+    """Whether two flat parameter dicts hold the same keys with the same values of the same
+    types (``True`` is not ``1.0``, which ``==`` takes it for: a change from one to the other
+    is built, and refused when the key takes no bool)."""
+    return a.keys() == b.keys() and all(
+        type(a[key]) is type(b[key]) and repr(a[key]) == repr(b[key]) for key in a)
+
+
 def describe_changes(*, old: Mapping[str, Any], new: Mapping[str, Any],
                      width: int = 160) -> str:
     """``key: old -> new`` for every key whose value differs, ``; `` between them (each value
@@ -566,6 +603,78 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
                                f'{slack_tolerance:.3g}')
     return Decision(u_safe=result.u_safe, u_rl=proposal.u, level=OK, reason='',
                     fail_safe=False, result=result, state_source=source, state=state)
+
+
+class HeldProposal(NamedTuple):
+    """The proposal in force: the latest ``cmd_proposed`` sample as read (a bad one too: it is
+    what the controller last asked for), and when it arrived (a tuple, as
+    :class:`ProposalSample`: one per proposal)."""
+
+    sample: ProposalSample
+    """The sample as read (:meth:`rcbf_ros.node_logic.filter_edge.FilterEdge.read_proposal`)."""
+    received_ns: int
+    """Monotonic arrival time in nanoseconds (its age counts from here)."""
+
+
+def proposal_age_s(*, held: HeldProposal, now_ns: int) -> float:
+    """Seconds since the held proposal arrived."""
+    return (now_ns - held.received_ns) / 1e9  # correctly rounded: 9 ms is 0.009
+
+
+def refilter_due(*, enabled: bool, held: HeldProposal | None, last_answer_ns: int | None,
+                 now_ns: int, min_period_s: float) -> bool:
+    """Whether a new state (or source) message arriving at ``now_ns`` is answered by filtering
+    the held proposal again: re-filtering is on, a proposal is held, and the latest answer (a
+    proposal's or a re-filter's, at ``last_answer_ns``; None: none yet) is at least
+    ``min_period_s`` old.
+
+    Each message asks once, so there is at most one re-filter per message; ``min_period_s``
+    bounds them to 1 / min_period_s a second whatever the message rate, and skips the message
+    right after a proposal's answer (that answer is the check of the command in force)."""
+    if not enabled or held is None:
+        return False
+    return last_answer_ns is None or (now_ns - last_answer_ns) / 1e9 >= min_period_s
+
+
+def decide_held(*, held: HeldProposal, again: bool, safety_filter: SafetyFilter,
+                latest_state: StateSample | None, now_ns: int, max_state_age_s: float,
+                max_proposal_age_s: float, static_mean: Sequence[float] = (),
+                static_std: Sequence[float] = (), slack_tolerance: float = 1e-4,
+                sense: Callable[[np.ndarray], str] | None = None) -> Decision:
+    """The answer to a held proposal: at its arrival (``again`` False), or again at a new
+    state or source message (``again`` True).
+
+    Filtered again, a proposal more than ``max_proposal_age_s`` old (since its arrival) gives
+    the fail-safe, as a base's command timeout would: a controller that went quiet no longer
+    drives the robot. Otherwise it is filtered against the newest state: the latest state
+    message when it arrived after the proposal, else the proposal's own ``state`` section if
+    it has one (:func:`decide`, whose checks apply as they are). At its arrival a proposal's
+    age is 0: the age check is for re-filtering alone.
+
+    Args:
+        now_ns: monotonic time of the message answered (the proposal's arrival, or the new
+            state's); the other arguments: as :func:`decide`'s.
+    """
+    sample = held.sample
+    u_rl = sample.proposal.u if sample.proposal is not None else None
+    if again:
+        age = proposal_age_s(held=held, now_ns=now_ns)
+        if age > max_proposal_age_s:
+            return fail_safe_decision(
+                safety_filter=safety_filter, u_rl=u_rl,
+                reason=f'stale proposal: {age:.3f} s old > max_proposal_age_s = '
+                       f'{max_proposal_age_s}')
+    if sample.undecodable:
+        return fail_safe_decision(safety_filter=safety_filter,
+                                  reason=f'undecodable proposal: {sample.error}')
+    proposal = sample.proposal
+    if (again and proposal is not None and proposal.state is not None
+            and latest_state is not None and latest_state.received_ns > held.received_ns):
+        proposal = replace(proposal, state=None)  # the state message is newer: filter at it
+    return decide(safety_filter=safety_filter, proposal=proposal, proposal_error=sample.error,
+                  latest_state=latest_state, now_ns=now_ns, max_state_age_s=max_state_age_s,
+                  static_mean=static_mean, static_std=static_std,
+                  slack_tolerance=slack_tolerance, sense=sense)
 
 
 class LogThrottle:

@@ -4,7 +4,8 @@ The node keeps subscriptions, parameters and timing: each proposal's bytes go to
 edge (:mod:`rcbf_ros.node_logic.filter_edge`), the checked sample to the decision
 (:mod:`rcbf_ros.node_logic.safety_filter`), the decision back to the edge for the bytes of
 ``cmd_safe``, ``filter_info`` and diagnostics in one pass; the node publishes them, the
-command first. Parameter changes build a whole new filter and
+command first. With ``refilter_on_state`` each state or source message answers the proposal
+in force again, the same way. Parameter changes build a whole new filter and
 swap it in between two callbacks. Topics, the fail-closed handling of bad samples and the
 parameters: docs/SAFETY_FILTER.md and ``safety_filter --help``.
 """
@@ -74,9 +75,15 @@ class SafetyFilterNode(Node):
         self.add_post_set_parameters_callback(self._apply_parameter_change)
         self._clock = self.get_clock()
         self._latest_state: logic.StateSample | None = None
+        self._held: logic.HeldProposal | None = None
+        """The proposal in force (the latest one read), re-filtered at each new state."""
+        self._last_answer_ns: int | None = None
+        """When the latest answer (a proposal's or a re-filter's) was made (monotonic ns)."""
         self._last_ok_diagnostics_ns: int | None = None
         self._throttle = logic.LogThrottle(self.settings.log_throttle_s)
         self.proposals_received = 0
+        self.refilters = 0
+        """Answers made at a new state or source message (``refilter_on_state``)."""
         self.input_counts = dict.fromkeys(INPUT_COUNT_KEYS, 0)
         """Cumulative ``dropped_samples``, ``refused_proposals``, ``refused_states``."""
 
@@ -199,7 +206,7 @@ class SafetyFilterNode(Node):
         try:
             changes = {p.name: p.value for p in parameters}
             merged = logic.merged_parameters(current=self._parameter_values(), changes=changes)
-            if merged == self._active.params:
+            if logic.same_parameters(merged, self._active.params):
                 self._pending = (parameters, None)
                 return result
             probes = self._probe_states()
@@ -252,7 +259,7 @@ class SafetyFilterNode(Node):
                 return
         else:
             return
-        if candidate is None or candidate.params == self._active.params:
+        if candidate is None or logic.same_parameters(candidate.params, self._active.params):
             return
         old, self._active = self._active, candidate  # the one swap
         if old.settings.log_throttle_s != candidate.settings.log_throttle_s:
@@ -367,6 +374,7 @@ class SafetyFilterNode(Node):
                 self._log(logic.ERROR, f'source {name}: message refused: {reason}', now_ns)
         except Exception as exc:  # a defect, not an input
             self._log_safely(f'source {name}: internal error: {_one_line(exc)}', now_ns)
+        self._refilter(now_ns)
 
     def _counts(self) -> dict[str, int]:
         """The input counts of the diagnostics, with each source's (``<name>.messages``,
@@ -392,6 +400,7 @@ class SafetyFilterNode(Node):
         self._latest_state = sample
         if sample.state is None:
             self._log(logic.ERROR, f'bad state: {sample.error}', now_ns)
+        self._refilter(now_ns)
 
     def _state_sample(self, data: bytes, now_ns: int,
                       active: logic.ActiveFilter) -> logic.StateSample:
@@ -403,16 +412,47 @@ class SafetyFilterNode(Node):
         return sample
 
     def _on_proposal(self, data: bytes) -> None:
-        """A ``cmd_proposed`` sample (CDR bytes): answered with one command, always."""
+        """A ``cmd_proposed`` sample (CDR bytes): answered with one command, always; held as
+        the proposal in force (none after an internal error: nothing is re-filtered then)."""
         now_ns = time.monotonic_ns()
         self.proposals_received += 1
-        header = None
+        self._held, header = None, None
         active = self._active  # one filter for the whole answer, whatever changes meanwhile
         try:
-            decision, header = self._decide(data, now_ns, active)
+            self._held = logic.HeldProposal(sample=self._read_proposal(data, active),
+                                            received_ns=now_ns)
+            decision, header = self._decide(self._held, now_ns, active, again=False)
         except Exception as exc:  # a defect, not an input (docs/SAFETY_FILTER.md)
             decision = logic.fail_safe_decision(
                 safety_filter=active.safety_filter, reason=f'internal error: {_one_line(exc)}')
+        self._publish_answer(decision, header, now_ns, active)
+
+    def _refilter(self, now_ns: int) -> None:
+        """A new state or source message (at ``now_ns``): the proposal in force filtered again
+        and answered as a proposal is (``refilter_on_state``, :func:`logic.refilter_due`); a
+        TwistStamped answer has the proposal's frame_id, stamped now. Never raises."""
+        held, active = self._held, self._active
+        header = None
+        try:
+            settings = active.settings
+            if not logic.refilter_due(enabled=settings.refilter_on_state, held=held,
+                                      last_answer_ns=self._last_answer_ns, now_ns=now_ns,
+                                      min_period_s=settings.refilter_min_period_s):
+                return
+            self.refilters += 1
+            decision, header = self._decide(held, now_ns, active, again=True)
+            header = self._edge.restamped(header, clock=self._clock)
+        except Exception as exc:  # a defect, not an input: the fail-safe, stamped now
+            decision = logic.fail_safe_decision(
+                safety_filter=active.safety_filter, reason=f'internal error: {_one_line(exc)}')
+            header = None
+        self._publish_answer(decision, header, now_ns, active)
+
+    def _publish_answer(self, decision: logic.Decision, header: Any, now_ns: int,
+                        active: logic.ActiveFilter) -> None:
+        """``cmd_safe``, ``filter_info`` and the diagnostics of one decision, the command
+        first; the reason of a WARN or ERROR in the (throttled) log. Never raises."""
+        self._last_answer_ns = now_ns
         try:  # the command is made first: a failure making the details is in answer.error
             answer = self._edge.answer(
                 decision, settings=active.settings,
@@ -449,29 +489,31 @@ class SafetyFilterNode(Node):
         except Exception as exc:
             print(f'{NODE_NAME}: {reason} (log failed: {_one_line(exc)})', file=sys.stderr)
 
-    def _decide(self, data: bytes, now_ns: int,
-                active: logic.ActiveFilter) -> tuple[logic.Decision, Any]:
-        """The decision for one proposal sample, and its header (TwistStamped; else None)."""
-        settings, safety_filter = active.settings, active.safety_filter
-        sample = self._edge.read_proposal(data, twist_fields=settings.twist_fields)
+    def _read_proposal(self, data: bytes, active: logic.ActiveFilter) -> logic.ProposalSample:
+        """The sample of one ``cmd_proposed`` message, counted when dropped or refused."""
+        sample = self._edge.read_proposal(data, twist_fields=active.settings.twist_fields)
         if sample.count:
             self.input_counts[sample.count] += 1
-        if sample.undecodable:
-            return logic.fail_safe_decision(
-                safety_filter=safety_filter,
-                reason=f'undecodable proposal: {sample.error}'), None
+        return sample
+
+    def _decide(self, held: logic.HeldProposal, now_ns: int, active: logic.ActiveFilter, *,
+                again: bool) -> tuple[logic.Decision, Any]:
+        """The decision for the held proposal (at its arrival, or ``again`` at a new state),
+        and its header (TwistStamped; else None)."""
+        settings, safety_filter = active.settings, active.safety_filter
         sources, sense = self._sources, None
         if sources is not None:
             def sense(state: np.ndarray) -> str:
                 return sources.sense(safety_filter, state, now_ns=now_ns,
                                      stamp_now_ns=self._clock.now().nanoseconds)
-        decision = logic.decide(
-            safety_filter=safety_filter, proposal=sample.proposal, proposal_error=sample.error,
+        decision = logic.decide_held(
+            held=held, again=again, safety_filter=safety_filter,
             latest_state=self._latest_state, now_ns=now_ns,
             max_state_age_s=settings.max_state_age_s,
+            max_proposal_age_s=settings.max_proposal_age_s,
             static_mean=active.static_mean, static_std=active.static_std,
             slack_tolerance=settings.slack_tolerance, sense=sense)
-        return decision, sample.header
+        return decision, held.sample.header
 
     # output ------------------------------------------------------------------------------------
     def _publish_command(self, u_safe: np.ndarray, header: Any = None) -> None:

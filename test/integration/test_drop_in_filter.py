@@ -51,7 +51,9 @@ def _answer(probe: Probe, odom_pub: Any, twist_pub: Any, state: list[float],
 
     The first samples of a new writer can be lost until the filter's reader has matched it, and
     the filter answers a proposal without a state with the fail-safe; an answer that filtered
-    (fail_safe 0) for this proposal proves both arrived.
+    (fail_safe 0) for this proposal at this state proves both arrived. The launch re-filters
+    the proposal in force at each Odometry (refilter_on_state): the answers since the state
+    was published are searched for that one.
     """
     from rcbf_ros.messages.conversions import array_to_twist
     deadline = time.monotonic() + WAIT_S
@@ -60,13 +62,15 @@ def _answer(probe: Probe, odom_pub: Any, twist_pub: Any, state: list[float],
         odom_pub.publish(_odometry(state))
         time.sleep(0.05)
         twist_pub.publish(array_to_twist(proposal, FIELDS))
-        try:
-            command = probe.wait_for(TOPICS['cmd_out'], before + 1, timeout_s=1.0)[before]
-            info = probe.wait_for('/filter_info', before + 1, timeout_s=1.0)[before]
-        except AssertionError:
-            continue
-        if info['fail_safe'][0] == 0 and np.array_equal(info['u_rl'], proposal):
-            return command, info
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            infos = probe.wait_for('/filter_info', 0)[before:]
+            commands = probe.wait_for(TOPICS['cmd_out'], 0)[before:]
+            for command, info in zip(commands, infos):
+                if (info['fail_safe'][0] == 0 and np.array_equal(info['u_rl'], proposal)
+                        and np.allclose(info['state'], state, atol=1e-9)):
+                    return command, info
+            time.sleep(0.02)
         time.sleep(0.3)   # let answers still in flight arrive before counting again
     raise AssertionError(f'no filtered answer on {TOPICS["cmd_out"]} within {WAIT_S} s')
 

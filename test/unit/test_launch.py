@@ -26,6 +26,7 @@ from rcbf_ros.launch.table import (
     LaunchArgument,
     LAUNCHES,
     LaunchSetup,
+    lockstep,
     NodeEntry,
     resolve_entry,
     respawn_settings,
@@ -139,7 +140,10 @@ def test_child_commands_and_environment():
 
 def test_the_drop_in_filter_is_one_entry_shared_by_both_robot_launches():
     alone, demo = launch_setup('safety_filter'), launch_setup('unicycle_robot')
-    assert alone.nodes == (DROP_IN_FILTER,) and demo.node('safety_filter') is DROP_IN_FILTER
+    assert alone.nodes == (DROP_IN_FILTER,)
+    # The demo's lock-step simulator takes one answer per proposal: no re-filter at a state.
+    assert demo.node('safety_filter') == lockstep(DROP_IN_FILTER) != DROP_IN_FILTER
+    assert dict(demo.node('safety_filter').parameters)['refilter_on_state'] is False
     assert alone.arguments == demo.arguments
     assert [a.name for a in alone.arguments] == ['cmd_in', 'cmd_out', 'odom', 'command_type',
                                                  'respawn', 'respawn_delay']
@@ -147,7 +151,8 @@ def test_the_drop_in_filter_is_one_entry_shared_by_both_robot_launches():
         'state': Argument('odom'), 'cmd_proposed': Argument('cmd_in'),
         'cmd_safe': Argument('cmd_out')}
     assert dict(DROP_IN_FILTER.parameters) == {'state_type': 'odometry',
-                                               'command_type': Argument('command_type')}
+                                               'command_type': Argument('command_type'),
+                                               'refilter_on_state': True}
     assert (DROP_IN_FILTER.respawn, DROP_IN_FILTER.respawn_delay_s) == (
         Argument('respawn'), Argument('respawn_delay'))
     # The demo's robot and controller meet the filter on the same arguments.
@@ -571,8 +576,23 @@ def test_respawn_is_off_by_default_and_reaches_both_launchers_alike(monkeypatch)
     # Only the drop-in filter respawns: every other entry keeps launch_ros's default.
     for other in LAUNCHES.values():
         for entry in other.nodes:
-            if entry is not DROP_IN_FILTER:
+            if entry not in (DROP_IN_FILTER, lockstep(DROP_IN_FILTER)):
                 assert (entry.respawn, entry.respawn_delay_s) == (False, 0.0), entry.name
+
+
+@pytest.mark.parametrize('name, expected', [('safety_filter', True),
+                                            ('unicycle_robot', False)])
+def test_refilter_on_state_reaches_both_launchers_alike(monkeypatch, name, expected):
+    """On in front of a robot, off in front of the demo's lock-step simulator: ros2 launch's
+    node and the local launcher's command line set the same value."""
+    _, _, nodes = _describe(monkeypatch, REPO / 'launch' / f'{name}.launch.py')
+    (node,) = [n for n in nodes if n.kwargs['name'] == 'safety_filter']
+    assert node.kwargs['parameters'][1]['refilter_on_state'] is expected
+    (child,) = [c for c in launch_local.child_commands(launch_setup(name), params_file='p.yaml')
+                if c.name == 'safety_filter']
+    flag = f'safety_filter:refilter_on_state:={format_parameter(expected)}'
+    assert flag in child.command and 'refilter_on_state' not in ' '.join(
+        item for item in child.command if item != flag)
 
 
 @pytest.mark.parametrize('argument, text, message', [
