@@ -12,7 +12,8 @@ alpha U[5, 15]; the same worlds with
 the circles as sensor points (``footprint``, :meth:`SafetyFilter.set_points`, 24 points on
 each circle). A violation is a fine step whose barrier h (the look-ahead point, margin
 included) is below 0 for some circle or point. Printed per case: worlds with a violation, the
-least h over every fine step, and the mean correction ||u_S|| per decision.
+least h over every fine step, the mean correction ||u_S|| per decision and the mean distance
+left to the goal after 2.5 s (the start is 3.6-5.4 m from it).
 
 The fine-step simulation (:func:`simulate`) is also what test/unit/test_sampled_data.py runs,
 on a few worlds.
@@ -150,6 +151,8 @@ class Outcome(NamedTuple):
     """Mean ||u_S|| per decision."""
     decisions: int
     """Filter calls."""
+    remaining: float
+    """Mean distance left to the goal at the end (m): what the margin costs in progress."""
 
 
 def simulate(worlds: list[World], *, period: float, latency: float, tightened: bool,
@@ -185,7 +188,29 @@ def simulate(worlds: list[World], *, period: float, latency: float, tightened: b
             commands = pending.pop(0)[1]
         states = states + FINE_STEP_S * true_derivative(states, commands)
         least = np.minimum(least, true_h(states, centers, reach).min(axis=1))
-    return Outcome(least < 0.0, least, float(np.mean(corrections)), len(corrections))
+    goals = np.stack([w.goal for w in worlds])
+    remaining = float(np.linalg.norm(states[:, :2] - goals, axis=1).mean())
+    return Outcome(least < 0.0, least, float(np.mean(corrections)), len(corrections),
+                   remaining)
+
+
+TITLE = 'Between samples and under latency: violations with and without the margin'
+
+
+def run(worlds: list[World], period: float, latency: float) -> list[str]:
+    """The table: violations, least h, correction and progress per case."""
+    table = ['| obstacles | rows | worlds violated | least h | mean norm of u_S | decisions | '
+             'mean distance left to the goal (m) |', '|---|---|---|---|---|---|---|']
+    for points in (False, True):
+        for tightened in (False, True):
+            out = simulate(worlds, period=period, latency=latency, tightened=tightened,
+                           points=points)
+            table.append(f"| {'sensor points' if points else 'circles'} | "
+                         f"{'with margin' if tightened else 'T = L = 0'} | "
+                         f'{int(out.violated.sum())} / {len(worlds)} | '
+                         f'{out.least_h.min():.4f} | {out.correction:.3f} | '
+                         f'{out.decisions} | {out.remaining:.2f} |')
+    return table
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -194,20 +219,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--period', type=float, default=0.1, help='T (s)')
     parser.add_argument('--latency', type=float, default=0.05, help='L (s)')
     parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--no-write', dest='write', action='store_false',
+                        help='print the section only; leave benchmarks/RESULTS.md alone')
     args = parser.parse_args(argv)
+    if args.worlds < 1:
+        parser.error('--worlds must be >= 1')
     worlds = random_worlds(args.worlds, args.seed)
-    print(f'T = {args.period} s, L = {args.latency} s, {args.worlds} worlds (seed {args.seed}), '
-          f'1 ms Euler steps of the true dynamics')
-    print('| obstacles | rows | worlds violated | least h | mean ||u_S|| | decisions |')
-    print('|---|---|---|---|---|---|')
-    for points in (False, True):
-        for tightened in (False, True):
-            out = simulate(worlds, period=args.period, latency=args.latency,
-                           tightened=tightened, points=points)
-            print(f"| {'sensor points' if points else 'circles'} | "
-                  f"{'with margin' if tightened else 'T = L = 0'} | "
-                  f'{int(out.violated.sum())} / {len(worlds)} | {out.least_h.min():.4f} | '
-                  f'{out.correction:.3f} | {out.decisions} |')
+    table = run(worlds, args.period, args.latency)
+    from benchmarks._results import publish_section
+    options = ''.join(f' --{name} {value}' for name, value, default in (
+        ('worlds', args.worlds, 200), ('period', args.period, 0.1),
+        ('latency', args.latency, 0.05), ('seed', args.seed, 0)) if value != default)
+    publish_section(TITLE, script='bench_sampled_data.py' + options, write=args.write, blocks=[
+        f'T = {args.period} s, L = {args.latency} s: {args.worlds} random worlds (seed '
+        f'{args.seed}), 1 ms Euler steps of the true Unicycle over 2.5 s, commands held for T '
+        'and computed from states L old. "T = L = 0": the continuous-time rows under the same '
+        'hold and delay; "with margin": the rows tightened for T and L '
+        '(docs/SAFETY_FILTER.md, "Between samples and under latency"). A world is violated '
+        'when h at the look-ahead point (margin included) falls below 0 at a fine step. '
+        'norm of u_S: the correction per decision; the last column: what the margin costs in '
+        'progress (the start is 3.6-5.4 m from the goal).', table])
     return 0
 
 

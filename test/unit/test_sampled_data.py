@@ -56,6 +56,20 @@ def test_the_margin_makes_nothing_worse_than_the_continuous_rows_without_hold():
     assert not tight.violated.any()
 
 
+def test_the_benchmark_prints_its_four_cases_and_writes_nothing_with_no_write(capsys):
+    before = bench_results_text()
+    assert bench.main(['--worlds', '1', '--no-write']) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines()
+            if line.startswith(('| circles', '| sensor points'))]
+    assert len(rows) == 4 and all('/ 1 |' in row for row in rows)
+    assert bench_results_text() == before
+
+
+def bench_results_text() -> str:
+    from benchmark_modules import BENCHMARKS
+    return (BENCHMARKS / 'RESULTS.md').read_text()
+
+
 # ------------------------------------------------------------------ the bounds themselves
 def _families(kind: str, data) -> tuple:
     centre = tuple(data.draw(st.tuples(st.floats(-2, 2), st.floats(-2, 2))))
