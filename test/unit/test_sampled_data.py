@@ -9,6 +9,7 @@ margin's code).
 """
 from __future__ import annotations
 
+import functools
 import math
 
 from benchmark_modules import load_benchmark
@@ -290,3 +291,31 @@ def test_period_and_latency_change_at_runtime_and_rebuild_the_filter(harness):
         result = node.set_parameters([Parameter(name, value=value)])[0]
         assert not result.successful and name in result.reason, result.reason
         assert node.filter is current
+
+
+@pytest.mark.parametrize('value', [math.nan, math.inf, -0.01, 1.01, True, '0.1', None])
+@pytest.mark.parametrize('key', ['control_period_s', 'latency_s'])
+def test_a_bad_period_or_latency_is_refused_by_the_filter_naming_the_key(key, value):
+    problem = filter_config_from_params(_unicycle_params()).problem
+    with pytest.raises(ValueError, match=f'^{key}: must be a number in \\[0, 1\\] s'):
+        SafetyFilter(problem, **{key: value})
+
+
+@settings(max_examples=15, deadline=None)
+@given(state=st.tuples(*[st.floats(-1e6, 1e6)] * 3),
+       mean=st.tuples(*[st.floats(-1e6, 1e6)] * 3), std=st.tuples(*[st.floats(0, 1e6)] * 3))
+def test_hostile_states_and_boxes_within_the_bounds_give_a_verified_answer_or_the_fail_safe(
+        state, mean, std):
+    for tight in _tight_filters():
+        result = tight.filter(state, [2.5, -2.5], mean, std)
+        assert result.fail_safe or result.needed_slack <= 1e-4
+        assert np.all(np.abs(result.u_safe) <= 2.5)
+
+
+@functools.cache
+def _tight_filters() -> tuple[SafetyFilter, SafetyFilter]:
+    """The Unicycle's filter with the margin, per row and over arrays (built once)."""
+    config = filter_config_from_params(_unicycle_params(control_period_s=T, latency_s=L))
+    return tuple(SafetyFilter(config.problem, control_period_s=T, latency_s=L,
+                              vector_rows=vector_rows, slack_tolerance=1e-4)
+                 for vector_rows in (64, 1))
