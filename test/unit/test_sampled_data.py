@@ -49,9 +49,8 @@ def test_no_fine_step_violation_with_the_margin_and_some_without(points):
     assert loose.violated.sum() >= 2, loose.least_h
 
 
-def test_the_margin_makes_nothing_worse_than_the_continuous_rows_without_hold():
-    # with T = 1 ms and no latency the continuous rows are (nearly) right already: the margin
-    # keeps them safe too and changes the command little
+def test_a_short_period_without_latency_is_safe_with_the_margin_too():
+    # T = 1 ms, no latency: the margin is small and the rows still keep every fine step safe
     worlds = bench.random_worlds(3, seed=5)
     tight = bench.simulate(worlds, period=0.001, latency=0.0, tightened=True, duration=0.6)
     assert not tight.violated.any()
