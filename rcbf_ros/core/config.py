@@ -24,6 +24,8 @@ Keys (all optional except ``system``)::
     walls.nx / walls.ny / walls.offset: [floats], walls.gammas  (h = nx x + ny y - offset)
     disturbance.mean / disturbance.std: [n_x floats]: a static box (empty: zero / learned)
     fail_safe_action: [m floats]
+    control_period_s, latency_s: how long the plant holds a command and how old its state is
+        when it acts (s, 0 to 1; 0: the continuous-time rows; see rcbf_ros.core.sampled_data)
     compile_assembly: bool (compile the per-step autograd assembly of a system or barrier
         without a closed form; see core/filter.py)
     observation_sources: [names]; <name>.type (scan | pointcloud), <name>.topic,
@@ -49,6 +51,7 @@ from rcbf_ros.core.barriers import (
 from rcbf_ros.core.dynamics import ControlAffineSystem, heading_indices, load_system
 from rcbf_ros.core.mappings import flatten
 from rcbf_ros.core.rcbf import RCBFProblem
+from rcbf_ros.core.sampled_data import sampled_data_margin, TIMING_LIMIT_S
 from rcbf_ros.parameters.reader import (
     parameter_keys,
     ParameterError,
@@ -351,6 +354,16 @@ class FilterParameters:
         (), description='what is published when the filter cannot filter, n_u values within the '
                         'limits ([]: zeros clipped to the limits)')
     """Action when filtering is impossible (empty: zeros clipped to the limits)."""
+    control_period_s: float = setting(
+        0.0, minimum=0, maximum=TIMING_LIMIT_S,
+        description='T: how long the plant holds each command (s); > 0 tightens every RCBF '
+                    'row to hold between samples (0: continuous-time rows)')
+    """T: how long the plant holds each command (s); 0: the continuous-time rows."""
+    latency_s: float = setting(
+        0.0, minimum=0, maximum=TIMING_LIMIT_S,
+        description='L: the age of the state when its command starts to act (s); > 0 tightens '
+                    'every RCBF row for it')
+    """L: the age of the state when its command starts to act (s)."""
     compile_assembly: bool = setting(
         False, description='compile the per-step constraint assembly (faster calls, slower '
                            'start)')
@@ -401,6 +414,10 @@ class FilterConfig:
     point takes (:class:`rcbf_ros.core.filter.SafetyFilter`'s ``footprint``), else None."""
     sources: SourceConfig | None = None
     """The observation sources (None: none)."""
+    control_period_s: float = 0.0
+    """T: how long the plant holds each command (s; 0: the continuous-time rows)."""
+    latency_s: float = 0.0
+    """L: the age of the state when its command starts to act (s)."""
 
 
 def build_system(params: Mapping[str, Any]) -> ControlAffineSystem:
@@ -629,10 +646,14 @@ def filter_config_from_params(params: Mapping[str, Any]) -> FilterConfig:
         raise ValueError(f'fail_safe_action: {list(fail_safe)} lies outside the input limits '
                          f'[{list(system.u_min)}, {list(system.u_max)}]')
     sources = _sources(p, params, system)
+    footprint = None if sources is None else _footprint(p, params, system)
+    # refused here, naming the key, where no margin is derived (the filter builds the same)
+    sampled_data_margin(problem, control_period_s=p.control_period_s, latency_s=p.latency_s,
+                        footprint=footprint)
     return FilterConfig(problem=problem, static_mean=mean, static_std=std,
                         fail_safe_action=fail_safe, compile_assembly=p.compile_assembly,
-                        footprint=None if sources is None else _footprint(p, params, system),
-                        sources=sources)
+                        footprint=footprint, sources=sources,
+                        control_period_s=p.control_period_s, latency_s=p.latency_s)
 
 
 def _sources(p: FilterParameters, params: Mapping[str, Any],

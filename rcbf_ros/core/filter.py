@@ -26,6 +26,7 @@ from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
 from rcbf_ros.core.lie_closed_form_rows import ManyRows, PointRows, VECTOR_ROWS, VectorAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
+from rcbf_ros.core.sampled_data import sampled_data_margin, SampledDataMargin
 from rcbf_ros.core.torch_import import bind_torch, LazyTorch
 from rcbf_ros.parameters.reader import setting
 
@@ -526,17 +527,22 @@ def _out_of_bounds(name: str, values: list[float], bound: float) -> str | None:
     return None
 
 
-def _interior_point(problem: RCBFProblem, inputs: tuple[list[float], ...]
-                    ) -> np.ndarray | None:
+def _interior_point(problem: RCBFProblem, inputs: tuple[list[float], ...],
+                    margin: SampledDataMargin | None = None) -> np.ndarray | None:
     """The fallback's solution of the QP at ``inputs`` (x, u, mean, std), by the batched
-    interior point of :mod:`rcbf_ros.core.diffqp`; None when it did not converge, or where
-    PyTorch, which it runs on, is not installed (the filter then gives the fail-safe)."""
+    interior point of :mod:`rcbf_ros.core.diffqp`, its RCBF rows tightened by ``margin``;
+    None when it did not converge, or where PyTorch, which it runs on, is not installed (the
+    filter then gives the fail-safe)."""
     try:
         from rcbf_ros.core.diffqp import solve_qp_batch_full
     except ImportError:
         return None
-    solution = solve_qp_batch_full(*problem.qp(
-        *(torch.tensor([a], dtype=torch.float64) for a in inputs)))
+    qp = problem.qp(*(torch.tensor([a], dtype=torch.float64) for a in inputs))
+    if margin is not None:
+        nu = np.zeros(qp.h.shape[1])
+        nu[:problem.n_barriers] = margin.rows(*inputs[:1], *inputs[2:])
+        qp = qp._replace(h=qp.h - torch.tensor(nu[None], dtype=qp.h.dtype))
+    solution = solve_qp_batch_full(*qp)
     if not bool(solution.converged[0]):
         return None
     return solution.z[0].detach().numpy().astype(np.float64)
@@ -801,7 +807,8 @@ def binding_rows(*, lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
     tightens), so the QP without it has the same solution: the full QP's feasible set lies in
     the smaller one's, and the smaller one's solution meets the full set. Without limits no row
     is left out. A violated row (upper_i < 0) is always kept: its least value is at most
-    upper_i.
+    upper_i. ``upper`` is the rows' as the QP takes them, sampled-data margins included
+    (:mod:`rcbf_ros.core.sampled_data`): a row left out holds with its margin.
 
     Args:
         lg: (K, n_u) L_g h of each row.
@@ -886,6 +893,41 @@ def _many_as_lists(many: VectorAssembly) -> RowAssembly:
     return assemble
 
 
+def _tightened(assemble: RowAssembly, margin: SampledDataMargin, n_barriers: int
+               ) -> RowAssembly:
+    """``assemble`` with the right-hand side of each of its ``n_barriers`` RCBF rows lowered by
+    its sampled-data margin nu_i (:mod:`rcbf_ros.core.sampled_data`): the row then asks for
+    phi_i(x_k, u) >= nu_i. The limit rows are unchanged; the sum of squares follows."""
+
+    def assemble_tightened(x: list[float], u: list[float], mean: list[float],
+                           std: list[float]
+                           ) -> tuple[list[float], list[list[float]], list[float], float]:
+        h, rows, upper, size = assemble(x, u, mean, std)
+        nu = margin.rows(x, mean, std).tolist()
+        before = upper[:n_barriers]
+        after = [value - pad for value, pad in zip(before, nu)]
+        size += sum(v * v for v in after) - sum(v * v for v in before)
+        return h, rows, after + upper[n_barriers:], size
+
+    return assemble_tightened
+
+
+class _TightenedMany:
+    """A many-row assembly (:class:`VectorAssembly`, :class:`_RowsAsArrays`) whose RCBF rows'
+    right-hand sides are lowered by their sampled-data margins, as :func:`_tightened` does."""
+
+    def __init__(self, many: VectorAssembly | _RowsAsArrays, margin: SampledDataMargin
+                 ) -> None:
+        self._many, self._margin, self.n_u = many, margin, many.n_u
+
+    def evaluate(self, x: list[float], u: list[float], mean: list[float], std: list[float]
+                 ) -> ManyRows:
+        rows = self._many.evaluate(x, u, mean, std)
+        upper = rows.upper - self._margin.rows(x, mean, std)
+        size = rows.size + float(upper @ upper) - float(rows.upper @ rows.upper)
+        return rows._replace(upper=upper, size=size)
+
+
 def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
                     closed_form: bool = True) -> tuple[str, RowAssembly]:
     """The filter's constraint assembly and its name.
@@ -962,7 +1004,8 @@ class SafetyFilter:
                  polish: bool = False, fallback: bool = True,
                  compile_assembly: bool = False, slack_tolerance: float | None = None,
                  input_bounds: InputBounds | None = None, closed_form: bool = True,
-                 vector_rows: int = VECTOR_ROWS, footprint: object | None = None) -> None:
+                 vector_rows: int = VECTOR_ROWS, footprint: object | None = None,
+                 control_period_s: float = 0.0, latency_s: float = 0.0) -> None:
         """Set OSQP up once with the fixed sparsity pattern.
 
         Args:
@@ -1001,20 +1044,36 @@ class SafetyFilter:
                 then replaces the points without a rebuild, their rows join the many-row path,
                 and the result reports them as one more barrier, :data:`POINTS_BARRIER` (the
                 least h and the least row value over the points; h = inf without points).
+            control_period_s: T, how long the plant holds each command (s, 0 to 1; 0: the
+                continuous-time rows).
+            latency_s: L, the age of the state when its command starts to act (s, 0 to 1).
+                With T + L > 0 every RCBF row (the sensor points' too) is tightened by its
+                sampled-data margin (:mod:`rcbf_ros.core.sampled_data`), so that h >= 0 holds
+                over [t_k, t_k + L + T], not only at the sample; the rows and the reported
+                constraint values are the tightened ones.
 
         Raises:
             ValueError: naming ``fail_safe_action`` (wrong length, not finite, outside the
-                limits) or ``slack_tolerance`` (negative or not finite).
+                limits), ``slack_tolerance`` (negative or not finite), or ``control_period_s``
+                / ``latency_s`` (out of range, or no margin derived for the problem).
         """
         self.fallback = fallback
+        self._margin = sampled_data_margin(problem, control_period_s=control_period_s,
+                                           latency_s=latency_s, footprint=footprint)
+        self.control_period_s, self.latency_s = float(control_period_s), float(latency_s)
+        """T and L the rows are tightened for (both 0: not tightened)."""
         self._points = None if footprint is None else PointRows(problem, footprint)
-        self._many: VectorAssembly | _RowsAsArrays | None = (
+        self._many: VectorAssembly | _RowsAsArrays | _TightenedMany | None = (
             VectorAssembly.from_problem(problem, threshold=vector_rows) if closed_form else None)
         if self._many is not None:
+            if self._margin is not None:
+                self._many = _TightenedMany(self._many, self._margin)
             assembly, self._assemble = 'vectorised', _many_as_lists(self._many)
         else:
             assembly, self._assemble = select_assembly(
                 problem, compile_assembly=compile_assembly, closed_form=closed_form)
+            if self._margin is not None:
+                self._assemble = _tightened(self._assemble, self._margin, problem.n_barriers)
             if problem.n_barriers > GENERATED_ROWS or self._points is not None:
                 # the many-row path, on this assembly
                 self._many = _RowsAsArrays(self._assemble, problem.n_barriers,
@@ -1174,7 +1233,7 @@ class SafetyFilter:
             if self.fallback:
                 # ADMM can stall when the slack is far from 0 (the 1 : l diagonal); the
                 # interior point of the differentiable layer solves the same QP robustly.
-                solved = _interior_point(self.problem, (x, applied, mu, sd))
+                solved = _interior_point(self.problem, (x, applied, mu, sd), self._margin)
                 if solved is not None:
                     z = solved
                     checked = self._check(z, rows)
@@ -1285,6 +1344,9 @@ class SafetyFilter:
         size = rows.size
         if self._points is not None:  # the sensor points' rows follow the problem's
             point_h, point_lg, point_upper = self._points.evaluate(x, applied, mu, sd)
+            if self._margin is not None:
+                point_upper = point_upper - self._margin.points(x, mu, sd,
+                                                                *self._points.centres)
             flat = point_lg.ravel()
             size += (float(point_h @ point_h) + float(flat @ flat)
                      + float(point_upper @ point_upper) + point_h.size)
@@ -1347,7 +1409,7 @@ class SafetyFilter:
         if checked is None:
             self._solver.warm_start(x=np.zeros(self.n_u + 1), y=np.zeros(self._nc))
             if self.fallback and self._points is None:  # its problem has no points
-                solved = _interior_point(self.problem, (x, applied, mu, sd))
+                solved = _interior_point(self.problem, (x, applied, mu, sd), self._margin)
                 if solved is not None:
                     z = solved
                     checked = self._check_many(z, upper, lg, applied)

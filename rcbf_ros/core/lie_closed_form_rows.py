@@ -266,6 +266,11 @@ class PointRows:
         self.set(np.zeros((0, 2)))
 
     @property
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """(x (N,), y (N,)) of the points."""
+        return self._circles.cx, self._circles.cy
+
+    @property
     def count(self) -> int:
         """The points whose rows :meth:`evaluate` gives."""
         return int(self._circles.cx.size)

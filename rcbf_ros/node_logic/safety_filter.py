@@ -326,7 +326,8 @@ def build_safety_filter(*, config: FilterConfig, settings: NodeSettings) -> Safe
         eps_abs=settings.osqp_eps_abs, eps_rel=settings.osqp_eps_rel,
         max_iter=settings.osqp_max_iter, compile_assembly=config.compile_assembly,
         slack_tolerance=settings.slack_tolerance, input_bounds=settings.input_bounds,
-        footprint=config.footprint)
+        footprint=config.footprint, control_period_s=config.control_period_s,
+        latency_s=config.latency_s)
 
 
 @dataclass(frozen=True)

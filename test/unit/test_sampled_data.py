@@ -1,0 +1,320 @@
+"""The sampled-data margins: h >= 0 between samples and under latency, and the bounds behind it.
+
+The fine-step simulation is benchmarks/bench_sampled_data.py's (1 ms Euler steps of the true
+unicycle, commands held for T and computed from states L old), on a few worlds: no violation
+with the margin, and violations in the same worlds without it (else the scenario proves
+nothing). The bounds nu_i are checked against the true change of each row's left side along
+fine-step trajectories, the left side evaluated by the torch assembly of RCBFProblem.qp (not the
+margin's code).
+"""
+from __future__ import annotations
+
+import functools
+import math
+
+from benchmark_modules import load_benchmark
+from hypothesis import given, HealthCheck, settings
+from hypothesis import strategies as st
+import numpy as np
+import pytest
+import torch
+
+from rcbf_ros.core.barriers import (
+    BandBarrier,
+    cascade,
+    CircleObstacles,
+    HalfPlane,
+    PairGap,
+)
+from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.dynamics import CarFollowing, PVTOL, Unicycle
+from rcbf_ros.core.filter import SafetyFilter
+from rcbf_ros.core.rcbf import RCBFProblem
+from rcbf_ros.core.sampled_data import sampled_data_margin
+from rcbf_ros.parameters.rules import find_config, load_params
+
+bench = load_benchmark('bench_sampled_data')
+
+T, L = 0.1, 0.05
+
+
+@pytest.mark.parametrize('points', [False, True], ids=['circles', 'sensor_points'])
+def test_no_fine_step_violation_with_the_margin_and_some_without(points):
+    worlds = bench.random_worlds(6, seed=3)
+    tight = bench.simulate(worlds, period=T, latency=L, tightened=True, points=points,
+                           duration=2.0)
+    loose = bench.simulate(worlds, period=T, latency=L, tightened=False, points=points,
+                           duration=2.0)
+    assert not tight.violated.any(), tight.least_h
+    assert loose.violated.sum() >= 2, loose.least_h
+
+
+def test_a_short_period_without_latency_is_safe_with_the_margin_too():
+    # T = 1 ms, no latency: the margin is small and the rows still keep every fine step safe
+    worlds = bench.random_worlds(3, seed=5)
+    tight = bench.simulate(worlds, period=0.001, latency=0.0, tightened=True, duration=0.6)
+    assert not tight.violated.any()
+
+
+def test_the_benchmark_prints_its_four_cases_and_writes_nothing_with_no_write(capsys):
+    before = bench_results_text()
+    assert bench.main(['--worlds', '1', '--no-write']) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines()
+            if line.startswith(('| circles', '| sensor points'))]
+    assert len(rows) == 4 and all('/ 1 |' in row for row in rows)
+    assert bench_results_text() == before
+
+
+def bench_results_text() -> str:
+    from benchmark_modules import BENCHMARKS
+    return (BENCHMARKS / 'RESULTS.md').read_text()
+
+
+# ------------------------------------------------------------------ the bounds themselves
+def _families(kind: str, data) -> tuple:
+    centre = tuple(data.draw(st.tuples(st.floats(-2, 2), st.floats(-2, 2))))
+    if kind == 'lookahead':
+        return (CircleObstacles(centers=(centre,), radii=(data.draw(st.floats(0.1, 0.8)),),
+                                margin=0.1, heading_index=2,
+                                lookahead=data.draw(st.floats(0.01, 0.3))),)
+    if kind == 'circle':
+        return (CircleObstacles(centers=(centre,), radii=(0.4,), margin=0.1),)
+    if kind == 'wall':
+        angle = data.draw(st.floats(-math.pi, math.pi))
+        return (HalfPlane(normals=((math.cos(angle), math.sin(angle)),),
+                          offsets=(data.draw(st.floats(-3, 3)),)),)
+    if kind == 'band':
+        return (BandBarrier(index=data.draw(st.sampled_from([0, 1, 2])), half_width=1.5,
+                            center=centre[0],
+                            form=data.draw(st.sampled_from(['quadratic', 'sides']))),)
+    return (PairGap(pairs=((0, 1),), delta=0.5),)
+
+
+@pytest.mark.parametrize('kind', ['lookahead', 'circle', 'wall', 'band', 'gap'])
+@settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.data(), period=st.floats(0.01, 0.15), latency=st.floats(0.0, 0.1))
+def test_the_true_change_of_every_row_stays_within_its_margin(data, kind, period, latency):
+    """|phi_i(x(t), u) - phi_i(x_k, u)| <= nu_i for t in [t_k, t_k + L + T], along 1 ms
+    Euler steps under inputs within the limits that switch at random and a disturbance
+    drawn within the box at every step."""
+    system = Unicycle(u_min=(-2.0, -3.0), u_max=(2.5, 1.5))
+    problem = RCBFProblem(system=system, families=_families(kind, data),
+                          alpha=data.draw(st.sampled_from([0.1, 1.0, 5.0, 20.0])),
+                          k_c=2.0)
+    margin = sampled_data_margin(problem, control_period_s=period, latency_s=latency)
+    x_k = np.array(data.draw(st.tuples(st.floats(-2, 2), st.floats(-2, 2),
+                                       st.floats(-math.pi, math.pi))))
+    mean, std = np.zeros(3), np.zeros(3)
+    if data.draw(st.booleans()):  # a box, else the bare rows (the tightest case)
+        mean = np.array(data.draw(st.tuples(*[st.floats(-0.3, 0.3)] * 3)))
+        std = np.array(data.draw(st.tuples(*[st.floats(0.0, 0.1)] * 3)))
+    nu = margin.rows(x_k.tolist(), mean.tolist(), std.tolist())
+    rng = np.random.default_rng(data.draw(st.integers(0, 2 ** 32 - 1)))
+    low, high = np.array(system.u_min), np.array(system.u_max)
+    # the row's command: a vertex of the limits or inside them (v >= 0: the point ahead)
+    held = np.where(rng.random(2) < 0.5, high, rng.uniform(low, high))
+    held[0] = abs(held[0])
+    whole, rest = divmod(period + latency, 1e-3)  # 1 ms steps over exactly tau
+    steps = [1e-3] * int(whole) + ([rest] if rest > 0 else [])
+    states = [x_k]
+    x = x_k.copy()
+    # the plant's input: a vertex of the limits held throughout (the fastest motion), or one
+    # that switches at random within them
+    switching = data.draw(st.booleans())
+    u = np.where(rng.random(2) < 0.5, low, high) if not switching else rng.uniform(low, high)
+    for dt in steps:
+        if switching and rng.random() < 0.05:
+            u = np.where(rng.random(2) < 0.7, np.where(rng.random(2) < 0.5, low, high),
+                         rng.uniform(low, high))
+        psi = mean + 2.0 * std * rng.choice([-1.0, 1.0], 3) * rng.random(3) ** 0.2
+        g = np.array([[math.cos(x[2]), 0.0], [math.sin(x[2]), 0.0], [0.0, 1.0]])
+        x = x + dt * (g @ u + psi)
+        states.append(x.copy())
+    batch = torch.tensor(np.array(states), dtype=torch.float64)
+    count = batch.shape[0]
+    qp = problem.qp(batch, torch.tensor(held, dtype=torch.float64).expand(count, 2),
+                    torch.tensor(mean, dtype=torch.float64).expand(count, 3),
+                    torch.tensor(std, dtype=torch.float64).expand(count, 3))
+    phi = qp.h[:, :problem.n_barriers].numpy()  # L_f h + L_g h u + alpha h + rho
+    change = np.abs(phi - phi[0]).max(axis=0)
+    assert np.all(change <= nu + 1e-9), (change, nu)
+
+
+@settings(max_examples=30, deadline=None)
+@given(x=st.tuples(st.floats(-3, 3), st.floats(-3, 3), st.floats(-math.pi, math.pi)),
+       period=st.floats(0.01, 0.15), latency=st.floats(0.0, 0.1))
+def test_a_sensor_point_row_has_the_margin_of_the_same_circle(x, period, latency):
+    footprint = CircleObstacles(centers=((0.0, 0.0),), radii=(0.2,), margin=0.1,
+                                heading_index=2, lookahead=0.03)
+    problem = RCBFProblem(system=Unicycle(), families=(
+        CircleObstacles(centers=((1.0, -0.5),), radii=(0.2,), margin=0.1, heading_index=2,
+                        lookahead=0.03),), alpha=2.0)
+    margin = sampled_data_margin(problem, control_period_s=period, latency_s=latency,
+                                 footprint=footprint)
+    box = ([-0.05, 0.0, 0.0], [0.025, 0.025, 0.0])
+    assert margin.points(list(x), *box, np.array([1.0]), np.array([-0.5])) == pytest.approx(
+        margin.rows(list(x), *box))
+
+
+# ------------------------------------------------------------------ the filter and its rows
+def _unicycle_params(**extra) -> dict:
+    params = load_params(find_config('unicycle'), 'safety_filter')
+    params.update(extra)
+    return params
+
+
+def test_zero_period_and_latency_leave_every_row_as_it_was():
+    config = filter_config_from_params(_unicycle_params())
+    assert (config.control_period_s, config.latency_s) == (0.0, 0.0)
+    plain = SafetyFilter(config.problem)
+    zero = SafetyFilter(config.problem, control_period_s=0.0, latency_s=0.0)
+    for state in ([-1.0, 0.2, 0.1], [2.0, -2.0, 3.0]):
+        a = plain.filter(state, [2.5, 0.3], config.static_mean, config.static_std)
+        b = zero.filter(state, [2.5, 0.3], config.static_mean, config.static_std)
+        assert np.array_equal(a.u_safe, b.u_safe)
+        assert np.array_equal(a.constraint_values, b.constraint_values)
+
+
+@pytest.mark.parametrize('vector_rows', [64, 1], ids=['per_row', 'over_arrays'])
+def test_every_assembly_path_lowers_each_row_by_its_margin(vector_rows):
+    config = filter_config_from_params(_unicycle_params(control_period_s=T, latency_s=L))
+    assert (config.control_period_s, config.latency_s) == (T, L)
+    state, proposal = [-9.0, 9.0, 0.2], [0.0, 0.0]  # far out: no correction, with or without
+    plain = SafetyFilter(config.problem, vector_rows=vector_rows)
+    tight = SafetyFilter(config.problem, vector_rows=vector_rows, control_period_s=T,
+                         latency_s=L)
+    box = (config.static_mean, config.static_std)
+    nu = sampled_data_margin(config.problem, control_period_s=T, latency_s=L).rows(state, *box)
+    a, b = plain.filter(state, proposal, *box), tight.filter(state, proposal, *box)
+    assert np.all(nu > 0) and not a.active and not b.active
+    assert a.constraint_values - b.constraint_values == pytest.approx(nu)
+
+
+def test_the_interior_point_fallback_solves_the_tightened_rows(monkeypatch):
+    config = filter_config_from_params(_unicycle_params())
+    exact = SafetyFilter(config.problem, control_period_s=T, latency_s=L)
+    fallback = SafetyFilter(config.problem, control_period_s=T, latency_s=L)
+    # the exact solve and OSQP both fail: the interior point must solve the tightened QP
+    monkeypatch.setattr(fallback, '_active_set', lambda rows, upper: None)
+    monkeypatch.setattr(fallback._solver, 'solve', lambda raise_error=False: type(
+        'R', (), {'x': None, 'info': type('I', (), {'status_val': -2, 'status': 'max'})()})())
+    box = (config.static_mean, config.static_std)
+    for state in ([-2.9, 0.3, 0.0], [-2.4, 0.0, 0.0]):
+        want = exact.filter(state, [2.5, 0.0], *box)
+        got = fallback.filter(state, [2.5, 0.0], *box)
+        assert got.status == 'solved_interior_point', got.reason
+        assert want.status == 'solved' and want.active
+        assert got.u_safe == pytest.approx(want.u_safe, abs=1e-5)
+
+
+def test_the_rows_left_out_of_the_qp_hold_with_their_margin():
+    # the many-row path solves a QP of the rows that can bind only: its answers are those of
+    # the QP of every row (the per-row path), margins included
+    rng = np.random.default_rng(0)
+    params = _unicycle_params(control_period_s=T, latency_s=L, **{
+        'obstacles.x': rng.uniform(-25, 25, 80).tolist(),
+        'obstacles.y': rng.uniform(-25, 25, 80).tolist(),
+        'obstacles.radius': rng.uniform(0.1, 0.3, 80).tolist()})
+    config = filter_config_from_params(params)
+    pruned = SafetyFilter(config.problem, control_period_s=T, latency_s=L)
+    whole = SafetyFilter(config.problem, control_period_s=T, latency_s=L, vector_rows=10 ** 6)
+    assert (pruned.assembly, whole.assembly) == ('vectorised', 'closed_form')
+    box = (config.static_mean, config.static_std)
+    left_out = active = 0
+    for _ in range(60):
+        state = [*rng.uniform(-25, 25, 2), rng.uniform(-math.pi, math.pi)]
+        proposal = rng.uniform(-2.5, 2.5, 2)
+        got, want = pruned.filter(state, proposal, *box), whole.filter(state, proposal, *box)
+        left_out += pruned._pruned
+        active += want.active
+        assert got.u_safe == pytest.approx(want.u_safe, abs=1e-6)
+        assert got.constraint_values == pytest.approx(want.constraint_values, abs=1e-6)
+    assert left_out > 0 and active >= 10
+
+
+@pytest.mark.parametrize(('system', 'extra', 'key', 'words'), [
+    ('pvtol', {'control_period_s': 0.05}, 'control_period_s', 'pvtol'),
+    ('car_following', {'latency_s': 0.02}, 'latency_s', 'car_following'),
+    ('unicycle', {'control_period_s': 2.0}, 'control_period_s', '<= 1'),
+    ('unicycle', {'latency_s': -0.01}, 'latency_s', '>= 0'),
+    ('unicycle', {'latency_s': 0.02, 'obstacles.gammas': [1.0], 'obstacles.speed_input': -1},
+     'latency_s', 'Cascaded'),
+    ('unicycle', {'latency_s': 0.02, 'input_limits.min': [], 'input_limits.max': []},
+     'latency_s', 'input limits'),
+])
+def test_what_has_no_derived_margin_is_refused_naming_the_key(system, extra, key, words):
+    params = load_params(find_config(system), 'safety_filter')
+    params.update(extra)
+    with pytest.raises(ValueError) as error:
+        filter_config_from_params(params)
+    line = str(error.value)
+    assert line.startswith(f'{key}:') and words in line and '\n' not in line, line
+
+
+def test_the_filter_refuses_what_the_config_refuses():
+    for problem in (RCBFProblem(system=PVTOL(), families=(HalfPlane(((1.0, 0.0),), (0.0,)),)),
+                    RCBFProblem(system=CarFollowing(u_min=(-5.0,), u_max=(5.0,)), families=(
+                        cascade(PairGap(((4, 6),), 3.5), CarFollowing(), [1.0]),))):
+        with pytest.raises(ValueError, match='^control_period_s: no sampled-data margin'):
+            SafetyFilter(problem, control_period_s=0.1)
+
+
+# ------------------------------------------------------------------ the node's parameters
+@pytest.fixture
+def harness(ros_domain_id):
+    from test_safety_filter_callbacks import EVERY_DIAGNOSTIC, FilterHarness, UNICYCLE
+
+    from rcbf_ros.ros.dds import rclpy_compat as rclpy
+    rclpy.init(args=['--ros-args', '--params-file', UNICYCLE, *EVERY_DIAGNOSTIC],
+               domain_id=ros_domain_id)
+    instance = FilterHarness()
+    yield instance
+    instance.node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def test_period_and_latency_change_at_runtime_and_rebuild_the_filter(harness):
+    from rcbf_ros.ros.dds.node import Parameter
+    node = harness.node
+    assert (node.filter.control_period_s, node.filter.latency_s) == (0.0, 0.0)
+    old = node.filter
+    result = node.set_parameters([Parameter('control_period_s', value=T),
+                                  Parameter('latency_s', value=L)])
+    assert all(r.successful for r in result), [r.reason for r in result]
+    assert node.filter is not old
+    assert (node.filter.control_period_s, node.filter.latency_s) == (T, L)
+    assert (node.config.control_period_s, node.config.latency_s) == (T, L)
+    current = node.filter
+    for name, value in (('control_period_s', 1.5), ('latency_s', -0.02),
+                        ('control_period_s', math.nan)):
+        result = node.set_parameters([Parameter(name, value=value)])[0]
+        assert not result.successful and name in result.reason, result.reason
+        assert node.filter is current
+
+
+@pytest.mark.parametrize('value', [math.nan, math.inf, -0.01, 1.01, True, '0.1', None])
+@pytest.mark.parametrize('key', ['control_period_s', 'latency_s'])
+def test_a_bad_period_or_latency_is_refused_by_the_filter_naming_the_key(key, value):
+    problem = filter_config_from_params(_unicycle_params()).problem
+    with pytest.raises(ValueError, match=f'^{key}: must be a number in \\[0, 1\\] s'):
+        SafetyFilter(problem, **{key: value})
+
+
+@settings(max_examples=15, deadline=None)
+@given(state=st.tuples(*[st.floats(-1e6, 1e6)] * 3),
+       mean=st.tuples(*[st.floats(-1e6, 1e6)] * 3), std=st.tuples(*[st.floats(0, 1e6)] * 3))
+def test_hostile_states_and_boxes_within_the_bounds_give_a_verified_answer_or_the_fail_safe(
+        state, mean, std):
+    for tight in _tight_filters():
+        result = tight.filter(state, [2.5, -2.5], mean, std)
+        assert result.fail_safe or result.needed_slack <= 1e-4
+        assert np.all(np.abs(result.u_safe) <= 2.5)
+
+
+@functools.cache
+def _tight_filters() -> tuple[SafetyFilter, SafetyFilter]:
+    """The Unicycle's filter with the margin, per row and over arrays (built once)."""
+    config = filter_config_from_params(_unicycle_params(control_period_s=T, latency_s=L))
+    return tuple(SafetyFilter(config.problem, control_period_s=T, latency_s=L,
+                              vector_rows=vector_rows, slack_tolerance=1e-4)
+                 for vector_rows in (64, 1))
