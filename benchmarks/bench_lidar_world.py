@@ -235,21 +235,31 @@ def drive(world: lw.World, setup: str, *, seed: int = 0, duration: float = DURAT
 
 
 def summary(runs: list[Run]) -> list[str]:
-    """The table: per set-up, collisions, goals, stuck, time to goal, closest approach."""
+    """The table: per set-up, collisions, goals, stuck, time to goal (over its own goals, and
+    over the worlds where every set-up without a collision reached the goal), closest
+    approach."""
     lines = ['| set-up | worlds | collisions | goals reached | stuck / timeout | time to goal, '
-             'median (s) | closest approach, least (m) | commands changed | decision, '
-             'median per command (us) |',
-             '|---|---:|---:|---:|---:|---:|---:|---:|---:|']
+             'median (s) | time to goal where all reached, median (s) | closest approach, '
+             'least (m) | commands changed | decision, median per command (us) |',
+             '|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|']
+    safe = [s for s in SETUPS if any(r.setup == s for r in runs)
+            and not any(r.setup == s and r.outcome == 'collision' for r in runs)]
+    reached = {seed for seed in {r.seed for r in runs}
+               if all(any(r.setup == s and r.seed == seed and r.outcome == 'goal' for r in runs)
+                      for s in safe)}
     for setup in SETUPS:
         mine = [r for r in runs if r.setup == setup]
         if not mine:
             continue
         goals = [r.time for r in mine if r.outcome == 'goal']
+        common = [r.time for r in mine if r.outcome == 'goal' and r.seed in reached]
         commands = sum(len(r.path) for r in mine)
         lines.append(
             f'| {setup} | {len(mine)} | {sum(r.outcome == "collision" for r in mine)} | '
             f'{len(goals)} | {sum(r.outcome in ("stuck", "timeout") for r in mine)} | '
             f'{np.median(goals) if goals else float("nan"):.1f} | '
+            + (f'{np.median(common):.1f} ({len(common)}) | ' if setup in safe and common
+               else '- | ') +
             f'{min(r.closest for r in mine):.3f} | '
             f'{sum(r.corrected for r in mine) / max(commands, 1):.0%} | '
             f'{np.median([r.decide_s / max(len(r.path), 1) for r in mine]) * 1e6:,.0f} |')
@@ -341,9 +351,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error('--worlds must be in 1..10000')
     if args.out.exists() and not args.out.is_dir():
         parser.error(f'--out: {args.out} is not a directory')
-    start = time.perf_counter()
+    start, start_cpu = time.perf_counter(), time.process_time()
     worlds, runs = run(args.worlds)
-    elapsed = time.perf_counter() - start
+    elapsed, cpu = time.perf_counter() - start, time.process_time() - start_cpu
     table, kinds = summary(runs), by_kind(runs)
     pictures = []
     for setup in SETUPS:
@@ -355,7 +365,8 @@ def main(argv: list[str] | None = None) -> int:
     publish_section(
         TITLE, script='bench_lidar_world.py'
         + (f' --worlds {args.worlds}' if args.worlds != 100 else ''),
-        conditions=f'; {load_averages()}; {elapsed:.0f} s for the whole run',
+        conditions=f'; {load_averages()}; {elapsed:.0f} s for the whole run, {cpu:.0f} s of '
+                   'CPU',
         write=args.write, blocks=[
             f'{args.worlds} seeded worlds (seeds 0-{args.worlds - 1}; 10 x 10 m arenas of '
             'posts, a wall with one or two doorways, a corridor, or two rooms; '

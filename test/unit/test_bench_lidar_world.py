@@ -96,8 +96,12 @@ def test_the_tables_count_outcomes_per_set_up_and_kind():
             bench.Run('filter, scan', 0, 'posts', 'goal', 20.0, path, 0.1, corrected=2),
             bench.Run('filter, scan', 1, 'wall', 'stuck', 12.0, path, 0.2)]
     table = bench.summary(runs)
-    assert table[2].startswith('| no filter | 1 | 1 | 0 | 0 | nan |')
-    assert table[3].startswith('| filter, scan | 2 | 0 | 1 | 1 | 20.0 | 0.100 | 20% |')
+    assert table[2].startswith('| no filter | 1 | 1 | 0 | 0 | nan | - | -0.010 |')
+    assert table[3].startswith('| filter, scan | 2 | 0 | 1 | 1 | 20.0 | 20.0 (1) | 0.100 | 20% |')
+    # a set-up without a collision that missed world 0 leaves no world every one reached
+    stopped = bench.summary([*runs, bench.Run('stop zone', 0, 'posts', 'stuck', 15.0, path, 0.2)])
+    assert stopped[3].startswith('| stop zone | 1 | 0 | 0 | 1 | nan | - |')
+    assert stopped[4].startswith('| filter, scan | 2 | 0 | 1 | 1 | 20.0 | - |')
     kinds = bench.by_kind(runs)
     assert kinds[2].startswith('| posts | 1 | 0 goals, 1 hits | 0 goals, 0 hits |')
     assert kinds[3].endswith('| 0 goals, 0 hits |')
