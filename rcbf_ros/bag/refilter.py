@@ -334,15 +334,19 @@ def topic_names(remaps: Mapping[str, str], bag_topics: Sequence[str]) -> dict[st
     """The bag's topic for each of the node's (:data:`NODE_TOPICS`), from ``remaps`` (the
     node's names or the drop-in launch's arguments, :data:`LAUNCH_ARGUMENTS`, -> topic names).
 
-    Without remaps: the node's own names when the bag has ``/cmd_proposed``, else the drop-in
-    launch's defaults (:data:`DROP_IN_TOPICS`) when it has their ``cmd_in``.
+    The names not given are the launch's defaults (:data:`DROP_IN_TOPICS`) when some launch
+    argument is given, as the launch fills them; the node's own names when only node names
+    are given. Without remaps: the node's own names when the bag has ``/cmd_proposed``, else
+    the drop-in launch's defaults when it has their ``cmd_in``.
 
     Raises:
-        RefilterError: an unknown name, a name given twice, or a topic that is not a name.
+        RefilterError: an unknown name, a name given twice, a topic that is not a name, or two
+            of the node's topics on one bag topic.
     """
     names = dict(NODE_TOPICS)
-    if not remaps and PROPOSAL_TOPIC not in bag_topics and \
-            DROP_IN_TOPICS['cmd_proposed'] in bag_topics:
+    if any(key in LAUNCH_ARGUMENTS for key in remaps) or (
+            not remaps and PROPOSAL_TOPIC not in bag_topics
+            and DROP_IN_TOPICS['cmd_proposed'] in bag_topics):
         names = dict(DROP_IN_TOPICS)
     given: dict[str, str] = {}
     for key, topic in remaps.items():
@@ -356,6 +360,12 @@ def topic_names(remaps: Mapping[str, str], bag_topics: Sequence[str]) -> dict[st
                                 f'({given[node_name]}:=...)')
         given[node_name] = key
         names[node_name] = resolve_topic(topic, key)
+    taken: dict[str, str] = {}
+    for node_name, topic in names.items():
+        if topic in taken:
+            raise RefilterError(f'{taken[topic]} and {node_name} both name {topic}; each of the '
+                                "node's topics needs its own")
+        taken[topic] = node_name
     return names
 
 
@@ -471,6 +481,11 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                 f"({DROP_IN_TOPICS['cmd_proposed']} unless given): name it, cmd_in:=/topic")
         raise RefilterError(f'source bag {str(source)!r} has no {proposal_topic} topic '
                             f'(topics: {sorted(topics)}){hint}')
+    if state_topic not in topics and topics[proposal_topic].type_name in (TWIST, TWIST_STAMPED):
+        raise RefilterError(
+            f'source bag {str(source)!r} has no {state_topic} topic, and its proposals '
+            f'({proposal_topic}, {topics[proposal_topic].type_name}) carry no state: name the '
+            'state topic, odom:=/topic')
     clashing = sorted(t for t in topics if t in OUTPUT_TOPICS)
     if clashing:
         raise RefilterError(f'source bag already holds {clashing} (re-filter the original run)')

@@ -249,6 +249,28 @@ def test_the_command_line_takes_the_launch_arguments(tmp_path: Path,
     assert not (tmp_path / 'bad').exists()
 
 
+def test_a_launch_argument_fills_the_others_with_the_launchs_defaults(tmp_path: Path) -> None:
+    """``cmd_in:=X`` alone reads odom from /odom, as the launch given only cmd_in does."""
+    source = write_robot_bag(tmp_path / 'robot', command='/ctrl/cmd')
+    summary = refilter_bag(source, tmp_path / 'out', PARAMS, remaps={'cmd_in': '/ctrl/cmd'})
+    assert summary.topics['state'] == '/odom' and summary.processed == N_STEPS
+
+
+@pytest.mark.parametrize('remaps, needle', [
+    ({'cmd_in': '/cmd_vel_nav', 'odom': '/cmd_vel_nav'},
+     'cmd_proposed and state both name /cmd_vel_nav'),
+    ({'cmd_in': '/odom'}, 'cmd_proposed and state both name /odom'),
+    ({'cmd_proposed': '/cmd_vel_nav'}, 'has no /state topic, and its proposals'),
+    ({'cmd_in': '/cmd_vel_nav', 'odom': '/robot/odom'}, 'has no /robot/odom topic'),
+])
+def test_topics_that_cannot_be_read_as_named_are_refused_before_the_run(
+        remaps: dict, needle: str, tmp_path: Path) -> None:
+    source = write_robot_bag(tmp_path / 'robot')
+    with pytest.raises(RefilterError, match=needle):
+        refilter_bag(source, tmp_path / 'out', PARAMS, remaps=remaps)
+    assert not (tmp_path / 'out').exists()
+
+
 def test_the_drop_in_names_are_the_launch_tables() -> None:
     """The bag layer cannot import the launch table: its copy of the defaults is checked
     here."""
