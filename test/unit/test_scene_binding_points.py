@@ -215,3 +215,11 @@ def test_hostile_filter_info_into_the_node_never_raises(scene_node, data):
     last = scene_node.published_arrays[-1]
     assert {m.ns for m in last.markers} >= {'footprint', 'binding_points', 'active_rows'}
 
+
+
+def test_the_foxglove_3d_panel_shows_the_scan_with_the_scene():
+    import json
+    layout = json.loads((REPO / 'config' / 'foxglove_layout.json').read_text())
+    (scene,) = [config for name, config in layout['configById'].items()
+                if name.startswith('3D!')]
+    assert scene['topics']['/scene_markers']['visible'] and scene['topics']['/scan']['visible']
