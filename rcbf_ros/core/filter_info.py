@@ -15,6 +15,7 @@ the filter holds: the whole point set is one barrier, ``sensor_points``, in ``h`
 """
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple, Sequence
 
 import numpy as np
@@ -76,11 +77,43 @@ class PointValues(NamedTuple):
     ``constraint_values``; < 0 needs slack, about 0 binds)."""
 
 
+_BLOCK = 64
+"""Entries per group of :func:`_least`'s first pass."""
+
+
+def _least(key: np.ndarray, limit: int) -> np.ndarray:
+    """Indices of the ``limit`` least entries of ``key`` (all of a shorter one) by (value,
+    index), in that order; NaN counts as the largest. O(N) in passes that allocate little: the
+    least value of each group of 64 entries bounds the limit-th least value (``limit`` groups
+    each hold a value at or below their limit-th least minimum), and only the entries up to
+    that bound are partitioned. A group is every (N // 64)-th entry: the minimum over the
+    first axis of a (64, N // 64) view is one pass over contiguous rows."""
+    groups = key.size // _BLOCK
+    candidates = None
+    if groups > limit:
+        least_of_group = key[:groups * _BLOCK].reshape(_BLOCK, groups).min(axis=0)
+        bound = np.partition(least_of_group, limit - 1)[limit - 1]
+        if bound == bound:  # else NaN: fewer than limit groups without one
+            candidates = np.flatnonzero(key <= bound)
+            key = key[candidates]
+    if key.size > limit:
+        kth = np.partition(key, limit - 1)[limit - 1]  # NaN sorts last
+        index = np.flatnonzero(key <= kth) if kth == kth else np.flatnonzero(key == key)
+        if index.size > limit:  # ties at the limit: the earlier points
+            below = index[key[index] < kth]
+            index = np.concatenate([below, index[key[index] == kth][:limit - below.size]])
+    else:
+        index = np.arange(key.size)
+    index = index[np.lexsort((index, key[index]))]
+    return index if candidates is None else candidates[index]
+
+
 def binding_points(points: PointValues | None, limit: int = BINDING_POINTS) -> np.ndarray:
     """The sensor points whose rows are closest to binding: (m, 4) rows [x, y, row value, h],
     m <= ``limit``, the least row values in ascending order (ties: the earlier point first).
 
-    A point whose row value or h is NaN or inf is left out. O(N) (a partition), not a sort.
+    A point whose row value or h is NaN or inf is left out (the others fill its place). O(N)
+    (:func:`_least`), not a sort.
 
     Args:
         points: a result's :attr:`rcbf_ros.core.filter.FilterResult.points`, or None (no
@@ -89,16 +122,14 @@ def binding_points(points: PointValues | None, limit: int = BINDING_POINTS) -> n
     """
     if points is None or limit <= 0 or not points.values.size:
         return np.empty((0, 4))
-    key = np.where(np.isfinite(points.values) & np.isfinite(points.h), points.values, np.inf)
-    if key.size > limit:
-        kth = np.partition(key, limit - 1)[limit - 1]
-        below = np.flatnonzero(key < kth)
-        index = np.concatenate([below, np.flatnonzero(key == kth)[:limit - below.size]])
-    else:
-        index = np.arange(key.size)
-    index = index[np.lexsort((index, key[index]))]
-    rows = np.stack([points.x[index], points.y[index], points.values[index],
-                     points.h[index]], axis=1)
+    values, h = points.values, points.h
+    index = _least(values, limit)
+    if not (np.isfinite(values[index]).all() and np.isfinite(h[index]).all()):
+        # a value that is not finite among the least (the filter's data check makes this
+        # rare): again with those points moved past every other
+        index = _least(np.where(np.isfinite(values) & np.isfinite(h), values, math.inf),
+                       limit)  # those moved past appear only where too few others are
+    rows = np.stack([points.x[index], points.y[index], values[index], h[index]], axis=1)
     return rows[np.isfinite(rows).all(axis=1)]
 
 

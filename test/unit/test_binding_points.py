@@ -115,6 +115,31 @@ def test_binding_points_closed_forms():
     assert binding_points(PointValues(empty, empty, empty, empty)).shape == (0, 4)
 
 
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(0, 3000), levels=st.integers(1, 2000),
+       limit=st.integers(0, 40), bad=st.floats(0.0, 0.05), order=st.sampled_from(
+           ['random', 'ascending', 'descending']))
+def test_binding_points_are_the_least_of_a_sort(seed, n, levels, limit, bad, order):
+    """Against a sort of every point by (row value, index), among those with finite values:
+    many ties (values from ``levels`` levels), NaN and inf in the values and in h, any order
+    and any size either side of the groups of the first pass."""
+    rng = np.random.default_rng(seed)
+    values = rng.integers(0, levels, n).astype(float) - levels / 3
+    if order != 'random':
+        values = np.sort(values)[::1 if order == 'ascending' else -1].copy()
+    h = rng.uniform(-1.0, 1.0, n)
+    for array in (values, h):
+        hit = rng.random(n) < bad
+        array[hit] = rng.choice([np.nan, np.inf, -np.inf], int(hit.sum()))
+    x = np.arange(float(n))
+    rows = binding_points(PointValues(x, -x, h, values), limit=limit)
+    eligible = [i for i in range(n) if math.isfinite(values[i]) and math.isfinite(h[i])]
+    expected = sorted(eligible, key=lambda i: (values[i], i))[:limit]
+    assert rows[:, 0].astype(int).tolist() == expected
+    np.testing.assert_array_equal(rows[:, 2], values[expected])
+    np.testing.assert_array_equal(rows[:, 3], h[expected])
+
+
 def _decision(safety_filter: SafetyFilter, state: list[float], u: list[float]):
     return logic.decide(safety_filter=safety_filter, proposal=logic.Proposal(u=np.array(u)),
                         latest_state=logic.StateSample(0, np.array(state)), now_ns=0,
