@@ -208,8 +208,10 @@ def test_hostile_filter_info_into_the_node_never_raises(scene_node, data):
     scene_node._on_filter_info(data)
     scene_node._on_timer()
     assert scene_node.points.shape[1] == 4 and np.isfinite(scene_node.points).all()
-    scene_node._on_filter_info(b'\x00\x01\x00\x00')  # never a sample
+    drawn = scene_node.points
+    scene_node._on_filter_info(b'\x00\x01\x00\x00')  # never a sample: the last points stay
     scene_node._on_timer()
+    assert scene_node.points is drawn
     assert len(scene_node.warnings) == 1 and '\n' not in scene_node.warnings[0]
     assert 'filter_info' in scene_node.warnings[0]
     last = scene_node.published_arrays[-1]
