@@ -22,6 +22,7 @@ from typing import Callable, NamedTuple, Sequence, TYPE_CHECKING
 
 import numpy as np
 
+from rcbf_ros.core.filter_info import PointValues
 from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
 from rcbf_ros.core.lie_closed_form_rows import ManyRows, PointRows, VECTOR_ROWS, VectorAssembly
 from rcbf_ros.core.qp import cost_weights
@@ -115,16 +116,20 @@ class FilterResult:
     """Why the fail-safe was returned ('' otherwise)."""
     proposal_clipped: bool = False
     """Whether the proposal lay outside the actuator limits and was clipped before the QP."""
+    points: PointValues | None = None
+    """Every sensor point's row (a filter with a footprint whose rows were evaluated), else
+    None; :func:`rcbf_ros.core.filter_info.binding_points` picks those closest to binding."""
 
     @classmethod
     def _filled(cls, *, u_safe: np.ndarray, u_s: np.ndarray, slack: float, h: np.ndarray,
                 constraint_values: np.ndarray, status: str, solve_time_s: float,
                 total_time_s: float, fail_safe: bool, barrier_names: list[str],
-                needed_slack: float, reason: str, proposal_clipped: bool) -> FilterResult:
+                needed_slack: float, reason: str, proposal_clipped: bool,
+                points: PointValues | None) -> FilterResult:
         """The result with every field given, as ``FilterResult(...)`` builds it.
 
         The filter's per-call constructor: the ``__init__`` a frozen dataclass generates sets
-        each field through ``object.__setattr__`` (about 3 us for these 13 fields, a tenth of
+        each field through ``object.__setattr__`` (about 3 us for these 14 fields, a tenth of
         a pass-through call); this fills the instance's ``__dict__`` in one update. Every field
         is a required keyword, so none can be left out."""
         result = object.__new__(cls)
@@ -132,7 +137,7 @@ class FilterResult:
             u_safe=u_safe, u_s=u_s, slack=slack, h=h, constraint_values=constraint_values,
             status=status, solve_time_s=solve_time_s, total_time_s=total_time_s,
             fail_safe=fail_safe, barrier_names=barrier_names, needed_slack=needed_slack,
-            reason=reason, proposal_clipped=proposal_clipped)
+            reason=reason, proposal_clipped=proposal_clipped, points=points)
         return result
 
     @property
@@ -1212,7 +1217,7 @@ class SafetyFilter:
                 slack=0.0, h=np.array(h_values), constraint_values=values, status='solved',
                 solve_time_s=solve_time, total_time_s=time.perf_counter() - start,
                 fail_safe=False, barrier_names=list(self.barrier_names), needed_slack=0.0,
-                reason='', proposal_clipped=clipped)
+                reason='', proposal_clipped=clipped, points=None)
         # The RCBF rows (their right-hand sides, the rows of G) at the clipped proposal.
         rows = (upper[:k], g_rows[:k], applied)
         status = 'solved'
@@ -1255,7 +1260,7 @@ class SafetyFilter:
             slack=float(z[-1]), h=np.array(h_values), constraint_values=np.array(values),
             status=status, solve_time_s=solve_time, total_time_s=time.perf_counter() - start,
             fail_safe=False, barrier_names=list(self.barrier_names), needed_slack=needed,
-            reason='', proposal_clipped=clipped)
+            reason='', proposal_clipped=clipped, points=None)
 
     def evaluation_refusal(self, state: Sequence[float], mean: Sequence[float] | None = None,
                            std: Sequence[float] | None = None) -> str | None:
@@ -1342,6 +1347,7 @@ class SafetyFilter:
         rows = self._many.evaluate(x, applied, mu, sd)  # type: ignore[union-attr]
         h, lg, upper, limit_upper = rows.h, rows.lg, rows.upper, rows.limit_upper
         size = rows.size
+        point_h = None
         if self._points is not None:  # the sensor points' rows follow the problem's
             point_h, point_lg, point_upper = self._points.evaluate(x, applied, mu, sd)
             if self._margin is not None:
@@ -1373,7 +1379,7 @@ class SafetyFilter:
                 solve_time_s=time.perf_counter() - solve_start,
                 total_time_s=time.perf_counter() - start, fail_safe=False,
                 barrier_names=list(self.barrier_names), needed_slack=0.0, reason='',
-                proposal_clipped=clipped)
+                proposal_clipped=clipped, points=self._point_values(point_h, upper))
         has_limits = self.problem.has_limits
         scale = 1.0 + max(highest, -lowest)
         keep = binding_rows(lg=lg, upper=upper, applied=applied,
@@ -1419,17 +1425,20 @@ class SafetyFilter:
         if checked is None or (self.slack_tolerance is not None
                                and checked[2] > self.slack_tolerance):
             fail_values = upper + lg @ (self.fail_safe_action - np.array(applied))
+        fail_points = None
         if fail_values is not None:
+            fail_points = self._point_values(point_h, fail_values)
             fail_values = report(fail_values)
         if checked is None:
             return self._fail_safe(u, start, status='unverified', h=report(h).tolist(),
                                    clipped=clipped, solve_time=solve_time, values=fail_values,
-                                   reason=f'no solution passed the row check (solver: {status})')
+                                   reason=f'no solution passed the row check (solver: {status})',
+                                   points=fail_points)
         action, values, needed = checked
         if self.slack_tolerance is not None and needed > self.slack_tolerance:
             return self._fail_safe(
                 u, start, status='slack_exceeded', h=report(h).tolist(), clipped=clipped,
-                solve_time=solve_time, values=fail_values,
+                solve_time=solve_time, values=fail_values, points=fail_points,
                 reason=f'barrier rows need slack {needed:.3g} > slack_tolerance '
                        f'{self.slack_tolerance:.3g} within the input limits')
         assert z is not None
@@ -1438,7 +1447,7 @@ class SafetyFilter:
             slack=float(z[-1]), h=report(h), constraint_values=report(values),
             status=status, solve_time_s=solve_time, total_time_s=time.perf_counter() - start,
             fail_safe=False, barrier_names=list(self.barrier_names), needed_slack=needed,
-            reason='', proposal_clipped=clipped)
+            reason='', proposal_clipped=clipped, points=self._point_values(point_h, values))
 
     def set_points(self, points: np.ndarray, spread: np.ndarray | float = 0.0) -> None:
         """Replace the sensor points (a filter built with ``footprint``): (N, 2) finite
@@ -1479,6 +1488,15 @@ class SafetyFilter:
         out[k] = values[k:].min() if values.size > k else math.inf
         return out
 
+    def _point_values(self, point_h: np.ndarray | None, values: np.ndarray
+                      ) -> PointValues | None:
+        """The sensor points' rows of an answer (None without points): their h and their part
+        of ``values`` (every row's, the problem's first), views, no copy."""
+        if point_h is None:
+            return None
+        cx, cy = self._points.centres  # type: ignore[union-attr]
+        return PointValues(cx, cy, point_h, values[self.n_barriers:])
+
     def _check_many(self, z: Sequence[float] | np.ndarray | None, upper: np.ndarray,
                     lg: np.ndarray, applied: list[float]
                     ) -> tuple[list[float], np.ndarray, float] | None:
@@ -1504,9 +1522,10 @@ class SafetyFilter:
                    h: list[float] | None = None, clipped: bool = False,
                    solve_time: float = 0.0,
                    rows: tuple[list[float], list[list[float]], list[float]] | None = None,
-                   values: np.ndarray | None = None) -> FilterResult:
+                   values: np.ndarray | None = None,
+                   points: PointValues | None = None) -> FilterResult:
         """The fail-safe result; ``rows`` (right-hand sides, rows, u at the rows) give its row
-        values."""
+        values; ``points`` the sensor points' rows at the fail-safe action."""
         action = self.fail_safe_action.copy()
         nan = np.full(len(self.barrier_names), np.nan)
         needed = float('nan')
@@ -1524,4 +1543,4 @@ class SafetyFilter:
             h=nan if h is None else np.array(h), constraint_values=values, status=status,
             solve_time_s=solve_time, total_time_s=time.perf_counter() - start, fail_safe=True,
             barrier_names=list(self.barrier_names), needed_slack=needed, reason=reason,
-            proposal_clipped=clipped)
+            proposal_clipped=clipped, points=points)

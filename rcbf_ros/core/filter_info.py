@@ -9,12 +9,19 @@ Sections, in this order (:data:`INFO_SECTIONS`). The first five are always there
 indexes into ``data`` are fixed for a system (n_u = 2: ``u`` is data[0:2], ``u_rl`` data[2:4],
 ``u_s`` data[4:6], ``fail_safe`` data[6], ``status`` data[7]); the others only when they were
 evaluated. No section ever holds NaN or inf: a value that was not evaluated is left out.
+``binding_points`` is bounded (:data:`BINDING_POINTS` rows of 4) however many sensor points
+the filter holds: the whole point set is one barrier, ``sensor_points``, in ``h`` and
+``constraint``; these rows say which points it is.
 """
 from __future__ import annotations
 
-from typing import Any, Sequence
+import math
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
+
+BINDING_POINTS = 16
+"""Most sensor points :func:`binding_points` reports (``filter_info``'s ``binding_points``)."""
 
 INFO_SECTIONS: tuple[tuple[str, str, str], ...] = (
     ('u', 'n_u', 'the command published on cmd_safe'),
@@ -29,6 +36,9 @@ INFO_SECTIONS: tuple[tuple[str, str, str], ...] = (
     ('needed_slack', '1', 'slack the rows need at u (when evaluated)'),
     ('solve_time_s', '1', 'solver wall time in seconds (when solved)'),
     ('state', 'n_x', 'the state the command answers (when there was a usable one)'),
+    ('binding_points', '4 m', f'rows [x, y, row value, h] of the m <= {BINDING_POINTS} sensor '
+     "points whose rows are closest to binding (least row value first; x, y in the state's "
+     'frame; the row value as in constraint) (with sensor points)'),
 )
 """(label, size, meaning) of every section, in order."""
 
@@ -50,6 +60,77 @@ STALE_PROPOSAL = 'stale proposal'
 after its arrival (the controller went quiet)."""
 UNKNOWN_STATUS = 99
 """``status`` of a status or reason not in :data:`STATUS_CODES`."""
+
+
+class PointValues(NamedTuple):
+    """The sensor points' rows of one answer, all (N,) float64, point i in every array: views
+    of the filter's arrays, made without a copy (the filter replaces, never writes, them)."""
+
+    x: np.ndarray
+    """x of each point in the state's frame (m)."""
+    y: np.ndarray
+    """y of each point in the state's frame (m)."""
+    h: np.ndarray
+    """h of each point's row at the state."""
+    values: np.ndarray
+    """Each point's row value L_f h + L_g h u + alpha h + rho at the returned action (as
+    ``constraint_values``; < 0 needs slack, about 0 binds)."""
+
+
+_BLOCK = 64
+"""Entries per group of :func:`_least`'s first pass."""
+
+
+def _least(key: np.ndarray, limit: int) -> np.ndarray:
+    """Indices of the ``limit`` least entries of ``key`` (all of a shorter one) by (value,
+    index), in that order; NaN counts as the largest. O(N) in passes that allocate little: the
+    least value of each group of 64 entries bounds the limit-th least value (``limit`` groups
+    each hold a value at or below their limit-th least minimum), and only the entries up to
+    that bound are partitioned. A group is every (N // 64)-th entry: the minimum over the
+    first axis of a (64, N // 64) view is one pass over contiguous rows."""
+    groups = key.size // _BLOCK
+    candidates = None
+    if groups > limit:
+        least_of_group = key[:groups * _BLOCK].reshape(_BLOCK, groups).min(axis=0)
+        bound = np.partition(least_of_group, limit - 1)[limit - 1]
+        if bound == bound:  # else NaN: fewer than limit groups without one
+            candidates = np.flatnonzero(key <= bound)
+            key = key[candidates]
+    if key.size > limit:
+        kth = np.partition(key, limit - 1)[limit - 1]  # NaN sorts last
+        index = np.flatnonzero(key <= kth) if kth == kth else np.flatnonzero(key == key)
+        if index.size > limit:  # ties at the limit: the earlier points
+            below = index[key[index] < kth]
+            index = np.concatenate([below, index[key[index] == kth][:limit - below.size]])
+    else:
+        index = np.arange(key.size)
+    index = index[np.lexsort((index, key[index]))]
+    return index if candidates is None else candidates[index]
+
+
+def binding_points(points: PointValues | None, limit: int = BINDING_POINTS) -> np.ndarray:
+    """The sensor points whose rows are closest to binding: (m, 4) rows [x, y, row value, h],
+    m <= ``limit``, the least row values in ascending order (ties: the earlier point first).
+
+    A point whose row value or h is NaN or inf is left out (the others fill its place). O(N)
+    (:func:`_least`), not a sort.
+
+    Args:
+        points: a result's :attr:`rcbf_ros.core.filter.FilterResult.points`, or None (no
+            points: (0, 4)).
+        limit: most rows returned (>= 0).
+    """
+    if points is None or limit <= 0 or not points.values.size:
+        return np.empty((0, 4))
+    values, h = points.values, points.h
+    index = _least(values, limit)
+    if not (np.isfinite(values[index]).all() and np.isfinite(h[index]).all()):
+        # a value that is not finite among the least (the filter's data check makes this
+        # rare): again with those points moved past every other
+        index = _least(np.where(np.isfinite(values) & np.isfinite(h), values, math.inf),
+                       limit)  # those moved past appear only where too few others are
+    rows = np.stack([points.x[index], points.y[index], values[index], h[index]], axis=1)
+    return rows[np.isfinite(rows).all(axis=1)]
 
 
 def info_sections(*, u: Sequence[float] | np.ndarray, u_rl: Sequence[float] | np.ndarray | None,
@@ -82,6 +163,8 @@ def info_sections(*, u: Sequence[float] | np.ndarray, u_rl: Sequence[float] | np
                      ('solve_time_s', [result.solve_time_s])]
     if state is not None:
         optional.append(('state', state))
+    if result is not None:
+        optional.append(('binding_points', binding_points(getattr(result, 'points', None))))
     for label, values in optional:
         array = np.asarray(values, dtype=np.float64).reshape(-1)
         if array.size and np.all(np.isfinite(array)):

@@ -3,8 +3,9 @@
 :func:`scene_geometry` builds the filter configuration from flat parameters (the same keys and
 the same checks as the safety_filter node, :func:`rcbf_ros.core.config.filter_config_from_params`)
 and walks its barrier families, through any cascade, keeping what can be drawn: obstacle discs
-with their margin, the look-ahead point, car gaps, bands and walls, and every barrier's name in
-row order (the ``h.<name>`` keys of the filter's diagnostics). The scene markers
+with their margin, the look-ahead point, car gaps, bands and walls, the robot's footprint
+radius, and every barrier's name in row order (the ``h.<name>`` keys of the filter's
+diagnostics). The scene markers
 (:mod:`rcbf_ros.node_logic.scene`) and the trajectory pictures (:mod:`rcbf_ros.reports.plots`)
 draw from it, so both show what the filter guards. Pure: no ROS, no I/O.
 """
@@ -17,8 +18,9 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from rcbf_ros.core.barriers import BandBarrier, CircleObstacles, HalfPlane, PairGap, uncascaded
-from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.core.config import filter_config_from_params, FootprintParameters
 from rcbf_ros.core.mappings import flatten
+from rcbf_ros.parameters.reader import read_parameters
 
 
 @dataclass(frozen=True)
@@ -105,6 +107,8 @@ class SceneGeometry:
     """Gap barriers."""
     walls: tuple[Wall, ...] = ()
     """Half-plane barriers."""
+    footprint_radius: float = 0.0
+    """``footprint.radius``: the robot's radius as sensor points see it [m] (0: none given)."""
 
     def position(self, state: Sequence[float] | np.ndarray) -> tuple[float, float]:
         """The planar position of ``state`` (n_x,)."""
@@ -161,4 +165,6 @@ def scene_geometry(params: Mapping[str, Any]) -> SceneGeometry:
     return SceneGeometry(
         system=str(params['system']), n_x=problem.system.n_x,
         barrier_names=tuple(problem.barrier_names), obstacles=tuple(obstacles),
-        bands=tuple(bands), gaps=tuple(gaps), walls=tuple(walls), **planar)
+        bands=tuple(bands), gaps=tuple(gaps), walls=tuple(walls),
+        footprint_radius=float(read_parameters(FootprintParameters, params,
+                                               prefix='footprint.').radius), **planar)

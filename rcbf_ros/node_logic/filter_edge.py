@@ -413,7 +413,7 @@ def full_info_values(decision: Decision) -> np.ndarray | None:
     state, a usable proposal and every number finite), else None.
 
     The answers of a running filter are nearly all of this kind, and their ``filter_info`` is
-    then one fixed layout (sizes n_u, 1, K, n_x) whose values these are, made in one step;
+    then one fixed layout (sizes n_u, 1, K, n_x, 4 m) whose values these are, made in one step;
     any other answer is left to :func:`info_sections`, which decides what to leave out.
     """
     result, u_rl, state = decision.result, decision.u_rl, decision.state
@@ -426,17 +426,21 @@ def full_info_values(decision: Decision) -> np.ndarray | None:
     values = np.concatenate((
         u, u_rl, u - u_rl, (1.0 if decision.fail_safe else 0.0, float(code)), result.h,
         result.constraint_values, (result.slack, result.needed_slack, result.solve_time_s),
-        state), dtype=np.float64)
+        state, filter_info.binding_points(getattr(result, 'points', None)).reshape(-1)),
+        dtype=np.float64)
     return values if np.isfinite(values).all() else None
 
 
-def full_info_layout(decision: Decision) -> tuple[tuple[str, int], ...]:
-    """The (label, size) of every ``filter_info`` section of a decision that has them all
-    (see :func:`full_info_values`)."""
+def full_info_layout(decision: Decision, values: np.ndarray) -> tuple[tuple[str, int], ...]:
+    """The (label, size) of every ``filter_info`` section of a decision that has them all,
+    given its :func:`full_info_values` (``binding_points`` only when it holds a point)."""
     n_u, n_barriers = decision.u_safe.size, len(decision.result.h)
     sizes = {'u': n_u, 'u_rl': n_u, 'u_s': n_u, 'h': n_barriers,
              'constraint': len(decision.result.constraint_values), 'state': decision.state.size}
-    return tuple((label, sizes.get(label, 1)) for label, _, _ in filter_info.INFO_SECTIONS)
+    sizes['binding_points'] = values.size - (3 * n_u + 5 + n_barriers + sizes['constraint']
+                                             + sizes['state'])
+    return tuple((label, sizes.get(label, 1)) for label, _, _ in filter_info.INFO_SECTIONS
+                 if sizes.get(label, 1))
 
 
 def reason_key(reason: str) -> str:
@@ -551,7 +555,7 @@ def info_cdr(decision: Decision,
     values = full_info_values(decision)
     if values is None:
         return conversions.sections_to_cdr(info_sections(decision))
-    sizes = full_info_layout(decision)
+    sizes = full_info_layout(decision, values)
     layout = None if layouts is None else layouts.get(sizes)
     if layout is None:
         layout = Float64ArrayLayout(sizes)

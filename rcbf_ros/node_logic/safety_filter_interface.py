@@ -51,7 +51,8 @@ INTERFACE = NodeInterface(
         _topic('filter_info', 'pub', FLOAT64_MULTIARRAY,
                'one per command: sections u, u_rl, u_s (n_u each), fail_safe, status (1 each),'
                ' then when known h, constraint (K each), slack, needed_slack, solve_time_s '
-               '(1 each), state (n_x); never NaN'),
+               '(1 each), state (n_x), binding_points (4 per point, at most 16 sensor points: '
+               'x, y, row value, h); never NaN'),
         _topic('diagnostics', 'pub', DIAGNOSTIC_ARRAY,
                'a status per WARN / ERROR answer, OK ones at most every '
                'diagnostics.min_period_s (0: every one): h.<barrier>, constraint.<barrier>, '

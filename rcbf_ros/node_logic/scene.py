@@ -19,7 +19,15 @@ The scene, in metres and radians (REP 103: x forward, y left, z up):
   operator's band (ns ``bands``); Car following, the five cars on the x axis (car 4, the one
   the filter drives, in blue) and a line per gap (ns ``gaps``); other systems, a sphere at the
   obstacles' position coordinates;
-- the filter's last diagnostic message above the robot (ns ``status``).
+- the filter's last diagnostic message above the robot (ns ``status``);
+- with ``footprint.radius`` > 0, the robot's footprint: a ring of that radius around its
+  position (ns ``footprint``);
+- with sensor points, the filter's ``binding_points`` (its ``filter_info`` section, read by
+  :func:`info_binding_points`): one sphere per point coloured by its row value as barrier
+  values are (ns ``binding_points``, one SPHERE_LIST), and a line from the guarded point to
+  each point whose row binds, value <= :data:`ACTIVE_ROW_VALUE` (ns ``active_rows``, one
+  LINE_LIST). The two lists are there, empty, when the latest answer names no point, so each
+  array replaces the last one's points.
 
 Ids are stable for a given configuration (one per marker and namespace), so each array
 replaces the previous one's markers.
@@ -32,10 +40,13 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from rcbf_ros.core.filter_info import BINDING_POINTS
 from rcbf_ros.core.scene import SceneGeometry
+from rcbf_ros.node_logic.filter_edge import float64_sections, one_line
 from rcbf_ros.parameters.reader import defaults_of, read_parameters, setting
 
-ARROW, CUBE, SPHERE, CYLINDER, LINE_STRIP, TEXT_VIEW_FACING = 0, 1, 2, 3, 4, 9
+ARROW, CUBE, SPHERE, CYLINDER, LINE_STRIP, LINE_LIST, SPHERE_LIST, TEXT_VIEW_FACING = (
+    0, 1, 2, 3, 4, 5, 7, 9)
 """visualization_msgs/Marker type constants used here."""
 OK, WARN, ERROR = 0, 1, 2
 """diagnostic_msgs/DiagnosticStatus levels."""
@@ -47,12 +58,21 @@ GREY = (0.55, 0.55, 0.55, 1.0)
 OBSTACLE = (0.35, 0.35, 0.40, 0.9)
 ROBOT = (0.12, 0.40, 0.85, 1.0)
 OTHER_CAR = (0.60, 0.60, 0.62, 1.0)
+FOOTPRINT = (0.12, 0.40, 0.85, 0.8)
 
 DEFAULT_CAUTION = 0.1
 """Barrier values below this (and >= 0) are amber."""
 RING_SEGMENTS = 48
 """Line segments of a margin ring."""
 IDENTITY = (0.0, 0.0, 0.0, 1.0)
+ACTIVE_ROW_VALUE = 1e-6
+"""A sensor point's row whose value at the command is at most this binds (or needs slack):
+it is an active row of the QP, drawn with a line from the guarded point."""
+MAX_INFO_BYTES = 1 << 20
+"""Largest ``filter_info`` sample read (bytes): the filter's own, with 20,000 barriers, is a
+third of this; a longer one is refused before it is decoded."""
+POINT_SIZE = 0.06
+"""Diameter of a binding point's sphere (m)."""
 
 Marker = dict[str, Any]
 Color = tuple[float, float, float, float]
@@ -117,11 +137,44 @@ def barrier_values(values: Mapping[str, str]) -> dict[str, float]:
     return out
 
 
+def info_binding_points(data: Any) -> np.ndarray:
+    """The ``binding_points`` rows [x, y, row value, h] of a ``filter_info`` sample (CDR
+    bytes), read as the filter node's edge reads a Float64MultiArray: (m, 4), m <=
+    :data:`rcbf_ros.core.filter_info.BINDING_POINTS`; (0, 4) when the sample has no such
+    section (an answer without sensor points, or before their rows were evaluated).
+
+    Raises:
+        ValueError: one line, naming ``filter_info``: not bytes, longer than
+            :data:`MAX_INFO_BYTES`, not a Float64MultiArray, a layout that does not fit, or a
+            ``binding_points`` section that is not whole rows of 4, has more than
+            ``BINDING_POINTS`` rows or a NaN or inf.
+    """
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise ValueError(f'filter_info: expected CDR bytes, got {type(data).__name__}')
+    if len(data) > MAX_INFO_BYTES:
+        raise ValueError(f'filter_info: sample of {len(data)} bytes, more than '
+                         f'{MAX_INFO_BYTES}')
+    try:
+        sections = float64_sections(bytes(data), default_label='u')
+    except ValueError as exc:
+        raise ValueError(f'filter_info: {one_line(exc)}') from None
+    values = sections.get('binding_points')
+    if values is None:
+        return np.empty((0, 4))
+    array = np.asarray(values, dtype=np.float64).reshape(-1)
+    if array.size % 4 or array.size > 4 * BINDING_POINTS:
+        raise ValueError(f'filter_info: binding_points: expected rows of 4, at most '
+                         f'{BINDING_POINTS}, got {array.size} values')
+    if not np.isfinite(array).all():
+        raise ValueError('filter_info: binding_points: contains NaN or inf')
+    return array.reshape(-1, 4)
+
+
 def _marker(*, frame_id: str, ns: str, id: int, type: int,
             position: Sequence[float] = (0.0, 0.0, 0.0),
             orientation: Sequence[float] = IDENTITY, scale: Sequence[float] = (1.0, 1.0, 1.0),
             color: Sequence[float] = GREY, points: Sequence[Sequence[float]] | None = None,
-            text: str = '') -> Marker:
+            text: str = '', colors: Sequence[Sequence[float]] | None = None) -> Marker:
     marker: Marker = {
         'frame_id': frame_id, 'ns': ns, 'id': int(id), 'type': int(type),
         'position': tuple(float(v) for v in position),
@@ -130,6 +183,8 @@ def _marker(*, frame_id: str, ns: str, id: int, type: int,
     }
     if points is not None:
         marker['points'] = [tuple(float(v) for v in p) for p in points]
+    if colors is not None:
+        marker['colors'] = [tuple(float(v) for v in c) for c in colors]
     if text:
         marker['text'] = text
     return marker
@@ -272,6 +327,42 @@ def _robot_markers(geometry: SceneGeometry, state: np.ndarray, h: Mapping[str, f
                     position=frame.point(x, y, 0.05), scale=(0.15, 0.15, 0.15), color=ROBOT)]
 
 
+def _footprint_marker(geometry: SceneGeometry, state: np.ndarray, frame: _Frame, *,
+                      frame_id: str) -> list[Marker]:
+    """The footprint ring around the robot's position (none without a footprint radius)."""
+    radius = geometry.footprint_radius
+    if not radius > 0.0:
+        return []
+    x, y = geometry.position(state)
+    angles = np.linspace(0.0, 2.0 * math.pi, RING_SEGMENTS + 1)
+    return [_marker(frame_id=frame_id, ns='footprint', id=0, type=LINE_STRIP,
+                    scale=(0.02, 0.0, 0.0), color=FOOTPRINT,
+                    points=[frame.point(x + radius * math.cos(a), y + radius * math.sin(a),
+                                        0.02) for a in angles])]
+
+
+def _point_markers(geometry: SceneGeometry, state: np.ndarray | None, points: np.ndarray,
+                   frame: _Frame, *, frame_id: str, caution: float) -> list[Marker]:
+    """The binding points' spheres and the active rows' lines (both lists, maybe empty)."""
+    colours = [h_colour(float(value), caution=caution) for value in points[:, 2]]
+    out = [_marker(frame_id=frame_id, ns='binding_points', id=0, type=SPHERE_LIST,
+                   scale=(POINT_SIZE, POINT_SIZE, POINT_SIZE), color=GREY,
+                   points=[frame.point(x, y, 0.05) for x, y in points[:, :2].tolist()],
+                   colors=colours)]
+    lines: list[tuple[float, float, float]] = []
+    line_colours: list[Color] = []
+    if state is not None:
+        guarded = geometry.guarded_point(state) or geometry.position(state)
+        start = frame.point(guarded[0], guarded[1], 0.05)
+        for (x, y, value, _), colour in zip(points.tolist(), colours):
+            if value <= ACTIVE_ROW_VALUE:
+                lines += [start, frame.point(x, y, 0.05)]
+                line_colours += [colour, colour]
+    out.append(_marker(frame_id=frame_id, ns='active_rows', id=0, type=LINE_LIST,
+                       scale=(0.015, 0.0, 0.0), color=RED, points=lines, colors=line_colours))
+    return out
+
+
 def _anchor(geometry: SceneGeometry, state: np.ndarray | None) -> tuple[float, float]:
     """Plane coordinates the list of barrier values and the status hang from."""
     if state is None:
@@ -319,7 +410,9 @@ def _text_markers(geometry: SceneGeometry, state: np.ndarray | None, h: Mapping[
 def scene_markers(*, geometry: SceneGeometry, state: Sequence[float] | np.ndarray | None,
                   h: Mapping[str, float], frame_id: str = 'map',
                   caution: float = DEFAULT_CAUTION,
-                  status: tuple[int, str] | None = None) -> list[Marker]:
+                  status: tuple[int, str] | None = None,
+                  points: Sequence[Sequence[float]] | np.ndarray | None = None
+                  ) -> list[Marker]:
     """Every marker of the scene (see the module docstring).
 
     Args:
@@ -329,9 +422,13 @@ def scene_markers(*, geometry: SceneGeometry, state: Sequence[float] | np.ndarra
         frame_id: the frame every marker is given in.
         caution: barrier values in [0, caution) are amber.
         status: (level, message) of the filter's last diagnostic, or None.
+        points: (m, 4) rows [x, y, row value, h] of the filter's latest ``binding_points``
+            (:func:`info_binding_points`; (0, 4): none named), or None: no ``filter_info``
+            read, nothing drawn for them.
 
     Raises:
-        ValueError: ``state`` has the wrong length or a NaN/inf entry, or ``frame_id`` is empty.
+        ValueError: ``state`` has the wrong length or a NaN/inf entry, ``points`` is not
+            (m, 4) finite, or ``frame_id`` is empty.
     """
     if not frame_id:
         raise ValueError('frame_id: must not be empty')
@@ -342,10 +439,20 @@ def scene_markers(*, geometry: SceneGeometry, state: Sequence[float] | np.ndarra
             raise ValueError(f'state: expected {geometry.n_x} values, got {array.size}')
         if not np.all(np.isfinite(array)):
             raise ValueError('state: contains NaN or inf')
+    rows = None
+    if points is not None:
+        rows = np.asarray(points, dtype=np.float64)
+        if rows.size == 0:
+            rows = rows.reshape(0, 4)
+        if rows.ndim != 2 or rows.shape[1] != 4 or not np.isfinite(rows).all():
+            raise ValueError(f'points: expected finite (m, 4) rows, got shape {rows.shape}')
     frame = _Frame(geometry)
     out = _obstacle_markers(geometry, h, frame, frame_id=frame_id, caution=caution)
     if array is not None:
         out += _robot_markers(geometry, array, h, frame, frame_id=frame_id, caution=caution)
+        out += _footprint_marker(geometry, array, frame, frame_id=frame_id)
+    if rows is not None:
+        out += _point_markers(geometry, array, rows, frame, frame_id=frame_id, caution=caution)
     out += _text_markers(geometry, array, h, frame, frame_id=frame_id, caution=caution,
                          status=status)
     return out

@@ -12,9 +12,13 @@ Topics (relative, so remappable):
   safety filter's obstacle set, rows [x, y, radius] (:data:`rcbf_ros.node_logic.interface.
   OBSTACLES_QOS`); the scene draws the new set. A set the filter would refuse is refused here
   too (checked by the same functions), with an ERROR, and the old set stays drawn;
-- ``scene_markers`` (pub, visualization_msgs/MarkerArray): obstacles, margins, the robot, the
-  guarded look-ahead point and every barrier's value (:mod:`rcbf_ros.node_logic.scene`), at most
-  ``rate_hz`` times a second and only after a new state or new diagnostics.
+- ``filter_info`` (sub, std_msgs/Float64MultiArray): the filter's answers; their
+  ``binding_points`` (the sensor points closest to binding), read at most ``rate_hz`` times a
+  second (the latest sample; :func:`rcbf_ros.node_logic.scene.info_binding_points`);
+- ``scene_markers`` (pub, visualization_msgs/MarkerArray): obstacles, margins, the robot, its
+  footprint, the guarded look-ahead point, every barrier's value, the binding points and the
+  active rows (:mod:`rcbf_ros.node_logic.scene`), at most ``rate_hz`` times a second and only
+  after a new state, diagnostics or filter_info.
 
 Parameters: the filter keys of the params file (``system``, ``obstacles.*``, ``bands.*``,
 ``gaps.*``, ...), read and checked as the filter reads them
@@ -24,7 +28,8 @@ the node's own (:data:`PARAMETERS`): ``frame_id`` (``map``), ``rate_hz`` (10.0),
 
 A state sample that does not decode, or has the wrong length or a NaN, is skipped with a
 warning (at most one a second per kind); the scene keeps the last good state. So is a
-diagnostics sample that does not decode.
+diagnostics sample that does not decode, and a filter_info sample that does not decode or
+whose ``binding_points`` do not fit (the last good points stay drawn).
 """
 from __future__ import annotations
 
@@ -84,7 +89,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = SCENE_PARAMETERS + STATE_TYPE_PARAMETERS
 INTERFACE = NodeInterface(
     node=NODE_NAME,
     summary='The safety problem as a MarkerArray for RViz and Foxglove: obstacles, margins, the '
-            'robot and every barrier value.',
+            'robot, every barrier value and the sensor points that bind.',
     topics=(
         TopicSpec('state', 'sub', STATE_TOPIC_TYPES,
                   'as the safety filter reads it (state_type)'),
@@ -93,8 +98,12 @@ INTERFACE = NodeInterface(
         TopicSpec('obstacles', 'sub', FLOAT64_MULTIARRAY,
                   "the safety filter's obstacle set, rows [x, y, radius]: drawn instead of "
                   'obstacles.x/y/radius', OBSTACLES_QOS),
+        TopicSpec('filter_info', 'sub', FLOAT64_MULTIARRAY,
+                  "the filter's answers: their binding_points (sensor points closest to "
+                  'binding), the latest read at most rate_hz times a second'),
         TopicSpec('scene_markers', 'pub', 'visualization_msgs/msg/MarkerArray',
-                  'obstacles, margins, robot, guarded point, barrier values, in frame_id'),
+                  'obstacles, margins, robot, footprint, guarded point, barrier values, '
+                  'binding points and active rows, in frame_id'),
     ),
     parameters=PARAMETERS,
 )
@@ -115,6 +124,7 @@ def marker_array(markers: Sequence[Mapping[str, Any]], *, stamp: Any = None,
     """
     marker_cls = get_message('visualization_msgs/msg/Marker')
     point_cls = get_message('geometry_msgs/msg/Point')
+    color_cls = get_message('std_msgs/msg/ColorRGBA')
     out = get_message(MARKER_ARRAY)()
     messages = []
     if clear:
@@ -132,6 +142,8 @@ def marker_array(markers: Sequence[Mapping[str, Any]], *, stamp: Any = None,
         msg.color.r, msg.color.g, msg.color.b, msg.color.a = item['color']
         if 'points' in item:
             msg.points = [point_cls(x=p[0], y=p[1], z=p[2]) for p in item['points']]
+        if 'colors' in item:
+            msg.colors = [color_cls(r=c[0], g=c[1], b=c[2], a=c[3]) for c in item['colors']]
         msg.text = item.get('text', '')
         messages.append(msg)
     out.markers = messages
@@ -174,6 +186,9 @@ class SceneNode(Node):
         self.state: np.ndarray | None = None
         self.h: dict[str, float] = {}
         self.status: tuple[int, str] | None = None
+        self.points: np.ndarray | None = None
+        """(m, 4) the latest good filter_info's binding_points, or None before one."""
+        self._info: bytes | None = None
         self.published = 0
         self._changed = False
         self._clear = False
@@ -185,6 +200,8 @@ class SceneNode(Node):
         self._diagnostics_type = get_message(DIAGNOSTIC_ARRAY)
         self.create_subscription(self._diagnostics_type, 'diagnostics', self._on_diagnostics,
                                  qos, raw=True)
+        self.create_subscription(get_message(FLOAT64_MULTIARRAY), 'filter_info',
+                                 self._on_filter_info, qos, raw=True)
         self._obstacles_type = get_message(FLOAT64_MULTIARRAY)
         self.create_subscription(
             self._obstacles_type, 'obstacles', self._on_obstacles,
@@ -241,6 +258,25 @@ class SceneNode(Node):
                 self.h, self.status = h, (_level(status), str(status.message))
                 self._changed = True
 
+    def _on_filter_info(self, data: bytes) -> None:
+        """Keep the latest sample: it is read when the next array is made (at most rate_hz a
+        second, however fast the filter answers)."""
+        self._info = data
+        self._changed = True
+
+    def _read_info(self) -> None:
+        """The latest filter_info's binding points, or a warning (the last good ones kept)."""
+        data, self._info = self._info, None
+        if data is None:
+            return
+        try:
+            self.points = logic.info_binding_points(data)
+        except Exception as exc:  # any failure means "not a filter_info sample we can draw"
+            text = (str(exc) if isinstance(exc, ValueError)
+                    else f'filter_info: {type(exc).__name__}')
+            self._warn('filter_info', f'{" ".join(text.split())}; sample skipped, the last '
+                                      'points stay drawn')
+
     def _on_obstacles(self, data: bytes) -> None:
         """A new obstacle set: the scene of the parameters with it, or an ERROR (old kept)."""
         try:
@@ -262,10 +298,11 @@ class SceneNode(Node):
         if not self._changed:
             return
         self._changed = False
+        self._read_info()
         markers = logic.scene_markers(
             geometry=self.geometry, state=self.state, h=self.h,
             frame_id=self.settings.frame_id, caution=self.settings.caution_h,
-            status=self.status)
+            status=self.status, points=self.points)
         self._publisher.publish(marker_array(markers, stamp=self.get_clock().now().to_msg(),
                                              clear=self._clear))
         self._clear = False

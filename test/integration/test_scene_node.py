@@ -188,3 +188,54 @@ def test_the_obstacles_topic_replaces_the_drawn_obstacles(domain_id):
     assert [m.pose.position.x for m in _by_ns(kept, 'obstacles')] == [-2.0]
     assert 'obstacles message refused, the obstacles drawn are unchanged: obstacles: data' in \
         output, output[-2000:]
+
+
+def test_filter_info_binding_points_are_drawn_and_a_bad_sample_is_skipped(domain_id):
+    """A filter_info with binding_points over DDS: a sphere per point and a line to each one
+    that binds, with the footprint ring; a sample whose section holds a NaN: one warning, the
+    node goes on and the drawn points stay."""
+    from rcbf_ros.messages.conversions import sections_to_msg
+    from rcbf_ros.ros.runtime import get_message, QoSProfile
+    process = spawn(domain_id, '-m', 'rcbf_ros.ros.scene_node', '--ros-args',
+                    '--params-file', UNICYCLE, '-p', 'rate_hz:=20.0', '-p',
+                    'footprint.radius:=0.25')
+    probe = _Probe(domain_id)
+    info_pub = probe.node.create_publisher(get_message('std_msgs/msg/Float64MultiArray'),
+                                           '/filter_info', QoSProfile(depth=10))
+    rows = [1.0, 0.5, 0.0, 0.2, -1.0, 2.0, 0.4, 1.0]  # [x, y, row value, h]: binds, does not
+    head = {'u': [0.0, 0.0], 'u_rl': [0.0, 0.0], 'u_s': [0.0, 0.0], 'fail_safe': [0.0],
+            'status': [0.0]}
+    try:
+        state = sections_to_msg({'state': [-1.0, 0.5, 0.0]})
+        good = sections_to_msg({**head, 'binding_points': rows})
+
+        def publish() -> None:
+            probe.state_pub.publish(state)
+            info_pub.publish(good)
+        drawn = probe.publish_until(
+            publish, lambda msg: any(m.ns == 'binding_points' and m.points
+                                     for m in msg.markers), process)
+        bad = sections_to_msg({**head, 'binding_points': [1.0, 0.5, float('nan'), 0.2]})
+        with probe.lock:
+            seen = len(probe.arrays)
+        kept = probe.publish_until(
+            lambda: (info_pub.publish(bad), probe.state_pub.publish(state)),
+            lambda msg: True, process)
+        with probe.lock:
+            later = probe.arrays[seen:]
+        time.sleep(0.5)
+        assert process.poll() is None
+    finally:
+        probe.close()
+        output = stop(process, timeout=10)
+    (spheres,) = _by_ns(drawn, 'binding_points')
+    assert [(p.x, p.y) for p in spheres.points] == [(1.0, 0.5), (-1.0, 2.0)]
+    (lines,) = _by_ns(drawn, 'active_rows')
+    assert [(p.x, p.y) for p in lines.points] == [(-1.0 + 0.03, 0.5), (1.0, 0.5)]
+    assert len(_by_ns(drawn, 'footprint')) == 1
+    for msg in [kept, *later]:  # the bad sample changed nothing drawn
+        assert [(p.x, p.y) for p in _by_ns(msg, 'binding_points')[0].points] == [
+            (1.0, 0.5), (-1.0, 2.0)]
+    assert 'filter_info: binding_points: contains NaN or inf; sample skipped' in output, \
+        output[-2000:]
+    assert 'Traceback' not in output
