@@ -823,9 +823,9 @@ def binding_rows(*, lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
     """
     if u_min is None or u_max is None:
         return np.arange(upper.size)
-    low, high = np.asarray(u_min, dtype=np.float64), np.asarray(u_max, dtype=np.float64)
-    mid, half = 0.5 * (low + high), 0.5 * (high - low)
-    least = upper + lg @ (mid - np.asarray(applied, dtype=np.float64)) - np.abs(lg) @ half
+    applied = np.asarray(applied, dtype=np.float64)
+    least = upper + _least_over_box(lg, np.asarray(u_min, dtype=np.float64) - applied,
+                                    np.asarray(u_max, dtype=np.float64) - applied)
     return np.flatnonzero(~(least >= margin))
 
 
