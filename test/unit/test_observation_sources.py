@@ -317,3 +317,20 @@ def test_a_topic_name_the_runtime_refuses_is_refused_in_one_line():
     config, _ = _sources(**{'front.topic': 'bad name!'})
     why = topic_refusal(config.sources, _OWN_TOPICS, _resolver())
     assert why.startswith("front.topic: 'bad name!' is not a valid topic name") and '\n' not in why
+
+
+@pytest.mark.parametrize('frame, refusal', [('', None), ('odom', None), ('map', 'map')])
+def test_the_state_frame_with_sources_is_odom_frame_id_in_the_node_and_the_refilter(frame,
+                                                                                   refusal):
+    from rcbf_ros.bag.refilter import build_filter, RefilterError
+    params = dict(_PARAMS, state_type='odometry', state_frame_id=frame)
+    if refusal:
+        with pytest.raises(ValueError, match="^state_frame_id: 'map' is not odom_frame_id"):
+            logic.build_active_filter(params=params)
+        with pytest.raises(RefilterError, match="^params: state_frame_id: 'map' is not"):
+            build_filter(params)
+        return
+    assert logic.build_active_filter(params=params).settings.state_frame_id == 'odom'
+    assert build_filter(params)[1].state_frame_id == 'odom'
+    without = {k: v for k, v in params.items() if k != 'observation_sources'}
+    assert logic.build_active_filter(params=without).settings.state_frame_id == frame
