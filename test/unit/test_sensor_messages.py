@@ -262,3 +262,17 @@ def test_frame_id_past_the_bound_is_refused_in_characters(frame_id):
     out = sensor.scan_points(_scan_bytes([1.0], frame_id=frame_id))
     assert isinstance(out, sensor.Refused) and 'header.frame_id' in out.reason
     assert '\n' not in out.reason
+
+
+@settings(max_examples=60, deadline=None)
+@given(centre=st.sampled_from([0.0, 1e4, -3e7, 1e12, -1e15 + 10.0]),
+       voxel=st.sampled_from([sensor.MIN_VOXEL_SIZE, 0.05, 1.0]),
+       seed=st.integers(0, 2**16))
+def test_thinning_covers_every_point_however_far_from_the_frame_origin(centre, voxel, seed):
+    rng = np.random.default_rng(seed)
+    points = np.column_stack([centre + rng.uniform(-3.0, 3.0, 200),
+                              -centre + rng.uniform(-3.0, 3.0, 200), np.full(200, 0.2)])
+    out = sensor.cloud_points(_cloud_bytes(points, dtype='<f8'), voxel_size=voxel)
+    assert isinstance(out, sensor.SensorPoints) and 0 < len(out.points) <= 200
+    gaps = np.hypot(*(points[:, None, :2] - out.points[None]).transpose(2, 0, 1))
+    assert np.all(gaps.min(axis=1) <= out.spread * (1 + 1e-12))
