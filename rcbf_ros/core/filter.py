@@ -833,8 +833,9 @@ EXACT_ROWS = 256
 """The most rows that can bind the exact solve of the many-row path takes as they are; more
 (a cloud's points along a corridor) are merged by :func:`merged_rows` into at most this many
 rows that imply every one of them, unless :meth:`SafetyFilter._generated` finds the exact
-answer within this many. The exact solve runs in Python over its rows, about 10 us a row per
-step: 256 rows keep it near a millisecond (benchmarks/bench_sources.py)."""
+answer within this many. The exact solve runs in Python over its rows, a few steps of about
+a microsecond a row each: 83k rows took 0.1-0.5 s a decision, 256 keep it near a millisecond
+(benchmarks/bench_sources.py, the corridor)."""
 GENERATED_BATCH = 32
 """The rows the exact solve of many rows starts with, and adds per round
 (:meth:`SafetyFilter._generated`)."""
