@@ -12,7 +12,11 @@ Messages are encoded by rosbags, once per world, before the timing:
 - LaserScan in ``base_link``, 360 and 2,000 beams (ray cast against the room, max range 8 m);
 - PointCloud2 in ``odom``, 24k points (x, y, z FLOAT32 and an intensity, z uniform in
   -0.2..1.5 m; the z band 0.05-0.5 m keeps about a quarter), without and with a 5 cm grid;
-- PointCloud2 of 100k points (the cap is 200,000 per message: answered, not refused).
+- PointCloud2 of 100k points (the cap is 200,000 per message: answered, not refused);
+- PointCloud2 of 100k points all in the z band along the two walls of a corridor 0.9 m wide
+  around the robot: tens of thousands of rows can bind at once (the exact solve on the rows
+  that can bind, and the rows merged where it cannot finish), and of 200k such points: more
+  than the 100,000 points all sources may give a decision, refused in one line.
 
 Then what one 100k-point PointCloud2 costs the node's callback: the time the source's
 callback holds the executor (decode + store, :meth:`ObservationSources.read`: the node takes
@@ -54,7 +58,10 @@ CASES = (('LaserScan, 360 beams', 'scan', 360, 0.0, 150.0),
          ('LaserScan, 2,000 beams', 'scan', 2_000, 0.0, 300.0),
          ('PointCloud2, 24k points', 'pointcloud', 24_000, 0.0, 2_000.0),
          ('PointCloud2, 24k points, 5 cm grid', 'pointcloud', 24_000, 0.05, None),
-         ('PointCloud2, 100k points', 'pointcloud', 100_000, 0.0, 20_000.0))
+         ('PointCloud2, 100k points', 'pointcloud', 100_000, 0.0, 20_000.0),
+         ('PointCloud2, 100k points in a corridor', 'corridor', 100_000, 0.0, 20_000.0),
+         ('PointCloud2, 200k points in a corridor (refused)', 'corridor', 200_000, 0.0,
+          20_000.0))
 """(name, source type, beams or points, voxel_size, target median in us or None)."""
 COLLISION_MONITOR = [
     '| Nav2 collision_monitor (its README, not re-measured here) | per frame |',
@@ -140,15 +147,43 @@ def cloud_message(count: int, stamp_s: int, rng: np.random.Generator) -> bytes:
     return bytes(store.serialize_cdr(msg, sensor.POINT_CLOUD2))
 
 
+def corridor_message(count: int, stamp_s: int, rng: np.random.Generator) -> bytes:
+    """``count`` points in ``odom`` on two walls along x (|x| <= 3 m) at |y| 0.45-0.5 m, every
+    z within the band 0.05-0.5 m: each one a point of the filter."""
+    store = jazzy_typestore()
+    t = store.types
+    record = np.dtype({'names': ['x', 'y', 'z'], 'formats': ['<f4'] * 3})
+    table = np.zeros(count, record)
+    table['x'] = rng.uniform(-3.0, 3.0, count)
+    table['y'] = rng.choice([-1.0, 1.0], count) * rng.uniform(0.45, 0.5, count)
+    table['z'] = rng.uniform(0.06, 0.49, count)
+    field = t['sensor_msgs/msg/PointField']
+    msg = t[sensor.POINT_CLOUD2](
+        header=t['std_msgs/msg/Header'](stamp=t['builtin_interfaces/msg/Time'](
+            sec=stamp_s, nanosec=0), frame_id='odom'),
+        height=1, width=count,
+        fields=[field(name=n, offset=4 * k, datatype=sensor.FLOAT32, count=1)
+                for k, n in enumerate(record.names)],
+        is_bigendian=False, point_step=12, row_step=12 * count,
+        data=table.view(np.uint8), is_dense=True)
+    return bytes(store.serialize_cdr(msg, sensor.POINT_CLOUD2))
+
+
 def measure(kind: str, size: int, voxel: float, number: int, seed: int = 0) -> dict:
     """Median and p99 (us) of one decision, the share of corrected answers and of fail-safes,
     the mean number of points in the filter, and one refusal if any."""
-    config = filter_config_from_params(params(kind, voxel))
+    corridor = kind == 'corridor'
+    config = filter_config_from_params(params('pointcloud' if corridor else kind, voxel))
     safety_filter = build_safety_filter(config=config, settings=node_settings_from_params({}))
     sources = ObservationSources(config.sources)
     rng = np.random.default_rng(seed)
     worlds = []
     for _index in range(min(number, 20)):
+        if corridor:  # the robot in the middle of the corridor, facing along it or nearly
+            state = [float(rng.uniform(-1.0, 1.0)), float(rng.uniform(-0.05, 0.05)),
+                     float(rng.uniform(-0.3, 0.3)) + float(rng.choice([0.0, np.pi]))]
+            worlds.append((corridor_message(size, 100, rng), state))
+            continue
         while True:
             position = rng.uniform(-HALF + 0.6, HALF - 0.6, 2)
             if np.all(np.hypot(*(POSTS - position).T) > POST_RADIUS + 0.6):

@@ -215,6 +215,7 @@ def build_filter(flat: Mapping[str, Any]) -> tuple[FilterConfig, logic.NodeSetti
     try:
         settings = logic.node_settings_from_params(flat)
         config = filter_config_from_params(flat)
+        settings = logic.state_frame_settings(settings, config)  # the node's state frame
         safety_filter = logic.build_safety_filter(config=config, settings=settings)
     except (ValueError, TypeError, ImportError, AttributeError) as exc:
         raise RefilterError(f'params: {exc}') from exc

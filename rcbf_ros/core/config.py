@@ -52,6 +52,7 @@ from rcbf_ros.core.dynamics import ControlAffineSystem, heading_indices, load_sy
 from rcbf_ros.core.mappings import flatten
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.core.sampled_data import sampled_data_margin, TIMING_LIMIT_S
+from rcbf_ros.messages import systems
 from rcbf_ros.parameters.reader import (
     parameter_keys,
     ParameterError,
@@ -570,13 +571,41 @@ def build_families(params: Mapping[str, Any],
     return _families(read_parameters(FilterParameters, params), params, system)
 
 
+def _check_planar(params: Mapping[str, Any], key: str) -> None:
+    """Refuse ``key`` (obstacles or sources: points in a plane) on a system of the table whose
+    entry declares no planar position (:attr:`rcbf_ros.messages.systems.System.
+    planar_position`), and ``obstacles.position_indices`` other than the declared one: they
+    would name other quantities (the cars' [p1, v1] is a position and a speed, PVTOL's [2, 3]
+    its velocities). A system named by dotted path is not checked.
+
+    Raises:
+        ParameterError: naming ``key`` or ``obstacles.position_indices``, and the system.
+    """
+    name = params.get('system')
+    if not (isinstance(name, str) and name in systems.system_names()):
+        return
+    entry = systems.lookup(name)
+    names = [item for item, _ in entry.state]
+    if entry.planar_position is None:
+        raise ParameterError(f'{key}: system {name} declares no planar position (its state '
+                             f'[{", ".join(names)}] holds none to place obstacles or points '
+                             'in)')
+    indices = read_parameters(ObstacleParameters, params, prefix='obstacles.').position_indices
+    if tuple(indices) != entry.planar_position:
+        shown = ', '.join(names[i] for i in entry.planar_position)
+        raise ParameterError(f'obstacles.position_indices: {list(indices)} is not the planar '
+                             f'position of {name}, {list(entry.planar_position)} ({shown})')
+
+
 def _families(p: FilterParameters, params: Mapping[str, Any],
               system: ControlAffineSystem) -> tuple[BarrierFamily, ...]:
     """The static barrier families; none only with ``observation_sources`` (the sensor points
     are then the filter's only obstacles)."""
     families: list[BarrierFamily] = []
     if p.obstacles is not None:
-        families.append(_obstacles(p.obstacles, system))
+        obstacles = _obstacles(p.obstacles, system)  # its own index checks first
+        _check_planar(params, 'obstacles.x')
+        families.append(obstacles)
     families += [_band(name, params, system) for name in band_names(params)]
     if p.gaps is not None:
         families.append(_gaps(p.gaps, system))
@@ -661,6 +690,7 @@ def _sources(p: FilterParameters, params: Mapping[str, Any],
     """The observation sources (None without ``observation_sources``)."""
     if not p.observation_sources:
         return None
+    _check_planar(params, 'observation_sources')
     taken = {key.split('.')[0] for key in parameter_keys(FilterParameters) if '.' in key}
     taken |= {'system_params', 'bands', 'obstacles', 'gaps', 'walls', 'footprint', 'tf'}
     sources = []

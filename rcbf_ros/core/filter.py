@@ -828,10 +828,92 @@ def binding_rows(*, lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
     """
     if u_min is None or u_max is None:
         return np.arange(upper.size)
-    low, high = np.asarray(u_min, dtype=np.float64), np.asarray(u_max, dtype=np.float64)
-    mid, half = 0.5 * (low + high), 0.5 * (high - low)
-    least = upper + lg @ (mid - np.asarray(applied, dtype=np.float64)) - np.abs(lg) @ half
+    applied = np.asarray(applied, dtype=np.float64)
+    least = upper + _least_over_box(lg, np.asarray(u_min, dtype=np.float64) - applied,
+                                    np.asarray(u_max, dtype=np.float64) - applied)
     return np.flatnonzero(~(least >= margin))
+
+
+EXACT_ROWS = 256
+"""The most rows that can bind the exact solve of the many-row path takes as they are; more
+(a cloud's points along a corridor) are merged by :func:`merged_rows` into at most this many
+rows that imply every one of them, unless :meth:`SafetyFilter._generated` finds the exact
+answer within this many. The exact solve runs in Python over its rows, a few steps of about
+a microsecond a row each: 83k rows took 0.1-0.5 s a decision, 256 keep it near a millisecond
+(benchmarks/bench_sources.py, the corridor)."""
+GENERATED_BATCH = 32
+"""The rows the exact solve of many rows starts with, and adds per round
+(:meth:`SafetyFilter._generated`)."""
+
+
+def _least_over_box(lg: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """(K,) the least lg_i^T d over the box low <= d <= high (one column at a time: faster
+    than a reduction over a short last axis)."""
+    out = np.zeros(lg.shape[0])
+    for j in range(lg.shape[1]):
+        column = lg[:, j]
+        out += np.minimum(column * low[j], column * high[j])
+    return out
+
+
+def merged_rows(*, lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
+                u_min: Sequence[float], u_max: Sequence[float], count: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """At most ``count`` rows, each below the rows it stands for at every action of the box:
+    an action within the box that meets them (with a slack eps) meets every row (with eps).
+
+    Row i at an action a is v_i(a) = upper_i + lg_i^T d, d = a - applied in [dl, dh] = [u_min -
+    applied, u_max - applied] (:func:`binding_rows`). Half of ``count`` goes to the rows of
+    least value over the box, taken as they are; the others are binned on a grid over lg (k
+    cells a coordinate, k^n_u <= the rest of ``count``), and a cell with centre c gives the row
+
+        upper_c + c^T d,  upper_c = min over its rows of upper_i + sum_j min(e_ij dl_j,
+        e_ij dh_j),  e_i = lg_i - c,
+
+    so that v_i(a) >= upper_c + c^T d for every a in the box (the sum is the least e_i^T d
+    over the box). The cost: a cell's row is lower than its rows by up to sum_j |e_ij|
+    max(-dl_j, dh_j), at most half a cell's width per coordinate times the box: more
+    conservative commands where many rows bind at once, never a row left unmet.
+
+    Args:
+        lg: (K, n_u) L_g h of each row.
+        upper: (K,) the right-hand sides at ``applied``.
+        applied: (n_u,) the proposal the rows are written at, within the limits.
+        u_min, u_max: (n_u,) finite limits.
+        count: the most rows returned, 2 to 32,767.
+
+    Returns:
+        (lg (k, n_u), upper (k,)) of the k <= ``count`` rows.
+    """
+    if upper.size <= count:
+        return lg, upper
+    applied = np.asarray(applied, dtype=np.float64)
+    low = np.asarray(u_min, dtype=np.float64) - applied
+    high = np.asarray(u_max, dtype=np.float64) - applied
+    least = upper + _least_over_box(lg, low, high)
+    exact = count // 2
+    order = np.argpartition(least, exact)
+    first, rest = order[:exact], order[exact:]
+    rest_lg, rest_upper = lg[rest], upper[rest]
+    n_u = lg.shape[1]
+    bins = 1
+    while (bins + 1) ** n_u <= count - exact:
+        bins += 1
+    bottom, top = rest_lg.min(axis=0), rest_lg.max(axis=0)
+    width = (top - bottom) / bins
+    width[~(width > 0.0)] = 1.0  # one value along that coordinate: one cell
+    cells = np.clip(np.floor((rest_lg - bottom) / width), 0, bins - 1).astype(np.int64)
+    centre = bottom + (cells + 0.5) * width
+    error = rest_lg - centre
+    worst = rest_upper + _least_over_box(error, low, high)
+    keys = np.ravel_multi_index(tuple(cells.T), (bins,) * n_u).astype(np.int16)
+    by_cell = np.argsort(keys, kind='stable')  # a radix sort of at most `count` keys
+    keys = keys[by_cell]
+    starts = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
+    cell_upper = np.minimum.reduceat(worst[by_cell], starts)
+    cell_lg = centre[by_cell[starts]]
+    return (np.concatenate([lg[first], cell_lg]),
+            np.concatenate([upper[first], cell_upper]))
 
 
 POINTS_BARRIER = 'sensor_points'
@@ -1106,6 +1188,8 @@ class SafetyFilter:
         self.slack_tolerance = slack_tolerance
         self.input_bounds = InputBounds() if input_bounds is None else input_bounds
         self._limits = list(zip(self._u_min.tolist(), self._u_max.tolist()))
+        self._finite_limits = bool(np.isfinite(self._u_min).all()
+                                   and np.isfinite(self._u_max).all())
         self._zeros_x_list = [0.0] * self.n_x
         action = np.zeros(self.n_u) if fail_safe_action is None else _vector(
             'fail_safe_action', fail_safe_action, self.n_u)
@@ -1343,7 +1427,9 @@ class SafetyFilter:
         """:meth:`filter` from the assembly on, for a problem whose circle rows are evaluated
         over arrays (:class:`VectorAssembly`): the same steps and checks, the rows' data and
         the row check over arrays, and the exact solve on the rows that can bind only
-        (:func:`binding_rows`); OSQP and the interior point, where reached, take every row."""
+        (:func:`binding_rows`; beyond :data:`EXACT_ROWS` of them, the fewer rows of
+        :func:`merged_rows` that imply them all); OSQP and the interior point, where reached,
+        take every row. The answer is checked against every row either way."""
         rows = self._many.evaluate(x, applied, mu, sd)  # type: ignore[union-attr]
         h, lg, upper, limit_upper = rows.h, rows.lg, rows.upper, rows.limit_upper
         size = rows.size
@@ -1387,17 +1473,28 @@ class SafetyFilter:
                             u_max=self._u_max if has_limits else None,
                             margin=PRUNE_MARGIN * scale)
         self._pruned = h.size - keep.size
-        g_rows = np.concatenate([-lg[keep], np.full((keep.size, 1), -1.0)], axis=1).tolist()
-        z = _active_set_steps(g_rows + self._limit_rows, upper[keep].tolist() + limit_upper,
-                              self._p_inverse_list, ACTIVE_SET_TOLERANCE * scale,
-                              ACTIVE_SET_STEPS, self._kernels)
+        solve_lg, solve_upper = lg[keep], upper[keep]
+        generated = None
+        if keep.size > EXACT_ROWS and self._finite_limits:
+            # too many rows to solve at once in time: the exact QP by adding the rows its
+            # answer violates (_generated), else fewer rows that imply them all (merged_rows)
+            generated = self._generated(solve_lg, solve_upper, limit_upper, scale)
+            solve_lg, solve_upper = generated[1:] if generated is not None else merged_rows(
+                lg=solve_lg, upper=solve_upper, applied=applied, u_min=self._u_min,
+                u_max=self._u_max, count=EXACT_ROWS)
+        g_rows = np.concatenate([-solve_lg, np.full((solve_upper.size, 1), -1.0)],
+                                axis=1).tolist()
+        solve_upper_list = solve_upper.tolist()
+        z = generated[0] if generated is not None else _active_set_steps(
+            g_rows + self._limit_rows, solve_upper_list + limit_upper, self._p_inverse_list,
+            ACTIVE_SET_TOLERANCE * scale, ACTIVE_SET_STEPS, self._kernels)
         status = 'solved'
         checked = None if z is None else self._check_many(z, upper, lg, applied)
         if checked is None and self._points is not None:
             # the row count changes with the points: a QP of the rows that can bind, set up
             # for this call (the exact solve failed: rare)
             z, status = _solve_once(g_rows + self._limit_rows,
-                                    upper[keep].tolist() + limit_upper, self._p_inverse)
+                                    solve_upper_list + limit_upper, self._p_inverse)
             checked = None if z is None else self._check_many(z, upper, lg, applied)
         elif checked is None:
             g_matrix = np.empty((self._nc, self.n_u + 1))
@@ -1448,6 +1545,36 @@ class SafetyFilter:
             status=status, solve_time_s=solve_time, total_time_s=time.perf_counter() - start,
             fail_safe=False, barrier_names=list(self.barrier_names), needed_slack=needed,
             reason='', proposal_clipped=clipped, points=self._point_values(point_h, values))
+
+    def _generated(self, lg: np.ndarray, upper: np.ndarray, limit_upper: list[float],
+                   scale: float) -> tuple[list[float], np.ndarray, np.ndarray] | None:
+        """The QP on many rows (``lg`` (K, n_u), ``upper`` (K,)) solved exactly on few of them:
+        the :data:`GENERATED_BATCH` lowest at the proposal first, then, while the answer
+        violates a row, the :data:`GENERATED_BATCH` it violates most added, up to
+        :data:`EXACT_ROWS` rows. An answer that meets every row is the QP's own (the QP on
+        fewer rows has the larger feasible set). (z, the rows it was solved on) or None."""
+        tolerance = PRUNE_MARGIN * scale
+        working = np.argpartition(upper, GENERATED_BATCH)[:GENERATED_BATCH]
+        while True:
+            working_lg, working_upper = lg[working], upper[working]
+            g_rows = np.concatenate([-working_lg, np.full((working.size, 1), -1.0)],
+                                    axis=1).tolist()
+            z = _active_set_steps(g_rows + self._limit_rows,
+                                  working_upper.tolist() + limit_upper, self._p_inverse_list,
+                                  ACTIVE_SET_TOLERANCE * scale, ACTIVE_SET_STEPS,
+                                  self._kernels)
+            if z is None:
+                return None
+            values = upper + lg @ np.array(z[:self.n_u]) + z[self.n_u]
+            violated = np.flatnonzero(values < -tolerance)
+            if not violated.size:
+                return z, working_lg, working_upper
+            if working.size + GENERATED_BATCH > EXACT_ROWS:
+                return None
+            if violated.size > GENERATED_BATCH:
+                violated = violated[np.argpartition(values[violated],
+                                                    GENERATED_BATCH)[:GENERATED_BATCH]]
+            working = np.concatenate([working, violated])
 
     def set_points(self, points: np.ndarray, spread: np.ndarray | float = 0.0) -> None:
         """Replace the sensor points (a filter built with ``footprint``): (N, 2) finite

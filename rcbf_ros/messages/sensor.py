@@ -10,9 +10,11 @@ Every size is bounded before it is used (:data:`MAX_POINTS` points per message,
 :data:`MAX_FIELDS` fields, :data:`MAX_FRAME_ID` bytes of frame id, :data:`MAX_POINT_STEP`
 bytes per point), and bytes that do not fit the declared layout are refused: the readers
 return :class:`Refused` with one line naming the field, and never raise. Which points count
-(REP 117 for scans): NaN, +-inf and ranges outside [range_min, range_max] are skipped, as are
-points farther than :data:`MAX_COORDINATE` from the frame's origin (no sensor sees that far and
-the barrier's squares would overflow). Pure library: numpy only.
+(REP 117 for scans): NaN, +-inf and ranges outside [range_min, range_max] are skipped. A point
+is never skipped for its distance from the frame's origin (a cloud in ``odom`` lies wherever
+the robot is): one beyond :data:`MAX_COORDINATE`, where no state may lie, refuses the message;
+the distance that counts is the robot's, once the points are placed
+(:data:`rcbf_ros.node_logic.sources.MAX_RANGE`). Pure library: numpy only.
 """
 from __future__ import annotations
 
@@ -36,15 +38,14 @@ MAX_FRAME_ID = 1024
 which counts the terminating NUL and UTF-8 bytes, may be up to 4 x this + 1."""
 MAX_POINT_STEP = 65_536
 """The most bytes per point of a cloud."""
-MAX_COORDINATE = 1.0e4
-"""Points farther than this (m) from the sensor frame's origin, on either axis, are skipped."""
+MAX_COORDINATE = 1.0e15
+"""The largest |x| or |y| (m) of a point; a message with a point beyond is refused. No state
+lies beyond (``input_bounds.state`` is at most the QP's data limit, 1e15), and the squares of
+the barrier stay finite."""
 MAX_ANGLE = 1.0e3
 """The largest |angle| (rad) of a scan's beam; a scan whose beams lie beyond is refused."""
 MIN_VOXEL_SIZE = 1.0e-3
 """The smallest grid cell (m) of a cloud's thinning (0 turns thinning off)."""
-
-_CELLS = int(MAX_COORDINATE / MIN_VOXEL_SIZE) + 1
-"""The largest |cell index| of a thinning grid."""
 
 FLOAT32, FLOAT64 = 7, 8
 """sensor_msgs/PointField datatypes of the coordinates read here."""
@@ -145,9 +146,12 @@ class _Cursor:
         return frame_id, sec * 1_000_000_000 + nanosec
 
 
-def _within(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Finite points within :data:`MAX_COORDINATE` on both axes."""
-    return (np.abs(x) <= MAX_COORDINATE) & (np.abs(y) <= MAX_COORDINATE)
+def _beyond(what: str, x: np.ndarray, y: np.ndarray) -> None:
+    """Refuse points beyond :data:`MAX_COORDINATE` (x, y finite)."""
+    far = np.flatnonzero((np.abs(x) > MAX_COORDINATE) | (np.abs(y) > MAX_COORDINATE))
+    if far.size:
+        raise _Bad(f'{what}: point ({x[far[0]]:.6g}, {y[far[0]]:.6g}) lies beyond '
+                   f'{MAX_COORDINATE:g} m of the frame (and {far.size - 1} more)')
 
 
 @functools.lru_cache(maxsize=8)
@@ -173,14 +177,40 @@ def _quiet(parse: Callable[..., SensorPoints | Refused]) -> Callable[..., Sensor
     return quiet
 
 
+def _thinned(x: np.ndarray, y: np.ndarray, voxel_size: float
+             ) -> tuple[np.ndarray, np.ndarray, float]:
+    """The centres of the grid cells (side ``voxel_size``) that hold the points, and how far
+    a point lies from its cell's centre at most: half the diagonal, or the rounding of a cell
+    index far from the origin, measured (|x|, |y| <= :data:`MAX_COORDINATE` and voxel_size
+    >= :data:`MIN_VOXEL_SIZE` keep each index within int64)."""
+    column = np.floor(x / voxel_size).astype(np.int64)
+    row = np.floor(y / voxel_size).astype(np.int64)
+    centre_x, centre_y = (column + 0.5) * voxel_size, (row + 0.5) * voxel_size
+    spread = max(voxel_size * math.sqrt(0.5),
+                 float(np.hypot(x - centre_x, y - centre_y).max()))
+    column_0, row_0 = int(column.min()), int(row.min())
+    column, row = column - column_0, row - row_0
+    span = int(row.max()) + 1
+    if (int(column.max()) + 1) * span < 2 ** 63:  # one int64 key per cell
+        keys = np.unique(column * span + row)
+        column, row = np.divmod(keys, span)
+    else:
+        order = np.lexsort((row, column))
+        column, row = column[order], row[order]
+        first = np.concatenate(([True], (column[1:] != column[:-1]) | (row[1:] != row[:-1])))
+        column, row = column[first], row[first]
+    return ((column + column_0 + 0.5) * voxel_size, (row + row_0 + 0.5) * voxel_size, spread)
+
+
 @_quiet
 def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
                 ) -> SensorPoints | Refused:
     """The valid points of a LaserScan sample, in its frame.
 
     Beam i lies at angle_min + i angle_increment; it counts where its range r is finite and
-    range_min <= r <= range_max (REP 117, as collision_monitor reads it) and r <=
-    :data:`MAX_COORDINATE`, and is the point (r cos a, r sin a). Intensities are not read.
+    range_min <= r <= range_max (REP 117, as collision_monitor reads it), and is the point
+    (r cos a, r sin a); a range beyond :data:`MAX_COORDINATE` refuses the scan. Intensities
+    are not read.
     """
     try:
         cursor = _Cursor(data)
@@ -205,9 +235,13 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         start = cursor._take(4 * count, 4, 'ranges')
         ranges = np.frombuffer(cursor.view, dtype=cursor.order + 'f4', count=count,
                                offset=start).astype(np.float64)
-        # NaN fails both comparisons; a range within MAX_COORDINATE keeps both coordinates in
-        index = np.flatnonzero((ranges >= range_min)
-                               & (ranges <= min(range_max, MAX_COORDINATE)))
+        # NaN fails both comparisons
+        index = np.flatnonzero((ranges >= range_min) & (ranges <= range_max)
+                               & np.isfinite(ranges))
+        if index.size and not ranges[index].max() <= MAX_COORDINATE:
+            beam = int(index[np.argmax(ranges[index])])
+            return Refused(f'{LASER_SCAN}: ranges[{beam}] {ranges[beam]:.6g} lies beyond '
+                           f'{MAX_COORDINATE:g} m (within range_max {range_max:g})')
         cos, sin = _beam_directions(angle_min, increment, count)
         r = ranges[index]
         points = np.empty((index.size, 2))
@@ -283,6 +317,9 @@ def cloud_points(data: bytes | memoryview, *, min_height: float = -math.inf,
                                    f'(offsets {begins} and {offset})')
             columns.append((offset, datatype))
         if count == 0:
+            if size:
+                return Refused(f'{POINT_CLOUD2}: height {height} x width {width} declares no '
+                               f'point, but data has {size} bytes')
             return SensorPoints(np.zeros((0, 2)), frame_id, stamp, 0)
         if row_step < width * point_step:
             return Refused(f'{POINT_CLOUD2}: row_step {row_step} < width {width} x point_step '
@@ -291,6 +328,9 @@ def cloud_points(data: bytes | memoryview, *, min_height: float = -math.inf,
         if size < needed:
             return Refused(f'{POINT_CLOUD2}: data has {size} bytes, fewer than the '
                            f'{needed} its height, width, row_step and point_step declare')
+        if size > height * row_step:
+            return Refused(f'{POINT_CLOUD2}: data has {size} bytes, more than the height '
+                           f'{height} x row_step {row_step} its layout declares')
         order = '>' if big else '<'
         values = []
         for offset, datatype in columns:
@@ -300,19 +340,13 @@ def cloud_points(data: bytes | memoryview, *, min_height: float = -math.inf,
                                 strides=(row_step, point_step))
             values.append(column.astype(np.float64).ravel())
         x, y, z = values
-        keep = (z >= min_height) & (z <= max_height) & _within(x, y)  # NaN fails each
+        keep = ((z >= min_height) & (z <= max_height) & np.isfinite(x)
+                & np.isfinite(y))  # NaN fails each
         x, y = x[keep], y[keep]
+        _beyond('data', x, y)
         spread = 0.0
         if voxel_size and x.size:
-            # one int64 key per cell: |x|, |y| <= MAX_COORDINATE and voxel_size >=
-            # MIN_VOXEL_SIZE keep each cell index within +-_CELLS
-            column = np.floor(x / voxel_size).astype(np.int64) + _CELLS
-            row = np.floor(y / voxel_size).astype(np.int64) + _CELLS
-            keys = np.unique(column * (2 * _CELLS + 1) + row)
-            column, row = np.divmod(keys, 2 * _CELLS + 1)
-            x = (column - _CELLS + 0.5) * voxel_size
-            y = (row - _CELLS + 0.5) * voxel_size
-            spread = voxel_size * math.sqrt(0.5)
+            x, y, spread = _thinned(x, y, voxel_size)
         return SensorPoints(np.stack((x, y), axis=1), frame_id, stamp, count, spread)
     except _Bad as exc:
         return Refused(f'{POINT_CLOUD2}: {exc}')

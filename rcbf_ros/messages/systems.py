@@ -39,6 +39,10 @@ class System:
     """The command vector u, (name, unit) per entry, in order."""
     odometry: str | None = None
     """How a nav_msgs/Odometry holds the state (None: it does not)."""
+    planar_position: tuple[int, int] | None = None
+    """The state indices of a position in a plane (x, y), where circular obstacles and sensor
+    points are placed (None: the state holds none; ``obstacles.*`` and
+    ``observation_sources`` are refused)."""
     config: str = ''
     """The packaged params file (``config/<file>``; '': ``<name>.yaml``)."""
     parts: dict[str, type] = field(default_factory=dict)
@@ -168,13 +172,15 @@ for _system in (
     System('unicycle',
            state=(('x', 'm'), ('y', 'm'), ('theta', 'rad, heading from the x axis')),
            command=(('v', 'm/s, forward speed'), ('omega', 'rad/s, turn rate')),
-           odometry='[pose.position.x, pose.position.y, yaw of pose.orientation]'),
+           odometry='[pose.position.x, pose.position.y, yaw of pose.orientation]',
+           planar_position=(0, 1)),
     System('pvtol',  # the paper's normalized units: gravity 1
            state=(('x1', 'horizontal position'), ('x2', 'vertical position'),
                   ('v1', 'horizontal velocity'), ('v2', 'vertical velocity'),
                   ('theta', 'rad, tilt'), ('f', 'thrust, 1 = hover'),
                   ('x_h', "operator's horizontal position; only with_operator")),
-           command=(('omega', 'rad/s, tilt rate'), ('u_f', 'thrust rate'))),
+           command=(('omega', 'rad/s, tilt rate'), ('u_f', 'thrust rate')),
+           planar_position=(0, 1)),  # the vertical plane it flies in
     System('car_following',
            state=tuple(item for car in range(1, 6) for item in (
                (f'p{car}', f'm, car {car} position'), (f'v{car}', f'm/s, car {car} velocity'))),

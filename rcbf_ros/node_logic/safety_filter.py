@@ -111,8 +111,11 @@ class NodeSettings(MessageSettings):
 
     state_frame_id: str = setting(
         '', description="with state_type odometry: the frame an Odometry's header.frame_id must "
-                        "name (the obstacles' frame); '' accepts any")
-    """For 'odometry': the frame a state's header.frame_id must name ('' accepts any)."""
+                        "name (the obstacles' frame); '' accepts any (with "
+                        'observation_sources: odom_frame_id, the only frame allowed)')
+    """For 'odometry': the frame a state's header.frame_id must name ('' accepts any; with
+    observation sources '' means ``odom_frame_id``, and no other frame is accepted:
+    :func:`state_frame_settings`)."""
     max_state_age_s: float = setting(
         0.5, positive=True, maximum=DURATION_LIMIT_S,
         description='a `state` older than this (s, since its arrival) is stale: fail-safe')
@@ -393,6 +396,7 @@ def _built(params: Mapping[str, Any]) -> ActiveFilter:
     params = collect_parameters(params)
     settings = node_settings_from_params(params)
     config = filter_config_from_params(params)
+    settings = state_frame_settings(settings, config)
     check_geometry(params, bounds=settings.input_bounds)
     system = config.problem.system
     for key, limits in (('input_limits.min', system.u_min), ('input_limits.max', system.u_max)):
@@ -402,6 +406,26 @@ def _built(params: Mapping[str, Any]) -> ActiveFilter:
     settings.check_inputs(n_u=safety_filter.n_u, system=str(params.get('system')))
     return ActiveFilter(params=params, settings=settings, config=config,
                         safety_filter=safety_filter)
+
+
+def state_frame_settings(settings: NodeSettings, config: FilterConfig) -> NodeSettings:
+    """``settings`` with the frame a state must be in: with observation sources, whose points
+    are placed in ``odom_frame_id``, a state in any other frame would be filtered against
+    points in the wrong place, so ``state_frame_id`` '' becomes ``odom_frame_id`` and any
+    other value is refused.
+
+    Raises:
+        ParameterError: naming ``state_frame_id`` and ``odom_frame_id``.
+    """
+    if config.sources is None:
+        return settings
+    odom = config.sources.odom_frame_id
+    if settings.state_frame_id not in ('', odom):
+        raise ParameterError(
+            f'state_frame_id: {settings.state_frame_id!r} is not odom_frame_id {odom!r}: the '
+            "observation sources' points are placed in odom_frame_id, so the state must be "
+            "in it too ('' takes odom_frame_id)")
+    return replace(settings, state_frame_id=odom)
 
 
 def _probe_refusal(active: ActiveFilter, probe_states: Sequence[Sequence[float]]) -> str | None:

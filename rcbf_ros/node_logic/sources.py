@@ -14,8 +14,10 @@ goes through tf (the transforms of :meth:`ObservationSources.read_tf`, kept in a
 ``transform_tolerance``. Where tf does not join the frame to ``odom_frame_id`` (no
 odom -> base_link on tf) but the frame is ``base_frame_id`` or joined to it, the points go to
 the robot's frame, then to the state's through the pose in the state. Where tf joins the
-frames but has no transform at the stamp (too old, too new, a loop), the fail-safe. No
-middleware: the node hands in bytes and times.
+frames but has no transform at the stamp (too old, too new, a loop), the fail-safe. Once
+placed, points are bounded by their distance from the robot (:data:`MAX_RANGE`), never by a
+frame's origin; all sources together by :data:`MAX_POINTS`. No middleware: the node hands in
+bytes and times.
 """
 from __future__ import annotations
 
@@ -45,6 +47,23 @@ COUNT_KEYS = ('messages', 'refused', 'stale', 'untransformed')
 """Per source: messages received, messages refused (undecodable, wrong layout, too large),
 decisions answered with the fail-safe because the source was stale or had no message yet,
 and because its points had no transform to the state's frame."""
+MAX_POINTS = 100_000
+"""The most points of all sources together a decision takes (each source's latest message, its
+valid points after the z band and thinning); more gives the fail-safe naming every source and
+its count. The filter answers this many in about 20 ms (benchmarks/bench_sources.py); every
+source may still hold a full message (:data:`rcbf_ros.messages.sensor.MAX_POINTS`)."""
+MAX_RANGE = 1.0e4
+"""Points farther than this (m) from the robot's position in the state, once placed in the
+state's frame, are left out of the decision: no sensor sees that far, and the row of a point
+at distance d binds only where the robot's speed and the disturbance box reach about alpha d /
+2 (5 km/s at alpha = 1 and this range). Counted from the robot, not from a frame's origin: a
+robot far from ``odom_frame_id``'s origin keeps every point around it."""
+MIDDLEWARE_TOPICS = ('/rosout', '/parameter_events', '/tf', '/tf_static',
+                     '~/get_parameters', '~/set_parameters', '~/set_parameters_atomically',
+                     '~/describe_parameters', '~/list_parameters', '~/get_parameter_types',
+                     '~/get_type_description')
+"""The middleware's own topics and the node's parameter services, which no source may take
+(:func:`topic_refusal`): a log line, a parameter event or a transform is not a scan."""
 MAX_WIDENING = 0.5
 """The most (m) a cloud's circles are widened for a tilted frame; more refuses the source."""
 TF_COUNT_KEYS = ('messages', 'refused', 'transforms_refused')
@@ -60,7 +79,7 @@ def topic_refusal(config: SourceConfig, own_topics: Sequence[str],
     namespace included) to one of ``own_topics`` (the node's own: its answers would come back
     as sensor data, or its inputs be read as scans), or to another source's topic, or that
     does not resolve at all. Names are compared resolved: ``scan`` and ``/scan`` are one topic
-    in the root namespace."""
+    in the root namespace. :data:`MIDDLEWARE_TOPICS` count as the node's own."""
     def resolved(key: str, topic: str) -> str:
         try:
             return resolve(topic)
@@ -69,7 +88,7 @@ def topic_refusal(config: SourceConfig, own_topics: Sequence[str],
                              f'({" ".join(str(exc).split())[:160]})') from None
     try:
         own = {}
-        for topic in own_topics:
+        for topic in (*own_topics, *MIDDLEWARE_TOPICS):
             own.setdefault(resolved(topic, topic), topic)
         taken: dict[str, str] = {}
         for name, params in config.sources:
@@ -189,10 +208,18 @@ class ObservationSources:
         A message's age is counted from its header stamp on the node's clock
         (``stamp_now_ns``, as collision_monitor counts ``source_timeout``), and never from
         later than its receipt (``now_ns`` and the message's receipt, on the monotonic clock):
-        a stamp in the future does not keep a source fresh.
+        a stamp in the future does not keep a source fresh. More than :data:`MAX_POINTS`
+        points in all give the fail-safe (before any is placed); points farther than
+        :data:`MAX_RANGE` from the robot once placed are left out.
         """
         parts: list[np.ndarray] = []
         spreads: list[tuple[float, int]] = []
+        counts = {name: len(source.points) for name, source in self._sources.items()
+                  if source.points is not None and not source.refusal}
+        if sum(counts.values()) > MAX_POINTS:
+            listed = ', '.join(f'{name} ({count} points)' for name, count in counts.items())
+            return (f'sources {listed}: {sum(counts.values())} points in all, more than the '
+                    f'bound {MAX_POINTS}')
         for name, source in self._sources.items():
             timeout = source.params.timeout_s
             if source.refusal:
@@ -211,6 +238,11 @@ class ObservationSources:
                 source.counts['untransformed'] += 1
                 return f'source {name}: {placed}'
             points, widening = placed
+            near = self._near(points, state)
+            if isinstance(near, str):
+                source.counts['untransformed'] += 1
+                return f'source {name}: {near}'
+            points = near
             parts.append(points)
             spreads.append((source.spread + widening, len(points)))
         if not parts:
@@ -290,6 +322,18 @@ class ObservationSources:
                     f'({source.name}.min_height, .max_height), would lie up to {widening:.3g} m '
                     f'from where they are placed (at most {MAX_WIDENING:g})')
         return widening
+
+    def _near(self, points: np.ndarray, state: np.ndarray) -> np.ndarray | str:
+        """``points`` (in the state's frame) within :data:`MAX_RANGE` of the robot's position
+        in ``state``, or why not (a position that is not finite)."""
+        i, j = self.config.position_indices
+        x, y = float(state[i]), float(state[j])
+        if not (math.isfinite(x) and math.isfinite(y)):
+            return "the state's position is not finite"
+        dx, dy = points[:, 0] - x, points[:, 1] - y
+        near = (np.abs(dx) <= MAX_RANGE) & (np.abs(dy) <= MAX_RANGE)
+        near &= dx * dx + dy * dy <= MAX_RANGE * MAX_RANGE
+        return points if near.all() else points[near]
 
     def _to_state_frame(self, points: np.ndarray, state: np.ndarray) -> np.ndarray | str:
         """Points in the robot's frame -> the state's: rotated by the heading, moved to the

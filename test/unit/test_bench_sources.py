@@ -42,3 +42,12 @@ def test_the_hold_figures_are_read_and_the_memory_is_the_latest_message_only():
     # the source keeps only its latest message's points: nothing piles up from one to the next
     assert figures['last_mb'] <= figures['first_mb'] * 1.5 + 0.05
     assert figures['peak_mb'] >= figures['last_mb'] > 0.0
+
+
+def test_the_corridor_cloud_lies_on_its_two_walls_all_in_the_band():
+    data = bench.corridor_message(3000, 100, np.random.default_rng(0))
+    band = sensor.cloud_points(data, min_height=0.05, max_height=0.5)
+    assert len(band.points) == 3000 and band.frame_id == 'odom'
+    assert np.all(np.abs(band.points[:, 0]) <= 3.0)
+    assert np.all((np.abs(band.points[:, 1]) >= 0.45 - 1e-6)
+                  & (np.abs(band.points[:, 1]) <= 0.5 + 1e-6))

@@ -267,6 +267,31 @@ def test_obstacle_indices_are_checked_against_the_state_layout(system, obstacles
         filter_config_from_params(params)
 
 
+@pytest.mark.parametrize('system, extra, words', [
+    ('car_following', {'obstacles.x': [1.0], 'obstacles.y': [0.0], 'obstacles.radius': [0.5]},
+     r'^obstacles\.x: system car_following declares no planar position \(its state \[p1, '
+     r'v1, '),
+    ('car_following', {'observation_sources': ['front'], 'front.type': 'scan',
+                       'front.topic': 'scan', 'footprint.radius': 0.2},
+     r'^observation_sources: system car_following declares no planar position'),
+    ('pvtol', {'obstacles.position_indices': [2, 3]},
+     r'^obstacles\.position_indices: \[2, 3\] is not the planar position of pvtol, \[0, 1\] '
+     r'\(x1, x2\)'),
+    ('unicycle', {'obstacles.position_indices': [1, 0]},
+     r'^obstacles\.position_indices: \[1, 0\] is not the planar position of unicycle'),
+])
+def test_points_in_a_plane_need_the_planar_position_the_system_declares(system, extra, words):
+    # the cars' default position_indices [0, 1] is (p1, v1): a position and a speed, which
+    # a circle or a sensor point would take as a point in a plane
+    from rcbf_ros.parameters.rules import find_config, load_params
+    params = load_params(find_config(system), 'safety_filter')
+    params.update(extra)
+    with pytest.raises(ValueError, match=words):
+        filter_config_from_params(params)
+    for shipped in ('unicycle', 'pvtol', 'car_following'):
+        filter_config_from_params(load_params(find_config(shipped), 'safety_filter'))
+
+
 @pytest.mark.parametrize('system, heading', [('unicycle', 2), ('pvtol', 4)])
 def test_the_heading_index_of_each_system_is_accepted(system, heading):
     params = {'system': system, 'obstacles': {**ONE_OBSTACLE, 'heading_index': heading,

@@ -146,6 +146,49 @@ def test_a_scan_of_a_wall_ahead_slows_the_decision_and_a_stale_one_stops_it():
     assert sensor.MAX_POINTS >= 100_000
 
 
+@pytest.mark.parametrize('x', [0.0, 10_001.0, 250_000.0])
+def test_a_cloud_in_odom_slows_the_robot_however_far_it_is_from_the_origin(x):
+    config, sources = _sources(observation_sources=['cloud'])
+    active = logic.build_safety_filter(config=config,
+                                       settings=logic.node_settings_from_params({}))
+    wall = [[x + 0.5, y, 0.2] for y in np.linspace(-0.5, 0.5, 21)]
+    assert sources.read('cloud', _cloud(wall, frame_id='odom'), received_ns=0) == ''
+    decision = logic.decide(
+        safety_filter=active, proposal=logic.Proposal(u=np.array([2.5, 0.0])),
+        latest_state=logic.StateSample(received_ns=0, state=np.array([x, 0.0, 0.0]), error=''),
+        now_ns=0, max_state_age_s=1.0,
+        sense=lambda state: sources.sense(active, state, now_ns=0, stamp_now_ns=10 * S))
+    assert not decision.fail_safe and decision.u_safe[0] < 1.0, decision.reason
+    assert active.point_count == 21
+
+
+def test_points_are_bounded_by_their_distance_from_the_robot_not_the_origin():
+    from rcbf_ros.node_logic.sources import MAX_RANGE
+    _, sources = _sources(observation_sources=['cloud'])
+    far = [[MAX_RANGE + 1.0, 0.0, 0.2], [5.0, 0.0, 0.2], [-MAX_RANGE, 3.0, 0.2]]
+    assert sources.read('cloud', _cloud(far, frame_id='odom'), received_ns=0) == ''
+    points, _ = sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S)
+    np.testing.assert_allclose(points, [[5.0, 0.0]])  # (-1e4, 3) is 1e4 + 4.5e-4 m away
+    points, _ = sources.points(np.array([MAX_RANGE, 0.0, 0.0]), now_ns=0,
+                               stamp_now_ns=10 * S)
+    np.testing.assert_allclose(points, [[MAX_RANGE + 1.0, 0.0], [5.0, 0.0]])
+
+
+def test_more_points_than_the_bound_over_all_sources_give_the_fail_safe_naming_them(
+        monkeypatch):
+    from rcbf_ros.node_logic import sources as module
+    monkeypatch.setattr(module, 'MAX_POINTS', 10)
+    _, sources = _sources()
+    sources.read('front', _scan(np.ones(6)), received_ns=0)
+    sources.read('cloud', _cloud([[1.0, k, 0.5] for k in range(4)]), received_ns=0)
+    points, _ = sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S)
+    assert len(points) == 10
+    sources.read('cloud', _cloud([[1.0, k, 0.5] for k in range(5)]), received_ns=0)
+    reason = sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S)
+    assert reason == ('sources front (6 points), cloud (5 points): 11 points in all, more '
+                      'than the bound 10')
+
+
 _SCAN_ONLY = {key: value for key, value in _PARAMS.items()
               if key not in ('obstacles.x', 'obstacles.y', 'obstacles.radius')}
 """A robot with a lidar and no static obstacle: no family but the scan's points."""
@@ -234,7 +277,10 @@ def _resolver(namespace: str = '/', remaps: dict | None = None):
     return lambda topic: resolve_topic_name(topic, 'safety_filter', namespace, rules)
 
 
-@pytest.mark.parametrize('own', [*_OWN_TOPICS, '/diagnostics', '/cmd_safe'])
+@pytest.mark.parametrize('own', [*_OWN_TOPICS, '/diagnostics', '/cmd_safe', '/rosout',
+                                 'parameter_events', 'tf', '/tf_static',
+                                 '/safety_filter/describe_parameters', '~/list_parameters',
+                                 '~/get_parameter_types', '~/get_type_description'])
 def test_a_source_on_one_of_the_node_topics_is_refused_naming_both(own):
     from rcbf_ros.node_logic.sources import topic_refusal
     config, _ = _sources(**{'front.topic': own})
@@ -271,3 +317,20 @@ def test_a_topic_name_the_runtime_refuses_is_refused_in_one_line():
     config, _ = _sources(**{'front.topic': 'bad name!'})
     why = topic_refusal(config.sources, _OWN_TOPICS, _resolver())
     assert why.startswith("front.topic: 'bad name!' is not a valid topic name") and '\n' not in why
+
+
+@pytest.mark.parametrize('frame, refusal', [('', None), ('odom', None), ('map', 'map')])
+def test_the_state_frame_with_sources_is_odom_frame_id_in_the_node_and_the_refilter(frame,
+                                                                                   refusal):
+    from rcbf_ros.bag.refilter import build_filter, RefilterError
+    params = dict(_PARAMS, state_type='odometry', state_frame_id=frame)
+    if refusal:
+        with pytest.raises(ValueError, match="^state_frame_id: 'map' is not odom_frame_id"):
+            logic.build_active_filter(params=params)
+        with pytest.raises(RefilterError, match="^params: state_frame_id: 'map' is not"):
+            build_filter(params)
+        return
+    assert logic.build_active_filter(params=params).settings.state_frame_id == 'odom'
+    assert build_filter(params)[1].state_frame_id == 'odom'
+    without = {k: v for k, v in params.items() if k != 'observation_sources'}
+    assert logic.build_active_filter(params=without).settings.state_frame_id == frame

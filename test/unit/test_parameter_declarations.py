@@ -280,6 +280,14 @@ def test_every_key_of_a_source_is_declared_with_its_value_in_force(ros_domain_id
     (['-p', 'observation_sources:=[front,back]', '-p', 'back.type:=scan',
       '-p', 'back.topic:=/scan'], "back.topic: '/scan' resolves to /scan, the topic of "
                                   'front.topic too'),
+    (['-p', 'front.topic:=rosout'], "front.topic: 'rosout' resolves to /rosout, the node's own "
+                                    '/rosout topic'),
+    (['-p', 'front.topic:=/tf_static'], "the node's own /tf_static topic"),
+    (['-p', 'front.topic:=parameter_events'], "the node's own /parameter_events topic"),
+    (['-p', 'front.topic:=/safety_filter/get_parameters'], 'own ~/get_parameters topic'),
+    (['-p', 'front.topic:=~/set_parameters_atomically'], 'own ~/set_parameters_atomically'),
+    (['-p', 'state_type:=odometry', '-p', 'state_frame_id:=map'],
+     "state_frame_id: 'map' is not odom_frame_id 'odom'"),
 ])
 def test_the_filter_node_refuses_a_source_topic_that_clashes(args, words, ros_domain_id):
     from rcbf_ros.ros.dds import rclpy_compat as rclpy

@@ -298,6 +298,28 @@ def test_odometry_state_is_read_as_x_y_yaw(stamped_harness):
     assert values['refused_states'] == '1'
 
 
+def test_with_sources_an_odometry_outside_odom_frame_id_is_a_bad_state(ros_domain_id):
+    # the sources' points are placed in odom_frame_id: a state in another frame would be
+    # filtered against points in the wrong place (state_frame_id '' means odom_frame_id)
+    instance = _harness(ros_domain_id, '-p', 'state_type:=odometry', '-p',
+                        'observation_sources:=[front]', '-p', 'front.type:=scan', '-p',
+                        'front.topic:=scan', '-p', 'footprint.radius:=0.2')
+    try:
+        assert instance.node.settings.state_frame_id == 'odom'
+        for frame, refused in (('map', True), ('', True), ('odom', False)):
+            instance.node._on_state(_odometry(-0.85, 0.0, 0.0, frame_id=frame))
+            u, (_, message, _) = instance.propose(_cdr({'u': [2.5, 0.0]}))
+            if refused:
+                np.testing.assert_array_equal(u, FAIL_SAFE)
+                assert message == (f"bad state: header.frame_id: {frame!r} is not "
+                                   "state_frame_id 'odom'")
+            else:
+                assert message.startswith('source front: no message yet'), message
+    finally:
+        instance.node.destroy_node()
+        rclpy.try_shutdown()
+
+
 @pytest.mark.parametrize('proposal, reason', [
     ({'u': [1.0, 0.0, 0.0]}, 'bad proposal: u: expected 2 values'),
     ({'u': [np.nan, 0.0]}, 'bad proposal: u: contains NaN'),

@@ -54,9 +54,47 @@ def test_scan_past_the_bound_is_refused_in_one_line():
     assert isinstance(out, sensor.Refused) and 'bound 49' in out.reason
 
 
-def test_far_points_are_skipped():
+def test_a_point_far_from_the_frame_origin_is_kept_and_one_past_any_state_refuses():
+    # the distance that counts is the robot's (sources.MAX_RANGE), not the frame origin's
     out = sensor.scan_points(_scan_bytes([1.0, 2e4, 3.0], range_max=1e30))
+    assert isinstance(out, sensor.SensorPoints) and len(out.points) == 3
+    out = sensor.cloud_points(_cloud_bytes(np.array([[2e4, -3e7, 0.2], [1.0, 1.0, 0.2]])))
     assert isinstance(out, sensor.SensorPoints) and len(out.points) == 2
+    out = sensor.scan_points(_scan_bytes([1.0, 2e15, 3.0], range_max=math.inf))
+    assert isinstance(out, sensor.Refused) and 'ranges[1]' in out.reason
+    out = sensor.cloud_points(_cloud_bytes(np.array([[1.0, 2e15, 0.2]]), dtype='<f8'))
+    assert isinstance(out, sensor.Refused) and out.reason.startswith(
+        f'{sensor.POINT_CLOUD2}: data: point (1, 2e+15) lies beyond')
+
+
+@pytest.mark.parametrize('height, width', [(0, 3), (3, 0), (0, 0)])
+def test_a_cloud_of_no_points_whose_data_holds_bytes_is_refused(height, width):
+    data = bytearray(_cloud_bytes(np.ones((1, 3))))
+    # height and width follow the header: encapsulation 4, stamp 8, frame_id 4 + 10 (aligned)
+    at = 4 + 8 + 4 + len(b'base_link') + 1
+    at += (-(at - 4)) % 4
+    assert int.from_bytes(data[at:at + 8], 'little') == 1 | (1 << 32)
+    data[at:at + 8] = height.to_bytes(4, 'little') + width.to_bytes(4, 'little')
+    out = sensor.cloud_points(bytes(data))
+    assert isinstance(out, sensor.Refused)
+    assert (f'height {height} x width {width} declares no point, but data has 12 bytes'
+            in out.reason)
+
+
+def test_a_cloud_whose_data_runs_past_its_rows_is_refused():
+    field = _T['sensor_msgs/msg/PointField']
+    fields = [field(name=a, offset=4 * k, datatype=sensor.FLOAT32, count=1)
+              for k, a in enumerate('xyz')]
+
+    def cloud(n_bytes):
+        msg = _T[sensor.POINT_CLOUD2](
+            header=_header(), height=1, width=1, fields=fields, is_bigendian=False,
+            point_step=12, row_step=12, data=np.ones(n_bytes, np.uint8), is_dense=False)
+        return bytes(_STORE.serialize_cdr(msg, sensor.POINT_CLOUD2))
+    assert isinstance(sensor.cloud_points(cloud(12)), sensor.SensorPoints)
+    out = sensor.cloud_points(cloud(24))
+    assert isinstance(out, sensor.Refused) and 'data has 24 bytes, more than the height 1 x ' \
+        'row_step 12' in out.reason
 
 
 @pytest.mark.filterwarnings('error::RuntimeWarning')  # no numpy warning on the node's log
@@ -172,7 +210,7 @@ def test_hostile_cloud_bytes_never_raise(n, height, cut, voxel, flips, seed):
     else:
         assert out.points.ndim == 2 and out.points.shape[1] == 2
         assert np.all(np.isfinite(out.points))
-        assert np.all(np.abs(out.points) <= sensor.MAX_COORDINATE + voxel)
+        assert np.all(np.abs(out.points) <= sensor.MAX_COORDINATE + max(voxel, out.spread))
 
 
 def test_bad_voxel_size_is_refused():
@@ -189,13 +227,22 @@ _SIGNALLING_NAN = 0x7F800001
 """A float32 signalling NaN: its cast to float64 raises numpy's 'invalid value' flag."""
 
 
+def _finite_or_beyond(out) -> None:
+    """Finite points, or the refusal of a value past any state (sensor.MAX_COORDINATE)."""
+    if isinstance(out, sensor.Refused):
+        assert 'lies beyond' in out.reason and '\n' not in out.reason, out.reason
+    else:
+        assert np.all(np.isfinite(out.points))
+        assert np.all(np.abs(out.points) <= sensor.MAX_COORDINATE + max(1.0, out.spread))
+
+
 @pytest.mark.filterwarnings('error::RuntimeWarning')  # no numpy warning on the node's log
 @settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(bits=st.lists(st.one_of(st.just(_SIGNALLING_NAN), st.integers(0, 2**32 - 1)),
                      min_size=1, max_size=30))
 def test_scan_of_any_bit_pattern_warns_nothing(bits):
     out = sensor.scan_points(_scan_bytes(_floats_of_bits(bits), range_max=math.inf))
-    assert isinstance(out, sensor.SensorPoints) and np.all(np.isfinite(out.points))
+    _finite_or_beyond(out)
 
 
 @pytest.mark.filterwarnings('error::RuntimeWarning')
@@ -207,7 +254,7 @@ def test_cloud_of_any_bit_pattern_warns_nothing(bits, voxel):
     points = _floats_of_bits(bits).reshape(-1, 3)
     out = sensor.cloud_points(_cloud_bytes(points), min_height=-math.inf,
                               max_height=math.inf, voxel_size=voxel)
-    assert isinstance(out, sensor.SensorPoints) and np.all(np.isfinite(out.points))
+    _finite_or_beyond(out)
 
 
 @pytest.mark.parametrize('frame_id', ['f' * sensor.MAX_FRAME_ID, 'é' * sensor.MAX_FRAME_ID,
@@ -224,3 +271,17 @@ def test_frame_id_past_the_bound_is_refused_in_characters(frame_id):
     out = sensor.scan_points(_scan_bytes([1.0], frame_id=frame_id))
     assert isinstance(out, sensor.Refused) and 'header.frame_id' in out.reason
     assert '\n' not in out.reason
+
+
+@settings(max_examples=60, deadline=None)
+@given(centre=st.sampled_from([0.0, 1e4, -3e7, 1e12, -1e15 + 10.0]),
+       voxel=st.sampled_from([sensor.MIN_VOXEL_SIZE, 0.05, 1.0]),
+       seed=st.integers(0, 2**16))
+def test_thinning_covers_every_point_however_far_from_the_frame_origin(centre, voxel, seed):
+    rng = np.random.default_rng(seed)
+    points = np.column_stack([centre + rng.uniform(-3.0, 3.0, 200),
+                              -centre + rng.uniform(-3.0, 3.0, 200), np.full(200, 0.2)])
+    out = sensor.cloud_points(_cloud_bytes(points, dtype='<f8'), voxel_size=voxel)
+    assert isinstance(out, sensor.SensorPoints) and 0 < len(out.points) <= 200
+    gaps = np.hypot(*(points[:, None, :2] - out.points[None]).transpose(2, 0, 1))
+    assert np.all(gaps.min(axis=1) <= out.spread * (1 + 1e-12))

@@ -146,3 +146,70 @@ def test_bad_source_parameters_name_the_key(changes, key):
 
 def test_the_voxel_floor_is_the_readers():
     assert MIN_VOXEL_SIZE == sensor.MIN_VOXEL_SIZE
+
+
+# --- many rows that can bind: the exact answer, else fewer rows that imply them all ----------
+
+def _corridor(rng: np.random.Generator, n: int, half_width: float = 0.45) -> np.ndarray:
+    """``n`` points on two walls along x, ``half_width`` (to 5 cm more) either side."""
+    side = rng.choice([-1.0, 1.0], n)
+    return np.stack([rng.uniform(-3.0, 3.0, n),
+                     side * (half_width + rng.uniform(0.0, 0.05, n))], axis=1)
+
+
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**16), v=st.floats(-2.5, 2.5), w=st.floats(-2.5, 2.5),
+       heading=st.floats(-0.3, 0.3))
+def test_many_binding_points_give_the_answer_of_the_exact_solve_on_all(seed, v, w, heading):
+    config = _config()
+    points = _corridor(np.random.default_rng(seed), 3000)
+    fast = SafetyFilter(config.problem, footprint=config.footprint)
+    fast.set_points(points)
+    state = [0.0, 0.0, heading]
+    mine = fast.filter(state, [v, w])
+    saved = filter_module.EXACT_ROWS
+    try:
+        filter_module.EXACT_ROWS = 10**9  # every row that can bind in one solve
+        theirs = fast.filter(state, [v, w])
+    finally:
+        filter_module.EXACT_ROWS = saved
+    assert mine.fail_safe == theirs.fail_safe
+    np.testing.assert_allclose(mine.u_safe, theirs.u_safe, atol=1e-6)
+
+
+def test_rows_merged_when_the_exact_solve_cannot_finish_still_meet_every_row(monkeypatch):
+    config = _config()
+    points = _corridor(np.random.default_rng(3), 20_000)
+    fast = SafetyFilter(config.problem, footprint=config.footprint)
+    fast.set_points(points)
+    monkeypatch.setattr(SafetyFilter, '_generated', lambda *args: None)
+    for u in ([2.5, 0.0], [2.5, 2.5], [-2.5, -1.0]):
+        result = fast.filter([0.0, 0.0, 0.1], u)
+        binding = fast.point_count + config.problem.n_barriers - fast._pruned
+        assert binding > filter_module.EXACT_ROWS
+        assert not result.fail_safe, result.reason
+        assert result.needed_slack <= 1e-5
+        assert result.constraint_values.min() >= -result.needed_slack - 1e-12
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n_u=st.integers(1, 3), rows=st.integers(1, 400),
+       count=st.integers(2, 40))
+def test_merged_rows_are_below_every_row_at_every_action_in_the_box(seed, n_u, rows, count):
+    rng = np.random.default_rng(seed)
+    low = rng.uniform(-3.0, 0.0, n_u)
+    high = low + rng.uniform(0.0, 4.0, n_u)
+    applied = rng.uniform(low, high)
+    lg = rng.normal(0.0, rng.uniform(0.1, 10.0), (rows, n_u))
+    upper = rng.normal(0.0, 5.0, rows)
+    merged_lg, merged_upper = filter_module.merged_rows(
+        lg=lg, upper=upper, applied=applied, u_min=low, u_max=high, count=count)
+    assert merged_upper.size <= count and merged_lg.shape == (merged_upper.size, n_u)
+    actions = np.concatenate([rng.uniform(low, high, (200, n_u)),
+                              np.where(rng.random((50, n_u)) < 0.5, low, high)])
+    steps = actions - applied
+    original = upper + steps @ lg.T            # (actions, rows)
+    merged = merged_upper + steps @ merged_lg.T
+    # an action meeting every merged row with a slack meets every row with it
+    scale = 1.0 + np.abs(original).max()
+    assert np.all(merged.min(axis=1) <= original.min(axis=1) + 1e-12 * scale)
