@@ -56,16 +56,42 @@ def test_the_stop_zone_counts_the_points_in_its_box():
     assert bench.in_stop_zone(np.zeros((0, 2))) == 0
 
 
-def test_a_scan_goes_through_the_node_s_reader_in_the_base_frame():
+def test_a_scan_goes_through_the_node_s_reader_in_the_laser_frame():
     world = post_ahead()
     ranges = lw.scan_ranges(world, world.start, bench.LIDAR)
     out = sensor.scan_points(bench.ScanEncoder()(ranges, 1_500_000_000))
-    assert out.frame_id == 'base_link' and out.stamp_ns == 1_500_000_000
+    assert out.frame_id == 'laser' and out.stamp_ns == 1_500_000_000
     assert out.received == bench.LIDAR.beams
-    # the beam straight ahead (index 180 of 360 from -pi) meets the post at 1.6 m
+    # the beam straight ahead (index 180 of 360 from -pi) meets the post 1.6 m from base_link,
+    # 1.5 m from the laser mounted 0.1 m ahead; the stop zone sees it in base_link again
     ahead = out.points[np.argmin(np.abs(np.arctan2(out.points[:, 1], out.points[:, 0])))]
-    np.testing.assert_allclose(ahead, [1.6, 0.0], atol=1e-5)
+    np.testing.assert_allclose(ahead, [1.5, 0.0], atol=1e-5)
+    np.testing.assert_allclose(bench.laser_to_base(ahead[None]), [[1.6, 0.0]], atol=1e-5)
     assert len(out.points) == np.isfinite(ranges).sum()
+
+
+def test_the_scan_is_placed_through_tf_at_its_stamp():
+    """The laser's points land on the post in odom with the odometry's pose at the scan's
+    stamp, not the latest one: the robot turned and moved since."""
+    world = post_ahead()
+    config = filter_config_from_params(bench.filter_params(None))
+    sources = bench.ObservationSources(config.sources)
+    tf = bench.TfEncoder()
+    assert sources.read_tf(tf.static(), static=True) == ''
+    seen_at = np.array([0.3, -0.2, 0.25])  # odom == the true pose here
+    assert sources.read_tf(tf.odometry(seen_at, 1_000_000_000), static=False) == ''
+    ranges = lw.scan_ranges(world, seen_at, bench.LIDAR)
+    assert sources.read('scan', bench.ScanEncoder()(ranges, 1_000_000_000),
+                        received_ns=1_000_000_000) == ''
+    later = np.array([0.6, -0.1, -0.5])
+    assert sources.read_tf(tf.odometry(later, 1_100_000_000), static=False) == ''
+    out = sources.points(later, now_ns=1_100_000_000, stamp_now_ns=1_100_000_000)
+    assert not isinstance(out, str), out
+    points, spread = out
+    assert len(points) == np.isfinite(ranges).sum() and spread == 0.0
+    # every point lies on a surface of the world (the lidar's noise is 1 cm)
+    assert np.abs(lw.clearance(world, points)).max() < 0.05
+    assert sources.tf_counts == {'messages': 3, 'refused': 0, 'transforms_refused': 0}
 
 
 def test_blind_it_hits_the_post_and_the_stop_zone_and_filter_do_not():
@@ -79,7 +105,7 @@ def test_blind_it_hits_the_post_and_the_stop_zone_and_filter_do_not():
     for setup in ('filter, true circles', 'filter, scan'):
         run = bench.drive(world, setup, duration=8.0)
         assert run.outcome != 'collision' and run.closest > 0.0 and run.corrected > 0, setup
-        assert run.fail_safe == 0, setup
+        assert run.fail_safe == 0, setup  # the scan's frame was placed through tf throughout
 
 
 @pytest.mark.parametrize('seed', [0, 3, 8, 11])
