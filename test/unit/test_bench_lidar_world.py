@@ -1,5 +1,6 @@
-"""benchmarks/bench_lidar_world.py: its map by hand, its stop zone, its scans through the
-node's path, and short drives of a handful of seeded worlds (outcomes, not speed)."""
+"""benchmarks/bench_lidar_world.py: its map by hand, its stop zone, its scans and transforms
+through the node's path (placed through tf at the scan's stamp), and short drives of a handful
+of seeded worlds (outcomes, not speed)."""
 from __future__ import annotations
 
 import math
@@ -92,6 +93,39 @@ def test_the_scan_is_placed_through_tf_at_its_stamp():
     # every point lies on a surface of the world (the lidar's noise is 1 cm)
     assert np.abs(lw.clearance(world, points)).max() < 0.05
     assert sources.tf_counts == {'messages': 3, 'refused': 0, 'transforms_refused': 0}
+
+
+def test_a_drive_feeds_tf_as_a_base_does_at_every_scan_s_stamp(monkeypatch):
+    """Each scan finds in tf, at its own stamp and without tolerance, base_link on odom at
+    the odometry's pose of that instant (the state of the decision taken then) and the laser
+    on base_link at its mount."""
+    checked: list[tuple[float, float]] = []
+
+    class Checked(bench.ObservationSources):
+        scan_stamp = -1
+
+        def read(self, name, data, *, received_ns):
+            self.scan_stamp = sensor.scan_points(data).stamp_ns
+            return super().read(name, data, received_ns=received_ns)
+
+        def points(self, state, *, now_ns, stamp_now_ns):
+            if self.scan_stamp == now_ns:  # the decision at the scan's instant
+                base = self.tf.lookup_transform('odom', 'base_link', now_ns, tolerance_ns=0)
+                laser = self.tf.lookup_transform('base_link', 'laser', now_ns, tolerance_ns=0)
+                x, y, _ = base.translation
+                yaw = 2 * math.atan2(base.rotation[2], base.rotation[3])
+                pose_error = max(abs(x - state[0]), abs(y - state[1]),
+                                 abs(lw.wrap(yaw - state[2])))
+                mount_error = max(abs(a - b) for a, b in zip(laser.translation[:2],
+                                                             bench.LIDAR.mount[:2]))
+                checked.append((pose_error, mount_error))
+            return super().points(state, now_ns=now_ns, stamp_now_ns=stamp_now_ns)
+
+    monkeypatch.setattr(bench, 'ObservationSources', Checked)
+    run = bench.drive(post_ahead(), 'filter, scan', duration=3.0)
+    assert run.outcome == 'timeout' and run.fail_safe == 0
+    assert len(checked) == 30   # 10 Hz for 3 s
+    assert max(max(errors) for errors in checked) < 1e-9, checked
 
 
 def test_blind_it_hits_the_post_and_the_stop_zone_and_filter_do_not():
