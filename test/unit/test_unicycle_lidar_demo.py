@@ -48,3 +48,11 @@ def test_the_launch_puts_the_drop_in_filter_between_controller_and_base():
     assert dict(controller.parameters)['state_type'] == 'odometry'
     assert 'scan' in {topic.name for topic in TOPICS}   # the source's topic, not remapped
     assert [a.choices for a in setup.arguments if a.name == 'command_type'] == [('twist',)]
+
+
+def test_a_command_type_the_base_does_not_take_is_refused_in_one_line(capsys):
+    from rcbf_ros.launch import local as launch_local
+    assert launch_local.main(['unicycle_lidar', 'command_type:=twist_stamped', '--print']) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["rcbf_ros launch: unicycle_lidar: launch argument "
+                   "command_type:='twist_stamped' is not one of twist"], err
