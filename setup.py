@@ -56,6 +56,7 @@ setup(
             'safety_filter = rcbf_ros.ros.node_main:safety_filter',
             'simulator = sim_nodes.simulator_node:main',
             'nominal_controller = sim_nodes.nominal_controller_node:main',
+            'unicycle_lidar = sim_nodes.unicycle_lidar_node:main',
             'recorder = rcbf_ros.ros.recorder_node:main',
             'replay = rcbf_ros.ros.replay_node:main',
             'learner = rcbf_ros.ros.learner_node:main',

@@ -15,7 +15,10 @@ odometry, seeing through a 360-beam 10 Hz lidar (:mod:`sim_nodes.lidar_world`). 
   widened by the body's radius, walls as circles sampled along them, no sensor) and the true
   pose (a map and a perfect localisation: the reference);
 - ``filter, scan``: the safety filter on the scan only, through the node's path: each scan is
-  encoded as LaserScan CDR bytes, read by :class:`ObservationSources` and set as circle rows.
+  encoded as LaserScan CDR bytes in frame ``laser`` (0.1 m ahead of base_link), read by
+  :class:`ObservationSources` with ``/tf_static`` base_link -> laser and ``/tf``
+  odom -> base_link (odometry, at the state rate and at every scan's stamp) as TFMessage CDR
+  bytes, placed in ``odom`` through tf at the scan's stamp and set as circle rows.
 
 The scan's filter takes the state from odometry (the ``odom`` frame, where the run starts:
 the scan's points and the pose drift together); the controller steers by the true pose (as a
@@ -38,6 +41,7 @@ sys.path.insert(0, str(ROOT))
 
 from rcbf_ros.core.config import filter_config_from_params  # noqa: E402
 from rcbf_ros.messages import sensor  # noqa: E402
+from rcbf_ros.messages.tf import TF_MESSAGE  # noqa: E402
 from rcbf_ros.messages.typestore import jazzy_typestore  # noqa: E402
 from rcbf_ros.node_logic.safety_filter import build_safety_filter, node_settings_from_params  # noqa: E402,E501
 from rcbf_ros.node_logic.sources import ObservationSources  # noqa: E402
@@ -49,8 +53,12 @@ SETUPS = ('no filter', 'stop zone', 'filter, true circles', 'filter, scan')
 """The set-ups, in the table's order."""
 BASE = lw.BaseModel()
 """The robot: radius 0.2 m, |v| <= 0.5 m/s, |omega| <= 1.5 rad/s, lag 0.15 / 0.1 s."""
-LIDAR = lw.Lidar(mount=(0.0, 0.0, 0.0), frame_id='base_link')
-"""The lidar at base_link's origin: the filter takes scans in its base frame without tf."""
+LIDAR = lw.Lidar(mount=(0.1, 0.0, 0.0), frame_id='laser')
+"""The lidar 0.1 m ahead of base_link, in frame ``laser``: the filter places its points
+through tf (:class:`TfEncoder`), the stop zone moves them to base_link by the mount."""
+ODOM_FRAME, BASE_FRAME = 'odom', 'base_link'
+"""The frames of the odometry and of the robot (the filter's ``odom_frame_id``,
+``base_frame_id`` defaults)."""
 PHYSICS_DT = 0.01
 """The base's integration step (s)."""
 CONTROL_EVERY = 5
@@ -79,7 +87,7 @@ slip the unicycle model leaves out."""
 def filter_params(world: lw.World | None) -> dict:
     """config/unicycle.yaml's safety_filter parameters for the base: its input limits, a zero
     -mean disturbance box; with ``world`` its posts and walls as circles (no sensor), else one
-    LaserScan source ``scan`` in base_link and ``footprint.radius`` the body's."""
+    LaserScan source ``scan`` (placed through tf) and ``footprint.radius`` the body's."""
     out = load_params(find_config('unicycle'), 'safety_filter')
     for key in ('obstacles.x', 'obstacles.y', 'obstacles.radius'):
         out.pop(key)
@@ -130,6 +138,47 @@ class ScanEncoder:
         return bytes(self.store.serialize_cdr(msg, sensor.LASER_SCAN))
 
 
+class TfEncoder:
+    """TFMessage CDR bytes as a base's driver publishes them: ``/tf_static`` base_link ->
+    laser (:data:`LIDAR`'s mount) and ``/tf`` odom -> base_link (the odometry's pose)."""
+
+    def __init__(self) -> None:
+        self.store = jazzy_typestore()
+
+    def _message(self, parent: str, child: str, pose: np.ndarray, stamp_ns: int) -> bytes:
+        t = self.store.types
+        x, y, yaw = (float(v) for v in pose)
+        header = t['std_msgs/msg/Header'](
+            stamp=t['builtin_interfaces/msg/Time'](sec=stamp_ns // 10 ** 9,
+                                                   nanosec=stamp_ns % 10 ** 9),
+            frame_id=parent)
+        transform = t['geometry_msgs/msg/TransformStamped'](
+            header=header, child_frame_id=child,
+            transform=t['geometry_msgs/msg/Transform'](
+                translation=t['geometry_msgs/msg/Vector3'](x=x, y=y, z=0.0),
+                rotation=t['geometry_msgs/msg/Quaternion'](
+                    x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))))
+        msg = t[TF_MESSAGE](transforms=[transform])
+        return bytes(self.store.serialize_cdr(msg, TF_MESSAGE))
+
+    def static(self) -> bytes:
+        """``/tf_static``: the laser on base_link (stamp 0, as static transforms hold)."""
+        return self._message(BASE_FRAME, LIDAR.frame_id, np.array(LIDAR.mount), 0)
+
+    def odometry(self, odom: np.ndarray, stamp_ns: int) -> bytes:
+        """``/tf``: base_link on odom at the odometry's pose ``odom`` (x, y, yaw)."""
+        return self._message(ODOM_FRAME, BASE_FRAME, odom, stamp_ns)
+
+
+def laser_to_base(points: np.ndarray) -> np.ndarray:
+    """(N, 2) points in :data:`LIDAR`'s frame -> base_link, by its mount (what
+    collision_monitor's tf lookup of the static transform does)."""
+    mx, my, myaw = LIDAR.mount
+    c, s = math.cos(myaw), math.sin(myaw)
+    return np.stack([mx + c * points[:, 0] - s * points[:, 1],
+                     my + s * points[:, 0] + c * points[:, 1]], axis=1)
+
+
 def in_stop_zone(points: np.ndarray) -> int:
     """How many of ``points`` (N, 2, base_link) lie in :data:`STOP_POLYGON` (an axis-aligned
     box: collision_monitor tests the polygon, here the box it is)."""
@@ -165,7 +214,7 @@ def drive(world: lw.World, setup: str, *, seed: int = 0, duration: float = DURAT
     being stuck, or ``duration``."""
     rng = np.random.default_rng(seed)
     state = lw.start_state(world)
-    safety_filter = sources = encode = None
+    safety_filter = sources = encode = tf = None
     if setup.startswith('filter'):
         config = filter_config_from_params(
             filter_params(world if setup == 'filter, true circles' else None))
@@ -173,6 +222,9 @@ def drive(world: lw.World, setup: str, *, seed: int = 0, duration: float = DURAT
         mean, std = np.zeros(3), np.array(DISTURBANCE_STD)
         if setup == 'filter, scan':
             sources = ObservationSources(config.sources)
+            tf = TfEncoder()
+            reason = sources.read_tf(tf.static(), static=True)
+            assert not reason, reason
     if setup in ('stop zone', 'filter, scan'):
         encode = ScanEncoder()
     scan_points = np.zeros((0, 2))
@@ -186,13 +238,17 @@ def drive(world: lw.World, setup: str, *, seed: int = 0, duration: float = DURAT
     for k in range(steps):
         now = k * PHYSICS_DT
         now_ns = int(round(now * 1e9))
+        if tf is not None and (k % CONTROL_EVERY == 0 or k % SCAN_EVERY == 0):
+            # odometry's /tf at the state rate and at every scan's stamp
+            reason = sources.read_tf(tf.odometry(state.odom, now_ns), static=False)
+            assert not reason, reason
         if encode is not None and k % SCAN_EVERY == 0:
             data = encode(lw.scan_ranges(world, state.pose, LIDAR, rng), now_ns)
             if sources is not None:
                 reason = sources.read('scan', data, received_ns=now_ns)
                 assert not reason, reason
             else:
-                scan_points = sensor.scan_points(data).points
+                scan_points = laser_to_base(sensor.scan_points(data).points)
         if k % CONTROL_EVERY == 0:
             if np.hypot(*(state.pose[:2] - world.goal)) <= GOAL_RADIUS:
                 outcome, t = 'goal', now
@@ -384,22 +440,29 @@ def main(argv: list[str] | None = None) -> int:
             'and slip. "true circles": the map by hand and the true pose (the reference): '
             "posts widened by the body's radius, walls (10 cm thick) as circles sampled every "
             '5 cm along their centre lines (radius sqrt(0.25^2 + 0.025^2)); "scan": the state '
-            'from odometry, each scan as LaserScan CDR bytes through ObservationSources into '
-            '`SafetyFilter.set_points`, `footprint.radius` 0.2 m.',
+            'from odometry, each scan as LaserScan CDR bytes in frame `laser` (0.1 m ahead of '
+            'base_link) through ObservationSources, placed in `odom` through tf at the '
+            "scan's stamp (`/tf_static` base_link -> laser once, `/tf` odom -> base_link from "
+            "odometry at 20 Hz and at every scan's stamp, as TFMessage CDR bytes through "
+            '`read_tf`; `transform_tolerance` 0.1 s), into `SafetyFilter.set_points`, '
+            '`footprint.radius` 0.2 m. The stop zone moves the scan to base_link by the '
+            "laser's mount.",
             table, kinds,
-            "Caveats: the lidar sits at base_link's origin (the filter takes a scan in its "
-            "base frame or the state's, without tf), and a scan is taken at one instant, "
-            'without the sweep of a spinning lidar. The filter moves a base_link scan with the '
-            "pose at the decision, not at the scan's stamp: between scans (up to 0.1 s) the "
-            'points turn with the robot (up to 0.15 rad at 1.5 rad/s), an error the margin '
-            "has to absorb. The scan's filter works in odometry, which drifts from the truth "
-            "(slip; it moves the points with it); the map's filter is given the true pose. The "
+            'Caveats: a scan is taken at one instant, without the sweep of a spinning lidar '
+            "(its points are placed with the odometry's pose at the scan's stamp; a real "
+            "sweep of 0.1 s smears them by the robot's motion meanwhile), and /tf comes "
+            'without delay or loss. Between scans (up to 0.1 s) the filter decides on the '
+            "latest scan's points, placed where they were seen: what the robot sees anew "
+            "meanwhile waits for the next scan. The scan's filter works in odometry, which "
+            "drifts from the truth (slip; it moves the points with it); the map's filter is "
+            'given the true pose. The '
             'controller is blind: with a wall between start and goal, no set-up reaches the '
             'goal unless a doorway lies near the straight line, and a post dead ahead can '
             "park the filter (the QP's symmetric equilibrium) as it parks the stop zone. The "
             'decision time is per command on a shared, loaded machine: for the scan it holds '
-            "the sources' step (points into the odom frame, rows set) and the QP, not the "
-            "scan's encoding; a world takes 0.2-2 s of wall time per set-up.",
+            "the sources' step (the tf look-up at the scan's stamp, points into the odom "
+            "frame, rows set) and the QP, not the encoding or reading of scans and /tf; a "
+            'world takes 0.2-2 s of wall time per set-up.',
             'Pictures: `--out` holds one per set-up (the first 12 worlds).'])
     return 0
 

@@ -261,7 +261,7 @@ class UnicycleLidarNode(Node):
         if robot.collided != self._touching:
             self._touching = robot.collided
             if robot.collided:
-                self.get_logger().warn('the robot touches an obstacle (true pose)')
+                self.get_logger().warning('the robot touches an obstacle (true pose)')
         stamp = self.get_clock().now().to_msg()
         pose, twist = robot.odometry()
         odom = get_message('nav_msgs/msg/Odometry')()

@@ -33,6 +33,7 @@ NODES: tuple[tuple[str, str], ...] = (
     ('rcbf_ros.ros.safety_filter_node', 'INTERFACE'),
     ('sim_nodes.simulator_node', 'simulator_interface'),
     ('sim_nodes.nominal_controller_node', 'nominal_controller_interface'),
+    ('sim_nodes.unicycle_lidar_node', 'unicycle_lidar_interface'),
     ('rcbf_ros.ros.learner_node', 'INTERFACE'),
     ('rcbf_ros.ros.policy_node', 'INTERFACE'),
     ('rcbf_ros.ros.recorder_node', 'INTERFACE'),

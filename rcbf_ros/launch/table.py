@@ -436,6 +436,44 @@ def _unicycle_robot() -> LaunchSetup:
         nodes=(robot, lockstep(DROP_IN_FILTER), controller, RECORDER))
 
 
+LIDAR_ARGUMENTS = (
+    *(argument for argument in ROBOT_ARGUMENTS if argument.name in ('cmd_in', 'cmd_out', 'odom')),
+    LaunchArgument('command_type', 'twist', 'type of cmd_in and cmd_out (the base takes a '
+                   'Twist)', choices=('twist',)),
+    *RESPAWN_ARGUMENTS,
+)
+"""The drop-in filter's arguments with the command a Twist: the lidar robot takes no other."""
+
+
+def _unicycle_lidar() -> LaunchSetup:
+    """The drop-in filter on a laser scan in front of a simulated lidar robot::
+
+        unicycle_lidar --odom--> nominal_controller --cmd_in--> safety_filter --cmd_out--+
+              ^   --odom, scan, /tf, /tf_static-----------------------^                  |
+              +----------------------------------- cmd_vel ------------------------------+
+
+    The robot (:mod:`sim_nodes.unicycle_lidar_node`) runs in real time, as a base does: it
+    holds the latest command, and the filter answers every Odometry (``refilter_on_state``).
+    The go-to-goal controller is blind to the obstacles; the filter sees them only through the
+    scan, in the laser's frame, placed through tf. The world, the laser's mount and the
+    filter's sources, footprint and input limits: ``config/unicycle_lidar.yaml``.
+    """
+    robot = NodeEntry(
+        name='unicycle_lidar', executable='unicycle_lidar',
+        module='sim_nodes.unicycle_lidar_node',
+        remappings=(('odom', Argument('odom')), ('cmd_vel', Argument('cmd_out'))))
+    controller = NodeEntry(
+        name='nominal_controller', executable='nominal_controller',
+        module='sim_nodes.nominal_controller_node',
+        remappings=(('state', Argument('odom')), ('cmd_proposed', Argument('cmd_in'))),
+        parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type'))))
+    return LaunchSetup(
+        name='unicycle_lidar', config='unicycle_lidar.yaml', arguments=LIDAR_ARGUMENTS,
+        description='demo: a simulated lidar robot (scan, odom, /tf; cmd_out) and a blind '
+        'go-to-goal controller (cmd_in) with the drop-in filter on the scan, recorded',
+        nodes=(robot, DROP_IN_FILTER, controller, RECORDER))
+
+
 def lockstep(entry: NodeEntry) -> NodeEntry:
     """``entry`` answering proposals only (``refilter_on_state`` false): in front of a
     lock-step simulator, which steps on any command while it waits for one, an answer per
@@ -448,8 +486,9 @@ CLOSED_LOOPS: tuple[LaunchSetup, ...] = tuple(
     make(system) for make in (_filter_loop, _learner_loop, _policy_loop)
     for system in systems.system_names())
 """The launches of :func:`_closed_loop`: the simulator takes the filter's ``filter_info``."""
-ROBOT_LAUNCHES: tuple[LaunchSetup, ...] = (_drop_in_filter(), _unicycle_robot())
-"""The drop-in filter, alone and in the demo: the robot takes ``cmd_safe`` (``cmd_out``)."""
+ROBOT_LAUNCHES: tuple[LaunchSetup, ...] = (_drop_in_filter(), _unicycle_robot(),
+                                           _unicycle_lidar())
+"""The drop-in filter, alone and in the demos: the robot takes ``cmd_safe`` (``cmd_out``)."""
 LAUNCHES: dict[str, LaunchSetup] = {setup.name: setup
                                     for setup in (*ROBOT_LAUNCHES, *CLOSED_LOOPS)}
 

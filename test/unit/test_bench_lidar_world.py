@@ -1,5 +1,6 @@
-"""benchmarks/bench_lidar_world.py: its map by hand, its stop zone, its scans through the
-node's path, and short drives of a handful of seeded worlds (outcomes, not speed)."""
+"""benchmarks/bench_lidar_world.py: its map by hand, its stop zone, its scans and transforms
+through the node's path (placed through tf at the scan's stamp), and short drives of a handful
+of seeded worlds (outcomes, not speed)."""
 from __future__ import annotations
 
 import math
@@ -56,16 +57,75 @@ def test_the_stop_zone_counts_the_points_in_its_box():
     assert bench.in_stop_zone(np.zeros((0, 2))) == 0
 
 
-def test_a_scan_goes_through_the_node_s_reader_in_the_base_frame():
+def test_a_scan_goes_through_the_node_s_reader_in_the_laser_frame():
     world = post_ahead()
     ranges = lw.scan_ranges(world, world.start, bench.LIDAR)
     out = sensor.scan_points(bench.ScanEncoder()(ranges, 1_500_000_000))
-    assert out.frame_id == 'base_link' and out.stamp_ns == 1_500_000_000
+    assert out.frame_id == 'laser' and out.stamp_ns == 1_500_000_000
     assert out.received == bench.LIDAR.beams
-    # the beam straight ahead (index 180 of 360 from -pi) meets the post at 1.6 m
+    # the beam straight ahead (index 180 of 360 from -pi) meets the post 1.6 m from base_link,
+    # 1.5 m from the laser mounted 0.1 m ahead; the stop zone sees it in base_link again
     ahead = out.points[np.argmin(np.abs(np.arctan2(out.points[:, 1], out.points[:, 0])))]
-    np.testing.assert_allclose(ahead, [1.6, 0.0], atol=1e-5)
+    np.testing.assert_allclose(ahead, [1.5, 0.0], atol=1e-5)
+    np.testing.assert_allclose(bench.laser_to_base(ahead[None]), [[1.6, 0.0]], atol=1e-5)
     assert len(out.points) == np.isfinite(ranges).sum()
+
+
+def test_the_scan_is_placed_through_tf_at_its_stamp():
+    """The laser's points land on the post in odom with the odometry's pose at the scan's
+    stamp, not the latest one: the robot turned and moved since."""
+    world = post_ahead()
+    config = filter_config_from_params(bench.filter_params(None))
+    sources = bench.ObservationSources(config.sources)
+    tf = bench.TfEncoder()
+    assert sources.read_tf(tf.static(), static=True) == ''
+    seen_at = np.array([0.3, -0.2, 0.25])  # odom == the true pose here
+    assert sources.read_tf(tf.odometry(seen_at, 1_000_000_000), static=False) == ''
+    ranges = lw.scan_ranges(world, seen_at, bench.LIDAR)
+    assert sources.read('scan', bench.ScanEncoder()(ranges, 1_000_000_000),
+                        received_ns=1_000_000_000) == ''
+    later = np.array([0.6, -0.1, -0.5])
+    assert sources.read_tf(tf.odometry(later, 1_100_000_000), static=False) == ''
+    out = sources.points(later, now_ns=1_100_000_000, stamp_now_ns=1_100_000_000)
+    assert not isinstance(out, str), out
+    points, spread = out
+    assert len(points) == np.isfinite(ranges).sum() and spread == 0.0
+    # every point lies on a surface of the world (the lidar's noise is 1 cm)
+    assert np.abs(lw.clearance(world, points)).max() < 0.05
+    assert sources.tf_counts == {'messages': 3, 'refused': 0, 'transforms_refused': 0}
+
+
+def test_a_drive_feeds_tf_as_a_base_does_at_every_scan_s_stamp(monkeypatch):
+    """Each scan finds in tf, at its own stamp and without tolerance, base_link on odom at
+    the odometry's pose of that instant (the state of the decision taken then) and the laser
+    on base_link at its mount."""
+    checked: list[tuple[float, float]] = []
+
+    class Checked(bench.ObservationSources):
+        scan_stamp = -1
+
+        def read(self, name, data, *, received_ns):
+            self.scan_stamp = sensor.scan_points(data).stamp_ns
+            return super().read(name, data, received_ns=received_ns)
+
+        def points(self, state, *, now_ns, stamp_now_ns):
+            if self.scan_stamp == now_ns:  # the decision at the scan's instant
+                base = self.tf.lookup_transform('odom', 'base_link', now_ns, tolerance_ns=0)
+                laser = self.tf.lookup_transform('base_link', 'laser', now_ns, tolerance_ns=0)
+                x, y, _ = base.translation
+                yaw = 2 * math.atan2(base.rotation[2], base.rotation[3])
+                pose_error = max(abs(x - state[0]), abs(y - state[1]),
+                                 abs(lw.wrap(yaw - state[2])))
+                mount_error = max(abs(a - b) for a, b in zip(laser.translation[:2],
+                                                             bench.LIDAR.mount[:2]))
+                checked.append((pose_error, mount_error))
+            return super().points(state, now_ns=now_ns, stamp_now_ns=stamp_now_ns)
+
+    monkeypatch.setattr(bench, 'ObservationSources', Checked)
+    run = bench.drive(post_ahead(), 'filter, scan', duration=3.0)
+    assert run.outcome == 'timeout' and run.fail_safe == 0
+    assert len(checked) == 30   # 10 Hz for 3 s
+    assert max(max(errors) for errors in checked) < 1e-9, checked
 
 
 def test_blind_it_hits_the_post_and_the_stop_zone_and_filter_do_not():
@@ -79,7 +139,7 @@ def test_blind_it_hits_the_post_and_the_stop_zone_and_filter_do_not():
     for setup in ('filter, true circles', 'filter, scan'):
         run = bench.drive(world, setup, duration=8.0)
         assert run.outcome != 'collision' and run.closest > 0.0 and run.corrected > 0, setup
-        assert run.fail_safe == 0, setup
+        assert run.fail_safe == 0, setup  # the scan's frame was placed through tf throughout
 
 
 @pytest.mark.parametrize('seed', [0, 3, 8, 11])

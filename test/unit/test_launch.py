@@ -326,9 +326,9 @@ def _describe(monkeypatch, launch_file: Path, given: dict[str, str] | None = Non
 def test_launch_description_has_one_node_per_table_entry(monkeypatch, launch_file):
     kinds, actions, nodes = _describe(monkeypatch, launch_file)
     argument = actions[0]
-    assert argument.args[0] == 'params_file'
-    assert argument.kwargs['default_value'] == '/share/rcbf_ros/config/unicycle.yaml'
     setup = launch_setup(launch_file.name.removesuffix('.launch.py'))
+    assert argument.args[0] == 'params_file'
+    assert argument.kwargs['default_value'] == f'/share/rcbf_ros/config/{setup.config}'
     declared = [a for a in actions if isinstance(a, kinds['DeclareLaunchArgument'])]
     assert [(a.args[0], a.kwargs['default_value'], a.kwargs.get('choices', []))
             for a in declared[1:]] == [(a.name, a.default, list(a.choices))
@@ -581,7 +581,8 @@ def test_respawn_is_off_by_default_and_reaches_both_launchers_alike(monkeypatch)
 
 
 @pytest.mark.parametrize('name, expected', [('safety_filter', True),
-                                            ('unicycle_robot', False)])
+                                            ('unicycle_robot', False),
+                                            ('unicycle_lidar', True)])
 def test_refilter_on_state_reaches_both_launchers_alike(monkeypatch, name, expected):
     """On in front of a robot, off in front of the demo's lock-step simulator: ros2 launch's
     node and the local launcher's command line set the same value."""

@@ -1,0 +1,58 @@
+"""The ``unicycle_lidar`` demo's wiring and params file: the filter sees only its robot's scan,
+through the robot's frames, with the base's body and limits (no processes)."""
+from __future__ import annotations
+
+from repo_files import REPO
+
+from rcbf_ros.core.config import filter_config_from_params
+from rcbf_ros.launch.table import Argument, DROP_IN_FILTER, launch_setup
+from rcbf_ros.parameters.rules import load_params
+from sim_nodes import lidar_world as lw
+from sim_nodes.unicycle_lidar_node import build_world, settings_from_params, TOPICS
+
+CONFIG = REPO / 'config' / 'unicycle_lidar.yaml'
+
+
+def test_the_filter_sees_the_scan_only_with_the_base_s_body_and_limits():
+    params = load_params(CONFIG, 'safety_filter')
+    config = filter_config_from_params(params)
+    assert config.problem.n_barriers == 0   # no obstacles given: the scan is the only source
+    ((name, source),) = config.sources.sources
+    assert (name, source.type, source.topic) == ('scan', 'scan', 'scan')
+    base = lw.BaseModel()
+    assert params['footprint.radius'] == base.radius
+    assert params['input_limits.min'] == [-base.v_max, -base.omega_max]
+    assert params['input_limits.max'] == [base.v_max, base.omega_max]
+
+
+def test_the_robot_s_frames_are_the_filter_s_and_its_laser_sits_off_base_link():
+    robot = load_params(CONFIG, 'unicycle_lidar')
+    settings = settings_from_params(robot)
+    sources = filter_config_from_params(load_params(CONFIG, 'safety_filter')).sources
+    assert (settings.odom_frame_id, settings.base_frame_id) == (sources.odom_frame_id,
+                                                                sources.base_frame_id)
+    assert settings.laser_frame_id not in (settings.odom_frame_id, settings.base_frame_id)
+    assert settings.laser_mount[0] > 0.0   # tf's base_link -> laser is no identity
+    world = build_world(settings, robot)
+    assert len(world.circles) == 5 and lw.clearance(world, world.start[:2])[0] > 0.2
+
+
+def test_the_launch_puts_the_drop_in_filter_between_controller_and_base():
+    setup = launch_setup('unicycle_lidar')
+    assert setup.config == CONFIG.name
+    assert setup.node('safety_filter') == DROP_IN_FILTER   # refilter_on_state, respawn
+    robot, controller = setup.node('unicycle_lidar'), setup.node('nominal_controller')
+    assert dict(robot.remappings) == {'odom': Argument('odom'), 'cmd_vel': Argument('cmd_out')}
+    assert dict(controller.remappings) == {'state': Argument('odom'),
+                                           'cmd_proposed': Argument('cmd_in')}
+    assert dict(controller.parameters)['state_type'] == 'odometry'
+    assert 'scan' in {topic.name for topic in TOPICS}   # the source's topic, not remapped
+    assert [a.choices for a in setup.arguments if a.name == 'command_type'] == [('twist',)]
+
+
+def test_a_command_type_the_base_does_not_take_is_refused_in_one_line(capsys):
+    from rcbf_ros.launch import local as launch_local
+    assert launch_local.main(['unicycle_lidar', 'command_type:=twist_stamped', '--print']) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["rcbf_ros launch: unicycle_lidar: launch argument "
+                   "command_type:='twist_stamped' is not one of twist"], err
