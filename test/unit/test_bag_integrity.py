@@ -2,6 +2,7 @@
 names the file and the problem, and replay and refilter turn it into that line and exit 2."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 import random
 import re
@@ -66,7 +67,39 @@ def _bad_bag(case: str, tmp_path: Path) -> tuple[Path, str]:
         path = tmp_path / 'random.mcap'
         path.write_bytes(random.Random(7).randbytes(20_000))
         return path, f'{path}: not an MCAP file'
+    if case in ('fifo_alone', 'fifo_in_bag', 'directory_in_bag'):
+        # A FIFO would block the reader until a writer comes; a directory is no file either.
+        bag = tmp_path / 'odd'
+        bag.mkdir()
+        _write_bag(tmp_path / 'good')
+        (tmp_path / 'good' / 'good_0.mcap').rename(bag / 'good_0.mcap')
+        odd = tmp_path / 'alone.mcap' if case == 'fifo_alone' else bag / 'zz_9.mcap'
+        if case == 'directory_in_bag':
+            odd.mkdir()
+        else:
+            os.mkfifo(odd)
+        kind = 'a directory' if case == 'directory_in_bag' else 'a FIFO'
+        return (odd if case == 'fifo_alone' else bag,
+                f'{re.escape(str(odd))}: not a regular file \\({kind}\\)')
     mcap = _write_bag(tmp_path / 'bag')
+    meta = mcap.parent / 'metadata.yaml'
+    listed = {'listed_twice': [mcap.name, mcap.name], 'listed_absolute': [str(mcap)],
+              'listed_outside': [mcap.name, f'../bag/{mcap.name}'],
+              'listed_dot_twice': [mcap.name, f'./{mcap.name}']}
+    if case in listed:
+        # Each file once, inside the bag: else its messages count and are filtered twice.
+        text = meta.read_text()
+        start = text.index('relative_file_paths:')
+        end = text.index('\n  files:', start)
+        entries = ''.join(f'\n  - {rel}' for rel in listed[case])
+        meta.write_text(text[:start] + 'relative_file_paths:' + entries + text[end:])
+        shown = re.escape(repr(listed[case][-1]))
+        return mcap.parent, (f'{re.escape(str(meta))}: relative_file_paths: {shown} is '
+                             + ('listed twice' if 'twice' in case else 'not a file name inside'))
+    if case == 'linked_twice':
+        os.link(mcap, mcap.parent / 'bag_1.mcap')
+        meta.unlink()
+        return mcap.parent, 'bag_1.mcap is the same file as bag_0.mcap'
     if case == 'flipped':
         offset = _flip_in_chunk(mcap)
         return mcap.parent, f'{mcap}: chunk at offset {offset}: '
@@ -78,7 +111,12 @@ def _bad_bag(case: str, tmp_path: Path) -> tuple[Path, str]:
     return mcap.parent, f'{mcap}: cut short at byte {offset} .*rcbf_ros bag recover'
 
 
-BAD_CASES = ['flipped', 'truncated', 'empty', 'random', 'missing']
+# A reader that opened a FIFO would wait for a writer forever: those cases fail instead.
+_FIFO = pytest.mark.timeout(60)
+BAD_CASES = ['flipped', 'truncated', 'empty', 'random', 'missing',
+             pytest.param('fifo_alone', marks=_FIFO), pytest.param('fifo_in_bag', marks=_FIFO),
+             'directory_in_bag', 'listed_twice', 'listed_absolute', 'listed_outside',
+             'listed_dot_twice', 'linked_twice']
 
 
 @pytest.mark.parametrize('case', BAD_CASES)
