@@ -197,6 +197,8 @@ def resolve_params(params: str | os.PathLike[str] | Mapping[str, Any], *,
         flat = load_params(path, node)
     except FileNotFoundError as exc:
         raise RefilterError(f'params file: {exc}') from exc
+    except OSError as exc:  # unreadable, or not a regular file (a FIFO, a device)
+        raise RefilterError(f'params file {str(path)!r}: {exc.strerror or exc}') from exc
     except ValueError as exc:
         raise RefilterError(f'params file: {exc}') from exc
     if not flat:
