@@ -96,6 +96,10 @@ def _bad_bag(case: str, tmp_path: Path) -> tuple[Path, str]:
         shown = re.escape(repr(listed[case][-1]))
         return mcap.parent, (f'{re.escape(str(meta))}: relative_file_paths: {shown} is '
                              + ('listed twice' if 'twice' in case else 'not a file name inside'))
+    if case == 'metadata_fifo':
+        meta.unlink()
+        os.mkfifo(meta)
+        return mcap.parent, f'{re.escape(str(meta))}: not a regular file \\(a FIFO\\)'
     if case == 'linked_twice':
         os.link(mcap, mcap.parent / 'bag_1.mcap')
         meta.unlink()
@@ -116,7 +120,7 @@ _FIFO = pytest.mark.timeout(60)
 BAD_CASES = ['flipped', 'truncated', 'empty', 'random', 'missing',
              pytest.param('fifo_alone', marks=_FIFO), pytest.param('fifo_in_bag', marks=_FIFO),
              'directory_in_bag', 'listed_twice', 'listed_absolute', 'listed_outside',
-             'listed_dot_twice', 'linked_twice']
+             'listed_dot_twice', 'linked_twice', pytest.param('metadata_fifo', marks=_FIFO)]
 
 
 @pytest.mark.parametrize('case', BAD_CASES)
