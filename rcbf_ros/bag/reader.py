@@ -12,7 +12,9 @@ footer) is refused as well, with the command that recovers it (:mod:`rcbf_ros.ba
 Limits. ``metadata.yaml`` is read up to :data:`MAX_METADATA_BYTES` (16 MiB), without aliases,
 nested at most 64 deep (:mod:`rcbf_ros.parameters.bounded_yaml`); a chunk holds at most
 :data:`rcbf_ros.bag.scan.MAX_CHUNK_BYTES` (64 MiB) once decompressed, checked before it is
-decompressed (:mod:`rcbf_ros.bag.scan`). A file past a limit is a :class:`BagError`.
+decompressed (:mod:`rcbf_ros.bag.scan`). A file past a limit is a :class:`BagError`. Only
+regular files are read (a FIFO would block the reader, a device never end), and
+``relative_file_paths`` names each file once, inside the bag directory (:func:`mcap_files`).
 """
 from __future__ import annotations
 
