@@ -212,3 +212,28 @@ def test_cut_short_bag_reads_whole_chunks_when_asked(tmp_path: Path) -> None:
     assert partial and partial == whole[:len(partial)]
     info = bag_info(mcap)
     assert not info.complete and info.message_count == len(partial)
+
+
+def test_replay_of_a_bag_that_changes_while_it_plays_exits_2(
+        tmp_path: Path, ros_domain_id: int, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The replay streams the bag after checking it: a file damaged in between stops it with
+    one line naming the file, exit 2, and what was published so far."""
+    mcap = _write_bag(tmp_path / 'bag')
+    streamed = replay_node.iter_bag_messages
+
+    def damaged_after_three(path: object, **kwargs: object) -> object:
+        for k, message in enumerate(streamed(path, **kwargs)):
+            if k == 3:
+                raise BagError(f'{mcap}: chunk at offset 99: CRC mismatch')
+            yield message
+
+    monkeypatch.setattr(replay_node, 'iter_bag_messages', damaged_after_three)
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros_domain_id))
+    status = replay_node.main(['replay', '--ros-args', '-p', f'bag:={mcap.parent}',
+                               '-p', 'rate:=1000.0', '-p', 'linger_s:=0.0'])
+    captured = capsys.readouterr()
+    assert status == 2, captured.out + captured.err
+    assert 'Traceback' not in captured.err
+    assert (f'replay: {mcap}: chunk at offset 99: CRC mismatch (3 messages published)'
+            in captured.err.splitlines()), captured.err
