@@ -813,6 +813,8 @@ def _json_path_problem(path: str) -> str:
     target = Path(path)
     if target.is_dir():
         return 'is a directory'
+    if os.path.lexists(target) and not target.is_file():  # a FIFO would block the write
+        return 'exists and is not a regular file'
     parent = target.parent
     if not parent.is_dir():
         return f'{str(parent)!r} is not a directory'

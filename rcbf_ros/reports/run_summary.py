@@ -370,6 +370,8 @@ def trajectory_line(bag: Path, png: Path, *, params_file: str | None = None) -> 
             title=f'{geometry.system}: {len(paths)} episodes, {png.parent.name}')
     except (BagError, FileNotFoundError, ValueError, ImportError) as exc:
         return f'trajectories: not drawn: {exc}'
+    except OSError as exc:  # a params file that cannot be read, or is not a regular file
+        return f'trajectories: not drawn: {exc.filename}: {exc.strerror or exc}'
     closest = (f'; closest approach {picture.closest.describe()}' if picture.closest
                else '')
     return f'trajectories: {picture.path}{closest}'

@@ -147,3 +147,21 @@ def test_mangled_learner_files_never_raise(files: tuple[bytes, bytes], tmp_path:
         assert err.count('\n') == 1, err
         assert err.startswith((f'rcbf_ros summary: error: {learner / "summary.json"}: ',
                                f'rcbf_ros summary: error: {learner / "metrics.jsonl"}: ')), err
+
+
+@pytest.mark.parametrize('odd', ['directory', 'device'])
+def test_a_params_file_that_is_no_regular_file_is_one_line(odd: str, tmp_path: Path) -> None:
+    """The layout's params file is read by the one params reader: a directory or a device
+    is said to be no regular file, and the trajectories are not drawn."""
+    from rcbf_ros.bag import BagWriter
+    from rcbf_ros.reports.run_summary import trajectory_line
+    bag = tmp_path / 'bag'
+    with BagWriter(bag) as writer:
+        writer.add_topic('/state', 'std_msgs/msg/Float64MultiArray')
+        writer.write_message('/state', {'data': [0.0, 0.0, 0.0]}, 1_000)
+    params = tmp_path / 'layout' if odd == 'directory' else Path('/dev/zero')
+    if odd == 'directory':
+        params.mkdir()
+    kind = 'a directory' if odd == 'directory' else 'a character device'
+    assert trajectory_line(bag, tmp_path / 't.png', params_file=str(params)) == (
+        f'trajectories: not drawn: {params}: not a regular file ({kind})')
