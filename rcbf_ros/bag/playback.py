@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import os
-from typing import Iterable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 from rcbf_ros.bag.qos import RecordedQos
 from rcbf_ros.bag.reader import BagMessage, read_bag
@@ -39,8 +39,8 @@ class ScheduledMessage:
     """The recorded message."""
 
 
-def playback_schedule(messages: Sequence[BagMessage], *, rate: float = 1.0,
-                      loops: int = 1) -> Iterator[ScheduledMessage]:
+def playback_schedule(messages: Sequence[BagMessage] | Callable[[], Iterable[BagMessage]], *,
+                      rate: float = 1.0, loops: int = 1) -> Iterator[ScheduledMessage]:
     """Send times that reproduce the recorded spacing scaled by ``1 / rate``.
 
     .. math:: t_k^{(j)} = j \\, T + (\\tau_k - \\tau_0) / r,
@@ -49,8 +49,14 @@ def playback_schedule(messages: Sequence[BagMessage], *, rate: float = 1.0,
     for loop ``j``, recorded log times :math:`\\tau_k` (sorted) and rate :math:`r`; a loop
     restarts one mean inter-message gap :math:`\\Delta` after the previous one ended.
 
+    The messages are taken one at a time: pass ``j = 0`` needs only :math:`\\tau_0`, and by
+    the time a second pass needs :math:`T`, the first has counted them. So a bag streamed from
+    disk (``messages`` a callable that reads it afresh for every pass, e.g.
+    ``lambda: iter_bag_messages(path)``) is played in the memory of one message.
+
     Args:
-        messages: recorded messages, sorted by log time.
+        messages: recorded messages, sorted by log time; or a callable returning them anew for
+            each pass.
         rate: speed factor (> 0; 2.0 plays twice as fast).
         loops: number of passes (>= 1); ``0`` repeats forever.
     """
@@ -58,15 +64,22 @@ def playback_schedule(messages: Sequence[BagMessage], *, rate: float = 1.0,
         raise ValueError(f'rate must be > 0, got {rate}')
     if loops < 0:
         raise ValueError(f'loops must be >= 0 (0: forever), got {loops}')
-    if not messages:
+    stream = messages if callable(messages) else (lambda: messages)
+    t0: int | None = None
+    last, count = 0, 0
+    for message in stream():
+        if t0 is None:
+            t0 = message.log_time_ns
+        last, count = message.log_time_ns, count + 1
+        yield ScheduledMessage((message.log_time_ns - t0) / 1e9 / rate, message)
+    if t0 is None:
         return
-    t0 = messages[0].log_time_ns
-    span_s = (messages[-1].log_time_ns - t0) / 1e9 / rate
-    gap_s = span_s / (len(messages) - 1) if len(messages) > 1 else 0.0
+    span_s = (last - t0) / 1e9 / rate
+    gap_s = span_s / (count - 1) if count > 1 else 0.0
     period_s = span_s + gap_s
-    j = 0
+    j = 1
     while loops == 0 or j < loops:
-        for message in messages:
+        for message in stream():
             yield ScheduledMessage(j * period_s + (message.log_time_ns - t0) / 1e9 / rate,
                                    message)
         j += 1

@@ -12,14 +12,17 @@ footer) is refused as well, with the command that recovers it (:mod:`rcbf_ros.ba
 Limits. ``metadata.yaml`` is read up to :data:`MAX_METADATA_BYTES` (16 MiB), without aliases,
 nested at most 64 deep (:mod:`rcbf_ros.parameters.bounded_yaml`); a chunk holds at most
 :data:`rcbf_ros.bag.scan.MAX_CHUNK_BYTES` (64 MiB) once decompressed, checked before it is
-decompressed (:mod:`rcbf_ros.bag.scan`). A file past a limit is a :class:`BagError`.
+decompressed (:mod:`rcbf_ros.bag.scan`). A file past a limit is a :class:`BagError`. Only
+regular files are read (a FIFO would block the reader, a device never end), and
+``relative_file_paths`` names each file once, inside the bag directory (:func:`mcap_files`).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 import heapq
 import os
-from pathlib import Path
+from pathlib import Path, PurePath
+import stat
 import struct
 from typing import Any, Iterable, Iterator, NamedTuple
 
@@ -29,7 +32,14 @@ from mcap.records import Channel, Message, Schema
 import yaml
 
 from rcbf_ros.bag.qos import parse_offered_qos_profiles, RecordedQos
-from rcbf_ros.bag.scan import BagError, BagNotFoundError, McapScan
+from rcbf_ros.bag.scan import (
+    BagError,
+    BagNotFoundError,
+    check_regular,
+    McapScan,
+    not_regular_error,
+    open_regular,
+)
 from rcbf_ros.messages.cdr import deserialize_rosbags_message
 from rcbf_ros.parameters import bounded_yaml
 
@@ -95,45 +105,96 @@ def mcap_files(path: str | os.PathLike[str]) -> list[Path]:
     """The MCAP files of a bag: ``path`` itself if a file; else the files that the directory's
     ``metadata.yaml`` lists, or (no metadata, e.g. after a crash) its ``*.mcap`` files sorted.
 
+    Only regular files are taken (a FIFO would block the reader, a device never end); the
+    entries of ``relative_file_paths`` must be names inside the bag directory (no absolute
+    path, no ``..``), each file once.
+
     Raises:
         BagNotFoundError: nothing at ``path``, no ``.mcap`` file in the directory, or a file
             that ``metadata.yaml`` lists is missing (also a FileNotFoundError).
-        BagError: ``metadata.yaml`` cannot be read.
+        BagError: ``metadata.yaml`` cannot be read or lists a file outside the bag or twice; a
+            file of the bag (or ``path``) is not a regular file.
     """
     p = Path(path)
-    if p.is_file():
+    try:
+        mode = p.stat().st_mode
+    except FileNotFoundError as exc:
+        raise BagNotFoundError(f'{p}: does not exist (no bag directory or .mcap file there)'
+                               ) from exc
+    except OSError as exc:
+        raise BagError(f'{p}: cannot be examined ({exc.strerror or exc})') from exc
+    if stat.S_ISREG(mode):
         return [p]
-    if not p.is_dir():
-        raise BagNotFoundError(f'{p}: does not exist (no bag directory or .mcap file there)')
+    if not stat.S_ISDIR(mode):
+        raise not_regular_error(p, mode)
     meta = p / 'metadata.yaml'
-    if meta.is_file():
-        try:
-            info = bounded_yaml.load_file(meta, max_bytes=MAX_METADATA_BYTES,
-                                          what='bag metadata.yaml', allow_aliases=False)
-            listed = info['rosbag2_bagfile_information']['relative_file_paths']
-            if not isinstance(listed, list) or any(isinstance(rel, (list, dict))
-                                                   for rel in listed):
-                raise TypeError('relative_file_paths is not a list of file names')
-            relative = [str(rel) for rel in listed]
-        except bounded_yaml.YAMLLimitError as exc:
-            raise BagError(str(exc)) from exc
-        except OSError as exc:
-            raise BagError(f'{meta}: cannot be read ({exc.strerror or exc})') from exc
-        except (yaml.YAMLError, KeyError, TypeError, UnicodeDecodeError) as exc:
-            why = ' '.join(str(exc).split())
-            raise BagError(f'{meta}: not rosbag2 bag information ({type(exc).__name__}: '
-                           f'{why})') from exc
-        files = [p / rel for rel in relative]
+    if os.path.lexists(meta):
+        files = [p / rel for rel in _listed_files(meta)]
         for file in files:
-            if not file.is_file():
+            if not file.exists():
                 raise BagNotFoundError(f'{meta}: lists {file.name}, which does not exist')
+            check_regular(file)
         if not files:
             raise BagNotFoundError(f'{meta}: lists no file')
-        return files
-    files = sorted(p.glob('*.mcap'), key=bag_file_order)
-    if not files:
-        raise BagNotFoundError(f'{p}: bag directory holds no .mcap file')
+    else:
+        files = sorted(p.glob('*.mcap'), key=bag_file_order)
+        if not files:
+            raise BagNotFoundError(f'{p}: bag directory holds no .mcap file')
+        for file in files:
+            check_regular(file)
+    _refuse_same_file(files, meta if os.path.lexists(meta) else p)
     return files
+
+
+def _listed_files(meta: Path) -> list[str]:
+    """``relative_file_paths`` of a bag's ``metadata.yaml``: names inside the bag directory.
+
+    Raises:
+        BagError: the file cannot be read, is not rosbag2 bag information, or lists an
+            absolute path, a path through ``..`` or a name twice.
+    """
+    try:
+        check_regular(meta)
+        info = bounded_yaml.load_file(meta, max_bytes=MAX_METADATA_BYTES,
+                                      what='bag metadata.yaml', allow_aliases=False)
+        listed = info['rosbag2_bagfile_information']['relative_file_paths']
+        if not isinstance(listed, list) or any(isinstance(rel, (list, dict)) for rel in listed):
+            raise TypeError('relative_file_paths is not a list of file names')
+        relative = [str(rel) for rel in listed]
+    except bounded_yaml.YAMLLimitError as exc:
+        raise BagError(str(exc)) from exc
+    except OSError as exc:
+        raise BagError(f'{meta}: cannot be read ({exc.strerror or exc})') from exc
+    except (yaml.YAMLError, KeyError, TypeError, UnicodeDecodeError) as exc:
+        why = ' '.join(str(exc).split())
+        raise BagError(f'{meta}: not rosbag2 bag information ({type(exc).__name__}: '
+                       f'{why})') from exc
+    seen: set[str] = set()
+    for rel in relative:
+        shown = repr(rel[:200])
+        if not rel or os.path.isabs(rel) or '..' in PurePath(rel).parts or '\0' in rel:
+            raise BagError(f'{meta}: relative_file_paths: {shown} is not a file name inside the '
+                           'bag directory')
+        key = os.path.normpath(rel)
+        if key in seen:
+            raise BagError(f'{meta}: relative_file_paths: {shown} is listed twice')
+        seen.add(key)
+    return relative
+
+
+def _refuse_same_file(files: list[Path], where: Path) -> None:
+    """Refuse a bag that names one file twice (links, symlinks): its messages would count and
+    play twice."""
+    first: dict[tuple[int, int], Path] = {}
+    for file in files:
+        try:
+            status = file.stat()
+        except OSError as exc:
+            raise BagError(f'{file}: cannot be examined ({exc.strerror or exc})') from exc
+        key = (status.st_dev, status.st_ino)
+        if key in first:
+            raise BagError(f'{where}: {file.name} is the same file as {first[key].name}')
+        first[key] = file
 
 
 def bag_file_order(path: Path) -> tuple[int, str]:
@@ -205,7 +266,7 @@ def _iter_file(scan: McapScan, topics: frozenset[str] | None) -> Iterator[BagMes
                              message.log_time, message.publish_time)
         return
     try:
-        with open(path, 'rb') as stream:
+        with open_regular(path) as stream:
             reader = make_reader(stream, validate_crcs=True)
             for schema, channel, message in reader.iter_messages(
                     topics=None if topics is None else list(topics), log_time_order=True):
@@ -258,7 +319,7 @@ class _FileCounts:
 def _count_file(scan: McapScan) -> _FileCounts:
     """Schemas, channels, messages per channel and time range of one checked file."""
     if scan.complete:
-        with open(scan.path, 'rb') as stream:
+        with open_regular(scan.path) as stream:
             summary = make_reader(stream).get_summary()
         if summary is not None and summary.statistics is not None:
             stats = summary.statistics

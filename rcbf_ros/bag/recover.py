@@ -33,7 +33,7 @@ from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
 import yaml
 
 from rcbf_ros.bag.reader import bag_file_order, bag_info, BagInfo, channel_qos, TopicInfo
-from rcbf_ros.bag.scan import BagError, BagNotFoundError, McapScan
+from rcbf_ros.bag.scan import BagError, BagNotFoundError, check_regular, McapScan, open_regular
 from rcbf_ros.bag.writer import (
     bag_information,
     BagWriterConfig,
@@ -85,7 +85,7 @@ class _FileLock:
             import fcntl
         except ImportError:  # not POSIX: no lock
             return self
-        self._file = open(self.path, 'rb')  # noqa: SIM115 (closed in __exit__)
+        self._file = open_regular(self.path)
         try:
             fcntl.flock(self._file.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
         except BlockingIOError as exc:
@@ -193,8 +193,7 @@ def recover_file(path: str | os.PathLike[str], *, keep_original: bool = True) ->
         BagError: not an MCAP file, no header, still being written, or ``<file>.orig`` exists.
     """
     path = Path(path)
-    if not path.is_file():
-        raise BagNotFoundError(f'{path}: does not exist')
+    check_regular(path)
     with _FileLock(path):
         scan = McapScan(path)
         damage = ''
@@ -269,10 +268,14 @@ def reindex_bag(directory: str | os.PathLike[str], *, keep_original: bool = True
 def _recover_directory(directory: Path, *,
                        keep_original: bool) -> tuple[Path, list[FileRecovery]]:
     if not directory.is_dir():
+        if os.path.lexists(directory):
+            check_regular(directory)  # a FIFO, a device: refused as such
         raise BagNotFoundError(f'{directory}: bag directory does not exist')
     files = sorted(directory.glob('*.mcap'), key=bag_file_order)
     if not files:
         raise BagNotFoundError(f'{directory}: bag directory holds no .mcap file')
+    for file in files:  # before anything is rewritten: a FIFO would block, a directory fail
+        check_regular(file)
     recoveries = [recover_file(f, keep_original=keep_original) for f in files]
     spans: list[FileSpan] = []
     topics: dict[str, TopicInfo] = {}

@@ -28,6 +28,8 @@ from rcbf_ros.bag import bag_info, BagError, BagWriter, mcap_files, read_bag
 from rcbf_ros.core.config import filter_config_from_params, FilterConfig, flatten
 from rcbf_ros.core.filter import ACTIVE_TOLERANCE, SafetyFilter
 from rcbf_ros.core.lie_closed_form import state_barrier_values
+from rcbf_ros.core.lie_closed_form_rows import VectorAssembly
+from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.messages.conversions import (
     DIAGNOSTIC_ARRAY,
     FLOAT64_MULTIARRAY,
@@ -197,6 +199,8 @@ def resolve_params(params: str | os.PathLike[str] | Mapping[str, Any], *,
         flat = load_params(path, node)
     except FileNotFoundError as exc:
         raise RefilterError(f'params file: {exc}') from exc
+    except OSError as exc:  # unreadable, or not a regular file (a FIFO, a device)
+        raise RefilterError(f'params file {str(path)!r}: {exc.strerror or exc}') from exc
     except ValueError as exc:
         raise RefilterError(f'params file: {exc}') from exc
     if not flat:
@@ -418,21 +422,84 @@ def _pop_recorded(answers: RecordedAnswers, u_rl: np.ndarray,
 
 # -- barrier statistics ----------------------------------------------------------------------
 
-def _barrier_statistics(summary: RefilterSummary, safety_filter: SafetyFilter,
-                        states: list[np.ndarray]) -> None:
-    """min h_i and violation counts of the new barriers over ``states`` (batched)."""
+BARRIER_CHUNK = 256
+"""States evaluated together for the barrier statistics: with their K values, all that the
+statistics hold in memory, whatever the number of states."""
+
+
+class _BarrierTally:
+    """min h_i and violation counts of the new barriers over states, reduced as they come.
+
+    States are evaluated :data:`BARRIER_CHUNK` at a time and folded into K minima and K counts,
+    so the memory is one chunk's (states and K values each), not N x K. Each value is
+    :func:`~rcbf_ros.core.lie_closed_form.state_barrier_values`' (the larger of the point
+    ahead's and the point behind's where a look-ahead follows the direction of travel): from
+    the filter's array rows (:class:`~rcbf_ros.core.lie_closed_form_rows.VectorAssembly`) where
+    the problem has a circle family large enough for them, else from that function itself.
+    """
+
+    def __init__(self, problem: RCBFProblem) -> None:
+        self.problem = problem
+        n = problem.n_barriers
+        self.count = 0
+        """States evaluated."""
+        self.violating = 0
+        """States with some h_i < 0."""
+        self.min_h = np.full(n, np.inf)
+        """(K,) smallest h_i so far (NaN once a value was NaN)."""
+        self.violations = np.zeros(n, dtype=np.int64)
+        """(K,) states with h_i < 0."""
+        self._pending: list[np.ndarray] = []
+        self._rows = VectorAssembly.from_problem(problem)
+        system = problem.system
+        self._zeros_x = [0.0] * system.n_x
+        self._ahead = [0.0] * system.n_u
+        speeds = sorted({s for s in (getattr(f, 'speed_input', None) for f in problem.families)
+                         if s is not None})
+        self._behind = [-1.0 if j in speeds else 0.0 for j in range(system.n_u)] if speeds \
+            else None
+
+    def add(self, state: np.ndarray) -> None:
+        """One state (n_x,)."""
+        self._pending.append(state)
+        if len(self._pending) >= BARRIER_CHUNK:
+            self.flush()
+
+    def _values(self, states: np.ndarray) -> np.ndarray:
+        """(n, K) barrier values of (n, n_x) states."""
+        if self._rows is None:
+            return state_barrier_values(self.problem, states)
+        values = np.empty((len(states), self.problem.n_barriers))
+        for row, x in zip(values, states.tolist()):
+            row[:] = self._rows.evaluate(x, self._ahead, self._zeros_x, self._zeros_x).h
+            if self._behind is not None:
+                np.maximum(row, self._rows.evaluate(x, self._behind, self._zeros_x,
+                                                    self._zeros_x).h, out=row)
+        return values
+
+    def flush(self) -> None:
+        """Fold the pending states into the statistics."""
+        if not self._pending:
+            return
+        h = self._values(np.stack(self._pending))
+        self._pending.clear()
+        self.count += len(h)
+        self.min_h = np.minimum(self.min_h, h.min(axis=0))
+        violated = h < 0
+        self.violations += violated.sum(axis=0)
+        self.violating += int(violated.any(axis=1).sum())
+
+
+def _barrier_statistics(summary: RefilterSummary, tally: _BarrierTally) -> None:
+    """The summary's min h_i and violation counts of the new barriers, from ``tally``."""
+    tally.flush()
     names = summary.barrier_names
-    summary.states_evaluated = len(states)
-    summary.violations_per_barrier = {name: 0 for name in names}
-    if not states:
-        summary.min_h = {name: math.nan for name in names}
-        return
-    h = state_barrier_values(safety_filter.problem, np.stack(states))  # (N, K)
-    summary.min_h = {name: float(h[:, i].min()) for i, name in enumerate(names)}
-    violated = h < 0
-    summary.violations_per_barrier = {name: int(violated[:, i].sum())
+    summary.states_evaluated = tally.count
+    summary.violations_per_barrier = {name: int(tally.violations[i])
                                       for i, name in enumerate(names)}
-    summary.states_violating = int(violated.any(axis=1).sum())
+    summary.states_violating = tally.violating
+    summary.min_h = {name: float(tally.min_h[i]) if tally.count else math.nan
+                     for i, name in enumerate(names)}
 
 
 # -- the job ---------------------------------------------------------------------------------
@@ -513,8 +580,10 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     except (FileExistsError, ValueError) as exc:
         raise RefilterError(f'output: {exc}') from exc
     deltas: list[float] = []
-    topic_states: list[np.ndarray] = []
-    proposal_states: list[np.ndarray] = []
+    # The statistics cover the /state messages, or the proposals' states in a bag without a
+    # usable /state: the proposals' tally is dropped at the first state message.
+    topic_states = _BarrierTally(safety_filter.problem)
+    proposal_states: _BarrierTally | None = _BarrierTally(safety_filter.problem)
     latest: logic.StateSample | None = None
     skipped: dict[str, int] = defaultdict(int)
     info_layouts: dict[Any, Any] = {}
@@ -553,7 +622,8 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                         latest = logic.StateSample(item.log_time_ns, None, str(exc))
                         continue
                     latest = logic.StateSample(item.log_time_ns, state)
-                    topic_states.append(state)
+                    topic_states.add(state)
+                    proposal_states = None
                 elif item.topic == proposal_topic:
                     summary.proposals += 1
                     decided_ns = item.log_time_ns
@@ -581,8 +651,8 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                         continue
                     assert proposal is not None
                     _account(summary, decision, proposal, recorded, deltas, tolerance)
-                    if proposal.state is not None:
-                        proposal_states.append(proposal.state)
+                    if proposal.state is not None and proposal_states is not None:
+                        proposal_states.add(proposal.state)
                     writer.write(OUTPUT_COMMAND_TOPIC, filter_edge.command_cdr(
                         decision.u_safe, type_name=command_type,
                         twist_fields=settings.twist_fields, header=header), item.log_time_ns)
@@ -599,12 +669,12 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     if deltas:
         summary.max_abs_du = float(np.max(deltas))
         summary.mean_abs_du = float(np.mean(deltas))
-    if topic_states:
+    if proposal_states is None:
         summary.barrier_states = state_topic
-        _barrier_statistics(summary, safety_filter, topic_states)
+        _barrier_statistics(summary, topic_states)
     else:
         summary.barrier_states = f'{proposal_topic} state sections'
-        _barrier_statistics(summary, safety_filter, proposal_states)
+        _barrier_statistics(summary, proposal_states)
     return summary
 
 
@@ -759,6 +829,8 @@ def _json_path_problem(path: str) -> str:
     target = Path(path)
     if target.is_dir():
         return 'is a directory'
+    if os.path.lexists(target) and not target.is_file():  # a FIFO would block the write
+        return 'exists and is not a regular file'
     parent = target.parent
     if not parent.is_dir():
         return f'{str(parent)!r} is not a directory'

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+import stat
 import struct
 from typing import Any, BinaryIO, Iterator
 import zlib
@@ -77,6 +78,68 @@ class BagError(ValueError):
 
 class BagNotFoundError(BagError, FileNotFoundError):
     """Nothing readable at the path given."""
+
+
+def file_kind(mode: int) -> str:
+    """What a file of ``st_mode`` ``mode`` is, for a message (``a FIFO``, ``a directory``...)."""
+    for test, kind in ((stat.S_ISDIR, 'a directory'), (stat.S_ISFIFO, 'a FIFO'),
+                       (stat.S_ISCHR, 'a character device'), (stat.S_ISBLK, 'a block device'),
+                       (stat.S_ISSOCK, 'a socket')):
+        if test(mode):
+            return kind
+    return 'not a plain file'
+
+
+def not_regular_error(path: str | os.PathLike[str], mode: int) -> BagError:
+    """The one-line error for a path that exists and is not a regular file."""
+    return BagError(f'{os.fspath(path)}: not a regular file ({file_kind(mode)}); a bag holds '
+                    'regular files only')
+
+
+def check_regular(path: str | os.PathLike[str]) -> None:
+    """Raise unless ``path`` is a regular file (after symlinks), without opening it (a FIFO
+    would block the opener until a writer comes; a device may never end).
+
+    Raises:
+        BagNotFoundError: nothing at ``path``.
+        BagError: ``path`` is a directory, FIFO, device or socket, or cannot be examined.
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError as exc:
+        raise BagNotFoundError(f'{os.fspath(path)}: does not exist') from exc
+    except OSError as exc:
+        raise BagError(f'{os.fspath(path)}: cannot be examined ({exc.strerror or exc})') from exc
+    if not stat.S_ISREG(mode):
+        raise not_regular_error(path, mode)
+
+
+def open_regular(path: str | os.PathLike[str]) -> BinaryIO:
+    """``open(path, 'rb')`` of a regular file only: opened without blocking (a FIFO put in its
+    place after :func:`check_regular` cannot hang the reader) and checked on the open file.
+
+    Raises:
+        BagNotFoundError: nothing at ``path``.
+        BagError: not a regular file, or it cannot be opened.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, 'O_NONBLOCK', 0))
+    except FileNotFoundError as exc:
+        raise BagNotFoundError(f'{os.fspath(path)}: does not exist') from exc
+    except IsADirectoryError as exc:
+        raise not_regular_error(path, stat.S_IFDIR) from exc
+    except OSError as exc:
+        raise BagError(f'{os.fspath(path)}: cannot be opened ({exc.strerror or exc})') from exc
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise not_regular_error(path, mode)
+        if hasattr(os, 'set_blocking'):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, 'rb')
+    except BaseException:
+        os.close(fd)
+        raise
 
 
 class _Corrupt(Exception):
@@ -263,14 +326,7 @@ class McapScan:
         copies are not yielded). ``emit=False`` checks without building the records.
         """
         self._reset()
-        try:
-            stream = open(self.path, 'rb')  # noqa: SIM115 (closed below)
-        except FileNotFoundError as exc:
-            raise BagNotFoundError(f'{self.path}: does not exist') from exc
-        except IsADirectoryError as exc:
-            raise BagError(f'{self.path}: is a directory, not an MCAP file') from exc
-        except OSError as exc:
-            raise self.error(f'cannot be opened ({exc.strerror})') from exc
+        stream = open_regular(self.path)
         with stream:
             try:
                 yield from self._walk(stream, emit)

@@ -126,6 +126,9 @@ def run_train(args: argparse.Namespace) -> int:
     except (RunSetupError, FileNotFoundError, ValueError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 2
+    except OSError as exc:  # a config file that cannot be read, or is not a regular file
+        print(f'error: --config {exc.filename!r}: {exc.strerror or exc}', file=sys.stderr)
+        return 2
     print(f'training {name}: {run.episodes} episodes -> {run.out_dir}', flush=True)
     if settings.compile_update:
         print('--compile-update: the first SAC update compiles (tens of seconds the first time, '

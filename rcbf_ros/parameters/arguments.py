@@ -22,8 +22,6 @@ from dataclasses import dataclass, field
 import re
 from typing import Any, Iterable, Sequence
 
-import yaml
-
 from rcbf_ros.parameters.rules import node_values, ParamRules, WILDCARD_KEY
 
 _FLAG_ONLY = {
@@ -185,16 +183,7 @@ def _add_params_file(rules: ParamRules, path: str) -> None:
         rules.add_file(path)
     except OSError as exc:
         raise RosArgumentError(f'--params-file {path!r}: {exc.strerror or exc}') from exc
-    except UnicodeDecodeError as exc:
-        raise RosArgumentError(f'--params-file {path!r}: not UTF-8 text ({exc.reason} at byte '
-                               f'{exc.start})') from exc
-    except ValueError as exc:
-        cause = exc.__cause__
-        if isinstance(cause, yaml.MarkedYAMLError) and cause.problem_mark is not None:
-            mark = cause.problem_mark
-            raise RosArgumentError(f'--params-file {path!r}: not valid YAML at line '
-                                   f'{mark.line + 1}, column {mark.column + 1}: '
-                                   f'{cause.problem}') from exc
+    except ValueError as exc:  # one line naming the file (and line): not UTF-8, YAML, rcl's
         raise RosArgumentError(' '.join(f'--params-file {exc}'.split())) from exc
 
 

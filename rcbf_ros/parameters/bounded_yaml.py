@@ -21,7 +21,9 @@ so a refused text costs at most one pass over its first bytes, up to the size li
 """
 from __future__ import annotations
 
+import errno
 import os
+import stat
 from typing import Any, Iterator
 
 import yaml
@@ -43,8 +45,30 @@ class YAMLLimitError(yaml.YAMLError, ValueError):
     which limit)."""
 
 
+def syntax_error_line(exc: yaml.YAMLError) -> str:
+    """PyYAML's error as one line: ``not valid YAML at line L, column C: <problem>`` (its own
+    message spans several lines, with the offending text and a caret)."""
+    mark = getattr(exc, 'problem_mark', None)
+    problem = getattr(exc, 'problem', None) or str(exc)
+    where = f' at line {mark.line + 1}, column {mark.column + 1}' if mark is not None else ''
+    return ' '.join(f'not valid YAML{where}: {problem}'.split())
+
+
+def _kind(mode: int) -> str:
+    for test, kind in ((stat.S_ISDIR, 'a directory'), (stat.S_ISFIFO, 'a FIFO'),
+                       (stat.S_ISCHR, 'a character device'), (stat.S_ISBLK, 'a block device'),
+                       (stat.S_ISSOCK, 'a socket')):
+        if test(mode):
+            return kind
+    return 'not a plain file'
+
+
 def read_limited(path: str | os.PathLike[str], *, max_bytes: int, what: str) -> str:
     """The UTF-8 text of ``path``, read no further than ``max_bytes`` + 1 bytes.
+
+    Only a regular file is read: it is opened without blocking (a FIFO would wait for a writer)
+    and checked on the open file, so a FIFO, a directory or a device is refused before a byte
+    is read.
 
     Args:
         path: the file.
@@ -52,11 +76,22 @@ def read_limited(path: str | os.PathLike[str], *, max_bytes: int, what: str) -> 
         what: what the file is, for the message (e.g. ``params file``).
 
     Raises:
-        OSError: the file cannot be read.
+        OSError: the file cannot be read, or is not a regular file (``strerror``: ``not a
+            regular file (a FIFO)``).
         UnicodeDecodeError: it is not UTF-8.
         YAMLLimitError: it holds more than ``max_bytes`` bytes.
     """
-    with open(path, 'rb') as stream:
+    fd = os.open(path, os.O_RDONLY | getattr(os, 'O_NONBLOCK', 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise OSError(errno.EINVAL, f'not a regular file ({_kind(mode)})', os.fspath(path))
+        os.set_blocking(fd, True)
+        stream = os.fdopen(fd, 'rb')
+    except BaseException:
+        os.close(fd)
+        raise
+    with stream:
         data = stream.read(max_bytes + 1)
     if len(data) > max_bytes:
         raise YAMLLimitError(f'{os.fspath(path)}: larger than the {max_bytes}-byte limit of a '

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from importlib import resources
 import math
+import os
 from pathlib import Path
 import re
 from typing import Any, Iterable
@@ -188,11 +189,11 @@ class ParamRules:
         """Read one ``--params-file`` into the table (``rcl_parse_yaml_file``).
 
         Raises:
-            OSError: the file cannot be read.
-            UnicodeDecodeError: it is not UTF-8.
-            ParamsFileError: rcl refuses it, or it is past a limit (size, depth, tag; the
-                message names the file and the line); for a YAML syntax error its
-                ``__cause__`` is PyYAML's error (with the position).
+            OSError: the file cannot be read, or is not a regular file.
+            ParamsFileError: not UTF-8, not YAML (``'<file>': not valid YAML at line L,
+                column C: <problem>``, one line; its ``__cause__`` is PyYAML's error), refused
+                by rcl, or past a limit (size, depth, tag; the message names the file and the
+                line).
         """
         path = str(path)
         try:
@@ -201,12 +202,15 @@ class ParamRules:
         except bounded_yaml.YAMLLimitError as exc:
             raise ParamsFileError(f'{path!r}: larger than the {MAX_PARAMS_FILE_BYTES}-byte '
                                   'limit of a params file') from exc
+        except UnicodeDecodeError as exc:
+            raise ParamsFileError(f'{path!r}: not UTF-8 text ({exc.reason} at byte '
+                                  f'{exc.start})') from exc
         try:  # YAML syntax first: its position says more than where rcl's rules would stop
             events = list(bounded_yaml.checked_events(text, source=repr(path)))
         except bounded_yaml.YAMLLimitError as exc:
             raise ParamsFileError(str(exc)) from exc
         except yaml.YAMLError as exc:
-            raise ParamsFileError(f'{path!r} is not valid YAML: {exc}') from exc
+            raise ParamsFileError(f'{path!r}: {bounded_yaml.syntax_error_line(exc)}') from exc
         _FileParser(self, path).run(events)
 
     def add_rule(self, node_key: str, name: str, text: str) -> None:
@@ -238,7 +242,8 @@ class ParamRules:
         except bounded_yaml.YAMLLimitError as exc:
             raise ParamsFileError(str(exc)) from exc
         except yaml.YAMLError as exc:
-            raise ParamsFileError(f'-p {name}:={text}: not YAML ({exc})') from exc
+            raise ParamsFileError(f'-p {name}:={text}: {bounded_yaml.syntax_error_line(exc)}'
+                                  ) from exc
 
     # reading --------------------------------------------------------------------------------
     def sections(self) -> dict[str, dict[str, Any]]:
@@ -539,8 +544,9 @@ def find_config(name: str) -> Path:
         FileNotFoundError: naming the file and every directory searched.
     """
     candidate = Path(name)
-    if candidate.suffix in ('.yaml', '.yml') and candidate.is_file():
-        return candidate
+    if (candidate.suffix in ('.yaml', '.yml') or len(candidate.parts) > 1) and \
+            os.path.exists(candidate):
+        return candidate  # a FIFO, a device or a directory: the reader says what it is
     if len(candidate.parts) > 1:  # a path, not a packaged name
         raise FileNotFoundError(f'config: no such file {name}')
     filename = name if name.endswith(('.yaml', '.yml')) else f'{name}.yaml'

@@ -19,9 +19,10 @@ would mix layouts).
 """
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 import json
 import math
+import os
 from pathlib import Path
 import sys
 from typing import Any
@@ -37,26 +38,153 @@ ANSWER_SEARCH = 50
 """How far back (states) a command's ``state`` section is looked up among its episode's."""
 
 
-def summarize_run(run: Path, *, params_file: str | None = None) -> str:
-    """The summary text for the run directory ``run`` (drawing ``trajectories.png``)."""
+MAX_SUMMARY_BYTES = 2**20
+"""Largest ``summary.json`` read (1 MiB; the learner writes well under 1 KiB)."""
+MAX_METRICS_BYTES = 64 * 2**20
+"""Largest ``metrics.jsonl`` read (64 MiB: some 200,000 episodes of about 300 bytes)."""
+_SUMMARY_NUMBERS = {'episodes': int, 'env_steps': int, 'steps_per_s': float,
+                    'best_return': float, 'goals_reached': int}
+"""Fields of ``summary.json`` this report formats, and the kind of number each must be."""
+
+
+class RunFileError(ValueError):
+    """A file of a run that cannot be read as the learner writes it (one line: the file, the
+    line or field, and what is wrong)."""
+
+
+def _read_text(path: Path, max_bytes: int) -> str:
+    """The UTF-8 text of the regular file ``path``, read no further than ``max_bytes`` + 1.
+
+    Raises:
+        RunFileError: not a regular file, unreadable, larger than ``max_bytes``, not UTF-8.
+    """
+    from rcbf_ros.parameters import bounded_yaml
+    try:
+        return bounded_yaml.read_limited(path, max_bytes=max_bytes, what='run file')
+    except bounded_yaml.YAMLLimitError as exc:
+        raise RunFileError(f'{path}: larger than the {max_bytes}-byte limit') from exc
+    except OSError as exc:
+        why = exc.strerror or str(exc)
+        raise RunFileError(f'{path}: {why}' if why.startswith('not a regular file') else
+                           f'{path}: cannot be read ({why})') from exc
+    except UnicodeDecodeError as exc:
+        line = exc.object[:exc.start].count(b'\n') + 1
+        raise RunFileError(f'{path}: line {line}: not UTF-8 text ({exc.reason} at byte '
+                           f'{exc.start})') from exc
+
+
+def _is_number(value: Any, kind: type) -> bool:
+    if isinstance(value, bool):
+        return False
+    return isinstance(value, int) if kind is int else isinstance(value, (int, float))
+
+
+def read_learner_summary(path: Path) -> dict[str, Any]:
+    """``summary.json`` as the learner writes it: a JSON object whose counts and rates, where
+    present, are numbers (:data:`_SUMMARY_NUMBERS`).
+
+    Raises:
+        RunFileError: one line naming the file (and the line or field).
+    """
+    text = _read_text(path, MAX_SUMMARY_BYTES)
+    try:
+        summary = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise RunFileError(f'{path}: line {exc.lineno}, column {exc.colno}: not JSON '
+                           f'({exc.msg})') from exc
+    except RecursionError as exc:
+        raise RunFileError(f'{path}: not JSON (nested too deep)') from exc
+    if not isinstance(summary, dict):
+        raise RunFileError(f'{path}: not a JSON object but a {type(summary).__name__}')
+    for key, kind in _SUMMARY_NUMBERS.items():
+        if key in summary and not _is_number(summary[key], kind):
+            what = 'an integer' if kind is int else 'a number'
+            raise RunFileError(f'{path}: {key}: not {what} ({str(summary[key])[:80]!r})')
+    violations = summary.get('safety_violations')
+    if violations is not None and not _is_number(violations, int):
+        raise RunFileError(f'{path}: safety_violations: not an integer '
+                           f'({str(violations)[:80]!r})')
+    return summary
+
+
+def read_returns(path: Path) -> tuple[list[float], str]:
+    """The return (``ret``) of every episode row of ``metrics.jsonl``, and a warning ('' if
+    none).
+
+    The learner appends one row per episode and flushes it: a run killed in the middle of an
+    append leaves its last line cut short (no newline at its end). That line is skipped with a
+    warning; any other bad line is an error.
+
+    Raises:
+        RunFileError: one line naming the file and the line.
+    """
+    text = _read_text(path, MAX_METRICS_BYTES)
+    lines = text.split('\n')
+    cut = lines.pop()  # '' when the file ends with a newline
+    returns: list[float] = []
+    for number, line in enumerate(lines, start=1):
+        if line.strip():
+            returns.append(_row_return(path, number, line))
+    warning = ''
+    if cut.strip():
+        try:
+            returns.append(_row_return(path, len(lines) + 1, cut))
+        except RunFileError:
+            warning = (f'{path}: line {len(lines) + 1} is cut short (a run killed while '
+                       'writing it); skipped')
+    return returns, warning
+
+
+def _row_return(path: Path, number: int, line: str) -> float:
+    try:
+        row = json.loads(line)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        why = exc.msg if isinstance(exc, json.JSONDecodeError) else 'nested too deep'
+        raise RunFileError(f'{path}: line {number}: not JSON ({why})') from exc
+    if not isinstance(row, dict):
+        raise RunFileError(f'{path}: line {number}: not a JSON object')
+    if 'ret' not in row:
+        raise RunFileError(f'{path}: line {number}: no ret (the episode return)')
+    if not _is_number(row['ret'], float):
+        raise RunFileError(f'{path}: line {number}: ret: not a number '
+                           f'({str(row["ret"])[:80]!r})')
+    return float(row['ret'])
+
+
+def summarize_run(run: Path, *, params_file: str | None = None,
+                  warn: Callable[[str], None] | None = None) -> str:
+    """The summary text for the run directory ``run`` (drawing ``trajectories.png``).
+
+    Args:
+        run: the run directory.
+        params_file: the layout to draw over (default: the system's packaged config).
+        warn: takes a one-line warning (a metrics row cut short and skipped); default: none.
+
+    Raises:
+        RunFileError: ``summary.json`` or ``metrics.jsonl`` cannot be read as the learner
+            writes them (one line naming the file and the line or field).
+    """
     lines = [f'run: {run}']
     learner = run / 'learner'
     summary_path = learner / 'summary.json'
-    if not summary_path.exists():
+    if not os.path.lexists(summary_path):
         return '\n'.join(lines + [f'no {summary_path}: the learner did not finish an episode'])
-    summary = json.loads(summary_path.read_text())
-    rows = [json.loads(line) for line in (learner / 'metrics.jsonl').read_text().splitlines()
-            if line.strip()] if (learner / 'metrics.jsonl').exists() else []
+    summary = read_learner_summary(summary_path)
+    metrics = learner / 'metrics.jsonl'
+    returns: list[float] = []
+    if os.path.lexists(metrics):
+        returns, warning = read_returns(metrics)
+        if warning and warn is not None:
+            warn(warning)
     lines.append(f"episodes: {summary.get('episodes', 0)}   env steps: "
                  f"{summary.get('env_steps', 0)}   steps/s: {summary.get('steps_per_s', 0):.1f}")
-    if rows:
-        returns = ', '.join(f"{r['ret']:.2f}" for r in rows)
-        lines.append(f'returns per episode: {returns}')
+    if returns:
+        lines.append('returns per episode: ' + ', '.join(f'{r:.2f}' for r in returns))
     lines.append(f"best return: {summary.get('best_return', float('nan')):.3f}   goals reached: "
                  f"{summary.get('goals_reached', 0)}")
     lines.append(f"safety violations (true barriers < 0): {summary.get('safety_violations')}")
     if 'reward_curve' in summary:
-        lines.append(f"reward curve: {summary['reward_curve']}")
+        lines.append(f"reward curve: {str(summary['reward_curve'])[:500]}")
     lines.append(f'checkpoint: {learner / "checkpoint.pt"}   policy: {learner / "policy.pt"}')
     bag_dir = run / 'bag'
     if bag_dir.exists():
@@ -67,7 +195,7 @@ def summarize_run(run: Path, *, params_file: str | None = None) -> str:
             if not info.complete:
                 reindex_bag(bag_dir)
                 info, state = bag_info(bag_dir), 'recorder killed: recovered from whole chunks'
-        except BagError as exc:
+        except (BagError, OSError) as exc:  # OSError: the recovery could not write
             return '\n'.join(lines + [f'bag: {exc}'])
         seconds = (info.end_time_ns - info.start_time_ns) / 1e9
         lines.append(f'bag: {bag_dir} ({info.message_count} messages, {seconds:.1f} s, {state})')
@@ -242,6 +370,8 @@ def trajectory_line(bag: Path, png: Path, *, params_file: str | None = None) -> 
             title=f'{geometry.system}: {len(paths)} episodes, {png.parent.name}')
     except (BagError, FileNotFoundError, ValueError, ImportError) as exc:
         return f'trajectories: not drawn: {exc}'
+    except OSError as exc:  # a params file that cannot be read, or is not a regular file
+        return f'trajectories: not drawn: {exc.filename}: {exc.strerror or exc}'
     closest = (f'; closest approach {picture.closest.describe()}' if picture.closest
                else '')
     return f'trajectories: {picture.path}{closest}'
@@ -252,7 +382,8 @@ USAGE = 'usage: rcbf_ros summary <run directory> [--params-file <yaml>]'
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``rcbf_ros summary``: 0, or 2 with one line on stderr (bad arguments, no such run)."""
+    """``rcbf_ros summary``: 0, or 2 with one line on stderr (bad arguments, no such run, a
+    learner file that cannot be read); a metrics row cut short is skipped with one warning."""
     args = sys.argv[1:] if argv is None else list(argv)
     params_file = None
     if args in (['-h'], ['--help']):
@@ -269,7 +400,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f'rcbf_ros summary: error: {run}: {reason} (expected a run directory)',
               file=sys.stderr)
         return 2
-    print(summarize_run(run, params_file=params_file))
+    try:
+        text = summarize_run(run, params_file=params_file,
+                             warn=lambda line: print(f'rcbf_ros summary: warning: {line}',
+                                                     file=sys.stderr))
+    except RunFileError as exc:
+        print(f'rcbf_ros summary: error: {exc}', file=sys.stderr)
+        return 2
+    print(text)
     return 0
 
 

@@ -15,7 +15,9 @@ Messages are published as the recorded CDR bytes, with the QoS of the recorded p
 (:func:`rcbf_ros.bag.playback.replay_qos`). The bag is read and checked in full before anything
 is published: a missing, empty, damaged (chunk or data CRC mismatch), foreign or cut-short file
 ends the node with one line naming the file and what is wrong, exit status 2 (a bag whose
-recorder was killed plays after ``rcbf_ros bag recover <bag>``). Offline processing of a bag
+recorder was killed plays after ``rcbf_ros bag recover <bag>``). The messages are then
+streamed from the bag (read again for every loop), one at a time: the node's memory does not
+grow with the bag. Offline processing of a bag
 (e.g. re-filtering) does not go through this node: use
 :func:`rcbf_ros.bag.playback.iter_bag_messages`.
 """
@@ -24,9 +26,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 import sys
 import time
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
-from rcbf_ros.bag import bag_info
+from rcbf_ros.bag import bag_info, BagError, BagMessage
 from rcbf_ros.bag.playback import iter_bag_messages, playback_schedule, replay_qos
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, TopicSpec
 from rcbf_ros.parameters.reader import setting
@@ -95,11 +97,19 @@ class ReplayNode(Node):
                             else DurabilityPolicy.VOLATILE))
             self.publishers_by_topic[name] = self.create_publisher(
                 get_message(topic.type_name), name, profile)
-        self.messages = list(iter_bag_messages(self.config.bag, topics=wanted))
+        self.failure = ''
+        """Why playing stopped before the end ('' if it did not)."""
+        self.wanted = frozenset(wanted)
+        self.message_count = sum(info.topics[name].message_count for name in wanted)
         self.published = 0
         self.get_logger().info(
-            f'replaying {len(self.messages)} messages on {sorted(wanted)} from '
+            f'replaying {self.message_count} messages on {sorted(wanted)} from '
             f'{self.config.bag} at rate {self.config.rate}{" (loop)" if self.config.loop else ""}')
+
+    def messages(self) -> Iterator[BagMessage]:
+        """The bag's messages on the played topics, read afresh: one message in memory at a
+        time (a chunk's worth while it is read), whatever the bag's size."""
+        return iter_bag_messages(self.config.bag, topics=self.wanted)
 
     def _read_config(self) -> ReplayConfig:
         """Declare and read every parameter (:func:`declare_settings`); a bad one is a
@@ -129,11 +139,15 @@ class ReplayNode(Node):
         if self.config.wait_for_subscribers_s > 0 and not self.wait_for_subscribers():
             self.get_logger().warning('not every topic has a subscriber; playing anyway')
         start = time.monotonic()
-        for item in playback_schedule(self.messages, rate=self.config.rate,
-                                      loops=0 if self.config.loop else 1):
-            self._sleep_until(start + item.send_offset_s)
-            self.publishers_by_topic[item.message.topic].publish(item.message.data)
-            self.published += 1
+        try:
+            for item in playback_schedule(self.messages, rate=self.config.rate,
+                                          loops=0 if self.config.loop else 1):
+                self._sleep_until(start + item.send_offset_s)
+                self.publishers_by_topic[item.message.topic].publish(item.message.data)
+                self.published += 1
+        except BagError as exc:  # the bag changed after it was checked: stop, one line
+            self.failure = str(exc)
+            return
         self._sleep_until(time.monotonic() + self.config.linger_s)
 
 
@@ -150,12 +164,21 @@ INTERFACE = NodeInterface(
 def main(args: Sequence[str] | None = None) -> int:
     """Console script ``replay``."""
 
+    failures: list[str] = []
+
     def report(node: ReplayNode) -> None:
+        if node.failure:
+            failures.append(node.failure)
+            print(f'replay: {node.failure} ({node.published} messages published)',
+                  file=sys.stderr)
+            return
         node.get_logger().info(f'replay finished: {node.published} messages published')
 
-    # A bad bag (BagError, a ValueError), a missing file or bad parameters: one line, exit 2.
-    return run_node('replay', ReplayNode, args, run=ReplayNode.play, on_exit=report,
-                    setup_errors=(ValueError, OSError), setup_message='', interface=INTERFACE)
+    # A bad bag (BagError, a ValueError), a missing file or bad parameters: one line, exit 2;
+    # so is a bag that changes while it plays (after its check).
+    status = run_node('replay', ReplayNode, args, run=ReplayNode.play, on_exit=report,
+                      setup_errors=(ValueError, OSError), setup_message='', interface=INTERFACE)
+    return 2 if failures and status == 0 else status
 
 
 if __name__ == '__main__':

@@ -2,6 +2,7 @@
 names the file and the problem, and replay and refilter turn it into that line and exit 2."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 import random
 import re
@@ -66,7 +67,43 @@ def _bad_bag(case: str, tmp_path: Path) -> tuple[Path, str]:
         path = tmp_path / 'random.mcap'
         path.write_bytes(random.Random(7).randbytes(20_000))
         return path, f'{path}: not an MCAP file'
+    if case in ('fifo_alone', 'fifo_in_bag', 'directory_in_bag'):
+        # A FIFO would block the reader until a writer comes; a directory is no file either.
+        bag = tmp_path / 'odd'
+        bag.mkdir()
+        _write_bag(tmp_path / 'good')
+        (tmp_path / 'good' / 'good_0.mcap').rename(bag / 'good_0.mcap')
+        odd = tmp_path / 'alone.mcap' if case == 'fifo_alone' else bag / 'zz_9.mcap'
+        if case == 'directory_in_bag':
+            odd.mkdir()
+        else:
+            os.mkfifo(odd)
+        kind = 'a directory' if case == 'directory_in_bag' else 'a FIFO'
+        return (odd if case == 'fifo_alone' else bag,
+                f'{re.escape(str(odd))}: not a regular file \\({kind}\\)')
     mcap = _write_bag(tmp_path / 'bag')
+    meta = mcap.parent / 'metadata.yaml'
+    listed = {'listed_twice': [mcap.name, mcap.name], 'listed_absolute': [str(mcap)],
+              'listed_outside': [mcap.name, f'../bag/{mcap.name}'],
+              'listed_dot_twice': [mcap.name, f'./{mcap.name}']}
+    if case in listed:
+        # Each file once, inside the bag: else its messages count and are filtered twice.
+        text = meta.read_text()
+        start = text.index('relative_file_paths:')
+        end = text.index('\n  files:', start)
+        entries = ''.join(f'\n  - {rel}' for rel in listed[case])
+        meta.write_text(text[:start] + 'relative_file_paths:' + entries + text[end:])
+        shown = re.escape(repr(listed[case][-1]))
+        return mcap.parent, (f'{re.escape(str(meta))}: relative_file_paths: {shown} is '
+                             + ('listed twice' if 'twice' in case else 'not a file name inside'))
+    if case == 'metadata_fifo':
+        meta.unlink()
+        os.mkfifo(meta)
+        return mcap.parent, f'{re.escape(str(meta))}: not a regular file \\(a FIFO\\)'
+    if case == 'linked_twice':
+        os.link(mcap, mcap.parent / 'bag_1.mcap')
+        meta.unlink()
+        return mcap.parent, 'bag_1.mcap is the same file as bag_0.mcap'
     if case == 'flipped':
         offset = _flip_in_chunk(mcap)
         return mcap.parent, f'{mcap}: chunk at offset {offset}: '
@@ -78,7 +115,12 @@ def _bad_bag(case: str, tmp_path: Path) -> tuple[Path, str]:
     return mcap.parent, f'{mcap}: cut short at byte {offset} .*rcbf_ros bag recover'
 
 
-BAD_CASES = ['flipped', 'truncated', 'empty', 'random', 'missing']
+# A reader that opened a FIFO would wait for a writer forever: those cases fail instead.
+_FIFO = pytest.mark.timeout(60)
+BAD_CASES = ['flipped', 'truncated', 'empty', 'random', 'missing',
+             pytest.param('fifo_alone', marks=_FIFO), pytest.param('fifo_in_bag', marks=_FIFO),
+             'directory_in_bag', 'listed_twice', 'listed_absolute', 'listed_outside',
+             'listed_dot_twice', 'linked_twice', pytest.param('metadata_fifo', marks=_FIFO)]
 
 
 @pytest.mark.parametrize('case', BAD_CASES)
@@ -170,3 +212,28 @@ def test_cut_short_bag_reads_whole_chunks_when_asked(tmp_path: Path) -> None:
     assert partial and partial == whole[:len(partial)]
     info = bag_info(mcap)
     assert not info.complete and info.message_count == len(partial)
+
+
+def test_replay_of_a_bag_that_changes_while_it_plays_exits_2(
+        tmp_path: Path, ros_domain_id: int, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The replay streams the bag after checking it: a file damaged in between stops it with
+    one line naming the file, exit 2, and what was published so far."""
+    mcap = _write_bag(tmp_path / 'bag')
+    streamed = replay_node.iter_bag_messages
+
+    def damaged_after_three(path: object, **kwargs: object) -> object:
+        for k, message in enumerate(streamed(path, **kwargs)):
+            if k == 3:
+                raise BagError(f'{mcap}: chunk at offset 99: CRC mismatch')
+            yield message
+
+    monkeypatch.setattr(replay_node, 'iter_bag_messages', damaged_after_three)
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros_domain_id))
+    status = replay_node.main(['replay', '--ros-args', '-p', f'bag:={mcap.parent}',
+                               '-p', 'rate:=1000.0', '-p', 'linger_s:=0.0'])
+    captured = capsys.readouterr()
+    assert status == 2, captured.out + captured.err
+    assert 'Traceback' not in captured.err
+    assert (f'replay: {mcap}: chunk at offset 99: CRC mismatch (3 messages published)'
+            in captured.err.splitlines()), captured.err

@@ -4,6 +4,7 @@ chunks; the original kept; complete, foreign and still-written files left alone.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 import random
 import shutil
@@ -201,6 +202,29 @@ def test_check_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert cli.main(['bag', 'check', str(mcap.parent)]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and 'cut short' in err and 'recover' in err
+
+
+@pytest.mark.timeout(60)  # opening the FIFO would wait for a writer forever
+@pytest.mark.parametrize('odd', ['fifo', 'directory', 'fifo_alone'])
+def test_recover_refuses_what_is_not_a_regular_file(odd: str, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """Recovery reads regular files only, and names the odd one before rewriting anything."""
+    mcap = _write_bag(tmp_path / 'odd')
+    _cut_like_a_kill(mcap, chunk=1)
+    cut = mcap.read_bytes()
+    target = tmp_path / 'alone.mcap' if odd == 'fifo_alone' else mcap.parent / 'zz.mcap'
+    if odd == 'directory':
+        target.mkdir()
+    else:
+        os.mkfifo(target)
+    argument = target if odd == 'fifo_alone' else mcap.parent
+    assert cli.main(['bag', 'recover', str(argument)]) == 2
+    err = capsys.readouterr().err
+    kind = 'a directory' if odd == 'directory' else 'a FIFO'
+    assert err.strip() == (f'rcbf_ros bag recover: error: {target}: not a regular file ({kind}); '
+                           'a bag holds regular files only')
+    assert mcap.read_bytes() == cut  # nothing rewritten
+    assert not (mcap.parent / 'metadata.yaml').exists()
 
 
 def test_run_summary_recovers_the_bag_of_a_killed_recorder(tmp_path: Path) -> None:

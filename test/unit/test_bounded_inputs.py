@@ -337,3 +337,28 @@ def test_a_real_bag_still_reads(tmp_path: Path) -> None:
             for i in range(500):
                 bag.write_message('/state', {'data': [float(i)] * 50}, 10**18 + i)
         assert bag_info(directory).message_count == 500
+
+
+# -- replay: a bag larger than memory, small on disk -----------------------------------------
+
+def test_replay_streams_a_bag_larger_than_its_memory(tmp_path: Path, ros_domain_id: int) -> None:
+    """80 messages of 8 MB (640 MB, over the ceiling) that compress to a few hundred KiB: the
+    replay holds one at a time, so it plays them all under the ceiling."""
+    bag = tmp_path / 'big'
+    size, count = 8 * MIB, 80
+    header = b'\x00\x01\x00\x00' + b'\x00' * 12 + size.to_bytes(4, 'little')
+    with BagWriter(bag) as writer:
+        writer.add_topic('/blob', 'std_msgs/msg/UInt8MultiArray')
+        for k in range(count):
+            writer.write('/blob', header + bytes([k]) * size, 1_700_000_000_000_000_000 + k)
+    assert count * size > CEILING
+    env = {**os.environ, 'PYTHONPATH': os.pathsep.join(sys.path),
+           'ROS_DOMAIN_ID': str(ros_domain_id)}
+    status, out, err, peak = run_measured(
+        [sys.executable, '-m', 'rcbf_ros.ros.replay_node', '--ros-args', '-p', f'bag:={bag}',
+         '-p', 'linger_s:=0.0'], address_space=CEILING, env=env)
+    assert status == 0, err
+    assert f'replaying {count} messages' in out + err
+    assert f'replay finished: {count} messages published' in out + err
+    assert 'Traceback' not in err
+    assert peak < CEILING, f'peak RSS {peak / MIB:.0f} MiB'

@@ -697,7 +697,7 @@ def test_a_stop_during_the_respawn_delay_starts_nothing_more(tmp_path):
 
 BAD_PARAMS = {
     'missing': (None, 'No such file or directory'),
-    'directory': ('', 'Is a directory'),
+    'directory': ('', 'not a regular file (a directory)'),
     'not_utf8': (b'\xff\xfe\x00', 'not UTF-8'),
     'not_yaml': ('a: [1\n', 'not valid YAML at line 2'),
     'two_documents': ('a: 1\n---\nb: 2\n', "'a' has no ros__parameters"),

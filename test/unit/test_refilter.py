@@ -399,6 +399,8 @@ def test_refiltering_and_the_message_layer_load_no_middleware(tmp_path: Path) ->
     ('json_in_a_missing_directory', '--json'),
     ('json_is_a_directory', '--json'),
     ('json_empty', '--json'),
+    pytest.param('json_a_fifo', 'exists and is not a regular file',
+                 marks=pytest.mark.timeout(120)),  # writing to the FIFO would block
 ])
 def test_bad_command_lines_are_refused_in_one_line_before_the_run(
         case: str, needle: str, source_bag: Path, tmp_path: Path,
@@ -415,11 +417,14 @@ def test_bad_command_lines_are_refused_in_one_line_before_the_run(
                     front={'type': 'scan', 'topic': '/scan'})
     params.write_text(yaml.safe_dump({'/**': {'ros__parameters': body}}))
     output = '' if case == 'empty_output' else str(tmp_path / 'out')
+    if case == 'json_a_fifo':
+        os.mkfifo(tmp_path / 'fifo.json')
     argv = [str(source_bag), output, '--params-file', str(params)]
     argv += {'json_under_a_file': ['--json', str(params / 'x.json')],
              'json_in_a_missing_directory': ['--json', str(tmp_path / 'no' / 'x.json')],
              'json_is_a_directory': ['--json', str(work)],
-             'json_empty': ['--json', '']}.get(case, [])
+             'json_empty': ['--json', ''],
+             'json_a_fifo': ['--json', str(tmp_path / 'fifo.json')]}.get(case, [])
     assert main(argv) == 2
     captured = capsys.readouterr()
     lines = captured.err.strip().splitlines()
