@@ -195,7 +195,7 @@ def test_node_specs_and_defaults_come_from_the_dataclasses() -> None:
     assert [s.name for s in fl.NODE_PARAMETERS] == list(parameter_keys(fl.NodeSettings))
     assert fl.READ_ONLY_PARAMETERS == (
         'state_type', 'command_type', 'twist_fields', 'qos.reliable', 'qos.depth', 'system',
-        'observation_sources', 'odom_frame_id', 'base_frame_id')
+        'observation_sources', 'odom_frame_id', 'base_frame_id', 'transform_tolerance')
     for name in ('mode', 'seed', 'batch_size', 'start_steps', 'update_after',
                  'gp_refit_interval', 'k_c', 'model_based'):
         assert PARAMETERS[name] == getattr(LearnerConfig, name), name
