@@ -31,12 +31,13 @@ the pass existed. Only modes whose losses see the action through a layer predict
 modular with its envelope); elsewhere the ways run the same code, and only the first runs.
 
 Reported per row and way: both figures (ms per step), their ratio against the target
-(full-buffer step at most ``TARGET`` x the first-fit step), the GP refit's time in each period
-(at the full buffer also its part selecting the training points among all pairs), the pass's
-time, the states the GP predicted for the losses per step of the period, and the hours one
-seed's training at the ``paper`` budget would take on the machine (``paper_hours``: its
-episodes at full length, the step growing linearly from the first-fit figure to the
-full-buffer one as the buffer fills; evaluation not included).
+(full-buffer step at most ``TARGET`` x the first-fit step), the same ratio of the process's CPU
+time over each period (steadier than the wall clock on a machine other work shares), the GP
+refit's time in each period (at the full buffer also its part selecting the training points
+among all pairs), the pass's time, the states the GP predicted for the losses per step of
+the period, and the hours one seed's training at the ``paper`` budget would take on the
+machine (``paper_hours``: its episodes at full length, the step growing linearly from the
+first-fit figure to the full-buffer one as the buffer fills; evaluation not included).
 ``--quick``: R = 40, a 200-transition buffer, minibatch 16, unicycle/diff only unless
 ``--rows`` says otherwise: a smoke test in seconds, no figure worth reading.
 """
@@ -74,6 +75,7 @@ class Period:
 
     def __init__(self) -> None:
         self.stamps: list[float] = []
+        self.cpu_stamps: list[float] = []
         self.refit_s = 0.0
         self.subset_s = 0.0
         self.fill_s = 0.0
@@ -81,6 +83,10 @@ class Period:
 
     def mean_step_ms(self) -> float:
         return 1e3 * (self.stamps[-1] - self.stamps[0]) / (len(self.stamps) - 1)
+
+    def mean_step_cpu_ms(self) -> float:
+        """The mean step in the process's CPU time."""
+        return 1e3 * (self.cpu_stamps[-1] - self.cpu_stamps[0]) / (len(self.cpu_stamps) - 1)
 
 
 def run_hours(*, first_ms: float, full_ms: float, steps: int, capacity: int) -> float:
@@ -194,8 +200,10 @@ def measure(system: str, mode: str, way: str, *, buffer: int, refit_interval: in
         period = Period()
         for _ in range(refit_interval):
             period.stamps.append(time.perf_counter())
+            period.cpu_stamps.append(time.process_time())
             one_step()
         period.stamps.append(time.perf_counter())
+        period.cpu_stamps.append(time.process_time())
         done, period = period, None
         return done
 
@@ -219,8 +227,11 @@ def row_text(system: str, mode: str, way: str, runs: list[dict], *, capacity: in
     ratios = [run['full'].mean_step_ms() / run['first'].mean_step_ms() for run in runs]
     ratio = statistics.median(ratios)
     per_run = f' ({", ".join(f"{r:.2f}" for r in ratios)})' if len(ratios) > 1 else ''
+    cpu_ratio = statistics.median(run['full'].mean_step_cpu_ms() / run['first'].mean_step_cpu_ms()
+                                  for run in runs)
     steps = len(runs[0]['first'].stamps) - 1
     return (f'| {system} | {mode} | {way} | {first:.2f} | {full:.2f} | {ratio:.2f}x{per_run} '
+            f'| {cpu_ratio:.2f}x '
             f'| {median("first", lambda p: p.refit_s):.2f} '
             f'| {median("full", lambda p: p.refit_s):.2f} '
             f'({median("full", lambda p: p.subset_s):.2f}) '
@@ -272,11 +283,12 @@ def main(argv: list[str] | None = None) -> str:
         rows.append((system, mode))
     load_before = os.getloadavg()
     table = ['| system | mode | way | first-fit step ms | full-buffer step ms '
-             '| full / first-fit | GP refit s, first | GP refit s, full (subset selection) '
+             '| full / first-fit | the same, CPU time '
+             '| GP refit s, first | GP refit s, full (subset selection) '
              '| pass s, first '
              '| pass s, full | states predicted per step, first | the same, full | target '
              '| | paper run h |',
-             '|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---:|']
+             '|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---:|']
     for system, mode in rows:
         runs: dict[str, list[dict]] = {way: [] for way in args.ways}
         for _ in range(args.repeats):

@@ -9,10 +9,12 @@ import torch
 
 ArrayLike = torch.Tensor | np.ndarray | float
 
-PREDICT_CHUNK = 128
+PREDICT_CHUNK = 512
 """States per ``predict`` call of :meth:`ReplayBuffer.fill_predictions`: the GP's cost per
-state is lowest from about 32 to 256 (its cross-kernel block then stays in cache), and rises
-by half or more from 512 on (benchmarks/bench_training_full_buffer.py)."""
+state, its kernel on the GEMM path from 16 states on (``gp_bounds.kernel_batch``), is lowest
+from about 256 to 1,024 (CPU time of a pass over 200,000 stored states of a fitted GP:
+benchmarks/RESULTS.md, "Training speed at a full buffer"); a call's kernel block, D x 512 x M
+float64, stays below 21 MB at 10 outputs on 512 training points."""
 
 
 class TransitionBatch(NamedTuple):
@@ -194,8 +196,8 @@ class ReplayBuffer:
 
         Meant right after a refit: with N stored and a refit every R steps, predicting on
         demand leaves up to 2 N / R states per minibatch to predict in small calls, where one
-        pass predicts each stored state once, in calls of the size that runs fastest (the
-        cross-kernel block of a few hundred states stays in cache). Within an episode the
+        pass predicts each stored state once, in calls of the size that runs fastest
+        (``PREDICT_CHUNK``). Within an episode the
         next state of a transition is the state of the one stored after it: where the slot
         after a slot holds that state (its stored value equal) and its memo holds this
         version's prediction, it is copied instead of predicted again; equal stored states

@@ -21,11 +21,13 @@ def test_the_quick_run_times_both_periods_of_each_way():
         for period in (run['first'], run['full']):
             assert len(period.stamps) == quick['refit_interval'] + 1
             assert period.mean_step_ms() > 0 and period.refit_s > 0
+            assert len(period.cpu_stamps) == len(period.stamps)
+            assert period.mean_step_cpu_ms() > 0
     assert runs['pass']['full'].fill_s > 0 and runs['demand']['full'].fill_s == 0
     # The pass predicts every stored state once; on demand only the drawn ones.
     assert runs['pass']['full'].predicted >= quick['buffer']
     row = bench.row_text('unicycle', 'diff', 'pass', [runs['pass']], capacity=quick['buffer'])
-    assert row.startswith('| unicycle | diff | pass |') and row.count('|') == 16
+    assert row.startswith('| unicycle | diff | pass |') and row.count('|') == 17
 
 
 def test_run_hours_grow_the_step_with_the_stored_count():
