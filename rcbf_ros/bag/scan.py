@@ -53,6 +53,8 @@ from mcap.records import (
     Statistics,
 )
 
+from rcbf_ros.parameters.bounded_yaml import file_kind
+
 #: The 8 bytes an MCAP file starts and ends with.
 MAGIC = b'\x89MCAP0\r\n'
 _RECORD_HEAD = struct.Struct('<BQ')
@@ -78,16 +80,6 @@ class BagError(ValueError):
 
 class BagNotFoundError(BagError, FileNotFoundError):
     """Nothing readable at the path given."""
-
-
-def file_kind(mode: int) -> str:
-    """What a file of ``st_mode`` ``mode`` is, for a message (``a FIFO``, ``a directory``...)."""
-    for test, kind in ((stat.S_ISDIR, 'a directory'), (stat.S_ISFIFO, 'a FIFO'),
-                       (stat.S_ISCHR, 'a character device'), (stat.S_ISBLK, 'a block device'),
-                       (stat.S_ISSOCK, 'a socket')):
-        if test(mode):
-            return kind
-    return 'not a plain file'
 
 
 def not_regular_error(path: str | os.PathLike[str], mode: int) -> BagError:

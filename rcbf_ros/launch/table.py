@@ -400,6 +400,15 @@ must stay safe while the robot moves and the controller is slow or quiet). The o
 robot launches share."""
 
 
+ROBOT_CONTROLLER = NodeEntry(
+    name='nominal_controller', executable='nominal_controller',
+    module='sim_nodes.nominal_controller_node',
+    remappings=(('state', Argument('odom')), ('cmd_proposed', Argument('cmd_in'))),
+    parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type'))))
+"""The demos' go-to-goal controller, blind to obstacles, as a robot's controller is wired: the
+robot's odometry in, its command on ``cmd_in`` (the drop-in filter's input)."""
+
+
 def _drop_in_filter() -> LaunchSetup:
     """Only the safety filter, between a robot's controller and its velocity input."""
     return LaunchSetup(
@@ -424,16 +433,11 @@ def _unicycle_robot() -> LaunchSetup:
         parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type')),
                     ('wait_for_publishers', ['cmd_safe', Argument('cmd_in')]),
                     ('wait_for_subscribers', [RECORDER.name])))
-    controller = NodeEntry(
-        name='nominal_controller', executable='nominal_controller',
-        module='sim_nodes.nominal_controller_node',
-        remappings=(('state', Argument('odom')), ('cmd_proposed', Argument('cmd_in'))),
-        parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type'))))
     return LaunchSetup(
         name='unicycle_robot', config='unicycle.yaml', arguments=ROBOT_ARGUMENTS,
         description='demo: a simulated unicycle robot (odom, cmd_out) and a go-to-goal '
         'controller (cmd_in) with the drop-in safety filter between them, recorded',
-        nodes=(robot, lockstep(DROP_IN_FILTER), controller, RECORDER))
+        nodes=(robot, lockstep(DROP_IN_FILTER), ROBOT_CONTROLLER, RECORDER))
 
 
 LIDAR_ARGUMENTS = (
@@ -462,16 +466,11 @@ def _unicycle_lidar() -> LaunchSetup:
         name='unicycle_lidar', executable='unicycle_lidar',
         module='sim_nodes.unicycle_lidar_node',
         remappings=(('odom', Argument('odom')), ('cmd_vel', Argument('cmd_out'))))
-    controller = NodeEntry(
-        name='nominal_controller', executable='nominal_controller',
-        module='sim_nodes.nominal_controller_node',
-        remappings=(('state', Argument('odom')), ('cmd_proposed', Argument('cmd_in'))),
-        parameters=(('state_type', 'odometry'), ('command_type', Argument('command_type'))))
     return LaunchSetup(
         name='unicycle_lidar', config='unicycle_lidar.yaml', arguments=LIDAR_ARGUMENTS,
         description='demo: a simulated lidar robot (scan, odom, /tf; cmd_out) and a blind '
         'go-to-goal controller (cmd_in) with the drop-in filter on the scan, recorded',
-        nodes=(robot, DROP_IN_FILTER, controller, RECORDER))
+        nodes=(robot, DROP_IN_FILTER, ROBOT_CONTROLLER, RECORDER))
 
 
 def lockstep(entry: NodeEntry) -> NodeEntry:

@@ -54,7 +54,8 @@ def syntax_error_line(exc: yaml.YAMLError) -> str:
     return ' '.join(f'not valid YAML{where}: {problem}'.split())
 
 
-def _kind(mode: int) -> str:
+def file_kind(mode: int) -> str:
+    """What a file of ``st_mode`` ``mode`` is, for a message (``a FIFO``, ``a directory``...)."""
     for test, kind in ((stat.S_ISDIR, 'a directory'), (stat.S_ISFIFO, 'a FIFO'),
                        (stat.S_ISCHR, 'a character device'), (stat.S_ISBLK, 'a block device'),
                        (stat.S_ISSOCK, 'a socket')):
@@ -85,7 +86,7 @@ def read_limited(path: str | os.PathLike[str], *, max_bytes: int, what: str) -> 
     try:
         mode = os.fstat(fd).st_mode
         if not stat.S_ISREG(mode):
-            raise OSError(errno.EINVAL, f'not a regular file ({_kind(mode)})', os.fspath(path))
+            raise OSError(errno.EINVAL, f'not a regular file ({file_kind(mode)})', os.fspath(path))
         os.set_blocking(fd, True)
         stream = os.fdopen(fd, 'rb')
     except BaseException:
