@@ -115,6 +115,8 @@ def run(which: str) -> list[dict[str, Any]]:
             out = call()
         except Exception as exc:  # noqa: BLE001 - the exception type is the outcome here
             outcome: Any = {'raises': type(exc).__name__}
+            if type(exc).__name__ == 'ParameterNotDeclaredException':  # clients read its text
+                outcome['message'] = str(exc)
         else:
             if isinstance(out, list):
                 outcome = [[r.successful, r.reason] for r in out]
@@ -165,6 +167,8 @@ def run(which: str) -> list[dict[str, Any]]:
     step('set undeclared', lambda: node.set_parameters([P('a', value=8), P('nope', value=1)]))
     step('atomic with undeclared', lambda: node.set_parameters_atomically(
         [P('a', value=0), P('nope', value=1)]))
+    step('atomic with three undeclared', lambda: node.set_parameters_atomically(
+        [P('nope', value=1), P('a', value=0), P('nope2', value=1), P('nope3', value=1)]))
     step('set not a Parameter', lambda: node.set_parameters_atomically([('a', 1)]))
     step('declare with callbacks', lambda: node.declare_parameter('c', 1.5))
     step('declare refused by a callback', lambda: node.declare_parameter('b2', -1.0))

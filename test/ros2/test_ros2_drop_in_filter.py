@@ -163,7 +163,8 @@ def test_both_launchers_show_the_same_arguments(overlay, name, capsys):
     theirs = arguments(shown.stdout)
     assert theirs.pop('params_file').endswith('/share/rcbf_ros/config/unicycle.yaml')
     assert ours.pop('params_file') == 'config/unicycle.yaml of the package'
-    assert ours == theirs and set(ours) == {'cmd_in', 'cmd_out', 'odom', 'command_type'}
+    assert ours == theirs and set(ours) == {'cmd_in', 'cmd_out', 'odom', 'command_type',
+                                            'respawn', 'respawn_delay'}
     assert "Valid choices are: ['twist', 'twist_stamped', 'array']" in shown.stdout
     refused = overlay.jazzy.run(overlay.script(
         f'ros2 launch rcbf_ros {name}.launch.py command_type:=Twist'), domain_id=0)

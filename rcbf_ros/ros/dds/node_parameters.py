@@ -250,7 +250,10 @@ class NodeParameters:
             raise TypeError(f"parameter must be instance of type '{Parameter!r}'")
         undeclared = [p.name for p in parameter_list if p.name not in self._parameters]
         if undeclared and not self._allow_undeclared:
-            raise ParameterNotDeclaredException(undeclared)
+            # rclpy (7.1.1, Node._check_undeclared_parameters) finds the first undeclared name
+            # with any() on a generator and lists what the generator has left: every name
+            # after the first ('[]' for one). Its clients read that text; ours is the same.
+            raise ParameterNotDeclaredException(undeclared[1:])
         return self._set_parameters_common(parameter_list)
 
     def _set_parameters_common(self, parameter_list: list[Parameter],
