@@ -76,9 +76,9 @@ class SimulatorSettings(MessageSettings):
                         'that listens to the simulator (launches: cmd_safe and cmd_proposed)')
     """Topics whose publishers the first episode waits for."""
     wait_for_subscribers: tuple[str, ...] = setting(
-        (), description='the first episode waits until each of these nodes subscribes to the '
-                        'state topic and every wait_for_publishers topic (recorded launches: '
-                        'the recorder)')
+        (), description='the first episode waits until each of these nodes subscribes to '
+                        'every topic the simulator publishes and every wait_for_publishers '
+                        'topic (recorded launches: the recorder)')
     """Nodes whose subscription to ``state`` the first episode waits for."""
 
 
@@ -177,15 +177,16 @@ def loop_waits_for(*, state_topic: str, matched: Mapping[str, int],
             process) of the subscriptions that discovery shows on it.
         loop_publishers: each ``wait_for_publishers`` topic -> the participants of its
             publishers in the graph.
-        listeners: each ``wait_for_subscribers`` node name -> ``state_topic`` and each
-            ``wait_for_publishers`` topic -> the participants of that node's subscriptions there
-            (a recorder must not miss the first states, proposals or answers).
+        listeners: each ``wait_for_subscribers`` node name -> ``state_topic``, each of the
+            simulator's other topics and each ``wait_for_publishers`` topic -> the participants
+            of that node's subscriptions there (a recorder must not miss the first states,
+            proposals, answers or true barrier values).
 
     The loop is up when ``state`` has a matched subscription, every ``wait_for_publishers``
     topic has a publisher, every such publisher's process subscribes to one of the simulator's
     topics, and the simulator's publishers have matched at least as many subscriptions on each
     topic as those processes hold there. Each ``wait_for_subscribers`` node joins the loop once
-    it subscribes to ``state_topic`` and to every ``wait_for_publishers`` topic; other processes
+    it subscribes to every topic ``listeners`` names for it; other processes
     (a ``ros2 topic echo``) neither hold the start back nor count.
     """
     if matched.get(state_topic, 0) < 1:
@@ -440,9 +441,12 @@ class SimulatorNode(Node):
         subscriptions = {topic: self.get_subscriptions_info_by_topic(topic)
                          for topic in (*matched, *self.wait_for_publishers)}
         readers = {topic: [_participant(e) for e in subscriptions[topic]] for topic in matched}
+        # a named listener (a recorder) holds the start until it has every topic of the loop
+        # and every one the simulator publishes: a run recorded from its first step
         listeners = {name: {topic: [_participant(e) for e in subscriptions[topic]
                                     if e.node_name == name]
-                            for topic in (state_topic, *self.wait_for_publishers)}
+                            for topic in dict.fromkeys((state_topic, *self.wait_for_publishers,
+                                                        *matched))}
                      for name in self.wait_for_subscribers}
         return loop_waits_for(state_topic=state_topic, matched=matched, readers=readers,
                               loop_publishers=loop_publishers, listeners=listeners)
