@@ -104,6 +104,8 @@ def test_the_filters_buffer_answers_as_tf2_ros(jazzy, tmp_path, ros_domain_id):
     done = jazzy.run(f'PY=$(head -1 "$(command -v ros2)" | cut -c3-); '
                      f'"$PY" {HERE / "tf2_lookups.py"} {cases}',
                      domain_id=ros_domain_id, timeout=120)
+    if "No module named 'tf2_ros'" in done.stdout:
+        pytest.skip('this Jazzy has no tf2_ros (ros2/geometry2: tf2_ros_py)')
     assert done.returncode == 0, done.stdout[-3000:]
     theirs = json.loads(done.stdout.strip().splitlines()[-1])
     kinds: dict[str, int] = {}
