@@ -17,6 +17,14 @@ def load_averages() -> str:
     return 'load averages ' + ', '.join(f'{x:.2f}' for x in os.getloadavg())
 
 
+def load_before_after(before: Sequence[float], after: Sequence[float]) -> str:
+    """``Load average (1, 5, 15 min) before a, b, c, after d, e, f``: the machine's load
+    around a run (``os.getloadavg()`` taken before and after), without the closing words."""
+    def text(values: Sequence[float]) -> str:
+        return ', '.join(f'{v:.2f}' for v in values)
+    return f'Load average (1, 5, 15 min) before {text(before)}, after {text(after)}'
+
+
 def machine_line() -> str:
     """A one-line description of where the numbers came from."""
     import torch

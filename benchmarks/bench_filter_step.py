@@ -462,8 +462,8 @@ def main() -> None:
                     for name, s in rows]
         print(label, 'done', flush=True)
     load_after = os.getloadavg()
-    load = (f'Load average (1, 5, 15 min) before {", ".join(f"{v:.2f}" for v in load_before)}, '
-            f'after {", ".join(f"{v:.2f}" for v in load_after)} (2 cores).')
+    from _results import load_before_after
+    load = load_before_after(load_before, load_after) + ' (2 cores).'
     table = '\n'.join(['Whole SafetyFilter.filter() call (FilterResult.total_time_s), '
                        f'{args.calls} calls per system:', '', *summary, '',
                        f'Closed form against the {TARGET_US:.0f} us target (median of all '

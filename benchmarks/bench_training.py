@@ -604,8 +604,8 @@ def main() -> None:
     except ReferenceError as exc:
         sys.exit(f'bench_training: {exc}')
     load_after = os.getloadavg()
-    load = (f'Load average (1, 5, 15 min) before {", ".join(f"{v:.2f}" for v in load_before)}, '
-            f'after {", ".join(f"{v:.2f}" for v in load_after)}; 1 min after each row '
+    from _results import load_before_after
+    load = (load_before_after(load_before, load_after) + '; 1 min after each row '
             f'{min(row_loads):.1f} to {max(row_loads):.1f} (2 cores). On a shared '
             "machine other work stretches both sides' wall time; the alternation spreads it "
             'over both, the per-repeat ratios show how much it moved them, and the CPU-time '

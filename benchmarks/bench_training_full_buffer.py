@@ -309,8 +309,8 @@ def main(argv: list[str] | None = None) -> str:
                + f' --buffer {buffer} --refit-interval {refit_interval}'
                + f' --repeats {args.repeats} --ways {" ".join(args.ways)}'
                + f' --rows {" ".join(f"{s}/{m}" for s, m in rows)}')
-    load = (f'Load average (1, 5, 15 min) before {", ".join(f"{v:.2f}" for v in load_before)}, '
-            f'after {", ".join(f"{v:.2f}" for v in load_after)} (2 cores).')
+    from _results import load_before_after
+    load = load_before_after(load_before, load_after) + ' (2 cores).'
     text = '\n'.join([*table, '', load])
     print(text)
     if not args.no_write:
