@@ -288,18 +288,16 @@ class TransformBuffer:
             newest = [link.stamps[-1] for link in source_links + target_links
                       if not link.static]
             time_ns = min(newest) if newest else 0
-        source_up = IDENTITY
-        for frame, link in zip(up_source, source_links):
-            pose = self._sample(link, frame, time_ns, tolerance_ns)
-            if isinstance(pose, str):
-                return NoTransform(f'{names} at {_seconds(time_ns)}: {pose}', EXTRAPOLATION)
-            source_up = pose.compose(source_up)
-        target_up = IDENTITY
-        for frame, link in zip(up_target, target_links):
-            pose = self._sample(link, frame, time_ns, tolerance_ns)
-            if isinstance(pose, str):
-                return NoTransform(f'{names} at {_seconds(time_ns)}: {pose}', EXTRAPOLATION)
-            target_up = pose.compose(target_up)
+        ups = []
+        for path, links in ((up_source, source_links), (up_target, target_links)):
+            up = IDENTITY  # the frame at the path's start -> the common ancestor
+            for frame, link in zip(path, links):
+                pose = self._sample(link, frame, time_ns, tolerance_ns)
+                if isinstance(pose, str):
+                    return NoTransform(f'{names} at {_seconds(time_ns)}: {pose}', EXTRAPOLATION)
+                up = pose.compose(up)
+            ups.append(up)
+        source_up, target_up = ups
         return target_up.inverse().compose(source_up)
 
     def _path(self, frame: str) -> list[str] | str:
