@@ -28,7 +28,7 @@ _FLAG_ONLY = {
     '--enable-rosout-logs', '--disable-rosout-logs', '--enable-stdout-logs',
     '--disable-stdout-logs', '--enable-external-lib-logs', '--disable-external-lib-logs',
 }
-_TOKEN = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*$')
+_TOKEN = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*\Z')  # \Z: no trailing newline either
 # rcl's _rcl_parse_param_rule: [token ':'] name ':=' value; a name is '.'-separated runs of
 # tokens and '/' (a token does not start with a digit); no wildcards.
 _PARAM_RULE = re.compile(r'(?:(?P<node>[A-Za-z_][A-Za-z0-9_]*):(?!=))?'

@@ -115,7 +115,7 @@ def test_expand_topic_names(name, expected):
     assert expand_topic_name(name, 'filter', '/robot') == expected
 
 
-@pytest.mark.parametrize('name', ['', 'a//b', 'a/', '1abc', 'a b', '~x'])
+@pytest.mark.parametrize('name', ['', 'a//b', 'a/', '1abc', 'a b', '~x', 'scan\n', 'a\n/b'])
 def test_invalid_topic_names_rejected(name):
     with pytest.raises(RosArgumentError):
         expand_topic_name(name, 'filter', '/robot')
