@@ -41,6 +41,7 @@ from rcbf_ros.messages.typestore import jazzy_typestore
 from rcbf_ros.node_logic import filter_edge
 from rcbf_ros.node_logic import safety_filter as logic
 from rcbf_ros.node_logic.sources import ObservationSources, SENSOR_MESSAGES
+from rcbf_ros.parameters.arguments import expand_topic_name, RosArgumentError
 from rcbf_ros.parameters.rules import find_config, load_params
 
 PROPOSAL_TOPIC = '/cmd_proposed'
@@ -324,14 +325,16 @@ def resolve_topic(name: str, key: str) -> str:
         RefilterError: naming ``key`` and the name.
     """
     text = name if isinstance(name, str) else ''
-    full = text if text.startswith('/') else '/' + text
-    tokens = full[1:].split('/')
-    if (not text or len(full) > TOPIC_NAME_LIMIT or full.endswith('/')
-            or any(not token or token[0].isdigit()
-                   or not all(c.isascii() and (c.isalnum() or c == '_') for c in token)
-                   for token in tokens)):
+    try:
+        if text.startswith('~') or '{' in text:
+            raise RosArgumentError('no node here to expand it')
+        full = expand_topic_name(text, 'refilter', '/')  # rcl's token rules, one place
+        if len(full) > TOPIC_NAME_LIMIT:
+            raise RosArgumentError(f'longer than {TOPIC_NAME_LIMIT} characters')
+    except RosArgumentError:
         raise RefilterError(f'{key}: {str(name)[:80]!r} is not a topic name (letters, digits, '
-                            f'_ and / separated tokens, at most {TOPIC_NAME_LIMIT} characters)')
+                            f'_ and / separated tokens, at most {TOPIC_NAME_LIMIT} characters)'
+                            ) from None
     return full
 
 
@@ -568,12 +571,12 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     summary.topics.update({name: topic for topic, name in source_topics.items()})
     summary.recorded_topic, summary.recorded_commands, recorded = _recorded_commands(
         source, topics, names)
+    decided_ns = 0  # the log time of the proposal being decided: the sources' clock
     sense = None
     if sources is not None:
         def sense(state: np.ndarray) -> str:
             return sources.sense(safety_filter, state, now_ns=decided_ns,
                                  stamp_now_ns=decided_ns)
-    decided_ns = 0
 
     try:
         writer = BagWriter(output)
