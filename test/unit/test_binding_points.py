@@ -12,14 +12,13 @@ import math
 from hypothesis import given, HealthCheck, settings
 from hypothesis import strategies as st
 import numpy as np
+from point_oracle import points_filter
 import pytest
 
 from rcbf_ros.core import filter_info
-from rcbf_ros.core.barriers import CircleObstacles
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.core.filter_info import BINDING_POINTS, binding_points, PointValues
-from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.messages.typestore import jazzy_typestore
 from rcbf_ros.node_logic import safety_filter as logic
 from rcbf_ros.node_logic.filter_edge import FilterEdge
@@ -34,22 +33,6 @@ _BASE = {
     'footprint.radius': 0.2,
 }
 BOX = ([-0.05, 0.0, 0.0], [0.025, 0.025, 0.0])
-
-
-def _oracle(config, points: np.ndarray) -> SafetyFilter:
-    """A filter whose problem holds ``points`` as a static circle family, after the problem's
-    own barriers (row k + i is point i)."""
-    template = config.footprint
-    family = CircleObstacles(
-        centers=tuple(map(tuple, points.tolist())), radii=(template.radii[0],) * len(points),
-        margin=template.margin, position_indices=template.position_indices,
-        heading_index=template.heading_index, lookahead=template.lookahead,
-        speed_input=template.speed_input, name='point')
-    problem = RCBFProblem(
-        system=config.problem.system, families=config.problem.families + (family,),
-        alpha=config.problem.alpha, k_c=config.problem.k_c,
-        slack_weight=config.problem.slack_weight, input_weight=config.problem.input_weight)
-    return SafetyFilter(problem, vector_rows=10**9)
 
 
 def _sections(data: bytes) -> dict[str, np.ndarray]:
@@ -76,7 +59,7 @@ def test_the_points_reported_are_those_of_least_row_value(seed, n, v, w, heading
     fast = SafetyFilter(config.problem, footprint=config.footprint)
     fast.set_points(points)
     mine = fast.filter(state, [v, w], *BOX)
-    theirs = _oracle(config, points).filter(state, [v, w], *BOX)
+    theirs = points_filter(config, points).filter(state, [v, w], *BOX)
     assert mine.fail_safe == theirs.fail_safe
     k = config.problem.n_barriers
     values, h = theirs.constraint_values[k:], theirs.h[k:]

@@ -197,17 +197,12 @@ _SCAN_ONLY = {key: value for key, value in _PARAMS.items()
 def _rows_at(config, points: np.ndarray, state, u) -> np.ndarray:
     """The oracle: every point's RCBF row at the command u, from the autograd assembly of a
     problem holding the points as a static circle family (the filter never takes it)."""
+    from point_oracle import point_family
     import torch
 
-    from rcbf_ros.core.barriers import CircleObstacles
     from rcbf_ros.core.rcbf import RCBFProblem
-    template = config.footprint
-    family = CircleObstacles(
-        centers=tuple(map(tuple, points.tolist())), radii=(template.radii[0],) * len(points),
-        margin=template.margin, position_indices=template.position_indices,
-        heading_index=template.heading_index, lookahead=template.lookahead,
-        speed_input=template.speed_input, name='point')
-    problem = RCBFProblem(system=config.problem.system, families=(family,),
+    problem = RCBFProblem(system=config.problem.system,
+                          families=(point_family(config, points),),
                           alpha=config.problem.alpha, use_input_limits=False)
     qp = problem.qp(torch.tensor([state], dtype=torch.float64),
                     torch.tensor([u], dtype=torch.float64))

@@ -9,13 +9,12 @@ import math
 from hypothesis import given, HealthCheck, settings
 from hypothesis import strategies as st
 import numpy as np
+from point_oracle import points_filter
 import pytest
 
 from rcbf_ros.core import filter as filter_module
-from rcbf_ros.core.barriers import CircleObstacles
 from rcbf_ros.core.config import filter_config_from_params, MIN_VOXEL_SIZE
 from rcbf_ros.core.filter import POINTS_BARRIER, SafetyFilter
-from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.messages import sensor
 
 _BASE = {
@@ -35,21 +34,6 @@ def _config(**changes):
     return filter_config_from_params(params)
 
 
-def _oracle(config, points: np.ndarray) -> SafetyFilter:
-    """A filter whose problem holds ``points`` as a static circle family."""
-    template = config.footprint
-    family = CircleObstacles(
-        centers=tuple(map(tuple, points.tolist())), radii=(template.radii[0],) * len(points),
-        margin=template.margin, position_indices=template.position_indices,
-        heading_index=template.heading_index, lookahead=template.lookahead,
-        speed_input=template.speed_input, name='point')
-    problem = RCBFProblem(
-        system=config.problem.system, families=config.problem.families + (family,),
-        alpha=config.problem.alpha, k_c=config.problem.k_c,
-        slack_weight=config.problem.slack_weight, input_weight=config.problem.input_weight)
-    return SafetyFilter(problem, vector_rows=10**9)
-
-
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**16), n=st.integers(1, 12),
        v=st.floats(-2.5, 2.5), w=st.floats(-2.5, 2.5), heading=st.floats(-math.pi, math.pi))
@@ -65,7 +49,7 @@ def test_points_give_the_command_of_the_same_static_circles(seed, n, v, w, headi
     fast.set_points(rng.uniform(-5, 5, (30, 2)))  # replaced, not kept
     fast.set_points(points)
     mine = fast.filter(state, [v, w], [-0.05, 0, 0], [0.025, 0.025, 0])
-    theirs = _oracle(config, points).filter(state, [v, w], [-0.05, 0, 0], [0.025, 0.025, 0])
+    theirs = points_filter(config, points).filter(state, [v, w], [-0.05, 0, 0], [0.025, 0.025, 0])
     assert mine.fail_safe == theirs.fail_safe
     np.testing.assert_allclose(mine.u_safe, theirs.u_safe, atol=2e-5)
     k = config.problem.n_barriers
@@ -101,7 +85,7 @@ def test_a_wall_of_points_ahead_slows_the_robot_and_every_row_holds():
 def test_the_fallback_solve_on_the_rows_that_bind_matches(monkeypatch):
     config = _config()
     points = np.array([[1.0, 0.0], [1.0, 0.3], [0.9, -0.4]])
-    expected = _oracle(config, points).filter([0.2, 0.0, 0.1], [2.0, 0.5])
+    expected = points_filter(config, points).filter([0.2, 0.0, 0.1], [2.0, 0.5])
     monkeypatch.setattr(filter_module, '_active_set_steps', lambda *args: None)
     fast = SafetyFilter(config.problem, footprint=config.footprint)
     fast.set_points(points)
