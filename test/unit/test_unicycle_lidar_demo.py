@@ -105,3 +105,35 @@ def test_the_launch_draws_the_scene_from_the_robot_and_the_filter():
         nodes['safety_filter'].parameters)['state_type']
     assert '/world_markers' in published and '/scene_markers' in published
     assert not load_params(CONFIG, 'recorder').get('topics')   # every topic recorded
+
+
+def test_the_lidar_foxglove_layout_shows_the_scan_and_the_scene_in_odom():
+    """``config/foxglove_layout_lidar.json``: one 3D panel in the filter's state frame with the
+    scan, the scene and the ground truth; the plots read topics and data indexes the demo
+    publishes (the commands on the launch's defaults, filter_info's u_s and fail_safe)."""
+    import json
+
+    from rcbf_ros.core.filter_info import INFO_SECTIONS
+    layout = json.loads((REPO / 'config' / 'foxglove_layout_lidar.json').read_text())
+    panels = layout['configById']
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node['first']) + leaves(
+            node['second'])
+    assert sorted(leaves(layout['layout'])) == sorted(panels)   # every panel placed, once
+    (scene,) = [config for name, config in panels.items() if name.startswith('3D!')]
+    odom = filter_config_from_params(load_params(CONFIG, 'safety_filter')).sources.odom_frame_id
+    assert scene['followTf'] == odom == scene['layers']['grid']['frameId']
+    assert all(scene['topics'][topic]['visible']
+               for topic in ('/scan', '/scene_markers', '/world_markers'))
+    values = argument_values(launch_setup('unicycle_lidar'), {})
+    n_u = 2
+    start = {label: sum(n_u if size == 'n_u' else 1 for _, size, _ in INFO_SECTIONS[:i])
+             for i, (label, _, _) in enumerate(INFO_SECTIONS[:5])}
+    allowed = {f'/{values["cmd_in"]}.linear.x', f'/{values["cmd_in"]}.angular.z',
+               f'/{values["cmd_out"]}.linear.x', f'/{values["cmd_out"]}.angular.z',
+               *(f'/filter_info.data[{start["u_s"] + i}]' for i in range(n_u)),
+               f'/filter_info.data[{start["fail_safe"]}]'}
+    plotted = {p['value'] for name, config in panels.items() if name.startswith('Plot!')
+               for p in config['paths']}
+    assert plotted == allowed
