@@ -3,9 +3,11 @@ topics a real base and its driver publish.
 
 Publishes ``scan`` (sensor_msgs/LaserScan in ``laser``, 360 beams at ``scan_rate_hz``),
 ``odom`` (nav_msgs/Odometry, odom -> base_link, from the wheel encoders: it drifts from the
-true pose), ``/tf`` (odom -> base_link) and ``/tf_static`` (base_link -> laser, once, transient
-local); takes ``cmd_vel`` (geometry_msgs/Twist: linear.x, angular.z), holding the latest for
-``cmd_timeout_s`` and stopping after. The world and the base are
+true pose), ``/tf`` (odom -> base_link), ``/tf_static`` (base_link -> laser, once, transient
+local) and ``world_markers`` (the world's true posts and walls, once, transient local: ground
+truth for a viewer, which no node of the robot's would have); takes ``cmd_vel``
+(geometry_msgs/Twist: linear.x, angular.z), holding the latest for ``cmd_timeout_s`` and
+stopping after. The world and the base are
 :mod:`sim_nodes.lidar_world`'s: the packaged ``obstacles.*`` posts in a walled arena (the
 filter's layout, so a map and the scan agree), or a seeded random world (``world_seed`` >= 0).
 Topics and parameters: :func:`unicycle_lidar_interface` (``unicycle_lidar --help``).
@@ -20,9 +22,11 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, ParameterSpec, TopicSpec
+from rcbf_ros.node_logic.scene import CUBE, CYLINDER, TEXT_VIEW_FACING
 from rcbf_ros.parameters.reader import read_parameters, setting
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import DurabilityPolicy, get_message, Node, QoSProfile
+from rcbf_ros.ros.scene_node import marker_array
 from sim_nodes import lidar_world as lw
 from sim_nodes.packaged import declare_with_packaged_defaults, packaged_interface
 
@@ -88,6 +92,10 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec('/tf', 'pub', 'tf2_msgs/msg/TFMessage', 'odom -> base_link'),
     TopicSpec('/tf_static', 'pub', 'tf2_msgs/msg/TFMessage', 'base_link -> laser, once',
               'reliable, transient local, keep-last 1'),
+    TopicSpec('world_markers', 'pub', 'visualization_msgs/msg/MarkerArray',
+              "ground truth for a viewer: the world's true posts and walls in odom_frame_id "
+              '(where odometry starts on the world), once', 'reliable, transient local, '
+              'keep-last 1'),
     TopicSpec('cmd_vel', 'sub', 'geometry_msgs/msg/Twist',
               'linear.x (m/s), angular.z (rad/s); held cmd_timeout_s'),
 )
@@ -200,6 +208,44 @@ class LidarRobot:
         return self.state.odom.copy(), self.state.wheels.copy()
 
 
+GROUND_TRUTH = (0.60, 0.45, 0.30, 0.35)
+"""Colour (r, g, b, a) of the world's true geometry: translucent, apart from the scene's."""
+GROUND_TRUTH_HEIGHT = 0.5
+"""Height (m) the true posts and walls are drawn with."""
+
+
+def world_markers(world: lw.World, *, frame_id: str) -> list[dict[str, Any]]:
+    """The world's true geometry as marker dicts (the fields of
+    :func:`rcbf_ros.node_logic.scene.scene_markers`'s, ns ``ground_truth``): a cylinder per
+    post, a box per wall (its centre line, ``wall_thickness`` thick) and a label saying what
+    they are. ``frame_id`` is the odometry's frame: odometry starts on the world's start pose,
+    so the world's coordinates are odom's until odometry drifts (the scan's points then slide
+    off the true posts by the drift)."""
+    height = GROUND_TRUTH_HEIGHT
+
+    def marker(index: int, kind: int, position: Sequence[float], scale: Sequence[float],
+               yaw: float = 0.0, text: str = '') -> dict[str, Any]:
+        item = {'frame_id': frame_id, 'ns': 'ground_truth', 'id': index, 'type': kind,
+                'position': tuple(float(v) for v in position),
+                'orientation': yaw_quaternion(yaw),
+                'scale': tuple(float(v) for v in scale), 'color': GROUND_TRUTH}
+        if text:
+            item['text'] = text
+        return item
+
+    out = [marker(i, CYLINDER, (x, y, height / 2), (2 * r, 2 * r, height))
+           for i, (x, y, r) in enumerate(world.circles.tolist())]
+    thickness = world.wall_thickness
+    for x0, y0, x1, y1 in world.segments.tolist():
+        length = math.hypot(x1 - x0, y1 - y0) + thickness
+        out.append(marker(len(out), CUBE, ((x0 + x1) / 2, (y0 + y1) / 2, height / 2),
+                          (length, thickness, height), yaw=math.atan2(y1 - y0, x1 - x0)))
+    half = world.half_size
+    out.append(marker(len(out), TEXT_VIEW_FACING, (-half, half + 0.3, height), (0.0, 0.0, 0.25),
+                      text='ground truth (simulator): the true posts and walls'))
+    return out
+
+
 def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
     """The quaternion x, y, z, w of a rotation by ``yaw`` about z."""
     return 0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0)
@@ -242,6 +288,13 @@ class UnicycleLidarNode(Node):
                                            mx, my, myaw)]
         static.publish(tf_static)
         self._static = static  # kept: transient local serves late subscribers from it
+        truth = self.create_publisher(
+            get_message('visualization_msgs/msg/MarkerArray'), 'world_markers',
+            QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        truth.publish(marker_array(world_markers(self.robot.world,
+                                                 frame_id=settings.odom_frame_id),
+                                   stamp=self.get_clock().now().to_msg()))
+        self._truth = truth  # kept, as _static
         self._touching = False
         self.create_timer(1.0 / settings.rate_hz, self.on_timer)
         world = self.robot.world

@@ -4,8 +4,10 @@
 the same checks as the safety_filter node, :func:`rcbf_ros.core.config.filter_config_from_params`)
 and walks its barrier families, through any cascade, keeping what can be drawn: obstacle discs
 with their margin, the look-ahead point, car gaps, bands and walls, the robot's footprint
-radius, and every barrier's name in row order (the ``h.<name>`` keys of the filter's
-diagnostics). The scene markers
+radius, every barrier's name in row order (the ``h.<name>`` keys of the filter's
+diagnostics) and, with observation sources, the frame their points and the state are in. A
+filter whose only obstacles are sensor points takes its planar indices and look-ahead from
+the footprint family every point takes. The scene markers
 (:mod:`rcbf_ros.node_logic.scene`) and the trajectory pictures (:mod:`rcbf_ros.reports.plots`)
 draw from it, so both show what the filter guards. Pure: no ROS, no I/O.
 """
@@ -109,6 +111,14 @@ class SceneGeometry:
     """Half-plane barriers."""
     footprint_radius: float = 0.0
     """``footprint.radius``: the robot's radius as sensor points see it [m] (0: none given)."""
+    odom_frame_id: str | None = None
+    """With observation sources, the filter's ``odom_frame_id``: the frame of its state and of
+    its sensor points (REP 105); None without sources."""
+
+    @property
+    def sensor_points(self) -> bool:
+        """Whether the filter takes sensor points (has observation sources)."""
+        return self.odom_frame_id is not None
 
     def position(self, state: Sequence[float] | np.ndarray) -> tuple[float, float]:
         """The planar position of ``state`` (n_x,)."""
@@ -118,7 +128,8 @@ class SceneGeometry:
     def guarded_point(self, state: Sequence[float] | np.ndarray) -> tuple[float, float] | None:
         """The look-ahead point ahead of the robot that the obstacle barriers guard for
         forward motion, or None when the barriers guard the position itself."""
-        if self.heading_index is None or self.lookahead == 0.0 or not self.obstacles:
+        if (self.heading_index is None or self.lookahead == 0.0
+                or not (self.obstacles or self.sensor_points)):
             return None
         x, y = self.position(state)
         theta = float(state[self.heading_index])
@@ -162,6 +173,13 @@ def scene_geometry(params: Mapping[str, Any]) -> SceneGeometry:
         elif isinstance(base, HalfPlane):
             walls += [Wall(name, tuple(float(v) for v in n), float(b), tuple(base.indices))
                       for name, n, b in zip(base.names, base.normals, base.offsets)]
+    footprint = uncascaded(config.footprint) if config.footprint is not None else None
+    if not planar and isinstance(footprint, CircleObstacles):  # sensor points only
+        planar = {'position_indices': tuple(footprint.position_indices),
+                  'heading_index': footprint.heading_index,
+                  'lookahead': float(footprint.lookahead)}
+    if config.sources is not None:
+        planar['odom_frame_id'] = config.sources.odom_frame_id
     return SceneGeometry(
         system=str(params['system']), n_x=problem.system.n_x,
         barrier_names=tuple(problem.barrier_names), obstacles=tuple(obstacles),

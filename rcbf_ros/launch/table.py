@@ -440,6 +440,12 @@ def _unicycle_robot() -> LaunchSetup:
         nodes=(robot, lockstep(DROP_IN_FILTER), ROBOT_CONTROLLER, RECORDER))
 
 
+ROBOT_SCENE = replace(SCENE, remappings=(('state', Argument('odom')),),
+                      parameters=(('state_type', 'odometry'),))
+"""The scene markers beside the drop-in filter: the robot's odometry as the state, the filter's
+``filter_info`` and ``diagnostics`` on their own names."""
+
+
 LIDAR_ARGUMENTS = (
     *(argument for argument in ROBOT_ARGUMENTS if argument.name in ('cmd_in', 'cmd_out', 'odom')),
     LaunchArgument('command_type', 'twist', 'type of cmd_in and cmd_out (the base takes a '
@@ -453,14 +459,18 @@ def _unicycle_lidar() -> LaunchSetup:
     """The drop-in filter on a laser scan in front of a simulated lidar robot::
 
         unicycle_lidar --odom--> nominal_controller --cmd_in--> safety_filter --cmd_out--+
-              ^   --odom, scan, /tf, /tf_static-----------------------^                  |
+              ^   --odom, scan, /tf, /tf_static-----------------------^ |                |
+              |   --odom--> scene_markers <--filter_info, diagnostics--+                 |
               +----------------------------------- cmd_vel ------------------------------+
 
     The robot (:mod:`sim_nodes.unicycle_lidar_node`) runs in real time, as a base does: it
     holds the latest command, and the filter answers every Odometry (``refilter_on_state``).
     The go-to-goal controller is blind to the obstacles; the filter sees them only through the
     scan, in the laser's frame, placed through tf. The world, the laser's mount and the
-    filter's sources, footprint and input limits: ``config/unicycle_lidar.yaml``.
+    filter's sources, footprint and input limits: ``config/unicycle_lidar.yaml``. The scene
+    markers draw, in ``odom`` (the filter's state frame), the robot, its footprint, the scan
+    points closest to binding and the active rows; the robot node publishes the world's true
+    posts and walls beside them (``world_markers``).
     """
     robot = NodeEntry(
         name='unicycle_lidar', executable='unicycle_lidar',
@@ -470,7 +480,7 @@ def _unicycle_lidar() -> LaunchSetup:
         name='unicycle_lidar', config='unicycle_lidar.yaml', arguments=LIDAR_ARGUMENTS,
         description='demo: a simulated lidar robot (scan, odom, /tf; cmd_out) and a blind '
         'go-to-goal controller (cmd_in) with the drop-in filter on the scan, recorded',
-        nodes=(robot, DROP_IN_FILTER, ROBOT_CONTROLLER, RECORDER))
+        nodes=(robot, DROP_IN_FILTER, ROBOT_CONTROLLER, ROBOT_SCENE, RECORDER))
 
 
 def lockstep(entry: NodeEntry) -> NodeEntry:

@@ -13,12 +13,13 @@ The scene, in metres and radians (REP 103: x forward, y left, z up):
 - every barrier's value as text (ns ``barriers``): at its obstacle, between the cars of its gap,
   or in a list beside the robot; coloured green for h >= ``caution``, amber for
   0 <= h < ``caution``, red for h < 0 and grey while unknown;
-- the robot (ns ``robot``): Unicycle, an arrow at (x, y) along theta, and the look-ahead point
-  the obstacle barriers guard when driving forwards (ns ``lookahead``); PVTOL, in the x-z plane
+- the robot (ns ``robot``): Unicycle, an arrow at (x, y) along theta (a sphere without a
+  heading index), and the look-ahead point the obstacle barriers, or the sensor points' rows,
+  guard when driving forwards (ns ``lookahead``); PVTOL, in the x-z plane
   (x1 along x, x2 up along z), its body tilted by theta with the thrust arrow, and the safety
   operator's band (ns ``bands``); Car following, the five cars on the x axis (car 4, the one
   the filter drives, in blue) and a line per gap (ns ``gaps``); other systems, a sphere at the
-  obstacles' position coordinates;
+  obstacles' (or the sensor points') position coordinates;
 - the filter's last diagnostic message above the robot (ns ``status``);
 - with ``footprint.radius`` > 0, the robot's footprint: a ring of that radius around its
   position (ns ``footprint``);
@@ -28,6 +29,10 @@ The scene, in metres and radians (REP 103: x forward, y left, z up):
   each point whose row binds, value <= :data:`ACTIVE_ROW_VALUE` (ns ``active_rows``, one
   LINE_LIST). The two lists are there, empty, when the latest answer names no point, so each
   array replaces the last one's points.
+
+A filter with observation sources keeps its state and its sensor points in ``odom_frame_id``,
+so the scene is drawn there (:func:`marker_frame`); one with only sources has no obstacle and
+no barrier text, the robot, its footprint and the points only.
 
 Ids are stable for a given configuration (one per marker and namespace), so each array
 replaces the previous one's markers.
@@ -60,6 +65,8 @@ ROBOT = (0.12, 0.40, 0.85, 1.0)
 OTHER_CAR = (0.60, 0.60, 0.62, 1.0)
 FOOTPRINT = (0.12, 0.40, 0.85, 0.8)
 
+DEFAULT_FRAME = 'map'
+"""The markers' frame without observation sources (:func:`marker_frame`): the obstacles'."""
 DEFAULT_CAUTION = 0.1
 """Barrier values below this (and >= 0) are amber."""
 RING_SEGMENTS = 48
@@ -81,8 +88,10 @@ Color = tuple[float, float, float, float]
 class SceneSettings:
     """Settings of the scene_markers node besides the filter geometry."""
 
-    frame_id: str = setting('map', description="frame of every marker (the obstacles' frame)")
-    """Frame of every marker (not empty)."""
+    frame_id: str = setting('', description="frame of every marker; '': the filter's state "
+                                            'frame (odom_frame_id with observation_sources, '
+                                            'else map)')
+    """Frame of every marker; '' (the default): :func:`marker_frame` picks the filter's."""
     rate_hz: float = setting(10.0, positive=True,
                              description='most MarkerArrays a second (one after each new state '
                                          'or diagnostics)')
@@ -101,13 +110,31 @@ def scene_settings(params: Mapping[str, Any]) -> SceneSettings:
     """The node's settings from its flat parameters (defaults: :class:`SceneSettings`'s).
 
     Raises:
-        ValueError: naming the key: an empty or non-string ``frame_id``, ``rate_hz`` not > 0,
+        ValueError: naming the key: a non-string ``frame_id``, ``rate_hz`` not > 0,
             ``caution_h`` < 0.
     """
     frame_id = params.get('frame_id', SceneSettings.frame_id)
-    if not isinstance(frame_id, str) or not frame_id.strip():
+    if not isinstance(frame_id, str):
         raise ValueError(f'frame_id: expected a frame name, got {frame_id!r}')
     return read_parameters(SceneSettings, {**params, 'frame_id': frame_id.strip()})
+
+
+def marker_frame(frame_id: str, geometry: SceneGeometry) -> str:
+    """The frame every marker is drawn in: ``frame_id``, or for '' the filter's state frame:
+    with observation sources its ``odom_frame_id``, where its state and its sensor points are
+    (REP 105), else :data:`DEFAULT_FRAME`.
+
+    Raises:
+        ValueError: naming ``frame_id`` and ``odom_frame_id``: with observation sources, any
+            other frame (the state and the binding points would be drawn where they are not).
+    """
+    odom = geometry.odom_frame_id
+    if not frame_id:
+        return odom if odom is not None else DEFAULT_FRAME
+    if odom is not None and frame_id != odom:
+        raise ValueError(f'frame_id: {frame_id!r} is not odom_frame_id {odom!r}: the state and '
+                         "the sensor points are in odom_frame_id ('' takes it)")
+    return frame_id
 
 
 def h_colour(h: float, *, caution: float = DEFAULT_CAUTION) -> Color:
@@ -254,10 +281,14 @@ def _obstacle_markers(geometry: SceneGeometry, h: Mapping[str, float], frame: _F
 def _unicycle_markers(geometry: SceneGeometry, state: np.ndarray, h: Mapping[str, float],
                       frame: _Frame, *, frame_id: str, caution: float) -> list[Marker]:
     x, y = geometry.position(state)
-    theta = float(state[geometry.heading_index]) if geometry.heading_index is not None else 0.0
-    out = [_marker(frame_id=frame_id, ns='robot', id=0, type=ARROW,
-                   position=frame.point(x, y, 0.05), orientation=_yaw(theta),
-                   scale=(0.35, 0.08, 0.08), color=ROBOT)]
+    if geometry.heading_index is None:  # no heading to point the arrow along
+        out = [_marker(frame_id=frame_id, ns='robot', id=0, type=SPHERE,
+                       position=frame.point(x, y, 0.05), scale=(0.15, 0.15, 0.15), color=ROBOT)]
+    else:
+        out = [_marker(frame_id=frame_id, ns='robot', id=0, type=ARROW,
+                       position=frame.point(x, y, 0.05),
+                       orientation=_yaw(float(state[geometry.heading_index])),
+                       scale=(0.35, 0.08, 0.08), color=ROBOT)]
     point = geometry.guarded_point(state)
     if point is not None:
         worst = _worst([_h(h, d.name) for d in geometry.obstacles])
@@ -320,7 +351,7 @@ def _robot_markers(geometry: SceneGeometry, state: np.ndarray, h: Mapping[str, f
             'car_following': _car_markers}.get(geometry.system)
     if draw is not None:
         return draw(geometry, state, h, frame, frame_id=frame_id, caution=caution)
-    if not geometry.obstacles:
+    if not (geometry.obstacles or geometry.sensor_points):
         return []
     x, y = geometry.position(state)
     return [_marker(frame_id=frame_id, ns='robot', id=0, type=SPHERE,

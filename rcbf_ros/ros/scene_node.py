@@ -7,7 +7,8 @@ Topics (relative, so remappable):
 - ``state`` (sub): as the safety_filter reads it: std_msgs/Float64MultiArray, its ``state``
   section, else its first section; or nav_msgs/Odometry with ``state_type: odometry``;
 - ``diagnostics`` (sub, diagnostic_msgs/DiagnosticArray): the filter's; the ``h.<barrier>``
-  values and the message of the status that carries them;
+  values and the message of the status that carries them (or ``min_h``: a filter whose only
+  rows are sensor points');
 - ``obstacles`` (sub, std_msgs/Float64MultiArray, reliable, keep-last 1, transient-local): the
   safety filter's obstacle set, rows [x, y, radius] (:data:`rcbf_ros.node_logic.interface.
   OBSTACLES_QOS`); the scene draws the new set. A set the filter would refuse is refused here
@@ -23,8 +24,10 @@ Topics (relative, so remappable):
 Parameters: the filter keys of the params file (``system``, ``obstacles.*``, ``bands.*``,
 ``gaps.*``, ...), read and checked as the filter reads them
 (:func:`rcbf_ros.core.scene.scene_geometry`; the shipped configs keep them under ``/**``), and
-the node's own (:data:`PARAMETERS`): ``frame_id`` (``map``), ``rate_hz`` (10.0), ``caution_h``
-(0.1: barrier values in [0, caution_h) are amber), ``state_type`` (``array``).
+the node's own (:data:`PARAMETERS`): ``frame_id`` ('': the filter's state frame, its
+``odom_frame_id`` with observation sources, else ``map``; with sources no other frame is taken),
+``rate_hz`` (10.0), ``caution_h`` (0.1: barrier values in [0, caution_h) are amber),
+``state_type`` (``array``; an Odometry not in ``odom_frame_id`` is skipped with sources).
 
 A state sample that does not decode, or has the wrong length or a NaN, is skipped with a
 warning (at most one a second per kind); the scene keeps the last good state. So is a
@@ -179,6 +182,7 @@ class SceneNode(Node):
         try:
             self.settings = logic.scene_settings(params)
             self.geometry = scene_geometry(params)
+            self.frame_id = logic.marker_frame(self.settings.frame_id, self.geometry)
         except ValueError as exc:
             self.get_logger().error(f'invalid parameters: {exc}')
             raise
@@ -211,7 +215,7 @@ class SceneNode(Node):
         self.create_timer(1.0 / self.settings.rate_hz, self._on_timer)
         self.get_logger().info(
             f'{self.geometry.system}: {len(self.geometry.obstacles)} obstacles, '
-            f'{len(self.geometry.barrier_names)} barriers, frame {self.settings.frame_id!r}')
+            f'{len(self.geometry.barrier_names)} barriers, frame {self.frame_id!r}')
 
     def _state_type_parameter(self) -> str:
         """The declared ``state_type``, checked against the system (ValueError naming it)."""
@@ -234,8 +238,11 @@ class SceneNode(Node):
             return
         try:
             if self.state_type == 'odometry':
-                sections = {'state': conversions.odometry_to_state(msg,
-                                                                   system=self.geometry.system)}
+                # with sources, as the filter: a state in another frame than the points' is
+                # not theirs to be drawn with
+                sections = {'state': conversions.odometry_to_state(
+                    msg, system=self.geometry.system,
+                    frame_id=self.geometry.odom_frame_id or '')}
             else:
                 sections = conversions.msg_to_sections(msg, default_label='state')
             self.state = state_from_sections(sections=sections, n_x=self.geometry.n_x)
@@ -254,7 +261,7 @@ class SceneNode(Node):
         for status in msg.status:
             values = {kv.key: kv.value for kv in status.values}
             h = logic.barrier_values(values)
-            if h:
+            if h or 'min_h' in values:  # the filter's status, with barriers or sensor rows only
                 self.h, self.status = h, (_level(status), str(status.message))
                 self._changed = True
 
@@ -301,7 +308,7 @@ class SceneNode(Node):
         self._read_info()
         markers = logic.scene_markers(
             geometry=self.geometry, state=self.state, h=self.h,
-            frame_id=self.settings.frame_id, caution=self.settings.caution_h,
+            frame_id=self.frame_id, caution=self.settings.caution_h,
             status=self.status, points=self.points)
         self._publisher.publish(marker_array(markers, stamp=self.get_clock().now().to_msg(),
                                              clear=self._clear))

@@ -125,6 +125,8 @@ def test_state_and_diagnostics_in_markers_out(domain_id):
     (['--params-file', UNICYCLE, '-p', 'caution_h:=-1.0'], 'caution_h: must be >= 0'),
     (['--params-file', UNICYCLE, '-p', 'obstacles.y:=[0.0]'], 'obstacles.y'),
     ([], 'system: required'),
+    (['--params-file', str(REPO / 'config' / 'unicycle_lidar.yaml'), '-p', 'frame_id:=map'],
+     "frame_id: 'map' is not odom_frame_id 'odom'"),
 ])
 def test_invalid_parameters_exit_2_naming_the_key(domain_id, args, key):
     process = spawn(domain_id, '-m', 'rcbf_ros.ros.scene_node', '--ros-args', *args)

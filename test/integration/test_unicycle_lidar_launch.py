@@ -5,7 +5,9 @@ The controller drives from the arena's left straight at a goal whose line passes
 post at (1.5, -1.5); the test watches the robot pass that post on the filter's commands, stops
 the launch, and checks every recorded Odometry against the world's true geometry (the packaged
 params file's posts and walls), the robot node's own contact check (a warning on the true
-pose) and the bag with ``rcbf_ros bag check``.
+pose) and the bag with ``rcbf_ros bag check``. The bag also holds what a viewer shows: the
+scene markers in odom with the scan points that bound the command near the post and the
+active rows, and the world's true geometry, once.
 """
 from __future__ import annotations
 
@@ -101,3 +103,14 @@ def test_the_filter_on_the_scan_steers_the_lidar_robot_round_the_post(ros_domain
     off_line = np.abs((poses - start) @ np.array([-along[1], along[0]]))
     assert off_line.max() > 0.3, off_line.max()
     assert _world_clearance(poses).min() > -DRIFT, _world_clearance(poses).min()
+
+    # what Foxglove shows: the scene in odom, scan points binding by the post, ground truth
+    arrays = [m.markers for _, m in read_bag_messages(bag, topics=['/scene_markers'])]
+    assert arrays and {k.header.frame_id for a in arrays for k in a} == {'odom'}
+    binding = [[(p.x, p.y) for k in a if k.ns == 'binding_points' for p in k.points]
+               for a in arrays if any(k.ns == 'active_rows' and k.points for k in a)]
+    assert binding, f'no active row drawn in {len(arrays)} scene arrays'
+    near = np.array([point for points in binding for point in points])
+    assert np.hypot(near[:, 0] - 1.5, near[:, 1] + 1.5).min() < 0.6 + DRIFT + 0.05
+    (truth,) = [m.markers for _, m in read_bag_messages(bag, topics=['/world_markers'])]
+    assert {(k.header.frame_id, k.ns) for k in truth} == {('odom', 'ground_truth')}

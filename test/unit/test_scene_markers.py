@@ -177,7 +177,7 @@ def test_barrier_values_from_diagnostic_key_values():
 
 
 @pytest.mark.parametrize('params, match', [
-    ({'frame_id': ''}, 'frame_id'), ({'frame_id': 3}, 'frame_id'),
+    ({'frame_id': 3}, 'frame_id'), ({'frame_id': ['map']}, 'frame_id'),
     ({'rate_hz': 0.0}, 'rate_hz'), ({'rate_hz': 'fast'}, 'rate_hz'),
     ({'caution_h': -0.1}, 'caution_h'),
 ])
@@ -188,7 +188,10 @@ def test_scene_settings_refuse_bad_values_naming_the_key(params, match):
 
 def test_scene_settings_defaults():
     settings = logic.scene_settings({})
-    assert (settings.frame_id, settings.rate_hz, settings.caution_h) == ('map', 10.0, 0.1)
+    assert (settings.frame_id, settings.rate_hz, settings.caution_h) == ('', 10.0, 0.1)
+    # '' is the filter's state frame: map without observation sources
+    assert logic.marker_frame(settings.frame_id, _geometry('unicycle')) == 'map'
+    assert logic.marker_frame('odom', _geometry('unicycle')) == 'odom'
 
 
 def test_marker_constants_and_message_round_trip():

@@ -5,10 +5,21 @@ from __future__ import annotations
 from repo_files import REPO
 
 from rcbf_ros.core.config import filter_config_from_params
-from rcbf_ros.launch.table import Argument, DROP_IN_FILTER, launch_setup
+from rcbf_ros.launch.table import (
+    Argument,
+    argument_values,
+    DROP_IN_FILTER,
+    launch_setup,
+    resolve_entry,
+)
 from rcbf_ros.parameters.rules import load_params
 from sim_nodes import lidar_world as lw
-from sim_nodes.unicycle_lidar_node import build_world, settings_from_params, TOPICS
+from sim_nodes.unicycle_lidar_node import (
+    build_world,
+    settings_from_params,
+    TOPICS,
+    unicycle_lidar_interface,
+)
 
 CONFIG = REPO / 'config' / 'unicycle_lidar.yaml'
 
@@ -56,3 +67,73 @@ def test_a_command_type_the_base_does_not_take_is_refused_in_one_line(capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["rcbf_ros launch: unicycle_lidar: launch argument "
                    "command_type:='twist_stamped' is not one of twist"], err
+
+
+def test_the_launch_draws_the_scene_from_the_robot_and_the_filter():
+    """The scene node of the lidar launch: each topic it reads but ``obstacles`` (none in this
+    demo) is published in the launch, after every node's remaps at the arguments' defaults, in
+    the type it reads; its state is the filter's; its markers are recorded."""
+    from rcbf_ros.node_logic.interface import DIAGNOSTIC_ARRAY, FLOAT64_MULTIARRAY
+    from rcbf_ros.node_logic.safety_filter_interface import INTERFACE as FILTER
+    from rcbf_ros.ros.scene_node import INTERFACE as SCENE
+    setup = launch_setup('unicycle_lidar')
+    nodes = {entry.name: resolve_entry(entry, argument_values(setup, {}))
+             for entry in setup.nodes}
+    assert list(nodes).index('scene_markers') < list(nodes).index('recorder')
+    scene = nodes['scene_markers']
+    assert not scene.required   # a picture: its failure stops nothing
+
+    def topic(node: str, name: str) -> str:
+        name = dict(nodes[node].remappings).get(name, name)
+        return name if name.startswith('/') else f'/{name}'
+
+    published: dict[str, set[str]] = {}
+    for node, interface in (('unicycle_lidar', unicycle_lidar_interface()),
+                            ('safety_filter', FILTER), ('scene_markers', SCENE)):
+        for spec in interface.topics:
+            if spec.direction == 'pub':
+                published.setdefault(topic(node, spec.name), set()).add(spec.type)
+    reads = {spec.name: topic('scene_markers', spec.name) for spec in SCENE.topics
+             if spec.direction == 'sub' and spec.name != 'obstacles'}
+    assert reads == {'state': '/odom', 'diagnostics': '/diagnostics',
+                     'filter_info': '/filter_info'}
+    assert published[reads['state']] == {'nav_msgs/msg/Odometry'}
+    assert published[reads['diagnostics']] == {DIAGNOSTIC_ARRAY}
+    assert published[reads['filter_info']] == {FLOAT64_MULTIARRAY}
+    assert reads['state'] == topic('safety_filter', 'state')
+    assert dict(scene.parameters)['state_type'] == 'odometry' == dict(
+        nodes['safety_filter'].parameters)['state_type']
+    assert '/world_markers' in published and '/scene_markers' in published
+    assert not load_params(CONFIG, 'recorder').get('topics')   # every topic recorded
+
+
+def test_the_lidar_foxglove_layout_shows_the_scan_and_the_scene_in_odom():
+    """``config/foxglove_layout_lidar.json``: one 3D panel in the filter's state frame with the
+    scan, the scene and the ground truth; the plots read topics and data indexes the demo
+    publishes (the commands on the launch's defaults, filter_info's u_s and fail_safe)."""
+    import json
+
+    from rcbf_ros.core.filter_info import INFO_SECTIONS
+    layout = json.loads((REPO / 'config' / 'foxglove_layout_lidar.json').read_text())
+    panels = layout['configById']
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node['first']) + leaves(
+            node['second'])
+    assert sorted(leaves(layout['layout'])) == sorted(panels)   # every panel placed, once
+    (scene,) = [config for name, config in panels.items() if name.startswith('3D!')]
+    odom = filter_config_from_params(load_params(CONFIG, 'safety_filter')).sources.odom_frame_id
+    assert scene['followTf'] == odom == scene['layers']['grid']['frameId']
+    assert all(scene['topics'][topic]['visible']
+               for topic in ('/scan', '/scene_markers', '/world_markers'))
+    values = argument_values(launch_setup('unicycle_lidar'), {})
+    n_u = 2
+    start = {label: sum(n_u if size == 'n_u' else 1 for _, size, _ in INFO_SECTIONS[:i])
+             for i, (label, _, _) in enumerate(INFO_SECTIONS[:5])}
+    allowed = {f'/{values["cmd_in"]}.linear.x', f'/{values["cmd_in"]}.angular.z',
+               f'/{values["cmd_out"]}.linear.x', f'/{values["cmd_out"]}.angular.z',
+               *(f'/filter_info.data[{start["u_s"] + i}]' for i in range(n_u)),
+               f'/filter_info.data[{start["fail_safe"]}]'}
+    plotted = {p['value'] for name, config in panels.items() if name.startswith('Plot!')
+               for p in config['paths']}
+    assert plotted == allowed

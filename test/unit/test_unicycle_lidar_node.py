@@ -93,3 +93,39 @@ def test_help_needs_no_middleware(capsys):
     assert node.main(['unicycle_lidar', '--help']) == 0
     out = capsys.readouterr().out
     assert 'pub /tf_static' in out and 'sub cmd_vel' in out and 'laser_mount' in out
+
+
+def test_the_world_markers_are_the_true_posts_and_walls_labelled_ground_truth():
+    world = lw.random_world(7, kind='rooms')   # inner walls besides the arena's
+    markers = node.world_markers(world, frame_id='odom')
+    assert {m['frame_id'] for m in markers} == {'odom'}
+    assert {m['ns'] for m in markers} == {'ground_truth'}
+    assert len({m['id'] for m in markers}) == len(markers)
+    posts = [m for m in markers if m['type'] == node.CYLINDER]
+    assert [(m['position'][:2], m['scale'][0] / 2) for m in posts] == [
+        ((x, y), r) for x, y, r in world.circles.tolist()]
+    walls = [m for m in markers if m['type'] == node.CUBE]
+    assert len(walls) == len(world.segments)
+    for wall, (x0, y0, x1, y1) in zip(walls, world.segments.tolist()):
+        qz, qw = wall['orientation'][2:]
+        yaw = 2.0 * math.atan2(qz, qw)
+        cx, cy = wall['position'][:2]
+        for px, py in ((x0, y0), (x1, y1)):   # both ends of the centre line inside the box
+            along = (px - cx) * math.cos(yaw) + (py - cy) * math.sin(yaw)
+            across = -(px - cx) * math.sin(yaw) + (py - cy) * math.cos(yaw)
+            assert abs(along) <= wall['scale'][0] / 2 and abs(across) < 1e-9
+        assert wall['scale'][1] == world.wall_thickness
+    (label,) = [m for m in markers if m['type'] == node.TEXT_VIEW_FACING]
+    assert 'ground truth' in label['text']
+
+
+def test_the_world_markers_make_a_marker_array():
+    from rcbf_ros.ros.runtime import deserialize_message, get_message, serialize_message
+    from rcbf_ros.ros.scene_node import marker_array
+    world = node.build_world(node.settings_from_params({}), PACKAGED)
+    markers = node.world_markers(world, frame_id='odom')
+    back = deserialize_message(serialize_message(marker_array(markers)),
+                               get_message('visualization_msgs/msg/MarkerArray')).markers
+    assert [(m.header.frame_id, m.ns, m.id, m.type) for m in back] == [
+        ('odom', 'ground_truth', m['id'], m['type']) for m in markers]
+    assert len(back) == 5 + 4 + 1
