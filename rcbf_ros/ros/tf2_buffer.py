@@ -14,6 +14,7 @@ tests give them a fake; :func:`start_tf2` imports tf2_ros.
 """
 from __future__ import annotations
 
+import bisect
 import math
 import re
 from typing import Any, Callable, NamedTuple
@@ -27,6 +28,8 @@ from rcbf_ros.node_logic.tf_buffer import (
     FRAME,
     IDENTITY,
     MAX_FRAMES,
+    MAX_SAMPLES,
+    MAX_TOTAL_SAMPLES,
     NoTransform,
     Rigid,
 )
@@ -173,20 +176,34 @@ class Tf2Feed:
     (:data:`~rcbf_ros.node_logic.sources.TF_COUNT_KEYS`): a message of more than
     :data:`~rcbf_ros.messages.tf.MAX_TRANSFORMS` transforms, or with a frame id longer than
     :data:`~rcbf_ros.messages.sensor.MAX_FRAME_ID`, is refused whole; a transform that
-    :func:`~rcbf_ros.messages.tf.transform_refusal` refuses, or one naming a new frame beyond
-    ``max_frames``, is refused alone. What tf2 then ignores itself (data older than its cache,
-    TF_OLD_DATA) it logs itself and is not counted here.
+    :func:`~rcbf_ros.messages.tf.transform_refusal` refuses, one naming a new frame beyond
+    ``max_frames``, one older than its link's cache (tf2's TF_OLD_DATA), or one more sample
+    of a link holding ``max_samples`` within its cache or of ``max_total_samples`` in all, is
+    refused alone, in our buffer's words (where our buffer drops a full link's oldest sample,
+    the new one is refused here: tf2 cannot be told to drop one). tf2 bounds a link's
+    samples by its cache's time alone (and keeps several of one stamp): these bounds are kept
+    here, from the stamps handed to tf2, pruned as tf2 prunes its cache (behind the link's
+    newest).
     """
 
-    def __init__(self, buffer: Any, counts: dict[str, int], *,
-                 max_frames: int = MAX_FRAMES) -> None:
-        """``buffer``: a tf2_ros Buffer (``set_transform``, ``set_transform_static``);
-        ``counts``: the counts to keep (``messages``, ``refused``, ``transforms_refused``)."""
+    def __init__(self, buffer: Any, counts: dict[str, int], *, cache_s: float = DEFAULT_CACHE_S,
+                 max_frames: int = MAX_FRAMES, max_samples: int = MAX_SAMPLES,
+                 max_total_samples: int = MAX_TOTAL_SAMPLES) -> None:
+        """``buffer``: a tf2_ros Buffer (``set_transform``, ``set_transform_static``) whose
+        cache is ``cache_s``; ``counts``: the counts to keep (``messages``, ``refused``,
+        ``transforms_refused``)."""
         self.buffer = buffer
         self.counts = counts
+        self.cache_ns = int(cache_s * _S)
         self.max_frames = max_frames
+        self.max_samples = max_samples
+        self.max_total_samples = max_total_samples
         self.frames: set[str] = set()
         """Every frame handed to tf2 (tf2 never forgets one; this bounds how many)."""
+        self._stamps: dict[str, list[int]] = {}
+        """Per dynamic child frame, the stamps handed to tf2 within its cache (sorted)."""
+        self._samples = 0
+        """The stamps of all children together."""
 
     def take(self, message: Any, *, static: bool) -> str:
         """Check ``message`` (a tf2_msgs TFMessage) and hand its good transforms to tf2: ''
@@ -209,9 +226,9 @@ class Tf2Feed:
                         return (f'{TF_MESSAGE}: transforms[{k}].{field}: {len(frame)} '
                                 f'characters, more than the bound {MAX_FRAME_ID}')
             for k, transform in enumerate(transforms):
-                why = self._take(transform, static)
+                why = self._take(k, transform, static)
                 if why:
-                    refused.append(f'transforms[{k}] {why}')
+                    refused.append(why)
         except Exception as exc:  # not a TFMessage: refused whole, in one line
             counts['refused'] += 1
             return f'{TF_MESSAGE}: {type(exc).__name__}: {_text(exc)}'[:200]
@@ -221,18 +238,25 @@ class Tf2Feed:
         more = f' (and {len(refused) - 1} more)' if len(refused) > 1 else ''
         return ' '.join(refused[0].split()) + more
 
-    def _take(self, transform: Any, static: bool) -> str:
+    def _take(self, k: int, transform: Any, static: bool) -> str:
+        """Transform ``k`` of a message to tf2, or why not (a bad value naming its index, a
+        bound or tf2 naming its frames, as read_tf names them)."""
         parent, child = transform.header.frame_id, transform.child_frame_id
         parent, child = parent[parent.startswith('/'):], child[child.startswith('/'):]
         tr, q = transform.transform.translation, transform.transform.rotation
         why = transform_refusal(parent, child, (float(tr.x), float(tr.y), float(tr.z)),
                                 (float(q.x), float(q.y), float(q.z), float(q.w)))
         if why:
-            return why
+            return f'transforms[{k}] {why}'
         new = {parent, child} - self.frames
         if len(self.frames) + len(new) > self.max_frames:
             return (f'{quoted(parent)} -> {quoted(child)}: refused, the buffer holds '
                     f'{len(self.frames)} frames (at most {self.max_frames})')
+        stamp = int(transform.header.stamp.sec) * _S + int(transform.header.stamp.nanosec)
+        if not static:
+            why = self._room(parent, child, stamp)
+            if why:
+                return why
         try:
             if static:
                 self.buffer.set_transform_static(transform, 'default_authority')
@@ -242,6 +266,29 @@ class Tf2Feed:
             return f'{quoted(parent)} -> {quoted(child)}: tf2: {type(exc).__name__}: ' \
                    f'{_text(exc)}'
         self.frames.update(new)
+        if not static:
+            bisect.insort(self._stamps.setdefault(child, []), stamp)
+            self._samples += 1
+        return ''
+
+    def _room(self, parent: str, child: str, stamp: int) -> str:
+        """Why link ``child`` has no room for a sample at ``stamp`` ('' when it has), its
+        stamps older than the cache behind its newest dropped first, as tf2 drops them."""
+        names = f'{quoted(parent)} -> {quoted(child)}'
+        stamps = self._stamps.get(child, [])
+        if stamps:
+            if stamp < stamps[-1] - self.cache_ns:
+                return (f'{names}: stamp {_seconds(stamp)} is older than the cache '
+                        f'({_seconds(self.cache_ns)} behind the newest, {_seconds(stamps[-1])})')
+            drop = bisect.bisect_left(stamps, max(stamps[-1], stamp) - self.cache_ns)
+            del stamps[:drop]
+            self._samples -= drop
+        if len(stamps) >= self.max_samples:
+            return (f'{names}: refused, the link holds {len(stamps)} samples within '
+                    f'{_seconds(self.cache_ns)} (at most {self.max_samples})')
+        if self._samples >= self.max_total_samples:
+            return (f'{names}: refused, the buffer holds {self._samples} samples (at most '
+                    f'{self.max_total_samples})')
         return ''
 
 

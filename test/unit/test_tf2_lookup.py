@@ -289,7 +289,40 @@ def test_the_feed_bounds_transforms_per_message_and_frames():
     said = feed.take(SimpleNamespace(transforms=[transform_stamped('a', 'b'),
                                                  transform_stamped('b', 'c'),
                                                  transform_stamped('c', 'd')]), static=False)
-    assert said == "transforms[2] 'c' -> 'd': refused, the buffer holds 3 frames (at most 3)"
+    assert said == "'c' -> 'd': refused, the buffer holds 3 frames (at most 3)"
     assert feed.take(object(), static=True).startswith('tf2_msgs/msg/TFMessage: ')
     assert feed.counts == {'messages': 3, 'refused': 2, 'transforms_refused': 1}
     assert feed.buffer.kept == [('a', 'b', False), ('b', 'c', False)]
+
+
+def test_the_feed_refuses_data_older_than_the_cache_in_our_buffers_words():
+    recorder, sources = Recorder(), _sources()
+    feed = Tf2Feed(recorder, dict.fromkeys(('messages', 'refused', 'transforms_refused'), 0))
+    for stamp in (T0 + 20 * S, T0 + 9 * S, T0 + 10 * S):
+        transforms = [transform_stamped('odom', 'base_link', stamp_ns=stamp)]
+        said = feed.take(T['tf2_msgs/msg/TFMessage'](transforms=transforms), static=False)
+        assert said == sources.read_tf(tf_bytes(*transforms), static=False), stamp
+    assert said == ''
+    assert feed.counts == sources.tf_counts == {'messages': 3, 'refused': 0,
+                                                'transforms_refused': 1}
+    assert len(recorder.kept) == 2
+
+
+def test_the_feed_bounds_samples_per_link_and_in_all_within_the_cache():
+    feed = Tf2Feed(Recorder(), dict.fromkeys(('messages', 'refused', 'transforms_refused'), 0),
+                   max_samples=3, max_total_samples=5)
+
+    def send(child, stamp):
+        return feed.take(SimpleNamespace(transforms=[
+            transform_stamped('odom', child, stamp_ns=stamp)]), static=False)
+
+    for k in range(3):
+        assert send('a', T0 + k * S) == ''
+    assert send('a', T0 + 3 * S) == ("'odom' -> 'a': refused, the link holds 3 samples within "
+                                     '10.000 s (at most 3)')
+    assert send('a', T0 + 2 * S) != ''  # the same stamp again is one more sample for tf2
+    assert send('a', T0 + 11 * S) == ''  # 10 s on: the first sample left tf2's cache
+    assert send('b', T0) == '' and send('b', T0 + S) == ''
+    assert send('c', T0 + 11 * S).endswith('refused, the buffer holds 5 samples (at most 5)')
+    assert send('a', T0 + 12 * S + 1) == ''  # the second left too: room again
+    assert feed.counts['transforms_refused'] == 3
