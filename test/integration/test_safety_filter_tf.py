@@ -175,3 +175,5 @@ def test_a_scan_in_the_laser_frame_is_placed_through_tf(ros_domain_id):
     assert int(values['tf.messages']) >= 4 and int(values['tf.refused']) == 0, values
     assert 'Traceback' not in output, output[-4000:]
     assert "/tf refused: transforms[0] 'odom' -> 'base_link': translation (nan" in output
+    assert ('tf: tf2_ros Buffer and TransformListener' if USING_RCLPY else
+            "tf: the filter's own buffer on /tf and /tf_static (the Cyclone runtime)") in output

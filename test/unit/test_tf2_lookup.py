@@ -326,3 +326,13 @@ def test_the_feed_bounds_samples_per_link_and_in_all_within_the_cache():
     assert send('c', T0 + 11 * S).endswith('refused, the buffer holds 5 samples (at most 5)')
     assert send('a', T0 + 12 * S + 1) == ''  # the second left too: room again
     assert feed.counts['transforms_refused'] == 3
+
+
+def test_without_tf2_ros_start_tf2_says_why_in_one_line(monkeypatch):
+    import sys
+
+    from rcbf_ros.ros.tf2_buffer import start_tf2
+    monkeypatch.setitem(sys.modules, 'tf2_ros', None)  # import tf2_ros: ImportError
+    why = start_tf2(object(), lambda topic, reason: None, qos=None, static_qos=None)
+    assert isinstance(why, str) and why.startswith('tf2_ros is not importable ('), why
+    assert '\n' not in why
