@@ -127,11 +127,13 @@ class ObservationSources:
     """The latest points of every source, and the fail-safe's reason when they cannot be used
     (module docstring)."""
 
-    def __init__(self, config: SourceConfig) -> None:
+    def __init__(self, config: SourceConfig, *, tf: Any = None) -> None:
         self.config = config
         self._sources = {name: _Source(name, params) for name, params in config.sources}
-        self.tf = TransformBuffer()
-        """The transforms of ``/tf`` and ``/tf_static``."""
+        self.tf = TransformBuffer() if tf is None else tf
+        """The transforms of ``/tf`` and ``/tf_static`` (:meth:`read_tf`), or ``tf``: any
+        object with TransformBuffer's ``lookup_transform`` (rcbf_ros.ros.tf2_buffer's over
+        tf2_ros, which is fed by its own listener)."""
         self.tf_counts = dict.fromkeys(TF_COUNT_KEYS, 0)
         """Counts of the tf messages (:data:`TF_COUNT_KEYS`)."""
 

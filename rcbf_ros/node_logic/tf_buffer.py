@@ -124,12 +124,14 @@ def slerp(a: Sequence[float], b: Sequence[float], s: float) -> tuple[float, floa
     (s = 0: a, s = 1: b or -b)."""
     dot = sum(p * q for p, q in zip(a, b))
     if dot < 0.0:  # q and -q are one rotation: take the shorter way round
-        b, dot = tuple(-q for q in b), -dot
-    if dot > 0.9995:  # nearly equal: the linear blend, normalised, is exact to ~1e-8
+        b = tuple(-q for q in b)
+    # the angle between a and b, exact near 0 where acos(dot) is not (|a -+ b| = 2 sin, cos)
+    theta = 2.0 * math.atan2(math.sqrt(sum((p - q) ** 2 for p, q in zip(a, b))),
+                             math.sqrt(sum((p + q) ** 2 for p, q in zip(a, b))))
+    sin = math.sin(theta)
+    if sin < 1e-12:  # equal to rounding: the linear blend is exact
         out = [p + s * (q - p) for p, q in zip(a, b)]
     else:
-        theta = math.acos(min(dot, 1.0))
-        sin = math.sin(theta)
         wa, wb = math.sin((1.0 - s) * theta) / sin, math.sin(s * theta) / sin
         out = [wa * p + wb * q for p, q in zip(a, b)]
     norm = math.sqrt(sum(v * v for v in out))

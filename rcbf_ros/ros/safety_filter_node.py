@@ -30,6 +30,7 @@ from rcbf_ros.node_logic.filter_edge import one_line as _one_line
 from rcbf_ros.node_logic.interface import bound_text, DIAGNOSTIC_ARRAY
 from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME, TF_MESSAGE
 from rcbf_ros.node_logic.sources import ObservationSources, SENSOR_MESSAGES, topic_refusal
+from rcbf_ros.node_logic.tf_buffer import DEFAULT_CACHE_S
 from rcbf_ros.ros.node_main import declare_specs, run_node, spin
 from rcbf_ros.ros.runtime import (
     deserialize_message,
@@ -40,7 +41,9 @@ from rcbf_ros.ros.runtime import (
     Parameter,
     QoSProfile,
     ReliabilityPolicy,
+    USING_RCLPY,
 )
+from rcbf_ros.ros.tf2_buffer import start_tf2, Tf2
 
 
 class SafetyFilterNode(Node):
@@ -320,9 +323,14 @@ class SafetyFilterNode(Node):
         start): sensor-data QoS (best effort, keep last 5) unless ``<name>.best_effort`` is
         false."""
         config = self.config.sources
+        self._tf2: Tf2 | None = None
+        """tf2_ros at work for the sources (None: our buffer, or no sources)."""
         if config is None:
             return None
-        sources = ObservationSources(config)
+        self._tf2 = self._start_tf2()
+        sources = ObservationSources(config, tf=self._tf2 and self._tf2.lookup)
+        if self._tf2 is not None:
+            self._tf2.feed.counts = sources.tf_counts
         for name, params in config.sources:
             qos = QoSProfile(depth=5, history=HistoryPolicy.KEEP_LAST,
                              reliability=(ReliabilityPolicy.BEST_EFFORT if params.best_effort
@@ -334,23 +342,56 @@ class SafetyFilterNode(Node):
             self.get_logger().info(f'source {name}: {kind} on {params.topic}')
         return sources
 
+    @staticmethod
+    def _tf_qos() -> tuple[QoSProfile, QoSProfile]:
+        """tf2_ros's listener QoS of ``/tf`` (reliable; keep last 100) and of ``/tf_static``
+        (reliable; keep last 1 and transient-local)."""
+        return (QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
+                           reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.VOLATILE),
+                QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
+                           reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL))
+
+    def _start_tf2(self) -> Tf2 | None:
+        """On rclpy with tf2_ros importable: tf2_ros's Buffer and TransformListener (its own
+        ``/tf`` and ``/tf_static`` subscriptions) for the sources' lookups; else None, our
+        buffer. Says once which one answers."""
+        why = 'the Cyclone runtime'
+        if USING_RCLPY:
+            dynamic, static = self._tf_qos()
+            started = start_tf2(self, self._on_tf2, qos=dynamic, static_qos=static)
+            if not isinstance(started, str):
+                self.get_logger().info('tf: tf2_ros Buffer and TransformListener (cache '
+                                       f'{DEFAULT_CACHE_S:g} s) on /tf and /tf_static')
+                return started
+            why = started
+        self.get_logger().info(f"tf: the filter's own buffer on /tf and /tf_static ({why})")
+        return None
+
     def _subscribe_tf(self) -> None:
-        """With observation sources, ``/tf`` and ``/tf_static`` with tf2_ros's listener QoS
-        (reliable; keep last 100; keep last 1 and transient-local): a source's frame is known
-        only from its messages, so any may need tf."""
-        if self._sources is None:
+        """With observation sources and our buffer, ``/tf`` and ``/tf_static`` with tf2_ros's
+        listener QoS (:meth:`_tf_qos`): a source's frame is known only from its messages, so
+        any may need tf. With tf2_ros (:meth:`_start_tf2`) its listener has them."""
+        if self._sources is None or self._tf2 is not None:
             return
         tf_type = get_message(TF_MESSAGE)
-        dynamic = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
-                             reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.VOLATILE)
-        static = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
-                            reliability=ReliabilityPolicy.RELIABLE,
-                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        dynamic, static = self._tf_qos()
         self.create_subscription(tf_type, '/tf', lambda data: self._on_tf(data, False), dynamic,
                                  raw=True)
         self.create_subscription(tf_type, '/tf_static', lambda data: self._on_tf(data, True),
                                  static, raw=True)
+
+    def _on_tf2(self, topic: str, reason: str) -> None:
+        """After tf2_ros's listener took a message (through the feed): a WARN (through the log
+        throttle) for what was refused. Never raises."""
+        if not reason:
+            return
+        now_ns = time.monotonic_ns()
+        try:
+            self._log(logic.WARN, f'{topic} refused: {reason}', now_ns)
+        except Exception as exc:  # a defect, not an input
+            self._log_safely(f'{topic}: internal error: {_one_line(exc)}', now_ns)
 
     def _on_tf(self, data: bytes, static: bool) -> None:
         """A ``/tf`` or ``/tf_static`` message (CDR bytes): its transforms kept, a WARN (through

@@ -129,3 +129,64 @@ def test_the_filters_buffer_answers_as_tf2_ros(jazzy, tmp_path, ros_domain_id):
     # the worlds reach every outcome: found, and each of tf2's refusals
     assert set(kinds) == {'found', 'LookupException', 'ConnectivityException',
                           'ExtrapolationException'}, kinds
+
+
+def held_world(seed: int) -> dict:
+    """base_link -> laser static, odom -> base_link of one to five samples at whole
+    microseconds (as tf2 prints its times); lookups before, at, between and after them, with
+    tolerances that reach or miss the nearest sample."""
+    rng = np.random.default_rng(seed)
+    static = [_transform(rng, 'base_link', 'laser', T0, planar=False)]
+    stamps = sorted({T0 + int(rng.integers(0, 2_000_000)) * 1000
+                     for _ in range(int(rng.integers(1, 6)))})
+    dynamic = [_transform(rng, 'odom', 'base_link', t) for t in stamps]
+    lookups = []
+    for _ in range(40):
+        time_ns = stamps[0] + int(rng.integers(-500_000, 2_500_000)) * 1000
+        tolerance_ns = int(rng.choice([0, rng.integers(0, 600_000) * 1000]))
+        target, source = rng.permutation(['odom', 'laser'])
+        lookups.append([str(target), str(source), time_ns, tolerance_ns])
+    lookups += [['odom', 'laser', 0, 0], ['odom', 'nowhere', stamps[0], S]]
+    return {'static': static, 'dynamic': dynamic, 'lookups': lookups}
+
+
+def test_the_filters_tf2_lookup_holds_links_as_the_filters_buffer(jazzy, tmp_path,
+                                                                  ros_domain_id):
+    """Tf2Lookup over tf2_ros's Buffer (rcbf_ros.ros.tf2_buffer: the filter on rclpy) and our
+    buffer, with transform_tolerance: one dynamic link, so both hold the same sample."""
+    from test_ros2_integration import rclpy_python
+    worlds = [held_world(seed) for seed in range(12)]
+    cases = tmp_path / 'cases.json'
+    cases.write_text(json.dumps(worlds))
+    python = rclpy_python(jazzy, tmp_path)
+    done = jazzy.run(f'export PYTHONPATH="{HERE.parents[1]}:{HERE}:$PYTHONPATH"; '
+                     f'{python} {HERE / "tf2_held_lookups.py"} {cases}',
+                     domain_id=ros_domain_id, timeout=120)
+    if "No module named 'tf2_ros'" in done.stdout:
+        pytest.skip('this Jazzy has no tf2_ros (ros2/geometry2: tf2_ros_py)')
+    assert done.returncode == 0, done.stdout[-3000:]
+    theirs = json.loads(done.stdout.strip().splitlines()[-1])
+    outcomes: dict[str, int] = {}
+    for seed, (case, answers) in enumerate(zip(worlds, theirs)):
+        buffer = TransformBuffer(cache_s=10.0)
+        for items, static in ((case['static'], True), (case['dynamic'], False)):
+            for parent, child, stamp, translation, rotation in items:
+                assert not buffer.set_transform(StampedTransform(
+                    parent, child, stamp, tuple(translation), tuple(rotation)), static=static)
+        for (target, source, time_ns, tolerance_ns), tf2 in zip(case['lookups'], answers):
+            where = (seed, target, source, time_ns, tolerance_ns)
+            mine = buffer.lookup_transform(target, source, time_ns, tolerance_ns=tolerance_ns)
+            if isinstance(mine, NoTransform):
+                assert isinstance(tf2[0], str) and tf2[0] == mine.kind, (where, mine, tf2)
+                assert f'no transform from {source!r} to {target!r}' in tf2[1], (where, tf2)
+                outcomes[mine.kind] = outcomes.get(mine.kind, 0) + 1
+                continue
+            assert not isinstance(tf2[0], str), (where, mine, tf2)
+            np.testing.assert_allclose(tf2[0], mine.translation, atol=1e-9, err_msg=str(where))
+            q, p = np.array(tf2[1]), np.array(mine.rotation)
+            assert min(np.abs(q - p).max(), np.abs(q + p).max()) < 1e-9, (where, q, p)
+            first, last = case['dynamic'][0][2], case['dynamic'][-1][2]
+            key = 'held' if time_ns and not first <= time_ns <= last else 'found'
+            outcomes[key] = outcomes.get(key, 0) + 1
+    # the worlds reach every outcome: interpolated, held past either end, refused both ways
+    assert set(outcomes) == {'found', 'held', EXTRAPOLATION, FRAME}, outcomes
