@@ -271,9 +271,10 @@ class IntervalMargin:
         return nu
 
 
-ENCLOSURE_TRIES = 8
+ENCLOSURE_TRIES = 30
 """Inflations of the reachable box :meth:`IntervalMargin.enclosure` tries before it gives up
-(the margin is then infinite)."""
+(the margin is then infinite): a few where tau is small against the drift's rates of growth,
+many or none (no box closes) as tau approaches their inverse (PVTOL's operator: 1 / k_h)."""
 
 
 def _magnitude(value: Ball | float) -> float:

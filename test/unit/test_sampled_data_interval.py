@@ -95,6 +95,39 @@ def test_the_true_change_of_every_pvtol_row_stays_within_its_margin(data, period
         assert np.all(change <= nu + 1e-9), (change, nu)
 
 
+@settings(max_examples=40, deadline=None)
+@given(data=st.data(), horizon=st.floats(0.005, 0.3))
+def test_every_fine_step_trajectory_stays_in_the_enclosure(data, horizon):
+    """|x(t) - x_k| <= D entrywise over [0, tau] along 1 ms Euler steps of f + g u + psi,
+    u at vertices of the limits (switching at random), psi at vertices of the box."""
+    rng = np.random.default_rng(data.draw(st.integers(0, 2 ** 32 - 1)))
+    problem = _pvtol_problem(5.0, (0.0, 0.0))
+    system = problem.system
+    margin = sampled_data_margin(problem, control_period_s=horizon)
+    x_k = np.array([*rng.uniform(-3, 3, 4), rng.uniform(-3, 3), rng.uniform(-2, 2),
+                    rng.uniform(-3, 3)])
+    mean, std = rng.uniform(-0.2, 0.2, 7), rng.uniform(0.0, 0.1, 7)
+    found = margin.enclosure(x_k.tolist(), (np.abs(mean) + 2.0 * std).tolist())
+    if found is None:  # no box closes (tau k_h near 1): no bound, the margins are inf
+        assert horizon > 0.2
+        assert np.all(margin.rows(x_k.tolist(), mean.tolist(), std.tolist()) == math.inf)
+        return
+    spread = np.array(found)
+    low, high = np.array(system.u_min), np.array(system.u_max)
+    jet = system.closed_form_source().function()
+    for _ in range(4):
+        x, u = x_k.copy(), np.where(rng.random(2) < 0.5, low, high)
+        psi = mean + 2.0 * std * rng.choice([-1.0, 1.0], 7)
+        whole, rest = divmod(horizon, 1e-3)
+        for dt in [1e-3] * int(whole) + ([rest] if rest > 0 else []):
+            if rng.random() < 0.05:
+                u = np.where(rng.random(2) < 0.5, low, high)
+                psi = mean + 2.0 * std * rng.choice([-1.0, 1.0], 7)
+            f, _, g = jet(x)
+            x = x + dt * (f + g @ u + psi)
+            assert np.all(np.abs(x - x_k) <= spread + 1e-12), (x - x_k, spread)
+
+
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data(), period=st.floats(0.01, 0.15), latency=st.floats(0.0, 0.1))
 def test_cascaded_rows_on_the_unicycle_take_the_interval_margin_and_it_holds(data, period,
