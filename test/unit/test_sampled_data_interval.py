@@ -137,7 +137,10 @@ def test_cascaded_rows_on_the_unicycle_take_the_interval_margin_and_it_holds(dat
     families = (cascade(CircleObstacles(centers=((0.5, -0.3),), radii=(0.4,), margin=0.1),
                         system, [2.0]),
                 cascade(HalfPlane(normals=((0.6, 0.8),), offsets=(-2.0,)), system, [1.0]),
-                BandBarrier(index=2, half_width=1.0, center=0.0))
+                BandBarrier(index=2, half_width=1.0, center=0.0),
+                # the look-ahead point follows the direction of travel: either point's row
+                CircleObstacles(centers=((-0.5, 0.8),), radii=(0.3,), margin=0.1,
+                                heading_index=2, lookahead=0.05, speed_input=0))
     problem = RCBFProblem(system=system, families=families, alpha=5.0, k_c=2.0)
     margin = sampled_data_margin(problem, control_period_s=period, latency_s=latency)
     assert isinstance(margin, IntervalMargin)
