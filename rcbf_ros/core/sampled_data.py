@@ -186,7 +186,6 @@ class SampledDataMargin:
         return self._circles(x, self._box(mean, std), cx, cy, self._point_lookahead)
 
 
-
 class IntervalMargin:
     """The margins nu_i of a problem with a closed form (:mod:`rcbf_ros.core.lie_closed_form`)
     on any built-in system, bounded by ball arithmetic (:mod:`rcbf_ros.core.ball`) over an a
@@ -343,8 +342,8 @@ def sampled_data_margin(problem: RCBFProblem, *, control_period_s: float = 0.0,
                          'latency_s to 0')
     if footprint is not None:
         raise ValueError(f'{key}: the sampled-data margin of sensor points is derived on the '
-                         f'unicycle only, not the {name} system; set control_period_s and '
-                         'latency_s to 0')
+                         f'unicycle beside uncascaded barriers only, not here (the {name} '
+                         'system); set control_period_s and latency_s to 0')
     for family in problem.families:
         if not has_closed_form(replace(problem, families=(family,))):
             raise ValueError(f'{key}: no sampled-data margin is derived for the '
