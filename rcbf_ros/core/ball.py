@@ -177,6 +177,8 @@ def ball_sin(value: Ball | Number) -> Ball | float:
     """sin over a ball: |sin a - sin c| <= min(|a - c|, 2), within [-1, 1]."""
     if not isinstance(value, Ball):
         return math.sin(value)
+    if not math.isfinite(value.centre):  # math.sin refuses inf: the whole range
+        return _widened(0.0, 1.0)
     return _trig(math.sin(value.centre), value.radius)
 
 
@@ -184,6 +186,8 @@ def ball_cos(value: Ball | Number) -> Ball | float:
     """cos over a ball, as :func:`ball_sin`."""
     if not isinstance(value, Ball):
         return math.cos(value)
+    if not math.isfinite(value.centre):
+        return _widened(0.0, 1.0)
     return _trig(math.cos(value.centre), value.radius)
 
 

@@ -67,6 +67,13 @@ def test_sin_and_cos_enclose_their_values(a, ra, t):
         assert out.low >= -1.0 - 1e-12 and out.high <= 1.0 + 1e-12
 
 
+def test_sin_and_cos_of_an_unbounded_ball_are_the_whole_range():
+    for centre in (math.inf, -math.inf, math.nan):
+        for function in (ball_sin, ball_cos):
+            out = function(Ball(centre, 1.0))
+            assert out.low <= -1.0 and out.high >= 1.0
+
+
 def test_the_rounding_of_a_sum_is_covered():
     # 1 + 2^-60 rounds to 1: the radius must still hold the exact sum
     total = Ball(1.0) + Ball(2.0 ** -60)
