@@ -1,7 +1,8 @@
-"""The Unicycle filter between samples and under latency: violations with and without the
-sampled-data margin, and what the margin costs.
+"""The Unicycle and PVTOL filters between samples and under latency: violations with and
+without the sampled-data margin, and what the margin costs.
 
     python benchmarks/bench_sampled_data.py [--worlds 200] [--period 0.1] [--latency 0.05]
+        [--pvtol-worlds 50] [--pvtol-period 0.02] [--pvtol-latency 0.02]
 
 Fine-step simulation of the TRUE dynamics (rcbf_ros/envs/unicycle.py: x_dot = g(x) (u + u_d),
 u_d = -0.1 cos(theta) [1, 0]), 1 ms Euler steps. The filter samples the state every period T;
@@ -15,8 +16,14 @@ included) is below 0 for some circle or point. Printed per case: worlds with a v
 least h over every fine step, the mean correction ||u_S|| per decision and the mean distance
 left to the goal after 2.5 s (the start is 3.6-5.4 m from it).
 
-The fine-step simulation (:func:`simulate`) is also what test/unit/test_sampled_data.py runs,
-on a few worlds.
+PVTOL (:func:`simulate_pvtol`, the interval margin of its cascaded rows): random transfer
+layouts, the drone in hover near a circle, aggressive proposals through it, 1 ms Euler steps of
+the true PVTOL; printed with and without the margin: worlds where a row's (cascaded) barrier or
+a base set (a disc with its margin, a band) was left at some fine step, the least base value,
+the fail-safe decisions (rows infeasible), the median margin and the median decision time.
+
+The fine-step simulations are also what test/unit/test_sampled_data.py and
+test/unit/test_sampled_data_interval.py run, on a few worlds.
 """
 from __future__ import annotations
 
@@ -194,6 +201,151 @@ def simulate(worlds: list[World], *, period: float, latency: float, tightened: b
                    remaining)
 
 
+# ------------------------------------------------------------------ PVTOL (cascaded rows)
+PVTOL_BOX_STD = (0.0, 0.0, 0.0, 0.0, 0.1, 0.0, 0.0)
+"""The PVTOL filter's disturbance box (mean 0, k_c = 2): 0.2 rad/s on theta covers the true
+attitude error 0.1 ((f - 1) - sin th) while the thrust stays in [0, 2]."""
+PVTOL_TILT = 1.3
+"""The proposals' largest tilt (rad): beyond the tilt band (pi/3), so the filter must act."""
+
+
+class PVTOLWorld(NamedTuple):
+    """One random PVTOL scene."""
+
+    params: dict
+    """The filter's parameters (config/pvtol.yaml with a random layout)."""
+    start: np.ndarray
+    """(7,) the start state, a level hover."""
+    goal: np.ndarray
+    """(2,) where the proposals steer to."""
+
+
+def pvtol_worlds(count: int, seed: int) -> list[PVTOLWorld]:
+    """``count`` random PVTOL worlds: a random transfer layout (rcbf_ros/envs/layouts.py), the
+    start 0.6-1.2 m from one of its circles' edges, the goal beyond that circle, so that the
+    aggressive proposals (:func:`pvtol_proposal`) fly at it."""
+    from rcbf_ros.envs.layouts import layout_to_params, pvtol_random_layout
+    from rcbf_ros.parameters.rules import find_config, load_params
+    rng = np.random.default_rng(seed)
+    base = load_params(find_config('pvtol'), 'safety_filter')
+    worlds = []
+    while len(worlds) < count:
+        obstacles, _ = pvtol_random_layout(int(rng.integers(2 ** 31 - 1)))
+        target = obstacles[int(rng.integers(len(obstacles)))]
+        bearing = rng.uniform(-math.pi, math.pi)
+        away = np.array([math.cos(bearing), math.sin(bearing)])
+        start = np.array([target.x, target.y]) + (target.radius + rng.uniform(0.6, 1.2)) * away
+        clear = all(math.hypot(*(start - (o.x, o.y))) > o.radius + MARGIN + 0.3
+                    for o in obstacles)
+        if not (clear and abs(start[0]) < 5.0 and abs(start[1]) < 2.0):
+            continue
+        params = dict(base, alpha=float(rng.uniform(10.0, 25.0)))
+        layout = layout_to_params(obstacles)
+        layout.pop('obstacles.shape')
+        params.update(layout)
+        goal = np.array([target.x, target.y]) - 2.0 * away
+        worlds.append(PVTOLWorld(params, np.array([*start, 0.0, 0.0, 0.0, 1.0, start[0]]),
+                                 goal))
+    return worlds
+
+
+def pvtol_proposal(state: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """An aggressive go-to-goal (rcbf_ros/envs/nominal.py, high gains, tilt up to
+    :data:`PVTOL_TILT`): it flies into what lies in its way."""
+    from rcbf_ros.envs.nominal import pvtol_go_to_goal
+    return pvtol_go_to_goal(state, tuple(goal), position_gain=2.0, velocity_gain=0.5,
+                            max_acceleration=1.5, max_tilt=PVTOL_TILT, attitude_gain=6.0)
+
+
+def pvtol_true_derivative(state: np.ndarray, command: np.ndarray) -> np.ndarray:
+    """The true PVTOL of rcbf_ros/envs/pvtol.py without the operator's noise: the nominal
+    model plus the attitude error 0.1 ((f - 1) - sin th) on theta_dot."""
+    _, _, v1, v2, theta, thrust, x_h = state
+    return np.array([v1, v2, -math.sin(theta) * thrust, math.cos(theta) * thrust - 1.0,
+                     command[0] + 0.1 * ((thrust - 1.0) - math.sin(theta)), command[1],
+                     3.5 * (state[0] - x_h)])
+
+
+class PVTOLOutcome(NamedTuple):
+    """The PVTOL case over its worlds."""
+
+    violated: np.ndarray
+    """(W,) bool: some fine step left the set of some row (its cascaded barrier below 0)."""
+    touched: np.ndarray
+    """(W,) bool: some fine step left a base set (an obstacle's disc with its margin, a band)."""
+    least_h: np.ndarray
+    """(W,) the least base barrier value over every fine step."""
+    verified: np.ndarray
+    """(W,) bool: a row set was left while every decision so far met its rows (no fail-safe
+    yet: the fail-safe action is outside the guarantee)."""
+    fail_safe: int
+    """Decisions answered with the fail-safe."""
+    decisions: int
+    """Filter calls."""
+    margins: np.ndarray
+    """(decisions, K) the margins of every decision (empty without them)."""
+    decision_time_s: float
+    """Median time of one decision (s)."""
+
+
+def simulate_pvtol(worlds: list[PVTOLWorld], *, period: float, latency: float,
+                   tightened: bool, duration: float = 3.0) -> PVTOLOutcome:
+    """Run every PVTOL world for ``duration`` s under 1 ms Euler steps of the true PVTOL, the
+    commands held for T and computed from states L old (as :func:`simulate`)."""
+    import time
+
+    from rcbf_ros.core.barriers import Cascaded
+    from rcbf_ros.core.config import filter_config_from_params
+    from rcbf_ros.core.lie_closed_form import ClosedFormTerms
+    from rcbf_ros.core.sampled_data import sampled_data_margin
+    period_steps = max(1, round(period / FINE_STEP_S))
+    delay_steps = round(latency / FINE_STEP_S)
+    box = ((0.0,) * 7, PVTOL_BOX_STD)
+    violated, touched, least_h, verified, margins, times = [], [], [], [], [], []
+    fail_safe = decisions = 0
+    for world in worlds:
+        problem = filter_config_from_params(world.params).problem
+        safety_filter = SafetyFilter(problem, control_period_s=period if tightened else 0.0,
+                                     latency_s=latency if tightened else 0.0,
+                                     slack_tolerance=1e-3)
+        margin = sampled_data_margin(problem, control_period_s=period, latency_s=latency)
+        top = ClosedFormTerms.from_problem(problem)
+        bases = RCBFProblem(system=problem.system, families=tuple(
+            f.base if type(f) is Cascaded else f for f in problem.families))
+        while any(type(f) is Cascaded for f in bases.families):
+            bases = RCBFProblem(system=problem.system, families=tuple(
+                f.base if type(f) is Cascaded else f for f in bases.families))
+        base = ClosedFormTerms.from_problem(bases)
+        state, command = world.start.copy(), np.zeros(2)
+        pending: list[tuple[int, np.ndarray]] = []
+        low_top, low_base = math.inf, math.inf
+        failed = broken = False
+        for step in range(round(duration / FINE_STEP_S)):
+            if step % period_steps == 0:
+                started = time.perf_counter()
+                result = safety_filter.filter(state, pvtol_proposal(state, world.goal), *box)
+                times.append(time.perf_counter() - started)
+                decisions += 1
+                fail_safe += bool(result.fail_safe)
+                failed = failed or bool(result.fail_safe)
+                if tightened:
+                    margins.append(margin.rows(state.tolist(), *box))
+                pending.append((step + delay_steps, np.array(result.u_safe)))
+            while pending and pending[0][0] <= step:
+                command = pending.pop(0)[1]
+            state = state + FINE_STEP_S * pvtol_true_derivative(state, command)
+            low_top = min(low_top, float(top.terms(state).h.min()))
+            broken = broken or (low_top < 0.0 and not failed)
+            low_base = min(low_base, float(base.terms(state).h.min()))
+        violated.append(low_top < 0.0)
+        touched.append(low_base < 0.0)
+        least_h.append(low_base)
+        verified.append(broken)
+    return PVTOLOutcome(np.array(violated), np.array(touched), np.array(least_h),
+                        np.array(verified), fail_safe, decisions, np.array(margins),
+                        float(np.median(times)))
+
+
 TITLE = 'Between samples and under latency: violations with and without the margin'
 
 
@@ -213,23 +365,47 @@ def run(worlds: list[World], period: float, latency: float) -> list[str]:
     return table
 
 
+def run_pvtol(worlds: list[PVTOLWorld], period: float, latency: float) -> list[str]:
+    """The PVTOL table: violations, fail-safes, margins and decision time with and without."""
+    table = ['| rows | worlds violated (a row set) | of them before any fail-safe | '
+             'worlds violated (a base set) | least base h | fail-safe decisions | '
+             'median margin | median decision (ms) |', '|---|---|---|---|---|---|---|---|']
+    for tightened in (False, True):
+        out = simulate_pvtol(worlds, period=period, latency=latency, tightened=tightened)
+        median = f'{np.median(out.margins):.3g}' if out.margins.size else '-'
+        table.append(f"| {'with margin' if tightened else 'T = L = 0'} | "
+                     f'{int(out.violated.sum())} / {len(worlds)} | '
+                     f'{int(out.verified.sum())} / {len(worlds)} | '
+                     f'{int(out.touched.sum())} / {len(worlds)} | {out.least_h.min():.4f} | '
+                     f'{out.fail_safe} / {out.decisions} | {median} | '
+                     f'{1e3 * out.decision_time_s:.3f} |')
+    return table
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--worlds', type=int, default=200)
     parser.add_argument('--period', type=float, default=0.1, help='T (s)')
     parser.add_argument('--latency', type=float, default=0.05, help='L (s)')
     parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--pvtol-worlds', type=int, default=50)
+    parser.add_argument('--pvtol-period', type=float, default=0.02, help='T on PVTOL (s)')
+    parser.add_argument('--pvtol-latency', type=float, default=0.02, help='L on PVTOL (s)')
     parser.add_argument('--no-write', dest='write', action='store_false',
                         help='print the section only; leave benchmarks/RESULTS.md alone')
     args = parser.parse_args(argv)
-    if args.worlds < 1:
-        parser.error('--worlds must be >= 1')
+    if args.worlds < 1 or args.pvtol_worlds < 1:
+        parser.error('--worlds and --pvtol-worlds must be >= 1')
     worlds = random_worlds(args.worlds, args.seed)
     table = run(worlds, args.period, args.latency)
+    pvtol = run_pvtol(pvtol_worlds(args.pvtol_worlds, args.seed), args.pvtol_period,
+                      args.pvtol_latency)
     from benchmarks._results import publish_section
     options = ''.join(f' --{name} {value}' for name, value, default in (
         ('worlds', args.worlds, 200), ('period', args.period, 0.1),
-        ('latency', args.latency, 0.05), ('seed', args.seed, 0)) if value != default)
+        ('latency', args.latency, 0.05), ('seed', args.seed, 0),
+        ('pvtol-worlds', args.pvtol_worlds, 50), ('pvtol-period', args.pvtol_period, 0.02),
+        ('pvtol-latency', args.pvtol_latency, 0.02)) if value != default)
     publish_section(TITLE, script='bench_sampled_data.py' + options, write=args.write, blocks=[
         f'T = {args.period} s, L = {args.latency} s: {args.worlds} random worlds (seed '
         f'{args.seed}), 1 ms Euler steps of the true Unicycle over 2.5 s, commands held for T '
@@ -238,7 +414,17 @@ def main(argv: list[str] | None = None) -> int:
         '(docs/SAFETY_FILTER.md, "Between samples and under latency"). A world is violated '
         'when h at the look-ahead point (margin included) falls below 0 at a fine step. '
         'norm of u_S: the correction per decision; the last column: what the margin costs in '
-        'progress (the start is 3.6-5.4 m from the goal).', table])
+        'progress (the start is 3.6-5.4 m from the goal).', table,
+        f'PVTOL (cascaded rows, the interval margin): T = {args.pvtol_period} s, '
+        f'L = {args.pvtol_latency} s, {args.pvtol_worlds} random worlds (config/pvtol.yaml with '
+        'a random transfer layout, alpha U[10, 25], the drone in hover 0.6-1.2 m from a circle '
+        'and aggressive go-to-goal proposals through it, tilt up to 1.3 rad), 1 ms Euler steps '
+        'of the true PVTOL (its attitude error, the operator without noise) over 3 s. A row '
+        "set: the filter's (cascaded) barrier; a base set: an obstacle's disc with its margin, "
+        'a band. Fail-safe decisions: the rows infeasible (slack tolerance 1e-3), the fail-safe '
+        'holds attitude and thrust (outside the guarantee; "before any fail-safe": the world '
+        'left a row set while every decision so far met its rows). Decision time: the median '
+        'of SafetyFilter.filter, margin included.', pvtol])
     return 0
 
 

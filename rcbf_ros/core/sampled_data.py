@@ -35,17 +35,41 @@ w = |mean| + k_c std the box's reach per entry:
 
       nu = (|H| D)^T (G + w) + |grad h(x_k)|^T B + alpha (|grad h(x_k)|^T D + 1/2 D^T |H| D).
 
-Anything else (another system, a cascaded family, a system without input limits) has no
-derived bound: :func:`sampled_data_margin` refuses it in one line naming the key and the
-system rather than filter with rows that hold at the samples only.
+Every other problem with a closed form (:mod:`rcbf_ros.core.lie_closed_form`: PVTOL with its
+cascaded obstacles, bands and arena, a cascaded family on the Unicycle) gets
+:class:`IntervalMargin`: the same Breeden et al. margin, bounded by interval arithmetic over an
+a priori enclosure, as validated ODE solvers do. The enclosure is a box x_k +/- D with
+tau sup |f(x) + g(x) u + psi| <= D over the box, every u within the limits and psi in the
+disturbance box (f and g evaluated from the system's ``closed_form_source`` in ball arithmetic,
+:mod:`rcbf_ros.core.ball`); then every state reachable within tau lies in it. Over that box the
+filter's own generated code for h, grad h, L_f h and L_g h runs on jets (balls with their
+gradients), and each change is bounded by the smaller of the values' enclosure and the mean
+value bound sum_k sup|d/dx_k| D_k (the latter only where no comparison of the code is undecided
+over the box: across a switch the values' hull over both branches holds, a gradient does not):
+
+    nu_i = sup|dL_f h_i| + sup|dL_g h_i|^T U + sup|d grad h_i|^T (|mean| + k_c std)
+           + alpha sup|d h_i|,
+
+U the largest |u| per input within the limits (|d rho_i| <= |d grad h_i|^T (|mean| + k_c
+std), rho_i as :func:`~rcbf_ros.core.qp.robust_margin` forms it). Where no enclosure closes
+the margin is infinite and the filter answers with its fail-safe.
+
+Refused, in one line naming the key and the system, rather than filter with rows that hold at
+the samples only: a system without input limits; Car Following (its prior brakes by k_b times
+the gap inside a switch, a jump of about 120 m/s^2: at the switches, where its shipped scenario
+drives, the margin is thousands and no input meets it); sensor points on another system than
+the Unicycle; a problem without a closed form (a system or family given by dotted path, a
+cascaded look-ahead point).
 """
 from __future__ import annotations
 
+from dataclasses import replace
 import math
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
+from rcbf_ros.core.ball import Ball, BALL_NAMESPACE, hull_over_branches, Jet, JET_NAMESPACE
 from rcbf_ros.core.barriers import (
     BandBarrier,
     BarrierFamily,
@@ -53,7 +77,8 @@ from rcbf_ros.core.barriers import (
     HalfPlane,
     PairGap,
 )
-from rcbf_ros.core.dynamics import Unicycle
+from rcbf_ros.core.dynamics import CarFollowing, DriftSource, state_names, Unicycle
+from rcbf_ros.core.lie_closed_form import ClosedFormTerms, has_closed_form
 from rcbf_ros.core.rcbf import RCBFProblem
 
 TIMING_LIMIT_S = 1.0
@@ -63,6 +88,11 @@ the horizon."""
 
 _QUADRATIC = (HalfPlane, BandBarrier, PairGap)
 """Families whose margin comes from their quadratic coefficients."""
+
+REFUSED_SYSTEMS: dict[type, str] = {
+    CarFollowing: 'its braking switches jump the prior by k_b times the gap, so the margin '
+                  'near a switch exceeds what any input within the limits can meet'}
+"""Built-in systems whose interval margin is refused, and why (module docstring)."""
 
 
 def _timing_key(control_period_s: float, latency_s: float) -> str:
@@ -156,9 +186,132 @@ class SampledDataMargin:
         return self._circles(x, self._box(mean, std), cx, cy, self._point_lookahead)
 
 
+class IntervalMargin:
+    """The margins nu_i of a problem with a closed form (:mod:`rcbf_ros.core.lie_closed_form`)
+    on any built-in system, bounded by ball arithmetic (:mod:`rcbf_ros.core.ball`) over an a
+    priori enclosure of the reachable states (module docstring); build with
+    :func:`sampled_data_margin`. ``rows(x, mean, std)`` gives the K rows' margins (inf where no
+    enclosure closes: the filter then answers with its fail-safe)."""
+
+    def __init__(self, problem: RCBFProblem, horizon: float) -> None:
+        system = problem.system
+        low = np.asarray(system.u_min, dtype=np.float64)
+        high = np.asarray(system.u_max, dtype=np.float64)
+        self.horizon = float(horizon)
+        """tau = L + T (s)."""
+        self._reach = np.maximum(np.abs(low), np.abs(high)).tolist()
+        self._alpha, self._k_c = float(problem.alpha), float(problem.k_c)
+        self._n_x, self._n_u, self._count = system.n_x, system.n_u, problem.n_barriers
+        self._drift = _ball_drift(system.closed_form_source(), system.n_x)
+        terms = ClosedFormTerms.from_problem(problem)
+        if terms is None:  # sampled_data_margin checks it first
+            raise ValueError(f'{problem!r} has no closed form')
+        namespace = dict(JET_NAMESPACE)
+        exec(compile(terms.source, '<closed form over jets>', 'exec'),  # noqa: S102
+             namespace)
+        self._terms_over_jets = namespace['barrier_terms']
+        self._terms = terms
+        # the look-ahead point each proposal can choose: ahead, and behind where it reverses
+        speeds = sorted({s for s in (getattr(f, 'speed_input', None) for f in problem.families)
+                         if s is not None})
+        self._proposals = [[0.0] * self._n_u]
+        if speeds:
+            backwards = [0.0] * self._n_u
+            for j in speeds:
+                backwards[j] = -1.0
+            self._proposals.append(backwards)
+
+    def enclosure(self, x: Sequence[float], w: Sequence[float]) -> list[float] | None:
+        """(n_x,) D with every state reachable from x within tau in x +/- D, or None where no
+        enclosure closes (the module docstring's a priori bound)."""
+        rate = self._rate
+        spread = [self.horizon * v for v in rate(x, [0.0] * self._n_x, w)]
+        for _ in range(ENCLOSURE_TRIES):
+            trial = [1.25 * v + 1e-9 for v in spread]
+            spread = [self.horizon * v for v in rate(x, trial, w)]
+            if all(s <= t for s, t in zip(spread, trial)):
+                return spread
+        return None
+
+    def _rate(self, x: Sequence[float], radius: Sequence[float], w: Sequence[float]
+              ) -> list[float]:
+        """sup of |f + g u + psi| per entry over x +/- radius, u within the limits, psi in the
+        box."""
+        (f, g), _ = hull_over_branches(self._drift, [Ball(c, r) for c, r in zip(x, radius)])
+        return [_magnitude(fi) + sum(_magnitude(gij) * uj for gij, uj in zip(gi, self._reach))
+                + wi for fi, gi, wi in zip(f, g, w)]
+
+    def rows(self, x: Sequence[float], mean: Sequence[float], std: Sequence[float]
+             ) -> np.ndarray:
+        """(K,) nu_i >= 0 of the problem's rows at the sampled state x and the box (inf where
+        no bound is found)."""
+        state = [float(v) for v in x]
+        w = (np.abs(np.asarray(mean, dtype=np.float64))
+             + self._k_c * np.asarray(std, dtype=np.float64)).tolist()
+        count = self._count
+        spread = self.enclosure(state, w) if all(map(math.isfinite, state + w)) else None
+        if spread is None:
+            return np.full(count, math.inf)
+        box = [Jet.variable(c, r, k) for k, (c, r) in enumerate(zip(state, spread))]
+        nu = np.zeros(count)
+        for proposal in self._proposals:
+            at = self._terms.terms(state, np.array(proposal))
+            at_h, at_grad, at_lf, at_lg = (v.tolist() for v in at)  # floats: NaN, no warning
+            (h, grad, lf, lg), smooth = hull_over_branches(self._terms_over_jets, box, proposal)
+            radii = spread if smooth else None
+            for i in range(count):
+                value = (_change(lf[i], at_lf[i], radii)
+                         + sum(_change(b, v, radii) * r
+                               for b, v, r in zip(lg[i], at_lg[i], self._reach))
+                         + sum(_change(b, v, radii) * wk
+                               for b, v, wk in zip(grad[i], at_grad[i], w))
+                         + self._alpha * _change(h[i], at_h[i], radii))
+                nu[i] = max(nu[i], value if value == value else math.inf)
+        return nu
+
+
+ENCLOSURE_TRIES = 30
+"""Inflations of the reachable box :meth:`IntervalMargin.enclosure` tries before it gives up
+(the margin is then infinite): a few where tau is small against the drift's rates of growth,
+many or none (no box closes) as tau approaches their inverse (PVTOL's operator: 1 / k_h)."""
+
+
+def _magnitude(value: Ball | float) -> float:
+    """The largest |v| over a ball or of a float."""
+    return value.magnitude() if isinstance(value, Ball) else abs(float(value))
+
+
+def _change(value: Jet | Ball | float, at: float, radii: list[float] | None) -> float:
+    """A bound of |v(x) - at| over the box, ``at`` = v(x_k): from the enclosure of the values,
+    and for a jet with ``radii`` (the box's, the code smooth over it) from the mean value
+    theorem too, the smaller."""
+    if isinstance(value, Jet):
+        bound = abs(value.value.centre - at) + value.value.radius
+        return bound if radii is None else min(bound, value.change(radii))
+    if isinstance(value, Ball):
+        return abs(value.centre - at) + value.radius
+    return abs(float(value) - at)
+
+
+def _ball_drift(source: DriftSource, n_x: int) -> Callable:
+    """A system's f and g (:class:`DriftSource`) as a function of n_x balls -> (f (n_x),
+    g (n_x lists of n_u)), run by :func:`hull_over_branches`."""
+    g = [['0.0'] * source.n_u for _ in range(n_x)]
+    for (i, j), entry in source.g.items():
+        g[i][j] = entry if isinstance(entry, str) else repr(float(entry))
+    f = ', '.join(e if isinstance(e, str) else repr(float(e)) for e in source.f)
+    text = '\n'.join(['def drift(values):', f'    {", ".join(state_names(n_x))}, = values',
+                      *(f'    {line}' for line in source.lines),
+                      f'    return [{f}], [{", ".join("[" + ", ".join(row) + "]" for row in g)}]',
+                      ''])
+    namespace = dict(BALL_NAMESPACE)
+    exec(compile(text, '<drift over balls>', 'exec'), namespace)  # noqa: S102 - own source
+    return namespace['drift']
+
+
 def sampled_data_margin(problem: RCBFProblem, *, control_period_s: float = 0.0,
                         latency_s: float = 0.0, footprint: BarrierFamily | None = None
-                        ) -> SampledDataMargin | None:
+                        ) -> SampledDataMargin | IntervalMargin | None:
     """The margins of ``problem``'s rows (and of sensor points around ``footprint``) for a
     command held ``control_period_s`` and applied ``latency_s`` after its state was sampled;
     None when both are 0 (the continuous-time rows, unchanged).
@@ -174,23 +327,38 @@ def sampled_data_margin(problem: RCBFProblem, *, control_period_s: float = 0.0,
     key = _timing_key(control_period_s, latency_s)
     system = problem.system
     name = getattr(system, 'system_name', '') or type(system).__name__
-    if type(system) is not Unicycle:
-        raise ValueError(f'{key}: no sampled-data margin is derived for the {name} system '
-                         '(the unicycle only); set control_period_s and latency_s to 0')
     if not problem.has_limits:
         raise ValueError(f'{key}: the sampled-data margin needs input limits on the {name} '
                          'system (input_limits.min/max)')
-    families = list(problem.families) + ([] if footprint is None else [footprint])
-    for family in families:
-        if type(family) is CircleObstacles:
-            if tuple(family.position_indices) != (0, 1) or family.heading_index not in (None, 2):
-                raise ValueError(f'{key}: the sampled-data margin of obstacles on the {name} '
-                                 'system needs position_indices [0, 1] and heading_index 2')
-        elif type(family) not in _QUADRATIC:
+    if type(system) is Unicycle and all(_unicycle_closed_form(f) for f in problem.families) and (
+            footprint is None or _unicycle_closed_form(footprint)):
+        lookahead = 0.0
+        if footprint is not None and footprint.has_lookahead:  # type: ignore[attr-defined]
+            lookahead = float(footprint.lookahead)  # type: ignore[attr-defined]
+        return SampledDataMargin(problem, horizon, lookahead)
+    if type(system) in REFUSED_SYSTEMS:
+        raise ValueError(f'{key}: no sampled-data margin is derived for the {name} system '
+                         f'({REFUSED_SYSTEMS[type(system)]}); set control_period_s and '
+                         'latency_s to 0')
+    if footprint is not None:
+        raise ValueError(f'{key}: the sampled-data margin of sensor points is derived on the '
+                         f'unicycle beside uncascaded barriers only, not here (the {name} '
+                         'system); set control_period_s and latency_s to 0')
+    for family in problem.families:
+        if not has_closed_form(replace(problem, families=(family,))):
             raise ValueError(f'{key}: no sampled-data margin is derived for the '
-                             f'{type(family).__name__} barriers on the {name} system (cascaded '
-                             'or user-defined rows); set control_period_s and latency_s to 0')
-    lookahead = 0.0
-    if footprint is not None and footprint.has_lookahead:  # type: ignore[attr-defined]
-        lookahead = float(footprint.lookahead)  # type: ignore[attr-defined]
-    return SampledDataMargin(problem, horizon, lookahead)
+                             f'{type(family).__name__} barriers on the {name} system (no '
+                             'closed form: a cascaded look-ahead point or user-defined rows); '
+                             'set control_period_s and latency_s to 0')
+    if not has_closed_form(problem):
+        raise ValueError(f'{key}: no sampled-data margin is derived for the {name} system '
+                         '(no closed form: a user-defined system); set control_period_s and '
+                         'latency_s to 0')
+    return IntervalMargin(problem, horizon)
+
+
+def _unicycle_closed_form(family: BarrierFamily) -> bool:
+    """Whether the Unicycle's closed-form margin covers ``family`` (module docstring)."""
+    if type(family) is CircleObstacles:
+        return tuple(family.position_indices) == (0, 1) and family.heading_index in (None, 2)
+    return type(family) in _QUADRATIC

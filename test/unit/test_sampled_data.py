@@ -9,6 +9,7 @@ margin's code).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 import functools
 import math
 
@@ -56,12 +57,14 @@ def test_a_short_period_without_latency_is_safe_with_the_margin_too():
     assert not tight.violated.any()
 
 
-def test_the_benchmark_prints_its_four_cases_and_writes_nothing_with_no_write(capsys):
+def test_the_benchmark_prints_its_six_cases_and_writes_nothing_with_no_write(capsys):
     before = bench_results_text()
-    assert bench.main(['--worlds', '1', '--no-write']) == 0
-    rows = [line for line in capsys.readouterr().out.splitlines()
-            if line.startswith(('| circles', '| sensor points'))]
+    assert bench.main(['--worlds', '1', '--pvtol-worlds', '1', '--no-write']) == 0
+    lines = capsys.readouterr().out.splitlines()
+    rows = [line for line in lines if line.startswith(('| circles', '| sensor points'))]
     assert len(rows) == 4 and all('/ 1 |' in row for row in rows)
+    pvtol = [line for line in lines if line.startswith(('| T = L = 0', '| with margin'))]
+    assert len(pvtol) == 2 and all('/ 1 |' in row for row in pvtol)
     assert bench_results_text() == before
 
 
@@ -233,8 +236,15 @@ def test_the_rows_left_out_of_the_qp_hold_with_their_margin():
 
 
 @pytest.mark.parametrize(('system', 'extra', 'key', 'words'), [
-    ('pvtol', {'control_period_s': 0.05}, 'control_period_s', 'pvtol'),
     ('car_following', {'latency_s': 0.02}, 'latency_s', 'car_following'),
+    ('car_following', {'latency_s': 0.02, 'input_limits.min': [-10.0],
+                       'input_limits.max': [10.0]}, 'latency_s', 'braking switches'),
+    ('pvtol', {'control_period_s': 0.02, 'observation_sources': ['scan'], 'scan.type': 'scan',
+               'scan.topic': '/scan'}, 'control_period_s', 'sensor points'),
+    ('unicycle', {'control_period_s': 0.02, 'walls.nx': [1.0], 'walls.ny': [0.0],
+                  'walls.offset': [-5.0], 'walls.gammas': [1.0], 'observation_sources': ['scan'],
+                  'scan.type': 'scan', 'scan.topic': '/scan'}, 'control_period_s',
+     'sensor points'),
     ('unicycle', {'control_period_s': 2.0}, 'control_period_s', '<= 1'),
     ('unicycle', {'latency_s': -0.01}, 'latency_s', '>= 0'),
     ('unicycle', {'latency_s': 0.02, 'obstacles.gammas': [1.0], 'obstacles.speed_input': -1},
@@ -251,8 +261,14 @@ def test_what_has_no_derived_margin_is_refused_naming_the_key(system, extra, key
     assert line.startswith(f'{key}:') and words in line and '\n' not in line, line
 
 
+@dataclass(frozen=True)
+class _OwnPVTOL(PVTOL):
+    """A user's system (a subclass may change f or g: it has no closed form)."""
+
+
 def test_the_filter_refuses_what_the_config_refuses():
-    for problem in (RCBFProblem(system=PVTOL(), families=(HalfPlane(((1.0, 0.0),), (0.0,)),)),
+    for problem in (RCBFProblem(system=_OwnPVTOL(), families=(HalfPlane(((1.0, 0.0),),
+                                                                        (0.0,)),)),
                     RCBFProblem(system=CarFollowing(u_min=(-5.0,), u_max=(5.0,)), families=(
                         cascade(PairGap(((4, 6),), 3.5), CarFollowing(), [1.0]),))):
         with pytest.raises(ValueError, match='^control_period_s: no sampled-data margin'):
