@@ -154,16 +154,25 @@ def _beyond(what: str, x: np.ndarray, y: np.ndarray) -> None:
                    f'{MAX_COORDINATE:g} m of the frame (and {far.size - 1} more)')
 
 
+def _beam_directions(angle_min: float, increment: float, count: int) -> np.ndarray:
+    """(2, count) read-only: the cos, then the sin, of beam i's angle angle_min + i increment. A
+    sensor repeats its geometry in every message, so they are computed once per geometry
+    (:func:`_directions`): keyed on the values exactly, the sign of a zero included (0.0 and
+    -0.0 are equal keys, but their beams' sines differ in sign)."""
+    return _directions(angle_min, increment, count, math.copysign(1.0, angle_min),
+                       math.copysign(1.0, increment))
+
+
 @functools.lru_cache(maxsize=8)
-def _beam_directions(angle_min: float, increment: float, count: int
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """(cos, sin) of beam i's angle angle_min + i increment, i < count (read-only; a sensor
-    repeats its geometry in every message, so they are computed once)."""
+def _directions(angle_min: float, increment: float, count: int, _sign_min: float,
+                _sign_increment: float) -> np.ndarray:
+    """:func:`_beam_directions`, computed (the signs only key the cache)."""
     angles = angle_min + np.arange(count) * increment
-    cos, sin = np.cos(angles), np.sin(angles)
-    cos.setflags(write=False)
-    sin.setflags(write=False)
-    return cos, sin
+    directions = np.empty((2, count))
+    np.cos(angles, out=directions[0])
+    np.sin(angles, out=directions[1])
+    directions.setflags(write=False)
+    return directions
 
 
 def _quiet(parse: Callable[..., SensorPoints | Refused]) -> Callable[..., SensorPoints | Refused]:
@@ -235,18 +244,21 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         start = cursor._take(4 * count, 4, 'ranges')
         ranges = np.frombuffer(cursor.view, dtype=cursor.order + 'f4', count=count,
                                offset=start).astype(np.float64)
-        # NaN fails both comparisons
-        index = np.flatnonzero((ranges >= range_min) & (ranges <= range_max)
-                               & np.isfinite(ranges))
-        if index.size and not ranges[index].max() <= MAX_COORDINATE:
-            beam = int(index[np.argmax(ranges[index])])
+        # NaN fails both comparisons; so do +-inf where both bounds are finite
+        valid = (ranges >= range_min) & (ranges <= range_max)
+        if not (math.isfinite(range_min) and math.isfinite(range_max)):
+            valid &= np.isfinite(ranges)
+        every = bool(valid.all())
+        r = ranges if every else ranges[valid]
+        if r.size and not r.max() <= MAX_COORDINATE:
+            beam = int(np.flatnonzero(valid)[np.argmax(r)])
             return Refused(f'{LASER_SCAN}: ranges[{beam}] {ranges[beam]:.6g} lies beyond '
                            f'{MAX_COORDINATE:g} m (within range_max {range_max:g})')
-        cos, sin = _beam_directions(angle_min, increment, count)
-        r = ranges[index]
-        points = np.empty((index.size, 2))
-        np.multiply(r, cos[index], out=points[:, 0])
-        np.multiply(r, sin[index], out=points[:, 1])
+        directions = _beam_directions(angle_min, increment, count)
+        if not every:
+            directions = directions[:, valid]
+        # (N, 2), its columns contiguous: r cos a, r sin a
+        points = np.multiply(directions, r, out=None if every else directions).T
         return SensorPoints(points, frame_id, stamp, count)
     except _Bad as exc:
         return Refused(f'{LASER_SCAN}: {exc}')
