@@ -282,8 +282,7 @@ class PointRows:
         circles.cx = points[:, 0].copy()
         circles.cy = points[:, 1].copy()
         delta = self.reach + spread
-        circles.delta_sq = (np.full(len(points), delta * delta) if np.ndim(delta) == 0
-                            else delta * delta)
+        circles.delta_sq = delta * delta  # one value for every point, or one per point
 
     def evaluate(self, x: list[float], u: list[float], mean: list[float], std: list[float]
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
