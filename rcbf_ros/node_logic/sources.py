@@ -357,14 +357,11 @@ class ObservationSources:
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(heading)):
             return "the state's pose is not finite"
         cos, sin = math.cos(heading), math.sin(heading)
-        px, py = points[:, 0], points[:, 1]
-        out = np.empty_like(points)
-        # x + cos px - sin py and y + sin px + cos py, in that order, without temporaries
-        first, second = np.multiply(px, cos), np.multiply(py, sin)
-        first += x
-        np.subtract(first, second, out=out[:, 0])
-        np.multiply(px, sin, out=first)
-        first += y
-        np.multiply(py, cos, out=second)
-        np.add(first, second, out=out[:, 1])
-        return out
+        # both columns at once, as (2, N): (x + cos px) + (-sin py) and (y + sin px) + cos py,
+        # the sums of x + cos px - sin py and y + sin px + cos py in their order (negation is
+        # exact); (N, 2) out, its columns contiguous
+        factors = np.array([[cos, x, -sin], [sin, y, cos]])
+        out = np.multiply(points[:, 0], factors[:, :1])
+        out += factors[:, 1:2]
+        out += np.multiply(points[:, 1], factors[:, 2:])
+        return out.T
