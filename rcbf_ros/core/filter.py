@@ -148,6 +148,8 @@ class FilterResult:
 
 
 _FLOAT64 = np.dtype(np.float64)
+_least, _largest = np.minimum.reduce, np.maximum.reduce
+"""An array's least and largest value (its ``min`` and ``max`` without the method's wrapper)."""
 ACTIVE_SET_TOLERANCE = 1e-12
 """How far (relative to the largest right-hand side) the active-set solution may exceed a row
 or limit, or miss the equality of an active one, and still count as meeting it: round-off only,
@@ -519,6 +521,8 @@ def _floats(name: str, value: object, size: int) -> list[float]:
     converts them; the same ValueError for a wrong length or non-numeric data)."""
     if type(value) is np.ndarray and value.dtype is _FLOAT64 and value.shape == (size,):
         return value.tolist()
+    if type(value) is list and len(value) == size and all(type(v) is float for v in value):
+        return value[:]  # Python floats already: what the conversion would give
     return _vector(name, value, size).tolist()
 
 
@@ -1452,7 +1456,7 @@ class SafetyFilter:
                 return self._fail_safe(u, start, status='input_refused', h=report(h).tolist(),
                                        clipped=clipped, reason=reason)
         solve_start = time.perf_counter()
-        lowest, highest = ((float(upper.min()), float(upper.max())) if upper.size
+        lowest, highest = ((float(_least(upper)), float(_largest(upper))) if upper.size
                            else (0.0, 0.0))  # no rows: sensor points only, none in sight
         if limit_upper:
             lowest, highest = min(lowest, min(limit_upper)), max(highest, max(limit_upper))
@@ -1590,7 +1594,7 @@ class SafetyFilter:
         if points.ndim != 2 or points.shape[1] != 2 or not np.isfinite(points).all():
             raise ValueError(f'set_points: expected finite (N, 2) points, got shape '
                              f'{points.shape}')
-        if np.ndim(spread) == 0:
+        if type(spread) is float or np.ndim(spread) == 0:
             if not 0.0 <= spread < math.inf:
                 raise ValueError('set_points: spread must be finite and >= 0')
         else:
@@ -1612,7 +1616,7 @@ class SafetyFilter:
         k = self.n_barriers
         out = np.empty(k + 1)
         out[:k] = values[:k]
-        out[k] = values[k:].min() if values.size > k else math.inf
+        out[k] = _least(values[k:]) if values.size > k else math.inf
         return out
 
     def _point_values(self, point_h: np.ndarray | None, values: np.ndarray

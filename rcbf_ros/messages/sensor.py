@@ -83,11 +83,10 @@ class _Cursor:
 
     def __init__(self, data: bytes | memoryview) -> None:
         view = memoryview(data).cast('B')
-        if len(view) < 4 or bytes(view[:1]) != b'\x00' or bytes(view[1:2]) not in (b'\x00',
-                                                                                  b'\x01'):
+        if len(view) < 4 or view[0] != 0 or view[1] not in (0, 1):
             raise _Bad('not a plain CDR sample (encapsulation header '
                        f'{bytes(view[:4]).hex() or "missing"})')
-        self.little = bytes(view[1:2]) == b'\x01'
+        self.little = view[1] == 1
         self.order = '<' if self.little else '>'
         self.view = view
         self.body = 4
