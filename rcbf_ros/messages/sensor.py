@@ -248,16 +248,17 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         if not (math.isfinite(range_min) and math.isfinite(range_max)):
             valid &= np.isfinite(ranges)
         every = bool(valid.all())
-        r = ranges if every else ranges[valid]
+        index = None if every else np.flatnonzero(valid)
+        r = ranges if index is None else ranges.take(index)
         if r.size and not r.max() <= MAX_COORDINATE:
-            beam = int(np.flatnonzero(valid)[np.argmax(r)])
+            beam = int(np.argmax(r)) if index is None else int(index[np.argmax(r)])
             return Refused(f'{LASER_SCAN}: ranges[{beam}] {ranges[beam]:.6g} lies beyond '
                            f'{MAX_COORDINATE:g} m (within range_max {range_max:g})')
         directions = _beam_directions(angle_min, increment, count)
-        if not every:
-            directions = directions[:, valid]
+        if index is not None:
+            directions = directions.take(index, axis=1)
         # (N, 2), its columns contiguous: r cos a, r sin a
-        points = np.multiply(directions, r, out=None if every else directions).T
+        points = np.multiply(directions, r, out=None if index is None else directions).T
         return SensorPoints(points, frame_id, stamp, count)
     except _Bad as exc:
         return Refused(f'{LASER_SCAN}: {exc}')
