@@ -178,11 +178,30 @@ def _quiet(parse: Callable[..., SensorPoints | Refused]) -> Callable[..., Sensor
     """``parse`` with numpy's floating-point warnings off: the bytes are untrusted, and a
     signalling NaN or an overflow in a cast or product is a value the parse drops (NaN fails
     every comparison), not a warning on the node's log."""
+    if _GET_ERROR_OBJECT is not None:
+        # numpy 1.x: the thread's error object set directly, its mask 0 (every error ignored),
+        # as np.errstate(all='ignore') sets it through two dictionaries each way
+        @functools.wraps(parse)
+        def quiet(*args: Any, **kwargs: Any) -> SensorPoints | Refused:
+            previous = _GET_ERROR_OBJECT()
+            _SET_ERROR_OBJECT([previous[0], 0, previous[2]])
+            try:
+                return parse(*args, **kwargs)
+            finally:
+                _SET_ERROR_OBJECT(previous)
+        return quiet
+
     @functools.wraps(parse)
-    def quiet(*args: Any, **kwargs: Any) -> SensorPoints | Refused:
+    def quiet_state(*args: Any, **kwargs: Any) -> SensorPoints | Refused:
         with np.errstate(all='ignore'):
             return parse(*args, **kwargs)
-    return quiet
+    return quiet_state
+
+
+_GET_ERROR_OBJECT = getattr(np, 'geterrobj', None)
+_SET_ERROR_OBJECT = getattr(np, 'seterrobj', None)
+"""numpy 1.x's per-thread floating-point error object (numpy 2 has none: its errstate is a
+context variable, cheap to set)."""
 
 
 def _thinned(x: np.ndarray, y: np.ndarray, voxel_size: float
@@ -247,10 +266,10 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         valid = (ranges >= range_min) & (ranges <= range_max)
         if not (math.isfinite(range_min) and math.isfinite(range_max)):
             valid &= np.isfinite(ranges)
-        every = bool(valid.all())
+        every = np.count_nonzero(valid) == count
         index = None if every else np.flatnonzero(valid)
         r = ranges if index is None else ranges.take(index)
-        if r.size and not r.max() <= MAX_COORDINATE:
+        if r.size and not np.maximum.reduce(r) <= MAX_COORDINATE:
             beam = int(np.argmax(r)) if index is None else int(index[np.argmax(r)])
             return Refused(f'{LASER_SCAN}: ranges[{beam}] {ranges[beam]:.6g} lies beyond '
                            f'{MAX_COORDINATE:g} m (within range_max {range_max:g})')
