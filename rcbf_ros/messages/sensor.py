@@ -78,6 +78,11 @@ class _Bad(ValueError):
     """A layout error inside a reader (becomes :class:`Refused`)."""
 
 
+_WORDS = {order: (struct.Struct(order + 'I').unpack_from, struct.Struct(order + 'i').unpack_from)
+          for order in '<>'}
+"""Per byte order, the unpacking of a CDR uint32 and int32."""
+
+
 class _Cursor:
     """Reads CDR primitives with CDR alignment (relative to the body, after the header)."""
 
@@ -88,6 +93,7 @@ class _Cursor:
                        f'{bytes(view[:4]).hex() or "missing"})')
         self.little = view[1] == 1
         self.order = '<' if self.little else '>'
+        self._uint32, self._int32 = _WORDS[self.order]
         self.view = view
         self.body = 4
         self.pos = 4
@@ -103,11 +109,11 @@ class _Cursor:
 
     def uint32(self, what: str) -> int:
         start = self._take(4, 4, what)
-        return struct.unpack_from(self.order + 'I', self.view, start)[0]
+        return self._uint32(self.view, start)[0]
 
     def int32(self, what: str) -> int:
         start = self._take(4, 4, what)
-        return struct.unpack_from(self.order + 'i', self.view, start)[0]
+        return self._int32(self.view, start)[0]
 
     def uint8(self, what: str) -> int:
         return self.view[self._take(1, 1, what)]
@@ -244,12 +250,13 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         frame_id, stamp = cursor.header()
         (angle_min, _angle_max, increment, _time_increment, _scan_time, range_min,
          range_max) = cursor.float32s(7, 'angle_min..range_max')
-        for name, value in (('angle_min', angle_min), ('angle_increment', increment)):
-            if not math.isfinite(value):
-                return Refused(f'{LASER_SCAN}: {name} is {value}')
-        for name, value in (('range_min', range_min), ('range_max', range_max)):
-            if math.isnan(value):
-                return Refused(f'{LASER_SCAN}: {name} is nan')
+        if not (math.isfinite(angle_min) and math.isfinite(increment)):
+            name, value = (('angle_min', angle_min) if not math.isfinite(angle_min)
+                           else ('angle_increment', increment))
+            return Refused(f'{LASER_SCAN}: {name} is {value}')
+        if range_min != range_min or range_max != range_max:  # NaN
+            name = 'range_min' if range_min != range_min else 'range_max'
+            return Refused(f'{LASER_SCAN}: {name} is nan')
         if range_min > range_max:
             return Refused(f'{LASER_SCAN}: range_min {range_min} > range_max {range_max}')
         count = cursor.uint32('ranges')
