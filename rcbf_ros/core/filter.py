@@ -1680,7 +1680,7 @@ class SafetyFilter:
             return None
         action, step = moved
         values = upper + lg @ np.array(step)
-        needed = max(0.0, -float(values.min()))
+        needed = max(0.0, -float(_least(values)))
         claimed = max(0.0, z[-1])
         if needed > claimed:
             scale = 1.0 + max(float(upper.max()), -float(upper.min()))

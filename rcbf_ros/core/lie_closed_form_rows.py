@@ -89,25 +89,24 @@ class _Circles:
             offset = self.lookahead
             grads = np.empty((3, self.cx.size))
             dx, dy, d_heading = grads
-            h = None
+            squares = None
             if self.speed is not None and u[self.speed] < 0.0:
                 # the point behind, kept where it is clear of every circle: its differences
                 # and squared distances are then the rows' own (x + (-l) cos = x - l cos)
                 np.subtract(x[self.i] - offset * cos, self.cx, out=dx)
                 np.subtract(x[self.j] - offset * sin, self.cy, out=dy)
-                h = dx * dx
-                square = dy * dy
-                h += square
-                if bool((h >= self.delta_sq).all()):
+                squares = np.multiply(grads[:2], grads[:2])  # dx^2, dy^2
+                squares[0] += squares[1]
+                if bool((squares[0] >= self.delta_sq).all()):
                     offset = -offset
                 else:
-                    h = None
-            if h is None:
+                    squares = None
+            if squares is None:
                 np.subtract(x[self.i] + offset * cos, self.cx, out=dx)
                 np.subtract(x[self.j] + offset * sin, self.cy, out=dy)
-                h = dx * dx
-                square = dy * dy
-                h += square
+                squares = np.multiply(grads[:2], grads[:2])
+                squares[0] += squares[1]
+            h, square = squares  # dx^2 + dy^2, and a buffer
             h -= self.delta_sq
             # d h / d th = 2 s l_p d^T (-sin th, cos th)
             np.multiply(dy, 2.0 * offset * cos, out=d_heading)
