@@ -67,6 +67,7 @@ MIDDLEWARE_TOPICS = ('/rosout', '/parameter_events', '/tf', '/tf_static',
 MAX_WIDENING = 0.5
 """The most (m) a cloud's circles are widened for a tilted frame; more refuses the source."""
 _HALF_RANGE = 0.5 * MAX_RANGE
+"""Points within this (m) of the robot along each axis are within MAX_RANGE of it."""
 _largest, _least = np.maximum.reduce, np.minimum.reduce
 TF_COUNT_KEYS = ('messages', 'refused', 'transforms_refused')
 """Of ``/tf`` and ``/tf_static`` together: messages received, messages refused whole
@@ -338,7 +339,7 @@ class ObservationSources:
                            and y - _least(py) <= _HALF_RANGE):
             # every point within MAX_RANGE / 2 of the robot on each axis (rounding is
             # monotonic: no point's difference exceeds the extreme's): all near, no per-point
-            # pass (a NaN fails the comparisons and takes it)
+            # check (a NaN fails the comparisons and takes the per-point check)
             return points
         dx, dy = px - x, py - y
         near = (np.abs(dx) <= MAX_RANGE) & (np.abs(dy) <= MAX_RANGE)
