@@ -1,6 +1,7 @@
 """The safety filter's decision time from sensor messages to the command.
 
     python benchmarks/bench_sources.py [--calls 1000] [--no-write]
+    python benchmarks/bench_sources.py --against DIR [--only LaserScan] [--calls 1000]
 
 One decision = what the node does per proposal with an observation source: read the latest
 message's bytes (:mod:`rcbf_ros.messages.sensor`), take its points into the state's frame and
@@ -26,11 +27,17 @@ over a stream of such messages (tracemalloc's current and peak, and the process'
 
 Nav2 collision_monitor's figures from its README are printed beside ours as a reference, not
 re-measured here (another machine, and a stop/slow-down check, not a QP).
+
+``--against DIR`` compares instead: this checkout's rcbf_ros and the one in DIR (another
+worktree, an older commit) are imported side by side in one process, and each input is decided
+by both in turns, so that a shared or busy machine loads both alike; it prints each median and
+their ratio per case (``--only`` picks cases by name) and leaves RESULTS.md alone.
 """
 from __future__ import annotations
 
 import argparse
 import gc
+import importlib
 from pathlib import Path
 import resource
 import sys
@@ -169,13 +176,26 @@ def corridor_message(count: int, stamp_s: int, rng: np.random.Generator) -> byte
     return bytes(store.serialize_cdr(msg, sensor.POINT_CLOUD2))
 
 
-def measure(kind: str, size: int, voxel: float, number: int, seed: int = 0) -> dict:
-    """Median and p99 (us) of one decision, the share of corrected answers and of fail-safes,
-    the mean number of points in the filter, and one refusal if any."""
+def stack(kind: str, voxel: float, modules: dict | None = None) -> tuple:
+    """(the safety filter, its ObservationSources) of one case; of another checkout's
+    rcbf_ros with ``modules`` (:func:`load_checkout`)."""
     corridor = kind == 'corridor'
-    config = filter_config_from_params(params('pointcloud' if corridor else kind, voxel))
-    safety_filter = build_safety_filter(config=config, settings=node_settings_from_params({}))
-    sources = ObservationSources(config.sources)
+    if modules is None:
+        config = filter_config_from_params(params('pointcloud' if corridor else kind, voxel))
+        return (build_safety_filter(config=config, settings=node_settings_from_params({})),
+                ObservationSources(config.sources))
+    logic = modules['rcbf_ros.node_logic.safety_filter']
+    config = modules['rcbf_ros.core.config'].filter_config_from_params(
+        params('pointcloud' if corridor else kind, voxel))
+    return (logic.build_safety_filter(config=config,
+                                      settings=logic.node_settings_from_params({})),
+            modules['rcbf_ros.node_logic.sources'].ObservationSources(config.sources))
+
+
+def decisions(kind: str, size: int, number: int, seed: int = 0) -> list:
+    """``number`` ((message bytes, state), proposal) of one case: 20 worlds (or fewer), in
+    turn, and a proposal each."""
+    corridor = kind == 'corridor'
     rng = np.random.default_rng(seed)
     worlds = []
     for _index in range(min(number, 20)):
@@ -192,9 +212,30 @@ def measure(kind: str, size: int, voxel: float, number: int, seed: int = 0) -> d
         data = (scan_message(position, heading, size, 100) if kind == 'scan'
                 else cloud_message(size, 100, rng))
         worlds.append((data, [float(position[0]), float(position[1]), heading]))
-    inputs = [(worlds[i % len(worlds)], rng.uniform(-2.5, 2.5, 2).tolist())
-              for i in range(number)]
-    box = ([-0.05, 0.0, 0.0], [0.025, 0.025, 0.0])
+    return [(worlds[i % len(worlds)], rng.uniform(-2.5, 2.5, 2).tolist())
+            for i in range(number)]
+
+
+BOX = ([-0.05, 0.0, 0.0], [0.025, 0.025, 0.0])
+"""The disturbance box (mean, std) of every decision."""
+
+
+def decide(safety_filter: object, sources: object, data: bytes, state: list,
+           proposal: list) -> tuple[str, object]:
+    """One decision: the message read, its points into the filter, the filter's answer
+    ('' and the result, or the fail-safe's reason and None)."""
+    reason = sources.read('sensor', data, received_ns=0)
+    reason = reason or sources.sense(safety_filter, np.array(state), now_ns=0,
+                                     stamp_now_ns=100 * 10 ** 9)
+    return (reason, None) if reason else ('', safety_filter.filter(state, proposal, *BOX))
+
+
+def measure(kind: str, size: int, voxel: float, number: int, seed: int = 0) -> dict:
+    """Median and p99 (us) of one decision, the share of corrected answers and of fail-safes,
+    the mean number of points in the filter, and one refusal if any."""
+    safety_filter, sources = stack(kind, voxel)
+    inputs = decisions(kind, size, number, seed)
+    box = BOX
     times, active, fail, points, refusal = [], 0, 0, [], ''
     gc.collect()
     for timed, ((data, state), proposal) in zip([False] * 20 + [True] * number,
@@ -224,6 +265,69 @@ def measure(kind: str, size: int, voxel: float, number: int, seed: int = 0) -> d
     return {'median': float(np.median(times_us)), 'p99': float(np.percentile(times_us, 99)),
             'active': active / number, 'fail': fail / number,
             'points': float(np.mean(points)) if points else 0.0, 'refusal': refusal}
+
+
+def load_checkout(root: Path) -> dict:
+    """The modules of another checkout's rcbf_ros that a decision uses, imported from ``root``
+    beside this checkout's (which are put back in ``sys.modules`` after): its functions keep
+    their own modules' globals. Raises ValueError (one line) where ``root`` holds none."""
+    def ours() -> dict:
+        return {name: module for name, module in sys.modules.items()
+                if name == 'rcbf_ros' or name.startswith('rcbf_ros.')}
+    mine = ours()
+    for name in mine:
+        del sys.modules[name]
+    sys.path.insert(0, str(root))
+    try:
+        modules = {name: importlib.import_module(name) for name in (
+            'rcbf_ros.core.config', 'rcbf_ros.node_logic.safety_filter',
+            'rcbf_ros.node_logic.sources')}
+    except ImportError as exc:
+        raise ValueError(f'--against: no rcbf_ros to import in {root} '
+                         f'({" ".join(str(exc).split())[:160]})') from None
+    finally:
+        sys.path.remove(str(root))
+        for name in ours():
+            del sys.modules[name]
+        sys.modules.update(mine)
+    where = Path(modules['rcbf_ros.node_logic.sources'].__file__).resolve()
+    if Path(root).resolve() not in where.parents:
+        raise ValueError(f'--against: rcbf_ros came from {where}, not from {root}')
+    return modules
+
+
+def compare(kind: str, size: int, voxel: float, number: int, other: dict,
+            seed: int = 0) -> tuple[float, float]:
+    """Median (us) of one decision of this checkout and of ``other``'s
+    (:func:`load_checkout`), on the same inputs, in one loop: each input decided by both, in
+    turns (which goes first alternates), so that the machine's load falls on both alike."""
+    stacks = (stack(kind, voxel), stack(kind, voxel, other))
+    inputs = decisions(kind, size, number, seed)
+    times: tuple[list[float], list[float]] = ([], [])
+    gc.collect()
+    warm = inputs[:20]  # unmeasured
+    for index, ((data, state), proposal) in enumerate(warm + inputs):
+        for which in ((0, 1) if index % 2 else (1, 0)):
+            start = time.perf_counter()
+            decide(*stacks[which], data, state, proposal)
+            if index >= len(warm):
+                times[which].append(time.perf_counter() - start)
+    return float(np.median(times[0])) * 1e6, float(np.median(times[1])) * 1e6
+
+
+def compare_table(number: int, root: Path, only: str) -> list[str]:
+    """This checkout against the one at ``root``, for the cases whose name holds ``only``."""
+    other = load_checkout(root)
+    lines = [f'| source | this checkout, median (us) | {root}, median (us) | ratio |',
+             '|---|---:|---:|---:|']
+    print(lines[0], flush=True)
+    for name, kind, size, voxel, _goal in CASES:
+        if only.lower() not in name.lower():
+            continue
+        mine, theirs = compare(kind, size, voxel, number, other)
+        lines.append(f'| {name} | {mine:,.0f} | {theirs:,.0f} | {mine / theirs:.3f} |')
+        print(lines[-1], flush=True)
+    return lines
 
 
 def rss_mb() -> float:
@@ -320,11 +424,29 @@ def main(argv: list[str] | None = None) -> int:
                              '(default 100)')
     parser.add_argument('--no-write', dest='write', action='store_false',
                         help='print the section only; leave benchmarks/RESULTS.md alone')
+    parser.add_argument('--against', metavar='DIR', type=Path, default=None,
+                        help='instead: time this checkout and the rcbf_ros checkout in DIR '
+                             'side by side, their decisions interleaved in one process on '
+                             'the same inputs; print both medians and their ratio (RESULTS.md '
+                             'is left alone)')
+    parser.add_argument('--only', default='', metavar='TEXT',
+                        help="with --against: only the cases whose name holds TEXT (e.g. "
+                             "'LaserScan')")
     args = parser.parse_args(argv)
     if args.calls < 1:
         parser.error('--calls must be >= 1')
     if args.hold_messages < 2:
         parser.error('--hold-messages must be >= 2')
+    if args.against is not None:
+        if not (args.against / 'rcbf_ros' / '__init__.py').is_file():
+            parser.error(f'--against: {args.against} holds no rcbf_ros package')
+        if not any(args.only.lower() in name.lower() for name, *_ in CASES):
+            parser.error(f"--only: no case's name holds {args.only!r}")
+        try:
+            compare_table(args.calls, args.against, args.only)
+        except ValueError as exc:
+            parser.error(str(exc))
+        return 0
     table = run(args.calls)
     holding = hold_table(args.hold_messages)
     from benchmarks._results import load_averages, publish_section

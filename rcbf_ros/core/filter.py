@@ -148,6 +148,8 @@ class FilterResult:
 
 
 _FLOAT64 = np.dtype(np.float64)
+_least, _largest = np.minimum.reduce, np.maximum.reduce
+"""An array's least and largest value (its ``min`` and ``max`` without the method's wrapper)."""
 ACTIVE_SET_TOLERANCE = 1e-12
 """How far (relative to the largest right-hand side) the active-set solution may exceed a row
 or limit, or miss the equality of an active one, and still count as meeting it: round-off only,
@@ -519,6 +521,8 @@ def _floats(name: str, value: object, size: int) -> list[float]:
     converts them; the same ValueError for a wrong length or non-numeric data)."""
     if type(value) is np.ndarray and value.dtype is _FLOAT64 and value.shape == (size,):
         return value.tolist()
+    if type(value) is list and len(value) == size and all(type(v) is float for v in value):
+        return value[:]  # Python floats already: what the conversion would give
     return _vector(name, value, size).tolist()
 
 
@@ -828,9 +832,11 @@ def binding_rows(*, lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
     """
     if u_min is None or u_max is None:
         return np.arange(upper.size)
-    applied = np.asarray(applied, dtype=np.float64)
-    least = upper + _least_over_box(lg, np.asarray(u_min, dtype=np.float64) - applied,
-                                    np.asarray(u_max, dtype=np.float64) - applied)
+    # the box less the proposal on floats (the same differences as over arrays, fewer calls)
+    applied = [float(value) for value in applied]
+    least = _least_over_box(lg, [float(low) - a for low, a in zip(u_min, applied)],
+                            [float(high) - a for high, a in zip(u_max, applied)])
+    least += upper
     return np.flatnonzero(~(least >= margin))
 
 
@@ -844,13 +850,39 @@ a microsecond a row each: 83k rows took 0.1-0.5 s a decision, 256 keep it near a
 GENERATED_BATCH = 32
 """The rows the exact solve of many rows starts with, and adds per round
 (:meth:`SafetyFilter._generated`)."""
+ARRAY_EXCESS_ROWS = 64
+"""From this many rows on, the exact solve of the many-row path takes row^T z - upper over its
+rows as arrays (:func:`_excess_over`): a few numpy calls instead of a Python step a row."""
 
 
-def _least_over_box(lg: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+def _excess_over(columns: np.ndarray, upper: np.ndarray) -> Callable[..., list[float]]:
+    """The ``excess`` kernel of :func:`_kernels` for two or three unknowns over one QP's rows
+    held as arrays: ``columns`` (n, m) the rows' entries by column, ``upper`` (m,) their
+    right-hand sides. It takes THESE rows whatever it is handed (the same rows as lists, which
+    the other kernels read). The same list bit for bit: each row's a z0 + b z1 (+ c z2) -
+    upper in that order, as elementwise IEEE operations."""
+    first, *rest = columns
+
+    def excess(rows: object, upper_list: object, z: Sequence[float]) -> list[float]:
+        total = first * z[0]
+        for column, value in zip(rest, z[1:]):
+            total += column * value
+        total -= upper
+        return total.tolist()
+
+    return excess
+
+
+def _least_over_box(lg: np.ndarray, low: Sequence[float], high: Sequence[float]
+                    ) -> np.ndarray:
     """(K,) the least lg_i^T d over the box low <= d <= high (one column at a time: faster
-    than a reduction over a short last axis)."""
-    out = np.zeros(lg.shape[0])
-    for j in range(lg.shape[1]):
+    than a reduction over a short last axis; summed from the first column's, the values of
+    a sum from 0)."""
+    if not lg.shape[1]:
+        return np.zeros(lg.shape[0])
+    column = lg[:, 0]
+    out = np.minimum(column * low[0], column * high[0])
+    for j in range(1, lg.shape[1]):
         column = lg[:, j]
         out += np.minimum(column * low[j], column * high[j])
     return out
@@ -1236,6 +1268,8 @@ class SafetyFilter:
         unit = np.eye(self.n_u, nz)
         self._limit_rows = ((np.concatenate((unit, -unit)) + 0.0).tolist()
                             if problem.has_limits else [])
+        self._limit_columns = np.array(self._limit_rows).T.copy()
+        """The limit rows by column (for the many-row path's table of rows)."""
         self._kernels, self._row_values = kernels.solve, kernels.row_values
         self._within_bounds, self._clip = kernels.within_bounds, kernels.clip
         self._act = kernels.act
@@ -1452,7 +1486,7 @@ class SafetyFilter:
                 return self._fail_safe(u, start, status='input_refused', h=report(h).tolist(),
                                        clipped=clipped, reason=reason)
         solve_start = time.perf_counter()
-        lowest, highest = ((float(upper.min()), float(upper.max())) if upper.size
+        lowest, highest = ((float(_least(upper)), float(_largest(upper))) if upper.size
                            else (0.0, 0.0))  # no rows: sensor points only, none in sight
         if limit_upper:
             lowest, highest = min(lowest, min(limit_upper)), max(highest, max(limit_upper))
@@ -1482,19 +1516,28 @@ class SafetyFilter:
             solve_lg, solve_upper = generated[1:] if generated is not None else merged_rows(
                 lg=solve_lg, upper=solve_upper, applied=applied, u_min=self._u_min,
                 u_max=self._u_max, count=EXACT_ROWS)
-        g_rows = np.concatenate([-solve_lg, np.full((solve_upper.size, 1), -1.0)],
-                                axis=1).tolist()
-        solve_upper_list = solve_upper.tolist()
+        # the QP's rows [-lg, -1] z <= upper, then the limit rows: by column, and as lists
+        count, n_u = solve_upper.size, self.n_u
+        columns = np.empty((n_u + 1, count + len(self._limit_rows)))
+        np.negative(solve_lg.T, out=columns[:n_u, :count])
+        columns[n_u, :count] = -1.0
+        if self._limit_rows:
+            columns[:, count:] = self._limit_columns
+        g_rows = columns.T.tolist()
+        qp_upper = np.concatenate((solve_upper, limit_upper)) if limit_upper else solve_upper
+        qp_upper_list = qp_upper.tolist()
+        kernels = self._kernels
+        if len(g_rows) >= ARRAY_EXCESS_ROWS and n_u + 1 in (2, 3):
+            kernels = (kernels[0], _excess_over(columns, qp_upper), kernels[2])
         z = generated[0] if generated is not None else _active_set_steps(
-            g_rows + self._limit_rows, solve_upper_list + limit_upper, self._p_inverse_list,
-            ACTIVE_SET_TOLERANCE * scale, ACTIVE_SET_STEPS, self._kernels)
+            g_rows, qp_upper_list, self._p_inverse_list, ACTIVE_SET_TOLERANCE * scale,
+            ACTIVE_SET_STEPS, kernels)
         status = 'solved'
         checked = None if z is None else self._check_many(z, upper, lg, applied)
         if checked is None and self._points is not None:
             # the row count changes with the points: a QP of the rows that can bind, set up
             # for this call (the exact solve failed: rare)
-            z, status = _solve_once(g_rows + self._limit_rows,
-                                    solve_upper_list + limit_upper, self._p_inverse)
+            z, status = _solve_once(g_rows, qp_upper_list, self._p_inverse)
             checked = None if z is None else self._check_many(z, upper, lg, applied)
         elif checked is None:
             g_matrix = np.empty((self._nc, self.n_u + 1))
@@ -1590,7 +1633,7 @@ class SafetyFilter:
         if points.ndim != 2 or points.shape[1] != 2 or not np.isfinite(points).all():
             raise ValueError(f'set_points: expected finite (N, 2) points, got shape '
                              f'{points.shape}')
-        if np.ndim(spread) == 0:
+        if type(spread) is float or np.ndim(spread) == 0:
             if not 0.0 <= spread < math.inf:
                 raise ValueError('set_points: spread must be finite and >= 0')
         else:
@@ -1612,7 +1655,7 @@ class SafetyFilter:
         k = self.n_barriers
         out = np.empty(k + 1)
         out[:k] = values[:k]
-        out[k] = values[k:].min() if values.size > k else math.inf
+        out[k] = _least(values[k:]) if values.size > k else math.inf
         return out
 
     def _point_values(self, point_h: np.ndarray | None, values: np.ndarray
@@ -1637,7 +1680,7 @@ class SafetyFilter:
             return None
         action, step = moved
         values = upper + lg @ np.array(step)
-        needed = max(0.0, -float(values.min()))
+        needed = max(0.0, -float(_least(values)))
         claimed = max(0.0, z[-1])
         if needed > claimed:
             scale = 1.0 + max(float(upper.max()), -float(upper.min()))

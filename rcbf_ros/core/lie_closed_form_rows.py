@@ -87,24 +87,30 @@ class _Circles:
         if self.heading is not None:
             cos, sin = math.cos(x[self.heading]), math.sin(x[self.heading])
             offset = self.lookahead
-            if self.speed is not None and u[self.speed] < 0.0:
-                bx = (x[self.i] - offset * cos) - self.cx
-                by = (x[self.j] - offset * sin) - self.cy
-                bx *= bx
-                by *= by
-                bx += by
-                if bool((bx >= self.delta_sq).all()):
-                    offset = -offset
             grads = np.empty((3, self.cx.size))
-            dx, dy = grads[0], grads[1]
-            np.subtract(x[self.i] + offset * cos, self.cx, out=dx)
-            np.subtract(x[self.j] + offset * sin, self.cy, out=dy)
-            h = dx * dx
-            h += dy * dy
+            dx, dy, d_heading = grads
+            squares = None
+            if self.speed is not None and u[self.speed] < 0.0:
+                # the point behind, kept where it is clear of every circle: its differences
+                # and squared distances are then the rows' own (x + (-l) cos = x - l cos)
+                np.subtract(x[self.i] - offset * cos, self.cx, out=dx)
+                np.subtract(x[self.j] - offset * sin, self.cy, out=dy)
+                squares = np.multiply(grads[:2], grads[:2])  # dx^2, dy^2
+                squares[0] += squares[1]
+                if bool((squares[0] >= self.delta_sq).all()):
+                    offset = -offset
+                else:
+                    squares = None
+            if squares is None:
+                np.subtract(x[self.i] + offset * cos, self.cx, out=dx)
+                np.subtract(x[self.j] + offset * sin, self.cy, out=dy)
+                squares = np.multiply(grads[:2], grads[:2])
+                squares[0] += squares[1]
+            h, square = squares  # dx^2 + dy^2, and a buffer
             h -= self.delta_sq
             # d h / d th = 2 s l_p d^T (-sin th, cos th)
-            np.multiply(dy, 2.0 * offset * cos, out=grads[2])
-            grads[2] -= (2.0 * offset * sin) * dx
+            np.multiply(dy, 2.0 * offset * cos, out=d_heading)
+            d_heading -= np.multiply(dx, 2.0 * offset * sin, out=square)
             grads[:2] *= 2.0
             return h, [self.i, self.j, self.heading], grads
         dx, dy = x[self.i] - self.cx, x[self.j] - self.cy
@@ -282,15 +288,15 @@ class PointRows:
         circles.cx = points[:, 0].copy()
         circles.cy = points[:, 1].copy()
         delta = self.reach + spread
-        circles.delta_sq = (np.full(len(points), delta * delta) if np.ndim(delta) == 0
-                            else delta * delta)
+        circles.delta_sq = delta * delta  # one value for every point, or one per point
 
     def evaluate(self, x: list[float], u: list[float], mean: list[float], std: list[float]
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(h (N,), L_g h (N, n_u), right-hand sides (N,)) at state x, proposal u and the box
         mean +/- k_c std, as :class:`ManyRows` holds them."""
         f_values, jacobian, g = self._jet(np.array(x))
-        motion = (f_values + g @ np.array(u) + np.array(mean)).tolist()
-        spread = (self._k_c * np.array(std)).tolist()
+        # (f + g u) + mean and k_c std, the sums and products of arrays, on a few floats
+        motion = [value + m for value, m in zip((f_values + g @ np.array(u)).tolist(), mean)]
+        spread = [self._k_c * s for s in std]
         return _circle_rows(self._circles, x, u, f_values, jacobian, g.tolist(), motion,
                             spread, self._alpha, self.n_u)

@@ -78,17 +78,22 @@ class _Bad(ValueError):
     """A layout error inside a reader (becomes :class:`Refused`)."""
 
 
+_WORDS = {order: (struct.Struct(order + 'I').unpack_from, struct.Struct(order + 'i').unpack_from)
+          for order in '<>'}
+"""Per byte order, the unpacking of a CDR uint32 and int32."""
+
+
 class _Cursor:
     """Reads CDR primitives with CDR alignment (relative to the body, after the header)."""
 
     def __init__(self, data: bytes | memoryview) -> None:
         view = memoryview(data).cast('B')
-        if len(view) < 4 or bytes(view[:1]) != b'\x00' or bytes(view[1:2]) not in (b'\x00',
-                                                                                  b'\x01'):
+        if len(view) < 4 or view[0] != 0 or view[1] not in (0, 1):
             raise _Bad('not a plain CDR sample (encapsulation header '
                        f'{bytes(view[:4]).hex() or "missing"})')
-        self.little = bytes(view[1:2]) == b'\x01'
+        self.little = view[1] == 1
         self.order = '<' if self.little else '>'
+        self._uint32, self._int32 = _WORDS[self.order]
         self.view = view
         self.body = 4
         self.pos = 4
@@ -104,11 +109,11 @@ class _Cursor:
 
     def uint32(self, what: str) -> int:
         start = self._take(4, 4, what)
-        return struct.unpack_from(self.order + 'I', self.view, start)[0]
+        return self._uint32(self.view, start)[0]
 
     def int32(self, what: str) -> int:
         start = self._take(4, 4, what)
-        return struct.unpack_from(self.order + 'i', self.view, start)[0]
+        return self._int32(self.view, start)[0]
 
     def uint8(self, what: str) -> int:
         return self.view[self._take(1, 1, what)]
@@ -154,27 +159,55 @@ def _beyond(what: str, x: np.ndarray, y: np.ndarray) -> None:
                    f'{MAX_COORDINATE:g} m of the frame (and {far.size - 1} more)')
 
 
+def _beam_directions(angle_min: float, increment: float, count: int) -> np.ndarray:
+    """(2, count) read-only: the cos, then the sin, of beam i's angle angle_min + i increment. A
+    sensor repeats its geometry in every message, so they are computed once per geometry
+    (:func:`_directions`): keyed on the values exactly, the sign of a zero included (0.0 and
+    -0.0 are equal keys, but their beams' sines differ in sign)."""
+    return _directions(angle_min, increment, count, math.copysign(1.0, angle_min),
+                       math.copysign(1.0, increment))
+
+
 @functools.lru_cache(maxsize=8)
-def _beam_directions(angle_min: float, increment: float, count: int
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """(cos, sin) of beam i's angle angle_min + i increment, i < count (read-only; a sensor
-    repeats its geometry in every message, so they are computed once)."""
+def _directions(angle_min: float, increment: float, count: int, _sign_min: float,
+                _sign_increment: float) -> np.ndarray:
+    """:func:`_beam_directions`, computed (the signs only key the cache)."""
     angles = angle_min + np.arange(count) * increment
-    cos, sin = np.cos(angles), np.sin(angles)
-    cos.setflags(write=False)
-    sin.setflags(write=False)
-    return cos, sin
+    directions = np.empty((2, count))
+    np.cos(angles, out=directions[0])
+    np.sin(angles, out=directions[1])
+    directions.setflags(write=False)
+    return directions
 
 
 def _quiet(parse: Callable[..., SensorPoints | Refused]) -> Callable[..., SensorPoints | Refused]:
     """``parse`` with numpy's floating-point warnings off: the bytes are untrusted, and a
     signalling NaN or an overflow in a cast or product is a value the parse drops (NaN fails
     every comparison), not a warning on the node's log."""
+    if _GET_ERROR_OBJECT is not None:
+        # numpy 1.x: the thread's error object set directly, its mask 0 (every error ignored),
+        # as np.errstate(all='ignore') sets it through two dictionaries each way
+        @functools.wraps(parse)
+        def quiet(*args: Any, **kwargs: Any) -> SensorPoints | Refused:
+            previous = _GET_ERROR_OBJECT()
+            _SET_ERROR_OBJECT([previous[0], 0, previous[2]])
+            try:
+                return parse(*args, **kwargs)
+            finally:
+                _SET_ERROR_OBJECT(previous)
+        return quiet
+
     @functools.wraps(parse)
-    def quiet(*args: Any, **kwargs: Any) -> SensorPoints | Refused:
+    def quiet_state(*args: Any, **kwargs: Any) -> SensorPoints | Refused:
         with np.errstate(all='ignore'):
             return parse(*args, **kwargs)
-    return quiet
+    return quiet_state
+
+
+_GET_ERROR_OBJECT = getattr(np, 'geterrobj', None)
+_SET_ERROR_OBJECT = getattr(np, 'seterrobj', None)
+"""numpy 1.x's per-thread floating-point error object (numpy 2 has none: its errstate is a
+context variable, cheap to set)."""
 
 
 def _thinned(x: np.ndarray, y: np.ndarray, voxel_size: float
@@ -217,12 +250,13 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         frame_id, stamp = cursor.header()
         (angle_min, _angle_max, increment, _time_increment, _scan_time, range_min,
          range_max) = cursor.float32s(7, 'angle_min..range_max')
-        for name, value in (('angle_min', angle_min), ('angle_increment', increment)):
-            if not math.isfinite(value):
-                return Refused(f'{LASER_SCAN}: {name} is {value}')
-        for name, value in (('range_min', range_min), ('range_max', range_max)):
-            if math.isnan(value):
-                return Refused(f'{LASER_SCAN}: {name} is nan')
+        if not (math.isfinite(angle_min) and math.isfinite(increment)):
+            name, value = (('angle_min', angle_min) if not math.isfinite(angle_min)
+                           else ('angle_increment', increment))
+            return Refused(f'{LASER_SCAN}: {name} is {value}')
+        if range_min != range_min or range_max != range_max:  # NaN
+            name = 'range_min' if range_min != range_min else 'range_max'
+            return Refused(f'{LASER_SCAN}: {name} is nan')
         if range_min > range_max:
             return Refused(f'{LASER_SCAN}: range_min {range_min} > range_max {range_max}')
         count = cursor.uint32('ranges')
@@ -235,18 +269,22 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         start = cursor._take(4 * count, 4, 'ranges')
         ranges = np.frombuffer(cursor.view, dtype=cursor.order + 'f4', count=count,
                                offset=start).astype(np.float64)
-        # NaN fails both comparisons
-        index = np.flatnonzero((ranges >= range_min) & (ranges <= range_max)
-                               & np.isfinite(ranges))
-        if index.size and not ranges[index].max() <= MAX_COORDINATE:
-            beam = int(index[np.argmax(ranges[index])])
+        # NaN fails both comparisons; so do +-inf where both bounds are finite
+        valid = (ranges >= range_min) & (ranges <= range_max)
+        if not (math.isfinite(range_min) and math.isfinite(range_max)):
+            valid &= np.isfinite(ranges)
+        every = np.count_nonzero(valid) == count
+        index = None if every else np.flatnonzero(valid)
+        r = ranges if index is None else ranges.take(index)
+        if r.size and not np.maximum.reduce(r) <= MAX_COORDINATE:
+            beam = int(np.argmax(r)) if index is None else int(index[np.argmax(r)])
             return Refused(f'{LASER_SCAN}: ranges[{beam}] {ranges[beam]:.6g} lies beyond '
                            f'{MAX_COORDINATE:g} m (within range_max {range_max:g})')
-        cos, sin = _beam_directions(angle_min, increment, count)
-        r = ranges[index]
-        points = np.empty((index.size, 2))
-        np.multiply(r, cos[index], out=points[:, 0])
-        np.multiply(r, sin[index], out=points[:, 1])
+        directions = _beam_directions(angle_min, increment, count)
+        if index is not None:
+            directions = directions.take(index, axis=1)
+        # (N, 2), its columns contiguous: r cos a, r sin a
+        points = np.multiply(directions, r, out=None if index is None else directions).T
         return SensorPoints(points, frame_id, stamp, count)
     except _Bad as exc:
         return Refused(f'{LASER_SCAN}: {exc}')

@@ -66,6 +66,9 @@ MIDDLEWARE_TOPICS = ('/rosout', '/parameter_events', '/tf', '/tf_static',
 (:func:`topic_refusal`): a log line, a parameter event or a transform is not a scan."""
 MAX_WIDENING = 0.5
 """The most (m) a cloud's circles are widened for a tilted frame; more refuses the source."""
+_HALF_RANGE = 0.5 * MAX_RANGE
+"""Points within this (m) of the robot along each axis are within MAX_RANGE of it."""
+_largest, _least = np.maximum.reduce, np.minimum.reduce
 TF_COUNT_KEYS = ('messages', 'refused', 'transforms_refused')
 """Of ``/tf`` and ``/tf_static`` together: messages received, messages refused whole
 (undecodable, too many transforms), transforms refused alone (NaN, not a unit quaternion, a
@@ -332,7 +335,15 @@ class ObservationSources:
         x, y = float(state[i]), float(state[j])
         if not (math.isfinite(x) and math.isfinite(y)):
             return "the state's position is not finite"
-        dx, dy = points[:, 0] - x, points[:, 1] - y
+        px, py = points[:, 0], points[:, 1]
+        if not px.size or (_largest(px) - x <= _HALF_RANGE and x - _least(px) <= _HALF_RANGE
+                           and _largest(py) - y <= _HALF_RANGE
+                           and y - _least(py) <= _HALF_RANGE):
+            # every point within MAX_RANGE / 2 of the robot on each axis (rounding is
+            # monotonic: no point's difference exceeds the extreme's): all near, no per-point
+            # check (a NaN fails the comparisons and takes the per-point check)
+            return points
+        dx, dy = px - x, py - y
         near = (np.abs(dx) <= MAX_RANGE) & (np.abs(dy) <= MAX_RANGE)
         near &= dx * dx + dy * dy <= MAX_RANGE * MAX_RANGE
         return points if near.all() else points[near]
@@ -349,7 +360,11 @@ class ObservationSources:
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(heading)):
             return "the state's pose is not finite"
         cos, sin = math.cos(heading), math.sin(heading)
-        out = np.empty_like(points)
-        out[:, 0] = x + cos * points[:, 0] - sin * points[:, 1]
-        out[:, 1] = y + sin * points[:, 0] + cos * points[:, 1]
-        return out
+        # both columns at once, as (2, N): (x + cos px) + (-sin py) and (y + sin px) + cos py,
+        # the sums of x + cos px - sin py and y + sin px + cos py in their order (negation is
+        # exact); (N, 2) out, its columns contiguous
+        factors = np.array([[cos, x, -sin], [sin, y, cos]])
+        out = np.multiply(points[:, 0], factors[:, :1])
+        out += factors[:, 1:2]
+        out += np.multiply(points[:, 1], factors[:, 2:])
+        return out.T

@@ -6,6 +6,7 @@ import math
 
 from benchmark_modules import load_benchmark
 import numpy as np
+import pytest
 
 from rcbf_ros.messages import sensor
 
@@ -51,3 +52,22 @@ def test_the_corridor_cloud_lies_on_its_two_walls_all_in_the_band():
     assert np.all(np.abs(band.points[:, 0]) <= 3.0)
     assert np.all((np.abs(band.points[:, 1]) >= 0.45 - 1e-6)
                   & (np.abs(band.points[:, 1]) <= 0.5 + 1e-6))
+
+
+def test_the_side_by_side_run_decides_each_input_with_both_checkouts():
+    # --against: another checkout imported beside this one (here this same tree again), its
+    # modules its own, and both medians read
+    other = bench.load_checkout(bench.ROOT)
+    assert other['rcbf_ros.node_logic.sources'].ObservationSources is not bench.ObservationSources
+    mine, theirs = bench.compare('scan', 16, 0.0, 3, other)
+    assert mine > 0.0 and theirs > 0.0
+
+
+@pytest.mark.parametrize('args', [['--against', '{tmp}'], ['--against', '{root}', '--only', 'x?']])
+def test_the_side_by_side_run_refuses_a_tree_without_rcbf_ros_or_a_case_filter_matching_none(
+        args, tmp_path, capsys):
+    argv = [a.format(tmp=tmp_path, root=bench.ROOT) for a in args] + ['--calls', '3']
+    with pytest.raises(SystemExit) as stop:
+        bench.main(argv)
+    assert stop.value.code == 2
+    assert len(capsys.readouterr().err.strip().splitlines()[-1]) < 200

@@ -16,6 +16,7 @@ filter.
 from __future__ import annotations
 
 import itertools
+import math
 
 from filter_paths import qp_arrays, random_call, shipped_filter
 from hypothesis import given, HealthCheck, settings
@@ -23,6 +24,7 @@ from hypothesis import strategies as st
 import numpy as np
 import pytest
 
+from rcbf_ros.core import filter as filter_module
 from rcbf_ros.core.filter import active_set_solution, ACTIVE_SET_TOLERANCE, SafetyFilter
 
 SYSTEMS = ('unicycle', 'car_following', 'pvtol')
@@ -297,3 +299,32 @@ def test_hostile_qp_data_never_break_the_row_check_and_match_enumeration(drawn):
         assert reference is not None
         assert_same_solution(answered[0], reference, weights, g_matrix, upper,
                              spread_data=True)
+
+
+
+_SPECIAL = st.sampled_from([0.0, -0.0, 1.0, -1.0, 1e-310, -1e300, 1e300, math.inf, -math.inf,
+                            math.nan])
+
+
+@settings(max_examples=150, deadline=None)
+@given(nz=st.sampled_from([2, 3]), m=st.integers(0, 70), seed=st.integers(0, 2**32 - 1),
+       scale=st.sampled_from([1e-8, 1.0, 1e8, 1e200]),
+       specials=st.lists(st.tuples(st.integers(0, 300), _SPECIAL), max_size=8))
+def test_the_excess_over_arrays_is_the_loops_bit_for_bit(nz, m, seed, scale, specials):
+    # the many-row path scans row^T z - upper over arrays from ARRAY_EXCESS_ROWS rows on: the
+    # same list as the Python loop's, each sum in the loop's order (round-off, NaN, inf,
+    # signed zeros and overflow included)
+    rng = np.random.default_rng(seed)
+    values = rng.normal(size=m * nz + m + nz) * scale
+    for where, special in specials:
+        values[where % values.size] = special
+    rows = values[:m * nz].reshape(m, nz).tolist()
+    upper, z = values[m * nz:m * nz + m].tolist(), values[m * nz + m:].tolist()
+    loop = filter_module._kernels([1.0] * nz)[1](rows, upper, z)
+    with np.errstate(all='ignore'):
+        arrays = filter_module._excess_over(np.array(rows).reshape(m, nz).T.copy(),
+                                            np.array(upper))(rows, upper, z)
+    arrays, loop = np.array(arrays, dtype=np.float64), np.array(loop, dtype=np.float64)
+    nan = np.isnan(loop)
+    assert np.array_equal(np.isnan(arrays), nan)
+    assert arrays[~nan].tobytes() == loop[~nan].tobytes()  # the sign of a zero too

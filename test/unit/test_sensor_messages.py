@@ -285,3 +285,43 @@ def test_thinning_covers_every_point_however_far_from_the_frame_origin(centre, v
     assert isinstance(out, sensor.SensorPoints) and 0 < len(out.points) <= 200
     gaps = np.hypot(*(points[:, None, :2] - out.points[None]).transpose(2, 0, 1))
     assert np.all(gaps.min(axis=1) <= out.spread * (1 + 1e-12))
+
+
+def _beam_points(ranges, angle_min, increment, range_min, range_max):
+    """A scan's points in float64 from its float32 fields, every beam's angle computed anew:
+    the reader's beam directions are kept per geometry, this oracle keeps nothing."""
+    r = np.asarray(ranges, dtype=np.float32).astype(np.float64)
+    angles = (float(np.float32(angle_min))
+              + np.arange(len(r)) * float(np.float32(increment)))
+    valid = (r >= float(np.float32(range_min))) & (r <= float(np.float32(range_max)))
+    return np.column_stack([r[valid] * np.cos(angles[valid]), r[valid] * np.sin(angles[valid])])
+
+
+_GEOMETRIES = st.tuples(st.sampled_from([0.0, -0.0, -3.0, 0.5, -math.pi, 1e-30]),
+                        st.sampled_from([0.0, -0.0, 0.1, -0.1, 2 * math.pi / 360, 0.2]),
+                        st.integers(0, 40))
+
+
+@settings(max_examples=80, deadline=None)
+@given(geometries=st.lists(_GEOMETRIES, min_size=2, max_size=12))
+def test_scans_of_changing_geometry_give_the_points_of_their_own_beams(geometries):
+    # one sensor after another (or one whose angle_min, angle_increment or beam count changes):
+    # each scan's points are those of its own beams, bit for bit (the sign of a zero too),
+    # whatever scans came before
+    for angle_min, increment, count in geometries:
+        ranges = 0.5 + 0.25 * np.arange(count)
+        out = sensor.scan_points(_scan_bytes(ranges, angle_min=angle_min, increment=increment))
+        assert isinstance(out, sensor.SensorPoints), out
+        expected = _beam_points(ranges, angle_min, increment, 0.1, 10.0)
+        assert out.points.shape == expected.shape
+        assert out.points.tobytes() == np.ascontiguousarray(expected).tobytes(), (
+            angle_min, increment, count)
+
+
+def test_a_scan_whose_angle_min_is_minus_zero_is_not_read_with_plus_zeros_beams():
+    # 0.0 and -0.0 are equal numbers, but the first beam's sine, and so its y, differs in sign
+    ranges = [1.0, 2.0]
+    for angle_min in (0.0, -0.0, 0.0):
+        out = sensor.scan_points(_scan_bytes(ranges, angle_min=angle_min, increment=-0.1))
+        assert isinstance(out, sensor.SensorPoints), out
+        assert math.copysign(1.0, out.points[0, 1]) == math.copysign(1.0, angle_min)
