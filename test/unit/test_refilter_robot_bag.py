@@ -9,6 +9,7 @@ post, in closed form), not the sources' own reading.
 from __future__ import annotations
 
 from pathlib import Path
+import re
 
 import numpy as np
 import pytest
@@ -217,8 +218,10 @@ def test_a_scan_that_stops_leaves_the_later_proposals_unfiltered(tmp_path: Path)
     ({'front': {'type': 'scan', 'topic': 'laser'}}, 'front.topic: the source bag has no /laser'),
     ({'front': {'type': 'pointcloud', 'topic': 'scan'}},
      'front.topic: /scan holds sensor_msgs/msg/LaserScan'),
-    ({'front': {'type': 'scan', 'topic': 'odom'}}, 'front.topic: /odom is the state topic'),
-    ({'front': {'type': 'scan', 'topic': '/tf'}}, 'front.topic: /tf is the tf topic'),
+    ({'front': {'type': 'scan', 'topic': 'odom'}},
+     "front.topic: 'odom' resolves to /odom, the node's own state topic"),
+    ({'front': {'type': 'scan', 'topic': '/tf'}},
+     "front.topic: '/tf' resolves to /tf, the node's own /tf topic"),
 ])
 def test_a_source_the_bag_cannot_feed_is_refused_naming_it(change: dict, needle: str,
                                                            tmp_path: Path) -> None:
@@ -258,8 +261,8 @@ def test_a_launch_argument_fills_the_others_with_the_launchs_defaults(tmp_path: 
 
 @pytest.mark.parametrize('remaps, needle', [
     ({'cmd_in': '/cmd_vel_nav', 'odom': '/cmd_vel_nav'},
-     'cmd_proposed and state both name /cmd_vel_nav'),
-    ({'cmd_in': '/odom'}, 'cmd_proposed and state both name /odom'),
+     'state and cmd_proposed both resolve to /cmd_vel_nav'),
+    ({'cmd_in': '/odom'}, 'state and cmd_proposed both resolve to /odom'),
     ({'cmd_proposed': '/cmd_vel_nav'}, 'has no /state topic, and its proposals'),
     ({'cmd_in': '/cmd_vel_nav', 'odom': '/robot/odom'}, 'has no /robot/odom topic'),
 ])
@@ -281,3 +284,47 @@ def test_the_drop_in_names_are_the_launch_tables() -> None:
     assert {node_topic: remapped[node_topic].name
             for node_topic in LAUNCH_ARGUMENTS.values()} == {
         node_topic: argument for argument, node_topic in LAUNCH_ARGUMENTS.items()}
+
+
+# -- the node's topic rule and its params file section ------------------------------------
+
+
+@pytest.mark.parametrize('remaps, needle', [
+    ({'odom': '/tf'}, '/tf and state both resolve to /tf'),
+    ({'cmd_in': '/rosout'}, '/rosout and cmd_proposed both resolve to /rosout'),
+    ({'cmd_out': '/tf_static'}, '/tf_static and cmd_safe both resolve to /tf_static'),
+    ({'cmd_in': '/cmd_vel', 'cmd_out': '/cmd_vel'},
+     'cmd_proposed and cmd_safe both resolve to /cmd_vel'),
+    ({'odom': '/scan'}, "front.topic: 'scan' resolves to /scan, the node's own state topic"),
+])
+def test_the_nodes_topic_clash_rule_holds_in_the_refilter(remaps: dict, needle: str,
+                                                           tmp_path: Path) -> None:
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+    with pytest.raises(RefilterError) as caught:
+        refilter_bag(source, tmp_path / 'out', PARAMS, remaps=remaps)
+    assert needle in str(caught.value) and '\n' not in str(caught.value)
+    assert not (tmp_path / 'out').exists()
+
+
+@pytest.mark.parametrize('node, needle', [
+    ('nope', "--node 'nope': no section of .* names it \\(sections: /\\*\\*, /unicycle_lidar, "
+             '/nominal_controller, /safety_filter, /recorder\\)'),
+    ('unicycle_lidar', "--node 'unicycle_lidar': section /unicycle_lidar of .* is not a safety "
+                       "filter's: arena_half_size, laser_mount, start are not"),
+    ('recorder', "is not a safety filter's: best_effort_topics is not a safety_filter"),
+])
+def test_a_node_section_that_is_not_the_filters_is_refused(
+        node: str, needle: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+    params = str(Path(__file__).resolve().parents[2] / 'config' / 'unicycle_lidar.yaml')
+    assert main([str(source), str(tmp_path / 'out'), '--params-file', params, '--node', node,
+                 'cmd_in:=/cmd_vel_nav']) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and re.search(needle, err), err
+    assert not (tmp_path / 'out').exists()
+
+
+def test_a_params_file_of_wildcards_only_serves_any_node_name(tmp_path: Path) -> None:
+    params = tmp_path / 'all.yaml'
+    params.write_text(yaml.safe_dump({'/**': {'ros__parameters': PARAMS}}))
+    assert resolve_params(params, node='any_name')['system'] == 'unicycle'
