@@ -540,7 +540,10 @@ class _BarrierTally:
             self.flush()
 
     def _values(self, states: np.ndarray) -> np.ndarray:
-        """(n, K) barrier values of (n, n_x) states."""
+        """(n, K) barrier values of (n, n_x) states; (n, 0) for a filter whose only obstacles
+        are its sources' points (no static barrier to evaluate)."""
+        if self.problem.n_barriers == 0:
+            return np.empty((len(states), 0))
         if self._rows is None:
             return state_barrier_values(self.problem, states)
         values = np.empty((len(states), self.problem.n_barriers))
@@ -612,9 +615,13 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
         files = mcap_files(source)
     except BagError as exc:
         raise RefilterError(f'source bag: {exc}') from exc
+    inside = Path(output).resolve()
     if os.path.abspath(output) == os.path.abspath(source) or any(
-            Path(output).resolve() == f.resolve().parent for f in files):
+            inside == f.resolve().parent for f in files):
         raise RefilterError('output: must not be the source bag')
+    if Path(source).is_dir() and Path(source).resolve() in inside.parents:
+        raise RefilterError(f'output: {str(output)!r} is inside the source bag {str(source)!r}; '
+                            'write the new bag beside it')
     topics = _source_topics(source)
     names = topic_names(dict(remaps or {}), list(topics))
     proposal_topic, state_topic = names['cmd_proposed'], names['state']
@@ -649,6 +656,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
             return sources.sense(safety_filter, state, now_ns=decided_ns,
                                  stamp_now_ns=decided_ns)
 
+    absent = [d for d in (Path(output), *Path(output).parents) if not os.path.lexists(d)]
     try:
         writer = BagWriter(output)
     except (FileExistsError, ValueError) as exc:
@@ -736,19 +744,19 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                         decision, barrier_names=safety_filter.barrier_names,
                         stamp_ns=item.log_time_ns, name=settings.diagnostics_name,
                         hardware_id=settings.diagnostics_hardware_id), item.log_time_ns)
-    except (RefilterError, BagError):
-        _discard(writer)
+        summary.skipped = dict(skipped)
+        if deltas:
+            summary.max_abs_du = float(np.max(deltas))
+            summary.mean_abs_du = float(np.mean(deltas))
+        if proposal_states is None:
+            summary.barrier_states = state_topic
+            _barrier_statistics(summary, topic_states)
+        else:
+            summary.barrier_states = f'{proposal_topic} state sections'
+            _barrier_statistics(summary, proposal_states)
+    except BaseException:  # bad input, a defect or Ctrl-C: no bag of a run that failed is left
+        _discard(writer, absent)
         raise
-    summary.skipped = dict(skipped)
-    if deltas:
-        summary.max_abs_du = float(np.max(deltas))
-        summary.mean_abs_du = float(np.mean(deltas))
-    if proposal_states is None:
-        summary.barrier_states = state_topic
-        _barrier_statistics(summary, topic_states)
-    else:
-        summary.barrier_states = f'{proposal_topic} state sections'
-        _barrier_statistics(summary, proposal_states)
     return summary
 
 
@@ -813,8 +821,10 @@ def _account(summary: RefilterSummary, decision: logic.Decision, proposal: logic
         summary.changed += 1
 
 
-def _discard(writer: BagWriter) -> None:
-    """Remove a half-written output bag after an error."""
+def _discard(writer: BagWriter, created: Sequence[Path] = ()) -> None:
+    """Remove a half-written output bag after an error, and the directories made for it
+    (``created``, deepest first: those that did not exist before; a directory something else
+    was written into meanwhile stays)."""
     try:
         writer.close()
     except Exception:  # noqa: BLE001 - best effort; the error being raised matters more
@@ -822,10 +832,11 @@ def _discard(writer: BagWriter) -> None:
     for path in (writer.mcap_path, writer.directory / 'metadata.yaml'):
         if path.exists():
             path.unlink()
-    try:
-        writer.directory.rmdir()
-    except OSError:
-        pass
+    for directory in (writer.directory, *created):
+        try:
+            directory.rmdir()
+        except OSError:
+            pass
 
 
 # -- command line ----------------------------------------------------------------------------

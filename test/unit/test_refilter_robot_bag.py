@@ -286,6 +286,90 @@ def test_the_drop_in_names_are_the_launch_tables() -> None:
         node_topic: argument for argument, node_topic in LAUNCH_ARGUMENTS.items()}
 
 
+# -- a filter whose only obstacles are the scan's points -------------------------------------
+
+SOURCES_ONLY = {**PARAMS, 'obstacles': {k: v for k, v in PARAMS['obstacles'].items()
+                                        if k not in ('x', 'y', 'radius')}}
+"""The robot's filter with no static obstacle: the lidar's points are its only rows."""
+
+
+def test_a_sources_only_filter_refilters_on_the_scan(tmp_path: Path) -> None:
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+    summary = refilter_bag(source, tmp_path / 'out', SOURCES_ONLY)
+    assert summary.barrier_names == [] and summary.min_h == {}
+    assert summary.processed == N_STEPS and summary.active > 0, summary.skipped
+    _, _, safety_filter = build_filter(resolve_params(SOURCES_ONLY))
+    want = []
+    for pose in POSES:
+        safety_filter.set_points(world_points(laser_pose(pose)))
+        want.append(safety_filter.filter(pose, PROPOSAL).u_safe)
+    np.testing.assert_allclose(np.stack(commands(tmp_path / 'out')), np.stack(want), atol=1e-6)
+    assert 'new filter: unicycle, 0 barriers' in summary.format()
+
+
+def test_the_lidar_demo_and_readme_params_refilter_a_robot_bag(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """The command lines a user runs on a bag of the drop-in launch (the lidar demo's params,
+    the README's robot params): exit 0 and a bag of one answer per proposal."""
+    from test_readme_robot_params import robot_yaml
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+    readme = tmp_path / 'robot.yaml'
+    readme.write_text(robot_yaml())
+    for index, params in enumerate(('config/unicycle_lidar.yaml', str(readme))):
+        out = tmp_path / f'out{index}'
+        code = main([str(source), str(out), '--params-file',
+                     str(Path(__file__).resolve().parents[2] / params)
+                     if params.startswith('config') else params, 'cmd_in:=/cmd_vel_nav'])
+        captured = capsys.readouterr()
+        assert code == 0, captured.err
+        assert 'Traceback' not in captured.err and '0 barriers' in captured.out
+        assert len(commands(out)) == N_STEPS
+
+
+class _Boom(RuntimeError):
+    """A defect partway through the run."""
+
+
+@pytest.mark.parametrize('params', [PARAMS, SOURCES_ONLY])
+def test_a_run_that_fails_after_the_output_opened_leaves_no_bag(
+        params: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import rcbf_ros.bag.refilter as refilter
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+    real, calls = refilter._account, []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 5:
+            raise _Boom('defect')
+        return real(*args, **kwargs)
+    monkeypatch.setattr(refilter, '_account', failing)
+    with pytest.raises(_Boom):
+        refilter_bag(source, tmp_path / 'new' / 'deeper' / 'out', params)
+    assert not (tmp_path / 'new').exists()  # nor the directories made for it
+
+
+def test_a_failure_in_the_summary_after_the_last_message_leaves_no_bag(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import rcbf_ros.bag.refilter as refilter
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+
+    def failing(*args, **kwargs):
+        raise _Boom('defect')
+    monkeypatch.setattr(refilter, '_barrier_statistics', failing)
+    with pytest.raises(_Boom):
+        refilter_bag(source, tmp_path / 'out', PARAMS)
+    assert not (tmp_path / 'out').exists()
+
+
+@pytest.mark.parametrize('inside', ['out', 'a/b'])
+def test_an_output_inside_the_source_bag_is_refused(inside: str, tmp_path: Path) -> None:
+    source = write_robot_bag(tmp_path / 'robot')
+    before = sorted(p.name for p in source.iterdir())
+    with pytest.raises(RefilterError, match='^output: .* is inside the source bag'):
+        refilter_bag(source, source / inside, PARAMS)
+    assert sorted(p.name for p in source.iterdir()) == before
+
+
 # -- the node's topic rule and its params file section ------------------------------------
 
 
