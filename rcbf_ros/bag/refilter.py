@@ -20,7 +20,7 @@ import math
 import os
 from pathlib import Path
 import sys
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -40,9 +40,25 @@ from rcbf_ros.messages.conversions import (
 from rcbf_ros.messages.typestore import jazzy_typestore
 from rcbf_ros.node_logic import filter_edge
 from rcbf_ros.node_logic import safety_filter as logic
-from rcbf_ros.node_logic.sources import ObservationSources, SENSOR_MESSAGES
-from rcbf_ros.parameters.arguments import expand_topic_name, RosArgumentError
-from rcbf_ros.parameters.rules import find_config, load_params
+from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME
+from rcbf_ros.node_logic.sources import (
+    MIDDLEWARE_TOPICS,
+    ObservationSources,
+    SENSOR_MESSAGES,
+    topic_refusal,
+)
+from rcbf_ros.parameters.arguments import (
+    check_node_name,
+    expand_topic_name,
+    RosArgumentError,
+)
+from rcbf_ros.parameters.rules import (
+    find_config,
+    key_matches,
+    load_params,
+    ParamRules,
+    WILDCARD_KEY,
+)
 
 PROPOSAL_TOPIC = '/cmd_proposed'
 STATE_TOPIC = '/state'
@@ -207,7 +223,41 @@ def resolve_params(params: str | os.PathLike[str] | Mapping[str, Any], *,
     if not flat:
         raise RefilterError(f'params file {str(path)!r}: no ros__parameters for node {node!r} '
                             'or /**')
+    _check_node_section(path, node)
     return flat
+
+
+ROS_NODE_PARAMETERS = ('use_sim_time', 'start_type_description_service')
+"""Parameters every ROS 2 node declares: a safety filter's section may set them."""
+
+
+def _check_node_section(path: Path, node: str) -> None:
+    """Refuse a ``node`` that the params file's sections do not name, or name as another
+    node's: in a file with sections besides ``/**``, one of them must match ``/<node>`` (a
+    typo would build the filter from ``/**`` alone), and every key of those must be a safety
+    filter's (``--node unicycle_lidar`` would build one from the simulator's obstacles).
+
+    Raises:
+        RefilterError: naming the sections there are, or the keys no filter takes.
+    """
+    rules = ParamRules()
+    rules.add_file(path)
+    fully_qualified = f'/{node}'
+    named = {key: values for key, values in rules.sections().items() if key != WILDCARD_KEY}
+    mine = {key: values for key, values in named.items()
+            if key_matches(key, fully_qualified)}
+    if named and not mine:
+        raise RefilterError(f'--node {node[:80]!r}: no section of {str(path)!r} names it '
+                            f'(sections: {", ".join(list(rules.sections())[:20])})')
+    foreign = [name for values in mine.values() for name in values
+               if not (logic.feeds_the_filter(name) or name in ROS_NODE_PARAMETERS
+                       or name.startswith('qos_overrides.'))]
+    if foreign:
+        raise RefilterError(
+            f'--node {node[:80]!r}: section {", ".join(mine)} of {str(path)!r} is not a safety '
+            f"filter's: {', '.join(sorted(set(foreign))[:8])} "
+            f'{"is not a" if len(set(foreign)) == 1 else "are not"} safety_filter parameter'
+            f'{"" if len(set(foreign)) == 1 else "s"}')
 
 
 def build_filter(flat: Mapping[str, Any]) -> tuple[FilterConfig, logic.NodeSettings,
@@ -368,13 +418,34 @@ def topic_names(remaps: Mapping[str, str], bag_topics: Sequence[str]) -> dict[st
                                 f'({given[node_name]}:=...)')
         given[node_name] = key
         names[node_name] = resolve_topic(topic, key)
-    taken: dict[str, str] = {}
-    for node_name, topic in names.items():
-        if topic in taken:
-            raise RefilterError(f'{taken[topic]} and {node_name} both name {topic}; each of the '
-                                "node's topics needs its own")
-        taken[topic] = node_name
+    refusal = topic_refusal(None, [topic.name for topic in INTERFACE.topics],
+                            node_resolver(names))
+    if refusal:
+        raise RefilterError(refusal)
     return names
+
+
+def node_resolver(names: Mapping[str, str], node: str = NODE_NAME) -> Callable[[str], str]:
+    """A name as the node ``node`` in the root namespace resolves it under the remaps
+    ``names`` (its topic names -> the bag's, :func:`topic_names`): for the node's topic clash
+    rule (:func:`rcbf_ros.node_logic.sources.topic_refusal`), the same here as in the node.
+    A name with ``~`` or a substitution is expanded for the middleware's own services only."""
+    node = node.rsplit('/', 1)[-1]
+    try:
+        check_node_name(node)
+    except RosArgumentError:
+        node = NODE_NAME
+    remapped = {'/' + name: topic for name, topic in names.items()}  # as rcl matches a rule
+
+    def resolve(name: str) -> str:
+        text = name if isinstance(name, str) else ''
+        if name not in MIDDLEWARE_TOPICS and (text.startswith('~') or '{' in text):
+            raise RosArgumentError('no node here to expand it')
+        full = expand_topic_name(text, node, '/')
+        if len(full) > TOPIC_NAME_LIMIT:
+            raise RosArgumentError(f'longer than {TOPIC_NAME_LIMIT} characters')
+        return remapped.get(full, full)
+    return resolve
 
 
 RecordedAnswers = dict[bytes, deque[tuple[bytes | None, np.ndarray]]]
@@ -469,7 +540,10 @@ class _BarrierTally:
             self.flush()
 
     def _values(self, states: np.ndarray) -> np.ndarray:
-        """(n, K) barrier values of (n, n_x) states."""
+        """(n, K) barrier values of (n, n_x) states; (n, 0) for a filter whose only obstacles
+        are its sources' points (no static barrier to evaluate)."""
+        if self.problem.n_barriers == 0:
+            return np.empty((len(states), 0))
         if self._rows is None:
             return state_barrier_values(self.problem, states)
         values = np.empty((len(states), self.problem.n_barriers))
@@ -541,9 +615,13 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
         files = mcap_files(source)
     except BagError as exc:
         raise RefilterError(f'source bag: {exc}') from exc
+    inside = Path(output).resolve()
     if os.path.abspath(output) == os.path.abspath(source) or any(
-            Path(output).resolve() == f.resolve().parent for f in files):
+            inside == f.resolve().parent for f in files):
         raise RefilterError('output: must not be the source bag')
+    if Path(source).is_dir() and Path(source).resolve() in inside.parents:
+        raise RefilterError(f'output: {str(output)!r} is inside the source bag {str(source)!r}; '
+                            'write the new bag beside it')
     topics = _source_topics(source)
     names = topic_names(dict(remaps or {}), list(topics))
     proposal_topic, state_topic = names['cmd_proposed'], names['state']
@@ -562,7 +640,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
         raise RefilterError(f'source bag already holds {clashing} (re-filter the original run)')
     flat = resolve_params(params, node=node)
     config, settings, safety_filter = build_filter(flat)
-    sources, source_topics = _sources(config, topics, names)
+    sources, source_topics = _sources(config, topics, names, node)
     system_name = str(flat.get('system'))
     n_x, n_u = safety_filter.n_x, safety_filter.n_u
     summary = RefilterSummary(source=str(source), output=str(output), system=system_name,
@@ -578,6 +656,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
             return sources.sense(safety_filter, state, now_ns=decided_ns,
                                  stamp_now_ns=decided_ns)
 
+    absent = [d for d in (Path(output), *Path(output).parents) if not os.path.lexists(d)]
     try:
         writer = BagWriter(output)
     except (FileExistsError, ValueError) as exc:
@@ -665,44 +744,42 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                         decision, barrier_names=safety_filter.barrier_names,
                         stamp_ns=item.log_time_ns, name=settings.diagnostics_name,
                         hardware_id=settings.diagnostics_hardware_id), item.log_time_ns)
-    except (RefilterError, BagError):
-        _discard(writer)
+        summary.skipped = dict(skipped)
+        if deltas:
+            summary.max_abs_du = float(np.max(deltas))
+            summary.mean_abs_du = float(np.mean(deltas))
+        if proposal_states is None:
+            summary.barrier_states = state_topic
+            _barrier_statistics(summary, topic_states)
+        else:
+            summary.barrier_states = f'{proposal_topic} state sections'
+            _barrier_statistics(summary, proposal_states)
+    except BaseException:  # bad input, a defect or Ctrl-C: no bag of a run that failed is left
+        _discard(writer, absent)
         raise
-    summary.skipped = dict(skipped)
-    if deltas:
-        summary.max_abs_du = float(np.max(deltas))
-        summary.mean_abs_du = float(np.mean(deltas))
-    if proposal_states is None:
-        summary.barrier_states = state_topic
-        _barrier_statistics(summary, topic_states)
-    else:
-        summary.barrier_states = f'{proposal_topic} state sections'
-        _barrier_statistics(summary, proposal_states)
     return summary
 
 
-def _sources(config: FilterConfig, topics: Mapping[str, Any], names: Mapping[str, str]
-             ) -> tuple[ObservationSources | None, dict[str, str]]:
+def _sources(config: FilterConfig, topics: Mapping[str, Any], names: Mapping[str, str],
+             node: str = NODE_NAME) -> tuple[ObservationSources | None, dict[str, str]]:
     """The observation sources of the new parameters, read from the bag as the node's
     subscriptions read them, and each source's bag topic -> its name (none: ``None, {}``).
 
     Raises:
-        RefilterError: a source whose topic the bag lacks, holds another type, or is one of
-            the node's own topics.
+        RefilterError: a source whose topic the bag lacks, holds another type, or clashes
+            with another of the node's names (the node's rule, :func:`topic_refusal`).
     """
     if config.sources is None:
         return None, {}
+    refusal = topic_refusal(config.sources, [topic.name for topic in INTERFACE.topics],
+                            node_resolver(names, node))
+    if refusal:
+        raise RefilterError(refusal)
     by_topic: dict[str, str] = {}
-    own = {topic: name for name, topic in names.items()}
-    own.update({topic: topic[1:] for topic in TF_TOPICS})
     for name, source in config.sources.sources:
         key = f'{name}.topic'
         topic = resolve_topic(source.topic, key)
         wanted = SENSOR_MESSAGES[source.type]
-        if topic in own:
-            raise RefilterError(f'{key}: {topic} is the {own[topic]} topic read here')
-        if topic in by_topic:
-            raise RefilterError(f'{key}: {topic} is the topic of {by_topic[topic]}.topic too')
         if topic not in topics:
             raise RefilterError(f'{key}: the source bag has no {topic} topic (topics: '
                                 f'{sorted(topics)[:20]})')
@@ -744,8 +821,10 @@ def _account(summary: RefilterSummary, decision: logic.Decision, proposal: logic
         summary.changed += 1
 
 
-def _discard(writer: BagWriter) -> None:
-    """Remove a half-written output bag after an error."""
+def _discard(writer: BagWriter, created: Sequence[Path] = ()) -> None:
+    """Remove a half-written output bag after an error, and the directories made for it
+    (``created``, deepest first: those that did not exist before; a directory something else
+    was written into meanwhile stays)."""
     try:
         writer.close()
     except Exception:  # noqa: BLE001 - best effort; the error being raised matters more
@@ -753,10 +832,11 @@ def _discard(writer: BagWriter) -> None:
     for path in (writer.mcap_path, writer.directory / 'metadata.yaml'):
         if path.exists():
             path.unlink()
-    try:
-        writer.directory.rmdir()
-    except OSError:
-        pass
+    for directory in (writer.directory, *created):
+        try:
+            directory.rmdir()
+        except OSError:
+            pass
 
 
 # -- command line ----------------------------------------------------------------------------

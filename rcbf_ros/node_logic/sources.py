@@ -75,14 +75,17 @@ TF_COUNT_KEYS = ('messages', 'refused', 'transforms_refused')
 frame its own parent, data older than the cache, ...)."""
 
 
-def topic_refusal(config: SourceConfig, own_topics: Sequence[str],
+def topic_refusal(config: SourceConfig | None, own_topics: Sequence[str],
                   resolve: Callable[[str], str]) -> str:
-    """Why the sources' topics cannot be used, in one line naming ``<name>.topic`` ('' when
-    they can): a topic that resolves (``resolve``: the node's resolve_topic_name, remaps and
-    namespace included) to one of ``own_topics`` (the node's own: its answers would come back
-    as sensor data, or its inputs be read as scans), or to another source's topic, or that
-    does not resolve at all. Names are compared resolved: ``scan`` and ``/scan`` are one topic
-    in the root namespace. :data:`MIDDLEWARE_TOPICS` count as the node's own."""
+    """Why the node's topics cannot be used, in one line naming both of two that clash ('' when
+    they can): every name the node uses (:data:`MIDDLEWARE_TOPICS`, then ``own_topics``, then
+    each source's ``<name>.topic``) resolved by ``resolve`` (the node's resolve_topic_name:
+    remaps and namespace included), and any two that resolve to one name refused, as is a name
+    that does not resolve. A node topic on another (``cmd_proposed`` and ``cmd_safe`` on one
+    topic: the filter would answer its own output, the controller reach the base unfiltered),
+    on a middleware topic (``state`` on ``/tf``), or a source on either (its answers would come
+    back as sensor data). Names are compared resolved: ``scan`` and ``/scan`` are one topic in
+    the root namespace. ``config`` None: no sources."""
     def resolved(key: str, topic: str) -> str:
         try:
             return resolve(topic)
@@ -90,23 +93,30 @@ def topic_refusal(config: SourceConfig, own_topics: Sequence[str],
             raise ValueError(f'{key}: {topic!r} is not a valid topic name '
                              f'({" ".join(str(exc).split())[:160]})') from None
     try:
-        own = {}
-        for topic in (*own_topics, *MIDDLEWARE_TOPICS):
-            own.setdefault(resolved(topic, topic), topic)
-        taken: dict[str, str] = {}
-        for name, params in config.sources:
+        holders: dict[str, tuple[str, bool]] = {}  # resolved -> (who, one of the node's own)
+        for topic in dict.fromkeys((*MIDDLEWARE_TOPICS, *own_topics)):
+            full = resolved(topic, topic)
+            if full in holders:
+                return (f'{holders[full][0]} and {topic} both resolve to {full}; each of the '
+                        "node's topics needs its own (see the remaps and namespace)")
+            holders[full] = (topic, True)
+        for name, params in (config.sources if config is not None else ()):
             key = f'{name}.topic'
-            topic = resolved(key, params.topic)
-            if topic in own:
-                return (f"{key}: {params.topic!r} resolves to {topic}, the node's own "
-                        f'{own[topic]} topic')
-            if topic in taken:
-                return (f'{key}: {params.topic!r} resolves to {topic}, the topic of '
-                        f'{taken[topic]}.topic too')
-            taken[topic] = name
+            full = resolved(key, params.topic)
+            if full in holders:
+                return f'{key}: {params.topic!r} resolves to {full}, {_holder(*holders[full])}'
+            holders[full] = (key, False)
     except ValueError as exc:
         return str(exc)
     return ''
+
+
+def _holder(name: str, own: bool) -> str:
+    """Who holds a topic, for :func:`topic_refusal`'s line."""
+    if not own:
+        return f'the topic of {name} too'
+    kind = 'service' if name.startswith('~/') else 'topic'
+    return f"the node's own {name} {kind}"
 
 
 @dataclass

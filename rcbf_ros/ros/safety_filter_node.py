@@ -65,7 +65,7 @@ class SafetyFilterNode(Node):
         params = self._declared_parameters()
         try:
             self._active = self._build(params)
-            self._check_sources()
+            self._check_topics()
         except Exception as exc:  # a value no check foresaw is the user's error too: one line
             error = exc if isinstance(exc, ValueError) else ValueError(_one_line(exc))
             self.get_logger().error(f'invalid parameters: {error}')
@@ -291,22 +291,24 @@ class SafetyFilterNode(Node):
                                     f'{" ".join(text.split())}')
 
     # observation sources ---------------------------------------------------------------------
-    def _check_sources(self) -> None:
-        """Refuse the sources' topics that clash (:func:`topic_refusal`: resolved as this node
-        resolves them, against its own topics and each other), and declare every key of every
-        source with the value in force (read-only, described), so that ``ros2 param get``
-        shows a defaulted key and ``ros2 param set`` says it is read-only.
+    def _check_topics(self) -> None:
+        """Refuse two of the node's names that clash (:func:`topic_refusal`: its topics, the
+        middleware's and the sources', resolved as this node resolves them: ``cmd_proposed``
+        remapped onto ``cmd_safe``, ``state`` onto ``/tf``, a source onto ``/rosout``), and
+        declare every key of every source with the value in force (read-only, described), so
+        that ``ros2 param get`` shows a defaulted key and ``ros2 param set`` says it is
+        read-only.
 
         Raises:
-            ValueError: one line naming ``<name>.topic`` (exit 2).
+            ValueError: one line naming both names (exit 2).
         """
         config = self.config.sources
-        if config is None:
-            return
         refusal = topic_refusal(config, [topic.name for topic in INTERFACE.topics],
                                 self.resolve_topic_name)
         if refusal:
             raise ValueError(refusal)
+        if config is None:
+            return
         patterns = [spec for spec in INTERFACE.parameters if spec.pattern]
         specs = []
         for name, params in config.sources:

@@ -9,6 +9,7 @@ post, in closed form), not the sources' own reading.
 from __future__ import annotations
 
 from pathlib import Path
+import re
 
 import numpy as np
 import pytest
@@ -217,8 +218,10 @@ def test_a_scan_that_stops_leaves_the_later_proposals_unfiltered(tmp_path: Path)
     ({'front': {'type': 'scan', 'topic': 'laser'}}, 'front.topic: the source bag has no /laser'),
     ({'front': {'type': 'pointcloud', 'topic': 'scan'}},
      'front.topic: /scan holds sensor_msgs/msg/LaserScan'),
-    ({'front': {'type': 'scan', 'topic': 'odom'}}, 'front.topic: /odom is the state topic'),
-    ({'front': {'type': 'scan', 'topic': '/tf'}}, 'front.topic: /tf is the tf topic'),
+    ({'front': {'type': 'scan', 'topic': 'odom'}},
+     "front.topic: 'odom' resolves to /odom, the node's own state topic"),
+    ({'front': {'type': 'scan', 'topic': '/tf'}},
+     "front.topic: '/tf' resolves to /tf, the node's own /tf topic"),
 ])
 def test_a_source_the_bag_cannot_feed_is_refused_naming_it(change: dict, needle: str,
                                                            tmp_path: Path) -> None:
@@ -258,8 +261,8 @@ def test_a_launch_argument_fills_the_others_with_the_launchs_defaults(tmp_path: 
 
 @pytest.mark.parametrize('remaps, needle', [
     ({'cmd_in': '/cmd_vel_nav', 'odom': '/cmd_vel_nav'},
-     'cmd_proposed and state both name /cmd_vel_nav'),
-    ({'cmd_in': '/odom'}, 'cmd_proposed and state both name /odom'),
+     'state and cmd_proposed both resolve to /cmd_vel_nav'),
+    ({'cmd_in': '/odom'}, 'state and cmd_proposed both resolve to /odom'),
     ({'cmd_proposed': '/cmd_vel_nav'}, 'has no /state topic, and its proposals'),
     ({'cmd_in': '/cmd_vel_nav', 'odom': '/robot/odom'}, 'has no /robot/odom topic'),
 ])
@@ -281,3 +284,131 @@ def test_the_drop_in_names_are_the_launch_tables() -> None:
     assert {node_topic: remapped[node_topic].name
             for node_topic in LAUNCH_ARGUMENTS.values()} == {
         node_topic: argument for argument, node_topic in LAUNCH_ARGUMENTS.items()}
+
+
+# -- a filter whose only obstacles are the scan's points -------------------------------------
+
+SOURCES_ONLY = {**PARAMS, 'obstacles': {k: v for k, v in PARAMS['obstacles'].items()
+                                        if k not in ('x', 'y', 'radius')}}
+"""The robot's filter with no static obstacle: the lidar's points are its only rows."""
+
+
+def test_a_sources_only_filter_refilters_on_the_scan(tmp_path: Path) -> None:
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+    summary = refilter_bag(source, tmp_path / 'out', SOURCES_ONLY)
+    assert summary.barrier_names == [] and summary.min_h == {}
+    assert summary.processed == N_STEPS and summary.active > 0, summary.skipped
+    _, _, safety_filter = build_filter(resolve_params(SOURCES_ONLY))
+    want = []
+    for pose in POSES:
+        safety_filter.set_points(world_points(laser_pose(pose)))
+        want.append(safety_filter.filter(pose, PROPOSAL).u_safe)
+    np.testing.assert_allclose(np.stack(commands(tmp_path / 'out')), np.stack(want), atol=1e-6)
+    assert 'new filter: unicycle, 0 barriers' in summary.format()
+
+
+def test_the_lidar_demo_and_readme_params_refilter_a_robot_bag(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """The command lines a user runs on a bag of the drop-in launch (the lidar demo's params,
+    the README's robot params): exit 0 and a bag of one answer per proposal."""
+    from test_readme_robot_params import robot_yaml
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+    readme = tmp_path / 'robot.yaml'
+    readme.write_text(robot_yaml())
+    for index, params in enumerate(('config/unicycle_lidar.yaml', str(readme))):
+        out = tmp_path / f'out{index}'
+        code = main([str(source), str(out), '--params-file',
+                     str(Path(__file__).resolve().parents[2] / params)
+                     if params.startswith('config') else params, 'cmd_in:=/cmd_vel_nav'])
+        captured = capsys.readouterr()
+        assert code == 0, captured.err
+        assert 'Traceback' not in captured.err and '0 barriers' in captured.out
+        assert len(commands(out)) == N_STEPS
+
+
+class _Boom(RuntimeError):
+    """A defect partway through the run."""
+
+
+@pytest.mark.parametrize('params', [PARAMS, SOURCES_ONLY])
+def test_a_run_that_fails_after_the_output_opened_leaves_no_bag(
+        params: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import rcbf_ros.bag.refilter as refilter
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+    real, calls = refilter._account, []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 5:
+            raise _Boom('defect')
+        return real(*args, **kwargs)
+    monkeypatch.setattr(refilter, '_account', failing)
+    with pytest.raises(_Boom):
+        refilter_bag(source, tmp_path / 'new' / 'deeper' / 'out', params)
+    assert not (tmp_path / 'new').exists()  # nor the directories made for it
+
+
+def test_a_failure_in_the_summary_after_the_last_message_leaves_no_bag(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import rcbf_ros.bag.refilter as refilter
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+
+    def failing(*args, **kwargs):
+        raise _Boom('defect')
+    monkeypatch.setattr(refilter, '_barrier_statistics', failing)
+    with pytest.raises(_Boom):
+        refilter_bag(source, tmp_path / 'out', PARAMS)
+    assert not (tmp_path / 'out').exists()
+
+
+@pytest.mark.parametrize('inside', ['out', 'a/b'])
+def test_an_output_inside_the_source_bag_is_refused(inside: str, tmp_path: Path) -> None:
+    source = write_robot_bag(tmp_path / 'robot')
+    before = sorted(p.name for p in source.iterdir())
+    with pytest.raises(RefilterError, match='^output: .* is inside the source bag'):
+        refilter_bag(source, source / inside, PARAMS)
+    assert sorted(p.name for p in source.iterdir()) == before
+
+
+# -- the node's topic rule and its params file section ------------------------------------
+
+
+@pytest.mark.parametrize('remaps, needle', [
+    ({'odom': '/tf'}, '/tf and state both resolve to /tf'),
+    ({'cmd_in': '/rosout'}, '/rosout and cmd_proposed both resolve to /rosout'),
+    ({'cmd_out': '/tf_static'}, '/tf_static and cmd_safe both resolve to /tf_static'),
+    ({'cmd_in': '/cmd_vel', 'cmd_out': '/cmd_vel'},
+     'cmd_proposed and cmd_safe both resolve to /cmd_vel'),
+    ({'odom': '/scan'}, "front.topic: 'scan' resolves to /scan, the node's own state topic"),
+])
+def test_the_nodes_topic_clash_rule_holds_in_the_refilter(remaps: dict, needle: str,
+                                                           tmp_path: Path) -> None:
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+    with pytest.raises(RefilterError) as caught:
+        refilter_bag(source, tmp_path / 'out', PARAMS, remaps=remaps)
+    assert needle in str(caught.value) and '\n' not in str(caught.value)
+    assert not (tmp_path / 'out').exists()
+
+
+@pytest.mark.parametrize('node, needle', [
+    ('nope', "--node 'nope': no section of .* names it \\(sections: /\\*\\*, /unicycle_lidar, "
+             '/nominal_controller, /safety_filter, /recorder\\)'),
+    ('unicycle_lidar', "--node 'unicycle_lidar': section /unicycle_lidar of .* is not a safety "
+                       "filter's: arena_half_size, laser_mount, start are not"),
+    ('recorder', "is not a safety filter's: best_effort_topics is not a safety_filter"),
+])
+def test_a_node_section_that_is_not_the_filters_is_refused(
+        node: str, needle: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    source = write_robot_bag(tmp_path / 'robot', tf=True)
+    params = str(Path(__file__).resolve().parents[2] / 'config' / 'unicycle_lidar.yaml')
+    assert main([str(source), str(tmp_path / 'out'), '--params-file', params, '--node', node,
+                 'cmd_in:=/cmd_vel_nav']) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and re.search(needle, err), err
+    assert not (tmp_path / 'out').exists()
+
+
+def test_a_params_file_of_wildcards_only_serves_any_node_name(tmp_path: Path) -> None:
+    params = tmp_path / 'all.yaml'
+    params.write_text(yaml.safe_dump({'/**': {'ros__parameters': PARAMS}}))
+    assert resolve_params(params, node='any_name')['system'] == 'unicycle'
