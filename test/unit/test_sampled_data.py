@@ -57,14 +57,22 @@ def test_a_short_period_without_latency_is_safe_with_the_margin_too():
     assert not tight.violated.any()
 
 
-def test_the_benchmark_prints_its_six_cases_and_writes_nothing_with_no_write(capsys):
+def test_the_benchmark_prints_its_cases_and_writes_nothing_with_no_write(capsys):
     before = bench_results_text()
     assert bench.main(['--worlds', '1', '--pvtol-worlds', '1', '--no-write']) == 0
     lines = capsys.readouterr().out.splitlines()
     rows = [line for line in lines if line.startswith(('| circles', '| sensor points'))]
-    assert len(rows) == 4 and all('/ 1 |' in row for row in rows)
-    pvtol = [line for line in lines if line.startswith(('| T = L = 0', '| with margin'))]
-    assert len(pvtol) == 2 and all('/ 1 |' in row for row in pvtol)
+    assert len(rows) == 6 and all('/ 1 |' in row for row in rows)
+    pvtol = [line for line in lines if line.startswith(
+        ('| T = L = 0', '| constant margin', '| margin of the command'))]
+    assert len(pvtol) == 3 and all('/ 1 |' in row for row in pvtol)
+    hover = [line for line in lines if line.startswith('| PVTOL, config/pvtol.yaml')]
+    assert len(hover) == 2 and all(row.endswith('| fail-safe | passes |') for row in hover)
+    stops = [line for line in lines if line.startswith('| Unicycle,')]
+    assert len(stops) == 2
+    for row in stops:  # the command's margin lets the robot come closer, never into the circle
+        constant, linear = (float(cell) for cell in row.split('|')[2:4])
+        assert 0.6 < linear < constant
     assert bench_results_text() == before
 
 
@@ -145,6 +153,30 @@ def test_the_true_change_of_every_row_stays_within_its_margin(data, kind, period
     phi = qp.h[:, :problem.n_barriers].numpy()  # L_f h + L_g h u + alpha h + rho
     change = np.abs(phi - phi[0]).max(axis=0)
     assert np.all(change <= nu + 1e-9), (change, nu, held)
+
+
+@pytest.mark.parametrize('bearing', [0.5, 1.6, 2.8, -1.2])
+def test_a_turn_in_place_is_covered_by_the_turn_rate_part_of_the_margin(bearing):
+    """Held v = 0 and the fastest turn, the robot turning in place (no box, alpha 0.1): the
+    look-ahead row's change is almost all 2 l_p d^T n omega's, which only c_omega |omega|
+    covers (the change exceeds nu0), and it stays within nu0 + c^T |u|."""
+    system = Unicycle(u_min=(-2.0, -3.0), u_max=(2.5, 1.5))
+    centre = (2.0 * math.cos(bearing), 2.0 * math.sin(bearing))
+    problem = RCBFProblem(system=system, families=(CircleObstacles(
+        centers=(centre,), radii=(0.4,), margin=0.1, heading_index=2, lookahead=0.3),),
+        alpha=0.1)
+    period, latency = 0.2, 0.05
+    margin = sampled_data_margin(problem, control_period_s=period, latency_s=latency)
+    x_k = np.zeros(3)
+    held = np.array([0.0, -3.0])
+    rest, linear = margin.split_rows(x_k.tolist(), [0.0] * 3, [0.0] * 3)
+    states = [x_k + np.array([0.0, 0.0, -3.0 * t]) for t in np.linspace(0.0, period + latency,
+                                                                         251)]
+    batch = torch.tensor(np.array(states), dtype=torch.float64)
+    qp = problem.qp(batch, torch.tensor(held).expand(251, 2))
+    phi = qp.h[:, 0].numpy()
+    change = float(np.abs(phi - phi[0]).max())
+    assert rest[0] < change <= rest[0] + linear[0] @ np.abs(held)
 
 
 @settings(max_examples=30, deadline=None)
@@ -311,6 +343,7 @@ def test_the_rows_left_out_of_the_qp_hold_with_their_margin(monkeypatch):
             want = whole.filter(state, proposal, *box)
         assert whole._pruned == 0 or not want.active
         active += want.active
+        assert got.status == want.status == 'solved'  # no fallback rescued a pruned QP
         assert got.u_safe == pytest.approx(want.u_safe, abs=1e-6)
         assert got.constraint_values == pytest.approx(want.constraint_values, abs=1e-6)
     assert left_out > 0 and active >= 10
