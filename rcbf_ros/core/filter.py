@@ -828,7 +828,13 @@ def binding_rows(*, lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
     the smaller one's, and the smaller one's solution meets the full set. Without limits no row
     is left out. A violated row (upper_i < 0) is always kept: its least value is at most
     upper_i. ``upper`` is the rows' as the QP takes them, sampled-data margins included
-    (:mod:`rcbf_ros.core.sampled_data`): a row left out holds with its margin.
+    (:mod:`rcbf_ros.core.sampled_data`): a row left out holds with its margin. A row tightened
+    by the margin of its command, nu0 + c^T |u|, is concave in the action and comes here as its
+    split rows (:func:`~rcbf_ros.core.sampled_data.split_rows`), each linear, the row the least
+    of them: each split row is kept or left out by the argument above, so the tightened row's
+    least value over the box (a concave function's least over a box lies at a vertex) is the
+    least of its split rows', and a split row left out holds at every action the QP can
+    return, as the row it belongs to does where all of its split rows are left out.
 
     Args:
         lg: (K, n_u) L_g h of each row.

@@ -14,26 +14,43 @@ tau = L + T under any input within the limits and any disturbance in the box. Th
 along the whole interval, so h_i_dot >= -alpha h_i there while the true disturbance stays in the
 box, and h_i >= 0 holds between samples, not only at them.
 
-nu_i is bounded here in closed form, a guaranteed bound (no sampling), for the uncascaded
-barrier families on the :class:`~rcbf_ros.core.dynamics.Unicycle` (f = 0, g = [[cos th, 0],
-[sin th, 0], [0, 1]]), from per-entry bounds of the displacement |x(t) - x_k| <= tau r,
-r = (V + w_0, V + w_1, W + w_2), V and W the largest |v| and |omega| within the limits and
-w = |mean| + k_c std the box's reach per entry:
+The margin follows the command: the change of phi_i is that of L_g h_i times u plus the rest,
+so nu_i(u) = nu0_i + c_i^T |u|, c_i >= 0 (n_u,) bounding the change of L_g h_i per input
+(``split_rows`` and ``split_points`` give (nu0, c)). The motion over the interval stays a
+worst case over the whole input box (the previous command acts over [t_k, t_k + L], and the
+state may move under any input): only the factor |u| of the row's own command is the
+command's. The tightened row a_i + b_i^T u - nu0_i - c_i^T |u| >= 0 is concave in u, and as
+c_i^T |u| = max_s (c_i * s)^T u over the sign vectors s in {-1, +1}^{n_u}, it is exactly the
+linear rows (b_i - c_i * s)^T u >= nu0_i - a_i for every s (:func:`split_rows`, over the
+inputs with c_ij > 0), whose least at u is the tightened row's value. The constant margin of
+the largest input, nu0_i + c_i^T U >= nu0_i + c_i^T |u| for every u within the limits, is
+``rows`` and ``points`` (``command_linear`` False: what ``split_*`` give, c = 0, for
+comparison: benchmarks/bench_sampled_data.py, ``python benchmarks/bench_sampled_data.py
+--no-write``).
+
+nu0 and c are bounded here in closed form, a guaranteed bound (no sampling), for the
+uncascaded barrier families on the :class:`~rcbf_ros.core.dynamics.Unicycle` (f = 0,
+g = [[cos th, 0], [sin th, 0], [0, 1]]), from per-entry bounds of the displacement
+|x(t) - x_k| <= tau r, r = (V + w_0, V + w_1, W + w_2), V and W the largest |v| and |omega|
+within the limits and w = |mean| + k_c std the box's reach per entry:
 
 - :class:`~rcbf_ros.core.barriers.CircleObstacles` (the look-ahead point p = (x, y) +/- l_p e,
   e = (cos th, sin th), l_p = 0 included; each sensor point is one such row), with
   d = p - c, rho_k = |(x, y) - c| + l_p >= |d_k| for either point,
   E = min(tau r_2, 2) >= |e - e_k|, P = tau (V + |(w_0, w_1)|) + l_p E >= |p - p_k| and
-  Q = P + (rho_k + P) E >= the change of d^T e and of d^T n (n = (-sin th, cos th)):
+  Q = P + (rho_k + P) E >= the change of d^T e and of d^T n (n = (-sin th, cos th)), and
+  L_g h = (2 d^T e, 2 l_p d^T n):
 
-      nu = 2 (V + l_p W) Q + 2 P (w_0 + w_1) + 2 l_p Q w_2 + alpha (2 rho_k P + P^2);
+      c = (2 Q, 2 l_p Q),  nu0 = 2 P (w_0 + w_1) + 2 l_p Q w_2 + alpha (2 rho_k P + P^2);
 
 - the quadratic families (:class:`~rcbf_ros.core.barriers.HalfPlane`,
   :class:`~rcbf_ros.core.barriers.BandBarrier`, :class:`~rcbf_ros.core.barriers.PairGap`),
-  h = c + a^T x + 1/2 x^T H x, with D = tau r, G = (V, V, W) >= |g(x) u| and
-  B = (V E, V E, 0) >= |(g(x) - g(x_k)) u|:
+  h = c + a^T x + 1/2 x^T H x, with D = tau r, |g(x) u| <= (|v|, |v|, |omega|) and
+  |(g(x) - g(x_k)) u| <= (E |v|, E |v|, 0):
 
-      nu = (|H| D)^T (G + w) + |grad h(x_k)|^T B + alpha (|grad h(x_k)|^T D + 1/2 D^T |H| D).
+      c_v = (|H| D)_0 + (|H| D)_1 + E (|grad h(x_k)|_0 + |grad h(x_k)|_1),
+      c_omega = (|H| D)_2,
+      nu0 = (|H| D)^T w + alpha (|grad h(x_k)|^T D + 1/2 D^T |H| D).
 
 Every other problem with a closed form (:mod:`rcbf_ros.core.lie_closed_form`: PVTOL with its
 cascaded obstacles, bands and arena, a cascaded family on the Unicycle) gets
@@ -47,12 +64,12 @@ gradients), and each change is bounded by the smaller of the values' enclosure a
 value bound sum_k sup|d/dx_k| D_k (the latter only where no comparison of the code is undecided
 over the box: across a switch the values' hull over both branches holds, a gradient does not):
 
-    nu_i = sup|dL_f h_i| + sup|dL_g h_i|^T U + sup|d grad h_i|^T (|mean| + k_c std)
-           + alpha sup|d h_i|,
+    nu0_i = sup|dL_f h_i| + sup|d grad h_i|^T (|mean| + k_c std) + alpha sup|d h_i|,
+    c_i = sup|dL_g h_i| per input
 
-U the largest |u| per input within the limits (|d rho_i| <= |d grad h_i|^T (|mean| + k_c
-std), rho_i as :func:`~rcbf_ros.core.qp.robust_margin` forms it). Where no enclosure closes
-the margin is infinite and the filter answers with its fail-safe.
+(|d rho_i| <= |d grad h_i|^T (|mean| + k_c std), rho_i as
+:func:`~rcbf_ros.core.qp.robust_margin` forms it). Where no enclosure closes the margin is
+infinite and the filter answers with its fail-safe.
 
 Refused, in one line naming the key and the system, rather than filter with rows that hold at
 the samples only: a system without input limits; Car Following (its prior brakes by k_b times
