@@ -81,6 +81,7 @@ cascaded look-ahead point).
 from __future__ import annotations
 
 from dataclasses import replace
+import functools
 from itertools import product
 import math
 from typing import Callable, Sequence
@@ -461,15 +462,24 @@ def split_rows(lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
         starts[i + 1] (the last to M), in the order of the rows.
     """
     count, n_u = lg.shape
-    signs = np.array(list(product((1.0, -1.0), repeat=n_u))).reshape(-1, n_u)  # first: +1s
-    taken = ~((signs[:, None, :] < 0.0) & ~(linear > 0.0)[None]).any(axis=2).T  # (K, S)
+    signs = _signs(n_u)
     shifted = linear[:, None, :] * signs[None]  # (K, S, n_u)
-    split_lg = (lg[:, None, :] - shifted)[taken]
-    split_upper = ((upper - rest)[:, None]
-                   - shifted @ np.asarray(applied, dtype=np.float64))[taken]
+    split_lg = lg[:, None, :] - shifted
+    split_upper = (upper - rest)[:, None] - shifted @ np.asarray(applied, dtype=np.float64)
+    positive = linear > 0.0
+    if positive.all():  # every row takes every sign vector
+        return (split_lg.reshape(-1, n_u), split_upper.reshape(-1),
+                np.arange(0, count * signs.shape[0], signs.shape[0]))
+    taken = ~((signs < 0.0)[None] & ~positive[:, None, :]).any(axis=2)  # (K, S)
     starts = np.zeros(count, dtype=np.int64)
     np.cumsum(taken.sum(axis=1)[:-1], out=starts[1:])
-    return split_lg, split_upper, starts
+    return split_lg[taken], split_upper[taken], starts
+
+
+@functools.cache
+def _signs(n_u: int) -> np.ndarray:
+    """(2^n_u, n_u) the sign vectors in {-1, +1}^n_u, all +1 first."""
+    return np.array(list(product((1.0, -1.0), repeat=n_u))).reshape(-1, n_u)
 
 
 def least_per_row(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
