@@ -13,14 +13,23 @@ alpha U[5, 15]; the same worlds with
 the circles as sensor points (``footprint``, :meth:`SafetyFilter.set_points`, 24 points on
 each circle). A violation is a fine step whose barrier h (the look-ahead point, margin
 included) is below 0 for some circle or point. Printed per case: worlds with a violation, the
-least h over every fine step, the mean correction ||u_S|| per decision and the mean distance
-left to the goal after 2.5 s (the start is 3.6-5.4 m from it).
+least h over every fine step, the mean correction ||u_S|| per decision, the mean distance
+left to the goal after 2.5 s (the start is 3.6-5.4 m from it), the fail-safe decisions and the
+median decision time. Each case runs without the margin (T = L = 0), with the constant margin
+of the largest input (``constant margin``) and with the margin of the command, nu0 + c^T |u|
+(``margin of the command``, :mod:`rcbf_ros.core.sampled_data`).
+
+The two margins side by side (:func:`run_margins`): how close the Unicycle comes to a 0.6 m
+circle it drives straight at (:func:`stopping_distance`; config/unicycle.yaml's limits and the
+README's TurtleBot's, 0.3 m/s), and whether config/pvtol.yaml's filter answers a level hover
+with its fail-safe at tau = 20 and 40 ms (:func:`hover_answer`).
 
 PVTOL (:func:`simulate_pvtol`, the interval margin of its cascaded rows): random transfer
 layouts, the drone in hover near a circle, aggressive proposals through it, 1 ms Euler steps of
 the true PVTOL; printed with and without the margin: worlds where a row's (cascaded) barrier or
 a base set (a disc with its margin, a band) was left at some fine step, the least base value,
-the fail-safe decisions (rows infeasible), the median margin and the median decision time.
+the fail-safe decisions (rows infeasible), the median margin of the commands decided and the
+median decision time, without the margin, with the constant one and with the command's.
 
 The fine-step simulations are also what test/unit/test_sampled_data.py and
 test/unit/test_sampled_data_interval.py run, on a few worlds.
@@ -103,9 +112,18 @@ def circle_points(world: World) -> np.ndarray:
     return np.concatenate([c + r * ring for c, r in zip(world.centers, world.radii)])
 
 
-def build_filter(world: World, *, points: bool, period: float, latency: float
-                 ) -> SafetyFilter:
-    """The world's filter: its circles as rows, or (``points``) as sensor points."""
+def with_constant_margin(safety_filter: SafetyFilter, command_linear: bool) -> SafetyFilter:
+    """``safety_filter`` as it is (``command_linear``), else with the constant margin of the
+    largest input in place of the one that follows the command (for comparison)."""
+    if safety_filter._margin is not None:
+        safety_filter._margin.command_linear = command_linear
+    return safety_filter
+
+
+def build_filter(world: World, *, points: bool, period: float, latency: float,
+                 command_linear: bool = True) -> SafetyFilter:
+    """The world's filter: its circles as rows, or (``points``) as sensor points;
+    ``command_linear`` False: the constant margin (:func:`with_constant_margin`)."""
     system = Unicycle()
     circles = CircleObstacles(centers=tuple(map(tuple, world.centers.tolist())),
                               radii=tuple(world.radii.tolist()), margin=MARGIN,
@@ -118,8 +136,9 @@ def build_filter(world: World, *, points: bool, period: float, latency: float
                                     heading_index=2, lookahead=LOOKAHEAD)
     problem = RCBFProblem(system=system, families=families, alpha=world.alpha, k_c=2.0,
                           input_weight=(1.0, 0.01))
-    safety_filter = SafetyFilter(problem, footprint=footprint, control_period_s=period,
-                                 latency_s=latency)
+    safety_filter = with_constant_margin(SafetyFilter(
+        problem, footprint=footprint, control_period_s=period, latency_s=latency),
+        command_linear)
     if points:
         safety_filter.set_points(circle_points(world))
     return safety_filter
@@ -160,15 +179,22 @@ class Outcome(NamedTuple):
     """Filter calls."""
     remaining: float
     """Mean distance left to the goal at the end (m): what the margin costs in progress."""
+    fail_safe: int = 0
+    """Decisions answered with the fail-safe."""
+    decision_time_s: float = 0.0
+    """Median time of one decision (s)."""
 
 
 def simulate(worlds: list[World], *, period: float, latency: float, tightened: bool,
-             points: bool = False, duration: float = 2.5) -> Outcome:
+             points: bool = False, duration: float = 2.5, command_linear: bool = True
+             ) -> Outcome:
     """Run every world for ``duration`` s (module docstring). ``tightened``: the filter knows
     T and L (its rows carry the margin); else its rows are the continuous-time ones, under the
-    same hold and delay."""
+    same hold and delay. ``command_linear`` False: the constant margin."""
+    import time
     filters = [build_filter(w, points=points, period=period if tightened else 0.0,
-                            latency=latency if tightened else 0.0) for w in worlds]
+                            latency=latency if tightened else 0.0,
+                            command_linear=command_linear) for w in worlds]
     if points:
         centers = np.stack([circle_points(w) for w in worlds])
         reach = np.full(centers.shape[:2], MARGIN)
@@ -182,12 +208,17 @@ def simulate(worlds: list[World], *, period: float, latency: float, tightened: b
     pending: list[tuple[int, np.ndarray]] = []  # (fine step it acts from, commands)
     least = true_h(states, centers, reach).min(axis=1)
     corrections: list[float] = []
+    times: list[float] = []
+    fail_safe = 0
     for step in range(round(duration / FINE_STEP_S)):
         if step % period_steps == 0:
             sampled = []
             for i, (world, safety_filter) in enumerate(zip(worlds, filters)):
-                result = safety_filter.filter(states[i], proposal(states[i], world.goal),
-                                              BOX_MEAN, BOX_STD)
+                asked = proposal(states[i], world.goal)
+                started = time.perf_counter()
+                result = safety_filter.filter(states[i], asked, BOX_MEAN, BOX_STD)
+                times.append(time.perf_counter() - started)
+                fail_safe += bool(result.fail_safe)
                 sampled.append(result.u_safe)
                 corrections.append(float(np.linalg.norm(result.u_s)))
             pending.append((step + delay_steps, np.array(sampled)))
@@ -198,7 +229,59 @@ def simulate(worlds: list[World], *, period: float, latency: float, tightened: b
     goals = np.stack([w.goal for w in worlds])
     remaining = float(np.linalg.norm(states[:, :2] - goals, axis=1).mean())
     return Outcome(least < 0.0, least, float(np.mean(corrections)), len(corrections),
-                   remaining)
+                   remaining, fail_safe, float(np.median(times)))
+
+
+def stopping_distance(*, limits: tuple[float, float], period: float, latency: float,
+                      command_linear: bool, radius: float = 0.6, alpha: float = 2.0,
+                      start: float = 4.0) -> float:
+    """How close (m) the Unicycle's centre comes to a circle's centre when it drives straight
+    at it at full speed: the circle ``radius`` (obstacles.margin :data:`MARGIN`, look-ahead
+    :data:`LOOKAHEAD`, as config/unicycle.yaml), the limits +/- (v, omega) ``limits``, alpha
+    2, no disturbance, 1 ms Euler steps of the nominal Unicycle, commands held for T and
+    computed from states L old, until the robot has stood still for a second (or 60 s).
+    ``command_linear`` False: the constant margin. The circle's edge with its margin lies at
+    radius + MARGIN = 0.7 m."""
+    speed, turn = limits
+    system = Unicycle(u_min=(-speed, -turn), u_max=(speed, turn))
+    circles = CircleObstacles(centers=((0.0, 0.0),), radii=(radius,), margin=MARGIN,
+                              heading_index=2, lookahead=LOOKAHEAD)
+    problem = RCBFProblem(system=system, families=(circles,), alpha=alpha,
+                          input_weight=(1.0, 0.01))
+    safety_filter = with_constant_margin(SafetyFilter(
+        problem, control_period_s=period, latency_s=latency), command_linear)
+    state, command = np.array([-start, 0.0, 0.0]), np.zeros(2)
+    period_steps = max(1, round(period / FINE_STEP_S))
+    delay_steps = round(latency / FINE_STEP_S)
+    pending: list[tuple[int, np.ndarray]] = []
+    closest, still = math.inf, 0
+    for step in range(round(60.0 / FINE_STEP_S)):
+        if step % period_steps == 0:
+            result = safety_filter.filter(state, [speed, 0.0])
+            pending.append((step + delay_steps, np.array(result.u_safe)))
+        while pending and pending[0][0] <= step:
+            command = pending.pop(0)[1]
+        state = state + FINE_STEP_S * np.array([command[0] * math.cos(state[2]),
+                                                command[0] * math.sin(state[2]), command[1]])
+        closest = min(closest, math.hypot(state[0], state[1]))
+        still = still + 1 if abs(command[0]) < 1e-3 else 0
+        if still * FINE_STEP_S >= 1.0:
+            break
+    return closest
+
+
+def hover_answer(*, horizon: float, command_linear: bool) -> str:
+    """config/pvtol.yaml's filter (alpha 1) with T = L = ``horizon`` / 2 in a level hover, the
+    hover command 0 proposed: 'passes' or 'fail-safe'."""
+    from rcbf_ros.core.config import filter_config_from_params
+    from rcbf_ros.parameters.rules import find_config, load_params
+    problem = filter_config_from_params(load_params(find_config('pvtol'), 'safety_filter')
+                                        ).problem
+    safety_filter = with_constant_margin(SafetyFilter(
+        problem, control_period_s=horizon / 2, latency_s=horizon / 2, slack_tolerance=1e-4),
+        command_linear)
+    result = safety_filter.filter([-4.5, 2.0, 0.0, 0.0, 0.0, 1.0, -4.5], [0.0, 0.0])
+    return 'fail-safe' if result.fail_safe else 'passes'
 
 
 # ------------------------------------------------------------------ PVTOL (cascaded rows)
@@ -289,9 +372,12 @@ class PVTOLOutcome(NamedTuple):
 
 
 def simulate_pvtol(worlds: list[PVTOLWorld], *, period: float, latency: float,
-                   tightened: bool, duration: float = 3.0) -> PVTOLOutcome:
+                   tightened: bool, duration: float = 3.0, command_linear: bool = True
+                   ) -> PVTOLOutcome:
     """Run every PVTOL world for ``duration`` s under 1 ms Euler steps of the true PVTOL, the
-    commands held for T and computed from states L old (as :func:`simulate`)."""
+    commands held for T and computed from states L old (as :func:`simulate`);
+    ``command_linear`` False: the constant margin. The margins recorded are those of the
+    commands decided."""
     import time
 
     from rcbf_ros.core.barriers import Cascaded
@@ -305,10 +391,11 @@ def simulate_pvtol(worlds: list[PVTOLWorld], *, period: float, latency: float,
     fail_safe = decisions = 0
     for world in worlds:
         problem = filter_config_from_params(world.params).problem
-        safety_filter = SafetyFilter(problem, control_period_s=period if tightened else 0.0,
-                                     latency_s=latency if tightened else 0.0,
-                                     slack_tolerance=1e-3)
-        margin = sampled_data_margin(problem, control_period_s=period, latency_s=latency)
+        safety_filter = with_constant_margin(SafetyFilter(
+            problem, control_period_s=period if tightened else 0.0,
+            latency_s=latency if tightened else 0.0, slack_tolerance=1e-3), command_linear)
+        margin = sampled_data_margin(problem, control_period_s=period, latency_s=latency,
+                                     command_linear=command_linear)
         top = ClosedFormTerms.from_problem(problem)
         bases = RCBFProblem(system=problem.system, families=tuple(
             f.base if type(f) is Cascaded else f for f in problem.families))
@@ -329,7 +416,8 @@ def simulate_pvtol(worlds: list[PVTOLWorld], *, period: float, latency: float,
                 fail_safe += bool(result.fail_safe)
                 failed = failed or bool(result.fail_safe)
                 if tightened:
-                    margins.append(margin.rows(state.tolist(), *box))
+                    rest, linear = margin.split_rows(state.tolist(), *box)
+                    margins.append(rest + linear @ np.abs(result.u_safe))
                 pending.append((step + delay_steps, np.array(result.u_safe)))
             while pending and pending[0][0] <= step:
                 command = pending.pop(0)[1]
@@ -348,20 +436,56 @@ def simulate_pvtol(worlds: list[PVTOLWorld], *, period: float, latency: float,
 
 TITLE = 'Between samples and under latency: violations with and without the margin'
 
+PVTOL_HOVER_HORIZONS = (0.02, 0.04)
+"""tau = T + L (s) of :func:`hover_answer` in the table."""
+
+
+CASES = (('T = L = 0', False, True), ('constant margin', True, False),
+         ('margin of the command', True, True))
+"""The rows of the tables: (label, tightened, command_linear)."""
+
 
 def run(worlds: list[World], period: float, latency: float) -> list[str]:
-    """The table: violations, least h, correction and progress per case."""
+    """The table: violations, least h, correction, progress, fail-safes and decision time per
+    case."""
     table = ['| obstacles | rows | worlds violated | least h | mean norm of u_S | decisions | '
-             'mean distance left to the goal (m) |', '|---|---|---|---|---|---|---|']
+             'mean distance left to the goal (m) | fail-safe decisions | '
+             'median decision (ms) |', '|---|---|---|---|---|---|---|---|---|']
     for points in (False, True):
-        for tightened in (False, True):
+        for label, tightened, command_linear in CASES:
             out = simulate(worlds, period=period, latency=latency, tightened=tightened,
-                           points=points)
-            table.append(f"| {'sensor points' if points else 'circles'} | "
-                         f"{'with margin' if tightened else 'T = L = 0'} | "
+                           points=points, command_linear=command_linear)
+            table.append(f"| {'sensor points' if points else 'circles'} | {label} | "
                          f'{int(out.violated.sum())} / {len(worlds)} | '
                          f'{out.least_h.min():.4f} | {out.correction:.3f} | '
-                         f'{out.decisions} | {out.remaining:.2f} |')
+                         f'{out.decisions} | {out.remaining:.2f} | {out.fail_safe} | '
+                         f'{1e3 * out.decision_time_s:.3f} |')
+    return table
+
+
+TURTLEBOT_LIMITS = (0.3, 1.9)
+"""The README's TurtleBot-sized base: |v| <= 0.3 m/s, |omega| <= 1.9 rad/s."""
+
+
+def run_margins(period: float, latency: float, pvtol_horizons: tuple[float, ...]
+                ) -> list[str]:
+    """The constant margin against the margin of the command: the Unicycle's stopping
+    distance facing a circle (:func:`stopping_distance`) and PVTOL's answer in hover
+    (:func:`hover_answer`)."""
+    table = ['| case | constant margin | margin of the command |', '|---|---|---|']
+    for name, limits in (('config/unicycle.yaml', (SPEED, SPEED)),
+                         ('TurtleBot (README)', TURTLEBOT_LIMITS)):
+        closest = [stopping_distance(limits=limits, period=period, latency=latency,
+                                     command_linear=command_linear)
+                   for command_linear in (False, True)]
+        table.append(f'| Unicycle, {name} limits {limits[0]} m/s, {limits[1]} rad/s: '
+                     "closest distance of the centre to a 0.6 m circle's centre (m) | "
+                     f'{closest[0]:.2f} | {closest[1]:.2f} |')
+    for horizon in pvtol_horizons:
+        answers = [hover_answer(horizon=horizon, command_linear=command_linear)
+                   for command_linear in (False, True)]
+        table.append(f'| PVTOL, config/pvtol.yaml (alpha 1), level hover, tau = '
+                     f'{1e3 * horizon:g} ms | {answers[0]} | {answers[1]} |')
     return table
 
 
@@ -370,10 +494,11 @@ def run_pvtol(worlds: list[PVTOLWorld], period: float, latency: float) -> list[s
     table = ['| rows | worlds violated (a row set) | of them before any fail-safe | '
              'worlds violated (a base set) | least base h | fail-safe decisions | '
              'median margin | median decision (ms) |', '|---|---|---|---|---|---|---|---|']
-    for tightened in (False, True):
-        out = simulate_pvtol(worlds, period=period, latency=latency, tightened=tightened)
+    for label, tightened, command_linear in CASES:
+        out = simulate_pvtol(worlds, period=period, latency=latency, tightened=tightened,
+                             command_linear=command_linear)
         median = f'{np.median(out.margins):.3g}' if out.margins.size else '-'
-        table.append(f"| {'with margin' if tightened else 'T = L = 0'} | "
+        table.append(f'| {label} | '
                      f'{int(out.violated.sum())} / {len(worlds)} | '
                      f'{int(out.verified.sum())} / {len(worlds)} | '
                      f'{int(out.touched.sum())} / {len(worlds)} | {out.least_h.min():.4f} | '
@@ -398,6 +523,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error('--worlds and --pvtol-worlds must be >= 1')
     worlds = random_worlds(args.worlds, args.seed)
     table = run(worlds, args.period, args.latency)
+    margins = run_margins(args.period, args.latency, PVTOL_HOVER_HORIZONS)
     pvtol = run_pvtol(pvtol_worlds(args.pvtol_worlds, args.seed), args.pvtol_period,
                       args.pvtol_latency)
     from benchmarks._results import publish_section
@@ -414,7 +540,13 @@ def main(argv: list[str] | None = None) -> int:
         '(docs/SAFETY_FILTER.md, "Between samples and under latency"). A world is violated '
         'when h at the look-ahead point (margin included) falls below 0 at a fine step. '
         'norm of u_S: the correction per decision; the last column: what the margin costs in '
-        'progress (the start is 3.6-5.4 m from the goal).', table,
+        'progress (the start is 3.6-5.4 m from the goal). "constant margin": every row lowered '
+        'by the margin of the largest input within the limits; "margin of the command": by '
+        'nu0 + c^T |u|, the rows split by the signs of u (docs/SAFETY_FILTER.md).', table,
+        f'The constant margin against the margin of the command (T = {args.period} s, L = '
+        f'{args.latency} s on the Unicycle: straight at the circle at full speed, alpha 2, '
+        'obstacles.margin 0.1, no disturbance, until it has stood still for 1 s; on PVTOL T = L '
+        '= tau / 2, the hover command 0 proposed, slack tolerance 1e-4).', margins,
         f'PVTOL (cascaded rows, the interval margin): T = {args.pvtol_period} s, '
         f'L = {args.pvtol_latency} s, {args.pvtol_worlds} random worlds (config/pvtol.yaml with '
         'a random transfer layout, alpha U[10, 25], the drone in hover 0.6-1.2 m from a circle '

@@ -13,6 +13,7 @@ Design notes (the solve steps, the assembly paths): docs/DESIGN.md#the-per-step-
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import functools
 from itertools import chain
 import math
 import operator
@@ -27,7 +28,13 @@ from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
 from rcbf_ros.core.lie_closed_form_rows import ManyRows, PointRows, VECTOR_ROWS, VectorAssembly
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
-from rcbf_ros.core.sampled_data import sampled_data_margin, SampledDataMargin
+from rcbf_ros.core.sampled_data import (
+    IntervalMargin,
+    least_per_row,
+    sampled_data_margin,
+    SampledDataMargin,
+    split_rows,
+)
 from rcbf_ros.core.torch_import import bind_torch, LazyTorch
 from rcbf_ros.parameters.reader import setting
 
@@ -537,20 +544,28 @@ def _out_of_bounds(name: str, values: list[float], bound: float) -> str | None:
 
 
 def _interior_point(problem: RCBFProblem, inputs: tuple[list[float], ...],
-                    margin: SampledDataMargin | None = None) -> np.ndarray | None:
+                    rows: tuple[np.ndarray, np.ndarray, list[float]] | None = None
+                    ) -> np.ndarray | None:
     """The fallback's solution of the QP at ``inputs`` (x, u, mean, std), by the batched
-    interior point of :mod:`rcbf_ros.core.diffqp`, its RCBF rows tightened by ``margin``;
-    None when it did not converge, or where PyTorch, which it runs on, is not installed (the
-    filter then gives the fail-safe)."""
+    interior point of :mod:`rcbf_ros.core.diffqp`; ``rows`` (lg (M, n_u), upper (M,), the
+    limit rows' right-hand sides) replace its RCBF rows (the rows tightened by sampled-data
+    margins, :func:`~rcbf_ros.core.sampled_data.split_rows`). None when it did not converge,
+    or where PyTorch, which it runs on, is not installed (the filter then gives the
+    fail-safe)."""
     try:
         from rcbf_ros.core.diffqp import solve_qp_batch_full
     except ImportError:
         return None
     qp = problem.qp(*(torch.tensor([a], dtype=torch.float64) for a in inputs))
-    if margin is not None:
-        nu = np.zeros(qp.h.shape[1])
-        nu[:problem.n_barriers] = margin.rows(*inputs[:1], *inputs[2:])
-        qp = qp._replace(h=qp.h - torch.tensor(nu[None], dtype=qp.h.dtype))
+    if rows is not None:
+        lg, upper, limit_upper = rows
+        n_u = lg.shape[1]
+        unit = np.eye(n_u, n_u + 1)
+        rcbf_rows = np.concatenate([-lg, np.full((upper.size, 1), -1.0)], axis=1)
+        g_matrix = np.concatenate([rcbf_rows] + ([unit, -unit] if limit_upper else []))
+        qp = qp._replace(G=torch.tensor(g_matrix[None], dtype=qp.G.dtype),
+                         h=torch.tensor(np.concatenate([upper, limit_upper])[None],
+                                        dtype=qp.h.dtype))
     solution = solve_qp_batch_full(*qp)
     if not bool(solution.converged[0]):
         return None
@@ -817,7 +832,13 @@ def binding_rows(*, lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
     the smaller one's, and the smaller one's solution meets the full set. Without limits no row
     is left out. A violated row (upper_i < 0) is always kept: its least value is at most
     upper_i. ``upper`` is the rows' as the QP takes them, sampled-data margins included
-    (:mod:`rcbf_ros.core.sampled_data`): a row left out holds with its margin.
+    (:mod:`rcbf_ros.core.sampled_data`): a row left out holds with its margin. A row tightened
+    by the margin of its command, nu0 + c^T |u|, is concave in the action and comes here as its
+    split rows (:func:`~rcbf_ros.core.sampled_data.split_rows`), each linear, the row the least
+    of them: each split row is kept or left out by the argument above, so the tightened row's
+    least value over the box (a concave function's least over a box lies at a vertex) is the
+    least of its split rows', and a split row left out holds at every action the QP can
+    return, as the row it belongs to does where all of its split rows are left out.
 
     Args:
         lg: (K, n_u) L_g h of each row.
@@ -977,6 +998,11 @@ GENERATED_ROWS = 1024
 whatever its assembly (e.g. many circles on a system without a closed form)."""
 
 
+def _as_they_are(values: np.ndarray) -> np.ndarray:
+    """``values`` per row where no row is split (:func:`least_per_row` where they are)."""
+    return values
+
+
 class _RowsAsArrays:
     """A :data:`RowAssembly` (lists) with the many-row path's :class:`ManyRows` out, for a
     problem of more than :data:`GENERATED_ROWS` rows without rows over arrays (a system or
@@ -1012,11 +1038,13 @@ def _many_as_lists(many: VectorAssembly) -> RowAssembly:
     return assemble
 
 
-def _tightened(assemble: RowAssembly, margin: SampledDataMargin, n_barriers: int
-               ) -> RowAssembly:
+def _tightened(assemble: RowAssembly, margin: SampledDataMargin | IntervalMargin,
+               n_barriers: int) -> RowAssembly:
     """``assemble`` with the right-hand side of each of its ``n_barriers`` RCBF rows lowered by
-    its sampled-data margin nu_i (:mod:`rcbf_ros.core.sampled_data`): the row then asks for
-    phi_i(x_k, u) >= nu_i. The limit rows are unchanged; the sum of squares follows."""
+    its constant sampled-data margin nu_i = nu0_i + c_i^T U (:mod:`rcbf_ros.core.sampled_data`,
+    the largest over the commands within the limits): the lists
+    :meth:`SafetyFilter.evaluation_refusal` checks (finite exactly where the command-linear
+    margin is). The limit rows are unchanged; the sum of squares follows."""
 
     def assemble_tightened(x: list[float], u: list[float], mean: list[float],
                            std: list[float]
@@ -1029,22 +1057,6 @@ def _tightened(assemble: RowAssembly, margin: SampledDataMargin, n_barriers: int
         return h, rows, after + upper[n_barriers:], size
 
     return assemble_tightened
-
-
-class _TightenedMany:
-    """A many-row assembly (:class:`VectorAssembly`, :class:`_RowsAsArrays`) whose RCBF rows'
-    right-hand sides are lowered by their sampled-data margins, as :func:`_tightened` does."""
-
-    def __init__(self, many: VectorAssembly | _RowsAsArrays, margin: SampledDataMargin
-                 ) -> None:
-        self._many, self._margin, self.n_u = many, margin, many.n_u
-
-    def evaluate(self, x: list[float], u: list[float], mean: list[float], std: list[float]
-                 ) -> ManyRows:
-        rows = self._many.evaluate(x, u, mean, std)
-        upper = rows.upper - self._margin.rows(x, mean, std)
-        size = rows.size + float(upper @ upper) - float(rows.upper @ rows.upper)
-        return rows._replace(upper=upper, size=size)
 
 
 def select_assembly(problem: RCBFProblem, *, compile_assembly: bool = False,
@@ -1182,21 +1194,21 @@ class SafetyFilter:
         self.control_period_s, self.latency_s = float(control_period_s), float(latency_s)
         """T and L the rows are tightened for (both 0: not tightened)."""
         self._points = None if footprint is None else PointRows(problem, footprint)
-        self._many: VectorAssembly | _RowsAsArrays | _TightenedMany | None = (
+        self._many: VectorAssembly | _RowsAsArrays | None = (
             VectorAssembly.from_problem(problem, threshold=vector_rows) if closed_form else None)
         if self._many is not None:
-            if self._margin is not None:
-                self._many = _TightenedMany(self._many, self._margin)
             assembly, self._assemble = 'vectorised', _many_as_lists(self._many)
         else:
             assembly, self._assemble = select_assembly(
                 problem, compile_assembly=compile_assembly, closed_form=closed_form)
-            if self._margin is not None:
-                self._assemble = _tightened(self._assemble, self._margin, problem.n_barriers)
-            if problem.n_barriers > GENERATED_ROWS or self._points is not None:
-                # the many-row path, on this assembly
+            if (problem.n_barriers > GENERATED_ROWS or self._points is not None
+                    or self._margin is not None):
+                # the many-row path, on this assembly (with a margin: its split rows, whose
+                # count is not the problem's)
                 self._many = _RowsAsArrays(self._assemble, problem.n_barriers,
                                            problem.system.n_u)
+        if self._margin is not None:  # the data check of evaluation_refusal
+            self._assemble = _tightened(self._assemble, self._margin, problem.n_barriers)
         self.assembly = assembly
         """The constraint assembly's path: 'closed_form', 'vectorised' (the closed form with
         circle rows over arrays), 'autograd' or 'compiled'."""
@@ -1356,7 +1368,7 @@ class SafetyFilter:
             if self.fallback:
                 # ADMM can stall when the slack is far from 0 (the 1 : l diagonal); the
                 # interior point of the differentiable layer solves the same QP robustly.
-                solved = _interior_point(self.problem, (x, applied, mu, sd), self._margin)
+                solved = _interior_point(self.problem, (x, applied, mu, sd))
                 if solved is not None:
                     z = solved
                     checked = self._check(z, rows)
@@ -1468,18 +1480,29 @@ class SafetyFilter:
         h, lg, upper, limit_upper = rows.h, rows.lg, rows.upper, rows.limit_upper
         size = rows.size
         point_h = None
+        margin = self._margin
+        if margin is not None:
+            rest, linear = margin.split_rows(x, mu, sd)
         if self._points is not None:  # the sensor points' rows follow the problem's
             point_h, point_lg, point_upper = self._points.evaluate(x, applied, mu, sd)
-            if self._margin is not None:
-                point_upper = point_upper - self._margin.points(x, mu, sd,
-                                                                *self._points.centres)
+            if margin is not None:
+                point_rest, point_linear = margin.split_points(  # type: ignore[union-attr]
+                    x, mu, sd, *self._points.centres)
+                rest = np.concatenate([rest, point_rest])
+                linear = np.concatenate([linear, point_linear])
             flat = point_lg.ravel()
             size += (float(point_h @ point_h) + float(flat @ flat)
                      + float(point_upper @ point_upper) + point_h.size)
             h = np.concatenate([h, point_h])
             lg = np.concatenate([lg, point_lg])
             upper = np.concatenate([upper, point_upper])
-        report = self._reported
+        report, per_row = self._reported, _as_they_are
+        if margin is not None:
+            # each row tightened by nu0 + c^T |u|: its split rows (one per sign vector)
+            before = float(upper @ upper) + float(lg.ravel() @ lg.ravel())
+            lg, upper, starts = split_rows(lg, upper, applied, rest, linear)
+            size += float(upper @ upper) + float(lg.ravel() @ lg.ravel()) - before
+            per_row = functools.partial(least_per_row, starts=starts)
         if not size <= _QP_DATA_SQUARES:
             reason = _data_refusal(h.tolist(), (-lg).tolist(), upper.tolist() + limit_upper)
             if reason is not None:
@@ -1491,22 +1514,23 @@ class SafetyFilter:
         if limit_upper:
             lowest, highest = min(lowest, min(limit_upper)), max(highest, max(limit_upper))
         if lowest >= 0.0:  # the pass-through of filter(): z = 0 meets every row
-            self._pruned = h.size
+            self._pruned = upper.size
             u_safe = [value + 0.0 for value in applied]
+            at_rows = per_row(upper)
             return FilterResult._filled(
                 u_safe=np.array(u_safe), u_s=np.array([a - b for a, b in zip(u_safe, u)]),
-                slack=0.0, h=report(h), constraint_values=report(upper), status='solved',
+                slack=0.0, h=report(h), constraint_values=report(at_rows), status='solved',
                 solve_time_s=time.perf_counter() - solve_start,
                 total_time_s=time.perf_counter() - start, fail_safe=False,
                 barrier_names=list(self.barrier_names), needed_slack=0.0, reason='',
-                proposal_clipped=clipped, points=self._point_values(point_h, upper))
+                proposal_clipped=clipped, points=self._point_values(point_h, at_rows))
         has_limits = self.problem.has_limits
         scale = 1.0 + max(highest, -lowest)
         keep = binding_rows(lg=lg, upper=upper, applied=applied,
                             u_min=self._u_min if has_limits else None,
                             u_max=self._u_max if has_limits else None,
                             margin=PRUNE_MARGIN * scale)
-        self._pruned = h.size - keep.size
+        self._pruned = upper.size - keep.size
         solve_lg, solve_upper = lg[keep], upper[keep]
         generated = None
         if keep.size > EXACT_ROWS and self._finite_limits:
@@ -1534,9 +1558,9 @@ class SafetyFilter:
             ACTIVE_SET_STEPS, kernels)
         status = 'solved'
         checked = None if z is None else self._check_many(z, upper, lg, applied)
-        if checked is None and self._points is not None:
-            # the row count changes with the points: a QP of the rows that can bind, set up
-            # for this call (the exact solve failed: rare)
+        if checked is None and (self._points is not None or margin is not None):
+            # the row count changes with the points and the margins' split: a QP of the rows
+            # that can bind, set up for this call (the exact solve failed: rare)
             z, status = _solve_once(g_rows, qp_upper_list, self._p_inverse)
             checked = None if z is None else self._check_many(z, upper, lg, applied)
         elif checked is None:
@@ -1555,7 +1579,8 @@ class SafetyFilter:
         if checked is None:
             self._solver.warm_start(x=np.zeros(self.n_u + 1), y=np.zeros(self._nc))
             if self.fallback and self._points is None:  # its problem has no points
-                solved = _interior_point(self.problem, (x, applied, mu, sd), self._margin)
+                solved = _interior_point(self.problem, (x, applied, mu, sd), None if (
+                    margin is None) else (lg, upper, limit_upper))
                 if solved is not None:
                     z = solved
                     checked = self._check_many(z, upper, lg, applied)
@@ -1564,7 +1589,7 @@ class SafetyFilter:
         fail_values = None
         if checked is None or (self.slack_tolerance is not None
                                and checked[2] > self.slack_tolerance):
-            fail_values = upper + lg @ (self.fail_safe_action - np.array(applied))
+            fail_values = per_row(upper + lg @ (self.fail_safe_action - np.array(applied)))
         fail_points = None
         if fail_values is not None:
             fail_points = self._point_values(point_h, fail_values)
@@ -1575,6 +1600,7 @@ class SafetyFilter:
                                    reason=f'no solution passed the row check (solver: {status})',
                                    points=fail_points)
         action, values, needed = checked
+        values = per_row(values)
         if self.slack_tolerance is not None and needed > self.slack_tolerance:
             return self._fail_safe(
                 u, start, status='slack_exceeded', h=report(h).tolist(), clipped=clipped,

@@ -14,26 +14,43 @@ tau = L + T under any input within the limits and any disturbance in the box. Th
 along the whole interval, so h_i_dot >= -alpha h_i there while the true disturbance stays in the
 box, and h_i >= 0 holds between samples, not only at them.
 
-nu_i is bounded here in closed form, a guaranteed bound (no sampling), for the uncascaded
-barrier families on the :class:`~rcbf_ros.core.dynamics.Unicycle` (f = 0, g = [[cos th, 0],
-[sin th, 0], [0, 1]]), from per-entry bounds of the displacement |x(t) - x_k| <= tau r,
-r = (V + w_0, V + w_1, W + w_2), V and W the largest |v| and |omega| within the limits and
-w = |mean| + k_c std the box's reach per entry:
+The margin follows the command: the change of phi_i is that of L_g h_i times u plus the rest,
+so nu_i(u) = nu0_i + c_i^T |u|, c_i >= 0 (n_u,) bounding the change of L_g h_i per input
+(``split_rows`` and ``split_points`` give (nu0, c)). The motion over the interval stays a
+worst case over the whole input box (the previous command acts over [t_k, t_k + L], and the
+state may move under any input): only the factor |u| of the row's own command is the
+command's. The tightened row a_i + b_i^T u - nu0_i - c_i^T |u| >= 0 is concave in u, and as
+c_i^T |u| = max_s (c_i * s)^T u over the sign vectors s in {-1, +1}^{n_u}, it is exactly the
+linear rows (b_i - c_i * s)^T u >= nu0_i - a_i for every s (:func:`split_rows`, over the
+inputs with c_ij > 0), whose least at u is the tightened row's value. The constant margin of
+the largest input, nu0_i + c_i^T U >= nu0_i + c_i^T |u| for every u within the limits, is
+``rows`` and ``points`` (``command_linear`` False: what ``split_*`` give, c = 0, for
+comparison: benchmarks/bench_sampled_data.py, ``python benchmarks/bench_sampled_data.py
+--no-write``).
+
+nu0 and c are bounded here in closed form, a guaranteed bound (no sampling), for the
+uncascaded barrier families on the :class:`~rcbf_ros.core.dynamics.Unicycle` (f = 0,
+g = [[cos th, 0], [sin th, 0], [0, 1]]), from per-entry bounds of the displacement
+|x(t) - x_k| <= tau r, r = (V + w_0, V + w_1, W + w_2), V and W the largest |v| and |omega|
+within the limits and w = |mean| + k_c std the box's reach per entry:
 
 - :class:`~rcbf_ros.core.barriers.CircleObstacles` (the look-ahead point p = (x, y) +/- l_p e,
   e = (cos th, sin th), l_p = 0 included; each sensor point is one such row), with
   d = p - c, rho_k = |(x, y) - c| + l_p >= |d_k| for either point,
   E = min(tau r_2, 2) >= |e - e_k|, P = tau (V + |(w_0, w_1)|) + l_p E >= |p - p_k| and
-  Q = P + (rho_k + P) E >= the change of d^T e and of d^T n (n = (-sin th, cos th)):
+  Q = P + (rho_k + P) E >= the change of d^T e and of d^T n (n = (-sin th, cos th)), and
+  L_g h = (2 d^T e, 2 l_p d^T n):
 
-      nu = 2 (V + l_p W) Q + 2 P (w_0 + w_1) + 2 l_p Q w_2 + alpha (2 rho_k P + P^2);
+      c = (2 Q, 2 l_p Q),  nu0 = 2 P (w_0 + w_1) + 2 l_p Q w_2 + alpha (2 rho_k P + P^2);
 
 - the quadratic families (:class:`~rcbf_ros.core.barriers.HalfPlane`,
   :class:`~rcbf_ros.core.barriers.BandBarrier`, :class:`~rcbf_ros.core.barriers.PairGap`),
-  h = c + a^T x + 1/2 x^T H x, with D = tau r, G = (V, V, W) >= |g(x) u| and
-  B = (V E, V E, 0) >= |(g(x) - g(x_k)) u|:
+  h = c + a^T x + 1/2 x^T H x, with D = tau r, |g(x) u| <= (|v|, |v|, |omega|) and
+  |(g(x) - g(x_k)) u| <= (E |v|, E |v|, 0):
 
-      nu = (|H| D)^T (G + w) + |grad h(x_k)|^T B + alpha (|grad h(x_k)|^T D + 1/2 D^T |H| D).
+      c_v = (|H| D)_0 + (|H| D)_1 + E (|grad h(x_k)|_0 + |grad h(x_k)|_1),
+      c_omega = (|H| D)_2,
+      nu0 = (|H| D)^T w + alpha (|grad h(x_k)|^T D + 1/2 D^T |H| D).
 
 Every other problem with a closed form (:mod:`rcbf_ros.core.lie_closed_form`: PVTOL with its
 cascaded obstacles, bands and arena, a cascaded family on the Unicycle) gets
@@ -47,12 +64,12 @@ gradients), and each change is bounded by the smaller of the values' enclosure a
 value bound sum_k sup|d/dx_k| D_k (the latter only where no comparison of the code is undecided
 over the box: across a switch the values' hull over both branches holds, a gradient does not):
 
-    nu_i = sup|dL_f h_i| + sup|dL_g h_i|^T U + sup|d grad h_i|^T (|mean| + k_c std)
-           + alpha sup|d h_i|,
+    nu0_i = sup|dL_f h_i| + sup|d grad h_i|^T (|mean| + k_c std) + alpha sup|d h_i|,
+    c_i = sup|dL_g h_i| per input
 
-U the largest |u| per input within the limits (|d rho_i| <= |d grad h_i|^T (|mean| + k_c
-std), rho_i as :func:`~rcbf_ros.core.qp.robust_margin` forms it). Where no enclosure closes
-the margin is infinite and the filter answers with its fail-safe.
+(|d rho_i| <= |d grad h_i|^T (|mean| + k_c std), rho_i as
+:func:`~rcbf_ros.core.qp.robust_margin` forms it). Where no enclosure closes the margin is
+infinite and the filter answers with its fail-safe.
 
 Refused, in one line naming the key and the system, rather than filter with rows that hold at
 the samples only: a system without input limits; Car Following (its prior brakes by k_b times
@@ -64,6 +81,8 @@ cascaded look-ahead point).
 from __future__ import annotations
 
 from dataclasses import replace
+import functools
+from itertools import product
 import math
 from typing import Callable, Sequence
 
@@ -112,16 +131,22 @@ def check_timing(control_period_s: float, latency_s: float) -> None:
 
 class SampledDataMargin:
     """The margins nu_i of one problem's rows (module docstring); build with
-    :func:`sampled_data_margin`. ``rows(x, mean, std)`` gives the K problem rows' margins,
-    ``points(x, mean, std, cx, cy)`` those of sensor points."""
+    :func:`sampled_data_margin`. ``split_rows(x, mean, std)`` gives the K problem rows'
+    margins as (nu0, c), nu_i(u) = nu0_i + c_i^T |u|, ``split_points(x, mean, std, cx, cy)``
+    those of sensor points; ``rows`` and ``points`` the constant margins nu0 + c^T U at the
+    largest input U (``command_linear`` False: ``split_*`` give those, c = 0)."""
 
-    def __init__(self, problem: RCBFProblem, horizon: float, lookahead: float) -> None:
+    def __init__(self, problem: RCBFProblem, horizon: float, lookahead: float,
+                 command_linear: bool = True) -> None:
         system = problem.system
         low = np.asarray(system.u_min, dtype=np.float64)
         high = np.asarray(system.u_max, dtype=np.float64)
         reach = np.maximum(np.abs(low), np.abs(high))
         self.horizon = float(horizon)
         """tau = L + T (s)."""
+        self.command_linear = bool(command_linear)
+        """Whether the margin follows the command (else the constant nu0 + c^T U, c = 0)."""
+        self._reach = reach
         self._speed, self._turn = float(reach[0]), float(reach[1])
         self._alpha, self._k_c = float(problem.alpha), float(problem.k_c)
         self._point_lookahead = float(lookahead)
@@ -142,48 +167,77 @@ class SampledDataMargin:
             std, dtype=np.float64)
 
     def _circles(self, x: Sequence[float], w: np.ndarray, cx: np.ndarray, cy: np.ndarray,
-                 lookahead: float) -> np.ndarray:
-        """nu of circle rows around centres (cx, cy), the look-ahead l_p (module docstring)."""
+                 lookahead: float) -> tuple[np.ndarray, np.ndarray]:
+        """(nu0 (N,), c (N, 2)) of circle rows around centres (cx, cy), the look-ahead l_p
+        (module docstring): c = (2 Q, 2 l_p Q), the change of L_g h times |v| and |omega|."""
         tau, speed, turn = self.horizon, self._speed, self._turn
         turned = min(tau * (turn + w[2]), 2.0)  # E >= |e - e_k|
         moved = tau * (speed + math.hypot(w[0], w[1])) + lookahead * turned  # P >= |p - p_k|
         rho = np.hypot(x[0] - cx, x[1] - cy) + lookahead  # >= |d_k| at either point
         change = moved + (rho + moved) * turned  # Q >= |d^T e - d_k^T e_k|, same with n
-        return (2.0 * (speed + lookahead * turn + lookahead * w[2]) * change
-                + 2.0 * moved * (w[0] + w[1])
+        rest = (2.0 * lookahead * w[2] * change + 2.0 * moved * (w[0] + w[1])
                 + self._alpha * (2.0 * rho * moved + moved * moved))
+        return rest, np.stack([2.0 * change, 2.0 * lookahead * change], axis=-1)
 
     def _quadratic(self, x: np.ndarray, w: np.ndarray, linear: np.ndarray, hessian: np.ndarray,
-                   absolute: np.ndarray) -> np.ndarray:
-        """nu of quadratic rows (module docstring)."""
+                   absolute: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(nu0 (k,), c (k, 2)) of quadratic rows (module docstring): c_v = |H| D's first two
+        entries plus |grad h(x_k)|'s times E, c_omega = |H| D's third."""
         tau, speed, turn = self.horizon, self._speed, self._turn
         shift = tau * np.array([speed + w[0], speed + w[1], turn + w[2]])  # D
         turned = min(shift[2], 2.0)
-        gain = np.array([speed, speed, turn])  # G >= |g(x) u|
-        rotated = np.array([speed * turned, speed * turned, 0.0])  # B >= |(g(x) - g(x_k)) u|
         grad = np.abs(linear + hessian @ x)  # (k, n_x) |grad h(x_k)|
         spread = absolute @ shift  # (k, n_x) >= |grad h(x) - grad h(x_k)|
-        return (spread @ (gain + w) + grad @ rotated
-                + self._alpha * (grad @ shift + 0.5 * spread @ shift))
+        # |g(x) u| <= (|v|, |v|, |omega|), |(g(x) - g(x_k)) u| <= (E |v|, E |v|, 0)
+        linear_part = np.stack([spread[:, 0] + spread[:, 1]
+                                + turned * (grad[:, 0] + grad[:, 1]), spread[:, 2]], axis=-1)
+        rest = spread @ w + self._alpha * (grad @ shift + 0.5 * spread @ shift)
+        return rest, linear_part
 
-    def rows(self, x: Sequence[float], mean: Sequence[float], std: Sequence[float]
-             ) -> np.ndarray:
-        """(K,) nu_i >= 0 of the problem's rows at the sampled state x and the box."""
+    def _as_asked(self, parts: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """(nu0, c) as they are, or (nu0 + c^T U, 0) where the margin is the constant one."""
+        if self.command_linear:
+            return parts
+        rest, linear = parts
+        return rest + linear @ self._reach, np.zeros_like(linear)
+
+    def split_rows(self, x: Sequence[float], mean: Sequence[float], std: Sequence[float]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """(nu0 (K,), c (K, 2)) >= 0 of the problem's rows at the sampled state x and the box:
+        the margin of a command u is nu0 + c^T |u|."""
         w = self._box(mean, std)
         state = np.asarray(x, dtype=np.float64)
-        out = []
+        rests, linears = [], []
         for kind, data in self._parts:
             if kind == 'circles':
                 cx, cy, lookahead = data  # type: ignore[misc]
-                out.append(self._circles(x, w, cx, cy, lookahead))
+                rest, linear = self._circles(x, w, cx, cy, lookahead)
             else:
-                out.append(self._quadratic(state, w, *data))  # type: ignore[misc]
-        return np.concatenate(out) if out else np.zeros(0)
+                rest, linear = self._quadratic(state, w, *data)  # type: ignore[misc]
+            rests.append(rest)
+            linears.append(linear)
+        if not rests:
+            return np.zeros(0), np.zeros((0, 2))
+        return self._as_asked((np.concatenate(rests), np.concatenate(linears)))
+
+    def split_points(self, x: Sequence[float], mean: Sequence[float], std: Sequence[float],
+                     cx: np.ndarray, cy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(nu0 (N,), c (N, 2)) of the sensor points' circle rows, centres (cx, cy)."""
+        return self._as_asked(self._circles(x, self._box(mean, std), cx, cy,
+                                            self._point_lookahead))
+
+    def rows(self, x: Sequence[float], mean: Sequence[float], std: Sequence[float]
+             ) -> np.ndarray:
+        """(K,) the constant nu_i = nu0_i + c_i^T U >= 0 of the problem's rows at the sampled
+        state x and the box: the margin of the largest command within the limits."""
+        rest, linear = self.split_rows(x, mean, std)
+        return rest + linear @ self._reach
 
     def points(self, x: Sequence[float], mean: Sequence[float], std: Sequence[float],
                cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
-        """(N,) nu of the sensor points' circle rows, centres (cx, cy)."""
-        return self._circles(x, self._box(mean, std), cx, cy, self._point_lookahead)
+        """(N,) the constant nu of the sensor points' circle rows, centres (cx, cy)."""
+        rest, linear = self.split_points(x, mean, std, cx, cy)
+        return rest + linear @ self._reach
 
 
 class IntervalMargin:
@@ -193,12 +247,15 @@ class IntervalMargin:
     :func:`sampled_data_margin`. ``rows(x, mean, std)`` gives the K rows' margins (inf where no
     enclosure closes: the filter then answers with its fail-safe)."""
 
-    def __init__(self, problem: RCBFProblem, horizon: float) -> None:
+    def __init__(self, problem: RCBFProblem, horizon: float, command_linear: bool = True
+                 ) -> None:
         system = problem.system
         low = np.asarray(system.u_min, dtype=np.float64)
         high = np.asarray(system.u_max, dtype=np.float64)
         self.horizon = float(horizon)
         """tau = L + T (s)."""
+        self.command_linear = bool(command_linear)
+        """Whether the margin follows the command (else the constant nu0 + c^T U, c = 0)."""
         self._reach = np.maximum(np.abs(low), np.abs(high)).tolist()
         self._alpha, self._k_c = float(problem.alpha), float(problem.k_c)
         self._n_x, self._n_u, self._count = system.n_x, system.n_u, problem.n_barriers
@@ -241,19 +298,23 @@ class IntervalMargin:
         return [_magnitude(fi) + sum(_magnitude(gij) * uj for gij, uj in zip(gi, self._reach))
                 + wi for fi, gi, wi in zip(f, g, w)]
 
-    def rows(self, x: Sequence[float], mean: Sequence[float], std: Sequence[float]
-             ) -> np.ndarray:
-        """(K,) nu_i >= 0 of the problem's rows at the sampled state x and the box (inf where
-        no bound is found)."""
+    def split_rows(self, x: Sequence[float], mean: Sequence[float], std: Sequence[float]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """(nu0 (K,), c (K, n_u)) >= 0 of the problem's rows at the sampled state x and the
+        box: the margin of a command u is nu0 + c^T |u|, c_ij = sup|dL_g h_ij| (the largest
+        over the look-ahead points a proposal can choose, as nu0). A row without a bound has
+        nu0 = inf and c = 0 (then its data is refused and the filter answers with its
+        fail-safe)."""
         state = [float(v) for v in x]
         w = (np.abs(np.asarray(mean, dtype=np.float64))
              + self._k_c * np.asarray(std, dtype=np.float64)).tolist()
         count = self._count
+        rest = np.zeros(count)
+        linear = np.zeros((count, self._n_u))
         spread = self.enclosure(state, w) if all(map(math.isfinite, state + w)) else None
         if spread is None:
-            return np.full(count, math.inf)
+            return np.full(count, math.inf), linear
         box = [Jet.variable(c, r, k) for k, (c, r) in enumerate(zip(state, spread))]
-        nu = np.zeros(count)
         for proposal in self._proposals:
             at = self._terms.terms(state, np.array(proposal))
             at_h, at_grad, at_lf, at_lg = (v.tolist() for v in at)  # floats: NaN, no warning
@@ -261,13 +322,25 @@ class IntervalMargin:
             radii = spread if smooth else None
             for i in range(count):
                 value = (_change(lf[i], at_lf[i], radii)
-                         + sum(_change(b, v, radii) * r
-                               for b, v, r in zip(lg[i], at_lg[i], self._reach))
                          + sum(_change(b, v, radii) * wk
                                for b, v, wk in zip(grad[i], at_grad[i], w))
                          + self._alpha * _change(h[i], at_h[i], radii))
-                nu[i] = max(nu[i], value if value == value else math.inf)
-        return nu
+                rest[i] = max(rest[i], value if value == value else math.inf)
+                for j, (b, v) in enumerate(zip(lg[i], at_lg[i])):
+                    change = _change(b, v, radii)
+                    linear[i, j] = max(linear[i, j], change if change == change else math.inf)
+        unbounded = ~np.isfinite(rest) | ~np.isfinite(linear).all(axis=1)
+        rest[unbounded], linear[unbounded] = math.inf, 0.0
+        if not self.command_linear:
+            return rest + linear @ np.asarray(self._reach), np.zeros_like(linear)
+        return rest, linear
+
+    def rows(self, x: Sequence[float], mean: Sequence[float], std: Sequence[float]
+             ) -> np.ndarray:
+        """(K,) the constant nu_i = nu0_i + c_i^T U >= 0 of the problem's rows at the sampled
+        state x and the box, U the largest |u| per input (inf where no bound is found)."""
+        rest, linear = self.split_rows(x, mean, std)
+        return rest + linear @ np.asarray(self._reach)
 
 
 ENCLOSURE_TRIES = 30
@@ -310,11 +383,14 @@ def _ball_drift(source: DriftSource, n_x: int) -> Callable:
 
 
 def sampled_data_margin(problem: RCBFProblem, *, control_period_s: float = 0.0,
-                        latency_s: float = 0.0, footprint: BarrierFamily | None = None
+                        latency_s: float = 0.0, footprint: BarrierFamily | None = None,
+                        command_linear: bool = True
                         ) -> SampledDataMargin | IntervalMargin | None:
     """The margins of ``problem``'s rows (and of sensor points around ``footprint``) for a
     command held ``control_period_s`` and applied ``latency_s`` after its state was sampled;
-    None when both are 0 (the continuous-time rows, unchanged).
+    None when both are 0 (the continuous-time rows, unchanged). ``command_linear`` False: the
+    constant margin of the largest input, c = 0 (for comparison; the default follows the
+    command).
 
     Raises:
         ValueError: one line naming ``control_period_s`` or ``latency_s``: out of range, or a
@@ -335,7 +411,7 @@ def sampled_data_margin(problem: RCBFProblem, *, control_period_s: float = 0.0,
         lookahead = 0.0
         if footprint is not None and footprint.has_lookahead:  # type: ignore[attr-defined]
             lookahead = float(footprint.lookahead)  # type: ignore[attr-defined]
-        return SampledDataMargin(problem, horizon, lookahead)
+        return SampledDataMargin(problem, horizon, lookahead, command_linear)
     if type(system) in REFUSED_SYSTEMS:
         raise ValueError(f'{key}: no sampled-data margin is derived for the {name} system '
                          f'({REFUSED_SYSTEMS[type(system)]}); set control_period_s and '
@@ -354,7 +430,62 @@ def sampled_data_margin(problem: RCBFProblem, *, control_period_s: float = 0.0,
         raise ValueError(f'{key}: no sampled-data margin is derived for the {name} system '
                          '(no closed form: a user-defined system); set control_period_s and '
                          'latency_s to 0')
-    return IntervalMargin(problem, horizon)
+    return IntervalMargin(problem, horizon, command_linear)
+
+
+def split_rows(lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
+               rest: np.ndarray, linear: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The linear rows that are exactly the rows tightened by command-linear margins.
+
+    Row i at an action u is v_i(u) = upper_i + lg_i^T (u - applied) (``upper`` written at the
+    proposal ``applied``); tightened by nu0_i + c_i^T |u| (``rest``, ``linear`` >= 0) it is
+    v_i(u) - nu0_i - c_i^T |u|, concave in u (|u| is convex, c_i >= 0). As
+    c_i^T |u| = max over the sign vectors s in {-1, +1}^{n_u} of (c_i * s)^T u, the row holds
+    exactly when every one of the linear rows
+
+        upper_i - nu0_i - (c_i * s)^T applied + (lg_i - c_i * s)^T (u - applied) >= 0
+
+    holds, and the least of them at u is the tightened row's value there. A row takes the sign
+    vectors that are +1 wherever its c is 0 (the others repeat them): one row where c_i = 0,
+    2^m where m entries of c_i are > 0.
+
+    Args:
+        lg: (K, n_u) L_g h of each row.
+        upper: (K,) the right-hand sides at ``applied``.
+        applied: (n_u,) the proposal the rows are written at.
+        rest: (K,) nu0 of each row.
+        linear: (K, n_u) c of each row, >= 0.
+
+    Returns:
+        (lg (M, n_u), upper (M,), starts (K,)): the rows of row i are starts[i] to
+        starts[i + 1] (the last to M), in the order of the rows.
+    """
+    count, n_u = lg.shape
+    signs = _signs(n_u)
+    shifted = linear[:, None, :] * signs[None]  # (K, S, n_u)
+    split_lg = lg[:, None, :] - shifted
+    split_upper = (upper - rest)[:, None] - shifted @ np.asarray(applied, dtype=np.float64)
+    positive = linear > 0.0
+    if positive.all():  # every row takes every sign vector
+        return (split_lg.reshape(-1, n_u), split_upper.reshape(-1),
+                np.arange(0, count * signs.shape[0], signs.shape[0]))
+    taken = ~((signs < 0.0)[None] & ~positive[:, None, :]).any(axis=2)  # (K, S)
+    starts = np.zeros(count, dtype=np.int64)
+    np.cumsum(taken.sum(axis=1)[:-1], out=starts[1:])
+    return split_lg[taken], split_upper[taken], starts
+
+
+@functools.cache
+def _signs(n_u: int) -> np.ndarray:
+    """(2^n_u, n_u) the sign vectors in {-1, +1}^n_u, all +1 first."""
+    return np.array(list(product((1.0, -1.0), repeat=n_u))).reshape(-1, n_u)
+
+
+def least_per_row(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """(K,) the least of each row's split rows' ``values`` (:func:`split_rows`): the tightened
+    row's own value."""
+    return np.minimum.reduceat(values, starts) if starts.size else values[:0]
 
 
 def _unicycle_closed_form(family: BarrierFamily) -> bool:

@@ -31,7 +31,7 @@ from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.dynamics import CarFollowing, PVTOL, Unicycle
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.core.rcbf import RCBFProblem
-from rcbf_ros.core.sampled_data import sampled_data_margin
+from rcbf_ros.core.sampled_data import least_per_row, sampled_data_margin, split_rows
 from rcbf_ros.parameters.rules import find_config, load_params
 
 bench = load_benchmark('bench_sampled_data')
@@ -57,14 +57,22 @@ def test_a_short_period_without_latency_is_safe_with_the_margin_too():
     assert not tight.violated.any()
 
 
-def test_the_benchmark_prints_its_six_cases_and_writes_nothing_with_no_write(capsys):
+def test_the_benchmark_prints_its_cases_and_writes_nothing_with_no_write(capsys):
     before = bench_results_text()
     assert bench.main(['--worlds', '1', '--pvtol-worlds', '1', '--no-write']) == 0
     lines = capsys.readouterr().out.splitlines()
     rows = [line for line in lines if line.startswith(('| circles', '| sensor points'))]
-    assert len(rows) == 4 and all('/ 1 |' in row for row in rows)
-    pvtol = [line for line in lines if line.startswith(('| T = L = 0', '| with margin'))]
-    assert len(pvtol) == 2 and all('/ 1 |' in row for row in pvtol)
+    assert len(rows) == 6 and all('/ 1 |' in row for row in rows)
+    pvtol = [line for line in lines if line.startswith(
+        ('| T = L = 0', '| constant margin', '| margin of the command'))]
+    assert len(pvtol) == 3 and all('/ 1 |' in row for row in pvtol)
+    hover = [line for line in lines if line.startswith('| PVTOL, config/pvtol.yaml')]
+    assert len(hover) == 2 and all(row.endswith('| fail-safe | passes |') for row in hover)
+    stops = [line for line in lines if line.startswith('| Unicycle,')]
+    assert len(stops) == 2
+    for row in stops:  # the command's margin lets the robot come closer, never into the circle
+        constant, linear = (float(cell) for cell in row.split('|')[2:4])
+        assert 0.6 < linear < constant
     assert bench_results_text() == before
 
 
@@ -111,12 +119,16 @@ def test_the_true_change_of_every_row_stays_within_its_margin(data, kind, period
     if data.draw(st.booleans()):  # a box, else the bare rows (the tightest case)
         mean = np.array(data.draw(st.tuples(*[st.floats(-0.3, 0.3)] * 3)))
         std = np.array(data.draw(st.tuples(*[st.floats(0.0, 0.1)] * 3)))
-    nu = margin.rows(x_k.tolist(), mean.tolist(), std.tolist())
+    rest, linear = margin.split_rows(x_k.tolist(), mean.tolist(), std.tolist())
+    assert np.all(linear >= 0.0)
     rng = np.random.default_rng(data.draw(st.integers(0, 2 ** 32 - 1)))
     low, high = np.array(system.u_min), np.array(system.u_max)
-    # the row's command: a vertex of the limits or inside them (v >= 0: the point ahead)
-    held = np.where(rng.random(2) < 0.5, high, rng.uniform(low, high))
+    # the row's command: each entry at a limit, inside them, a tenth of that or 0 (the margin
+    # follows |u|; v >= 0: the point ahead)
+    held = np.where(rng.random(2) < 0.5, high, rng.uniform(low, high)) * rng.choice(
+        [1.0, 1.0, 0.1, 0.0], 2)
     held[0] = abs(held[0])
+    nu = rest + linear @ np.abs(held)  # the margin of this command
     whole, rest = divmod(period + latency, 1e-3)  # 1 ms steps over exactly tau
     steps = [1e-3] * int(whole) + ([rest] if rest > 0 else [])
     states = [x_k]
@@ -140,7 +152,31 @@ def test_the_true_change_of_every_row_stays_within_its_margin(data, kind, period
                     torch.tensor(std, dtype=torch.float64).expand(count, 3))
     phi = qp.h[:, :problem.n_barriers].numpy()  # L_f h + L_g h u + alpha h + rho
     change = np.abs(phi - phi[0]).max(axis=0)
-    assert np.all(change <= nu + 1e-9), (change, nu)
+    assert np.all(change <= nu + 1e-9), (change, nu, held)
+
+
+@pytest.mark.parametrize('bearing', [0.5, 1.6, 2.8, -1.2])
+def test_a_turn_in_place_is_covered_by_the_turn_rate_part_of_the_margin(bearing):
+    """Held v = 0 and the fastest turn, the robot turning in place (no box, alpha 0.1): the
+    look-ahead row's change is almost all 2 l_p d^T n omega's, which only c_omega |omega|
+    covers (the change exceeds nu0), and it stays within nu0 + c^T |u|."""
+    system = Unicycle(u_min=(-2.0, -3.0), u_max=(2.5, 1.5))
+    centre = (2.0 * math.cos(bearing), 2.0 * math.sin(bearing))
+    problem = RCBFProblem(system=system, families=(CircleObstacles(
+        centers=(centre,), radii=(0.4,), margin=0.1, heading_index=2, lookahead=0.3),),
+        alpha=0.1)
+    period, latency = 0.2, 0.05
+    margin = sampled_data_margin(problem, control_period_s=period, latency_s=latency)
+    x_k = np.zeros(3)
+    held = np.array([0.0, -3.0])
+    rest, linear = margin.split_rows(x_k.tolist(), [0.0] * 3, [0.0] * 3)
+    states = [x_k + np.array([0.0, 0.0, -3.0 * t]) for t in np.linspace(0.0, period + latency,
+                                                                         251)]
+    batch = torch.tensor(np.array(states), dtype=torch.float64)
+    qp = problem.qp(batch, torch.tensor(held).expand(251, 2))
+    phi = qp.h[:, 0].numpy()
+    change = float(np.abs(phi - phi[0]).max())
+    assert rest[0] < change <= rest[0] + linear[0] @ np.abs(held)
 
 
 @settings(max_examples=30, deadline=None)
@@ -157,6 +193,72 @@ def test_a_sensor_point_row_has_the_margin_of_the_same_circle(x, period, latency
     box = ([-0.05, 0.0, 0.0], [0.025, 0.025, 0.0])
     assert margin.points(list(x), *box, np.array([1.0]), np.array([-0.5])) == pytest.approx(
         margin.rows(list(x), *box))
+    point_rest, point_linear = margin.split_points(list(x), *box, np.array([1.0]),
+                                                   np.array([-0.5]))
+    rest, linear = margin.split_rows(list(x), *box)
+    assert point_rest == pytest.approx(rest) and point_linear == pytest.approx(linear)
+    assert np.all(point_linear > 0.0)  # both inputs move the look-ahead point's row
+
+
+# ------------------------------------------------------------------ the split rows
+@settings(max_examples=200, deadline=None)
+@given(data=st.data(), n_u=st.integers(1, 3), count=st.integers(0, 6))
+def test_the_split_rows_are_the_row_tightened_by_the_margin_of_the_command(data, n_u, count):
+    """min over the sign vectors of the split rows at u = upper + lg^T (u - applied) - nu0 -
+    c^T |u| (the closed form), for c with zero entries too; a row takes 2^m rows, m its
+    entries of c > 0."""
+    number = st.floats(-5.0, 5.0)
+    arrays = [np.array(data.draw(st.lists(number, min_size=size, max_size=size))).reshape(shape)
+              for size, shape in ((count * n_u, (count, n_u)), (count, (count,)),
+                                  (n_u, (n_u,)), (count, (count,)))]
+    lg, upper, applied, rest = arrays
+    rest = np.abs(rest)
+    linear = np.array(data.draw(st.lists(st.sampled_from([0.0, 0.5, 3.0]),
+                                         min_size=count * n_u, max_size=count * n_u))
+                      ).reshape(count, n_u) * np.abs(data.draw(number))
+    u = np.array(data.draw(st.lists(number, min_size=n_u, max_size=n_u)))
+    split_lg, split_upper, starts = split_rows(lg, upper, applied, rest, linear)
+    sizes = np.diff(np.append(starts, split_upper.size))
+    assert sizes.tolist() == (2 ** (linear > 0.0).sum(axis=1)).tolist()
+    got = least_per_row(split_upper + split_lg @ (u - applied), starts)
+    want = upper + lg @ (u - applied) - rest - linear @ np.abs(u)
+    assert got == pytest.approx(want, abs=1e-9)
+
+
+@pytest.mark.parametrize('vector_rows', [64, 1], ids=['per_row', 'over_arrays'])
+def test_each_answer_meets_the_row_tightened_by_the_margin_of_its_own_command(vector_rows):
+    """At the filter's action u: phi_i(x_k, u) - nu0_i - c_i^T |u| (phi by the torch assembly
+    of RCBFProblem.qp at the proposal, whose sign of v picks the look-ahead point, not by the
+    filter's) is the reported value, >= -the slack it needed."""
+    config = filter_config_from_params(_unicycle_params(control_period_s=T, latency_s=L))
+    problem, box = config.problem, (config.static_mean, config.static_std)
+    tight = SafetyFilter(problem, control_period_s=T, latency_s=L, vector_rows=vector_rows)
+    margin = sampled_data_margin(problem, control_period_s=T, latency_s=L)
+    rng = np.random.default_rng(1)
+    active = 0
+    for _ in range(40):
+        state = [*rng.uniform(-3.5, 3.5, 2), rng.uniform(-math.pi, math.pi)]
+        proposal = rng.uniform(-2.5, 2.5, 2)  # within the limits: not clipped
+        result = tight.filter(state, proposal, *box)
+        if result.fail_safe:
+            continue
+        active += result.active
+        action = result.u_safe
+        qp = problem.qp(*(torch.tensor(np.array([a]), dtype=torch.float64)
+                          for a in (state, proposal, *box)))
+        k = problem.n_barriers
+        phi = qp.h[0, :k].numpy() - qp.G[0, :k, :2].numpy() @ (action - proposal)
+        rest, linear = margin.split_rows(state, *box)
+        row = phi - rest - linear @ np.abs(action)
+        assert result.constraint_values == pytest.approx(row, abs=1e-6)
+        assert row.min() >= -result.needed_slack - 1e-6
+    assert active >= 10
+
+
+def test_without_period_and_latency_the_filter_has_no_margin_and_keeps_its_row_path():
+    config = filter_config_from_params(_unicycle_params())
+    plain = SafetyFilter(config.problem)
+    assert plain._margin is None and plain._many is None  # the per-row path, untouched
 
 
 # ------------------------------------------------------------------ the filter and its rows
@@ -182,37 +284,43 @@ def test_zero_period_and_latency_leave_every_row_as_it_was():
 def test_every_assembly_path_lowers_each_row_by_its_margin(vector_rows):
     config = filter_config_from_params(_unicycle_params(control_period_s=T, latency_s=L))
     assert (config.control_period_s, config.latency_s) == (T, L)
-    state, proposal = [-9.0, 9.0, 0.2], [0.0, 0.0]  # far out: no correction, with or without
+    state, proposal = [-9.0, 9.0, 0.2], [0.4, -0.3]  # far out: no correction, either way
     plain = SafetyFilter(config.problem, vector_rows=vector_rows)
     tight = SafetyFilter(config.problem, vector_rows=vector_rows, control_period_s=T,
                          latency_s=L)
     box = (config.static_mean, config.static_std)
-    nu = sampled_data_margin(config.problem, control_period_s=T, latency_s=L).rows(state, *box)
+    margin = sampled_data_margin(config.problem, control_period_s=T, latency_s=L)
+    rest, linear = margin.split_rows(state, *box)
+    nu = rest + linear @ np.abs(proposal)  # the margin of this command
     a, b = plain.filter(state, proposal, *box), tight.filter(state, proposal, *box)
     assert np.all(nu > 0) and not a.active and not b.active
     assert a.constraint_values - b.constraint_values == pytest.approx(nu)
+    assert np.all(nu < margin.rows(state, *box))  # below the largest command's
 
 
 def test_the_interior_point_fallback_solves_the_tightened_rows(monkeypatch):
+    import rcbf_ros.core.filter as filter_module
     config = filter_config_from_params(_unicycle_params())
+    box = (config.static_mean, config.static_std)
     exact = SafetyFilter(config.problem, control_period_s=T, latency_s=L)
     fallback = SafetyFilter(config.problem, control_period_s=T, latency_s=L)
+    states = ([-2.9, 0.3, 0.0], [-2.4, 0.0, 0.0], [-2.6, 0.2, 0.3])
+    wants = [exact.filter(state, [2.5, 0.4], *box) for state in states]
     # the exact solve and OSQP both fail: the interior point must solve the tightened QP
-    monkeypatch.setattr(fallback, '_active_set', lambda rows, upper: None)
-    monkeypatch.setattr(fallback._solver, 'solve', lambda raise_error=False: type(
-        'R', (), {'x': None, 'info': type('I', (), {'status_val': -2, 'status': 'max'})()})())
-    box = (config.static_mean, config.static_std)
-    for state in ([-2.9, 0.3, 0.0], [-2.4, 0.0, 0.0]):
-        want = exact.filter(state, [2.5, 0.0], *box)
-        got = fallback.filter(state, [2.5, 0.0], *box)
+    monkeypatch.setattr(filter_module, '_active_set_steps', lambda *args: None)
+    monkeypatch.setattr(filter_module, '_solve_once', lambda *args: (None, 'max'))
+    for state, want in zip(states, wants):
+        got = fallback.filter(state, [2.5, 0.4], *box)
         assert got.status == 'solved_interior_point', got.reason
         assert want.status == 'solved' and want.active
         assert got.u_safe == pytest.approx(want.u_safe, abs=1e-5)
+        assert got.constraint_values == pytest.approx(want.constraint_values, abs=1e-5)
 
 
-def test_the_rows_left_out_of_the_qp_hold_with_their_margin():
-    # the many-row path solves a QP of the rows that can bind only: its answers are those of
-    # the QP of every row (the per-row path), margins included
+def test_the_rows_left_out_of_the_qp_hold_with_their_margin(monkeypatch):
+    # the many-row path solves a QP of the split rows that can bind only: its answers are
+    # those of the QP of every split row
+    import rcbf_ros.core.filter as filter_module
     rng = np.random.default_rng(0)
     params = _unicycle_params(control_period_s=T, latency_s=L, **{
         'obstacles.x': rng.uniform(-25, 25, 80).tolist(),
@@ -227,9 +335,15 @@ def test_the_rows_left_out_of_the_qp_hold_with_their_margin():
     for _ in range(60):
         state = [*rng.uniform(-25, 25, 2), rng.uniform(-math.pi, math.pi)]
         proposal = rng.uniform(-2.5, 2.5, 2)
-        got, want = pruned.filter(state, proposal, *box), whole.filter(state, proposal, *box)
+        got = pruned.filter(state, proposal, *box)
         left_out += pruned._pruned
+        with monkeypatch.context() as patch:  # the whole filter keeps every row
+            patch.setattr(filter_module, 'binding_rows', lambda **rows: np.arange(
+                rows['upper'].size))
+            want = whole.filter(state, proposal, *box)
+        assert whole._pruned == 0 or not want.active
         active += want.active
+        assert got.status == want.status == 'solved'  # no fallback rescued a pruned QP
         assert got.u_safe == pytest.approx(want.u_safe, abs=1e-6)
         assert got.constraint_values == pytest.approx(want.constraint_values, abs=1e-6)
     assert left_out > 0 and active >= 10

@@ -42,14 +42,16 @@ def _pvtol_problem(alpha: float, centre: tuple[float, float]) -> RCBFProblem:
 
 
 def _true_change(problem: RCBFProblem, x_k: np.ndarray, mean: np.ndarray, std: np.ndarray,
-                 horizon: float, rng: np.random.Generator, switching: bool) -> np.ndarray:
+                 horizon: float, rng: np.random.Generator, switching: bool
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """The largest |phi_i(x(t), u) - phi_i(x_k, u)| along one 1 ms Euler trajectory of the
     nominal model plus a disturbance in the box, under inputs within the limits (a vertex held,
-    or switching at random), phi at one held command u within the limits."""
+    or switching at random), phi at one held command u within the limits (each entry at a
+    limit, inside them, a tenth of that or 0: the margin follows |u|), and u."""
     system = problem.system
     low, high = np.array(system.u_min), np.array(system.u_max)
     held = np.where(rng.random(system.n_u) < 0.5, rng.choice([-1, 1], system.n_u) * high,
-                    rng.uniform(low, high))
+                    rng.uniform(low, high)) * rng.choice([1.0, 1.0, 0.1, 0.0], system.n_u)
     whole, rest = divmod(horizon, 1e-3)
     steps = [1e-3] * int(whole) + ([rest] if rest > 0 else [])
     u = np.where(rng.random(system.n_u) < 0.5, low, high)
@@ -69,7 +71,7 @@ def _true_change(problem: RCBFProblem, x_k: np.ndarray, mean: np.ndarray, std: n
                     torch.tensor(mean).expand(count, system.n_x),
                     torch.tensor(std).expand(count, system.n_x))
     phi = qp.h[:, :problem.n_barriers].numpy()
-    return np.abs(phi - phi[0]).max(axis=0)
+    return np.abs(phi - phi[0]).max(axis=0), held
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -88,11 +90,12 @@ def test_the_true_change_of_every_pvtol_row_stays_within_its_margin(data, period
         std = rng.uniform(0.0, 0.1, 7)
     margin = sampled_data_margin(problem, control_period_s=period, latency_s=latency)
     assert isinstance(margin, IntervalMargin)
-    nu = margin.rows(x_k.tolist(), mean.tolist(), std.tolist())
-    assert np.all(np.isfinite(nu))
+    rest, linear = margin.split_rows(x_k.tolist(), mean.tolist(), std.tolist())
+    assert np.all(np.isfinite(rest)) and np.all((linear >= 0.0) & np.isfinite(linear))
     for switching in (False, True):
-        change = _true_change(problem, x_k, mean, std, period + latency, rng, switching)
-        assert np.all(change <= nu + 1e-9), (change, nu)
+        change, held = _true_change(problem, x_k, mean, std, period + latency, rng, switching)
+        nu = rest + linear @ np.abs(held)  # the margin of this command
+        assert np.all(change <= nu + 1e-9), (change, nu, held)
 
 
 @settings(max_examples=40, deadline=None)
@@ -146,10 +149,11 @@ def test_cascaded_rows_on_the_unicycle_take_the_interval_margin_and_it_holds(dat
     assert isinstance(margin, IntervalMargin)
     x_k = np.array([*rng.uniform(-2, 2, 2), rng.uniform(-math.pi, math.pi)])
     mean, std = rng.uniform(-0.2, 0.2, 3), rng.uniform(0.0, 0.1, 3)
-    nu = margin.rows(x_k.tolist(), mean.tolist(), std.tolist())
+    rest, linear = margin.split_rows(x_k.tolist(), mean.tolist(), std.tolist())
     for switching in (False, True):
-        change = _true_change(problem, x_k, mean, std, period + latency, rng, switching)
-        assert np.all(change <= nu + 1e-9), (change, nu)
+        change, held = _true_change(problem, x_k, mean, std, period + latency, rng, switching)
+        nu = rest + linear @ np.abs(held)  # the margin of this command
+        assert np.all(change <= nu + 1e-9), (change, nu, held)
 
 
 def test_no_fine_step_violation_on_pvtol_with_the_margin_and_some_without():
@@ -194,11 +198,17 @@ def test_a_margin_without_bound_is_infinite_and_the_filter_answers_with_its_fail
 
 
 @functools.cache
-def _pvtol_filter() -> SafetyFilter:
-    """PVTOL's shipped filter with the margin (built once)."""
+def _pvtol_filter(command_linear: bool = True) -> SafetyFilter:
+    """PVTOL's shipped filter with the margin (built once); ``command_linear`` False: with the
+    constant margin of the largest input instead."""
     problem = filter_config_from_params(load_params(find_config('pvtol'), 'safety_filter')
                                         ).problem
-    return SafetyFilter(problem, control_period_s=T, latency_s=L, slack_tolerance=1e-4)
+    safety_filter = SafetyFilter(problem, control_period_s=T, latency_s=L,
+                                 slack_tolerance=1e-4)
+    if not command_linear:
+        safety_filter._margin = sampled_data_margin(problem, control_period_s=T, latency_s=L,
+                                                    command_linear=False)
+    return safety_filter
 
 
 def test_the_config_builds_pvtol_with_the_margin_and_the_rows_carry_it():
@@ -209,24 +219,35 @@ def test_the_config_builds_pvtol_with_the_margin_and_the_rows_carry_it():
     plain = SafetyFilter(config.problem)
     tight = SafetyFilter(config.problem, control_period_s=T, latency_s=L)
     state, box = [-4.5, 2.0, 0.0, 0.0, 0.0, 1.0, -4.5], ([0.0] * 7, [0.0] * 7)
-    nu = sampled_data_margin(config.problem, control_period_s=T, latency_s=L).rows(state, *box)
-    a, b = plain.filter(state, [0.0, 0.0], *box), tight.filter(state, [0.0, 0.0], *box)
+    proposal = [0.3, -0.2]
+    margin = sampled_data_margin(config.problem, control_period_s=T, latency_s=L)
+    rest, linear = margin.split_rows(state, *box)
+    nu = rest + linear @ np.abs(proposal)  # the margin of this command
+    a, b = plain.filter(state, proposal, *box), tight.filter(state, proposal, *box)
     assert np.all(nu > 0) and not a.active and not b.active
     assert a.constraint_values - b.constraint_values == pytest.approx(nu)
 
 
-def test_in_hover_the_thrust_band_of_the_shipped_gain_leaves_no_room_for_tau_of_20_ms():
-    """The margin is a worst case over the inputs: the thrust row -2 (f - 1) u_f + alpha h
-    changes by up to 2 (tau U) U while f moves under the held command, 0.25 for tau = 20 ms
-    and U = 2.5, as large as alpha h = 0.25 in hover with alpha = 1 (config/pvtol.yaml): the
-    filter then answers with its fail-safe there rather than a command it cannot vouch for."""
+def test_in_hover_the_thrust_band_takes_a_margin_that_follows_the_thrust_rate():
+    """The thrust row -2 (f - 1) u_f + alpha h changes by up to 2 (tau U) |u_f| while f moves
+    under the held command. The constant margin charges the largest rate, 2 (tau U) U = 0.25
+    for tau = 20 ms and U = 2.5, as large as alpha h = 0.25 in hover with alpha = 1
+    (config/pvtol.yaml): with it the filter answers with its fail-safe there. The margin that
+    follows the command charges 2 (tau U) |u_f|, about 0 for the hover command, which then
+    passes."""
     problem = filter_config_from_params(load_params(find_config('pvtol'), 'safety_filter')
                                         ).problem
     hover, zero = [-4.5, 2.0, 0.0, 0.0, 0.0, 1.0, -4.5], [0.0] * 7
     thrust = problem.barrier_names.index('thrust')
-    nu = sampled_data_margin(problem, control_period_s=T, latency_s=L).rows(hover, zero, zero)
+    margin = sampled_data_margin(problem, control_period_s=T, latency_s=L)
+    nu = margin.rows(hover, zero, zero)
     assert 2.0 * (T + L) * 2.5 * 2.5 <= nu[thrust] <= 1.2 * 2.0 * (T + L) * 2.5 * 2.5 + 0.01
-    assert _pvtol_filter().filter(hover, [0.0, 0.0], zero, zero).fail_safe
+    rest, linear = margin.split_rows(hover, zero, zero)
+    assert 2.0 * (T + L) * 2.5 <= linear[thrust, 1] and rest[thrust] < 0.05  # [omega, u_f]
+    constant = _pvtol_filter(command_linear=False).filter(hover, [0.0, 0.0], zero, zero)
+    assert constant.fail_safe
+    linear_result = _pvtol_filter(command_linear=True).filter(hover, [0.0, 0.0], zero, zero)
+    assert not linear_result.fail_safe and linear_result.needed_slack <= 1e-4
     short = sampled_data_margin(problem, control_period_s=0.005).rows(hover, zero, zero)
     assert short[thrust] < 0.25
 
