@@ -30,7 +30,12 @@ from rcbf_ros.node_logic.interface import (
     STATE_TOPIC_TYPES,
     TopicSpec,
 )
-from rcbf_ros.parameters.reader import read_parameters, setting
+from rcbf_ros.parameters.reader import (
+    PERIOD_LIMITS_S,
+    RATE_LIMITS_HZ,
+    read_parameters,
+    setting,
+)
 from rcbf_ros.ros.node_main import run_node, spin_once
 from rcbf_ros.ros.runtime import DurabilityPolicy, get_message, Node, QoSProfile, rclpy
 from sim_nodes.packaged import (
@@ -51,7 +56,7 @@ class SimulatorSettings(MessageSettings):
                                     'arrives) or realtime (step at rate_hz, holding the last '
                                     'action)')
     """lockstep or realtime (module docstring)."""
-    rate_hz: float = setting(50.0, positive=True,
+    rate_hz: float = setting(50.0, minimum=RATE_LIMITS_HZ[0], maximum=RATE_LIMITS_HZ[1],
                              description='steps per second in realtime mode')
     """Steps per second in realtime mode."""
     seed: int = setting(0, description="the first reset's seed (later episodes continue its "
@@ -61,7 +66,8 @@ class SimulatorSettings(MessageSettings):
                                 description='episodes to run, then the node exits (0: forever)')
     """Episodes to run (0: forever)."""
     action_timeout_s: float = setting(
-        1.0, positive=True, description='lockstep: publish the pending state again after this '
+        1.0, minimum=PERIOD_LIMITS_S[0], maximum=PERIOD_LIMITS_S[1],
+        description='lockstep: publish the pending state again after this '
                                         'long without an action (s)')
     """Lock-step: publish the pending state again after this long without an action."""
     frame_id: str = setting('map', description="state_type odometry: the Odometry's "

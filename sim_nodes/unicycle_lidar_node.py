@@ -23,7 +23,12 @@ import numpy as np
 
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, ParameterSpec, TopicSpec
 from rcbf_ros.node_logic.scene import CUBE, CYLINDER, TEXT_VIEW_FACING
-from rcbf_ros.parameters.reader import read_parameters, setting
+from rcbf_ros.parameters.reader import (
+    PERIOD_LIMITS_S,
+    RATE_LIMITS_HZ,
+    read_parameters,
+    setting,
+)
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import DurabilityPolicy, get_message, Node, QoSProfile
 from rcbf_ros.ros.scene_node import marker_array
@@ -50,10 +55,10 @@ class LidarRobotSettings:
                                        description='world_seed -1: the start pose x, y, yaw '
                                                    '(m, rad); odom starts there')
     """The start pose, world_seed -1."""
-    rate_hz: float = setting(50.0, positive=True, maximum=1000.0,
+    rate_hz: float = setting(50.0, minimum=RATE_LIMITS_HZ[0], maximum=1000.0,
                              description='base steps and odometry per second')
     """Base steps (and Odometry, /tf) per second."""
-    scan_rate_hz: float = setting(10.0, positive=True, maximum=100.0,
+    scan_rate_hz: float = setting(10.0, minimum=RATE_LIMITS_HZ[0], maximum=100.0,
                                   description='scans per second')
     """Scans per second (at most ``rate_hz``)."""
     beams: int = setting(360, minimum=8, maximum=MAX_BEAMS, description='beams per scan')
@@ -65,7 +70,7 @@ class LidarRobotSettings:
         (0.0, 0.0, 0.0), length=3, maximum=10.0,
         description='the laser frame on base_link: x, y, yaw (m, rad; /tf_static)')
     """The laser's pose on base_link."""
-    cmd_timeout_s: float = setting(0.5, positive=True, maximum=60.0,
+    cmd_timeout_s: float = setting(0.5, minimum=PERIOD_LIMITS_S[0], maximum=60.0,
                                    description='stop when the latest cmd_vel is older (s)')
     """How long a command holds."""
     noise_seed: int = setting(0, minimum=0, description="seed of the base's slip, odometry "

@@ -48,7 +48,7 @@ import numpy as np
 from rcbf_ros.core.filter_info import BINDING_POINTS
 from rcbf_ros.core.scene import SceneGeometry
 from rcbf_ros.node_logic.filter_edge import float64_sections, one_line
-from rcbf_ros.parameters.reader import defaults_of, read_parameters, setting
+from rcbf_ros.parameters.reader import defaults_of, RATE_LIMITS_HZ, read_parameters, setting
 
 ARROW, CUBE, SPHERE, CYLINDER, LINE_STRIP, LINE_LIST, SPHERE_LIST, TEXT_VIEW_FACING = (
     0, 1, 2, 3, 4, 5, 7, 9)
@@ -81,6 +81,9 @@ third of this; a longer one is refused before it is decoded."""
 POINT_SIZE = 0.06
 """Diameter of a binding point's sphere (m)."""
 
+MAX_RATE_HZ = 100.0
+"""The most MarkerArrays a second ``rate_hz`` may ask for: more than a viewer draws."""
+
 Marker = dict[str, Any]
 Color = tuple[float, float, float, float]
 
@@ -92,7 +95,7 @@ class SceneSettings:
                                             'frame (odom_frame_id with observation_sources, '
                                             'else map)')
     """Frame of every marker; '' (the default): :func:`marker_frame` picks the filter's."""
-    rate_hz: float = setting(10.0, positive=True,
+    rate_hz: float = setting(10.0, minimum=RATE_LIMITS_HZ[0], maximum=MAX_RATE_HZ,
                              description='most MarkerArrays a second (one after each new state '
                                          'or diagnostics)')
     """Most MarkerArrays a second (one after each new state or diagnostics, no faster)."""
@@ -110,7 +113,8 @@ def scene_settings(params: Mapping[str, Any]) -> SceneSettings:
     """The node's settings from its flat parameters (defaults: :class:`SceneSettings`'s).
 
     Raises:
-        ValueError: naming the key: a non-string ``frame_id``, ``rate_hz`` not > 0,
+        ValueError: naming the key: a non-string ``frame_id``, ``rate_hz`` outside
+            [RATE_LIMITS_HZ[0], MAX_RATE_HZ],
             ``caution_h`` < 0.
     """
     frame_id = params.get('frame_id', SceneSettings.frame_id)
