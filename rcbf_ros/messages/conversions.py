@@ -316,18 +316,24 @@ def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
     axis projected on the ground plane, atan2(R[1, 0], R[0, 0]).
 
     The quaternion need not be unit length: both arguments of the atan2 scale with its squared
-    norm, so the heading is that of the normalized rotation.
+    norm, so the heading is that of the normalized rotation. It is first divided by its
+    largest component, so that no product overflows (1e155) or underflows.
 
     Raises:
-        ValueError: naming ``pose.orientation`` when it is zero, NaN or inf, or points the
-            x axis straight up or down (no heading).
+        ValueError: naming ``pose.orientation`` when it is zero (norm <= 1e-6), NaN or inf,
+            or points the x axis straight up or down (no heading).
     """
     q = np.array([x, y, z, w], dtype=np.float64)
     if not np.all(np.isfinite(q)):
         raise ValueError('pose.orientation: contains NaN or inf')
-    norm2 = float(q @ q)
-    if not norm2 > 1e-12:
+    largest = float(np.max(np.abs(q)))
+    if not largest > 0.0:
         raise ValueError('pose.orientation: zero quaternion')
+    q = q / largest  # its largest component +-1: every product below is in [-4, 4]
+    norm2 = float(q @ q)
+    if not largest * math.sqrt(norm2) > 1e-6:
+        raise ValueError('pose.orientation: zero quaternion (norm <= 1e-6)')
+    x, y, z, w = (float(v) for v in q)
     r10 = 2.0 * (x * y + w * z)
     r00 = w * w + x * x - y * y - z * z
     if math.hypot(r10, r00) <= 1e-9 * norm2:
