@@ -46,6 +46,7 @@ from rcbf_ros.core.scene import scene_geometry
 from rcbf_ros.messages import conversions
 from rcbf_ros.node_logic import scene as logic
 from rcbf_ros.node_logic.edges import MessageSettings
+from rcbf_ros.node_logic.filter_edge import shown_reason
 from rcbf_ros.node_logic.interface import (
     DIAGNOSTIC_ARRAY,
     FLOAT64_MULTIARRAY,
@@ -295,8 +296,8 @@ class SceneNode(Node):
             geometry = scene_geometry(params)
         except Exception as exc:  # a bad message (or one that does not decode): keep the old
             text = str(exc) if isinstance(exc, ValueError) else type(exc).__name__
-            self.get_logger().error(f'obstacles message refused, the obstacles drawn are '
-                                    f'unchanged: {" ".join(text.split())}')
+            self.get_logger().error(shown_reason(f'obstacles message refused, the obstacles '
+                                                 f'drawn are unchanged: {text}'))
             return
         self._params, self.geometry = params, geometry
         self._changed = self._clear = True
@@ -316,8 +317,10 @@ class SceneNode(Node):
         self.published += 1
 
     def _warn(self, key: str, text: str) -> None:
+        """Log ``text`` (one bounded line, :func:`shown_reason`), at most once a second per
+        ``key``."""
         if self._throttle.should_log(key=key, now_ns=time.monotonic_ns()):
-            self.get_logger().warning(text)
+            self.get_logger().warning(shown_reason(text))
 
 
 def main(args: Sequence[str] | None = None) -> int:
