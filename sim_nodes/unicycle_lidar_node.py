@@ -15,12 +15,14 @@ Topics and parameters: :func:`unicycle_lidar_interface` (``unicycle_lidar --help
 from __future__ import annotations
 
 from dataclasses import dataclass
+import itertools
 import math
 import sys
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from rcbf_ros.messages.tf import frame_name_refusal, quoted
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, ParameterSpec, TopicSpec
 from rcbf_ros.node_logic.scene import CUBE, CYLINDER, TEXT_VIEW_FACING
 from rcbf_ros.parameters.reader import (
@@ -125,6 +127,21 @@ def settings_from_params(params: Mapping[str, Any]) -> LidarRobotSettings:
     if settings.scan_rate_hz > settings.rate_hz:
         raise ValueError(f'scan_rate_hz: {settings.scan_rate_hz:g} exceeds rate_hz '
                          f'{settings.rate_hz:g}')
+    range_min = lw.Lidar.range_min
+    if not settings.range_max > range_min:
+        raise ValueError(f"range_max: {settings.range_max:g} m is not above the lidar's "
+                         f'range_min {range_min:g} m (every beam would read -inf)')
+    frames = {'odom_frame_id': settings.odom_frame_id,
+              'base_frame_id': settings.base_frame_id,
+              'laser_frame_id': settings.laser_frame_id}
+    for key, frame in frames.items():
+        why = frame_name_refusal(frame)
+        if why:
+            raise ValueError(f'{key}: {why}')
+    for (other, first), (key, frame) in itertools.combinations(frames.items(), 2):
+        if frame == first:
+            raise ValueError(f'{key}: {quoted(frame)} is {other} too (the tf tree needs three '
+                             'frames: a frame cannot be its own parent)')
     return settings
 
 
@@ -142,9 +159,14 @@ def build_world(settings: LidarRobotSettings, params: Mapping[str, Any]) -> lw.W
     if len({len(c) for c in columns}) != 1:
         raise ValueError(f'obstacles.x: {len(columns[0])} values, obstacles.y '
                          f'{len(columns[1])}, obstacles.radius {len(columns[2])}')
+    for key, column in zip(keys, columns):
+        bad = np.flatnonzero(~np.isfinite(column))
+        if bad.size:
+            raise ValueError(f'{key}: value {int(bad[0])} is {column[bad[0]]}, not finite')
+    if (columns[2] <= 0).any():
+        index = int(np.flatnonzero(columns[2] <= 0)[0])
+        raise ValueError(f'obstacles.radius: value {index} is {columns[2][index]:g}, not > 0')
     circles = np.stack(columns, axis=1)
-    if not np.isfinite(circles).all() or (circles[:, 2] <= 0).any():
-        raise ValueError('obstacles.radius: every post needs a finite place and radius > 0')
     half = settings.arena_half_size
     world = lw.World(half_size=half, circles=circles,
                      segments=np.array(lw._arena(half), dtype=np.float64),
