@@ -84,6 +84,11 @@ class LidarRobotSettings:
     """The Odometry's child_frame_id."""
     laser_frame_id: str = setting('laser', nonempty=True, description="the scan's frame")
     """The LaserScan's header.frame_id."""
+    wait_for_subscribers: tuple[str, ...] = setting(
+        (), description='node names (the recorder) that must subscribe to odom, scan, /tf and '
+                        'cmd_vel before the robot starts (recorded launches: a bag from the '
+                        'first step)')
+    """Nodes that hold the start until each subscribes to every topic of :data:`WAITED`."""
 
 
 NODE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(LidarRobotSettings,
@@ -115,6 +120,22 @@ def unicycle_lidar_interface(argv: Sequence[str] = ()) -> NodeInterface:
         own=NODE_PARAMETERS,
         summary='A simulated differential-drive robot with a 2-D lidar: scan, odom and /tf out, '
                 'cmd_vel in, as a real base and its driver have them.')
+
+
+WAITED = ('odom', 'scan', '/tf', 'cmd_vel')
+"""The topics (before remapping) each ``wait_for_subscribers`` node subscribes to before the
+robot starts: what it publishes every step and the commands it takes."""
+
+
+def waits_for(subscribed: Mapping[str, Mapping[str, bool]]) -> str:
+    """What the start still waits for, in one line ('' once every named node subscribes to
+    every topic): ``subscribed`` maps each ``wait_for_subscribers`` node to each resolved
+    topic of :data:`WAITED` -> whether it holds a subscription there."""
+    for name, topics in subscribed.items():
+        for topic, held in topics.items():
+            if not held:
+                return f'{name} to subscribe to {topic}'
+    return ''
 
 
 def settings_from_params(params: Mapping[str, Any]) -> LidarRobotSettings:
@@ -306,8 +327,15 @@ class UnicycleLidarNode(Node):
         static = self.create_publisher(
             get_message('tf2_msgs/msg/TFMessage'), '/tf_static',
             QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        self.create_subscription(get_message('geometry_msgs/msg/Twist'), 'cmd_vel',
-                                 self.on_cmd_vel, QoSProfile(depth=10))
+        commands = self.create_subscription(get_message('geometry_msgs/msg/Twist'), 'cmd_vel',
+                                            self.on_cmd_vel, QoSProfile(depth=10))
+        self._waited = (self.odom_publisher.topic_name, self.scan_publisher.topic_name,
+                        self.tf_publisher.topic_name, commands.topic_name)
+        """The resolved topics of :data:`WAITED`."""
+        self.waiting_for = self._waits_for()
+        """What the start waits for ('' once started)."""
+        if self.waiting_for:
+            self.get_logger().info(f'the robot waits for {self.waiting_for}')
         mx, my, myaw = settings.laser_mount
         tf_static = get_message('tf2_msgs/msg/TFMessage')()
         tf_static.transforms = [_transform(self.get_clock().now().to_msg(),
@@ -335,7 +363,24 @@ class UnicycleLidarNode(Node):
         if reason:
             self.get_logger().error(reason)
 
+    def _waits_for(self) -> str:
+        """:func:`waits_for` on what discovery shows now."""
+        if not self.settings.wait_for_subscribers:
+            return ''
+        subscriptions = {topic: {e.node_name for e in self.get_subscriptions_info_by_topic(topic)}
+                         for topic in self._waited}
+        return waits_for({name: {topic: name in subscriptions[topic] for topic in self._waited}
+                          for name in self.settings.wait_for_subscribers})
+
     def on_timer(self) -> None:
+        if self.waiting_for:  # the base holds still and says nothing until it is recorded
+            waiting_for = self._waits_for()
+            if waiting_for and waiting_for != self.waiting_for:
+                self.get_logger().info(f'the robot waits for {waiting_for}')
+            self.waiting_for = waiting_for
+            if waiting_for:
+                return
+            self.get_logger().info('the robot starts: every wait_for_subscribers node listens')
         robot, settings = self.robot, self.settings
         robot.step()
         if robot.collided != self._touching:
