@@ -26,6 +26,9 @@ from rcbf_ros.ros.runtime import (
     ReliabilityPolicy,
 )
 
+MAX_CHUNK_SIZE = 64 * 1024 * 1024
+"""The largest ``chunk_size`` (bytes): an open chunk is held in memory until it closes."""
+
 
 @dataclass(frozen=True)
 class RecorderConfig:
@@ -47,7 +50,8 @@ class RecorderConfig:
         0.1, minimum=PERIOD_LIMITS_S[0], maximum=PERIOD_LIMITS_S[1],
         description='seconds between discovery checks for new topics')
     """Seconds between discovery checks for new topics (``ros2 bag record``'s default)."""
-    chunk_size: int = setting(256 * 1024, description='uncompressed MCAP chunk size (bytes)')
+    chunk_size: int = setting(256 * 1024, minimum=1024, maximum=MAX_CHUNK_SIZE,
+                              description='uncompressed MCAP chunk size (bytes)')
     """Uncompressed MCAP chunk size in bytes."""
     compression: str = setting('auto',
                                description='chunk compression: auto, zstd, lz4 or none')

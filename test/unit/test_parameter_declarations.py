@@ -356,3 +356,11 @@ def test_a_rate_or_period_out_of_its_range_is_refused_naming_its_key(cls, key, v
     values = {'output': 'bag'} if name == 'RecorderConfig' else {}
     with pytest.raises(ParameterError, match=rf'^{key}: must be [<>]= '):
         read_parameters(settings, {**values, key: value})
+
+
+@pytest.mark.parametrize('value', [0, 1023, 2 ** 62])
+def test_a_recorder_chunk_size_out_of_its_range_is_refused_naming_it(value):
+    from rcbf_ros.parameters.reader import ParameterError, read_parameters
+    from rcbf_ros.ros.recorder_node import RecorderConfig
+    with pytest.raises(ParameterError, match=r'^chunk_size: must be [<>]= '):
+        read_parameters(RecorderConfig, {'output': 'bag', 'chunk_size': value})
