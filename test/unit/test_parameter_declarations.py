@@ -305,11 +305,11 @@ def test_the_filter_node_refuses_a_source_topic_that_clashes(args, words, ros_do
 
 def _timing_kind(name: str) -> str | None:
     """'rate' for a rate a timer runs at (``rate_hz``, ``*_rate_hz``, a replay ``rate``),
-    'seconds' for a period, timeout or wait (``*_s``), else None."""
+    'seconds' for a period, timeout, wait or step (``*_s``, ``dt``), else None."""
     leaf = name.rsplit('.', 1)[-1]
     if leaf.endswith('_hz') or leaf == 'rate':
         return 'rate'
-    if leaf.endswith('_s'):
+    if leaf.endswith('_s') or leaf == 'dt':
         return 'seconds'
     return None
 
@@ -333,7 +333,8 @@ def test_every_rate_and_period_of_every_node_is_bounded_where_it_is_declared():
                 unbounded.append(f'{interface.node} {spec.name} {spec.range}')
     assert unbounded == []
     for expected in ('scene_markers rate_hz', 'unicycle_lidar scan_rate_hz',
-                     'recorder flush_period_s', 'simulator action_timeout_s', 'replay rate'):
+                     'recorder flush_period_s', 'simulator action_timeout_s', 'replay rate',
+                     'simulator dt', 'learner dt'):
         assert expected in seen
 
 
