@@ -20,6 +20,7 @@ import numpy as np
 from rcbf_ros.envs import make_env
 from rcbf_ros.messages import conversions
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
+from rcbf_ros.messages.tf import frame_name_refusal, quoted
 from rcbf_ros.node_logic.edges import MessageSettings, SIM_STEP_SECTIONS
 from rcbf_ros.node_logic.interface import (
     COMMAND_TOPIC_TYPES,
@@ -86,6 +87,18 @@ class SimulatorSettings(MessageSettings):
                         'every topic the simulator publishes and every wait_for_publishers '
                         'topic (recorded launches: the recorder)')
     """Nodes whose subscription to ``state`` the first episode waits for."""
+
+    def __post_init__(self) -> None:
+        """With state_type odometry, refuse frame ids the tf and state readers do not take
+        (:func:`frame_name_refusal`) or one frame as both, in one line naming the key."""
+        if self.state_type != 'odometry':
+            return
+        for key in ('frame_id', 'child_frame_id'):
+            why = frame_name_refusal(getattr(self, key))
+            if why:
+                raise ValueError(f'{key}: {why}')
+        if self.frame_id == self.child_frame_id:
+            raise ValueError(f'child_frame_id: {quoted(self.child_frame_id)} is frame_id too')
 
 
 NODE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(SimulatorSettings,

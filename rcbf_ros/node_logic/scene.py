@@ -49,6 +49,7 @@ import numpy as np
 
 from rcbf_ros.core.filter_info import BINDING_POINTS
 from rcbf_ros.core.scene import SceneGeometry
+from rcbf_ros.messages.tf import frame_name_refusal
 from rcbf_ros.node_logic.filter_edge import float64_sections, one_line
 from rcbf_ros.parameters.reader import defaults_of, RATE_LIMITS_HZ, read_parameters, setting
 
@@ -125,7 +126,8 @@ def scene_settings(params: Mapping[str, Any]) -> SceneSettings:
     """The node's settings from its flat parameters (defaults: :class:`SceneSettings`'s).
 
     Raises:
-        ValueError: naming the key: a non-string ``frame_id``, ``rate_hz`` outside
+        ValueError: naming the key: a non-string ``frame_id`` or one tf refuses
+            (:func:`~rcbf_ros.messages.tf.frame_name_refusal`), ``rate_hz`` outside
             [RATE_LIMITS_HZ[0], MAX_RATE_HZ], ``max_obstacles`` outside
             [0, MAX_DRAWN_OBSTACLES],
             ``caution_h`` < 0.
@@ -133,6 +135,9 @@ def scene_settings(params: Mapping[str, Any]) -> SceneSettings:
     frame_id = params.get('frame_id', SceneSettings.frame_id)
     if not isinstance(frame_id, str):
         raise ValueError(f'frame_id: expected a frame name, got {frame_id!r}')
+    why = frame_name_refusal(frame_id.strip()) if frame_id.strip() else ''
+    if why:
+        raise ValueError(f'frame_id: {why}')
     return read_parameters(SceneSettings, {**params, 'frame_id': frame_id.strip()})
 
 

@@ -182,6 +182,9 @@ def test_barrier_values_from_diagnostic_key_values():
     ({'caution_h': -0.1}, 'caution_h'),
     ({'max_obstacles': -1}, 'max_obstacles'), ({'max_obstacles': 10 ** 6}, 'max_obstacles'),
     ({'max_obstacles': 2.5}, 'max_obstacles'),
+    ({'frame_id': '/map'}, 'frame_id: .*starts with /'),
+    ({'frame_id': 'my map'}, 'frame_id: .*white space'),
+    ({'frame_id': 'm' * 1025}, 'frame_id: 1025 characters'),
 ])
 def test_scene_settings_refuse_bad_values_naming_the_key(params, match):
     with pytest.raises(ValueError, match=match):
