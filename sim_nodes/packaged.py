@@ -14,7 +14,7 @@ from rcbf_ros.envs import env_class
 from rcbf_ros.messages import systems
 from rcbf_ros.node_logic.interface import NodeInterface, ParameterSpec, TopicSpec, type_of
 from rcbf_ros.node_logic.safety_filter import FILTER_DESCRIPTIONS, FILTER_PARAMETERS
-from rcbf_ros.parameters.reader import parameters_of
+from rcbf_ros.parameters.reader import parameters_of, Rule
 from rcbf_ros.parameters.rules import load_params
 from rcbf_ros.ros.node_main import declare_specs
 
@@ -24,8 +24,14 @@ DEFAULT_SYSTEM = 'unicycle'
 def descriptions(system: str) -> dict[str, str]:
     """Key -> one line, for the keys of ``system``'s env and nominal controller (from their
     settings dataclasses)."""
+    return {key: rule.description for key, rule in _rules(system).items()}
+
+
+def _rules(system: str) -> dict[str, Rule]:
+    """Key -> its :class:`Rule`, for the described keys of ``system``'s env and nominal
+    controller."""
     env = env_class(system)
-    return {parameter.key: parameter.rule.description
+    return {parameter.key: parameter.rule
             for cls in (env.settings_type, env.controller_settings) if cls is not None
             for parameter in parameters_of(cls) if parameter.rule.description}
 
@@ -70,11 +76,16 @@ def packaged_parameter_specs(system: str, section: str,
     """One spec per key :func:`declare_with_packaged_defaults` declares for ``system``
     (besides ``skip``: keys the node declares itself)."""
     specs = [system_spec()]
+    rules = _rules(system)
     for name, value in packaged_parameters(system, section).items():
         if name in skip:
             continue
         description, declared = _description(name, system)
-        specs.append(ParameterSpec(name, value, declared or type_of(value), description))
+        rule = rules.get(name)
+        bounds = ({} if rule is None else
+                  {'minimum': rule.minimum, 'maximum': rule.maximum, 'positive': rule.positive})
+        specs.append(ParameterSpec(name, value, declared or type_of(value), description,
+                                   **bounds))
     return tuple(specs)
 
 

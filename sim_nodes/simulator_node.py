@@ -20,6 +20,7 @@ import numpy as np
 from rcbf_ros.envs import make_env
 from rcbf_ros.messages import conversions
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
+from rcbf_ros.messages.tf import frame_name_refusal, quoted
 from rcbf_ros.node_logic.edges import MessageSettings, SIM_STEP_SECTIONS
 from rcbf_ros.node_logic.interface import (
     COMMAND_TOPIC_TYPES,
@@ -30,7 +31,12 @@ from rcbf_ros.node_logic.interface import (
     STATE_TOPIC_TYPES,
     TopicSpec,
 )
-from rcbf_ros.parameters.reader import read_parameters, setting
+from rcbf_ros.parameters.reader import (
+    PERIOD_LIMITS_S,
+    RATE_LIMITS_HZ,
+    read_parameters,
+    setting,
+)
 from rcbf_ros.ros.node_main import run_node, spin_once
 from rcbf_ros.ros.runtime import DurabilityPolicy, get_message, Node, QoSProfile, rclpy
 from sim_nodes.packaged import (
@@ -51,7 +57,7 @@ class SimulatorSettings(MessageSettings):
                                     'arrives) or realtime (step at rate_hz, holding the last '
                                     'action)')
     """lockstep or realtime (module docstring)."""
-    rate_hz: float = setting(50.0, positive=True,
+    rate_hz: float = setting(50.0, minimum=RATE_LIMITS_HZ[0], maximum=RATE_LIMITS_HZ[1],
                              description='steps per second in realtime mode')
     """Steps per second in realtime mode."""
     seed: int = setting(0, description="the first reset's seed (later episodes continue its "
@@ -61,7 +67,8 @@ class SimulatorSettings(MessageSettings):
                                 description='episodes to run, then the node exits (0: forever)')
     """Episodes to run (0: forever)."""
     action_timeout_s: float = setting(
-        1.0, positive=True, description='lockstep: publish the pending state again after this '
+        1.0, minimum=PERIOD_LIMITS_S[0], maximum=PERIOD_LIMITS_S[1],
+        description='lockstep: publish the pending state again after this '
                                         'long without an action (s)')
     """Lock-step: publish the pending state again after this long without an action."""
     frame_id: str = setting('map', description="state_type odometry: the Odometry's "
@@ -80,6 +87,18 @@ class SimulatorSettings(MessageSettings):
                         'every topic the simulator publishes and every wait_for_publishers '
                         'topic (recorded launches: the recorder)')
     """Nodes whose subscription to ``state`` the first episode waits for."""
+
+    def __post_init__(self) -> None:
+        """With state_type odometry, refuse frame ids the tf and state readers do not take
+        (:func:`frame_name_refusal`) or one frame as both, in one line naming the key."""
+        if self.state_type != 'odometry':
+            return
+        for key in ('frame_id', 'child_frame_id'):
+            why = frame_name_refusal(getattr(self, key))
+            if why:
+                raise ValueError(f'{key}: {why}')
+        if self.frame_id == self.child_frame_id:
+            raise ValueError(f'child_frame_id: {quoted(self.child_frame_id)} is frame_id too')
 
 
 NODE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(SimulatorSettings,

@@ -15,15 +15,22 @@ Topics and parameters: :func:`unicycle_lidar_interface` (``unicycle_lidar --help
 from __future__ import annotations
 
 from dataclasses import dataclass
+import itertools
 import math
 import sys
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from rcbf_ros.messages.tf import frame_name_refusal, quoted
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, ParameterSpec, TopicSpec
 from rcbf_ros.node_logic.scene import CUBE, CYLINDER, TEXT_VIEW_FACING
-from rcbf_ros.parameters.reader import read_parameters, setting
+from rcbf_ros.parameters.reader import (
+    PERIOD_LIMITS_S,
+    RATE_LIMITS_HZ,
+    read_parameters,
+    setting,
+)
 from rcbf_ros.ros.node_main import run_node
 from rcbf_ros.ros.runtime import DurabilityPolicy, get_message, Node, QoSProfile
 from rcbf_ros.ros.scene_node import marker_array
@@ -50,10 +57,10 @@ class LidarRobotSettings:
                                        description='world_seed -1: the start pose x, y, yaw '
                                                    '(m, rad); odom starts there')
     """The start pose, world_seed -1."""
-    rate_hz: float = setting(50.0, positive=True, maximum=1000.0,
+    rate_hz: float = setting(50.0, minimum=RATE_LIMITS_HZ[0], maximum=1000.0,
                              description='base steps and odometry per second')
     """Base steps (and Odometry, /tf) per second."""
-    scan_rate_hz: float = setting(10.0, positive=True, maximum=100.0,
+    scan_rate_hz: float = setting(10.0, minimum=RATE_LIMITS_HZ[0], maximum=100.0,
                                   description='scans per second')
     """Scans per second (at most ``rate_hz``)."""
     beams: int = setting(360, minimum=8, maximum=MAX_BEAMS, description='beams per scan')
@@ -65,7 +72,7 @@ class LidarRobotSettings:
         (0.0, 0.0, 0.0), length=3, maximum=10.0,
         description='the laser frame on base_link: x, y, yaw (m, rad; /tf_static)')
     """The laser's pose on base_link."""
-    cmd_timeout_s: float = setting(0.5, positive=True, maximum=60.0,
+    cmd_timeout_s: float = setting(0.5, minimum=PERIOD_LIMITS_S[0], maximum=60.0,
                                    description='stop when the latest cmd_vel is older (s)')
     """How long a command holds."""
     noise_seed: int = setting(0, minimum=0, description="seed of the base's slip, odometry "
@@ -77,6 +84,11 @@ class LidarRobotSettings:
     """The Odometry's child_frame_id."""
     laser_frame_id: str = setting('laser', nonempty=True, description="the scan's frame")
     """The LaserScan's header.frame_id."""
+    wait_for_subscribers: tuple[str, ...] = setting(
+        (), description='node names (the recorder) that must subscribe to odom, scan, /tf and '
+                        'cmd_vel before the robot starts (recorded launches: a bag from the '
+                        'first step)')
+    """Nodes that hold the start until each subscribes to every topic of :data:`WAITED`."""
 
 
 NODE_PARAMETERS: tuple[ParameterSpec, ...] = parameter_specs(LidarRobotSettings,
@@ -110,6 +122,22 @@ def unicycle_lidar_interface(argv: Sequence[str] = ()) -> NodeInterface:
                 'cmd_vel in, as a real base and its driver have them.')
 
 
+WAITED = ('odom', 'scan', '/tf', 'cmd_vel')
+"""The topics (before remapping) each ``wait_for_subscribers`` node subscribes to before the
+robot starts: what it publishes every step and the commands it takes."""
+
+
+def waits_for(subscribed: Mapping[str, Mapping[str, bool]]) -> str:
+    """What the start still waits for, in one line ('' once every named node subscribes to
+    every topic): ``subscribed`` maps each ``wait_for_subscribers`` node to each resolved
+    topic of :data:`WAITED` -> whether it holds a subscription there."""
+    for name, topics in subscribed.items():
+        for topic, held in topics.items():
+            if not held:
+                return f'{name} to subscribe to {topic}'
+    return ''
+
+
 def settings_from_params(params: Mapping[str, Any]) -> LidarRobotSettings:
     """The node's settings from flat parameters.
 
@@ -120,6 +148,21 @@ def settings_from_params(params: Mapping[str, Any]) -> LidarRobotSettings:
     if settings.scan_rate_hz > settings.rate_hz:
         raise ValueError(f'scan_rate_hz: {settings.scan_rate_hz:g} exceeds rate_hz '
                          f'{settings.rate_hz:g}')
+    range_min = lw.Lidar.range_min
+    if not settings.range_max > range_min:
+        raise ValueError(f"range_max: {settings.range_max:g} m is not above the lidar's "
+                         f'range_min {range_min:g} m (every beam would read -inf)')
+    frames = {'odom_frame_id': settings.odom_frame_id,
+              'base_frame_id': settings.base_frame_id,
+              'laser_frame_id': settings.laser_frame_id}
+    for key, frame in frames.items():
+        why = frame_name_refusal(frame)
+        if why:
+            raise ValueError(f'{key}: {why}')
+    for (other, first), (key, frame) in itertools.combinations(frames.items(), 2):
+        if frame == first:
+            raise ValueError(f'{key}: {quoted(frame)} is {other} too (the tf tree needs three '
+                             'frames: a frame cannot be its own parent)')
     return settings
 
 
@@ -137,9 +180,14 @@ def build_world(settings: LidarRobotSettings, params: Mapping[str, Any]) -> lw.W
     if len({len(c) for c in columns}) != 1:
         raise ValueError(f'obstacles.x: {len(columns[0])} values, obstacles.y '
                          f'{len(columns[1])}, obstacles.radius {len(columns[2])}')
+    for key, column in zip(keys, columns):
+        bad = np.flatnonzero(~np.isfinite(column))
+        if bad.size:
+            raise ValueError(f'{key}: value {int(bad[0])} is {column[bad[0]]}, not finite')
+    if (columns[2] <= 0).any():
+        index = int(np.flatnonzero(columns[2] <= 0)[0])
+        raise ValueError(f'obstacles.radius: value {index} is {columns[2][index]:g}, not > 0')
     circles = np.stack(columns, axis=1)
-    if not np.isfinite(circles).all() or (circles[:, 2] <= 0).any():
-        raise ValueError('obstacles.radius: every post needs a finite place and radius > 0')
     half = settings.arena_half_size
     world = lw.World(half_size=half, circles=circles,
                      segments=np.array(lw._arena(half), dtype=np.float64),
@@ -279,8 +327,15 @@ class UnicycleLidarNode(Node):
         static = self.create_publisher(
             get_message('tf2_msgs/msg/TFMessage'), '/tf_static',
             QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        self.create_subscription(get_message('geometry_msgs/msg/Twist'), 'cmd_vel',
-                                 self.on_cmd_vel, QoSProfile(depth=10))
+        commands = self.create_subscription(get_message('geometry_msgs/msg/Twist'), 'cmd_vel',
+                                            self.on_cmd_vel, QoSProfile(depth=10))
+        self._waited = (self.odom_publisher.topic_name, self.scan_publisher.topic_name,
+                        self.tf_publisher.topic_name, commands.topic_name)
+        """The resolved topics of :data:`WAITED`."""
+        self.waiting_for = self._waits_for()
+        """What the start waits for ('' once started)."""
+        if self.waiting_for:
+            self.get_logger().info(f'the robot waits for {self.waiting_for}')
         mx, my, myaw = settings.laser_mount
         tf_static = get_message('tf2_msgs/msg/TFMessage')()
         tf_static.transforms = [_transform(self.get_clock().now().to_msg(),
@@ -308,7 +363,24 @@ class UnicycleLidarNode(Node):
         if reason:
             self.get_logger().error(reason)
 
+    def _waits_for(self) -> str:
+        """:func:`waits_for` on what discovery shows now."""
+        if not self.settings.wait_for_subscribers:
+            return ''
+        subscriptions = {topic: {e.node_name for e in self.get_subscriptions_info_by_topic(topic)}
+                         for topic in self._waited}
+        return waits_for({name: {topic: name in subscriptions[topic] for topic in self._waited}
+                          for name in self.settings.wait_for_subscribers})
+
     def on_timer(self) -> None:
+        if self.waiting_for:  # the base holds still and says nothing until it is recorded
+            waiting_for = self._waits_for()
+            if waiting_for and waiting_for != self.waiting_for:
+                self.get_logger().info(f'the robot waits for {waiting_for}')
+            self.waiting_for = waiting_for
+            if waiting_for:
+                return
+            self.get_logger().info('the robot starts: every wait_for_subscribers node listens')
         robot, settings = self.robot, self.settings
         robot.step()
         if robot.collided != self._touching:

@@ -65,11 +65,17 @@ def merge_params(params: Mapping[str, Any] | None, overrides: Mapping[str, Any])
     return merged
 
 
+DT_LIMITS_S = (1e-4, 1.0)
+"""The range of an integration step ``dt`` (s): an Euler step of the shipped systems beyond a
+second leaves them (and overflows); one under 0.1 ms never gets anywhere."""
+
+
 @dataclass(frozen=True)
 class EnvSettings:
     """Parameters every simulated system reads (subclassed per system)."""
 
-    dt: float = setting(0.02, positive=True, description='integration step (s)')
+    dt: float = setting(0.02, minimum=DT_LIMITS_S[0], maximum=DT_LIMITS_S[1],
+                        description='integration step (s)')
     """Euler step [s]."""
 
 

@@ -337,11 +337,12 @@ def _stop_all(processes: Mapping[str, subprocess.Popen], outcome: LaunchOutcome,
         if process.poll() is None:
             send(name, signal.SIGINT, sigint_timeouts_s[name])
     while True:
-        for name, process in processes.items():
-            if name not in outcome.returncodes and process.poll() is not None:
-                outcome.returncodes[name] = process.returncode
-        running = [name for name in sent
-                   if name not in abandoned and processes[name].poll() is None]
+        running = []
+        for name, process in processes.items():  # one poll each: every exit is recorded
+            if process.poll() is not None:
+                outcome.returncodes.setdefault(name, process.returncode)
+            elif name in sent and name not in abandoned:
+                running.append(name)
         if not running:
             return
         now = time.monotonic()

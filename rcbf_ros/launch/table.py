@@ -471,11 +471,15 @@ def _unicycle_lidar() -> LaunchSetup:
     markers draw, in ``odom`` (the filter's state frame), the robot, its footprint, the scan
     points closest to binding and the active rows; the robot node publishes the world's true
     posts and walls beside them (``world_markers``).
+
+    The robot starts once the recorder subscribes to its topics (``wait_for_subscribers``),
+    so that the bag holds its first steps and the filter's first answers.
     """
     robot = NodeEntry(
         name='unicycle_lidar', executable='unicycle_lidar',
         module='sim_nodes.unicycle_lidar_node',
-        remappings=(('odom', Argument('odom')), ('cmd_vel', Argument('cmd_out'))))
+        remappings=(('odom', Argument('odom')), ('cmd_vel', Argument('cmd_out'))),
+        parameters=(('wait_for_subscribers', [RECORDER.name]),))  # recorded from the start
     return LaunchSetup(
         name='unicycle_lidar', config='unicycle_lidar.yaml', arguments=LIDAR_ARGUMENTS,
         description='demo: a simulated lidar robot (scan, odom, /tf; cmd_out) and a blind '

@@ -40,6 +40,7 @@ from rcbf_ros.messages.cdr import (
     float64_multiarray_fields,
     float64_multiarray_head,
 )
+from rcbf_ros.messages.sensor import MAX_FRAME_ID
 
 FLOAT64_MULTIARRAY = 'std_msgs/msg/Float64MultiArray'
 TWIST = 'geometry_msgs/msg/Twist'
@@ -275,8 +276,28 @@ def diagnostic_array(*, statuses: Sequence[Any], stamp_ns: int, frame_id: str = 
     return msg
 
 
+def checked_frame_id(field: str, frame_id: Any) -> str:
+    """``frame_id`` of a message's ``field`` when it holds at most :data:`MAX_FRAME_ID`
+    characters, the bound of the tf and sensor readers.
+
+    Raises:
+        ValueError: naming ``field``, the id shown cut: a longer id (or not a string).
+    """
+    if not isinstance(frame_id, str):
+        raise ValueError(f'{field}: expected a frame id, got {type(frame_id).__name__}')
+    if len(frame_id) > MAX_FRAME_ID:
+        raise ValueError(f'{field}: {len(frame_id)} characters, more than the bound '
+                         f'{MAX_FRAME_ID}: {frame_id[:40]!r}...')
+    return frame_id
+
+
 def twist_stamped_to_array(msg: Any, fields: Sequence[str]) -> np.ndarray:
-    """Pick the ``twist`` fields of a TwistStamped into a vector."""
+    """Pick the ``twist`` fields of a TwistStamped into a vector.
+
+    Raises:
+        ValueError: naming ``header.frame_id`` when it is longer than :data:`MAX_FRAME_ID`.
+    """
+    checked_frame_id('header.frame_id', msg.header.frame_id)
     return twist_to_array(msg.twist, fields)
 
 
@@ -316,18 +337,24 @@ def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
     axis projected on the ground plane, atan2(R[1, 0], R[0, 0]).
 
     The quaternion need not be unit length: both arguments of the atan2 scale with its squared
-    norm, so the heading is that of the normalized rotation.
+    norm, so the heading is that of the normalized rotation. It is first divided by its
+    largest component, so that no product overflows (1e155) or underflows.
 
     Raises:
-        ValueError: naming ``pose.orientation`` when it is zero, NaN or inf, or points the
-            x axis straight up or down (no heading).
+        ValueError: naming ``pose.orientation`` when it is zero (norm <= 1e-6), NaN or inf,
+            or points the x axis straight up or down (no heading).
     """
     q = np.array([x, y, z, w], dtype=np.float64)
     if not np.all(np.isfinite(q)):
         raise ValueError('pose.orientation: contains NaN or inf')
-    norm2 = float(q @ q)
-    if not norm2 > 1e-12:
+    largest = float(np.max(np.abs(q)))
+    if not largest > 0.0:
         raise ValueError('pose.orientation: zero quaternion')
+    q = q / largest  # its largest component +-1: every product below is in [-4, 4]
+    norm2 = float(q @ q)
+    if not largest * math.sqrt(norm2) > 1e-6:
+        raise ValueError('pose.orientation: zero quaternion (norm <= 1e-6)')
+    x, y, z, w = (float(v) for v in q)
     r10 = 2.0 * (x * y + w * z)
     r00 = w * w + x * x - y * y - z * z
     if math.hypot(r10, r00) <= 1e-9 * norm2:
@@ -351,11 +378,14 @@ def odometry_to_state(msg: Any, *, system: str, frame_id: str = '') -> np.ndarra
     """The state vector of ``system`` held by a nav_msgs/Odometry (:data:`ODOMETRY_STATES`).
 
     Raises:
-        ValueError: naming the field: a frame other than ``frame_id`` (when not ''), an
-            orientation without a heading (see :func:`yaw_from_quaternion`), or a system whose
-            state an Odometry does not hold (naming ``state_type``).
+        ValueError: naming the field: a frame id longer than :data:`MAX_FRAME_ID`, a frame
+            other than ``frame_id`` (when not ''), an orientation without a heading (see
+            :func:`yaw_from_quaternion`), or a system whose state an Odometry does not hold
+            (naming ``state_type``).
     """
     check_odometry_support(system)
+    checked_frame_id('header.frame_id', msg.header.frame_id)
+    checked_frame_id('child_frame_id', msg.child_frame_id)
     if frame_id and msg.header.frame_id != frame_id:
         raise ValueError(f'header.frame_id: {msg.header.frame_id!r} is not state_frame_id '
                          f'{frame_id!r}')

@@ -98,6 +98,22 @@ def transform_refusal(parent: str, child: str, translation: tuple[float, ...],
     return ''
 
 
+def frame_name_refusal(frame: str) -> str:
+    """Why ``frame`` cannot name a frame a node publishes ('' when it can): empty, longer than
+    the readers' :data:`MAX_FRAME_ID`, with white space or a control character, or with a
+    leading ``/`` (tf2 refuses or strips it, so that the id published is not the one looked
+    up)."""
+    if not frame:
+        return 'empty frame id'
+    if len(frame) > MAX_FRAME_ID:
+        return f'{len(frame)} characters, more than the bound {MAX_FRAME_ID}: {quoted(frame, 40)}'
+    if any(c.isspace() or not c.isprintable() for c in frame):
+        return f'{quoted(frame)} holds white space or a control character'
+    if frame.startswith('/'):
+        return f'{quoted(frame)} starts with / (tf2 frame ids do not)'
+    return ''
+
+
 def _frame(text: str) -> str:
     """A frame id as tf2 keeps it: without a leading ``/``."""
     return text[1:] if text.startswith('/') else text

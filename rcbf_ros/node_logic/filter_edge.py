@@ -240,6 +240,21 @@ class Undecodable(ValueError):
     """CDR bytes that are not a sample of their topic's type (the text: ``Type: why``)."""
 
 
+REASON_LIMIT = 400
+"""Most characters of a decision's reason (:func:`shown_reason`): what a log line and the
+diagnostics' message and ``reason`` value say of it."""
+
+
+def shown_reason(text: str, limit: int = REASON_LIMIT) -> str:
+    """``text`` on one line (runs of white space as one space), cut to ``limit`` characters
+    with the number cut off said, so that a 1 MB frame id in a refusal stays a short line."""
+    line = ' '.join(str(text).split())
+    if len(line) <= limit:
+        return line
+    tail = f'... ({len(line) - limit} characters more)'
+    return line[:max(0, limit - len(tail))] + tail
+
+
 def one_line(exc: BaseException) -> str:
     """``Type: text`` of an exception on one line, at most 200 characters."""
     text = ' '.join(f'{type(exc).__name__}: {exc}'.split())
@@ -360,7 +375,8 @@ class Decision:
     level: int
     """OK, WARN or ERROR."""
     reason: str
-    """Human-readable reason for the level ('' when OK)."""
+    """Human-readable reason for the level ('' when OK), on one line of at most
+    :data:`REASON_LIMIT` characters (cut when longer)."""
     fail_safe: bool
     """True when u_safe is the fail-safe action."""
     result: FilterResult | None = None
@@ -370,6 +386,11 @@ class Decision:
     state: np.ndarray | None = None
     """(n_x,) the state the command answers (the proposal's own, or the latest ``state``
     sample), or None when there was no usable one."""
+
+    def __post_init__(self) -> None:
+        # The one place every reason passes: each log line and diagnostics message of it
+        # is bounded here (:func:`shown_reason`).
+        object.__setattr__(self, 'reason', shown_reason(self.reason))
 
     @property
     def u_s(self) -> np.ndarray:

@@ -8,8 +8,10 @@ Marker constants below), ``position`` (x, y, z), ``orientation`` (quaternion x, 
 
 The scene, in metres and radians (REP 103: x forward, y left, z up):
 
-- every obstacle: a grey cylinder at its true radius (ns ``obstacles``) and a ring at radius +
-  margin (ns ``margins``) coloured by its barrier's value;
+- every obstacle, up to ``max_obstacles`` of them (the nearest to the robot; a label, ns
+  ``omitted``, says how many are left out): a grey cylinder at its true radius (ns
+  ``obstacles``) and a ring at radius + margin (ns ``margins``) coloured by its barrier's
+  value;
 - every barrier's value as text (ns ``barriers``): at its obstacle, between the cars of its gap,
   or in a list beside the robot; coloured green for h >= ``caution``, amber for
   0 <= h < ``caution``, red for h < 0 and grey while unknown;
@@ -47,8 +49,9 @@ import numpy as np
 
 from rcbf_ros.core.filter_info import BINDING_POINTS
 from rcbf_ros.core.scene import SceneGeometry
+from rcbf_ros.messages.tf import frame_name_refusal
 from rcbf_ros.node_logic.filter_edge import float64_sections, one_line
-from rcbf_ros.parameters.reader import defaults_of, read_parameters, setting
+from rcbf_ros.parameters.reader import defaults_of, RATE_LIMITS_HZ, read_parameters, setting
 
 ARROW, CUBE, SPHERE, CYLINDER, LINE_STRIP, LINE_LIST, SPHERE_LIST, TEXT_VIEW_FACING = (
     0, 1, 2, 3, 4, 5, 7, 9)
@@ -81,6 +84,12 @@ third of this; a longer one is refused before it is decoded."""
 POINT_SIZE = 0.06
 """Diameter of a binding point's sphere (m)."""
 
+MAX_RATE_HZ = 100.0
+"""The most MarkerArrays a second ``rate_hz`` may ask for: more than a viewer draws."""
+MAX_DRAWN_OBSTACLES = 2000
+"""The most obstacles ``max_obstacles`` may ask to draw: each is a cylinder, a ring of
+:data:`RING_SEGMENTS` segments and a label, some 3 kB of a MarkerArray."""
+
 Marker = dict[str, Any]
 Color = tuple[float, float, float, float]
 
@@ -92,7 +101,7 @@ class SceneSettings:
                                             'frame (odom_frame_id with observation_sources, '
                                             'else map)')
     """Frame of every marker; '' (the default): :func:`marker_frame` picks the filter's."""
-    rate_hz: float = setting(10.0, positive=True,
+    rate_hz: float = setting(10.0, minimum=RATE_LIMITS_HZ[0], maximum=MAX_RATE_HZ,
                              description='most MarkerArrays a second (one after each new state '
                                          'or diagnostics)')
     """Most MarkerArrays a second (one after each new state or diagnostics, no faster)."""
@@ -100,6 +109,13 @@ class SceneSettings:
                                description='barrier values in [0, caution_h) are drawn amber, '
                                            'below 0 red')
     """Barrier values in [0, caution_h) are amber, above green."""
+    max_obstacles: int = setting(200, minimum=0, maximum=MAX_DRAWN_OBSTACLES,
+                                 description='most obstacles drawn: those nearest the robot '
+                                             '(the first ones before a state); a label says '
+                                             'how many are left out')
+    """Most obstacles drawn, so that an array's size and build time stay bounded whatever the
+    ``obstacles`` topic holds: the nearest to the robot (surface distance), the first ones
+    while no state is known; a label (ns ``omitted``) says how many are left out."""
 
 
 SCENE_PARAMETER_DEFAULTS: dict[str, Any] = defaults_of(SceneSettings)
@@ -110,12 +126,18 @@ def scene_settings(params: Mapping[str, Any]) -> SceneSettings:
     """The node's settings from its flat parameters (defaults: :class:`SceneSettings`'s).
 
     Raises:
-        ValueError: naming the key: a non-string ``frame_id``, ``rate_hz`` not > 0,
+        ValueError: naming the key: a non-string ``frame_id`` or one tf refuses
+            (:func:`~rcbf_ros.messages.tf.frame_name_refusal`), ``rate_hz`` outside
+            [RATE_LIMITS_HZ[0], MAX_RATE_HZ], ``max_obstacles`` outside
+            [0, MAX_DRAWN_OBSTACLES],
             ``caution_h`` < 0.
     """
     frame_id = params.get('frame_id', SceneSettings.frame_id)
     if not isinstance(frame_id, str):
         raise ValueError(f'frame_id: expected a frame name, got {frame_id!r}')
+    why = frame_name_refusal(frame_id.strip()) if frame_id.strip() else ''
+    if why:
+        raise ValueError(f'frame_id: {why}')
     return read_parameters(SceneSettings, {**params, 'frame_id': frame_id.strip()})
 
 
@@ -256,13 +278,32 @@ def _worst(values: Sequence[float]) -> float:
     return min(known) if known else math.nan
 
 
+def drawn_obstacles(geometry: SceneGeometry, state: np.ndarray | None, limit: int
+                    ) -> np.ndarray:
+    """Indices (ascending) of the at most ``limit`` obstacles drawn: all when there are no
+    more; else the ``limit`` nearest the robot's position (distance to the disc's edge), or
+    the first ``limit`` while ``state`` is None. O(n) in the obstacles."""
+    count = len(geometry.obstacles)
+    if count <= limit:
+        return np.arange(count)
+    if limit <= 0:
+        return np.arange(0)
+    if state is None:
+        return np.arange(limit)
+    x, y = geometry.position(state)
+    discs = np.array([(d.x, d.y, d.radius) for d in geometry.obstacles], dtype=np.float64)
+    gap = np.hypot(discs[:, 0] - x, discs[:, 1] - y) - discs[:, 2]
+    return np.sort(np.argpartition(gap, limit - 1)[:limit])
+
+
 def _obstacle_markers(geometry: SceneGeometry, h: Mapping[str, float], frame: _Frame, *,
-                      frame_id: str, caution: float) -> list[Marker]:
+                      frame_id: str, caution: float, drawn: np.ndarray) -> list[Marker]:
     out = []
     height = 0.3
     orientation = _CYLINDER_ALONG_Y if frame.vertical else IDENTITY
     angles = np.linspace(0.0, 2.0 * math.pi, RING_SEGMENTS + 1)
-    for i, disc in enumerate(geometry.obstacles):
+    for i in drawn.tolist():
+        disc = geometry.obstacles[i]
         out.append(_marker(frame_id=frame_id, ns='obstacles', id=i, type=CYLINDER,
                            position=frame.point(disc.x, disc.y, height / 2.0),
                            orientation=orientation,
@@ -405,25 +446,32 @@ def _anchor(geometry: SceneGeometry, state: np.ndarray | None) -> tuple[float, f
 
 def _text_markers(geometry: SceneGeometry, state: np.ndarray | None, h: Mapping[str, float],
                   frame: _Frame, *, frame_id: str, caution: float,
-                  status: tuple[int, str] | None) -> list[Marker]:
+                  status: tuple[int, str] | None, drawn: np.ndarray) -> list[Marker]:
     size = 0.12 * frame.unit
-    placed: dict[str, tuple[float, float, float]] = {
-        disc.name: frame.point(disc.x, disc.y, 0.45) for disc in geometry.obstacles}
+    placed: dict[str, tuple[float, float, float]] = {}
+    for k in drawn.tolist():
+        disc = geometry.obstacles[k]
+        placed[disc.name] = frame.point(disc.x, disc.y, 0.45)
+    left_out = len(geometry.obstacles) - len(drawn)
+    hidden = ({disc.name for disc in geometry.obstacles} - set(placed)) if left_out else set()
     if state is not None:
         for gap in geometry.gaps:
             placed[gap.name] = ((float(state[gap.a]) + float(state[gap.b])) / 2.0, 0.0, 2.0)
     a, b = _anchor(geometry, state)
-    listed = [name for name in geometry.barrier_names if name not in placed]
+    row = {name: k for k, name in enumerate(
+        name for name in geometry.barrier_names if name not in placed and name not in hidden)}
     out = []
     for i, name in enumerate(geometry.barrier_names):
+        if name in hidden:
+            continue
         value = _h(h, name)
         if name in placed:
             position = placed[name]
         elif frame.vertical:  # beside the drone, one line per barrier going down
-            position = frame.point(a + 0.9, b + 0.5 - 1.4 * size * listed.index(name), 0.1)
+            position = frame.point(a + 0.9, b + 0.5 - 1.4 * size * row[name], 0.1)
         else:
             position = frame.point(a + 0.9 * frame.unit,
-                                   b + 0.5 * frame.unit - 1.4 * size * listed.index(name), 0.4)
+                                   b + 0.5 * frame.unit - 1.4 * size * row[name], 0.4)
         out.append(_marker(frame_id=frame_id, ns='barriers', id=i, type=TEXT_VIEW_FACING,
                            position=position, scale=(0.0, 0.0, size),
                            color=h_colour(value, caution=caution), text=h_text(name, value)))
@@ -435,15 +483,27 @@ def _text_markers(geometry: SceneGeometry, state: np.ndarray | None, h: Mapping[
         out.append(_marker(frame_id=frame_id, ns='status', id=0, type=TEXT_VIEW_FACING,
                            position=position, scale=(0.0, 0.0, size), color=colour,
                            text=message[:120]))
+    if left_out:
+        position = (frame.point(a, b + 0.45 + 1.4 * size, 0.1) if frame.vertical
+                    else frame.point(a, b, 0.6 * frame.unit + 3.4 * size))
+        out.append(_marker(frame_id=frame_id, ns='omitted', id=0, type=TEXT_VIEW_FACING,
+                           position=position, scale=(0.0, 0.0, size), color=GREY,
+                           text=omitted_text(len(drawn), len(geometry.obstacles))))
     return out
+
+
+def omitted_text(drawn: int, count: int) -> str:
+    """What the ``omitted`` label says when ``drawn`` of ``count`` obstacles are drawn."""
+    return (f'{count - drawn} of {count} obstacles not drawn (the {drawn} nearest are; '
+            'max_obstacles)')
 
 
 def scene_markers(*, geometry: SceneGeometry, state: Sequence[float] | np.ndarray | None,
                   h: Mapping[str, float], frame_id: str = 'map',
                   caution: float = DEFAULT_CAUTION,
                   status: tuple[int, str] | None = None,
-                  points: Sequence[Sequence[float]] | np.ndarray | None = None
-                  ) -> list[Marker]:
+                  points: Sequence[Sequence[float]] | np.ndarray | None = None,
+                  max_obstacles: int = SceneSettings.max_obstacles) -> list[Marker]:
     """Every marker of the scene (see the module docstring).
 
     Args:
@@ -456,6 +516,8 @@ def scene_markers(*, geometry: SceneGeometry, state: Sequence[float] | np.ndarra
         points: (m, 4) rows [x, y, row value, h] of the filter's latest ``binding_points``
             (:func:`info_binding_points`; (0, 4): none named), or None: no ``filter_info``
             read, nothing drawn for them.
+        max_obstacles: the most obstacles drawn (:func:`drawn_obstacles`), with their
+            rings and labels; a label (ns ``omitted``) says how many more there are.
 
     Raises:
         ValueError: ``state`` has the wrong length or a NaN/inf entry, ``points`` is not
@@ -478,12 +540,14 @@ def scene_markers(*, geometry: SceneGeometry, state: Sequence[float] | np.ndarra
         if rows.ndim != 2 or rows.shape[1] != 4 or not np.isfinite(rows).all():
             raise ValueError(f'points: expected finite (m, 4) rows, got shape {rows.shape}')
     frame = _Frame(geometry)
-    out = _obstacle_markers(geometry, h, frame, frame_id=frame_id, caution=caution)
+    drawn = drawn_obstacles(geometry, array, max_obstacles)
+    out = _obstacle_markers(geometry, h, frame, frame_id=frame_id, caution=caution,
+                            drawn=drawn)
     if array is not None:
         out += _robot_markers(geometry, array, h, frame, frame_id=frame_id, caution=caution)
         out += _footprint_marker(geometry, array, frame, frame_id=frame_id)
     if rows is not None:
         out += _point_markers(geometry, array, rows, frame, frame_id=frame_id, caution=caution)
     out += _text_markers(geometry, array, h, frame, frame_id=frame_id, caution=caution,
-                         status=status)
+                         status=status, drawn=drawn)
     return out

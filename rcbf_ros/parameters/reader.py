@@ -47,6 +47,15 @@ LIST_LIMIT = 4096
 """The most values a list parameter may hold unless its rule says fewer (``max_length``)."""
 STRING_LIMIT = 4096
 """The most characters a string parameter (or a string of a list) may hold."""
+RATE_LIMITS_HZ = (1e-3, 1e3)
+"""The widest range of a rate a node's timer runs at (``rate_hz``, ``*_rate_hz``): slower, a
+node seems dead (one call in over 16 minutes); faster, an idle node spins a core and its
+period no longer fits the clock. Each node may declare a narrower one."""
+PERIOD_LIMITS_S = (1e-3, 3600.0)
+"""The widest range of a period or timeout a node's timer or wait runs on (``*_period_s``,
+``*_timeout_s``; a wait that may be 0 starts at 0): its timer fits the clock (a positive
+number of nanoseconds in an int64) and fires within the hour. Each node may declare a
+narrower one."""
 
 
 class ParameterError(ValueError):

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from rcbf_ros.core.config import build_system, envelope_problem, filter_config_from_params
-from rcbf_ros.envs.base import EnvSettings
+from rcbf_ros.envs.base import DT_LIMITS_S, EnvSettings
 from rcbf_ros.learning.sac import DEFAULT_INITIAL_ALPHA
 from rcbf_ros.messages.conversions import msg_to_sections, sections_to_msg
 from rcbf_ros.node_logic.edges import SIM_STEP_SECTIONS
@@ -76,7 +76,7 @@ BAD_CHECKPOINT = 2
 class SimulatorLink:
     """The node's one parameter that is not a run's setting (the env is the simulator's)."""
 
-    dt: float = setting(EnvSettings.dt,
+    dt: float = setting(EnvSettings.dt, minimum=DT_LIMITS_S[0], maximum=DT_LIMITS_S[1],
                         description="the simulator's step (s), for the GP's derivatives")
     """The simulator's step (s)."""
 

@@ -16,6 +16,7 @@ import os
 import signal
 import sys
 import threading
+import traceback
 from typing import Any, Callable, Sequence, TypeVar
 
 from rcbf_ros.node_logic.interface import (
@@ -325,13 +326,16 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
         run: drives the node (default :func:`spin`; one of its own uses :func:`spin_once`).
         on_exit: the node's exit work, before ``destroy_node`` (also after Ctrl-C / SIGTERM).
         setup_errors: exceptions of ``make_node`` that are the user's: printed as
-            ``<name>: <setup_message><error>`` on stderr, exit status 2.
+            ``<name>: <setup_message><error>`` on stderr, exit status 2. An ArithmeticError
+            of ``make_node`` (an overflow of a number no bound refused) is printed so too,
+            with its type and place (:func:`arithmetic_error_line`).
         setup_message: the middle of that line ('' for none).
         interface: the node's topics and parameters, printed by ``-h`` / ``--help``.
 
     Returns:
         0, or 2 on a setup error (including a bad ``--ros-args`` section or params file, which
-        ``rclpy.init`` refuses). Other exceptions propagate (after the shutdown).
+        ``rclpy.init`` refuses). Other exceptions, and any raised once the node is built,
+        propagate (after the shutdown).
     """
     argv = list(sys.argv if args is None else args)
     if interface is not None and wants_help(argv):
@@ -361,6 +365,36 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
         _STOP.restore()
 
 
+ERROR_LINE_LIMIT = 240
+"""Most characters of the error text in a setup error's line."""
+
+
+def arithmetic_error_line(error: ArithmeticError) -> str:
+    """An overflow (or other ArithmeticError) while a node is built, on one line: its type,
+    its text and where it was raised (function, file and line).
+
+    Building a node reads its parameters, and a number out of every range the code expects
+    (``rate_hz:=1e-300`` -> a period of inf) ends as such an error where no declared bound
+    refused it first: that is a bad input, exit status 2 without a traceback. It may also be a
+    programming error, which is why the line says where it was raised rather than only
+    'invalid': the place names the bound that is missing.
+    """
+    text = ' '.join(str(error).split())[:ERROR_LINE_LIMIT]
+    frames = traceback.extract_tb(error.__traceback__)
+    if not frames:
+        return f'{type(error).__name__}: {text}'
+    last = frames[-1]
+    return (f'{type(error).__name__}: {text} (in {last.name}, '
+            f'{_shown_path(last.filename)}:{last.lineno}: a number out of range)')
+
+
+def _shown_path(filename: str) -> str:
+    """``filename`` from the package's parent directory when it is inside it, else as is."""
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    path = os.path.abspath(filename)
+    return os.path.relpath(path, root) if path.startswith(root + os.sep) else filename
+
+
 def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] | None,
          on_exit: Callable[[Any], None] | None, setup_errors: tuple[type[BaseException], ...],
          setup_message: str, shutdown_errors: tuple[type[BaseException], ...],
@@ -375,6 +409,11 @@ def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] 
         if node is not None:
             raise
         print(f'{name}: {setup_message}{exc}', file=sys.stderr)
+        return 2
+    except ArithmeticError as exc:
+        if node is not None:
+            raise
+        print(f'{name}: {setup_message}{arithmetic_error_line(exc)}', file=sys.stderr)
         return 2
     finally:
         _STOP.ignoring = True  # from here on the node stops: nothing may cut that short

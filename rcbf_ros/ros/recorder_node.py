@@ -15,7 +15,7 @@ from typing import Any, Callable, Sequence
 from rcbf_ros.bag import BagWriter, BagWriterConfig, RecordedQos
 from rcbf_ros.bag.writer import BagWriteError
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, TopicSpec
-from rcbf_ros.parameters.reader import setting
+from rcbf_ros.parameters.reader import PERIOD_LIMITS_S, setting
 from rcbf_ros.ros.node_main import declare_settings, run_node
 from rcbf_ros.ros.runtime import (
     DurabilityPolicy,
@@ -25,6 +25,9 @@ from rcbf_ros.ros.runtime import (
     QoSProfile,
     ReliabilityPolicy,
 )
+
+MAX_CHUNK_SIZE = 64 * 1024 * 1024
+"""The largest ``chunk_size`` (bytes): an open chunk is held in memory until it closes."""
 
 
 @dataclass(frozen=True)
@@ -40,13 +43,15 @@ class RecorderConfig:
     output: str = setting('', description="the bag directory ('': bags/run_<UTC time>)")
     """Bag directory; empty: ``bags/run_<UTC time>``."""
     flush_period_s: float = setting(
-        0.5, positive=True,
+        0.5, minimum=PERIOD_LIMITS_S[0], maximum=PERIOD_LIMITS_S[1],
         description='seconds between flushes of the open chunk (what a SIGKILL can lose)')
     """Seconds between flushes of the open chunk (upper bound on data lost to SIGKILL)."""
     discovery_period_s: float = setting(
-        0.1, positive=True, description='seconds between discovery checks for new topics')
+        0.1, minimum=PERIOD_LIMITS_S[0], maximum=PERIOD_LIMITS_S[1],
+        description='seconds between discovery checks for new topics')
     """Seconds between discovery checks for new topics (``ros2 bag record``'s default)."""
-    chunk_size: int = setting(256 * 1024, description='uncompressed MCAP chunk size (bytes)')
+    chunk_size: int = setting(256 * 1024, minimum=1024, maximum=MAX_CHUNK_SIZE,
+                              description='uncompressed MCAP chunk size (bytes)')
     """Uncompressed MCAP chunk size in bytes."""
     compression: str = setting('auto',
                                description='chunk compression: auto, zstd, lz4 or none')

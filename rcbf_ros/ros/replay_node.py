@@ -31,7 +31,7 @@ from typing import Any, Iterator, Sequence
 from rcbf_ros.bag import bag_info, BagError, BagMessage
 from rcbf_ros.bag.playback import iter_bag_messages, playback_schedule, replay_qos
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, TopicSpec
-from rcbf_ros.parameters.reader import setting
+from rcbf_ros.parameters.reader import PERIOD_LIMITS_S, RATE_LIMITS_HZ, setting
 from rcbf_ros.ros.node_main import declare_settings, run_node
 from rcbf_ros.ros.runtime import (
     DurabilityPolicy,
@@ -50,18 +50,20 @@ class ReplayConfig:
 
     bag: str = setting('', description='bag directory or .mcap file (required)')
     """Bag directory or ``.mcap`` file."""
-    rate: float = setting(1.0, positive=True, description='speed factor (2.0: twice as fast)')
+    rate: float = setting(1.0, minimum=RATE_LIMITS_HZ[0], maximum=RATE_LIMITS_HZ[1],
+                         description='speed factor (2.0: twice as fast)')
     """Speed factor (> 0)."""
     loop: bool = setting(False, description='start over after the last message, until stopped')
     """Repeat until stopped."""
     topics: tuple[str, ...] = setting((), description='topics to play ([]: all)')
     """Topics to play; empty: all."""
     wait_for_subscribers_s: float = setting(
-        0.0, minimum=0, description='longest wait (s) for a subscriber on every topic before '
-                                    'playing')
+        0.0, minimum=0, maximum=PERIOD_LIMITS_S[1],
+        description='longest wait (s) for a subscriber on every topic before playing')
     """Longest wait for a subscriber on every topic before playing."""
-    linger_s: float = setting(0.5, minimum=0, description='seconds to stay alive after the last '
-                                                          'message (retransmissions)')
+    linger_s: float = setting(0.5, minimum=0, maximum=PERIOD_LIMITS_S[1],
+                              description='seconds to stay alive after the last message '
+                                          '(retransmissions)')
     """Seconds to stay alive after the last message."""
 
     def __post_init__(self) -> None:

@@ -27,7 +27,8 @@ Parameters: the filter keys of the params file (``system``, ``obstacles.*``, ``b
 the node's own (:data:`PARAMETERS`): ``frame_id`` ('': the filter's state frame, its
 ``odom_frame_id`` with observation sources, else ``map``; with sources no other frame is taken),
 ``rate_hz`` (10.0), ``caution_h`` (0.1: barrier values in [0, caution_h) are amber),
-``state_type`` (``array``; an Odometry not in ``odom_frame_id`` is skipped with sources).
+``max_obstacles`` (200: the most obstacles drawn, the nearest to the robot), ``state_type``
+(``array``; an Odometry not in ``odom_frame_id`` is skipped with sources).
 
 A state sample that does not decode, or has the wrong length or a NaN, is skipped with a
 warning (at most one a second per kind); the scene keeps the last good state. So is a
@@ -46,6 +47,7 @@ from rcbf_ros.core.scene import scene_geometry
 from rcbf_ros.messages import conversions
 from rcbf_ros.node_logic import scene as logic
 from rcbf_ros.node_logic.edges import MessageSettings
+from rcbf_ros.node_logic.filter_edge import shown_reason
 from rcbf_ros.node_logic.interface import (
     DIAGNOSTIC_ARRAY,
     FLOAT64_MULTIARRAY,
@@ -216,6 +218,18 @@ class SceneNode(Node):
         self.get_logger().info(
             f'{self.geometry.system}: {len(self.geometry.obstacles)} obstacles, '
             f'{len(self.geometry.barrier_names)} barriers, frame {self.frame_id!r}')
+        self._say_left_out()
+
+    @property
+    def _left_out(self) -> int:
+        """How many obstacles of the scene are not drawn (``max_obstacles``)."""
+        return max(0, len(self.geometry.obstacles) - self.settings.max_obstacles)
+
+    def _say_left_out(self) -> None:
+        """Once per obstacle set: how many of its obstacles are not drawn."""
+        if self._left_out:
+            count = len(self.geometry.obstacles)
+            self.get_logger().info(logic.omitted_text(count - self._left_out, count))
 
     def _state_type_parameter(self) -> str:
         """The declared ``state_type``, checked against the system (ValueError naming it)."""
@@ -295,11 +309,12 @@ class SceneNode(Node):
             geometry = scene_geometry(params)
         except Exception as exc:  # a bad message (or one that does not decode): keep the old
             text = str(exc) if isinstance(exc, ValueError) else type(exc).__name__
-            self.get_logger().error(f'obstacles message refused, the obstacles drawn are '
-                                    f'unchanged: {" ".join(text.split())}')
+            self.get_logger().error(shown_reason(f'obstacles message refused, the obstacles '
+                                                 f'drawn are unchanged: {text}'))
             return
         self._params, self.geometry = params, geometry
         self._changed = self._clear = True
+        self._say_left_out()
 
     def _on_timer(self) -> None:
         if not self._changed:
@@ -309,15 +324,20 @@ class SceneNode(Node):
         markers = logic.scene_markers(
             geometry=self.geometry, state=self.state, h=self.h,
             frame_id=self.frame_id, caution=self.settings.caution_h,
-            status=self.status, points=self.points)
+            status=self.status, points=self.points,
+            max_obstacles=self.settings.max_obstacles)
+        # With obstacles left out, the ones drawn change as the robot moves: each array then
+        # replaces the whole scene, so that none drawn before stays behind in the viewer.
         self._publisher.publish(marker_array(markers, stamp=self.get_clock().now().to_msg(),
-                                             clear=self._clear))
+                                             clear=self._clear or self._left_out > 0))
         self._clear = False
         self.published += 1
 
     def _warn(self, key: str, text: str) -> None:
+        """Log ``text`` (one bounded line, :func:`shown_reason`), at most once a second per
+        ``key``."""
         if self._throttle.should_log(key=key, now_ns=time.monotonic_ns()):
-            self.get_logger().warning(text)
+            self.get_logger().warning(shown_reason(text))
 
 
 def main(args: Sequence[str] | None = None) -> int:

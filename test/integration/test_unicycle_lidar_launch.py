@@ -78,6 +78,8 @@ def test_the_filter_on_the_scan_steers_the_lidar_robot_round_the_post(ros_domain
         output = stop(launch, timeout=60)
     assert launch.returncode == 0 and 'Traceback' not in output, output[-4000:]
     assert 'the robot touches an obstacle' not in output, output[-4000:]
+    # the robot held its start until the recorder listened: the bag holds the first steps
+    assert 'the robot starts: every wait_for_subscribers node listens' in output, output[-4000:]
     with probe.lock:
         commands = [item for _, item in probe.received['/cmd_vel']]
         fail_safe = [item for _, item in probe.received['/filter_info']]

@@ -5,6 +5,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
+from hypothesis import given, settings
+from hypothesis import strategies as st
 import numpy as np
 import pytest
 
@@ -104,6 +106,34 @@ def test_an_orientation_without_heading_is_refused_naming_the_field(quaternion, 
     from rcbf_ros.messages.conversions import yaw_from_quaternion
     with pytest.raises(ValueError, match=f'^pose.orientation: .*{words}'):
         yaw_from_quaternion(*quaternion)
+
+
+@settings(max_examples=300, deadline=None)
+@given(yaw=st.floats(-3.1, 3.1), pitch=st.floats(-1.4, 1.4), roll=st.floats(-3.1, 3.1),
+       exponent=st.integers(-320, 307))
+def test_a_quaternion_of_any_scale_gives_the_heading_of_its_rotation_without_warnings(
+        yaw, pitch, roll, exponent):
+    """(0, 0, 0, 1e155) is the identity: its products overflow unless it is scaled first."""
+    import warnings
+
+    from rcbf_ros.messages.conversions import yaw_from_quaternion
+    unit = _quaternion_zyx(yaw, pitch, roll)
+    scale = 10.0 ** exponent if exponent > -300 else 5e-324 * 10.0 ** (exponent + 320)
+    q = [float(v) * scale for v in unit]
+    with warnings.catch_warnings(), np.errstate(all='raise', under='ignore'):
+        warnings.simplefilter('error')
+        if not np.linalg.norm(np.asarray(q) / scale) * scale > 1e-6:
+            with pytest.raises(ValueError, match='^pose.orientation: zero quaternion'):
+                yaw_from_quaternion(*q)
+            return
+        got = yaw_from_quaternion(*q)
+    assert abs(np.angle(np.exp(1j * (got - yaw_from_quaternion(*unit))))) < 1e-9
+
+
+def test_a_huge_identity_quaternion_is_the_identity():
+    from rcbf_ros.messages.conversions import yaw_from_quaternion
+    assert yaw_from_quaternion(0.0, 0.0, 0.0, 1e155) == 0.0
+    assert yaw_from_quaternion(0.0, 0.0, 1.7e308, 1.7e308) == pytest.approx(np.pi / 2)
 
 
 def test_odometry_holds_the_unicycle_state_and_nothing_else():

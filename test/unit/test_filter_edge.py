@@ -412,3 +412,54 @@ def test_a_diagnostic_names_at_most_its_bound_of_barriers_those_of_least_h():
     _, _, values = filter_edge.diagnostic_values(decision=decision, barrier_names=few)
     assert sum(key.startswith('h.') for key in values) == len(few)
     assert 'barriers_shown' not in values
+
+
+@pytest.mark.parametrize('field', ['header.frame_id', 'child_frame_id'])
+def test_an_odometry_frame_id_over_the_readers_bound_is_refused_in_a_short_line(field):
+    from rcbf_ros.messages.sensor import MAX_FRAME_ID
+    edge = _edge(state_type='odometry')
+    for length, refused in ((MAX_FRAME_ID, False), (MAX_FRAME_ID + 1, True), (1_000_000, True)):
+        frames = {'frame_id': 'odom', 'child_frame_id': 'base'}
+        frames['frame_id' if field == 'header.frame_id' else 'child_frame_id'] = 'x' * length
+        data = serialize_message(state_to_odometry([1.0, -2.0, 0.5], system='unicycle',
+                                                   stamp_ns=0, **frames))
+        sample, count = edge.read_state(data, received_ns=0)
+        if not refused:
+            assert count == '' and sample.state is not None
+            continue
+        assert count == REFUSED_STATE and sample.state is None
+        assert sample.error.startswith(f'{field}: {length} characters, more than the bound '
+                                       f'{MAX_FRAME_ID}: ')
+        assert len(sample.error) < 200
+
+
+def test_a_twist_stamped_frame_id_over_the_readers_bound_is_refused_in_a_short_line():
+    from rcbf_ros.messages.classes import get_message
+    from rcbf_ros.messages.sensor import MAX_FRAME_ID
+    edge = _edge(command_type='twist_stamped')
+    header = get_message('std_msgs/msg/Header')(frame_id='b' * 1_000_000)
+    data = serialize_message(array_to_twist_stamped([0.5, -0.25], FIELDS, header))
+    sample = edge.read_proposal(data, twist_fields=FIELDS)
+    assert sample.proposal is None and sample.count == REFUSED_PROPOSAL
+    assert sample.error.startswith(f'header.frame_id: 1000000 characters, more than the bound '
+                                   f'{MAX_FRAME_ID}: ')
+    assert len(sample.error) < 200
+
+
+@HYPOTHESIS
+@given(reason=st.text(max_size=3000) | st.just('frame ' * 200_000))
+def test_every_reason_reaches_the_log_and_diagnostics_as_one_bounded_line(reason):
+    """A decision's reason is the text of the fail-safe's log line and of the diagnostics'
+    message and ``reason`` value: cut to REASON_LIMIT there, on one line."""
+    decision = logic.Decision(u_safe=np.zeros(2), u_rl=None, level=logic.ERROR,
+                              reason=f'bad state: {reason}', fail_safe=True)
+    _, message, values = filter_edge.diagnostic_values(decision=decision, barrier_names=[])
+    for text in (decision.reason, message, values['reason']):
+        assert len(text) <= filter_edge.REASON_LIMIT and '\n' not in text
+        assert text.startswith('bad state:')
+    line = ' '.join(f'bad state: {reason}'.split())
+    if len(line) <= filter_edge.REASON_LIMIT:
+        assert decision.reason == line
+    else:
+        assert decision.reason.endswith(f'({len(line) - filter_edge.REASON_LIMIT} characters '
+                                        'more)')

@@ -748,3 +748,29 @@ def test_params_files_that_configure_a_node_of_the_launch_are_accepted(tmp_path)
         path = tmp_path / 'p.yaml'
         path.write_text(text)
         launch_local.check_params_file(setup, path)
+
+
+class _ExitsOnSecondPoll:
+    """A process stand-in that is running at its first poll and has exited from the second."""
+
+    def __init__(self, code: int) -> None:
+        self.pid, self.polls, self.code = 0, 0, code
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        self.polls += 1
+        if self.polls >= 2:
+            self.returncode = self.code
+        return self.returncode
+
+
+def test_stopping_records_every_return_code_even_of_a_process_exiting_meanwhile(monkeypatch):
+    # A process that exits between two looks at it must still be in `return codes {...}`.
+    monkeypatch.setattr(launch_local, '_signal_group', lambda process, signum: None)
+    processes = {'quick': _ExitsOnSecondPoll(0), 'slow': _ExitsOnSecondPoll(-2)}
+    processes['slow'].polls = -3  # running for a few more looks
+    outcome = launch_local.LaunchOutcome(exit_code=0)
+    launch_local._stop_all(processes, outcome, {'quick': 5.0, 'slow': 5.0}, 3.0, 0.0,
+                           lambda line: None)
+    assert outcome.returncodes == {'quick': 0, 'slow': -2}
+    assert outcome.escalations == {'quick': 'SIGINT', 'slow': 'SIGINT'}

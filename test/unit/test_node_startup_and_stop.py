@@ -190,3 +190,36 @@ def test_a_node_may_ask_to_stop_after_its_work(ros_domain_id):
     code = run_node('finisher', Finisher, ['finisher'],
                     on_exit=lambda node: exits.append(f'exit after {node.ticks}'))
     assert code == 0 and exits == ['exit after 3']
+
+
+# --- a number out of range while the node is built ------------------------------------------
+
+def _overflowing_node() -> Any:
+    return int(float('inf'))  # as a period of 1 / 1e-300 s reaching a timer
+
+
+def test_an_overflow_while_the_node_is_built_is_one_line_saying_where_exit_2(
+        capsys, ros_domain_id, monkeypatch):
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros_domain_id))
+    code = run_node('probe', _overflowing_node, ['probe'])
+    lines = capsys.readouterr().err.splitlines()
+    assert code == 2 and len(lines) == 1, lines
+    assert lines[0].startswith('probe: invalid parameters: OverflowError: cannot convert float '
+                               'infinity to integer (in _overflowing_node, '
+                               'test/unit/test_node_startup_and_stop.py:')
+    assert lines[0].endswith(': a number out of range)')
+
+
+class _Built:
+    def destroy_node(self) -> None:
+        pass
+
+
+def test_an_overflow_once_the_node_runs_is_not_taken_for_bad_input(ros_domain_id,
+                                                                  monkeypatch):
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros_domain_id))
+
+    def run(node: Any) -> None:
+        raise OverflowError('in a callback')
+    with pytest.raises(OverflowError, match='in a callback'):
+        run_node('probe', _Built, ['probe'], run=run)

@@ -8,6 +8,7 @@ range where its spec has one), read back through the runtime's ``describe_parame
 from __future__ import annotations
 
 import ast
+import math
 from pathlib import Path
 from typing import Any, Callable
 
@@ -145,7 +146,7 @@ def test_an_override_outside_its_range_is_refused_in_one_line_as_before(ros_doma
     from sim_nodes.simulator_node import SimulatorNode
     rclpy.init(args=['node', '--ros-args', '-p', 'rate_hz:=-2.0'], domain_id=ros_domain_id)
     try:
-        with pytest.raises(ValueError, match=r'^rate_hz: must be > 0, got -2\.0$'):
+        with pytest.raises(ValueError, match=r'^rate_hz: must be >= 0\.001, got -2\.0$'):
             SimulatorNode()
     finally:
         rclpy.try_shutdown()
@@ -300,3 +301,67 @@ def test_the_filter_node_refuses_a_source_topic_that_clashes(args, words, ros_do
         assert words in str(refused.value) and '\n' not in str(refused.value)
     finally:
         rclpy.try_shutdown()
+
+
+def _timing_kind(name: str) -> str | None:
+    """'rate' for a rate a timer runs at (``rate_hz``, ``*_rate_hz``, a replay ``rate``),
+    'seconds' for a period, timeout, wait or step (``*_s``, ``dt``), else None."""
+    leaf = name.rsplit('.', 1)[-1]
+    if leaf.endswith('_hz') or leaf == 'rate':
+        return 'rate'
+    if leaf.endswith('_s') or leaf == 'dt':
+        return 'seconds'
+    return None
+
+
+def test_every_rate_and_period_of_every_node_is_bounded_where_it_is_declared():
+    """A rate or a period without both ends reaches a timer as an overflow (1 / 1e-300 s) or
+    a node that never wakes: every one is declared inside the shared limits."""
+    from rcbf_ros.cli.interface_doc import node_interfaces
+    from rcbf_ros.node_logic.safety_filter import DURATION_LIMIT_S
+    from rcbf_ros.parameters.reader import RATE_LIMITS_HZ
+    seen, unbounded = [], []
+    for interface in node_interfaces():
+        for spec in interface.parameters:
+            kind = _timing_kind(spec.name)
+            if kind is None or spec.type != 'double':
+                continue
+            seen.append(f'{interface.node} {spec.name}')
+            low, high = spec.range or (-math.inf, math.inf)
+            limits = RATE_LIMITS_HZ if kind == 'rate' else (0.0, DURATION_LIMIT_S)
+            if not limits[0] <= low <= high <= limits[1]:
+                unbounded.append(f'{interface.node} {spec.name} {spec.range}')
+    assert unbounded == []
+    for expected in ('scene_markers rate_hz', 'unicycle_lidar scan_rate_hz',
+                     'recorder flush_period_s', 'simulator action_timeout_s', 'replay rate',
+                     'simulator dt', 'learner dt'):
+        assert expected in seen
+
+
+@pytest.mark.parametrize('cls, key', [
+    ('rcbf_ros.node_logic.scene:SceneSettings', 'rate_hz'),
+    ('sim_nodes.unicycle_lidar_node:LidarRobotSettings', 'scan_rate_hz'),
+    ('sim_nodes.unicycle_lidar_node:LidarRobotSettings', 'rate_hz'),
+    ('sim_nodes.simulator_node:SimulatorSettings', 'rate_hz'),
+    ('sim_nodes.simulator_node:SimulatorSettings', 'action_timeout_s'),
+    ('rcbf_ros.ros.recorder_node:RecorderConfig', 'flush_period_s'),
+    ('rcbf_ros.ros.recorder_node:RecorderConfig', 'discovery_period_s'),
+])
+@pytest.mark.parametrize('value', [1e-300, 1e-10, 2e9, 1e308])
+def test_a_rate_or_period_out_of_its_range_is_refused_naming_its_key(cls, key, value):
+    import importlib
+
+    from rcbf_ros.parameters.reader import ParameterError, read_parameters
+    module, name = cls.split(':')
+    settings = getattr(importlib.import_module(module), name)
+    values = {'output': 'bag'} if name == 'RecorderConfig' else {}
+    with pytest.raises(ParameterError, match=rf'^{key}: must be [<>]= '):
+        read_parameters(settings, {**values, key: value})
+
+
+@pytest.mark.parametrize('value', [0, 1023, 2 ** 62])
+def test_a_recorder_chunk_size_out_of_its_range_is_refused_naming_it(value):
+    from rcbf_ros.parameters.reader import ParameterError, read_parameters
+    from rcbf_ros.ros.recorder_node import RecorderConfig
+    with pytest.raises(ParameterError, match=r'^chunk_size: must be [<>]= '):
+        read_parameters(RecorderConfig, {'output': 'bag', 'chunk_size': value})

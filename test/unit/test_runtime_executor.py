@@ -2,13 +2,17 @@
 shutdown from a callback ends spin, graph queries."""
 from __future__ import annotations
 
+import math
 import threading
 
+from hypothesis import given
+from hypothesis import strategies as st
 import pytest
 from runtime_node import runtime_node
 
 from rcbf_ros.messages.classes import get_message
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
+from rcbf_ros.ros.dds.node import INT64_MAX, timer_period_ns
 
 Float64 = get_message('std_msgs/msg/Float64')
 
@@ -198,3 +202,27 @@ def test_idle_readers_are_not_asked_after_every_wake_up(node, monkeypatch):
         while len(received) <= value:
             rclpy.spin_once(node, timeout_sec=0.1)
     assert received == [float(v) for v in range(20)] and asked == []
+
+
+@pytest.mark.parametrize('period', [1e308, math.inf, -math.inf, math.nan, -1.0, 0.0, 1e-300,
+                                    9.3e9, '0.1', True, None])
+def test_a_timer_period_that_does_not_fit_is_refused_naming_it(node, period):
+    """rclpy refuses these with rcl's "timer period must be non-negative" or a bare
+    OverflowError / ValueError / TypeError (and runs 0 as always due); here one ValueError
+    line naming timer_period_sec, and no timer is made."""
+    before = list(node._timers)
+    with pytest.raises(ValueError, match=r'^timer_period_sec: [^\n]+$'):
+        node.create_timer(period, lambda: None)
+    assert node._timers == before
+
+
+@given(st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers()))
+def test_a_timer_period_is_a_positive_int64_of_nanoseconds_or_one_refusal(period):
+    try:
+        period_ns = timer_period_ns(period)
+    except ValueError as exc:
+        assert str(exc).startswith('timer_period_sec: ') and '\n' not in str(exc)
+        assert not 1e-9 <= period <= 9.2e9
+    else:
+        assert 0 < period_ns <= INT64_MAX
+        assert period_ns == round(period * 1e9)

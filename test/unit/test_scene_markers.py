@@ -180,6 +180,11 @@ def test_barrier_values_from_diagnostic_key_values():
     ({'frame_id': 3}, 'frame_id'), ({'frame_id': ['map']}, 'frame_id'),
     ({'rate_hz': 0.0}, 'rate_hz'), ({'rate_hz': 'fast'}, 'rate_hz'),
     ({'caution_h': -0.1}, 'caution_h'),
+    ({'max_obstacles': -1}, 'max_obstacles'), ({'max_obstacles': 10 ** 6}, 'max_obstacles'),
+    ({'max_obstacles': 2.5}, 'max_obstacles'),
+    ({'frame_id': '/map'}, 'frame_id: .*starts with /'),
+    ({'frame_id': 'my map'}, 'frame_id: .*white space'),
+    ({'frame_id': 'm' * 1025}, 'frame_id: 1025 characters'),
 ])
 def test_scene_settings_refuse_bad_values_naming_the_key(params, match):
     with pytest.raises(ValueError, match=match):
@@ -279,3 +284,43 @@ def test_marker_arrays_go_into_a_bag_that_rosbags_reads_back(tmp_path):
         back = reader.deserialize(raw, connection.msgtype).markers
     assert [(m.ns, m.id, m.text) for m in back] == [
         (m['ns'], m['id'], m.get('text', '')) for m in markers]
+
+
+def _many_obstacles(count: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    params = load_params(find_config('unicycle'), 'safety_filter')
+    x, y = rng.uniform(-500.0, 500.0, count), rng.uniform(-500.0, 500.0, count)
+    radius = rng.uniform(0.05, 2.0, count)
+    return scene_geometry({**params, 'obstacles.x': x.tolist(), 'obstacles.y': y.tolist(),
+                           'obstacles.radius': radius.tolist()}), np.stack([x, y, radius], 1)
+
+
+@pytest.mark.parametrize('limit', [0, 1, 37, 200])
+def test_a_huge_obstacle_set_draws_the_nearest_up_to_the_bound_and_says_how_many_are_not(limit):
+    """20,000 obstacles took 14 s and 38 MB an array: at most max_obstacles are drawn, the
+    nearest to the robot by the distance to their edge (a brute-force sort is the oracle)."""
+    geometry, discs = _many_obstacles(20_000)
+    state = np.array([3.0, -4.0, 0.3])
+    h = {f'obstacle_{k}': 1.0 for k in range(20_000)}
+    markers = scene_markers(geometry=geometry, state=state, h=h, frame_id='odom',
+                            max_obstacles=limit)
+    gap = np.hypot(discs[:, 0] - 3.0, discs[:, 1] + 4.0) - discs[:, 2]
+    nearest = sorted(np.argsort(gap, kind='stable')[:limit].tolist())
+    assert [m['id'] for m in _by(markers, 'obstacles')] == nearest   # ids: the obstacle's own
+    assert [m['id'] for m in _by(markers, 'margins')] == nearest
+    labels = [m['text'].split()[0] for m in _by(markers, 'barriers')]
+    assert labels == [f'obstacle_{k}' for k in nearest]
+    omitted = _by(markers, 'omitted')
+    assert len(omitted) == 1 and omitted[0]['text'] == logic.omitted_text(limit, 20_000)
+    assert omitted[0]['text'].startswith(f'{20_000 - limit} of 20000 obstacles not drawn')
+    assert len(markers) <= 3 * limit + 10
+
+
+def test_without_a_state_the_first_obstacles_are_drawn_and_a_small_set_whole():
+    geometry, _ = _many_obstacles(300)
+    markers = scene_markers(geometry=geometry, state=None, h={}, max_obstacles=10)
+    assert [m['id'] for m in _by(markers, 'obstacles')] == list(range(10))
+    assert len(_by(markers, 'omitted')) == 1
+    markers = scene_markers(geometry=geometry, state=[0.0, 0.0, 0.0], h={}, max_obstacles=300)
+    assert len(_by(markers, 'obstacles')) == 300 and _by(markers, 'omitted') == []
+    assert logic.scene_settings({}).max_obstacles == 200

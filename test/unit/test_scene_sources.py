@@ -244,3 +244,62 @@ def test_the_node_skips_an_odometry_in_another_frame(lidar_scene):
 def test_the_node_refuses_a_frame_the_points_are_not_in(lidar_scene):
     with pytest.raises(ValueError, match='frame_id'):
         lidar_scene('-p', 'frame_id:=map')
+
+
+def _obstacle_rows(count: int) -> bytes:
+    from rcbf_ros.ros.runtime import get_message, serialize_message
+    rng = np.random.default_rng(0)
+    rows = np.column_stack([rng.uniform(5, 500, count), rng.uniform(5, 500, count),
+                            np.full(count, 0.1)])
+    array = get_message('std_msgs/msg/Float64MultiArray')()
+    dim = get_message('std_msgs/msg/MultiArrayDimension')
+    array.data = rows.reshape(-1).tolist()
+    array.layout.dim = [dim(label='obstacles', size=count, stride=3 * count),
+                        dim(label='xyr', size=3, stride=3)]
+    return serialize_message(array)
+
+
+def test_the_node_draws_a_bounded_scene_of_a_huge_obstacle_set_and_says_so_once(
+        lidar_scene, monkeypatch):
+    """A 20,000-row obstacles message took 14 s and 38 MB per array: max_obstacles are drawn,
+    each array replaces the whole scene (the nearest change as the robot moves), and the
+    number left out is said once per obstacle set."""
+    from rcbf_ros.node_logic.scene import CYLINDER
+    from rcbf_ros.ros.scene_node import MARKER_DELETEALL
+    node = lidar_scene('-p', 'max_obstacles:=50')
+    said = []
+    monkeypatch.setattr(node, 'get_logger', lambda: SimpleNamespace(
+        warning=node.warnings.append, error=node.warnings.append, info=said.append))
+    node._on_obstacles(_obstacle_rows(20_000))
+    assert len(node.geometry.obstacles) == 20_000 and not node.warnings
+    assert said == [_omitted(50, 20_000)]
+    for pose in ([0.0, 0.0, 0.0], [400.0, 400.0, 0.0]):
+        node._on_state(_odometry('odom', pose))
+        node._on_timer()
+    assert len(said) == 1
+    for array in node.published_arrays:
+        assert array.markers[0].action == MARKER_DELETEALL
+        assert sum(m.type == CYLINDER and m.ns == 'obstacles' for m in array.markers) == 50
+        assert len(array.markers) < 200
+    first, second = ({m.id for m in array.markers if m.ns == 'obstacles'}
+                     for array in node.published_arrays)
+    assert first != second   # the nearest to where the robot is
+
+
+def _omitted(drawn: int, count: int) -> str:
+    from rcbf_ros.node_logic.scene import omitted_text
+    return omitted_text(drawn, count)
+
+
+def test_a_huge_frame_id_makes_one_short_warning(lidar_scene):
+    from rcbf_ros.node_logic.filter_edge import REASON_LIMIT
+    node = lidar_scene()
+    node._on_state(_odometry('x' * 1_000_000, [1.0, -0.5, 0.7]))
+    assert node.state is None
+    node._throttle = type(node._throttle)(0.0)   # every warning said
+    node._on_state(_odometry('y' * 1024, [1.0, -0.5, 0.7]))   # within the bound, not odom
+    first, second = node.warnings
+    assert first.startswith('state skipped: header.frame_id: 1000000 characters')
+    assert second.startswith("state skipped: header.frame_id: 'yyy")
+    assert second.endswith('characters more)')
+    assert max(len(first), len(second)) <= REASON_LIMIT

@@ -1,5 +1,8 @@
-"""When the simulator starts its first episode: once the loop listens (loop_waits_for)."""
+"""When the simulator starts its first episode: once the loop listens (loop_waits_for); and
+the Odometry frames it is given."""
 from __future__ import annotations
+
+import pytest
 
 from sim_nodes.simulator_node import loop_waits_for
 
@@ -67,3 +70,17 @@ def test_waits_for_each_named_listener_to_subscribe_to_the_loops_topics():
     # Subscribed but not matched yet: its first states would be lost.
     assert waits(everywhere, 2) == '3 subscription(s) on /state to match (2 so far)'
     assert waits(everywhere, 3) == ''
+
+
+@pytest.mark.parametrize('frames, key', [
+    ({'frame_id': ''}, 'frame_id'), ({'frame_id': '/map'}, 'frame_id'),
+    ({'child_frame_id': 'base link'}, 'child_frame_id'),
+    ({'child_frame_id': 'b' * 1025}, 'child_frame_id'),
+    ({'child_frame_id': 'map'}, 'child_frame_id'),     # a self-parent odometry
+])
+def test_odometry_frames_the_readers_refuse_are_refused_naming_the_key(frames, key):
+    from rcbf_ros.parameters.reader import read_parameters
+    from sim_nodes.simulator_node import SimulatorSettings
+    with pytest.raises(ValueError, match=f'^{key}: '):
+        read_parameters(SimulatorSettings, {'state_type': 'odometry', **frames})
+    read_parameters(SimulatorSettings, {'state_type': 'array', **frames})  # not published

@@ -137,3 +137,35 @@ def test_the_lidar_foxglove_layout_shows_the_scan_and_the_scene_in_odom():
     plotted = {p['value'] for name, config in panels.items() if name.startswith('Plot!')
                for p in config['paths']}
     assert plotted == allowed
+
+
+def test_the_robot_starts_once_the_recorder_listens_and_alone_without_one():
+    """The first half second, with the filter's first fail-safe answers, was not in the bag:
+    the robot waits for the recorder on every topic it publishes and on its commands."""
+    from rcbf_ros.launch import local as launch_local
+    from rcbf_ros.parameters.arguments import parse_ros_arguments
+    setup = launch_setup('unicycle_lidar')
+    assert dict(setup.node('unicycle_lidar').parameters)['wait_for_subscribers'] == [
+        'recorder']
+
+    def robot_parameters(**kwargs):
+        children = launch_local.child_commands(setup, params_file=str(CONFIG), python='py',
+                                               **kwargs)
+        (robot,) = [c for c in children if c.name == 'unicycle_lidar']
+        return parse_ros_arguments(robot.command).parameter_rules.sections().get(
+            'unicycle_lidar', {})
+    assert robot_parameters()['wait_for_subscribers'] == ['recorder']
+    assert 'wait_for_subscribers' not in robot_parameters(without=['recorder'])
+
+
+def test_what_the_robot_waits_for_is_the_first_topic_a_named_node_lacks():
+    from sim_nodes.unicycle_lidar_node import WAITED, waits_for
+    topics = ('/odom', '/scan', '/tf', '/cmd_out')
+    assert len(WAITED) == len(topics)
+    every = {topic: True for topic in topics}
+    assert waits_for({}) == ''
+    assert waits_for({'recorder': every}) == ''
+    assert waits_for({'recorder': {**every, '/tf': False}}) == 'recorder to subscribe to /tf'
+    assert waits_for({'recorder': every, 'logger': {**every, '/scan': False}}) == (
+        'logger to subscribe to /scan')
+    assert settings_from_params({}).wait_for_subscribers == ()

@@ -37,10 +37,33 @@ def test_the_packaged_world_is_the_filter_s_posts_in_a_walled_arena():
     ({'scan_rate_hz': 60.0}, 'scan_rate_hz'),       # faster than the base's 50 Hz
     ({'beams': 10 ** 9}, 'beams'),
     ({'laser_mount': [0.1, 0.0]}, 'laser_mount'),
+    ({'range_max': 0.05}, 'range_max'),             # below the lidar's range_min
+    ({'range_max': lw.Lidar.range_min}, 'range_max'),
+    ({'odom_frame_id': 'base_link'}, 'base_frame_id'),  # a self-parent odom -> base_link
+    ({'laser_frame_id': 'base_link'}, 'laser_frame_id'),
+    ({'laser_frame_id': 'odom'}, 'laser_frame_id'),
+    ({'laser_frame_id': ' '}, 'laser_frame_id'),
+    ({'base_frame_id': 'base link'}, 'base_frame_id'),
+    ({'odom_frame_id': '/odom'}, 'odom_frame_id'),
+    ({'laser_frame_id': 'laser\x07'}, 'laser_frame_id'),
+    ({'odom_frame_id': 'o' * 1025}, 'odom_frame_id'),
 ])
 def test_bad_settings_are_refused_naming_the_key(params, key):
     with pytest.raises(ValueError, match=f'^{key}:'):
         node.build_world(node.settings_from_params(params), PACKAGED)
+
+
+def test_frame_ids_up_to_the_readers_bound_are_taken():
+    settings = node.settings_from_params({'odom_frame_id': 'o' * 1024, 'laser_frame_id': 'l/2'})
+    assert len(settings.odom_frame_id) == 1024 and settings.laser_frame_id == 'l/2'
+
+
+@pytest.mark.parametrize('key', ['obstacles.x', 'obstacles.y', 'obstacles.radius'])
+@pytest.mark.parametrize('bad', [math.nan, math.inf, -math.inf])
+def test_a_post_that_is_not_finite_is_refused_naming_its_own_key(key, bad):
+    params = {**PACKAGED, key: [*PACKAGED[key][:2], bad, *PACKAGED[key][3:]]}
+    with pytest.raises(ValueError, match=f'^{key}: value 2 is '):
+        node.build_world(node.settings_from_params({}), params)
 
 
 def test_posts_that_do_not_line_up_are_refused():

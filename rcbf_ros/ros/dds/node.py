@@ -8,6 +8,7 @@ ROS 2 wire conventions (so stock Jazzy nodes interoperate): topic ``/a/b`` is th
 """
 from __future__ import annotations
 
+import numbers
 import threading
 from typing import Any, Callable, Iterable, Sequence
 
@@ -57,6 +58,32 @@ __all__ = [
 ]
 """Node, and the parameter names that callers take from this module (defined in
 :mod:`.parameters`)."""
+
+INT64_MAX = 2 ** 63 - 1
+"""The longest timer period in nanoseconds (rcl's int64)."""
+_LONGEST_PERIOD_S = f'{INT64_MAX // 10 ** 9}.{INT64_MAX % 10 ** 9:09d}'
+
+
+def timer_period_ns(timer_period_sec: Any) -> int:
+    """``timer_period_sec`` in whole nanoseconds, as rclpy's ``create_timer`` converts it.
+
+    rclpy refuses a negative period (rcl's "timer period must be non-negative") and raises a
+    bare OverflowError, ValueError or TypeError for an infinite, NaN or too long one; here
+    each is one ValueError naming the period, and a period under a nanosecond is refused
+    too: a timer always due would keep the executor busy.
+
+    Raises:
+        ValueError: one line naming ``timer_period_sec``.
+    """
+    if isinstance(timer_period_sec, bool) or not isinstance(timer_period_sec, numbers.Real):
+        raise ValueError(f'timer_period_sec: expected a number of seconds, got '
+                         f'{type(timer_period_sec).__name__}')
+    seconds = float(timer_period_sec)
+    period_ns = round(seconds * 1e9) if 0.0 < seconds * 1e9 < INT64_MAX else 0  # NaN, inf: 0
+    if not 0 < period_ns <= INT64_MAX:
+        raise ValueError(f'timer_period_sec: must be in [1e-09, {_LONGEST_PERIOD_S}] s (a '
+                         f'positive int64 of nanoseconds), got {seconds!r}')
+    return period_ns
 
 
 class Node(NodeParameters, NodeGraph):
@@ -183,7 +210,13 @@ class Node(NodeParameters, NodeGraph):
 
     def create_timer(self, timer_period_sec: float, callback: Callable[[], None],
                      **_ignored: Any) -> Timer:
-        timer = Timer(int(round(timer_period_sec * 1e9)), callback, self._clock)
+        """A timer calling ``callback`` every ``timer_period_sec`` seconds.
+
+        Raises:
+            ValueError: one line naming ``timer_period_sec``: not a number, or one whose
+                nanoseconds are not a positive int64 (:func:`timer_period_ns`).
+        """
+        timer = Timer(timer_period_ns(timer_period_sec), callback, self._clock)
         self._timers.append(timer)
         self._wake()
         return timer
