@@ -285,7 +285,7 @@ def test_every_key_of_a_source_is_declared_with_its_value_in_force(ros_domain_id
                                     '/rosout topic'),
     (['-p', 'front.topic:=/tf_static'], "the node's own /tf_static topic"),
     (['-p', 'front.topic:=parameter_events'], "the node's own /parameter_events topic"),
-    (['-p', 'front.topic:=/safety_filter/get_parameters'], 'own ~/get_parameters topic'),
+    (['-p', 'front.topic:=/safety_filter/get_parameters'], 'own ~/get_parameters service'),
     (['-p', 'front.topic:=~/set_parameters_atomically'], 'own ~/set_parameters_atomically'),
     (['-p', 'state_type:=odometry', '-p', 'state_frame_id:=map'],
      "state_frame_id: 'map' is not odom_frame_id 'odom'"),
