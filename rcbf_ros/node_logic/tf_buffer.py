@@ -318,6 +318,10 @@ class TransformBuffer:
         if self._clock_ns is not None and now_ns < self._clock_ns - int(JUMP_BACK_S * _S):
             self._clear()
             self._clock_ns = now_ns
+        elif self._clock_ns is None and self._data_ns is not None and \
+                self._data_ns > now_ns + self.cache_ns:
+            self._clear()  # a first clock, behind the data taken without one: not its time
+            self._clock_ns = now_ns
         elif self._clock_ns is None or now_ns > self._clock_ns:
             self._clock_ns = now_ns
         return self._clock_ns

@@ -333,7 +333,12 @@ class Tf2Feed:
             self._static[child] = transform
         else:
             self._static.pop(child, None)
-            bisect.insort(self._stamps.setdefault(child, []), stamp)
+            stamps = self._stamps.setdefault(child, [])
+            if stamps:  # tf2 drops the link's samples older than the cache behind its newest
+                drop = bisect.bisect_left(stamps, stamps[-1] - self.cache_ns)
+                del stamps[:drop]
+                self._samples -= drop
+            bisect.insort(stamps, stamp)
             self._samples += 1
         return ''
 
@@ -365,6 +370,10 @@ class Tf2Feed:
             return self._clock_ns
         if self._clock_ns is not None and now_ns < self._clock_ns - int(JUMP_BACK_S * _S):
             self._clear()
+            self._clock_ns = now_ns
+        elif self._clock_ns is None and self._data_ns is not None and \
+                self._data_ns > now_ns + self.cache_ns:
+            self._clear()  # a first clock, behind the data taken without one: not its time
             self._clock_ns = now_ns
         elif self._clock_ns is None or now_ns > self._clock_ns:
             self._clock_ns = now_ns
@@ -419,20 +428,25 @@ class Tf2Feed:
         return True
 
     def _room(self, names: str, child: str, stamp: int) -> str:
-        """Why link ``child`` has no room for a sample at ``stamp`` ('' when it has), its
-        stamps older than the cache behind its newest dropped first, as tf2 drops them."""
+        """Why link ``child`` has no room for a sample at ``stamp`` ('' when it has). The books
+        follow tf2's cache (cache.cpp): before it inserts, a link drops its samples older than
+        the cache behind its newest, so those older than the cache behind ``stamp`` stay in
+        tf2 until the link's next sample. They count in all, not in the link's bound (else a
+        full link could never move on)."""
         stamps = self._stamps.get(child, [])
         if stamps:
             if stamp < stamps[-1] - self.cache_ns:
                 return (f'{names}: stamp {_seconds(stamp)} is older than the cache '
                         f'({_seconds(self.cache_ns)} behind the newest, {_seconds(stamps[-1])})')
-            drop = bisect.bisect_left(stamps, max(stamps[-1], stamp) - self.cache_ns)
-            del stamps[:drop]
-            self._samples -= drop
-        if len(stamps) >= self.max_samples:
-            return (f'{names}: refused, the link holds {len(stamps)} samples within '
+        kept = len(stamps) - bisect.bisect_left(stamps, stamp - self.cache_ns)
+        if kept >= self.max_samples:
+            return (f'{names}: refused, the link holds {kept} samples within '
                     f'{_seconds(self.cache_ns)} (at most {self.max_samples})')
-        if self._samples >= self.max_total_samples:
+        def freed() -> int:  # what tf2 drops of the link as it takes the sample
+            held = self._stamps.get(child)
+            return bisect.bisect_left(held, held[-1] - self.cache_ns) if held else 0
+
+        if self._samples - freed() >= self.max_total_samples:
             self._expire(due=True)
             horizon = self._swept_ns
             if horizon is not None and horizon != self._stale_ns:  # once per horizon
@@ -441,7 +455,7 @@ class Tf2Feed:
                               for held in self._stamps.values())
                 if expired * STALE_FRACTION >= self._samples:
                     self._clear()  # tf2 keeps a stopped link's samples: clear them all
-        if self._samples >= self.max_total_samples:
+        if self._samples - freed() >= self.max_total_samples:
             return (f'{names}: refused, the buffer holds {self._samples} samples (at most '
                     f'{self.max_total_samples})')
         return ''
