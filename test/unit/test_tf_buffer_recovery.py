@@ -12,7 +12,7 @@ from __future__ import annotations
 import bisect
 from types import SimpleNamespace
 
-from hypothesis import given, HealthCheck, settings
+from hypothesis import example, given, HealthCheck, settings
 from hypothesis import strategies as st
 import numpy as np
 import pytest
@@ -200,21 +200,26 @@ STATIC_CHILDREN = ['base_link', 'laser', 'x']
 """The children a hostile static transform may name: a static link holds for good, as in tf2,
 so statics of other children could fill the frame bound for good (what stays refused), and
 one naming the good tree's root as its child would need a good static to replace it."""
-_STAMPS = st.one_of(st.integers(0, 60 * S), st.integers(-2**62, 2**62),
-                    st.sampled_from([(2**31 - 1) * S, 3_600 * S]))
-_CLOCKS = st.one_of(st.integers(-S, 60 * S), st.just(0))
-_ENTRY = st.tuples(st.sampled_from(POOL), st.sampled_from(POOL), _STAMPS, st.booleans(),
-                   _CLOCKS, st.integers(1, 12))
-"""parent, child, stamp, static, clock, repeat (that many samples, 1 ms apart)."""
+_TIMES = st.one_of(st.sampled_from([0, 5 * S, 30 * S, 59 * S]), st.integers(-S, 60 * S))
+"""Clocks, and where the good stream starts (0: no clock yet)."""
+_OFFSETS = st.one_of(st.integers(-S, S), st.integers(-3 * S, 3 * S),
+                     st.integers(-2**62, 2**62), st.sampled_from([(2**31 - 1) * S, 3_600 * S]))
+"""A stamp from the clock: near it (the cache is 1 s), anywhere, or far ahead."""
+_LINKS = st.one_of(st.sampled_from([('odom', 'base_link'), ('base_link', 'laser'),
+                                    ('laser', 'odom')]),
+                   st.tuples(st.sampled_from(POOL), st.sampled_from(POOL)))
+"""The good tree's links (and one closing a loop) often, any two frames of the pool else."""
+_ENTRY = st.tuples(_LINKS, _OFFSETS, st.booleans(), _TIMES, st.integers(1, 12))
+"""(parent, child), stamp - clock, static, clock, repeat (that many samples, 1 ms apart)."""
 
 
 def _hostile(entries, clock: bool):
     """The transforms of ``entries`` and their clocks (None without one); static only where
     the child is one of :data:`STATIC_CHILDREN`."""
-    for parent, child, stamp, static, now, repeat in entries:
+    for (parent, child), offset, static, now, repeat in entries:
         static = static and child in STATIC_CHILDREN
         for r in range(1 if static else repeat):
-            yield _t(parent, child, stamp + r * MS), static, (now if clock else None)
+            yield _t(parent, child, now + offset + r * MS), static, (now if clock else None)
 
 
 def _recovery_ns(good_ns: int) -> int:
@@ -225,7 +230,10 @@ def _recovery_ns(good_ns: int) -> int:
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(entries=st.lists(_ENTRY, max_size=30), clock=st.booleans(),
-       good_ns=st.integers(0, 60 * S))
+       good_ns=_TIMES.filter(lambda t: t >= 0))
+@example(entries=[(('odom', 'base_link'), S // 2, False, 50 * S, 1)], clock=True, good_ns=0)
+@example(entries=[(('odom', 'base_link'), 3_600 * S, False, 50 * S, 1)], clock=False,
+         good_ns=50 * S)
 def test_after_any_hostile_stream_a_good_one_is_taken_again_within_the_bounds(
         entries, clock, good_ns):
     buffer = TransformBuffer(cache_s=CACHE_S, max_frames=8, max_samples=10,
@@ -311,7 +319,7 @@ def test_the_feed_renews_tf2s_buffer_when_its_names_are_spent_and_keeps_the_stat
 
 @settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(entries=st.lists(_ENTRY, max_size=30), clock=st.booleans(),
-       good_ns=st.integers(0, 60 * S))
+       good_ns=_TIMES.filter(lambda t: t >= 0))
 def test_after_any_hostile_stream_the_feed_takes_a_good_one_and_tf2_stays_bounded(
         entries, clock, good_ns):
     feed = _feed(max_frames=8, max_samples=30, max_total_samples=60)
