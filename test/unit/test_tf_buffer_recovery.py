@@ -320,6 +320,8 @@ def test_the_feed_renews_tf2s_buffer_when_its_names_are_spent_and_keeps_the_stat
 @settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(entries=st.lists(_ENTRY, max_size=30), clock=st.booleans(),
        good_ns=_TIMES.filter(lambda t: t >= 0))
+@example(entries=[(('base_link', f'f{k}'), 0, False, 5 * S, 12) for k in range(6)],
+         clock=True, good_ns=30 * S)
 def test_after_any_hostile_stream_the_feed_takes_a_good_one_and_tf2_stays_bounded(
         entries, clock, good_ns):
     feed = _feed(max_frames=8, max_samples=30, max_total_samples=60)
