@@ -13,24 +13,25 @@ extrapolation, a lookup here may hold a link's first or last sample for up to a 
 beyond it (``transform_tolerance``). Every refusal is one line naming both frames. Never
 raises for any input.
 
-Time, and why no input can lock the buffer: the buffer's time is the receiver's clock when
-one is handed in (``now_ns``: the node's ROS clock, or the bag's time when ``rcbf_ros
-refilter`` replays a bag), else the newest dynamic stamp offered. Samples older than the cache
-behind that time expire on every link, not only behind the link's own newest as in tf2, and
-a link left without samples goes, and with it any frame no link names: a flood that filled
-the bounds (:data:`MAX_TOTAL_SAMPLES`, :data:`MAX_FRAMES`) is refused only while it lasts.
-The bounds are checked after expiry. With a clock: a dynamic sample stamped more than the
-cache after it is refused (one far-future stamp would otherwise make every correct sample
-older than its link's cache, tf2's TF_OLD_DATA, until the clock caught up), one older than
-the cache behind it is refused as stale, and the clock going back by more than
-:data:`JUMP_BACK_S` clears the dynamic links and keeps the static ones, as tf2_ros clears its
-buffer when ROS time jumps back (a simulator or a bag loop restarting). The clock is the
-reference of choice: the filter's sources are fresh only against it, so tf stamped far from
-it could place no fresh point anyway, and a single stale or future sample is refused alone
-instead of costing the other links their data. Without a clock the data's own time stands in:
-a sample older than the cache behind the newest stamp held is taken as that time going back
-(the publisher restarted) and clears the dynamic links, so one far-future stamp blocks
-nothing beyond the next good sample.
+Time, and why no input can lock the buffer. The buffer's time is the receiver's clock when
+one is handed in (``now_ns``: the node's ROS clock; ``rcbf_ros refilter`` hands each message's
+time in the bag, the clock of the recording), else the newest dynamic stamp offered. Samples
+older than the cache behind that time expire on every link (tf2 prunes a link only behind its
+own newest, so a link that stops keeps its samples), a link left without samples goes, and
+with it any frame no link names; the bounds (:data:`MAX_TOTAL_SAMPLES`, :data:`MAX_FRAMES`)
+are checked after expiry, so a flood is refused only while it lasts. With a clock, a dynamic
+stamp more than the cache from it, ahead or behind, is refused (one far-future stamp would
+otherwise make every correct sample older than its link's cache, tf2's TF_OLD_DATA, until the
+clock caught up), and the clock going back by more than :data:`JUMP_BACK_S` clears the
+dynamic links and keeps the static ones, as tf2_ros clears its buffer when ROS time jumps
+back (a simulator or a bag loop restarting). The clock is the reference of choice: the
+filter's sources are fresh only against it (so tf stamped far from it could place no fresh
+point anyway, in the node as in a replayed bag), and a stale or future sample is refused
+alone, costing the other links nothing. Without a clock the data's time stands in: a sample
+older than the cache behind the newest stamp offered is taken as that time going back (the
+publisher restarted) and clears the dynamic links, so a far-future stamp blocks nothing
+beyond the next good sample; the first clock handed in clears data stamped more than the
+cache ahead of it.
 """
 from __future__ import annotations
 
