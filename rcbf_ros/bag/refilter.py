@@ -686,7 +686,8 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     sources.read(source_topics[item.topic], item.data,  # type: ignore[union-attr]
                                  received_ns=item.log_time_ns)
                 elif sources is not None and item.topic in TF_TOPICS:
-                    sources.read_tf(item.data, static=item.topic == TF_TOPICS[1])
+                    sources.read_tf(item.data, static=item.topic == TF_TOPICS[1],
+                                    now_ns=item.log_time_ns)  # the bag's time: the clock
                 elif item.topic == state_topic:
                     sections = _state_sections(item, settings, system_name)
                     if isinstance(sections, str):  # an Odometry the node would refuse

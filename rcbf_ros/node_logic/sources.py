@@ -189,10 +189,11 @@ class ObservationSources:
         source.received_ns, source.refusal = received_ns, ''
         return ''
 
-    def read_tf(self, data: Any, *, static: bool) -> str:
+    def read_tf(self, data: Any, *, static: bool, now_ns: int | None = None) -> str:
         """Take one ``/tf`` (``static`` False) or ``/tf_static`` message (CDR bytes): '' when
         every transform was kept, else one line saying what was refused (the message whole,
-        or its first refused transform and how many more). Never raises."""
+        or its first refused transform and how many more). ``now_ns``: the node's clock (the
+        buffer's time: :mod:`rcbf_ros.node_logic.tf_buffer`). Never raises."""
         counts = self.tf_counts
         counts['messages'] += 1
         try:
@@ -202,7 +203,7 @@ class ObservationSources:
                 return ' '.join(out.reason.split())
             refused = list(out.refused)
             for transform in out.transforms:
-                why = self.tf.set_transform(transform, static=static)
+                why = self.tf.set_transform(transform, static=static, now_ns=now_ns)
                 if why:
                     refused.append(why)
         except Exception as exc:  # the readers never raise; kept so that no path escapes

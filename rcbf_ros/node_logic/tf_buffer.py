@@ -12,6 +12,26 @@ its two neighbouring samples (translation linearly, rotation by slerp). Where tf
 extrapolation, a lookup here may hold a link's first or last sample for up to a tolerance
 beyond it (``transform_tolerance``). Every refusal is one line naming both frames. Never
 raises for any input.
+
+Time, and why no input can lock the buffer. The buffer's time is the receiver's clock when
+one is handed in (``now_ns``: the node's ROS clock; ``rcbf_ros refilter`` hands each message's
+time in the bag, the clock of the recording), else the newest dynamic stamp offered. Samples
+older than the cache behind that time expire on every link (tf2 prunes a link only behind its
+own newest, so a link that stops keeps its samples), a link left without samples goes, and
+with it any frame no link names; the bounds (:data:`MAX_TOTAL_SAMPLES`, :data:`MAX_FRAMES`)
+are checked after expiry, so a flood is refused only while it lasts. With a clock, a dynamic
+stamp more than the cache from it, ahead or behind, is refused (one far-future stamp would
+otherwise make every correct sample older than its link's cache, tf2's TF_OLD_DATA, until the
+clock caught up), and the clock going back by more than :data:`JUMP_BACK_S` clears the
+dynamic links and keeps the static ones, as tf2_ros clears its buffer when ROS time jumps
+back (a simulator or a bag loop restarting). The clock is the reference of choice: the
+filter's sources are fresh only against it (so tf stamped far from it could place no fresh
+point anyway, in the node as in a replayed bag), and a stale or future sample is refused
+alone, costing the other links nothing. Without a clock the data's time stands in: a sample
+older than the cache behind the newest stamp offered is taken as that time going back (the
+publisher restarted) and clears the dynamic links, so a far-future stamp blocks nothing
+beyond the next good sample; the first clock handed in clears data stamped more than the
+cache ahead of it.
 """
 from __future__ import annotations
 
@@ -33,7 +53,14 @@ MAX_SAMPLES = 10_000
 """The most samples of one dynamic link (10 s at 1 kHz); the oldest go first."""
 MAX_TOTAL_SAMPLES = 100_000
 """The most samples of all links together (100 dynamic frames at 100 Hz for 10 s, some 45 MB);
-a sample that would add one more is refused."""
+a sample that would add one more is refused (after expiry: module docstring)."""
+JUMP_BACK_S = 1.0
+"""The clock going back by more than this (s) clears the dynamic links (tf2_ros's Buffer
+clears on a jump back of ROS time by more than 1 s)."""
+SWEEP_FRACTION = 100
+"""Expiry over all links runs when the buffer's time has moved on by this fraction of the
+cache since the last run, or when a bound is reached (each link also drops its own expired
+samples when it takes one, as tf2)."""
 
 FRAME, CONNECTIVITY, EXTRAPOLATION, LOOP = 'frame', 'connectivity', 'extrapolation', 'loop'
 """The kinds of :class:`NoTransform` (tf2's LookupException, ConnectivityException,
@@ -173,30 +200,42 @@ class TransformBuffer:
         self.max_samples = max_samples
         self.max_total_samples = max_total_samples
         self._links: dict[str, _Link] = {}
-        self._frames: set[str] = set()
+        self._named: dict[str, int] = {}
+        """Every frame some link names (as its child or its parent): how many links do."""
         self._samples = 0
         """Samples held by all links together."""
+        self._clock_ns: int | None = None
+        """The newest clock handed in (None: none yet, or none since the clock jumped back)."""
+        self._data_ns: int | None = None
+        """The newest dynamic stamp taken since the dynamic links were last cleared."""
+        self._swept_ns: int | None = None
+        """The time below which every link's samples were last expired."""
+        self.clears = 0
+        """How often the dynamic links were cleared (the clock or the data's time went back)."""
 
     @property
     def frames(self) -> frozenset[str]:
-        """Every frame named so far (as a parent or a child)."""
-        return frozenset(self._frames)
+        """Every frame a link names (a frame whose links all expired is forgotten)."""
+        return frozenset(self._named)
 
     def parent(self, frame: str) -> str | None:
         """The parent of ``frame`` (None: a root or unknown)."""
         link = self._links.get(frame)
         return None if link is None else link.parent
 
-    def set_transform(self, transform: StampedTransform, *, static: bool) -> str:
+    def set_transform(self, transform: StampedTransform, *, static: bool,
+                      now_ns: int | None = None) -> str:
         """Keep ``transform``: '' when kept, else the one-line reason it was refused (a bad
-        transform, a new frame beyond :data:`MAX_FRAMES`, data older than the cache, as tf2's
-        TF_OLD_DATA). Never raises."""
+        transform, a new frame beyond :data:`MAX_FRAMES`, a sample beyond
+        :data:`MAX_TOTAL_SAMPLES`, data older than the cache, as tf2's TF_OLD_DATA, or
+        stamped more than the cache after ``now_ns``). ``now_ns``: the receiver's clock (ns;
+        None or 0, none: module docstring). Never raises."""
         try:
-            return self._set(transform, static)
+            return self._set(transform, static, now_ns)
         except Exception as exc:  # any value a caller hands in: a refusal, never a raise
             return f'transform refused: {type(exc).__name__}: {" ".join(str(exc).split())}'[:200]
 
-    def _set(self, transform: StampedTransform, static: bool) -> str:
+    def _set(self, transform: StampedTransform, static: bool, now_ns: int | None) -> str:
         parent, child, stamp = transform.parent, transform.child, transform.stamp_ns
         if not (isinstance(parent, str) and isinstance(child, str)):
             return 'transform refused: frame ids are not text'
@@ -210,26 +249,50 @@ class TransformBuffer:
         why = transform_refusal(parent, child, translation, rotation)
         if why:
             return why
-        new = {parent, child} - self._frames
-        if len(self._frames) + len(new) > self.max_frames:
-            return (f'{quoted(parent)} -> {quoted(child)}: refused, the buffer holds '
-                    f'{len(self._frames)} frames (at most {self.max_frames})')
+        names = f'{quoted(parent)} -> {quoted(child)}'
+        now = self._tick(now_ns)
+        if not static:
+            if now is not None and stamp > now + self.cache_ns:
+                return (f'{names}: stamp {_seconds(stamp)} is more than the cache '
+                        f'({_seconds(self.cache_ns)}) after the clock ({_seconds(now)})')
+            if now is not None and stamp < now - self.cache_ns:
+                return (f'{names}: stamp {_seconds(stamp)} is older than the cache '
+                        f'({_seconds(self.cache_ns)} behind the clock, {_seconds(now)})')
+            if now is None and self._data_ns is not None and \
+                    stamp < self._data_ns - self.cache_ns:
+                self._clear()  # the data's time went back by more than the cache
+            if self._data_ns is None or stamp > self._data_ns:
+                self._data_ns = stamp  # offered, if not kept: the time all the same
+        self._expire(due=False)
+        new = {parent, child} - self._named.keys()
+        if new and len(self._named) + len(new) > self.max_frames and self._expire(due=True):
+            new = {parent, child} - self._named.keys()
+        if len(self._named) + len(new) > self.max_frames:
+            return (f'{names}: refused, the buffer holds '
+                    f'{len(self._named)} frames (at most {self.max_frames})')
         norm = math.sqrt(math.fsum(v * v for v in rotation))
         pose = Rigid(tuple(v / norm for v in rotation),  # type: ignore[arg-type]
                      translation)  # type: ignore[arg-type]
         link = self._links.get(child)
         replaced = link is not None and (static or link.static or link.parent != parent)
         if link is not None and not replaced and stamp < link.stamps[-1] - self.cache_ns:
-            return (f'{quoted(parent)} -> {quoted(child)}: stamp {_seconds(stamp)} is older '
+            return (f'{names}: stamp {_seconds(stamp)} is older '
                     f'than the cache ({_seconds(self.cache_ns)} behind the newest, '
                     f'{_seconds(link.stamps[-1])})')
         freed = len(link.stamps) if replaced else 0  # type: ignore[union-attr]
+        if self._samples - freed + 1 > self.max_total_samples and self._expire(due=True):
+            link = self._links.get(child)  # expiry may have taken the link
+            replaced = link is not None and (static or link.static or link.parent != parent)
+            freed = len(link.stamps) if replaced else 0  # type: ignore[union-attr]
         if self._samples - freed + 1 > self.max_total_samples:
-            return (f'{quoted(parent)} -> {quoted(child)}: refused, the buffer holds '
+            return (f'{names}: refused, the buffer holds '
                     f'{self._samples} samples (at most {self.max_total_samples})')
         if link is None or replaced:  # a new link: a new child, parent or kind
-            self._samples -= freed
+            if link is not None:
+                self._drop(child, link)
             link = self._links[child] = _Link(parent, static)
+            for frame in (parent, child):
+                self._named[frame] = self._named.get(frame, 0) + 1
         if static:
             self._samples += 1 - len(link.stamps)
             link.stamps, link.poses = [stamp], [pose]
@@ -246,8 +309,67 @@ class TransformBuffer:
             if drop > 0:
                 del link.stamps[:drop], link.poses[:drop]
                 self._samples -= drop
-        self._frames.update(new)
         return ''
+
+    def _tick(self, now_ns: int | None) -> int | None:
+        """The clock after ``now_ns`` (None: none), the dynamic links cleared when it went
+        back by more than :data:`JUMP_BACK_S`."""
+        if not isinstance(now_ns, int) or isinstance(now_ns, bool) or now_ns <= 0:
+            return self._clock_ns  # no clock (ROS time 0: not started)
+        if self._clock_ns is not None and now_ns < self._clock_ns - int(JUMP_BACK_S * _S):
+            self._clear()
+            self._clock_ns = now_ns
+        elif self._clock_ns is None and self._data_ns is not None and \
+                self._data_ns > now_ns + self.cache_ns:
+            self._clear()  # a first clock, behind the data taken without one: not its time
+            self._clock_ns = now_ns
+        elif self._clock_ns is None or now_ns > self._clock_ns:
+            self._clock_ns = now_ns
+        return self._clock_ns
+
+    def _clear(self) -> None:
+        """Forget every dynamic link (the static ones stay, as in tf2's clear)."""
+        for child, link in list(self._links.items()):
+            if not link.static:
+                self._drop(child, link)
+        self._data_ns = self._swept_ns = None
+        self.clears += 1
+
+    def _drop(self, child: str, link: _Link) -> None:
+        """Forget ``child``'s link, and each of its frames no other link names."""
+        del self._links[child]
+        self._samples -= len(link.stamps)
+        for frame in (link.parent, child):
+            left = self._named[frame] - 1
+            if left:
+                self._named[frame] = left
+            else:
+                del self._named[frame]
+
+    def _expire(self, *, due: bool) -> bool:
+        """Drop every dynamic sample older than the cache behind the buffer's time (module
+        docstring), and every link left without one: when the time has moved on by
+        1/:data:`SWEEP_FRACTION` of the cache since the last time, or at all if ``due`` (a
+        bound is reached). Whether any time had passed (something may have expired)."""
+        time_ns = self._clock_ns if self._clock_ns is not None else self._data_ns
+        if time_ns is None:
+            return False
+        horizon = time_ns - self.cache_ns
+        swept = self._swept_ns
+        if swept is not None and (horizon <= swept if due
+                                  else horizon < swept + self.cache_ns // SWEEP_FRACTION):
+            return False
+        self._swept_ns = horizon
+        for child, link in list(self._links.items()):
+            if link.static or link.stamps[0] >= horizon:
+                continue
+            drop = bisect.bisect_left(link.stamps, horizon)
+            if drop == len(link.stamps):
+                self._drop(child, link)
+            else:
+                del link.stamps[:drop], link.poses[:drop]
+                self._samples -= drop
+        return True
 
     def lookup_transform(self, target: str, source: str, time_ns: int, *,
                          tolerance_ns: int = 0) -> Rigid | NoTransform:
@@ -271,7 +393,7 @@ class TransformBuffer:
         if target == source:
             return IDENTITY
         for frame in (source, target):
-            if frame not in self._frames:
+            if frame not in self._named:
                 return NoTransform(f'{names}: frame {quoted(frame)} does not exist', FRAME)
         up_source, up_target = self._path(source), self._path(target)
         for path in (up_source, up_target):

@@ -401,7 +401,8 @@ class SafetyFilterNode(Node):
         now_ns = time.monotonic_ns()
         topic = '/tf_static' if static else '/tf'
         try:
-            reason = self._sources.read_tf(data, static=static)  # type: ignore[union-attr]
+            reason = self._sources.read_tf(  # type: ignore[union-attr]
+                data, static=static, now_ns=self._clock.now().nanoseconds)
             if reason:
                 self._log(logic.WARN, f'{topic} refused: {reason}', now_ns)
         except Exception as exc:  # a defect, not an input

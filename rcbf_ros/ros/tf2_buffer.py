@@ -27,11 +27,13 @@ from rcbf_ros.node_logic.tf_buffer import (
     EXTRAPOLATION,
     FRAME,
     IDENTITY,
+    JUMP_BACK_S,
     MAX_FRAMES,
     MAX_SAMPLES,
     MAX_TOTAL_SAMPLES,
     NoTransform,
     Rigid,
+    SWEEP_FRACTION,
 )
 
 _S = 1_000_000_000
@@ -45,6 +47,9 @@ sample: '... at time t, but only time T is in the buffer'), in seconds to the mi
 _MICROSECOND_MARGIN_NS = 2_000
 """tf2 prints that time to the microsecond from a double (~0.3 us apart at 2e9 s): where the
 printed time falls just before the link's oldest sample, the lookup asks this much later."""
+STALE_FRACTION = 10
+"""tf2's dynamic data are cleared when a sample meets the total bound and at least 1/this of
+the samples tf2 holds are older than the cache behind the buffer's time (:class:`Tf2Feed`)."""
 MAX_RETRIES = 8
 """The most lookups moved to a later link's oldest time for one stamp (one per link of a
 chain that starts after the stamp; a robot's chain to odom has two or three)."""
@@ -177,38 +182,74 @@ class Tf2Feed:
     :data:`~rcbf_ros.messages.tf.MAX_TRANSFORMS` transforms, or with a frame id longer than
     :data:`~rcbf_ros.messages.sensor.MAX_FRAME_ID`, is refused whole; a transform that
     :func:`~rcbf_ros.messages.tf.transform_refusal` refuses, one naming a new frame beyond
-    ``max_frames``, one older than its link's cache (tf2's TF_OLD_DATA), or one more sample
-    of a link holding ``max_samples`` within its cache or of ``max_total_samples`` in all, is
-    refused alone, in our buffer's words (where our buffer drops a full link's oldest sample,
-    the new one is refused here: tf2 cannot be told to drop one). tf2 bounds a link's
-    samples by its cache's time alone (and keeps several of one stamp): these bounds are kept
-    here, from the stamps handed to tf2, pruned as tf2 prunes its cache (behind the link's
-    newest).
+    ``max_frames``, one older than its link's cache (tf2's TF_OLD_DATA), one stamped more than
+    the cache from the clock, or one more sample of a link holding ``max_samples`` within its
+    cache or of ``max_total_samples`` in all, is refused alone, in our buffer's words (where
+    our buffer drops a full link's oldest sample, the new one is refused here: tf2 cannot be
+    told to drop one). tf2 bounds a link's samples by its cache's time alone (and keeps
+    several of one stamp): these bounds are kept here, from the stamps handed to tf2, pruned
+    as tf2 prunes its cache (behind the link's newest).
+
+    Time as in our buffer (:mod:`rcbf_ros.node_logic.tf_buffer`): the clock (``now_ns``) or
+    the data's newest stamp; its going back clears tf2's dynamic data (``clear()``, which keeps
+    the static transforms). tf2 drops nothing else by itself: a link that stops keeps its last
+    cache's samples, and a frame's name stays for good. So a link whose samples all lie older
+    than the cache behind the buffer's time no longer counts among the frames, and when a
+    sample meets the total bound while at least :data:`STALE_FRACTION` of it is such expired
+    data, tf2's dynamic data are cleared; when a new frame would make tf2 hold more than
+    ``max_frames`` names, ``renew`` (if given) makes a new buffer and the static transforms are
+    handed to it again. Each costs the live links their samples up to their next ones, and
+    happens only after a flood: the bounds refuse while it lasts, never after.
     """
 
     def __init__(self, buffer: Any, counts: dict[str, int], *, cache_s: float = DEFAULT_CACHE_S,
                  max_frames: int = MAX_FRAMES, max_samples: int = MAX_SAMPLES,
-                 max_total_samples: int = MAX_TOTAL_SAMPLES) -> None:
-        """``buffer``: a tf2_ros Buffer (``set_transform``, ``set_transform_static``) whose
-        cache is ``cache_s``; ``counts``: the counts to keep (``messages``, ``refused``,
-        ``transforms_refused``)."""
+                 max_total_samples: int = MAX_TOTAL_SAMPLES,
+                 renew: Callable[[], Any] | None = None) -> None:
+        """``buffer``: a tf2_ros Buffer (``set_transform``, ``set_transform_static``,
+        ``clear``) whose cache is ``cache_s``; ``counts``: the counts to keep (``messages``,
+        ``refused``, ``transforms_refused``); ``renew``: a new, empty buffer of the same kind
+        (the lookup's buffer too), or None (then a frame beyond tf2's ``max_frames`` names is
+        refused)."""
         self.buffer = buffer
         self.counts = counts
         self.cache_ns = int(cache_s * _S)
         self.max_frames = max_frames
         self.max_samples = max_samples
         self.max_total_samples = max_total_samples
-        self.frames: set[str] = set()
-        """Every frame handed to tf2 (tf2 never forgets one; this bounds how many)."""
+        self.renew = renew
+        self.clears = 0
+        """How often tf2's dynamic data were cleared (time going back, expired data)."""
+        self.renewals = 0
+        """How often a new buffer replaced tf2's (too many frame names)."""
+        self._links: dict[str, tuple[str, bool]] = {}
+        """Per live child frame, its parent and whether it is static."""
+        self._named: dict[str, int] = {}
+        """Every frame a live link names: how many do."""
+        self._handed: set[str] = set()
+        """Every frame handed to the buffer since it was made (tf2 never forgets one)."""
+        self._static: dict[str, Any] = {}
+        """Per static child frame, its latest transform (handed again to a new buffer)."""
         self._stamps: dict[str, list[int]] = {}
-        """Per dynamic child frame, the stamps handed to tf2 within its cache (sorted)."""
+        """Per dynamic child frame, the stamps tf2 holds (sorted), pruned as tf2 prunes."""
         self._samples = 0
         """The stamps of all children together."""
+        self._clock_ns: int | None = None
+        self._data_ns: int | None = None
+        self._swept_ns: int | None = None
+        self._stale_ns: int | None = None
+        """The horizon at which the expired samples were last counted (at the total bound)."""
 
-    def take(self, message: Any, *, static: bool) -> str:
+    @property
+    def frames(self) -> frozenset[str]:
+        """Every frame a live link names (a frame whose links all expired is forgotten)."""
+        return frozenset(self._named)
+
+    def take(self, message: Any, *, static: bool, now_ns: int | None = None) -> str:
         """Check ``message`` (a tf2_msgs TFMessage) and hand its good transforms to tf2: ''
         when every transform was kept, else one line saying what was refused, as
-        :meth:`ObservationSources.read_tf` says it. Never raises."""
+        :meth:`ObservationSources.read_tf` says it. ``now_ns``: the node's clock (ns). Never
+        raises."""
         counts = self.counts
         counts['messages'] += 1
         refused: list[str] = []
@@ -226,7 +267,7 @@ class Tf2Feed:
                         return (f'{TF_MESSAGE}: transforms[{k}].{field}: {len(frame)} '
                                 f'characters, more than the bound {MAX_FRAME_ID}')
             for k, transform in enumerate(transforms):
-                why = self._take(k, transform, static)
+                why = self._take(k, transform, static, now_ns)
                 if why:
                     refused.append(why)
         except Exception as exc:  # not a TFMessage: refused whole, in one line
@@ -238,7 +279,7 @@ class Tf2Feed:
         more = f' (and {len(refused) - 1} more)' if len(refused) > 1 else ''
         return ' '.join(refused[0].split()) + more
 
-    def _take(self, k: int, transform: Any, static: bool) -> str:
+    def _take(self, k: int, transform: Any, static: bool, now_ns: int | None) -> str:
         """Transform ``k`` of a message to tf2, or why not (a bad value naming its index, a
         bound or tf2 naming its frames, as read_tf names them)."""
         parent, child = transform.header.frame_id, transform.child_frame_id
@@ -248,13 +289,35 @@ class Tf2Feed:
                                 (float(q.x), float(q.y), float(q.z), float(q.w)))
         if why:
             return f'transforms[{k}] {why}'
-        new = {parent, child} - self.frames
-        if len(self.frames) + len(new) > self.max_frames:
-            return (f'{quoted(parent)} -> {quoted(child)}: refused, the buffer holds '
-                    f'{len(self.frames)} frames (at most {self.max_frames})')
+        names = f'{quoted(parent)} -> {quoted(child)}'
         stamp = int(transform.header.stamp.sec) * _S + int(transform.header.stamp.nanosec)
+        now = self._tick(now_ns)
         if not static:
-            why = self._room(parent, child, stamp)
+            if now is not None and stamp > now + self.cache_ns:
+                return (f'{names}: stamp {_seconds(stamp)} is more than the cache '
+                        f'({_seconds(self.cache_ns)}) after the clock ({_seconds(now)})')
+            if now is not None and stamp < now - self.cache_ns:
+                return (f'{names}: stamp {_seconds(stamp)} is older than the cache '
+                        f'({_seconds(self.cache_ns)} behind the clock, {_seconds(now)})')
+            if now is None and self._data_ns is not None and \
+                    stamp < self._data_ns - self.cache_ns:
+                self._clear()  # the data's time went back by more than the cache
+            if self._data_ns is None or stamp > self._data_ns:
+                self._data_ns = stamp  # offered, if not kept: the time all the same
+        self._expire(due=False)
+        new = {parent, child} - self._named.keys()
+        if new and len(self._named) + len(new) > self.max_frames and self._expire(due=True):
+            new = {parent, child} - self._named.keys()
+        if len(self._named) + len(new) > self.max_frames:
+            return (f'{names}: refused, the buffer holds '
+                    f'{len(self._named)} frames (at most {self.max_frames})')
+        unknown = {parent, child} - self._handed
+        if len(self._handed) + len(unknown) > self.max_frames:
+            if self.renew is None or not self._renew(parent, child):
+                return (f'{names}: refused, tf2 holds {len(self._handed)} frame names (at '
+                        f'most {self.max_frames})')
+        if not static:
+            why = self._room(names, child, stamp)
             if why:
                 return why
         try:
@@ -263,30 +326,136 @@ class Tf2Feed:
             else:
                 self.buffer.set_transform(transform, 'default_authority')
         except Exception as exc:  # tf2's refusal of a value our checks let through
-            return f'{quoted(parent)} -> {quoted(child)}: tf2: {type(exc).__name__}: ' \
-                   f'{_text(exc)}'
-        self.frames.update(new)
-        if not static:
-            bisect.insort(self._stamps.setdefault(child, []), stamp)
+            return f'{names}: tf2: {type(exc).__name__}: {_text(exc)}'
+        self._handed.update((parent, child))
+        self._link(child, parent, static)
+        if static:
+            self._static[child] = transform
+        else:
+            self._static.pop(child, None)
+            stamps = self._stamps.setdefault(child, [])
+            if stamps:  # tf2 drops the link's samples older than the cache behind its newest
+                drop = bisect.bisect_left(stamps, stamps[-1] - self.cache_ns)
+                del stamps[:drop]
+                self._samples -= drop
+            bisect.insort(stamps, stamp)
             self._samples += 1
         return ''
 
-    def _room(self, parent: str, child: str, stamp: int) -> str:
-        """Why link ``child`` has no room for a sample at ``stamp`` ('' when it has), its
-        stamps older than the cache behind its newest dropped first, as tf2 drops them."""
-        names = f'{quoted(parent)} -> {quoted(child)}'
+    def _link(self, child: str, parent: str, static: bool) -> None:
+        """``child``'s link is to ``parent`` (static or not): the live frames follow."""
+        if self._links.get(child) == (parent, static):
+            return
+        self._unlink(child)
+        self._links[child] = (parent, static)
+        for frame in (parent, child):
+            self._named[frame] = self._named.get(frame, 0) + 1
+
+    def _unlink(self, child: str) -> None:
+        """``child``'s link no longer live, nor its frames no other live link names."""
+        link = self._links.pop(child, None)
+        if link is None:
+            return
+        for frame in (link[0], child):
+            left = self._named[frame] - 1
+            if left:
+                self._named[frame] = left
+            else:
+                del self._named[frame]
+
+    def _tick(self, now_ns: int | None) -> int | None:
+        """The clock after ``now_ns`` (None: none), tf2's dynamic data cleared when it went
+        back by more than JUMP_BACK_S (as tf2_ros on a jump back of ROS time)."""
+        if not isinstance(now_ns, int) or isinstance(now_ns, bool) or now_ns <= 0:
+            return self._clock_ns
+        if self._clock_ns is not None and now_ns < self._clock_ns - int(JUMP_BACK_S * _S):
+            self._clear()
+            self._clock_ns = now_ns
+        elif self._clock_ns is None and self._data_ns is not None and \
+                self._data_ns > now_ns + self.cache_ns:
+            self._clear()  # a first clock, behind the data taken without one: not its time
+            self._clock_ns = now_ns
+        elif self._clock_ns is None or now_ns > self._clock_ns:
+            self._clock_ns = now_ns
+        return self._clock_ns
+
+    def _clear(self) -> None:
+        """tf2's dynamic data cleared (its static transforms stay), and our books of them."""
+        self.buffer.clear()
+        self._forget_dynamic()
+        self.clears += 1
+
+    def _forget_dynamic(self) -> None:
+        for child, (_, static) in list(self._links.items()):
+            if not static:
+                self._unlink(child)
+        self._stamps.clear()
+        self._samples = 0
+        self._data_ns = self._swept_ns = None
+
+    def _renew(self, parent: str, child: str) -> bool:
+        """A new buffer for tf2, the static transforms handed to it again, when that leaves
+        room for ``parent`` and ``child``'s names; whether it did."""
+        names = {link[0] for link in self._links.values() if link[1]} | {
+            frame for frame, link in self._links.items() if link[1]}
+        if len(names | {parent, child}) > self.max_frames:
+            return False
+        buffer = self.renew()  # type: ignore[misc]
+        for transform in self._static.values():
+            buffer.set_transform_static(transform, 'default_authority')
+        self.buffer, self._handed = buffer, names
+        self._forget_dynamic()
+        self.renewals += 1
+        return True
+
+    def _expire(self, *, due: bool) -> bool:
+        """Links whose samples all lie older than the cache behind the buffer's time are no
+        longer live: when that time has moved on by 1/SWEEP_FRACTION of the cache since the
+        last time, or at all if ``due`` (a bound is reached). Whether any time had passed."""
+        time_ns = self._clock_ns if self._clock_ns is not None else self._data_ns
+        if time_ns is None:
+            return False
+        horizon = time_ns - self.cache_ns
+        swept = self._swept_ns
+        if swept is not None and (horizon <= swept if due
+                                  else horizon < swept + self.cache_ns // SWEEP_FRACTION):
+            return False
+        self._swept_ns = horizon
+        for child, (_, static) in list(self._links.items()):
+            stamps = self._stamps.get(child)
+            if not static and (not stamps or stamps[-1] < horizon):
+                self._unlink(child)
+        return True
+
+    def _room(self, names: str, child: str, stamp: int) -> str:
+        """Why link ``child`` has no room for a sample at ``stamp`` ('' when it has). The books
+        follow tf2's cache (cache.cpp): before it inserts, a link drops its samples older than
+        the cache behind its newest, so those older than the cache behind ``stamp`` stay in
+        tf2 until the link's next sample. They count in all, not in the link's bound (else a
+        full link could never move on)."""
         stamps = self._stamps.get(child, [])
         if stamps:
             if stamp < stamps[-1] - self.cache_ns:
                 return (f'{names}: stamp {_seconds(stamp)} is older than the cache '
                         f'({_seconds(self.cache_ns)} behind the newest, {_seconds(stamps[-1])})')
-            drop = bisect.bisect_left(stamps, max(stamps[-1], stamp) - self.cache_ns)
-            del stamps[:drop]
-            self._samples -= drop
-        if len(stamps) >= self.max_samples:
-            return (f'{names}: refused, the link holds {len(stamps)} samples within '
+        kept = len(stamps) - bisect.bisect_left(stamps, stamp - self.cache_ns)
+        if kept >= self.max_samples:
+            return (f'{names}: refused, the link holds {kept} samples within '
                     f'{_seconds(self.cache_ns)} (at most {self.max_samples})')
-        if self._samples >= self.max_total_samples:
+        def freed() -> int:  # what tf2 drops of the link as it takes the sample
+            held = self._stamps.get(child)
+            return bisect.bisect_left(held, held[-1] - self.cache_ns) if held else 0
+
+        if self._samples - freed() >= self.max_total_samples:
+            self._expire(due=True)
+            horizon = self._swept_ns
+            if horizon is not None and horizon != self._stale_ns:  # once per horizon
+                self._stale_ns = horizon
+                expired = sum(bisect.bisect_left(held, horizon)
+                              for held in self._stamps.values())
+                if expired * STALE_FRACTION >= self._samples:
+                    self._clear()  # tf2 keeps a stopped link's samples: clear them all
+        if self._samples - freed() >= self.max_total_samples:
             return (f'{names}: refused, the buffer holds {self._samples} samples (at most '
                     f'{self.max_total_samples})')
         return ''
@@ -314,17 +483,27 @@ def start_tf2(node: Any, on_message: Callable[[str, str], None], *, qos: Any,
         import tf2_ros
     except ImportError as exc:
         return f'tf2_ros is not importable ({_text(exc)})'
-    buffer = tf2_ros.Buffer(cache_time=Duration(nanoseconds=int(DEFAULT_CACHE_S * _S)))
-    feed = Tf2Feed(buffer, dict.fromkeys(('messages', 'refused', 'transforms_refused'), 0))
+    def new_buffer() -> Any:
+        return tf2_ros.Buffer(cache_time=Duration(nanoseconds=int(DEFAULT_CACHE_S * _S)))
+
+    def renew() -> Any:  # the feed's new buffer is the lookup's too
+        lookup.buffer = new_buffer()
+        return lookup.buffer
+
+    lookup = Tf2Lookup(new_buffer())
+    feed = Tf2Feed(lookup.buffer, dict.fromkeys(('messages', 'refused', 'transforms_refused'), 0),
+                   renew=renew)
+    clock = node.get_clock()
 
     class _Listener(tf2_ros.TransformListener):
-        """tf2_ros's listener, each message through the feed."""
+        """tf2_ros's listener, each message through the feed (at the node's clock)."""
 
         def callback(self, data: Any) -> None:
-            on_message('/tf', feed.take(data, static=False))
+            on_message('/tf', feed.take(data, static=False, now_ns=clock.now().nanoseconds))
 
         def static_callback(self, data: Any) -> None:
-            on_message('/tf_static', feed.take(data, static=True))
+            on_message('/tf_static', feed.take(data, static=True,
+                                               now_ns=clock.now().nanoseconds))
 
-    listener = _Listener(buffer, node, qos=qos, static_qos=static_qos)
-    return Tf2(Tf2Lookup(buffer), feed, listener)
+    listener = _Listener(lookup.buffer, node, qos=qos, static_qos=static_qos)
+    return Tf2(lookup, feed, listener)

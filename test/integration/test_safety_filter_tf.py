@@ -12,8 +12,9 @@ to the left, latched), ``/tf`` (odom -> base_link at the robot's pose, stamped n
   proposal is slowed down, not stopped;
 - /tf silent while the scans go on: the transform is too old for the scans' stamps, the
   fail-safe naming both frames;
-- tf messages with a NaN translation or a zero quaternion: refused and counted, never a
-  traceback; the good transforms around them keep the robot moving.
+- tf messages with a NaN translation, a zero quaternion or a stamp an hour ahead of the
+  node's clock: refused and counted, never a traceback; the good transforms around them keep
+  the robot moving.
 """
 from __future__ import annotations
 
@@ -50,14 +51,15 @@ def _stamp(t: Any, now: int) -> Any:
     return t['builtin_interfaces/msg/Time'](sec=now // 10**9, nanosec=now % 10**9)
 
 
-def _tf(parent: str, child: str, translation=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0, 1.0)
-        ) -> bytes:
-    """A TFMessage of one transform stamped now (rosbags' encoder)."""
+def _tf(parent: str, child: str, translation=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0, 1.0),
+        ahead_ns: int = 0) -> bytes:
+    """A TFMessage of one transform stamped now (and ``ahead_ns`` on; rosbags' encoder)."""
     from rcbf_ros.messages.typestore import jazzy_typestore
     store = jazzy_typestore()
     t = store.types
     transform = t['geometry_msgs/msg/TransformStamped'](
-        header=t['std_msgs/msg/Header'](stamp=_stamp(t, time.time_ns()), frame_id=parent),
+        header=t['std_msgs/msg/Header'](stamp=_stamp(t, time.time_ns() + ahead_ns),
+                                        frame_id=parent),
         child_frame_id=child, transform=t['geometry_msgs/msg/Transform'](
             translation=t['geometry_msgs/msg/Vector3'](*map(float, translation)),
             rotation=t['geometry_msgs/msg/Quaternion'](*map(float, rotation))))
@@ -147,6 +149,7 @@ def test_a_scan_in_the_laser_frame_is_placed_through_tf(ros_domain_id):
         hostile = _answer(probe, [
             (tf_pub, lambda: _tf('odom', 'base_link', (math.nan, 0.0, 0.0))),
             (tf_pub, lambda: _tf('odom', 'base_link', rotation=(0.0, 0.0, 0.0, 0.0))),
+            (tf_pub, lambda: _tf('odom', 'base_link', ahead_ns=3_600 * 10**9)),
             (tf_pub, _odom), (scan_pub, _wall_scan)], proposal_pub, ahead, _placed)
         process_alive = process.poll() is None
     finally:
@@ -171,8 +174,10 @@ def test_a_scan_in_the_laser_frame_is_placed_through_tf(ros_domain_id):
     np.testing.assert_array_equal(command['u'], [0.0, 0.0])
     command, (level, message, values) = hostile
     assert level == 0 and 0.0 <= command['u'][0] < 1.5, message
-    assert int(values['tf.transforms_refused']) >= 2, values
-    assert int(values['tf.messages']) >= 4 and int(values['tf.refused']) == 0, values
+    # NaN, zero quaternion, an hour ahead of the node's clock: each refused (the good odom
+    # after them is read, and /tf is read in order)
+    assert int(values['tf.transforms_refused']) >= 3, values
+    assert int(values['tf.messages']) >= 5 and int(values['tf.refused']) == 0, values
     assert 'Traceback' not in output, output[-4000:]
     assert "/tf refused: transforms[0] 'odom' -> 'base_link': translation (nan" in output
     assert ('tf: tf2_ros Buffer and TransformListener' if USING_RCLPY else

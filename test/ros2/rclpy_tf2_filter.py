@@ -23,11 +23,11 @@ from tf2_msgs.msg import TFMessage
 from rcbf_ros.ros.safety_filter_node import SafetyFilterNode
 
 S = 1_000_000_000
-T0 = 1_700_000_000 * S
 MOUNT = (0.3, -0.1, 0.25), 0.4
 """The laser on base_link: (x, y, z) and yaw."""
 ODOM = ((9 * S, (1.0, 2.0, 0.2)), (11 * S, (3.0, 0.0, 0.6)))
-"""odom -> base_link: (stamp after T0, (x, y, yaw))."""
+"""odom -> base_link: (stamp after t0, (x, y, yaw)); t0 is 5 s before the node's clock, so
+that every stamp lies within the cache of it (the buffer refuses any farther)."""
 BEAMS = dict(angle_min=-0.2, increment=0.1, ranges=[1.0, 2.0, 0.5])
 
 
@@ -83,7 +83,7 @@ def main(params_file):
         sys.exit(f'timed out waiting for {what}')
 
     def placed(frame_id, after_s):
-        stamp = T0 + int(after_s * S)
+        stamp = t0 + int(after_s * S)
         spin_until(lambda: sources._sources['front'].stamp_ns == stamp
                    and sources._sources['front'].frame_id == frame_id,
                    f'a scan in {frame_id} at {after_s} s', [(scan_pub, lambda: scan(frame_id,
@@ -93,14 +93,16 @@ def main(params_file):
 
     spin_until(lambda: min(p.get_subscription_count() for p in (tf_pub, static_pub, scan_pub))
                > 0, 'the filter to subscribe')
+    t0 = (node.get_clock().now().nanoseconds // S - 5) * S
     (mx, my, mz), mount_yaw = MOUNT
-    static_pub.publish(TFMessage(transforms=[stamped('base_link', 'laser', T0, (mx, my, mz),
+    static_pub.publish(TFMessage(transforms=[stamped('base_link', 'laser', t0, (mx, my, mz),
                                                      mount_yaw)]))
     for after, (x, y, yaw) in ODOM:
-        tf_pub.publish(TFMessage(transforms=[stamped('odom', 'base_link', T0 + after,
+        tf_pub.publish(TFMessage(transforms=[stamped('odom', 'base_link', t0 + after,
                                                      (x, y, 0.0), yaw)]))
     spin_until(lambda: sources.tf_counts['messages'] >= 3, 'the transforms')
     result = {
+        't0_s': t0 // S,
         'backend': getattr(sources.tf, 'backend', type(sources.tf).__name__),
         'tf_subscriptions': sorted(s.topic_name for s in node.subscriptions
                                    if s.topic_name in ('/tf', '/tf_static')),
@@ -110,7 +112,7 @@ def main(params_file):
         'too_new': placed('laser', 8.8),
         'missing': placed('laser2', 10.0),
     }
-    nan = stamped('odom', 'base_link', T0 + 12 * S, (math.nan, 0.0, 0.0), 0.0)
+    nan = stamped('odom', 'base_link', t0 + 12 * S, (math.nan, 0.0, 0.0), 0.0)
     tf_pub.publish(TFMessage(transforms=[nan]))
     spin_until(lambda: sources.tf_counts['transforms_refused'] >= 1, 'the NaN transform')
     result['after_nan'] = placed('laser', 11.05)

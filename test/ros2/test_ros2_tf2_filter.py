@@ -64,12 +64,13 @@ def test_the_filter_on_rclpy_places_points_through_tf2_ros(jazzy, tmp_path, ros_
     # odom -> base_link at 9 s (1, 2, yaw 0.2) and 11 s (3, 0, yaw 0.6): at 10 s, halfway
     np.testing.assert_allclose(out['interpolated'], closed_form((2.0, 1.0, 0.4)), atol=1e-9)
     np.testing.assert_allclose(out['held'], closed_form((3.0, 0.0, 0.6)), atol=1e-9)
+    t0 = out['t0_s']  # the stamps: seconds after t0
     assert out['too_old'].startswith(
-        "source front: no transform from 'laser' to 'odom' at 1700000011.200 s: too old: the "
-        'newest is at 1700000011.000 s, 0.200 s before (transform_tolerance 0.100 s)'), out
+        f"source front: no transform from 'laser' to 'odom' at {t0 + 11}.200 s: too old: the "
+        f'newest is at {t0 + 11}.000 s, 0.200 s before (transform_tolerance 0.100 s)'), out
     assert out['too_new'].startswith(
-        "source front: no transform from 'laser' to 'odom' at 1700000008.800 s: too new: a "
-        'link starts at 1700000009.000 s, 0.200 s after (transform_tolerance 0.100 s)'), out
+        f"source front: no transform from 'laser' to 'odom' at {t0 + 8}.800 s: too new: a "
+        f'link starts at {t0 + 9}.000 s, 0.200 s after (transform_tolerance 0.100 s)'), out
     assert out['missing'].startswith(
         "source front: frame 'laser2' is placed neither in the state's 'odom' nor in the "
         "robot's 'base_link' by tf"), out

@@ -190,3 +190,27 @@ def test_the_filters_tf2_lookup_holds_links_as_the_filters_buffer(jazzy, tmp_pat
             outcomes[key] = outcomes.get(key, 0) + 1
     # the worlds reach every outcome: interpolated, held past either end, refused both ways
     assert set(outcomes) == {'found', 'held', EXTRAPOLATION, FRAME}, outcomes
+
+
+def test_the_filters_tf2_feed_recovers_on_tf2_ros(jazzy, tmp_path, ros_domain_id):
+    """Tf2Feed over tf2_ros's Buffer (tf2_feed_recovery.py): time going back clears tf2's
+    dynamic data and keeps the static link; a far-future stamp is refused and the next good
+    one taken; a flood that stops and a flood of frame names leave room for good data."""
+    from test_ros2_integration import rclpy_python
+    python = rclpy_python(jazzy, tmp_path)
+    done = jazzy.run(f'export PYTHONPATH="{HERE.parents[1]}:{HERE}:$PYTHONPATH"; '
+                     f'{python} {HERE / "tf2_feed_recovery.py"}',
+                     domain_id=ros_domain_id, timeout=120)
+    if "No module named 'tf2_ros'" in done.stdout:
+        pytest.skip('this Jazzy has no tf2_ros (ros2/geometry2: tf2_ros_py)')
+    assert done.returncode == 0, done.stdout[-3000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out['jump'] == {'said': '', 'clears': 1, 'old': EXTRAPOLATION, 'new': 2.1,
+                           'static': 0.1}, out
+    assert out['future']['said'] == ("'odom' -> 'base_link': stamp 2147483647.000 s is more "
+                                     'than the cache (10.000 s) after the clock (10.000 s)')
+    assert out['future']['next'] == '' and out['future']['new'] == 1.6, out
+    assert out['flood']['refused'] > 0 and out['flood']['last'] == '', out
+    assert out['flood']['clears'] >= 1 and out['flood']['new'] == 2.1, out
+    assert out['frames'] == {'refused': 42, 'next': '', 'renewals': 1, 'renewed': True,
+                             'new': 3.1, 'gone': FRAME}, out

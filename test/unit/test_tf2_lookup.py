@@ -252,6 +252,9 @@ class Recorder:
     def set_transform_static(self, transform, authority):
         self.kept.append((transform.header.frame_id, transform.child_frame_id, True))
 
+    def clear(self):
+        self.kept.append(('', '', False))
+
 
 def _sources() -> ObservationSources:
     config = filter_config_from_params({
@@ -300,32 +303,56 @@ def test_the_feed_refuses_data_older_than_the_cache_in_our_buffers_words():
     feed = Tf2Feed(recorder, dict.fromkeys(('messages', 'refused', 'transforms_refused'), 0))
     for stamp in (T0 + 20 * S, T0 + 9 * S, T0 + 10 * S):
         transforms = [transform_stamped('odom', 'base_link', stamp_ns=stamp)]
-        said = feed.take(T['tf2_msgs/msg/TFMessage'](transforms=transforms), static=False)
-        assert said == sources.read_tf(tf_bytes(*transforms), static=False), stamp
+        said = feed.take(T['tf2_msgs/msg/TFMessage'](transforms=transforms), static=False,
+                         now_ns=T0 + 19 * S)
+        assert said == sources.read_tf(tf_bytes(*transforms), static=False,
+                                       now_ns=T0 + 19 * S), stamp
     assert said == ''
     assert feed.counts == sources.tf_counts == {'messages': 3, 'refused': 0,
                                                 'transforms_refused': 1}
     assert len(recorder.kept) == 2
 
 
-def test_the_feed_bounds_samples_per_link_and_in_all_within_the_cache():
-    feed = Tf2Feed(Recorder(), dict.fromkeys(('messages', 'refused', 'transforms_refused'), 0),
-                   max_samples=3, max_total_samples=5)
-
-    def send(child, stamp):
+def _sender(feed):
+    def send(child, stamp, now_ns=None):
         return feed.take(SimpleNamespace(transforms=[
-            transform_stamped('odom', child, stamp_ns=stamp)]), static=False)
+            transform_stamped('odom', child, stamp_ns=stamp)]), static=False,
+            now_ns=now_ns or stamp)
+    return send
 
+
+def test_the_feed_bounds_samples_per_link_within_the_cache():
+    feed = Tf2Feed(Recorder(), dict.fromkeys(('messages', 'refused', 'transforms_refused'), 0),
+                   max_samples=3)
+    send = _sender(feed)
     for k in range(3):
         assert send('a', T0 + k * S) == ''
     assert send('a', T0 + 3 * S) == ("'odom' -> 'a': refused, the link holds 3 samples within "
                                      '10.000 s (at most 3)')
-    assert send('a', T0 + 2 * S) != ''  # the same stamp again is one more sample for tf2
-    assert send('a', T0 + 11 * S) == ''  # 10 s on: the first sample left tf2's cache
-    assert send('b', T0) == '' and send('b', T0 + S) == ''
-    assert send('c', T0 + 11 * S).endswith('refused, the buffer holds 5 samples (at most 5)')
-    assert send('a', T0 + 12 * S + 1) == ''  # the second left too: room again
-    assert feed.counts['transforms_refused'] == 3
+    assert send('a', T0 + 2 * S, T0 + 3 * S) != ''  # one stamp again: one more sample for tf2
+    assert send('a', T0 + 11 * S) == ''  # the first is older than the cache behind it
+    # tf2 drops that first sample only at the link's next one: until then it holds four
+    assert feed._samples == 4
+    assert send('a', T0 + 12 * S + 1) == '' and feed._samples == 4  # the first left, now
+    assert feed.counts['transforms_refused'] == 2
+
+
+def test_the_feed_bounds_samples_in_all_while_a_flood_lasts_then_clears_what_expired():
+    recorder = Recorder()
+    feed = Tf2Feed(recorder, dict.fromkeys(('messages', 'refused', 'transforms_refused'), 0),
+                   max_total_samples=5)
+    send = _sender(feed)
+    for k in range(5):
+        assert send('a', T0 + k * S) == ''
+    assert send('b', T0 + 5 * S) == ("'odom' -> 'b': refused, the buffer holds 5 samples "
+                                     '(at most 5)')
+    assert send('a', T0 + 5 * S).endswith('refused, the buffer holds 5 samples (at most 5)')
+    # 12 s on, two of a's samples lie older than the cache behind the clock: tf2 would keep
+    # them (a link drops its old samples only when it takes a new one), so its dynamic data
+    # are cleared, and b's sample is taken
+    assert send('b', T0 + 12 * S) == ''
+    assert recorder.kept[-2:] == [('', '', False), ('odom', 'b', False)]
+    assert feed.clears == 1 and feed._samples == 1 and feed.frames == {'odom', 'b'}
 
 
 def test_without_tf2_ros_start_tf2_says_why_in_one_line(monkeypatch):

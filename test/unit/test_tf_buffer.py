@@ -202,8 +202,15 @@ def test_the_cache_keeps_ten_seconds_behind_the_newest_and_refuses_older_data():
     assert isinstance(buffer.lookup_transform('odom', 'base_link', 19 * S), Rigid)
     old = buffer.lookup_transform('odom', 'base_link', 18 * S)
     assert isinstance(old, NoTransform) and 'too new: its oldest is at 19.000 s' in old.reason
-    why = buffer.set_transform(_t('odom', 'base_link', 5 * S), static=False)
-    assert 'older than the cache' in why and "'odom' -> 'base_link'" in why
+    # with a clock: older than the cache behind the link's newest (tf2's TF_OLD_DATA), or
+    # behind the clock, refused
+    why = buffer.set_transform(_t('odom', 'base_link', 18 * S), static=False, now_ns=25 * S)
+    assert why == ("'odom' -> 'base_link': stamp 18.000 s is older than the cache (10.000 s "
+                   'behind the newest, 29.000 s)')
+    why = buffer.set_transform(_t('odom', 'base_link', 5 * S), static=False, now_ns=29 * S)
+    assert why == ("'odom' -> 'base_link': stamp 5.000 s is older than the cache (10.000 s "
+                   'behind the clock, 29.000 s)')
+    assert isinstance(buffer.lookup_transform('odom', 'base_link', 19 * S), Rigid)
     capped = TransformBuffer(max_samples=3)
     for k in range(5):
         capped.set_transform(_t('odom', 'base_link', k * S), static=False)
