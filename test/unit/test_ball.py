@@ -6,7 +6,7 @@ from __future__ import annotations
 from fractions import Fraction
 import math
 
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 import numpy as np
 import pytest
@@ -57,13 +57,15 @@ def test_every_operation_encloses_its_exact_value(a, ra, b, rb, k, ta, tb, power
 
 @settings(max_examples=300, deadline=None)
 @given(a=st.floats(-50, 50), ra=st.floats(0, 5), t=fractions)
+@example(a=15.75, ra=1e-14, t=0.0)  # the float nearest c - r lies outside the exact ball
 def test_sin_and_cos_enclose_their_values(a, ra, t):
     x = Ball(a, ra)
     point = float(_point(x, t))
-    assert x.low <= point <= x.high
+    # the float nearest an end may lie just outside the exact ball: take the one inside
+    point = point if _holds(x, point) else x.centre
     for function, exact in ((ball_sin, math.sin), (ball_cos, math.cos)):
         out = function(x)
-        assert out.low <= exact(point) <= out.high
+        assert _holds(out, exact(point))
         assert out.low >= -1.0 - 1e-12 and out.high <= 1.0 + 1e-12
 
 
