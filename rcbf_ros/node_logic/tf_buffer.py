@@ -187,7 +187,69 @@ class _Link:
     poses: list[Rigid] = field(default_factory=list)
 
 
-class TransformBuffer:
+class StampRules:
+    """The time rules both buffers share (module docstring): the clock or the data's newest
+    stamp, a dynamic stamp refused more than the cache away from the clock, the dynamic links
+    cleared when time goes back, expiry before the frame bound. A subclass holds ``cache_ns``,
+    ``max_frames``, ``_named`` (frame -> links naming it), ``_clock_ns``, ``_data_ns`` and
+    gives ``_clear()`` and ``_expire(due=...)``."""
+
+    cache_ns: int
+    max_frames: int
+    _named: dict[str, int]
+    _clock_ns: int | None
+    _data_ns: int | None
+
+    def _clear(self) -> None:
+        raise NotImplementedError
+
+    def _expire(self, *, due: bool) -> bool:
+        raise NotImplementedError
+
+    def _admitted(self, names: str, parent: str, child: str, stamp: int, static: bool,
+                  now_ns: int | None) -> str:
+        """'' when a transform ``parent`` -> ``child`` stamped ``stamp`` may be taken as far
+        as time and the frame bound go, else the one-line reason (``names`` begins it)."""
+        now = self._tick(now_ns)
+        if not static:
+            if now is not None and stamp > now + self.cache_ns:
+                return (f'{names}: stamp {_seconds(stamp)} is more than the cache '
+                        f'({_seconds(self.cache_ns)}) after the clock ({_seconds(now)})')
+            if now is not None and stamp < now - self.cache_ns:
+                return (f'{names}: stamp {_seconds(stamp)} is older than the cache '
+                        f'({_seconds(self.cache_ns)} behind the clock, {_seconds(now)})')
+            if now is None and self._data_ns is not None and \
+                    stamp < self._data_ns - self.cache_ns:
+                self._clear()  # the data's time went back by more than the cache
+            if self._data_ns is None or stamp > self._data_ns:
+                self._data_ns = stamp  # offered, if not kept: the time all the same
+        self._expire(due=False)
+        new = {parent, child} - self._named.keys()
+        if new and len(self._named) + len(new) > self.max_frames and self._expire(due=True):
+            new = {parent, child} - self._named.keys()
+        if len(self._named) + len(new) > self.max_frames:
+            return (f'{names}: refused, the buffer holds '
+                    f'{len(self._named)} frames (at most {self.max_frames})')
+        return ''
+
+    def _tick(self, now_ns: int | None) -> int | None:
+        """The clock after ``now_ns`` (None: none), the dynamic links cleared when it went
+        back by more than :data:`JUMP_BACK_S`."""
+        if not isinstance(now_ns, int) or isinstance(now_ns, bool) or now_ns <= 0:
+            return self._clock_ns  # no clock (ROS time 0: not started)
+        if self._clock_ns is not None and now_ns < self._clock_ns - int(JUMP_BACK_S * _S):
+            self._clear()
+            self._clock_ns = now_ns
+        elif self._clock_ns is None and self._data_ns is not None and \
+                self._data_ns > now_ns + self.cache_ns:
+            self._clear()  # a first clock, behind the data taken without one: not its time
+            self._clock_ns = now_ns
+        elif self._clock_ns is None or now_ns > self._clock_ns:
+            self._clock_ns = now_ns
+        return self._clock_ns
+
+
+class TransformBuffer(StampRules):
     """The transforms received, and lookups between any two frames (module docstring)."""
 
     def __init__(self, *, cache_s: float = DEFAULT_CACHE_S, max_frames: int = MAX_FRAMES,
@@ -250,26 +312,9 @@ class TransformBuffer:
         if why:
             return why
         names = f'{quoted(parent)} -> {quoted(child)}'
-        now = self._tick(now_ns)
-        if not static:
-            if now is not None and stamp > now + self.cache_ns:
-                return (f'{names}: stamp {_seconds(stamp)} is more than the cache '
-                        f'({_seconds(self.cache_ns)}) after the clock ({_seconds(now)})')
-            if now is not None and stamp < now - self.cache_ns:
-                return (f'{names}: stamp {_seconds(stamp)} is older than the cache '
-                        f'({_seconds(self.cache_ns)} behind the clock, {_seconds(now)})')
-            if now is None and self._data_ns is not None and \
-                    stamp < self._data_ns - self.cache_ns:
-                self._clear()  # the data's time went back by more than the cache
-            if self._data_ns is None or stamp > self._data_ns:
-                self._data_ns = stamp  # offered, if not kept: the time all the same
-        self._expire(due=False)
-        new = {parent, child} - self._named.keys()
-        if new and len(self._named) + len(new) > self.max_frames and self._expire(due=True):
-            new = {parent, child} - self._named.keys()
-        if len(self._named) + len(new) > self.max_frames:
-            return (f'{names}: refused, the buffer holds '
-                    f'{len(self._named)} frames (at most {self.max_frames})')
+        why = self._admitted(names, parent, child, stamp, static, now_ns)
+        if why:
+            return why
         norm = math.sqrt(math.fsum(v * v for v in rotation))
         pose = Rigid(tuple(v / norm for v in rotation),  # type: ignore[arg-type]
                      translation)  # type: ignore[arg-type]
@@ -310,22 +355,6 @@ class TransformBuffer:
                 del link.stamps[:drop], link.poses[:drop]
                 self._samples -= drop
         return ''
-
-    def _tick(self, now_ns: int | None) -> int | None:
-        """The clock after ``now_ns`` (None: none), the dynamic links cleared when it went
-        back by more than :data:`JUMP_BACK_S`."""
-        if not isinstance(now_ns, int) or isinstance(now_ns, bool) or now_ns <= 0:
-            return self._clock_ns  # no clock (ROS time 0: not started)
-        if self._clock_ns is not None and now_ns < self._clock_ns - int(JUMP_BACK_S * _S):
-            self._clear()
-            self._clock_ns = now_ns
-        elif self._clock_ns is None and self._data_ns is not None and \
-                self._data_ns > now_ns + self.cache_ns:
-            self._clear()  # a first clock, behind the data taken without one: not its time
-            self._clock_ns = now_ns
-        elif self._clock_ns is None or now_ns > self._clock_ns:
-            self._clock_ns = now_ns
-        return self._clock_ns
 
     def _clear(self) -> None:
         """Forget every dynamic link (the static ones stay, as in tf2's clear)."""

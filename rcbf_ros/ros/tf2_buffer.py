@@ -27,12 +27,12 @@ from rcbf_ros.node_logic.tf_buffer import (
     EXTRAPOLATION,
     FRAME,
     IDENTITY,
-    JUMP_BACK_S,
     MAX_FRAMES,
     MAX_SAMPLES,
     MAX_TOTAL_SAMPLES,
     NoTransform,
     Rigid,
+    StampRules,
     SWEEP_FRACTION,
 )
 
@@ -173,7 +173,7 @@ class Tf2Lookup:
         return pose, int(stamp.sec) * _S + int(stamp.nanosec)
 
 
-class Tf2Feed:
+class Tf2Feed(StampRules):
     """The transforms of ``/tf`` and ``/tf_static`` (TFMessage objects, as the listener
     receives them) checked as on our runtime, then handed to tf2_ros's buffer.
 
@@ -291,26 +291,9 @@ class Tf2Feed:
             return f'transforms[{k}] {why}'
         names = f'{quoted(parent)} -> {quoted(child)}'
         stamp = int(transform.header.stamp.sec) * _S + int(transform.header.stamp.nanosec)
-        now = self._tick(now_ns)
-        if not static:
-            if now is not None and stamp > now + self.cache_ns:
-                return (f'{names}: stamp {_seconds(stamp)} is more than the cache '
-                        f'({_seconds(self.cache_ns)}) after the clock ({_seconds(now)})')
-            if now is not None and stamp < now - self.cache_ns:
-                return (f'{names}: stamp {_seconds(stamp)} is older than the cache '
-                        f'({_seconds(self.cache_ns)} behind the clock, {_seconds(now)})')
-            if now is None and self._data_ns is not None and \
-                    stamp < self._data_ns - self.cache_ns:
-                self._clear()  # the data's time went back by more than the cache
-            if self._data_ns is None or stamp > self._data_ns:
-                self._data_ns = stamp  # offered, if not kept: the time all the same
-        self._expire(due=False)
-        new = {parent, child} - self._named.keys()
-        if new and len(self._named) + len(new) > self.max_frames and self._expire(due=True):
-            new = {parent, child} - self._named.keys()
-        if len(self._named) + len(new) > self.max_frames:
-            return (f'{names}: refused, the buffer holds '
-                    f'{len(self._named)} frames (at most {self.max_frames})')
+        why = self._admitted(names, parent, child, stamp, static, now_ns)
+        if why:
+            return why
         unknown = {parent, child} - self._handed
         if len(self._handed) + len(unknown) > self.max_frames:
             if self.renew is None or not self._renew(parent, child):
@@ -362,22 +345,6 @@ class Tf2Feed:
                 self._named[frame] = left
             else:
                 del self._named[frame]
-
-    def _tick(self, now_ns: int | None) -> int | None:
-        """The clock after ``now_ns`` (None: none), tf2's dynamic data cleared when it went
-        back by more than JUMP_BACK_S (as tf2_ros on a jump back of ROS time)."""
-        if not isinstance(now_ns, int) or isinstance(now_ns, bool) or now_ns <= 0:
-            return self._clock_ns
-        if self._clock_ns is not None and now_ns < self._clock_ns - int(JUMP_BACK_S * _S):
-            self._clear()
-            self._clock_ns = now_ns
-        elif self._clock_ns is None and self._data_ns is not None and \
-                self._data_ns > now_ns + self.cache_ns:
-            self._clear()  # a first clock, behind the data taken without one: not its time
-            self._clock_ns = now_ns
-        elif self._clock_ns is None or now_ns > self._clock_ns:
-            self._clock_ns = now_ns
-        return self._clock_ns
 
     def _clear(self) -> None:
         """tf2's dynamic data cleared (its static transforms stay), and our books of them."""
