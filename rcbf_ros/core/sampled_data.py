@@ -149,12 +149,12 @@ class SampledDataMargin:
         self._reach = reach
         self._speed, self._turn = float(reach[0]), float(reach[1])
         self._alpha, self._k_c = float(problem.alpha), float(problem.k_c)
-        self._point_lookahead = float(lookahead)
+        self._point_lookahead = abs(float(lookahead))  # the bound takes |l_p|: either side
         self._parts: list[tuple[str, object]] = []
         for family in problem.families:
             if type(family) is CircleObstacles:
                 centers = np.array(family.centers, dtype=np.float64).reshape(-1, 2)
-                offset = float(family.lookahead) if family.has_lookahead else 0.0
+                offset = abs(float(family.lookahead)) if family.has_lookahead else 0.0
                 self._parts.append(('circles', (centers[:, 0], centers[:, 1], offset)))
             else:
                 rows = family.quadratic_rows(system.n_x)  # type: ignore[attr-defined]

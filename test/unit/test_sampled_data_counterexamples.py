@@ -1,9 +1,10 @@
-"""Counterexamples to the sampled-data margin's bound (rcbf_ros/core/sampled_data.py).
+"""Cases found by searching for counterexamples to the sampled-data margin's bound
+(rcbf_ros/core/sampled_data.py).
 
 Each test states the bound |phi_i(x(t), u) - phi_i(x_k, u)| <= nu0_i + c_i^T |u| for a case
-where it does not hold, with the left side evaluated by the torch assembly of
-RCBFProblem.qp (not the margin's code), and is marked xfail with the reason until the margin
-covers the case.
+that once broke it, with the left side evaluated by the torch assembly of RCBFProblem.qp (not
+the margin's code): a look-ahead point behind the robot (l_p < 0), whose margin took l_p with
+its sign where the bound needs |l_p|.
 """
 from __future__ import annotations
 
@@ -19,10 +20,6 @@ from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.core.sampled_data import sampled_data_margin
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    'CircleObstacles takes a negative lookahead (the guarded point behind the robot), and '
-    'SampledDataMargin._circles uses l_p with its sign where the bound needs |l_p|: rho_k, P '
-    'and c_omega = 2 l_p Q shrink or turn negative, so nu0 + c^T |u| can be below 0'))
 @pytest.mark.parametrize('lookahead', [-0.5, -0.2, -0.03])
 @pytest.mark.parametrize('bearing', [0.0, 1.6, -2.5])
 def test_a_point_behind_the_robot_is_covered_by_its_margin(lookahead, bearing):
