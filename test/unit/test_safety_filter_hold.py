@@ -325,3 +325,14 @@ def test_without_a_margin_there_is_no_timer_and_no_age_bound(plain_node):
     clock.now_ns += SECOND
     node._on_hold()
     assert len(harness.commands) == 1
+
+
+def test_the_timer_follows_control_period_s_at_runtime(plain_node):
+    from rcbf_ros.ros.runtime import Parameter
+    harness, _ = plain_node
+    node = harness.node
+    result = node.set_parameters([Parameter('control_period_s', Parameter.Type.DOUBLE, 0.1)])
+    assert result[0].successful and node._hold_period_s == 0.025
+    assert node._hold_timer is not None
+    result = node.set_parameters([Parameter('control_period_s', Parameter.Type.DOUBLE, 0.0)])
+    assert result[0].successful and node._hold_period_s is None and node._hold_timer is None
