@@ -36,7 +36,7 @@ FULL = [2.5, 0.0]
 
 @pytest.fixture(scope='module')
 def wall_filter() -> SafetyFilter:
-    """The audit's case: a Unicycle, the wall x <= 1, alpha 5, the margin of T and L."""
+    """A Unicycle, the wall x <= 1, alpha 5, the margin of T and L."""
     problem = RCBFProblem(system=Unicycle(u_min=(-2.0, -3.0), u_max=(2.5, 3.0)),
                           families=(HalfPlane(normals=((-1.0, 0.0),), offsets=(-1.0,)),),
                           alpha=5.0, k_c=0.0)
@@ -226,8 +226,8 @@ def _closed_loop(safety_filter: SafetyFilter, *, enforced: bool, seconds: float 
     return least
 
 
-def test_the_audits_case_keeps_off_the_wall_only_with_the_checks(wall_filter):
-    """The audit's case: v = 0.93 m/s answered at x = 0.6; odometry at 2 Hz. Held for 0.5 s
+def test_a_command_held_at_a_wall_keeps_off_it_only_with_the_checks(wall_filter):
+    """v = 0.93 m/s answered at x = 0.6; odometry at 2 Hz. Held for 0.5 s
     the command crosses the wall; with the checks the robot stops within T + L of its state
     and creeps up to the wall without crossing it."""
     assert _closed_loop(wall_filter, enforced=False) < -0.03
