@@ -46,8 +46,8 @@ STATUS_CODES: dict[str, int] = {
     'solved': 0, 'solved_inaccurate': 1, 'solved_interior_point': 2,
     'bad proposal': 10, 'undecodable proposal': 11, 'no state received yet': 12,
     'bad state': 13, 'stale state': 14, 'bad input': 15, 'internal error': 16,
-    'source unusable': 17, 'stale proposal': 18, 'input_refused': 20, 'unverified': 21,
-    'slack_exceeded': 22,
+    'source unusable': 17, 'stale proposal': 18, 'late state': 19, 'input_refused': 20,
+    'unverified': 21, 'slack_exceeded': 22,
 }
 """The ``status`` section: the solver status of a filtered command (0-9), or the reason the
 fail-safe was published (10-19: before the QP; 20-29: the QP's outcome, as the filter's
@@ -58,6 +58,10 @@ frame it cannot place: the reason, ``source <name>: ...``, names the source)."""
 STALE_PROPOSAL = 'stale proposal'
 """The status of a fail-safe for a proposal filtered again more than ``max_proposal_age_s``
 after its arrival (the controller went quiet)."""
+LATE_STATE = 'late state'
+"""The status of a fail-safe for a state older than ``latency_s`` at the decision, with a
+sampled-data margin (``control_period_s`` or ``latency_s`` > 0): the margin assumes the state
+is at most ``latency_s`` old when its command starts to act."""
 UNKNOWN_STATUS = 99
 """``status`` of a status or reason not in :data:`STATUS_CODES`."""
 

@@ -190,6 +190,8 @@ class StateSample:
     """(n_x,) validated state, or None when the message was bad."""
     error: str = ''
     """Why the message was rejected (empty when ``state`` is set)."""
+    stamp_ns: int | None = None
+    """An Odometry's header stamp (ns, on the publisher's ROS clock); None for an array."""
 
 
 OBSTACLE_COLUMNS = ('x', 'y', 'radius')
@@ -358,8 +360,24 @@ def state_sections(data: bytes, *, type_name: str, system: str, frame_id: str = 
     if type_name != ODOMETRY:
         raise ValueError(f'type {type_name!r} holds no state (expected one of '
                          f'{sorted(conversions.STATE_MESSAGES.values())})')
+    return stamped_state_sections(
+        data, type_name=type_name, system=system, frame_id=frame_id, message_type=message_type,
+        deserialize=deserialize)[0]
+
+
+def stamped_state_sections(data: bytes, *, type_name: str, system: str, frame_id: str = '',
+                           layouts: Sequence[Float64ArrayLayout] = (), message_type: Any = None,
+                           deserialize: Deserialize = deserialize_message
+                           ) -> tuple[dict[str, Any], int | None]:
+    """:func:`state_sections` and an Odometry's header stamp in nanoseconds (None for an
+    array, which has no stamp)."""
+    if type_name != ODOMETRY:
+        return state_sections(data, type_name=type_name, system=system, layouts=layouts,
+                              message_type=message_type, deserialize=deserialize), None
     msg = decoded(data, message_type or type_name, deserialize)
-    return {'state': conversions.odometry_to_state(msg, system=system, frame_id=frame_id)}
+    state = conversions.odometry_to_state(msg, system=system, frame_id=frame_id)
+    stamp = msg.header.stamp
+    return {'state': state}, int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 # bytes out ---------------------------------------------------------------------------------------
@@ -677,7 +695,7 @@ class FilterEdge:
         ``frame_id``: the Odometry frame a state must be in ('' takes any).
         """
         try:
-            sections = state_sections(
+            sections, stamp_ns = stamped_state_sections(
                 data, type_name=self.state_type_name, system=self.system, frame_id=frame_id,
                 layouts=self.state_layouts, message_type=self._state_message,
                 deserialize=self._deserialize)
@@ -688,7 +706,7 @@ class FilterEdge:
         except ValueError as exc:
             return StateSample(received_ns=received_ns, state=None,
                                error=str(exc)), REFUSED_STATE
-        return StateSample(received_ns=received_ns, state=state), ''
+        return StateSample(received_ns=received_ns, state=state, stamp_ns=stamp_ns), ''
 
     def read_proposal(self, data: bytes, *, twist_fields: Sequence[str]) -> ProposalSample:
         """The checked proposal of one ``cmd_proposed`` sample, or why there is none."""

@@ -11,6 +11,9 @@ without launching anything (ros2cli's api/verb split):
   (:func:`decide`);
 - answering a new state with the proposal in force, fail-safe once it is too old
   (:func:`decide_held`), and when a new state is answered at all (:func:`refilter_due`);
+- with a sampled-data margin, a state older than ``latency_s`` is the fail-safe
+  (:func:`state_age_limit_s`), and an answer goes out within ``control_period_s`` of the
+  latest one (:func:`hold_due`, :func:`decide_hold`);
 - throttling of repeated log lines (:class:`LogThrottle`);
 - what a change of parameters at runtime builds (:func:`build_active_filter` from the merged
   parameters, :func:`merged_parameters`) and which parameters are fixed at start
@@ -543,6 +546,32 @@ def state_age_s(*, sample: StateSample, now_ns: int) -> float:
     return (now_ns - sample.received_ns) * 1e-9
 
 
+def state_age_limit_s(*, control_period_s: float, latency_s: float) -> float | None:
+    """The most a state may be aged at a decision: ``latency_s`` when a sampled-data margin is
+    in force (``control_period_s`` or ``latency_s`` > 0: the margin covers a state at most
+    ``latency_s`` old when its command starts to act, docs/SAFETY_FILTER.md), else None (no
+    bound beyond ``max_state_age_s``)."""
+    return latency_s if control_period_s > 0 or latency_s > 0 else None
+
+
+def decision_age_s(*, received_ns: int, now_ns: int, stamp_ns: int | None = None,
+                   stamp_now_ns: int | None = None) -> float:
+    """Seconds a state is old at a decision at ``now_ns``: since its arrival (monotonic), and
+    for a stamped one (an Odometry) since its header stamp on the node's clock
+    (``stamp_now_ns``: ROS time, simulation time under ``use_sim_time``), the larger of the
+    two, as an observation source's age is counted: a stamp in the future does not make a
+    state younger than its arrival, a stamp far in the past (or none, 0) makes it old."""
+    newest = now_ns - received_ns
+    if stamp_ns is not None and stamp_now_ns is not None:
+        newest = max(newest, stamp_now_ns - stamp_ns)
+    return newest / 1e9  # correctly rounded: 20 ms is 0.02, not above latency_s = 0.02
+
+
+def late_state_reason(*, age_s: float, latency_s: float) -> str:
+    """The fail-safe's reason for a state older than ``latency_s`` (status 19, late state)."""
+    return f'late state: {age_s:.6f} s old > latency_s = {latency_s:g}'
+
+
 def fail_safe_decision(*, safety_filter: SafetyFilter, reason: str,
                        u_rl: np.ndarray | None = None, state: np.ndarray | None = None,
                        state_source: str = '') -> Decision:
@@ -562,7 +591,9 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
            latest_state: StateSample | None, now_ns: int, max_state_age_s: float,
            static_mean: Sequence[float] = (), static_std: Sequence[float] = (),
            slack_tolerance: float = 1e-4,
-           sense: Callable[[np.ndarray], str] | None = None) -> Decision:
+           sense: Callable[[np.ndarray], str] | None = None,
+           latency_s: float | None = None, stamp_now_ns: int | None = None,
+           proposal_received_ns: int | None = None) -> Decision:
     """Filter one proposal, or decide the fail-safe.
 
     State: the proposal's own ``state`` section when it has one (the proposer's state: no
@@ -570,6 +601,9 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
     and be at most ``max_state_age_s`` old (measured from its arrival).
     Disturbance box: the proposal's learned mean / std when present, else the static ones from
     the parameters (each independently; empty: none).
+    With a sampled-data margin (``latency_s`` not None: :func:`state_age_limit_s`) the state
+    chosen must also be at most ``latency_s`` old (:func:`decision_age_s`; the proposal's own
+    state counts from the proposal's arrival), else the fail-safe, status 19 (late state).
 
     Args:
         proposal: the validated proposal, or None when it was rejected.
@@ -579,6 +613,10 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
         sense: called with the state chosen, before the filter: sets the filter's sensor
             points for it (:mod:`rcbf_ros.node_logic.sources`); a reason ('' for none) makes
             the answer the fail-safe.
+        latency_s: the most the state may be aged at the decision (None: no such bound).
+        stamp_now_ns: the node's clock (ROS time) at the decision, for an Odometry's stamp.
+        proposal_received_ns: the proposal's arrival (monotonic ns; None: ``now_ns``), from
+            which its own state's age counts.
 
     Returns:
         ERROR + fail-safe on bad input, no / bad / stale state, a refused input, a failed or
@@ -590,6 +628,13 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
                                   reason=f'bad proposal: {proposal_error or "unusable"}')
     if proposal.state is not None:
         state, source = proposal.state, 'proposal'
+        if latency_s is not None:
+            age = decision_age_s(received_ns=now_ns if proposal_received_ns is None
+                                 else proposal_received_ns, now_ns=now_ns)
+            if not age <= latency_s:
+                return fail_safe_decision(
+                    safety_filter=safety_filter, u_rl=proposal.u, state=state,
+                    state_source=source, reason=late_state_reason(age_s=age, latency_s=latency_s))
     elif latest_state is None:
         return fail_safe_decision(safety_filter=safety_filter, u_rl=proposal.u,
                                   reason='no state received yet')
@@ -603,6 +648,13 @@ def decide(*, safety_filter: SafetyFilter, proposal: Proposal | None, proposal_e
                 safety_filter=safety_filter, u_rl=proposal.u,
                 reason=f'stale state: {age:.3f} s old > max_state_age_s = {max_state_age_s}')
         state, source = latest_state.state, 'topic'
+        if latency_s is not None:
+            age = decision_age_s(received_ns=latest_state.received_ns, now_ns=now_ns,
+                                 stamp_ns=latest_state.stamp_ns, stamp_now_ns=stamp_now_ns)
+            if not age <= latency_s:
+                return fail_safe_decision(
+                    safety_filter=safety_filter, u_rl=proposal.u, state=state,
+                    state_source=source, reason=late_state_reason(age_s=age, latency_s=latency_s))
     if sense is not None:
         reason = sense(state)
         if reason:
@@ -665,9 +717,10 @@ def decide_held(*, held: HeldProposal, again: bool, safety_filter: SafetyFilter,
                 latest_state: StateSample | None, now_ns: int, max_state_age_s: float,
                 max_proposal_age_s: float, static_mean: Sequence[float] = (),
                 static_std: Sequence[float] = (), slack_tolerance: float = 1e-4,
-                sense: Callable[[np.ndarray], str] | None = None) -> Decision:
+                sense: Callable[[np.ndarray], str] | None = None,
+                latency_s: float | None = None, stamp_now_ns: int | None = None) -> Decision:
     """The answer to a held proposal: at its arrival (``again`` False), or again at a new
-    state or source message (``again`` True).
+    state or source message or at the hold timer (``again`` True).
 
     Filtered again, a proposal more than ``max_proposal_age_s`` old (since its arrival) gives
     the fail-safe, as a base's command timeout would: a controller that went quiet no longer
@@ -678,7 +731,8 @@ def decide_held(*, held: HeldProposal, again: bool, safety_filter: SafetyFilter,
 
     Args:
         now_ns: monotonic time of the message answered (the proposal's arrival, or the new
-            state's); the other arguments: as :func:`decide`'s.
+            state's, or the timer's call); the other arguments: as :func:`decide`'s (the
+            proposal's own state aged from the proposal's arrival).
     """
     sample = held.sample
     u_rl = sample.proposal.u if sample.proposal is not None else None
@@ -699,7 +753,54 @@ def decide_held(*, held: HeldProposal, again: bool, safety_filter: SafetyFilter,
     return decide(safety_filter=safety_filter, proposal=proposal, proposal_error=sample.error,
                   latest_state=latest_state, now_ns=now_ns, max_state_age_s=max_state_age_s,
                   static_mean=static_mean, static_std=static_std,
-                  slack_tolerance=slack_tolerance, sense=sense)
+                  slack_tolerance=slack_tolerance, sense=sense, latency_s=latency_s,
+                  stamp_now_ns=stamp_now_ns, proposal_received_ns=held.received_ns)
+
+
+HOLD_TIMER_DIVISOR = 4
+"""The hold timer calls every ``control_period_s`` / 4: an answer goes out when the next call
+would come more than ``control_period_s`` after the latest answer (:func:`hold_due`), so a
+quiet node answers every 3/4 to 1 period."""
+HOLD_TIMER_MIN_PERIOD_S = 0.001
+"""The hold timer calls at most every millisecond (a ``control_period_s`` under 4 ms then
+gets answers up to 1 ms + control_period_s * 3/4 apart): the timer's own cost stays bounded
+whatever the parameter."""
+
+
+def hold_timer_period_s(control_period_s: float) -> float | None:
+    """The hold timer's period for ``control_period_s`` (None: no timer, T = 0)."""
+    if not control_period_s > 0:
+        return None
+    return max(control_period_s / HOLD_TIMER_DIVISOR, HOLD_TIMER_MIN_PERIOD_S)
+
+
+def hold_due(*, control_period_s: float, timer_period_s: float, last_answer_ns: int | None,
+             now_ns: int) -> bool:
+    """Whether the hold timer, called at ``now_ns``, answers: a sampled-data margin covers a
+    command for ``control_period_s`` (T) after its state, so the next answer must go out within
+    T of the latest (``last_answer_ns``, None: none yet, nothing to hold); it does when the
+    timer's next call, ``timer_period_s`` later, would be too late. At most one answer per
+    call."""
+    if not control_period_s > 0 or last_answer_ns is None:
+        return False
+    return (now_ns - last_answer_ns) * 1e-9 + timer_period_s >= control_period_s
+
+
+def decide_hold(*, held: HeldProposal | None, safety_filter: SafetyFilter,
+                control_period_s: float, **kwargs: Any) -> Decision:
+    """The hold timer's answer: the proposal in force filtered again at the newest state
+    (:func:`decide_held`, ``again``), the fail-safe when none is held; a late state's fail-safe
+    says that the command in force ran out (``control_period_s``) without a fresh state."""
+    if held is None:
+        return fail_safe_decision(
+            safety_filter=safety_filter,
+            reason=f'internal error: no proposal in force (lost to an earlier internal '
+                   f'error), answered again within control_period_s = {control_period_s:g}')
+    decision = decide_held(held=held, again=True, safety_filter=safety_filter, **kwargs)
+    if decision.fail_safe and reason_key(decision.reason) == 'late state':
+        decision = replace(decision, reason=f'{decision.reason}, and the command in force ran '
+                                            f'out (control_period_s = {control_period_s:g})')
+    return decision
 
 
 class LogThrottle:

@@ -5,7 +5,8 @@ edge (:mod:`rcbf_ros.node_logic.filter_edge`), the checked sample to the decisio
 (:mod:`rcbf_ros.node_logic.safety_filter`), the decision back to the edge for the bytes of
 ``cmd_safe``, ``filter_info`` and diagnostics in one pass; the node publishes them, the
 command first. With ``refilter_on_state`` each state or source message answers the proposal
-in force again, the same way. Parameter changes build a whole new filter and
+in force again, the same way; with ``control_period_s`` > 0 a timer answers it again when no
+answer went out within that period. Parameter changes build a whole new filter and
 swap it in between two callbacks. Topics, the fail-closed handling of bad samples and the
 parameters: docs/SAFETY_FILTER.md and ``safety_filter --help``.
 """
@@ -115,6 +116,11 @@ class SafetyFilterNode(Node):
                                  raw=True)
         self._sources = self._subscribe_sources()
         self._subscribe_tf()
+        self._hold_timer: Any = None
+        self._hold_period_s: float | None = None
+        self.holds = 0
+        """Answers made by the hold timer (``control_period_s`` > 0, :func:`logic.hold_due`)."""
+        self._arm_hold_timer()
         problem = self.config.problem
         self.get_logger().info(
             f'{problem.n_barriers} barriers on {self.system} (n_x = {self.filter.n_x}, '
@@ -265,6 +271,7 @@ class SafetyFilterNode(Node):
         if candidate is None or logic.same_parameters(candidate.params, self._active.params):
             return
         old, self._active = self._active, candidate  # the one swap
+        self._arm_hold_timer()
         if old.settings.log_throttle_s != candidate.settings.log_throttle_s:
             self._throttle = logic.LogThrottle(candidate.settings.log_throttle_s)
         source = f' from the {self._change_source} topic' if self._change_source else ''
@@ -492,6 +499,44 @@ class SafetyFilterNode(Node):
             header = None
         self._publish_answer(decision, header, now_ns, active)
 
+    def _arm_hold_timer(self) -> None:
+        """The hold timer at the period of the active filter's ``control_period_s``
+        (:func:`logic.hold_timer_period_s`; none for 0), created again when it changes."""
+        period = logic.hold_timer_period_s(self.config.control_period_s)
+        if period == self._hold_period_s:
+            return
+        if self._hold_timer is not None:
+            self.destroy_timer(self._hold_timer)
+        self._hold_timer = None if period is None else self.create_timer(period, self._on_hold)
+        self._hold_period_s = period
+
+    def _on_hold(self) -> None:
+        """The hold timer: with ``control_period_s`` > 0, when no answer would go out within
+        it of the latest (:func:`logic.hold_due`), the proposal in force answered again at the
+        newest state, or the fail-safe (:func:`logic.decide_hold`); stamped as a re-filter's.
+        Never raises."""
+        now_ns = time.monotonic_ns()
+        held, active = self._held, self._active
+        header = None
+        try:
+            period = self._hold_period_s
+            if period is None or not logic.hold_due(
+                    control_period_s=active.config.control_period_s, timer_period_s=period,
+                    last_answer_ns=self._last_answer_ns, now_ns=now_ns):
+                return
+            self.holds += 1
+            decision = logic.decide_hold(
+                held=held, safety_filter=active.safety_filter,
+                control_period_s=active.config.control_period_s,
+                **self._decision_arguments(active, now_ns))
+            header = self._edge.restamped(None if held is None else held.sample.header,
+                                          clock=self._clock)
+        except Exception as exc:  # a defect, not an input: the fail-safe, stamped now
+            decision = logic.fail_safe_decision(
+                safety_filter=active.safety_filter, reason=f'internal error: {_one_line(exc)}')
+            header = None
+        self._publish_answer(decision, header, now_ns, active)
+
     def _publish_answer(self, decision: logic.Decision, header: Any, now_ns: int,
                         active: logic.ActiveFilter) -> None:
         """``cmd_safe``, ``filter_info`` and the diagnostics of one decision, the command
@@ -544,20 +589,31 @@ class SafetyFilterNode(Node):
                 again: bool) -> tuple[logic.Decision, Any]:
         """The decision for the held proposal (at its arrival, or ``again`` at a new state),
         and its header (TwistStamped; else None)."""
-        settings, safety_filter = active.settings, active.safety_filter
+        decision = logic.decide_held(held=held, again=again, safety_filter=active.safety_filter,
+                                     **self._decision_arguments(active, now_ns))
+        return decision, held.sample.header
+
+    def _decision_arguments(self, active: logic.ActiveFilter, now_ns: int) -> dict[str, Any]:
+        """What :func:`logic.decide_held` takes besides the proposal, for a decision at
+        ``now_ns`` with ``active``: the newest state, the age limits (``latency_s`` with a
+        sampled-data margin, on the monotonic clock and, for an Odometry's stamp, the node's
+        clock), the static disturbance, the sensor points' callback."""
+        settings, safety_filter, config = active.settings, active.safety_filter, active.config
         sources, sense = self._sources, None
+        stamp_now_ns = self._clock.now().nanoseconds
         if sources is not None:
             def sense(state: np.ndarray) -> str:
                 return sources.sense(safety_filter, state, now_ns=now_ns,
-                                     stamp_now_ns=self._clock.now().nanoseconds)
-        decision = logic.decide_held(
-            held=held, again=again, safety_filter=safety_filter,
+                                     stamp_now_ns=stamp_now_ns)
+        return dict(
             latest_state=self._latest_state, now_ns=now_ns,
             max_state_age_s=settings.max_state_age_s,
             max_proposal_age_s=settings.max_proposal_age_s,
             static_mean=active.static_mean, static_std=active.static_std,
-            slack_tolerance=settings.slack_tolerance, sense=sense)
-        return decision, held.sample.header
+            slack_tolerance=settings.slack_tolerance, sense=sense,
+            latency_s=logic.state_age_limit_s(control_period_s=config.control_period_s,
+                                              latency_s=config.latency_s),
+            stamp_now_ns=stamp_now_ns)
 
     # output ------------------------------------------------------------------------------------
     def _publish_command(self, u_safe: np.ndarray, header: Any = None) -> None:
