@@ -192,19 +192,35 @@ class StampRules:
     stamp, a dynamic stamp refused more than the cache away from the clock, the dynamic links
     cleared when time goes back, expiry before the frame bound. A subclass holds ``cache_ns``,
     ``max_frames``, ``_named`` (frame -> links naming it), ``_clock_ns``, ``_data_ns`` and
-    gives ``_clear()`` and ``_expire(due=...)``."""
+    ``_swept_ns``, and gives ``_clear()`` and ``_expire(due=...)``."""
 
     cache_ns: int
     max_frames: int
     _named: dict[str, int]
     _clock_ns: int | None
     _data_ns: int | None
+    _swept_ns: int | None
 
     def _clear(self) -> None:
         raise NotImplementedError
 
     def _expire(self, *, due: bool) -> bool:
         raise NotImplementedError
+
+    def _sweep_horizon(self, due: bool) -> int | None:
+        """The time below which dynamic samples expire now (the buffer's time less the cache),
+        or None when none is due: no time yet, or it has moved on by less than
+        1/:data:`SWEEP_FRACTION` of the cache since the last sweep (by nothing, if ``due``)."""
+        time_ns = self._clock_ns if self._clock_ns is not None else self._data_ns
+        if time_ns is None:
+            return None
+        horizon = time_ns - self.cache_ns
+        swept = self._swept_ns
+        if swept is not None and (horizon <= swept if due
+                                  else horizon < swept + self.cache_ns // SWEEP_FRACTION):
+            return None
+        self._swept_ns = horizon
+        return horizon
 
     def _admitted(self, names: str, parent: str, child: str, stamp: int, static: bool,
                   now_ns: int | None) -> str:
@@ -380,15 +396,9 @@ class TransformBuffer(StampRules):
         docstring), and every link left without one: when the time has moved on by
         1/:data:`SWEEP_FRACTION` of the cache since the last time, or at all if ``due`` (a
         bound is reached). Whether any time had passed (something may have expired)."""
-        time_ns = self._clock_ns if self._clock_ns is not None else self._data_ns
-        if time_ns is None:
+        horizon = self._sweep_horizon(due)
+        if horizon is None:
             return False
-        horizon = time_ns - self.cache_ns
-        swept = self._swept_ns
-        if swept is not None and (horizon <= swept if due
-                                  else horizon < swept + self.cache_ns // SWEEP_FRACTION):
-            return False
-        self._swept_ns = horizon
         for child, link in list(self._links.items()):
             if link.static or link.stamps[0] >= horizon:
                 continue

@@ -33,7 +33,6 @@ from rcbf_ros.node_logic.tf_buffer import (
     NoTransform,
     Rigid,
     StampRules,
-    SWEEP_FRACTION,
 )
 
 _S = 1_000_000_000
@@ -379,15 +378,9 @@ class Tf2Feed(StampRules):
         """Links whose samples all lie older than the cache behind the buffer's time are no
         longer live: when that time has moved on by 1/SWEEP_FRACTION of the cache since the
         last time, or at all if ``due`` (a bound is reached). Whether any time had passed."""
-        time_ns = self._clock_ns if self._clock_ns is not None else self._data_ns
-        if time_ns is None:
+        horizon = self._sweep_horizon(due)
+        if horizon is None:
             return False
-        horizon = time_ns - self.cache_ns
-        swept = self._swept_ns
-        if swept is not None and (horizon <= swept if due
-                                  else horizon < swept + self.cache_ns // SWEEP_FRACTION):
-            return False
-        self._swept_ns = horizon
         for child, (_, static) in list(self._links.items()):
             stamps = self._stamps.get(child)
             if not static and (not stamps or stamps[-1] < horizon):
