@@ -96,3 +96,18 @@ def publish_section(title: str, *, script: str, blocks: Sequence[str | Sequence[
         write_section(title, body)
     print(body)
     return body
+
+
+def publish_table(title: str, *, script: str, command: str, table: Sequence[str],
+                  load_before: Sequence[float], write: bool) -> str:
+    """Print a benchmark's ``table`` and the load around its run (``load_before`` against now);
+    also write them as the ``## title`` section when ``write``, after ``Command: `command`.``,
+    :func:`machine_line` and a pointer to the method in ``benchmarks/<script>``'s docstring.
+    Returns the printed text."""
+    load = load_before_after(load_before, os.getloadavg()) + ' (2 cores).'
+    text = '\n'.join([*table, '', load])
+    print(text)
+    if write:
+        write_section(title, (f'Command: `{command}`. {machine_line()}. Method: the docstring '
+                              f'of benchmarks/{script}.\n\n' + text))
+    return text

@@ -136,20 +136,13 @@ def main(argv: list[str] | None = None) -> str:
                          batch_size=defaults.get('batch_size', 256), repeats=args.repeats)
         table.append(row_text(system, mode, result))
         print(table[-1], flush=True)
-    load_after = os.getloadavg()
     command = ('python benchmarks/bench_fill_pass.py' + (' --quick' if args.quick else '')
                + f' --buffer {buffer} --refit-interval {refit_interval}'
                + f' --repeats {args.repeats} --rows {" ".join(f"{s}/{m}" for s, m in rows)}')
-    from _results import load_before_after
-    load = load_before_after(load_before, load_after) + ' (2 cores).'
-    text = '\n'.join([*table, '', load])
-    print(text)
-    if not args.no_write:
-        from _results import machine_line, write_section
-        write_section('The memo pass at a full buffer: kernel from differences vs GEMM', (
-            f'Command: `{command}`. {machine_line()}. Method: the docstring of '
-            'benchmarks/bench_fill_pass.py.\n\n' + text))
-    return text
+    from _results import publish_table
+    return publish_table('The memo pass at a full buffer: kernel from differences vs GEMM',
+                         script='bench_fill_pass.py', command=command, table=table,
+                         load_before=load_before, write=not args.no_write)
 
 
 if __name__ == '__main__':

@@ -303,22 +303,15 @@ def main(argv: list[str] | None = None) -> str:
                 continue
             table.append(row_text(system, mode, way, runs[way], capacity=buffer))
             print(table[-1], flush=True)
-    load_after = os.getloadavg()
     command = ('python benchmarks/bench_training_full_buffer.py'
                + (' --quick' if args.quick else '')
                + f' --buffer {buffer} --refit-interval {refit_interval}'
                + f' --repeats {args.repeats} --ways {" ".join(args.ways)}'
                + f' --rows {" ".join(f"{s}/{m}" for s, m in rows)}')
-    from _results import load_before_after
-    load = load_before_after(load_before, load_after) + ' (2 cores).'
-    text = '\n'.join([*table, '', load])
-    print(text)
-    if not args.no_write:
-        from _results import machine_line, write_section
-        write_section('Training speed at a full buffer', (
-            f'Command: `{command}`. {machine_line()}. Method: the docstring of '
-            'benchmarks/bench_training_full_buffer.py.\n\n' + text))
-    return text
+    from _results import publish_table
+    return publish_table('Training speed at a full buffer', script='bench_training_full_buffer.py',
+                         command=command, table=table, load_before=load_before,
+                         write=not args.no_write)
 
 
 if __name__ == '__main__':
