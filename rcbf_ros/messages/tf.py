@@ -98,6 +98,15 @@ def transform_refusal(parent: str, child: str, translation: tuple[float, ...],
     return ''
 
 
+def refusals_line(refused: list[str]) -> str:
+    """The refusals of one message's transforms as one line: '' for none, else the first
+    (its whitespace folded) and how many more."""
+    if not refused:
+        return ''
+    more = f' (and {len(refused) - 1} more)' if len(refused) > 1 else ''
+    return ' '.join(refused[0].split()) + more
+
+
 def frame_name_refusal(frame: str) -> str:
     """Why ``frame`` cannot name a frame a node publishes ('' when it can): empty, longer than
     the readers' :data:`MAX_FRAME_ID`, with white space or a control character, or with a

@@ -29,7 +29,7 @@ import numpy as np
 
 from rcbf_ros.core.config import SourceConfig, SourceParameters
 from rcbf_ros.messages import sensor
-from rcbf_ros.messages.tf import quoted, tf_transforms
+from rcbf_ros.messages.tf import quoted, refusals_line, tf_transforms
 from rcbf_ros.node_logic.tf_buffer import (
     CONNECTIVITY,
     FRAME,
@@ -210,10 +210,7 @@ class ObservationSources:
             counts['refused'] += 1
             return f'internal error: {type(exc).__name__}: {" ".join(str(exc).split())}'[:200]
         counts['transforms_refused'] += len(refused)
-        if not refused:
-            return ''
-        more = f' (and {len(refused) - 1} more)' if len(refused) > 1 else ''
-        return ' '.join(refused[0].split()) + more
+        return refusals_line(refused)
 
     def points(self, state: np.ndarray, *, now_ns: int, stamp_now_ns: int
                ) -> tuple[np.ndarray, np.ndarray | float] | str:

@@ -20,7 +20,13 @@ import re
 from typing import Any, Callable, NamedTuple
 
 from rcbf_ros.messages.sensor import MAX_FRAME_ID
-from rcbf_ros.messages.tf import MAX_TRANSFORMS, quoted, TF_MESSAGE, transform_refusal
+from rcbf_ros.messages.tf import (
+    MAX_TRANSFORMS,
+    quoted,
+    refusals_line,
+    TF_MESSAGE,
+    transform_refusal,
+)
 from rcbf_ros.node_logic.tf_buffer import (
     CONNECTIVITY,
     DEFAULT_CACHE_S,
@@ -273,10 +279,7 @@ class Tf2Feed(StampRules):
             counts['refused'] += 1
             return f'{TF_MESSAGE}: {type(exc).__name__}: {_text(exc)}'[:200]
         counts['transforms_refused'] += len(refused)
-        if not refused:
-            return ''
-        more = f' (and {len(refused) - 1} more)' if len(refused) > 1 else ''
-        return ' '.join(refused[0].split()) + more
+        return refusals_line(refused)
 
     def _take(self, k: int, transform: Any, static: bool, now_ns: int | None) -> str:
         """Transform ``k`` of a message to tf2, or why not (a bad value naming its index, a
