@@ -185,3 +185,50 @@ def test_one_world_draws_a_picture_per_set_up(tmp_path, capsys):
                      'stop_zone.png']
     out = capsys.readouterr().out
     assert '| filter, scan | 1 |' in out and math.isfinite(len(out))
+
+
+FAST_BASE = lw.BaseModel(v_max=1.0)
+"""The base of the between-samples runs: twice the speed of the others' (a fast approach)."""
+
+
+def test_between_samples_the_margin_keeps_the_scan_robot_clear_where_the_plain_filter_hits():
+    # commands held 50 ms, data 50 ms late, alpha 20: worlds 4 and 5 are hit within 5 s by the
+    # filter whose rows hold at the samples only, and missed with the sampled-data margin
+    plain, tightened = ([bench.drive_held(lw.random_world(seed), tightened=tight, period=0.05,
+                                          latency=0.05, alpha=20.0, base=FAST_BASE, seed=seed,
+                                          duration=5.0) for seed in (4, 5)]
+                        for tight in (False, True))
+    assert [run.outcome for run in plain].count('collision') >= 1, [r.outcome for r in plain]
+    assert not any(run.outcome == 'collision' for run in tightened)
+    assert min(run.closest for run in tightened) > 0.0
+    assert {run.setup for run in tightened} == {'filter, scan, margin'}
+
+
+def test_between_samples_the_filter_sees_the_state_at_most_the_latency_old(monkeypatch):
+    ages = []
+    sense = bench.ObservationSources.sense
+
+    def recording(self, safety_filter, state, *, now_ns, stamp_now_ns):
+        stamps = [s for s in recorded if np.array_equal(s[0], state)]
+        ages.append((now_ns - stamps[-1][1]) * 1e-9)
+        return sense(self, safety_filter, state, now_ns=now_ns, stamp_now_ns=stamp_now_ns)
+
+    recorded = []
+    odometry = bench.TfEncoder.odometry
+
+    def keep(self, odom, stamp_ns):
+        recorded.append((np.array(odom), stamp_ns))
+        return odometry(self, odom, stamp_ns)
+
+    monkeypatch.setattr(bench.ObservationSources, 'sense', recording)
+    monkeypatch.setattr(bench.TfEncoder, 'odometry', keep)
+    bench.drive_held(lw.random_world(0), tightened=True, period=0.05, latency=0.033,
+                     base=FAST_BASE, duration=0.6)
+    assert len(ages) >= 10
+    assert max(ages) <= 0.033 + 1e-9
+    assert min(ages) >= 0.033 - bench.ODOMETRY_DT - 1e-9
+
+
+def test_between_samples_refuses_a_latency_below_the_odometry_period():
+    with pytest.raises(ValueError, match='latency'):
+        bench.drive_held(lw.random_world(0), tightened=False, period=0.05, latency=0.001)
