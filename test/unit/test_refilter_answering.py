@@ -206,11 +206,11 @@ def test_a_stretch_past_the_limit_is_refused_in_one_line(tmp_path: Path, capsys:
 # --- the cross-check ------------------------------------------------------------------------
 
 def _node_decisions(params: dict, states_ms: list[float], proposals_ms: list[float]
-                    ) -> list[tuple[float, fl.Decision]]:
+                    ) -> tuple[list[tuple[float, fl.Decision]], AnswerRules]:
     """The node's rules driven as its unit tests drive them: a timer call every T / 4 from
     the first message, each call made (the ones at a message's time first), each message in
     turn; the calls after a fail-safe answer of the timer and before the next message left out
-    (the refilter's documented rule: they repeat it)."""
+    (the refilter's documented rule: they repeat it). And the rules, with their counts."""
     active = fl.build_active_filter(params=dict(params))
     rules = AnswerRules()
     period_ns = round(fl.hold_timer_period_s(T) * 1e9)
@@ -235,15 +235,17 @@ def _node_decisions(params: dict, states_ms: list[float], proposals_ms: list[flo
             decision = rules.propose(sample, now_ns=now, active=active)
         if decision is not None:
             out.append((now / MS, decision))
-    return out
+    return out, rules
 
 
 def _check_one_for_one(tmp_path: Path, params: dict, states_ms: list[float],
                        proposals_ms: list[float]) -> None:
     source = _bag(tmp_path / 'run', states_ms=states_ms, proposals_ms=proposals_ms)
-    refilter_bag(source, tmp_path / 'out', params)
+    summary = refilter_bag(source, tmp_path / 'out', params)
     written = _answers(tmp_path / 'out')
-    expected = _node_decisions(params, states_ms, proposals_ms)
+    expected, rules = _node_decisions(params, states_ms, proposals_ms)
+    assert (summary.proposals, summary.refilters, summary.holds + summary.hold_repeats) == (
+        rules.proposals, rules.refilters, rules.holds)
     assert [t for t, _ in written] == [t for t, _ in expected]
     for (t, info), (_, decision) in zip(written, expected):
         np.testing.assert_array_equal(info['u'], decision.u_safe, err_msg=str(t))
