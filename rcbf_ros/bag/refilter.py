@@ -668,9 +668,10 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     stretch without messages, the answers after its first fail-safe repeat it and are counted
     as ``hold_repeats``, not written). An Odometry's header stamp is aged against the log time
     of the decision too (the node ages it against its ROS clock), and a source message's
-    stamp likewise. What differs from a run of the node: its timer's jitter and phase, the
-    time its callbacks take (an answer here takes none), and its clocks (monotonic and ROS)
-    where the bag has the recorder's.
+    stamp likewise: stamps on another clock than the log times (simulation time recorded on
+    the wall clock) make every such state late once ``latency_s`` applies. What differs from
+    a run of the node: its timer's jitter and phase, the time its callbacks take (an answer
+    here takes none), and its clocks (monotonic and ROS) where the bag has the recorder's.
 
     Each answer is written at its log time; a re-filter's or a hold's TwistStamped carries
     the proposal's frame_id, stamped then. The answers to proposals are paired with the
