@@ -253,16 +253,28 @@ def _check_one_for_one(tmp_path: Path, params: dict, states_ms: list[float],
         assert _status(info) == fl.status_code(decision), t
 
 
+SCENARIOS = {
+    'pauses': ([10.0 * k for k in range(16)] + [260.0 + 10 * k for k in range(30)],
+               [1.0 + 50 * k for k in range(3)] + [301.0, 351.0]),
+    'quiet': ([10.0 * k for k in range(80)], [1.0]),
+}
+"""(states, proposals) in ms: a controller at 20 Hz that pauses (100 to 300 ms) with states
+at 100 Hz that pause (150 to 260 ms); one proposal, then states to 790 ms (the proposal stale
+from 501 ms on: status 18)."""
+
+
+@pytest.mark.parametrize('scenario', sorted(SCENARIOS))
 @pytest.mark.parametrize('refilter_on_state', [False, True])
-def test_the_node_rules_give_the_same_answers_one_for_one(tmp_path: Path,
+def test_the_node_rules_give_the_same_answers_one_for_one(tmp_path: Path, scenario: str,
                                                           refilter_on_state: bool) -> None:
-    """A controller at 20 Hz that pauses (100 to 300 ms), states at 100 Hz that pause (150 to
-    260 ms), a last stale stretch: every answer of the refilter is one the node's rules give,
-    at the same time, with the same command and status."""
-    states = [10.0 * k for k in range(16)] + [260.0 + 10 * k for k in range(30)]
-    proposals = [1.0 + 50 * k for k in range(3)] + [301.0, 351.0]
+    """Every answer of the refilter is one the node's rules give, at the same time, with the
+    same command and status; and the counts by kind are theirs."""
+    states, proposals = SCENARIOS[scenario]
     _check_one_for_one(tmp_path, _params(refilter_on_state=refilter_on_state), states,
                        proposals)
+    if scenario == 'quiet':
+        statuses = {_status(info) for _, info in _answers(tmp_path / 'out')}
+        assert STATUS_CODES['stale proposal'] in statuses
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=list(HealthCheck))
