@@ -2,11 +2,15 @@
 
     rcbf_ros refilter SOURCE_BAG OUTPUT_BAG --params-file F [--node N] [cmd_in:=/topic ...]
 
-Filters every recorded proposal with a ``SafetyFilter`` built from the new parameters, making
-the node's own decisions, and writes a new bag: the source topics unchanged plus
-``/refilter/cmd_safe``, ``/refilter/filter_info`` and ``/refilter/diagnostics`` as the node
-would publish them; then compares the new commands with the recorded ones. A pure library and
-command line, so that a parameter change can be tried on a run without a robot or middleware.
+Replays a recorded run through the safety_filter node's answering rules
+(:class:`rcbf_ros.node_logic.answer_rules.AnswerRules`) with a ``SafetyFilter`` built from the
+new parameters, in log time: every proposal answered, the proposal in force filtered again at
+states and source messages (``refilter_on_state``) and at the hold timer's calls
+(``control_period_s``), every state older than ``latency_s`` refused; writes a new bag: the
+source topics unchanged plus ``/refilter/cmd_safe``, ``/refilter/filter_info`` and
+``/refilter/diagnostics`` as the node would publish them; then compares the new answers to
+proposals with the recorded ones. A pure library and command line, so that a parameter change
+can be tried on a run without a robot or middleware.
 
 What it reads, writes, skips and compares: docs/BAGS.md#re-filtering-a-run
 """
@@ -20,7 +24,8 @@ import math
 import os
 from pathlib import Path
 import sys
-from typing import Any, Callable, Mapping, Sequence
+from types import SimpleNamespace
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -30,6 +35,7 @@ from rcbf_ros.core.filter import ACTIVE_TOLERANCE, SafetyFilter
 from rcbf_ros.core.lie_closed_form import state_barrier_values
 from rcbf_ros.core.lie_closed_form_rows import VectorAssembly
 from rcbf_ros.core.rcbf import RCBFProblem
+from rcbf_ros.core.sampled_data import TIMING_LIMIT_S
 from rcbf_ros.messages.conversions import (
     DIAGNOSTIC_ARRAY,
     FLOAT64_MULTIARRAY,
@@ -40,6 +46,7 @@ from rcbf_ros.messages.conversions import (
 from rcbf_ros.messages.typestore import jazzy_typestore
 from rcbf_ros.node_logic import filter_edge
 from rcbf_ros.node_logic import safety_filter as logic
+from rcbf_ros.node_logic.answer_rules import AnswerRules
 from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME
 from rcbf_ros.node_logic.sources import (
     MIDDLEWARE_TOPICS,
@@ -83,6 +90,15 @@ OUTPUT_INFO_TOPIC = '/refilter/filter_info'
 OUTPUT_DIAGNOSTICS_TOPIC = '/refilter/diagnostics'
 OUTPUT_TOPICS = (OUTPUT_COMMAND_TOPIC, OUTPUT_INFO_TOPIC, OUTPUT_DIAGNOSTICS_TOPIC)
 DEFAULT_TOLERANCE = 1e-6
+ANSWER_KINDS = ('proposal', 'refilter', 'hold')
+"""The events the node answers at (:class:`rcbf_ros.node_logic.answer_rules.AnswerRules`)."""
+HOLD_STRETCH_LIMIT = 2 * round(TIMING_LIMIT_S / logic.HOLD_TIMER_MIN_PERIOD_S)
+"""The most hold-timer answers made in a stretch of log time without a message before one
+is the fail-safe (:class:`_HoldTimer`). Within the parameters' limits it is never reached:
+with control_period_s > 0 a state older than latency_s (at most TIMING_LIMIT_S, 1 s) is
+the fail-safe, and the timer answers at most once a HOLD_TIMER_MIN_PERIOD_S (1 ms), so at
+most 1001 answers of a stretch come before its first fail-safe. A guard, should those limits
+change: the run is refused rather than simulated without bound."""
 
 
 class RefilterError(ValueError):
@@ -105,11 +121,24 @@ class RefilterSummary:
     """The node's topics (``cmd_proposed``, ``state``, ``cmd_safe``, ``filter_info``, and each
     observation source by name) -> the bag's topic read for it."""
     proposals: int = 0
-    """Proposals (``cmd_proposed``) read."""
+    """Proposals (``cmd_proposed``) read, each answered (one ``/refilter/cmd_safe`` each)."""
     processed: int = 0
-    """Proposals filtered (one ``/refilter/cmd_safe`` each)."""
+    """Proposals filtered (answered by a solve of the new filter)."""
     skipped: dict[str, int] = field(default_factory=dict)
-    """Proposals not filtered, by reason ('no state received yet', 'stale state', ...)."""
+    """Proposals not filtered, by reason ('no state received yet', 'stale state', 'late
+    state', ...): answered with the fail-safe, as the node answers them."""
+    refilters: int = 0
+    """Answers at a new state or source message (``refilter_on_state``): the proposal in force
+    filtered again."""
+    holds: int = 0
+    """Answers of the hold timer (``control_period_s`` > 0) written."""
+    hold_repeats: int = 0
+    """Answers of the hold timer not written: in a stretch of log time without a message,
+    those after its first fail-safe, which repeat the fail-safe action (see
+    :func:`refilter_bag`)."""
+    fail_safe_answers: dict[str, int] = field(default_factory=dict)
+    """Answers written that are the fail-safe action, by kind: ``proposal``, ``refilter``,
+    ``hold``."""
     state_from_proposal: int = 0
     """Processed proposals filtered at their own ``state`` section."""
     state_from_topic: int = 0
@@ -139,8 +168,8 @@ class RefilterSummary:
     """Steps whose rows needed more slack than ``slack_tolerance`` (infeasible within the
     limits): the fail-safe action was written."""
     fail_safe: int = 0
-    """Steps where the new filter wrote the fail-safe action (refused input, failed or
-    unverified solve, slack exceeded)."""
+    """Processed proposals where the new filter wrote the fail-safe action (refused input,
+    failed or unverified solve, slack exceeded); every fail-safe answer: ``fail_safe_answers``."""
     min_h: dict[str, float] = field(default_factory=dict)
     """Smallest new h_i per barrier over the evaluated recorded states."""
     barrier_states: str = ''
@@ -180,6 +209,11 @@ class RefilterSummary:
             f'proposals: {self.proposals}   processed: {self.processed} '
             f'(own state {self.state_from_proposal}, /state {self.state_from_topic})   '
             f'skipped: {self.skipped_total}' + (f' ({skipped})' if skipped else ''),
+            f'answers: proposal {self.proposals}   re-filter {self.refilters}   hold '
+            f'{self.holds}' + (f' (+{self.hold_repeats} repeats not written)'
+                               if self.hold_repeats else '')
+            + '   fail-safe: ' + ', '.join(f'{kind} {self.fail_safe_answers.get(kind, 0)}'
+                                          for kind in ANSWER_KINDS),
             f'recorded {self.recorded_topic or "/cmd_safe"}: {self.recorded_commands}   '
             f'compared: {self.compared}   '
             f'changed (|du| > {self.tolerance:g}): {self.changed}',
@@ -344,18 +378,53 @@ def _proposal_sections(item: Any, settings: logic.NodeSettings
 
 
 def _state_sections(item: Any, settings: logic.NodeSettings,
-                    system: str) -> dict[str, np.ndarray] | str:
-    """The sections of a recorded state (an Odometry's as the node reads it), or why an
-    Odometry is refused (undecodable, a wrong frame, an orientation without heading)."""
+                    system: str) -> tuple[dict[str, np.ndarray], int | None] | str:
+    """The sections of a recorded state (an Odometry's as the node reads it) and an
+    Odometry's header stamp (ns; None for an array), or why an Odometry is refused
+    (undecodable, a wrong frame, an orientation without heading)."""
     if item.type_name == ODOMETRY:
         try:
-            return filter_edge.state_sections(item.data, type_name=ODOMETRY, system=system,
-                                              frame_id=settings.state_frame_id)
+            return filter_edge.stamped_state_sections(item.data, type_name=ODOMETRY,
+                                                      system=system,
+                                                      frame_id=settings.state_frame_id)
         except ValueError as exc:
             if str(exc).startswith('state_type:'):
                 raise RefilterError(f'{item.topic}: {exc}') from exc
             return _decoding_error(exc)
-    return _array_sections(item.topic, item.log_time_ns, item.data, item.type_name, 'state')
+    return _array_sections(item.topic, item.log_time_ns, item.data, item.type_name,
+                           'state'), None
+
+
+def _state_sample(item: Any, settings: logic.NodeSettings, system: str,
+                  n_x: int) -> logic.StateSample:
+    """The state sample of a recorded state message, received at its log time, as the node's
+    edge reads it: a bad one says why (an Odometry the node would refuse, an empty message, a
+    NaN); an Odometry's header stamp kept for the ``latency_s`` check.
+
+    Raises:
+        RefilterError: a state of another length than the new system's ``n_x``.
+    """
+    received_ns = item.log_time_ns
+    read = _state_sections(item, settings, system)
+    if isinstance(read, str):  # an Odometry the node would refuse
+        return logic.StateSample(received_ns, None, read)
+    sections, stamp_ns = read
+    values = sections.get('state', next(iter(sections.values()), None))
+    if values is None:
+        return logic.StateSample(received_ns, None, 'state: empty message')
+    _check_length(item.topic, received_ns, 'state', values, n_x, 'n_x', system)
+    try:
+        state = logic.state_from_sections(sections=sections, n_x=n_x)
+    except ValueError as exc:
+        return logic.StateSample(received_ns, None, str(exc))
+    return logic.StateSample(received_ns, state, stamp_ns=stamp_ns)
+
+
+def _stamped(header: Any, stamp_ns: int) -> Any:
+    """A re-filtered answer's header: the proposal's frame_id (none: ''), stamped
+    ``stamp_ns``, as the node stamps one with its clock at the answer."""
+    stamp = SimpleNamespace(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
+    return SimpleNamespace(stamp=stamp, frame_id='' if header is None else header.frame_id)
 
 
 def _check_length(topic: str, log_time_ns: int, label: str, values: np.ndarray, size: int,
@@ -586,7 +655,28 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                  node: str = 'safety_filter',
                  tolerance: float = DEFAULT_TOLERANCE,
                  remaps: Mapping[str, str] | None = None) -> RefilterSummary:
-    """Filter the proposals recorded in ``source`` with new parameters; write ``output``.
+    """Answer the messages recorded in ``source`` as the node with new parameters would;
+    write ``output``.
+
+    The node's rules (:class:`~rcbf_ros.node_logic.answer_rules.AnswerRules`), with the log
+    time as the clock: a message is received at its log time; a proposal is answered then; a
+    state or source message answers the proposal in force again when ``refilter_on_state``
+    says so; ``/tf`` and ``/tf_static`` feed the sources' transforms. The hold timer
+    (``control_period_s`` > 0) calls every :func:`logic.hold_timer_period_s` from the first
+    message's log time; the calls at or before a message's log time come before it, none
+    after the last message, and only those that answer are made (:class:`_HoldTimer`: in a
+    stretch without messages, the answers after its first fail-safe repeat it and are counted
+    as ``hold_repeats``, not written). An Odometry's header stamp is aged against the log time
+    of the decision too (the node ages it against its ROS clock), and a source message's
+    stamp likewise: stamps on another clock than the log times (simulation time recorded on
+    the wall clock) make every such state late once ``latency_s`` applies. What differs from
+    a run of the node: its timer's jitter and phase, the time its callbacks take (an answer
+    here takes none), and its clocks (monotonic and ROS) where the bag has the recorder's.
+
+    Each answer is written at its log time; a re-filter's or a hold's TwistStamped carries
+    the proposal's frame_id, stamped then. The answers to proposals are paired with the
+    recorded answers (:func:`_pop_recorded`: first come first served by ``u_rl``, and by the
+    state where both name one); those to states, sources and the timer are not paired.
 
     Args:
         source: bag directory or ``.mcap`` file with the proposals (``/cmd_proposed``, or the
@@ -605,7 +695,9 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     Raises:
         RefilterError: missing source bag, no ``/cmd_proposed``, bad parameters (the message
             names the key), a state or proposal of the wrong length for the new system, a
-            source that already holds ``/refilter/*`` topics, or an existing output bag.
+            source that already holds ``/refilter/*`` topics, an existing output bag, or
+            parameters under which the hold timer would answer a quiet controller without
+            end (:data:`HOLD_STRETCH_LIMIT`).
     """
     if not tolerance >= 0:
         raise RefilterError(f'tolerance: must be >= 0, got {tolerance}')
@@ -649,12 +741,10 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     summary.topics.update({name: topic for topic, name in source_topics.items()})
     summary.recorded_topic, summary.recorded_commands, recorded = _recorded_commands(
         source, topics, names)
-    decided_ns = 0  # the log time of the proposal being decided: the sources' clock
-    sense = None
-    if sources is not None:
-        def sense(state: np.ndarray) -> str:
-            return sources.sense(safety_filter, state, now_ns=decided_ns,
-                                 stamp_now_ns=decided_ns)
+    active = logic.ActiveFilter(params=flat, settings=settings, config=config,
+                                safety_filter=safety_filter)
+    rules = AnswerRules(sources)  # no stamp clock: a stamp is aged against the log time
+    timer = _HoldTimer(logic.hold_timer_period_s(config.control_period_s))
 
     absent = [d for d in (Path(output), *Path(output).parents) if not os.path.lexists(d)]
     try:
@@ -666,9 +756,36 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     # usable /state: the proposals' tally is dropped at the first state message.
     topic_states = _BarrierTally(safety_filter.problem)
     proposal_states: _BarrierTally | None = _BarrierTally(safety_filter.problem)
-    latest: logic.StateSample | None = None
     skipped: dict[str, int] = defaultdict(int)
+    fail_safes: dict[str, int] = dict.fromkeys(ANSWER_KINDS, 0)
     info_layouts: dict[Any, Any] = {}
+    command_type = FLOAT64_MULTIARRAY
+
+    def write_answer(kind: str, decision: logic.Decision, log_time_ns: int) -> None:
+        """One answer at ``log_time_ns``, as the node publishes it: a proposal's with the
+        proposal's header, a re-filter's or a hold's with its frame_id stamped then."""
+        held = rules.held
+        header = None if held is None else held.sample.header
+        if kind != 'proposal' and command_type == TWIST_STAMPED:
+            header = _stamped(header, log_time_ns)
+        if decision.fail_safe:
+            fail_safes[kind] += 1
+        writer.write(OUTPUT_COMMAND_TOPIC, filter_edge.command_cdr(
+            decision.u_safe, type_name=command_type, twist_fields=settings.twist_fields,
+            header=header), log_time_ns)
+        writer.write(OUTPUT_INFO_TOPIC, filter_edge.info_cdr(decision, info_layouts),
+                     log_time_ns)
+        writer.write(OUTPUT_DIAGNOSTICS_TOPIC, filter_edge.diagnostics_cdr(
+            decision, barrier_names=safety_filter.barrier_names, stamp_ns=log_time_ns,
+            name=settings.diagnostics_name, hardware_id=settings.diagnostics_hardware_id),
+            log_time_ns)
+
+    def refilter(log_time_ns: int) -> None:
+        """A new state or source message: the proposal in force again, if due."""
+        decision = rules.refilter(now_ns=log_time_ns, active=active)
+        if decision is not None:
+            write_answer('refilter', decision, log_time_ns)
+
     try:
         with writer:
             for topic in topics.values():
@@ -681,35 +798,25 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
             writer.add_topic(OUTPUT_INFO_TOPIC, FLOAT64_MULTIARRAY)
             writer.add_topic(OUTPUT_DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY)
             for item in read_bag(source):
+                for tick_ns, decision in timer.calls(rules, active, until_ns=item.log_time_ns):
+                    write_answer('hold', decision, tick_ns)
                 writer.write(item.topic, item.data, item.log_time_ns, item.publish_time_ns)
                 if item.topic in source_topics:  # what the node's source callback reads
                     sources.read(source_topics[item.topic], item.data,  # type: ignore[union-attr]
                                  received_ns=item.log_time_ns)
+                    refilter(item.log_time_ns)
                 elif sources is not None and item.topic in TF_TOPICS:
                     sources.read_tf(item.data, static=item.topic == TF_TOPICS[1],
                                     now_ns=item.log_time_ns)  # the bag's time: the clock
                 elif item.topic == state_topic:
-                    sections = _state_sections(item, settings, system_name)
-                    if isinstance(sections, str):  # an Odometry the node would refuse
-                        latest = logic.StateSample(item.log_time_ns, None, sections)
-                        continue
-                    values = sections.get('state', next(iter(sections.values()), None))
-                    if values is None:
-                        latest = logic.StateSample(item.log_time_ns, None, 'state: empty message')
-                        continue
-                    _check_length(item.topic, item.log_time_ns, 'state', values, n_x, 'n_x',
-                                  system_name)
-                    try:
-                        state = logic.state_from_sections(sections=sections, n_x=n_x)
-                    except ValueError as exc:
-                        latest = logic.StateSample(item.log_time_ns, None, str(exc))
-                        continue
-                    latest = logic.StateSample(item.log_time_ns, state)
-                    topic_states.add(state)
-                    proposal_states = None
+                    sample = _state_sample(item, settings, system_name, n_x)
+                    rules.latest_state = sample
+                    if sample.state is not None:
+                        topic_states.add(sample.state)
+                        proposal_states = None
+                    refilter(item.log_time_ns)
                 elif item.topic == proposal_topic:
                     summary.proposals += 1
-                    decided_ns = item.log_time_ns
                     sections, header = _proposal_sections(item, settings)
                     for label, size, what in (('u', n_u, 'n_u'), ('state', n_x, 'n_x'),
                                               ('disturbance_mean', n_x, 'n_x'),
@@ -723,12 +830,10 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                                                                 n_x=n_x)
                     except ValueError as exc:
                         error = str(exc)
-                    decision = logic.decide(
-                        safety_filter=safety_filter, proposal=proposal, proposal_error=error,
-                        latest_state=latest, now_ns=item.log_time_ns,
-                        max_state_age_s=settings.max_state_age_s,
-                        static_mean=config.static_mean, static_std=config.static_std,
-                        slack_tolerance=settings.slack_tolerance, sense=sense)
+                    decision = rules.propose(logic.ProposalSample(proposal, error, header),
+                                             now_ns=item.log_time_ns, active=active)
+                    assert decision is not None  # a sample read is always answered
+                    write_answer('proposal', decision, item.log_time_ns)
                     if decision.result is None:
                         skipped[logic.reason_key(decision.reason)] += 1
                         continue
@@ -736,15 +841,9 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     _account(summary, decision, proposal, recorded, deltas, tolerance)
                     if proposal.state is not None and proposal_states is not None:
                         proposal_states.add(proposal.state)
-                    writer.write(OUTPUT_COMMAND_TOPIC, filter_edge.command_cdr(
-                        decision.u_safe, type_name=command_type,
-                        twist_fields=settings.twist_fields, header=header), item.log_time_ns)
-                    writer.write(OUTPUT_INFO_TOPIC, filter_edge.info_cdr(decision, info_layouts),
-                                 item.log_time_ns)
-                    writer.write(OUTPUT_DIAGNOSTICS_TOPIC, filter_edge.diagnostics_cdr(
-                        decision, barrier_names=safety_filter.barrier_names,
-                        stamp_ns=item.log_time_ns, name=settings.diagnostics_name,
-                        hardware_id=settings.diagnostics_hardware_id), item.log_time_ns)
+        summary.refilters = rules.refilters
+        summary.holds, summary.hold_repeats = rules.holds - timer.repeats, timer.repeats
+        summary.fail_safe_answers = fail_safes
         summary.skipped = dict(skipped)
         if deltas:
             summary.max_abs_du = float(np.max(deltas))
@@ -759,6 +858,110 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
         _discard(writer, absent)
         raise
     return summary
+
+
+class _HoldTimer:
+    """The node's hold timer in log time: a call every ``period_s`` from the first message's
+    log time on; the calls at or before a message's log time are made, in order, before it,
+    and none after the last message.
+
+    Only the calls that answer are made. None answers before the first answer; after an
+    answer the next call that does is the first one ``control_period_s - period_s`` or more
+    later (:func:`logic.hold_due`), reached by arithmetic and checked by hold_due itself, so
+    a long stretch without messages costs nothing when nothing is held. In a stretch without
+    messages only time moves, and every age only grows: once an answer of the stretch is the
+    fail-safe, each later call of the stretch that answers repeats it; those are counted
+    (:attr:`repeats`, and in the rules' holds and latest answer, as the node's would be), not
+    made. A stretch with more than :data:`HOLD_STRETCH_LIMIT` answers and no fail-safe among
+    them is refused (:class:`RefilterError`).
+    """
+
+    def __init__(self, period_s: float | None) -> None:
+        """Args: period_s: the timer's period (:func:`logic.hold_timer_period_s`; None: no
+        timer, ``control_period_s`` 0)."""
+        self.period_s = period_s
+        self.period_ns = 0 if period_s is None else max(1, round(period_s * 1e9))
+        self.origin_ns: int | None = None
+        """The log time of the first call (the first message's)."""
+        self.next_call = 0
+        """The index of the next call not yet made or skipped."""
+        self.repeats = 0
+        """Answers of the fail-safe counted, not made (see the class docstring)."""
+
+    def calls(self, rules: AnswerRules, active: logic.ActiveFilter, *, until_ns: int
+              ) -> Iterator[tuple[int, logic.Decision]]:
+        """The answers (log time, decision) of the calls up to ``until_ns`` (a message's log
+        time) not made yet, in order.
+
+        Raises:
+            RefilterError: more than :data:`HOLD_STRETCH_LIMIT` answers before ``until_ns``
+                without a fail-safe.
+        """
+        if self.period_s is None:
+            return
+        if self.origin_ns is None:
+            self.origin_ns = until_ns
+        last_call = (until_ns - self.origin_ns) // self.period_ns
+        made = 0
+        while self.next_call <= last_call and rules.last_answer_ns is not None:
+            call = self._first_due(rules.last_answer_ns, active)
+            if call > last_call:
+                break
+            now_ns = self.origin_ns + call * self.period_ns
+            self.next_call = call + 1
+            decision = rules.hold(now_ns=now_ns, timer_period_s=self.period_s, active=active)
+            if decision is None:  # not due after all (checked in _first_due): go on
+                continue
+            yield now_ns, decision
+            if decision.fail_safe:
+                self._repeat(rules, active, call, last_call)
+                break
+            made += 1
+            if made >= HOLD_STRETCH_LIMIT:
+                config, settings = active.config, active.settings
+                raise RefilterError(
+                    f'log time {now_ns}: the hold timer answered {made} times since the last '
+                    f'message and would go on (control_period_s = {config.control_period_s:g}, '
+                    f'latency_s = {config.latency_s:g}, max_proposal_age_s = '
+                    f'{settings.max_proposal_age_s:g}): a quiet controller is never stopped '
+                    'with these parameters')
+        self.next_call = max(self.next_call, last_call + 1)
+
+    def _due(self, last_answer_ns: int, call: int, active: logic.ActiveFilter) -> bool:
+        assert self.origin_ns is not None and self.period_s is not None
+        return logic.hold_due(control_period_s=active.config.control_period_s,
+                              timer_period_s=self.period_s, last_answer_ns=last_answer_ns,
+                              now_ns=self.origin_ns + call * self.period_ns)
+
+    def _first_due(self, last_answer_ns: int, active: logic.ActiveFilter) -> int:
+        """The first call from :attr:`next_call` on that answers after an answer at
+        ``last_answer_ns``: hold_due's inequality solved for the call's index, then checked
+        by hold_due (a step or two either way for its rounding)."""
+        assert self.origin_ns is not None and self.period_s is not None
+        wait_ns = (active.config.control_period_s - self.period_s) * 1e9
+        call = max(self.next_call, math.ceil(
+            (last_answer_ns - self.origin_ns + wait_ns) / self.period_ns))
+        while call > self.next_call and self._due(last_answer_ns, call - 1, active):
+            call -= 1
+        while not self._due(last_answer_ns, call, active):
+            call += 1
+        return call
+
+    def _repeat(self, rules: AnswerRules, active: logic.ActiveFilter, call: int,
+                last_call: int) -> None:
+        """After the fail-safe answered at ``call``: the later calls up to ``last_call`` that
+        answer (every ``step``-th: the answer moves the next one on) counted as repeats."""
+        answer_ns = rules.last_answer_ns
+        assert answer_ns is not None and self.origin_ns is not None
+        step = 1
+        while not self._due(answer_ns, call + step, active):
+            step += 1
+        count = (last_call - call) // step
+        if count:
+            self.repeats += count
+            rules.holds += count
+            rules.answered(self.origin_ns + (call + count * step) * self.period_ns)
+        self.next_call = last_call + 1
 
 
 def _sources(config: FilterConfig, topics: Mapping[str, Any], names: Mapping[str, str],

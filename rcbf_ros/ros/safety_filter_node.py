@@ -25,6 +25,7 @@ from rcbf_ros.core.config import FilterConfig
 from rcbf_ros.core.filter import SafetyFilter
 from rcbf_ros.messages import conversions
 from rcbf_ros.node_logic import safety_filter as logic
+from rcbf_ros.node_logic.answer_rules import AnswerRules
 from rcbf_ros.node_logic.filter_edge import Answer, FilterEdge, INPUT_COUNT_KEYS
 from rcbf_ros.node_logic.filter_edge import array_sections as _array_sections  # noqa: F401
 from rcbf_ros.node_logic.filter_edge import one_line as _one_line
@@ -78,16 +79,8 @@ class SafetyFilterNode(Node):
         self.add_on_set_parameters_callback(self._check_parameter_change)
         self.add_post_set_parameters_callback(self._apply_parameter_change)
         self._clock = self.get_clock()
-        self._latest_state: logic.StateSample | None = None
-        self._held: logic.HeldProposal | None = None
-        """The proposal in force (the latest one read), re-filtered at each new state."""
-        self._last_answer_ns: int | None = None
-        """When the latest answer (a proposal's or a re-filter's) was made (monotonic ns)."""
         self._last_ok_diagnostics_ns: int | None = None
         self._throttle = logic.LogThrottle(self.settings.log_throttle_s)
-        self.proposals_received = 0
-        self.refilters = 0
-        """Answers made at a new state or source message (``refilter_on_state``)."""
         self.input_counts = dict.fromkeys(INPUT_COUNT_KEYS, 0)
         """Cumulative ``dropped_samples``, ``refused_proposals``, ``refused_states``."""
 
@@ -115,17 +108,44 @@ class SafetyFilterNode(Node):
         self.create_subscription(array_type, 'obstacles', self._on_obstacles, obstacles_qos,
                                  raw=True)
         self._sources = self._subscribe_sources()
+        self._rules = AnswerRules(self._sources,
+                                  stamp_clock=lambda: self._clock.now().nanoseconds)
+        """When to answer and with what: the proposal in force, the latest state, the latest
+        answer's time and the counts (monotonic clock)."""
         self._subscribe_tf()
         self._hold_timer: Any = None
         self._hold_period_s: float | None = None
-        self.holds = 0
-        """Answers made by the hold timer (``control_period_s`` > 0, :func:`logic.hold_due`)."""
         self._arm_hold_timer()
         problem = self.config.problem
         self.get_logger().info(
             f'{problem.n_barriers} barriers on {self.system} (n_x = {self.filter.n_x}, '
             f'n_u = {self.filter.n_u}); state_type {self.settings.state_type}, command_type '
             f'{self.settings.command_type}; fail-safe action {self.filter.fail_safe_action}')
+
+    # the answering state ----------------------------------------------------------------------
+    @property
+    def _latest_state(self) -> logic.StateSample | None:
+        """The latest ``state`` message (:attr:`AnswerRules.latest_state`)."""
+        return self._rules.latest_state
+
+    @_latest_state.setter
+    def _latest_state(self, sample: logic.StateSample | None) -> None:
+        self._rules.latest_state = sample
+
+    @property
+    def proposals_received(self) -> int:
+        """Proposals received (each answered)."""
+        return self._rules.proposals
+
+    @property
+    def refilters(self) -> int:
+        """Answers made at a new state or source message (``refilter_on_state``)."""
+        return self._rules.refilters
+
+    @property
+    def holds(self) -> int:
+        """Answers made by the hold timer (``control_period_s`` > 0, :func:`logic.hold_due`)."""
+        return self._rules.holds
 
     # the active filter ------------------------------------------------------------------------
     @property
@@ -466,13 +486,17 @@ class SafetyFilterNode(Node):
         """A ``cmd_proposed`` sample (CDR bytes): answered with one command, always; held as
         the proposal in force (none after an internal error: nothing is re-filtered then)."""
         now_ns = time.monotonic_ns()
-        self.proposals_received += 1
-        self._held, header = None, None
+        rules, header = self._rules, None
         active = self._active  # one filter for the whole answer, whatever changes meanwhile
         try:
-            self._held = logic.HeldProposal(sample=self._read_proposal(data, active),
-                                            received_ns=now_ns)
-            decision, header = self._decide(self._held, now_ns, active, again=False)
+            try:
+                sample = self._read_proposal(data, active)
+            except Exception:
+                rules.propose(None, now_ns=now_ns, active=active)  # counted, nothing held
+                raise
+            decision = rules.propose(sample, now_ns=now_ns, active=active)
+            assert decision is not None  # a sample read is always answered
+            header = sample.header
         except Exception as exc:  # a defect, not an input (docs/SAFETY_FILTER.md)
             decision = logic.fail_safe_decision(
                 safety_filter=active.safety_filter, reason=f'internal error: {_one_line(exc)}')
@@ -480,19 +504,17 @@ class SafetyFilterNode(Node):
 
     def _refilter(self, now_ns: int) -> None:
         """A new state or source message (at ``now_ns``): the proposal in force filtered again
-        and answered as a proposal is (``refilter_on_state``, :func:`logic.refilter_due`); a
+        and answered as a proposal is (``refilter_on_state``, :meth:`AnswerRules.refilter`); a
         TwistStamped answer has the proposal's frame_id, stamped now. Never raises."""
-        held, active = self._held, self._active
+        rules, active = self._rules, self._active
         header = None
         try:
-            settings = active.settings
-            if not logic.refilter_due(enabled=settings.refilter_on_state, held=held,
-                                      last_answer_ns=self._last_answer_ns, now_ns=now_ns,
-                                      min_period_s=settings.refilter_min_period_s):
+            decision = rules.refilter(now_ns=now_ns, active=active)
+            if decision is None:
                 return
-            self.refilters += 1
-            decision, header = self._decide(held, now_ns, active, again=True)
-            header = self._edge.restamped(header, clock=self._clock)
+            held = rules.held
+            header = self._edge.restamped(None if held is None else held.sample.header,
+                                          clock=self._clock)
         except Exception as exc:  # a defect, not an input: the fail-safe, stamped now
             decision = logic.fail_safe_decision(
                 safety_filter=active.safety_filter, reason=f'internal error: {_one_line(exc)}')
@@ -516,19 +538,14 @@ class SafetyFilterNode(Node):
         newest state, or the fail-safe (:func:`logic.decide_hold`); stamped as a re-filter's.
         Never raises."""
         now_ns = time.monotonic_ns()
-        held, active = self._held, self._active
+        rules, active = self._rules, self._active
         header = None
         try:
-            period = self._hold_period_s
-            if period is None or not logic.hold_due(
-                    control_period_s=active.config.control_period_s, timer_period_s=period,
-                    last_answer_ns=self._last_answer_ns, now_ns=now_ns):
+            decision = rules.hold(now_ns=now_ns, timer_period_s=self._hold_period_s,
+                                  active=active)
+            if decision is None:
                 return
-            self.holds += 1
-            decision = logic.decide_hold(
-                held=held, safety_filter=active.safety_filter,
-                control_period_s=active.config.control_period_s,
-                **self._decision_arguments(active, now_ns))
+            held = rules.held
             header = self._edge.restamped(None if held is None else held.sample.header,
                                           clock=self._clock)
         except Exception as exc:  # a defect, not an input: the fail-safe, stamped now
@@ -541,7 +558,7 @@ class SafetyFilterNode(Node):
                         active: logic.ActiveFilter) -> None:
         """``cmd_safe``, ``filter_info`` and the diagnostics of one decision, the command
         first; the reason of a WARN or ERROR in the (throttled) log. Never raises."""
-        self._last_answer_ns = now_ns
+        self._rules.answered(now_ns)
         try:  # the command is made first: a failure making the details is in answer.error
             answer = self._edge.answer(
                 decision, settings=active.settings,
@@ -584,36 +601,6 @@ class SafetyFilterNode(Node):
         if sample.count:
             self.input_counts[sample.count] += 1
         return sample
-
-    def _decide(self, held: logic.HeldProposal, now_ns: int, active: logic.ActiveFilter, *,
-                again: bool) -> tuple[logic.Decision, Any]:
-        """The decision for the held proposal (at its arrival, or ``again`` at a new state),
-        and its header (TwistStamped; else None)."""
-        decision = logic.decide_held(held=held, again=again, safety_filter=active.safety_filter,
-                                     **self._decision_arguments(active, now_ns))
-        return decision, held.sample.header
-
-    def _decision_arguments(self, active: logic.ActiveFilter, now_ns: int) -> dict[str, Any]:
-        """What :func:`logic.decide_held` takes besides the proposal, for a decision at
-        ``now_ns`` with ``active``: the newest state, the age limits (``latency_s`` with a
-        sampled-data margin, on the monotonic clock and, for an Odometry's stamp, the node's
-        clock), the static disturbance, the sensor points' callback."""
-        settings, safety_filter, config = active.settings, active.safety_filter, active.config
-        sources, sense = self._sources, None
-        stamp_now_ns = self._clock.now().nanoseconds
-        if sources is not None:
-            def sense(state: np.ndarray) -> str:
-                return sources.sense(safety_filter, state, now_ns=now_ns,
-                                     stamp_now_ns=stamp_now_ns)
-        return dict(
-            latest_state=self._latest_state, now_ns=now_ns,
-            max_state_age_s=settings.max_state_age_s,
-            max_proposal_age_s=settings.max_proposal_age_s,
-            static_mean=active.static_mean, static_std=active.static_std,
-            slack_tolerance=settings.slack_tolerance, sense=sense,
-            latency_s=logic.state_age_limit_s(control_period_s=config.control_period_s,
-                                              latency_s=config.latency_s),
-            stamp_now_ns=stamp_now_ns)
 
     # output ------------------------------------------------------------------------------------
     def _publish_command(self, u_safe: np.ndarray, header: Any = None) -> None:

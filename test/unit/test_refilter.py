@@ -201,9 +201,15 @@ def test_new_obstacle_changes_commands_where_expected(source_bag: Path, tmp_path
         infos = [reader.deserialize(raw, connection.msgtype) for connection, _, raw in
                  reader.messages(connections=[c for c in reader.connections
                                               if c.topic == '/refilter/filter_info'])]
+    # one answer per proposal: the first, before any state, is the fail-safe
+    answers = N_STEPS + 1
     assert counts == {'/state': N_STEPS + len(INSIDE_B), '/cmd_proposed': N_STEPS + 1,
-                      '/cmd_safe': N_STEPS, '/reward': N_STEPS, '/refilter/cmd_safe': N_STEPS,
-                      '/refilter/filter_info': N_STEPS, '/refilter/diagnostics': N_STEPS}
+                      '/cmd_safe': N_STEPS, '/reward': N_STEPS, '/refilter/cmd_safe': answers,
+                      '/refilter/filter_info': answers, '/refilter/diagnostics': answers}
+    labels = [dim.label for dim in infos[0].layout.dim]
+    assert labels[:4] == ['u', 'u_rl', 'u_s', 'fail_safe'] and infos[0].data[6] == 1.0
+    assert list(commands[0]) == [0.0, 0.0]
+    commands, infos = commands[1:], infos[1:]
     details = []
     for k, (command, info) in enumerate(zip(commands, infos)):
         sections, offset = {}, 0
@@ -239,16 +245,17 @@ def test_output_bag_read_by_mcap_ros2_and_doctor(source_bag: Path, tmp_path: Pat
             decoded.setdefault(channel.topic, []).append((message.log_time, msg))
     assert {k: len(v) for k, v in decoded.items()} == {
         '/state': N_STEPS + len(INSIDE_B), '/cmd_proposed': N_STEPS + 1, '/cmd_safe': N_STEPS,
-        '/reward': N_STEPS, '/refilter/cmd_safe': N_STEPS, '/refilter/filter_info': N_STEPS,
-        '/refilter/diagnostics': N_STEPS}
+        '/reward': N_STEPS, '/refilter/cmd_safe': N_STEPS + 1,
+        '/refilter/filter_info': N_STEPS + 1, '/refilter/diagnostics': N_STEPS + 1}
     # Source topics are copied byte for byte with their times.
     source = [(m.topic, m.data, m.log_time_ns, m.publish_time_ns) for m in read_bag(source_bag)]
     copied = [(m.topic, m.data, m.log_time_ns, m.publish_time_ns) for m in read_bag(out)
               if not m.topic.startswith('/refilter/')]
     assert copied == source
     # Diagnostics as the node publishes them, stamped at the proposal's log time.
-    proposal_times = [t for t, _ in decoded['/cmd_proposed']][1:]
-    for (log_time, array), t in zip(decoded['/refilter/diagnostics'], proposal_times):
+    proposal_times = [t for t, _ in decoded['/cmd_proposed']]
+    assert [t for t, _ in decoded['/refilter/diagnostics']] == proposal_times
+    for (log_time, array), t in zip(decoded['/refilter/diagnostics'][1:], proposal_times[1:]):
         assert log_time == t
         status = array.status[0]
         assert array.header.stamp.sec * 10**9 + array.header.stamp.nanosec == t

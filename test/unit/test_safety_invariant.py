@@ -314,17 +314,15 @@ def test_refilter_keeps_the_invariant(system: str) -> None:
                                if c.topic == '/refilter/cmd_safe']
                 commands = [np.asarray(reader.deserialize(raw, c.msgtype).data)[:n_u]
                             for c, _, raw in reader.messages(connections=connections)]
-        # A proposal that fails validation is skipped (no command written): pair the rest.
-        usable = []
-        for sections in proposals:
+        # Every proposal is answered, one that fails validation with the fail-safe.
+        assert len(commands) == len(proposals)
+        fail_safe = np.array(params['fail_safe_action'], dtype=np.float64)
+        for sections, command in zip(proposals, commands):
             try:
                 fl.proposal_from_sections(sections=sections, n_u=n_u, n_x=n_x)
             except ValueError:
+                np.testing.assert_array_equal(command, fail_safe)
                 continue
-            usable.append(sections)
-        assert len(commands) == len(usable)
-        fail_safe = np.array(params['fail_safe_action'], dtype=np.float64)
-        for sections, command in zip(usable, commands):
             refused = not all(np.all(np.abs(v) <= 1e6) for v in sections.values())
             flagged = refused or np.array_equal(command, fail_safe)
             assert_invariant(config=config, fail_safe=fail_safe, x=sections['state'],

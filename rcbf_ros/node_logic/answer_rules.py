@@ -1,0 +1,152 @@
+"""When the safety_filter node answers, and with what: one object for the node and the refilter.
+
+The node (:mod:`rcbf_ros.ros.safety_filter_node`) answers at three kinds of events, and
+``rcbf_ros refilter`` (:mod:`rcbf_ros.bag.refilter`) replays a bag through the same rules:
+
+- a proposal: always answered (:func:`~rcbf_ros.node_logic.safety_filter.decide_held`);
+- a new state or observation-source message: with ``refilter_on_state`` the proposal in force
+  filtered again (:func:`~rcbf_ros.node_logic.safety_filter.refilter_due`);
+- a call of the hold timer (``control_period_s`` > 0): answered when no answer would otherwise
+  go out within ``control_period_s`` (:func:`~rcbf_ros.node_logic.safety_filter.hold_due`,
+  :func:`~rcbf_ros.node_logic.safety_filter.decide_hold`).
+
+With a sampled-data margin every decision refuses a state older than ``latency_s``
+(:func:`~rcbf_ros.node_logic.safety_filter.state_age_limit_s`). :class:`AnswerRules` keeps
+what these rules read (the proposal in force, the latest state, the time of the latest answer)
+and the counts; the caller keeps its clock, its messages and what it does with a decision.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+from rcbf_ros.node_logic.safety_filter import (
+    ActiveFilter,
+    decide_held,
+    decide_hold,
+    Decision,
+    HeldProposal,
+    hold_due,
+    ProposalSample,
+    refilter_due,
+    state_age_limit_s,
+    StateSample,
+)
+from rcbf_ros.node_logic.sources import ObservationSources
+
+
+class AnswerRules:
+    """The answering state of one safety filter: what is held, what was answered, when.
+
+    Each event method takes the filter in force (``active``: one whole
+    :class:`~rcbf_ros.node_logic.safety_filter.ActiveFilter`, as the node swaps it) and the
+    time of the event (``now_ns``: the node's monotonic clock, the refilter's log time); it
+    returns the decision to publish, or None when the event is not answered. A decision
+    returned counts as an answer made at ``now_ns``; an answer made otherwise (a caller's own
+    fail-safe after a defect) is recorded with :meth:`answered`.
+    """
+
+    def __init__(self, sources: ObservationSources | None = None, *,
+                 stamp_clock: Callable[[], int] | None = None) -> None:
+        """Args:
+            sources: the observation sources whose points each decision places
+                (:meth:`~rcbf_ros.node_logic.sources.ObservationSources.sense`; None: none).
+            stamp_clock: the clock (ns) a message's header stamp is aged against at a
+                decision (an Odometry's, a source's): the node's ROS clock; None: the
+                event's own time (``now_ns``), as the refilter's log time is both.
+        """
+        self.sources = sources
+        self.stamp_clock = stamp_clock
+        self.held: HeldProposal | None = None
+        """The proposal in force (the latest one read), answered again at states and ticks."""
+        self.latest_state: StateSample | None = None
+        """The latest ``state`` message (a bad one too: it says why)."""
+        self.last_answer_ns: int | None = None
+        """When the latest answer, of any kind, was made (None: none yet)."""
+        self.proposals = 0
+        """Proposals received (each answered)."""
+        self.refilters = 0
+        """Answers made at a new state or source message (``refilter_on_state``)."""
+        self.holds = 0
+        """Answers made by the hold timer (``control_period_s`` > 0)."""
+
+    def answered(self, now_ns: int) -> None:
+        """An answer went out at ``now_ns`` (whatever made it)."""
+        self.last_answer_ns = now_ns
+
+    def propose(self, sample: ProposalSample | None, *, now_ns: int,
+                active: ActiveFilter) -> Decision | None:
+        """A proposal arriving at ``now_ns``: counted, held as the proposal in force and
+        answered (always).
+
+        ``sample`` None: one that could not be read (a defect): counted, nothing held (nothing
+        is answered again until the next proposal), and None: the caller answers it with the
+        fail-safe saying why."""
+        self.proposals += 1
+        self.held = None
+        if sample is None:
+            return None
+        self.held = HeldProposal(sample=sample, received_ns=now_ns)
+        return self._answer(decide_held(held=self.held, again=False,
+                                        safety_filter=active.safety_filter,
+                                        **self._arguments(active, now_ns)),
+                            now_ns)
+
+    def refilter(self, *, now_ns: int, active: ActiveFilter) -> Decision | None:
+        """A new state (set :attr:`latest_state` first) or source message at ``now_ns``: the
+        proposal in force filtered again when a re-filter is due (``refilter_on_state``, at
+        least ``refilter_min_period_s`` after the latest answer), else None."""
+        settings, held = active.settings, self.held
+        if held is None or not refilter_due(
+                enabled=settings.refilter_on_state, held=held,
+                last_answer_ns=self.last_answer_ns, now_ns=now_ns,
+                min_period_s=settings.refilter_min_period_s):
+            return None
+        self.refilters += 1
+        return self._answer(decide_held(held=held, again=True,
+                                        safety_filter=active.safety_filter,
+                                        **self._arguments(active, now_ns)),
+                            now_ns)
+
+    def hold(self, *, now_ns: int, timer_period_s: float | None, active: ActiveFilter
+             ) -> Decision | None:
+        """A call of the hold timer (period ``timer_period_s``; None: no timer) at ``now_ns``:
+        when the next call would come more than ``control_period_s`` after the latest answer,
+        the proposal in force answered again at the newest state (the fail-safe when none is
+        held), else None."""
+        control_period_s = active.config.control_period_s
+        if timer_period_s is None or not hold_due(
+                control_period_s=control_period_s, timer_period_s=timer_period_s,
+                last_answer_ns=self.last_answer_ns, now_ns=now_ns):
+            return None
+        self.holds += 1
+        return self._answer(decide_hold(held=self.held, safety_filter=active.safety_filter,
+                                        control_period_s=control_period_s,
+                                        **self._arguments(active, now_ns)),
+                            now_ns)
+
+    def _answer(self, decision: Decision, now_ns: int) -> Decision:
+        self.last_answer_ns = now_ns
+        return decision
+
+    def _arguments(self, active: ActiveFilter, now_ns: int) -> dict[str, Any]:
+        """What :func:`decide_held` takes besides the proposal, for a decision at ``now_ns``
+        with ``active``: the newest state, the age limits (``latency_s`` with a sampled-data
+        margin; a stamp aged on :attr:`stamp_clock`), the static disturbance, the sensor
+        points' callback."""
+        settings, config, sources, sense = active.settings, active.config, self.sources, None
+        stamp_now_ns = now_ns if self.stamp_clock is None else self.stamp_clock()
+        if sources is not None:
+            safety_filter = active.safety_filter
+
+            def sense(state: Any) -> str:
+                return sources.sense(safety_filter, state, now_ns=now_ns,
+                                     stamp_now_ns=stamp_now_ns)
+        return dict(
+            latest_state=self.latest_state, now_ns=now_ns,
+            max_state_age_s=settings.max_state_age_s,
+            max_proposal_age_s=settings.max_proposal_age_s,
+            static_mean=active.static_mean, static_std=active.static_std,
+            slack_tolerance=settings.slack_tolerance, sense=sense,
+            latency_s=state_age_limit_s(control_period_s=config.control_period_s,
+                                        latency_s=config.latency_s),
+            stamp_now_ns=stamp_now_ns)
