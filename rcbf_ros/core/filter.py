@@ -998,6 +998,15 @@ GENERATED_ROWS = 1024
 whatever its assembly (e.g. many circles on a system without a closed form)."""
 
 
+def _meets_every_row(upper: np.ndarray, point_upper: np.ndarray, limit_upper: list[float]
+                     ) -> bool:
+    """Whether every right-hand side is >= 0 (z = 0 meets every row): the problem's, the
+    points' and the limits' (an empty part meets it; a NaN fails it)."""
+    return ((not upper.size or _least(upper) >= 0.0)
+            and (not point_upper.size or _least(point_upper) >= 0.0)
+            and (not limit_upper or min(limit_upper) >= 0.0))
+
+
 def _as_they_are(values: np.ndarray) -> np.ndarray:
     """``values`` per row where no row is split (:func:`least_per_row` where they are)."""
     return values
@@ -1493,6 +1502,15 @@ class SafetyFilter:
             flat = point_lg.ravel()
             size += (float(point_h @ point_h) + float(flat @ flat)
                      + float(point_upper @ point_upper) + point_h.size)
+            if (margin is None and size <= _QP_DATA_SQUARES
+                    and _meets_every_row(upper, point_upper, limit_upper)):
+                # the pass-through below, from the problem's rows and the points' apart: the
+                # common answer skips joining them (three arrays of every point's row)
+                self._pruned = upper.size + point_upper.size
+                return self._passed_through(
+                    u, applied, clipped, start, time.perf_counter(),
+                    self._reported(h, point_h), self._reported(upper, point_upper),
+                    self._point_values(point_h, point_upper, every=False))
             h = np.concatenate([h, point_h])
             lg = np.concatenate([lg, point_lg])
             upper = np.concatenate([upper, point_upper])
@@ -1515,15 +1533,9 @@ class SafetyFilter:
             lowest, highest = min(lowest, min(limit_upper)), max(highest, max(limit_upper))
         if lowest >= 0.0:  # the pass-through of filter(): z = 0 meets every row
             self._pruned = upper.size
-            u_safe = [value + 0.0 for value in applied]
             at_rows = per_row(upper)
-            return FilterResult._filled(
-                u_safe=np.array(u_safe), u_s=np.array([a - b for a, b in zip(u_safe, u)]),
-                slack=0.0, h=report(h), constraint_values=report(at_rows), status='solved',
-                solve_time_s=time.perf_counter() - solve_start,
-                total_time_s=time.perf_counter() - start, fail_safe=False,
-                barrier_names=list(self.barrier_names), needed_slack=0.0, reason='',
-                proposal_clipped=clipped, points=self._point_values(point_h, at_rows))
+            return self._passed_through(u, applied, clipped, start, solve_start, report(h),
+                                        report(at_rows), self._point_values(point_h, at_rows))
         has_limits = self.problem.has_limits
         scale = 1.0 + max(highest, -lowest)
         keep = binding_rows(lg=lg, upper=upper, applied=applied,
@@ -1615,6 +1627,20 @@ class SafetyFilter:
             fail_safe=False, barrier_names=list(self.barrier_names), needed_slack=needed,
             reason='', proposal_clipped=clipped, points=self._point_values(point_h, values))
 
+    def _passed_through(self, u: list[float], applied: list[float], clipped: bool,
+                        start: float, solve_start: float, h: np.ndarray, values: np.ndarray,
+                        points: PointValues | None) -> FilterResult:
+        """The many-row path's answer where the clipped proposal meets every row (z = 0, the
+        pass-through of :meth:`filter`): ``h`` and ``values`` as reported."""
+        u_safe = [value + 0.0 for value in applied]  # as u + z[:n_u], z = 0
+        return FilterResult._filled(
+            u_safe=np.array(u_safe), u_s=np.array([a - b for a, b in zip(u_safe, u)]),
+            slack=0.0, h=h, constraint_values=values, status='solved',
+            solve_time_s=time.perf_counter() - solve_start,
+            total_time_s=time.perf_counter() - start, fail_safe=False,
+            barrier_names=list(self.barrier_names), needed_slack=0.0, reason='',
+            proposal_clipped=clipped, points=points)
+
     def _generated(self, lg: np.ndarray, upper: np.ndarray, limit_upper: list[float],
                    scale: float) -> tuple[list[float], np.ndarray, np.ndarray] | None:
         """The QP on many rows (``lg`` (K, n_u), ``upper`` (K,)) solved exactly on few of them:
@@ -1673,25 +1699,30 @@ class SafetyFilter:
         """How many sensor points the rows hold (0 without a footprint)."""
         return 0 if self._points is None else self._points.count
 
-    def _reported(self, values: np.ndarray) -> np.ndarray:
+    def _reported(self, values: np.ndarray, point_values: np.ndarray | None = None
+                  ) -> np.ndarray:
         """Per-row values as the result reports them: the problem's rows, then (with a
-        footprint) the least over the sensor points' rows (inf without points)."""
+        footprint) the least over the sensor points' rows (inf without points); the points'
+        rows follow the problem's in ``values``, or are ``point_values`` apart."""
         if self._points is None:
             return values
         k = self.n_barriers
+        if point_values is None:
+            values, point_values = values[:k], values[k:]
         out = np.empty(k + 1)
         out[:k] = values[:k]
-        out[k] = _least(values[k:]) if values.size > k else math.inf
+        out[k] = _least(point_values) if point_values.size else math.inf
         return out
 
-    def _point_values(self, point_h: np.ndarray | None, values: np.ndarray
-                      ) -> PointValues | None:
+    def _point_values(self, point_h: np.ndarray | None, values: np.ndarray, *,
+                      every: bool = True) -> PointValues | None:
         """The sensor points' rows of an answer (None without points): their h and their part
-        of ``values`` (every row's, the problem's first), views, no copy."""
+        of ``values`` (every row's, the problem's first; ``every`` False: the points' rows
+        only), views, no copy."""
         if point_h is None:
             return None
         cx, cy = self._points.centres  # type: ignore[union-attr]
-        return PointValues(cx, cy, point_h, values[self.n_barriers:])
+        return PointValues(cx, cy, point_h, values[self.n_barriers:] if every else values)
 
     def _check_many(self, z: Sequence[float] | np.ndarray | None, upper: np.ndarray,
                     lg: np.ndarray, applied: list[float]

@@ -66,6 +66,9 @@ class SensorPoints(NamedTuple):
     spread: float = 0.0
     """How far (m) a point read from the message may lie from the point that stands for it
     here: half a thinning cell's diagonal, else 0. A source widens its obstacles by it."""
+    reach: float = math.inf
+    """A bound (m) on every point's distance from the frame's origin, where the read gives
+    one for free (a scan's largest valid range, range_min >= 0), else inf."""
 
 
 class Refused(NamedTuple):
@@ -276,7 +279,8 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         every = np.count_nonzero(valid) == count
         index = None if every else np.flatnonzero(valid)
         r = ranges if index is None else ranges.take(index)
-        if r.size and not np.maximum.reduce(r) <= MAX_COORDINATE:
+        largest = float(np.maximum.reduce(r)) if r.size else 0.0
+        if not largest <= MAX_COORDINATE:
             beam = int(np.argmax(r)) if index is None else int(index[np.argmax(r)])
             return Refused(f'{LASER_SCAN}: ranges[{beam}] {ranges[beam]:.6g} lies beyond '
                            f'{MAX_COORDINATE:g} m (within range_max {range_max:g})')
@@ -285,7 +289,9 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
             directions = directions.take(index, axis=1)
         # (N, 2), its columns contiguous: r cos a, r sin a
         points = np.multiply(directions, r, out=None if index is None else directions).T
-        return SensorPoints(points, frame_id, stamp, count)
+        # |(r cos a, r sin a)| = r where every r >= 0 (a negative range_min: no bound)
+        return SensorPoints(points, frame_id, stamp, count,
+                            reach=largest if range_min >= 0.0 else math.inf)
     except _Bad as exc:
         return Refused(f'{LASER_SCAN}: {exc}')
     except Exception as exc:  # bytes are untrusted: any other failure is a refusal too

@@ -68,6 +68,12 @@ MAX_WIDENING = 0.5
 """The most (m) a cloud's circles are widened for a tilted frame; more refuses the source."""
 _HALF_RANGE = 0.5 * MAX_RANGE
 """Points within this (m) of the robot along each axis are within MAX_RANGE of it."""
+_NEAR_REACH = 0.1 * _HALF_RANGE
+"""Points placed through the robot's frame within this (m) of it pass
+:meth:`ObservationSources._near`'s test for all near, which is then skipped: a sum rounded to
+the nearest float lies at most twice as far from the robot's coordinate (itself a float) as
+the exact sum, so each difference of the placement's two sums stays within 6 x this, wherever
+the robot is."""
 _largest, _least = np.maximum.reduce, np.minimum.reduce
 TF_COUNT_KEYS = ('messages', 'refused', 'transforms_refused')
 """Of ``/tf`` and ``/tf_static`` together: messages received, messages refused whole
@@ -128,6 +134,8 @@ class _Source:
     points: np.ndarray | None = None
     """(N, 2) in ``frame_id`` (None: no usable message yet)."""
     spread: float = 0.0
+    reach: float = math.inf
+    """A bound (m) on the points' distance from their frame's origin (inf: none)."""
     frame_id: str = ''
     stamp_ns: int = 0
     received_ns: int = 0
@@ -184,7 +192,7 @@ class ObservationSources:
             source.refusal = ' '.join(out.reason.split())
             source.points = None
             return source.refusal
-        source.points, source.spread = out.points, out.spread
+        source.points, source.spread, source.reach = out.points, out.spread, out.reach
         source.frame_id, source.stamp_ns = out.frame_id, out.stamp_ns
         source.received_ns, source.refusal = received_ns, ''
         return ''
@@ -250,8 +258,9 @@ class ObservationSources:
             if isinstance(placed, str):
                 source.counts['untransformed'] += 1
                 return f'source {name}: {placed}'
-            points, widening = placed
-            near = self._near(points, state)
+            points, widening, reach = placed
+            # the range test where the robot's frame bounds the points' distance from it
+            near = points if reach <= _NEAR_REACH else self._near(points, state)
             if isinstance(near, str):
                 source.counts['untransformed'] += 1
                 return f'source {name}: {near}'
@@ -278,16 +287,18 @@ class ObservationSources:
         safety_filter.set_points(*out)
         return ''
 
-    def _placed(self, source: _Source, state: np.ndarray) -> tuple[np.ndarray, float] | str:
+    def _placed(self, source: _Source, state: np.ndarray
+                ) -> tuple[np.ndarray, float, float] | str:
         """``source``'s points in the state's frame (module docstring: tf at the message's
-        stamp, else the robot's frame and the state's pose) and how much wider (m) their
-        circles must be (:meth:`_widening`), or why not (one line naming the frames)."""
+        stamp, else the robot's frame and the state's pose), how much wider (m) their circles
+        must be (:meth:`_widening`) and a bound on their distance from the robot where it
+        is known (:data:`_NEAR_REACH`; else inf), or why not (one line naming the frames)."""
         config = self.config
         points, frame = source.points, source.frame_id
         assert points is not None
         odom, base = config.odom_frame_id, config.base_frame_id
         if frame == odom:
-            return points, 0.0
+            return points, 0.0, math.inf
         tolerance_ns = round(config.transform_tolerance * 1e9)
         to_odom = self.tf.lookup_transform(odom, frame, source.stamp_ns,
                                            tolerance_ns=tolerance_ns)
@@ -295,7 +306,7 @@ class ObservationSources:
             widening = self._widening(source, to_odom, odom)
             if isinstance(widening, str):
                 return widening
-            return to_odom.apply_planar(points), widening
+            return to_odom.apply_planar(points), widening, math.inf
         if to_odom.kind not in (FRAME, CONNECTIVITY):  # joined, but not at this stamp
             return to_odom.reason
         to_base = IDENTITY if frame == base else self.tf.lookup_transform(
@@ -309,10 +320,13 @@ class ObservationSources:
         widening = self._widening(source, to_base, base)
         if isinstance(widening, str):
             return widening
+        reach = source.reach
         if to_base is not IDENTITY:
             points = to_base.apply_planar(points)
+            # twice the reach: room for a rotation's rounding
+            reach = 2.0 * reach + math.hypot(*to_base.translation[:2])
         placed = self._to_state_frame(points, state)
-        return placed if isinstance(placed, str) else (placed, widening)
+        return placed if isinstance(placed, str) else (placed, widening, reach)
 
     @staticmethod
     def _widening(source: _Source, rigid: Rigid, target: str) -> float | str:

@@ -325,3 +325,23 @@ def test_a_scan_whose_angle_min_is_minus_zero_is_not_read_with_plus_zeros_beams(
         out = sensor.scan_points(_scan_bytes(ranges, angle_min=angle_min, increment=-0.1))
         assert isinstance(out, sensor.SensorPoints), out
         assert math.copysign(1.0, out.points[0, 1]) == math.copysign(1.0, angle_min)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(ranges=st.lists(st.floats(-1e6, 1e6, width=32) | st.sampled_from([math.inf, math.nan]),
+                       min_size=0, max_size=40),
+       range_min=st.sampled_from([0.0, 0.1, -1e6]),
+       angle_min=st.floats(-4.0, 4.0), increment=st.floats(-0.5, 0.5))
+def test_a_scan_bounds_its_points_distance_from_the_frame_origin(ranges, range_min, angle_min,
+                                                                 increment):
+    out = sensor.scan_points(_scan_bytes(ranges, angle_min=angle_min, increment=increment,
+                                         range_min=range_min, range_max=1e6))
+    assert isinstance(out, sensor.SensorPoints), out
+    if range_min < 0.0:  # a negative range: a point behind the beam, no bound given
+        assert out.reach == math.inf
+        return
+    assert out.reach < math.inf
+    distance = np.hypot(*out.points.T)
+    assert (distance <= out.reach * (1 + 1e-12)).all()
+    if len(distance):
+        assert out.reach <= distance.max() * (1 + 1e-12)  # the largest range: no wider

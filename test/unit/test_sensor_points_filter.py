@@ -57,6 +57,10 @@ def test_points_give_the_command_of_the_same_static_circles(seed, n, v, w, headi
     assert mine.h[-1] == pytest.approx(theirs.h[k:].min(), abs=1e-9)
     assert mine.constraint_values[-1] == pytest.approx(theirs.constraint_values[k:].min(),
                                                        abs=1e-5)
+    # every point's own row, whether the proposal passes through or is solved for
+    np.testing.assert_allclose(mine.points.h, theirs.h[k:], atol=1e-9)
+    np.testing.assert_allclose(mine.points.values, theirs.constraint_values[k:], atol=1e-5)
+    np.testing.assert_array_equal(np.stack([mine.points.x, mine.points.y], 1), points)
 
 
 def test_without_points_the_answer_is_the_problems_own():

@@ -227,3 +227,48 @@ def test_a_cloud_frame_too_tilted_for_its_band_is_refused_naming_it():
     assert reason == ("source cloud: frame 'camera' is tilted 45.8 deg from 'base_link''s "
                       'vertical: its points, up to 2 m high (cloud.min_height, .max_height), '
                       'would lie up to 1.43 m from where they are placed (at most 0.5)')
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(ranges=st.lists(st.floats(-2e4, 2e4, width=32) | st.sampled_from([math.inf, math.nan]),
+                       min_size=1, max_size=30),
+       range_min=st.sampled_from([0.0, 0.05, -3e4]),
+       range_max=st.sampled_from([10.0, 600.0, 3e4, math.inf]),
+       position=st.tuples(st.floats(-1e20, 1e20), st.floats(-1e20, 1e20))
+       | st.tuples(st.floats(-50.0, 50.0), st.floats(-50.0, 50.0)),
+       yaw=st.floats(-4.0, 4.0), frame=st.sampled_from(['laser', 'base_link']))
+def test_points_placed_through_the_robot_frame_are_those_the_range_test_keeps(
+        ranges, range_min, range_max, position, yaw, frame):
+    """A scan placed through the robot's frame skips the per-point range test where its
+    largest range bounds the points near the robot: the same points, bit for bit, as the
+    test gives (far ranges, negative ones, far positions included)."""
+    from rcbf_ros.node_logic import sources as module
+    _, sources = _sources()
+    _mount(sources)  # laser -> base_link only: the pose comes from the state
+    assert sources.read('front', _scan(ranges, frame_id=frame, range_min=range_min,
+                                       range_max=range_max), received_ns=0) == ''
+    state = np.array([*position, yaw])
+    kept = sources.points(state, now_ns=0, stamp_now_ns=10 * S)
+    skip = module._NEAR_REACH
+    try:
+        module._NEAR_REACH = -math.inf  # every point through the range test
+        tested = sources.points(state, now_ns=0, stamp_now_ns=10 * S)
+    finally:
+        module._NEAR_REACH = skip
+    assert type(kept) is type(tested)
+    if isinstance(kept, str):
+        assert kept == tested
+        return
+    assert kept[0].shape == tested[0].shape
+    assert kept[0].tobytes() == tested[0].tobytes()
+    assert kept[1] == tested[1]
+    if max(map(abs, position)) <= 1e6:  # the range itself, where rounding is far below it
+        from rcbf_ros.node_logic.sources import MAX_RANGE
+        beams = np.asarray(ranges, np.float32).astype(np.float64)
+        valid = beams[(beams >= np.float32(range_min)) & (beams <= np.float32(range_max))
+                      & np.isfinite(beams)]
+        distance = np.hypot(*(kept[0] - position).T)
+        assert (distance <= MAX_RANGE * (1 + 1e-9)).all()
+        mounted = 1.0 if frame == 'laser' else 1e-6  # the mount's offset, or rounding
+        assert len(distance) >= np.count_nonzero(np.abs(valid) <= MAX_RANGE - mounted)
+        assert len(distance) <= np.count_nonzero(np.abs(valid) <= MAX_RANGE + mounted)
