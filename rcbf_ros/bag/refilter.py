@@ -181,6 +181,12 @@ class RefilterSummary:
     """Evaluated states with some new h_i < 0."""
     violations_per_barrier: dict[str, int] = field(default_factory=dict)
     """Evaluated states with h_i < 0, per barrier."""
+    not_copied: dict[str, str] = field(default_factory=dict)
+    """Source topics (or some of their messages) the output bag could not hold, and why (a
+    type name that is not ``pkg/msg/Type``, a message that is not CDR, ...): left out of the
+    copy; a topic the filter reads is still read."""
+    not_copied_messages: int = 0
+    """Source messages left out of the copy (:attr:`not_copied`)."""
 
     @property
     def skipped_total(self) -> int:
@@ -228,6 +234,11 @@ class RefilterSummary:
         for name in self.barrier_names:
             lines.append(f'  {name:24s} min h {self.min_h.get(name, math.nan):10.4f}   '
                          f'violating states {self.violations_per_barrier.get(name, 0)}')
+        if self.not_copied:
+            lines.append(f'not copied: {self.not_copied_messages} messages of '
+                         f'{len(self.not_copied)} topics: ' + '; '.join(
+                             f'{topic}: {why}' for topic, why in list(
+                                 self.not_copied.items())[:MAX_NOT_COPIED_SHOWN]))
         return '\n'.join(lines)
 
 
@@ -351,8 +362,17 @@ def _array_sections(topic: str, log_time_ns: int, data: bytes, type_name: str,
     try:
         return filter_edge.float64_sections(data, default_label=default_label)
     except ValueError as exc:  # undecodable bytes, or a layout that does not fit
-        raise RefilterError(f'{topic} at log time {log_time_ns}: {_decoding_error(exc)}'
-                            ) from exc
+        raise _BadMessage(topic, log_time_ns, _decoding_error(exc)) from exc
+
+
+class _BadMessage(RefilterError):
+    """One recorded proposal or state the node would refuse (undecodable, a layout that does
+    not fit): the run stops on a topic's first message (the bag of another system, or not
+    one the filter reads); a later one is refused alone, as the node refuses it."""
+
+    def __init__(self, topic: str, log_time_ns: int, reason: str) -> None:
+        super().__init__(f'{topic} at log time {log_time_ns}: {reason}')
+        self.reason = reason
 
 
 def _decoding_error(exc: ValueError) -> str:
@@ -372,8 +392,7 @@ def _proposal_sections(item: Any, settings: logic.NodeSettings
             return filter_edge.proposal_sections(item.data, type_name=item.type_name,
                                                  twist_fields=settings.twist_fields)
         except ValueError as exc:
-            raise RefilterError(f'{item.topic} at log time {item.log_time_ns}: '
-                                f'{_decoding_error(exc)}') from exc
+            raise _BadMessage(item.topic, item.log_time_ns, _decoding_error(exc)) from exc
     return _array_sections(item.topic, item.log_time_ns, item.data, item.type_name, 'u'), None
 
 
@@ -396,23 +415,30 @@ def _state_sections(item: Any, settings: logic.NodeSettings,
 
 
 def _state_sample(item: Any, settings: logic.NodeSettings, system: str,
-                  n_x: int) -> logic.StateSample:
+                  n_x: int, first: bool = True) -> logic.StateSample:
     """The state sample of a recorded state message, received at its log time, as the node's
     edge reads it: a bad one says why (an Odometry the node would refuse, an empty message, a
     NaN); an Odometry's header stamp kept for the ``latency_s`` check.
 
     Raises:
-        RefilterError: a state of another length than the new system's ``n_x``.
+        RefilterError: the topic's ``first`` state of another length than the new system's
+            ``n_x`` (a later one is a bad state, as the node reads it).
     """
     received_ns = item.log_time_ns
-    read = _state_sections(item, settings, system)
+    try:
+        read = _state_sections(item, settings, system)
+    except _BadMessage as exc:
+        if first:
+            raise
+        return logic.StateSample(received_ns, None, exc.reason)
     if isinstance(read, str):  # an Odometry the node would refuse
         return logic.StateSample(received_ns, None, read)
     sections, stamp_ns = read
     values = sections.get('state', next(iter(sections.values()), None))
     if values is None:
         return logic.StateSample(received_ns, None, 'state: empty message')
-    _check_length(item.topic, received_ns, 'state', values, n_x, 'n_x', system)
+    if first:
+        _check_length(item.topic, received_ns, 'state', values, n_x, 'n_x', system)
     try:
         state = logic.state_from_sections(sections=sections, n_x=n_x)
     except ValueError as exc:
@@ -427,8 +453,34 @@ def _stamped(header: Any, stamp_ns: int) -> Any:
     return SimpleNamespace(stamp=stamp, frame_id='' if header is None else header.frame_id)
 
 
+MAX_NOT_COPIED_SHOWN = 5
+"""Topics left out of the copy named in :meth:`RefilterSummary.format` (all are in the JSON)."""
+
+
+def _cut(text: str, width: int = 200) -> str:
+    """One line of at most ``width`` characters."""
+    line = ' '.join(text.split())
+    return line if len(line) <= width else line[:width - 3] + '...'
+
+
+def _copy(writer: BagWriter, item: Any, summary: RefilterSummary) -> None:
+    """Copy one source message into the output, or leave it out and count it when the output
+    cannot hold it (its topic refused at registration, or the message itself: not CDR)."""
+    if item.topic in summary.not_copied:
+        summary.not_copied_messages += 1
+        return
+    try:
+        writer.write(item.topic, item.data, item.log_time_ns, item.publish_time_ns)
+    except ValueError as exc:
+        summary.not_copied.setdefault(item.topic, _cut(str(exc)))
+        summary.not_copied_messages += 1
+
+
 def _check_length(topic: str, log_time_ns: int, label: str, values: np.ndarray, size: int,
                   what: str, system: str) -> None:
+    """Refuse the run when a topic's first message has another length than the new system's:
+    the bag of another system (a later message of a wrong length is refused alone, answered
+    with the fail-safe, as the node answers it)."""
     if values.size != size:
         raise RefilterError(
             f'{topic} at log time {log_time_ns}: {label} has {values.size} values but the new '
@@ -694,7 +746,8 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
 
     Raises:
         RefilterError: missing source bag, no ``/cmd_proposed``, bad parameters (the message
-            names the key), a state or proposal of the wrong length for the new system, a
+            names the key), a first state or proposal of the wrong length for the new
+            system (a later one is answered with the fail-safe, as the node does), a
             source that already holds ``/refilter/*`` topics, an existing output bag, or
             parameters under which the hold timer would answer a quiet controller without
             end (:data:`HOLD_STRETCH_LIMIT`).
@@ -780,6 +833,8 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
             name=settings.diagnostics_name, hardware_id=settings.diagnostics_hardware_id),
             log_time_ns)
 
+    seen_state = False  # a state read: later ones of a wrong length are refused alone
+
     def refilter(log_time_ns: int) -> None:
         """A new state or source message: the proposal in force again, if due."""
         decision = rules.refilter(now_ns=log_time_ns, active=active)
@@ -789,8 +844,12 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     try:
         with writer:
             for topic in topics.values():
-                writer.add_topic(topic.name, topic.type_name, topic.qos or None,
-                                 message_definition=topic.definition, type_hash=topic.type_hash)
+                try:
+                    writer.add_topic(topic.name, topic.type_name, topic.qos or None,
+                                     message_definition=topic.definition,
+                                     type_hash=topic.type_hash)
+                except ValueError as exc:  # a channel the output cannot hold: left out
+                    summary.not_copied[topic.name] = _cut(str(exc))
             command_type = topics[proposal_topic].type_name
             if command_type not in (TWIST, TWIST_STAMPED):
                 command_type = FLOAT64_MULTIARRAY
@@ -800,7 +859,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
             for item in read_bag(source):
                 for tick_ns, decision in timer.calls(rules, active, until_ns=item.log_time_ns):
                     write_answer('hold', decision, tick_ns)
-                writer.write(item.topic, item.data, item.log_time_ns, item.publish_time_ns)
+                _copy(writer, item, summary)
                 if item.topic in source_topics:  # what the node's source callback reads
                     sources.read(source_topics[item.topic], item.data,  # type: ignore[union-attr]
                                  received_ns=item.log_time_ns)
@@ -809,7 +868,9 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     sources.read_tf(item.data, static=item.topic == TF_TOPICS[1],
                                     now_ns=item.log_time_ns)  # the bag's time: the clock
                 elif item.topic == state_topic:
-                    sample = _state_sample(item, settings, system_name, n_x)
+                    sample = _state_sample(item, settings, system_name, n_x,
+                                           first=not seen_state)
+                    seen_state = True
                     rules.latest_state = sample
                     if sample.state is not None:
                         topic_states.add(sample.state)
@@ -817,17 +878,23 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                     refilter(item.log_time_ns)
                 elif item.topic == proposal_topic:
                     summary.proposals += 1
-                    sections, header = _proposal_sections(item, settings)
+                    proposal, error = None, ''
+                    try:
+                        sections, header = _proposal_sections(item, settings)
+                    except _BadMessage as exc:  # the first one stops the run; later: refused
+                        if summary.proposals == 1:
+                            raise
+                        sections, header, error = {}, None, exc.reason
                     for label, size, what in (('u', n_u, 'n_u'), ('state', n_x, 'n_x'),
                                               ('disturbance_mean', n_x, 'n_x'),
                                               ('disturbance_std', n_x, 'n_x')):
-                        if label in sections:
+                        if label in sections and summary.proposals == 1:
                             _check_length(item.topic, item.log_time_ns, label, sections[label],
                                           size, what, system_name)
-                    proposal, error = None, ''
                     try:
-                        proposal = logic.proposal_from_sections(sections=sections, n_u=n_u,
-                                                                n_x=n_x)
+                        if not error:
+                            proposal = logic.proposal_from_sections(sections=sections, n_u=n_u,
+                                                                    n_x=n_x)
                     except ValueError as exc:
                         error = str(exc)
                     decision = rules.propose(logic.ProposalSample(proposal, error, header),
