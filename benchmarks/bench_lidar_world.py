@@ -222,6 +222,20 @@ class Run:
     """Time spent deciding commands (s)."""
 
 
+def decide(safety_filter, sources: ObservationSources | None, pose: np.ndarray | None,
+           nominal: np.ndarray, now_ns: int, mean: np.ndarray, std: np.ndarray
+           ) -> tuple[np.ndarray, object]:
+    """One command of a filter set-up at ``pose`` (None: no state yet): the scan's points set
+    first (``sources``; None: the map's rows only), then the filter; (command, the filter's
+    result, or None for the fail-safe of a source or a missing state)."""
+    reason = 'no state yet' if pose is None else '' if sources is None else sources.sense(
+        safety_filter, pose, now_ns=now_ns, stamp_now_ns=now_ns)
+    if reason:
+        return safety_filter.fail_safe_action, None
+    result = safety_filter.filter(pose, nominal, mean, std)
+    return result.u_safe, result
+
+
 def drive(world: lw.World, setup: str, *, seed: int = 0, duration: float = DURATION) -> Run:
     """Drive ``world`` with ``setup`` (one of :data:`SETUPS`) until the goal, a collision,
     being stuck, or ``duration``."""
@@ -280,13 +294,8 @@ def drive(world: lw.World, setup: str, *, seed: int = 0, duration: float = DURAT
             else:
                 # the scan's filter works in odom; the map's needs the pose in the map
                 pose = state.odom if sources is not None else state.pose
-                reason = '' if sources is None else sources.sense(
-                    safety_filter, pose, now_ns=now_ns, stamp_now_ns=now_ns)
-                if reason:
-                    command, result = safety_filter.fail_safe_action, None
-                else:
-                    result = safety_filter.filter(pose, nominal, mean, std)
-                    command = result.u_safe
+                command, result = decide(safety_filter, sources, pose, nominal, now_ns, mean,
+                                         std)
                 fail_safe += result is None or bool(result.fail_safe)
                 corrected += result is not None and bool(result.active)
             decide_s += time.perf_counter() - start
@@ -379,13 +388,8 @@ def drive_held(world: lw.World, *, tightened: bool, period: float, latency: floa
                 break
             nominal = lw.go_to_goal(state.pose, world.goal, base)
             start = time.perf_counter()
-            reason = 'no odometry yet' if odometry is None else sources.sense(
-                safety_filter, odometry, now_ns=now_ns, stamp_now_ns=now_ns)
-            if reason:
-                command, result = safety_filter.fail_safe_action, None
-            else:
-                result = safety_filter.filter(odometry, nominal, mean, std)
-                command = result.u_safe
+            command, result = decide(safety_filter, sources, odometry, nominal, now_ns, mean,
+                                     std)
             decide_s += time.perf_counter() - start
             fail_safe += result is None or bool(result.fail_safe)
             corrected += result is not None and bool(result.active)
