@@ -16,13 +16,10 @@ box, and h_i >= 0 holds between samples, not only at them.
 
 The margin follows the command: the change of phi_i is that of L_g h_i times u plus the rest,
 so nu_i(u) = nu0_i + c_i^T |u|, c_i >= 0 (n_u,) bounding the change of L_g h_i per input
-(``split_rows`` and ``split_points`` give (nu0, c)). The motion over the interval is a worst
-case over the whole input box for the latency (the previous command acts over
-[t_k, t_k + L], any input within the limits), and at the command's own speed |v| over the hold
-T (the row's own command acts then); a term quadratic in the motion is bounded by the
-largest motion times the command's, which keeps the margin linear in |u| (the filter's
-answers lie within the limits, where the command's motion is at most the largest). The
-tightened row a_i + b_i^T u - nu0_i - c_i^T |u| >= 0 is concave in u, and as
+(``split_rows`` and ``split_points`` give (nu0, c)). The motion over the interval stays a
+worst case over the whole input box (the previous command acts over [t_k, t_k + L], and the
+state may move under any input): only the factor |u| of the row's own command is the
+command's. The tightened row a_i + b_i^T u - nu0_i - c_i^T |u| >= 0 is concave in u, and as
 c_i^T |u| = max_s (c_i * s)^T u over the sign vectors s in {-1, +1}^{n_u}, it is exactly the
 linear rows (b_i - c_i * s)^T u >= nu0_i - a_i for every s (:func:`split_rows`, over the
 inputs with c_ij > 0), whose least at u is the tightened row's value. The constant margin of
@@ -40,23 +37,20 @@ within the limits and w = |mean| + k_c std the box's reach per entry:
 - :class:`~rcbf_ros.core.barriers.CircleObstacles` (the look-ahead point p = (x, y) +/- l_p e,
   e = (cos th, sin th), l_p = 0 included; each sensor point is one such row), with
   d = p - c, rho_k = |(x, y) - c| + l_p >= |d_k| for either point,
-  E = min(tau r_2, 2) >= |e - e_k|, P = tau (V + |(w_0, w_1)|) + l_p E >= |p - p_k| (any
-  input), P(u) = P - T (V - |v|) <= P (the command's v over the hold) and
+  E = min(tau r_2, 2) >= |e - e_k|, P = tau (V + |(w_0, w_1)|) + l_p E >= |p - p_k| and
   Q = P + (rho_k + P) E >= the change of d^T e and of d^T n (n = (-sin th, cos th)), and
-  L_g h = (2 d^T e, 2 l_p d^T n); alpha (2 rho_k P(u) + P(u)^2) <= alpha (2 rho_k + P) P(u):
+  L_g h = (2 d^T e, 2 l_p d^T n):
 
-      c = (2 Q + alpha (2 rho_k + P) T, 2 l_p Q),
-      nu0 = 2 P (w_0 + w_1) + 2 l_p Q w_2 + alpha (2 rho_k + P) (P - T V);
+      c = (2 Q, 2 l_p Q),  nu0 = 2 P (w_0 + w_1) + 2 l_p Q w_2 + alpha (2 rho_k P + P^2);
 
 - the quadratic families (:class:`~rcbf_ros.core.barriers.HalfPlane`,
   :class:`~rcbf_ros.core.barriers.BandBarrier`, :class:`~rcbf_ros.core.barriers.PairGap`),
-  h = c + a^T x + 1/2 x^T H x, with D = tau r (any input), D(u) = D - T ((V, V, W) -
-  (|v|, |v|, |omega|)) (the command over the hold), G = |grad h(x_k)| + 1/2 |H| D,
-  |g(x) u| <= (|v|, |v|, |omega|) and |(g(x) - g(x_k)) u| <= (E |v|, E |v|, 0):
+  h = c + a^T x + 1/2 x^T H x, with D = tau r, |g(x) u| <= (|v|, |v|, |omega|) and
+  |(g(x) - g(x_k)) u| <= (E |v|, E |v|, 0):
 
-      c_v = (|H| D)_0 + (|H| D)_1 + E (|grad h(x_k)|_0 + |grad h(x_k)|_1) + alpha T (G_0 + G_1),
-      c_omega = (|H| D)_2 + alpha T G_2,
-      nu0 = (|H| D)^T w + alpha G^T (D - T (V, V, W)).
+      c_v = (|H| D)_0 + (|H| D)_1 + E (|grad h(x_k)|_0 + |grad h(x_k)|_1),
+      c_omega = (|H| D)_2,
+      nu0 = (|H| D)^T w + alpha (|grad h(x_k)|^T D + 1/2 D^T |H| D).
 
 Every other problem with a closed form (:mod:`rcbf_ros.core.lie_closed_form`: PVTOL with its
 cascaded obstacles, bands and arena, a cascaded family on the Unicycle) gets
