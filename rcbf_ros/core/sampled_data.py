@@ -137,16 +137,13 @@ class SampledDataMargin:
     largest input U (``command_linear`` False: ``split_*`` give those, c = 0)."""
 
     def __init__(self, problem: RCBFProblem, horizon: float, lookahead: float,
-                 command_linear: bool = True, hold: float | None = None) -> None:
+                 command_linear: bool = True) -> None:
         system = problem.system
         low = np.asarray(system.u_min, dtype=np.float64)
         high = np.asarray(system.u_max, dtype=np.float64)
         reach = np.maximum(np.abs(low), np.abs(high))
         self.horizon = float(horizon)
         """tau = L + T (s)."""
-        self.hold = self.horizon if hold is None else min(float(hold), self.horizon)
-        """T (s): the part of tau in which the row's own command u acts (the rest, L, the
-        previous command: any input within the limits)."""
         self.command_linear = bool(command_linear)
         """Whether the margin follows the command (else the constant nu0 + c^T U, c = 0)."""
         self._reach = reach
@@ -173,40 +170,28 @@ class SampledDataMargin:
                  lookahead: float) -> tuple[np.ndarray, np.ndarray]:
         """(nu0 (N,), c (N, 2)) of circle rows around centres (cx, cy), the look-ahead l_p
         (module docstring): c = (2 Q, 2 l_p Q), the change of L_g h times |v| and |omega|."""
-        tau, hold, speed, turn = self.horizon, self.hold, self._speed, self._turn
+        tau, speed, turn = self.horizon, self._speed, self._turn
         turned = min(tau * (turn + w[2]), 2.0)  # E >= |e - e_k|
         moved = tau * (speed + math.hypot(w[0], w[1])) + lookahead * turned  # P >= |p - p_k|
-        # P(u) = P - T (V - |v|) >= |p - p_k| with the command's own v over the hold
-        still = moved - hold * speed
         rho = np.hypot(x[0] - cx, x[1] - cy) + lookahead  # >= |d_k| at either point
         change = moved + (rho + moved) * turned  # Q >= |d^T e - d_k^T e_k|, same with n
-        # alpha (2 rho P(u) + P(u)^2) <= alpha (2 rho + P) P(u): linear in |v|
-        growth = self._alpha * (2.0 * rho + moved)
         rest = (2.0 * lookahead * w[2] * change + 2.0 * moved * (w[0] + w[1])
-                + growth * still)
-        return rest, np.stack([2.0 * change + growth * hold, 2.0 * lookahead * change],
-                              axis=-1)
+                + self._alpha * (2.0 * rho * moved + moved * moved))
+        return rest, np.stack([2.0 * change, 2.0 * lookahead * change], axis=-1)
 
     def _quadratic(self, x: np.ndarray, w: np.ndarray, linear: np.ndarray, hessian: np.ndarray,
                    absolute: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(nu0 (k,), c (k, 2)) of quadratic rows (module docstring): c_v = |H| D's first two
         entries plus |grad h(x_k)|'s times E, c_omega = |H| D's third."""
-        tau, hold, speed, turn = self.horizon, self.hold, self._speed, self._turn
+        tau, speed, turn = self.horizon, self._speed, self._turn
         shift = tau * np.array([speed + w[0], speed + w[1], turn + w[2]])  # D
-        # D(u) = D - T ((V, V, W) - (|v|, |v|, |omega|)) with the command's own input over the
-        # hold; D(u) <= D
-        still = shift - hold * np.array([speed, speed, turn])
         turned = min(shift[2], 2.0)
         grad = np.abs(linear + hessian @ x)  # (k, n_x) |grad h(x_k)|
         spread = absolute @ shift  # (k, n_x) >= |grad h(x) - grad h(x_k)|
-        # alpha (|grad h|^T D(u) + 1/2 D(u)^T |H| D(u)) <= alpha G^T D(u), G = |grad h| + 1/2 |H| D
-        grown = self._alpha * (grad + 0.5 * spread)
         # |g(x) u| <= (|v|, |v|, |omega|), |(g(x) - g(x_k)) u| <= (E |v|, E |v|, 0)
         linear_part = np.stack([spread[:, 0] + spread[:, 1]
-                                + turned * (grad[:, 0] + grad[:, 1])
-                                + hold * (grown[:, 0] + grown[:, 1]),
-                                spread[:, 2] + hold * grown[:, 2]], axis=-1)
-        rest = spread @ w + grown @ still
+                                + turned * (grad[:, 0] + grad[:, 1]), spread[:, 2]], axis=-1)
+        rest = spread @ w + self._alpha * (grad @ shift + 0.5 * spread @ shift)
         return rest, linear_part
 
     def _as_asked(self, parts: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -426,8 +411,7 @@ def sampled_data_margin(problem: RCBFProblem, *, control_period_s: float = 0.0,
         lookahead = 0.0
         if footprint is not None and footprint.has_lookahead:  # type: ignore[attr-defined]
             lookahead = float(footprint.lookahead)  # type: ignore[attr-defined]
-        return SampledDataMargin(problem, horizon, lookahead, command_linear,
-                                 hold=float(control_period_s))
+        return SampledDataMargin(problem, horizon, lookahead, command_linear)
     if type(system) in REFUSED_SYSTEMS:
         raise ValueError(f'{key}: no sampled-data margin is derived for the {name} system '
                          f'({REFUSED_SYSTEMS[type(system)]}); set control_period_s and '
