@@ -481,6 +481,13 @@ def _obstacles(p: ObstacleParameters, system: ControlAffineSystem) -> BarrierFam
             f'obstacles.lookahead: {p.lookahead:g} exceeds obstacles.margin {p.margin:g}: the '
             'barriers guard a point that far ahead of the position, so the robot itself could '
             'enter an obstacle by lookahead - margin (keep margin >= lookahead)')
+    if base.speed_input is not None and 3.0 * abs(p.lookahead) > p.margin:
+        raise ParameterError(
+            f'obstacles.margin: {p.margin:g} is less than 3 x obstacles.lookahead '
+            f'({3.0 * abs(p.lookahead):g}) with obstacles.speed_input set: the guarded point '
+            'may switch to the one behind the robot, which brings the robot up to '
+            '3 lookahead - margin into an obstacle (keep margin >= 3 lookahead, or leave '
+            'speed_input out)')
     return _cascade(base, system, p.gammas, 'obstacles.gammas')
 
 

@@ -197,7 +197,7 @@ def test_gaps_delta_and_band_gains_are_checked():
 def test_an_index_that_is_not_an_integer_is_refused_not_truncated(bad):
     base = {'system': 'unicycle', 'obstacles': {'x': [0.0], 'y': [0.0], 'radius': [1.0],
                                                 'heading_index': 2, 'lookahead': 0.03,
-                                                'margin': 0.03}}
+                                                'margin': 0.09}}
     assert filter_config_from_params(
         {**base, 'obstacles': {**base['obstacles'], 'speed_input': 0.0}}) is not None
     with pytest.raises(ValueError, match=r'obstacles\.speed_input: expected an integer'):
@@ -297,3 +297,24 @@ def test_the_heading_index_of_each_system_is_accepted(system, heading):
     params = {'system': system, 'obstacles': {**ONE_OBSTACLE, 'heading_index': heading,
                                               'lookahead': 0.05, 'margin': 0.05}}
     assert filter_config_from_params(params).problem.n_barriers == 1
+
+
+@pytest.mark.parametrize('lookahead, margin, refused', [(0.03, 0.09, False), (0.03, 0.089, True),
+                                                        (0.02, 0.05, True), (0.0, 0.0, False)])
+def test_a_point_that_may_switch_behind_needs_three_lookaheads_of_margin(lookahead, margin,
+                                                                         refused):
+    """With speed_input the guarded point may switch to the one behind the robot; the centre
+    then stays delta - 3 |l_p| from an obstacle's centre (rcbf_ros.core.rcbf.barrier_terms), so
+    a margin below 3 |l_p| could let the robot into an obstacle: refused, naming both keys.
+    Without speed_input the point stays ahead and margin >= |l_p| is enough."""
+    obstacles = {'x': [0.0], 'y': [0.0], 'radius': [1.0], 'heading_index': 2,
+                 'lookahead': lookahead, 'margin': margin, 'speed_input': 0}
+    params = {'system': 'unicycle', 'obstacles': obstacles}
+    if refused:
+        with pytest.raises(ValueError, match=r'obstacles\.margin: .* 3 x obstacles\.lookahead'):
+            filter_config_from_params(params)
+        obstacles.pop('speed_input')
+        if abs(lookahead) <= margin:
+            assert filter_config_from_params(params) is not None
+    else:
+        assert filter_config_from_params(params) is not None

@@ -65,13 +65,16 @@ def variation(system: str, rng: np.random.Generator) -> dict:
     params = shipped(system)
     k = int(rng.integers(1, 7))
     if system == 'unicycle':
-        params.update({'obstacles.x': rng.uniform(-2.5, 2.5, k).tolist(),
-                       'obstacles.y': rng.uniform(-2.5, 2.5, k).tolist(),
-                       'obstacles.radius': rng.uniform(0.2, 0.7, k).tolist(),
-                       'obstacles.lookahead': (lookahead := float(rng.uniform(0.01, 0.3))),
-                       # the robot's centre outside the true radius: margin >= lookahead
-                       'obstacles.margin': lookahead + float(rng.uniform(0.0, 0.2)),
-                       'obstacles.speed_input': int(rng.choice([-1, 0, 1])),
+        x, y = rng.uniform(-2.5, 2.5, k).tolist(), rng.uniform(-2.5, 2.5, k).tolist()
+        radius = rng.uniform(0.2, 0.7, k).tolist()
+        lookahead, extra = float(rng.uniform(0.01, 0.3)), float(rng.uniform(0.0, 0.2))
+        speed_input = int(rng.choice([-1, 0, 1]))
+        params.update({'obstacles.x': x, 'obstacles.y': y, 'obstacles.radius': radius,
+                       'obstacles.lookahead': lookahead,
+                       # the robot's centre outside the true radius: margin >= lookahead, and
+                       # 3 lookaheads where the point may switch behind (speed_input)
+                       'obstacles.margin': (3.0 if speed_input >= 0 else 1.0) * lookahead + extra,
+                       'obstacles.speed_input': speed_input,
                        'alpha': float(rng.uniform(0.5, 5.0)),
                        'walls.nx': [1.0, -0.6], 'walls.ny': [0.0, 0.8],
                        'walls.offset': rng.uniform(-4.0, -2.0, 2).tolist()})

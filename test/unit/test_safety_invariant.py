@@ -78,8 +78,11 @@ def unicycle_params(draw: st.DrawFn) -> dict:
         'input_limits.min': [-limit, -limit], 'input_limits.max': [limit, limit],
     }
     if lookahead > 0:
+        speed_input = draw(st.sampled_from([-1, 0]))
         params.update({'obstacles.lookahead': lookahead, 'obstacles.heading_index': 2,
-                       'obstacles.speed_input': draw(st.sampled_from([-1, 0]))})
+                       'obstacles.speed_input': speed_input})
+        if speed_input >= 0:  # the point may switch behind: margin >= 3 lookahead
+            params['obstacles.margin'] = max(params['obstacles.margin'], 3.0 * lookahead)
     return params
 
 
