@@ -50,6 +50,17 @@ def test_no_fine_step_violation_with_the_margin_and_some_without(points):
     assert loose.violated.sum() >= 2, loose.least_h
 
 
+def test_a_margin_that_lets_slow_commands_creep_closer_is_not_what_holds_worlds_safe():
+    """Closed loop at T = 50 ms, L = 0. A margin that charges only the command's own speed over
+    the hold (not any input within the limits) is smaller for slow commands: it lets the robot
+    creep close, to states where no command meets the tightened rows, and these worlds are
+    entered; it also assumes wheels without lag. The margin of any input within the limits
+    keeps them safe."""
+    worlds = [bench.random_worlds(60, seed=11)[i] for i in (0, 1, 2, 3)]
+    tight = bench.simulate(worlds, period=0.05, latency=0.0, tightened=True, duration=2.5)
+    assert not tight.violated.any(), tight.least_h
+
+
 def test_a_short_period_without_latency_is_safe_with_the_margin_too():
     # T = 1 ms, no latency: the margin is small and the rows still keep every fine step safe
     worlds = bench.random_worlds(3, seed=5)
