@@ -294,6 +294,9 @@ class McapScan:
         """Messages in those chunks (and outside chunks)."""
         self.skipped: list[str] = []
         """``salvage``: the damaged chunks or records left out, one line each."""
+        self.skipped_bytes = 0
+        """``salvage``: bytes of those records (header included); a cut-off tail is not
+        counted here (see :attr:`readable_end`)."""
 
     def error(self, what: str) -> BagError:
         """A :class:`BagError` about this file."""
@@ -381,6 +384,7 @@ class McapScan:
                     self._cut(offset, what)
                     return
                 offset = stream.seek(length, os.SEEK_CUR)  # never read
+                self.skipped_bytes += len(head) + length
                 self.readable_end = offset
                 continue
             body = stream.read(length)
@@ -473,6 +477,7 @@ class McapScan:
                                   Opcode.METADATA):
                     self._cut(record_offset, what)
                     return
+                self.skipped_bytes += offset - record_offset
             self.readable_end = offset
 
     def _chunk(self, chunk: _ChunkFields, channels: set[int],
