@@ -40,6 +40,7 @@ from rcbf_ros.bag.writer import (
     BagWriterConfig,
     ChunkFill,
     FileSpan,
+    max_chunk_bytes,
     MESSAGE_RECORD_OVERHEAD,
     MessageTooLargeError,
     new_mcap_writer,
@@ -144,7 +145,8 @@ def _rewrite(path: Path, partial: Path, problems: list[str]) -> tuple[int, McapS
         for _, record in scan.records():
             if isinstance(record, Header):
                 header = record
-                config = BagWriterConfig()
+                config = BagWriterConfig(chunk_size=min(BagWriterConfig.chunk_size,
+                                                        max_chunk_bytes()))
                 writer = new_mcap_writer(stream, config)
                 fill = ChunkFill(writer, config.chunk_size)
                 writer.start(profile=record.profile, library=record.library)
