@@ -272,7 +272,7 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         ranges = np.frombuffer(cursor.view, dtype=cursor.order + 'f4', count=count,
                                offset=start).astype(np.float64)
         # NaN fails both comparisons; so do +-inf where both bounds are finite
-        valid = (ranges >= range_min) & (ranges <= range_max)
+        valid = (ranges >= max(range_min, 0.0)) & (ranges <= range_max)  # REP 117: r >= 0
         if not (math.isfinite(range_min) and math.isfinite(range_max)):
             valid &= np.isfinite(ranges)
         every = np.count_nonzero(valid) == count
