@@ -62,10 +62,12 @@ _MESSAGE_HEAD = struct.Struct('<HIQQ')
 _FOOTER_CRC_FIELDS = 8 + 8  # summary_start, summary_offset_start: the CRC covers them
 MAX_CHUNK_BYTES = 64 * 2**20
 """Most bytes a chunk may hold once decompressed (64 MiB). rosbag2's MCAP storage closes a chunk
-once it passes ``chunk_size`` (768 KiB by default; ours: 256 KiB), so a chunk holds that plus
-one message; 64 MiB is above any camera frame or point cloud a ROS message carries. A chunk
-that states more, or decompresses to other than it states, is refused before the excess is
-made: decompression streams into a buffer of the stated size and stops one byte past it."""
+once it passes ``chunk_size`` (768 KiB by default), so a chunk holds that plus one message; ours
+(256 KiB by default) closes it before a message would take it past this limit
+(:class:`rcbf_ros.bag.writer.ChunkFill`). 64 MiB is above any camera frame or point cloud a ROS
+message carries. A chunk that states more, or decompresses to other than it states, is refused
+before the excess is made: decompression streams into a buffer of the stated size and stops
+one byte past it."""
 MAX_RECORD_BYTES = MAX_CHUNK_BYTES + MAX_CHUNK_BYTES // 16
 """Longest record read (68 MiB: a chunk of :data:`MAX_CHUNK_BYTES` that did not compress, with
 room for the compressor's overhead); a longer record is refused before it is read."""
