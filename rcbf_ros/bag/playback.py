@@ -11,7 +11,12 @@ import os
 from typing import Callable, Iterable, Iterator, Sequence
 
 from rcbf_ros.bag.qos import RecordedQos
-from rcbf_ros.bag.reader import BagMessage, read_bag
+from rcbf_ros.bag.reader import BagInfo, BagMessage, read_bag, TopicInfo
+
+PLAYABLE_MESSAGE_ENCODING = 'cdr'
+"""The message encoding a DDS publisher takes as it is (the recorded CDR bytes)."""
+PLAYABLE_SCHEMA_ENCODINGS = ('ros2msg', 'ros2idl')
+"""Schema encodings whose schema name is a ROS type (``pkg/msg/Type``) to publish as."""
 
 
 def iter_bag_messages(path: str | os.PathLike[str], *,
@@ -83,6 +88,53 @@ def playback_schedule(messages: Sequence[BagMessage] | Callable[[], Iterable[Bag
             yield ScheduledMessage(j * period_s + (message.log_time_ns - t0) / 1e9 / rate,
                                    message)
         j += 1
+
+
+def unplayable_reason(topic: TopicInfo) -> str:
+    """Why a recorded topic cannot be published onto DDS as recorded ('' if it can): one line
+    naming the topic and its encoding."""
+    if topic.message_encoding != PLAYABLE_MESSAGE_ENCODING:
+        return (f'topic {topic.name}: message encoding {topic.message_encoding!r}, not '
+                f'{PLAYABLE_MESSAGE_ENCODING!r}')
+    if topic.schema_encoding not in PLAYABLE_SCHEMA_ENCODINGS:
+        return (f'topic {topic.name}: schema encoding {topic.schema_encoding!r}, not '
+                f'{" or ".join(map(repr, PLAYABLE_SCHEMA_ENCODINGS))}')
+    return ''
+
+
+def topics_to_play(info: BagInfo, requested: Iterable[str] = ()) -> tuple[list[str], list[str]]:
+    """The topics to publish, sorted, and one line for each recorded topic left out because it
+    cannot be published as recorded (:func:`unplayable_reason`).
+
+    Args:
+        info: the checked bag.
+        requested: the topics asked for (empty: every topic of the bag that can be played).
+
+    Raises:
+        ValueError: a requested topic is not in the bag or cannot be played, or no topic can
+            (one line naming it).
+    """
+    requested = list(requested)
+    missing = sorted(set(requested) - set(info.topics))
+    if missing:
+        raise ValueError(f'topics {missing} are not in the bag')
+    for name in sorted(set(requested)):
+        why = unplayable_reason(info.topics[name])
+        if why:
+            raise ValueError(f'{why}: it cannot be played')
+    if requested:
+        return sorted(set(requested)), []
+    playable, reasons = [], []
+    for name in sorted(info.topics):
+        why = unplayable_reason(info.topics[name])
+        if why:
+            reasons.append(why)
+        else:
+            playable.append(name)
+    if reasons and not playable:
+        more = f' (and {len(reasons) - 1} more topics)' if len(reasons) > 1 else ''
+        raise ValueError(f'no topic of the bag can be played: {reasons[0]}{more}')
+    return playable, [f'{why}: not played' for why in reasons]
 
 
 def replay_qos(offered: Sequence[RecordedQos]) -> RecordedQos:

@@ -80,6 +80,9 @@ class TopicInfo:
     """The schema text as recorded (``ros2msg``: the full definition; empty if none)."""
     schema_encoding: str = ''
     """The schema's encoding, e.g. ``ros2msg`` (empty if the channel has no schema)."""
+    message_encoding: str = ''
+    """The messages' encoding, e.g. ``cdr``; the topic's channels disagreeing, each of theirs
+    (sorted, comma-separated)."""
 
 
 @dataclass(frozen=True)
@@ -368,6 +371,7 @@ def bag_info(path: str | os.PathLike[str], *, allow_cut_short: bool = True) -> B
     files = mcap_files(path)
     counts: dict[str, int] = {}
     topic_meta: dict[str, tuple[str, tuple[RecordedQos, ...], str, str, str]] = {}
+    encodings: dict[str, set[str]] = {}
     start: int | None = None
     end: int | None = None
     total = 0
@@ -388,10 +392,11 @@ def bag_info(path: str | os.PathLike[str], *, allow_cut_short: bool = True) -> B
                 channel.metadata.get('topic_type_hash', ''),
                 schema.data.decode(errors='replace') if schema else '',
                 schema.encoding if schema else ''))
+            encodings.setdefault(channel.topic, set()).add(channel.message_encoding)
             n = one.per_channel.get(channel_id, 0)
             counts[channel.topic] = counts.get(channel.topic, 0) + n
             total += n
     topics = {name: TopicInfo(name, meta[0], counts.get(name, 0), meta[1], meta[2], meta[3],
-                              meta[4])
+                              meta[4], ', '.join(sorted(encodings[name])))
               for name, meta in topic_meta.items()}
     return BagInfo(tuple(files), topics, total, start or 0, end or 0, complete)

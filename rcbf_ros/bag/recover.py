@@ -29,6 +29,7 @@ import shutil
 import sys
 from typing import Sequence
 
+from mcap.data_stream import RecordBuilder
 from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
 import yaml
 
@@ -37,7 +38,11 @@ from rcbf_ros.bag.scan import BagError, BagNotFoundError, check_regular, McapSca
 from rcbf_ros.bag.writer import (
     bag_information,
     BagWriterConfig,
+    ChunkFill,
     FileSpan,
+    max_chunk_bytes,
+    MESSAGE_RECORD_OVERHEAD,
+    MessageTooLargeError,
     new_mcap_writer,
     write_metadata_yaml,
 )
@@ -58,7 +63,8 @@ class FileRecovery:
     message_count: int
     """Messages the file holds now."""
     dropped_bytes: int
-    """Bytes of the original past its last whole record (the cut-off tail)."""
+    """Bytes of the original whose data is not in the recovered file: the damaged records
+    left out and the cut-off tail past the last whole record."""
     problems: tuple[str, ...]
     """Why the original was incomplete, and each damaged record left out."""
     original: Path | None
@@ -119,12 +125,15 @@ def _topics_of(path: Path, channels: dict[int, Channel], schemas: dict[int, Sche
     return list(topics.values())
 
 
-def _rewrite(path: Path, partial: Path) -> tuple[int, McapScan]:
-    """Write the whole records of ``path`` as a complete MCAP file ``partial``; return the
-    message count and the salvage scan."""
+def _rewrite(path: Path, partial: Path, problems: list[str]) -> tuple[int, McapScan, int]:
+    """Write the whole records of ``path`` as a complete MCAP file ``partial``, in chunks the
+    reader accepts; return the message count, the salvage scan and the bytes of the messages
+    no chunk can hold (left out, each one a line in ``problems``)."""
     scan = McapScan(path, salvage=True)
+    left_out = 0
     with open(partial, 'xb') as stream:
         writer = None
+        fill: ChunkFill | None = None
         schema_ids: dict[int, int] = {}
         channel_ids: dict[int, int] = {}
         channels: dict[int, Channel] = {}
@@ -136,26 +145,45 @@ def _rewrite(path: Path, partial: Path) -> tuple[int, McapScan]:
         for _, record in scan.records():
             if isinstance(record, Header):
                 header = record
-                writer = new_mcap_writer(stream, BagWriterConfig())
+                config = BagWriterConfig(chunk_size=min(BagWriterConfig.chunk_size,
+                                                        max_chunk_bytes()))
+                writer = new_mcap_writer(stream, config)
+                fill = ChunkFill(writer, config.chunk_size)
                 writer.start(profile=record.profile, library=record.library)
                 continue
-            assert writer is not None  # the scan yields the header first
+            assert writer is not None and fill is not None  # the scan yields the header first
             if isinstance(record, Message):
-                new_id = channel_ids[record.channel_id]
-                writer.add_message(channel_id=new_id, log_time=record.log_time,
-                                   data=record.data, publish_time=record.publish_time,
-                                   sequence=record.sequence)
+                new_id = channel_ids.get(record.channel_id)
+                if new_id is None:  # its channel was left out (below)
+                    left_out += MESSAGE_RECORD_OVERHEAD + len(record.data)
+                    continue
+                try:
+                    fill.add_message(channel_id=new_id, log_time=record.log_time,
+                                     data=record.data, publish_time=record.publish_time,
+                                     sequence=record.sequence, topic=channels[new_id].topic)
+                except MessageTooLargeError as exc:
+                    problems.append(str(exc))
+                    left_out += MESSAGE_RECORD_OVERHEAD + len(record.data)
+                    continue
                 per_channel[new_id] = per_channel.get(new_id, 0) + 1
                 start = record.log_time if start is None else min(start, record.log_time)
                 end = record.log_time if end is None else max(end, record.log_time)
             elif isinstance(record, Schema) and record.id not in schema_ids:
+                if not fill.room(_record_size(record)):
+                    left_out += _too_large(record, problems)
+                    continue  # its channels have no schema
                 schema_ids[record.id] = writer.register_schema(
                     name=record.name, encoding=record.encoding, data=record.data)
+                fill.added(_record_size(record), message=False)
                 schemas[schema_ids[record.id]] = record
             elif isinstance(record, Channel) and record.id not in channel_ids:
+                if not fill.room(_record_size(record)):
+                    left_out += _too_large(record, problems)
+                    continue  # its messages are left out
                 new_id = writer.register_channel(
                     topic=record.topic, message_encoding=record.message_encoding,
                     schema_id=schema_ids.get(record.schema_id, 0), metadata=record.metadata)
+                fill.added(_record_size(record), message=False)
                 channel_ids[record.id] = new_id
                 channels[new_id] = Channel(new_id, record.topic, record.message_encoding,
                                            record.metadata, schema_ids.get(record.schema_id, 0))
@@ -174,14 +202,29 @@ def _rewrite(path: Path, partial: Path) -> tuple[int, McapScan]:
                 files=[FileSpan(path.name, start or 0, end or 0, count)],
                 topics=_topics_of(path, channels, schemas, per_channel))
             writer.flush()  # the record follows all data, as the writer's close() does
+            fill.closed()
             writer.add_metadata('rosbag2', {
                 'serialized_metadata': yaml.safe_dump(info, sort_keys=False).rstrip('\n')})
         writer.finish()
         stream.flush()
         os.fsync(stream.fileno())
-    return count, scan
+    return count, scan, left_out
 
 
+def _too_large(record: Schema | Channel, problems: list[str]) -> int:
+    """Say that ``record`` (only one outside any chunk can be so large) is left out; its
+    size."""
+    size = _record_size(record)
+    problems.append(f'{type(record).__name__.lower()} {record.id} of {size} bytes left out: '
+                    'larger than a chunk may be')
+    return size
+
+
+def _record_size(record: Schema | Channel) -> int:
+    """Bytes of ``record`` serialized (what it adds to a chunk)."""
+    builder = RecordBuilder()
+    record.write(builder)
+    return builder.count
 def recover_file(path: str | os.PathLike[str], *, keep_original: bool = True) -> FileRecovery:
     """Make one MCAP file complete (see the module docstring); a complete file is untouched.
 
@@ -212,19 +255,20 @@ def recover_file(path: str | os.PathLike[str], *, keep_original: bool = True) ->
                            'again)')
         partial = path.with_name(path.name + _PARTIAL_SUFFIX)
         partial.unlink(missing_ok=True)  # left by a recovery that was itself interrupted
+        problems: list[str] = []
         try:
-            count, salvage = _rewrite(path, partial)
+            count, salvage, left_out = _rewrite(path, partial, problems)
             if original is not None and not linked:
                 _keep(path, original)
             os.replace(partial, path)
         finally:
             partial.unlink(missing_ok=True)
     sync_directory(path.parent)
-    problems = list(salvage.skipped)
-    dropped = 0
+    problems[:0] = salvage.skipped
+    dropped = salvage.skipped_bytes + left_out
     if salvage.cut_short:
         problems.append(f'cut short at byte {salvage.readable_end}: {salvage.cut_short}')
-        dropped = salvage.size - salvage.readable_end
+        dropped += salvage.size - salvage.readable_end
     if damage and damage not in problems:
         problems.insert(0, damage)
     return FileRecovery(path, True, count, dropped, tuple(problems), original)

@@ -62,10 +62,12 @@ _MESSAGE_HEAD = struct.Struct('<HIQQ')
 _FOOTER_CRC_FIELDS = 8 + 8  # summary_start, summary_offset_start: the CRC covers them
 MAX_CHUNK_BYTES = 64 * 2**20
 """Most bytes a chunk may hold once decompressed (64 MiB). rosbag2's MCAP storage closes a chunk
-once it passes ``chunk_size`` (768 KiB by default; ours: 256 KiB), so a chunk holds that plus
-one message; 64 MiB is above any camera frame or point cloud a ROS message carries. A chunk
-that states more, or decompresses to other than it states, is refused before the excess is
-made: decompression streams into a buffer of the stated size and stops one byte past it."""
+once it passes ``chunk_size`` (768 KiB by default), so a chunk holds that plus one message; ours
+(256 KiB by default) closes it before a message would take it past this limit
+(:class:`rcbf_ros.bag.writer.ChunkFill`). 64 MiB is above any camera frame or point cloud a ROS
+message carries. A chunk that states more, or decompresses to other than it states, is refused
+before the excess is made: decompression streams into a buffer of the stated size and stops
+one byte past it."""
 MAX_RECORD_BYTES = MAX_CHUNK_BYTES + MAX_CHUNK_BYTES // 16
 """Longest record read (68 MiB: a chunk of :data:`MAX_CHUNK_BYTES` that did not compress, with
 room for the compressor's overhead); a longer record is refused before it is read."""
@@ -294,6 +296,9 @@ class McapScan:
         """Messages in those chunks (and outside chunks)."""
         self.skipped: list[str] = []
         """``salvage``: the damaged chunks or records left out, one line each."""
+        self.skipped_bytes = 0
+        """``salvage``: bytes of those records (header included); a cut-off tail is not
+        counted here (see :attr:`readable_end`)."""
 
     def error(self, what: str) -> BagError:
         """A :class:`BagError` about this file."""
@@ -381,6 +386,7 @@ class McapScan:
                     self._cut(offset, what)
                     return
                 offset = stream.seek(length, os.SEEK_CUR)  # never read
+                self.skipped_bytes += len(head) + length
                 self.readable_end = offset
                 continue
             body = stream.read(length)
@@ -473,6 +479,7 @@ class McapScan:
                                   Opcode.METADATA):
                     self._cut(record_offset, what)
                     return
+                self.skipped_bytes += offset - record_offset
             self.readable_end = offset
 
     def _chunk(self, chunk: _ChunkFields, channels: set[int],

@@ -36,6 +36,7 @@ from mcap.records import (
 from mcap.writer import CompressionType, IndexType, Writer
 import yaml
 
+from rcbf_ros.bag import scan
 from rcbf_ros.bag.qos import dump_offered_qos_profiles, offered_qos_sequence, RecordedQos
 from rcbf_ros.messages.cdr import serialize_message
 from rcbf_ros.messages.typestore import (
@@ -69,6 +70,24 @@ _SUMMARY_OFFSET_SIZE = _RECORD_HEAD.size + 1 + 8 + 8  # opcode, group start and 
 _FOOTER_SIZE = _RECORD_HEAD.size + 8 + 8 + 4  # summary start, offsets start, CRC
 _CHUNK_HEAD = struct.Struct('<QQQII')  # start and end time, uncompressed size and CRC, len(str)
 _MESSAGE_INDEX_HEAD = struct.Struct('<HI')  # channel id, bytes of (time, offset) entries
+_MESSAGE_HEAD = struct.Struct('<HIQQ')  # channel id, sequence, log and publish time
+MESSAGE_RECORD_OVERHEAD = _RECORD_HEAD.size + _MESSAGE_HEAD.size
+"""Bytes a message record adds to a chunk besides the message's own (31)."""
+
+
+def max_chunk_bytes() -> int:
+    """The most uncompressed bytes a chunk written here may hold: the reader's limit
+    (:data:`rcbf_ros.bag.scan.MAX_CHUNK_BYTES`), read when asked, so the two never differ.
+
+    A chunk within it is also a record within the reader's ``MAX_RECORD_BYTES`` once
+    compressed: zstd and lz4 add at most about 1/255 to data they cannot compress, the
+    record's limit 1/16."""
+    return scan.MAX_CHUNK_BYTES
+
+
+class MessageTooLargeError(ValueError):
+    """A message that no chunk can hold (see :func:`max_chunk_bytes`): it is left out, the
+    bag is unchanged and stays open. The text is one line naming the topic and the size."""
 
 
 class BagWriteError(OSError):
@@ -337,7 +356,8 @@ class BagWriterConfig:
 
     chunk_size: int = 256 * 1024
     """Uncompressed bytes after which a chunk is closed and written (smaller: less lost on a
-    crash, worse compression)."""
+    crash, worse compression); at most :func:`max_chunk_bytes`. A chunk is also closed before a
+    message would take it past that limit."""
     compression: str = 'auto'
     """``auto`` (zstd, else lz4, else none), ``zstd``, ``lz4`` or ``none``."""
     flush_period_s: float = 0.5
@@ -349,6 +369,9 @@ class BagWriterConfig:
     def __post_init__(self) -> None:
         if self.chunk_size <= 0:
             raise ValueError(f'BagWriterConfig.chunk_size must be > 0, got {self.chunk_size}')
+        if self.chunk_size > max_chunk_bytes():
+            raise ValueError(f'BagWriterConfig.chunk_size must be <= {max_chunk_bytes()} (the '
+                             f'largest chunk the reader accepts), got {self.chunk_size}')
         if self.compression not in ('auto', 'zstd', 'lz4', 'none'):
             raise ValueError("BagWriterConfig.compression must be 'auto', 'zstd', 'lz4' or "
                              f"'none', got {self.compression!r}")
@@ -430,6 +453,7 @@ class BagWriter:
         _lock_exclusive(self._file.fileno())
         self._sink = _MemorySink()
         self._writer = new_mcap_writer(self._sink, config)
+        self._chunk = ChunkFill(self._writer, config.chunk_size)
         self._writer.start(profile='ros2', library=_library_identifier())
         self._write_out()
         self._last_flush = time.monotonic()
@@ -491,13 +515,21 @@ class BagWriter:
                              offered_qos=profiles, type_hash=type_hash)
         added = ([(Opcode.SCHEMA, _record_bytes(schema))] if new_schema else []) + [
             (Opcode.CHANNEL, _record_bytes(channel))]
+        # The schema and channel go into the open chunk as well: it must hold them.
+        if not self._chunk.room(sum(len(data) for _, data in added)):
+            raise ValueError(f'topic {name}: its schema and channel records '
+                             f'({sum(len(data) for _, data in added)} bytes) do not fit a chunk '
+                             f'of at most {max_chunk_bytes()} bytes')
+        self._write_out()  # the chunk closed to make room, if any
         # The closing records list every topic: check that they still fit, then register.
         self._check_room(b'', self._file.contents, extra_topic=(record, added))
         if new_schema:
             self._schema_ids[type_name] = self._writer.register_schema(
                 name=schema.name, encoding=schema.encoding, data=schema.data)
+            self._chunk.added(len(added[0][1]), message=False)
         self._writer.register_channel(topic=name, message_encoding=channel.message_encoding,
                                       schema_id=schema_id, metadata=channel.metadata)
+        self._chunk.added(len(added[-1][1]), message=False)
         self._summary_records += added
         self.topics[name] = record
         return record
@@ -513,6 +545,12 @@ class BagWriter:
             cdr_bytes: CDR with its 4-byte encapsulation header, as received from DDS.
             log_time_ns: receive time, nanoseconds since the epoch (the bag's time axis).
             publish_time_ns: send time (default: ``log_time_ns``).
+
+        Raises:
+            MessageTooLargeError: no chunk can hold the message (:func:`max_chunk_bytes`); it
+                is left out and the bag goes on.
+            ValueError: not CDR, or a negative time.
+            BagWriteError: the write failed; the bag is closed (see the module docstring).
         """
         self._check_open()
         record = self.topics.get(topic)
@@ -525,10 +563,10 @@ class BagWriter:
         log_time_ns = int(log_time_ns)
         if log_time_ns < 0:
             raise ValueError(f'log_time_ns must be >= 0, got {log_time_ns}')
-        self._writer.add_message(
+        self._chunk.add_message(
             channel_id=record.channel_id, log_time=log_time_ns, data=data,
             publish_time=log_time_ns if publish_time_ns is None else int(publish_time_ns),
-            sequence=record.message_count & 0xFFFFFFFF)
+            sequence=record.message_count & 0xFFFFFFFF, topic=topic)
         record.message_count += 1
         self._write_out()  # a chunk, if this message filled one
         self._times.add(log_time_ns)
@@ -555,6 +593,7 @@ class BagWriter:
         """
         self._check_open()
         self._writer.flush()
+        self._chunk.closed()
         self._write_out()
         if self.config.fsync:
             self._fsync()
@@ -585,6 +624,7 @@ class BagWriter:
         if self._closed:
             return
         self._writer.flush()  # last chunk first: the metadata record then follows all data
+        self._chunk.closed()
         self._write_out()
         contents = self._file.contents
         try:
@@ -809,6 +849,71 @@ def _record_bytes(record: Any) -> bytes:
     builder = RecordBuilder()
     record.write(builder)
     return builder.end()
+
+
+class ChunkFill:
+    """The open chunk of an mcap ``Writer``, counted as its chunk builder counts it, so that no
+    record takes a chunk past :func:`max_chunk_bytes` (the reader refuses such a chunk).
+
+    The mcap writer closes a chunk only once it has passed ``chunk_size``, so a chunk would hold
+    ``chunk_size`` plus a whole message; here the chunk is closed first when the next record
+    would not fit. Schemas and channels go into the open chunk too and stay there until a
+    message closes it with them.
+
+    Args:
+        writer: the mcap writer, chunked, every record of which goes through this object.
+        chunk_size: the writer's ``chunk_size``.
+    """
+
+    def __init__(self, writer: Writer, chunk_size: int) -> None:
+        self._writer = writer
+        self._chunk_size = chunk_size
+        self._limit = max_chunk_bytes()
+        self.size = 0
+        """Uncompressed bytes of the open chunk."""
+        self.messages = 0
+        """Messages in the open chunk."""
+
+    def room(self, size: int) -> bool:
+        """Make room for a record of ``size`` bytes: close the open chunk if the record would
+        take it past the limit. False if the record cannot fit in any chunk (nothing changed)."""
+        if self.size + size <= self._limit:
+            return True
+        if not self.messages or size > self._limit:
+            return False  # a chunk without messages is never closed: its records stay
+        self._writer.flush()
+        self.closed()
+        return True
+
+    def added(self, size: int, *, message: bool) -> None:
+        """A record of ``size`` bytes went into the open chunk (the mcap writer then closes the
+        chunk once past ``chunk_size``, if it holds a message)."""
+        self.size += size
+        self.messages += message
+        if self.messages and self.size > self._chunk_size:
+            self.closed()
+
+    def closed(self) -> None:
+        """The mcap writer was flushed: a chunk with messages is closed (one without stays)."""
+        if self.messages:
+            self.size = self.messages = 0
+
+    def add_message(self, *, channel_id: int, log_time: int, data: bytes, publish_time: int,
+                    sequence: int, topic: str) -> None:
+        """``writer.add_message`` of a message that fits a chunk.
+
+        Raises:
+            MessageTooLargeError: it does not (nothing is written).
+        """
+        size = MESSAGE_RECORD_OVERHEAD + len(data)
+        if not self.room(size):
+            raise MessageTooLargeError(
+                f'a message of {len(data)} bytes on {topic} left out: a chunk holds at most '
+                f'{self._limit} bytes, a message at most '
+                f'{self._limit - self.size - MESSAGE_RECORD_OVERHEAD} of them')
+        self._writer.add_message(channel_id=channel_id, log_time=log_time, data=data,
+                                 publish_time=publish_time, sequence=sequence)
+        self.added(size, message=True)
 
 
 def new_mcap_writer(stream: Any, config: BagWriterConfig) -> Writer:

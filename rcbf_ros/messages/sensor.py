@@ -50,6 +50,8 @@ MIN_VOXEL_SIZE = 1.0e-3
 FLOAT32, FLOAT64 = 7, 8
 """sensor_msgs/PointField datatypes of the coordinates read here."""
 _FIELD_SIZE = {FLOAT32: 4, FLOAT64: 8}
+_COORDINATES = ('x', 'y', 'z')
+"""The fields read from a cloud: each declared once, their bytes disjoint within a point."""
 
 
 class SensorPoints(NamedTuple):
@@ -273,7 +275,7 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         ranges = np.frombuffer(cursor.view, dtype=cursor.order + 'f4', count=count,
                                offset=start).astype(np.float64)
         # NaN fails both comparisons; so do +-inf where both bounds are finite
-        valid = (ranges >= range_min) & (ranges <= range_max)
+        valid = (ranges >= max(range_min, 0.0)) & (ranges <= range_max)  # REP 117: r >= 0
         if not (math.isfinite(range_min) and math.isfinite(range_max)):
             valid &= np.isfinite(ranges)
         every = np.count_nonzero(valid) == count
@@ -305,7 +307,9 @@ def cloud_points(data: bytes | memoryview, *, min_height: float = -math.inf,
     """The valid points of a PointCloud2 sample, in its frame.
 
     x, y and z are found by name in ``fields`` (FLOAT32 or FLOAT64, any offset within
-    point_step, either byte order, any height); point (row r, column c) starts at byte
+    point_step, either byte order, any height); each must be declared once, and their bytes
+    (count x the datatype's size each; the first element is read) lie within point_step and
+    apart, else the cloud is refused naming the field. Point (row r, column c) starts at byte
     r row_step + c point_step of ``data``. A point counts where x, y and z are finite and
     min_height <= z <= max_height. With ``voxel_size`` > 0, the points are thinned on a grid of
     that cell size in x, y: each occupied cell gives its centre, and ``spread`` is half the
@@ -326,13 +330,16 @@ def cloud_points(data: bytes | memoryview, *, min_height: float = -math.inf,
         if n_fields > MAX_FIELDS:
             return Refused(f'{POINT_CLOUD2}: fields has {n_fields} entries, more than the bound '
                            f'{MAX_FIELDS}')
-        fields: dict[str, tuple[int, int, int]] = {}
+        fields: dict[str, tuple[int, int, int, int]] = {}  # offset, datatype, count, index
         for k in range(n_fields):
             name = cursor.string(f'fields[{k}].name', MAX_FRAME_ID)
             offset = cursor.uint32(f'fields[{k}].offset')
             datatype = cursor.uint8(f'fields[{k}].datatype')
             field_count = cursor.uint32(f'fields[{k}].count')
-            fields.setdefault(name, (offset, datatype, field_count))
+            if name in _COORDINATES and name in fields:  # which one is meant cannot be told
+                return Refused(f'{POINT_CLOUD2}: field {name!r} is declared twice '
+                               f'(fields[{fields[name][3]}] and fields[{k}])')
+            fields.setdefault(name, (offset, datatype, field_count, k))
         big = bool(cursor.uint8('is_bigendian'))
         point_step = cursor.uint32('point_step')
         row_step = cursor.uint32('row_step')
@@ -342,24 +349,28 @@ def cloud_points(data: bytes | memoryview, *, min_height: float = -math.inf,
             return Refused(f'{POINT_CLOUD2}: point_step {point_step} is more than the bound '
                            f'{MAX_POINT_STEP}')
         columns = []
-        for axis in ('x', 'y', 'z'):
+        spans: list[tuple[int, int]] = []  # the bytes of x, y, z in a point: [begin, end)
+        for axis in _COORDINATES:
             if axis not in fields:
                 return Refused(f'{POINT_CLOUD2}: no field {axis!r} (fields: '
                                f'{", ".join(sorted(fields))[:100] or "none"})')
-            offset, datatype, field_count = fields[axis]
+            offset, datatype, field_count, _ = fields[axis]
             if datatype not in _FIELD_SIZE:
                 return Refused(f'{POINT_CLOUD2}: field {axis!r} has datatype {datatype}, not '
                                f'FLOAT32 ({FLOAT32}) or FLOAT64 ({FLOAT64})')
             if field_count < 1:
                 return Refused(f'{POINT_CLOUD2}: field {axis!r} has count 0')
-            if offset + _FIELD_SIZE[datatype] > point_step:
-                return Refused(f'{POINT_CLOUD2}: field {axis!r} at offset {offset} ends past '
-                               f'point_step {point_step}')
-            for other, (begins, kind) in zip('xyz', columns):   # disjoint bytes of a point
-                if offset < begins + _FIELD_SIZE[kind] and begins < offset + _FIELD_SIZE[datatype]:
+            end = offset + field_count * _FIELD_SIZE[datatype]  # every element of the field
+            if end > point_step:
+                return Refused(f'{POINT_CLOUD2}: field {axis!r} at offset {offset} ({field_count} '
+                               f'x {_FIELD_SIZE[datatype]} bytes) ends past point_step '
+                               f'{point_step}')
+            for other, (begins, ends) in zip(_COORDINATES, spans):  # disjoint bytes of a point
+                if offset < ends and begins < end:
                     return Refused(f'{POINT_CLOUD2}: fields {other!r} and {axis!r} overlap '
-                                   f'(offsets {begins} and {offset})')
+                                   f'(bytes {begins}..{ends - 1} and {offset}..{end - 1})')
             columns.append((offset, datatype))
+            spans.append((offset, end))
         if count == 0:
             if size:
                 return Refused(f'{POINT_CLOUD2}: height {height} x width {width} declares no '

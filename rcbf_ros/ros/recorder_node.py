@@ -13,7 +13,7 @@ import sys
 from typing import Any, Callable, Sequence
 
 from rcbf_ros.bag import BagWriter, BagWriterConfig, RecordedQos
-from rcbf_ros.bag.writer import BagWriteError
+from rcbf_ros.bag.writer import BagWriteError, max_chunk_bytes, MessageTooLargeError
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, TopicSpec
 from rcbf_ros.parameters.reader import PERIOD_LIMITS_S, setting
 from rcbf_ros.ros.node_main import declare_settings, run_node
@@ -26,8 +26,9 @@ from rcbf_ros.ros.runtime import (
     ReliabilityPolicy,
 )
 
-MAX_CHUNK_SIZE = 64 * 1024 * 1024
-"""The largest ``chunk_size`` (bytes): an open chunk is held in memory until it closes."""
+MAX_CHUNK_SIZE = max_chunk_bytes()
+"""The largest ``chunk_size`` (bytes): the largest chunk the bag reader accepts (an open chunk
+is held in memory until it closes)."""
 
 
 @dataclass(frozen=True)
@@ -169,6 +170,8 @@ class Recorder:
         """The write error that stopped the recording (None while recording)."""
         self.refused_samples = 0
         """Samples the bag refused (no CDR encapsulation header): left out, counted."""
+        self.oversized_samples: dict[str, int] = {}
+        """Per topic, samples too large for any chunk of the bag: left out, counted."""
 
     def _stop(self, error: BagWriteError) -> None:
         self.stopped = error
@@ -197,6 +200,12 @@ class Recorder:
             self.writer.write(topic, cdr_payload(sample), self.clock_ns())
         except BagWriteError as exc:
             self._stop(exc)
+        except MessageTooLargeError as exc:  # left out, the recording goes on
+            seen = self.oversized_samples.get(topic, 0)
+            self.oversized_samples[topic] = seen + 1
+            if not seen:
+                self.report(f'{exc} (the first on {topic}; later ones are counted, not '
+                            'reported)')
         except ValueError as exc:  # not a CDR sample: left out, the recording goes on
             self.refused_samples += 1
             if self.refused_samples == 1:
@@ -349,8 +358,12 @@ def main(args: Sequence[str] | None = None) -> int:
         per_topic = ', '.join(f'{name}: {n}' for name, n in counts.items()) or 'no topics'
         if node.recorder.stopped is not None:
             stopped.append(node.recorder.stopped)
+        oversized = node.recorder.oversized_samples
         node.get_logger().info(
             f'bag {node.bag_directory} closed: {total} messages ({per_topic})'
+            + (f'; left out, too large for a chunk: {sum(oversized.values())} '
+               f'({", ".join(f"{name}: {n}" for name, n in oversized.items())})'
+               if oversized else '')
             + ('; recording had stopped on a write error' if stopped else ''))
 
     status = run_node('recorder', RecorderNode, args, on_exit=close_bag,

@@ -15,7 +15,11 @@ Messages are published as the recorded CDR bytes, with the QoS of the recorded p
 (:func:`rcbf_ros.bag.playback.replay_qos`). The bag is read and checked in full before anything
 is published: a missing, empty, damaged (chunk or data CRC mismatch), foreign or cut-short file
 ends the node with one line naming the file and what is wrong, exit status 2 (a bag whose
-recorder was killed plays after ``rcbf_ros bag recover <bag>``). The messages are then
+recorder was killed plays after ``rcbf_ros bag recover <bag>``). Only topics recorded as CDR
+with a ROS schema (``ros2msg`` or ``ros2idl``) can be published as recorded
+(:func:`rcbf_ros.bag.playback.topics_to_play`): any other is left out with one warning line
+naming it and its encoding, or, named in ``topics``, refused (exit 2). A message that DDS
+refuses to send all the same stops the replay with one line, exit 2. The messages are then
 streamed from the bag (read again for every loop), one at a time: the node's memory does not
 grow with the bag. Offline processing of a bag
 (e.g. re-filtering) does not go through this node: use
@@ -29,7 +33,12 @@ import time
 from typing import Any, Iterator, Sequence
 
 from rcbf_ros.bag import bag_info, BagError, BagMessage
-from rcbf_ros.bag.playback import iter_bag_messages, playback_schedule, replay_qos
+from rcbf_ros.bag.playback import (
+    iter_bag_messages,
+    playback_schedule,
+    replay_qos,
+    topics_to_play,
+)
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, TopicSpec
 from rcbf_ros.parameters.reader import PERIOD_LIMITS_S, RATE_LIMITS_HZ, setting
 from rcbf_ros.ros.node_main import declare_settings, run_node
@@ -82,13 +91,20 @@ class ReplayNode(Node):
         super().__init__('replay')
         self.config = self._read_config()
         info = bag_info(self.config.bag, allow_cut_short=False)
-        wanted = set(self.config.topics) or set(info.topics)
-        missing = wanted - set(info.topics)
-        if missing:
-            raise ValueError(f'topics {sorted(missing)} are not in bag {self.config.bag!r}')
+        try:
+            wanted, skipped = topics_to_play(info, self.config.topics)
+        except ValueError as exc:
+            raise ValueError(f'bag {self.config.bag!r}: {exc}') from None
+        for line in skipped:
+            self.get_logger().warning(line)
         self.publishers_by_topic: dict[str, Any] = {}
-        for name in sorted(wanted):
+        for name in wanted:
             topic = info.topics[name]
+            try:
+                message_type = get_message(topic.type_name)
+            except (AttributeError, ImportError, TypeError) as exc:  # ValueError: run_node's
+                raise ValueError(f'topic {name}: type {topic.type_name!r} unknown '
+                                 f'({type(exc).__name__}: {exc})') from None
             qos = replay_qos(topic.offered_qos)
             profile = QoSProfile(
                 history=HistoryPolicy.KEEP_ALL, depth=1000,
@@ -97,8 +113,7 @@ class ReplayNode(Node):
                 durability=(DurabilityPolicy.TRANSIENT_LOCAL
                             if qos.durability == 'transient_local'
                             else DurabilityPolicy.VOLATILE))
-            self.publishers_by_topic[name] = self.create_publisher(
-                get_message(topic.type_name), name, profile)
+            self.publishers_by_topic[name] = self.create_publisher(message_type, name, profile)
         self.failure = ''
         """Why playing stopped before the end ('' if it did not)."""
         self.wanted = frozenset(wanted)
@@ -145,7 +160,13 @@ class ReplayNode(Node):
             for item in playback_schedule(self.messages, rate=self.config.rate,
                                           loops=0 if self.config.loop else 1):
                 self._sleep_until(start + item.send_offset_s)
-                self.publishers_by_topic[item.message.topic].publish(item.message.data)
+                topic = item.message.topic
+                try:
+                    self.publishers_by_topic[topic].publish(item.message.data)
+                except (RuntimeError, ValueError) as exc:  # DDS refused the bytes: one line
+                    self.failure = (f'{topic}: the message logged at {item.message.log_time_ns} '
+                                    f'ns not published ({exc})')
+                    return
                 self.published += 1
         except BagError as exc:  # the bag changed after it was checked: stop, one line
             self.failure = str(exc)

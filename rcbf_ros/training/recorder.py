@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+import sys
+from typing import Any, Callable
 
 import numpy as np
 
@@ -24,12 +25,28 @@ class RunRecorder:
         '/learner/metrics': 'std_msgs/msg/String',
     }
 
-    def __init__(self, directory: Path) -> None:
+    def __init__(self, directory: Path, report: Callable[[str], None] | None = None) -> None:
         from rcbf_ros.bag.writer import BagWriter
         self.writer = BagWriter(directory)
         for name, type_name in self.TOPICS.items():
             self.writer.add_topic(name, type_name)
         self.t_ns = 0
+        self.report = report or (lambda line: print(line, file=sys.stderr, flush=True))
+        """Where the line about a message left out goes (once per topic)."""
+        self.oversized: dict[str, int] = {}
+        """Per topic, messages too large for any chunk of the bag: left out, counted."""
+
+    def _write(self, topic: str, message: Any, t_ns: int) -> None:
+        """Write one message; one too large for the bag is left out and counted, the first
+        on each topic reported, and the run goes on."""
+        from rcbf_ros.bag.writer import MessageTooLargeError
+        try:
+            self.writer.write_message(topic, message, t_ns)
+        except MessageTooLargeError as exc:
+            seen = self.oversized.get(topic, 0)
+            self.oversized[topic] = seen + 1
+            if not seen:
+                self.report(f'{exc} (the first on {topic}; later ones are counted)')
 
     @staticmethod
     def _array(sections: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -44,20 +61,20 @@ class RunRecorder:
         """One step as the nodes publish it: the command alone on /cmd_safe, the details on
         /filter_info (``result``: the filter's, None when the run is not filtered)."""
         self.t_ns = t_ns
-        self.writer.write_message('/state', self._array({'state': state}), t_ns)
-        self.writer.write_message('/cmd_proposed', self._array({
+        self._write('/state', self._array({'state': state}), t_ns)
+        self._write('/cmd_proposed', self._array({
             'u': proposal.u_proposed, 'disturbance_mean': proposal.disturbance_mean,
             'disturbance_std': proposal.disturbance_std, 'state': state}), t_ns)
-        self.writer.write_message('/cmd_safe', self._array({'u': u_safe}), t_ns)
+        self._write('/cmd_safe', self._array({'u': u_safe}), t_ns)
         fail_safe = bool(result is not None and result.fail_safe)
-        self.writer.write_message('/filter_info', self._array(info_sections(
+        self._write('/filter_info', self._array(info_sections(
             u=u_safe, u_rl=proposal.u_proposed, fail_safe=fail_safe, result=result,
             status=result.status if result is not None else 'solved', state=state)), t_ns)
-        self.writer.write_message('/reward', {'data': float(reward)}, t_ns)
+        self._write('/reward', {'data': float(reward)}, t_ns)
 
     def event(self, topic: str, payload: dict[str, Any]) -> None:
         """``payload`` as JSON on a String topic, stamped with the last step's time."""
-        self.writer.write_message(topic, {'data': json.dumps(payload)}, self.t_ns)
+        self._write(topic, {'data': json.dumps(payload)}, self.t_ns)
 
     def close(self) -> None:
         """Finish the MCAP (summary, statistics, metadata)."""

@@ -228,8 +228,9 @@ def test_bad_input_is_named(tmp_path: Path) -> None:
 _KILLED_WRITER = textwrap.dedent("""
     import sys, time
     from rcbf_ros.bag import BagWriter, BagWriterConfig
-    # Huge chunks and no timed flush: only the explicit flush() puts data on disk.
-    config = BagWriterConfig(chunk_size=1 << 30, flush_period_s=3600.0)
+    from rcbf_ros.bag.writer import max_chunk_bytes
+    # The largest chunks and no timed flush: only the explicit flush() puts data on disk.
+    config = BagWriterConfig(chunk_size=max_chunk_bytes(), flush_period_s=3600.0)
     bag = BagWriter(sys.argv[1], config=config)
     bag.add_topic('/state', 'std_msgs/msg/Float64MultiArray')
     bag.add_topic('/cmd', 'geometry_msgs/msg/Twist')
