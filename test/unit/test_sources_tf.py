@@ -265,8 +265,8 @@ def test_points_placed_through_the_robot_frame_are_those_the_range_test_keeps(
     if max(map(abs, position)) <= 1e6:  # the range itself, where rounding is far below it
         from rcbf_ros.node_logic.sources import MAX_RANGE
         beams = np.asarray(ranges, np.float32).astype(np.float64)
-        valid = beams[(beams >= np.float32(range_min)) & (beams <= np.float32(range_max))
-                      & np.isfinite(beams)]
+        valid = beams[(beams >= max(np.float32(range_min), 0.0))  # REP 117: r >= 0
+                      & (beams <= np.float32(range_max)) & np.isfinite(beams)]
         distance = np.hypot(*(kept[0] - position).T)
         assert (distance <= MAX_RANGE * (1 + 1e-9)).all()
         mounted = 1.0 if frame == 'laser' else 1e-6  # the mount's offset, or rounding
