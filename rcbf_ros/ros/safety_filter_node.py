@@ -35,6 +35,8 @@ from rcbf_ros.node_logic.sources import ObservationSources, SENSOR_MESSAGES, top
 from rcbf_ros.node_logic.tf_buffer import DEFAULT_CACHE_S
 from rcbf_ros.ros.node_main import declare_specs, run_node, spin
 from rcbf_ros.ros.runtime import (
+    Clock,
+    ClockType,
     deserialize_message,
     DurabilityPolicy,
     get_message,
@@ -523,13 +525,17 @@ class SafetyFilterNode(Node):
 
     def _arm_hold_timer(self) -> None:
         """The hold timer at the period of the active filter's ``control_period_s``
-        (:func:`logic.hold_timer_period_s`; none for 0), created again when it changes."""
+        (:func:`logic.hold_timer_period_s`; none for 0), created again when it changes. It
+        runs on the steady clock: with ``use_sim_time`` a node's timers follow ``/clock``, and
+        the answer within ``control_period_s`` (the fail-safe of a quiet loop) must not wait
+        for a clock publisher that stopped or never started."""
         period = logic.hold_timer_period_s(self.config.control_period_s)
         if period == self._hold_period_s:
             return
         if self._hold_timer is not None:
             self.destroy_timer(self._hold_timer)
-        self._hold_timer = None if period is None else self.create_timer(period, self._on_hold)
+        self._hold_timer = None if period is None else self.create_timer(
+            period, self._on_hold, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._hold_period_s = period
 
     def _on_hold(self) -> None:

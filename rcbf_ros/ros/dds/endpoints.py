@@ -271,10 +271,11 @@ class Subscription(_TopicEndpoint, DropsUndecodable, WarnsIncompatibleQos):
 class Timer:
     """rclpy.timer.Timer subset; missed periods are skipped, not queued.
 
-    It runs on the monotonic clock, or, while ``clock`` (the node's) follows ``/clock``
-    (``use_sim_time``), on that time as rcl's ROS-time timers do: due when the simulated time
-    reaches the next period; restarted one period after the time jumps back beyond the last
-    call. A switch of ``use_sim_time`` restarts the period in the new time.
+    It runs on the monotonic clock, or, while ``clock`` (a node's ``ROS_TIME`` clock) follows
+    ``/clock`` (``use_sim_time``), on that time as rcl's ROS-time timers do: due when the
+    simulated time reaches the next period; restarted one period after the time jumps back
+    beyond the last call. A switch of ``use_sim_time`` restarts the period in the new time. On
+    a ``STEADY_TIME`` (or ``SYSTEM_TIME``) clock it never follows ``/clock``.
     """
 
     def __init__(self, period_ns: int, callback: Callable[[], None],

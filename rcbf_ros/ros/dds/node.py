@@ -24,7 +24,7 @@ from rcbf_ros.parameters.arguments import (
     parameter_overrides as collect_parameter_overrides,
 )
 from rcbf_ros.ros.dds import messages, services
-from rcbf_ros.ros.dds.clock import Clock
+from rcbf_ros.ros.dds.clock import Clock, ClockType
 from rcbf_ros.ros.dds.context import (
     Context,
     default_context,
@@ -129,7 +129,7 @@ class Node(NodeParameters, NodeGraph):
             self.declare_parameters('', [(name, parameter.value, parameter_descriptor())
                                          for name, parameter in self._parameter_overrides.items()],
                                     ignore_override=True)
-        self._clock = Clock()
+        self._clock = Clock(clock_type=ClockType.ROS_TIME)
         self._topics: dict[tuple[str, str], Topic] = {}
         self._publishers: list[Publisher] = []
         self._subscriptions: list[Subscription] = []
@@ -209,14 +209,18 @@ class Node(NodeParameters, NodeGraph):
                            self._subscriptions)
 
     def create_timer(self, timer_period_sec: float, callback: Callable[[], None],
+                     callback_group: Any = None, clock: Clock | None = None,
                      **_ignored: Any) -> Timer:
-        """A timer calling ``callback`` every ``timer_period_sec`` seconds.
+        """A timer calling ``callback`` every ``timer_period_sec`` seconds of ``clock`` (None:
+        the node's, which follows ``/clock`` while ``use_sim_time`` is true; a ``STEADY_TIME``
+        clock: the monotonic clock, whatever ``/clock`` does), as rclpy's.
 
         Raises:
             ValueError: one line naming ``timer_period_sec``: not a number, or one whose
                 nanoseconds are not a positive int64 (:func:`timer_period_ns`).
         """
-        timer = Timer(timer_period_ns(timer_period_sec), callback, self._clock)
+        timer = Timer(timer_period_ns(timer_period_sec), callback,
+                      self._clock if clock is None else clock)
         self._timers.append(timer)
         self._wake()
         return timer
