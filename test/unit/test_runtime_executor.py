@@ -54,6 +54,28 @@ def test_a_timer_on_the_steady_clock_ticks_while_the_simulated_time_stands_still
     assert len(on_steady) >= 5 and not on_ros_time
 
 
+def test_a_guard_condition_triggered_from_another_thread_runs_its_callback_in_the_spin(node):
+    calls = []
+    guard = node.create_guard_condition(lambda: calls.append(threading.get_ident()))
+    triggers = [threading.Thread(target=guard.trigger) for _ in range(3)]
+    for thread in triggers:
+        thread.start()
+    for thread in triggers:
+        thread.join()
+    for _ in range(100):   # spin_once waits for the wake-up: the first call runs it
+        if calls:
+            break
+        rclpy.spin_once(node, timeout_sec=0.1)
+    for _ in range(3):
+        rclpy.spin_once(node, timeout_sec=0.01)
+    assert calls == [threading.get_ident()]  # three triggers before the spin: one call
+    assert node.destroy_guard_condition(guard) and not node.destroy_guard_condition(guard)
+    guard.trigger()
+    for _ in range(3):
+        rclpy.spin_once(node, timeout_sec=0.01)
+    assert len(calls) == 1
+
+
 def test_a_clock_of_no_known_type_is_refused():
     with pytest.raises(TypeError, match='clock_type'):
         rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.UNINITIALIZED)

@@ -32,7 +32,7 @@ from rcbf_ros.ros.dds.context import (
     new_ready_queue,
     NodeWaitSet,
 )
-from rcbf_ros.ros.dds.endpoints import Publisher, Subscription, Timer
+from rcbf_ros.ros.dds.endpoints import GuardCondition, Publisher, Subscription, Timer
 from rcbf_ros.ros.dds.graph import gid_of
 from rcbf_ros.ros.dds.log import LEVEL_NAMES, Logger
 from rcbf_ros.ros.dds.node_graph import NodeGraph
@@ -137,6 +137,7 @@ class Node(NodeParameters, NodeGraph):
         """Endpoint by the handle of its reader or writer, which the wait set waits on for
         incompatible QoS (:class:`rcbf_ros.ros.dds.endpoints.WarnsIncompatibleQos`)."""
         self._timers: list[Timer] = []
+        self._guard_conditions: list[GuardCondition] = []
         self._ready = new_ready_queue()
         self._spin_lock = threading.Lock()
         self._waitset: NodeWaitSet | None = NodeWaitSet(self.context.participant)
@@ -225,6 +226,14 @@ class Node(NodeParameters, NodeGraph):
         self._wake()
         return timer
 
+    def create_guard_condition(self, callback: Callable[[], None], callback_group: Any = None
+                               ) -> GuardCondition:
+        """A guard condition whose :meth:`~GuardCondition.trigger` (from any thread) has the
+        executor call ``callback`` (rclpy's ``Node.create_guard_condition``)."""
+        guard = GuardCondition(callback, self._wake)
+        self._guard_conditions.append(guard)
+        return guard
+
     def create_service(self, srv_type: Any, srv_name: str,
                        callback: Callable[[Any, Any], Any], *,
                        qos_profile: QoSProfile = services.qos_profile_services_default,
@@ -256,6 +265,15 @@ class Node(NodeParameters, NodeGraph):
             return False
         self._timers.remove(timer)
         timer.destroy()
+        return True
+
+    def destroy_guard_condition(self, guard: GuardCondition) -> bool:
+        """Forget ``guard`` (its triggers wake nothing any more); False if it is not this
+        node's."""
+        if guard not in self._guard_conditions:
+            return False
+        self._guard_conditions.remove(guard)
+        guard.destroy()
         return True
 
     def _adopt(self, endpoint: Any, endpoints: list[Any]) -> Any:
@@ -295,8 +313,9 @@ class Node(NodeParameters, NodeGraph):
             self._event_endpoints.pop(events._ref, None)
 
     def _wake(self) -> None:
-        if self._guard is not None:
-            self._guard.set(True)
+        guard = self._guard  # None once destroyed (from another thread: read once)
+        if guard is not None:
+            guard.set(True)
 
     # teardown -------------------------------------------------------------------------------
     def destroy_node(self) -> None:
@@ -308,6 +327,9 @@ class Node(NodeParameters, NodeGraph):
             self._rosout.close()
         for timer in self._timers:
             timer.destroy()
+        for guard in self._guard_conditions:
+            guard.destroy()
+        self._guard_conditions = []
         for endpoint in (*self._subscriptions, *self._publishers, *self._service_endpoints):
             self._detach(endpoint)
             endpoint.destroy()
