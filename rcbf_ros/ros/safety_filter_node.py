@@ -19,7 +19,7 @@ import gc
 import os
 import sys
 import time
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -334,8 +334,7 @@ class SafetyFilterNode(Node):
 
     def _obstacles_job(self, data: bytes) -> _ObstaclesJob:
         """What a build of ``data`` needs of the node, read now (on the executor)."""
-        return _ObstaclesJob(data=data, base=self._active, current=self._parameter_values(),
-                             probes=self._probe_states())
+        return _ObstaclesJob(data=data, base=self._active, probes=self._probe_states())
 
     def _build_obstacles(self, job: _ObstaclesJob) -> _ObstaclesBuild:
         """The obstacle parameters of ``job``'s sample and the filter they give over the
@@ -347,7 +346,7 @@ class SafetyFilterNode(Node):
             return _ObstaclesBuild({}, None, str(exc) if isinstance(exc, ValueError)
                                    else _one_line(exc))
         try:
-            merged = logic.merged_parameters(current=job.current, changes=changes)
+            merged = logic.merged_parameters(current=job.base.params, changes=changes)
             if logic.same_parameters(merged, job.base.params):
                 return _ObstaclesBuild(changes, None)
             return _ObstaclesBuild(changes, self._build(merged, job.probes, list(changes)))
@@ -377,7 +376,7 @@ class SafetyFilterNode(Node):
                 if all(active.params.get(k) == v for k, v in build.changes.items()):
                     return  # this set is in force already
                 if build.candidate is None or not _same_but(
-                        finished.job.current, self._parameter_values(), build.changes):
+                        finished.job.base.params, active.params, build.changes):
                     prebuilt = None  # built for other parameters: built again, here
             elif build.candidate is None:
                 return  # the same obstacles as in force
@@ -789,9 +788,8 @@ class _ObstaclesJob(NamedTuple):
 
     data: bytes
     base: logic.ActiveFilter
-    """The filter in force when the sample arrived."""
-    current: dict[str, Any]
-    """Every parameter's value then (:meth:`SafetyFilterNode._parameter_values`)."""
+    """The filter in force when the sample arrived: the new one is built from its parameters
+    (a snapshot, read without copying them) with the sample's obstacles."""
     probes: tuple[Any, ...]
     """The states the new filter must filter at (:meth:`SafetyFilterNode._probe_states`)."""
 
@@ -807,7 +805,7 @@ class _ObstaclesBuild(NamedTuple):
     """Why the sample is refused, one line ('' when it is not)."""
 
 
-def _same_but(a: dict[str, Any], b: dict[str, Any], keys: Any) -> bool:
+def _same_but(a: Mapping[str, Any], b: Mapping[str, Any], keys: Any) -> bool:
     """Whether two flat parameter dicts agree on every key but ``keys``."""
     return logic.same_parameters({k: v for k, v in a.items() if k not in keys},
                                  {k: v for k, v in b.items() if k not in keys})
