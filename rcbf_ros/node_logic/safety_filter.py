@@ -530,12 +530,18 @@ def same_parameters(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
         type(a[key]) is type(b[key]) and repr(a[key]) == repr(b[key]) for key in a)
 
 
+_NOT_SET = object()
+
+
 def describe_changes(*, old: Mapping[str, Any], new: Mapping[str, Any],
                      width: int = 160) -> str:
     """``key: old -> new`` for every key whose value differs, ``; `` between them (each value
     cut to ``width`` characters); '' when nothing differs."""
     def shown(key: str, params: Mapping[str, Any]) -> str:
-        text = repr(params[key]) if key in params else 'not set'
+        value = params.get(key, _NOT_SET)
+        if isinstance(value, list) and len(value) > width:  # its text begins the same
+            value = value[:width]
+        text = 'not set' if value is _NOT_SET else repr(value)
         return text if len(text) <= width else text[:width - 3] + '...'
     keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
     return '; '.join(f'{key}: {shown(key, old)} -> {shown(key, new)}' for key in keys)
@@ -784,6 +790,19 @@ def hold_due(*, control_period_s: float, timer_period_s: float, last_answer_ns: 
     if not control_period_s > 0 or last_answer_ns is None:
         return False
     return (now_ns - last_answer_ns) * 1e-9 + timer_period_s >= control_period_s
+
+
+def answer_overrun_s(*, control_period_s: float, previous_ns: int | None,
+                     now_ns: int) -> float | None:
+    """By how much (s) an answer at ``now_ns`` comes later than ``control_period_s`` after the
+    previous one (``previous_ns``): None when it does not, when there is no period (0: no
+    promise to keep) or no previous answer. With a period the hold timer answers within it, so
+    an overrun means the node could not answer meanwhile (a long callback, an overloaded
+    machine)."""
+    if not control_period_s > 0 or previous_ns is None:
+        return None
+    over_s = (now_ns - previous_ns) * 1e-9 - control_period_s
+    return over_s if over_s > 0 else None
 
 
 def decide_hold(*, held: HeldProposal | None, safety_filter: SafetyFilter,

@@ -8,6 +8,8 @@ Selection (once, at import):
 - unset / ``auto``: rclpy when ``import rclpy`` works (a sourced ROS 2 install), else Cyclone.
 
 Both expose the same surface (see the names below); ``USING_RCLPY`` tells which one is active.
+``Clock(clock_type=ClockType.STEADY_TIME)`` is the clock of a timer that must fire whatever
+``/clock`` and ``use_sim_time`` do (``create_timer(..., clock=...)``).
 Parameters: ``Parameter`` (with ``Parameter.Type``), ``ParameterDescriptor`` (the
 rcl_interfaces message; pass a new one to every declaration, rclpy keeps and modifies it) and
 ``ParameterException``, the base of rclpy's parameter errors (an override of the wrong type, an
@@ -35,6 +37,7 @@ if _CHOICE != 'cyclone':
 if USING_RCLPY:
     from rcl_interfaces.msg import ParameterDescriptor
     import rclpy
+    from rclpy.clock import Clock, ClockType
     from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException
     from rclpy.node import Node
@@ -52,6 +55,7 @@ else:
     from rcbf_ros.messages.cdr import deserialize_message, serialize_message
     from rcbf_ros.messages.classes import get_message
     from rcbf_ros.ros.dds import rclpy_compat as rclpy
+    from rcbf_ros.ros.dds.clock import Clock, ClockType
     from rcbf_ros.ros.dds.context import ExternalShutdownException
     from rcbf_ros.ros.dds.node import Node
     from rcbf_ros.ros.dds.parameters import Parameter, ParameterException
@@ -68,8 +72,8 @@ else:
 conversions.use_message_classes(get_message)  # the message builders make what we publish
 
 __all__ = [
-    'DurabilityPolicy', 'ExternalShutdownException', 'HistoryPolicy', 'Node', 'Parameter',
-    'ParameterDescriptor', 'ParameterException', 'QoSProfile', 'ReliabilityPolicy',
-    'USING_RCLPY', 'deserialize_message', 'get_message', 'qos_profile_sensor_data', 'rclpy',
-    'serialize_message',
+    'Clock', 'ClockType', 'DurabilityPolicy', 'ExternalShutdownException', 'HistoryPolicy',
+    'Node', 'Parameter', 'ParameterDescriptor', 'ParameterException', 'QoSProfile',
+    'ReliabilityPolicy', 'USING_RCLPY', 'deserialize_message', 'get_message',
+    'qos_profile_sensor_data', 'rclpy', 'serialize_message',
 ]

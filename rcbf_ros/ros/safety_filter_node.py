@@ -7,8 +7,10 @@ edge (:mod:`rcbf_ros.node_logic.filter_edge`), the checked sample to the decisio
 command first. With ``refilter_on_state`` each state or source message answers the proposal
 in force again, the same way; with ``control_period_s`` > 0 a timer answers it again when no
 answer went out within that period. Parameter changes build a whole new filter and
-swap it in between two callbacks. Topics, the fail-closed handling of bad samples and the
-parameters: docs/SAFETY_FILTER.md and ``safety_filter --help``.
+swap it in between two callbacks; an ``obstacles`` message's filter is built in a worker
+thread (the latest message only) while the filter in force keeps answering. Topics, the
+fail-closed handling of bad samples and the parameters: docs/SAFETY_FILTER.md and
+``safety_filter --help``.
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ import gc
 import os
 import sys
 import time
-from typing import Any, Sequence
+from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -30,11 +32,14 @@ from rcbf_ros.node_logic.filter_edge import Answer, FilterEdge, INPUT_COUNT_KEYS
 from rcbf_ros.node_logic.filter_edge import array_sections as _array_sections  # noqa: F401
 from rcbf_ros.node_logic.filter_edge import one_line as _one_line
 from rcbf_ros.node_logic.interface import bound_text, DIAGNOSTIC_ARRAY
+from rcbf_ros.node_logic.latest_only import Finished, LatestOnlyWorker
 from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME, TF_MESSAGE
 from rcbf_ros.node_logic.sources import ObservationSources, SENSOR_MESSAGES, topic_refusal
 from rcbf_ros.node_logic.tf_buffer import DEFAULT_CACHE_S
 from rcbf_ros.ros.node_main import declare_specs, run_node, spin
 from rcbf_ros.ros.runtime import (
+    Clock,
+    ClockType,
     deserialize_message,
     DurabilityPolicy,
     get_message,
@@ -73,8 +78,10 @@ class SafetyFilterNode(Node):
             self.get_logger().error(f'invalid parameters: {error}')
             raise error from None
         self.system = str(params.get('system'))
-        self._pending: tuple[list[Any], logic.ActiveFilter | None] | None = None
+        self._pending: tuple[list[Any], logic.ActiveFilter | None, bool] | None = None
         self._change_source = ''
+        self._prebuilt: _ObstaclesBuild | None = None
+        """The filter of the ``obstacles`` message being stored, built in the worker."""
         self.add_pre_set_parameters_callback(self._warn_refused)
         self.add_on_set_parameters_callback(self._check_parameter_change)
         self.add_post_set_parameters_callback(self._apply_parameter_change)
@@ -83,6 +90,11 @@ class SafetyFilterNode(Node):
         self._throttle = logic.LogThrottle(self.settings.log_throttle_s)
         self.input_counts = dict.fromkeys(INPUT_COUNT_KEYS, 0)
         """Cumulative ``dropped_samples``, ``refused_proposals``, ``refused_states``."""
+        self.late_answers = 0
+        """Answers that came more than ``control_period_s`` after the previous one."""
+        self._last_published_ns: int | None = None
+        """When the latest answer was published (monotonic ns; :meth:`_note_late_answer`):
+        the answering rules' time of the latest answer is set before it is published."""
 
         qos = QoSProfile(
             depth=self.settings.qos_depth, history=HistoryPolicy.KEEP_LAST,
@@ -105,7 +117,11 @@ class SafetyFilterNode(Node):
         obstacles_qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                                    reliability=ReliabilityPolicy.RELIABLE,
                                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.create_subscription(array_type, 'obstacles', self._on_obstacles, obstacles_qos,
+        self._obstacles_built = self.create_guard_condition(self._on_obstacles_built)
+        self._obstacle_builds: LatestOnlyWorker[_ObstaclesJob, _ObstaclesBuild] = \
+            LatestOnlyWorker(self._build_obstacles, notify=self._obstacles_built.trigger,
+                             rest_ratio=OBSTACLES_REST_RATIO, name='obstacles')
+        self.create_subscription(array_type, 'obstacles', self._take_obstacles, obstacles_qos,
                                  raw=True)
         self._sources = self._subscribe_sources()
         self._rules = AnswerRules(self._sources,
@@ -230,17 +246,21 @@ class SafetyFilterNode(Node):
         """
         result = get_message('rcl_interfaces/msg/SetParametersResult')(successful=True)
         self._pending = None
+        prebuilt, self._prebuilt = self._prebuilt, None
+        if prebuilt is not None:  # an obstacles message's: built and compared in the worker
+            self._pending = (parameters, prebuilt.candidate, True)
+            return result
         if not any(logic.feeds_the_filter(p.name) for p in parameters):
             return result
         try:
             changes = {p.name: p.value for p in parameters}
             merged = logic.merged_parameters(current=self._parameter_values(), changes=changes)
             if logic.same_parameters(merged, self._active.params):
-                self._pending = (parameters, None)
+                self._pending = (parameters, None, False)
                 return result
             probes = self._probe_states()
             self._pending = (parameters, self._build(merged, probes,
-                                                     [p.name for p in parameters]))
+                                                     [p.name for p in parameters]), False)
         except Exception as exc:  # refused whole; whatever the value, the node runs on
             result.successful = False
             # a ValueError names the key itself; an unforeseen error: name the keys set
@@ -277,8 +297,9 @@ class SafetyFilterNode(Node):
     def _swap_in(self, parameters: list[Any]) -> None:
         """Swap in the filter built for ``parameters`` (see :meth:`_apply_parameter_change`)."""
         pending, self._pending = self._pending, None
+        compared = False
         if pending is not None and pending[0] is parameters:
-            candidate = pending[1]
+            _, candidate, compared = pending
         elif any(logic.feeds_the_filter(p.name) for p in parameters):
             try:  # set without the on-set check (none seen): build from what is stored now
                 candidate = self._build(self._parameter_values())
@@ -288,7 +309,8 @@ class SafetyFilterNode(Node):
                 return
         else:
             return
-        if candidate is None or logic.same_parameters(candidate.params, self._active.params):
+        if candidate is None or (not compared and logic.same_parameters(candidate.params,
+                                                                         self._active.params)):
             return
         old, self._active = self._active, candidate  # the one swap
         self._arm_hold_timer()
@@ -298,24 +320,86 @@ class SafetyFilterNode(Node):
         self.get_logger().info(f'filter updated{source}: '
                                f'{logic.describe_changes(old=old.params, new=candidate.params)}')
 
+    def _take_obstacles(self, data: bytes) -> None:
+        """The ``obstacles`` subscription: the sample's filter is built in the worker thread
+        while the filter in force answers; a newer sample replaces one whose build has not
+        started (only the latest is built). :meth:`_on_obstacles_built` stores the result."""
+        self._obstacle_builds.submit(self._obstacles_job(data))
+
     def _on_obstacles(self, data: bytes) -> None:
-        """An ``obstacles`` sample (CDR bytes): the new obstacle set, or an ERROR and the old
-        set kept."""
+        """An ``obstacles`` sample (CDR bytes) built and stored at once, in this thread: the
+        new obstacle set, or an ERROR and the old set kept."""
+        job = self._obstacles_job(data)
+        self._store_obstacles(Finished(job, self._build_obstacles(job)))
+
+    def _obstacles_job(self, data: bytes) -> _ObstaclesJob:
+        """What a build of ``data`` needs of the node, read now (on the executor)."""
+        return _ObstaclesJob(data=data, base=self._active, probes=self._probe_states())
+
+    def _build_obstacles(self, job: _ObstaclesJob) -> _ObstaclesBuild:
+        """The obstacle parameters of ``job``'s sample and the filter they give over the
+        parameters of the job (None: the same as in force), or why it is refused. Runs in the
+        worker thread: reads only the job and the read-only edge. Never raises."""
         try:
-            changes = self._edge.read_obstacles(data)
-            self._change_source = 'obstacles'
+            changes = self._edge.read_obstacles(job.data)
+        except Exception as exc:  # a bad message or a defect
+            return _ObstaclesBuild({}, None, str(exc) if isinstance(exc, ValueError)
+                                   else _one_line(exc))
+        try:
+            merged = logic.merged_parameters(current=job.base.params, changes=changes)
+            if logic.same_parameters(merged, job.base.params):
+                return _ObstaclesBuild(changes, None)
+            return _ObstaclesBuild(changes, self._build(merged, job.probes, list(changes)))
+        except Exception as exc:  # as a parameter set's refusal: a ValueError names the key
+            text = (str(exc) if isinstance(exc, ValueError)
+                    else f'{", ".join(changes)}: {_one_line(exc)}')
+            return _ObstaclesBuild(changes, None, _cut(' '.join(text.split())))
+
+    def _on_obstacles_built(self) -> None:
+        """The worker finished a build (its guard condition, on the executor): store it."""
+        for finished in self._obstacle_builds.take():
+            self._store_obstacles(finished)
+
+    def _store_obstacles(self, finished: Finished[_ObstaclesJob, _ObstaclesBuild]) -> None:
+        """Store a built obstacle set (the one swap, between two answers; the filter comes
+        prebuilt unless the parameters changed since the build started: then it is built
+        here, as a parameter set's), or an ERROR and the old set kept. Never raises."""
+        build = finished.result
+        try:
+            if build is None:  # a defect of the build
+                raise RuntimeError(finished.error)
+            if build.error:
+                raise ValueError(build.error)
+            prebuilt: _ObstaclesBuild | None = build
+            active = self._active
+            if finished.job.base is not active:  # changed since the build started
+                if all(active.params.get(k) == v for k, v in build.changes.items()):
+                    return  # this set is in force already
+                if build.candidate is None or not _same_but(
+                        finished.job.base.params, active.params, build.changes):
+                    prebuilt = None  # built for other parameters: built again, here
+            elif build.candidate is None:
+                return  # the same obstacles as in force
+            self._change_source, self._prebuilt = 'obstacles', prebuilt
             try:
                 result = self.set_parameters_atomically([
                     Parameter(name, Parameter.Type.DOUBLE_ARRAY, values)
-                    for name, values in changes.items()])
+                    for name, values in build.changes.items()])
             finally:
-                self._change_source = ''
+                self._change_source, self._prebuilt = '', None
             if not result.successful:
                 raise ValueError(result.reason)
         except Exception as exc:  # a bad message or a defect: never kills the node
             text = str(exc) if isinstance(exc, ValueError) else _one_line(exc)
             self.get_logger().error(f'obstacles message refused, the obstacles are unchanged: '
                                     f'{" ".join(text.split())}')
+
+    def destroy_node(self) -> Any:
+        """Stop the obstacles worker (a build still running is dropped), then the node."""
+        builds = getattr(self, '_obstacle_builds', None)
+        if builds is not None:
+            builds.close()
+        return super().destroy_node()
 
     # observation sources ---------------------------------------------------------------------
     def _check_topics(self) -> None:
@@ -448,12 +532,13 @@ class SafetyFilterNode(Node):
         self._refilter(now_ns)
 
     def _counts(self) -> dict[str, int]:
-        """The input counts of the diagnostics, with each source's (``<name>.messages``,
+        """The input counts of the diagnostics and ``late_answers``, with each source's
+        (``<name>.messages``,
         ``.refused``, ``.stale``, ``.untransformed``) and tf's (``tf.messages``,
         ``tf.refused``, ``tf.transforms_refused``)."""
+        counts = {**self.input_counts, LATE_ANSWERS: self.late_answers}
         if self._sources is None:
-            return self.input_counts
-        counts = dict(self.input_counts)
+            return counts
         for name, values in self._sources.counts().items():
             counts.update({f'{name}.{key}': value for key, value in values.items()})
         counts.update({f'tf.{key}': value for key, value in self._sources.tf_counts.items()})
@@ -523,13 +608,17 @@ class SafetyFilterNode(Node):
 
     def _arm_hold_timer(self) -> None:
         """The hold timer at the period of the active filter's ``control_period_s``
-        (:func:`logic.hold_timer_period_s`; none for 0), created again when it changes."""
+        (:func:`logic.hold_timer_period_s`; none for 0), created again when it changes. It
+        runs on the steady clock: with ``use_sim_time`` a node's timers follow ``/clock``, and
+        the answer within ``control_period_s`` (the fail-safe of a quiet loop) must not wait
+        for a clock publisher that stopped or never started."""
         period = logic.hold_timer_period_s(self.config.control_period_s)
         if period == self._hold_period_s:
             return
         if self._hold_timer is not None:
             self.destroy_timer(self._hold_timer)
-        self._hold_timer = None if period is None else self.create_timer(period, self._on_hold)
+        self._hold_timer = None if period is None else self.create_timer(
+            period, self._on_hold, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._hold_period_s = period
 
     def _on_hold(self) -> None:
@@ -559,6 +648,8 @@ class SafetyFilterNode(Node):
         """``cmd_safe``, ``filter_info`` and the diagnostics of one decision, the command
         first; the reason of a WARN or ERROR in the (throttled) log. Never raises."""
         self._rules.answered(now_ns)
+        previous_ns, self._last_published_ns = self._last_published_ns, now_ns
+        self._note_late_answer(previous_ns, now_ns, active)
         try:  # the command is made first: a failure making the details is in answer.error
             answer = self._edge.answer(
                 decision, settings=active.settings,
@@ -577,6 +668,25 @@ class SafetyFilterNode(Node):
             error = _one_line(exc)
         if error:
             self._log_safely(f'answer details not published: internal error: {error}', now_ns)
+
+    def _note_late_answer(self, previous_ns: int | None, now_ns: int,
+                          active: logic.ActiveFilter) -> None:
+        """An answer more than ``control_period_s`` after the previous one (the hold was not
+        kept: a callback held the executor, or the machine is overloaded): counted
+        (``late_answers`` in the diagnostics), and a WARN (throttled) saying by how much.
+        Never raises."""
+        try:
+            period_s = active.config.control_period_s
+            over_s = logic.answer_overrun_s(control_period_s=period_s,
+                                            previous_ns=previous_ns, now_ns=now_ns)
+            if over_s is None:
+                return
+            self.late_answers += 1
+            self._log(logic.WARN, f'late answer: {over_s + period_s:.3f} s after the previous '
+                                  f'one, {over_s:.3f} s over control_period_s = {period_s:g} '
+                                  f'(the node could not answer meanwhile)', now_ns)
+        except Exception as exc:  # a defect, not an input
+            self._log_safely(f'late answer: internal error: {_one_line(exc)}', now_ns)
 
     def _publish_fail_safe(self, active: logic.ActiveFilter, reason: str, header: Any,
                            now_ns: int) -> None:
@@ -661,6 +771,46 @@ class SafetyFilterNode(Node):
         return self.filter.fail_safe_action
 
 
+OBSTACLES_REST_RATIO = 1.0
+"""After building an obstacles message's filter for t seconds, the worker starts the next build
+no sooner than this times t later: a stream of large messages takes at most half of the time,
+the executor's answers the rest."""
+GIL_SWITCH_INTERVAL_S = 0.001
+"""Python's thread switch interval in the node (default 5 ms): while the worker builds, the
+executor waits at most about this long for the GIL each time it needs it back (an answer
+needs it several times). Without a build there is no other thread to switch to."""
+LATE_ANSWERS = 'late_answers'
+"""The diagnostics' count of answers more than ``control_period_s`` after the previous one."""
+
+
+class _ObstaclesJob(NamedTuple):
+    """An ``obstacles`` sample and what its build needs of the node, read on the executor."""
+
+    data: bytes
+    base: logic.ActiveFilter
+    """The filter in force when the sample arrived: the new one is built from its parameters
+    (a snapshot, read without copying them) with the sample's obstacles."""
+    probes: tuple[Any, ...]
+    """The states the new filter must filter at (:meth:`SafetyFilterNode._probe_states`)."""
+
+
+class _ObstaclesBuild(NamedTuple):
+    """What the worker made of an ``obstacles`` sample."""
+
+    changes: dict[str, list[float]]
+    """``obstacles.x`` / ``.y`` / ``.radius`` ({} when the sample was refused)."""
+    candidate: logic.ActiveFilter | None
+    """The filter of the new set (None: refused, or the same as the job's base)."""
+    error: str = ''
+    """Why the sample is refused, one line ('' when it is not)."""
+
+
+def _same_but(a: Mapping[str, Any], b: Mapping[str, Any], keys: Any) -> bool:
+    """Whether two flat parameter dicts agree on every key but ``keys``."""
+    return logic.same_parameters({k: v for k, v in a.items() if k not in keys},
+                                 {k: v for k, v in b.items() if k not in keys})
+
+
 def _other_description(name: str) -> str | None:
     """The description of an override no spec names: a key of the filter's families
     (:func:`logic.feeds_the_filter`) is described as read-only text; others are left as
@@ -698,9 +848,11 @@ def spin_frozen(node: SafetyFilterNode) -> None:
     objects) frozen out of the garbage collector's generations (``gc.freeze``): a full
     collection then walks only what the callbacks allocated since, instead of taking ~45 ms
     (long enough to overflow keep-last 10 queues at 1 kHz). Reference counting still frees
-    frozen objects; only cycles among them are no longer collected."""
+    frozen objects; only cycles among them are no longer collected. Python's thread switch
+    interval is :data:`GIL_SWITCH_INTERVAL_S`."""
     gc.collect()
     gc.freeze()
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     spin(node)
 
 

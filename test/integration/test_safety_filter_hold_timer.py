@@ -3,7 +3,8 @@
 A controller proposes once and goes quiet, the state source sends one state and goes quiet
 too: the node answers again on its own (no proposal, no state, lock-step ``refilter_on_state``
 off), the proposal in force while the state is at most ``latency_s`` old, then the fail-safe,
-status ``late state``, its reason naming ``control_period_s``.
+status ``late state``, its reason naming ``control_period_s``. With ``use_sim_time`` true and no
+``/clock`` publisher at all the same happens: the timer runs on the steady clock.
 """
 from __future__ import annotations
 
@@ -27,10 +28,15 @@ T, L = 0.05, 0.15
 then answers every 37.5-50 ms."""
 
 
-def test_a_quiet_loop_is_answered_by_the_timer_then_fails_safe(ros_domain_id, probe):  # noqa: F811
+@pytest.mark.parametrize('clock_args', [
+    (),
+    ('-p', 'safety_filter:use_sim_time:=true'),   # the node clock stands at 0: no /clock
+], ids=['system-time', 'sim-time-without-clock'])
+def test_a_quiet_loop_is_answered_by_the_timer_then_fails_safe(
+        ros_domain_id, probe, clock_args):  # noqa: F811
     process = _start_filter(ros_domain_id, '-p', f'safety_filter:control_period_s:={T}',
                             '-p', f'safety_filter:latency_s:={L}',
-                            '-p', f'safety_filter:fail_safe_action:={FAIL_SAFE}')
+                            '-p', f'safety_filter:fail_safe_action:={FAIL_SAFE}', *clock_args)
     try:
         state_pub, proposal_pub = _connect(probe, process)
         _propose_at(probe, state_pub, proposal_pub, FAR, PROPOSAL)

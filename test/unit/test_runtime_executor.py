@@ -36,6 +36,53 @@ def test_spin_returns_after_shutdown_from_a_timer(node):
     assert not rclpy.ok()
 
 
+def test_a_timer_on_the_steady_clock_ticks_while_the_simulated_time_stands_still(node):
+    """With ``use_sim_time`` true and no ``/clock``, the node's clock stands at 0: a timer on it
+    never fires, one on a ``STEADY_TIME`` clock does (as rclpy's)."""
+    from rcbf_ros.ros.runtime import Parameter
+    assert node.set_parameters([Parameter('use_sim_time', value=True)])[0].successful
+    assert node.get_clock().ros_time_is_active and node.get_clock().now().nanoseconds == 0
+    steady = rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.STEADY_TIME)
+    assert not steady.ros_time_is_active and steady.now().nanoseconds > 0
+    on_ros_time, on_steady = [], []
+    node.create_timer(0.001, lambda: on_ros_time.append(1))
+    node.create_timer(0.001, lambda: on_steady.append(1), clock=steady)
+    for _ in range(1000):   # a 1 ms timer: far more spins than 5 ticks take, even loaded
+        if len(on_steady) >= 5:
+            break
+        rclpy.spin_once(node, timeout_sec=0.05)
+    assert len(on_steady) >= 5 and not on_ros_time
+
+
+def test_a_guard_condition_triggered_from_another_thread_runs_its_callback_in_the_spin(node):
+    calls = []
+    guard = node.create_guard_condition(lambda: calls.append(threading.get_ident()))
+    triggers = [threading.Thread(target=guard.trigger) for _ in range(3)]
+    for thread in triggers:
+        thread.start()
+    for thread in triggers:
+        thread.join()
+    for _ in range(100):   # spin_once waits for the wake-up: the first call runs it
+        if calls:
+            break
+        rclpy.spin_once(node, timeout_sec=0.1)
+    for _ in range(3):
+        rclpy.spin_once(node, timeout_sec=0.01)
+    assert calls == [threading.get_ident()]  # three triggers before the spin: one call
+    assert node.destroy_guard_condition(guard) and not node.destroy_guard_condition(guard)
+    guard.trigger()
+    for _ in range(3):
+        rclpy.spin_once(node, timeout_sec=0.01)
+    assert len(calls) == 1
+
+
+def test_a_clock_of_no_known_type_is_refused():
+    with pytest.raises(TypeError, match='clock_type'):
+        rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.UNINITIALIZED)
+    with pytest.raises(TypeError, match='clock_type'):
+        rclpy.clock.Clock(clock_type=3)
+
+
 def test_a_canceled_timer_stops_until_reset_and_a_destroyed_one_for_good(node):
     ticks = []
     timer = node.create_timer(0.001, lambda: ticks.append(1))

@@ -249,9 +249,9 @@ class NodeWaitSet:
 
 def _collect_work(node: Any, triggered: list[int]) -> None:
     """Move due timers and the samples of the triggered readers of ``node`` into its ready
-    queue: timers, then subscriptions (in creation order), then the incompatible-QoS warnings of
-    triggered publishers and subscriptions, then services and clients. A service whose replies
-    wait for their client is looked at on every pass."""
+    queue: timers, then subscriptions (in creation order), then the incompatible-QoS warnings
+    of triggered publishers and subscriptions, then triggered guard conditions, then services
+    and clients. A service whose replies wait for their client is looked at on every pass."""
     ready = node._ready
     if node._timers:
         now = time.monotonic_ns()
@@ -271,6 +271,7 @@ def _collect_work(node: Any, triggered: list[int]) -> None:
             endpoint = events.get(handle)
             if endpoint is not None:
                 ready.extend(endpoint._take_incompatible_qos())
+    ready.extend(condition.callback for condition in node._guard_conditions if condition._take())
     for endpoint in node._service_endpoints:
         condition = endpoint._condition
         if endpoint._pending or (triggered and condition is not None

@@ -1,5 +1,5 @@
-"""rclpy's endpoints over the Cyclone runtime: ``Publisher``, ``Subscription``, ``Timer``, and
-``TopicEndpointInfo`` (an endpoint as graph queries report it).
+"""rclpy's endpoints over the Cyclone runtime: ``Publisher``, ``Subscription``, ``Timer``,
+``GuardCondition``, and ``TopicEndpointInfo`` (an endpoint as graph queries report it).
 
 A node creates them (:mod:`.node`); its executor (:mod:`.context`) takes their samples, fires
 their timers and, as rclpy's default QoS event callbacks do, warns once for each remote endpoint
@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import enum
+import threading
 import time
 from typing import Any, Callable, TYPE_CHECKING
 
@@ -271,10 +272,11 @@ class Subscription(_TopicEndpoint, DropsUndecodable, WarnsIncompatibleQos):
 class Timer:
     """rclpy.timer.Timer subset; missed periods are skipped, not queued.
 
-    It runs on the monotonic clock, or, while ``clock`` (the node's) follows ``/clock``
-    (``use_sim_time``), on that time as rcl's ROS-time timers do: due when the simulated time
-    reaches the next period; restarted one period after the time jumps back beyond the last
-    call. A switch of ``use_sim_time`` restarts the period in the new time.
+    It runs on the monotonic clock, or, while ``clock`` (a node's ``ROS_TIME`` clock) follows
+    ``/clock`` (``use_sim_time``), on that time as rcl's ROS-time timers do: due when the
+    simulated time reaches the next period; restarted one period after the time jumps back
+    beyond the last call. A switch of ``use_sim_time`` restarts the period in the new time. On
+    a ``STEADY_TIME`` (or ``SYSTEM_TIME``) clock it never follows ``/clock``.
     """
 
     def __init__(self, period_ns: int, callback: Callable[[], None],
@@ -341,6 +343,39 @@ class Timer:
 
     def destroy(self) -> None:
         self._canceled = True
+
+
+class GuardCondition:
+    """rclpy.guard_condition.GuardCondition subset: :meth:`trigger`, from any thread, has the
+    node's executor call ``callback`` (in its own thread); triggers before that call make one
+    call, as rcl's guard conditions do."""
+
+    def __init__(self, callback: Callable[[], None], wake: Callable[[], None]) -> None:
+        self.callback = callback
+        self._wake = wake
+        self._lock = threading.Lock()
+        self._triggered = False
+
+    def trigger(self) -> None:
+        """Have the executor call the callback (thread-safe)."""
+        with self._lock:
+            self._triggered = True
+        self._wake()
+
+    def _take(self) -> bool:
+        """True once per run of triggers (the executor's thread)."""
+        with self._lock:
+            triggered, self._triggered = self._triggered, False
+        return triggered
+
+    def destroy(self) -> None:
+        self._wake = _no_wake
+        with self._lock:
+            self._triggered = False
+
+
+def _no_wake() -> None:
+    """A destroyed guard condition wakes no executor."""
 
 
 class TopicEndpointTypeEnum(enum.IntEnum):

@@ -24,7 +24,7 @@ from rcbf_ros.parameters.arguments import (
     parameter_overrides as collect_parameter_overrides,
 )
 from rcbf_ros.ros.dds import messages, services
-from rcbf_ros.ros.dds.clock import Clock
+from rcbf_ros.ros.dds.clock import Clock, ClockType
 from rcbf_ros.ros.dds.context import (
     Context,
     default_context,
@@ -32,7 +32,7 @@ from rcbf_ros.ros.dds.context import (
     new_ready_queue,
     NodeWaitSet,
 )
-from rcbf_ros.ros.dds.endpoints import Publisher, Subscription, Timer
+from rcbf_ros.ros.dds.endpoints import GuardCondition, Publisher, Subscription, Timer
 from rcbf_ros.ros.dds.graph import gid_of
 from rcbf_ros.ros.dds.log import LEVEL_NAMES, Logger
 from rcbf_ros.ros.dds.node_graph import NodeGraph
@@ -129,7 +129,7 @@ class Node(NodeParameters, NodeGraph):
             self.declare_parameters('', [(name, parameter.value, parameter_descriptor())
                                          for name, parameter in self._parameter_overrides.items()],
                                     ignore_override=True)
-        self._clock = Clock()
+        self._clock = Clock(clock_type=ClockType.ROS_TIME)
         self._topics: dict[tuple[str, str], Topic] = {}
         self._publishers: list[Publisher] = []
         self._subscriptions: list[Subscription] = []
@@ -137,6 +137,7 @@ class Node(NodeParameters, NodeGraph):
         """Endpoint by the handle of its reader or writer, which the wait set waits on for
         incompatible QoS (:class:`rcbf_ros.ros.dds.endpoints.WarnsIncompatibleQos`)."""
         self._timers: list[Timer] = []
+        self._guard_conditions: list[GuardCondition] = []
         self._ready = new_ready_queue()
         self._spin_lock = threading.Lock()
         self._waitset: NodeWaitSet | None = NodeWaitSet(self.context.participant)
@@ -209,17 +210,29 @@ class Node(NodeParameters, NodeGraph):
                            self._subscriptions)
 
     def create_timer(self, timer_period_sec: float, callback: Callable[[], None],
+                     callback_group: Any = None, clock: Clock | None = None,
                      **_ignored: Any) -> Timer:
-        """A timer calling ``callback`` every ``timer_period_sec`` seconds.
+        """A timer calling ``callback`` every ``timer_period_sec`` seconds of ``clock`` (None:
+        the node's, which follows ``/clock`` while ``use_sim_time`` is true; a ``STEADY_TIME``
+        clock: the monotonic clock, whatever ``/clock`` does), as rclpy's.
 
         Raises:
             ValueError: one line naming ``timer_period_sec``: not a number, or one whose
                 nanoseconds are not a positive int64 (:func:`timer_period_ns`).
         """
-        timer = Timer(timer_period_ns(timer_period_sec), callback, self._clock)
+        timer = Timer(timer_period_ns(timer_period_sec), callback,
+                      self._clock if clock is None else clock)
         self._timers.append(timer)
         self._wake()
         return timer
+
+    def create_guard_condition(self, callback: Callable[[], None], callback_group: Any = None
+                               ) -> GuardCondition:
+        """A guard condition whose :meth:`~GuardCondition.trigger` (from any thread) has the
+        executor call ``callback`` (rclpy's ``Node.create_guard_condition``)."""
+        guard = GuardCondition(callback, self._wake)
+        self._guard_conditions.append(guard)
+        return guard
 
     def create_service(self, srv_type: Any, srv_name: str,
                        callback: Callable[[Any, Any], Any], *,
@@ -252,6 +265,15 @@ class Node(NodeParameters, NodeGraph):
             return False
         self._timers.remove(timer)
         timer.destroy()
+        return True
+
+    def destroy_guard_condition(self, guard: GuardCondition) -> bool:
+        """Forget ``guard`` (its triggers wake nothing any more); False if it is not this
+        node's."""
+        if guard not in self._guard_conditions:
+            return False
+        self._guard_conditions.remove(guard)
+        guard.destroy()
         return True
 
     def _adopt(self, endpoint: Any, endpoints: list[Any]) -> Any:
@@ -291,8 +313,9 @@ class Node(NodeParameters, NodeGraph):
             self._event_endpoints.pop(events._ref, None)
 
     def _wake(self) -> None:
-        if self._guard is not None:
-            self._guard.set(True)
+        guard = self._guard  # None once destroyed (from another thread: read once)
+        if guard is not None:
+            guard.set(True)
 
     # teardown -------------------------------------------------------------------------------
     def destroy_node(self) -> None:
@@ -304,6 +327,9 @@ class Node(NodeParameters, NodeGraph):
             self._rosout.close()
         for timer in self._timers:
             timer.destroy()
+        for guard in self._guard_conditions:
+            guard.destroy()
+        self._guard_conditions = []
         for endpoint in (*self._subscriptions, *self._publishers, *self._service_endpoints):
             self._detach(endpoint)
             endpoint.destroy()

@@ -7,6 +7,7 @@ from types import SimpleNamespace
 from typing import Any, Sequence
 
 from rcbf_ros.parameters.arguments import remove_ros_args
+from rcbf_ros.ros.dds.clock import Clock, ClockType
 from rcbf_ros.ros.dds.context import Context, default_context
 from rcbf_ros.ros.dds.context import spin as _spin
 from rcbf_ros.ros.dds.context import spin_once as _spin_once
@@ -59,3 +60,6 @@ def spin_until_future_complete(node: Any, future: Any, executor: Any = None,
 
 utilities = SimpleNamespace(remove_ros_args=remove_ros_args)
 """``rclpy.utilities.remove_ros_args``."""
+
+clock = SimpleNamespace(Clock=Clock, ClockType=ClockType)
+"""``rclpy.clock.Clock`` and ``rclpy.clock.ClockType``."""

@@ -5,7 +5,8 @@ from overrides). While it is true the node subscribes to ``/clock`` (``rosgraph_
 best effort, keep-last 1) and ``get_clock().now()`` returns the last time received there (zero
 until the first message); while false, the system time. Setting the parameter switches at once.
 
-The node's timers follow the same clock (:class:`rcbf_ros.ros.dds.endpoints.Timer`).
+The node's timers follow the same clock (:class:`rcbf_ros.ros.dds.endpoints.Timer`), unless
+created on another one (``create_timer(..., clock=Clock(clock_type=ClockType.STEADY_TIME))``).
 """
 from __future__ import annotations
 
