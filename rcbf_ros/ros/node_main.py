@@ -135,10 +135,17 @@ OTHER_DESCRIPTION = 'not read by this node (given on its command line or in a pa
 """The description of a parameter an override declared that no spec of the node names."""
 
 
+def read_at_start(name: str) -> bool:
+    """The default ``read_only`` of :func:`declare_specs`: every parameter is read once, as the
+    node starts, so every one is declared read-only and the runtime refuses a set of it (a set
+    it took would report success, and ``ros2 param get`` show a value the node does not use)."""
+    return True
+
+
 def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
                   given: Sequence[ParameterSpec] = (), dynamic_typing: bool = False,
                   dynamic_overrides: bool = False,
-                  read_only: Callable[[str], bool] | None = None,
+                  read_only: Callable[[str], bool] | None = read_at_start,
                   others: str | Callable[[str], str | None] | None = OTHER_DESCRIPTION
                   ) -> None:
     """Declare ``node``'s parameters from ``specs``: the one way the nodes declare them.
@@ -165,7 +172,9 @@ def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
     params file). ``dynamic_typing``: the declarations from defaults take a value of any type
     (else only those without a default). ``read_only``: whether the parameter of a name is
     fixed at start (its descriptor read-only, so that the runtime refuses a set of it);
-    None: none is. :data:`RUNTIME_PARAMETERS` are left as the runtime declared them.
+    by default every one is (:func:`read_at_start`): a node that reads some at runtime names
+    them and checks their new values as at start in an on-set callback, as the safety filter
+    does; None: none is. :data:`RUNTIME_PARAMETERS` are left as the runtime declared them.
 
     Raises:
         ValueError: one line naming the parameter: a declaration the runtime refuses (e.g. a
