@@ -366,12 +366,23 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
         _STOP.install()  # our runtime's init installs handlers of its own
         # A parameter the runtime declares for every node (use_sim_time) refusing its override
         # is the user's error too.
-        return _run(name, make_node, run=run, on_exit=on_exit,
+        built = make_node if interface is None else _warning_unknown(make_node, argv, interface)
+        return _run(name, built, run=run, on_exit=on_exit,
                     setup_errors=(*setup_errors, ParameterException),
                     setup_message=setup_message, shutdown_errors=(ExternalShutdownException,),
                     rclpy=rclpy)
     finally:
         _STOP.restore()
+
+
+def _warning_unknown(make_node: Callable[[], Any], argv: Sequence[str],
+                     interface: InterfaceSource) -> Callable[[], Any]:
+    """``make_node``, then :func:`warn_unknown_parameters` of the node it made."""
+    def make() -> Any:
+        node = make_node()
+        warn_unknown_parameters(node, argv, interface)
+        return node
+    return make
 
 
 ERROR_LINE_LIMIT = 240
@@ -402,6 +413,36 @@ def _shown_path(filename: str) -> str:
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     path = os.path.abspath(filename)
     return os.path.relpath(path, root) if path.startswith(root + os.sep) else filename
+
+
+def unknown_parameters(node_name: str, fully_qualified: str, argv: Sequence[str],
+                       interface: InterfaceSource) -> list[str]:
+    """The WARN lines of :func:`rcbf_ros.parameters.unknown.unknown_parameter_lines` for the
+    node of ``interface`` and its command line ``argv``: parameters given to it that it does not
+    read (a key under ``/**`` may be one of the shared problem's: the safety filter's)."""
+    from rcbf_ros.node_logic.safety_filter_interface import INTERFACE as SHARED
+    from rcbf_ros.parameters.arguments import parse_ros_arguments
+    from rcbf_ros.parameters.unknown import names_of, unknown_parameter_lines
+    own = resolve(interface, argv)
+    return unknown_parameter_lines(
+        sections=parse_ros_arguments(argv).parameter_rules.sections(), node_name=node_name,
+        fully_qualified=fully_qualified, own=lambda name: own.spec(name) is not None,
+        shared=lambda name: SHARED.spec(name) is not None, own_names=names_of(own.parameters),
+        shared_names=names_of(SHARED.parameters))
+
+
+def warn_unknown_parameters(node: Any, argv: Sequence[str], interface: InterfaceSource
+                            ) -> None:
+    """Log :func:`unknown_parameters` of a node just built, one WARN per line. A help to the
+    user, never a reason to stop: a failure to work them out is logged as a WARN too."""
+    try:
+        lines = unknown_parameters(node.get_name(), node.get_fully_qualified_name(), argv,
+                                   interface)
+    except Exception as exc:  # noqa: BLE001 - the node runs on; say why nothing was checked
+        lines = [f'parameters given not checked against those read: {type(exc).__name__}: '
+                 f'{" ".join(str(exc).split())[:ERROR_LINE_LIMIT]}']
+    for line in lines:
+        node.get_logger().warning(line)
 
 
 def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] | None,
