@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import re
 import signal
 import sys
 import threading
@@ -370,7 +371,7 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
         return _run(name, built, run=run, on_exit=on_exit,
                     setup_errors=(*setup_errors, ParameterException),
                     setup_message=setup_message, shutdown_errors=(ExternalShutdownException,),
-                    rclpy=rclpy)
+                    rclpy=rclpy, argv=argv)
     finally:
         _STOP.restore()
 
@@ -445,10 +446,41 @@ def warn_unknown_parameters(node: Any, argv: Sequence[str], interface: Interface
         node.get_logger().warning(line)
 
 
+EMPTY_VALUE = ('an empty list or map has no type in a params file (ROS 2 cannot declare it); '
+               'leave the key out or give values')
+"""Why a key given ``[]`` or ``{}`` stops a node that declares its overrides: rcl reads either
+as no value (NOT_SET), which rclpy refuses to declare."""
+
+
+def setup_error_text(error: BaseException, name: str, argv: Sequence[str]) -> str:
+    """The text of a setup error: the runtime's own, except for the declaration of a NOT_SET
+    override (rclpy's "Cannot declare a statically typed parameter with default value of type
+    PARAMETER_NOT_SET"), which names no cause: ``<key>: <EMPTY_VALUE>``, the key from the
+    message or else the first key of node ``name`` that the command line gives no value."""
+    text = str(error)
+    if 'PARAMETER_NOT_SET' not in text:
+        return text
+    match = re.search(r"\('([^']*)'\)", text)
+    key = match.group(1) if match else _first_unset(name, argv)
+    return f'{key}: {EMPTY_VALUE}' if key else text
+
+
+def _first_unset(name: str, argv: Sequence[str]) -> str | None:
+    """The first parameter of node ``name`` (remapped as ``argv`` says) with no value."""
+    from rcbf_ros.parameters.arguments import parameter_overrides, parse_ros_arguments
+    try:
+        arguments = parse_ros_arguments(argv)
+    except ValueError:
+        return None
+    namespace = (arguments.namespace or '/').rstrip('/')
+    values = parameter_overrides([arguments], f'{namespace}/{arguments.node_name or name}')
+    return next((key for key, value in values.items() if value is None), None)
+
+
 def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] | None,
          on_exit: Callable[[Any], None] | None, setup_errors: tuple[type[BaseException], ...],
          setup_message: str, shutdown_errors: tuple[type[BaseException], ...],
-         rclpy: Any) -> int:
+         rclpy: Any, argv: Sequence[str] = ()) -> int:
     node = None
     try:
         node = make_node()
@@ -458,7 +490,7 @@ def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] 
     except setup_errors as exc:
         if node is not None:
             raise
-        print(f'{name}: {setup_message}{exc}', file=sys.stderr)
+        print(f'{name}: {setup_message}{setup_error_text(exc, name, argv)}', file=sys.stderr)
         return 2
     except ArithmeticError as exc:
         if node is not None:
