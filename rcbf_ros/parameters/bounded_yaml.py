@@ -14,7 +14,10 @@ its MCAP channels, and launch argument values. A text past a limit raises
 - aliases: refused outright where the writer never makes them (``allow_aliases=False``:
   rosbag2's yaml-cpp emitter and our writer build every node afresh, so their files hold none);
 - tags: only the YAML core schema's (``!!str``, ``!!int``, ``!!float``, ``!!bool``, ``!!null``,
-  ``!!seq``, ``!!map``, ...); ``!!python/...`` and local tags (``!x``) are refused.
+  ``!!seq``, ``!!map``, ...); ``!!python/...`` and local tags (``!x``) are refused;
+- keys: a mapping names each key once (YAML 1.2 requires it); PyYAML and rcl's parser would
+  let a second ``alpha:`` silently replace the first (or, in rcl, keep the first when the types
+  differ), so a repeated key is refused, naming it and both lines.
 
 The limits are checked on the parser's events, one event at a time, before anything is built,
 so a refused text costs at most one pass over its first bytes, up to the size limit.
@@ -41,8 +44,8 @@ _Loader: Any = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
 
 
 class YAMLLimitError(yaml.YAMLError, ValueError):
-    """A YAML text past a size, depth, node, alias or tag limit (one line: source, where and
-    which limit)."""
+    """A YAML text past a size, depth, node, alias or tag limit, or with a key repeated in one
+    mapping (one line: source, where and which limit)."""
 
 
 def syntax_error_line(exc: yaml.YAMLError) -> str:
@@ -119,14 +122,31 @@ def checked_events(text: str, *, source: str, max_depth: int = MAX_DEPTH,
     """
     depth = 0
     nodes = 0
-    # Per open collection: its anchor, the node count before it, its own depth and the deepest
-    # depth reached inside it.
+    # Per open collection: its anchor, the node count before it, its own depth, the deepest
+    # depth reached inside it, and for a mapping its scalar keys' first lines (None: a
+    # sequence) and whether its next node is a key.
     open_collections: list[list[Any]] = []
     anchors: dict[str, tuple[int, int]] = {}  # anchor -> (nodes, height)
 
     def refuse(event: yaml.Event, problem: str) -> YAMLLimitError:
         line = event.start_mark.line + 1 if event.start_mark is not None else 0
         return YAMLLimitError(f'{source}: line {line}: {problem}')
+
+    def take_node(event: yaml.Event) -> None:
+        """Count ``event`` (a node's first event) as the next node of the open mapping: a key
+        seen before in it is refused."""
+        if not open_collections or open_collections[-1][4] is None:
+            return
+        mapping = open_collections[-1]
+        is_key, mapping[5] = mapping[5], not mapping[5]
+        if not is_key or not isinstance(event, yaml.ScalarEvent):
+            return
+        line = event.start_mark.line + 1 if event.start_mark is not None else 0
+        first = mapping[4].get(event.value)
+        if first is not None:
+            raise refuse(event, f'the key {event.value!r} is given twice in one mapping '
+                                f'(lines {first} and {line}; YAML keys are unique)')
+        mapping[4][event.value] = line
 
     def grow(event: yaml.Event, count: int, reached: int) -> None:
         nonlocal nodes
@@ -144,6 +164,9 @@ def checked_events(text: str, *, source: str, max_depth: int = MAX_DEPTH,
         if tag is not None and tag != '!' and tag not in CORE_TAGS:
             shown = tag.replace('tag:yaml.org,2002:', '!!')
             raise refuse(event, f'the tag {shown} is not allowed (only the YAML core tags)')
+        if isinstance(event, (yaml.AliasEvent, yaml.ScalarEvent, yaml.SequenceStartEvent,
+                              yaml.MappingStartEvent)):
+            take_node(event)
         if isinstance(event, yaml.AliasEvent):
             if not allow_aliases:
                 raise refuse(event, f'the alias *{event.anchor} is not allowed here (no '
@@ -161,9 +184,11 @@ def checked_events(text: str, *, source: str, max_depth: int = MAX_DEPTH,
             before = nodes
             grow(event, 1, depth + 1)
             depth += 1
-            open_collections.append([event.anchor, before, depth, depth])
+            open_collections.append([
+                event.anchor, before, depth, depth,
+                {} if isinstance(event, yaml.MappingStartEvent) else None, True])
         elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
-            anchor, before, own_depth, deepest = open_collections.pop()
+            anchor, before, own_depth, deepest, _, _ = open_collections.pop()
             depth -= 1
             if anchor is not None:
                 anchors[anchor] = (nodes - before, deepest - own_depth + 1)

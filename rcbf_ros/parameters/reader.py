@@ -18,7 +18,9 @@ and a nested dataclass (a group, read from ``<key>.``; ``Group | None`` with
 Every value is bounded whatever its rule says: a float is finite, an integer fits the int64 a
 ROS parameter holds (:data:`INT64_MAX`), and a list holds at most :data:`LIST_LIMIT` values
 (``max_length`` lowers it), checked before any value of it is converted, and a string at most
-:data:`STRING_LIMIT` characters. Every error is one line that
+:data:`STRING_LIMIT` characters, none of them a C0 control character (a NUL ends the string in
+C, where rcl, DDS and the viewers read it; the others are terminal escapes or line breaks in a
+name, a frame id, a topic or a path). Every error is one line that
 starts with the parameter's full dotted name (``input_bounds.state: must be > 0, got -1.0``), as a
 :class:`ParameterError`, a ``ValueError``: the nodes print it and exit with status 2.
 
@@ -180,6 +182,16 @@ def _check_range(key: str, value: float, *, positive: bool, minimum: float | Non
         raise _fail(key, f'must be <= {maximum}, got {value}')
 
 
+def control_character_refusal(text: str) -> str:
+    """Why ``text`` is not a parameter's string: its first C0 control character (U+0000 to
+    U+001F) and where it is; '' when it holds none."""
+    for index, char in enumerate(text):
+        if char < ' ':
+            return (f'contains the control character U+{ord(char):04X} at position {index} '
+                    '(no string parameter holds one)')
+    return ''
+
+
 def read_str(key: str, value: Any, *, choices: Sequence[str] = (), nonempty: bool = False
              ) -> str:
     """A string, one of ``choices`` when given."""
@@ -191,6 +203,9 @@ def read_str(key: str, value: Any, *, choices: Sequence[str] = (), nonempty: boo
         raise _fail(key, f'expected one of {list(choices)}, got {_shown(value)}')
     if len(value) > STRING_LIMIT:
         raise _fail(key, f'at most {STRING_LIMIT} characters, got {len(value)}')
+    why = control_character_refusal(value)
+    if why:
+        raise _fail(key, why)
     if nonempty and not value:
         raise _fail(key, 'required (empty)')
     return value
@@ -258,6 +273,10 @@ def read_strs(key: str, value: Any, *, length: int | None = None,
         raise _fail(key, f'expected a list of strings, got {_shown(value)}')
     if any(len(v) > STRING_LIMIT for v in out):
         raise _fail(key, f'at most {STRING_LIMIT} characters a string')
+    for index, item in enumerate(out):
+        why = control_character_refusal(item)
+        if why:
+            raise _fail(key, f'value {index}: {why}')
     bad = [v for v in out if choices and v not in choices]
     if bad:
         raise _fail(key, f'{_shown(bad)} not in {list(choices)}')

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import re
 import signal
 import sys
 import threading
@@ -135,10 +136,17 @@ OTHER_DESCRIPTION = 'not read by this node (given on its command line or in a pa
 """The description of a parameter an override declared that no spec of the node names."""
 
 
+def read_at_start(name: str) -> bool:
+    """The default ``read_only`` of :func:`declare_specs`: every parameter is read once, as the
+    node starts, so every one is declared read-only and the runtime refuses a set of it (a set
+    it took would report success, and ``ros2 param get`` show a value the node does not use)."""
+    return True
+
+
 def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
                   given: Sequence[ParameterSpec] = (), dynamic_typing: bool = False,
                   dynamic_overrides: bool = False,
-                  read_only: Callable[[str], bool] | None = None,
+                  read_only: Callable[[str], bool] | None = read_at_start,
                   others: str | Callable[[str], str | None] | None = OTHER_DESCRIPTION
                   ) -> None:
     """Declare ``node``'s parameters from ``specs``: the one way the nodes declare them.
@@ -165,7 +173,9 @@ def declare_specs(node: Any, specs: Sequence[ParameterSpec], *,
     params file). ``dynamic_typing``: the declarations from defaults take a value of any type
     (else only those without a default). ``read_only``: whether the parameter of a name is
     fixed at start (its descriptor read-only, so that the runtime refuses a set of it);
-    None: none is. :data:`RUNTIME_PARAMETERS` are left as the runtime declared them.
+    by default every one is (:func:`read_at_start`): a node that reads some at runtime names
+    them and checks their new values as at start in an on-set callback, as the safety filter
+    does; None: none is. :data:`RUNTIME_PARAMETERS` are left as the runtime declared them.
 
     Raises:
         ValueError: one line naming the parameter: a declaration the runtime refuses (e.g. a
@@ -357,12 +367,23 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
         _STOP.install()  # our runtime's init installs handlers of its own
         # A parameter the runtime declares for every node (use_sim_time) refusing its override
         # is the user's error too.
-        return _run(name, make_node, run=run, on_exit=on_exit,
+        built = make_node if interface is None else _warning_unknown(make_node, argv, interface)
+        return _run(name, built, run=run, on_exit=on_exit,
                     setup_errors=(*setup_errors, ParameterException),
                     setup_message=setup_message, shutdown_errors=(ExternalShutdownException,),
-                    rclpy=rclpy)
+                    rclpy=rclpy, argv=argv)
     finally:
         _STOP.restore()
+
+
+def _warning_unknown(make_node: Callable[[], Any], argv: Sequence[str],
+                     interface: InterfaceSource) -> Callable[[], Any]:
+    """``make_node``, then :func:`warn_unknown_parameters` of the node it made."""
+    def make() -> Any:
+        node = make_node()
+        warn_unknown_parameters(node, argv, interface)
+        return node
+    return make
 
 
 ERROR_LINE_LIMIT = 240
@@ -395,10 +416,71 @@ def _shown_path(filename: str) -> str:
     return os.path.relpath(path, root) if path.startswith(root + os.sep) else filename
 
 
+def unknown_parameters(node_name: str, fully_qualified: str, argv: Sequence[str],
+                       interface: InterfaceSource) -> list[str]:
+    """The WARN lines of :func:`rcbf_ros.parameters.unknown.unknown_parameter_lines` for the
+    node of ``interface`` and its command line ``argv``: parameters given to it that it does not
+    read (a key under ``/**`` may be one of the shared problem's: the safety filter's)."""
+    from rcbf_ros.node_logic.safety_filter_interface import INTERFACE as SHARED
+    from rcbf_ros.parameters.arguments import parse_ros_arguments
+    from rcbf_ros.parameters.unknown import names_of, unknown_parameter_lines
+    own = resolve(interface, argv)
+    return unknown_parameter_lines(
+        sections=parse_ros_arguments(argv).parameter_rules.sections(), node_name=node_name,
+        fully_qualified=fully_qualified, own=lambda name: own.spec(name) is not None,
+        shared=lambda name: SHARED.spec(name) is not None, own_names=names_of(own.parameters),
+        shared_names=names_of(SHARED.parameters))
+
+
+def warn_unknown_parameters(node: Any, argv: Sequence[str], interface: InterfaceSource
+                            ) -> None:
+    """Log :func:`unknown_parameters` of a node just built, one WARN per line. A help to the
+    user, never a reason to stop: a failure to work them out is logged as a WARN too."""
+    try:
+        lines = unknown_parameters(node.get_name(), node.get_fully_qualified_name(), argv,
+                                   interface)
+    except Exception as exc:  # noqa: BLE001 - the node runs on; say why nothing was checked
+        lines = [f'parameters given not checked against those read: {type(exc).__name__}: '
+                 f'{" ".join(str(exc).split())[:ERROR_LINE_LIMIT]}']
+    for line in lines:
+        node.get_logger().warning(line)
+
+
+EMPTY_VALUE = ('an empty list or map has no type in a params file (ROS 2 cannot declare it); '
+               'leave the key out or give values')
+"""Why a key given ``[]`` or ``{}`` stops a node that declares its overrides: rcl reads either
+as no value (NOT_SET), which rclpy refuses to declare."""
+
+
+def setup_error_text(error: BaseException, name: str, argv: Sequence[str]) -> str:
+    """The text of a setup error: the runtime's own, except for the declaration of a NOT_SET
+    override (rclpy's "Cannot declare a statically typed parameter with default value of type
+    PARAMETER_NOT_SET"), which names no cause: ``<key>: <EMPTY_VALUE>``, the key from the
+    message or else the first key of node ``name`` that the command line gives no value."""
+    text = str(error)
+    if 'PARAMETER_NOT_SET' not in text:
+        return text
+    match = re.search(r"\('([^']*)'\)", text)
+    key = match.group(1) if match else _first_unset(name, argv)
+    return f'{key}: {EMPTY_VALUE}' if key else text
+
+
+def _first_unset(name: str, argv: Sequence[str]) -> str | None:
+    """The first parameter of node ``name`` (remapped as ``argv`` says) with no value."""
+    from rcbf_ros.parameters.arguments import parameter_overrides, parse_ros_arguments
+    try:
+        arguments = parse_ros_arguments(argv)
+    except ValueError:
+        return None
+    namespace = (arguments.namespace or '/').rstrip('/')
+    values = parameter_overrides([arguments], f'{namespace}/{arguments.node_name or name}')
+    return next((key for key, value in values.items() if value is None), None)
+
+
 def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] | None,
          on_exit: Callable[[Any], None] | None, setup_errors: tuple[type[BaseException], ...],
          setup_message: str, shutdown_errors: tuple[type[BaseException], ...],
-         rclpy: Any) -> int:
+         rclpy: Any, argv: Sequence[str] = ()) -> int:
     node = None
     try:
         node = make_node()
@@ -408,7 +490,7 @@ def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] 
     except setup_errors as exc:
         if node is not None:
             raise
-        print(f'{name}: {setup_message}{exc}', file=sys.stderr)
+        print(f'{name}: {setup_message}{setup_error_text(exc, name, argv)}', file=sys.stderr)
         return 2
     except ArithmeticError as exc:
         if node is not None:

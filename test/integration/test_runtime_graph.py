@@ -461,3 +461,39 @@ def test_a_log_line_rosout_cannot_carry_goes_to_the_console_with_one_more_line(
     assert node.get_logger().info('bad \udcff text')
     err = console.getvalue()
     assert err.count('\n') == 2 and 'Failed to publish log message to rosout: ' in err
+
+
+def test_a_spinning_node_takes_the_graph_samples_of_others_as_they_arrive(contexts,
+                                                                          ros_domain_id):
+    """The graph reader keeps every sample until taken: a node that never queries the graph
+    (a filter answering ``ros2 param get``, which creates and destroys a client per call)
+    must not hold every change another participant announced."""
+    from cyclonedds._clayer import ddspy_read, ddspy_write
+    from cyclonedds.pub import DataWriter
+    context = contexts()
+    node = Node('quiet', context=context)
+    stranger = DomainParticipant(ros_domain_id)
+    try:
+        topic = Topic(stranger, graph.DISCOVERY_TOPIC,
+                      messages.idl_struct(graph.PARTICIPANT_INFO_TYPE))
+        writer = DataWriter(stranger, topic, qos=Qos(
+            Policy.Reliability.Reliable(max_blocking_time=10**9),
+            Policy.Durability.TransientLocal, Policy.History.KeepLast(1)))
+        _wait_for(lambda: writer.get_matched_subscriptions(), 'the graph reader matched')
+        for index in range(40):
+            sample = messages.serialize_message(graph.participant_info_message(
+                participant_gid=stranger.guid.bytes,
+                nodes=[graph.NodeEntities(namespace='/', name=f'n{index}')]))
+            ddspy_write(writer._ref, messages.dds_payload(sample))
+
+        def held() -> int:
+            return len(ddspy_read(context.graph._reader._ref, _ANY, 1000))
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            spin_once(node, timeout_sec=0.05)
+            if held() == 0 and context.graph._remote:
+                break
+        assert held() == 0
+        assert [n.name for n in context.graph._remote[stranger.guid.bytes]] == ['n39']
+    finally:
+        stranger.__del__()

@@ -140,6 +140,37 @@ def test_launch_values_past_a_limit_stay_text() -> None:
     assert typed_value('[1, 2]') == [1, 2]
 
 
+@pytest.mark.parametrize('text, line, first, key', [
+    ('a: 1\nb: 2\na: 3\n', 3, 1, 'a'),
+    ('{a: 1, a: 2}\n', 1, 1, 'a'),
+    ('n:\n  ros__parameters:\n    alpha: 2.0\n    alpha: 0.001\n', 4, 3, 'alpha'),
+    ('/**:\n  ros__parameters: {x: 1}\n/**:\n  ros__parameters: {y: 1}\n', 3, 1, '/**')])
+def test_a_key_given_twice_in_one_mapping_is_refused_naming_both_lines(
+        text: str, line: int, first: int, key: str) -> None:
+    with pytest.raises(bounded_yaml.YAMLLimitError) as refused:
+        bounded_yaml.check(text, source='f')
+    assert str(refused.value) == (f'f: line {line}: the key {key!r} is given twice in one '
+                                  f'mapping (lines {first} and {line}; YAML keys are unique)')
+
+
+@given(st.lists(st.sampled_from(['a', 'b', 'c', 'd']), min_size=1, max_size=6),
+       st.booleans())
+def test_keys_are_refused_exactly_when_one_mapping_repeats_one(keys: list[str],
+                                                               nested: bool) -> None:
+    """Oracle: a repeat in the list of one mapping's keys; the same keys in sibling and
+    nested mappings are never a repeat."""
+    body = ''.join(f'{key}: {index}\n' for index, key in enumerate(keys))
+    text = (''.join(f'm{i}:\n' + ''.join(f'  {line}\n' for line in body.splitlines())
+                    for i in range(2)) if nested else body)
+    repeated = len(set(keys)) < len(keys)
+    if repeated:
+        with pytest.raises(bounded_yaml.YAMLLimitError, match='given twice in one mapping'):
+            bounded_yaml.check(text, source='f')
+    else:
+        bounded_yaml.check(text, source='f')
+        assert yaml.safe_load(text) is not None
+
+
 # -- params files ----------------------------------------------------------------------------
 
 def test_deep_params_file_refused_naming_file_line_and_limit(tmp_path: Path) -> None:
@@ -161,6 +192,14 @@ def test_python_tag_in_params_file_names_the_tag(tmp_path: Path) -> None:
                     '["true"]\n')
     with pytest.raises(ParamsFileError, match=r"tag\.yaml': line 3: the tag "
                                               r'!!python/object/apply:os\.system is not'):
+        load_params(path, 'safety_filter')
+
+
+def test_a_params_file_naming_a_parameter_twice_is_refused_naming_it(tmp_path: Path) -> None:
+    path = tmp_path / 'twice.yaml'
+    path.write_text('/**:\n  ros__parameters:\n    alpha: 2.0\n    alpha: 0.001\n')
+    with pytest.raises(ParamsFileError, match=r"twice\.yaml': line 4: the key 'alpha' is given "
+                                              r'twice in one mapping \(lines 3 and 4;'):
         load_params(path, 'safety_filter')
 
 

@@ -40,6 +40,38 @@ def test_a_node_refuses_a_bad_params_file_in_one_line_before_joining_dds(tmp_pat
     assert expected in lines[0]
 
 
+@pytest.mark.parametrize('value, key', [('[]', 'obstacles.x'), ('{}', 'system_params')])
+def test_an_empty_list_or_map_is_refused_naming_the_key_and_the_cause(
+        tmp_path, capsys, ros_domain_id, monkeypatch, value, key):
+    """rcl reads ``[]`` and ``{}`` as no value, which a node declaring its overrides cannot
+    declare: one line naming the key and why, exit status 2."""
+    from rcbf_ros.ros.dds.node import Node
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(ros_domain_id))
+    path = tmp_path / 'params.yaml'
+    name, last = key.split('.') if '.' in key else (key, None)
+    nested = f'{name}: {{{last}: {value}}}' if last else f'{name}: {value}'
+    path.write_text(f'/**:\n  ros__parameters:\n    gain: 1.0\n    {nested}\n')
+    code = run_node('probe', lambda: Node(
+        'probe', automatically_declare_parameters_from_overrides=True),
+        ['probe', '--ros-args', '--params-file', str(path)], setup_errors=(ValueError,))
+    lines = capsys.readouterr().err.splitlines()
+    assert code == 2 and lines == [
+        f'probe: invalid parameters: {key}: an empty list or map has no type in a params file '
+        '(ROS 2 cannot declare it); leave the key out or give values'], lines
+
+
+def test_rclpys_words_for_an_empty_value_get_the_key_from_the_command_line():
+    """rclpy's message names no key: the first key given no value is named."""
+    from rcbf_ros.ros.node_main import EMPTY_VALUE, setup_error_text
+    rclpys = ValueError('Cannot declare a statically typed parameter with default value of '
+                        'type PARAMETER_NOT_SET')
+    argv = ['probe', '--ros-args', '-r', '__node:=other', '-p', 'a:=1', '-p', 'b:=[]',
+            '-p', 'probe:c:=[]']
+    assert setup_error_text(rclpys, 'probe', argv) == f'b: {EMPTY_VALUE}'
+    assert setup_error_text(rclpys, 'probe', ['probe']) == str(rclpys)
+    assert setup_error_text(ValueError('k_c: must be >= 0'), 'probe', argv) == 'k_c: must be >= 0'
+
+
 def test_params_files_are_read_when_the_context_is_initialized(tmp_path, ros_domain_id):
     context = Context()
     with pytest.raises(ValueError, match='missing.yaml'):

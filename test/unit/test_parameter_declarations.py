@@ -63,6 +63,7 @@ def _cases(tmp_path: Path) -> list[tuple[str, Callable[[], Any], list[str]]]:
     from rcbf_ros.ros.scene_node import SceneNode
     from sim_nodes.nominal_controller_node import NominalControllerNode
     from sim_nodes.simulator_node import SimulatorNode
+    from sim_nodes.unicycle_lidar_node import UnicycleLidarNode
     return [
         ('simulator', SimulatorNode, []),
         ('simulator', SimulatorNode, ['-p', 'system:=pvtol', '-p', 'rate_hz:=20.0',
@@ -76,6 +77,7 @@ def _cases(tmp_path: Path) -> list[tuple[str, Callable[[], Any], list[str]]]:
         ('recorder', RecorderNode, ['-p', f'output:={tmp_path / "bag"}']),
         ('replay', ReplayNode, []),  # no bag: it refuses after declaring
         ('scene_markers', SceneNode, ['--params-file', UNICYCLE, '-p', 'rate_hz:=5']),
+        ('unicycle_lidar', UnicycleLidarNode, ['--params-file', UNICYCLE]),
         ('safety_filter', SafetyFilterNode, ['--params-file', UNICYCLE, '-p', 'k_c:=3.0']),
     ]
 
@@ -118,6 +120,19 @@ def test_every_parameter_of_every_node_has_a_description(monkeypatch, ros_domain
         bare = [key for key, descriptor in described.items()
                 if key not in RUNTIME_PARAMETERS and not descriptor.description]
         assert bare == [], f'{name} {args}: declared without a description: {bare}'
+
+
+def test_every_node_but_the_filter_declares_every_parameter_read_only(
+        monkeypatch, ros_domain_id, tmp_path):
+    """They read their parameters once, at start: a set must be refused, not reported done
+    and ignored (the filter reads some at runtime and checks them: its own tests)."""
+    for name, make, args in _cases(tmp_path):
+        if name == 'safety_filter':
+            continue
+        described = _built(monkeypatch, ros_domain_id, make, args)
+        settable = [key for key, descriptor in described.items()
+                    if key not in RUNTIME_PARAMETERS and not descriptor.read_only]
+        assert settable == [], f'{name} {args}: settable, read only at start: {settable}'
 
 
 def test_an_override_gets_its_spec_and_a_stray_one_says_it_is_not_read(

@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 import subprocess
 import sys
 
+from hypothesis import given
+from hypothesis import strategies as st
 import numpy as np
 import pytest
 
@@ -252,3 +254,28 @@ def test_env_hands_on_every_filter_key() -> None:
     params = make_env('unicycle', compile_assembly=True, k_c=1.5).filter_params()
     assert params['compile_assembly'] is True and params['k_c'] == 1.5
     assert 'obstacles.shape' not in params and 'goal' not in params
+
+
+@dataclass(frozen=True)
+class Names:
+    """A string and a list of strings, without choices."""
+
+    frame: str = setting('map', key='frame.id')
+    topics: tuple[str, ...] = ()
+
+
+@given(st.text(max_size=12), st.integers(0, 1))
+def test_a_string_is_refused_exactly_when_it_holds_a_c0_control_character(text, as_list):
+    """Oracle: a code point below U+0020 anywhere in the string."""
+    control = [i for i, char in enumerate(text) if ord(char) < 0x20]
+    params = {'topics': ['ok', text]} if as_list else {'frame.id': text}
+    if not control:
+        read_parameters(Names, params)
+        return
+    with pytest.raises(ParameterError) as refused:
+        read_parameters(Names, params)
+    line = str(refused.value)
+    assert '\n' not in line
+    where = 'topics: value 1: ' if as_list else 'frame.id: '
+    assert line == (f'{where}contains the control character U+{ord(text[control[0]]):04X} at '
+                    f'position {control[0]} (no string parameter holds one)')

@@ -8,6 +8,7 @@ import time
 from cyclonedds._clayer import ddspy_write
 from cyclonedds.core import Policy, Qos
 from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 import pytest
 
@@ -341,3 +342,36 @@ def test_a_reply_carrying_another_clients_handle_is_not_taken(nodes):
         rclpy.spin_once(server, timeout_sec=0.01)
         rclpy.spin_once(probe, timeout_sec=0.01)
     assert [v.double_value for v in future.result().values] == [1.5]
+
+
+def test_each_matched_endpoint_is_read_once_however_many_requests(nodes, monkeypatch):
+    """cyclonedds-python's matched-endpoint data calls leak native memory per call for an
+    endpoint with USER_DATA: over many requests (one client, then a new client per request as
+    ``ros2 param get`` does) each matched endpoint is read at most once."""
+    server, probe = nodes
+    reads = []
+    for cls, name in ((DataReader, 'get_matched_publication_data'),
+                      (DataWriter, 'get_matched_subscription_data')):
+        original = getattr(cls, name)
+
+        def counted(entity, handle, original=original, name=name):
+            reads.append((name, entity._ref, handle))
+            return original(entity, handle)
+        monkeypatch.setattr(cls, name, counted)
+    name = '/robot/safety_filter/get_parameters'
+    client = probe.create_client(GetParameters, name)
+    assert client.wait_for_service(timeout_sec=10)
+    for _ in range(30):
+        future = client.call_async(GetParameters.Request(names=['gain']))
+        deadline = time.monotonic() + 10
+        while not future.done() and time.monotonic() < deadline:
+            rclpy.spin_once(server, timeout_sec=0.01)
+            rclpy.spin_once(probe, timeout_sec=0.01)
+        assert [v.double_value for v in future.result().values] == [1.5]
+    # the client's two endpoints read the service's two, and the service the client's two
+    assert len(reads) <= 4 and len(set(reads)) == len(reads)
+    probe.destroy_client(client)
+    for _ in range(5):
+        reply = _call(server, probe, GetParameters, name, GetParameters.Request(names=['gain']))
+        assert [v.double_value for v in reply.values] == [1.5]
+    assert len(reads) <= 4 * 6 and len(set(reads)) == len(reads)

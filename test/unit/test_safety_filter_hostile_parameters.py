@@ -258,6 +258,8 @@ HOSTILE_FILES = [
     ({'alpha': 1e300}, 'alpha'),
     ({'slack_weight': 1e308}, 'slack_weight'),
     ({'input_bounds': {'state': 1e300}}, 'input_bounds.state'),
+    ({'state_frame_id': 'map\x00'}, 'state_frame_id: contains the control character U+0000'),
+    ({'diagnostics': {'name': 'a\x1b[31mb'}}, 'diagnostics.name: contains the control'),
 ]
 
 
@@ -275,6 +277,20 @@ def test_a_hostile_params_file_is_one_line_and_exit_2(tmp_path: Path, ros_domain
     assert 'Traceback' not in process.stderr
     last = process.stderr.strip().splitlines()[-1]
     assert last.startswith('safety_filter: ') and key in last, process.stderr[-2000:]
+
+
+@pytest.mark.parametrize('name, value', [
+    ('diagnostics.name', 'a\x00b'), ('diagnostics.hardware_id', 'evil\x1b[31m'),
+    ('state_frame_id', 'map\x00'), ('diagnostics.name', 'tab\there')])
+def test_a_string_with_a_control_character_is_refused_at_runtime_naming_it(harness, name,
+                                                                           value):
+    node = harness.node
+    before = _values(node)
+    (result,) = node.set_parameters([Parameter(name, value=value)])
+    assert not result.successful
+    assert result.reason.startswith(f'{name}: contains the control character U+'), result.reason
+    assert _values(node) == before
+    _assert_in_force(node)
 
 
 def test_every_declared_parameter_describes_itself_with_its_range(harness):

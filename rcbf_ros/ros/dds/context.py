@@ -262,6 +262,10 @@ def _collect_work(node: Any, triggered: list[int]) -> None:
         guard = node._guard
         if guard is not None and guard._ref in triggered:
             guard.take()
+        graph = node.context.graph
+        condition = None if graph is None else graph.condition
+        if condition is not None and condition._ref in triggered:
+            graph.drain()
         for subscription in node._subscriptions:
             condition = subscription._condition  # None once destroyed (from another thread)
             if condition is not None and condition._ref in triggered:

@@ -12,8 +12,11 @@ created or destroyed, and reads the other participants' samples keep-all, ignori
 when a participant leaves DDS discovery its nodes leave the graph. This is the only traffic it
 adds: nothing per message.
 
-The reader is drained when the graph is queried and whenever this context writes, not by a
-thread: samples only arrive when some process's graph changes.
+The reader is drained when the graph is queried, whenever this context writes, and by every
+node's executor as samples arrive (each node's wait set waits on :attr:`GraphInfo.condition`),
+not by a thread: samples only arrive when some process's graph changes, but a keep-all reader
+left alone would keep every one of them (a client created and destroyed elsewhere, as ``ros2
+param get`` does, is four samples).
 """
 from __future__ import annotations
 
@@ -152,6 +155,8 @@ class GraphInfo:
         self._reader: DataReader | None = DataReader(
             participant, self._topic,
             qos=to_cyclone_qos(READER_QOS, user_data) + Qos(Policy.IgnoreLocal.Participant))
+        self.condition: ReadCondition | None = ReadCondition(self._reader, _ANY_SAMPLE)
+        """Triggered while other participants' samples wait to be taken (:meth:`drain`)."""
         self._participants = BuiltinDataReader(participant, BuiltinTopicDcpsParticipant)
         self._alive_participants = ReadCondition(
             self._participants, SampleState.Any | ViewState.Any | InstanceState.Alive)
@@ -221,6 +226,13 @@ class GraphInfo:
         return [(node.name, node.namespace)
                 for nodes in self.participants().values() for node in nodes]
 
+    def drain(self) -> None:
+        """Take the other participants' samples that arrived (their entries kept, the samples
+        freed)."""
+        with self._lock:
+            if self._reader is not None:
+                self._take_remote()
+
     def _take_remote(self) -> None:
         while True:
             samples = ddspy_take(self._reader._ref, _ANY_SAMPLE, _TAKE_BATCH)
@@ -243,9 +255,9 @@ class GraphInfo:
     def close(self) -> None:
         """Delete the DDS entities (idempotent); the participant's nodes are gone by then."""
         with self._lock:
-            for entity in (self._alive_participants, self._participants, self._reader,
-                           self._writer, self._topic):
+            for entity in (self._alive_participants, self._participants, self.condition,
+                           self._reader, self._writer, self._topic):
                 if entity is not None:
                     entity.__del__()
-            self._reader = self._writer = None
+            self._reader = self._writer = self.condition = None
             self._alive_participants = self._participants = self._topic = None

@@ -142,6 +142,8 @@ class Node(NodeParameters, NodeGraph):
         self._spin_lock = threading.Lock()
         self._waitset: NodeWaitSet | None = NodeWaitSet(self.context.participant)
         self._guard = self._waitset.guard
+        if self.context.graph.condition is not None:  # drained as it fills (graph.py)
+            self._waitset.attach(self.context.graph.condition)
         self._init_graph_queries()
         self._service_endpoints: list[services.Service | services.Client] = []
         self.context.add_node(self)
