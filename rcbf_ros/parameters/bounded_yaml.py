@@ -17,7 +17,8 @@ its MCAP channels, and launch argument values. A text past a limit raises
   ``!!seq``, ``!!map``, ...); ``!!python/...`` and local tags (``!x``) are refused;
 - keys: a mapping names each key once (YAML 1.2 requires it); PyYAML and rcl's parser would
   let a second ``alpha:`` silently replace the first (or, in rcl, keep the first when the types
-  differ), so a repeated key is refused, naming it and both lines.
+  differ), so a repeated key is refused, naming it and both lines, except in a ROS 2 params
+  file, which is read as rcl reads it, each repeat reported (``repeated_keys``).
 
 The limits are checked on the parser's events, one event at a time, before anything is built,
 so a refused text costs at most one pass over its first bytes, up to the size limit.
@@ -105,7 +106,8 @@ def read_limited(path: str | os.PathLike[str], *, max_bytes: int, what: str) -> 
 
 def checked_events(text: str, *, source: str, max_depth: int = MAX_DEPTH,
                    max_nodes: int = MAX_NODES, allow_aliases: bool = True,
-                   loader: Any = yaml.SafeLoader) -> Iterator[yaml.Event]:
+                   loader: Any = yaml.SafeLoader,
+                   repeated_keys: list[str] | None = None) -> Iterator[yaml.Event]:
     """The parser's events of ``text``, each checked against the limits before it is yielded.
 
     Args:
@@ -115,6 +117,9 @@ def checked_events(text: str, *, source: str, max_depth: int = MAX_DEPTH,
         max_nodes: most nodes (scalars and collections; aliases as what they repeat).
         allow_aliases: False refuses every alias.
         loader: the PyYAML loader class whose parser reads ``text``.
+        repeated_keys: None refuses a key repeated in one mapping; a list takes it and gets
+            one line per repeat (a ROS 2 params file: rcl reads repeats, see
+            :meth:`rcbf_ros.parameters.rules.ParamRules.add_file`).
 
     Raises:
         YAMLLimitError: past a limit (the message names the line).
@@ -144,8 +149,12 @@ def checked_events(text: str, *, source: str, max_depth: int = MAX_DEPTH,
         line = event.start_mark.line + 1 if event.start_mark is not None else 0
         first = mapping[4].get(event.value)
         if first is not None:
-            raise refuse(event, f'the key {event.value!r} is given twice in one mapping '
-                                f'(lines {first} and {line}; YAML keys are unique)')
+            problem = (f'the key {event.value!r} is given twice in one mapping (lines {first} '
+                       f'and {line}; YAML keys are unique)')
+            if repeated_keys is None:
+                raise refuse(event, problem)
+            repeated_keys.append(f'{source}: line {line}: {problem}')
+            return
         mapping[4][event.value] = line
 
     def grow(event: yaml.Event, count: int, reached: int) -> None:

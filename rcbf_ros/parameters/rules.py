@@ -161,6 +161,10 @@ class ParamRules:
     def __init__(self) -> None:
         self._keys: list[str] = []
         self._entries: list[list[list[Any]]] = []
+        self.repeated_keys: list[str] = []
+        """One line per key given twice in one mapping of a params file: read as rcl reads it
+        (the later value of the same type replaces the earlier), and reported, since which of
+        two lines sets a safety parameter should not go unsaid."""
 
     def __bool__(self) -> bool:
         return bool(self._keys)
@@ -206,7 +210,8 @@ class ParamRules:
             raise ParamsFileError(f'{path!r}: not UTF-8 text ({exc.reason} at byte '
                                   f'{exc.start})') from exc
         try:  # YAML syntax first: its position says more than where rcl's rules would stop
-            events = list(bounded_yaml.checked_events(text, source=repr(path)))
+            events = list(bounded_yaml.checked_events(text, source=repr(path),
+                                                      repeated_keys=self.repeated_keys))
         except bounded_yaml.YAMLLimitError as exc:
             raise ParamsFileError(str(exc)) from exc
         except yaml.YAMLError as exc:

@@ -425,8 +425,11 @@ def unknown_parameters(node_name: str, fully_qualified: str, argv: Sequence[str]
     from rcbf_ros.parameters.arguments import parse_ros_arguments
     from rcbf_ros.parameters.unknown import names_of, unknown_parameter_lines
     own = resolve(interface, argv)
-    return unknown_parameter_lines(
-        sections=parse_ros_arguments(argv).parameter_rules.sections(), node_name=node_name,
+    rules = parse_ros_arguments(argv).parameter_rules
+    repeated = [f'{line} (read as ROS 2 reads it: the later value of the same type)'
+                for line in rules.repeated_keys]
+    return repeated + unknown_parameter_lines(
+        sections=rules.sections(), node_name=node_name,
         fully_qualified=fully_qualified, own=lambda name: own.spec(name) is not None,
         shared=lambda name: SHARED.spec(name) is not None, own_names=names_of(own.parameters),
         shared_names=names_of(SHARED.parameters))

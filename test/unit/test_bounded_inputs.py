@@ -37,7 +37,12 @@ from rcbf_ros.bag import bag_info, BagError, BagWriter, BagWriterConfig, recover
 from rcbf_ros.bag.scan import MAX_CHUNK_BYTES, MAX_RECORD_BYTES, McapScan
 from rcbf_ros.launch.table import typed_value
 from rcbf_ros.parameters import bounded_yaml
-from rcbf_ros.parameters.rules import load_params, MAX_PARAMS_FILE_BYTES, ParamsFileError
+from rcbf_ros.parameters.rules import (
+    load_params,
+    MAX_PARAMS_FILE_BYTES,
+    ParamRules,
+    ParamsFileError,
+)
 from rcbf_ros.ros import replay_node
 
 CEILING = 512 * MIB
@@ -195,12 +200,18 @@ def test_python_tag_in_params_file_names_the_tag(tmp_path: Path) -> None:
         load_params(path, 'safety_filter')
 
 
-def test_a_params_file_naming_a_parameter_twice_is_refused_naming_it(tmp_path: Path) -> None:
+def test_a_params_file_naming_a_parameter_twice_is_read_as_ros2_reads_it_and_reported(
+        tmp_path: Path) -> None:
+    """rcl's parser (rcl_yaml_param_parser) lets the later value of a repeated key replace the
+    earlier; a params file is read the same way, on every runtime, and the repeat reported."""
     path = tmp_path / 'twice.yaml'
     path.write_text('/**:\n  ros__parameters:\n    alpha: 2.0\n    alpha: 0.001\n')
-    with pytest.raises(ParamsFileError, match=r"twice\.yaml': line 4: the key 'alpha' is given "
-                                              r'twice in one mapping \(lines 3 and 4;'):
-        load_params(path, 'safety_filter')
+    assert load_params(path, 'safety_filter') == {'alpha': 0.001}
+    rules = ParamRules()
+    rules.add_file(path)
+    assert len(rules.repeated_keys) == 1
+    assert re.search(r"twice\.yaml': line 4: the key 'alpha' is given twice in one mapping "
+                     r'\(lines 3 and 4;', rules.repeated_keys[0])
 
 
 @pytest.mark.parametrize('case', ['huge', 'deep', 'tag'])

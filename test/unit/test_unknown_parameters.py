@@ -158,3 +158,11 @@ def test_no_launch_gives_a_node_an_unknown_parameter():
             interface = _interface(entry.module, attributes[entry.module])
             assert unknown_parameters(entry.name, f'/{entry.name}', argv, interface) == [], (
                 name, entry.name)
+
+
+def test_a_key_given_twice_is_reported_with_both_lines(tmp_path):
+    lines = _lines('safety_filter', tmp_path,
+                   '/**:\n  ros__parameters:\n    alpha: 2.0\n    alpha: 0.5\n')
+    assert len(lines) == 1
+    assert "line 4: the key 'alpha' is given twice in one mapping (lines 3 and 4" in lines[0]
+    assert lines[0].endswith('(read as ROS 2 reads it: the later value of the same type)')
