@@ -11,6 +11,7 @@ docs/NODES.md#every-nodes-main-help-and-stopping
 """
 from __future__ import annotations
 
+import functools
 import importlib
 import os
 import re
@@ -367,23 +368,14 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
         _STOP.install()  # our runtime's init installs handlers of its own
         # A parameter the runtime declares for every node (use_sim_time) refusing its override
         # is the user's error too.
-        built = make_node if interface is None else _warning_unknown(make_node, argv, interface)
-        return _run(name, built, run=run, on_exit=on_exit,
+        built = None if interface is None else functools.partial(
+            warn_unknown_parameters, argv=argv, interface=interface)
+        return _run(name, make_node, built=built, run=run, on_exit=on_exit,
                     setup_errors=(*setup_errors, ParameterException),
                     setup_message=setup_message, shutdown_errors=(ExternalShutdownException,),
                     rclpy=rclpy, argv=argv)
     finally:
         _STOP.restore()
-
-
-def _warning_unknown(make_node: Callable[[], Any], argv: Sequence[str],
-                     interface: InterfaceSource) -> Callable[[], Any]:
-    """``make_node``, then :func:`warn_unknown_parameters` of the node it made."""
-    def make() -> Any:
-        node = make_node()
-        warn_unknown_parameters(node, argv, interface)
-        return node
-    return make
 
 
 ERROR_LINE_LIMIT = 240
@@ -483,10 +475,13 @@ def _first_unset(name: str, argv: Sequence[str]) -> str | None:
 def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] | None,
          on_exit: Callable[[Any], None] | None, setup_errors: tuple[type[BaseException], ...],
          setup_message: str, shutdown_errors: tuple[type[BaseException], ...],
-         rclpy: Any, argv: Sequence[str] = ()) -> int:
+         rclpy: Any, argv: Sequence[str] = (),
+         built: Callable[[Any], None] | None = None) -> int:
     node = None
     try:
         node = make_node()
+        if built is not None:  # after ``node`` is set: a signal meanwhile still runs on_exit
+            built(node)
         (run or spin)(node)
     except (KeyboardInterrupt, *shutdown_errors):
         pass

@@ -300,7 +300,7 @@ def test_the_heading_index_of_each_system_is_accepted(system, heading):
 
 
 @pytest.mark.parametrize('lookahead, margin, refused', [(0.03, 0.09, False), (0.03, 0.089, True),
-                                                        (0.02, 0.05, True), (0.0, 0.0, False)])
+                                                        (0.02, 0.05, True), (0.01, 0.03, False)])
 def test_a_point_that_may_switch_behind_needs_three_lookaheads_of_margin(lookahead, margin,
                                                                          refused):
     """With speed_input the guarded point may switch to the one behind the robot; the centre

@@ -166,3 +166,29 @@ def test_a_key_given_twice_is_reported_with_both_lines(tmp_path):
     assert len(lines) == 1
     assert "line 4: the key 'alpha' is given twice in one mapping (lines 3 and 4" in lines[0]
     assert lines[0].endswith('(read as ROS 2 reads it: the later value of the same type)')
+
+
+def test_a_signal_while_the_warnings_are_worked_out_still_closes_the_node():
+    """The node is built before its unknown parameters are looked at: a Ctrl-C meanwhile stops
+    it as one during the spin does (on_exit runs: a recorder closes its bag)."""
+    from rcbf_ros.ros import node_main
+
+    class Node:
+        destroyed = False
+
+        def destroy_node(self):
+            self.destroyed = True
+
+    class Rclpy:
+        @staticmethod
+        def try_shutdown():
+            pass
+
+    def interrupted(node):
+        raise KeyboardInterrupt
+
+    closed, node = [], Node()
+    status = node_main._run('n', lambda: node, built=interrupted, run=lambda n: None,
+                            on_exit=closed.append, setup_errors=(), setup_message='',
+                            shutdown_errors=(), rclpy=Rclpy)
+    assert status == 0 and closed == [node] and node.destroyed
