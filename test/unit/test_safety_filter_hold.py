@@ -15,7 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 import numpy as np
 import pytest
-from test_safety_filter_callbacks import _cdr, _harness, FAIL_SAFE
+from test_safety_filter_callbacks import _cdr, FAIL_SAFE
+from test_safety_filter_refilter import _node_harness
 
 from rcbf_ros.core.barriers import HalfPlane
 from rcbf_ros.core.dynamics import Unicycle
@@ -236,27 +237,10 @@ def test_a_command_held_at_a_wall_keeps_off_it_only_with_the_checks(wall_filter)
 
 # --- the node -----------------------------------------------------------------------------------
 
-class _Clock:
-    """A monotonic clock the test moves (stands in for the node's ``time`` module)."""
-
-    def __init__(self) -> None:
-        self.now_ns = 100 * SECOND
-
-    def monotonic_ns(self) -> int:
-        return self.now_ns
-
-
-def _node(ros_domain_id: int, monkeypatch: Any, *ros_args: str):
-    from rcbf_ros.ros import safety_filter_node
-    clock = _Clock()
-    monkeypatch.setattr(safety_filter_node, 'time', clock)
-    return _harness(ros_domain_id, *ros_args), clock
-
-
 @pytest.fixture
 def held_node(ros_domain_id, monkeypatch):
-    instance, clock = _node(ros_domain_id, monkeypatch, '-p', f'control_period_s:={T}',
-                            '-p', f'latency_s:={L}')
+    instance, clock = _node_harness(ros_domain_id, monkeypatch, '-p', f'control_period_s:={T}',
+                                    '-p', f'latency_s:={L}')
     yield instance, clock
     instance.node.destroy_node()
     rclpy.try_shutdown()
@@ -264,7 +248,7 @@ def held_node(ros_domain_id, monkeypatch):
 
 @pytest.fixture
 def plain_node(ros_domain_id, monkeypatch):
-    instance, clock = _node(ros_domain_id, monkeypatch)
+    instance, clock = _node_harness(ros_domain_id, monkeypatch)
     yield instance, clock
     instance.node.destroy_node()
     rclpy.try_shutdown()
