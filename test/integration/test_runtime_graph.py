@@ -429,18 +429,23 @@ def test_use_sim_time_refuses_a_value_that_is_not_a_bool_as_rclpys_time_source(c
     assert node.get_parameter('use_sim_time').value == 1
 
 
+def _discovery_writer(participant: DomainParticipant):
+    """A writer of ``participant`` on the ROS 2 graph's discovery topic, with rmw's QoS."""
+    from cyclonedds.pub import DataWriter
+    topic = Topic(participant, graph.DISCOVERY_TOPIC,
+                  messages.idl_struct(graph.PARTICIPANT_INFO_TYPE))
+    return DataWriter(participant, topic, qos=Qos(
+        Policy.Reliability.Reliable(max_blocking_time=10**9),
+        Policy.Durability.TransientLocal, Policy.History.KeepLast(1)))
+
+
 def test_an_undecodable_graph_sample_is_dropped_and_counted(contexts, ros_domain_id):
     from cyclonedds._clayer import ddspy_write
-    from cyclonedds.pub import DataWriter
     context = contexts()
     observer = Node('observer', context=context)
     stranger = DomainParticipant(ros_domain_id)
     try:
-        topic = Topic(stranger, graph.DISCOVERY_TOPIC,
-                      messages.idl_struct(graph.PARTICIPANT_INFO_TYPE))
-        writer = DataWriter(stranger, topic, qos=Qos(
-            Policy.Reliability.Reliable(max_blocking_time=10**9),
-            Policy.Durability.TransientLocal, Policy.History.KeepLast(1)))
+        writer = _discovery_writer(stranger)
         # well-formed for DDS, but a node name that is not UTF-8
         valid = messages.serialize_message(graph.participant_info_message(
             participant_gid=stranger.guid.bytes,
@@ -469,16 +474,11 @@ def test_a_spinning_node_takes_the_graph_samples_of_others_as_they_arrive(contex
     (a filter answering ``ros2 param get``, which creates and destroys a client per call)
     must not hold every change another participant announced."""
     from cyclonedds._clayer import ddspy_read, ddspy_write
-    from cyclonedds.pub import DataWriter
     context = contexts()
     node = Node('quiet', context=context)
     stranger = DomainParticipant(ros_domain_id)
     try:
-        topic = Topic(stranger, graph.DISCOVERY_TOPIC,
-                      messages.idl_struct(graph.PARTICIPANT_INFO_TYPE))
-        writer = DataWriter(stranger, topic, qos=Qos(
-            Policy.Reliability.Reliable(max_blocking_time=10**9),
-            Policy.Durability.TransientLocal, Policy.History.KeepLast(1)))
+        writer = _discovery_writer(stranger)
         _wait_for(lambda: writer.get_matched_subscriptions(), 'the graph reader matched')
         for index in range(40):
             sample = messages.serialize_message(graph.participant_info_message(
