@@ -13,6 +13,7 @@ import shlex
 import shutil
 import signal
 import subprocess
+import sysconfig
 from typing import Mapping
 
 from hypothesis import settings
@@ -92,6 +93,17 @@ class Jazzy:
         """``bash -c`` with the install sourced first (``set -e``)."""
         source = f'source {shlex.quote(str(self.setup))} && ' if self.setup else ''
         return ['bash', '-c', f'set -e; {source}{script}']
+
+    @staticmethod
+    def python_module(module: str, arguments: str = '') -> str:
+        """The script that runs ``python -m module arguments`` with the install's interpreter
+        (the one ros2cli runs on) and this repository importable, on rclpy
+        (``RCBF_ROS_RUNTIME=rclpy``)."""
+        repo = Path(__file__).resolve().parents[1]
+        path = f'{repo}:{sysconfig.get_path("purelib")}'
+        return ('PY=$(head -1 "$(command -v ros2)" | cut -c3-); '
+                f'PYTHONPATH="$PYTHONPATH:{path}" RCBF_ROS_RUNTIME=rclpy exec "$PY" -m '
+                f'{module} {arguments}').rstrip()
 
     def run(self, script: str, *, domain_id: int, timeout: float = 120.0,
             cwd: Path | None = None, env: Mapping[str, str] | None = None

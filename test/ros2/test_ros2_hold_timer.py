@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from pathlib import Path
 import sys
-import sysconfig
 
 from colcon_overlay import wait_for
 import pytest
@@ -26,13 +25,10 @@ WAIT_S = 90.0
 def test_the_hold_timer_answers_under_use_sim_time_without_a_clock(jazzy, tmp_path,
                                                                    ros_domain_id):
     log = tmp_path / 'safety_filter.log'
-    path = f'{REPO}:{sysconfig.get_path("purelib")}'
-    node = jazzy.start(
-        'PY=$(head -1 "$(command -v ros2)" | cut -c3-); '
-        f'PYTHONPATH="$PYTHONPATH:{path}" RCBF_ROS_RUNTIME=rclpy exec "$PY" -m '
-        f'rcbf_ros.ros.safety_filter_node --ros-args --params-file '
-        f'{REPO / "config" / "unicycle.yaml"} -p use_sim_time:=true '
-        '-p control_period_s:=0.05 -p latency_s:=0.15', domain_id=ros_domain_id, log=log)
+    node = jazzy.start(jazzy.python_module(
+        'rcbf_ros.ros.safety_filter_node',
+        f'--ros-args --params-file {REPO / "config" / "unicycle.yaml"} -p use_sim_time:=true '
+        '-p control_period_s:=0.05 -p latency_s:=0.15'), domain_id=ros_domain_id, log=log)
 
     def ros2(command: str) -> str:
         return jazzy.run(command, domain_id=ros_domain_id, timeout=60).stdout
