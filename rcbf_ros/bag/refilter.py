@@ -457,12 +457,6 @@ MAX_NOT_COPIED_SHOWN = 5
 """Topics left out of the copy named in :meth:`RefilterSummary.format` (all are in the JSON)."""
 
 
-def _cut(text: str, width: int = 200) -> str:
-    """One line of at most ``width`` characters."""
-    line = ' '.join(text.split())
-    return line if len(line) <= width else line[:width - 3] + '...'
-
-
 def _copy(writer: BagWriter, item: Any, summary: RefilterSummary) -> None:
     """Copy one source message into the output, or leave it out and count it when the output
     cannot hold it (its topic refused at registration, or the message itself: not CDR)."""
@@ -472,7 +466,7 @@ def _copy(writer: BagWriter, item: Any, summary: RefilterSummary) -> None:
     try:
         writer.write(item.topic, item.data, item.log_time_ns, item.publish_time_ns)
     except ValueError as exc:
-        summary.not_copied.setdefault(item.topic, _cut(str(exc)))
+        summary.not_copied.setdefault(item.topic, filter_edge.one_line(exc))
         summary.not_copied_messages += 1
 
 
@@ -849,7 +843,7 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                                      message_definition=topic.definition,
                                      type_hash=topic.type_hash)
                 except ValueError as exc:  # a channel the output cannot hold: left out
-                    summary.not_copied[topic.name] = _cut(str(exc))
+                    summary.not_copied[topic.name] = filter_edge.one_line(exc)
             command_type = topics[proposal_topic].type_name
             if command_type not in (TWIST, TWIST_STAMPED):
                 command_type = FLOAT64_MULTIARRAY
