@@ -3,6 +3,7 @@ shutdown from a callback ends spin, graph queries."""
 from __future__ import annotations
 
 import math
+import sys
 import threading
 
 from hypothesis import given
@@ -273,3 +274,41 @@ def test_a_timer_period_is_a_positive_int64_of_nanoseconds_or_one_refusal(period
     else:
         assert 0 < period_ns <= INT64_MAX
         assert period_ns == round(period * 1e9)
+
+
+def _interrupted_at_line(k: int, domain_id: int) -> bool:
+    """Build a node with ``KeyboardInterrupt`` raised at the ``k``-th line ``Node.__init__``
+    runs (as a SIGINT lands), then shut the runtime down; whether line ``k`` was reached."""
+    from rcbf_ros.ros.dds.node import Node
+    lines = [0]
+
+    def trace(frame, event, arg):
+        if frame.f_code is not Node.__init__.__code__:
+            return None
+        if event == 'line':
+            lines[0] += 1
+            if lines[0] == k:
+                raise KeyboardInterrupt
+        return trace
+    rclpy.init(args=[], domain_id=domain_id)
+    sys.settrace(lambda frame, event, arg: trace if frame.f_code is Node.__init__.__code__
+                 else None)
+    try:
+        Node('interrupted')
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sys.settrace(None)
+    rclpy.try_shutdown()  # must not raise, whatever the node had built
+    assert not rclpy.ok()
+    return lines[0] >= k
+
+
+def test_a_signal_at_any_line_of_a_node_s_construction_leaves_a_runtime_that_shuts_down(
+        ros_domain_id):
+    """A launch stops its nodes with SIGINT, which may land while one is still being built:
+    the runtime's shutdown then destroys a node that holds only part of its entities."""
+    k = 1
+    while _interrupted_at_line(k, ros_domain_id):
+        k += 1
+    assert k > 40  # every line of the constructor was a landing point

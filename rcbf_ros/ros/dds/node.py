@@ -146,13 +146,14 @@ class Node(NodeParameters, NodeGraph):
             self._waitset.attach(self.context.graph.condition)
         self._init_graph_queries()
         self._service_endpoints: list[services.Service | services.Client] = []
+        self._graph_node: Any = None  # set before the context holds the node: a signal
+        self._rosout: RosoutWriter | None = None  # from here on leaves it destroyable
         self.context.add_node(self)
         self._graph_node = self.context.graph.add_node(name=self._name,
                                                        namespace=self._namespace)
         self._parameter_event_publisher = self.create_publisher(
             messages.get_message('rcl_interfaces/msg/ParameterEvent'), '/parameter_events',
             qos_profile_parameter_events)
-        self._rosout: RosoutWriter | None = None
         if enable_rosout and self.context.arguments.rosout_logs:  # as rcl: global args only
             self._rosout = RosoutWriter(self.context.participant,
                                         self._dds_topic(ROSOUT_TOPIC, LOG_TYPE))
@@ -324,7 +325,8 @@ class Node(NodeParameters, NodeGraph):
         """Delete every DDS entity of this node (idempotent)."""
         if self._waitset is None:
             return
-        self.context.graph.remove_node(self._graph_node)  # its endpoints leave with it
+        if self._graph_node is not None:
+            self.context.graph.remove_node(self._graph_node)  # its endpoints leave with it
         if self._rosout is not None:
             self._rosout.close()
         for timer in self._timers:
