@@ -38,6 +38,7 @@ import yaml
 
 from rcbf_ros.bag import scan
 from rcbf_ros.bag.qos import dump_offered_qos_profiles, offered_qos_sequence, RecordedQos
+from rcbf_ros.interrupts import held
 from rcbf_ros.messages.cdr import serialize_message
 from rcbf_ros.messages.typestore import (
     jazzy_typestore,
@@ -478,61 +479,62 @@ class BagWriter:
             The topic's record. Registering the same name again with the same type returns
             the existing record; with another type raises ValueError.
         """
-        self._check_open()
-        if not name.startswith('/') or name.endswith('/') and name != '/':
-            raise ValueError(f'topic name {name!r} must be absolute (start with /)')
-        type_name = normalize_type_name(type_name)
-        if name in self.topics:
-            existing = self.topics[name]
-            if existing.type_name != type_name:
-                raise ValueError(f'topic {name!r} is already registered with type '
-                                 f'{existing.type_name}, not {type_name}')
-            return existing
-        if message_definition is None:
-            message_definition = message_definition_text(type_name, self._typestore)
-            type_hash = type_hash_rihs01(type_name, self._typestore)
-        elif type_hash is None:
-            type_hash = ''
-        if qos is None:
-            profiles: tuple[RecordedQos, ...] = (RecordedQos(),)
-        elif isinstance(qos, RecordedQos):
-            profiles = (qos,)
-        else:
-            profiles = tuple(qos)
-            if not all(isinstance(p, RecordedQos) for p in profiles):
-                raise TypeError('qos must be a RecordedQos or a sequence of them')
-        schema_id = self._schema_ids.get(type_name)
-        new_schema = schema_id is None
-        if schema_id is None:
-            schema_id = len(self._schema_ids) + 1
-        schema = Schema(id=schema_id, name=type_name, encoding='ros2msg',
-                        data=message_definition.encode())
-        channel = Channel(id=len(self.topics) + 1, topic=name, message_encoding='cdr',
-                          schema_id=schema_id,
-                          metadata={'offered_qos_profiles': dump_offered_qos_profiles(profiles),
-                                    'topic_type_hash': type_hash})
-        record = TopicRecord(name=name, type_name=type_name, channel_id=channel.id,
-                             offered_qos=profiles, type_hash=type_hash)
-        added = ([(Opcode.SCHEMA, _record_bytes(schema))] if new_schema else []) + [
-            (Opcode.CHANNEL, _record_bytes(channel))]
-        # The schema and channel go into the open chunk as well: it must hold them.
-        if not self._chunk.room(sum(len(data) for _, data in added)):
-            raise ValueError(f'topic {name}: its schema and channel records '
-                             f'({sum(len(data) for _, data in added)} bytes) do not fit a chunk '
-                             f'of at most {max_chunk_bytes()} bytes')
-        self._write_out()  # the chunk closed to make room, if any
-        # The closing records list every topic: check that they still fit, then register.
-        self._check_room(b'', self._file.contents, extra_topic=(record, added))
-        if new_schema:
-            self._schema_ids[type_name] = self._writer.register_schema(
-                name=schema.name, encoding=schema.encoding, data=schema.data)
-            self._chunk.added(len(added[0][1]), message=False)
-        self._writer.register_channel(topic=name, message_encoding=channel.message_encoding,
-                                      schema_id=schema_id, metadata=channel.metadata)
-        self._chunk.added(len(added[-1][1]), message=False)
-        self._summary_records += added
-        self.topics[name] = record
-        return record
+        with held:  # a signal meanwhile waits for the end (see interrupts)
+            self._check_open()
+            if not name.startswith('/') or name.endswith('/') and name != '/':
+                raise ValueError(f'topic name {name!r} must be absolute (start with /)')
+            type_name = normalize_type_name(type_name)
+            if name in self.topics:
+                existing = self.topics[name]
+                if existing.type_name != type_name:
+                    raise ValueError(f'topic {name!r} is already registered with type '
+                                     f'{existing.type_name}, not {type_name}')
+                return existing
+            if message_definition is None:
+                message_definition = message_definition_text(type_name, self._typestore)
+                type_hash = type_hash_rihs01(type_name, self._typestore)
+            elif type_hash is None:
+                type_hash = ''
+            if qos is None:
+                profiles: tuple[RecordedQos, ...] = (RecordedQos(),)
+            elif isinstance(qos, RecordedQos):
+                profiles = (qos,)
+            else:
+                profiles = tuple(qos)
+                if not all(isinstance(p, RecordedQos) for p in profiles):
+                    raise TypeError('qos must be a RecordedQos or a sequence of them')
+            schema_id = self._schema_ids.get(type_name)
+            new_schema = schema_id is None
+            if schema_id is None:
+                schema_id = len(self._schema_ids) + 1
+            schema = Schema(id=schema_id, name=type_name, encoding='ros2msg',
+                            data=message_definition.encode())
+            metadata = {'offered_qos_profiles': dump_offered_qos_profiles(profiles),
+                        'topic_type_hash': type_hash}
+            channel = Channel(id=len(self.topics) + 1, topic=name, message_encoding='cdr',
+                              schema_id=schema_id, metadata=metadata)
+            record = TopicRecord(name=name, type_name=type_name, channel_id=channel.id,
+                                 offered_qos=profiles, type_hash=type_hash)
+            added = ([(Opcode.SCHEMA, _record_bytes(schema))] if new_schema else []) + [
+                (Opcode.CHANNEL, _record_bytes(channel))]
+            # The schema and channel go into the open chunk as well: it must hold them.
+            size = sum(len(data) for _, data in added)
+            if not self._chunk.room(size):
+                raise ValueError(f'topic {name}: its schema and channel records ({size} bytes) '
+                                 f'do not fit a chunk of at most {max_chunk_bytes()} bytes')
+            self._write_out()  # the chunk closed to make room, if any
+            # The closing records list every topic: check that they still fit, then register.
+            self._check_room(b'', self._file.contents, extra_topic=(record, added))
+            if new_schema:
+                self._schema_ids[type_name] = self._writer.register_schema(
+                    name=schema.name, encoding=schema.encoding, data=schema.data)
+                self._chunk.added(len(added[0][1]), message=False)
+            self._writer.register_channel(topic=name, message_encoding=channel.message_encoding,
+                                          schema_id=schema_id, metadata=channel.metadata)
+            self._chunk.added(len(added[-1][1]), message=False)
+            self._summary_records += added
+            self.topics[name] = record
+            return record
 
     # -- messages -------------------------------------------------------------------------
 
@@ -552,26 +554,27 @@ class BagWriter:
             ValueError: not CDR, or a negative time.
             BagWriteError: the write failed; the bag is closed (see the module docstring).
         """
-        self._check_open()
-        record = self.topics.get(topic)
-        if record is None:
-            raise KeyError(f'topic {topic!r} is not registered in this bag (call add_topic)')
-        data = bytes(cdr_bytes)
-        if len(data) < 4 or data[0] != 0 or data[1] not in (0, 1, 2, 3, 6, 7, 8, 9, 10, 11):
-            raise ValueError(f'cdr_bytes for topic {topic!r} do not start with a CDR '
-                             f'encapsulation header (got {data[:4]!r})')
-        log_time_ns = int(log_time_ns)
-        if log_time_ns < 0:
-            raise ValueError(f'log_time_ns must be >= 0, got {log_time_ns}')
-        self._chunk.add_message(
-            channel_id=record.channel_id, log_time=log_time_ns, data=data,
-            publish_time=log_time_ns if publish_time_ns is None else int(publish_time_ns),
-            sequence=record.message_count & 0xFFFFFFFF, topic=topic)
-        record.message_count += 1
-        self._write_out()  # a chunk, if this message filled one
-        self._times.add(log_time_ns)
-        if time.monotonic() - self._last_flush >= self.config.flush_period_s:
-            self.flush()
+        with held:  # a signal meanwhile waits for the end (see interrupts)
+            self._check_open()
+            record = self.topics.get(topic)
+            if record is None:
+                raise KeyError(f'topic {topic!r} is not registered in this bag (call add_topic)')
+            data = bytes(cdr_bytes)
+            if len(data) < 4 or data[0] != 0 or data[1] not in (0, 1, 2, 3, 6, 7, 8, 9, 10, 11):
+                raise ValueError(f'cdr_bytes for topic {topic!r} do not start with a CDR '
+                                 f'encapsulation header (got {data[:4]!r})')
+            log_time_ns = int(log_time_ns)
+            if log_time_ns < 0:
+                raise ValueError(f'log_time_ns must be >= 0, got {log_time_ns}')
+            self._chunk.add_message(
+                channel_id=record.channel_id, log_time=log_time_ns, data=data,
+                publish_time=log_time_ns if publish_time_ns is None else int(publish_time_ns),
+                sequence=record.message_count & 0xFFFFFFFF, topic=topic)
+            record.message_count += 1
+            self._write_out()  # a chunk, if this message filled one
+            self._times.add(log_time_ns)
+            if time.monotonic() - self._last_flush >= self.config.flush_period_s:
+                self.flush()
 
     def write_message(self, topic: str, message: Any, log_time_ns: int,
                       publish_time_ns: int | None = None) -> None:
@@ -591,13 +594,14 @@ class BagWriter:
         Raises:
             BagWriteError: the write failed; the bag is closed (see the module docstring).
         """
-        self._check_open()
-        self._writer.flush()
-        self._chunk.closed()
-        self._write_out()
-        if self.config.fsync:
-            self._fsync()
-        self._last_flush = time.monotonic()
+        with held:  # a signal meanwhile waits for the end (see interrupts)
+            self._check_open()
+            self._writer.flush()
+            self._chunk.closed()
+            self._write_out()
+            if self.config.fsync:
+                self._fsync()
+            self._last_flush = time.monotonic()
 
     # -- closing --------------------------------------------------------------------------
 
@@ -621,27 +625,28 @@ class BagWriter:
         Raises:
             BagWriteError: a write failed; the bag is closed as the module docstring says.
         """
-        if self._closed:
-            return
-        self._writer.flush()  # last chunk first: the metadata record then follows all data
-        self._chunk.closed()
-        self._write_out()
-        contents = self._file.contents
-        try:
-            self._file.write_closing(self._closing(contents))
-            if self.config.fsync:
-                os.fsync(self._file.fileno())
-        except OSError as exc:
-            raise self._stop(exc) from None
-        self._file.close()
-        self._closed = True
-        try:
-            write_metadata_yaml(self.directory, self._information(contents))
-        except OSError as exc:
-            self._error = BagWriteError(exc.errno or errno.EIO, (
-                f'cannot write {self.directory / "metadata.yaml"} ({_error_text(exc)}); '
-                f'{self.mcap_path} is complete'))
-            raise self._error from None
+        with held:  # a signal meanwhile waits for the end (see interrupts)
+            if self._closed:
+                return
+            self._writer.flush()  # last chunk first: the metadata record then follows all data
+            self._chunk.closed()
+            self._write_out()
+            contents = self._file.contents
+            try:
+                self._file.write_closing(self._closing(contents))
+                if self.config.fsync:
+                    os.fsync(self._file.fileno())
+            except OSError as exc:
+                raise self._stop(exc) from None
+            self._file.close()
+            self._closed = True
+            try:
+                write_metadata_yaml(self.directory, self._information(contents))
+            except OSError as exc:
+                self._error = BagWriteError(exc.errno or errno.EIO, (
+                    f'cannot write {self.directory / "metadata.yaml"} ({_error_text(exc)}); '
+                    f'{self.mcap_path} is complete'))
+                raise self._error from None
 
     # -- writing out ----------------------------------------------------------------------
 

@@ -109,6 +109,7 @@ def run_train(args: argparse.Namespace) -> int:
     """Run ``rcbf_ros train``: 0, 2 on bad arguments, output directory or checkpoint, 1 when a
     file of the run cannot be written (a full disk: the bag closed, the previous checkpoint
     kept), 130 on Ctrl-C or SIGTERM (checkpoint, bag and plot written)."""
+    from rcbf_ros.interrupts import interrupts_raise
     from rcbf_ros.training.build import check_config_file, RunSetupError
     from rcbf_ros.training.loop import check_out_dir, train
     from rcbf_ros.training.progress import summarize
@@ -134,12 +135,9 @@ def run_train(args: argparse.Namespace) -> int:
         print('--compile-update: the first SAC update compiles (tens of seconds the first time, '
               "seconds once torch's compile cache has it)", flush=True)
 
-    def on_sigterm(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt  # same path as Ctrl-C: checkpoint, bag and plot are written
-
-    previous = signal.signal(signal.SIGTERM, on_sigterm)
-    try:
-        history = train(run, log=lambda line: print(line, flush=True))
+    try:  # SIGTERM as Ctrl-C: checkpoint, bag and plot are written; a bag write finishes
+        with interrupts_raise(signal.SIGINT, signal.SIGTERM):
+            history = train(run, log=lambda line: print(line, flush=True))
     except RunSetupError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 2
@@ -150,8 +148,6 @@ def run_train(args: argparse.Namespace) -> int:
         print(f'interrupted: checkpoint and partial results are in {run.out_dir}',
               file=sys.stderr)
         return 130
-    finally:
-        signal.signal(signal.SIGTERM, previous)
     summary = summarize(history)
     summary['out_dir'] = run.out_dir
     print(json.dumps(summary, indent=2))

@@ -1,0 +1,75 @@
+"""Ctrl-C and SIGTERM that wait for a bag write to finish.
+
+Python's own SIGINT handler raises ``KeyboardInterrupt`` between any two bytecodes, so a
+program that records a bag in the main thread (``rcbf_ros train``) can be interrupted halfway
+through a chunk: the mcap writer's chunk was taken apart but not yet written, and closing the
+bag then lost it. A process that installs :func:`on_interrupt` (see :func:`interrupts_raise`)
+gets the same ``KeyboardInterrupt``, except inside :data:`held` (the bag writer's sections that
+change the file): there the signal is recorded and raised as the outermost section ends, with
+the write complete. Sections are short (one message, one chunk), so Ctrl-C is still prompt.
+
+Only the main thread's sections hold a signal: the handler runs in the main thread, and a
+write in another thread is not what it interrupts.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterator
+import contextlib
+import signal
+import threading
+from typing import Any
+
+_MAIN = threading.main_thread().ident
+get_ident = threading.get_ident
+
+
+class _Held:
+    """``with held:`` a signal arriving meanwhile in the main thread waits for the end."""
+
+    def __init__(self) -> None:
+        self.depth = 0
+        """Sections the main thread is inside."""
+        self.pending: int | None = None
+        """The signal that arrived inside them, raised at the end of the outermost."""
+
+    def __enter__(self) -> None:
+        if get_ident() == _MAIN:
+            self.depth += 1
+
+    def __exit__(self, *exc: object) -> None:
+        if get_ident() != _MAIN:
+            return
+        self.depth -= 1
+        if self.depth == 0 and self.pending is not None:
+            self.pending = None
+            raise KeyboardInterrupt  # the user's stop wins over an error on the way out
+
+
+held = _Held()
+"""The sections that a signal does not cut in half (the bag writer enters them)."""
+
+
+def on_interrupt(signum: int, frame: Any) -> None:
+    """Signal handler: ``KeyboardInterrupt`` now, or at the end of the :data:`held` section the
+    main thread is in."""
+    if held.depth > 0:
+        held.pending = signum
+        return
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def interrupts_raise(*signums: int) -> Iterator[None]:
+    """Within the block, ``signums`` (default SIGINT and SIGTERM) raise ``KeyboardInterrupt``
+    through :func:`on_interrupt`; the previous handlers come back afterwards. Outside the main
+    thread (where handlers cannot be set) nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {signum: signal.signal(signum, on_interrupt)
+                for signum in signums or (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
