@@ -61,13 +61,15 @@ def on_interrupt(signum: int, frame: Any) -> None:
 @contextlib.contextmanager
 def interrupts_raise(*signums: int) -> Iterator[None]:
     """Within the block, ``signums`` (default SIGINT and SIGTERM) raise ``KeyboardInterrupt``
-    through :func:`on_interrupt`; the previous handlers come back afterwards. Outside the main
-    thread (where handlers cannot be set) nothing changes."""
+    through :func:`on_interrupt`; the previous handlers come back afterwards. A SIGINT the
+    process was started ignoring (a background job of a script) stays ignored, as Python
+    leaves it. Outside the main thread (where handlers cannot be set) nothing changes."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     previous = {signum: signal.signal(signum, on_interrupt)
-                for signum in signums or (signal.SIGINT, signal.SIGTERM)}
+                for signum in signums or (signal.SIGINT, signal.SIGTERM)
+                if not (signum == signal.SIGINT and signal.getsignal(signum) == signal.SIG_IGN)}
     try:
         yield
     finally:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import textwrap
@@ -25,6 +26,7 @@ _TRIALS = textwrap.dedent("""
     rng = random.Random(seed)
     root = Path(tempfile.mkdtemp())
     results = []
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # a background run ignores it
     with interrupts_raise():
         for trial in range(trials):
             bag = BagWriter(root / f'b{trial}', config=BagWriterConfig(
@@ -92,3 +94,19 @@ def test_another_thread_s_section_does_not_hold_the_main_thread_s_signal():
     finally:
         leave.set()
         thread.join()
+
+
+def test_a_sigint_the_process_ignores_stays_ignored_and_the_handlers_come_back():
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    before_term = signal.getsignal(signal.SIGTERM)
+    try:
+        with interrupts.interrupts_raise():
+            assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+            assert signal.getsignal(signal.SIGTERM) is interrupts.on_interrupt
+        assert signal.getsignal(signal.SIGTERM) is before_term
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        with interrupts.interrupts_raise(signal.SIGINT):
+            assert signal.getsignal(signal.SIGINT) is interrupts.on_interrupt
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, previous)
