@@ -37,8 +37,8 @@ from mcap.writer import CompressionType, IndexType, Writer
 import yaml
 
 from rcbf_ros.bag import scan
+from rcbf_ros.bag.interrupts import held
 from rcbf_ros.bag.qos import dump_offered_qos_profiles, offered_qos_sequence, RecordedQos
-from rcbf_ros.interrupts import held
 from rcbf_ros.messages.cdr import serialize_message
 from rcbf_ros.messages.typestore import (
     jazzy_typestore,

@@ -23,7 +23,6 @@ import argparse
 from collections.abc import Sequence
 from dataclasses import dataclass
 import importlib
-import signal
 import sys
 from typing import Any
 
@@ -129,11 +128,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return run_delegated(given[0], given[1:])
     args = build_parser(given[0] if given else '').parse_args(given)
     run = _function(PARSED_COMMANDS[args.command], 'run')
-    from rcbf_ros.interrupts import interrupts_raise
-    with interrupts_raise(signal.SIGINT):  # Ctrl-C as Python's, but never halfway through a bag
-        if args.command == 'experiment':  # its run records the command line it was given
-            return run(args, argv)
-        return run(args)
+    if args.command == 'experiment':  # its run records the command line it was given
+        return run(args, argv)
+    return run(args)
 
 
 if __name__ == '__main__':

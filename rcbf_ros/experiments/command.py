@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import json
 from pathlib import Path
 import shlex
+import signal
 import sys
 import time
 from typing import Any, Callable, Sequence
@@ -219,10 +220,12 @@ def run_experiment_command(args: argparse.Namespace, argv: Sequence[str] | None 
         return 2
     command = 'rcbf_ros ' + shlex.join(list(argv)) if argv is not None else \
         'rcbf_ros ' + shlex.join(sys.argv[1:])
-    try:
-        result = run_experiment(request, backend=backend, address=args.address,
-                                num_cpus=args.num_cpus, command=command,
-                                log=lambda line: print(line, flush=True))
+    from rcbf_ros.bag.interrupts import interrupts_raise
+    try:  # Ctrl-C as Python's, but never halfway through a bag write
+        with interrupts_raise(signal.SIGINT):
+            result = run_experiment(request, backend=backend, address=args.address,
+                                    num_cpus=args.num_cpus, command=command,
+                                    log=lambda line: print(line, flush=True))
     except ClusterError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 2

@@ -2,8 +2,6 @@
 on stderr, exit status 2, no traceback, before any timer (or bag) exists."""
 from __future__ import annotations
 
-import os
-
 from dds_harness import REPO, spawn, stop  # this directory: on sys.path for pytest
 import pytest
 
@@ -15,7 +13,8 @@ pytestmark = pytest.mark.integration
 
 @pytest.fixture
 def domain_id(ros_domain_id: int) -> int:
-    return int(os.environ.get('ROS_DOMAIN_ID') or ros_domain_id)
+    """The test's own domain, never the runner's ROS_DOMAIN_ID (shared by parallel workers)."""
+    return ros_domain_id
 
 
 @pytest.mark.parametrize('module, args, line', [

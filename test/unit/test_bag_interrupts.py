@@ -1,5 +1,5 @@
 """Ctrl-C or SIGTERM at any moment of a recording loses no message whose write returned: under
-:func:`rcbf_ros.interrupts.interrupts_raise` a signal waits for the bag write it lands in."""
+:func:`rcbf_ros.bag.interrupts.interrupts_raise` a signal waits for the bag write it lands in."""
 from __future__ import annotations
 
 import json
@@ -11,7 +11,7 @@ import threading
 
 import pytest
 
-from rcbf_ros import interrupts
+from rcbf_ros.bag import interrupts
 
 #: Writes messages until a signal, sent after a random delay, stops them; closes the bag and
 #: reads it back. Small zstd chunks: a chunk is closed every few messages, so the signal often
@@ -21,7 +21,7 @@ _TRIALS = textwrap.dedent("""
     from pathlib import Path
     from mcap.reader import make_reader
     from rcbf_ros.bag import BagWriter, BagWriterConfig
-    from rcbf_ros.interrupts import interrupts_raise
+    from rcbf_ros.bag.interrupts import interrupts_raise
     trials, seed = int(sys.argv[1]), int(sys.argv[2])
     rng = random.Random(seed)
     root = Path(tempfile.mkdtemp())
