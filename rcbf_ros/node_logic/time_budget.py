@@ -64,6 +64,6 @@ class TimeBudget:
 
     def refusal(self) -> str:
         """Why a message is refused: one line naming the share and the burst."""
-        return (f'unread, the stream took more than its share of the executor '
+        return (f'the stream took more than its share of the executor '
                 f'({self.share:.0%} of the time, {self.burst_ns / 1e6:g} ms at once), so that '
                 'the answers are not held back')

@@ -469,7 +469,7 @@ def start_tf2(node: Any, on_message: Callable[[str, str], None], *, qos: Any,
             if budget is not None and started is None:
                 feed.counts['messages'] += 1
                 feed.counts['refused'] += 1
-                on_message('/tf', budget.refusal())
+                on_message('/tf', f'unread, {budget.refusal()}')
                 return
             try:
                 reason = feed.take(data, static=False, now_ns=clock.now().nanoseconds)
