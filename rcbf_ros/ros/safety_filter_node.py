@@ -262,7 +262,10 @@ class SafetyFilterNode(Node):
             if logic.same_parameters(merged, self._active.params):
                 self._pending = (parameters, None, False)
                 return result
-            started = self._build_budget.admit()
+            # an obstacles message's set (rebuilt here when the parameters changed meanwhile)
+            # is paced by its worker: never refused for the budget, charged all the same
+            started = (self._build_budget.clock() if self._change_source
+                       else self._build_budget.admit())
             if started is None:  # a stream of sets: each build holds the answers back
                 raise _OverBudget(f'{_names(parameters)}: not set, '
                                   f'{self._build_budget.refusal()}; set it again in a moment')

@@ -85,3 +85,22 @@ def test_a_set_that_changes_nothing_costs_no_budget(node) -> None:
     node._build_budget.charge(clock.ns - 10**9)  # spent: in debt by most of a second
     assert all(r.successful for r in node.set_parameters([Parameter('alpha', value=alpha)]))
     assert not node.set_parameters([Parameter('alpha', value=alpha + 1.0)])[0].successful
+
+
+def test_an_obstacles_message_built_on_the_executor_is_never_refused_for_the_budget(node):
+    """An obstacles message's set, built again on the executor because the parameters changed
+    while its worker built it, is paced by the worker: taken with the budget spent."""
+    clock = FakeClock()
+    node._build_budget.clock = clock
+    node._build_budget.admit()
+    node._build_budget.charge(clock.ns - 10**9)
+    assert not node.set_parameters([Parameter('alpha', value=7.0)])[0].successful
+    node._change_source = 'obstacles'
+    try:
+        result = node.set_parameters_atomically([
+            Parameter('obstacles.x', value=[1.0]), Parameter('obstacles.y', value=[2.0]),
+            Parameter('obstacles.radius', value=[0.3])])
+    finally:
+        node._change_source = ''
+    assert result.successful, result.reason
+    assert node._active.params['obstacles.x'] == [1.0]
