@@ -91,3 +91,31 @@ def test_a_request_of_too_many_names_is_answered_with_nothing(node, service, srv
                        field)) == limit
     assert list(getattr(callback(srv.Request(names=['gain'] * (limit + 1)), srv.Response()),
                         field)) == []
+
+
+SET = get_service('rcl_interfaces/srv/SetParameters')
+SET_ATOMICALLY = get_service('rcl_interfaces/srv/SetParametersAtomically')
+
+
+@pytest.mark.parametrize('atomically', [False, True])
+def test_a_set_request_of_too_many_parameters_sets_none(node, atomically) -> None:
+    """More than MAX_SET_ENTRIES parameters in one set request: none set, each refused with the
+    reason (one result for an atomic set); at the bound, every one set."""
+    from rcbf_ros.ros.dds.parameter_service import parameter_msg
+    from rcbf_ros.ros.dds.parameters import Parameter
+
+    limit = parameter_service.MAX_SET_ENTRIES
+    service = node._parameter_service
+    for count, value in ((limit + 1, 3.0), (limit, 4.0)):
+        entries = [parameter_msg(Parameter('gain', value=value))] * count
+        if atomically:
+            results = [service._set_parameters_atomically(
+                SET_ATOMICALLY.Request(parameters=entries), SET_ATOMICALLY.Response()).result]
+        else:
+            results = list(service._set_parameters(SET.Request(parameters=entries),
+                                                   SET.Response()).results)
+            assert len(results) == count
+        refused = count > limit
+        assert all(r.successful is not refused for r in results)
+        assert all(('more than' in r.reason) is refused for r in results)
+        assert node.get_parameter('gain').value == (2.0 if refused else 4.0)

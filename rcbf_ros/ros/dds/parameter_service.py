@@ -98,6 +98,10 @@ MAX_ANSWER_VALUES = 1_000_000
 a request giving a name of 20,000 values a few thousand times would have the node build and
 send gigabytes on its one executor thread (300 names of ``obstacles.x``, a 5 kB request,
 made a 48 MB answer)."""
+MAX_SET_ENTRIES = 1_000
+"""The most parameters a set_parameters or set_parameters_atomically request may give (a node
+declares some hundred; each entry of a set_parameters request is one set, and a set may build
+a whole safety filter)."""
 REFUSAL_WARNING_PERIOD_S = 1.0
 """At most one WARN per service per this many seconds for requests refused by the bounds."""
 
@@ -222,12 +226,29 @@ class ParameterService:
             response.result = messages.get_message('rcl_interfaces/msg/ListParametersResult')()
         return response
 
+    def _too_many_entries(self, service: str, parameters: Any) -> str:
+        """Why a set request is refused whole: more than :data:`MAX_SET_ENTRIES` parameters
+        ('' when it is not; said in the throttled WARN)."""
+        if len(parameters) <= MAX_SET_ENTRIES:
+            return ''
+        why = f'{len(parameters)} parameters, more than {MAX_SET_ENTRIES} in one request'
+        self._refused(service, why)
+        return f'not set: {why}'
+
     def _set_parameters(self, request: Any, response: Any) -> Any:
+        why = self._too_many_entries('set_parameters', request.parameters)
+        if why:
+            response.results = [set_parameters_result(False, why)] * len(request.parameters)
+            return response
         response.results = [self._set_atomically([parameter_from_msg(p)])
                             for p in request.parameters]
         return response
 
     def _set_parameters_atomically(self, request: Any, response: Any) -> Any:
+        why = self._too_many_entries('set_parameters_atomically', request.parameters)
+        if why:
+            response.result = set_parameters_result(False, why)
+            return response
         response.result = self._set_atomically([parameter_from_msg(p)
                                                 for p in request.parameters])
         return response
