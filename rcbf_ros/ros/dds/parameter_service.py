@@ -10,6 +10,8 @@ undeclared (or, for get, uninitialized) parameter gets an empty list back; ``set
 sets each parameter atomically on its own, an undeclared one failing with the exception's text
 as its reason; ``set_parameters_atomically`` sets all or none. Setting goes through the node's
 ``set_parameters_atomically``, so its checks (types, read-only, set-parameter callbacks) apply.
+Unlike rclpy, the answers are bounded (:data:`MAX_REQUEST_NAMES`, :data:`MAX_ANSWER_VALUES`,
+:data:`MAX_SET_ENTRIES`): a request past them is answered as a refused one, with a WARN.
 
 Successful sets, through these services or from inside the node, are announced on
 ``/parameter_events`` by the node itself (:meth:`NodeParameters._set_parameters_common`), as
