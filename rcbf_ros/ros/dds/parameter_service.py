@@ -113,8 +113,10 @@ def _value_size(parameter: Parameter) -> int:
     value = parameter.value
     if isinstance(value, (str, bytes)):
         return max(1, len(value))
-    if isinstance(value, (list, tuple)):
-        return max(1, sum(len(v) if isinstance(v, str) else 1 for v in value))
+    if isinstance(value, (list, tuple)):  # an array parameter holds one type
+        if value and isinstance(value[0], str):
+            return max(1, sum(map(len, value)))
+        return max(1, len(value))
     return 1
 
 
@@ -203,7 +205,9 @@ class ParameterService:
         parameters = _each_or_none(
             request.names, node.get_parameter,
             refusals=(ParameterNotDeclaredException, ParameterUninitializedException))
-        size = sum(_value_size(parameter) for parameter in parameters)
+        sizes: dict[int, int] = {}  # a name given again costs nothing more to weigh
+        size = sum(sizes.setdefault(id(parameter), _value_size(parameter))
+                   for parameter in parameters)
         if size > MAX_ANSWER_VALUES:  # counted before any message is built
             self._refused('get_parameters', f'the answer would carry {size} values, more '
                                             f'than {MAX_ANSWER_VALUES}')
