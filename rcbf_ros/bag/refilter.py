@@ -1145,7 +1145,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
         remaps[key] = topic
     if args.json_path is not None:
-        problem = _json_path_problem(args.json_path)
+        problem = (_json_path_problem(args.json_path)
+                   or _json_input_clash(args.json_path, args.source, args.params_file))
         if problem:
             print(f'rcbf_ros refilter: error: --json {args.json_path!r}: {problem}',
                   file=sys.stderr)
@@ -1185,6 +1186,53 @@ def _json_path_problem(path: str) -> str:
     if not os.access(parent, os.W_OK):
         return f'{str(parent)!r} is not writable'
     return ''
+
+
+def _json_input_clash(path: str, source: str, params_file: str) -> str:
+    """Why the summary must not be written to ``path`` because it is one of the run's inputs
+    (the write would replace it: a recorded bag or the params file lost), or ''. Refused: a
+    path inside the source bag directory (its ``.mcap`` files, ``metadata.yaml``, anything
+    new there), or any name (a link, a hard link) of a source ``.mcap`` file or of the params
+    file."""
+    target = Path(path)
+    bag = Path(source)
+    try:
+        if bag.is_dir():
+            inside = target.resolve()
+            root = bag.resolve()
+            if inside == root or root in inside.parents:
+                return f'is inside the source bag {source!r}; write the summary beside it'
+        if not target.exists():
+            return ''
+        inputs: list[tuple[Path, str]] = []
+        try:
+            inputs += [(f, 'a file of the source bag') for f in mcap_files(source)]
+        except BagError:  # the run says what is wrong with the bag
+            pass
+        if bag.is_file():
+            inputs.append((bag, 'the source bag'))
+        params = Path(params_file)
+        if not params.is_file():
+            try:
+                params = find_config(params_file)
+            except (OSError, ValueError):  # the run says what is wrong with it
+                params = Path()
+        if params.is_file():
+            inputs.append((params, 'the params file'))
+        for name, what in inputs:
+            if _same_file(target, name):
+                return f'is {what} ({str(name)!r}); the summary would replace it'
+    except OSError as exc:  # a path that cannot be examined: the write would fail as well
+        return f'cannot be examined ({exc.strerror or exc})'
+    return ''
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` name one file (False when either cannot be examined)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
 
 
 if __name__ == '__main__':

@@ -22,6 +22,7 @@ from rcbf_ros.core.filter_info import INFO_SECTIONS, STATUS_CODES, UNKNOWN_STATU
 from rcbf_ros.messages.conversions import COMMAND_LAYOUTS, ODOMETRY_STATES, STATE_LAYOUTS
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_table, resolve, topic_table
 from rcbf_ros.node_logic.safety_filter import FILTER_PARAMETERS
+from rcbf_ros.parameters.bounded_yaml import read_limited
 
 INTERFACE_DOC = 'docs/INTERFACE.md'
 """Where the generated section lives, from the repository's root."""
@@ -96,6 +97,10 @@ def generated_section() -> str:
     return '\n'.join(parts) + '\n'
 
 
+MAX_DOC_BYTES = 1 << 20
+"""The largest document --write and --check read (docs/INTERFACE.md holds some 35 kB)."""
+
+
 def replace_section(text: str, section: str) -> str:
     """``text`` with its generated section replaced by ``section``.
 
@@ -122,8 +127,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if path is None:
         sys.stdout.write(section)
         return 0
-    try:
-        text = Path(path).read_text(encoding='utf-8')
+    try:  # a regular file of a document's size: a FIFO or /dev/zero would never end
+        text = read_limited(path, max_bytes=MAX_DOC_BYTES, what='document')
         updated = replace_section(text, section)
     except (OSError, ValueError) as exc:
         print(f'interface_doc: {path}: {exc}', file=sys.stderr)

@@ -36,6 +36,7 @@ from rcbf_ros.node_logic.latest_only import Finished, LatestOnlyWorker
 from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME, TF_MESSAGE
 from rcbf_ros.node_logic.sources import ObservationSources, SENSOR_MESSAGES, topic_refusal
 from rcbf_ros.node_logic.tf_buffer import DEFAULT_CACHE_S
+from rcbf_ros.node_logic.time_budget import TimeBudget
 from rcbf_ros.ros.node_main import declare_specs, run_node, spin
 from rcbf_ros.ros.runtime import (
     Clock,
@@ -82,6 +83,9 @@ class SafetyFilterNode(Node):
         self._change_source = ''
         self._prebuilt: _ObstaclesBuild | None = None
         """The filter of the ``obstacles`` message being stored, built in the worker."""
+        self._build_budget = TimeBudget(share=BUILD_TIME_SHARE, burst_s=BUILD_TIME_BURST_S)
+        """The executor time the filters built for parameter sets may take
+        (:meth:`_check_parameter_change`)."""
         self.add_pre_set_parameters_callback(self._warn_refused)
         self.add_on_set_parameters_callback(self._check_parameter_change)
         self.add_post_set_parameters_callback(self._apply_parameter_change)
@@ -258,18 +262,30 @@ class SafetyFilterNode(Node):
             if logic.same_parameters(merged, self._active.params):
                 self._pending = (parameters, None, False)
                 return result
-            probes = self._probe_states()
-            self._pending = (parameters, self._build(merged, probes,
-                                                     [p.name for p in parameters]), False)
+            # an obstacles message's set (rebuilt here when the parameters changed meanwhile)
+            # is paced by its worker: never refused for the budget, charged all the same
+            started = (self._build_budget.clock() if self._change_source
+                       else self._build_budget.admit())
+            if started is None:  # a stream of sets: each build holds the answers back
+                raise _OverBudget(f'{_names(parameters)}: not set, '
+                                  f'{self._build_budget.refusal()}; set it again in a moment')
+            try:
+                probes = self._probe_states()
+                self._pending = (parameters, self._build(merged, probes,
+                                                         [p.name for p in parameters]), False)
+            finally:
+                self._build_budget.charge(started)
         except Exception as exc:  # refused whole; whatever the value, the node runs on
             result.successful = False
             # a ValueError names the key itself; an unforeseen error: name the keys set
             text = (str(exc) if isinstance(exc, ValueError)
                     else f'{_names(parameters)}: {_one_line(exc)}')
             result.reason = _cut(' '.join(text.split()))
-            if not self._change_source:  # an obstacles message says so itself, as an ERROR
-                self.get_logger().warning(
-                    f'parameter change refused: {result.reason} (the filter is unchanged)')
+            line = f'parameter change refused: {result.reason} (the filter is unchanged)'
+            if isinstance(exc, _OverBudget):  # a stream of them: through the log throttle
+                self._log(logic.WARN, line, time.monotonic_ns())
+            elif not self._change_source:  # an obstacles message says so itself, as an ERROR
+                self.get_logger().warning(line)
         return result
 
     def _apply_parameter_change(self, parameters: list[Any]) -> None:
@@ -436,6 +452,8 @@ class SafetyFilterNode(Node):
         start): sensor-data QoS (best effort, keep last 5) unless ``<name>.best_effort`` is
         false."""
         config = self.config.sources
+        self._tf_budget = TimeBudget(share=TF_TIME_SHARE, burst_s=TF_TIME_BURST_S)
+        """The executor time ``/tf`` may take (:meth:`_on_tf`, tf2_ros's listener)."""
         self._tf2: Tf2 | None = None
         """tf2_ros at work for the sources (None: our buffer, or no sources)."""
         if config is None:
@@ -473,7 +491,8 @@ class SafetyFilterNode(Node):
         why = 'the Cyclone runtime'
         if USING_RCLPY:
             dynamic, static = self._tf_qos()
-            started = start_tf2(self, self._on_tf2, qos=dynamic, static_qos=static)
+            started = start_tf2(self, self._on_tf2, qos=dynamic, static_qos=static,
+                                budget=self._tf_budget)
             if not isinstance(started, str):
                 self.get_logger().info('tf: tf2_ros Buffer and TransformListener (cache '
                                        f'{DEFAULT_CACHE_S:g} s) on /tf and /tf_static')
@@ -508,12 +527,29 @@ class SafetyFilterNode(Node):
 
     def _on_tf(self, data: bytes, static: bool) -> None:
         """A ``/tf`` or ``/tf_static`` message (CDR bytes): its transforms kept, a WARN (through
-        the log throttle) for what was refused. Never raises."""
+        the log throttle) for what was refused. A ``/tf`` message that comes while ``/tf`` has
+        taken more than its share of the executor (:data:`TF_TIME_SHARE`,
+        :data:`TF_TIME_BURST_S`) is refused unread and counted in ``tf.refused``: a flood
+        of large messages would otherwise hold every answer back for as long as its queue lasts
+        (``/tf_static`` is kept to one message at a time by its keep-last-1 queue). Never
+        raises."""
         now_ns = time.monotonic_ns()
         topic = '/tf_static' if static else '/tf'
         try:
-            reason = self._sources.read_tf(  # type: ignore[union-attr]
-                data, static=static, now_ns=self._clock.now().nanoseconds)
+            started = None if static else self._tf_budget.admit()
+            if not static and started is None:
+                counts = self._sources.tf_counts  # type: ignore[union-attr]
+                counts['messages'] += 1
+                counts['refused'] += 1
+                self._log(logic.WARN, f'{topic} refused: unread, {self._tf_budget.refusal()}',
+                          now_ns)
+                return
+            try:
+                reason = self._sources.read_tf(  # type: ignore[union-attr]
+                    data, static=static, now_ns=self._clock.now().nanoseconds)
+            finally:
+                if started is not None:
+                    self._tf_budget.charge(started)
             if reason:
                 self._log(logic.WARN, f'{topic} refused: {reason}', now_ns)
         except Exception as exc:  # a defect, not an input
@@ -779,8 +815,28 @@ GIL_SWITCH_INTERVAL_S = 0.001
 """Python's thread switch interval in the node (default 5 ms): while the worker builds, the
 executor waits at most about this long for the GIL each time it needs it back (an answer
 needs it several times). Without a build there is no other thread to switch to."""
+BUILD_TIME_SHARE = 0.25
+"""The part of the executor's time the filters built for parameter sets may take: each set of
+a filter key builds a whole filter on the executor (5 ms, 175 ms with 20,000 obstacles), and a
+set_parameters request of 100 entries, each one set, held the answers back for half a
+second (10,000 entries, some 300 kB: a minute). A set that comes while this is spent is
+refused, saying so."""
+BUILD_TIME_BURST_S = 0.2
+"""The most executor time (s) the builds may take at once, after a quiet while (plus one
+build): a few sets in a row, or one of a large obstacle set, go through."""
+TF_TIME_SHARE = 0.25
+"""The part of the executor's time ``/tf`` may take (:meth:`SafetyFilterNode._on_tf`): a robot's
+own tf (odometry at 50 Hz, a robot_state_publisher's dozens of links at 30 Hz) takes well under
+a hundredth of it."""
+TF_TIME_BURST_S = 0.02
+"""The most executor time (s) ``/tf`` may take at once, after a quiet while (plus one message:
+some 15-30 ms for one of 1,024 transforms): less than a ``control_period_s`` of 0.05 s."""
 LATE_ANSWERS = 'late_answers'
 """The diagnostics' count of answers more than ``control_period_s`` after the previous one."""
+
+
+class _OverBudget(ValueError):
+    """A parameter set refused because the builds took their share of the executor."""
 
 
 class _ObstaclesJob(NamedTuple):

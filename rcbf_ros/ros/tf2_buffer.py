@@ -40,6 +40,7 @@ from rcbf_ros.node_logic.tf_buffer import (
     Rigid,
     StampRules,
 )
+from rcbf_ros.node_logic.time_budget import TimeBudget
 
 _S = 1_000_000_000
 _KINDS = {'LookupException': FRAME, 'ConnectivityException': CONNECTIVITY,
@@ -436,11 +437,13 @@ class Tf2(NamedTuple):
 
 
 def start_tf2(node: Any, on_message: Callable[[str, str], None], *, qos: Any,
-              static_qos: Any) -> Tf2 | str:
+              static_qos: Any, budget: TimeBudget | None = None) -> Tf2 | str:
     """On ``node`` (an rclpy Node): a tf2_ros Buffer (cache :data:`DEFAULT_CACHE_S`) and a
     TransformListener (``qos`` on ``/tf``, ``static_qos`` on ``/tf_static``) whose messages
     go through a :class:`Tf2Feed`; ``on_message(topic, reason)`` after each message (reason
-    '' when all was kept). Or why tf2_ros cannot be used (one line: not importable)."""
+    '' when all was kept). A ``/tf`` message that comes while ``budget`` is spent is refused
+    unread (counted in ``refused``). Or why tf2_ros cannot be used (one line: not
+    importable)."""
     try:
         from rclpy.duration import Duration
         import tf2_ros
@@ -462,7 +465,18 @@ def start_tf2(node: Any, on_message: Callable[[str, str], None], *, qos: Any,
         """tf2_ros's listener, each message through the feed (at the node's clock)."""
 
         def callback(self, data: Any) -> None:
-            on_message('/tf', feed.take(data, static=False, now_ns=clock.now().nanoseconds))
+            started = None if budget is None else budget.admit()
+            if budget is not None and started is None:
+                feed.counts['messages'] += 1
+                feed.counts['refused'] += 1
+                on_message('/tf', f'unread, {budget.refusal()}')
+                return
+            try:
+                reason = feed.take(data, static=False, now_ns=clock.now().nanoseconds)
+            finally:
+                if started is not None:
+                    budget.charge(started)  # type: ignore[union-attr]
+            on_message('/tf', reason)
 
         def static_callback(self, data: Any) -> None:
             on_message('/tf_static', feed.take(data, static=True,

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import importlib
+import os
 from pathlib import Path
 import subprocess
 import sys
@@ -80,6 +81,34 @@ def test_interface_doc_prints_the_generated_section(capsys):
     assert cli.main(['interface-doc']) == 0
     out = capsys.readouterr().out
     assert out.startswith(interface_doc.BEGIN) and interface_doc.END in out
+
+
+@pytest.mark.parametrize('option', ['--check', '--write'])
+@pytest.mark.parametrize(('kind', 'words'), [
+    ('fifo', 'not a regular file (a FIFO)'), ('dev_zero', 'not a regular file'),
+    ('directory', 'not a regular file (a directory)'), ('oversize', 'larger than'),
+    ('not_utf8', 'utf-8'), ('missing', 'No such file')])
+@pytest.mark.timeout(60)  # a FIFO read for its text would wait for a writer for good
+def test_interface_doc_reads_only_a_document_sized_regular_file(kind, words, option, tmp_path,
+                                                               capsys):
+    """--check and --write refuse what is no document before reading it whole: exit 2, one
+    line naming the path; nothing written."""
+    path = {'dev_zero': Path('/dev/zero')}.get(kind, tmp_path / 'doc.md')
+    if kind == 'fifo':
+        os.mkfifo(path)
+    elif kind == 'directory':
+        path.mkdir()
+    elif kind == 'oversize':  # sparse: the section's markers at its start
+        path.write_text(f'{interface_doc.BEGIN}\n{interface_doc.END}\n')
+        os.truncate(path, interface_doc.MAX_DOC_BYTES + 1)
+    elif kind == 'not_utf8':
+        path.write_bytes(f'{interface_doc.BEGIN}\n{interface_doc.END}\n'.encode() + b'\xff')
+    before = path.read_bytes() if path.is_file() else None
+    assert interface_doc.main([option, str(path)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and str(path) in err, err
+    assert words.lower() in err.lower() and 'Traceback' not in err, err
+    assert (path.read_bytes() if path.is_file() else None) == before
 
 
 @pytest.mark.parametrize('name', sorted(cli.PARSED))

@@ -454,3 +454,46 @@ def test_a_summary_that_cannot_be_written_keeps_the_bag(
     assert code == 1
     assert len(err.strip().splitlines()) == 1 and '--json' in err and 'Traceback' not in err
     assert any(m.topic == refilter.OUTPUT_COMMAND_TOPIC for m in read_bag(output))
+
+
+@pytest.mark.parametrize('target', ['the_mcap', 'a_hard_link_to_the_mcap', 'metadata',
+                                    'new_file_in_the_bag', 'the_params_file',
+                                    'a_link_to_the_params_file'])
+def test_a_json_path_naming_an_input_is_refused_and_the_input_kept(
+        target: str, source_bag: Path, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """``--json`` naming a file of the run's inputs (the source bag's ``.mcap`` or
+    ``metadata.yaml``, a new name inside the bag directory, the params file; through a link
+    or a hard link too): exit 2 before the run, one line naming --json, every input byte for
+    byte as it was, no output bag. Writing the summary there would replace the recording."""
+    bag = tmp_path / 'run'
+    shutil.copytree(source_bag, bag)
+    params = tmp_path / 'params.yaml'
+    params.write_text(yaml.safe_dump({'/**': {'ros__parameters': PARAMS_A}}))
+    mcap = next(bag.glob('*.mcap'))
+    path = {'the_mcap': mcap, 'metadata': bag / 'metadata.yaml',
+            'new_file_in_the_bag': bag / 'summary.json', 'the_params_file': params,
+            'a_hard_link_to_the_mcap': tmp_path / 'hard.json',
+            'a_link_to_the_params_file': tmp_path / 'link.json'}[target]
+    if target == 'a_hard_link_to_the_mcap':
+        os.link(mcap, path)
+    if target == 'a_link_to_the_params_file':
+        path.symlink_to(params)
+    before = {f: f.read_bytes() for f in [*bag.iterdir(), params]}
+    output = tmp_path / 'out'
+    assert main([str(bag), str(output), '--params-file', str(params),
+                 '--json', str(path)]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and '--json' in lines[0], captured.err
+    assert 'Traceback' not in captured.err and captured.out == ''
+    assert {f: f.read_bytes() for f in [*bag.iterdir(), params]} == before
+    assert not output.exists()
+
+
+def test_a_json_path_beside_the_inputs_is_written(source_bag: Path, tmp_path: Path) -> None:
+    """The rule refuses the inputs only: a summary beside the source bag is written."""
+    path = source_bag.parent / 'summary.json'
+    assert main([str(source_bag), str(tmp_path / 'out'), '--params-file', 'unicycle',
+                 '--json', str(path)]) == 0
+    assert json.loads(path.read_text())['source'] == str(source_bag)

@@ -10,6 +10,8 @@ undeclared (or, for get, uninitialized) parameter gets an empty list back; ``set
 sets each parameter atomically on its own, an undeclared one failing with the exception's text
 as its reason; ``set_parameters_atomically`` sets all or none. Setting goes through the node's
 ``set_parameters_atomically``, so its checks (types, read-only, set-parameter callbacks) apply.
+Unlike rclpy, the answers are bounded (:data:`MAX_REQUEST_NAMES`, :data:`MAX_ANSWER_VALUES`,
+:data:`MAX_SET_ENTRIES`): a request past them is answered as a refused one, with a WARN.
 
 Successful sets, through these services or from inside the node, are announced on
 ``/parameter_events`` by the node itself (:meth:`NodeParameters._set_parameters_common`), as
@@ -17,6 +19,7 @@ rclpy announces every declaration and set.
 """
 from __future__ import annotations
 
+import time
 from typing import Any, Callable, Iterable
 import weakref
 
@@ -89,6 +92,34 @@ def parameter_from_msg(msg: Any) -> Parameter:
     return Parameter(msg.name, type_, value)
 
 
+MAX_REQUEST_NAMES = 10_000
+"""The most names a get, describe or get-types request may give (a node declares some hundred
+parameters; rclpy answers a name as often as it is given)."""
+MAX_ANSWER_VALUES = 1_000_000
+"""The most values a get answer may carry (array items, string characters, one for a scalar):
+a request giving a name of 20,000 values a few thousand times would have the node build and
+send gigabytes on its one executor thread (300 names of ``obstacles.x``, a 5 kB request,
+made a 48 MB answer)."""
+MAX_SET_ENTRIES = 1_000
+"""The most parameters a set_parameters or set_parameters_atomically request may give (a node
+declares some hundred; each entry of a set_parameters request is one set, and a set may build
+a whole safety filter)."""
+REFUSAL_WARNING_PERIOD_S = 1.0
+"""At most one WARN per service per this many seconds for requests refused by the bounds."""
+
+
+def _value_size(parameter: Parameter) -> int:
+    """How many values ``parameter`` puts into an answer (:data:`MAX_ANSWER_VALUES`)."""
+    value = parameter.value
+    if isinstance(value, (str, bytes)):
+        return max(1, len(value))
+    if isinstance(value, (list, tuple)):  # an array parameter holds one type
+        if value and isinstance(value[0], str):
+            return max(1, sum(map(len, value)))
+        return max(1, len(value))
+    return 1
+
+
 def _type_number(kind: Any) -> int:
     """The ParameterType number of what ``get_parameter_type`` gives: a number, or, for an
     undeclared parameter (where allowed), ``Parameter.Type.NOT_SET``."""
@@ -111,6 +142,10 @@ class ParameterService:
 
     def __init__(self, node: Any) -> None:
         self._node_ref = weakref.ref(node)
+        self._refusal_ns: dict[str, int] = {}
+        """Per service, when a refused request was last said (:meth:`_refused`)."""
+        self._refusals: dict[str, int] = {}
+        """Per service, requests refused since then."""
         name = node.get_name()
         callbacks = {
             'describe_parameters': ('DescribeParameters', self._describe_parameters),
@@ -134,19 +169,57 @@ class ParameterService:
         return node
 
     # callbacks --------------------------------------------------------------------------------
+    def _too_many_names(self, service: str, names: Any) -> bool:
+        """Whether a request gives more than :data:`MAX_REQUEST_NAMES` names (then it is
+        answered as one naming an undeclared parameter is, with nothing, and said)."""
+        if len(names) <= MAX_REQUEST_NAMES:
+            return False
+        self._refused(service, f'{len(names)} names, more than {MAX_REQUEST_NAMES}')
+        return True
+
+    def _refused(self, service: str, why: str) -> None:
+        """One WARN (at most one per :data:`REFUSAL_WARNING_PERIOD_S` per service) saying a
+        request was answered with nothing, and why."""
+        now = time.monotonic_ns()
+        last = self._refusal_ns.get(service)
+        self._refusals[service] = self._refusals.get(service, 0) + 1
+        if last is not None and now - last < REFUSAL_WARNING_PERIOD_S * 1e9:
+            return
+        self._refusal_ns[service] = now
+        count = self._refusals.pop(service)
+        self._node().get_logger().warning(
+            f'{service}: {count} request(s) answered with nothing; last: {why}')
+
     def _describe_parameters(self, request: Any, response: Any) -> Any:
+        if self._too_many_names('describe_parameters', request.names):
+            response.descriptors = []
+            return response
         response.descriptors = _each_or_none(request.names, self._node().describe_parameter)
         return response
 
     def _get_parameters(self, request: Any, response: Any) -> Any:
         node = self._node()
-        response.values = _each_or_none(
-            request.names, lambda name: parameter_value_msg(node.get_parameter(name)),
+        response.values = []
+        if self._too_many_names('get_parameters', request.names):
+            return response
+        parameters = _each_or_none(
+            request.names, node.get_parameter,
             refusals=(ParameterNotDeclaredException, ParameterUninitializedException))
+        sizes: dict[int, int] = {}  # a name given again costs nothing more to weigh
+        size = sum(sizes.setdefault(id(parameter), _value_size(parameter))
+                   for parameter in parameters)
+        if size > MAX_ANSWER_VALUES:  # counted before any message is built
+            self._refused('get_parameters', f'the answer would carry {size} values, more '
+                                            f'than {MAX_ANSWER_VALUES}')
+            return response
+        response.values = [parameter_value_msg(parameter) for parameter in parameters]
         return response
 
     def _get_parameter_types(self, request: Any, response: Any) -> Any:
         node = self._node()
+        if self._too_many_names('get_parameter_types', request.names):
+            response.types = []
+            return response
         response.types = _each_or_none(
             request.names, lambda name: _type_number(node.get_parameter_type(name)))
         return response
@@ -159,12 +232,29 @@ class ParameterService:
             response.result = messages.get_message('rcl_interfaces/msg/ListParametersResult')()
         return response
 
+    def _too_many_entries(self, service: str, parameters: Any) -> str:
+        """Why a set request is refused whole: more than :data:`MAX_SET_ENTRIES` parameters
+        ('' when it is not; said in the throttled WARN)."""
+        if len(parameters) <= MAX_SET_ENTRIES:
+            return ''
+        why = f'{len(parameters)} parameters, more than {MAX_SET_ENTRIES} in one request'
+        self._refused(service, why)
+        return f'not set: {why}'
+
     def _set_parameters(self, request: Any, response: Any) -> Any:
+        why = self._too_many_entries('set_parameters', request.parameters)
+        if why:
+            response.results = [set_parameters_result(False, why)] * len(request.parameters)
+            return response
         response.results = [self._set_atomically([parameter_from_msg(p)])
                             for p in request.parameters]
         return response
 
     def _set_parameters_atomically(self, request: Any, response: Any) -> Any:
+        why = self._too_many_entries('set_parameters_atomically', request.parameters)
+        if why:
+            response.result = set_parameters_result(False, why)
+            return response
         response.result = self._set_atomically([parameter_from_msg(p)
                                                 for p in request.parameters])
         return response
