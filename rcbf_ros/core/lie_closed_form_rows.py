@@ -88,7 +88,7 @@ class _Circles:
             cos, sin = math.cos(x[self.heading]), math.sin(x[self.heading])
             offset = self.lookahead
             grads = np.empty((3, self.cx.size))
-            dx, dy, d_heading = grads
+            dx, dy, d_heading = grads[0], grads[1], grads[2]  # (indexing: cheaper than iterating)
             squares = None
             if self.speed is not None and u[self.speed] < 0.0:
                 # the point behind, kept where it is clear of every circle: its differences
@@ -106,7 +106,7 @@ class _Circles:
                 np.subtract(x[self.j] + offset * sin, self.cy, out=dy)
                 squares = np.multiply(grads[:2], grads[:2])
                 squares[0] += squares[1]
-            h, square = squares  # dx^2 + dy^2, and a buffer
+            h, square = squares[0], squares[1]  # dx^2 + dy^2, and a buffer
             h -= self.delta_sq
             # d h / d th = 2 s l_p d^T (-sin th, cos th)
             np.multiply(dy, 2.0 * offset * cos, out=d_heading)
@@ -146,13 +146,14 @@ def _circle_rows(part: _Circles, x: list[float], u: list[float], f_values: np.nd
     h, index, grads = part.terms(x, u, f_values, jacobian)  # grads: (c, k)
     # grad h^T (x_dot + psi) + alpha h, psi_k = mean_k - k_c std_k sign(grad_k):
     # grad_k (x_dot_k + mean_k) - k_c std_k |grad_k| per entry; over the columns that can be
-    # nonzero, as three small matrix products (a few numpy calls whatever the row count)
-    upper = np.array([motion[k] for k in index]) @ grads
+    # nonzero, as three small matrix products (a few numpy calls whatever the row count);
+    # ``dot``: the BLAS calls of ``@`` with the same arguments, without its ufunc overhead
+    upper = np.array([motion[k] for k in index]).dot(grads)
     upper += alpha * h
     widths = [spread[k] for k in index]
     if any(widths):
-        upper -= np.array(widths) @ np.abs(grads)
-    lg = grads.T @ np.array([g_rows[k] for k in index]).reshape(len(index), n_u)
+        upper -= np.array(widths).dot(np.abs(grads))
+    lg = grads.T.dot(np.array([g_rows[k] for k in index]).reshape(len(index), n_u))
     return h, lg, upper
 
 
@@ -285,8 +286,8 @@ class PointRows:
         """Replace the points: (N, 2) float64, finite; ``spread`` (N,) or one value >= 0 widens
         each point's circle (a thinned cloud's cell)."""
         circles = self._circles
-        circles.cx = points[:, 0].copy()
-        circles.cy = points[:, 1].copy()
+        columns = np.array(points.T)  # both columns in one copy
+        circles.cx, circles.cy = columns[0], columns[1]
         delta = self.reach + spread
         circles.delta_sq = delta * delta  # one value for every point, or one per point
 
@@ -296,7 +297,7 @@ class PointRows:
         mean +/- k_c std, as :class:`ManyRows` holds them."""
         f_values, jacobian, g = self._jet(np.array(x))
         # (f + g u) + mean and k_c std, the sums and products of arrays, on a few floats
-        motion = [value + m for value, m in zip((f_values + g @ np.array(u)).tolist(), mean)]
+        motion = [value + m for value, m in zip((f_values + g.dot(u)).tolist(), mean)]
         spread = [self._k_c * s for s in std]
         return _circle_rows(self._circles, x, u, f_values, jacobian, g.tolist(), motion,
                             spread, self._alpha, self.n_u)
