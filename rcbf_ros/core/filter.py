@@ -25,7 +25,13 @@ import numpy as np
 
 from rcbf_ros.core.filter_info import PointValues
 from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
-from rcbf_ros.core.lie_closed_form_rows import ManyRows, PointRows, VECTOR_ROWS, VectorAssembly
+from rcbf_ros.core.lie_closed_form_rows import (
+    ManyRows,
+    PointRows,
+    product,
+    VECTOR_ROWS,
+    VectorAssembly,
+)
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.core.sampled_data import (
@@ -1752,7 +1758,7 @@ class SafetyFilter:
         if moved is None:
             return None
         action, step = moved
-        values = upper + lg.dot(step)  # (``dot``: the BLAS call of ``@``)
+        values = upper + product(lg, step)
         needed = max(0.0, -float(_least(values)))
         claimed = max(0.0, z[-1])
         if needed > claimed:
