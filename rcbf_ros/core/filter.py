@@ -864,7 +864,7 @@ def binding_rows(*, lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
     least = _least_over_box(lg, [float(low) - a for low, a in zip(u_min, applied)],
                             [float(high) - a for high, a in zip(u_max, applied)])
     least += upper
-    return np.flatnonzero(~(least >= margin))
+    return (~(least >= margin)).nonzero()[0]  # flatnonzero's, without its ravel
 
 
 EXACT_ROWS = 256

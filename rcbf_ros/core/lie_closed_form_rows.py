@@ -41,6 +41,8 @@ from rcbf_ros.core.lie_closed_form import (
 )
 from rcbf_ros.core.rcbf import RCBFProblem
 
+_least = np.minimum.reduce
+"""An array's least value (its ``min`` without the method's wrapper)."""
 VECTOR_ROWS = 64
 """The fewest obstacles of a :class:`CircleObstacles` family evaluated over arrays; a smaller
 family keeps the generated per-row code (faster there: a numpy call costs about a microsecond,
@@ -104,25 +106,31 @@ class _Circles:
             offset = self.lookahead
             grads = np.empty((3, self.cx.size))
             dx, dy, d_heading = grads[0], grads[1], grads[2]  # (indexing: cheaper than iterating)
-            squares = None
+            squares = np.empty((2, self.cx.size))
+            h, square = squares[0], squares[1]  # dx^2 + dy^2 - delta^2, and a buffer
+            behind = False
             if self.speed is not None and u[self.speed] < 0.0:
                 # the point behind, kept where it is clear of every circle: its differences
-                # and squared distances are then the rows' own (x + (-l) cos = x - l cos)
+                # and h are then the rows' own (x + (-l) cos = x - l cos)
                 np.subtract(x[self.i] - offset * cos, self.cx, out=dx)
                 np.subtract(x[self.j] - offset * sin, self.cy, out=dy)
-                squares = np.multiply(grads[:2], grads[:2])  # dx^2, dy^2
-                squares[0] += squares[1]
-                if bool((squares[0] >= self.delta_sq).all()):
-                    offset = -offset
-                else:
-                    squares = None
-            if squares is None:
+                np.multiply(grads[:2], grads[:2], out=squares)
+                h += square
+                h -= self.delta_sq
+                # clear: every dx^2 + dy^2 >= delta^2, i.e. every h >= 0 (a rounded difference
+                # has the exact one's sign, and is 0 only where the two are equal); a NaN in h
+                # (inf - inf, or NaN) takes the comparisons themselves
+                least = _least(h) if h.size else math.inf
+                behind = least >= 0.0 or (least != least and bool(
+                    (dx * dx + dy * dy >= self.delta_sq).all()))
+            if behind:
+                offset = -offset
+            else:
                 np.subtract(x[self.i] + offset * cos, self.cx, out=dx)
                 np.subtract(x[self.j] + offset * sin, self.cy, out=dy)
-                squares = np.multiply(grads[:2], grads[:2])
-                squares[0] += squares[1]
-            h, square = squares[0], squares[1]  # dx^2 + dy^2, and a buffer
-            h -= self.delta_sq
+                np.multiply(grads[:2], grads[:2], out=squares)
+                h += square
+                h -= self.delta_sq
             # d h / d th = 2 s l_p d^T (-sin th, cos th)
             np.multiply(dy, 2.0 * offset * cos, out=d_heading)
             d_heading -= np.multiply(dx, 2.0 * offset * sin, out=square)
