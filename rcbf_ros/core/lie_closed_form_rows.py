@@ -317,7 +317,7 @@ class PointRows:
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(h (N,), L_g h (N, n_u), right-hand sides (N,)) at state x, proposal u and the box
         mean +/- k_c std, as :class:`ManyRows` holds them."""
-        f_values, jacobian, g = self._jet(np.array(x))
+        f_values, jacobian, g = self._jet(x)
         # (f + g u) + mean and k_c std, the sums and products of arrays, on a few floats
         motion = [value + m for value, m in zip((f_values + product(g, u)).tolist(), mean)]
         spread = [self._k_c * s for s in std]
