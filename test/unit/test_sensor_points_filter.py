@@ -109,6 +109,24 @@ def test_set_points_refuses_what_is_not_finite_n_by_2(points):
         SafetyFilter(config.problem).set_points(np.zeros((1, 2)))
 
 
+@pytest.mark.parametrize('points', [
+    np.array([[1e200, -1e300], [0.0, 1e-300]]),  # finite, their squares' sum is not
+    np.array([[1.7e308, -1.7e308]] * 3), np.zeros((0, 2)),
+    np.asfortranarray(np.arange(8.0).reshape(4, 2)), np.arange(8.0).reshape(2, 4).T])
+def test_set_points_takes_every_finite_n_by_2_whatever_its_size_or_layout(points):
+    # finiteness is checked by one sum of squares, each entry where the sum is not finite
+    config = _config()
+    fast = SafetyFilter(config.problem, footprint=config.footprint)
+    fast.set_points(points)
+    assert fast.point_count == len(points)
+    for bad in (math.inf, -math.inf, math.nan):
+        spoiled = np.array(points, order='K')
+        if spoiled.size:
+            spoiled[-1, 0] = bad
+            with pytest.raises(ValueError, match='finite'):
+                fast.set_points(spoiled)
+
+
 @pytest.mark.parametrize(('changes', 'key'), [
     ({'observation_sources': ['obstacles']}, 'observation_sources'),
     ({'observation_sources': ['a.b']}, 'observation_sources'),
