@@ -81,7 +81,7 @@ class DriftJet(NamedTuple):
 
 
 DriftJetFunction = Callable[[np.ndarray], DriftJet]
-"""x: (n_x,) float64 -> :class:`DriftJet` at x."""
+"""x: (n_x,) float64 (or a list of Python floats) -> :class:`DriftJet` at x."""
 
 Entry = Union[float, str]
 """An entry of a :class:`DriftSource`: a constant, or the name of a variable its lines assign."""
@@ -144,8 +144,10 @@ class DriftSource(NamedTuple):
         exec(compile(source, '<drift source>', 'exec'), namespace)  # noqa: S102 - own source
         evaluate = namespace['jet']
 
-        def jet(x: np.ndarray) -> DriftJet:
-            f_values, jacobian, g = evaluate(np.asarray(x, dtype=np.float64).tolist())
+        def jet(x: np.ndarray | list[float]) -> DriftJet:
+            # a list is taken as Python floats (the filter's state), as tolist() gives them
+            values = x if type(x) is list else np.asarray(x, dtype=np.float64).tolist()
+            f_values, jacobian, g = evaluate(values)
             return DriftJet(np.array(f_values), np.array(jacobian).reshape(n_x, n_x),
                             np.array(g).reshape(n_x, self.n_u))
 

@@ -25,7 +25,13 @@ import numpy as np
 
 from rcbf_ros.core.filter_info import PointValues
 from rcbf_ros.core.lie_closed_form import ClosedFormAssembly, RowAssembly
-from rcbf_ros.core.lie_closed_form_rows import ManyRows, PointRows, VECTOR_ROWS, VectorAssembly
+from rcbf_ros.core.lie_closed_form_rows import (
+    ManyRows,
+    PointRows,
+    product,
+    VECTOR_ROWS,
+    VectorAssembly,
+)
 from rcbf_ros.core.qp import cost_weights
 from rcbf_ros.core.rcbf import RCBFProblem
 from rcbf_ros.core.sampled_data import (
@@ -858,7 +864,7 @@ def binding_rows(*, lg: np.ndarray, upper: np.ndarray, applied: Sequence[float],
     least = _least_over_box(lg, [float(low) - a for low, a in zip(u_min, applied)],
                             [float(high) - a for high, a in zip(u_max, applied)])
     least += upper
-    return np.flatnonzero(~(least >= margin))
+    return (~(least >= margin)).nonzero()[0]  # flatnonzero's, without its ravel
 
 
 EXACT_ROWS = 256
@@ -998,12 +1004,20 @@ GENERATED_ROWS = 1024
 whatever its assembly (e.g. many circles on a system without a closed form)."""
 
 
-def _meets_every_row(upper: np.ndarray, point_upper: np.ndarray, limit_upper: list[float]
+def _all_finite(values: np.ndarray) -> bool:
+    """Whether every entry of ``values`` (float64) is finite: their sum of squares is (one
+    BLAS call; NaN and inf carry into it), else each entry is checked (the sum also overflows
+    for finite entries beyond about 1e154)."""
+    flat = values.ravel(order='K')  # a view in either memory order
+    return math.isfinite(flat.dot(flat)) or bool(np.isfinite(flat).all())
+
+
+def _meets_every_row(upper: np.ndarray, least_point: float, limit_upper: list[float]
                      ) -> bool:
     """Whether every right-hand side is >= 0 (z = 0 meets every row): the problem's, the
-    points' and the limits' (an empty part meets it; a NaN fails it)."""
-    return ((not upper.size or _least(upper) >= 0.0)
-            and (not point_upper.size or _least(point_upper) >= 0.0)
+    points' (``least_point`` their least, inf for none) and the limits' (an empty part meets
+    it; a NaN fails it)."""
+    return ((not upper.size or _least(upper) >= 0.0) and least_point >= 0.0
             and (not limit_upper or min(limit_upper) >= 0.0))
 
 
@@ -1500,16 +1514,18 @@ class SafetyFilter:
                 rest = np.concatenate([rest, point_rest])
                 linear = np.concatenate([linear, point_linear])
             flat = point_lg.ravel()
-            size += (float(point_h @ point_h) + float(flat @ flat)
-                     + float(point_upper @ point_upper) + point_h.size)
+            # (``dot``: the BLAS call of ``@``, without its ufunc overhead)
+            size += (float(point_h.dot(point_h)) + float(flat.dot(flat))
+                     + float(point_upper.dot(point_upper)) + point_h.size)
+            least_point = _least(point_upper) if point_upper.size else math.inf
             if (margin is None and size <= _QP_DATA_SQUARES
-                    and _meets_every_row(upper, point_upper, limit_upper)):
+                    and _meets_every_row(upper, least_point, limit_upper)):
                 # the pass-through below, from the problem's rows and the points' apart: the
                 # common answer skips joining them (three arrays of every point's row)
                 self._pruned = upper.size + point_upper.size
                 return self._passed_through(
                     u, applied, clipped, start, time.perf_counter(),
-                    self._reported(h, point_h), self._reported(upper, point_upper),
+                    self._reported(h, point_h), self._with_least(upper, least_point),
                     self._point_values(point_h, point_upper, every=False))
             h = np.concatenate([h, point_h])
             lg = np.concatenate([lg, point_lg])
@@ -1682,7 +1698,7 @@ class SafetyFilter:
         if self._points is None:
             raise ValueError('set_points: this filter was built without a footprint')
         points = np.asarray(points, dtype=np.float64)
-        if points.ndim != 2 or points.shape[1] != 2 or not np.isfinite(points).all():
+        if points.ndim != 2 or points.shape[1] != 2 or not _all_finite(points):
             raise ValueError(f'set_points: expected finite (N, 2) points, got shape '
                              f'{points.shape}')
         if type(spread) is float or np.ndim(spread) == 0:
@@ -1709,9 +1725,15 @@ class SafetyFilter:
         k = self.n_barriers
         if point_values is None:
             values, point_values = values[:k], values[k:]
+        return self._with_least(values, _least(point_values) if point_values.size else math.inf)
+
+    def _with_least(self, values: np.ndarray, least_point: float) -> np.ndarray:
+        """:meth:`_reported` with the least over the points' rows given: the problem's rows
+        of ``values``, then ``least_point``."""
+        k = self.n_barriers
         out = np.empty(k + 1)
         out[:k] = values[:k]
-        out[k] = _least(point_values) if point_values.size else math.inf
+        out[k] = least_point
         return out
 
     def _point_values(self, point_h: np.ndarray | None, values: np.ndarray, *,
@@ -1736,7 +1758,7 @@ class SafetyFilter:
         if moved is None:
             return None
         action, step = moved
-        values = upper + lg @ np.array(step)
+        values = upper + product(lg, step)
         needed = max(0.0, -float(_least(values)))
         claimed = max(0.0, z[-1])
         if needed > claimed:

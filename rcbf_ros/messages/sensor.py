@@ -278,8 +278,9 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
         valid = (ranges >= max(range_min, 0.0)) & (ranges <= range_max)  # REP 117: r >= 0
         if not (math.isfinite(range_min) and math.isfinite(range_max)):
             valid &= np.isfinite(ranges)
-        every = np.count_nonzero(valid) == count
-        index = None if every else np.flatnonzero(valid)
+        index = valid.nonzero()[0]  # flatnonzero's, without its ravel
+        if index.size == count:  # every beam valid
+            index = None
         r = ranges if index is None else ranges.take(index)
         largest = float(np.maximum.reduce(r)) if r.size else 0.0
         if not largest <= MAX_COORDINATE:

@@ -138,6 +138,8 @@ def test_drift_jet_matches_autograd(system):
             x[2] = x[0] - rng.uniform(2.0, 12.0)
         xt = torch.from_numpy(x)
         jet = jet_of(x)
+        for mine, listed in zip(jet, jet_of(x.tolist())):  # a list of floats: the same jet
+            assert mine.dtype == listed.dtype and mine.tobytes() == listed.tobytes()
 
         def drift(z):
             return system.f(z[None])[0]

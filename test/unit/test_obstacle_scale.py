@@ -32,7 +32,7 @@ from rcbf_ros.core.filter import (
     SafetyFilter,
 )
 from rcbf_ros.core.lie_closed_form import ClosedFormAssembly
-from rcbf_ros.core.lie_closed_form_rows import VectorAssembly
+from rcbf_ros.core.lie_closed_form_rows import product, SMALL_PRODUCT, VectorAssembly
 from rcbf_ros.node_logic import safety_filter as logic
 
 PROPERTY = settings(max_examples=60, derandomize=True, deadline=None, database=None,
@@ -99,6 +99,26 @@ def test_rows_over_arrays_equal_autograd_at_hundreds_of_obstacles(system, cascad
         assert_close(np.array(h), problem.terms(x, u).h[0].numpy(), 'h')
         assert_close(np.array(rows), want.G[0].numpy(), 'G')
         assert_close(np.array(upper), want.h[0].numpy(), 'h_qp')
+
+
+@pytest.mark.parametrize('rows', [0, 1, 2, 3, 64, 360, SMALL_PRODUCT // 3 - 2,
+                                  SMALL_PRODUCT // 3 + 2, SMALL_PRODUCT, 3 * SMALL_PRODUCT])
+def test_the_rows_products_equal_matmul_bit_for_bit(rows):
+    # product takes ndarray.dot below SMALL_PRODUCT entries and @ above: either way the values
+    # of @, at every row count (one point, none, a scan, a cloud) and the shapes the rows use
+    rng = np.random.default_rng(rows)
+
+    def wide(*shape: int) -> np.ndarray:
+        return rng.standard_normal(shape) * 10.0 ** rng.uniform(-8.0, 8.0, shape)
+
+    grads, coefficients, g_rows = wide(3, rows), wide(3), wide(3, 2)
+    lg, step = wide(rows, 2), wide(2)
+    pairs = [(coefficients, grads), (np.abs(coefficients), np.abs(grads)), (grads.T, g_rows),
+             (lg, step), (lg[::2], step), (g_rows, step)]
+    for left, right in pairs:
+        assert product(left, right).tobytes() == (left @ right).tobytes()
+    for left, right in ((lg, step), (g_rows, step)):  # a list of floats on the right
+        assert product(left, right.tolist()).tobytes() == (left @ right).tobytes()
 
 
 def test_the_shipped_configs_keep_the_generated_rows():

@@ -109,6 +109,24 @@ def test_set_points_refuses_what_is_not_finite_n_by_2(points):
         SafetyFilter(config.problem).set_points(np.zeros((1, 2)))
 
 
+@pytest.mark.parametrize('points', [
+    np.array([[1e200, -1e300], [0.0, 1e-300]]),  # finite, their squares' sum is not
+    np.array([[1.7e308, -1.7e308]] * 3), np.zeros((0, 2)),
+    np.asfortranarray(np.arange(8.0).reshape(4, 2)), np.arange(8.0).reshape(2, 4).T])
+def test_set_points_takes_every_finite_n_by_2_whatever_its_size_or_layout(points):
+    # finiteness is checked by one sum of squares, each entry where the sum is not finite
+    config = _config()
+    fast = SafetyFilter(config.problem, footprint=config.footprint)
+    fast.set_points(points)
+    assert fast.point_count == len(points)
+    for bad in (math.inf, -math.inf, math.nan):
+        spoiled = np.array(points, order='K')
+        if spoiled.size:
+            spoiled[-1, 0] = bad
+            with pytest.raises(ValueError, match='finite'):
+                fast.set_points(spoiled)
+
+
 @pytest.mark.parametrize(('changes', 'key'), [
     ({'observation_sources': ['obstacles']}, 'observation_sources'),
     ({'observation_sources': ['a.b']}, 'observation_sources'),
@@ -201,3 +219,57 @@ def test_merged_rows_are_below_every_row_at_every_action_in_the_box(seed, n_u, r
     # an action meeting every merged row with a slack meets every row with it
     scale = 1.0 + np.abs(original).max()
     assert np.all(merged.min(axis=1) <= original.min(axis=1) + 1e-12 * scale)
+
+
+def _terms_by_comparison(circles, x, u):
+    """The look-ahead rows' (h, grads) of _Circles.terms, the point behind chosen by comparing
+    every dx^2 + dy^2 with delta^2 (the oracle of its test for the least h)."""
+    cos, sin = math.cos(x[circles.heading]), math.sin(x[circles.heading])
+    offset = circles.lookahead
+    if u[circles.speed] < 0.0:
+        dx = (x[circles.i] - offset * cos) - circles.cx
+        dy = (x[circles.j] - offset * sin) - circles.cy
+        if bool((dx * dx + dy * dy >= circles.delta_sq).all()):
+            offset = -offset
+    dx = (x[circles.i] + offset * cos) - circles.cx
+    dy = (x[circles.j] + offset * sin) - circles.cy
+    h = dx * dx + dy * dy - circles.delta_sq
+    d_heading = dy * (2.0 * offset * cos) - dx * (2.0 * offset * sin)
+    return h, np.array([2.0 * dx, 2.0 * dy, d_heading])
+
+
+_HOSTILE = st.sampled_from([0.0, -0.0, 3.0, 4.0, 1e-300, 1e150, -1e155, 1e200, 1e307,
+                            math.inf, math.nan])
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**16), n=st.integers(0, 40), backwards=st.booleans(),
+       heading=st.sampled_from([0.0, 1.0, -2.5]), spread=st.sampled_from([0.0, 1.0, 1e160]),
+       per_point=st.booleans(), far=st.booleans(),
+       specials=st.lists(st.tuples(st.integers(0, 80), _HOSTILE), max_size=6))
+def test_the_point_behind_is_taken_exactly_where_every_point_is_clear(
+        seed, n, backwards, heading, spread, per_point, far, specials):
+    # the point behind is chosen from the least h (dx^2 + dy^2 - delta^2 >= 0 for every point)
+    # where the comparisons of every dx^2 + dy^2 with delta^2 choose it: points on the circle
+    # (h exactly 0), overflow to inf on either side (inf - inf is NaN), NaN, no point
+    rng = np.random.default_rng(seed)
+    circles = SafetyFilter(_config().problem, footprint=_config().footprint)._points._circles
+    lookahead = circles.lookahead
+    x = [lookahead * math.cos(heading), lookahead * math.sin(heading), heading]
+    values = rng.uniform(5.0, 50.0, 2 * n) * rng.choice([-1.0, 1.0], 2 * n)  # clear, most
+    if far:  # every dx^2 + dy^2 inf: inf - inf where delta^2 is inf too
+        values *= 1e200
+    elif n:
+        values[0], values[n] = 3.0, 4.0  # 5 m from the point behind, at the origin
+    for where, special in specials:
+        if n:
+            values[where % values.size] = special
+    circles.cx, circles.cy = values[:n].copy(), values[n:].copy()
+    delta = 5.0 + spread * (rng.uniform(0.0, 1.0, n) if per_point else 1.0)
+    u = [-1.0 if backwards else 1.0, 0.0]
+    with np.errstate(all='ignore'):
+        circles.delta_sq = delta * delta
+        h, index, grads = circles.terms(x, u, None, None)
+        want_h, want_grads = _terms_by_comparison(circles, x, u)
+    assert index == [circles.i, circles.j, circles.heading]
+    assert h.tobytes() == want_h.tobytes() and grads.tobytes() == want_grads.tobytes()
