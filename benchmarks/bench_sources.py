@@ -4,8 +4,10 @@
     python benchmarks/bench_sources.py --against DIR [--only LaserScan] [--calls 1000]
 
 One decision = what the node does per proposal with an observation source: read the latest
-message's bytes (:mod:`rcbf_ros.messages.sensor`), take its points into the state's frame and
-into the filter (:meth:`ObservationSources.sense`), filter (:meth:`SafetyFilter.filter`).
+message's bytes (:mod:`rcbf_ros.messages.sensor`), keep the state's pose at its stamp
+(:meth:`ObservationSources.note_state`, which the node does per state), take the points into
+the state's frame and into the filter (:meth:`ObservationSources.sense`), filter
+(:meth:`SafetyFilter.filter`).
 config/unicycle.yaml's filter with ``footprint.radius`` 0.2 m, the robot at random in a square
 room of 8 m (its walls, plus 5 posts, what the sensor sees), proposals within the limits.
 Messages are encoded by rosbags, once per world, before the timing:
@@ -216,6 +218,8 @@ def decisions(kind: str, size: int, number: int, seed: int = 0) -> list:
             for i in range(number)]
 
 
+STAMP_NS = 100 * 10 ** 9
+"""Every message's and state's stamp, and the clock's time at each decision (ns)."""
 BOX = ([-0.05, 0.0, 0.0], [0.025, 0.025, 0.0])
 """The disturbance box (mean, std) of every decision."""
 
@@ -225,8 +229,9 @@ def decide(safety_filter: object, sources: object, data: bytes, state: list,
     """One decision: the message read, its points into the filter, the filter's answer
     ('' and the result, or the fail-safe's reason and None)."""
     reason = sources.read('sensor', data, received_ns=0)
+    reason = reason or sources.note_state(np.array(state), stamp_ns=STAMP_NS)
     reason = reason or sources.sense(safety_filter, np.array(state), now_ns=0,
-                                     stamp_now_ns=100 * 10 ** 9)
+                                     stamp_now_ns=STAMP_NS)
     return (reason, None) if reason else ('', safety_filter.filter(state, proposal, *BOX))
 
 
@@ -242,8 +247,9 @@ def measure(kind: str, size: int, voxel: float, number: int, seed: int = 0) -> d
                                                inputs[:20] + inputs):
         start = time.perf_counter()
         reason = sources.read('sensor', data, received_ns=0)
+        reason = reason or sources.note_state(np.array(state), stamp_ns=STAMP_NS)
         reason = reason or sources.sense(safety_filter, np.array(state), now_ns=0,
-                                         stamp_now_ns=100 * 10 ** 9)
+                                         stamp_now_ns=STAMP_NS)
         if reason:
             u = safety_filter.fail_safe_action
         else:

@@ -310,7 +310,7 @@ class SourceConfig:
     """The state's frame: points in it are taken as they are."""
     base_frame_id: str
     """The robot's frame: points in it (or tf-joined to it but not to ``odom_frame_id``) go to
-    the state's frame through the state's pose."""
+    the state's frame through the robot's pose at their stamp, from the states."""
     position_indices: tuple[int, int]
     """State indices of the robot's position (``obstacles.position_indices``)."""
     heading_index: int | None
@@ -381,7 +381,7 @@ class FilterParameters:
     base_frame_id: str = setting('base_link', description="the robot's frame (sensor points "
                                                           'that tf does not place in '
                                                           "odom_frame_id go through it and the "
-                                                          "state's pose)",
+                                                          "states' pose at their stamp)",
                                  read_only=True)
     """The robot's frame."""
     transform_tolerance: float = setting(

@@ -58,8 +58,7 @@ class AnswerRules:
         self.stamp_clock = stamp_clock
         self.held: HeldProposal | None = None
         """The proposal in force (the latest one read), answered again at states and ticks."""
-        self.latest_state: StateSample | None = None
-        """The latest ``state`` message (a bad one too: it says why)."""
+        self._latest_state: StateSample | None = None
         self.last_answer_ns: int | None = None
         """When the latest answer, of any kind, was made (None: none yet)."""
         self.proposals = 0
@@ -68,6 +67,31 @@ class AnswerRules:
         """Answers made at a new state or source message (``refilter_on_state``)."""
         self.holds = 0
         """Answers made by the hold timer (``control_period_s`` > 0)."""
+
+    @property
+    def latest_state(self) -> StateSample | None:
+        """The latest ``state`` message (a bad one too: it says why). Setting a good one
+        also gives the sources the robot's pose at its stamp
+        (:meth:`~rcbf_ros.node_logic.sources.ObservationSources.note_state`): its header
+        stamp, or, for a state without one, its receipt on :attr:`stamp_clock` (the sources'
+        stamps are aged on it). A proposal's own state is given the same way, at its
+        receipt (:meth:`propose`)."""
+        return self._latest_state
+
+    @latest_state.setter
+    def latest_state(self, sample: StateSample | None) -> None:
+        self._latest_state = sample
+        if sample is not None and sample.state is not None:
+            self._note_pose(sample.state, sample.stamp_ns, sample.received_ns)
+
+    def _note_pose(self, state: Any, stamp_ns: int | None, received_ns: int) -> None:
+        """Give the sources the robot's pose in ``state`` at ``stamp_ns`` (a header stamp),
+        or, without one, at its receipt ``received_ns`` on :attr:`stamp_clock`."""
+        if self.sources is None:
+            return
+        if stamp_ns is None:
+            stamp_ns = received_ns if self.stamp_clock is None else self.stamp_clock()
+        self.sources.note_state(state, stamp_ns=stamp_ns)
 
     def answered(self, now_ns: int) -> None:
         """An answer went out at ``now_ns`` (whatever made it)."""
@@ -86,6 +110,9 @@ class AnswerRules:
         if sample is None:
             return None
         self.held = HeldProposal(sample=sample, received_ns=now_ns)
+        proposal = sample.proposal
+        if proposal is not None and proposal.state is not None:  # the proposer's own state
+            self._note_pose(proposal.state, None, now_ns)
         return self._answer(decide_held(held=self.held, again=False,
                                         safety_filter=active.safety_filter,
                                         **self._arguments(active, now_ns)),

@@ -13,7 +13,9 @@ goes through tf (the transforms of :meth:`ObservationSources.read_tf`, kept in a
 :class:`~rcbf_ros.node_logic.tf_buffer.TransformBuffer`) at the message's stamp, within
 ``transform_tolerance``. Where tf does not join the frame to ``odom_frame_id`` (no
 odom -> base_link on tf) but the frame is ``base_frame_id`` or joined to it, the points go to
-the robot's frame, then to the state's through the pose in the state. Where tf joins the
+the robot's frame, then to the state's through the robot's pose at the message's stamp, from
+the states (:meth:`ObservationSources.note_state`, by tf's rules: interpolated, or held within
+``transform_tolerance``; none: the fail-safe). Where tf joins the
 frames but has no transform at the stamp (too old, too new, a loop), the fail-safe. Once
 placed, points are bounded by their distance from the robot (:data:`MAX_RANGE`), never by a
 frame's origin; all sources together by :data:`MAX_POINTS`. No middleware: the node hands in
@@ -30,6 +32,7 @@ import numpy as np
 from rcbf_ros.core.config import SourceConfig, SourceParameters
 from rcbf_ros.messages import sensor
 from rcbf_ros.messages.tf import quoted, refusals_line, tf_transforms
+from rcbf_ros.node_logic.pose_history import PoseHistory
 from rcbf_ros.node_logic.tf_buffer import (
     CONNECTIVITY,
     FRAME,
@@ -157,6 +160,10 @@ class ObservationSources:
         tf2_ros, which is fed by its own listener)."""
         self.tf_counts = dict.fromkeys(TF_COUNT_KEYS, 0)
         """Counts of the tf messages (:data:`TF_COUNT_KEYS`)."""
+        self.poses = PoseHistory()
+        """The robot's pose at each state's stamp (:meth:`note_state`): where tf does not
+        join a source's frame to the state's, its points are placed with the pose at the
+        message's stamp."""
 
     @property
     def names(self) -> list[str]:
@@ -219,6 +226,21 @@ class ObservationSources:
             return f'internal error: {type(exc).__name__}: {" ".join(str(exc).split())}'[:200]
         counts['transforms_refused'] += len(refused)
         return refusals_line(refused)
+
+    def note_state(self, state: np.ndarray, *, stamp_ns: int) -> str:
+        """Keep the robot's pose in ``state`` (position and heading) at ``stamp_ns``: the
+        state's header stamp, or its receipt on the clock the sources' stamps are aged on.
+        '' when kept, else why not (no heading in the state, a pose that is not finite).
+        Never raises."""
+        config = self.config
+        if config.heading_index is None:
+            return 'no heading in the state (obstacles.heading_index)'
+        try:
+            i, j = config.position_indices
+            return self.poses.add(int(stamp_ns), float(state[i]), float(state[j]),
+                                  float(state[config.heading_index]))
+        except Exception as exc:  # a state of the wrong length: the decision says why
+            return f'pose not kept: {type(exc).__name__}: {" ".join(str(exc).split())}'[:200]
 
     def points(self, state: np.ndarray, *, now_ns: int, stamp_now_ns: int
                ) -> tuple[np.ndarray, np.ndarray | float] | str:
@@ -325,7 +347,7 @@ class ObservationSources:
             points = to_base.apply_planar(points)
             # twice the reach: room for a rotation's rounding
             reach = 2.0 * reach + math.hypot(*to_base.translation[:2])
-        placed = self._to_state_frame(points, state)
+        placed = self._to_state_frame(points, source.stamp_ns, tolerance_ns)
         return placed if isinstance(placed, str) else (placed, widening, reach)
 
     @staticmethod
@@ -370,17 +392,21 @@ class ObservationSources:
         near &= dx * dx + dy * dy <= MAX_RANGE * MAX_RANGE
         return points if near.all() else points[near]
 
-    def _to_state_frame(self, points: np.ndarray, state: np.ndarray) -> np.ndarray | str:
-        """Points in the robot's frame -> the state's: rotated by the heading, moved to the
-        position (both from ``state``)."""
+    def _to_state_frame(self, points: np.ndarray, stamp_ns: int,
+                        tolerance_ns: int) -> np.ndarray | str:
+        """Points in the robot's frame, taken at ``stamp_ns`` -> the state's: rotated by the
+        heading, moved to the position, both of the robot's pose at that stamp
+        (:attr:`poses`, within ``tolerance_ns``)."""
         config = self.config
         if config.heading_index is None:
             return (f'frame {config.base_frame_id!r} needs the heading in the state '
                     '(obstacles.heading_index)')
-        i, j = config.position_indices
-        x, y, heading = float(state[i]), float(state[j]), float(state[config.heading_index])
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(heading)):
-            return "the state's pose is not finite"
+        pose = self.poses.at(stamp_ns, tolerance_ns=tolerance_ns)
+        if isinstance(pose, str):
+            return (f'no pose of the robot ({quoted(config.base_frame_id)} in '
+                    f"{quoted(config.odom_frame_id)}) at the message's stamp from the states: "
+                    f'{pose}')
+        x, y, heading = pose
         cos, sin = math.cos(heading), math.sin(heading)
         # both columns at once, as (2, N): (x + cos px) + (-sin py) and (y + sin px) + cos py,
         # the sums of x + cos px - sin py and y + sin px + cos py in their order (negation is

@@ -60,6 +60,7 @@ def test_points_in_the_robot_frame_go_through_the_pose():
     assert sources.read('cloud', _cloud([[3.0, 4.0, 0.5], [1.0, 1.0, 5.0]]),
                         received_ns=0) == ''
     state = np.array([1.0, -2.0, math.pi / 2])
+    assert sources.note_state(state, stamp_ns=10 * S) == ''  # the pose at the scan's stamp
     points, spread = sources.points(state, now_ns=0, stamp_now_ns=10 * S)
     beam = np.float32(0.5)
     expected_scan = [1.0 - 2.0 * math.sin(beam), -2.0 + 2.0 * math.cos(beam)]
@@ -105,6 +106,7 @@ def test_a_good_message_after_a_refused_one_clears_the_refusal():
     _, sources = _sources()
     sources.read('cloud', _cloud([[1.0, 1.0, 0.5]]), received_ns=0)
     sources.read('front', b'\x00\x01\x00\x00garbage', received_ns=0)
+    sources.note_state(np.zeros(3), stamp_ns=10 * S)
     assert isinstance(sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S), str)
     sources.read('front', _scan([1.0]), received_ns=0)
     assert not isinstance(sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S), str)
@@ -130,6 +132,7 @@ def test_a_scan_of_a_wall_ahead_slows_the_decision_and_a_stale_one_stops_it():
     angles = np.linspace(-0.5, 0.5, 101)
     sources.read('front', _scan(0.8 / np.cos(angles), angle_min=-0.5, increment=0.01),
                  received_ns=0)
+    sources.note_state(state.state, stamp_ns=10 * S)
 
     def decide(stamp_now_ns):
         return logic.decide(
@@ -181,6 +184,7 @@ def test_more_points_than_the_bound_over_all_sources_give_the_fail_safe_naming_t
     _, sources = _sources()
     sources.read('front', _scan(np.ones(6)), received_ns=0)
     sources.read('cloud', _cloud([[1.0, k, 0.5] for k in range(4)]), received_ns=0)
+    sources.note_state(np.zeros(3), stamp_ns=10 * S)
     points, _ = sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S)
     assert len(points) == 10
     sources.read('cloud', _cloud([[1.0, k, 0.5] for k in range(5)]), received_ns=0)
@@ -231,6 +235,7 @@ def test_a_scan_only_filter_builds_and_slows_down_before_a_wall(params):
                                        settings=logic.node_settings_from_params({}))
     assert active.barrier_names == ['sensor_points']
     state = logic.StateSample(received_ns=0, state=np.array([0.0, 0.0, 0.0]), error='')
+    sources.note_state(state.state, stamp_ns=10 * S)  # the robot's pose at the scans' stamp
     proposal = logic.Proposal(u=np.array([2.0, 0.0]))
 
     def decide():

@@ -91,6 +91,7 @@ def test_without_odom_on_tf_the_mount_and_the_state_pose_place_the_points():
     _, sources = _sources()
     _mount(sources)  # only base_link -> laser: the robot's pose comes from the state
     sources.read('front', _scan([2.0], angle_min=0.0), received_ns=0)
+    sources.note_state(np.array([1.0, -1.0, math.pi / 2]), stamp_ns=10 * S)
     points, _ = sources.points(np.array([1.0, -1.0, math.pi / 2]), now_ns=0,
                                stamp_now_ns=10 * S)
     np.testing.assert_allclose(points, _expected([2.0], [0.0], (1.0, -1.0, math.pi / 2)),
@@ -101,6 +102,7 @@ def test_base_link_points_follow_tf_when_it_has_odom_to_base_link_else_the_state
     _, sources = _sources()
     sources.read('front', _scan([1.0], frame_id='base_link', angle_min=0.0), received_ns=0)
     state = np.array([5.0, 5.0, 0.0])
+    sources.note_state(state, stamp_ns=10 * S)
     without, _ = sources.points(state, now_ns=0, stamp_now_ns=10 * S)
     np.testing.assert_allclose(without, [[6.0, 5.0]], atol=1e-6)
     _odom(sources, 10 * S, -1.0, 0.0, math.pi)
@@ -272,3 +274,64 @@ def test_points_placed_through_the_robot_frame_are_those_the_range_test_keeps(
         mounted = 1.0 if frame == 'laser' else 1e-6  # the mount's offset, or rounding
         assert len(distance) >= np.count_nonzero(np.abs(valid) <= MAX_RANGE - mounted)
         assert len(distance) <= np.count_nonzero(np.abs(valid) <= MAX_RANGE + mounted)
+
+
+def test_without_odom_on_tf_a_scan_is_placed_with_the_pose_at_its_stamp():
+    """A robot turning from yaw -1 to 0 in 0.5 s, its scan taken at the start: the points lie
+    where the robot saw them (the pose at the scan's stamp), not turned with the robot; a
+    stamp between two states takes the pose interpolated between them."""
+    _, sources = _sources()
+    sources.read('front', _scan([1.5], frame_id='base_link', angle_min=0.0,
+                                stamp_ns=10 * S), received_ns=0)
+    assert sources.note_state(np.array([0.0, 0.0, -1.0]), stamp_ns=10 * S) == ''
+    now = np.array([0.2, 0.0, 0.0])
+    assert sources.note_state(now, stamp_ns=10 * S + S // 2) == ''
+    points, _ = sources.points(now, now_ns=0, stamp_now_ns=10 * S + S // 2)
+    np.testing.assert_allclose(points, [[1.5 * math.cos(-1.0), 1.5 * math.sin(-1.0)]],
+                               atol=1e-9)
+    sources.read('front', _scan([1.5], frame_id='base_link', angle_min=0.0,
+                                stamp_ns=10 * S + S // 4), received_ns=0)
+    points, _ = sources.points(now, now_ns=0, stamp_now_ns=10 * S + S // 2)
+    np.testing.assert_allclose(points, [[0.1 + 1.5 * math.cos(-0.5), 1.5 * math.sin(-0.5)]],
+                               atol=1e-9)
+
+
+@pytest.mark.parametrize(('state_stamp', 'words'), [
+    (None, 'no state yet'),
+    (10 * S - S // 2, 'the newest state is 0.500 s older than the message (tolerance 0.100 s)'),
+    (10 * S + S // 2, 'the oldest state kept is 0.500 s newer than the message'),
+])
+def test_without_a_pose_near_the_scans_stamp_the_fail_safe_says_so(state_stamp, words):
+    config, sources = _sources()
+    sources.read('front', _scan([1.0], frame_id='base_link', angle_min=0.0), received_ns=0)
+    if state_stamp is not None:
+        sources.note_state(np.zeros(3), stamp_ns=state_stamp)
+    reason = sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S + S // 2)
+    assert isinstance(reason, str) and reason.startswith(
+        "source front: no pose of the robot ('base_link' in 'odom') at the message's stamp "
+        'from the states: ' + words), reason
+    assert config.sources.transform_tolerance == 0.1
+    active = logic.build_safety_filter(config=config,
+                                       settings=logic.node_settings_from_params({}))
+    decision = logic.decide(
+        safety_filter=active, proposal=logic.Proposal(u=np.array([2.0, 0.0])),
+        latest_state=logic.StateSample(received_ns=0, state=np.zeros(3), error=''), now_ns=0,
+        max_state_age_s=1.0,
+        sense=lambda x: sources.sense(active, x, now_ns=0, stamp_now_ns=10 * S + S // 2))
+    assert decision.fail_safe and decision.reason == reason
+
+
+def test_the_answer_rules_give_the_sources_each_states_pose_at_its_stamp():
+    """An Odometry's header stamp, or for an array state its receipt on the stamp clock."""
+    from rcbf_ros.node_logic.answer_rules import AnswerRules
+    _, sources = _sources()
+    clock = [7 * S]
+    rules = AnswerRules(sources, stamp_clock=lambda: clock[0])
+    rules.latest_state = logic.StateSample(received_ns=1, state=np.array([1.0, 2.0, 0.5]),
+                                           stamp_ns=5 * S)
+    rules.latest_state = logic.StateSample(received_ns=2, state=np.array([3.0, 2.0, 0.5]))
+    rules.latest_state = logic.StateSample(received_ns=3, state=None, error='bad')
+    assert sources.poses.at(5 * S, tolerance_ns=0) == (1.0, 2.0, 0.5)
+    assert sources.poses.at(6 * S, tolerance_ns=0) == (2.0, 2.0, 0.5)
+    assert sources.poses.at(7 * S, tolerance_ns=0) == (3.0, 2.0, 0.5)
+    assert len(sources.poses) == 2
