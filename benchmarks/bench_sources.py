@@ -463,7 +463,9 @@ def main(argv: list[str] | None = None) -> int:
         conditions=f'; {load_averages()}',
         write=args.write, blocks=[
             'One decision from sources to command: the latest message read from its CDR '
-            "bytes, its points taken into the state's frame and into the filter, and one "
+            "bytes, the state's pose kept at its stamp (what the node does per state), the "
+            "message's points taken into the state's frame (a scan in `base_link` through "
+            "that pose) and into the filter, and one "
             '`SafetyFilter.filter` call (config/unicycle.yaml, `footprint.radius` 0.2 m; the '
             'robot at random in a square room of 8 m with 5 posts; proposals within the '
             'limits and a small disturbance box; `--calls` decisions per source after 20 '
