@@ -19,7 +19,7 @@ import itertools
 import math
 
 from filter_paths import qp_arrays, random_call, shipped_filter
-from hypothesis import given, HealthCheck, settings
+from hypothesis import example, given, HealthCheck, settings
 from hypothesis import strategies as st
 import numpy as np
 import pytest
@@ -53,9 +53,10 @@ def enumerated_solution(g_matrix: np.ndarray, upper: np.ndarray, weights: np.nda
         with np.errstate(all='ignore'):  # the rank-deficient sets, left out below
             coordinates = np.einsum('csk,cs->ck', u_matrix, bounds[subsets]) / singular
             candidates = np.einsum('ckn,ck->cn', v_rows, coordinates)
-            # each (unit) row met to the round-off of its own terms
-            tolerance = 1e-9 * (1.0 + np.abs(bounds)
-                                + np.linalg.norm(candidates, axis=1)[:, None])
+            # each (unit) row met to the round-off of its own terms: the sum of
+            # |row_k y_k|, not |row| |y|, which a large coordinate the row hardly weighs
+            # (a costly slack) would make far wider than the row's own round-off
+            tolerance = 1e-9 * (1.0 + np.abs(bounds) + np.abs(candidates) @ np.abs(rows).T)
             feasible = full_rank & np.all(candidates @ rows.T - bounds <= tolerance, axis=1)
         if feasible.any():
             with np.errstate(all='ignore'):
@@ -254,6 +255,9 @@ FILTERS = {system: shipped_filter(system) for system in ('unicycle', 'car_follow
 
 @PROPERTY
 @given(hostile_qp())
+# A costly slack far larger than the rows: the oracle once took a point 2.5e8 outside row 3
+@example(('unicycle', np.array([[0.0, 0.5], [0.0, 0.5], [0.0, 0.0], [0.0, -1e8], [0.0, 0.0]]),
+          np.array([0.0, -580171.875, 1e8, 0.0, 0.0]), np.array([0.0, 0.0])))
 def test_hostile_qp_data_never_break_the_row_check_and_match_enumeration(drawn):
     """Whatever QP data reach the solve, the filter's answer meets every row to the slack it
     reports and lies within the limits (or is the fail-safe), and an answer of the active-set
