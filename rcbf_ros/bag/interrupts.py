@@ -67,6 +67,9 @@ def interrupts_raise(*signums: int) -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    # No section is open here; a count left behind by an interrupt that cut one short under
+    # Python's own handler (outside this block) would hold every signal back.
+    held.depth, held.pending = 0, None
     previous = {signum: signal.signal(signum, on_interrupt)
                 for signum in signums or (signal.SIGINT, signal.SIGTERM)
                 if not (signum == signal.SIGINT and signal.getsignal(signum) == signal.SIG_IGN)}

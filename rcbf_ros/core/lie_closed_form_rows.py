@@ -54,7 +54,9 @@ SMALL_PRODUCT = 16_384
 
 def product(left: np.ndarray, right: np.ndarray | list[float]) -> np.ndarray:
     """``left @ right`` of float64 arrays (``right`` may be a list of floats), the same values
-    bit for bit: ``ndarray.dot`` makes the same BLAS call with the same arguments, without
+    bit for bit where both are C- or F-contiguous, as every caller's are (a strided view may
+    round differently: ``dot`` copies it, ``@`` may not): ``ndarray.dot`` makes the same BLAS
+    call with the same arguments, without
     matmul's ufunc overhead (about a microsecond a call, most of a small product's time); from
     :data:`SMALL_PRODUCT` entries on ``@`` itself, faster there (measured: by about 10 % at
     100k rows)."""

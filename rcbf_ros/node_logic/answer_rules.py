@@ -75,7 +75,8 @@ class AnswerRules:
         (:meth:`~rcbf_ros.node_logic.sources.ObservationSources.note_state`): its header
         stamp, or, for a state without one, its receipt on :attr:`stamp_clock` (the sources'
         stamps are aged on it). A proposal's own state is given the same way, at its
-        receipt (:meth:`propose`)."""
+        receipt, as long as no state message came (:meth:`propose`): a proposer's state is
+        older than its receipt by the proposer's lag."""
         return self._latest_state
 
     @latest_state.setter
@@ -86,12 +87,17 @@ class AnswerRules:
 
     def _note_pose(self, state: Any, stamp_ns: int | None, received_ns: int) -> None:
         """Give the sources the robot's pose in ``state`` at ``stamp_ns`` (a header stamp),
-        or, without one, at its receipt ``received_ns`` on :attr:`stamp_clock`."""
-        if self.sources is None:
+        or, without one, at its receipt ``received_ns`` on :attr:`stamp_clock`. A header
+        stamp of 0 or farther than the poses' cache from that clock (a driver that leaves it
+        unset, a base stamping on its own boot clock) is taken as the receipt too: the
+        scans' stamps are aged on that clock all the same."""
+        sources = self.sources
+        if sources is None:
             return
-        if stamp_ns is None:
-            stamp_ns = received_ns if self.stamp_clock is None else self.stamp_clock()
-        self.sources.note_state(state, stamp_ns=stamp_ns)
+        now_ns = received_ns if self.stamp_clock is None else self.stamp_clock()
+        if stamp_ns is None or stamp_ns <= 0 or abs(stamp_ns - now_ns) > sources.poses.cache_ns:
+            stamp_ns = now_ns
+        sources.note_state(state, stamp_ns=stamp_ns, now_ns=now_ns)
 
     def answered(self, now_ns: int) -> None:
         """An answer went out at ``now_ns`` (whatever made it)."""
@@ -111,7 +117,8 @@ class AnswerRules:
             return None
         self.held = HeldProposal(sample=sample, received_ns=now_ns)
         proposal = sample.proposal
-        if proposal is not None and proposal.state is not None:  # the proposer's own state
+        if (proposal is not None and proposal.state is not None
+                and self._latest_state is None):  # the proposer's state, while the only one
             self._note_pose(proposal.state, None, now_ns)
         return self._answer(decide_held(held=self.held, again=False,
                                         safety_filter=active.safety_filter,

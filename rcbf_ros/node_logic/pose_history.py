@@ -8,9 +8,10 @@ ahead moved sideways by a fifth of its range. :class:`PoseHistory` keeps the pos
 recent states and answers a stamp by tf's rules (:mod:`rcbf_ros.node_logic.tf_buffer`):
 interpolated between the neighbouring states (the position linearly, the heading along the
 shorter arc), held within ``tolerance_ns`` of the first or last, else refused with the reason.
-It keeps at most :data:`MAX_POSES` poses and none older than ``cache_s`` before the newest; a
-stamp earlier than the newest clears it (the clock went back: a simulation or a bag restarted),
-as tf2 clears its buffer.
+It keeps at most :data:`MAX_POSES` poses and none older than ``cache_s`` before the newest. A
+state that arrives out of order (stamps jitter) goes in its place. The receiver's clock going
+back (a simulation or a bag restarted), or a stamp more than ``cache_s`` before the newest,
+clears it first, as tf2 clears its buffer when the clock jumps back.
 """
 from __future__ import annotations
 
@@ -38,32 +39,61 @@ class PoseHistory:
         self._stamps: deque[int] = deque(maxlen=max_poses)
         self._poses: deque[tuple[float, float, float]] = deque(maxlen=max_poses)
         self.clears = 0
-        """How often a stamp earlier than the newest cleared the history."""
+        """How often the clock going back cleared the history."""
+        self._clock_ns: int | None = None
+        """The receiver's clock handed in last (:meth:`add`)."""
 
     def __len__(self) -> int:
         return len(self._stamps)
 
-    def add(self, stamp_ns: int, x: float, y: float, heading: float) -> str:
-        """Keep the pose at ``stamp_ns``: '' when kept, else why not (one line). A stamp equal
-        to the newest replaces its pose; an earlier one clears the history first."""
+    def add(self, stamp_ns: int, x: float, y: float, heading: float, *,
+            now_ns: int | None = None) -> str:
+        """Keep the pose at ``stamp_ns``: '' when kept, else why not (one line). A stamp
+        kept already has its pose replaced; an earlier one than the newest goes in its place;
+        one more than the cache before the newest, or a receiver's clock ``now_ns`` earlier
+        than the one handed in before (a simulation or a bag restarted), clears the history
+        first."""
         if not isinstance(stamp_ns, int) or isinstance(stamp_ns, bool):
             return f'pose stamp {stamp_ns!r} is not an integer'
         if not all(math.isfinite(v) for v in (x, y, heading)):
             return "the state's pose is not finite"
-        stamps, poses = self._stamps, self._poses
-        if stamps and stamp_ns <= stamps[-1]:
-            if stamp_ns == stamps[-1]:
-                poses[-1] = (x, y, heading)
-                return ''
+        stamps, poses, pose = self._stamps, self._poses, (x, y, heading)
+        if now_ns is not None:
+            if self._clock_ns is not None and now_ns < self._clock_ns and stamps:
+                stamps.clear()
+                poses.clear()
+                self.clears += 1
+            self._clock_ns = now_ns
+        if not stamps or stamp_ns > stamps[-1]:  # the common case: the newest
+            if len(stamps) == stamps.maxlen:
+                stamps.popleft()
+                poses.popleft()
+            stamps.append(stamp_ns)
+            poses.append(pose)
+            horizon = stamp_ns - self.cache_ns
+            while stamps[0] < horizon:
+                stamps.popleft()
+                poses.popleft()
+            return ''
+        if stamp_ns < stamps[-1] - self.cache_ns:  # the clock went back
             stamps.clear()
             poses.clear()
             self.clears += 1
-        stamps.append(stamp_ns)
-        poses.append((x, y, heading))
-        horizon = stamp_ns - self.cache_ns
-        while stamps[0] < horizon:
+            stamps.append(stamp_ns)
+            poses.append(pose)
+            return ''
+        at = bisect.bisect_left(stamps, stamp_ns)
+        if stamps[at] == stamp_ns:
+            poses[at] = pose
+            return ''
+        if len(stamps) == stamps.maxlen:  # full: the oldest makes room, unless this is older
+            if at == 0:
+                return ''
             stamps.popleft()
             poses.popleft()
+            at -= 1
+        stamps.insert(at, stamp_ns)
+        poses.insert(at, pose)
         return ''
 
     def at(self, stamp_ns: int, *, tolerance_ns: int) -> tuple[float, float, float] | str:

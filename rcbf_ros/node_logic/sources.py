@@ -227,9 +227,11 @@ class ObservationSources:
         counts['transforms_refused'] += len(refused)
         return refusals_line(refused)
 
-    def note_state(self, state: np.ndarray, *, stamp_ns: int) -> str:
+    def note_state(self, state: np.ndarray, *, stamp_ns: int, now_ns: int | None = None
+                   ) -> str:
         """Keep the robot's pose in ``state`` (position and heading) at ``stamp_ns``: the
-        state's header stamp, or its receipt on the clock the sources' stamps are aged on.
+        state's header stamp, or its receipt on the clock the sources' stamps are aged on
+        (``now_ns``, that clock at the receipt: its going back clears the poses kept).
         '' when kept, else why not (no heading in the state, a pose that is not finite).
         Never raises."""
         config = self.config
@@ -238,7 +240,7 @@ class ObservationSources:
         try:
             i, j = config.position_indices
             return self.poses.add(int(stamp_ns), float(state[i]), float(state[j]),
-                                  float(state[config.heading_index]))
+                                  float(state[config.heading_index]), now_ns=now_ns)
         except Exception as exc:  # a state of the wrong length: the decision says why
             return f'pose not kept: {type(exc).__name__}: {" ".join(str(exc).split())}'[:200]
 

@@ -264,7 +264,7 @@ class SafetyFilterNode(Node):
                 return result
             # an obstacles message's set (rebuilt here when the parameters changed meanwhile)
             # is paced by its worker: never refused for the budget, charged all the same
-            started = (self._build_budget.clock() if self._change_source
+            started = (self._build_budget.work_clock() if self._change_source
                        else self._build_budget.admit())
             if started is None:  # a stream of sets: each build holds the answers back
                 raise _OverBudget(f'{_names(parameters)}: not set, '

@@ -28,8 +28,12 @@ class RunRecorder:
     def __init__(self, directory: Path, report: Callable[[str], None] | None = None) -> None:
         from rcbf_ros.bag.writer import BagWriter
         self.writer = BagWriter(directory)
-        for name, type_name in self.TOPICS.items():
-            self.writer.add_topic(name, type_name)
+        try:
+            for name, type_name in self.TOPICS.items():
+                self.writer.add_topic(name, type_name)
+        except BaseException:  # Ctrl-C among the topics too: the bag is closed, not left open
+            self.writer.close()
+            raise
         self.t_ns = 0
         self.report = report or (lambda line: print(line, file=sys.stderr, flush=True))
         """Where the line about a message left out goes (once per topic)."""

@@ -110,3 +110,32 @@ def test_a_sigint_the_process_ignores_stays_ignored_and_the_handlers_come_back()
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+def test_a_count_left_behind_does_not_hold_the_next_blocks_signals():
+    interrupts.held.depth = 3  # as an interrupt between the count and a section's end leaves
+    try:
+        with interrupts.interrupts_raise(signal.SIGINT):
+            with pytest.raises(KeyboardInterrupt):
+                interrupts.on_interrupt(signal.SIGINT, None)
+    finally:
+        interrupts.held.depth, interrupts.held.pending = 0, None
+
+
+def test_an_interrupt_while_a_run_s_bag_registers_its_topics_closes_the_bag(tmp_path,
+                                                                            monkeypatch):
+    from rcbf_ros.bag import bag_info, BagWriter
+    from rcbf_ros.training.recorder import RunRecorder
+    calls = []
+    add_topic = BagWriter.add_topic
+
+    def interrupted(self, *args, **kwargs):
+        calls.append(args[0])
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return add_topic(self, *args, **kwargs)
+    monkeypatch.setattr(BagWriter, 'add_topic', interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        RunRecorder(tmp_path / 'bag')
+    assert (tmp_path / 'bag' / 'metadata.yaml').is_file()  # closed: footer and metadata
+    assert sorted(bag_info(tmp_path / 'bag', allow_cut_short=False).topics) == sorted(calls[:2])

@@ -48,7 +48,7 @@ def test_a_request_of_many_sets_builds_within_the_share_and_refuses_the_rest(nod
     the filter in force is the one of the last entry built, and once the budget has filled
     again a set is built."""
     clock = FakeClock()
-    node._build_budget.clock = clock
+    node._build_budget.clock = node._build_budget.work_clock = clock
     built: list[float] = []
     build = node._build
 
@@ -79,7 +79,7 @@ def test_a_request_of_many_sets_builds_within_the_share_and_refuses_the_rest(nod
 def test_a_set_that_changes_nothing_costs_no_budget(node) -> None:
     """Setting the values in force builds nothing (a params file loaded again)."""
     clock = FakeClock()
-    node._build_budget.clock = clock
+    node._build_budget.clock = node._build_budget.work_clock = clock
     alpha = node.get_parameter('alpha').value
     node._build_budget.admit()
     node._build_budget.charge(clock.ns - 10**9)  # spent: in debt by most of a second
@@ -91,7 +91,7 @@ def test_an_obstacles_message_built_on_the_executor_is_never_refused_for_the_bud
     """An obstacles message's set, built again on the executor because the parameters changed
     while its worker built it, is paced by the worker: taken with the budget spent."""
     clock = FakeClock()
-    node._build_budget.clock = clock
+    node._build_budget.clock = node._build_budget.work_clock = clock
     node._build_budget.admit()
     node._build_budget.charge(clock.ns - 10**9)
     assert not node.set_parameters([Parameter('alpha', value=7.0)])[0].successful

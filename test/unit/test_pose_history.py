@@ -80,3 +80,28 @@ def test_any_states_and_stamp_give_a_pose_between_its_neighbours_or_one_line(
     assert min(xs) - 1e-6 <= out[0] <= max(xs) + 1e-6
     assert min(ys) - 1e-6 <= out[1] <= max(ys) + 1e-6
     assert all(math.isfinite(v) for v in out)
+
+
+def test_states_out_of_order_go_in_their_place_and_only_the_clock_going_back_clears():
+    """Odometry stamps that jitter by a few ms keep every pose; a receiver's clock that goes
+    back (a simulation restarted) clears them."""
+    poses = PoseHistory()
+    for k, (stamp, x) in enumerate(((10, 1.0), (30, 3.0), (20, 2.0), (40, 4.0), (25, 2.5))):
+        assert poses.add(stamp * 1_000_000, x, 0.0, 0.0, now_ns=50_000_000 + k) == ''
+    assert len(poses) == 5 and poses.clears == 0
+    assert poses.at(15_000_000, tolerance_ns=0) == pytest.approx((1.5, 0.0, 0.0))
+    assert poses.at(27_500_000, tolerance_ns=0) == pytest.approx((2.75, 0.0, 0.0))
+    poses.add(45_000_000, 5.0, 0.0, 0.0, now_ns=50_000_000)  # the clock went back
+    assert len(poses) == 1 and poses.clears == 1
+
+
+def test_a_full_history_makes_room_with_its_oldest_pose():
+    poses = PoseHistory(max_poses=3)
+    for stamp in (10, 20, 30):
+        poses.add(stamp, float(stamp), 0.0, 0.0)
+    poses.add(15, 15.0, 0.0, 0.0)  # between: the oldest (10) leaves
+    assert poses.at(15, tolerance_ns=0) == (15.0, 0.0, 0.0)
+    assert poses.at(10, tolerance_ns=0) == 'the oldest state kept is 0.000 s newer than the ' \
+        'message (tolerance 0.000 s)'
+    poses.add(5, 5.0, 0.0, 0.0)  # older than every pose of a full history: not kept
+    assert len(poses) == 3 and poses.at(15, tolerance_ns=0) == (15.0, 0.0, 0.0)

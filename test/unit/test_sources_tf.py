@@ -335,3 +335,38 @@ def test_the_answer_rules_give_the_sources_each_states_pose_at_its_stamp():
     assert sources.poses.at(6 * S, tolerance_ns=0) == (2.0, 2.0, 0.5)
     assert sources.poses.at(7 * S, tolerance_ns=0) == (3.0, 2.0, 0.5)
     assert len(sources.poses) == 2
+
+
+@pytest.mark.parametrize('stamp', [0, 200 * S])
+def test_an_odometry_stamp_unset_or_on_another_clock_is_taken_at_its_receipt(stamp):
+    """A driver leaving the stamp at 0, or a base stamping on its boot clock: the pose is
+    kept at the state's receipt on the node's clock, as the scans' stamps are aged on it."""
+    from rcbf_ros.node_logic.answer_rules import AnswerRules
+    _, sources = _sources()
+    rules = AnswerRules(sources, stamp_clock=lambda: 10 * S)
+    rules.latest_state = logic.StateSample(received_ns=1, state=np.array([1.0, 2.0, 0.5]),
+                                           stamp_ns=stamp)
+    assert sources.poses.at(10 * S, tolerance_ns=0) == (1.0, 2.0, 0.5)
+
+
+def test_a_proposals_own_state_is_a_pose_only_while_no_state_message_came():
+    from rcbf_ros.node_logic.answer_rules import AnswerRules
+    from rcbf_ros.node_logic.filter_edge import ProposalSample
+    _, sources = _sources()
+    active = logic.build_active_filter(params=_PARAMS)
+    clock = [10 * S]
+    rules = AnswerRules(sources, stamp_clock=lambda: clock[0])
+
+    def propose(x):
+        sample = ProposalSample(proposal=logic.Proposal(u=np.array([0.5, 0.0]),
+                                                        state=np.array([x, 0.0, 0.0])))
+        rules.propose(sample, now_ns=clock[0], active=active)
+    propose(1.0)
+    assert sources.poses.at(10 * S, tolerance_ns=0) == (1.0, 0.0, 0.0)
+    clock[0] = 11 * S
+    rules.latest_state = logic.StateSample(received_ns=2, state=np.array([2.0, 0.0, 0.0]),
+                                           stamp_ns=11 * S)
+    clock[0] = 12 * S
+    propose(9.0)  # a state message came: the proposer's state (older than 12 s) is no pose
+    assert len(sources.poses) == 2
+    assert sources.poses.at(12 * S, tolerance_ns=S) == (2.0, 0.0, 0.0)

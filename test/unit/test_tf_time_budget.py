@@ -8,6 +8,7 @@ counted. The clock here is the test's own: no test is timed.
 from __future__ import annotations
 
 from pathlib import Path
+import time
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -91,7 +92,7 @@ def test_a_tf_flood_is_read_within_its_share_and_the_rest_refused_unread(node) -
     rest refused unread and counted in tf.refused, with one WARN; once the budget has filled
     again a message is read and its transform kept. /tf_static is always read."""
     clock = FakeClock()
-    node._tf_budget.clock = clock
+    node._tf_budget.clock = node._tf_budget.work_clock = clock
     reads: list[bool] = []
     read_tf = node._sources.read_tf
 
@@ -162,3 +163,19 @@ def test_the_tf2_listener_reads_within_the_same_budget(monkeypatch: pytest.Monke
     clock.ns += int((budget.burst_ns + 30 * MS) / budget.share) + 1
     tf2.listener.callback(object())
     assert taken == [False, True, False]
+
+
+def test_a_reading_held_up_by_the_machine_is_charged_its_work_not_its_wait():
+    """A /tf reading of 1 ms of CPU that a garbage collection or the scheduler stretched to
+    150 ms: the robot's next transform is still read."""
+    wall, work = [0], [0]
+    budget = TimeBudget(share=0.25, burst_s=0.02, clock=lambda: wall[0],
+                        work_clock=lambda: work[0])
+    started = budget.admit()
+    assert started is not None
+    wall[0] += 150_000_000
+    work[0] += 1_000_000
+    budget.charge(started)
+    wall[0] += 10_000_000  # the next odometry transform, 10 ms later
+    assert budget.admit() is not None
+    assert TimeBudget(share=0.25, burst_s=0.02).work_clock is time.thread_time_ns
