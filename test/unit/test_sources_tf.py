@@ -57,6 +57,17 @@ def _odom(sources, stamp_ns, x, y, yaw):
         rotation=yaw_quaternion(yaw))), static=False)
 
 
+def _decide_at_the_origin(config, sources, *, stamp_now_ns):
+    """The decision on 2 m/s ahead at the state 0 with the sources' points."""
+    active = logic.build_safety_filter(config=config,
+                                       settings=logic.node_settings_from_params({}))
+    return logic.decide(
+        safety_filter=active, proposal=logic.Proposal(u=np.array([2.0, 0.0])),
+        latest_state=logic.StateSample(received_ns=0, state=np.zeros(3), error=''), now_ns=0,
+        max_state_age_s=1.0,
+        sense=lambda x: sources.sense(active, x, now_ns=0, stamp_now_ns=stamp_now_ns))
+
+
 def _expected(beam_ranges, angles, pose):
     """Closed form: beam (r, a) of the laser, mounted at MOUNT on a base at pose (x, y, yaw)."""
     (mx, my, _), mount_yaw = MOUNT
@@ -125,13 +136,7 @@ def test_a_stale_transform_gives_the_fail_safe_naming_both_frames(odom_stamp, wo
     reason = sources.points(np.zeros(3), now_ns=0, stamp_now_ns=10 * S)
     assert isinstance(reason, str) and words in reason, reason
     assert sources.counts()['front']['untransformed'] == 1
-    active = logic.build_safety_filter(config=config,
-                                       settings=logic.node_settings_from_params({}))
-    decision = logic.decide(
-        safety_filter=active, proposal=logic.Proposal(u=np.array([2.0, 0.0])),
-        latest_state=logic.StateSample(received_ns=0, state=np.zeros(3), error=''), now_ns=0,
-        max_state_age_s=1.0,
-        sense=lambda x: sources.sense(active, x, now_ns=0, stamp_now_ns=10 * S))
+    decision = _decide_at_the_origin(config, sources, stamp_now_ns=10 * S)
     assert decision.fail_safe and words in decision.reason
     assert filter_edge.status_code(decision) == STATUS_CODES['source unusable']
 
@@ -311,13 +316,7 @@ def test_without_a_pose_near_the_scans_stamp_the_fail_safe_says_so(state_stamp, 
         "source front: no pose of the robot ('base_link' in 'odom') at the message's stamp "
         'from the states: ' + words), reason
     assert config.sources.transform_tolerance == 0.1
-    active = logic.build_safety_filter(config=config,
-                                       settings=logic.node_settings_from_params({}))
-    decision = logic.decide(
-        safety_filter=active, proposal=logic.Proposal(u=np.array([2.0, 0.0])),
-        latest_state=logic.StateSample(received_ns=0, state=np.zeros(3), error=''), now_ns=0,
-        max_state_age_s=1.0,
-        sense=lambda x: sources.sense(active, x, now_ns=0, stamp_now_ns=10 * S + S // 2))
+    decision = _decide_at_the_origin(config, sources, stamp_now_ns=10 * S + S // 2)
     assert decision.fail_safe and decision.reason == reason
 
 
