@@ -74,9 +74,9 @@ class AnswerRules:
         also gives the sources the robot's pose at its stamp
         (:meth:`~rcbf_ros.node_logic.sources.ObservationSources.note_state`): its header
         stamp, or, for a state without one, its receipt on :attr:`stamp_clock` (the sources'
-        stamps are aged on it). A proposal's own state is given the same way, at its
-        receipt, as long as no state message came (:meth:`propose`): a proposer's state is
-        older than its receipt by the proposer's lag."""
+        stamps are aged on it). A proposal's own state, which the decision takes as the
+        robot's at the proposal's receipt, is given at that receipt (:meth:`propose`), in
+        its place among the state messages' poses."""
         return self._latest_state
 
     @latest_state.setter
@@ -117,8 +117,7 @@ class AnswerRules:
             return None
         self.held = HeldProposal(sample=sample, received_ns=now_ns)
         proposal = sample.proposal
-        if (proposal is not None and proposal.state is not None
-                and self._latest_state is None):  # the proposer's state, while the only one
+        if proposal is not None and proposal.state is not None:  # the state decided on
             self._note_pose(proposal.state, None, now_ns)
         return self._answer(decide_held(held=self.held, again=False,
                                         safety_filter=active.safety_filter,

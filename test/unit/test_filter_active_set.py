@@ -53,10 +53,11 @@ def enumerated_solution(g_matrix: np.ndarray, upper: np.ndarray, weights: np.nda
         with np.errstate(all='ignore'):  # the rank-deficient sets, left out below
             coordinates = np.einsum('csk,cs->ck', u_matrix, bounds[subsets]) / singular
             candidates = np.einsum('ckn,ck->cn', v_rows, coordinates)
-            # each (unit) row met to the round-off of its own terms: the sum of
-            # |row_k y_k|, not |row| |y|, which a large coordinate the row hardly weighs
-            # (a costly slack) would make far wider than the row's own round-off
-            tolerance = 1e-9 * (1.0 + np.abs(bounds) + np.abs(candidates) @ np.abs(rows).T)
+            # each (unit) row met to the round-off of its own terms (the sum of |row_k y_k|),
+            # and of the candidate's (the SVD's, relative to |y|): |y| itself at 1e-9 would
+            # let a large coordinate the row hardly weighs (a costly slack) cover a real miss
+            tolerance = (1e-9 * (1.0 + np.abs(bounds) + np.abs(candidates) @ np.abs(rows).T)
+                         + 1e-12 * np.linalg.norm(candidates, axis=1)[:, None])
             feasible = full_rank & np.all(candidates @ rows.T - bounds <= tolerance, axis=1)
         if feasible.any():
             with np.errstate(all='ignore'):
@@ -258,6 +259,9 @@ FILTERS = {system: shipped_filter(system) for system in ('unicycle', 'car_follow
 # A costly slack far larger than the rows: the oracle once took a point 2.5e8 outside row 3
 @example(('unicycle', np.array([[0.0, 0.5], [0.0, 0.5], [0.0, 0.0], [0.0, -1e8], [0.0, 0.0]]),
           np.array([0.0, -580171.875, 1e8, 0.0, 0.0]), np.array([0.0, 0.0])))
+# and, with only the rows' own terms, found no point meeting a row that its SVD met to |y| eps
+@example(('car_following', np.array([[1.72934e5], [-1.192092896e-07]]),
+          np.array([0.0, -16387.0]), np.array([0.0])))
 def test_hostile_qp_data_never_break_the_row_check_and_match_enumeration(drawn):
     """Whatever QP data reach the solve, the filter's answer meets every row to the slack it
     reports and lies within the limits (or is the fail-safe), and an answer of the active-set

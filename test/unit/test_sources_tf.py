@@ -348,7 +348,9 @@ def test_an_odometry_stamp_unset_or_on_another_clock_is_taken_at_its_receipt(sta
     assert sources.poses.at(10 * S, tolerance_ns=0) == (1.0, 2.0, 0.5)
 
 
-def test_a_proposals_own_state_is_a_pose_only_while_no_state_message_came():
+def test_a_proposals_own_state_is_a_pose_at_its_receipt_among_the_state_messages():
+    """The decision takes a proposal's own state as the robot's at the proposal's receipt:
+    that is where its pose goes, in order beside the poses of the state messages."""
     from rcbf_ros.node_logic.answer_rules import AnswerRules
     from rcbf_ros.node_logic.filter_edge import ProposalSample
     _, sources = _sources()
@@ -361,11 +363,9 @@ def test_a_proposals_own_state_is_a_pose_only_while_no_state_message_came():
                                                         state=np.array([x, 0.0, 0.0])))
         rules.propose(sample, now_ns=clock[0], active=active)
     propose(1.0)
-    assert sources.poses.at(10 * S, tolerance_ns=0) == (1.0, 0.0, 0.0)
-    clock[0] = 11 * S
+    clock[0] = 12 * S
     rules.latest_state = logic.StateSample(received_ns=2, state=np.array([2.0, 0.0, 0.0]),
                                            stamp_ns=11 * S)
-    clock[0] = 12 * S
-    propose(9.0)  # a state message came: the proposer's state (older than 12 s) is no pose
-    assert len(sources.poses) == 2
-    assert sources.poses.at(12 * S, tolerance_ns=S) == (2.0, 0.0, 0.0)
+    propose(3.0)
+    assert len(sources.poses) == 3 and sources.poses.clears == 0
+    assert [sources.poses.at(k * S, tolerance_ns=0)[0] for k in (10, 11, 12)] == [1.0, 2.0, 3.0]
