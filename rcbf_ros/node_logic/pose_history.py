@@ -19,7 +19,7 @@ import bisect
 from collections import deque
 import math
 
-from rcbf_ros.node_logic.tf_buffer import DEFAULT_CACHE_S
+from rcbf_ros.node_logic.tf_buffer import DEFAULT_CACHE_S, seconds_text
 
 MAX_POSES = 4096
 """The most poses kept: 10 s of states at 400 Hz."""
@@ -58,29 +58,21 @@ class PoseHistory:
         if not all(math.isfinite(v) for v in (x, y, heading)):
             return "the state's pose is not finite"
         stamps, poses, pose = self._stamps, self._poses, (x, y, heading)
+        went_back = now_ns is not None and self._clock_ns is not None and now_ns < self._clock_ns
         if now_ns is not None:
-            if self._clock_ns is not None and now_ns < self._clock_ns and stamps:
-                stamps.clear()
-                poses.clear()
-                self.clears += 1
             self._clock_ns = now_ns
-        if not stamps or stamp_ns > stamps[-1]:  # the common case: the newest
-            if len(stamps) == stamps.maxlen:
-                stamps.popleft()
-                poses.popleft()
+        if stamps and (went_back or stamp_ns < stamps[-1] - self.cache_ns):
+            stamps.clear()
+            poses.clear()
+            self.clears += 1
+        # the common case: the newest (a full history drops its oldest: the deques' maxlen)
+        if not stamps or stamp_ns > stamps[-1]:
             stamps.append(stamp_ns)
             poses.append(pose)
             horizon = stamp_ns - self.cache_ns
             while stamps[0] < horizon:
                 stamps.popleft()
                 poses.popleft()
-            return ''
-        if stamp_ns < stamps[-1] - self.cache_ns:  # the clock went back
-            stamps.clear()
-            poses.clear()
-            self.clears += 1
-            stamps.append(stamp_ns)
-            poses.append(pose)
             return ''
         at = bisect.bisect_left(stamps, stamp_ns)
         if stamps[at] == stamp_ns:
@@ -106,20 +98,16 @@ class PoseHistory:
         if stamp_ns >= stamps[-1]:
             if stamp_ns - stamps[-1] <= tolerance_ns:
                 return poses[-1]
-            return (f'the newest state is {_seconds(stamp_ns - stamps[-1])} older than the '
-                    f'message (tolerance {_seconds(tolerance_ns)})')
+            return (f'the newest state is {seconds_text(stamp_ns - stamps[-1])} older than the '
+                    f'message (tolerance {seconds_text(tolerance_ns)})')
         if stamp_ns <= stamps[0]:
             if stamps[0] - stamp_ns <= tolerance_ns:
                 return poses[0]
-            return (f'the oldest state kept is {_seconds(stamps[0] - stamp_ns)} newer than '
-                    f'the message (tolerance {_seconds(tolerance_ns)})')
+            return (f'the oldest state kept is {seconds_text(stamps[0] - stamp_ns)} newer than '
+                    f'the message (tolerance {seconds_text(tolerance_ns)})')
         after = bisect.bisect_right(stamps, stamp_ns)
         t0, t1 = stamps[after - 1], stamps[after]
         (x0, y0, h0), (x1, y1, h1) = poses[after - 1], poses[after]
         s = (stamp_ns - t0) / (t1 - t0)
         turn = math.remainder(h1 - h0, math.tau)  # the shorter arc
         return x0 + s * (x1 - x0), y0 + s * (y1 - y0), h0 + s * turn
-
-
-def _seconds(ns: int) -> str:
-    return f'{ns / _S:.3f} s'

@@ -173,7 +173,8 @@ def interpolate(a: Rigid, b: Rigid, s: float) -> Rigid:
                   ta[2] + s * (tb[2] - ta[2])))
 
 
-def _seconds(ns: int) -> str:
+def seconds_text(ns: int) -> str:
+    """A duration or time in ns as the refusals write it: seconds to the millisecond."""
     return f'{ns / _S:.3f} s'
 
 
@@ -229,11 +230,11 @@ class StampRules:
         now = self._tick(now_ns)
         if not static:
             if now is not None and stamp > now + self.cache_ns:
-                return (f'{names}: stamp {_seconds(stamp)} is more than the cache '
-                        f'({_seconds(self.cache_ns)}) after the clock ({_seconds(now)})')
+                return (f'{names}: stamp {seconds_text(stamp)} is more than the cache '
+                        f'({seconds_text(self.cache_ns)}) after the clock ({seconds_text(now)})')
             if now is not None and stamp < now - self.cache_ns:
-                return (f'{names}: stamp {_seconds(stamp)} is older than the cache '
-                        f'({_seconds(self.cache_ns)} behind the clock, {_seconds(now)})')
+                return (f'{names}: stamp {seconds_text(stamp)} is older than the cache '
+                        f'({seconds_text(self.cache_ns)} behind the clock, {seconds_text(now)})')
             if now is None and self._data_ns is not None and \
                     stamp < self._data_ns - self.cache_ns:
                 self._clear()  # the data's time went back by more than the cache
@@ -337,9 +338,9 @@ class TransformBuffer(StampRules):
         link = self._links.get(child)
         replaced = link is not None and (static or link.static or link.parent != parent)
         if link is not None and not replaced and stamp < link.stamps[-1] - self.cache_ns:
-            return (f'{names}: stamp {_seconds(stamp)} is older '
-                    f'than the cache ({_seconds(self.cache_ns)} behind the newest, '
-                    f'{_seconds(link.stamps[-1])})')
+            return (f'{names}: stamp {seconds_text(stamp)} is older '
+                    f'than the cache ({seconds_text(self.cache_ns)} behind the newest, '
+                    f'{seconds_text(link.stamps[-1])})')
         freed = len(link.stamps) if replaced else 0  # type: ignore[union-attr]
         if self._samples - freed + 1 > self.max_total_samples and self._expire(due=True):
             link = self._links.get(child)  # expiry may have taken the link
@@ -457,7 +458,8 @@ class TransformBuffer(StampRules):
             for frame, link in zip(path, links):
                 pose = self._sample(link, frame, time_ns, tolerance_ns)
                 if isinstance(pose, str):
-                    return NoTransform(f'{names} at {_seconds(time_ns)}: {pose}', EXTRAPOLATION)
+                    return NoTransform(f'{names} at {seconds_text(time_ns)}: {pose}',
+                                       EXTRAPOLATION)
                 up = pose.compose(up)
             ups.append(up)
         source_up, target_up = ups
@@ -488,15 +490,15 @@ class TransformBuffer(StampRules):
         if time_ns >= stamps[-1]:
             if time_ns - stamps[-1] <= tolerance_ns:
                 return poses[-1]
-            return (f'{what} too old: its newest is at {_seconds(stamps[-1])}, '
-                    f'{_seconds(time_ns - stamps[-1])} before (tolerance '
-                    f'{_seconds(tolerance_ns)})')
+            return (f'{what} too old: its newest is at {seconds_text(stamps[-1])}, '
+                    f'{seconds_text(time_ns - stamps[-1])} before (tolerance '
+                    f'{seconds_text(tolerance_ns)})')
         if time_ns <= stamps[0]:
             if stamps[0] - time_ns <= tolerance_ns:
                 return poses[0]
-            return (f'{what} too new: its oldest is at {_seconds(stamps[0])}, '
-                    f'{_seconds(stamps[0] - time_ns)} after (tolerance '
-                    f'{_seconds(tolerance_ns)})')
+            return (f'{what} too new: its oldest is at {seconds_text(stamps[0])}, '
+                    f'{seconds_text(stamps[0] - time_ns)} after (tolerance '
+                    f'{seconds_text(tolerance_ns)})')
         after = bisect.bisect_right(stamps, time_ns)
         before = after - 1
         if stamps[before] == time_ns:

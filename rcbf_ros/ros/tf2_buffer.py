@@ -38,6 +38,7 @@ from rcbf_ros.node_logic.tf_buffer import (
     MAX_TOTAL_SAMPLES,
     NoTransform,
     Rigid,
+    seconds_text,
     StampRules,
 )
 from rcbf_ros.node_logic.time_budget import TimeBudget
@@ -65,10 +66,6 @@ class Nanoseconds(NamedTuple):
     """A time as tf2_py reads one (an object with ``nanoseconds``): no rclpy Time needed."""
 
     nanoseconds: int
-
-
-def _seconds(ns: int) -> str:
-    return f'{ns / _S:.3f} s'
 
 
 def _text(exc: BaseException) -> str:
@@ -129,13 +126,13 @@ class Tf2Lookup:
         if isinstance(latest, _Refused):  # two trees (tf2 named a link's data first), ...
             return NoTransform(f'{names}: tf2: {latest.text}', latest.kind)
         pose, newest_ns = latest
-        at = f'{names} at {_seconds(time_ns)}'
-        tolerance = f'(transform_tolerance {_seconds(tolerance_ns)})'
+        at = f'{names} at {seconds_text(time_ns)}'
+        tolerance = f'(transform_tolerance {seconds_text(tolerance_ns)})'
         if time_ns > newest_ns:
             if time_ns - newest_ns <= tolerance_ns:
                 return pose
-            return NoTransform(f'{at}: too old: the newest is at {_seconds(newest_ns)}, '
-                               f'{_seconds(time_ns - newest_ns)} before {tolerance}',
+            return NoTransform(f'{at}: too old: the newest is at {seconds_text(newest_ns)}, '
+                               f'{seconds_text(time_ns - newest_ns)} before {tolerance}',
                                EXTRAPOLATION)
         asked = None
         for _ in range(MAX_RETRIES):  # before a link's oldest sample: hold it, if near enough
@@ -144,8 +141,8 @@ class Tf2Lookup:
                 break
             oldest_ns = round(float(match.group(1)) * 1e6) * 1000
             if not oldest_ns - time_ns <= tolerance_ns:
-                return NoTransform(f'{at}: too new: a link starts at {_seconds(oldest_ns)}, '
-                                   f'{_seconds(oldest_ns - time_ns)} after {tolerance} '
+                return NoTransform(f'{at}: too new: a link starts at {seconds_text(oldest_ns)}, '
+                                   f'{seconds_text(oldest_ns - time_ns)} after {tolerance} '
                                    f'(tf2: {found.text})', EXTRAPOLATION)
             # the printed time, or just after it when that one is refused again (rounded)
             ask = min(oldest_ns if asked is None or oldest_ns > asked
@@ -400,12 +397,13 @@ class Tf2Feed(StampRules):
         stamps = self._stamps.get(child, [])
         if stamps:
             if stamp < stamps[-1] - self.cache_ns:
-                return (f'{names}: stamp {_seconds(stamp)} is older than the cache '
-                        f'({_seconds(self.cache_ns)} behind the newest, {_seconds(stamps[-1])})')
+                return (f'{names}: stamp {seconds_text(stamp)} is older than the cache '
+                        f'({seconds_text(self.cache_ns)} behind the newest, '
+                        f'{seconds_text(stamps[-1])})')
         kept = len(stamps) - bisect.bisect_left(stamps, stamp - self.cache_ns)
         if kept >= self.max_samples:
             return (f'{names}: refused, the link holds {kept} samples within '
-                    f'{_seconds(self.cache_ns)} (at most {self.max_samples})')
+                    f'{seconds_text(self.cache_ns)} (at most {self.max_samples})')
         def freed() -> int:  # what tf2 drops of the link as it takes the sample
             held = self._stamps.get(child)
             return bisect.bisect_left(held, held[-1] - self.cache_ns) if held else 0
