@@ -229,7 +229,7 @@ def decide(safety_filter: object, sources: object, data: bytes, state: list,
     """One decision: the message read, its points into the filter, the filter's answer
     ('' and the result, or the fail-safe's reason and None)."""
     reason = sources.read('sensor', data, received_ns=0)
-    reason = reason or sources.note_state(np.array(state), stamp_ns=STAMP_NS)
+    sources.note_state(np.array(state), stamp_ns=STAMP_NS)  # as the node: sense says why not
     reason = reason or sources.sense(safety_filter, np.array(state), now_ns=0,
                                      stamp_now_ns=STAMP_NS)
     return (reason, None) if reason else ('', safety_filter.filter(state, proposal, *BOX))
@@ -247,7 +247,7 @@ def measure(kind: str, size: int, voxel: float, number: int, seed: int = 0) -> d
                                                inputs[:20] + inputs):
         start = time.perf_counter()
         reason = sources.read('sensor', data, received_ns=0)
-        reason = reason or sources.note_state(np.array(state), stamp_ns=STAMP_NS)
+        sources.note_state(np.array(state), stamp_ns=STAMP_NS)
         reason = reason or sources.sense(safety_filter, np.array(state), now_ns=0,
                                          stamp_now_ns=STAMP_NS)
         if reason:

@@ -278,7 +278,7 @@ class ObservationSources:
                 source.counts['stale'] += 1
                 return (f'source {name}: latest message {age:.3f} s old > {name}.timeout_s '
                         f'{timeout:g}')
-            placed = self._placed(source, state)
+            placed = self._placed(source)
             if isinstance(placed, str):
                 source.counts['untransformed'] += 1
                 return f'source {name}: {placed}'
@@ -311,12 +311,11 @@ class ObservationSources:
         safety_filter.set_points(*out)
         return ''
 
-    def _placed(self, source: _Source, state: np.ndarray
-                ) -> tuple[np.ndarray, float, float] | str:
+    def _placed(self, source: _Source) -> tuple[np.ndarray, float, float] | str:
         """``source``'s points in the state's frame (module docstring: tf at the message's
-        stamp, else the robot's frame and the state's pose), how much wider (m) their circles
-        must be (:meth:`_widening`) and a bound on their distance from the robot where it
-        is known (:data:`_NEAR_REACH`; else inf), or why not (one line naming the frames)."""
+        stamp, else the robot's frame and its pose at that stamp), how much wider (m) their
+        circles must be (:meth:`_widening`) and a bound on their distance from the robot where
+        it is known (:data:`_NEAR_REACH`; else inf), or why not (one line naming the frames)."""
         config = self.config
         points, frame = source.points, source.frame_id
         assert points is not None
