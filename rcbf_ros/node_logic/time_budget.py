@@ -72,6 +72,20 @@ class TimeBudget:
         if self._at_ns is not None and now > self._at_ns:  # the reading's time is no refill
             self._at_ns = now
 
+    def read(self, reading: Callable[[], str], counts: dict[str, int]) -> str:
+        """``reading()`` (a message read: '' or why its content was refused) charged to the
+        budget; or, while the budget is spent, nothing read: counted in ``counts``
+        (``messages`` and ``refused``) and why (one line)."""
+        started = self.admit()
+        if started is None:
+            counts['messages'] += 1
+            counts['refused'] += 1
+            return f'unread, {self.refusal()}'
+        try:
+            return reading()
+        finally:
+            self.charge(started)
+
     def refusal(self) -> str:
         """Why a message is refused: one line naming the share and the burst."""
         return (f'the stream took more than its share of the executor '

@@ -536,20 +536,12 @@ class SafetyFilterNode(Node):
         now_ns = time.monotonic_ns()
         topic = '/tf_static' if static else '/tf'
         try:
-            started = None if static else self._tf_budget.admit()
-            if not static and started is None:
-                counts = self._sources.tf_counts  # type: ignore[union-attr]
-                counts['messages'] += 1
-                counts['refused'] += 1
-                self._log(logic.WARN, f'{topic} refused: unread, {self._tf_budget.refusal()}',
-                          now_ns)
-                return
-            try:
-                reason = self._sources.read_tf(  # type: ignore[union-attr]
-                    data, static=static, now_ns=self._clock.now().nanoseconds)
-            finally:
-                if started is not None:
-                    self._tf_budget.charge(started)
+            sources: Any = self._sources  # never None here: /tf is read only for sources
+
+            def reading() -> str:
+                return sources.read_tf(data, static=static,
+                                       now_ns=self._clock.now().nanoseconds)
+            reason = reading() if static else self._tf_budget.read(reading, sources.tf_counts)
             if reason:
                 self._log(logic.WARN, f'{topic} refused: {reason}', now_ns)
         except Exception as exc:  # a defect, not an input

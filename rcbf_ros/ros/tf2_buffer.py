@@ -463,18 +463,9 @@ def start_tf2(node: Any, on_message: Callable[[str, str], None], *, qos: Any,
         """tf2_ros's listener, each message through the feed (at the node's clock)."""
 
         def callback(self, data: Any) -> None:
-            started = None if budget is None else budget.admit()
-            if budget is not None and started is None:
-                feed.counts['messages'] += 1
-                feed.counts['refused'] += 1
-                on_message('/tf', f'unread, {budget.refusal()}')
-                return
-            try:
-                reason = feed.take(data, static=False, now_ns=clock.now().nanoseconds)
-            finally:
-                if started is not None:
-                    budget.charge(started)  # type: ignore[union-attr]
-            on_message('/tf', reason)
+            def reading() -> str:
+                return feed.take(data, static=False, now_ns=clock.now().nanoseconds)
+            on_message('/tf', reading() if budget is None else budget.read(reading, feed.counts))
 
         def static_callback(self, data: Any) -> None:
             on_message('/tf_static', feed.take(data, static=True,
