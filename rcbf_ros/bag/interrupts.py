@@ -20,7 +20,7 @@ import threading
 from typing import Any
 
 _MAIN = threading.main_thread().ident
-get_ident = threading.get_ident
+_get_ident = threading.get_ident
 
 
 class _Held:
@@ -33,11 +33,11 @@ class _Held:
         """The signal that arrived inside them, raised at the end of the outermost."""
 
     def __enter__(self) -> None:
-        if get_ident() == _MAIN:
+        if _get_ident() == _MAIN:
             self.depth += 1
 
     def __exit__(self, *exc: object) -> None:
-        if get_ident() != _MAIN:
+        if _get_ident() != _MAIN:
             return
         self.depth -= 1
         if self.depth == 0 and self.pending is not None:
@@ -64,7 +64,7 @@ def interrupts_raise(*signums: int) -> Iterator[None]:
     through :func:`on_interrupt`; the previous handlers come back afterwards. A SIGINT the
     process was started ignoring (a background job of a script) stays ignored, as Python
     leaves it. Outside the main thread (where handlers cannot be set) nothing changes."""
-    if threading.current_thread() is not threading.main_thread():
+    if _get_ident() != _MAIN:
         yield
         return
     # No section is open here; a count left behind by an interrupt that cut one short under
