@@ -27,6 +27,7 @@ from rcbf_ros.launch.table import (
     launch_setup,
     LAUNCHES,
     LaunchSetup,
+    MAX_TIMEOUT_S,
     PARAMS_FILE_ARGUMENT,
     parse_launch_arguments,
     resolve_entry,
@@ -376,13 +377,14 @@ def _parse_override(text: str) -> tuple[str, str, Any]:
 
 
 def _seconds(text: str) -> float:
-    """A timeout option: a number of seconds > 0."""
+    """A timeout option: a number of seconds, > 0 and at most :data:`MAX_TIMEOUT_S`."""
     try:
         value = float(text)
     except ValueError:
         value = float('nan')
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f'expected seconds > 0, got {text!r}')
+    if not 0 < value <= MAX_TIMEOUT_S:
+        raise argparse.ArgumentTypeError(
+            f'expected seconds > 0 and <= {MAX_TIMEOUT_S:g}, got {text!r}')
     return value
 
 

@@ -22,6 +22,10 @@ PACKAGE = 'rcbf_ros'
 PARAMS_FILE_ARGUMENT = 'params_file'
 """The launch argument every launch takes: the params file of every node (default: the
 packaged ``config/<LaunchSetup.config>``)."""
+MAX_TIMEOUT_S = 3600.0
+"""The longest escalation timeout (SIGINT to SIGTERM, SIGTERM to SIGKILL) a launch takes: a
+child that ignores its signals is still stopped within the hour; an infinite timeout would
+leave it running for good."""
 
 
 @dataclass(frozen=True)
@@ -86,8 +90,9 @@ class NodeEntry:
     argument's value, read by :func:`respawn_delay`."""
 
     def __post_init__(self) -> None:
-        if not self.sigint_timeout_s > 0:
-            raise ValueError(f'{self.name}: sigint_timeout_s must be > 0, '
+        if not 0 < self.sigint_timeout_s <= MAX_TIMEOUT_S:
+            raise ValueError(f'{self.name}: sigint_timeout_s must be > 0 and <= '
+                             f'{MAX_TIMEOUT_S:g}, '
                              f'got {self.sigint_timeout_s}')
         if not isinstance(self.respawn, (bool, Argument)):
             raise ValueError(f'{self.name}: respawn must be a bool or an Argument, '

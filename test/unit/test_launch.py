@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import ast
 import io
+import math
 from pathlib import Path
 import signal
 import sys
@@ -70,8 +71,21 @@ def test_stop_limits_fit_what_each_node_does_on_exit():
         assert limits.get('simulator', 5.0) == limits['safety_filter'] == 5.0
         assert limits.get('recorder', 10.0) == 10.0
         assert limits.get('learner', 30.0) == 30.0
-    with pytest.raises(ValueError, match='sigint_timeout_s'):
-        NodeEntry(name='x', executable='x', module='x', sigint_timeout_s=0.0)
+    for bad in (0.0, -1.0, math.nan, math.inf, 3600.5):
+        with pytest.raises(ValueError, match='sigint_timeout_s'):
+            NodeEntry(name='x', executable='x', module='x', sigint_timeout_s=bad)
+
+
+@pytest.mark.parametrize('option', ['--sigint-timeout', '--sigterm-timeout'])
+@pytest.mark.parametrize('text', ['0', '-1', 'nan', 'inf', '1e300', '3600.5', 'soon'])
+def test_escalation_timeouts_are_finite_and_refused_in_one_line(capsys, option, text):
+    # an infinite (or a year's) timeout would leave a child that ignores its signals running
+    with pytest.raises(SystemExit) as stopped:
+        launch_local.main(['safety_filter', '--print', option, text])
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].endswith(f"expected seconds > 0 and <= 3600, got '{text}'"), err
+    assert launch_local.main(['safety_filter', '--print', option, '3600']) == 0
 
 
 def test_every_table_module_has_a_console_script_of_the_same_name():
