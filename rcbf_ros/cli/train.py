@@ -108,7 +108,8 @@ def settings_from_arguments(args: argparse.Namespace) -> TrainingSettings:
 def run_train(args: argparse.Namespace) -> int:
     """Run ``rcbf_ros train``: 0, 2 on bad arguments, output directory or checkpoint, 1 when a
     file of the run cannot be written (a full disk: the bag closed, the previous checkpoint
-    kept), 130 on Ctrl-C or SIGTERM (checkpoint, bag and plot written)."""
+    kept; also when Ctrl-C lands in the write that fails), 130 on Ctrl-C or SIGTERM (checkpoint,
+    bag and plot written)."""
     from rcbf_ros.bag.interrupts import interrupts_raise
     from rcbf_ros.training.build import check_config_file, RunSetupError
     from rcbf_ros.training.loop import check_out_dir, train

@@ -2,7 +2,11 @@
 :func:`rcbf_ros.bag.interrupts.interrupts_raise` a signal waits for the bag write it lands in."""
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
+import os
+from pathlib import Path
 import signal
 import subprocess
 import sys
@@ -139,3 +143,68 @@ def test_an_interrupt_while_a_run_s_bag_registers_its_topics_closes_the_bag(tmp_
         RunRecorder(tmp_path / 'bag')
     assert (tmp_path / 'bag' / 'metadata.yaml').is_file()  # closed: footer and metadata
     assert sorted(bag_info(tmp_path / 'bag', allow_cut_short=False).topics) == sorted(calls[:2])
+
+
+def _failing_write(fail_at: int):
+    """``os.pwrite`` that, at its ``fail_at``-th call, takes a SIGINT and then fails with ENOSPC
+    (a Ctrl-C landing in the write that meets a full disk)."""
+    import errno
+    import os
+    calls = [0]
+    pwrite = os.pwrite
+
+    def write(fd, data, offset):
+        calls[0] += 1
+        if calls[0] == fail_at:
+            os.kill(os.getpid(), signal.SIGINT)
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return pwrite(fd, data, offset)
+    return write
+
+
+def test_a_signal_held_by_a_write_that_fails_lets_the_error_out(tmp_path, monkeypatch):
+    from rcbf_ros.bag import BagWriter, BagWriterConfig
+    from rcbf_ros.bag import writer as writer_module
+    from rcbf_ros.bag.writer import BagWriteError
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    monkeypatch.setattr(writer_module.os, 'pwrite', _failing_write(3))
+    bag = BagWriter(tmp_path / 'b', config=BagWriterConfig(chunk_size=64, compression='none'))
+    bag.add_topic('/x', 'std_msgs/msg/Float64MultiArray')
+    with pytest.raises(BagWriteError) as failed:  # not the KeyboardInterrupt it held
+        with interrupts.interrupts_raise(signal.SIGINT):
+            for i in range(100):
+                bag.write_message('/x', {'data': [1.0] * 8}, i)
+    assert failed.value.errno == errno.ENOSPC and interrupts.held.owed is None
+    # the stop is not lost: where the program handles the error and goes on, it comes at the
+    # end of the block
+    bag = BagWriter(tmp_path / 'c', config=BagWriterConfig(chunk_size=64, compression='none'))
+    bag.add_topic('/x', 'std_msgs/msg/Float64MultiArray')
+    monkeypatch.setattr(writer_module.os, 'pwrite', _failing_write(2))
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts.interrupts_raise(signal.SIGINT):
+            with contextlib.suppress(BagWriteError):
+                for i in range(100):
+                    bag.write_message('/x', {'data': [1.0] * 8}, i)
+            reached = True
+    assert reached and interrupts.held.owed is None
+
+
+def test_ctrl_c_in_a_train_bag_write_on_a_full_disk_exits_1_saying_so(tmp_path):
+    # The disk is full: the run stops with the write's error (exit 1, one line), not as if
+    # Ctrl-C had stopped a run whose files were all written (130).
+    out = tmp_path / 'run'
+    code = textwrap.dedent(f"""
+        import os, runpy, sys
+        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        from test_bag_interrupts import _failing_write
+        os.pwrite = _failing_write(2)
+        sys.argv = ['rcbf_ros', 'train', '--system', 'unicycle', '--mode', 'baseline',
+                    '--max-steps', '30', '--start-steps', '20', '--update-after', '20',
+                    '--batch-size', '16', '--episodes', '1', '--out', {str(out)!r}]
+        runpy.run_module('rcbf_ros', run_name='__main__')
+    """)
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=180, env=dict(os.environ, OMP_NUM_THREADS='1'))
+    assert done.returncode == 1, done.stderr[-3000:]
+    (line,) = done.stderr.splitlines()
+    assert line.startswith('error: ') and 'No space left on device' in line, line
