@@ -396,16 +396,17 @@ def _proposal_sections(item: Any, settings: logic.NodeSettings
     return _array_sections(item.topic, item.log_time_ns, item.data, item.type_name, 'u'), None
 
 
-def _state_sections(item: Any, settings: logic.NodeSettings,
-                    system: str) -> tuple[dict[str, np.ndarray], int | None] | str:
+def _state_sections(item: Any, settings: logic.NodeSettings, system: str,
+                    child_frame_id: str = '') -> tuple[dict[str, np.ndarray], int | None] | str:
     """The sections of a recorded state (an Odometry's as the node reads it) and an
     Odometry's header stamp (ns; None for an array), or why an Odometry is refused
-    (undecodable, a wrong frame, an orientation without heading)."""
+    (undecodable, a wrong frame or child frame, an orientation without heading)."""
     if item.type_name == ODOMETRY:
         try:
             return filter_edge.stamped_state_sections(item.data, type_name=ODOMETRY,
                                                       system=system,
-                                                      frame_id=settings.state_frame_id)
+                                                      frame_id=settings.state_frame_id,
+                                                      child_frame_id=child_frame_id)
         except ValueError as exc:
             if str(exc).startswith('state_type:'):
                 raise RefilterError(f'{item.topic}: {exc}') from exc
@@ -415,7 +416,7 @@ def _state_sections(item: Any, settings: logic.NodeSettings,
 
 
 def _state_sample(item: Any, settings: logic.NodeSettings, system: str,
-                  n_x: int, first: bool = True) -> logic.StateSample:
+                  n_x: int, first: bool = True, child_frame_id: str = '') -> logic.StateSample:
     """The state sample of a recorded state message, received at its log time, as the node's
     edge reads it: a bad one says why (an Odometry the node would refuse, an empty message, a
     NaN); an Odometry's header stamp kept for the ``latency_s`` check.
@@ -426,7 +427,7 @@ def _state_sample(item: Any, settings: logic.NodeSettings, system: str,
     """
     received_ns = item.log_time_ns
     try:
-        read = _state_sections(item, settings, system)
+        read = _state_sections(item, settings, system, child_frame_id)
     except _BadMessage as exc:
         if first:
             raise
@@ -863,7 +864,8 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
                                     now_ns=item.log_time_ns)  # the bag's time: the clock
                 elif item.topic == state_topic:
                     sample = _state_sample(item, settings, system_name, n_x,
-                                           first=not seen_state)
+                                           first=not seen_state,
+                                           child_frame_id=active.robot_frame_id)
                     seen_state = True
                     rules.latest_state = sample
                     if sample.state is not None:

@@ -381,7 +381,8 @@ class FilterParameters:
     base_frame_id: str = setting('base_link', description="the robot's frame (sensor points "
                                                           'that tf does not place in '
                                                           "odom_frame_id go through it and the "
-                                                          "states' pose at their stamp)",
+                                                          "states' pose at their stamp); an "
+                                                          "Odometry state's child_frame_id",
                                  read_only=True)
     """The robot's frame."""
     transform_tolerance: float = setting(

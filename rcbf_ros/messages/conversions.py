@@ -374,12 +374,17 @@ def check_odometry_support(system: Any) -> None:
                          f'only, not {system!r} (use state_type array)')
 
 
-def odometry_to_state(msg: Any, *, system: str, frame_id: str = '') -> np.ndarray:
+def odometry_to_state(msg: Any, *, system: str, frame_id: str = '', child_frame_id: str = ''
+                      ) -> np.ndarray:
     """The state vector of ``system`` held by a nav_msgs/Odometry (:data:`ODOMETRY_STATES`).
+
+    ``child_frame_id`` (when not ''): the robot's frame (``base_frame_id``), whose pose the
+    Odometry must give; a message naming no child frame ('') is taken as giving it.
 
     Raises:
         ValueError: naming the field: a frame id longer than :data:`MAX_FRAME_ID`, a frame
-            other than ``frame_id`` (when not ''), an orientation without a heading (see
+            other than ``frame_id`` (when not ''), a child frame other than
+            ``child_frame_id`` (when both are not ''), an orientation without a heading (see
             :func:`yaw_from_quaternion`), or a system whose state an Odometry does not hold
             (naming ``state_type``).
     """
@@ -389,6 +394,11 @@ def odometry_to_state(msg: Any, *, system: str, frame_id: str = '') -> np.ndarra
     if frame_id and msg.header.frame_id != frame_id:
         raise ValueError(f'header.frame_id: {msg.header.frame_id!r} is not state_frame_id '
                          f'{frame_id!r}')
+    if child_frame_id and msg.child_frame_id and msg.child_frame_id != child_frame_id:
+        raise ValueError(f'child_frame_id: {msg.child_frame_id!r} is not base_frame_id '
+                         f"{child_frame_id!r}: the pose must be the robot's, in whose frame "
+                         "the sources' points are placed (set base_frame_id to the "
+                         "odometry's child frame)")
     pose = msg.pose.pose
     q = pose.orientation
     yaw = yaw_from_quaternion(q.x, q.y, q.z, q.w)

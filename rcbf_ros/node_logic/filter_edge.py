@@ -366,16 +366,19 @@ def state_sections(data: bytes, *, type_name: str, system: str, frame_id: str = 
 
 
 def stamped_state_sections(data: bytes, *, type_name: str, system: str, frame_id: str = '',
+                           child_frame_id: str = '',
                            layouts: Sequence[Float64ArrayLayout] = (), message_type: Any = None,
                            deserialize: Deserialize = deserialize_message
                            ) -> tuple[dict[str, Any], int | None]:
     """:func:`state_sections` and an Odometry's header stamp in nanoseconds (None for an
-    array, which has no stamp)."""
+    array, which has no stamp); an Odometry's child frame must be ``child_frame_id`` where
+    both are given (:func:`~rcbf_ros.messages.conversions.odometry_to_state`)."""
     if type_name != ODOMETRY:
         return state_sections(data, type_name=type_name, system=system, layouts=layouts,
                               message_type=message_type, deserialize=deserialize), None
     msg = decoded(data, message_type or type_name, deserialize)
-    state = conversions.odometry_to_state(msg, system=system, frame_id=frame_id)
+    state = conversions.odometry_to_state(msg, system=system, frame_id=frame_id,
+                                          child_frame_id=child_frame_id)
     stamp = msg.header.stamp
     return {'state': state}, int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
@@ -687,16 +690,18 @@ class FilterEdge:
         self._info_layouts: dict[tuple[tuple[str, int], ...], Float64ArrayLayout] = {}
 
     # bytes in ----------------------------------------------------------------------------------
-    def read_state(self, data: bytes, *, received_ns: int, frame_id: str = ''
-                   ) -> tuple[StateSample, str]:
+    def read_state(self, data: bytes, *, received_ns: int, frame_id: str = '',
+                   child_frame_id: str = '') -> tuple[StateSample, str]:
         """The state sample of one ``state`` sample and the input count it adds to ('' for a
         good one): an undecodable or unusable one is a bad sample saying why.
 
-        ``frame_id``: the Odometry frame a state must be in ('' takes any).
+        ``frame_id``: the Odometry frame a state must be in ('' takes any);
+        ``child_frame_id``: the robot's frame, its child frame ('' takes any).
         """
         try:
             sections, stamp_ns = stamped_state_sections(
                 data, type_name=self.state_type_name, system=self.system, frame_id=frame_id,
+                child_frame_id=child_frame_id,
                 layouts=self.state_layouts, message_type=self._state_message,
                 deserialize=self._deserialize)
             state = state_from_sections(sections=sections, n_x=self.n_x)

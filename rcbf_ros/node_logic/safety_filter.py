@@ -362,6 +362,12 @@ class ActiveFilter:
             array.setflags(write=False)
             object.__setattr__(self, name, array)
 
+    @property
+    def robot_frame_id(self) -> str:
+        """The child frame an Odometry state must name: ``base_frame_id`` with observation
+        sources, whose points are placed in the robot's frame by its pose ('' without: any)."""
+        return self.config.sources.base_frame_id if self.config.sources is not None else ''
+
 
 def build_active_filter(*, params: Mapping[str, Any],
                         probe_states: Sequence[Sequence[float]] = (),

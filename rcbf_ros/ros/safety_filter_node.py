@@ -590,7 +590,8 @@ class SafetyFilterNode(Node):
                       active: logic.ActiveFilter) -> logic.StateSample:
         """The state sample of one ``state`` message, counted when dropped or refused."""
         sample, count = self._edge.read_state(data, received_ns=now_ns,
-                                              frame_id=active.settings.state_frame_id)
+                                              frame_id=active.settings.state_frame_id,
+                                              child_frame_id=active.robot_frame_id)
         if count:
             self.input_counts[count] += 1
         return sample

@@ -240,6 +240,24 @@ def test_an_odometry_state_is_the_pose_in_its_frame():
     assert sample.error.startswith('header.frame_id')
 
 
+@pytest.mark.parametrize('child, robot, kept', [
+    ('base', 'base', True), ('', 'base_link', True), ('base_footprint', '', True),
+    ('base_footprint', 'base_link', False), ('base_link', 'base_link/', False)])
+def test_an_odometry_gives_the_pose_of_the_robot_s_frame_or_is_refused(child, robot, kept):
+    # a pose of another frame than the one the sources' points are placed in would put every
+    # point where the robot is not (a message naming no child frame is taken as the robot's)
+    edge = _edge(state_type='odometry')
+    data = serialize_message(state_to_odometry([1.0, -2.0, 0.5], system='unicycle',
+                                               stamp_ns=0, frame_id='odom',
+                                               child_frame_id=child))
+    sample, count = edge.read_state(data, received_ns=0, frame_id='odom', child_frame_id=robot)
+    if kept:
+        assert count == '' and np.allclose(sample.state, [1.0, -2.0, 0.5], atol=1e-12)
+        return
+    assert count == REFUSED_STATE and sample.state is None
+    assert sample.error.startswith(f'child_frame_id: {child!r} is not base_frame_id {robot!r}')
+
+
 def test_the_offline_readers_read_what_the_node_reads():
     data = sections_to_cdr({'u': [1.0, 2.0], 'disturbance_std': [0.1, 0.1, 0.1]})
     sections, header = filter_edge.proposal_sections(data, type_name=ARRAY, twist_fields=())

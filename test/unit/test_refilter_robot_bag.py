@@ -81,11 +81,11 @@ def world_points(pose: np.ndarray) -> np.ndarray:
     return pose[:2] + ranges[hit, None] * np.stack([np.cos(angles), np.sin(angles)], axis=1)
 
 
-def odometry(pose: np.ndarray, stamp_ns: int) -> dict:
+def odometry(pose: np.ndarray, stamp_ns: int, child: str = 'base_link') -> dict:
     half = pose[2] / 2
     return {'header': {'stamp': {'sec': stamp_ns // 10**9, 'nanosec': stamp_ns % 10**9},
                        'frame_id': 'odom'},
-            'child_frame_id': 'base_link',
+            'child_frame_id': child,
             'pose': {'pose': {'position': {'x': float(pose[0]), 'y': float(pose[1]), 'z': 0.0},
                               'orientation': {'x': 0.0, 'y': 0.0, 'z': float(np.sin(half)),
                                               'w': float(np.cos(half))}},
@@ -121,7 +121,8 @@ def twist(u: np.ndarray) -> dict:
 
 
 def write_robot_bag(directory: Path, *, command: str = '/cmd_vel_nav', odom: str = '/odom',
-                    scan_until: int = N_STEPS, tf: bool = False) -> Path:
+                    scan_until: int = N_STEPS, tf: bool = False,
+                    child: str = 'base_link') -> Path:
     """What ``ros2 bag record`` holds around the drop-in launch: Odometry, a LaserScan in
     base_link (up to step ``scan_until``), the controller's Twist, the base's command; with
     ``tf``, the scan in the ``laser`` frame (:data:`LASER`) and /tf_static, /tf placing it."""
@@ -137,7 +138,7 @@ def write_robot_bag(directory: Path, *, command: str = '/cmd_vel_nav', odom: str
                 transform('base_link', 'laser', LASER, 0.0, T0)]}, T0 - 1)
         for k, pose in enumerate(POSES):
             t = T0 + k * STEP_NS
-            bag.write_message(odom, odometry(pose, t), t)
+            bag.write_message(odom, odometry(pose, t, child), t)
             if tf:
                 bag.write_message('/tf', {'transforms': [
                     transform('odom', 'base_link', pose[:2], float(pose[2]), t)]}, t)
@@ -191,6 +192,19 @@ def test_a_scan_in_its_own_frame_is_placed_through_the_bags_tf(tmp_path: Path) -
     # the same scan placed as if it were at base_link's origin answers otherwise
     assert not np.allclose(np.stack(expected_commands(tf=True)), np.stack(expected_commands()),
                            atol=1e-6)
+
+
+def test_an_odometry_of_another_child_frame_than_the_robot_s_gives_the_fail_safe(
+        tmp_path: Path) -> None:
+    # base_footprint's pose taken for base_link's would place the scan where the robot is not
+    source = write_robot_bag(tmp_path / 'robot', child='base_footprint')
+    summary = refilter_bag(source, tmp_path / 'out', PARAMS)
+    assert summary.skipped == {'bad state': N_STEPS} and summary.processed == 0
+    assert all(np.array_equal(u, [0.0, 0.0]) for u in commands(tmp_path / 'out'))
+    # a message naming no child frame is taken as the robot's
+    summary = refilter_bag(write_robot_bag(tmp_path / 'unnamed', child=''), tmp_path / 'b',
+                           PARAMS)
+    assert summary.processed == N_STEPS and not summary.skipped
 
 
 def test_remaps_name_the_topics_as_the_launch_was_given_them(tmp_path: Path) -> None:

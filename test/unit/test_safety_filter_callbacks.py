@@ -213,10 +213,11 @@ def stamped_harness(ros_domain_id):
     rclpy.try_shutdown()
 
 
-def _odometry(x: float, y: float, yaw: float, frame_id: str = 'map') -> bytes:
+def _odometry(x: float, y: float, yaw: float, frame_id: str = 'map',
+              child_frame_id: str = '') -> bytes:
     from rcbf_ros.messages.classes import get_message
     msg = get_message('nav_msgs/msg/Odometry')()
-    msg.header.frame_id = frame_id
+    msg.header.frame_id, msg.child_frame_id = frame_id, child_frame_id
     msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
     q = msg.pose.pose.orientation
     q.z, q.w = np.sin(yaw / 2.0), np.cos(yaw / 2.0)
@@ -313,6 +314,16 @@ def test_with_sources_an_odometry_outside_odom_frame_id_is_a_bad_state(ros_domai
                 np.testing.assert_array_equal(u, FAIL_SAFE)
                 assert message == (f"bad state: header.frame_id: {frame!r} is not "
                                    "state_frame_id 'odom'")
+            else:
+                assert message.startswith('source front: no message yet'), message
+        # and the pose must be the robot's (base_frame_id), whose frame the points go through
+        for child, refused in (('base_footprint', True), ('base_link', False), ('', False)):
+            instance.node._on_state(_odometry(-0.85, 0.0, 0.0, 'odom', child))
+            u, (_, message, _) = instance.propose(_cdr({'u': [2.5, 0.0]}))
+            if refused:
+                np.testing.assert_array_equal(u, FAIL_SAFE)
+                assert message.startswith(f"bad state: child_frame_id: {child!r} is not "
+                                          "base_frame_id 'base_link'"), message
             else:
                 assert message.startswith('source front: no message yet'), message
     finally:
