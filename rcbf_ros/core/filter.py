@@ -167,6 +167,10 @@ ACTIVE_SET_TOLERANCE = 1e-12
 """How far (relative to the largest right-hand side) the active-set solution may exceed a row
 or limit, or miss the equality of an active one, and still count as meeting it: round-off only,
 far below OSQP's eps."""
+ROW_SPREAD = 1e3
+"""Where the rows' scales 1 + |upper_i| spread by more than this factor, the active-set solve
+meets each RCBF row to :data:`ACTIVE_SET_TOLERANCE` of its own scale (:func:`_each_row_own`),
+not of the largest: a far row's right-hand side (1e12) must not loosen the others."""
 ACTIVE_SET_STEPS = 40
 """Most steps (a row added or dropped) of :func:`active_set_solution` before it gives up (a
 degenerate or cycling case in floating point; then OSQP solves the QP). The filter's QPs take
@@ -394,6 +398,34 @@ def active_set_solution(*, rows: Sequence[Sequence[float]], upper: Sequence[floa
     """
     rows, upper, p_inverse = _as_floats(rows), _as_floats(upper), _as_floats(p_inverse)
     return _active_set_steps(rows, upper, p_inverse, tolerance, max_steps, _kernels(p_inverse))
+
+
+def _each_row_own(rows: list[list[float]], upper: list[float], k: int,
+                  largest: float | None = None
+                  ) -> tuple[list[list[float]], list[float], float]:
+    """(rows, upper, tolerance) for :func:`_active_set_steps` that meet each of the first
+    ``k`` rows (the RCBF rows) to :data:`ACTIVE_SET_TOLERANCE` (1 + |upper_i|) and the rest
+    (the limit rows, which the kernels read as +/- e_j, never scaled) to that of the largest
+    of theirs.
+
+    Within :data:`ROW_SPREAD` the rows as they are and the tolerance of the largest scale (the
+    common case: nothing is scaled). Beyond, RCBF row i and its right-hand side are multiplied
+    by c_i = base / (1 + |upper_i|) (base: the limit rows' largest scale, 1 without limits):
+    the same constraint, so the same polyhedron and solution, whose excess c_i (row_i^T z -
+    upper_i) <= tolerance * base says row_i^T z - upper_i <= tolerance (1 + |upper_i|). The
+    multipliers scale by 1 / c_i and stay >= 0; the distances the method compares do not
+    change. ``largest``: 1 + max |upper_i|, where the caller has it."""
+    if largest is None:
+        largest = 1.0 + max(map(abs, upper), default=0.0)
+    if not (largest > ROW_SPREAD  # (the least scale is 1: no spread below; NaN: as it is)
+            and largest > ROW_SPREAD * (1.0 + min(map(abs, upper), default=0.0))):
+        return rows, upper, ACTIVE_SET_TOLERANCE * largest
+    scales = [1.0 + abs(value) for value in upper]
+    base = max(scales[k:], default=1.0)
+    factors = [base / scale for scale in scales[:k]]
+    scaled = [[c * value for value in row] for c, row in zip(factors, rows)]
+    return (scaled + rows[k:], [c * value for c, value in zip(factors, upper)] + upper[k:],
+            ACTIVE_SET_TOLERANCE * base)
 
 
 def _active_set_steps(rows: list[list[float]], upper: list[float], p_inverse: list[float],
@@ -1443,13 +1475,13 @@ class SafetyFilter:
         With P diagonal the QP is the projection of 0 onto the rows' polyhedron in the
         P-metric, which :func:`active_set_solution` solves exactly, certified (multipliers >=
         0, stationarity, every row and limit met and the active ones held, each to
-        :data:`ACTIVE_SET_TOLERANCE` relative to the largest right-hand side). A strictly
+        :data:`ACTIVE_SET_TOLERANCE` relative to the largest right-hand side, or, where they
+        spread, each RCBF row to its own: :func:`_each_row_own`). A strictly
         convex QP has one solution, so a certified answer is it (OSQP's is within its
         tolerance of it). The answer then goes through the row check like any other."""
-        return _active_set_steps(
-            g_rows, upper, self._p_inverse_list,
-            ACTIVE_SET_TOLERANCE * (1.0 + max(max(upper), -min(upper))), ACTIVE_SET_STEPS,
-            self._kernels)
+        rows, upper, tolerance = _each_row_own(g_rows, upper, self.n_barriers)
+        return _active_set_steps(rows, upper, self._p_inverse_list, tolerance,
+                                 ACTIVE_SET_STEPS, self._kernels)
 
     def _finite_solution(self, z: Sequence[float] | np.ndarray | None) -> list[float] | None:
         """Solution z as a list of n_u + 1 finite floats, or None if it is not one."""
@@ -1470,7 +1502,7 @@ class SafetyFilter:
         [-L_g h_i, -1]) and the proposal they are written at (n_u floats). The action
         u + z[:n_u] must lie within the limits (to :data:`LIMIT_TOLERANCE`; then projected
         onto them), and the slack its rows need, from the rows themselves, must be accounted
-        for by the solver's own eps z[-1]."""
+        for by the solver's own eps z[-1] (each row to 1e-6 of its scale 1 + |upper_i|)."""
         z = self._finite_solution(z)
         if z is None:
             return None
@@ -1484,9 +1516,9 @@ class SafetyFilter:
         # The solver's own eps must account for what the rows need: else the answer is not the
         # solution of this QP (a stale or garbage iterate).
         claimed = max(0.0, z[-1])
-        if needed > claimed:
-            scale = 1.0 + max(max(rows_upper), -min(rows_upper))
-            if needed > claimed + 1e-6 * scale:
+        if needed > claimed + 1e-6:  # each row to 1e-6 of its own scale, 1 + |upper_i|
+            if any(value + claimed < -1e-6 * (1.0 + abs(bound))
+                   for value, bound in zip(values, rows_upper)):
                 return None
         return action, values, needed
 
@@ -1564,7 +1596,7 @@ class SafetyFilter:
         if keep.size > EXACT_ROWS and self._finite_limits:
             # too many rows to solve at once in time: the exact QP by adding the rows its
             # answer violates (_generated), else fewer rows that imply them all (merged_rows)
-            generated = self._generated(solve_lg, solve_upper, limit_upper, scale)
+            generated = self._generated(solve_lg, solve_upper, limit_upper)
             solve_lg, solve_upper = generated[1:] if generated is not None else merged_rows(
                 lg=solve_lg, upper=solve_upper, applied=applied, u_min=self._u_min,
                 u_max=self._u_max, count=EXACT_ROWS)
@@ -1578,12 +1610,20 @@ class SafetyFilter:
         g_rows = columns.T.tolist()
         qp_upper = np.concatenate((solve_upper, limit_upper)) if limit_upper else solve_upper
         qp_upper_list = qp_upper.tolist()
-        kernels = self._kernels
-        if len(g_rows) >= ARRAY_EXCESS_ROWS and n_u + 1 in (2, 3):
-            kernels = (kernels[0], _excess_over(columns, qp_upper), kernels[2])
-        z = generated[0] if generated is not None else _active_set_steps(
-            g_rows, qp_upper_list, self._p_inverse_list, ACTIVE_SET_TOLERANCE * scale,
-            ACTIVE_SET_STEPS, kernels)
+        if generated is not None:
+            z = generated[0]
+        else:
+            kernels = self._kernels
+            rows_in, bounds_in, tolerance = _each_row_own(
+                g_rows, qp_upper_list, count,
+                1.0 + max(float(_largest(qp_upper)), -float(_least(qp_upper))))
+            if len(g_rows) >= ARRAY_EXCESS_ROWS and n_u + 1 in (2, 3):
+                # (scaled rows: the arrays' kernel reads them too)
+                kernels = (kernels[0], _excess_over(columns, qp_upper) if rows_in is g_rows
+                           else _excess_over(np.array(rows_in).T, np.array(bounds_in)),
+                           kernels[2])
+            z = _active_set_steps(rows_in, bounds_in, self._p_inverse_list, tolerance,
+                                  ACTIVE_SET_STEPS, kernels)
         status = 'solved'
         checked = None if z is None else self._check_many(z, upper, lg, applied)
         if checked is None and (self._points is not None or margin is not None):
@@ -1657,27 +1697,31 @@ class SafetyFilter:
             barrier_names=list(self.barrier_names), needed_slack=0.0, reason='',
             proposal_clipped=clipped, points=points)
 
-    def _generated(self, lg: np.ndarray, upper: np.ndarray, limit_upper: list[float],
-                   scale: float) -> tuple[list[float], np.ndarray, np.ndarray] | None:
+    def _generated(self, lg: np.ndarray, upper: np.ndarray, limit_upper: list[float]
+                   ) -> tuple[list[float], np.ndarray, np.ndarray] | None:
         """The QP on many rows (``lg`` (K, n_u), ``upper`` (K,)) solved exactly on few of them:
         the :data:`GENERATED_BATCH` lowest at the proposal first, then, while the answer
         violates a row, the :data:`GENERATED_BATCH` it violates most added, up to
         :data:`EXACT_ROWS` rows. An answer that meets every row is the QP's own (the QP on
-        fewer rows has the larger feasible set). (z, the rows it was solved on) or None."""
-        tolerance = PRUNE_MARGIN * scale
+        fewer rows has the larger feasible set). (z, the rows it was solved on) or None. A row
+        counts as met to :data:`PRUNE_MARGIN` of its own scale, 1 + |upper_i|."""
         working = np.argpartition(upper, GENERATED_BATCH)[:GENERATED_BATCH]
         while True:
             working_lg, working_upper = lg[working], upper[working]
             g_rows = np.concatenate([-working_lg, np.full((working.size, 1), -1.0)],
                                     axis=1).tolist()
-            z = _active_set_steps(g_rows + self._limit_rows,
-                                  working_upper.tolist() + limit_upper, self._p_inverse_list,
-                                  ACTIVE_SET_TOLERANCE * scale, ACTIVE_SET_STEPS,
+            rows, bounds, each = _each_row_own(g_rows + self._limit_rows,
+                                               working_upper.tolist() + limit_upper,
+                                               working.size)
+            z = _active_set_steps(rows, bounds, self._p_inverse_list, each, ACTIVE_SET_STEPS,
                                   self._kernels)
             if z is None:
                 return None
             values = upper + lg @ np.array(z[:self.n_u]) + z[self.n_u]
-            violated = np.flatnonzero(values < -tolerance)
+            violated = np.flatnonzero(values < -PRUNE_MARGIN)  # (each scale is 1 or more)
+            if violated.size:
+                violated = violated[values[violated]
+                                    < -PRUNE_MARGIN * (1.0 + np.abs(upper[violated]))]
             if not violated.size:
                 return z, working_lg, working_upper
             if working.size + GENERATED_BATCH > EXACT_ROWS:
@@ -1761,9 +1805,8 @@ class SafetyFilter:
         values = upper + product(lg, step)
         needed = max(0.0, -float(_least(values)))
         claimed = max(0.0, z[-1])
-        if needed > claimed:
-            scale = 1.0 + max(float(upper.max()), -float(upper.min()))
-            if needed > claimed + 1e-6 * scale:
+        if needed > claimed + 1e-6:  # each row to 1e-6 of its own scale, 1 + |upper_i|
+            if _least(values + claimed + 1e-6 * (1.0 + np.abs(upper))) < 0.0:
                 return None
         return action, values, needed
 

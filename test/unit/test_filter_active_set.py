@@ -310,6 +310,58 @@ def test_hostile_qp_data_never_break_the_row_check_and_match_enumeration(drawn):
 
 
 
+def _answer(system: str, lg_h: np.ndarray, rhs: np.ndarray, proposal: np.ndarray
+            ) -> tuple[object, list]:
+    """The filter's result on these RCBF rows, and what its active-set solve answered."""
+    safety_filter = SafetyFilter(FILTERS[system].problem, fallback=False)
+    n_u, k = safety_filter.n_u, safety_filter.n_barriers
+    g_matrix = np.zeros((safety_filter._nc, n_u + 1))
+    g_matrix[:k, :n_u], g_matrix[:k, n_u] = -lg_h, -1.0
+    upper = np.zeros(safety_filter._nc)
+    upper[:k] = rhs
+    for j in range(n_u):
+        g_matrix[k + j, j], g_matrix[k + n_u + j, j] = 1.0, -1.0
+    upper[k:k + n_u] = safety_filter._u_max - proposal
+    upper[k + n_u:] = proposal - safety_filter._u_min
+    safety_filter._assemble = lambda x, u, mean, std: (
+        [0.0] * k, g_matrix.tolist(), upper.tolist(),
+        float(np.square(g_matrix).sum() + np.square(upper).sum()))
+    answered: list = []
+    method = safety_filter._active_set
+    safety_filter._active_set = lambda g, b: answered.append(method(g, b)) or answered[-1]
+    return safety_filter.filter(np.zeros(safety_filter.n_x), proposal), answered
+
+
+MODERATE = st.floats(-10.0, 10.0)
+
+
+@PROPERTY
+@given(lg_h=st.lists(MODERATE, min_size=8, max_size=8), rhs=st.lists(MODERATE, min_size=4,
+                                                                      max_size=4),
+       far_row=st.lists(MODERATE, min_size=2, max_size=2), far=st.floats(1e4, 1e15),
+       proposal=st.lists(st.floats(-2.5, 2.5), min_size=2, max_size=2))
+# the rows of the first counterexample: met to 1 (1e-12 of 1e12), a limit crossed by 0.5
+@example(lg_h=[3.0, 0.0] + [0.0, 1.0] * 3, rhs=[-6.0, 0.0, 0.0, 0.0], far_row=[0.0, 1.0],
+         far=1e12, proposal=[1.0, 0.0])
+def test_a_far_row_that_never_binds_changes_nothing(lg_h, rhs, far_row, far, proposal):
+    """A row far from binding (right-hand side 1e4 to 1e15, |row| <= 10: it holds for every
+    command within the limits) leaves the answer as a copy of another row does, exactly, and
+    the active-set solve still answers: each row is met to its own scale, not the far one's."""
+    lg_h, proposal = np.array(lg_h).reshape(4, 2), np.array(proposal)
+    near, answered = _answer('unicycle', np.vstack([lg_h, lg_h[:1]]),
+                             np.array(rhs + rhs[:1]), proposal)
+    with_far, answered_far = _answer('unicycle', np.vstack([lg_h, [far_row]]),
+                                     np.array(rhs + [far]), proposal)
+    assert near.fail_safe == with_far.fail_safe
+    if near.fail_safe:
+        return
+    np.testing.assert_allclose(with_far.u_safe, near.u_safe, rtol=0, atol=1e-9)
+    assert with_far.slack == pytest.approx(near.slack, rel=1e-9, abs=1e-12)
+    if answered and answered[0] is not None:  # solved without OSQP, so is the far one
+        assert answered_far and answered_far[0] is not None
+        np.testing.assert_allclose(answered_far[0], answered[0], rtol=0, atol=1e-9)
+
+
 _SPECIAL = st.sampled_from([0.0, -0.0, 1.0, -1.0, 1e-310, -1e300, 1e300, math.inf, -math.inf,
                             math.nan])
 

@@ -183,6 +183,28 @@ def test_many_binding_points_give_the_answer_of_the_exact_solve_on_all(seed, v, 
     np.testing.assert_allclose(mine.u_safe, theirs.u_safe, atol=1e-6)
 
 
+@settings(max_examples=20, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**16), v=st.floats(-2.5, 2.5), w=st.floats(-2.5, 2.5),
+       heading=st.floats(-0.3, 0.3), far=st.floats(1e3, 1e6), many=st.booleans())
+def test_a_far_point_changes_nothing(seed, v, w, heading, far, many):
+    """A point 1e3 to 1e6 m away (its row's right-hand side up to about 1e12) leaves the
+    answer as it is without it: every row is met to its own scale, in the exact solve on few
+    rows and in the one that adds rows (``many``: a corridor of 3,000 points), and in the row
+    check; the far row's scale loosened them all."""
+    rng = np.random.default_rng(seed)
+    points = _corridor(rng, 3000) if many else rng.uniform(-2.0, 2.0, (8, 2))
+    points = points[np.linalg.norm(points, axis=1) > 0.6]
+    fast = SafetyFilter(_config().problem, footprint=_config().footprint)
+    state = [0.0, 0.0, heading]
+    fast.set_points(points)
+    near = fast.filter(state, [v, w])
+    fast.set_points(np.vstack([points, [[far, -far]]]))
+    with_far = fast.filter(state, [v, w])
+    assert (with_far.fail_safe, with_far.status) == (near.fail_safe, near.status)
+    np.testing.assert_allclose(with_far.u_safe, near.u_safe, rtol=0, atol=1e-9)
+
+
 def test_rows_merged_when_the_exact_solve_cannot_finish_still_meet_every_row(monkeypatch):
     config = _config()
     points = _corridor(np.random.default_rng(3), 20_000)
