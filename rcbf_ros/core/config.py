@@ -37,6 +37,7 @@ Keys (all optional except ``system``)::
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+import math
 import re
 from typing import Any, Mapping
 
@@ -245,12 +246,15 @@ class BandParameters:
     """Part of the layout, not of the envelope (see :func:`envelope_params`)."""
 
 
-SOURCE_TYPES = ('scan', 'pointcloud')
-"""The kinds of observation source: sensor_msgs/LaserScan, sensor_msgs/PointCloud2."""
+SOURCE_TYPES = ('scan', 'pointcloud', 'range')
+"""The kinds of observation source: sensor_msgs/LaserScan, PointCloud2, Range."""
 SOURCE_LIMIT = 16
 """The most observation sources of one filter."""
 MIN_VOXEL_SIZE = 1.0e-3
 """The smallest ``<name>.voxel_size`` but 0 (:data:`rcbf_ros.messages.sensor.MIN_VOXEL_SIZE`)."""
+MIN_OBSTACLES_ANGLE = 1.0e-3
+"""The smallest ``<name>.obstacles_angle``
+(:data:`rcbf_ros.messages.sensor.MIN_OBSTACLES_ANGLE`)."""
 SOURCE_TIMEOUT_S = 0.5
 """Default of ``<name>.timeout_s``."""
 TRANSFORM_TOLERANCE_LIMIT_S = 10.0
@@ -264,9 +268,10 @@ class SourceParameters:
     key is fixed at start: the node subscribes once, and keeps each source's settings."""
 
     type: str = setting('', choices=SOURCE_TYPES,
-                        description='scan (sensor_msgs/LaserScan) or pointcloud '
-                                    '(sensor_msgs/PointCloud2)', read_only=True)
-    """scan or pointcloud."""
+                        description='scan (sensor_msgs/LaserScan), pointcloud '
+                                    '(sensor_msgs/PointCloud2) or range (sensor_msgs/Range)',
+                        read_only=True)
+    """scan, pointcloud or range."""
     topic: str = setting('', description='the topic the source subscribes to', read_only=True)
     """The topic (required)."""
     timeout_s: float = setting(
@@ -284,6 +289,11 @@ class SourceParameters:
     voxel_size: float = setting(0.0, minimum=0, maximum=100.0, read_only=True,
                                 description='pointcloud: thinning grid cell (m; 0: off)')
     """pointcloud: thinning grid cell (m); 0 turns thinning off."""
+    obstacles_angle: float = setting(
+        math.pi / 180, minimum=MIN_OBSTACLES_ANGLE, maximum=math.pi, read_only=True,
+        description="range: the angle (rad) between the points of a reading's arc "
+                    "(collision_monitor's obstacles_angle)")
+    """range: the angle between the points of a reading's arc (rad)."""
     best_effort: bool = setting(True, description='subscribe best effort (sensor data QoS); '
                                                   'false: reliable', read_only=True)
     """Sensor-data QoS (best effort, keep last 5) by default; false: reliable."""
@@ -709,7 +719,7 @@ def _sources(p: FilterParameters, params: Mapping[str, Any],
                                  'filter)')
         source = read_parameters(SourceParameters, params, prefix=f'{name}.')
         if not source.type:
-            raise ParameterError(f'{name}.type: required (scan or pointcloud)')
+            raise ParameterError(f'{name}.type: required (scan, pointcloud or range)')
         if not source.topic:
             raise ParameterError(f'{name}.topic: required')
         if source.voxel_size and source.voxel_size < MIN_VOXEL_SIZE:

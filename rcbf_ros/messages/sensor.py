@@ -1,4 +1,4 @@
-"""Points from a sensor: sensor_msgs/LaserScan and sensor_msgs/PointCloud2 CDR bytes -> (N, 2).
+"""Points from a sensor: sensor_msgs/LaserScan, PointCloud2 and Range CDR bytes -> (N, 2).
 
 The filter keeps the robot off every valid point of a scan or cloud; this module reads those
 points straight from the CDR bytes a subscription receives (with its 4-byte encapsulation
@@ -10,7 +10,8 @@ Every size is bounded before it is used (:data:`MAX_POINTS` points per message,
 :data:`MAX_FIELDS` fields, :data:`MAX_FRAME_ID` bytes of frame id, :data:`MAX_POINT_STEP`
 bytes per point), and bytes that do not fit the declared layout are refused: the readers
 return :class:`Refused` with one line naming the field, and never raise. Which points count
-(REP 117 for scans): NaN, +-inf and ranges outside [range_min, range_max] are skipped. A point
+(REP 117 for scans): NaN, +-inf and ranges outside [range_min, range_max] are skipped; a
+Range's reading is an arc of points (:func:`range_points`). A point
 is never skipped for its distance from the frame's origin (a cloud in ``odom`` lies wherever
 the robot is): one beyond :data:`MAX_COORDINATE`, where no state may lie, refuses the message;
 the distance that counts is the robot's, once the points are placed
@@ -27,6 +28,7 @@ import numpy as np
 
 LASER_SCAN = 'sensor_msgs/msg/LaserScan'
 POINT_CLOUD2 = 'sensor_msgs/msg/PointCloud2'
+RANGE = 'sensor_msgs/msg/Range'
 
 MAX_POINTS = 200_000
 """The most beams of a scan or points (height x width) of a cloud read from one message; a
@@ -46,6 +48,11 @@ MAX_ANGLE = 1.0e3
 """The largest |angle| (rad) of a scan's beam; a scan whose beams lie beyond is refused."""
 MIN_VOXEL_SIZE = 1.0e-3
 """The smallest grid cell (m) of a cloud's thinning (0 turns thinning off)."""
+_FULL_TURN = float(np.float32(2.0 * math.pi))
+"""2 pi as a float32 field holds it (rounded up): a full turn's field of view."""
+MIN_OBSTACLES_ANGLE = 1.0e-3
+"""The smallest angle (rad) between the points of a Range's arc: at most 2 pi / this + 1
+points, 6,285."""
 
 FLOAT32, FLOAT64 = 7, 8
 """sensor_msgs/PointField datatypes of the coordinates read here."""
@@ -409,3 +416,59 @@ def cloud_points(data: bytes | memoryview, *, min_height: float = -math.inf,
     except Exception as exc:  # bytes are untrusted: any other failure is a refusal too
         return Refused(f'{POINT_CLOUD2}: {type(exc).__name__}: '
                        f'{" ".join(str(exc).split())}'[:200])
+
+
+@_quiet
+def range_points(data: bytes | memoryview, *, obstacles_angle: float = math.pi / 180
+                 ) -> SensorPoints | Refused:
+    """The points of a Range sample (sonar, infrared ranger), in its frame.
+
+    The object that gave the reading r may lie anywhere on the arc of radius r across the
+    field of view (Range.msg), so the reading is the arc's points from -field_of_view / 2 to
+    +field_of_view / 2, ``obstacles_angle`` apart, the last at +field_of_view / 2, as
+    collision_monitor draws it; ``spread`` r ``obstacles_angle`` / 2 widens each point so
+    that their circles cover the whole arc (any point of it lies within a chord of at most
+    r obstacles_angle / 2 of a drawn one), which collision_monitor's points do not. Which
+    readings count (REP 117, Range.msg): a finite r within [min_range, max_range] is the arc
+    at r; -inf, an object too close to measure, is the whole sector within min_range (arc
+    points at min_range / 2 widened by min_range / 2 more); +inf (nothing within range), NaN
+    and a finite r outside [min_range, max_range] give no point. A field of view that is not
+    within [0, 2 pi], or range bounds that are NaN or crossed, refuse the message.
+    """
+    try:
+        if not MIN_OBSTACLES_ANGLE <= obstacles_angle <= math.pi:
+            return Refused(f'{RANGE}: obstacles_angle {obstacles_angle} is not within '
+                           f'[{MIN_OBSTACLES_ANGLE}, pi]')
+        cursor = _Cursor(data)
+        frame_id, stamp = cursor.header()
+        cursor.uint8('radiation_type')
+        field_of_view, min_range, max_range, reading = cursor.float32s(
+            4, 'field_of_view..range')
+        if not 0.0 <= field_of_view <= _FULL_TURN:
+            return Refused(f'{RANGE}: field_of_view {field_of_view} is not within [0, 2 pi]')
+        if min_range != min_range or max_range != max_range:  # NaN
+            name = 'min_range' if min_range != min_range else 'max_range'
+            return Refused(f'{RANGE}: {name} is nan')
+        if min_range > max_range:
+            return Refused(f'{RANGE}: min_range {min_range} > max_range {max_range}')
+        if reading == -math.inf:  # REP 117: detected, nearer than min_range
+            if not min_range < math.inf:
+                return Refused(f'{RANGE}: range is -inf with min_range inf')
+            radius = max(min_range, 0.0) / 2.0
+            extra, reach = radius, max(min_range, 0.0)
+        elif max(min_range, 0.0) <= reading <= max_range and reading < math.inf:
+            radius, extra, reach = reading, 0.0, reading
+        else:  # +inf: nothing within range; NaN or outside the bounds: no reading
+            return SensorPoints(np.zeros((0, 2)), frame_id, stamp, 1, reach=0.0)
+        if not reach <= MAX_COORDINATE:
+            return Refused(f'{RANGE}: range {reach:.6g} lies beyond {MAX_COORDINATE:g} m')
+        steps = math.ceil(field_of_view / obstacles_angle)
+        angles = np.append(-0.5 * field_of_view + obstacles_angle * np.arange(steps),
+                           0.5 * field_of_view)
+        points = np.stack([radius * np.cos(angles), radius * np.sin(angles)], axis=1)
+        return SensorPoints(points, frame_id, stamp, 1,
+                            spread=radius * obstacles_angle / 2.0 + extra, reach=reach)
+    except _Bad as exc:
+        return Refused(f'{RANGE}: {exc}')
+    except Exception as exc:  # bytes are untrusted: any other failure is a refusal too
+        return Refused(f'{RANGE}: {type(exc).__name__}: {" ".join(str(exc).split())}'[:200])

@@ -42,8 +42,8 @@ from rcbf_ros.node_logic.tf_buffer import (
     TransformBuffer,
 )
 
-SENSOR_MESSAGES = {'scan': 'sensor_msgs/msg/LaserScan',
-                   'pointcloud': 'sensor_msgs/msg/PointCloud2'}
+SENSOR_MESSAGES = {'scan': sensor.LASER_SCAN, 'pointcloud': sensor.POINT_CLOUD2,
+                   'range': sensor.RANGE}
 """The message type of each ``<name>.type`` of an observation source."""
 
 COUNT_KEYS = ('messages', 'refused', 'stale', 'untransformed')
@@ -188,6 +188,8 @@ class ObservationSources:
             params = source.params
             if params.type == 'scan':
                 out = sensor.scan_points(data)
+            elif params.type == 'range':
+                out = sensor.range_points(data, obstacles_angle=params.obstacles_angle)
             else:
                 out = sensor.cloud_points(data, min_height=params.min_height,
                                           max_height=params.max_height,
@@ -357,7 +359,7 @@ class ObservationSources:
         z = 0 of their frame, so a frame tilted by t from ``target``'s vertical moves a point
         of height z by |z| sin t; the band bounds |z| (a scan's points lie at z = 0: 0)."""
         params = source.params
-        if params.type == 'scan':
+        if params.type != 'pointcloud':  # a scan's or a range's points lie at z = 0
             return 0.0
         x, y, z, w = rigid.rotation
         sin_tilt = math.hypot(2 * (x * z + y * w), 2 * (y * z - x * w))

@@ -204,6 +204,62 @@ def test_a_pointcloud_source_slows_the_robot_before_a_wall(ros_domain_id):
     assert 'Traceback' not in output, output[-4000:]
 
 
+RANGE = ('-p', 'observation_sources:=[sonar]', '-p', 'sonar.type:=range',
+         '-p', 'sonar.topic:=/sonar', '-p', 'sonar.timeout_s:=1.0',
+         '-p', 'footprint.radius:=0.2')
+
+
+def _range(reading: float, field_of_view: float = 0.5) -> bytes:
+    """A sensor_msgs/Range in base_link stamped now (rosbags' encoder)."""
+    from rcbf_ros.messages.typestore import jazzy_typestore
+    store = jazzy_typestore()
+    t = store.types
+    now = time.time_ns()
+    msg = t['sensor_msgs/msg/Range'](
+        header=t['std_msgs/msg/Header'](stamp=t['builtin_interfaces/msg/Time'](
+            sec=now // 10**9, nanosec=now % 10**9), frame_id='base_link'),
+        radiation_type=0, field_of_view=field_of_view, min_range=0.02, max_range=4.0,
+        range=reading, variance=0.0)
+    return bytes(store.serialize_cdr(msg, 'sensor_msgs/msg/Range'))
+
+
+def test_a_range_source_slows_the_robot_before_what_its_sonar_sees(ros_domain_id):
+    from rcbf_ros.messages.conversions import sections_to_msg
+    probe = Probe(ros_domain_id)
+    process = _start_filter(ros_domain_id, *RANGE)
+    try:
+        probe.subscribe('std_msgs/msg/Float64MultiArray', '/cmd_safe', _sections)
+        range_pub = probe.publisher('sensor_msgs/msg/Range', '/sonar')
+        proposal_pub, _ = _connect(probe, process, 'std_msgs/msg/Float64MultiArray',
+                                   with_state=False)
+        _wait_matched(range_pub, process)
+        ahead = sections_to_msg(AHEAD)
+        _handshake(probe, proposal_pub, ahead)
+        near = _answer_after_scan(probe, range_pub, proposal_pub, _range(0.8), ahead)
+        clear = _answer_after_scan(probe, range_pub, proposal_pub, _range(math.inf), ahead)
+        for _ in range(50):  # until the refused reading is in (a sample may be lost)
+            hostile = _answer_after_scan(probe, range_pub, proposal_pub,
+                                         _range(0.8, field_of_view=math.nan), ahead)
+            if 'refused' in hostile[1][1]:
+                break
+        process_alive = process.poll() is None
+    finally:
+        output = stop(process, timeout=10)
+        probe.close()
+    assert process_alive, output[-4000:]
+    command, (level, message, values) = near
+    assert level == 0 and values['fail_safe'] == 'False', message
+    assert 0.0 <= command['u'][0] < 1.5, command  # slowed for the arc, not refused
+    command, (level, message, values) = clear  # +inf: nothing within range
+    assert level == 0 and values['fail_safe'] == 'False', message
+    np.testing.assert_array_equal(command['u'], AHEAD['u'])
+    command, (level, message, values) = hostile
+    assert level == 2 and message.startswith(
+        'source sonar: latest message refused: sensor_msgs/msg/Range: field_of_view nan'), message
+    assert int(values['sonar.refused']) >= 1
+    assert 'Traceback' not in output, output[-4000:]
+
+
 def test_a_robot_with_only_a_lidar_runs_without_static_obstacles(ros_domain_id, tmp_path):
     """config/unicycle.yaml without its obstacles' centres and radii: the scan's points are
     the filter's only rows."""

@@ -1,5 +1,5 @@
-"""LaserScan and PointCloud2 test messages encoded by rosbags' Jazzy type store (an encoder
-that is not the reader under test)."""
+"""LaserScan, PointCloud2 and Range test messages encoded by rosbags' Jazzy type store (an
+encoder that is not the reader under test)."""
 from __future__ import annotations
 
 import math
@@ -64,3 +64,12 @@ def cloud_bytes(points: np.ndarray, *, dtype='<f4', layout=('x', 'y', 'z'), pad:
         is_bigendian=item.byteorder == '>', point_step=record.itemsize,
         row_step=width * record.itemsize + row_pad, data=data, is_dense=False)
     return bytes(STORE.serialize_cdr(msg, sensor.POINT_CLOUD2, little_endian=little_endian))
+
+
+def range_bytes(reading: float, *, field_of_view: float = 0.5, min_range: float = 0.02,
+                max_range: float = 4.0, frame_id: str = 'sonar',
+                little_endian: bool = True) -> bytes:
+    msg = T[sensor.RANGE](header=header(frame_id), radiation_type=0,
+                          field_of_view=field_of_view, min_range=min_range,
+                          max_range=max_range, range=reading, variance=0.0)
+    return bytes(STORE.serialize_cdr(msg, sensor.RANGE, little_endian=little_endian))

@@ -152,6 +152,8 @@ def test_bad_source_parameters_name_the_key(changes, key):
 
 def test_the_voxel_floor_is_the_readers():
     assert MIN_VOXEL_SIZE == sensor.MIN_VOXEL_SIZE
+    from rcbf_ros.core.config import MIN_OBSTACLES_ANGLE
+    assert MIN_OBSTACLES_ANGLE == sensor.MIN_OBSTACLES_ANGLE
 
 
 # --- many rows that can bind: the exact answer, else fewer rows that imply them all ----------
