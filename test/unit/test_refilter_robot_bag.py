@@ -430,3 +430,45 @@ def test_a_params_file_of_wildcards_only_serves_any_node_name(tmp_path: Path) ->
     params = tmp_path / 'all.yaml'
     params.write_text(yaml.safe_dump({'/**': {'ros__parameters': PARAMS}}))
     assert resolve_params(params, node='any_name')['system'] == 'unicycle'
+
+
+# -- a sonar: sensor_msgs/Range ----------------------------------------------------------------
+
+def test_a_range_source_is_refiltered_from_the_bag(tmp_path: Path) -> None:
+    from rcbf_ros.messages.sensor import range_points
+    from rcbf_ros.messages.typestore import jazzy_typestore
+    store = jazzy_typestore()
+    params = {**SOURCES_ONLY, 'observation_sources': ['sonar'],
+              'sonar': {'type': 'range', 'topic': 'sonar'}}
+    readings = [float(post_ranges(pose)[BEAMS // 2]) for pose in POSES]  # straight ahead
+    readings = [r if np.isfinite(r) else 4.5 for r in readings]  # beyond max_range: nothing
+    with BagWriter(tmp_path / 'robot') as bag:
+        bag.add_topic('/odom', 'nav_msgs/msg/Odometry')
+        bag.add_topic('/sonar', 'sensor_msgs/msg/Range')
+        bag.add_topic('/cmd_vel_nav', 'geometry_msgs/msg/Twist')
+        for k, (pose, reading) in enumerate(zip(POSES, readings)):
+            t = T0 + k * STEP_NS
+            bag.write_message('/odom', odometry(pose, t), t)
+            bag.write_message('/sonar', {
+                'header': {'stamp': stamp(t), 'frame_id': 'base_link'}, 'radiation_type': 0,
+                'field_of_view': 0.4, 'min_range': 0.02, 'max_range': 4.0, 'range': reading,
+                'variance': 0.0}, t + 1_000_000)
+            bag.write_message('/cmd_vel_nav', twist(PROPOSAL), t + 2_000_000)
+    summary = refilter_bag(tmp_path / 'robot', tmp_path / 'out', params)
+    assert summary.topics['sonar'] == '/sonar'
+    assert summary.processed == N_STEPS and summary.active > 0, summary.skipped
+    _, _, safety_filter = build_filter(resolve_params(params))
+    want = []
+    for pose, reading in zip(POSES, readings):
+        msg = store.types['sensor_msgs/msg/Range'](
+            header=store.types['std_msgs/msg/Header'](
+                stamp=store.types['builtin_interfaces/msg/Time'](sec=0, nanosec=0),
+                frame_id='base_link'),
+            radiation_type=0, field_of_view=0.4, min_range=0.02, max_range=4.0, range=reading,
+            variance=0.0)
+        read = range_points(bytes(store.serialize_cdr(msg, 'sensor_msgs/msg/Range')))
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        placed = pose[:2] + read.points @ np.array([[c, s], [-s, c]])
+        safety_filter.set_points(placed, read.spread)
+        want.append(safety_filter.filter(pose, PROPOSAL).u_safe)
+    np.testing.assert_allclose(np.stack(commands(tmp_path / 'out')), np.stack(want), atol=1e-6)
