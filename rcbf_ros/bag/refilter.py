@@ -935,8 +935,10 @@ class _HoldTimer:
     messages only time moves, and every age only grows: once an answer of the stretch is the
     fail-safe, each later call of the stretch that answers repeats it; those are counted
     (:attr:`repeats`, and in the rules' holds and latest answer, as the node's would be), not
-    made. A stretch with more than :data:`HOLD_STRETCH_LIMIT` answers and no fail-safe among
-    them is refused (:class:`RefilterError`).
+    made. No call answers past the rules' quiet (:meth:`AnswerRules.quiet_from_ns`: the latest
+    proposal ``max_proposal_age_s + stop_pub_timeout`` old). A stretch with more than
+    :data:`HOLD_STRETCH_LIMIT` answers and no fail-safe among them is refused
+    (:class:`RefilterError`).
     """
 
     def __init__(self, period_s: float | None) -> None:
@@ -965,10 +967,14 @@ class _HoldTimer:
         if self.origin_ns is None:
             self.origin_ns = until_ns
         last_call = (until_ns - self.origin_ns) // self.period_ns
+        answering = last_call  # the last call that may answer: none past the node's quiet
+        quiet_from = rules.quiet_from_ns(active)
+        if quiet_from is not None:
+            answering = min(last_call, (quiet_from - self.origin_ns) // self.period_ns)
         made = 0
-        while self.next_call <= last_call and rules.last_answer_ns is not None:
+        while self.next_call <= answering and rules.last_answer_ns is not None:
             call = self._first_due(rules.last_answer_ns, active)
-            if call > last_call:
+            if call > answering:
                 break
             now_ns = self.origin_ns + call * self.period_ns
             self.next_call = call + 1
@@ -977,7 +983,7 @@ class _HoldTimer:
                 continue
             yield now_ns, decision
             if decision.fail_safe:
-                self._repeat(rules, active, call, last_call)
+                self._repeat(rules, active, call, answering)
                 break
             made += 1
             if made >= HOLD_STRETCH_LIMIT:
@@ -1024,7 +1030,6 @@ class _HoldTimer:
             self.repeats += count
             rules.holds += count
             rules.answered(self.origin_ns + (call + count * step) * self.period_ns)
-        self.next_call = last_call + 1
 
 
 def _sources(config: FilterConfig, topics: Mapping[str, Any], names: Mapping[str, str],

@@ -10,6 +10,11 @@ The node (:mod:`rcbf_ros.ros.safety_filter_node`) answers at three kinds of even
   go out within ``control_period_s`` (:func:`~rcbf_ros.node_logic.safety_filter.hold_due`,
   :func:`~rcbf_ros.node_logic.safety_filter.decide_hold`).
 
+States and timer calls go unanswered once the latest proposal is older than
+``max_proposal_age_s + stop_pub_timeout`` (:meth:`AnswerRules.quiet_from_ns`): a quiet
+controller's fail-safe has gone out for ``stop_pub_timeout``, and the node goes quiet too until
+the next proposal, as collision_monitor does.
+
 With a sampled-data margin every decision refuses a state older than ``latency_s``
 (:func:`~rcbf_ros.node_logic.safety_filter.state_age_limit_s`). :class:`AnswerRules` keeps
 what these rules read (the proposal in force, the latest state, the time of the latest answer)
@@ -67,6 +72,10 @@ class AnswerRules:
         """Answers made at a new state or source message (``refilter_on_state``)."""
         self.holds = 0
         """Answers made by the hold timer (``control_period_s`` > 0)."""
+        self.proposed_ns: int | None = None
+        """When the latest proposal arrived (a defective one too; None: none yet)."""
+        self.quiet = 0
+        """States, source messages and timer calls left unanswered by :meth:`quiet_from_ns`."""
 
     @property
     def latest_state(self) -> StateSample | None:
@@ -113,6 +122,7 @@ class AnswerRules:
         fail-safe saying why."""
         self.proposals += 1
         self.held = None
+        self.proposed_ns = now_ns
         if sample is None:
             return None
         self.held = HeldProposal(sample=sample, received_ns=now_ns)
@@ -134,6 +144,8 @@ class AnswerRules:
                 last_answer_ns=self.last_answer_ns, now_ns=now_ns,
                 min_period_s=settings.refilter_min_period_s):
             return None
+        if self._gone_quiet(now_ns, active):
+            return None
         self.refilters += 1
         return self._answer(decide_held(held=held, again=True,
                                         safety_filter=active.safety_filter,
@@ -151,11 +163,32 @@ class AnswerRules:
                 control_period_s=control_period_s, timer_period_s=timer_period_s,
                 last_answer_ns=self.last_answer_ns, now_ns=now_ns):
             return None
+        if self._gone_quiet(now_ns, active):
+            return None
         self.holds += 1
         return self._answer(decide_hold(held=self.held, safety_filter=active.safety_filter,
                                         control_period_s=control_period_s,
                                         **self._arguments(active, now_ns)),
                             now_ns)
+
+    def quiet_from_ns(self, active: ActiveFilter) -> int | None:
+        """The time after which states and timer calls go unanswered until the next proposal:
+        ``max_proposal_age_s + stop_pub_timeout`` after the latest proposal's arrival (its
+        fail-safe, a stale proposal's, has then gone out for ``stop_pub_timeout``); None
+        before the first proposal (nothing is answered again then)."""
+        if self.proposed_ns is None:
+            return None
+        settings = active.settings
+        return self.proposed_ns + round(
+            (settings.max_proposal_age_s + settings.stop_pub_timeout) * 1e9)
+
+    def _gone_quiet(self, now_ns: int, active: ActiveFilter) -> bool:
+        """Whether ``now_ns`` is past :meth:`quiet_from_ns` (counted in :attr:`quiet`)."""
+        quiet_from = self.quiet_from_ns(active)
+        if quiet_from is None or now_ns <= quiet_from:
+            return False
+        self.quiet += 1
+        return True
 
     def _answer(self, decision: Decision, now_ns: int) -> Decision:
         self.last_answer_ns = now_ns

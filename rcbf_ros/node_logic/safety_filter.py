@@ -149,6 +149,15 @@ class NodeSettings(MessageSettings):
                     'fail-safe until a new one arrives')
     """A re-filtered proposal older than this (since its arrival) gives the fail-safe, as a
     base's command timeout would; a proposal's own answer is made when it arrives (age 0)."""
+    stop_pub_timeout: float = setting(
+        2.0, minimum=0, maximum=DURATION_LIMIT_S,
+        description="how long (s) a quiet controller's fail-safe goes on being published "
+                    "before the node goes quiet too, until a new proposal (collision_monitor's "
+                    'name and default)')
+    """After a proposal is ``max_proposal_age_s`` old, its fail-safe goes out for this long
+    (at states and timer calls), then nothing until a new proposal arrives: the base holds the
+    fail-safe it got last, and another publisher of its command (teleoperation through a
+    multiplexer) is not drowned in it. Nav2 collision_monitor's ``stop_pub_timeout``."""
     slack_tolerance: float = setting(
         1.0e-4, minimum=0, maximum=SLACK_TOLERANCE_LIMIT,
         description='most slack the published command may need in any RCBF row; more: fail-safe')

@@ -156,17 +156,23 @@ def test_a_long_gap_costs_nothing_when_nothing_is_held(tmp_path: Path) -> None:
     assert summary.holds == summary.hold_repeats == 0
 
 
+@pytest.mark.parametrize('stop_pub_timeout', [2.0, 1e9])
 def test_a_long_gap_after_a_proposal_is_one_fail_safe_and_counted_repeats(
-        tmp_path: Path) -> None:
+        tmp_path: Path, stop_pub_timeout: float) -> None:
     """A proposal, then a year without messages: the node's timer answers every 37.5 ms,
-    the fail-safe from the first late state on; written up to that one, the rest counted."""
+    the fail-safe from the first late state on; written up to that one, the rest counted,
+    up to max_proposal_age_s + stop_pub_timeout after the proposal (then the node is quiet:
+    with 1e9 s, the whole year)."""
     year_ns = 365 * 24 * 3600 * 10 ** 9
     source = _bag(tmp_path / 'run', states_ms=[0.0, year_ns / MS], proposals_ms=[1.0])
-    summary = refilter_bag(source, tmp_path / 'out', _params())
+    summary = refilter_bag(source, tmp_path / 'out',
+                           _params(stop_pub_timeout=stop_pub_timeout))
     answers = _answers(tmp_path / 'out')
     assert [t for t, _ in answers] == [1.0, 50.0]   # the state at 0 is 50 ms old: late
     assert _status(answers[-1][1]) == 19
-    calls = year_ns // round(T / 4 * 1e9)           # the last call: at the last message
+    period_ns = round(T / 4 * 1e9)
+    quiet_ns = MS + round((0.5 + stop_pub_timeout) * 1e9)  # max_proposal_age_s 0.5
+    calls = min(year_ns, quiet_ns) // period_ns     # the last call that answers
     assert summary.hold_repeats == (calls - 4) // 3 and summary.holds == 1
 
 
@@ -277,16 +283,38 @@ def test_the_node_rules_give_the_same_answers_one_for_one(tmp_path: Path, scenar
         assert STATUS_CODES['stale proposal'] in statuses
 
 
+@pytest.mark.parametrize('refilter_on_state', [False, True])
+def test_a_quiet_controller_s_fail_safe_stops_after_stop_pub_timeout(
+        tmp_path: Path, refilter_on_state: bool) -> None:
+    """One proposal at 1 ms, states every 10 ms to 790 ms: the fail-safe from 501 ms
+    (max_proposal_age_s 0.5), answers up to 601 ms (stop_pub_timeout 0.1), then none; the
+    node's rules give the same, and a new proposal is answered at once."""
+    states, proposals = SCENARIOS['quiet']
+    params = _params(refilter_on_state=refilter_on_state, stop_pub_timeout=0.1)
+    _check_one_for_one(tmp_path / 'a', params, states, proposals)
+    times = [t for t, _ in _answers(tmp_path / 'a' / 'out')]
+    assert 601.0 - 37.5 < max(times) <= 601.0, times  # the timer: every 37.5 ms at most
+    assert {_status(info) for t, info in _answers(tmp_path / 'a' / 'out') if t > 501.0} == {
+        STATUS_CODES['stale proposal']}
+    _check_one_for_one(tmp_path / 'b', params, states, proposals + [700.5])
+    assert [t for t, _ in _answers(tmp_path / 'b' / 'out') if t > 601.0][0] == 700.5
+
+
 @settings(max_examples=12, deadline=None, suppress_health_check=list(HealthCheck))
 @given(states=st.lists(st.integers(0, 1000), min_size=1, max_size=40),
        proposals=st.lists(st.integers(0, 1000), min_size=1, max_size=10),
-       refilter_on_state=st.booleans(), latency_ms=st.sampled_from([0, 7, 20, 60]))
+       refilter_on_state=st.booleans(), latency_ms=st.sampled_from([0, 7, 20, 60]),
+       quiet_ms=st.sampled_from([(500, 2000), (20, 0), (10, 35)]))
 def test_any_timing_gives_the_node_rules_answers(tmp_path_factory: Any, states: list[int],
                                                  proposals: list[int], refilter_on_state: bool,
-                                                 latency_ms: int) -> None:
+                                                 latency_ms: int,
+                                                 quiet_ms: tuple[int, int]) -> None:
     """States and proposals at any times over 200 ms (states on even tenths of a ms,
     proposals on odd ones: no two of them at one log time, whose order a bag does not keep),
-    timer calls at a message's time included: the same answers."""
-    params = _params(refilter_on_state=refilter_on_state, latency_s=latency_ms / 1000)
+    timer calls at a message's time included, a quiet controller's stop after
+    max_proposal_age_s + stop_pub_timeout (``quiet_ms``) too: the same answers."""
+    params = _params(refilter_on_state=refilter_on_state, latency_s=latency_ms / 1000,
+                     max_proposal_age_s=max(quiet_ms[0], 1) / 1000,
+                     stop_pub_timeout=quiet_ms[1] / 1000)
     _check_one_for_one(tmp_path_factory.mktemp('any'), params, [t / 5 for t in states],
                        [(2 * t + 1) / 10 for t in proposals])

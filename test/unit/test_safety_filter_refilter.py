@@ -235,6 +235,7 @@ def test_a_quiet_controller_is_corrected_then_stopped(refilter, capsys):
     harness, clock = refilter
     node = harness.node
     node._on_state(_cdr({'state': list(FAR)}))
+    proposed_ns = clock.now_ns
     u, _ = harness.answer(_cdr({'u': AT_OBSTACLE}))
     assert list(u) == AT_OBSTACLE
     xs = [*np.linspace(-3.0, -0.85, 20), *[-0.85] * 10]   # there after 0.4 s, then 0.2 s more
@@ -265,6 +266,17 @@ def test_a_quiet_controller_is_corrected_then_stopped(refilter, capsys):
     assert all(_info(harness, -i)['fail_safe'][0] == 1 for i in range(1, 11))
     log = capsys.readouterr().err
     assert log.count('fail-safe: stale proposal: ') == 1, log   # throttled (log_throttle_s 1)
+    # ... for stop_pub_timeout (2 s) after the proposal went stale at 0.5 s, then nothing
+    sent, answered = len(harness.commands), 0
+    while clock.now_ns + 20 * MS <= proposed_ns + int(2.5 * SECOND):
+        clock.now_ns += 20 * MS
+        node._on_state(_cdr({'state': [-3.0, 0.0, 0.0]}))
+        answered += 1
+    assert answered > 50 and len(harness.commands) == sent + answered
+    for _ in range(50):
+        clock.now_ns += 20 * MS
+        node._on_state(_cdr({'state': [-3.0, 0.0, 0.0]}))
+    assert len(harness.commands) == sent + answered  # the base holds the fail-safe it got
     # A new proposal: filtered again, and held.
     u, _ = harness.answer(_cdr({'u': [1.0, 0.0]}))
     assert list(u) == [1.0, 0.0]
