@@ -163,6 +163,15 @@ class _Cursor:
         return frame_id, sec * 1_000_000_000 + nanosec
 
 
+def _check_bounds(low: tuple[str, float], high: tuple[str, float]) -> None:
+    """Refuse range bounds (name, value) that are NaN or crossed."""
+    for name, value in (low, high):
+        if value != value:
+            raise _Bad(f'{name} is nan')
+    if low[1] > high[1]:
+        raise _Bad(f'{low[0]} {low[1]} > {high[0]} {high[1]}')
+
+
 def _beyond(what: str, x: np.ndarray, y: np.ndarray) -> None:
     """Refuse points beyond :data:`MAX_COORDINATE` (x, y finite)."""
     far = np.flatnonzero((np.abs(x) > MAX_COORDINATE) | (np.abs(y) > MAX_COORDINATE))
@@ -216,6 +225,26 @@ def _quiet(parse: Callable[..., SensorPoints | Refused]) -> Callable[..., Sensor
     return quiet_state
 
 
+def _reader(kind: str) -> Callable[[Callable[..., SensorPoints | Refused]],
+                                   Callable[..., SensorPoints | Refused]]:
+    """A reader of ``kind`` messages that never raises: :func:`_quiet`, and any failure inside
+    (a layout error, :class:`_Bad`, or any other: the bytes are untrusted) a
+    :class:`Refused` of one line naming ``kind``."""
+    def wrap(parse: Callable[..., SensorPoints | Refused]
+             ) -> Callable[..., SensorPoints | Refused]:
+        @functools.wraps(parse)
+        def read(*args: Any, **kwargs: Any) -> SensorPoints | Refused:
+            try:
+                return parse(*args, **kwargs)
+            except _Bad as exc:
+                return Refused(f'{kind}: {exc}')
+            except Exception as exc:
+                return Refused(f'{kind}: {type(exc).__name__}: '
+                               f'{" ".join(str(exc).split())}'[:200])
+        return _quiet(read)
+    return wrap
+
+
 _GET_ERROR_OBJECT = getattr(np, 'geterrobj', None)
 _SET_ERROR_OBJECT = getattr(np, 'seterrobj', None)
 """numpy 1.x's per-thread floating-point error object (numpy 2 has none: its errstate is a
@@ -247,7 +276,7 @@ def _thinned(x: np.ndarray, y: np.ndarray, voxel_size: float
     return ((column + column_0 + 0.5) * voxel_size, (row + row_0 + 0.5) * voxel_size, spread)
 
 
-@_quiet
+@_reader(LASER_SCAN)
 def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
                 ) -> SensorPoints | Refused:
     """The valid points of a LaserScan sample, in its frame.
@@ -257,58 +286,49 @@ def scan_points(data: bytes | memoryview, *, max_points: int = MAX_POINTS
     (r cos a, r sin a); a range beyond :data:`MAX_COORDINATE` refuses the scan. Intensities
     are not read.
     """
-    try:
-        cursor = _Cursor(data)
-        frame_id, stamp = cursor.header()
-        (angle_min, _angle_max, increment, _time_increment, _scan_time, range_min,
-         range_max) = cursor.float32s(7, 'angle_min..range_max')
-        if not (math.isfinite(angle_min) and math.isfinite(increment)):
-            name, value = (('angle_min', angle_min) if not math.isfinite(angle_min)
-                           else ('angle_increment', increment))
-            return Refused(f'{LASER_SCAN}: {name} is {value}')
-        if range_min != range_min or range_max != range_max:  # NaN
-            name = 'range_min' if range_min != range_min else 'range_max'
-            return Refused(f'{LASER_SCAN}: {name} is nan')
-        if range_min > range_max:
-            return Refused(f'{LASER_SCAN}: range_min {range_min} > range_max {range_max}')
-        count = cursor.uint32('ranges')
-        if count > max_points:
-            return Refused(f'{LASER_SCAN}: ranges has {count} beams, more than the bound '
-                           f'{max_points}')
-        if not abs(angle_min) + count * abs(increment) <= MAX_ANGLE:
-            return Refused(f'{LASER_SCAN}: angle_min {angle_min:g} and angle_increment '
-                           f'{increment:g} put beams beyond +-{MAX_ANGLE:g} rad')
-        start = cursor._take(4 * count, 4, 'ranges')
-        ranges = np.frombuffer(cursor.view, dtype=cursor.order + 'f4', count=count,
-                               offset=start).astype(np.float64)
-        # NaN fails both comparisons; so do +-inf where both bounds are finite
-        valid = (ranges >= max(range_min, 0.0)) & (ranges <= range_max)  # REP 117: r >= 0
-        if not (math.isfinite(range_min) and math.isfinite(range_max)):
-            valid &= np.isfinite(ranges)
-        index = valid.nonzero()[0]  # flatnonzero's, without its ravel
-        if index.size == count:  # every beam valid
-            index = None
-        r = ranges if index is None else ranges.take(index)
-        largest = float(np.maximum.reduce(r)) if r.size else 0.0
-        if not largest <= MAX_COORDINATE:
-            beam = int(np.argmax(r)) if index is None else int(index[np.argmax(r)])
-            return Refused(f'{LASER_SCAN}: ranges[{beam}] {ranges[beam]:.6g} lies beyond '
-                           f'{MAX_COORDINATE:g} m (within range_max {range_max:g})')
-        directions = _beam_directions(angle_min, increment, count)
-        if index is not None:
-            directions = directions.take(index, axis=1)
-        # (N, 2), its columns contiguous: r cos a, r sin a
-        points = np.multiply(directions, r, out=None if index is None else directions).T
-        # |(r cos a, r sin a)| = r where every r >= 0 (a negative range_min: no bound)
-        return SensorPoints(points, frame_id, stamp, count,
-                            reach=largest if range_min >= 0.0 else math.inf)
-    except _Bad as exc:
-        return Refused(f'{LASER_SCAN}: {exc}')
-    except Exception as exc:  # bytes are untrusted: any other failure is a refusal too
-        return Refused(f'{LASER_SCAN}: {type(exc).__name__}: {" ".join(str(exc).split())}'[:200])
+    cursor = _Cursor(data)
+    frame_id, stamp = cursor.header()
+    (angle_min, _angle_max, increment, _time_increment, _scan_time, range_min,
+     range_max) = cursor.float32s(7, 'angle_min..range_max')
+    if not (math.isfinite(angle_min) and math.isfinite(increment)):
+        name, value = (('angle_min', angle_min) if not math.isfinite(angle_min)
+                       else ('angle_increment', increment))
+        return Refused(f'{LASER_SCAN}: {name} is {value}')
+    _check_bounds(('range_min', range_min), ('range_max', range_max))
+    count = cursor.uint32('ranges')
+    if count > max_points:
+        return Refused(f'{LASER_SCAN}: ranges has {count} beams, more than the bound '
+                       f'{max_points}')
+    if not abs(angle_min) + count * abs(increment) <= MAX_ANGLE:
+        return Refused(f'{LASER_SCAN}: angle_min {angle_min:g} and angle_increment '
+                       f'{increment:g} put beams beyond +-{MAX_ANGLE:g} rad')
+    start = cursor._take(4 * count, 4, 'ranges')
+    ranges = np.frombuffer(cursor.view, dtype=cursor.order + 'f4', count=count,
+                           offset=start).astype(np.float64)
+    # NaN fails both comparisons; so do +-inf where both bounds are finite
+    valid = (ranges >= max(range_min, 0.0)) & (ranges <= range_max)  # REP 117: r >= 0
+    if not (math.isfinite(range_min) and math.isfinite(range_max)):
+        valid &= np.isfinite(ranges)
+    index = valid.nonzero()[0]  # flatnonzero's, without its ravel
+    if index.size == count:  # every beam valid
+        index = None
+    r = ranges if index is None else ranges.take(index)
+    largest = float(np.maximum.reduce(r)) if r.size else 0.0
+    if not largest <= MAX_COORDINATE:
+        beam = int(np.argmax(r)) if index is None else int(index[np.argmax(r)])
+        return Refused(f'{LASER_SCAN}: ranges[{beam}] {ranges[beam]:.6g} lies beyond '
+                       f'{MAX_COORDINATE:g} m (within range_max {range_max:g})')
+    directions = _beam_directions(angle_min, increment, count)
+    if index is not None:
+        directions = directions.take(index, axis=1)
+    # (N, 2), its columns contiguous: r cos a, r sin a
+    points = np.multiply(directions, r, out=None if index is None else directions).T
+    # |(r cos a, r sin a)| = r where every r >= 0 (a negative range_min: no bound)
+    return SensorPoints(points, frame_id, stamp, count,
+                        reach=largest if range_min >= 0.0 else math.inf)
 
 
-@_quiet
+@_reader(POINT_CLOUD2)
 def cloud_points(data: bytes | memoryview, *, min_height: float = -math.inf,
                  max_height: float = math.inf, voxel_size: float = 0.0,
                  max_points: int = MAX_POINTS) -> SensorPoints | Refused:
@@ -323,102 +343,96 @@ def cloud_points(data: bytes | memoryview, *, min_height: float = -math.inf,
     that cell size in x, y: each occupied cell gives its centre, and ``spread`` is half the
     cell's diagonal (every point of the cell lies within it of the centre).
     """
-    try:
-        if voxel_size != 0.0 and not voxel_size >= MIN_VOXEL_SIZE:
-            return Refused(f'{POINT_CLOUD2}: voxel_size {voxel_size} is neither 0 nor >= '
-                           f'{MIN_VOXEL_SIZE}')
-        cursor = _Cursor(data)
-        frame_id, stamp = cursor.header()
-        height, width = cursor.uint32('height'), cursor.uint32('width')
-        count = height * width
-        if count > max_points:
-            return Refused(f'{POINT_CLOUD2}: height x width is {count} points, more than the '
-                           f'bound {max_points}')
-        n_fields = cursor.uint32('fields')
-        if n_fields > MAX_FIELDS:
-            return Refused(f'{POINT_CLOUD2}: fields has {n_fields} entries, more than the bound '
-                           f'{MAX_FIELDS}')
-        fields: dict[str, tuple[int, int, int, int]] = {}  # offset, datatype, count, index
-        for k in range(n_fields):
-            name = cursor.string(f'fields[{k}].name', MAX_FRAME_ID)
-            offset = cursor.uint32(f'fields[{k}].offset')
-            datatype = cursor.uint8(f'fields[{k}].datatype')
-            field_count = cursor.uint32(f'fields[{k}].count')
-            if name in _COORDINATES and name in fields:  # which one is meant cannot be told
-                return Refused(f'{POINT_CLOUD2}: field {name!r} is declared twice '
-                               f'(fields[{fields[name][3]}] and fields[{k}])')
-            fields.setdefault(name, (offset, datatype, field_count, k))
-        big = bool(cursor.uint8('is_bigendian'))
-        point_step = cursor.uint32('point_step')
-        row_step = cursor.uint32('row_step')
-        size = cursor.uint32('data')
-        start = cursor._take(size, 1, 'data')
-        if point_step > MAX_POINT_STEP:
-            return Refused(f'{POINT_CLOUD2}: point_step {point_step} is more than the bound '
-                           f'{MAX_POINT_STEP}')
-        columns = []
-        spans: list[tuple[int, int]] = []  # the bytes of x, y, z in a point: [begin, end)
-        for axis in _COORDINATES:
-            if axis not in fields:
-                return Refused(f'{POINT_CLOUD2}: no field {axis!r} (fields: '
-                               f'{", ".join(sorted(fields))[:100] or "none"})')
-            offset, datatype, field_count, _ = fields[axis]
-            if datatype not in _FIELD_SIZE:
-                return Refused(f'{POINT_CLOUD2}: field {axis!r} has datatype {datatype}, not '
-                               f'FLOAT32 ({FLOAT32}) or FLOAT64 ({FLOAT64})')
-            if field_count < 1:
-                return Refused(f'{POINT_CLOUD2}: field {axis!r} has count 0')
-            end = offset + field_count * _FIELD_SIZE[datatype]  # every element of the field
-            if end > point_step:
-                return Refused(f'{POINT_CLOUD2}: field {axis!r} at offset {offset} ({field_count} '
-                               f'x {_FIELD_SIZE[datatype]} bytes) ends past point_step '
-                               f'{point_step}')
-            for other, (begins, ends) in zip(_COORDINATES, spans):  # disjoint bytes of a point
-                if offset < ends and begins < end:
-                    return Refused(f'{POINT_CLOUD2}: fields {other!r} and {axis!r} overlap '
-                                   f'(bytes {begins}..{ends - 1} and {offset}..{end - 1})')
-            columns.append((offset, datatype))
-            spans.append((offset, end))
-        if count == 0:
-            if size:
-                return Refused(f'{POINT_CLOUD2}: height {height} x width {width} declares no '
-                               f'point, but data has {size} bytes')
-            return SensorPoints(np.zeros((0, 2)), frame_id, stamp, 0)
-        if row_step < width * point_step:
-            return Refused(f'{POINT_CLOUD2}: row_step {row_step} < width {width} x point_step '
+    if voxel_size != 0.0 and not voxel_size >= MIN_VOXEL_SIZE:
+        return Refused(f'{POINT_CLOUD2}: voxel_size {voxel_size} is neither 0 nor >= '
+                       f'{MIN_VOXEL_SIZE}')
+    cursor = _Cursor(data)
+    frame_id, stamp = cursor.header()
+    height, width = cursor.uint32('height'), cursor.uint32('width')
+    count = height * width
+    if count > max_points:
+        return Refused(f'{POINT_CLOUD2}: height x width is {count} points, more than the '
+                       f'bound {max_points}')
+    n_fields = cursor.uint32('fields')
+    if n_fields > MAX_FIELDS:
+        return Refused(f'{POINT_CLOUD2}: fields has {n_fields} entries, more than the bound '
+                       f'{MAX_FIELDS}')
+    fields: dict[str, tuple[int, int, int, int]] = {}  # offset, datatype, count, index
+    for k in range(n_fields):
+        name = cursor.string(f'fields[{k}].name', MAX_FRAME_ID)
+        offset = cursor.uint32(f'fields[{k}].offset')
+        datatype = cursor.uint8(f'fields[{k}].datatype')
+        field_count = cursor.uint32(f'fields[{k}].count')
+        if name in _COORDINATES and name in fields:  # which one is meant cannot be told
+            return Refused(f'{POINT_CLOUD2}: field {name!r} is declared twice '
+                           f'(fields[{fields[name][3]}] and fields[{k}])')
+        fields.setdefault(name, (offset, datatype, field_count, k))
+    big = bool(cursor.uint8('is_bigendian'))
+    point_step = cursor.uint32('point_step')
+    row_step = cursor.uint32('row_step')
+    size = cursor.uint32('data')
+    start = cursor._take(size, 1, 'data')
+    if point_step > MAX_POINT_STEP:
+        return Refused(f'{POINT_CLOUD2}: point_step {point_step} is more than the bound '
+                       f'{MAX_POINT_STEP}')
+    columns = []
+    spans: list[tuple[int, int]] = []  # the bytes of x, y, z in a point: [begin, end)
+    for axis in _COORDINATES:
+        if axis not in fields:
+            return Refused(f'{POINT_CLOUD2}: no field {axis!r} (fields: '
+                           f'{", ".join(sorted(fields))[:100] or "none"})')
+        offset, datatype, field_count, _ = fields[axis]
+        if datatype not in _FIELD_SIZE:
+            return Refused(f'{POINT_CLOUD2}: field {axis!r} has datatype {datatype}, not '
+                           f'FLOAT32 ({FLOAT32}) or FLOAT64 ({FLOAT64})')
+        if field_count < 1:
+            return Refused(f'{POINT_CLOUD2}: field {axis!r} has count 0')
+        end = offset + field_count * _FIELD_SIZE[datatype]  # every element of the field
+        if end > point_step:
+            return Refused(f'{POINT_CLOUD2}: field {axis!r} at offset {offset} ({field_count} '
+                           f'x {_FIELD_SIZE[datatype]} bytes) ends past point_step '
                            f'{point_step}')
-        needed = (height - 1) * row_step + width * point_step
-        if size < needed:
-            return Refused(f'{POINT_CLOUD2}: data has {size} bytes, fewer than the '
-                           f'{needed} its height, width, row_step and point_step declare')
-        if size > height * row_step:
-            return Refused(f'{POINT_CLOUD2}: data has {size} bytes, more than the height '
-                           f'{height} x row_step {row_step} its layout declares')
-        order = '>' if big else '<'
-        values = []
-        for offset, datatype in columns:
-            column = np.ndarray(shape=(height, width), dtype=order + ('f4' if datatype == FLOAT32
-                                                                      else 'f8'),
-                                buffer=cursor.view, offset=start + offset,
-                                strides=(row_step, point_step))
-            values.append(column.astype(np.float64).ravel())
-        x, y, z = values
-        keep = ((z >= min_height) & (z <= max_height) & np.isfinite(x)
-                & np.isfinite(y))  # NaN fails each
-        x, y = x[keep], y[keep]
-        _beyond('data', x, y)
-        spread = 0.0
-        if voxel_size and x.size:
-            x, y, spread = _thinned(x, y, voxel_size)
-        return SensorPoints(np.stack((x, y), axis=1), frame_id, stamp, count, spread)
-    except _Bad as exc:
-        return Refused(f'{POINT_CLOUD2}: {exc}')
-    except Exception as exc:  # bytes are untrusted: any other failure is a refusal too
-        return Refused(f'{POINT_CLOUD2}: {type(exc).__name__}: '
-                       f'{" ".join(str(exc).split())}'[:200])
+        for other, (begins, ends) in zip(_COORDINATES, spans):  # disjoint bytes of a point
+            if offset < ends and begins < end:
+                return Refused(f'{POINT_CLOUD2}: fields {other!r} and {axis!r} overlap '
+                               f'(bytes {begins}..{ends - 1} and {offset}..{end - 1})')
+        columns.append((offset, datatype))
+        spans.append((offset, end))
+    if count == 0:
+        if size:
+            return Refused(f'{POINT_CLOUD2}: height {height} x width {width} declares no '
+                           f'point, but data has {size} bytes')
+        return SensorPoints(np.zeros((0, 2)), frame_id, stamp, 0)
+    if row_step < width * point_step:
+        return Refused(f'{POINT_CLOUD2}: row_step {row_step} < width {width} x point_step '
+                       f'{point_step}')
+    needed = (height - 1) * row_step + width * point_step
+    if size < needed:
+        return Refused(f'{POINT_CLOUD2}: data has {size} bytes, fewer than the '
+                       f'{needed} its height, width, row_step and point_step declare')
+    if size > height * row_step:
+        return Refused(f'{POINT_CLOUD2}: data has {size} bytes, more than the height '
+                       f'{height} x row_step {row_step} its layout declares')
+    order = '>' if big else '<'
+    values = []
+    for offset, datatype in columns:
+        column = np.ndarray(shape=(height, width), dtype=order + ('f4' if datatype == FLOAT32
+                                                                  else 'f8'),
+                            buffer=cursor.view, offset=start + offset,
+                            strides=(row_step, point_step))
+        values.append(column.astype(np.float64).ravel())
+    x, y, z = values
+    keep = ((z >= min_height) & (z <= max_height) & np.isfinite(x)
+            & np.isfinite(y))  # NaN fails each
+    x, y = x[keep], y[keep]
+    _beyond('data', x, y)
+    spread = 0.0
+    if voxel_size and x.size:
+        x, y, spread = _thinned(x, y, voxel_size)
+    return SensorPoints(np.stack((x, y), axis=1), frame_id, stamp, count, spread)
 
 
-@_quiet
+@_reader(RANGE)
 def range_points(data: bytes | memoryview, *, obstacles_angle: float = math.pi / 180
                  ) -> SensorPoints | Refused:
     """The points of a Range sample (sonar, infrared ranger), in its frame.
@@ -435,40 +449,31 @@ def range_points(data: bytes | memoryview, *, obstacles_angle: float = math.pi /
     and a finite r outside [min_range, max_range] give no point. A field of view that is not
     within [0, 2 pi], or range bounds that are NaN or crossed, refuse the message.
     """
-    try:
-        if not MIN_OBSTACLES_ANGLE <= obstacles_angle <= math.pi:
-            return Refused(f'{RANGE}: obstacles_angle {obstacles_angle} is not within '
-                           f'[{MIN_OBSTACLES_ANGLE}, pi]')
-        cursor = _Cursor(data)
-        frame_id, stamp = cursor.header()
-        cursor.uint8('radiation_type')
-        field_of_view, min_range, max_range, reading = cursor.float32s(
-            4, 'field_of_view..range')
-        if not 0.0 <= field_of_view <= _FULL_TURN:
-            return Refused(f'{RANGE}: field_of_view {field_of_view} is not within [0, 2 pi]')
-        if min_range != min_range or max_range != max_range:  # NaN
-            name = 'min_range' if min_range != min_range else 'max_range'
-            return Refused(f'{RANGE}: {name} is nan')
-        if min_range > max_range:
-            return Refused(f'{RANGE}: min_range {min_range} > max_range {max_range}')
-        if reading == -math.inf:  # REP 117: detected, nearer than min_range
-            if not min_range < math.inf:
-                return Refused(f'{RANGE}: range is -inf with min_range inf')
-            radius = max(min_range, 0.0) / 2.0
-            extra, reach = radius, max(min_range, 0.0)
-        elif max(min_range, 0.0) <= reading <= max_range and reading < math.inf:
-            radius, extra, reach = reading, 0.0, reading
-        else:  # +inf: nothing within range; NaN or outside the bounds: no reading
-            return SensorPoints(np.zeros((0, 2)), frame_id, stamp, 1, reach=0.0)
-        if not reach <= MAX_COORDINATE:
-            return Refused(f'{RANGE}: range {reach:.6g} lies beyond {MAX_COORDINATE:g} m')
-        steps = math.ceil(field_of_view / obstacles_angle)
-        angles = np.append(-0.5 * field_of_view + obstacles_angle * np.arange(steps),
-                           0.5 * field_of_view)
-        points = np.stack([radius * np.cos(angles), radius * np.sin(angles)], axis=1)
-        return SensorPoints(points, frame_id, stamp, 1,
-                            spread=radius * obstacles_angle / 2.0 + extra, reach=reach)
-    except _Bad as exc:
-        return Refused(f'{RANGE}: {exc}')
-    except Exception as exc:  # bytes are untrusted: any other failure is a refusal too
-        return Refused(f'{RANGE}: {type(exc).__name__}: {" ".join(str(exc).split())}'[:200])
+    if not MIN_OBSTACLES_ANGLE <= obstacles_angle <= math.pi:
+        return Refused(f'{RANGE}: obstacles_angle {obstacles_angle} is not within '
+                       f'[{MIN_OBSTACLES_ANGLE}, pi]')
+    cursor = _Cursor(data)
+    frame_id, stamp = cursor.header()
+    cursor.uint8('radiation_type')
+    field_of_view, min_range, max_range, reading = cursor.float32s(
+        4, 'field_of_view..range')
+    if not 0.0 <= field_of_view <= _FULL_TURN:
+        return Refused(f'{RANGE}: field_of_view {field_of_view} is not within [0, 2 pi]')
+    _check_bounds(('min_range', min_range), ('max_range', max_range))
+    if reading == -math.inf:  # REP 117: detected, nearer than min_range
+        if not min_range < math.inf:
+            return Refused(f'{RANGE}: range is -inf with min_range inf')
+        radius = max(min_range, 0.0) / 2.0
+        extra, reach = radius, max(min_range, 0.0)
+    elif max(min_range, 0.0) <= reading <= max_range and reading < math.inf:
+        radius, extra, reach = reading, 0.0, reading
+    else:  # +inf: nothing within range; NaN or outside the bounds: no reading
+        return SensorPoints(np.zeros((0, 2)), frame_id, stamp, 1, reach=0.0)
+    if not reach <= MAX_COORDINATE:
+        return Refused(f'{RANGE}: range {reach:.6g} lies beyond {MAX_COORDINATE:g} m')
+    steps = math.ceil(field_of_view / obstacles_angle)
+    angles = np.append(-0.5 * field_of_view + obstacles_angle * np.arange(steps),
+                       0.5 * field_of_view)
+    points = np.stack([radius * np.cos(angles), radius * np.sin(angles)], axis=1)
+    return SensorPoints(points, frame_id, stamp, 1,
+                        spread=radius * obstacles_angle / 2.0 + extra, reach=reach)

@@ -254,21 +254,12 @@ def hostile_qp(draw: st.DrawFn) -> tuple[str, np.ndarray, np.ndarray, np.ndarray
 FILTERS = {system: shipped_filter(system) for system in ('unicycle', 'car_following')}
 
 
-@PROPERTY
-@given(hostile_qp())
-# A costly slack far larger than the rows: the oracle once took a point 2.5e8 outside row 3
-@example(('unicycle', np.array([[0.0, 0.5], [0.0, 0.5], [0.0, 0.0], [0.0, -1e8], [0.0, 0.0]]),
-          np.array([0.0, -580171.875, 1e8, 0.0, 0.0]), np.array([0.0, 0.0])))
-# and, with only the rows' own terms, found no point meeting a row that its SVD met to |y| eps
-@example(('car_following', np.array([[1.72934e5], [-1.192092896e-07]]),
-          np.array([0.0, -16387.0]), np.array([0.0])))
-def test_hostile_qp_data_never_break_the_row_check_and_match_enumeration(drawn):
-    """Whatever QP data reach the solve, the filter's answer meets every row to the slack it
-    reports and lies within the limits (or is the fail-safe), and an answer of the active-set
-    solve is the enumerated solution."""
-    system, lg_h, rhs, proposal = drawn
-    template = FILTERS[system]
-    safety_filter = SafetyFilter(template.problem, fallback=False)
+def _on_rows(system: str, lg_h: np.ndarray, rhs: np.ndarray, proposal: np.ndarray
+             ) -> tuple[SafetyFilter, np.ndarray, np.ndarray, list]:
+    """A shipped system's filter whose QP has these RCBF rows (and its limit rows at
+    ``proposal``), its G and right-hand sides, and the list its active-set solve records each
+    answer in (None where it declined)."""
+    safety_filter = SafetyFilter(FILTERS[system].problem, fallback=False)
     n_u, k = safety_filter.n_u, safety_filter.n_barriers
     g_matrix = np.zeros((safety_filter._nc, n_u + 1))
     g_matrix[:k, :n_u], g_matrix[:k, n_u] = -lg_h, -1.0
@@ -282,17 +273,33 @@ def test_hostile_qp_data_never_break_the_row_check_and_match_enumeration(drawn):
     safety_filter._assemble = lambda x, u, mean, std: (
         [0.0] * k, g_matrix.tolist(), upper.tolist(),
         float(np.square(g_matrix).sum() + np.square(upper).sum()))
-    answered: list[np.ndarray] = []
+    calls: list = []
     method = safety_filter._active_set
 
     def recorded(g, b):
-        z = method(g, b)
-        if z is not None:
-            answered.append(z)
-        return z
+        calls.append(method(g, b))
+        return calls[-1]
 
     safety_filter._active_set = recorded
+    return safety_filter, g_matrix, upper, calls
+
+
+@PROPERTY
+@given(hostile_qp())
+# A costly slack far larger than the rows: the oracle once took a point 2.5e8 outside row 3
+@example(('unicycle', np.array([[0.0, 0.5], [0.0, 0.5], [0.0, 0.0], [0.0, -1e8], [0.0, 0.0]]),
+          np.array([0.0, -580171.875, 1e8, 0.0, 0.0]), np.array([0.0, 0.0])))
+# and, with only the rows' own terms, found no point meeting a row that its SVD met to |y| eps
+@example(('car_following', np.array([[1.72934e5], [-1.192092896e-07]]),
+          np.array([0.0, -16387.0]), np.array([0.0])))
+def test_hostile_qp_data_never_break_the_row_check_and_match_enumeration(drawn):
+    """Whatever QP data reach the solve, the filter's answer meets every row to the slack it
+    reports and lies within the limits (or is the fail-safe), and an answer of the active-set
+    solve is the enumerated solution."""
+    system, lg_h, rhs, proposal = drawn
+    safety_filter, g_matrix, upper, calls = _on_rows(system, lg_h, rhs, proposal)
     result = safety_filter.filter(np.zeros(safety_filter.n_x), proposal)
+    answered = [z for z in calls if z is not None]
     if result.fail_safe:
         assert result.reason
         return
@@ -312,24 +319,9 @@ def test_hostile_qp_data_never_break_the_row_check_and_match_enumeration(drawn):
 
 def _answer(system: str, lg_h: np.ndarray, rhs: np.ndarray, proposal: np.ndarray
             ) -> tuple[object, list]:
-    """The filter's result on these RCBF rows, and what its active-set solve answered."""
-    safety_filter = SafetyFilter(FILTERS[system].problem, fallback=False)
-    n_u, k = safety_filter.n_u, safety_filter.n_barriers
-    g_matrix = np.zeros((safety_filter._nc, n_u + 1))
-    g_matrix[:k, :n_u], g_matrix[:k, n_u] = -lg_h, -1.0
-    upper = np.zeros(safety_filter._nc)
-    upper[:k] = rhs
-    for j in range(n_u):
-        g_matrix[k + j, j], g_matrix[k + n_u + j, j] = 1.0, -1.0
-    upper[k:k + n_u] = safety_filter._u_max - proposal
-    upper[k + n_u:] = proposal - safety_filter._u_min
-    safety_filter._assemble = lambda x, u, mean, std: (
-        [0.0] * k, g_matrix.tolist(), upper.tolist(),
-        float(np.square(g_matrix).sum() + np.square(upper).sum()))
-    answered: list = []
-    method = safety_filter._active_set
-    safety_filter._active_set = lambda g, b: answered.append(method(g, b)) or answered[-1]
-    return safety_filter.filter(np.zeros(safety_filter.n_x), proposal), answered
+    """The filter's result on these RCBF rows, and what each active-set solve answered."""
+    safety_filter, _, _, calls = _on_rows(system, lg_h, rhs, proposal)
+    return safety_filter.filter(np.zeros(safety_filter.n_x), proposal), calls
 
 
 MODERATE = st.floats(-10.0, 10.0)
