@@ -434,6 +434,209 @@ def simulate_pvtol(worlds: list[PVTOLWorld], *, period: float, latency: float,
                         float(np.median(times)))
 
 
+# ------------------------------------------------------------------ Car Following
+CAR_LIMIT = 10.0
+"""|u_4| <= 10 m/s^2 (the shipped config has no limits; the margin needs them)."""
+CAR_DURATION_S = 6.0
+"""The shipped episode's length: 300 steps of 20 ms."""
+CAR_PERIODS = (0.01, 0.02, 0.05)
+"""T = L (s) of the Car Following table."""
+
+
+def car_problem(limit: float = CAR_LIMIT) -> RCBFProblem:
+    """config/car_following.yaml's rows (cascaded gaps 3-4 and 4-5, alpha 5, gamma 8, k_c 2)
+    with input limits +/- ``limit``."""
+    from rcbf_ros.core.config import filter_config_from_params
+    from rcbf_ros.parameters.rules import find_config, load_params
+    params = load_params(find_config('car_following'), 'safety_filter')
+    params.update({'input_limits.min': [-limit], 'input_limits.max': [limit]})
+    return filter_config_from_params(params).problem
+
+
+def car_box(gain: float) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, std) of the disturbance box, k_c = 2: the unknown gains d_i = ``gain`` of cars 2,
+    3, 5 times their largest prior accelerations near v_des (k_v 3 m/s + k_b G), the leader's
+    tracking and sine (up to 25 m/s^2) on car 1; 0 on the positions and on car 4."""
+    std = np.zeros(10)
+    std[1] = 25.0 / 2.0
+    std[3] = std[5] = gain * (4.0 * 3.0 + 20.0 * 6.0) / 2.0
+    std[9] = gain * (4.0 * 3.0 + 20.0 * 12.0) / 2.0
+    return np.zeros(10), std
+
+
+def car_starts(count: int, seed: int) -> list[np.ndarray]:
+    """The shipped start (config/car_following.yaml, the env's seed 0) and ``count`` random
+    ones around it (seeded): every position moved by U[-1.5, 1.5] m, every car's speed by
+    U[-1, 1] m/s on top of the shared draw, car 4 at 35 + U[-2, 2] m/s."""
+    from rcbf_ros.envs.car_following import CarFollowingEnv
+    env = CarFollowingEnv()
+    env.reset(seed=0)
+    starts = [env.state]
+    rng = np.random.default_rng(seed)
+    for _ in range(count):
+        state = starts[0].copy()
+        state[0::2] += rng.uniform(-1.5, 1.5, 5)
+        state[1::2] += rng.uniform(-1.0, 1.0, 5)
+        state[7] = 35.0 + rng.uniform(-2.0, 2.0)
+        starts.append(state)
+    return starts
+
+
+class CarOutcome(NamedTuple):
+    """One Car Following case over its episodes."""
+
+    feasible: np.ndarray
+    """(E,) per episode, the decisions with a command meeting every row."""
+    decisions: int
+    """Decisions per episode."""
+    row_left: np.ndarray
+    """(E,) whether a row set (h* >= 0) was left at some fine step."""
+    base_left: np.ndarray
+    """(E,) whether a base set (a gap of delta = 3.75 m) was left at some fine step."""
+    least_gap: np.ndarray
+    """(E,) the least gap |p_3 - p_4|, |p_4 - p_5| over the fine steps (m)."""
+    reach_front: float
+    """The fraction of decisions where car 3 may start braking within tau (row 3-4's jump)."""
+    reach_rear: float
+    """The same for car 5 ceasing to brake (row 4-5's jump)."""
+    jump_share: float
+    """Median share of the braking terms in nu0 over the rows that failed."""
+    median_margin: float
+    """Median nu0 + c |u| over the rows of the decisions (the command decided or proposed)."""
+    box_left: int
+    """Fine steps where the true disturbance left the box (the guarantee's premise)."""
+    decision_time_s: float
+    """Median time of the margin and the rows at one decision (s)."""
+
+
+def car_decide(upper: np.ndarray, lg: np.ndarray, proposal: float, limit: float
+               ) -> float | None:
+    """The command nearest ``proposal`` within +/- ``limit`` meeting upper + lg u >= 0 (the
+    QP in one input), or None where no command does."""
+    low, high = -limit, limit
+    for a, b in zip(upper, lg):
+        if b > 0.0:
+            low = max(low, -a / b)
+        elif b < 0.0:
+            high = min(high, -a / b)
+        elif a < 0.0:
+            return None
+    return None if low > high else min(max(proposal, low), high)
+
+
+def simulate_cars(starts: list[np.ndarray], *, period: float, latency: float,
+                  tightened: bool, gain: float = 0.1, limit: float = CAR_LIMIT,
+                  duration: float = CAR_DURATION_S, proposal: float = 5.0) -> CarOutcome:
+    """Run every start for ``duration`` s under 1 ms Euler steps of the true Car Following
+    (rcbf_ros/envs/car_following.py: the leader's sine, the gains 1 + ``gain``), car 4's
+    command held for T and computed from states L old (as :func:`simulate`); the proposal a
+    constant ``proposal`` m/s^2 into car 3 (the env's nominal controller). A decision meets
+    the rows (tightened by :class:`~rcbf_ros.core.sampled_data.CarFollowingBound` when
+    ``tightened``, split by the sign of u) within +/- ``limit`` or answers the fail-safe 0."""
+    import time
+
+    from rcbf_ros.core.lie_closed_form import ClosedFormTerms
+    from rcbf_ros.core.sampled_data import CarFollowingBound
+    from rcbf_ros.envs.car_following import CarFollowingEnv
+    problem = car_problem(limit)
+    terms = ClosedFormTerms.from_problem(problem)
+    bound = CarFollowingBound(problem, period + latency)
+    mean, std = car_box(gain)
+    reach_box = np.abs(mean) + problem.k_c * std
+    env = CarFollowingEnv(disturbance_gain=gain)
+    period_steps = max(1, round(period / FINE_STEP_S))
+    delay_steps = round(latency / FINE_STEP_S)
+    feasible, row_left, base_left, least_gap = [], [], [], []
+    front = rear = box_left = 0
+    shares, margins, times = [], [], []
+    decisions = 0
+    for start in starts:
+        state, command = start.copy(), 0.0
+        pending: list[tuple[int, float]] = []
+        met = 0
+        low_row = low_base = low_gap = math.inf
+        for step in range(round(duration / FINE_STEP_S)):
+            t = step * FINE_STEP_S
+            if step % period_steps == 0:
+                started = time.perf_counter()
+                at = terms.terms(state)
+                rho = at.grad_h @ mean - problem.k_c * np.abs(at.grad_h) @ std
+                upper = at.lf_h + rho + problem.alpha * at.h
+                lg = at.lg_h[:, 0]
+                rest, linear, jumps = bound.parts(state, mean, std)
+                if tightened:  # upper - nu0 + (lg -/+ c) u >= 0 for either sign of u
+                    answer = car_decide(np.concatenate([upper - rest] * 2),
+                                        np.concatenate([lg - linear[:, 0],
+                                                        lg + linear[:, 0]]),
+                                        proposal, limit)
+                else:
+                    answer = car_decide(upper, lg, proposal, limit)
+                times.append(time.perf_counter() - started)
+                decisions += 1
+                front += jumps[0] > 0.0
+                rear += jumps[1] > 0.0
+                decided = proposal if answer is None else answer
+                margins.extend(rest + linear[:, 0] * abs(decided))
+                if answer is None:
+                    failed = upper - rest - linear[:, 0] * limit < 0.0
+                    shares.extend(jumps[failed] / rest[failed])
+                met += answer is not None
+                pending.append((step + delay_steps, 0.0 if answer is None else answer))
+            while pending and pending[0][0] <= step:
+                command = pending.pop(0)[1]
+            accelerations = env.true_accelerations(state, np.array([command]), t)
+            f, _ = env.nominal_terms(state)
+            psi = accelerations - f[1::2]
+            psi[3] -= command
+            box_left += bool((np.abs(psi) > reach_box[1::2] + 1e-9).any())
+            derivative = np.empty(10)
+            derivative[0::2], derivative[1::2] = state[1::2], accelerations
+            state = state + FINE_STEP_S * derivative
+            at = terms.terms(state)
+            gaps = np.abs(state[[4, 6]] - state[[6, 8]])
+            low_row = min(low_row, float(at.h.min()))
+            low_base = min(low_base, float(gaps.min()) - problem.families[0].base.delta)
+            low_gap = min(low_gap, float(gaps.min()))
+        feasible.append(met)
+        row_left.append(low_row < 0.0)
+        base_left.append(low_base < 0.0)
+        least_gap.append(low_gap)
+    per = decisions // len(starts)
+    return CarOutcome(np.array(feasible), per, np.array(row_left), np.array(base_left),
+                      np.array(least_gap), front / decisions, rear / decisions,
+                      float(np.median(shares)) if shares else math.nan,
+                      float(np.median(margins)), box_left, float(np.median(times)))
+
+
+def run_cars(starts: list[np.ndarray], periods: tuple[float, ...], gain: float
+             ) -> list[str]:
+    """The Car Following table: per T = L, the shipped episode and the random ones, with and
+    without the margin."""
+    table = ['| T = L | episodes | rows | decisions meeting every row | row set left | '
+             'base set left | least gap (m) | car 3 may start braking | car 5 may stop '
+             'braking | braking share of nu0 (failed rows) | median margin | true disturbance '
+             'outside the box (fine steps) | median decision (ms) |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|---|']
+    for period in periods:
+        for name, chosen in (('shipped', starts[:1]), (f'{len(starts) - 1} random',
+                                                       starts[1:])):
+            for tightened in (False, True):
+                out = simulate_cars(chosen, period=period, latency=period,
+                                    tightened=tightened, gain=gain)
+                total = out.decisions * len(chosen)
+                share = '-' if math.isnan(out.jump_share) else f'{out.jump_share:.2f}'
+                table.append(
+                    f"| {1e3 * period:g} ms | {name} | "
+                    f"{'with margin' if tightened else 'T = L = 0'} | "
+                    f'{int(out.feasible.sum())} / {total} | '
+                    f'{int(out.row_left.sum())} / {len(chosen)} | '
+                    f'{int(out.base_left.sum())} / {len(chosen)} | '
+                    f'{out.least_gap.min():.3f} | {out.reach_front:.2f} | '
+                    f'{out.reach_rear:.2f} | {share} | {out.median_margin:.3g} | '
+                    f'{out.box_left} | {1e3 * out.decision_time_s:.3f} |')
+    return table
+
+
 TITLE = 'Between samples and under latency: violations with and without the margin'
 
 PVTOL_HOVER_HORIZONS = (0.02, 0.04)
