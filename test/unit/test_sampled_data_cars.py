@@ -173,5 +173,24 @@ def test_the_benchmarks_car_physics_are_the_envs():
     starts = bench.car_starts(1, seed=0)
     out = bench.simulate_cars(starts[:1], period=0.02, latency=0.02, tightened=False,
                               limit=50.0, duration=0.5)
-    assert out.decisions == 25 and out.feasible.tolist() == [25]
+    assert out.decided.tolist() == out.feasible.tolist() == [25]
     assert out.box_left == 0
+
+
+def test_the_shipped_start_has_no_command_meeting_the_tightened_rows():
+    """The refusal's reason at its first decision (docs/SAFETY_FILTER.md): the shipped start at
+    T = L = 20 ms, limits +/- 50, the benchmark's box. The continuous-time rows leave commands;
+    the tightened rows leave none, car 3 sitting on its switch (row 3-4 pays k_b 6 d_34)."""
+    start = bench.car_starts(0, seed=0)[0]
+    problem = _problem(50.0)
+    mean, std = bench.car_box(0.1)
+    from rcbf_ros.core.lie_closed_form import ClosedFormTerms
+    at = ClosedFormTerms.from_problem(problem).terms(start)
+    rho = at.grad_h @ mean - problem.k_c * np.abs(at.grad_h) @ std
+    upper, lg = at.lf_h + rho + problem.alpha * at.h, at.lg_h[:, 0]
+    assert bench.car_decide(upper, lg, 5.0, 50.0) is not None
+    rest, linear, braking = CarFollowingBound(problem, 0.04).parts(start, mean, std)
+    assert braking[0] == pytest.approx(K_B * 6.0 * (start[4] - start[6]))
+    assert bench.car_decide(np.concatenate([upper - rest] * 2),
+                            np.concatenate([lg - linear[:, 0], lg + linear[:, 0]]),
+                            5.0, 50.0) is None
