@@ -71,12 +71,21 @@ over the box: across a switch the values' hull over both branches holds, a gradi
 :func:`~rcbf_ros.core.qp.robust_margin` forms it). Where no enclosure closes the margin is
 infinite and the filter answers with its fail-safe.
 
+Car Following's cascaded gap rows have a closed-form bound, :class:`CarFollowingBound`: the
+cars' speeds and gaps bounded from their relative motion (a follower's rate |v_dot| <=
+(k_v |v_des - v_k| + k_b B + w) / (1 - tau k_v), car 4's U + w), each braking switch's reach
+decided per follower in the chain's order (with its own braking off until its gap first enters
+the switch), and the switch's jump k_b s d paid only where it can be reached and only in the
+direction that lowers the row (docs/SAFETY_FILTER.md, "Car Following: the bound, and why it is
+refused"). No filter takes it: its margin of car 4's own motion is a share (gamma + alpha) tau
+of the command's authority on a row (1.5 at T = L = 50 ms with the shipped gains), and at
+T = L >= 20 ms most decisions of the shipped scenario meet no command, each then answered by
+the fail-safe 0, which coasts into the car ahead (benchmarks/bench_sampled_data.py).
+
 Refused, in one line naming the key and the system, rather than filter with rows that hold at
-the samples only: a system without input limits; Car Following (its prior brakes by k_b times
-the gap inside a switch, a jump of about 120 m/s^2: at the switches, where its shipped scenario
-drives, the margin is thousands and no input meets it); sensor points on another system than
-the Unicycle; a problem without a closed form (a system or family given by dotted path, a
-cascaded look-ahead point).
+the samples only: a system without input limits; Car Following (above); sensor points on
+another system than the Unicycle; a problem without a closed form (a system or family given by
+dotted path, a cascaded look-ahead point).
 """
 from __future__ import annotations
 
@@ -110,8 +119,10 @@ _QUADRATIC = (HalfPlane, BandBarrier, PairGap)
 """Families whose margin comes from their quadratic coefficients."""
 
 REFUSED_SYSTEMS: dict[type, str] = {
-    CarFollowing: 'its braking switches jump the prior by k_b times the gap, so the margin '
-                  'near a switch exceeds what any input within the limits can meet'}
+    CarFollowing: "its bound charges car 4's own motion a share (gamma + alpha) tau of the "
+                  "command's authority and k_b times the gap where its braking switches can "
+                  'be reached, and its fail-safe 0 coasts: at T = L >= 20 ms most decisions '
+                  'of its scenario meet no command (docs/SAFETY_FILTER.md)'}
 """Built-in systems whose interval margin is refused, and why (module docstring)."""
 
 
