@@ -407,11 +407,16 @@ class CarFollowingBound:
 
     def _gap_reach(self, x: np.ndarray, w: np.ndarray, rate: np.ndarray, ahead: int,
                    behind: int) -> tuple[float, float]:
-        """(q_k, Q): the gap q = p_ahead - p_behind at x_k and Q >= |q(t) - q_k| over tau."""
+        """(q_k, Q): the gap q = p_ahead - p_behind at x_k and Q >= |q(t) - q_k| over tau,
+        widened by the positions' rounding (:data:`POSITION_ROUNDING` of their magnitude): a
+        gap exactly on its switch leaves it in floating point as the positions advance, at
+        equal speeds too."""
         tau = self.horizon
         q = x[2 * ahead] - x[2 * behind]
         closing = abs(x[2 * ahead + 1] - x[2 * behind + 1]) + w[2 * ahead] + w[2 * behind]
-        return q, tau * closing + 0.5 * tau * tau * (rate[ahead] + rate[behind])
+        rounding = POSITION_ROUNDING * (1.0 + abs(x[2 * ahead]) + abs(x[2 * behind])
+                                        + tau * (abs(x[2 * ahead + 1]) + abs(x[2 * behind + 1])))
+        return q, tau * closing + 0.5 * tau * tau * (rate[ahead] + rate[behind]) + rounding
 
     def _switches(self, x: np.ndarray, w: np.ndarray
                   ) -> tuple[dict[int, float], dict[int, tuple[float, float, float]]]:
@@ -489,6 +494,9 @@ class CarFollowingBound:
         return rest + linear[:, 0] * self._reach
 
 
+POSITION_ROUNDING = 1e-9
+"""The rounding a gap may take per metre of its cars' positions (m/m), far above float64's
+1e-16 per step over the steps of an interval."""
 _INPUT_CAR = 3
 """The car (0-based) whose acceleration is the input: car 4."""
 

@@ -2,11 +2,12 @@
 CarFollowingBound) holds along fine-step trajectories across the braking switches, and pays a
 switch's jump exactly where the switch can be reached.
 
-The bound is checked against the true decrease of each cascaded gap row's left side along 1 ms
-Euler trajectories of the prior plus a disturbance in the box, car 4's input at the limits
-(switching at random), the left side evaluated by the torch assembly of RCBFProblem.qp
-(autograd through the cascade: not the bound's code), from states whose gaps sit near, on and
-across the switches of cars 2, 3 and 5.
+The bound is checked along 1 ms Euler trajectories of the prior plus a disturbance in the box,
+car 4's input at the limits (switching at random), from states whose gaps sit near, on and
+across the switches of cars 2, 3 and 5: its speeds and gaps' reach hold the trajectory, and
+the true decrease of each cascaded gap row's left side, evaluated by the torch assembly of
+RCBFProblem.qp (autograd through the cascade: not the bound's code), stays within it, term by
+term (the rest within nu0, L_g h* within c).
 """
 from __future__ import annotations
 
@@ -63,11 +64,10 @@ def _hostile_state(rng: np.random.Generator) -> np.ndarray:
     return state
 
 
-def _decrease(problem: RCBFProblem, x_k: np.ndarray, mean: np.ndarray, std: np.ndarray,
-              horizon: float, held: float, rng: np.random.Generator) -> np.ndarray:
-    """The largest phi_i(x_k, u) - phi_i(x(t), u) along one 1 ms Euler trajectory of the prior
-    plus a disturbance at vertices of the box and car 4's input at its limits (both switching
-    at random), phi at the held command u = ``held``."""
+def _trajectory(problem: RCBFProblem, x_k: np.ndarray, mean: np.ndarray, std: np.ndarray,
+                horizon: float, rng: np.random.Generator) -> np.ndarray:
+    """(steps + 1, 10) one 1 ms Euler trajectory of the prior plus a disturbance at vertices
+    of the box and car 4's input at its limits (both switching at random)."""
     system = problem.system
     limit = system.u_max[0]
     whole, rest = divmod(horizon, 1e-3)
@@ -82,11 +82,25 @@ def _decrease(problem: RCBFProblem, x_k: np.ndarray, mean: np.ndarray, std: np.n
         x_dot = system.f(x) + system.g(x)[..., 0] * u
         x = x + dt * (x_dot + torch.tensor(psi)[None])
         states.append(x[0].numpy())
-    batch = torch.tensor(np.array(states), dtype=torch.float64)
+    return np.array(states)
+
+
+def _rows(problem: RCBFProblem, states: np.ndarray, mean: np.ndarray, std: np.ndarray,
+          held: float) -> np.ndarray:
+    """(steps + 1, K) phi_i(x, u) along ``states`` at the command u = ``held``, by the torch
+    assembly of the QP."""
+    batch = torch.tensor(states, dtype=torch.float64)
     count = batch.shape[0]
     qp = problem.qp(batch, torch.full((count, 1), held, dtype=torch.float64),
                     torch.tensor(mean).expand(count, 10), torch.tensor(std).expand(count, 10))
-    phi = qp.h[:, :problem.n_barriers].numpy()
+    return qp.h[:, :problem.n_barriers].numpy()
+
+
+def _decrease(problem: RCBFProblem, x_k: np.ndarray, mean: np.ndarray, std: np.ndarray,
+              horizon: float, held: float, rng: np.random.Generator) -> np.ndarray:
+    """The largest phi_i(x_k, u) - phi_i(x(t), u) along one :func:`_trajectory`, phi at the
+    held command u = ``held``."""
+    phi = _rows(problem, _trajectory(problem, x_k, mean, std, horizon, rng), mean, std, held)
     return (phi[0] - phi).max(axis=0)
 
 
@@ -106,11 +120,28 @@ def test_the_true_decrease_of_every_gap_row_stays_within_the_bound(data, period,
     bound = CarFollowingBound(problem, period + latency)
     rest, linear, braking = bound.parts(x_k, mean, std)
     assert np.all(np.isfinite(rest)) and np.all(linear >= 0.0) and np.all(braking <= rest)
-    for held in (limit * rng.uniform(-1.0, 1.0), limit, 0.0):
-        for _ in range(3):
-            decrease = _decrease(problem, x_k, mean, std, period + latency, held, rng)
-            nu = rest + linear[:, 0] * abs(held)
-            assert np.all(decrease <= nu + 1e-9), (x_k, decrease, nu, braking)
+    w = np.abs(mean) + problem.k_c * std
+    speeds, _ = bound._motion(x_k, w, bound._switches(x_k, w)[0])
+    reach = bound._switches(x_k, w)[1]
+    tau = period + latency
+    for _ in range(3):
+        states = _trajectory(problem, x_k, mean, std, tau, rng)
+        # every speed within tau R of its start, every follower's gap within its interval S
+        assert np.all(np.abs(states[:, 1::2] - x_k[1::2]) <= tau * speeds + 1e-9)
+        for car, (lo, hi, _) in reach.items():
+            leader = {1: 0, 2: 1, 4: 2}[car]
+            gap = states[:, 2 * leader] - states[:, 2 * car]
+            assert np.all((lo - 1e-9 <= gap) & (gap <= hi + 1e-9)), (car, lo, hi)
+        # the rest (phi at u = 0) falls by at most nu0, L_g h changes by at most c, and the
+        # row of a held command by at most nu0 + c |u|
+        still = _rows(problem, states, mean, std, 0.0)
+        assert np.all((still[0] - still).max(axis=0) <= rest + 1e-9), (x_k, rest, braking)
+        moved = _rows(problem, states, mean, std, 1.0) - still  # L_g h along the trajectory
+        assert np.all(np.abs(moved - moved[0]).max(axis=0) <= linear[:, 0] + 1e-9)
+        for held in (limit * rng.uniform(-1.0, 1.0), limit, -limit):
+            phi = _rows(problem, states, mean, std, held)
+            assert np.all((phi[0] - phi).max(axis=0)
+                          <= rest + linear[:, 0] * abs(held) + 1e-9), (x_k, held)
 
 
 def test_a_switch_that_can_be_reached_pays_its_jump_and_one_that_cannot_pays_nothing():
