@@ -181,11 +181,19 @@ def test_a_leaders_braking_that_carries_its_follower_into_the_switch_is_paid():
     assert np.all(decrease <= rest)
 
 
-def test_no_bound_where_the_speeds_cannot_be_bounded():
-    """tau k_v >= 1: the speeds' bound does not close, the margins are inf."""
-    bound = CarFollowingBound(_problem(10.0), 0.25)
-    rest, _, _ = bound.parts(np.full(10, 30.0), np.zeros(10), np.zeros(10))
-    assert np.all(rest == np.inf)
+@pytest.mark.parametrize(('horizon', 'entry', 'value'), [
+    (0.25, None, 0.0), (0.04, 'state', np.nan), (0.04, 'state', np.inf),
+    (0.04, 'std', np.nan), (0.04, 'mean', -np.inf)])
+def test_no_bound_where_the_speeds_cannot_be_bounded_or_the_data_is_not_finite(
+        horizon, entry, value):
+    """tau k_v >= 1 (the speeds' bound does not close) or a non-finite state or box: the
+    margins are inf (a filter would answer with its fail-safe)."""
+    data = {'state': np.full(10, 30.0), 'mean': np.zeros(10), 'std': np.zeros(10)}
+    if entry is not None:
+        data[entry][3] = value
+    rest, linear, _ = CarFollowingBound(_problem(10.0), horizon).parts(
+        data['state'], data['mean'], data['std'])
+    assert np.all(rest == np.inf) and np.all(linear == 0.0)
 
 
 def test_the_bound_needs_the_cars_with_limits_and_cascaded_gaps():
