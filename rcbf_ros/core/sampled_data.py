@@ -487,12 +487,6 @@ class CarFollowingBound:
             linear[row, 0] = dd if (a == _INPUT_CAR) != (b == _INPUT_CAR) else 0.0  # L_g h* = +/-d
         return rest, linear, jumps
 
-    def rows(self, x: Sequence[float], mean: Sequence[float], std: Sequence[float]
-             ) -> np.ndarray:
-        """(K,) the constant margin nu0 + c U of the largest input."""
-        rest, linear, _ = self.parts(x, mean, std)
-        return rest + linear[:, 0] * self._reach
-
 
 POSITION_ROUNDING = 1e-9
 """The rounding a gap may take per metre of its cars' positions (m/m), far above float64's
