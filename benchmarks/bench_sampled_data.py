@@ -1,8 +1,9 @@
 """The Unicycle and PVTOL filters between samples and under latency: violations with and
-without the sampled-data margin, and what the margin costs.
+without the sampled-data margin, and what the margin costs; and why Car Following's is refused.
 
     python benchmarks/bench_sampled_data.py [--worlds 200] [--period 0.1] [--latency 0.05]
         [--pvtol-worlds 50] [--pvtol-period 0.02] [--pvtol-latency 0.02]
+        [--car-episodes 20] [--cars-only]
 
 Fine-step simulation of the TRUE dynamics (rcbf_ros/envs/unicycle.py: x_dot = g(x) (u + u_d),
 u_d = -0.1 cos(theta) [1, 0]), 1 ms Euler steps. The filter samples the state every period T;
@@ -31,8 +32,18 @@ a base set (a disc with its margin, a band) was left at some fine step, the leas
 the fail-safe decisions (rows infeasible), the median margin of the commands decided and the
 median decision time, without the margin, with the constant one and with the command's.
 
-The fine-step simulations are also what test/unit/test_sampled_data.py and
-test/unit/test_sampled_data_interval.py run, on a few worlds.
+Car Following (:func:`simulate_cars`, its own section; ``--cars-only`` runs it alone): the
+bound behind the refusal of its margin (:class:`~rcbf_ros.core.sampled_data.CarFollowingBound`)
+on the shipped episode and random starts around it, T = L in 10, 20, 50 ms, 1 ms Euler steps of
+the true cars, car 4's proposal +5 m/s^2 into car 3; printed with and without the margin: the
+decisions with a command meeting every row (until a collision), the row and base sets left,
+the least gap, how often each braking switch was within reach, which rows failed and what
+their margins were made of (the braking terms, car 4's own input range, the box), the median
+margin and the time of a decision.
+
+The fine-step simulations are also what test/unit/test_sampled_data.py,
+test/unit/test_sampled_data_interval.py and test/unit/test_sampled_data_cars.py run, on a few
+worlds.
 """
 from __future__ import annotations
 
@@ -434,6 +445,271 @@ def simulate_pvtol(worlds: list[PVTOLWorld], *, period: float, latency: float,
                         float(np.median(times)))
 
 
+# ------------------------------------------------------------------ Car Following
+CAR_LIMIT = 10.0
+"""|u_4| <= 10 m/s^2 (the shipped config has no limits; the margin needs them)."""
+CAR_DURATION_S = 6.0
+"""The shipped episode's length: 300 steps of 20 ms."""
+CAR_PERIODS = (0.01, 0.02, 0.05)
+"""T = L (s) of the Car Following table."""
+CAR_SETTINGS = ((50.0, 0.0), (50.0, 0.1), (10.0, 0.1))
+"""(input limit (m/s^2), unknown gain d_i of cars 1, 2, 3, 5) of the Car Following table: a
+limit the continuous-time rows of the shipped episode never reach, with the model exact but
+for the leader's sine and with the env's gains; a road car's limit with the env's gains."""
+
+
+def car_problem(limit: float = CAR_LIMIT) -> RCBFProblem:
+    """config/car_following.yaml's rows (cascaded gaps 3-4 and 4-5, alpha 5, gamma 8, k_c 2)
+    with input limits +/- ``limit``."""
+    from rcbf_ros.core.config import filter_config_from_params
+    from rcbf_ros.parameters.rules import find_config, load_params
+    params = load_params(find_config('car_following'), 'safety_filter')
+    params.update({'input_limits.min': [-limit], 'input_limits.max': [limit]})
+    return filter_config_from_params(params).problem
+
+
+def car_box(gain: float) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, std) of the disturbance box, k_c = 2: the unknown gains d_i = ``gain`` of cars 2,
+    3, 5 times their largest prior accelerations near v_des (k_v 3 m/s + k_b G), the leader's
+    tracking and sine (up to 25 m/s^2, the prior holds 0) on car 1; 0 on the positions and on
+    car 4. The benchmark counts the fine steps where the true disturbance leaves it."""
+    std = np.zeros(10)
+    std[1] = 25.0 / 2.0
+    std[3] = std[5] = gain * (4.0 * 3.0 + 20.0 * 6.0) / 2.0
+    std[9] = gain * (4.0 * 3.0 + 20.0 * 12.0) / 2.0
+    return np.zeros(10), std
+
+
+def car_starts(count: int, seed: int) -> list[np.ndarray]:
+    """The shipped start (config/car_following.yaml, the env's seed 0) and ``count`` random
+    ones around it (seeded): every position moved by U[-1.5, 1.5] m, every car's speed by
+    U[-1, 1] m/s on top of the shared draw, car 4 at 35 + U[-2, 2] m/s; a draw outside a row
+    set (h* < 0 or h < 0 for a gap row) is drawn again (a filter keeps a set, it does not
+    enter one)."""
+    from rcbf_ros.core.lie_closed_form import ClosedFormTerms
+    from rcbf_ros.envs.car_following import CarFollowingEnv
+    env = CarFollowingEnv()
+    env.reset(seed=0)
+    starts = [env.state]
+    problem = car_problem()
+    terms = ClosedFormTerms.from_problem(problem)
+    delta = problem.families[0].base.delta
+    rng = np.random.default_rng(seed)
+    while len(starts) <= count:
+        state = starts[0].copy()
+        state[0::2] += rng.uniform(-1.5, 1.5, 5)
+        state[1::2] += rng.uniform(-1.0, 1.0, 5)
+        state[7] = 35.0 + rng.uniform(-2.0, 2.0)
+        gaps = np.abs(state[[4, 6]] - state[[6, 8]])
+        if (terms.terms(state).h >= 0.0).all() and (gaps >= delta).all():
+            starts.append(state)
+    return starts
+
+
+class CarOutcome(NamedTuple):
+    """One Car Following case over its episodes."""
+
+    feasible: np.ndarray
+    """(E,) per episode, the decisions with a command meeting every row."""
+    decided: np.ndarray
+    """(E,) per episode, the decisions before it ended (6 s or a collision)."""
+    first_failed: np.ndarray
+    """(E,) the time of each episode's first decision without such a command (s; inf)."""
+    row_left: np.ndarray
+    """(E,) whether a row set (h* >= 0) was left at some fine step."""
+    base_left: np.ndarray
+    """(E,) whether a base set (a gap of delta = 3.75 m) was left at some fine step."""
+    least_gap: np.ndarray
+    """(E,) the least gap |p_3 - p_4|, |p_4 - p_5| over the fine steps (m); 0: a collision,
+    where the episode ends."""
+    reach_front: float
+    """The fraction of decisions where car 3 may start braking within tau (row 3-4's jump)."""
+    reach_rear: float
+    """The same for car 5 ceasing to brake (row 4-5's jump)."""
+    failed_rows: tuple[int, int]
+    """(row 3-4, row 4-5): how often each had no command within the limits meeting it."""
+    shares: tuple[float, float, float]
+    """Median shares of nu0 over the rows that failed: the braking terms', car 4's input
+    range's (nu0 less nu0 with the limits 0, in the motion only) and the box's (nu0 less nu0
+    with the box 0)."""
+    median_margin: float
+    """Median nu0 + c |u| over the rows of the decisions (the command decided or proposed)."""
+    box_left: int
+    """Fine steps where the true disturbance left the box (the guarantee's premise)."""
+    decision_time_s: float
+    """Median time of the margin and the rows at one decision (s)."""
+
+
+def car_decide(upper: np.ndarray, lg: np.ndarray, proposal: float, limit: float
+               ) -> float | None:
+    """The command nearest ``proposal`` within +/- ``limit`` meeting upper + lg u >= 0 (the
+    QP in one input), or None where no command does."""
+    low, high = -limit, limit
+    for a, b in zip(upper, lg):
+        if b > 0.0:
+            low = max(low, -a / b)
+        elif b < 0.0:
+            high = min(high, -a / b)
+        elif a < 0.0:
+            return None
+    return None if low > high else min(max(proposal, low), high)
+
+
+def simulate_cars(starts: list[np.ndarray], *, period: float, latency: float,
+                  tightened: bool, gain: float = 0.1, limit: float = CAR_LIMIT,
+                  duration: float = CAR_DURATION_S,
+                  proposal: float = 5.0) -> CarOutcome:
+    """Run every start for ``duration`` s under 1 ms Euler steps of the true Car Following
+    (rcbf_ros/envs/car_following.py: the leader's sine, the gains 1 + ``gain``), car 4's
+    command held for T and computed from states L old (as :func:`simulate`); the proposal a
+    constant ``proposal`` m/s^2 into car 3 (the env's nominal controller). A decision meets
+    the rows (tightened by :class:`~rcbf_ros.core.sampled_data.CarFollowingBound` when
+    ``tightened``, split by the sign of u) within +/- ``limit``, or answers the fail-safe 0
+    (config/car_following.yaml's fail_safe_action: car 4 coasts)."""
+    from dataclasses import replace
+    import time
+
+    from rcbf_ros.core.lie_closed_form import ClosedFormTerms
+    from rcbf_ros.core.sampled_data import CarFollowingBound
+    from rcbf_ros.envs.car_following import CarFollowingEnv
+    problem = car_problem(limit)
+    terms = ClosedFormTerms.from_problem(problem)
+    horizon = period + latency
+    bound = CarFollowingBound(problem, horizon)
+    still = CarFollowingBound(replace(problem, system=replace(
+        problem.system, u_min=(0.0,), u_max=(0.0,))), horizon)
+    mean, std = car_box(gain)
+    zero = np.zeros(10)
+    reach_box = np.abs(mean) + problem.k_c * std
+    env = CarFollowingEnv(disturbance_gain=gain)
+    period_steps = max(1, round(period / FINE_STEP_S))
+    delay_steps = round(latency / FINE_STEP_S)
+    feasible, decided, first_failed, row_left, base_left, least_gap = [], [], [], [], [], []
+    front = rear = box_left = 0
+    failed_rows = np.zeros(2, dtype=np.int64)
+    shares: list[list[float]] = [[], [], []]
+    margins, times = [], []
+    decisions = 0
+    for start in starts:
+        state, command = start.copy(), 0.0
+        pending: list[tuple[int, float]] = []
+        met, made, first = 0, 0, math.inf
+        low_row = low_base = low_gap = math.inf
+        for step in range(round(duration / FINE_STEP_S)):
+            t = step * FINE_STEP_S
+            if step % period_steps == 0:
+                started = time.perf_counter()
+                at = terms.terms(state)
+                rho = at.grad_h @ mean - problem.k_c * np.abs(at.grad_h) @ std
+                upper = at.lf_h + rho + problem.alpha * at.h
+                lg = at.lg_h[:, 0]
+                if tightened:  # upper - nu0 + (lg -/+ c) u >= 0 for either sign of u
+                    rest, linear, jumps = bound.parts(state, mean, std)
+                    answer = car_decide(np.concatenate([upper - rest] * 2),
+                                        np.concatenate([lg - linear[:, 0],
+                                                        lg + linear[:, 0]]),
+                                        proposal, limit)
+                else:
+                    answer = car_decide(upper, lg, proposal, limit)
+                times.append(time.perf_counter() - started)
+                if not tightened:  # the margin it would have had, untimed
+                    rest, linear, jumps = bound.parts(state, mean, std)
+                decisions += 1
+                made += 1
+                front += jumps[0] > 0.0
+                rear += jumps[1] > 0.0
+                chosen = proposal if answer is None else answer
+                margins.extend(rest + linear[:, 0] * abs(chosen))
+                if answer is None:
+                    first = min(first, t)
+                    # a row fails alone where no command within the limits meets it
+                    best = (upper - rest * tightened
+                            + np.maximum(np.abs(lg) - linear[:, 0] * tightened, 0.0) * limit)
+                    alone = best < 0.0
+                    failed_rows += alone
+                    for row in np.flatnonzero(alone):
+                        shares[0].append(jumps[row] / rest[row])
+                        shares[1].append(1.0 - still.parts(state, mean, std)[0][row]
+                                         / rest[row])
+                        shares[2].append(1.0 - bound.parts(state, zero, zero)[0][row]
+                                         / rest[row])
+                met += answer is not None
+                pending.append((step + delay_steps, 0.0 if answer is None else answer))
+            while pending and pending[0][0] <= step:
+                command = pending.pop(0)[1]
+            accelerations = env.true_accelerations(state, np.array([command]), t)
+            f, _ = env.nominal_terms(state)
+            psi = accelerations - f[1::2]
+            psi[3] -= command
+            box_left += bool((np.abs(psi) > reach_box[1::2] + 1e-9).any())
+            derivative = np.empty(10)
+            derivative[0::2], derivative[1::2] = state[1::2], accelerations
+            state = state + FINE_STEP_S * derivative
+            at = terms.terms(state)
+            gaps = np.abs(state[[4, 6]] - state[[6, 8]])
+            low_row = min(low_row, float(at.h.min()))
+            low_base = min(low_base, float(gaps.min()) - problem.families[0].base.delta)
+            low_gap = min(low_gap, float(gaps.min()))
+            if (state[[4, 6]] <= state[[6, 8]]).any():  # a collision: car 4 at car 3 or 5
+                low_gap = 0.0
+                break
+        feasible.append(met)
+        decided.append(made)
+        first_failed.append(first)
+        row_left.append(low_row < 0.0)
+        base_left.append(low_base < 0.0)
+        least_gap.append(low_gap)
+    median = [float(np.median(v)) if v else math.nan for v in shares]
+    return CarOutcome(np.array(feasible), np.array(decided), np.array(first_failed),
+                      np.array(row_left), np.array(base_left), np.array(least_gap),
+                      front / decisions, rear / decisions,
+                      (int(failed_rows[0]), int(failed_rows[1])),
+                      (median[0], median[1], median[2]), float(np.median(margins)), box_left,
+                      float(np.median(times)))
+
+
+CAR_CASES = (('T = L = 0', False), ('with margin', True))
+"""The rows of the Car Following table: (label, tightened)."""
+
+
+def _share(value: float) -> str:
+    """A share of nu0 as printed, or - where no row failed."""
+    return '-' if math.isnan(value) else f'{value:.2f}'
+
+
+def run_cars(starts: list[np.ndarray], periods: tuple[float, ...],
+             settings: tuple[tuple[float, float], ...]) -> list[str]:
+    """The Car Following table: per T = L and (limit, unknown gain), the shipped episode and
+    the random ones, without the margin and with it."""
+    table = ['| T = L | limit (m/s^2) | unknown gain | episodes | rows | decisions meeting '
+             'every row (until a collision) | episodes whose every decision met them | first '
+             'without (s, median) | row set left | base set left | least gap (m) | car 3 may '
+             'start braking | car 5 may stop braking | rows failing alone (3-4, 4-5) | share of '
+             'nu0 there: braking, own input, box | median margin | disturbance outside the box '
+             '(fine steps) | median decision (ms) |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|']
+    for period in periods:
+        for limit, gain in settings:
+            for name, chosen in (('shipped', starts[:1]),
+                                 (f'{len(starts) - 1} random', starts[1:])):
+                for label, tightened in CAR_CASES:
+                    out = simulate_cars(chosen, period=period, latency=period,
+                                        tightened=tightened, gain=gain, limit=limit)
+                    first = float(np.median(out.first_failed))
+                    table.append(
+                        f'| {1e3 * period:g} ms | {limit:g} | {gain:g} | {name} | {label} | '
+                        f'{int(out.feasible.sum())} / {int(out.decided.sum())} | '
+                        f'{int((out.feasible == out.decided).sum())} / {len(chosen)} | '
+                        f"{'-' if math.isinf(first) else f'{first:.2f}'} | "
+                        f'{int(out.row_left.sum())} / {len(chosen)} | '
+                        f'{int(out.base_left.sum())} / {len(chosen)} | '
+                        f'{out.least_gap.min():.3f} | {out.reach_front:.2f} | '
+                        f'{out.reach_rear:.2f} | {out.failed_rows[0]}, {out.failed_rows[1]} | '
+                        f'{", ".join(_share(v) for v in out.shares)} | '
+                        f'{out.median_margin:.3g} | {out.box_left} | '
+                        f'{1e3 * out.decision_time_s:.3f} |')
+    return table
+
 TITLE = 'Between samples and under latency: violations with and without the margin'
 
 PVTOL_HOVER_HORIZONS = (0.02, 0.04)
@@ -507,6 +783,40 @@ def run_pvtol(worlds: list[PVTOLWorld], period: float, latency: float) -> list[s
     return table
 
 
+CARS_TITLE = 'Car Following between samples: why its margin is refused'
+
+
+def publish_cars(episodes: int, seed: int, write: bool) -> None:
+    """Run and print (and write, when ``write``) the Car Following section."""
+    from benchmarks._results import publish_section
+    table = run_cars(car_starts(episodes, seed), CAR_PERIODS, CAR_SETTINGS)
+    options = ''.join(f' --{name} {value}' for name, value, default in (
+        ('car-episodes', episodes, 20), ('seed', seed, 0)) if value != default)
+    publish_section(CARS_TITLE, script=f'bench_sampled_data.py --cars-only{options}',
+                    write=write, blocks=[
+        "config/car_following.yaml's rows (cascaded gaps 3-4 and 4-5, alpha 5, gamma 8, k_c 2) "
+        'with input limits +/- the limit; the unknown gain of cars 1, 2, 3, 5 0 (the model '
+        "exact but for the leader's sine) or 0.1 (the env's); the shipped start (the env's "
+        f'seed 0) and {episodes} random starts around it (seed {seed}: every position moved by '
+        'U[-1.5, 1.5] m, every speed by U[-1, 1] m/s, car 4 at 35 + U[-2, 2] m/s, drawn again '
+        'where a gap row starts outside its row set); 1 ms Euler steps of the true Car '
+        "Following (the leader's sine, the gains 1 + the unknown gain) over 6 s or until car 4 "
+        "reaches car 3 or car 5 (a collision: least gap 0), car 4's command held for T and "
+        "computed from states L old, the proposal +5 m/s^2 into car 3 (the env's nominal "
+        "controller). The disturbance box covers the unknown gain times the prior's "
+        'accelerations (at 0.1: 13.2 m/s^2 on cars 2, 3, 25.2 on car 5) and 25 m/s^2 on the '
+        'leader. The QP in one input: the proposal clipped to the interval the rows leave '
+        "within the limits; none: the fail-safe, config/car_following.yaml's 0 (car 4 "
+        'coasts). "with margin": the rows tightened by CarFollowingBound\'s nu0 + c |u| '
+        '(rcbf_ros/core/sampled_data.py; docs/SAFETY_FILTER.md, "Not covered"). A row set: '
+        'h* >= 0; a base set: a gap of at least delta = 3.75 m. "may start / stop braking": '
+        'decisions whose bound finds that switch within reach. A row failing alone: no command '
+        "within the limits meets it; the shares of its nu0 there (medians): the braking terms', "
+        "car 4's own input range in the motion (nu0 less nu0 with the limits 0) and the box's "
+        '(nu0 less nu0 with the box 0). Decision time: the rows, the bound where it tightens '
+        'them and the QP, median.', table])
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--worlds', type=int, default=200)
@@ -516,11 +826,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--pvtol-worlds', type=int, default=50)
     parser.add_argument('--pvtol-period', type=float, default=0.02, help='T on PVTOL (s)')
     parser.add_argument('--pvtol-latency', type=float, default=0.02, help='L on PVTOL (s)')
+    parser.add_argument('--car-episodes', type=int, default=20,
+                        help='random Car Following episodes beside the shipped one')
+    parser.add_argument('--cars-only', action='store_true',
+                        help='run (and write) the Car Following section only')
     parser.add_argument('--no-write', dest='write', action='store_false',
-                        help='print the section only; leave benchmarks/RESULTS.md alone')
+                        help='print the sections only; leave benchmarks/RESULTS.md alone')
     args = parser.parse_args(argv)
-    if args.worlds < 1 or args.pvtol_worlds < 1:
-        parser.error('--worlds and --pvtol-worlds must be >= 1')
+    if args.worlds < 1 or args.pvtol_worlds < 1 or args.car_episodes < 1:
+        parser.error('--worlds, --pvtol-worlds and --car-episodes must be >= 1')
+    publish_cars(args.car_episodes, args.seed, args.write)
+    if args.cars_only:
+        return 0
     worlds = random_worlds(args.worlds, args.seed)
     table = run(worlds, args.period, args.latency)
     margins = run_margins(args.period, args.latency, PVTOL_HOVER_HORIZONS)
