@@ -33,7 +33,7 @@ the fail-safe decisions (rows infeasible), the median margin of the commands dec
 median decision time, without the margin, with the constant one and with the command's.
 
 Car Following (:func:`simulate_cars`, its own section; ``--cars-only`` runs it alone): the
-bound behind the refusal of its margin (:class:`~rcbf_ros.core.sampled_data.CarFollowingBound`)
+bound behind the refusal of its margin (:class:`_car_following_bound.CarFollowingBound`)
 on the shipped episode and random starts around it, T = L in 10, 20, 50 ms, 1 ms Euler steps of
 the true cars, car 4's proposal +5 m/s^2 into car 3; printed with and without the margin: the
 decisions with a command meeting every row (until a collision), the row and base sets left,
@@ -57,6 +57,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from _car_following_bound import CarFollowingBound  # noqa: E402  (a sibling)
 
 from rcbf_ros.core.barriers import CircleObstacles  # noqa: E402
 from rcbf_ros.core.dynamics import Unicycle  # noqa: E402
@@ -563,14 +565,13 @@ def simulate_cars(starts: list[np.ndarray], *, period: float, latency: float,
     (rcbf_ros/envs/car_following.py: the leader's sine, the gains 1 + ``gain``), car 4's
     command held for T and computed from states L old (as :func:`simulate`); the proposal a
     constant ``proposal`` m/s^2 into car 3 (the env's nominal controller). A decision meets
-    the rows (tightened by :class:`~rcbf_ros.core.sampled_data.CarFollowingBound` when
+    the rows (tightened by :class:`_car_following_bound.CarFollowingBound` when
     ``tightened``, split by the sign of u) within +/- ``limit``, or answers the fail-safe 0
     (config/car_following.yaml's fail_safe_action: car 4 coasts)."""
     from dataclasses import replace
     import time
 
     from rcbf_ros.core.lie_closed_form import ClosedFormTerms
-    from rcbf_ros.core.sampled_data import CarFollowingBound
     from rcbf_ros.envs.car_following import CarFollowingEnv
     problem = car_problem(limit)
     terms = ClosedFormTerms.from_problem(problem)

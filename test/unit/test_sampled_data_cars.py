@@ -1,6 +1,6 @@
-"""Car Following between samples: the bound behind its refusal (rcbf_ros/core/sampled_data.py,
-CarFollowingBound) holds along fine-step trajectories across the braking switches, and pays a
-switch's jump exactly where the switch can be reached.
+"""Car Following between samples: the bound behind its refusal
+(benchmarks/_car_following_bound.py, CarFollowingBound) holds along fine-step trajectories
+across the braking switches, and pays a switch's jump exactly where the switch can be reached.
 
 The bound is checked along 1 ms Euler trajectories of the prior plus a disturbance in the box,
 car 4's input at the limits (switching at random), from states whose gaps sit near, on and
@@ -22,10 +22,10 @@ import torch
 
 from rcbf_ros.core.config import filter_config_from_params
 from rcbf_ros.core.rcbf import RCBFProblem
-from rcbf_ros.core.sampled_data import CarFollowingBound
 from rcbf_ros.parameters.rules import find_config, load_params
 
 bench = load_benchmark('bench_sampled_data')
+CarFollowingBound = load_benchmark('_car_following_bound').CarFollowingBound
 
 K_B = 20.0
 """The prior's braking gain (rcbf_ros/core/dynamics.py, CarFollowing.k_b)."""
