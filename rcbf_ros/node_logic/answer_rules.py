@@ -10,10 +10,11 @@ The node (:mod:`rcbf_ros.ros.safety_filter_node`) answers at three kinds of even
   go out within ``control_period_s`` (:func:`~rcbf_ros.node_logic.safety_filter.hold_due`,
   :func:`~rcbf_ros.node_logic.safety_filter.decide_hold`).
 
-States and timer calls go unanswered once the latest proposal is older than
-``max_proposal_age_s + stop_pub_timeout`` (:meth:`AnswerRules.quiet_from_ns`): a quiet
-controller's fail-safe has gone out for ``stop_pub_timeout``, and the node goes quiet too until
-the next proposal, as collision_monitor does.
+States and timer calls go unanswered once the fail-safe of a stale proposal has gone out for
+``stop_pub_timeout`` (:meth:`AnswerRules.quiet_from_ns`), and the node goes quiet too until the
+next proposal, as collision_monitor does; never before the fail-safe went out, whatever the
+timing (a ``stop_pub_timeout`` of 0, states rarer than it): the base holds the fail-safe, not a
+command of the controller that went quiet.
 
 With a sampled-data margin every decision refuses a state older than ``latency_s``
 (:func:`~rcbf_ros.node_logic.safety_filter.state_age_limit_s`). :class:`AnswerRules` keeps
@@ -76,6 +77,9 @@ class AnswerRules:
         """When the latest proposal arrived (a defective one too; None: none yet)."""
         self.quiet = 0
         """States, source messages and timer calls left unanswered by :meth:`quiet_from_ns`."""
+        self.fail_safe_since_ns: int | None = None
+        """When the unbroken run of fail-safe answers that the latest answer ends began (None:
+        the latest answer was not the fail-safe, or none was made yet)."""
 
     @property
     def latest_state(self) -> StateSample | None:
@@ -108,9 +112,18 @@ class AnswerRules:
             stamp_ns = now_ns
         sources.note_state(state, stamp_ns=stamp_ns, now_ns=now_ns)
 
-    def answered(self, now_ns: int) -> None:
-        """An answer went out at ``now_ns`` (whatever made it)."""
+    def answered(self, now_ns: int, *, fail_safe: bool | None = None) -> None:
+        """An answer went out at ``now_ns`` (whatever made it); ``fail_safe``: whether it was
+        the fail-safe (None: as the rules' own decision at ``now_ns`` said)."""
         self.last_answer_ns = now_ns
+        if fail_safe is not None:
+            self._note_fail_safe(fail_safe, now_ns)
+
+    def _note_fail_safe(self, fail_safe: bool, now_ns: int) -> None:
+        if not fail_safe:
+            self.fail_safe_since_ns = None
+        elif self.fail_safe_since_ns is None:
+            self.fail_safe_since_ns = now_ns
 
     def propose(self, sample: ProposalSample | None, *, now_ns: int,
                 active: ActiveFilter) -> Decision | None:
@@ -173,14 +186,15 @@ class AnswerRules:
 
     def quiet_from_ns(self, active: ActiveFilter) -> int | None:
         """The time after which states and timer calls go unanswered until the next proposal:
-        ``max_proposal_age_s + stop_pub_timeout`` after the latest proposal's arrival (its
-        fail-safe, a stale proposal's, has then gone out for ``stop_pub_timeout``); None
-        before the first proposal (nothing is answered again then)."""
-        if self.proposed_ns is None:
+        ``stop_pub_timeout`` after the latest proposal went stale (``max_proposal_age_s``
+        after its arrival) or after the fail-safe answers began, whichever is later; None
+        while the latest answer is not the fail-safe (a quiet node leaves the base holding
+        the fail-safe, never a command) and before the first proposal."""
+        if self.proposed_ns is None or self.fail_safe_since_ns is None:
             return None
         settings = active.settings
-        return self.proposed_ns + round(
-            (settings.max_proposal_age_s + settings.stop_pub_timeout) * 1e9)
+        stale_ns = self.proposed_ns + round(settings.max_proposal_age_s * 1e9)
+        return max(stale_ns, self.fail_safe_since_ns) + round(settings.stop_pub_timeout * 1e9)
 
     def _gone_quiet(self, now_ns: int, active: ActiveFilter) -> bool:
         """Whether ``now_ns`` is past :meth:`quiet_from_ns` (counted in :attr:`quiet`)."""
@@ -192,6 +206,7 @@ class AnswerRules:
 
     def _answer(self, decision: Decision, now_ns: int) -> Decision:
         self.last_answer_ns = now_ns
+        self._note_fail_safe(decision.fail_safe, now_ns)
         return decision
 
     def _arguments(self, active: ActiveFilter, now_ns: int) -> dict[str, Any]:

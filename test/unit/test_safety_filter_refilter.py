@@ -266,9 +266,10 @@ def test_a_quiet_controller_is_corrected_then_stopped(refilter, capsys):
     assert all(_info(harness, -i)['fail_safe'][0] == 1 for i in range(1, 11))
     log = capsys.readouterr().err
     assert log.count('fail-safe: stale proposal: ') == 1, log   # throttled (log_throttle_s 1)
-    # ... for stop_pub_timeout (2 s) after the proposal went stale at 0.5 s, then nothing
+    # ... for stop_pub_timeout (2 s) after its first answer (the state at 0.52 s, the first
+    # after the proposal went stale at 0.5 s), then nothing
     sent, answered = len(harness.commands), 0
-    while clock.now_ns + 20 * MS <= proposed_ns + int(2.5 * SECOND):
+    while clock.now_ns + 20 * MS <= proposed_ns + int(2.52 * SECOND):
         clock.now_ns += 20 * MS
         node._on_state(_cdr({'state': [-3.0, 0.0, 0.0]}))
         answered += 1
