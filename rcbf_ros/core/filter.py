@@ -1502,7 +1502,12 @@ class SafetyFilter:
         [-L_g h_i, -1]) and the proposal they are written at (n_u floats). The action
         u + z[:n_u] must lie within the limits (to :data:`LIMIT_TOLERANCE`; then projected
         onto them), and the slack its rows need, from the rows themselves, must be accounted
-        for by the solver's own eps z[-1] (each row to 1e-6 of its scale 1 + |upper_i|)."""
+        for by the solver's own eps z[-1], each row to 1e-6 of its own scale, 1 + |upper_i| +
+        sum_j |L_g h_ij step_j| (step: the answer's move from the proposal): the size of the
+        terms its value is summed from, which the solver's own tolerance is relative to
+        (OSQP's: to the largest |G z|), and no other row's. A far row's right-hand side must
+        not loosen the rows that bind, nor a row of large gradient be held to a round-off its
+        solver cannot reach (|L_g h| 1e3 at a right-hand side near 0)."""
         z = self._finite_solution(z)
         if z is None:
             return None
@@ -1516,9 +1521,11 @@ class SafetyFilter:
         # The solver's own eps must account for what the rows need: else the answer is not the
         # solution of this QP (a stale or garbage iterate).
         claimed = max(0.0, z[-1])
-        if needed > claimed + 1e-6:  # each row to 1e-6 of its own scale, 1 + |upper_i|
-            if any(value + claimed < -1e-6 * (1.0 + abs(bound))
-                   for value, bound in zip(values, rows_upper)):
+        if needed > claimed + 1e-6:  # each row to 1e-6 of its own scale (_check)
+            n_u = self.n_u
+            if any(value + claimed < -1e-6 * (1.0 + abs(bound) + sum(
+                    abs(g * d) for g, d in zip(row[:n_u], step)))
+                   for value, bound, row in zip(values, rows_upper, g_rows)):
                 return None
         return action, values, needed
 
@@ -1805,8 +1812,9 @@ class SafetyFilter:
         values = upper + product(lg, step)
         needed = max(0.0, -float(_least(values)))
         claimed = max(0.0, z[-1])
-        if needed > claimed + 1e-6:  # each row to 1e-6 of its own scale, 1 + |upper_i|
-            if _least(values + claimed + 1e-6 * (1.0 + np.abs(upper))) < 0.0:
+        if needed > claimed + 1e-6:  # each row to 1e-6 of its own scale (_check)
+            scale = 1.0 + np.abs(upper) + product(np.abs(lg), np.abs(np.asarray(step)))
+            if _least(values + claimed + 1e-6 * scale) < 0.0:
                 return None
         return action, values, needed
 
