@@ -77,6 +77,10 @@ class AnswerRules:
         """When the latest proposal arrived (a defective one too; None: none yet)."""
         self.quiet = 0
         """States, source messages and timer calls left unanswered by :meth:`quiet_from_ns`."""
+        self.quiet_ns: int | None = None
+        """When a state, source message or timer call was last left unanswered by
+        :meth:`quiet_from_ns` (None: never): an answer after it owes nothing to the one before
+        (no ``control_period_s`` was kept meanwhile: the base held the fail-safe)."""
         self.fail_safe_since_ns: int | None = None
         """When the unbroken run of fail-safe answers that the latest answer ends began (None:
         the latest answer was not the fail-safe, or none was made yet)."""
@@ -202,6 +206,7 @@ class AnswerRules:
         if quiet_from is None or now_ns <= quiet_from:
             return False
         self.quiet += 1
+        self.quiet_ns = now_ns
         return True
 
     def _answer(self, decision: Decision, now_ns: int) -> Decision:

@@ -25,6 +25,7 @@ from rcbf_ros.node_logic import filter_edge
 from rcbf_ros.node_logic import safety_filter as fl
 from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
+from rcbf_ros.ros.runtime import Parameter
 
 SECOND = 1_000_000_000
 MS = 1_000_000
@@ -284,6 +285,28 @@ def test_a_quiet_controller_is_corrected_then_stopped(refilter, capsys):
     clock.now_ns += 20 * MS
     node._on_state(_cdr({'state': [-3.0, 0.0, 0.0]}))
     assert list(_info(harness, -1)['u']) == [1.0, 0.0]
+
+
+def test_an_answer_after_the_node_went_quiet_is_not_a_late_one(refilter, capsys):
+    """With control_period_s (0.05 s): a controller quiet for good gets the fail-safe at each
+    state (20 ms apart: none late) for stop_pub_timeout (0.1 s), then the node goes quiet;
+    the next proposal's answer, a second later, is no overrun of the period (none was owed:
+    the base held the fail-safe), so neither counted in late_answers nor said in the log."""
+    harness, clock = refilter
+    node = harness.node
+    assert node.set_parameters([Parameter('control_period_s', value=0.05),
+                                Parameter('stop_pub_timeout', value=0.1)])[0].successful
+    node._on_state(_cdr({'state': list(FAR)}))
+    harness.answer(_cdr({'u': [1.0, 0.0]}))
+    for _ in range(50):  # 1 s of states: answered to 0.62 s (the fail-safe from 0.52), then none
+        clock.now_ns += 20 * MS
+        node._on_state(_cdr({'state': list(FAR)}))
+    assert len(harness.commands) == 1 + 31
+    assert _info(harness)['status'][0] == STATUS_CODES['stale proposal']
+    u, _ = harness.answer(_cdr({'u': [1.0, 0.0]}))
+    assert list(u) == [1.0, 0.0] and len(harness.commands) == 1 + 31 + 1
+    assert node.late_answers == 0
+    assert 'late answer' not in capsys.readouterr().err
 
 
 def test_states_faster_than_the_period_are_answered_at_most_once_a_period(refilter):
