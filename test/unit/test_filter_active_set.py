@@ -354,6 +354,41 @@ def test_a_far_row_that_never_binds_changes_nothing(lg_h, rhs, far_row, far, pro
         np.testing.assert_allclose(answered_far[0], answered[0], rtol=0, atol=1e-9)
 
 
+# Feasible QPs (every row holds at a command within the limits) whose rows have L_g h of 1e2
+# to 5e4 at right-hand sides spread by more than ROW_SPREAD (a far row of 1.7e8 in the first):
+# the certificate each row to 1e-12 of its own scale misses their round-off, and OSQP does not
+# converge on them; the filter once gave the fail-safe (unverified) where it had answered.
+_LARGE_GRADIENTS = [
+    ([[11004.58121764222, -11004.500617683863], [-30200.815171269667, 30201.1669078712],
+      [-1102.2636840169625, 9049.511171005759], [-93.69925366644979, -369.5686342031274],
+      [4255.799752521216, 2246.8838519260494]],
+     [-68849.94162777139, 188953.0326300837, 37946.26246035826, -1223.6699346219868,
+      169138901.81319776], [-2.089450021991395, 1.9303678297274542]),
+    ([[23609.48472314298, -23611.987615668942], [-48963.95660726672, 48964.74750207882],
+      [-120.04471836976452, 33.34953580160927], [75.16102434194127, 2.9486873109494356],
+      [8368.142639337992, -5423.387938095272]],
+     [138985.30483245378, -288228.56896901794, -420.73804167419894, 185.43760189135048,
+      39551.60313168301], [1.983176297476489, -1.8171551842349631]),
+]
+
+
+@pytest.mark.parametrize('lg_h,rhs,proposal', _LARGE_GRADIENTS)
+def test_rows_of_large_gradient_at_spread_scales_are_solved_exactly(lg_h, rhs, proposal):
+    """The active-set solve answers these (the rows as they are, where the scaled rows'
+    certificate fails), the row check takes it (each row to its own scale), and it is the
+    enumerated solution."""
+    lg_h, rhs, proposal = np.array(lg_h), np.array(rhs), np.array(proposal)
+    safety_filter, g_matrix, upper, calls = _on_rows('unicycle', lg_h, rhs, proposal)
+    result = safety_filter.filter(np.zeros(safety_filter.n_x), proposal)
+    assert not result.fail_safe, result.reason
+    assert result.status == 'solved' and calls and calls[0] is not None
+    weights = 1.0 / safety_filter._p_inverse
+    reference = enumerated_solution(g_matrix, upper, weights)
+    assert reference is not None
+    assert_same_solution(np.array(calls[0]), reference, weights, g_matrix, upper,
+                         spread_data=True)
+
+
 def _row_check(lg_h: np.ndarray, rhs: np.ndarray, proposal: np.ndarray, step: np.ndarray,
                claimed: float) -> tuple[bool, bool]:
     """The unicycle filter's row check, on RCBF rows (4, 2) at ``proposal``, of the answer
