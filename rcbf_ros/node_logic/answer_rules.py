@@ -33,6 +33,7 @@ from rcbf_ros.node_logic.safety_filter import (
     HeldProposal,
     hold_due,
     ProposalSample,
+    reason_key,
     refilter_due,
     state_age_limit_s,
     StateSample,
@@ -81,6 +82,10 @@ class AnswerRules:
         """When a state, source message or timer call was last left unanswered by
         :meth:`quiet_from_ns` (None: never): an answer after it owes nothing to the one before
         (no ``control_period_s`` was kept meanwhile: the base held the fail-safe)."""
+        self.stale_limit_s: float | None = None
+        """The ``max_proposal_age_s`` in force when the proposal in force was first answered
+        stale (None: not yet): a limit raised later does not make it fresh again (a command
+        of a controller gone quiet never drives the robot again; a new proposal does)."""
         self.fail_safe_since_ns: int | None = None
         """When the unbroken run of fail-safe answers that the latest answer ends began (None:
         the latest answer was not the fail-safe, or none was made yet)."""
@@ -140,6 +145,7 @@ class AnswerRules:
         self.proposals += 1
         self.held = None
         self.proposed_ns = now_ns
+        self.stale_limit_s = None
         if sample is None:
             return None
         self.held = HeldProposal(sample=sample, received_ns=now_ns)
@@ -167,7 +173,7 @@ class AnswerRules:
         return self._answer(decide_held(held=held, again=True,
                                         safety_filter=active.safety_filter,
                                         **self._arguments(active, now_ns)),
-                            now_ns)
+                            now_ns, active)
 
     def hold(self, *, now_ns: int, timer_period_s: float | None, active: ActiveFilter
              ) -> Decision | None:
@@ -186,7 +192,7 @@ class AnswerRules:
         return self._answer(decide_hold(held=self.held, safety_filter=active.safety_filter,
                                         control_period_s=control_period_s,
                                         **self._arguments(active, now_ns)),
-                            now_ns)
+                            now_ns, active)
 
     def quiet_from_ns(self, active: ActiveFilter) -> int | None:
         """The time after which states and timer calls go unanswered until the next proposal:
@@ -197,7 +203,7 @@ class AnswerRules:
         if self.proposed_ns is None or self.fail_safe_since_ns is None:
             return None
         settings = active.settings
-        stale_ns = self.proposed_ns + round(settings.max_proposal_age_s * 1e9)
+        stale_ns = self.proposed_ns + round(self._max_age_s(active) * 1e9)
         return max(stale_ns, self.fail_safe_since_ns) + round(settings.stop_pub_timeout * 1e9)
 
     def _gone_quiet(self, now_ns: int, active: ActiveFilter) -> bool:
@@ -209,10 +215,20 @@ class AnswerRules:
         self.quiet_ns = now_ns
         return True
 
-    def _answer(self, decision: Decision, now_ns: int) -> Decision:
+    def _answer(self, decision: Decision, now_ns: int,
+                active: ActiveFilter | None = None) -> Decision:
         self.last_answer_ns = now_ns
         self._note_fail_safe(decision.fail_safe, now_ns)
+        if (active is not None and self.stale_limit_s is None and decision.fail_safe
+                and reason_key(decision.reason) == 'stale proposal'):
+            self.stale_limit_s = active.settings.max_proposal_age_s
         return decision
+
+    def _max_age_s(self, active: ActiveFilter) -> float:
+        """The ``max_proposal_age_s`` the proposal in force is held to: the one in force, or
+        the one it went stale under where that is less (:attr:`stale_limit_s`)."""
+        limit = active.settings.max_proposal_age_s
+        return limit if self.stale_limit_s is None else min(limit, self.stale_limit_s)
 
     def _arguments(self, active: ActiveFilter, now_ns: int) -> dict[str, Any]:
         """What :func:`decide_held` takes besides the proposal, for a decision at ``now_ns``
@@ -230,7 +246,7 @@ class AnswerRules:
         return dict(
             latest_state=self.latest_state, now_ns=now_ns,
             max_state_age_s=settings.max_state_age_s,
-            max_proposal_age_s=settings.max_proposal_age_s,
+            max_proposal_age_s=self._max_age_s(active),
             static_mean=active.static_mean, static_std=active.static_std,
             slack_tolerance=settings.slack_tolerance, sense=sense,
             latency_s=state_age_limit_s(control_period_s=config.control_period_s,

@@ -309,6 +309,34 @@ def test_an_answer_after_the_node_went_quiet_is_not_a_late_one(refilter, capsys)
     assert 'late answer' not in capsys.readouterr().err
 
 
+def test_a_stale_proposal_stays_stale_when_max_proposal_age_s_is_raised(refilter):
+    """A proposal gone stale (0.5 s), then max_proposal_age_s raised to 100 s, at once or
+    after the node went quiet: the quiet controller's command does not come back (the
+    fail-safe, status 18, while answers go out); a new proposal is filtered as usual."""
+    harness, clock = refilter
+    node = harness.node
+    assert node.set_parameters([Parameter('stop_pub_timeout', value=0.1)])[0].successful
+    node._on_state(_cdr({'state': list(FAR)}))
+    u, _ = harness.answer(_cdr({'u': [1.0, 0.0]}))
+    assert list(u) == [1.0, 0.0]
+    for _ in range(27):  # to 0.54 s: stale from 0.52 s
+        clock.now_ns += 20 * MS
+        node._on_state(_cdr({'state': list(FAR)}))
+    assert _info(harness)['status'][0] == STATUS_CODES['stale proposal']
+    assert node.set_parameters([Parameter('max_proposal_age_s', value=100.0)])[0].successful
+    for _ in range(30):  # the fail-safe to 0.62 s (stop_pub_timeout from 0.52 s), then none
+        clock.now_ns += 20 * MS
+        node._on_state(_cdr({'state': list(FAR)}))
+    answers = [msg_to_sections(info) for info in harness.infos[28:]]
+    assert len(answers) == 4 and all(info['fail_safe'][0] == 1 for info in answers)
+    assert all(info['status'][0] == STATUS_CODES['stale proposal'] for info in answers)
+    u, _ = harness.answer(_cdr({'u': [1.0, 0.0]}))
+    assert list(u) == [1.0, 0.0]
+    clock.now_ns += 20 * MS
+    node._on_state(_cdr({'state': list(FAR)}))
+    assert list(_info(harness)['u']) == [1.0, 0.0]  # the new one: fresh for 100 s
+
+
 def test_states_faster_than_the_period_are_answered_at_most_once_a_period(refilter):
     """States at 1 kHz for 1 s with the default refilter_min_period_s (0.01 s): 100 answers,
     not 1000; and none right after a proposal's answer."""
