@@ -935,8 +935,8 @@ class _HoldTimer:
     messages only time moves, and every age only grows: once an answer of the stretch is the
     fail-safe, each later call of the stretch that answers repeats it; those are counted
     (:attr:`repeats`, and in the rules' holds and latest answer, as the node's would be), not
-    made. No call answers past the rules' quiet (:meth:`AnswerRules.quiet_from_ns`: the latest
-    proposal ``max_proposal_age_s + stop_pub_timeout`` old). A stretch with more than
+    made. No call answers past the rules' quiet (:meth:`AnswerRules.quiet_from_ns`: a stale
+    proposal's fail-safe gone out for ``stop_pub_timeout``). A stretch with more than
     :data:`HOLD_STRETCH_LIMIT` answers and no fail-safe among them is refused
     (:class:`RefilterError`).
     """
@@ -967,12 +967,11 @@ class _HoldTimer:
         if self.origin_ns is None:
             self.origin_ns = until_ns
         last_call = (until_ns - self.origin_ns) // self.period_ns
-        answering = last_call  # the last call that may answer: none past the node's quiet
-        quiet_from = rules.quiet_from_ns(active)
-        if quiet_from is not None:
-            answering = min(last_call, (quiet_from - self.origin_ns) // self.period_ns)
         made = 0
-        while self.next_call <= answering and rules.last_answer_ns is not None:
+        while rules.last_answer_ns is not None:
+            answering = self._answering(rules, active, last_call)
+            if self.next_call > answering:
+                break
             call = self._first_due(rules.last_answer_ns, active)
             if call > answering:
                 break
@@ -982,8 +981,8 @@ class _HoldTimer:
             if decision is None:  # not due after all (checked in _first_due): go on
                 continue
             yield now_ns, decision
-            if decision.fail_safe:
-                self._repeat(rules, active, call, answering)
+            if decision.fail_safe:  # (the quiet moves with the fail-safe's first answer)
+                self._repeat(rules, active, call, self._answering(rules, active, last_call))
                 break
             made += 1
             if made >= HOLD_STRETCH_LIMIT:
@@ -995,6 +994,16 @@ class _HoldTimer:
                     f'{settings.max_proposal_age_s:g}): a quiet controller is never stopped '
                     'with these parameters')
         self.next_call = max(self.next_call, last_call + 1)
+
+    def _answering(self, rules: AnswerRules, active: logic.ActiveFilter, last_call: int
+                   ) -> int:
+        """The last call up to ``last_call`` that may answer: none past the rules' quiet
+        (:meth:`AnswerRules.quiet_from_ns`, as the answers so far leave it)."""
+        assert self.origin_ns is not None
+        quiet_from = rules.quiet_from_ns(active)
+        if quiet_from is None:
+            return last_call
+        return min(last_call, (quiet_from - self.origin_ns) // self.period_ns)
 
     def _due(self, last_answer_ns: int, call: int, active: logic.ActiveFilter) -> bool:
         assert self.origin_ns is not None and self.period_s is not None
@@ -1029,7 +1038,8 @@ class _HoldTimer:
         if count:
             self.repeats += count
             rules.holds += count
-            rules.answered(self.origin_ns + (call + count * step) * self.period_ns)
+            rules.answered(self.origin_ns + (call + count * step) * self.period_ns,
+                           fail_safe=True)
 
 
 def _sources(config: FilterConfig, topics: Mapping[str, Any], names: Mapping[str, str],

@@ -1478,10 +1478,19 @@ class SafetyFilter:
         :data:`ACTIVE_SET_TOLERANCE` relative to the largest right-hand side, or, where they
         spread, each RCBF row to its own: :func:`_each_row_own`). A strictly
         convex QP has one solution, so a certified answer is it (OSQP's is within its
-        tolerance of it). The answer then goes through the row check like any other."""
-        rows, upper, tolerance = _each_row_own(g_rows, upper, self.n_barriers)
-        return _active_set_steps(rows, upper, self._p_inverse_list, tolerance,
-                                 ACTIVE_SET_STEPS, self._kernels)
+        tolerance of it). The answer then goes through the row check like any other.
+
+        Where the rows were scaled and the certificate each to its own scale fails (the
+        round-off of a row of large gradient can exceed 1e-12 of its right-hand side), the
+        rows as they are to the largest scale's tolerance: the row check, each row to its own
+        scale, then judges that answer (OSQP, the next resort, is least sure of such rows)."""
+        rows, bounds, tolerance = _each_row_own(g_rows, upper, self.n_barriers)
+        z = _active_set_steps(rows, bounds, self._p_inverse_list, tolerance,
+                              ACTIVE_SET_STEPS, self._kernels)
+        if z is None and rows is not g_rows:
+            z = _active_set_steps(g_rows, upper, self._p_inverse_list, ACTIVE_SET_TOLERANCE * (
+                1.0 + max(max(upper), -min(upper))), ACTIVE_SET_STEPS, self._kernels)
+        return z
 
     def _finite_solution(self, z: Sequence[float] | np.ndarray | None) -> list[float] | None:
         """Solution z as a list of n_u + 1 finite floats, or None if it is not one."""
@@ -1502,7 +1511,12 @@ class SafetyFilter:
         [-L_g h_i, -1]) and the proposal they are written at (n_u floats). The action
         u + z[:n_u] must lie within the limits (to :data:`LIMIT_TOLERANCE`; then projected
         onto them), and the slack its rows need, from the rows themselves, must be accounted
-        for by the solver's own eps z[-1] (each row to 1e-6 of its scale 1 + |upper_i|)."""
+        for by the solver's own eps z[-1], each row to 1e-6 of its own scale, 1 + |upper_i| +
+        sum_j |L_g h_ij step_j| (step: the answer's move from the proposal): the size of the
+        terms its value is summed from, which the solver's own tolerance is relative to
+        (OSQP's: to the largest |G z|), and no other row's. A far row's right-hand side must
+        not loosen the rows that bind, nor a row of large gradient be held to a round-off its
+        solver cannot reach (|L_g h| 1e3 at a right-hand side near 0)."""
         z = self._finite_solution(z)
         if z is None:
             return None
@@ -1516,9 +1530,11 @@ class SafetyFilter:
         # The solver's own eps must account for what the rows need: else the answer is not the
         # solution of this QP (a stale or garbage iterate).
         claimed = max(0.0, z[-1])
-        if needed > claimed + 1e-6:  # each row to 1e-6 of its own scale, 1 + |upper_i|
-            if any(value + claimed < -1e-6 * (1.0 + abs(bound))
-                   for value, bound in zip(values, rows_upper)):
+        if needed > claimed + 1e-6:  # each row to 1e-6 of its own scale (_check)
+            n_u = self.n_u
+            if any(value + claimed < -1e-6 * (1.0 + abs(bound) + sum(
+                    abs(g * d) for g, d in zip(row[:n_u], step)))
+                   for value, bound, row in zip(values, rows_upper, g_rows)):
                 return None
         return action, values, needed
 
@@ -1614,16 +1630,24 @@ class SafetyFilter:
             z = generated[0]
         else:
             kernels = self._kernels
-            rows_in, bounds_in, tolerance = _each_row_own(
-                g_rows, qp_upper_list, count,
-                1.0 + max(float(_largest(qp_upper)), -float(_least(qp_upper))))
-            if len(g_rows) >= ARRAY_EXCESS_ROWS and n_u + 1 in (2, 3):
+            largest = 1.0 + max(float(_largest(qp_upper)), -float(_least(qp_upper)))
+            rows_in, bounds_in, tolerance = _each_row_own(g_rows, qp_upper_list, count,
+                                                          largest)
+            arrays = len(g_rows) >= ARRAY_EXCESS_ROWS and n_u + 1 in (2, 3)
+            if arrays:
                 # (scaled rows: the arrays' kernel reads them too)
                 kernels = (kernels[0], _excess_over(columns, qp_upper) if rows_in is g_rows
                            else _excess_over(np.array(rows_in).T, np.array(bounds_in)),
                            kernels[2])
             z = _active_set_steps(rows_in, bounds_in, self._p_inverse_list, tolerance,
                                   ACTIVE_SET_STEPS, kernels)
+            if z is None and rows_in is not g_rows:  # as _active_set: the rows as they are
+                kernels = self._kernels
+                if arrays:
+                    kernels = (kernels[0], _excess_over(columns, qp_upper), kernels[2])
+                z = _active_set_steps(g_rows, qp_upper_list, self._p_inverse_list,
+                                      ACTIVE_SET_TOLERANCE * largest, ACTIVE_SET_STEPS,
+                                      kernels)
         status = 'solved'
         checked = None if z is None else self._check_many(z, upper, lg, applied)
         if checked is None and (self._points is not None or margin is not None):
@@ -1805,8 +1829,9 @@ class SafetyFilter:
         values = upper + product(lg, step)
         needed = max(0.0, -float(_least(values)))
         claimed = max(0.0, z[-1])
-        if needed > claimed + 1e-6:  # each row to 1e-6 of its own scale, 1 + |upper_i|
-            if _least(values + claimed + 1e-6 * (1.0 + np.abs(upper))) < 0.0:
+        if needed > claimed + 1e-6:  # each row to 1e-6 of its own scale (_check)
+            scale = 1.0 + np.abs(upper) + product(np.abs(lg), np.abs(np.asarray(step)))
+            if _least(values + claimed + 1e-6 * scale) < 0.0:
                 return None
         return action, values, needed
 

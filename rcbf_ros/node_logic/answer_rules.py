@@ -10,10 +10,11 @@ The node (:mod:`rcbf_ros.ros.safety_filter_node`) answers at three kinds of even
   go out within ``control_period_s`` (:func:`~rcbf_ros.node_logic.safety_filter.hold_due`,
   :func:`~rcbf_ros.node_logic.safety_filter.decide_hold`).
 
-States and timer calls go unanswered once the latest proposal is older than
-``max_proposal_age_s + stop_pub_timeout`` (:meth:`AnswerRules.quiet_from_ns`): a quiet
-controller's fail-safe has gone out for ``stop_pub_timeout``, and the node goes quiet too until
-the next proposal, as collision_monitor does.
+States and timer calls go unanswered once the fail-safe of a stale proposal has gone out for
+``stop_pub_timeout`` (:meth:`AnswerRules.quiet_from_ns`), and the node goes quiet too until the
+next proposal, as collision_monitor does; never before the fail-safe went out, whatever the
+timing (a ``stop_pub_timeout`` of 0, states rarer than it): the base holds the fail-safe, not a
+command of the controller that went quiet.
 
 With a sampled-data margin every decision refuses a state older than ``latency_s``
 (:func:`~rcbf_ros.node_logic.safety_filter.state_age_limit_s`). :class:`AnswerRules` keeps
@@ -32,6 +33,7 @@ from rcbf_ros.node_logic.safety_filter import (
     HeldProposal,
     hold_due,
     ProposalSample,
+    reason_key,
     refilter_due,
     state_age_limit_s,
     StateSample,
@@ -76,6 +78,17 @@ class AnswerRules:
         """When the latest proposal arrived (a defective one too; None: none yet)."""
         self.quiet = 0
         """States, source messages and timer calls left unanswered by :meth:`quiet_from_ns`."""
+        self.quiet_ns: int | None = None
+        """When a state, source message or timer call was last left unanswered by
+        :meth:`quiet_from_ns` (None: never): an answer after it owes nothing to the one before
+        (no ``control_period_s`` was kept meanwhile: the base held the fail-safe)."""
+        self.stale_limit_s: float | None = None
+        """The ``max_proposal_age_s`` in force when the proposal in force was first answered
+        stale (None: not yet): a limit raised later does not make it fresh again (a command
+        of a controller gone quiet never drives the robot again; a new proposal does)."""
+        self.fail_safe_since_ns: int | None = None
+        """When the unbroken run of fail-safe answers that the latest answer ends began (None:
+        the latest answer was not the fail-safe, or none was made yet)."""
 
     @property
     def latest_state(self) -> StateSample | None:
@@ -108,9 +121,18 @@ class AnswerRules:
             stamp_ns = now_ns
         sources.note_state(state, stamp_ns=stamp_ns, now_ns=now_ns)
 
-    def answered(self, now_ns: int) -> None:
-        """An answer went out at ``now_ns`` (whatever made it)."""
+    def answered(self, now_ns: int, *, fail_safe: bool | None = None) -> None:
+        """An answer went out at ``now_ns`` (whatever made it); ``fail_safe``: whether it was
+        the fail-safe (None: as the rules' own decision at ``now_ns`` said)."""
         self.last_answer_ns = now_ns
+        if fail_safe is not None:
+            self._note_fail_safe(fail_safe, now_ns)
+
+    def _note_fail_safe(self, fail_safe: bool, now_ns: int) -> None:
+        if not fail_safe:
+            self.fail_safe_since_ns = None
+        elif self.fail_safe_since_ns is None:
+            self.fail_safe_since_ns = now_ns
 
     def propose(self, sample: ProposalSample | None, *, now_ns: int,
                 active: ActiveFilter) -> Decision | None:
@@ -123,6 +145,7 @@ class AnswerRules:
         self.proposals += 1
         self.held = None
         self.proposed_ns = now_ns
+        self.stale_limit_s = None
         if sample is None:
             return None
         self.held = HeldProposal(sample=sample, received_ns=now_ns)
@@ -150,7 +173,7 @@ class AnswerRules:
         return self._answer(decide_held(held=held, again=True,
                                         safety_filter=active.safety_filter,
                                         **self._arguments(active, now_ns)),
-                            now_ns)
+                            now_ns, active)
 
     def hold(self, *, now_ns: int, timer_period_s: float | None, active: ActiveFilter
              ) -> Decision | None:
@@ -169,18 +192,19 @@ class AnswerRules:
         return self._answer(decide_hold(held=self.held, safety_filter=active.safety_filter,
                                         control_period_s=control_period_s,
                                         **self._arguments(active, now_ns)),
-                            now_ns)
+                            now_ns, active)
 
     def quiet_from_ns(self, active: ActiveFilter) -> int | None:
         """The time after which states and timer calls go unanswered until the next proposal:
-        ``max_proposal_age_s + stop_pub_timeout`` after the latest proposal's arrival (its
-        fail-safe, a stale proposal's, has then gone out for ``stop_pub_timeout``); None
-        before the first proposal (nothing is answered again then)."""
-        if self.proposed_ns is None:
+        ``stop_pub_timeout`` after the latest proposal went stale (``max_proposal_age_s``
+        after its arrival) or after the fail-safe answers began, whichever is later; None
+        while the latest answer is not the fail-safe (a quiet node leaves the base holding
+        the fail-safe, never a command) and before the first proposal."""
+        if self.proposed_ns is None or self.fail_safe_since_ns is None:
             return None
         settings = active.settings
-        return self.proposed_ns + round(
-            (settings.max_proposal_age_s + settings.stop_pub_timeout) * 1e9)
+        stale_ns = self.proposed_ns + round(self._max_age_s(active) * 1e9)
+        return max(stale_ns, self.fail_safe_since_ns) + round(settings.stop_pub_timeout * 1e9)
 
     def _gone_quiet(self, now_ns: int, active: ActiveFilter) -> bool:
         """Whether ``now_ns`` is past :meth:`quiet_from_ns` (counted in :attr:`quiet`)."""
@@ -188,11 +212,23 @@ class AnswerRules:
         if quiet_from is None or now_ns <= quiet_from:
             return False
         self.quiet += 1
+        self.quiet_ns = now_ns
         return True
 
-    def _answer(self, decision: Decision, now_ns: int) -> Decision:
+    def _answer(self, decision: Decision, now_ns: int,
+                active: ActiveFilter | None = None) -> Decision:
         self.last_answer_ns = now_ns
+        self._note_fail_safe(decision.fail_safe, now_ns)
+        if (active is not None and self.stale_limit_s is None and decision.fail_safe
+                and reason_key(decision.reason) == 'stale proposal'):
+            self.stale_limit_s = active.settings.max_proposal_age_s
         return decision
+
+    def _max_age_s(self, active: ActiveFilter) -> float:
+        """The ``max_proposal_age_s`` the proposal in force is held to: the one in force, or
+        the one it went stale under where that is less (:attr:`stale_limit_s`)."""
+        limit = active.settings.max_proposal_age_s
+        return limit if self.stale_limit_s is None else min(limit, self.stale_limit_s)
 
     def _arguments(self, active: ActiveFilter, now_ns: int) -> dict[str, Any]:
         """What :func:`decide_held` takes besides the proposal, for a decision at ``now_ns``
@@ -210,7 +246,7 @@ class AnswerRules:
         return dict(
             latest_state=self.latest_state, now_ns=now_ns,
             max_state_age_s=settings.max_state_age_s,
-            max_proposal_age_s=settings.max_proposal_age_s,
+            max_proposal_age_s=self._max_age_s(active),
             static_mean=active.static_mean, static_std=active.static_std,
             slack_tolerance=settings.slack_tolerance, sense=sense,
             latency_s=state_age_limit_s(control_period_s=config.control_period_s,

@@ -676,8 +676,11 @@ class SafetyFilterNode(Node):
                         active: logic.ActiveFilter) -> None:
         """``cmd_safe``, ``filter_info`` and the diagnostics of one decision, the command
         first; the reason of a WARN or ERROR in the (throttled) log. Never raises."""
-        self._rules.answered(now_ns)
+        self._rules.answered(now_ns, fail_safe=decision.fail_safe)
         previous_ns, self._last_published_ns = self._last_published_ns, now_ns
+        quiet_ns = self._rules.quiet_ns
+        if previous_ns is not None and quiet_ns is not None and quiet_ns > previous_ns:
+            previous_ns = None  # quiet meanwhile (stop_pub_timeout): no period was owed
         self._note_late_answer(previous_ns, now_ns, active)
         try:  # the command is made first: a failure making the details is in answer.error
             answer = self._edge.answer(

@@ -354,6 +354,98 @@ def test_a_far_row_that_never_binds_changes_nothing(lg_h, rhs, far_row, far, pro
         np.testing.assert_allclose(answered_far[0], answered[0], rtol=0, atol=1e-9)
 
 
+# Feasible QPs (every row holds at a command within the limits) whose rows have L_g h of 1e2
+# to 5e4 at right-hand sides spread by more than ROW_SPREAD (a far row of 1.7e8 in the first):
+# the certificate each row to 1e-12 of its own scale misses their round-off, and OSQP does not
+# converge on them; the filter once gave the fail-safe (unverified) where it had answered.
+_LARGE_GRADIENTS = [
+    ([[11004.58121764222, -11004.500617683863], [-30200.815171269667, 30201.1669078712],
+      [-1102.2636840169625, 9049.511171005759], [-93.69925366644979, -369.5686342031274],
+      [4255.799752521216, 2246.8838519260494]],
+     [-68849.94162777139, 188953.0326300837, 37946.26246035826, -1223.6699346219868,
+      169138901.81319776], [-2.089450021991395, 1.9303678297274542]),
+    ([[23609.48472314298, -23611.987615668942], [-48963.95660726672, 48964.74750207882],
+      [-120.04471836976452, 33.34953580160927], [75.16102434194127, 2.9486873109494356],
+      [8368.142639337992, -5423.387938095272]],
+     [138985.30483245378, -288228.56896901794, -420.73804167419894, 185.43760189135048,
+      39551.60313168301], [1.983176297476489, -1.8171551842349631]),
+]
+
+
+@pytest.mark.parametrize('lg_h,rhs,proposal', _LARGE_GRADIENTS)
+def test_rows_of_large_gradient_at_spread_scales_are_solved_exactly(lg_h, rhs, proposal):
+    """The active-set solve answers these (the rows as they are, where the scaled rows'
+    certificate fails), the row check takes it (each row to its own scale), and it is the
+    enumerated solution."""
+    lg_h, rhs, proposal = np.array(lg_h), np.array(rhs), np.array(proposal)
+    safety_filter, g_matrix, upper, calls = _on_rows('unicycle', lg_h, rhs, proposal)
+    result = safety_filter.filter(np.zeros(safety_filter.n_x), proposal)
+    assert not result.fail_safe, result.reason
+    assert result.status == 'solved' and calls and calls[0] is not None
+    weights = 1.0 / safety_filter._p_inverse
+    reference = enumerated_solution(g_matrix, upper, weights)
+    assert reference is not None
+    assert_same_solution(np.array(calls[0]), reference, weights, g_matrix, upper,
+                         spread_data=True)
+
+
+def _row_check(lg_h: np.ndarray, rhs: np.ndarray, proposal: np.ndarray, step: np.ndarray,
+               claimed: float) -> tuple[bool, bool]:
+    """The unicycle filter's row check, on RCBF rows (4, 2) at ``proposal``, of the answer
+    that moves it by ``step`` claiming slack ``claimed``: (on those rows, with a fifth row far
+    from binding added). One verdict per row set, each row judged on its own."""
+    safety_filter = SafetyFilter(FILTERS['unicycle'].problem, fallback=False)
+    z = [*step.tolist(), claimed]
+    verdicts = []
+    for far in (False, True):
+        lg = np.vstack([lg_h, [[1.0, -1.0]] if far else lg_h[:1]])
+        upper = np.append(rhs, 1e12 if far else rhs[0])
+        g_rows = np.hstack([-lg, -np.ones((5, 1))]).tolist()
+        verdicts.append(safety_filter._check(z, (upper.tolist(), g_rows,
+                                                 proposal.tolist())) is not None)
+        many = safety_filter._check_many(z, upper, lg, proposal.tolist())
+        assert (many is not None) == verdicts[-1]  # the arrays' check: the same verdict
+    return verdicts[0], verdicts[1]
+
+
+@PROPERTY
+@given(gradient=st.floats(1e2, 1e6), direction=st.floats(-math.pi, math.pi),
+       relative=st.floats(-1e-9, 1e-9), claimed=st.floats(0.0, 1e-3))
+@example(gradient=1e4, direction=0.3, relative=-1e-9, claimed=0.0)
+def test_the_row_check_takes_a_row_of_large_gradient_to_its_solvers_round_off(
+        gradient, direction, relative, claimed):
+    """A row of large L_g h (1e2 to 1e6) binding at a right-hand side of 0, met to 1e-9 of
+    its terms |L_g h_j step_j| either way (what OSQP's eps_rel 1e-9 leaves of a row so
+    large), passes the row check, with or without a far row; such a row once failed it (its
+    scale taken as 1 + |upper_i| alone), and the filter then gave the fail-safe."""
+    proposal = np.array([0.5, -0.5])
+    lg_row = gradient * np.array([math.cos(direction), math.sin(direction)])
+    step = np.array([-math.sin(direction), math.cos(direction)])  # along the row's boundary
+    terms = float(np.abs(lg_row) @ np.abs(step))
+    rhs = -float(lg_row @ step) + relative * terms  # the row's value: relative * terms
+    lg_h = np.vstack([lg_row, [[0.0, 1.0]] * 3])
+    assert _row_check(lg_h, np.array([rhs, 5.0, 5.0, 5.0]), proposal, step, claimed) == (
+        True, True)
+
+
+@PROPERTY
+@given(short=st.floats(1e-5, 1.0), claimed=st.floats(0.0, 1e-3),
+       lg_row=st.lists(st.floats(-10.0, 10.0), min_size=2, max_size=2))
+def test_a_far_row_does_not_loosen_the_row_check(short, claimed, lg_row):
+    """A row of moderate L_g h missed by 1e-5 to 1 more than the slack claimed fails the row
+    check, and a far row (right-hand side 1e12) beside it changes nothing: each row is held
+    to its own scale."""
+    proposal, step = np.array([0.5, -0.5]), np.array([0.75, 1.25])
+    lg_row = np.array(lg_row)
+    terms = float(np.abs(lg_row) @ np.abs(step))
+    # the row's value: claimed + short past 1e-6 of its scale, 1 + |rhs| + terms (|rhs| is at
+    # most terms + 1.01 + 1e-6 (4 + 2 terms))
+    rhs = -float(lg_row @ step) - claimed - short - 1e-6 * (4.0 + 2.0 * terms)
+    lg_h = np.vstack([lg_row, [[0.0, 1.0]] * 3])
+    assert _row_check(lg_h, np.array([rhs, 5.0, 5.0, 5.0]), proposal, step, claimed) == (
+        False, False)
+
+
 _SPECIAL = st.sampled_from([0.0, -0.0, 1.0, -1.0, 1e-310, -1e300, 1e300, math.inf, -math.inf,
                             math.nan])
 

@@ -257,6 +257,24 @@ def _check_one_for_one(tmp_path: Path, params: dict, states_ms: list[float],
         np.testing.assert_array_equal(info['u'], decision.u_safe, err_msg=str(t))
         assert info['fail_safe'][0] == decision.fail_safe, t
         assert _status(info) == fl.status_code(decision), t
+    _check_the_fail_safe_is_held(written, params, states_ms, proposals_ms)
+
+
+def _check_the_fail_safe_is_held(written: list[tuple[float, dict[str, np.ndarray]]],
+                                 params: dict, states_ms: list[float],
+                                 proposals_ms: list[float]) -> None:
+    """What the base is left holding when a proposal goes stale: from each proposal to the
+    next (or to the last message), once there was time for the timer's answer after it went
+    stale (max_proposal_age_s, then control_period_s T and a call), the last answer of the
+    stretch is the fail-safe, whatever stop_pub_timeout and the message times."""
+    max_age_ms = params.get('max_proposal_age_s', 0.5) * 1000
+    proposals = sorted(proposals_ms)
+    ends = proposals[1:] + [max(states_ms + proposals_ms)]
+    for start, end in zip(proposals, ends):
+        if end <= start + max_age_ms + 2 * T * 1000:
+            continue
+        stretch = [info for t, info in written if start <= t < end]
+        assert stretch and stretch[-1]['fail_safe'][0] == 1, (start, end)
 
 
 SCENARIOS = {
@@ -286,18 +304,44 @@ def test_the_node_rules_give_the_same_answers_one_for_one(tmp_path: Path, scenar
 @pytest.mark.parametrize('refilter_on_state', [False, True])
 def test_a_quiet_controller_s_fail_safe_stops_after_stop_pub_timeout(
         tmp_path: Path, refilter_on_state: bool) -> None:
-    """One proposal at 1 ms, states every 10 ms to 790 ms: the fail-safe from 501 ms
-    (max_proposal_age_s 0.5), answers up to 601 ms (stop_pub_timeout 0.1), then none; the
-    node's rules give the same, and a new proposal is answered at once."""
+    """One proposal at 1 ms, states every 10 ms to 790 ms: the fail-safe from its first
+    answer after 501 ms (max_proposal_age_s 0.5), answers for 0.1 s more (stop_pub_timeout),
+    then none; the node's rules give the same, and a new proposal is answered at once."""
     states, proposals = SCENARIOS['quiet']
     params = _params(refilter_on_state=refilter_on_state, stop_pub_timeout=0.1)
     _check_one_for_one(tmp_path / 'a', params, states, proposals)
     times = [t for t, _ in _answers(tmp_path / 'a' / 'out')]
-    assert 601.0 - 37.5 < max(times) <= 601.0, times  # the timer: every 37.5 ms at most
+    first = min(t for t in times if t > 501.0)  # a state's at 510, or the timer's at 537.5
+    assert first == (510.0 if refilter_on_state else 537.5)
+    assert first + 100.0 - 37.5 < max(times) <= first + 100.0, times  # the timer: 37.5 ms
     assert {_status(info) for t, info in _answers(tmp_path / 'a' / 'out') if t > 501.0} == {
         STATUS_CODES['stale proposal']}
     _check_one_for_one(tmp_path / 'b', params, states, proposals + [700.5])
-    assert [t for t, _ in _answers(tmp_path / 'b' / 'out') if t > 601.0][0] == 700.5
+    assert [t for t, _ in _answers(tmp_path / 'b' / 'out') if t > max(times)][0] == 700.5
+
+
+@pytest.mark.parametrize('refilter_on_state', [False, True])
+@pytest.mark.parametrize('stop_pub_timeout,min_period_s,period_s', [
+    (0.0, 0.01, T), (0.005, 0.01, T), (0.1, 0.3, 0.0)])
+def test_the_node_goes_quiet_only_after_the_fail_safe_went_out(
+        tmp_path: Path, refilter_on_state: bool, stop_pub_timeout: float,
+        min_period_s: float, period_s: float) -> None:
+    """One proposal at 1 ms, states every 10 ms to 790 ms, a stop_pub_timeout shorter than
+    the time between answers (0; 5 ms; 0.1 s with a re-filter at most every 0.3 s and no
+    hold timer): the stale proposal's fail-safe still goes out (status 18) and is the last
+    answer, so the base holds a stop, not the quiet controller's command; the node's rules
+    give the same."""
+    states, proposals = SCENARIOS['quiet']
+    params = _params(refilter_on_state=refilter_on_state, stop_pub_timeout=stop_pub_timeout,
+                     refilter_min_period_s=min_period_s, control_period_s=period_s,
+                     latency_s=L if period_s else 0.0)
+    if not (refilter_on_state or period_s):
+        pytest.skip('lock-step without a hold timer: a proposal is answered once')
+    _check_one_for_one(tmp_path, params, states, proposals)
+    answers = _answers(tmp_path / 'out')
+    last = answers[-1][1]
+    assert last['fail_safe'][0] == 1 and _status(last) == STATUS_CODES['stale proposal']
+    assert answers[-1][0] <= 501.0 + 1000 * (T + stop_pub_timeout + min_period_s)
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=list(HealthCheck))

@@ -25,6 +25,7 @@ from rcbf_ros.node_logic import filter_edge
 from rcbf_ros.node_logic import safety_filter as fl
 from rcbf_ros.parameters.rules import find_config, load_params
 from rcbf_ros.ros.dds import rclpy_compat as rclpy
+from rcbf_ros.ros.runtime import Parameter
 
 SECOND = 1_000_000_000
 MS = 1_000_000
@@ -266,9 +267,10 @@ def test_a_quiet_controller_is_corrected_then_stopped(refilter, capsys):
     assert all(_info(harness, -i)['fail_safe'][0] == 1 for i in range(1, 11))
     log = capsys.readouterr().err
     assert log.count('fail-safe: stale proposal: ') == 1, log   # throttled (log_throttle_s 1)
-    # ... for stop_pub_timeout (2 s) after the proposal went stale at 0.5 s, then nothing
+    # ... for stop_pub_timeout (2 s) after its first answer (the state at 0.52 s, the first
+    # after the proposal went stale at 0.5 s), then nothing
     sent, answered = len(harness.commands), 0
-    while clock.now_ns + 20 * MS <= proposed_ns + int(2.5 * SECOND):
+    while clock.now_ns + 20 * MS <= proposed_ns + int(2.52 * SECOND):
         clock.now_ns += 20 * MS
         node._on_state(_cdr({'state': [-3.0, 0.0, 0.0]}))
         answered += 1
@@ -283,6 +285,56 @@ def test_a_quiet_controller_is_corrected_then_stopped(refilter, capsys):
     clock.now_ns += 20 * MS
     node._on_state(_cdr({'state': [-3.0, 0.0, 0.0]}))
     assert list(_info(harness, -1)['u']) == [1.0, 0.0]
+
+
+def test_an_answer_after_the_node_went_quiet_is_not_a_late_one(refilter, capsys):
+    """With control_period_s (0.05 s): a controller quiet for good gets the fail-safe at each
+    state (20 ms apart: none late) for stop_pub_timeout (0.1 s), then the node goes quiet;
+    the next proposal's answer, a second later, is no overrun of the period (none was owed:
+    the base held the fail-safe), so neither counted in late_answers nor said in the log."""
+    harness, clock = refilter
+    node = harness.node
+    assert node.set_parameters([Parameter('control_period_s', value=0.05),
+                                Parameter('stop_pub_timeout', value=0.1)])[0].successful
+    node._on_state(_cdr({'state': list(FAR)}))
+    harness.answer(_cdr({'u': [1.0, 0.0]}))
+    for _ in range(50):  # 1 s of states: answered to 0.62 s (the fail-safe from 0.52), then none
+        clock.now_ns += 20 * MS
+        node._on_state(_cdr({'state': list(FAR)}))
+    assert len(harness.commands) == 1 + 31
+    assert _info(harness)['status'][0] == STATUS_CODES['stale proposal']
+    u, _ = harness.answer(_cdr({'u': [1.0, 0.0]}))
+    assert list(u) == [1.0, 0.0] and len(harness.commands) == 1 + 31 + 1
+    assert node.late_answers == 0
+    assert 'late answer' not in capsys.readouterr().err
+
+
+def test_a_stale_proposal_stays_stale_when_max_proposal_age_s_is_raised(refilter):
+    """A proposal gone stale (0.5 s), then max_proposal_age_s raised to 100 s, at once or
+    after the node went quiet: the quiet controller's command does not come back (the
+    fail-safe, status 18, while answers go out); a new proposal is filtered as usual."""
+    harness, clock = refilter
+    node = harness.node
+    assert node.set_parameters([Parameter('stop_pub_timeout', value=0.1)])[0].successful
+    node._on_state(_cdr({'state': list(FAR)}))
+    u, _ = harness.answer(_cdr({'u': [1.0, 0.0]}))
+    assert list(u) == [1.0, 0.0]
+    for _ in range(27):  # to 0.54 s: stale from 0.52 s
+        clock.now_ns += 20 * MS
+        node._on_state(_cdr({'state': list(FAR)}))
+    assert _info(harness)['status'][0] == STATUS_CODES['stale proposal']
+    assert node.set_parameters([Parameter('max_proposal_age_s', value=100.0)])[0].successful
+    for _ in range(30):  # the fail-safe to 0.62 s (stop_pub_timeout from 0.52 s), then none
+        clock.now_ns += 20 * MS
+        node._on_state(_cdr({'state': list(FAR)}))
+    answers = [msg_to_sections(info) for info in harness.infos[28:]]
+    assert len(answers) == 4 and all(info['fail_safe'][0] == 1 for info in answers)
+    assert all(info['status'][0] == STATUS_CODES['stale proposal'] for info in answers)
+    u, _ = harness.answer(_cdr({'u': [1.0, 0.0]}))
+    assert list(u) == [1.0, 0.0]
+    clock.now_ns += 20 * MS
+    node._on_state(_cdr({'state': list(FAR)}))
+    assert list(_info(harness)['u']) == [1.0, 0.0]  # the new one: fresh for 100 s
 
 
 def test_states_faster_than_the_period_are_answered_at_most_once_a_period(refilter):
