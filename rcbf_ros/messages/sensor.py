@@ -437,17 +437,20 @@ def range_points(data: bytes | memoryview, *, obstacles_angle: float = math.pi /
                  ) -> SensorPoints | Refused:
     """The points of a Range sample (sonar, infrared ranger), in its frame.
 
-    The object that gave the reading r may lie anywhere on the arc of radius r across the
-    field of view (Range.msg), so the reading is the arc's points from -field_of_view / 2 to
-    +field_of_view / 2, ``obstacles_angle`` apart, the last at +field_of_view / 2, as
-    collision_monitor draws it; ``spread`` r ``obstacles_angle`` / 2 widens each point so
-    that their circles cover the whole arc (any point of it lies within a chord of at most
-    r obstacles_angle / 2 of a drawn one), which collision_monitor's points do not. Which
-    readings count (REP 117, Range.msg): a finite r within [min_range, max_range] is the arc
-    at r; -inf, an object too close to measure, is the whole sector within min_range (arc
-    points at min_range / 2 widened by min_range / 2 more); +inf (nothing within range), NaN
-    and a finite r outside [min_range, max_range] give no point. A field of view that is not
-    within [0, 2 pi], or range bounds that are NaN or crossed, refuse the message.
+    The object that gave the reading r may lie anywhere at distance r within the field of
+    view (Range.msg draws an arc; a sonar's is a cone of half-angle a = field_of_view / 2), so
+    in the plane it lies at an azimuth within +-a and at a distance between r cos a and r (a
+    point of the cone off the sensor's plane projects nearer; a cone wider than a half-space,
+    a > pi / 2, anywhere within r). The reading is points on the middle arc of that band,
+    from -a to +a, ``obstacles_angle`` apart, the last at +a, as collision_monitor draws its
+    arc; ``spread`` widens each so that their circles cover the whole band: half its width
+    plus the middle radius times half the largest angle between two points (any point of
+    the band lies within that of a drawn one), which collision_monitor's points do not.
+    Which readings count (REP 117, Range.msg): a finite r within [min_range, max_range] is
+    the band at r; -inf, an object too close to measure, is the whole sector within
+    min_range; +inf (nothing within range), NaN and a finite r outside [min_range, max_range]
+    give no point. A field of view that is not within [0, 2 pi], or range bounds that are NaN
+    or crossed, refuse the message.
     """
     if not MIN_OBSTACLES_ANGLE <= obstacles_angle <= math.pi:
         return Refused(f'{RANGE}: obstacles_angle {obstacles_angle} is not within '
@@ -460,20 +463,24 @@ def range_points(data: bytes | memoryview, *, obstacles_angle: float = math.pi /
     if not 0.0 <= field_of_view <= _FULL_TURN:
         return Refused(f'{RANGE}: field_of_view {field_of_view} is not within [0, 2 pi]')
     _check_bounds(('min_range', min_range), ('max_range', max_range))
+    half = 0.5 * field_of_view
+    nearest = math.cos(half)  # of the distance r, the nearest a point of the cone projects to
+    if half > 0.5 * math.pi:  # wider than a half-space: anywhere within r, at any azimuth
+        half, nearest = math.pi, 0.0
     if reading == -math.inf:  # REP 117: detected, nearer than min_range
         if not min_range < math.inf:
             return Refused(f'{RANGE}: range is -inf with min_range inf')
-        radius = max(min_range, 0.0) / 2.0
-        extra, reach = radius, max(min_range, 0.0)
+        inner, outer = 0.0, max(min_range, 0.0)
     elif max(min_range, 0.0) <= reading <= max_range and reading < math.inf:
-        radius, extra, reach = reading, 0.0, reading
+        inner, outer = reading * nearest, reading
     else:  # +inf: nothing within range; NaN or outside the bounds: no reading
         return SensorPoints(np.zeros((0, 2)), frame_id, stamp, 1, reach=0.0)
-    if not reach <= MAX_COORDINATE:
-        return Refused(f'{RANGE}: range {reach:.6g} lies beyond {MAX_COORDINATE:g} m')
-    steps = math.ceil(field_of_view / obstacles_angle)
-    angles = np.append(-0.5 * field_of_view + obstacles_angle * np.arange(steps),
-                       0.5 * field_of_view)
+    if not outer <= MAX_COORDINATE:
+        return Refused(f'{RANGE}: range {outer:.6g} lies beyond {MAX_COORDINATE:g} m')
+    steps = math.ceil(2.0 * half / obstacles_angle)
+    angles = np.append(-half + obstacles_angle * np.arange(steps), half)
+    radius = 0.5 * (inner + outer)
     points = np.stack([radius * np.cos(angles), radius * np.sin(angles)], axis=1)
+    gap = min(obstacles_angle, 2.0 * half)  # the largest angle between two drawn points
     return SensorPoints(points, frame_id, stamp, 1,
-                        spread=radius * obstacles_angle / 2.0 + extra, reach=reach)
+                        spread=radius * gap / 2.0 + 0.5 * (outer - inner), reach=outer)

@@ -58,5 +58,8 @@ def test_rclpys_range_readings_read_as_their_arcs(jazzy, tmp_path, ros_domain_id
         if math.isnan(r) or r == math.inf:
             assert out.points.shape == (0, 2), reading
             continue
-        radius = 0.01 if r == -math.inf else float(np.float32(r))  # -inf: min_range / 2
+        half = float(np.float32(field_of_view)) / 2
+        nearest = math.cos(half) if half <= math.pi / 2 else 0.0
+        # the middle of the band a cone at r projects to; -inf: of the sector within min_range
+        radius = 0.01 if r == -math.inf else float(np.float32(r)) * (1 + nearest) / 2
         np.testing.assert_allclose(np.hypot(*out.points.T), radius, rtol=1e-6)

@@ -25,27 +25,48 @@ def _nearest(points: np.ndarray, samples: np.ndarray) -> np.ndarray:
     return np.sqrt(((samples[:, None, :] - points[None, :, :]) ** 2).sum(-1)).min(1)
 
 
+def _cone(r: float, half: float, rng: np.random.Generator, n: int = 3000) -> np.ndarray:
+    """(x, y) of ``n`` points at distance ``r`` whose direction lies within ``half`` of the x
+    axis (a sonar's cone, sampled uniformly on its cap by rejection), its rim and the arc of
+    its plane included."""
+    directions = rng.normal(size=(40 * n, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    inside = directions[directions[:, 0] >= math.cos(half)][:n]
+    phi = np.linspace(-half, half, 501)
+    rim = np.stack([np.full(501, math.cos(half)), np.sin(half) * np.cos(phi),
+                    np.sin(half) * np.sin(phi)], axis=1)   # the cone's edge, all round
+    arc = np.stack([np.cos(phi), np.sin(phi), np.zeros(501)], axis=1)
+    return r * np.concatenate([inside, rim, arc])[:, :2]
+
+
 @PROPERTY
 @given(reading=st.floats(0.02, 4.0), fov=st.floats(0.0, 2 * math.pi),
-       angle=st.floats(sensor.MIN_OBSTACLES_ANGLE * 10, math.pi))
-@example(reading=4.0, fov=2 * math.pi, angle=math.pi)  # two points, a half turn apart
-@example(reading=1.0, fov=0.0, angle=0.1)  # a beam: one point
-def test_a_reading_is_the_arc_its_object_may_lie_on_covered_whole(reading, fov, angle):
+       angle=st.floats(sensor.MIN_OBSTACLES_ANGLE * 10, math.pi), seed=st.integers(0, 2**16))
+@example(reading=4.0, fov=2 * math.pi, angle=math.pi, seed=0)  # a full turn: the whole disc
+@example(reading=1.0, fov=0.0, angle=0.1, seed=0)  # a beam: one point, no widening
+@example(reading=2.0, fov=0.5, angle=math.pi / 180, seed=0)  # a sonar's 0.5 rad cone
+def test_a_reading_covers_wherever_its_object_may_lie(reading, fov, angle, seed):
+    # the object lies at distance r within the cone of half-angle fov / 2: wherever it projects
+    # onto the plane, a drawn point's circle widened by spread holds it
     out = sensor.range_points(range_bytes(reading, field_of_view=fov), obstacles_angle=angle)
     r, half = float(np.float32(reading)), float(np.float32(fov)) / 2
     assert not isinstance(out, sensor.Refused), out
     assert (out.frame_id, out.received, out.reach) == ('sonar', 1, r)
-    np.testing.assert_allclose(np.hypot(*out.points.T), r, rtol=1e-12)
-    bearings = np.arctan2(out.points[:, 1], out.points[:, 0])
-    if half < math.pi - 1e-9:  # (a full turn: +-pi are one bearing)
-        assert np.all(np.abs(bearings) <= half + 1e-9)
-        assert bearings.min() == pytest.approx(-half) and bearings.max() == pytest.approx(half)
-    assert len(out.points) == math.ceil(2 * half / angle) + 1
-    # wherever on the arc the object lies, a point's circle widened by spread holds it
-    samples = np.linspace(-half, half, 4001)
-    arc = r * np.stack([np.cos(samples), np.sin(samples)], axis=1)
-    assert _nearest(out.points, arc).max() <= out.spread * (1 + 1e-9) + 1e-12
-    assert out.spread <= r * angle / 2 + 1e-12
+    radii = np.hypot(*out.points.T)
+    np.testing.assert_allclose(radii, radii[0], rtol=1e-12)
+    assert r * max(math.cos(half), 0.0) - 1e-12 <= radii[0] <= r + 1e-12
+    if half <= math.pi / 2:
+        covered = _cone(r, half, np.random.default_rng(seed))
+    else:  # a cone wider than a half-space reaches every point within r, at any azimuth
+        rho, phi = r * np.sqrt(np.random.default_rng(seed).uniform(0, 1, 3000)), np.linspace(
+            -math.pi, math.pi, 3000)
+        covered = np.stack([rho * np.cos(phi), rho * np.sin(phi)], axis=1)
+    assert _nearest(out.points, covered).max() <= out.spread * (1 + 1e-9) + 1e-12
+    if fov == 0.0:
+        assert len(out.points) == 1 and out.spread == 0.0
+    elif half <= math.pi / 2:
+        assert len(out.points) == math.ceil(2 * half / angle) + 1
+        assert out.spread <= r * (1 - math.cos(half)) / 2 + r * min(angle, fov) / 2 + 1e-12
 
 
 @PROPERTY
