@@ -31,6 +31,7 @@ from rcbf_ros.node_logic.interface import (
     wants_help,
 )
 from rcbf_ros.parameters.reader import parameters_of, read_parameters
+from rcbf_ros.ros.console import console_line
 
 T = TypeVar('T')
 
@@ -359,7 +360,7 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
         try:
             rclpy.init(args=argv, **_init_options())
         except _init_errors() as exc:
-            print(f'{name}: {init_error_line(exc)}', file=sys.stderr)
+            console_line(f'{name}: {init_error_line(exc)}')
             return 2
         except (KeyboardInterrupt, ExternalShutdownException):
             _STOP.ignoring = True
@@ -488,12 +489,12 @@ def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] 
     except setup_errors as exc:
         if node is not None:
             raise
-        print(f'{name}: {setup_message}{setup_error_text(exc, name, argv)}', file=sys.stderr)
+        console_line(f'{name}: {setup_message}{setup_error_text(exc, name, argv)}')
         return 2
     except ArithmeticError as exc:
         if node is not None:
             raise
-        print(f'{name}: {setup_message}{arithmetic_error_line(exc)}', file=sys.stderr)
+        console_line(f'{name}: {setup_message}{arithmetic_error_line(exc)}')
         return 2
     finally:
         _STOP.ignoring = True  # from here on the node stops: nothing may cut that short
@@ -519,7 +520,7 @@ def run_module(argv: Sequence[str]) -> int:
         installed its own handlers (during the import the process exits at once).
     """
     if not argv:
-        print('usage: python -m rcbf_ros.ros.node_main <module> [args ...]', file=sys.stderr)
+        console_line('usage: python -m rcbf_ros.ros.node_main <module> [args ...]')
         return 2
     sys.argv = list(argv)
     interface = _light_interface(argv[0], argv)
