@@ -99,6 +99,10 @@ with control_period_s > 0 a state older than latency_s (at most TIMING_LIMIT_S, 
 the fail-safe, and the timer answers at most once a HOLD_TIMER_MIN_PERIOD_S (1 ms), so at
 most 1001 answers of a stretch come before its first fail-safe. A guard, should those limits
 change: the run is refused rather than simulated without bound."""
+LATEST_LOG_TIME_NS = 2**31 * 10**9 - 1
+"""The latest log time (ns) a run may hold: each answer is stamped with a log time, and
+builtin_interfaces/msg/Time counts its seconds in an int32 (up to 2038-01-19). An MCAP log time
+may be any uint64."""
 
 
 class RefilterError(ValueError):
@@ -851,6 +855,11 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
             writer.add_topic(OUTPUT_INFO_TOPIC, FLOAT64_MULTIARRAY)
             writer.add_topic(OUTPUT_DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY)
             for item in read_bag(source):
+                if item.log_time_ns > LATEST_LOG_TIME_NS:  # before any answer reaches it
+                    raise RefilterError(
+                        f'{item.topic} at log time {item.log_time_ns}: later than '
+                        f'{LATEST_LOG_TIME_NS} ns, the latest builtin_interfaces/msg/Time '
+                        '(2038-01-19) an answer can be stamped with')
                 for tick_ns, decision in timer.calls(rules, active, until_ns=item.log_time_ns):
                     write_answer('hold', decision, tick_ns)
                 _copy(writer, item, summary)
