@@ -18,6 +18,7 @@ import re
 import signal
 import sys
 import threading
+import time
 import traceback
 from typing import Any, Callable, Sequence, TypeVar
 
@@ -30,6 +31,7 @@ from rcbf_ros.node_logic.interface import (
     resolve,
     wants_help,
 )
+from rcbf_ros.node_logic.sim_clock import ClockGuard
 from rcbf_ros.parameters.reader import parameters_of, read_parameters
 from rcbf_ros.ros.console import console_line
 
@@ -481,6 +483,7 @@ def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] 
     node = None
     try:
         node = make_node()
+        guard_sim_clock(node)
         if built is not None:  # after ``node`` is set: a signal meanwhile still runs on_exit
             built(node)
         (run or spin)(node)
@@ -504,6 +507,30 @@ def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] 
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def guard_sim_clock(node: Any) -> None:
+    """On rclpy, check each ``/clock`` message before the node's time source takes it
+    (:class:`ClockGuard`): rclpy's raises on negative seconds, which would end the spin. Our
+    runtime's time source checks them itself."""
+    source = getattr(node, '_time_source', None)
+    take_clock = getattr(source, 'clock_callback', None)
+    if take_clock is None:  # our runtime, or an rclpy without this time source
+        return
+    guard = ClockGuard()
+
+    def clock_callback(message: Any) -> None:
+        take, line = guard.check(message.clock.sec, message.clock.nanosec,
+                                 now_ns=time.monotonic_ns())
+        if line:
+            node.get_logger().warning(line)
+        if take:
+            take_clock(message)
+
+    source.clock_callback = clock_callback  # the subscription use_sim_time makes later
+    subscription = getattr(source, '_clock_sub', None)
+    if subscription is not None:  # made while the node was built (use_sim_time true)
+        subscription.callback = clock_callback
 
 
 def _exit_interrupted(signum: int, frame: Any) -> None:
