@@ -33,7 +33,7 @@ from rcbf_ros.node_logic.interface import (
 )
 from rcbf_ros.node_logic.sim_clock import ClockGuard
 from rcbf_ros.parameters.reader import parameters_of, read_parameters
-from rcbf_ros.ros.console import console_line
+from rcbf_ros.ros.console import console_line, run_writing_stdout
 
 T = TypeVar('T')
 
@@ -286,10 +286,14 @@ def init_error_line(error: BaseException) -> str:
 
 
 def print_help(interface: InterfaceSource, argv: Sequence[str]) -> int:
-    """Print the ``--help`` of ``interface`` for the command line ``argv``; exit status 0."""
-    sys.stdout.write(help_text(resolve(interface, argv)))
-    sys.stdout.flush()
-    return 0
+    """Print the ``--help`` of ``interface`` for the command line ``argv``; exit status 0 (a
+    stdout that fails: :func:`run_writing_stdout`)."""
+    resolved = resolve(interface, argv)
+
+    def write() -> int:
+        sys.stdout.write(help_text(resolved))
+        return 0
+    return run_writing_stdout(resolved.node, write)
 
 
 LIGHT_INTERFACES: dict[str, str] = {
