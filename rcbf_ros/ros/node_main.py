@@ -45,8 +45,19 @@ _ASKED = -1
 """The recorded "signal" of :func:`request_stop`: stop without an exception."""
 
 
+def stop_signals(taken: Any = ()) -> tuple[int, ...]:
+    """The signals that ask a process to stop cleanly: SIGINT, SIGTERM and SIGHUP (a terminal
+    closing, a dropped ssh session: without a handler the process ends at once, its exit work
+    undone), SIGHUP only where it is not ignored (nohup) or already in ``taken``."""
+    hangup = getattr(signal, 'SIGHUP', None)
+    if hangup is None or (hangup not in taken and signal.getsignal(hangup) == signal.SIG_IGN):
+        return (signal.SIGINT, signal.SIGTERM)
+    return (signal.SIGINT, signal.SIGTERM, hangup)
+
+
 class _StopRequest:
-    """SIGINT / SIGTERM as a request to stop between callbacks (see the module docstring)."""
+    """SIGINT / SIGTERM / SIGHUP as a request to stop between callbacks (see the module
+    docstring); SIGHUP is taken as SIGTERM."""
 
     def __init__(self) -> None:
         self.signum: int | None = None
@@ -61,15 +72,16 @@ class _StopRequest:
         self.signum, self.deferring, self.ignoring = None, False, False
 
     def install(self) -> None:
-        """Take SIGINT and SIGTERM (main thread only; elsewhere signals cannot be handled)."""
+        """Take SIGINT, SIGTERM and SIGHUP (main thread only; elsewhere signals cannot be
+        handled). SIGHUP stays ignored where the process started with it ignored (nohup)."""
         if threading.current_thread() is not threading.main_thread():
             return
-        for signum in (signal.SIGINT, signal.SIGTERM):
+        for signum in stop_signals(self._previous):
             previous = signal.signal(signum, self.on_signal)
             self._previous.setdefault(signum, previous)
 
     def restore(self) -> None:
-        """Give SIGINT and SIGTERM back to the handlers they had before :meth:`install`."""
+        """Give the signals back to the handlers they had before :meth:`install`."""
         if threading.current_thread() is not threading.main_thread():
             return
         for signum, handler in self._previous.items():
