@@ -99,7 +99,18 @@ def unplayable_reason(topic: TopicInfo) -> str:
     if topic.schema_encoding not in PLAYABLE_SCHEMA_ENCODINGS:
         return (f'topic {topic.name}: schema encoding {topic.schema_encoding!r}, not '
                 f'{" or ".join(map(repr, PLAYABLE_SCHEMA_ENCODINGS))}')
+    if topic.other_types:
+        return f'topic {topic.name}: {several_types(topic)}, where a subscriber takes one'
     return ''
+
+
+def several_types(topic: TopicInfo) -> str:
+    """A topic recorded under several types, as a refusal says it ('' for one type)."""
+    if not topic.other_types:
+        return ''
+    types = [topic.type_name, *topic.other_types]
+    shown = ', '.join(repr(name[:100]) for name in types[:4]) + (', ...' if len(types) > 4 else '')
+    return f'recorded as {len(types)} types ({shown})'
 
 
 def topics_to_play(info: BagInfo, requested: Iterable[str] = ()) -> tuple[list[str], list[str]]:

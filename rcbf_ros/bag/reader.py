@@ -83,6 +83,11 @@ class TopicInfo:
     message_encoding: str = ''
     """The messages' encoding, e.g. ``cdr``; the topic's channels disagreeing, each of theirs
     (sorted, comma-separated)."""
+    other_types: tuple[str, ...] = ()
+    """The types other channels of the topic declare, sorted (none: every channel is
+    ``type_name``). A topic on DDS is one type; a bag written by another tool or merged from
+    two may hold one topic under several, and a reader of ``type_name`` cannot decode the
+    others."""
 
 
 @dataclass(frozen=True)
@@ -372,6 +377,7 @@ def bag_info(path: str | os.PathLike[str], *, allow_cut_short: bool = True) -> B
     counts: dict[str, int] = {}
     topic_meta: dict[str, tuple[str, tuple[RecordedQos, ...], str, str, str]] = {}
     encodings: dict[str, set[str]] = {}
+    types: dict[str, set[str]] = {}
     start: int | None = None
     end: int | None = None
     total = 0
@@ -393,10 +399,12 @@ def bag_info(path: str | os.PathLike[str], *, allow_cut_short: bool = True) -> B
                 schema.data.decode(errors='replace') if schema else '',
                 schema.encoding if schema else ''))
             encodings.setdefault(channel.topic, set()).add(channel.message_encoding)
+            types.setdefault(channel.topic, set()).add(schema.name if schema else '')
             n = one.per_channel.get(channel_id, 0)
             counts[channel.topic] = counts.get(channel.topic, 0) + n
             total += n
     topics = {name: TopicInfo(name, meta[0], counts.get(name, 0), meta[1], meta[2], meta[3],
-                              meta[4], ', '.join(sorted(encodings[name])))
+                              meta[4], ', '.join(sorted(encodings[name])),
+                              tuple(sorted(types[name] - {meta[0]})))
               for name, meta in topic_meta.items()}
     return BagInfo(tuple(files), topics, total, start or 0, end or 0, complete)

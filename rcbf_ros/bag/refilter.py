@@ -30,6 +30,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import numpy as np
 
 from rcbf_ros.bag import bag_info, BagError, BagWriter, mcap_files, read_bag
+from rcbf_ros.bag.playback import several_types
 from rcbf_ros.core.config import filter_config_from_params, FilterConfig, flatten
 from rcbf_ros.core.filter import ACTIVE_TOLERANCE, SafetyFilter
 from rcbf_ros.core.lie_closed_form import state_barrier_values
@@ -99,6 +100,10 @@ with control_period_s > 0 a state older than latency_s (at most TIMING_LIMIT_S, 
 the fail-safe, and the timer answers at most once a HOLD_TIMER_MIN_PERIOD_S (1 ms), so at
 most 1001 answers of a stretch come before its first fail-safe. A guard, should those limits
 change: the run is refused rather than simulated without bound."""
+LATEST_LOG_TIME_NS = 2**31 * 10**9 - 1
+"""The latest log time (ns) a run may hold: each answer is stamped with a log time, and
+builtin_interfaces/msg/Time counts its seconds in an int32 (up to 2038-01-19). An MCAP log time
+may be any uint64."""
 
 
 class RefilterError(ValueError):
@@ -331,6 +336,8 @@ class _SourceTopic:
     definition: str | None
     type_hash: str | None
     qos: tuple[Any, ...]
+    several_types: str = ''
+    """Why the topic cannot be read as one type (:func:`several_types`), else ''."""
 
 
 def _source_topics(path: str | os.PathLike[str]) -> dict[str, _SourceTopic]:
@@ -350,7 +357,7 @@ def _source_topics(path: str | os.PathLike[str]) -> dict[str, _SourceTopic]:
             raise RefilterError(f'{name}: type {topic.type_name!r} has no stored schema and is '
                                 'not in the ROS 2 Jazzy type store')
         topics[name] = _SourceTopic(name, topic.type_name, definition, type_hash,
-                                    topic.offered_qos)
+                                    topic.offered_qos, several_types(topic))
     return topics
 
 
@@ -781,6 +788,10 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     flat = resolve_params(params, node=node)
     config, settings, safety_filter = build_filter(flat)
     sources, source_topics = _sources(config, topics, names, node)
+    read = [proposal_topic, state_topic, *source_topics, *(TF_TOPICS if sources else ())]
+    for topic in (t for t in read if t in topics and topics[t].several_types):
+        raise RefilterError(f'{topic}: {topics[topic].several_types}; the node subscribes to '
+                            f'it as {topics[topic].type_name} and would not receive the others')
     system_name = str(flat.get('system'))
     n_x, n_u = safety_filter.n_x, safety_filter.n_u
     summary = RefilterSummary(source=str(source), output=str(output), system=system_name,
@@ -839,6 +850,10 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
     try:
         with writer:
             for topic in topics.values():
+                if topic.several_types:  # its messages cannot share one output channel
+                    summary.not_copied[topic.name] = (f'{topic.several_types}; one output '
+                                                      'channel holds one')
+                    continue
                 try:
                     writer.add_topic(topic.name, topic.type_name, topic.qos or None,
                                      message_definition=topic.definition,
@@ -852,6 +867,11 @@ def refilter_bag(source: str | os.PathLike[str], output: str | os.PathLike[str],
             writer.add_topic(OUTPUT_INFO_TOPIC, FLOAT64_MULTIARRAY)
             writer.add_topic(OUTPUT_DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY)
             for item in read_bag(source):
+                if item.log_time_ns > LATEST_LOG_TIME_NS:  # before any answer reaches it
+                    raise RefilterError(
+                        f'{item.topic} at log time {item.log_time_ns}: later than '
+                        f'{LATEST_LOG_TIME_NS} ns, the latest builtin_interfaces/msg/Time '
+                        '(2038-01-19) an answer can be stamped with')
                 for tick_ns, decision in timer.calls(rules, active, until_ns=item.log_time_ns):
                     write_answer('hold', decision, tick_ns)
                 _copy(writer, item, summary)

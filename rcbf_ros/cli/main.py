@@ -26,6 +26,8 @@ import importlib
 import sys
 from typing import Any
 
+from rcbf_ros.ros.console import run_writing_stdout
+
 
 @dataclass(frozen=True)
 class Delegated:
@@ -121,7 +123,13 @@ def run_delegated(name: str, argv: Sequence[str]) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console script ``rcbf_ros`` (and ``python -m rcbf_ros``); returns the exit code."""
+    """Console script ``rcbf_ros`` (and ``python -m rcbf_ros``); returns the exit code. A
+    stdout whose reader leaves costs the output, not the work (:func:`run_writing_stdout`)."""
+    return run_writing_stdout('rcbf_ros', lambda: _run(argv))
+
+
+def _run(argv: Sequence[str] | None) -> int:
+    """The subcommand of ``argv`` run; its exit code."""
     given = sys.argv[1:] if argv is None else list(argv)
     # Before any parsing: a delegated subcommand's --help and errors are its module's own.
     if given and given[0] in DELEGATED:

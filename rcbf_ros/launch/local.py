@@ -37,6 +37,7 @@ from rcbf_ros.parameters import bounded_yaml
 from rcbf_ros.parameters.arguments import expand_topic_name, parse_ros_arguments
 from rcbf_ros.parameters.rules import find_config, node_key_level
 from rcbf_ros.ros.loopback import ensure_loopback
+from rcbf_ros.ros.node_main import stop_signals
 
 _REPO_ROOT = Path(__file__).resolve().parents[2]
 # Exit statuses of a process that stopped because we asked it to.
@@ -474,8 +475,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     # SIGINT explicitly, not Python's KeyboardInterrupt: a shell starts a background job
     # (``rcbf_ros launch ... &``) with SIGINT ignored, and Python then installs no handler.
-    previous = {signum: signal.signal(signum, on_signal)
-                for signum in (signal.SIGINT, signal.SIGTERM)}
+    # SIGHUP too (a closed terminal): each child has its own process group, so the hangup
+    # reaches the launcher alone, and the launcher ending at once would leave them running.
+    previous = {signum: signal.signal(signum, on_signal) for signum in stop_signals()}
     try:
         outcome = run_processes(children, env=env, sigterm_timeout_s=args.sigterm_timeout,
                                 stop_event=stop)

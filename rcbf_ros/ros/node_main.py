@@ -18,6 +18,7 @@ import re
 import signal
 import sys
 import threading
+import time
 import traceback
 from typing import Any, Callable, Sequence, TypeVar
 
@@ -30,7 +31,9 @@ from rcbf_ros.node_logic.interface import (
     resolve,
     wants_help,
 )
+from rcbf_ros.node_logic.sim_clock import ClockGuard
 from rcbf_ros.parameters.reader import parameters_of, read_parameters
+from rcbf_ros.ros.console import console_line, run_writing_stdout
 
 T = TypeVar('T')
 
@@ -42,8 +45,19 @@ _ASKED = -1
 """The recorded "signal" of :func:`request_stop`: stop without an exception."""
 
 
+def stop_signals(taken: Any = ()) -> tuple[int, ...]:
+    """The signals that ask a process to stop cleanly: SIGINT, SIGTERM and SIGHUP (a terminal
+    closing, a dropped ssh session: without a handler the process ends at once, its exit work
+    undone), SIGHUP only where it is not ignored (nohup) or already in ``taken``."""
+    hangup = getattr(signal, 'SIGHUP', None)
+    if hangup is None or (hangup not in taken and signal.getsignal(hangup) == signal.SIG_IGN):
+        return (signal.SIGINT, signal.SIGTERM)
+    return (signal.SIGINT, signal.SIGTERM, hangup)
+
+
 class _StopRequest:
-    """SIGINT / SIGTERM as a request to stop between callbacks (see the module docstring)."""
+    """SIGINT / SIGTERM / SIGHUP as a request to stop between callbacks (see the module
+    docstring); SIGHUP is taken as SIGTERM."""
 
     def __init__(self) -> None:
         self.signum: int | None = None
@@ -58,15 +72,16 @@ class _StopRequest:
         self.signum, self.deferring, self.ignoring = None, False, False
 
     def install(self) -> None:
-        """Take SIGINT and SIGTERM (main thread only; elsewhere signals cannot be handled)."""
+        """Take SIGINT, SIGTERM and SIGHUP (main thread only; elsewhere signals cannot be
+        handled). SIGHUP stays ignored where the process started with it ignored (nohup)."""
         if threading.current_thread() is not threading.main_thread():
             return
-        for signum in (signal.SIGINT, signal.SIGTERM):
+        for signum in stop_signals(self._previous):
             previous = signal.signal(signum, self.on_signal)
             self._previous.setdefault(signum, previous)
 
     def restore(self) -> None:
-        """Give SIGINT and SIGTERM back to the handlers they had before :meth:`install`."""
+        """Give the signals back to the handlers they had before :meth:`install`."""
         if threading.current_thread() is not threading.main_thread():
             return
         for signum, handler in self._previous.items():
@@ -283,10 +298,14 @@ def init_error_line(error: BaseException) -> str:
 
 
 def print_help(interface: InterfaceSource, argv: Sequence[str]) -> int:
-    """Print the ``--help`` of ``interface`` for the command line ``argv``; exit status 0."""
-    sys.stdout.write(help_text(resolve(interface, argv)))
-    sys.stdout.flush()
-    return 0
+    """Print the ``--help`` of ``interface`` for the command line ``argv``; exit status 0 (a
+    stdout that fails: :func:`run_writing_stdout`)."""
+    resolved = resolve(interface, argv)
+
+    def write() -> int:
+        sys.stdout.write(help_text(resolved))
+        return 0
+    return run_writing_stdout(resolved.node, write)
 
 
 LIGHT_INTERFACES: dict[str, str] = {
@@ -359,7 +378,7 @@ def run_node(name: str, make_node: Callable[[], Any], args: Sequence[str] | None
         try:
             rclpy.init(args=argv, **_init_options())
         except _init_errors() as exc:
-            print(f'{name}: {init_error_line(exc)}', file=sys.stderr)
+            console_line(f'{name}: {init_error_line(exc)}')
             return 2
         except (KeyboardInterrupt, ExternalShutdownException):
             _STOP.ignoring = True
@@ -480,6 +499,7 @@ def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] 
     node = None
     try:
         node = make_node()
+        guard_sim_clock(node)
         if built is not None:  # after ``node`` is set: a signal meanwhile still runs on_exit
             built(node)
         (run or spin)(node)
@@ -488,12 +508,12 @@ def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] 
     except setup_errors as exc:
         if node is not None:
             raise
-        print(f'{name}: {setup_message}{setup_error_text(exc, name, argv)}', file=sys.stderr)
+        console_line(f'{name}: {setup_message}{setup_error_text(exc, name, argv)}')
         return 2
     except ArithmeticError as exc:
         if node is not None:
             raise
-        print(f'{name}: {setup_message}{arithmetic_error_line(exc)}', file=sys.stderr)
+        console_line(f'{name}: {setup_message}{arithmetic_error_line(exc)}')
         return 2
     finally:
         _STOP.ignoring = True  # from here on the node stops: nothing may cut that short
@@ -503,6 +523,30 @@ def _run(name: str, make_node: Callable[[], Any], *, run: Callable[[Any], None] 
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def guard_sim_clock(node: Any) -> None:
+    """On rclpy, check each ``/clock`` message before the node's time source takes it
+    (:class:`ClockGuard`): rclpy's raises on negative seconds, which would end the spin. Our
+    runtime's time source checks them itself."""
+    source = getattr(node, '_time_source', None)
+    take_clock = getattr(source, 'clock_callback', None)
+    if take_clock is None:  # our runtime, or an rclpy without this time source
+        return
+    guard = ClockGuard()
+
+    def clock_callback(message: Any) -> None:
+        take, line = guard.check(message.clock.sec, message.clock.nanosec,
+                                 now_ns=time.monotonic_ns())
+        if line:
+            node.get_logger().warning(line)
+        if take:
+            take_clock(message)
+
+    source.clock_callback = clock_callback  # the subscription use_sim_time makes later
+    subscription = getattr(source, '_clock_sub', None)
+    if subscription is not None:  # made while the node was built (use_sim_time true)
+        subscription.callback = clock_callback
 
 
 def _exit_interrupted(signum: int, frame: Any) -> None:
@@ -519,7 +563,7 @@ def run_module(argv: Sequence[str]) -> int:
         installed its own handlers (during the import the process exits at once).
     """
     if not argv:
-        print('usage: python -m rcbf_ros.ros.node_main <module> [args ...]', file=sys.stderr)
+        console_line('usage: python -m rcbf_ros.ros.node_main <module> [args ...]')
         return 2
     sys.argv = list(argv)
     interface = _light_interface(argv[0], argv)

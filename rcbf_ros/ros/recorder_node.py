@@ -16,6 +16,7 @@ from rcbf_ros.bag import BagWriter, BagWriterConfig, RecordedQos
 from rcbf_ros.bag.writer import BagWriteError, max_chunk_bytes, MessageTooLargeError
 from rcbf_ros.node_logic.interface import NodeInterface, parameter_specs, TopicSpec
 from rcbf_ros.parameters.reader import PERIOD_LIMITS_S, setting
+from rcbf_ros.ros.console import console_line
 from rcbf_ros.ros.node_main import declare_settings, run_node
 from rcbf_ros.ros.runtime import (
     DurabilityPolicy,
@@ -145,7 +146,7 @@ def cdr_payload(sample: bytes) -> bytes:
 
 
 def _print_error(line: str) -> None:
-    print(line, file=sys.stderr, flush=True)
+    console_line(line)
 
 
 class Recorder:

@@ -37,6 +37,7 @@ from rcbf_ros.node_logic.safety_filter_interface import INTERFACE, NODE_NAME, TF
 from rcbf_ros.node_logic.sources import ObservationSources, SENSOR_MESSAGES, topic_refusal
 from rcbf_ros.node_logic.tf_buffer import DEFAULT_CACHE_S
 from rcbf_ros.node_logic.time_budget import TimeBudget
+from rcbf_ros.ros.console import console_line
 from rcbf_ros.ros.node_main import declare_specs, run_node, spin
 from rcbf_ros.ros.runtime import (
     Clock,
@@ -735,7 +736,7 @@ class SafetyFilterNode(Node):
         try:
             self._log(logic.ERROR, reason, now_ns)
         except Exception as exc:
-            print(f'{NODE_NAME}: {reason} (log failed: {_one_line(exc)})', file=sys.stderr)
+            console_line(f'{NODE_NAME}: {reason} (log failed: {_one_line(exc)})')
 
     def _read_proposal(self, data: bytes, active: logic.ActiveFilter) -> logic.ProposalSample:
         """The sample of one ``cmd_proposed`` message, counted when dropped or refused."""

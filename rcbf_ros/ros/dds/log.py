@@ -6,6 +6,7 @@ import sys
 import time
 from typing import Any
 
+from rcbf_ros.ros.console import console_line
 from rcbf_ros.ros.dds.rosout import RosoutWriter
 
 
@@ -28,7 +29,8 @@ LEVEL_NAMES = {'debug': LoggingSeverity.DEBUG, 'info': LoggingSeverity.INFO,
 
 class Logger:
     """rcutils-style logger writing ``[LEVEL] [time] [name]: message`` to stderr, and, for a
-    node's logger and its children, the same line to ``/rosout`` (:mod:`.rosout`)."""
+    node's logger and its children, the same line to ``/rosout`` (:mod:`.rosout`). A line
+    stderr cannot take (a full disk, a closed pipe) is dropped there, as rcutils drops it."""
 
     def __init__(self, name: str, level: LoggingSeverity = LoggingSeverity.INFO,
                  rosout: RosoutWriter | None = None) -> None:
@@ -63,9 +65,8 @@ class Logger:
             else:
                 self._last[key] = now
         stamp_ns = time.time_ns()
-        sys.stderr.write(f'[{severity.name}] [{stamp_ns // 10**9}.{stamp_ns % 10**9:09d}] '
-                         f'[{self.name}]: {message}\n')
-        sys.stderr.flush()
+        console_line(f'[{severity.name}] [{stamp_ns // 10**9}.{stamp_ns % 10**9:09d}] '
+                     f'[{self.name}]: {message}')
         if self._rosout is not None:
             caller = sys._getframe(2)  # the caller of debug() ... fatal()
             self._rosout.write(stamp_ns=stamp_ns, level=int(severity), name=self.name,

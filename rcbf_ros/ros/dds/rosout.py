@@ -10,7 +10,6 @@ nothing.
 """
 from __future__ import annotations
 
-import sys
 from typing import Any
 
 from cyclonedds._clayer import ddspy_write
@@ -19,6 +18,7 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
+from rcbf_ros.ros.console import console_line
 from rcbf_ros.ros.dds import messages
 from rcbf_ros.ros.dds.qos import DurabilityPolicy, QoSProfile, to_cyclone_qos, type_user_data
 
@@ -59,7 +59,7 @@ class RosoutWriter:
             if isinstance(ret, int) and ret < 0:
                 raise RuntimeError(f'DDS write failed with code {ret}')
         except Exception as exc:  # noqa: BLE001 - logging must not fail the caller
-            sys.stderr.write(f'Failed to publish log message to rosout: {exc}\n')
+            console_line(f'Failed to publish log message to rosout: {exc}')
 
     def close(self) -> None:
         """Delete the writer (idempotent); later lines go to the console only."""

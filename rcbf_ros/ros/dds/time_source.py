@@ -4,14 +4,17 @@ Every node declares ``use_sim_time`` (bool, default False) unless it already has
 from overrides). While it is true the node subscribes to ``/clock`` (``rosgraph_msgs/msg/Clock``,
 best effort, keep-last 1) and ``get_clock().now()`` returns the last time received there (zero
 until the first message); while false, the system time. Setting the parameter switches at once.
+A message of a time no stamp can carry is dropped (:mod:`rcbf_ros.node_logic.sim_clock`).
 
 The node's timers follow the same clock (:class:`rcbf_ros.ros.dds.endpoints.Timer`), unless
 created on another one (``create_timer(..., clock=Clock(clock_type=ClockType.STEADY_TIME))``).
 """
 from __future__ import annotations
 
+import time
 from typing import Any
 
+from rcbf_ros.node_logic.sim_clock import ClockGuard
 from rcbf_ros.ros.dds import messages
 from rcbf_ros.ros.dds.parameters import set_parameters_result
 from rcbf_ros.ros.dds.qos import QoSProfile, ReliabilityPolicy
@@ -30,6 +33,7 @@ class TimeSource:
         self._node = node
         self._subscription: Any = None
         self._last_ns = 0
+        self._guard = ClockGuard()
         if not node.has_parameter(USE_SIM_TIME):
             node.declare_parameter(USE_SIM_TIME, False)
         parameter = node.get_parameter(USE_SIM_TIME)
@@ -74,6 +78,12 @@ class TimeSource:
         return set_parameters_result(True)
 
     def _on_clock(self, message: Any) -> None:
-        self._last_ns = message.clock.sec * 10**9 + message.clock.nanosec
+        sec, nanosec = message.clock.sec, message.clock.nanosec
+        take, line = self._guard.check(sec, nanosec, now_ns=time.monotonic_ns())
+        if line:
+            self._node.get_logger().warning(line)
+        if not take:  # a time no stamp can carry: the clock keeps its time
+            return
+        self._last_ns = sec * 10**9 + nanosec
         if self.active:
             self._node.get_clock()._set_ros_time(self._last_ns)
