@@ -69,6 +69,9 @@ _MAGIC = b'\x89MCAP0\r\n'
 _RECORD_HEAD = struct.Struct('<BQ')  # opcode, content length
 _SUMMARY_OFFSET_SIZE = _RECORD_HEAD.size + 1 + 8 + 8  # opcode, group start and length
 _FOOTER_SIZE = _RECORD_HEAD.size + 8 + 8 + 4  # summary start, offsets start, CRC
+_TOPIC_SLACK = 64
+"""Bytes each topic's share of the closing bound carries beyond its own measure
+(:meth:`BagWriter._share`): the YAML of a list of one entry differs from an empty list's."""
 _CHUNK_HEAD = struct.Struct('<QQQII')  # start and end time, uncompressed size and CRC, len(str)
 _MESSAGE_INDEX_HEAD = struct.Struct('<HI')  # channel id, bytes of (time, offset) entries
 _MESSAGE_HEAD = struct.Struct('<HIQQ')  # channel id, sequence, log and publish time
@@ -448,7 +451,11 @@ class BagWriter:
         self._summary_records: list[tuple[Opcode, bytes]] = []  # schemas and channels
         self._error: BagWriteError | None = None
         self._closed = False
-        self._bound_cache: tuple[Any, int, int] = (None, 0, 0)  # see _closing_bound
+        # see _closing_bound: the bound without topics, what the registered topics add to it,
+        # and the latest topic's own share
+        self._base_bound: tuple[int, int] | None = None
+        self._topics_bound = [0, 0]
+        self._topic_share: tuple[TopicRecord | None, tuple[int, int]] = (None, (0, 0))
         _ignore_file_size_signal()
         self._file = _BagFile(self.mcap_path)
         _lock_exclusive(self._file.fileno())
@@ -534,6 +541,9 @@ class BagWriter:
             self._chunk.added(len(added[-1][1]), message=False)
             self._summary_records += added
             self.topics[name] = record
+            share = self._share(record, added)
+            self._topics_bound[0] += share[0]
+            self._topics_bound[1] += share[1]
             return record
 
     # -- messages -------------------------------------------------------------------------
@@ -737,19 +747,48 @@ class BagWriter:
         """Upper bounds of ``len(self._closing(contents))`` and of metadata.yaml's size, checked
         before every chunk: without writing the bag information as YAML each time (~30 ms for
         a few topics) nor joining the chunk indexes (thousands in a long recording). Counts and
-        times are taken as 20 digits wide, the most a 64-bit number has."""
-        key = (len(self.topics), extra_topic[0].name if extra_topic else None)
-        if self._bound_cache[0] != key:
-            widest = _widest_counts(self._information(
-                _Contents(), extra_topic[0] if extra_topic else None))
-            head, groups = self._closing_parts(_Contents(), extra_topic, info=widest)
-            channels = len(self.topics) + (1 if extra_topic else 0)
-            fixed = (len(head) + sum(len(group) for _, group in groups)
-                     + 10 * channels  # statistics: a count per channel
-                     + len(groups) * _SUMMARY_OFFSET_SIZE + _FOOTER_SIZE + len(_MAGIC))
-            self._bound_cache = (key, fixed, len(_metadata_yaml_text(widest)))
-        _, fixed, yaml_size = self._bound_cache
+        times are taken as 20 digits wide, the most a 64-bit number has.
+
+        The bound is the bound of a bag without topics plus each topic's share
+        (:meth:`_share`), kept as running sums: registering a topic costs the same whatever
+        the bag already holds (recomputing the whole bound per topic made a bag of N topics
+        cost N^2 YAML dumps: minutes at a thousand)."""
+        if self._base_bound is None:
+            self._base_bound = self._bound_of([], [])
+        fixed, yaml_size = (self._base_bound[0] + self._topics_bound[0],
+                            self._base_bound[1] + self._topics_bound[1])
+        if extra_topic is not None:
+            share = self._share(*extra_topic)
+            fixed, yaml_size = fixed + share[0], yaml_size + share[1]
         return fixed + contents.chunk_index_size, yaml_size
+
+    def _share(self, record: TopicRecord, added: list[tuple[Opcode, bytes]]
+               ) -> tuple[int, int]:
+        """What one topic adds at most to the closing records and to metadata.yaml: the bound
+        of a bag holding it alone less the bound without topics, plus
+        :data:`_TOPIC_SLACK` (a list of one entry is written otherwise than an empty one).
+        Each topic's information, schema and channel records are written apart from the
+        others' (YAML anchors only shorten a repeat), so the shares' sum bounds the whole;
+        a schema shared by several topics is counted for each."""
+        if self._topic_share[0] is not record:
+            assert self._base_bound is not None
+            fixed, yaml_size = self._bound_of([record], added)
+            self._topic_share = (record, (fixed - self._base_bound[0] + _TOPIC_SLACK,
+                                          yaml_size - self._base_bound[1] + _TOPIC_SLACK))
+        return self._topic_share[1]
+
+    def _bound_of(self, topics: list[TopicRecord], records: list[tuple[Opcode, bytes]]
+                  ) -> tuple[int, int]:
+        """(the closing records' size, metadata.yaml's) of an empty file holding ``topics``
+        (their schema and channel ``records``), counts and times 20 digits wide."""
+        widest = _widest_counts(bag_information(
+            files=[FileSpan(self.mcap_path.name, 0, 0, 0)],
+            topics=[replace(t, message_count=0) for t in topics]))
+        head, groups = self._closing_parts_of(_Contents(), widest, records)
+        fixed = (len(head) + sum(len(group) for _, group in groups)
+                 + 10 * len(topics)  # statistics: a count per channel
+                 + len(groups) * _SUMMARY_OFFSET_SIZE + _FOOTER_SIZE + len(_MAGIC))
+        return fixed, len(_metadata_yaml_text(widest))
 
     def _closing_parts(self, contents: _Contents,
                        extra_topic: tuple[TopicRecord, list[tuple[Opcode, bytes]]] | None, *,
@@ -760,10 +799,18 @@ class BagWriter:
         :meth:`_closing` joins them)."""
         if info is None:
             info = self._information(contents, extra_topic[0] if extra_topic else None)
+        return self._closing_parts_of(
+            contents, info, self._summary_records + (extra_topic[1] if extra_topic else []))
+
+    @staticmethod
+    def _closing_parts_of(contents: _Contents, info: dict[str, Any],
+                          records: list[tuple[Opcode, bytes]]
+                          ) -> tuple[bytes, list[tuple[Opcode, bytes]]]:
+        """:meth:`_closing_parts` of the bag information ``info`` and the schema and channel
+        ``records``."""
         metadata = _record_bytes(Metadata(name='rosbag2', metadata={
             'serialized_metadata': yaml.safe_dump(info, sort_keys=False).rstrip('\n')}))
         data_end = _record_bytes(DataEnd(zlib.crc32(metadata, contents.data_crc)))
-        records = self._summary_records + (extra_topic[1] if extra_topic else [])
         statistics = _record_bytes(Statistics(
             message_count=contents.message_count,
             schema_count=sum(opcode == Opcode.SCHEMA for opcode, _ in records),

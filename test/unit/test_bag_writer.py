@@ -304,3 +304,68 @@ def test_metadata_record_is_last_before_summary(sample_bag: Path) -> None:
         offset = summary.metadata_indexes[0].offset
         last_chunk = max(c.chunk_start_offset for c in summary.chunk_indexes)
     assert offset > last_chunk
+
+
+_TYPES = ['std_msgs/msg/Float64MultiArray', 'geometry_msgs/msg/Twist', 'nav_msgs/msg/Odometry',
+          'sensor_msgs/msg/LaserScan', 'tf2_msgs/msg/TFMessage']
+
+
+def _topic_names(draw_count: int, seed: int) -> list[tuple[str, str, int]]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(draw_count):
+        name = '/' + '/'.join(f't{k}_' + 'x' * int(rng.integers(0, 120))
+                              for _ in range(int(rng.integers(1, 4))))
+        out.append((name, _TYPES[int(rng.integers(0, len(_TYPES)))], int(rng.integers(1, 4))))
+    return out
+
+
+@pytest.mark.parametrize('count, seed', [(1, 0), (2, 1), (7, 2), (60, 3)])
+def test_the_closing_bound_covers_the_closing_records_whatever_the_topics(tmp_path, count,
+                                                                          seed):
+    """The bound each write checks (the closing records and metadata.yaml) is at least what
+    closing writes, for topics of shared and distinct types, long names, several QoS
+    profiles, before and after messages."""
+    from rcbf_ros.bag.writer import _metadata_yaml_text, _widest_counts
+
+    def check(contents):
+        # the counts and times as wide as 64-bit numbers get: what the bound must cover
+        actual = len(_metadata_yaml_text(writer._information(contents)))
+        widest = len(_metadata_yaml_text(_widest_counts(writer._information(contents))))
+        closing, yaml_size = writer._closing_bound(contents)
+        assert yaml_size >= widest
+        assert closing >= len(writer._closing(contents)) + (widest - actual)
+
+    writer = BagWriter(tmp_path / 'b')
+    for name, type_name, profiles in _topic_names(count, seed):
+        writer.add_topic(name, type_name, [RecordedQos(depth=d + 1) for d in range(profiles)])
+        check(writer._file.contents)
+    first = next(iter(writer.topics))
+    writer.write_message(first, b'\x00\x01\x00\x00' + bytes(8), 10**18)
+    check(writer._file.contents)
+    writer.close()
+
+
+def test_registering_a_topic_costs_the_same_whatever_the_bag_holds(tmp_path, monkeypatch):
+    """The closing bound is kept as running sums: each new topic costs a fixed number of
+    YAML dumps, not one of every topic registered so far (a bag of 1,000 topics took minutes
+    to register, and the refilter and recorder with it)."""
+    from rcbf_ros.bag import writer as writer_module
+    dumps = []
+    real = writer_module.yaml.safe_dump
+
+    def counted(data, *args, **kwargs):
+        if isinstance(data, dict):
+            info = data.get('rosbag2_bagfile_information', data)
+            if 'topics_with_message_count' in info:
+                dumps.append(len(info['topics_with_message_count']))
+        return real(data, *args, **kwargs)
+    monkeypatch.setattr(writer_module.yaml, 'safe_dump', counted)
+    writer = BagWriter(tmp_path / 'b')
+    for k in range(300):
+        writer.add_topic(f'/t{k}', 'std_msgs/msg/Float64MultiArray')
+    assert max(dumps) <= 1, max(dumps)   # each dump of at most one topic's information
+    assert len(dumps) <= 4 * 300 + 4, len(dumps)
+    monkeypatch.setattr(writer_module.yaml, 'safe_dump', real)
+    writer.close()
+    assert len(bag_info(tmp_path / 'b', allow_cut_short=False).topics) == 300
