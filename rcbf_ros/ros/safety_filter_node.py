@@ -76,9 +76,8 @@ class SafetyFilterNode(Node):
             self._active = self._build(params)
             self._check_topics()
         except Exception as exc:  # a value no check foresaw is the user's error too: one line
-            error = exc if isinstance(exc, ValueError) else ValueError(_one_line(exc))
-            self.get_logger().error(f'invalid parameters: {error}')
-            raise error from None
+            # (said once, by the process's exit line: node_main.run_node)
+            raise (exc if isinstance(exc, ValueError) else ValueError(_one_line(exc))) from None
         self.system = str(params.get('system'))
         self._pending: tuple[list[Any], logic.ActiveFilter | None, bool] | None = None
         self._change_source = ''

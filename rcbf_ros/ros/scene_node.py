@@ -172,22 +172,14 @@ class SceneNode(Node):
         super().__init__(node_name, automatically_declare_parameters_from_overrides=True)
         # The settings dynamically typed, so that rate_hz:=10 is taken as well as 10.0; the
         # filter keys are declared when given (by the overrides), described as the filter's.
-        try:
-            declare_specs(self, SCENE_PARAMETERS, dynamic_typing=True, others=None)
-            declare_specs(self, STATE_TYPE_PARAMETERS, given=FILTER_PARAMETERS)
-        except ValueError as exc:
-            self.get_logger().error(f'invalid parameters: {exc}')
-            raise
+        declare_specs(self, SCENE_PARAMETERS, dynamic_typing=True, others=None)
+        declare_specs(self, STATE_TYPE_PARAMETERS, given=FILTER_PARAMETERS)
         params = collect_parameters({name: parameter.value for name, parameter
                                      in self.get_parameters_by_prefix('').items()})
         self._params = params
-        try:
-            self.settings = logic.scene_settings(params)
-            self.geometry = scene_geometry(params)
-            self.frame_id = logic.marker_frame(self.settings.frame_id, self.geometry)
-        except ValueError as exc:
-            self.get_logger().error(f'invalid parameters: {exc}')
-            raise
+        self.settings = logic.scene_settings(params)
+        self.geometry = scene_geometry(params)
+        self.frame_id = logic.marker_frame(self.settings.frame_id, self.geometry)
         self.state_type = self._state_type_parameter()
         self.state: np.ndarray | None = None
         self.h: dict[str, float] = {}
@@ -233,15 +225,11 @@ class SceneNode(Node):
 
     def _state_type_parameter(self) -> str:
         """The declared ``state_type``, checked against the system (ValueError naming it)."""
-        try:
-            state_type = read_parameters(
-                MessageSettings, {'state_type': self.get_parameter('state_type').value}
-            ).state_type
-            if state_type == 'odometry':
-                conversions.check_odometry_support(self.geometry.system)
-        except ValueError as exc:
-            self.get_logger().error(f'invalid parameters: {exc}')
-            raise
+        state_type = read_parameters(
+            MessageSettings, {'state_type': self.get_parameter('state_type').value}
+        ).state_type
+        if state_type == 'odometry':
+            conversions.check_odometry_support(self.geometry.system)
         return str(state_type)
 
     def _on_state(self, data: bytes) -> None:

@@ -107,6 +107,26 @@ def test_the_filter_node_refusing_a_parameter_exits_2_with_stderr_on_a_full_disk
     assert done.returncode == 2
 
 
+@pytest.mark.parametrize('module, params, key', [
+    ('rcbf_ros.ros.safety_filter_node', 'unicycle', 'osqp.max_iter:=2.0'),   # refused building
+    ('rcbf_ros.ros.safety_filter_node', 'unicycle', 'alpha:=-2.0'),          # at declaring
+    ('rcbf_ros.ros.scene_node', 'unicycle', 'rate_hz:=-1.0'),
+    ('rcbf_ros.ros.scene_node', 'car_following', 'state_type:=odometry')])
+def test_a_node_refusing_a_parameter_says_so_in_one_line(ros_domain_id, module, params, key):
+    """The process's exit line says it (node_main.run_node), not also the node's log."""
+    from rcbf_ros.ros.loopback import ensure_loopback
+    path = os.pathsep.join(filter(None, [str(REPO), os.environ.get('PYTHONPATH')]))
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id), PYTHONPATH=path)
+    ensure_loopback(env, force=True)
+    done = subprocess.run(
+        [sys.executable, '-m', module, '--ros-args', '--params-file',
+         str(REPO / 'config' / f'{params}.yaml'), '-p', key],
+        env=env, cwd=REPO, capture_output=True, text=True, timeout=120)
+    lines = done.stderr.splitlines()
+    assert done.returncode == 2 and len(lines) == 1, done.stderr
+    assert ': invalid parameters: ' in lines[0] and key.split(':=')[0] in lines[0], lines
+
+
 # --- a command's stdout ------------------------------------------------------------------------
 
 class _FailingStdout(io.TextIOBase):
