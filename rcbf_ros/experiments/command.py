@@ -197,7 +197,8 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_experiment_command(args: argparse.Namespace, argv: Sequence[str] | None = None) -> int:
-    """``rcbf_ros experiment``; 0 on success, 2 on bad arguments."""
+    """``rcbf_ros experiment``; 0 on success, 2 on bad arguments, 1 when a file of a run
+    cannot be written (a full disk: one line; the finished runs are kept), 130 on Ctrl-C."""
     try:
         budget = BUDGETS[args.budget].with_overrides(
             episodes=args.episodes, max_steps=args.max_steps, eval_max_steps=args.eval_max_steps,
@@ -229,6 +230,10 @@ def run_experiment_command(args: argparse.Namespace, argv: Sequence[str] | None 
     except ClusterError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 2
+    except OSError as exc:  # a run's file not written (a full disk): the runs done are kept
+        print(f'error: {" ".join(str(exc).split())}; finished runs are kept; run the same '
+              'command again to resume', file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print('interrupted: finished runs are kept; run the same command again to resume',
               file=sys.stderr)

@@ -330,3 +330,28 @@ def test_map_contrast_reads_the_paper_figure_on_constructed_maps():
         map_contrast(maps, obstacles, ring=0.0)
     with pytest.raises(ValueError, match='maps'):
         map_contrast({**maps, 'x': (xs[:10], ys, task)}, obstacles)
+
+
+def test_a_run_file_that_cannot_be_written_ends_the_experiment_in_one_line(capsys,
+                                                                          monkeypatch):
+    """A full disk under a run (a bag write, a checkpoint) is one line and exit 1, not a
+    traceback; a Ctrl-C held by that write does not turn it into an exit 130."""
+    import errno
+    import os
+    import signal
+
+    from rcbf_ros.bag.writer import BagWriteError
+    from rcbf_ros.cli.main import main as cli_main
+    from rcbf_ros.experiments import command
+
+    def full_disk(*_args, **_kwargs):
+        from rcbf_ros.bag.interrupts import held
+        with held:  # as the bag writer: a Ctrl-C lands in the write that then fails
+            os.kill(os.getpid(), signal.SIGINT)
+            raise BagWriteError(errno.ENOSPC, "cannot write '/x/bag_0.mcap' (ENOSPC: No "
+                                              'space left on device): bag closed')
+    monkeypatch.setattr(command, 'run_experiment', full_disk)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    assert cli_main(['experiment', 'transfer', '--budget', 'smoke', '--no-report']) == 1
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("error: cannot write '/x/bag_0.mcap' (ENOSPC") and 'resume' in line
