@@ -297,3 +297,25 @@ def test_the_point_behind_is_taken_exactly_where_every_point_is_clear(
         want_h, want_grads = _terms_by_comparison(circles, x, u)
     assert index == [circles.i, circles.j, circles.heading]
     assert h.tobytes() == want_h.tobytes() and grads.tobytes() == want_grads.tobytes()
+
+
+def test_where_the_scaled_rows_are_not_certified_the_rows_as_they_are_answer(monkeypatch):
+    """The many-row path's exact solve on rows scaled to their own scale may fail its
+    certificate (round-off in rows of large gradient); the rows as they are are then solved,
+    before any QP is set up: the same answer, no OSQP."""
+    config = _config()
+    points = np.array([[1.0, 0.0], [1.0, 0.3], [0.9, -0.4]])
+    fast = SafetyFilter(config.problem, footprint=config.footprint)
+    fast.set_points(points)
+    expected = fast.filter([0.2, 0.0, 0.1], [2.0, 0.5])
+    assert not expected.fail_safe and expected.status == 'solved'
+    scaled = []
+
+    def uncertifiable(rows, upper, k, largest=None):
+        scaled.append(len(rows))
+        return [list(row) for row in rows], list(upper), -1.0  # no answer meets it
+    monkeypatch.setattr(filter_module, '_each_row_own', uncertifiable)
+    monkeypatch.setattr(filter_module, '_solve_once', lambda *args: pytest.fail('OSQP used'))
+    result = fast.filter([0.2, 0.0, 0.1], [2.0, 0.5])
+    assert scaled and result.status == 'solved'
+    np.testing.assert_array_equal(result.u_safe, expected.u_safe)
