@@ -64,8 +64,8 @@ setup(
             'scene_markers = rcbf_ros.ros.scene_node:main',
             'rcbf_ros = rcbf_ros.cli.main:main',
             # The same as `rcbf_ros launch` and `rcbf_ros refilter`, under their first names.
-            'rcbf_ros_launch = rcbf_ros.launch.local:main',
-            'rcbf_ros_refilter = rcbf_ros.bag.refilter:main',
+            'rcbf_ros_launch = rcbf_ros.cli.main:launch_alias',
+            'rcbf_ros_refilter = rcbf_ros.cli.main:refilter_alias',
         ],
     },
 )

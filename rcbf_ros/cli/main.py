@@ -128,6 +128,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_writing_stdout('rcbf_ros', lambda: _run(argv))
 
 
+def launch_alias() -> int:
+    """Console script ``rcbf_ros_launch``: ``rcbf_ros launch``, its stdout guarded alike."""
+    return main(['launch', *sys.argv[1:]])
+
+
+def refilter_alias() -> int:
+    """Console script ``rcbf_ros_refilter``: ``rcbf_ros refilter``, its stdout guarded alike."""
+    return main(['refilter', *sys.argv[1:]])
+
+
 def _run(argv: Sequence[str] | None) -> int:
     """The subcommand of ``argv`` run; its exit code."""
     given = sys.argv[1:] if argv is None else list(argv)

@@ -126,10 +126,17 @@ def test_every_console_script_points_at_a_function_that_exists():
         assert callable(getattr(module, function, None)), f'{name} = {target}'
 
 
-def test_the_old_console_scripts_are_the_rcbf_ros_subcommands():
-    """rcbf_ros_launch and rcbf_ros_refilter run what rcbf_ros launch / refilter run."""
-    from rcbf_ros.cli.main import DELEGATED
+def test_the_old_console_scripts_are_the_rcbf_ros_subcommands(monkeypatch):
+    """rcbf_ros_launch and rcbf_ros_refilter run what rcbf_ros launch / refilter run, through
+    rcbf_ros's own entry (its stdout guard included)."""
+    from rcbf_ros.cli import main as cli
     scripts = _console_scripts()
     assert scripts['rcbf_ros'] == 'rcbf_ros.cli.main:main'
     for alias, subcommand in (('rcbf_ros_launch', 'launch'), ('rcbf_ros_refilter', 'refilter')):
-        assert scripts[alias] == f'{DELEGATED[subcommand].module}:main'
+        module_name, _, function = scripts[alias].partition(':')
+        assert module_name == 'rcbf_ros.cli.main'
+        ran: list = []
+        monkeypatch.setattr(cli, '_run', ran.append)  # returns None: exit status 0
+        monkeypatch.setattr(sys, 'argv', [alias, '--x', 'y'])
+        assert not getattr(cli, function)()
+        assert ran == [[subcommand, '--x', 'y']]
