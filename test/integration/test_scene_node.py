@@ -58,9 +58,11 @@ class _Probe:
 
     def publish_until(self, publish, accept, process: subprocess.Popen) -> Any:
         """Publish (again every 0.3 s: the first samples may precede the match) until a
-        MarkerArray that ``accept`` takes arrives; return it."""
+        MarkerArray that ``accept`` takes arrives; return it. Only arrays that arrive from
+        now on count (one that came before was made without this publish)."""
         deadline = time.monotonic() + WAIT_S
-        seen = 0
+        with self.lock:
+            seen = len(self.arrays)
         while time.monotonic() < deadline:
             assert process.poll() is None, stop(process, timeout=10)
             publish()
