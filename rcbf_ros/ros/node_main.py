@@ -47,7 +47,7 @@ _ASKED = -1
 
 def stop_signals(taken: Any = ()) -> tuple[int, ...]:
     """The signals that ask a process to stop cleanly: SIGINT, SIGTERM and SIGHUP (a terminal
-    closing, a dropped ssh session: without a handler the process ends at once, its exit work
+    closing, a dropped ssh connection: without a handler the process ends at once, its exit work
     undone), SIGHUP only where it is not ignored (nohup) or already in ``taken``."""
     hangup = getattr(signal, 'SIGHUP', None)
     if hangup is None or (hangup not in taken and signal.getsignal(hangup) == signal.SIG_IGN):

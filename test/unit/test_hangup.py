@@ -1,4 +1,4 @@
-"""SIGHUP (a terminal closing, a dropped ssh session) asks a node to stop as SIGTERM does: the
+"""SIGHUP (a terminal closing, a dropped ssh connection) asks a node to stop as SIGTERM does: the
 callback under way finishes, the exit work runs, status 0; where the process started with
 SIGHUP ignored (nohup) it stays ignored."""
 from __future__ import annotations
