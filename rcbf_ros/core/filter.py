@@ -428,6 +428,27 @@ def _each_row_own(rows: list[list[float]], upper: list[float], k: int,
             ACTIVE_SET_TOLERANCE * base)
 
 
+def _each_row_own_steps(rows: list[list[float]], upper: list[float], k: int,
+                        p_inverse: list[float],
+                        kernels_of: Callable[[list[list[float]], list[float]], Kernels],
+                        largest: float | None = None) -> list[float] | None:
+    """:func:`_active_set_steps` on the rows met each to its own scale
+    (:func:`_each_row_own`); where they were scaled and that certificate fails (the round-off
+    of a row of large gradient can exceed 1e-12 of its right-hand side), on the rows as they
+    are to the largest scale's tolerance: the row check, each row to its own scale, then
+    judges that answer (OSQP, the next resort, is least sure of such rows). ``kernels_of``:
+    the kernels for the rows and right-hand sides a try solves."""
+    if largest is None:
+        largest = 1.0 + max(map(abs, upper), default=0.0)
+    scaled, bounds, tolerance = _each_row_own(rows, upper, k, largest)
+    z = _active_set_steps(scaled, bounds, p_inverse, tolerance, ACTIVE_SET_STEPS,
+                          kernels_of(scaled, bounds))
+    if z is None and scaled is not rows:
+        z = _active_set_steps(rows, upper, p_inverse, ACTIVE_SET_TOLERANCE * largest,
+                              ACTIVE_SET_STEPS, kernels_of(rows, upper))
+    return z
+
+
 def _active_set_steps(rows: list[list[float]], upper: list[float], p_inverse: list[float],
                       tolerance: float, max_steps: int, kernels: Kernels
                       ) -> list[float] | None:
@@ -1478,19 +1499,11 @@ class SafetyFilter:
         :data:`ACTIVE_SET_TOLERANCE` relative to the largest right-hand side, or, where they
         spread, each RCBF row to its own: :func:`_each_row_own`). A strictly
         convex QP has one solution, so a certified answer is it (OSQP's is within its
-        tolerance of it). The answer then goes through the row check like any other.
-
-        Where the rows were scaled and the certificate each to its own scale fails (the
-        round-off of a row of large gradient can exceed 1e-12 of its right-hand side), the
-        rows as they are to the largest scale's tolerance: the row check, each row to its own
-        scale, then judges that answer (OSQP, the next resort, is least sure of such rows)."""
-        rows, bounds, tolerance = _each_row_own(g_rows, upper, self.n_barriers)
-        z = _active_set_steps(rows, bounds, self._p_inverse_list, tolerance,
-                              ACTIVE_SET_STEPS, self._kernels)
-        if z is None and rows is not g_rows:
-            z = _active_set_steps(g_rows, upper, self._p_inverse_list, ACTIVE_SET_TOLERANCE * (
-                1.0 + max(max(upper), -min(upper))), ACTIVE_SET_STEPS, self._kernels)
-        return z
+        tolerance of it). The answer then goes through the row check like any other (where
+        scaled rows are not certified, the rows as they are: :func:`_each_row_own_steps`)."""
+        kernels = self._kernels
+        return _each_row_own_steps(g_rows, upper, self.n_barriers, self._p_inverse_list,
+                                   lambda rows, bounds: kernels)
 
     def _finite_solution(self, z: Sequence[float] | np.ndarray | None) -> list[float] | None:
         """Solution z as a list of n_u + 1 finite floats, or None if it is not one."""
@@ -1630,24 +1643,18 @@ class SafetyFilter:
             z = generated[0]
         else:
             kernels = self._kernels
-            largest = 1.0 + max(float(_largest(qp_upper)), -float(_least(qp_upper)))
-            rows_in, bounds_in, tolerance = _each_row_own(g_rows, qp_upper_list, count,
-                                                          largest)
-            arrays = len(g_rows) >= ARRAY_EXCESS_ROWS and n_u + 1 in (2, 3)
-            if arrays:
-                # (scaled rows: the arrays' kernel reads them too)
-                kernels = (kernels[0], _excess_over(columns, qp_upper) if rows_in is g_rows
-                           else _excess_over(np.array(rows_in).T, np.array(bounds_in)),
-                           kernels[2])
-            z = _active_set_steps(rows_in, bounds_in, self._p_inverse_list, tolerance,
-                                  ACTIVE_SET_STEPS, kernels)
-            if z is None and rows_in is not g_rows:  # as _active_set: the rows as they are
-                kernels = self._kernels
-                if arrays:
-                    kernels = (kernels[0], _excess_over(columns, qp_upper), kernels[2])
-                z = _active_set_steps(g_rows, qp_upper_list, self._p_inverse_list,
-                                      ACTIVE_SET_TOLERANCE * largest, ACTIVE_SET_STEPS,
-                                      kernels)
+            if len(g_rows) >= ARRAY_EXCESS_ROWS and n_u + 1 in (2, 3):
+                def kernels_of(rows: list[list[float]], bounds: list[float]) -> Kernels:
+                    # the arrays' excess kernel reads the rows a try solves (scaled too)
+                    excess = (_excess_over(columns, qp_upper) if rows is g_rows
+                              else _excess_over(np.array(rows).T, np.array(bounds)))
+                    return kernels[0], excess, kernels[2]
+            else:
+                def kernels_of(rows: list[list[float]], bounds: list[float]) -> Kernels:
+                    return kernels
+            z = _each_row_own_steps(
+                g_rows, qp_upper_list, count, self._p_inverse_list, kernels_of,
+                1.0 + max(float(_largest(qp_upper)), -float(_least(qp_upper))))
         status = 'solved'
         checked = None if z is None else self._check_many(z, upper, lg, applied)
         if checked is None and (self._points is not None or margin is not None):
